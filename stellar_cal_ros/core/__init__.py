@@ -1,0 +1,1 @@
+"""core layer of stellar_cal_ros."""

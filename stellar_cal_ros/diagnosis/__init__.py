@@ -1,0 +1,1 @@
+"""diagnosis layer of stellar_cal_ros."""

@@ -1,0 +1,1 @@
+"""effects layer of stellar_cal_ros."""

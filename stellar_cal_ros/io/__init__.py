@@ -1,0 +1,1 @@
+"""io layer of stellar_cal_ros."""

@@ -1,0 +1,1 @@
+"""nodes layer of stellar_cal_ros."""
