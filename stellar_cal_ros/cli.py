@@ -1,0 +1,156 @@
+"""The ``stellar-cal`` command line (INTERFACES.md §5).
+
+Commands
+--------
+simulate   write a synthetic contract bag + ``*.truth.yaml`` + ``*.prior.yaml``
+info       list the topics, message counts and time span of a bag
+replay     Kalman-filter calibration over a bag (psce, swaying_base)
+batch      attitude-correlated-frames batch calibration
+diagnose   compare model and measurements, rank missing effects
+demo       the built-in end-to-end demonstration
+
+Every error raised on purpose (:class:`stellar_cal_ros.errors.StellarCalError`) is printed as
+one clear line and gives exit status 1; a usage error gives 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from stellar_cal_ros import __version__
+from stellar_cal_ros.errors import StellarCalError
+
+log = logging.getLogger("stellar_cal_ros")
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from stellar_cal_ros.sim.scenarios import get_scenario
+    from stellar_cal_ros.sim.truth_effects import parse_effect_arguments
+    from stellar_cal_ros.sim.world import simulate, write_simulation
+
+    scenario = get_scenario(args.scenario)
+    effects = parse_effect_arguments(args.effect or [])
+    t_start = time.perf_counter()
+    result = simulate(scenario, duration=args.duration, seed=args.seed, effects=effects)
+    t_sim = time.perf_counter() - t_start
+    paths = write_simulation(result, args.output)
+    t_all = time.perf_counter() - t_start
+    m = result.meta
+    print(
+        f"simulated {m['scenario']}: {m['duration_s']:.0f} s, "
+        f"{m['counts']['/imu/data']} IMU samples, {m['counts']['/star_tracker/stars']} star "
+        f"frames ({m['stars_per_frame']['mean']:.1f} stars/frame) in {t_sim:.1f} s "
+        f"(+{t_all - t_sim:.1f} s writing)"
+    )
+    for key in ("bag", "truth", "prior", "meta"):
+        print(f"  {key:5s} {paths[key]}")
+    return 0
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from stellar_cal_ros.io.bag import BagReader
+
+    with BagReader(args.bag) as reader:
+        topics = reader.topics()
+        span = (reader.end_ns - reader.start_ns) * 1e-9
+        print(f"{args.bag}: {span:.3f} s, {len(topics)} topics")
+        for name, info in sorted(topics.items()):
+            print(f"  {name:32s} {info.schema_name:40s} {info.message_count:8d}")
+    return 0
+
+
+def _not_yet(issue: int, what: str):
+    def run(args: argparse.Namespace) -> int:
+        raise StellarCalError(f"{what} is not implemented yet (tracked in issue {issue})")
+
+    return run
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the argument parser of ``stellar-cal``."""
+    p = argparse.ArgumentParser(
+        prog="stellar-cal",
+        description="Star tracker + IMU calibration: simulate, calibrate, diagnose.",
+    )
+    p.add_argument("--version", action="version", version=f"stellar-cal {__version__}")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("simulate", help="write a synthetic contract bag with known truth")
+    s.add_argument("--scenario", required=True,
+                   help="psce_rotations | swaying | acf_sweep")
+    s.add_argument("-o", "--output", required=True, type=Path, help="BAG.mcap to write")
+    s.add_argument("--duration", type=float, default=None, help="seconds (default: scenario's)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (deterministic output)")
+    s.add_argument("--effect", action="append", metavar="ID=VALUE[,VALUE...]",
+                   help="inject or override a physical effect (repeatable); units in "
+                        "stellar_cal_ros.sim.truth_effects")
+    s.set_defaults(func=_cmd_simulate)
+
+    i = sub.add_parser("info", help="topics, counts and time span of a bag")
+    i.add_argument("bag", type=Path)
+    i.set_defaults(func=_cmd_info)
+
+    r = sub.add_parser("replay", help="Kalman-filter calibration over a bag")
+    r.add_argument("bag", type=Path)
+    r.add_argument("--method", required=True, choices=["psce", "swaying_base"])
+    r.add_argument("--prior", required=True, type=Path)
+    r.add_argument("-o", "--output", required=True, type=Path)
+    r.add_argument("--effects", default="", help="comma-separated effect ids to add")
+    r.add_argument("--residuals", type=Path, default=None, help="RES.parquet or RES.csv")
+    r.set_defaults(func=_not_yet(3, "replay"))
+
+    b = sub.add_parser("batch", help="attitude-correlated-frames batch least squares")
+    b.add_argument("bag", type=Path)
+    b.add_argument("--method", required=True, choices=["acf"])
+    b.add_argument("--prior", required=True, type=Path)
+    b.add_argument("-o", "--output", required=True, type=Path)
+    b.add_argument("--effects", default="")
+    b.set_defaults(func=_not_yet(7, "batch"))
+
+    d = sub.add_parser("diagnose", help="compare model and measurements")
+    d.add_argument("bag", type=Path)
+    d.add_argument("--calibration", required=True, type=Path)
+    d.add_argument("--method", required=True)
+    d.add_argument("--effects", default="")
+    d.add_argument("-o", "--output", required=True, type=Path)
+    d.set_defaults(func=_not_yet(5, "diagnose"))
+
+    m = sub.add_parser("demo", help="run the built-in demonstration")
+    m.add_argument("-o", "--output", type=Path, default=Path("demo_out"))
+    m.add_argument("--duration", type=float, default=600.0)
+    m.set_defaults(func=_cmd_demo)
+    return p
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from stellar_cal_ros.sim.demo import run_demo
+
+    return run_demo(args.output, duration=args.duration)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``stellar-cal`` and ``python -m stellar_cal_ros``."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return int(args.func(args) or 0)
+    except StellarCalError as exc:
+        print(f"stellar-cal {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

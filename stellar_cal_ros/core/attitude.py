@@ -1,0 +1,73 @@
+"""Single-frame star-tracker attitude: Wahba solution and pixel-space refinement.
+
+``R_i_st`` maps star-tracker vectors to the inertial frame: ``u_i = R_i_st @ d_st``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from stellar_cal_ros.core.camera import CameraModel
+from stellar_cal_ros.core.rotation import skew, so3_exp
+from stellar_cal_ros.errors import ModelError
+
+
+@dataclass
+class FrameAttitude:
+    """Result of a single-frame attitude fit."""
+
+    R_i_st: np.ndarray  # (3, 3)
+    residuals: np.ndarray  # (n, 2) px, measured − predicted
+    covariance: np.ndarray  # (3, 3) rad², of a right perturbation of R_i_st
+    iterations: int
+
+
+def wahba(
+    directions_st: np.ndarray, directions_i: np.ndarray, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """Least-squares rotation ``R_i_st`` with ``directions_i ≈ R_i_st @ directions_st``.
+
+    Uses :meth:`scipy.spatial.transform.Rotation.align_vectors` (SVD solution of Wahba's
+    problem).  Needs at least two non-parallel directions.
+    """
+    if len(directions_st) < 2:
+        raise ModelError("Wahba's problem needs at least two stars")
+    rot, _ = Rotation.align_vectors(directions_i, directions_st, weights=weights)
+    return rot.as_matrix()
+
+
+def fit_frame_attitude(
+    camera: CameraModel,
+    uv: np.ndarray,
+    directions_i: np.ndarray,
+    sigma_px: float = 1.0,
+    R_i_st0: np.ndarray | None = None,
+    max_iterations: int = 10,
+) -> FrameAttitude:
+    """Fit ``R_i_st`` of one frame by Gauss-Newton on pixel residuals.
+
+    The start is the Wahba solution of the unprojected centroids (or ``R_i_st0``).  The
+    perturbation is on the right: ``R = R_hat · Exp(δ)``, so ``d_st = Exp(−δ) R_hat^T u``
+    and ``∂d_st/∂δ = [d_st]×``.
+    """
+    uv = np.asarray(uv, dtype=float)
+    u_i = np.asarray(directions_i, dtype=float)
+    R = wahba(camera.unproject(uv), u_i) if R_i_st0 is None else np.array(R_i_st0, dtype=float)
+    info = np.eye(3)
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 (reported below)
+        d = u_i @ R  # rows: R^T u
+        pred, J_d, _ = camera.project(d, jacobians=True)
+        r = (uv - pred).reshape(-1)
+        J = np.einsum("nij,njk->nik", J_d, skew(d)).reshape(-1, 3)
+        info = J.T @ J
+        step = np.linalg.solve(info, J.T @ r)
+        R = R @ so3_exp(step)
+        if np.max(np.abs(step)) < 1e-12:
+            break
+    d = u_i @ R
+    residuals = uv - camera.project(d)
+    return FrameAttitude(R, residuals, sigma_px**2 * np.linalg.inv(info), iterations)

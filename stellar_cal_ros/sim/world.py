@@ -1,0 +1,481 @@
+"""The truth world: IMU samples, star centroids and auxiliary topics of a scenario.
+
+Frames and chain (INTERFACES.md §1): inertial ``i`` (GCRS = ICRS axes), Earth ``e``
+(ITRS), local level ``n`` (ENU at the site), IMU ``b`` (``imu_link``), star tracker ``st``.
+
+    R_i_b(t) = R_i_e(t) · R_e_n · R_n_b(t)        R_i_st(t) = R_i_b(t) · R_imu_st
+
+``R_i_e(t) = R_i_e(t0) · Rz(Ω (t − t0))`` with ``R_i_e(t0)`` from ERFA (IAU 2006/2000A,
+dut1 = 0, no polar motion) and Ω the Earth rotation angle rate: over a 2 h scenario this
+differs from the full ERFA model by precession-nutation rates of < 0.01", and it makes the
+gyro truth exactly the derivative of the attitude truth.
+
+Gyro and accelerometer samples are the *mean* body rate and specific force over the
+interval ending at the stamp (contract §2), computed by 3-point Gauss-Legendre quadrature of
+the closed-form rates; slew corners fall on sample boundaries, so the quadrature error is
+far below the sensor noise.  Sensor model: ``w_meas = (I + E) w_true + bias + noise``.
+
+Star centroids: catalogue directions (Hipparcos 2, proper motion to J2000.0 as the messages
+carry them) → optional proper motion to the date, aberration and refraction (scaled by the
+effect values) → tracker frame at the *true* mid-exposure time (stamp + time_offset) →
+true camera model (with thermal focal drift, tilt, …) → Gaussian noise.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from stellar_cal_ros import __version__
+from stellar_cal_ros.core import astrometry, earth
+from stellar_cal_ros.core.camera import CameraModel
+from stellar_cal_ros.core.catalog import load_catalog, posix_to_jyear
+from stellar_cal_ros.core.rotation import so3_exp
+from stellar_cal_ros.errors import ScenarioError
+from stellar_cal_ros.io.bag import BagWriter, ImuSeries, NavSatSeries, ScalarSeries, StarFrame
+from stellar_cal_ros.io.calibration import Calibration, save_calibration
+from stellar_cal_ros.sim.scenarios import Scenario
+from stellar_cal_ros.sim.truth_effects import (
+    ARCSEC,
+    DEG_PER_HOUR,
+    error_matrix,
+    merged_effects,
+)
+
+IMU_FRAME = "imu_link"
+STAR_TRACKER_FRAME = "star_tracker_optical_frame"
+MAX_STARS_PER_FRAME = 200
+_GL_NODES = np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)])
+_GL_WEIGHTS = np.array([5.0, 8.0, 5.0]) / 18.0  # sum to 1: a mean over the interval
+
+
+@dataclass
+class SimulationResult:
+    """Everything a simulation produced (what goes into the bag and the YAML files)."""
+
+    scenario: Scenario
+    imu: ImuSeries
+    star_frames: list[StarFrame]
+    navsat: NavSatSeries
+    head_temperature: ScalarSeries
+    air_temperature: ScalarSeries
+    pressure: ScalarSeries
+    truth: Calibration
+    prior: Calibration
+    effects: dict[str, np.ndarray]
+    meta: dict[str, Any] = field(default_factory=dict)
+    truth_world: TruthWorld | None = None
+
+
+class TruthWorld:
+    """Closed-form truth of attitude, rates and specific force for one scenario run."""
+
+    def __init__(self, scenario: Scenario, duration: float, effects: dict[str, np.ndarray]):
+        self.scenario = scenario
+        self.duration = duration
+        self.effects = effects
+        self.t0 = scenario.start_posix
+        self.site = scenario.site
+        self.motion = scenario.motion(duration)
+        self.omega_earth = earth.ERA_RATE
+        self.R_i_e0 = earth.R_itrs_gcrs(self.t0).T
+        self.R_e_n = earth.R_itrs_enu(self.site)
+        self.gravity_e = earth.gravity_itrs(self.site)
+        self.site_e = earth.site_itrs(self.site)
+
+    # --- attitude and rates -------------------------------------------------------------
+    def R_i_e(self, t: np.ndarray) -> np.ndarray:
+        """Earth attitude in the inertial frame at relative times ``t`` (N, 3, 3)."""
+        t = np.atleast_1d(t)
+        return self.R_i_e0 @ so3_exp(np.outer(self.omega_earth * t, [0.0, 0.0, 1.0]))
+
+    def R_i_b(self, t: np.ndarray) -> np.ndarray:
+        """IMU attitude in the inertial frame at relative times ``t`` (N, 3, 3)."""
+        return self.R_i_e(t) @ self.R_e_n @ self.motion.attitude(t)
+
+    def omega_ib_b(self, t: np.ndarray) -> np.ndarray:
+        """Body rate w.r.t. inertial space in the body frame (N, 3), rad/s."""
+        R_n_b = self.motion.attitude(t)
+        w_ie_n = self.R_e_n.T @ np.array([0.0, 0.0, self.omega_earth])
+        return np.einsum("nji,j->ni", R_n_b, w_ie_n) + self.motion.rate(t)
+
+    def specific_force_b(self, t: np.ndarray) -> np.ndarray:
+        """Specific force in the body frame (N, 3), m/s^2.
+
+        ``f_e = a_e + 2 Ω×v_e + Ω×(Ω×Δp_e) − g_e``: Earth-relative kinematics of the
+        displacement ``Δp`` from the site plus the site's gravity (gravitation + centrifugal).
+        """
+        Om = np.array([0.0, 0.0, self.omega_earth])
+        dp = self.motion.position(t) @ self.R_e_n.T
+        v = self.motion.velocity(t) @ self.R_e_n.T
+        a = self.motion.acceleration(t) @ self.R_e_n.T
+        f_e = a + 2 * np.cross(Om, v) + np.cross(Om, np.cross(Om, dp)) - self.gravity_e
+        R_n_b = self.motion.attitude(t)
+        return np.einsum("nji,nj->ni", R_n_b, f_e @ self.R_e_n)
+
+    def interval_means(self, t_end: np.ndarray, dt: float, fn) -> np.ndarray:
+        """Mean of ``fn`` over ``(t_end − dt, t_end]`` by Gauss-Legendre quadrature."""
+        mid = t_end - 0.5 * dt
+        acc = np.zeros((t_end.size, 3))
+        for x, w in zip(_GL_NODES, _GL_WEIGHTS, strict=True):
+            acc += w * fn(mid + 0.5 * dt * x)
+        return acc
+
+    def installation(self) -> Rotation:
+        """True ``R_imu_st`` (without gravity-dependent flexure)."""
+        delta = self.effects["installation"] * ARCSEC
+        return self.scenario.installation_nominal * Rotation.from_rotvec(delta)
+
+    def head_temperature(self, t: np.ndarray) -> np.ndarray:
+        """Optical-head temperature (°C) at relative times ``t``."""
+        s = self.scenario
+        return s.head_temperature_ambient_c + (
+            s.head_temperature_start_c - s.head_temperature_ambient_c
+        ) * np.exp(-np.asarray(t) / s.head_temperature_tau_s)
+
+    def camera(self) -> CameraModel:
+        """True camera at the thermal reference temperature."""
+        s, e = self.scenario, self.effects
+        f = s.focal_length_px + e["focal_length"][0]
+        dist = np.zeros(14)
+        dist[[0, 1]] = e["radial_k1k2"]
+        dist[4] = e["radial_k3"][0]
+        dist[[2, 3]] = e["tangential"]
+        dist[[12, 13]] = e["image_plane_tilt"]
+        return CameraModel(
+            width=s.width,
+            height=s.height,
+            fx=f,
+            fy=f * (1.0 + e["pixel_aspect"][0]),
+            cx=(s.width - 1) / 2 + e["principal_point"][0],
+            cy=(s.height - 1) / 2 + e["principal_point"][1],
+            distortion=dist,
+        )
+
+
+def simulate(
+    scenario: Scenario,
+    *,
+    duration: float | None = None,
+    seed: int = 0,
+    effects: dict[str, Any] | None = None,
+) -> SimulationResult:
+    """Run the truth world of ``scenario`` and return the sensor data and calibrations.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        The scenario (see :func:`stellar_cal_ros.sim.scenarios.get_scenario`).
+    duration : float, optional
+        Seconds to simulate (default: the scenario's).
+    seed : int
+        Seed of every random draw: the same seed gives byte-identical data.
+    effects : dict, optional
+        Effect values overriding the scenario's (units in :mod:`.truth_effects`).
+    """
+    duration = float(scenario.duration if duration is None else duration)
+    if not duration > 0:
+        raise ScenarioError(f"duration must be positive, got {duration}")
+    eff = merged_effects(scenario.effects, effects)
+    rng = np.random.default_rng(seed)
+    world = TruthWorld(scenario, duration, eff)
+    t0 = scenario.start_posix
+
+    imu = _simulate_imu(world, rng)
+    frames, star_stats = _simulate_stars(world, rng)
+    aux = _simulate_aux(world)
+    truth = _truth_calibration(world)
+    prior = _prior_calibration(world)
+    meta = {
+        "generator": f"stellar_cal_ros {__version__}",
+        "scenario": scenario.name,
+        "seed": seed,
+        "duration_s": duration,
+        "t0_posix_ns": int(round(t0 * 1e9)),
+        "imu_rate_hz": scenario.imu_rate,
+        "star_rate_hz": scenario.star_rate,
+        "centroid_noise_px": scenario.centroid_noise_px,
+        "gyro_arw_deg_sqrth": scenario.gyro_arw_deg_sqrth,
+        "accel_vrw_mps_sqrth": scenario.accel_vrw_mps_sqrth,
+        "site": [scenario.site.latitude_deg, scenario.site.longitude_deg, scenario.site.height_m],
+        "effects": {k: v.tolist() for k, v in eff.items()},
+        "counts": {"/imu/data": int(imu.stamp_ns.size), "/star_tracker/stars": len(frames)},
+        "stars_per_frame": star_stats,
+    }
+    return SimulationResult(
+        scenario=scenario,
+        imu=imu,
+        star_frames=frames,
+        navsat=aux["navsat"],
+        head_temperature=aux["head"],
+        air_temperature=aux["air"],
+        pressure=aux["pressure"],
+        truth=truth,
+        prior=prior,
+        effects=eff,
+        meta=meta,
+        truth_world=world,
+    )
+
+
+def _simulate_imu(world: TruthWorld, rng: np.random.Generator) -> ImuSeries:
+    s, e = world.scenario, world.effects
+    dt = 1.0 / s.imu_rate
+    n = int(np.floor(world.duration * s.imu_rate + 1e-9))
+    k = np.arange(1, n + 1)
+    t_end = k * dt
+    w = world.interval_means(t_end, dt, world.omega_ib_b)
+    f = world.interval_means(t_end, dt, world.specific_force_b)
+    Eg = error_matrix(e["gyro_scale_factor"], e["gyro_misalignment"])
+    Ea = error_matrix(e["accel_scale_factor"])
+    gyro_sigma = np.deg2rad(s.gyro_arw_deg_sqrth) / 60.0 / np.sqrt(dt)
+    accel_sigma = s.accel_vrw_mps_sqrth / 60.0 / np.sqrt(dt)
+    w_meas = w + w @ Eg.T + e["gyro_bias"] * DEG_PER_HOUR + gyro_sigma * rng.standard_normal((n, 3))
+    f_meas = f + f @ Ea.T + e["accel_bias"] + accel_sigma * rng.standard_normal((n, 3))
+    stamp_ns = int(round(s.start_posix * 1e9)) + np.round(t_end * 1e9).astype(np.int64)
+    return ImuSeries(stamp_ns=stamp_ns, angular_velocity=w_meas, linear_acceleration=f_meas,
+                     frame_id=IMU_FRAME)
+
+
+def _simulate_stars(
+    world: TruthWorld, rng: np.random.Generator
+) -> tuple[list[StarFrame], dict[str, float]]:
+    s, e = world.scenario, world.effects
+    cat = load_catalog(mag_limit=s.mag_limit)
+    radec_msg = cat.message_radec()  # what a tracker message carries (J2000.0 place)
+    u_j2000 = cat.directions(2000.0)
+    jyear = float(posix_to_jyear(s.start_posix))
+    u_date = cat.directions(jyear)
+    pm_scale = e["proper_motion"][0]
+    u_cat = _normalize(u_j2000 + pm_scale * (u_date - u_j2000))
+
+    stamps_rel = s.star_phase_s + np.arange(0.0, world.duration, 1.0 / s.star_rate)
+    stamps_rel = stamps_rel[stamps_rel <= world.duration - 1e-9]
+    t_true = stamps_rel + e["time_offset"][0]
+    if np.any(t_true < 0) or np.any(t_true > world.duration + 1.0):
+        raise ScenarioError("time_offset moves exposures outside the simulated span")
+    R_i_st = world.R_i_b(t_true) @ world.installation().as_matrix()
+    flex = e["mount_flexure"][0]
+    if flex != 0.0:
+        # Gravity-dependent bending: rotation ∝ lateral gravity in the tracker frame.
+        g_i = world.R_i_e(t_true) @ world.gravity_e
+        g_st = np.einsum("nji,nj->ni", R_i_st, g_i)
+        g_st /= np.linalg.norm(g_st, axis=1, keepdims=True)
+        delta = flex * ARCSEC * np.cross([0.0, 0.0, 1.0], g_st)
+        R_i_st = R_i_st @ so3_exp(delta)
+
+    # Pass 1: candidate stars by J2000 direction (1 deg margin beyond the half-diagonal).
+    cam = world.camera()
+    half_diag = np.arctan(np.hypot(s.width, s.height) / 2 / min(cam.fx, cam.fy))
+    cos_lim = np.cos(half_diag + np.deg2rad(1.0))
+    boresight_i = R_i_st[:, :, 2]
+    frame_idx, star_idx = [], []
+    for a in range(0, len(t_true), 512):
+        cosang = boresight_i[a:a + 512] @ u_cat.T
+        fi, si = np.nonzero(cosang > cos_lim)
+        frame_idx.append(fi + a)
+        star_idx.append(si)
+    frame_idx = np.concatenate(frame_idx)
+    star_idx = np.concatenate(star_idx)
+
+    # Pass 2: apparent directions at the true exposure times.
+    t_obs = s.start_posix + t_true[frame_idx]
+    u = u_cat[star_idx]
+    ab = e["aberration"][0]
+    if ab != 0.0:
+        u = astrometry.aberration(u, t_obs, world.site, scale=ab)
+    rf = e["refraction"][0]
+    if rf != 0.0:
+        p_hpa, temp_c = s.pressure_hpa, _air_temperature(s, t_true[frame_idx])
+        u = astrometry.refraction(u, t_obs, world.site, pressure_hpa=p_hpa,
+                                  temperature_c=temp_c, scale=rf)
+
+    # Pass 3: camera projection with per-frame thermal focal drift, noise, image bounds.
+    d_st = np.einsum("nji,nj->ni", R_i_st[frame_idx], u)
+    ok = d_st[:, 2] > 0
+    uv = np.full((len(u), 2), np.nan)
+    uv[ok] = cam.project(d_st[ok])
+    c = np.array([cam.cx, cam.cy])
+    thermal = e["thermal_focal_length"][0]
+    if thermal != 0.0:
+        dT = world.head_temperature(t_true[frame_idx]) - s.head_temperature_ref_c
+        uv = c + (uv - c) * (1.0 + thermal * dT)[:, None]
+    mag = cat.magnitude[star_idx]
+    mb = e["magnitude_bias"]
+    if mb[0] != 0.0:
+        direction = np.array([np.cos(np.deg2rad(mb[1])), np.sin(np.deg2rad(mb[1]))])
+        uv = uv + (mb[0] * (mag - 4.0))[:, None] * direction
+    uv = uv + s.centroid_noise_px * rng.standard_normal(uv.shape)
+    keep = ok & cam.in_image(np.nan_to_num(uv, nan=-1e9))
+    frame_idx, star_idx, uv, mag = frame_idx[keep], star_idx[keep], uv[keep], mag[keep]
+
+    ids = cat.hip[star_idx].astype(np.uint32)
+    ra, dec = radec_msg[0][star_idx], radec_msg[1][star_idx]
+    mis = e["misidentification"][0]
+    if mis > 0.0:
+        wrong = rng.random(len(ids)) < mis
+        other = rng.integers(0, len(cat.hip), int(wrong.sum()))
+        ids[wrong] = cat.hip[other].astype(np.uint32)
+        ra, dec = ra.copy(), dec.copy()
+        ra[wrong], dec[wrong] = radec_msg[0][other], radec_msg[1][other]
+
+    stamp0 = int(round(s.start_posix * 1e9))
+    frames: list[StarFrame] = []
+    order = np.argsort(frame_idx, kind="stable")
+    bounds = np.searchsorted(frame_idx[order], np.arange(len(stamps_rel) + 1))
+    counts = []
+    for j in range(len(stamps_rel)):
+        sel = order[bounds[j]:bounds[j + 1]]
+        sel = sel[np.argsort(mag[sel], kind="stable")][:MAX_STARS_PER_FRAME]
+        counts.append(len(sel))
+        frames.append(
+            StarFrame(
+                stamp_ns=stamp0 + int(round(stamps_rel[j] * 1e9)),
+                frame_id=STAR_TRACKER_FRAME,
+                exposure_time=s.exposure_time,
+                catalog_id=ids[sel],
+                right_ascension=ra[sel],
+                declination=dec[sel],
+                uv=uv[sel],
+                magnitude=mag[sel],
+                sigma=np.full(len(sel), s.centroid_noise_px),
+            )
+        )
+    counts_arr = np.array(counts) if counts else np.zeros(1)
+    stats = {"mean": float(counts_arr.mean()), "min": int(counts_arr.min()),
+             "max": int(counts_arr.max())}
+    return frames, stats
+
+
+def _air_temperature(s: Scenario, t_rel: np.ndarray) -> np.ndarray:
+    return s.air_temperature_c + s.air_temperature_rate_c_per_h * np.asarray(t_rel) / 3600.0
+
+
+def _simulate_aux(world: TruthWorld) -> dict[str, Any]:
+    s = world.scenario
+    t_rel = np.arange(0.0, world.duration + 1e-9, 1.0 / s.aux_rate)
+    stamp_ns = int(round(s.start_posix * 1e9)) + np.round(t_rel * 1e9).astype(np.int64)
+    n = t_rel.size
+    navsat = NavSatSeries(
+        stamp_ns=stamp_ns,
+        latitude_deg=np.full(n, s.site.latitude_deg),
+        longitude_deg=np.full(n, s.site.longitude_deg),
+        altitude_m=np.full(n, s.site.height_m),
+        status=np.zeros(n, dtype=int),
+    )
+    head = ScalarSeries(stamp_ns, world.head_temperature(t_rel), np.full(n, 0.01),
+                        STAR_TRACKER_FRAME)
+    air = ScalarSeries(stamp_ns, _air_temperature(s, t_rel), np.full(n, 0.25), "environment")
+    pressure = ScalarSeries(stamp_ns, np.full(n, s.pressure_hpa * 100.0), np.full(n, 100.0),
+                            "environment")
+    return {"navsat": navsat, "head": head, "air": air, "pressure": pressure}
+
+
+def _truth_calibration(world: TruthWorld) -> Calibration:
+    s, e = world.scenario, world.effects
+    effects: dict[str, dict[str, Any]] = {}
+    if e["thermal_focal_length"][0] != 0.0:
+        effects["thermal_focal_length"] = {
+            "coefficient_per_c": float(e["thermal_focal_length"][0]),
+            "reference_temperature_c": s.head_temperature_ref_c,
+        }
+    for key in ("aberration", "refraction", "proper_motion"):
+        if e[key][0] != 0.0:
+            effects[key] = {"scale": float(e[key][0])}
+    for key in ("mount_flexure", "magnitude_bias", "misidentification"):
+        if np.any(e[key] != 0.0):
+            effects[key] = {"value": e[key].tolist()}
+    return Calibration(
+        camera=world.camera(),
+        installation=world.installation(),
+        gyro_bias=e["gyro_bias"] * DEG_PER_HOUR,
+        gyro_error_matrix=error_matrix(e["gyro_scale_factor"], e["gyro_misalignment"]),
+        accel_bias=e["accel_bias"].copy(),
+        accel_error_matrix=error_matrix(e["accel_scale_factor"]),
+        time_offset=float(e["time_offset"][0]),
+        effects=effects,
+        sigma={},
+        method="truth",
+        stamp=s.start_posix,
+    )
+
+
+def default_prior_sigma() -> dict[str, Any]:
+    """Datasheet-level 1-sigma uncertainties of a prior (contract §3 layout)."""
+    return {
+        "camera": {
+            "camera_matrix": {"rows": 3, "cols": 3,
+                              "data": [20.0, 0.0, 20.0, 0.0, 20.0, 20.0, 0.0, 0.0, 0.0]},
+            "distortion_coefficients": {"rows": 1, "cols": 5,
+                                        "data": [0.3, 1.0, 0.002, 0.002, 2.0]},
+        },
+        "installation": {"rotation_vector": [float(np.deg2rad(0.2))] * 3},
+        "gyro": {"bias": [float(0.05 * DEG_PER_HOUR)] * 3, "error_matrix": [1e-4] * 9},
+        "accelerometer": {"bias": [1e-3] * 3, "error_matrix": [1e-4] * 9},
+        "time_offset": 0.05,
+    }
+
+
+def _prior_calibration(world: TruthWorld) -> Calibration:
+    s = world.scenario
+    cam = CameraModel.pinhole(s.width, s.height, s.focal_length_px)
+    sigma = default_prior_sigma()
+    sigma.update(s.prior_sigma)
+    return Calibration(
+        camera=cam,
+        installation=s.installation_nominal,
+        gyro_bias=np.zeros(3),
+        gyro_error_matrix=np.zeros((3, 3)),
+        accel_bias=np.zeros(3),
+        accel_error_matrix=np.zeros((3, 3)),
+        time_offset=0.0,
+        effects={},
+        sigma=sigma,
+        method="prior",
+        stamp=s.start_posix,
+    )
+
+
+def write_simulation(result: SimulationResult, bag_path: str | Path) -> dict[str, Path]:
+    """Write the bag, ``BAG.truth.yaml``, ``BAG.prior.yaml`` and ``BAG.meta.json``."""
+    bag_path = Path(bag_path)
+    bag_path.parent.mkdir(parents=True, exist_ok=True)
+    stem = bag_path.with_suffix("")
+    paths = {
+        "bag": bag_path,
+        "truth": Path(f"{stem}.truth.yaml"),
+        "prior": Path(f"{stem}.prior.yaml"),
+        "meta": Path(f"{stem}.meta.json"),
+    }
+    with BagWriter(bag_path) as w:
+        w.write_imu(result.imu, "/imu/data")
+        for frame in result.star_frames:
+            w.write_star_frame(frame, "/star_tracker/stars")
+        w.write_navsat(result.navsat, "/gnss/fix")
+        w.write_scalar(result.head_temperature, "/star_tracker/temperature", kind="temperature")
+        w.write_scalar(result.air_temperature, "/environment/temperature", kind="temperature")
+        w.write_scalar(result.pressure, "/environment/pressure", kind="pressure")
+    save_calibration(result.truth, paths["truth"])
+    save_calibration(result.prior, paths["prior"])
+    meta = dict(result.meta)
+    meta["files"] = {k: p.name for k, p in paths.items() if k != "meta"}
+    paths["meta"].write_text(json.dumps(meta, indent=1))
+    return paths
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+__all__ = [
+    "SimulationResult",
+    "TruthWorld",
+    "default_prior_sigma",
+    "simulate",
+    "write_simulation",
+]
