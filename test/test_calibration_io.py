@@ -1,0 +1,186 @@
+"""Calibration YAML: reference files, round trips, malformed files, unknown keys."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from stellar_cal_ros.errors import CalibrationFileError
+from stellar_cal_ros.io.calibration import (
+    Calibration,
+    calibration_from_dict,
+    calibration_to_dict,
+    load_calibration,
+    save_calibration,
+)
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+REFERENCE = sorted(DATA.glob("*.prior.yaml")) + sorted(DATA.glob("*.truth.yaml"))
+needs_data = pytest.mark.skipif(not REFERENCE, reason=f"reference data not found in {DATA}")
+
+
+def _doc(path: Path) -> dict:
+    return yaml.safe_load(path.read_text())
+
+
+@needs_data
+@pytest.mark.parametrize("path", REFERENCE, ids=lambda p: p.name)
+def test_reference_files_load_and_round_trip(path: Path, tmp_path: Path) -> None:
+    cal = load_calibration(path)
+    doc = _doc(path)
+    assert cal.method == doc["method"]
+    assert cal.camera.width == doc["camera"]["image_width"]
+    np.testing.assert_array_equal(
+        cal.installation.as_quat(), doc["installation"]["quaternion_xyzw"]
+    )
+    np.testing.assert_array_equal(cal.gyro_bias, doc["gyro"]["bias"])
+    np.testing.assert_array_equal(cal.gyro_error_matrix.ravel(), doc["gyro"]["error_matrix"])
+    out = tmp_path / "out.yaml"
+    save_calibration(cal, out)
+    again = load_calibration(out)
+    assert again == cal
+    new = _doc(out)
+    for key, value in doc.items():  # every key the reference file has comes back unchanged
+        if key == "camera":
+            for ck, cv in value.items():
+                assert new["camera"][ck] == cv, ck
+        else:
+            assert new[key] == value, key
+    assert calibration_from_dict(calibration_to_dict(cal)) == cal
+
+
+@needs_data
+def test_prior_sigma_layout() -> None:
+    cal = load_calibration(DATA / "psce_ideal_900s.prior.yaml")
+    assert len(cal.sigma["installation"]["rotation_vector"]) == 3
+    assert cal.sigma["camera"]["distortion_coefficients"]["cols"] == 5
+    assert cal.sigma["time_offset"] == pytest.approx(0.05)
+
+
+@needs_data
+def test_effects_of_sky_truth() -> None:
+    cal = load_calibration(DATA / "psce_sky_900s.truth.yaml")
+    assert cal.effects["refraction"]["humidity"] == 0.5
+    assert set(cal.effects) == {"aberration", "refraction", "proper_motion"}
+
+
+def _minimal() -> dict:
+    return {
+        "format": "stellar_cal/1",
+        "camera": {
+            "image_width": 1024,
+            "image_height": 1024,
+            "camera_matrix": {
+                "rows": 3,
+                "cols": 3,
+                "data": [4000.0, 0, 511.5, 0, 4000.0, 511.5, 0, 0, 1],
+            },
+            "distortion_model": "plumb_bob",
+            "distortion_coefficients": {"rows": 1, "cols": 5, "data": [0.1, 0, 0, 0, 0]},
+        },
+        "installation": {"quaternion_xyzw": [0.0, 0.0, 0.0, 1.0]},
+        "gyro": {"bias": [1e-7, 0.0, 0.0]},
+    }
+
+
+def test_optional_blocks_default(tmp_path: Path) -> None:
+    cal = calibration_from_dict(_minimal())
+    assert cal.time_offset == 0.0 and cal.effects == {} and cal.sigma == {}
+    np.testing.assert_array_equal(cal.accel_bias, np.zeros(3))
+    np.testing.assert_array_equal(cal.gyro_error_matrix, np.zeros((3, 3)))
+    assert cal.frames == {"imu": "imu_link", "star_tracker": "star_tracker_optical_frame"}
+    save_calibration(cal, tmp_path / "c.yaml")
+    assert load_calibration(tmp_path / "c.yaml") == cal
+
+
+def test_unknown_keys_preserved(tmp_path: Path) -> None:
+    d = _minimal()
+    d["future_block"] = {"a": [1.0, 2.0], "b": "text"}
+    d["effects"] = {"new_effect_v2": {"scale": 1.5}}
+    cal = calibration_from_dict(d)
+    assert cal.extra == {"future_block": {"a": [1.0, 2.0], "b": "text"}}
+    save_calibration(cal, tmp_path / "c.yaml")
+    doc = _doc(tmp_path / "c.yaml")
+    assert doc["future_block"] == d["future_block"]
+    assert doc["effects"] == {"new_effect_v2": {"scale": 1.5}}
+    assert load_calibration(tmp_path / "c.yaml") == cal
+
+
+def test_error_matrix_as_nested_list() -> None:
+    d = _minimal()
+    d["gyro"]["error_matrix"] = [[1e-4, 0, 0], [0, 2e-4, 0], [0, 0, 3e-4]]
+    cal = calibration_from_dict(d)
+    np.testing.assert_array_equal(np.diag(cal.gyro_error_matrix), [1e-4, 2e-4, 3e-4])
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(CalibrationFileError, match="not found"):
+        load_calibration(tmp_path / "nope.yaml")
+
+
+def test_yaml_syntax_error(tmp_path: Path) -> None:
+    p = _write(tmp_path, "format: stellar_cal/1\ncamera: {image_width: 1024\n  gyro: [\n")
+    with pytest.raises(CalibrationFileError, match="YAML syntax error"):
+        load_calibration(p)
+
+
+def test_empty_file(tmp_path: Path) -> None:
+    with pytest.raises(CalibrationFileError, match="empty"):
+        load_calibration(_write(tmp_path, ""))
+
+
+@pytest.mark.parametrize(
+    ("mutate", "match"),
+    [
+        (lambda d: d.update(format="stellar_cal/2"), "format"),
+        (lambda d: d.pop("format"), "format"),
+        (lambda d: d.pop("camera"), "camera"),
+        (lambda d: d.pop("installation"), "installation"),
+        (lambda d: d.pop("gyro"), "gyro"),
+        (lambda d: d["gyro"].update(bias=[1.0, 2.0]), "gyro.bias"),
+        (lambda d: d["gyro"].update(error_matrix=[0.0] * 8), "gyro.error_matrix"),
+        (lambda d: d["installation"].update(quaternion_xyzw=[0, 0, 1]), "quaternion"),
+        (lambda d: d["installation"].update(quaternion_xyzw=[0, 0, 0, 0]), "norm"),
+        (lambda d: d.update(time_offset="soon"), "time_offset"),
+        (lambda d: d["camera"]["distortion_coefficients"].update(data=[0.0] * 4), "camera"),
+        (lambda d: d.update(effects=[1, 2]), "effects"),
+        (lambda d: d.update(sigma={"installation": {"rotation_vector": [1.0]}}), "rotation_vector"),
+    ],
+)
+def test_malformed_content(tmp_path: Path, mutate, match: str) -> None:
+    d = _minimal()
+    mutate(d)
+    p = _write(tmp_path, yaml.safe_dump(d))
+    with pytest.raises(CalibrationFileError, match=match):
+        load_calibration(p)
+
+
+def test_not_a_mapping(tmp_path: Path) -> None:
+    with pytest.raises(CalibrationFileError, match="mapping"):
+        load_calibration(_write(tmp_path, "- 1\n- 2\n"))
+
+
+def test_save_is_atomic_and_keeps_old_file_on_failure(tmp_path: Path, monkeypatch) -> None:
+    cal = calibration_from_dict(_minimal())
+    target = tmp_path / "result.yaml"
+    save_calibration(cal, target)
+    before = target.read_text()
+
+    def boom(*_a, **_k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr("stellar_cal_ros.io.calibration.os.replace", boom)
+    cal2 = Calibration(camera=cal.camera, installation=cal.installation, gyro_bias=[1.0, 2.0, 3.0])
+    with pytest.raises(CalibrationFileError, match="disk full"):
+        save_calibration(cal2, target)
+    assert target.read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.yaml"]  # no temp file left
