@@ -1,0 +1,46 @@
+"""Installation (mounting) rotation between the IMU and the star tracker."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from stellar_cal_ros.effects.base import Effect, FrameContext, Stage
+
+
+class Installation(Effect):
+    """Small rotation δ of the tracker about its own axes: ``R_imu_st = R_prior · Exp(δ)``."""
+
+    id = "installation"
+    stage = Stage.TRACKER
+    parameter_names = ("rx", "ry", "rz")
+    units = ("rad", "rad", "rad")
+    default_sigma = (np.deg2rad(0.2),) * 3
+    explanation = (
+        "The star tracker is not mounted exactly as drawn: its frame is rotated by a few "
+        "arc-minutes against the IMU. Every star moves the same way, so the residual is a "
+        "uniform shift (rotation about x or y) or a rotation of the whole field about the "
+        "boresight (z) that follows the tracker, not the sky; it is observable from the "
+        "attitude changes the gyros measure. Typical size: 10-1000 arcsec."
+    )
+
+    def __init__(self) -> None:
+        self.nominal = Rotation.identity()
+
+    def initial(self, prior: Any) -> tuple[np.ndarray, np.ndarray]:  # noqa: D102
+        self.nominal = prior.installation
+        sig = (prior.sigma or {}).get("installation", {}).get("rotation_vector")
+        sigma = np.asarray(sig, dtype=float) if sig else np.asarray(self.default_sigma)
+        return np.zeros(3), sigma
+
+    def store(self, value: np.ndarray, sigma: np.ndarray, cal: Any) -> None:  # noqa: D102
+        cal.installation = self.nominal * Rotation.from_rotvec(value)
+        cal.sigma["installation"] = {"rotation_vector": [float(s) for s in sigma]}
+
+    def tracker_rotation(self, value: np.ndarray, ctx: FrameContext) -> np.ndarray:  # noqa: D102
+        return np.asarray(value, dtype=float)
+
+    def tracker_rotation_jacobian(self, value: np.ndarray, ctx: FrameContext) -> np.ndarray:  # noqa: D102
+        return np.eye(3)
