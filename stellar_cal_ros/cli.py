@@ -64,6 +64,76 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _effect_list(text: str) -> list[str]:
+    return [e.strip() for e in (text or "").split(",") if e.strip()]
+
+
+def _load_effect_modules(paths: list[Path] | None) -> None:
+    from stellar_cal_ros.effects import registry
+
+    for path in paths or []:
+        ids = registry.load_effect_module(path)
+        log.info("loaded effects %s from %s", ", ".join(ids), path)
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from stellar_cal_ros.io.calibration import load_calibration, save_calibration
+    from stellar_cal_ros.io.residuals import write_residuals
+    from stellar_cal_ros.methods.psce import PsceConfig
+    from stellar_cal_ros.methods.replay import replay_psce
+
+    _load_effect_modules(args.effect_module)
+    prior = load_calibration(args.prior)
+    effects = _effect_list(args.effects)
+    if args.method != "psce":
+        raise StellarCalError(f"replay --method {args.method} is not implemented yet "
+                              "(tracked in issue 4)")
+    config = PsceConfig()
+    if args.centroid_sigma is not None:
+        config.centroid_sigma_px = args.centroid_sigma
+    if args.gyro_arw is not None:
+        config.gyro_arw_deg_sqrth = args.gyro_arw
+    result = replay_psce(args.bag, prior, effects, config, progress=not args.quiet)
+    save_calibration(result.calibration, args.output)
+    if args.residuals:
+        write_residuals(args.residuals, result.residuals)
+    history_path = args.history or args.output.with_suffix(".history.csv")
+    write_residuals(history_path, result.history)
+    _print_replay_summary(result, args)
+    return 0
+
+
+def _print_replay_summary(result, args: argparse.Namespace) -> None:
+    import numpy as np
+
+    res = result.residuals
+    ok = ~res["gated"].astype(bool) if len(res["gated"]) else np.zeros(0, bool)
+    half = len(ok) // 2
+    du, dv = res["du"][half:][ok[half:]], res["dv"][half:][ok[half:]]
+    rms = (float(np.sqrt(np.mean(du**2))), float(np.sqrt(np.mean(dv**2)))) if du.size else (
+        float("nan"),) * 2
+    hist = result.history
+    nis = float(np.sum(hist["nis"]) / max(np.sum(hist["dof"]), 1)) if len(hist["nis"]) else \
+        float("nan")
+    print(f"replayed {result.duration:.0f} s in {result.read_seconds:.2f} s reading + "
+          f"{result.filter_seconds:.2f} s filtering = {result.speed:.0f}x real time")
+    print(f"innovation RMS (second half, accepted stars): u={rms[0]:.4f} v={rms[1]:.4f} px; "
+          f"NIS/dof {nis:.3f}")
+    counts = ", ".join(f"{k}={v}" for k, v in result.counters.items() if v)
+    print(f"counts: {counts}")
+    cal = result.calibration
+    cam = cal.camera
+    print(f"camera: fx={cam.fx:.3f} fy={cam.fy:.3f} cx={cam.cx:.3f} cy={cam.cy:.3f} px, "
+          f"distortion {cam.distortion_model()} "
+          + " ".join(f"{v:.4g}" for v in cam.to_yaml_dict()["distortion_coefficients"]["data"]))
+    eq = result.derived
+    print("equivalent principal point: ({:.3f}, {:.3f}) +- ({:.3f}, {:.3f}) px".format(
+        *eq["equivalent_principal_point_px"], *eq["equivalent_principal_point_sigma_px"]))
+    print(f"installation quaternion_xyzw: {np.round(cal.installation.as_quat(), 9).tolist()}")
+    print(f"gyro bias: {np.round(np.rad2deg(cal.gyro_bias) * 3600, 5).tolist()} deg/h")
+    print(f"wrote {args.output}" + (f" and {args.residuals}" if args.residuals else ""))
+
+
 def _not_yet(issue: int, what: str):
     def run(args: argparse.Namespace) -> int:
         raise StellarCalError(f"{what} is not implemented yet (tracked in issue {issue})")
@@ -103,7 +173,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--output", required=True, type=Path)
     r.add_argument("--effects", default="", help="comma-separated effect ids to add")
     r.add_argument("--residuals", type=Path, default=None, help="RES.parquet or RES.csv")
-    r.set_defaults(func=_not_yet(3, "replay"))
+    r.add_argument("--history", type=Path, default=None,
+                   help="state history CSV (default: RESULT.history.csv)")
+    r.add_argument("--centroid-sigma", type=float, default=None,
+                   help="px, for stars whose message sigma is 0 (default 0.05)")
+    r.add_argument("--gyro-arw", type=float, default=None,
+                   help="gyro angle random walk, deg/sqrt(h) (default 0.001)")
+    r.add_argument("--effect-module", type=Path, action="append",
+                   help="Python file defining extra Effect classes (repeatable)")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=_cmd_replay)
 
     b = sub.add_parser("batch", help="attitude-correlated-frames batch least squares")
     b.add_argument("bag", type=Path)

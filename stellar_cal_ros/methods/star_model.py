@@ -1,0 +1,256 @@
+"""Star measurement model composed from effects: catalogue star → predicted centroid.
+
+Shared by the PSCE Kalman filter, the batch (ACF) solver and the diagnosis tools.  The
+chain, with the stage of each effect (see :mod:`stellar_cal_ros.effects.base`)::
+
+    u_i'  = DIRECTION effects (u_i)                      inertial unit directions
+    t_exp = stamp + Σ TIME effects                        (or the prior's time_offset)
+    R_i_b = attitude(t_exp)                               from gyro propagation
+    R_imu_st = R_prior · Exp(Σ TRACKER effects)
+    d_st  = (R_i_b R_imu_st)ᵀ u_i'
+    p     = CAMERA effects (prior camera parameters)
+    uv    = camera(p).project(d_st)
+
+Attitude error convention: a *left* perturbation in the inertial frame,
+``R_i_b = Exp(φ) · R̂_i_b`` (Tan et al. eq. 7), so ``∂d_st/∂φ = R_st_i [u_i']×``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from stellar_cal_ros.core.camera import CameraModel
+from stellar_cal_ros.core.rotation import right_jacobian, skew, so3_exp
+from stellar_cal_ros.effects.base import Effect, FrameContext, Stage
+from stellar_cal_ros.errors import ModelError
+
+AttitudeFunction = Callable[[float], tuple[np.ndarray, np.ndarray]]
+"""``t (s, POSIX) -> (R_i_b (3, 3), omega_b (3,))``: nominal attitude and body rate."""
+
+
+@dataclass
+class Prediction:
+    """Predicted centroids of one frame and their Jacobians."""
+
+    uv: np.ndarray  # (n, 2) px
+    H_attitude: np.ndarray  # (n, 2, 3) ∂uv/∂φ
+    H_parameters: np.ndarray  # (n, 2, P) ∂uv/∂θ
+    directions_st: np.ndarray  # (n, 3)
+    R_i_st: np.ndarray  # (3, 3)
+    t_exposure: float
+    camera: CameraModel
+
+
+class StarModel:
+    """Parameter layout and measurement function of a set of effects.
+
+    Parameters
+    ----------
+    effects : list of Effect
+        In application order (:func:`stellar_cal_ros.effects.registry.create_many`).
+    prior : Calibration
+        Fixed values of everything not estimated, and starting values of what is.  This
+        includes the prior's ``effects`` block: a registered DIRECTION or CAMERA effect
+        found there (e.g. ``thermal_focal_length`` of an earlier result) and not estimated
+        is applied with its prior value (:attr:`fixed_effects`), not dropped.
+    """
+
+    def __init__(self, effects: list[Effect], prior) -> None:
+        self.effects = list(effects)
+        self.prior = prior
+        self.slices: dict[str, slice] = {}
+        start = 0
+        values, sigmas = [], []
+        for eff in self.effects:
+            v, s = eff.initial(prior)
+            v, s = np.asarray(v, dtype=float), np.asarray(s, dtype=float)
+            if v.shape != (eff.size,) or s.shape != (eff.size,):
+                raise ModelError(f"effect {eff.id}: initial value/sigma must have {eff.size} "
+                                 f"entries, got {v.shape} and {s.shape}")
+            self.slices[eff.id] = slice(start, start + eff.size)
+            start += eff.size
+            values.append(v)
+            sigmas.append(s)
+        self.size = start
+        self.initial_value = np.concatenate(values) if values else np.zeros(0)
+        self.initial_sigma = np.concatenate(sigmas) if sigmas else np.zeros(0)
+        self._camera_prior = prior.camera.parameters()
+        self._by_stage = {st: [e for e in self.effects if e.stage is st] for st in Stage}
+        self.fixed_effects: list[tuple[Effect, np.ndarray]] = self._fixed_effects(prior)
+        # DIRECTION and CAMERA chains: (effect, slice of θ or None, fixed value or None)
+        self._chain = {st: self._stage_chain(st) for st in (Stage.DIRECTION, Stage.CAMERA)}
+        self.has_time_effect = bool(self._by_stage[Stage.TIME])
+        self._gyro_fixed = self._fixed_sensor(Stage.GYRO, prior.gyro_bias,
+                                              prior.gyro_error_matrix)
+        self._accel_fixed = self._fixed_sensor(Stage.ACCEL, prior.accel_bias,
+                                               prior.accel_error_matrix)
+
+    def _fixed_effects(self, prior) -> list[tuple[Effect, np.ndarray]]:
+        from stellar_cal_ros.effects import registry
+
+        estimated = {e.id for e in self.effects}
+        out = []
+        for eid in (getattr(prior, "effects", None) or {}):
+            if eid in estimated or eid not in registry.EFFECTS:
+                continue
+            eff = registry.create(eid)
+            if eff.stage not in (Stage.DIRECTION, Stage.CAMERA):
+                continue  # other stages have their own blocks in the calibration
+            value, _ = eff.initial(prior)
+            out.append((eff, np.asarray(value, dtype=float)))
+        return out
+
+    def _stage_chain(self, stage: Stage) -> list[tuple[Effect, slice | None, np.ndarray | None]]:
+        chain = [(e, self.slices[e.id], None) for e in self._by_stage[stage]]
+        fixed = [(e, None, v) for e, v in self.fixed_effects if e.stage is stage]
+        if not fixed:
+            return chain
+        from stellar_cal_ros.effects import registry
+
+        order = {k: n for n, k in enumerate(registry.EFFECTS)}
+        return sorted(chain + fixed, key=lambda c: order.get(c[0].id, len(order)))
+
+    @staticmethod
+    def _value(theta: np.ndarray, sl: slice | None, fixed: np.ndarray | None) -> np.ndarray:
+        return fixed if sl is None else theta[sl]
+
+    # ------------------------------------------------------------------ names
+    def parameter_names(self) -> list[str]:
+        """``effect.parameter`` names of θ, in order."""
+        return [f"{e.id}.{n}" for e in self.effects for n in e.parameter_names]
+
+    def value_of(self, theta: np.ndarray, effect_id: str) -> np.ndarray:
+        """The slice of ``theta`` owned by ``effect_id``."""
+        return theta[self.slices[effect_id]]
+
+    # ------------------------------------------------------------------ sensors
+    def _fixed_sensor(self, stage: Stage, bias, matrix) -> tuple[np.ndarray, np.ndarray]:
+        """Prior bias / matrix entries that no estimated effect of ``stage`` owns."""
+        b = np.array(bias, dtype=float)
+        E = np.array(matrix, dtype=float)
+        for eff in self._by_stage[stage]:
+            zero = np.zeros(eff.size)
+            if np.any(eff.sensor_bias_jacobian(zero)):
+                b[:] = 0.0
+            owned = np.any(eff.sensor_matrix_jacobian(zero) != 0, axis=2)
+            E[owned] = 0.0
+        return b, E
+
+    def sensor_model(
+        self, theta: np.ndarray, stage: Stage = Stage.GYRO
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Bias b, matrix E and their Jacobians (3, P), (3, 3, P) for a sensor stage."""
+        b, E = (self._gyro_fixed if stage is Stage.GYRO else self._accel_fixed)
+        b, E = b.copy(), E.copy()
+        Jb = np.zeros((3, self.size))
+        JE = np.zeros((3, 3, self.size))
+        for eff in self._by_stage[stage]:
+            sl = self.slices[eff.id]
+            v = theta[sl]
+            b += eff.sensor_bias(v)
+            E += eff.sensor_matrix(v)
+            Jb[:, sl] = eff.sensor_bias_jacobian(v)
+            JE[:, :, sl] = eff.sensor_matrix_jacobian(v)
+        return b, E, Jb, JE
+
+    def corrected_rates(self, theta: np.ndarray, measured: np.ndarray,
+                        stage: Stage = Stage.GYRO) -> np.ndarray:
+        """``(I + E)⁻¹ (w_meas − b)`` for samples (N, 3)."""
+        b, E, _, _ = self.sensor_model(theta, stage)
+        if not np.any(E):
+            return measured - b
+        return np.linalg.solve(np.eye(3) + E, (measured - b).T).T
+
+    # ------------------------------------------------------------------ stars
+    def time_shift(self, theta: np.ndarray, ctx: FrameContext) -> tuple[float, np.ndarray]:
+        """Seconds from the stamp to the modelled exposure, and its gradient (P,)."""
+        if not self.has_time_effect:
+            return float(self.prior.time_offset), np.zeros(self.size)
+        dt, grad = 0.0, np.zeros(self.size)
+        for eff in self._by_stage[Stage.TIME]:
+            sl = self.slices[eff.id]
+            dt += eff.time_shift(theta[sl], ctx)
+            grad[sl] = eff.time_shift_jacobian(theta[sl], ctx)
+        return dt, grad
+
+    def camera_at(self, theta: np.ndarray, ctx: FrameContext) -> CameraModel:
+        """Camera model of the current parameters in the frame's context."""
+        p = self._camera_prior
+        for eff, sl, fixed in self._chain[Stage.CAMERA]:
+            p = eff.camera_parameters(self._value(theta, sl, fixed), p, ctx)
+        return self.prior.camera.with_parameters(p)
+
+    def installation_at(
+        self, theta: np.ndarray, ctx: FrameContext
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``R_imu_st`` and the summed tracker rotation δ."""
+        delta = np.zeros(3)
+        for eff in self._by_stage[Stage.TRACKER]:
+            delta = delta + eff.tracker_rotation(theta[self.slices[eff.id]], ctx)
+        return self.prior.installation.as_matrix() @ so3_exp(delta), delta
+
+    def predict(
+        self,
+        theta: np.ndarray,
+        u_i: np.ndarray,
+        ctx: FrameContext,
+        attitude: AttitudeFunction,
+    ) -> Prediction:
+        """Predicted centroids and Jacobians for catalogue directions ``u_i`` (n, 3)."""
+        P = self.size
+        n = len(u_i)
+        # DIRECTION stage
+        u = np.asarray(u_i, dtype=float)
+        dir_jac: list[tuple[slice, np.ndarray]] = []
+        for eff, sl, fixed in self._chain[Stage.DIRECTION]:
+            v = self._value(theta, sl, fixed)
+            if sl is not None:
+                dir_jac.append((sl, eff.directions_jacobian(v, u_i, ctx)))
+            # corrections are computed on the catalogue direction and add up
+            u = u + (eff.directions(v, u_i, ctx) - u_i)
+        # TIME stage and attitude
+        shift, shift_grad = self.time_shift(theta, ctx)
+        t_exp = ctx.stamp + shift
+        R_i_b, omega_b = attitude(t_exp)
+        ctx.R_i_b, ctx.omega_b = R_i_b, omega_b
+        # TRACKER stage
+        R_imu_st, delta = self.installation_at(theta, ctx)
+        R_i_st = R_i_b @ R_imu_st
+        ctx.R_i_st = R_i_st
+        d = u @ R_i_st  # rows R_st_i u
+        # CAMERA stage
+        p = self._camera_prior
+        cam_steps = []
+        for eff, sl, fixed in self._chain[Stage.CAMERA]:
+            v = self._value(theta, sl, fixed)
+            J, D = eff.camera_jacobian(v, p, ctx)
+            cam_steps.append((sl, J, D))
+            p = eff.camera_parameters(v, p, ctx)
+        camera = self.prior.camera.with_parameters(p)
+        uv, J_d, J_p = camera.project(d, jacobians=True)
+
+        # Jacobians
+        R_st_i = R_i_st.T
+        H_att = J_d @ (R_st_i @ skew(u))  # (n,2,3)
+        H = np.zeros((n, 2, P))
+        for sl, Ju in dir_jac:  # ∂d/∂θ = R_st_i ∂u/∂θ
+            H[:, :, sl] += np.einsum("nij,jk,nkl->nil", J_d, R_st_i, Ju)
+        if self.has_time_effect and np.any(shift_grad):
+            d_b = u @ R_i_b
+            dd_dt = (np.cross(d_b, omega_b)) @ R_imu_st  # R_st_b [d_b]× ω
+            H += np.einsum("nij,nj->ni", J_d, dd_dt)[:, :, None] * shift_grad[None, None, :]
+        if self._by_stage[Stage.TRACKER]:
+            Jr = right_jacobian(delta)
+            Jd_skew = np.einsum("nij,njk->nik", J_d, skew(d)) @ Jr  # (n,2,3)
+            for eff in self._by_stage[Stage.TRACKER]:
+                sl = self.slices[eff.id]
+                H[:, :, sl] += Jd_skew @ eff.tracker_rotation_jacobian(theta[sl], ctx)
+        A = np.eye(18)
+        for sl, J, D in reversed(cam_steps):
+            if sl is not None:  # a fixed effect has no column but passes p on (D)
+                H[:, :, sl] += J_p @ (A @ J)
+            A = A @ D
+        return Prediction(uv, H_att, H, d, R_i_st, t_exp, camera)
