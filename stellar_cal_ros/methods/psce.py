@@ -140,9 +140,7 @@ class PsceFilter:
         self.t0 = t0
         self.imu_t = np.asarray(imu_t, dtype=float)
         self.imu_w = np.asarray(imu_w, dtype=float)
-        if len(self.imu_t) < 2:
-            raise ModelError("the PSCE filter needs IMU samples")
-        self.nominal_dt = float(np.median(np.diff(self.imu_t)))
+        self.nominal_dt = float(np.median(np.diff(self.imu_t))) if len(self.imu_t) > 1 else 0.01
         self.theta = model.initial_value.copy()
         n = 3 + model.size
         self.P = np.zeros((n, n))
@@ -160,6 +158,27 @@ class PsceFilter:
         self.last_stamp: float | None = None
 
     # ------------------------------------------------------------------ propagation
+    def extend_imu(self, imu_t: np.ndarray, imu_w: np.ndarray) -> int:
+        """Append IMU samples (live use); returns how many were accepted.
+
+        Samples not later than the last one held, or with non-finite values, are dropped
+        and counted (``counters.extra['imu_dropped']``).
+        """
+        t = np.asarray(imu_t, dtype=float).reshape(-1)
+        w = np.asarray(imu_w, dtype=float).reshape(-1, 3)
+        last = self.imu_t[-1] if len(self.imu_t) else -np.inf
+        ok = np.isfinite(t) & np.all(np.isfinite(w), axis=1)
+        ok &= t > last
+        ok &= np.concatenate([[True], np.diff(t) > 0]) if len(t) else ok
+        if len(t) and not np.all(np.diff(t[ok]) > 0):
+            ok[:] = False  # unordered batch: let the caller sort it
+        dropped = int(len(t) - ok.sum())
+        if dropped:
+            self.counters.extra["imu_dropped"] = self.counters.extra.get("imu_dropped", 0) + dropped
+        self.imu_t = np.concatenate([self.imu_t, t[ok]])
+        self.imu_w = np.concatenate([self.imu_w, w[ok]])
+        return int(ok.sum())
+
     @property
     def initialized(self) -> bool:
         """True once the attitude has been initialized from a star frame."""
