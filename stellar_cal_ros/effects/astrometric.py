@@ -13,6 +13,7 @@ import numpy as np
 
 from stellar_cal_ros.core import astrometry
 from stellar_cal_ros.effects.base import Effect, FrameContext, Stage
+from stellar_cal_ros.errors import ModelError
 
 STANDARD_PRESSURE_PA = 101325.0
 STANDARD_TEMPERATURE_C = 10.0
@@ -29,11 +30,23 @@ class _ScaledDirection(Effect):
         raise NotImplementedError
 
     def _cached_delta(self, u_i: np.ndarray, ctx: FrameContext) -> np.ndarray:
-        key = (self.id, id(u_i))
+        # One entry per effect, keyed by the *content* of everything delta() reads: a key
+        # on id(u_i) returned stale (even wrongly shaped) corrections when a caller passed
+        # a subset u_i[mask] with the same context and Python reused a freed array's id.
+        u = np.ascontiguousarray(u_i, dtype=float)
+        key = (
+            u.shape, u.tobytes(),
+            np.ascontiguousarray(ctx.catalog_id, dtype=np.int64).tobytes(),
+            float(ctx.stamp), ctx.site,
+            *(float(x) if np.isfinite(x) else None
+              for x in (ctx.pressure_pa, ctx.air_temperature_c)),
+        )
         cache = ctx.extra.setdefault("_direction_cache", {})
-        if key not in cache:
-            cache[key] = self.delta(u_i, ctx)
-        return cache[key]
+        hit = cache.get(self.id)
+        if hit is None or hit[0] != key:
+            hit = (key, self.delta(u, ctx))
+            cache[self.id] = hit
+        return hit[1]
 
     def directions(self, value, u_i, ctx):  # noqa: D102
         return u_i + value[0] * self._cached_delta(u_i, ctx)
@@ -73,6 +86,8 @@ class Refraction(_ScaledDirection):
     )
 
     def delta(self, u_i, ctx):  # noqa: D102
+        if ctx.site is None:
+            raise ModelError("refraction needs the site (/gnss/fix) in the frame context")
         p = ctx.pressure_pa if np.isfinite(ctx.pressure_pa) else STANDARD_PRESSURE_PA
         T = ctx.air_temperature_c if np.isfinite(ctx.air_temperature_c) else STANDARD_TEMPERATURE_C
         u = astrometry.refraction(u_i, np.full(len(u_i), ctx.stamp), ctx.site,
@@ -94,9 +109,14 @@ class ProperMotion(_ScaledDirection):
     def delta(self, u_i, ctx):  # noqa: D102
         from stellar_cal_ros.core.catalog import load_catalog, posix_to_jyear
 
-        cat = _full_catalog(load_catalog)
-        idx = cat.index_of(np.asarray(ctx.catalog_id))
+        ids = np.asarray(ctx.catalog_id, dtype=np.int64).reshape(-1)
         out = np.zeros_like(u_i)
+        if ids.size == 0:  # no identifications in the context: no star is known
+            return out
+        if ids.size != len(u_i):
+            raise ModelError(f"proper_motion: {ids.size} catalog ids for {len(u_i)} directions")
+        cat = _full_catalog(load_catalog)
+        idx = cat.index_of(ids)
         known = idx >= 0
         if np.any(known):
             sub = cat.subset(idx[known])

@@ -83,8 +83,20 @@ class Effect:
 
     # ------------------------------------------------------------------ prior and result
     def initial(self, prior: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Starting value and 1-sigma from a prior calibration (default: zero, default σ)."""
-        return np.zeros(self.size), np.asarray(self.default_sigma, dtype=float)
+        """Starting value and 1-sigma from a prior calibration.
+
+        Default: the inverse of the default :meth:`store`, i.e. ``prior.effects[id]`` and
+        ``prior.sigma["effects"][id]`` where the prior has them, else zero and the default σ.
+        """
+        block = _mapping_or_empty((getattr(prior, "effects", None) or {}).get(self.id))
+        sig = _mapping_or_empty(
+            _mapping_or_empty((getattr(prior, "sigma", None) or {}).get("effects")).get(self.id))
+        value = np.array([_number_or(block.get(n), 0.0) for n in self.parameter_names])
+        sigma = np.array([
+            s if (s := _number_or(sig.get(n), 0.0)) > 0 else float(d)
+            for n, d in zip(self.parameter_names, self.default_sigma, strict=True)
+        ])
+        return value, sigma
 
     def store(self, value: np.ndarray, sigma: np.ndarray, cal: Any) -> None:
         """Write an estimate into a calibration (default: under ``effects[id]``)."""
@@ -161,6 +173,19 @@ class Effect:
 
     def __repr__(self) -> str:
         return f"<effect {self.id}: {', '.join(self.parameter_names)}>"
+
+
+def _mapping_or_empty(x: Any) -> dict:
+    return x if isinstance(x, dict) else {}
+
+
+def _number_or(x: Any, default: float) -> float:
+    """``x`` as a finite float, else ``default`` (missing or malformed entries of a file)."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return default
+    return v if np.isfinite(v) else default
 
 
 CAMERA_INDEX = {

@@ -93,13 +93,16 @@ class PixelAspect(Effect):
 
     def initial(self, prior: Any) -> tuple[np.ndarray, np.ndarray]:  # noqa: D102
         cam = prior.camera
-        return np.array([cam.fy / cam.fx - 1.0]), np.asarray(self.default_sigma)
+        _, sigma = Effect.initial(self, prior)  # sigma.effects.pixel_aspect if present
+        return np.array([cam.fy / cam.fx - 1.0]), sigma
 
     def store(self, value: np.ndarray, sigma: np.ndarray, cal: Any) -> None:  # noqa: D102
+        # The value lives in the camera block only (OpenCV expresses it, contract §3): a
+        # copy under ``effects`` would be a second, possibly stale, source of fy.
         p = cal.camera.parameters()
         p[FY] = p[FX] * (1.0 + value[0])
         cal.camera = cal.camera.with_parameters(p)
-        Effect.store(self, value, sigma, cal)
+        cal.sigma.setdefault("effects", {})[self.id] = {"aspect": float(sigma[0])}
 
     def camera_parameters(self, value, p, ctx):  # noqa: D102
         out = p.copy()
@@ -196,8 +199,8 @@ class ThermalFocalLength(Effect):
     def initial(self, prior: Any) -> tuple[np.ndarray, np.ndarray]:  # noqa: D102
         block = (prior.effects or {}).get(self.id, {})
         self.reference_c = float(block.get("reference_temperature_c", 20.0))
-        return np.array([float(block.get("coefficient_per_c", 0.0))]), np.asarray(
-            self.default_sigma)
+        _, sigma = Effect.initial(self, prior)  # sigma.effects.thermal_focal_length
+        return np.array([float(block.get("coefficient_per_c", 0.0))]), sigma
 
     def store(self, value: np.ndarray, sigma: np.ndarray, cal: Any) -> None:  # noqa: D102
         cal.effects[self.id] = {"coefficient_per_c": float(value[0]),

@@ -1,0 +1,390 @@
+"""StarModel: effects composed into the star measurement and gyro models.
+
+Every column of ``H_parameters`` and ``H_attitude`` is checked against central finite
+differences of ``uv`` (attitude perturbed on the left, ``Exp(φ) · R_i_b``), with all effects
+at once and with subsets; the truth calibration reproduces noise-free simulated centroids;
+``corrected_rates`` inverts the sensor model; a user effect loads from a file.
+"""
+
+from __future__ import annotations
+
+import copy
+import textwrap
+
+import numpy as np
+import pytest
+
+from stellar_cal_ros.core.catalog import load_catalog, radec_to_unit
+from stellar_cal_ros.core.earth import Site
+from stellar_cal_ros.core.rotation import so3_exp
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.effects.base import FrameContext, Stage
+from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.methods.star_model import StarModel
+from stellar_cal_ros.sim.scenarios import get_scenario
+from stellar_cal_ros.sim.world import default_prior_sigma, simulate
+
+T0 = 1795348800.0
+SITE = Site(36.07, 120.38, 10.0)
+OMEGA = np.array([0.02, -0.05, 0.08])
+OFFSETS = np.array([2.0, -3.0, 2.5, -1.5, 3.0, -2.0, 1.7, -2.6, 2.2])
+BASELINE = ["installation", "focal_length", "principal_point", "radial_k1k2", "tangential",
+            "gyro_bias"]
+SUBSETS = {
+    "all": registry.available(),
+    "psce_baseline": BASELINE,
+    "baseline+time+astrometry": BASELINE + ["time_offset", "aberration", "refraction",
+                                            "proper_motion"],
+    "camera_chain": ["focal_length", "pixel_aspect", "thermal_focal_length", "radial_k3",
+                     "image_plane_tilt", "time_offset"],
+    # the prior's effects block fixes thermal_focal_length and aberration (not estimated)
+    "with_fixed_prior_effects": BASELINE + ["pixel_aspect", "time_offset"],
+}
+
+
+def _noise_free(name="psce_rotations"):
+    sc = get_scenario(name)
+    sc.centroid_noise_px = sc.gyro_arw_deg_sqrth = sc.accel_vrw_mps_sqrth = 0.0
+    return sc
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate(_noise_free(), duration=110.0, seed=3)
+
+
+@pytest.fixture(scope="module")
+def stars(sim):
+    frame = min(sim.star_frames, key=lambda f: abs(f.stamp_ns * 1e-9 - T0 - 100.0))
+    ids = frame.catalog_id.astype(np.int64)
+    cat = load_catalog(mag_limit=None)
+    return ids, cat.subset(cat.index_of(ids)).directions(2000.0)
+
+
+def make_ctx(ids, stamp=T0 + 100.0, head=25.0) -> FrameContext:
+    return FrameContext(stamp=stamp, catalog_id=ids, site=SITE, head_temperature_c=head,
+                        air_temperature_c=5.0, pressure_pa=101200.0, omega_b=OMEGA.copy())
+
+
+def rotating_attitude(R0, t_ref, omega=OMEGA, phi=None):
+    """``t -> (Exp(φ) R0 Exp(ω (t − t_ref)), ω)``."""
+    L = np.eye(3) if phi is None else so3_exp(phi)
+    return lambda t: (L @ R0 @ so3_exp(omega * (t - t_ref)), omega)
+
+
+def theta_of(model: StarModel) -> np.ndarray:
+    reps = int(np.ceil(model.size / OFFSETS.size)) + 1
+    return model.initial_value + np.tile(OFFSETS, reps)[: model.size] * model.initial_sigma
+
+
+# ------------------------------------------------------------------ measurement Jacobians
+@pytest.mark.parametrize("subset", list(SUBSETS))
+def test_predict_jacobians_match_finite_differences(subset, sim, stars):
+    ids, u_i = stars
+    prior = sim.prior
+    if subset == "with_fixed_prior_effects":
+        prior = copy.deepcopy(prior)
+        prior.effects = {"thermal_focal_length": {"coefficient_per_c": 3e-5,
+                                                  "reference_temperature_c": 18.0},
+                         "aberration": {"scale": 1.0}}
+    model = StarModel(registry.create_many(SUBSETS[subset]), prior)
+    assert len(model.fixed_effects) == len(prior.effects)
+    theta = theta_of(model)
+    ctx = make_ctx(ids)
+    R0 = sim.truth_world.R_i_b(np.array([100.0]))[0]
+    att = rotating_attitude(R0, ctx.stamp)
+    pred = model.predict(theta, u_i, ctx, att)
+    n = len(u_i)
+    assert pred.uv.shape == (n, 2) and pred.H_attitude.shape == (n, 2, 3)
+    assert pred.H_parameters.shape == (n, 2, model.size)
+    assert np.all(np.isfinite(pred.uv)) and np.all(pred.directions_st[:, 2] > 0.9)
+
+    def uv(th, phi=None):
+        return model.predict(th, u_i, ctx, rotating_attitude(R0, ctx.stamp, phi=phi)).uv
+
+    names = model.parameter_names()
+    stages = [e.stage for e in model.effects for _ in range(e.size)]
+    for k, sigma in enumerate(model.initial_sigma):
+        stage = stages[k]
+        h = 1e-3 * sigma
+        # The exposure time is POSIX seconds in float64 (quantum 2.4e-7 s at 1.8e9 s): a
+        # time step needs to be large, and the difference quotient carries quantum/h.
+        time_tol = 0.0
+        if stage is Stage.TIME:
+            h = 1e-2
+            time_tol = 2.0 * np.spacing(ctx.stamp) / h
+        e = np.zeros(model.size)
+        e[k] = h
+        fd = (uv(theta + e) - uv(theta - e)) / (2 * h)
+        # px per 1-sigma change of the parameter: 1e-6 relative, or 1e-7 px absolute
+        err = np.max(np.abs(pred.H_parameters[:, :, k] - fd)) * sigma
+        scale = np.max(np.abs(fd)) * sigma
+        assert err <= max((1e-6 + time_tol) * scale, 1e-7), \
+            f"{names[k]}: {err:.2e} px of {scale:.2e} px"
+        if stage in (Stage.GYRO, Stage.ACCEL):
+            assert not np.any(pred.H_parameters[:, :, k])
+        else:
+            assert scale > 1e-4, f"{names[k]} does not move the stars"
+    h = 1e-6
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        fd = (uv(theta, e) - uv(theta, -e)) / (2 * h)
+        err = np.max(np.abs(pred.H_attitude[:, :, k] - fd))
+        assert err <= 1e-6 * np.max(np.abs(fd)), f"attitude {k}: {err:.2e}"
+
+
+def test_time_offset_jacobian_is_the_rate(sim, stars):
+    """∂uv/∂Δt = H_attitude · (R_i_b ω): a time shift is a rotation by ω Δt."""
+    ids, u_i = stars
+    model = StarModel(registry.create_many(["time_offset"]), sim.prior)
+    ctx = make_ctx(ids)
+    R0 = sim.truth_world.R_i_b(np.array([100.0]))[0]
+    pred = model.predict(np.array([0.04]), u_i, ctx, rotating_attitude(R0, ctx.stamp))
+    R = R0 @ so3_exp(OMEGA * 0.04)
+    np.testing.assert_allclose(pred.H_parameters[:, :, 0], pred.H_attitude @ (R @ OMEGA),
+                               rtol=1e-12, atol=1e-9)
+    assert pred.t_exposure == ctx.stamp + 0.04
+
+
+def test_subset_prediction_with_a_shared_context(sim, stars):
+    """A subset u_i[mask] predicted with the same context (as the filters do) is exact."""
+    ids, u_i = stars
+    model = StarModel(registry.create_many(["aberration", "refraction", "proper_motion"]),
+                      sim.prior)
+    theta = np.array([0.9, 1.1, 1.0])
+    ctx = make_ctx(ids)
+    att = rotating_attitude(sim.truth_world.R_i_b(np.array([100.0]))[0], ctx.stamp)
+    full = model.predict(theta, u_i, ctx, att)
+    for mask in (slice(0, 5), slice(3, 11), slice(None, None, 2)):
+        ctx.catalog_id = ids[mask]
+        sub = model.predict(theta, u_i[mask], ctx, att)
+        np.testing.assert_allclose(sub.uv, full.uv[mask], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(sub.H_parameters, full.H_parameters[mask], rtol=1e-12)
+
+
+# ------------------------------------------------------------------ the truth reproduces the data
+def _residuals(result, model, theta, frames, bound=False):
+    """Centroids − predictions; with ``bound``, also a per-star bound of the float64 time.
+
+    Stamps are POSIX seconds in float64 (quantum 2.4e-7 s), so during a slew at rate ω the
+    prediction carries up to ~ω·f·2·quantum px (7e-5 px at 5 deg/s) from time rounding alone.
+    """
+    w = result.truth_world
+    out, bounds = [], []
+    for f in frames:
+        stamp = f.stamp_ns * 1e-9
+        ctx = make_ctx(f.catalog_id.astype(np.int64), stamp=stamp)
+        t_true = stamp - T0 + result.truth.time_offset
+        ctx.head_temperature_c = float(w.head_temperature(np.array([t_true]))[0])
+
+        def att(t):
+            tr = np.array([t - T0])
+            return w.R_i_b(tr)[0], w.omega_ib_b(tr)[0]
+
+        u_i = radec_to_unit(f.right_ascension, f.declination)
+        out.append(f.uv - model.predict(theta, u_i, ctx, att).uv)
+        rate = np.linalg.norm(w.omega_ib_b(np.array([t_true]))[0])
+        quantum = 2.0 * np.spacing(stamp) * rate * result.truth.camera.fx
+        bounds.append(np.full(out[-1].shape, 1e-6 + quantum))
+    return (np.concatenate(out), np.concatenate(bounds)) if bound else np.concatenate(out)
+
+
+def test_truth_calibration_reproduces_noise_free_centroids():
+    """No estimated effects: the truth prior's camera, installation, time offset and
+    thermal focal drift (an ``effects`` block entry) are applied as fixed values."""
+    r = simulate(_noise_free(), duration=40.0, seed=2,
+                 effects={"time_offset": [0.03], "thermal_focal_length": [2e-5],
+                          "pixel_aspect": [3e-4], "image_plane_tilt": [1e-3, -2e-3],
+                          "radial_k3": [0.5]})
+    model = StarModel([], r.truth)
+    assert model.size == 0 and [e.id for e, _ in model.fixed_effects] == [
+        "thermal_focal_length"]
+    res, bound = _residuals(r, model, np.zeros(0), r.star_frames[::4], bound=True)
+    at_rest = bound < 1.5e-6  # Earth rate only
+    assert len(res) > 100 and np.mean(at_rest) > 0.5
+    worst = np.max(np.abs(res) / bound)
+    assert worst < 1.0, f"residual {worst:.2f} x bound, max {np.max(np.abs(res)):.2e} px"
+    assert np.max(np.abs(res[at_rest])) < 1e-6
+    # the same truth without its effects block misses the thermal drift
+    cal = copy.deepcopy(r.truth)
+    cal.effects = {}
+    res = _residuals(r, StarModel([], cal), np.zeros(0), r.star_frames[::4])
+    assert np.max(np.abs(res)) > 1e-3
+
+
+def test_truth_with_astrometric_effects_fixed_from_the_prior():
+    """Aberration, refraction and proper motion in the truth's effects block are applied.
+
+    The chain adds corrections computed on the catalogue direction (not one after the
+    other) at the reported stamp, which differs from the simulator by < 1e-3 px.
+    """
+    r = simulate(_noise_free(), duration=20.0, seed=2,
+                 effects={"aberration": [1.0], "refraction": [1.0], "proper_motion": [1.0]})
+    model = StarModel([], r.truth)
+    assert {e.id for e, _ in model.fixed_effects} == {"aberration", "refraction",
+                                                     "proper_motion"}
+    res = _residuals(r, model, np.zeros(0), r.star_frames[::4])
+    assert np.max(np.abs(res)) < 1e-3, f"max residual {np.max(np.abs(res)):.2e} px"
+    # estimated instead of fixed, at the truth scale 1: the same prediction
+    est = StarModel(registry.create_many(["aberration", "refraction", "proper_motion"]),
+                    r.truth)
+    assert est.fixed_effects == [] and np.array_equal(est.initial_value, np.ones(3))
+    np.testing.assert_allclose(_residuals(r, est, est.initial_value, r.star_frames[::4]),
+                               res, rtol=0, atol=1e-12)
+
+
+# ------------------------------------------------------------------ sensor model
+SENSOR_IDS = ["gyro_bias", "gyro_scale_factor", "gyro_misalignment"]
+
+
+def _sensor_prior(sim):
+    cal = copy.deepcopy(sim.truth)
+    rng = np.random.default_rng(11)
+    cal.gyro_bias = np.array([3e-7, -2e-7, 1e-7])
+    cal.gyro_error_matrix = 2e-4 * rng.standard_normal((3, 3))
+    cal.accel_bias = np.array([1e-3, -2e-3, 5e-4])
+    cal.accel_error_matrix = 2e-4 * rng.standard_normal((3, 3))
+    cal.sigma = default_prior_sigma()
+    return cal
+
+
+def test_corrected_rates_invert_the_sensor_model(sim):
+    prior = _sensor_prior(sim)
+    model = StarModel(registry.create_many(SENSOR_IDS), prior)
+    assert model.size == 12
+    theta = theta_of(model) + 1e-3 * np.r_[np.zeros(3), np.ones(9)]  # E of a few 1e-3
+    b, E, Jb, JE = model.sensor_model(theta, Stage.GYRO)
+    np.testing.assert_array_equal(b, theta[:3])
+    np.testing.assert_array_equal(np.diag(E), theta[3:6])
+    off = [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)]
+    np.testing.assert_array_equal([E[i, j] for i, j in off], theta[6:12])
+    rng = np.random.default_rng(5)
+    w = rng.standard_normal((50, 3)) * 0.1
+    w_meas = w @ (np.eye(3) + E).T + b
+    np.testing.assert_allclose(model.corrected_rates(theta, w_meas), w, rtol=0, atol=1e-15)
+
+    # ∂ω/∂θ = −(I+E)⁻¹ [Jb + JE·ω̂] against finite differences, one measured sample
+    wm = w_meas[7]
+    w_hat = model.corrected_rates(theta, wm[None])[0]
+    J = -np.linalg.solve(np.eye(3) + E, Jb + np.einsum("ijk,j->ik", JE, w_hat))
+    fd = np.zeros_like(J)
+    for k in range(model.size):
+        h = 1e-5  # ω ~ 0.1 rad/s: smaller steps lose digits; ω is quadratic in θ at most
+        e = np.zeros(model.size)
+        e[k] = h
+        fd[:, k] = (model.corrected_rates(theta + e, wm[None])[0]
+                    - model.corrected_rates(theta - e, wm[None])[0]) / (2 * h)
+    np.testing.assert_allclose(J, fd, rtol=1e-7, atol=1e-14)
+
+
+def test_prior_sensor_values_not_estimated_stay_fixed(sim):
+    prior = _sensor_prior(sim)
+    b0, E0 = prior.gyro_bias, prior.gyro_error_matrix
+    # nothing estimated: the prior's bias and matrix
+    m = StarModel([], prior)
+    b, E, Jb, JE = m.sensor_model(np.zeros(0))
+    np.testing.assert_array_equal(b, b0)
+    np.testing.assert_array_equal(E, E0)
+    w = np.array([[0.1, -0.2, 0.3]])
+    np.testing.assert_allclose(m.corrected_rates(np.zeros(0), w @ (np.eye(3) + E0).T + b0), w,
+                               rtol=0, atol=1e-16)
+    # scale factors estimated: the prior bias and off-diagonal entries are kept
+    m = StarModel(registry.create_many(["gyro_scale_factor"]), prior)
+    theta = np.array([1e-4, -2e-4, 3e-4])
+    b, E, Jb, JE = m.sensor_model(theta)
+    np.testing.assert_array_equal(b, b0)
+    np.testing.assert_array_equal(np.diag(E), theta)
+    np.testing.assert_array_equal(E - np.diag(np.diag(E)), E0 - np.diag(np.diag(E0)))
+    assert not np.any(Jb)
+    # bias estimated: the prior matrix is kept whole, the bias is θ (not prior + θ)
+    m = StarModel(registry.create_many(["gyro_bias"]), prior)
+    np.testing.assert_array_equal(m.initial_value, b0)
+    b, E, _, _ = m.sensor_model(np.array([1e-6, 2e-6, 3e-6]))
+    np.testing.assert_array_equal(b, [1e-6, 2e-6, 3e-6])
+    np.testing.assert_array_equal(E, E0)
+    # the accelerometer stage is separate
+    m = StarModel(registry.create_many(["gyro_bias", "accel_bias"]), prior)
+    b, E, _, _ = m.sensor_model(m.initial_value, Stage.ACCEL)
+    np.testing.assert_array_equal(b, prior.accel_bias)
+    np.testing.assert_array_equal(E, prior.accel_error_matrix)
+
+
+# ------------------------------------------------------------------ user effects
+USER_EFFECT = '''
+import numpy as np
+
+from stellar_cal_ros.effects.base import CAMERA_INDEX, Effect, Stage
+
+CX = CAMERA_INDEX["cx"]
+
+
+class CxScale(Effect):
+    """cx' = cx (1 + s)."""
+
+    id = "test_user_cx_scale"
+    stage = Stage.CAMERA
+    parameter_names = ("s",)
+    units = ("1",)
+    default_sigma = (1e-3,)
+    explanation = "A test effect: the principal point column scales by 1 + s."
+
+    def camera_parameters(self, value, p, ctx):
+        out = p.copy()
+        out[CX] = p[CX] * (1.0 + value[0])
+        return out
+
+    def camera_jacobian(self, value, p, ctx):
+        J = np.zeros((18, 1))
+        J[CX, 0] = p[CX]
+        D = np.eye(18)
+        D[CX, CX] = 1.0 + value[0]
+        return J, D
+'''
+
+
+@pytest.fixture
+def user_effect_file(tmp_path):
+    path = tmp_path / "my_effect.py"
+    path.write_text(textwrap.dedent(USER_EFFECT))
+    yield path
+    registry.EFFECTS.pop("test_user_cx_scale", None)
+
+
+def test_user_effect_module(user_effect_file, sim, stars):
+    assert registry.load_effect_module(user_effect_file) == ["test_user_cx_scale"]
+    assert registry.available()[-1] == "test_user_cx_scale"
+    with pytest.raises(ModelError, match="already registered"):
+        registry.load_effect_module(user_effect_file)  # a new class object, same id
+    effects = registry.create_many(["test_user_cx_scale", "principal_point"])
+    assert [e.id for e in effects] == ["principal_point", "test_user_cx_scale"]
+    ids, u_i = stars
+    model = StarModel(effects, sim.prior)
+    theta = np.array([520.0, 510.0, 2e-3])
+    ctx = make_ctx(ids)
+    att = rotating_attitude(sim.truth_world.R_i_b(np.array([100.0]))[0], ctx.stamp)
+    pred = model.predict(theta, u_i, ctx, att)
+    assert model.camera_at(theta, ctx).cx == pytest.approx(520.0 * 1.002, rel=1e-15)
+    for k, h in enumerate([1e-2, 1e-2, 1e-6]):
+        e = np.zeros(3)
+        e[k] = h
+        fd = (model.predict(theta + e, u_i, ctx, att).uv
+              - model.predict(theta - e, u_i, ctx, att).uv) / (2 * h)
+        np.testing.assert_allclose(pred.H_parameters[:, :, k], fd, rtol=1e-6, atol=1e-7)
+    # the principal point column goes through the user's scaling: ∂u/∂cx = 1 + s
+    np.testing.assert_allclose(pred.H_parameters[:, 0, 0], 1.002, rtol=1e-12)
+
+
+def test_bad_effect_modules(tmp_path):
+    empty = tmp_path / "empty.py"
+    empty.write_text("X = 1\n")
+    with pytest.raises(ModelError, match="defines no Effect"):
+        registry.load_effect_module(empty)
+    broken = tmp_path / "broken.py"
+    broken.write_text("raise RuntimeError('boom')\n")
+    with pytest.raises(ModelError, match="boom"):
+        registry.load_effect_module(broken)
+    with pytest.raises(ModelError, match="does not exist"):
+        registry.load_effect_module(tmp_path / "missing.py")
+    with pytest.raises(ModelError, match="unknown effect"):
+        registry.create("no_such_effect")
