@@ -134,6 +134,41 @@ def _print_replay_summary(result, args: argparse.Namespace) -> None:
     print(f"wrote {args.output}" + (f" and {args.residuals}" if args.residuals else ""))
 
 
+def _cmd_diagnose(args: argparse.Namespace) -> int:
+    from stellar_cal_ros.diagnosis.run import diagnose
+    from stellar_cal_ros.io.calibration import load_calibration
+
+    _load_effect_modules(args.effect_module)
+    cal = load_calibration(args.calibration)
+    candidates = _effect_list(args.candidates) or None
+    summary = diagnose(args.bag, cal, args.method, _effect_list(args.effects), args.output,
+                       candidates=candidates, plots=not args.no_plots)
+    print_diagnosis(summary)
+    print(f"wrote {args.output / 'diagnosis.json'}"
+          + ("" if args.no_plots else f" and {args.output / 'report.html'}"))
+    return 0
+
+
+def print_diagnosis(summary: dict) -> None:
+    """Print the key lines of a diagnosis summary."""
+    rms, exp = summary["residual_rms_px"], summary["expected_rms_px"]
+    print(f"innovation RMS u={rms[0]:.4f} v={rms[1]:.4f} px; the model expects "
+          f"u={exp[0]:.4f} v={exp[1]:.4f} px")
+    print("candidates (best first):")
+    for c in summary["candidates"][:6]:
+        flag = "SIGNIFICANT" if c["significant"] else "           "
+        print(f"  {flag} {c['effect']:22s} score {c['score']:10.1f}  p={c['p_value']:.2g}  "
+              f"RMS after u={c['rms_after_px'][0]:.4f} v={c['rms_after_px'][1]:.4f} px")
+    for u in summary["unobservable"]:
+        print(f"  unobservable: {u['effect']} ({u['reason']})")
+    for u in summary["unexplained"][:5]:
+        print(f"  unexplained: {u['component']} residual vs {u['regressor']} "
+              f"(t={u['statistic']:.1f}, p={u['p_value']:.2g})")
+    rec = summary.get("recommendation")
+    print(f"recommendation: add --effects {rec}" if rec else
+          "recommendation: no library effect explains the residuals better")
+
+
 def _not_yet(issue: int, what: str):
     def run(args: argparse.Namespace) -> int:
         raise StellarCalError(f"{what} is not implemented yet (tracked in issue {issue})")
@@ -197,8 +232,13 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--calibration", required=True, type=Path)
     d.add_argument("--method", required=True)
     d.add_argument("--effects", default="")
-    d.add_argument("-o", "--output", required=True, type=Path)
-    d.set_defaults(func=_not_yet(5, "diagnose"))
+    d.add_argument("-o", "--output", required=True, type=Path, help="REPORT_DIR")
+    d.add_argument("--candidates", default="",
+                   help="comma-separated effect ids to try (default: every library effect)")
+    d.add_argument("--effect-module", type=Path, action="append",
+                   help="Python file defining extra Effect classes (repeatable)")
+    d.add_argument("--no-plots", action="store_true", help="diagnosis.json only")
+    d.set_defaults(func=_cmd_diagnose)
 
     m = sub.add_parser("demo", help="run the built-in demonstration")
     m.add_argument("-o", "--output", type=Path, default=Path("demo_out"))

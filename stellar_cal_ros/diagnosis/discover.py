@@ -1,0 +1,229 @@
+"""Learn which physical effect the model lacks: augmented runs and a prequential LR test.
+
+Method (issue 5, "likelihood-ratio test from augmented runs")
+-------------------------------------------------------------
+For every library effect not in the current model, the calibration is re-run with the
+effect added, and compared with a re-run of the current model from the same starting
+values.  The statistic is twice the difference of the *innovation* log-likelihoods over the
+evaluation window (the second half of the frames):
+
+    Λ = 2 (ℓ_augmented − ℓ_current),      p = P(χ²_k > Λ),      p_adj = min(1, m · p)
+
+Innovations are one-step-ahead predictions made before the frame's own update, so ℓ is a
+prequential (out-of-sample) likelihood: each frame is held out from the estimate that
+predicts it.  A flexible effect cannot win by fitting noise, which is the concern behind
+fit-on-half/test-on-half validation, and every frame still serves as test data.  The
+``k`` extra parameters get a χ²_k reference distribution; ``m`` candidates are corrected
+for by Bonferroni.  ``rms_after_px`` is the innovation RMS of the augmented run in the
+same window: what the user will see after adding the effect.
+
+An effect whose parameters the data leave at their prior uncertainty (posterior σ above
+``unobservable_ratio`` × prior σ for every parameter) is reported as unobservable with
+this motion instead of ranked — e.g. a time offset without rotation.  Effects acting in a
+stage the method does not model (accelerometer effects for PSCE) or needing inputs the bag
+lacks (site, head temperature) are reported as not applicable.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats as sps
+
+from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.effects.base import Stage
+from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.methods.replay import BagData, ReplayResult
+
+log = logging.getLogger(__name__)
+
+Runner = Callable[[BagData, Calibration, list[str]], ReplayResult]
+
+
+@dataclass
+class MethodSpec:
+    """How the diagnosis runs one estimation method."""
+
+    name: str
+    baseline: tuple[str, ...]
+    stages: tuple[Stage, ...]
+    runner: Runner
+
+
+def _psce_runner(data: BagData, prior: Calibration, effects: list[str]) -> ReplayResult:
+    from stellar_cal_ros.methods.replay import replay_psce
+
+    return replay_psce(data, prior, effects)
+
+
+def method_spec(method: str) -> MethodSpec:
+    """The :class:`MethodSpec` of ``psce`` or ``swaying_base``."""
+    from stellar_cal_ros.errors import ModelError
+    from stellar_cal_ros.methods.psce import BASELINE_EFFECTS
+
+    if method == "psce":
+        return MethodSpec("psce", BASELINE_EFFECTS,
+                          (Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA),
+                          _psce_runner)
+    if method == "swaying_base":
+        try:
+            from stellar_cal_ros.methods import swaying
+        except ImportError as exc:  # pragma: no cover - until issue 4 lands
+            raise ModelError("the swaying_base method is not available") from exc
+        return MethodSpec("swaying_base", tuple(swaying.BASELINE_EFFECTS),
+                          (Stage.GYRO, Stage.ACCEL, Stage.DIRECTION, Stage.TIME, Stage.TRACKER),
+                          lambda d, p, e: swaying.replay_swaying(d, p, e))
+    raise ModelError(f"diagnose: unknown method {method!r} (psce | swaying_base)")
+
+
+@dataclass
+class CandidateResult:
+    """One candidate effect tried by an augmented run."""
+
+    effect: str
+    status: str  # ranked | unobservable | not_applicable | failed
+    statistic: float = float("nan")
+    dof: int = 0
+    p_value: float = 1.0
+    p_adjusted: float = 1.0
+    rms_after_px: tuple[float, float] = (float("nan"), float("nan"))
+    estimate: dict[str, float] = field(default_factory=dict)
+    sigma: dict[str, float] = field(default_factory=dict)
+    sigma_ratio: float = float("nan")
+    reason: str = ""
+    run: ReplayResult | None = None
+
+    @property
+    def significant(self) -> bool:
+        """Significant at 1 % after the multiple-testing correction."""
+        return self.status == "ranked" and self.p_adjusted < 0.01
+
+
+def rerun_prior(calibration: Calibration, model_effects: list[str]) -> Calibration:
+    """Start values from ``calibration``, datasheet-level sigmas for every estimated effect.
+
+    Both the current model and each augmented one are re-run from this prior, so their
+    likelihoods are comparable and every parameter can re-adjust to the candidate.
+    """
+    prior = copy.deepcopy(calibration)
+    prior.sigma = {}
+    prior.method = "prior"
+    return prior
+
+
+def _applicable(effect_id: str, spec: MethodSpec, data: BagData) -> str:
+    eff = registry.create(effect_id)
+    if eff.stage not in spec.stages:
+        return f"acts on the {eff.stage.value} stage, which {spec.name} does not model"
+    if "site" in eff.requires and data.site is None:
+        return "needs the site position (/gnss/fix), absent from the bag"
+    if "head_temperature" in eff.requires and data.head_temperature is None:
+        return "needs /star_tracker/temperature, absent from the bag"
+    return ""
+
+
+def rank_candidates(
+    data: BagData,
+    calibration: Calibration,
+    spec: MethodSpec,
+    model_effects: list[str],
+    candidates: list[str] | None = None,
+    evaluation_fraction: float = 0.5,
+    unobservable_ratio: float = 0.5,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[ReplayResult, list[CandidateResult]]:
+    """Re-run the current model and every candidate; return the base run and the ranking."""
+    extra = [e for e in model_effects if e not in spec.baseline]
+    prior = rerun_prior(calibration, list(spec.baseline) + extra)
+    base = spec.runner(data, prior, extra)
+    mask_b = stats.evaluation_mask(base.residuals, evaluation_fraction)
+    ll_base = stats.log_likelihood(base.residuals, mask_b)
+    in_model = set(spec.baseline) | set(extra)
+    pool = [e for e in (candidates or registry.available()) if e not in in_model]
+    results: list[CandidateResult] = []
+    for effect_id in pool:
+        reason = _applicable(effect_id, spec, data)
+        if reason:
+            results.append(CandidateResult(effect_id, "not_applicable", reason=reason))
+            continue
+        if progress:
+            progress(effect_id)
+        try:
+            run = spec.runner(data, prior, extra + [effect_id])
+        except Exception as exc:  # a candidate failing must not stop the diagnosis
+            log.warning("candidate %s failed: %s", effect_id, exc)
+            results.append(CandidateResult(effect_id, "failed", reason=str(exc)))
+            continue
+        flt = run.filter
+        model = flt.model
+        sl = model.slices[effect_id]
+        value = flt.theta[sl]
+        sig_post = flt.sigma()[3:][sl]
+        sig_prior = model.initial_sigma[sl]
+        ratio = float(np.min(sig_post / np.maximum(sig_prior, 1e-300)))
+        eff = model.effects[[e.id for e in model.effects].index(effect_id)]
+        cand = CandidateResult(
+            effect_id, "ranked", dof=eff.size, sigma_ratio=ratio,
+            estimate={n: float(v) for n, v in zip(eff.parameter_names, value, strict=True)},
+            sigma={n: float(s) for n, s in zip(eff.parameter_names, sig_post, strict=True)},
+            run=run,
+        )
+        mask_c = stats.evaluation_mask(run.residuals, evaluation_fraction)
+        cand.rms_after_px = stats.rms(run.residuals, mask_c)
+        if ratio > unobservable_ratio:
+            cand.status = "unobservable"
+            cand.reason = (f"the data leave its uncertainty at {ratio:.0%} of the prior: "
+                           "not observable with this motion and these inputs")
+        else:
+            ll = stats.log_likelihood(run.residuals, mask_c)
+            cand.statistic = float(2.0 * (ll - ll_base))
+            cand.p_value = float(sps.chi2.sf(max(cand.statistic, 0.0), eff.size))
+        results.append(cand)
+    ranked = [c for c in results if c.status == "ranked"]
+    m = max(len(ranked), 1)
+    for c in ranked:
+        c.p_adjusted = min(1.0, c.p_value * m)
+    order = {"ranked": 0, "unobservable": 1, "failed": 2, "not_applicable": 3}
+    results.sort(key=lambda c: (order[c.status], -np.nan_to_num(c.statistic, nan=-np.inf)))
+    return base, results
+
+
+def summary_dict(base: ReplayResult, results: list[CandidateResult],
+                 unexplained: list[stats.RegressorFinding], spec: MethodSpec,
+                 model_effects: list[str], evaluation_fraction: float) -> dict[str, Any]:
+    """``diagnosis.json`` (contract §5), plus extra keys readers may ignore."""
+    res = base.residuals
+    mask = stats.evaluation_mask(res, evaluation_fraction)
+    ranked = [c for c in results if c.status == "ranked"]
+    return {
+        "format": "stellar_cal_diagnosis/1",
+        "residual_rms_px": list(stats.rms(res, mask)),
+        "expected_rms_px": list(stats.expected_rms(res, mask)),
+        "candidates": [
+            {"effect": c.effect, "score": c.statistic, "rms_after_px": list(c.rms_after_px),
+             "p_value": c.p_adjusted, "p_value_unadjusted": c.p_value,
+             "significant": c.significant, "dof": c.dof, "estimate": c.estimate,
+             "sigma": c.sigma}
+            for c in ranked
+        ],
+        "unexplained": [
+            {"regressor": f.regressor, "component": f.component, "statistic": f.statistic,
+             "p_value": f.p_value, "change_px": f.slope_px}
+            for f in unexplained
+        ],
+        "unobservable": [{"effect": c.effect, "reason": c.reason}
+                         for c in results if c.status == "unobservable"],
+        "not_applicable": [{"effect": c.effect, "reason": c.reason}
+                           for c in results if c.status in ("not_applicable", "failed")],
+        "nis": stats.nis_consistency(res, mask),
+        "whiteness": stats.whiteness(res, mask),
+        "model": {"method": spec.name, "effects": list(spec.baseline) + [
+            e for e in model_effects if e not in spec.baseline]},
+        "evaluation": f"innovations of the last {evaluation_fraction:.0%} of the frames",
+    }

@@ -1,0 +1,62 @@
+"""``stellar-cal diagnose``: compare model and measurements, name the missing effect."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from stellar_cal_ros.diagnosis import report, stats
+from stellar_cal_ros.diagnosis.discover import method_spec, rank_candidates, summary_dict
+from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.methods.replay import BagData, read_bag_data
+
+log = logging.getLogger(__name__)
+
+
+def diagnose(
+    bag: str | Path | BagData,
+    calibration: Calibration,
+    method: str,
+    effects: list[str],
+    output_dir: str | Path,
+    candidates: list[str] | None = None,
+    evaluation_fraction: float = 0.5,
+    plots: bool = True,
+    verbose: bool = True,
+) -> dict[str, Any]:
+    """Run the diagnosis; write ``diagnosis.json`` and ``report.html``; return the summary."""
+    out = Path(output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    data = bag if isinstance(bag, BagData) else read_bag_data(bag)
+    spec = method_spec(method)
+
+    def tell(effect_id: str) -> None:
+        if verbose:
+            print(f"   trying {effect_id} ...", flush=True)
+
+    base, results = rank_candidates(data, calibration, spec, effects, candidates,
+                                    evaluation_fraction, progress=tell)
+    best = next((c for c in results if c.significant), None)
+    final = best.run if best is not None else base
+    cam = calibration.camera
+    centre = (cam.cx, cam.cy)
+    mask = stats.evaluation_mask(final.residuals, evaluation_fraction)
+    unexplained = stats.regressor_tests(final.residuals, mask, centre)
+    summary = summary_dict(base, results, unexplained, spec, effects, evaluation_fraction)
+    summary["recommendation"] = best.effect if best is not None else None
+    (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
+    if plots:
+        panels = [("current model", base.residuals)]
+        if best is not None:
+            panels.append((f"+ {best.effect}", best.run.residuals))
+        report.plot_vector_fields(panels, cam.width, cam.height, evaluation_fraction,
+                                  out / "vector_field.png")
+        report.plot_regressors(panels, centre, evaluation_fraction, out / "regressors.png")
+        report.plot_time(panels, out / "time.png")
+        images = [("Mean innovation over the detector (regional bins)", "vector_field.png"),
+                  ("Innovations against possible causes", "regressors.png"),
+                  ("Innovations against time", "time.png")]
+        report.write_html(out, summary, images, "stellar_cal diagnosis")
+    return summary
