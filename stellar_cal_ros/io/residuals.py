@@ -1,0 +1,117 @@
+"""Per-star residual tables: write and read CSV (always) or Parquet (if pyarrow is installed).
+
+A residual table is a ``dict[str, numpy.ndarray]`` of equal-length 1-D columns.  The batch
+(ACF) solver and the Kalman filters write the columns
+
+``t, frame, catalog_id, u, v, u_pred, v_pred, du, dv, s_uu, s_uv, s_vv, magnitude, gated``
+
+(``t`` in s relative to the bag start, ``du = u − u_pred``, ``s_*`` the innovation covariance
+in px², ``gated`` True where the measurement was rejected / down-weighted); any further
+columns are allowed and kept in order.
+
+CSV round trip: floats are written with 17 significant digits (exact), integers as integers,
+booleans as ``True``/``False``.  :func:`read_residuals` infers each column's type back (bool if
+every cell is ``True``/``False``, int64 if every cell is an integer literal, float64 if every
+cell parses as a number, otherwise str).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import numpy as np
+
+from stellar_cal_ros.errors import StellarCalError
+
+RESIDUAL_COLUMNS = ("t", "frame", "catalog_id", "u", "v", "u_pred", "v_pred", "du", "dv",
+                    "s_uu", "s_uv", "s_vv", "magnitude", "gated")
+
+
+def _columns(table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    if not table:
+        raise StellarCalError("residual table has no columns")
+    cols = {str(k): np.asarray(v) for k, v in table.items()}
+    lengths = {k: v.shape[0] if v.ndim == 1 else -1 for k, v in cols.items()}
+    if any(n < 0 for n in lengths.values()):
+        bad = [k for k, n in lengths.items() if n < 0]
+        raise StellarCalError(f"residual columns must be 1-D, not {bad}")
+    if len(set(lengths.values())) > 1:
+        raise StellarCalError(f"residual columns differ in length: {lengths}")
+    return cols
+
+
+def _format(col: np.ndarray) -> list[str]:
+    if col.dtype == bool:
+        return ["True" if x else "False" for x in col.tolist()]
+    if np.issubdtype(col.dtype, np.integer):
+        return [str(int(x)) for x in col.tolist()]
+    if np.issubdtype(col.dtype, np.floating):
+        return [repr(float(x)) if np.isfinite(x) else str(float(x)) for x in col.tolist()]
+    return [str(x) for x in col.tolist()]
+
+
+def write_residuals(path: str | os.PathLike[str], table: dict[str, np.ndarray]) -> Path:
+    """Write a residual table to ``path`` (``.parquet`` → Parquet, anything else → CSV).
+
+    Raises
+    ------
+    StellarCalError
+        Columns of different lengths / not 1-D, or ``.parquet`` without pyarrow.
+    """
+    path = Path(path)
+    cols = _columns(table)
+    if path.suffix.lower() == ".parquet":
+        try:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+        except ImportError:
+            raise StellarCalError(
+                f"cannot write {path}: Parquet needs pyarrow, which is not installed; "
+                "write a .csv file instead") from None
+        pq.write_table(pa.table({k: pa.array(v) for k, v in cols.items()}), path)
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    formatted = [_format(v) for v in cols.values()]
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(list(cols))
+        w.writerows(zip(*formatted, strict=True))
+    return path
+
+
+def _parse(cells: list[str]) -> np.ndarray:
+    if cells and all(c in ("True", "False") for c in cells):
+        return np.array([c == "True" for c in cells], dtype=bool)
+    try:
+        return np.array([int(c) for c in cells], dtype=np.int64)
+    except ValueError:
+        pass
+    try:
+        return np.array([float(c) for c in cells], dtype=np.float64)
+    except ValueError:
+        return np.array(cells, dtype=str)
+
+
+def read_residuals(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    """Read a table written by :func:`write_residuals` (CSV, or Parquet with pyarrow)."""
+    path = Path(path)
+    if not path.is_file():
+        raise StellarCalError(f"residual file {path} does not exist")
+    if path.suffix.lower() == ".parquet":
+        try:
+            import pyarrow.parquet as pq
+        except ImportError:
+            raise StellarCalError(f"cannot read {path}: Parquet needs pyarrow, which is not "
+                                  "installed") from None
+        t = pq.read_table(path)
+        return {name: t.column(name).to_numpy() for name in t.column_names}
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise StellarCalError(f"residual file {path} is empty")
+    header, body = rows[0], rows[1:]
+    if any(len(r) != len(header) for r in body):
+        raise StellarCalError(f"residual file {path}: rows of unequal length")
+    return {name: _parse([r[i] for r in body]) for i, name in enumerate(header)}
