@@ -85,9 +85,12 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     _load_effect_modules(args.effect_module)
     prior = load_calibration(args.prior)
     effects = _effect_list(args.effects)
+    if args.method == "swaying_base":
+        from stellar_cal_ros.methods.swaying import cli_replay
+
+        return cli_replay(args, prior, effects)
     if args.method != "psce":
-        raise StellarCalError(f"replay --method {args.method} is not implemented yet "
-                              "(tracked in issue 4)")
+        raise StellarCalError(f"replay --method {args.method} is not implemented")
     config = PsceConfig()
     if args.centroid_sigma is not None:
         config.centroid_sigma_px = args.centroid_sigma
@@ -169,6 +172,35 @@ def print_diagnosis(summary: dict) -> None:
           "recommendation: no library effect explains the residuals better")
 
 
+def _cmd_batch(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from stellar_cal_ros.io.calibration import load_calibration, save_calibration
+    from stellar_cal_ros.io.residuals import write_residuals
+    from stellar_cal_ros.methods.acf import ARCSEC, parse_effects, run_acf
+
+    prior = load_calibration(args.prior)
+    if args.residuals is not None and args.residuals.suffix.lower() == ".parquet":
+        write_residuals(args.residuals, {"probe": np.zeros(0)})  # fail early without pyarrow
+    res = run_acf(args.bag, prior, parse_effects(args.effects), loss=args.loss)
+    save_calibration(res.calibration, args.output)
+    if args.residuals is not None:
+        write_residuals(args.residuals, res.residuals)
+    gated = int(np.sum(res.residuals["gated"]))
+    print(f"acf: {len(res.frames)} frames, {len(res.residuals['du']) - gated} stars "
+          f"({gated} gated), RMS |Δuv| {res.rms_px:.4f} px, σ̂ {res.sigma_px:.4f} px, "
+          f"{res.iterations} evaluations, loss {res.loss}")
+    for name, value, sigma in zip(res.parameter_names[3:], res.theta, res.sigma[3:],
+                                  strict=True):
+        unit = ""
+        if name.startswith("installation."):
+            value, sigma, unit = value / ARCSEC, sigma / ARCSEC, " arcsec (vs prior)"
+        print(f"  {name:28s} {value:+.8g} ± {sigma:.3g}{unit}")
+    print(res.observability.summary())
+    print(f"wrote {args.output}" + (f" and {args.residuals}" if args.residuals else ""))
+    return 0
+
+
 def _not_yet(issue: int, what: str):
     def run(args: argparse.Namespace) -> int:
         raise StellarCalError(f"{what} is not implemented yet (tracked in issue {issue})")
@@ -225,7 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--prior", required=True, type=Path)
     b.add_argument("-o", "--output", required=True, type=Path)
     b.add_argument("--effects", default="")
-    b.set_defaults(func=_not_yet(7, "batch"))
+    b.add_argument("--residuals", type=Path, default=None, help="RES.csv (or .parquet)")
+    b.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"])
+    b.set_defaults(func=_cmd_batch)
 
     d = sub.add_parser("diagnose", help="compare model and measurements")
     d.add_argument("bag", type=Path)

@@ -1,0 +1,958 @@
+"""Attitude-correlated-frames (ACF) batch calibration (Liu et al. 2017, eqs. 6-11).
+
+The gyros tie every star frame to the first one: with the IMU propagated once through the
+whole bag (prior sensor model),
+
+    R_i_b(t_k) = Exp(φ) · Exp(G_k Δθ_gyro) · R̂_i_b0 · R_b0_b(t_k),
+
+where ``R̂_i_b0`` is the (estimated) IMU attitude at the first selected frame, ``φ`` its
+left (inertial) correction, ``R_b0_b(t_k)`` the gyro attitude change to frame ``k``
+(interpolated within IMU samples) and ``G_k`` the first-order sensitivity of that change to
+gyro bias / scale / misalignment effects if those are estimated.  The unknowns are ``φ`` (3)
+and the :class:`~stellar_cal_ros.methods.star_model.StarModel` parameters θ of the effects
+(default: installation, focal length, principal point, k1 k2, k3, p1 p2).  All stars of all
+frames enter one least-squares problem (``scipy.optimize.least_squares``) with the analytic
+Jacobian of the star model, plus prior residuals ``(θ − θ_prior)/σ_prior`` which fix the
+directions the data cannot see (see below) and make the problem well posed.
+
+Observability.  Only attitude *changes* come from the gyros, so a rotation ``a`` of the
+first attitude is indistinguishable from an installation rotation δ with
+``R_imu_st δ = R_b_k_b0 a`` for every frame — possible exactly for ``a`` along the rotation
+axis of a single-axis sweep.  The installation component about the sweep axis (expressed in
+tracker axes) is therefore unobservable apart from the small part Earth rotation adds, and
+stays at its prior.  A principal-point offset and a tracker rotation about x/y both shift
+the whole star field; they separate only through the perspective term ``f (1 + x²)`` — weakly
+over a 15° field — so ``cx`` and ``ry`` (``cy`` and ``rx``) are strongly correlated.  The
+:class:`ObservabilityReport` lists these combinations from the SVD of the star Jacobian.
+
+Solution (Liu's two steps): a joint Wahba fit of all frames gives ``R̂_i_b0``; step 1 fits a
+distortion-free pinhole (focal length, principal point, installation) and φ with a soft-L1
+loss; step 2 fits every parameter with the chosen loss (``linear``; ``huber`` / ``soft_l1``
+with ``f_scale = 3σ`` for misidentified stars, applied to star residuals only — the prior
+residuals stay quadratic).
+
+Times: relative seconds ``(stamp_ns − t0_ns)·1e-9`` with ``t0_ns`` the first IMU stamp; the
+star model's ``ctx.stamp`` (POSIX float, needed by astrometric effects) is only used to carry
+a time shift back to the exact relative time.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from stellar_cal_ros.core.attitude import wahba
+from stellar_cal_ros.core.earth import Site
+from stellar_cal_ros.core.rotation import left_jacobian, so3_exp, so3_log
+from stellar_cal_ros.core.strapdown import attitude_increments, propagate_attitude
+from stellar_cal_ros.effects.base import FrameContext, Stage
+from stellar_cal_ros.effects.registry import create_many
+from stellar_cal_ros.errors import BagError, ModelError, StellarCalError
+from stellar_cal_ros.io.bag import BagReader, ImuSeries, StarFrame
+from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.methods.star_model import StarModel
+
+log = logging.getLogger(__name__)
+
+ACF_EFFECTS: tuple[str, ...] = ("installation", "focal_length", "principal_point",
+                                "radial_k1k2", "radial_k3", "tangential")
+"""Default effect set of the ACF method (Liu et al. eq. 9: x0 y0 f q1 q2 q3 p1 p2 θ1-3)."""
+
+PINHOLE_EFFECTS: tuple[str, ...] = ("installation", "focal_length", "principal_point",
+                                    "pixel_aspect")
+"""Effects kept in step 1 (distortion-free pinhole)."""
+
+MIN_FRAMES = 2
+MIN_STARS_PER_FRAME = 2
+ARCSEC = np.pi / 180.0 / 3600.0
+
+
+# ============================================================================ data
+@dataclass
+class AcfData:
+    """Star frames and IMU samples of one run, with the time origin ``t0_ns``."""
+
+    frames: list[StarFrame]
+    imu: ImuSeries
+    t0_ns: int
+    site: Site | None = None
+    scalars: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def rel(self, stamp_ns: Any) -> Any:
+        """Relative seconds of POSIX ns stamps (exact integer difference first)."""
+        return (np.asarray(stamp_ns, dtype=np.int64) - self.t0_ns) * 1e-9
+
+
+def load_acf_data(
+    bag_path: str | os.PathLike[str],
+    star_topic: str = "/star_tracker/stars",
+    imu_topic: str = "/imu/data",
+    gnss_topic: str = "/gnss/fix",
+) -> AcfData:
+    """Read what the ACF method needs from a contract bag.
+
+    Raises
+    ------
+    StellarCalError
+        The bag or one of the two required topics is missing, or holds no data.
+    """
+    try:
+        with BagReader(bag_path) as reader:
+            topics = reader.topics()
+            for topic, what in ((star_topic, "star centroids"), (imu_topic, "IMU samples")):
+                if topic not in topics:
+                    raise StellarCalError(
+                        f"{bag_path}: the ACF method needs {what} on {topic}, which the bag "
+                        f"does not have (topics: {sorted(topics)})")
+            imu = reader.read_imu(imu_topic)
+            frames = reader.read_star_frames(star_topic)
+            site = None
+            scalars: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+            if gnss_topic in topics:
+                fix = reader.read_navsat(gnss_topic)
+                if len(fix):
+                    site = Site(float(np.median(fix.latitude_deg)),
+                                float(np.median(fix.longitude_deg)),
+                                float(np.median(fix.altitude_m)))
+            for key, topic in (("head_temperature_c", "/star_tracker/temperature"),
+                               ("air_temperature_c", "/environment/temperature"),
+                               ("pressure_pa", "/environment/pressure")):
+                if topic in topics:
+                    s = reader.read_scalar(topic)
+                    if len(s):
+                        scalars[key] = (np.asarray(s.stamp_ns), np.asarray(s.value))
+    except FileNotFoundError as exc:
+        raise BagError(f"cannot open bag {bag_path}: {exc}") from None
+    if len(imu) < 2:
+        raise StellarCalError(f"{bag_path}: {imu_topic} holds {len(imu)} IMU samples; "
+                              "the ACF method needs the gyro data between the star frames")
+    if not frames:
+        raise StellarCalError(f"{bag_path}: {star_topic} holds no star frames")
+    t0 = int(imu.stamp_ns[0])
+    data = AcfData(frames=frames, imu=imu, t0_ns=t0, site=site)
+    data.scalars = {k: (data.rel(st), v) for k, (st, v) in scalars.items()}
+    return data
+
+
+# ============================================================================ gyro chain
+class GyroChain:
+    """Attitude changes from one propagation of the IMU, interpolated to any time.
+
+    ``R(t)`` is the body attitude in the frame of the body at the start of the first IMU
+    interval ("n0"); ``C(t)`` (3, P) is the first-order left perturbation of ``R(t)`` per
+    unit change of θ through the gyro sensor model (zero unless gyro effects are estimated).
+    """
+
+    def __init__(self, data: AcfData, model: StarModel, theta0: np.ndarray) -> None:
+        imu = data.imu
+        t = data.rel(imu.stamp_ns)
+        if np.any(np.diff(t) <= 0):
+            raise StellarCalError("IMU stamps are not strictly increasing")
+        dt = np.diff(t)
+        dt0 = float(np.median(dt))
+        dt = np.concatenate([[dt0], dt])
+        self.nodes = np.concatenate([[t[0] - dt0], t])  # interval k: nodes[k] .. nodes[k+1]
+        self.dt = dt
+        w = model.corrected_rates(theta0, np.asarray(imu.angular_velocity, dtype=float))
+        self.rates = w
+        self.phi = attitude_increments(w, dt)
+        R = propagate_attitude(Rotation.identity(), w, dt).as_matrix()
+        self.R = np.concatenate([np.eye(3)[None], R])  # at nodes
+        # sensitivity to θ: δw = −(Jb + JE·w) Δθ
+        P = model.size
+        self.C = np.zeros((len(self.nodes), 3, P))
+        _, _, Jb, JE = model.sensor_model(theta0, Stage.GYRO)
+        if P and (np.any(Jb) or np.any(JE)):
+            B = -(Jb[None] + np.einsum("ijp,nj->nip", JE, w))  # (N, 3, P)
+            R_mid = 0.5 * (self.R[:-1] + self.R[1:])
+            self.C[1:] = np.cumsum(np.einsum("nij,njp->nip", R_mid, B) * dt[:, None, None],
+                                   axis=0)
+
+    @property
+    def span(self) -> tuple[float, float]:
+        """First and last time covered by the IMU (relative s)."""
+        return float(self.nodes[0]), float(self.nodes[-1])
+
+    def _locate(self, t: float) -> tuple[int, float]:
+        j = int(np.searchsorted(self.nodes, t, side="right")) - 1
+        j = min(max(j, 0), len(self.dt) - 1)
+        s = (t - self.nodes[j]) / self.dt[j]
+        return j, s
+
+    def attitude(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """``R_n0_b(t)`` (3, 3) and the body rate ω (3,) at relative time ``t``."""
+        j, s = self._locate(t)
+        return self.R[j] @ so3_exp(s * self.phi[j]), self.rates[j]
+
+    def sensitivity(self, t: float) -> np.ndarray:
+        """``C(t)`` (3, P), linear interpolation between IMU nodes."""
+        j, s = self._locate(t)
+        return (1.0 - s) * self.C[j] + s * self.C[min(j + 1, len(self.C) - 1)]
+
+
+# ============================================================================ results
+@dataclass
+class ObservabilityReport:
+    """What the star data determine, from the SVD of the whitened star Jacobian.
+
+    Columns are scaled by the prior σ of each parameter (the first-attitude columns by the
+    installation prior σ), so a singular value ``s`` compares the data's information on a
+    combination with the prior's: ``s < 1`` means the prior dominates.
+    """
+
+    parameter_names: list[str]
+    singular_values: np.ndarray
+    directions: np.ndarray  # (n, n) right singular vectors as columns (scaled parameters)
+    weak: list[dict[str, Any]]
+    prior_dominated: list[str]
+    sigma_ratio: dict[str, float]  # posterior σ / prior σ
+    correlations: list[tuple[str, str, float]]
+
+    def summary(self) -> str:
+        """Human-readable text."""
+        lines = [f"condition number (prior-scaled star Jacobian): "
+                 f"{self.singular_values[0] / max(self.singular_values[-1], 1e-300):.3g}"]
+        for w in self.weak:
+            comb = " ".join(f"{c:+.2f}·{n}" for n, c in w["combination"].items())
+            lines.append(f"  weak direction s={w['singular_value']:.3g}: {comb}")
+        if self.prior_dominated:
+            lines.append("  prior-dominated (posterior σ > 0.5 prior σ): "
+                         + ", ".join(self.prior_dominated))
+        for a, b, r in self.correlations:
+            lines.append(f"  correlation {a} ~ {b}: {r:+.3f}")
+        return "\n".join(lines)
+
+
+@dataclass
+class AcfResult:
+    """Result of :func:`run_acf`."""
+
+    calibration: Calibration
+    residuals: dict[str, np.ndarray]
+    cost: float
+    iterations: int
+    observability: ObservabilityReport
+    theta: np.ndarray
+    covariance: np.ndarray  # (3 + P, 3 + P): [φ, θ]
+    parameter_names: list[str]
+    sigma_px: float  # a-posteriori centroid σ (σ̂), px
+    rms_px: float  # RMS of |Δuv| over the fitted frames (inliers), px
+    R_i_b0: np.ndarray  # IMU attitude at the reference frame
+    reference_time: float  # relative s of the reference frame
+    frames: np.ndarray  # indices of the fitted frames
+    model: StarModel
+    chain: GyroChain
+    data: AcfData
+    loss: str
+    step1_theta: np.ndarray | None = None
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """1-σ of ``[φ, θ]``."""
+        return np.sqrt(np.diag(self.covariance))
+
+
+# ============================================================================ helpers
+def _select_frames(n: int, frames: Any) -> np.ndarray:
+    """Indices from None / 'all' / 'odd' / 'even' (1-based, as Liu counts) / ints / mask."""
+    if frames is None or (isinstance(frames, str) and frames == "all"):
+        return np.arange(n)
+    if isinstance(frames, str):
+        if frames == "odd":
+            return np.arange(0, n, 2)
+        if frames == "even":
+            return np.arange(1, n, 2)
+        raise StellarCalError(f"frames must be 'all', 'odd', 'even' or indices, got {frames!r}")
+    if isinstance(frames, slice):
+        return np.arange(n)[frames]
+    idx = np.asarray(frames)
+    if idx.dtype == bool:
+        if idx.shape != (n,):
+            raise StellarCalError(f"frame mask must have {n} entries, got {idx.shape}")
+        return np.flatnonzero(idx)
+    idx = np.asarray(idx, dtype=np.int64).ravel()
+    if idx.size and (idx.min() < -n or idx.max() >= n):
+        raise StellarCalError(f"frame index out of range 0..{n - 1}")
+    return np.unique(np.where(idx < 0, idx + n, idx))
+
+
+def _unit_vectors(ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
+    cd = np.cos(dec)
+    return np.stack([np.cos(ra) * cd, np.sin(ra) * cd, np.sin(dec)], axis=1)
+
+
+@dataclass
+class _Frame:
+    index: int
+    t_rel: float
+    stamp: float  # POSIX float for the star model's ctx
+    u_i: np.ndarray
+    uv: np.ndarray
+    sigma: np.ndarray
+    catalog_id: np.ndarray
+    magnitude: np.ndarray
+    ctx: FrameContext
+    C: np.ndarray | None = None
+    use: np.ndarray | None = None  # stars that passed the identification gate
+
+    def subset(self) -> _Frame:
+        """The frame restricted to the stars in ``use``."""
+        if self.use is None or self.use.all():
+            return self
+        m = self.use
+        ctx = copy.copy(self.ctx)
+        ctx.catalog_id, ctx.magnitude = self.ctx.catalog_id[m], self.ctx.magnitude[m]
+        return _Frame(self.index, self.t_rel, self.stamp, self.u_i[m], self.uv[m],
+                      self.sigma[m], self.catalog_id[m], self.magnitude[m], ctx)
+
+
+def _prepare_frames(data: AcfData, idx: np.ndarray, chain: GyroChain, time_offset: float,
+                    sigma_px: float | None, min_stars: int) -> list[_Frame]:
+    lo, hi = chain.span
+    out = []
+    for k in idx:
+        fr = data.frames[int(k)]
+        ok = (fr.catalog_id != 0) & np.isfinite(fr.right_ascension) & \
+            np.isfinite(fr.declination) & np.all(np.isfinite(fr.uv), axis=1)
+        if ok.sum() < min_stars:
+            continue
+        t_rel = float(data.rel(fr.stamp_ns))
+        if not (lo <= t_rel + time_offset <= hi):
+            log.warning("star frame %d at %.3f s lies outside the IMU data; skipped", k, t_rel)
+            continue
+        sig = np.asarray(fr.sigma, dtype=float)[ok]
+        if sigma_px is not None:
+            sig = np.full(ok.sum(), float(sigma_px))
+        else:
+            sig = np.where(np.isfinite(sig) & (sig > 0), sig, 1.0)
+        ctx = FrameContext(stamp=fr.stamp_ns * 1e-9, catalog_id=fr.catalog_id[ok].astype(np.int64),
+                           magnitude=np.asarray(fr.magnitude, dtype=float)[ok], site=data.site)
+        for key, (ts, vs) in data.scalars.items():
+            setattr(ctx, key, float(np.interp(t_rel, ts, vs)))
+        out.append(_Frame(int(k), t_rel, fr.stamp_ns * 1e-9,
+                          _unit_vectors(fr.right_ascension[ok], fr.declination[ok]),
+                          np.asarray(fr.uv, dtype=float)[ok], sig,
+                          fr.catalog_id[ok].astype(np.int64),
+                          np.asarray(fr.magnitude, dtype=float)[ok], ctx))
+    return out
+
+
+class _Problem:
+    """Residuals and analytic Jacobian of the ACF least squares for one effect set."""
+
+    def __init__(self, model: StarModel, chain: GyroChain, frames: list[_Frame],
+                 R_i_b0: np.ndarray, t_ref: float, theta_prior: np.ndarray,
+                 sigma_prior: np.ndarray, sigma_scale: float = 1.0) -> None:
+        self.model, self.chain, self.frames = model, chain, frames
+        self.R_i_b0 = R_i_b0
+        self.t_ref = t_ref
+        self.theta_prior = theta_prior
+        self.sigma_prior = sigma_prior
+        self.sigma_scale = sigma_scale
+        self.theta_lin = theta_prior.copy()  # gyro linearization point (the chain's θ0)
+        R_ref, _ = chain.attitude(t_ref)
+        self.R_ref = R_ref
+        C_ref = chain.sensitivity(t_ref)
+        self.gyro_used = bool(np.any(chain.C))
+        for f in frames:
+            f.C = R_i_b0 @ R_ref.T @ (chain.sensitivity(f.t_rel) - C_ref)
+        self.n_star = int(sum(2 * len(f.uv) for f in frames))
+        self.n_x = 3 + model.size
+        self._cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
+
+    def attitude_fn(self, f: _Frame, phi: np.ndarray, dtheta: np.ndarray):
+        R_phi = so3_exp(phi)
+        R_g = so3_exp(f.C @ dtheta) if self.gyro_used else np.eye(3)
+        base = R_phi @ R_g @ self.R_i_b0 @ self.R_ref.T
+
+        def attitude(t: float) -> tuple[np.ndarray, np.ndarray]:
+            R_n0_b, w = self.chain.attitude(f.t_rel + (t - f.stamp))
+            return base @ R_n0_b, w
+
+        return attitude
+
+    def predict(self, x: np.ndarray, f: _Frame, jac: bool = True):
+        phi, theta = x[:3], x[3:]
+        att = self.attitude_fn(f, phi, theta - self.theta_lin)
+        pred = self.model.predict(theta, f.u_i, f.ctx, att)
+        if not jac:
+            return pred.uv, None
+        n = len(f.uv)
+        J = np.zeros((n, 2, self.n_x))
+        J[:, :, :3] = pred.H_attitude @ left_jacobian(phi)
+        J[:, :, 3:] = pred.H_parameters
+        if self.gyro_used:
+            J[:, :, 3:] += pred.H_attitude @ (so3_exp(phi) @ f.C)
+        return pred.uv, J
+
+    def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = x.tobytes()
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1], self._cache[2]
+        rs, Js = [], []
+        for f in self.frames:
+            uv, J = self.predict(x, f)
+            w = 1.0 / (f.sigma * self.sigma_scale)
+            rs.append(((f.uv - uv) * w[:, None]).ravel())
+            Js.append((-J * w[:, None, None]).reshape(-1, self.n_x))
+        P = self.model.size
+        rp = (x[3:] - self.theta_prior) / self.sigma_prior
+        Jp = np.zeros((P, self.n_x))
+        Jp[:, 3:] = np.diag(1.0 / self.sigma_prior)
+        r = np.concatenate(rs + [rp])
+        J = np.vstack(Js + [Jp])
+        if not np.all(np.isfinite(r)):
+            bad = ~np.isfinite(r)
+            r = np.where(bad, 1e6, r)  # star behind the camera: push back hard
+            J[bad] = 0.0
+        self._cache = (key, r, J)
+        return r, J
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        return self.evaluate(x)[0]
+
+    def jac(self, x: np.ndarray) -> np.ndarray:
+        return self.evaluate(x)[1]
+
+
+def _make_loss(kind: str, n_star: int, c: float):
+    """A least_squares loss ρ(z) (z = r²) robust on the first ``n_star`` residuals only."""
+    if kind == "linear":
+        return "linear"
+    if kind not in ("huber", "soft_l1", "cauchy"):
+        raise StellarCalError(f"loss must be linear, huber, soft_l1 or cauchy, got {kind!r}")
+    c2 = c * c
+
+    def rho(z: np.ndarray) -> np.ndarray:
+        out = np.empty((3, z.size))
+        out[0], out[1], out[2] = z, 1.0, 0.0
+        zs = z[:n_star] / c2
+        if kind == "huber":
+            big = zs > 1.0
+            sq = np.sqrt(np.where(big, zs, 1.0))
+            r0 = np.where(big, 2.0 * sq - 1.0, zs)
+            r1 = np.where(big, 1.0 / sq, 1.0)
+            r2 = np.where(big, -0.5 / (sq * np.where(big, zs, 1.0)), 0.0)
+        elif kind == "soft_l1":
+            t = 1.0 + zs
+            r0, r1, r2 = 2.0 * (np.sqrt(t) - 1.0), t ** -0.5, -0.5 * t ** -1.5
+        else:
+            r0, r1, r2 = np.log1p(zs), 1.0 / (1.0 + zs), -1.0 / (1.0 + zs) ** 2
+        out[0, :n_star] = c2 * r0
+        out[1, :n_star] = r1
+        out[2, :n_star] = r2 / c2
+        return out
+
+    return rho
+
+
+def _robust_weights(kind: str, r: np.ndarray, c: float) -> np.ndarray:
+    """IRLS weights ρ'(r²) of whitened residuals."""
+    if kind == "linear":
+        return np.ones_like(r)
+    zs = (r / c) ** 2
+    if kind == "huber":
+        return np.where(zs > 1.0, 1.0 / np.sqrt(np.maximum(zs, 1.0)), 1.0)
+    if kind == "soft_l1":
+        return (1.0 + zs) ** -0.5
+    return 1.0 / (1.0 + zs)
+
+
+def _solve(problem: _Problem, x0: np.ndarray, loss: str, f_scale: float, max_nfev: int):
+    rho = _make_loss(loss, problem.n_star, f_scale)
+    res = least_squares(problem.fun, x0, jac=problem.jac, loss=rho, f_scale=1.0,
+                        method="trf", x_scale="jac", max_nfev=max_nfev,
+                        xtol=1e-12, ftol=1e-12, gtol=1e-10)
+    return res
+
+
+def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
+                      theta: np.ndarray, t_ref: float,
+                      gate_deg: float | None) -> np.ndarray:
+    """Joint Wahba fit of ``R_i_b0`` over all frames; sets each frame's ``use`` mask.
+
+    Two passes: the second drops stars more than ``5 × median`` off.  Then stars whose
+    catalogue direction is more than ``max(gate_deg, 5 × median)`` from the measured one are
+    marked as misidentified (``use = False``): a random wrong identity points far outside
+    the field, where the projection is singular and no loss function copes.
+    """
+    cam = model.camera_at(theta, frames[0].ctx)
+    R_imu_st, _ = model.installation_at(theta, frames[0].ctx)
+    R_ref, _ = chain.attitude(t_ref)
+    v_b0, u_i = [], []
+    for f in frames:
+        d = cam.unproject(f.uv)
+        R_b0_b = R_ref.T @ chain.attitude(f.t_rel + model.prior.time_offset)[0]
+        v_b0.append(d @ (R_b0_b @ R_imu_st).T)
+        u_i.append(f.u_i)
+    v, u = np.vstack(v_b0), np.vstack(u_i)
+    ok = np.all(np.isfinite(v), axis=1)
+    R = wahba(v[ok], u[ok])
+
+    def angles(R: np.ndarray) -> np.ndarray:
+        a = np.full(len(v), np.pi)
+        a[ok] = np.arccos(np.clip(np.einsum("ij,ij->i", v[ok] @ R.T, u[ok]), -1, 1))
+        return a
+
+    err = angles(R)
+    keep = ok & (err < max(5.0 * np.median(err[ok]), 20 * ARCSEC))
+    if keep.sum() >= 3:
+        R = wahba(v[keep], u[keep])
+        err = angles(R)
+    if gate_deg is None:
+        use = ok
+    else:
+        use = ok & (err < max(np.deg2rad(gate_deg), 5.0 * float(np.median(err[ok]))))
+    start = 0
+    for f in frames:
+        f.use = use[start:start + len(f.uv)]
+        start += len(f.uv)
+    return R
+
+
+def _covariance(J: np.ndarray, r: np.ndarray, n_star: int, weights: np.ndarray,
+                n_x: int) -> tuple[np.ndarray, float]:
+    """``(J_sᵀ W J_s / s² + J_pᵀ J_p)⁻¹`` and the variance factor s² of the star rows.
+
+    ``W`` holds the robust IRLS weights (1 for the linear loss); s² comes from the rows with
+    weight ≥ 0.5 (all rows for the linear loss; ``|r| < 2·f_scale`` for Huber).
+    """
+    Js, Jp = J[:n_star], J[n_star:]
+    rs = r[:n_star]
+    inl = weights >= 0.5  # robust losses: the variance factor from the inliers only
+    dof = max(inl.sum() - n_x, 1.0)
+    s2 = float(np.sum(rs[inl] ** 2) / dof)
+    info = (Js * weights[:, None]).T @ Js / s2 + Jp.T @ Jp
+    # equilibrate first: the columns span ~12 decades (rad, px, distortion coefficients)
+    d = 1.0 / np.sqrt(np.maximum(np.diag(info), 1e-300))
+    scaled = info * np.outer(d, d)
+    try:
+        inv = np.linalg.inv(scaled)
+    except np.linalg.LinAlgError:
+        inv = np.linalg.pinv(scaled, hermitian=True)
+    return inv * np.outer(d, d), s2
+
+
+def _arw_density(imu: ImuSeries, gyro_arw: float | None) -> float:
+    """Angle random walk density q (rad²/s): given, or from the IMU messages' covariance."""
+    if gyro_arw is not None:
+        return float(gyro_arw) ** 2
+    cov = imu.angular_velocity_covariance
+    if cov is None or len(imu) < 2:
+        return 0.0
+    var = float(np.mean(np.asarray(cov, dtype=float).reshape(9)[[0, 4, 8]]))
+    dt = float(np.median(np.diff(imu.stamp_ns))) * 1e-9
+    return max(var, 0.0) * dt
+
+
+def _random_walk_term(cov: np.ndarray, J: np.ndarray, w: np.ndarray, s2: float,
+                      frames: list[_Frame], t_ref: float, q: float) -> np.ndarray:
+    """Covariance added by gyro angle random walk (sandwich form).
+
+    The gyro-propagated attitude of frame k carries an error ``a_k`` with
+    ``Cov(a_k, a_l) = q · min(s_k, s_l) · I`` (``s = |t − t_ref|``, same side of the reference
+    frame; independent sides), common to all stars of the frame.  With the whitened star rows
+    ``J_k`` of frame k and their attitude block ``A_k = J_k[:, :3]`` the estimate moves by
+    ``N⁻¹ Σ_k J_kᵀ W_k A_k a_k / s²``, so the extra covariance is
+    ``N⁻¹ [Σ_kl M_k Q_kl M_lᵀ] N⁻¹ / s⁴`` with ``M_k = J_kᵀ W_k A_k``, accumulated with tail
+    sums over the sorted ``s`` (Brownian covariance = ∫ 1[u < s_k] 1[u < s_l] du).
+    """
+    n_x = J.shape[1]
+    rows = np.cumsum([0] + [2 * len(f.uv) for f in frames])
+    Ms, ss, side = [], [], []
+    for k, f in enumerate(frames):
+        Jk = J[rows[k]:rows[k + 1]]
+        wk = w[rows[k]:rows[k + 1]]
+        Ms.append((Jk * wk[:, None]).T @ Jk[:, :3])
+        ss.append(abs(f.t_rel - t_ref))
+        side.append(f.t_rel >= t_ref)
+    Z = np.zeros((n_x, n_x))
+    for sgn in (True, False):
+        sel = [k for k in range(len(frames)) if side[k] == sgn]
+        if not sel:
+            continue
+        sel.sort(key=lambda k: ss[k])
+        tail = np.zeros((n_x, 3))
+        tails = []
+        for k in reversed(sel):
+            tail = tail + Ms[k]
+            tails.append(tail.copy())
+        tails.reverse()
+        prev = 0.0
+        for j, k in enumerate(sel):
+            du = ss[k] - prev
+            prev = ss[k]
+            Z += du * tails[j] @ tails[j].T
+    # whitened residuals: attitude error a shifts r by A a (A already divided by σ)
+    Z *= q / (s2 * s2)
+    return cov @ Z @ cov
+
+
+def _observability(J: np.ndarray, n_star: int, weights: np.ndarray, scale: np.ndarray,
+                   names: list[str], cov: np.ndarray, prior_sigma: np.ndarray,
+                   s2: float) -> ObservabilityReport:
+    Js = J[:n_star] * np.sqrt(weights / s2)[:, None] * scale[None, :]
+    _, sv, Vt = np.linalg.svd(Js, full_matrices=False)
+    weak = []
+    for i in np.flatnonzero(sv < 1.0):
+        v = Vt[i]
+        order = np.argsort(-np.abs(v))
+        comb = {names[j]: float(v[j]) for j in order if abs(v[j]) > 0.1}
+        weak.append({"singular_value": float(sv[i]), "combination": comb})
+    sig = np.sqrt(np.diag(cov))
+    ratio = {n: float(s / p) for n, s, p in zip(names, sig, prior_sigma, strict=True)
+             if np.isfinite(p)}
+    dominated = [n for n, q in ratio.items() if q > 0.5]
+    corr = cov / np.outer(sig, sig)
+    pairs = []
+    for a in range(len(names)):
+        for b in range(a + 1, len(names)):
+            if abs(corr[a, b]) > 0.9:
+                pairs.append((names[a], names[b], float(corr[a, b])))
+    return ObservabilityReport(names, sv, Vt.T, weak, dominated, ratio, pairs)
+
+
+# ============================================================================ main entry
+def run_acf(
+    source: str | os.PathLike[str] | AcfData,
+    prior: Calibration,
+    effects: Sequence[str] | None = None,
+    *,
+    frames: Any = None,
+    loss: str = "linear",
+    sigma_px: float | None = None,
+    two_step: bool = True,
+    reference_frame: int = 0,
+    max_nfev: int = 100,
+    min_stars_per_frame: int = MIN_STARS_PER_FRAME,
+    gyro_arw: float | None = None,
+    gate_deg: float | None = 2.0,
+    star_topic: str = "/star_tracker/stars",
+    imu_topic: str = "/imu/data",
+) -> AcfResult:
+    """Calibrate the star tracker (and its installation) from attitude-correlated frames.
+
+    Parameters
+    ----------
+    source : path or AcfData
+        A contract bag, or data loaded by :func:`load_acf_data`.
+    prior : Calibration
+        Starting values and prior σ; everything not estimated is taken from it.
+    effects : list of str, optional
+        Effect ids to estimate (default :data:`ACF_EFFECTS`).  Gyro effects
+        (``gyro_bias``, ``gyro_scale_factor``, ``gyro_misalignment``) enter through the
+        first-order sensitivity of the gyro attitude changes; ``time_offset`` through the
+        body rate.
+    frames : None, 'all', 'odd', 'even', indices, slice or bool mask
+        Frames to fit ('odd' = 1st, 3rd, … as Liu et al. count them = indices 0, 2, …).
+    loss : {'linear', 'huber', 'soft_l1', 'cauchy'}
+        Loss on the star residuals (``f_scale = 3σ``); prior residuals stay quadratic.
+    sigma_px : float, optional
+        Centroid σ, px (default: the messages' ``sigma``, else 1 px).  The covariance is
+        scaled by the a-posteriori variance factor in any case.
+    two_step : bool
+        Liu's two steps (pinhole first).  Without it, the full model starts from the prior.
+    reference_frame : int
+        Position within the selected frames of the frame whose attitude is estimated.
+    max_nfev : int
+        Function evaluations per least-squares step.
+    gyro_arw : float, optional
+        Gyro angle random walk, rad/√s, for the covariance (default: from the IMU messages'
+        ``angular_velocity_covariance`` × sample interval; 0 if they carry none).  The
+        random walk correlates the attitudes of all frames; it does not change the fit.
+    gate_deg : float or None
+        Identification gate: after the initial attitude fit, stars whose catalogue direction
+        is more than ``max(gate_deg, 5 × median error)`` off are not fitted (``gated`` in
+        the residual table).  None disables it (then only the loss handles outliers).
+    min_stars_per_frame : int
+        Frames with fewer identified stars are skipped.
+    star_topic, imu_topic : str
+        Topics when reading a bag.
+
+    Returns
+    -------
+    AcfResult
+
+    Raises
+    ------
+    StellarCalError
+        Missing topics, too few frames or stars, or a failed fit.
+    """
+    data = source if isinstance(source, AcfData) else load_acf_data(source, star_topic,
+                                                                      imu_topic)
+    ids = list(ACF_EFFECTS if effects is None else effects)
+    if not ids:
+        raise StellarCalError("no effects to estimate")
+    eff = create_many(ids)
+    model = StarModel(eff, prior)
+    theta_prior = model.initial_value.copy()
+    sigma_prior = model.initial_sigma.copy()
+    if np.any(~np.isfinite(sigma_prior)) or np.any(sigma_prior <= 0):
+        raise ModelError("every estimated parameter needs a positive prior σ")
+    chain = GyroChain(data, model, theta_prior)
+    idx = _select_frames(len(data.frames), frames)
+    fr = _prepare_frames(data, idx, chain, prior.time_offset, sigma_px, min_stars_per_frame)
+    n_stars = sum(len(f.uv) for f in fr)
+    if len(fr) < MIN_FRAMES:
+        raise StellarCalError(
+            f"the ACF method needs at least {MIN_FRAMES} star frames with "
+            f">= {min_stars_per_frame} identified stars inside the IMU span; got {len(fr)} "
+            f"of {len(idx)} selected")
+    if 2 * n_stars < 2 * (3 + model.size):
+        raise StellarCalError(f"too few stars ({n_stars}) for {3 + model.size} unknowns")
+    ref = fr[min(max(reference_frame, 0), len(fr) - 1)]
+    t_ref = ref.t_rel + prior.time_offset
+    names = ["attitude.phi_x", "attitude.phi_y", "attitude.phi_z"] + model.parameter_names()
+
+    # -- start: joint Wahba of all frames with the prior camera
+    R_i_b0 = _initial_attitude(fr, chain, model, theta_prior, t_ref, gate_deg)
+    fr_all = fr
+    fr = [f.subset() for f in fr_all]
+    n_gated = int(sum((~f.use).sum() for f in fr_all))
+    if n_gated:
+        log.info("ACF: %d of %d stars fail the identification gate", n_gated, n_stars)
+    theta = theta_prior.copy()
+    nfev = 0
+    step1_theta = None
+    if two_step:
+        ids1 = [e.id for e in eff if e.id in PINHOLE_EFFECTS]
+        if ids1:
+            m1 = StarModel(create_many(ids1), prior)
+            c1 = GyroChain(data, m1, m1.initial_value)
+            p1 = _Problem(m1, c1, fr, R_i_b0, t_ref, m1.initial_value, m1.initial_sigma)
+            r0 = p1.fun(np.concatenate([np.zeros(3), m1.initial_value]))[:p1.n_star]
+            scale = max(1.4826 * float(np.median(np.abs(r0))), 1.0)
+            p1.sigma_scale = scale
+            p1._cache = None
+            res1 = _solve(p1, np.concatenate([np.zeros(3), m1.initial_value]), "soft_l1", 3.0,
+                          max_nfev)
+            nfev += res1.nfev
+            R_i_b0 = so3_exp(res1.x[:3]) @ R_i_b0
+            for e in m1.effects:
+                theta[model.slices[e.id]] = res1.x[3:][m1.slices[e.id]]
+            step1_theta = theta.copy()
+            log.info("ACF step 1 (pinhole): %d evaluations, scale %.3g px", res1.nfev, scale)
+
+    # -- step 2: everything (re-estimate σ if the messages do not give it)
+    problem = _Problem(model, chain, fr, R_i_b0, t_ref, theta_prior, sigma_prior)
+    x = np.concatenate([np.zeros(3), theta])
+    res = None
+    for _ in range(3):
+        res = _solve(problem, x, loss, 3.0, max_nfev)
+        nfev += res.nfev
+        x = res.x
+        rs = res.fun[:problem.n_star]
+        robust_scale = 1.4826 * float(np.median(np.abs(rs)))
+        # a wrong assumed σ makes f_scale = 3σ meaningless: rescale and refit
+        if loss == "linear" or 0.5 < robust_scale < 2.0:
+            break
+        problem.sigma_scale *= robust_scale
+        problem._cache = None
+    assert res is not None
+    if loss != "linear":
+        # robust losses bound an outlier's pull but do not remove it (Huber: 3σ each):
+        # drop stars beyond 6σ on an axis from the fit and refine on the inliers
+        rs = res.fun[:problem.n_star].reshape(-1, 2)
+        s_in = 1.4826 * float(np.median(np.abs(rs)))
+        bad = np.max(np.abs(rs), axis=1) > 6.0 * max(s_in, 1e-12)
+        if bad.any():
+            start = 0
+            for f0, f in zip(fr_all, fr, strict=True):
+                n = len(f.uv)
+                keep = ~bad[start:start + n]
+                start += n
+                idx_use = np.flatnonzero(f0.use)
+                f0.use = f0.use.copy()
+                f0.use[idx_use[~keep]] = False
+            fr = [f.subset() for f in fr_all]
+            problem = _Problem(model, chain, fr, R_i_b0, t_ref, theta_prior, sigma_prior,
+                               problem.sigma_scale)
+            res = _solve(problem, res.x, loss, 3.0, max_nfev)
+            nfev += res.nfev
+            log.info("ACF: %d outliers beyond 6σ removed, refined", int(bad.sum()))
+    if res.status < 0:
+        raise StellarCalError(f"ACF least squares failed: {res.message}")
+    if res.status == 0:
+        log.warning("ACF least squares stopped after %d evaluations without converging "
+                    "(outliers? try --loss huber)", res.nfev)
+
+    # -- covariance (with the gyro random walk between frames), σ̂, observability
+    theta_hat = res.x[3:]
+    R_i_b0_hat = so3_exp(res.x[:3]) @ R_i_b0  # rebase: φ = 0 at the solution
+    problem_final = _Problem(model, chain, fr, R_i_b0_hat, t_ref, theta_prior, sigma_prior,
+                             problem.sigma_scale)
+    x_hat = np.concatenate([np.zeros(3), theta_hat])
+    r, J = problem_final.evaluate(x_hat)
+    n_star = problem.n_star
+    w = _robust_weights(loss, r[:n_star], 3.0)
+    cov, s2 = _covariance(J, r, n_star, w, problem.n_x)
+    q = _arw_density(data.imu, gyro_arw)
+    if q > 0:
+        cov = cov + _random_walk_term(cov, J, w, s2, fr, t_ref, q)
+    sig_assumed = float(np.median(np.concatenate([f.sigma for f in fr]))) * problem.sigma_scale
+    sigma_hat = sig_assumed * np.sqrt(s2)
+    col_scale = np.concatenate([np.full(3, float(np.max(sigma_prior[model.slices[
+        "installation"]])) if "installation" in model.slices else np.deg2rad(0.2)),
+        sigma_prior])
+    prior_sig_all = np.concatenate([np.full(3, np.inf), sigma_prior])
+    obs = _observability(J, n_star, w, col_scale, names, cov, prior_sig_all, s2)
+
+    cal = _store(model, prior, theta_hat, np.sqrt(np.diag(cov))[3:])
+    cal.stamp = float(data.frames[fr[-1].index].stamp_ns * 1e-9)
+    table = _residual_table(problem_final, x_hat, data, loss, sigma_hat, fr_all)
+    inl = ~table["gated"]
+    rms = float(np.sqrt(np.mean(table["du"][inl] ** 2 + table["dv"][inl] ** 2)))
+    return AcfResult(
+        calibration=cal, residuals=table, cost=float(res.cost), iterations=int(nfev),
+        observability=obs, theta=theta_hat, covariance=cov, parameter_names=names,
+        sigma_px=float(sigma_hat), rms_px=rms, R_i_b0=R_i_b0_hat, reference_time=t_ref,
+        frames=np.array([f.index for f in fr]), model=model, chain=chain, data=data,
+        loss=loss, step1_theta=step1_theta)
+
+
+def _store(model: StarModel, prior: Calibration, theta: np.ndarray,
+           sigma: np.ndarray) -> Calibration:
+    cal = copy.deepcopy(prior)
+    cal.sigma = copy.deepcopy(prior.sigma or {})
+    cal.method = "acf"
+    for e in model.effects:
+        sl = model.slices[e.id]
+        e.store(theta[sl], sigma[sl], cal)
+    return cal
+
+
+def _residual_table(problem: _Problem, x: np.ndarray, data: AcfData, loss: str,
+                    sigma_hat: float, frames: list[_Frame],
+                    gate_sigma: float = 6.0) -> dict[str, np.ndarray]:
+    """Per-star residuals of every star of the fitted frames.
+
+    ``gated``: the star failed the identification gate (not fitted), or a robust loss gave it
+    little weight (``|Δ| > 6 σ̂`` on an axis).  With the linear loss only the former.
+    """
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in (
+        "t", "frame", "catalog_id", "u", "v", "u_pred", "v_pred", "du", "dv", "s_uu", "s_uv",
+        "s_vv", "magnitude", "gated", "stamp_ns")}
+    for f in frames:
+        with np.errstate(all="ignore"):
+            uv, _ = problem.predict(x, f, jac=False)
+        n = len(f.uv)
+        d = f.uv - uv
+        s2 = np.full(n, sigma_hat ** 2)
+        cols["t"].append(np.full(n, f.t_rel))
+        cols["frame"].append(np.full(n, f.index, dtype=np.int64))
+        cols["catalog_id"].append(f.catalog_id)
+        cols["u"].append(f.uv[:, 0])
+        cols["v"].append(f.uv[:, 1])
+        cols["u_pred"].append(uv[:, 0])
+        cols["v_pred"].append(uv[:, 1])
+        cols["du"].append(d[:, 0])
+        cols["dv"].append(d[:, 1])
+        cols["s_uu"].append(s2)
+        cols["s_uv"].append(np.zeros(n))
+        cols["s_vv"].append(s2)
+        cols["magnitude"].append(f.magnitude)
+        gated = ~f.use if f.use is not None else np.zeros(n, dtype=bool)
+        if loss != "linear":
+            with np.errstate(invalid="ignore"):
+                gated = gated | ~(np.max(np.abs(d), axis=1) <= gate_sigma * sigma_hat)
+        cols["gated"].append(gated)
+        cols["stamp_ns"].append(np.full(n, data.frames[f.index].stamp_ns, dtype=np.int64))
+    return {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
+
+
+def reprojection_rms(result: AcfResult, frames: Any = None, data: AcfData | None = None,
+                     per_axis: bool = False) -> Any:
+    """RMS of ``|Δuv|`` (px) of ``frames`` predicted with the calibrated model.
+
+    The attitude of every frame comes from the estimated reference attitude and the gyro
+    chain, as in the fit (Liu et al. §3.1: calibrate on odd frames, check on even ones).
+    ``data`` may hold other measurements of the same run (e.g. noise-free centroids).
+    ``per_axis`` returns ``(rms_u, rms_v)`` instead.
+    """
+    data = result.data if data is None else data
+    idx = _select_frames(len(data.frames), frames)
+    fr = _prepare_frames(data, idx, result.chain, result.model.prior.time_offset, None, 1)
+    if not fr:
+        raise StellarCalError("no frames with stars to evaluate")
+    model = result.model
+    p = _Problem(model, result.chain, fr, result.R_i_b0, result.reference_time,
+                 model.initial_value, model.initial_sigma)
+    x = np.concatenate([np.zeros(3), result.theta])
+    d = np.vstack([f.uv - p.predict(x, f, jac=False)[0] for f in fr])
+    if per_axis:
+        return float(np.sqrt(np.mean(d[:, 0] ** 2))), float(np.sqrt(np.mean(d[:, 1] ** 2)))
+    return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1))))
+
+
+def parse_effects(text: str | Sequence[str] | None,
+                  baseline: Sequence[str] = ACF_EFFECTS) -> list[str]:
+    """``--effects`` value → effect ids: entries are added to ``baseline``; ``-id`` removes."""
+    items = [s.strip() for s in (text.split(",") if isinstance(text, str) else (text or []))]
+    out = list(baseline)
+    for it in items:
+        if not it:
+            continue
+        if it.startswith("-"):
+            out = [e for e in out if e != it[1:]]
+        elif it not in out:
+            out.append(it)
+    return out
+
+
+def installation_error_arcsec(estimated: Calibration, truth: Calibration) -> np.ndarray:
+    """Rotation vector (arcsec, tracker axes) of ``R_truthᵀ R_estimated``."""
+    dR = truth.R_imu_st.T @ estimated.R_imu_st
+    return so3_log(dR) / ARCSEC
+
+
+def sweep_axis_imu(result: AcfResult) -> np.ndarray:
+    """Unit rotation axis (IMU frame) of the gyro attitude change from first to last frame.
+
+    For a single-axis sweep, an installation rotation about this axis cannot be told from a
+    first-attitude rotation: the :func:`grid_projection_error` can remove it.
+    """
+    t = result.data.rel(np.array([result.data.frames[i].stamp_ns for i in result.frames]))
+    R0, _ = result.chain.attitude(float(t.min()))
+    R1, _ = result.chain.attitude(float(t.max()))
+    a = so3_log(R0.T @ R1)
+    return a / np.linalg.norm(a)
+
+
+def grid_projection_error(estimated: Calibration, truth: Calibration, n: int = 21,
+                          free_axis_imu: np.ndarray | None = None) -> tuple[float, float]:
+    """Worst and RMS pixel error over an n×n detector grid of the IMU-direction mapping.
+
+    Each grid pixel is unprojected with the true camera and installation to an IMU-frame
+    direction, which is then projected with the estimated installation and camera.  With
+    ``free_axis_imu`` the estimated installation is first rotated about that IMU axis by the
+    angle that minimises the RMS (the component a single-axis sweep cannot observe).
+    """
+    cam_t, cam_e = truth.camera, estimated.camera
+    g = np.linspace(0.0, 1.0, n)
+    uu, vv = np.meshgrid(g * (cam_t.width - 1), g * (cam_t.height - 1))
+    uv = np.column_stack([uu.ravel(), vv.ravel()])
+    v_imu = cam_t.unproject(uv) @ truth.R_imu_st.T
+
+    def errors(alpha: float) -> np.ndarray:
+        R = estimated.R_imu_st
+        if free_axis_imu is not None:
+            R = so3_exp(alpha * np.asarray(free_axis_imu, dtype=float)) @ R
+        return np.linalg.norm(cam_e.project(v_imu @ R) - uv, axis=1)
+
+    alpha = 0.0
+    if free_axis_imu is not None:
+        from scipy.optimize import minimize_scalar
+
+        alpha = float(minimize_scalar(lambda a: float(np.mean(errors(a) ** 2)),
+                                      bounds=(-0.1, 0.1), method="bounded",
+                                      options={"xatol": 1e-10}).x)
+    e = errors(alpha)
+    return float(np.max(e)), float(np.sqrt(np.mean(e ** 2)))

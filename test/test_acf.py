@@ -1,0 +1,246 @@
+"""ACF batch calibration, the interstar-angle baseline, residual files and `stellar-cal batch`.
+
+Tolerances: parameter errors against the truth must lie within 4σ of the returned σ.  The
+IMU-direction mapping (grid pixel → truth camera/installation → IMU direction → estimated
+installation/camera → pixel) is checked after removing the installation rotation about the
+sweep axis, which a single-axis sweep cannot observe (see stellar_cal_ros.methods.acf).
+Measured on the reference bag: worst 0.151 px, RMS 0.124 px (prior: 3.8 px worst); the limit
+0.3 px is twice the measurement and about 3× the σ of the mapping's constant part (principal
+point + tilt combination ≈ 0.1 px).  Without removing that rotation the worst error is
+2.77 px (the unobservable −170" about the sweep axis, inside its 664" σ).
+"""
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stellar_cal_ros.cli import main
+from stellar_cal_ros.errors import StellarCalError
+from stellar_cal_ros.io.calibration import load_calibration
+from stellar_cal_ros.io.residuals import RESIDUAL_COLUMNS, read_residuals, write_residuals
+from stellar_cal_ros.methods.acf import (
+    ARCSEC,
+    AcfData,
+    grid_projection_error,
+    installation_error_arcsec,
+    parse_effects,
+    reprojection_rms,
+    run_acf,
+    sweep_axis_imu,
+)
+from stellar_cal_ros.methods.iac import run_iac
+from stellar_cal_ros.sim.scenarios import get_scenario
+from stellar_cal_ros.sim.world import simulate
+
+REF = Path("/work/shared/data/acf_sweep_ideal")
+needs_ref = pytest.mark.skipif(not REF.with_suffix(".mcap").exists(),
+                               reason="reference bag acf_sweep_ideal.mcap absent")
+I_CX, I_CY, I_F, I_INST = 7, 8, 6, slice(3, 6)
+
+
+def _z(result, truth):
+    c, t, s = result.calibration.camera, truth.camera, result.sigma
+    return np.array([(c.cx - t.cx) / s[I_CX], (c.cy - t.cy) / s[I_CY], (c.fx - t.fx) / s[I_F]])
+
+
+@pytest.fixture(scope="module")
+def ref():
+    prior = load_calibration(f"{REF}.prior.yaml")
+    truth = load_calibration(f"{REF}.truth.yaml")
+    return prior, truth, run_acf(REF.with_suffix(".mcap"), prior)
+
+
+@needs_ref
+def test_reference_bag_accuracy(ref):
+    prior, truth, r = ref
+    assert r.calibration.method == "acf"
+    assert np.all(np.abs(_z(r, truth)) < 4.0), _z(r, truth)
+    inst = installation_error_arcsec(r.calibration, truth)
+    assert np.all(np.abs(inst) < 4.0 * r.sigma[I_INST] / ARCSEC), inst
+    assert 0.08 < r.sigma_px < 0.12  # 0.1 px centroid noise
+    worst, rms = grid_projection_error(r.calibration, truth, free_axis_imu=sweep_axis_imu(r))
+    assert worst < 0.3 and rms < 0.2, (worst, rms)
+    worst_prior, _ = grid_projection_error(prior, truth, free_axis_imu=sweep_axis_imu(r))
+    assert worst_prior > 10 * worst
+    # the unobservable direction is reported
+    weak = r.observability.weak
+    assert any("installation.rx" in w["combination"] for w in weak)
+    assert "installation.rx" in r.observability.prior_dominated
+
+
+@needs_ref
+def test_reference_bag_heldout_and_iac(ref):
+    prior, truth, _ = ref
+    r = run_acf(REF.with_suffix(".mcap"), prior, frames="odd")
+    assert len(r.frames) == 30
+    held = reprojection_rms(r, "even")
+    assert held < 0.16  # √2 · 0.1 px noise of the checked centroids themselves: 0.141
+    iac = run_iac(REF.with_suffix(".mcap"), prior)
+    assert iac.calibration.method == "iac"
+    assert 5.0 < iac.rms_angle_arcsec < 10.0  # √2 · 0.1 px · 50.4"/px = 7.1"
+    c, t = iac.calibration.camera, truth.camera
+    assert abs(c.fx - t.fx) < 1.0
+    # installation untouched
+    assert np.allclose(iac.calibration.R_imu_st, prior.R_imu_st)
+
+
+@pytest.fixture(scope="module")
+def own():
+    sc = get_scenario("acf_sweep")
+    sim = simulate(sc, seed=1)
+    # The scenario's truth (installation 2° per axis, Liu's k3 = 2.8) lies 10σ / 1.4σ outside
+    # the default datasheet prior; Liu start from zero without a prior, so widen it.
+    prior = copy.deepcopy(sim.prior)
+    prior.sigma["installation"]["rotation_vector"] = [float(np.deg2rad(5.0))] * 3
+    prior.sigma["camera"]["distortion_coefficients"]["data"] = [3.0, 10.0, 0.02, 0.02, 100.0]
+    arw = np.deg2rad(sc.gyro_arw_deg_sqrth) / 60.0
+    return sc, sim, prior, arw
+
+
+def _data(frames, sim):
+    return AcfData(frames=frames, imu=sim.imu, t0_ns=int(sim.imu.stamp_ns[0]))
+
+
+def test_own_simulation_accuracy(own):
+    sc, sim, prior, arw = own
+    r = run_acf(_data(sim.star_frames, sim), prior, gyro_arw=arw)
+    assert np.all(np.abs(_z(r, sim.truth)) < 4.0), _z(r, sim.truth)
+    inst = installation_error_arcsec(r.calibration, sim.truth)
+    assert np.all(np.abs(inst) < 4.0 * r.sigma[I_INST] / ARCSEC), inst
+    worst, _ = grid_projection_error(r.calibration, sim.truth, free_axis_imu=sweep_axis_imu(r))
+    assert worst < 0.3, worst  # measured 0.094 px (prior: 217 px)
+
+
+def test_poor_focal_length_start(own):
+    sc, sim, prior, arw = own
+    p = copy.deepcopy(prior)
+    f20 = 20.0 / 0.00645  # Liu's initial 20 mm for a true 25.6 mm
+    p.camera = p.camera.with_parameters(np.r_[f20, f20, p.camera.parameters()[2:]])
+    p.sigma["camera"]["camera_matrix"]["data"][0] = 1000.0
+    r = run_acf(_data(sim.star_frames, sim), p, gyro_arw=arw)
+    assert r.step1_theta is not None
+    assert np.all(np.abs(_z(r, sim.truth)) < 4.0)
+
+
+def test_misidentified_stars(own):
+    sc, sim0, prior, arw = own
+    sim = simulate(sc, seed=3, effects={"misidentification": 0.05})
+    data = _data(sim.star_frames, sim)
+    r = run_acf(data, prior, loss="huber", gyro_arw=arw)
+    assert np.all(np.abs(_z(r, sim.truth)) < 4.0)
+    assert r.residuals["gated"].sum() >= 0.03 * len(r.residuals["gated"])
+    # without the identification gate, the random-sky wrong identities wreck a linear fit
+    try:
+        lin = run_acf(data, prior, loss="linear", gyro_arw=arw, gate_deg=None, max_nfev=30)
+        assert np.max(np.abs(_z(lin, sim.truth))) > 10.0
+    except StellarCalError:
+        pass
+
+
+def test_in_field_misidentification_needs_robust_loss(own):
+    """Wrong neighbours inside the field pass the gate: only the robust loss copes."""
+    sc, sim, prior, arw = own
+    frames = copy.deepcopy(sim.star_frames)
+    rng = np.random.default_rng(0)
+    for f in frames:
+        n = len(f.catalog_id)
+        for i in np.flatnonzero(rng.random(n) < 0.05):
+            j = (i + 1 + rng.integers(n - 1)) % n
+            f.catalog_id[i], f.right_ascension[i], f.declination[i] = (
+                f.catalog_id[j], f.right_ascension[j], f.declination[j])
+    data = _data(frames, sim)
+    rob = run_acf(data, prior, loss="huber", gyro_arw=arw)
+    lin = run_acf(data, prior, loss="linear", gyro_arw=arw)
+    assert np.all(np.abs(_z(rob, sim.truth)) < 4.0)
+    assert rob.rms_px < 0.16
+    # the linear fit is dragged by the wrong neighbours: σ̂ inflated tenfold, and its
+    # principal point + focal length errors (px) are larger (measured 3.8 vs 1.3 px; the
+    # principal point is weakly determined, so the ratio is not asserted tightly)
+    assert lin.rms_px > 5 * rob.rms_px and lin.sigma_px > 5 * rob.sigma_px
+
+    def err(r):
+        c, t = r.calibration.camera, sim.truth.camera
+        return np.hypot(c.cx - t.cx, c.cy - t.cy) + abs(c.fx - t.fx)
+
+    assert err(lin) > 1.5 * err(rob), (err(lin), err(rob))
+    assert 0.08 < rob.sigma_px < 0.12
+
+
+def test_errors(own, tmp_path):
+    sc, sim, prior, arw = own
+    with pytest.raises(StellarCalError, match="at least 2 star frames"):
+        run_acf(_data(sim.star_frames, sim), prior, frames=[0])
+    with pytest.raises(StellarCalError, match="effect"):
+        run_acf(_data(sim.star_frames, sim), prior, effects=["no_such_effect"])
+    from stellar_cal_ros.io.bag import BagWriter
+
+    bag = tmp_path / "stars_only.mcap"
+    with BagWriter(bag) as w:
+        for fr in sim.star_frames[:3]:
+            w.write_star_frame(fr, "/star_tracker/stars")
+    with pytest.raises(StellarCalError, match="/imu/data"):
+        run_acf(bag, prior)
+    assert parse_effects("gyro_bias,-radial_k3")[-1] == "gyro_bias"
+    assert "radial_k3" not in parse_effects("gyro_bias,-radial_k3")
+
+
+def test_gyro_bias_effect_runs(own):
+    sc, sim, prior, arw = own
+    r = run_acf(_data(sim.star_frames, sim), prior, parse_effects("gyro_bias"), gyro_arw=arw)
+    assert r.calibration.sigma["gyro"]["bias"][0] > 0
+    assert np.all(np.abs(_z(r, sim.truth)) < 4.0)
+
+
+def test_residual_file_roundtrip(tmp_path):
+    table = {"t": np.array([0.1, 0.2]), "frame": np.array([0, 1]),
+             "gated": np.array([True, False]), "extra": np.array([1e-300, np.nan])}
+    p = write_residuals(tmp_path / "r.csv", table)
+    back = read_residuals(p)
+    assert list(back) == list(table)
+    assert back["frame"].dtype == np.int64 and back["gated"].dtype == bool
+    assert back["t"][0] == 0.1 and back["extra"][0] == 1e-300 and np.isnan(back["extra"][1])
+    with pytest.raises(StellarCalError, match="length"):
+        write_residuals(tmp_path / "x.csv", {"a": np.zeros(2), "b": np.zeros(3)})
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        with pytest.raises(StellarCalError, match="pyarrow"):
+            write_residuals(tmp_path / "r.parquet", table)
+
+
+@needs_ref
+def test_cli_batch(tmp_path, capsys):
+    out, res = tmp_path / "acf.yaml", tmp_path / "res.csv"
+    rc = main(["batch", str(REF.with_suffix(".mcap")), "--method", "acf", "--prior",
+               f"{REF}.prior.yaml", "-o", str(out), "--residuals", str(res), "--loss", "huber"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "RMS" in text and "principal_point.cx" in text
+    cal = load_calibration(out)
+    assert cal.method == "acf" and cal.sigma["installation"]["rotation_vector"][1] > 0
+    table = read_residuals(res)
+    assert set(RESIDUAL_COLUMNS) <= set(table)
+    assert len(table["du"]) > 1000
+    rc = main(["batch", str(REF.with_suffix(".mcap")), "--method", "acf", "--prior",
+               f"{REF}.prior.yaml", "-o", str(out), "--effects", "no_such_effect"])
+    assert rc == 1
+
+
+@pytest.mark.benchmark
+def test_benchmark_reduced():
+    """Reduced benchmarks/acf_vs_paper.py: 5 runs at 0.1 px (about 12 s)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "acf_vs_paper.py"
+    spec = importlib.util.spec_from_file_location("acf_vs_paper", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    (row,) = mod.run_benchmark(5, [0.1])
+    # Liu Fig. 4: 0.0132 / 0.0123 px per axis; measured 0.0147 / 0.0158 (seeds 100-104)
+    assert row["heldout_u"] < 0.025 and row["heldout_v"] < 0.025
+    assert row["acf_f"] < 0.3 and row["acf_dist"] < 0.2
+    # the principal-point errors agree with the returned σ (RMS within a factor 2)
+    assert row["x0"] < 2 * row["sigma_x0"] and row["y0"] < 2 * row["sigma_y0"]
+    assert row["acf_dist"] <= 1.2 * row["iac_dist"]
