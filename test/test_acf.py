@@ -146,8 +146,13 @@ def test_in_field_misidentification_needs_robust_loss(own):
     rng = np.random.default_rng(0)
     for f in frames:
         n = len(f.catalog_id)
+        u = np.stack([np.cos(f.declination) * np.cos(f.right_ascension),
+                      np.cos(f.declination) * np.sin(f.right_ascension),
+                      np.sin(f.declination)], 1)
+        cosd = u @ u.T
+        np.fill_diagonal(cosd, -1.0)
         for i in np.flatnonzero(rng.random(n) < 0.05):
-            j = (i + 1 + rng.integers(n - 1)) % n
+            j = int(np.argmax(cosd[i]))  # nearest neighbour: inside the identification gate
             f.catalog_id[i], f.right_ascension[i], f.declination[i] = (
                 f.catalog_id[j], f.right_ascension[j], f.declination[j])
     data = _data(frames, sim)

@@ -238,8 +238,11 @@ def _simulate_imu(world: TruthWorld, rng: np.random.Generator) -> ImuSeries:
     w_meas = w + w @ Eg.T + e["gyro_bias"] * DEG_PER_HOUR + gyro_sigma * rng.standard_normal((n, 3))
     f_meas = f + f @ Ea.T + e["accel_bias"] + accel_sigma * rng.standard_normal((n, 3))
     stamp_ns = int(round(s.start_posix * 1e9)) + np.round(t_end * 1e9).astype(np.int64)
+    # Covariances as a strapdown IMU driver reports them: white-noise variance per sample.
     return ImuSeries(stamp_ns=stamp_ns, angular_velocity=w_meas, linear_acceleration=f_meas,
-                     frame_id=IMU_FRAME)
+                     frame_id=IMU_FRAME,
+                     angular_velocity_covariance=np.diag([gyro_sigma**2] * 3).ravel(),
+                     linear_acceleration_covariance=np.diag([accel_sigma**2] * 3).ravel())
 
 
 def _simulate_stars(
