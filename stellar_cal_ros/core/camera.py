@@ -294,6 +294,23 @@ class CameraModel:
         p = np.asarray(p, dtype=np.float64)
         if p.shape != (18,):
             raise ModelError(f"camera parameter vector must have shape (18,), got {p.shape}")
+        if type(self) is CameraModel and p[0] > 0.0 and p[1] > 0.0 and bool(
+            np.all(np.isfinite(p))
+        ):
+            # Hot path of the filters (a camera per star frame): the values are already
+            # validated by the checks above, so skip __post_init__ and reuse the cached tilt
+            # matrix when tau_x, tau_y are unchanged.
+            new = object.__new__(CameraModel)
+            dist = p[4:].copy()
+            dist.setflags(write=False)
+            for key, value in (("width", self.width), ("height", self.height),
+                               ("fx", float(p[0])), ("fy", float(p[1])), ("cx", float(p[2])),
+                               ("cy", float(p[3])), ("distortion", dist), ("name", self.name)):
+                object.__setattr__(new, key, value)
+            same_tilt = dist[12] == self.distortion[12] and dist[13] == self.distortion[13]
+            tilt = self._tilt if same_tilt else tilt_matrix(dist[12], dist[13])  # type: ignore[attr-defined]
+            object.__setattr__(new, "_tilt", tilt)
+            return new
         return CameraModel(
             width=self.width,
             height=self.height,

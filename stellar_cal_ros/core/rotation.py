@@ -419,8 +419,30 @@ def orthonormalize(R: ArrayLike) -> FloatArray:
     return U @ Vt
 
 
+def _jacobian_single(phi: FloatArray, sign: float) -> FloatArray:
+    """``I + sign·b [φ]× + c [φ]×²`` for one vector with scalar math (filters' hot path)."""
+    x, y, z = float(phi[0]), float(phi[1]), float(phi[2])
+    t2 = x * x + y * y + z * z
+    if t2 < _SERIES_ANGLE**2:  # series to O(t^4), error < 3e-17
+        b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+        c = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
+    else:
+        t = math.sqrt(t2)
+        half = math.sin(0.5 * t) / (0.5 * t)
+        b = 0.5 * half * half  # (1 - cos t)/t^2 without cancellation
+        c = (t - math.sin(t)) / (t2 * t)
+    sb = sign * b
+    return np.array([
+        [1.0 - c * (y * y + z * z), -sb * z + c * x * y, sb * y + c * x * z],
+        [sb * z + c * x * y, 1.0 - c * (x * x + z * z), -sb * x + c * y * z],
+        [-sb * y + c * x * z, sb * x + c * y * z, 1.0 - c * (x * x + y * y)],
+    ])
+
+
 def _jacobian(phi: ArrayLike, sign: float) -> FloatArray:
     phi = _vec3(phi, "phi")
+    if phi.shape == (3,):
+        return _jacobian_single(phi, sign)
     _, _, b, c = _angle_coefficients(phi)
     S = skew(phi)
     eye = np.broadcast_to(np.eye(3), S.shape)

@@ -39,13 +39,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stellar_cal_ros.core.attitude import fit_frame_attitude
-from stellar_cal_ros.core.kalman import block_nis, chi2_gate, joseph_update
+from stellar_cal_ros.core.attitude import fit_frame_attitude, wahba
+from stellar_cal_ros.core.kalman import block_nis, check_covariance, chi2_gate
 from stellar_cal_ros.core.rotation import (
     quat_from_matrix,
     quat_from_rotvec,
     quat_to_matrix,
-    skew,
     so3_exp,
 )
 from stellar_cal_ros.core.strapdown import attitude_increments, quat_cumprod
@@ -79,7 +78,13 @@ class PsceConfig:
     relinearize_sigma: float = 0.5  #: ... or a parameter moves by more than this × σ
     imu_gap_factor: float = 3.0  #: an IMU interval longer than this × nominal is a gap
     gap_rate_sigma: float = 1e-3  #: rad/s, rate uncertainty over an IMU gap
+    fov_margin: float = 1.3  #: stars predicted beyond this × the half-diagonal: rejected
+    gap_reacquire_s: float = 0.1  #: a frame after more IMU gap than this re-acquires attitude
     init_outlier_px: float = 5.0  #: init: drop stars off by more than this after the fit
+    reinit_after: int = 3  #: consecutive frames with stars but no accepted update: re-acquire
+    covariance_check_every: int = 50  #: check P (finite, symmetric, PD) every N updates
+    fast_propagation: bool = True  #: prefix-integrated gyro (exact to 2nd order in δθ)
+    fast_propagation_max_rad: float = 1e-5  #: larger first-order corrections: exact path
 
 
 @dataclass
@@ -114,6 +119,9 @@ class FilterCounters:
     stars_invalid: int = 0
     stars_gated: int = 0
     imu_gaps: int = 0
+    reinitializations: int = 0
+    covariance_checks: int = 0
+    covariance_repairs: int = 0
     extra: dict[str, int] = field(default_factory=dict)
 
 
@@ -156,6 +164,23 @@ class PsceFilter:
         self.counters = FilterCounters()
         self.gate = chi2_gate(self.config.gate_probability, 2)
         self.last_stamp: float | None = None
+        self._eye = np.eye(n)
+        self._rejected_in_row = 0
+        self._gap_pending = False
+        cam = model.prior.camera
+        half_diag = np.hypot(max(cam.cx, cam.width - cam.cx), max(cam.cy, cam.height - cam.cy))
+        self._fov_r2 = (self.config.fov_margin * half_diag / min(cam.fx, cam.fy)) ** 2
+        self._good: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._stamp_posix = 0.0  # reported stamp of the frame being processed (POSIX s)
+        self._stamp_rel = 0.0  # the same, relative to t0 (from integer ns: exact)
+        self._prefix: _ImuPrefix | None = None
+        b, E, Jb, JE = model.sensor_model(self.theta, Stage.GYRO)
+        # Fast propagation needs rates linear in θ with a constant Jacobian: bias-type GYRO
+        # effects only (∂E/∂θ = 0); scale-factor / misalignment effects use the exact path.
+        self._gyro_linear = not np.any(JE)
+        if self.config.fast_propagation and self._gyro_linear and len(self.imu_t) > 1:
+            self._prefix = _ImuPrefix(self.imu_t, self.imu_w, self.nominal_dt, self.theta,
+                                      b, E, Jb, self.config.imu_gap_factor)
 
     # ------------------------------------------------------------------ propagation
     def extend_imu(self, imu_t: np.ndarray, imu_w: np.ndarray) -> int:
@@ -200,6 +225,81 @@ class PsceFilter:
             if t_target < self.t - 1e-9:
                 raise ModelError("cannot propagate backwards in time")
             return
+        pre = self._prefix
+        if pre is not None and t_target <= pre.t_end and self._propagate_fast(t_target):
+            return
+        self._propagate_exact(t_target)
+
+    def _propagate_fast(self, t_target: float) -> bool:
+        """Propagation from the prefix integrals (see :class:`_ImuPrefix`); False: not valid.
+
+        With rates ``ω̂(θ) = ω̂_ref + G (θ − θ_ref)`` the attitude over the interval is
+        ``Exp(Φ_φθ (θ − θ_ref)) R̂(t_a) ΔR_ref`` to first order in ``θ − θ_ref``, with
+        ``Φ_φθ = R̂(t_a) C(t_a)ᵀ ∫ C dt · G`` — the same Φ the covariance needs.  The
+        neglected second-order term is below ``|Φ_φθ δθ|²``; larger corrections than
+        ``fast_propagation_max_rad`` take the exact path.
+        """
+        pre = self._prefix
+        ta, tb = self.t, t_target
+        imu_t = self.imu_t
+        ma = int(np.searchsorted(imu_t, ta, side="left"))
+        mb = int(np.searchsorted(imu_t, tb, side="left"))
+        if mb >= pre.n or ta <= pre.tp[0]:
+            return False
+        Ca = pre.at(ma, ta)
+        Cb = pre.at(mb, tb)
+        if ma == mb:
+            integral = Cb * (tb - ta)
+        else:
+            integral = pre.C[ma + 1] * (pre.tp[ma + 1] - ta) + (pre.S[mb] - pre.S[ma + 1]) \
+                + Cb * (tb - pre.tp[mb])
+        R0 = self.R_i_b
+        R0Ca = R0 @ Ca.T
+        Phi = (R0Ca @ integral) @ pre.G  # (3, P)
+        delta = self.theta - pre.theta_ref
+        corr = Phi @ delta
+        if corr @ corr > self.config.fast_propagation_max_rad ** 2:
+            return False
+        self.R_i_b = so3_exp(corr) @ (R0Ca @ Cb)
+        P = self.P
+        if self.model.size:
+            Pfa = P[:3, 3:] + Phi @ P[3:, 3:]
+            P[:3, :3] += Phi @ P[3:, :3] + P[:3, 3:] @ Phi.T + Phi @ P[3:, 3:] @ Phi.T
+            P[:3, 3:] = Pfa
+            P[3:, :3] = Pfa.T
+        total = tb - ta
+        q = self.q_gyro * total
+        P[0, 0] += q
+        P[1, 1] += q
+        P[2, 2] += q
+        if self.model.size:
+            P[3:, 3:] += np.diag(self.q_theta * total)
+        n_gap, gap_time = pre.gaps(ma, mb, ta, tb)
+        if n_gap or gap_time:
+            self._inflate_for_gap(n_gap, gap_time, tb)
+        self.omega = pre.w_hat[mb] + pre.G @ delta
+        self.t = tb
+        self._k = mb
+        return True
+
+    def _inflate_for_gap(self, n_gap: int, gap_time: float, t_target: float) -> None:
+        """Inflate the attitude covariance over an IMU gap; after a long gap re-acquire.
+
+        The rate over a gap is unknown (a slew may be in it), so a frame after more than
+        ``gap_reacquire_s`` of gap re-acquires the attitude from its stars.
+        """
+        self.counters.imu_gaps += n_gap
+        self.P[:3, :3] += (self.config.gap_rate_sigma * gap_time) ** 2 * np.eye(3)
+        if gap_time > self.config.gap_reacquire_s:
+            self._gap_pending = True
+        if n_gap:
+            log.warning("IMU gap before t=%.3f s: %s", t_target,
+                        "attitude re-acquired from the stars" if self._gap_pending else
+                        f"attitude uncertainty inflated by "
+                        f"{self.config.gap_rate_sigma * gap_time:.3g} rad")
+
+    def _propagate_exact(self, t_target: float) -> None:
+        """Per-sample propagation with the current θ (any GYRO-stage effects)."""
         dts, w_raw, m = self._segments(t_target)
         theta = self.theta
         b, E, Jb, JE = self.model.sensor_model(theta, Stage.GYRO)
@@ -235,14 +335,16 @@ class PsceFilter:
         self.P[:3, :3] += self.q_gyro * total * np.eye(3)
         if self.model.size:
             self.P[3:, 3:] += np.diag(self.q_theta * total)
-        gaps = dts[1:-1] > self.config.imu_gap_factor * self.nominal_dt if len(dts) > 2 else []
-        if np.any(gaps):
-            n_gap = int(np.sum(gaps))
-            self.counters.imu_gaps += n_gap
-            gap_time = float(np.sum(dts[1:-1][gaps]))
-            self.P[:3, :3] += (self.config.gap_rate_sigma * gap_time) ** 2 * np.eye(3)
-            log.warning("IMU gap of %.3f s before t=%.3f s: attitude uncertainty inflated",
-                        gap_time, t_target)
+        # Gap samples: count those entered in this interval, inflate by the overlap.
+        k = self._k
+        sample_dt = np.diff(self.imu_t[max(k - 1, 0):m + 1])
+        if k == 0:
+            sample_dt = np.concatenate([[self.nominal_dt], sample_dt])
+        gap = sample_dt > self.config.imu_gap_factor * self.nominal_dt
+        if np.any(gap):
+            n_gap = int(np.sum(gap[1:]))
+            gap_time = float(np.sum(dts[gap]))
+            self._inflate_for_gap(n_gap, gap_time, t_target)
         self.R_i_b = R_all[-1]
         self.omega = w_hat[-1]
         self.t = t_target
@@ -251,6 +353,9 @@ class PsceFilter:
     def rate_at(self, t: float) -> np.ndarray:
         """Corrected body rate of the IMU sample covering relative time ``t``."""
         m = min(int(np.searchsorted(self.imu_t, t, side="left")), len(self.imu_t) - 1)
+        pre = self._prefix
+        if pre is not None and m < pre.n:
+            return pre.w_hat[m] + pre.G @ (self.theta - pre.theta_ref)
         return self.model.corrected_rates(self.theta, self.imu_w[m:m + 1])[0]
 
     # ------------------------------------------------------------------ star frames
@@ -259,19 +364,28 @@ class PsceFilter:
         """Initialize the attitude from one frame; return False if it cannot."""
         model, theta = self.model, self.theta
         shift, _ = model.time_shift(theta, ctx)
-        t_exp = ctx.stamp - self.t0 + shift
+        t_exp = self._stamp_rel + shift
         if t_exp <= self.imu_t[0] - self.nominal_dt or t_exp >= self.imu_t[-1]:
             self.counters.skipped_no_imu += 1
             return False
+        if self.t is not None and t_exp < self.t - 1e-9:
+            return False
         camera = model.camera_at(theta, ctx)
         R_imu_st, _ = model.installation_at(theta, ctx)
-        keep = np.ones(len(uv), dtype=bool)
+        keep = _wahba_inliers(camera, uv, u_i, self.config.init_outlier_px)
         fit = None
         for _ in range(3):
             if keep.sum() < max(self.config.min_stars, 3):
                 return False
-            fit = fit_frame_attitude(camera, uv[keep], u_i[keep])
+            try:
+                R0 = wahba(camera.unproject(uv[keep]), u_i[keep])
+                fit = fit_frame_attitude(camera, uv[keep], u_i[keep], R_i_st0=R0)
+            except (ModelError, np.linalg.LinAlgError, ValueError) as exc:
+                log.warning("attitude fit failed at t=%.3f s: %s", t_exp, exc)
+                return False
             err = np.linalg.norm(fit.residuals, axis=1)
+            if not np.all(np.isfinite(err)):
+                return False
             bad = err > max(self.config.init_outlier_px, 5 * float(np.median(err)))
             if not np.any(bad):
                 break
@@ -287,6 +401,8 @@ class PsceFilter:
         Hf = pred.H_attitude.reshape(-1, 3)
         Ht = pred.H_parameters.reshape(-1, model.size)
         info = Hf.T @ Hf
+        if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e12:
+            return False
         M = np.linalg.solve(info, Hf.T @ Ht) if model.size else np.zeros((3, 0))
         s2 = float(np.mean(sigma[keep] ** 2))
         Ptt = self.P[3:, 3:]
@@ -294,15 +410,21 @@ class PsceFilter:
         self.P[:3, 3:] = -M @ Ptt
         self.P[3:, :3] = self.P[:3, 3:].T
         self.counters.init_frames += 1
+        self._rejected_in_row = 0
+        self._good = (self.P.copy(), self.theta.copy(), self.R_i_b.copy())
         log.info("attitude initialized at t=%.3f s from %d stars", t_exp, int(keep.sum()))
         return True
 
     def _attitude_function(self, phi: np.ndarray | None = None):
         R_now = self.R_i_b if phi is None else so3_exp(phi) @ self.R_i_b
-        t_now, w = self.t, self.omega
+        w = self.omega
+        # Time from the current state to the frame stamp, from exact relative times; the
+        # model asks for stamp + shift in POSIX s, of which only the (small) shift is used.
+        stamp_posix = self._stamp_posix
+        base = self._stamp_rel - self.t
 
         def attitude(t_posix: float) -> tuple[np.ndarray, np.ndarray]:
-            dt = t_posix - self.t0 - t_now
+            dt = (t_posix - stamp_posix) + base
             R = R_now if abs(dt) < 1e-12 else R_now @ so3_exp(w * dt)
             return R, w
 
@@ -313,12 +435,20 @@ class PsceFilter:
         """Propagate to the frame's exposure and update with its stars."""
         model = self.model
         shift, _ = model.time_shift(self.theta, ctx)
-        t_exp = ctx.stamp - self.t0 + shift
+        t_exp = self._stamp_rel + shift
         try:
             self.propagate(t_exp)
         except _NoImuError:
             self.counters.skipped_no_imu += 1
             return None
+        if self._gap_pending:
+            self._gap_pending = False
+            if self.initialize(uv, u_i, ctx, sigma):
+                self.counters.reinitializations += 1
+                self.counters.init_frames -= 1
+                self.counters.extra["reacquired_after_gap"] = \
+                    self.counters.extra.get("reacquired_after_gap", 0) + 1
+                return None
         n = len(uv)
         R_meas = sigma**2
         theta0 = self.theta.copy()
@@ -329,13 +459,34 @@ class PsceFilter:
         S_blocks[:, 0, 0] += R_meas
         S_blocks[:, 1, 1] += R_meas
         nis_stars = block_nis(nu0, S_blocks)
-        accepted = nis_stars <= self.gate
+        accepted = nis_stars <= self.gate  # NaN (star behind the tracker) is rejected
+        # A star whose catalogue direction is outside the field of view is misidentified,
+        # whatever its NIS: far outside the detector the distortion polynomial folds back
+        # and its huge Jacobian would let the gate pass it.
+        d = pred0.directions_st
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r2 = (d[:, 0] ** 2 + d[:, 1] ** 2) / d[:, 2] ** 2
+        in_fov = (d[:, 2] > 0) & (r2 <= self._fov_r2)
+        if not np.all(in_fov):
+            self.counters.extra["stars_outside_fov"] = \
+                self.counters.extra.get("stars_outside_fov", 0) + int((~in_fov).sum())
+            accepted &= in_fov
         self.counters.stars_gated += int(n - accepted.sum())
         result = FrameUpdate(ctx.stamp, t_exp, accepted, uv, pred0.uv, S_blocks, nis_stars,
                              float("nan"), 0, pred0.directions_st, self.omega.copy(), 0)
         if accepted.sum() < self.config.min_stars:
             self.counters.skipped_few_stars += 1
+            self._rejected_in_row += 1
+            if self._rejected_in_row >= self.config.reinit_after:
+                # Lost lock (e.g. after an IMU gap during a slew): re-acquire the attitude
+                # from this frame, keeping θ and its covariance.
+                log.warning("t=%.3f s: %d frames in a row rejected, re-acquiring the attitude",
+                            t_exp, self._rejected_in_row)
+                if self.initialize(uv, u_i, ctx, sigma):
+                    self.counters.reinitializations += 1
+                    self.counters.init_frames -= 1
             return result
+        self._rejected_in_row = 0
         idx = np.flatnonzero(accepted)
         ctx_acc = _subset_context(ctx, idx)
         z = uv[idx].reshape(-1)
@@ -346,10 +497,24 @@ class PsceFilter:
         h = pred0.uv[idx].reshape(-1)
         it = 0
         sig = np.sqrt(np.diag(self.P))
+        nu = z - h
+        nis = float("nan")
         for it in range(1, self.config.max_iterations + 1):
             PHt = self.P @ H.T
-            S = H @ PHt + np.diag(Rm)
-            K = np.linalg.solve(S, PHt.T).T
+            S = H @ PHt
+            S[np.diag_indices_from(S)] += Rm
+            try:
+                c = np.linalg.cholesky(S)
+            except np.linalg.LinAlgError:
+                self.counters.extra["update_failed"] = self.counters.extra.get(
+                    "update_failed", 0) + 1
+                log.warning("t=%.3f s: innovation covariance not positive definite: frame "
+                            "skipped", t_exp)
+                return result
+            if it == 1:
+                y = np.linalg.solve(c, nu)
+                nis = float(y @ y)
+            K = np.linalg.solve(c.T, np.linalg.solve(c, PHt.T)).T
             dx_new = K @ (z - h + H @ dx)
             change = np.max(np.abs(dx_new - dx) / np.maximum(sig, 1e-300))
             dx = dx_new
@@ -370,40 +535,86 @@ class PsceFilter:
                                  self._attitude_function(dx[:3]))
             H = np.concatenate([pred.H_attitude, pred.H_parameters], axis=2).reshape(-1, N)
             h = pred.uv.reshape(-1)
-        nu = z - pred0.uv[idx].reshape(-1)
-        S0 = H0[idx].reshape(-1, N) @ self.P @ H0[idx].reshape(-1, N).T + np.diag(Rm)
-        nis = float(nu @ np.linalg.solve(S0, nu))
-        self.P = joseph_update(self.P, K, H, np.diag(Rm))
+        if not (np.all(np.isfinite(dx)) and np.all(np.isfinite(K))):
+            self.counters.extra["update_failed"] = self.counters.extra.get("update_failed", 0) + 1
+            log.warning("t=%.3f s: non-finite update: frame skipped", t_exp)
+            return result
+        # Joseph form (stays symmetric PD with the iterated, not exactly optimal gain)
+        A = self._eye - K @ H
+        P = A @ self.P @ A.T + (K * Rm) @ K.T
         # reset: R ← Exp(δφ) R, θ ← θ + δθ; left-error reset Jacobian I + ½[δφ]×
         dphi = dx[:3]
         self.R_i_b = so3_exp(dphi) @ self.R_i_b
         self.theta = theta0 + dx[3:]
-        G = np.eye(3) + 0.5 * skew(dphi)
-        self.P[:3, :] = G @ self.P[:3, :]
-        self.P[:, :3] = self.P[:, :3] @ G.T
+        x, y_, z_ = 0.5 * dphi
+        G = np.array([[1.0, -z_, y_], [z_, 1.0, -x], [-y_, x, 1.0]])
+        P[:3, :] = G @ P[:3, :]
+        P[:, :3] = P[:, :3] @ G.T
+        self.P = 0.5 * (P + P.T)
         self.omega = self.rate_at(self.t)
         self.counters.updates += 1
+        if self.config.covariance_check_every and \
+                self.counters.updates % self.config.covariance_check_every == 0:
+            self._check_covariance()
         result.nis = nis
         result.dof = int(len(z))
         result.iterations = it
         return result
 
+    def _check_covariance(self) -> None:
+        """Cheap health check of P; repair (or roll back) instead of going on corrupted."""
+        self.counters.covariance_checks += 1
+        try:
+            check_covariance(self.P, "PSCE covariance")
+        except ModelError as exc:
+            self.counters.covariance_repairs += 1
+            P = 0.5 * (self.P + self.P.T)
+            if np.all(np.isfinite(P)):
+                w, V = np.linalg.eigh(P)
+                w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+                self.P = (V * w) @ V.T
+                log.warning("%s: repaired (eigenvalues clipped)", exc)
+            elif self._good is not None:
+                self.P, self.theta, self.R_i_b = (a.copy() for a in self._good)
+                log.warning("%s: rolled back to the last healthy state", exc)
+            else:
+                raise
+            return
+        self._good = (self.P.copy(), self.theta.copy(), self.R_i_b.copy())
+
     def process_frame(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
-                      sigma: np.ndarray) -> FrameUpdate | None:
-        """Handle one (cleaned) star frame: initialize or update; count skips."""
+                      sigma: np.ndarray, t_rel: float | None = None) -> FrameUpdate | None:
+        """Handle one (cleaned) star frame: initialize or update; count skips.
+
+        ``t_rel`` is the frame stamp relative to ``t0`` in s, best computed from integer
+        nanoseconds (``(stamp_ns − t0_ns) · 1e-9``); default ``ctx.stamp − t0``.
+        """
         self.counters.frames += 1
+        t_rel = ctx.stamp - self.t0 if t_rel is None else float(t_rel)
+        if not np.isfinite(t_rel):
+            self.counters.extra["skipped_bad_stamp"] = \
+                self.counters.extra.get("skipped_bad_stamp", 0) + 1
+            return None
         if self.last_stamp is not None:
-            if ctx.stamp == self.last_stamp:
+            if t_rel == self.last_stamp:
                 self.counters.skipped_duplicate += 1
                 return None
-            if ctx.stamp < self.last_stamp:
+            if t_rel < self.last_stamp:
                 self.counters.skipped_out_of_order += 1
                 log.warning("star frame at %.6f is older than the last one: skipped", ctx.stamp)
                 return None
+        good = np.all(np.isfinite(uv), axis=1) & np.all(np.isfinite(u_i), axis=1) & \
+            np.isfinite(sigma) & (sigma > 0)
+        if not np.all(good):
+            self.counters.stars_invalid += int((~good).sum())
+            uv, u_i, sigma = uv[good], u_i[good], sigma[good]
+            ctx = _subset_context(ctx, np.flatnonzero(good))
         if len(uv) < self.config.min_stars:
             self.counters.skipped_few_stars += 1
             return None
-        self.last_stamp = ctx.stamp
+        self.last_stamp = t_rel
+        self._stamp_posix = ctx.stamp
+        self._stamp_rel = t_rel
         if not self.initialized:
             self.initialize(uv, u_i, ctx, sigma)
             return None
@@ -415,6 +626,28 @@ class PsceFilter:
         return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
 
 
+def _wahba_inliers(camera, uv: np.ndarray, u_i: np.ndarray, outlier_px: float) -> np.ndarray:
+    """Stars consistent with one rotation (drops misidentified ones before the pixel fit).
+
+    Wahba on the unprojected centroids, then repeatedly drop the worst star while it is
+    off by more than ``max(outlier_px / f, 5 × median)`` in angle.
+    """
+    d = camera.unproject(uv)
+    keep = np.all(np.isfinite(d), axis=1) & np.all(np.isfinite(u_i), axis=1)
+    floor = outlier_px / max(camera.fx, camera.fy)
+    for _ in range(len(uv)):
+        if keep.sum() < 3:
+            break
+        R = wahba(d[keep], u_i[keep])
+        ang = np.full(len(uv), np.inf)
+        ang[keep] = np.linalg.norm(d[keep] @ R.T - u_i[keep], axis=1)
+        worst = int(np.argmax(np.where(keep, ang, -1.0)))
+        if ang[worst] <= max(floor, 5.0 * float(np.median(ang[keep]))):
+            break
+        keep[worst] = False
+    return keep
+
+
 def _subset_context(ctx: FrameContext, idx: np.ndarray) -> FrameContext:
     """The context of a subset of the frame's stars (per-star arrays sliced)."""
     return dataclasses.replace(
@@ -423,6 +656,73 @@ def _subset_context(ctx: FrameContext, idx: np.ndarray) -> FrameContext:
         magnitude=np.asarray(ctx.magnitude)[idx] if len(ctx.magnitude) else ctx.magnitude,
         extra={},
     )
+
+
+class _ImuPrefix:
+    """Gyro attitude and its time integral, accumulated once over all IMU samples.
+
+    With the rates ``ω̂_ref`` of the reference parameters ``θ_ref`` (the prior), ``C(t)``
+    is the body attitude at ``t`` relative to the start of the data and ``S_k = Σ_{j<k}
+    C_{j+1} Δt_j``.  Over any interval ``(t_a, t_b]``: ``ΔR = C(t_a)ᵀ C(t_b)`` and
+    ``Σ R̂_j Δt_j = R̂(t_a) C(t_a)ᵀ (S differences + partial samples)`` — two lookups
+    instead of a per-sample loop per star frame.  Increments have the coning correction;
+    the products use a parallel prefix scan (rounding ~1e-14 rad over hours).
+    """
+
+    def __init__(self, imu_t: np.ndarray, imu_w: np.ndarray, nominal_dt: float,
+                 theta_ref: np.ndarray, b: np.ndarray, E: np.ndarray, Jb: np.ndarray,
+                 gap_factor: float) -> None:
+        n = len(imu_t)
+        self.n = n
+        self.theta_ref = theta_ref.copy()
+        dt = np.empty(n)
+        dt[0] = nominal_dt
+        dt[1:] = np.diff(imu_t)
+        self.tp = np.concatenate([[imu_t[0] - nominal_dt], imu_t])  # sample k: (tp[k], tp[k+1]]
+        self.t_end = float(imu_t[-1])
+        if np.any(E):
+            A = np.linalg.inv(np.eye(3) + E)
+            self.w_hat = (imu_w - b) @ A.T
+            self.G = -A @ Jb
+        else:
+            self.w_hat = imu_w - b
+            self.G = -Jb
+        phi = attitude_increments(self.w_hat, dt, coning=True)
+        q = quat_cumprod(quat_from_rotvec(phi))
+        self.C = np.empty((n + 1, 3, 3))
+        self.C[0] = np.eye(3)
+        self.S = np.zeros((n + 1, 3, 3))
+        chunk = 65536
+        for a in range(0, n, chunk):
+            b_ = min(a + chunk, n)
+            self.C[a + 1:b_ + 1] = quat_to_matrix(q[a:b_])
+            np.cumsum(self.C[a + 1:b_ + 1] * dt[a:b_, None, None], axis=0,
+                      out=self.S[a + 1:b_ + 1])
+            self.S[a + 1:b_ + 1] += self.S[a]
+        gap = dt > gap_factor * nominal_dt
+        self.gap = gap
+        self.gap_count = np.concatenate([[0], np.cumsum(gap)])
+        self.gap_time = np.concatenate([[0.0], np.cumsum(np.where(gap, dt, 0.0))])
+
+    def at(self, m: int, t: float) -> np.ndarray:
+        """``C(t)`` for ``t`` in sample ``m``."""
+        tau = t - self.tp[m]
+        return self.C[m] @ so3_exp(self.w_hat[m] * tau) if tau > 0.0 else self.C[m]
+
+    def gaps(self, ma: int, mb: int, ta: float, tb: float) -> tuple[int, float]:
+        """Gap samples entered in ``(t_a, t_b]`` and the time the interval spends in gaps."""
+        gap = self.gap
+        if not (gap[ma] or gap[mb] or self.gap_count[mb] != self.gap_count[ma + 1]):
+            return 0, 0.0
+        if ma == mb:
+            return 0, (tb - ta) if gap[ma] else 0.0
+        n_gap = int(self.gap_count[mb + 1] - self.gap_count[ma + 1])
+        t = float(self.gap_time[mb] - self.gap_time[ma + 1])
+        if gap[ma]:
+            t += self.tp[ma + 1] - ta
+        if gap[mb]:
+            t += tb - self.tp[mb]
+        return n_gap, t
 
 
 class _NoImuError(Exception):

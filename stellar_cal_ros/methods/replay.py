@@ -52,6 +52,7 @@ class BagData:
     air_temperature: ScalarSeries | None
     pressure: ScalarSeries | None
     read_seconds: float = 0.0
+    imu_dropped: int = 0  #: duplicated-stamp or non-finite IMU messages not used
 
     @property
     def t0(self) -> float:
@@ -100,6 +101,7 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None) -> Bag
     f = imu.linear_acceleration[order][keep]
     stamps = stamps[keep]
     finite = np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
+    dropped += int((~finite).sum())
     if not np.all(finite):
         log.warning("%s: %d IMU messages with NaN/inf dropped", path, int((~finite).sum()))
         w, f, stamps = w[finite], f[finite], stamps[finite]
@@ -115,6 +117,7 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None) -> Bag
         air_temperature=scalars["air"],
         pressure=scalars["pressure"],
         read_seconds=time.perf_counter() - t_start,
+        imu_dropped=dropped,
     )
 
 
@@ -125,6 +128,15 @@ def _interp(series: ScalarSeries | None, t_ns: int) -> float:
     if not np.any(ok):
         return float("nan")
     return float(np.interp(t_ns, series.stamp_ns[ok], series.value[ok]))
+
+
+def _interp_many(series: ScalarSeries | None, t_ns: np.ndarray) -> np.ndarray:
+    """:func:`_interp` for many stamps at once."""
+    if series is None or len(series.stamp_ns) == 0 or not np.any(np.isfinite(series.value)):
+        return np.full(len(t_ns), np.nan)
+    ok = np.isfinite(series.value)
+    t0 = int(series.stamp_ns[ok][0])
+    return np.interp((t_ns - t0) * 1e-9, (series.stamp_ns[ok] - t0) * 1e-9, series.value[ok])
 
 
 def frame_context(data: BagData, frame: StarFrame, catalog_id: np.ndarray,
@@ -218,8 +230,22 @@ def replay_psce(
     theta_hist, sigma_hist, att_sigma = [], [], []
     prog = _Progress(len(data.frames), progress)
     t_start = time.perf_counter()
-    for i, frame in enumerate(data.frames):
-        prog(i)
+    # A recorded bag is replayed in stamp order (a late-logged frame is still good data);
+    # equal stamps stay in log order and the filter skips the duplicates.
+    stamps = np.array([f.stamp_ns for f in data.frames], dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
+    reordered = int(np.sum(order != np.arange(len(order))))
+    if reordered:
+        log.warning("%d star frames out of stamp order in the bag: replayed in stamp order",
+                    reordered)
+    weather = {key: _interp_many(series, stamps) for key, series in (
+        ("head", data.head_temperature), ("air", data.air_temperature),
+        ("pressure", data.pressure))}
+    frames_done = 0
+    for i in order:
+        frame = data.frames[i]
+        prog(frames_done)
+        frames_done += 1
         ok = clean_frame(frame, width, height)
         flt.counters.stars_invalid += int((~ok).sum())
         if not np.any(ok):
@@ -228,13 +254,18 @@ def replay_psce(
             continue
         ids = frame.catalog_id[ok].astype(np.int64)
         mag = frame.magnitude[ok]
-        ctx = frame_context(data, frame, ids, mag)
+        ctx = FrameContext(stamp=frame.stamp_ns * 1e-9, catalog_id=ids, magnitude=mag,
+                           site=data.site, head_temperature_c=weather["head"][i],
+                           air_temperature_c=weather["air"][i],
+                           pressure_pa=weather["pressure"][i])
         u_i = radec_to_unit(frame.right_ascension[ok], frame.declination[ok])
-        sigma = np.where(frame.sigma[ok] > 0, frame.sigma[ok], config.centroid_sigma_px)
-        upd = flt.process_frame(frame.uv[ok], u_i, ctx, sigma)
+        sigma = frame.sigma[ok].astype(float)
+        sigma = np.where(sigma > 0, sigma, config.centroid_sigma_px)
+        upd = flt.process_frame(frame.uv[ok], u_i, ctx, sigma,
+                                t_rel=(frame.stamp_ns - data.t0_ns) * 1e-9)
         if upd is None:
             continue
-        _append_residuals(rows, upd, i, ids, mag, ctx)
+        _append_residuals(rows, upd, int(i), ids, mag, ctx)
         if np.isfinite(upd.nis):
             hist["t"].append(upd.stamp)
             hist["nis"].append(upd.nis)
@@ -265,10 +296,13 @@ def replay_psce(
     for j, ax in enumerate("xyz"):
         history[f"sigma.attitude.{ax}"] = att[:, j]
     counters = {k: v for k, v in vars(flt.counters).items() if k != "extra"}
+    counters.update(flt.counters.extra)
+    counters["frames_reordered"] = reordered
+    counters["imu_messages_dropped"] = data.imu_dropped
     _log_counters(counters)
     return ReplayResult(
         calibration=cal,
-        residuals={k: np.asarray(v) for k, v in rows.items()},
+        residuals={k: np.concatenate(v) if v else np.zeros(0) for k, v in rows.items()},
         history=history,
         counters=counters,
         read_seconds=data.read_seconds,
@@ -302,7 +336,7 @@ def _append_residuals(rows, upd: FrameUpdate, frame_index: int, ids, mag, ctx) -
         "head_temperature": np.full(n, ctx.head_temperature_c),
     }
     for k, v in cols.items():
-        rows[k].extend(np.asarray(v).tolist())
+        rows[k].append(np.asarray(v))
 
 
 def _log_counters(counters: dict[str, int]) -> None:
@@ -354,3 +388,46 @@ def equivalent_principal_point(model: StarModel, theta: np.ndarray,
     return {"equivalent_principal_point_px": [float(v0[0]), float(v0[1])],
             "equivalent_principal_point_sigma_px": [float(np.sqrt(cov[0, 0])),
                                                     float(np.sqrt(cov[1, 1]))]}
+
+
+def bag_data_from_simulation(result: Any) -> BagData:
+    """The :class:`BagData` a bag written from a simulation result would read as.
+
+    For Monte-Carlo benchmarks and tests that do not need to exercise the MCAP layer
+    (:func:`read_bag_data` of the written bag gives the same arrays).
+    """
+    imu = result.imu
+    stamps = np.asarray(imu.stamp_ns, dtype=np.int64)
+    t0_ns = int(stamps[0]) - int(np.median(np.diff(stamps[:1000])))
+    nav = result.navsat
+    site = Site(float(np.median(nav.latitude_deg)), float(np.median(nav.longitude_deg)),
+                float(np.median(nav.altitude_m))) if len(nav.stamp_ns) else None
+    return BagData(
+        t0_ns=t0_ns,
+        imu_t=(stamps - t0_ns) * 1e-9,
+        imu_w=np.asarray(imu.angular_velocity, dtype=float),
+        imu_f=np.asarray(imu.linear_acceleration, dtype=float),
+        frames=list(result.star_frames),
+        site=site,
+        head_temperature=result.head_temperature,
+        air_temperature=result.air_temperature,
+        pressure=result.pressure,
+    )
+
+
+def truth_parameters(model: StarModel, truth: Calibration) -> np.ndarray:
+    """θ of a true calibration in the model's layout (for tests and benchmarks only).
+
+    Every effect reads its value from ``truth`` as it would from a prior, except the
+    installation, whose parameter is the rotation from the *prior's* nominal mounting:
+    ``δ = Log(R_priorᵀ R_truth)``.
+    """
+    out = np.empty(model.size)
+    for eff in model.effects:
+        sl = model.slices[eff.id]
+        if eff.id == "installation":
+            out[sl] = (model.prior.installation.inv() * truth.installation).as_rotvec()
+        else:
+            value, _ = copy.deepcopy(eff).initial(truth)  # a copy: initial() may keep state
+            out[sl] = value
+    return out

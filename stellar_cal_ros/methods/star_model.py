@@ -78,6 +78,7 @@ class StarModel:
         self.initial_value = np.concatenate(values) if values else np.zeros(0)
         self.initial_sigma = np.concatenate(sigmas) if sigmas else np.zeros(0)
         self._camera_prior = prior.camera.parameters()
+        self._R_imu_st_prior = prior.installation.as_matrix()  # cached: scipy is slow per call
         self._by_stage = {st: [e for e in self.effects if e.stage is st] for st in Stage}
         self.fixed_effects: list[tuple[Effect, np.ndarray]] = self._fixed_effects(prior)
         # DIRECTION and CAMERA chains: (effect, slice of θ or None, fixed value or None)
@@ -190,7 +191,7 @@ class StarModel:
         delta = np.zeros(3)
         for eff in self._by_stage[Stage.TRACKER]:
             delta = delta + eff.tracker_rotation(theta[self.slices[eff.id]], ctx)
-        return self.prior.installation.as_matrix() @ so3_exp(delta), delta
+        return self._R_imu_st_prior @ so3_exp(delta), delta
 
     def predict(
         self,
