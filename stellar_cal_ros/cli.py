@@ -284,6 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from stellar_cal_ros.sim.demo import run_demo
 
+    if not args.verbose:  # the demo narrates; the library's own log lines would drown it
+        logging.getLogger("stellar_cal_ros").setLevel(logging.ERROR)
     return run_demo(args.output, duration=args.duration)
 
 

@@ -55,9 +55,21 @@ def plot_vector_fields(panels: list[tuple[str, Table]], width: int, height: int,
     plt.close(fig)
 
 
+def _bins(x: np.ndarray, n: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Bin edges by quantiles, or equal widths where quantiles collapse (piled-up values)."""
+    edges = np.unique(np.percentile(x, np.linspace(0, 100, n + 1)))
+    if len(edges) < n // 2 + 1:
+        edges = np.linspace(x.min(), x.max(), n + 1)
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+    return idx, 0.5 * (edges[1:] + edges[:-1])
+
+
 def plot_regressors(panels: list[tuple[str, Table]], centre: tuple[float, float],
                     fraction: float, path: Path) -> None:
-    """Binned residuals (u, v, radial) against each regressor, current vs best candidate."""
+    """Binned innovation RMS (u, v) against each regressor, current vs best candidate.
+
+    The radius panel shows the mean *radial* component instead (sign matters there).
+    """
     regs = list(stats.regressors(panels[0][1], centre))
     n = len(regs)
     fig, axes = plt.subplots(2, (n + 1) // 2, figsize=(4.0 * ((n + 1) // 2), 6.5),
@@ -69,18 +81,26 @@ def plot_regressors(panels: list[tuple[str, Table]], centre: tuple[float, float]
             ok = np.isfinite(x)
             if ok.sum() < 10 or np.ptp(x[ok]) == 0:
                 continue
-            edges = np.unique(np.percentile(x[ok], np.linspace(0, 100, 11)))
-            idx = np.clip(np.searchsorted(edges, x[ok], side="right") - 1, 0, len(edges) - 2)
-            mid = 0.5 * (edges[1:] + edges[:-1])
+            idx, mid = _bins(x[ok])
+            has = np.array([np.any(idx == i) for i in range(len(mid))])
+            if name == "radius":
+                du_, dv_ = res["u"][m][ok] - centre[0], res["v"][m][ok] - centre[1]
+                rr = np.maximum(np.hypot(du_, dv_), 1e-9)
+                y = (res["du"][m][ok] * du_ + res["dv"][m][ok] * dv_) / rr
+                val = np.array([y[idx == i].mean() if h else np.nan
+                                for i, h in enumerate(has)])
+                ax.plot(mid, val, style, color="C2", marker="o", ms=3, label=f"radial {title}")
+                ax.set_ylabel("mean radial innovation, px")
+                continue
             for comp, color in (("du", "C0"), ("dv", "C1")):
                 y = res[comp][m][ok]
-                mean = np.array([y[idx == i].mean() if np.any(idx == i) else np.nan
-                                 for i in range(len(mid))])
-                ax.plot(mid, mean, style, color=color, marker="o", ms=3,
+                val = np.array([np.sqrt(np.mean(y[idx == i] ** 2)) if h else np.nan
+                                for i, h in enumerate(has)])
+                ax.plot(mid, val, style, color=color, marker="o", ms=3,
                         label=f"{comp} {title}")
+            ax.set_ylabel("innovation RMS, px")
         ax.axhline(0, color="k", lw=0.5)
         ax.set_title(name)
-        ax.set_ylabel("mean innovation, px")
     for ax in axes.ravel()[n:]:
         ax.axis("off")
     axes.ravel()[0].legend(fontsize=7)

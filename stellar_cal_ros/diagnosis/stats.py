@@ -152,8 +152,12 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     radial = (sub["du"] * du_ + sub["dv"] * dv_) / np.maximum(r, 1e-9)
     sigma_r = np.sqrt(np.maximum((sub["s_uu"] * du_**2 + 2 * sub["s_uv"] * du_ * dv_
                                   + sub["s_vv"] * dv_**2) / np.maximum(r, 1e-9) ** 2, 1e-300))
+    # Signed components find biases (e.g. a radial error growing with radius); the squared
+    # whitened norm finds residuals whose *size* follows a regressor (e.g. the angular rate
+    # for a timing error, whose direction follows the motion and averages out when signed).
     components = {"u": (w[:, 0], sub["du"]), "v": (w[:, 1], sub["dv"]),
-                  "radial": (radial / sigma_r, radial)}
+                  "radial": (radial / sigma_r, radial),
+                  "size": (w[:, 0] ** 2 + w[:, 1] ** 2, np.hypot(sub["du"], sub["dv"]))}
     regs = regressors(sub, camera_centre)
     tests = []
     for rname, x in regs.items():

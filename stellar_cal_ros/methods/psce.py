@@ -81,6 +81,7 @@ class PsceConfig:
     fov_margin: float = 1.3  #: stars predicted beyond this × the half-diagonal: rejected
     gap_reacquire_s: float = 0.1  #: a frame after more IMU gap than this re-acquires attitude
     init_outlier_px: float = 5.0  #: init: drop stars off by more than this after the fit
+    mismatch_factor: float = 3.0  #: frame median NIS this × the χ² median: model mismatch
     reinit_after: int = 3  #: consecutive frames with stars but no accepted update: re-acquire
     covariance_check_every: int = 50  #: check P (finite, symmetric, PD) every N updates
     fast_propagation: bool = True  #: prefix-integrated gyro (exact to 2nd order in δθ)
@@ -163,6 +164,7 @@ class PsceFilter:
         self._k = 0  # index of the first IMU sample whose interval ends after self.t
         self.counters = FilterCounters()
         self.gate = chi2_gate(self.config.gate_probability, 2)
+        self._mismatch_warned = False
         self.last_stamp: float | None = None
         self._eye = np.eye(n)
         self._rejected_in_row = 0
@@ -459,7 +461,23 @@ class PsceFilter:
         S_blocks[:, 0, 0] += R_meas
         S_blocks[:, 1, 1] += R_meas
         nis_stars = block_nis(nu0, S_blocks)
-        accepted = nis_stars <= self.gate  # NaN (star behind the tracker) is rejected
+        # Gate relative to the frame's typical misfit: a misidentified star stands out from
+        # the other stars of its frame, while a model that misses an effect raises every
+        # star's NIS. Gating those against the absolute threshold would reject whole frames
+        # and leave nothing to diagnose; scaling the gate by the frame's median NIS (over
+        # the χ² median) keeps rejecting outliers and keeps the honest innovations.
+        usable = np.isfinite(nis_stars)
+        scale = 1.0
+        if usable.sum() >= 3:
+            scale = max(1.0, float(np.median(nis_stars[usable])) / _CHI2_2_MEDIAN)
+        if scale > self.config.mismatch_factor:
+            self.counters.extra["frames_model_mismatch"] = \
+                self.counters.extra.get("frames_model_mismatch", 0) + 1
+            if not self._mismatch_warned:
+                self._mismatch_warned = True
+                log.warning("t=%.3f s: the stars' median NIS is %.0fx what the model expects: "
+                            "the model misses an effect (run stellar-cal diagnose)", t_exp, scale)
+        accepted = nis_stars <= self.gate * scale  # NaN (star behind the tracker) is rejected
         # A star whose catalogue direction is outside the field of view is misidentified,
         # whatever its NIS: far outside the detector the distortion polynomial folds back
         # and its huge Jacobian would let the gate pass it.
@@ -723,6 +741,9 @@ class _ImuPrefix:
         if gap[mb]:
             t += tb - self.tp[mb]
         return n_gap, t
+
+
+_CHI2_2_MEDIAN = 2.0 * np.log(2.0)  # median of χ² with 2 dof
 
 
 class _NoImuError(Exception):

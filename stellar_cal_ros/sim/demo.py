@@ -15,8 +15,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from stellar_cal_ros.io.calibration import load_calibration, save_calibration
 from stellar_cal_ros.io.residuals import write_residuals
 from stellar_cal_ros.methods.replay import read_bag_data, replay_psce
@@ -98,6 +96,3 @@ def run_demo(output: Path, duration: float = 600.0, seed: int = 7) -> int:
           + ("the loop worked." if ok else "NOT as expected."))
     return 0 if ok else 1
 
-
-def _unused() -> None:  # keep numpy imported for users extending the demo
-    np.zeros(0)
