@@ -22,6 +22,12 @@ An effect whose parameters the data leave at their prior uncertainty (posterior 
 this motion instead of ranked — e.g. a time offset without rotation.  Effects acting in a
 stage the method does not model (accelerometer effects for PSCE) or needing inputs the bag
 lacks (site, head temperature) are reported as not applicable.
+
+When the current model misses something, the residuals are over-dispersed and a wrong
+candidate that absorbs a sliver of the misfit would still reach a tiny p-value with ten
+thousand stars.  Two guards: Λ is divided by the dispersion (quasi-likelihood), and a
+significant candidate must remove at least :data:`MIN_EXPLAINED` of the excess residual
+variance (residual variance above what the model expects).
 """
 
 from __future__ import annotations
@@ -44,6 +50,9 @@ from stellar_cal_ros.methods.replay import BagData, ReplayResult
 log = logging.getLogger(__name__)
 
 Runner = Callable[[BagData, Calibration, list[str]], ReplayResult]
+
+#: a significant candidate must remove at least this fraction of the excess variance
+MIN_EXPLAINED = 0.1
 
 
 @dataclass
@@ -99,10 +108,13 @@ class CandidateResult:
     reason: str = ""
     run: ReplayResult | None = None
 
+    explained: float = float("nan")  # fraction of the excess residual variance removed
+
     @property
     def significant(self) -> bool:
-        """Significant at 1 % after the multiple-testing correction."""
-        return self.status == "ranked" and self.p_adjusted < 0.01
+        """Significant at 1 % after correction, and it removes a real part of the excess."""
+        return (self.status == "ranked" and self.p_adjusted < 0.01
+                and not self.explained < MIN_EXPLAINED)
 
 
 def rerun_prior(calibration: Calibration, model_effects: list[str]) -> Calibration:
@@ -144,6 +156,8 @@ def rank_candidates(
     base = spec.runner(data, prior, extra)
     mask_b = stats.evaluation_mask(base.residuals, evaluation_fraction)
     ll_base = stats.log_likelihood(base.residuals, mask_b)
+    dispersion = max(1.0, stats.nis_consistency(base.residuals, mask_b)["mean"] / 2.0)
+    excess_base = stats.excess_variance(base.residuals, mask_b)
     in_model = set(spec.baseline) | set(extra)
     pool = [e for e in (candidates or registry.available()) if e not in in_model]
     results: list[CandidateResult] = []
@@ -182,8 +196,15 @@ def rank_candidates(
                            "not observable with this motion and these inputs")
         else:
             ll = stats.log_likelihood(run.residuals, mask_c)
-            cand.statistic = float(2.0 * (ll - ll_base))
+            # Quasi-likelihood: when the current model misses something, every residual is
+            # over-dispersed by the same factor, and any extra parameter that absorbs a
+            # sliver of the misfit gains a log-likelihood proportional to it; dividing by
+            # the dispersion (mean NIS / 2) restores the χ² reference.
+            cand.statistic = float(2.0 * (ll - ll_base) / dispersion)
             cand.p_value = float(sps.chi2.sf(max(cand.statistic, 0.0), eff.size))
+            if excess_base > 0.05 * stats.noise_variance(base.residuals, mask_b):
+                cand.explained = float(
+                    1.0 - stats.excess_variance(run.residuals, mask_c) / excess_base)
         results.append(cand)
     ranked = [c for c in results if c.status == "ranked"]
     m = max(len(ranked), 1)
@@ -208,6 +229,7 @@ def summary_dict(base: ReplayResult, results: list[CandidateResult],
         "candidates": [
             {"effect": c.effect, "score": c.statistic, "rms_after_px": list(c.rms_after_px),
              "p_value": c.p_adjusted, "p_value_unadjusted": c.p_value,
+             "explained_fraction": c.explained,
              "significant": c.significant, "dof": c.dof, "estimate": c.estimate,
              "sigma": c.sigma}
             for c in ranked

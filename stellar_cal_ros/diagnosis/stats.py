@@ -45,6 +45,24 @@ def expected_rms(res: Table, mask: np.ndarray) -> tuple[float, float]:
     return float(np.sqrt(np.mean(res["s_uu"][m]))), float(np.sqrt(np.mean(res["s_vv"][m])))
 
 
+def noise_variance(res: Table, mask: np.ndarray) -> float:
+    """Mean predicted innovation variance per star (u + v), px²."""
+    m = mask & accepted(res)
+    return float(np.mean(res["s_uu"][m] + res["s_vv"][m])) if np.any(m) else float("nan")
+
+
+def excess_variance(res: Table, mask: np.ndarray) -> float:
+    """Mean squared innovation minus its predicted variance per star (u + v), px².
+
+    Positive when the residuals are larger than the model's noise accounts for.
+    """
+    m = mask & accepted(res)
+    if not np.any(m):
+        return float("nan")
+    return float(np.mean(res["du"][m] ** 2 + res["dv"][m] ** 2)
+                 - np.mean(res["s_uu"][m] + res["s_vv"][m]))
+
+
 def whitened(res: Table) -> np.ndarray:
     """Innovations whitened by their 2×2 covariance (n, 2): Cholesky ``L⁻¹ ν``."""
     a, b, d = res["s_uu"], res["s_uv"], res["s_vv"]
