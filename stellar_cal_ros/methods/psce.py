@@ -82,6 +82,7 @@ class PsceConfig:
     gap_reacquire_s: float = 0.1  #: a frame after more IMU gap than this re-acquires attitude
     init_outlier_px: float = 5.0  #: init: drop stars off by more than this after the fit
     mismatch_factor: float = 3.0  #: frame median NIS this × the χ² median: model mismatch
+    lost_lock_factor: float = 1e4  #: ... this ×: the attitude is lost, the frame rejected
     reinit_after: int = 3  #: consecutive frames with stars but no accepted update: re-acquire
     covariance_check_every: int = 50  #: check P (finite, symmetric, PD) every N updates
     fast_propagation: bool = True  #: prefix-integrated gyro (exact to 2nd order in δθ)
@@ -478,6 +479,13 @@ class PsceFilter:
                 log.warning("t=%.3f s: the stars' median NIS is %.0fx what the model expects: "
                             "the model misses an effect (run stellar-cal diagnose)", t_exp, scale)
         accepted = nis_stars <= self.gate * scale  # NaN (star behind the tracker) is rejected
+        if scale > self.config.lost_lock_factor:
+            # Innovations a hundred sigma off on the typical star: not a missing effect but a
+            # lost attitude (e.g. after an IMU gap in a slew). Reject the frame; a few of
+            # those in a row re-acquire the attitude from the stars.
+            accepted[:] = False
+            self.counters.extra["frames_lost_lock"] = \
+                self.counters.extra.get("frames_lost_lock", 0) + 1
         # A star whose catalogue direction is outside the field of view is misidentified,
         # whatever its NIS: far outside the detector the distortion polynomial folds back
         # and its huge Jacobian would let the gate pass it.
