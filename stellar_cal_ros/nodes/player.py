@@ -1,12 +1,258 @@
-"""Placeholder for the `player` ROS 2 node (being written elsewhere)."""
+"""``player`` node: publish a contract MCAP bag (``ros2 run stellar_cal_ros player``).
 
+Messages go out unchanged (their CDR bytes from the bag), in log-time order, on the bag's
+topic names (remappable), with:
+
+* ``rate > 0``: paced at ``rate`` × real time by the log times (1 = real time);
+* ``rate = 0``: as fast as the consumer keeps up — the calibrator reports the newest IMU
+  stamp it has consumed on ``progress_topic`` (its ``~/data_clock``, rosgraph_msgs/Clock);
+  the player holds back while the IMU it has published is more than ``max_lag_s`` ahead of
+  that (so no subscription queue can overflow); after ``ack_timeout_s`` without progress it
+  carries on (counted, warned);
+* ``/clock`` (rosgraph_msgs/Clock) with the bag's log time every ``clock_period_s`` of bag
+  time, for nodes run with ``use_sim_time: true``.
+
+The bag is read with the ``mcap`` library (no rosbag2 needed).  ``start_offset_s`` and
+``duration_s`` select a part of it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import struct
 import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import ParameterUninitializedException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+
+IMU_TYPE = "sensor_msgs/msg/Imu"
+
+PARAMETERS: dict[str, tuple[Any, str]] = {
+    "bag": ("", "MCAP file to play (required)"),
+    "rate": (1.0, "playback speed × real time; 0: as fast as the subscriber keeps up"),
+    "start_offset_s": (0.0, "skip this much of the bag (log time), s"),
+    "duration_s": (0.0, "play only this much (log time), s; 0: to the end"),
+    "topics": (Parameter.Type.STRING_ARRAY, "topics to play (default: all)"),
+    "publish_clock": (True, "publish /clock (rosgraph_msgs/Clock) with the bag's log time"),
+    "clock_period_s": (0.01, "bag-time interval between /clock messages, s"),
+    "qos_depth": (1000, "publisher queue depth (reliable, KEEP_LAST)"),
+    "progress_topic": ("/calibrator/data_clock",
+                       "flow control (rate 0): newest IMU stamp the consumer has used"),
+    "max_lag_s": (0.5, "flow control: IMU published at most this far (stamps) ahead, s"),
+    "ack_timeout_s": (5.0, "flow control: carry on after this long without progress"),
+    "wait_for_subscribers_s": (5.0, "wait this long for a subscriber on every topic first"),
+    "exit_when_done": (True, "shut down after the last message"),
+}
+
+
+@dataclass
+class PlayStats:
+    """What a playback did."""
+
+    messages: int = 0
+    acks: int = 0
+    ack_timeouts: int = 0
+    waits: int = 0
+    wall_s: float = 0.0
+    bag_s: float = 0.0
+
+
+def message_class(type_name: str):
+    """``pkg/msg/Type`` → the generated Python class."""
+    pkg, _, name = type_name.replace("/msg/", "/").partition("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def _value(node: Node, name: str) -> Any:
+    """A declared parameter's value; None for a typed one left unset (e.g. an empty list)."""
+    try:
+        return node.get_parameter(name).value
+    except ParameterUninitializedException:
+        return None
+
+
+class PlayerNode(Node):
+    """The ``player`` node (see the module docstring); :meth:`play` does the work."""
+
+    def __init__(self, node_name: str = "player", **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        for name, (default, text) in PARAMETERS.items():
+            self.declare_parameter(name, default,
+                                   ParameterDescriptor(description=text, read_only=True))
+        self.p = {name: _value(self, name) for name in PARAMETERS}
+        self.p["topics"] = [t for t in (self.p["topics"] or []) if t]
+        if not self.p["bag"]:
+            raise ValueError("parameter 'bag' is required")
+        if self.p["rate"] < 0 or self.p["max_lag_s"] <= 0 or self.p["qos_depth"] < 1:
+            raise ValueError("rate must be >= 0, max_lag_s > 0 and qos_depth >= 1")
+        self.consumer_ns = -1  # newest IMU stamp the consumer reported
+        self.stats = PlayStats()
+        self._first_imu_ns: int | None = None
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.p["qos_depth"],
+                               reliability=ReliabilityPolicy.RELIABLE)
+        self.clock_pub = self.create_publisher(Clock, "/clock", 10) \
+            if self.p["publish_clock"] else None
+        self._pubs: dict[str, Any] = {}
+        if self.p["rate"] == 0:
+            self.create_subscription(Clock, self.p["progress_topic"], self._on_progress,
+                                     QoSProfile(depth=100,
+                                                reliability=ReliabilityPolicy.RELIABLE))
+
+    def _on_progress(self, msg: Clock) -> None:
+        with self._cond:
+            self.stats.acks += 1
+            self.consumer_ns = max(self.consumer_ns, rclpy.time.Time.from_msg(
+                msg.clock).nanoseconds)
+            self._cond.notify_all()
+
+    def stop(self) -> None:
+        """Ask a running :meth:`play` to return."""
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+
+    def _make_publishers(self, reader) -> dict[str, Any]:
+        summary = reader.get_summary()
+        want = set(self.p["topics"]) if self.p["topics"] else None
+        for ch in summary.channels.values():
+            if want is not None and ch.topic not in want or ch.topic in self._pubs:
+                continue
+            schema = summary.schemas.get(ch.schema_id)
+            try:
+                cls = message_class(schema.name)
+            except (ImportError, AttributeError, ValueError) as exc:
+                self.get_logger().warning(f"{ch.topic}: type {schema.name} not available "
+                                          f"({exc}); not played")
+                continue
+            self._pubs[ch.topic] = (self.create_publisher(cls, ch.topic, self._qos),
+                                    schema.name == IMU_TYPE)
+        return self._pubs
+
+    def _wait_for_subscribers(self) -> None:
+        deadline = time.monotonic() + self.p["wait_for_subscribers_s"]
+        while time.monotonic() < deadline and not self._stop.is_set():
+            if all(pub.get_subscription_count() > 0 for pub, _ in self._pubs.values()):
+                return
+            time.sleep(0.02)
+
+    def _wait_progress(self, imu_ns: int) -> None:
+        """Flow control: block while the consumer lags the IMU published by > max_lag_s."""
+        lag_ns = int(self.p["max_lag_s"] * 1e9)
+        with self._cond:
+            if self.consumer_ns < 0 and self.stats.acks == 0 and imu_ns - self._first_imu_ns \
+                    < lag_ns:
+                return  # start-up: nothing reported yet
+            waited = False
+            while not self._stop.is_set() and imu_ns - max(self.consumer_ns, self._first_imu_ns) \
+                    > lag_ns:
+                waited = True
+                before = self.stats.acks
+                self._cond.wait(self.p["ack_timeout_s"])
+                if self.stats.acks == before and not self._stop.is_set():
+                    self.stats.ack_timeouts += 1
+                    self.get_logger().warning(
+                        f"no progress on {self.p['progress_topic']} for "
+                        f"{self.p['ack_timeout_s']} s: carrying on")
+                    self.consumer_ns = imu_ns
+            self.stats.waits += waited
+
+    def play(self) -> PlayStats:
+        """Publish the bag (blocking; call from a thread other than the executor's)."""
+        from mcap.reader import make_reader
+
+        rate = float(self.p["rate"])
+        clock_ns = int(self.p["clock_period_s"] * 1e9)
+        with open(self.p["bag"], "rb") as fh:
+            reader = make_reader(fh)
+            pubs = self._make_publishers(reader)
+            self._wait_for_subscribers()
+            stats = reader.get_summary().statistics
+            start = stats.message_start_time + int(self.p["start_offset_s"] * 1e9)
+            end = stats.message_end_time + 1 if self.p["duration_s"] <= 0 else \
+                start + int(self.p["duration_s"] * 1e9)
+            t_wall0 = time.perf_counter()
+            first_log = None
+            next_clock = None
+            for _schema, channel, message in reader.iter_messages(
+                    topics=list(pubs), starting_at=start, ending_before=end, log_time_order=True):
+                if self._stop.is_set():
+                    break
+                log_ns = message.log_time
+                if first_log is None:
+                    first_log = next_clock = log_ns
+                if rate > 0:
+                    delay = t_wall0 + (log_ns - first_log) * 1e-9 / rate - time.perf_counter()
+                    if delay > 0.0005:
+                        time.sleep(delay)
+                if self.clock_pub is not None and log_ns >= next_clock:
+                    c = Clock()
+                    c.clock = rclpy.time.Time(nanoseconds=log_ns).to_msg()
+                    self.clock_pub.publish(c)
+                    next_clock = log_ns + clock_ns
+                pub, is_imu = pubs[channel.topic]
+                data = bytes(message.data)
+                if is_imu and rate == 0 and len(data) >= 12:
+                    sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
+                    imu_ns = sec * 1_000_000_000 + nsec
+                    if self._first_imu_ns is None:
+                        self._first_imu_ns = imu_ns
+                    self._wait_progress(imu_ns)
+                pub.publish(data)
+                self.stats.messages += 1
+                self.stats.bag_s = (log_ns - first_log) * 1e-9
+        self.stats.wall_s = time.perf_counter() - t_wall0
+        self.get_logger().info(
+            f"played {self.stats.messages} messages ({self.stats.bag_s:.1f} s of bag) in "
+            f"{self.stats.wall_s:.1f} s, ack timeouts {self.stats.ack_timeouts}")
+        return self.stats
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Report that the node is not implemented yet; return 1."""
-    print("player: not implemented yet", file=sys.stderr)
-    return 1
+    """Play the bag, then exit (or keep spinning if ``exit_when_done`` is false)."""
+    rclpy.init(args=argv if argv is not None else sys.argv)
+    node = None
+    try:
+        node = PlayerNode()
+    except ValueError as exc:
+        print(f"player: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    done = threading.Event()
+
+    def run() -> None:
+        try:
+            node.play()
+        finally:
+            done.set()
+
+    worker = threading.Thread(target=run, daemon=True)
+    worker.start()
+    try:
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+            if done.is_set() and node.p["exit_when_done"]:
+                break
+    except (KeyboardInterrupt, ExternalShutdownException):
+        node.stop()
+    finally:
+        worker.join(timeout=2.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":

@@ -1,0 +1,56 @@
+"""Play a contract bag into the calibrator: ``ros2 launch stellar_cal_ros calibrate_bag.launch.py``.
+
+Arguments: ``bag:=BAG.mcap prior:=PRIOR.yaml [output:=RESULT.yaml] [rate:=0]
+[effects:=radial_k3,time_offset] [checkpoint:=STATE.npz]``.  ``rate:=0`` plays as fast as
+the calibrator keeps up (flow control on ``/calibrator/data_clock``).  Both nodes use the
+bag's ``/clock`` (``use_sim_time``) only for their timers; the estimation uses the message
+stamps.  Needs ``launch_ros`` (apt ``ros-jazzy-launch-ros``); not importable in a venv
+without it.
+"""
+
+from launch.actions import DeclareLaunchArgument, RegisterEventHandler, Shutdown
+from launch.event_handlers import OnProcessExit
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+
+from launch import LaunchDescription
+
+try:
+    from launch_ros.actions import Node
+    from launch_ros.substitutions import FindPackageShare
+except ImportError as exc:  # pragma: no cover - launch_ros is an apt package
+    raise ImportError("calibrate_bag.launch.py needs launch_ros (ros-jazzy-launch-ros)") from exc
+
+
+def generate_launch_description() -> LaunchDescription:
+    """Player + calibrator; the calibrator stops (writing its result) when the player ends."""
+    config = PathJoinSubstitution([FindPackageShare("stellar_cal_ros"), "config",
+                                   "calibrator.yaml"])
+    args = [
+        DeclareLaunchArgument("bag", description="contract MCAP bag"),
+        DeclareLaunchArgument("prior", description="prior calibration YAML"),
+        DeclareLaunchArgument("output", default_value="calibration.yaml"),
+        DeclareLaunchArgument("checkpoint", default_value=""),
+        DeclareLaunchArgument("rate", default_value="0.0"),
+        DeclareLaunchArgument("use_sim_time", default_value="true"),
+    ]
+    sim = LaunchConfiguration("use_sim_time")
+    calibrator = Node(
+        package="stellar_cal_ros", executable="calibrator", name="calibrator", output="screen",
+        parameters=[config, {
+            "prior_file": LaunchConfiguration("prior"),
+            "output_file": LaunchConfiguration("output"),
+            "checkpoint_file": LaunchConfiguration("checkpoint"),
+            "use_sim_time": sim,
+        }],
+    )
+    player = Node(
+        package="stellar_cal_ros", executable="player", name="player", output="screen",
+        parameters=[{
+            "bag": LaunchConfiguration("bag"),
+            "rate": LaunchConfiguration("rate"),
+            "progress_topic": "/calibrator/data_clock",
+        }],
+    )
+    stop_when_played = RegisterEventHandler(OnProcessExit(
+        target_action=player, on_exit=[Shutdown(reason="bag played")]))
+    return LaunchDescription([*args, calibrator, player, stop_when_played])

@@ -1,0 +1,262 @@
+"""OnlineCalibrator: streaming a bag message by message equals the offline replay.
+
+The reference is ``replay_psce`` over an excerpt (first 120 s) of the shared ideal bag.
+The same messages are streamed in log-time order, shuffled within the reorder window, and
+with a checkpoint / restore half way; all must give the replay's calibration to ~1e-9.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.io.bag import BagReader
+from stellar_cal_ros.io.calibration import calibration_to_dict, load_calibration
+from stellar_cal_ros.methods.online import OnlineCalibrator, OnlineConfig
+from stellar_cal_ros.methods.psce import FilterCounters, PsceConfig
+from stellar_cal_ros.methods.replay import (
+    TOPIC_AIR_TEMPERATURE,
+    TOPIC_FIX,
+    TOPIC_HEAD_TEMPERATURE,
+    TOPIC_IMU,
+    TOPIC_PRESSURE,
+    TOPIC_STARS,
+    replay_psce,
+)
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+BAG = DATA / "psce_ideal_900s.mcap"
+PRIOR = DATA / "psce_ideal_900s.prior.yaml"
+EXCERPT_S = 120.0
+WINDOW_S = 0.2
+
+pytestmark = pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not available")
+
+
+def write_excerpt(src: Path, dst: Path, duration_s: float) -> Path:
+    """Copy the first ``duration_s`` (log time) of an MCAP file, messages unchanged."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        reader = make_reader(fin)
+        summary = reader.get_summary()
+        start = summary.statistics.message_start_time
+        end = start + int(duration_s * 1e9)
+        writer = Writer(fout)
+        writer.start(profile="ros2")
+        schemas, channels = {}, {}
+        for schema, channel, msg in reader.iter_messages(ending_before=end):
+            if channel.id not in channels:
+                if schema.id not in schemas:
+                    schemas[schema.id] = writer.register_schema(schema.name, schema.encoding,
+                                                                schema.data)
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id], channel.metadata)
+            writer.add_message(channels[channel.id], msg.log_time, msg.data, msg.publish_time,
+                               msg.sequence)
+        writer.finish()
+    return dst
+
+
+def bag_events(path: Path) -> list[tuple[int, int, str, object]]:
+    """Every message of the bag as (log time, index, kind, payload), log-time order."""
+    ev: list[tuple[int, int, str, object]] = []
+    with BagReader(path) as r:
+        topics = r.topics()
+        imu = r.read_imu(TOPIC_IMU)
+        for i in range(len(imu.stamp_ns)):
+            ev.append((int(imu.log_time_ns[i]), 0, "imu",
+                       (int(imu.stamp_ns[i]), imu.angular_velocity[i], imu.frame_id)))
+        for f in r.read_star_frames(TOPIC_STARS):
+            ev.append((int(f.log_time_ns), 1, "stars", f))
+        if TOPIC_FIX in topics:
+            fx = r.read_navsat(TOPIC_FIX)
+            for i in range(len(fx.stamp_ns)):
+                ev.append((int(fx.log_time_ns[i]), 2, "fix",
+                           (int(fx.stamp_ns[i]), fx.latitude_deg[i], fx.longitude_deg[i],
+                            fx.altitude_m[i], int(fx.status[i]))))
+        for kind, topic in (("head", TOPIC_HEAD_TEMPERATURE), ("air", TOPIC_AIR_TEMPERATURE),
+                            ("pressure", TOPIC_PRESSURE)):
+            if topic in topics:
+                s = r.read_scalar(topic)
+                for i in range(len(s.stamp_ns)):
+                    ev.append((int(s.log_time_ns[i]), 3, kind,
+                               (int(s.stamp_ns[i]), float(s.value[i]))))
+    ev.sort(key=lambda e: (e[0], e[1]))
+    return ev
+
+
+def feed(cal: OnlineCalibrator, events) -> list:
+    out = []
+    for _, _, kind, p in events:
+        if kind == "imu":
+            out += cal.push_imu(p[0], p[1], p[2])
+        elif kind == "stars":
+            out += cal.push_stars(p)
+        elif kind == "fix":
+            out += cal.push_fix(*p)
+        else:
+            out += cal.push_scalar(kind, *p)
+    return out
+
+
+def shuffled(events, window_s: float, seed: int = 7):
+    """Arrival order: each message delayed by a random fraction of the window."""
+    rng = random.Random(seed)
+    delayed = [(e[0] + int(rng.uniform(0.0, 0.9 * window_s) * 1e9), k, e)
+               for k, e in enumerate(events)]
+    delayed.sort(key=lambda d: (d[0], d[1]))
+    return [d[2] for d in delayed]
+
+
+def assert_same(online, offline, rtol=1e-9):
+    a, b = calibration_to_dict(online), calibration_to_dict(offline)
+    a.pop("extra", None)
+
+    def walk(x, y, where):
+        if isinstance(x, dict):
+            assert set(x) == set(y), where
+            for k in x:
+                walk(x[k], y[k], f"{where}.{k}")
+        elif isinstance(x, list):
+            assert len(x) == len(y), where
+            for i, (u, v) in enumerate(zip(x, y, strict=True)):
+                walk(u, v, f"{where}[{i}]")
+        elif isinstance(x, float):
+            assert x == pytest.approx(y, rel=rtol, abs=1e-300), where
+        else:
+            assert x == y, where
+
+    walk(a, b, "cal")
+
+
+@pytest.fixture(scope="module")
+def excerpt(tmp_path_factory):
+    path = write_excerpt(BAG, tmp_path_factory.mktemp("online") / "excerpt.mcap", EXCERPT_S)
+    prior = load_calibration(PRIOR)
+    ref = replay_psce(path, prior, config=live_psce())
+    return path, prior, ref, bag_events(path)
+
+
+def live_psce() -> PsceConfig:
+    """The live filter's settings: exact propagation (the prefix one needs all IMU upfront)."""
+    cfg = PsceConfig()
+    if hasattr(cfg, "fast_propagation"):
+        cfg = dataclasses.replace(cfg, fast_propagation=False)
+    return cfg
+
+
+def make(prior, window=WINDOW_S, effects=None):
+    return OnlineCalibrator(prior, effects, PsceConfig(),
+                            OnlineConfig(reorder_window_s=window))
+
+
+def test_time_order_equals_replay(excerpt):
+    _, prior, ref, events = excerpt
+    cal = make(prior, window=0.0)
+    outcomes = feed(cal, events) + cal.finish()
+    assert cal.filter_counters()["updates"] == ref.counters["updates"] > 100
+    fc = cal.filter_counters()
+    for k in vars(FilterCounters()):
+        if k != "extra":
+            assert fc[k] == ref.counters[k], k
+    assert sum(o.status == "updated" for o in outcomes) == ref.counters["updates"]
+    assert_same(cal.calibration(), ref.calibration)
+    d1 = cal.calibration().extra["derived"]["equivalent_principal_point_px"]
+    assert d1 == pytest.approx(ref.derived["equivalent_principal_point_px"], rel=1e-9)
+    # the IMU history the filter holds stays bounded
+    assert len(cal.filter.imu_t) < 2 * 4096 + 200
+
+
+def test_shuffled_within_window_equals_replay(excerpt):
+    _, prior, ref, events = excerpt
+    arrival = shuffled(events, WINDOW_S)
+    assert arrival != events
+    cal = make(prior)
+    feed(cal, arrival)
+    cal.finish()
+    c = cal.counters
+    assert c.imu_late == c.frames_late == c.imu_duplicate == 0
+    assert cal.filter_counters()["updates"] == ref.counters["updates"]
+    assert_same(cal.calibration(), ref.calibration)
+
+
+def test_effect_needing_temperature_waits_for_it(excerpt):
+    """thermal_focal_length needs the head temperature interpolated at the frame stamp."""
+    path, prior, _, events = excerpt
+    ref = replay_psce(path, prior, ["thermal_focal_length"], config=live_psce())
+    cal = make(prior, effects=["thermal_focal_length"])
+    feed(cal, shuffled(events, WINDOW_S, seed=11))
+    cal.finish()
+    # only the last frames, after the last temperature sample of the excerpt, wait in vain
+    assert cal.counters.env_stale <= 2
+    assert_same(cal.calibration(), ref.calibration)
+
+
+def test_checkpoint_half_way_resumes_without_loss(excerpt, tmp_path):
+    _, prior, ref, events = excerpt
+    arrival = shuffled(events, WINDOW_S, seed=3)
+    half = len(arrival) // 2
+    first = make(prior)
+    feed(first, arrival[:half])
+    ck = tmp_path / "state" / "calibrator.npz"
+    first.save_checkpoint(ck)
+    assert ck.exists() and not list(ck.parent.glob("*.tmp"))
+    second = make(prior)
+    second.load_checkpoint(ck)
+    assert second.pending() == first.pending()
+    feed(second, arrival[half:])
+    second.finish()
+    feed(first, arrival[half:])
+    first.finish()
+    np.testing.assert_array_equal(second.filter.theta, first.filter.theta)
+    np.testing.assert_array_equal(second.filter.P, first.filter.P)
+    assert second.filter_counters() == first.filter_counters()
+    assert_same(second.calibration(), ref.calibration)
+
+
+def test_checkpoint_of_another_model_is_refused(excerpt, tmp_path):
+    _, prior, _, events = excerpt
+    cal = make(prior)
+    feed(cal, events[:500])
+    ck = tmp_path / "ck.npz"
+    cal.save_checkpoint(ck)
+    other = make(prior, effects=["radial_k3"])
+    with pytest.raises(ModelError):
+        other.load_checkpoint(ck)
+    (tmp_path / "junk.npz").write_bytes(b"not a checkpoint")
+    with pytest.raises(ModelError):
+        make(prior).load_checkpoint(tmp_path / "junk.npz")
+
+
+def test_garbage_is_counted_not_fatal(excerpt):
+    _, prior, ref, events = excerpt
+    cal = make(prior)
+    feed(cal, events[:3000])
+    cal.push_imu(events[2990][3][0] if events[2990][2] == "imu" else 1, [np.nan, 0, 0])
+    cal.push_imu(10, [0.0, 0.0, 0.0])  # far too old
+    cal.push_imu(2_000_000_000_000_000_000, [0, 0, 0], frame_id="somewhere_else")
+    cal.push_scalar("head", 5, float("nan"))
+    cal.push_fix(5, float("nan"), 0.0, 0.0)
+    frame = next(p for _, _, k, p in events[3000:] if k == "stars")
+    empty = dataclasses.replace(frame, stamp_ns=frame.stamp_ns + 1, catalog_id=frame.catalog_id[:0],
+                                right_ascension=frame.right_ascension[:0],
+                                declination=frame.declination[:0], uv=frame.uv[:0],
+                                magnitude=frame.magnitude[:0], sigma=frame.sigma[:0])
+    nan_uv = dataclasses.replace(frame, stamp_ns=frame.stamp_ns + 2, uv=frame.uv * np.nan)
+    wrong = dataclasses.replace(frame, stamp_ns=frame.stamp_ns + 3, frame_id="camera")
+    for f in (empty, nan_uv, wrong):
+        cal.push_stars(f)
+    feed(cal, [e for e in events[3000:]])
+    cal.finish()
+    c = cal.counters
+    assert c.imu_invalid >= 1 and c.imu_late >= 1 and c.imu_wrong_frame == 1
+    assert c.env_invalid == 1 and c.fixes_invalid == 1 and c.frames_wrong_frame == 1
+    assert cal.filter_counters()["stars_invalid"] >= len(frame.uv)
+    assert cal.filter_counters()["updates"] >= ref.counters["updates"] - 3
