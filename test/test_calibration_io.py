@@ -184,3 +184,17 @@ def test_save_is_atomic_and_keeps_old_file_on_failure(tmp_path: Path, monkeypatc
         save_calibration(cal2, target)
     assert target.read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.yaml"]  # no temp file left
+
+
+def test_residual_table_parquet_and_csv_round_trip(tmp_path):
+    """--residuals RES.parquet or RES.csv (contract §5): both formats keep every column."""
+    import numpy as np
+
+    from stellar_cal_ros.io.residuals import read_residuals, write_residuals
+
+    table = {"t": np.array([1795348800.25, 1795348800.75]), "catalog_id": np.array([7, 9]),
+             "du": np.array([0.01, -0.02]), "gated": np.array([False, True])}
+    for name in ("r.parquet", "r.csv"):
+        back = read_residuals(write_residuals(tmp_path / name, table))
+        for key, value in table.items():
+            np.testing.assert_array_equal(back[key], value)
