@@ -96,7 +96,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         config.centroid_sigma_px = args.centroid_sigma
     if args.gyro_arw is not None:
         config.gyro_arw_deg_sqrth = args.gyro_arw
-    result = replay_psce(args.bag, prior, effects, config, progress=not args.quiet)
+    from stellar_cal_ros.methods.replay import read_bag_data
+
+    data = read_bag_data(args.bag, on_error=args.on_error)
+    result = replay_psce(data, prior, effects, config, progress=not args.quiet)
     save_calibration(result.calibration, args.output)
     if args.residuals:
         write_residuals(args.residuals, result.residuals)
@@ -248,6 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="gyro angle random walk, deg/sqrt(h) (default 0.001)")
     r.add_argument("--effect-module", type=Path, action="append",
                    help="Python file defining extra Effect classes (repeatable)")
+    r.add_argument("--on-error", choices=["raise", "skip"], default="raise",
+                   help="skip: calibrate a truncated bag on what it holds, dropping and "
+                        "counting malformed messages (default: stop with an error)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_replay)
 

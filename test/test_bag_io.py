@@ -462,3 +462,25 @@ def test_empty_bag(tmp_path: Path) -> None:
     with BagReader(path) as r:
         assert r.topics()["/imu/data"].message_count == 0
         assert len(r.read_imu()) == 0
+
+
+def test_cli_replays_a_truncated_bag_when_asked(tmp_path):
+    """A recording cut short (power loss) is calibrated on what it holds with --on-error skip."""
+    import subprocess
+    import sys
+
+    src = DATA / "psce_ideal_900s.mcap"
+    if not src.exists():
+        pytest.skip("reference bags not available")
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(src.read_bytes()[:3_000_000])
+    exe = [sys.executable, "-m", "stellar_cal_ros", "replay", str(cut), "--method", "psce",
+           "--prior", str(DATA / "psce_ideal_900s.prior.yaml"), "-o", str(tmp_path / "r.yaml"),
+           "-q"]
+    strict = subprocess.run(exe, capture_output=True, text=True, timeout=300)
+    assert strict.returncode == 1 and "truncated or corrupt bag" in strict.stderr
+    assert "Traceback" not in strict.stderr
+    lenient = subprocess.run(exe + ["--on-error", "skip"], capture_output=True, text=True,
+                             timeout=300)
+    assert lenient.returncode == 0, lenient.stderr[-2000:]
+    assert (tmp_path / "r.yaml").exists()

@@ -60,14 +60,17 @@ class BagData:
         return self.t0_ns * 1e-9
 
 
-def read_bag_data(path: str | Path, topics: dict[str, str] | None = None) -> BagData:
+def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
+                  on_error: str = "raise") -> BagData:
     """Read everything a calibration needs from a contract bag."""
     names = {"imu": TOPIC_IMU, "stars": TOPIC_STARS, "fix": TOPIC_FIX,
              "head": TOPIC_HEAD_TEMPERATURE, "air": TOPIC_AIR_TEMPERATURE,
              "pressure": TOPIC_PRESSURE}
     names.update(topics or {})
     t_start = time.perf_counter()
-    with BagReader(path) as reader:
+    # on_error="skip": a truncated recording (power loss at sea) is calibrated on what it
+    # holds; bad messages are dropped and counted (BagReader.skipped) with a warning.
+    with BagReader(path, on_error=on_error) as reader:
         available = reader.topics()
         for key in ("imu", "stars"):
             if names[key] not in available:
