@@ -84,6 +84,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
     _load_effect_modules(args.effect_module)
     prior = load_calibration(args.prior)
+    if args.init_from is not None:
+        from stellar_cal_ros.methods.acf import prior_from_result
+
+        prior = prior_from_result(prior, load_calibration(args.init_from), args.init_from)
     effects = _effect_list(args.effects)
     if args.method == "swaying_base":
         from stellar_cal_ros.methods.swaying import cli_replay
@@ -242,6 +246,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--prior", required=True, type=Path)
     r.add_argument("-o", "--output", required=True, type=Path)
     r.add_argument("--effects", default="", help="comma-separated effect ids to add")
+    r.add_argument("--init-from", type=Path, default=None, metavar="RESULT.yaml",
+                   help="start from an earlier solution (e.g. 'batch --method acf'): values "
+                        "from RESULT.yaml, sigmas from its sigma block (the prior's where "
+                        "it has none)")
     r.add_argument("--residuals", type=Path, default=None, help="RES.parquet or RES.csv")
     r.add_argument("--history", type=Path, default=None,
                    help="state history CSV (default: RESULT.history.csv)")

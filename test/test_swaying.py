@@ -10,10 +10,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.io.residuals import read_residuals
-from stellar_cal_ros.methods.replay import read_bag_data
-from stellar_cal_ros.methods.swaying import replay_swaying
+from stellar_cal_ros.methods.replay import (
+    equivalent_principal_point,
+    read_bag_data,
+    truth_parameters,
+)
+from stellar_cal_ros.methods.swaying import (
+    prior_uncertain_effects,
+    replay_swaying,
+    resolve_effects,
+)
 from stellar_cal_ros.methods.traditional import replay_traditional
 from stellar_cal_ros.sim.world import simulate, write_simulation
 
@@ -21,6 +30,8 @@ ARCSEC = np.rad2deg(1.0) * 3600.0
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 E_EFFECTS = ["gyro_scale_factor", "gyro_misalignment", "accel_scale_factor"]
+CAMERA_EFFECTS = ["principal_point", "focal_length", "radial_k1k2", "tangential"]
+PX_ARCSEC = ARCSEC / 3968.9922480620157  #: arcsec per pixel at the reference bags' focal length
 
 
 def _bench():
@@ -85,7 +96,10 @@ def test_cli_outputs_and_speed(sim_bag, tmp_path, capsys):
     table = read_residuals(resid)
     for col in ("t", "frame", "catalog_id", "du", "dv", "s_uu", "nis", "gated"):
         assert col in table
-    assert table["t"].max() < 400.0  # relative times
+    # POSIX stamps of the frames, as in the PSCE residual table (the diagnosis reads them)
+    frames = read_bag_data(path).frames
+    stamps = {f.stamp_ns * 1e-9 for f in frames}
+    assert table["t"].min() > 1e9 and set(np.unique(table["t"])) <= stamps
     hist = read_residuals(out.with_suffix(".history.csv"))
     assert "installation.rx" in hist and "sigma.installation.rx" in hist
     text = capsys.readouterr().out
@@ -116,35 +130,119 @@ def test_bad_input_counted(sim_bag):
     assert np.all(np.abs(err) <= 0.5)
 
 
+def _z_all(result, truth):
+    """(θ̂ − θ_true)/σ of every parameter (installation relative to the run's prior)."""
+    f = result.filter
+    return (f.theta - truth_parameters(f.model, truth)) / f.sigma()[f.it]
+
+
 @pytest.mark.skipif(not (DATA / "swaying_ideal.mcap").exists(), reason="reference bag absent")
 def test_reference_bag():
-    """The independent swaying_ideal bag.
+    """The independent swaying_ideal bag with its own prior (issue 4 acceptance).
 
-    It carries Table 1 complete: gyro scale factor and 100" misalignment, which the 90° base
-    slews turn into ~50-150" attitude jumps, and an uncalibrated camera (principal point
-    (5, 10) px, distortion).  With its prior camera the installation absorbs the principal
-    point (≈ 520" and −260" about x and y, inseparable in a star tracker); with a calibrated
-    camera and the IMU matrix estimated the filter is consistent but the information gives
-    σ ≈ 6-12", not 0.5" — the tolerance here is 3σ.
+    It carries Table 1 complete (gyro scale factor 100 ppm and misalignment 100", which the
+    90° base slews turn into 50-150" attitude jumps) and an uncalibrated camera (principal
+    point (5, 10) px, distortion).  The default model (the prior's uncertain effects) is
+    consistent: every parameter within 3σ.  What the bag determines to 0.5" is limited by the
+    gyro misalignment, known only to 30-57 % of its 100" prior σ afterwards: the
+    equivalent principal point reaches σ ≈ (0.23, 0.12) px and the installation about the
+    boresight σ ≈ 6.3"; the installation about x/y on its own σ ≈ 13-16" (principal-point
+    coupling).  With the IMU error matrix calibrated (Zhang's assumption) the observable
+    combinations reach 0.5"; with the camera calibrated too, every installation axis does.
+    Tolerances: 3σ of the returned σ; the σ bounds are the measured values + 20 % (they
+    guard the information content, not the estimate).
     """
     prior = load_calibration(DATA / "swaying_ideal.prior.yaml")
     truth = load_calibration(DATA / "swaying_ideal.truth.yaml")
     data = read_bag_data(DATA / "swaying_ideal.mcap")
-    calibrated = copy.deepcopy(prior)
-    calibrated.camera = truth.camera  # a pre-calibrated star sensor (Zhang's assumption)
-    r = replay_swaying(data, calibrated, E_EFFECTS)
-    err, sig = _installation_error(r, truth)
-    assert np.all(np.abs(err) <= 3.0 * sig), (err, sig)
+    auto = prior_uncertain_effects(prior)
+    assert set(CAMERA_EFFECTS + E_EFFECTS) <= set(auto)
+    r = replay_swaying(data, prior, auto)
+    z = _z_all(r, truth)
+    assert np.all(np.abs(z) < 3.0), dict(zip(r.filter.model.parameter_names(), z, strict=True))
+    nis = np.sum(r.history["nis"]) / np.sum(r.history["dof"])
+    assert 0.9 < nis < 1.1
     assert r.counters["stars_gated"] < 50
-    f = r.filter
-    for eid, true in (("gyro_bias", truth.gyro_bias), ("accel_bias", truth.accel_bias)):
-        sl = f.model.slices[eid]
-        z = (f.theta[sl] - true) / f.sigma()[f.it][sl]
-        assert np.all(np.abs(z) < 3.0), (eid, z)
-    # with the shipped prior the principal point goes into the installation (documented)
-    r0 = replay_swaying(data, prior, E_EFFECTS)
+    err_eq, sig_eq, err_z, sig_z = _observable_errors(r, truth)
+    assert np.all(np.abs(err_eq) <= 3 * sig_eq) and abs(err_z) <= 3 * sig_z
+    assert np.all(sig_eq < [0.28, 0.14]) and sig_z < 7.5, (sig_eq, sig_z)
+    # a calibrated IMU error matrix: the observable combinations to 0.5"
+    calibrated_imu = copy.deepcopy(prior)
+    calibrated_imu.gyro_error_matrix = truth.gyro_error_matrix
+    calibrated_imu.accel_error_matrix = truth.accel_error_matrix
+    r1 = replay_swaying(data, calibrated_imu, [e for e in auto if e not in E_EFFECTS])
+    assert np.all(np.abs(_z_all(r1, truth)) < 3.0)
+    err_eq, sig_eq, err_z, sig_z = _observable_errors(r1, truth)
+    assert np.all(np.abs(err_eq) <= 3 * sig_eq) and abs(err_z) <= 3 * sig_z
+    assert np.all(np.abs(err_eq) * PX_ARCSEC <= 0.5) and abs(err_z) <= 0.5, (err_eq, err_z)
+    # ... and a calibrated camera too: every installation axis within 0.5" (Zhang's setting)
+    calibrated_imu.camera = truth.camera
+    r2 = replay_swaying(data, calibrated_imu)
+    err, sig = _installation_error(r2, truth)
+    assert np.all(np.abs(err) <= 0.5) and np.all(np.abs(err) <= 3 * sig), (err, sig)
+    assert np.all(np.abs(_z_all(r2, truth)) < 3.0)
+    # the baseline alone with the shipped prior: the principal point goes into the tilt
+    r0 = replay_swaying(data, prior)
     err0, _ = _installation_error(r0, truth)
-    assert abs(err0[2]) < 20.0 and math.hypot(err0[0], err0[1]) > 300.0
+    assert math.hypot(err0[0], err0[1]) > 300.0
+    assert np.sum(r0.history["nis"]) / np.sum(r0.history["dof"]) > 2.0
+
+
+def _observable_errors(result, truth):
+    """Equivalent principal point (px) and installation about the boresight (arcsec):
+    error against the truth and σ."""
+    f, d = result.filter, result.derived
+    true_eq = equivalent_principal_point(f.model, truth_parameters(f.model, truth),
+                                         np.zeros((f.model.size, f.model.size)))
+    err_eq = (np.array(d["equivalent_principal_point_px"])
+              - true_eq["equivalent_principal_point_px"])
+    sl = f.model.slices["installation"]
+    err_z = d["installation_boresight_arcsec"] - truth_parameters(f.model, truth)[sl][2] * ARCSEC
+    return (err_eq, np.array(d["equivalent_principal_point_sigma_px"]), err_z,
+            d["installation_boresight_sigma_arcsec"])
+
+
+def test_swaying_default_model():
+    """The CLI's default model: the prior's uncertain effects; `-id` removes one."""
+    prior = load_calibration(DATA / "swaying_ideal.prior.yaml") if (
+        DATA / "swaying_ideal.prior.yaml").exists() else None
+    if prior is None:
+        pytest.skip("reference prior absent")
+    assert prior_uncertain_effects(prior) == [
+        "focal_length", "principal_point", "radial_k1k2", "radial_k3", "tangential",
+        "gyro_scale_factor", "gyro_misalignment", "accel_scale_factor", "time_offset"]
+    p = copy.deepcopy(prior)
+    p.sigma["camera"]["camera_matrix"]["data"] = [0.0] * 9
+    p.sigma["gyro"]["error_matrix"] = [1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-4]
+    del p.sigma["accelerometer"]["error_matrix"]
+    p.sigma["time_offset"] = 0.0
+    assert prior_uncertain_effects(p) == ["radial_k1k2", "radial_k3", "tangential",
+                                          "gyro_scale_factor"]
+    assert resolve_effects(p, ["-radial_k3", "time_offset"]) == [
+        "radial_k1k2", "tangential", "gyro_scale_factor", "time_offset"]
+    assert resolve_effects(p, ["installation"], automatic=False) == []
+    with pytest.raises(StellarCalError, match="baseline"):
+        resolve_effects(p, ["-gyro_bias"])
+
+
+def test_diagnose_swaying_runs(sim_bag, tmp_path):
+    """`stellar-cal diagnose --method swaying_base` (two candidates, no plots)."""
+    import json
+
+    from stellar_cal_ros.cli import main
+
+    path, _ = sim_bag
+    out = tmp_path / "diag"
+    assert main(["diagnose", str(path), "--calibration", str(path.with_suffix(".prior.yaml")),
+                 "--method", "swaying_base", "--candidates", "time_offset,gyro_scale_factor",
+                 "--no-plots", "-o", str(out)]) == 0
+    summary = json.loads((out / "diagnosis.json").read_text())
+    assert summary["format"] == "stellar_cal_diagnosis/1"
+    assert summary["model"]["method"] == "swaying_base"
+    tried = {c["effect"] for c in summary["candidates"]} | {
+        u["effect"] for u in summary["unobservable"]}
+    assert tried == {"time_offset", "gyro_scale_factor"}
+    assert np.all(np.isfinite(summary["residual_rms_px"]))
 
 
 @pytest.mark.benchmark

@@ -956,3 +956,50 @@ def grid_projection_error(estimated: Calibration, truth: Calibration, n: int = 2
                                       options={"xatol": 1e-10}).x)
     e = errors(alpha)
     return float(np.max(e)), float(np.sqrt(np.mean(e ** 2)))
+
+
+def _merge_sigma(base: Any, over: Any) -> Any:
+    """``over`` on top of ``base`` (dicts merged recursively, other leaves replaced)."""
+    if isinstance(base, dict) and isinstance(over, dict):
+        out = copy.deepcopy(base)
+        for k, v in over.items():
+            out[k] = _merge_sigma(base.get(k), v) if k in base else copy.deepcopy(v)
+        return out
+    return copy.deepcopy(over)
+
+
+def prior_from_result(prior: Calibration, result: Calibration,
+                      source: str | os.PathLike[str] | None = None) -> Calibration:
+    """A Kalman-filter prior that starts from an earlier solution (``replay --init-from``).
+
+    Values: every value of ``result`` (camera, installation, sensor blocks, time offset,
+    effects).  Sigmas: the result's sigma block, with ``prior``'s sigma for any key the
+    result does not carry.  An ACF result stores the σ of what it estimated and passes its
+    own prior's σ through for the rest, so the filter starts at the batch estimate with the
+    batch uncertainty and the datasheet uncertainty of what the batch could not see (e.g.
+    the installation about a single-axis sweep axis keeps its prior σ).
+
+    Only marginal σ are carried (the file has no covariance): the strong principal-point /
+    installation-tilt correlation of a batch solution is dropped, so the filter starts wider
+    than the batch along that combination — conservative, and the stars re-determine the
+    combination within a few frames.
+    """
+    if (result.camera.width, result.camera.height) != (prior.camera.width,
+                                                       prior.camera.height):
+        raise ModelError(
+            f"--init-from: the result's image size {result.camera.width}x"
+            f"{result.camera.height} differs from the prior's {prior.camera.width}x"
+            f"{prior.camera.height}")
+    if result.frames != prior.frames:
+        log.warning("--init-from: frame ids %s differ from the prior's %s", result.frames,
+                    prior.frames)
+    if not result.sigma:
+        log.warning("--init-from: the result has no sigma block; the prior's sigmas are used")
+    init = copy.deepcopy(result)
+    init.sigma = _merge_sigma(prior.sigma or {}, result.sigma or {})
+    init.method = "prior"
+    init.extra = {"init_from": {"file": str(source) if source is not None else "",
+                                "method": result.method, "stamp": float(result.stamp)}}
+    log.info("starting from the %s solution%s (values and sigmas)", result.method,
+             f" in {source}" if source is not None else "")
+    return init

@@ -4,14 +4,50 @@ Error-state extended Kalman filter over an inertial-frame strapdown (GCRS axes).
 
 Nominal state: attitude ``R̂_i_b``, velocity ``v̂ⁱ`` and position ``r̂ⁱ`` (position kept
 relative to the site at the bag start, ``r_site(t0)``, so no 6e6 m numbers enter the filter),
-and the parameter vector ``θ̂`` of the model's effects.  The baseline effect set is
-``gyro_bias, accel_bias, installation`` (the paper's 15 states with the navigation errors);
-``--effects`` adds any further library effect (``gyro_scale_factor``, ``accel_scale_factor``,
-``time_offset``, camera effects, …) through :class:`~stellar_cal_ros.methods.star_model.StarModel`.
+and the parameter vector ``θ̂`` of the model's effects.  The baseline effect set
+(:data:`BASELINE_EFFECTS`) is ``gyro_bias, accel_bias, installation`` (the paper's 15 states
+with the navigation errors); further library effects (``gyro_scale_factor``,
+``accel_scale_factor``, ``time_offset``, camera effects, …) enter through
+:class:`~stellar_cal_ros.methods.star_model.StarModel`.
+
+Default model (``stellar-cal replay --method swaying_base``)
+------------------------------------------------------------
+The baseline **plus every effect the prior's sigma block calls uncertain**
+(:func:`prior_uncertain_effects`: a positive sigma on ``cx, cy`` adds ``principal_point``, on
+the gyro error matrix's diagonal ``gyro_scale_factor``, …; a zero or absent sigma keeps the
+quantity fixed at its prior value), plus ``--effects`` (``-id`` removes one).  Zhang et al.
+assume a calibrated star sensor and a calibrated IMU error matrix; a datasheet prior that
+says otherwise must not be overruled silently, because a fixed wrong parameter goes into the
+installation: on the reference bag ``swaying_ideal`` (principal point (5, 10) px off,
+distortion, 100 ppm / 100" IMU error matrix) the baseline alone gives installation errors
+(516, −303, 52)" (NIS/dof 3.8), the baseline + IMU error matrix (522, −247, −0.5)" (NIS/dof
+3.1: the principal point goes into the tilt); with the prior-driven model the filter is
+consistent (NIS/dof 1.00, every parameter within 2σ of the truth).  The library function
+:func:`replay_swaying` keeps the explicit form (baseline + ``effects``), which the diagnosis
+and the benchmarks use.
+
+What that bag supports (386 s, three base orientations; measured, truth only for checking):
+
+* the *equivalent principal point* (image of the IMU-fixed nominal boresight, the
+  principal-point / tilt combination a star tracker sees, as in the PSCE replay) and the
+  installation *about the boresight*: errors (−0.22, +0.00) px and −5.4" against σ
+  (0.23, 0.12) px and 6.3";
+* the installation about the tracker x/y axes on its own: errors (−3, +15)" against σ
+  (13, 16)" — the principal point and the tilt separate only through the perspective term.
+
+Both σ are set by the gyro misalignment, which the bag determines only to 30-57 % of its
+100" prior σ: with the IMU error matrix known, the equivalent principal point reaches
+σ (0.002, 0.003) px (0.1") and the boresight rotation 0.35"; with the camera calibrated too,
+every installation axis is within 0.5" (σ 0.14, 0.07, 0.35").  The 0.5" of Zhang et al. is
+therefore reached for the quantities a star tracker can observe only with a pre-calibrated
+IMU error matrix (or a longer / richer motion); the filter reports honest σ otherwise.
 
 Error state (true − nominal), ``N = 9 + P``::
 
-    x = [δvⁱ (3), φ (3), δθ (P), δrⁱ (3)],   R_i_b = Exp(φ) R̂_i_b  (left, inertial, as PSCE)
+    x = [φ (3), δθ (P), δvⁱ (3), δrⁱ (3)],   R_i_b = Exp(φ) R̂_i_b  (left, inertial, as PSCE)
+
+(attitude and θ first, in :attr:`StarModel.slices` order, as in PSCE: ``sigma()[:3]`` is the
+attitude, ``sigma()[3:3 + P]`` the parameters — the diagnosis reads them that way).
 
 Continuous error model (Zhang eqs. 6 and 8, written for any GYRO/ACCEL-stage effect)::
 
@@ -52,8 +88,8 @@ Jacobians of :meth:`StarModel.predict`.  To first order this is Zhang's
 camera Jacobian — but the pixel form has a full-rank 2×2 noise per star (the 3-vector form's
 covariance is singular along ``lⁱ``), takes the tracker's per-star sigma directly, gates each
 star with a 2-dof χ², lets camera or time-offset effects be added, and writes the same
-residual table as PSCE.  The camera parameters are not estimated by default: the prior
-camera is used as is (Zhang assume a calibrated star sensor).
+residual table as PSCE (``t`` in POSIX seconds, the reported frame stamp).  Camera effects
+are estimated when the model contains them (see "Default model" above).
 
 Coarse alignment: the first frame with enough stars gives ``R_i_st`` (pixel-space Wahba /
 Gauss–Newton), ``R̂_i_b = R_i_st R̂_imu_stᵀ`` with the initial attitude error correlated with
@@ -108,6 +144,7 @@ from stellar_cal_ros.methods.replay import (
     _log_counters,
     _Progress,
     clean_frame,
+    equivalent_principal_point,
     frame_context,
     read_bag_data,
     result_calibration,
@@ -118,6 +155,7 @@ log = logging.getLogger(__name__)
 
 BASELINE_EFFECTS = ("gyro_bias", "accel_bias", "installation")
 DEG_PER_HOUR = np.pi / 180.0 / 3600.0
+ARCSEC = np.rad2deg(1.0) * 3600.0  #: arcsec per radian
 G0 = 9.80665
 
 
@@ -186,8 +224,9 @@ class SwayingFilter:
         self.nominal_dt = float(np.median(np.diff(self.imu_t[:1000])))
         P = model.size
         self.P_size = P
-        self.iv, self.ia = slice(0, 3), slice(3, 6)
-        self.it, self.ir = slice(6, 6 + P), slice(6 + P, 9 + P)
+        # attitude first, then θ (the PSCE layout the diagnosis relies on), navigation last
+        self.ia, self.it = slice(0, 3), slice(3, 3 + P)
+        self.iv, self.ir = slice(3 + P, 6 + P), slice(6 + P, 9 + P)
         self.N = 9 + P
         self.theta = model.initial_value.copy()
         self.P = np.zeros((self.N, self.N))
@@ -490,7 +529,7 @@ class SwayingFilter:
             else "velocity_updates"
         self.counters.extra[key] = self.counters.extra.get(key, 0) + 1
         h = self.reference_history
-        h["t"].append(self.t)
+        h["t"].append(self.t0 + self.t)  # POSIX s, as the residual table
         for j, ax in enumerate("xyz"):
             h[f"nu_{ax}"].append(float(nu[j]))
         h["nis"].append(nis)
@@ -518,7 +557,7 @@ class SwayingFilter:
         nis_stars = block_nis(nu0, S_blocks)
         accepted = nis_stars <= self.gate
         self.counters.stars_gated += int(n - accepted.sum())
-        result = FrameUpdate(self._frame[1], self.t, accepted, uv, pred0.uv, S_blocks, nis_stars,
+        result = FrameUpdate(self._frame[0], self.t, accepted, uv, pred0.uv, S_blocks, nis_stars,
                              float("nan"), 0, pred0.directions_st, self.omega.copy(), 0)
         if accepted.sum() < c.min_stars:
             self.counters.skipped_few_stars += 1
@@ -625,6 +664,114 @@ def _subset(ctx: FrameContext, idx: np.ndarray) -> FrameContext:
     )
 
 
+def _positive(values, index=None) -> bool:
+    if values is None:
+        return False
+    if isinstance(values, dict):  # camera_calibration_parsers matrix layout
+        values = values.get("data")
+    try:
+        a = np.asarray(values, dtype=float).ravel()
+    except (TypeError, ValueError):
+        return False
+    if index is not None:
+        a = a[[i for i in index if i < a.size]]
+    return bool(np.any(np.isfinite(a) & (a > 0)))
+
+
+def prior_uncertain_effects(prior: Calibration) -> list[str]:
+    """Effects beyond :data:`BASELINE_EFFECTS` that the prior's ``sigma`` block calls uncertain.
+
+    The default model of ``stellar-cal replay --method swaying_base`` (see the module
+    docstring): an effect is estimated when the prior gives a positive sigma for one of its
+    quantities; a quantity whose sigma is zero or absent is trusted and stays fixed at the
+    prior value.  Mapping (contract §3 keys → effect ids)::
+
+        camera.camera_matrix fx, fy          → focal_length
+        camera.camera_matrix cx, cy          → principal_point
+        camera.distortion_coefficients k1 k2 → radial_k1k2;  p1 p2 → tangential;  k3 → radial_k3
+        gyro.error_matrix diagonal           → gyro_scale_factor;  off-diagonal → gyro_misalignment
+        accelerometer.error_matrix diagonal  → accel_scale_factor
+        time_offset                          → time_offset
+        effects.<id> (any positive entry)    → <id> (a registered effect)
+
+    The accelerometer's off-diagonal entries have no library effect; a positive sigma there is
+    logged and ignored.
+    """
+    sig = prior.sigma or {}
+    out: set[str] = set()
+    cam = sig.get("camera", {}) or {}
+    K = cam.get("camera_matrix")
+    if _positive(K, (0, 4)):
+        out.add("focal_length")
+    if _positive(K, (2, 5)):
+        out.add("principal_point")
+    dist = cam.get("distortion_coefficients")
+    if _positive(dist, (0, 1)):
+        out.add("radial_k1k2")
+    if _positive(dist, (2, 3)):
+        out.add("tangential")
+    if _positive(dist, (4,)):
+        out.add("radial_k3")
+    gyro = sig.get("gyro", {}) or {}
+    if _positive(gyro.get("error_matrix"), (0, 4, 8)):
+        out.add("gyro_scale_factor")
+    if _positive(gyro.get("error_matrix"), (1, 2, 3, 5, 6, 7)):
+        out.add("gyro_misalignment")
+    acc = sig.get("accelerometer", {}) or {}
+    if _positive(acc.get("error_matrix"), (0, 4, 8)):
+        out.add("accel_scale_factor")
+    if _positive(acc.get("error_matrix"), (1, 2, 3, 5, 6, 7)):
+        log.info("prior: accelerometer misalignment sigma given, but no library effect "
+                 "models it; kept at the prior value")
+    if _positive(sig.get("time_offset")):
+        out.add("time_offset")
+    for eid, block in (sig.get("effects", {}) or {}).items():
+        vals = list(block.values()) if isinstance(block, dict) else block
+        if eid in registry.EFFECTS and any(_positive(v) for v in np.atleast_1d(
+                np.asarray(vals, dtype=object)).ravel()):
+            out.add(eid)
+    out -= set(BASELINE_EFFECTS)
+    order = {k: n for n, k in enumerate(registry.EFFECTS)}
+    return sorted(out, key=lambda e: order.get(e, len(order)))
+
+
+def resolve_effects(prior: Calibration, requested: list[str] | None,
+                    automatic: bool = True) -> list[str]:
+    """Effects to add to the baseline: the prior's uncertain ones, then ``requested``.
+
+    ``requested`` items ``-id`` remove an effect (``--effects -time_offset``); the baseline
+    effects cannot be removed.
+    """
+    out = prior_uncertain_effects(prior) if automatic else []
+    for item in requested or []:
+        if item.startswith("-"):
+            eid = item[1:]
+            if eid in BASELINE_EFFECTS:
+                raise ModelError(f"{eid} is in the swaying_base baseline and cannot be removed")
+            out = [e for e in out if e != eid]
+        elif item not in out and item not in BASELINE_EFFECTS:
+            out.append(item)
+    return out
+
+
+def derived_quantities(model: StarModel, theta: np.ndarray, P_theta: np.ndarray) -> dict:
+    """The observable combinations: equivalent principal point and installation about z.
+
+    A principal-point shift and an installation tilt about the tracker x/y axes move the
+    whole star field alike (they separate only through the perspective term); what the data
+    fix is their combination, the image position of the IMU-fixed nominal boresight
+    (:func:`~stellar_cal_ros.methods.replay.equivalent_principal_point`).  The rotation about
+    the boresight (tracker z) has no such partner.
+    """
+    out = dict(equivalent_principal_point(model, theta, P_theta))
+    if "installation" in model.slices:
+        k = model.slices["installation"].start + 2
+        out["installation_boresight_arcsec"] = float(theta[k] * ARCSEC)
+        out["installation_boresight_sigma_arcsec"] = float(
+            np.sqrt(max(P_theta[k, k], 0.0)) * ARCSEC)
+    return out
+
+
 def build_model(prior: Calibration, effects: list[str] | None,
                 baseline=BASELINE_EFFECTS) -> StarModel:
     """StarModel of the baseline plus ``effects``."""
@@ -699,8 +846,10 @@ def run_filter(filter_cls, bag: str | Path | BagData, prior: Calibration,
     counters = {k: v for k, v in vars(flt.counters).items() if k != "extra"}
     counters.update(flt.counters.extra)
     _log_counters(counters)
+    combos = derived_quantities(model, flt.theta, flt.P[flt.it, flt.it])
+    cal.extra["derived"] = combos
     derived = {"reference": {k: np.asarray(v) for k, v in flt.reference_history.items()},
-               "level_check_deg": getattr(flt, "level_check_deg", float("nan"))}
+               "level_check_deg": getattr(flt, "level_check_deg", float("nan")), **combos}
     return ReplayResult(
         calibration=cal,
         residuals={k: np.concatenate(v) if v else np.zeros(0) for k, v in rows.items()},
@@ -740,12 +889,22 @@ def print_summary(result: ReplayResult, output=None, residuals=None) -> None:
         print(f"inertial reference (Z1): {len(ref['nis'])} updates, NIS/dof "
               f"{np.mean(ref['nis']) / 3:.3f}")
     print("counts: " + ", ".join(f"{k}={v}" for k, v in result.counters.items() if v))
-    arcsec = np.rad2deg(1.0) * 3600.0
+    arcsec = ARCSEC
     flt = result.filter
+    extra = [e.id for e in flt.model.effects if e.id not in BASELINE_EFFECTS]
+    print("model: " + ", ".join(BASELINE_EFFECTS) + (" + " + ", ".join(extra) if extra else ""))
     sl = flt.model.slices["installation"]
     print("installation delta (tracker axes): "
           + "  ".join(f"{v:+.3f}\"+-{s:.3f}" for v, s in zip(
               flt.theta[sl] * arcsec, flt.sigma()[flt.it][sl] * arcsec, strict=True)))
+    d = result.derived
+    if "equivalent_principal_point_px" in d:
+        print("observable combinations: equivalent principal point ({:.3f}, {:.3f}) +- "
+              "({:.3f}, {:.3f}) px; installation about the boresight {:+.3f}\" +- {:.3f}\""
+              .format(*d["equivalent_principal_point_px"],
+                      *d["equivalent_principal_point_sigma_px"],
+                      d["installation_boresight_arcsec"],
+                      d["installation_boresight_sigma_arcsec"]))
     print(f"installation quaternion_xyzw: {np.round(cal.installation.as_quat(), 9).tolist()}")
     print(f"gyro bias: {np.round(np.rad2deg(cal.gyro_bias) * 3600, 5).tolist()} deg/h; "
           f"accelerometer bias: {np.round(np.asarray(cal.accel_bias) / G0 * 1e6, 2).tolist()} ug")
@@ -755,11 +914,16 @@ def print_summary(result: ReplayResult, output=None, residuals=None) -> None:
 
 def cli_replay(args, prior: Calibration, effects: list[str], filter_cls=None,
                config=None) -> int:
-    """``stellar-cal replay --method swaying_base``: run, write YAML/residuals/history."""
+    """``stellar-cal replay --method swaying_base``: run, write YAML/residuals/history.
+
+    The model is the baseline, plus every effect the prior's sigma block calls uncertain
+    (:func:`prior_uncertain_effects`), plus ``effects`` (``-id`` removes one).
+    """
     from stellar_cal_ros.io.calibration import save_calibration
     from stellar_cal_ros.io.residuals import write_residuals
 
     config = config or SwayingConfig()
+    effects = resolve_effects(prior, effects)
     if getattr(args, "centroid_sigma", None) is not None:
         config.centroid_sigma_px = args.centroid_sigma
     if getattr(args, "gyro_arw", None) is not None:
