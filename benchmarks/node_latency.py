@@ -208,6 +208,11 @@ def main(argv: list[str] | None = None) -> int:
         "compute_latency_ms": {"p50": float(np.percentile(lat, 50)),
                                "p99": float(np.percentile(lat, 99)),
                                "max": float(lat.max())},
+        # steady state: the first updates after the attitude initialization re-linearize
+        # (iterated EKF, up to 5 predictions) while the datasheet prior is pixels off
+        "compute_latency_ms (after the first 20 updates)": {
+            "p50": float(np.percentile(lat[20:], 50)), "p99": float(np.percentile(lat[20:], 99)),
+            "max": float(lat[20:].max())} if len(lat) > 20 else None,
         "end_to_end_latency_ms (after 10 s)": {"p50": float(np.percentile(e2e_a, 50)),
                                   "p99": float(np.percentile(e2e_a, 99)),
                                   "max": float(e2e_a.max())} if len(e2e_a) else None,
@@ -223,6 +228,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"compute latency p50 {out['compute_latency_ms']['p50']:.2f} ms, "
           f"p99 {out['compute_latency_ms']['p99']:.2f} ms (target ≤ {TARGET_P99_MS} ms: "
           f"{'met' if ok else 'NOT met'})")
+    steady = out["compute_latency_ms (after the first 20 updates)"]
+    if steady:
+        print(f"after the first 20 updates: p50 {steady['p50']:.2f} ms, "
+              f"p99 {steady['p99']:.2f} ms, max {steady['max']:.2f} ms")
     if a.json:
         Path(a.json).write_text(json.dumps(out, indent=1))
     return 0

@@ -145,11 +145,8 @@ def excerpt(tmp_path_factory):
 
 
 def live_psce() -> PsceConfig:
-    """The live filter's settings: exact propagation (the prefix one needs all IMU upfront)."""
-    cfg = PsceConfig()
-    if hasattr(cfg, "fast_propagation"):
-        cfg = dataclasses.replace(cfg, fast_propagation=False)
-    return cfg
+    """The live filter's settings: the replay's defaults (fast propagation included)."""
+    return PsceConfig()
 
 
 def make(prior, window=WINDOW_S, effects=None):

@@ -151,3 +151,83 @@ def test_nees_consistent_over_seeds():
     runs = len(nees)
     lo, hi = chi2.ppf([0.005, 0.995], dof * runs) / runs
     assert lo <= np.mean(nees) <= hi, (np.mean(nees), lo, hi, nees)
+
+
+def test_noise_free_tracker_initial_covariance_covers_the_error():
+    """Regression: a noise-free tracker (0.005-px floor) started overconfident.
+
+    The first-frame attitude error is ``−M δθ`` only to first order; with the datasheet
+    prior the second-order remainder (~10 µrad) is 5× the 0.005-px noise term, and the
+    filter used to start with NEES ≈ 1000 (16 dof) and end with NEES ≈ 150-230 (13 dof),
+    one run with Ψy 99″ off.  The initial covariance now carries the remainder.
+    """
+    from stellar_cal_ros.core.rotation import so3_log
+    from stellar_cal_ros.methods import psce
+
+    scenario = get_scenario("psce_rotations")
+    scenario.centroid_noise_px = 0.0
+    sim = simulate(scenario, duration=60.0, seed=1000)
+    data = bag_data_from_simulation(sim)
+    for f in data.frames:
+        f.sigma = np.zeros_like(f.sigma)  # → config.centroid_sigma_px
+    seen = {}
+    original = psce.PsceFilter.initialize
+
+    def initialize(self, *a, **k):
+        ok = original(self, *a, **k)
+        if ok and "P" not in seen:
+            seen.update(P=self.P.copy(), R=self.R_i_b.copy(), t=self.t)
+        return ok
+
+    psce.PsceFilter.initialize = initialize
+    try:
+        res = replay_psce(data, sim.prior, config=psce.PsceConfig(centroid_sigma_px=0.005))
+    finally:
+        psce.PsceFilter.initialize = original
+    flt = res.filter
+    theta_true = truth_parameters(flt.model, sim.truth)
+    R_true = sim.truth_world.R_i_b(np.array([seen["t"]]))[0]
+    x0 = np.concatenate([so3_log(R_true @ seen["R"].T), theta_true - flt.model.initial_value])
+    nees0 = float(x0 @ np.linalg.solve(seen["P"], x0))
+    assert nees0 < chi2.ppf(0.999, len(x0)), nees0  # was ≈ 1100
+    err = flt.theta - theta_true
+    nees = float(err @ np.linalg.solve(flt.P[3:, 3:], err))
+    assert nees < chi2.ppf(0.999, len(err)), nees  # was ≈ 150
+
+
+def test_imu_prefix_independent_of_batching():
+    """The fast-propagation prefix takes appended IMU samples (live use) and gives the
+    same arrays, bit for bit, however the samples were split; dropping keeps them valid."""
+    from stellar_cal_ros.core.rotation import quat_from_rotvec, quat_to_matrix
+    from stellar_cal_ros.core.strapdown import attitude_increments, quat_cumprod
+    from stellar_cal_ros.methods.psce import _ImuPrefix
+
+    rng = np.random.default_rng(3)
+    n = 3000
+    t = np.arange(1, n + 1) * 0.005
+    t[2000:] += 0.1  # an IMU gap
+    w = rng.normal(0.0, 0.05, (n, 3))
+    b = np.array([1e-5, -2e-5, 0.0])
+
+    def prefix():
+        return _ImuPrefix(0.005, np.zeros(3), b, np.zeros((3, 3)), -np.eye(3), 3.0)
+
+    one = prefix()
+    one.extend(t, w)
+    many = prefix()
+    i = 0
+    while i < n:
+        k = int(rng.integers(1, 200))
+        many.extend(t[i:i + k], w[i:i + k])
+        i += k
+    for k in ("tp", "w_hat", "C", "S", "gap", "gap_count", "gap_time"):
+        assert np.array_equal(getattr(one, k), getattr(many, k)), k
+    assert one.gap_count[-1] == 1 and one.gap_time[-1] == pytest.approx(0.105)
+    dt = np.diff(np.concatenate([[t[0] - 0.005], t]))
+    C = quat_to_matrix(quat_cumprod(quat_from_rotvec(attitude_increments(w - b, dt))))
+    assert np.abs(one.C[1:] - C).max() < 1e-13
+    many.drop(1234)
+    assert np.array_equal(many.C, one.C[1234:]) and np.array_equal(many.S, one.S[1234:])
+    many.extend(t[-1] + 0.005 * np.arange(1, 11), w[:10])
+    one.extend(t[-1] + 0.005 * np.arange(1, 11), w[:10])
+    assert np.array_equal(many.C, one.C[1234:])

@@ -386,8 +386,8 @@ class OnlineCalibrator:
         self.t0_ns = int(stamps[0]) - int(np.median(np.diff(stamps)))
         t = (np.asarray(self._staged_t, dtype=np.int64) - self.t0_ns) * 1e-9
         w = np.asarray(self._staged_w, dtype=float).reshape(-1, 3)
-        self.filter = PsceFilter(self.model, t, w, self.t0_ns * 1e-9, self.psce)
-        self.filter.nominal_dt = float(np.median(np.diff(t[:k])))
+        self.filter = PsceFilter(self.model, t, w, self.t0_ns * 1e-9, self.psce,
+                                 nominal_dt=float(np.median(np.diff(t[:k]))))
         self._staged_t, self._staged_w = [], []
 
     def _flush_staged(self) -> None:
@@ -519,10 +519,8 @@ class OnlineCalibrator:
             cut = int(np.searchsorted(flt.imu_t, t_keep)) - 2
         else:
             cut = 0
-        if cut > 4096 and getattr(flt, "_prefix", None) is None:  # amortize the copy
-            flt.imu_t = flt.imu_t[cut:].copy()
-            flt.imu_w = flt.imu_w[cut:].copy()
-            flt._k -= cut
+        if cut > 4096:  # amortize the copy
+            flt.drop_imu(cut)
         if self._last_frame_ns is not None:
             before = self._last_frame_ns - int(self.config.env_history_s * 1e9)
             for s in self.env.values():
@@ -716,18 +714,18 @@ def _counter_values(c: FilterCounters) -> dict[str, int]:
 
 
 def _live_config(cfg: PsceConfig) -> PsceConfig:
-    """The filter settings for live use.
+    """The filter settings for live use: the same as the replay's.
 
-    The prefix-integrated fast propagation (``fast_propagation``, when the filter has it)
-    is built once over the IMU samples given at construction and cannot follow samples
-    appended later; the live filter uses the exact per-sample propagation.
+    The prefix-integrated fast propagation follows appended IMU samples
+    (:meth:`PsceFilter.extend_imu`) with values independent of how the samples were
+    batched, so the live filter uses it too and reproduces the replay with the same
+    configuration.
     """
-    if getattr(cfg, "fast_propagation", False):
-        return dataclasses.replace(cfg, fast_propagation=False)
     return cfg
 
 
 _FILTER_SKIP = ("model", "config", "counters", "_prefix")
+_PREFIX_KEY = "prefix:"  # checkpoint arrays of the fast-propagation prefix
 
 
 def _filter_state(flt: PsceFilter) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -736,10 +734,12 @@ def _filter_state(flt: PsceFilter) -> tuple[dict[str, Any], dict[str, np.ndarray
     Generic over the attributes so that state the filter gains later is saved too;
     an attribute of a type this cannot store is reported.
     """
-    if getattr(flt, "_prefix", None) is not None:
-        raise ModelError("a filter with prefix-integrated propagation cannot be checkpointed")
     scalars: dict[str, Any] = {}
     arrays: dict[str, np.ndarray] = {}
+    pre = getattr(flt, "_prefix", None)
+    if pre is not None:
+        for k, v in pre.state().items():
+            arrays[_PREFIX_KEY + k] = v
     for k, v in vars(flt).items():
         if k in _FILTER_SKIP:
             continue
@@ -765,7 +765,14 @@ def _filter_state(flt: PsceFilter) -> tuple[dict[str, Any], dict[str, np.ndarray
 
 def _restore_filter(model, psce: PsceConfig, state: dict[str, Any],
                     arrays: dict[str, np.ndarray]) -> PsceFilter:
-    flt = PsceFilter(model, arrays["imu_t"], arrays["imu_w"], state["t0"], psce)
+    flt = PsceFilter(model, arrays["imu_t"], arrays["imu_w"], state["t0"], psce,
+                     nominal_dt=state.get("nominal_dt"))
+    prefix = {k[len(_PREFIX_KEY):]: v for k, v in arrays.items() if k.startswith(_PREFIX_KEY)}
+    arrays = {k: v for k, v in arrays.items() if not k.startswith(_PREFIX_KEY)}
+    if prefix and flt._prefix is not None:
+        flt._prefix.load_state(prefix)
+    # else: a checkpoint without the prefix (exact propagation, or an older checkpoint):
+    # the filter built its prefix from the saved IMU tail, or has none if configured so
     for k, v in state.items():
         if k.startswith("__"):
             continue
