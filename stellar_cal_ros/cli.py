@@ -169,6 +169,8 @@ def print_diagnosis(summary: dict) -> None:
         flag = "SIGNIFICANT" if c["significant"] else "           "
         print(f"  {flag} {c['effect']:22s} score {c['score']:10.1f}  p={c['p_value']:.2g}  "
               f"RMS after u={c['rms_after_px'][0]:.4f} v={c['rms_after_px'][1]:.4f} px")
+    for u in summary.get("implausible", []):
+        print(f"  implausible: {u['effect']} ({u['reason']})")
     for u in summary["unobservable"]:
         print(f"  unobservable: {u['effect']} ({u['reason']})")
     for u in summary["unexplained"][:5]:

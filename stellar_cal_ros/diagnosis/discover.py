@@ -18,10 +18,14 @@ for by Bonferroni.  ``rms_after_px`` is the innovation RMS of the augmented run 
 same window: what the user will see after adding the effect.
 
 An effect whose parameters the data leave at their prior uncertainty (posterior σ above
-``unobservable_ratio`` × prior σ for every parameter) is reported as unobservable with
+``unobservable_ratio`` × prior σ for every combination of its parameters, see
+:func:`observability_ratio`) is reported as unobservable with
 this motion instead of ranked — e.g. a time offset without rotation.  Effects acting in a
 stage the method does not model (accelerometer effects for PSCE) or needing inputs the bag
-lacks (site, head temperature) are reported as not applicable.
+lacks (site, head temperature) are reported as not applicable.  An effect whose size
+physics fixes (the astrometric corrections, :data:`PHYSICAL_VALUE`) is reported as
+implausible instead of ranked when its fitted scale is far from the physical one: the data
+then follow part of its pattern for another reason.
 
 When the current model misses something, the residuals are over-dispersed and a wrong
 candidate that absorbs a sliver of the misfit would still reach a tiny p-value with ten
@@ -53,6 +57,17 @@ Runner = Callable[[BagData, Calibration, list[str]], ReplayResult]
 
 #: a significant candidate must remove at least this fraction of the excess variance
 MIN_EXPLAINED = 0.1
+
+#: Effects whose size physics fixes (astrometric corrections, parameter = scale, 1 =
+#: physical).  If one is missing, its estimated scale is 1; an estimate far from it means
+#: the data follow a *fraction* of the correction, i.e. another cause with a similar
+#: pattern (measured: an isotropic gyro scale factor of 3e-5 fits as aberration × 0.35).
+PHYSICAL_VALUE: dict[str, float] = {"aberration": 1.0, "refraction": 1.0,
+                                    "proper_motion": 1.0}
+#: an estimate is implausible when it is clearly non-zero and differs from the physical
+#: value by more than this many posterior sigmas *and* this fraction of the value
+PHYSICAL_TOL_SIGMA = 5.0
+PHYSICAL_TOL_FRACTION = 0.25
 
 
 @dataclass
@@ -96,7 +111,7 @@ class CandidateResult:
     """One candidate effect tried by an augmented run."""
 
     effect: str
-    status: str  # ranked | unobservable | not_applicable | failed
+    status: str  # ranked | unobservable | implausible | not_applicable | failed
     statistic: float = float("nan")
     dof: int = 0
     p_value: float = 1.0
@@ -115,6 +130,21 @@ class CandidateResult:
         """Significant at 1 % after correction, and it removes a real part of the excess."""
         return (self.status == "ranked" and self.p_adjusted < 0.01
                 and not self.explained < MIN_EXPLAINED)
+
+
+def observability_ratio(P_post: np.ndarray, sigma_prior: np.ndarray) -> float:
+    """Smallest posterior/prior sigma ratio over every *combination* of the parameters.
+
+    ``sqrt(λ_min)`` of the prior-whitened posterior covariance ``D⁻¹ P D⁻¹`` (D = prior
+    sigmas).  Per-parameter marginal ratios are not enough: a gyro misalignment's
+    antisymmetric part is a rotation of the gyro triad, which the installation absorbs, so
+    every marginal sigma stays at 1/√2 of the prior while the symmetric part is determined
+    to a few percent.  The effect is observable as soon as one direction is.
+    """
+    d = 1.0 / np.maximum(np.asarray(sigma_prior, dtype=float), 1e-300)
+    W = np.atleast_2d(P_post) * np.outer(d, d)
+    lam = np.linalg.eigvalsh(0.5 * (W + W.T))
+    return float(np.sqrt(max(lam.min(), 0.0)))
 
 
 def rerun_prior(calibration: Calibration, model_effects: list[str]) -> Calibration:
@@ -149,8 +179,13 @@ def rank_candidates(
     evaluation_fraction: float = 0.5,
     unobservable_ratio: float = 0.5,
     progress: Callable[[str], None] | None = None,
+    physical_check: bool = True,
 ) -> tuple[ReplayResult, list[CandidateResult]]:
-    """Re-run the current model and every candidate; return the base run and the ranking."""
+    """Re-run the current model and every candidate; return the base run and the ranking.
+
+    ``physical_check=False`` ranks the astrometric scales as free parameters (for measuring
+    their detectability at non-physical sizes, ``benchmarks/detectability.py``).
+    """
     extra = [e for e in model_effects if e not in spec.baseline]
     prior = rerun_prior(calibration, list(spec.baseline) + extra)
     base = spec.runner(data, prior, extra)
@@ -180,7 +215,7 @@ def rank_candidates(
         value = flt.theta[sl]
         sig_post = flt.sigma()[3:][sl]
         sig_prior = model.initial_sigma[sl]
-        ratio = float(np.min(sig_post / np.maximum(sig_prior, 1e-300)))
+        ratio = observability_ratio(flt.P[3:, 3:][sl, sl], sig_prior)
         eff = model.effects[[e.id for e in model.effects].index(effect_id)]
         cand = CandidateResult(
             effect_id, "ranked", dof=eff.size, sigma_ratio=ratio,
@@ -205,12 +240,25 @@ def rank_candidates(
             if excess_base > 0.05 * stats.noise_variance(base.residuals, mask_b):
                 cand.explained = float(
                     1.0 - stats.excess_variance(run.residuals, mask_c) / excess_base)
+            phys = PHYSICAL_VALUE.get(effect_id)
+            if physical_check and phys is not None:
+                est, sig = float(value[0]), float(sig_post[0])
+                # clearly present, yet clearly not at its physical size
+                if (abs(est) > PHYSICAL_TOL_SIGMA * sig
+                        and abs(est - phys) > PHYSICAL_TOL_SIGMA * sig
+                        and abs(est - phys) > PHYSICAL_TOL_FRACTION * abs(phys)):
+                    cand.status = "implausible"
+                    cand.reason = (
+                        f"the data fit {est:.3g} ± {sig:.2g} of the physical {effect_id}, "
+                        f"whose size is known ({phys:g}): the structure follows part of its "
+                        "pattern but has another cause")
         results.append(cand)
-    ranked = [c for c in results if c.status == "ranked"]
-    m = max(len(ranked), 1)
-    for c in ranked:
+    tested = [c for c in results if c.status in ("ranked", "implausible")]
+    m = max(len(tested), 1)
+    for c in tested:
         c.p_adjusted = min(1.0, c.p_value * m)
-    order = {"ranked": 0, "unobservable": 1, "failed": 2, "not_applicable": 3}
+    order = {"ranked": 0, "implausible": 1, "unobservable": 2, "failed": 3,
+             "not_applicable": 4}
     results.sort(key=lambda c: (order[c.status], -np.nan_to_num(c.statistic, nan=-np.inf)))
     return base, results
 
@@ -241,6 +289,9 @@ def summary_dict(base: ReplayResult, results: list[CandidateResult],
         ],
         "unobservable": [{"effect": c.effect, "reason": c.reason}
                          for c in results if c.status == "unobservable"],
+        "implausible": [{"effect": c.effect, "reason": c.reason, "score": c.statistic,
+                         "p_value": c.p_adjusted, "estimate": c.estimate, "sigma": c.sigma}
+                        for c in results if c.status == "implausible"],
         "not_applicable": [{"effect": c.effect, "reason": c.reason}
                            for c in results if c.status in ("not_applicable", "failed")],
         "nis": stats.nis_consistency(res, mask),

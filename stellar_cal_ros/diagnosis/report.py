@@ -148,7 +148,8 @@ def write_html(out_dir: Path, summary: dict[str, Any], images: list[tuple[str, s
         f"t = {u['statistic']:.1f}, p = {u['p_value']:.2g}, change {u['change_px']:.3f} px "
         "across its 5–95 % range</li>" for u in summary["unexplained"]) or "<li>none</li>"
     unobs = "".join(f"<li><b>{u['effect']}</b>: {html.escape(u['reason'])}</li>"
-                    for u in summary["unobservable"] + summary["not_applicable"]) or "<li>none</li>"
+                    for u in summary.get("implausible", []) + summary["unobservable"]
+                    + summary["not_applicable"]) or "<li>none</li>"
     rms, exp = summary["residual_rms_px"], summary["expected_rms_px"]
     nis = summary["nis"]
     imgs = "".join(f"<h2>{html.escape(t)}</h2><img src='{f}'>" for t, f in images)

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from stellar_cal_ros.diagnosis import report, stats
+from stellar_cal_ros.diagnosis.context import add_gravity_regressors
 from stellar_cal_ros.diagnosis.discover import method_spec, rank_candidates, summary_dict
 from stellar_cal_ros.io.calibration import Calibration
 from stellar_cal_ros.methods.replay import BagData, read_bag_data
@@ -43,7 +44,10 @@ def diagnose(
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     mask = stats.evaluation_mask(final.residuals, evaluation_fraction)
-    unexplained = stats.regressor_tests(final.residuals, mask, centre)
+    # The residual table lacks the gravity direction that mount flexure follows: add it.
+    final_cal = best.run.calibration if best is not None else base.calibration
+    final_res = add_gravity_regressors(final.residuals, data, final_cal)
+    unexplained = stats.regressor_tests(final_res, mask, centre)
     summary = summary_dict(base, results, unexplained, spec, effects, evaluation_fraction)
     summary["recommendation"] = best.effect if best is not None else None
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))

@@ -217,11 +217,16 @@ def replay_psce(
     effects: list[str] | None = None,
     config: PsceConfig | None = None,
     progress: bool = False,
+    baseline: tuple[str, ...] = BASELINE_EFFECTS,
 ) -> ReplayResult:
-    """Run the PSCE filter over a bag and return the calibration and the residuals."""
+    """Run the PSCE filter over a bag and return the calibration and the residuals.
+
+    ``baseline`` is the model's fixed part (default: Tan et al.'s); a reduced one shows
+    what the diagnosis says when a baseline effect is missing.
+    """
     data = bag if isinstance(bag, BagData) else read_bag_data(bag)
     config = config or PsceConfig()
-    model = build_model(prior, effects or [])
+    model = build_model(prior, effects or [], baseline)
     for eff in model.effects:
         if "site" in eff.requires and data.site is None:
             raise ModelError(f"effect {eff.id} needs the site position ({TOPIC_FIX})")

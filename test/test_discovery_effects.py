@@ -1,0 +1,219 @@
+"""Model discovery, effect by effect (issue 5).
+
+For every library effect that is a candidate for the PSCE method, the demo scenario
+(``psce_rotations``, 0.05 px, 300 s, fixed seed) is simulated with the effect at 6-10 times
+its minimum detectable size (MDS, ``benchmarks/detectability.py``); the baseline model is
+calibrated and diagnosed over **all** applicable candidates.  The effect must rank first and
+be significant; a fresh calibration with it added must bring the innovation RMS to the noise
+floor (≤ 1.05 × 0.05 px) and its parameters within 3 σ of the truth.
+
+Exceptions, with the measured reason:
+
+- ``radial_k3`` is absorbed by ``k1, k2`` on the demo's narrow field (14.7°): no size up to
+  k3 = 240 (120 datasheet σ) is detectable there (MDS table).  It is tested on a wide-field
+  variant of the scenario (``fx`` = 1500 px, 37.7°, stars to magnitude 4.5).
+- ``aberration``, ``refraction``, ``proper_motion`` exist only at physical size (scale 1);
+  they are tested there, which is 1 / MDS times their detectability (MDS table).
+- ``thermal_focal_length`` is seen only through the head-temperature change (30 °C decaying
+  toward 10 °C, τ = 3600 s: 1.6 °C in 300 s); 1e-4 /°C is two datasheet σ.
+- ``image_plane_tilt``: 6 × its MDS is 5 datasheet σ, so the fresh calibration uses a
+  prior that allows it (σ = 0.05 rad), see ``_check_found_and_fixed``.
+- ``gyro_misalignment`` is simulated symmetric (all six entries equal): the antisymmetric
+  part is a rotation of the gyro triad, which the installation absorbs (unobservable).
+- Mount flexure (not in the library) is aliased with a gyro scale factor by this motion:
+  the test is an ``xfail`` benchmark that documents it.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.diagnosis.discover import MethodSpec, method_spec, rank_candidates
+from stellar_cal_ros.diagnosis.run import diagnose
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay_psce, truth_parameters
+from stellar_cal_ros.sim.scenarios import get_scenario
+from stellar_cal_ros.sim.world import simulate
+
+NOISE = 0.05
+DURATION = 300.0
+
+#: effect → (simulated size, seed); the size in units of the MDS at 300 s
+#: (benchmarks/detectability.py) is given in the comment
+CASES = {
+    "pixel_aspect": (1e-4, 41),  # 6.3 × MDS
+    "image_plane_tilt": (0.025, 42),  # 6.3 ×
+    "thermal_focal_length": (1e-4, 43),  # 10 ×
+    "gyro_scale_factor": (1e-4, 44),  # 9.1 ×
+    "gyro_misalignment": (1e-4, 45),  # 7.7 ×
+    "time_offset": (4e-4, 46),  # 7.5 ×
+    "aberration": (1.0, 47),  # physical: 7.1 ×
+    "refraction": (1.0, 48),  # physical: 31 ×
+    "proper_motion": (1.0, 49),  # physical: 22 ×
+}
+
+
+def _simulate(effects, seed, scenario=None, duration=DURATION):
+    sim = simulate(scenario or get_scenario("psce_rotations"), duration=duration, seed=seed,
+                   effects=effects)
+    return sim, bag_data_from_simulation(sim)
+
+
+def _wide_field():
+    """psce_rotations with a 38° field: fx = 1500 px, stars to magnitude 4.5."""
+    sc = get_scenario("psce_rotations")
+    sc.focal_length_px = 1500.0
+    sc.mag_limit = 4.5
+    return sc
+
+
+def _broad_tilt_prior(prior, sigma=0.05):
+    """The prior with a tilt sigma of ``sigma`` rad (OpenCV distortion entries 12, 13)."""
+    prior = copy.deepcopy(prior)
+    D = prior.sigma["camera"]["distortion_coefficients"]
+    D["data"] = list(D["data"]) + [0.0] * (12 - len(D["data"])) + [sigma, sigma]
+    D["cols"] = 14
+    return prior
+
+
+def _check_found_and_fixed(tmp_path, effect, size, seed, scenario=None):
+    sim, data = _simulate({effect: size}, seed, scenario)
+    base = replay_psce(data, sim.prior)
+    summary = diagnose(data, base.calibration, "psce", [], tmp_path / "rep", plots=False,
+                       verbose=False)
+    ranked = [c["effect"] for c in summary["candidates"]]
+    # every applicable library candidate was tried
+    spec = method_spec("psce")
+    tried = set(ranked) | {u["effect"] for u in summary["unobservable"]
+                           + summary["implausible"]}
+    expected = {e for e in registry.available() if e not in spec.baseline
+                and registry.create(e).stage.value != "accel"}
+    assert tried == expected, tried ^ expected
+    first = summary["candidates"][0]
+    assert first["effect"] == effect, ranked[:3]
+    assert first["significant"], first
+    assert summary["recommendation"] == effect
+    # add it: a fresh calibration from the prior
+    prior = sim.prior
+    if effect == "image_plane_tilt":
+        # 6 x its MDS is 5 datasheet sigmas (5e-3 rad): a datasheet prior would pull the
+        # estimate toward zero along the tilt / principal point / installation / tangential
+        # near-degeneracy (measured: 8-16 sigma).  Adding a larger effect than the datasheet
+        # allows calls for a prior that allows it.
+        prior = _broad_tilt_prior(prior)
+    fixed = replay_psce(data, prior, [effect])
+    res = fixed.residuals
+    rms = stats.rms(res, stats.evaluation_mask(res))
+    assert max(rms) <= 1.05 * NOISE, rms
+    flt = fixed.filter
+    sl = flt.model.slices[effect]
+    est, sig = flt.theta[sl], flt.sigma()[3:][sl]
+    truth = truth_parameters(flt.model, sim.truth)[sl]
+    z = (est - truth) / sig
+    print(f"\n{effect}: rank 1 of {len(ranked)}, score {first['score']:.1f}, p_adj "
+          f"{first['p_value']:.2g}, RMS before {max(summary['residual_rms_px']) / NOISE:.2f} "
+          f"x noise, after {max(rms) / NOISE:.3f} x noise, parameter error/sigma "
+          f"{np.array2string(z, precision=2)}")
+    assert np.all(np.abs(z) < 3.0), (est, truth, sig)
+    return summary, rms, z
+
+
+@pytest.mark.parametrize("effect", list(CASES))
+def test_missing_effect_ranks_first_and_adding_it_fixes(tmp_path, effect):
+    size, seed = CASES[effect]
+    _check_found_and_fixed(tmp_path, effect, size, seed)
+
+
+def test_radial_k3_wide_field(tmp_path):
+    """k3 on a 38° field (on the demo's 14.6° field k1, k2 absorb it, see the MDS table)."""
+    _check_found_and_fixed(tmp_path, "radial_k3", 0.3, 50, scenario=_wide_field())
+
+
+def test_magnitude_bias_is_unexplained_among_all_candidates(tmp_path):
+    """A magnitude-dependent centroid bias: no library effect claimed, 'magnitude' listed."""
+    sim, data = _simulate({"magnitude_bias": [0.1, 30.0]}, 51)
+    base = replay_psce(data, sim.prior)
+    summary = diagnose(data, base.calibration, "psce", [], tmp_path / "rep", plots=False,
+                       verbose=False)
+    assert not any(c["significant"] for c in summary["candidates"])
+    assert summary["unexplained"][0]["regressor"] == "magnitude"
+
+
+@pytest.mark.benchmark
+@pytest.mark.xfail(reason=(
+    "with steps about the IMU axes a flexure increment is a rotation about the step axis "
+    "proportional to sin(angle): gyro_scale_factor explains ~98 % of its excess variance "
+    "and is claimed (measured, seed 1, 300 s: 40 arcsec, Λ = 3317, RMS 0.071 -> 0.051 px)"),
+    strict=False)
+def test_mount_flexure_is_unexplained_with_gravity(tmp_path):
+    """Gravity-dependent mount bending: 'gravity_*_st' regressor, no library effect claimed."""
+    sim, data = _simulate({"mount_flexure": 40.0}, 52)
+    base = replay_psce(data, sim.prior)
+    summary = diagnose(data, base.calibration, "psce", [], tmp_path / "rep", plots=False,
+                       verbose=False)
+    assert not any(c["significant"] for c in summary["candidates"])
+    assert summary["unexplained"][0]["regressor"].startswith("gravity_")
+
+
+def test_gravity_regressor_follows_the_tracker_attitude():
+    """The added gravity columns equal the true lateral gravity in the tracker frame."""
+    from stellar_cal_ros.diagnosis.context import add_gravity_regressors
+    from stellar_cal_ros.sim.world import TruthWorld
+
+    sim, data = _simulate({}, 53, duration=150.0)
+    base = replay_psce(data, sim.prior)
+    res = add_gravity_regressors(base.residuals, data, sim.truth)
+    world = TruthWorld(sim.scenario, 150.0, sim.effects)
+    t_rel = res["t"] - data.t0
+    R_i_st = world.R_i_b(t_rel) @ world.installation().as_matrix()
+    g_i = world.R_i_e(t_rel) @ world.gravity_e
+    g_st = np.einsum("nji,nj->ni", R_i_st, g_i)
+    g_st /= np.linalg.norm(g_st, axis=1, keepdims=True)
+    # the specific force includes the slews' accelerations (frames within a slew)
+    for k, col in enumerate(("gravity_x_st", "gravity_y_st")):
+        err = np.abs(res[col] - g_st[:, k])
+        assert np.percentile(err, 90) < 2e-4, col  # at rest
+        assert np.max(err) < 1e-2, col  # within a slew
+    assert np.ptp(res["gravity_y_st"]) > 0.3  # the steps do move gravity in the image
+
+
+def _reduced_spec(dropped):
+    """The PSCE method with ``dropped`` removed from its baseline."""
+    spec = method_spec("psce")
+    baseline = tuple(e for e in spec.baseline if e != dropped)
+    return MethodSpec(spec.name, baseline, spec.stages,
+                      lambda d, p, e: replay_psce(d, p, e, baseline=baseline))
+
+
+@pytest.mark.parametrize("dropped", [
+    "tangential", pytest.param("radial_k1k2", marks=pytest.mark.benchmark)])
+def test_dropped_baseline_effect_ranks_first(dropped):
+    """A model lacking a baseline effect: the diagnosis names that effect."""
+    sim, data = _simulate({}, 54)  # the scenario has Tan et al.'s radial + tangential terms
+    spec = _reduced_spec(dropped)
+    base = spec.runner(data, sim.prior, [])
+    assert dropped not in base.filter.model.slices
+    _, results = rank_candidates(data, base.calibration, spec, [])
+    ranked = [c for c in results if c.status == "ranked"]
+    assert ranked[0].effect == dropped and ranked[0].significant, [
+        (c.effect, c.statistic) for c in ranked[:3]]
+    assert max(ranked[0].rms_after_px) <= 1.05 * NOISE
+
+
+@pytest.mark.benchmark
+def test_clean_data_false_alarm_rate_all_candidates(tmp_path):
+    """Clean data, every applicable candidate: nothing significant in >= 95 % of seeds."""
+    seeds = range(30, 50)
+    false = 0
+    for seed in seeds:
+        sim, data = _simulate({}, seed)
+        base = replay_psce(data, sim.prior)
+        s = diagnose(data, base.calibration, "psce", [], tmp_path / str(seed), plots=False,
+                     verbose=False)
+        false += any(c["significant"] for c in s["candidates"])
+    print(f"\nfalse alarms: {false} of {len(seeds)}")
+    assert false <= 0.05 * len(seeds) + 1e-9
