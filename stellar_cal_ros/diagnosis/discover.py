@@ -251,7 +251,8 @@ def rank_candidates(
                     cand.reason = (
                         f"the data fit {est:.3g} ± {sig:.2g} of the physical {effect_id}, "
                         f"whose size is known ({phys:g}): the structure follows part of its "
-                        "pattern but has another cause")
+                        "pattern but has another cause; if several effects are missing, "
+                        "add the top candidate and diagnose again")
         results.append(cand)
     tested = [c for c in results if c.status in ("ranked", "implausible")]
     m = max(len(tested), 1)
