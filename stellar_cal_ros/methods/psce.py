@@ -181,6 +181,7 @@ class PsceFilter:
         self.counters = FilterCounters()
         self.gate = chi2_gate(self.config.gate_probability, 2)
         self._mismatch_warned = False
+        self._mismatch_bits = 0  # model-mismatch flags of the last 10 frames
         self.last_stamp: float | None = None
         self._eye = np.eye(n)
         self._rejected_in_row = 0
@@ -562,13 +563,17 @@ class PsceFilter:
         scale = 1.0
         if usable.sum() >= 3:
             scale = max(1.0, float(np.median(nis_stars[usable])) / _CHI2_2_MEDIAN)
-        if scale > self.config.mismatch_factor:
+        mismatch = scale > self.config.mismatch_factor
+        # the last 10 frames as bits: one odd frame is counted, a pattern is reported
+        self._mismatch_bits = ((self._mismatch_bits << 1) | int(mismatch)) & 0x3FF
+        if mismatch:
             self.counters.extra["frames_model_mismatch"] = \
                 self.counters.extra.get("frames_model_mismatch", 0) + 1
-            if not self._mismatch_warned:
+            if not self._mismatch_warned and bin(self._mismatch_bits).count("1") >= 3:
                 self._mismatch_warned = True
-                log.warning("t=%.3f s: the stars' median NIS is %.0fx what the model expects: "
-                            "the model misses an effect (run stellar-cal diagnose)", t_exp, scale)
+                log.warning("t=%.3f s: the stars' median NIS is %.0fx what the model expects "
+                            "(3 or more of the last 10 frames): the model misses an effect "
+                            "(run stellar-cal diagnose)", t_exp, scale)
         accepted = nis_stars <= self.gate * scale  # NaN (star behind the tracker) is rejected
         if scale > self.config.lost_lock_factor:
             # Innovations a hundred sigma off on the typical star: not a missing effect but a
