@@ -169,8 +169,13 @@ def print_diagnosis(summary: dict) -> None:
         flag = "SIGNIFICANT" if c["significant"] else "           "
         print(f"  {flag} {c['effect']:22s} score {c['score']:10.1f}  p={c['p_value']:.2g}  "
               f"RMS after u={c['rms_after_px'][0]:.4f} v={c['rms_after_px'][1]:.4f} px")
-    for u in summary.get("implausible", []):
-        print(f"  implausible: {u['effect']} ({u['reason']})")
+    implausible = summary.get("implausible", [])
+    for u in implausible:
+        est, sig = next(iter(u["estimate"].values())), next(iter(u["sigma"].values()))
+        print(f"  implausible: {u['effect']} (fits {est:.3g} +- {sig:.2g} x its physical size)")
+    if implausible:
+        print("    (a physical effect at the wrong size: the structure has another cause, or "
+              "several effects are missing; add the top candidate and diagnose again)")
     for u in summary["unobservable"]:
         print(f"  unobservable: {u['effect']} ({u['reason']})")
     for u in summary["unexplained"][:5]:
