@@ -257,3 +257,37 @@ def test_garbage_is_counted_not_fatal(excerpt):
     assert c.env_invalid == 1 and c.fixes_invalid == 1 and c.frames_wrong_frame == 1
     assert cal.filter_counters()["stars_invalid"] >= len(frame.uv)
     assert cal.filter_counters()["updates"] >= ref.counters["updates"] - 3
+
+
+def test_site_and_environment_caches_follow_the_inputs(excerpt, tmp_path):
+    """Site median (kept as an array, bounded by max_fixes) and interpolation caches."""
+    _, prior, _, _ = excerpt
+    cal = OnlineCalibrator(prior, None, PsceConfig(), OnlineConfig(max_fixes=50))
+    rng = np.random.default_rng(5)
+    fixes = [(1_000_000_000 * (i + 1), *rng.normal([45.0, 7.0, 100.0], [1e-3, 1e-3, 5.0]))
+             for i in range(120)]
+    for i, f in enumerate(fixes):
+        cal.push_fix(*f)
+        tail = np.asarray([g[1:] for g in fixes[max(0, i + 1 - 50): i + 1]])
+        s = cal.site
+        assert (s.latitude_deg, s.longitude_deg, s.height_m) == tuple(
+            float(x) for x in np.median(tail, axis=0))
+    head = cal.env["head"]
+    for t, v in ((3, 20.0), (1, 10.0), (2, np.nan), (5, 30.0)):  # out of order, a NaN
+        cal.push_scalar("head", t * 1_000_000_000, v)
+        st = np.asarray(head.stamp_ns)
+        val = np.asarray(head.value)
+        ok = np.isfinite(val)
+        ref = head.ref_ns
+        for q in (0.5, 2.5, 4.0, 9.0):
+            expect = float(np.interp((q * 1e9 - ref) * 1e-9, (st[ok] - ref) * 1e-9, val[ok]))
+            assert head.interp(int(q * 1e9)) == expect
+    cal.save_checkpoint(tmp_path / "c.npz")
+    back = OnlineCalibrator(prior, None, PsceConfig(), OnlineConfig(max_fixes=50))
+    back.load_checkpoint(tmp_path / "c.npz")
+    assert back.site == cal.site
+    assert back.env["head"].interp(2_500_000_000) == head.interp(2_500_000_000)
+    extra = (200_000_000_000, 45.5, 7.5, 90.0)
+    back.push_fix(*extra)
+    tail = np.asarray([g[1:] for g in fixes[-49:]] + [extra[1:]])
+    assert back.site.latitude_deg == float(np.median(tail[:, 0]))

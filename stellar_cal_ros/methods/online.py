@@ -141,8 +141,11 @@ class _Series:
         self.stamp_ns: list[int] = []
         self.value: list[float] = []
         self.ref_ns: int | None = None  # earliest finite sample ever: interpolation origin
+        self._version = 0  # bumped on every change (add, trim) of the samples
+        self._cache: tuple[Any, np.ndarray, np.ndarray] | None = None  # interp abscissae
 
     def add(self, stamp_ns: int, value: float) -> None:
+        self._version += 1
         if np.isfinite(value) and (self.ref_ns is None or stamp_ns < self.ref_ns):
             self.ref_ns = stamp_ns
         if not self.stamp_ns or stamp_ns >= self.stamp_ns[-1]:
@@ -157,13 +160,18 @@ class _Series:
         """``np.interp`` over the finite samples, in s from the earliest one (as the replay)."""
         if not self.stamp_ns or self.ref_ns is None:
             return float("nan")
-        s = np.asarray(self.stamp_ns, dtype=np.int64)
-        v = np.asarray(self.value, dtype=float)
-        ok = np.isfinite(v)
-        if not np.any(ok):
-            return float("nan")
         ref = self.ref_ns
-        return float(np.interp((t_ns - ref) * 1e-9, (s[ok] - ref) * 1e-9, v[ok]))
+        # the arrays change at the inputs' rate (~1 Hz), frames ask more often: cache them
+        key = (self._version, id(self.stamp_ns), id(self.value), len(self.stamp_ns), ref)
+        if self._cache is None or self._cache[0] != key:
+            s = np.asarray(self.stamp_ns, dtype=np.int64)
+            v = np.asarray(self.value, dtype=float)
+            ok = np.isfinite(v)
+            self._cache = (key, (s[ok] - ref) * 1e-9, v[ok])
+        _, x, y = self._cache
+        if not len(x):
+            return float("nan")
+        return float(np.interp((t_ns - ref) * 1e-9, x, y))
 
     def covers(self, t_ns: int) -> bool:
         return bool(self.stamp_ns) and self.stamp_ns[-1] >= t_ns
@@ -174,6 +182,7 @@ class _Series:
             return
         i = int(np.searchsorted(np.asarray(self.stamp_ns), before_ns, side="left")) - 1
         if i > 0:
+            self._version += 1
             del self.stamp_ns[:i]
             del self.value[:i]
 
@@ -227,7 +236,11 @@ class OnlineCalibrator:
         self._frame_stamps_seen: set[int] = set()
         self.env = {k: _Series() for k in ENV_KEYS}
         self._fixes: list[tuple[int, float, float, float]] = []
+        self._fix_values = np.zeros((0, 3))  # lat, lon, alt of _fixes (+ spare rows)
+        self._fix_n = 0  # rows of _fix_values in use
         self._site_cache: tuple[Any, Site] | None = None
+        self._clean: dict[int, np.ndarray] = {}  # clean_frame of the pending frames by stamp
+        self._ctx_cache: tuple[Any, FrameContext | None, dict[bytes, float]] | None = None
         self._conv: deque[tuple[np.ndarray, float, int]] = deque(
             maxlen=max(self.config.converge_window, 1) + 1)
         self.last_update: FrameUpdate | None = None
@@ -299,9 +312,11 @@ class OnlineCalibrator:
             return dropped("duplicate")
         i = int(np.searchsorted(np.asarray(stamps, dtype=np.int64), stamp)) if stamps else 0
         self._frames_pending.insert(i, frame)
+        self._clean_mask(frame)  # input check on arrival, not when the IMU releases it
         out: list[FrameOutcome] = []
         while len(self._frames_pending) > self.config.max_pending_frames:
             old = self._frames_pending.pop(0)
+            self._clean.pop(int(old.stamp_ns), None)
             c.frames_overflow += 1
             self._last_frame_ns = int(old.stamp_ns)
             out.append(FrameOutcome(int(old.stamp_ns), old.frame_id, "dropped_overflow"))
@@ -328,8 +343,18 @@ class OnlineCalibrator:
             self.counters.fixes_invalid += 1
             return []
         self._fixes.append((int(stamp_ns), *vals))
+        if self._fix_n == len(self._fix_values):  # grow (amortized)
+            grown = np.zeros((max(2 * self._fix_n, 64), 3))
+            grown[:self._fix_n] = self._fix_values[:self._fix_n]
+            self._fix_values = grown
+        self._fix_values[self._fix_n] = vals
+        self._fix_n += 1
         if len(self._fixes) > self.config.max_fixes:
-            del self._fixes[: len(self._fixes) - self.config.max_fixes]
+            k = len(self._fixes) - self.config.max_fixes
+            del self._fixes[:k]
+            self._fix_values[:self._fix_n - k] = self._fix_values[k:self._fix_n].copy()
+            self._fix_n -= k
+        _ = self.site  # the median now, not in the next frame's update
         return self._pump()
 
     def finish(self) -> list[FrameOutcome]:
@@ -344,9 +369,13 @@ class OnlineCalibrator:
             return None
         key = (len(self._fixes), self._fixes[-1])
         if self._site_cache is None or self._site_cache[0] != key:
-            a = np.asarray(self._fixes, dtype=float)
-            site = Site(float(np.median(a[:, 1])), float(np.median(a[:, 2])),
-                        float(np.median(a[:, 3])))
+            if self._fix_n != len(self._fixes):  # _fixes replaced from outside: resync
+                self._fix_values = np.asarray([f[1:] for f in self._fixes],
+                                              dtype=float).reshape(-1, 3)
+                self._fix_n = len(self._fixes)
+            a = self._fix_values[:self._fix_n]
+            site = Site(float(np.median(a[:, 0])), float(np.median(a[:, 1])),
+                        float(np.median(a[:, 2])))
             self._site_cache = (key, site)
         return self._site_cache[1]
 
@@ -379,6 +408,15 @@ class OnlineCalibrator:
             last = s
         self._last_imu_ns = last
         del pend[:n]
+
+    def _clean_mask(self, frame: StarFrame) -> np.ndarray:
+        """:func:`clean_frame` of a pending frame (computed once)."""
+        key = int(frame.stamp_ns)
+        ok = self._clean.get(key)
+        if ok is None:
+            ok = clean_frame(frame, self.prior.camera.width, self.prior.camera.height)
+            self._clean[key] = ok
+        return ok
 
     def _start_filter(self) -> None:
         k = self.config.t0_imu_samples
@@ -428,6 +466,34 @@ class OnlineCalibrator:
             pressure_pa=self.env["pressure"].interp(frame.stamp_ns),
         )
 
+    def _frame_context(self, frame: StarFrame, ok: np.ndarray) -> FrameContext | None:
+        """:meth:`_context` of the head frame, reused while its inputs are unchanged.
+
+        A frame waiting for the IMU is looked at on every IMU sample; its context only
+        changes with the environment series and the fixes.
+        """
+        if not np.any(ok):
+            return None
+        key = (int(frame.stamp_ns), id(frame),
+               tuple((id(s), s._version, len(s.stamp_ns), s.ref_ns) for s in self.env.values()),
+               len(self._fixes), self._fixes[-1] if self._fixes else None)
+        c = self._ctx_cache
+        if c is None or c[0] != key:
+            c = self._ctx_cache = (key, self._context(frame, ok), {})
+        return c[1]
+
+    def _exposure_time(self, frame: StarFrame, ctx: FrameContext) -> float:
+        """Relative exposure time of a frame under the current θ (cached with the context)."""
+        theta = self.filter.theta
+        c = self._ctx_cache
+        memo = c[2] if c is not None and c[1] is ctx else {}
+        key = theta.tobytes()
+        t_exp = memo.get(key)
+        if t_exp is None:
+            shift, _ = self.model.time_shift(theta, ctx)
+            t_exp = memo[key] = (frame.stamp_ns - self.t0_ns) * 1e-9 + shift
+        return t_exp
+
     def _pump(self, final: bool = False) -> list[FrameOutcome]:
         if self.imu_max_ns is None:
             return []
@@ -438,26 +504,33 @@ class OnlineCalibrator:
                 self._start_filter()
             else:
                 return []
-        elif len(self._staged_t) >= self.config.imu_batch:
+        elif len(self._staged_t) >= self.config.imu_batch or (
+                self._frames_pending and self._frames_pending[0].stamp_ns <= self.imu_max_ns):
+            # a frame is waiting for the IMU to cover it: integrate the samples as they come
+            # (same values for any batching) so its update only adds the last ones
             self._flush_staged()
         out: list[FrameOutcome] = []
         watermark = self.imu_max_ns - self.window_ns
         while self._frames_pending:
             frame = self._frames_pending[0]
             if not final and frame.stamp_ns > watermark:
+                if frame.stamp_ns <= self.imu_max_ns:
+                    # inside the reorder window: prepare its context now (reused when the
+                    # frame is released unless an environment input or fix arrives first)
+                    ctx = self._frame_context(frame, self._clean_mask(frame))
+                    if ctx is not None:
+                        self._exposure_time(frame, ctx)
                 break
             ready, stale = self._env_ready(frame.stamp_ns, final)
             if not ready:
                 break
-            width, height = self.prior.camera.width, self.prior.camera.height
-            ok = clean_frame(frame, width, height)
-            ctx = self._context(frame, ok) if np.any(ok) else None
+            ok = self._clean_mask(frame)
+            ctx = self._frame_context(frame, ok)
             if ctx is not None and not final:
-                shift, _ = self.model.time_shift(self.filter.theta, ctx)
-                t_exp = (frame.stamp_ns - self.t0_ns) * 1e-9 + shift
-                if not self._imu_last_rel() > t_exp:
+                if not self._imu_last_rel() > self._exposure_time(frame, ctx):
                     break  # wait for the IMU to cover the exposure
             self._frames_pending.pop(0)
+            self._clean.pop(int(frame.stamp_ns), None)
             self._last_frame_ns = int(frame.stamp_ns)
             if stale:
                 self.counters.env_stale += 1
@@ -683,6 +756,8 @@ class OnlineCalibrator:
         self._staged_w = [tuple(r) for r in a["staged_w"].tolist()]
         self._fixes = [(int(s), *r) for s, r in zip(a["fixes_ns"].tolist(),
                                                      a["fixes"].tolist(), strict=True)]
+        self._fix_values = np.asarray(a["fixes"], dtype=float).reshape(-1, 3).copy()
+        self._fix_n = len(self._fixes)
         for s, nis, dof in zip(a["conv_sigma"], a["conv_nis"].tolist(), a["conv_dof"].tolist(),
                                strict=True):
             self._conv.append((s.copy(), nis, dof))

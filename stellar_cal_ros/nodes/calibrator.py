@@ -31,6 +31,7 @@ Parameters: see :data:`PARAMETERS` (also ``config/calibrator.yaml`` and doc/ros_
 
 from __future__ import annotations
 
+import gc
 import math
 import sys
 import threading
@@ -70,6 +71,7 @@ from stellar_cal_ros.io.bag import StarFrame
 from stellar_cal_ros.io.calibration import load_calibration, save_calibration
 from stellar_cal_ros.methods.online import FrameOutcome, OnlineCalibrator, OnlineConfig
 from stellar_cal_ros.methods.psce import PsceConfig
+from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
 
 METHODS = ("psce",)  # swaying_base: later
 
@@ -179,6 +181,7 @@ class CalibratorNode(Node):
         self.callback_errors = 0
         self.backlog_updates = 0
         self.latency_s: deque[float] = deque(maxlen=2000)  # frame processing, wall s
+        self.latency_cpu_s: deque[float] = deque(maxlen=2000)  # the same, thread CPU s
         self.received = dict.fromkeys(INPUTS, 0)
         self._rx_last_wall: dict[str, float | None] = dict.fromkeys(INPUTS)
         self._rate_snapshot = (time.monotonic(), dict(self.received))
@@ -206,6 +209,13 @@ class CalibratorNode(Node):
         self.pub_progress = self.create_publisher(Clock, "~/data_clock", out_qos)
         self._progress_ns = int(p["progress_period_s"] * 1e9)
         self._next_progress_ns = -1
+        self._progress_due = None  # Clock to publish once the IMU callback's frames are out
+        # ~/residuals serialized straight from the arrays (residual_cdr) unless this RMW's
+        # wire format differs; then as StarResidual objects
+        self._raw_residuals = encoder_matches_rmw()
+        if not self._raw_residuals:
+            self.get_logger().warning("residual CDR encoder does not match this RMW: "
+                                      "publishing ~/residuals as message objects (slower)")
         self.create_service(Trigger, "~/save_calibration", self._srv_save)
         self.create_service(Trigger, "~/checkpoint", self._srv_checkpoint)
         self.create_service(Trigger, "~/reset", self._srv_reset)
@@ -217,6 +227,10 @@ class CalibratorNode(Node):
         self.get_logger().info(
             f"calibrator ready: method={p['method']} effects={p['effects'] or '[]'} "
             f"({self.cal.model.size} parameters), prior {p['prior_file']}")
+        # Start-up objects (modules, messages, the model) are long-lived: keep them out of
+        # the cyclic collector so that full collections in a callback stay short.
+        gc.collect()
+        gc.freeze()
 
     # ------------------------------------------------------------------ parameters
     def _declare_parameters(self) -> None:
@@ -349,14 +363,14 @@ class CalibratorNode(Node):
 
     # ------------------------------------------------------------------ inputs
     def _guard(self, key: str, fn, msg) -> None:
-        t_in = time.perf_counter()
+        t_in, c_in = time.perf_counter(), time.thread_time()
         self.received[key] += 1
         self._rx_last_wall[key] = time.monotonic()
         try:
             with self._lock:
                 out = fn(msg)
                 if out:
-                    self._handle(out, t_in)
+                    self._handle(out, t_in, c_in)
         except Exception as exc:  # noqa: BLE001 - garbage input must not kill the node
             self.callback_errors += 1
             self._warn("callback_errors", f"{key} message rejected: "
@@ -364,6 +378,10 @@ class CalibratorNode(Node):
 
     def _on_imu(self, msg: Imu) -> None:
         self._guard("imu", self._push_imu, msg)
+        c = self._progress_due
+        if c is not None:  # after the residuals of the frames this sample released
+            self._progress_due = None
+            self.pub_progress.publish(c)
 
     def _push_imu(self, msg: Imu) -> list[FrameOutcome]:
         w = msg.angular_velocity
@@ -373,7 +391,7 @@ class CalibratorNode(Node):
             self._next_progress_ns = stamp + self._progress_ns
             c = Clock()
             c.clock = msg.header.stamp
-            self.pub_progress.publish(c)
+            self._progress_due = c
         return out
 
     def _on_stars(self, msg: StarCentroidArray) -> None:
@@ -406,7 +424,8 @@ class CalibratorNode(Node):
         return cb
 
     # ------------------------------------------------------------------ outputs
-    def _handle(self, outcomes: list[FrameOutcome], t_in: float) -> None:
+    def _handle(self, outcomes: list[FrameOutcome], t_in: float,
+                c_in: float | None = None) -> None:
         """Publish what the frames of one callback gave.
 
         Latency (callback entry → residuals published) is recorded for callbacks that
@@ -414,16 +433,34 @@ class CalibratorNode(Node):
         before the time origin is known, an IMU outage ending) is counted separately.
         """
         n_updated = 0
+        publish = self.p["publish_residuals"]
         for o in outcomes:
-            if self.p["publish_residuals"]:
-                self.pub_residuals.publish(self._residual_msg(o))
+            if publish:
+                self.pub_residuals.publish(self._residual_bytes(o) if self._raw_residuals
+                                           else self._residual_msg(o))
             n_updated += o.status == "updated"
         if n_updated == 1:
             self.latency_s.append(time.perf_counter() - t_in)
+            if c_in is not None:  # CPU time of the same interval: wall minus it = waiting
+                self.latency_cpu_s.append(time.thread_time() - c_in)
         elif n_updated > 1:
             self.backlog_updates += n_updated
         if n_updated and self.p["estimate_rate_hz"] <= 0:
             self._publish_estimate()
+
+    def _residual_bytes(self, o: FrameOutcome) -> bytes:
+        """:meth:`_residual_msg` serialized (the same message, without the Python objects)."""
+        u = o.update
+        if u is None:
+            return encode_residual_array(o.stamp_ns, o.frame_id, float("nan"), 0)
+        nis = float(u.nis)
+        dof = int(u.dof) if math.isfinite(nis) else 0
+        n = len(u.uv)
+        mags = o.magnitude
+        mags = np.asarray(mags, float) if len(mags) == n else np.full(n, np.nan)
+        return encode_residual_array(o.stamp_ns, o.frame_id, nis, dof, np.asarray(o.catalog_id),
+                                     u.uv, u.uv_pred, u.S, mags,
+                                     ~np.asarray(u.accepted, bool))
 
     def _residual_msg(self, o: FrameOutcome) -> StarResidualArray:
         msg = StarResidualArray()
