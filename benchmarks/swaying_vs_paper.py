@@ -10,7 +10,15 @@ three base orientations of the ``swaying`` scenario, Table 1 sensor errors, 3" s
 * ``sway+E``      — Table 1 complete (100 ppm, 100" gyro misalignment) with
   ``gyro_scale_factor, gyro_misalignment, accel_scale_factor`` added to the model.
 
-Run: ``python benchmarks/swaying_vs_paper.py [--groups 1,2,3,4,5] [--seeds N]``.
+Columns per axis: the paper's proposed (P) and traditional (T) estimates, ours with error and
+1σ, the posterior Cramér–Rao bound of the inertial filter's model on that run
+(:func:`~stellar_cal_ros.methods.swaying.crlb_swaying`: Jacobians on the true trajectory and
+parameters; no bound is given for the traditional filter, whose model is wrong on a swaying
+base).  After each group: per axis the RMS error over the seeds, the RMS bound and the
+efficiency RMS error / bound (≈ 1 for an efficient estimator; it scatters by ~1/√(2·seeds)),
+and the mean NEES (3 dof, consistent = 3).
+
+Run: ``python benchmarks/swaying_vs_paper.py [--groups 1,2,3,4,5] [--seeds N] [--no-crlb]``.
 """
 
 from __future__ import annotations
@@ -24,7 +32,7 @@ import time
 import numpy as np
 
 from stellar_cal_ros.methods.replay import BagData
-from stellar_cal_ros.methods.swaying import replay_swaying
+from stellar_cal_ros.methods.swaying import crlb_swaying, replay_swaying
 from stellar_cal_ros.methods.traditional import replay_traditional
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
@@ -70,8 +78,13 @@ def bag_data(res) -> BagData:
                    res.head_temperature, res.air_temperature, res.pressure)
 
 
-def run_case(group: int, condition: str = "sway", seed: int = 0, duration=None) -> dict:
-    """Simulate one case and run both methods; installation in arcsec, errors, sigmas."""
+def run_case(group: int, condition: str = "sway", seed: int = 0, duration=None,
+             crlb: bool = True) -> dict:
+    """Simulate one case and run both methods; installation in arcsec, errors, sigmas.
+
+    ``crlb``: also the Cramér–Rao bound of the inertial filter's model (``out["crlb"]``,
+    arcsec per axis).
+    """
     true = np.array(TABLE2[group][0], dtype=float)
     effects = {"installation": list(true), **CALIBRATED_CAMERA}
     if condition != "sway+E":
@@ -93,6 +106,9 @@ def run_case(group: int, condition: str = "sway", seed: int = 0, duration=None) 
         out[name] = {"est": est, "err": err, "sigma": sig,
                      "nees": float(err @ np.linalg.solve(P, err)),
                      "seconds": time.perf_counter() - t, "gated": r.counters["stars_gated"]}
+    if crlb:
+        b = crlb_swaying(data, res.prior, res.truth, extra).filter
+        out["crlb"] = b.sigma()[b.it][b.model.slices["installation"]] * ARCSEC
     return out
 
 
@@ -102,25 +118,41 @@ def main(argv=None) -> int:
     ap.add_argument("--groups", default="1,2,3,4,5")
     ap.add_argument("--conditions", default="sway,stationary,sway+E")
     ap.add_argument("--seeds", type=int, default=1, help="Monte-Carlo runs per case")
+    ap.add_argument("--no-crlb", action="store_true", help="skip the Cramér–Rao bound")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     groups = [int(g) for g in args.groups.split(",")]
+    crlb = not args.no_crlb
     print(f"{'grp':>3} {'cond':>10} {'axis':>4} {'true':>7} | {'paper P':>8} {'paper T':>8} | "
-          f"{'inertial':>9} {'err':>6} {'1σ':>5} | {'tradit.':>9} {'err':>6} {'1σ':>5}")
+          f"{'inertial':>9} {'err':>6} {'1σ':>5} {'CRLB':>5} | {'tradit.':>9} {'err':>6} "
+          f"{'1σ':>5}")
     nees = {"inertial": [], "traditional": []}
     for cond in args.conditions.split(","):
         for g in groups:
+            errs, bounds, nees_case = [], [], []
             for seed in range(args.seeds):
-                r = run_case(g, cond, seed)
+                r = run_case(g, cond, seed, crlb=crlb)
+                b = r.get("crlb", np.full(3, np.nan))
                 for k, ax in enumerate("xyz"):
                     pP, pT = TABLE2[g][1][k], TABLE2[g][2][k]
                     i, t = r["inertial"], r["traditional"]
                     print(f"{g:>3} {cond:>10} {ax:>4} {r['true'][k]:7.1f} | {pP:8.2f} {pT:8.2f} | "
-                          f"{i['est'][k]:9.2f} {i['err'][k]:+6.2f} {i['sigma'][k]:5.2f} | "
+                          f"{i['est'][k]:9.2f} {i['err'][k]:+6.2f} {i['sigma'][k]:5.2f} "
+                          f"{b[k]:5.2f} | "
                           f"{t['est'][k]:9.2f} {t['err'][k]:+6.2f} {t['sigma'][k]:5.2f}")
                 for m in nees:
                     nees[m].append(r[m]["nees"])
+                errs.append(r["inertial"]["err"])
+                bounds.append(b)
+                nees_case.append(r["inertial"]["nees"])
                 sys.stdout.flush()
+            rms = np.sqrt(np.mean(np.square(errs), axis=0))
+            bnd = np.sqrt(np.mean(np.square(bounds), axis=0))
+            print(f"{g:>3} {cond:>10}  inertial over {args.seeds} seed(s): RMS error "
+                  + " ".join(f"{v:.3f}" for v in rms) + "\"; CRLB "
+                  + " ".join(f"{v:.3f}" for v in bnd) + "\"; efficiency RMS/CRLB "
+                  + " ".join(f"{v:.2f}" for v in rms / bnd)
+                  + f"; mean NEES {np.mean(nees_case):.2f}")
     for m, v in nees.items():
         print(f"mean NEES (3 dof, consistent = 3) {m}: {np.mean(v):.2f} over {len(v)} runs")
     return 0

@@ -19,6 +19,8 @@ from stellar_cal_ros.methods.replay import (
     truth_parameters,
 )
 from stellar_cal_ros.methods.swaying import (
+    SwayingConfig,
+    crlb_swaying,
     prior_uncertain_effects,
     replay_swaying,
     resolve_effects,
@@ -108,6 +110,74 @@ def test_cli_outputs_and_speed(sim_bag, tmp_path, capsys):
     assert speed > 30.0  # sanity only: wall-clock speed depends on the shared machine
 
 
+def test_attitude_prefix_is_the_running_product():
+    from scipy.spatial.transform import Rotation
+
+    from stellar_cal_ros.core.strapdown import attitude_prefix
+
+    phi = np.random.default_rng(1).normal(scale=0.02, size=(257, 3))
+    C = attitude_prefix(phi)
+    R = np.eye(3)
+    assert C.shape == (258, 3, 3) and np.allclose(C[0], R)
+    for k in range(len(phi)):
+        R = R @ Rotation.from_rotvec(phi[k]).as_matrix()
+        assert np.allclose(C[k + 1], R, atol=1e-13)
+
+
+def test_fast_propagation_matches_per_sample(sim_bag):
+    """The per-frame propagation (reference strapdown window, first-order θ corrections)
+    against the per-sample path, with the IMU error matrix estimated (scaled sensor rows)."""
+    path, res = sim_bag
+    data = read_bag_data(path)
+    fast = replay_swaying(data, res.prior, E_EFFECTS).filter
+    exact = replay_swaying(data, res.prior, E_EFFECTS,
+                           SwayingConfig(exact_propagation=True)).filter
+    s_exact = exact.sigma()[exact.it]
+    z = (fast.theta - exact.theta) / s_exact
+    assert np.all(np.abs(z) < 0.1), dict(zip(fast.model.parameter_names(), z, strict=True))
+    np.testing.assert_allclose(fast.sigma()[fast.it], s_exact, rtol=0.02)
+    assert fast.reference_rebuilds == 0
+
+
+def test_replay_speed(sim_bag):
+    """Issue 4: ≥ 500x real time on the reference bag (~700x filtering on a quiet machine).
+
+    Measured here on the simulated 386 s bag with the IMU error matrix in the model (the
+    size of the CLI's default model), filtering only, best of three; the threshold (400x)
+    leaves a factor ~2 for a loaded machine (the per-sample propagation managed ~330x).
+    """
+    path, res = sim_bag
+    data = read_bag_data(path)
+    seconds = min(replay_swaying(data, res.prior, E_EFFECTS).filter_seconds for _ in range(3))
+    speed = (data.imu_t[-1] - data.imu_t[0]) / seconds
+    print(f"filtering speed {speed:.0f}x real time")
+    assert speed > 400.0
+
+
+def test_crlb_matches_filter_sigma(sim_bag):
+    """The Cramér–Rao bound (Jacobians on the truth) against the filter's own σ.
+
+    An efficient, consistent filter reports σ ≈ bound; the error stays within 3 bounds; an
+    extra estimated effect (the IMU error matrix) can only raise the bound.
+    """
+    path, res = sim_bag
+    data = read_bag_data(path)
+    bound = crlb_swaying(data, res.prior, res.truth).filter
+    sl = bound.model.slices["installation"]
+    b = bound.sigma()[bound.it][sl] * ARCSEC
+    assert np.all(b < 0.5), b  # Zhang's setting: 0.5" is within the information
+    r = replay_swaying(data, res.prior)
+    err, sig = _installation_error(r, res.truth)
+    np.testing.assert_allclose(sig, b, rtol=0.1)
+    assert np.all(np.abs(err) < 3 * b), (err, b)
+    # the truth stays where it was put, and every star is used
+    np.testing.assert_array_equal(bound.theta, bound.model.initial_value)
+    assert bound.counters.stars_gated == 0
+    wider = crlb_swaying(data, res.prior, res.truth, E_EFFECTS).filter
+    bw = wider.sigma()[wider.it][wider.model.slices["installation"]] * ARCSEC
+    assert np.all(bw >= 0.999 * b), (bw, b)
+
+
 def test_bad_input_counted(sim_bag):
     path, res = sim_bag
     data = read_bag_data(path)
@@ -128,6 +198,20 @@ def test_bad_input_counted(sim_bag):
     assert bool(r.residuals["gated"][(r.residuals["frame"] == 20)][0])
     err, _ = _installation_error(r, res.truth)
     assert np.all(np.abs(err) <= 0.5)
+
+
+def test_imu_gap_counted(sim_bag):
+    """A gap in the IMU stream (the sample after it spans 0.3 s) is counted and inflates
+    the covariance even when frame stamps fall inside the long sample."""
+    path, res = sim_bag
+    data = read_bag_data(path)
+    keep = np.ones(len(data.imu_t), dtype=bool)
+    keep[10000:10030] = False
+    data.imu_t, data.imu_w, data.imu_f = data.imu_t[keep], data.imu_w[keep], data.imu_f[keep]
+    r = replay_swaying(data, res.prior)
+    assert r.counters["imu_gaps"] == 1
+    err, sig = _installation_error(r, res.truth)
+    assert np.all(np.abs(err) <= 3 * sig), (err, sig)
 
 
 def _z_all(result, truth):
@@ -186,6 +270,38 @@ def test_reference_bag():
     err0, _ = _installation_error(r0, truth)
     assert math.hypot(err0[0], err0[1]) > 300.0
     assert np.sum(r0.history["nis"]) / np.sum(r0.history["dof"]) > 2.0
+
+
+@pytest.mark.skipif(not (DATA / "swaying_ideal.mcap").exists(), reason="reference bag absent")
+def test_reference_bag_bound():
+    """Is 0.5" information-limited on swaying_ideal?  (benchmarks/swaying_bound.py)
+
+    With the shipped prior (camera and IMU error matrices uncertain) the Cramér–Rao bound of
+    the installation is ≈ (12.8, 16.3, 6.3)" — no estimator on this model and data reaches
+    0.5"; the filter's σ equals the bound (efficient).  With camera and IMU error matrices
+    pre-calibrated (Zhang's setting) the bound is ≈ (0.15, 0.07, 0.35)".
+    """
+    prior = load_calibration(DATA / "swaying_ideal.prior.yaml")
+    truth = load_calibration(DATA / "swaying_ideal.truth.yaml")
+    data = read_bag_data(DATA / "swaying_ideal.mcap")
+    auto = prior_uncertain_effects(prior)
+
+    def bound(p, effects):
+        f = crlb_swaying(data, p, truth, effects).filter
+        return f.sigma()[f.it][f.model.slices["installation"]] * ARCSEC
+
+    b = bound(prior, auto)
+    assert np.all(b > 5.0), b
+    r = replay_swaying(data, prior, auto)
+    _, sig = _installation_error(r, truth)
+    np.testing.assert_allclose(sig, b, rtol=0.05)
+    calibrated = copy.deepcopy(prior)
+    calibrated.gyro_error_matrix = truth.gyro_error_matrix
+    calibrated.accel_error_matrix = truth.accel_error_matrix
+    calibrated.camera = truth.camera
+    b2 = bound(calibrated, [e for e in auto if e not in E_EFFECTS + CAMERA_EFFECTS
+                            + ["radial_k3"]])
+    assert np.all(b2 < 0.5) and b2[2] > 0.25, b2
 
 
 def _observable_errors(result, truth):

@@ -29,6 +29,7 @@ from scipy.spatial.transform import Rotation
 
 __all__ = [
     "attitude_increments",
+    "attitude_prefix",
     "propagate_attitude",
     "propagate_velocity_position_inertial",
     "quat_cumprod",
@@ -137,6 +138,30 @@ def quat_cumprod(q: ArrayLike) -> NDArray[np.float64]:
     if n:
         Q /= np.sqrt(np.einsum("ij,ij->j", Q, Q))
     return np.ascontiguousarray(Q.T)
+
+
+def attitude_prefix(phi: ArrayLike) -> NDArray[np.float64]:
+    """Return the attitudes ``C_k`` reached through rotation increments, from the identity.
+
+    Parameters
+    ----------
+    phi : array_like, shape (N, 3)
+        Body rotation vectors of consecutive intervals (e.g. :func:`attitude_increments`).
+
+    Returns
+    -------
+    ndarray, shape (N+1, 3, 3)
+        ``C_0 = I``, ``C_{k+1} = C_k Exp(phi_k)``: the body attitude at every interval
+        boundary relative to the first one.  Over boundaries ``a < b`` the attitude change is
+        ``C_aᵀ C_b`` — two lookups instead of a product over the samples in between
+        (:func:`quat_cumprod`: rounding ~``log2(N) eps``).
+    """
+    p = np.asarray(phi, dtype=np.float64).reshape(-1, 3)
+    q = np.empty((p.shape[0] + 1, 4))
+    q[0] = (0.0, 0.0, 0.0, 1.0)
+    if p.shape[0]:
+        q[1:] = Rotation.from_rotvec(p).as_quat()
+    return Rotation.from_quat(quat_cumprod(q)).as_matrix()
 
 
 def _as_dt(dt: ArrayLike, n: int) -> NDArray[np.float64]:
