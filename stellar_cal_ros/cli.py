@@ -167,8 +167,19 @@ def print_diagnosis(summary: dict) -> None:
     print("candidates (best first):")
     for c in summary["candidates"][:6]:
         flag = "SIGNIFICANT" if c["significant"] else "           "
+        after = c.get("after")
+        note = (f"  (not needed once {after['effect']} is added: p={after['p_value']:.2g})"
+                if after and not c["significant"] else
+                f"  (after {after['effect']}: p={after['p_value']:.2g})" if after else "")
         print(f"  {flag} {c['effect']:22s} score {c['score']:10.1f}  p={c['p_value']:.2g}  "
-              f"RMS after u={c['rms_after_px'][0]:.4f} v={c['rms_after_px'][1]:.4f} px")
+              f"RMS after u={c['rms_after_px'][0]:.4f} v={c['rms_after_px'][1]:.4f} px{note}")
+    also = [c["effect"] for c in sorted(summary["candidates"][1:],
+                                        key=lambda c: -(c.get("after") or {}).get("score", 0))
+            if c["significant"] and c.get("after")]
+    if also:
+        top = next(c["after"]["effect"] for c in summary["candidates"] if c.get("after"))
+        print(f"  still significant after adding {top}: "
+              f"{', '.join(also)} (add them one at a time)")
     implausible = summary.get("implausible", [])
     for u in implausible:
         est, sig = next(iter(u["estimate"].values())), next(iter(u["sigma"].values()))

@@ -47,6 +47,27 @@ def test_hidden_time_offset_is_found_and_fixed(tmp_path):
     for key in ("residual_rms_px", "expected_rms_px", "candidates", "unexplained"):
         assert key in on_disk
     assert set(on_disk["candidates"][0]) >= {"effect", "score", "rms_after_px", "p_value"}
+    # copycats of the time offset are not claimed: tested after it, none is needed
+    assert not any(c["significant"] for c in summary["candidates"][1:]), summary["candidates"]
+
+
+def test_second_effect_behind_a_large_one_is_named_after_it(tmp_path):
+    """Two effects missing: the large one first; the small one, too weak to count alone,
+    is significant once the large one is in the model, and ahead of the copycats then."""
+    sim, paths, data = _bag(tmp_path, {"time_offset": 0.02, "pixel_aspect": 1e-4})
+    base = replay_psce(data, sim.prior)
+    cands = CANDIDATES + ["gyro_misalignment"]
+    summary = diagnose(data, base.calibration, "psce", [], tmp_path / "rep",
+                       candidates=cands, plots=False, verbose=False)
+    by = {c["effect"]: c for c in summary["candidates"]}
+    assert summary["candidates"][0]["effect"] == "time_offset"
+    assert summary["recommendation"] == "time_offset"
+    pa = by["pixel_aspect"]
+    assert not pa["significant_alone"] and pa["significant"], pa
+    assert pa["after"]["effect"] == "time_offset" and pa["after"]["p_value"] < 1e-10
+    after = [c for c in summary["candidates"] if c["after"]]
+    assert max(after, key=lambda c: c["after"]["score"])["effect"] == "pixel_aspect"
+    assert not by["gyro_misalignment"]["significant"]  # significant alone, a copycat
 
 
 def test_clean_data_claims_nothing(tmp_path):

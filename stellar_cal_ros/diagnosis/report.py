@@ -131,6 +131,16 @@ def plot_time(panels: list[tuple[str, Table]], path: Path) -> None:
     plt.close(fig)
 
 
+def _after_note(c: dict[str, Any]) -> str:
+    """The candidate's test after the top one, for the table."""
+    a = c.get("after")
+    if not a:
+        return ""
+    verdict = "significant" if c["significant"] else "not needed then"
+    return (f"<br><small>after {html.escape(a['effect'])}: p = {a['p_value']:.2g} "
+            f"({verdict})</small>")
+
+
 def write_html(out_dir: Path, summary: dict[str, Any], images: list[tuple[str, str]],
                title: str) -> Path:
     """Write ``report.html`` (one page) and return its path."""
@@ -140,7 +150,7 @@ def write_html(out_dir: Path, summary: dict[str, Any], images: list[tuple[str, s
         est = ", ".join(f"{k}={v:.4g}±{c['sigma'][k]:.2g}" for k, v in c["estimate"].items())
         rows.append(
             f"<tr class={'sig' if c['significant'] else 'ns'}><td><b>{c['effect']}</b></td>"
-            f"<td>{c['score']:.1f}</td><td>{c['p_value']:.2g}</td>"
+            f"<td>{c['score']:.1f}</td><td>{c['p_value']:.2g}{_after_note(c)}</td>"
             f"<td>{c['rms_after_px'][0]:.4f} / {c['rms_after_px'][1]:.4f}</td>"
             f"<td>{html.escape(est)}</td><td class=expl>{html.escape(eff.explanation)}</td></tr>")
     unexplained = "".join(
@@ -163,7 +173,8 @@ Evaluation: {summary['evaluation']}.</p>
 <p>Innovation RMS <b>{rms[0]:.4f} / {rms[1]:.4f} px</b> (u / v) against the
 {exp[0]:.4f} / {exp[1]:.4f} px the model expects; mean NIS per star {nis['mean']:.3f}
 (consistent: {nis['lower']:.3f} … {nis['upper']:.3f}).</p>
-<h2>Candidate effects (best first; green = significant after correction)</h2>
+<h2>Candidate effects</h2><p>Best first; green = significant after correction, and still
+significant once the top one is added.</p>
 <table><tr><th>effect</th><th>score 2Δℓ</th><th>p (Bonferroni)</th>
 <th>RMS after, px</th><th>estimate ± σ</th><th>what it is</th></tr>{''.join(rows)}</table>
 <h2>Unexplained structure</h2><ul>{unexplained}</ul>
