@@ -114,7 +114,10 @@ def test_solver_covariance_matches_bound(bounds):
     np.testing.assert_allclose(r.sigma[sel], b.sigma("estimator")[sel], rtol=0.05)
     np.testing.assert_allclose(r.sigma[sel], b.sigma("crlb")[sel], rtol=0.2)
     i = run_iac(noisy, prior)
-    np.testing.assert_allclose(i.sigma, bi.sigma("reported"), rtol=0.05)
+    # IAC reports the pair-correlation sandwich (scaled by its residuals: ~2200 pairs'
+    # worth, relative SE of the scale a few %), not the 2x optimistic independent-pair σ
+    np.testing.assert_allclose(i.sigma, bi.sigma("reported"), rtol=0.08)
+    assert np.all(bi.sigma("naive")[:3] < 0.7 * bi.sigma("reported")[:3])
 
 
 def test_errors_within_chi2_of_bound(bounds):

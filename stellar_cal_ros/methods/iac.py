@@ -153,6 +153,39 @@ class _Pairs:
         self._cache[key] = (r, J)
         return r, J
 
+    def covariance(self, theta: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        """Covariance of the estimate at ``theta`` with the pair correlations.
+
+        The angles of a frame share centroid errors, so the weighted least squares (pairs
+        treated as independent) has the sandwich covariance ``N⁻¹ (JᵀWΣWJ + prior) N⁻¹``
+        with ``Σ = G diag(σ²) Gᵀ``, ``G = ∂angle/∂uv``.  Returns it, the expected sum of
+        squared whitened pair residuals at the solution (``tr WΣW − tr H WΣW``, H the hat
+        matrix: the σ̂² denominator that the correlations make differ from pairs − P), and
+        the naive ``(JᵀWJ / σ̂²_expected + prior)⁻¹`` that treats the pairs as independent.
+        """
+        from stellar_cal_ros.methods.acf import _inverse
+
+        _, J = self.evaluate(theta)
+        npair, P = self.n_pairs, J.shape[1]
+        Jw, Jp = J[:npair], J[npair:]  # pairs already × w_pair; prior rows
+        N = Jw.T @ Jw + Jp.T @ Jp
+        ga, gb = self.centroid_jacobian(theta)
+        # JᵀWΣWJ = Σ_stars (Σ_{pairs ∋ star} Jw w g)(…)ᵀ σ²
+        T = np.zeros((len(self.uv), 2, P))
+        w = self.w_pair
+        np.add.at(T, self.Ia, (w[:, None] * ga)[:, :, None] * Jw[:, None, :])
+        np.add.at(T, self.Ib, (w[:, None] * gb)[:, :, None] * Jw[:, None, :])
+        T *= self.sig[:, None, None]
+        T = T.reshape(-1, P)
+        Ninv = _inverse(N)
+        cov = Ninv @ (T.T @ T + Jp.T @ Jp) @ Ninv
+        diag = w ** 2 * (self.sig[self.Ia] ** 2 * np.sum(ga ** 2, axis=1)
+                         + self.sig[self.Ib] ** 2 * np.sum(gb ** 2, axis=1))
+        expected_ss = float(diag.sum()) - float(np.trace(Ninv @ T.T @ T))
+        s2 = expected_ss / max(npair - P, 1)
+        naive = _inverse(Jw.T @ Jw / s2 + Jp.T @ Jp)
+        return 0.5 * (cov + cov.T), expected_ss, naive
+
     def centroid_jacobian(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``∂angle/∂uv`` of each pair's first and second star, (pairs, 2) each (rad/px)."""
         _, ga, gb, J_xy, _ = self._geometry(theta)
@@ -233,10 +266,12 @@ def run_iac(
                         xtol=1e-12, ftol=1e-12, gtol=1e-10)
     r, J = evaluate(res.x)
     npair = pairs.n_pairs
-    s2 = float(np.sum(r[:npair] ** 2) / max(npair - model.size, 1))
-    info = J[:npair].T @ J[:npair] / s2 + J[npair:].T @ J[npair:]
-    d = 1.0 / np.sqrt(np.diag(info))
-    cov = np.linalg.pinv(info * np.outer(d, d), hermitian=True) * np.outer(d, d)
+    # Sandwich covariance (the pairs of a frame are correlated: the independent-pair
+    # formula was 2x optimistic in Liu's setting), scaled by the observed over the
+    # expected residual sum of squares so that a wrong message σ is corrected for.
+    cov, expected_ss, _ = pairs.covariance(res.x)
+    scale = float(np.sum(r[:npair] ** 2)) / expected_ss if expected_ss > 0 else 1.0
+    cov = cov * max(scale, 1e-12)
     cal = copy.deepcopy(prior)
     cal.sigma = copy.deepcopy(prior.sigma or {})
     cal.method = "iac"
@@ -263,9 +298,11 @@ class IacBound:
       squares with pair weights ``f0/√(σ_i² + σ_j²)`` and pairs treated as independent,
       while the angles of a frame share centroid errors (sandwich ``N⁻¹ (JᵀWΣWJ + prior)
       N⁻¹`` with ``Σ = G σ² Gᵀ``, ``G`` = ∂angle/∂uv);
-    * ``reported`` — what run_iac reports for it on average: ``(JᵀWJ / σ̂² + prior)⁻¹``
-      (pairs independent) with σ̂² its residual variance factor's expectation, which the
-      pair correlations bias (the fit absorbs more than P residual dimensions' worth).
+    * ``reported`` — what run_iac reports for it on average: the same sandwich (scaled by
+      observed / expected residual sum of squares, 1 on average);
+    * ``naive`` — what the independent-pair formula ``(JᵀWJ / σ̂² + prior)⁻¹`` would report
+      (σ̂² its residual variance factor's expectation, which the pair correlations bias):
+      about 2× too small a σ in Liu's setting, the reason run_iac reports the sandwich.
     """
 
     parameter_names: list[str]
@@ -274,12 +311,13 @@ class IacBound:
     crlb: np.ndarray
     estimator: np.ndarray
     reported: np.ndarray
+    naive: np.ndarray
     n_frames: int
     n_stars: int
     n_pairs: int
 
     def sigma(self, which: str = "crlb") -> np.ndarray:
-        """1-σ of θ from ``crlb``, ``estimator`` or ``reported``."""
+        """1-σ of θ from ``crlb``, ``estimator``, ``reported`` or ``naive``."""
         return np.sqrt(np.diag(getattr(self, which)))
 
 
@@ -344,25 +382,6 @@ def crlb_iac(
     cov = _inverse(info)
     # run_iac's estimator at the noise-free centroids: pair-correlation sandwich
     pairs = _Pairs(model, uvs, us, sigs, prior.camera.fx, th0, sp)
-    _, J = pairs.evaluate(theta)
-    npair = pairs.n_pairs
-    Jw = J[:npair]  # already × w_pair
-    N = Jw.T @ Jw + J[npair:].T @ J[npair:]
-    ga, gb = pairs.centroid_jacobian(theta)
-    # Σ_pairs = G diag(σ²) Gᵀ → JᵀWΣWJ = Σ_stars (Σ_pairs∋star Jw w g)(…)ᵀ σ²
-    n_st = len(pairs.uv)
-    T = np.zeros((n_st, 2, P))
-    w = pairs.w_pair
-    np.add.at(T, pairs.Ia, (w[:, None] * ga)[:, :, None] * Jw[:, None, :])
-    np.add.at(T, pairs.Ib, (w[:, None] * gb)[:, :, None] * Jw[:, None, :])
-    T *= pairs.sig[:, None, None]
-    T = T.reshape(-1, P)
-    Ninv = _inverse(N)
-    est = Ninv @ (T.T @ T + J[npair:].T @ J[npair:]) @ Ninv
-    # run_iac's σ̂²: E[Σ r²] / (pairs − P) = (tr WΣW − tr H WΣW) / dof, H the hat matrix
-    diag = w ** 2 * (pairs.sig[pairs.Ia] ** 2 * np.sum(ga ** 2, axis=1)
-                     + pairs.sig[pairs.Ib] ** 2 * np.sum(gb ** 2, axis=1))
-    s2 = (float(diag.sum()) - float(np.trace(Ninv @ T.T @ T))) / max(npair - P, 1)
-    reported = _inverse(Jw.T @ Jw / s2 + J[npair:].T @ J[npair:])
-    return IacBound(model.parameter_names(), model, theta, cov, 0.5 * (est + est.T),
-                    reported, len(uvs), n_st, npair)
+    est, _, naive = pairs.covariance(theta)
+    return IacBound(model.parameter_names(), model, theta, cov, est, est, naive, len(uvs),
+                    len(pairs.uv), pairs.n_pairs)
