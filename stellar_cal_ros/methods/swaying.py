@@ -204,6 +204,11 @@ class SwayingConfig:
     imu_gap_factor: float = 3.0
     gap_rate_sigma: float = 1e-3  #: rad/s over an IMU gap
     gap_accel_sigma: float = 0.5  #: m/s² over an IMU gap
+    #: a frame after more IMU gap than this re-acquires attitude, velocity and position (a
+    #: sway period is ~10 s: the rate during a gap is unknown after a fraction of it)
+    gap_reacquire_s: float = 0.1
+    #: this many frames in a row with too few stars passing the gate re-acquire (lost lock)
+    reinit_after: int = 3
     init_outlier_px: float = 5.0
     grid_step_s: float = 0.25  #: Earth-orientation grid (gravitation, site), linear interp.
     #: per-sample propagation between star frames (the reference; ~10x slower)
@@ -333,6 +338,8 @@ class SwayingFilter:
         self.last_stamp: float | None = None
         self.last_reference_t = -np.inf
         self._frame = (self.t0, 0.0)  # (POSIX, relative) stamp of the frame being processed
+        self._gap_pending = False  # an IMU gap longer than gap_reacquire_s was propagated over
+        self._rejected_in_row = 0  # frames in a row with fewer than min_stars accepted
         self.reference_history: dict[str, list] = {"t": [], "nu_x": [], "nu_y": [],
                                                     "nu_z": [], "nis": []}
 
@@ -639,7 +646,11 @@ class SwayingFilter:
             ia, iv = self.ia, self.iv
             Pn[ia, ia] += (self.config.gap_rate_sigma * gap) ** 2 * np.eye(3)
             Pn[iv, iv] += (self.config.gap_accel_sigma * gap) ** 2 * np.eye(3)
-            log.warning("IMU gap of %.3f s before t=%.3f s: uncertainty inflated", gap, t_target)
+            if gap > self.config.gap_reacquire_s:
+                self._gap_pending = True
+            log.warning("IMU gap of %.3f s before t=%.3f s: %s", gap, t_target,
+                        "re-acquiring from the stars" if self._gap_pending
+                        else "uncertainty inflated")
         self.P = 0.5 * (Pn + Pn.T)
 
     @staticmethod
@@ -884,7 +895,14 @@ class SwayingFilter:
                              float("nan"), 0, pred0.directions_st, self.omega.copy(), 0)
         if n_acc < c.min_stars:
             self.counters.skipped_few_stars += 1
+            self._rejected_in_row += 1
+            if self._rejected_in_row >= c.reinit_after:
+                # lost lock: the attitude is off by more than the gate allows
+                log.warning("t=%.3f s: %d frames in a row rejected, re-acquiring",
+                            self.t, self._rejected_in_row)
+                self.reacquire(uv, u_i, ctx, sigma, self._frame[1])
             return result
+        self._rejected_in_row = 0
         if n_acc < n:
             idx = np.flatnonzero(accepted)
             rows = np.repeat(2 * idx, 2) + np.tile([0, 1], n_acc)
@@ -961,8 +979,38 @@ class SwayingFilter:
         except _NoImuError:
             self.counters.skipped_no_imu += 1
             return None
+        if self._gap_pending:
+            # the rate over the gap is unknown (a sway period is ~10 s): attitude, velocity
+            # and position from this frame and the site, as at the start; θ is kept
+            self._gap_pending = False
+            if self.reacquire(uv, u_i, ctx, sigma, t_rel):
+                self.counters.extra["reacquired_after_gap"] = \
+                    self.counters.extra.get("reacquired_after_gap", 0) + 1
+                return None
         self.reference_update()
         return self.star_update(uv, u_i, ctx, sigma)
+
+    def reacquire(self, uv, u_i, ctx: FrameContext, sigma, t_rel: float) -> bool:
+        """Re-initialize the navigation state from a star frame and the site; keep θ.
+
+        After an IMU gap or a lost lock the nominal attitude, velocity and position carry
+        errors the covariance does not describe; updating them would pull θ.  Their rows and
+        columns of P are cleared and :meth:`initialize` sets them as at the start (attitude
+        from the stars with its θ correlation, velocity and position from the site).  False
+        (state unchanged) if the frame cannot align.
+        """
+        saved = (self.P.copy(), self.R_i_b, self.v.copy(), self.r.copy(), self.t, self._k)
+        nav = np.concatenate([np.arange(sl.start, sl.stop) for sl in (self.ia, self.iv, self.ir)])
+        self.P[nav, :] = 0.0
+        self.P[:, nav] = 0.0
+        if not self.initialize(uv, u_i, ctx, sigma, t_rel):
+            self.P, self.R_i_b, self.v, self.r, self.t, self._k = saved
+            return False
+        self.counters.init_frames -= 1
+        self.counters.reinitializations += 1
+        self._rejected_in_row = 0
+        self.last_reference_t = self.t  # the next Z1 a full interval later
+        return True
 
     def sigma(self) -> np.ndarray:
         """1-sigma of the error state."""
