@@ -295,21 +295,23 @@ def rank_candidates(
 
 def condition_on_top(data: BagData, prior: Calibration, spec: MethodSpec, extra: list[str],
                      results: list[CandidateResult], evaluation_fraction: float = 0.5,
-                     progress: Callable[[str], None] | None = None) -> None:
-    """Test every other significant candidate again with the top one in the model.
+                     progress: Callable[[str], None] | None = None,
+                     max_after: int = 4) -> None:
+    """Test the other significant candidates again with the top one in the model.
 
     This is the next iteration of the loop, run ahead: start values from the top
     candidate's calibration (as ``stellar-cal diagnose`` would take them after the user
-    added it), a reference run with the top one, and every other candidate significant
-    alone re-run together with it.  The same quasi-likelihood ratio
-    (dispersion of the reference run), Bonferroni over the candidates tested, and
-    explained-variance floor (of the excess the reference leaves) decide.  Fills the
-    ``after`` fields in place.
+    added it), a reference run with the top one, and the other candidates with p < 0.01
+    (the ``max_after`` strongest; the rest keep their marginal verdict) re-run together with
+    it.  The same quasi-likelihood ratio (dispersion of the reference run), Bonferroni over
+    the candidates tested, and explained-variance floor (of the excess the reference
+    leaves) decide.  Fills the ``after`` fields in place.
     """
     top = next((c for c in results if c.significant_alone), None)
     # every other candidate with a small p, even one that explains too little of the
     # excess alone: a real effect can hide behind a large one and show once it is gone
-    rest = [c for c in results if c is not top and c.status == "ranked" and c.p_adjusted < 0.01]
+    rest = [c for c in results if c is not top and c.status == "ranked"
+            and c.p_adjusted < 0.01][:max_after]  # results are sorted: the strongest ones
     if top is None or top.run is None or not rest:
         return
     prior = rerun_prior(top.run.calibration, list(spec.baseline) + extra + [top.effect])
