@@ -799,7 +799,7 @@ def _live_config(cfg: PsceConfig) -> PsceConfig:
     return cfg
 
 
-_FILTER_SKIP = ("model", "config", "counters", "_prefix")
+_FILTER_SKIP = ("model", "config", "counters", "_prefix", "_imu_cap")  # _imu_cap: buffers
 _PREFIX_KEY = "prefix:"  # checkpoint arrays of the fast-propagation prefix
 
 

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -161,6 +162,8 @@ class PsceFilter:
         self.t0 = t0
         self.imu_t = np.asarray(imu_t, dtype=float)
         self.imu_w = np.asarray(imu_w, dtype=float)
+        # (t buffer, w buffer, imu_t view, imu_w view) of _append_imu; not state
+        self._imu_cap: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         if nominal_dt is not None:
             self.nominal_dt = float(nominal_dt)
         else:
@@ -211,20 +214,50 @@ class PsceFilter:
         """
         t = np.asarray(imu_t, dtype=float).reshape(-1)
         w = np.asarray(imu_w, dtype=float).reshape(-1, 3)
-        last = self.imu_t[-1] if len(self.imu_t) else -np.inf
-        ok = np.isfinite(t) & np.all(np.isfinite(w), axis=1)
-        ok &= t > last
-        ok &= np.concatenate([[True], np.diff(t) > 0]) if len(t) else ok
-        if len(t) and not np.all(np.diff(t[ok]) > 0):
-            ok[:] = False  # unordered batch: let the caller sort it
-        dropped = int(len(t) - ok.sum())
+        last = float(self.imu_t[-1]) if len(self.imu_t) else -np.inf
+        if len(t) <= _SMALL:  # live use: the same decisions without the array machinery
+            ok = _imu_ok_small(t.tolist(), w.tolist(), last)
+            if not all(ok):
+                ok = np.array(ok, dtype=bool)
+                t, w = t[ok], w[ok]
+        else:
+            ok = np.isfinite(t) & np.all(np.isfinite(w), axis=1)
+            ok &= t > last
+            ok &= np.concatenate([[True], np.diff(t) > 0]) if len(t) else ok
+            if len(t) and not np.all(np.diff(t[ok]) > 0):
+                ok[:] = False  # unordered batch: let the caller sort it
+            t, w = t[ok], w[ok]
+        dropped = len(ok) - len(t)
         if dropped:
             self.counters.extra["imu_dropped"] = self.counters.extra.get("imu_dropped", 0) + dropped
-        self.imu_t = np.concatenate([self.imu_t, t[ok]])
-        self.imu_w = np.concatenate([self.imu_w, w[ok]])
+        self._append_imu(t, w)
         if self._prefix is not None:
-            self._prefix.extend(t[ok], w[ok])
-        return int(ok.sum())
+            self._prefix.extend(t, w)
+        return len(t)
+
+    def _append_imu(self, t: np.ndarray, w: np.ndarray) -> None:
+        """``imu_t``, ``imu_w`` += the samples, in buffers with spare room (amortized O(1)).
+
+        ``imu_t`` and ``imu_w`` are views of the buffers; anything that replaces them
+        (:meth:`drop_imu`, a restored checkpoint) makes the next call start new buffers.
+        """
+        m = len(t)
+        if m == 0:
+            return
+        n = len(self.imu_t)
+        cap = self._imu_cap
+        if cap is None or cap[2] is not self.imu_t or cap[3] is not self.imu_w \
+                or n + m > len(cap[0]):
+            size = max(2 * (n + m), 1024)
+            tb, wb = np.empty(size), np.empty((size, 3))
+            tb[:n] = self.imu_t
+            wb[:n] = self.imu_w
+        else:
+            tb, wb = cap[0], cap[1]
+        tb[n:n + m] = t
+        wb[n:n + m] = w
+        self.imu_t, self.imu_w = tb[:n + m], wb[:n + m]
+        self._imu_cap = (tb, wb, self.imu_t, self.imu_w)
 
     def drop_imu(self, cut: int) -> int:
         """Forget the first ``cut`` IMU samples (live use: bounded memory); returns how many.
@@ -748,6 +781,24 @@ class PsceFilter:
         return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
 
 
+def _imu_ok_small(t: list[float], w: list[list[float]], last: float) -> list[bool]:
+    """:meth:`PsceFilter.extend_imu`'s sample check for a few samples, in plain Python.
+
+    Finite, after ``last``, after the previous sample of the batch (``t_i − t_{i−1} > 0``,
+    as ``np.diff``), and the accepted ones increasing (else none is accepted).
+    """
+    isfinite = math.isfinite
+    ok = []
+    for i, ti in enumerate(t):
+        wi = w[i]
+        ok.append(isfinite(ti) and isfinite(wi[0]) and isfinite(wi[1]) and isfinite(wi[2])
+                  and ti > last and (i == 0 or ti - t[i - 1] > 0))
+    kept = [ti for ti, k in zip(t, ok, strict=True) if k]
+    if any(not b - a > 0 for a, b in zip(kept, kept[1:], strict=False)):
+        return [False] * len(t)
+    return ok
+
+
 def _wahba_inliers(camera, uv: np.ndarray, u_i: np.ndarray, outlier_px: float) -> np.ndarray:
     """Stars consistent with one rotation (drops misidentified ones before the pixel fit).
 
@@ -782,6 +833,8 @@ def _subset_context(ctx: FrameContext, idx: np.ndarray) -> FrameContext:
 
 _BLOCK = 32  # samples per block of the prefix's attitude products (see _ImuPrefix)
 _CHUNK = 16384  # samples per piece of a long extension (cache)
+_SMALL = 8  # extensions of up to this many samples take the scalar path (live use)
+_STALE_DQ = np.zeros((0, 4))  # block_dq while _lv holds the partial block
 _PREFIX_ROWS = {  # per-sample arrays of _ImuPrefix: trailing shape, dtype
     "tp": ((), np.float64), "w_hat": ((3,), np.float64), "C": ((3, 3), np.float64),
     "S": ((3, 3), np.float64), "gap": ((), np.bool_), "gap_count": ((), np.int64),
@@ -805,6 +858,13 @@ class _ImuPrefix:
     block, which for sample k reads only samples ≤ k of its block, then a sequential chain
     of block anchors), and the sums are sequential accumulations; so a live filter fed in
     arbitrary batches reproduces the replay bit for bit.  (Rounding over hours ~1e-12 rad.)
+
+    Batches of up to ``_SMALL`` samples (a live filter appends one 200 Hz sample at a time)
+    take a scalar path, :meth:`_extend_small`, which performs the very same floating-point
+    operations in the same order as the block scan — it keeps the scan's intermediate
+    levels of the current partial block (``_lv``) and extends them by one position — and
+    so stores the same values bit for bit, at a fraction of the fixed cost of the vectorized
+    path (≈ 0.03 instead of ≈ 0.25 ms per call).
     """
 
     def __init__(self, nominal_dt: float, theta_ref: np.ndarray, b: np.ndarray, E: np.ndarray,
@@ -825,6 +885,10 @@ class _ImuPrefix:
         self.dtheta_last = np.zeros(3)  # for the coning term of the next sample
         self.anchor = np.array([0.0, 0.0, 0.0, 1.0])  # attitude at the current block's start
         self.block_dq = np.zeros((0, 4))  # increments of the current (partial) block
+        # scan levels of the current partial block for the scalar path: one entry per
+        # position, each the 6 levels (increment, then after each of the 5 scan steps) as
+        # 4 floats; None: not known (after load_state), rebuilt from block_dq when needed
+        self._lv: list[list[list[float]]] | None = []
         # Storage with spare capacity (amortized appends, drops without copies); the
         # public arrays are views: tp, C, S, gap_count, gap_time have n + 1 rows
         # (boundaries), w_hat and gap n rows (samples).
@@ -870,6 +934,9 @@ class _ImuPrefix:
                 self.extend(imu_t[a:a + _CHUNK], imu_w[a:a + _CHUNK])
             return
         first = self.base == 0 and self.n == 0
+        if m <= _SMALL and not first:
+            self._extend_small(imu_t, imu_w)
+            return
         t_prev = imu_t[0] - self.nominal_dt if first else self.tp[-1]
         dt = np.diff(np.concatenate([[t_prev], imu_t]))
         d = imu_w - self.b
@@ -882,13 +949,15 @@ class _ImuPrefix:
         phi = dth + np.cross(prev, dth) / 12.0
         if first:
             phi[0] = dth[0]
-        seq = np.concatenate([self.block_dq, quat_from_rotvec(phi)])
-        r, old = len(seq), len(self.block_dq)
+        block_dq = self._partial_dq()
+        seq = np.concatenate([block_dq, quat_from_rotvec(phi)])
+        r, old = len(seq), len(block_dq)
         nb = -(-r // _BLOCK)
         pad = np.zeros((nb * _BLOCK, 4))
         pad[:, 3] = 1.0
         pad[:r] = seq
-        L = _block_scan(pad.reshape(nb, _BLOCK, 4))  # (4, nb, B)
+        levels = np.empty((6, 4, _BLOCK)) if r % _BLOCK else None
+        L = _block_scan(pad.reshape(nb, _BLOCK, 4), levels)  # (4, nb, B)
         anchors = np.empty((4, nb))
         a = self.anchor
         for j in range(nb):
@@ -923,6 +992,108 @@ class _ImuPrefix:
         self.dtheta_last = dth[-1].copy()
         self.anchor = a
         self.block_dq = seq[(nb - 1) * _BLOCK:].copy() if r % _BLOCK else np.zeros((0, 4))
+        # the scan levels of the partial block, per position (for _extend_small)
+        self._lv = levels[:, :, :r % _BLOCK].transpose(2, 0, 1).tolist() \
+            if levels is not None else []
+        self._views()
+
+    def _partial_dq(self) -> np.ndarray:
+        """Increments of the current partial block, (r, 4)."""
+        if self._lv is None:
+            return self.block_dq
+        return np.array([p[0] for p in self._lv], dtype=float).reshape(-1, 4)
+
+    def _levels(self) -> list[list[list[float]]]:
+        """``_lv``, rebuilt from ``block_dq`` if unknown (same operations as the scan)."""
+        if self._lv is None:
+            lv: list[list[list[float]]] = []
+            for q in self.block_dq.tolist():
+                lv.append(_scan_position(lv, q))
+            self._lv = lv
+        return self._lv
+
+    def _extend_small(self, imu_t: np.ndarray, imu_w: np.ndarray) -> None:
+        """A few samples, one at a time: the floating-point operations of :meth:`extend`.
+
+        Per sample: the bias-corrected rate (explicit sums with ``A``), the coning-corrected
+        increment, its quaternion (:func:`quat_from_rotvec`, for all samples at once: the
+        same function as the vectorized path), the scan position's levels from those of
+        earlier positions (:func:`_scan_position`), normalization, the anchor product (the
+        operation order of ``_quat_multiply_soa``), the matrix, and the sequential sums.
+        """
+        m = len(imu_t)
+        ts = np.asarray(imu_t, dtype=float).tolist()
+        ws = np.asarray(imu_w, dtype=float).reshape(m, 3).tolist()
+        bx, by, bz = self.b.tolist()
+        A = self.A.tolist() if self.A is not None else None
+        self._reserve(m)
+        buf, i0 = self._buf, self._lo + self.n  # row of the last boundary held
+        t_prev = float(buf["tp"][i0])
+        px, py, pz = self.dtheta_last.tolist()
+        gap_dt = self.gap_factor * self.nominal_dt
+        rows = []
+        phis = np.empty((m, 3))
+        for j in range(m):
+            t = ts[j]
+            dt = t - t_prev
+            wx, wy, wz = ws[j]
+            dx, dy, dz = wx - bx, wy - by, wz - bz
+            if A is not None:
+                dx, dy, dz = (dx * A[0][0] + dy * A[0][1] + dz * A[0][2],
+                              dx * A[1][0] + dy * A[1][1] + dz * A[1][2],
+                              dx * A[2][0] + dy * A[2][1] + dz * A[2][2])
+            hx, hy, hz = dx * dt, dy * dt, dz * dt
+            # np.cross(prev, dth) / 12.0
+            cx = py * hz - pz * hy
+            cy = pz * hx - px * hz
+            cz = px * hy - py * hx
+            phis[j] = (hx + cx / 12.0, hy + cy / 12.0, hz + cz / 12.0)
+            rows.append((t, dt, dx, dy, dz))
+            px, py, pz = hx, hy, hz
+            t_prev = t
+        dqs = quat_from_rotvec(phis).tolist()
+        lv = self._levels()
+        anchor = self.anchor.tolist()
+        ax, ay, az, aw = anchor
+        S_prev = buf["S"][i0].ravel().tolist()
+        gc_prev = int(buf["gap_count"][i0])
+        gt_prev = float(buf["gap_time"][i0])
+        for j in range(m):
+            t, dt, dx, dy, dz = rows[j]
+            i = i0 + j
+            levels = _scan_position(lv, dqs[j])
+            x, y, z, w = levels[-1]
+            nrm = math.sqrt(x * x + y * y + z * z + w * w)
+            x, y, z, w = x / nrm, y / nrm, z / nrm, w / nrm
+            if len(lv) == _BLOCK - 1:  # the block is complete: next anchor, new block
+                anchor = _quat_mul_normalized(np.array(anchor), np.array([x, y, z, w])).tolist()
+                lv = []
+            else:
+                lv.append(levels)
+            # anchor ⊗ L (operation order of _quat_multiply_soa)
+            qx = aw * x + ax * w + ay * z - az * y
+            qy = aw * y - ax * z + ay * w + az * x
+            qz = aw * z + ax * y - ay * x + az * w
+            qw = aw * w - ax * x - ay * y - az * z
+            ax, ay, az, aw = anchor
+            C = _quat_to_matrix_rows(qx, qy, qz, qw)
+            S_prev = [s_ + c_ * dt for s_, c_ in zip(S_prev, C, strict=True)]
+            gap = dt > gap_dt
+            gc_prev += gap
+            gt_prev = gt_prev + (dt if gap else 0.0)
+            buf["tp"][i + 1] = t
+            buf["w_hat"][i] = (dx, dy, dz)
+            buf["gap"][i] = gap
+            buf["C"][i + 1].flat = C
+            buf["S"][i + 1].flat = S_prev
+            buf["gap_count"][i + 1] = gc_prev
+            buf["gap_time"][i + 1] = gt_prev
+        self._lv = lv
+        self.anchor = np.array(anchor)
+        self.block_dq = _STALE_DQ
+        self.n += m
+        self.t_end = ts[-1]
+        self.dtheta_last = np.array([px, py, pz])
         self._views()
 
     def drop(self, cut: int) -> None:
@@ -939,8 +1110,9 @@ class _ImuPrefix:
         """Everything that defines the prefix, as arrays (checkpoints)."""
         out = {k: np.asarray(getattr(self, k)).copy() for k in _PREFIX_ROWS}
         for k in ("nominal_dt", "gap_factor", "theta_ref", "b", "G", "n", "base", "t_end",
-                  "dtheta_last", "anchor", "block_dq"):
+                  "dtheta_last", "anchor"):
             out[k] = np.asarray(getattr(self, k)).copy()
+        out["block_dq"] = self._partial_dq().copy()
         if self.A is not None:
             out["A"] = self.A.copy()
         return out
@@ -954,6 +1126,7 @@ class _ImuPrefix:
             setattr(self, k, v.item() if v.ndim == 0 else v)
         self.A = np.array(state["A"]) if "A" in state else None
         self.n, self.base = int(self.n), int(self.base)
+        self._lv = None  # rebuilt from block_dq by the scalar path when needed
         self._lo = 0
         self._buf = {}
         for k, (shape, dt) in _PREFIX_ROWS.items():
@@ -991,22 +1164,63 @@ class _NoImuError(Exception):
     """The IMU data do not reach the requested time."""
 
 
-def _block_scan(dq: np.ndarray) -> np.ndarray:
+def _block_scan(dq: np.ndarray, levels: np.ndarray | None = None) -> np.ndarray:
     """Inclusive Hamilton products within each block: (nb, B, 4) → (4, nb, B), normalized.
 
     Hillis-Steele scan along the block: the value at position k combines positions ≤ k
-    only, with the same operations for any number of blocks or trailing padding.
+    only, with the same operations for any number of blocks or trailing padding.  With
+    ``levels`` (``(log2 B + 1, 4, B)``), the last block's values before the first and after
+    each step are written there (unnormalized; for :func:`_scan_position`).
     """
     Q = np.ascontiguousarray(np.moveaxis(dq, 2, 0))
     B = Q.shape[2]
-    s = 1
+    s, lvl = 1, 0
+    if levels is not None:
+        levels[0] = Q[:, -1]
     while s < B:
         out = np.empty((4, Q.shape[1], B - s))
         _quat_multiply_soa(Q[:, :, :-s], Q[:, :, s:], out, np.empty(out.shape[1:]))
         Q[:, :, s:] = out
         s *= 2
+        lvl += 1
+        if levels is not None:
+            levels[lvl] = Q[:, -1]
     Q /= np.sqrt(Q[0] * Q[0] + Q[1] * Q[1] + Q[2] * Q[2] + Q[3] * Q[3])
     return Q
+
+
+def _scan_position(lv: list[list[list[float]]], q: list[float]) -> list[list[float]]:
+    """The scan levels of the next position of a block, from those of the earlier ones.
+
+    The operations of :func:`_block_scan` for one position ``k = len(lv)``: at step ``l``
+    (stride ``s = 2^l``) ``Q[k] ← Q[k − s] ⊗ Q[k]`` if ``k ≥ s`` (the order of
+    ``_quat_multiply_soa``); returns the ``log2 B + 1`` levels, the last unnormalized.
+    """
+    k = len(lv)
+    x, y, z, w = q
+    out = [q]
+    s, lvl = 1, 0
+    while s < _BLOCK:
+        if k >= s:
+            ax, ay, az, aw = lv[k - s][lvl]
+            x, y, z, w = (aw * x + ax * w + ay * z - az * y,
+                          aw * y - ax * z + ay * w + az * x,
+                          aw * z + ax * y - ay * x + az * w,
+                          aw * w - ax * x - ay * y - az * z)
+        out.append([x, y, z, w])
+        s *= 2
+        lvl += 1
+    return out
+
+
+def _quat_to_matrix_rows(x: float, y: float, z: float, w: float) -> list[float]:
+    """:func:`_quat_soa_to_matrix` of one quaternion, the 9 entries row by row."""
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy),
+            2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx),
+            2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)]
 
 
 def _quat_mul_normalized(p: np.ndarray, q: np.ndarray) -> np.ndarray:
