@@ -42,6 +42,9 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dpotrs as _potrs
+from scipy.linalg.lapack import dtrtrs as _trtrs
 
 from stellar_cal_ros.core.attitude import fit_frame_attitude, wahba
 from stellar_cal_ros.core.kalman import block_nis, check_covariance, chi2_gate
@@ -592,10 +595,10 @@ class PsceFilter:
         # star's NIS. Gating those against the absolute threshold would reject whole frames
         # and leave nothing to diagnose; scaling the gate by the frame's median NIS (over
         # the χ² median) keeps rejecting outliers and keeps the honest innovations.
-        usable = np.isfinite(nis_stars)
+        finite = [v for v in nis_stars.tolist() if math.isfinite(v)]
         scale = 1.0
-        if usable.sum() >= 3:
-            scale = max(1.0, float(np.median(nis_stars[usable])) / _CHI2_2_MEDIAN)
+        if len(finite) >= 3:
+            scale = max(1.0, _median(finite) / _CHI2_2_MEDIAN)
         mismatch = scale > self.config.mismatch_factor
         # the last 10 frames as bits: one odd frame is counted, a pattern is reported
         self._mismatch_bits = ((self._mismatch_bits << 1) | int(mismatch)) & 0x3FF
@@ -643,7 +646,7 @@ class PsceFilter:
             return result
         self._rejected_in_row = 0
         idx = np.flatnonzero(accepted)
-        ctx_acc = _subset_context(ctx, idx)
+        ctx_acc = None  # the accepted stars' context: only if the update relinearizes
         z = uv[idx].reshape(-1)
         Rm = np.repeat(R_meas[idx], 2)
         N = 3 + model.size
@@ -654,24 +657,27 @@ class PsceFilter:
         sig = np.sqrt(np.diag(self.P))
         nu = z - h
         nis = float("nan")
+        sig_floor = np.maximum(sig, 1e-300)
         for it in range(1, self.config.max_iterations + 1):
             PHt = self.P @ H.T
             S = H @ PHt
-            S[np.diag_indices_from(S)] += Rm
-            try:
-                c = np.linalg.cholesky(S)
-            except np.linalg.LinAlgError:
+            S.ravel()[::len(S) + 1] += Rm  # the diagonal
+            # LAPACK directly (Cholesky, then triangular solves): the numpy.linalg wrappers
+            # cost more than the 2n × 2n factorization itself
+            c, info = _potrf(S, lower=1, clean=1, overwrite_a=1)
+            if info != 0:
                 self.counters.extra["update_failed"] = self.counters.extra.get(
                     "update_failed", 0) + 1
                 log.warning("t=%.3f s: innovation covariance not positive definite: frame "
                             "skipped", t_exp)
                 return result
             if it == 1:
-                y = np.linalg.solve(c, nu)
+                y, _ = _trtrs(c, nu, lower=1)
                 nis = float(y @ y)
-            K = np.linalg.solve(c.T, np.linalg.solve(c, PHt.T)).T
+            Kt, _ = _potrs(c, PHt.T, lower=1)  # S⁻¹ H P = Kᵀ
+            K = Kt.T
             dx_new = K @ (z - h + H @ dx)
-            change = np.max(np.abs(dx_new - dx) / np.maximum(sig, 1e-300))
+            change = np.max(np.abs(dx_new - dx) / sig_floor)
             dx = dx_new
             if it == self.config.max_iterations:
                 break
@@ -686,6 +692,8 @@ class PsceFilter:
                     break
             elif change < self.config.iteration_tolerance:
                 break
+            if ctx_acc is None:
+                ctx_acc = _subset_context(ctx, idx)
             pred = model.predict(theta0 + dx[3:], u_i[idx], ctx_acc,
                                  self._attitude_function(dx[:3]))
             H = np.concatenate([pred.H_attitude, pred.H_parameters], axis=2).reshape(-1, N)
@@ -779,6 +787,13 @@ class PsceFilter:
     def sigma(self) -> np.ndarray:
         """1-sigma of the error state [φ, θ]."""
         return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
+
+
+def _median(values: list[float]) -> float:
+    """``np.median`` of a short list of finite floats (the same value, less overhead)."""
+    s = sorted(values)
+    k = len(s) // 2
+    return s[k] if len(s) % 2 else (s[k - 1] + s[k]) / 2.0
 
 
 def _imu_ok_small(t: list[float], w: list[list[float]], last: float) -> list[bool]:
