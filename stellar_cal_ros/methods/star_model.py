@@ -232,14 +232,15 @@ class StarModel:
             J, D = eff.camera_jacobian(v, p, ctx)
             cam_steps.append((sl, J, D))
             p = eff.camera_parameters(v, p, ctx)
-        cam_cols, need = self._camera_columns(cam_steps)
+        cam_M, need = self._camera_columns(cam_steps)
         camera = self.prior.camera.with_parameters(p)
         uv, J_d, J_p = camera.project(d, jacobians=True, parameters=need)
 
         # Jacobians
         R_st_i = R_i_st.T
         H_att = J_d @ (R_st_i @ skew(u))  # (n,2,3)
-        H = np.zeros((n, 2, P))
+        # camera columns first (one product for all camera effects), then the others add
+        H = J_p @ cam_M if cam_M is not None else np.zeros((n, 2, P))
         for sl, Ju in dir_jac:  # ∂d/∂θ = R_st_i ∂u/∂θ
             H[:, :, sl] += np.einsum("nij,jk,nkl->nil", J_d, R_st_i, Ju)
         if self.has_time_effect and np.any(shift_grad):
@@ -248,23 +249,22 @@ class StarModel:
             H += np.einsum("nij,nj->ni", J_d, dd_dt)[:, :, None] * shift_grad[None, None, :]
         if self._by_stage[Stage.TRACKER]:
             Jr = right_jacobian(delta)
-            Jd_skew = np.einsum("nij,njk->nik", J_d, skew(d)) @ Jr  # (n,2,3)
+            Jd_skew = (J_d @ skew(d)) @ Jr  # (n,2,3)
             for eff in self._by_stage[Stage.TRACKER]:
                 sl = self.slices[eff.id]
                 H[:, :, sl] += Jd_skew @ eff.tracker_rotation_jacobian(theta[sl], ctx)
-        for sl, M in cam_cols:
-            H[:, :, sl] += J_p @ M
         return Prediction(uv, H_att, H, d, R_i_st, t_exp, camera)
 
     def _camera_columns(self, steps: list[tuple[slice | None, np.ndarray, np.ndarray]]
-                        ) -> tuple[list[tuple[slice, np.ndarray]], np.ndarray | None]:
-        """``∂p/∂θ`` of each estimated camera effect, and the camera parameters it uses.
+                        ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``∂p/∂θ`` (18, P) of the camera chain, and the camera parameters it uses.
 
-        ``(slice, A J)`` with ``A`` the product of the later steps' ``D``; the mask of the
-        parameters with a nonzero row in any of them (the projection computes only those
-        Jacobian columns; None: all).  Effects with constant Jacobians (the
-        parameter-setting ones) return the same arrays every call: the result is reused
-        while every step's arrays are the same objects.
+        Column block of each estimated camera effect: ``A J`` with ``A`` the product of
+        the later steps' ``D`` (None without camera effects); the mask of the parameters
+        with a nonzero row (the projection computes only those Jacobian columns; None:
+        all).  Effects with constant Jacobians (the parameter-setting ones) return the
+        same arrays every call: the result is reused while every step's arrays are the
+        same objects.
         """
         c = self._camera_cols_cache
         if c is not None and len(c[0]) == len(steps) and all(
@@ -277,9 +277,10 @@ class StarModel:
             if sl is not None:  # a fixed effect has no column but passes p on (D)
                 cols.append((sl, A @ J))
             A = A @ D
-        need = np.zeros(18, dtype=bool)
-        for _, M in cols:
-            need |= np.any(M != 0.0, axis=1)
+        M_all = np.zeros((18, self.size)) if cols else None
+        for sl, M in cols:
+            M_all[:, sl] = M
+        need = np.any(M_all != 0.0, axis=1) if cols else np.ones(18, dtype=bool)
         mask = None if need.all() else need
-        self._camera_cols_cache = (list(steps), cols, mask)  # holds the arrays compared
-        return cols, mask
+        self._camera_cols_cache = (list(steps), M_all, mask)  # holds the arrays compared
+        return M_all, mask
