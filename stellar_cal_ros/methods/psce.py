@@ -348,7 +348,7 @@ class PsceFilter:
         P[1, 1] += q
         P[2, 2] += q
         if self.model.size:
-            P[3:, 3:] += np.diag(self.q_theta * total)
+            P.flat[3 * (len(P) + 1)::len(P) + 1] += self.q_theta * total  # diagonal of P_θθ
         n_gap, gap_time = pre.gaps(ma, mb, ta, tb)
         if n_gap or gap_time:
             self._inflate_for_gap(n_gap, gap_time, tb)
@@ -622,10 +622,14 @@ class PsceFilter:
         # whatever its NIS: far outside the detector the distortion polynomial folds back
         # and its huge Jacobian would let the gate pass it.
         d = pred0.directions_st
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r2 = (d[:, 0] ** 2 + d[:, 1] ** 2) / d[:, 2] ** 2
-        in_fov = (d[:, 2] > 0) & (r2 <= self._fov_r2)
-        if not np.all(in_fov):
+        front = d[:, 2] > 0
+        if front.all():  # no zero or NaN divisor: no floating-point warnings to silence
+            in_fov = (d[:, 0] ** 2 + d[:, 1] ** 2) / d[:, 2] ** 2 <= self._fov_r2
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r2 = (d[:, 0] ** 2 + d[:, 1] ** 2) / d[:, 2] ** 2
+            in_fov = front & (r2 <= self._fov_r2)
+        if not in_fov.all():
             self.counters.extra["stars_outside_fov"] = \
                 self.counters.extra.get("stars_outside_fov", 0) + int((~in_fov).sum())
             accepted &= in_fov
@@ -685,9 +689,9 @@ class PsceFilter:
                 # Relinearize only if the correction is large enough for second-order terms
                 # to matter: a rotation of more than relinearize_rad or a parameter moving by
                 # more than relinearize_sigma of its prior-relative uncertainty.
-                small = np.linalg.norm(dx[:3]) < self.config.relinearize_rad and np.all(
-                    np.abs(dx[3:]) < self.config.relinearize_sigma * np.maximum(sig[3:], 1e-300)
-                )
+                dphi = dx[:3]
+                small = math.sqrt(dphi.dot(dphi)) < self.config.relinearize_rad and (
+                    np.abs(dx[3:]) < self.config.relinearize_sigma * sig_floor[3:]).all()
                 if small:
                     break
             elif change < self.config.iteration_tolerance:
@@ -698,7 +702,7 @@ class PsceFilter:
                                  self._attitude_function(dx[:3]))
             H = np.concatenate([pred.H_attitude, pred.H_parameters], axis=2).reshape(-1, N)
             h = pred.uv.reshape(-1)
-        if not (np.all(np.isfinite(dx)) and np.all(np.isfinite(K))):
+        if not (np.isfinite(dx).all() and np.isfinite(K).all()):
             self.counters.extra["update_failed"] = self.counters.extra.get("update_failed", 0) + 1
             log.warning("t=%.3f s: non-finite update: frame skipped", t_exp)
             return result
@@ -766,9 +770,9 @@ class PsceFilter:
                 self.counters.skipped_out_of_order += 1
                 log.warning("star frame at %.6f is older than the last one: skipped", ctx.stamp)
                 return None
-        good = np.all(np.isfinite(uv), axis=1) & np.all(np.isfinite(u_i), axis=1) & \
+        good = np.isfinite(uv).all(axis=1) & np.isfinite(u_i).all(axis=1) & \
             np.isfinite(sigma) & (sigma > 0)
-        if not np.all(good):
+        if not good.all():
             self.counters.stars_invalid += int((~good).sum())
             uv, u_i, sigma = uv[good], u_i[good], sigma[good]
             ctx = _subset_context(ctx, np.flatnonzero(good))
