@@ -642,7 +642,7 @@ class CameraModel:
             powers[:3] *= iden
         else:
             powers[3:] = powers[:3] * -g
-        radial_cols = _RADIAL_COLS[:2] if short else _RADIAL_COLS
+        radial_cols: Any = slice(4, 6) if short else _RADIAL_COLS  # k1 k2 are columns 4, 5
         # Tangential p1, p2: d(x'', y'')/dp1 = (2xy, ey), d(x'', y'')/dp2 = (ex, 2xy).
         if tilted:
             Jt[0, radial_cols] = (T00 * x + T01 * y) * powers
@@ -757,7 +757,7 @@ class CameraModel:
         if d.ndim != 2 or d.shape[1] != 3:
             raise ValueError(f"directions must have shape (N, 3), got {d.shape}")
         z = d[:, 2]
-        if not np.all(z > 0.0):
+        if not (z > 0.0).all():
             z = np.where(z > 0.0, z, np.nan)
         iz = 1.0 / z
         x = d[:, 0] * iz
