@@ -338,8 +338,9 @@ class PsceFilter:
         self.R_i_b = so3_exp(corr) @ (R0Ca @ Cb)
         P = self.P
         if self.model.size:
-            Pfa = P[:3, 3:] + Phi @ P[3:, 3:]
-            P[:3, :3] += Phi @ P[3:, :3] + P[:3, 3:] @ Phi.T + Phi @ P[3:, 3:] @ Phi.T
+            PhiP = Phi @ P[3:, 3:]
+            Pfa = P[:3, 3:] + PhiP
+            P[:3, :3] += Phi @ P[3:, :3] + P[:3, 3:] @ Phi.T + PhiP @ Phi.T
             P[:3, 3:] = Pfa
             P[3:, :3] = Pfa.T
         total = tb - ta
@@ -900,6 +901,8 @@ class _ImuPrefix:
             self.G = -Jb
         self.n = 0  # samples held
         self.base = 0  # absolute index of the first sample held (samples dropped before it)
+        self._at_cache: tuple[tuple[tuple[int, float], np.ndarray], ...] = \
+            (((-1, 0.0), np.eye(3)),) * 2  # at(): ((absolute sample, t), C)
         self.t_end = -np.inf
         self.dtheta_last = np.zeros(3)  # for the coning term of the next sample
         self.anchor = np.array([0.0, 0.0, 0.0, 1.0])  # attitude at the current block's start
@@ -1146,6 +1149,7 @@ class _ImuPrefix:
         self.A = np.array(state["A"]) if "A" in state else None
         self.n, self.base = int(self.n), int(self.base)
         self._lv = None  # rebuilt from block_dq by the scalar path when needed
+        self._at_cache = (((-1, 0.0), np.eye(3)),) * 2
         self._lo = 0
         self._buf = {}
         for k, (shape, dt) in _PREFIX_ROWS.items():
@@ -1156,9 +1160,19 @@ class _ImuPrefix:
         self._views()
 
     def at(self, m: int, t: float) -> np.ndarray:
-        """``C(t)`` for ``t`` in sample ``m``."""
+        """``C(t)`` for ``t`` in sample ``m``.
+
+        The last two results are kept (by absolute sample and time): a star frame's
+        propagation starts where the previous one ended.
+        """
+        key = (self.base + m, t)
+        for k, C in self._at_cache:
+            if k == key:
+                return C
         tau = t - self.tp[m]
-        return self.C[m] @ so3_exp(self.w_hat[m] * tau) if tau > 0.0 else self.C[m]
+        C = self.C[m] @ so3_exp(self.w_hat[m] * tau) if tau > 0.0 else self.C[m].copy()
+        self._at_cache = (self._at_cache[-1], (key, C))
+        return C
 
     def gaps(self, ma: int, mb: int, ta: float, tb: float) -> tuple[int, float]:
         """Gap samples entered in ``(t_a, t_b]`` and the time the interval spends in gaps."""
