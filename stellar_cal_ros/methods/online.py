@@ -48,6 +48,7 @@ import dataclasses
 import inspect
 import json
 import logging
+import math
 import os
 import tempfile
 from collections import deque
@@ -178,8 +179,8 @@ class _Series:
 
     def trim(self, before_ns: int) -> None:
         """Drop samples older than ``before_ns`` but keep the one just before it."""
-        if len(self.stamp_ns) < 3:
-            return
+        if len(self.stamp_ns) < 3 or self.stamp_ns[1] >= before_ns:
+            return  # nothing to drop (the search below would give i <= 0)
         i = int(np.searchsorted(np.asarray(self.stamp_ns), before_ns, side="left")) - 1
         if i > 0:
             self._version += 1
@@ -580,16 +581,17 @@ class OnlineCalibrator:
                                     t_rel=(frame.stamp_ns - self.t0_ns) * 1e-9)
         else:
             upd = flt.process_frame(uv, u_i, ctx, sigma)
-        after = _counter_values(fc)
-        changed = [k for k in after if after[k] != before.get(k, 0)
-                   and k not in ("frames", "stars_invalid", "stars_gated")]
-        if upd is not None and np.isfinite(upd.nis):
+        if upd is not None and math.isfinite(upd.nis):
             status = "updated"
-            self._conv.append((flt.sigma()[3:].copy(), float(upd.nis), int(upd.dof)))
-        elif "init_frames" in changed:
-            status = "initialized"
+            self._conv.append((flt.sigma()[3:], float(upd.nis), int(upd.dof)))
         else:
-            status = next((k for k in changed if k.startswith("skipped")), "skipped")
+            after = _counter_values(fc)
+            changed = [k for k in after if after[k] != before.get(k, 0)
+                       and k not in ("frames", "stars_invalid", "stars_gated")]
+            if "init_frames" in changed:
+                status = "initialized"
+            else:
+                status = next((k for k in changed if k.startswith("skipped")), "skipped")
         if upd is not None:
             self.last_update = upd
         return FrameOutcome(int(frame.stamp_ns), frame.frame_id, status, upd,
