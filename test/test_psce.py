@@ -231,3 +231,79 @@ def test_imu_prefix_independent_of_batching():
     many.extend(t[-1] + 0.005 * np.arange(1, 11), w[:10])
     one.extend(t[-1] + 0.005 * np.arange(1, 11), w[:10])
     assert np.array_equal(many.C, one.C[1234:])
+
+
+@pytest.mark.parametrize("misaligned", [False, True])
+def test_imu_prefix_sample_by_sample_is_bit_identical(misaligned, monkeypatch):
+    """Live use appends one sample at a time (the scalar path of ``_ImuPrefix.extend``):
+    bit for bit the values of one batch, mixed with batches and checkpoint restores."""
+    from stellar_cal_ros.methods.psce import _ImuPrefix
+
+    small = []
+    scalar = _ImuPrefix._extend_small
+    monkeypatch.setattr(_ImuPrefix, "_extend_small",
+                        lambda self, t, w: small.append(len(t)) or scalar(self, t, w))
+    rng = np.random.default_rng(5)
+    n = 2500
+    t = np.arange(1, n + 1) * 0.005
+    t[1500:] += 0.05  # an IMU gap
+    w = rng.normal(0.0, 0.5, (n, 3))
+    b = np.array([1e-5, -2e-5, 3e-5])
+    E = rng.normal(0.0, 1e-3, (3, 3)) if misaligned else np.zeros((3, 3))
+
+    def prefix():
+        return _ImuPrefix(0.005, np.zeros(3), b, E, -np.eye(3), 3.0)
+
+    one = prefix()
+    one.extend(t, w)
+    many = prefix()
+    i = 0
+    while i < n:
+        k = int(rng.integers(1, 4)) if rng.random() < 0.9 else int(rng.integers(1, 60))
+        many.extend(t[i:i + k], w[i:i + k])
+        i += k
+        if rng.random() < 0.01:  # checkpoint and restore: the scan levels are rebuilt
+            again = prefix()
+            again.load_state(many.state())
+            many = again
+    assert len(small) > 300  # the scalar path was taken
+    for key in ("tp", "w_hat", "C", "S", "gap", "gap_count", "gap_time"):
+        assert np.array_equal(getattr(one, key), getattr(many, key)), key
+    for key in ("anchor", "block_dq", "dtheta_last"):
+        assert np.array_equal(one.state()[key], many.state()[key]), key
+
+
+def test_extend_imu_few_samples_decides_as_a_batch(monkeypatch):
+    """The plain-Python sample check of a few samples accepts and drops what the vectorized
+    one does (non-finite, not after the last one held, unordered batches)."""
+    from stellar_cal_ros.methods import psce as psce_mod
+    from stellar_cal_ros.methods.replay import build_model
+
+    prior = simulate(get_scenario("psce_rotations"), duration=1.0, seed=1).prior
+    nan, inf = float("nan"), float("inf")
+    z = [0.0, 0.0, 0.0]
+    batches = [
+        ([5.0], [z]),
+        ([5.01, 5.02], [[nan, 0.0, 0.0], z]),
+        ([5.03, nan, 5.04], [z] * 3),
+        ([5.02, 5.05], [z] * 2),  # the first is not after the last one held
+        ([5.07, 5.06], [z] * 2),  # unordered: none accepted
+        ([5.08, 5.08], [z] * 2),  # duplicated stamp
+        ([5.10, 5.09, 5.11], [z] * 3),
+        ([5.12, inf], [z, [0.0, 0.0, inf]]),
+        ([5.13, 5.14, 5.15, 5.16], [[1e-3, 2e-3, -1e-3]] * 4),
+    ]
+
+    def run(small):
+        monkeypatch.setattr(psce_mod, "_SMALL", 8 if small else 0)
+        t0 = np.arange(1, 400) * 0.01
+        flt = psce_mod.PsceFilter(build_model(prior, []), t0, np.zeros((len(t0), 3)), 0.0)
+        out = [flt.extend_imu(np.array(bt), np.array(bw)) for bt, bw in batches]
+        return out, flt, flt.counters.extra.get("imu_dropped", 0)
+
+    (n_small, small, d_small), (n_large, large, d_large) = run(True), run(False)
+    assert n_small == n_large and d_small == d_large > 0
+    assert np.array_equal(small.imu_t, large.imu_t)
+    assert np.array_equal(small.imu_w, large.imu_w)
+    for key in ("tp", "w_hat", "C", "S"):
+        assert np.array_equal(getattr(small._prefix, key), getattr(large._prefix, key)), key

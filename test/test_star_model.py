@@ -98,6 +98,8 @@ def test_predict_jacobians_match_finite_differences(subset, sim, stars):
     assert pred.uv.shape == (n, 2) and pred.H_attitude.shape == (n, 2, 3)
     assert pred.H_parameters.shape == (n, 2, model.size)
     assert np.all(np.isfinite(pred.uv)) and np.all(pred.directions_st[:, 2] > 0.9)
+    again = model.predict(theta, u_i, ctx, att)  # camera chain and column mask reused
+    assert np.array_equal(again.H_parameters, pred.H_parameters)
 
     def uv(th, phi=None):
         return model.predict(th, u_i, ctx, rotating_attitude(R0, ctx.stamp, phi=phi)).uv

@@ -453,7 +453,7 @@ class CameraModel:
     # ------------------------------------------------------------------ projection core
 
     def _distort(
-        self, x: FloatArray, y: FloatArray, jac: int
+        self, x: FloatArray, y: FloatArray, jac: int, want: NDArray[np.bool_] | None = None
     ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
         """Map normalised pinhole points to pixels, in cache-sized blocks.
 
@@ -463,6 +463,8 @@ class CameraModel:
             Normalised coordinates ``X/Z``, ``Y/Z``.
         jac : int
             0: no Jacobian; 1: Jacobian w.r.t. ``(x, y)``; 2: also w.r.t. the parameters.
+        want : numpy.ndarray of bool, shape (18,), optional
+            Parameter Jacobian columns to compute (the others stay zero); default all.
 
         Returns
         -------
@@ -488,6 +490,7 @@ class CameraModel:
                 uv[a:b],
                 None if Jt_xy is None else Jt_xy[:, :, a:b],
                 None if Jt is None else Jt[:, :, a:b],
+                want,
             )
         return (
             uv,
@@ -502,6 +505,7 @@ class CameraModel:
         uv: FloatArray,
         Jt_xy: FloatArray | None,
         Jt: FloatArray | None,
+        want: NDArray[np.bool_] | None = None,
     ) -> None:
         """Kernel of :meth:`_distort` on one block of points, writing into the given views.
 
@@ -518,6 +522,9 @@ class CameraModel:
             Output ``d(u, v)/d(x, y)``, component-major; None to skip.
         Jt : numpy.ndarray, shape (2, 18, n), or None
             Output ``d(u, v)/d(parameters)``, component-major, zero on entry; None to skip.
+        want : numpy.ndarray of bool, shape (18,), or None
+            Columns of ``Jt`` to compute (thin prism, k3-k6 and tilt are skipped when not
+            wanted; the others are cheap and always filled); None: all.
         """
         k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y = self.distortion.tolist()
         rational = k4 != 0.0 or k5 != 0.0 or k6 != 0.0
@@ -609,41 +616,52 @@ class CameraModel:
         Jt[1, 3] = 1.0
         if not prism:
             r4 = r2 * r2
-        powers = np.empty((6, n))
+        # only k1 k2 of the radial terms wanted: the first two rows of powers
+        short = want is not None and not want[8:12].any()
+        powers = np.empty((2 if short else 6, n))
         powers[0] = r2
         powers[1] = r4
-        np.multiply(r4, r2, out=powers[2])
-        if tilted:  # thin prism s1 s2 (x'' only) and s3 s4 (y'' only): (r2, r4)
-            np.multiply(T00, powers[:2], out=Jt[0, 12:14])
-            np.multiply(T10, powers[:2], out=Jt[1, 12:14])
-            np.multiply(T01, powers[:2], out=Jt[0, 14:16])
-            np.multiply(T11, powers[:2], out=Jt[1, 14:16])
-        else:
-            np.multiply(fx, powers[:2], out=Jt[0, 12:14])
-            np.multiply(fy, powers[:2], out=Jt[1, 14:16])
+        if not short:
+            np.multiply(r4, r2, out=powers[2])
+        if want is None or want[12:16].any():
+            # thin prism s1 s2 (x'' only) and s3 s4 (y'' only): (r2, r4)
+            if tilted:
+                np.multiply(T00, powers[:2], out=Jt[0, 12:14])
+                np.multiply(T10, powers[:2], out=Jt[1, 12:14])
+                np.multiply(T01, powers[:2], out=Jt[0, 14:16])
+                np.multiply(T11, powers[:2], out=Jt[1, 14:16])
+            else:
+                np.multiply(fx, powers[:2], out=Jt[0, 12:14])
+                np.multiply(fy, powers[:2], out=Jt[1, 14:16])
         # Radial k1 k2 k3 k4 k5 k6 move (x'', y'') along (x, y) h, h = d g / d k.
-        if rational:
+        if short:
+            if rational:
+                powers *= iden
+        elif rational:
             powers[3:] = powers[:3] * (-g * iden)
             powers[:3] *= iden
         else:
             powers[3:] = powers[:3] * -g
+        radial_cols: Any = slice(4, 6) if short else _RADIAL_COLS  # k1 k2 are columns 4, 5
         # Tangential p1, p2: d(x'', y'')/dp1 = (2xy, ey), d(x'', y'')/dp2 = (ex, 2xy).
         if tilted:
-            Jt[0, _RADIAL_COLS] = (T00 * x + T01 * y) * powers
-            Jt[1, _RADIAL_COLS] = (T10 * x + T11 * y) * powers
+            Jt[0, radial_cols] = (T00 * x + T01 * y) * powers
+            Jt[1, radial_cols] = (T10 * x + T11 * y) * powers
             Jt[0, 6] = T00 * xy2 + T01 * ey
             Jt[1, 6] = T10 * xy2 + T11 * ey
             Jt[0, 7] = T00 * ex + T01 * xy2
             Jt[1, 7] = T10 * ex + T11 * xy2
         else:
-            Jt[0, _RADIAL_COLS] = (fx * x) * powers
-            Jt[1, _RADIAL_COLS] = (fy * y) * powers
+            Jt[0, radial_cols] = (fx * x) * powers
+            Jt[1, radial_cols] = (fy * y) * powers
             np.multiply(fx, xy2, out=Jt[0, 6])
             np.multiply(fy, ey, out=Jt[1, 6])
             np.multiply(fx, ex, out=Jt[0, 7])
             np.multiply(fy, xy2, out=Jt[1, 7])
         # Tilt angles act after the distortion: d(w0/w2, w1/w2)/dtau with w = M (x'', y'', 1).
         for col, dM in ((16, dM_dtx), (17, dM_dty)):
+            if want is not None and not want[col]:
+                continue
             dw2 = dM[2, 0] * xd0 + dM[2, 1] * yd0 + dM[2, 2]
             Jt[0, col] = fiw * (dM[0, 0] * xd0 + dM[0, 1] * yd0 + dM[0, 2] - xd * dw2)
             Jt[1, col] = giw * (dM[1, 0] * xd0 + dM[1, 1] * yd0 + dM[1, 2] - yd * dw2)
@@ -692,15 +710,18 @@ class CameraModel:
         return uv
 
     @overload
-    def project(self, directions: ArrayLike, *, jacobians: Literal[False] = ...) -> FloatArray: ...
+    def project(self, directions: ArrayLike, *, jacobians: Literal[False] = ...,
+                parameters: NDArray[np.bool_] | None = ...) -> FloatArray: ...
 
     @overload
     def project(
-        self, directions: ArrayLike, *, jacobians: Literal[True]
+        self, directions: ArrayLike, *, jacobians: Literal[True],
+        parameters: NDArray[np.bool_] | None = ...,
     ) -> tuple[FloatArray, FloatArray, FloatArray]: ...
 
     def project(
-        self, directions: ArrayLike, *, jacobians: bool = False
+        self, directions: ArrayLike, *, jacobians: bool = False,
+        parameters: NDArray[np.bool_] | None = None,
     ) -> FloatArray | tuple[FloatArray, FloatArray, FloatArray]:
         """Project camera-frame directions to pixels, as ``cv2.projectPoints`` does.
 
@@ -711,6 +732,9 @@ class CameraModel:
             Rows with ``z <= 0`` (behind the camera) give NaN.
         jacobians : bool
             Also return the analytic Jacobians.
+        parameters : numpy.ndarray of bool, shape (18,), optional
+            The columns of ``J_parameters`` needed (e.g. those an estimator uses); columns
+            not needed may be left zero, which saves time.  Default: all.
 
         Returns
         -------
@@ -733,12 +757,12 @@ class CameraModel:
         if d.ndim != 2 or d.shape[1] != 3:
             raise ValueError(f"directions must have shape (N, 3), got {d.shape}")
         z = d[:, 2]
-        if not np.all(z > 0.0):
+        if not (z > 0.0).all():
             z = np.where(z > 0.0, z, np.nan)
         iz = 1.0 / z
         x = d[:, 0] * iz
         y = d[:, 1] * iz
-        uv, J_xy, J_p = self._distort(x, y, 2 if jacobians else 0)
+        uv, J_xy, J_p = self._distort(x, y, 2 if jacobians else 0, parameters)
         if not jacobians:
             return uv
         assert J_xy is not None and J_p is not None

@@ -229,12 +229,18 @@ class CameraSetEffect(Effect):
         return out
 
     def camera_jacobian(self, value, p, ctx):  # noqa: D102
-        idx = self._index()
-        J = np.zeros((18, self.size))
-        J[idx, np.arange(self.size)] = 1.0
-        D = np.eye(18)
-        D[idx, idx] = 0.0
-        return J, D
+        # constant (the entries are overwritten whatever their value): built once, read-only
+        cached = self.__dict__.get("_camera_jacobian")
+        if cached is None:
+            idx = self._index()
+            J = np.zeros((18, self.size))
+            J[idx, np.arange(self.size)] = 1.0
+            D = np.eye(18)
+            D[idx, idx] = 0.0
+            J.setflags(write=False)
+            D.setflags(write=False)
+            cached = self._camera_jacobian = (J, D)
+        return cached
 
 
 # Contract §3: sigma.camera.camera_matrix (3x3 data) and distortion_coefficients (OpenCV order).

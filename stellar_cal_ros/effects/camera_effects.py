@@ -70,11 +70,17 @@ class FocalLength(Effect):
         return out
 
     def camera_jacobian(self, value, p, ctx):  # noqa: D102
-        J = np.zeros((18, 1))
-        J[FX, 0], J[FY, 0] = 1.0, self.ratio
-        D = np.eye(18)
-        D[FX, FX] = D[FY, FY] = 0.0
-        return J, D
+        # depends on the prior's ratio only: built once per ratio, read-only
+        cached = self.__dict__.get("_camera_jacobian")
+        if cached is None or cached[0] != self.ratio:
+            J = np.zeros((18, 1))
+            J[FX, 0], J[FY, 0] = 1.0, self.ratio
+            D = np.eye(18)
+            D[FX, FX] = D[FY, FY] = 0.0
+            J.setflags(write=False)
+            D.setflags(write=False)
+            cached = self._camera_jacobian = (self.ratio, J, D)
+        return cached[1], cached[2]
 
 
 class PixelAspect(Effect):

@@ -48,6 +48,7 @@ import dataclasses
 import inspect
 import json
 import logging
+import math
 import os
 import tempfile
 from collections import deque
@@ -178,8 +179,8 @@ class _Series:
 
     def trim(self, before_ns: int) -> None:
         """Drop samples older than ``before_ns`` but keep the one just before it."""
-        if len(self.stamp_ns) < 3:
-            return
+        if len(self.stamp_ns) < 3 or self.stamp_ns[1] >= before_ns:
+            return  # nothing to drop (the search below would give i <= 0)
         i = int(np.searchsorted(np.asarray(self.stamp_ns), before_ns, side="left")) - 1
         if i > 0:
             self._version += 1
@@ -240,6 +241,8 @@ class OnlineCalibrator:
         self._fix_n = 0  # rows of _fix_values in use
         self._site_cache: tuple[Any, Site] | None = None
         self._clean: dict[int, np.ndarray] = {}  # clean_frame of the pending frames by stamp
+        # filter inputs (centroids, catalogue directions, sigmas) of the pending frames
+        self._inputs: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._ctx_cache: tuple[Any, FrameContext | None, dict[bytes, float]] | None = None
         self._conv: deque[tuple[np.ndarray, float, int]] = deque(
             maxlen=max(self.config.converge_window, 1) + 1)
@@ -312,11 +315,13 @@ class OnlineCalibrator:
             return dropped("duplicate")
         i = int(np.searchsorted(np.asarray(stamps, dtype=np.int64), stamp)) if stamps else 0
         self._frames_pending.insert(i, frame)
-        self._clean_mask(frame)  # input check on arrival, not when the IMU releases it
+        # input check and the filter's inputs on arrival, not when the IMU releases it
+        self._frame_inputs(frame, self._clean_mask(frame))
         out: list[FrameOutcome] = []
         while len(self._frames_pending) > self.config.max_pending_frames:
             old = self._frames_pending.pop(0)
             self._clean.pop(int(old.stamp_ns), None)
+            self._inputs.pop(int(old.stamp_ns), None)
             c.frames_overflow += 1
             self._last_frame_ns = int(old.stamp_ns)
             out.append(FrameOutcome(int(old.stamp_ns), old.frame_id, "dropped_overflow"))
@@ -417,6 +422,18 @@ class OnlineCalibrator:
             ok = clean_frame(frame, self.prior.camera.width, self.prior.camera.height)
             self._clean[key] = ok
         return ok
+
+    def _frame_inputs(self, frame: StarFrame, ok: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Valid centroids, catalogue unit vectors and sigmas of a pending frame (once)."""
+        key = int(frame.stamp_ns)
+        v = self._inputs.get(key)
+        if v is None:
+            s = frame.sigma[ok]
+            v = (frame.uv[ok], radec_to_unit(frame.right_ascension[ok], frame.declination[ok]),
+                 np.where(s > 0, s, self.psce.centroid_sigma_px))
+            self._inputs[key] = v
+        return v
 
     def _start_filter(self) -> None:
         k = self.config.t0_imu_samples
@@ -531,6 +548,7 @@ class OnlineCalibrator:
                     break  # wait for the IMU to cover the exposure
             self._frames_pending.pop(0)
             self._clean.pop(int(frame.stamp_ns), None)
+            inputs = self._inputs.pop(int(frame.stamp_ns), None)
             self._last_frame_ns = int(frame.stamp_ns)
             if stale:
                 self.counters.env_stale += 1
@@ -539,14 +557,15 @@ class OnlineCalibrator:
                 out.append(FrameOutcome(int(frame.stamp_ns), frame.frame_id, "dropped_no_site"))
                 continue
             self._flush_staged()
-            out.append(self._process(frame, ok, ctx))
+            out.append(self._process(frame, ok, ctx, inputs))
         if final:
             self._flush_staged()
         if out:
             self._trim()
         return out
 
-    def _process(self, frame: StarFrame, ok: np.ndarray, ctx: FrameContext | None
+    def _process(self, frame: StarFrame, ok: np.ndarray, ctx: FrameContext | None,
+                 inputs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                  ) -> FrameOutcome:
         flt = self.filter
         fc = flt.counters
@@ -556,23 +575,23 @@ class OnlineCalibrator:
             fc.skipped_few_stars += 1
             return FrameOutcome(int(frame.stamp_ns), frame.frame_id, "skipped_few_stars")
         before = _counter_values(fc)
-        u_i = radec_to_unit(frame.right_ascension[ok], frame.declination[ok])
-        sigma = np.where(frame.sigma[ok] > 0, frame.sigma[ok], self.psce.centroid_sigma_px)
+        uv, u_i, sigma = inputs if inputs is not None else self._frame_inputs(frame, ok)
         if self._takes_t_rel:  # exact relative stamp from integer ns, as the replay does
-            upd = flt.process_frame(frame.uv[ok], u_i, ctx, sigma,
+            upd = flt.process_frame(uv, u_i, ctx, sigma,
                                     t_rel=(frame.stamp_ns - self.t0_ns) * 1e-9)
         else:
-            upd = flt.process_frame(frame.uv[ok], u_i, ctx, sigma)
-        after = _counter_values(fc)
-        changed = [k for k in after if after[k] != before.get(k, 0)
-                   and k not in ("frames", "stars_invalid", "stars_gated")]
-        if upd is not None and np.isfinite(upd.nis):
+            upd = flt.process_frame(uv, u_i, ctx, sigma)
+        if upd is not None and math.isfinite(upd.nis):
             status = "updated"
-            self._conv.append((flt.sigma()[3:].copy(), float(upd.nis), int(upd.dof)))
-        elif "init_frames" in changed:
-            status = "initialized"
+            self._conv.append((flt.sigma()[3:], float(upd.nis), int(upd.dof)))
         else:
-            status = next((k for k in changed if k.startswith("skipped")), "skipped")
+            after = _counter_values(fc)
+            changed = [k for k in after if after[k] != before.get(k, 0)
+                       and k not in ("frames", "stars_invalid", "stars_gated")]
+            if "init_frames" in changed:
+                status = "initialized"
+            else:
+                status = next((k for k in changed if k.startswith("skipped")), "skipped")
         if upd is not None:
             self.last_update = upd
         return FrameOutcome(int(frame.stamp_ns), frame.frame_id, status, upd,
@@ -799,7 +818,7 @@ def _live_config(cfg: PsceConfig) -> PsceConfig:
     return cfg
 
 
-_FILTER_SKIP = ("model", "config", "counters", "_prefix")
+_FILTER_SKIP = ("model", "config", "counters", "_prefix", "_imu_cap")  # _imu_cap: buffers
 _PREFIX_KEY = "prefix:"  # checkpoint arrays of the fast-propagation prefix
 
 

@@ -38,9 +38,13 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dpotrs as _potrs
+from scipy.linalg.lapack import dtrtrs as _trtrs
 
 from stellar_cal_ros.core.attitude import fit_frame_attitude, wahba
 from stellar_cal_ros.core.kalman import block_nis, check_covariance, chi2_gate
@@ -161,6 +165,8 @@ class PsceFilter:
         self.t0 = t0
         self.imu_t = np.asarray(imu_t, dtype=float)
         self.imu_w = np.asarray(imu_w, dtype=float)
+        # (t buffer, w buffer, imu_t view, imu_w view) of _append_imu; not state
+        self._imu_cap: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         if nominal_dt is not None:
             self.nominal_dt = float(nominal_dt)
         else:
@@ -211,20 +217,50 @@ class PsceFilter:
         """
         t = np.asarray(imu_t, dtype=float).reshape(-1)
         w = np.asarray(imu_w, dtype=float).reshape(-1, 3)
-        last = self.imu_t[-1] if len(self.imu_t) else -np.inf
-        ok = np.isfinite(t) & np.all(np.isfinite(w), axis=1)
-        ok &= t > last
-        ok &= np.concatenate([[True], np.diff(t) > 0]) if len(t) else ok
-        if len(t) and not np.all(np.diff(t[ok]) > 0):
-            ok[:] = False  # unordered batch: let the caller sort it
-        dropped = int(len(t) - ok.sum())
+        last = float(self.imu_t[-1]) if len(self.imu_t) else -np.inf
+        if len(t) <= _SMALL:  # live use: the same decisions without the array machinery
+            ok = _imu_ok_small(t.tolist(), w.tolist(), last)
+            if not all(ok):
+                ok = np.array(ok, dtype=bool)
+                t, w = t[ok], w[ok]
+        else:
+            ok = np.isfinite(t) & np.all(np.isfinite(w), axis=1)
+            ok &= t > last
+            ok &= np.concatenate([[True], np.diff(t) > 0]) if len(t) else ok
+            if len(t) and not np.all(np.diff(t[ok]) > 0):
+                ok[:] = False  # unordered batch: let the caller sort it
+            t, w = t[ok], w[ok]
+        dropped = len(ok) - len(t)
         if dropped:
             self.counters.extra["imu_dropped"] = self.counters.extra.get("imu_dropped", 0) + dropped
-        self.imu_t = np.concatenate([self.imu_t, t[ok]])
-        self.imu_w = np.concatenate([self.imu_w, w[ok]])
+        self._append_imu(t, w)
         if self._prefix is not None:
-            self._prefix.extend(t[ok], w[ok])
-        return int(ok.sum())
+            self._prefix.extend(t, w)
+        return len(t)
+
+    def _append_imu(self, t: np.ndarray, w: np.ndarray) -> None:
+        """``imu_t``, ``imu_w`` += the samples, in buffers with spare room (amortized O(1)).
+
+        ``imu_t`` and ``imu_w`` are views of the buffers; anything that replaces them
+        (:meth:`drop_imu`, a restored checkpoint) makes the next call start new buffers.
+        """
+        m = len(t)
+        if m == 0:
+            return
+        n = len(self.imu_t)
+        cap = self._imu_cap
+        if cap is None or cap[2] is not self.imu_t or cap[3] is not self.imu_w \
+                or n + m > len(cap[0]):
+            size = max(2 * (n + m), 1024)
+            tb, wb = np.empty(size), np.empty((size, 3))
+            tb[:n] = self.imu_t
+            wb[:n] = self.imu_w
+        else:
+            tb, wb = cap[0], cap[1]
+        tb[n:n + m] = t
+        wb[n:n + m] = w
+        self.imu_t, self.imu_w = tb[:n + m], wb[:n + m]
+        self._imu_cap = (tb, wb, self.imu_t, self.imu_w)
 
     def drop_imu(self, cut: int) -> int:
         """Forget the first ``cut`` IMU samples (live use: bounded memory); returns how many.
@@ -302,8 +338,9 @@ class PsceFilter:
         self.R_i_b = so3_exp(corr) @ (R0Ca @ Cb)
         P = self.P
         if self.model.size:
-            Pfa = P[:3, 3:] + Phi @ P[3:, 3:]
-            P[:3, :3] += Phi @ P[3:, :3] + P[:3, 3:] @ Phi.T + Phi @ P[3:, 3:] @ Phi.T
+            PhiP = Phi @ P[3:, 3:]
+            Pfa = P[:3, 3:] + PhiP
+            P[:3, :3] += Phi @ P[3:, :3] + P[:3, 3:] @ Phi.T + PhiP @ Phi.T
             P[:3, 3:] = Pfa
             P[3:, :3] = Pfa.T
         total = tb - ta
@@ -312,7 +349,7 @@ class PsceFilter:
         P[1, 1] += q
         P[2, 2] += q
         if self.model.size:
-            P[3:, 3:] += np.diag(self.q_theta * total)
+            P.flat[3 * (len(P) + 1)::len(P) + 1] += self.q_theta * total  # diagonal of P_θθ
         n_gap, gap_time = pre.gaps(ma, mb, ta, tb)
         if n_gap or gap_time:
             self._inflate_for_gap(n_gap, gap_time, tb)
@@ -559,10 +596,10 @@ class PsceFilter:
         # star's NIS. Gating those against the absolute threshold would reject whole frames
         # and leave nothing to diagnose; scaling the gate by the frame's median NIS (over
         # the χ² median) keeps rejecting outliers and keeps the honest innovations.
-        usable = np.isfinite(nis_stars)
+        finite = [v for v in nis_stars.tolist() if math.isfinite(v)]
         scale = 1.0
-        if usable.sum() >= 3:
-            scale = max(1.0, float(np.median(nis_stars[usable])) / _CHI2_2_MEDIAN)
+        if len(finite) >= 3:
+            scale = max(1.0, _median(finite) / _CHI2_2_MEDIAN)
         mismatch = scale > self.config.mismatch_factor
         # the last 10 frames as bits: one odd frame is counted, a pattern is reported
         self._mismatch_bits = ((self._mismatch_bits << 1) | int(mismatch)) & 0x3FF
@@ -586,10 +623,14 @@ class PsceFilter:
         # whatever its NIS: far outside the detector the distortion polynomial folds back
         # and its huge Jacobian would let the gate pass it.
         d = pred0.directions_st
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r2 = (d[:, 0] ** 2 + d[:, 1] ** 2) / d[:, 2] ** 2
-        in_fov = (d[:, 2] > 0) & (r2 <= self._fov_r2)
-        if not np.all(in_fov):
+        front = d[:, 2] > 0
+        if front.all():  # no zero or NaN divisor: no floating-point warnings to silence
+            in_fov = (d[:, 0] ** 2 + d[:, 1] ** 2) / d[:, 2] ** 2 <= self._fov_r2
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r2 = (d[:, 0] ** 2 + d[:, 1] ** 2) / d[:, 2] ** 2
+            in_fov = front & (r2 <= self._fov_r2)
+        if not in_fov.all():
             self.counters.extra["stars_outside_fov"] = \
                 self.counters.extra.get("stars_outside_fov", 0) + int((~in_fov).sum())
             accepted &= in_fov
@@ -610,7 +651,7 @@ class PsceFilter:
             return result
         self._rejected_in_row = 0
         idx = np.flatnonzero(accepted)
-        ctx_acc = _subset_context(ctx, idx)
+        ctx_acc = None  # the accepted stars' context: only if the update relinearizes
         z = uv[idx].reshape(-1)
         Rm = np.repeat(R_meas[idx], 2)
         N = 3 + model.size
@@ -621,24 +662,27 @@ class PsceFilter:
         sig = np.sqrt(np.diag(self.P))
         nu = z - h
         nis = float("nan")
+        sig_floor = np.maximum(sig, 1e-300)
         for it in range(1, self.config.max_iterations + 1):
             PHt = self.P @ H.T
             S = H @ PHt
-            S[np.diag_indices_from(S)] += Rm
-            try:
-                c = np.linalg.cholesky(S)
-            except np.linalg.LinAlgError:
+            S.ravel()[::len(S) + 1] += Rm  # the diagonal
+            # LAPACK directly (Cholesky, then triangular solves): the numpy.linalg wrappers
+            # cost more than the 2n × 2n factorization itself
+            c, info = _potrf(S, lower=1, clean=1, overwrite_a=1)
+            if info != 0:
                 self.counters.extra["update_failed"] = self.counters.extra.get(
                     "update_failed", 0) + 1
                 log.warning("t=%.3f s: innovation covariance not positive definite: frame "
                             "skipped", t_exp)
                 return result
             if it == 1:
-                y = np.linalg.solve(c, nu)
+                y, _ = _trtrs(c, nu, lower=1)
                 nis = float(y @ y)
-            K = np.linalg.solve(c.T, np.linalg.solve(c, PHt.T)).T
+            Kt, _ = _potrs(c, PHt.T, lower=1)  # S⁻¹ H P = Kᵀ
+            K = Kt.T
             dx_new = K @ (z - h + H @ dx)
-            change = np.max(np.abs(dx_new - dx) / np.maximum(sig, 1e-300))
+            change = np.max(np.abs(dx_new - dx) / sig_floor)
             dx = dx_new
             if it == self.config.max_iterations:
                 break
@@ -646,18 +690,20 @@ class PsceFilter:
                 # Relinearize only if the correction is large enough for second-order terms
                 # to matter: a rotation of more than relinearize_rad or a parameter moving by
                 # more than relinearize_sigma of its prior-relative uncertainty.
-                small = np.linalg.norm(dx[:3]) < self.config.relinearize_rad and np.all(
-                    np.abs(dx[3:]) < self.config.relinearize_sigma * np.maximum(sig[3:], 1e-300)
-                )
+                dphi = dx[:3]
+                small = math.sqrt(dphi.dot(dphi)) < self.config.relinearize_rad and (
+                    np.abs(dx[3:]) < self.config.relinearize_sigma * sig_floor[3:]).all()
                 if small:
                     break
             elif change < self.config.iteration_tolerance:
                 break
+            if ctx_acc is None:
+                ctx_acc = _subset_context(ctx, idx)
             pred = model.predict(theta0 + dx[3:], u_i[idx], ctx_acc,
                                  self._attitude_function(dx[:3]))
             H = np.concatenate([pred.H_attitude, pred.H_parameters], axis=2).reshape(-1, N)
             h = pred.uv.reshape(-1)
-        if not (np.all(np.isfinite(dx)) and np.all(np.isfinite(K))):
+        if not (np.isfinite(dx).all() and np.isfinite(K).all()):
             self.counters.extra["update_failed"] = self.counters.extra.get("update_failed", 0) + 1
             log.warning("t=%.3f s: non-finite update: frame skipped", t_exp)
             return result
@@ -725,9 +771,9 @@ class PsceFilter:
                 self.counters.skipped_out_of_order += 1
                 log.warning("star frame at %.6f is older than the last one: skipped", ctx.stamp)
                 return None
-        good = np.all(np.isfinite(uv), axis=1) & np.all(np.isfinite(u_i), axis=1) & \
+        good = np.isfinite(uv).all(axis=1) & np.isfinite(u_i).all(axis=1) & \
             np.isfinite(sigma) & (sigma > 0)
-        if not np.all(good):
+        if not good.all():
             self.counters.stars_invalid += int((~good).sum())
             uv, u_i, sigma = uv[good], u_i[good], sigma[good]
             ctx = _subset_context(ctx, np.flatnonzero(good))
@@ -746,6 +792,31 @@ class PsceFilter:
     def sigma(self) -> np.ndarray:
         """1-sigma of the error state [φ, θ]."""
         return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
+
+
+def _median(values: list[float]) -> float:
+    """``np.median`` of a short list of finite floats (the same value, less overhead)."""
+    s = sorted(values)
+    k = len(s) // 2
+    return s[k] if len(s) % 2 else (s[k - 1] + s[k]) / 2.0
+
+
+def _imu_ok_small(t: list[float], w: list[list[float]], last: float) -> list[bool]:
+    """:meth:`PsceFilter.extend_imu`'s sample check for a few samples, in plain Python.
+
+    Finite, after ``last``, after the previous sample of the batch (``t_i − t_{i−1} > 0``,
+    as ``np.diff``), and the accepted ones increasing (else none is accepted).
+    """
+    isfinite = math.isfinite
+    ok = []
+    for i, ti in enumerate(t):
+        wi = w[i]
+        ok.append(isfinite(ti) and isfinite(wi[0]) and isfinite(wi[1]) and isfinite(wi[2])
+                  and ti > last and (i == 0 or ti - t[i - 1] > 0))
+    kept = [ti for ti, k in zip(t, ok, strict=True) if k]
+    if any(not b - a > 0 for a, b in zip(kept, kept[1:], strict=False)):
+        return [False] * len(t)
+    return ok
 
 
 def _wahba_inliers(camera, uv: np.ndarray, u_i: np.ndarray, outlier_px: float) -> np.ndarray:
@@ -782,6 +853,8 @@ def _subset_context(ctx: FrameContext, idx: np.ndarray) -> FrameContext:
 
 _BLOCK = 32  # samples per block of the prefix's attitude products (see _ImuPrefix)
 _CHUNK = 16384  # samples per piece of a long extension (cache)
+_SMALL = 8  # extensions of up to this many samples take the scalar path (live use)
+_STALE_DQ = np.zeros((0, 4))  # block_dq while _lv holds the partial block
 _PREFIX_ROWS = {  # per-sample arrays of _ImuPrefix: trailing shape, dtype
     "tp": ((), np.float64), "w_hat": ((3,), np.float64), "C": ((3, 3), np.float64),
     "S": ((3, 3), np.float64), "gap": ((), np.bool_), "gap_count": ((), np.int64),
@@ -805,6 +878,13 @@ class _ImuPrefix:
     block, which for sample k reads only samples ≤ k of its block, then a sequential chain
     of block anchors), and the sums are sequential accumulations; so a live filter fed in
     arbitrary batches reproduces the replay bit for bit.  (Rounding over hours ~1e-12 rad.)
+
+    Batches of up to ``_SMALL`` samples (a live filter appends one 200 Hz sample at a time)
+    take a scalar path, :meth:`_extend_small`, which performs the very same floating-point
+    operations in the same order as the block scan — it keeps the scan's intermediate
+    levels of the current partial block (``_lv``) and extends them by one position — and
+    so stores the same values bit for bit, at a fraction of the fixed cost of the vectorized
+    path (≈ 0.03 instead of ≈ 0.25 ms per call).
     """
 
     def __init__(self, nominal_dt: float, theta_ref: np.ndarray, b: np.ndarray, E: np.ndarray,
@@ -821,10 +901,16 @@ class _ImuPrefix:
             self.G = -Jb
         self.n = 0  # samples held
         self.base = 0  # absolute index of the first sample held (samples dropped before it)
+        self._at_cache: tuple[tuple[tuple[int, float], np.ndarray], ...] = \
+            (((-1, 0.0), np.eye(3)),) * 2  # at(): ((absolute sample, t), C)
         self.t_end = -np.inf
         self.dtheta_last = np.zeros(3)  # for the coning term of the next sample
         self.anchor = np.array([0.0, 0.0, 0.0, 1.0])  # attitude at the current block's start
         self.block_dq = np.zeros((0, 4))  # increments of the current (partial) block
+        # scan levels of the current partial block for the scalar path: one entry per
+        # position, each the 6 levels (increment, then after each of the 5 scan steps) as
+        # 4 floats; None: not known (after load_state), rebuilt from block_dq when needed
+        self._lv: list[list[list[float]]] | None = []
         # Storage with spare capacity (amortized appends, drops without copies); the
         # public arrays are views: tp, C, S, gap_count, gap_time have n + 1 rows
         # (boundaries), w_hat and gap n rows (samples).
@@ -870,6 +956,9 @@ class _ImuPrefix:
                 self.extend(imu_t[a:a + _CHUNK], imu_w[a:a + _CHUNK])
             return
         first = self.base == 0 and self.n == 0
+        if m <= _SMALL and not first:
+            self._extend_small(imu_t, imu_w)
+            return
         t_prev = imu_t[0] - self.nominal_dt if first else self.tp[-1]
         dt = np.diff(np.concatenate([[t_prev], imu_t]))
         d = imu_w - self.b
@@ -882,13 +971,15 @@ class _ImuPrefix:
         phi = dth + np.cross(prev, dth) / 12.0
         if first:
             phi[0] = dth[0]
-        seq = np.concatenate([self.block_dq, quat_from_rotvec(phi)])
-        r, old = len(seq), len(self.block_dq)
+        block_dq = self._partial_dq()
+        seq = np.concatenate([block_dq, quat_from_rotvec(phi)])
+        r, old = len(seq), len(block_dq)
         nb = -(-r // _BLOCK)
         pad = np.zeros((nb * _BLOCK, 4))
         pad[:, 3] = 1.0
         pad[:r] = seq
-        L = _block_scan(pad.reshape(nb, _BLOCK, 4))  # (4, nb, B)
+        levels = np.empty((6, 4, _BLOCK)) if r % _BLOCK else None
+        L = _block_scan(pad.reshape(nb, _BLOCK, 4), levels)  # (4, nb, B)
         anchors = np.empty((4, nb))
         a = self.anchor
         for j in range(nb):
@@ -923,6 +1014,108 @@ class _ImuPrefix:
         self.dtheta_last = dth[-1].copy()
         self.anchor = a
         self.block_dq = seq[(nb - 1) * _BLOCK:].copy() if r % _BLOCK else np.zeros((0, 4))
+        # the scan levels of the partial block, per position (for _extend_small)
+        self._lv = levels[:, :, :r % _BLOCK].transpose(2, 0, 1).tolist() \
+            if levels is not None else []
+        self._views()
+
+    def _partial_dq(self) -> np.ndarray:
+        """Increments of the current partial block, (r, 4)."""
+        if self._lv is None:
+            return self.block_dq
+        return np.array([p[0] for p in self._lv], dtype=float).reshape(-1, 4)
+
+    def _levels(self) -> list[list[list[float]]]:
+        """``_lv``, rebuilt from ``block_dq`` if unknown (same operations as the scan)."""
+        if self._lv is None:
+            lv: list[list[list[float]]] = []
+            for q in self.block_dq.tolist():
+                lv.append(_scan_position(lv, q))
+            self._lv = lv
+        return self._lv
+
+    def _extend_small(self, imu_t: np.ndarray, imu_w: np.ndarray) -> None:
+        """A few samples, one at a time: the floating-point operations of :meth:`extend`.
+
+        Per sample: the bias-corrected rate (explicit sums with ``A``), the coning-corrected
+        increment, its quaternion (:func:`quat_from_rotvec`, for all samples at once: the
+        same function as the vectorized path), the scan position's levels from those of
+        earlier positions (:func:`_scan_position`), normalization, the anchor product (the
+        operation order of ``_quat_multiply_soa``), the matrix, and the sequential sums.
+        """
+        m = len(imu_t)
+        ts = np.asarray(imu_t, dtype=float).tolist()
+        ws = np.asarray(imu_w, dtype=float).reshape(m, 3).tolist()
+        bx, by, bz = self.b.tolist()
+        A = self.A.tolist() if self.A is not None else None
+        self._reserve(m)
+        buf, i0 = self._buf, self._lo + self.n  # row of the last boundary held
+        t_prev = float(buf["tp"][i0])
+        px, py, pz = self.dtheta_last.tolist()
+        gap_dt = self.gap_factor * self.nominal_dt
+        rows = []
+        phis = np.empty((m, 3))
+        for j in range(m):
+            t = ts[j]
+            dt = t - t_prev
+            wx, wy, wz = ws[j]
+            dx, dy, dz = wx - bx, wy - by, wz - bz
+            if A is not None:
+                dx, dy, dz = (dx * A[0][0] + dy * A[0][1] + dz * A[0][2],
+                              dx * A[1][0] + dy * A[1][1] + dz * A[1][2],
+                              dx * A[2][0] + dy * A[2][1] + dz * A[2][2])
+            hx, hy, hz = dx * dt, dy * dt, dz * dt
+            # np.cross(prev, dth) / 12.0
+            cx = py * hz - pz * hy
+            cy = pz * hx - px * hz
+            cz = px * hy - py * hx
+            phis[j] = (hx + cx / 12.0, hy + cy / 12.0, hz + cz / 12.0)
+            rows.append((t, dt, dx, dy, dz))
+            px, py, pz = hx, hy, hz
+            t_prev = t
+        dqs = quat_from_rotvec(phis).tolist()
+        lv = self._levels()
+        anchor = self.anchor.tolist()
+        ax, ay, az, aw = anchor
+        S_prev = buf["S"][i0].ravel().tolist()
+        gc_prev = int(buf["gap_count"][i0])
+        gt_prev = float(buf["gap_time"][i0])
+        for j in range(m):
+            t, dt, dx, dy, dz = rows[j]
+            i = i0 + j
+            levels = _scan_position(lv, dqs[j])
+            x, y, z, w = levels[-1]
+            nrm = math.sqrt(x * x + y * y + z * z + w * w)
+            x, y, z, w = x / nrm, y / nrm, z / nrm, w / nrm
+            if len(lv) == _BLOCK - 1:  # the block is complete: next anchor, new block
+                anchor = _quat_mul_normalized(np.array(anchor), np.array([x, y, z, w])).tolist()
+                lv = []
+            else:
+                lv.append(levels)
+            # anchor ⊗ L (operation order of _quat_multiply_soa)
+            qx = aw * x + ax * w + ay * z - az * y
+            qy = aw * y - ax * z + ay * w + az * x
+            qz = aw * z + ax * y - ay * x + az * w
+            qw = aw * w - ax * x - ay * y - az * z
+            ax, ay, az, aw = anchor
+            C = _quat_to_matrix_rows(qx, qy, qz, qw)
+            S_prev = [s_ + c_ * dt for s_, c_ in zip(S_prev, C, strict=True)]
+            gap = dt > gap_dt
+            gc_prev += gap
+            gt_prev = gt_prev + (dt if gap else 0.0)
+            buf["tp"][i + 1] = t
+            buf["w_hat"][i] = (dx, dy, dz)
+            buf["gap"][i] = gap
+            buf["C"][i + 1].flat = C
+            buf["S"][i + 1].flat = S_prev
+            buf["gap_count"][i + 1] = gc_prev
+            buf["gap_time"][i + 1] = gt_prev
+        self._lv = lv
+        self.anchor = np.array(anchor)
+        self.block_dq = _STALE_DQ
+        self.n += m
+        self.t_end = ts[-1]
+        self.dtheta_last = np.array([px, py, pz])
         self._views()
 
     def drop(self, cut: int) -> None:
@@ -939,8 +1132,9 @@ class _ImuPrefix:
         """Everything that defines the prefix, as arrays (checkpoints)."""
         out = {k: np.asarray(getattr(self, k)).copy() for k in _PREFIX_ROWS}
         for k in ("nominal_dt", "gap_factor", "theta_ref", "b", "G", "n", "base", "t_end",
-                  "dtheta_last", "anchor", "block_dq"):
+                  "dtheta_last", "anchor"):
             out[k] = np.asarray(getattr(self, k)).copy()
+        out["block_dq"] = self._partial_dq().copy()
         if self.A is not None:
             out["A"] = self.A.copy()
         return out
@@ -954,6 +1148,8 @@ class _ImuPrefix:
             setattr(self, k, v.item() if v.ndim == 0 else v)
         self.A = np.array(state["A"]) if "A" in state else None
         self.n, self.base = int(self.n), int(self.base)
+        self._lv = None  # rebuilt from block_dq by the scalar path when needed
+        self._at_cache = (((-1, 0.0), np.eye(3)),) * 2
         self._lo = 0
         self._buf = {}
         for k, (shape, dt) in _PREFIX_ROWS.items():
@@ -964,9 +1160,19 @@ class _ImuPrefix:
         self._views()
 
     def at(self, m: int, t: float) -> np.ndarray:
-        """``C(t)`` for ``t`` in sample ``m``."""
+        """``C(t)`` for ``t`` in sample ``m``.
+
+        The last two results are kept (by absolute sample and time): a star frame's
+        propagation starts where the previous one ended.
+        """
+        key = (self.base + m, t)
+        for k, C in self._at_cache:
+            if k == key:
+                return C
         tau = t - self.tp[m]
-        return self.C[m] @ so3_exp(self.w_hat[m] * tau) if tau > 0.0 else self.C[m]
+        C = self.C[m] @ so3_exp(self.w_hat[m] * tau) if tau > 0.0 else self.C[m].copy()
+        self._at_cache = (self._at_cache[-1], (key, C))
+        return C
 
     def gaps(self, ma: int, mb: int, ta: float, tb: float) -> tuple[int, float]:
         """Gap samples entered in ``(t_a, t_b]`` and the time the interval spends in gaps."""
@@ -991,22 +1197,63 @@ class _NoImuError(Exception):
     """The IMU data do not reach the requested time."""
 
 
-def _block_scan(dq: np.ndarray) -> np.ndarray:
+def _block_scan(dq: np.ndarray, levels: np.ndarray | None = None) -> np.ndarray:
     """Inclusive Hamilton products within each block: (nb, B, 4) → (4, nb, B), normalized.
 
     Hillis-Steele scan along the block: the value at position k combines positions ≤ k
-    only, with the same operations for any number of blocks or trailing padding.
+    only, with the same operations for any number of blocks or trailing padding.  With
+    ``levels`` (``(log2 B + 1, 4, B)``), the last block's values before the first and after
+    each step are written there (unnormalized; for :func:`_scan_position`).
     """
     Q = np.ascontiguousarray(np.moveaxis(dq, 2, 0))
     B = Q.shape[2]
-    s = 1
+    s, lvl = 1, 0
+    if levels is not None:
+        levels[0] = Q[:, -1]
     while s < B:
         out = np.empty((4, Q.shape[1], B - s))
         _quat_multiply_soa(Q[:, :, :-s], Q[:, :, s:], out, np.empty(out.shape[1:]))
         Q[:, :, s:] = out
         s *= 2
+        lvl += 1
+        if levels is not None:
+            levels[lvl] = Q[:, -1]
     Q /= np.sqrt(Q[0] * Q[0] + Q[1] * Q[1] + Q[2] * Q[2] + Q[3] * Q[3])
     return Q
+
+
+def _scan_position(lv: list[list[list[float]]], q: list[float]) -> list[list[float]]:
+    """The scan levels of the next position of a block, from those of the earlier ones.
+
+    The operations of :func:`_block_scan` for one position ``k = len(lv)``: at step ``l``
+    (stride ``s = 2^l``) ``Q[k] ← Q[k − s] ⊗ Q[k]`` if ``k ≥ s`` (the order of
+    ``_quat_multiply_soa``); returns the ``log2 B + 1`` levels, the last unnormalized.
+    """
+    k = len(lv)
+    x, y, z, w = q
+    out = [q]
+    s, lvl = 1, 0
+    while s < _BLOCK:
+        if k >= s:
+            ax, ay, az, aw = lv[k - s][lvl]
+            x, y, z, w = (aw * x + ax * w + ay * z - az * y,
+                          aw * y - ax * z + ay * w + az * x,
+                          aw * z + ax * y - ay * x + az * w,
+                          aw * w - ax * x - ay * y - az * z)
+        out.append([x, y, z, w])
+        s *= 2
+        lvl += 1
+    return out
+
+
+def _quat_to_matrix_rows(x: float, y: float, z: float, w: float) -> list[float]:
+    """:func:`_quat_soa_to_matrix` of one quaternion, the 9 entries row by row."""
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy),
+            2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx),
+            2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)]
 
 
 def _quat_mul_normalized(p: np.ndarray, q: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -78,6 +79,7 @@ class StarModel:
         self.initial_value = np.concatenate(values) if values else np.zeros(0)
         self.initial_sigma = np.concatenate(sigmas) if sigmas else np.zeros(0)
         self._camera_prior = prior.camera.parameters()
+        self._camera_cols_cache: tuple[Any, Any, Any] | None = None  # see _camera_columns
         self._R_imu_st_prior = prior.installation.as_matrix()  # cached: scipy is slow per call
         self._by_stage = {st: [e for e in self.effects if e.stage is st] for st in Stage}
         self.fixed_effects: list[tuple[Effect, np.ndarray]] = self._fixed_effects(prior)
@@ -230,13 +232,15 @@ class StarModel:
             J, D = eff.camera_jacobian(v, p, ctx)
             cam_steps.append((sl, J, D))
             p = eff.camera_parameters(v, p, ctx)
+        cam_M, need = self._camera_columns(cam_steps)
         camera = self.prior.camera.with_parameters(p)
-        uv, J_d, J_p = camera.project(d, jacobians=True)
+        uv, J_d, J_p = camera.project(d, jacobians=True, parameters=need)
 
         # Jacobians
         R_st_i = R_i_st.T
         H_att = J_d @ (R_st_i @ skew(u))  # (n,2,3)
-        H = np.zeros((n, 2, P))
+        # camera columns first (one product for all camera effects), then the others add
+        H = J_p @ cam_M if cam_M is not None else np.zeros((n, 2, P))
         for sl, Ju in dir_jac:  # ∂d/∂θ = R_st_i ∂u/∂θ
             H[:, :, sl] += np.einsum("nij,jk,nkl->nil", J_d, R_st_i, Ju)
         if self.has_time_effect and np.any(shift_grad):
@@ -245,13 +249,38 @@ class StarModel:
             H += np.einsum("nij,nj->ni", J_d, dd_dt)[:, :, None] * shift_grad[None, None, :]
         if self._by_stage[Stage.TRACKER]:
             Jr = right_jacobian(delta)
-            Jd_skew = np.einsum("nij,njk->nik", J_d, skew(d)) @ Jr  # (n,2,3)
+            Jd_skew = (J_d @ skew(d)) @ Jr  # (n,2,3)
             for eff in self._by_stage[Stage.TRACKER]:
                 sl = self.slices[eff.id]
                 H[:, :, sl] += Jd_skew @ eff.tracker_rotation_jacobian(theta[sl], ctx)
-        A = np.eye(18)
-        for sl, J, D in reversed(cam_steps):
-            if sl is not None:  # a fixed effect has no column but passes p on (D)
-                H[:, :, sl] += J_p @ (A @ J)
-            A = A @ D
         return Prediction(uv, H_att, H, d, R_i_st, t_exp, camera)
+
+    def _camera_columns(self, steps: list[tuple[slice | None, np.ndarray, np.ndarray]]
+                        ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``∂p/∂θ`` (18, P) of the camera chain, and the camera parameters it uses.
+
+        Column block of each estimated camera effect: ``A J`` with ``A`` the product of
+        the later steps' ``D`` (None without camera effects); the mask of the parameters
+        with a nonzero row (the projection computes only those Jacobian columns; None:
+        all).  Effects with constant Jacobians (the parameter-setting ones) return the
+        same arrays every call: the result is reused while every step's arrays are the
+        same objects.
+        """
+        c = self._camera_cols_cache
+        if c is not None and len(c[0]) == len(steps) and all(
+                a[0] == b[0] and a[1] is b[1] and a[2] is b[2]
+                for a, b in zip(c[0], steps, strict=True)):
+            return c[1], c[2]
+        A = np.eye(18)
+        cols = []
+        for sl, J, D in reversed(steps):
+            if sl is not None:  # a fixed effect has no column but passes p on (D)
+                cols.append((sl, A @ J))
+            A = A @ D
+        M_all = np.zeros((18, self.size)) if cols else None
+        for sl, M in cols:
+            M_all[:, sl] = M
+        need = np.any(M_all != 0.0, axis=1) if cols else np.ones(18, dtype=bool)
+        mask = None if need.all() else need
+        self._camera_cols_cache = (list(steps), M_all, mask)  # holds the arrays compared
+        return M_all, mask
