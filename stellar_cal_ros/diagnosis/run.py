@@ -39,13 +39,17 @@ def diagnose(
 
     base, results = rank_candidates(data, calibration, spec, effects, candidates,
                                     evaluation_fraction, progress=tell)
-    best = next((c for c in results if c.significant), None)
-    final = best.run if best is not None else base
+    # the top candidate (a candidate tested after it may be significant too, but it is the
+    # one to add first); its re-run from its own calibration is where the next iteration
+    # starts
+    best = next((c for c in results if c.significant_alone), None)
+    best_run = None if best is None else (best.refined_run or best.run)
+    final = best_run if best_run is not None else base
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     mask = stats.evaluation_mask(final.residuals, evaluation_fraction)
     # The residual table lacks the gravity direction that mount flexure follows: add it.
-    final_cal = best.run.calibration if best is not None else base.calibration
+    final_cal = final.calibration
     final_res = add_gravity_regressors(final.residuals, data, final_cal)
     unexplained = stats.regressor_tests(final_res, mask, centre)
     summary = summary_dict(base, results, unexplained, spec, effects, evaluation_fraction)
@@ -54,7 +58,7 @@ def diagnose(
     if plots:
         panels = [("current model", base.residuals)]
         if best is not None:
-            panels.append((f"+ {best.effect}", best.run.residuals))
+            panels.append((f"+ {best.effect}", best_run.residuals))
         report.plot_vector_fields(panels, cam.width, cam.height, evaluation_fraction,
                                   out / "vector_field.png")
         report.plot_regressors(panels, centre, evaluation_fraction, out / "regressors.png")

@@ -120,7 +120,10 @@ class GyroScaleFactor(_Matrix):
     explanation = (
         "A gyro reports its rate a few ppm too large or small, so every slew is over- or "
         "under-measured in proportion to its angle. Residual: jumps after each rotation about "
-        "that axis, proportional to the angle turned; nothing while at rest. Typical: 10-500 ppm."
+        "that axis, proportional to the angle turned; nothing while at rest. Typical: 10-500 ppm. "
+        "Look-alike: a mount that flexes with the gravity direction gives the same residual "
+        "when the tracker is tilted out and back by less than ~60 deg (sin θ ≈ θ); a full turn, "
+        "or a rotation about the vertical, tells them apart (flexure has none about it)."
     )
 
 
