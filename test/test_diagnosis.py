@@ -49,6 +49,8 @@ def test_hidden_time_offset_is_found_and_fixed(tmp_path):
     assert set(on_disk["candidates"][0]) >= {"effect", "score", "rms_after_px", "p_value"}
     # copycats of the time offset are not claimed: tested after it, none is needed
     assert not any(c["significant"] for c in summary["candidates"][1:]), summary["candidates"]
+    # and with it added (re-run from its calibration) no residual structure is left
+    assert summary["unexplained"] == [], summary["unexplained"]
 
 
 def test_second_effect_behind_a_large_one_is_named_after_it(tmp_path):
@@ -186,3 +188,7 @@ def test_builtin_demo_loop_works(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "the diagnosis named time_offset" in out and "the loop worked" in out
     assert (tmp_path / "demo" / "diagnosis" / "report.html").exists()
+    summary = json.loads((tmp_path / "demo" / "diagnosis" / "diagnosis.json").read_text())
+    # one effect hidden: nothing else claimed, no structure left once it is added
+    assert [c["effect"] for c in summary["candidates"] if c["significant"]] == ["time_offset"]
+    assert summary["unexplained"] == [], summary["unexplained"]
