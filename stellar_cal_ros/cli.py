@@ -183,8 +183,12 @@ def print_diagnosis(summary: dict) -> None:
     implausible = summary.get("implausible", [])
     for u in implausible:
         est, sig = next(iter(u["estimate"].values())), next(iter(u["sigma"].values()))
-        print(f"  implausible: {u['effect']} (fits {est:.3g} +- {sig:.2g} x its physical size)")
-    if implausible:
+        after = u.get("after")
+        note = (f"; not needed once {after['effect']} is added" if after and not after["needed"]
+                else "")
+        print(f"  implausible: {u['effect']} (fits {est:.3g} +- {sig:.2g} x its physical "
+              f"size{note})")
+    if any(not (u.get("after") and not u["after"]["needed"]) for u in implausible):
         print("    (a physical effect at the wrong size: the structure has another cause, or "
               "several effects are missing; add the top candidate and diagnose again)")
     for u in summary["unobservable"]:

@@ -192,3 +192,6 @@ def test_builtin_demo_loop_works(tmp_path, capsys):
     # one effect hidden: nothing else claimed, no structure left once it is added
     assert [c["effect"] for c in summary["candidates"] if c["significant"]] == ["time_offset"]
     assert summary["unexplained"] == [], summary["unexplained"]
+    # astrometric corrections fitting at the wrong size are look-alikes of the time offset
+    assert all(u["after"] and not u["after"]["needed"] for u in summary["implausible"]), \
+        summary["implausible"]

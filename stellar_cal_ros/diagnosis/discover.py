@@ -159,6 +159,8 @@ class CandidateResult:
     @property
     def significant(self) -> bool:
         """Significant alone, or once tested after the top candidate: significant then."""
+        if self.status != "ranked":
+            return False
         if self.after:
             return not self.explained_by_top
         return self.significant_alone
@@ -290,6 +292,10 @@ def rank_candidates(
     m = max(len(tested), 1)
     for c in tested:
         c.p_adjusted = min(1.0, c.p_value * m)
+        if c.status == "implausible" and not c.p_adjusted < 0.01:
+            # its fit at the wrong size explains nothing significant: an ordinary
+            # non-significant candidate, not a sign of another cause
+            c.status, c.reason = "ranked", ""
     order = {"ranked": 0, "implausible": 1, "unobservable": 2, "failed": 3,
              "not_applicable": 4}
     results.sort(key=lambda c: (order[c.status], -np.nan_to_num(c.statistic, nan=-np.inf)))
@@ -316,7 +322,7 @@ def refine_top(data: BagData, spec: MethodSpec, extra: list[str],
 def condition_on_top(data: BagData, prior: Calibration, spec: MethodSpec, extra: list[str],
                      results: list[CandidateResult], evaluation_fraction: float = 0.5,
                      progress: Callable[[str], None] | None = None,
-                     max_after: int = 4) -> None:
+                     max_after: int = 4, max_implausible: int = 3) -> None:
     """Test the other significant candidates again with the top one in the model.
 
     This is the next iteration of the loop, run ahead: start values from the top
@@ -325,7 +331,10 @@ def condition_on_top(data: BagData, prior: Calibration, spec: MethodSpec, extra:
     (the ``max_after`` strongest; the rest keep their marginal verdict) re-run together with
     it.  The same quasi-likelihood ratio (dispersion of the reference run), Bonferroni over
     the candidates tested, and explained-variance floor (of the excess the reference
-    leaves) decide.  Fills the ``after`` fields in place.
+    leaves) decide.  Implausible candidates with p < 0.01 (up to ``max_implausible``) are
+    tested the same way: an astrometric correction that fits at the wrong size because of
+    the top effect is then shown as not needed once it is added.  Fills the ``after``
+    fields in place.
     """
     top = next((c for c in results if c.significant_alone), None)
     # every other candidate with a small p, even one that explains too little of the
@@ -335,6 +344,8 @@ def condition_on_top(data: BagData, prior: Calibration, spec: MethodSpec, extra:
     if top is None or top.run is None:
         return
     refine_top(data, spec, extra, top)
+    rest += [c for c in results if c.status == "implausible"
+             and c.p_adjusted < 0.01][:max_implausible]
     if not rest or top.refined_run is None:
         return
     prior = rerun_prior(top.run.calibration, list(spec.baseline) + extra + [top.effect])
@@ -392,7 +403,10 @@ def summary_dict(base: ReplayResult, results: list[CandidateResult],
         "unobservable": [{"effect": c.effect, "reason": c.reason}
                          for c in results if c.status == "unobservable"],
         "implausible": [{"effect": c.effect, "reason": c.reason, "score": c.statistic,
-                         "p_value": c.p_adjusted, "estimate": c.estimate, "sigma": c.sigma}
+                         "p_value": c.p_adjusted, "estimate": c.estimate, "sigma": c.sigma,
+                         "after": ({"effect": c.after, "score": c.statistic_after,
+                                    "p_value": c.p_after, "needed": not c.explained_by_top}
+                                   if c.after else None)}
                         for c in results if c.status == "implausible"],
         "not_applicable": [{"effect": c.effect, "reason": c.reason}
                            for c in results if c.status in ("not_applicable", "failed")],
