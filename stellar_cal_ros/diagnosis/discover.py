@@ -181,6 +181,40 @@ def observability_ratio(P_post: np.ndarray, sigma_prior: np.ndarray) -> float:
     return float(np.sqrt(max(lam.min(), 0.0)))
 
 
+@dataclass
+class _Reference:
+    """A run the augmented runs are compared with (evaluation window of its residuals)."""
+
+    log_likelihood: float
+    dispersion: float  # mean NIS / 2, at least 1 (quasi-likelihood)
+    excess: float  # excess residual variance per star
+    floor: float  # 5 % of the noise variance: below it there is no excess to explain
+
+    @classmethod
+    def of(cls, res: stats.Table, fraction: float) -> _Reference:
+        mask = stats.evaluation_mask(res, fraction)
+        return cls(stats.log_likelihood(res, mask),
+                   max(1.0, stats.nis_consistency(res, mask)["mean"] / 2.0),
+                   stats.excess_variance(res, mask), 0.05 * stats.noise_variance(res, mask))
+
+    def compare(self, res: stats.Table, mask: np.ndarray,
+                dof: int) -> tuple[float, float, float]:
+        """Statistic Λ, its unadjusted p (χ²_dof) and the fraction of the excess removed.
+
+        Quasi-likelihood: when the reference misses something, every residual is
+        over-dispersed by the same factor, and any extra parameter that absorbs a sliver of
+        the misfit gains a log-likelihood proportional to it; dividing by the dispersion
+        (mean NIS / 2) restores the χ² reference.  The explained fraction is NaN when the
+        reference has no excess to explain.
+        """
+        statistic = float(2.0 * (stats.log_likelihood(res, mask) - self.log_likelihood)
+                          / self.dispersion)
+        p = float(sps.chi2.sf(max(statistic, 0.0), dof))
+        explained = (float(1.0 - stats.excess_variance(res, mask) / self.excess)
+                     if self.excess > self.floor else float("nan"))
+        return statistic, p, explained
+
+
 def rerun_prior(calibration: Calibration, model_effects: list[str]) -> Calibration:
     """Start values from ``calibration``, datasheet-level sigmas for every estimated effect.
 
@@ -223,10 +257,7 @@ def rank_candidates(
     extra = [e for e in model_effects if e not in spec.baseline]
     prior = rerun_prior(calibration, list(spec.baseline) + extra)
     base = spec.runner(data, prior, extra)
-    mask_b = stats.evaluation_mask(base.residuals, evaluation_fraction)
-    ll_base = stats.log_likelihood(base.residuals, mask_b)
-    dispersion = max(1.0, stats.nis_consistency(base.residuals, mask_b)["mean"] / 2.0)
-    excess_base = stats.excess_variance(base.residuals, mask_b)
+    reference = _Reference.of(base.residuals, evaluation_fraction)
     in_model = set(spec.baseline) | set(extra)
     pool = [e for e in (candidates or registry.available()) if e not in in_model]
     results: list[CandidateResult] = []
@@ -264,16 +295,8 @@ def rank_candidates(
             cand.reason = (f"the data leave its uncertainty at {ratio:.0%} of the prior: "
                            "not observable with this motion and these inputs")
         else:
-            ll = stats.log_likelihood(run.residuals, mask_c)
-            # Quasi-likelihood: when the current model misses something, every residual is
-            # over-dispersed by the same factor, and any extra parameter that absorbs a
-            # sliver of the misfit gains a log-likelihood proportional to it; dividing by
-            # the dispersion (mean NIS / 2) restores the χ² reference.
-            cand.statistic = float(2.0 * (ll - ll_base) / dispersion)
-            cand.p_value = float(sps.chi2.sf(max(cand.statistic, 0.0), eff.size))
-            if excess_base > 0.05 * stats.noise_variance(base.residuals, mask_b):
-                cand.explained = float(
-                    1.0 - stats.excess_variance(run.residuals, mask_c) / excess_base)
+            cand.statistic, cand.p_value, cand.explained = reference.compare(
+                run.residuals, mask_c, eff.size)
             phys = PHYSICAL_VALUE.get(effect_id)
             if physical_check and phys is not None:
                 est, sig = float(value[0]), float(sig_post[0])
@@ -299,27 +322,27 @@ def rank_candidates(
     order = {"ranked": 0, "implausible": 1, "unobservable": 2, "failed": 3,
              "not_applicable": 4}
     results.sort(key=lambda c: (order[c.status], -np.nan_to_num(c.statistic, nan=-np.inf)))
-    condition_on_top(data, prior, spec, extra, results, evaluation_fraction, progress)
+    condition_on_top(data, spec, extra, results, evaluation_fraction, progress)
     return base, results
 
 
-def refine_top(data: BagData, spec: MethodSpec, extra: list[str],
-               top: CandidateResult) -> None:
+def refine_top(data: BagData, spec: MethodSpec, extra: list[str], top: CandidateResult,
+               prior: Calibration) -> None:
     """Re-run the model with the top candidate from that candidate's calibration.
 
     The augmented run started from the current model's values, which the missing effect
     biased; parameters that converge slowly (distortion) can still carry that start in the
     evaluation window and show as residual structure.  The re-run is where the next loop
     iteration starts: the residual-structure tests and the "+ effect" panels use it.
+    ``prior``: :func:`rerun_prior` of the candidate's calibration.
     """
-    prior = rerun_prior(top.run.calibration, list(spec.baseline) + extra + [top.effect])
     try:
         top.refined_run = spec.runner(data, prior, extra + [top.effect])
     except Exception as exc:  # keep the augmented run
         log.warning("re-run with %s failed: %s", top.effect, exc)
 
 
-def condition_on_top(data: BagData, prior: Calibration, spec: MethodSpec, extra: list[str],
+def condition_on_top(data: BagData, spec: MethodSpec, extra: list[str],
                      results: list[CandidateResult], evaluation_fraction: float = 0.5,
                      progress: Callable[[str], None] | None = None,
                      max_after: int = 4, max_implausible: int = 3) -> None:
@@ -343,18 +366,13 @@ def condition_on_top(data: BagData, prior: Calibration, spec: MethodSpec, extra:
             and c.p_adjusted < 0.01][:max_after]  # results are sorted: the strongest ones
     if top is None or top.run is None:
         return
-    refine_top(data, spec, extra, top)
+    prior = rerun_prior(top.run.calibration, list(spec.baseline) + extra + [top.effect])
+    refine_top(data, spec, extra, top, prior)
     rest += [c for c in results if c.status == "implausible"
              and c.p_adjusted < 0.01][:max_implausible]
     if not rest or top.refined_run is None:
         return
-    prior = rerun_prior(top.run.calibration, list(spec.baseline) + extra + [top.effect])
-    ref = top.refined_run.residuals
-    mask_r = stats.evaluation_mask(ref, evaluation_fraction)
-    ll_ref = stats.log_likelihood(ref, mask_r)
-    dispersion = max(1.0, stats.nis_consistency(ref, mask_r)["mean"] / 2.0)
-    excess_ref = stats.excess_variance(ref, mask_r)
-    floor = 0.05 * stats.noise_variance(ref, mask_r)
+    reference = _Reference.of(top.refined_run.residuals, evaluation_fraction)
     for c in rest:
         if progress:
             progress(f"{c.effect} after {top.effect}")
@@ -363,14 +381,10 @@ def condition_on_top(data: BagData, prior: Calibration, spec: MethodSpec, extra:
         except Exception as exc:  # keep the marginal result
             log.warning("candidate %s after %s failed: %s", c.effect, top.effect, exc)
             continue
-        mask_c = stats.evaluation_mask(run.residuals, evaluation_fraction)
-        ll = stats.log_likelihood(run.residuals, mask_c)
         c.after = top.effect
-        c.statistic_after = float(2.0 * (ll - ll_ref) / dispersion)
-        c.p_after = float(min(1.0, sps.chi2.sf(max(c.statistic_after, 0.0), c.dof) * len(rest)))
-        if excess_ref > floor:
-            c.explained_after = float(
-                1.0 - stats.excess_variance(run.residuals, mask_c) / excess_ref)
+        c.statistic_after, p, c.explained_after = reference.compare(
+            run.residuals, stats.evaluation_mask(run.residuals, evaluation_fraction), c.dof)
+        c.p_after = min(1.0, p * len(rest))
 
 
 def summary_dict(base: ReplayResult, results: list[CandidateResult],
