@@ -542,14 +542,7 @@ def _covariance(J: np.ndarray, r: np.ndarray, n_star: int, weights: np.ndarray,
     dof = max(inl.sum() - n_x, 1.0)
     s2 = float(np.sum(rs[inl] ** 2) / dof)
     info = (Js * weights[:, None]).T @ Js / s2 + Jp.T @ Jp
-    # equilibrate first: the columns span ~12 decades (rad, px, distortion coefficients)
-    d = 1.0 / np.sqrt(np.maximum(np.diag(info), 1e-300))
-    scaled = info * np.outer(d, d)
-    try:
-        inv = np.linalg.inv(scaled)
-    except np.linalg.LinAlgError:
-        inv = np.linalg.pinv(scaled, hermitian=True)
-    return inv * np.outer(d, d), s2
+    return _equilibrated_inverse(info), s2
 
 
 def _arw_density(imu: ImuSeries, gyro_arw: float | None) -> float:
@@ -904,15 +897,24 @@ def reprojection_rms(result: AcfResult, frames: Any = None, data: AcfData | None
 
 
 # ============================================================================ Cramér–Rao bound
-def _inverse(info: np.ndarray) -> np.ndarray:
-    """Inverse of an information matrix, equilibrated first (columns span many decades)."""
+def _equilibrated_inverse(info: np.ndarray) -> np.ndarray:
+    """Inverse of an information matrix, equilibrated first.
+
+    The columns span ~12 decades (rad, px, distortion coefficients); a singular matrix
+    (an unobservable direction without prior) falls back to the pseudo-inverse.
+    """
     d = 1.0 / np.sqrt(np.maximum(np.diag(info), 1e-300))
     scaled = info * np.outer(d, d)
     try:
         inv = np.linalg.inv(scaled)
     except np.linalg.LinAlgError:
         inv = np.linalg.pinv(scaled, hermitian=True)
-    inv = inv * np.outer(d, d)
+    return inv * np.outer(d, d)
+
+
+def _inverse(info: np.ndarray) -> np.ndarray:
+    """:func:`_equilibrated_inverse`, symmetrized (the bounds' covariances)."""
+    inv = _equilibrated_inverse(info)
     return 0.5 * (inv + inv.T)
 
 
