@@ -142,7 +142,7 @@ class _Series:
         self.stamp_ns: list[int] = []
         self.value: list[float] = []
         self.ref_ns: int | None = None  # earliest finite sample ever: interpolation origin
-        self._version = 0  # bumped on every change (add, trim) of the samples
+        self._version = 0  # bumped on every change (add, trim, restore): the caches' key
         self._cache: tuple[Any, np.ndarray, np.ndarray] | None = None  # interp abscissae
 
     def add(self, stamp_ns: int, value: float) -> None:
@@ -157,13 +157,18 @@ class _Series:
         self.stamp_ns.insert(i, stamp_ns)
         self.value.insert(i, value)
 
+    def restore(self, stamp_ns: list[int], value: list[float], ref_ns: int | None) -> None:
+        """Replace the samples (checkpoint load)."""
+        self._version += 1
+        self.stamp_ns, self.value, self.ref_ns = stamp_ns, value, ref_ns
+
     def interp(self, t_ns: int) -> float:
         """``np.interp`` over the finite samples, in s from the earliest one (as the replay)."""
         if not self.stamp_ns or self.ref_ns is None:
             return float("nan")
         ref = self.ref_ns
         # the arrays change at the inputs' rate (~1 Hz), frames ask more often: cache them
-        key = (self._version, id(self.stamp_ns), id(self.value), len(self.stamp_ns), ref)
+        key = self._version
         if self._cache is None or self._cache[0] != key:
             s = np.asarray(self.stamp_ns, dtype=np.int64)
             v = np.asarray(self.value, dtype=float)
@@ -236,9 +241,11 @@ class OnlineCalibrator:
         self._last_frame_ns: int | None = None  # last frame handed on
         self._frame_stamps_seen: set[int] = set()
         self.env = {k: _Series() for k in ENV_KEYS}
-        self._fixes: list[tuple[int, float, float, float]] = []
-        self._fix_values = np.zeros((0, 3))  # lat, lon, alt of _fixes (+ spare rows)
-        self._fix_n = 0  # rows of _fix_values in use
+        # valid fixes kept for the site median: stamps, and lat, lon, alt as rows of an array
+        # with spare capacity (the median is taken at every fix, over up to max_fixes)
+        self._fix_ns: list[int] = []
+        self._fix_values = np.zeros((0, 3))
+        self._fix_count = 0  # fixes ever added: the caches' key
         self._site_cache: tuple[Any, Site] | None = None
         self._clean: dict[int, np.ndarray] = {}  # clean_frame of the pending frames by stamp
         # filter inputs (centroids, catalogue directions, sigmas) of the pending frames
@@ -347,18 +354,18 @@ class OnlineCalibrator:
         if not all(np.isfinite(vals)) or status < 0 or abs(vals[0]) > 90:
             self.counters.fixes_invalid += 1
             return []
-        self._fixes.append((int(stamp_ns), *vals))
-        if self._fix_n == len(self._fix_values):  # grow (amortized)
-            grown = np.zeros((max(2 * self._fix_n, 64), 3))
-            grown[:self._fix_n] = self._fix_values[:self._fix_n]
+        n = len(self._fix_ns)
+        if n == len(self._fix_values):  # grow (amortized)
+            grown = np.zeros((max(2 * n, 64), 3))
+            grown[:n] = self._fix_values[:n]
             self._fix_values = grown
-        self._fix_values[self._fix_n] = vals
-        self._fix_n += 1
-        if len(self._fixes) > self.config.max_fixes:
-            k = len(self._fixes) - self.config.max_fixes
-            del self._fixes[:k]
-            self._fix_values[:self._fix_n - k] = self._fix_values[k:self._fix_n].copy()
-            self._fix_n -= k
+        self._fix_values[n] = vals
+        self._fix_ns.append(int(stamp_ns))
+        self._fix_count += 1
+        k = len(self._fix_ns) - self.config.max_fixes
+        if k > 0:
+            del self._fix_ns[:k]
+            self._fix_values[:n + 1 - k] = self._fix_values[k:n + 1].copy()
         _ = self.site  # the median now, not in the next frame's update
         return self._pump()
 
@@ -370,15 +377,11 @@ class OnlineCalibrator:
     @property
     def site(self) -> Site | None:
         """Median of the valid fixes so far (as the replay's over the bag)."""
-        if not self._fixes:
+        if not self._fix_ns:
             return None
-        key = (len(self._fixes), self._fixes[-1])
+        key = self._fix_count
         if self._site_cache is None or self._site_cache[0] != key:
-            if self._fix_n != len(self._fixes):  # _fixes replaced from outside: resync
-                self._fix_values = np.asarray([f[1:] for f in self._fixes],
-                                              dtype=float).reshape(-1, 3)
-                self._fix_n = len(self._fixes)
-            a = self._fix_values[:self._fix_n]
+            a = self._fix_values[:len(self._fix_ns)]
             site = Site(float(np.median(a[:, 0])), float(np.median(a[:, 1])),
                         float(np.median(a[:, 2])))
             self._site_cache = (key, site)
@@ -465,7 +468,7 @@ class OnlineCalibrator:
         if "weather" in self.requires:
             need += [self.env["air"], self.env["pressure"]]
         waiting = [s for s in need if not s.covers(stamp_ns)]
-        site_missing = "site" in self.requires and not self._fixes
+        site_missing = "site" in self.requires and not self._fix_ns
         if not waiting and not site_missing:
             return True, False
         if final or self.imu_max_ns - self.window_ns >= stamp_ns + self.env_wait_ns:
@@ -492,8 +495,8 @@ class OnlineCalibrator:
         if not np.any(ok):
             return None
         key = (int(frame.stamp_ns), id(frame),
-               tuple((id(s), s._version, len(s.stamp_ns), s.ref_ns) for s in self.env.values()),
-               len(self._fixes), self._fixes[-1] if self._fixes else None)
+               tuple(s._version for s in self.env.values()),
+               self._fix_count)
         c = self._ctx_cache
         if c is None or c[0] != key:
             c = self._ctx_cache = (key, self._context(frame, ok), {})
@@ -552,7 +555,7 @@ class OnlineCalibrator:
             self._last_frame_ns = int(frame.stamp_ns)
             if stale:
                 self.counters.env_stale += 1
-            if "site" in self.requires and not self._fixes:
+            if "site" in self.requires and not self._fix_ns:
                 self.counters.frames_no_site += 1
                 out.append(FrameOutcome(int(frame.stamp_ns), frame.frame_id, "dropped_no_site"))
                 continue
@@ -704,8 +707,8 @@ class OnlineCalibrator:
             "imu_pending_ns": np.asarray([p[0] for p in self._imu_pending], dtype=np.int64),
             "staged_ns": np.asarray(self._staged_t, dtype=np.int64),
             "staged_w": np.asarray(self._staged_w, dtype=float).reshape(-1, 3),
-            "fixes": np.asarray([f[1:] for f in self._fixes], dtype=float).reshape(-1, 3),
-            "fixes_ns": np.asarray([f[0] for f in self._fixes], dtype=np.int64),
+            "fixes": self._fix_values[:len(self._fix_ns)].copy(),
+            "fixes_ns": np.asarray(self._fix_ns, dtype=np.int64),
             "conv_sigma": np.asarray([h[0] for h in self._conv], dtype=float).reshape(
                 len(self._conv), self.model.size),
             "conv_nis": np.asarray([h[1] for h in self._conv], dtype=float),
@@ -773,17 +776,16 @@ class OnlineCalibrator:
                              for s, row in zip(a["imu_pending_ns"].tolist(), ip, strict=True)]
         self._staged_t = a["staged_ns"].tolist()
         self._staged_w = [tuple(r) for r in a["staged_w"].tolist()]
-        self._fixes = [(int(s), *r) for s, r in zip(a["fixes_ns"].tolist(),
-                                                     a["fixes"].tolist(), strict=True)]
+        self._fix_ns = [int(x) for x in a["fixes_ns"].tolist()]
         self._fix_values = np.asarray(a["fixes"], dtype=float).reshape(-1, 3).copy()
-        self._fix_n = len(self._fixes)
+        if len(self._fix_values) != len(self._fix_ns):
+            raise ValueError("checkpoint: fixes and fixes_ns differ in length")
+        self._fix_count += 1  # the caches' key changes with the restored fixes
         for s, nis, dof in zip(a["conv_sigma"], a["conv_nis"].tolist(), a["conv_dof"].tolist(),
                                strict=True):
             self._conv.append((s.copy(), nis, dof))
         for k, s in self.env.items():
-            s.stamp_ns = a[f"env_{k}_ns"].tolist()
-            s.value = a[f"env_{k}"].tolist()
-            s.ref_ns = meta["env_ref_ns"][k]
+            s.restore(a[f"env_{k}_ns"].tolist(), a[f"env_{k}"].tolist(), meta["env_ref_ns"][k])
         pos = 0
         for f in meta["frames"]:
             sl = slice(pos, pos + f["n"])
