@@ -38,3 +38,11 @@ class ModelError(StellarCalError):
 
 class ScenarioError(StellarCalError):
     """A simulation scenario or effect injection is invalid."""
+
+
+class DataError(StellarCalError):
+    """The input data contradict the contract in a way no calibration can absorb.
+
+    E.g. a gyro that reports deg/s where rad/s is expected, or star and IMU clocks an hour
+    apart; the text names the likely cause.
+    """

@@ -1,0 +1,300 @@
+"""The one place that changes an error-state covariance (after OpenVINS's ``StateHelper``).
+
+Functional, numpy + LAPACK only: every function takes and returns arrays; shapes are in the
+docstrings.  Used by every Kalman filter of the package (PSCE, swaying-base, traditional):
+
+* :func:`propagate` / :func:`propagate_coupled` — ``P ← Φ P Φᵀ + Q_d``, the second for the
+  common ``Φ = I + F`` with ``F`` in one off-diagonal block (cheaper, same values);
+* :func:`iterated_update` — an iterated EKF update of a stacked measurement with the
+  Joseph-form covariance (stays symmetric positive definite with the iterated, not exactly
+  optimal gain);
+* :func:`reset_rotation` — the covariance reset after injecting a left rotation correction;
+* :func:`repair` — check (finite, symmetric, positive definite) and repair;
+* :class:`Sensitivity` — the mean response of the error state to unmodelled constant
+  parameters (Willsky & Jones 1976): score tests for many candidate effects in one run,
+  minimal detectable sizes and the bias an undetected effect would cause.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dpotrs as _potrs
+from scipy.linalg.lapack import dtrtrs as _trtrs
+
+from stellar_cal_ros.errors import ModelError
+
+
+# ---------------------------------------------------------------------------- propagation
+def propagate(P: np.ndarray, Phi: np.ndarray, Q: np.ndarray | None = None) -> np.ndarray:
+    """``Φ P Φᵀ + Q`` symmetrized.  P, Φ, Q (N, N); Q may be None."""
+    Pn = Phi @ P @ Phi.T
+    if Q is not None:
+        Pn += Q
+    return 0.5 * (Pn + Pn.T)
+
+
+def propagate_coupled(P: np.ndarray, rows: slice, cols: slice, F: np.ndarray,
+                      q_diag: np.ndarray | None = None) -> None:
+    """In place: ``P ← Φ P Φᵀ + diag(q)`` for ``Φ = I + F`` with F only in ``[rows, cols]``.
+
+    ``rows`` and ``cols`` must not overlap (e.g. attitude rows driven by gyro-parameter
+    columns).  With ``A = P[rows, :]`` the result is ``P[rows, :] = A + F P[cols, :]`` and
+    its transpose, and ``P[rows, rows] += F P[cols, rows] + P[rows, cols] Fᵀ + F P[cols,
+    cols] Fᵀ`` — no N×N products.  ``q_diag`` (N,) is added on the diagonal.
+    """
+    if F.size:
+        FP = F @ P[cols, cols]
+        cross = P[rows, cols] + FP
+        P[rows, rows] += F @ P[cols, rows] + P[rows, cols] @ F.T + FP @ F.T
+        P[rows, cols] = cross
+        P[cols, rows] = cross.T
+        # other columns of the driven rows: P[rows, k] += F P[cols, k]
+        n = len(P)
+        other = np.ones(n, dtype=bool)
+        other[rows] = False
+        other[cols] = False
+        if other.any():
+            add = F @ P[cols][:, other]
+            P[rows, other] += add
+            P[other, rows] += add.T
+    if q_diag is not None:
+        P.flat[::len(P) + 1] += q_diag
+
+
+# ---------------------------------------------------------------------------- update
+@dataclass
+class UpdatePolicy:
+    """When an iterated update relinearizes, and when it stops."""
+
+    max_iterations: int = 5  #: relinearizations per update
+    iteration_tolerance: float = 1e-3  #: stop when the correction changes < tol · σ
+    relinearize_rad: float = 2e-4  #: iterate only if the rotation correction exceeds this
+    relinearize_sigma: float = 0.5  #: ... or another part moves by more than this × σ
+
+
+@dataclass
+class UpdateResult:
+    """Outcome of :func:`iterated_update`."""
+
+    ok: bool
+    dx: np.ndarray  #: (N,) correction (zeros when not ok)
+    #: (N, N) Joseph-form posterior, before the reset and not yet symmetrized; the prior
+    #: when not ok
+    P: np.ndarray
+    K: np.ndarray  #: (N, m) final gain
+    H: np.ndarray  #: (m, N) final Jacobian
+    nis: float  #: νᵀ S⁻¹ ν at the first linearization
+    iterations: int
+    reason: str = ""
+
+
+def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
+                    r_diag: np.ndarray,
+                    relinearize: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None,
+                    policy: UpdatePolicy, rotation: slice = slice(0, 3),
+                    others: slice | None = None) -> UpdateResult:
+    """Iterated EKF update with the Joseph-form covariance.
+
+    Parameters
+    ----------
+    P : ndarray (N, N)
+        Prior covariance.
+    H : ndarray (m, N)
+        Jacobian at the prior.
+    h : ndarray (m,)
+        Prediction at the prior.
+    z : ndarray (m,)
+        Measurement.
+    r_diag : ndarray (m,)
+        Measurement variances (uncorrelated).
+    relinearize : callable or None
+        ``dx -> (H, h)`` at ``x̂ ⊞ dx``; None: a linear update.
+    policy : UpdatePolicy
+        When to relinearize and stop.
+    rotation : slice
+        The rotation correction that decides relinearization.
+    others : slice, optional
+        The rest whose motion (in σ) decides it too (default: after ``rotation``).
+
+    The first pass gives the gain, the frame NIS and, when the correction is small (a
+    rotation below ``relinearize_rad`` and every other part below ``relinearize_sigma`` σ),
+    the update.  Otherwise the measurement is relinearized at ``x̂ ⊞ dx`` and
+    ``dx ← K (z − h(dx) + H(dx) dx)`` repeated until it changes by less than
+    ``iteration_tolerance`` σ (Gauss–Newton on the MAP cost).
+    """
+    N = len(P)
+    others = slice(rotation.stop, N) if others is None else others
+    sig_floor = np.maximum(np.sqrt(np.clip(np.diag(P), 0.0, None)), 1e-300)
+    nu = z - h
+    dx = np.zeros(N)
+    nis = math.nan
+    K = np.zeros((N, len(z)))
+    it = 0
+    for it in range(1, policy.max_iterations + 1):
+        PHt = P @ H.T
+        S = H @ PHt
+        S.ravel()[::len(S) + 1] += r_diag
+        # LAPACK directly (Cholesky, then triangular solves): the numpy.linalg wrappers cost
+        # more than the factorization of a frame's 2n × 2n innovation covariance
+        c, info = _potrf(S, lower=1, clean=1, overwrite_a=1)
+        if info != 0:
+            return UpdateResult(False, np.zeros(N), P, K, H, nis, it,
+                                "innovation covariance not positive definite")
+        if it == 1:
+            y, _ = _trtrs(c, nu, lower=1)
+            nis = float(y @ y)
+        Kt, _ = _potrs(c, PHt.T, lower=1)  # S⁻¹ H P = Kᵀ
+        K = Kt.T
+        dx_new = K @ (z - h + H @ dx)
+        change = float(np.max(np.abs(dx_new - dx) / sig_floor)) if N else 0.0
+        dx = dx_new
+        if it == policy.max_iterations or relinearize is None:
+            break
+        if it == 1:
+            dphi = dx[rotation]
+            if math.sqrt(float(dphi @ dphi)) < policy.relinearize_rad and (
+                    np.abs(dx[others]) < policy.relinearize_sigma * sig_floor[others]).all():
+                break
+        elif change < policy.iteration_tolerance:
+            break
+        H, h = relinearize(dx)
+    if not (np.isfinite(dx).all() and np.isfinite(K).all()):
+        return UpdateResult(False, np.zeros(N), P, K, H, nis, it, "non-finite update")
+    A = np.eye(N) - K @ H
+    # not symmetrized here: the caller resets the rotation blocks, then symmetrizes
+    return UpdateResult(True, dx, A @ P @ A.T + (K * r_diag) @ K.T, K, H, nis, it)
+
+
+def linear_update(P: np.ndarray, H: np.ndarray, nu: np.ndarray, R: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """One linear update with a full R: ``(dx, P⁺ (Joseph), K, NIS)``.
+
+    ``P`` (N, N), ``H`` (m, N), ``nu`` (m,) innovation, ``R`` (m, m).
+    """
+    HP = H @ P
+    S = HP @ H.T + R
+    X = np.linalg.solve(S, np.column_stack([HP, nu]))
+    K = X[:, :-1].T
+    nis = float(nu @ X[:, -1])
+    A = np.eye(len(P)) - K @ H
+    Pn = A @ P @ A.T + K @ R @ K.T
+    return K @ nu, 0.5 * (Pn + Pn.T), K, nis
+
+
+def reset_rotation(P: np.ndarray, sl: slice, dphi: np.ndarray) -> None:
+    """In place: the covariance reset ``G P Gᵀ`` after injecting a left rotation ``δφ``.
+
+    With ``R = Exp(δφ_true) R̂`` and the nominal moved to ``Exp(δφ) R̂``, the new error is
+    ``Log(Exp(δφ_true) Exp(−δφ)) ≈ (I + ½[δφ]×)(δφ_true − δφ)`` to first order in the
+    error: ``G = I + ½[δφ]×`` on the block's rows and columns (OpenVINS / Solà §7.2).
+    """
+    x, y, z = 0.5 * np.asarray(dphi, dtype=float)
+    G = np.array([[1.0, -z, y], [z, 1.0, -x], [-y, x, 1.0]])
+    P[sl, :] = G @ P[sl, :]
+    P[:, sl] = P[:, sl] @ G.T
+
+
+# ---------------------------------------------------------------------------- health
+def check(P: np.ndarray, name: str = "covariance") -> None:
+    """Raise :class:`ModelError` unless P is finite, symmetric and positive definite."""
+    if not np.all(np.isfinite(P)):
+        raise ModelError(f"{name} has non-finite entries")
+    if np.max(np.abs(P - P.T)) > 1e-9 * max(1.0, float(np.max(np.abs(P)))):
+        raise ModelError(f"{name} is not symmetric")
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        raise ModelError(f"{name} is not positive definite") from None
+
+
+def repair(P: np.ndarray) -> np.ndarray | None:
+    """Nearest symmetric positive definite matrix by eigenvalue clipping; None if not finite."""
+    S = 0.5 * (P + P.T)
+    if not np.all(np.isfinite(S)):
+        return None
+    w, V = np.linalg.eigh(S)
+    w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+    return (V * w) @ V.T
+
+
+# ---------------------------------------------------------------------------- sensitivity
+class Sensitivity:
+    """Mean error-state response to unmodelled constant parameters (Willsky & Jones 1976).
+
+    If the truth holds parameters β = β₀ + b that the filter keeps at β₀, the filter's error
+    ``e = x − x̂`` has mean ``M b`` and the innovations have mean ``A b``::
+
+        propagation   M ← Φ M + Φ_β
+        update        A = H M + H_β,   M ← M − K A
+        reset         M ← G M  (rows of a rotation block)
+
+    Accumulated over the evaluation frames: the score ``s = Σ Aᵀ S⁻¹ ν`` and the Fisher
+    information ``I = Σ Aᵀ S⁻¹ A``.  Then, per group of columns (a candidate effect):
+    the Lagrange-multiplier (score) statistic ``sᵀ I⁻¹ s ~ χ²_k`` under "no effect", the
+    one-step estimate ``b̂ = I⁻¹ s``, the minimal detectable size along a direction ``d``,
+    ``√(λ₀ / dᵀ I d)``, and the bias ``−M_θ b`` an undetected ``b`` leaves in the
+    estimated parameters (external reliability).
+
+    Parameters
+    ----------
+    n_state : int
+        Error-state size N.
+    n_params : int
+        Number of unmodelled parameters m.
+    """
+
+    def __init__(self, n_state: int, n_params: int) -> None:
+        self.M = np.zeros((n_state, n_params))
+        self.score = np.zeros(n_params)
+        self.info = np.zeros((n_params, n_params))
+        self.frames = 0
+        self.accumulate = True  #: add the frame's terms to score / info
+
+    @property
+    def size(self) -> int:
+        """Number of unmodelled parameters."""
+        return self.M.shape[1]
+
+    def propagate(self, Phi: np.ndarray, Phi_b: np.ndarray | None = None) -> None:
+        """``M ← Φ M + Φ_β`` (Φ (N, N); Φ_β (N, m) or None)."""
+        self.M = Phi @ self.M
+        if Phi_b is not None:
+            self.M += Phi_b
+
+    def propagate_coupled(self, rows: slice, cols: slice, F: np.ndarray,
+                          F_b: np.ndarray | None = None) -> None:
+        """:meth:`propagate` for ``Φ = I + F`` with F in ``[rows, cols]`` (in place)."""
+        if F.size:
+            self.M[rows] += F @ self.M[cols]
+        if F_b is not None:
+            self.M[rows] += F_b
+
+    def update(self, H: np.ndarray, H_b: np.ndarray, K: np.ndarray, nu: np.ndarray,
+               S: np.ndarray) -> None:
+        """Apply one update (and accumulate its score and information).
+
+        ``H`` (k, N), ``H_b`` (k, m), gain ``K`` (N, k), innovation ``nu`` (k,) and its
+        covariance ``S`` (k, k).
+        """
+        A = H @ self.M + H_b
+        if self.accumulate:
+            X = np.linalg.solve(S, np.column_stack([A, nu]))
+            self.score += A.T @ X[:, -1]
+            self.info += A.T @ X[:, :-1]
+            self.frames += 1
+        self.M -= K @ A
+
+    def reset_rotation(self, sl: slice, dphi: np.ndarray) -> None:
+        """Rows of a rotation block after its reset (``G = I + ½[δφ]×``)."""
+        x, y, z = 0.5 * np.asarray(dphi, dtype=float)
+        G = np.array([[1.0, -z, y], [z, 1.0, -x], [-y, x, 1.0]])
+        self.M[sl] = G @ self.M[sl]
+
+    def clear_rows(self, index: np.ndarray) -> None:
+        """Forget the response of re-acquired (re-initialized) states."""
+        self.M[index] = 0.0
