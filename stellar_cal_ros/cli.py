@@ -78,9 +78,8 @@ def _load_effect_modules(paths: list[Path] | None) -> None:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from stellar_cal_ros.io.calibration import load_calibration, save_calibration
-    from stellar_cal_ros.io.residuals import write_residuals
-    from stellar_cal_ros.methods.psce import PsceConfig
-    from stellar_cal_ros.methods.replay import replay_psce
+    from stellar_cal_ros.methods.driver import FILTERS
+    from stellar_cal_ros.methods.replay import replay
 
     _load_effect_modules(args.effect_module)
     prior = load_calibration(args.prior)
@@ -89,59 +88,71 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
         prior = prior_from_result(prior, load_calibration(args.init_from), args.init_from)
     effects = _effect_list(args.effects)
-    if args.method == "swaying_base":
-        from stellar_cal_ros.methods.swaying import cli_replay
-
-        return cli_replay(args, prior, effects)
-    if args.method != "psce":
-        raise StellarCalError(f"replay --method {args.method} is not implemented")
-    config = PsceConfig()
+    config = FILTERS[args.method][1]()
     if args.centroid_sigma is not None:
         config.centroid_sigma_px = args.centroid_sigma
     if args.gyro_arw is not None:
         config.gyro_arw_deg_sqrth = args.gyro_arw
-    from stellar_cal_ros.methods.replay import read_bag_data
-
-    data = read_bag_data(args.bag, on_error=args.on_error)
-    result = replay_psce(data, prior, effects, config, progress=not args.quiet)
-    save_calibration(result.calibration, args.output)
-    if args.residuals:
-        write_residuals(args.residuals, result.residuals)
     history_path = args.history or args.output.with_suffix(".history.csv")
-    write_residuals(history_path, result.history)
-    _print_replay_summary(result, args)
+    result = replay(args.bag, prior, args.method, effects, config, residuals=args.residuals,
+                    history=history_path, keep_tables=False, progress=not args.quiet,
+                    on_error=args.on_error)
+    save_calibration(result.calibration, args.output)
+    print_replay_summary(result, prior)
+    print(f"wrote {args.output}, {history_path}"
+          + (f" and {args.residuals}" if args.residuals else ""))
     return 0
 
 
-def _print_replay_summary(result, args: argparse.Namespace) -> None:
+def print_replay_summary(result, prior) -> None:
+    """Human summary of a filter run (accuracy-relevant numbers first, mismatch loudly)."""
     import numpy as np
 
-    res = result.residuals
-    ok = ~res["gated"].astype(bool) if len(res["gated"]) else np.zeros(0, bool)
-    half = len(ok) // 2
-    du, dv = res["du"][half:][ok[half:]], res["dv"][half:][ok[half:]]
-    rms = (float(np.sqrt(np.mean(du**2))), float(np.sqrt(np.mean(dv**2)))) if du.size else (
-        float("nan"),) * 2
-    hist = result.history
-    nis = float(np.sum(hist["nis"]) / max(np.sum(hist["dof"]), 1)) if len(hist["nis"]) else \
-        float("nan")
+    from stellar_cal_ros.core.units import ARCSEC, DEG_PER_HOUR, MICRO_G
+    from stellar_cal_ros.methods import models
+    from stellar_cal_ros.methods.results import mismatch_text
+
+    st = result.stats.summary()
+    cons = result.calibration.extra.get("consistency", {})
     print(f"replayed {result.duration:.0f} s in {result.read_seconds:.2f} s reading + "
           f"{result.filter_seconds:.2f} s filtering = {result.speed:.0f}x real time")
-    print(f"innovation RMS (second half, accepted stars): u={rms[0]:.4f} v={rms[1]:.4f} px; "
-          f"NIS/dof {nis:.3f}")
+    rms, exp = st["rms_px"], st["expected_rms_px"]
+    print(f"innovation RMS (second half, accepted stars): u={rms[0]:.4f} v={rms[1]:.4f} px "
+          f"(model expects {exp[0]:.4f} {exp[1]:.4f}); NIS/dof {st['nis_per_dof']:.3f}; "
+          f"verdict: {cons.get('verdict', '?')}")
+    loud = mismatch_text(cons)
+    if loud:
+        print("*" * 78 + "\n" + loud + "\n" + "*" * 78)
     counts = ", ".join(f"{k}={v}" for k, v in result.counters.items() if v)
     print(f"counts: {counts}")
+    extra = list(result.effects)
+    print("model: " + ", ".join(models.BASELINES[result.method])
+          + (" + " + ", ".join(extra) if extra else ""))
+    hint = models.uncertain_not_in_model(prior, result.method,
+                                         [e.id for e in result.filter.model.effects])
+    if hint:
+        print("the prior calls uncertain but the model keeps fixed: " + ", ".join(hint)
+              + " (add with --effects, or let `stellar-cal diagnose` test them)")
     cal = result.calibration
     cam = cal.camera
     print(f"camera: fx={cam.fx:.3f} fy={cam.fy:.3f} cx={cam.cx:.3f} cy={cam.cy:.3f} px, "
           f"distortion {cam.distortion_model()} "
           + " ".join(f"{v:.4g}" for v in cam.to_yaml_dict()["distortion_coefficients"]["data"]))
-    eq = result.derived
-    print("equivalent principal point: ({:.3f}, {:.3f}) +- ({:.3f}, {:.3f}) px".format(
-        *eq["equivalent_principal_point_px"], *eq["equivalent_principal_point_sigma_px"]))
+    d = result.derived
+    if "equivalent_principal_point_px" in d:
+        print("equivalent principal point: ({:.3f}, {:.3f}) +- ({:.3f}, {:.3f}) px".format(
+            *d["equivalent_principal_point_px"], *d["equivalent_principal_point_sigma_px"]))
+    flt = result.filter
+    if "installation" in flt.model.slices:
+        sl = flt.model.slices["installation"]
+        print("installation delta (tracker axes): " + "  ".join(
+            f'{v:+.3f}"+-{s:.3f}' for v, s in zip(flt.theta[sl] / ARCSEC,
+                                                   flt.sigma()[flt.it][sl] / ARCSEC,
+                                                   strict=True)))
     print(f"installation quaternion_xyzw: {np.round(cal.installation.as_quat(), 9).tolist()}")
-    print(f"gyro bias: {np.round(np.rad2deg(cal.gyro_bias) * 3600, 5).tolist()} deg/h")
-    print(f"wrote {args.output}" + (f" and {args.residuals}" if args.residuals else ""))
+    print(f"gyro bias: {np.round(np.asarray(cal.gyro_bias) / DEG_PER_HOUR, 5).tolist()} deg/h"
+          + ("" if result.method == "psce" else "; accelerometer bias: "
+             f"{np.round(np.asarray(cal.accel_bias) / MICRO_G, 2).tolist()} ug"))
 
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
@@ -264,7 +275,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("replay", help="Kalman-filter calibration over a bag")
     r.add_argument("bag", type=Path)
-    r.add_argument("--method", required=True, choices=["psce", "swaying_base"])
+    r.add_argument("--method", required=True, choices=["psce", "swaying_base", "traditional"],
+                   help="psce (Tan et al. 2018), swaying_base (Zhang et al. 2018) or "
+                        "traditional (zero-velocity reference, for comparison)")
     r.add_argument("--prior", required=True, type=Path)
     r.add_argument("-o", "--output", required=True, type=Path)
     r.add_argument("--effects", default="", help="comma-separated effect ids to add")

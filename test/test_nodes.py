@@ -279,7 +279,7 @@ def test_services_and_resume(ros_context, excerpt, tmp_path):
     for _, _, kind, p in half:
         with cal._lock:
             if kind == "imu":
-                cal.cal.push_imu(p[0], p[1], p[2])
+                cal.cal.push_imu(p[0], p[1], frame_id=p[2])
             elif kind == "stars":
                 cal.cal.push_stars(p)
     client_node = rclpy.create_node(f"client_{prefix[1:]}", context=ros_context)
@@ -332,14 +332,13 @@ def test_config_files_load_into_the_nodes(ros_context, tmp_path):
 def test_residual_bytes_are_the_residual_message(excerpt):
     """The vectorized CDR of ~/residuals deserializes to what _residual_msg builds."""
     from rclpy.serialization import deserialize_message
-
-    from stellar_cal_ros.methods.online import FrameOutcome, OnlineCalibrator, OnlineConfig
+    from stellar_cal_ros.methods.driver import Calibrator, DriverConfig, FrameOutcome
     from stellar_cal_ros.methods.psce import PsceConfig
     from stellar_cal_ros.nodes.residual_cdr import encoder_matches_rmw
 
     assert encoder_matches_rmw()
     path, prior, _, _ = excerpt
-    cal = OnlineCalibrator(prior, None, PsceConfig(), OnlineConfig(reorder_window_s=0.05))
+    cal = Calibrator(prior, "psce", None, PsceConfig(), DriverConfig(reorder_window_s=0.05))
     events = bag_events(path)
     outcomes = feed(cal, events[: len(events) // 3])
     outcomes.append(FrameOutcome(123_000_000_456, "star_tracker_optical_frame", "dropped_late"))

@@ -198,9 +198,9 @@ def test_noise_free_tracker_initial_covariance_covers_the_error():
 def test_imu_prefix_independent_of_batching():
     """The fast-propagation prefix takes appended IMU samples (live use) and gives the
     same arrays, bit for bit, however the samples were split; dropping keeps them valid."""
+    from stellar_cal_ros.core.imu_prefix import ImuPrefix as _ImuPrefix
     from stellar_cal_ros.core.rotation import quat_from_rotvec, quat_to_matrix
     from stellar_cal_ros.core.strapdown import attitude_increments, quat_cumprod
-    from stellar_cal_ros.methods.psce import _ImuPrefix
 
     rng = np.random.default_rng(3)
     n = 3000
@@ -210,7 +210,7 @@ def test_imu_prefix_independent_of_batching():
     b = np.array([1e-5, -2e-5, 0.0])
 
     def prefix():
-        return _ImuPrefix(0.005, np.zeros(3), b, np.zeros((3, 3)), -np.eye(3), 3.0)
+        return _ImuPrefix(0.005, np.zeros(3), b, np.zeros((3, 3)), -np.eye(3))
 
     one = prefix()
     one.extend(t, w)
@@ -220,9 +220,8 @@ def test_imu_prefix_independent_of_batching():
         k = int(rng.integers(1, 200))
         many.extend(t[i:i + k], w[i:i + k])
         i += k
-    for k in ("tp", "w_hat", "C", "S", "gap", "gap_count", "gap_time"):
+    for k in ("tp", "w_hat", "C", "S"):
         assert np.array_equal(getattr(one, k), getattr(many, k)), k
-    assert one.gap_count[-1] == 1 and one.gap_time[-1] == pytest.approx(0.105)
     dt = np.diff(np.concatenate([[t[0] - 0.005], t]))
     C = quat_to_matrix(quat_cumprod(quat_from_rotvec(attitude_increments(w - b, dt))))
     assert np.abs(one.C[1:] - C).max() < 1e-13
@@ -237,7 +236,7 @@ def test_imu_prefix_independent_of_batching():
 def test_imu_prefix_sample_by_sample_is_bit_identical(misaligned, monkeypatch):
     """Live use appends one sample at a time (the scalar path of ``_ImuPrefix.extend``):
     bit for bit the values of one batch, mixed with batches and checkpoint restores."""
-    from stellar_cal_ros.methods.psce import _ImuPrefix
+    from stellar_cal_ros.core.imu_prefix import ImuPrefix as _ImuPrefix
 
     small = []
     scalar = _ImuPrefix._extend_small
@@ -252,7 +251,7 @@ def test_imu_prefix_sample_by_sample_is_bit_identical(misaligned, monkeypatch):
     E = rng.normal(0.0, 1e-3, (3, 3)) if misaligned else np.zeros((3, 3))
 
     def prefix():
-        return _ImuPrefix(0.005, np.zeros(3), b, E, -np.eye(3), 3.0)
+        return _ImuPrefix(0.005, np.zeros(3), b, E, -np.eye(3))
 
     one = prefix()
     one.extend(t, w)
@@ -267,16 +266,16 @@ def test_imu_prefix_sample_by_sample_is_bit_identical(misaligned, monkeypatch):
             again.load_state(many.state())
             many = again
     assert len(small) > 300  # the scalar path was taken
-    for key in ("tp", "w_hat", "C", "S", "gap", "gap_count", "gap_time"):
+    for key in ("tp", "w_hat", "C", "S"):
         assert np.array_equal(getattr(one, key), getattr(many, key)), key
     for key in ("anchor", "block_dq", "dtheta_last"):
         assert np.array_equal(one.state()[key], many.state()[key]), key
 
 
-def test_extend_imu_few_samples_decides_as_a_batch(monkeypatch):
-    """The plain-Python sample check of a few samples accepts and drops what the vectorized
-    one does (non-finite, not after the last one held, unordered batches)."""
-    from stellar_cal_ros.methods import psce as psce_mod
+def test_extend_imu_drops_bad_samples_whatever_the_batching():
+    """Non-finite samples and stamps not after the last kept one are dropped and counted;
+    the filter's IMU buffer and prefix are the same however the samples were batched."""
+    from stellar_cal_ros.methods.psce import PsceFilter
     from stellar_cal_ros.methods.replay import build_model
 
     prior = simulate(get_scenario("psce_rotations"), duration=1.0, seed=1).prior
@@ -287,23 +286,31 @@ def test_extend_imu_few_samples_decides_as_a_batch(monkeypatch):
         ([5.01, 5.02], [[nan, 0.0, 0.0], z]),
         ([5.03, nan, 5.04], [z] * 3),
         ([5.02, 5.05], [z] * 2),  # the first is not after the last one held
-        ([5.07, 5.06], [z] * 2),  # unordered: none accepted
+        ([5.07, 5.06], [z] * 2),  # 5.06 is not after 5.07
         ([5.08, 5.08], [z] * 2),  # duplicated stamp
         ([5.10, 5.09, 5.11], [z] * 3),
         ([5.12, inf], [z, [0.0, 0.0, inf]]),
         ([5.13, 5.14, 5.15, 5.16], [[1e-3, 2e-3, -1e-3]] * 4),
     ]
+    t0 = np.arange(1, 400) * 0.01
 
-    def run(small):
-        monkeypatch.setattr(psce_mod, "_SMALL", 8 if small else 0)
-        t0 = np.arange(1, 400) * 0.01
-        flt = psce_mod.PsceFilter(build_model(prior, []), t0, np.zeros((len(t0), 3)), 0.0)
-        out = [flt.extend_imu(np.array(bt), np.array(bw)) for bt, bw in batches]
-        return out, flt, flt.counters.extra.get("imu_dropped", 0)
+    def run(split):
+        flt = PsceFilter(build_model(prior, []), 0.0, nominal_dt=0.01)
+        flt.extend_imu(t0, np.zeros((len(t0), 3)))
+        if split:
+            out = [flt.extend_imu(np.array(bt), np.array(bw)) for bt, bw in batches]
+        else:
+            out = [flt.extend_imu(np.concatenate([b[0] for b in batches]),
+                                  np.concatenate([b[1] for b in batches]))]
+        return sum(out), flt
 
-    (n_small, small, d_small), (n_large, large, d_large) = run(True), run(False)
-    assert n_small == n_large and d_small == d_large > 0
-    assert np.array_equal(small.imu_t, large.imu_t)
-    assert np.array_equal(small.imu_w, large.imu_w)
+    (n_split, split), (n_one, one) = run(True), run(False)
+    assert n_split == n_one == 14
+    assert split.counters.extra["imu_dropped"] == one.counters.extra["imu_dropped"] == 7
+    assert np.all(np.diff(split.imu.t) > 0)
+    for key in ("t", "w", "bvar_w"):
+        assert np.array_equal(getattr(split.imu, key), getattr(one.imu, key)), key
     for key in ("tp", "w_hat", "C", "S"):
-        assert np.array_equal(getattr(small._prefix, key), getattr(large._prefix, key)), key
+        assert np.array_equal(getattr(split._prefix, key), getattr(one._prefix, key)), key
+    # the intervals the dropped samples left (e.g. 5.01, 5.06) are bridged
+    assert split.imu.counters["imu_bridged"] == one.imu.counters["imu_bridged"] > 0

@@ -115,3 +115,82 @@ def read_residuals(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     if any(len(r) != len(header) for r in body):
         raise StellarCalError(f"residual file {path}: rows of unequal length")
     return {name: _parse([r[i] for r in body]) for i, name in enumerate(header)}
+
+
+class TableWriter:
+    """Append table chunks to a CSV or Parquet file (the columns fixed by the first chunk).
+
+    ``with TableWriter(path) as w: w.append(chunk)`` — each chunk a dict of equal-length
+    1-D arrays with the same columns.  CSV rows are written as they come; Parquet chunks are
+    buffered into row groups of at least ``row_group`` rows.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], row_group: int = 65536) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.parquet = self.path.suffix.lower() == ".parquet"
+        self.row_group = int(row_group)
+        self.columns: list[str] | None = None
+        self.rows = 0
+        self._fh = None
+        self._csv = None
+        self._pq = None
+        self._pending: list[dict[str, np.ndarray]] = []
+        self._pending_rows = 0
+
+    def __enter__(self) -> TableWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def append(self, table: dict[str, np.ndarray]) -> None:
+        """Append one chunk."""
+        cols = _columns(table)
+        n = len(next(iter(cols.values())))
+        if self.columns is None:
+            self.columns = list(cols)
+            if not self.parquet:
+                self._fh = open(self.path, "w", newline="")  # noqa: SIM115 (closed in close)
+                self._csv = csv.writer(self._fh)
+                self._csv.writerow(self.columns)
+        elif list(cols) != self.columns:
+            raise StellarCalError(f"{self.path}: chunk columns {list(cols)} differ from "
+                                  f"{self.columns}")
+        self.rows += n
+        if not n:
+            return
+        if self.parquet:
+            self._pending.append(cols)
+            self._pending_rows += n
+            if self._pending_rows >= self.row_group:
+                self._flush_parquet()
+        else:
+            formatted = [_format(cols[k]) for k in self.columns]
+            self._csv.writerows(zip(*formatted, strict=True))
+
+    def _flush_parquet(self) -> None:
+        if not self._pending:
+            return
+        try:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+        except ImportError:
+            raise StellarCalError(f"cannot write {self.path}: Parquet needs pyarrow") from None
+        merged = {k: np.concatenate([c[k] for c in self._pending]) for k in self.columns}
+        tab = pa.table({k: pa.array(v) for k, v in merged.items()})
+        if self._pq is None:
+            self._pq = pq.ParquetWriter(self.path, tab.schema)
+        self._pq.write_table(tab)
+        self._pending, self._pending_rows = [], 0
+
+    def close(self) -> None:
+        """Flush and close (a file with only the header if nothing was appended)."""
+        if self.parquet:
+            self._flush_parquet()
+            if self._pq is not None:
+                self._pq.close()
+                self._pq = None
+        elif self._fh is not None:
+            self._fh.close()
+            self._fh = None

@@ -1,8 +1,11 @@
-"""``calibrator`` node: live PSCE calibration (``ros2 run stellar_cal_ros calibrator``).
+"""``calibrator`` node: live calibration (``ros2 run stellar_cal_ros calibrator``).
 
-A thin rclpy shell around :class:`~stellar_cal_ros.methods.online.OnlineCalibrator`:
-callbacks convert messages to numbers and push them; the estimator decides when a star
-frame can be processed (reorder window, IMU coverage) and the node publishes what came out.
+``method:=psce`` (Tan et al. 2018, default) or ``method:=swaying_base`` (Zhang et al. 2018:
+a ship at its mooring; needs ``/gnss/fix`` for the site and gravity in the inertial frame).
+A thin rclpy shell around :class:`~stellar_cal_ros.methods.driver.Calibrator`, the same
+driver ``stellar-cal replay`` uses: callbacks convert messages to numbers and push them; the
+driver decides when a star frame can be processed (reorder window, IMU coverage) and the
+node publishes what came out.
 
 Subscribed (contract topics, INTERFACES.md section 2; remap with ``--ros-args -r``):
 ``/imu/data`` (sensor_msgs/Imu), ``/star_tracker/stars`` (stellar_cal_msgs/StarCentroidArray),
@@ -66,14 +69,18 @@ from stellar_cal_msgs.msg import (
 )
 
 from stellar_cal_ros.effects import registry
-from stellar_cal_ros.errors import ModelError, StellarCalError
+from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.bag import StarFrame
 from stellar_cal_ros.io.calibration import load_calibration, save_calibration
-from stellar_cal_ros.methods.online import FrameOutcome, OnlineCalibrator, OnlineConfig
-from stellar_cal_ros.methods.psce import PsceConfig
+from stellar_cal_ros.methods.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    save_checkpoint,
+)
+from stellar_cal_ros.methods.driver import FILTERS, Calibrator, DriverConfig, FrameOutcome
 from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
 
-METHODS = ("psce",)  # swaying_base: later
+METHODS = ("psce", "swaying_base")
 
 #: name: (default, description, range (lo, hi) or choices or None)
 PARAMETERS: dict[str, tuple[Any, str, Any]] = {
@@ -81,9 +88,10 @@ PARAMETERS: dict[str, tuple[Any, str, Any]] = {
     "method": ("psce", "estimation method", METHODS),
     "effects": (Parameter.Type.STRING_ARRAY,
                 "effect ids estimated on top of the method's baseline (INTERFACES.md §4)", None),
-    "centroid_sigma_px": (0.05, "centroid 1-sigma used when a star's sigma is 0, px",
-                          (1e-6, 100.0)),
-    "gyro_arw_deg_sqrth": (0.001, "gyro angle random walk, deg/sqrt(h)", (0.0, 100.0)),
+    "centroid_sigma_px": (0.0, "centroid 1-sigma used when a star's sigma is 0, px (0: the "
+                          "method's default, 0.05 psce, 0.058 swaying_base)", (0.0, 100.0)),
+    "gyro_arw_deg_sqrth": (0.0, "gyro angle random walk, deg/sqrt(h) (0: the method's "
+                           "default, 0.001 psce, 5e-5 swaying_base)", (0.0, 100.0)),
     "gate_probability": (0.9999, "per-star chi2 (2 dof) acceptance probability",
                          (0.5, 0.999999999)),
     "reorder_window_s": (0.05, "data-time window within which messages are put back in "
@@ -168,16 +176,18 @@ class CalibratorNode(Node):
         if p["star_frame_id"]:
             frames["star_tracker"] = p["star_frame_id"]
         self.frame_ids = frames
-        self.psce_config = PsceConfig(centroid_sigma_px=p["centroid_sigma_px"],
-                                      gyro_arw_deg_sqrth=p["gyro_arw_deg_sqrth"],
-                                      gate_probability=p["gate_probability"])
-        self.online_config = OnlineConfig(
+        self.filter_config = FILTERS[p["method"]][1](gate_probability=p["gate_probability"])
+        if p["centroid_sigma_px"] > 0:
+            self.filter_config.centroid_sigma_px = p["centroid_sigma_px"]
+        if p["gyro_arw_deg_sqrth"] > 0:
+            self.filter_config.gyro_arw_deg_sqrth = p["gyro_arw_deg_sqrth"]
+        self.driver_config = DriverConfig(
             reorder_window_s=p["reorder_window_s"], environment_wait_s=p["environment_wait_s"],
             t0_imu_samples=p["t0_imu_samples"], converge_window=p["converge_window"],
             converge_sigma_ratio=p["converge_sigma_ratio"],
             converge_nis_ratio=p["converge_nis_ratio"])
-        self.cal = OnlineCalibrator(prior, p["effects"], self.psce_config, self.online_config,
-                                    frames)
+        self.cal = Calibrator(prior, p["method"], p["effects"], self.filter_config,
+                              self.driver_config, frames)
         self.callback_errors = 0
         self.backlog_updates = 0
         self.latency_s: deque[float] = deque(maxlen=2000)  # frame processing, wall s
@@ -226,7 +236,7 @@ class CalibratorNode(Node):
             self.create_timer(p["checkpoint_period_s"], self._periodic_checkpoint)
         self.get_logger().info(
             f"calibrator ready: method={p['method']} effects={p['effects'] or '[]'} "
-            f"({self.cal.model.size} parameters), prior {p['prior_file']}")
+            f"({len(self.cal.parameter_names())} parameters), prior {p['prior_file']}")
         # Start-up objects (modules, messages, the model) are long-lived: keep them out of
         # the cyclic collector so that full collections in a callback stay short.
         gc.collect()
@@ -283,9 +293,9 @@ class CalibratorNode(Node):
         if not (ck and self.p["resume"] and Path(ck).is_file()):
             return
         try:
-            self.cal.load_checkpoint(ck)
-        except ModelError as exc:
-            self.get_logger().error(f"cannot resume from {ck}: {exc}; starting from the prior")
+            load_checkpoint(self.cal, ck)
+        except CheckpointError as exc:
+            self.get_logger().warning(f"cannot resume from {ck}: {exc}; starting from the prior")
             self.cal.reset()
             return
         self.get_logger().info(
@@ -297,7 +307,7 @@ class CalibratorNode(Node):
         if not ck:
             raise ValueError("checkpoint_file is not set")
         with self._lock:
-            self.cal.save_checkpoint(ck)
+            save_checkpoint(self.cal, ck)
         return ck
 
     def save_calibration(self) -> str:
@@ -384,9 +394,9 @@ class CalibratorNode(Node):
             self.pub_progress.publish(c)
 
     def _push_imu(self, msg: Imu) -> list[FrameOutcome]:
-        w = msg.angular_velocity
+        w, f = msg.angular_velocity, msg.linear_acceleration
         stamp = _stamp_ns(msg.header)
-        out = self.cal.push_imu(stamp, (w.x, w.y, w.z), msg.header.frame_id)
+        out = self.cal.push_imu(stamp, (w.x, w.y, w.z), (f.x, f.y, f.z), msg.header.frame_id)
         if self._progress_ns and stamp >= self._next_progress_ns:
             self._next_progress_ns = stamp + self._progress_ns
             c = Clock()
@@ -498,7 +508,7 @@ class CalibratorNode(Node):
         est = CalibrationEstimate()
         est.header.stamp = stamp
         est.header.frame_id = self.frame_ids["imu"]
-        est.method = "psce"
+        est.method = self.cal.method
         est.effects = [e.id for e in self.cal.model.effects]
         est.names = self.cal.parameter_names()
         est.values = [float(x) for x in theta]

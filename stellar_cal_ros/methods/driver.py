@@ -1,0 +1,668 @@
+"""One driver for every filter, live and replayed: messages in, calibration out.
+
+:class:`Calibrator` takes IMU samples (one at a time or in blocks), star frames,
+temperatures, pressure and GNSS fixes in whatever order a transport or a bag delivers them,
+and drives a PSCE or swaying-base filter (:data:`FILTERS`).  The ``calibrator`` ROS node
+feeds it from callbacks; :func:`stellar_cal_ros.methods.replay.replay` feeds it from a bag
+read in one pass — the same code, so a live run and a replay of its recording agree.
+
+Reorder buffer
+--------------
+The *data clock* is the latest IMU stamp received, ``T``.  IMU samples are released in stamp
+order once ``stamp ≤ T − reorder_window_s``; star frames likewise, so messages of any topic
+that arrive up to the window late (in data time) are still put in order.  A released frame
+goes to the filter once the IMU *covers* its exposure (an IMU stamp later than ``t_exp +
+imu_lookahead_s``) and, if an effect needs them (``Effect.requires``), once the environment
+inputs have a sample at or after the frame stamp, or ``environment_wait_s`` of data time has
+passed (then the last value is used: ``env_stale``).  Older messages than what was released
+are dropped and counted (``imu_late``, ``frames_late``).  :meth:`Calibrator.finish`
+releases everything (end of a bag).
+
+The relative time origin, the star cleaning, σ rules, the site and the environment are
+those of :mod:`stellar_cal_ros.methods.frames`.  Memory stays bounded: the filter's IMU
+history is trimmed to what it still needs, environment series to ``env_history_s``, and the
+tables go to :class:`~stellar_cal_ros.methods.results.TableSink` (memory or file).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.io.bag import StarFrame
+from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.methods import models
+from stellar_cal_ros.methods.frames import (
+    ENV_KEYS,
+    T0_IMU_SAMPLES,
+    EnvSeries,
+    SiteEstimator,
+    frame_context,
+    frame_inputs,
+    time_origin,
+)
+from stellar_cal_ros.methods.kernel import FilterCounters, FrameUpdate
+from stellar_cal_ros.methods.psce import PsceConfig, PsceFilter
+from stellar_cal_ros.methods.results import (
+    RESIDUAL_COLUMNS,
+    RunStats,
+    TableSink,
+    consistency,
+    derived_quantities,
+    residual_rows,
+    result_calibration,
+)
+from stellar_cal_ros.methods.swaying import SwayingConfig, SwayingFilter
+from stellar_cal_ros.methods.traditional import TraditionalConfig, TraditionalFilter
+
+log = logging.getLogger(__name__)
+
+#: filter class and configuration class of each method
+FILTERS = {"psce": (PsceFilter, PsceConfig), "swaying_base": (SwayingFilter, SwayingConfig),
+           "traditional": (TraditionalFilter, TraditionalConfig)}
+
+
+@dataclass
+class DriverConfig:
+    """Buffering, memory and convergence settings of :class:`Calibrator`."""
+
+    reorder_window_s: float = 0.05  #: data-time window within which messages may be reordered
+    environment_wait_s: float = 2.0  #: max data time a frame waits for needed temperatures etc.
+    imu_lookahead_s: float = 0.0  #: IMU held beyond a frame before it is processed
+    t0_imu_samples: int = T0_IMU_SAMPLES  #: IMU samples whose median interval sets t0
+    max_pending_frames: int = 200  #: held frames beyond this drop the oldest (counted)
+    max_pending_imu: int = 100_000  #: held IMU samples beyond this release the oldest
+    env_history_s: float = 600.0  #: environment samples older than this before a frame: dropped
+    max_fixes: int = 100_000  #: fixes kept for the site median
+    imu_batch: int = 512  #: released IMU samples handed to the filter in batches of this size
+    converge_window: int = 20  #: updates over which convergence is judged
+    converge_sigma_ratio: float = 0.98  #: every σ(now)/σ(window ago) above this: settled
+    converge_nis_ratio: float = 2.0  #: mean NIS/dof over the window below this: consistent
+
+
+@dataclass
+class InputCounters:
+    """Input-level counts (the filter's own are in :class:`FilterCounters`)."""
+
+    imu_received: int = 0
+    imu_invalid: int = 0  # non-finite values or stamps (their intervals are bridged)
+    imu_late: int = 0  # older than the released IMU (beyond the reorder window)
+    imu_duplicate: int = 0  # same stamp as an already released sample
+    imu_wrong_frame: int = 0
+    frames_received: int = 0
+    frames_reordered: int = 0  # arrived after a frame with a later stamp (put in order)
+    frames_late: int = 0
+    frames_duplicate: int = 0
+    frames_overflow: int = 0
+    frames_wrong_frame: int = 0
+    frames_no_site: int = 0
+    stars_bad_sigma: int = 0  # negative or NaN σ in the message: the default σ was used
+    env_received: int = 0
+    env_invalid: int = 0
+    env_stale: int = 0
+    fixes_received: int = 0
+    fixes_invalid: int = 0
+
+
+@dataclass
+class FrameOutcome:
+    """What happened to one star frame."""
+
+    stamp_ns: int
+    frame_id: str
+    status: str  # updated | initialized | skipped_<reason> | dropped_<reason>
+    update: FrameUpdate | None = None
+    catalog_id: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    magnitude: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    head_temperature: float = float("nan")
+
+
+class _ImuQueue:
+    """Pending IMU samples (stamps ns, rates, specific forces) in growable arrays."""
+
+    def __init__(self) -> None:
+        self.t = np.zeros(0, dtype=np.int64)
+        self.w = np.zeros((0, 3))
+        self.f = np.zeros((0, 3))
+        self.n = 0
+        self.sorted = True
+
+    def push(self, t: np.ndarray, w: np.ndarray, f: np.ndarray) -> None:
+        m = len(t)
+        if self.n + m > len(self.t):
+            cap = max(2 * (self.n + m), 1024)
+            for name, shape in (("t", ()), ("w", (3,)), ("f", (3,))):
+                old = getattr(self, name)
+                arr = np.zeros((cap,) + shape, dtype=old.dtype)
+                arr[:self.n] = old[:self.n]
+                setattr(self, name, arr)
+        if self.sorted and m and ((self.n and t[0] < self.t[self.n - 1])
+                                  or (m > 1 and np.any(np.diff(t) < 0))):
+            self.sorted = False
+        self.t[self.n:self.n + m] = t
+        self.w[self.n:self.n + m] = w
+        self.f[self.n:self.n + m] = f
+        self.n += m
+
+    def pop(self, limit_ns: int | None, keep_max: int) -> tuple[np.ndarray, ...]:
+        """Samples with stamp ≤ limit (all if None), sorted; at most ``keep_max`` stay held."""
+        n = self.n
+        if not n:
+            return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+        if not self.sorted:
+            o = np.argsort(self.t[:n], kind="stable")
+            self.t[:n], self.w[:n], self.f[:n] = self.t[:n][o], self.w[:n][o], self.f[:n][o]
+            self.sorted = True
+        k = n if limit_ns is None else int(np.searchsorted(self.t[:n], limit_ns, side="right"))
+        k = max(k, n - keep_max)
+        out = self.t[:k].copy(), self.w[:k].copy(), self.f[:k].copy()
+        rest = n - k
+        self.t[:rest], self.w[:rest], self.f[:rest] = self.t[k:n], self.w[k:n], self.f[k:n]
+        self.n = rest
+        return out
+
+
+class Calibrator:
+    """Streaming calibration with one filter method (see the module docstring).
+
+    Parameters
+    ----------
+    prior : Calibration
+        Prior calibration (nominal values and their sigmas).
+    method : str
+        ``psce``, ``swaying_base`` or ``traditional``.
+    effects : list of str
+        Effects estimated on top of the method's baseline (``-id`` removes an added one).
+    config : KernelConfig subclass, optional
+        The filter's configuration (default: the method's).
+    driver : DriverConfig, optional
+    frames : dict, optional
+        Expected ``header.frame_id`` of the IMU (``imu``) and star (``star_tracker``)
+        messages; None or an empty id accepts any.  Default: the prior's frames.
+    consider : list of str
+        Effects tracked as consider parameters (the diagnosis' score tests).
+    residuals, history : TableSink, optional
+        Where the per-star residual rows and the per-update parameter history go (default:
+        in memory).
+    eval_start : float, optional
+        POSIX start of the evaluation window of :attr:`stats` (default: every frame).
+    baseline : tuple of str, optional
+        Replace the method's baseline (studies of a reduced model).
+    filter_cls : type, optional
+        A subclass of the method's filter to run instead.
+    """
+
+    def __init__(self, prior: Calibration, method: str = "psce",
+                 effects: list[str] | None = None, config=None,
+                 driver: DriverConfig | None = None, frames: dict[str, str] | None = None,
+                 consider: list[str] | None = None, residuals: TableSink | None = None,
+                 history: TableSink | None = None, eval_start: float | None = None,
+                 baseline: tuple[str, ...] | None = None, filter_cls=None) -> None:
+        models.check_method(method)
+        self.prior = prior
+        self.method = method
+        self.baseline = models.BASELINES[method] if baseline is None else tuple(baseline)
+        self.effects = models.resolve_effects(method, effects, self.baseline)
+        self.consider = [e for e in (consider or [])
+                         if e not in self.effects and e not in self.baseline]
+        self.filter_cls, cfg_cls = FILTERS[method]
+        if filter_cls is not None:  # a variant (e.g. the Cramér–Rao bound recursion)
+            self.filter_cls = filter_cls
+        self.config = config or cfg_cls()
+        self.driver = driver or DriverConfig()
+        self.frames = dict(prior.frames if frames is None else frames)
+        self.model = models.build_model(prior, method, self.effects, self.consider,
+                                        self.baseline)
+        self.n_consider = sum(e.size for e in self.model.effects if e.id in self.consider)
+        self.requires = {r for e in self.model.effects for r in e.requires}
+        if method in models.NEEDS_SITE:
+            self.requires.add("site")
+        self.window_ns = int(round(self.driver.reorder_window_s * 1e9))
+        self.env_wait_ns = int(round(self.driver.environment_wait_s * 1e9))
+        self.residuals = residuals if residuals is not None else TableSink(
+            columns=RESIDUAL_COLUMNS)
+        self.history = history if history is not None else TableSink()
+        self.eval_start = eval_start
+        self._reset_state()
+
+    # ------------------------------------------------------------------ state
+    def _reset_state(self) -> None:
+        self.counters = InputCounters()
+        self.filter = None
+        self.t0_ns: int | None = None
+        self.nominal_dt: float | None = None
+        self.imu_max_ns: int | None = None  # data clock
+        self._imu = _ImuQueue()
+        self._last_imu_ns: int | None = None  # last released IMU stamp
+        self._staged: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._staged_n = 0
+        self._frames_pending: list[StarFrame] = []  # sorted by stamp
+        self._last_frame_ns: int | None = None  # last frame handed on
+        self.env = {k: EnvSeries() for k in ENV_KEYS}
+        self.sites = SiteEstimator(self.driver.max_fixes)
+        self._inputs: dict[int, Any] = {}
+        self._conv: deque[tuple[np.ndarray, float, int]] = deque(
+            maxlen=max(self.driver.converge_window, 1) + 1)
+        self.last_update: FrameUpdate | None = None
+        self.stats = RunStats(self.eval_start)
+        self._frame_index = 0
+
+    def reset(self) -> None:
+        """Forget everything (the prior, effects and configuration stay)."""
+        self._reset_state()
+
+    # ------------------------------------------------------------------ inputs
+    def push_imu(self, stamp_ns: int, angular_velocity, linear_acceleration=None,
+                 frame_id: str | None = None) -> list[FrameOutcome]:
+        """One ``sensor_msgs/Imu`` sample; returns the frames this made processable."""
+        return self.push_imu_block(np.array([stamp_ns], dtype=np.int64),
+                                   np.reshape(angular_velocity, (1, 3)),
+                                   None if linear_acceleration is None
+                                   else np.reshape(linear_acceleration, (1, 3)), frame_id)
+
+    def push_imu_block(self, stamp_ns, angular_velocity, linear_acceleration=None,
+                       frame_id: str | None = None) -> list[FrameOutcome]:
+        """Several IMU samples (arrival order; stamps ns, rad/s, m/s²)."""
+        c = self.counters
+        t = np.asarray(stamp_ns, dtype=np.int64).reshape(-1)
+        w = np.asarray(angular_velocity, dtype=float).reshape(-1, 3)
+        f = np.zeros_like(w) if linear_acceleration is None else \
+            np.asarray(linear_acceleration, dtype=float).reshape(-1, 3)
+        c.imu_received += len(t)
+        expected = self.frames.get("imu")
+        if frame_id is not None and expected and frame_id != expected:
+            c.imu_wrong_frame += len(t)
+            return []
+        ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
+        if not ok.all():
+            c.imu_invalid += int((~ok).sum())
+            t, w, f = t[ok], w[ok], f[ok]
+        if self._last_imu_ns is not None:
+            old = t <= self._last_imu_ns
+            if old.any():
+                dup = t[old] == self._last_imu_ns
+                c.imu_duplicate += int(dup.sum())
+                c.imu_late += int((~dup).sum())
+                t, w, f = t[~old], w[~old], f[~old]
+        if not len(t):
+            return []
+        self._imu.push(t, w, f)
+        tmax = int(t.max())
+        if self.imu_max_ns is None or tmax > self.imu_max_ns:
+            self.imu_max_ns = tmax
+        return self._pump()
+
+    def push_stars(self, frame: StarFrame) -> list[FrameOutcome]:
+        """One ``StarCentroidArray`` (as a :class:`StarFrame`); returns processed frames.
+
+        A frame refused on input (wrong frame id, late, duplicate) comes back at once as a
+        ``dropped_<reason>`` outcome; accepted ones come back when processed.
+        """
+        c = self.counters
+        c.frames_received += 1
+        stamp = int(frame.stamp_ns)
+
+        def dropped(reason: str) -> list[FrameOutcome]:
+            setattr(c, "frames_" + reason, getattr(c, "frames_" + reason) + 1)
+            return [FrameOutcome(stamp, frame.frame_id, "dropped_" + reason)]
+
+        expected = self.frames.get("star_tracker")
+        if expected and frame.frame_id and frame.frame_id != expected:
+            return dropped("wrong_frame")
+        if stamp <= 0:
+            return dropped("late")
+        if self._last_frame_ns is not None and stamp <= self._last_frame_ns:
+            return dropped("duplicate" if stamp == self._last_frame_ns else "late")
+        stamps = [f.stamp_ns for f in self._frames_pending]
+        if stamp in stamps:
+            return dropped("duplicate")
+        i = int(np.searchsorted(np.asarray(stamps, dtype=np.int64), stamp)) if stamps else 0
+        if i < len(stamps):
+            c.frames_reordered += 1
+        self._frames_pending.insert(i, frame)
+        cam = self.prior.camera
+        inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px)
+        if inp.bad_sigma:
+            if not c.stars_bad_sigma:
+                log.warning("star message at %.3f: %d stars with negative or NaN sigma; the "
+                            "default %.3g px is used (counted as stars_bad_sigma)",
+                            stamp * 1e-9, inp.bad_sigma, self.config.centroid_sigma_px)
+            c.stars_bad_sigma += inp.bad_sigma
+        self._inputs[stamp] = inp
+        out: list[FrameOutcome] = []
+        while len(self._frames_pending) > self.driver.max_pending_frames:
+            old = self._frames_pending.pop(0)
+            self._inputs.pop(int(old.stamp_ns), None)
+            c.frames_overflow += 1
+            self._last_frame_ns = int(old.stamp_ns)
+            out.append(FrameOutcome(int(old.stamp_ns), old.frame_id, "dropped_overflow"))
+        return out + self._pump()
+
+    def push_scalar(self, kind: str, stamp_ns: int, value: float) -> list[FrameOutcome]:
+        """A temperature (°C) or pressure (Pa): ``kind`` in ``head``, ``air``, ``pressure``."""
+        if kind not in self.env:
+            raise ValueError(f"unknown scalar input {kind!r} (one of {ENV_KEYS})")
+        self.counters.env_received += 1
+        value = float(value)
+        if stamp_ns <= 0 or not math.isfinite(value):
+            self.counters.env_invalid += 1
+            return []
+        self.env[kind].add(int(stamp_ns), value)
+        return self._pump()
+
+    def push_fix(self, stamp_ns: int, latitude_deg: float, longitude_deg: float,
+                 altitude_m: float, status: int = 0) -> list[FrameOutcome]:
+        """A ``NavSatFix``; valid ones (finite, status ≥ 0) enter the site median."""
+        self.counters.fixes_received += 1
+        if not self.sites.add(stamp_ns, latitude_deg, longitude_deg, altitude_m, status):
+            self.counters.fixes_invalid += 1
+            return []
+        return self._pump()
+
+    def finish(self) -> list[FrameOutcome]:
+        """End of input: release and process everything still held; close the tables."""
+        out = self._pump(final=True)
+        return out
+
+    def close(self) -> None:
+        """Close the table sinks (files)."""
+        self.residuals.close()
+        self.history.close()
+
+    @property
+    def site(self):
+        """Median of the valid fixes so far."""
+        return self.sites.site
+
+    # ------------------------------------------------------------------ pumping
+    def _release_imu(self, final: bool) -> None:
+        limit = None if final else self.imu_max_ns - self.window_ns
+        t, w, f = self._imu.pop(limit, self.driver.max_pending_imu)
+        if not len(t):
+            return
+        keep = np.ones(len(t), dtype=bool)
+        d = np.diff(t)
+        keep[1:] = d > 0  # duplicated stamps within the released block
+        if self._last_imu_ns is not None:
+            keep &= t > self._last_imu_ns
+        if not keep.all():
+            bad = ~keep
+            same = np.zeros(len(t), dtype=bool)
+            same[1:] = d == 0
+            if self._last_imu_ns is not None:
+                same |= t == self._last_imu_ns
+            self.counters.imu_duplicate += int((bad & same).sum())
+            self.counters.imu_late += int((bad & ~same).sum())
+            t, w, f = t[keep], w[keep], f[keep]
+        if not len(t):
+            return
+        self._last_imu_ns = int(t[-1])
+        self._staged.append((t, w, f))
+        self._staged_n += len(t)
+
+    def _start_filter(self, final: bool) -> bool:
+        if self.filter is not None:
+            return True
+        if not self._staged_n or (self._staged_n < self.driver.t0_imu_samples and not final):
+            return False
+        if "site" in self.requires and self.method in models.NEEDS_SITE and self.site is None:
+            return False
+        t = np.concatenate([s[0] for s in self._staged])
+        if len(t) < 2:
+            return False
+        self.t0_ns, self.nominal_dt = time_origin(t, self.driver.t0_imu_samples)
+        self._build_filter()
+        return True
+
+    def _build_filter(self) -> None:
+        """The filter for the known time origin (and site)."""
+        if self.method in models.NEEDS_SITE:
+            self.filter = self.filter_cls(self.model, self.t0_ns * 1e-9, self.site, self.config,
+                                          nominal_dt=self.nominal_dt, consider=self.n_consider)
+        else:
+            self.filter = self.filter_cls(self.model, self.t0_ns * 1e-9, self.config,
+                                          nominal_dt=self.nominal_dt, consider=self.n_consider)
+
+    def _flush_staged(self) -> None:
+        if not self._staged or self.filter is None:
+            return
+        t = np.concatenate([s[0] for s in self._staged])
+        w = np.concatenate([s[1] for s in self._staged])
+        f = np.concatenate([s[2] for s in self._staged])
+        self._staged, self._staged_n = [], 0
+        self.filter.extend_imu((t - self.t0_ns) * 1e-9, w, f)
+
+    def _env_ready(self, stamp_ns: int, final: bool) -> tuple[bool, bool]:
+        """(ready, stale) of the environment inputs the model needs for a frame."""
+        need = []
+        if "head_temperature" in self.requires:
+            need.append(self.env["head"])
+        if "weather" in self.requires:
+            need += [self.env["air"], self.env["pressure"]]
+        waiting = [s for s in need if not s.covers(stamp_ns)]
+        site_missing = "site" in self.requires and self.site is None
+        if not waiting and not site_missing:
+            return True, False
+        if final or self.imu_max_ns - self.window_ns >= stamp_ns + self.env_wait_ns:
+            return True, True
+        return False, False
+
+    def _pump(self, final: bool = False) -> list[FrameOutcome]:
+        """Release what the data clock allows and process the frames that are ready."""
+        out: list[FrameOutcome] = []
+        if self.imu_max_ns is None:
+            if final:
+                for fr in self._frames_pending:
+                    out.append(FrameOutcome(int(fr.stamp_ns), fr.frame_id, "skipped_no_imu"))
+                self._frames_pending.clear()
+            return out
+        self._release_imu(final)
+        if not self._start_filter(final):
+            if final:
+                reason = "no_site" if self._staged_n >= 2 else "no_imu"
+                for fr in self._frames_pending:
+                    if reason == "no_site":
+                        self.counters.frames_no_site += 1
+                    out.append(FrameOutcome(int(fr.stamp_ns), fr.frame_id, "skipped_" + reason))
+                self._frames_pending.clear()
+            return out
+        self._flush_staged()
+        flt = self.filter
+        limit = None if final else self.imu_max_ns - self.window_ns
+        lookahead = self.driver.imu_lookahead_s
+        while self._frames_pending:
+            fr = self._frames_pending[0]
+            stamp = int(fr.stamp_ns)
+            if limit is not None and stamp > limit:
+                break
+            inp = self._inputs[stamp]
+            ready, stale = self._env_ready(stamp, final)
+            if not ready:
+                break
+            ctx = frame_context(stamp, inp, self.site, self.env) if len(inp.uv) else None
+            if not final and ctx is not None:
+                shift, _ = self.model.time_shift(flt.theta, ctx)
+                t_exp = (stamp - self.t0_ns) * 1e-9 + shift
+                if flt.imu.t_end <= t_exp + lookahead:
+                    break  # the IMU does not cover the exposure yet
+            self._frames_pending.pop(0)
+            self._inputs.pop(stamp, None)
+            self._last_frame_ns = stamp
+            if stale:
+                self.counters.env_stale += 1
+            out.append(self._process(fr, inp, ctx))
+        self._trim()
+        return out
+
+    def _process(self, frame: StarFrame, inp, ctx) -> FrameOutcome:
+        flt = self.filter
+        fc = flt.counters
+        before = fc.as_dict()
+        if ctx is None:  # no usable star: counted as the replay always did
+            fc.frames += 1
+            fc.skipped_few_stars += 1
+            fc.stars_invalid += len(inp.ok)
+            return FrameOutcome(int(frame.stamp_ns), frame.frame_id, "skipped_few_stars")
+        fc.stars_invalid += int((~inp.ok).sum())
+        upd = flt.process_frame(inp.uv, inp.u_i, ctx, inp.sigma,
+                                t_rel=(frame.stamp_ns - self.t0_ns) * 1e-9)
+        ref = getattr(flt, "reference_history", None)
+        if ref and ref["t"]:  # the method's other measurements: into the statistics, then gone
+            for t, nis in zip(ref["t"], ref["nis"], strict=True):
+                self.stats.add_reference(t, nis, 3)
+            for v in ref.values():
+                v.clear()
+        index = self._frame_index
+        self._frame_index += 1
+        if upd is not None and math.isfinite(upd.nis):
+            status = "updated"
+            self._conv.append((flt.sigma()[flt.it], float(upd.nis), int(upd.dof)))
+        else:
+            after = fc.as_dict()
+            changed = [k for k in after if after[k] != before.get(k, 0)
+                       and k not in ("frames", "stars_invalid", "stars_gated")]
+            if "init_frames" in changed:
+                status = "initialized"
+            elif "reinitializations" in changed:
+                status = "reacquired"
+            else:
+                status = next((k for k in changed if k.startswith("skipped")), "skipped")
+        if upd is not None:
+            self.last_update = upd
+            self.residuals.append(residual_rows(upd, index, inp.catalog_id, inp.magnitude,
+                                                ctx.head_temperature_c))
+            self.stats.add(upd)
+            if math.isfinite(upd.nis):
+                self._record_history(upd)
+        return FrameOutcome(int(frame.stamp_ns), frame.frame_id, status, upd,
+                            inp.catalog_id, inp.magnitude, ctx.head_temperature_c)
+
+    def _record_history(self, upd: FrameUpdate) -> None:
+        flt = self.filter
+        s = flt.sigma()
+        n_acc = int(upd.accepted.sum())
+        row: dict[str, np.ndarray] = {
+            "t": np.array([upd.stamp]), "nis": np.array([upd.nis]),
+            "dof": np.array([upd.dof]), "stars": np.array([n_acc]),
+            "gated": np.array([len(upd.accepted) - n_acc]),
+            "iterations": np.array([upd.iterations])}
+        th, st = flt.theta_estimated(), s[flt.it]
+        for j, name in enumerate(self.parameter_names()):
+            row[name] = th[j:j + 1]
+            row["sigma." + name] = st[j:j + 1]
+        for ax, v in zip("xyz", s[flt.ia], strict=True):
+            row[f"sigma.attitude.{ax}"] = np.array([v])
+        for name in flt._nav_blocks:
+            for ax, v in zip("xyz", s[flt.layout.sl(name)], strict=True):
+                row[f"sigma.{name}.{ax}"] = np.array([v])
+        self.history.append(row)
+
+    def _trim(self) -> None:
+        """Drop IMU samples and environment data the filter can no longer need."""
+        flt = self.filter
+        if flt is None:
+            return
+        if flt.initialized:
+            cut = flt._k - 2
+        elif self._last_frame_ns is not None:
+            # before initialization the next frame is not older than the last one handed on
+            # (up to the largest time shift it could have): keep 1 s more than that
+            t_keep = (self._last_frame_ns - self.t0_ns) * 1e-9 - 1.0
+            cut = flt.imu.index(t_keep) - 2
+        else:
+            cut = 0
+        if cut > 4096:  # amortize the copy
+            flt.drop_imu(cut)
+        if self._last_frame_ns is not None:
+            before = self._last_frame_ns - int(self.driver.env_history_s * 1e9)
+            for s in self.env.values():
+                s.trim(before)
+
+    # ------------------------------------------------------------------ outputs
+    @property
+    def initialized(self) -> bool:
+        """True once a star frame has initialized the attitude."""
+        return self.filter is not None and self.filter.initialized
+
+    def parameter_names(self) -> list[str]:
+        """``effect.parameter`` names of the estimated θ."""
+        n = self.model.size - self.n_consider
+        return self.model.parameter_names()[:n]
+
+    def state(self) -> tuple[np.ndarray, np.ndarray]:
+        """Current estimated θ and its 1-sigma."""
+        n = self.model.size - self.n_consider
+        if self.filter is None:
+            return self.model.initial_value[:n].copy(), self.model.initial_sigma[:n].copy()
+        return self.filter.theta_estimated().copy(), self.filter.sigma()[self.filter.it]
+
+    def covariance(self) -> np.ndarray:
+        """Covariance of the estimated θ."""
+        if self.filter is None:
+            return np.diag(self.state()[1] ** 2)
+        return self.filter.P[self.filter.it, self.filter.it].copy()
+
+    def stamp(self) -> float:
+        """POSIX time of the current estimate (the filter's time, else the prior's)."""
+        if self.filter is not None and self.filter.t is not None:
+            return self.filter.t0 + self.filter.t
+        return self.prior.stamp
+
+    def calibration(self) -> Calibration:
+        """Current calibration: estimates, σ, derived quantities, consistency."""
+        theta, sigma = self.state()
+        full = self.model.initial_value.copy()
+        full[:len(theta)] = theta
+        sig_full = np.concatenate([sigma, np.zeros(self.n_consider)])
+        cal = result_calibration(self.prior, self.model, full, sig_full, self.method,
+                                 self.stamp(), estimated=len(theta))
+        cal.extra["derived"] = derived_quantities(self.model, full, self.covariance())
+        cal.extra["consistency"] = consistency(self.stats)
+        return cal
+
+    def filter_counters(self) -> dict[str, int]:
+        """Counters of the filter (zeros before it starts), ``extra`` flattened."""
+        fc = self.filter.counters if self.filter is not None else FilterCounters()
+        out = fc.as_dict()
+        if self.filter is not None:
+            out.update({k: v for k, v in self.filter.imu.counters.items()})
+        return out
+
+    def all_counters(self) -> dict[str, Any]:
+        """Input and filter counters together."""
+        out = dict(vars(self.counters))
+        out.update(self.filter_counters())
+        return out
+
+    def convergence(self) -> dict[str, Any]:
+        """The convergence test: enough updates, σ settled, NIS consistent."""
+        hist = list(self._conv)
+        n = self.driver.converge_window
+        res = {"converged": False, "updates": self.filter.counters.updates if self.filter else 0,
+               "sigma_ratio_min": float("nan"), "nis_ratio": float("nan")}
+        if len(hist) < n + 1 or n < 1:
+            return res
+        s_old, s_new = hist[0][0], hist[-1][0]
+        ratio = float(np.min(s_new / np.maximum(s_old, 1e-300)))
+        nis = sum(h[1] for h in hist[1:]) / max(sum(h[2] for h in hist[1:]), 1)
+        res.update(sigma_ratio_min=ratio, nis_ratio=float(nis),
+                   converged=bool(ratio >= self.driver.converge_sigma_ratio
+                                  and nis <= self.driver.converge_nis_ratio))
+        return res
+
+    def pending(self) -> dict[str, int]:
+        """Messages held in the buffers."""
+        return {"imu": self._imu.n + self._staged_n, "frames": len(self._frames_pending)}
+
+    def require_initialized(self) -> None:
+        """Raise :class:`ModelError` naming why no frame could start the filter."""
+        if self.initialized:
+            return
+        counts = {k: v for k, v in self.all_counters().items() if v}
+        raise ModelError(f"no star frame could initialize the attitude (counters: {counts})")

@@ -1,0 +1,361 @@
+"""From bag messages to filter inputs: one set of rules for every method and every driver.
+
+* **Relative time** (:func:`time_origin`): ``t0_ns`` = first IMU stamp − the median interval of
+  the first ``T0_IMU_SAMPLES`` IMU samples; times inside the estimators are relative to it,
+  from integer nanoseconds (float POSIX seconds only resolve 0.24 µs).
+* **Stars** (:func:`frame_inputs`): a star is used when it is identified (catalogue id ≠ 0),
+  its catalogue direction and centroid are finite and the centroid is on the detector; its σ
+  is the message's when positive, the configured default when 0 ("unknown", contract), and
+  the default — counted as ``stars_bad_sigma`` — when negative or NaN.
+* **Site** (:class:`SiteEstimator`): the median of the valid fixes (finite, status ≥ 0).
+* **Environment** (:class:`EnvSeries`): temperatures and pressure interpolated linearly at the
+  frame stamp over their finite samples (in seconds from the earliest finite sample).
+* **Context** (:func:`frame_context`): what an effect may use for one frame.
+
+Used by the streaming driver (:mod:`stellar_cal_ros.methods.driver`, replay and live) and
+the whole-bag loader (:func:`read_bag_data`, for the batch methods and the diagnosis).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.core.catalog import radec_to_unit
+from stellar_cal_ros.core.earth import Site
+from stellar_cal_ros.effects.base import FrameContext
+from stellar_cal_ros.errors import BagError
+from stellar_cal_ros.io.bag import BagReader, ScalarSeries, StarFrame
+
+log = logging.getLogger(__name__)
+
+TOPIC_IMU = "/imu/data"
+TOPIC_STARS = "/star_tracker/stars"
+TOPIC_FIX = "/gnss/fix"
+TOPIC_HEAD_TEMPERATURE = "/star_tracker/temperature"
+TOPIC_AIR_TEMPERATURE = "/environment/temperature"
+TOPIC_PRESSURE = "/environment/pressure"
+#: default topic of each input role
+TOPICS = {"imu": TOPIC_IMU, "stars": TOPIC_STARS, "fix": TOPIC_FIX,
+          "head": TOPIC_HEAD_TEMPERATURE, "air": TOPIC_AIR_TEMPERATURE,
+          "pressure": TOPIC_PRESSURE}
+ENV_KEYS = ("head", "air", "pressure")
+#: IMU samples whose median interval sets t0 and the nominal interval
+T0_IMU_SAMPLES = 1000
+
+
+def time_origin(stamps_ns: np.ndarray, samples: int = T0_IMU_SAMPLES) -> tuple[int, float]:
+    """``(t0_ns, nominal_dt)`` from the first ``samples`` IMU stamps (sorted, unique, ≥ 2)."""
+    s = np.asarray(stamps_ns[:samples], dtype=np.int64)
+    step = int(np.median(np.diff(s)))
+    t0_ns = int(s[0]) - step
+    rel = (s - t0_ns) * 1e-9
+    return t0_ns, float(np.median(np.diff(rel)))
+
+
+def clean_frame(frame: StarFrame, width: int, height: int) -> np.ndarray:
+    """Mask of usable stars: identified, finite, on the detector."""
+    uv = frame.uv
+    ok = (frame.catalog_id != 0) & np.isfinite(frame.right_ascension) & \
+        np.isfinite(frame.declination) & np.all(np.isfinite(uv), axis=1)
+    ok &= (uv[:, 0] >= -0.5) & (uv[:, 0] < width - 0.5) & (uv[:, 1] >= -0.5) & \
+        (uv[:, 1] < height - 0.5)
+    return ok
+
+
+@dataclass
+class FrameInputs:
+    """The filter inputs of one frame's usable stars."""
+
+    ok: np.ndarray  #: (n_all,) usable-star mask of the message
+    uv: np.ndarray  #: (n, 2) px
+    u_i: np.ndarray  #: (n, 3) catalogue unit vectors (ICRS)
+    sigma: np.ndarray  #: (n,) px
+    catalog_id: np.ndarray  #: (n,) int64
+    magnitude: np.ndarray  #: (n,)
+    bad_sigma: int  #: stars whose message σ was negative or NaN (default used)
+
+
+def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float
+                 ) -> FrameInputs:
+    """Usable stars of a message and their filter inputs (see the module docstring)."""
+    ok = clean_frame(frame, width, height)
+    s = np.asarray(frame.sigma, dtype=float)[ok]
+    bad = ~(s >= 0)  # negative or NaN
+    sigma = np.where(s > 0, s, default_sigma)
+    return FrameInputs(ok, frame.uv[ok],
+                       radec_to_unit(frame.right_ascension[ok], frame.declination[ok]),
+                       sigma, frame.catalog_id[ok].astype(np.int64),
+                       np.asarray(frame.magnitude, dtype=float)[ok], int(bad.sum()))
+
+
+class EnvSeries:
+    """A scalar time series kept sorted by stamp (temperatures, pressure)."""
+
+    def __init__(self) -> None:
+        self.stamp_ns: list[int] = []
+        self.value: list[float] = []
+        self.ref_ns: int | None = None  # earliest finite sample ever: interpolation origin
+        self.version = 0  # bumped on every change (add, trim, restore): the caches' key
+        self._cache: tuple[Any, np.ndarray, np.ndarray] | None = None  # interp abscissae
+
+    @classmethod
+    def from_series(cls, series: ScalarSeries | None) -> EnvSeries:
+        """The whole series of a bag topic (None: empty)."""
+        out = cls()
+        if series is not None and len(series.stamp_ns):
+            order = np.argsort(series.stamp_ns, kind="stable")
+            s = np.asarray(series.stamp_ns, dtype=np.int64)[order]
+            v = np.asarray(series.value, dtype=float)[order]
+            fin = np.isfinite(v)
+            out.restore(s.tolist(), v.tolist(), int(s[fin][0]) if fin.any() else None)
+        return out
+
+    def add(self, stamp_ns: int, value: float) -> None:
+        """Insert one sample (in stamp order)."""
+        self.version += 1
+        if np.isfinite(value) and (self.ref_ns is None or stamp_ns < self.ref_ns):
+            self.ref_ns = stamp_ns
+        if not self.stamp_ns or stamp_ns >= self.stamp_ns[-1]:
+            self.stamp_ns.append(stamp_ns)
+            self.value.append(value)
+            return
+        i = int(np.searchsorted(np.asarray(self.stamp_ns), stamp_ns, side="right"))
+        self.stamp_ns.insert(i, stamp_ns)
+        self.value.insert(i, value)
+
+    def restore(self, stamp_ns: list[int], value: list[float], ref_ns: int | None) -> None:
+        """Replace the samples (checkpoint load)."""
+        self.version += 1
+        self.stamp_ns, self.value, self.ref_ns = stamp_ns, value, ref_ns
+
+    def interp(self, t_ns: int | np.ndarray) -> float | np.ndarray:
+        """``np.interp`` over the finite samples, in s from the earliest one; NaN if none."""
+        scalar = np.ndim(t_ns) == 0
+        if not self.stamp_ns or self.ref_ns is None:
+            return float("nan") if scalar else np.full(np.shape(t_ns), np.nan)
+        ref = self.ref_ns
+        key = self.version
+        if self._cache is None or self._cache[0] != key:
+            s = np.asarray(self.stamp_ns, dtype=np.int64)
+            v = np.asarray(self.value, dtype=float)
+            fin = np.isfinite(v)
+            self._cache = (key, (s[fin] - ref) * 1e-9, v[fin])
+        _, x, y = self._cache
+        if not len(x):
+            return float("nan") if scalar else np.full(np.shape(t_ns), np.nan)
+        out = np.interp((np.asarray(t_ns, dtype=np.int64) - ref) * 1e-9, x, y)
+        return float(out) if scalar else out
+
+    def covers(self, t_ns: int) -> bool:
+        """True when a sample at or after ``t_ns`` is held."""
+        return bool(self.stamp_ns) and self.stamp_ns[-1] >= t_ns
+
+    def trim(self, before_ns: int) -> None:
+        """Drop samples older than ``before_ns`` but keep the one just before it."""
+        if len(self.stamp_ns) < 3 or self.stamp_ns[1] >= before_ns:
+            return
+        i = int(np.searchsorted(np.asarray(self.stamp_ns), before_ns, side="left")) - 1
+        if i > 0:
+            self.version += 1
+            del self.stamp_ns[:i]
+            del self.value[:i]
+
+
+class SiteEstimator:
+    """The site: median of the valid fixes (finite, status ≥ 0), over the last ``max_fixes``."""
+
+    def __init__(self, max_fixes: int = 100_000) -> None:
+        self.max_fixes = int(max_fixes)
+        self.stamp_ns: list[int] = []
+        self.values = np.zeros((0, 3))
+        self.count = 0  # fixes ever added: the cache key
+        self._cache: tuple[int, Site] | None = None
+
+    def add(self, stamp_ns: int, lat: float, lon: float, alt: float, status: int = 0) -> bool:
+        """Add a fix; False (not used) when invalid."""
+        vals = (float(lat), float(lon), float(alt))
+        if not all(np.isfinite(vals)) or status < 0 or abs(vals[0]) > 90:
+            return False
+        n = len(self.stamp_ns)
+        if n == len(self.values):
+            grown = np.zeros((max(2 * n, 64), 3))
+            grown[:n] = self.values[:n]
+            self.values = grown
+        self.values[n] = vals
+        self.stamp_ns.append(int(stamp_ns))
+        self.count += 1
+        k = len(self.stamp_ns) - self.max_fixes
+        if k > 0:
+            del self.stamp_ns[:k]
+            self.values[:n + 1 - k] = self.values[k:n + 1].copy()
+        return True
+
+    def add_many(self, stamp_ns, lat, lon, alt, status) -> int:
+        """Add fixes (arrays); returns the number of invalid ones."""
+        bad = 0
+        for row in zip(np.asarray(stamp_ns).tolist(), np.asarray(lat).tolist(),
+                       np.asarray(lon).tolist(), np.asarray(alt).tolist(),
+                       np.asarray(status).tolist(), strict=True):
+            bad += not self.add(*row)
+        return bad
+
+    @property
+    def site(self) -> Site | None:
+        """Median of the valid fixes, None before the first."""
+        if not self.stamp_ns:
+            return None
+        if self._cache is None or self._cache[0] != self.count:
+            a = self.values[:len(self.stamp_ns)]
+            self._cache = (self.count, Site(float(np.median(a[:, 0])),
+                                            float(np.median(a[:, 1])),
+                                            float(np.median(a[:, 2]))))
+        return self._cache[1]
+
+
+def frame_context(stamp_ns: int, inputs: FrameInputs, site: Site | None,
+                  env: dict[str, EnvSeries]) -> FrameContext:
+    """The context effects may use for one frame."""
+    return FrameContext(
+        stamp=stamp_ns * 1e-9,
+        catalog_id=inputs.catalog_id,
+        magnitude=inputs.magnitude,
+        site=site,
+        head_temperature_c=env["head"].interp(stamp_ns),
+        air_temperature_c=env["air"].interp(stamp_ns),
+        pressure_pa=env["pressure"].interp(stamp_ns),
+    )
+
+
+# ---------------------------------------------------------------------------- whole bag
+@dataclass
+class BagData:
+    """The parts of a contract bag the calibrations use (times relative to ``t0_ns``)."""
+
+    t0_ns: int
+    imu_t: np.ndarray
+    imu_w: np.ndarray
+    imu_f: np.ndarray
+    frames: list[StarFrame]
+    site: Site | None
+    head_temperature: ScalarSeries | None
+    air_temperature: ScalarSeries | None
+    pressure: ScalarSeries | None
+    read_seconds: float = 0.0
+    imu_dropped: int = 0  #: duplicated-stamp or non-finite IMU messages not used
+    nominal_dt: float = 0.0
+    source: str = ""  #: path of the bag (empty for data made in memory)
+
+    @property
+    def t0(self) -> float:
+        """POSIX seconds of relative time zero."""
+        return self.t0_ns * 1e-9
+
+    @property
+    def imu_stamp_ns(self) -> np.ndarray:
+        """IMU stamps, POSIX ns."""
+        return self.t0_ns + np.round(self.imu_t * 1e9).astype(np.int64)
+
+    def env(self) -> dict[str, EnvSeries]:
+        """The environment series (see :class:`EnvSeries`)."""
+        return {"head": EnvSeries.from_series(self.head_temperature),
+                "air": EnvSeries.from_series(self.air_temperature),
+                "pressure": EnvSeries.from_series(self.pressure)}
+
+
+def clean_imu(stamp_ns: np.ndarray, w: np.ndarray, f: np.ndarray, where: str = ""
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """IMU in stamp order, duplicated stamps and non-finite samples removed (counted).
+
+    The intervals of removed samples are bridged by the filters
+    (:class:`~stellar_cal_ros.core.imu.ImuBuffer`).
+    """
+    order = np.argsort(stamp_ns, kind="stable")
+    stamps = np.asarray(stamp_ns, dtype=np.int64)[order]
+    keep = np.concatenate([[True], np.diff(stamps) > 0]) if len(stamps) else np.zeros(0, bool)
+    dropped = int(len(stamps) - keep.sum())
+    if dropped:
+        log.warning("%s: %d IMU messages with duplicated stamps dropped", where, dropped)
+    if not np.array_equal(order, np.arange(len(order))):
+        log.warning("%s: IMU messages out of stamp order were sorted", where)
+    w = np.asarray(w, dtype=float)[order][keep]
+    f = np.asarray(f, dtype=float)[order][keep]
+    stamps = stamps[keep]
+    finite = np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
+    if not np.all(finite):
+        n_bad = int((~finite).sum())
+        dropped += n_bad
+        log.warning("%s: %d IMU messages with NaN/inf dropped (their intervals are bridged)",
+                    where, n_bad)
+        w, f, stamps = w[finite], f[finite], stamps[finite]
+    return stamps, w, f, dropped
+
+
+def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
+                  on_error: str = "raise") -> BagData:
+    """Read everything a calibration needs from a contract bag (whole-bag form).
+
+    The batch methods and the diagnosis use it; the Kalman filters stream the bag
+    (:func:`stellar_cal_ros.methods.replay.replay`) with the same rules.
+    """
+    names = dict(TOPICS)
+    names.update(topics or {})
+    t_start = time.perf_counter()
+    # on_error="skip": a truncated recording (power loss at sea) is calibrated on what it
+    # holds; bad messages are dropped and counted (BagReader.skipped) with a warning.
+    with BagReader(path, on_error=on_error) as reader:
+        available = reader.topics()
+        for key in ("imu", "stars"):
+            if names[key] not in available:
+                raise BagError(f"{path}: required topic {names[key]} is missing "
+                               f"(topics: {', '.join(sorted(available)) or 'none'})")
+        imu = reader.read_imu(names["imu"])
+        frames = reader.read_star_frames(names["stars"])
+        site = None
+        if names["fix"] in available:
+            fix = reader.read_navsat(names["fix"])
+            est = SiteEstimator(max_fixes=len(fix.stamp_ns) + 1)
+            est.add_many(fix.stamp_ns, fix.latitude_deg, fix.longitude_deg, fix.altitude_m,
+                         fix.status)
+            site = est.site
+        scalars = {key: reader.read_scalar(names[key]) if names[key] in available else None
+                   for key in ENV_KEYS}
+    stamps, w, f, dropped = clean_imu(imu.stamp_ns, imu.angular_velocity,
+                                      imu.linear_acceleration, str(path))
+    if len(stamps) < 2:
+        raise BagError(f"{path}: {names['imu']} has {len(stamps)} usable messages")
+    t0_ns, nominal_dt = time_origin(stamps)
+    return BagData(
+        t0_ns=t0_ns, imu_t=(stamps - t0_ns) * 1e-9, imu_w=w, imu_f=f, frames=frames,
+        site=site, head_temperature=scalars["head"], air_temperature=scalars["air"],
+        pressure=scalars["pressure"], read_seconds=time.perf_counter() - t_start,
+        imu_dropped=dropped, nominal_dt=nominal_dt, source=str(path))
+
+
+def bag_data_from_simulation(result: Any) -> BagData:
+    """The :class:`BagData` a bag written from a simulation result would read as.
+
+    For Monte-Carlo benchmarks and tests that do not need to exercise the MCAP layer
+    (:func:`read_bag_data` of the written bag gives the same arrays).
+    """
+    imu = result.imu
+    stamps = np.asarray(imu.stamp_ns, dtype=np.int64)
+    t0_ns, nominal_dt = time_origin(stamps)
+    nav = result.navsat
+    est = SiteEstimator(max_fixes=len(nav.stamp_ns) + 1)
+    if len(nav.stamp_ns):
+        status = getattr(nav, "status", None)
+        est.add_many(nav.stamp_ns, nav.latitude_deg, nav.longitude_deg, nav.altitude_m,
+                     np.zeros(len(nav.stamp_ns), int) if status is None else status)
+    return BagData(
+        t0_ns=t0_ns, imu_t=(stamps - t0_ns) * 1e-9,
+        imu_w=np.asarray(imu.angular_velocity, dtype=float),
+        imu_f=np.asarray(imu.linear_acceleration, dtype=float),
+        frames=list(result.star_frames), site=est.site,
+        head_temperature=result.head_temperature, air_temperature=result.air_temperature,
+        pressure=result.pressure, nominal_dt=nominal_dt)

@@ -1,0 +1,777 @@
+"""The estimation kernel shared by every star-tracker Kalman filter of the package.
+
+A filter is an error-state EKF whose state is a :class:`~stellar_cal_ros.core.state.
+StateLayout` of typed blocks: the IMU attitude (a left rotation in the inertial frame,
+``R_i_b = Exp(φ) R̂_i_b``, Tan et al. eq. 7), one block per estimated effect of the
+:class:`~stellar_cal_ros.methods.star_model.StarModel` (θ), and whatever navigation blocks
+the method adds (the swaying-base filter's velocity and position).  Everything that is the
+same for all methods lives here, once:
+
+* frame handling: bad stamps, duplicates and out-of-order frames, invalid stars (non-finite
+  centroids or directions, σ ≤ 0), too few stars — each counted in :class:`FilterCounters`;
+* acquisition (:meth:`StarFilter.initialize`): the attitude from one frame by a pixel-space
+  Wahba fit under the current model, with the initial attitude error correlated with θ
+  exactly as the fit makes it (``φ₀ = −M δθ + r + noise``, see :meth:`StarFilter.initialize`),
+  and the navigation blocks set by the method;
+* re-acquisition (:meth:`StarFilter.reacquire`) after an IMU gap longer than
+  ``gap_reacquire_s`` or ``reinit_after`` rejected frames in a row (lost lock): the
+  navigation blocks are cleared and set again from a frame, θ and its covariance are kept;
+* the star update: prediction and Jacobians of every star through the effects, one gate
+  policy (:class:`~stellar_cal_ros.core.gating.GatePolicy`: per-star χ² scaled by the
+  frame's median NIS, field of view, lost lock), the iterated EKF update with the Joseph form
+  (:func:`~stellar_cal_ros.core.covariance.iterated_update`), the injection into the nominal
+  state (box-plus per block) and the covariance reset; periodic check-and-repair of P;
+* IMU faults, once: samples go through :class:`~stellar_cal_ros.core.imu.ImuBuffer`, which
+  bridges missing intervals; the propagation inflates the covariance by the bridging error;
+* a gyro in the wrong unit (deg/s): when a re-acquisition follows frames that the gyro
+  could not predict, the gyro's rotation since the last acquisition is compared with the
+  stars' — a ratio of 57.3 raises :class:`~stellar_cal_ros.errors.DataError` naming it;
+* the sensitivity of the state to *consider* parameters (candidate effects kept at their
+  prior value): :class:`~stellar_cal_ros.core.covariance.Sensitivity`, for score tests and
+  reliability in the diagnosis.
+
+A method (:mod:`~stellar_cal_ros.methods.psce`, :mod:`~stellar_cal_ros.methods.swaying`)
+defines its blocks, its propagation (:meth:`StarFilter.propagate`, :meth:`StarFilter.
+rate_at`, :meth:`StarFilter._on_imu_appended`) and its extra measurements
+(:meth:`StarFilter._before_star_update`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stellar_cal_ros.core import covariance as cov
+from stellar_cal_ros.core.attitude import fit_frame_attitude, wahba
+from stellar_cal_ros.core.gating import GatePolicy, block_nis, fov_tan2
+from stellar_cal_ros.core.imu import ImuBuffer
+from stellar_cal_ros.core.rotation import so3_exp, so3_log
+from stellar_cal_ros.core.state import StateLayout
+from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
+from stellar_cal_ros.effects.base import FrameContext
+from stellar_cal_ros.errors import DataError, ModelError
+from stellar_cal_ros.methods.star_model import StarModel
+
+log = logging.getLogger(__name__)
+
+#: gyro-to-star rotation ratio of a gyro that reports deg/s where rad/s is expected
+DEG_PER_RAD = 180.0 / math.pi
+
+
+class NoImuError(Exception):
+    """The IMU data do not reach the requested time."""
+
+
+@dataclass
+class FrameUpdate:
+    """What one star-frame update did (for residual tables and statistics)."""
+
+    stamp: float  #: reported stamp, POSIX s
+    t_exposure: float  #: modelled exposure time, s relative to t0
+    accepted: np.ndarray  #: (n,) bool
+    uv: np.ndarray  #: (n, 2) measured
+    uv_pred: np.ndarray  #: (n, 2) predicted before the update (innovation = uv − uv_pred)
+    S: np.ndarray  #: (n, 2, 2) innovation covariance of each star
+    nis_stars: np.ndarray  #: (n,)
+    nis: float  #: frame NIS over the accepted stars (NaN: no update)
+    dof: int
+    directions_st: np.ndarray  #: (n, 3)
+    omega_b: np.ndarray  #: (3,)
+    iterations: int
+
+
+@dataclass
+class FilterCounters:
+    """Counted (and logged) skips and events of a filter."""
+
+    frames: int = 0
+    updates: int = 0
+    init_frames: int = 0
+    skipped_few_stars: int = 0
+    skipped_out_of_order: int = 0
+    skipped_duplicate: int = 0
+    skipped_no_imu: int = 0
+    stars_invalid: int = 0
+    stars_gated: int = 0
+    imu_gaps: int = 0
+    reinitializations: int = 0
+    covariance_checks: int = 0
+    covariance_repairs: int = 0
+    extra: dict[str, int] = field(default_factory=dict)
+
+    def add(self, key: str, n: int = 1) -> None:
+        """Increment a counter (a field, else an ``extra`` entry)."""
+        if key in _COUNTER_FIELDS:
+            setattr(self, key, getattr(self, key) + n)
+        else:
+            self.extra[key] = self.extra.get(key, 0) + n
+
+    def as_dict(self) -> dict[str, int]:
+        """Every counter, ``extra`` flattened."""
+        d = {k: v for k, v in vars(self).items() if k != "extra"}
+        d.update(self.extra)
+        return d
+
+
+_COUNTER_FIELDS = {f.name for f in dataclasses.fields(FilterCounters)} - {"extra"}
+
+
+@dataclass
+class KernelConfig:
+    """Noise levels and decisions shared by the filters (methods subclass it)."""
+
+    centroid_sigma_px: float = 0.05  #: used when a star message has sigma = 0
+    gyro_arw_deg_sqrth: float = 0.001  #: angle random walk of each gyro
+    gate_probability: float = 0.9999  #: per-star χ² (2 dof) acceptance probability
+    min_stars: int = 3  #: fewer accepted stars: the frame is skipped
+    max_iterations: int = 5  #: iterated-EKF relinearizations per frame
+    iteration_tolerance: float = 1e-3  #: stop when the correction changes < tol·σ
+    relinearize_rad: float = 2e-4  #: iterate only if the attitude correction exceeds this
+    relinearize_sigma: float = 0.5  #: ... or a parameter moves by more than this × σ
+    imu_bridge_factor: float = 1.5  #: an IMU interval longer than this × nominal is bridged
+    gap_rate_sigma: float = 1e-3  #: rad/s, floor of the rate error over a bridged interval
+    gap_accel_sigma: float = 0.5  #: m/s², floor of the specific-force error over one
+    fov_margin: float = 1.3  #: stars predicted beyond this × the half-diagonal: rejected
+    gap_reacquire_s: float = 0.1  #: a frame after more IMU gap than this re-acquires
+    init_outlier_px: float = 5.0  #: acquisition: drop stars off by more than this
+    mismatch_factor: float = 3.0  #: frame median NIS this × the χ² median: model mismatch
+    lost_lock_factor: float = 1e4  #: ... this ×: the attitude is lost, the frame rejected
+    scale_gate_by_frame: bool = True  #: False: plain χ² gate (bound computations)
+    reinit_after: int = 3  #: consecutive frames with stars but no accepted update: re-acquire
+    covariance_check_every: int = 50  #: check P (finite, symmetric, PD) every N updates
+    init_second_order: bool = True  #: initial attitude covariance with the 2nd-order term
+    unit_check: bool = True  #: refuse a gyro that reports deg/s (DataError)
+
+
+class StarFilter:
+    """Error-state EKF over IMU samples and star frames (see the module docstring).
+
+    Parameters
+    ----------
+    model : StarModel
+        Effects (θ layout) and the prior.  Its last ``consider`` parameters are *consider*
+        parameters: predicted through, kept at their prior value, and only tracked by
+        :attr:`sensitivity`.
+    t0 : float
+        POSIX time of relative time zero.
+    config : KernelConfig
+    nominal_dt : float
+        Nominal IMU sample interval, s.
+    nav_blocks : sequence of (name, size)
+        The method's navigation vector blocks after θ (nominal values in attributes of the
+        same name, e.g. ``velocity``).
+    consider : int
+        Number of trailing θ entries of ``model`` that are consider parameters.
+    """
+
+    method = "kernel"
+
+    def __init__(self, model: StarModel, t0: float, config: KernelConfig, nominal_dt: float,
+                 nav_blocks: tuple[tuple[str, int], ...] = (), consider: int = 0) -> None:
+        self.model = model
+        self.config = config
+        c = config
+        self.t0 = float(t0)
+        self.n_consider = int(consider)
+        P_all = model.size
+        self.P_est = P_all - self.n_consider
+        blocks = [("attitude", 3, "rotation", True)]
+        blocks += [(e.id, e.size, "vector", False) for e in model.effects
+                   if model.slices[e.id].stop <= self.P_est]
+        blocks += [(name, size, "vector", True) for name, size in nav_blocks]
+        self.layout = StateLayout(blocks)
+        self.N = self.layout.size
+        self.ia = slice(0, 3)
+        self.it = slice(3, 3 + self.P_est)
+        self._nav_blocks = tuple(name for name, _ in nav_blocks)
+        self.theta = model.initial_value.copy()
+        self.P = np.zeros((self.N, self.N))
+        self.P[self.it, self.it] = np.diag(model.initial_sigma[:self.P_est] ** 2)
+        q = [e.process_noise_density() for e in model.effects]
+        self.q_theta = (np.concatenate(q) ** 2 if q else np.zeros(0))[:self.P_est]
+        self.q_gyro = (c.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR) ** 2
+        self.imu = ImuBuffer(nominal_dt, c.imu_bridge_factor, c.gap_rate_sigma,
+                             c.gap_accel_sigma, c.gap_reacquire_s)
+        self.nominal_dt = float(nominal_dt)
+        self.R_i_b: np.ndarray | None = None
+        self.t: float | None = None
+        self._omega = np.zeros(3)
+        self._omega_stale = False
+        self._k = 0  # index of the first IMU sample whose interval ends after self.t
+        self.counters = FilterCounters()
+        self.gate = GatePolicy(c.gate_probability, c.mismatch_factor, c.lost_lock_factor,
+                               fov_tan2(model.prior.camera, c.fov_margin),
+                               c.scale_gate_by_frame)
+        self.update_policy = cov.UpdatePolicy(c.max_iterations, c.iteration_tolerance,
+                                              c.relinearize_rad, c.relinearize_sigma)
+        self._mismatch_warned = False
+        self._mismatch_bits = 0  # model-mismatch flags of the last 10 frames
+        self.last_stamp: float | None = None
+        self._rejected_in_row = 0
+        self._gap_pending = False
+        self._good: tuple[np.ndarray, ...] | None = None
+        self._stamp_posix = 0.0  # reported stamp of the frame being processed (POSIX s)
+        self._stamp_rel = 0.0  # the same, relative to t0 (from integer ns: exact)
+        self._acquired: tuple[float, np.ndarray, int] | None = None  # (t, R_i_b, updates)
+        self.unit_checked = False
+        self.sensitivity = cov.Sensitivity(self.N, self.n_consider) if self.n_consider \
+            else None
+
+    # ------------------------------------------------------------------ views
+    @property
+    def initialized(self) -> bool:
+        """True once the attitude has been acquired from a star frame."""
+        return self.R_i_b is not None
+
+    @property
+    def omega(self) -> np.ndarray:
+        """Corrected body rate at the current time (current θ)."""
+        if self._omega_stale:
+            self._omega = self.rate_at(self.t)
+            self._omega_stale = False
+        return self._omega
+
+    @omega.setter
+    def omega(self, value: np.ndarray) -> None:
+        self._omega = value
+        self._omega_stale = False
+
+    @property
+    def imu_t(self) -> np.ndarray:
+        """Held IMU stamps, s relative to t0."""
+        return self.imu.t
+
+    def sigma(self) -> np.ndarray:
+        """1-sigma of the error state (attitude, θ, navigation)."""
+        return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
+
+    def theta_estimated(self) -> np.ndarray:
+        """The estimated part of θ."""
+        return self.theta[:self.P_est]
+
+    # ------------------------------------------------------------------ IMU input
+    def extend_imu(self, t: np.ndarray, w: np.ndarray, f: np.ndarray | None = None) -> int:
+        """Append IMU samples (relative s, rad/s, m/s²); returns how many were accepted.
+
+        Non-finite samples and stamps not after the last one held are dropped and counted
+        (``imu_dropped``); the intervals they leave are bridged by :class:`ImuBuffer`.
+        """
+        t = np.asarray(t, dtype=float).reshape(-1)
+        w = np.asarray(w, dtype=float).reshape(-1, 3)
+        ff = None if f is None else np.asarray(f, dtype=float).reshape(-1, 3)
+        ok = np.isfinite(t) & np.all(np.isfinite(w), axis=1)
+        if ff is not None:
+            ok &= np.all(np.isfinite(ff), axis=1)
+        if len(t):
+            # strictly increasing after the removals: each kept stamp must exceed every
+            # earlier kept one (a running maximum; a rejected stamp never raises it)
+            run = np.maximum.accumulate(np.where(ok, t, -np.inf))
+            prev = np.concatenate([[self.imu.t_end], np.maximum(run[:-1], self.imu.t_end)])
+            ok &= t > prev
+        dropped = int(len(t) - ok.sum())
+        if dropped:
+            self.counters.add("imu_dropped", dropped)
+        if not ok.all():
+            t, w = t[ok], w[ok]
+            ff = None if ff is None else ff[ok]
+        if not len(t):
+            return 0
+        n0 = len(self.imu)
+        before = self.imu.counters["imu_bridged"]
+        self.imu.append(t, w, ff)
+        self.counters.imu_gaps += self.imu.counters["imu_bridged"] - before
+        self._on_imu_appended(n0)
+        return len(t)
+
+    def drop_imu(self, cut: int) -> int:
+        """Forget the first ``cut`` IMU samples (bounded memory); returns how many.
+
+        Once initialized only samples before the current one are dropped.
+        """
+        cut = max(0, min(int(cut), len(self.imu) - 1))
+        if self.initialized:
+            cut = min(cut, self._k - 1)
+        if cut <= 0:
+            return 0
+        self.imu.drop(cut)
+        self._k -= cut
+        self._on_imu_dropped(cut)
+        return cut
+
+    # ------------------------------------------------------------------ method hooks
+    def _on_imu_appended(self, first: int) -> None:
+        """Samples ``first:`` of :attr:`imu` are new (e.g. extend a prefix)."""
+
+    def _on_imu_dropped(self, cut: int) -> None:
+        """The first ``cut`` samples were dropped."""
+
+    def propagate(self, t_target: float) -> None:
+        """Propagate nominal state and covariance to ``t_target`` (relative s)."""
+        raise NotImplementedError
+
+    def rate_at(self, t: float) -> np.ndarray:
+        """Corrected body rate of the IMU sample covering relative time ``t``."""
+        raise NotImplementedError
+
+    def _acquire_navigation(self, t_exp: float) -> None:
+        """Set the method's navigation blocks (nominal and covariance) at acquisition."""
+
+    def _before_star_update(self) -> None:
+        """Extra measurements before the star update (the swaying filter's reference)."""
+
+    def _after_reacquire(self) -> None:
+        """Bookkeeping after a successful re-acquisition."""
+
+    # ------------------------------------------------------------------ propagation helpers
+    def _inflate_bridged(self, ma: int, mb: int, ta: float, tb: float) -> None:
+        """Covariance inflation by the bridged IMU intervals in ``(ta, tb]``."""
+        var_w, var_f, long_gap, n_entered = self.imu.bridged_variance(ta, tb, ma, mb)
+        if not var_w and not n_entered:
+            return
+        self.P[self.ia, self.ia] += var_w * np.eye(3)
+        if "velocity" in self.layout:
+            sv = self.layout.sl("velocity")
+            self.P[sv, sv] += var_f * np.eye(3)
+        if long_gap:
+            self._gap_pending = True
+        if n_entered:
+            log.warning("IMU gap before t=%.3f s bridged: %s", tb,
+                        "attitude re-acquired from the stars" if self._gap_pending else
+                        f"attitude uncertainty inflated by {math.sqrt(var_w):.3g} rad")
+
+    # ------------------------------------------------------------------ acquisition
+    def _attitude_function(self, phi: np.ndarray | None = None):
+        """``shift -> (R_i_b, ω)`` around the current state, for :meth:`StarModel.predict`.
+
+        Time from the current state to the frame stamp comes from exact relative times; the
+        model asks for the attitude ``shift`` seconds after the frame's reported stamp.
+        """
+        R_now = self.R_i_b if phi is None else so3_exp(phi) @ self.R_i_b
+        w = self.omega
+        base = self._stamp_rel - self.t
+
+        def attitude(shift: float) -> tuple[np.ndarray, np.ndarray]:
+            dt = shift + base
+            R = R_now if abs(dt) < 1e-12 else R_now @ so3_exp(w * dt)
+            return R, w
+
+        return attitude
+
+    def initialize(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
+                   sigma: np.ndarray) -> bool:
+        """Acquire the attitude (and navigation) from one frame; False if it cannot.
+
+        The frame fit under the current model gives ``φ₀ = −M δθ`` to first order, with
+        ``M = (H_φᵀ H_φ)⁻¹ H_φᵀ H_θ`` (a principal-point offset is indistinguishable from an
+        attitude tilt in one frame), plus the centroid noise ``σ² (H_φᵀ H_φ)⁻¹`` and the
+        second moment of the second-order remainder in δθ
+        (:meth:`_init_second_order`).
+        """
+        model, theta, c = self.model, self.theta, self.config
+        shift, _ = model.time_shift(theta, ctx)
+        t_exp = self._stamp_rel + shift
+        imu_t = self.imu.t
+        if not len(imu_t) or t_exp <= imu_t[0] - self.nominal_dt or t_exp >= imu_t[-1]:
+            self.counters.skipped_no_imu += 1
+            return False
+        if self.t is not None and t_exp < self.t - 1e-9:
+            return False
+        camera = model.camera_at(theta, ctx)
+        R_imu_st, _ = model.installation_at(theta, ctx)
+        keep = wahba_inliers(camera, uv, u_i, c.init_outlier_px)
+        fit = None
+        for _ in range(3):
+            if keep.sum() < max(c.min_stars, 3):
+                return False
+            try:
+                R0 = wahba(camera.unproject(uv[keep]), u_i[keep])
+                fit = fit_frame_attitude(camera, uv[keep], u_i[keep], R_i_st0=R0)
+            except (ModelError, np.linalg.LinAlgError, ValueError) as exc:
+                log.warning("attitude fit failed at t=%.3f s: %s", t_exp, exc)
+                return False
+            err = np.linalg.norm(fit.residuals, axis=1)
+            if not np.all(np.isfinite(err)):
+                return False
+            bad = err > max(c.init_outlier_px, 5 * float(np.median(err)))
+            if not np.any(bad):
+                break
+            idx = np.flatnonzero(keep)
+            keep[idx[bad]] = False
+        R_i_b = fit.R_i_st @ R_imu_st.T
+        self.t = t_exp
+        self._k = self.imu.index(t_exp)
+        self.R_i_b = R_i_b
+        self.omega = self.rate_at(t_exp)
+        idx = np.flatnonzero(keep)
+        pred = model.predict(theta, u_i[keep], subset_context(ctx, idx),
+                             self._attitude_function())
+        Hf = pred.H_attitude.reshape(-1, 3)
+        Ht_all = pred.H_parameters.reshape(-1, model.size)
+        Ht = Ht_all[:, :self.P_est]
+        info = Hf.T @ Hf
+        if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e12:
+            return False
+        M = np.linalg.solve(info, Hf.T @ Ht) if self.P_est else np.zeros((3, 0))
+        s2 = float(np.mean(sigma[keep] ** 2))
+        ia, it = self.ia, self.it
+        Ptt = self.P[it, it]
+        Q2 = self._init_second_order(uv[keep], u_i[keep], ctx, fit.R_i_st, R_i_b, M, Ht) \
+            if self.P_est and c.init_second_order else 0.0
+        self.P[ia, ia] = M @ Ptt @ M.T + s2 * np.linalg.inv(info) + Q2
+        self.P[ia, it] = -M @ Ptt
+        self.P[it, ia] = self.P[ia, it].T
+        if self.sensitivity is not None:
+            self.sensitivity.clear_rows(self.layout.navigation_index)
+            self.sensitivity.M[ia] = -np.linalg.solve(info, Hf.T @ Ht_all[:, self.P_est:])
+        self._acquire_navigation(t_exp)
+        self.counters.init_frames += 1
+        self._rejected_in_row = 0
+        self._good = self._snapshot()
+        self._acquired = (t_exp, R_i_b.copy(), self.counters.updates)
+        log.info("attitude initialized at t=%.3f s from %d stars", t_exp, int(keep.sum()))
+        return True
+
+    def _init_second_order(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
+                           R_i_st: np.ndarray, R_i_b: np.ndarray, M: np.ndarray,
+                           Ht: np.ndarray) -> np.ndarray:
+        """Second moment of the second-order part of the initial attitude error.
+
+        The frame fit under the current model gives ``φ₀ = −M δθ`` only to first order in
+        δθ; with datasheet priors (pixels of principal point, 0.2° of installation) the
+        quadratic remainder ``r = ½ yᵀ H y`` (``δθ = L y``, ``L Lᵀ = P_θθ``, y ~ N(0, I))
+        is some 10 µrad, far above the centroid-noise term of a 0.005-px tracker; ignoring
+        it makes the filter start, and with little process noise stay, overconfident.
+        H is measured by refitting the frame under ``θ̂ + δ`` for ``δ = ±L_j`` and
+        ``L_j + L_k``: ``e_j = ½ H_jj`` is the even part along ``L_j`` and ``H_jk =
+        r(L_j + L_k) − e_j − e_k``.  Then ``E r = Σ e_j`` and
+        ``Cov r = 2 Σ e_j e_jᵀ + Σ_{j<k} H_jk H_jkᵀ`` (exact for a quadratic r).
+        """
+        model, theta, P_est = self.model, self.theta, self.P_est
+        Ptt = self.P[self.it, self.it]
+        try:
+            L = np.linalg.cholesky(Ptt)
+        except np.linalg.LinAlgError:
+            w, V = np.linalg.eigh(Ptt)
+            L = V * np.sqrt(np.clip(w, 0.0, None))
+        # columns that do not move the stars of one frame (gyro bias) contribute nothing
+        HL = np.linalg.norm(Ht @ L, axis=0)
+        cols = np.flatnonzero(HL > 1e-9 * (1.0 + HL.max()))
+
+        def remainder(delta: np.ndarray) -> np.ndarray | None:
+            th = theta.copy()
+            th[:P_est] += delta
+            R_imu_st, _ = model.installation_at(th, ctx)
+            try:
+                fit = fit_frame_attitude(model.camera_at(th, ctx), uv, u_i, R_i_st0=R_i_st,
+                                         max_iterations=2)
+            except (ModelError, np.linalg.LinAlgError, ValueError):
+                return None
+            phi = so3_log((fit.R_i_st @ R_imu_st.T) @ R_i_b.T) + M @ delta
+            return phi if np.all(np.isfinite(phi)) else None
+
+        e = {}
+        for j in cols:
+            rp, rm = remainder(L[:, j]), remainder(-L[:, j])
+            if rp is not None and rm is not None:
+                e[j] = 0.5 * (rp + rm)
+        if not e:
+            return np.zeros((3, 3))
+        mean = sum(e.values())
+        Q = 2.0 * sum(np.outer(v, v) for v in e.values())
+        keys = sorted(e)
+        for a, j in enumerate(keys):
+            for k in keys[a + 1:]:
+                r = remainder(L[:, j] + L[:, k])
+                if r is not None:
+                    h = r - e[j] - e[k]
+                    Q = Q + np.outer(h, h)
+        return Q + np.outer(mean, mean)
+
+    def reacquire(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
+                  sigma: np.ndarray) -> bool:
+        """Re-acquire the navigation blocks from a frame; keep θ and its covariance.
+
+        After an IMU gap or a lost lock the nominal attitude (and velocity, position) carry
+        errors the covariance does not describe; updating them would pull θ.  Their rows and
+        columns of P are cleared and :meth:`initialize` sets them as at the start.  Before
+        that, the gyro's rotation since the last acquisition is compared with the stars'
+        (:meth:`_check_gyro_unit`).  False (state unchanged) if the frame cannot align.
+        """
+        saved = self._snapshot(full=True)
+        R_prop, acquired = self.R_i_b, self._acquired
+        nav = self.layout.navigation_index
+        self.P[nav, :] = 0.0
+        self.P[:, nav] = 0.0
+        if not self.initialize(uv, u_i, ctx, sigma):
+            self._restore(saved)
+            return False
+        self.counters.init_frames -= 1
+        self.counters.reinitializations += 1
+        if acquired is not None and R_prop is not None:
+            self._check_gyro_unit(acquired, R_prop)
+        self._after_reacquire()
+        return True
+
+    def _check_gyro_unit(self, acquired: tuple[float, np.ndarray, int],
+                         R_prop: np.ndarray) -> None:
+        """Refuse a gyro whose rotation is 57.3× (or 1/57.3×) the stars' since acquisition.
+
+        ``R_prop`` is the gyro-propagated attitude just before re-acquisition; it was not
+        corrected by any update only if every frame since the acquisition was rejected,
+        which is when a wrong unit shows.  Needs a star rotation of at least 100″ (Earth
+        rotation alone gives that within 7 s) to be decisive.
+        """
+        t_a, R_a, updates = acquired
+        if not self.config.unit_check or self.counters.updates != updates:
+            return
+        ang_star = float(np.linalg.norm(so3_log(self.R_i_b @ R_a.T)))
+        ang_gyro = float(np.linalg.norm(so3_log(R_prop @ R_a.T)))
+        if ang_star < 5e-4:
+            return
+        ratio = ang_gyro / ang_star
+        for factor, unit in ((DEG_PER_RAD, "deg/s"), (1.0 / DEG_PER_RAD, "rad/s given "
+                                                       "as deg/s (rates 57.3x too small)")):
+            if abs(ratio / factor - 1.0) < 0.2:
+                raise DataError(
+                    f"the gyro's rotation between t={t_a:.1f} s and t={self.t:.1f} s is "
+                    f"{ratio:.1f}x the stars' ({math.degrees(ang_gyro):.4f} deg vs "
+                    f"{math.degrees(ang_star):.4f} deg): the IMU angular_velocity looks like "
+                    f"{unit}; the contract (sensor_msgs/Imu) is rad/s")
+        self.unit_checked = True
+
+    # ------------------------------------------------------------------ state snapshots
+    def _nav_values(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name).copy() for name in self._nav_blocks}
+
+    def _snapshot(self, full: bool = False) -> tuple:
+        """Copy of the estimate (P, θ, R, navigation); ``full`` adds time and counters."""
+        snap = (self.P.copy(), self.theta.copy(), None if self.R_i_b is None
+                else self.R_i_b.copy(), self._nav_values())
+        if full:
+            snap += (self.t, self._k, self._acquired,
+                     None if self.sensitivity is None else self.sensitivity.M.copy())
+        return snap
+
+    def _restore(self, snap: tuple) -> None:
+        self.P, self.theta, self.R_i_b, nav = (snap[0].copy(), snap[1].copy(),
+                                               None if snap[2] is None else snap[2].copy(),
+                                               snap[3])
+        for name, value in nav.items():
+            setattr(self, name, value.copy())
+        if len(snap) > 4:
+            self.t, self._k, self._acquired, M = snap[4:]
+            if M is not None:
+                self.sensitivity.M = M
+        self._omega_stale = True
+
+    # ------------------------------------------------------------------ updates
+    def inject(self, dx: np.ndarray) -> None:
+        """Apply the error estimate to the nominal state (box-plus) and reset P."""
+        dphi = dx[self.ia]
+        self.R_i_b = so3_exp(dphi) @ self.R_i_b
+        self.theta[:self.P_est] += dx[self.it]
+        for name in self._nav_blocks:
+            setattr(self, name, getattr(self, name) + dx[self.layout.sl(name)])
+        cov.reset_rotation(self.P, self.ia, dphi)
+        self.P = 0.5 * (self.P + self.P.T)
+        if self.sensitivity is not None:
+            self.sensitivity.reset_rotation(self.ia, dphi)
+        self._omega_stale = True
+
+    def _star_jacobian(self, pred) -> tuple[np.ndarray, np.ndarray]:
+        """``H`` (n, 2, N) of a prediction and its consider columns (n, 2, m)."""
+        n = len(pred.uv)
+        H = np.zeros((n, 2, self.N))
+        H[:, :, self.ia] = pred.H_attitude
+        H[:, :, self.it] = pred.H_parameters[:, :, :self.P_est]
+        return H, pred.H_parameters[:, :, self.P_est:]
+
+    def update(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
+               sigma: np.ndarray) -> FrameUpdate | None:
+        """Propagate to the frame's exposure and update with its stars."""
+        model = self.model
+        shift, _ = model.time_shift(self.theta, ctx)
+        t_exp = self._stamp_rel + shift
+        try:
+            self.propagate(t_exp)
+        except NoImuError:
+            self.counters.skipped_no_imu += 1
+            return None
+        if self._gap_pending:
+            self._gap_pending = False
+            if self.reacquire(uv, u_i, ctx, sigma):
+                self.counters.add("reacquired_after_gap")
+                return None
+        self._before_star_update()
+        return self._star_update(uv, u_i, ctx, sigma, t_exp)
+
+    def _star_update(self, uv, u_i, ctx, sigma, t_exp) -> FrameUpdate:
+        model, c = self.model, self.config
+        n = len(uv)
+        N = self.N
+        R_meas = sigma**2
+        theta0 = self.theta.copy()
+        pred0 = model.predict(theta0, u_i, ctx, self._attitude_function())
+        H0, Hb0 = self._star_jacobian(pred0)
+        nu0 = uv - pred0.uv
+        S_blocks = (H0 @ self.P) @ H0.transpose(0, 2, 1)
+        S_blocks[:, 0, 0] += R_meas
+        S_blocks[:, 1, 1] += R_meas
+        nis_stars = block_nis(nu0, S_blocks)
+        gate = self.gate.decide(nis_stars, pred0.directions_st)
+        # the last 10 frames as bits: one odd frame is counted, a pattern is reported
+        self._mismatch_bits = ((self._mismatch_bits << 1) | int(gate.mismatch)) & 0x3FF
+        if gate.mismatch:
+            self.counters.add("frames_model_mismatch")
+            if not self._mismatch_warned and bin(self._mismatch_bits).count("1") >= 3:
+                self._mismatch_warned = True
+                log.warning("t=%.3f s: the stars' median NIS is %.0fx what the model expects "
+                            "(3 or more of the last 10 frames): the model misses an effect "
+                            "(run stellar-cal diagnose)", t_exp, gate.scale)
+        if gate.lost_lock:
+            self.counters.add("frames_lost_lock")
+        if gate.outside_fov:
+            self.counters.add("stars_outside_fov", gate.outside_fov)
+        accepted = gate.accepted
+        self.counters.stars_gated += int(n - accepted.sum())
+        result = FrameUpdate(ctx.stamp, t_exp, accepted, uv, pred0.uv, S_blocks, nis_stars,
+                             float("nan"), 0, pred0.directions_st, self.omega.copy(), 0)
+        if accepted.sum() < c.min_stars:
+            self.counters.skipped_few_stars += 1
+            self._rejected_in_row += 1
+            if self._rejected_in_row >= c.reinit_after:
+                # lost lock (e.g. after an IMU gap during a slew): re-acquire from this frame
+                log.warning("t=%.3f s: %d frames in a row rejected, re-acquiring the attitude",
+                            t_exp, self._rejected_in_row)
+                self.reacquire(uv, u_i, ctx, sigma)
+            return result
+        self._rejected_in_row = 0
+        idx = np.flatnonzero(accepted)
+        z = uv[idx].reshape(-1)
+        r_diag = np.repeat(R_meas[idx], 2)
+        H = H0[idx].reshape(-1, N)
+        h = pred0.uv[idx].reshape(-1)
+        ctx_acc = None
+
+        def relinearize(dx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            nonlocal ctx_acc
+            if ctx_acc is None:
+                ctx_acc = subset_context(ctx, idx)
+            th = theta0.copy()
+            th[:self.P_est] += dx[self.it]
+            pred = model.predict(th, u_i[idx], ctx_acc, self._attitude_function(dx[self.ia]))
+            Hn, _ = self._star_jacobian(pred)
+            return Hn.reshape(-1, N), pred.uv.reshape(-1)
+
+        res = cov.iterated_update(self.P, H, h, z, r_diag, relinearize, self.update_policy,
+                                  self.ia, self.it)
+        if not res.ok:
+            self.counters.add("update_failed")
+            log.warning("t=%.3f s: %s: frame skipped", t_exp, res.reason)
+            return result
+        sens = self.sensitivity
+        if sens is not None:
+            S = res.H @ self.P @ res.H.T
+            S.ravel()[::len(S) + 1] += r_diag
+            sens.update(res.H, Hb0[idx].reshape(-1, self.n_consider), res.K, z - h, S)
+        self.P = res.P
+        self.inject(res.dx)
+        self.counters.updates += 1
+        if c.covariance_check_every and self.counters.updates % c.covariance_check_every == 0:
+            self._check_covariance()
+        result.nis = res.nis
+        result.dof = int(len(z))
+        result.iterations = res.iterations
+        return result
+
+    def _check_covariance(self) -> None:
+        """Cheap health check of P; repair (or roll back) instead of going on corrupted."""
+        self.counters.covariance_checks += 1
+        try:
+            cov.check(self.P, f"{self.method} covariance")
+        except ModelError as exc:
+            self.counters.covariance_repairs += 1
+            fixed = cov.repair(self.P)
+            if fixed is not None:
+                self.P = fixed
+                log.warning("%s: repaired (eigenvalues clipped)", exc)
+            elif self._good is not None:
+                self._restore(self._good)
+                log.warning("%s: rolled back to the last healthy state", exc)
+            else:
+                raise
+            return
+        self._good = self._snapshot()
+
+    def process_frame(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
+                      sigma: np.ndarray, t_rel: float | None = None) -> FrameUpdate | None:
+        """Handle one star frame: acquire or update; count every skip.
+
+        ``t_rel`` is the frame stamp relative to ``t0`` in s, best computed from integer
+        nanoseconds (``(stamp_ns − t0_ns) · 1e-9``); default ``ctx.stamp − t0``.
+        """
+        self.counters.frames += 1
+        t_rel = ctx.stamp - self.t0 if t_rel is None else float(t_rel)
+        if not np.isfinite(t_rel):
+            self.counters.add("skipped_bad_stamp")
+            return None
+        if self.last_stamp is not None:
+            if t_rel == self.last_stamp:
+                self.counters.skipped_duplicate += 1
+                return None
+            if t_rel < self.last_stamp:
+                self.counters.skipped_out_of_order += 1
+                log.warning("star frame at %.6f is older than the last one: skipped", ctx.stamp)
+                return None
+        good = np.isfinite(uv).all(axis=1) & np.isfinite(u_i).all(axis=1) & \
+            np.isfinite(sigma) & (sigma > 0)
+        if not good.all():
+            self.counters.stars_invalid += int((~good).sum())
+            uv, u_i, sigma = uv[good], u_i[good], sigma[good]
+            ctx = subset_context(ctx, np.flatnonzero(good))
+        if len(uv) < self.config.min_stars:
+            self.counters.skipped_few_stars += 1
+            return None
+        self.last_stamp = t_rel
+        self._stamp_posix = ctx.stamp
+        self._stamp_rel = t_rel
+        if not self.initialized:
+            self.initialize(uv, u_i, ctx, sigma)
+            return None
+        return self.update(uv, u_i, ctx, sigma)
+
+
+def wahba_inliers(camera, uv: np.ndarray, u_i: np.ndarray, outlier_px: float) -> np.ndarray:
+    """Stars consistent with one rotation (drops misidentified ones before the pixel fit).
+
+    Wahba on the unprojected centroids, then repeatedly drop the worst star while it is
+    off by more than ``max(outlier_px / f, 5 × median)`` in angle.
+    """
+    d = camera.unproject(uv)
+    keep = np.all(np.isfinite(d), axis=1) & np.all(np.isfinite(u_i), axis=1)
+    floor = outlier_px / max(camera.fx, camera.fy)
+    for _ in range(len(uv)):
+        if keep.sum() < 3:
+            break
+        R = wahba(d[keep], u_i[keep])
+        ang = np.full(len(uv), np.inf)
+        ang[keep] = np.linalg.norm(d[keep] @ R.T - u_i[keep], axis=1)
+        worst = int(np.argmax(np.where(keep, ang, -1.0)))
+        if ang[worst] <= max(floor, 5.0 * float(np.median(ang[keep]))):
+            break
+        keep[worst] = False
+    return keep
+
+
+def subset_context(ctx: FrameContext, idx: np.ndarray) -> FrameContext:
+    """The context of a subset of the frame's stars (per-star arrays sliced)."""
+    return dataclasses.replace(
+        ctx,
+        catalog_id=np.asarray(ctx.catalog_id)[idx] if len(ctx.catalog_id) else ctx.catalog_id,
+        magnitude=np.asarray(ctx.magnitude)[idx] if len(ctx.magnitude) else ctx.magnitude,
+        extra={},
+    )

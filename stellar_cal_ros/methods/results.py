@@ -1,0 +1,387 @@
+"""What a filter run produces, for every method: tables, running statistics, the result.
+
+* :data:`RESIDUAL_COLUMNS` — one per-star residual schema for every method (``t`` the
+  reported frame stamp in POSIX s); :class:`TableSink` keeps the rows in memory or streams
+  them to a CSV / Parquet file (memory then does not grow with the bag).
+* :class:`RunStats` — running statistics over an evaluation window (the second half of the
+  bag by default): innovation RMS against what the model expects, NIS per degree of freedom
+  with its χ² interval, lag-1 whiteness of the frame-mean whitened innovations, and the
+  prequential log-likelihood the diagnosis compares models with.  The same numbers as the
+  functions of :mod:`stellar_cal_ros.diagnosis.stats` on the whole residual table, in O(1)
+  memory.
+* :func:`consistency` — the verdict every result YAML carries
+  (``consistency: {nis_per_dof, interval, whiteness_p, verdict}``): when the model does not
+  fit, the σ of the result are conditional on a wrong model and the CLI says so.
+* :func:`result_calibration`, :func:`equivalent_principal_point`, :class:`ReplayResult`.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.effects.base import FrameContext
+from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.io.residuals import TableWriter
+from stellar_cal_ros.methods.star_model import StarModel
+
+RESIDUAL_COLUMNS = (
+    "t", "frame", "catalog_id", "u", "v", "u_pred", "v_pred", "du", "dv",
+    "s_uu", "s_uv", "s_vv", "nis", "magnitude", "gated",
+    "x_st", "y_st", "z_st", "omega_x", "omega_y", "omega_z", "head_temperature",
+)
+#: a star's NIS is capped here in the log-likelihood (a few misidentified stars must not
+#: dominate the comparison of two models)
+NIS_CAP = 13.8
+
+
+def residual_rows(upd, frame_index: int, ids: np.ndarray, mag: np.ndarray,
+                  head_temperature: float) -> dict[str, np.ndarray]:
+    """The residual-table rows of one frame update (:class:`~.kernel.FrameUpdate`)."""
+    n = len(upd.uv)
+    nu = upd.uv - upd.uv_pred
+    return {
+        "t": np.full(n, upd.stamp), "frame": np.full(n, frame_index, dtype=np.int64),
+        "catalog_id": np.asarray(ids, dtype=np.int64),
+        "u": upd.uv[:, 0], "v": upd.uv[:, 1], "u_pred": upd.uv_pred[:, 0],
+        "v_pred": upd.uv_pred[:, 1], "du": nu[:, 0], "dv": nu[:, 1],
+        "s_uu": upd.S[:, 0, 0], "s_uv": upd.S[:, 0, 1], "s_vv": upd.S[:, 1, 1],
+        "nis": upd.nis_stars, "magnitude": np.asarray(mag, dtype=float),
+        "gated": ~upd.accepted,
+        "x_st": upd.directions_st[:, 0], "y_st": upd.directions_st[:, 1],
+        "z_st": upd.directions_st[:, 2],
+        "omega_x": np.full(n, upd.omega_b[0]), "omega_y": np.full(n, upd.omega_b[1]),
+        "omega_z": np.full(n, upd.omega_b[2]),
+        "head_temperature": np.full(n, head_temperature),
+    }
+
+
+class TableSink:
+    """Rows of a table, kept in memory or streamed to ``path`` (CSV / Parquet).
+
+    ``append(chunk)`` with a dict of equal-length arrays; :meth:`table` returns the whole
+    table in memory mode (an empty dict when streaming: read the file).
+    """
+
+    def __init__(self, path=None, columns: tuple[str, ...] | None = None) -> None:
+        self.path = path
+        self.columns = columns
+        self._chunks: list[dict[str, np.ndarray]] = []
+        self._writer = TableWriter(path) if path is not None else None
+        self.rows = 0
+
+    def append(self, chunk: dict[str, np.ndarray]) -> None:
+        """Add rows."""
+        self.rows += len(next(iter(chunk.values()))) if chunk else 0
+        if self._writer is not None:
+            self._writer.append(chunk)
+        else:
+            self._chunks.append(chunk)
+
+    def close(self) -> None:
+        """Finish the file (streaming mode)."""
+        if self._writer is not None:
+            if self._writer.columns is None and self.columns:
+                self._writer.append({k: np.zeros(0) for k in self.columns})
+            self._writer.close()
+
+    def table(self) -> dict[str, np.ndarray]:
+        """The rows in memory (memory mode)."""
+        if self._writer is not None:
+            return {}
+        if not self._chunks:
+            return {k: np.zeros(0) for k in (self.columns or ())}
+        keys = list(self._chunks[0])
+        return {k: np.concatenate([c[k] for c in self._chunks]) for k in keys}
+
+
+@dataclass
+class RunStats:
+    """Running statistics of the innovations over the evaluation window (O(1) memory).
+
+    Frames with a reported stamp ≥ ``eval_start`` (POSIX s; None: every frame) count.
+    Over the window's accepted stars: sums of squared innovations and of their predicted
+    variances, per-star NIS (2 dof each), and the frame-mean whitened innovations for the
+    lag-1 whiteness test; over all its stars the capped Gaussian log-likelihood.
+    """
+
+    eval_start: float | None = None
+    frames: int = 0
+    stars: int = 0
+    stars_all: int = 0
+    sum_du2: float = 0.0
+    sum_dv2: float = 0.0
+    sum_suu: float = 0.0
+    sum_svv: float = 0.0
+    sum_nis: float = 0.0
+    loglik: float = 0.0
+    frame_nis: float = 0.0
+    frame_dof: int = 0
+    ref_nis: float = 0.0  #: the method's other measurements (the swaying filter's Z1)
+    ref_dof: int = 0
+    # lag-1 whiteness of the frame-mean whitened innovations (u, v): Σx, Σx², Σx_k x_{k−1}
+    _w: dict[str, list[float]] = field(default_factory=lambda: {
+        "n": [0, 0], "s": [0.0, 0.0], "s2": [0.0, 0.0], "lag": [0.0, 0.0],
+        "first": [0.0, 0.0], "last": [0.0, 0.0]})
+
+    def add(self, upd) -> None:
+        """Add one frame update (:class:`~.kernel.FrameUpdate`)."""
+        if self.eval_start is not None and upd.stamp < self.eval_start:
+            return
+        S = upd.S
+        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] ** 2
+        with np.errstate(invalid="ignore"):
+            nis_c = np.minimum(upd.nis_stars, NIS_CAP)
+            terms = -0.5 * (nis_c + np.log(np.maximum(det, 1e-300)) + 2 * np.log(2 * np.pi))
+        self.loglik += float(np.nansum(terms))
+        self.stars_all += len(upd.uv)
+        acc = upd.accepted
+        n = int(acc.sum())
+        if math.isfinite(upd.nis):
+            self.frame_nis += upd.nis
+            self.frame_dof += upd.dof
+        if not n:
+            return
+        self.frames += 1
+        nu = (upd.uv - upd.uv_pred)[acc]
+        Sa = S[acc]
+        self.stars += n
+        self.sum_du2 += float(nu[:, 0] @ nu[:, 0])
+        self.sum_dv2 += float(nu[:, 1] @ nu[:, 1])
+        self.sum_suu += float(Sa[:, 0, 0].sum())
+        self.sum_svv += float(Sa[:, 1, 1].sum())
+        self.sum_nis += float(np.sum(upd.nis_stars[acc]))
+        # whitened (Cholesky L⁻¹ ν), frame mean × √n
+        l11 = np.sqrt(Sa[:, 0, 0])
+        l21 = Sa[:, 0, 1] / l11
+        l22 = np.sqrt(np.maximum(Sa[:, 1, 1] - l21**2, 1e-300))
+        w1 = nu[:, 0] / l11
+        w2 = (nu[:, 1] - l21 * w1) / l22
+        w = self._w
+        for k, x in enumerate((float(w1.mean()) * math.sqrt(n), float(w2.mean()) * math.sqrt(n))):
+            if w["n"][k]:
+                w["lag"][k] += x * w["last"][k]
+            else:
+                w["first"][k] = x
+            w["n"][k] += 1
+            w["s"][k] += x
+            w["s2"][k] += x * x
+            w["last"][k] = x
+
+    def add_reference(self, stamp: float, nis: float, dof: int) -> None:
+        """Add one update of another measurement (e.g. the inertial reference Z1)."""
+        if (self.eval_start is None or stamp >= self.eval_start) and math.isfinite(nis):
+            self.ref_nis += nis
+            self.ref_dof += dof
+
+    # ------------------------------------------------------------------ summaries
+    def rms(self) -> tuple[float, float]:
+        """Innovation RMS (u, v) of the accepted stars, px."""
+        if not self.stars:
+            return math.nan, math.nan
+        return math.sqrt(self.sum_du2 / self.stars), math.sqrt(self.sum_dv2 / self.stars)
+
+    def expected_rms(self) -> tuple[float, float]:
+        """RMS the model predicts (u, v), px."""
+        if not self.stars:
+            return math.nan, math.nan
+        return math.sqrt(self.sum_suu / self.stars), math.sqrt(self.sum_svv / self.stars)
+
+    def nis_per_dof(self) -> tuple[float, tuple[float, float]]:
+        """Mean per-star NIS / 2 over accepted stars and its 95 % χ² interval."""
+        if not self.stars:
+            return math.nan, (math.nan, math.nan)
+        dof = 2 * self.stars
+        half = 1.959964 * math.sqrt(2.0 / dof)  # χ²_dof / dof ≈ N(1, 2/dof)
+        return self.sum_nis / dof, (max(0.0, 1.0 - half), 1.0 + half)
+
+    def whiteness(self) -> dict[str, float]:
+        """Lag-1 autocorrelation of the frame-mean whitened innovations and its p-value."""
+        w = self._w
+        out: dict[str, float] = {}
+        ps = []
+        for k, name in enumerate(("u", "v")):
+            n = w["n"][k]
+            if n <= 2:
+                out[f"lag1_{name}"] = 0.0
+                ps.append(1.0)
+                continue
+            m = w["s"][k] / n
+            num = w["lag"][k] - m * (2 * w["s"][k] - w["first"][k] - w["last"][k]) \
+                + (n - 1) * m * m
+            den = max(w["s2"][k] - n * m * m, 1e-300)
+            r = num / den
+            out[f"lag1_{name}"] = r
+            ps.append(math.erfc(abs(r) * math.sqrt(n) / math.sqrt(2.0)))
+        out["p_value"] = min(1.0, 2 * min(ps))
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """Everything as plain numbers."""
+        nis, interval = self.nis_per_dof()
+        ref = self.ref_nis / self.ref_dof if self.ref_dof else math.nan
+        return {"frames": self.frames, "stars": self.stars, "rms_px": list(self.rms()),
+                "reference_nis_per_dof": ref,
+                "expected_rms_px": list(self.expected_rms()), "nis_per_dof": nis,
+                "nis_interval": list(interval), "whiteness": self.whiteness(),
+                "loglik": self.loglik, "eval_start": self.eval_start}
+
+
+#: NIS/dof beyond the χ² interval by more than this is a model mismatch (small departures
+#: of a long run are linearization, not a missing effect)
+NIS_TOLERANCE = 0.1
+#: whiteness p-value below this: correlated innovations, a model mismatch
+WHITENESS_P = 1e-3
+
+
+def consistency(stats: RunStats) -> dict[str, Any]:
+    """``{nis_per_dof, interval, whiteness_p, verdict}`` of a run (see the module docstring).
+
+    ``verdict``: ``consistent``; ``model mismatch`` (the stars' or the method's other
+    measurements' NIS/dof above its interval and above 1 + :data:`NIS_TOLERANCE`, or star
+    innovations correlated from frame to frame, p < :data:`WHITENESS_P`) — the model
+    misses an effect and the σ are conditional on it;
+    ``conservative`` (NIS/dof well below its interval: noise levels set too high);
+    ``no data``.
+    """
+    nis, (lo, hi) = stats.nis_per_dof()
+    p = stats.whiteness()["p_value"]
+    ref = stats.ref_nis / stats.ref_dof if stats.ref_dof else math.nan
+    ref_hi = 1.0 + 1.959964 * math.sqrt(2.0 / stats.ref_dof) if stats.ref_dof else math.inf
+    if not math.isfinite(nis):
+        verdict = "no data"
+    elif nis > max(hi, 1.0 + NIS_TOLERANCE) or p < WHITENESS_P or (
+            math.isfinite(ref) and ref > max(ref_hi, 1.0 + NIS_TOLERANCE)):
+        verdict = "model mismatch"
+    elif nis < min(lo, 1.0 - NIS_TOLERANCE):
+        verdict = "conservative"
+    else:
+        verdict = "consistent"
+    out = {"nis_per_dof": nis, "interval": [lo, hi], "whiteness_p": p, "verdict": verdict,
+           "stars": stats.stars}
+    if stats.ref_dof:
+        out["reference_nis_per_dof"] = ref
+    return out
+
+
+def mismatch_text(cons: dict[str, Any]) -> str:
+    """The loud line a model mismatch earns (empty when consistent)."""
+    if cons.get("verdict") != "model mismatch":
+        return ""
+    ref = cons.get("reference_nis_per_dof")
+    ref_text = f", reference NIS/dof {ref:.2f}" if ref is not None else ""
+    return (f"MODEL MISMATCH: star NIS/dof {cons['nis_per_dof']:.2f}{ref_text} (expected "
+            f"{cons['interval'][0]:.2f}-{cons['interval'][1]:.2f}), whiteness p = "
+            f"{cons['whiteness_p']:.2g}: the model misses an effect; every sigma below is "
+            "conditional on this wrong model. Run `stellar-cal diagnose --auto` to find it.")
+
+
+# ---------------------------------------------------------------------------- results
+@dataclass
+class ReplayResult:
+    """Outputs of a filter run."""
+
+    calibration: Calibration
+    residuals: dict[str, np.ndarray]
+    history: dict[str, np.ndarray]
+    counters: dict[str, int]
+    read_seconds: float
+    filter_seconds: float
+    duration: float
+    filter: Any = None
+    derived: dict[str, Any] = field(default_factory=dict)
+    stats: RunStats | None = None
+    method: str = ""
+    effects: list[str] = field(default_factory=list)
+
+    @property
+    def speed(self) -> float:
+        """Bag seconds per wall-clock second (reading + filtering)."""
+        return self.duration / max(self.read_seconds + self.filter_seconds, 1e-9)
+
+
+def result_calibration(prior: Calibration, model: StarModel, theta: np.ndarray,
+                       sigma: np.ndarray, method: str, stamp: float,
+                       estimated: int | None = None) -> Calibration:
+    """The prior with every estimated effect stored (values and sigmas).
+
+    ``estimated``: how many leading entries of θ are estimated (the rest are consider
+    parameters, not stored); default all.
+    """
+    cal = copy.deepcopy(prior)
+    cal.sigma = copy.deepcopy(prior.sigma) if prior.sigma else {}
+    cal.method = method
+    cal.stamp = float(stamp)
+    n = model.size if estimated is None else estimated
+    for eff in model.effects:
+        sl = model.slices[eff.id]
+        if sl.stop <= n:
+            eff.store(theta[sl], sigma[sl], cal)
+    return cal
+
+
+def equivalent_principal_point(model: StarModel, theta: np.ndarray,
+                               P_theta: np.ndarray) -> dict[str, Any]:
+    """Image position of the IMU-fixed nominal boresight (Tan et al. §3.4), with sigma.
+
+    ``(cx − fx·δ_y, cy + fy·δ_x)`` to first order: the combination of principal point and
+    installation tilt that a star tracker observes directly; it converges long before its
+    two parts separate.  ``P_theta`` covers the leading entries of θ it has rows for.
+    """
+    ctx = FrameContext(stamp=0.0)
+    n = len(P_theta)
+
+    def value(th: np.ndarray) -> np.ndarray:
+        cam = model.camera_at(th, ctx)
+        R_imu_st, _ = model.installation_at(th, ctx)
+        b = model.prior.installation.as_matrix()[:, 2]  # nominal boresight in the IMU frame
+        d = R_imu_st.T @ b
+        return np.array([cam.cx + cam.fx * d[0] / d[2], cam.cy + cam.fy * d[1] / d[2]])
+
+    v0 = value(theta)
+    J = np.zeros((2, n))
+    for j in range(n):
+        h = 1e-6 * max(1.0, abs(theta[j]))
+        tp, tm = theta.copy(), theta.copy()
+        tp[j] += h
+        tm[j] -= h
+        J[:, j] = (value(tp) - value(tm)) / (2 * h)
+    cov = J @ P_theta @ J.T
+    return {"equivalent_principal_point_px": [float(v0[0]), float(v0[1])],
+            "equivalent_principal_point_sigma_px": [float(np.sqrt(cov[0, 0])),
+                                                    float(np.sqrt(cov[1, 1]))]}
+
+
+def derived_quantities(model: StarModel, theta: np.ndarray, P_theta: np.ndarray) -> dict:
+    """The observable combinations: equivalent principal point, installation about z."""
+    from stellar_cal_ros.core.units import ARCSEC
+
+    out = dict(equivalent_principal_point(model, theta, P_theta))
+    if "installation" in model.slices:
+        k = model.slices["installation"].start + 2
+        out["installation_boresight_arcsec"] = float(theta[k] / ARCSEC)
+        out["installation_boresight_sigma_arcsec"] = float(
+            np.sqrt(max(P_theta[k, k], 0.0)) / ARCSEC)
+    return out
+
+
+def truth_parameters(model: StarModel, truth: Calibration) -> np.ndarray:
+    """θ of a true calibration in the model's layout (for tests and benchmarks only).
+
+    Every effect reads its value from ``truth`` as it would from a prior, except the
+    installation, whose parameter is the rotation from the *prior's* nominal mounting:
+    ``δ = Log(R_priorᵀ R_truth)``.
+    """
+    out = np.empty(model.size)
+    for eff in model.effects:
+        sl = model.slices[eff.id]
+        if eff.id == "installation":
+            out[sl] = (model.prior.installation.inv() * truth.installation).as_rotvec()
+        else:
+            value, _ = copy.deepcopy(eff).initial(truth)  # a copy: initial() may keep state
+            out[sl] = value
+    return out
