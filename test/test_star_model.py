@@ -67,9 +67,9 @@ def make_ctx(ids, stamp=T0 + 100.0, head=25.0) -> FrameContext:
 
 
 def rotating_attitude(R0, t_ref, omega=OMEGA, phi=None):
-    """``t -> (Exp(φ) R0 Exp(ω (t − t_ref)), ω)``."""
+    """``s -> (Exp(φ) R0 Exp(ω s), ω)``: ``s`` seconds after the stamp ``t_ref``."""
     L = np.eye(3) if phi is None else so3_exp(phi)
-    return lambda t: (L @ R0 @ so3_exp(omega * (t - t_ref)), omega)
+    return lambda s: (L @ R0 @ so3_exp(omega * s), omega)
 
 
 def theta_of(model: StarModel) -> np.ndarray:
@@ -178,10 +178,11 @@ def _residuals(result, model, theta, frames, bound=False):
         stamp = f.stamp_ns * 1e-9
         ctx = make_ctx(f.catalog_id.astype(np.int64), stamp=stamp)
         t_true = stamp - T0 + result.truth.time_offset
-        ctx.head_temperature_c = float(w.head_temperature(np.array([t_true]))[0])
+        # the head temperature at the frame stamp, as a filter interpolates its topic
+        ctx.head_temperature_c = float(w.head_temperature(np.array([stamp - T0]))[0])
 
-        def att(t):
-            tr = np.array([t - T0])
+        def att(s, rel=(f.stamp_ns - int(T0 * 1e9)) * 1e-9):
+            tr = np.array([rel + s])  # exact relative time (see StarModel.predict)
             return w.R_i_b(tr)[0], w.omega_ib_b(tr)[0]
 
         u_i = radec_to_unit(f.right_ascension, f.declination)

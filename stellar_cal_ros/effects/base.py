@@ -75,6 +75,12 @@ class Effect:
     requires: ClassVar[tuple[str, ...]] = ()
     #: one paragraph for the user: cause, typical size, residual signature
     explanation: ClassVar[str] = ""
+    #: ``stellar-cal simulate --effect ID=V[,V...]``: units of the values (default: the
+    #: parameter units), the factor of each to the parameter units, and whether the values
+    #: are offsets from the nominal (prior) value rather than the value itself
+    simulation_units: ClassVar[tuple[str, ...] | None] = None
+    simulation_scale: ClassVar[tuple[float, ...] | None] = None
+    simulation_relative: ClassVar[bool] = False
 
     @property
     def size(self) -> int:
@@ -105,6 +111,19 @@ class Effect:
         cal.sigma.setdefault("effects", {})[self.id] = {
             n: float(s) for n, s in zip(self.parameter_names, sigma, strict=True)
         }
+
+    def from_simulation(self, values: np.ndarray, nominal: Any) -> np.ndarray:
+        """Parameter value of a ``simulate --effect`` value (see ``simulation_*``).
+
+        The simulator renders the truth through the effect classes themselves, so a new
+        effect file is simulated, estimated and diagnosed with no other file edited.
+        """
+        v = np.asarray(values, dtype=float).reshape(-1)
+        if self.simulation_scale is not None:
+            v = v * np.asarray(self.simulation_scale, dtype=float)
+        if self.simulation_relative:
+            v = v + self.initial(nominal)[0]
+        return v
 
     def process_noise_density(self) -> np.ndarray:
         """Random-walk density per parameter (unit/√s)."""

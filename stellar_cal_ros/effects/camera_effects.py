@@ -23,6 +23,8 @@ class PrincipalPoint(CameraSetEffect):
     parameter_names = ("cx", "cy")
     units = ("px", "px")
     default_sigma = (20.0, 20.0)
+    simulation_units = ("px from nominal", "px from nominal")
+    simulation_relative = True
     explanation = (
         "The optical axis meets the detector away from its centre (lens decentering, detector "
         "placement). Alone it shifts every star equally, which a small installation rotation "
@@ -40,6 +42,8 @@ class FocalLength(Effect):
     parameter_names = ("f",)
     units = ("px",)
     default_sigma = (20.0,)
+    simulation_units = ("px from nominal",)
+    simulation_relative = True
     explanation = (
         "The effective focal length differs from the datasheet (manufacturing, focus, "
         "temperature). Star separations on the detector scale by f: the residual is radial, "

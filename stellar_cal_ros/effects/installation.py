@@ -18,6 +18,8 @@ class Installation(Effect):
     parameter_names = ("rx", "ry", "rz")
     units = ("rad", "rad", "rad")
     default_sigma = (np.deg2rad(0.2),) * 3
+    simulation_units = ("arcsec", "arcsec", "arcsec")
+    simulation_scale = (np.pi / 180.0 / 3600.0,) * 3
     explanation = (
         "The star tracker is not mounted exactly as drawn: its frame is rotated by a few "
         "arc-minutes against the IMU. Every star moves the same way, so the residual is a "

@@ -99,6 +99,8 @@ class GyroBias(_Bias):
     block = "gyro"
     units = ("rad/s",) * 3
     default_sigma = (0.05 * DEG_PER_HOUR,) * 3
+    simulation_units = ("deg/h", "deg/h", "deg/h")
+    simulation_scale = (DEG_PER_HOUR,) * 3
     explanation = (
         "Each gyro reads a small constant rate when at rest. Integrated, it turns the "
         "propagated attitude at a steady rate, so star residuals drift linearly in time "

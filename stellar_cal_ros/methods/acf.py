@@ -384,8 +384,8 @@ class _Problem:
         R_g = so3_exp(f.C @ dtheta) if self.gyro_used else np.eye(3)
         base = R_phi @ R_g @ self.R_i_b0 @ self.R_ref.T
 
-        def attitude(t: float) -> tuple[np.ndarray, np.ndarray]:
-            R_n0_b, w = self.chain.attitude(f.t_rel + (t - f.stamp))
+        def attitude(shift: float) -> tuple[np.ndarray, np.ndarray]:
+            R_n0_b, w = self.chain.attitude(f.t_rel + shift)
             return base @ R_n0_b, w
 
         return attitude

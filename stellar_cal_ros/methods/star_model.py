@@ -29,7 +29,9 @@ from stellar_cal_ros.effects.base import Effect, FrameContext, Stage
 from stellar_cal_ros.errors import ModelError
 
 AttitudeFunction = Callable[[float], tuple[np.ndarray, np.ndarray]]
-"""``t (s, POSIX) -> (R_i_b (3, 3), omega_b (3,))``: nominal attitude and body rate."""
+"""``s -> (R_i_b (3, 3), omega_b (3,))``: nominal attitude and body rate ``s`` seconds after the
+frame's reported stamp (``ctx.stamp``).  Relative, because float POSIX seconds resolve only
+0.24 µs: ``(stamp + 0.02) − stamp`` is 0.02 ± 1e-7 s, 4e-5 px during a 5 °/s slew."""
 
 
 @dataclass
@@ -37,8 +39,8 @@ class Prediction:
     """Predicted centroids of one frame and their Jacobians."""
 
     uv: np.ndarray  # (n, 2) px
-    H_attitude: np.ndarray  # (n, 2, 3) ∂uv/∂φ
-    H_parameters: np.ndarray  # (n, 2, P) ∂uv/∂θ
+    H_attitude: np.ndarray | None  # (n, 2, 3) ∂uv/∂φ (None: not computed)
+    H_parameters: np.ndarray | None  # (n, 2, P) ∂uv/∂θ
     directions_st: np.ndarray  # (n, 3)
     R_i_st: np.ndarray  # (3, 3)
     t_exposure: float
@@ -201,8 +203,13 @@ class StarModel:
         u_i: np.ndarray,
         ctx: FrameContext,
         attitude: AttitudeFunction,
+        jacobians: bool = True,
     ) -> Prediction:
-        """Predicted centroids and Jacobians for catalogue directions ``u_i`` (n, 3)."""
+        """Predicted centroids and Jacobians for catalogue directions ``u_i`` (n, 3).
+
+        ``jacobians=False`` computes the centroids only (the simulator renders the truth
+        through this same chain); the Jacobian fields are then None.
+        """
         P = self.size
         n = len(u_i)
         # DIRECTION stage
@@ -210,14 +217,14 @@ class StarModel:
         dir_jac: list[tuple[slice, np.ndarray]] = []
         for eff, sl, fixed in self._chain[Stage.DIRECTION]:
             v = self._value(theta, sl, fixed)
-            if sl is not None:
+            if sl is not None and jacobians:
                 dir_jac.append((sl, eff.directions_jacobian(v, u_i, ctx)))
             # corrections are computed on the catalogue direction and add up
             u = u + (eff.directions(v, u_i, ctx) - u_i)
         # TIME stage and attitude
         shift, shift_grad = self.time_shift(theta, ctx)
         t_exp = ctx.stamp + shift
-        R_i_b, omega_b = attitude(t_exp)
+        R_i_b, omega_b = attitude(shift)
         ctx.R_i_b, ctx.omega_b = R_i_b, omega_b
         # TRACKER stage
         R_imu_st, delta = self.installation_at(theta, ctx)
@@ -226,6 +233,11 @@ class StarModel:
         d = u @ R_i_st  # rows R_st_i u
         # CAMERA stage
         p = self._camera_prior
+        if not jacobians:
+            for eff, sl, fixed in self._chain[Stage.CAMERA]:
+                p = eff.camera_parameters(self._value(theta, sl, fixed), p, ctx)
+            camera = self.prior.camera.with_parameters(p)
+            return Prediction(camera.project(d), None, None, d, R_i_st, t_exp, camera)
         cam_steps = []
         for eff, sl, fixed in self._chain[Stage.CAMERA]:
             v = self._value(theta, sl, fixed)

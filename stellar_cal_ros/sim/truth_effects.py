@@ -1,34 +1,24 @@
 """Truth values of physical effects for the simulator (``--effect ID=VALUE``).
 
-Each effect id of INTERFACES.md §4 (plus a few that no library effect models, used to test
-that the diagnosis reports unexplained structure) has a fixed number of values and a unit:
+Every *library* effect (and every effect a user registers, e.g. ``--effect-module
+my_effect.py``) is simulated through its own class: the values given on the command line are
+turned into its parameters by :meth:`~stellar_cal_ros.effects.base.Effect.from_simulation`
+(the units the class declares in ``simulation_units``, e.g. arcsec for the installation,
+deg/h for the gyro bias, px from the nominal value for the principal point and focal length;
+otherwise the parameter units), and the truth is rendered through the very
+:class:`~stellar_cal_ros.methods.star_model.StarModel` chain the filters estimate with.
+:func:`effect_table` lists every id with its size and units.
+
+Three effects are **not in the library**, on purpose: they test that the diagnosis reports
+structure no library effect explains.
 
 ==========================  =====  ==========================================================
 id                          size   unit / meaning
 ==========================  =====  ==========================================================
-installation                3      arcsec, rotation δ about the tracker axes,
-                                   ``R_imu_st = R_nominal · Exp(δ)``
-principal_point             2      px, offset of (cx, cy) from the detector centre
-focal_length                1      px, offset of fx and fy from the nominal focal length
-pixel_aspect                1      1, ``fy = fx · (1 + value)``
-radial_k1k2                 2      OpenCV k1, k2 (normalized coordinates)
-radial_k3                   1      OpenCV k3
-tangential                  2      OpenCV p1, p2
-image_plane_tilt            2      rad, OpenCV tau_x, tau_y
-thermal_focal_length        1      1/°C, ``f(T) = f · (1 + value · (T_head − T_ref))``
-gyro_bias                   3      deg/h
-gyro_scale_factor           3      1 (diagonal of the gyro error matrix E)
-gyro_misalignment           6      rad, E01 E02 E10 E12 E20 E21
-accel_bias                  3      m/s²
-accel_scale_factor          3      1
-time_offset                 1      s, true mid-exposure = header.stamp + value
-aberration                  1      scale of annual + diurnal aberration (1 = physical)
-refraction                  1      scale of atmospheric refraction (1 = physical)
-proper_motion               1      scale of proper motion from J2000.0 to the date
-mount_flexure               1      arcsec of tracker rotation per unit lateral gravity (not in
-                                   the library: gravity-dependent bending of the mount)
+mount_flexure               1      arcsec of tracker rotation per unit lateral gravity
+                                   (gravity-dependent bending of the mount)
 magnitude_bias              2      px per magnitude (from mag 4), direction deg in the image
-                                   (not in the library: a magnitude-dependent centroid bias)
+                                   (a magnitude-dependent centroid bias)
 misidentification           1      fraction of stars given a wrong catalogue identity
 ==========================  =====  ==========================================================
 """
@@ -40,37 +30,36 @@ from typing import Any
 
 import numpy as np
 
+from stellar_cal_ros.core.units import ARCSEC, DEG_PER_HOUR  # noqa: F401 (re-exported)
+from stellar_cal_ros.effects import registry
 from stellar_cal_ros.errors import ScenarioError
 
-EFFECT_SIZES: dict[str, int] = {
-    "installation": 3,
-    "principal_point": 2,
-    "focal_length": 1,
-    "pixel_aspect": 1,
-    "radial_k1k2": 2,
-    "radial_k3": 1,
-    "tangential": 2,
-    "image_plane_tilt": 2,
-    "thermal_focal_length": 1,
-    "gyro_bias": 3,
-    "gyro_scale_factor": 3,
-    "gyro_misalignment": 6,
-    "accel_bias": 3,
-    "accel_scale_factor": 3,
-    "time_offset": 1,
-    "aberration": 1,
-    "refraction": 1,
-    "proper_motion": 1,
-    "mount_flexure": 1,
-    "magnitude_bias": 2,
-    "misidentification": 1,
+#: simulator-only effects (not estimable by any library effect): id → (size, unit)
+SIM_ONLY: dict[str, tuple[int, str]] = {
+    "mount_flexure": (1, "arcsec per unit lateral gravity"),
+    "magnitude_bias": (2, "px per magnitude, direction deg"),
+    "misidentification": (1, "fraction of stars"),
 }
 
-CONTRACT_EFFECTS = tuple(k for k in EFFECT_SIZES if k not in {
-    "mount_flexure", "magnitude_bias", "misidentification"})
 
-ARCSEC = np.pi / (180.0 * 3600.0)
-DEG_PER_HOUR = np.pi / 180.0 / 3600.0
+def effect_table() -> dict[str, tuple[int, tuple[str, ...]]]:
+    """Every simulatable id: (size, units of its ``--effect`` values), registry order."""
+    out: dict[str, tuple[int, tuple[str, ...]]] = {}
+    for eid in registry.available():
+        cls = registry.EFFECTS[eid]
+        units = cls.simulation_units or tuple(cls.units) or ("",) * len(cls.parameter_names)
+        out[eid] = (len(cls.parameter_names), tuple(units))
+    for eid, (size, unit) in SIM_ONLY.items():
+        out[eid] = (size, (unit,) * size)
+    return out
+
+
+def _sizes() -> dict[str, int]:
+    return {k: v[0] for k, v in effect_table().items()}
+
+
+#: library effect ids of the contract (the simulator takes any registered id)
+CONTRACT_EFFECTS = tuple(registry.EFFECTS)
 
 
 def normalize_effect(effect_id: str, value: Any) -> np.ndarray:
@@ -78,12 +67,13 @@ def normalize_effect(effect_id: str, value: Any) -> np.ndarray:
 
     A scalar given for a vector effect is broadcast (``gyro_bias=0.01`` sets all axes).
     """
-    if effect_id not in EFFECT_SIZES:
+    sizes = _sizes()
+    if effect_id not in sizes:
         raise ScenarioError(
-            f"unknown effect id {effect_id!r}; known: {', '.join(EFFECT_SIZES)}"
-        )
+            f"unknown effect id {effect_id!r}; known: {', '.join(sizes)} (an effect of your "
+            "own: --effect-module FILE.py)")
     arr = np.atleast_1d(np.asarray(value, dtype=float)).ravel()
-    size = EFFECT_SIZES[effect_id]
+    size = sizes[effect_id]
     if arr.size == 1 and size > 1:
         arr = np.full(size, arr[0])
     if arr.size != size:
@@ -113,8 +103,8 @@ def parse_effect_arguments(items: Iterable[str]) -> dict[str, np.ndarray]:
 def merged_effects(
     defaults: Mapping[str, Any], overrides: Mapping[str, Any] | None = None
 ) -> dict[str, np.ndarray]:
-    """Return every known effect with its value: scenario defaults, then overrides, else 0."""
-    out = {k: np.zeros(n) for k, n in EFFECT_SIZES.items()}
+    """Every known effect with its value: scenario defaults, then overrides, else 0."""
+    out = {k: np.zeros(n) for k, n in _sizes().items()}
     for source in (defaults, overrides or {}):
         for key, value in source.items():
             out[key] = normalize_effect(key, value)

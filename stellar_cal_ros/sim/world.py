@@ -15,14 +15,25 @@ interval ending at the stamp (contract §2), computed by 3-point Gauss-Legendre 
 the closed-form rates; slew corners fall on sample boundaries, so the quadrature error is
 far below the sensor noise.  Sensor model: ``w_meas = (I + E) w_true + bias + noise``.
 
-Star centroids: catalogue directions (Hipparcos 2, proper motion to J2000.0 as the messages
-carry them) → optional proper motion to the date, aberration and refraction (scaled by the
-effect values) → tracker frame at the *true* mid-exposure time (stamp + time_offset) →
-true camera model (with thermal focal drift, tilt, …) → Gaussian noise.
+The truth is rendered through the effect classes themselves (one implementation of every
+physical effect, shared with the filters and the diagnosis): the ``--effect`` values become
+the parameters θ of a :class:`~stellar_cal_ros.methods.star_model.StarModel` over the
+scenario's nominal calibration (:meth:`~stellar_cal_ros.effects.base.Effect.from_simulation`),
+the IMU error model is its ``sensor_model`` (``w_meas = (I + E) w_true + b + noise``) and every
+star frame is its ``predict`` with the true attitude: catalogue directions (Hipparcos 2 J2000.0
+places, as the messages carry them) → DIRECTION effects (proper motion to the date,
+aberration, refraction) → tracker frame at the true exposure time (TIME effects: stamp +
+time_offset) → installation (TRACKER effects) → camera (CAMERA effects: principal point,
+focal length, distortion, tilt, thermal drift) → Gaussian noise.  A user's effect file is
+simulated the same way (``stellar-cal simulate --effect-module FILE.py --effect ID=V``).
+Three simulator-only effects that no library effect models (``mount_flexure``,
+``magnitude_bias``, ``misidentification``, :data:`~.truth_effects.SIM_ONLY`) test that the
+diagnosis reports what it cannot explain.
 """
 
 from __future__ import annotations
 
+import copy
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,20 +43,17 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros import __version__
-from stellar_cal_ros.core import astrometry, earth
+from stellar_cal_ros.core import earth
 from stellar_cal_ros.core.camera import CameraModel
-from stellar_cal_ros.core.catalog import load_catalog, posix_to_jyear
+from stellar_cal_ros.core.catalog import load_catalog, radec_to_unit
 from stellar_cal_ros.core.rotation import so3_exp
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.effects.base import Effect, FrameContext, Stage
 from stellar_cal_ros.errors import ScenarioError
 from stellar_cal_ros.io.bag import BagWriter, ImuSeries, NavSatSeries, ScalarSeries, StarFrame
 from stellar_cal_ros.io.calibration import Calibration, save_calibration
 from stellar_cal_ros.sim.scenarios import Scenario
-from stellar_cal_ros.sim.truth_effects import (
-    ARCSEC,
-    DEG_PER_HOUR,
-    error_matrix,
-    merged_effects,
-)
+from stellar_cal_ros.sim.truth_effects import ARCSEC, DEG_PER_HOUR, SIM_ONLY, merged_effects
 
 IMU_FRAME = "imu_link"
 STAR_TRACKER_FRAME = "star_tracker_optical_frame"
@@ -87,6 +95,8 @@ class TruthWorld:
         self.R_e_n = earth.R_itrs_enu(self.site)
         self.gravity_e = earth.gravity_itrs(self.site)
         self.site_e = earth.site_itrs(self.site)
+        self.nominal = nominal_calibration(scenario)
+        self.model, self.theta = truth_model(self.nominal, effects)
 
     # --- attitude and rates -------------------------------------------------------------
     def R_i_e(self, t: np.ndarray) -> np.ndarray:
@@ -128,8 +138,8 @@ class TruthWorld:
 
     def installation(self) -> Rotation:
         """True ``R_imu_st`` (without gravity-dependent flexure)."""
-        delta = self.effects["installation"] * ARCSEC
-        return self.scenario.installation_nominal * Rotation.from_rotvec(delta)
+        R, _ = self.model.installation_at(self.theta, FrameContext(stamp=self.t0))
+        return Rotation.from_matrix(R)
 
     def head_temperature(self, t: np.ndarray) -> np.ndarray:
         """Optical-head temperature (°C) at relative times ``t``."""
@@ -140,22 +150,72 @@ class TruthWorld:
 
     def camera(self) -> CameraModel:
         """True camera at the thermal reference temperature."""
-        s, e = self.scenario, self.effects
-        f = s.focal_length_px + e["focal_length"][0]
-        dist = np.zeros(14)
-        dist[[0, 1]] = e["radial_k1k2"]
-        dist[4] = e["radial_k3"][0]
-        dist[[2, 3]] = e["tangential"]
-        dist[[12, 13]] = e["image_plane_tilt"]
-        return CameraModel(
-            width=s.width,
-            height=s.height,
-            fx=f,
-            fy=f * (1.0 + e["pixel_aspect"][0]),
-            cx=(s.width - 1) / 2 + e["principal_point"][0],
-            cy=(s.height - 1) / 2 + e["principal_point"][1],
-            distortion=dist,
-        )
+        ctx = FrameContext(stamp=self.t0,
+                           head_temperature_c=self.scenario.head_temperature_ref_c)
+        return self.model.camera_at(self.theta, ctx)
+
+    def attitude_near(self, stamp_rel: float):
+        """The model's attitude function ``shift -> (R_i_b, ω_b)`` around one frame stamp.
+
+        ``shift`` is seconds after the frame's reported stamp (relative time ``stamp_rel``).
+        """
+
+        def attitude(shift: float) -> tuple[np.ndarray, np.ndarray]:
+            t = np.array([stamp_rel + shift])
+            return self.R_i_b(t)[0], self.omega_ib_b(t)[0]
+
+        return attitude
+
+
+class MountFlexure(Effect):
+    """Simulator-only: tracker rotation ∝ lateral gravity in the tracker frame.
+
+    Not in the library: the diagnosis must report it as unexplained structure.
+    """
+
+    id = "mount_flexure"
+    stage = Stage.TRACKER
+    parameter_names = ("arcsec_per_g",)
+    units = ("arcsec",)
+    default_sigma = (1.0,)
+
+    def tracker_rotation(self, value, ctx):  # noqa: D102
+        return value[0] * ARCSEC * np.cross([0.0, 0.0, 1.0], ctx.gravity_st)
+
+
+def nominal_calibration(scenario: Scenario) -> Calibration:
+    """The scenario's nominal (datasheet) values: what the truth is a deviation from."""
+    cal = _prior_calibration_of(scenario)
+    cal.sigma = {}
+    cal.effects = {"thermal_focal_length": {
+        "coefficient_per_c": 0.0,
+        "reference_temperature_c": scenario.head_temperature_ref_c}}
+    return cal
+
+
+def truth_model(nominal: Calibration, effects: dict[str, np.ndarray]):
+    """``(StarModel, θ_true)`` of the non-zero effects over the nominal calibration.
+
+    Library (and registered user) effects take their parameters from
+    :meth:`Effect.from_simulation`; the simulator-only ``mount_flexure`` is a TRACKER effect
+    of this module; ``magnitude_bias`` and ``misidentification`` act on the rendered
+    centroids and identities (:func:`_simulate_stars`).
+    """
+    from stellar_cal_ros.methods.star_model import StarModel
+
+    ids = [e for e in registry.available() if e in effects and np.any(effects[e] != 0.0)]
+    effs = registry.create_many(ids) if ids else []
+    flex = effects.get("mount_flexure")
+    if flex is not None and np.any(flex != 0.0):
+        effs.append(MountFlexure())
+    theta = []
+    for eff in effs:
+        if eff.id == "mount_flexure":
+            theta.append(np.asarray(flex, dtype=float))
+        else:
+            theta.append(eff.from_simulation(effects[eff.id], nominal))
+    model = StarModel(effs, nominal)
+    return model, (np.concatenate(theta) if theta else np.zeros(0))
 
 
 def simulate(
@@ -224,19 +284,20 @@ def simulate(
 
 
 def _simulate_imu(world: TruthWorld, rng: np.random.Generator) -> ImuSeries:
-    s, e = world.scenario, world.effects
+    s = world.scenario
     dt = 1.0 / s.imu_rate
     n = int(np.floor(world.duration * s.imu_rate + 1e-9))
     k = np.arange(1, n + 1)
     t_end = k * dt
     w = world.interval_means(t_end, dt, world.omega_ib_b)
     f = world.interval_means(t_end, dt, world.specific_force_b)
-    Eg = error_matrix(e["gyro_scale_factor"], e["gyro_misalignment"])
-    Ea = error_matrix(e["accel_scale_factor"])
+    # the sensor error model of the effects: w_meas = (I + E) w_true + b
+    bg, Eg, _, _ = world.model.sensor_model(world.theta, Stage.GYRO)
+    ba, Ea, _, _ = world.model.sensor_model(world.theta, Stage.ACCEL)
     gyro_sigma = np.deg2rad(s.gyro_arw_deg_sqrth) / 60.0 / np.sqrt(dt)
     accel_sigma = s.accel_vrw_mps_sqrth / 60.0 / np.sqrt(dt)
-    w_meas = w + w @ Eg.T + e["gyro_bias"] * DEG_PER_HOUR + gyro_sigma * rng.standard_normal((n, 3))
-    f_meas = f + f @ Ea.T + e["accel_bias"] + accel_sigma * rng.standard_normal((n, 3))
+    w_meas = w + w @ Eg.T + bg + gyro_sigma * rng.standard_normal((n, 3))
+    f_meas = f + f @ Ea.T + ba + accel_sigma * rng.standard_normal((n, 3))
     stamp_ns = int(round(s.start_posix * 1e9)) + np.round(t_end * 1e9).astype(np.int64)
     # Covariances as a strapdown IMU driver reports them: white-noise variance per sample.
     return ImuSeries(stamp_ns=stamp_ns, angular_velocity=w_meas, linear_acceleration=f_meas,
@@ -251,26 +312,24 @@ def _simulate_stars(
     s, e = world.scenario, world.effects
     cat = load_catalog(mag_limit=s.mag_limit)
     radec_msg = cat.message_radec()  # what a tracker message carries (J2000.0 place)
-    u_j2000 = cat.directions(2000.0)
-    jyear = float(posix_to_jyear(s.start_posix))
-    u_date = cat.directions(jyear)
-    pm_scale = e["proper_motion"][0]
-    u_cat = _normalize(u_j2000 + pm_scale * (u_date - u_j2000))
+    u_j2000 = radec_to_unit(*radec_msg)  # ... and the unit vectors a filter makes of it
 
     stamps_rel = s.star_phase_s + np.arange(0.0, world.duration, 1.0 / s.star_rate)
     stamps_rel = stamps_rel[stamps_rel <= world.duration - 1e-9]
-    t_true = stamps_rel + e["time_offset"][0]
+    model, theta = world.model, world.theta
+    stamp0 = int(round(s.start_posix * 1e9))
+    head = world.head_temperature(stamps_rel)
+    air = _air_temperature(s, stamps_rel)
+    contexts = [FrameContext(stamp=(stamp0 + int(round(t * 1e9))) * 1e-9, site=world.site,
+                             head_temperature_c=float(h), air_temperature_c=float(a),
+                             pressure_pa=s.pressure_hpa * 100.0)
+                for t, h, a in zip(stamps_rel.tolist(), head.tolist(), air.tolist(),
+                                   strict=True)]
+    # the true exposure times (TIME effects of the model, e.g. the time offset)
+    t_true = stamps_rel + np.array([model.time_shift(theta, c)[0] for c in contexts])
     if np.any(t_true < 0) or np.any(t_true > world.duration + 1.0):
         raise ScenarioError("time_offset moves exposures outside the simulated span")
     R_i_st = world.R_i_b(t_true) @ world.installation().as_matrix()
-    flex = e["mount_flexure"][0]
-    if flex != 0.0:
-        # Gravity-dependent bending: rotation ∝ lateral gravity in the tracker frame.
-        g_i = world.R_i_e(t_true) @ world.gravity_e
-        g_st = np.einsum("nji,nj->ni", R_i_st, g_i)
-        g_st /= np.linalg.norm(g_st, axis=1, keepdims=True)
-        delta = flex * ARCSEC * np.cross([0.0, 0.0, 1.0], g_st)
-        R_i_st = R_i_st @ so3_exp(delta)
 
     # Pass 1: candidate stars by J2000 direction (1 deg margin beyond the half-diagonal).
     cam = world.camera()
@@ -279,35 +338,33 @@ def _simulate_stars(
     boresight_i = R_i_st[:, :, 2]
     frame_idx, star_idx = [], []
     for a in range(0, len(t_true), 512):
-        cosang = boresight_i[a:a + 512] @ u_cat.T
+        cosang = boresight_i[a:a + 512] @ u_j2000.T
         fi, si = np.nonzero(cosang > cos_lim)
         frame_idx.append(fi + a)
         star_idx.append(si)
     frame_idx = np.concatenate(frame_idx)
     star_idx = np.concatenate(star_idx)
 
-    # Pass 2: apparent directions at the true exposure times.
-    t_obs = s.start_posix + t_true[frame_idx]
-    u = u_cat[star_idx]
-    ab = e["aberration"][0]
-    if ab != 0.0:
-        u = astrometry.aberration(u, t_obs, world.site, scale=ab)
-    rf = e["refraction"][0]
-    if rf != 0.0:
-        p_hpa, temp_c = s.pressure_hpa, _air_temperature(s, t_true[frame_idx])
-        u = astrometry.refraction(u, t_obs, world.site, pressure_hpa=p_hpa,
-                                  temperature_c=temp_c, scale=rf)
+    # Pass 2: each frame rendered through the effects with the true attitude (the filters'
+    # measurement function, StarModel.predict, at the true parameters)
+    g_i = world.R_i_e(t_true) @ world.gravity_e
+    g_st = np.einsum("nji,nj->ni", R_i_st, g_i)
+    g_st /= np.linalg.norm(g_st, axis=1, keepdims=True)
+    uv = np.full((len(star_idx), 2), np.nan)
+    d_z = np.full(len(star_idx), -1.0)
+    bounds = np.searchsorted(frame_idx, np.arange(len(stamps_rel) + 1))
+    for j, ctx in enumerate(contexts):
+        sel = slice(bounds[j], bounds[j + 1])
+        if bounds[j] == bounds[j + 1]:
+            continue
+        ctx.catalog_id = cat.hip[star_idx[sel]].astype(np.int64)
+        ctx.gravity_st = g_st[j]
+        pred = model.predict(theta, u_j2000[star_idx[sel]], ctx,
+                             world.attitude_near(stamps_rel[j]), jacobians=False)
+        uv[sel] = pred.uv
+        d_z[sel] = pred.directions_st[:, 2]
+    ok = (d_z > 0) & np.all(np.isfinite(uv), axis=1)
 
-    # Pass 3: camera projection with per-frame thermal focal drift, noise, image bounds.
-    d_st = np.einsum("nji,nj->ni", R_i_st[frame_idx], u)
-    ok = d_st[:, 2] > 0
-    uv = np.full((len(u), 2), np.nan)
-    uv[ok] = cam.project(d_st[ok])
-    c = np.array([cam.cx, cam.cy])
-    thermal = e["thermal_focal_length"][0]
-    if thermal != 0.0:
-        dT = world.head_temperature(t_true[frame_idx]) - s.head_temperature_ref_c
-        uv = c + (uv - c) * (1.0 + thermal * dT)[:, None]
     mag = cat.magnitude[star_idx]
     mb = e["magnitude_bias"]
     if mb[0] != 0.0:
@@ -327,7 +384,6 @@ def _simulate_stars(
         ra, dec = ra.copy(), dec.copy()
         ra[wrong], dec[wrong] = radec_msg[0][other], radec_msg[1][other]
 
-    stamp0 = int(round(s.start_posix * 1e9))
     frames: list[StarFrame] = []
     order = np.argsort(frame_idx, kind="stable")
     bounds = np.searchsorted(frame_idx[order], np.arange(len(stamps_rel) + 1))
@@ -380,32 +436,21 @@ def _simulate_aux(world: TruthWorld) -> dict[str, Any]:
 
 
 def _truth_calibration(world: TruthWorld) -> Calibration:
-    s, e = world.scenario, world.effects
-    effects: dict[str, dict[str, Any]] = {}
-    if e["thermal_focal_length"][0] != 0.0:
-        effects["thermal_focal_length"] = {
-            "coefficient_per_c": float(e["thermal_focal_length"][0]),
-            "reference_temperature_c": s.head_temperature_ref_c,
-        }
-    for key in ("aberration", "refraction", "proper_motion"):
-        if e[key][0] != 0.0:
-            effects[key] = {"scale": float(e[key][0])}
-    for key in ("mount_flexure", "magnitude_bias", "misidentification"):
-        if np.any(e[key] != 0.0):
-            effects[key] = {"value": e[key].tolist()}
-    return Calibration(
-        camera=world.camera(),
-        installation=world.installation(),
-        gyro_bias=e["gyro_bias"] * DEG_PER_HOUR,
-        gyro_error_matrix=error_matrix(e["gyro_scale_factor"], e["gyro_misalignment"]),
-        accel_bias=e["accel_bias"].copy(),
-        accel_error_matrix=error_matrix(e["accel_scale_factor"]),
-        time_offset=float(e["time_offset"][0]),
-        effects=effects,
-        sigma={},
-        method="truth",
-        stamp=s.start_posix,
-    )
+    """The true values: the nominal calibration with every effect's truth stored by itself."""
+    cal = copy.deepcopy(world.nominal)
+    cal.effects = {}
+    cal.method = "truth"
+    model, theta = world.model, world.theta
+    for eff in model.effects:
+        if eff.id in SIM_ONLY:
+            continue
+        sl = model.slices[eff.id]
+        eff.store(theta[sl], np.zeros(eff.size), cal)
+    cal.sigma = {}
+    for key in SIM_ONLY:  # not in the library: recorded for the tests that use them
+        if np.any(world.effects[key] != 0.0):
+            cal.effects[key] = {"value": world.effects[key].tolist()}
+    return cal
 
 
 def default_prior_sigma() -> dict[str, Any]:
@@ -425,7 +470,10 @@ def default_prior_sigma() -> dict[str, Any]:
 
 
 def _prior_calibration(world: TruthWorld) -> Calibration:
-    s = world.scenario
+    return _prior_calibration_of(world.scenario)
+
+
+def _prior_calibration_of(s: Scenario) -> Calibration:
     cam = CameraModel.pinhole(s.width, s.height, s.focal_length_px)
     sigma = default_prior_sigma()
     sigma.update(s.prior_sigma)
