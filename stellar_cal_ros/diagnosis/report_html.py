@@ -340,6 +340,15 @@ class RunData:
     residual_source: str = ""
 
 
+def estimated_effects(calibration: Any, history: Table | None = None) -> list[str]:
+    """The effects a run estimated: its ``estimated`` list, else its history's columns."""
+    if calibration.estimated:
+        return list(calibration.estimated)
+    if history is None:
+        return []
+    return list(dict.fromkeys(n.split(".", 1)[0] for n in report.parameter_names(history)))
+
+
 def _final(history: Table | None) -> dict[str, tuple[float, float]]:
     if history is None:
         return {}
@@ -380,7 +389,7 @@ def _stats_row(r: RunData, fraction: float) -> str:
     nis_h = (float(np.sum(h["nis"]) / max(np.sum(h["dof"]), 1))
              if h is not None and len(h.get("nis", ())) else float("nan"))
     gated = int(np.sum(mask & ~stats.accepted(res)))
-    effects = ", ".join(r.calibration.estimated) or "(not recorded)"
+    effects = ", ".join(estimated_effects(r.calibration, r.history)) or "(not recorded)"
     return (f"<tr><td>{_e(r.name)}</td><td>{_e(effects)}</td><td class=num>{rms[0]:.4f} / "
             f"{rms[1]:.4f}</td><td class=num>{exp[0]:.4f} / {exp[1]:.4f}</td>"
             f"<td class=num>{nis['mean']:.3f} ({nis['lower']:.3f} … {nis['upper']:.3f})</td>"
@@ -404,8 +413,10 @@ def write_compare_report(out_dir: str | Path, a: RunData, b: RunData, truth: Any
         tv = report.truth_values(b.history, b.calibration, truth)
         if a.history is not None:
             tv = {**report.truth_values(a.history, a.calibration, truth), **tv}
-    added = [e for e in b.calibration.estimated if e not in a.calibration.estimated]
-    removed = [e for e in a.calibration.estimated if e not in b.calibration.estimated]
+    ea, eb = estimated_effects(a.calibration, a.history), estimated_effects(b.calibration,
+                                                                             b.history)
+    added = [e for e in eb if e not in ea]
+    removed = [e for e in ea if e not in eb]
     change = (f"B adds {', '.join(added) or 'nothing'}" +
               (f" and drops {', '.join(removed)}" if removed else "") + " to A's model.")
     figs = _run_figures(out, panels, cam.width, cam.height, centre, fraction)
