@@ -13,9 +13,12 @@ Subscribed (contract topics, INTERFACES.md section 2; remap with ``--ros-args -r
 Published (node-relative names, i.e. ``/calibrator/...`` by default):
 
 * ``~/estimate`` (stellar_cal_msgs/CalibrationEstimate) at ``estimate_rate_hz``;
-* ``~/camera_info`` (sensor_msgs/CameraInfo): current K, D, distortion model;
-* ``~/installation`` (geometry_msgs/TransformStamped): ``imu_link → star_tracker_optical_frame``
-  (a topic, not /tf: tf2_ros is not a dependency);
+* ``~/camera_info`` (sensor_msgs/CameraInfo, latched: transient local): current K, D,
+  distortion model;
+* ``~/installation`` (geometry_msgs/TransformStamped): ``imu_link → star_tracker_optical_frame``;
+* ``/tf_static`` (tf2_msgs/TFMessage, transient local, as a static transform broadcaster):
+  the same transform, re-sent when it changes (needs the tf2_msgs package; without it the
+  node says so once and publishes ``~/installation`` only);
 * ``~/residuals`` (stellar_cal_msgs/StarResidualArray): one per star frame received — empty
   with ``nis`` NaN when the frame was skipped or dropped (so it doubles as the
   acknowledgement the ``player`` uses for flow control);
@@ -54,7 +57,7 @@ from rclpy.exceptions import (
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, FluidPressure, Imu, NavSatFix, Temperature
 from std_srvs.srv import Trigger
@@ -72,6 +75,11 @@ from stellar_cal_ros.io.calibration import load_calibration, save_calibration
 from stellar_cal_ros.methods.online import FrameOutcome, OnlineCalibrator, OnlineConfig
 from stellar_cal_ros.methods.psce import PsceConfig
 from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
+
+try:  # /tf_static: tf2_msgs comes with every ROS 2 install, not with the PyPI wheels
+    from tf2_msgs.msg import TFMessage
+except ImportError:  # pragma: no cover - depends on the installation
+    TFMessage = None
 
 METHODS = ("psce",)  # swaying_base: later
 
@@ -201,7 +209,16 @@ class CalibratorNode(Node):
         out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                              reliability=ReliabilityPolicy.RELIABLE)
         self.pub_estimate = self.create_publisher(CalibrationEstimate, "~/estimate", out_qos)
-        self.pub_camera_info = self.create_publisher(CameraInfo, "~/camera_info", out_qos)
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_camera_info = self.create_publisher(CameraInfo, "~/camera_info", latched)
+        self.pub_tf_static = None if TFMessage is None else self.create_publisher(
+            TFMessage, "/tf_static", latched)
+        self._tf_sent: tuple[float, ...] | None = None
+        if TFMessage is None:
+            self.get_logger().info("tf2_msgs is not installed: the installation goes to "
+                                   "~/installation only, not to /tf_static")
         self.pub_installation = self.create_publisher(TransformStamped, "~/installation",
                                                       out_qos)
         self.pub_residuals = self.create_publisher(StarResidualArray, "~/residuals", out_qos)
@@ -224,6 +241,7 @@ class CalibratorNode(Node):
         self.create_timer(1.0 / p["diagnostics_rate_hz"], self._publish_diagnostics)
         if p["checkpoint_file"] and p["checkpoint_period_s"] > 0:
             self.create_timer(p["checkpoint_period_s"], self._periodic_checkpoint)
+        self._publish_estimate()  # the prior's camera_info and installation, latched
         self.get_logger().info(
             f"calibrator ready: method={p['method']} effects={p['effects'] or '[]'} "
             f"({self.cal.model.size} parameters), prior {p['prior_file']}")
@@ -539,6 +557,16 @@ class CalibratorNode(Node):
         self.pub_estimate.publish(est)
         self.pub_camera_info.publish(info)
         self.pub_installation.publish(tf)
+        self._publish_tf_static(tf)
+
+    def _publish_tf_static(self, tf: TransformStamped) -> None:
+        """The installation on /tf_static, when it changed since it was last sent."""
+        r = tf.transform.rotation
+        q = (r.x, r.y, r.z, r.w)
+        if self.pub_tf_static is None or q == self._tf_sent:
+            return
+        self.pub_tf_static.publish(TFMessage(transforms=[tf]))
+        self._tf_sent = q
 
     def diagnostics(self) -> DiagnosticStatus:
         """The node's health as one DiagnosticStatus (also published on /diagnostics)."""
@@ -627,9 +655,33 @@ class CalibratorNode(Node):
         self._warn_prev = {k: int(counts.get(k, 0)) for k in _WARN_COUNTERS}
 
 
+def usage() -> str:
+    """``calibrator --help``: how to run it, its parameters, topics and services."""
+    lines = ["usage: calibrator --ros-args -p prior_file:=PRIOR.yaml [-p NAME:=VALUE ...] "
+             "[--params-file config/calibrator.yaml] [-r /imu/data:=/my/imu ...]",
+             "       (ros2 run stellar_cal_ros calibrator --ros-args ...)", "",
+             "Live star tracker + IMU calibration; see doc/ros_nodes.md and doc/interfaces.md.",
+             "", "parameters (read-only, set at start):"]
+    for name, (default, text, limits) in PARAMETERS.items():
+        shown = "[]" if isinstance(default, Parameter.Type) else repr(default)
+        rng = (f"; one of {', '.join(limits)}" if isinstance(limits, tuple) and isinstance(
+            limits[0], str) else f"; in [{limits[0]}, {limits[1]}]" if limits else "")
+        lines.append(f"  {name:22s} {text} (default {shown}{rng})")
+    lines += ["", "subscribes: " + ", ".join(t for t, _ in INPUTS.values()),
+              "publishes:  ~/estimate, ~/camera_info (latched), ~/installation, /tf_static, "
+              "~/residuals, ~/data_clock, /diagnostics",
+              "services:   ~/save_calibration, ~/checkpoint, ~/reset (std_srvs/Trigger)"]
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the node until shutdown; write the checkpoint and the calibration on the way out."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
+    args = list(argv if argv is not None else sys.argv)
+    ros_args = args.index("--ros-args") if "--ros-args" in args else len(args)
+    if any(a in ("-h", "--help") for a in args[1:ros_args]):
+        print(usage())
+        return 0
+    rclpy.init(args=args)
     node = None
     code = 0
     try:
