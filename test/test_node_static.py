@@ -89,3 +89,57 @@ def test_camera_info_and_installation_are_latched(tmp_path, monkeypatch):
         listener.destroy_node()
     finally:
         ctx.try_shutdown()
+
+
+
+def test_launch_file_declares_and_passes_effects(monkeypatch):
+    """launch/calibrate_bag.launch.py with launch / launch_ros stubbed (apt-only packages).
+
+    The stubs record what the file declares and builds; ``LaunchConfiguration.perform``
+    reads the launch arguments given below.
+    """
+    import importlib.util
+    import types
+    from pathlib import Path
+
+    def record(kind):
+        class Action:
+            def __init__(self, *args, **kw):
+                self.kind, self.args, self.kw = kind, args, kw
+        return Action
+
+    class LaunchConfiguration:
+        def __init__(self, name):
+            self.name = name
+
+        def perform(self, context):
+            return context[self.name]
+
+    mods = {
+        "launch": types.SimpleNamespace(LaunchDescription=list),
+        "launch.actions": types.SimpleNamespace(
+            DeclareLaunchArgument=record("declare"), OpaqueFunction=record("opaque"),
+            RegisterEventHandler=record("handler"), Shutdown=record("shutdown")),
+        "launch.event_handlers": types.SimpleNamespace(OnProcessExit=record("on_exit")),
+        "launch.substitutions": types.SimpleNamespace(LaunchConfiguration=LaunchConfiguration,
+                                                      PathJoinSubstitution=list),
+        "launch_ros": types.SimpleNamespace(),
+        "launch_ros.actions": types.SimpleNamespace(Node=record("node")),
+        "launch_ros.substitutions": types.SimpleNamespace(FindPackageShare=str),
+    }
+    for name, mod in mods.items():
+        monkeypatch.setitem(sys.modules, name, mod)
+    path = Path(__file__).resolve().parents[1] / "launch" / "calibrate_bag.launch.py"
+    spec = importlib.util.spec_from_file_location("calibrate_bag_launch", path)
+    launch_file = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(launch_file)
+    entities = launch_file.generate_launch_description()
+    declared = {a.args[0] for a in entities if a.kind == "declare"}
+    assert {"bag", "prior", "output", "effects", "checkpoint", "rate"} <= declared
+    (opaque,) = [a for a in entities if a.kind == "opaque"]
+    for text, want in (("radial_k3, time_offset", ["radial_k3", "time_offset"]),
+                       ("[radial_k3]", ["radial_k3"]), ("", None)):
+        (node,) = opaque.kw["function"]({"effects": text}, *opaque.kw["args"])
+        assert node.kw["executable"] == "calibrator"
+        (params,) = [p for p in node.kw["parameters"] if isinstance(p, dict)]
+        assert params.get("effects") == want, text
