@@ -33,7 +33,6 @@ import math
 import os
 import sys
 import time
-from collections.abc import Iterator
 from typing import TextIO
 
 __all__ = ["Progress", "format_seconds", "progress"]
@@ -169,14 +168,13 @@ class Progress:
         self.close()
 
 
-@contextlib.contextmanager
-def progress(total: int, desc: str, unit: str = "", stream: TextIO | None = None,
+def progress(total: int, desc: str = "", unit: str = "", stream: TextIO | None = None,
              enabled: bool = True, step: float = 0.1, mode: str = "auto",
-             notes: bool = False) -> Iterator[Progress]:
-    """Context manager around :class:`Progress` (same parameters); closes it on exit."""
-    p = Progress(total, desc, unit=unit, stream=stream, enabled=enabled, step=step, mode=mode,
-                 notes=notes)
-    try:
-        yield p
-    finally:
-        p.close()
+             notes: bool = False) -> Progress:
+    """A :class:`Progress` (same parameters).
+
+    Use it as a context manager (``with progress(n, "replay") as p: ...``, closed on exit)
+    or hold it (``p = progress(n, "replay"); p.update(1); ...; p.close()``).
+    """
+    return Progress(total, desc, unit=unit, stream=stream, enabled=enabled, step=step,
+                    mode=mode, notes=notes)
