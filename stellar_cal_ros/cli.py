@@ -1,4 +1,4 @@
-"""The ``stellar-cal`` command line (INTERFACES.md §5).
+"""The ``stellar-cal`` command line (doc/interfaces.md §5).
 
 Commands
 --------

@@ -1,4 +1,4 @@
-"""The calibration YAML file (``INTERFACES.md`` section 3): prior in, result out.
+"""The calibration YAML file (``doc/interfaces.md`` §3): prior in, result out.
 
 Layout (``format: stellar_cal/1``)::
 

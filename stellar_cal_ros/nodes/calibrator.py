@@ -4,7 +4,7 @@ A thin rclpy shell around :class:`~stellar_cal_ros.methods.online.OnlineCalibrat
 callbacks convert messages to numbers and push them; the estimator decides when a star
 frame can be processed (reorder window, IMU coverage) and the node publishes what came out.
 
-Subscribed (contract topics, INTERFACES.md section 2; remap with ``--ros-args -r``):
+Subscribed (contract topics, doc/interfaces.md §2; remap with ``--ros-args -r``):
 ``/imu/data`` (sensor_msgs/Imu), ``/star_tracker/stars`` (stellar_cal_msgs/StarCentroidArray),
 ``/gnss/fix`` (sensor_msgs/NavSatFix), ``/star_tracker/temperature``,
 ``/environment/temperature`` (sensor_msgs/Temperature), ``/environment/pressure``
@@ -88,7 +88,7 @@ PARAMETERS: dict[str, tuple[Any, str, Any]] = {
     "prior_file": ("", "calibration YAML the filter starts from (required)", None),
     "method": ("psce", "estimation method", METHODS),
     "effects": (Parameter.Type.STRING_ARRAY,
-                "effect ids estimated on top of the method's baseline (INTERFACES.md §4)", None),
+                "effect ids estimated on top of the method's baseline (doc/interfaces.md)", None),
     "centroid_sigma_px": (0.05, "centroid 1-sigma used when a star's sigma is 0, px",
                           (1e-6, 100.0)),
     "gyro_arw_deg_sqrth": (0.001, "gyro angle random walk, deg/sqrt(h)", (0.0, 100.0)),

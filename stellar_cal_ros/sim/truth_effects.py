@@ -1,6 +1,6 @@
 """Truth values of physical effects for the simulator (``--effect ID=VALUE``).
 
-Each effect id of INTERFACES.md §4 (plus a few that no library effect models, used to test
+Each effect id of doc/interfaces.md §4 (plus a few that no library effect models, used to test
 that the diagnosis reports unexplained structure) has a fixed number of values and a unit:
 
 ==========================  =====  ==========================================================
