@@ -105,13 +105,17 @@ def calibration_table(history: Table | None, calibration: Any,
 
 
 def provenance_table(calibration: Any, result_path: Path | None, bag: Path | None,
-                     residual_source: str = "") -> str:
+                     residual_source: str = "", history: Table | None = None) -> str:
     """Bag, prior, command line, package version and date of the run and of the report."""
     prov = dict(calibration.extra.get("provenance") or {})
     init = calibration.extra.get("init_from") or {}
+    effects = ", ".join(estimated_effects(calibration, history)) or "(not recorded)"
+    if not calibration.estimated and history is not None:
+        effects += " (from the history file)"
+    when = datetime.fromtimestamp(calibration.stamp, UTC).isoformat(timespec="seconds")
     rows = [("result file", result_path), ("method", calibration.method),
-            ("estimated effects", ", ".join(calibration.estimated) or "(not recorded)"),
-            ("estimate time (POSIX s)", f"{calibration.stamp:.3f}"),
+            ("estimated effects", effects),
+            ("estimate time", f"{when} (POSIX {calibration.stamp:.3f} s)"),
             ("bag", bag or prov.get("bag")), ("prior", prov.get("prior")),
             ("command line", prov.get("command")), ("stellar_cal version (run)",
                                                       prov.get("version")),
@@ -321,7 +325,7 @@ def write_run_report(out_dir: str | Path, calibration: Any, residuals: Table,
                  "<h3>Unexplained structure</h3>", _unexplained_html(summary, img)]
         nav.append(("diagnosis", "diagnosis"))
     body += ["<h2 id='provenance'>Provenance</h2>",
-             provenance_table(calibration, result_path, bag, residual_source)]
+             provenance_table(calibration, result_path, bag, residual_source, history)]
     nav.append(("provenance", "provenance"))
     path = out / "report.html"
     path.write_text(_page(title or f"stellar_cal report: {name}", "".join(body), nav))
@@ -356,9 +360,33 @@ def _final(history: Table | None) -> dict[str, tuple[float, float]]:
             for n in report.parameter_names(history)}
 
 
+def _installation_in(frame_of: RunData, run: RunData) -> dict[str, tuple[float, float]]:
+    """``run``'s installation as δ from ``frame_of``'s prior mounting (rad, with run's σ).
+
+    Each history holds δ from its own run's prior; a run started from another's result
+    (``--init-from``) has another reference, so B is re-expressed in A's.
+    """
+    from scipy.spatial.transform import Rotation
+
+    h = frame_of.history
+    names = [f"installation.{p}" for p in ("rx", "ry", "rz")]
+    if h is None or run.history is None or not all(n in h for n in names) or not all(
+            n in run.history for n in names):
+        return {}
+    delta_a = np.array([h[n][-1] for n in names])
+    nominal = frame_of.calibration.installation * Rotation.from_rotvec(-delta_a)
+    delta = (nominal.inv() * run.calibration.installation).as_rotvec()
+    return {n: (float(d), float(run.history[f"sigma.{n}"][-1]))
+            for n, d in zip(names, delta, strict=True)}
+
+
 def comparison_table(a: RunData, b: RunData, truth: dict[str, float] | None = None) -> str:
-    """Parameters of two runs: values ± σ, the difference in σ of B, truth."""
+    """Parameters of two runs: values ± σ, the difference in σ of B, truth.
+
+    The installation of both is δ from A's prior mounting.
+    """
     fa, fb = _final(a.history), _final(b.history)
+    fb.update(_installation_in(a, b))
     names = list(dict.fromkeys(list(fa) + list(fb)))
     rows = []
     for n in names:
@@ -411,8 +439,8 @@ def write_compare_report(out_dir: str | Path, a: RunData, b: RunData, truth: Any
     tv = None
     if truth is not None and b.history is not None:
         tv = report.truth_values(b.history, b.calibration, truth)
-        if a.history is not None:
-            tv = {**report.truth_values(a.history, a.calibration, truth), **tv}
+        if a.history is not None:  # A's where both have it: the installation is in A's frame
+            tv = {**tv, **report.truth_values(a.history, a.calibration, truth)}
     ea, eb = estimated_effects(a.calibration, a.history), estimated_effects(b.calibration,
                                                                              b.history)
     added = [e for e in eb if e not in ea]
@@ -439,8 +467,9 @@ def write_compare_report(out_dir: str | Path, a: RunData, b: RunData, truth: Any
         seen.add(anchor)
         body.append(_figure(f"{anchor}-{len(body)}", t, img, cap))
     body += ["<h2 id='provenance'>Provenance</h2>", "<h3>A</h3>",
-             provenance_table(a.calibration, a.path, bag, a.residual_source), "<h3>B</h3>",
-             provenance_table(b.calibration, b.path, bag, b.residual_source)]
+             provenance_table(a.calibration, a.path, bag, a.residual_source, a.history),
+             "<h3>B</h3>",
+             provenance_table(b.calibration, b.path, bag, b.residual_source, b.history)]
     nav = [("before-after", "before / after"), ("params-diff", "parameters"),
            ("provenance", "provenance")]
     path = out / "report.html"
