@@ -357,3 +357,23 @@ def test_compare_two_runs(two_runs, tmp_path):
     assert "(B − A) / σ_B" in page and "Residuals before / after" in page
     for png in ("histogram", "star_vectors", "vector_field", "parameters_a", "parameters_b"):
         assert (out / f"{png}.png").is_file(), png
+
+
+def test_regressor_plots_of_a_batch_table(tmp_path):
+    """An ACF residual table has no body rate or temperature: those panels are left out."""
+    from stellar_cal_ros.diagnosis import report
+
+    rng = np.random.default_rng(2)
+    n = 400
+    res = {"t": 1.8e9 + np.repeat(np.arange(40.0), 10), "frame": np.repeat(np.arange(40), 10),
+           "u": rng.uniform(0, 1024, n), "v": rng.uniform(0, 1024, n),
+           "du": rng.normal(0, 0.1, n), "dv": rng.normal(0, 0.1, n), "s_uu": np.full(n, 0.01),
+           "s_uv": np.zeros(n), "s_vv": np.full(n, 0.01), "gated": np.zeros(n, bool),
+           "magnitude": rng.uniform(2, 6, n)}
+    path = report.plot_regressors([("acf", res)], (512.0, 512.0), 0.5, tmp_path / "r.png")
+    assert path.stat().st_size > 5000
+    finding = [{"regressor": "angular rate", "component": "size", "statistic": 5.0,
+                "p_value": 1e-3}]
+    assert report.plot_unexplained(res, finding, (512.0, 512.0), 0.5,
+                                   tmp_path / "u.png").is_file()
+    assert report.plot_histograms([("acf", res)], 0.5, tmp_path / "h.png").is_file()

@@ -71,6 +71,19 @@ def _nis(res: Table) -> np.ndarray:
     return np.sum(w**2, axis=1)
 
 
+#: columns :func:`stats.regressors` reads that a batch (ACF) residual table lacks
+_REGRESSOR_COLUMNS = ("magnitude", "omega_x", "omega_y", "omega_z", "head_temperature")
+
+
+def _complete(res: Table) -> Table:
+    """The table with NaN columns for the regressors it lacks (they are then not drawn)."""
+    missing = [k for k in _REGRESSOR_COLUMNS if k not in res]
+    if not missing:
+        return res
+    n = len(res["t"])
+    return {**res, **{k: np.full(n, np.nan) for k in missing}}
+
+
 def _eval(res: Table, fraction: float) -> np.ndarray:
     """Accepted stars of the evaluation window."""
     return stats.evaluation_mask(res, fraction) & stats.accepted(res)
@@ -251,7 +264,7 @@ def _bins(x: np.ndarray, n: int = 10) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _regressor_values(res: Table, centre: tuple[float, float], name: str) -> np.ndarray | None:
-    regs = stats.regressors(res, centre)
+    regs = stats.regressors(_complete(res), centre)
     if name not in regs:
         return None
     return np.asarray(regs[name], dtype=float) * REGRESSOR_SCALE.get(name, 1.0)
@@ -275,9 +288,8 @@ def plot_regressors(panels: Panels, centre: tuple[float, float], fraction: float
     The radius panel shows the mean *radial* component instead (sign matters there).  The
     dotted line is the RMS the model expects.
     """
-    regs = [r for r in stats.regressors(panels[0][1], centre)
-            if np.any(np.isfinite(np.asarray(stats.regressors(panels[0][1], centre)[r],
-                                             dtype=float)))]
+    first = stats.regressors(_complete(panels[0][1]), centre)
+    regs = [r for r, x in first.items() if np.any(np.isfinite(np.asarray(x, dtype=float)))]
     n = len(regs)
     ncol = (n + 1) // 2
     fig, axes = plt.subplots(2, ncol, figsize=(4.2 * ncol, 7.0), squeeze=False)

@@ -88,6 +88,9 @@ def calibration_table(history: Table | None, calibration: Any,
                 "axes from the prior's mounting (R_imu_st = R_prior · Exp(δ)); gyro bias in "
                 "deg/h; scale factors in ppm. Red rows: more than 3σ from the truth.</p>")
         return f"<table>{head}{''.join(rows)}</table>{note}"
+    cov_table = _covariance_table(calibration)
+    if cov_table:
+        return cov_table
     cam = calibration.camera
     sig = calibration.sigma or {}
     K = ((sig.get("camera") or {}).get("camera_matrix") or {}).get("data") or [0.0] * 9
@@ -102,6 +105,46 @@ def calibration_table(history: Table | None, calibration: Any,
     return ("<table><tr><th>quantity</th><th>value</th><th>± σ</th><th>unit</th></tr>"
             f"{''.join(rows)}</table><p class=cap>No history file: the values of the "
             "calibration file.</p>")
+
+
+def _covariance_table(calibration: Any) -> str:
+    """Values ± σ from the result's covariance sidecar (a batch result has no history)."""
+    import copy
+
+    from stellar_cal_ros.errors import StellarCalError
+    from stellar_cal_ros.io.calibration import load_covariance
+
+    side = calibration.extra.get("covariance_file")
+    folder = calibration.extra.get("_folder")
+    if not side or folder is None:
+        return ""
+    try:
+        cov = load_covariance(Path(folder) / side)
+    except StellarCalError:
+        return ""
+    values: dict[str, float] = {}
+    for eff_id in dict.fromkeys(n.split(".", 1)[0] for n in cov.names):
+        if eff_id == "installation":
+            continue  # δ from the run's prior mounting: the quaternion is in the file
+        try:
+            eff = copy.deepcopy(registry.create(eff_id))
+            v, _ = eff.initial(calibration)
+        except Exception:  # noqa: BLE001 - a plugin effect not loaded here
+            continue
+        values.update({f"{eff_id}.{p}": float(x) for p, x in zip(eff.parameter_names, v,
+                                                                   strict=True)})
+    rows = []
+    for name, sd in zip(cov.names, cov.sigma, strict=True):
+        scale, unit = report.display_unit(name, report.parameter_unit(name))
+        v = values.get(name)
+        rows.append(f"<tr><td>{_e(name)}</td><td class=num>"
+                    f"{_fmt(None if v is None else v * scale, 8)}</td>"
+                    f"<td class=num>{_fmt(sd * scale, 3)}</td><td>{_e(unit)}</td></tr>")
+    q = np.round(calibration.installation.as_quat(), 10).tolist()
+    return ("<table><tr><th>parameter</th><th>value</th><th>± σ</th><th>unit</th></tr>"
+            f"{''.join(rows)}</table><p class=cap>From {_e(side)} (σ) and the result file "
+            f"(values); installation quaternion_xyzw {q}, its σ as a rotation about the "
+            "tracker axes.</p>")
 
 
 def provenance_table(calibration: Any, result_path: Path | None, bag: Path | None,
@@ -301,6 +344,11 @@ def write_run_report(out_dir: str | Path, calibration: Any, residuals: Table,
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if result_path is not None:  # where a covariance sidecar would be
+        import copy
+
+        calibration = copy.copy(calibration)
+        calibration.extra = {**calibration.extra, "_folder": str(Path(result_path).parent)}
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     name = result_path.stem if result_path else calibration.method
