@@ -95,9 +95,11 @@ def _cmd_report(args: argparse.Namespace) -> int:
     res, rerun_hist, source = _residuals_for(cal, args.result, args.residuals, args.bag, cache)
     hist = _history_for(args.result, args.history) or rerun_hist
     summary = json.loads(args.diagnosis.read_text()) if args.diagnosis else None
+    # a filter's innovations settle after convergence; a batch fit's residuals are all final
+    fraction = 1.0 if cal.method in ("acf", "iac") else 0.5
     path = write_run_report(args.output, cal, res, history=hist, summary=summary,
                             truth=_truth_for(args.bag), result_path=args.result,
-                            bag=args.bag, residual_source=source)
+                            bag=args.bag, residual_source=source, fraction=fraction)
     print(f"wrote {path}")
     return 0
 
