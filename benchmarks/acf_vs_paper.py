@@ -51,7 +51,8 @@ from stellar_cal_ros.methods.iac import crlb_iac, run_iac
 from stellar_cal_ros.sim.scenarios import FOCAL_LENGTH_MM, PIXEL_PITCH_MM, get_scenario
 from stellar_cal_ros.sim.world import simulate
 
-PAPER = Path("/work/shared/papers/001_8d153847d9206e76.txt")
+# Liu et al. 2017 as text, beside the repository (the table is left out when it is absent)
+PAPER = Path(__file__).resolve().parents[2] / "shared" / "papers" / "001_8d153847d9206e76.txt"
 TABLE2_NAMES = ("x0", "y0", "f", "q1", "q2", "q3", "p1", "p2",
                 "phi1", "phi2", "phi3", "theta1", "theta2", "theta3")
 

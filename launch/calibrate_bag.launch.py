@@ -8,7 +8,7 @@ stamps.  Needs ``launch_ros`` (apt ``ros-jazzy-launch-ros``); not importable in 
 without it.
 """
 
-from launch.actions import DeclareLaunchArgument, RegisterEventHandler, Shutdown
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, RegisterEventHandler, Shutdown
 from launch.event_handlers import OnProcessExit
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 
@@ -21,6 +21,26 @@ except ImportError as exc:  # pragma: no cover - launch_ros is an apt package
     raise ImportError("calibrate_bag.launch.py needs launch_ros (ros-jazzy-launch-ros)") from exc
 
 
+def effect_list(text: str) -> list[str]:
+    """``effects:=radial_k3,time_offset`` (or ``[radial_k3, time_offset]``) as a list."""
+    return [e.strip() for e in text.strip().strip("[]").split(",") if e.strip()]
+
+
+def _calibrator(context, config):
+    """The calibrator node, with ``effects`` split into the string list it declares."""
+    params = {
+        "prior_file": LaunchConfiguration("prior"),
+        "output_file": LaunchConfiguration("output"),
+        "checkpoint_file": LaunchConfiguration("checkpoint"),
+        "use_sim_time": LaunchConfiguration("use_sim_time"),
+    }
+    effects = effect_list(LaunchConfiguration("effects").perform(context))
+    if effects:  # an empty list has no type for the parameter: leave it unset then
+        params["effects"] = effects
+    return [Node(package="stellar_cal_ros", executable="calibrator", name="calibrator",
+                 output="screen", parameters=[config, params])]
+
+
 def generate_launch_description() -> LaunchDescription:
     """Player + calibrator; the calibrator stops (writing its result) when the player ends."""
     config = PathJoinSubstitution([FindPackageShare("stellar_cal_ros"), "config",
@@ -28,21 +48,20 @@ def generate_launch_description() -> LaunchDescription:
     args = [
         DeclareLaunchArgument("bag", description="contract MCAP bag"),
         DeclareLaunchArgument("prior", description="prior calibration YAML"),
-        DeclareLaunchArgument("output", default_value="calibration.yaml"),
-        DeclareLaunchArgument("checkpoint", default_value=""),
-        DeclareLaunchArgument("rate", default_value="0.0"),
-        DeclareLaunchArgument("use_sim_time", default_value="true"),
+        DeclareLaunchArgument("output", default_value="calibration.yaml",
+                              description="calibration YAML written at the end"),
+        DeclareLaunchArgument("effects", default_value="",
+                              description="comma-separated effect ids estimated on top of "
+                                          "the method's baseline, e.g. radial_k3,time_offset"),
+        DeclareLaunchArgument("checkpoint", default_value="",
+                              description="filter checkpoint .npz ('' = none)"),
+        DeclareLaunchArgument("rate", default_value="0.0",
+                              description="playback rate (0: as fast as the calibrator "
+                                          "keeps up)"),
+        DeclareLaunchArgument("use_sim_time", default_value="true",
+                              description="timers on the bag's /clock"),
     ]
-    sim = LaunchConfiguration("use_sim_time")
-    calibrator = Node(
-        package="stellar_cal_ros", executable="calibrator", name="calibrator", output="screen",
-        parameters=[config, {
-            "prior_file": LaunchConfiguration("prior"),
-            "output_file": LaunchConfiguration("output"),
-            "checkpoint_file": LaunchConfiguration("checkpoint"),
-            "use_sim_time": sim,
-        }],
-    )
+    calibrator = OpaqueFunction(function=_calibrator, args=[config])
     player = Node(
         package="stellar_cal_ros", executable="player", name="player", output="screen",
         parameters=[{

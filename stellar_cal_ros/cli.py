@@ -1,4 +1,4 @@
-"""The ``stellar-cal`` command line (INTERFACES.md §5).
+"""The ``stellar-cal`` command line (doc/interfaces.md §5).
 
 Commands
 --------
@@ -7,6 +7,9 @@ info       list the topics, message counts and time span of a bag
 replay     Kalman-filter calibration over a bag (psce, swaying_base)
 batch      attitude-correlated-frames batch calibration
 diagnose   compare model and measurements, rank missing effects
+report     plots and an HTML page of one calibration run
+compare    two runs of the model-discovery loop side by side
+export     a result in Kalibr, OpenVINS or ROS camera_info format
 demo       the built-in end-to-end demonstration
 
 Every error raised on purpose (:class:`stellar_cal_ros.errors.StellarCalError`) is printed as
@@ -68,6 +71,19 @@ def _effect_list(text: str) -> list[str]:
     return [e.strip() for e in (text or "").split(",") if e.strip()]
 
 
+def load_prior(path: Path):
+    """Load a prior calibration; warn (one line each, then a count) about its σ block."""
+    from stellar_cal_ros.io.calibration import load_calibration, prior_warnings
+
+    prior = load_calibration(path)
+    warnings = prior_warnings(prior, str(path))
+    for w in warnings:
+        log.warning("%s", w)
+    if len(warnings) > 1:
+        log.warning("%s: %d problems in the sigma block", path, len(warnings))
+    return prior
+
+
 def _load_effect_modules(paths: list[Path] | None) -> None:
     from stellar_cal_ros.effects import registry
 
@@ -82,7 +98,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from stellar_cal_ros.methods.replay import replay
 
     _load_effect_modules(args.effect_module)
-    prior = load_calibration(args.prior)
+    prior = load_prior(args.prior)
     if args.init_from is not None:
         from stellar_cal_ros.methods.acf import prior_from_result
 
@@ -97,7 +113,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     result = replay(args.bag, prior, args.method, effects, config, residuals=args.residuals,
                     history=history_path, keep_tables=False, progress=not args.quiet,
                     on_error=args.on_error)
-    save_calibration(result.calibration, args.output)
+    save_calibration(result.calibration, args.output, covariance=result.covariance)
     print_replay_summary(result, prior)
     print(f"wrote {args.output}, {history_path}"
           + (f" and {args.residuals}" if args.residuals else ""))
@@ -215,15 +231,25 @@ def print_diagnosis(summary: dict) -> None:
 def _cmd_batch(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from stellar_cal_ros.io.calibration import load_calibration, save_calibration
+    from stellar_cal_ros.io.calibration import save_calibration
     from stellar_cal_ros.io.residuals import write_residuals
-    from stellar_cal_ros.methods.acf import ARCSEC, parse_effects, run_acf
+    from stellar_cal_ros.methods.acf import ACF_STAGES, ARCSEC, parse_effects, run_acf
+    from stellar_cal_ros.progress import progress
 
-    prior = load_calibration(args.prior)
+    prior = load_prior(args.prior)
     if args.residuals is not None and args.residuals.suffix.lower() == ".parquet":
         write_residuals(args.residuals, {"probe": np.zeros(0)})  # fail early without pyarrow
-    res = run_acf(args.bag, prior, parse_effects(args.effects), loss=args.loss)
-    save_calibration(res.calibration, args.output)
+    with progress(len(ACF_STAGES), "acf", unit="stages", enabled=not args.quiet) as p:
+        def stage_done(name: str) -> None:
+            p.update(1)
+            if p.n < len(ACF_STAGES):
+                p.note(f"acf stage {p.n + 1}/{len(ACF_STAGES)}: {ACF_STAGES[p.n]}")
+
+        p.note(f"acf stage 1/{len(ACF_STAGES)}: {ACF_STAGES[0]}", eta=False)
+        res = run_acf(args.bag, prior, parse_effects(args.effects), loss=args.loss,
+                      progress=stage_done)
+    save_calibration(res.calibration, args.output,
+                     covariance=(res.parameter_names[3:], res.covariance[3:, 3:]))
     if args.residuals is not None:
         write_residuals(args.residuals, res.residuals)
     gated = int(np.sum(res.residuals["gated"]))
@@ -237,7 +263,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
             value, sigma, unit = value / ARCSEC, sigma / ARCSEC, " arcsec (vs prior)"
         print(f"  {name:28s} {value:+.8g} ± {sigma:.3g}{unit}")
     print(res.observability.summary())
-    print(f"wrote {args.output}" + (f" and {args.residuals}" if args.residuals else ""))
+    print(f"wrote {args.output}" + (f" and {args.residuals}" if args.residuals else "")
+          + f" (covariance: {args.output.with_suffix('').name}.covariance.yaml)")
     return 0
 
 
@@ -248,6 +275,17 @@ def _not_yet(issue: int, what: str):
     return run
 
 
+def _run_arguments(p: argparse.ArgumentParser, bag: str, methods: list[str], method: str,
+                   output: str, effects: str) -> None:
+    """The arguments every calibration command has: bag, method, prior, output, effects."""
+    p.add_argument("bag", type=Path, help=bag)
+    p.add_argument("--method", required=True, choices=methods, help=method)
+    p.add_argument("--prior", required=True, type=Path,
+                   help="PRIOR.yaml: nominal values and their sigmas (doc/interfaces.md)")
+    p.add_argument("-o", "--output", required=True, type=Path, help=output)
+    p.add_argument("--effects", default="", help=effects)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``stellar-cal``."""
     p = argparse.ArgumentParser(
@@ -256,11 +294,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"stellar-cal {__version__}")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.epilog = ("File formats, topics and frames: doc/interfaces.md. Run "
+                "'stellar-cal COMMAND -h' for a command's options.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("simulate", help="write a synthetic contract bag with known truth")
-    s.add_argument("--scenario", required=True,
-                   help="psce_rotations | swaying | acf_sweep")
+    s.add_argument("--scenario", required=True, choices=["psce_rotations", "swaying", "acf_sweep"],
+                   help="the papers' motion scenario (Tan et al. rotations, Zhang et al. "
+                        "swaying base, Liu et al. turntable sweep)")
     s.add_argument("-o", "--output", required=True, type=Path, help="BAG.mcap to write")
     s.add_argument("--duration", type=float, default=None, help="seconds (default: scenario's)")
     s.add_argument("--seed", type=int, default=0, help="random seed (deterministic output)")
@@ -270,17 +311,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_simulate)
 
     i = sub.add_parser("info", help="topics, counts and time span of a bag")
-    i.add_argument("bag", type=Path)
+    i.add_argument("bag", type=Path, help="the bag (MCAP file)")
     i.set_defaults(func=_cmd_info)
 
     r = sub.add_parser("replay", help="Kalman-filter calibration over a bag")
-    r.add_argument("bag", type=Path)
-    r.add_argument("--method", required=True, choices=["psce", "swaying_base", "traditional"],
-                   help="psce (Tan et al. 2018), swaying_base (Zhang et al. 2018) or "
-                        "traditional (zero-velocity reference, for comparison)")
-    r.add_argument("--prior", required=True, type=Path)
-    r.add_argument("-o", "--output", required=True, type=Path)
-    r.add_argument("--effects", default="", help="comma-separated effect ids to add")
+    _run_arguments(r, "contract bag to calibrate on", ["psce", "swaying_base", "traditional"],
+                   "psce: Tan et al. (rotating vehicle); swaying_base: Zhang et al. (ship at "
+                   "sea, accelerometer-levelled); traditional: zero-velocity reference (for "
+                   "comparison)", "RESULT.yaml to write (plus "
+                   "RESULT.history.csv)", "comma-separated effect ids to add to the "
+                   "method's baseline model")
     r.add_argument("--init-from", type=Path, default=None, metavar="RESULT.yaml",
                    help="start from an earlier solution (e.g. 'batch --method acf'): values "
                         "from RESULT.yaml, sigmas from its sigma block (the prior's where "
@@ -301,20 +341,25 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_replay)
 
     b = sub.add_parser("batch", help="attitude-correlated-frames batch least squares")
-    b.add_argument("bag", type=Path)
-    b.add_argument("--method", required=True, choices=["acf"])
-    b.add_argument("--prior", required=True, type=Path)
-    b.add_argument("-o", "--output", required=True, type=Path)
-    b.add_argument("--effects", default="")
-    b.add_argument("--residuals", type=Path, default=None, help="RES.csv (or .parquet)")
-    b.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"])
+    _run_arguments(b, "contract bag (a turntable or slew sequence)", ["acf"],
+                   "acf: attitude-correlated frames, Liu et al.", "RESULT.yaml to write (plus "
+                   "RESULT.covariance.yaml)", "comma-separated effect ids to estimate "
+                   "(default: the ACF set)")
+    b.add_argument("--residuals", type=Path, default=None,
+                   help="RES.csv (or .parquet): per-star residuals of the fit")
+    b.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"],
+                   help="loss on the star residuals (robust ones bound outliers' pull)")
+    b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.set_defaults(func=_cmd_batch)
 
     d = sub.add_parser("diagnose", help="compare model and measurements")
-    d.add_argument("bag", type=Path)
-    d.add_argument("--calibration", required=True, type=Path)
-    d.add_argument("--method", required=True)
-    d.add_argument("--effects", default="")
+    d.add_argument("bag", type=Path, help="contract bag to diagnose on")
+    d.add_argument("--calibration", required=True, type=Path,
+                   help="RESULT.yaml (or a prior) the diagnosis starts from")
+    d.add_argument("--method", required=True, choices=["psce", "swaying_base"],
+                   help="the filter whose model is diagnosed")
+    d.add_argument("--effects", default="",
+                   help="comma-separated effect ids already in the model (as for replay)")
     d.add_argument("-o", "--output", required=True, type=Path, help="REPORT_DIR")
     d.add_argument("--candidates", default="",
                    help="comma-separated effect ids to try (default: every library effect)")
@@ -324,9 +369,15 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=_cmd_diagnose)
 
     m = sub.add_parser("demo", help="run the built-in demonstration")
-    m.add_argument("-o", "--output", type=Path, default=Path("demo_out"))
-    m.add_argument("--duration", type=float, default=600.0)
+    m.add_argument("-o", "--output", type=Path, default=Path("demo_out"),
+                   help="folder for the demo's bag, results and report (default demo_out)")
+    m.add_argument("--duration", type=float, default=600.0,
+                   help="seconds of simulated data (default 600)")
     m.set_defaults(func=_cmd_demo)
+
+    from stellar_cal_ros.results_cli import add_result_commands
+
+    add_result_commands(sub)
     return p
 
 
@@ -342,6 +393,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``stellar-cal`` and ``python -m stellar_cal_ros``."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    from datetime import UTC, datetime
+
+    from stellar_cal_ros.io.calibration import set_provenance
+
+    set_provenance(command="stellar-cal " + " ".join(sys.argv[1:] if argv is None else argv),
+                   version=__version__, date=datetime.now(UTC).isoformat(
+                       timespec="seconds"), bag=getattr(args, "bag", None),
+                   prior=getattr(args, "prior", None))
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",

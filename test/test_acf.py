@@ -22,6 +22,7 @@ from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.io.residuals import RESIDUAL_COLUMNS, read_residuals, write_residuals
 from stellar_cal_ros.methods.acf import (
+    ACF_EFFECTS,
     ARCSEC,
     AcfData,
     grid_projection_error,
@@ -35,9 +36,10 @@ from stellar_cal_ros.methods.iac import run_iac
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
-REF = Path("/work/shared/data/acf_sweep_ideal")
+# the independent reference bag, beside the repository (absent in a plain clone)
+REF = Path(__file__).resolve().parents[2] / "shared" / "data" / "acf_sweep_ideal"
 needs_ref = pytest.mark.skipif(not REF.with_suffix(".mcap").exists(),
-                               reason="reference bag acf_sweep_ideal.mcap absent")
+                               reason=f"reference bag not found: {REF.with_suffix('.mcap')}")
 I_CX, I_CY, I_F, I_INST = 7, 8, 6, slice(3, 6)
 
 
@@ -216,21 +218,35 @@ def test_residual_file_roundtrip(tmp_path):
             write_residuals(tmp_path / "r.parquet", table)
 
 
-@needs_ref
-def test_cli_batch(tmp_path, capsys):
+def test_cli_batch(own, tmp_path, capsys):
+    """`stellar-cal batch` on a simulated sweep: result, covariance sidecar, residuals."""
+    from stellar_cal_ros.io.calibration import load_covariance, save_calibration
+    from stellar_cal_ros.sim.world import write_simulation
+
+    _, sim, prior, _ = own
+    bag = write_simulation(sim, tmp_path / "sweep.mcap")["bag"]
+    save_calibration(prior, tmp_path / "prior.yaml")  # the widened prior of `own`
     out, res = tmp_path / "acf.yaml", tmp_path / "res.csv"
-    rc = main(["batch", str(REF.with_suffix(".mcap")), "--method", "acf", "--prior",
-               f"{REF}.prior.yaml", "-o", str(out), "--residuals", str(res), "--loss", "huber"])
+    rc = main(["batch", str(bag), "--method", "acf", "--prior", str(tmp_path / "prior.yaml"),
+               "-o", str(out), "--residuals", str(res), "--loss", "huber"])
     assert rc == 0
-    text = capsys.readouterr().out
-    assert "RMS" in text and "principal_point.cx" in text
+    captured = capsys.readouterr()
+    assert "RMS" in captured.out and "principal_point.cx" in captured.out
+    assert "acf: done (5/5 stages)" in captured.err and "\r" not in captured.err
     cal = load_calibration(out)
     assert cal.method == "acf" and cal.sigma["installation"]["rotation_vector"][1] > 0
+    assert set(cal.estimated) == set(ACF_EFFECTS)
+    assert "time_offset" not in cal.sigma  # not estimated: no σ repeated from the prior
+    cov = load_covariance(out)
+    assert cov.names[:3] == ["installation.rx", "installation.ry", "installation.rz"]
+    s_cx = cal.sigma["camera"]["camera_matrix"]["data"][2]
+    assert cov.sigma[cov.names.index("principal_point.cx")] == pytest.approx(s_cx, rel=1e-12)
+    assert cal.extra["provenance"]["command"].startswith("stellar-cal batch")
     table = read_residuals(res)
     assert set(RESIDUAL_COLUMNS) <= set(table)
-    assert len(table["du"]) > 1000
-    rc = main(["batch", str(REF.with_suffix(".mcap")), "--method", "acf", "--prior",
-               f"{REF}.prior.yaml", "-o", str(out), "--effects", "no_such_effect"])
+    assert len(table["du"]) > 1000 and table["t"].min() > 1e9  # POSIX s
+    rc = main(["batch", str(bag), "--method", "acf", "--prior", str(tmp_path / "prior.yaml"),
+               "-o", str(out), "--effects", "no_such_effect"])
     assert rc == 1
 
 

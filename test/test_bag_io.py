@@ -469,14 +469,16 @@ def test_cli_replays_a_truncated_bag_when_asked(tmp_path):
     import subprocess
     import sys
 
-    src = DATA / "psce_ideal_900s.mcap"
-    if not src.exists():
-        pytest.skip("reference bags not available")
+    from stellar_cal_ros.sim.scenarios import get_scenario
+    from stellar_cal_ros.sim.world import simulate, write_simulation
+
+    paths = write_simulation(simulate(get_scenario("psce_rotations"), duration=300.0, seed=2),
+                             tmp_path / "full.mcap")
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(src.read_bytes()[:3_000_000])
+    data = paths["bag"].read_bytes()
+    cut.write_bytes(data[: int(0.6 * len(data))])
     exe = [sys.executable, "-m", "stellar_cal_ros", "replay", str(cut), "--method", "psce",
-           "--prior", str(DATA / "psce_ideal_900s.prior.yaml"), "-o", str(tmp_path / "r.yaml"),
-           "-q"]
+           "--prior", str(paths["prior"]), "-o", str(tmp_path / "r.yaml"), "-q"]
     strict = subprocess.run(exe, capture_output=True, text=True, timeout=300)
     assert strict.returncode == 1 and "truncated or corrupt bag" in strict.stderr
     assert "Traceback" not in strict.stderr

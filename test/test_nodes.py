@@ -332,6 +332,7 @@ def test_config_files_load_into_the_nodes(ros_context, tmp_path):
 def test_residual_bytes_are_the_residual_message(excerpt):
     """The vectorized CDR of ~/residuals deserializes to what _residual_msg builds."""
     from rclpy.serialization import deserialize_message
+
     from stellar_cal_ros.methods.driver import Calibrator, DriverConfig, FrameOutcome
     from stellar_cal_ros.methods.psce import PsceConfig
     from stellar_cal_ros.nodes.residual_cdr import encoder_matches_rmw

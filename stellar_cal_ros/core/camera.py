@@ -1,6 +1,6 @@
 """OpenCV-compatible camera model of the star tracker, with analytic Jacobians.
 
-Frames and pixels follow ``INTERFACES.md`` section 1: the camera frame is the ROS optical
+Frames and pixels follow ``doc/interfaces.md`` §1: the camera frame is the ROS optical
 frame (+z along the boresight, +x towards increasing column ``u``, +y towards increasing row
 ``v``) and pixel ``(0, 0)`` is the centre of the top-left pixel.
 
@@ -21,7 +21,7 @@ with ``M`` OpenCV's ``computeTiltProjectionMatrix``: ``R = Ry(tau_y) @ Rx(tau_x)
 ``Ry(b) = [[cos b, 0, -sin b], [0, 1, 0], [sin b, 0, cos b]]`` and
 ``M = [[R22, 0, -R02], [0, R22, -R12], [0, 0, 1]] @ R``.
 
-The camera block of the calibration YAML (``INTERFACES.md`` section 3) is the
+The camera block of the calibration YAML (``doc/interfaces.md`` §3) is the
 ``camera_calibration_parsers`` layout; :meth:`CameraModel.from_yaml_dict` and
 :meth:`CameraModel.to_yaml_dict` read and write it.
 """
@@ -344,7 +344,7 @@ class CameraModel:
     def from_yaml_dict(cls, camera_block: Mapping[str, Any]) -> CameraModel:
         """Build a camera from the ``camera`` block of a calibration YAML.
 
-        The layout is ``camera_calibration_parsers``' (``INTERFACES.md`` section 3). Keys
+        The layout is ``camera_calibration_parsers``' (``doc/interfaces.md`` §3). Keys
         not listed there (``rectification_matrix``, ``projection_matrix``, ...) are ignored.
 
         Parameters

@@ -12,7 +12,7 @@ I/311)::
      61- 68  F8.2   pmDE    mas/yr, proper motion in Dec
     130-136  F7.4   Hpmag   mag, Hipparcos magnitude
 
-Epoch convention (``../shared/INTERFACES.md``): a star tracker message carries the ICRS mean
+Epoch convention (``doc/interfaces.md``): a star tracker message carries the ICRS mean
 place at epoch J2000.0, i.e. the catalogue position propagated by proper motion from J1991.25
 to J2000.0 (:meth:`StarCatalog.message_radec`). The propagation uses ``erfa.pmsafe`` (rigorous
 space motion, zero radial velocity since hip2 has none); it reproduces the reference bags'

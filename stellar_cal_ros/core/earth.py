@@ -4,7 +4,7 @@ Frames
 ------
 ``gcrs``
     Geocentric Celestial Reference System: geocentric, axes parallel to ICRS, kinematically
-    non-rotating. This is the project's inertial frame ``i`` (``../shared/INTERFACES.md``).
+    non-rotating. This is the project's inertial frame ``i`` (``doc/interfaces.md``).
 ``itrs``
     International Terrestrial Reference System (Earth fixed, WGS84 realisation).
 ``enu``

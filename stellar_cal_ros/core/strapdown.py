@@ -1,6 +1,6 @@
 """Inertial-frame strapdown integration of contract IMU samples (numpy + scipy).
 
-IMU sample k (``../shared/INTERFACES.md``) covers the interval ``(t_{k-1}, t_k]`` that ends at
+IMU sample k (``doc/interfaces.md``) covers the interval ``(t_{k-1}, t_k]`` that ends at
 its ``header.stamp`` ``t_k``, ``dt_k = t_k - t_{k-1}``:
 
 * ``angular_velocity`` ``w_k = dtheta_k / dt_k``, ``dtheta_k = int w_ib^b dt`` (rad/s, body

@@ -1,20 +1,29 @@
-"""The calibration YAML file (``INTERFACES.md`` section 3): prior in, result out.
+"""The calibration YAML file (``doc/interfaces.md`` §3): prior in, result out.
 
 Layout (``format: stellar_cal/1``)::
 
     format, method, stamp, frames, camera (camera_calibration_parsers layout),
     installation.quaternion_xyzw (R_imu_st), gyro.{bias, error_matrix},
-    accelerometer.{bias, error_matrix}, time_offset, effects, sigma
+    accelerometer.{bias, error_matrix}, time_offset, effects, sigma,
+    estimated (result files: effect ids the run estimated), covariance_file (optional)
 
 ``camera``, ``installation`` and ``gyro.bias`` are required; every other block has a
 default (zeros, empty). Unknown top-level keys are kept in :attr:`Calibration.extra` and
 written back unchanged. Every problem is reported as :class:`CalibrationFileError` naming
 the file and the key.
+
+A result lists the effects its run estimated under ``estimated`` and holds the σ of those
+only (an entry of a fixed-shape σ array that no estimated effect owns is 0).  The full
+covariance of the estimated parameters goes to a sidecar ``RESULT.covariance.yaml``
+(:func:`save_calibration` with ``covariance=``; :func:`load_covariance`), named by the
+result's ``covariance_file`` key.  :func:`prior_warnings` lists the problems of a σ block
+read as a prior.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import numbers
 import os
@@ -33,16 +42,26 @@ from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.errors import CalibrationFileError, StellarCalError
 
 __all__ = [
+    "COVARIANCE_FORMAT",
     "FORMAT",
     "Calibration",
+    "Covariance",
     "calibration_from_dict",
     "calibration_to_dict",
+    "covariance_path",
     "load_calibration",
+    "load_covariance",
+    "prior_warnings",
     "save_calibration",
+    "set_provenance",
+    "store_estimate",
 ]
 
 FORMAT = "stellar_cal/1"
 """Value of the ``format`` key this module reads and writes."""
+
+COVARIANCE_FORMAT = "stellar_cal_covariance/1"
+"""Value of the ``format`` key of a covariance sidecar file."""
 
 DEFAULT_FRAMES = {"imu": "imu_link", "star_tracker": "star_tracker_optical_frame"}
 
@@ -58,6 +77,7 @@ _KNOWN_KEYS = (
     "time_offset",
     "effects",
     "sigma",
+    "estimated",
 )
 
 
@@ -100,6 +120,9 @@ class Calibration:
         POSIX time of the estimate, s.
     frames : dict of str to str
         ``{"imu": ..., "star_tracker": ...}`` frame ids.
+    estimated : list of str
+        Effect ids the run that wrote this result estimated (empty for a prior / truth);
+        :attr:`sigma` holds the σ of these only.
     extra : dict
         Unknown top-level keys, written back unchanged.
     """
@@ -116,6 +139,7 @@ class Calibration:
     method: str = "prior"
     stamp: float = 0.0
     frames: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_FRAMES))
+    estimated: list[str] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -140,7 +164,8 @@ class Calibration:
         q2 = other.installation.as_quat()
         same_rot = bool(np.allclose(q1, q2, rtol=0, atol=1e-15) or np.allclose(q1, -q2, atol=1e-15))
         arrays = ("gyro_bias", "gyro_error_matrix", "accel_bias", "accel_error_matrix")
-        scalars = ("time_offset", "effects", "sigma", "method", "stamp", "frames", "extra")
+        scalars = ("time_offset", "effects", "sigma", "method", "stamp", "frames", "estimated",
+                   "extra")
         return (
             same_rot
             and self.camera == other.camera
@@ -289,6 +314,10 @@ def calibration_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> Calib
     if not isinstance(method, str):
         raise CalibrationFileError(f"{source}: 'method' must be a string, got {method!r}")
     stamp = 0.0 if d.get("stamp") is None else _number(d["stamp"], "stamp", source)
+    estimated = d.get("estimated") or []
+    if not isinstance(estimated, (list, tuple)) or not all(isinstance(e, str) for e in estimated):
+        raise CalibrationFileError(
+            f"{source}: 'estimated' must be a list of effect ids, got {estimated!r}")
     extra = {k: _plain(v) for k, v in d.items() if k not in _KNOWN_KEYS}
     return Calibration(
         camera=camera,
@@ -303,6 +332,7 @@ def calibration_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> Calib
         method=method,
         stamp=stamp,
         frames=frames,
+        estimated=list(estimated),
         extra=extra,
     )
 
@@ -336,7 +366,7 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
     -------
     dict
         ``format, method, stamp, frames, camera, installation, gyro, accelerometer,
-        time_offset, effects, sigma`` followed by :attr:`Calibration.extra`.
+        time_offset, effects, [estimated,] sigma`` followed by :attr:`Calibration.extra`.
     """
     d: dict[str, Any] = {
         "format": FORMAT,
@@ -355,8 +385,10 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
         },
         "time_offset": float(cal.time_offset),
         "effects": _plain(cal.effects),
-        "sigma": _plain(cal.sigma),
     }
+    if cal.estimated:
+        d["estimated"] = [str(e) for e in cal.estimated]
+    d["sigma"] = _plain(cal.sigma)
     for k, v in cal.extra.items():
         if k not in d:
             d[k] = _plain(v)
@@ -442,8 +474,9 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     return calibration_from_dict(doc, str(p))
 
 
-def save_calibration(cal: Calibration, path: str | os.PathLike[str]) -> None:
-    """Write a calibration YAML file atomically.
+def save_calibration(cal: Calibration, path: str | os.PathLike[str],
+                     covariance: Covariance | tuple | None = None) -> None:
+    """Write a calibration YAML file atomically (and its covariance sidecar).
 
     The document is validated (converted back to a :class:`Calibration`) first, written to a
     temporary file in the target directory, flushed and fsynced, then renamed over the
@@ -455,6 +488,11 @@ def save_calibration(cal: Calibration, path: str | os.PathLike[str]) -> None:
         The calibration.
     path : str or Path
         Output ``.yaml`` file.
+    covariance : Covariance or (names, matrix) or (names, matrix, units), optional
+        Full covariance of the estimated parameters (names ``effect.parameter``, matrix
+        (n, n) in the effects' units).  Written to :func:`covariance_path` of ``path``
+        and named in the result's ``covariance_file`` key; when ``cal.estimated`` is empty
+        it is filled from the names' effect ids.
 
     Raises
     ------
@@ -463,8 +501,26 @@ def save_calibration(cal: Calibration, path: str | os.PathLike[str]) -> None:
         file, if any, is left untouched).
     """
     p = Path(path)
+    if _RUN_PROVENANCE and cal.method not in ("prior", "truth") and \
+            "provenance" not in cal.extra:
+        cal = copy.copy(cal)
+        cal.extra = {**cal.extra, "provenance": dict(_RUN_PROVENANCE)}
+    if covariance is not None:
+        cov = covariance if isinstance(covariance, Covariance) else Covariance.from_tuple(
+            covariance)
+        cal = copy.copy(cal)
+        cal.extra = dict(cal.extra)
+        side = covariance_path(p)
+        cal.extra["covariance_file"] = side.name
+        if not cal.estimated:
+            cal.estimated = list(dict.fromkeys(n.split(".", 1)[0] for n in cov.names))
+        _write_atomically(side, cov.dump_yaml(p.name))
     text = dump_calibration_yaml(cal)
     calibration_from_dict(yaml.safe_load(text), f"{p} (to be written)")
+    _write_atomically(p, text)
+
+
+def _write_atomically(p: Path, text: str) -> None:
     tmp_name = None
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -487,3 +543,218 @@ def save_calibration(cal: Calibration, path: str | os.PathLike[str]) -> None:
         if tmp_name is not None:
             with contextlib.suppress(OSError):
                 os.unlink(tmp_name)
+
+
+_RUN_PROVENANCE: dict[str, Any] = {}
+
+
+def set_provenance(**items: Any) -> None:
+    """Record how this process runs (command line, version, date, bag, prior).
+
+    Every result (a calibration whose ``method`` is not ``prior`` / ``truth``) that
+    :func:`save_calibration` writes afterwards carries these items under ``provenance``
+    (unless it has one already).  Called once by the command line; ``None`` values are
+    left out; no items clears the record.
+    """
+    _RUN_PROVENANCE.clear()
+    _RUN_PROVENANCE.update({k: _plain(v) if not isinstance(v, os.PathLike) else str(v)
+                            for k, v in items.items() if v is not None})
+
+
+# --------------------------------------------------------------------------------------------
+# results: estimated effects, covariance sidecar
+# --------------------------------------------------------------------------------------------
+
+
+def store_estimate(prior: Calibration, effects: Any, slices: Mapping[str, slice],
+                   theta: NDArray[np.float64], sigma: NDArray[np.float64], method: str,
+                   stamp: float) -> Calibration:
+    """The result of a run: the prior with every estimated effect's value and σ stored.
+
+    The σ block starts empty, so it holds the estimated quantities only (the prior's σ of a
+    quantity the run did not estimate is not repeated), and ``estimated`` lists the effects.
+
+    Parameters
+    ----------
+    prior : Calibration
+        The prior the run started from (not modified).
+    effects : sequence of Effect
+        The model's effects (objects with ``id`` and ``store(value, sigma, cal)``).
+    slices : mapping of str to slice
+        Each effect's slice of ``theta``.
+    theta, sigma : ndarray of float64, shape (n,)
+        Estimate and 1-σ in the effects' units.
+    method : str
+        ``psce``, ``swaying_base``, ``acf``, ...
+    stamp : float
+        POSIX s of the estimate.
+
+    Returns
+    -------
+    Calibration
+    """
+    cal = copy.deepcopy(prior)
+    cal.sigma = {}
+    cal.method = method
+    cal.stamp = float(stamp)
+    cal.extra.pop("covariance_file", None)  # a prior that was a result: not this run's
+    for eff in effects:
+        sl = slices[eff.id]
+        eff.store(theta[sl], sigma[sl], cal)
+    cal.estimated = [str(eff.id) for eff in effects]
+    return cal
+
+
+def covariance_path(result_path: str | os.PathLike[str]) -> Path:
+    """``RESULT.covariance.yaml`` beside ``RESULT.yaml``."""
+    p = Path(result_path)
+    return p.with_name(p.stem + ".covariance.yaml")
+
+
+def _parameter_unit(name: str) -> str:
+    """Unit of an ``effect.parameter`` from the effect registry ('' if unknown)."""
+    try:
+        from stellar_cal_ros.effects import registry
+
+        eff_id, par = name.split(".", 1)
+        eff = registry.create(eff_id)
+        return str(eff.units[list(eff.parameter_names).index(par)])
+    except Exception:  # noqa: BLE001 - a plugin effect not loaded, an odd name
+        return ""
+
+
+@dataclass
+class Covariance:
+    """Covariance of the estimated parameters of a result (the sidecar file).
+
+    Attributes
+    ----------
+    names : list of str
+        ``effect.parameter`` (e.g. ``installation.rx``, ``principal_point.cx``).
+    units : list of str
+        Unit of each parameter (``rad``, ``px``, ``rad/s``, ``s``, ...).
+    matrix : ndarray of float64, shape (n, n)
+        Covariance, units[i]·units[j].
+    """
+
+    names: list[str]
+    units: list[str]
+    matrix: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        self.names = [str(n) for n in self.names]
+        self.matrix = np.asarray(self.matrix, dtype=np.float64)
+        n = len(self.names)
+        if self.matrix.shape != (n, n):
+            raise CalibrationFileError(
+                f"covariance matrix has shape {self.matrix.shape}; expected ({n}, {n}) for "
+                f"{n} parameter names")
+        if not self.units:
+            self.units = [_parameter_unit(nm) for nm in self.names]
+        if len(self.units) != n:
+            raise CalibrationFileError(f"covariance: {len(self.units)} units for {n} names")
+
+    @classmethod
+    def from_tuple(cls, t: tuple) -> Covariance:
+        """From ``(names, matrix)`` or ``(names, matrix, units)``."""
+        names, matrix, *rest = t
+        return cls(list(names), list(rest[0]) if rest else [], matrix)
+
+    @property
+    def sigma(self) -> NDArray[np.float64]:
+        """1-σ of each parameter, shape (n,)."""
+        return np.sqrt(np.clip(np.diag(self.matrix), 0.0, None))
+
+    def correlation(self) -> NDArray[np.float64]:
+        """Correlation matrix, shape (n, n) (0 where a σ is 0)."""
+        s = self.sigma
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = self.matrix / np.outer(s, s)
+        return np.where(np.isfinite(c), c, 0.0)
+
+    def dump_yaml(self, calibration_name: str = "") -> str:
+        """The sidecar document (``format: stellar_cal_covariance/1``)."""
+        doc = {
+            "format": COVARIANCE_FORMAT,
+            "calibration": calibration_name,
+            "parameters": list(self.names),
+            "units": list(self.units),
+            "matrix": [_plain(row) for row in self.matrix],
+        }
+        return yaml.dump(doc, Dumper=_Dumper, sort_keys=False, width=120, allow_unicode=True)
+
+
+def load_covariance(path: str | os.PathLike[str]) -> Covariance:
+    """Read a covariance sidecar, given it or the result YAML that names it.
+
+    Raises
+    ------
+    CalibrationFileError
+        Missing / malformed file, or a result without ``covariance_file``.
+    """
+    p = Path(path)
+    try:
+        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise CalibrationFileError(f"cannot read {p}: {exc}") from exc
+    if isinstance(doc, Mapping) and doc.get("format") == FORMAT:
+        side = doc.get("covariance_file")
+        if not side:
+            raise CalibrationFileError(f"{p}: no covariance_file (written without covariance)")
+        return load_covariance(p.parent / str(side))
+    if not isinstance(doc, Mapping) or doc.get("format") != COVARIANCE_FORMAT:
+        raise CalibrationFileError(f"{p}: 'format' is not {COVARIANCE_FORMAT!r}")
+    try:
+        return Covariance(doc["parameters"], doc.get("units") or [], doc["matrix"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CalibrationFileError(f"{p}: malformed covariance file: {exc}") from exc
+
+
+# --------------------------------------------------------------------------------------------
+# prior checks
+# --------------------------------------------------------------------------------------------
+
+
+def _walk_numbers(x: Any, where: str):
+    """Yield (path, number) of every number in a nested σ block."""
+    if isinstance(x, Mapping):
+        for k, v in x.items():
+            if k in ("rows", "cols"):
+                continue
+            yield from _walk_numbers(v, f"{where}.{k}")
+    elif isinstance(x, (list, tuple)):
+        for i, v in enumerate(x):
+            yield from _walk_numbers(v, f"{where}[{i}]")
+    elif _is_number(x):
+        yield where, float(x)
+
+
+def prior_warnings(cal: Calibration, source: str = "prior") -> list[str]:
+    """Problems of a calibration's σ block when it is used as a prior (one line each).
+
+    A prior without a ``sigma`` block gives every estimated quantity its effect's default σ;
+    a negative or NaN σ is not an uncertainty (the estimators treat such an entry as
+    missing or by its magnitude, depending on the quantity).
+
+    Parameters
+    ----------
+    cal : Calibration
+        The loaded prior.
+    source : str
+        File name for the messages.
+
+    Returns
+    -------
+    list of str
+        One warning per problem (empty when the σ block is sound).
+    """
+    if not cal.sigma:
+        return [f"{source}: no 'sigma' block: every estimated quantity starts from its "
+                "effect's default σ (see doc/interfaces.md)"]
+    out = []
+    for where, v in _walk_numbers(cal.sigma, "sigma"):
+        if math.isnan(v):
+            out.append(f"{source}: {where} is NaN (not an uncertainty)")
+        elif v < 0:
+            out.append(f"{source}: {where} = {v:g} is negative (a σ must be ≥ 0)")
+    return out

@@ -5,9 +5,14 @@ A residual table is a ``dict[str, numpy.ndarray]`` of equal-length 1-D columns. 
 
 ``t, frame, catalog_id, u, v, u_pred, v_pred, du, dv, s_uu, s_uv, s_vv, magnitude, gated``
 
-(``t`` in s relative to the bag start, ``du = u − u_pred``, ``s_*`` the innovation covariance
-in px², ``gated`` True where the measurement was rejected / down-weighted); any further
-columns are allowed and kept in order.
+(``t`` the frame's POSIX time in s — its ``header.stamp``, as the star tracker reported it —
+``frame`` its index in the bag, ``du = u − u_pred``, ``s_*`` the innovation covariance in px²,
+``gated`` True where the measurement was rejected / down-weighted); the Kalman filters add
+``nis``, the star direction ``x_st y_st z_st``, the body rate ``omega_*`` (rad/s) and the
+``head_temperature`` (°C, NaN without one).  Any further columns are allowed and kept in
+order.  A history table (``RESULT.history.csv``) has one row per update: ``t`` (POSIX s),
+``nis``, ``dof``, ``stars``, ``gated``, ``iterations``, then every parameter
+``effect.parameter`` and its ``sigma.effect.parameter`` in the effects' units.
 
 CSV round trip: floats are written with 17 significant digits (exact), integers as integers,
 booleans as ``True``/``False``.  :func:`read_residuals` infers each column's type back (bool if

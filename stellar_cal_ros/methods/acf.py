@@ -52,7 +52,7 @@ from __future__ import annotations
 import copy
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -68,7 +68,7 @@ from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.effects.registry import create_many
 from stellar_cal_ros.errors import BagError, ModelError, StellarCalError
 from stellar_cal_ros.io.bag import BagReader, ImuSeries, StarFrame
-from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.io.calibration import Calibration, store_estimate
 from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
@@ -625,6 +625,11 @@ def _observability(J: np.ndarray, n_star: int, weights: np.ndarray, scale: np.nd
 
 
 # ============================================================================ main entry
+#: the stages :func:`run_acf` reports to its ``progress`` callback, in order
+ACF_STAGES = ("read the bag", "initial attitude", "pinhole fit (step 1)",
+              "full fit (step 2)", "covariance and observability")
+
+
 def run_acf(
     source: str | os.PathLike[str] | AcfData,
     prior: Calibration,
@@ -641,6 +646,7 @@ def run_acf(
     gate_deg: float | None = 2.0,
     star_topic: str = "/star_tracker/stars",
     imu_topic: str = "/imu/data",
+    progress: Callable[[str], None] | None = None,
 ) -> AcfResult:
     """Calibrate the star tracker (and its installation) from attitude-correlated frames.
 
@@ -680,6 +686,8 @@ def run_acf(
         Frames with fewer identified stars are skipped.
     star_topic, imu_topic : str
         Topics when reading a bag.
+    progress : callable, optional
+        Called with the name of each of the :data:`ACF_STAGES` stages as it ends.
 
     Returns
     -------
@@ -690,8 +698,10 @@ def run_acf(
     StellarCalError
         Missing topics, too few frames or stars, or a failed fit.
     """
+    tell = progress or (lambda stage: None)
     data = source if isinstance(source, AcfData) else load_acf_data(source, star_topic,
                                                                       imu_topic)
+    tell(ACF_STAGES[0])
     ids = list(ACF_EFFECTS if effects is None else effects)
     if not ids:
         raise StellarCalError("no effects to estimate")
@@ -721,6 +731,7 @@ def run_acf(
     fr_all = fr
     fr = [f.subset() for f in fr_all]
     n_gated = int(sum((~f.use).sum() for f in fr_all))
+    tell(ACF_STAGES[1])
     if n_gated:
         log.info("ACF: %d of %d stars fail the identification gate", n_gated, n_stars)
     theta = theta_prior.copy()
@@ -745,6 +756,7 @@ def run_acf(
             step1_theta = theta.copy()
             log.info("ACF step 1 (pinhole): %d evaluations, scale %.3g px", res1.nfev, scale)
 
+    tell(ACF_STAGES[2])
     # -- step 2: everything (re-estimate σ if the messages do not give it)
     problem = _Problem(model, chain, fr, R_i_b0, t_ref, theta_prior, sigma_prior)
     x = np.concatenate([np.zeros(3), theta])
@@ -788,6 +800,7 @@ def run_acf(
         log.warning("ACF least squares stopped after %d evaluations without converging "
                     "(outliers? try --loss huber)", res.nfev)
 
+    tell(ACF_STAGES[3])
     # -- covariance (with the gyro random walk between frames), σ̂, observability
     theta_hat = res.x[3:]
     R_i_b0_hat = so3_exp(res.x[:3]) @ R_i_b0  # rebase: φ = 0 at the solution
@@ -809,6 +822,7 @@ def run_acf(
     prior_sig_all = np.concatenate([np.full(3, np.inf), sigma_prior])
     obs = _observability(J, n_star, w, col_scale, names, cov, prior_sig_all, s2)
 
+    tell(ACF_STAGES[4])
     cal = _store(model, prior, theta_hat, np.sqrt(np.diag(cov))[3:])
     cal.stamp = float(data.frames[fr[-1].index].stamp_ns * 1e-9)
     table = _residual_table(problem_final, x_hat, data, loss, sigma_hat, fr_all)
@@ -824,13 +838,7 @@ def run_acf(
 
 def _store(model: StarModel, prior: Calibration, theta: np.ndarray,
            sigma: np.ndarray) -> Calibration:
-    cal = copy.deepcopy(prior)
-    cal.sigma = copy.deepcopy(prior.sigma or {})
-    cal.method = "acf"
-    for e in model.effects:
-        sl = model.slices[e.id]
-        e.store(theta[sl], sigma[sl], cal)
-    return cal
+    return store_estimate(prior, model.effects, model.slices, theta, sigma, "acf", prior.stamp)
 
 
 def _residual_table(problem: _Problem, x: np.ndarray, data: AcfData, loss: str,
@@ -850,7 +858,7 @@ def _residual_table(problem: _Problem, x: np.ndarray, data: AcfData, loss: str,
         n = len(f.uv)
         d = f.uv - uv
         s2 = np.full(n, sigma_hat ** 2)
-        cols["t"].append(np.full(n, f.t_rel))
+        cols["t"].append(np.full(n, f.stamp))  # POSIX s, as the Kalman filters
         cols["frame"].append(np.full(n, f.index, dtype=np.int64))
         cols["catalog_id"].append(f.catalog_id)
         cols["u"].append(f.uv[:, 0])
@@ -1121,12 +1129,19 @@ def grid_projection_error(estimated: Calibration, truth: Calibration, n: int = 2
 
 
 def _merge_sigma(base: Any, over: Any) -> Any:
-    """``over`` on top of ``base`` (dicts merged recursively, other leaves replaced)."""
+    """``over`` on top of ``base`` (dicts merged recursively, other leaves replaced).
+
+    In σ arrays of one length, an entry ``over`` leaves at 0 (a result's "not estimated")
+    keeps ``base``'s value.
+    """
     if isinstance(base, dict) and isinstance(over, dict):
         out = copy.deepcopy(base)
         for k, v in over.items():
             out[k] = _merge_sigma(base.get(k), v) if k in base else copy.deepcopy(v)
         return out
+    if isinstance(base, list) and isinstance(over, list) and len(base) == len(over):
+        return [b if isinstance(o, (int, float)) and o == 0 else copy.deepcopy(o)
+                for b, o in zip(base, over, strict=True)]
     return copy.deepcopy(over)
 
 
@@ -1136,10 +1151,9 @@ def prior_from_result(prior: Calibration, result: Calibration,
 
     Values: every value of ``result`` (camera, installation, sensor blocks, time offset,
     effects).  Sigmas: the result's sigma block, with ``prior``'s sigma for any key the
-    result does not carry.  An ACF result stores the σ of what it estimated and passes its
-    own prior's σ through for the rest, so the filter starts at the batch estimate with the
-    batch uncertainty and the datasheet uncertainty of what the batch could not see (e.g.
-    the installation about a single-axis sweep axis keeps its prior σ).
+    result does not carry (and for the 0 entries of its σ arrays).  A result stores the σ
+    of what it estimated only, so the filter starts at the batch estimate with the batch
+    uncertainty and the datasheet uncertainty of what the batch did not estimate.
 
     Only marginal σ are carried (the file has no covariance): the strong principal-point /
     installation-tilt correlation of a batch solution is dropped, so the filter starts wider
@@ -1160,6 +1174,7 @@ def prior_from_result(prior: Calibration, result: Calibration,
     init = copy.deepcopy(result)
     init.sigma = _merge_sigma(prior.sigma or {}, result.sigma or {})
     init.method = "prior"
+    init.estimated = []
     init.extra = {"init_from": {"file": str(source) if source is not None else "",
                                 "method": result.method, "stamp": float(result.stamp)}}
     log.info("starting from the %s solution%s (values and sigmas)", result.method,

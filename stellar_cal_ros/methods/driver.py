@@ -608,6 +608,10 @@ class Calibrator:
             return np.diag(self.state()[1] ** 2)
         return self.filter.P[self.filter.it, self.filter.it].copy()
 
+    def named_covariance(self) -> tuple[list[str], np.ndarray]:
+        """``(names, P_θθ)`` of the estimated parameters (the result's covariance sidecar)."""
+        return self.parameter_names(), self.covariance()
+
     def stamp(self) -> float:
         """POSIX time of the current estimate (the filter's time, else the prior's)."""
         if self.filter is not None and self.filter.t is not None:

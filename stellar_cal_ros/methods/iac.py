@@ -21,7 +21,6 @@ practice), which costs ~15 % in σ(x0, y0) over the bound and makes the returned
 
 from __future__ import annotations
 
-import copy
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -34,7 +33,7 @@ from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.effects.registry import create_many
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.bag import BagReader, StarFrame
-from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.io.calibration import Calibration, store_estimate
 from stellar_cal_ros.methods.star_model import StarModel
 
 IAC_EFFECTS: tuple[str, ...] = ("focal_length", "principal_point", "radial_k1k2",
@@ -272,13 +271,8 @@ def run_iac(
     cov, expected_ss, _ = pairs.covariance(res.x)
     scale = float(np.sum(r[:npair] ** 2)) / expected_ss if expected_ss > 0 else 1.0
     cov = cov * max(scale, 1e-12)
-    cal = copy.deepcopy(prior)
-    cal.sigma = copy.deepcopy(prior.sigma or {})
-    cal.method = "iac"
     sig_th = np.sqrt(np.diag(cov))
-    for e in model.effects:
-        sl = model.slices[e.id]
-        e.store(res.x[sl], sig_th[sl], cal)
+    cal = store_estimate(prior, model.effects, model.slices, res.x, sig_th, "iac", prior.stamp)
     rms = float(np.sqrt(np.mean((r[:npair] / pairs.w_pair) ** 2)) * 180 / np.pi * 3600)
     return IacResult(cal, res.x, cov, model.parameter_names(), rms, npair, float(res.cost),
                      int(res.nfev))

@@ -293,7 +293,8 @@ def _result(cal: Calibrator, t_read: float, t_filter: float, skipped) -> ReplayR
         derived["level_check_deg"] = flt.level_check_deg
     duration = float(flt.imu.t_end - 0.0) if flt is not None else 0.0
     return ReplayResult(
-        calibration=calibration, residuals=cal.residuals.table(), history=hist,
+        calibration=calibration, covariance=cal.named_covariance(),
+        residuals=cal.residuals.table(), history=hist,
         counters=counters, read_seconds=t_read, filter_seconds=t_filter,
         duration=duration, filter=flt, derived=derived, stats=cal.stats,
         method=cal.method, effects=list(cal.effects))

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.effects.base import FrameContext
-from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.io.calibration import Calibration, store_estimate
 from stellar_cal_ros.io.residuals import TableWriter
 from stellar_cal_ros.methods.star_model import StarModel
 
@@ -286,6 +286,7 @@ class ReplayResult:
     """Outputs of a filter run."""
 
     calibration: Calibration
+    covariance: tuple[list[str], np.ndarray]  #: names and covariance of the estimated θ
     residuals: dict[str, np.ndarray]
     history: dict[str, np.ndarray]
     counters: dict[str, int]
@@ -307,21 +308,15 @@ class ReplayResult:
 def result_calibration(prior: Calibration, model: StarModel, theta: np.ndarray,
                        sigma: np.ndarray, method: str, stamp: float,
                        estimated: int | None = None) -> Calibration:
-    """The prior with every estimated effect stored (values and sigmas).
+    """The prior with every estimated effect stored; σ of the estimated quantities only.
 
     ``estimated``: how many leading entries of θ are estimated (the rest are consider
-    parameters, not stored); default all.
+    parameters, not stored); default all.  See :func:`~stellar_cal_ros.io.calibration.
+    store_estimate` (the result lists its estimated effects).
     """
-    cal = copy.deepcopy(prior)
-    cal.sigma = copy.deepcopy(prior.sigma) if prior.sigma else {}
-    cal.method = method
-    cal.stamp = float(stamp)
     n = model.size if estimated is None else estimated
-    for eff in model.effects:
-        sl = model.slices[eff.id]
-        if sl.stop <= n:
-            eff.store(theta[sl], sigma[sl], cal)
-    return cal
+    effects = [e for e in model.effects if model.slices[e.id].stop <= n]
+    return store_estimate(prior, effects, model.slices, theta, sigma, method, stamp)
 
 
 def equivalent_principal_point(model: StarModel, theta: np.ndarray,

@@ -7,7 +7,7 @@ driver ``stellar-cal replay`` uses: callbacks convert messages to numbers and pu
 driver decides when a star frame can be processed (reorder window, IMU coverage) and the
 node publishes what came out.
 
-Subscribed (contract topics, INTERFACES.md section 2; remap with ``--ros-args -r``):
+Subscribed (contract topics, doc/interfaces.md §2; remap with ``--ros-args -r``):
 ``/imu/data`` (sensor_msgs/Imu), ``/star_tracker/stars`` (stellar_cal_msgs/StarCentroidArray),
 ``/gnss/fix`` (sensor_msgs/NavSatFix), ``/star_tracker/temperature``,
 ``/environment/temperature`` (sensor_msgs/Temperature), ``/environment/pressure``
@@ -16,9 +16,12 @@ Subscribed (contract topics, INTERFACES.md section 2; remap with ``--ros-args -r
 Published (node-relative names, i.e. ``/calibrator/...`` by default):
 
 * ``~/estimate`` (stellar_cal_msgs/CalibrationEstimate) at ``estimate_rate_hz``;
-* ``~/camera_info`` (sensor_msgs/CameraInfo): current K, D, distortion model;
-* ``~/installation`` (geometry_msgs/TransformStamped): ``imu_link → star_tracker_optical_frame``
-  (a topic, not /tf: tf2_ros is not a dependency);
+* ``~/camera_info`` (sensor_msgs/CameraInfo, latched: transient local): current K, D,
+  distortion model;
+* ``~/installation`` (geometry_msgs/TransformStamped): ``imu_link → star_tracker_optical_frame``;
+* ``/tf_static`` (tf2_msgs/TFMessage, transient local, as a static transform broadcaster):
+  the same transform, re-sent when it changes (needs the tf2_msgs package; without it the
+  node says so once and publishes ``~/installation`` only);
 * ``~/residuals`` (stellar_cal_msgs/StarResidualArray): one per star frame received — empty
   with ``nis`` NaN when the frame was skipped or dropped (so it doubles as the
   acknowledgement the ``player`` uses for flow control);
@@ -57,7 +60,7 @@ from rclpy.exceptions import (
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, FluidPressure, Imu, NavSatFix, Temperature
 from std_srvs.srv import Trigger
@@ -80,6 +83,11 @@ from stellar_cal_ros.methods.checkpoint import (
 from stellar_cal_ros.methods.driver import FILTERS, Calibrator, DriverConfig, FrameOutcome
 from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
 
+try:  # /tf_static: tf2_msgs comes with every ROS 2 install, not with the PyPI wheels
+    from tf2_msgs.msg import TFMessage
+except ImportError:  # pragma: no cover - depends on the installation
+    TFMessage = None
+
 METHODS = ("psce", "swaying_base")
 
 #: name: (default, description, range (lo, hi) or choices or None)
@@ -87,7 +95,7 @@ PARAMETERS: dict[str, tuple[Any, str, Any]] = {
     "prior_file": ("", "calibration YAML the filter starts from (required)", None),
     "method": ("psce", "estimation method", METHODS),
     "effects": (Parameter.Type.STRING_ARRAY,
-                "effect ids estimated on top of the method's baseline (INTERFACES.md §4)", None),
+                "effect ids estimated on top of the method's baseline (doc/interfaces.md)", None),
     "centroid_sigma_px": (0.0, "centroid 1-sigma used when a star's sigma is 0, px (0: the "
                           "method's default, 0.05 psce, 0.058 swaying_base)", (0.0, 100.0)),
     "gyro_arw_deg_sqrth": (0.0, "gyro angle random walk, deg/sqrt(h) (0: the method's "
@@ -211,7 +219,16 @@ class CalibratorNode(Node):
         out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                              reliability=ReliabilityPolicy.RELIABLE)
         self.pub_estimate = self.create_publisher(CalibrationEstimate, "~/estimate", out_qos)
-        self.pub_camera_info = self.create_publisher(CameraInfo, "~/camera_info", out_qos)
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_camera_info = self.create_publisher(CameraInfo, "~/camera_info", latched)
+        self.pub_tf_static = None if TFMessage is None else self.create_publisher(
+            TFMessage, "/tf_static", latched)
+        self._tf_sent: tuple[float, ...] | None = None
+        if TFMessage is None:
+            self.get_logger().info("tf2_msgs is not installed: the installation goes to "
+                                   "~/installation only, not to /tf_static")
         self.pub_installation = self.create_publisher(TransformStamped, "~/installation",
                                                       out_qos)
         self.pub_residuals = self.create_publisher(StarResidualArray, "~/residuals", out_qos)
@@ -234,6 +251,7 @@ class CalibratorNode(Node):
         self.create_timer(1.0 / p["diagnostics_rate_hz"], self._publish_diagnostics)
         if p["checkpoint_file"] and p["checkpoint_period_s"] > 0:
             self.create_timer(p["checkpoint_period_s"], self._periodic_checkpoint)
+        self._publish_estimate()  # the prior's camera_info and installation, latched
         self.get_logger().info(
             f"calibrator ready: method={p['method']} effects={p['effects'] or '[]'} "
             f"({len(self.cal.parameter_names())} parameters), prior {p['prior_file']}")
@@ -317,7 +335,8 @@ class CalibratorNode(Node):
             raise ValueError("output_file is not set")
         with self._lock:
             cal = self.cal.calibration()
-        save_calibration(cal, out)
+            cov = self.cal.named_covariance()
+        save_calibration(cal, out, covariance=cov)
         return out
 
     def _periodic_checkpoint(self) -> None:
@@ -549,6 +568,16 @@ class CalibratorNode(Node):
         self.pub_estimate.publish(est)
         self.pub_camera_info.publish(info)
         self.pub_installation.publish(tf)
+        self._publish_tf_static(tf)
+
+    def _publish_tf_static(self, tf: TransformStamped) -> None:
+        """The installation on /tf_static, when it changed since it was last sent."""
+        r = tf.transform.rotation
+        q = (r.x, r.y, r.z, r.w)
+        if self.pub_tf_static is None or q == self._tf_sent:
+            return
+        self.pub_tf_static.publish(TFMessage(transforms=[tf]))
+        self._tf_sent = q
 
     def diagnostics(self) -> DiagnosticStatus:
         """The node's health as one DiagnosticStatus (also published on /diagnostics)."""
@@ -637,9 +666,33 @@ class CalibratorNode(Node):
         self._warn_prev = {k: int(counts.get(k, 0)) for k in _WARN_COUNTERS}
 
 
+def usage() -> str:
+    """``calibrator --help``: how to run it, its parameters, topics and services."""
+    lines = ["usage: calibrator --ros-args -p prior_file:=PRIOR.yaml [-p NAME:=VALUE ...] "
+             "[--params-file config/calibrator.yaml] [-r /imu/data:=/my/imu ...]",
+             "       (ros2 run stellar_cal_ros calibrator --ros-args ...)", "",
+             "Live star tracker + IMU calibration; see doc/ros_nodes.md and doc/interfaces.md.",
+             "", "parameters (read-only, set at start):"]
+    for name, (default, text, limits) in PARAMETERS.items():
+        shown = "[]" if isinstance(default, Parameter.Type) else repr(default)
+        rng = (f"; one of {', '.join(limits)}" if isinstance(limits, tuple) and isinstance(
+            limits[0], str) else f"; in [{limits[0]}, {limits[1]}]" if limits else "")
+        lines.append(f"  {name:22s} {text} (default {shown}{rng})")
+    lines += ["", "subscribes: " + ", ".join(t for t, _ in INPUTS.values()),
+              "publishes:  ~/estimate, ~/camera_info (latched), ~/installation, /tf_static, "
+              "~/residuals, ~/data_clock, /diagnostics",
+              "services:   ~/save_calibration, ~/checkpoint, ~/reset (std_srvs/Trigger)"]
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the node until shutdown; write the checkpoint and the calibration on the way out."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
+    args = list(argv if argv is not None else sys.argv)
+    ros_args = args.index("--ros-args") if "--ros-args" in args else len(args)
+    if any(a in ("-h", "--help") for a in args[1:ros_args]):
+        print(usage())
+        return 0
+    rclpy.init(args=args)
     node = None
     code = 0
     try:

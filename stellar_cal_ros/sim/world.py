@@ -1,6 +1,6 @@
 """The truth world: IMU samples, star centroids and auxiliary topics of a scenario.
 
-Frames and chain (INTERFACES.md §1): inertial ``i`` (GCRS = ICRS axes), Earth ``e``
+Frames and chain (doc/interfaces.md §1): inertial ``i`` (GCRS = ICRS axes), Earth ``e``
 (ITRS), local level ``n`` (ENU at the site), IMU ``b`` (``imu_link``), star tracker ``st``.
 
     R_i_b(t) = R_i_e(t) · R_e_n · R_n_b(t)        R_i_st(t) = R_i_b(t) · R_imu_st
