@@ -36,6 +36,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from stellar_cal_ros.sim.truth_effects import parse_effect_arguments
     from stellar_cal_ros.sim.world import simulate, write_simulation
 
+    _load_effect_modules(args.effect_module)
     scenario = get_scenario(args.scenario)
     effects = parse_effect_arguments(args.effect or [])
     t_start = time.perf_counter()
@@ -52,6 +53,27 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     )
     for key in ("bag", "truth", "prior", "meta"):
         print(f"  {key:5s} {paths[key]}")
+    return 0
+
+
+def _cmd_effects(args: argparse.Namespace) -> int:
+    from stellar_cal_ros.effects import registry
+    from stellar_cal_ros.sim.truth_effects import SIM_ONLY, effect_table
+
+    _load_effect_modules(args.effect_module)
+    table = effect_table()
+    for eid in registry.available():
+        cls = registry.EFFECTS[eid]
+        size, sim_units = table[eid]
+        print(f"{eid}  [{cls.stage.value}]  parameters: " + ", ".join(
+            f"{n} ({u})" for n, u in zip(cls.parameter_names, cls.units or ("",) * size,
+                                        strict=False)))
+        print(f"    simulate --effect {eid}=" + ",".join(["V"] * size) + "  in "
+              + ", ".join(sim_units))
+        if args.verbose_text and cls.explanation:
+            print("    " + cls.explanation)
+    print("simulator only (no library effect models them): "
+          + ", ".join(f"{k} ({u})" for k, (_, u) in SIM_ONLY.items()))
     return 0
 
 
@@ -306,9 +328,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=float, default=None, help="seconds (default: scenario's)")
     s.add_argument("--seed", type=int, default=0, help="random seed (deterministic output)")
     s.add_argument("--effect", action="append", metavar="ID=VALUE[,VALUE...]",
-                   help="inject or override a physical effect (repeatable); units in "
-                        "stellar_cal_ros.sim.truth_effects")
+                   help="inject or override a physical effect (repeatable); units: "
+                        "`stellar-cal effects` or doc/interfaces.md")
+    s.add_argument("--effect-module", type=Path, action="append",
+                   help="Python file defining extra Effect classes (repeatable): simulated "
+                        "through the class itself")
     s.set_defaults(func=_cmd_simulate)
+
+    e = sub.add_parser("effects", help="list the effect library: ids, stages, parameters, "
+                       "units, simulate units")
+    e.add_argument("--effect-module", type=Path, action="append",
+                   help="Python file defining extra Effect classes (repeatable)")
+    e.add_argument("--explain", dest="verbose_text", action="store_true",
+                   help="print each effect's explanation (cause, size, residual signature)")
+    e.set_defaults(func=_cmd_effects)
 
     i = sub.add_parser("info", help="topics, counts and time span of a bag")
     i.add_argument("bag", type=Path, help="the bag (MCAP file)")

@@ -79,10 +79,18 @@ def register(cls: type[Effect]) -> type[Effect]:
     """Register an effect class (usable as a decorator); its ``id`` must be new."""
     if not (inspect.isclass(cls) and issubclass(cls, Effect)) or not cls.id:
         raise ModelError(f"{cls!r} is not an Effect subclass with an id")
-    if cls.id in EFFECTS and EFFECTS[cls.id] is not cls:
-        raise ModelError(f"effect id {cls.id!r} is already registered")
+    old = EFFECTS.get(cls.id)
+    if old is not None and old is not cls and not _same_source(old, cls):
+        raise ModelError(f"effect id {cls.id!r} is already registered (by {old.__module__})")
     EFFECTS[cls.id] = cls
     return cls
+
+
+def _same_source(a: type, b: type) -> bool:
+    """The same class loaded again from the same file (a reloaded effect module)."""
+    src = getattr(a, "_effect_source", None)
+    return a.__qualname__ == b.__qualname__ and src is not None and \
+        src == getattr(b, "_effect_source", None)
 
 
 def load_effect_module(path: str | Path) -> list[str]:
@@ -102,6 +110,7 @@ def load_effect_module(path: str | Path) -> list[str]:
     for obj in vars(module).values():
         if inspect.isclass(obj) and issubclass(obj, Effect) and obj.id and \
                 obj.__module__ == module.__name__:
+            obj._effect_source = str(path.resolve())
             register(obj)
             ids.append(obj.id)
     if not ids:
