@@ -8,6 +8,7 @@ replay     Kalman-filter calibration over a bag (psce, swaying_base)
 batch      attitude-correlated-frames batch calibration
 diagnose   compare model and measurements, rank missing effects
 demo       the built-in end-to-end demonstration
+budget     attitude error budget of a result or a spec (stellar_cal_ros.budget)
 
 Every error raised on purpose (:class:`stellar_cal_ros.errors.StellarCalError`) is printed as
 one clear line and gives exit status 1; a usage error gives 2.
@@ -314,6 +315,10 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("-o", "--output", type=Path, default=Path("demo_out"))
     m.add_argument("--duration", type=float, default=600.0)
     m.set_defaults(func=_cmd_demo)
+
+    from stellar_cal_ros.budget.command import add_budget_parser
+
+    add_budget_parser(sub)
     return p
 
 
