@@ -9,6 +9,7 @@ batch      attitude-correlated-frames batch calibration
 diagnose   compare model and measurements, rank missing effects
 demo       the built-in end-to-end demonstration
 budget     attitude error budget of a result or a spec (stellar_cal_ros.budget)
+campaign   many simulate/replay/diagnose/budget runs on Dask (stellar_cal_ros.campaign)
 
 Every error raised on purpose (:class:`stellar_cal_ros.errors.StellarCalError`) is printed as
 one clear line and gives exit status 1; a usage error gives 2.
@@ -317,8 +318,10 @@ def build_parser() -> argparse.ArgumentParser:
     m.set_defaults(func=_cmd_demo)
 
     from stellar_cal_ros.budget.command import add_budget_parser
+    from stellar_cal_ros.campaign.command import add_campaign_parser
 
     add_budget_parser(sub)
+    add_campaign_parser(sub)
     return p
 
 
