@@ -53,8 +53,9 @@ class BudgetOptions:
         Stars per frame, uniformly over the detector.
     draws : int
         Monte-Carlo draws per source (0: no Monte Carlo).
-    mc_frames : int
-        Frames evaluated per Monte-Carlo draw (the first ones of the linear set).
+    mc_frames : int or None
+        Frames evaluated per Monte-Carlo draw (the first ones of the linear set; None: all,
+        so that Monte Carlo and linear average over the same geometries).
     seed : int
         Seed of every random draw.
     reference_angle_deg : float or None
@@ -71,10 +72,10 @@ class BudgetOptions:
         Directions tried on that ellipsoid (2-parameter sources: a circle).
     """
 
-    frames: int = 200
+    frames: int = 100
     stars_per_frame: int = 10
     draws: int = 1000
-    mc_frames: int = 20
+    mc_frames: int | None = None
     seed: int = 0
     reference_angle_deg: float | None = None
     max_angle_deg: float | None = None
@@ -147,7 +148,8 @@ def _star_linear(model, theta, azimuths, sources, covs):
 
 def _monte_carlo(model, field, theta, sources, opt, rng):
     """Exact errors for ``opt.draws`` parameter draws per source."""
-    mc_field = StarField(field.uv[:opt.mc_frames], field.directions[:opt.mc_frames])
+    n_mc = field.frames if opt.mc_frames is None else opt.mc_frames
+    mc_field = StarField(field.uv[:n_mc], field.directions[:n_mc])
     F, n = mc_field.frames, mc_field.stars_per_frame
     sc = model.centroid_sigma_px
     frame, star = {}, {}

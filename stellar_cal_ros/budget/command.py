@@ -36,7 +36,7 @@ def add_budget_parser(sub) -> None:
                    help=f"centroid noise per axis, px (result default "
                         f"{DEFAULT_CENTROID_SIGMA_PX}; 0: leave it out)")
     b.add_argument("--stars-per-frame", type=int, default=None, help="default 10")
-    b.add_argument("--frames", type=int, default=None, help="random frames (default 200)")
+    b.add_argument("--frames", type=int, default=None, help="random frames (default 100)")
     b.add_argument("--draws", type=int, default=None,
                    help="Monte-Carlo draws per source (default 1000; 0: linear only)")
     b.add_argument("--seed", type=int, default=None)

@@ -34,7 +34,8 @@ def format_budget(b: dict[str, Any]) -> str:
         f"covariance: {b['origin']}",
     ]
     lines += [f"note: {n}" for n in b["notes"]]
-    mc = (f"Monte Carlo {opt['draws']} draws per source ({opt['mc_frames']} frames each)"
+    n_mc = opt["frames"] if opt["mc_frames"] is None else opt["mc_frames"]
+    mc = (f"Monte Carlo {opt['draws']} draws per source ({n_mc} frames each)"
           if opt["draws"] > 0 else "no Monte Carlo")
     lines.append(f"{opt['frames']} frames of {opt['stars_per_frame']} stars uniform over the "
                  f"detector; {mc}; maximum error at {opt['max_error_k']:g} sigma")
