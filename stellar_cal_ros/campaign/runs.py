@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["STEPS", "execute_run", "replay_bag", "run_key", "simulate_run"]
+__all__ = ["STEPS", "bag_for_replay", "execute_run", "replay_bag", "run_key", "simulate_run"]
 
 #: What a run can do, in this order.
 STEPS = ("simulate", "replay", "diagnose", "budget")
@@ -121,10 +121,24 @@ def _equivalent_pp(model, theta, P):
     return equivalent_principal_point(model, theta, P)
 
 
-def _bag_data(sim):
-    from stellar_cal_ros.methods.replay import bag_data_from_simulation
+def bag_for_replay(bag, run: dict[str, Any]):
+    """The ``BagData`` a run replays: from a simulation result, a path, or as is.
 
-    return bag_data_from_simulation(sim)
+    ``use_config_centroid_sigma`` zeroes the stars' own σ so the configuration's is used
+    (an ideal, noise-free tracker modelled as a very good one).
+    """
+    from stellar_cal_ros.methods.replay import BagData, bag_data_from_simulation, read_bag_data
+
+    if isinstance(bag, (str, Path)):
+        data = read_bag_data(bag)
+    elif isinstance(bag, BagData):
+        data = bag
+    else:
+        data = bag_data_from_simulation(bag)
+    if run.get("use_config_centroid_sigma"):
+        for f in data.frames:
+            f.sigma = np.zeros_like(f.sigma)
+    return data
 
 
 # ---------------------------------------------------------------------------- the run
@@ -241,21 +255,18 @@ def execute_run(run: dict[str, Any]) -> dict[str, Any]:
             sim = simulate_run(run)
             row["t.simulate"] = time.perf_counter() - t
             prior, truth = sim.prior, sim.truth
+            files["prior.yaml"] = dump_calibration_yaml(prior)
             if run.get("write_bag"):
                 from stellar_cal_ros.sim.world import write_simulation
 
                 bag = Path(run["write_bag"]) / f"{row['key']}.mcap"
                 write_simulation(sim, bag)
-                bag = str(bag)
             else:
-                bag = _bag_data(sim)
+                bag = sim
             row["stars_per_frame_mean"] = float(sim.meta["stars_per_frame"]["mean"])
-        if isinstance(bag, str):
-            from stellar_cal_ros.methods.replay import read_bag_data
-
-            t = time.perf_counter()
-            bag = read_bag_data(bag)
-            row["t.read"] = time.perf_counter() - t
+        t = time.perf_counter()
+        bag = bag_for_replay(bag, run)
+        row["t.read"] = time.perf_counter() - t
         result = None
         if "replay" in steps or "budget" in steps or "diagnose" in steps:
             t = time.perf_counter()

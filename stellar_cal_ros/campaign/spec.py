@@ -23,7 +23,7 @@ Run keys: ``label``, ``scenario``, ``duration``, ``seed``, ``truth_effects`` (th
 ``estimate_effects`` (``replay --effects``), ``config`` (``PsceConfig``/``SwayingConfig``
 fields), ``steps`` (of ``simulate, replay, diagnose, budget``), ``diagnose``
 (``{candidates}``), ``budget`` (``BudgetOptions`` fields and ``centroid_sigma_px``),
-``nis_after_s``.
+``nis_after_s``, ``use_config_centroid_sigma`` (ignore the stars' own σ).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ __all__ = ["RUN_KEYS", "read_campaign_spec", "runs_from_spec"]
 
 RUN_KEYS = ("label", "scenario", "duration", "seed", "truth_effects", "scenario_overrides",
             "write_bag", "bag", "prior", "truth", "method", "estimate_effects", "config",
-            "steps", "diagnose", "budget", "nis_after_s")
+            "steps", "diagnose", "budget", "nis_after_s", "use_config_centroid_sigma")
 _TOP_KEYS = ("name", "run", "matrix", "variants", "seeds", "bags")
 
 
