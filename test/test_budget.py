@@ -176,6 +176,28 @@ def test_correlated_principal_point_and_installation_cancel_in_the_system():
     assert any("gyro_bias.bx" in n for n in full["notes"])
 
 
+def test_parameters_held_at_the_prior_are_listed_or_included():
+    cal, cov = _result(0.2, 0.5)
+    prior = Calibration(camera=cal.camera, installation=Rotation.identity(),
+                        sigma={"camera": {"camera_matrix": {"data": [20, 0, 20, 0, 20, 20, 0, 0,
+                                                                     0]},
+                                          "distortion_coefficients": {"data": [0.3, 0, 0, 0,
+                                                                               2.0]}},
+                               "installation": {"rotation_vector": [1e-3] * 3}})
+    out = error_model_from_result(cal, cov, prior=prior)
+    assert out.names == ["principal_point.cx", "installation.ry"]
+    held = next(n for n in out.notes if n.startswith("not estimated"))
+    assert "left out" in held and "k3 (σ 2)" in held and "cy (σ 20)" in held
+    inc = error_model_from_result(cal, cov, prior=prior, unestimated="include")
+    # cy, f, k1, k3, rx, rz were not estimated: added with the prior's sigma, uncorrelated
+    assert set(inc.names) == {"principal_point.cx", "installation.ry", "focal_length.f", "cy",
+                              "k1", "k3", "installation.rx", "installation.rz"}
+    j = inc.names.index("k3")
+    assert inc.covariance[j, j] == 4.0 and np.count_nonzero(inc.covariance[j]) == 1
+    with pytest.raises(ModelError, match="unestimated"):
+        error_model_from_result(cal, cov, prior=prior, unestimated="maybe")
+
+
 def test_actual_errors_are_zero_for_a_perfect_calibration_and_follow_the_installation():
     cal, _ = _result(0.2, 0.0)
     est = Calibration(camera=cal.camera, installation=Rotation.from_rotvec([0, 0, 5 * ARCSEC]))

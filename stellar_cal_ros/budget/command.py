@@ -28,8 +28,11 @@ def add_budget_parser(sub) -> None:
                    help="covariance file (names + matrix); default RESULT.covariance.* if "
                         "present, else the diagonal of the result's sigma block")
     b.add_argument("--prior", type=Path, default=None,
-                   help="the run's prior: with the diagonal, sigmas equal to the prior's "
-                        "(not estimated) are left out")
+                   help="the run's prior: tells which parameters the run did not estimate "
+                        "(held at the prior); see --unestimated")
+    b.add_argument("--unestimated", choices=["exclude", "include"], default="exclude",
+                   help="with --prior: leave the parameters the run did not estimate out "
+                        "(default; listed) or include them with the prior's sigma")
     b.add_argument("--exclude", default="", help="comma-separated parameters to leave out "
                    "(e.g. k3 or radial_k3.k3)")
     b.add_argument("--centroid-sigma", type=float, default=None,
@@ -95,7 +98,7 @@ def build_error_model(args: argparse.Namespace):
     prior = load_calibration(args.prior) if args.prior is not None else None
     centroid = DEFAULT_CENTROID_SIGMA_PX if args.centroid_sigma is None else args.centroid_sigma
     model = src.error_model_from_result(cal, covariance, str(cov_path or ""), prior, exclude,
-                                      centroid)
+                                        centroid, args.unestimated)
     if args.centroid_sigma is None:
         model.notes.append(f"centroid noise {centroid} px per axis assumed (--centroid-sigma)")
     if covariance is None and prior is None:

@@ -287,10 +287,17 @@ def _diagonal_from_sigma(cal: Any) -> tuple[list[str], np.ndarray]:
     return names, np.diag(var) if var else np.zeros((0, 0))
 
 
+def _indices(name: str, camera: CameraModel) -> set[int]:
+    """Entries of ``δx`` a parameter moves (empty if it is not in a budget)."""
+    mapped = parameter_direction(name, camera)
+    return set() if mapped is None else set(np.flatnonzero(mapped[1]).tolist())
+
+
 def error_model_from_result(cal: Any, covariance: tuple[list[str], np.ndarray] | None = None,
                             covariance_source: str = "", prior: Any = None,
                             exclude: list[str] | None = None,
-                            centroid_sigma_px: float = 0.0) -> ErrorModel:
+                            centroid_sigma_px: float = 0.0,
+                            unestimated: str = "exclude") -> ErrorModel:
     """Error sources of a calibration result.
 
     Parameters
@@ -304,35 +311,58 @@ def error_model_from_result(cal: Any, covariance: tuple[list[str], np.ndarray] |
     covariance_source : str
         Where the covariance came from, for the report.
     prior : Calibration, optional
-        With the diagonal: σ's equal to the prior's are parameters the run did not estimate
-        (the result file repeats them) and are left out.
+        The run's prior: tells which geometric parameters the run did not estimate (absent
+        from the covariance; with the diagonal, σ equal to the prior's, which the result
+        file repeats).  They are held at the prior's value, so their error is the prior's σ.
     exclude : list of str, optional
         Parameter names to leave out (either naming).
     centroid_sigma_px : float
         Centroid noise per axis, px, for the centroid source (0: none).
+    unestimated : str
+        With a prior: ``"exclude"`` leaves the unestimated parameters out (listed in the
+        notes; the diagnosis is what bounds an effect a model assumes absent),
+        ``"include"`` adds them with the prior's σ.
 
     Returns
     -------
     ErrorModel
     """
+    if unestimated not in ("exclude", "include"):
+        raise ModelError(f"unestimated must be 'exclude' or 'include', got {unestimated!r}")
     notes: list[str] = []
     drop = set(exclude or [])
     if covariance is not None:
-        names, C = covariance
+        names, C = list(covariance[0]), np.asarray(covariance[1], dtype=float)
         origin = f"full covariance ({covariance_source or 'given'})"
     else:
         names, C = _diagonal_from_sigma(cal)
         origin = ("diagonal of the result's sigma block (no covariance file: correlations "
                   "between parameters are ignored)")
-        if prior is not None:
-            p_names, p_C = _diagonal_from_sigma(prior)
-            p_var = dict(zip(p_names, np.diag(p_C), strict=True))
-            same = [n for n, v in zip(names, np.diag(C), strict=True)
+    if prior is not None:
+        p_names, p_C = _diagonal_from_sigma(prior)
+        p_var = dict(zip(p_names, np.diag(p_C), strict=True))
+        if covariance is not None:
+            covered = set().union(*(_indices(n, cal.camera) for n in names))
+            held = [n for n in p_names if _indices(n, cal.camera)
+                    and not _indices(n, cal.camera) & covered]
+        else:
+            held = [n for n, v in zip(names, np.diag(C), strict=True)
                     if n in p_var and np.isclose(v, p_var[n], rtol=1e-9, atol=0.0)]
-            if same:
-                notes.append("sigma equal to the prior's, taken as not estimated (left out): "
-                             + ", ".join(same))
-                drop |= set(same)
+        if held:
+            what = ", ".join(f"{n} (σ {math.sqrt(p_var[n]):.3g})" for n in held)
+            if unestimated == "include":
+                notes.append(f"not estimated, held at the prior, in the budget with the "
+                             f"prior's sigma: {what}")
+                new = [n for n in held if n not in names]
+                k = len(names)
+                C2 = np.zeros((k + len(new), k + len(new)))
+                C2[:k, :k] = C
+                C2[k:, k:] = np.diag([p_var[n] for n in new])
+                names, C = names + new, C2
+            else:
+                notes.append(f"not estimated, held at the prior (left out; --unestimated "
+                             f"include adds the prior's sigma): {what}")
+                drop |= set(held)
     if drop:
         keep = [i for i, n in enumerate(names) if n not in drop and n.split(".")[-1] not in drop]
         ex = set(exclude or [])

@@ -199,13 +199,14 @@ def _replay_columns(row: dict, run: dict, result, truth) -> tuple[list[str], np.
     return names, P
 
 
-def _budget_columns(row: dict, run: dict, result, names, P, truth) -> None:
+def _budget_columns(row: dict, run: dict, result, names, P, prior, truth) -> None:
     from stellar_cal_ros.budget.analysis import BudgetOptions, run_budget
     from stellar_cal_ros.budget.sources import error_model_from_result
     from stellar_cal_ros.budget.truth import actual_attitude_errors
 
     opts = dict(run.get("budget") or {})
     centroid = float(opts.pop("centroid_sigma_px", 0.0))
+    unestimated = opts.pop("unestimated", "exclude")
     bo = BudgetOptions(draws=0, frames=100)
     for k, v in opts.items():
         if not hasattr(bo, k):
@@ -213,8 +214,8 @@ def _budget_columns(row: dict, run: dict, result, names, P, truth) -> None:
 
             raise ModelError(f"campaign: budget has no setting {k!r}")
         setattr(bo, k, v)
-    model = error_model_from_result(result.calibration, (names, P), "replay", None, None,
-                                    centroid)
+    model = error_model_from_result(result.calibration, (names, P), "replay", prior, None,
+                                    centroid, unestimated)
     b = run_budget(model, bo)
     for conv in ("axis", "system"):
         for k, v in b["frame"][conv]["linear"]["total"].items():
@@ -292,7 +293,7 @@ def execute_run(run: dict[str, Any]) -> dict[str, Any]:
             row["t.diagnose"] = time.perf_counter() - t
         if "budget" in steps:
             t = time.perf_counter()
-            _budget_columns(row, run, result, names, P, truth)
+            _budget_columns(row, run, result, names, P, prior, truth)
             row["t.budget"] = time.perf_counter() - t
     except Exception as exc:  # noqa: BLE001 - a failed run is a row, reported by the runner
         row["status"] = "error"

@@ -22,7 +22,7 @@ Run keys: ``label``, ``scenario``, ``duration``, ``seed``, ``truth_effects`` (th
 ``OUT_DIR/bags`` and replay it from disk), ``bag``, ``prior``, ``truth``, ``method``,
 ``estimate_effects`` (``replay --effects``), ``config`` (``PsceConfig``/``SwayingConfig``
 fields), ``steps`` (of ``simulate, replay, diagnose, budget``), ``diagnose``
-(``{candidates}``), ``budget`` (``BudgetOptions`` fields and ``centroid_sigma_px``),
+(``{candidates}``), ``budget`` (``BudgetOptions`` fields, ``centroid_sigma_px``, ``unestimated``),
 ``nis_after_s``, ``use_config_centroid_sigma`` (ignore the stars' own σ).
 """
 
