@@ -11,6 +11,8 @@ report     plots and an HTML page of one calibration run
 compare    two runs of the model-discovery loop side by side
 export     a result in Kalibr, OpenVINS or ROS camera_info format
 demo       the built-in end-to-end demonstration
+budget     attitude error budget of a result or a spec (stellar_cal_ros.budget)
+campaign   many simulate/replay/diagnose/budget runs on Dask (stellar_cal_ros.campaign)
 
 Every error raised on purpose (:class:`stellar_cal_ros.errors.StellarCalError`) is printed as
 one clear line and gives exit status 1; a usage error gives 2.
@@ -408,9 +410,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds of simulated data (default 600)")
     m.set_defaults(func=_cmd_demo)
 
+    from stellar_cal_ros.budget.command import add_budget_parser
+    from stellar_cal_ros.campaign.command import add_campaign_parser
     from stellar_cal_ros.results_cli import add_result_commands
 
     add_result_commands(sub)
+    add_budget_parser(sub)
+    add_campaign_parser(sub)
     return p
 
 
