@@ -162,7 +162,16 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
                 break
         elif change < policy.iteration_tolerance:
             break
-        H, h = relinearize(dx)
+        if not np.isfinite(dx).all():
+            break  # reported below
+        try:
+            H, h = relinearize(dx)
+        except (ModelError, np.linalg.LinAlgError, ValueError) as exc:
+            return UpdateResult(False, np.zeros(N), P, K, H, nis, it,
+                                f"relinearization failed ({exc})")
+        if not (np.isfinite(H).all() and np.isfinite(h).all()):
+            return UpdateResult(False, np.zeros(N), P, K, H, nis, it,
+                                "relinearization left the field of view")
     if not (np.isfinite(dx).all() and np.isfinite(K).all()):
         return UpdateResult(False, np.zeros(N), P, K, H, nis, it, "non-finite update")
     A = np.eye(N) - K @ H

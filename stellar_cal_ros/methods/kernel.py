@@ -133,8 +133,8 @@ class KernelConfig:
     relinearize_rad: float = 2e-4  #: iterate only if the attitude correction exceeds this
     relinearize_sigma: float = 0.5  #: ... or a parameter moves by more than this × σ
     imu_bridge_factor: float = 1.5  #: an IMU interval longer than this × nominal is bridged
-    gap_rate_sigma: float = 1e-3  #: rad/s, floor of the rate error over a bridged interval
-    gap_accel_sigma: float = 0.5  #: m/s², floor of the specific-force error over one
+    gap_rate_sigma: float = 1e-3  #: rad/s, rate error over a gap of several samples
+    gap_accel_sigma: float = 0.5  #: m/s², specific-force error over such a gap
     fov_margin: float = 1.3  #: stars predicted beyond this × the half-diagonal: rejected
     gap_reacquire_s: float = 0.1  #: a frame after more IMU gap than this re-acquires
     init_outlier_px: float = 5.0  #: acquisition: drop stars off by more than this
@@ -194,8 +194,11 @@ class StarFilter:
         q = [e.process_noise_density() for e in model.effects]
         self.q_theta = (np.concatenate(q) ** 2 if q else np.zeros(0))[:self.P_est]
         self.q_gyro = (c.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR) ** 2
+        accel_vrw = getattr(c, "accel_vrw_mps_sqrth", 0.0) / 60.0  # m/s/√s
         self.imu = ImuBuffer(nominal_dt, c.imu_bridge_factor, c.gap_rate_sigma,
-                             c.gap_accel_sigma, c.gap_reacquire_s)
+                             c.gap_accel_sigma, c.gap_reacquire_s,
+                             math.sqrt(self.q_gyro / nominal_dt),
+                             accel_vrw / math.sqrt(nominal_dt))
         self.nominal_dt = float(nominal_dt)
         self.R_i_b: np.ndarray | None = None
         self.t: float | None = None
@@ -338,10 +341,11 @@ class StarFilter:
             self.P[sv, sv] += var_f * np.eye(3)
         if long_gap:
             self._gap_pending = True
-        if n_entered:
-            log.warning("IMU gap before t=%.3f s bridged: %s", tb,
-                        "attitude re-acquired from the stars" if self._gap_pending else
-                        f"attitude uncertainty inflated by {math.sqrt(var_w):.3g} rad")
+            log.warning("IMU gap before t=%.3f s: the attitude is re-acquired from the stars",
+                        tb)
+        elif n_entered:  # short gaps are counted (imu_bridged) and reported at the end
+            log.debug("IMU gap before t=%.3f s bridged: attitude uncertainty inflated by "
+                      "%.3g rad", tb, math.sqrt(var_w))
 
     # ------------------------------------------------------------------ acquisition
     def _attitude_function(self, phi: np.ndarray | None = None):
