@@ -36,8 +36,9 @@ from stellar_cal_ros.core import astrometry, earth
 from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.core.catalog import load_catalog, posix_to_jyear
 from stellar_cal_ros.core.rotation import so3_exp
+from stellar_cal_ros.core.types import ImuSeries, NavSatSeries, ScalarSeries, StarFrame
 from stellar_cal_ros.errors import ScenarioError
-from stellar_cal_ros.io.bag import BagWriter, ImuSeries, NavSatSeries, ScalarSeries, StarFrame
+from stellar_cal_ros.io.bag import BagWriter
 from stellar_cal_ros.io.calibration import Calibration, save_calibration
 from stellar_cal_ros.sim.scenarios import Scenario
 from stellar_cal_ros.sim.truth_effects import (
