@@ -92,21 +92,19 @@ class TopicDecoder:
         self.frames: list[str] = []
         self.cov: NDArray[np.float64] | None = None
 
-    def decode(self, rows: Rows, seq_base: int | None) -> tuple[Fields | None,
-                                                                  list[tuple[int, str]]]:
+    def decode(self, rows: Rows) -> tuple[Fields | None, list[tuple[int, str]]]:
         """Decode this topic's messages of one chunk.
 
         Parameters
         ----------
         rows : Rows
             The chunk's messages.
-        seq_base : int or None
-            If given, a ``"seq"`` field (``seq_base`` + position in ``rows``) is added.
 
         Returns
         -------
         fields : Fields or None
-            Decoded rows (None if the chunk has no message of the topic).
+            Decoded rows with their ``"log"`` time and ``"seq"`` (write-order key, see
+            :meth:`Rows.order_key`); None if the chunk has no message of the topic.
         errors : list of (int, str)
             Log time and reason of every message not decoded, in time order.
         """
@@ -122,8 +120,7 @@ class TopicDecoder:
                 errors.append((int(rows.log_time[i]),
                                f"schema {name} on this channel, expected {EXPECTED[self.kind][0]}"))
         if not len(sel):
-            return (None, sorted(errors, key=lambda e: e[0])) if seq_base is not None else (
-                self._empty_fields(), sorted(errors, key=lambda e: e[0]))
+            return None, errors
         log = rows.log_time[sel]
         dec = _DECODE[self.kind](rows.buf, rows.offset[sel], rows.length[sel], log)
         errors += [(int(log[i]), reason) for i, reason in dec.bad]
@@ -135,8 +132,7 @@ class TopicDecoder:
         for f in dec.frame_ids:
             if f not in self.frames:
                 self.frames.append(f)
-        if seq_base is not None:
-            fields["seq"] = seq_base + sel[dec.keep]
+        fields["seq"] = rows.order_key(sel[dec.keep])
         return fields, errors
 
     def _empty_fields(self) -> Fields:

@@ -197,7 +197,7 @@ class McapFile:
         if msg_count == 0:
             start = stop = None
         for k, ci in enumerate(sorted(chunk_indexes, key=lambda c: c.offset)):
-            ci.number = k + 1
+            ci.number = ci.rank = k + 1
         return Summary(chunk_indexes, counts, msg_count, start, stop)
 
     def _add_schema(self, cur: Cursor) -> None:
@@ -365,11 +365,13 @@ class McapFile:
             buf = self._read(ci.offset, ci.length)
             if len(buf) < ci.length:
                 raise CorruptError(ci.offset, "file ends inside a message record")
-            return self._rows_from_records(buf, ci.offset, want, ci.start)
-        _, buf = self.read_chunk(ci.offset, ci.length)
-        rows = self._rows_from_index(buf, ci, want) if ci.index_offsets else None
-        if rows is None:  # no or inconsistent message index: walk the records
             rows = self._rows_from_records(buf, ci.offset, want, ci.start)
+        else:
+            _, buf = self.read_chunk(ci.offset, ci.length)
+            rows = self._rows_from_index(buf, ci, want) if ci.index_offsets else None
+            if rows is None:  # no or inconsistent message index: walk the records
+                rows = self._rows_from_records(buf, ci.offset, want, ci.start)
+        rows.rank = ci.rank
         return rows
 
     def _problem(self, ci: ChunkIndex, exc: CorruptError) -> BagProblem:
@@ -480,7 +482,7 @@ class McapFile:
                     out.append(BagProblem(pos, "unreadable chunk record header", number, None,
                                           last_end, None, None, path=str(self.path)))
                 else:
-                    ci.offset, ci.number = pos, number
+                    ci.offset, ci.number, ci.rank = pos, number, len(out) + 1
                     out.append(ci)
                     last_end = ci.end if last_end is None else max(last_end, ci.end)
             elif op in (OP_SCHEMA, OP_CHANNEL):
@@ -490,7 +492,7 @@ class McapFile:
                 lt = MSG_HDR.unpack_from(self._read(pos + 9, 22), 0)[2]
                 if loose is None or loose.length >= LOOSE_BLOCK:
                     flush_loose()
-                    loose = ChunkIndex(lt, lt, pos, 0, {}, 0, "loose", 0, 0)
+                    loose = ChunkIndex(lt, lt, pos, 0, {}, 0, "loose", 0, 0, 0, len(out) + 1)
                 loose.length = pos + 9 + length - loose.offset
                 loose.start, loose.end = min(loose.start, lt), max(loose.end, lt)
                 last_end = lt if last_end is None else max(last_end, lt)
@@ -539,7 +541,6 @@ class McapFile:
             if isinstance(entry, BagProblem):
                 problems.append(entry)
                 continue
-            chunks.append(entry)
             try:
                 if entry.compression == "loose":
                     self._chunk_rows(entry, set())
@@ -547,14 +548,21 @@ class McapFile:
                     self.read_chunk(entry.offset, entry.length)
             except CorruptError as exc:
                 problems.append(self._problem(entry, exc))
+            else:
+                chunks.append(entry)
         if self.summary is not None:
             problems += self._walk_problems(chunks)
         return problems
 
     def _walk_problems(self, chunks: list[ChunkIndex]) -> list[BagProblem]:
-        """Record walk of the data section of a file with a summary; data CRC if present."""
+        """Record walk of the data section of a file with a summary; data CRC if present.
+
+        ``chunks`` are the valid chunks; damage inside a damaged chunk or its message
+        indexes is not reported again.
+        """
         problems: list[BagProblem] = []
-        by_offset = {c.offset: c for c in chunks}
+        everything = self.summary.chunk_indexes if self.summary is not None else chunks
+        damaged = [c for c in everything if c not in chunks]
         pos = self.data_start
         while pos < self.size:
             head = self._read(pos, 9)
@@ -568,11 +576,12 @@ class McapFile:
                     return problems
                 pos += 9 + length
                 continue
-            nxt = min((o for o in by_offset if o > pos), default=None)
-            hit = [c for c in chunks if c.offset <= pos < c.offset + c.length + c.index_length]
-            if not hit:  # inside no chunk: message indexes or metadata
-                problems.append(BagProblem(pos, f"invalid record (opcode 0x{op:02x}) between "
-                                           "chunks", lost=False, path=str(self.path)))
+            nxt = min((c.offset for c in everything if c.offset > pos), default=None)
+            if not any(c.offset <= pos < c.offset + c.length + c.index_length for c in damaged) \
+                    and not any(c.offset <= pos < c.offset + c.length for c in chunks):
+                problems.append(BagProblem(pos, f"invalid record (opcode 0x{op:02x}) outside the "
+                                           "chunks (message index or metadata)", lost=False,
+                                           path=str(self.path)))
             if nxt is None:
                 break
             pos = nxt

@@ -207,7 +207,8 @@ class ChunkIndex:
     """Where a chunk is and what it holds (from the summary or from a scan of the file).
 
     ``compression`` is ``"loose"`` for a run of un-chunked message records of the data
-    section (read raw); ``number`` is the 1-based position of the chunk in file order.
+    section (read raw); ``number`` is the 1-based position of the chunk among the chunks in
+    file order, ``rank`` the position of the entry (chunk or loose run) in file order.
     """
 
     start: int
@@ -220,6 +221,7 @@ class ChunkIndex:
     compressed_size: int
     uncompressed_size: int
     number: int = 0
+    rank: int = 0
 
 
 @dataclass
@@ -238,7 +240,9 @@ class Rows:
     """Messages of one chunk on the selected channels, sorted by (log time, position).
 
     ``buf`` is the decompressed chunk; ``offset``/``length`` locate each payload in it.
-    ``start_ns`` is a lower bound of the log times of this and every later batch.
+    ``start_ns`` is a lower bound of the log times of this and every later batch. ``rank``
+    is the batch's position in the order the bag was written (for a file, the chunk's rank in
+    file order), so ``rank * 2**32 + row`` orders messages of equal log time as written.
     """
 
     buf: NDArray[np.uint8]
@@ -249,6 +253,7 @@ class Rows:
     offset: NDArray[np.int64]
     length: NDArray[np.int64]
     start_ns: int
+    rank: int = 0
 
     def __len__(self) -> int:
         return len(self.log_time)
@@ -260,8 +265,12 @@ class Rows:
             order = np.lexsort((self.offset, log))
             return Rows(self.buf, self.channel[order], self.sequence[order], log[order],
                         self.publish_time[order], self.offset[order], self.length[order],
-                        self.start_ns)
+                        self.start_ns, self.rank)
         return self
+
+    def order_key(self, rows: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Write-order key (``rank * 2**32 + row``) of the given rows, int64."""
+        return (self.rank << 32) + rows.astype(np.int64)
 
     @staticmethod
     def empty(buf: NDArray[np.uint8], start_ns: int) -> Rows:

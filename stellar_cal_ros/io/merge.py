@@ -36,32 +36,18 @@ def time_ordered(batches: Iterable[tuple[int, Fields]]) -> Iterator[Fields]:
     Parameters
     ----------
     batches : iterable of (start_ns, data)
-        ``start_ns`` bounds the log times of this and all later batches from below.
+        ``start_ns`` bounds the log times of this and all later batches from below; ``data``
+        may carry a ``"seq"`` key (write-order key) that orders equal log times.
 
     Yields
     ------
     Fields
-        Row-aligned arrays, globally sorted by log time (stable: ties keep file order).
+        Row-aligned arrays (without ``"seq"``), globally sorted by log time, ties in write
+        order (in arrival order without ``"seq"``).
     """
-    pending: Fields | None = None
-    for start_ns, data in batches:
-        if pending is not None and len(pending["log"]):
-            k = int(np.searchsorted(pending["log"], start_ns, side="left"))
-            if k:
-                yield take(pending, slice(0, k))
-                pending = take(pending, slice(k, None))
-        if pending is None or not len(pending["log"]):
-            merged = data
-        elif not len(data["log"]):
-            merged = pending
-        else:
-            merged = concat([pending, data])
-        log = merged["log"]
-        if len(log) > 1 and np.any(log[1:] < log[:-1]):
-            merged = take(merged, np.argsort(log, kind="stable"))
-        pending = merged
-    if pending is not None and len(pending["log"]):
-        yield pending
+    for _, rows in interleaved(((s, [d]) for s, d in batches), 1):
+        rows.pop("seq", None)
+        yield rows
 
 
 def interleaved(
@@ -81,8 +67,10 @@ def interleaved(
     Yields
     ------
     (int, Fields)
-        ``(role, rows)``: maximal runs of consecutive messages of one role, in log-time order
-        (ties in file order); each role's rows are in the order :func:`time_ordered` gives.
+        ``(role, rows)``: runs of consecutive messages of one role, in log-time order (ties in
+        file order); each role's rows are in the order :func:`time_ordered` gives. A run may
+        be cut where a chunk's rows become final, so two consecutive runs can have the same
+        role.
     """
     pending: list[Fields | None] = [None] * n_roles
     for start_ns, per_role in batches:
@@ -94,7 +82,9 @@ def interleaved(
             merged = data if p is None or not len(p["log"]) else concat([p, data])
             log = merged["log"]
             if len(log) > 1 and np.any(log[1:] < log[:-1]):
-                merged = take(merged, np.lexsort((merged["seq"], log)))
+                order = np.lexsort((merged["seq"], log)) if "seq" in merged else \
+                    np.argsort(log, kind="stable")
+                merged = take(merged, order)
             pending[r] = merged
     yield from _release(pending, None)
 

@@ -131,13 +131,16 @@ class BagReader:
         """The source's batches, damage handled by ``on_error`` (see the class docstring)."""
         n = 0
         last: int | None = None
+        again: list[BagProblem] = []
 
         def on_damage(problem: BagProblem) -> None:
             if self.on_error == "raise":
                 raise _DamageError(problem)
             self.truncated = True
-            if problem not in self.problems:
-                self.problems.append(problem)
+            if problem in self.problems:
+                again.append(problem)  # described once per reader, counted at each read
+                return
+            self.problems.append(problem)
             warnings.warn(
                 f"truncated or corrupt bag {problem.path} at byte {problem.offset} "
                 f"(while reading {what}): {problem.describe(self._src.start_hint())}; "
@@ -152,6 +155,10 @@ class BagReader:
                     last = int(rows.log_time.max()) if last is None else \
                         max(last, int(rows.log_time.max()))
                 yield rows
+            if again:
+                warnings.warn(f"truncated or corrupt bag {self.path}: {len(again)} damaged "
+                              f"part(s) skipped again while reading {what} (described above)",
+                              stacklevel=4)
         except (CorruptError, struct.error, OSError) as exc:
             if isinstance(exc, _DamageError):
                 where = f"{exc.problem.path} at byte {exc.offset}"
@@ -301,22 +308,19 @@ class BagReader:
         return kinds.TopicDecoder(topic, kind, good, other, self._src.schema_name)
 
     def _decoded(
-        self, decoders: Sequence[kinds.TopicDecoder], counter: dict[str, list[Any]],
-        what: str, seq: bool = False,
+        self, decoders: Sequence[kinds.TopicDecoder], counter: dict[str, list[Any]], what: str
     ) -> Iterator[tuple[int, list[Fields | None]]]:
         """One pass: per chunk, the decoded rows of every decoder (bad rows handled)."""
         want: set[int] = set()
         for d in decoders:
             want |= d.good | d.other
-        base = 0
         for rows in self._rows(want, what):
             out: list[Fields | None] = []
             for d in decoders:
-                fields, errors = d.decode(rows, base if seq else None)
+                fields, errors = d.decode(rows)
                 for t, reason in errors:
                     self._bad(d.topic, t, reason, counter)
                 out.append(fields)
-            base += len(rows)
             yield rows.start_ns, out
 
     def _read_topic(self, topic: str, kind: str) -> tuple[list[Fields], kinds.TopicDecoder]:
@@ -501,10 +505,12 @@ class BagReader:
         (str, block)
             ``(role, block)`` in log-time order: a block holds consecutive messages of one
             topic (no message of another streamed topic falls between its first and last;
-            ties of log time keep file order). Series blocks hold one or more messages
-            (an IMU block at most ``imu_block``); a star block is one :class:`StarFrame`.
-            Concatenating one role's blocks gives exactly what ``read_imu`` /
-            ``read_star_frames`` / ``read_navsat`` / ``read_scalar`` return for its topic.
+            ties of log time keep the file's order, which can differ between formats of the
+            same recording). Series blocks hold one or more messages (an IMU block at most
+            ``imu_block``; blocks are not necessarily maximal: they are also cut at chunk
+            boundaries); a star block is one :class:`StarFrame`. Concatenating one role's
+            blocks gives exactly what ``read_imu`` / ``read_star_frames`` / ``read_navsat`` /
+            ``read_scalar`` return for its topic.
 
         Raises
         ------
@@ -520,14 +526,21 @@ class BagReader:
         roles: list[str] = []
         decoders: list[kinds.TopicDecoder] = []
         for role, topic in topics.items():
-            kind = kinds.kind_of(self._topic_types(topic))
+            types = self._topic_types(topic)
+            kind = kinds.kind_of(types)
+            if kind is None and types:
+                msg = (f"topic {topic!r} in {self.path} has type {sorted(set(types))}; stream "
+                       f"reads {', '.join(t for e in kinds.EXPECTED.values() for t in e)}")
+                if self.on_error == "raise":
+                    raise BagError(msg)
+                warnings.warn(msg + "; left out", stacklevel=2)
             if kind is None:
                 continue
             roles.append(role)
             decoders.append(self._decoder(topic, kind, missing_ok=True))
         counter: dict[str, list[Any]] = {}
         if decoders:
-            batches = self._decoded(decoders, counter, "the stream", seq=True)
+            batches = self._decoded(decoders, counter, "the stream")
             for r, fields in interleaved(batches, len(decoders)):
                 yield from ((roles[r], b) for b in decoders[r].blocks(fields, imu_block))
         for d in decoders:
@@ -582,7 +595,8 @@ class BagReader:
                         self._bad(topic, int(rows.log_time[i]), reason, counter)
                         continue
                     objs[i] = (topic, int(rows.log_time[i]), msg)
-                yield rows.start_ns, {"obj": objs[keep], "log": rows.log_time[keep]}
+                yield rows.start_ns, {"obj": objs[keep], "log": rows.log_time[keep],
+                                      "seq": rows.order_key(np.flatnonzero(keep))}
 
         for d in time_ordered(batches()):
             yield from d["obj"]

@@ -143,6 +143,7 @@ class RosbagsSource(SourceBase):
         log: list[int] = []
         size = 0
         last = None
+        rank = 0
         try:
             for conn, t, raw in self._reader.messages(connections=[self._conn[c] for c in cids]):
                 cid = ids[id(conn)]
@@ -153,16 +154,16 @@ class RosbagsSource(SourceBase):
                 size += len(payload)
                 last = t
                 if len(chan) >= _BATCH_MESSAGES or size >= _BATCH_BYTES:
-                    yield _batch(parts, chan, log)
+                    yield _batch(parts, chan, log, rank := rank + 1)
                     parts, chan, log, size = [], [], [], 0
         except Exception as exc:  # rosbags raises assorted errors on damaged files
             if parts:
-                yield _batch(parts, chan, log)
+                yield _batch(parts, chan, log, rank := rank + 1)
                 parts = []
             on_damage(BagProblem(0, f"rosbags cannot read on ({type(exc).__name__}: {exc})",
                                  start_ns=last, path=str(self.path)))
         if parts:
-            yield _batch(parts, chan, log)
+            yield _batch(parts, chan, log, rank := rank + 1)
 
     def decoder(self, cid: int) -> Callable[[bytes], Any]:
         """Rosbags CDR decoder of channel ``cid`` (ROS 1 payloads converted first)."""
@@ -182,7 +183,7 @@ class RosbagsSource(SourceBase):
         self._reader.close()
 
 
-def _batch(parts: list[bytes | memoryview], chan: list[int], log: list[int]) -> Rows:
+def _batch(parts: list[bytes | memoryview], chan: list[int], log: list[int], rank: int) -> Rows:
     lengths = np.fromiter((len(p) for p in parts), np.int64, len(parts))
     offsets = np.zeros(len(parts), np.int64)
     np.cumsum(lengths[:-1], out=offsets[1:])
@@ -190,5 +191,5 @@ def _batch(parts: list[bytes | memoryview], chan: list[int], log: list[int]) -> 
     logs = np.array(log, np.int64)
     n = len(parts)
     return Rows(buf, np.array(chan, np.uint16), np.zeros(n, np.uint32), logs, logs.copy(),
-                offsets, lengths, int(logs.min())).sorted()
+                offsets, lengths, int(logs.min()), rank).sorted()
 

@@ -238,6 +238,7 @@ class MergedSource(SourceBase):
                     if c < len(table):
                         table[c] = g
                 rows.channel = table[rows.channel]
+            rows.rank = (k << 20) + rows.rank  # file order first (< 2048 files, 2**20 chunks)
             yield rows
 
     def iter_rows(self, want: set[int] | None, on_damage: OnDamage) -> Iterator[Rows]:
