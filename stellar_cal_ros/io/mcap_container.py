@@ -309,12 +309,17 @@ class McapFile:
             if op != OP_MESSAGE_INDEX or cid != c or rel + 15 + n > len(raw) or n % 16:
                 return None
             pairs.append(np.frombuffer(raw, "<u8", n // 8, rel + 15).reshape(-1, 2))
-        pos = np.concatenate(pairs).astype(np.int64)[:, 1]
+        both = np.concatenate(pairs)
+        pos = both[:, 1].astype(np.int64)
         if len(pos) and (pos.min() < 0 or pos.max() + MSG_PREFIX > len(arr)):
             return None
         hdr = windows(arr, pos, MSG_PREFIX).copy().view(MSG_RECORD_DTYPE)[:, 0]
         length = hdr["len"].astype(np.int64) - 22
         if np.any(hdr["op"] != OP_MESSAGE) or np.any(length < 0):
+            return None
+        # a damaged index (e.g. zeroed entries) must not pass: every entry names a distinct
+        # message record whose log time is the one indexed
+        if np.any(hdr["log"] != both[:, 0]) or len(np.unique(pos)) != len(pos):
             return None
         if np.any(pos + MSG_PREFIX + length > len(arr)):
             return None

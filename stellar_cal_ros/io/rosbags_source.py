@@ -166,10 +166,9 @@ class RosbagsSource(SourceBase):
             yield _batch(parts, chan, log, rank := rank + 1)
 
     def decoder(self, cid: int) -> Callable[[bytes], Any]:
-        """Rosbags CDR decoder of channel ``cid`` (ROS 1 payloads converted first)."""
+        """The ``rosbags`` decoder of channel ``cid``'s payloads as iter_rows gives them (CDR)."""
         msgtype = self._conn[cid].msgtype
-        to_cdr = self._to_cdr(cid)
-        return lambda raw: self._types.deserialize_cdr(to_cdr(raw), msgtype)
+        return lambda raw: self._types.deserialize_cdr(raw, msgtype)
 
     def check(self) -> list[BagProblem]:
         """Read every message once; a failure is reported as one problem."""
