@@ -315,15 +315,13 @@ class McapFile:
             return None
         hdr = windows(arr, pos, MSG_PREFIX).copy().view(MSG_RECORD_DTYPE)[:, 0]
         length = hdr["len"].astype(np.int64) - 22
-        if np.any(hdr["op"] != OP_MESSAGE) or np.any(length < 0):
-            return None
-        # a damaged index (e.g. zeroed entries) must not pass: every entry names a distinct
-        # message record whose log time is the one indexed
-        if np.any(hdr["log"] != both[:, 0]) or len(np.unique(pos)) != len(pos):
+        # a damaged index (e.g. zeroed entries) must not pass: every entry must name a message
+        # record of its channel with the log time indexed
+        channel = np.repeat(np.array(chans, np.uint16), [len(p) for p in pairs])
+        if np.any(hdr["op"] != OP_MESSAGE) or np.any(length < 0) or \
+                np.any(hdr["ch"] != channel) or np.any(hdr["log"] != both[:, 0]):
             return None
         if np.any(pos + MSG_PREFIX + length > len(arr)):
-            return None
-        if want is not None and not np.all(np.isin(hdr["ch"], list(want))):
             return None
         return Rows(
             arr,

@@ -24,6 +24,41 @@ from stellar_cal_ros.io.sources import SourceBase
 _BATCH_MESSAGES = 4096
 _BATCH_BYTES = 4 << 20
 
+# ROS 1 -> CDR without rosbags' generic converter for the high-rate contract types: a
+# std_msgs/Header followed by fixed fields, given as runs of (ROS 1 bytes, CDR alignment of
+# the run's first field; the others follow aligned).
+_ROS1_TAILS: dict[str, list[tuple[int, int]]] = {
+    "sensor_msgs/msg/Imu": [(37 * 8, 8)],
+    "sensor_msgs/msg/Temperature": [(2 * 8, 8)],
+    "sensor_msgs/msg/FluidPressure": [(2 * 8, 8)],
+    "sensor_msgs/msg/NavSatFix": [(1, 1), (2, 2), (12 * 8, 8), (1, 1)],
+}
+
+
+def _ros1_header_to_cdr(raw: bytes, tail: list[tuple[int, int]]) -> bytes | None:
+    """CDR of a ROS 1 ``Header`` + fixed-field message, None if ``raw`` does not fit.
+
+    ROS 1: ``uint32 seq, uint32 sec, uint32 nsec, uint32 n, n chars``, then the fields
+    packed. CDR: encapsulation, ``sec, nsec, n + 1, chars, NUL``, then each field aligned to
+    its alignment relative to the byte after the encapsulation.
+    """
+    if len(raw) < 16:
+        return None
+    n = int.from_bytes(raw[12:16], "little")
+    if len(raw) != 16 + n + sum(size for size, _ in tail):
+        return None
+    out = bytearray(b"\x00\x01\x00\x00")
+    out += raw[4:12]
+    out += (n + 1).to_bytes(4, "little")
+    out += raw[16 : 16 + n]
+    out += b"\x00"
+    pos = 16 + n
+    for size, alignment in tail:
+        out += bytes(-(len(out) - 4) % alignment)
+        out += raw[pos : pos + size]
+        pos += size
+    return bytes(out)
+
 
 def contract_typestore(base: Any = None, ros2_header: bool = False) -> Any:
     """A rosbags typestore with ROS 2 Jazzy's types, the contract types and ``base``'s.
@@ -122,8 +157,13 @@ class RosbagsSource(SourceBase):
             return lambda raw: raw
         msgtype = self._conn[cid].msgtype
         convert = self._types.ros1_to_cdr
+        fast = _ROS1_TAILS.get(msgtype)
 
         def to_cdr(raw: bytes) -> bytes | memoryview:
+            if fast is not None:
+                out = _ros1_header_to_cdr(raw, fast)
+                if out is not None:
+                    return out
             try:
                 return convert(raw, msgtype)
             except Exception:  # noqa: BLE001 -- reported by the CDR decoder as malformed
