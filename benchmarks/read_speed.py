@@ -88,16 +88,10 @@ METHODS: dict[str, Callable[[Path], int]] = {
 
 def simulated(duration: float) -> Path:
     """A ``psce_rotations`` bag of ``duration`` s, simulated once into the cache."""
-    from stellar_cal_ros.sim.scenarios import get_scenario
-    from stellar_cal_ros.sim.world import simulate, write_simulation
+    sys.path.insert(0, str(Path(__file__).parent))
+    from psce_speed import ensure_bag  # the same cached bags as the replay benchmark
 
-    path = CACHE / f"psce_rotations_{int(duration)}s.mcap"
-    if not path.exists():
-        t = time.perf_counter()
-        write_simulation(simulate(get_scenario("psce_rotations"), duration=duration, seed=1),
-                         path)
-        print(f"simulated {path.name} in {time.perf_counter() - t:.1f} s", file=sys.stderr)
-    return path
+    return ensure_bag(duration)
 
 
 def converted(src: Path) -> list[Path]:
