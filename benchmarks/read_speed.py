@@ -137,11 +137,22 @@ def time_bag(path: Path, repeat: int, methods: dict[str, Callable[[Path], int]])
               f"{span / np.median(arr):8.0f} {np.median(arr / ref):10.3f}")
 
 
+def _hwm_mib() -> float:
+    """Peak resident set size of this process, MiB.
+
+    VmHWM is reset at exec, unlike ``ru_maxrss``, which a child inherits from its parent.
+    """
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def _rss_child(path: str, how: str) -> None:
     """Measure in a fresh process: peak RSS after imports, then after reading."""
     import stellar_cal_ros.io.bag  # noqa: F401 -- imports before the baseline
 
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    base = _hwm_mib()
     if how == "stream":
         ours_stream(Path(path))
     else:
@@ -151,8 +162,7 @@ def _rss_child(path: str, how: str) -> None:
             kept = [r.read_imu(), r.read_star_frames(), r.read_navsat(),
                     *(r.read_scalar(t) for t in SCALARS)]
         del kept
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(base, peak)
+    print(base, _hwm_mib())
 
 
 def rss_table(durations: list[float]) -> None:
@@ -165,7 +175,7 @@ def rss_table(durations: list[float]) -> None:
         for how in ("stream", "read"):
             out = subprocess.run([sys.executable, __file__, "--rss-child", str(path), how],
                                  capture_output=True, text=True, check=True, cwd=ROOT)
-            base, peak = (int(x) / 1024 for x in out.stdout.split())
+            base, peak = (float(x) for x in out.stdout.split())
             row.append((base, peak))
         print(f"{d:7.0f} {path.stat().st_size / 1e6:7.1f} {row[0][0]:7.0f} {row[0][1]:9.0f} "
               f"{row[1][1]:8.0f}")

@@ -160,12 +160,12 @@ class BagReader:
                               f"part(s) skipped again while reading {what} (described above)",
                               stacklevel=4)
         except (CorruptError, struct.error, OSError) as exc:
+            off = getattr(exc, "offset", None)
+            where = f"{self.path} at byte {off}" if off is not None else str(self.path)
+            reason = getattr(exc, "reason", str(exc))
             if isinstance(exc, _DamageError):
                 where = f"{exc.problem.path} at byte {exc.offset}"
-            else:
-                off = getattr(exc, "offset", None)
-                where = f"{self.path} at byte {off}" if off is not None else str(self.path)
-            reason = getattr(exc, "reason", str(exc))
+                reason = exc.problem.describe(self._src.start_hint())
             t = f", last message log time {last * 1e-9:.9f} s" if last is not None else ""
             msg = (f"truncated or corrupt bag {where}: {reason} "
                    f"(while reading {what}; {n} chunks read before{t})")
