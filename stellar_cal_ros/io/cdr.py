@@ -39,10 +39,15 @@ def align(x: NDArray[np.int64] | int, a: int) -> Any:
 
 
 def windows(buf: NDArray[np.uint8], offsets: NDArray[np.int64], width: int) -> NDArray[np.uint8]:
-    """Copy ``buf[o:o + width]`` for every ``o`` in ``offsets``; shape (n, width)."""
-    if len(offsets) == 0 or width == 0:
+    """Copy ``buf[o:o + width]`` for every ``o`` in ``offsets``; shape (n, width).
+
+    ``buf`` is a contiguous 1-D uint8 array and every window must lie inside it.
+    """
+    if len(offsets) == 0 or width == 0 or width > buf.size:
         return np.zeros((len(offsets), width), np.uint8)
-    win = np.lib.stride_tricks.sliding_window_view(buf, width)
+    # overlapping rows of ``width`` bytes starting at every byte (what sliding_window_view
+    # gives, without its per-call checks, which cost more than the copy for small batches)
+    win = np.ndarray((buf.size - width + 1, width), np.uint8, buffer=buf, strides=(1, 1))
     return win[offsets]
 
 
@@ -176,6 +181,7 @@ def decode_f8_block(
     log: NDArray[np.int64],
     n_doubles: int,
     type_name: str,
+    picks: dict[str, tuple[int, int]] | None = None,
 ) -> Decoded:
     """Decode types laid out as ``Header`` followed by ``n_doubles`` float64 only.
 
@@ -192,25 +198,29 @@ def decode_f8_block(
         Number of float64 after the header.
     type_name : str
         For error messages.
+    picks : dict of str to (int, int), optional
+        Copy only these ranges of doubles, each to a field of shape (n, stop - start), plus
+        all the doubles of the first kept row as ``"first"`` (1, n_doubles). Default: every
+        double to ``"f8"``.
 
     Returns
     -------
     Decoded
-        Fields ``stamp`` (n,), ``f8`` (n, n_doubles), ``log`` (n,) of the kept rows.
+        Fields ``stamp`` (n,), ``log`` (n,) and the doubles of the kept rows.
     """
     stamp, strlen, ok, bad = _header_bulk(buf, off, ln, type_name)
     start = 4 + align(12 + strlen, 8)
     ok = _check_len(ln, start + 8 * n_doubles, ok, strlen, type_name, bad)
     good = np.flatnonzero(ok)
-    block = windows(buf, off[good] + start[good], 8 * n_doubles)
-    doubles = np.ascontiguousarray(block).view("<f8").reshape(len(good), n_doubles)
+    at = off[good] + start[good]
+    fields = {"stamp": stamp[good], "log": log[good]}
+    for name, (a, b) in (picks or {"f8": (0, n_doubles)}).items():
+        block = windows(buf, at + 8 * a, 8 * (b - a))
+        fields[name] = np.ascontiguousarray(block).view("<f8").reshape(len(good), b - a)
+    if picks is not None:
+        fields["first"] = windows(buf, at[:1], 8 * n_doubles).copy().view("<f8")
     frames = _frame_ids(buf, off[good], strlen[good]) if len(good) else []
-    return Decoded(
-        keep=ok,
-        fields={"stamp": stamp[good], "f8": doubles, "log": log[good]},
-        frame_ids=frames,
-        bad=bad,
-    )
+    return Decoded(keep=ok, fields=fields, frame_ids=frames, bad=bad)
 
 
 def decode_navsat(

@@ -43,23 +43,36 @@ def kind_of(types: list[str]) -> str | None:
 
 def _imu(buf: NDArray[np.uint8], off: NDArray[np.int64], ln: NDArray[np.int64],
          log: NDArray[np.int64]) -> cdr.Decoded:
-    dec = cdr.decode_f8_block(buf, off, ln, log, 37, IMU)
-    f8 = dec.fields.pop("f8")
-    dec.fields["av"] = np.ascontiguousarray(f8[:, 13:16])
-    dec.fields["la"] = np.ascontiguousarray(f8[:, 25:28])
-    dec.fields["cov"] = f8[:1, 16:37]  # first row only, not row-aligned: popped by decode()
+    dec = cdr.decode_f8_block(buf, off, ln, log, 37, IMU, {"av": (13, 16), "la": (25, 28)})
+    # the first row's covariances, not row-aligned: popped by decode()
+    dec.fields["first_cov"] = dec.fields.pop("first")[:, 16:37]
     return dec
 
 
 def _scalar(buf: NDArray[np.uint8], off: NDArray[np.int64], ln: NDArray[np.int64],
             log: NDArray[np.int64]) -> cdr.Decoded:
-    return cdr.decode_f8_block(buf, off, ln, log, 2, "Temperature/FluidPressure")
+    dec = cdr.decode_f8_block(buf, off, ln, log, 2, "Temperature/FluidPressure",
+                              {"value": (0, 1), "variance": (1, 2)})
+    dec.fields.pop("first")
+    for k in ("value", "variance"):
+        dec.fields[k] = dec.fields[k].reshape(-1)
+    return dec
+
+
+def _fix(buf: NDArray[np.uint8], off: NDArray[np.int64], ln: NDArray[np.int64],
+         log: NDArray[np.int64]) -> cdr.Decoded:
+    dec = cdr.decode_navsat(buf, off, ln, log)
+    f8 = dec.fields.pop("f8")
+    for k, col in (("lat", 0), ("lon", 1), ("alt", 2)):
+        dec.fields[k] = np.ascontiguousarray(f8[:, col])
+    dec.fields["cov"] = np.ascontiguousarray(f8[:, 3:12])
+    return dec
 
 
 _DECODE: dict[str, Callable[..., cdr.Decoded]] = {
     "imu": _imu,
     "stars": cdr.decode_star_frames,
-    "fix": cdr.decode_navsat,
+    "fix": _fix,
     "scalar": _scalar,
 }
 
@@ -91,6 +104,7 @@ class TopicDecoder:
         self._other_list = sorted(other)
         self.frames: list[str] = []
         self.cov: NDArray[np.float64] | None = None
+        self._covs: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
 
     def decode(self, rows: Rows) -> tuple[Fields | None, list[tuple[int, str]]]:
         """Decode this topic's messages of one chunk.
@@ -126,7 +140,7 @@ class TopicDecoder:
         errors += [(int(log[i]), reason) for i, reason in dec.bad]
         errors.sort(key=lambda e: e[0])
         fields = dec.fields
-        cov = fields.pop("cov", None)
+        cov = fields.pop("first_cov", None)
         if self.cov is None and cov is not None and len(cov):
             self.cov = cov[0].copy()
         for f in dec.frame_ids:
@@ -137,17 +151,18 @@ class TopicDecoder:
 
     def _empty_fields(self) -> Fields:
         z = np.zeros(0, np.int64)
+        f = np.zeros(0)
         if self.kind == "imu":
             return {"stamp": z, "log": z, "av": np.zeros((0, 3)), "la": np.zeros((0, 3))}
         if self.kind == "stars":
             return {"obj": np.empty(0, object), "log": z}
         if self.kind == "fix":
-            return {"stamp": z, "f8": np.zeros((0, 12)), "status": z, "service": z,
-                    "cov_type": z, "log": z}
-        return {"stamp": z, "f8": np.zeros((0, 2)), "log": z}
+            return {"stamp": z, "lat": f, "lon": f, "alt": f, "status": z, "service": z,
+                    "cov": np.zeros((0, 9)), "cov_type": z, "log": z}
+        return {"stamp": z, "value": f, "variance": f, "log": z}
 
     def build(self, d: Fields | None) -> Any:
-        """The typed result of decoded rows (``None``: no row).
+        """The typed result of decoded rows (``None``: no row); arrays are not copied.
 
         Returns
         -------
@@ -158,39 +173,16 @@ class TopicDecoder:
             d = self._empty_fields()
         frame = self.frames[0] if self.frames else ""
         if self.kind == "imu":
-            cov = self.cov
-            return ImuSeries(
-                stamp_ns=np.ascontiguousarray(d["stamp"], np.int64),
-                angular_velocity=np.ascontiguousarray(d["av"]),
-                linear_acceleration=np.ascontiguousarray(d["la"]),
-                frame_id=frame,
-                log_time_ns=np.ascontiguousarray(d["log"], np.int64),
-                angular_velocity_covariance=cov[0:9].copy() if cov is not None else None,
-                linear_acceleration_covariance=cov[12:21].copy() if cov is not None else None,
-            )
+            if self._covs is None and self.cov is not None:
+                self._covs = (self.cov[0:9].copy(), self.cov[12:21].copy())
+            covs = self._covs or (None, None)
+            return ImuSeries(d["stamp"], d["av"], d["la"], frame, d["log"], *covs)
         if self.kind == "stars":
             return list(d["obj"])
         if self.kind == "fix":
-            f8 = d["f8"]
-            return NavSatSeries(
-                stamp_ns=d["stamp"],
-                latitude_deg=np.ascontiguousarray(f8[:, 0]),
-                longitude_deg=np.ascontiguousarray(f8[:, 1]),
-                altitude_m=np.ascontiguousarray(f8[:, 2]),
-                status=d["status"],
-                frame_id=frame,
-                service=d["service"],
-                position_covariance=np.ascontiguousarray(f8[:, 3:12]),
-                position_covariance_type=d["cov_type"],
-                log_time_ns=d["log"],
-            )
-        return ScalarSeries(
-            stamp_ns=d["stamp"],
-            value=np.ascontiguousarray(d["f8"][:, 0]),
-            variance=np.ascontiguousarray(d["f8"][:, 1]),
-            frame_id=frame,
-            log_time_ns=d["log"],
-        )
+            return NavSatSeries(d["stamp"], d["lat"], d["lon"], d["alt"], d["status"], frame,
+                                d["service"], d["cov"], d["cov_type"], d["log"])
+        return ScalarSeries(d["stamp"], d["value"], d["variance"], frame, d["log"])
 
     def blocks(self, d: Fields, imu_block: int) -> Iterator[Block]:
         """Stream blocks of one run of decoded rows (IMU split every ``imu_block`` rows)."""
