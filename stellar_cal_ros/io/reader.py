@@ -496,21 +496,26 @@ class BagReader:
             block type follows the topic's message type: ``Imu`` -> :class:`ImuSeries`,
             ``StarCentroidArray`` -> :class:`StarFrame`, ``NavSatFix`` ->
             :class:`NavSatSeries`, ``Temperature`` / ``FluidPressure`` ->
-            :class:`ScalarSeries`; another type raises :class:`BagError`.
+            :class:`ScalarSeries`; a topic of another type raises :class:`BagError`
+            (``on_error="skip"``: it is left out with a warning).
         imu_block : int
             Most samples in one :class:`ImuSeries` block.
 
         Yields
         ------
         (str, block)
-            ``(role, block)`` in log-time order: a block holds consecutive messages of one
-            topic (no message of another streamed topic falls between its first and last;
-            ties of log time keep the file's order, which can differ between formats of the
-            same recording). Series blocks hold one or more messages (an IMU block at most
-            ``imu_block``; blocks are not necessarily maximal: they are also cut at chunk
-            boundaries); a star block is one :class:`StarFrame`. Concatenating one role's
+            ``(role, block)`` in log-time order, ``role`` a key of ``topics``: a block holds
+            consecutive messages of one topic (no message of another streamed topic falls
+            between its first and last). Equal log times keep the order the messages were
+            written (chunks in file order, then position in the chunk; files in
+            ``metadata.yaml`` order), which can differ between two formats of one
+            recording. Series blocks hold one or more messages (an IMU block at most
+            ``imu_block``; blocks are not necessarily maximal: they are also cut where a
+            chunk ends); a star block is one :class:`StarFrame`. Concatenating one role's
             blocks gives exactly what ``read_imu`` / ``read_star_frames`` / ``read_navsat`` /
-            ``read_scalar`` return for its topic.
+            ``read_scalar`` return for its topic. Block arrays are views of the chunk's
+            decoded arrays (the IMU covariances are shared by all blocks): copy what you
+            keep for long if memory matters.
 
         Raises
         ------
