@@ -303,7 +303,8 @@ def _rosbag2_files(path: Path) -> tuple[str, list[Path], bool]:
         info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
         storage = str(info.get("storage_identifier", ""))
         files = [path / f for f in info.get("relative_file_paths", [])]
-        compressed = bool(info.get("compression_format") or info.get("compression_mode"))
+        mode = str(info.get("compression_mode") or "").lower()
+        compressed = bool(info.get("compression_format")) or mode not in ("", "none")
     except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
         raise BagError(f"{meta}: not a rosbag2 metadata file ({exc})") from exc
     return storage, files, compressed
