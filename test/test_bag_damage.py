@@ -128,3 +128,37 @@ def test_replay_on_error_skip_keeps_the_chunks_after_the_damage(healthy: Path,
     assert "reading goes on with the next valid chunk" in proc.stderr
     frames = int(re.search(r"frames=(\d+)", proc.stdout).group(1))
     assert frames > 0.7 * 240  # 2 Hz over 120 s, about a sixth lost (was 40 % kept)
+
+
+def test_info_checks_the_data_section_crc(healthy: Path, tmp_path: Path, capsys) -> None:
+    """A file written by the mcap library with a data CRC, damaged outside every chunk."""
+    from mcap.writer import CompressionType, Writer
+
+    from stellar_cal_ros.io import cdr
+    from stellar_cal_ros.io.bag import IMU_SCHEMA
+
+    imu = read_all(BagReader(healthy))["imu"]
+    _, size, encode = cdr.imu_encoder(imu)
+    raw = encode(np.arange(len(imu))).tobytes()
+    path = tmp_path / "crc.mcap"
+    with open(path, "wb") as fh:
+        w = Writer(fh, chunk_size=64 * 1024, compression=CompressionType.ZSTD,
+                   enable_data_crcs=True)
+        w.start(profile="ros2", library="test")
+        cid = w.register_channel("/imu/data", "cdr",
+                                 w.register_schema("sensor_msgs/msg/Imu", "ros2msg",
+                                                   IMU_SCHEMA.encode()))
+        for k, t in enumerate(imu.stamp_ns.tolist()):
+            w.add_message(cid, log_time=t, data=raw[k * size:(k + 1) * size], publish_time=t)
+        w.finish()
+    assert _info(path, capsys)[0] == 0  # the data CRC is computed as the mcap library does
+    with BagReader(path) as r:
+        ci = sorted(r._src.summary.chunk_indexes, key=lambda c: c.offset)[0]
+    data = bytearray(path.read_bytes())
+    data[ci.offset + ci.length + 20] ^= 0xFF  # inside the first chunk's message index
+    path.write_bytes(bytes(data))
+    rc, out = _info(path, capsys)
+    damaged = [line for line in out if line.startswith("DAMAGED")]
+    assert rc == 1 and len(damaged) == 1 and "data section CRC mismatch" in damaged[0]
+    with BagReader(path) as r:  # the damaged index is not trusted, the records are walked
+        np.testing.assert_array_equal(r.read_imu().stamp_ns, imu.stamp_ns)

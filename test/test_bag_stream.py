@@ -102,12 +102,12 @@ def _star(t: int, n: int = 3) -> StarFrame:
 
 
 def _mcap_in_call_order(path: Path, messages: list[tuple[str, str, int, bytes]],
-                        chunk_size: int) -> Path:
+                        chunk_size: int, **options) -> Path:
     """Write with the ``mcap`` library, messages in the given order (chunks may overlap)."""
     from mcap.writer import CompressionType, Writer
 
     with open(path, "wb") as fh:
-        w = Writer(fh, chunk_size=chunk_size, compression=CompressionType.NONE)
+        w = Writer(fh, chunk_size=chunk_size, compression=CompressionType.NONE, **options)
         w.start(profile="ros2", library="test")
         channels: dict[str, int] = {}
         for topic, schema, t, data in messages:
@@ -178,6 +178,26 @@ def test_ties_keep_file_order_within_a_chunk(tmp_path: Path) -> None:
     path = _mcap_in_call_order(tmp_path / "ties.mcap", msgs, chunk_size=1 << 20)
     roles = [(r, len(b) if r == "imu" else 1) for r, b in _stream(path)]
     assert roles == [("imu", 1), ("stars", 1), ("imu", 2)]
+
+
+def test_unchunked_file(tmp_path: Path) -> None:
+    """Message records outside chunks (no chunk index): read through the record scan."""
+    imu = _imu(3000, T0)
+    stars = [_star(T0 + k * 500_000_000 + 1) for k in range(60)]
+    msgs = sorted([("/imu/data", "sensor_msgs/msg/Imu", int(t), p)
+                   for t, p in zip(imu.stamp_ns, _imu_payloads(imu), strict=True)]
+                  + [("/star_tracker/stars", "stellar_cal_msgs/msg/StarCentroidArray",
+                      f.stamp_ns, cdr.encode_star_frame(f)) for f in stars],
+                  key=lambda m: m[2])
+    path = _mcap_in_call_order(tmp_path / "loose.mcap", msgs, 1 << 20, use_chunking=False)
+    blocks = _stream(path)
+    _assert_ordered(blocks)
+    got = join_stream(blocks)
+    np.testing.assert_array_equal(got["imu"].angular_velocity, imu.angular_velocity)
+    assert [f.stamp_ns for f in got["stars"]] == [f.stamp_ns for f in stars]
+    with BagReader(path) as r:
+        np.testing.assert_array_equal(r.read_imu().stamp_ns, imu.stamp_ns)
+        assert r.check() == []
 
 
 def _malformed(tmp_path: Path) -> Path:
