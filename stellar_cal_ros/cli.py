@@ -80,15 +80,28 @@ def _cmd_effects(args: argparse.Namespace) -> int:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
+    import warnings
+
     from stellar_cal_ros.io.bag import BagReader
 
-    with BagReader(args.bag) as reader:
+    with warnings.catch_warnings(record=True), BagReader(args.bag, on_error="skip") as reader:
+        warnings.simplefilter("always")
         topics = reader.topics()
-        span = (reader.end_ns - reader.start_ns) * 1e-9
-        print(f"{args.bag}: {span:.3f} s, {len(topics)} topics")
+        start, end = reader.start_ns, reader.end_ns
+        span = (end - start) * 1e-9 if start is not None and end is not None else 0.0
+        print(f"{args.bag}: {span:.3f} s, {len(topics)} topics ({reader.storage})")
         for name, info in sorted(topics.items()):
             print(f"  {name:32s} {info.schema_name:40s} {info.message_count:8d}")
-    return 0
+        problems = reader.check()
+    if not problems:
+        what = "every chunk decompresses and matches its CRC" if "mcap" in reader.storage \
+            else "every message could be read"
+        print(f"integrity: {what}")
+        return 0
+    print(f"integrity: {len(problems)} damaged part(s)")
+    for p in problems:
+        print(f"DAMAGED {p.describe(start)}")
+    return 1
 
 
 def _effect_list(text: str) -> list[str]:
@@ -345,8 +358,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="print each effect's explanation (cause, size, residual signature)")
     e.set_defaults(func=_cmd_effects)
 
-    i = sub.add_parser("info", help="topics, counts and time span of a bag")
-    i.add_argument("bag", type=Path, help="the bag (MCAP file)")
+    i = sub.add_parser("info", help="topics, counts and time span of a bag; checks every chunk's "
+                                    "CRC (exit 1 and one line per damaged part if any)")
+    i.add_argument("bag", type=Path, help="a .mcap file, a rosbag2 directory or a ROS 1 .bag")
     i.set_defaults(func=_cmd_info)
 
     r = sub.add_parser("replay", help="Kalman-filter calibration over a bag")

@@ -9,17 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stellar_cal_ros.core.types import ImuSeries, NavSatSeries, ScalarSeries, StarFrame
 from stellar_cal_ros.errors import BagError, MessageDecodeError
-from stellar_cal_ros.io.bag import (
-    IMU_SCHEMA,
-    SCHEMA_TEXTS,
-    BagReader,
-    BagWriter,
-    ImuSeries,
-    NavSatSeries,
-    ScalarSeries,
-    StarFrame,
-)
+from stellar_cal_ros.io.bag import IMU_SCHEMA, SCHEMA_TEXTS, BagReader, BagWriter
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 BAGS = sorted(DATA.glob("*.mcap"))

@@ -64,10 +64,11 @@ from stellar_cal_ros.core.attitude import wahba
 from stellar_cal_ros.core.earth import Site
 from stellar_cal_ros.core.rotation import left_jacobian, so3_exp, so3_log
 from stellar_cal_ros.core.strapdown import attitude_increments, propagate_attitude
+from stellar_cal_ros.core.types import ImuSeries, StarFrame
 from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.effects.registry import create_many
 from stellar_cal_ros.errors import BagError, ModelError, StellarCalError
-from stellar_cal_ros.io.bag import BagReader, ImuSeries, StarFrame
+from stellar_cal_ros.io.bag import BagReader
 from stellar_cal_ros.io.calibration import Calibration, store_estimate
 from stellar_cal_ros.methods.star_model import StarModel
 

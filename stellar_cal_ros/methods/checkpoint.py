@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.errors import ModelError
-from stellar_cal_ros.io.bag import StarFrame
 from stellar_cal_ros.methods.driver import Calibrator, InputCounters, _ImuQueue
 from stellar_cal_ros.methods.frames import FrameInputs
 from stellar_cal_ros.methods.kernel import FilterCounters

@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.errors import ModelError
-from stellar_cal_ros.io.bag import StarFrame
 from stellar_cal_ros.io.calibration import Calibration
 from stellar_cal_ros.methods import models
 from stellar_cal_ros.methods.frames import (

@@ -28,9 +28,10 @@ import numpy as np
 
 from stellar_cal_ros.core.catalog import radec_to_unit
 from stellar_cal_ros.core.earth import Site
+from stellar_cal_ros.core.types import ScalarSeries, StarFrame
 from stellar_cal_ros.effects.base import FrameContext
 from stellar_cal_ros.errors import BagError
-from stellar_cal_ros.io.bag import BagReader, ScalarSeries, StarFrame
+from stellar_cal_ros.io.bag import BagReader
 
 log = logging.getLogger(__name__)
 

@@ -29,10 +29,11 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
+from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.effects.registry import create_many
 from stellar_cal_ros.errors import StellarCalError
-from stellar_cal_ros.io.bag import BagReader, StarFrame
+from stellar_cal_ros.io.bag import BagReader
 from stellar_cal_ros.io.calibration import Calibration, store_estimate
 from stellar_cal_ros.methods.star_model import StarModel
 

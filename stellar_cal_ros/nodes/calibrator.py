@@ -71,9 +71,9 @@ from stellar_cal_msgs.msg import (
     StarResidualArray,
 )
 
+from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.errors import StellarCalError
-from stellar_cal_ros.io.bag import StarFrame
 from stellar_cal_ros.io.calibration import load_calibration, save_calibration
 from stellar_cal_ros.methods.checkpoint import (
     CheckpointError,

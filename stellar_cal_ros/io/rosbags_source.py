@@ -1,0 +1,234 @@
+"""Bags read through the ``rosbags`` library: rosbag2 sqlite3 (or compressed) and ROS 1.
+
+``rosbags`` supplies the raw messages in log-time order; they are gathered into
+:class:`~stellar_cal_ros.io.mcap_records.Rows` batches so the same bulk CDR decoders as for
+MCAP apply, and the results are identical. ROS 1 payloads are converted to CDR first with the
+bag's own definitions (``std_msgs/Header`` without ``seq``, as ``rosbags-convert`` does).
+The ``stellar_cal_msgs`` types are registered from this package's schema texts when a bag
+carries no definitions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.errors import BagError
+from stellar_cal_ros.io.mcap_records import BagProblem, Channel, OnDamage, Rows, Schema
+from stellar_cal_ros.io.schemas import SCHEMA_TEXTS
+from stellar_cal_ros.io.sources import SourceBase
+
+_BATCH_MESSAGES = 4096
+_BATCH_BYTES = 4 << 20
+
+# ROS 1 -> CDR without rosbags' generic converter for the high-rate contract types: a
+# std_msgs/Header followed by fixed fields, given as runs of (ROS 1 bytes, CDR alignment of
+# the run's first field; the others follow aligned).
+_ROS1_TAILS: dict[str, list[tuple[int, int]]] = {
+    "sensor_msgs/msg/Imu": [(37 * 8, 8)],
+    "sensor_msgs/msg/Temperature": [(2 * 8, 8)],
+    "sensor_msgs/msg/FluidPressure": [(2 * 8, 8)],
+    "sensor_msgs/msg/NavSatFix": [(1, 1), (2, 2), (12 * 8, 8), (1, 1)],
+}
+
+
+def _ros1_header_to_cdr(raw: bytes, tail: list[tuple[int, int]]) -> bytes | None:
+    """CDR of a ROS 1 ``Header`` + fixed-field message, None if ``raw`` does not fit.
+
+    ROS 1: ``uint32 seq, uint32 sec, uint32 nsec, uint32 n, n chars``, then the fields
+    packed. CDR: encapsulation, ``sec, nsec, n + 1, chars, NUL``, then each field aligned to
+    its alignment relative to the byte after the encapsulation.
+    """
+    if len(raw) < 16:
+        return None
+    n = int.from_bytes(raw[12:16], "little")
+    if len(raw) != 16 + n + sum(size for size, _ in tail):
+        return None
+    out = bytearray(b"\x00\x01\x00\x00")
+    out += raw[4:12]
+    out += (n + 1).to_bytes(4, "little")
+    out += raw[16 : 16 + n]
+    out += b"\x00"
+    pos = 16 + n
+    for size, alignment in tail:
+        out += bytes(-(len(out) - 4) % alignment)
+        out += raw[pos : pos + size]
+        pos += size
+    return bytes(out)
+
+
+def contract_typestore(base: Any = None, ros2_header: bool = False) -> Any:
+    """A rosbags typestore with ROS 2 Jazzy's types, the contract types and ``base``'s.
+
+    Parameters
+    ----------
+    base : rosbags Typestore, optional
+        Types to add (they win over Jazzy's and the contract ones).
+    ros2_header : bool
+        Use ROS 2's ``std_msgs/Header`` (no ``seq``) even if ``base`` has ROS 1's, so that
+        ``ros1_to_cdr`` gives ROS 2 CDR.
+    """
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    jazzy = get_typestore(Stores.ROS2_JAZZY).fielddefs
+    types: dict[str, Any] = dict(jazzy)
+    for name, text in SCHEMA_TEXTS.items():
+        for k, v in get_types_from_msg(text, name).items():
+            types.setdefault(k, v)
+    if base is not None:
+        types.update(base.fielddefs)
+    if ros2_header:
+        types["std_msgs/msg/Header"] = jazzy["std_msgs/msg/Header"]
+    store = get_typestore(Stores.EMPTY)
+    store.register(types)
+    return store
+
+
+class RosbagsSource(SourceBase):
+    """A bag read by ``rosbags.highlevel.AnyReader`` (see the module docstring).
+
+    Parameters
+    ----------
+    path : Path
+        A rosbag2 directory, a ``.db3`` file or a ROS 1 ``.bag`` file.
+    storage : str
+        ``rosbag1`` or ``rosbag2-<storage id>``.
+
+    Raises
+    ------
+    BagError
+        ``rosbags`` cannot open the bag.
+    """
+
+    profile = "ros2"
+    library = "rosbags"
+
+    def __init__(self, path: Path, storage: str) -> None:
+        from rosbags.highlevel import AnyReader, AnyReaderError
+
+        self.path = path
+        self.storage = storage
+        self.profile = "ros1" if storage == "rosbag1" else "ros2"
+        try:
+            self._reader = AnyReader([path], default_typestore=contract_typestore())
+            self._reader.open()
+        except (AnyReaderError, OSError, ValueError, KeyError) as exc:
+            raise BagError(f"cannot open bag {path} ({storage}) with rosbags: {exc}") from exc
+        self._ros1 = not self._reader.is2
+        self._types = contract_typestore(self._reader.typestore, ros2_header=self._ros1)
+        self._conn: dict[int, Any] = {}
+        self._channels: dict[int, Channel] = {}
+        self._schemas: dict[int, Schema] = {}
+        for cid, conn in enumerate(self._reader.connections, start=1):
+            self._conn[cid] = conn
+            self._channels[cid] = Channel(cid, cid, conn.topic, "cdr", {})
+            fmt = "ros1msg" if self._ros1 else "ros2msg"
+            self._schemas[cid] = Schema(cid, conn.msgtype, fmt, conn.msgdef.data.encode())
+
+    @property
+    def channels(self) -> Mapping[int, Channel]:  # type: ignore[override]
+        """Channel records, one per rosbags connection."""
+        return self._channels
+
+    @property
+    def schemas(self) -> Mapping[int, Schema]:  # type: ignore[override]
+        """Schema records (the connection's type and definition text)."""
+        return self._schemas
+
+    def channels_known(self) -> bool:
+        """Always True: the bag's index lists its connections."""
+        return True
+
+    def channel_counts(self) -> dict[int, int]:
+        """Messages per channel from the bag's index."""
+        return {cid: int(c.msgcount) for cid, c in self._conn.items()}
+
+    def time_bounds(self) -> tuple[int | None, int | None]:
+        """(first, last) log time; rosbags' end time is one past the last message."""
+        if not self._reader.message_count:
+            return None, None
+        return int(self._reader.start_time), int(self._reader.end_time) - 1
+
+    def _to_cdr(self, cid: int) -> Callable[[bytes], bytes | memoryview]:
+        if not self._ros1:
+            return lambda raw: raw
+        msgtype = self._conn[cid].msgtype
+        convert = self._types.ros1_to_cdr
+        fast = _ROS1_TAILS.get(msgtype)
+
+        def to_cdr(raw: bytes) -> bytes | memoryview:
+            if fast is not None:
+                out = _ros1_header_to_cdr(raw, fast)
+                if out is not None:
+                    return out
+            try:
+                return convert(raw, msgtype)
+            except Exception:  # noqa: BLE001 -- reported by the CDR decoder as malformed
+                return b""
+
+        return to_cdr
+
+    def iter_rows(self, want: set[int] | None, on_damage: OnDamage) -> Iterator[Rows]:
+        """Batches of the wanted channels' messages in log-time order (CDR payloads)."""
+        cids = sorted(self._conn if want is None else (c for c in want if c in self._conn))
+        if not cids:
+            return
+        ids = {id(self._conn[c]): c for c in cids}
+        conv = {c: self._to_cdr(c) for c in cids}
+        parts: list[bytes | memoryview] = []
+        chan: list[int] = []
+        log: list[int] = []
+        size = 0
+        last = None
+        rank = 0
+        try:
+            for conn, t, raw in self._reader.messages(connections=[self._conn[c] for c in cids]):
+                cid = ids[id(conn)]
+                payload = conv[cid](raw)
+                parts.append(payload)
+                chan.append(cid)
+                log.append(t)
+                size += len(payload)
+                last = t
+                if len(chan) >= _BATCH_MESSAGES or size >= _BATCH_BYTES:
+                    yield _batch(parts, chan, log, rank := rank + 1)
+                    parts, chan, log, size = [], [], [], 0
+        except Exception as exc:  # rosbags raises assorted errors on damaged files
+            if parts:
+                yield _batch(parts, chan, log, rank := rank + 1)
+                parts = []
+            on_damage(BagProblem(0, f"rosbags cannot read on ({type(exc).__name__}: {exc})",
+                                 start_ns=last, path=str(self.path)))
+        if parts:
+            yield _batch(parts, chan, log, rank := rank + 1)
+
+    def decoder(self, cid: int) -> Callable[[bytes], Any]:
+        """The ``rosbags`` decoder of channel ``cid``'s payloads as iter_rows gives them (CDR)."""
+        msgtype = self._conn[cid].msgtype
+        return lambda raw: self._types.deserialize_cdr(raw, msgtype)
+
+    def check(self) -> list[BagProblem]:
+        """Read every message once; a failure is reported as one problem."""
+        problems: list[BagProblem] = []
+        for _ in self.iter_rows(None, problems.append):
+            pass
+        return problems
+
+    def close(self) -> None:
+        """Close the rosbags reader."""
+        self._reader.close()
+
+
+def _batch(parts: list[bytes | memoryview], chan: list[int], log: list[int], rank: int) -> Rows:
+    lengths = np.fromiter((len(p) for p in parts), np.int64, len(parts))
+    offsets = np.zeros(len(parts), np.int64)
+    np.cumsum(lengths[:-1], out=offsets[1:])
+    buf = np.frombuffer(b"".join(parts), np.uint8)
+    logs = np.array(log, np.int64)
+    n = len(parts)
+    return Rows(buf, np.array(chan, np.uint16), np.zeros(n, np.uint32), logs, logs.copy(),
+                offsets, lengths, int(logs.min()), rank).sorted()
+

@@ -1,0 +1,164 @@
+"""Damaged bags: ``info`` names every damaged part; skip mode resynchronises on the next chunk."""
+
+from __future__ import annotations
+
+import re
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bag_checks import IMU_FIELDS, assert_same, join_stream, read_all, simulated_bag
+
+from stellar_cal_ros.cli import main
+from stellar_cal_ros.errors import BagError
+from stellar_cal_ros.io.bag import BagReader, BagWriter
+
+ROOT = Path(__file__).resolve().parents[1]
+ZEROED = (0.40, 0.55)  # fraction of the file zeroed
+
+
+@pytest.fixture(scope="module")
+def healthy(tmp_path_factory) -> Path:
+    return simulated_bag(tmp_path_factory.mktemp("damage") / "sim.mcap", duration=120.0,
+                         chunk_size=128 * 1024)
+
+
+def _zeroed(src: Path, dst: Path, keep_summary: bool = True) -> tuple[Path, int, int]:
+    data = bytearray(src.read_bytes())
+    a, b = int(len(data) * ZEROED[0]), int(len(data) * ZEROED[1])
+    data[a:b] = bytes(b - a)
+    if not keep_summary:  # cut before the summary: a recording whose footer was never written
+        # footer: opcode, length, summary start, summary offset start, crc, then the magic
+        summary_start = struct.unpack_from("<Q", data, len(data) - 8 - 4 - 8 - 8)[0]
+        assert 0 < summary_start < len(data)
+        del data[summary_start:]
+    dst.write_bytes(bytes(data))
+    return dst, a, b
+
+
+def _lost_chunks(healthy: Path, a: int, b: int) -> list:
+    """Chunk index entries of the healthy file that overlap the zeroed bytes [a, b)."""
+    with BagReader(healthy) as r:
+        chunks = r._src.summary.chunk_indexes
+    return [c for c in chunks if c.offset < b and c.offset + c.length > a]
+
+
+def _info(bag: Path, capsys) -> tuple[int, list[str]]:
+    rc = main(["info", str(bag)])
+    return rc, capsys.readouterr().out.splitlines()
+
+
+def test_info_healthy_bag(healthy: Path, capsys) -> None:
+    rc, out = _info(healthy, capsys)
+    assert rc == 0 and out[-1].startswith("integrity: every chunk")
+    assert "120.000 s, 6 topics (mcap)" in out[0]
+
+
+def test_info_names_each_damaged_chunk(healthy: Path, tmp_path: Path, capsys) -> None:
+    bag, a, b = _zeroed(healthy, tmp_path / "zeroed.mcap")
+    lost = _lost_chunks(healthy, a, b)
+    rc, out = _info(bag, capsys)
+    damaged = [line for line in out if line.startswith("DAMAGED") and "no message lost" not in line]
+    elsewhere = [line for line in out if line.startswith("DAMAGED") and line not in damaged]
+    assert rc == 1 and len(lost) >= 2
+    assert len(damaged) == len(lost), "\n".join(out)
+    assert all("outside the chunks" in line for line in elsewhere)  # e.g. a message index
+    t0 = BagReader(healthy).start_ns
+    for line, c in zip(damaged, sorted(lost, key=lambda c: c.offset), strict=True):
+        n = len(BagReader(healthy)._src.summary.chunk_indexes)
+        assert f"chunk {c.number}/{n} at byte {c.offset}:" in line
+        assert f"lost log time {(c.start - t0) * 1e-9:.3f}-{(c.end - t0) * 1e-9:.3f} s" in line
+        assert "/imu/data" in line and "/star_tracker/stars" in line
+
+
+def test_info_without_summary_and_bad_crc(healthy: Path, tmp_path: Path, capsys) -> None:
+    bag, a, _ = _zeroed(healthy, tmp_path / "nosummary.mcap", keep_summary=False)
+    rc, out = _info(bag, capsys)
+    damaged = [line for line in out if line.startswith("DAMAGED")]
+    assert rc == 1 and damaged
+    assert any("invalid record opcode 0x00" in line and "lost log time" in line
+               for line in damaged), "\n".join(out)
+    # one flipped byte in an uncompressed chunk: decompression cannot notice, the CRC does
+    content = read_all(BagReader(healthy))
+    plain = tmp_path / "plain.mcap"
+    with BagWriter(plain, compression="none", chunk_size=128 * 1024) as w:
+        w.write_imu(content["imu"])
+    data = bytearray(plain.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    plain.write_bytes(bytes(data))
+    rc, out = _info(plain, capsys)
+    assert rc == 1 and sum("chunk CRC mismatch" in line for line in out) == 1
+
+
+@pytest.mark.parametrize("keep_summary", [True, False], ids=["summary", "no_summary"])
+def test_skip_resynchronises_after_the_damage(healthy: Path, tmp_path: Path,
+                                              keep_summary: bool) -> None:
+    bag, a, b = _zeroed(healthy, tmp_path / "z.mcap", keep_summary)
+    lost = _lost_chunks(healthy, a, b)
+    full = read_all(BagReader(healthy))["imu"]
+    gone = np.zeros(len(full), bool)
+    for c in lost:
+        gone |= (full.log_time_ns >= c.start) & (full.log_time_ns <= c.end)
+    assert 0.1 < gone.mean() < 0.3
+    with BagReader(bag) as r, pytest.raises(BagError, match="truncated or corrupt"):
+        r.read_imu()
+    with BagReader(bag, on_error="skip") as r:
+        with pytest.warns(UserWarning, match="reading goes on with the next valid chunk"):
+            imu = r.read_imu()
+        assert r.truncated and r.problems
+        blocks = list(r.stream())
+    kept = type(full)(full.stamp_ns[~gone], full.angular_velocity[~gone],
+                      full.linear_acceleration[~gone], full.frame_id, full.log_time_ns[~gone],
+                      full.angular_velocity_covariance, full.linear_acceleration_covariance)
+    assert_same(imu, kept, IMU_FIELDS, "imu")
+    assert_same(join_stream(blocks)["imu"], kept, IMU_FIELDS, "stream imu")
+
+
+def test_replay_on_error_skip_keeps_the_chunks_after_the_damage(healthy: Path,
+                                                                tmp_path: Path) -> None:
+    bag, _, _ = _zeroed(healthy, tmp_path / "z.mcap")
+    prior = healthy.parent / "sim.prior.yaml"
+    cmd = [sys.executable, "-m", "stellar_cal_ros", "replay", str(bag), "--method", "psce",
+           "--prior", str(prior), "-o", str(tmp_path / "r.yaml"), "-q", "--on-error", "skip"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "reading goes on with the next valid chunk" in proc.stderr
+    frames = int(re.search(r"frames=(\d+)", proc.stdout).group(1))
+    assert frames > 0.7 * 240  # 2 Hz over 120 s, about a sixth lost (was 40 % kept)
+
+
+def test_info_checks_the_data_section_crc(healthy: Path, tmp_path: Path, capsys) -> None:
+    """A file written by the mcap library with a data CRC, damaged outside every chunk."""
+    from mcap.writer import CompressionType, Writer
+
+    from stellar_cal_ros.io import cdr
+    from stellar_cal_ros.io.bag import IMU_SCHEMA
+
+    imu = read_all(BagReader(healthy))["imu"]
+    _, size, encode = cdr.imu_encoder(imu)
+    raw = encode(np.arange(len(imu))).tobytes()
+    path = tmp_path / "crc.mcap"
+    with open(path, "wb") as fh:
+        w = Writer(fh, chunk_size=64 * 1024, compression=CompressionType.ZSTD,
+                   enable_data_crcs=True)
+        w.start(profile="ros2", library="test")
+        cid = w.register_channel("/imu/data", "cdr",
+                                 w.register_schema("sensor_msgs/msg/Imu", "ros2msg",
+                                                   IMU_SCHEMA.encode()))
+        for k, t in enumerate(imu.stamp_ns.tolist()):
+            w.add_message(cid, log_time=t, data=raw[k * size:(k + 1) * size], publish_time=t)
+        w.finish()
+    assert _info(path, capsys)[0] == 0  # the data CRC is computed as the mcap library does
+    with BagReader(path) as r:
+        ci = sorted(r._src.summary.chunk_indexes, key=lambda c: c.offset)[0]
+    data = bytearray(path.read_bytes())
+    data[ci.offset + ci.length + 20] ^= 0xFF  # inside the first chunk's message index
+    path.write_bytes(bytes(data))
+    rc, out = _info(path, capsys)
+    damaged = [line for line in out if line.startswith("DAMAGED")]
+    assert rc == 1 and len(damaged) == 1 and "data section CRC mismatch" in damaged[0]
+    with BagReader(path) as r:  # the damaged index is not trusted, the records are walked
+        np.testing.assert_array_equal(r.read_imu().stamp_ns, imu.stamp_ns)

@@ -1,0 +1,144 @@
+"""Any ROS bag in: rosbag2 sqlite3, split rosbag2 MCAP and ROS 1 give the MCAP's data exactly.
+
+A simulated bag is converted with ``rosbags`` (an independent implementation) to a rosbag2
+sqlite3 directory, a rosbag2 MCAP directory split in three files and a ROS 1 ``.bag``; the
+reader must return identical arrays, and ``replay`` the same calibration.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from bag_checks import assert_same_content, join_stream, read_all, simulated_bag
+
+from stellar_cal_ros.errors import BagError
+from stellar_cal_ros.io.bag import BagReader
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _convert(src: Path, dst: Path, storage: str) -> Path:
+    from rosbags.convert import convert
+
+    convert([src], dst, storage, 8, None, "file", None, None, [], [], [], [])
+    return dst
+
+
+def _split_mcap(src: Path, dst: Path, parts: int = 3) -> Path:
+    """A rosbag2 MCAP directory of ``parts`` files split by time, written by rosbags."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    dst.mkdir()
+    infos = []
+    with AnyReader([src]) as reader:
+        edges = np.linspace(reader.start_time, reader.end_time, parts + 1).astype(np.int64)
+        for k in range(parts):
+            sub = dst / f"part{k}"
+            with Writer(sub, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+                conns = {}
+                stop = int(edges[k + 1]) if k < parts - 1 else None
+                for c, t, raw in reader.messages(start=int(edges[k]), stop=stop):
+                    if c.id not in conns:
+                        conns[c.id] = w.add_connection(c.topic, c.msgtype,
+                                                       typestore=reader.typestore)
+                    w.write(conns[c.id], t, raw)
+            next(sub.glob("*.mcap")).rename(dst / f"split_{k}.mcap")
+            infos.append(yaml.safe_load((sub / "metadata.yaml").read_text())
+                         ["rosbag2_bagfile_information"])
+            shutil.rmtree(sub)
+    info = infos[0]
+    info["relative_file_paths"] = [f"split_{k}.mcap" for k in range(parts)]
+    info["files"] = [dict(m["files"][0], path=f"split_{k}.mcap") for k, m in enumerate(infos)]
+    info["message_count"] = sum(m["message_count"] for m in infos)
+    (dst / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}))
+    return dst
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("formats")
+    mcap = simulated_bag(d / "sim.mcap", duration=120.0, seed=5)
+    return {
+        "mcap": mcap,
+        "rosbag2_sqlite3": _convert(mcap, d / "rb2_sqlite3", "sqlite3"),
+        "rosbag2_mcap_split": _split_mcap(mcap, d / "rb2_split"),
+        "ros1": _convert(mcap, d / "ros1.bag", "sqlite3"),
+    }
+
+
+FORMATS = ["rosbag2_sqlite3", "rosbag2_mcap_split", "ros1"]
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_converted_bag_reads_identically(bags: dict[str, Path], fmt: str) -> None:
+    with BagReader(bags["mcap"]) as ref, BagReader(bags[fmt]) as r:
+        assert r.storage == {"rosbag2_sqlite3": "rosbag2-sqlite3", "ros1": "rosbag1",
+                             "rosbag2_mcap_split": "rosbag2-mcap"}[fmt]
+        assert r.topics() == ref.topics()
+        assert (r.start_ns, r.end_ns) == (ref.start_ns, ref.end_ns)
+        assert r.check() == []
+        blocks = list(r.stream())
+    want = read_all(BagReader(bags["mcap"]))
+    assert_same_content(read_all(BagReader(bags[fmt])), want)
+    assert_same_content(join_stream(blocks), want)
+
+
+def test_other_entry_points(bags: dict[str, Path], tmp_path: Path) -> None:
+    want = read_all(BagReader(bags["mcap"]))
+    db3 = next(bags["rosbag2_sqlite3"].glob("*.db3"))  # the storage file alone
+    assert_same_content(read_all(BagReader(db3)), want)
+    crashed = tmp_path / "crashed"  # a recording killed before writing metadata.yaml
+    crashed.mkdir()
+    for f in bags["rosbag2_mcap_split"].glob("*.mcap"):
+        shutil.copy(f, crashed / f.name)
+    assert_same_content(read_all(BagReader(crashed)), want)
+    with BagReader(bags["ros1"]) as r:  # generic decoding of a ROS 1 bag
+        topic, t, msg = next(r.iter_messages(["/gnss/fix"]))
+    assert topic == "/gnss/fix" and t == int(want["fix"].log_time_ns[0])
+    assert msg.latitude == want["fix"].latitude_deg[0]
+    assert msg.header.frame_id == want["fix"].frame_id
+    fake = tmp_path / "fake.bag"
+    fake.write_bytes(b"not a bag")
+    with pytest.raises(BagError, match="not a ROS 1 bag"):
+        BagReader(fake)
+
+
+def _numbers(node, prefix=""):
+    """Flatten the numbers of a YAML tree: {path: float}."""
+    if isinstance(node, dict):
+        out = {}
+        for k, v in node.items():
+            out.update(_numbers(v, f"{prefix}/{k}"))
+        return out
+    if isinstance(node, list):
+        out = {}
+        for k, v in enumerate(node):
+            out.update(_numbers(v, f"{prefix}[{k}]"))
+        return out
+    return {prefix: float(node)} if isinstance(node, int | float) else {}
+
+
+def _replay(bag: Path, out: Path) -> dict[str, float]:
+    prior = bag.parent / "sim.prior.yaml"
+    cmd = [sys.executable, "-m", "stellar_cal_ros", "replay", str(bag), "--method", "psce",
+           "--prior", str(prior), "-o", str(out), "-q"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return _numbers(yaml.safe_load(out.read_text()))
+
+
+def test_replay_gives_the_same_calibration_on_every_format(bags, tmp_path: Path) -> None:
+    ref = _replay(bags["mcap"], tmp_path / "mcap.yaml")
+    assert len(ref) > 50
+    for fmt in FORMATS:
+        got = _replay(bags[fmt], tmp_path / f"{fmt}.yaml")
+        assert got.keys() == ref.keys()
+        for k, v in ref.items():
+            assert got[k] == pytest.approx(v, rel=1e-9, abs=1e-300), f"{fmt}: {k}"
