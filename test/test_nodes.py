@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_online import BAG, PRIOR, assert_same, bag_events, feed, live_psce, write_excerpt
+from sim_bags import psce_bag, swaying_bag
+from test_online import assert_same, bag_events, feed, live_psce
 
 from stellar_cal_ros.io.bag import BagReader
 from stellar_cal_ros.io.calibration import load_calibration
@@ -48,14 +49,13 @@ except ImportError as exc:
 
 EXCERPT_S = 60.0
 DOMAIN_ID = 1 + (os.getpid() + 37) % 100
+BAG, PRIOR, _ = psce_bag(EXCERPT_S)
 
 
 @pytest.fixture
 def ros_context(monkeypatch):
     if _IMPORT_ERROR is not None:
         pytest.fail(f"rclpy / stellar_cal_msgs not importable ({_IMPORT_ERROR})")
-    if not BAG.exists():
-        pytest.skip(f"{BAG} not available")
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=DOMAIN_ID)
@@ -66,10 +66,8 @@ def ros_context(monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def excerpt(tmp_path_factory):
-    if not BAG.exists():
-        pytest.skip(f"{BAG} not available")
-    path = write_excerpt(BAG, tmp_path_factory.mktemp("nodes") / "excerpt60.mcap", EXCERPT_S)
+def excerpt():
+    path = BAG
     prior = load_calibration(PRIOR)
     with BagReader(path) as r:
         counts = {t: i.message_count for t, i in r.topics().items()}
@@ -199,6 +197,49 @@ def test_bag_through_topics_equals_offline_replay(ros_context, excerpt, tmp_path
     keys = {kv.key: kv.value for kv in st.values}
     assert keys["received.imu"] == str(n_imu) and "latency_p99_ms" in keys
     print(f"\n{stats.messages} messages in {wall:.2f} s ({stats.messages / wall:.0f} msg/s)")
+    cal.destroy_node()
+    player.destroy_node()
+
+
+def test_swaying_base_live_equals_its_replay(ros_context, tmp_path):
+    """method:=swaying_base (a moored ship): the site from /gnss/fix, gravity in the inertial
+    frame; the bag played through topics gives the replay's installation to 0.1 σ."""
+    from stellar_cal_ros.core.units import ARCSEC
+    from stellar_cal_ros.methods.swaying import replay_swaying
+
+    bag, prior_path, _ = swaying_bag(150.0)
+    prior = load_calibration(prior_path)
+    ref = replay_swaying(bag, prior)
+    prefix = "/w" + uuid.uuid4().hex[:8]
+    cal = make_calibrator(ros_context, prefix, tmp_path, method="swaying_base",
+                          prior_file=str(prior_path))
+    player = PlayerNode(f"player_{prefix[1:]}", context=ros_context, cli_args=remaps(prefix),
+                        use_global_arguments=False, parameter_overrides=[
+                            Parameter("bag", value=str(bag)), Parameter("rate", value=0.0),
+                            Parameter("progress_topic",
+                                      value=f"/calibrator_{prefix[1:]}/data_clock"),
+                            Parameter("wait_for_subscribers_s", value=5.0)])
+    ns = f"/calibrator_{prefix[1:]}"
+    est = Collector(player, CalibrationEstimate, ns + "/estimate")
+    diag = Collector(player, DiagnosticArray, prefix + "/diagnostics")
+    with BagReader(bag) as r:
+        n_imu = r.topics()["/imu/data"].message_count
+    with Spinner(ros_context, cal, player):
+        player.play()
+        wait_for(lambda: cal.received["imu"] == n_imu, what="all IMU")
+        cal.finish()
+        wait_for(lambda: est.msgs and diag.msgs, what="estimate + diagnostics")
+    assert cal.cal.method == "swaying_base" and est.msgs[-1].method == "swaying_base"
+    live, rf = cal.cal.filter, ref.filter
+    sl = live.model.slices["installation"]
+    d = (live.theta[sl] - rf.theta[sl]) / rf.sigma()[rf.it][sl]
+    assert np.all(np.abs(d) <= 0.1), d
+    assert live.counters.updates >= ref.counters["updates"] - 2
+    assert (tmp_path / "calibrator.npz").exists()
+    keys = {kv.key: kv.value for kv in diag.msgs[-1].status[0].values}
+    assert "filter.position_updates" in keys
+    print(f"\nlive - replay installation: {np.round(d, 4)} sigma "
+          f"({np.round(live.theta[sl] / ARCSEC, 3)} arcsec)")
     cal.destroy_node()
     player.destroy_node()
 

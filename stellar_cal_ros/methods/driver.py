@@ -80,7 +80,10 @@ class DriverConfig:
     max_pending_imu: int = 100_000  #: held IMU samples beyond this release the oldest
     env_history_s: float = 600.0  #: environment samples older than this before a frame: dropped
     max_fixes: int = 100_000  #: fixes kept for the site median
-    imu_batch: int = 512  #: released IMU samples handed to the filter in batches of this size
+    imu_batch: int = 4096  #: released IMU samples handed to the filter in batches of this size
+    #: process frames only when a batch of IMU is handed over (replay: throughput); False:
+    #: as soon as the IMU covers them (live: latency)
+    batch_frames: bool = False
     converge_window: int = 20  #: updates over which convergence is judged
     converge_sigma_ratio: float = 0.98  #: every σ(now)/σ(window ago) above this: settled
     converge_nis_ratio: float = 2.0  #: mean NIS/dof over the window below this: consistent
@@ -354,7 +357,8 @@ class Calibrator:
             self.counters.env_invalid += 1
             return []
         self.env[kind].add(int(stamp_ns), value)
-        return self._pump()
+        # a frame may have been waiting for this input (the data clock did not move)
+        return self._pump() if self._frames_pending and self.requires else []
 
     def push_fix(self, stamp_ns: int, latitude_deg: float, longitude_deg: float,
                  altitude_m: float, status: int = 0) -> list[FrameOutcome]:
@@ -363,7 +367,9 @@ class Calibrator:
         if not self.sites.add(stamp_ns, latitude_deg, longitude_deg, altitude_m, status):
             self.counters.fixes_invalid += 1
             return []
-        return self._pump()
+        if self.filter is None or (self._frames_pending and "site" in self.requires):
+            return self._pump()
+        return []
 
     def finish(self) -> list[FrameOutcome]:
         """End of input: release and process everything still held; close the tables."""
@@ -472,10 +478,16 @@ class Calibrator:
                     out.append(FrameOutcome(int(fr.stamp_ns), fr.frame_id, "skipped_" + reason))
                 self._frames_pending.clear()
             return out
-        self._flush_staged()
-        flt = self.filter
+        # IMU goes to the filter in batches (one vectorized extension instead of one per
+        # message), and at once when a frame is ready to be processed
+        if final or self._staged_n >= self.driver.imu_batch:
+            self._flush_staged()
+        elif self.driver.batch_frames:
+            return out
         limit = None if final else self.imu_max_ns - self.window_ns
         lookahead = self.driver.imu_lookahead_s
+        imu_end = self._imu_end_rel()
+        processed = False
         while self._frames_pending:
             fr = self._frames_pending[0]
             stamp = int(fr.stamp_ns)
@@ -485,20 +497,36 @@ class Calibrator:
             ready, stale = self._env_ready(stamp, final)
             if not ready:
                 break
-            ctx = frame_context(stamp, inp, self.site, self.env) if len(inp.uv) else None
-            if not final and ctx is not None:
-                shift, _ = self.model.time_shift(flt.theta, ctx)
+            if not final and len(inp.uv):
+                shift = self._time_shift(stamp, inp)
                 t_exp = (stamp - self.t0_ns) * 1e-9 + shift
-                if flt.imu.t_end <= t_exp + lookahead:
+                if imu_end <= t_exp + lookahead:
                     break  # the IMU does not cover the exposure yet
+            ctx = frame_context(stamp, inp, self.site, self.env) if len(inp.uv) else None
+            self._flush_staged()
             self._frames_pending.pop(0)
             self._inputs.pop(stamp, None)
             self._last_frame_ns = stamp
             if stale:
                 self.counters.env_stale += 1
             out.append(self._process(fr, inp, ctx))
-        self._trim()
+            processed = True
+        if processed:
+            self._trim()
         return out
+
+    def _time_shift(self, stamp: int, inp) -> float:
+        """Seconds from a frame's stamp to its modelled exposure (current θ)."""
+        if not self.model.has_time_effect:
+            return float(self.prior.time_offset)
+        ctx = frame_context(stamp, inp, self.site, self.env)
+        return self.model.time_shift(self.filter.theta, ctx)[0]
+
+    def _imu_end_rel(self) -> float:
+        """Relative stamp of the newest IMU sample released (staged or in the filter)."""
+        if self._staged:
+            return (int(self._staged[-1][0][-1]) - self.t0_ns) * 1e-9
+        return self.filter.imu.t_end
 
     def _process(self, frame: StarFrame, inp, ctx) -> FrameOutcome:
         flt = self.filter

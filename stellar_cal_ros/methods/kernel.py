@@ -250,7 +250,7 @@ class StarFilter:
 
     def sigma(self) -> np.ndarray:
         """1-sigma of the error state (attitude, θ, navigation)."""
-        return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
+        return np.sqrt(np.maximum(np.diag(self.P), 0.0))
 
     def theta_estimated(self) -> np.ndarray:
         """The estimated part of θ."""

@@ -41,6 +41,8 @@ log = logging.getLogger(__name__)
 
 #: data-time reorder window of a replay (a bag's log order is nearly stamp order)
 REPLAY_REORDER_S = 1.0
+#: data seconds of IMU a replay holds ahead of the frame being processed
+REPLAY_LOOKAHEAD_S = 30.0
 #: IMU block handed to the driver at once
 IMU_BLOCK = 4096
 
@@ -202,9 +204,11 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
     cfg = config
     # a replay never drops frames for memory: what is held is bounded by the look-ahead
     drv = driver or DriverConfig(reorder_window_s=REPLAY_REORDER_S,
-                                 max_pending_frames=1_000_000)
+                                 max_pending_frames=1_000_000, batch_frames=True)
+    # IMU ahead of the frames: the filter takes it in large vectorized batches, and the
+    # swaying strapdown gets full reference windows, as over a whole bag
+    drv.imu_lookahead_s = max(drv.imu_lookahead_s, REPLAY_LOOKAHEAD_S)
     if method != "psce" and not getattr(cfg, "exact_propagation", False):
-        # full reference windows of the swaying strapdown, as over a whole bag
         window = getattr(cfg, "reference_window_s", None) or 120.0
         drv.imu_lookahead_s = max(drv.imu_lookahead_s, window + 1.0)
     res_sink = TableSink(residuals, RESIDUAL_COLUMNS) if residuals is not None or keep_tables \
