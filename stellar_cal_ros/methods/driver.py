@@ -538,6 +538,9 @@ class Calibrator:
             fc.stars_invalid += len(inp.ok)
             return FrameOutcome(int(frame.stamp_ns), frame.frame_id, "skipped_few_stars")
         fc.stars_invalid += int((~inp.ok).sum())
+        if flt.sensitivity is not None:  # score and information over the evaluation window
+            flt.sensitivity.accumulate = self.eval_start is None or \
+                frame.stamp_ns * 1e-9 >= self.eval_start
         upd = flt.process_frame(inp.uv, inp.u_i, ctx, inp.sigma,
                                 t_rel=(frame.stamp_ns - self.t0_ns) * 1e-9)
         ref = getattr(flt, "reference_history", None)

@@ -101,8 +101,15 @@ class PsceFilter(StarFilter):
         self._prefix: ImuPrefix | None = None
         b, E, Jb, JE = model.sensor_model(self.theta, Stage.GYRO)
         # Fast propagation needs rates linear in θ with a constant Jacobian: bias-type GYRO
-        # effects only (∂E/∂θ = 0); scale-factor / misalignment effects use the exact path.
-        self._gyro_linear = not np.any(JE)
+        # effects only (∂E/∂θ = 0); estimated scale-factor / misalignment effects use the
+        # exact path.  Consider parameters stay at their prior: only their transition columns
+        # are needed, summed over the interval's samples (_consider_columns).
+        self._gyro_linear = not np.any(JE[:, :, :self.P_est])
+        JE_b = JE[:, :, self.P_est:]
+        self._consider_JE = JE_b if np.any(JE_b) else None
+        if self._consider_JE is not None and np.any(E):
+            self._consider_JE = np.einsum("ik,kjp->ijp", np.linalg.inv(np.eye(3) + E),
+                                          self._consider_JE)
         if self.config.fast_propagation and self._gyro_linear:
             self._prefix = ImuPrefix(self.nominal_dt, self.theta, b, E, Jb)
         self._q_diag = np.concatenate([np.full(3, self.q_gyro), self.q_theta])
@@ -178,12 +185,29 @@ class PsceFilter(StarFilter):
         if corr @ corr > self.config.fast_propagation_max_rad ** 2:
             return False
         self.R_i_b = so3_exp(corr) @ (R0Ca @ Cb)
+        if self._consider_JE is not None:
+            Phi = Phi.copy()
+            Phi[:, self.P_est:] += R0Ca @ self._consider_columns(ma, mb, ta, tb, Cb)
         self._apply_transition(Phi, tb - ta)
         self._inflate_bridged(ma, mb, ta, tb)
         self.omega = pre.w_hat[mb] + pre.G @ delta
         self.t = tb
         self._k = mb
         return True
+
+    def _consider_columns(self, ma: int, mb: int, ta: float, tb: float,
+                          Cb: np.ndarray) -> np.ndarray:
+        """``−Σ_j C_j (I+E)⁻¹ (∂E/∂β ω̂_j) Δt_j`` over ``(ta, tb]`` (3, m), prefix frame.
+
+        The rate-error Jacobian of the consider scale factors / misalignments, summed with
+        the attitude at each segment's end, as :meth:`_propagate_exact` does.
+        """
+        pre = self._prefix
+        ends = np.append(pre.tp[ma + 1:mb + 1], tb)
+        dts = np.diff(ends, prepend=ta)
+        C = np.concatenate([pre.C[ma + 1:mb + 1], Cb[None]])
+        JEw = np.einsum("ijp,nj->nip", self._consider_JE, pre.w_hat[ma:mb + 1])
+        return -np.einsum("nij,njp,n->ip", C, JEw, dts)
 
     def _propagate_exact(self, t_target: float) -> None:
         """Per-sample propagation with the current θ (any GYRO-stage effects)."""
