@@ -262,7 +262,8 @@ def consistency(stats: RunStats) -> dict[str, Any]:
     else:
         verdict = "consistent"
     out = {"nis_per_dof": nis, "interval": [lo, hi], "whiteness_p": p, "verdict": verdict,
-           "stars": stats.stars}
+           "stars": stats.stars, "rms_px": list(stats.rms()),
+           "expected_rms_px": list(stats.expected_rms())}
     if stats.ref_dof:
         out["reference_nis_per_dof"] = ref
     return out
