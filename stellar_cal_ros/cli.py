@@ -466,6 +466,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    finally:
+        set_provenance()  # this command's record ends with it (a caller may run another)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -357,8 +357,12 @@ def user_effect_file(tmp_path):
 def test_user_effect_module(user_effect_file, sim, stars):
     assert registry.load_effect_module(user_effect_file) == ["test_user_cx_scale"]
     assert registry.available()[-1] == "test_user_cx_scale"
+    # the same file again (a second command in one process) is the same effect ...
+    assert registry.load_effect_module(user_effect_file) == ["test_user_cx_scale"]
+    other = user_effect_file.with_name("other_effect.py")
+    other.write_text(user_effect_file.read_text())
     with pytest.raises(ModelError, match="already registered"):
-        registry.load_effect_module(user_effect_file)  # a new class object, same id
+        registry.load_effect_module(other)  # ... another file with the same id is not
     effects = registry.create_many(["test_user_cx_scale", "principal_point"])
     assert [e.id for e in effects] == ["principal_point", "test_user_cx_scale"]
     ids, u_i = stars

@@ -42,13 +42,15 @@ def add_budget_parser(sub) -> None:
     b.add_argument("--frames", type=int, default=None, help="random frames (default 100)")
     b.add_argument("--draws", type=int, default=None,
                    help="Monte-Carlo draws per source (default 1000; 0: linear only)")
-    b.add_argument("--seed", type=int, default=None)
+    b.add_argument("--seed", type=int, default=None,
+                   help="seed of the Monte-Carlo draws (default: fresh each run)")
     b.add_argument("--reference-angle", type=float, default=None, metavar="DEG",
                    help="incident angle of the per-star table (default: half the field "
                         "along u)")
     b.add_argument("-o", "--output", type=Path, default=None,
                    help="OUT_DIR for budget.json and the plots")
-    b.add_argument("--no-plots", action="store_true")
+    b.add_argument("--no-plots", action="store_true",
+                   help="budget.json only, no PNG figures")
     b.set_defaults(func=run_budget_command)
 
 
