@@ -7,7 +7,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import report, stats
+from stellar_cal_ros.diagnosis import stats
 from stellar_cal_ros.diagnosis.discover import (
     CandidateResult,
     hidden_effects,
@@ -52,6 +52,8 @@ def finish(out: Path, calibration: Calibration, base: RunStats, final: RunStats,
     if best is None:
         summary["reliability"] = hidden_effects(base, results)
     if plots:
+        from stellar_cal_ros.diagnosis import report  # matplotlib: only when plotting
+
         report.plot_vector_fields(panels, cam.width, cam.height, fraction,
                                   out / "vector_field.png")
         report.plot_regressors(panels, centre, fraction, out / "regressors.png")
