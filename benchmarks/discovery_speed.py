@@ -1,9 +1,11 @@
 """Speed and memory of the model discovery (issue 15 targets), measured as the user runs it.
 
 Each measurement is one ``python -m stellar_cal_ros`` process (the command a user types),
-watched from outside: wall time, and the peak over time of the RSS and of the PSS summed
-over its whole process tree (the parent, the Dask worker processes).  RSS counts shared
-library pages once per process; PSS splits them, so it is the fairer "memory of the tree".
+watched from outside: wall time, the CPU time of its whole process tree (user + system,
+from the reaped children's rusage: on a shared machine, CPU / cores is the wall time an
+idle machine would need at best), and the peak over time of the RSS and of the PSS summed
+over the tree (the parent, the Dask worker processes).  RSS counts shared library pages
+once per process; PSS splits them, so it is the fairer "memory of the tree".
 
 Targets (2 cores):
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -54,6 +57,7 @@ def _tree_memory(proc: psutil.Process) -> tuple[float, float]:
 def measure(args: list[str], period: float = 0.2) -> dict[str, float]:
     """Run ``python -m stellar_cal_ros ARGS``; wall time and peak tree memory."""
     cmd = [sys.executable, "-m", "stellar_cal_ros", *args]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
@@ -73,9 +77,12 @@ def measure(args: list[str], period: float = 0.2) -> dict[str, float]:
     done.set()
     thread.join()
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # the tree, reaped
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{err[-2000:]}")
-    return {"wall": wall, "rss_mb": peak[0] / 1e6, "pss_mb": peak[1] / 1e6, "stdout": out}
+    return {"wall": wall, "cpu": cpu, "rss_mb": peak[0] / 1e6, "pss_mb": peak[1] / 1e6,
+            "stdout": out}
 
 
 def ensure_2h_bag() -> Path:
@@ -87,8 +94,8 @@ def ensure_2h_bag() -> Path:
 
 
 def _row(name: str, workers: int, m: dict[str, float], target: str) -> str:
-    return (f"{name:8s} {workers:7d} {m['wall']:9.1f} {m['rss_mb']:10.0f} {m['pss_mb']:10.0f}"
-            f"   {target}")
+    return (f"{name:8s} {workers:7d} {m['wall']:9.1f} {m['cpu']:8.1f} {m['rss_mb']:10.0f} "
+            f"{m['pss_mb']:10.0f}   {target}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,8 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     counts = [int(w) for w in args.workers.split(",")]
     print("command: " + " ".join([sys.executable, *sys.argv]))
     print(f"cpu count {os.cpu_count()}, load average {os.getloadavg()[0]:.1f} at start")
-    print(f"{'case':8s} {'workers':>7s} {'wall s':>9s} {'peak RSS':>10s} {'peak PSS':>10s}"
-          "   target")
+    print(f"{'case':8s} {'workers':>7s} {'wall s':>9s} {'CPU s':>8s} {'peak RSS':>10s} "
+          f"{'peak PSS':>10s}   target  (MB; CPU s: user+system of the whole tree)")
     with tempfile.TemporaryDirectory() as tmp:
         if args.only in (None, "sky"):
             if not SKY.exists():

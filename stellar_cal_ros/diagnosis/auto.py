@@ -11,7 +11,8 @@ this order:
    the real cause was found (an aberration scale fitted to a gyro scale factor's pattern)
    goes here.  A dropped effect is not added again.
 2. **exchange** — an added effect ``x`` replaced by a *rival*: a candidate that was
-   significant alone in the round ``x`` was added and no longer once it was.  The model
+   significant alone in the round ``x`` was added, with a score at least
+   :data:`RIVAL_SCORE` of ``x``'s (a near tie), and no longer once ``x`` was in.  The model
    with the rival instead of ``x`` is kept when it predicts the evaluation window better
    (higher prequential log-likelihood: held-out predictions, so the extra parameters of a
    flexible effect are no advantage).  Each pair is tried once per model (again after the
@@ -55,8 +56,10 @@ from stellar_cal_ros.effects import registry
 from stellar_cal_ros.io.calibration import Calibration, save_calibration
 from stellar_cal_ros.methods.replay import BagData
 
-#: at most this many rivals of an added effect are tried in its place
+#: at most this many rivals of an added effect are tried in its place: candidates
+#: significant alone in its round whose score was at least RIVAL_SCORE of its score
 MAX_RIVALS = 2
+RIVAL_SCORE = 0.5
 
 
 def _verdict(c: CandidateResult, top: CandidateResult | None) -> str:
@@ -247,8 +250,9 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 state.dropped[removed] = f"exchanged for {added} in round {k}"
             else:
                 state.extra.append(added)
-                state.rivals[added] = [c.effect for c in results if c is not top
-                                       and c.significant_alone][:MAX_RIVALS]
+                state.rivals[added] = [
+                    c.effect for c in results if c is not top and c.significant_alone
+                    and c.statistic >= RIVAL_SCORE * top.statistic][:MAX_RIVALS]
             state.start, state.last = follow.calibration, added or removed
     return _write(out, calibration, spec, state, path, history, first, current, results,
                   evaluation_fraction, plots, runs, stopped, time.perf_counter() - t_start)
