@@ -168,6 +168,27 @@ def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns(
     assert not hasattr(top.run, "filter")
 
 
+def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):
+    """--scheduler: the user's cluster runs the round (here a 1-worker LocalCluster); a bag
+    in memory is scattered to it; a worker without the file parses the bag's bytes."""
+    from distributed import LocalCluster
+
+    from stellar_cal_ros.diagnosis.runstats import BagBytes, load_bag
+    from stellar_cal_ros.sim.world import write_simulation
+
+    sim, data = _sim({"time_offset": 5e-4}, seed=15, duration=100.0)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=":0") as cluster:
+        s = diagnose(data, sim.prior, "psce", [], tmp_path, plots=False, verbose=False,
+                     candidates=["time_offset", "pixel_aspect"],
+                     scheduler=cluster.scheduler_address)
+    assert s["recommendation"] == "time_offset"
+    paths = write_simulation(sim, tmp_path / "b.mcap")
+    from_bytes = load_bag(BagBytes.of(paths["bag"]))
+    assert len(from_bytes.frames) == len(data.frames)
+    assert np.array_equal(from_bytes.imu_w, data.imu_w)
+
+
 def test_lambda0_and_mdb_against_closed_forms():
     """λ₀ for 1 dof is (z_{α/2} + z_power)² to 1 %; the MDB of a 1-parameter effect is
     sqrt(λ₀ / I)."""

@@ -173,7 +173,10 @@ class DaskRuns(Runs):
             futures[fut] = task
         for fut in as_completed(futures):
             task = futures.pop(fut)
-            out = fut.result()
+            try:
+                out = fut.result()
+            except Exception as exc:  # a worker died (killed, out of memory): a failed run
+                out = RunStats(effects=task.effects, error=f"{type(exc).__name__}: {exc}")
             fut.release()
             if done:
                 done(task, out)

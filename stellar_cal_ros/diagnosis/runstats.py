@@ -38,8 +38,8 @@ from stellar_cal_ros.methods.replay import (
 
 Table = dict[str, np.ndarray]
 
-#: the derived quantities whose bias the reliability report shows (name → index in the
-#: equivalent principal point)
+#: names of the derived quantities whose bias the reliability report shows: the equivalent
+#: principal point (u, v), px
 EPP_NAMES = ("equivalent_principal_point.u", "equivalent_principal_point.v")
 
 
