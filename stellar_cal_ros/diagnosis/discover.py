@@ -275,11 +275,15 @@ def prior_uncertain(calibration: Calibration, in_model: set[str]) -> list[str]:
     ``--effects``; these effects are not added silently but listed first among the
     candidates and tested like any other.
     """
+    from stellar_cal_ros.diagnosis.runstats import quiet
+
     try:
         from stellar_cal_ros.methods.swaying import prior_uncertain_effects
     except ImportError:  # moved by the kernel refactor: nothing to list
         return []
-    return [e for e in prior_uncertain_effects(calibration) if e not in in_model]
+    with quiet(level=logging.WARNING):  # its notes concern the swaying replay
+        found = prior_uncertain_effects(calibration)
+    return [e for e in found if e not in in_model]
 
 
 def _applicable(effect_id: str, spec: MethodSpec, facts: dict[str, Any] | BagData) -> str:

@@ -129,6 +129,8 @@ class DaskRuns(Runs):
             raise StellarCalError("parallel diagnosis needs dask.distributed "
                                   "(pip install 'dask[distributed]')") from exc
         self.cluster = None
+        if not log.isEnabledFor(logging.DEBUG):  # its start-up chatter, unless -v
+            logging.getLogger("distributed").setLevel(logging.WARNING)
         if scheduler:
             try:
                 self.client = Client(scheduler, timeout="20s")

@@ -189,6 +189,8 @@ def display_unit(parameter: str) -> tuple[str, float]:
         unit = eff.units[list(eff.parameter_names).index(name)]
     except Exception:  # an unknown name: show it raw
         return "", 1.0
+    if unit == "1":
+        return "", 1.0  # dimensionless (distortion coefficients)
     return _UNIT_DISPLAY.get(unit, (unit, 1.0))
 
 

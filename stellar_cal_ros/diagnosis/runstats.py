@@ -17,7 +17,9 @@ the single place that reads a :class:`~stellar_cal_ros.methods.replay.ReplayResu
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import logging
 import os
 import tempfile
 import time
@@ -207,6 +209,22 @@ def register_effect_classes(classes: tuple[type, ...]) -> None:
             registry.register(cls)
 
 
+@contextlib.contextmanager
+def quiet(name: str = "stellar_cal_ros.methods", level: int = logging.ERROR):
+    """Raise a logger's level for a while.
+
+    A candidate run's filter warnings (missing effect, frames rejected) are expected, and
+    the diagnosis reports what matters.
+    """
+    logger = logging.getLogger(name)
+    old = logger.level
+    logger.setLevel(max(level, old))
+    try:
+        yield
+    finally:
+        logger.setLevel(old)
+
+
 def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
              fraction: float, keep_residuals: bool = False,
              effect_classes: tuple[type, ...] = ()) -> RunStats:
@@ -220,7 +238,8 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
     try:
         register_effect_classes(effect_classes)
         data = load_bag(bag)
-        result = spec.runner(data, prior, list(effects))
+        with quiet():
+            result = spec.runner(data, prior, list(effects))
         out = run_statistics(result, fraction, keep_residuals)
         if keep_residuals:
             from stellar_cal_ros.diagnosis.context import add_gravity_regressors
