@@ -8,7 +8,7 @@ Executors
 ---------
 ``workers=0``
     in this process, one run after the other (the Python API's default; tests).
-``workers=N`` (N ≥ 1; the command line's default is one per core)
+``workers=N`` (N ≥ 1; the command line's default is one per core, at most 16)
     a ``dask.distributed.LocalCluster`` of N single-threaded worker *processes* (the
     Kalman filters are pure-Python loops: threads would serialize on the GIL).
 ``scheduler=ADDRESS``
@@ -49,6 +49,10 @@ from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import Calibration
 
 log = logging.getLogger(__name__)
+
+#: the default number of local workers is one per core, up to this (a round has ~10-20
+#: runs, and each worker holds the bag)
+MAX_DEFAULT_WORKERS = 16
 
 
 @dataclass
@@ -139,7 +143,7 @@ class DaskRuns(Runs):
                                       f"{exc}") from exc
             self.description = f"on the Dask cluster {scheduler}"
         else:
-            n = workers or os.cpu_count() or 1
+            n = workers or min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                         dashboard_address=":0",
                                         silence_logs=logging.ERROR)
@@ -200,8 +204,13 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
                 scheduler: str | None = None) -> Iterator[Runs]:
     """A :class:`Runs` for ``bag``: in process (``workers=0``), local Dask or a scheduler.
 
-    ``workers=None`` means one worker process per core.
+    ``workers=None`` means one worker process per core (at most
+    :data:`MAX_DEFAULT_WORKERS`).
     """
+    if isinstance(bag, (str, Path)) and not Path(bag).is_file():
+        from stellar_cal_ros.errors import BagError
+
+        raise BagError(f"{bag}: no such bag file")
     runs = (DaskRuns(bag, spec, fraction, workers, scheduler) if scheduler or workers != 0
             else Runs(bag, spec, fraction))
     try:
