@@ -6,7 +6,8 @@ simulate   write a synthetic contract bag + ``*.truth.yaml`` + ``*.prior.yaml``
 info       list the topics, message counts and time span of a bag
 replay     Kalman-filter calibration over a bag (psce, swaying_base)
 batch      attitude-correlated-frames batch calibration
-diagnose   compare model and measurements, rank missing effects
+diagnose   compare model and measurements, rank missing effects (--auto: add them)
+discover   diagnose --auto
 report     plots and an HTML page of one calibration run
 compare    two runs of the model-discovery loop side by side
 export     a result in Kalibr, OpenVINS or ROS camera_info format
@@ -208,6 +209,13 @@ def print_replay_summary(result, prior) -> None:
              f"{np.round(np.asarray(cal.accel_bias) / MICRO_G, 2).tolist()} ug"))
 
 
+def print_diagnosis(summary: dict) -> None:
+    """Print the key lines of a diagnosis summary (:mod:`stellar_cal_ros.diagnosis.printing`)."""
+    from stellar_cal_ros.diagnosis.printing import print_diagnosis as show
+
+    show(summary)
+
+
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from stellar_cal_ros.diagnosis.run import diagnose
     from stellar_cal_ros.io.calibration import load_calibration
@@ -215,54 +223,25 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     _load_effect_modules(args.effect_module)
     cal = load_calibration(args.calibration)
     candidates = _effect_list(args.candidates) or None
+    if args.workers is not None and args.workers < 0:
+        raise StellarCalError("--workers must be >= 0 (0: no worker processes)")
+    auto = args.auto or args.command == "discover"
+    if auto and args.max_rounds < 1:
+        raise StellarCalError("--max-rounds must be >= 1")
     summary = diagnose(args.bag, cal, args.method, _effect_list(args.effects), args.output,
-                       candidates=candidates, plots=not args.no_plots)
+                       candidates=candidates, plots=not args.no_plots, workers=args.workers,
+                       scheduler=args.scheduler, auto=auto, max_rounds=args.max_rounds)
+    if auto:
+        from stellar_cal_ros.diagnosis.printing import print_discovery
+
+        print_discovery(summary)
+        print(f"wrote {summary['calibration_file']}, {args.output / 'diagnosis.json'}"
+              + ("" if args.no_plots else f" and {args.output / 'report.html'}"))
+        return 0
     print_diagnosis(summary)
     print(f"wrote {args.output / 'diagnosis.json'}"
           + ("" if args.no_plots else f" and {args.output / 'report.html'}"))
     return 0
-
-
-def print_diagnosis(summary: dict) -> None:
-    """Print the key lines of a diagnosis summary."""
-    rms, exp = summary["residual_rms_px"], summary["expected_rms_px"]
-    print(f"innovation RMS u={rms[0]:.4f} v={rms[1]:.4f} px; the model expects "
-          f"u={exp[0]:.4f} v={exp[1]:.4f} px")
-    print("candidates (best first):")
-    for c in summary["candidates"][:6]:
-        flag = "SIGNIFICANT" if c["significant"] else "           "
-        after = c.get("after")
-        note = (f"  (not needed once {after['effect']} is added: p={after['p_value']:.2g})"
-                if after and not c["significant"] else
-                f"  (after {after['effect']}: p={after['p_value']:.2g})" if after else "")
-        print(f"  {flag} {c['effect']:22s} score {c['score']:10.1f}  p={c['p_value']:.2g}  "
-              f"RMS after u={c['rms_after_px'][0]:.4f} v={c['rms_after_px'][1]:.4f} px{note}")
-    also = [c["effect"] for c in sorted(summary["candidates"][1:],
-                                        key=lambda c: -(c.get("after") or {}).get("score", 0))
-            if c["significant"] and c.get("after")]
-    if also:
-        top = next(c["after"]["effect"] for c in summary["candidates"] if c.get("after"))
-        print(f"  still significant after adding {top}: "
-              f"{', '.join(also)} (add them one at a time)")
-    implausible = summary.get("implausible", [])
-    for u in implausible:
-        est, sig = next(iter(u["estimate"].values())), next(iter(u["sigma"].values()))
-        after = u.get("after")
-        note = (f"; not needed once {after['effect']} is added" if after and not after["needed"]
-                else "")
-        print(f"  implausible: {u['effect']} (fits {est:.3g} +- {sig:.2g} x its physical "
-              f"size{note})")
-    if any(not (u.get("after") and not u["after"]["needed"]) for u in implausible):
-        print("    (a physical effect at the wrong size: the structure has another cause, or "
-              "several effects are missing; add the top candidate and diagnose again)")
-    for u in summary["unobservable"]:
-        print(f"  unobservable: {u['effect']} ({u['reason']})")
-    for u in summary["unexplained"][:5]:
-        print(f"  unexplained: {u['component']} residual vs {u['regressor']} "
-              f"(t={u['statistic']:.1f}, p={u['p_value']:.2g})")
-    rec = summary.get("recommendation")
-    print(f"recommendation: add --effects {rec}" if rec else
-          "recommendation: no library effect explains the residuals better")
 
 
 def _cmd_batch(args: argparse.Namespace) -> int:
@@ -401,21 +380,34 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.set_defaults(func=_cmd_batch)
 
-    d = sub.add_parser("diagnose", help="compare model and measurements")
-    d.add_argument("bag", type=Path, help="contract bag to diagnose on")
-    d.add_argument("--calibration", required=True, type=Path,
-                   help="RESULT.yaml (or a prior) the diagnosis starts from")
-    d.add_argument("--method", required=True, choices=["psce", "swaying_base"],
-                   help="the filter whose model is diagnosed")
-    d.add_argument("--effects", default="",
-                   help="comma-separated effect ids already in the model (as for replay)")
-    d.add_argument("-o", "--output", required=True, type=Path, help="REPORT_DIR")
-    d.add_argument("--candidates", default="",
-                   help="comma-separated effect ids to try (default: every library effect)")
-    d.add_argument("--effect-module", type=Path, action="append",
-                   help="Python file defining extra Effect classes (repeatable)")
-    d.add_argument("--no-plots", action="store_true", help="diagnosis.json only")
-    d.set_defaults(func=_cmd_diagnose)
+    for name, text in (("diagnose", "compare model and measurements (--auto: add effects "
+                                    "until nothing is significant)"),
+                       ("discover", "diagnose --auto: forward selection of missing effects")):
+        d = sub.add_parser(name, help=text)
+        d.add_argument("bag", type=Path, help="contract bag to diagnose on")
+        d.add_argument("--calibration", required=True, type=Path,
+                       help="RESULT.yaml (or a prior) the diagnosis starts from")
+        d.add_argument("--method", required=True, choices=["psce", "swaying_base"],
+                       help="the filter whose model is diagnosed")
+        d.add_argument("--effects", default="",
+                       help="comma-separated effect ids already in the model (as for replay)")
+        d.add_argument("-o", "--output", required=True, type=Path, help="REPORT_DIR")
+        d.add_argument("--candidates", default="",
+                       help="comma-separated effect ids to try (default: every library effect)")
+        d.add_argument("--effect-module", type=Path, action="append",
+                       help="Python file defining extra Effect classes (repeatable)")
+        d.add_argument("--no-plots", action="store_true", help="diagnosis.json only")
+        d.add_argument("--auto", action="store_true", default=name == "discover",
+                       help="add the recommended effect, re-run and test again until nothing "
+                            "is significant; writes REPORT_DIR/calibration.yaml")
+        d.add_argument("--max-rounds", type=int, default=8,
+                       help="--auto: at most this many test rounds (default 8)")
+        d.add_argument("--workers", type=int, default=None,
+                       help="worker processes for the re-runs (default: one per core; 0: "
+                            "none, everything in this process)")
+        d.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                       help="run the re-runs on an existing Dask cluster (tcp://host:8786)")
+        d.set_defaults(func=_cmd_diagnose)
 
     m = sub.add_parser("demo", help="run the built-in demonstration")
     m.add_argument("-o", "--output", type=Path, default=Path("demo_out"),

@@ -28,6 +28,7 @@ NOISE = 0.05
 HIDDEN = {"aberration", "refraction", "proper_motion"}
 
 
+@pytest.mark.benchmark  # ~7 min serial; one command with 2 workers: test_discovery_cases.py
 @pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not available")
 def test_sky_bag_loop_finds_every_hidden_effect(tmp_path):
     data = read_bag_data(BAG)

@@ -17,15 +17,23 @@ fit-on-half/test-on-half validation, and every frame still serves as test data. 
 for by Bonferroni.  ``rms_after_px`` is the innovation RMS of the augmented run in the
 same window: what the user will see after adding the effect.
 
-An effect whose parameters the data leave at their prior uncertainty (posterior σ above
-``unobservable_ratio`` × prior σ for every combination of its parameters, see
-:func:`observability_ratio`) is reported as unobservable with
-this motion instead of ranked — e.g. a time offset without rotation.  Effects acting in a
-stage the method does not model (accelerometer effects for PSCE) or needing inputs the bag
-lacks (site, head temperature) are reported as not applicable.  An effect whose size
-physics fixes (the astrometric corrections, :data:`PHYSICAL_VALUE`) is reported as
-implausible instead of ranked when its fitted scale is far from the physical one: the data
-then follow part of its pattern for another reason.
+A round (issue 15) is: an optional screening pass that scores every candidate from one run
+of the current model (:mod:`~stellar_cal_ros.diagnosis.screening`), the augmented re-runs
+of the candidates that pass — concurrently, each reduced to its statistics where it ran
+(:mod:`~stellar_cal_ros.diagnosis.parallel`, :mod:`~stellar_cal_ros.diagnosis.runstats`) —
+and the decision rules below.
+
+Every candidate is re-run with its parameters' prior σ at least their plausible physical
+size (:func:`candidate_sigma`), so a prior σ set too small cannot hide a large effect.  An
+effect is reported *not testable with this motion* (key ``unobservable``) only when its
+minimal detectable size on this bag (MDB, from the information its augmented run carries,
+:mod:`~stellar_cal_ros.diagnosis.reliability`) exceeds its plausible size in every
+direction — e.g. a time offset without rotation.  Effects needing inputs the bag lacks
+(site, head temperature) or acting in a stage the method does not model (accelerometer
+effects for PSCE) are not applicable.  An effect whose size physics fixes (the astrometric
+corrections, :data:`PHYSICAL_VALUE`) is reported as implausible instead of ranked when its
+fitted scale is far from the physical one: the data then follow part of its pattern for
+another reason.
 
 When the current model misses something, the residuals are over-dispersed and a wrong
 candidate that absorbs a sliver of the misfit would still reach a tiny p-value with ten
@@ -39,7 +47,8 @@ small real effect can hide behind a large one (it removes too little of the exce
 count).  So every other candidate with a small p is tested again *after* the top one — the
 same statistic between the run with both and the run with the top one alone, started from
 the top one's calibration (Bonferroni over those tested) — and that test decides whether it
-is claimed.  The user sees what the next loop iteration would find, without running it.
+is claimed.  The user sees what the next loop iteration would find, without running it
+(``diagnose --auto`` runs it: :mod:`~stellar_cal_ros.diagnosis.auto`).
 """
 
 from __future__ import annotations
@@ -53,7 +62,9 @@ from typing import Any
 import numpy as np
 from scipy import stats as sps
 
-from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.diagnosis import reliability, screening
+from stellar_cal_ros.diagnosis.parallel import Runs, Task
+from stellar_cal_ros.diagnosis.runstats import RunStats
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.io.calibration import Calibration
@@ -65,6 +76,8 @@ Runner = Callable[[BagData, Calibration, list[str]], ReplayResult]
 
 #: a significant candidate must remove at least this fraction of the excess variance
 MIN_EXPLAINED = 0.1
+#: level of the tests after Bonferroni
+ALPHA = 0.01
 
 #: Effects whose size physics fixes (astrometric corrections, parameter = scale, 1 =
 #: physical).  If one is missing, its estimated scale is 1; an estimate far from it means
@@ -80,12 +93,17 @@ PHYSICAL_TOL_FRACTION = 0.25
 
 @dataclass
 class MethodSpec:
-    """How the diagnosis runs one estimation method."""
+    """How the diagnosis runs one estimation method.
+
+    ``runner`` is the only way the diagnosis calls an estimator; ``screen`` the method's
+    one-pass score test (:func:`~stellar_cal_ros.diagnosis.screening.screen_function`).
+    """
 
     name: str
     baseline: tuple[str, ...]
     stages: tuple[Stage, ...]
     runner: Runner
+    screen: screening.ScreenFn | None = None
 
 
 def _psce_runner(data: BagData, prior: Calibration, effects: list[str]) -> ReplayResult:
@@ -94,23 +112,33 @@ def _psce_runner(data: BagData, prior: Calibration, effects: list[str]) -> Repla
     return replay_psce(data, prior, effects)
 
 
+def _swaying_runner(data: BagData, prior: Calibration, effects: list[str]) -> ReplayResult:
+    from stellar_cal_ros.methods.swaying import replay_swaying
+
+    return replay_swaying(data, prior, effects)
+
+
+_CAMERA_SIDE = (Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA)
+
+
 def method_spec(method: str) -> MethodSpec:
-    """The :class:`MethodSpec` of ``psce`` or ``swaying_base``."""
+    """The :class:`MethodSpec` of ``psce`` or ``swaying_base``.
+
+    Every library effect is a candidate for both methods, except the accelerometer's for
+    PSCE (it has no accelerometer model).
+    """
     from stellar_cal_ros.errors import ModelError
     from stellar_cal_ros.methods.psce import BASELINE_EFFECTS
 
     if method == "psce":
-        return MethodSpec("psce", BASELINE_EFFECTS,
-                          (Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA),
-                          _psce_runner)
+        return MethodSpec("psce", BASELINE_EFFECTS, _CAMERA_SIDE, _psce_runner,
+                          screening.screen_function("psce"))
     if method == "swaying_base":
-        try:
-            from stellar_cal_ros.methods import swaying
-        except ImportError as exc:  # pragma: no cover - until issue 4 lands
-            raise ModelError("the swaying_base method is not available") from exc
+        from stellar_cal_ros.methods import swaying
+
         return MethodSpec("swaying_base", tuple(swaying.BASELINE_EFFECTS),
-                          (Stage.GYRO, Stage.ACCEL, Stage.DIRECTION, Stage.TIME, Stage.TRACKER),
-                          lambda d, p, e: swaying.replay_swaying(d, p, e))
+                          _CAMERA_SIDE + (Stage.ACCEL,), _swaying_runner,
+                          screening.screen_function("swaying_base"))
     raise ModelError(f"diagnose: unknown method {method!r} (psce | swaying_base)")
 
 
@@ -118,8 +146,10 @@ def method_spec(method: str) -> MethodSpec:
 class CandidateResult:
     """One candidate effect tried by an augmented run."""
 
+    #: ranked | unobservable (not testable) | implausible | screened_out | not_applicable
+    #: | failed
     effect: str
-    status: str  # ranked | unobservable | implausible | not_applicable | failed
+    status: str
     statistic: float = float("nan")
     dof: int = 0
     p_value: float = 1.0
@@ -127,13 +157,15 @@ class CandidateResult:
     rms_after_px: tuple[float, float] = (float("nan"), float("nan"))
     estimate: dict[str, float] = field(default_factory=dict)
     sigma: dict[str, float] = field(default_factory=dict)
-    sigma_ratio: float = float("nan")
     reason: str = ""
-    run: ReplayResult | None = None
-    #: the top candidate only: re-run from its own calibration (:func:`refine_top`), what
-    #: the next loop iteration starts from; its residuals carry no start-up transient of
-    #: the current model's biased values
-    refined_run: ReplayResult | None = None
+    run: RunStats | None = None
+    #: the top candidate only: re-run from its own calibration (:func:`condition_on_top`),
+    #: what the next loop iteration starts from; its residuals carry no start-up transient
+    #: of the current model's biased values
+    refined_run: RunStats | None = None
+    detect: reliability.Detectability | None = None
+    screen: screening.ScreenResult | None = None
+    prior_uncertain: bool = False  #: the prior calls it uncertain, the model lacks it
 
     explained: float = float("nan")  # fraction of the excess residual variance removed
     #: tested again after the top candidate (:func:`condition_on_top`): its name, the
@@ -147,13 +179,13 @@ class CandidateResult:
     @property
     def significant_alone(self) -> bool:
         """Significant at 1 % after correction, and it removes a real part of the excess."""
-        return (self.status == "ranked" and self.p_adjusted < 0.01
+        return (self.status == "ranked" and self.p_adjusted < ALPHA
                 and not self.explained < MIN_EXPLAINED)
 
     @property
     def explained_by_top(self) -> bool:
         """Tested after the top candidate and no longer significant."""
-        return bool(self.after) and not (self.p_after < 0.01
+        return bool(self.after) and not (self.p_after < ALPHA
                                          and not self.explained_after < MIN_EXPLAINED)
 
     @property
@@ -166,23 +198,8 @@ class CandidateResult:
         return self.significant_alone
 
 
-def observability_ratio(P_post: np.ndarray, sigma_prior: np.ndarray) -> float:
-    """Smallest posterior/prior sigma ratio over every *combination* of the parameters.
-
-    ``sqrt(λ_min)`` of the prior-whitened posterior covariance ``D⁻¹ P D⁻¹`` (D = prior
-    sigmas).  Per-parameter marginal ratios are not enough: a gyro misalignment's
-    antisymmetric part is a rotation of the gyro triad, which the installation absorbs, so
-    every marginal sigma stays at 1/√2 of the prior while the symmetric part is determined
-    to a few percent.  The effect is observable as soon as one direction is.
-    """
-    d = 1.0 / np.maximum(np.asarray(sigma_prior, dtype=float), 1e-300)
-    W = np.atleast_2d(P_post) * np.outer(d, d)
-    lam = np.linalg.eigvalsh(0.5 * (W + W.T))
-    return float(np.sqrt(max(lam.min(), 0.0)))
-
-
 @dataclass
-class _Reference:
+class Reference:
     """A run the augmented runs are compared with (evaluation window of its residuals)."""
 
     log_likelihood: float
@@ -191,14 +208,13 @@ class _Reference:
     floor: float  # 5 % of the noise variance: below it there is no excess to explain
 
     @classmethod
-    def of(cls, res: stats.Table, fraction: float) -> _Reference:
-        mask = stats.evaluation_mask(res, fraction)
-        return cls(stats.log_likelihood(res, mask),
-                   max(1.0, stats.nis_consistency(res, mask)["mean"] / 2.0),
-                   stats.excess_variance(res, mask), 0.05 * stats.noise_variance(res, mask))
+    def of(cls, run: RunStats) -> Reference:
+        """The reference of a run's evaluation window."""
+        w = run.window
+        return cls(w["log_likelihood"], max(1.0, w["nis"]["mean"] / 2.0),
+                   w["excess_variance"], 0.05 * w["noise_variance"])
 
-    def compare(self, res: stats.Table, mask: np.ndarray,
-                dof: int) -> tuple[float, float, float]:
+    def compare(self, run: RunStats, dof: int) -> tuple[float, float, float]:
         """Statistic Λ, its unadjusted p (χ²_dof) and the fraction of the excess removed.
 
         Quasi-likelihood: when the reference misses something, every residual is
@@ -207,15 +223,15 @@ class _Reference:
         (mean NIS / 2) restores the χ² reference.  The explained fraction is NaN when the
         reference has no excess to explain.
         """
-        statistic = float(2.0 * (stats.log_likelihood(res, mask) - self.log_likelihood)
-                          / self.dispersion)
+        w = run.window
+        statistic = float(2.0 * (w["log_likelihood"] - self.log_likelihood) / self.dispersion)
         p = float(sps.chi2.sf(max(statistic, 0.0), dof))
-        explained = (float(1.0 - stats.excess_variance(res, mask) / self.excess)
+        explained = (float(1.0 - w["excess_variance"] / self.excess)
                      if self.excess > self.floor else float("nan"))
         return statistic, p, explained
 
 
-def rerun_prior(calibration: Calibration, model_effects: list[str]) -> Calibration:
+def rerun_prior(calibration: Calibration, model_effects: list[str] | None = None) -> Calibration:
     """Start values from ``calibration``, datasheet-level sigmas for every estimated effect.
 
     Both the current model and each augmented one are re-run from this prior, so their
@@ -227,15 +243,202 @@ def rerun_prior(calibration: Calibration, model_effects: list[str]) -> Calibrati
     return prior
 
 
-def _applicable(effect_id: str, spec: MethodSpec, data: BagData) -> str:
+def candidate_sigma(effect_id: str, user_prior: Calibration | None) -> np.ndarray:
+    """Prior σ of a candidate in its augmented run: never below its plausible size.
+
+    The largest of the user's prior σ (``user_prior``'s sigma block), the effect's default
+    σ and its plausible physical size: a prior σ set too small must not keep a large
+    effect from being fitted and tested.
+    """
+    eff = registry.create(effect_id)
+    sig = np.maximum(np.asarray(eff.default_sigma, dtype=float),
+                     reliability.plausible_size(effect_id))
+    if user_prior is not None:
+        sig = np.maximum(sig, eff.initial(user_prior)[1])
+    return sig
+
+
+def candidate_prior(prior: Calibration, effect_id: str,
+                    user_prior: Calibration | None) -> Calibration:
+    """``prior`` with the candidate's σ set by :func:`candidate_sigma`."""
+    out = copy.deepcopy(prior)
+    eff = registry.create(effect_id)
+    value, _ = eff.initial(out)
+    eff.store(value, candidate_sigma(effect_id, user_prior), out)
+    return out
+
+
+def prior_uncertain(calibration: Calibration, in_model: set[str]) -> list[str]:
+    """Effects the calibration's sigma block calls uncertain that the model lacks.
+
+    The rule for both methods: the model is the method's baseline plus the user's
+    ``--effects``; these effects are not added silently but listed first among the
+    candidates and tested like any other.
+    """
+    from stellar_cal_ros.diagnosis.runstats import quiet
+
+    try:
+        from stellar_cal_ros.methods.swaying import prior_uncertain_effects
+    except ImportError:  # moved by the kernel refactor: nothing to list
+        return []
+    with quiet(level=logging.WARNING):  # its notes concern the swaying replay
+        found = prior_uncertain_effects(calibration)
+    return [e for e in found if e not in in_model]
+
+
+def _applicable(effect_id: str, spec: MethodSpec, facts: dict[str, Any] | BagData) -> str:
+    if isinstance(facts, BagData):
+        facts = {"site": facts.site is not None,
+                 "head_temperature": facts.head_temperature is not None}
     eff = registry.create(effect_id)
     if eff.stage not in spec.stages:
         return f"acts on the {eff.stage.value} stage, which {spec.name} does not model"
-    if "site" in eff.requires and data.site is None:
+    if "site" in eff.requires and not facts["site"]:
         return "needs the site position (/gnss/fix), absent from the bag"
-    if "head_temperature" in eff.requires and data.head_temperature is None:
+    if "head_temperature" in eff.requires and not facts["head_temperature"]:
         return "needs /star_tracker/temperature, absent from the bag"
     return ""
+
+
+#: relative run time of an augmented run by stage (longest first keeps workers busy)
+_COST = {Stage.DIRECTION: 2.0, Stage.GYRO: 1.5, Stage.ACCEL: 1.5}
+
+
+def _cost(effect_id: str) -> float:
+    return _COST.get(registry.create(effect_id).stage, 1.0)
+
+
+@dataclass
+class Round:
+    """What every round of one diagnosis shares."""
+
+    runs: Runs
+    spec: MethodSpec
+    facts: dict[str, Any]
+    fraction: float = 0.5
+    user_prior: Calibration | None = None  #: the calibration the user gave (its sigmas)
+    uncertain: tuple[str, ...] = ()  #: effects the user's prior calls uncertain
+    physical_check: bool = True
+    progress: Callable[[str], None] | None = None
+
+    def tell(self, text: str) -> None:
+        """Report progress."""
+        if self.progress:
+            self.progress(text)
+
+    def done(self, task: Task, out: RunStats) -> None:
+        """Progress line of one finished run."""
+        what = "+".join(task.effects[-2:]) if task.effects else "current model"
+        self.tell(f"{task.key:28s} {what} ({out.seconds:.1f} s)"
+                  + (f" failed: {out.error}" if out.error else ""))
+
+
+def _fill_candidate(r: Round, cand: CandidateResult, run: RunStats, reference: Reference,
+                    alpha_mdb: float) -> None:
+    """Decision inputs of one augmented run: detectability, Λ, p, physical size."""
+    cand.run = run
+    sl = run.block(cand.effect)
+    eff = registry.create(cand.effect)
+    cand.dof = eff.size
+    value, sig_post = run.theta[sl], run.sigma[sl]
+    cand.estimate = dict(zip(eff.parameter_names, map(float, value), strict=True))
+    cand.sigma = dict(zip(eff.parameter_names, map(float, sig_post), strict=True))
+    cand.rms_after_px = tuple(run.window["rms"])
+    share = run.window["n_window"] / max(run.window["n_accepted"], 1)
+    info = reliability.data_information(run.P[sl, sl], run.prior_sigma[sl], share)
+    cand.detect = reliability.detectability(cand.effect, info, alpha_mdb)
+    if not cand.detect.testable:
+        cand.status = "unobservable"
+        det = cand.detect
+        mdb = ", ".join(reliability.shown(f"{cand.effect}.{n}", v) for n, v in det.mdb.items())
+        cand.reason = (f"not testable with this motion: its minimal detectable size ({mdb}) "
+                       f"is {det.ratio:.3g} x its plausible size even along its best-"
+                       "determined direction")
+        return
+    cand.statistic, cand.p_value, cand.explained = reference.compare(run, eff.size)
+    phys = PHYSICAL_VALUE.get(cand.effect)
+    if r.physical_check and phys is not None:
+        est, sig = float(value[0]), float(sig_post[0])
+        # clearly present, yet clearly not at its physical size
+        if (abs(est) > PHYSICAL_TOL_SIGMA * sig and abs(est - phys) > PHYSICAL_TOL_SIGMA * sig
+                and abs(est - phys) > PHYSICAL_TOL_FRACTION * abs(phys)):
+            cand.status = "implausible"
+            cand.reason = (
+                f"the data fit {est:.3g} ± {sig:.2g} of the physical {cand.effect}, whose "
+                f"size is known ({phys:g}): the structure follows part of its pattern but "
+                "has another cause; if several effects are missing, add the top candidate "
+                "and diagnose again")
+
+
+def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
+               base: RunStats | None = None, condition: bool = True,
+               keep_residuals: bool = True, more: list[Task] | None = None,
+               ) -> tuple[RunStats, list[CandidateResult], dict[str, RunStats]]:
+    """One round: screen, re-run the current model and the candidates, decide.
+
+    ``start`` gives the start values (:func:`rerun_prior`); ``extra`` are the model's
+    effects beyond the baseline; ``base`` a run of that model from ``start`` if one exists
+    already.  With ``condition`` the strong candidates are tested again after the top one
+    (:func:`condition_on_top`).  ``more``: further runs to execute in the same batch
+    (their statistics are returned by key, undecided).
+    """
+    prior = rerun_prior(start)
+    in_model = set(r.spec.baseline) | set(extra)
+    results: list[CandidateResult] = []
+    testable: list[str] = []
+    for effect_id in dict.fromkeys(e for e in pool if e not in in_model):
+        reason = _applicable(effect_id, r.spec, r.facts)
+        if reason:
+            results.append(CandidateResult(effect_id, "not_applicable", reason=reason))
+        else:
+            testable.append(effect_id)
+    alpha_mdb = ALPHA / max(len(testable), 1)
+    screened = screening.run_screen(r.runs, r.spec.screen, prior, r.spec.name, extra,
+                                    testable, r.fraction) or {}
+    cands = {e: CandidateResult(e, "ranked", screen=screened.get(e),
+                                prior_uncertain=e in r.uncertain) for e in testable}
+    tasks = [] if base is not None else [Task("current model", prior, tuple(extra),
+                                              keep_residuals, cost=1.0)]
+    for e, c in cands.items():
+        if c.screen is not None and not c.screen.passes:
+            c.status, c.dof = "screened_out", c.screen.dof
+            c.p_value = c.screen.p_value
+            c.detect = reliability.detectability(e, c.screen.information, alpha_mdb)
+            c.reason = f"score test p = {c.p_value:.2g}: not re-run"
+            continue
+        tasks.append(Task(e, candidate_prior(prior, e, r.user_prior), tuple(extra) + (e,),
+                          cost=_cost(e)))
+    out = r.runs.run_all(tasks + list(more or []), r.done)
+    extras = {t.key: out.pop(t.key) for t in more or []}
+    if base is None:
+        base = out.pop("current model")
+        if not base.ok:
+            from stellar_cal_ros.errors import ModelError
+
+            raise ModelError(f"the current model's re-run failed: {base.error}")
+    reference = Reference.of(base)
+    for e, run in out.items():
+        c = cands[e]
+        if not run.ok:
+            log.warning("candidate %s failed: %s", e, run.error)
+            c.status, c.reason = "failed", run.error
+            continue
+        _fill_candidate(r, c, run, reference, alpha_mdb)
+    results = list(cands.values()) + results
+    tested = [c for c in results if c.status in ("ranked", "implausible", "screened_out")]
+    m = max(len(tested), 1)
+    for c in tested:
+        c.p_adjusted = min(1.0, c.p_value * m)
+        if c.status == "implausible" and not c.p_adjusted < ALPHA:
+            # its fit at the wrong size explains nothing significant: an ordinary
+            # non-significant candidate, not a sign of another cause
+            c.status, c.reason = "ranked", ""
+    order = {"ranked": 0, "implausible": 1, "screened_out": 2, "unobservable": 3,
+             "failed": 4, "not_applicable": 5}
+    results.sort(key=lambda c: (order[c.status], -np.nan_to_num(c.statistic, nan=-np.inf)))
+    if condition:
+        condition_on_top(r, extra, results, keep_residuals=keep_residuals)
+    return base, results, extras
 
 
 def rank_candidates(
@@ -245,159 +448,118 @@ def rank_candidates(
     model_effects: list[str],
     candidates: list[str] | None = None,
     evaluation_fraction: float = 0.5,
-    unobservable_ratio: float = 0.5,
     progress: Callable[[str], None] | None = None,
     physical_check: bool = True,
-) -> tuple[ReplayResult, list[CandidateResult]]:
+    runs: Runs | None = None,
+) -> tuple[RunStats, list[CandidateResult]]:
     """Re-run the current model and every candidate; return the base run and the ranking.
 
     ``physical_check=False`` ranks the astrometric scales as free parameters (for measuring
-    their detectability at non-physical sizes, ``benchmarks/detectability.py``).
+    their detectability at non-physical sizes, ``benchmarks/detectability.py``).  Runs in
+    this process unless ``runs`` (:func:`~stellar_cal_ros.diagnosis.parallel.open_runner`)
+    is given.
     """
     extra = [e for e in model_effects if e not in spec.baseline]
-    prior = rerun_prior(calibration, list(spec.baseline) + extra)
-    base = spec.runner(data, prior, extra)
-    reference = _Reference.of(base.residuals, evaluation_fraction)
+    runs = runs or Runs(data, spec, evaluation_fraction)
     in_model = set(spec.baseline) | set(extra)
-    pool = [e for e in (candidates or registry.available()) if e not in in_model]
-    results: list[CandidateResult] = []
-    for effect_id in pool:
-        reason = _applicable(effect_id, spec, data)
-        if reason:
-            results.append(CandidateResult(effect_id, "not_applicable", reason=reason))
-            continue
-        if progress:
-            progress(effect_id)
-        try:
-            run = spec.runner(data, prior, extra + [effect_id])
-        except Exception as exc:  # a candidate failing must not stop the diagnosis
-            log.warning("candidate %s failed: %s", effect_id, exc)
-            results.append(CandidateResult(effect_id, "failed", reason=str(exc)))
-            continue
-        flt = run.filter
-        model = flt.model
-        sl = model.slices[effect_id]
-        value = flt.theta[sl]
-        sig_post = flt.sigma()[3:][sl]
-        sig_prior = model.initial_sigma[sl]
-        ratio = observability_ratio(flt.P[3:, 3:][sl, sl], sig_prior)
-        eff = model.effects[[e.id for e in model.effects].index(effect_id)]
-        cand = CandidateResult(
-            effect_id, "ranked", dof=eff.size, sigma_ratio=ratio,
-            estimate={n: float(v) for n, v in zip(eff.parameter_names, value, strict=True)},
-            sigma={n: float(s) for n, s in zip(eff.parameter_names, sig_post, strict=True)},
-            run=run,
-        )
-        mask_c = stats.evaluation_mask(run.residuals, evaluation_fraction)
-        cand.rms_after_px = stats.rms(run.residuals, mask_c)
-        if ratio > unobservable_ratio:
-            cand.status = "unobservable"
-            cand.reason = (f"the data leave its uncertainty at {ratio:.0%} of the prior: "
-                           "not observable with this motion and these inputs")
-        else:
-            cand.statistic, cand.p_value, cand.explained = reference.compare(
-                run.residuals, mask_c, eff.size)
-            phys = PHYSICAL_VALUE.get(effect_id)
-            if physical_check and phys is not None:
-                est, sig = float(value[0]), float(sig_post[0])
-                # clearly present, yet clearly not at its physical size
-                if (abs(est) > PHYSICAL_TOL_SIGMA * sig
-                        and abs(est - phys) > PHYSICAL_TOL_SIGMA * sig
-                        and abs(est - phys) > PHYSICAL_TOL_FRACTION * abs(phys)):
-                    cand.status = "implausible"
-                    cand.reason = (
-                        f"the data fit {est:.3g} ± {sig:.2g} of the physical {effect_id}, "
-                        f"whose size is known ({phys:g}): the structure follows part of its "
-                        "pattern but has another cause; if several effects are missing, "
-                        "add the top candidate and diagnose again")
-        results.append(cand)
-    tested = [c for c in results if c.status in ("ranked", "implausible")]
-    m = max(len(tested), 1)
-    for c in tested:
-        c.p_adjusted = min(1.0, c.p_value * m)
-        if c.status == "implausible" and not c.p_adjusted < 0.01:
-            # its fit at the wrong size explains nothing significant: an ordinary
-            # non-significant candidate, not a sign of another cause
-            c.status, c.reason = "ranked", ""
-    order = {"ranked": 0, "implausible": 1, "unobservable": 2, "failed": 3,
-             "not_applicable": 4}
-    results.sort(key=lambda c: (order[c.status], -np.nan_to_num(c.statistic, nan=-np.inf)))
-    condition_on_top(data, spec, extra, results, evaluation_fraction, progress)
+    uncertain = prior_uncertain(calibration, in_model)
+    r = Round(runs, spec, runs.facts(), evaluation_fraction, calibration, tuple(uncertain),
+              physical_check, progress)
+    pool = uncertain + [e for e in (candidates or registry.available()) if e not in uncertain]
+    if candidates is not None:
+        pool = [e for e in pool if e in candidates]
+    base, results, _ = rank_round(r, calibration, extra, pool)
     return base, results
 
 
-def refine_top(data: BagData, spec: MethodSpec, extra: list[str], top: CandidateResult,
-               prior: Calibration) -> None:
-    """Re-run the model with the top candidate from that candidate's calibration.
-
-    The augmented run started from the current model's values, which the missing effect
-    biased; parameters that converge slowly (distortion) can still carry that start in the
-    evaluation window and show as residual structure.  The re-run is where the next loop
-    iteration starts: the residual-structure tests and the "+ effect" panels use it.
-    ``prior``: :func:`rerun_prior` of the candidate's calibration.
-    """
-    try:
-        top.refined_run = spec.runner(data, prior, extra + [top.effect])
-    except Exception as exc:  # keep the augmented run
-        log.warning("re-run with %s failed: %s", top.effect, exc)
-
-
-def condition_on_top(data: BagData, spec: MethodSpec, extra: list[str],
-                     results: list[CandidateResult], evaluation_fraction: float = 0.5,
-                     progress: Callable[[str], None] | None = None,
-                     max_after: int = 4, max_implausible: int = 3) -> None:
+def condition_on_top(r: Round, extra: list[str], results: list[CandidateResult],
+                     max_after: int = 4, max_implausible: int = 3,
+                     keep_residuals: bool = True) -> None:
     """Test the other significant candidates again with the top one in the model.
 
     This is the next iteration of the loop, run ahead: start values from the top
     candidate's calibration (as ``stellar-cal diagnose`` would take them after the user
-    added it), a reference run with the top one, and the other candidates with p < 0.01
-    (the ``max_after`` strongest; the rest keep their marginal verdict) re-run together with
-    it.  The same quasi-likelihood ratio (dispersion of the reference run), Bonferroni over
-    the candidates tested, and explained-variance floor (of the excess the reference
-    leaves) decide.  Implausible candidates with p < 0.01 (up to ``max_implausible``) are
-    tested the same way: an astrometric correction that fits at the wrong size because of
-    the top effect is then shown as not needed once it is added.  Fills the ``after``
-    fields in place.
+    added it), a reference run with the top one (:attr:`CandidateResult.refined_run`, its
+    residuals kept: the final model's structure is tested on it), and the other candidates
+    with p < 0.01 (the ``max_after`` strongest; the rest keep their marginal verdict)
+    re-run together with it — all concurrently.  The same quasi-likelihood ratio
+    (dispersion of the reference run), Bonferroni over the candidates tested, and
+    explained-variance floor (of the excess the reference leaves) decide.  Implausible
+    candidates with p < 0.01 (up to ``max_implausible``) are tested the same way: an
+    astrometric correction that fits at the wrong size because of the top effect is then
+    shown as not needed once it is added.  Fills the ``after`` fields in place.
     """
     top = next((c for c in results if c.significant_alone), None)
+    if top is None or top.run is None:
+        return
     # every other candidate with a small p, even one that explains too little of the
     # excess alone: a real effect can hide behind a large one and show once it is gone
     rest = [c for c in results if c is not top and c.status == "ranked"
-            and c.p_adjusted < 0.01][:max_after]  # results are sorted: the strongest ones
-    if top is None or top.run is None:
-        return
-    prior = rerun_prior(top.run.calibration, list(spec.baseline) + extra + [top.effect])
-    refine_top(data, spec, extra, top, prior)
+            and c.p_adjusted < ALPHA][:max_after]  # results are sorted: the strongest ones
     rest += [c for c in results if c.status == "implausible"
-             and c.p_adjusted < 0.01][:max_implausible]
-    if not rest or top.refined_run is None:
+             and c.p_adjusted < ALPHA][:max_implausible]
+    prior = rerun_prior(top.run.calibration)
+    with_top = tuple(extra) + (top.effect,)
+    tasks = [Task("refined " + top.effect, prior, with_top, keep_residuals, cost=1.0)]
+    tasks += [Task(c.effect + " after", candidate_prior(prior, c.effect, r.user_prior),
+                   with_top + (c.effect,), cost=_cost(c.effect)) for c in rest]
+    out = r.runs.run_all(tasks, r.done)
+    refined = out.pop("refined " + top.effect)
+    if not refined.ok:
+        log.warning("re-run with %s failed: %s", top.effect, refined.error)
         return
-    reference = _Reference.of(top.refined_run.residuals, evaluation_fraction)
+    top.refined_run = refined
+    reference = Reference.of(refined)
     for c in rest:
-        if progress:
-            progress(f"{c.effect} after {top.effect}")
-        try:
-            run = spec.runner(data, prior, extra + [top.effect, c.effect])
-        except Exception as exc:  # keep the marginal result
-            log.warning("candidate %s after %s failed: %s", c.effect, top.effect, exc)
+        run = out[c.effect + " after"]
+        if not run.ok:  # keep the marginal result
+            log.warning("candidate %s after %s failed: %s", c.effect, top.effect, run.error)
             continue
         c.after = top.effect
-        c.statistic_after, p, c.explained_after = reference.compare(
-            run.residuals, stats.evaluation_mask(run.residuals, evaluation_fraction), c.dof)
+        c.statistic_after, p, c.explained_after = reference.compare(run, c.dof)
         c.p_after = min(1.0, p * len(rest))
 
 
-def summary_dict(base: ReplayResult, results: list[CandidateResult],
-                 unexplained: list[stats.RegressorFinding], spec: MethodSpec,
+def hidden_effects(base: RunStats, results: list[CandidateResult]) -> list[dict[str, Any]]:
+    """What could still hide in the model: every candidate's MDB and the biases it allows.
+
+    For each applicable library effect not in the model (ranked, implausible, not testable
+    or screened out) with an augmented run or a screening sensitivity: its minimal
+    detectable size and the largest bias an undetected effect of that size (at most its
+    plausible size) puts into each estimated parameter and into the equivalent principal
+    point; ``dominates`` lists those where the bias exceeds their σ in the current model.
+    """
+    from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
+
+    sigma = base.sigma_by_name()
+    out = []
+    for c in results:
+        if c.detect is None:
+            continue
+        if c.run is not None and c.run.ok:
+            derived = ({} if c.run.epp_jacobian is None else
+                       dict(zip(EPP_NAMES, c.run.epp_jacobian, strict=True)))
+            rows = reliability.bias_rows(c.run.names, c.run.P, c.run.block(c.effect),
+                                         base.names, derived)
+        elif c.screen is not None and c.screen.sensitivity is not None:
+            rows = dict(zip(base.names, c.screen.sensitivity, strict=False))
+        else:
+            rows = {}
+        out.append(reliability.external_reliability(c.detect, rows, sigma))
+    return out
+
+
+def summary_dict(base: RunStats, results: list[CandidateResult],
+                 unexplained: list, spec: MethodSpec,
                  model_effects: list[str], evaluation_fraction: float) -> dict[str, Any]:
     """``diagnosis.json`` (contract §5), plus extra keys readers may ignore."""
-    res = base.residuals
-    mask = stats.evaluation_mask(res, evaluation_fraction)
+    w = base.window
     ranked = [c for c in results if c.status == "ranked"]
     return {
         "format": "stellar_cal_diagnosis/1",
-        "residual_rms_px": list(stats.rms(res, mask)),
-        "expected_rms_px": list(stats.expected_rms(res, mask)),
+        "residual_rms_px": list(w["rms"]),
+        "expected_rms_px": list(w["expected_rms"]),
+        "log_likelihood": w["log_likelihood"],
         "candidates": [
             {"effect": c.effect, "score": c.statistic, "rms_after_px": list(c.rms_after_px),
              "p_value": c.p_adjusted, "p_value_unadjusted": c.p_value,
@@ -406,7 +568,9 @@ def summary_dict(base: ReplayResult, results: list[CandidateResult],
              "after": ({"effect": c.after, "score": c.statistic_after,
                         "p_value": c.p_after, "explained_fraction": c.explained_after}
                        if c.after else None),
-             "dof": c.dof, "estimate": c.estimate, "sigma": c.sigma}
+             "dof": c.dof, "estimate": c.estimate, "sigma": c.sigma,
+             "prior_uncertain": c.prior_uncertain,
+             "detectability": c.detect.as_dict() if c.detect else None}
             for c in ranked
         ],
         "unexplained": [
@@ -414,8 +578,16 @@ def summary_dict(base: ReplayResult, results: list[CandidateResult],
              "p_value": f.p_value, "change_px": f.slope_px}
             for f in unexplained
         ],
-        "unobservable": [{"effect": c.effect, "reason": c.reason}
+        "prior_uncertain": [
+            {"effect": c.effect, "note": f"the prior says {c.effect} is uncertain; not in "
+             "the model (tested like any candidate)"}
+            for c in results if c.prior_uncertain],
+        "unobservable": [{"effect": c.effect, "reason": c.reason,
+                          "detectability": c.detect.as_dict() if c.detect else None}
                          for c in results if c.status == "unobservable"],
+        "screened_out": [{"effect": c.effect, "reason": c.reason,
+                          "detectability": c.detect.as_dict() if c.detect else None}
+                         for c in results if c.status == "screened_out"],
         "implausible": [{"effect": c.effect, "reason": c.reason, "score": c.statistic,
                          "p_value": c.p_adjusted, "estimate": c.estimate, "sigma": c.sigma,
                          "after": ({"effect": c.after, "score": c.statistic_after,
@@ -424,8 +596,8 @@ def summary_dict(base: ReplayResult, results: list[CandidateResult],
                         for c in results if c.status == "implausible"],
         "not_applicable": [{"effect": c.effect, "reason": c.reason}
                            for c in results if c.status in ("not_applicable", "failed")],
-        "nis": stats.nis_consistency(res, mask),
-        "whiteness": stats.whiteness(res, mask),
+        "nis": w["nis"],
+        "whiteness": w["whiteness"],
         "model": {"method": spec.name, "effects": list(spec.baseline) + [
             e for e in model_effects if e not in spec.baseline]},
         "evaluation": f"innovations of the last {evaluation_fraction:.0%} of the frames",

@@ -7,13 +7,63 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import report, stats
-from stellar_cal_ros.diagnosis.context import add_gravity_regressors
-from stellar_cal_ros.diagnosis.discover import method_spec, rank_candidates, summary_dict
+from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.diagnosis.discover import (
+    CandidateResult,
+    hidden_effects,
+    method_spec,
+    rank_candidates,
+    summary_dict,
+)
+from stellar_cal_ros.diagnosis.parallel import open_runner
+from stellar_cal_ros.diagnosis.runstats import RunStats
 from stellar_cal_ros.io.calibration import Calibration
-from stellar_cal_ros.methods.replay import BagData, read_bag_data
+from stellar_cal_ros.methods.replay import BagData
 
 log = logging.getLogger(__name__)
+
+
+def progress_printer(verbose: bool):
+    """A progress callback that prints indented lines (or nothing)."""
+    def tell(text: str) -> None:
+        if verbose:
+            print(f"   {text}", flush=True)
+
+    return tell
+
+
+def finish(out: Path, calibration: Calibration, base: RunStats, final: RunStats,
+           results: list[CandidateResult], spec, effects: list[str], fraction: float,
+           panels: list[tuple[str, Any]], plots: bool, title: str = "stellar_cal diagnosis",
+           extra_images: list[tuple[str, str]] | None = None) -> dict[str, Any]:
+    """Unexplained structure on ``final``'s residuals, the summary, the report files.
+
+    ``base`` is the run the candidates were compared with (the summary's RMS); ``final``
+    the run whose residual structure is tested (the model with the top candidate when
+    there is one).  Returns the summary (without writing ``diagnosis.json``).
+    """
+    cam = calibration.camera
+    centre = (cam.cx, cam.cy)
+    res = final.residuals if final.residuals is not None else base.residuals
+    unexplained = stats.regressor_tests(res, stats.evaluation_mask(res, fraction), centre)
+    summary = summary_dict(base, results, unexplained, spec, effects, fraction)
+    best = next((c for c in results if c.significant_alone), None)
+    summary["recommendation"] = best.effect if best is not None else None
+    if best is None:
+        summary["reliability"] = hidden_effects(base, results)
+    if plots:
+        from stellar_cal_ros.diagnosis import report  # matplotlib: only when plotting
+
+        report.plot_vector_fields(panels, cam.width, cam.height, fraction,
+                                  out / "vector_field.png")
+        report.plot_regressors(panels, centre, fraction, out / "regressors.png")
+        report.plot_time(panels, out / "time.png")
+        images = list(extra_images or []) + [
+            ("Mean innovation over the detector (regional bins)", "vector_field.png"),
+            ("Innovations against possible causes", "regressors.png"),
+            ("Innovations against time", "time.png")]
+        report.write_html(out, summary, images, title)
+    return summary
 
 
 def diagnose(
@@ -26,45 +76,43 @@ def diagnose(
     evaluation_fraction: float = 0.5,
     plots: bool = True,
     verbose: bool = True,
+    workers: int | None = 0,
+    scheduler: str | None = None,
+    auto: bool = False,
+    max_rounds: int = 8,
 ) -> dict[str, Any]:
-    """Run the diagnosis; write ``diagnosis.json`` and ``report.html``; return the summary."""
+    """Run one diagnosis round; write ``diagnosis.json`` and ``report.html``; return the summary.
+
+    ``workers``: 0 runs the re-runs in this process, N on a local Dask cluster of N
+    processes, ``None`` one per core; ``scheduler``: the address of an existing Dask
+    cluster (:mod:`~stellar_cal_ros.diagnosis.parallel`).  ``auto``: add the recommended
+    effect and test again, up to ``max_rounds`` rounds
+    (:func:`~stellar_cal_ros.diagnosis.auto.discover`).
+    """
+    if auto:
+        from stellar_cal_ros.diagnosis.auto import discover
+
+        return discover(bag, calibration, method, effects, output_dir, max_rounds,
+                        candidates=candidates, evaluation_fraction=evaluation_fraction,
+                        plots=plots, verbose=verbose, workers=workers, scheduler=scheduler)
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    data = bag if isinstance(bag, BagData) else read_bag_data(bag)
     spec = method_spec(method)
-
-    def tell(effect_id: str) -> None:
-        if verbose:
-            print(f"   trying {effect_id} ...", flush=True)
-
-    base, results = rank_candidates(data, calibration, spec, effects, candidates,
-                                    evaluation_fraction, progress=tell)
+    tell = progress_printer(verbose)
+    with open_runner(bag, spec, evaluation_fraction, workers, scheduler) as runs:
+        tell(f"re-runs {runs.description}")
+        base, results = rank_candidates(bag, calibration, spec, effects, candidates,
+                                        evaluation_fraction, progress=tell, runs=runs)
     # the top candidate (a candidate tested after it may be significant too, but it is the
     # one to add first); its re-run from its own calibration is where the next iteration
-    # starts
+    # starts, and the structure left is tested on it
     best = next((c for c in results if c.significant_alone), None)
-    best_run = None if best is None else (best.refined_run or best.run)
-    final = best_run if best_run is not None else base
-    cam = calibration.camera
-    centre = (cam.cx, cam.cy)
-    mask = stats.evaluation_mask(final.residuals, evaluation_fraction)
-    # The residual table lacks the gravity direction that mount flexure follows: add it.
-    final_cal = final.calibration
-    final_res = add_gravity_regressors(final.residuals, data, final_cal)
-    unexplained = stats.regressor_tests(final_res, mask, centre)
-    summary = summary_dict(base, results, unexplained, spec, effects, evaluation_fraction)
-    summary["recommendation"] = best.effect if best is not None else None
+    final = base
+    panels = [("current model", base.residuals)]
+    if best is not None and best.refined_run is not None:
+        final = best.refined_run
+        panels.append((f"+ {best.effect}", final.residuals))
+    summary = finish(out, calibration, base, final, results, spec, effects,
+                     evaluation_fraction, panels, plots)
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
-    if plots:
-        panels = [("current model", base.residuals)]
-        if best is not None:
-            panels.append((f"+ {best.effect}", best_run.residuals))
-        report.plot_vector_fields(panels, cam.width, cam.height, evaluation_fraction,
-                                  out / "vector_field.png")
-        report.plot_regressors(panels, centre, evaluation_fraction, out / "regressors.png")
-        report.plot_time(panels, out / "time.png")
-        images = [("Mean innovation over the detector (regional bins)", "vector_field.png"),
-                  ("Innovations against possible causes", "regressors.png"),
-                  ("Innovations against time", "time.png")]
-        report.write_html(out, summary, images, "stellar_cal diagnosis")
     return summary

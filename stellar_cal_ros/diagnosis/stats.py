@@ -79,11 +79,21 @@ def log_likelihood(res: Table, mask: np.ndarray, cap: float = 13.8) -> float:
 
     Innovations are one-step-ahead predictions, so this is a prequential (out-of-sample)
     likelihood: a model cannot raise it by fitting noise.  Capping the per-star NIS at the
-    gate keeps a few misidentified stars from dominating the comparison of two models.
+    gate keeps a few misidentified stars from dominating the comparison of two models.  A
+    gated star counts as capped *with the window's median accepted covariance*: its own
+    covariance is that of a wrong identity predicted far across (or off) the detector,
+    whose log-determinant varies between models by more than the effects compared
+    (measured: 250 of the 2Δℓ between two models with 2 % misidentified stars), so every
+    model is scored alike on the stars it rejects.
     """
     det = res["s_uu"] * res["s_vv"] - res["s_uv"] ** 2
-    nis = np.minimum(res["nis"], cap)
-    terms = -0.5 * (nis + np.log(np.maximum(det, 1e-300)) + 2 * np.log(2 * np.pi))
+    nis = np.asarray(res["nis"], dtype=float)
+    ok = accepted(res) & np.isfinite(nis) & np.isfinite(det) & (det > 0)
+    nis = np.where(ok, np.minimum(nis, cap), cap)
+    logdet = np.log(np.where(ok, det, 1.0))
+    fill = float(np.median(logdet[mask & ok])) if np.any(mask & ok) else 0.0
+    logdet = np.where(ok, logdet, fill)
+    terms = -0.5 * (nis + logdet + 2 * np.log(2 * np.pi))
     return float(np.sum(terms[mask]))
 
 

@@ -1,0 +1,145 @@
+"""Speed and memory of the model discovery (issue 15 targets), measured as the user runs it.
+
+Each measurement is one ``python -m stellar_cal_ros`` process (the command a user types),
+watched from outside: wall time, the CPU time of its whole process tree (user + system,
+from the reaped children's rusage: on a shared machine, CPU / cores is the wall time an
+idle machine would need at best), and the peak over time of the RSS and of the PSS summed
+over the tree (the parent, the Dask worker processes).  RSS counts shared library pages
+once per process; PSS splits them, so it is the fairer "memory of the tree".
+
+Targets (2 cores):
+
+* ``sky``    the independent sky bag's whole path, ``discover`` from its prior, ≤ 60 s;
+* ``round``  one ``diagnose`` round on a 2-h ``psce_rotations`` bag, ≤ 30 s, ≤ 500 MB;
+* ``speedup`` the same round with 1 and with 2 workers: ≥ 1.8×.
+
+The variants are interleaved (1 worker, 2 workers, 1, 2, …) so that a load change on a
+shared machine hits both alike.  The 2-h bag is simulated once into
+``benchmarks/.cache/`` (shared with ``psce_speed.py``).
+
+Run::
+
+    python benchmarks/discovery_speed.py                 # everything, 1 repetition
+    python benchmarks/discovery_speed.py --only round --repeat 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import psutil
+
+ROOT = Path(__file__).resolve().parents[1]
+SKY = ROOT.parent / "shared" / "data" / "psce_sky_900s.mcap"
+
+
+def _tree_memory(proc: psutil.Process) -> tuple[float, float]:
+    """(RSS, PSS) summed over ``proc`` and its descendants, bytes."""
+    rss = pss = 0.0
+    for p in [proc, *proc.children(recursive=True)]:
+        try:
+            full = p.memory_full_info()
+            rss += full.rss
+            pss += getattr(full, "pss", full.rss)
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+    return rss, pss
+
+
+def measure(args: list[str], period: float = 0.2) -> dict[str, float]:
+    """Run ``python -m stellar_cal_ros ARGS``; wall time and peak tree memory."""
+    cmd = [sys.executable, "-m", "stellar_cal_ros", *args]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    watched = psutil.Process(proc.pid)
+    peak = [0.0, 0.0]
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.is_set():
+            rss, pss = _tree_memory(watched)
+            peak[0], peak[1] = max(peak[0], rss), max(peak[1], pss)
+            done.wait(period)
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    out, err = proc.communicate()
+    done.set()
+    thread.join()
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # the tree, reaped
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{err[-2000:]}")
+    return {"wall": wall, "cpu": cpu, "rss_mb": peak[0] / 1e6, "pss_mb": peak[1] / 1e6,
+            "stdout": out}
+
+
+def ensure_2h_bag() -> Path:
+    """The 2-h psce_rotations bag (simulated once, as ``psce_speed.py`` does)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from psce_speed import ensure_bag
+
+    return ensure_bag(7200.0)
+
+
+def _row(name: str, workers: int, m: dict[str, float], target: str) -> str:
+    return (f"{name:8s} {workers:7d} {m['wall']:9.1f} {m['cpu']:8.1f} {m['rss_mb']:10.0f} "
+            f"{m['pss_mb']:10.0f}   {target}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the table (and the ratio 1 worker / 2 workers of each repetition)."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--only", choices=["sky", "round"], default=None)
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--workers", default="1,2", help="worker counts to interleave")
+    args = ap.parse_args(argv)
+    counts = [int(w) for w in args.workers.split(",")]
+    print("command: " + " ".join([sys.executable, *sys.argv]))
+    print(f"cpu count {os.cpu_count()}, load average {os.getloadavg()[0]:.1f} at start")
+    print(f"{'case':8s} {'workers':>7s} {'wall s':>9s} {'CPU s':>8s} {'peak RSS':>10s} "
+          f"{'peak PSS':>10s}   target  (MB; CPU s: user+system of the whole tree)")
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.only in (None, "sky"):
+            if not SKY.exists():
+                print(f"sky      skipped: {SKY} not available")
+            else:
+                for _ in range(args.repeat):
+                    m = measure(["discover", str(SKY), "--calibration",
+                                 str(SKY.with_suffix(".prior.yaml")), "--method", "psce",
+                                 "--no-plots", "--workers", "2", "-o", f"{tmp}/sky"])
+                    added = next((line for line in m["stdout"].splitlines()
+                                  if line.startswith("final model")), "")
+                    print(_row("sky", 2, m, "whole path <= 60 s") + f"  ({added[:60]}...)")
+        if args.only in (None, "round"):
+            bag = ensure_2h_bag()
+            prior = bag.with_suffix(".prior.yaml")
+            for _ in range(args.repeat):
+                walls = {}
+                for w in counts:
+                    m = measure(["diagnose", str(bag), "--calibration", str(prior), "--method",
+                                 "psce", "--no-plots", "--workers", str(w), "-o",
+                                 f"{tmp}/round{w}"])
+                    walls[w] = m["wall"]
+                    print(_row("round", w, m, "<= 30 s, <= 500 MB"), flush=True)
+                if 1 in walls and 2 in walls:
+                    print(f"speed-up 1 -> 2 workers: {walls[1] / walls[2]:.2f}x (target >= 1.8)",
+                          flush=True)
+    print(f"load average {os.getloadavg()[0]:.1f} at the end (shared machine: other jobs "
+          "slow every row alike)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

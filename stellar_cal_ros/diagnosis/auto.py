@@ -1,0 +1,346 @@
+"""``stellar-cal diagnose --auto`` (``stellar-cal discover``): stepwise selection of effects.
+
+Each round is a diagnosis round (:func:`~stellar_cal_ros.diagnosis.discover.rank_round`):
+the current model and every candidate re-run from the same start values, concurrently, and
+in the same batch the runs that check what was added before.  One change per round, in
+this order:
+
+1. **drop** — an effect added in an earlier round that is no longer needed: the model
+   without it, tested against the model with it by the same quasi-likelihood ratio, is not
+   significantly worse (Bonferroni over the effects checked).  A look-alike added before
+   the real cause was found (an aberration scale fitted to a gyro scale factor's pattern)
+   goes here.  A dropped effect is not added again.
+2. **exchange** — an added effect ``x`` replaced by a *rival*: a candidate that was
+   significant alone in the round ``x`` was added, with a score at least
+   :data:`RIVAL_SCORE` of ``x``'s (a near tie), and no longer once ``x`` was in.  The model
+   with the rival instead of ``x`` is kept when it predicts the evaluation window better
+   (higher prequential log-likelihood: held-out predictions, so the extra parameters of a
+   flexible effect are no advantage).  Each pair is tried once per model (again after the
+   model has changed: a rival can lose while a third effect is still missing).
+3. **add** — the top candidate: significant after Bonferroni and removing a real part of
+   the excess variance, the rule of a single ``diagnose``.  Every other candidate is tested
+   again in the next round, so an effect that only copied part of the real cause's pattern
+   is not added once the cause is in the model.
+4. **stop** when none of these applies (or after ``max_rounds`` rounds).
+
+The next round starts from the calibration of the chosen run; its re-run of the new model
+is its reference.  Only statistics are kept per run; the residual tables kept are those of
+the first and the newest model (the report's panels and the structure tests).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from stellar_cal_ros.diagnosis.discover import (
+    ALPHA,
+    MIN_EXPLAINED,
+    CandidateResult,
+    Reference,
+    Round,
+    candidate_prior,
+    method_spec,
+    prior_uncertain,
+    rank_round,
+    rerun_prior,
+)
+from stellar_cal_ros.diagnosis.parallel import Task, open_runner
+from stellar_cal_ros.diagnosis.run import finish, progress_printer
+from stellar_cal_ros.diagnosis.runstats import RunStats
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.io.calibration import Calibration, save_calibration
+from stellar_cal_ros.methods.replay import BagData
+
+#: at most this many rivals of an added effect are tried in its place: candidates
+#: significant alone in its round whose score was at least RIVAL_SCORE of its score
+MAX_RIVALS = 2
+RIVAL_SCORE = 0.5
+
+
+def _verdict(c: CandidateResult, top: CandidateResult | None) -> str:
+    """Why a candidate was not added this round."""
+    if c.status == "ranked":
+        if c.significant_alone:
+            return (f"significant alone (p = {c.p_adjusted:.2g}) but behind "
+                    f"{top.effect if top else 'a change of the model'}: tested again next round")
+        if c.p_adjusted < ALPHA:
+            return (f"removes only {c.explained:.0%} of the excess variance "
+                    f"(< {MIN_EXPLAINED:.0%}; p = {c.p_adjusted:.2g})")
+        return f"not significant (p = {c.p_adjusted:.2g})"
+    return c.reason or c.status
+
+
+def _estimates(run: RunStats, effect_id: str) -> dict[str, list[float]]:
+    """``{param: [value, sigma]}`` of one effect in a run."""
+    sl = run.block(effect_id)
+    names = registry.create(effect_id).parameter_names
+    return {n: [float(v), float(s)] for n, v, s in zip(names, run.theta[sl], run.sigma[sl],
+                                                        strict=True)}
+
+
+def without(prior: Calibration, effects: list[str], original: Calibration) -> Calibration:
+    """``prior`` with ``effects`` back at their values in ``original`` (removed, not fixed).
+
+    An effect left out of a model keeps whatever value its start calibration holds (a
+    camera entry, an ``effects`` block the star model applies as fixed): removing one means
+    restoring the value it had before the discovery estimated it.
+    """
+    out = copy.deepcopy(prior)
+    for effect_id in effects:
+        eff = registry.create(effect_id)
+        value, sigma = eff.initial(original)
+        eff.store(value, sigma, out)
+        if effect_id not in (original.effects or {}):
+            out.effects.pop(effect_id, None)
+    return out
+
+
+@dataclass
+class _State:
+    """The model as the stepwise selection changes it."""
+
+    extra: list[str]  #: effects beyond the baseline, in the order added
+    user: tuple[str, ...]  #: the user's --effects (never dropped)
+    start: Calibration
+    rivals: dict[str, list[str]] = field(default_factory=dict)
+    dropped: dict[str, str] = field(default_factory=dict)  #: effect → why
+    #: exchanges tried: (out, in, the model then); retried once the model has changed
+    tried: set[tuple[str, str, frozenset]] = field(default_factory=set)
+    last: str = ""  #: the effect changed last (not checked again at once)
+
+    def checkable(self) -> list[str]:
+        """Added effects whose need is tested this round."""
+        return [e for e in self.extra if e not in self.user and e != self.last]
+
+
+def _checks(state: _State, prior: Calibration, original: Calibration,
+            pool: list[str]) -> list[Task]:
+    """Runs without each added effect, and with each untried rival in its place."""
+    tasks = []
+    for x in state.checkable():
+        rest = tuple(e for e in state.extra if e != x)
+        tasks.append(Task(f"without {x}", without(prior, [x], original), rest, cost=1.0))
+    for x in [e for e in state.extra if e not in state.user]:
+        rest = tuple(e for e in state.extra if e != x)
+        for y in state.rivals.get(x, []):
+            if (x, y, frozenset(state.extra)) in state.tried or y in state.extra \
+                    or y not in pool:
+                continue
+            tasks.append(Task(f"{y} for {x}", candidate_prior(
+                without(prior, [x], original), y, original), rest + (y,), cost=1.5))
+    return tasks
+
+
+def _decide_checks(state: _State, base: RunStats, extras: dict[str, RunStats]
+                   ) -> tuple[str, str, str, RunStats | None, dict[str, Any]]:
+    """(action, removed, added, run to continue from, details) from the check runs."""
+    checks = {k[len("without "):]: v for k, v in extras.items()
+              if k.startswith("without ") and v.ok}
+    worst, details = None, {}
+    for x, run in checks.items():
+        dof = registry.create(x).size
+        stat, p, expl = Reference.of(run).compare(base, dof)
+        p_adj = min(1.0, p * len(checks))
+        needed = p_adj < ALPHA and not expl < MIN_EXPLAINED
+        details[x] = {"score": stat, "p_value": p_adj, "explained_fraction": expl,
+                      "needed": needed}
+        if not needed and (worst is None or p_adj > details[worst]["p_value"]):
+            worst = x
+    if worst is not None:
+        return "drop", worst, "", checks[worst], details
+    ref = Reference.of(base)
+    best, best_gain = None, 0.0
+    for key, run in extras.items():
+        if " for " not in key or not run.ok:
+            continue
+        y, x = key.split(" for ")
+        state.tried.add((x, y, frozenset(state.extra)))
+        gain = 2.0 * (run.window["log_likelihood"] - ref.log_likelihood) / ref.dispersion
+        details[key] = {"score": gain}
+        if gain > best_gain:
+            best, best_gain = key, gain
+    if best is not None:
+        y, x = best.split(" for ")
+        return "exchange", x, y, extras[best], details
+    return "", "", "", None, details
+
+
+def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
+             effects: list[str], output_dir: str | Path, max_rounds: int = 8,
+             **options: Any) -> dict[str, Any]:
+    """Change the model one effect at a time until nothing is significant.
+
+    Writes ``diagnosis.json`` (the last round's diagnosis plus ``path``, ``added``,
+    ``final_estimates``, ``rejected`` and ``reliability``), ``calibration.yaml`` (the final
+    model's calibration) and the report to ``output_dir``; returns the summary.
+    ``options``: ``candidates``, ``evaluation_fraction``, ``plots``, ``verbose``,
+    ``workers``, ``scheduler`` as for :func:`~stellar_cal_ros.diagnosis.run.diagnose`.
+    """
+    candidates = options.get("candidates")
+    evaluation_fraction = options.get("evaluation_fraction", 0.5)
+    plots = options.get("plots", True)
+    t_start = time.perf_counter()
+    out = Path(output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    spec = method_spec(method)
+    tell = progress_printer(options.get("verbose", True))
+    user = tuple(e for e in effects if e not in spec.baseline)
+    state = _State(list(user), user, calibration)
+    path: list[dict[str, Any]] = []
+    history: dict[str, list[tuple[int, CandidateResult]]] = {}
+    first: RunStats | None = None
+    current: RunStats | None = None
+    stopped = ""
+    with open_runner(bag, spec, evaluation_fraction, options.get("workers", 0),
+                     options.get("scheduler")) as runs:
+        uncertain = prior_uncertain(calibration, set(spec.baseline) | set(user))
+        r = Round(runs, spec, runs.facts(), evaluation_fraction, calibration,
+                  tuple(uncertain), progress=tell)
+        pool = uncertain + [e for e in registry.available() if e not in uncertain]
+        if candidates is not None:
+            pool = [e for e in pool if e in candidates]
+        for k in range(1, max_rounds + 1):
+            t0 = time.perf_counter()
+            model = list(spec.baseline) + state.extra
+            tell(f"round {k}: {', '.join(model)}; re-runs {runs.description}")
+            prior = rerun_prior(state.start)
+            base, results, extras = rank_round(
+                r, state.start, state.extra, [e for e in pool if e not in state.dropped],
+                condition=False, more=_checks(state, prior, calibration, pool))
+            if current is not None and current is not first:
+                current.residuals = None  # keep the first and the newest table only
+            current = base
+            first = first or base
+            for c in results:
+                history.setdefault(c.effect, []).append((k, c))
+            action, removed, added, follow, checks = _decide_checks(state, base, extras)
+            top = next((c for c in results if c.significant_alone), None)
+            if not action and top is not None:
+                action, added, follow = "add", top.effect, top.run
+            step = _step(k, model, base, results, top if action == "add" else None,
+                         time.perf_counter() - t0, 1 + len(extras) + sum(
+                             c.run is not None for c in results))
+            step.update({"action": action or "stop", "removed": removed or None,
+                         "exchanged_for": added if action == "exchange" else None,
+                         "checks": checks})
+            path.append(step)
+            rms = base.window["rms"]
+            tell(f"round {k}: RMS u={rms[0]:.4f} v={rms[1]:.4f} px, loglik "
+                 f"{base.window['log_likelihood']:.1f} -> {describe(step)} "
+                 f"[{step['seconds']:.1f} s]")
+            if not action:
+                break
+            if k == max_rounds:
+                stopped = (f"stopped after --max-rounds {max_rounds} before: "
+                           f"{describe(step)}")
+                step.update(action="stop", added=None, removed=None, exchanged_for=None)
+                break
+            if action == "drop":
+                state.extra.remove(removed)
+                state.dropped[removed] = (
+                    f"added earlier, dropped in round {k}: the model without it is not "
+                    f"significantly worse (p = {checks[removed]['p_value']:.2g})")
+            elif action == "exchange":
+                state.extra[state.extra.index(removed)] = added
+                state.dropped[removed] = f"exchanged for {added} in round {k}"
+            else:
+                state.extra.append(added)
+                state.rivals[added] = [
+                    c.effect for c in results if c is not top and c.significant_alone
+                    and c.statistic >= RIVAL_SCORE * top.statistic][:MAX_RIVALS]
+            state.start, state.last = follow.calibration, added or removed
+    return _write(out, calibration, spec, state, path, history, first, current, results,
+                  evaluation_fraction, plots, runs, stopped, time.perf_counter() - t_start)
+
+
+def describe(step: dict[str, Any]) -> str:
+    """One path step in words: what the round changed."""
+    a = step["action"]
+    if a == "add":
+        add = step["added"]
+        return f"add {add['effect']} (score {add['score']:.1f}, p = {add['p_value']:.2g})"
+    if a == "drop":
+        return f"drop {step['removed']} (no longer needed)"
+    if a == "exchange":
+        return f"exchange {step['removed']} for {step['exchanged_for']}"
+    return "nothing significant"
+
+
+def _step(k: int, model: list[str], base: RunStats, results: list[CandidateResult],
+          top: CandidateResult | None, seconds: float, reruns: int) -> dict[str, Any]:
+    w = base.window
+    return {
+        "round": k, "model": list(model), "rms_px": list(w["rms"]),
+        "expected_rms_px": list(w["expected_rms"]), "log_likelihood": w["log_likelihood"],
+        "nis_mean": w["nis"]["mean"], "reruns": reruns, "seconds": seconds,
+        "added": None if top is None else {
+            "effect": top.effect, "score": top.statistic, "p_value": top.p_adjusted,
+            "explained_fraction": top.explained, "rms_after_px": list(top.rms_after_px),
+            "estimate": _estimates(top.run, top.effect)},
+        "rejected": [{"effect": c.effect, "status": c.status, "score": c.statistic,
+                      "p_value": c.p_adjusted, "explained_fraction": c.explained,
+                      "estimate": c.estimate, "reason": _verdict(c, top)}
+                     for c in results if c is not top],
+    }
+
+
+def _write(out: Path, calibration: Calibration, spec, state: _State, path, history, first,
+           final: RunStats, results, fraction: float, plots: bool, runs, stopped: str,
+           seconds: float) -> dict[str, Any]:
+    """The final diagnosis, the report, ``calibration.yaml`` and ``diagnosis.json``."""
+    panels = [("initial model", first.residuals)]
+    if final is not first:
+        panels.append(("final model", final.residuals))
+    images = []
+    if plots:
+        from stellar_cal_ros.diagnosis.plots_discovery import plot_path
+
+        plot_path(path, out / "path.png")
+        images.append(("The path: innovation RMS at each round", "path.png"))
+    summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
+                     panels, plots, "stellar_cal discovery", images)
+    added = [e for e in state.extra if e not in state.user]
+    summary.update({
+        "path": path,
+        "added": added,
+        "stopped": stopped or "nothing more is significant",
+        "final_estimates": {e: _estimates(final, e) for e in added},
+        "rejected": _rejected(history, state, path),
+        "workers": runs.workers, "executor": runs.description,
+        "seconds": seconds,
+    })
+    summary.setdefault("reliability", [])
+    cal_path = out / "calibration.yaml"
+    save_calibration(final.calibration, cal_path)
+    summary["calibration_file"] = str(cal_path)
+    (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
+    return summary
+
+
+def _rejected(history: dict[str, list[tuple[int, CandidateResult]]], state: _State,
+              path: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Every candidate not in the final model, with the reason; copycats named as such."""
+    out = []
+    for effect, seen in history.items():
+        if effect in state.extra:
+            continue
+        k_last, last = seen[-1]
+        step = path[k_last - 1]
+        reason = next((x["reason"] for x in step["rejected"] if x["effect"] == effect),
+                      last.reason or last.status)
+        alone = [k for k, c in seen if c.significant_alone]
+        if effect in state.dropped:
+            reason = state.dropped[effect]
+        elif alone and not last.significant_alone and last.status == "ranked":
+            then = set(path[alone[-1] - 1]["model"])
+            new = [e for e in path[k_last - 1]["model"] if e not in then]
+            reason = (f"significant alone in round {alone[-1]}, not in round {k_last} once "
+                      f"{', '.join(new) or 'the model changed'} (p = {last.p_adjusted:.2g}): "
+                      "it copied part of their pattern")
+        out.append({"effect": effect, "status": last.status, "reason": reason})
+    return out

@@ -1,0 +1,219 @@
+"""Run the re-runs of a diagnosis round concurrently: in this process, or on Dask.
+
+:func:`open_runner` returns a :class:`Runs` bound to one bag and one method.  Its
+:meth:`Runs.map` takes a list of :class:`Task` (a prior and an effect list) and yields each
+run's :class:`~stellar_cal_ros.diagnosis.runstats.RunStats` as it finishes.
+
+Executors
+---------
+``workers=0``
+    in this process, one run after the other (the Python API's default; tests).
+``workers=N`` (N ≥ 1; the command line's default is one per core, at most 16)
+    a ``dask.distributed.LocalCluster`` of N single-threaded worker *processes* (the
+    Kalman filters are pure-Python loops: threads would serialize on the GIL).
+``scheduler=ADDRESS``
+    an existing Dask cluster (``tcp://host:8786``): the user's cluster, its workers as
+    they are.
+
+How the bag reaches the workers
+-------------------------------
+A bag given by path is sent as the path: each worker reads it once and caches it (a
+worker process keeps one bag).  The parent first asks every worker for the file's size;
+when a worker cannot see the file (no shared filesystem) the bag's *bytes* are scattered
+to all workers once (``Client.scatter(broadcast=True)``) and each worker parses its copy —
+the parent never pickles a parsed bag.  A bag already in memory
+(:class:`~stellar_cal_ros.methods.replay.BagData`, from a simulation) is scattered the same
+way.  Workers return statistics only, never a filter or a residual table (except for the
+runs that ask for one, see :class:`Task`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from stellar_cal_ros.diagnosis.runstats import (
+    BagBytes,
+    BagRef,
+    RunStats,
+    bag_facts,
+    evaluate,
+)
+from stellar_cal_ros.errors import StellarCalError
+from stellar_cal_ros.io.calibration import Calibration
+
+log = logging.getLogger(__name__)
+
+#: the default number of local workers is one per core, up to this (a round has ~10-20
+#: runs, and each worker holds the bag)
+MAX_DEFAULT_WORKERS = 16
+
+
+@dataclass
+class Task:
+    """One run: the method's baseline plus ``effects``, started from ``prior``."""
+
+    key: str
+    prior: Calibration
+    effects: tuple[str, ...]
+    keep_residuals: bool = False
+    cost: float = 1.0  #: expected relative run time: longer runs are started first
+
+
+def user_effect_classes() -> tuple[type, ...]:
+    """Registered effect classes that a fresh worker process would not know."""
+    from stellar_cal_ros.effects import registry
+
+    builtin = set(registry._BUILTIN)
+    return tuple(cls for cls in registry.EFFECTS.values() if cls not in builtin)
+
+
+def _file_size(path: str) -> int:
+    try:
+        return os.stat(path).st_size
+    except OSError:
+        return -1
+
+
+class Runs:
+    """Runs of one method on one bag (in this process)."""
+
+    workers = 1
+    description = "in this process"
+
+    def __init__(self, bag: BagRef, spec, fraction: float) -> None:
+        self.bag = str(Path(bag).resolve()) if isinstance(bag, (str, Path)) else bag
+        self.spec = spec
+        self.fraction = fraction
+        self.classes = user_effect_classes()
+
+    def facts(self) -> dict[str, Any]:
+        """Applicability facts of the bag (site, head temperature, frames, duration)."""
+        return bag_facts(self.bag)
+
+    def map(self, tasks: list[Task],
+            done: Callable[[Task, RunStats], None] | None = None) -> Iterator[tuple[Task,
+                                                                                   RunStats]]:
+        """Run ``tasks``; yield ``(task, stats)`` as each finishes."""
+        for task in sorted(tasks, key=lambda t: -t.cost):
+            out = evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
+                           task.keep_residuals, ())
+            if done:
+                done(task, out)
+            yield task, out
+
+    def run_all(self, tasks: list[Task],
+                done: Callable[[Task, RunStats], None] | None = None) -> dict[str, RunStats]:
+        """Run ``tasks`` and return ``{key: stats}``."""
+        return {t.key: s for t, s in self.map(tasks, done)}
+
+    def call(self, fn: Callable, *args: Any) -> Any:
+        """Call ``fn(bag, *args)`` where the runs execute (the screening pass)."""
+        return fn(self.bag, *args)
+
+    def close(self) -> None:
+        """Release the workers."""
+
+
+class DaskRuns(Runs):
+    """Runs on a Dask cluster: a LocalCluster of processes, or the user's scheduler."""
+
+    def __init__(self, bag: BagRef, spec, fraction: float, workers: int | None = None,
+                 scheduler: str | None = None) -> None:
+        super().__init__(bag, spec, fraction)
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError as exc:  # pragma: no cover - a dependency of the package
+            raise StellarCalError("parallel diagnosis needs dask.distributed "
+                                  "(pip install 'dask[distributed]')") from exc
+        self.cluster = None
+        if not log.isEnabledFor(logging.DEBUG):  # its start-up chatter, unless -v
+            logging.getLogger("distributed").setLevel(logging.WARNING)
+        if scheduler:
+            try:
+                self.client = Client(scheduler, timeout="20s")
+            except Exception as exc:
+                raise StellarCalError(f"cannot reach the Dask scheduler {scheduler}: "
+                                      f"{exc}") from exc
+            self.description = f"on the Dask cluster {scheduler}"
+        else:
+            n = workers or min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
+            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                        dashboard_address=":0",
+                                        silence_logs=logging.ERROR)
+            self.client = Client(self.cluster)
+            self.description = f"on {n} local worker processes"
+        self.workers = max(len(self.client.scheduler_info()["workers"]), 1)
+        self.remote_bag = self._place_bag()
+
+    def _place_bag(self) -> Any:
+        """The path if every worker sees the same file, else scattered bytes or data."""
+        bag = self.bag
+        if isinstance(bag, str):
+            size = _file_size(bag)
+            seen = self.client.run(_file_size, bag)
+            if seen and all(s == size for s in seen.values()):
+                return bag
+            log.info("the workers do not see %s: sending its %d bytes to each", bag, size)
+            bag = BagBytes.of(bag)
+        return self.client.scatter(bag, broadcast=True, hash=False)
+
+    def facts(self) -> dict[str, Any]:  # noqa: D102
+        return self.client.submit(bag_facts, self.remote_bag, pure=False).result()
+
+    def map(self, tasks, done=None):  # noqa: D102
+        from distributed import as_completed
+
+        futures = {}
+        for task in tasks:
+            fut = self.client.submit(evaluate, self.remote_bag, self.spec, task.prior,
+                                     task.effects, self.fraction, task.keep_residuals,
+                                     self.classes, pure=False, priority=int(100 * task.cost),
+                                     key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
+            futures[fut] = task
+        for fut in as_completed(futures):
+            task = futures.pop(fut)
+            try:
+                out = fut.result()
+            except Exception as exc:  # a worker died (killed, out of memory): a failed run
+                out = RunStats(effects=task.effects, error=f"{type(exc).__name__}: {exc}")
+            fut.release()
+            if done:
+                done(task, out)
+            yield task, out
+
+    def call(self, fn, *args):  # noqa: D102
+        return self.client.submit(fn, self.remote_bag, *args, pure=False).result()
+
+    def close(self) -> None:  # noqa: D102
+        with contextlib.suppress(Exception):
+            self.client.close()
+        if self.cluster is not None:
+            with contextlib.suppress(Exception):
+                self.cluster.close()
+
+
+@contextlib.contextmanager
+def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
+                scheduler: str | None = None) -> Iterator[Runs]:
+    """A :class:`Runs` for ``bag``: in process (``workers=0``), local Dask or a scheduler.
+
+    ``workers=None`` means one worker process per core (at most
+    :data:`MAX_DEFAULT_WORKERS`).
+    """
+    if isinstance(bag, (str, Path)) and not Path(bag).is_file():
+        from stellar_cal_ros.errors import BagError
+
+        raise BagError(f"{bag}: no such bag file")
+    runs = (DaskRuns(bag, spec, fraction, workers, scheduler) if scheduler or workers != 0
+            else Runs(bag, spec, fraction))
+    try:
+        yield runs
+    finally:
+        runs.close()

@@ -1,0 +1,274 @@
+"""Detectability and reliability of the model (Teunissen's internal and external reliability).
+
+Internal reliability: the *minimal detectable bias* (MDB) of a candidate effect β (k
+parameters) is the size it must have for the round's test to find it with probability
+``POWER`` at the test's level α (Bonferroni over the round's candidates).  With ``I`` the
+information the evaluation window carries about β (nuisance parameters marginalized), the
+test statistic is non-central χ²_k with non-centrality ``λ = bᵀ I b``, so the MDB along a
+direction ``d`` is ``sqrt(λ₀ / dᵀ I d)`` with ``λ₀ = λ(α, POWER, k)`` (:func:`lambda0`).
+
+``I`` comes from the candidate's augmented run: ``I_data = (P_post)_ββ⁻¹ − (P_prior)_ββ⁻¹``
+(the marginal posterior block already has the other parameters marginalized), scaled by the
+share of the accepted stars that lie in the evaluation window (the likelihood ratio is
+summed there).  Measured on ``psce_rotations`` (300 s) this reproduces the Monte-Carlo
+minimum detectable sizes of ``benchmarks/detectability.py`` (see doc/workflow.md).  A
+screening pass (:mod:`~stellar_cal_ros.diagnosis.screening`) may supply ``I`` directly.
+
+An effect is *not testable with this motion* only when its MDB exceeds its plausible
+physical size (:data:`PLAUSIBLE_SIZE`) in every direction — never because the posterior
+stays near a prior σ that may have been set too small.
+
+External reliability: an effect of MDB size left out of the model biases the estimated
+parameters θ by ``b_θ = −P_θβ P_ββ⁻¹ b_β`` (the shift of the conditional mean when β is
+pinned to zero; P is the augmented run's joint posterior).  Over every undetectable β
+(``bᵀ I b ≤ λ₀``) the largest bias of ``gᵀθ`` is ``sqrt(λ₀ hᵀ I⁻¹ h)`` with
+``h = −P_ββ⁻¹ P_βθ g``; an effect larger than its plausible size is not expected either, so
+the plausible ellipsoid's bound ``sqrt(hᵀ D² h)`` caps it (D = plausible sizes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+from scipy import optimize
+from scipy import stats as sps
+
+from stellar_cal_ros.effects import registry
+
+#: power at which the minimal detectable bias is defined
+POWER = 0.8
+#: a parameter is "dominated" when a hidden effect's bias exceeds this many of its sigmas
+DOMINATES_SIGMA = 1.0
+
+#: Plausible physical size of each library effect, per parameter, in the effect's units:
+#: the largest value seen in practice (not a typical value).  An effect whose MDB exceeds
+#: it in every direction cannot be found with this motion and is not ranked.  A user
+#: effect declares ``plausible_size`` on its class; otherwise its default σ is used.
+PLAUSIBLE_SIZE: dict[str, tuple[float, ...]] = {
+    "installation": (np.deg2rad(0.2),) * 3,
+    "focal_length": (20.0,),
+    "principal_point": (20.0, 20.0),
+    "radial_k1k2": (0.3, 1.0),
+    "tangential": (2e-3, 2e-3),
+    "pixel_aspect": (1e-3,),  # 0.1 %: non-square pixels or a skewed readout
+    "radial_k3": (2.0,),
+    "image_plane_tilt": (1e-2, 1e-2),  # rad: detector mounting tolerance up to ~0.6 deg
+    "thermal_focal_length": (1e-4,),  # 1/degC: lens barrel expansion and dn/dT together
+    "gyro_bias": (np.deg2rad(1.0) / 3600.0,) * 3,  # 1 deg/h
+    "gyro_scale_factor": (1e-3,) * 3,  # 1000 ppm (MEMS)
+    "gyro_misalignment": (1e-3,) * 6,  # rad, ~200 arcsec
+    "accel_bias": (1e-2,) * 3,  # m/s^2, ~1 mg
+    "accel_scale_factor": (1e-3,) * 3,
+    "time_offset": (0.05,),  # s: readout, transport, clock offsets
+    "aberration": (1.0,),  # astrometric corrections: scale 1 is the physical size
+    "refraction": (1.0,),
+    "proper_motion": (1.0,),
+}
+
+
+def plausible_size(effect_id: str) -> np.ndarray:
+    """Plausible size per parameter of ``effect_id`` (its units), see :data:`PLAUSIBLE_SIZE`."""
+    if effect_id in PLAUSIBLE_SIZE:
+        return np.asarray(PLAUSIBLE_SIZE[effect_id], dtype=float)
+    eff = registry.create(effect_id)
+    declared = getattr(eff, "plausible_size", None)
+    size = declared if declared is not None else eff.default_sigma
+    out = np.broadcast_to(np.asarray(size, dtype=float), (eff.size,)).copy()
+    return np.where(out > 0, out, np.asarray(eff.default_sigma, dtype=float))
+
+
+@lru_cache(maxsize=256)
+def lambda0(alpha: float, dof: int, power: float = POWER) -> float:
+    """Non-centrality λ₀ at which a χ²_dof test of level ``alpha`` has power ``power``."""
+    dof = max(int(dof), 1)
+    crit = sps.chi2.isf(alpha, dof)
+
+    def gap(lam: float) -> float:
+        return float(sps.ncx2.sf(crit, dof, lam) - power)
+
+    hi = max(crit, 1.0)
+    while gap(hi) < 0:
+        hi *= 2.0
+    return float(optimize.brentq(gap, 1e-9, hi, xtol=1e-6))
+
+
+def _sym(A: np.ndarray) -> np.ndarray:
+    return 0.5 * (A + A.T)
+
+
+def _inverse(A: np.ndarray) -> np.ndarray:
+    A = _sym(np.atleast_2d(A))
+    try:
+        return np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(A)
+
+
+def data_information(P_post: np.ndarray, sigma_prior: np.ndarray,
+                     window_share: float = 1.0) -> np.ndarray:
+    """Information about an effect from its augmented run, ``(k, k)`` in its units⁻².
+
+    ``(P_post⁻¹ − diag(σ_prior)⁻²) × window_share``, clipped to positive semi-definite
+    (process noise and round-off can make the difference slightly indefinite).
+    """
+    P_post = np.atleast_2d(np.asarray(P_post, dtype=float))
+    prior_info = np.diag(1.0 / np.maximum(np.asarray(sigma_prior, dtype=float), 1e-300) ** 2)
+    I_data = _sym(_inverse(P_post) - prior_info)
+    w, V = np.linalg.eigh(I_data)
+    return (V * np.clip(w, 0.0, None)) @ V.T * float(window_share)
+
+
+@dataclass
+class Detectability:
+    """MDB of one candidate effect on this bag."""
+
+    effect: str
+    dof: int
+    alpha: float
+    lam0: float
+    information: np.ndarray  # (k, k) in the effect's units⁻²
+    plausible: np.ndarray  # (k,)
+    mdb: dict[str, float] = field(default_factory=dict)  # per parameter, effect units
+    #: MDB / plausible size along the best-determined direction (≤ 1: testable)
+    ratio: float = float("inf")
+
+    @property
+    def testable(self) -> bool:
+        """The MDB is below the plausible size in at least one direction."""
+        return bool(self.ratio <= 1.0)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON form: MDB per parameter, plausible size, ratio, testable."""
+        names = list(self.mdb)
+        return {"mdb": dict(self.mdb),
+                "plausible_size": {n: float(p) for n, p in zip(names, self.plausible,
+                                                                strict=True)},
+                "mdb_over_plausible": self.ratio, "testable": self.testable,
+                "alpha": self.alpha, "power": POWER}
+
+
+def detectability(effect_id: str, information: np.ndarray, alpha: float) -> Detectability:
+    """MDB per parameter and the testability of ``effect_id`` given its information."""
+    eff = registry.create(effect_id)
+    info = np.atleast_2d(np.asarray(information, dtype=float))
+    k = info.shape[0]
+    lam = lambda0(alpha, k)
+    D = plausible_size(effect_id)
+    diag = np.diag(info)
+    mdb = {n: float(np.sqrt(lam / d)) if d > 0 else float("inf")
+           for n, d in zip(eff.parameter_names, diag, strict=True)}
+    mu = np.linalg.eigvalsh(_sym(info * np.outer(D, D)))
+    top = float(mu.max()) if mu.size else 0.0
+    ratio = float(np.sqrt(lam / top)) if top > 0 else float("inf")
+    return Detectability(effect_id, k, alpha, lam, info, D, mdb, ratio)
+
+
+# ----------------------------------------------------------------------------- display units
+_UNIT_DISPLAY = {"rad": ("arcsec", np.rad2deg(1.0) * 3600.0), "s": ("ms", 1e3),
+                 "rad/s": ("deg/h", np.rad2deg(1.0) * 3600.0),
+                 "m/s^2": ("ug", 1.0 / 9.80665e-6), "px": ("px", 1.0),
+                 "1/degC": ("ppm/degC", 1e6)}
+_EFFECT_DISPLAY = {"pixel_aspect": ("ppm", 1e6), "gyro_scale_factor": ("ppm", 1e6),
+                   "accel_scale_factor": ("ppm", 1e6), "image_plane_tilt": ("mrad", 1e3),
+                   "aberration": ("x physical", 1.0), "refraction": ("x physical", 1.0),
+                   "proper_motion": ("x physical", 1.0)}
+
+
+def display_unit(parameter: str) -> tuple[str, float]:
+    """(unit, factor) the user reads a parameter ``effect.name`` in: px, arcsec, ppm, ms."""
+    effect_id, _, name = parameter.partition(".")
+    if effect_id == "equivalent_principal_point":
+        return "px", 1.0
+    if effect_id in _EFFECT_DISPLAY:
+        return _EFFECT_DISPLAY[effect_id]
+    try:
+        eff = registry.create(effect_id)
+        unit = eff.units[list(eff.parameter_names).index(name)]
+    except Exception:  # an unknown name: show it raw
+        return "", 1.0
+    if unit == "1":
+        return "", 1.0  # dimensionless (distortion coefficients)
+    return _UNIT_DISPLAY.get(unit, (unit, 1.0))
+
+
+def shown(parameter: str, value: float) -> str:
+    """``value`` of ``parameter`` in its display unit, e.g. ``'312 arcsec'``."""
+    unit, factor = display_unit(parameter)
+    return f"{value * factor:.3g} {unit}".strip()
+
+
+# ----------------------------------------------------------------------------- external
+def bias_rows(names_aug: list[str], P_aug: np.ndarray, beta: slice, model_names: list[str],
+              derived: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """Bias of each estimated quantity per unit of a hidden effect, from a joint posterior.
+
+    Parameters
+    ----------
+    names_aug, P_aug : list of str, ndarray (n, n)
+        Parameter names and joint posterior covariance of the augmented run.
+    beta : slice
+        The effect's block in ``names_aug``.
+    model_names : list of str
+        The current model's parameters (a subset of ``names_aug``).
+    derived : dict, optional
+        Derived quantities ``name → J (n,)``: their gradient with respect to the augmented
+        run's θ (e.g. the equivalent principal point).
+
+    Returns
+    -------
+    dict
+        ``name → h (k,)``: leaving out β = b shifts the quantity by ``h · b``
+        (``−P_θβ P_ββ⁻¹ b`` for a parameter).
+    """
+    P = _sym(np.asarray(P_aug, dtype=float))
+    idx = [names_aug.index(n) for n in model_names if n in names_aug]
+    kept = [n for n in model_names if n in names_aug]
+    bidx = np.arange(beta.start, beta.stop)
+    G = -P[np.ix_(idx, bidx)] @ _inverse(P[np.ix_(bidx, bidx)])  # (n_θ, k): b_θ = G b_β
+    rows = {name: G[j] for j, name in enumerate(kept)}
+    for name, J in (derived or {}).items():
+        J = np.asarray(J, dtype=float)
+        rows[name] = J[idx] @ G - J[bidx]  # reduced model's error minus the true shift
+    return rows
+
+
+def external_reliability(det: Detectability, rows: dict[str, np.ndarray],
+                         model_sigma: dict[str, float]) -> dict[str, Any]:
+    """Largest bias an undetectable ``det.effect`` puts into each estimated quantity.
+
+    ``rows`` from :func:`bias_rows` (or a screening pass's sensitivity); ``model_sigma``
+    the posterior σ of each quantity in the current model (same units).  Returns
+    ``{"effect", "mdb", ..., "biases": {name: bias}, "biases_shown": {name: text},
+    "dominates": [names whose bias exceeds DOMINATES_SIGMA σ]}``.
+    """
+    D = det.plausible
+    Iw = _sym(det.information * np.outer(D, D))  # whitened by the plausible sizes
+    w, V = np.linalg.eigh(Iw)
+    # three valid upper bounds of |hᵀb| over {bᵀIb ≤ λ₀} ∩ {|D⁻¹b| ≤ 1}: the MDB
+    # ellipsoid alone (infinite if some direction carries no information), the plausible
+    # ellipsoid alone, and their average ellipsoid (which contains the intersection)
+    small = w <= 1e-12 * max(float(w.max(initial=0.0)), 1e-300)
+    M = 0.5 * (Iw / det.lam0 + np.eye(len(D)))
+
+    def worst(h: np.ndarray) -> float:
+        hw = np.asarray(h, dtype=float) * D
+        bounds = [float(np.sqrt(max(hw @ hw, 0.0))),
+                  float(np.sqrt(max(hw @ np.linalg.solve(M, hw), 0.0)))]
+        c = V.T @ hw
+        if not np.any(np.abs(c[small]) > 1e-12 * max(float(np.abs(c).max(initial=0.0)),
+                                                      1e-300)):
+            bounds.append(float(np.sqrt(det.lam0 * np.sum(c[~small] ** 2 / w[~small]))))
+        return min(bounds)
+
+    biases = {name: worst(h) for name, h in rows.items()}
+    dominates = [name for name, b in biases.items()
+                 if model_sigma.get(name, 0.0) > 0
+                 and b > DOMINATES_SIGMA * model_sigma[name]]
+    return {"effect": det.effect, **det.as_dict(), "biases": biases,
+            "biases_shown": {n: shown(n, b) for n, b in biases.items()},
+            "sigma": {n: model_sigma[n] for n in dominates},
+            "sigma_shown": {n: shown(n, model_sigma[n]) for n in dominates},
+            "dominates": dominates}

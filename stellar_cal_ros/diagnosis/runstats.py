@@ -1,0 +1,261 @@
+"""One calibration run of the diagnosis, reduced to the statistics its decisions need.
+
+A candidate's augmented run produces a filter, a residual table and a state history: on a
+2-h bag about 100 MB.  The diagnosis needs only a few numbers from it (the innovation
+log-likelihood over the evaluation window, the NIS dispersion, the excess variance, the
+RMS, the final θ and its covariance, the counters), so every run is reduced to a
+:class:`RunStats` where it ran — in a worker process — and only that travels back.  The
+residual table is kept only when asked for (the reference run whose structure is tested
+and plotted).
+
+:func:`evaluate` is the function the workers execute.  It takes the bag as a path (read
+once per worker and cached), as the bag's bytes (when the workers do not share the
+parent's filesystem) or as an in-memory :class:`~stellar_cal_ros.methods.replay.BagData`,
+and calls the estimator only through :attr:`MethodSpec.runner`.  :func:`run_statistics` is
+the single place that reads a :class:`~stellar_cal_ros.methods.replay.ReplayResult`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.methods.replay import (
+    BagData,
+    ReplayResult,
+    equivalent_principal_point,
+    read_bag_data,
+)
+
+Table = dict[str, np.ndarray]
+
+#: names of the derived quantities whose bias the reliability report shows: the equivalent
+#: principal point (u, v), px
+EPP_NAMES = ("equivalent_principal_point.u", "equivalent_principal_point.v")
+
+
+@dataclass
+class BagBytes:
+    """A bag's file content, for workers that cannot read the parent's path."""
+
+    name: str
+    data: bytes
+    digest: str
+
+    @classmethod
+    def of(cls, path: str | Path) -> BagBytes:
+        """Read ``path`` into memory."""
+        raw = Path(path).read_bytes()
+        return cls(Path(path).name, raw, hashlib.sha1(raw).hexdigest())
+
+
+BagRef = str | Path | BagBytes | BagData
+
+
+@dataclass
+class RunStats:
+    """What the diagnosis keeps of one run (no filter, no history)."""
+
+    effects: tuple[str, ...]  #: effects beyond the method's baseline
+    names: list[str] = field(default_factory=list)  #: θ parameter names
+    slices: dict[str, tuple[int, int]] = field(default_factory=dict)
+    theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    P: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  #: θ covariance
+    prior_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    window: dict[str, Any] = field(default_factory=dict)  #: :func:`window_statistics`
+    calibration: Calibration | None = None
+    counters: dict[str, int] = field(default_factory=dict)
+    derived: dict[str, Any] = field(default_factory=dict)
+    #: gradient of the equivalent principal point (u, v) with respect to θ, (2, n)
+    epp_jacobian: np.ndarray | None = None
+    seconds: float = 0.0  #: wall time of the run
+    residuals: Table | None = None
+    error: str = ""
+
+    @property
+    def ok(self) -> bool:
+        """The run finished."""
+        return not self.error
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Posterior σ of θ."""
+        return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
+
+    def block(self, effect_id: str) -> slice:
+        """θ slice of ``effect_id``."""
+        a, b = self.slices[effect_id]
+        return slice(a, b)
+
+    def sigma_by_name(self) -> dict[str, float]:
+        """σ of every θ parameter and of the derived quantities, by name."""
+        out = dict(zip(self.names, self.sigma.tolist(), strict=True))
+        s = self.derived.get("equivalent_principal_point_sigma_px")
+        if s is not None:
+            out.update(zip(EPP_NAMES, map(float, s), strict=True))
+        return out
+
+    def value_by_name(self) -> dict[str, float]:
+        """Estimate of every θ parameter, by name."""
+        return dict(zip(self.names, self.theta.tolist(), strict=True))
+
+
+def window_statistics(res: Table, fraction: float) -> dict[str, Any]:
+    """Everything the decisions read from a residual table, over the evaluation window."""
+    mask = stats.evaluation_mask(res, fraction)
+    acc = stats.accepted(res) if len(res.get("t", ())) else np.zeros(0, dtype=bool)
+    return {
+        "log_likelihood": stats.log_likelihood(res, mask),
+        "nis": stats.nis_consistency(res, mask),
+        "whiteness": stats.whiteness(res, mask),
+        "rms": stats.rms(res, mask),
+        "expected_rms": stats.expected_rms(res, mask),
+        "excess_variance": stats.excess_variance(res, mask),
+        "noise_variance": stats.noise_variance(res, mask),
+        "n_window": int(np.sum(mask & acc)),
+        "n_accepted": int(np.sum(acc)),
+        "fraction": fraction,
+    }
+
+
+def _epp_jacobian(model, theta: np.ndarray) -> np.ndarray:
+    """∂(equivalent principal point)/∂θ by central differences, (2, n)."""
+    n = model.size
+    zero = np.zeros((n, n))
+    J = np.zeros((2, n))
+    for j in range(n):
+        h = 1e-6 * max(1.0, abs(theta[j]))
+        tp, tm = theta.copy(), theta.copy()
+        tp[j] += h
+        tm[j] -= h
+        up = equivalent_principal_point(model, tp, zero)["equivalent_principal_point_px"]
+        um = equivalent_principal_point(model, tm, zero)["equivalent_principal_point_px"]
+        J[:, j] = (np.asarray(up) - np.asarray(um)) / (2 * h)
+    return J
+
+
+def run_statistics(result: ReplayResult, fraction: float,
+                   keep_residuals: bool = False) -> RunStats:
+    """Reduce a run to its :class:`RunStats` (the one place that reads a ReplayResult)."""
+    flt = result.filter
+    model = flt.model
+    n = model.size
+    theta = np.array(flt.theta, dtype=float)
+    P = np.array(flt.P[3:3 + n, 3:3 + n], dtype=float)  # attitude first, then θ
+    derived = {k: v for k, v in (result.derived or {}).items()
+               if isinstance(v, (int, float, list, tuple)) and not isinstance(v, bool)}
+    try:
+        J = _epp_jacobian(model, theta)
+    except Exception:  # a model without a camera chain: no derived bias
+        J = None
+    return RunStats(
+        effects=(),
+        names=model.parameter_names(),
+        slices={k: (s.start, s.stop) for k, s in model.slices.items()},
+        theta=theta,
+        P=0.5 * (P + P.T),
+        prior_sigma=np.array(model.initial_sigma, dtype=float),
+        window=window_statistics(result.residuals, fraction),
+        calibration=result.calibration,
+        counters=dict(result.counters),
+        derived=derived,
+        epp_jacobian=J,
+        residuals=result.residuals if keep_residuals else None,
+    )
+
+
+# ----------------------------------------------------------------------------- worker side
+_BAG_CACHE: dict[tuple, BagData] = {}
+
+
+def load_bag(ref: BagRef) -> BagData:
+    """The bag's data: in memory already, or read (once per process) from a path or bytes."""
+    if isinstance(ref, BagData):
+        return ref
+    if isinstance(ref, BagBytes):
+        key: tuple = ("bytes", ref.digest)
+    else:
+        st = os.stat(ref)
+        key = ("path", str(ref), st.st_size, st.st_mtime_ns)
+    if key not in _BAG_CACHE:
+        _BAG_CACHE.clear()  # one bag per worker at a time
+        if isinstance(ref, BagBytes):
+            with tempfile.TemporaryDirectory() as tmp:
+                path = Path(tmp) / ref.name
+                path.write_bytes(ref.data)
+                _BAG_CACHE[key] = read_bag_data(path)
+        else:
+            _BAG_CACHE[key] = read_bag_data(ref)
+    return _BAG_CACHE[key]
+
+
+def register_effect_classes(classes: tuple[type, ...]) -> None:
+    """Register user effect classes a fresh worker process does not know yet."""
+    from stellar_cal_ros.effects import registry
+
+    for cls in classes:
+        if cls.id not in registry.EFFECTS:
+            registry.register(cls)
+
+
+@contextlib.contextmanager
+def quiet(name: str = "stellar_cal_ros.methods", level: int = logging.ERROR):
+    """Raise a logger's level for a while.
+
+    A candidate run's filter warnings (missing effect, frames rejected) are expected, and
+    the diagnosis reports what matters.
+    """
+    logger = logging.getLogger(name)
+    old = logger.level
+    logger.setLevel(max(level, old))
+    try:
+        yield
+    finally:
+        logger.setLevel(old)
+
+
+def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
+             fraction: float, keep_residuals: bool = False,
+             effect_classes: tuple[type, ...] = ()) -> RunStats:
+    """Run ``spec.runner`` on the bag and return the run's statistics (worker entry point).
+
+    A failing run returns a :class:`RunStats` with ``error`` set (the diagnosis reports it
+    and goes on); with ``keep_residuals`` the residual table is returned too, with the
+    gravity direction in the tracker frame added (:mod:`~stellar_cal_ros.diagnosis.context`).
+    """
+    t0 = time.perf_counter()
+    try:
+        register_effect_classes(effect_classes)
+        data = load_bag(bag)
+        with quiet():
+            result = spec.runner(data, prior, list(effects))
+        out = run_statistics(result, fraction, keep_residuals)
+        if keep_residuals:
+            from stellar_cal_ros.diagnosis.context import add_gravity_regressors
+
+            out.residuals = add_gravity_regressors(result.residuals, data, result.calibration)
+    except Exception as exc:  # a candidate failing must not stop the diagnosis
+        out = RunStats(effects=tuple(effects), error=f"{type(exc).__name__}: {exc}")
+    out.effects = tuple(effects)
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
+def bag_facts(bag: BagRef) -> dict[str, Any]:
+    """What the parent needs to know about a bag without holding it (applicability)."""
+    data = load_bag(bag)
+    return {"site": data.site is not None,
+            "head_temperature": data.head_temperature is not None,
+            "frames": len(data.frames),
+            "duration": float(data.imu_t[-1] - data.imu_t[0]) if len(data.imu_t) else 0.0}

@@ -1,0 +1,251 @@
+"""``diagnose --auto`` (issue 15): stepwise discovery, parallel runs, reliability, MDB.
+
+The default suite runs one representative case of each: the whole command on a short bag
+with a 2-worker local Dask cluster, the reliability report of the issue's example (a
+time offset and a small image-plane tilt), a large effect whose prior σ was set too small,
+the screening hook, and the small pieces (λ₀, MDB, bias rows) against closed forms.  The
+multi-effect acceptance cases are benchmarks in ``test_discovery_cases.py``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from stellar_cal_ros.diagnosis import reliability
+from stellar_cal_ros.diagnosis.discover import MethodSpec, method_spec, rank_candidates
+from stellar_cal_ros.diagnosis.run import diagnose
+from stellar_cal_ros.diagnosis.runstats import RunStats
+from stellar_cal_ros.effects.base import Effect, Stage
+from stellar_cal_ros.io.calibration import load_calibration
+from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay_psce
+from stellar_cal_ros.sim.scenarios import get_scenario
+from stellar_cal_ros.sim.world import simulate
+
+NOISE = 0.05
+
+
+def _sim(effects, seed, duration=300.0):
+    sim = simulate(get_scenario("psce_rotations"), duration=duration, seed=seed,
+                   effects=effects)
+    return sim, bag_data_from_simulation(sim)
+
+
+def test_discover_command_with_two_dask_workers(tmp_path):
+    """One command, a 2-worker LocalCluster: the two hidden effects, nothing else."""
+    exe = [sys.executable, "-m", "stellar_cal_ros"]
+
+    def run(*args):
+        out = subprocess.run(exe + list(args), capture_output=True, text=True, timeout=900)
+        assert out.returncode == 0, out.stderr[-3000:]
+        return out.stdout
+
+    bag = tmp_path / "two.mcap"
+    run("simulate", "--scenario", "psce_rotations", "--duration", "200", "--seed", "8",
+        "--effect", "time_offset=0.01", "--effect", "pixel_aspect=1e-4", "-o", str(bag))
+    text = run("discover", str(bag), "--calibration", str(tmp_path / "two.prior.yaml"),
+               "--method", "psce", "--workers", "2", "--no-plots", "-o", str(tmp_path / "rep"),
+               "--candidates", "time_offset,pixel_aspect,image_plane_tilt,gyro_scale_factor")
+    summary = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
+    assert summary["executor"] == "on 2 local worker processes"
+    assert summary["added"] == ["time_offset", "pixel_aspect"], text
+    assert [s["action"] for s in summary["path"]] == ["add", "add", "stop"]
+    final = summary["path"][-1]
+    assert max(final["rms_px"]) <= 1.05 * max(final["expected_rms_px"])
+    # the path is printed, with each added effect's estimate in the user's units
+    assert "round 3:" in text, text
+    shown = re.search(r"added time_offset: dt = (\S+) ms \+- (\S+) ms", text)
+    assert shown and abs(float(shown.group(1)) - 10.0) < 3 * float(shown.group(2)), text
+    cal = load_calibration(tmp_path / "rep" / "calibration.yaml")
+    dt, sig = summary["final_estimates"]["time_offset"]["dt"]
+    assert abs(cal.time_offset - 0.01) < 3 * sig and cal.time_offset == pytest.approx(dt)
+    # the plain command still does one round, and also in parallel
+    text = run("diagnose", str(bag), "--calibration", str(tmp_path / "two.prior.yaml"),
+               "--method", "psce", "--workers", "2", "--no-plots", "-o", str(tmp_path / "one"),
+               "--candidates", "time_offset,pixel_aspect")
+    assert "recommendation: add --effects time_offset" in text
+
+
+def test_reliability_flags_a_tilt_hidden_in_the_principal_point(tmp_path):
+    """The issue's example: after time_offset nothing is significant and the residuals are
+    at the floor, but a small tilt (1.5 mrad, below its MDB) moves the principal point
+    ~6 px (30 σ) and the installation ~300 arcsec: the report must say so, and must not
+    flag the equivalent principal point, which the tilt leaves alone."""
+    tilt = 1.5e-3
+    sim, data = _sim({"time_offset": 0.02, "image_plane_tilt": [tilt, tilt]}, seed=7)
+    s = diagnose(data, sim.prior, "psce", [], tmp_path, plots=False, verbose=False, auto=True,
+                 candidates=["time_offset", "image_plane_tilt", "pixel_aspect"])
+    assert s["added"] == ["time_offset"]
+    assert max(s["residual_rms_px"]) <= 1.05 * NOISE
+    rel = {e["effect"]: e for e in s["reliability"]}
+    t = rel["image_plane_tilt"]
+    assert t["testable"] and all(tilt < m < 4 * tilt for m in t["mdb"].values()), t["mdb"]
+    for name in ("principal_point.cx", "principal_point.cy", "installation.rx",
+                 "installation.ry"):
+        assert name in t["dominates"], (name, t["biases"])
+    for name in ("equivalent_principal_point.u", "equivalent_principal_point.v"):
+        assert name in t["biases"] and name not in t["dominates"], (name, t["biases"])
+    # the bound covers the actual error, which is many sigmas
+    cal = load_calibration(s["calibration_file"])
+    true_cx = sim.truth.camera.cx
+    err = abs(cal.camera.cx - true_cx)
+    sig = cal.sigma["camera"]["camera_matrix"]["data"][2]
+    assert 10 * sig < err < t["biases"]["principal_point.cx"], (err, sig)
+
+
+def test_large_effect_with_too_small_a_prior_sigma_is_tested(tmp_path):
+    """The prior says σ(time offset) = 10 µs; the bag hides 100 µs.  The old rule (posterior
+    σ above half the prior's) would call it unobservable; it is tested and found."""
+    sim, data = _sim({"time_offset": 1e-4}, seed=12, duration=200.0)
+    prior = copy.deepcopy(sim.prior)
+    prior.sigma["time_offset"] = 1e-5
+    cal = replay_psce(data, prior).calibration
+    assert cal.sigma["time_offset"] == 1e-5  # carried into the result: the user's prior
+    s = diagnose(data, cal, "psce", [], tmp_path, plots=False, verbose=False,
+                 candidates=["time_offset", "pixel_aspect"])
+    assert s["recommendation"] == "time_offset"
+    c = next(c for c in s["candidates"] if c["effect"] == "time_offset")
+    # what the data say about it, against the user's prior σ
+    det = c["detectability"]
+    info_eval = reliability.lambda0(det["alpha"], 1) / det["mdb"]["dt"] ** 2
+    info_all = 2.0 * info_eval  # the evaluation window holds about half the stars
+    sigma_p = 1e-5
+    old_ratio = 1.0 / np.sqrt(1.0 + sigma_p**2 * info_all)
+    assert old_ratio > 0.5  # the old rule: "unobservable", never tested
+    assert abs(c["estimate"]["dt"] - 1e-4) < 3 * c["sigma"]["dt"]
+
+
+def test_prior_uncertain_effects_are_candidates_listed_first(tmp_path):
+    """One rule for both methods: effects the prior calls uncertain are not added silently
+    but listed first and tested; camera effects are candidates for swaying_base too."""
+    sim, data = _sim({}, seed=13, duration=150.0)
+    s = diagnose(data, sim.prior, "psce", [], tmp_path, plots=False, verbose=False,
+                 candidates=["time_offset", "gyro_scale_factor", "pixel_aspect"])
+    notes = {p["effect"] for p in s["prior_uncertain"]}
+    assert notes == {"gyro_scale_factor", "time_offset"}  # default prior: σ on both
+    ranked = {c["effect"]: c for c in s["candidates"]}
+    assert ranked["time_offset"]["prior_uncertain"] and \
+        not ranked["pixel_aspect"]["prior_uncertain"]
+    assert s["recommendation"] is None
+    sway = method_spec("swaying_base")
+    assert Stage.CAMERA in sway.stages and Stage.ACCEL in sway.stages
+    assert Stage.ACCEL not in method_spec("psce").stages
+
+
+def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns():
+    """Candidates carry RunStats (no filter, no residual table); a plugged screening pass
+    keeps the candidates it rejects from being re-run."""
+    sim, data = _sim({"time_offset": 5e-4}, seed=14, duration=150.0)
+    calls = []
+    base_spec = method_spec("psce")
+
+    def runner(d, p, effects):
+        calls.append(tuple(effects))
+        return base_spec.runner(d, p, effects)
+
+    def screen(bag, calibration, method, effects, candidates, window):
+        assert method == "psce" and effects == [] and 0 < window < 1
+        return {e: ((500.0 if e == "time_offset" else 0.5), 1, np.eye(1) * 1e8)
+                for e in candidates}
+
+    spec = MethodSpec("psce", base_spec.baseline, base_spec.stages, runner, screen)
+    base, results = rank_candidates(data, sim.prior, spec, [],
+                                    ["time_offset", "pixel_aspect"])
+    assert base.residuals is not None and isinstance(base, RunStats)
+    by = {c.effect: c for c in results}
+    assert ("pixel_aspect",) not in calls and ("time_offset",) in calls
+    assert by["pixel_aspect"].status == "screened_out" and by["pixel_aspect"].run is None
+    top = by["time_offset"]
+    assert top.significant and isinstance(top.run, RunStats) and top.run.residuals is None
+    assert top.refined_run is not None and top.refined_run.residuals is not None
+    assert not hasattr(top.run, "filter")
+
+
+def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):
+    """--scheduler: the user's cluster runs the round (here a 1-worker LocalCluster); a bag
+    in memory is scattered to it; a worker without the file parses the bag's bytes."""
+    from distributed import LocalCluster
+
+    from stellar_cal_ros.diagnosis.runstats import BagBytes, load_bag
+    from stellar_cal_ros.sim.world import write_simulation
+
+    sim, data = _sim({"time_offset": 5e-4}, seed=15, duration=100.0)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=":0") as cluster:
+        s = diagnose(data, sim.prior, "psce", [], tmp_path, plots=False, verbose=False,
+                     candidates=["time_offset", "pixel_aspect"],
+                     scheduler=cluster.scheduler_address)
+    assert s["recommendation"] == "time_offset"
+    paths = write_simulation(sim, tmp_path / "b.mcap")
+    from_bytes = load_bag(BagBytes.of(paths["bag"]))
+    assert len(from_bytes.frames) == len(data.frames)
+    assert np.array_equal(from_bytes.imu_w, data.imu_w)
+
+
+def test_lambda0_and_mdb_against_closed_forms():
+    """λ₀ for 1 dof is (z_{α/2} + z_power)² to 1 %; the MDB of a 1-parameter effect is
+    sqrt(λ₀ / I)."""
+    for alpha in (0.05, 1e-3):
+        approx = (sps.norm.isf(alpha / 2) + sps.norm.ppf(0.8)) ** 2
+        assert reliability.lambda0(alpha, 1) == pytest.approx(approx, rel=0.01)
+    assert reliability.lambda0(1e-3, 3) > reliability.lambda0(1e-3, 1)
+    det = reliability.detectability("time_offset", np.array([[1e10]]), 1e-3)
+    assert det.mdb["dt"] == pytest.approx(np.sqrt(det.lam0 / 1e10))
+    assert det.testable and det.ratio == pytest.approx(det.mdb["dt"] / 0.05)
+    blind = reliability.detectability("time_offset", np.zeros((1, 1)), 1e-3)
+    assert not blind.testable and blind.mdb["dt"] == np.inf
+
+
+def test_information_and_bias_rows_of_a_linear_gaussian_model():
+    """y = a x + b z + noise: the posterior gives back the data information about b and
+    the bias b leaves in a when it is left out (the regression's omitted-variable bias)."""
+    rng = np.random.default_rng(1)
+    n = 400
+    x = rng.standard_normal(n)
+    z = 0.6 * x + 0.8 * rng.standard_normal(n)
+    H = np.stack([x, z], 1)
+    sigma_prior = np.array([10.0, 30.0])
+    P = np.linalg.inv(H.T @ H + np.diag(1 / sigma_prior**2))
+    info = reliability.data_information(P[1:, 1:], sigma_prior[1:])
+    schur = z @ z - (x @ z) ** 2 / (x @ x + 1 / sigma_prior[0] ** 2)
+    assert info[0, 0] == pytest.approx(schur, rel=1e-9)
+    rows = reliability.bias_rows(["a", "focal_length.f"], P, slice(1, 2), ["a"])
+    ols_bias = (x @ z) / (x @ x + 1 / sigma_prior[0] ** 2)  # â of y = b z fitted by a x
+    assert rows["a"][0] == pytest.approx(ols_bias, rel=1e-9)
+    det = reliability.detectability("focal_length", info, 1e-3)
+    out = reliability.external_reliability(det, rows, {"a": 1e-6})
+    # worst undetectable b is the MDB (below the 20 px plausible size): bias = |h| MDB
+    assert out["biases"]["a"] == pytest.approx(abs(ols_bias) * det.mdb["f"], rel=1e-9)
+    assert out["dominates"] == ["a"]
+
+
+class _Delay(Effect):
+    """A user effect with a declared plausible size."""
+
+    id = "test_plausible_delay"
+    stage = Stage.TIME
+    parameter_names = ("d",)
+    units = ("s",)
+    default_sigma = (1e-6,)
+    plausible_size = (0.02,)
+
+
+def test_plausible_size_of_user_effects():
+    """A user effect declares plausible_size; without it, its default σ."""
+    from stellar_cal_ros.effects import registry
+
+    registry.register(_Delay)
+    try:
+        assert reliability.plausible_size("test_plausible_delay") == pytest.approx([0.02])
+        assert reliability.plausible_size("pixel_aspect") == pytest.approx([1e-3])
+        assert reliability.display_unit("time_offset.dt") == ("ms", 1e3)
+        assert reliability.shown("installation.rx", np.deg2rad(1 / 3600)) == "1 arcsec"
+    finally:
+        registry.EFFECTS.pop("test_plausible_delay")
