@@ -81,7 +81,7 @@ def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
     effects = [e for e in cal.estimated if e not in spec.baseline]
     log.info("re-running %s on %s from %s (effects: %s)", method, bag, result,
              ", ".join(effects) or "baseline")
-    run = spec.runner(data_cache["data"], rerun_prior(cal, effects), effects)
+    run = spec.runner(data_cache["data"], rerun_prior(cal, effects), effects, keep_tables=True)
     return run.residuals, run.history, (f"residuals from a re-run of {method} on the bag, "
                                         f"starting at the values of {result.name}")
 

@@ -89,7 +89,7 @@ def _check_found_and_fixed(tmp_path, effect, size, seed, scenario=None):
     # every applicable library candidate was tried
     spec = method_spec("psce")
     tried = set(ranked) | {u["effect"] for u in summary["unobservable"]
-                           + summary["implausible"]}
+                           + summary["implausible"] + summary["screened_out"]}
     expected = {e for e in registry.available() if e not in spec.baseline
                 and registry.create(e).stage.value != "accel"}
     assert tried == expected, tried ^ expected
@@ -186,7 +186,7 @@ def _reduced_spec(dropped):
     spec = method_spec("psce")
     baseline = tuple(e for e in spec.baseline if e != dropped)
     return MethodSpec(spec.name, baseline, spec.stages,
-                      lambda d, p, e: replay_psce(d, p, e, baseline=baseline))
+                      lambda d, p, e, **kw: replay_psce(d, p, e, baseline=baseline, **kw))
 
 
 @pytest.mark.parametrize("dropped", [

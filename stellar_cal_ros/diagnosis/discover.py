@@ -106,16 +106,24 @@ class MethodSpec:
     screen: screening.ScreenFn | None = None
 
 
-def _psce_runner(data: BagData, prior: Calibration, effects: list[str]) -> ReplayResult:
-    from stellar_cal_ros.methods.replay import replay_psce
+def _runner(method: str) -> Runner:
+    """``(data, prior, effects, keep_tables=False, eval_fraction=0.5) -> ReplayResult``.
 
-    return replay_psce(data, prior, effects)
+    Without ``keep_tables`` the run keeps only its running statistics (the evaluation
+    window's log-likelihood, RMS, NIS, whiteness): no residual table, no history.
+    """
+    def run(data: BagData, prior: Calibration, effects: list[str],
+            keep_tables: bool = False, eval_fraction: float = 0.5) -> ReplayResult:
+        from stellar_cal_ros.methods.replay import replay
+
+        return replay(data, prior, method, effects, keep_tables=keep_tables,
+                      eval_fraction=eval_fraction)
+
+    return run
 
 
-def _swaying_runner(data: BagData, prior: Calibration, effects: list[str]) -> ReplayResult:
-    from stellar_cal_ros.methods.swaying import replay_swaying
-
-    return replay_swaying(data, prior, effects)
+_psce_runner = _runner("psce")
+_swaying_runner = _runner("swaying_base")
 
 
 _CAMERA_SIDE = (Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA)
@@ -276,12 +284,9 @@ def prior_uncertain(calibration: Calibration, in_model: set[str]) -> list[str]:
     candidates and tested like any other.
     """
     from stellar_cal_ros.diagnosis.runstats import quiet
+    from stellar_cal_ros.methods.models import prior_uncertain_effects
 
-    try:
-        from stellar_cal_ros.methods.swaying import prior_uncertain_effects
-    except ImportError:  # moved by the kernel refactor: nothing to list
-        return []
-    with quiet(level=logging.WARNING):  # its notes concern the swaying replay
+    with quiet("stellar_cal_ros.methods.models", level=logging.WARNING):
         found = prior_uncertain_effects(calibration)
     return [e for e in found if e not in in_model]
 
@@ -333,6 +338,19 @@ class Round:
                   + (f" failed: {out.error}" if out.error else ""))
 
 
+def _untestable(cand: CandidateResult) -> bool:
+    """Mark ``cand`` not testable with this motion when its detectability says so."""
+    det = cand.detect
+    if det is None or det.testable:
+        return False
+    cand.status = "unobservable"
+    mdb = ", ".join(reliability.shown(f"{cand.effect}.{n}", v) for n, v in det.mdb.items())
+    cand.reason = (f"not testable with this motion: its minimal detectable size ({mdb}) "
+                   f"is {det.ratio:.3g} x its plausible size even along its best-"
+                   "determined direction")
+    return True
+
+
 def _fill_candidate(r: Round, cand: CandidateResult, run: RunStats, reference: Reference,
                     alpha_mdb: float) -> None:
     """Decision inputs of one augmented run: detectability, Λ, p, physical size."""
@@ -347,13 +365,7 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunStats, reference: R
     share = run.window["n_window"] / max(run.window["n_accepted"], 1)
     info = reliability.data_information(run.P[sl, sl], run.prior_sigma[sl], share)
     cand.detect = reliability.detectability(cand.effect, info, alpha_mdb)
-    if not cand.detect.testable:
-        cand.status = "unobservable"
-        det = cand.detect
-        mdb = ", ".join(reliability.shown(f"{cand.effect}.{n}", v) for n, v in det.mdb.items())
-        cand.reason = (f"not testable with this motion: its minimal detectable size ({mdb}) "
-                       f"is {det.ratio:.3g} x its plausible size even along its best-"
-                       "determined direction")
+    if _untestable(cand):
         return
     cand.statistic, cand.p_value, cand.explained = reference.compare(run, eff.size)
     phys = PHYSICAL_VALUE.get(cand.effect)
@@ -394,7 +406,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             testable.append(effect_id)
     alpha_mdb = ALPHA / max(len(testable), 1)
     screened = screening.run_screen(r.runs, r.spec.screen, prior, r.spec.name, extra,
-                                    testable, r.fraction) or {}
+                                    testable, r.fraction, r.spec.baseline) or {}
     cands = {e: CandidateResult(e, "ranked", screen=screened.get(e),
                                 prior_uncertain=e in r.uncertain) for e in testable}
     tasks = [] if base is not None else [Task("current model", prior, tuple(extra),
@@ -404,7 +416,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             c.status, c.dof = "screened_out", c.screen.dof
             c.p_value = c.screen.p_value
             c.detect = reliability.detectability(e, c.screen.information, alpha_mdb)
-            c.reason = f"score test p = {c.p_value:.2g}: not re-run"
+            if not _untestable(c):
+                c.reason = f"score test p = {c.p_value:.2g}: not re-run"
             continue
         tasks.append(Task(e, candidate_prior(prior, e, r.user_prior), tuple(extra) + (e,),
                           cost=_cost(e)))

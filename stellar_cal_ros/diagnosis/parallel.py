@@ -44,6 +44,7 @@ from stellar_cal_ros.diagnosis.runstats import (
     RunStats,
     bag_facts,
     evaluate,
+    register_effect_classes,
 )
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import Calibration
@@ -72,6 +73,12 @@ def user_effect_classes() -> tuple[type, ...]:
 
     builtin = set(registry._BUILTIN)
     return tuple(cls for cls in registry.EFFECTS.values() if cls not in builtin)
+
+
+def _call_with_classes(classes: tuple[type, ...], fn: Callable, *args: Any) -> Any:
+    """``fn(*args)`` in a worker that first learns the user's effect classes."""
+    register_effect_classes(classes)
+    return fn(*args)
 
 
 def _file_size(path: str) -> int:
@@ -189,7 +196,8 @@ class DaskRuns(Runs):
             yield task, out
 
     def call(self, fn, *args):  # noqa: D102
-        return self.client.submit(fn, self.remote_bag, *args, pure=False).result()
+        return self.client.submit(_call_with_classes, self.classes, fn, self.remote_bag,
+                                  *args, pure=False).result()
 
     def close(self) -> None:  # noqa: D102
         with contextlib.suppress(Exception):

@@ -29,7 +29,6 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.diagnosis import stats
 from stellar_cal_ros.io.calibration import Calibration
 from stellar_cal_ros.methods.replay import (
     BagData,
@@ -73,7 +72,8 @@ class RunStats:
     theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
     P: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  #: θ covariance
     prior_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    window: dict[str, Any] = field(default_factory=dict)  #: :func:`window_statistics`
+    #: the evaluation window's statistics (:meth:`stellar_cal_ros.methods.results.RunStats.window`)
+    window: dict[str, Any] = field(default_factory=dict)
     calibration: Calibration | None = None
     counters: dict[str, int] = field(default_factory=dict)
     derived: dict[str, Any] = field(default_factory=dict)
@@ -111,24 +111,6 @@ class RunStats:
         return dict(zip(self.names, self.theta.tolist(), strict=True))
 
 
-def window_statistics(res: Table, fraction: float) -> dict[str, Any]:
-    """Everything the decisions read from a residual table, over the evaluation window."""
-    mask = stats.evaluation_mask(res, fraction)
-    acc = stats.accepted(res) if len(res.get("t", ())) else np.zeros(0, dtype=bool)
-    return {
-        "log_likelihood": stats.log_likelihood(res, mask),
-        "nis": stats.nis_consistency(res, mask),
-        "whiteness": stats.whiteness(res, mask),
-        "rms": stats.rms(res, mask),
-        "expected_rms": stats.expected_rms(res, mask),
-        "excess_variance": stats.excess_variance(res, mask),
-        "noise_variance": stats.noise_variance(res, mask),
-        "n_window": int(np.sum(mask & acc)),
-        "n_accepted": int(np.sum(acc)),
-        "fraction": fraction,
-    }
-
-
 def _epp_jacobian(model, theta: np.ndarray) -> np.ndarray:
     """∂(equivalent principal point)/∂θ by central differences, (2, n)."""
     n = model.size
@@ -150,9 +132,8 @@ def run_statistics(result: ReplayResult, fraction: float,
     """Reduce a run to its :class:`RunStats` (the one place that reads a ReplayResult)."""
     flt = result.filter
     model = flt.model
-    n = model.size
     theta = np.array(flt.theta, dtype=float)
-    P = np.array(flt.P[3:3 + n, 3:3 + n], dtype=float)  # attitude first, then θ
+    P = np.array(flt.P[flt.it, flt.it], dtype=float)  # the estimated θ
     derived = {k: v for k, v in (result.derived or {}).items()
                if isinstance(v, (int, float, list, tuple)) and not isinstance(v, bool)}
     try:
@@ -166,7 +147,9 @@ def run_statistics(result: ReplayResult, fraction: float,
         theta=theta,
         P=0.5 * (P + P.T),
         prior_sigma=np.array(model.initial_sigma, dtype=float),
-        window=window_statistics(result.residuals, fraction),
+        # the run's own streaming statistics over its evaluation window (every run alike,
+        # whether or not it kept its residual table)
+        window=result.stats.window(fraction),
         calibration=result.calibration,
         counters=dict(result.counters),
         derived=derived,
@@ -239,7 +222,8 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
         register_effect_classes(effect_classes)
         data = load_bag(bag)
         with quiet():
-            result = spec.runner(data, prior, list(effects))
+            result = spec.runner(data, prior, list(effects), keep_tables=keep_residuals,
+                                 eval_fraction=fraction)
         out = run_statistics(result, fraction, keep_residuals)
         if keep_residuals:
             from stellar_cal_ros.diagnosis.context import add_gravity_regressors

@@ -64,27 +64,52 @@ class ScreenResult:
         return self.p_value < SCREEN_P
 
 
-def screen_function(method: str) -> ScreenFn | None:
-    """The screening pass of ``method``, or ``None`` (every candidate is re-run).
+#: the score test is local: when the current model is this far off (NIS/dof), or lost lock
+#: and re-acquired, its linearization no longer predicts what an added effect would do, and
+#: every candidate is re-run
+SCREEN_MAX_DISPERSION = 2.0
 
-    This is the hook: return the kernel's one-pass score test here once it exists.
+
+def screen_function(method: str) -> ScreenFn | None:
+    """The screening pass of ``method``: the kernel's one-pass score test."""
+    return _kernel_screen
+
+
+def _kernel_screen(bag, calibration, method: str, effects: list[str], candidates: list[str],
+                   window: float, baseline: tuple[str, ...] | None = None) -> dict[str, tuple]:
+    """One run of the current model with the candidates as consider parameters.
+
+    Returns ``{id: (LM, dof, I, M)}``; when the run is too far from consistent for a local
+    test (see :data:`SCREEN_MAX_DISPERSION`) every candidate gets LM = ∞ (re-run them all).
     """
-    return None
+    from stellar_cal_ros.methods.replay import replay
+    from stellar_cal_ros.methods.screening import score_tests
+
+    r = replay(bag, calibration, method, effects, consider=list(candidates),
+               baseline=baseline, keep_tables=False, eval_fraction=window)
+    scores = score_tests(r, list(candidates))
+    nis = r.stats.nis_per_dof()[0]
+    local = np.isfinite(nis) and nis <= SCREEN_MAX_DISPERSION and not (
+        r.counters.get("reinitializations", 0) or r.counters.get("frames_lost_lock", 0))
+    return {eid: (c.lm if local else np.inf, c.dof, c.info, c.bias_per_unit)
+            for eid, c in scores.items()}
 
 
 def _screen_where_the_bag_is(bag: BagRef, fn: ScreenFn, calibration, method: str,
-                             effects: list[str], candidates: list[str],
-                             window: float) -> dict[str, tuple]:
-    return fn(load_bag(bag), calibration, method, effects, candidates, window)
+                             effects: list[str], candidates: list[str], window: float,
+                             baseline: tuple[str, ...] | None) -> dict[str, tuple]:
+    return fn(load_bag(bag), calibration, method, effects, candidates, window, baseline)
 
 
 def run_screen(runs, fn: ScreenFn | None, calibration, method: str, effects: list[str],
-               candidates: list[str], window: float) -> dict[str, ScreenResult] | None:
+               candidates: list[str], window: float,
+               baseline: tuple[str, ...] | None = None) -> dict[str, ScreenResult] | None:
     """Screen ``candidates`` where the runs execute; ``None`` without a screening pass."""
     if fn is None or not candidates:
         return None
     raw: dict[str, Any] = runs.call(_screen_where_the_bag_is, fn, calibration, method,
-                                    list(effects), list(candidates), window)
+                                    list(effects), list(candidates), window,
+                                    None if baseline is None else tuple(baseline))
     out = {}
     for eid, item in raw.items():
         lm, dof, info = item[:3]

@@ -113,12 +113,15 @@ class RunStats:
     frames: int = 0
     stars: int = 0
     stars_all: int = 0
+    accepted_total: int = 0  #: accepted stars over the whole run (window or not)
+    gated: int = 0  #: stars of the window the gate rejected
+    sum_logdet: float = 0.0  #: Σ log det S over the window's accepted stars
+    sum_nis_capped: float = 0.0  #: Σ min(NIS, cap) over them
     sum_du2: float = 0.0
     sum_dv2: float = 0.0
     sum_suu: float = 0.0
     sum_svv: float = 0.0
     sum_nis: float = 0.0
-    loglik: float = 0.0
     frame_nis: float = 0.0
     frame_dof: int = 0
     ref_nis: float = 0.0  #: the method's other measurements (the swaying filter's Z1)
@@ -130,17 +133,14 @@ class RunStats:
 
     def add(self, upd) -> None:
         """Add one frame update (:class:`~.kernel.FrameUpdate`)."""
+        acc = upd.accepted
+        n = int(acc.sum())
+        self.accepted_total += n
         if self.eval_start is not None and upd.stamp < self.eval_start:
             return
         S = upd.S
-        det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] ** 2
-        with np.errstate(invalid="ignore"):
-            nis_c = np.minimum(upd.nis_stars, NIS_CAP)
-            terms = -0.5 * (nis_c + np.log(np.maximum(det, 1e-300)) + 2 * np.log(2 * np.pi))
-        self.loglik += float(np.nansum(terms))
         self.stars_all += len(upd.uv)
-        acc = upd.accepted
-        n = int(acc.sum())
+        self.gated += len(upd.uv) - n
         if math.isfinite(upd.nis):
             self.frame_nis += upd.nis
             self.frame_dof += upd.dof
@@ -149,6 +149,9 @@ class RunStats:
         self.frames += 1
         nu = (upd.uv - upd.uv_pred)[acc]
         Sa = S[acc]
+        det = Sa[:, 0, 0] * Sa[:, 1, 1] - Sa[:, 0, 1] ** 2
+        self.sum_logdet += float(np.sum(np.log(np.maximum(det, 1e-300))))
+        self.sum_nis_capped += float(np.sum(np.minimum(upd.nis_stars[acc], NIS_CAP)))
         self.stars += n
         self.sum_du2 += float(nu[:, 0] @ nu[:, 0])
         self.sum_dv2 += float(nu[:, 1] @ nu[:, 1])
@@ -179,6 +182,35 @@ class RunStats:
             self.ref_dof += dof
 
     # ------------------------------------------------------------------ summaries
+    def log_likelihood(self) -> float:
+        """Gaussian log-likelihood of the window's innovations, each star's NIS capped.
+
+        Innovations are one-step-ahead predictions, so this is a prequential likelihood.  A
+        gated star counts at the cap with the window's mean accepted log-determinant (its
+        own covariance is that of a wrong identity predicted far off; every model is scored
+        alike on the stars it rejects) — as :func:`stellar_cal_ros.diagnosis.stats.
+        log_likelihood` does with the median on a whole table.
+        """
+        if not self.stars:
+            return math.nan
+        fill = self.sum_logdet / self.stars
+        c = 2 * math.log(2 * math.pi)
+        return -0.5 * (self.sum_nis_capped + self.sum_logdet + self.stars * c
+                       + self.gated * (NIS_CAP + fill + c))
+
+    def window(self, fraction: float) -> dict[str, Any]:
+        """The statistics the diagnosis decides with, over the evaluation window."""
+        nis, (lo, hi) = self.nis_per_dof()
+        n = self.stars
+        mean_sq = (self.sum_du2 + self.sum_dv2) / n if n else math.nan
+        noise = (self.sum_suu + self.sum_svv) / n if n else math.nan
+        return {"log_likelihood": self.log_likelihood(),
+                "nis": {"mean": 2 * nis, "lower": 2 * lo, "upper": 2 * hi, "n": n},
+                "whiteness": self.whiteness(), "rms": self.rms(),
+                "expected_rms": self.expected_rms(), "excess_variance": mean_sq - noise,
+                "noise_variance": noise, "n_window": n, "n_accepted": self.accepted_total,
+                "fraction": fraction}
+
     def rms(self) -> tuple[float, float]:
         """Innovation RMS (u, v) of the accepted stars, px."""
         if not self.stars:
@@ -228,7 +260,7 @@ class RunStats:
                 "reference_nis_per_dof": ref,
                 "expected_rms_px": list(self.expected_rms()), "nis_per_dof": nis,
                 "nis_interval": list(interval), "whiteness": self.whiteness(),
-                "loglik": self.loglik, "eval_start": self.eval_start}
+                "loglik": self.log_likelihood(), "eval_start": self.eval_start}
 
 
 #: NIS/dof beyond the χ² interval by more than this is a model mismatch (small departures
