@@ -16,6 +16,10 @@ class BagError(StellarCalError):
     """A bag cannot be read or written (missing, corrupt, truncated, wrong schema)."""
 
 
+class CheckpointError(StellarCalError):
+    """A checkpoint file is missing, truncated, corrupt (checksum) or of another format."""
+
+
 class MessageDecodeError(BagError):
     """One message cannot be decoded; the text names the topic and the log time."""
 
@@ -38,3 +42,11 @@ class ModelError(StellarCalError):
 
 class ScenarioError(StellarCalError):
     """A simulation scenario or effect injection is invalid."""
+
+
+class DataError(StellarCalError):
+    """The input data contradict the contract in a way no calibration can absorb.
+
+    E.g. a gyro that reports deg/s where rad/s is expected, or star and IMU clocks an hour
+    apart; the text names the likely cause.
+    """

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.errors import CheckpointError, ModelError
 from stellar_cal_ros.io.bag import BagReader
 from stellar_cal_ros.io.calibration import calibration_to_dict, load_calibration
 from stellar_cal_ros.methods.online import OnlineCalibrator, OnlineConfig
@@ -228,7 +228,7 @@ def test_checkpoint_of_another_model_is_refused(excerpt, tmp_path):
     with pytest.raises(ModelError):
         other.load_checkpoint(ck)
     (tmp_path / "junk.npz").write_bytes(b"not a checkpoint")
-    with pytest.raises(ModelError):
+    with pytest.raises(CheckpointError):
         make(prior).load_checkpoint(tmp_path / "junk.npz")
 
 

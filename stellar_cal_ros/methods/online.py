@@ -33,8 +33,8 @@ environment series to the last ``env_history_s`` seconds.
 
 Checkpoints
 -----------
-:meth:`OnlineCalibrator.save_checkpoint` writes one ``.npz`` (atomically: temporary file +
-rename) holding the filter's nominal state (attitude, θ, ω, time), covariance, counters, the
+:meth:`OnlineCalibrator.save_checkpoint` writes one file (io/checkpoint.py: atomic, checksum)
+holding the filter's nominal state (attitude, θ, ω, time), covariance, counters, the
 IMU tail it still needs, and every buffered message (reorder buffers, pending frames,
 environment series, fixes).  :meth:`OnlineCalibrator.load_checkpoint` into a new instance
 built with the same prior, effects and configuration continues exactly where the saved one
@@ -46,14 +46,11 @@ from __future__ import annotations
 import copy
 import dataclasses
 import inspect
-import json
 import logging
 import math
 import os
-import tempfile
 from collections import deque
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -64,6 +61,7 @@ from stellar_cal_ros.effects.base import FrameContext
 from stellar_cal_ros.errors import ModelError
 from stellar_cal_ros.io.bag import StarFrame
 from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.io.checkpoint import read_checkpoint, write_checkpoint
 from stellar_cal_ros.methods.psce import (
     BASELINE_EFFECTS,
     FilterCounters,
@@ -683,7 +681,7 @@ class OnlineCalibrator:
                 "parameters": self.parameter_names()}
 
     def save_checkpoint(self, path: str | os.PathLike[str]) -> None:
-        """Write everything needed to continue to ``path`` (.npz, atomic replace)."""
+        """Write everything needed to continue to ``path`` (atomic, with a checksum)."""
         flt = self.filter
         meta: dict[str, Any] = {
             "format": CHECKPOINT_FORMAT,
@@ -728,34 +726,19 @@ class OnlineCalibrator:
             fstate, farrays = _filter_state(flt)
             meta["filter"] = fstate
             arrays.update({"filter." + k: v for k, v in farrays.items()})
-        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, **arrays)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_checkpoint(path, arrays, meta)
 
     def load_checkpoint(self, path: str | os.PathLike[str]) -> None:
         """Restore the state saved by :meth:`save_checkpoint` (same prior/effects/config).
 
         Raises
         ------
+        CheckpointError
+            The file is missing, truncated, corrupt (checksum) or unreadable.
         ModelError
-            The checkpoint belongs to another model (effects, parameters) or is unreadable.
+            The checkpoint belongs to another model (effects, parameters).
         """
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                a = {k: z[k] for k in z.files}
-            meta = json.loads(bytes(a["meta"]).decode())
-        except (OSError, ValueError, KeyError) as exc:
-            raise ModelError(f"{path}: not a readable checkpoint ({exc})") from exc
+        a, meta = read_checkpoint(path)
         if meta.get("format") != CHECKPOINT_FORMAT:
             raise ModelError(f"{path}: unknown checkpoint format {meta.get('format')!r}")
         if meta["identity"] != self._identity():

@@ -66,7 +66,7 @@ from stellar_cal_msgs.msg import (
 )
 
 from stellar_cal_ros.effects import registry
-from stellar_cal_ros.errors import ModelError, StellarCalError
+from stellar_cal_ros.errors import CheckpointError, ModelError, StellarCalError
 from stellar_cal_ros.io.bag import StarFrame
 from stellar_cal_ros.io.calibration import load_calibration, save_calibration
 from stellar_cal_ros.methods.online import FrameOutcome, OnlineCalibrator, OnlineConfig
@@ -284,8 +284,9 @@ class CalibratorNode(Node):
             return
         try:
             self.cal.load_checkpoint(ck)
-        except ModelError as exc:
-            self.get_logger().error(f"cannot resume from {ck}: {exc}; starting from the prior")
+        except (ModelError, CheckpointError) as exc:
+            self.get_logger().warning(f"cannot resume from {ck}: {exc}; starting from the "
+                                      "prior")
             self.cal.reset()
             return
         self.get_logger().info(
