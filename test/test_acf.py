@@ -24,11 +24,13 @@ from stellar_cal_ros.io.residuals import RESIDUAL_COLUMNS, read_residuals, write
 from stellar_cal_ros.methods.acf import (
     ARCSEC,
     AcfData,
-    grid_projection_error,
-    installation_error_arcsec,
     parse_effects,
     reprojection_rms,
     run_acf,
+)
+from stellar_cal_ros.methods.acf_bound import (
+    grid_projection_error,
+    installation_error_arcsec,
     sweep_axis_imu,
 )
 from stellar_cal_ros.methods.iac import run_iac

@@ -31,16 +31,16 @@ loss; step 2 fits every parameter with the chosen loss (``linear``; ``huber`` / 
 with ``f_scale = 3σ`` for misidentified stars, applied to star residuals only — the prior
 residuals stay quadratic).
 
-Bound.  :func:`crlb_acf` gives the Cramér–Rao bound of this problem at the truth (φ and the
-installation as nuisance, with and without the gyro random walk) and the covariance of the
-least squares as implemented, which ignores the random-walk correlation in its weights (in
-Liu's setting at 0.1 px 1-4 % above the bound on x0 y0 f and 4-8 % on the observable
-installation axes; at 0.05 px, where the random walk weighs more, up to 12-19 %).  In Liu's setting
-the bound on x0 y0 f is within 3 % of the attitude-free (IAC) bound
+Bound. :func:`~stellar_cal_ros.methods.acf_bound.crlb_acf` gives the Cramér–Rao bound of this
+problem at the truth (φ and the installation as nuisance, with and without the gyro random
+walk) and the covariance of the least squares as implemented, which ignores the random-walk
+correlation in its weights (in Liu's setting at 0.1 px 1-4 % above the bound on x0 y0 f and 4-8
+% on the observable installation axes; at 0.05 px, where the random walk weighs more, up to
+12-19 %). In Liu's setting the bound on x0 y0 f is within 3 % of the attitude-free (IAC) bound
 (:func:`~stellar_cal_ros.methods.iac.crlb_iac`) — also for a two-axis or a three-axis step
 motion: the principal point trades against the installation tilt here as against each frame's
-attitude there.  The gyros add information on the intrinsics only when the installation is
-known (x0: 0.18 vs 1.03 px at 0.1 px).  ``benchmarks/acf_vs_paper.py`` prints the bounds.
+attitude there. The gyros add information on the intrinsics only when the installation is known
+(x0: 0.18 vs 1.03 px at 0.1 px). ``benchmarks/acf_vs_paper.py`` prints the bounds.
 
 Times: relative seconds ``(stamp_ns − t0_ns)·1e-9`` with ``t0_ns`` the first IMU stamp; the
 star model's ``ctx.stamp`` (POSIX float, needed by astrometric effects) is only used to carry
@@ -53,7 +53,7 @@ import copy
 import logging
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -61,14 +61,20 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.core.attitude import wahba
-from stellar_cal_ros.core.earth import Site
-from stellar_cal_ros.core.rotation import left_jacobian, so3_exp, so3_log
+from stellar_cal_ros.core.rotation import left_jacobian, so3_exp
 from stellar_cal_ros.core.strapdown import attitude_increments, propagate_attitude
 from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.effects.registry import create_many
-from stellar_cal_ros.errors import BagError, ModelError, StellarCalError
-from stellar_cal_ros.io.bag import BagReader, ImuSeries, StarFrame
+from stellar_cal_ros.errors import ModelError, StellarCalError
 from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.methods.acf_covariance import (
+    ObservabilityReport,
+    _arw_density,
+    _covariance,
+    _observability,
+    _random_walk_term,
+)
+from stellar_cal_ros.methods.acf_data import AcfData, load_acf_data
 from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
@@ -84,73 +90,6 @@ PINHOLE_EFFECTS: tuple[str, ...] = ("installation", "focal_length", "principal_p
 MIN_FRAMES = 2
 MIN_STARS_PER_FRAME = 2
 ARCSEC = np.pi / 180.0 / 3600.0
-
-
-# ============================================================================ data
-@dataclass
-class AcfData:
-    """Star frames and IMU samples of one run, with the time origin ``t0_ns``."""
-
-    frames: list[StarFrame]
-    imu: ImuSeries
-    t0_ns: int
-    site: Site | None = None
-    scalars: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-
-    def rel(self, stamp_ns: Any) -> Any:
-        """Relative seconds of POSIX ns stamps (exact integer difference first)."""
-        return (np.asarray(stamp_ns, dtype=np.int64) - self.t0_ns) * 1e-9
-
-
-def load_acf_data(
-    bag_path: str | os.PathLike[str],
-    star_topic: str = "/star_tracker/stars",
-    imu_topic: str = "/imu/data",
-    gnss_topic: str = "/gnss/fix",
-) -> AcfData:
-    """Read what the ACF method needs from a contract bag.
-
-    Raises
-    ------
-    StellarCalError
-        The bag or one of the two required topics is missing, or holds no data.
-    """
-    try:
-        with BagReader(bag_path) as reader:
-            topics = reader.topics()
-            for topic, what in ((star_topic, "star centroids"), (imu_topic, "IMU samples")):
-                if topic not in topics:
-                    raise StellarCalError(
-                        f"{bag_path}: the ACF method needs {what} on {topic}, which the bag "
-                        f"does not have (topics: {sorted(topics)})")
-            imu = reader.read_imu(imu_topic)
-            frames = reader.read_star_frames(star_topic)
-            site = None
-            scalars: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-            if gnss_topic in topics:
-                fix = reader.read_navsat(gnss_topic)
-                if len(fix):
-                    site = Site(float(np.median(fix.latitude_deg)),
-                                float(np.median(fix.longitude_deg)),
-                                float(np.median(fix.altitude_m)))
-            for key, topic in (("head_temperature_c", "/star_tracker/temperature"),
-                               ("air_temperature_c", "/environment/temperature"),
-                               ("pressure_pa", "/environment/pressure")):
-                if topic in topics:
-                    s = reader.read_scalar(topic)
-                    if len(s):
-                        scalars[key] = (np.asarray(s.stamp_ns), np.asarray(s.value))
-    except FileNotFoundError as exc:
-        raise BagError(f"cannot open bag {bag_path}: {exc}") from None
-    if len(imu) < 2:
-        raise StellarCalError(f"{bag_path}: {imu_topic} holds {len(imu)} IMU samples; "
-                              "the ACF method needs the gyro data between the star frames")
-    if not frames:
-        raise StellarCalError(f"{bag_path}: {star_topic} holds no star frames")
-    t0 = int(imu.stamp_ns[0])
-    data = AcfData(frames=frames, imu=imu, t0_ns=t0, site=site)
-    data.scalars = {k: (data.rel(st), v) for k, (st, v) in scalars.items()}
-    return data
 
 
 # ============================================================================ gyro chain
@@ -210,37 +149,6 @@ class GyroChain:
 
 
 # ============================================================================ results
-@dataclass
-class ObservabilityReport:
-    """What the star data determine, from the SVD of the whitened star Jacobian.
-
-    Columns are scaled by the prior σ of each parameter (the first-attitude columns by the
-    installation prior σ), so a singular value ``s`` compares the data's information on a
-    combination with the prior's: ``s < 1`` means the prior dominates.
-    """
-
-    parameter_names: list[str]
-    singular_values: np.ndarray
-    directions: np.ndarray  # (n, n) right singular vectors as columns (scaled parameters)
-    weak: list[dict[str, Any]]
-    prior_dominated: list[str]
-    sigma_ratio: dict[str, float]  # posterior σ / prior σ
-    correlations: list[tuple[str, str, float]]
-
-    def summary(self) -> str:
-        """Human-readable text."""
-        lines = [f"condition number (prior-scaled star Jacobian): "
-                 f"{self.singular_values[0] / max(self.singular_values[-1], 1e-300):.3g}"]
-        for w in self.weak:
-            comb = " ".join(f"{c:+.2f}·{n}" for n, c in w["combination"].items())
-            lines.append(f"  weak direction s={w['singular_value']:.3g}: {comb}")
-        if self.prior_dominated:
-            lines.append("  prior-dominated (posterior σ > 0.5 prior σ): "
-                         + ", ".join(self.prior_dominated))
-        for a, b, r in self.correlations:
-            lines.append(f"  correlation {a} ~ {b}: {r:+.3f}")
-        return "\n".join(lines)
-
 
 @dataclass
 class AcfResult:
@@ -529,101 +437,6 @@ def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
     return R
 
 
-def _covariance(J: np.ndarray, r: np.ndarray, n_star: int, weights: np.ndarray,
-                n_x: int) -> tuple[np.ndarray, float]:
-    """``(J_sᵀ W J_s / s² + J_pᵀ J_p)⁻¹`` and the variance factor s² of the star rows.
-
-    ``W`` holds the robust IRLS weights (1 for the linear loss); s² comes from the rows with
-    weight ≥ 0.5 (all rows for the linear loss; ``|r| < 2·f_scale`` for Huber).
-    """
-    Js, Jp = J[:n_star], J[n_star:]
-    rs = r[:n_star]
-    inl = weights >= 0.5  # robust losses: the variance factor from the inliers only
-    dof = max(inl.sum() - n_x, 1.0)
-    s2 = float(np.sum(rs[inl] ** 2) / dof)
-    info = (Js * weights[:, None]).T @ Js / s2 + Jp.T @ Jp
-    return _equilibrated_inverse(info), s2
-
-
-def _arw_density(imu: ImuSeries, gyro_arw: float | None) -> float:
-    """Angle random walk density q (rad²/s): given, or from the IMU messages' covariance."""
-    if gyro_arw is not None:
-        return float(gyro_arw) ** 2
-    cov = imu.angular_velocity_covariance
-    if cov is None or len(imu) < 2:
-        return 0.0
-    var = float(np.mean(np.asarray(cov, dtype=float).reshape(9)[[0, 4, 8]]))
-    dt = float(np.median(np.diff(imu.stamp_ns))) * 1e-9
-    return max(var, 0.0) * dt
-
-
-def _random_walk_term(cov: np.ndarray, J: np.ndarray, w: np.ndarray, s2: float,
-                      frames: list[_Frame], t_ref: float, q: float) -> np.ndarray:
-    """Covariance added by gyro angle random walk (sandwich form).
-
-    The gyro-propagated attitude of frame k carries an error ``a_k`` with
-    ``Cov(a_k, a_l) = q · min(s_k, s_l) · I`` (``s = |t − t_ref|``, same side of the reference
-    frame; independent sides), common to all stars of the frame.  With the whitened star rows
-    ``J_k`` of frame k and their attitude block ``A_k = J_k[:, :3]`` the estimate moves by
-    ``N⁻¹ Σ_k J_kᵀ W_k A_k a_k / s²``, so the extra covariance is
-    ``N⁻¹ [Σ_kl M_k Q_kl M_lᵀ] N⁻¹ / s⁴`` with ``M_k = J_kᵀ W_k A_k``, accumulated with tail
-    sums over the sorted ``s`` (Brownian covariance = ∫ 1[u < s_k] 1[u < s_l] du).
-    """
-    n_x = J.shape[1]
-    rows = np.cumsum([0] + [2 * len(f.uv) for f in frames])
-    Ms, ss, side = [], [], []
-    for k, f in enumerate(frames):
-        Jk = J[rows[k]:rows[k + 1]]
-        wk = w[rows[k]:rows[k + 1]]
-        Ms.append((Jk * wk[:, None]).T @ Jk[:, :3])
-        ss.append(abs(f.t_rel - t_ref))
-        side.append(f.t_rel >= t_ref)
-    Z = np.zeros((n_x, n_x))
-    for sgn in (True, False):
-        sel = [k for k in range(len(frames)) if side[k] == sgn]
-        if not sel:
-            continue
-        sel.sort(key=lambda k: ss[k])
-        tail = np.zeros((n_x, 3))
-        tails = []
-        for k in reversed(sel):
-            tail = tail + Ms[k]
-            tails.append(tail.copy())
-        tails.reverse()
-        prev = 0.0
-        for j, k in enumerate(sel):
-            du = ss[k] - prev
-            prev = ss[k]
-            Z += du * tails[j] @ tails[j].T
-    # whitened residuals: attitude error a shifts r by A a (A already divided by σ)
-    Z *= q / (s2 * s2)
-    return cov @ Z @ cov
-
-
-def _observability(J: np.ndarray, n_star: int, weights: np.ndarray, scale: np.ndarray,
-                   names: list[str], cov: np.ndarray, prior_sigma: np.ndarray,
-                   s2: float) -> ObservabilityReport:
-    Js = J[:n_star] * np.sqrt(weights / s2)[:, None] * scale[None, :]
-    _, sv, Vt = np.linalg.svd(Js, full_matrices=False)
-    weak = []
-    for i in np.flatnonzero(sv < 1.0):
-        v = Vt[i]
-        order = np.argsort(-np.abs(v))
-        comb = {names[j]: float(v[j]) for j in order if abs(v[j]) > 0.1}
-        weak.append({"singular_value": float(sv[i]), "combination": comb})
-    sig = np.sqrt(np.diag(cov))
-    ratio = {n: float(s / p) for n, s, p in zip(names, sig, prior_sigma, strict=True)
-             if np.isfinite(p)}
-    dominated = [n for n, q in ratio.items() if q > 0.5]
-    corr = cov / np.outer(sig, sig)
-    pairs = []
-    for a in range(len(names)):
-        for b in range(a + 1, len(names)):
-            if abs(corr[a, b]) > 0.9:
-                pairs.append((names[a], names[b], float(corr[a, b])))
-    return ObservabilityReport(names, sv, Vt.T, weak, dominated, ratio, pairs)
-
-
 # ============================================================================ main entry
 def run_acf(
     source: str | os.PathLike[str] | AcfData,
@@ -896,164 +709,6 @@ def reprojection_rms(result: AcfResult, frames: Any = None, data: AcfData | None
     return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1))))
 
 
-# ============================================================================ Cramér–Rao bound
-def _equilibrated_inverse(info: np.ndarray) -> np.ndarray:
-    """Inverse of an information matrix, equilibrated first.
-
-    The columns span ~12 decades (rad, px, distortion coefficients); a singular matrix
-    (an unobservable direction without prior) falls back to the pseudo-inverse.
-    """
-    d = 1.0 / np.sqrt(np.maximum(np.diag(info), 1e-300))
-    scaled = info * np.outer(d, d)
-    try:
-        inv = np.linalg.inv(scaled)
-    except np.linalg.LinAlgError:
-        inv = np.linalg.pinv(scaled, hermitian=True)
-    return inv * np.outer(d, d)
-
-
-def _inverse(info: np.ndarray) -> np.ndarray:
-    """:func:`_equilibrated_inverse`, symmetrized (the bounds' covariances)."""
-    inv = _equilibrated_inverse(info)
-    return 0.5 * (inv + inv.T)
-
-
-def installation_error_covariance(cov: np.ndarray, model: StarModel,
-                                  theta: np.ndarray) -> np.ndarray:
-    """Covariance (arcsec², tracker axes) of :func:`installation_error_arcsec` from θ's.
-
-    The installation parameter δ is a right rotation of the prior's mounting, so an error
-    ``ε = δ̂ − δ`` moves ``Log(R_truthᵀ R_est)`` by ``J_r(δ) ε``: with δ of a few degrees the
-    mixing (a few %) matters when one component (about a sweep axis) rests on a wide prior.
-    ``cov`` is the covariance of θ (P, P) or of ``[φ, θ]`` (3 + P, 3 + P).
-    """
-    from stellar_cal_ros.core.rotation import right_jacobian
-
-    off = cov.shape[0] - model.size
-    sl = model.slices["installation"]
-    idx = np.arange(sl.start, sl.stop) + off
-    Jr = right_jacobian(theta[sl])
-    return Jr @ cov[np.ix_(idx, idx)] @ Jr.T / ARCSEC ** 2
-
-
-@dataclass
-class AcfBound:
-    """Cramér–Rao bound of the ACF problem at the true parameters (:func:`crlb_acf`).
-
-    All matrices are covariances of ``[φ, θ]`` (first-frame attitude, then the model's θ in
-    its units), the nuisance φ included and marginalised by the inversion:
-
-    * ``crlb_white`` — centroid noise only: the gyro chain ties the attitudes exactly;
-    * ``crlb`` — with the gyro angle random walk: the attitudes of the frames carry the
-      random-walk errors ``a_k`` (``Cov(a_k, a_l) = q min(s_k, s_l) I``, ``s = |t − t_ref|``,
-      same side of the reference frame), i.e. the data covariance is
-      ``σ² I + Σ A_k Q_kl A_lᵀ`` — the bound of an estimator weighting by that covariance;
-    * ``estimator`` — the covariance of :func:`run_acf` with the linear loss (least squares
-      with weights 1/σ², random walk ignored in the fit) in the same linearisation:
-      ``N⁻¹ + N⁻¹ (Σ M_k Q_kl M_lᵀ) N⁻¹`` (what run_acf reports with σ̂ = σ).
-
-    The prior rows ``(θ − θ_prior)/σ_prior`` are part of the information in all three (the
-    estimator has them); with wide priors they matter only for unobservable directions (the
-    installation about a single-axis sweep axis), where the "bound" is the prior.
-    """
-
-    parameter_names: list[str]
-    model: StarModel
-    theta_true: np.ndarray
-    crlb_white: np.ndarray
-    crlb: np.ndarray
-    estimator: np.ndarray
-    arw_q: float  # rad²/s
-    n_frames: int
-    n_stars: int
-    jacobian: np.ndarray  # whitened star rows then prior rows, at the truth
-
-    def sigma(self, which: str = "crlb") -> np.ndarray:
-        """1-σ of ``[φ, θ]`` from ``crlb``, ``crlb_white`` or ``estimator``."""
-        return np.sqrt(np.diag(getattr(self, which)))
-
-    def installation_sigma_arcsec(self, which: str = "crlb") -> np.ndarray:
-        """1-σ (arcsec, tracker axes) of :func:`installation_error_arcsec`."""
-        cov = installation_error_covariance(getattr(self, which), self.model, self.theta_true)
-        return np.sqrt(np.diag(cov))
-
-
-def crlb_acf(
-    source: str | os.PathLike[str] | AcfData,
-    prior: Calibration,
-    truth: Calibration,
-    effects: Sequence[str] | None = None,
-    *,
-    frames: Any = None,
-    sigma_px: float | None = None,
-    gyro_arw: float | None = None,
-    reference_frame: int = 0,
-) -> AcfBound:
-    """Cramér–Rao bound of the ACF calibration (Fisher ``Jᵀ R⁻¹ J`` at the truth).
-
-    The model is run_acf's: effects (default :data:`ACF_EFFECTS`) with the prior's σ as
-    prior information, the first-frame attitude φ as nuisance, every identified star of the
-    selected frames (no gate), centroid σ from the messages or ``sigma_px``.  The Jacobian is
-    :class:`_Problem`'s analytic one at θ = the truth (:func:`~stellar_cal_ros.methods.
-    replay.truth_parameters`), with the gyro chain propagated from the measured rates
-    corrected by the true sensor parameters and the reference attitude from a joint Wahba
-    fit under the true camera and installation (error ~1", immaterial for the Jacobian).
-    ``gyro_arw`` as for :func:`run_acf` (rad/√s; default from the IMU messages).  See
-    :class:`AcfBound` for the three covariances returned.
-
-    Model mismatch (a gyro bias that is not estimated, astrometric effects) does not enter a
-    bound; it shows as errors beyond it.
-    """
-    from stellar_cal_ros.methods.replay import truth_parameters
-
-    data = source if isinstance(source, AcfData) else load_acf_data(source)
-    ids = list(ACF_EFFECTS if effects is None else effects)
-    model = StarModel(create_many(ids), prior)
-    theta = truth_parameters(model, truth)
-    chain = GyroChain(data, model, theta)
-    idx = _select_frames(len(data.frames), frames)
-    fr = _prepare_frames(data, idx, chain, prior.time_offset, sigma_px, MIN_STARS_PER_FRAME)
-    if len(fr) < MIN_FRAMES:
-        raise StellarCalError(f"the bound needs at least {MIN_FRAMES} frames with stars")
-    t_ref = fr[min(max(reference_frame, 0), len(fr) - 1)].t_rel + prior.time_offset
-    R_i_b0 = _initial_attitude(fr, chain, model, theta, t_ref, None)
-    for f in fr:
-        f.use = None  # every identified star
-    problem = _Problem(model, chain, fr, R_i_b0, t_ref, model.initial_value,
-                       model.initial_sigma)
-    problem.theta_lin = theta.copy()
-    _, J = problem.evaluate(np.concatenate([np.zeros(3), theta]))
-    n_star = problem.n_star
-    Js = J[:n_star]
-    info = Js.T @ Js + J[n_star:].T @ J[n_star:]
-    cov_white = _inverse(info)
-    q = _arw_density(data.imu, gyro_arw)
-    if q > 0:
-        # whitened data covariance I + B Q Bᵀ, B = blockdiag(A_k), A_k = attitude columns
-        rows = np.cumsum([0] + [2 * len(f.uv) for f in fr])
-        m = len(fr)
-        M = np.zeros((problem.n_x, 3 * m))
-        BtB = np.zeros((3 * m, 3 * m))
-        s = np.array([abs(f.t_rel - t_ref) for f in fr])
-        side = np.array([f.t_rel >= t_ref for f in fr])
-        for k in range(m):
-            Jk = Js[rows[k]:rows[k + 1]]
-            M[:, 3 * k:3 * k + 3] = Jk.T @ Jk[:, :3]
-            BtB[3 * k:3 * k + 3, 3 * k:3 * k + 3] = Jk[:, :3].T @ Jk[:, :3]
-        K = np.where(side[:, None] == side[None, :], np.minimum(s[:, None], s[None, :]), 0.0)
-        Q = q * np.kron(K, np.eye(3))
-        # Woodbury: Jᵀ(I + BQBᵀ)⁻¹J = JᵀJ − M Q (I + BᵀB Q)⁻¹ Mᵀ
-        Y = np.linalg.solve(np.eye(3 * m) + Q @ BtB, Q)  # = (I + Q BᵀB)⁻¹ Q, symmetric
-        Y = 0.5 * (Y + Y.T)
-        cov = _inverse(info - M @ Y @ M.T)
-        est = cov_white + cov_white @ (M @ Q @ M.T) @ cov_white
-    else:
-        cov = est = cov_white
-    names = ["attitude.phi_x", "attitude.phi_y", "attitude.phi_z"] + model.parameter_names()
-    return AcfBound(names, model, theta, cov_white, cov, 0.5 * (est + est.T), q, len(fr),
-                    n_star // 2, J)
-
-
 def parse_effects(text: str | Sequence[str] | None,
                   baseline: Sequence[str] = ACF_EFFECTS) -> list[str]:
     """``--effects`` value → effect ids: entries are added to ``baseline``; ``-id`` removes."""
@@ -1067,57 +722,6 @@ def parse_effects(text: str | Sequence[str] | None,
         elif it not in out:
             out.append(it)
     return out
-
-
-def installation_error_arcsec(estimated: Calibration, truth: Calibration) -> np.ndarray:
-    """Rotation vector (arcsec, tracker axes) of ``R_truthᵀ R_estimated``."""
-    dR = truth.R_imu_st.T @ estimated.R_imu_st
-    return so3_log(dR) / ARCSEC
-
-
-def sweep_axis_imu(result: AcfResult) -> np.ndarray:
-    """Unit rotation axis (IMU frame) of the gyro attitude change from first to last frame.
-
-    For a single-axis sweep, an installation rotation about this axis cannot be told from a
-    first-attitude rotation: the :func:`grid_projection_error` can remove it.
-    """
-    t = result.data.rel(np.array([result.data.frames[i].stamp_ns for i in result.frames]))
-    R0, _ = result.chain.attitude(float(t.min()))
-    R1, _ = result.chain.attitude(float(t.max()))
-    a = so3_log(R0.T @ R1)
-    return a / np.linalg.norm(a)
-
-
-def grid_projection_error(estimated: Calibration, truth: Calibration, n: int = 21,
-                          free_axis_imu: np.ndarray | None = None) -> tuple[float, float]:
-    """Worst and RMS pixel error over an n×n detector grid of the IMU-direction mapping.
-
-    Each grid pixel is unprojected with the true camera and installation to an IMU-frame
-    direction, which is then projected with the estimated installation and camera.  With
-    ``free_axis_imu`` the estimated installation is first rotated about that IMU axis by the
-    angle that minimises the RMS (the component a single-axis sweep cannot observe).
-    """
-    cam_t, cam_e = truth.camera, estimated.camera
-    g = np.linspace(0.0, 1.0, n)
-    uu, vv = np.meshgrid(g * (cam_t.width - 1), g * (cam_t.height - 1))
-    uv = np.column_stack([uu.ravel(), vv.ravel()])
-    v_imu = cam_t.unproject(uv) @ truth.R_imu_st.T
-
-    def errors(alpha: float) -> np.ndarray:
-        R = estimated.R_imu_st
-        if free_axis_imu is not None:
-            R = so3_exp(alpha * np.asarray(free_axis_imu, dtype=float)) @ R
-        return np.linalg.norm(cam_e.project(v_imu @ R) - uv, axis=1)
-
-    alpha = 0.0
-    if free_axis_imu is not None:
-        from scipy.optimize import minimize_scalar
-
-        alpha = float(minimize_scalar(lambda a: float(np.mean(errors(a) ** 2)),
-                                      bounds=(-0.1, 0.1), method="bounded",
-                                      options={"xatol": 1e-10}).x)
-    e = errors(alpha)
-    return float(np.max(e)), float(np.sqrt(np.mean(e ** 2)))
 
 
 def _merge_sigma(base: Any, over: Any) -> Any:
