@@ -37,7 +37,7 @@ from stellar_cal_ros.methods.iac import run_iac
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
-REF = Path("/work/shared/data/acf_sweep_ideal")
+REF = Path(__file__).resolve().parents[2] / "shared" / "data" / "acf_sweep_ideal"
 needs_ref = pytest.mark.skipif(not REF.with_suffix(".mcap").exists(),
                                reason="reference bag acf_sweep_ideal.mcap absent")
 I_CX, I_CY, I_F, I_INST = 7, 8, 6, slice(3, 6)
