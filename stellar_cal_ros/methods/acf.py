@@ -25,11 +25,21 @@ the whole star field; they separate only through the perspective term ``f (1 + x
 over a 15° field — so ``cx`` and ``ry`` (``cy`` and ``rx``) are strongly correlated.  The
 :class:`ObservabilityReport` lists these combinations from the SVD of the star Jacobian.
 
-Solution (Liu's two steps): a joint Wahba fit of all frames gives ``R̂_i_b0``; step 1 fits a
-distortion-free pinhole (focal length, principal point, installation) and φ with a soft-L1
-loss; step 2 fits every parameter with the chosen loss (``linear``; ``huber`` / ``soft_l1``
-with ``f_scale = 3σ`` for misidentified stars, applied to star residuals only — the prior
-residuals stay quadratic).
+Solution (Liu's two steps): a joint Wahba fit of all frames gives ``R̂_i_b0`` (from the
+frames whose own attitude agrees with the consensus, so a frame of garbage cannot pull it);
+step 1 fits a distortion-free pinhole (focal length, principal point, installation) and φ
+with a soft-L1 loss; step 2 fits every parameter.  Wrong identities are removed twice: a
+catalogue direction far from the measured one (the identification gate, ``gate_deg``), and
+— by default — a star whose normalized residual after a robust fit lies beyond a χ²(2) gate
+(:mod:`~stellar_cal_ros.methods.acf_robust`: a star labelled as another star of the same
+frame passes the first gate and drags a plain least squares by hundreds of arcseconds).
+The final fit runs on the inliers with the chosen loss (``linear`` by default: efficient;
+``huber`` / ``soft_l1`` / ``cauchy`` with ``f_scale = 3σ`` on the star residuals only — the
+prior residuals stay quadratic).  Both rejections are counted in :class:`~stellar_cal_ros.
+methods.acf_data.DataQuality`, with the IMU repairs (NaN/lost samples bridged) and the
+skipped stars and frames; data that contradict the contract (gyro units or axes, long IMU
+gaps, clock jumps or offsets) raise :class:`~stellar_cal_ros.errors.DataError` naming the
+cause (:mod:`~stellar_cal_ros.methods.acf_data`).
 
 Bound. :func:`~stellar_cal_ros.methods.acf_bound.crlb_acf` gives the Cramér–Rao bound of this
 problem at the truth (φ and the installation as nuisance, with and without the gyro random
@@ -53,11 +63,10 @@ import copy
 import logging
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.core.attitude import wahba
@@ -74,7 +83,21 @@ from stellar_cal_ros.methods.acf_covariance import (
     _observability,
     _random_walk_term,
 )
-from stellar_cal_ros.methods.acf_data import AcfData, load_acf_data
+from stellar_cal_ros.methods.acf_data import (
+    AcfData,
+    DataQuality,
+    check_gyro_against_stars,
+    check_overlap,
+    load_acf_data,
+    report_quality,
+)
+from stellar_cal_ros.methods.acf_robust import (
+    _gate_outliers,
+    _robust_weights,
+    _solve,
+    _solve_scaled,
+    _used,
+)
 from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
@@ -89,6 +112,8 @@ PINHOLE_EFFECTS: tuple[str, ...] = ("installation", "focal_length", "principal_p
 
 MIN_FRAMES = 2
 MIN_STARS_PER_FRAME = 2
+OUTLIER_PROBABILITY = 0.9999
+"""Default outlier gate: a star's normalized residual beyond the χ²(2) quantile (4.3 σ)."""
 ARCSEC = np.pi / 180.0 / 3600.0
 
 
@@ -102,16 +127,11 @@ class GyroChain:
     """
 
     def __init__(self, data: AcfData, model: StarModel, theta0: np.ndarray) -> None:
-        imu = data.imu
-        t = data.rel(imu.stamp_ns)
-        if np.any(np.diff(t) <= 0):
-            raise StellarCalError("IMU stamps are not strictly increasing")
-        dt = np.diff(t)
-        dt0 = float(np.median(dt))
-        dt = np.concatenate([[dt0], dt])
-        self.nodes = np.concatenate([[t[0] - dt0], t])  # interval k: nodes[k] .. nodes[k+1]
+        g = data.gyro()  # sorted, finite, gaps bridged (counted in data.quality)
+        t, dt = g.t, g.dt
+        self.nodes = np.concatenate([[t[0] - dt[0]], t])  # interval k: nodes[k] .. nodes[k+1]
         self.dt = dt
-        w = model.corrected_rates(theta0, np.asarray(imu.angular_velocity, dtype=float))
+        w = model.corrected_rates(theta0, g.w)
         self.rates = w
         self.phi = attitude_increments(w, dt)
         R = propagate_attitude(Rotation.identity(), w, dt).as_matrix()
@@ -172,6 +192,9 @@ class AcfResult:
     data: AcfData
     loss: str
     step1_theta: np.ndarray | None = None
+    quality: DataQuality | None = None  # what was repaired, skipped, rejected (= data.quality)
+    degraded: list[str] = field(default_factory=list)  # why the result is not to be trusted
+    derived: dict[str, Any] = field(default_factory=dict)  # equivalent principal point ± σ
 
     @property
     def sigma(self) -> np.ndarray:
@@ -234,32 +257,56 @@ class _Frame:
 
 
 def _prepare_frames(data: AcfData, idx: np.ndarray, chain: GyroChain, time_offset: float,
-                    sigma_px: float | None, min_stars: int) -> list[_Frame]:
+                    sigma_px: float | None, min_stars: int,
+                    image_size: tuple[int, int] | None = None,
+                    quality: DataQuality | None = None) -> list[_Frame]:
+    """The selected frames' usable stars, with their attitude-chain time.
+
+    A star is used if it is identified (catalogue id and direction), its centroid and
+    direction are finite and (given ``image_size``) its centroid lies on the detector
+    (half a pixel margin).  Message σ ≤ 0 or NaN become 1 px (the fit rescales by σ̂).
+    Frames with fewer than ``min_stars`` such stars or outside the IMU span are skipped.
+    Everything left out is counted in ``quality`` (if given).
+    """
     lo, hi = chain.span
+    q = quality if quality is not None else DataQuality()
     out = []
     for k in idx:
         fr = data.frames[int(k)]
-        ok = (fr.catalog_id != 0) & np.isfinite(fr.right_ascension) & \
-            np.isfinite(fr.declination) & np.all(np.isfinite(fr.uv), axis=1)
+        uv = np.asarray(fr.uv, dtype=float).reshape(-1, 2)
+        ident = (fr.catalog_id != 0) & ~(np.isnan(fr.right_ascension)
+                                         & np.isnan(fr.declination))
+        ok = ident & np.isfinite(fr.right_ascension) & np.isfinite(fr.declination) & \
+            np.all(np.isfinite(uv), axis=1)
+        q.stars_unidentified += int(np.sum(~ident))
+        q.stars_invalid += int(np.sum(ident & ~ok))
+        if image_size is not None:
+            with np.errstate(invalid="ignore"):
+                on = (uv[:, 0] >= -0.5) & (uv[:, 0] <= image_size[0] - 0.5) & \
+                    (uv[:, 1] >= -0.5) & (uv[:, 1] <= image_size[1] - 0.5)
+            q.stars_outside_image += int(np.sum(ok & ~on))
+            ok &= on
         if ok.sum() < min_stars:
+            q.frames_few_stars += 1
             continue
         t_rel = float(data.rel(fr.stamp_ns))
         if not (lo <= t_rel + time_offset <= hi):
-            log.warning("star frame %d at %.3f s lies outside the IMU data; skipped", k, t_rel)
+            q.frames_outside_imu += 1
             continue
         sig = np.asarray(fr.sigma, dtype=float)[ok]
         if sigma_px is not None:
             sig = np.full(ok.sum(), float(sigma_px))
         else:
-            sig = np.where(np.isfinite(sig) & (sig > 0), sig, 1.0)
+            good = np.isfinite(sig) & (sig > 0)
+            q.stars_bad_sigma += int(np.sum(~good & (sig != 0)))  # 0: "unknown" (contract)
+            sig = np.where(good, sig, 1.0)
         ctx = FrameContext(stamp=fr.stamp_ns * 1e-9, catalog_id=fr.catalog_id[ok].astype(np.int64),
                            magnitude=np.asarray(fr.magnitude, dtype=float)[ok], site=data.site)
         for key, (ts, vs) in data.scalars.items():
             setattr(ctx, key, float(np.interp(t_rel, ts, vs)))
         out.append(_Frame(int(k), t_rel, fr.stamp_ns * 1e-9,
                           _unit_vectors(fr.right_ascension[ok], fr.declination[ok]),
-                          np.asarray(fr.uv, dtype=float)[ok], sig,
-                          fr.catalog_id[ok].astype(np.int64),
+                          uv[ok], sig, fr.catalog_id[ok].astype(np.int64),
                           np.asarray(fr.magnitude, dtype=float)[ok], ctx))
     return out
 
@@ -342,62 +389,14 @@ class _Problem:
         return self.evaluate(x)[1]
 
 
-def _make_loss(kind: str, n_star: int, c: float):
-    """A least_squares loss ρ(z) (z = r²) robust on the first ``n_star`` residuals only."""
-    if kind == "linear":
-        return "linear"
-    if kind not in ("huber", "soft_l1", "cauchy"):
-        raise StellarCalError(f"loss must be linear, huber, soft_l1 or cauchy, got {kind!r}")
-    c2 = c * c
-
-    def rho(z: np.ndarray) -> np.ndarray:
-        out = np.empty((3, z.size))
-        out[0], out[1], out[2] = z, 1.0, 0.0
-        zs = z[:n_star] / c2
-        if kind == "huber":
-            big = zs > 1.0
-            sq = np.sqrt(np.where(big, zs, 1.0))
-            r0 = np.where(big, 2.0 * sq - 1.0, zs)
-            r1 = np.where(big, 1.0 / sq, 1.0)
-            r2 = np.where(big, -0.5 / (sq * np.where(big, zs, 1.0)), 0.0)
-        elif kind == "soft_l1":
-            t = 1.0 + zs
-            r0, r1, r2 = 2.0 * (np.sqrt(t) - 1.0), t ** -0.5, -0.5 * t ** -1.5
-        else:
-            r0, r1, r2 = np.log1p(zs), 1.0 / (1.0 + zs), -1.0 / (1.0 + zs) ** 2
-        out[0, :n_star] = c2 * r0
-        out[1, :n_star] = r1
-        out[2, :n_star] = r2 / c2
-        return out
-
-    return rho
-
-
-def _robust_weights(kind: str, r: np.ndarray, c: float) -> np.ndarray:
-    """IRLS weights ρ'(r²) of whitened residuals."""
-    if kind == "linear":
-        return np.ones_like(r)
-    zs = (r / c) ** 2
-    if kind == "huber":
-        return np.where(zs > 1.0, 1.0 / np.sqrt(np.maximum(zs, 1.0)), 1.0)
-    if kind == "soft_l1":
-        return (1.0 + zs) ** -0.5
-    return 1.0 / (1.0 + zs)
-
-
-def _solve(problem: _Problem, x0: np.ndarray, loss: str, f_scale: float, max_nfev: int):
-    rho = _make_loss(loss, problem.n_star, f_scale)
-    res = least_squares(problem.fun, x0, jac=problem.jac, loss=rho, f_scale=1.0,
-                        method="trf", x_scale="jac", max_nfev=max_nfev,
-                        xtol=1e-12, ftol=1e-12, gtol=1e-10)
-    return res
-
-
 def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
                       theta: np.ndarray, t_ref: float,
                       gate_deg: float | None) -> np.ndarray:
     """Joint Wahba fit of ``R_i_b0`` over all frames; sets each frame's ``use`` mask.
 
+    Each frame alone implies an ``R_i_b0`` (its own Wahba fit carried back along the gyro
+    chain); the joint fit uses the frames that agree within 1° with the candidate most
+    frames agree with, so a frame of garbage (or many wrong identities) cannot pull it.
     Two passes: the second drops stars more than ``5 × median`` off.  Then stars whose
     catalogue direction is more than ``max(gate_deg, 5 × median)`` from the measured one are
     marked as misidentified (``use = False``): a random wrong identity points far outside
@@ -414,7 +413,8 @@ def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
         u_i.append(f.u_i)
     v, u = np.vstack(v_b0), np.vstack(u_i)
     ok = np.all(np.isfinite(v), axis=1)
-    R = wahba(v[ok], u[ok])
+    sel = ok & _consensus_frames(frames, v, u, ok)
+    R = wahba(v[sel], u[sel])
 
     def angles(R: np.ndarray) -> np.ndarray:
         a = np.full(len(v), np.pi)
@@ -422,7 +422,7 @@ def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
         return a
 
     err = angles(R)
-    keep = ok & (err < max(5.0 * np.median(err[ok]), 20 * ARCSEC))
+    keep = sel & (err < max(5.0 * np.median(err[sel]), 20 * ARCSEC))
     if keep.sum() >= 3:
         R = wahba(v[keep], u[keep])
         err = angles(R)
@@ -435,6 +435,35 @@ def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
         f.use = use[start:start + len(f.uv)]
         start += len(f.uv)
     return R
+
+
+def _consensus_frames(frames: list[_Frame], v: np.ndarray, u: np.ndarray, ok: np.ndarray,
+                      tol_deg: float = 1.0, sample: int = 300) -> np.ndarray:
+    """Star mask of the frames whose own ``R_i_b0`` agrees with the consensus.
+
+    ``v`` (body-at-reference directions), ``u`` (catalogue) and ``ok`` are stacked over the
+    frames.  The consensus is the candidate with the most others within ``tol_deg`` among
+    at most ``sample`` evenly spaced frames.
+    """
+    starts = np.cumsum([0] + [len(f.uv) for f in frames])
+    idx, cands = [], []
+    for k in range(len(frames)):
+        sl = slice(starts[k], starts[k + 1])
+        m = ok[sl]
+        if m.sum() >= 2:
+            idx.append(k)
+            cands.append(wahba(v[sl][m], u[sl][m]))
+    if len(cands) < 3:
+        return np.ones(len(v), dtype=bool)
+    q = Rotation.from_matrix(np.asarray(cands)).as_quat()
+    sub = np.unique(np.linspace(0, len(q) - 1, min(len(q), sample)).astype(int))
+    cos_half = np.cos(np.deg2rad(tol_deg) / 2.0)
+    best = sub[int(np.argmax(np.sum(np.abs(q[sub] @ q[sub].T) > cos_half, axis=1)))]
+    agree = np.abs(q @ q[best]) > cos_half
+    mask = np.zeros(len(v), dtype=bool)
+    for k in np.asarray(idx)[agree].tolist():
+        mask[starts[k]:starts[k + 1]] = True
+    return mask
 
 
 # ============================================================================ main entry
@@ -452,6 +481,8 @@ def run_acf(
     min_stars_per_frame: int = MIN_STARS_PER_FRAME,
     gyro_arw: float | None = None,
     gate_deg: float | None = 2.0,
+    outlier_probability: float | None = OUTLIER_PROBABILITY,
+    check_gyro: bool = True,
     star_topic: str = "/star_tracker/stars",
     imu_topic: str = "/imu/data",
 ) -> AcfResult:
@@ -471,7 +502,9 @@ def run_acf(
     frames : None, 'all', 'odd', 'even', indices, slice or bool mask
         Frames to fit ('odd' = 1st, 3rd, … as Liu et al. count them = indices 0, 2, …).
     loss : {'linear', 'huber', 'soft_l1', 'cauchy'}
-        Loss on the star residuals (``f_scale = 3σ``); prior residuals stay quadratic.
+        Loss on the star residuals of the final fit (``f_scale = 3σ``); prior residuals
+        stay quadratic.  With the outlier gate on, the final fit runs on the gated inliers,
+        so ``linear`` (the default) is the efficient choice.
     sigma_px : float, optional
         Centroid σ, px (default: the messages' ``sigma``, else 1 px).  The covariance is
         scaled by the a-posteriori variance factor in any case.
@@ -488,7 +521,17 @@ def run_acf(
     gate_deg : float or None
         Identification gate: after the initial attitude fit, stars whose catalogue direction
         is more than ``max(gate_deg, 5 × median error)`` off are not fitted (``gated`` in
-        the residual table).  None disables it (then only the loss handles outliers).
+        the residual table).  None disables it.
+    outlier_probability : float or None
+        Outlier gate (default on): after a robust (soft-L1) fit, a star whose normalized
+        residual ``(Δu² + Δv²)/s²`` (``s`` the robust scale of the whitened residuals)
+        exceeds the χ²(2) quantile of this probability is left out, the set refitted until
+        it is stable, then the final fit with ``loss`` runs on the rest.  Catches wrong
+        identities inside the field (another star of the same frame) that pass the
+        identification gate.  None: no gate (the plain least squares of ``loss``).
+    check_gyro : bool
+        Compare the gyro's rotation between frames with the stars' first
+        (:func:`~stellar_cal_ros.methods.acf_data.check_gyro_against_stars`).
     min_stars_per_frame : int
         Frames with fewer identified stars are skipped.
     star_topic, imu_topic : str
@@ -497,9 +540,14 @@ def run_acf(
     Returns
     -------
     AcfResult
+        With :attr:`AcfResult.quality` (everything repaired, skipped or rejected) and
+        :attr:`AcfResult.degraded` (reasons not to trust the result; empty if none).
 
     Raises
     ------
+    DataError
+        The data contradict the contract: gyro units or axes, an IMU gap longer than the
+        star frame interval, a clock jump, star and IMU clocks that do not overlap.
     StellarCalError
         Missing topics, too few frames or stars, or a failed fit.
     """
@@ -516,7 +564,10 @@ def run_acf(
         raise ModelError("every estimated parameter needs a positive prior σ")
     chain = GyroChain(data, model, theta_prior)
     idx = _select_frames(len(data.frames), frames)
-    fr = _prepare_frames(data, idx, chain, prior.time_offset, sigma_px, min_stars_per_frame)
+    quality = data.quality
+    fr = _prepare_frames(data, idx, chain, prior.time_offset, sigma_px, min_stars_per_frame,
+                         (prior.camera.width, prior.camera.height), quality)
+    check_overlap(data, chain.span, idx)
     n_stars = sum(len(f.uv) for f in fr)
     if len(fr) < MIN_FRAMES:
         raise StellarCalError(
@@ -525,6 +576,11 @@ def run_acf(
             f"of {len(idx)} selected")
     if 2 * n_stars < 2 * (3 + model.size):
         raise StellarCalError(f"too few stars ({n_stars}) for {3 + model.size} unknowns")
+    if check_gyro:
+        cam = model.camera_at(theta_prior, fr[0].ctx)
+        check_gyro_against_stars([f.t_rel + prior.time_offset for f in fr],
+                                 [cam.unproject(f.uv) for f in fr], [f.u_i for f in fr],
+                                 lambda t: chain.attitude(t)[0])
     ref = fr[min(max(reference_frame, 0), len(fr) - 1)]
     t_ref = ref.t_rel + prior.time_offset
     names = ["attitude.phi_x", "attitude.phi_y", "attitude.phi_z"] + model.parameter_names()
@@ -532,74 +588,36 @@ def run_acf(
     # -- start: joint Wahba of all frames with the prior camera
     R_i_b0 = _initial_attitude(fr, chain, model, theta_prior, t_ref, gate_deg)
     fr_all = fr
-    fr = [f.subset() for f in fr_all]
-    n_gated = int(sum((~f.use).sum() for f in fr_all))
-    if n_gated:
-        log.info("ACF: %d of %d stars fail the identification gate", n_gated, n_stars)
+    quality.stars_misidentified += int(sum((~f.use).sum() for f in fr_all))
     theta = theta_prior.copy()
     nfev = 0
     step1_theta = None
     if two_step:
-        ids1 = [e.id for e in eff if e.id in PINHOLE_EFFECTS]
-        if ids1:
-            m1 = StarModel(create_many(ids1), prior)
-            c1 = GyroChain(data, m1, m1.initial_value)
-            p1 = _Problem(m1, c1, fr, R_i_b0, t_ref, m1.initial_value, m1.initial_sigma)
-            r0 = p1.fun(np.concatenate([np.zeros(3), m1.initial_value]))[:p1.n_star]
-            scale = max(1.4826 * float(np.median(np.abs(r0))), 1.0)
-            p1.sigma_scale = scale
-            p1._cache = None
-            res1 = _solve(p1, np.concatenate([np.zeros(3), m1.initial_value]), "soft_l1", 3.0,
-                          max_nfev)
-            nfev += res1.nfev
-            R_i_b0 = so3_exp(res1.x[:3]) @ R_i_b0
-            for e in m1.effects:
-                theta[model.slices[e.id]] = res1.x[3:][m1.slices[e.id]]
-            step1_theta = theta.copy()
-            log.info("ACF step 1 (pinhole): %d evaluations, scale %.3g px", res1.nfev, scale)
+        R_i_b0, theta, step1_theta, n1 = _step1(data, prior, model, eff, fr_all, R_i_b0,
+                                                t_ref, theta, max_nfev)
+        nfev += n1
 
-    # -- step 2: everything (re-estimate σ if the messages do not give it)
-    problem = _Problem(model, chain, fr, R_i_b0, t_ref, theta_prior, sigma_prior)
+    # -- step 2: everything; outliers gated after a robust fit, then the final fit
+    def make(frames_used: list[_Frame], scale: float = 1.0) -> _Problem:
+        return _Problem(model, chain, frames_used, R_i_b0, t_ref, theta_prior, sigma_prior,
+                        scale)
+
     x = np.concatenate([np.zeros(3), theta])
-    res = None
-    for _ in range(3):
-        res = _solve(problem, x, loss, 3.0, max_nfev)
-        nfev += res.nfev
-        x = res.x
-        rs = res.fun[:problem.n_star]
-        robust_scale = 1.4826 * float(np.median(np.abs(rs)))
-        # a wrong assumed σ makes f_scale = 3σ meaningless: rescale and refit
-        if loss == "linear" or 0.5 < robust_scale < 2.0:
-            break
-        problem.sigma_scale *= robust_scale
-        problem._cache = None
-    assert res is not None
-    if loss != "linear":
-        # robust losses bound an outlier's pull but do not remove it (Huber: 3σ each):
-        # drop stars beyond 6σ on an axis from the fit and refine on the inliers
-        rs = res.fun[:problem.n_star].reshape(-1, 2)
-        s_in = 1.4826 * float(np.median(np.abs(rs)))
-        bad = np.max(np.abs(rs), axis=1) > 6.0 * max(s_in, 1e-12)
-        if bad.any():
-            start = 0
-            for f0, f in zip(fr_all, fr, strict=True):
-                n = len(f.uv)
-                keep = ~bad[start:start + n]
-                start += n
-                idx_use = np.flatnonzero(f0.use)
-                f0.use = f0.use.copy()
-                f0.use[idx_use[~keep]] = False
-            fr = [f.subset() for f in fr_all]
-            problem = _Problem(model, chain, fr, R_i_b0, t_ref, theta_prior, sigma_prior,
-                               problem.sigma_scale)
-            res = _solve(problem, res.x, loss, 3.0, max_nfev)
-            nfev += res.nfev
-            log.info("ACF: %d outliers beyond 6σ removed, refined", int(bad.sum()))
+    scale = 1.0
+    if outlier_probability:
+        x, scale, n_gate, n_out = _gate_outliers(make, fr_all, x, loss, outlier_probability,
+                                                 max_nfev)
+        nfev += n_gate
+        quality.stars_outliers += n_out
+    fr = _used(fr_all)
+    problem = make(fr, scale)
+    res, n2 = _solve_scaled(problem, x, loss, max_nfev)
+    nfev += n2
     if res.status < 0:
         raise StellarCalError(f"ACF least squares failed: {res.message}")
     if res.status == 0:
-        log.warning("ACF least squares stopped after %d evaluations without converging "
-                    "(outliers? try --loss huber)", res.nfev)
+        log.warning("ACF least squares stopped after %d evaluations without converging",
+                    res.nfev)
 
     # -- covariance (with the gyro random walk between frames), σ̂, observability
     theta_hat = res.x[3:]
@@ -627,12 +645,50 @@ def run_acf(
     table = _residual_table(problem_final, x_hat, data, loss, sigma_hat, fr_all)
     inl = ~table["gated"]
     rms = float(np.sqrt(np.mean(table["du"][inl] ** 2 + table["dv"][inl] ** 2)))
+    degraded = report_quality(data, chain.span, n_stars, len(idx), outlier_probability)
+    cal.extra = dict(cal.extra)
+    cal.extra["data_quality"] = {**quality.counts(), "degraded": bool(degraded),
+                                 "reasons": degraded}
+    derived = {}
+    if "installation" in model.slices:
+        from stellar_cal_ros.methods.replay import equivalent_principal_point
+
+        derived = equivalent_principal_point(model, theta_hat, cov[3:, 3:])
     return AcfResult(
         calibration=cal, residuals=table, cost=float(res.cost), iterations=int(nfev),
         observability=obs, theta=theta_hat, covariance=cov, parameter_names=names,
         sigma_px=float(sigma_hat), rms_px=rms, R_i_b0=R_i_b0_hat, reference_time=t_ref,
         frames=np.array([f.index for f in fr]), model=model, chain=chain, data=data,
-        loss=loss, step1_theta=step1_theta)
+        loss=loss, step1_theta=step1_theta, quality=quality, degraded=degraded,
+        derived=derived)
+
+
+def _step1(data: AcfData, prior: Calibration, model: StarModel, eff: list[Any],
+           fr_all: list[_Frame], R_i_b0: np.ndarray, t_ref: float, theta: np.ndarray,
+           max_nfev: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, int]:
+    """Liu's step 1: a distortion-free pinhole and the first attitude, soft-L1 loss.
+
+    Returns the refined ``R_i_b0``, θ with the pinhole parameters replaced, that θ (None if
+    the model has no pinhole parameter) and the evaluations used.
+    """
+    ids1 = [e.id for e in eff if e.id in PINHOLE_EFFECTS]
+    if not ids1:
+        return R_i_b0, theta, None, 0
+    fr = _used(fr_all)
+    m1 = StarModel(create_many(ids1), prior)
+    c1 = GyroChain(data, m1, m1.initial_value)
+    p1 = _Problem(m1, c1, fr, R_i_b0, t_ref, m1.initial_value, m1.initial_sigma)
+    r0 = p1.fun(np.concatenate([np.zeros(3), m1.initial_value]))[:p1.n_star]
+    scale = max(1.4826 * float(np.median(np.abs(r0))), 1.0)
+    p1.sigma_scale = scale
+    p1._cache = None
+    res1 = _solve(p1, np.concatenate([np.zeros(3), m1.initial_value]), "soft_l1", 3.0,
+                  max_nfev)
+    theta = theta.copy()
+    for e in m1.effects:
+        theta[model.slices[e.id]] = res1.x[3:][m1.slices[e.id]]
+    log.info("ACF step 1 (pinhole): %d evaluations, scale %.3g px", res1.nfev, scale)
+    return so3_exp(res1.x[:3]) @ R_i_b0, theta, theta.copy(), int(res1.nfev)
 
 
 def _store(model: StarModel, prior: Calibration, theta: np.ndarray,
