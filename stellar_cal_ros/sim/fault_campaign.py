@@ -361,14 +361,20 @@ class Campaign:
     _clean: dict[tuple[str, str], Run] = field(default_factory=dict)
 
     def clean(self, command: str, bag: Path | None = None) -> Run:
-        """The command on a clean bag (default: the base bag), cached."""
-        bag = bag or self.base.bag
-        k = (command, str(bag))
+        """The command on a clean bag (default: the base bag), cached.
+
+        A reference bag the command refuses (e.g. the ACF on data with a chunk's time span
+        cut out: an IMU gap) falls back to the base bag.
+        """
+        k = (command, str(bag or self.base.bag))
         if k not in self._clean:
             out = self.workdir / "clean" / f"{command}_{len(self._clean)}.yaml"
-            run = run_command(command, bag, self.base.prior, out, self.base.truth,
-                              self.timeout)
+            run = run_command(command, bag or self.base.bag, self.base.prior, out,
+                              self.base.truth, self.timeout)
             if run.returncode != 0:
+                if bag is not None:
+                    self._clean[k] = self.clean(command)
+                    return self._clean[k]
                 raise RuntimeError(f"the clean {command} run failed: {run.stderr[-2000:]}")
             self._clean[k] = run
         return self._clean[k]
@@ -383,7 +389,8 @@ class Campaign:
                 continue
             run = run_command(exp.command, built.bag, built.prior, d / f"{exp.command}.yaml",
                               self.base.truth, self.timeout)
-            ref = self.clean(exp.command, built.reference) if exp.command != "info" else None
+            ref = self.clean(exp.command, built.reference) \
+                if exp.command != "info" and run.returncode == 0 else None
             base_clean = self.clean(exp.command) if exp.command != "info" else None
             obs = classify(
                 exp, run.returncode, run.stdout, run.stderr, flag=run.flag, key=run.key,

@@ -95,10 +95,10 @@ class Recording:
         """A deep copy (faults modify it in place)."""
         return copy.deepcopy(self)
 
-    def write(self, path: str | Path) -> Path:
+    def write(self, path: str | Path, chunk_size: int = 768 * 1024) -> Path:
         """Write the bag with the project's writer (log time = header stamp)."""
         path = Path(path)
-        with BagWriter(path) as w:
+        with BagWriter(path, chunk_size=chunk_size) as w:
             if self.imu is not None:
                 w.write_imu(self.imu, TOPIC_IMU)
             if self.stars is not None:
@@ -703,6 +703,9 @@ def catalogue() -> list[Variant]:
            f"{p} % of stars labelled as another star of the same frame",
            _bag_from(lambda rec, r, p=p: _swap_identities(rec, p / 100.0, r)),
            _SKIP_RB + " diagnose=skip|flagged", "", p == 2) for p in (1, 2, 5)],
+        ("misid_swap_15pct", "stars", "15 % of stars labelled as another star of the frame",
+         _bag_from(lambda rec, r: _swap_identities(rec, 0.15, r)),
+         "replay=skip|flagged batch=flagged", "", True),
         *[(f"misid_random_{p}pct", "stars",
            f"{p} % of stars labelled as a random catalogue star",
            _bag_from(lambda rec, r, p=p: _random_identities(rec, p / 100.0, r)), _SKIP_RB,
