@@ -307,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--residuals", type=Path, default=None, help="RES.csv (or .parquet)")
     b.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"],
                    help="loss of the final fit (default linear: efficient on the inliers)")
-    b.add_argument("--outlier-probability", type=float, default=0.9999, metavar="P",
+    b.add_argument("--outlier-probability", type=float, default=1.0 - 1e-6, metavar="P",
                    help="outlier gate: after a robust fit, stars beyond the chi2(2) quantile "
                         "P of their normalized residual are left out and counted (0: off)")
     b.set_defaults(func=_cmd_batch)

@@ -53,8 +53,8 @@ def _limit(clean, sim):
 def test_clean_run_is_unchanged_by_the_gate(run):
     sim, rec, clean = run
     plain = run_acf(_data(rec), sim.prior, outlier_probability=None)
-    # the gate leaves out only its false alarms (p = 1e-4 per star)
-    assert clean.quality.stars_outliers <= 5 and not clean.degraded
+    # the gate leaves out only its false alarms (1e-6 per star)
+    assert clean.quality.stars_outliers <= 1 and not clean.degraded
     d = np.abs(clean.theta - plain.theta) / clean.sigma[3:]
     assert np.max(d) < 0.1, d
     assert clean.calibration.extra["data_quality"]["degraded"] is False

@@ -97,6 +97,7 @@ from stellar_cal_ros.methods.acf_robust import (
     _solve,
     _solve_scaled,
     _used,
+    beyond_gate,
 )
 from stellar_cal_ros.methods.star_model import StarModel
 
@@ -112,8 +113,13 @@ PINHOLE_EFFECTS: tuple[str, ...] = ("installation", "focal_length", "principal_p
 
 MIN_FRAMES = 2
 MIN_STARS_PER_FRAME = 2
-OUTLIER_PROBABILITY = 0.9999
-"""Default outlier gate: a star's normalized residual beyond the χ²(2) quantile (4.3 σ)."""
+OFF_IMAGE_MARGIN_PX = 10.0
+"""A centroid farther off the detector than this is invalid (counted, not fitted)."""
+OUTLIER_PROBABILITY = 1.0 - 1e-6
+"""Default outlier gate: a star's normalized residual beyond the χ²(2) quantile (5.3 σ).
+
+A wrong identity is off by degrees (thousands of σ); the gate's false alarms (10⁻⁶ a star)
+leave clean runs of up to ~10⁵ stars untouched in practice."""
 ARCSEC = np.pi / 180.0 / 3600.0
 
 
@@ -263,9 +269,10 @@ def _prepare_frames(data: AcfData, idx: np.ndarray, chain: GyroChain, time_offse
     """The selected frames' usable stars, with their attitude-chain time.
 
     A star is used if it is identified (catalogue id and direction), its centroid and
-    direction are finite and (given ``image_size``) its centroid lies on the detector
-    (half a pixel margin).  Message σ ≤ 0 or NaN become 1 px (the fit rescales by σ̂).
-    Frames with fewer than ``min_stars`` such stars or outside the IMU span are skipped.
+    direction are finite and (given ``image_size``) its centroid lies on the detector or
+    within :data:`OFF_IMAGE_MARGIN_PX` of it (noise moves edge stars a little off). Message
+    σ ≤ 0 or NaN become 1 px (the fit rescales by σ̂). Frames with fewer than ``min_stars``
+    such stars or outside the IMU span are skipped.
     Everything left out is counted in ``quality`` (if given).
     """
     lo, hi = chain.span
@@ -281,9 +288,10 @@ def _prepare_frames(data: AcfData, idx: np.ndarray, chain: GyroChain, time_offse
         q.stars_unidentified += int(np.sum(~ident))
         q.stars_invalid += int(np.sum(ident & ~ok))
         if image_size is not None:
+            m = OFF_IMAGE_MARGIN_PX + 0.5
             with np.errstate(invalid="ignore"):
-                on = (uv[:, 0] >= -0.5) & (uv[:, 0] <= image_size[0] - 0.5) & \
-                    (uv[:, 1] >= -0.5) & (uv[:, 1] <= image_size[1] - 0.5)
+                on = (uv[:, 0] >= -m) & (uv[:, 0] <= image_size[0] - 1 + m) & \
+                    (uv[:, 1] >= -m) & (uv[:, 1] <= image_size[1] - 1 + m)
             q.stars_outside_image += int(np.sum(ok & ~on))
             ok &= on
         if ok.sum() < min_stars:
@@ -523,10 +531,11 @@ def run_acf(
         is more than ``max(gate_deg, 5 × median error)`` off are not fitted (``gated`` in
         the residual table).  None disables it.
     outlier_probability : float or None
-        Outlier gate (default on): after a robust (soft-L1) fit, a star whose normalized
-        residual ``(Δu² + Δv²)/s²`` (``s`` the robust scale of the whitened residuals)
-        exceeds the χ²(2) quantile of this probability is left out, the set refitted until
-        it is stable, then the final fit with ``loss`` runs on the rest.  Catches wrong
+        Outlier gate (default on): if after the fit any star's normalized residual
+        ``(Δu² + Δv²)/s²`` (``s`` the robust scale of the whitened residuals) exceeds the
+        χ²(2) quantile of this probability, the fit starts again robustly (soft-L1) and
+        such stars are left out until the set is stable; the final fit with ``loss`` runs
+        on the rest (clean data: the plain fit, unchanged).  Catches wrong
         identities inside the field (another star of the same frame) that pass the
         identification gate.  None: no gate (the plain least squares of ``loss``).
     check_gyro : bool
@@ -602,17 +611,20 @@ def run_acf(
         return _Problem(model, chain, frames_used, R_i_b0, t_ref, theta_prior, sigma_prior,
                         scale)
 
-    x = np.concatenate([np.zeros(3), theta])
-    scale = 1.0
-    if outlier_probability:
-        x, scale, n_gate, n_out = _gate_outliers(make, fr_all, x, loss, outlier_probability,
-                                                 max_nfev)
-        nfev += n_gate
-        quality.stars_outliers += n_out
+    x0 = np.concatenate([np.zeros(3), theta])
     fr = _used(fr_all)
-    problem = make(fr, scale)
-    res, n2 = _solve_scaled(problem, x, loss, max_nfev)
+    problem = make(fr)
+    res, n2 = _solve_scaled(problem, x0, loss, max_nfev)
     nfev += n2
+    # clean data end here; with stars beyond the gate, start again robustly from x0
+    if outlier_probability and beyond_gate(problem, res.x, outlier_probability).any():
+        x, scale, n_gate, n_out = _gate_outliers(make, fr_all, x0, loss, outlier_probability,
+                                                 max_nfev)
+        quality.stars_outliers += n_out
+        fr = _used(fr_all)
+        problem = make(fr, scale)
+        res, n2 = _solve_scaled(problem, x, loss, max_nfev)
+        nfev += n_gate + n2
     if res.status < 0:
         raise StellarCalError(f"ACF least squares failed: {res.message}")
     if res.status == 0:

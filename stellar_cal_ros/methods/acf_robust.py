@@ -94,6 +94,22 @@ def _solve_scaled(problem: Any, x: np.ndarray, loss: str, max_nfev: int):
     return res, nfev
 
 
+def beyond_gate(problem: Any, x: np.ndarray, probability: float,
+                excluded: np.ndarray | None = None) -> np.ndarray:
+    """Stars (bool per star) whose normalized residual lies beyond the χ²(2) gate.
+
+    ``(r_u² + r_v²) / s²`` of the whitened residuals at ``x``, ``s`` = 1.4826 × the median
+    absolute whitened residual of the stars not ``excluded`` (a robust scale: the outliers
+    do not inflate it), against the χ²(2) quantile of ``probability``.
+    """
+    from scipy.stats import chi2
+
+    r = problem.fun(x)[:problem.n_star].reshape(-1, 2)
+    keep = ~excluded if excluded is not None and np.any(~excluded) else np.ones(len(r), bool)
+    s = 1.4826 * float(np.median(np.abs(r[keep])))
+    return np.sum(r ** 2, axis=1) > float(chi2.ppf(probability, 2)) * max(s, 1e-12) ** 2
+
+
 def _gate_outliers(make: Callable[..., Any], fr_all: list[Any], x: np.ndarray, loss: str,
                    probability: float, max_nfev: int,
                    max_rounds: int = 5) -> tuple[np.ndarray, float, int, int]:
@@ -103,12 +119,9 @@ def _gate_outliers(make: Callable[..., Any], fr_all: list[Any], x: np.ndarray, l
     identification gate) is tested in every round, so a star wrongly left out returns.
     Sets each frame's ``use``; returns x, the σ scale, evaluations and the outlier count.
     """
-    from scipy.stats import chi2
-
     robust = loss if loss != "linear" else "soft_l1"
     ident = [f.use.copy() for f in fr_all]
     candidates = make(_used(fr_all))
-    gate = float(chi2.ppf(probability, 2))
     out = np.zeros(candidates.n_star // 2, dtype=bool)
     nfev, scale = 0, 1.0
     for _ in range(max_rounds):
@@ -118,9 +131,7 @@ def _gate_outliers(make: Callable[..., Any], fr_all: list[Any], x: np.ndarray, l
         x, scale = res.x, problem.sigma_scale
         candidates.sigma_scale = scale
         candidates._cache = None
-        r = candidates.fun(x)[:candidates.n_star].reshape(-1, 2)
-        s = 1.4826 * float(np.median(np.abs(r[~out]))) if np.any(~out) else 1.0
-        new = np.sum(r ** 2, axis=1) > gate * max(s, 1e-12) ** 2
+        new = beyond_gate(candidates, x, probability, out)
         if np.array_equal(new, out):
             break
         out = new
