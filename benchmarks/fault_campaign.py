@@ -13,6 +13,7 @@ Usage::
     .venv/bin/python benchmarks/fault_campaign.py               # the full table
     .venv/bin/python benchmarks/fault_campaign.py --reduced     # the default-suite set
     .venv/bin/python benchmarks/fault_campaign.py --only imu_ --commands batch
+    .venv/bin/python benchmarks/fault_campaign.py --code ../other_checkout   # judge another
 
 Exit status 1 if any run crashed, hung or was silently wrong.
 """
@@ -41,6 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--commands", default="", help="comma-separated commands to run")
     ap.add_argument("--timeout", type=float, default=300.0, help="per run, s (hang)")
     ap.add_argument("--workdir", type=Path, default=None, help="keep the files here")
+    ap.add_argument("--code", type=Path, default=None,
+                    help="root of another checkout whose CLI to judge (default: this one)")
     args = ap.parse_args(argv)
     variants = [v for v in catalogue() if not args.reduced or v.reduced]
     if args.only:
@@ -51,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         work = args.workdir or Path(tmp)
         t0 = time.perf_counter()
         base = make_base(work / "base", duration=args.duration, seed=args.seed)
-        camp = Campaign(base, work, timeout=args.timeout)
+        camp = Campaign(base, work, timeout=args.timeout, code=args.code)
         rows = []
         for v in variants:
             new = camp.run(v, commands)

@@ -617,7 +617,8 @@ def run_acf(
     res, n2 = _solve_scaled(problem, x0, loss, max_nfev)
     nfev += n2
     # clean data end here; with stars beyond the gate, start again robustly from x0
-    if outlier_probability and beyond_gate(problem, res.x, outlier_probability).any():
+    if outlier_probability and beyond_gate(res.fun[:problem.n_star],
+                                           outlier_probability).any():
         x, scale, n_gate, n_out = _gate_outliers(make, fr_all, x0, loss, outlier_probability,
                                                  max_nfev)
         quality.stars_outliers += n_out

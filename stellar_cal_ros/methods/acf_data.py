@@ -319,36 +319,29 @@ def check_gyro_against_stars(times: Sequence[float], directions_st: Sequence[np.
     rms = [e for _, e in fits.values() if np.isfinite(e)]
     worst = 5.0 * max(float(np.median(rms)), 1e-5) if rms else np.inf
 
-    def star_attitude(k: int) -> np.ndarray | None:
-        R, e = fits[k]
-        return R if e <= worst else None  # a frame its own stars do not fit: not used
-
-    ratio_g, ratio_s, ax_s, ax_g = [], [], [], []
-    for i in anchors:
-        for lag in _LAGS:
-            j = i + lag
-            if j >= n:
-                break
-            Ri, Rj = star_attitude(i), star_attitude(j)
-            if Ri is None or Rj is None:
-                continue
-            a_s = _rotvec(Ri.T @ Rj)
-            a_g = _rotvec(attitude(float(times[i])).T @ attitude(float(times[j])))
-            th_s, th_g = float(np.linalg.norm(a_s)), float(np.linalg.norm(a_g))
-            if np.deg2rad(0.05) <= th_s <= np.deg2rad(2.0):
-                ratio_s.append(th_s)
-                ratio_g.append(th_g)
-            if np.deg2rad(2.0) <= th_s <= np.deg2rad(170.0) and th_g > 1e-9:
-                ax_s.append(a_s / th_s)
-                ax_g.append(a_g / th_g)
+    good = {k for k, (_, e) in fits.items() if e <= worst}  # frames their stars fit
+    pairs = np.array([(i, i + lag) for i in anchors for lag in _LAGS
+                      if i + lag < n and i in good and i + lag in good], dtype=int)
+    if not len(pairs):
+        return {"ratio": float("nan"), "pairs": 0, "axis_misfit_deg": float("nan")}
+    R_s = {k: fits[k][0] for k in good}
+    R_g = {k: attitude(float(times[k])) for k in good}
+    a_s = _rotvecs([R_s[i].T @ R_s[j] for i, j in pairs])
+    a_g = _rotvecs([R_g[i].T @ R_g[j] for i, j in pairs])
+    th_s, th_g = np.linalg.norm(a_s, axis=1), np.linalg.norm(a_g, axis=1)
+    in_ratio = (th_s >= np.deg2rad(0.05)) & (th_s <= np.deg2rad(2.0))
+    in_axes = (th_s >= np.deg2rad(2.0)) & (th_s <= np.deg2rad(170.0)) & (th_g > 1e-9)
+    ratio_s, ratio_g = th_s[in_ratio], th_g[in_ratio]
+    ax_s = a_s[in_axes] / th_s[in_axes, None]
+    ax_g = a_g[in_axes] / th_g[in_axes, None]
     out = {"ratio": float("nan"), "pairs": len(ratio_s), "axis_misfit_deg": float("nan")}
-    if ratio_s:
-        ratio = float(np.median(np.asarray(ratio_g) / np.asarray(ratio_s)))
+    if len(ratio_s):
+        ratio = float(np.median(ratio_g / ratio_s))
         out["ratio"] = ratio
         if not 0.5 < ratio < 2.0:  # a prior focal length tens of % off moves it that much
             raise DataError(_ratio_cause(ratio, len(ratio_s)))
     if len(ax_s) >= 3:
-        A_s, A_g = np.asarray(ax_s), np.asarray(ax_g)
+        A_s, A_g = ax_s, ax_g
         sv = np.linalg.svd(A_g, compute_uv=False)
         if sv[1] > 0.2 * sv[0]:
             R = wahba(A_s, A_g)  # R_imu_st: gyro axes (IMU) ≈ R · star axes (tracker)
@@ -392,10 +385,11 @@ def _frame_wahba(v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray | None, float
     return R, float(np.sqrt(np.mean(errors(R)[inl] ** 2)))
 
 
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    from stellar_cal_ros.core.rotation import so3_log
+def _rotvecs(mats: list[np.ndarray]) -> np.ndarray:
+    """Rotation vectors (k, 3) of rotation matrices."""
+    from scipy.spatial.transform import Rotation
 
-    return so3_log(R)
+    return Rotation.from_matrix(np.asarray(mats)).as_rotvec()
 
 
 def _ratio_cause(ratio: float, pairs: int) -> str:

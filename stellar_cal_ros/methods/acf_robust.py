@@ -94,17 +94,18 @@ def _solve_scaled(problem: Any, x: np.ndarray, loss: str, max_nfev: int):
     return res, nfev
 
 
-def beyond_gate(problem: Any, x: np.ndarray, probability: float,
+def beyond_gate(residuals: np.ndarray, probability: float,
                 excluded: np.ndarray | None = None) -> np.ndarray:
     """Stars (bool per star) whose normalized residual lies beyond the χ²(2) gate.
 
-    ``(r_u² + r_v²) / s²`` of the whitened residuals at ``x``, ``s`` = 1.4826 × the median
-    absolute whitened residual of the stars not ``excluded`` (a robust scale: the outliers
-    do not inflate it), against the χ²(2) quantile of ``probability``.
+    ``residuals``: the whitened star residuals ``(r_u, r_v)`` of every star, flat (2n,).
+    ``(r_u² + r_v²) / s²``, ``s`` = 1.4826 × the median absolute whitened residual of the
+    stars not ``excluded`` (a robust scale: the outliers do not inflate it), against the
+    χ²(2) quantile of ``probability``.
     """
     from scipy.stats import chi2
 
-    r = problem.fun(x)[:problem.n_star].reshape(-1, 2)
+    r = np.asarray(residuals).reshape(-1, 2)
     keep = ~excluded if excluded is not None and np.any(~excluded) else np.ones(len(r), bool)
     s = 1.4826 * float(np.median(np.abs(r[keep])))
     return np.sum(r ** 2, axis=1) > float(chi2.ppf(probability, 2)) * max(s, 1e-12) ** 2
@@ -131,7 +132,7 @@ def _gate_outliers(make: Callable[..., Any], fr_all: list[Any], x: np.ndarray, l
         x, scale = res.x, problem.sigma_scale
         candidates.sigma_scale = scale
         candidates._cache = None
-        new = beyond_gate(candidates, x, probability, out)
+        new = beyond_gate(candidates.fun(x)[:candidates.n_star], probability, out)
         if np.array_equal(new, out):
             break
         out = new

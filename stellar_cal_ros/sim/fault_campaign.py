@@ -287,19 +287,21 @@ class Run:
 
 
 def run_command(command: str, bag: Path, prior: Path, out: Path, truth: Path | None,
-                timeout: float) -> Run:
+                timeout: float, code: Path | None = None) -> Run:
     """Run one CLI command in a subprocess and measure its result.
 
-    The package is imported from the tree this module belongs to (``cwd`` and
-    ``PYTHONPATH``), so a worktree runs its own code.
+    The package is imported from ``code`` (a checkout's root; default: the tree this module
+    belongs to) through ``cwd`` and ``PYTHONPATH``, so a worktree runs its own code and a
+    campaign can judge another version.
     """
+    root = Path(code) if code is not None else _PACKAGE_ROOT
     out.parent.mkdir(parents=True, exist_ok=True)
     out.unlink(missing_ok=True)
     argv = command_args(command, bag, prior, out)
-    env = dict(os.environ, PYTHONPATH=str(_PACKAGE_ROOT), PYTHONUNBUFFERED="1")
+    env = dict(os.environ, PYTHONPATH=str(root), PYTHONUNBUFFERED="1")
     t0 = time.perf_counter()
     try:
-        p = subprocess.run([sys.executable, "-m", "stellar_cal_ros", *argv], cwd=_PACKAGE_ROOT,
+        p = subprocess.run([sys.executable, "-m", "stellar_cal_ros", *argv], cwd=root,
                            env=env, capture_output=True, text=True, timeout=timeout,
                            errors="replace")
         rc, so, se = p.returncode, p.stdout, p.stderr
@@ -353,11 +355,14 @@ class Campaign:
         Where variants and outputs are written.
     timeout : float
         Seconds per command before it counts as a hang.
+    code : Path, optional
+        Root of the checkout whose CLI is judged (default: this one).
     """
 
     base: BaseRun
     workdir: Path
     timeout: float = 300.0
+    code: Path | None = None
     _clean: dict[tuple[str, str], Run] = field(default_factory=dict)
 
     def clean(self, command: str, bag: Path | None = None) -> Run:
@@ -370,7 +375,7 @@ class Campaign:
         if k not in self._clean:
             out = self.workdir / "clean" / f"{command}_{len(self._clean)}.yaml"
             run = run_command(command, bag or self.base.bag, self.base.prior, out,
-                              self.base.truth, self.timeout)
+                              self.base.truth, self.timeout, self.code)
             if run.returncode != 0:
                 if bag is not None:
                     self._clean[k] = self.clean(command)
@@ -388,7 +393,7 @@ class Campaign:
             if commands is not None and exp.command not in commands:
                 continue
             run = run_command(exp.command, built.bag, built.prior, d / f"{exp.command}.yaml",
-                              self.base.truth, self.timeout)
+                              self.base.truth, self.timeout, self.code)
             ref = self.clean(exp.command, built.reference) \
                 if exp.command != "info" and run.returncode == 0 else None
             base_clean = self.clean(exp.command) if exp.command != "info" else None

@@ -550,7 +550,7 @@ def _nan_first(v: list[float]) -> list[float]:
 
 # ---------------------------------------------------------------------------- the catalogue
 _BAG_DAMAGE = r"truncat|corrupt|damag|crc|unreadable|not an mcap|incomplete|invalid"
-_UNITS = r"deg/s|degree|unit|rad/s|57"
+_UNITS = r"deg/s|degree|unit|rad/s"
 _CLOCK = r"clock|stamp|time|jump|offset|gap|overlap"
 _GYRO = r"gyro|axes|axis|rotation|imu"
 
