@@ -408,7 +408,8 @@ class Campaign:
                 clean_recommendation=ref.recommendation if ref else None)
             rows.append(Row(variant.name, variant.category, exp.command,
                             "|".join(exp.outcomes), obs.outcome, obs.verdict, obs.key,
-                            ref.key if ref else None, obs.limit, run.seconds, obs.message))
+                            ref.key if ref else None, obs.limit, run.seconds,
+                            obs.message.replace(str(self.workdir), "<work>")))
         return rows
 
 
