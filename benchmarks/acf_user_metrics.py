@@ -40,12 +40,10 @@ from pathlib import Path
 
 import numpy as np
 
-from stellar_cal_ros.methods.acf import (
-    AcfData,
+from stellar_cal_ros.methods.acf import AcfData, parse_effects, run_acf
+from stellar_cal_ros.methods.acf_bound import (
     grid_projection_error,
     installation_error_arcsec,
-    parse_effects,
-    run_acf,
     sweep_axis_imu,
 )
 from stellar_cal_ros.methods.iac import run_iac

@@ -9,7 +9,7 @@ Gaussian centroid noise, then
 * ACF and IAC on all 60 noisy frames (Liu §3.2 / Fig. 5): RMS errors of x0, y0, f and the
   maximum residual distortion over the 1024² detector.
 
-Against the Cramér–Rao bound (:func:`~stellar_cal_ros.methods.acf.crlb_acf`,
+Against the Cramér–Rao bound (:func:`~stellar_cal_ros.methods.acf_bound.crlb_acf`,
 :func:`~stellar_cal_ros.methods.iac.crlb_iac`; the star geometry is the same for every seed,
 so one bound per noise level): per parameter the bound, the efficiency RMS/CRLB (1 for an
 efficient unbiased estimator; with N runs an efficient one lies in
@@ -38,14 +38,11 @@ import numpy as np
 from scipy.stats import chi2
 
 from stellar_cal_ros.core.camera import CameraModel
-from stellar_cal_ros.methods.acf import (
-    ARCSEC,
-    AcfData,
+from stellar_cal_ros.methods.acf import ARCSEC, AcfData, reprojection_rms, run_acf
+from stellar_cal_ros.methods.acf_bound import (
     crlb_acf,
     installation_error_arcsec,
     installation_error_covariance,
-    reprojection_rms,
-    run_acf,
 )
 from stellar_cal_ros.methods.iac import crlb_iac, run_iac
 from stellar_cal_ros.sim.scenarios import FOCAL_LENGTH_MM, PIXEL_PITCH_MM, get_scenario

@@ -263,21 +263,32 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
         p.note(f"acf stage 1/{len(ACF_STAGES)}: {ACF_STAGES[0]}", eta=False)
         res = run_acf(args.bag, prior, parse_effects(args.effects), loss=args.loss,
+                      outlier_probability=args.outlier_probability or None,
                       progress=stage_done)
     save_calibration(res.calibration, args.output,
                      covariance=(res.parameter_names[3:], res.covariance[3:, 3:]))
     if args.residuals is not None:
         write_residuals(args.residuals, res.residuals)
     gated = int(np.sum(res.residuals["gated"]))
+    q = res.quality
     print(f"acf: {len(res.frames)} frames, {len(res.residuals['du']) - gated} stars "
-          f"({gated} gated), RMS |Δuv| {res.rms_px:.4f} px, σ̂ {res.sigma_px:.4f} px, "
+          f"({gated} gated: {q.stars_misidentified} misidentified, {q.stars_outliers} "
+          f"outliers), RMS |Δuv| {res.rms_px:.4f} px, σ̂ {res.sigma_px:.4f} px, "
           f"{res.iterations} evaluations, loss {res.loss}")
+    if q.counts():
+        print(f"data: {q.summary()}")
+    for reason in res.degraded:
+        print(f"result degraded: {reason}")
     for name, value, sigma in zip(res.parameter_names[3:], res.theta, res.sigma[3:],
                                   strict=True):
         unit = ""
         if name.startswith("installation."):
             value, sigma, unit = value / ARCSEC, sigma / ARCSEC, " arcsec (vs prior)"
         print(f"  {name:28s} {value:+.8g} ± {sigma:.3g}{unit}")
+    eq = res.derived
+    if eq:
+        print("equivalent principal point: ({:.3f}, {:.3f}) +- ({:.3f}, {:.3f}) px".format(
+            *eq["equivalent_principal_point_px"], *eq["equivalent_principal_point_sigma_px"]))
     print(res.observability.summary())
     print(f"wrote {args.output}" + (f" and {args.residuals}" if args.residuals else "")
           + f" (covariance: {args.output.with_suffix('').name}.covariance.yaml)")
@@ -376,7 +387,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--residuals", type=Path, default=None,
                    help="RES.csv (or .parquet): per-star residuals of the fit")
     b.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"],
-                   help="loss on the star residuals (robust ones bound outliers' pull)")
+                   help="loss of the final fit (default linear: efficient on the inliers; "
+                        "robust ones bound outliers' pull)")
+    b.add_argument("--outlier-probability", type=float, default=1.0 - 1e-6, metavar="P",
+                   help="outlier gate: after a robust fit, stars beyond the chi2(2) quantile "
+                        "P of their normalized residual are left out and counted (0: off)")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.set_defaults(func=_cmd_batch)
 

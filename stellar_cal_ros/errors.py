@@ -16,6 +16,10 @@ class BagError(StellarCalError):
     """A bag cannot be read or written (missing, corrupt, truncated, wrong schema)."""
 
 
+class CheckpointError(StellarCalError):
+    """A checkpoint file is missing, truncated, corrupt (checksum) or of another format."""
+
+
 class MessageDecodeError(BagError):
     """One message cannot be decoded; the text names the topic and the log time."""
 

@@ -25,11 +25,13 @@ from stellar_cal_ros.methods.acf import (
     ACF_EFFECTS,
     ARCSEC,
     AcfData,
-    grid_projection_error,
-    installation_error_arcsec,
     parse_effects,
     reprojection_rms,
     run_acf,
+)
+from stellar_cal_ros.methods.acf_bound import (
+    grid_projection_error,
+    installation_error_arcsec,
     sweep_axis_imu,
 )
 from stellar_cal_ros.methods.iac import run_iac
@@ -134,16 +136,21 @@ def test_misidentified_stars(own):
     r = run_acf(data, prior, loss="huber", gyro_arw=arw)
     assert np.all(np.abs(_z(r, sim.truth)) < 4.0)
     assert r.residuals["gated"].sum() >= 0.03 * len(r.residuals["gated"])
-    # without the identification gate, the random-sky wrong identities wreck a linear fit
+    assert r.quality.stars_misidentified >= 0.03 * len(r.residuals["gated"])
+    # without the identification and outlier gates, random-sky wrong identities wreck it
     try:
-        lin = run_acf(data, prior, loss="linear", gyro_arw=arw, gate_deg=None, max_nfev=30)
+        lin = run_acf(data, prior, loss="linear", gyro_arw=arw, gate_deg=None,
+                      outlier_probability=None, max_nfev=30)
         assert np.max(np.abs(_z(lin, sim.truth))) > 10.0
     except StellarCalError:
         pass
 
 
-def test_in_field_misidentification_needs_robust_loss(own):
-    """Wrong neighbours inside the field pass the gate: only the robust loss copes."""
+def test_in_field_misidentification_needs_robust_fit(own):
+    """Wrong neighbours inside the field pass the identification gate.
+
+    The outlier gate (default) and a robust loss cope; the plain least squares does not.
+    """
     sc, sim, prior, arw = own
     frames = copy.deepcopy(sim.star_frames)
     rng = np.random.default_rng(0)
@@ -160,8 +167,11 @@ def test_in_field_misidentification_needs_robust_loss(own):
                 f.catalog_id[j], f.right_ascension[j], f.declination[j])
     data = _data(frames, sim)
     rob = run_acf(data, prior, loss="huber", gyro_arw=arw)
-    lin = run_acf(data, prior, loss="linear", gyro_arw=arw)
+    gated = run_acf(data, prior, gyro_arw=arw)
+    lin = run_acf(data, prior, loss="linear", gyro_arw=arw, outlier_probability=None)
     assert np.all(np.abs(_z(rob, sim.truth)) < 4.0)
+    assert np.all(np.abs(_z(gated, sim.truth)) < 4.0)
+    assert gated.quality.stars_outliers > 0 and 0.08 < gated.sigma_px < 0.12
     assert rob.rms_px < 0.16
     # the linear fit is dragged by the wrong neighbours: σ̂ inflated tenfold, and its
     # principal point + focal length errors (px) are larger (measured 3.8 vs 1.3 px; the

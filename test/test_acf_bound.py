@@ -26,12 +26,11 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from stellar_cal_ros.methods.acf import (
-    AcfData,
+from stellar_cal_ros.methods.acf import AcfData, run_acf
+from stellar_cal_ros.methods.acf_bound import (
     crlb_acf,
     installation_error_arcsec,
     installation_error_covariance,
-    run_acf,
 )
 from stellar_cal_ros.methods.iac import crlb_iac, run_iac
 from stellar_cal_ros.sim.scenarios import get_scenario

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from sim_bags import psce_bag
 
-from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.errors import CheckpointError
 from stellar_cal_ros.io.bag import BagReader
 from stellar_cal_ros.io.calibration import calibration_to_dict, load_calibration
 from stellar_cal_ros.methods.checkpoint import load_checkpoint, save_checkpoint
@@ -199,10 +199,10 @@ def test_checkpoint_of_another_model_is_refused(excerpt, tmp_path):
     ck = tmp_path / "ck.npz"
     save_checkpoint(cal, ck)
     other = make(prior, effects=["radial_k3"])
-    with pytest.raises(ModelError):
+    with pytest.raises(CheckpointError, match="another model"):
         load_checkpoint(other, ck)
     (tmp_path / "junk.npz").write_bytes(b"not a checkpoint")
-    with pytest.raises(ModelError):
+    with pytest.raises(CheckpointError):
         load_checkpoint(make(prior), tmp_path / "junk.npz")
 
 

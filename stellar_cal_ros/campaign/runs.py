@@ -116,7 +116,7 @@ def _truth_parameters(model, truth):
 
 
 def _equivalent_pp(model, theta, P):
-    from stellar_cal_ros.methods.replay import equivalent_principal_point
+    from stellar_cal_ros.methods.results import equivalent_principal_point
 
     return equivalent_principal_point(model, theta, P)
 

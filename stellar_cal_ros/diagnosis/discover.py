@@ -566,10 +566,14 @@ def summary_dict(base: RunStats, results: list[CandidateResult],
                  unexplained: list, spec: MethodSpec,
                  model_effects: list[str], evaluation_fraction: float) -> dict[str, Any]:
     """``diagnosis.json`` (contract §5), plus extra keys readers may ignore."""
+    from stellar_cal_ros.methods.results import data_quality
+
     w = base.window
     ranked = [c for c in results if c.status == "ranked"]
     return {
         "format": "stellar_cal_diagnosis/1",
+        "counts": {k: v for k, v in base.counters.items() if v},
+        "data_quality": data_quality(base.counters, int(w["n_accepted"])),
         "residual_rms_px": list(w["rms"]),
         "expected_rms_px": list(w["expected_rms"]),
         "log_likelihood": w["log_likelihood"],

@@ -21,11 +21,23 @@ def print_unexplained(summary: dict[str, Any], n: int = 5) -> None:
               f"(t={u['statistic']:.1f}, p={u['p_value']:.2g})")
 
 
+def print_data_quality(summary: dict[str, Any]) -> None:
+    """The input counters, and the data faults a diagnosis must not explain away."""
+    counts = summary.get("counts", {})
+    print("counts: " + ", ".join(f"{k}={v}" for k, v in counts.items()))
+    faults = summary.get("data_quality", [])
+    if faults:
+        print("data quality first: " + "; ".join(faults) + ". Residual structure from "
+              "damaged input looks like a missing effect: repair the data (or judge the "
+              "candidates below with this in mind).")
+
+
 def print_diagnosis(summary: dict) -> None:
     """Print the key lines of a diagnosis summary."""
     rms, exp = summary["residual_rms_px"], summary["expected_rms_px"]
     print(f"innovation RMS u={rms[0]:.4f} v={rms[1]:.4f} px; the model expects "
           f"u={exp[0]:.4f} v={exp[1]:.4f} px")
+    print_data_quality(summary)
     print_notes(summary)
     print("candidates (best first):")
     for c in summary["candidates"][:6]:
@@ -68,6 +80,7 @@ def print_diagnosis(summary: dict) -> None:
 
 def print_discovery(summary: dict[str, Any]) -> None:
     """Print the path, the final estimates, the rejections and what could still hide."""
+    print_data_quality(summary)
     print("path:")
     for s in summary["path"]:
         rms, exp = s["rms_px"], s["expected_rms_px"]

@@ -25,22 +25,32 @@ the whole star field; they separate only through the perspective term ``f (1 + x
 over a 15° field — so ``cx`` and ``ry`` (``cy`` and ``rx``) are strongly correlated.  The
 :class:`ObservabilityReport` lists these combinations from the SVD of the star Jacobian.
 
-Solution (Liu's two steps): a joint Wahba fit of all frames gives ``R̂_i_b0``; step 1 fits a
-distortion-free pinhole (focal length, principal point, installation) and φ with a soft-L1
-loss; step 2 fits every parameter with the chosen loss (``linear``; ``huber`` / ``soft_l1``
-with ``f_scale = 3σ`` for misidentified stars, applied to star residuals only — the prior
-residuals stay quadratic).
+Solution (Liu's two steps): a joint Wahba fit of all frames gives ``R̂_i_b0`` (from the
+frames whose own attitude agrees with the consensus, so a frame of garbage cannot pull it);
+step 1 fits a distortion-free pinhole (focal length, principal point, installation) and φ
+with a soft-L1 loss; step 2 fits every parameter.  Wrong identities are removed twice: a
+catalogue direction far from the measured one (the identification gate, ``gate_deg``), and
+— by default — a star whose normalized residual after a robust fit lies beyond a χ²(2) gate
+(:mod:`~stellar_cal_ros.methods.acf_robust`: a star labelled as another star of the same
+frame passes the first gate and drags a plain least squares by hundreds of arcseconds).
+The final fit runs on the inliers with the chosen loss (``linear`` by default: efficient;
+``huber`` / ``soft_l1`` / ``cauchy`` with ``f_scale = 3σ`` on the star residuals only — the
+prior residuals stay quadratic).  Both rejections are counted in :class:`~stellar_cal_ros.
+methods.acf_data.DataQuality`, with the IMU repairs (NaN/lost samples bridged) and the
+skipped stars and frames; data that contradict the contract (gyro units or axes, long IMU
+gaps, clock jumps or offsets) raise :class:`~stellar_cal_ros.errors.DataError` naming the
+cause (:mod:`~stellar_cal_ros.methods.acf_data`).
 
-Bound.  :func:`crlb_acf` gives the Cramér–Rao bound of this problem at the truth (φ and the
-installation as nuisance, with and without the gyro random walk) and the covariance of the
-least squares as implemented, which ignores the random-walk correlation in its weights (in
-Liu's setting at 0.1 px 1-4 % above the bound on x0 y0 f and 4-8 % on the observable
-installation axes; at 0.05 px, where the random walk weighs more, up to 12-19 %).  In Liu's setting
-the bound on x0 y0 f is within 3 % of the attitude-free (IAC) bound
+Bound. :func:`~stellar_cal_ros.methods.acf_bound.crlb_acf` gives the Cramér–Rao bound of this
+problem at the truth (φ and the installation as nuisance, with and without the gyro random
+walk) and the covariance of the least squares as implemented, which ignores the random-walk
+correlation in its weights (in Liu's setting at 0.1 px 1-4 % above the bound on x0 y0 f and 4-8
+% on the observable installation axes; at 0.05 px, where the random walk weighs more, up to
+12-19 %). In Liu's setting the bound on x0 y0 f is within 3 % of the attitude-free (IAC) bound
 (:func:`~stellar_cal_ros.methods.iac.crlb_iac`) — also for a two-axis or a three-axis step
 motion: the principal point trades against the installation tilt here as against each frame's
-attitude there.  The gyros add information on the intrinsics only when the installation is
-known (x0: 0.18 vs 1.03 px at 0.1 px).  ``benchmarks/acf_vs_paper.py`` prints the bounds.
+attitude there. The gyros add information on the intrinsics only when the installation is known
+(x0: 0.18 vs 1.03 px at 0.1 px). ``benchmarks/acf_vs_paper.py`` prints the bounds.
 
 Times: relative seconds ``(stamp_ns − t0_ns)·1e-9`` with ``t0_ns`` the first IMU stamp; the
 star model's ``ctx.stamp`` (POSIX float, needed by astrometric effects) is only used to carry
@@ -57,19 +67,38 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.core.attitude import wahba
-from stellar_cal_ros.core.earth import Site
-from stellar_cal_ros.core.rotation import left_jacobian, so3_exp, so3_log
+from stellar_cal_ros.core.rotation import left_jacobian, so3_exp
 from stellar_cal_ros.core.strapdown import attitude_increments, propagate_attitude
-from stellar_cal_ros.core.types import ImuSeries, StarFrame
 from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.effects.registry import create_many
-from stellar_cal_ros.errors import BagError, ModelError, StellarCalError
-from stellar_cal_ros.io.bag import BagReader
+from stellar_cal_ros.errors import ModelError, StellarCalError
 from stellar_cal_ros.io.calibration import Calibration, store_estimate
+from stellar_cal_ros.methods.acf_covariance import (
+    ObservabilityReport,
+    _arw_density,
+    _covariance,
+    _observability,
+    _random_walk_term,
+)
+from stellar_cal_ros.methods.acf_data import (
+    AcfData,
+    DataQuality,
+    check_gyro_against_stars,
+    check_overlap,
+    load_acf_data,
+    report_quality,
+)
+from stellar_cal_ros.methods.acf_robust import (
+    _gate_outliers,
+    _robust_weights,
+    _solve,
+    _solve_scaled,
+    _used,
+    beyond_gate,
+)
 from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
@@ -84,74 +113,14 @@ PINHOLE_EFFECTS: tuple[str, ...] = ("installation", "focal_length", "principal_p
 
 MIN_FRAMES = 2
 MIN_STARS_PER_FRAME = 2
+OFF_IMAGE_MARGIN_PX = 10.0
+"""A centroid farther off the detector than this is invalid (counted, not fitted)."""
+OUTLIER_PROBABILITY = 1.0 - 1e-6
+"""Default outlier gate: a star's normalized residual beyond the χ²(2) quantile (5.3 σ).
+
+A wrong identity is off by degrees (thousands of σ); the gate's false alarms (10⁻⁶ a star)
+leave clean runs of up to ~10⁵ stars untouched in practice."""
 ARCSEC = np.pi / 180.0 / 3600.0
-
-
-# ============================================================================ data
-@dataclass
-class AcfData:
-    """Star frames and IMU samples of one run, with the time origin ``t0_ns``."""
-
-    frames: list[StarFrame]
-    imu: ImuSeries
-    t0_ns: int
-    site: Site | None = None
-    scalars: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-
-    def rel(self, stamp_ns: Any) -> Any:
-        """Relative seconds of POSIX ns stamps (exact integer difference first)."""
-        return (np.asarray(stamp_ns, dtype=np.int64) - self.t0_ns) * 1e-9
-
-
-def load_acf_data(
-    bag_path: str | os.PathLike[str],
-    star_topic: str = "/star_tracker/stars",
-    imu_topic: str = "/imu/data",
-    gnss_topic: str = "/gnss/fix",
-) -> AcfData:
-    """Read what the ACF method needs from a contract bag.
-
-    Raises
-    ------
-    StellarCalError
-        The bag or one of the two required topics is missing, or holds no data.
-    """
-    try:
-        with BagReader(bag_path) as reader:
-            topics = reader.topics()
-            for topic, what in ((star_topic, "star centroids"), (imu_topic, "IMU samples")):
-                if topic not in topics:
-                    raise StellarCalError(
-                        f"{bag_path}: the ACF method needs {what} on {topic}, which the bag "
-                        f"does not have (topics: {sorted(topics)})")
-            imu = reader.read_imu(imu_topic)
-            frames = reader.read_star_frames(star_topic)
-            site = None
-            scalars: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-            if gnss_topic in topics:
-                fix = reader.read_navsat(gnss_topic)
-                if len(fix):
-                    site = Site(float(np.median(fix.latitude_deg)),
-                                float(np.median(fix.longitude_deg)),
-                                float(np.median(fix.altitude_m)))
-            for key, topic in (("head_temperature_c", "/star_tracker/temperature"),
-                               ("air_temperature_c", "/environment/temperature"),
-                               ("pressure_pa", "/environment/pressure")):
-                if topic in topics:
-                    s = reader.read_scalar(topic)
-                    if len(s):
-                        scalars[key] = (np.asarray(s.stamp_ns), np.asarray(s.value))
-    except FileNotFoundError as exc:
-        raise BagError(f"cannot open bag {bag_path}: {exc}") from None
-    if len(imu) < 2:
-        raise StellarCalError(f"{bag_path}: {imu_topic} holds {len(imu)} IMU samples; "
-                              "the ACF method needs the gyro data between the star frames")
-    if not frames:
-        raise StellarCalError(f"{bag_path}: {star_topic} holds no star frames")
-    t0 = int(imu.stamp_ns[0])
-    data = AcfData(frames=frames, imu=imu, t0_ns=t0, site=site)
-    data.scalars = {k: (data.rel(st), v) for k, (st, v) in scalars.items()}
-    return data
 
 
 # ============================================================================ gyro chain
@@ -164,16 +133,11 @@ class GyroChain:
     """
 
     def __init__(self, data: AcfData, model: StarModel, theta0: np.ndarray) -> None:
-        imu = data.imu
-        t = data.rel(imu.stamp_ns)
-        if np.any(np.diff(t) <= 0):
-            raise StellarCalError("IMU stamps are not strictly increasing")
-        dt = np.diff(t)
-        dt0 = float(np.median(dt))
-        dt = np.concatenate([[dt0], dt])
-        self.nodes = np.concatenate([[t[0] - dt0], t])  # interval k: nodes[k] .. nodes[k+1]
+        g = data.gyro()  # sorted, finite, gaps bridged (counted in data.quality)
+        t, dt = g.t, g.dt
+        self.nodes = np.concatenate([[t[0] - dt[0]], t])  # interval k: nodes[k] .. nodes[k+1]
         self.dt = dt
-        w = model.corrected_rates(theta0, np.asarray(imu.angular_velocity, dtype=float))
+        w = model.corrected_rates(theta0, g.w)
         self.rates = w
         self.phi = attitude_increments(w, dt)
         R = propagate_attitude(Rotation.identity(), w, dt).as_matrix()
@@ -211,37 +175,6 @@ class GyroChain:
 
 
 # ============================================================================ results
-@dataclass
-class ObservabilityReport:
-    """What the star data determine, from the SVD of the whitened star Jacobian.
-
-    Columns are scaled by the prior σ of each parameter (the first-attitude columns by the
-    installation prior σ), so a singular value ``s`` compares the data's information on a
-    combination with the prior's: ``s < 1`` means the prior dominates.
-    """
-
-    parameter_names: list[str]
-    singular_values: np.ndarray
-    directions: np.ndarray  # (n, n) right singular vectors as columns (scaled parameters)
-    weak: list[dict[str, Any]]
-    prior_dominated: list[str]
-    sigma_ratio: dict[str, float]  # posterior σ / prior σ
-    correlations: list[tuple[str, str, float]]
-
-    def summary(self) -> str:
-        """Human-readable text."""
-        lines = [f"condition number (prior-scaled star Jacobian): "
-                 f"{self.singular_values[0] / max(self.singular_values[-1], 1e-300):.3g}"]
-        for w in self.weak:
-            comb = " ".join(f"{c:+.2f}·{n}" for n, c in w["combination"].items())
-            lines.append(f"  weak direction s={w['singular_value']:.3g}: {comb}")
-        if self.prior_dominated:
-            lines.append("  prior-dominated (posterior σ > 0.5 prior σ): "
-                         + ", ".join(self.prior_dominated))
-        for a, b, r in self.correlations:
-            lines.append(f"  correlation {a} ~ {b}: {r:+.3f}")
-        return "\n".join(lines)
-
 
 @dataclass
 class AcfResult:
@@ -265,6 +198,9 @@ class AcfResult:
     data: AcfData
     loss: str
     step1_theta: np.ndarray | None = None
+    quality: DataQuality | None = None  # what was repaired, skipped, rejected (= data.quality)
+    degraded: list[str] = field(default_factory=list)  # why the result is not to be trusted
+    derived: dict[str, Any] = field(default_factory=dict)  # equivalent principal point ± σ
 
     @property
     def sigma(self) -> np.ndarray:
@@ -327,32 +263,58 @@ class _Frame:
 
 
 def _prepare_frames(data: AcfData, idx: np.ndarray, chain: GyroChain, time_offset: float,
-                    sigma_px: float | None, min_stars: int) -> list[_Frame]:
+                    sigma_px: float | None, min_stars: int,
+                    image_size: tuple[int, int] | None = None,
+                    quality: DataQuality | None = None) -> list[_Frame]:
+    """The selected frames' usable stars, with their attitude-chain time.
+
+    A star is used if it is identified (catalogue id and direction), its centroid and
+    direction are finite and (given ``image_size``) its centroid lies on the detector or
+    within :data:`OFF_IMAGE_MARGIN_PX` of it (noise moves edge stars a little off). Message
+    σ ≤ 0 or NaN become 1 px (the fit rescales by σ̂). Frames with fewer than ``min_stars``
+    such stars or outside the IMU span are skipped.
+    Everything left out is counted in ``quality`` (if given).
+    """
     lo, hi = chain.span
+    q = quality if quality is not None else DataQuality()
     out = []
     for k in idx:
         fr = data.frames[int(k)]
-        ok = (fr.catalog_id != 0) & np.isfinite(fr.right_ascension) & \
-            np.isfinite(fr.declination) & np.all(np.isfinite(fr.uv), axis=1)
+        uv = np.asarray(fr.uv, dtype=float).reshape(-1, 2)
+        ident = (fr.catalog_id != 0) & ~(np.isnan(fr.right_ascension)
+                                         & np.isnan(fr.declination))
+        ok = ident & np.isfinite(fr.right_ascension) & np.isfinite(fr.declination) & \
+            np.all(np.isfinite(uv), axis=1)
+        q.stars_unidentified += int(np.sum(~ident))
+        q.stars_invalid += int(np.sum(ident & ~ok))
+        if image_size is not None:
+            m = OFF_IMAGE_MARGIN_PX + 0.5
+            with np.errstate(invalid="ignore"):
+                on = (uv[:, 0] >= -m) & (uv[:, 0] <= image_size[0] - 1 + m) & \
+                    (uv[:, 1] >= -m) & (uv[:, 1] <= image_size[1] - 1 + m)
+            q.stars_outside_image += int(np.sum(ok & ~on))
+            ok &= on
         if ok.sum() < min_stars:
+            q.frames_few_stars += 1
             continue
         t_rel = float(data.rel(fr.stamp_ns))
         if not (lo <= t_rel + time_offset <= hi):
-            log.warning("star frame %d at %.3f s lies outside the IMU data; skipped", k, t_rel)
+            q.frames_outside_imu += 1
             continue
         sig = np.asarray(fr.sigma, dtype=float)[ok]
         if sigma_px is not None:
             sig = np.full(ok.sum(), float(sigma_px))
         else:
-            sig = np.where(np.isfinite(sig) & (sig > 0), sig, 1.0)
+            good = np.isfinite(sig) & (sig > 0)
+            q.stars_bad_sigma += int(np.sum(~good & (sig != 0)))  # 0: "unknown" (contract)
+            sig = np.where(good, sig, 1.0)
         ctx = FrameContext(stamp=fr.stamp_ns * 1e-9, catalog_id=fr.catalog_id[ok].astype(np.int64),
                            magnitude=np.asarray(fr.magnitude, dtype=float)[ok], site=data.site)
         for key, (ts, vs) in data.scalars.items():
             setattr(ctx, key, float(np.interp(t_rel, ts, vs)))
         out.append(_Frame(int(k), t_rel, fr.stamp_ns * 1e-9,
                           _unit_vectors(fr.right_ascension[ok], fr.declination[ok]),
-                          np.asarray(fr.uv, dtype=float)[ok], sig,
-                          fr.catalog_id[ok].astype(np.int64),
+                          uv[ok], sig, fr.catalog_id[ok].astype(np.int64),
                           np.asarray(fr.magnitude, dtype=float)[ok], ctx))
     return out
 
@@ -435,62 +397,14 @@ class _Problem:
         return self.evaluate(x)[1]
 
 
-def _make_loss(kind: str, n_star: int, c: float):
-    """A least_squares loss ρ(z) (z = r²) robust on the first ``n_star`` residuals only."""
-    if kind == "linear":
-        return "linear"
-    if kind not in ("huber", "soft_l1", "cauchy"):
-        raise StellarCalError(f"loss must be linear, huber, soft_l1 or cauchy, got {kind!r}")
-    c2 = c * c
-
-    def rho(z: np.ndarray) -> np.ndarray:
-        out = np.empty((3, z.size))
-        out[0], out[1], out[2] = z, 1.0, 0.0
-        zs = z[:n_star] / c2
-        if kind == "huber":
-            big = zs > 1.0
-            sq = np.sqrt(np.where(big, zs, 1.0))
-            r0 = np.where(big, 2.0 * sq - 1.0, zs)
-            r1 = np.where(big, 1.0 / sq, 1.0)
-            r2 = np.where(big, -0.5 / (sq * np.where(big, zs, 1.0)), 0.0)
-        elif kind == "soft_l1":
-            t = 1.0 + zs
-            r0, r1, r2 = 2.0 * (np.sqrt(t) - 1.0), t ** -0.5, -0.5 * t ** -1.5
-        else:
-            r0, r1, r2 = np.log1p(zs), 1.0 / (1.0 + zs), -1.0 / (1.0 + zs) ** 2
-        out[0, :n_star] = c2 * r0
-        out[1, :n_star] = r1
-        out[2, :n_star] = r2 / c2
-        return out
-
-    return rho
-
-
-def _robust_weights(kind: str, r: np.ndarray, c: float) -> np.ndarray:
-    """IRLS weights ρ'(r²) of whitened residuals."""
-    if kind == "linear":
-        return np.ones_like(r)
-    zs = (r / c) ** 2
-    if kind == "huber":
-        return np.where(zs > 1.0, 1.0 / np.sqrt(np.maximum(zs, 1.0)), 1.0)
-    if kind == "soft_l1":
-        return (1.0 + zs) ** -0.5
-    return 1.0 / (1.0 + zs)
-
-
-def _solve(problem: _Problem, x0: np.ndarray, loss: str, f_scale: float, max_nfev: int):
-    rho = _make_loss(loss, problem.n_star, f_scale)
-    res = least_squares(problem.fun, x0, jac=problem.jac, loss=rho, f_scale=1.0,
-                        method="trf", x_scale="jac", max_nfev=max_nfev,
-                        xtol=1e-12, ftol=1e-12, gtol=1e-10)
-    return res
-
-
 def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
                       theta: np.ndarray, t_ref: float,
                       gate_deg: float | None) -> np.ndarray:
     """Joint Wahba fit of ``R_i_b0`` over all frames; sets each frame's ``use`` mask.
 
+    Each frame alone implies an ``R_i_b0`` (its own Wahba fit carried back along the gyro
+    chain); the joint fit uses the frames that agree within 1° with the candidate most
+    frames agree with, so a frame of garbage (or many wrong identities) cannot pull it.
     Two passes: the second drops stars more than ``5 × median`` off.  Then stars whose
     catalogue direction is more than ``max(gate_deg, 5 × median)`` from the measured one are
     marked as misidentified (``use = False``): a random wrong identity points far outside
@@ -507,7 +421,8 @@ def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
         u_i.append(f.u_i)
     v, u = np.vstack(v_b0), np.vstack(u_i)
     ok = np.all(np.isfinite(v), axis=1)
-    R = wahba(v[ok], u[ok])
+    sel = ok & _consensus_frames(frames, v, u, ok)
+    R = wahba(v[sel], u[sel])
 
     def angles(R: np.ndarray) -> np.ndarray:
         a = np.full(len(v), np.pi)
@@ -515,7 +430,7 @@ def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
         return a
 
     err = angles(R)
-    keep = ok & (err < max(5.0 * np.median(err[ok]), 20 * ARCSEC))
+    keep = sel & (err < max(5.0 * np.median(err[sel]), 20 * ARCSEC))
     if keep.sum() >= 3:
         R = wahba(v[keep], u[keep])
         err = angles(R)
@@ -530,99 +445,33 @@ def _initial_attitude(frames: list[_Frame], chain: GyroChain, model: StarModel,
     return R
 
 
-def _covariance(J: np.ndarray, r: np.ndarray, n_star: int, weights: np.ndarray,
-                n_x: int) -> tuple[np.ndarray, float]:
-    """``(J_sᵀ W J_s / s² + J_pᵀ J_p)⁻¹`` and the variance factor s² of the star rows.
+def _consensus_frames(frames: list[_Frame], v: np.ndarray, u: np.ndarray, ok: np.ndarray,
+                      tol_deg: float = 1.0, sample: int = 300) -> np.ndarray:
+    """Star mask of the frames whose own ``R_i_b0`` agrees with the consensus.
 
-    ``W`` holds the robust IRLS weights (1 for the linear loss); s² comes from the rows with
-    weight ≥ 0.5 (all rows for the linear loss; ``|r| < 2·f_scale`` for Huber).
+    ``v`` (body-at-reference directions), ``u`` (catalogue) and ``ok`` are stacked over the
+    frames.  The consensus is the candidate with the most others within ``tol_deg`` among
+    at most ``sample`` evenly spaced frames.
     """
-    Js, Jp = J[:n_star], J[n_star:]
-    rs = r[:n_star]
-    inl = weights >= 0.5  # robust losses: the variance factor from the inliers only
-    dof = max(inl.sum() - n_x, 1.0)
-    s2 = float(np.sum(rs[inl] ** 2) / dof)
-    info = (Js * weights[:, None]).T @ Js / s2 + Jp.T @ Jp
-    return _equilibrated_inverse(info), s2
-
-
-def _arw_density(imu: ImuSeries, gyro_arw: float | None) -> float:
-    """Angle random walk density q (rad²/s): given, or from the IMU messages' covariance."""
-    if gyro_arw is not None:
-        return float(gyro_arw) ** 2
-    cov = imu.angular_velocity_covariance
-    if cov is None or len(imu) < 2:
-        return 0.0
-    var = float(np.mean(np.asarray(cov, dtype=float).reshape(9)[[0, 4, 8]]))
-    dt = float(np.median(np.diff(imu.stamp_ns))) * 1e-9
-    return max(var, 0.0) * dt
-
-
-def _random_walk_term(cov: np.ndarray, J: np.ndarray, w: np.ndarray, s2: float,
-                      frames: list[_Frame], t_ref: float, q: float) -> np.ndarray:
-    """Covariance added by gyro angle random walk (sandwich form).
-
-    The gyro-propagated attitude of frame k carries an error ``a_k`` with
-    ``Cov(a_k, a_l) = q · min(s_k, s_l) · I`` (``s = |t − t_ref|``, same side of the reference
-    frame; independent sides), common to all stars of the frame.  With the whitened star rows
-    ``J_k`` of frame k and their attitude block ``A_k = J_k[:, :3]`` the estimate moves by
-    ``N⁻¹ Σ_k J_kᵀ W_k A_k a_k / s²``, so the extra covariance is
-    ``N⁻¹ [Σ_kl M_k Q_kl M_lᵀ] N⁻¹ / s⁴`` with ``M_k = J_kᵀ W_k A_k``, accumulated with tail
-    sums over the sorted ``s`` (Brownian covariance = ∫ 1[u < s_k] 1[u < s_l] du).
-    """
-    n_x = J.shape[1]
-    rows = np.cumsum([0] + [2 * len(f.uv) for f in frames])
-    Ms, ss, side = [], [], []
-    for k, f in enumerate(frames):
-        Jk = J[rows[k]:rows[k + 1]]
-        wk = w[rows[k]:rows[k + 1]]
-        Ms.append((Jk * wk[:, None]).T @ Jk[:, :3])
-        ss.append(abs(f.t_rel - t_ref))
-        side.append(f.t_rel >= t_ref)
-    Z = np.zeros((n_x, n_x))
-    for sgn in (True, False):
-        sel = [k for k in range(len(frames)) if side[k] == sgn]
-        if not sel:
-            continue
-        sel.sort(key=lambda k: ss[k])
-        tail = np.zeros((n_x, 3))
-        tails = []
-        for k in reversed(sel):
-            tail = tail + Ms[k]
-            tails.append(tail.copy())
-        tails.reverse()
-        prev = 0.0
-        for j, k in enumerate(sel):
-            du = ss[k] - prev
-            prev = ss[k]
-            Z += du * tails[j] @ tails[j].T
-    # whitened residuals: attitude error a shifts r by A a (A already divided by σ)
-    Z *= q / (s2 * s2)
-    return cov @ Z @ cov
-
-
-def _observability(J: np.ndarray, n_star: int, weights: np.ndarray, scale: np.ndarray,
-                   names: list[str], cov: np.ndarray, prior_sigma: np.ndarray,
-                   s2: float) -> ObservabilityReport:
-    Js = J[:n_star] * np.sqrt(weights / s2)[:, None] * scale[None, :]
-    _, sv, Vt = np.linalg.svd(Js, full_matrices=False)
-    weak = []
-    for i in np.flatnonzero(sv < 1.0):
-        v = Vt[i]
-        order = np.argsort(-np.abs(v))
-        comb = {names[j]: float(v[j]) for j in order if abs(v[j]) > 0.1}
-        weak.append({"singular_value": float(sv[i]), "combination": comb})
-    sig = np.sqrt(np.diag(cov))
-    ratio = {n: float(s / p) for n, s, p in zip(names, sig, prior_sigma, strict=True)
-             if np.isfinite(p)}
-    dominated = [n for n, q in ratio.items() if q > 0.5]
-    corr = cov / np.outer(sig, sig)
-    pairs = []
-    for a in range(len(names)):
-        for b in range(a + 1, len(names)):
-            if abs(corr[a, b]) > 0.9:
-                pairs.append((names[a], names[b], float(corr[a, b])))
-    return ObservabilityReport(names, sv, Vt.T, weak, dominated, ratio, pairs)
+    starts = np.cumsum([0] + [len(f.uv) for f in frames])
+    idx, cands = [], []
+    for k in range(len(frames)):
+        sl = slice(starts[k], starts[k + 1])
+        m = ok[sl]
+        if m.sum() >= 2:
+            idx.append(k)
+            cands.append(wahba(v[sl][m], u[sl][m]))
+    if len(cands) < 3:
+        return np.ones(len(v), dtype=bool)
+    q = Rotation.from_matrix(np.asarray(cands)).as_quat()
+    sub = np.unique(np.linspace(0, len(q) - 1, min(len(q), sample)).astype(int))
+    cos_half = np.cos(np.deg2rad(tol_deg) / 2.0)
+    best = sub[int(np.argmax(np.sum(np.abs(q[sub] @ q[sub].T) > cos_half, axis=1)))]
+    agree = np.abs(q @ q[best]) > cos_half
+    mask = np.zeros(len(v), dtype=bool)
+    for k in np.asarray(idx)[agree].tolist():
+        mask[starts[k]:starts[k + 1]] = True
+    return mask
 
 
 # ============================================================================ main entry
@@ -645,6 +494,8 @@ def run_acf(
     min_stars_per_frame: int = MIN_STARS_PER_FRAME,
     gyro_arw: float | None = None,
     gate_deg: float | None = 2.0,
+    outlier_probability: float | None = OUTLIER_PROBABILITY,
+    check_gyro: bool = True,
     star_topic: str = "/star_tracker/stars",
     imu_topic: str = "/imu/data",
     progress: Callable[[str], None] | None = None,
@@ -665,7 +516,9 @@ def run_acf(
     frames : None, 'all', 'odd', 'even', indices, slice or bool mask
         Frames to fit ('odd' = 1st, 3rd, … as Liu et al. count them = indices 0, 2, …).
     loss : {'linear', 'huber', 'soft_l1', 'cauchy'}
-        Loss on the star residuals (``f_scale = 3σ``); prior residuals stay quadratic.
+        Loss on the star residuals of the final fit (``f_scale = 3σ``); prior residuals
+        stay quadratic.  With the outlier gate on, the final fit runs on the gated inliers,
+        so ``linear`` (the default) is the efficient choice.
     sigma_px : float, optional
         Centroid σ, px (default: the messages' ``sigma``, else 1 px).  The covariance is
         scaled by the a-posteriori variance factor in any case.
@@ -682,7 +535,18 @@ def run_acf(
     gate_deg : float or None
         Identification gate: after the initial attitude fit, stars whose catalogue direction
         is more than ``max(gate_deg, 5 × median error)`` off are not fitted (``gated`` in
-        the residual table).  None disables it (then only the loss handles outliers).
+        the residual table).  None disables it.
+    outlier_probability : float or None
+        Outlier gate (default on): if after the fit any star's normalized residual
+        ``(Δu² + Δv²)/s²`` (``s`` the robust scale of the whitened residuals) exceeds the
+        χ²(2) quantile of this probability, the fit starts again robustly (soft-L1) and
+        such stars are left out until the set is stable; the final fit with ``loss`` runs
+        on the rest (clean data: the plain fit, unchanged).  Catches wrong
+        identities inside the field (another star of the same frame) that pass the
+        identification gate.  None: no gate (the plain least squares of ``loss``).
+    check_gyro : bool
+        Compare the gyro's rotation between frames with the stars' first
+        (:func:`~stellar_cal_ros.methods.acf_data.check_gyro_against_stars`).
     min_stars_per_frame : int
         Frames with fewer identified stars are skipped.
     star_topic, imu_topic : str
@@ -693,9 +557,14 @@ def run_acf(
     Returns
     -------
     AcfResult
+        With :attr:`AcfResult.quality` (everything repaired, skipped or rejected) and
+        :attr:`AcfResult.degraded` (reasons not to trust the result; empty if none).
 
     Raises
     ------
+    DataError
+        The data contradict the contract: gyro units or axes, an IMU gap longer than the
+        star frame interval, a clock jump, star and IMU clocks that do not overlap.
     StellarCalError
         Missing topics, too few frames or stars, or a failed fit.
     """
@@ -714,7 +583,10 @@ def run_acf(
         raise ModelError("every estimated parameter needs a positive prior σ")
     chain = GyroChain(data, model, theta_prior)
     idx = _select_frames(len(data.frames), frames)
-    fr = _prepare_frames(data, idx, chain, prior.time_offset, sigma_px, min_stars_per_frame)
+    quality = data.quality
+    fr = _prepare_frames(data, idx, chain, prior.time_offset, sigma_px, min_stars_per_frame,
+                         (prior.camera.width, prior.camera.height), quality)
+    check_overlap(data, chain.span, idx)
     n_stars = sum(len(f.uv) for f in fr)
     if len(fr) < MIN_FRAMES:
         raise StellarCalError(
@@ -723,6 +595,11 @@ def run_acf(
             f"of {len(idx)} selected")
     if 2 * n_stars < 2 * (3 + model.size):
         raise StellarCalError(f"too few stars ({n_stars}) for {3 + model.size} unknowns")
+    if check_gyro:
+        cam = model.camera_at(theta_prior, fr[0].ctx)
+        check_gyro_against_stars([f.t_rel + prior.time_offset for f in fr],
+                                 [cam.unproject(f.uv) for f in fr], [f.u_i for f in fr],
+                                 lambda t: chain.attitude(t)[0])
     ref = fr[min(max(reference_frame, 0), len(fr) - 1)]
     t_ref = ref.t_rel + prior.time_offset
     names = ["attitude.phi_x", "attitude.phi_y", "attitude.phi_z"] + model.parameter_names()
@@ -730,76 +607,45 @@ def run_acf(
     # -- start: joint Wahba of all frames with the prior camera
     R_i_b0 = _initial_attitude(fr, chain, model, theta_prior, t_ref, gate_deg)
     fr_all = fr
-    fr = [f.subset() for f in fr_all]
-    n_gated = int(sum((~f.use).sum() for f in fr_all))
+    quality.stars_misidentified += int(sum((~f.use).sum() for f in fr_all))
     tell(ACF_STAGES[1])
-    if n_gated:
-        log.info("ACF: %d of %d stars fail the identification gate", n_gated, n_stars)
+    if quality.stars_misidentified:
+        log.info("ACF: %d of %d stars fail the identification gate",
+                 quality.stars_misidentified, n_stars)
     theta = theta_prior.copy()
     nfev = 0
     step1_theta = None
     if two_step:
-        ids1 = [e.id for e in eff if e.id in PINHOLE_EFFECTS]
-        if ids1:
-            m1 = StarModel(create_many(ids1), prior)
-            c1 = GyroChain(data, m1, m1.initial_value)
-            p1 = _Problem(m1, c1, fr, R_i_b0, t_ref, m1.initial_value, m1.initial_sigma)
-            r0 = p1.fun(np.concatenate([np.zeros(3), m1.initial_value]))[:p1.n_star]
-            scale = max(1.4826 * float(np.median(np.abs(r0))), 1.0)
-            p1.sigma_scale = scale
-            p1._cache = None
-            res1 = _solve(p1, np.concatenate([np.zeros(3), m1.initial_value]), "soft_l1", 3.0,
-                          max_nfev)
-            nfev += res1.nfev
-            R_i_b0 = so3_exp(res1.x[:3]) @ R_i_b0
-            for e in m1.effects:
-                theta[model.slices[e.id]] = res1.x[3:][m1.slices[e.id]]
-            step1_theta = theta.copy()
-            log.info("ACF step 1 (pinhole): %d evaluations, scale %.3g px", res1.nfev, scale)
+        R_i_b0, theta, step1_theta, n1 = _step1(data, prior, model, eff, fr_all, R_i_b0,
+                                                t_ref, theta, max_nfev)
+        nfev += n1
 
     tell(ACF_STAGES[2])
-    # -- step 2: everything (re-estimate σ if the messages do not give it)
-    problem = _Problem(model, chain, fr, R_i_b0, t_ref, theta_prior, sigma_prior)
-    x = np.concatenate([np.zeros(3), theta])
-    res = None
-    for _ in range(3):
-        res = _solve(problem, x, loss, 3.0, max_nfev)
-        nfev += res.nfev
-        x = res.x
-        rs = res.fun[:problem.n_star]
-        robust_scale = 1.4826 * float(np.median(np.abs(rs)))
-        # a wrong assumed σ makes f_scale = 3σ meaningless: rescale and refit
-        if loss == "linear" or 0.5 < robust_scale < 2.0:
-            break
-        problem.sigma_scale *= robust_scale
-        problem._cache = None
-    assert res is not None
-    if loss != "linear":
-        # robust losses bound an outlier's pull but do not remove it (Huber: 3σ each):
-        # drop stars beyond 6σ on an axis from the fit and refine on the inliers
-        rs = res.fun[:problem.n_star].reshape(-1, 2)
-        s_in = 1.4826 * float(np.median(np.abs(rs)))
-        bad = np.max(np.abs(rs), axis=1) > 6.0 * max(s_in, 1e-12)
-        if bad.any():
-            start = 0
-            for f0, f in zip(fr_all, fr, strict=True):
-                n = len(f.uv)
-                keep = ~bad[start:start + n]
-                start += n
-                idx_use = np.flatnonzero(f0.use)
-                f0.use = f0.use.copy()
-                f0.use[idx_use[~keep]] = False
-            fr = [f.subset() for f in fr_all]
-            problem = _Problem(model, chain, fr, R_i_b0, t_ref, theta_prior, sigma_prior,
-                               problem.sigma_scale)
-            res = _solve(problem, res.x, loss, 3.0, max_nfev)
-            nfev += res.nfev
-            log.info("ACF: %d outliers beyond 6σ removed, refined", int(bad.sum()))
+    # -- step 2: everything; outliers gated after a robust fit, then the final fit
+    def make(frames_used: list[_Frame], scale: float = 1.0) -> _Problem:
+        return _Problem(model, chain, frames_used, R_i_b0, t_ref, theta_prior, sigma_prior,
+                        scale)
+
+    x0 = np.concatenate([np.zeros(3), theta])
+    fr = _used(fr_all)
+    problem = make(fr)
+    res, n2 = _solve_scaled(problem, x0, loss, max_nfev)
+    nfev += n2
+    # clean data end here; with stars beyond the gate, start again robustly from x0
+    if outlier_probability and beyond_gate(res.fun[:problem.n_star],
+                                           outlier_probability).any():
+        x, scale, n_gate, n_out = _gate_outliers(make, fr_all, x0, loss, outlier_probability,
+                                                 max_nfev)
+        quality.stars_outliers += n_out
+        fr = _used(fr_all)
+        problem = make(fr, scale)
+        res, n2 = _solve_scaled(problem, x, loss, max_nfev)
+        nfev += n_gate + n2
     if res.status < 0:
         raise StellarCalError(f"ACF least squares failed: {res.message}")
     if res.status == 0:
-        log.warning("ACF least squares stopped after %d evaluations without converging "
-                    "(outliers? try --loss huber)", res.nfev)
+        log.warning("ACF least squares stopped after %d evaluations without converging",
+                    res.nfev)
 
     tell(ACF_STAGES[3])
     # -- covariance (with the gyro random walk between frames), σ̂, observability
@@ -829,12 +675,50 @@ def run_acf(
     table = _residual_table(problem_final, x_hat, data, loss, sigma_hat, fr_all)
     inl = ~table["gated"]
     rms = float(np.sqrt(np.mean(table["du"][inl] ** 2 + table["dv"][inl] ** 2)))
+    degraded = report_quality(data, chain.span, n_stars, len(idx), outlier_probability)
+    cal.extra = dict(cal.extra)
+    cal.extra["data_quality"] = {**quality.counts(), "degraded": bool(degraded),
+                                 "reasons": degraded}
+    derived = {}
+    if "installation" in model.slices:
+        from stellar_cal_ros.methods.results import equivalent_principal_point
+
+        derived = equivalent_principal_point(model, theta_hat, cov[3:, 3:])
     return AcfResult(
         calibration=cal, residuals=table, cost=float(res.cost), iterations=int(nfev),
         observability=obs, theta=theta_hat, covariance=cov, parameter_names=names,
         sigma_px=float(sigma_hat), rms_px=rms, R_i_b0=R_i_b0_hat, reference_time=t_ref,
         frames=np.array([f.index for f in fr]), model=model, chain=chain, data=data,
-        loss=loss, step1_theta=step1_theta)
+        loss=loss, step1_theta=step1_theta, quality=quality, degraded=degraded,
+        derived=derived)
+
+
+def _step1(data: AcfData, prior: Calibration, model: StarModel, eff: list[Any],
+           fr_all: list[_Frame], R_i_b0: np.ndarray, t_ref: float, theta: np.ndarray,
+           max_nfev: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, int]:
+    """Liu's step 1: a distortion-free pinhole and the first attitude, soft-L1 loss.
+
+    Returns the refined ``R_i_b0``, θ with the pinhole parameters replaced, that θ (None if
+    the model has no pinhole parameter) and the evaluations used.
+    """
+    ids1 = [e.id for e in eff if e.id in PINHOLE_EFFECTS]
+    if not ids1:
+        return R_i_b0, theta, None, 0
+    fr = _used(fr_all)
+    m1 = StarModel(create_many(ids1), prior)
+    c1 = GyroChain(data, m1, m1.initial_value)
+    p1 = _Problem(m1, c1, fr, R_i_b0, t_ref, m1.initial_value, m1.initial_sigma)
+    r0 = p1.fun(np.concatenate([np.zeros(3), m1.initial_value]))[:p1.n_star]
+    scale = max(1.4826 * float(np.median(np.abs(r0))), 1.0)
+    p1.sigma_scale = scale
+    p1._cache = None
+    res1 = _solve(p1, np.concatenate([np.zeros(3), m1.initial_value]), "soft_l1", 3.0,
+                  max_nfev)
+    theta = theta.copy()
+    for e in m1.effects:
+        theta[model.slices[e.id]] = res1.x[3:][m1.slices[e.id]]
+    log.info("ACF step 1 (pinhole): %d evaluations, scale %.3g px", res1.nfev, scale)
+    return so3_exp(res1.x[:3]) @ R_i_b0, theta, theta.copy(), int(res1.nfev)
 
 
 def _store(model: StarModel, prior: Calibration, theta: np.ndarray,
@@ -905,164 +789,6 @@ def reprojection_rms(result: AcfResult, frames: Any = None, data: AcfData | None
     return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1))))
 
 
-# ============================================================================ Cramér–Rao bound
-def _equilibrated_inverse(info: np.ndarray) -> np.ndarray:
-    """Inverse of an information matrix, equilibrated first.
-
-    The columns span ~12 decades (rad, px, distortion coefficients); a singular matrix
-    (an unobservable direction without prior) falls back to the pseudo-inverse.
-    """
-    d = 1.0 / np.sqrt(np.maximum(np.diag(info), 1e-300))
-    scaled = info * np.outer(d, d)
-    try:
-        inv = np.linalg.inv(scaled)
-    except np.linalg.LinAlgError:
-        inv = np.linalg.pinv(scaled, hermitian=True)
-    return inv * np.outer(d, d)
-
-
-def _inverse(info: np.ndarray) -> np.ndarray:
-    """:func:`_equilibrated_inverse`, symmetrized (the bounds' covariances)."""
-    inv = _equilibrated_inverse(info)
-    return 0.5 * (inv + inv.T)
-
-
-def installation_error_covariance(cov: np.ndarray, model: StarModel,
-                                  theta: np.ndarray) -> np.ndarray:
-    """Covariance (arcsec², tracker axes) of :func:`installation_error_arcsec` from θ's.
-
-    The installation parameter δ is a right rotation of the prior's mounting, so an error
-    ``ε = δ̂ − δ`` moves ``Log(R_truthᵀ R_est)`` by ``J_r(δ) ε``: with δ of a few degrees the
-    mixing (a few %) matters when one component (about a sweep axis) rests on a wide prior.
-    ``cov`` is the covariance of θ (P, P) or of ``[φ, θ]`` (3 + P, 3 + P).
-    """
-    from stellar_cal_ros.core.rotation import right_jacobian
-
-    off = cov.shape[0] - model.size
-    sl = model.slices["installation"]
-    idx = np.arange(sl.start, sl.stop) + off
-    Jr = right_jacobian(theta[sl])
-    return Jr @ cov[np.ix_(idx, idx)] @ Jr.T / ARCSEC ** 2
-
-
-@dataclass
-class AcfBound:
-    """Cramér–Rao bound of the ACF problem at the true parameters (:func:`crlb_acf`).
-
-    All matrices are covariances of ``[φ, θ]`` (first-frame attitude, then the model's θ in
-    its units), the nuisance φ included and marginalised by the inversion:
-
-    * ``crlb_white`` — centroid noise only: the gyro chain ties the attitudes exactly;
-    * ``crlb`` — with the gyro angle random walk: the attitudes of the frames carry the
-      random-walk errors ``a_k`` (``Cov(a_k, a_l) = q min(s_k, s_l) I``, ``s = |t − t_ref|``,
-      same side of the reference frame), i.e. the data covariance is
-      ``σ² I + Σ A_k Q_kl A_lᵀ`` — the bound of an estimator weighting by that covariance;
-    * ``estimator`` — the covariance of :func:`run_acf` with the linear loss (least squares
-      with weights 1/σ², random walk ignored in the fit) in the same linearisation:
-      ``N⁻¹ + N⁻¹ (Σ M_k Q_kl M_lᵀ) N⁻¹`` (what run_acf reports with σ̂ = σ).
-
-    The prior rows ``(θ − θ_prior)/σ_prior`` are part of the information in all three (the
-    estimator has them); with wide priors they matter only for unobservable directions (the
-    installation about a single-axis sweep axis), where the "bound" is the prior.
-    """
-
-    parameter_names: list[str]
-    model: StarModel
-    theta_true: np.ndarray
-    crlb_white: np.ndarray
-    crlb: np.ndarray
-    estimator: np.ndarray
-    arw_q: float  # rad²/s
-    n_frames: int
-    n_stars: int
-    jacobian: np.ndarray  # whitened star rows then prior rows, at the truth
-
-    def sigma(self, which: str = "crlb") -> np.ndarray:
-        """1-σ of ``[φ, θ]`` from ``crlb``, ``crlb_white`` or ``estimator``."""
-        return np.sqrt(np.diag(getattr(self, which)))
-
-    def installation_sigma_arcsec(self, which: str = "crlb") -> np.ndarray:
-        """1-σ (arcsec, tracker axes) of :func:`installation_error_arcsec`."""
-        cov = installation_error_covariance(getattr(self, which), self.model, self.theta_true)
-        return np.sqrt(np.diag(cov))
-
-
-def crlb_acf(
-    source: str | os.PathLike[str] | AcfData,
-    prior: Calibration,
-    truth: Calibration,
-    effects: Sequence[str] | None = None,
-    *,
-    frames: Any = None,
-    sigma_px: float | None = None,
-    gyro_arw: float | None = None,
-    reference_frame: int = 0,
-) -> AcfBound:
-    """Cramér–Rao bound of the ACF calibration (Fisher ``Jᵀ R⁻¹ J`` at the truth).
-
-    The model is run_acf's: effects (default :data:`ACF_EFFECTS`) with the prior's σ as
-    prior information, the first-frame attitude φ as nuisance, every identified star of the
-    selected frames (no gate), centroid σ from the messages or ``sigma_px``.  The Jacobian is
-    :class:`_Problem`'s analytic one at θ = the truth (:func:`~stellar_cal_ros.methods.
-    replay.truth_parameters`), with the gyro chain propagated from the measured rates
-    corrected by the true sensor parameters and the reference attitude from a joint Wahba
-    fit under the true camera and installation (error ~1", immaterial for the Jacobian).
-    ``gyro_arw`` as for :func:`run_acf` (rad/√s; default from the IMU messages).  See
-    :class:`AcfBound` for the three covariances returned.
-
-    Model mismatch (a gyro bias that is not estimated, astrometric effects) does not enter a
-    bound; it shows as errors beyond it.
-    """
-    from stellar_cal_ros.methods.replay import truth_parameters
-
-    data = source if isinstance(source, AcfData) else load_acf_data(source)
-    ids = list(ACF_EFFECTS if effects is None else effects)
-    model = StarModel(create_many(ids), prior)
-    theta = truth_parameters(model, truth)
-    chain = GyroChain(data, model, theta)
-    idx = _select_frames(len(data.frames), frames)
-    fr = _prepare_frames(data, idx, chain, prior.time_offset, sigma_px, MIN_STARS_PER_FRAME)
-    if len(fr) < MIN_FRAMES:
-        raise StellarCalError(f"the bound needs at least {MIN_FRAMES} frames with stars")
-    t_ref = fr[min(max(reference_frame, 0), len(fr) - 1)].t_rel + prior.time_offset
-    R_i_b0 = _initial_attitude(fr, chain, model, theta, t_ref, None)
-    for f in fr:
-        f.use = None  # every identified star
-    problem = _Problem(model, chain, fr, R_i_b0, t_ref, model.initial_value,
-                       model.initial_sigma)
-    problem.theta_lin = theta.copy()
-    _, J = problem.evaluate(np.concatenate([np.zeros(3), theta]))
-    n_star = problem.n_star
-    Js = J[:n_star]
-    info = Js.T @ Js + J[n_star:].T @ J[n_star:]
-    cov_white = _inverse(info)
-    q = _arw_density(data.imu, gyro_arw)
-    if q > 0:
-        # whitened data covariance I + B Q Bᵀ, B = blockdiag(A_k), A_k = attitude columns
-        rows = np.cumsum([0] + [2 * len(f.uv) for f in fr])
-        m = len(fr)
-        M = np.zeros((problem.n_x, 3 * m))
-        BtB = np.zeros((3 * m, 3 * m))
-        s = np.array([abs(f.t_rel - t_ref) for f in fr])
-        side = np.array([f.t_rel >= t_ref for f in fr])
-        for k in range(m):
-            Jk = Js[rows[k]:rows[k + 1]]
-            M[:, 3 * k:3 * k + 3] = Jk.T @ Jk[:, :3]
-            BtB[3 * k:3 * k + 3, 3 * k:3 * k + 3] = Jk[:, :3].T @ Jk[:, :3]
-        K = np.where(side[:, None] == side[None, :], np.minimum(s[:, None], s[None, :]), 0.0)
-        Q = q * np.kron(K, np.eye(3))
-        # Woodbury: Jᵀ(I + BQBᵀ)⁻¹J = JᵀJ − M Q (I + BᵀB Q)⁻¹ Mᵀ
-        Y = np.linalg.solve(np.eye(3 * m) + Q @ BtB, Q)  # = (I + Q BᵀB)⁻¹ Q, symmetric
-        Y = 0.5 * (Y + Y.T)
-        cov = _inverse(info - M @ Y @ M.T)
-        est = cov_white + cov_white @ (M @ Q @ M.T) @ cov_white
-    else:
-        cov = est = cov_white
-    names = ["attitude.phi_x", "attitude.phi_y", "attitude.phi_z"] + model.parameter_names()
-    return AcfBound(names, model, theta, cov_white, cov, 0.5 * (est + est.T), q, len(fr),
-                    n_star // 2, J)
-
-
 def parse_effects(text: str | Sequence[str] | None,
                   baseline: Sequence[str] = ACF_EFFECTS) -> list[str]:
     """``--effects`` value → effect ids: entries are added to ``baseline``; ``-id`` removes."""
@@ -1076,57 +802,6 @@ def parse_effects(text: str | Sequence[str] | None,
         elif it not in out:
             out.append(it)
     return out
-
-
-def installation_error_arcsec(estimated: Calibration, truth: Calibration) -> np.ndarray:
-    """Rotation vector (arcsec, tracker axes) of ``R_truthᵀ R_estimated``."""
-    dR = truth.R_imu_st.T @ estimated.R_imu_st
-    return so3_log(dR) / ARCSEC
-
-
-def sweep_axis_imu(result: AcfResult) -> np.ndarray:
-    """Unit rotation axis (IMU frame) of the gyro attitude change from first to last frame.
-
-    For a single-axis sweep, an installation rotation about this axis cannot be told from a
-    first-attitude rotation: the :func:`grid_projection_error` can remove it.
-    """
-    t = result.data.rel(np.array([result.data.frames[i].stamp_ns for i in result.frames]))
-    R0, _ = result.chain.attitude(float(t.min()))
-    R1, _ = result.chain.attitude(float(t.max()))
-    a = so3_log(R0.T @ R1)
-    return a / np.linalg.norm(a)
-
-
-def grid_projection_error(estimated: Calibration, truth: Calibration, n: int = 21,
-                          free_axis_imu: np.ndarray | None = None) -> tuple[float, float]:
-    """Worst and RMS pixel error over an n×n detector grid of the IMU-direction mapping.
-
-    Each grid pixel is unprojected with the true camera and installation to an IMU-frame
-    direction, which is then projected with the estimated installation and camera.  With
-    ``free_axis_imu`` the estimated installation is first rotated about that IMU axis by the
-    angle that minimises the RMS (the component a single-axis sweep cannot observe).
-    """
-    cam_t, cam_e = truth.camera, estimated.camera
-    g = np.linspace(0.0, 1.0, n)
-    uu, vv = np.meshgrid(g * (cam_t.width - 1), g * (cam_t.height - 1))
-    uv = np.column_stack([uu.ravel(), vv.ravel()])
-    v_imu = cam_t.unproject(uv) @ truth.R_imu_st.T
-
-    def errors(alpha: float) -> np.ndarray:
-        R = estimated.R_imu_st
-        if free_axis_imu is not None:
-            R = so3_exp(alpha * np.asarray(free_axis_imu, dtype=float)) @ R
-        return np.linalg.norm(cam_e.project(v_imu @ R) - uv, axis=1)
-
-    alpha = 0.0
-    if free_axis_imu is not None:
-        from scipy.optimize import minimize_scalar
-
-        alpha = float(minimize_scalar(lambda a: float(np.mean(errors(a) ** 2)),
-                                      bounds=(-0.1, 0.1), method="bounded",
-                                      options={"xatol": 1e-10}).x)
-    e = errors(alpha)
-    return float(np.max(e)), float(np.sqrt(np.mean(e ** 2)))
 
 
 def _merge_sigma(base: Any, over: Any) -> Any:

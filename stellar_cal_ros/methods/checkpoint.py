@@ -1,11 +1,11 @@
 """Checkpoints of a streaming calibration: save, kill, restart, continue — nothing lost.
 
-:func:`save_checkpoint` writes one ``.npz`` (atomically: temporary file, fsync, rename)
-holding the driver's buffers (reorder queues, pending frames, environment series, fixes,
-running statistics) and the filter's state — generic over the filter's attributes, so a
-method's own state (the PSCE prefix integrals, the swaying filter's reference window) is
-saved without per-method code.  :func:`load_checkpoint` into a new
-:class:`~stellar_cal_ros.methods.driver.Calibrator` built with the same prior, method,
+:func:`save_checkpoint` writes one file (atomically, checksummed:
+:mod:`~stellar_cal_ros.io.checkpoint`) holding the driver's buffers (reorder queues, pending
+frames, environment series, fixes, running statistics) and the filter's state — generic over
+the filter's attributes, so a method's own state (the PSCE prefix integrals, the swaying
+filter's reference window) is saved without per-method code. :func:`load_checkpoint` into a
+new :class:`~stellar_cal_ros.methods.driver.Calibrator` built with the same prior, method,
 effects and configuration continues exactly where the saved one stopped: feeding both the
 same remaining messages gives bit-identical results.
 """
@@ -13,19 +13,16 @@ same remaining messages gives bit-identical results.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import logging
 import os
-import tempfile
 from collections import deque
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from stellar_cal_ros.core.types import StarFrame
-from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.errors import CheckpointError
+from stellar_cal_ros.io.checkpoint import read_checkpoint, write_checkpoint
 from stellar_cal_ros.methods.driver import Calibrator, InputCounters, _ImuQueue
 from stellar_cal_ros.methods.frames import FrameInputs
 from stellar_cal_ros.methods.kernel import FilterCounters
@@ -33,14 +30,10 @@ from stellar_cal_ros.methods.results import RunStats
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "stellar_cal_checkpoint/2"
+CHECKPOINT_FORMAT = "stellar_cal_checkpoint/3"
 #: filter attributes rebuilt by the constructor (configuration, caches, workspaces)
 _FILTER_SKIP = {"model", "config", "layout", "gate", "update_policy", "grid", "site",
                 "_affine", "_sensor_cache", "_cref_cache", "_Phi", "_at_cache"}
-
-
-class CheckpointError(ModelError):
-    """A checkpoint cannot be used (unreadable, damaged, or of another model)."""
 
 
 class _Encoder:
@@ -131,7 +124,11 @@ def _identity(cal: Calibrator) -> dict[str, Any]:
 
 
 def save_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
-    """Write everything needed to continue to ``path`` (.npz, atomic replace, checksummed)."""
+    """Write everything needed to continue to ``path``.
+
+    Written by :mod:`stellar_cal_ros.io.checkpoint`: atomic replace, SHA-256 verified on
+    reading.
+    """
     enc = _Encoder()
     q = cal._imu
     frames = cal._frames_pending
@@ -162,34 +159,7 @@ def save_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
         "stats": enc.enc(dataclasses.asdict(cal.stats), "stats"),
         "filter": None if cal.filter is None else _filter_state(cal.filter, enc),
     }
-    arrays = dict(enc.arrays)
-    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    arrays["checksum"] = np.frombuffer(_digest(arrays).encode(), dtype=np.uint8)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _digest(arrays: dict[str, np.ndarray]) -> str:
-    h = hashlib.sha256()
-    for k in sorted(arrays):
-        if k == "checksum":
-            continue
-        a = np.ascontiguousarray(arrays[k])
-        h.update(k.encode())
-        h.update(str(a.dtype).encode())
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
+    write_checkpoint(path, enc.arrays, meta)
 
 
 def load_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
@@ -198,19 +168,12 @@ def load_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
     Raises
     ------
     CheckpointError
-        Unreadable, damaged (checksum), another format, or another model.
+        Missing, truncated, damaged (checksum), another format, or another model.
     """
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            a = {k: z[k] for k in z.files}
-        meta = json.loads(bytes(a["meta"]).decode())
-    except Exception as exc:  # noqa: BLE001 (zip, OS, value errors of a damaged file)
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: "
-                              f"{exc})") from exc
-    if "checksum" not in a or bytes(a["checksum"]).decode() != _digest(a):
-        raise CheckpointError(f"{path}: checksum mismatch (damaged checkpoint)")
+    a, meta = read_checkpoint(path)
     if meta.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: unknown checkpoint format {meta.get('format')!r}")
+        raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, this version "
+                              f"reads {CHECKPOINT_FORMAT!r}")
     if meta["identity"] != _identity(cal):
         raise CheckpointError(f"{path}: checkpoint of another model {meta['identity']} "
                               f"(this one: {_identity(cal)})")

@@ -163,7 +163,7 @@ class _Pairs:
         matrix: the σ̂² denominator that the correlations make differ from pairs − P), and
         the naive ``(JᵀWJ / σ̂²_expected + prior)⁻¹`` that treats the pairs as independent.
         """
-        from stellar_cal_ros.methods.acf import _inverse
+        from stellar_cal_ros.methods.acf_covariance import _inverse
 
         _, J = self.evaluate(theta)
         npair, P = self.n_pairs, J.shape[1]
@@ -336,7 +336,8 @@ def crlb_iac(
     :class:`IacBound`).
     """
     from stellar_cal_ros.core.attitude import wahba
-    from stellar_cal_ros.methods.acf import _inverse, _select_frames, _unit_vectors
+    from stellar_cal_ros.methods.acf import _select_frames, _unit_vectors
+    from stellar_cal_ros.methods.acf_covariance import _inverse
     from stellar_cal_ros.methods.replay import truth_parameters
 
     eff = create_many(list(IAC_EFFECTS if effects is None else effects))

@@ -313,6 +313,50 @@ def mismatch_text(cons: dict[str, Any]) -> str:
             "conditional on this wrong model. Run `stellar-cal diagnose --auto` to find it.")
 
 
+#: counters that say the input broke the contract (repaired, bridged or skipped): any of
+#: them makes a residual structure suspect before any model effect is
+DATA_FAULTS = {
+    "imu_invalid": "IMU samples with non-finite values or stamps (bridged)",
+    "imu_late": "IMU samples older than the released ones (dropped)",
+    "imu_duplicate": "IMU samples with a repeated stamp (dropped)",
+    "imu_gaps": "gaps in the IMU stream (bridged)",
+    "imu_long_gaps": "IMU gaps too long to bridge (filter re-acquired)",
+    "reinitializations": "filter re-acquisitions (lost attitude)",
+    "frames_late": "star frames later than the reorder window (dropped)",
+    "frames_duplicate": "star frames with a repeated stamp (dropped)",
+    "frames_overflow": "star frames dropped by a full queue",
+    "skipped_out_of_order": "star frames out of order (skipped)",
+    "skipped_no_imu": "star frames without IMU around them (skipped)",
+    "stars_bad_sigma": "stars with a negative or NaN centroid sigma (default used)",
+    "stars_invalid": "stars with non-finite values (dropped)",
+    "env_invalid": "invalid environment samples (dropped)",
+    "fixes_invalid": "invalid position fixes (dropped)",
+}
+#: gated stars beyond this many times the gate's false-alarm count (and at least
+#: :data:`GATED_MIN`) point at misidentified stars or a broken model rather than noise
+GATED_FACTOR = 20.0
+GATED_MIN = 10
+
+
+def data_quality(counters: dict[str, Any], stars_accepted: int,
+                 gate_probability: float = 0.9999) -> list[str]:
+    """What the counters say about the input, one phrase each (empty: nothing wrong).
+
+    A diagnosis reads these first: a bridged IMU gap or misidentified stars leave residual
+    structure that a model effect would fit for the wrong reason.
+    """
+    out = [f"{int(counters[k])} {text}" for k, text in DATA_FAULTS.items()
+           if counters.get(k)]
+    gated = int(counters.get("stars_gated", 0))
+    expected = (1.0 - gate_probability) * (stars_accepted + gated)
+    if gated > max(GATED_MIN, GATED_FACTOR * expected):
+        share = gated / max(stars_accepted + gated, 1)
+        out.append(f"{gated} stars gated ({100 * share:.2g} % of {stars_accepted + gated}; "
+                   f"a consistent model gates about {expected:.0f}): misidentified stars, "
+                   "or a model far off")
+    return out
+
+
 # ---------------------------------------------------------------------------- results
 @dataclass
 class ReplayResult:

@@ -73,13 +73,9 @@ from stellar_cal_msgs.msg import (
 
 from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.effects import registry
-from stellar_cal_ros.errors import StellarCalError
+from stellar_cal_ros.errors import CheckpointError, StellarCalError
 from stellar_cal_ros.io.calibration import load_calibration, save_calibration
-from stellar_cal_ros.methods.checkpoint import (
-    CheckpointError,
-    load_checkpoint,
-    save_checkpoint,
-)
+from stellar_cal_ros.methods.checkpoint import load_checkpoint, save_checkpoint
 from stellar_cal_ros.methods.driver import FILTERS, Calibrator, DriverConfig, FrameOutcome
 from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
 

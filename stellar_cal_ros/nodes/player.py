@@ -12,13 +12,17 @@ topic names (remappable), with:
 * ``/clock`` (rosgraph_msgs/Clock) with the bag's log time every ``clock_period_s`` of bag
   time, for nodes run with ``use_sim_time: true``.
 
-The bag is read with the ``mcap`` library (no rosbag2 needed).  ``start_offset_s`` and
-``duration_s`` select a part of it.
+The bag is read with the ``mcap`` library (no rosbag2 needed), chunk CRCs verified.
+``start_offset_s`` and ``duration_s`` select a part of it.  The bag is checked before
+anything is published (:func:`check_bag`: missing, not MCAP, truncated / no summary); a
+damaged chunk met while playing stops the playback.  Either way the node prints one line
+``player: error: ...`` and exits with status 1.
 """
 
 from __future__ import annotations
 
 import importlib
+import os
 import struct
 import sys
 import threading
@@ -34,6 +38,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
+
+from stellar_cal_ros.errors import BagError, StellarCalError
 
 IMU_TYPE = "sensor_msgs/msg/Imu"
 
@@ -67,6 +73,33 @@ class PlayStats:
     bag_s: float = 0.0
 
 
+def check_bag(path: str):
+    """Open ``path`` and return its MCAP summary, or raise BagError naming what is wrong."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+    except FileNotFoundError:
+        raise BagError(f"bag not found: {path}") from None
+    except IsADirectoryError:
+        raise BagError(f"{path} is a directory, not an MCAP file") from None
+    except OSError as exc:
+        raise BagError(f"cannot open bag {path}: {exc.strerror or exc}") from None
+    except Exception as exc:  # noqa: BLE001 - any parse failure: the file is damaged
+        if type(exc).__name__ == "InvalidMagic" or os.path.getsize(path) < 16:
+            raise BagError(f"{path} is not an MCAP file") from None
+        raise BagError(f"{path}: truncated or corrupt MCAP file (summary unreadable: "
+                       f"{type(exc).__name__}: {exc}); `stellar-cal info` shows what is "
+                       "readable") from None
+    if summary is None or summary.statistics is None:
+        raise BagError(f"{path} has no summary section: truncated or not closed (the "
+                       "recorder was killed?); `stellar-cal info` shows what is readable")
+    if not summary.channels:
+        raise BagError(f"{path} holds no channels")
+    return summary
+
+
 def message_class(type_name: str):
     """``pkg/msg/Type`` → the generated Python class."""
     pkg, _, name = type_name.replace("/msg/", "/").partition("/")
@@ -95,6 +128,8 @@ class PlayerNode(Node):
             raise ValueError("parameter 'bag' is required")
         if self.p["rate"] < 0 or self.p["max_lag_s"] <= 0 or self.p["qos_depth"] < 1:
             raise ValueError("rate must be >= 0, max_lag_s > 0 and qos_depth >= 1")
+        self.summary = check_bag(self.p["bag"])  # BagError: nothing is published
+        self.error: str | None = None  # why a playback stopped early
         self.consumer_ns = -1  # newest IMU stamp the consumer reported
         self.stats = PlayStats()
         self._first_imu_ns: int | None = None
@@ -123,8 +158,8 @@ class PlayerNode(Node):
         with self._cond:
             self._cond.notify_all()
 
-    def _make_publishers(self, reader) -> dict[str, Any]:
-        summary = reader.get_summary()
+    def _make_publishers(self) -> dict[str, Any]:
+        summary = self.summary
         want = set(self.p["topics"]) if self.p["topics"] else None
         for ch in summary.channels.values():
             if want is not None and ch.topic not in want or ch.topic in self._pubs:
@@ -175,10 +210,10 @@ class PlayerNode(Node):
         rate = float(self.p["rate"])
         clock_ns = int(self.p["clock_period_s"] * 1e9)
         with open(self.p["bag"], "rb") as fh:
-            reader = make_reader(fh)
-            pubs = self._make_publishers(reader)
+            reader = make_reader(fh, validate_crcs=True)
+            pubs = self._make_publishers()
             self._wait_for_subscribers()
-            stats = reader.get_summary().statistics
+            stats = self.summary.statistics
             start = stats.message_start_time + int(self.p["start_offset_s"] * 1e9)
             end = stats.message_end_time + 1 if self.p["duration_s"] <= 0 else \
                 start + int(self.p["duration_s"] * 1e9)
@@ -229,6 +264,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"player: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    except StellarCalError as exc:
+        print(f"player: error: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 1
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     done = threading.Event()
@@ -236,6 +275,9 @@ def main(argv: list[str] | None = None) -> int:
     def run() -> None:
         try:
             node.play()
+        except Exception as exc:  # noqa: BLE001 - a damaged chunk: one line, exit status 1
+            node.error = (f"{node.p['bag']}: playback stopped after {node.stats.messages} "
+                          f"messages: {type(exc).__name__}: {exc}")
         finally:
             done.set()
 
@@ -252,6 +294,9 @@ def main(argv: list[str] | None = None) -> int:
         worker.join(timeout=2.0)
         node.destroy_node()
         rclpy.try_shutdown()
+    if node.error:
+        print(f"player: error: {node.error}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -1,0 +1,437 @@
+"""Data of the ACF batch calibration: star frames and IMU samples of one run, checked.
+
+:func:`load_acf_data` reads what the method needs from a contract bag.  Times are relative
+seconds ``(stamp_ns − t0_ns)·1e-9`` with ``t0_ns`` the first IMU stamp.
+
+The ACF gyro chain ties every star frame to the first one, so one bad IMU sample would
+tilt every later frame.  :meth:`AcfData.gyro` therefore prepares the IMU once, counting
+every repair in :class:`DataQuality`:
+
+* messages out of stamp order are sorted, repeated stamps dropped;
+* a sample with NaN/inf, or a lost one, leaves a *known* interval without data (each
+  message holds the mean rate over the interval that ends at its stamp): it is bridged as
+  the filters bridge it (:class:`~stellar_cal_ros.core.imu.ImuBuffer`: one sample with the
+  neighbours' mean rate, i.e. the rate interpolated linearly);
+* a gap longer than the star frame interval cannot be bridged (the attitude over it is
+  unknown), and a stamp jumping backwards is a clock jump: both raise
+  :class:`~stellar_cal_ros.errors.DataError` naming the time and size.
+
+:func:`check_gyro_against_stars` compares the gyro's rotation between star frames with the
+stars' own (a Wahba fit per frame): a ratio of 57.3 is a gyro in deg/s, ~0 a dead gyro, and
+rotation axes that no fixed rotation maps onto each other are swapped or mirrored axes.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.core.attitude import wahba
+from stellar_cal_ros.core.earth import Site
+from stellar_cal_ros.core.imu import ImuBuffer
+from stellar_cal_ros.errors import BagError, DataError, StellarCalError
+from stellar_cal_ros.io.bag import BagReader, ImuSeries, StarFrame
+
+log = logging.getLogger(__name__)
+
+BRIDGE_FACTOR = 1.5
+"""An IMU interval longer than this × the nominal one is a gap to bridge."""
+
+
+@dataclass
+class DataQuality:
+    """What the ACF method repaired, skipped or rejected (counts; ``_s``: seconds)."""
+
+    imu_unsorted: int = 0  # messages whose stamp is earlier than their predecessor's
+    imu_duplicates: int = 0  # repeated stamps dropped
+    imu_nonfinite: int = 0  # NaN/inf samples, their intervals bridged
+    imu_bridged: int = 0  # intervals without data, bridged by interpolation
+    imu_bridged_s: float = 0.0
+    frames_unsorted: int = 0
+    frames_duplicates: int = 0
+    frames_outside_imu: int = 0
+    frames_few_stars: int = 0
+    stars_unidentified: int = 0  # catalog_id 0 / direction unknown
+    stars_invalid: int = 0  # NaN/inf centroid or direction
+    stars_outside_image: int = 0  # centroid off the detector
+    stars_bad_sigma: int = 0  # σ ≤ 0 or NaN in the message (1 px used, rescaled by σ̂)
+    stars_misidentified: int = 0  # catalogue direction far from the measured one
+    stars_outliers: int = 0  # normalized residual beyond the outlier gate
+
+    def counts(self) -> dict[str, float]:
+        """The nonzero counts."""
+        return {k: v for k, v in asdict(self).items() if v}
+
+    def summary(self) -> str:
+        """``name=value`` of the nonzero counts ('' if none)."""
+        return ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+                         for k, v in self.counts().items())
+
+
+@dataclass
+class GyroSamples:
+    """IMU rates ready for the gyro chain: strictly increasing stamps, no gaps left.
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+        Relative time (s) of the end of each interval.
+    w : ndarray (N, 3)
+        Mean body rate over the interval, rad/s.
+    dt : ndarray (N,)
+        Interval lengths, s (the first one: the nominal interval).
+    """
+
+    t: np.ndarray
+    w: np.ndarray
+    dt: np.ndarray
+
+
+@dataclass
+class AcfData:
+    """Star frames and IMU samples of one run, with the time origin ``t0_ns``.
+
+    Star frames are put in stamp order and repeated stamps dropped on construction (both
+    counted in :attr:`quality`).
+    """
+
+    frames: list[StarFrame]
+    imu: ImuSeries
+    t0_ns: int
+    site: Site | None = None
+    scalars: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    quality: DataQuality = field(default_factory=DataQuality)
+    _gyro: GyroSamples | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        stamps = np.array([f.stamp_ns for f in self.frames], dtype=np.int64)
+        if len(stamps) > 1 and np.any(np.diff(stamps) <= 0):
+            self.quality.frames_unsorted += int(np.sum(np.diff(stamps) < 0))
+            order = np.argsort(stamps, kind="stable")
+            keep = np.concatenate([[True], np.diff(stamps[order]) > 0])
+            self.quality.frames_duplicates += int(np.sum(~keep))
+            self.frames = [self.frames[i] for i in order[keep]]
+
+    def rel(self, stamp_ns: Any) -> Any:
+        """Relative seconds of POSIX ns stamps (exact integer difference first)."""
+        return (np.asarray(stamp_ns, dtype=np.int64) - self.t0_ns) * 1e-9
+
+    def frame_interval(self) -> float:
+        """Median interval between star frames, s (inf with fewer than two frames)."""
+        if len(self.frames) < 2:
+            return float("inf")
+        return float(np.median(np.diff([f.stamp_ns for f in self.frames]))) * 1e-9
+
+    def gyro(self) -> GyroSamples:
+        """The IMU prepared for the gyro chain (:func:`prepare_gyro`, computed once)."""
+        if self._gyro is None:
+            self._gyro = prepare_gyro(self)
+        return self._gyro
+
+
+def prepare_gyro(data: AcfData, max_gap_s: float | None = None) -> GyroSamples:
+    """Sorted, de-duplicated, finite IMU rates with every missing interval bridged.
+
+    Parameters
+    ----------
+    data : AcfData
+        Counts go to ``data.quality``.
+    max_gap_s : float, optional
+        Longest interval without data that is bridged (default: the star frame interval,
+        at least 5 nominal IMU intervals).
+
+    Raises
+    ------
+    DataError
+        A stamp jumps backwards by more than a second (a clock jump), or a gap longer
+        than ``max_gap_s`` lies inside the data; fewer than two usable samples.
+    """
+    q = data.quality
+    imu = data.imu
+    stamps = np.asarray(imu.stamp_ns, dtype=np.int64).reshape(-1)
+    w = np.asarray(imu.angular_velocity, dtype=float).reshape(-1, 3)
+    d = np.diff(stamps)
+    jumps = np.flatnonzero(d < -1_000_000_000)
+    if jumps.size:
+        k = int(jumps[0])
+        raise DataError(
+            f"/imu/data stamps jump back by {-d[k] * 1e-9:.3f} s after t="
+            f"{data.rel(stamps[k]):.3f} s (message {k + 1} of {len(stamps)}): a clock jump "
+            "in the IMU time stamps; the ACF method needs one continuous IMU clock")
+    q.imu_unsorted += int(np.sum(d < 0))
+    order = np.argsort(stamps, kind="stable")
+    stamps, w = stamps[order], w[order]
+    keep = np.concatenate([[True], np.diff(stamps) > 0])
+    q.imu_duplicates += int(np.sum(~keep))
+    finite = np.all(np.isfinite(w), axis=1)
+    q.imu_nonfinite += int(np.sum(keep & ~finite))
+    keep &= finite
+    stamps, w = stamps[keep], w[keep]
+    if len(stamps) < 2:
+        raise DataError(f"/imu/data holds {len(stamps)} usable samples (of {len(imu)}); the "
+                        "ACF method needs the gyro rates between the star frames")
+    t = data.rel(stamps)
+    dt = np.diff(t)
+    nominal = float(np.median(dt))
+    limit = max(data.frame_interval(), 5.0 * nominal) if max_gap_s is None else max_gap_s
+    gaps = np.flatnonzero(dt > BRIDGE_FACTOR * nominal)
+    if gaps.size:
+        big = gaps[dt[gaps] > limit]
+        if big.size:
+            k = int(big[np.argmax(dt[big])])
+            raise DataError(
+                f"/imu/data has a {dt[k]:.3f} s gap after t={t[k]:.3f} s ({big.size} gap(s) "
+                f"longer than {limit:.3f} s): the IMU was silent or its clock jumped, and the "
+                "ACF gyro chain cannot bridge more than the star frame interval")
+        buf = ImuBuffer(nominal, BRIDGE_FACTOR)  # the filters' bridge: one rule
+        buf.append(t, w)
+        t, w = buf.t.copy(), buf.w.copy()
+        q.imu_bridged += int(gaps.size)
+        q.imu_bridged_s += float(np.sum(dt[gaps] - nominal))
+    dts = np.concatenate([[nominal], np.diff(t)])
+    return GyroSamples(t=t, w=w, dt=dts)
+
+
+def check_overlap(data: AcfData, span: tuple[float, float], idx: np.ndarray) -> None:
+    """Refuse star frames that mostly lie outside the IMU data (a clock offset).
+
+    ``span``: first and last time the IMU covers (relative s); ``idx``: the selected frames,
+    of which ``data.quality.frames_outside_imu`` were found outside.
+
+    Raises
+    ------
+    DataError
+        More than half of the selected frames lie outside the IMU data.
+    """
+    q = data.quality
+    if q.frames_outside_imu <= 0.5 * len(idx):
+        return
+    t = data.rel(np.array([data.frames[int(k)].stamp_ns for k in idx]))
+    lo, hi = span
+    off = float(np.median(t)) - 0.5 * (lo + hi)
+    raise DataError(
+        f"{q.frames_outside_imu} of {len(idx)} star frames lie outside the IMU data: the "
+        f"stars cover {t.min():.3f} .. {t.max():.3f} s, the IMU {lo:.3f} .. {hi:.3f} s "
+        f"(relative to the first IMU stamp): the star tracker and IMU clocks disagree "
+        f"(by about {off:.0f} s)")
+
+
+def report_quality(data: AcfData, span: tuple[float, float], n_stars: int, n_frames: int,
+                   outlier_probability: float | None) -> list[str]:
+    """Log what was counted; return the reasons the result is degraded (may be empty).
+
+    Degraded: more than 10 % of the identified stars rejected (wrong identities or
+    outliers), IMU bridged over more than 1 % of its span, or more than 10 % of the frames
+    outside the IMU data.
+    """
+    q = data.quality
+    counts = q.counts()
+    if not counts:
+        return []
+    false_alarms = n_stars * (1.0 - (outlier_probability or 1.0))
+    only_gate_noise = set(counts) == {"stars_outliers"} and q.stars_outliers <= \
+        false_alarms + 3.0 * np.sqrt(false_alarms) + 1.0
+    (log.info if only_gate_noise else log.warning)("ACF data: %s", q.summary())
+    reasons = []
+    rejected = q.stars_misidentified + q.stars_outliers
+    if rejected > 0.1 * n_stars:
+        reasons.append(f"{rejected} of {n_stars} stars rejected as misidentified or "
+                       "outliers")
+    lo, hi = span
+    if q.imu_bridged_s > 0.05 * (hi - lo):
+        reasons.append(f"IMU bridged over {q.imu_bridged_s:.3g} s of {hi - lo:.3g} s")
+    if q.frames_outside_imu > 0.1 * n_frames:
+        reasons.append(f"{q.frames_outside_imu} of {n_frames} star frames outside the IMU "
+                       "data")
+    for r in reasons:
+        log.warning("ACF result degraded: %s", r)
+    return reasons
+
+
+def check_gyro_against_stars(times: Sequence[float], directions_st: Sequence[np.ndarray],
+                             directions_i: Sequence[np.ndarray],
+                             attitude: Callable[[float], np.ndarray]) -> dict[str, float]:
+    """Compare the gyro's rotation between star frames with the stars' rotation.
+
+    Each frame's tracker attitude comes from its own Wahba fit (:func:`_frame_wahba`,
+    wrong identities left out); frames whose stars fit worse than 5 × the median frame's
+    are not used.  Frame pairs: up to 200 anchor frames, each with the frames 1, 2, 4, …
+    256 later.  The angle ratio (gyro / stars) uses the pairs whose star
+    rotation is 0.05–2° (a gyro reading 57× too much stays below 180° there); the axis test
+    uses pairs rotated 2–170°: gyro axes (IMU frame) and star axes (tracker frame) must map
+    onto each other by one rotation (the installation) when they span more than one
+    direction.
+
+    Parameters
+    ----------
+    times : sequence of float
+        Relative time of each frame, s (increasing).
+    directions_st : sequence of ndarray (n_k, 3)
+        Measured star directions in the tracker frame (centroids unprojected with the
+        prior camera).
+    directions_i : sequence of ndarray (n_k, 3)
+        Their catalogue directions (inertial).
+    attitude : callable
+        ``t → R_n0_b(t)`` (3, 3) from the gyro chain.
+
+    Returns
+    -------
+    dict
+        ``ratio`` (median gyro angle / star angle), ``pairs`` (pairs in the ratio),
+        ``axis_misfit_deg`` (95th percentile of the angle between the gyro axes and the
+        star axes after the best fixed rotation; NaN if not tested).
+
+    Raises
+    ------
+    DataError
+        The gyro's rotation is not the stars' (wrong units, a dead gyro, swapped or
+        mirrored axes); the message names the likely cause.
+    """
+    n = len(times)
+    anchors = np.unique(np.linspace(0, n - 1, min(n, 200)).astype(int)).tolist()
+    needed = sorted({i + lag for i in anchors for lag in (0, *_LAGS) if i + lag < n})
+    fits = {k: _frame_wahba(np.asarray(directions_st[k]), np.asarray(directions_i[k]))
+            for k in needed}
+    rms = [e for _, e in fits.values() if np.isfinite(e)]
+    worst = 5.0 * max(float(np.median(rms)), 1e-5) if rms else np.inf
+
+    good = {k for k, (_, e) in fits.items() if e <= worst}  # frames their stars fit
+    pairs = np.array([(i, i + lag) for i in anchors for lag in _LAGS
+                      if i + lag < n and i in good and i + lag in good], dtype=int)
+    if not len(pairs):
+        return {"ratio": float("nan"), "pairs": 0, "axis_misfit_deg": float("nan")}
+    R_s = {k: fits[k][0] for k in good}
+    R_g = {k: attitude(float(times[k])) for k in good}
+    a_s = _rotvecs([R_s[i].T @ R_s[j] for i, j in pairs])
+    a_g = _rotvecs([R_g[i].T @ R_g[j] for i, j in pairs])
+    th_s, th_g = np.linalg.norm(a_s, axis=1), np.linalg.norm(a_g, axis=1)
+    in_ratio = (th_s >= np.deg2rad(0.05)) & (th_s <= np.deg2rad(2.0))
+    in_axes = (th_s >= np.deg2rad(2.0)) & (th_s <= np.deg2rad(170.0)) & (th_g > 1e-9)
+    ratio_s, ratio_g = th_s[in_ratio], th_g[in_ratio]
+    ax_s = a_s[in_axes] / th_s[in_axes, None]
+    ax_g = a_g[in_axes] / th_g[in_axes, None]
+    out = {"ratio": float("nan"), "pairs": len(ratio_s), "axis_misfit_deg": float("nan")}
+    if len(ratio_s):
+        ratio = float(np.median(ratio_g / ratio_s))
+        out["ratio"] = ratio
+        if not 0.5 < ratio < 2.0:  # a prior focal length tens of % off moves it that much
+            raise DataError(_ratio_cause(ratio, len(ratio_s)))
+    if len(ax_s) >= 3:
+        A_s, A_g = ax_s, ax_g
+        sv = np.linalg.svd(A_g, compute_uv=False)
+        if sv[1] > 0.2 * sv[0]:
+            R = wahba(A_s, A_g)  # R_imu_st: gyro axes (IMU) ≈ R · star axes (tracker)
+            mis = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", A_s @ R.T, A_g), -1, 1)))
+            out["axis_misfit_deg"] = float(np.percentile(mis, 95))
+            if out["axis_misfit_deg"] > 5.0:
+                raise DataError(
+                    f"the gyro's rotation axes between star frames match the stars' by no "
+                    f"fixed rotation (95 % of {len(ax_s)} frame pairs within "
+                    f"{out['axis_misfit_deg']:.1f} deg): IMU axes swapped, mirrored or "
+                    "mislabelled")
+    return out
+
+
+_LAGS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
+
+
+def _frame_wahba(v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """``R_i_st`` of one frame and the RMS error of its inliers, rad (inf if < 3 stars).
+
+    Refitted (up to 4 times) without the stars more than 4 × the inliers' median error
+    (at least 20") off, until the inliers do not change.
+    """
+    ok = np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(u), axis=1)
+    if ok.sum() < 3:
+        return None, float("inf")
+    v, u = v[ok], u[ok]
+
+    def errors(R: np.ndarray) -> np.ndarray:
+        return np.arccos(np.clip(np.einsum("ij,ij->i", v @ R.T, u), -1, 1))
+
+    inl = np.ones(len(v), dtype=bool)
+    R = wahba(v, u)
+    for _ in range(4):
+        err = errors(R)
+        new = err <= max(4.0 * float(np.median(err[inl])), 1e-4)
+        if new.sum() < 3 or np.array_equal(new, inl):
+            break
+        inl = new
+        R = wahba(v[inl], u[inl])
+    return R, float(np.sqrt(np.mean(errors(R)[inl] ** 2)))
+
+
+def _rotvecs(mats: list[np.ndarray]) -> np.ndarray:
+    """Rotation vectors (k, 3) of rotation matrices."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(mats)).as_rotvec()
+
+
+def _ratio_cause(ratio: float, pairs: int) -> str:
+    head = (f"the gyro turns {ratio:.4g} x as far as the stars between star frames (median "
+            f"over {pairs} frame pairs)")
+    deg = 180.0 / np.pi
+    if abs(ratio / deg - 1.0) < 0.1:
+        return head + ": /imu/data looks like deg/s, the contract says rad/s"
+    if abs(ratio * deg - 1.0) < 0.1:
+        return head + ": the rates look converted from deg/s to rad/s twice"
+    if ratio < 0.05:
+        return head + ": the gyro shows almost no rotation (dead, disconnected or stuck)"
+    return head + ": wrong gyro units or scale"
+
+
+def load_acf_data(
+    bag_path: str | os.PathLike[str],
+    star_topic: str = "/star_tracker/stars",
+    imu_topic: str = "/imu/data",
+    gnss_topic: str = "/gnss/fix",
+) -> AcfData:
+    """Read what the ACF method needs from a contract bag.
+
+    Raises
+    ------
+    StellarCalError
+        The bag or one of the two required topics is missing, or holds no data.
+    """
+    try:
+        with BagReader(bag_path) as reader:
+            topics = reader.topics()
+            for topic, what in ((star_topic, "star centroids"), (imu_topic, "IMU samples")):
+                if topic not in topics:
+                    raise StellarCalError(
+                        f"{bag_path}: the ACF method needs {what} on {topic}, which the bag "
+                        f"does not have (topics: {sorted(topics)})")
+            imu = reader.read_imu(imu_topic)
+            frames = reader.read_star_frames(star_topic)
+            site = None
+            scalars: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+            if gnss_topic in topics:
+                fix = reader.read_navsat(gnss_topic)
+                if len(fix):
+                    site = Site(float(np.median(fix.latitude_deg)),
+                                float(np.median(fix.longitude_deg)),
+                                float(np.median(fix.altitude_m)))
+            for key, topic in (("head_temperature_c", "/star_tracker/temperature"),
+                               ("air_temperature_c", "/environment/temperature"),
+                               ("pressure_pa", "/environment/pressure")):
+                if topic in topics:
+                    s = reader.read_scalar(topic)
+                    if len(s):
+                        scalars[key] = (np.asarray(s.stamp_ns), np.asarray(s.value))
+    except FileNotFoundError as exc:
+        raise BagError(f"cannot open bag {bag_path}: {exc}") from None
+    if len(imu) < 2:
+        raise DataError(f"{bag_path}: {imu_topic} holds {len(imu)} IMU samples; "
+                              "the ACF method needs the gyro data between the star frames")
+    if not frames:
+        raise StellarCalError(f"{bag_path}: {star_topic} holds no star frames")
+    t0 = int(imu.stamp_ns[0])
+    data = AcfData(frames=frames, imu=imu, t0_ns=t0, site=site)
+    data.scalars = {k: (data.rel(st), v) for k, (st, v) in scalars.items()}
+    return data
