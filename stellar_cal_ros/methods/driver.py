@@ -255,6 +255,8 @@ class Calibrator:
         self.last_update: FrameUpdate | None = None
         self.stats = RunStats(self.eval_start)
         self._frame_index = 0
+        self._history_keys: tuple[str, ...] | None = None  # see _record_history
+        self._history_sigma_index: np.ndarray | None = None
 
     def reset(self) -> None:
         """Forget everything (the prior, effects and configuration stay)."""
@@ -322,13 +324,16 @@ class Calibrator:
             return dropped("late")
         if self._last_frame_ns is not None and stamp <= self._last_frame_ns:
             return dropped("duplicate" if stamp == self._last_frame_ns else "late")
-        stamps = [f.stamp_ns for f in self._frames_pending]
-        if stamp in stamps:
-            return dropped("duplicate")
-        i = int(np.searchsorted(np.asarray(stamps, dtype=np.int64), stamp)) if stamps else 0
-        if i < len(stamps):
+        pending = self._frames_pending
+        if not pending or stamp > int(pending[-1].stamp_ns):  # in order: the usual case
+            pending.append(frame)
+        else:
+            stamps = [f.stamp_ns for f in pending]
+            if stamp in stamps:
+                return dropped("duplicate")
+            i = int(np.searchsorted(np.asarray(stamps, dtype=np.int64), stamp))
             c.frames_reordered += 1
-        self._frames_pending.insert(i, frame)
+            pending.insert(i, frame)
         cam = self.prior.camera
         inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px)
         if inp.bad_sigma:
@@ -577,22 +582,29 @@ class Calibrator:
     def _record_history(self, upd: FrameUpdate) -> None:
         flt = self.filter
         s = flt.sigma()
-        n_acc = int(upd.accepted.sum())
-        row: dict[str, np.ndarray] = {
-            "t": np.array([upd.stamp]), "nis": np.array([upd.nis]),
-            "dof": np.array([upd.dof]), "stars": np.array([n_acc]),
-            "gated": np.array([len(upd.accepted) - n_acc]),
-            "iterations": np.array([upd.iterations])}
+        n_acc = int(np.count_nonzero(upd.accepted))
+        keys = self._history_keys
+        if keys is None:
+            keys = ["t", "nis", "dof", "stars", "gated", "iterations"]
+            for name in self.parameter_names():
+                keys += [name, "sigma." + name]
+            keys += [f"sigma.attitude.{ax}" for ax in "xyz"]
+            for name in flt._nav_blocks:
+                keys += [f"sigma.{name}.{ax}" for ax in "xyz"]
+            self._history_keys = keys = tuple(keys)
+            nav = [flt.layout.sl(name) for name in flt._nav_blocks]
+            self._history_sigma_index = np.concatenate(
+                [np.arange(len(s))[flt.ia]] + [np.arange(len(s))[sl] for sl in nav]
+            ).astype(np.intp)
         th, st = flt.theta_estimated(), s[flt.it]
-        for j, name in enumerate(self.parameter_names()):
-            row[name] = th[j:j + 1]
-            row["sigma." + name] = st[j:j + 1]
-        for ax, v in zip("xyz", s[flt.ia], strict=True):
-            row[f"sigma.attitude.{ax}"] = np.array([v])
-        for name in flt._nav_blocks:
-            for ax, v in zip("xyz", s[flt.layout.sl(name)], strict=True):
-                row[f"sigma.{name}.{ax}"] = np.array([v])
-        self.history.append(row)
+        pairs = np.empty(2 * len(th))
+        pairs[0::2] = th
+        pairs[1::2] = st
+        row = [float(upd.stamp), float(upd.nis), int(upd.dof), n_acc,
+               len(upd.accepted) - n_acc, int(upd.iterations)]
+        row += pairs.tolist()
+        row += s[self._history_sigma_index].tolist()
+        self.history.append_row(keys, row)
 
     def _trim(self) -> None:
         """Drop IMU samples and environment data the filter can no longer need."""

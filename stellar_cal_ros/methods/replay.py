@@ -266,6 +266,9 @@ class _NullSink(TableSink):
     def append(self, chunk) -> None:  # noqa: D102
         return None
 
+    def append_row(self, keys, values) -> None:  # noqa: D102
+        return None
+
 
 def _span_of_data(data: BagData) -> tuple[int | None, int | None]:
     st = data.imu_stamp_ns

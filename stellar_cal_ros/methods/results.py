@@ -63,27 +63,81 @@ def residual_rows(upd, frame_index: int, ids: np.ndarray, mag: np.ndarray,
 class TableSink:
     """Rows of a table, kept in memory or streamed to ``path`` (CSV / Parquet).
 
-    ``append(chunk)`` with a dict of equal-length arrays; :meth:`table` returns the whole
-    table in memory mode (an empty dict when streaming: read the file).
+    ``append(chunk)`` with a dict of equal-length arrays, or :meth:`append_row` with one row
+    of scalars; :meth:`table` returns the whole table in memory mode (an empty dict when
+    streaming: read the file).  Rows are buffered and handed on in blocks of about
+    ``chunk_rows`` (one formatting pass per column per block instead of per frame): the
+    file and the table are the same as with one chunk per call.
     """
 
-    def __init__(self, path=None, columns: tuple[str, ...] | None = None) -> None:
+    def __init__(self, path=None, columns: tuple[str, ...] | None = None,
+                 chunk_rows: int = 4096) -> None:
         self.path = path
         self.columns = columns
+        self.chunk_rows = int(chunk_rows)
         self._chunks: list[dict[str, np.ndarray]] = []
         self._writer = TableWriter(path) if path is not None else None
         self.rows = 0
+        self._buf: list[dict[str, np.ndarray]] = []  # chunks of one layout, not yet merged
+        self._buf_key: tuple | None = None
+        self._buf_rows = 0
+        self._row_keys: tuple[str, ...] | None = None  # append_row buffer
+        self._row_values: list[list] = []
 
     def append(self, chunk: dict[str, np.ndarray]) -> None:
         """Add rows."""
-        self.rows += len(next(iter(chunk.values()))) if chunk else 0
+        n = len(next(iter(chunk.values()))) if chunk else 0
+        self.rows += n
+        if self._row_values:
+            self._flush_rows()
+        self._buffer(chunk, n)
+
+    def append_row(self, keys: tuple[str, ...], values: list) -> None:
+        """Add one row: column names (pass the same tuple every call) and their scalars."""
+        if keys is not self._row_keys and self._row_values:
+            self._flush_rows()
+        self._row_keys = keys
+        self._row_values.append(values)
+        self.rows += 1
+        if len(self._row_values) >= self.chunk_rows:
+            self._flush_rows()
+
+    def _flush_rows(self) -> None:
+        rows, self._row_values = self._row_values, []
+        cols = zip(*rows, strict=True)
+        self._buffer({k: np.array(c) for k, c in zip(self._row_keys, cols, strict=True)},
+                     len(rows))
+
+    def _buffer(self, chunk: dict[str, np.ndarray], n: int) -> None:
+        # chunks merge only with chunks of the same columns and dtypes (same values, same
+        # formatting); a different layout first hands on what is held (a writer refuses a
+        # change of columns at once, as without the buffer)
+        key = tuple((k, np.asarray(v).dtype.str) for k, v in chunk.items())
+        if self._buf and key != self._buf_key:
+            self._flush()
+        self._buf.append(chunk)
+        self._buf_key = key
+        self._buf_rows += n
+        if self._buf_rows >= self.chunk_rows:
+            self._flush()
+
+    def _flush(self) -> None:
+        """Hand the buffered chunks on as one."""
+        if self._row_values:
+            self._flush_rows()
+        buf, self._buf, self._buf_rows = self._buf, [], 0
+        if not buf:
+            return
+        merged = buf[0] if len(buf) == 1 else {
+            k: np.concatenate([np.asarray(c[k]) for c in buf]) for k in buf[0]}
         if self._writer is not None:
-            self._writer.append(chunk)
+            self._writer.append(merged)
         else:
-            self._chunks.append(chunk)
+            self._chunks.append(merged)
 
     def close(self) -> None:
         """Finish the file (streaming mode)."""
+        self._flush()
         if self._writer is not None:
             if self._writer.columns is None and self.columns:
                 self._writer.append({k: np.zeros(0) for k in self.columns})
@@ -93,6 +147,7 @@ class TableSink:
         """The rows in memory (memory mode)."""
         if self._writer is not None:
             return {}
+        self._flush()
         if not self._chunks:
             return {k: np.zeros(0) for k in (self.columns or ())}
         keys = list(self._chunks[0])
