@@ -284,12 +284,14 @@ class Calibrator:
         if frame_id is not None and expected and frame_id != expected:
             c.imu_wrong_frame += len(t)
             return []
-        ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
-        if not ok.all():
+        # the checks on the whole block first (the usual case: nothing to remove)
+        if not (np.isfinite(w).all() and np.isfinite(f).all() and (t > 0).all()):
+            ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
             c.imu_invalid += int((~ok).sum())
             t, w, f = t[ok], w[ok], f[ok]
-        if self._last_imu_ns is not None:
-            old = t <= self._last_imu_ns
+        last = self._last_imu_ns
+        if last is not None and len(t) and not (len(t) == 1 and t[0] > last):
+            old = t <= last
             if old.any():
                 dup = t[old] == self._last_imu_ns
                 c.imu_duplicate += int(dup.sum())
@@ -397,12 +399,16 @@ class Calibrator:
         t, w, f = self._imu.pop(limit, self.driver.max_pending_imu)
         if not len(t):
             return
-        keep = np.ones(len(t), dtype=bool)
         d = np.diff(t)
-        keep[1:] = d > 0  # duplicated stamps within the released block
-        if self._last_imu_ns is not None:
-            keep &= t > self._last_imu_ns
-        if not keep.all():
+        last = self._last_imu_ns
+        if (last is None or t[0] > last) and (d > 0).all():  # the usual case
+            keep = None
+        else:
+            keep = np.ones(len(t), dtype=bool)
+            keep[1:] = d > 0  # duplicated stamps within the released block
+            if last is not None:
+                keep &= t > last
+        if keep is not None and not keep.all():
             bad = ~keep
             same = np.zeros(len(t), dtype=bool)
             same[1:] = d == 0
@@ -556,9 +562,11 @@ class Calibrator:
                 v.clear()
         index = self._frame_index
         self._frame_index += 1
+        sigma = None
         if upd is not None and math.isfinite(upd.nis):
             status = "updated"
-            self._conv.append((flt.sigma()[flt.it], float(upd.nis), int(upd.dof)))
+            sigma = flt.sigma()
+            self._conv.append((sigma[flt.it], float(upd.nis), int(upd.dof)))
         else:
             after = fc.as_dict()
             changed = [k for k in after if after[k] != before.get(k, 0)
@@ -571,17 +579,18 @@ class Calibrator:
                 status = next((k for k in changed if k.startswith("skipped")), "skipped")
         if upd is not None:
             self.last_update = upd
-            self.residuals.append(residual_rows(upd, index, inp.catalog_id, inp.magnitude,
-                                                ctx.head_temperature_c))
+            if not self.residuals.discard:
+                self.residuals.append(residual_rows(upd, index, inp.catalog_id,
+                                                    inp.magnitude, ctx.head_temperature_c))
             self.stats.add(upd)
-            if math.isfinite(upd.nis):
-                self._record_history(upd)
+            if sigma is not None and not self.history.discard:
+                self._record_history(upd, sigma)
         return FrameOutcome(int(frame.stamp_ns), frame.frame_id, status, upd,
                             inp.catalog_id, inp.magnitude, ctx.head_temperature_c)
 
-    def _record_history(self, upd: FrameUpdate) -> None:
+    def _record_history(self, upd: FrameUpdate, s: np.ndarray) -> None:
+        """One history row: the update and the state after it (``s``: its 1-σ)."""
         flt = self.filter
-        s = flt.sigma()
         n_acc = int(np.count_nonzero(upd.accepted))
         keys = self._history_keys
         if keys is None:

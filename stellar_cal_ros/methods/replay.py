@@ -263,6 +263,8 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
 
 
 class _NullSink(TableSink):
+    discard = True
+
     def append(self, chunk) -> None:  # noqa: D102
         return None
 

@@ -70,6 +70,9 @@ class TableSink:
     file and the table are the same as with one chunk per call.
     """
 
+    #: True for a sink that keeps nothing (the driver then does not build its rows)
+    discard = False
+
     def __init__(self, path=None, columns: tuple[str, ...] | None = None,
                  chunk_rows: int = 4096) -> None:
         self.path = path
