@@ -84,6 +84,10 @@ class DriverConfig:
     #: process frames only when a batch of IMU is handed over (replay: throughput); False:
     #: as soon as the IMU covers them (live: latency)
     batch_frames: bool = False
+    #: live (``batch_frames`` False): staged IMU goes to the filter once this many samples
+    #: are held, so a frame finds its IMU already integrated (the per-sample work stays in
+    #: the IMU callbacks, off the frame's path; the result does not depend on the split)
+    imu_flush_live: int = 8
     converge_window: int = 20  #: updates over which convergence is judged
     converge_sigma_ratio: float = 0.98  #: every σ(now)/σ(window ago) above this: settled
     converge_nis_ratio: float = 2.0  #: mean NIS/dof over the window below this: consistent
@@ -495,6 +499,8 @@ class Calibrator:
             self._flush_staged()
         elif self.driver.batch_frames:
             return out
+        elif self._staged_n >= self.driver.imu_flush_live:
+            self._flush_staged()
         limit = None if final else self.imu_max_ns - self.window_ns
         lookahead = self.driver.imu_lookahead_s
         imu_end = self._imu_end_rel()

@@ -37,6 +37,7 @@ RESIDUAL_COLUMNS = (
 #: a star's NIS is capped here in the log-likelihood (a few misidentified stars must not
 #: dominate the comparison of two models)
 NIS_CAP = 13.8
+_LOG_2PI_2 = 2 * np.log(2 * np.pi)  # the log-likelihood's constant (as a float64)
 
 
 def residual_rows(upd, frame_index: int, ids: np.ndarray, mag: np.ndarray,
@@ -74,7 +75,7 @@ class TableSink:
     discard = False
 
     def __init__(self, path=None, columns: tuple[str, ...] | None = None,
-                 chunk_rows: int = 4096) -> None:
+                 chunk_rows: int = 1024) -> None:
         self.path = path
         self.columns = columns
         self.chunk_rows = int(chunk_rows)
@@ -157,6 +158,18 @@ class TableSink:
         return {k: np.concatenate([c[k] for c in self._chunks]) for k in keys}
 
 
+class NullSink(TableSink):
+    """A table sink that keeps nothing (a live node publishes its residuals instead)."""
+
+    discard = True
+
+    def append(self, chunk) -> None:  # noqa: D102
+        return None
+
+    def append_row(self, keys, values) -> None:  # noqa: D102
+        return None
+
+
 @dataclass
 class RunStats:
     """Running statistics of the innovations over the evaluation window (O(1) memory).
@@ -194,25 +207,28 @@ class RunStats:
         det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] ** 2
         with np.errstate(invalid="ignore"):
             nis_c = np.minimum(upd.nis_stars, NIS_CAP)
-            terms = -0.5 * (nis_c + np.log(np.maximum(det, 1e-300)) + 2 * np.log(2 * np.pi))
-        self.loglik += float(np.nansum(terms))
+            terms = -0.5 * (nis_c + np.log(np.maximum(det, 1e-300)) + _LOG_2PI_2)
+        total = terms.sum()  # np.nansum's value: NaN terms count as 0
+        self.loglik += float(total if total == total else np.nansum(terms))
         self.stars_all += len(upd.uv)
         acc = upd.accepted
-        n = int(acc.sum())
+        n = int(np.count_nonzero(acc))
         if math.isfinite(upd.nis):
             self.frame_nis += upd.nis
             self.frame_dof += upd.dof
         if not n:
             return
         self.frames += 1
-        nu = (upd.uv - upd.uv_pred)[acc]
-        Sa = S[acc]
+        if n == len(acc):  # every star accepted: the same values without the copies
+            nu, Sa, nis_acc = upd.uv - upd.uv_pred, S, upd.nis_stars
+        else:
+            nu, Sa, nis_acc = (upd.uv - upd.uv_pred)[acc], S[acc], upd.nis_stars[acc]
         self.stars += n
         self.sum_du2 += float(nu[:, 0] @ nu[:, 0])
         self.sum_dv2 += float(nu[:, 1] @ nu[:, 1])
         self.sum_suu += float(Sa[:, 0, 0].sum())
         self.sum_svv += float(Sa[:, 1, 1].sum())
-        self.sum_nis += float(np.sum(upd.nis_stars[acc]))
+        self.sum_nis += float(np.sum(nis_acc))
         # whitened (Cholesky L⁻¹ ν), frame mean × √n
         l11 = np.sqrt(Sa[:, 0, 0])
         l21 = Sa[:, 0, 1] / l11

@@ -81,6 +81,7 @@ from stellar_cal_ros.methods.checkpoint import (
     save_checkpoint,
 )
 from stellar_cal_ros.methods.driver import FILTERS, Calibrator, DriverConfig, FrameOutcome
+from stellar_cal_ros.methods.results import NullSink
 from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
 
 try:  # /tf_static: tf2_msgs comes with every ROS 2 install, not with the PyPI wheels
@@ -194,8 +195,10 @@ class CalibratorNode(Node):
             t0_imu_samples=p["t0_imu_samples"], converge_window=p["converge_window"],
             converge_sigma_ratio=p["converge_sigma_ratio"],
             converge_nis_ratio=p["converge_nis_ratio"])
+        # the residuals are published, not kept: a node runs for days (bounded memory)
         self.cal = Calibrator(prior, p["method"], p["effects"], self.filter_config,
-                              self.driver_config, frames)
+                              self.driver_config, frames, residuals=NullSink(),
+                              history=NullSink())
         self.callback_errors = 0
         self.backlog_updates = 0
         self.latency_s: deque[float] = deque(maxlen=2000)  # frame processing, wall s
