@@ -19,6 +19,8 @@ topics unchanged.  Reported:
 
 ``--executor`` picks the calibrator's executor (``single``: rclpy's
 SingleThreadedExecutor, as ``rclpy.spin``; ``events``: ``rclpy.experimental.EventsExecutor``).
+``--rt-priority N`` runs the calibrator process
+``SCHED_FIFO`` at priority N, as ``chrt -f N ros2 run stellar_cal_ros calibrator`` would.
 ``--load CMD`` runs CMD in a loop in another process while playing (e.g. a test suite:
 ``--load "python -m pytest -q test/test_camera.py test/test_kernel.py"``), to measure the
 latency on a busy machine.  ``ROS_DOMAIN_ID`` is kept when set.
@@ -26,7 +28,7 @@ latency on a busy machine.  ``ROS_DOMAIN_ID`` is kept when set.
 Usage::
 
     python benchmarks/node_latency.py [--duration 60] [--window 0.05] [--bag BAG]
-        [--executor single|events] [--load CMD] [--json out.json]
+        [--executor single|events] [--rt-priority N] [--load CMD] [--json out.json]
 """
 
 from __future__ import annotations
@@ -61,8 +63,10 @@ def _cpu_times() -> list[tuple[int, int]]:
 
 
 def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
-                   executor: str = "single") -> None:
+                   executor: str = "single", rt_priority: int = 0) -> None:
     """Child process: spin the calibrator until ``stop_file`` exists, dump its statistics."""
+    if rt_priority:  # as `chrt -f N ros2 run ...` would start it (needs CAP_SYS_NICE)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -148,6 +152,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bag", type=Path, help="bag to play (default: simulated 600 s)")
     ap.add_argument("--executor", choices=("single", "events"), default="single")
     ap.add_argument("--load", help="shell command run in a loop beside the node")
+    ap.add_argument("--rt-priority", type=int, default=0,
+                    help="run the calibrator process SCHED_FIFO at this priority (0: no)")
     ap.add_argument("--json", help="write the results here")
     a = ap.parse_args(argv)
     global BAG
@@ -164,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
               "t0_imu_samples": 1000, "estimate_rate_hz": 1.0, "diagnostics_rate_hz": 1.0}
     ctx = mp.get_context("spawn")
     child = ctx.Process(target=run_calibrator, args=(prefix, params, str(tmp / "res.json"),
-                                                      str(tmp / "stop"), a.executor))
+                                                      str(tmp / "stop"), a.executor,
+                                                      a.rt_priority))
     child.start()
     loader = None
     if a.load:
@@ -273,6 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         "cores": os.cpu_count(),
         "reorder_window_s": a.window,
         "executor": a.executor,
+        "rt_priority": a.rt_priority,
         "load": a.load or "",
         "bag": BAG.name,
         "received": res["received"],
