@@ -691,8 +691,8 @@ def usage() -> str:
 def make_executor():
     """The executor ``main`` spins: rclpy's EventsExecutor where it exists.
 
-    At 200 Hz IMU the wait-set executor (``rclpy.spin``) costs the node ≈ 10 % of a core on
-    its own; the events executor ≈ 1/3 of that (doc/ros_nodes.md, Latency).
+    At 200 Hz IMU the node uses ≈ 16 % of a core with the wait-set executor
+    (``rclpy.spin``), ≈ 6 % with the events executor (doc/ros_nodes.md, Latency).
     ``STELLAR_CAL_EXECUTOR=single`` selects the SingleThreadedExecutor.
     """
     import os
