@@ -1,7 +1,9 @@
 """Per-star-frame update latency of the live ``calibrator`` node (2 Hz stars + 200 Hz IMU).
 
 The calibrator runs in its own process (multiprocessing *spawn*: rclpy and fork do not
-mix); this process publishes the shared ideal bag in real time, with its 100 Hz IMU split
+mix); this process publishes a bag in real time (default: a 600 s ``psce_rotations`` bag
+simulated once into ``benchmarks/.cache/``; ``--bag`` e.g. the shared
+``psce_ideal_900s.mcap``), with its 100 Hz IMU split
 into 200 Hz samples (each 10 ms mean rate becomes two 5 ms samples of the same mean rate —
 the same motion, twice the message rate), the star frames (2 Hz) and the 1 Hz environment
 topics unchanged.  Reported:
@@ -15,9 +17,18 @@ topics unchanged.  Reported:
   latency minus it is time the thread was preempted or blocked);
 * CPU: the calibrator process's CPU time / wall time, and per-core load from /proc/stat.
 
+``--executor`` picks the calibrator's executor (``single``: rclpy's
+SingleThreadedExecutor, as ``rclpy.spin``; ``events``: ``rclpy.experimental.EventsExecutor``).
+``--rt-priority N`` runs the calibrator process
+``SCHED_FIFO`` at priority N, as ``chrt -f N ros2 run stellar_cal_ros calibrator`` would.
+``--load CMD`` runs CMD in a loop in another process while playing (e.g. a test suite:
+``--load "python -m pytest -q test/test_camera.py test/test_kernel.py"``), to measure the
+latency on a busy machine.  ``ROS_DOMAIN_ID`` is kept when set.
+
 Usage::
 
-    python benchmarks/node_latency.py [--duration 60] [--window 0.05] [--json out.json]
+    python benchmarks/node_latency.py [--duration 60] [--window 0.05] [--bag BAG]
+        [--executor single|events] [--rt-priority N] [--load CMD] [--json out.json]
 """
 
 from __future__ import annotations
@@ -35,10 +46,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data"
-BAG = DATA / "psce_ideal_900s.mcap"
-PRIOR = DATA / "psce_ideal_900s.prior.yaml"
 TARGET_P99_MS = 3.0
+BAG: Path = Path()  # set in main()
 
 
 def _cpu_times() -> list[tuple[int, int]]:
@@ -53,8 +62,11 @@ def _cpu_times() -> list[tuple[int, int]]:
     return out
 
 
-def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str) -> None:
+def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
+                   executor: str = "single", rt_priority: int = 0) -> None:
     """Child process: spin the calibrator until ``stop_file`` exists, dump its statistics."""
+    if rt_priority:  # as `chrt -f N ros2 run ...` would start it (needs CAP_SYS_NICE)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -68,7 +80,12 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str) 
     args += ["-r", f"/diagnostics:={prefix}/diagnostics"]
     node = CalibratorNode("calibrator" + prefix.replace("/", "_"), cli_args=args,
                           parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
-    ex = SingleThreadedExecutor()
+    if executor == "events":
+        from rclpy.experimental import EventsExecutor
+
+        ex = EventsExecutor()
+    else:
+        ex = SingleThreadedExecutor()
     ex.add_node(node)
     wall0, cpu0 = time.perf_counter(), time.process_time()
     while not os.path.exists(stop_file):
@@ -83,6 +100,23 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str) 
     Path(result_file).write_text(json.dumps(res))
     node.destroy_node()
     rclpy.try_shutdown()
+
+
+def default_bag() -> Path:
+    """The 600 s psce_rotations bag of the replay benchmarks (simulated once, cached)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from psce_speed import ensure_bag
+
+    return ensure_bag(600.0)
+
+
+def load_loop(cmd: str, stop_file: str) -> None:
+    """Child process: run ``cmd`` (a shell command) again and again until ``stop_file``."""
+    import subprocess
+
+    while not os.path.exists(stop_file):
+        subprocess.run(cmd, shell=True, cwd=ROOT, stdout=subprocess.DEVNULL,
+                       stderr=subprocess.DEVNULL, check=False)
 
 
 def load_stream(duration_s: float):
@@ -115,21 +149,34 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=60.0, help="bag seconds to play")
     ap.add_argument("--window", type=float, default=0.05, help="reorder_window_s")
+    ap.add_argument("--bag", type=Path, help="bag to play (default: simulated 600 s)")
+    ap.add_argument("--executor", choices=("single", "events"), default="single")
+    ap.add_argument("--load", help="shell command run in a loop beside the node")
+    ap.add_argument("--rt-priority", type=int, default=0,
+                    help="run the calibrator process SCHED_FIFO at this priority (0: no)")
     ap.add_argument("--json", help="write the results here")
     a = ap.parse_args(argv)
-    if not BAG.exists():
-        print(f"{BAG} missing", file=sys.stderr)
+    global BAG
+    BAG = a.bag or default_bag()
+    prior = Path(str(BAG).removesuffix(".mcap") + ".prior.yaml")
+    if not BAG.exists() or not prior.exists():
+        print(f"{BAG} or {prior} missing", file=sys.stderr)
         return 2
-    os.environ["ROS_DOMAIN_ID"] = str(1 + (os.getpid() + 71) % 100)
+    os.environ.setdefault("ROS_DOMAIN_ID", str(1 + (os.getpid() + 71) % 100))
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     prefix = "/bench" + uuid.uuid4().hex[:6]
     tmp = Path(tempfile.mkdtemp(prefix="node_latency_"))
-    params = {"prior_file": str(PRIOR), "reorder_window_s": a.window,
+    params = {"prior_file": str(prior), "reorder_window_s": a.window,
               "t0_imu_samples": 1000, "estimate_rate_hz": 1.0, "diagnostics_rate_hz": 1.0}
     ctx = mp.get_context("spawn")
     child = ctx.Process(target=run_calibrator, args=(prefix, params, str(tmp / "res.json"),
-                                                      str(tmp / "stop")))
+                                                      str(tmp / "stop"), a.executor,
+                                                      a.rt_priority))
     child.start()
+    loader = None
+    if a.load:
+        loader = ctx.Process(target=load_loop, args=(a.load, str(tmp / "stop_load")))
+        loader.start()
     stream = load_stream(a.duration)
 
     import rclpy
@@ -193,7 +240,10 @@ def main(argv: list[str] | None = None) -> int:
         ex.spin_once(timeout_sec=0.05)
     wall = time.perf_counter() - wall0
     cpu1 = _cpu_times()
+    (tmp / "stop_load").touch()
     (tmp / "stop").touch()
+    if loader is not None:
+        loader.join(300)
     child.join(30)
     res = json.loads((tmp / "res.json").read_text())
     node.destroy_node()
@@ -229,6 +279,10 @@ def main(argv: list[str] | None = None) -> int:
         "per_core_load_percent": per_core,
         "cores": os.cpu_count(),
         "reorder_window_s": a.window,
+        "executor": a.executor,
+        "rt_priority": a.rt_priority,
+        "load": a.load or "",
+        "bag": BAG.name,
         "received": res["received"],
         "wall_s": wall,
     }

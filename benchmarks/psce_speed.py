@@ -1,29 +1,44 @@
-"""PSCE replay speed on a 2-h psce_rotations bag (Tan et al. setting), one core.
+"""``stellar-cal replay`` speed against decode-only reading of the same bag (issue 17).
 
 Usage::
 
-    python benchmarks/psce_speed.py [--bag BAG.mcap] [--duration 7200] [--repeat 2]
+    python benchmarks/psce_speed.py [--bag BAG.mcap] [--duration 7200] [--repeat 3]
+                                    [--baseline CHECKOUT] [--frames]
 
-Without ``--bag`` the bag is simulated once and cached under ``benchmarks/.cache/``.  Prints
-reading and replay time separately (replay: the whole ``replay_psce`` call, filter
-construction with its IMU prefix included; "frames s": the frame loop alone), the speed (bag
-seconds per wall-clock second, reading + replay), the latency of one star-frame update (p50 /
-p99, µs) and the load average (the machine is shared: a loaded one runs slower).
+Without ``--bag`` a 2 h ``psce_rotations`` bag (Tan et al. setting) is simulated once and
+cached under ``benchmarks/.cache/``.  Each repetition runs, interleaved (machine load hits
+them alike), each in a fresh process so that everything is counted the same way (interpreter
+start and imports included):
+
+* ``replay``: ``python -m stellar_cal_ros replay BAG --method psce --prior PRIOR -o OUT -q``
+  (what ``stellar-cal replay`` does: the history CSV is written, the residuals are not);
+* ``replay (baseline)``: the same command run from another checkout (``--baseline``), for
+  before/after comparisons;
+* ``rosbags``: every message decoded by ``rosbags.highlevel.AnyReader``;
+* ``mcap_ros2``: every message decoded by ``mcap_ros2`` (file order, its fastest mode),
+
+as in ``read_speed.py``.  Printed: median wall and CPU (user + system) seconds, the speed
+(bag seconds per wall second) and the median of the per-repetition ratios to rosbags' time —
+wall and CPU: on a shared machine the CPU ratio is the steadier one.  ``--frames`` adds
+the per-frame latency of the filter step (``process_frame``, p50 / p99, µs) from one
+in-process replay.  The issue's target: replay ≤ 0.6 × rosbags' decode-only time.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from stellar_cal_ros.io.calibration import load_calibration
-from stellar_cal_ros.methods import psce
-from stellar_cal_ros.methods.replay import read_bag_data, replay_psce
+ROOT = Path(__file__).resolve().parents[1]
+TARGET = 0.6
 
 
 def ensure_bag(duration: float) -> Path:
@@ -40,15 +55,30 @@ def ensure_bag(duration: float) -> Path:
     return path
 
 
-def main(argv=None) -> int:
-    """Command line entry."""
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--bag", type=Path)
-    ap.add_argument("--duration", type=float, default=7200.0)
-    ap.add_argument("--repeat", type=int, default=2, help="best of N")
-    args = ap.parse_args(argv)
-    bag = args.bag or ensure_bag(args.duration)
-    prior = load_calibration(str(bag).replace(".mcap", ".prior.yaml"))
+def _decode_cmd(bag: Path, how: str) -> list[str]:
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+            f"import read_speed; read_speed.{how}(__import__('pathlib').Path({str(bag)!r}))")
+    return [sys.executable, "-c", code]
+
+
+def _run(cmd: list[str], cwd: Path) -> tuple[float, float]:
+    """Wall and CPU (user + sys) seconds of a child process."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    p = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - t
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if p.returncode:
+        raise RuntimeError(f"{' '.join(cmd[:4])} ... failed: {p.stderr[-1500:]}")
+    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+
+
+def frame_latency(bag: Path, prior: Path) -> tuple[float, float, int]:
+    """p50, p99 (µs) of ``process_frame`` in one in-process replay, and the updates."""
+    from stellar_cal_ros.io.calibration import load_calibration
+    from stellar_cal_ros.methods import psce
+    from stellar_cal_ros.methods.replay import replay
+
     latencies: list[int] = []
     original = psce.PsceFilter.process_frame
 
@@ -58,31 +88,62 @@ def main(argv=None) -> int:
         latencies.append(time.perf_counter_ns() - t)
         return out
 
-    rows = []
+    psce.PsceFilter.process_frame = timed
+    try:
+        res = replay(bag, load_calibration(prior), "psce", keep_tables=False)
+    finally:
+        psce.PsceFilter.process_frame = original
+    lat = np.array(latencies) * 1e-3
+    return float(np.percentile(lat, 50)), float(np.percentile(lat, 99)), res.counters["updates"]
+
+
+def main(argv=None) -> int:
+    """Command line entry."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--bag", type=Path)
+    ap.add_argument("--duration", type=float, default=7200.0)
+    ap.add_argument("--repeat", type=int, default=3, help="interleaved repetitions")
+    ap.add_argument("--baseline", type=Path, help="another checkout to time the same way")
+    ap.add_argument("--frames", action="store_true", help="also the per-frame latency")
+    args = ap.parse_args(argv)
+    bag = args.bag or ensure_bag(args.duration)
+    prior = Path(str(bag).removesuffix(".mcap") + ".prior.yaml")
+    tmp = Path(tempfile.mkdtemp(prefix="psce_speed_"))
+    runs: dict[str, tuple[list[str], Path]] = {}
+
+    def replay_cmd(tag: str) -> list[str]:
+        return [sys.executable, "-m", "stellar_cal_ros", "replay", str(bag), "--method",
+                "psce", "--prior", str(prior), "-o", str(tmp / f"{tag}.yaml"), "-q"]
+
+    runs["replay"] = (replay_cmd("new"), ROOT)
+    if args.baseline:
+        runs["replay (baseline)"] = (replay_cmd("base"), args.baseline.resolve())
+    runs["rosbags"] = (_decode_cmd(bag, "rosbags_decode"), ROOT)
+    runs["mcap_ros2"] = (_decode_cmd(bag, "mcap_ros2_decode"), ROOT)
+    times: dict[str, list[tuple[float, float]]] = {k: [] for k in runs}
+    load0 = os.getloadavg()[0]
     for _ in range(args.repeat):
-        t = time.perf_counter()
-        data = read_bag_data(bag)
-        read_s = time.perf_counter() - t
-        latencies.clear()
-        psce.PsceFilter.process_frame = timed
-        t = time.perf_counter()
-        try:
-            res = replay_psce(data, prior)
-        finally:
-            psce.PsceFilter.process_frame = original
-        replay_s = time.perf_counter() - t  # filter construction (IMU prefix) included
-        lat = np.array(latencies) * 1e-3
-        rows.append((read_s, replay_s, res.filter_seconds, res.duration,
-                     np.percentile(lat, 50), np.percentile(lat, 99), res.counters["updates"]))
-    best = min(rows, key=lambda r: r[0] + r[1])
-    read_s, replay_s, filt_s, dur, p50, p99, updates = best
-    load = os.getloadavg()[0]
-    print(f"bag: {bag} ({dur:.0f} s, {updates} updates), {os.cpu_count()} cpus, best of "
-          f"{args.repeat}, load average {load:.1f}")
-    print(f"{'read s':>8s} {'replay s':>9s} {'(frames s)':>10s} {'speed x':>8s} "
-          f"{'replay-only x':>14s} {'p50 us':>8s} {'p99 us':>8s}")
-    print(f"{read_s:8.2f} {replay_s:9.2f} {filt_s:10.2f} {dur / (read_s + replay_s):8.0f} "
-          f"{dur / replay_s:14.0f} {p50:8.0f} {p99:8.0f}")
+        for name, (cmd, cwd) in runs.items():
+            times[name].append(_run(cmd, cwd))
+    from stellar_cal_ros.io.bag import BagReader
+
+    with BagReader(bag) as r:
+        span = r.duration_s
+    ref = np.array(times["rosbags"])
+    print(f"bag: {bag.name} ({span:.0f} s, {bag.stat().st_size / 1e6:.1f} MB), "
+          f"{os.cpu_count()} cpus, {args.repeat} interleaved repetitions, load average "
+          f"{load0:.1f} -> {os.getloadavg()[0]:.1f}")
+    print(f"{'':20s} {'wall s':>7s} {'cpu s':>7s} {'x real':>7s} {'wall/rosbags':>13s} "
+          f"{'cpu/rosbags':>12s}")
+    for name, v in times.items():
+        a = np.array(v)
+        print(f"{name:20s} {np.median(a[:, 0]):7.2f} {np.median(a[:, 1]):7.2f} "
+              f"{span / np.median(a[:, 0]):7.0f} {np.median(a[:, 0] / ref[:, 0]):13.2f} "
+              f"{np.median(a[:, 1] / ref[:, 1]):12.2f}")
+    print(f"target: replay <= {TARGET} x rosbags' decode-only time")
+    if args.frames:
+        p50, p99, updates = frame_latency(bag, prior)
+        print(f"process_frame over {updates} updates: p50 {p50:.0f} us, p99 {p99:.0f} us")
     return 0
 
 

@@ -388,7 +388,7 @@ def test_diagnose_swaying_runs(sim_bag, tmp_path):
     assert summary["format"] == "stellar_cal_diagnosis/1"
     assert summary["model"]["method"] == "swaying_base"
     tried = {c["effect"] for c in summary["candidates"]} | {
-        u["effect"] for u in summary["unobservable"]}
+        u["effect"] for u in summary["unobservable"] + summary["screened_out"]}
     assert tried == {"time_offset", "gyro_scale_factor"}
     assert np.all(np.isfinite(summary["residual_rms_px"]))
 

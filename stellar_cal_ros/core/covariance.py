@@ -151,8 +151,7 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
         Kt, _ = _potrs(c, PHt.T, lower=1)  # S⁻¹ H P = Kᵀ
         K = Kt.T
         dx_new = K @ (z - h + H @ dx)
-        change = float(np.max(np.abs(dx_new - dx) / sig_floor)) if N else 0.0
-        dx = dx_new
+        dx_prev, dx = dx, dx_new
         if it == policy.max_iterations or relinearize is None:
             break
         if it == 1:
@@ -160,7 +159,8 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
             if math.sqrt(float(dphi @ dphi)) < policy.relinearize_rad and (
                     np.abs(dx[others]) < policy.relinearize_sigma * sig_floor[others]).all():
                 break
-        elif change < policy.iteration_tolerance:
+        elif (float(np.max(np.abs(dx - dx_prev) / sig_floor)) if N else 0.0) \
+                < policy.iteration_tolerance:
             break
         if not np.isfinite(dx).all():
             break  # reported below

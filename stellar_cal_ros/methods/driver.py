@@ -84,6 +84,10 @@ class DriverConfig:
     #: process frames only when a batch of IMU is handed over (replay: throughput); False:
     #: as soon as the IMU covers them (live: latency)
     batch_frames: bool = False
+    #: live (``batch_frames`` False): staged IMU goes to the filter once this many samples
+    #: are held, so a frame finds its IMU already integrated (the per-sample work stays in
+    #: the IMU callbacks, off the frame's path; the result does not depend on the split)
+    imu_flush_live: int = 8
     converge_window: int = 20  #: updates over which convergence is judged
     converge_sigma_ratio: float = 0.98  #: every σ(now)/σ(window ago) above this: settled
     converge_nis_ratio: float = 2.0  #: mean NIS/dof over the window below this: consistent
@@ -255,6 +259,8 @@ class Calibrator:
         self.last_update: FrameUpdate | None = None
         self.stats = RunStats(self.eval_start)
         self._frame_index = 0
+        self._history_keys: tuple[str, ...] | None = None  # see _record_history
+        self._history_sigma_index: np.ndarray | None = None
 
     def reset(self) -> None:
         """Forget everything (the prior, effects and configuration stay)."""
@@ -282,12 +288,14 @@ class Calibrator:
         if frame_id is not None and expected and frame_id != expected:
             c.imu_wrong_frame += len(t)
             return []
-        ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
-        if not ok.all():
+        # the checks on the whole block first (the usual case: nothing to remove)
+        if not (np.isfinite(w).all() and np.isfinite(f).all() and (t > 0).all()):
+            ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
             c.imu_invalid += int((~ok).sum())
             t, w, f = t[ok], w[ok], f[ok]
-        if self._last_imu_ns is not None:
-            old = t <= self._last_imu_ns
+        last = self._last_imu_ns
+        if last is not None and len(t) and not (len(t) == 1 and t[0] > last):
+            old = t <= last
             if old.any():
                 dup = t[old] == self._last_imu_ns
                 c.imu_duplicate += int(dup.sum())
@@ -322,13 +330,16 @@ class Calibrator:
             return dropped("late")
         if self._last_frame_ns is not None and stamp <= self._last_frame_ns:
             return dropped("duplicate" if stamp == self._last_frame_ns else "late")
-        stamps = [f.stamp_ns for f in self._frames_pending]
-        if stamp in stamps:
-            return dropped("duplicate")
-        i = int(np.searchsorted(np.asarray(stamps, dtype=np.int64), stamp)) if stamps else 0
-        if i < len(stamps):
+        pending = self._frames_pending
+        if not pending or stamp > int(pending[-1].stamp_ns):  # in order: the usual case
+            pending.append(frame)
+        else:
+            stamps = [f.stamp_ns for f in pending]
+            if stamp in stamps:
+                return dropped("duplicate")
+            i = int(np.searchsorted(np.asarray(stamps, dtype=np.int64), stamp))
             c.frames_reordered += 1
-        self._frames_pending.insert(i, frame)
+            pending.insert(i, frame)
         cam = self.prior.camera
         inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px)
         if inp.bad_sigma:
@@ -392,12 +403,16 @@ class Calibrator:
         t, w, f = self._imu.pop(limit, self.driver.max_pending_imu)
         if not len(t):
             return
-        keep = np.ones(len(t), dtype=bool)
         d = np.diff(t)
-        keep[1:] = d > 0  # duplicated stamps within the released block
-        if self._last_imu_ns is not None:
-            keep &= t > self._last_imu_ns
-        if not keep.all():
+        last = self._last_imu_ns
+        if (last is None or t[0] > last) and (d > 0).all():  # the usual case
+            keep = None
+        else:
+            keep = np.ones(len(t), dtype=bool)
+            keep[1:] = d > 0  # duplicated stamps within the released block
+            if last is not None:
+                keep &= t > last
+        if keep is not None and not keep.all():
             bad = ~keep
             same = np.zeros(len(t), dtype=bool)
             same[1:] = d == 0
@@ -484,6 +499,8 @@ class Calibrator:
             self._flush_staged()
         elif self.driver.batch_frames:
             return out
+        elif self._staged_n >= self.driver.imu_flush_live:
+            self._flush_staged()
         limit = None if final else self.imu_max_ns - self.window_ns
         lookahead = self.driver.imu_lookahead_s
         imu_end = self._imu_end_rel()
@@ -551,9 +568,11 @@ class Calibrator:
                 v.clear()
         index = self._frame_index
         self._frame_index += 1
+        sigma = None
         if upd is not None and math.isfinite(upd.nis):
             status = "updated"
-            self._conv.append((flt.sigma()[flt.it], float(upd.nis), int(upd.dof)))
+            sigma = flt.sigma()
+            self._conv.append((sigma[flt.it], float(upd.nis), int(upd.dof)))
         else:
             after = fc.as_dict()
             changed = [k for k in after if after[k] != before.get(k, 0)
@@ -566,33 +585,41 @@ class Calibrator:
                 status = next((k for k in changed if k.startswith("skipped")), "skipped")
         if upd is not None:
             self.last_update = upd
-            self.residuals.append(residual_rows(upd, index, inp.catalog_id, inp.magnitude,
-                                                ctx.head_temperature_c))
+            if not self.residuals.discard:
+                self.residuals.append(residual_rows(upd, index, inp.catalog_id,
+                                                    inp.magnitude, ctx.head_temperature_c))
             self.stats.add(upd)
-            if math.isfinite(upd.nis):
-                self._record_history(upd)
+            if sigma is not None and not self.history.discard:
+                self._record_history(upd, sigma)
         return FrameOutcome(int(frame.stamp_ns), frame.frame_id, status, upd,
                             inp.catalog_id, inp.magnitude, ctx.head_temperature_c)
 
-    def _record_history(self, upd: FrameUpdate) -> None:
+    def _record_history(self, upd: FrameUpdate, s: np.ndarray) -> None:
+        """One history row: the update and the state after it (``s``: its 1-σ)."""
         flt = self.filter
-        s = flt.sigma()
-        n_acc = int(upd.accepted.sum())
-        row: dict[str, np.ndarray] = {
-            "t": np.array([upd.stamp]), "nis": np.array([upd.nis]),
-            "dof": np.array([upd.dof]), "stars": np.array([n_acc]),
-            "gated": np.array([len(upd.accepted) - n_acc]),
-            "iterations": np.array([upd.iterations])}
+        n_acc = int(np.count_nonzero(upd.accepted))
+        keys = self._history_keys
+        if keys is None:
+            keys = ["t", "nis", "dof", "stars", "gated", "iterations"]
+            for name in self.parameter_names():
+                keys += [name, "sigma." + name]
+            keys += [f"sigma.attitude.{ax}" for ax in "xyz"]
+            for name in flt._nav_blocks:
+                keys += [f"sigma.{name}.{ax}" for ax in "xyz"]
+            self._history_keys = keys = tuple(keys)
+            nav = [flt.layout.sl(name) for name in flt._nav_blocks]
+            self._history_sigma_index = np.concatenate(
+                [np.arange(len(s))[flt.ia]] + [np.arange(len(s))[sl] for sl in nav]
+            ).astype(np.intp)
         th, st = flt.theta_estimated(), s[flt.it]
-        for j, name in enumerate(self.parameter_names()):
-            row[name] = th[j:j + 1]
-            row["sigma." + name] = st[j:j + 1]
-        for ax, v in zip("xyz", s[flt.ia], strict=True):
-            row[f"sigma.attitude.{ax}"] = np.array([v])
-        for name in flt._nav_blocks:
-            for ax, v in zip("xyz", s[flt.layout.sl(name)], strict=True):
-                row[f"sigma.{name}.{ax}"] = np.array([v])
-        self.history.append(row)
+        pairs = np.empty(2 * len(th))
+        pairs[0::2] = th
+        pairs[1::2] = st
+        row = [float(upd.stamp), float(upd.nis), int(upd.dof), n_acc,
+               len(upd.accepted) - n_acc, int(upd.iterations)]
+        row += pairs.tolist()
+        row += s[self._history_sigma_index].tolist()
+        self.history.append_row(keys, row)
 
     def _trim(self) -> None:
         """Drop IMU samples and environment data the filter can no longer need."""

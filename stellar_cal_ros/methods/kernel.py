@@ -641,10 +641,11 @@ class StarFilter:
         if gate.outside_fov:
             self.counters.add("stars_outside_fov", gate.outside_fov)
         accepted = gate.accepted
-        self.counters.stars_gated += int(n - accepted.sum())
+        n_acc = int(np.count_nonzero(accepted))
+        self.counters.stars_gated += n - n_acc
         result = FrameUpdate(ctx.stamp, t_exp, accepted, uv, pred0.uv, S_blocks, nis_stars,
                              float("nan"), 0, pred0.directions_st, self.omega.copy(), 0)
-        if accepted.sum() < c.min_stars:
+        if n_acc < c.min_stars:
             self.counters.skipped_few_stars += 1
             self._rejected_in_row += 1
             if self._rejected_in_row >= c.reinit_after:
@@ -655,10 +656,14 @@ class StarFilter:
             return result
         self._rejected_in_row = 0
         idx = np.flatnonzero(accepted)
-        z = uv[idx].reshape(-1)
-        r_diag = np.repeat(R_meas[idx], 2)
-        H = H0[idx].reshape(-1, N)
-        h = pred0.uv[idx].reshape(-1)
+        if n_acc == n:  # every star accepted (the usual case): the same values, no copies
+            z, r_diag = uv.reshape(-1), np.repeat(R_meas, 2)
+            H, h = H0.reshape(-1, N), pred0.uv.reshape(-1)
+        else:
+            z = uv[idx].reshape(-1)
+            r_diag = np.repeat(R_meas[idx], 2)
+            H = H0[idx].reshape(-1, N)
+            h = pred0.uv[idx].reshape(-1)
         ctx_acc = None
 
         def relinearize(dx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -30,6 +30,7 @@ from stellar_cal_ros.methods.frames import (  # noqa: F401 (re-exported)
 )
 from stellar_cal_ros.methods.results import (  # noqa: F401 (re-exported)
     RESIDUAL_COLUMNS,
+    NullSink,
     ReplayResult,
     TableSink,
     equivalent_principal_point,
@@ -212,8 +213,8 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         window = getattr(cfg, "reference_window_s", None) or 120.0
         drv.imu_lookahead_s = max(drv.imu_lookahead_s, window + 1.0)
     res_sink = TableSink(residuals, RESIDUAL_COLUMNS) if residuals is not None or keep_tables \
-        else _NullSink()
-    hist_sink = TableSink(history) if history is not None or keep_tables else _NullSink()
+        else NullSink()
+    hist_sink = TableSink(history) if history is not None or keep_tables else NullSink()
     t_read = t_filter = 0.0
     if isinstance(bag, BagData):
         span = _span_of_data(bag)
@@ -260,11 +261,6 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         bar.close()
     cal.require_initialized()
     return _result(cal, t_read, t_filter, skipped if reader is not None else None)
-
-
-class _NullSink(TableSink):
-    def append(self, chunk) -> None:  # noqa: D102
-        return None
 
 
 def _span_of_data(data: BagData) -> tuple[int | None, int | None]:

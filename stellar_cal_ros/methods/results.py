@@ -37,6 +37,7 @@ RESIDUAL_COLUMNS = (
 #: a star's NIS is capped here in the log-likelihood (a few misidentified stars must not
 #: dominate the comparison of two models)
 NIS_CAP = 13.8
+_LOG_2PI_2 = 2 * np.log(2 * np.pi)  # the log-likelihood's constant (as a float64)
 
 
 def residual_rows(upd, frame_index: int, ids: np.ndarray, mag: np.ndarray,
@@ -63,27 +64,84 @@ def residual_rows(upd, frame_index: int, ids: np.ndarray, mag: np.ndarray,
 class TableSink:
     """Rows of a table, kept in memory or streamed to ``path`` (CSV / Parquet).
 
-    ``append(chunk)`` with a dict of equal-length arrays; :meth:`table` returns the whole
-    table in memory mode (an empty dict when streaming: read the file).
+    ``append(chunk)`` with a dict of equal-length arrays, or :meth:`append_row` with one row
+    of scalars; :meth:`table` returns the whole table in memory mode (an empty dict when
+    streaming: read the file).  Rows are buffered and handed on in blocks of about
+    ``chunk_rows`` (one formatting pass per column per block instead of per frame): the
+    file and the table are the same as with one chunk per call.
     """
 
-    def __init__(self, path=None, columns: tuple[str, ...] | None = None) -> None:
+    #: True for a sink that keeps nothing (the driver then does not build its rows)
+    discard = False
+
+    def __init__(self, path=None, columns: tuple[str, ...] | None = None,
+                 chunk_rows: int = 1024) -> None:
         self.path = path
         self.columns = columns
+        self.chunk_rows = int(chunk_rows)
         self._chunks: list[dict[str, np.ndarray]] = []
         self._writer = TableWriter(path) if path is not None else None
         self.rows = 0
+        self._buf: list[dict[str, np.ndarray]] = []  # chunks of one layout, not yet merged
+        self._buf_key: tuple | None = None
+        self._buf_rows = 0
+        self._row_keys: tuple[str, ...] | None = None  # append_row buffer
+        self._row_values: list[list] = []
 
     def append(self, chunk: dict[str, np.ndarray]) -> None:
         """Add rows."""
-        self.rows += len(next(iter(chunk.values()))) if chunk else 0
+        n = len(next(iter(chunk.values()))) if chunk else 0
+        self.rows += n
+        if self._row_values:
+            self._flush_rows()
+        self._buffer(chunk, n)
+
+    def append_row(self, keys: tuple[str, ...], values: list) -> None:
+        """Add one row: column names (pass the same tuple every call) and their scalars."""
+        if keys is not self._row_keys and self._row_values:
+            self._flush_rows()
+        self._row_keys = keys
+        self._row_values.append(values)
+        self.rows += 1
+        if len(self._row_values) >= self.chunk_rows:
+            self._flush_rows()
+
+    def _flush_rows(self) -> None:
+        rows, self._row_values = self._row_values, []
+        cols = zip(*rows, strict=True)
+        self._buffer({k: np.array(c) for k, c in zip(self._row_keys, cols, strict=True)},
+                     len(rows))
+
+    def _buffer(self, chunk: dict[str, np.ndarray], n: int) -> None:
+        # chunks merge only with chunks of the same columns and dtypes (same values, same
+        # formatting); a different layout first hands on what is held (a writer refuses a
+        # change of columns at once, as without the buffer)
+        key = tuple((k, np.asarray(v).dtype.str) for k, v in chunk.items())
+        if self._buf and key != self._buf_key:
+            self._flush()
+        self._buf.append(chunk)
+        self._buf_key = key
+        self._buf_rows += n
+        if self._buf_rows >= self.chunk_rows:
+            self._flush()
+
+    def _flush(self) -> None:
+        """Hand the buffered chunks on as one."""
+        if self._row_values:
+            self._flush_rows()
+        buf, self._buf, self._buf_rows = self._buf, [], 0
+        if not buf:
+            return
+        merged = buf[0] if len(buf) == 1 else {
+            k: np.concatenate([np.asarray(c[k]) for c in buf]) for k in buf[0]}
         if self._writer is not None:
-            self._writer.append(chunk)
+            self._writer.append(merged)
         else:
-            self._chunks.append(chunk)
+            self._chunks.append(merged)
 
     def close(self) -> None:
         """Finish the file (streaming mode)."""
+        self._flush()
         if self._writer is not None:
             if self._writer.columns is None and self.columns:
                 self._writer.append({k: np.zeros(0) for k in self.columns})
@@ -93,10 +151,23 @@ class TableSink:
         """The rows in memory (memory mode)."""
         if self._writer is not None:
             return {}
+        self._flush()
         if not self._chunks:
             return {k: np.zeros(0) for k in (self.columns or ())}
         keys = list(self._chunks[0])
         return {k: np.concatenate([c[k] for c in self._chunks]) for k in keys}
+
+
+class NullSink(TableSink):
+    """A table sink that keeps nothing (a live node publishes its residuals instead)."""
+
+    discard = True
+
+    def append(self, chunk) -> None:  # noqa: D102
+        return None
+
+    def append_row(self, keys, values) -> None:  # noqa: D102
+        return None
 
 
 @dataclass
@@ -147,17 +218,19 @@ class RunStats:
         if not n:
             return
         self.frames += 1
-        nu = (upd.uv - upd.uv_pred)[acc]
-        Sa = S[acc]
+        if n == len(acc):  # every star accepted: the same values without the copies
+            nu, Sa, nis_acc = upd.uv - upd.uv_pred, S, upd.nis_stars
+        else:
+            nu, Sa, nis_acc = (upd.uv - upd.uv_pred)[acc], S[acc], upd.nis_stars[acc]
         det = Sa[:, 0, 0] * Sa[:, 1, 1] - Sa[:, 0, 1] ** 2
         self.sum_logdet += float(np.sum(np.log(np.maximum(det, 1e-300))))
-        self.sum_nis_capped += float(np.sum(np.minimum(upd.nis_stars[acc], NIS_CAP)))
+        self.sum_nis_capped += float(np.sum(np.minimum(nis_acc, NIS_CAP)))
         self.stars += n
         self.sum_du2 += float(nu[:, 0] @ nu[:, 0])
         self.sum_dv2 += float(nu[:, 1] @ nu[:, 1])
         self.sum_suu += float(Sa[:, 0, 0].sum())
         self.sum_svv += float(Sa[:, 1, 1].sum())
-        self.sum_nis += float(np.sum(upd.nis_stars[acc]))
+        self.sum_nis += float(np.sum(nis_acc))
         # whitened (Cholesky L⁻¹ ν), frame mean × √n
         l11 = np.sqrt(Sa[:, 0, 0])
         l21 = Sa[:, 0, 1] / l11
@@ -194,7 +267,7 @@ class RunStats:
         if not self.stars:
             return math.nan
         fill = self.sum_logdet / self.stars
-        c = 2 * math.log(2 * math.pi)
+        c = _LOG_2PI_2
         return -0.5 * (self.sum_nis_capped + self.sum_logdet + self.stars * c
                        + self.gated * (NIS_CAP + fill + c))
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.core.rotation import right_jacobian, skew, so3_exp
-from stellar_cal_ros.effects.base import Effect, FrameContext, Stage
+from stellar_cal_ros.effects.base import CameraSetEffect, Effect, FrameContext, Stage
 from stellar_cal_ros.errors import ModelError
 
 AttitudeFunction = Callable[[float], tuple[np.ndarray, np.ndarray]]
@@ -87,6 +87,9 @@ class StarModel:
         self.fixed_effects: list[tuple[Effect, np.ndarray]] = self._fixed_effects(prior)
         # DIRECTION and CAMERA chains: (effect, slice of θ or None, fixed value or None)
         self._chain = {st: self._stage_chain(st) for st in (Stage.DIRECTION, Stage.CAMERA)}
+        self._camera_copy = self._camera_copy_plan()
+        #: (∂p/∂θ, column mask, focal-length ratios) of that plan, from the general chain
+        self._camera_copy_cols: tuple[Any, Any, list] | None = None
         self.has_time_effect = bool(self._by_stage[Stage.TIME])
         self._gyro_fixed = self._fixed_sensor(Stage.GYRO, prior.gyro_bias,
                                               prior.gyro_error_matrix)
@@ -117,6 +120,47 @@ class StarModel:
 
         order = {k: n for n, k in enumerate(registry.EFFECTS)}
         return sorted(chain + fixed, key=lambda c: order.get(c[0].id, len(order)))
+
+    def _camera_copy_plan(self) -> tuple[np.ndarray, np.ndarray, list] | None:
+        """The camera chain as one copy ``p[dst] = θ[src] · scale``, when it is one.
+
+        True when every camera effect is estimated and either sets OpenCV entries from θ
+        (:class:`CameraSetEffect` as is) or is the focal length (``fx = f``, ``fy = f ·
+        ratio``), each entry written once: the chain then does exactly these assignments
+        (a product by 1.0 is exact), without an 18-vector copy and two Jacobian look-ups
+        per effect per frame.  None otherwise (the general chain).
+        """
+        from stellar_cal_ros.effects.camera_effects import FX, FY, FocalLength
+
+        dst, src, scale = [], [], []
+        for eff, sl, fixed in self._chain[Stage.CAMERA]:
+            if sl is None or fixed is not None:
+                return None
+            if type(eff).camera_parameters is CameraSetEffect.camera_parameters:
+                idx = eff._index()
+                dst += idx
+                src += list(range(sl.start, sl.start + len(idx)))
+                scale += [None] * len(idx)
+            elif type(eff) is FocalLength:
+                dst += [FX, FY]
+                src += [sl.start, sl.start]
+                scale += [None, eff]  # eff.ratio, read at each call
+            else:
+                return None
+        if not dst or len(set(dst)) != len(dst):
+            return None
+        return np.array(dst, dtype=np.intp), np.array(src, dtype=np.intp), scale
+
+    def _camera_vector(self, theta: np.ndarray) -> np.ndarray:
+        """Camera parameters of ``theta`` by :attr:`_camera_copy` (see there)."""
+        dst, src, scale = self._camera_copy
+        v = theta[src]
+        for j, eff in enumerate(scale):
+            if eff is not None:
+                v[j] = v[j] * eff.ratio
+        p = self._camera_prior.copy()
+        p[dst] = v
+        return p
 
     @staticmethod
     def _value(theta: np.ndarray, sl: slice | None, fixed: np.ndarray | None) -> np.ndarray:
@@ -233,18 +277,30 @@ class StarModel:
         d = u @ R_i_st  # rows R_st_i u
         # CAMERA stage
         p = self._camera_prior
+        fast = self._camera_copy is not None
         if not jacobians:
-            for eff, sl, fixed in self._chain[Stage.CAMERA]:
-                p = eff.camera_parameters(self._value(theta, sl, fixed), p, ctx)
+            if fast:
+                p = self._camera_vector(theta)
+            else:
+                for eff, sl, fixed in self._chain[Stage.CAMERA]:
+                    p = eff.camera_parameters(self._value(theta, sl, fixed), p, ctx)
             camera = self.prior.camera.with_parameters(p)
             return Prediction(camera.project(d), None, None, d, R_i_st, t_exp, camera)
-        cam_steps = []
-        for eff, sl, fixed in self._chain[Stage.CAMERA]:
-            v = self._value(theta, sl, fixed)
-            J, D = eff.camera_jacobian(v, p, ctx)
-            cam_steps.append((sl, J, D))
-            p = eff.camera_parameters(v, p, ctx)
-        cam_M, need = self._camera_columns(cam_steps)
+        cols = self._camera_copy_cols if fast else None
+        if cols is not None and cols[2] == [e.ratio for e in self._camera_copy[2] if e]:
+            p = self._camera_vector(theta)
+            cam_M, need = cols[0], cols[1]
+        else:
+            cam_steps = []
+            for eff, sl, fixed in self._chain[Stage.CAMERA]:
+                v = self._value(theta, sl, fixed)
+                J, D = eff.camera_jacobian(v, p, ctx)
+                cam_steps.append((sl, J, D))
+                p = eff.camera_parameters(v, p, ctx)
+            cam_M, need = self._camera_columns(cam_steps)
+            if fast:  # constant Jacobians of the copy plan (for this focal-length ratio)
+                self._camera_copy_cols = (cam_M, need,
+                                          [e.ratio for e in self._camera_copy[2] if e])
         camera = self.prior.camera.with_parameters(p)
         uv, J_d, J_p = camera.project(d, jacobians=True, parameters=need)
 
