@@ -69,3 +69,19 @@ def test_gyro_in_degrees_per_second_is_refused(scenario, method):
     d.imu_w = np.degrees(d.imu_w)
     with pytest.raises(DataError, match="deg/s"):
         replay(d, sim.prior, method)
+
+
+def test_data_quality_names_input_faults_not_model_mismatch():
+    """The 'data quality first' phrases: input counters always, gated stars only when the
+    accepted stars fit (a model far off gates stars by itself)."""
+    from stellar_cal_ros.methods.results import data_quality
+
+    clean = {"imu_received": 30000, "stars_gated": 2, "reinitializations": 0}
+    assert data_quality(clean, 30000, 1.0) == []
+    faults = data_quality({**clean, "imu_invalid": 3, "imu_gaps": 3}, 30000, 1.0)
+    assert faults == ["3 IMU samples with non-finite values or stamps (bridged)",
+                      "3 gaps in the IMU stream (bridged)"]
+    misid = {"stars_gated": 300, "reinitializations": 2}
+    assert "misidentified" in data_quality(misid, 30000, 1.02)[0]
+    assert data_quality(misid, 30000, 9.9) == []  # a wrong model: the diagnosis's business
+    assert data_quality({"stars_gated": 8}, 30000, 1.0) == []  # within the gate's false alarms

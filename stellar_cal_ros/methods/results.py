@@ -394,7 +394,6 @@ DATA_FAULTS = {
     "imu_duplicate": "IMU samples with a repeated stamp (dropped)",
     "imu_gaps": "gaps in the IMU stream (bridged)",
     "imu_long_gaps": "IMU gaps too long to bridge (filter re-acquired)",
-    "reinitializations": "filter re-acquisitions (lost attitude)",
     "frames_late": "star frames later than the reorder window (dropped)",
     "frames_duplicate": "star frames with a repeated stamp (dropped)",
     "frames_overflow": "star frames dropped by a full queue",
@@ -406,27 +405,32 @@ DATA_FAULTS = {
     "fixes_invalid": "invalid position fixes (dropped)",
 }
 #: gated stars beyond this many times the gate's false-alarm count (and at least
-#: :data:`GATED_MIN`) point at misidentified stars or a broken model rather than noise
+#: :data:`GATED_MIN`) point at misidentified stars rather than noise — when the accepted
+#: stars are consistent (NIS/dof ≤ :data:`GATED_CONSISTENT`); a model far off gates stars
+#: (and loses lock) by itself, and that is the diagnosis's business, not the data's
 GATED_FACTOR = 20.0
 GATED_MIN = 10
+GATED_CONSISTENT = 1.5
 
 
 def data_quality(counters: dict[str, Any], stars_accepted: int,
-                 gate_probability: float = 0.9999) -> list[str]:
+                 nis_per_dof: float = math.nan, gate_probability: float = 0.9999) -> list[str]:
     """What the counters say about the input, one phrase each (empty: nothing wrong).
 
     A diagnosis reads these first: a bridged IMU gap or misidentified stars leave residual
-    structure that a model effect would fit for the wrong reason.
+    structure that a model effect would fit for the wrong reason.  ``nis_per_dof``: of the
+    accepted stars (NaN: unknown, gated stars judged alone).
     """
     out = [f"{int(counters[k])} {text}" for k, text in DATA_FAULTS.items()
            if counters.get(k)]
     gated = int(counters.get("stars_gated", 0))
     expected = (1.0 - gate_probability) * (stars_accepted + gated)
-    if gated > max(GATED_MIN, GATED_FACTOR * expected):
+    consistent = not nis_per_dof > GATED_CONSISTENT
+    if consistent and gated > max(GATED_MIN, GATED_FACTOR * expected):
         share = gated / max(stars_accepted + gated, 1)
         out.append(f"{gated} stars gated ({100 * share:.2g} % of {stars_accepted + gated}; "
-                   f"a consistent model gates about {expected:.0f}): misidentified stars, "
-                   "or a model far off")
+                   f"a consistent model gates about {expected:.0f}) while the accepted ones "
+                   "fit: misidentified stars")
     return out
 
 
