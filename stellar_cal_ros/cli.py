@@ -209,11 +209,11 @@ def print_replay_summary(result, prior) -> None:
              f"{np.round(np.asarray(cal.accel_bias) / MICRO_G, 2).tolist()} ug"))
 
 
-def print_diagnosis(summary: dict) -> None:
+def print_diagnosis(summary: dict, calibration=None) -> None:
     """Print the key lines of a diagnosis summary (:mod:`stellar_cal_ros.diagnosis.printing`)."""
     from stellar_cal_ros.diagnosis.printing import print_diagnosis as show
 
-    show(summary)
+    show(summary, calibration)
 
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
@@ -238,7 +238,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         print(f"wrote {summary['calibration_file']}, {args.output / 'diagnosis.json'}"
               + ("" if args.no_plots else f" and {args.output / 'report.html'}"))
         return 0
-    print_diagnosis(summary)
+    print_diagnosis(summary, cal)
     print(f"wrote {args.output / 'diagnosis.json'}"
           + ("" if args.no_plots else f" and {args.output / 'report.html'}"))
     return 0

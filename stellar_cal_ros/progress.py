@@ -131,7 +131,7 @@ class Progress:
             if frac + 1e-12 >= self._next_line and self.n < self.total:
                 while self._next_line <= frac + 1e-12:
                     self._next_line += self.step
-                self._line(f"{self.desc}: {100 * frac:.0f}% ({self.n}/{self.total}"
+                self._line(f"{self.desc}: {100 * frac:.0f}% ({self.n:.0f}/{self.total:.0f}"
                            f"{' ' + self.unit if self.unit else ''}), "
                            f"{format_seconds(self.elapsed)} elapsed, "
                            f"ETA {format_seconds(self.eta())}")

@@ -32,11 +32,23 @@ def print_data_quality(summary: dict[str, Any]) -> None:
               "candidates below with this in mind).")
 
 
-def print_diagnosis(summary: dict) -> None:
-    """Print the key lines of a diagnosis summary."""
+def print_diagnosis(summary: dict, calibration=None) -> None:
+    """Print the key lines of a diagnosis summary.
+
+    ``calibration``: the calibration diagnosed; when it is a run's result, the RMS that run
+    reported is printed beside the re-run's, with why they may differ.
+    """
     rms, exp = summary["residual_rms_px"], summary["expected_rms_px"]
     print(f"innovation RMS u={rms[0]:.4f} v={rms[1]:.4f} px; the model expects "
           f"u={exp[0]:.4f} v={exp[1]:.4f} px")
+    own = (calibration.extra.get("consistency") or {}).get("rms_px") if calibration else None
+    if own is not None and len(own) == 2 and \
+            max(abs(a - b) for a, b in zip(own, rms, strict=True)) > 1e-4 * max(1e-12, *own):
+        print(f"  (the run that wrote this calibration reported u={own[0]:.4f} "
+              f"v={own[1]:.4f} px: the diagnosis re-runs the model from the calibration's "
+              "values with datasheet σ on every estimated effect, as each candidate's run "
+              "does; the two agree when the model fits, and differ when it does not, as "
+              "a wrong model ends where it starts)")
     print_data_quality(summary)
     print_notes(summary)
     print("candidates (best first):")

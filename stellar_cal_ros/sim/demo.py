@@ -68,7 +68,7 @@ def run_demo(output: Path, duration: float = 600.0, seed: int = 7) -> int:
     print(f"   $ stellar-cal diagnose {bag} --calibration {base_yaml} --method psce "
           f"-o {report_dir}")
     summary = diagnose(data, base.calibration, "psce", [], report_dir, verbose=False)
-    print_diagnosis(summary)
+    print_diagnosis(summary, base.calibration)
     found = summary.get("recommendation")
     print(f"   report: {report_dir / 'report.html'}")
     if found is None:
