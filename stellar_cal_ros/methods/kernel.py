@@ -54,7 +54,7 @@ from stellar_cal_ros.core.state import StateLayout
 from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
 from stellar_cal_ros.effects.base import FrameContext
 from stellar_cal_ros.errors import DataError, ModelError
-from stellar_cal_ros.methods.star_model import StarModel
+from stellar_cal_ros.methods.star_model import StarModel, state_attitude
 
 log = logging.getLogger(__name__)
 
@@ -169,6 +169,9 @@ class StarFilter:
     """
 
     method = "kernel"
+    #: predict stars through the model's compiled chain when it has one (False: always
+    #: through the effects' Python methods — the reference path, same numbers to rounding)
+    compiled_step = True
 
     def __init__(self, model: StarModel, t0: float, config: KernelConfig, nominal_dt: float,
                  nav_blocks: tuple[tuple[str, int], ...] = (), consider: int = 0) -> None:
@@ -354,16 +357,14 @@ class StarFilter:
         Time from the current state to the frame stamp comes from exact relative times; the
         model asks for the attitude ``shift`` seconds after the frame's reported stamp.
         """
-        R_now = self.R_i_b if phi is None else so3_exp(phi) @ self.R_i_b
-        w = self.omega
-        base = self._stamp_rel - self.t
+        return state_attitude(self.R_i_b, self.omega, self._stamp_rel - self.t, phi)
 
-        def attitude(shift: float) -> tuple[np.ndarray, np.ndarray]:
-            dt = shift + base
-            R = R_now if abs(dt) < 1e-12 else R_now @ so3_exp(w * dt)
-            return R, w
-
-        return attitude
+    def _predict(self, theta: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
+                 phi: np.ndarray | None = None):
+        """The model's prediction of ``u_i`` around the current state (and ``phi``)."""
+        return self.model.predict_state(theta, u_i, ctx, self.R_i_b, self.omega,
+                                        self._stamp_rel - self.t, phi,
+                                        compiled=self.compiled_step)
 
     def initialize(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
                    sigma: np.ndarray) -> bool:
@@ -411,8 +412,7 @@ class StarFilter:
         self.R_i_b = R_i_b
         self.omega = self.rate_at(t_exp)
         idx = np.flatnonzero(keep)
-        pred = model.predict(theta, u_i[keep], subset_context(ctx, idx),
-                             self._attitude_function())
+        pred = self._predict(theta, u_i[keep], subset_context(ctx, idx))
         Hf = pred.H_attitude.reshape(-1, 3)
         Ht_all = pred.H_parameters.reshape(-1, model.size)
         Ht = Ht_all[:, :self.P_est]
@@ -614,12 +614,12 @@ class StarFilter:
         return self._star_update(uv, u_i, ctx, sigma, t_exp)
 
     def _star_update(self, uv, u_i, ctx, sigma, t_exp) -> FrameUpdate:
-        model, c = self.model, self.config
+        c = self.config
         n = len(uv)
         N = self.N
         R_meas = sigma**2
         theta0 = self.theta.copy()
-        pred0 = model.predict(theta0, u_i, ctx, self._attitude_function())
+        pred0 = self._predict(theta0, u_i, ctx)
         H0, Hb0 = self._star_jacobian(pred0)
         nu0 = uv - pred0.uv
         S_blocks = (H0 @ self.P) @ H0.transpose(0, 2, 1)
@@ -672,7 +672,7 @@ class StarFilter:
                 ctx_acc = subset_context(ctx, idx)
             th = theta0.copy()
             th[:self.P_est] += dx[self.it]
-            pred = model.predict(th, u_i[idx], ctx_acc, self._attitude_function(dx[self.ia]))
+            pred = self._predict(th, u_i[idx], ctx_acc, dx[self.ia])
             Hn, _ = self._star_jacobian(pred)
             return Hn.reshape(-1, N), pred.uv.reshape(-1)
 
