@@ -261,3 +261,70 @@ def project_points(d: FloatArray, p: FloatArray, tilt: FloatArray, jac: int, uv:
             J_d[i, r, 0] = a
             J_d[i, r, 1] = b
             J_d[i, r, 2] = -(a * x[i] + b * y[i])
+
+
+# ---------------------------------------------------------------------------- Kalman update
+@njit(cache=True)
+def kalman_gain(P: FloatArray, H: FloatArray, r_diag: FloatArray, nu: FloatArray
+                ) -> tuple[int, FloatArray, float]:
+    """One pass of :func:`stellar_cal_ros.core.covariance.iterated_update`: the gain.
+
+    ``S = H P Hᵀ + diag(r)``, its Cholesky factor ``L`` (LAPACK), ``K = P Hᵀ S⁻¹`` and the
+    NIS ``νᵀ S⁻¹ ν`` (forward and back substitution).  ``P`` (N, N), ``H`` (m, N), ``r_diag``
+    and ``nu`` (m,).  Returns ``(ok, K (N, m), nis)``; ``ok`` 0 when ``S`` is not positive
+    definite (then ``K`` is zero).
+    """
+    N, m = P.shape[0], H.shape[0]
+    PHt = np.ascontiguousarray(P @ np.ascontiguousarray(H.T))  # (N, m)
+    S = H @ PHt
+    for i in range(m):
+        S[i, i] += r_diag[i]
+    # Cholesky (lower), column by column
+    L = np.zeros((m, m))
+    for j in range(m):
+        s = S[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return 0, np.zeros((N, m)), math.nan
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, m):
+            s = S[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+    y = np.empty(m)
+    for i in range(m):
+        s = nu[i]
+        for k in range(i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    nis = 0.0
+    for i in range(m):
+        nis += y[i] * y[i]
+    # Kᵀ = S⁻¹ (P Hᵀ)ᵀ: solve L W = H P, then Lᵀ Kᵀ = W, one column of H P at a time
+    Kt = np.ascontiguousarray(PHt.T)  # (m, N)
+    for c in range(N):
+        for i in range(m):
+            s = Kt[i, c]
+            for k in range(i):
+                s -= L[i, k] * Kt[k, c]
+            Kt[i, c] = s / L[i, i]
+        for i in range(m - 1, -1, -1):
+            s = Kt[i, c]
+            for k in range(i + 1, m):
+                s -= L[k, i] * Kt[k, c]
+            Kt[i, c] = s / L[i, i]
+    return 1, np.ascontiguousarray(Kt.T), nis
+
+
+@njit(cache=True)
+def joseph(P: FloatArray, K: FloatArray, H: FloatArray, r_diag: FloatArray) -> FloatArray:
+    """``(I − K H) P (I − K H)ᵀ + K diag(r) Kᵀ`` (not symmetrized, :func:`kalman_gain`)."""
+    N = P.shape[0]
+    A = -(K @ H)
+    for i in range(N):
+        A[i, i] += 1.0
+    KR = K * r_diag
+    return (A @ P) @ np.ascontiguousarray(A.T) + KR @ np.ascontiguousarray(K.T)

@@ -169,8 +169,9 @@ class StarFilter:
     """
 
     method = "kernel"
-    #: predict stars through the model's compiled chain when it has one (False: always
-    #: through the effects' Python methods — the reference path, same numbers to rounding)
+    #: predict stars through the model's compiled chain when it has one, and update with
+    #: the compiled gain (False: the effects' Python methods and numpy/LAPACK — the
+    #: reference path, the same estimates to rounding amplified by the start-up)
     compiled_step = True
 
     def __init__(self, model: StarModel, t0: float, config: KernelConfig, nominal_dt: float,
@@ -677,7 +678,7 @@ class StarFilter:
             return Hn.reshape(-1, N), pred.uv.reshape(-1)
 
         res = cov.iterated_update(self.P, H, h, z, r_diag, relinearize, self.update_policy,
-                                  self.ia, self.it)
+                                  self.ia, self.it, compiled=self.compiled_step)
         if not res.ok:
             self.counters.add("update_failed")
             log.warning("t=%.3f s: %s: frame skipped", t_exp, res.reason)
