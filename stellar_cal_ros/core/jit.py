@@ -303,19 +303,24 @@ def kalman_gain(P: FloatArray, H: FloatArray, r_diag: FloatArray, nu: FloatArray
     nis = 0.0
     for i in range(m):
         nis += y[i] * y[i]
-    # Kᵀ = S⁻¹ (P Hᵀ)ᵀ: solve L W = H P, then Lᵀ Kᵀ = W, one column of H P at a time
+    # Kᵀ = S⁻¹ (P Hᵀ)ᵀ: solve L W = H P, then Lᵀ Kᵀ = W (row operations: contiguous)
     Kt = np.ascontiguousarray(PHt.T)  # (m, N)
-    for c in range(N):
-        for i in range(m):
-            s = Kt[i, c]
-            for k in range(i):
-                s -= L[i, k] * Kt[k, c]
-            Kt[i, c] = s / L[i, i]
-        for i in range(m - 1, -1, -1):
-            s = Kt[i, c]
-            for k in range(i + 1, m):
-                s -= L[k, i] * Kt[k, c]
-            Kt[i, c] = s / L[i, i]
+    for i in range(m):
+        for k in range(i):
+            lik = L[i, k]
+            for c in range(N):
+                Kt[i, c] -= lik * Kt[k, c]
+        d = L[i, i]
+        for c in range(N):
+            Kt[i, c] /= d
+    for i in range(m - 1, -1, -1):
+        for k in range(i + 1, m):
+            lki = L[k, i]
+            for c in range(N):
+                Kt[i, c] -= lki * Kt[k, c]
+        d = L[i, i]
+        for c in range(N):
+            Kt[i, c] /= d
     return 1, np.ascontiguousarray(Kt.T), nis
 
 
