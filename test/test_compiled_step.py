@@ -126,3 +126,32 @@ def test_effect_without_compiled_form_falls_back(sim_data, monkeypatch) -> None:
     assert plain.model.compiled_chain() is None  # the effects' Python methods
     assert plain.counters.updates == fast.counters.updates
     assert _sigma_units(fast, plain) <= SIGMA_TOL
+
+
+def test_gain_joseph_and_star_blocks_equal_numpy() -> None:
+    from stellar_cal_ros.core.covariance import _gain
+    from stellar_cal_ros.core.gating import block_nis
+
+    rng = np.random.default_rng(6)
+    n, N = 20, 22
+    A = rng.normal(size=(N, N))
+    P = A @ A.T / N + np.eye(N) * 1e-3
+    H3 = rng.normal(size=(n, 2, N))
+    H = H3.reshape(-1, N)
+    r = rng.uniform(0.01, 0.1, n)
+    r2 = np.repeat(r, 2)
+    nu = rng.normal(size=2 * n)
+    K_ref, nis_ref = _gain(P, H, r2, nu, 0.0, 1)
+    ok, K, nis = jit.kalman_gain(P, H, r2, nu)
+    assert ok == 1
+    np.testing.assert_allclose(K, K_ref, rtol=0, atol=1e-10 * np.max(np.abs(K_ref)))
+    assert nis == pytest.approx(nis_ref, rel=1e-10)
+    Ak = np.eye(N) - K_ref @ H
+    _close(jit.joseph(P, K_ref, H, r2), Ak @ P @ Ak.T + (K_ref * r2) @ K_ref.T)
+    S_ref = (H3 @ P) @ H3.transpose(0, 2, 1)
+    S_ref[:, 0, 0] += r
+    S_ref[:, 1, 1] += r
+    S, nis_s = jit.star_blocks(H3, P, r, nu.reshape(n, 2))
+    _close(S, S_ref)
+    _close(nis_s, block_nis(nu.reshape(n, 2), S_ref))
+    assert jit.kalman_gain(-P, H, -r2, nu)[0] == 0  # not positive definite: refused

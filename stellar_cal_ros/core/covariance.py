@@ -139,7 +139,7 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
     nis = math.nan
     K = np.zeros((N, len(z)))
     it = 0
-    jit = _compiled_kernels() if compiled else None
+    jit = compiled_kernels() if compiled else None
     if jit is not None:
         P = np.ascontiguousarray(P, dtype=float)
         r_diag = np.ascontiguousarray(r_diag, dtype=float)
@@ -212,8 +212,11 @@ def _gain(P: np.ndarray, H: np.ndarray, r_diag: np.ndarray, nu: np.ndarray, nis:
     return Kt.T, nis
 
 
-def _compiled_kernels():
-    """:mod:`stellar_cal_ros.core.jit` when numba is importable, else None."""
+def compiled_kernels():
+    """:mod:`stellar_cal_ros.core.jit` when numba is importable, else None.
+
+    Imported on first use (importing numba takes ~0.3 s).
+    """
     from stellar_cal_ros.core import jit
 
     return jit if jit.HAVE_NUMBA else None

@@ -307,21 +307,20 @@ def kalman_gain(P: FloatArray, H: FloatArray, r_diag: FloatArray, nu: FloatArray
     Kt = np.ascontiguousarray(PHt.T)  # (m, N)
     for i in range(m):
         for k in range(i):
-            lik = L[i, k]
-            for c in range(N):
-                Kt[i, c] -= lik * Kt[k, c]
-        d = L[i, i]
-        for c in range(N):
-            Kt[i, c] /= d
+            _row_sub(Kt, i, k, L[i, k])
+        Kt[i] /= L[i, i]
     for i in range(m - 1, -1, -1):
         for k in range(i + 1, m):
-            lki = L[k, i]
-            for c in range(N):
-                Kt[i, c] -= lki * Kt[k, c]
-        d = L[i, i]
-        for c in range(N):
-            Kt[i, c] /= d
+            _row_sub(Kt, i, k, L[k, i])
+        Kt[i] /= L[i, i]
     return 1, np.ascontiguousarray(Kt.T), nis
+
+
+@njit(cache=True, inline="always")
+def _row_sub(X: FloatArray, i: int, k: int, coef: float) -> None:
+    """``X[i] -= coef · X[k]`` in place."""
+    for c in range(X.shape[1]):
+        X[i, c] -= coef * X[k, c]
 
 
 @njit(cache=True)
@@ -333,3 +332,37 @@ def joseph(P: FloatArray, K: FloatArray, H: FloatArray, r_diag: FloatArray) -> F
         A[i, i] += 1.0
     KR = K * r_diag
     return (A @ P) @ np.ascontiguousarray(A.T) + KR @ np.ascontiguousarray(K.T)
+
+
+@njit(cache=True)
+def star_blocks(H: FloatArray, P: FloatArray, r: FloatArray, nu: FloatArray
+                ) -> tuple[FloatArray, FloatArray]:
+    """Each star's innovation covariance and NIS (the gate's inputs), compiled.
+
+    ``S_i = H_i P H_iᵀ + r_i I`` (n, 2, 2) and ``ν_iᵀ S_i⁻¹ ν_i`` (n,) for ``H`` (n, 2, N),
+    ``P`` (N, N), ``r`` (n,) variances, ``nu`` (n, 2) — as ``(H @ P) @ Hᵀ`` and
+    :func:`stellar_cal_ros.core.gating.block_nis`.
+    """
+    n, N = H.shape[0], P.shape[0]
+    S = np.empty((n, 2, 2))
+    nis = np.empty(n)
+    HP = np.empty((2, N))
+    for i in range(n):
+        for a in range(2):
+            for c in range(N):
+                acc = 0.0
+                for k in range(N):
+                    acc += H[i, a, k] * P[k, c]
+                HP[a, c] = acc
+        for a in range(2):
+            for b in range(2):
+                acc = 0.0
+                for c in range(N):
+                    acc += HP[a, c] * H[i, b, c]
+                S[i, a, b] = acc
+        S[i, 0, 0] += r[i]
+        S[i, 1, 1] += r[i]
+        s00, s01, s11 = S[i, 0, 0], S[i, 0, 1], S[i, 1, 1]
+        x, y = nu[i, 0], nu[i, 1]
+        nis[i] = (s11 * x * x - 2 * s01 * x * y + s00 * y * y) / (s00 * s11 - s01 * s01)
+    return S, nis

@@ -623,10 +623,16 @@ class StarFilter:
         pred0 = self._predict(theta0, u_i, ctx)
         H0, Hb0 = self._star_jacobian(pred0)
         nu0 = uv - pred0.uv
-        S_blocks = (H0 @ self.P) @ H0.transpose(0, 2, 1)
-        S_blocks[:, 0, 0] += R_meas
-        S_blocks[:, 1, 1] += R_meas
-        nis_stars = block_nis(nu0, S_blocks)
+        jit = cov.compiled_kernels() if self.compiled_step else None
+        if jit is not None:
+            S_blocks, nis_stars = jit.star_blocks(H0, np.ascontiguousarray(self.P),
+                                                  np.ascontiguousarray(R_meas, dtype=float),
+                                                  nu0)
+        else:
+            S_blocks = (H0 @ self.P) @ H0.transpose(0, 2, 1)
+            S_blocks[:, 0, 0] += R_meas
+            S_blocks[:, 1, 1] += R_meas
+            nis_stars = block_nis(nu0, S_blocks)
         gate = self.gate.decide(nis_stars, pred0.directions_st)
         # the last 10 frames as bits: one odd frame is counted, a pattern is reported
         self._mismatch_bits = ((self._mismatch_bits << 1) | int(gate.mismatch)) & 0x3FF
