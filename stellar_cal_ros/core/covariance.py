@@ -212,14 +212,19 @@ def _gain(P: np.ndarray, H: np.ndarray, r_diag: np.ndarray, nu: np.ndarray, nis:
     return Kt.T, nis
 
 
+_JIT: list = []  # [module or None] once looked up (compiled_kernels)
+
+
 def compiled_kernels():
     """:mod:`stellar_cal_ros.core.jit` when numba is importable, else None.
 
-    Imported on first use (importing numba takes ~0.3 s).
+    Imported on first use (importing numba takes ~0.3 s), then remembered.
     """
-    from stellar_cal_ros.core import jit
+    if not _JIT:
+        from stellar_cal_ros.core import jit
 
-    return jit if jit.HAVE_NUMBA else None
+        _JIT.append(jit if jit.HAVE_NUMBA else None)
+    return _JIT[0]
 
 
 def linear_update(P: np.ndarray, H: np.ndarray, nu: np.ndarray, R: np.ndarray
