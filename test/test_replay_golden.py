@@ -1,7 +1,11 @@
 """Performance work must not change results: a 300 s PSCE replay against golden values.
 
 The golden values were produced by the driver and kernel before the speed work of issue 17
-(commit ebd3c6c) and are reproduced to 1e-9 relative (bit for bit when written).  A change
+(commit ebd3c6c) and are reproduced to 1e-9 relative by the numpy path (bit for bit when
+written).  The compiled star step (numba, the default) computes the same quantities in a
+different order of a few operations: the ill-conditioned start-up amplifies that last-bit
+difference (as it amplifies one ulp of one centroid) to ~1e-8 relative, ~2e-4 of the
+posterior σ; it is held to ``SIGMA_TOL`` σ (``test/test_compiled_step.py``).  A change
 meant to alter the estimates (a new model, another simulator) must regenerate them on
 purpose: print ``res.filter.theta.tolist()``, ``np.sqrt(np.diag(res.filter.P)).tolist()``
 and the counts below from :func:`_replay` and paste them here.
@@ -18,6 +22,7 @@ import pytest
 
 from stellar_cal_ros.methods.driver import Calibrator, DriverConfig
 from stellar_cal_ros.methods.frames import bag_data_from_simulation
+from stellar_cal_ros.methods.kernel import StarFilter
 from stellar_cal_ros.methods.replay import replay
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
@@ -38,6 +43,7 @@ GOLDEN_LOGLIK = 18599.31906032765
 GOLDEN_RESIDUAL_ROWS = 12183
 GOLDEN_HISTORY_NIS_SUM = 24575.340547372798
 RTOL = 1e-9
+SIGMA_TOL = 2e-3  # compiled path: |θ − golden| / σ
 
 
 @pytest.fixture(scope="module")
@@ -52,20 +58,28 @@ def _replay(sim_data):
     return replay(data, sim.prior, "psce")
 
 
-def test_replay_matches_golden_values(sim_data) -> None:
+@pytest.mark.parametrize("compiled", [False, True], ids=["numpy", "compiled"])
+def test_replay_matches_golden_values(sim_data, compiled, monkeypatch) -> None:
+    monkeypatch.setattr(StarFilter, "compiled_step", compiled)
     res = _replay(sim_data)
     f = res.filter
-    np.testing.assert_allclose(f.theta, GOLDEN_THETA, rtol=RTOL, atol=0)
-    np.testing.assert_allclose(np.sqrt(np.diag(f.P)), GOLDEN_SIGMA, rtol=RTOL, atol=0)
+    rtol = 1e-6 if compiled else RTOL
+    if compiled:
+        sigma = np.asarray(GOLDEN_SIGMA[:len(GOLDEN_THETA)])
+        assert np.max(np.abs(f.theta - GOLDEN_THETA) / sigma) <= SIGMA_TOL
+    else:
+        np.testing.assert_allclose(f.theta, GOLDEN_THETA, rtol=RTOL, atol=0)
+    np.testing.assert_allclose(np.sqrt(np.diag(f.P)), GOLDEN_SIGMA, rtol=rtol, atol=0)
     assert res.counters["updates"] == GOLDEN_UPDATES
     assert len(res.residuals["t"]) == GOLDEN_RESIDUAL_ROWS
     assert len(res.history["t"]) == GOLDEN_UPDATES
-    assert res.stats.log_likelihood() == pytest.approx(GOLDEN_LOGLIK, rel=RTOL)
-    assert float(res.history["nis"].sum()) == pytest.approx(GOLDEN_HISTORY_NIS_SUM, rel=RTOL)
+    assert res.stats.log_likelihood() == pytest.approx(GOLDEN_LOGLIK, rel=rtol)
+    assert float(res.history["nis"].sum()) == pytest.approx(GOLDEN_HISTORY_NIS_SUM, rel=rtol)
 
 
 def test_live_sample_by_sample_equals_replay(sim_data) -> None:
     sim, data = sim_data
+    ref = _replay(sim_data).filter
     cal = Calibrator(sim.prior, "psce", driver=DriverConfig(reorder_window_s=0.05))
     stamps = data.imu_stamp_ns.tolist()
     events = [(s, 0, i) for i, s in enumerate(stamps)]
@@ -78,4 +92,5 @@ def test_live_sample_by_sample_equals_replay(sim_data) -> None:
             cal.push_stars(payload)
     cal.finish()
     assert cal.filter.counters.updates == GOLDEN_UPDATES
-    np.testing.assert_allclose(cal.filter.theta, GOLDEN_THETA, rtol=RTOL, atol=0)
+    np.testing.assert_array_equal(cal.filter.theta, ref.theta)
+    np.testing.assert_array_equal(cal.filter.P, ref.P)

@@ -97,7 +97,7 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
                     r_diag: np.ndarray,
                     relinearize: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None,
                     policy: UpdatePolicy, rotation: slice = slice(0, 3),
-                    others: slice | None = None) -> UpdateResult:
+                    others: slice | None = None, compiled: bool = False) -> UpdateResult:
     """Iterated EKF update with the Joseph-form covariance.
 
     Parameters
@@ -120,6 +120,10 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
         The rotation correction that decides relinearization.
     others : slice, optional
         The rest whose motion (in σ) decides it too (default: after ``rotation``).
+    compiled : bool
+        Gain and Joseph step in compiled kernels (:func:`stellar_cal_ros.core.jit.
+        kalman_gain`, :func:`~stellar_cal_ros.core.jit.joseph`; ignored without numba):
+        the same formulas, Cholesky by hand instead of LAPACK — equal to rounding.
 
     The first pass gives the gain, the frame NIS and, when the correction is small (a
     rotation below ``relinearize_rad`` and every other part below ``relinearize_sigma`` σ),
@@ -135,21 +139,25 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
     nis = math.nan
     K = np.zeros((N, len(z)))
     it = 0
+    jit = compiled_kernels() if compiled else None
+    if jit is not None:
+        P = np.ascontiguousarray(P, dtype=float)
+        r_diag = np.ascontiguousarray(r_diag, dtype=float)
     for it in range(1, policy.max_iterations + 1):
-        PHt = P @ H.T
-        S = H @ PHt
-        S.ravel()[::len(S) + 1] += r_diag
-        # LAPACK directly (Cholesky, then triangular solves): the numpy.linalg wrappers cost
-        # more than the factorization of a frame's 2n × 2n innovation covariance
-        c, info = _potrf(S, lower=1, clean=1, overwrite_a=1)
-        if info != 0:
-            return UpdateResult(False, np.zeros(N), P, K, H, nis, it,
-                                "innovation covariance not positive definite")
-        if it == 1:
-            y, _ = _trtrs(c, nu, lower=1)
-            nis = float(y @ y)
-        Kt, _ = _potrs(c, PHt.T, lower=1)  # S⁻¹ H P = Kᵀ
-        K = Kt.T
+        if jit is not None:
+            ok, K, nis_it = jit.kalman_gain(P, np.ascontiguousarray(H, dtype=float), r_diag,
+                                            np.ascontiguousarray(nu, dtype=float))
+            if not ok:
+                return UpdateResult(False, np.zeros(N), P, K, H, nis, it,
+                                    "innovation covariance not positive definite")
+            if it == 1:
+                nis = nis_it
+        else:
+            K_it, nis = _gain(P, H, r_diag, nu, nis, it)
+            if K_it is None:
+                return UpdateResult(False, np.zeros(N), P, K, H, nis, it,
+                                    "innovation covariance not positive definite")
+            K = K_it
         dx_new = K @ (z - h + H @ dx)
         dx_prev, dx = dx, dx_new
         if it == policy.max_iterations or relinearize is None:
@@ -174,9 +182,49 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
                                 "relinearization left the field of view")
     if not (np.isfinite(dx).all() and np.isfinite(K).all()):
         return UpdateResult(False, np.zeros(N), P, K, H, nis, it, "non-finite update")
-    A = np.eye(N) - K @ H
     # not symmetrized here: the caller resets the rotation blocks, then symmetrizes
-    return UpdateResult(True, dx, A @ P @ A.T + (K * r_diag) @ K.T, K, H, nis, it)
+    if jit is not None:
+        Pn = jit.joseph(P, K, np.ascontiguousarray(H, dtype=float), r_diag)
+    else:
+        A = np.eye(N) - K @ H
+        Pn = A @ P @ A.T + (K * r_diag) @ K.T
+    return UpdateResult(True, dx, Pn, K, H, nis, it)
+
+
+def _gain(P: np.ndarray, H: np.ndarray, r_diag: np.ndarray, nu: np.ndarray, nis: float,
+          it: int) -> tuple[np.ndarray | None, float]:
+    """The gain ``K`` (N, m) of one pass (None: S not positive definite) and the NIS.
+
+    The NIS is computed on the first pass (``it == 1``); later passes return ``nis``.
+    """
+    PHt = P @ H.T
+    S = H @ PHt
+    S.ravel()[::len(S) + 1] += r_diag
+    # LAPACK directly (Cholesky, then triangular solves): the numpy.linalg wrappers cost
+    # more than the factorization of a frame's 2n × 2n innovation covariance
+    c, info = _potrf(S, lower=1, clean=1, overwrite_a=1)
+    if info != 0:
+        return None, nis
+    if it == 1:
+        y, _ = _trtrs(c, nu, lower=1)
+        nis = float(y @ y)
+    Kt, _ = _potrs(c, PHt.T, lower=1)  # S⁻¹ H P = Kᵀ
+    return Kt.T, nis
+
+
+_JIT: list = []  # [module or None] once looked up (compiled_kernels)
+
+
+def compiled_kernels():
+    """:mod:`stellar_cal_ros.core.jit` when numba is importable, else None.
+
+    Imported on first use (importing numba takes ~0.3 s), then remembered.
+    """
+    if not _JIT:
+        from stellar_cal_ros.core import jit
+
+        _JIT.append(jit if jit.HAVE_NUMBA else None)
+    return _JIT[0]
 
 
 def linear_update(P: np.ndarray, H: np.ndarray, nu: np.ndarray, R: np.ndarray

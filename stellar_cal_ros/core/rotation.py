@@ -123,7 +123,11 @@ def _angle_coefficients(phi: FloatArray) -> tuple[FloatArray, FloatArray, FloatA
 
 
 def _so3_exp_single(phi: FloatArray) -> FloatArray:
-    """Rodrigues' formula for one rotation vector with scalar math (hot path)."""
+    """Rodrigues' formula for one rotation vector with scalar math (hot path).
+
+    Written so that numba compiles it as it is: the filters' compiled kernels
+    (:mod:`stellar_cal_ros.core.jit`) use this one implementation.
+    """
     x, y, z = float(phi[0]), float(phi[1]), float(phi[2])
     t2 = x * x + y * y + z * z
     if t2 < 1e-8:  # series: sin t/t and (1-cos t)/t^2 to O(t^4), error < 1e-17
@@ -133,11 +137,11 @@ def _so3_exp_single(phi: FloatArray) -> FloatArray:
         t = math.sqrt(t2)
         a = math.sin(t) / t
         b = (1.0 - math.cos(t)) / t2
-    return np.array([
-        [1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z],
-        [a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z],
-        [-a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)],
-    ])
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = 1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z
+    R[1, 0], R[1, 1], R[1, 2] = a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z
+    R[2, 0], R[2, 1], R[2, 2] = -a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)
+    return R
 
 
 def so3_exp(phi: ArrayLike) -> FloatArray:
@@ -420,7 +424,10 @@ def orthonormalize(R: ArrayLike) -> FloatArray:
 
 
 def _jacobian_single(phi: FloatArray, sign: float) -> FloatArray:
-    """``I + sign·b [φ]× + c [φ]×²`` for one vector with scalar math (filters' hot path)."""
+    """``I + sign·b [φ]× + c [φ]×²`` for one vector with scalar math (hot path).
+
+    Compiled as it is by :mod:`stellar_cal_ros.core.jit`.
+    """
     x, y, z = float(phi[0]), float(phi[1]), float(phi[2])
     t2 = x * x + y * y + z * z
     if t2 < _SERIES_ANGLE**2:  # series to O(t^4), error < 3e-17
@@ -432,11 +439,11 @@ def _jacobian_single(phi: FloatArray, sign: float) -> FloatArray:
         b = 0.5 * half * half  # (1 - cos t)/t^2 without cancellation
         c = (t - math.sin(t)) / (t2 * t)
     sb = sign * b
-    return np.array([
-        [1.0 - c * (y * y + z * z), -sb * z + c * x * y, sb * y + c * x * z],
-        [sb * z + c * x * y, 1.0 - c * (x * x + z * z), -sb * x + c * y * z],
-        [-sb * y + c * x * z, sb * x + c * y * z, 1.0 - c * (x * x + y * y)],
-    ])
+    J = np.empty((3, 3))
+    J[0, 0], J[0, 1], J[0, 2] = 1.0 - c * (y * y + z * z), -sb * z + c * x * y, sb * y + c * x * z
+    J[1, 0], J[1, 1], J[1, 2] = sb * z + c * x * y, 1.0 - c * (x * x + z * z), -sb * x + c * y * z
+    J[2, 0], J[2, 1], J[2, 2] = -sb * y + c * x * z, sb * x + c * y * z, 1.0 - c * (x * x + y * y)
+    return J
 
 
 def _jacobian(phi: ArrayLike, sign: float) -> FloatArray:

@@ -190,6 +190,20 @@ class Effect:
         """Return (∂p'/∂value (18, k), ∂p'/∂p (18, 18))."""
         return np.zeros((18, self.size)), np.eye(18)
 
+    # ------------------------------------------------------------------ compiled form
+    def affine_form(self) -> Any:
+        """The stage map as a constant affine map of the value, for the compiled star step.
+
+        CAMERA: ``(J (18, k), D (18, 18))`` with ``p' = D p + J v``; TRACKER: ``J`` (3, k)
+        with ``δ = J v``; TIME: ``g`` (k,) with ``Δt = g · v`` — for every value, input and
+        context, and equal to the Jacobians the methods above return.  The filters then
+        predict every star of a frame in one compiled kernel
+        (:class:`~stellar_cal_ros.methods.star_chain.CompiledChain`).  None (the default, and
+        any map that depends on the context or is not affine): the model predicts through
+        the Python methods, with the same numbers to rounding.
+        """
+        return None
+
     def __repr__(self) -> str:
         return f"<effect {self.id}: {', '.join(self.parameter_names)}>"
 
@@ -260,6 +274,9 @@ class CameraSetEffect(Effect):
             D.setflags(write=False)
             cached = self._camera_jacobian = (J, D)
         return cached
+
+    def affine_form(self):  # noqa: D102
+        return self.camera_jacobian(None, None, None)
 
 
 # Contract §3: sigma.camera.camera_matrix (3x3 data) and distortion_coefficients (OpenCV order).

@@ -86,6 +86,9 @@ class FocalLength(Effect):
             cached = self._camera_jacobian = (self.ratio, J, D)
         return cached[1], cached[2]
 
+    def affine_form(self):  # noqa: D102
+        return self.camera_jacobian(None, None, None)
+
 
 class PixelAspect(Effect):
     """Pixel aspect a: ``fy = fx · (1 + a)``."""

@@ -46,3 +46,6 @@ class Installation(Effect):
 
     def tracker_rotation_jacobian(self, value: np.ndarray, ctx: FrameContext) -> np.ndarray:  # noqa: D102
         return np.eye(3)
+
+    def affine_form(self) -> np.ndarray:  # noqa: D102
+        return np.eye(3)

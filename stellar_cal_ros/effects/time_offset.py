@@ -39,3 +39,6 @@ class TimeOffset(Effect):
 
     def time_shift_jacobian(self, value: np.ndarray, ctx: FrameContext) -> np.ndarray:  # noqa: D102
         return np.ones(1)
+
+    def affine_form(self) -> np.ndarray:  # noqa: D102
+        return np.ones(1)

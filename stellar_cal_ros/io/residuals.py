@@ -48,13 +48,14 @@ def _columns(table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def _format(col: np.ndarray) -> list[str]:
-    if col.dtype == bool:
-        return ["True" if x else "False" for x in col.tolist()]
-    if np.issubdtype(col.dtype, np.integer):
-        return [str(int(x)) for x in col.tolist()]
-    if np.issubdtype(col.dtype, np.floating):
-        return [repr(float(x)) if np.isfinite(x) else str(float(x)) for x in col.tolist()]
-    return [str(x) for x in col.tolist()]
+    """CSV cells of a column, straight from ``tolist()``.
+
+    Floats as ``repr`` (shortest round trip; ``nan``, ``inf``, ``-inf`` too: ``repr`` and
+    ``str`` agree on Python floats), anything else (``True``/``False``, integers) as ``str``.
+    """
+    if col.dtype.kind == "f":
+        return list(map(repr, col.tolist()))
+    return list(map(str, col.tolist()))
 
 
 def write_residuals(path: str | os.PathLike[str], table: dict[str, np.ndarray]) -> Path:

@@ -54,7 +54,7 @@ from stellar_cal_ros.core.state import StateLayout
 from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
 from stellar_cal_ros.effects.base import FrameContext
 from stellar_cal_ros.errors import DataError, ModelError
-from stellar_cal_ros.methods.star_model import StarModel
+from stellar_cal_ros.methods.star_model import StarModel, state_attitude
 
 log = logging.getLogger(__name__)
 
@@ -169,6 +169,10 @@ class StarFilter:
     """
 
     method = "kernel"
+    #: predict stars through the model's compiled chain when it has one, and update with
+    #: the compiled gain (False: the effects' Python methods and numpy/LAPACK — the
+    #: reference path, the same estimates to rounding amplified by the start-up)
+    compiled_step = True
 
     def __init__(self, model: StarModel, t0: float, config: KernelConfig, nominal_dt: float,
                  nav_blocks: tuple[tuple[str, int], ...] = (), consider: int = 0) -> None:
@@ -354,16 +358,14 @@ class StarFilter:
         Time from the current state to the frame stamp comes from exact relative times; the
         model asks for the attitude ``shift`` seconds after the frame's reported stamp.
         """
-        R_now = self.R_i_b if phi is None else so3_exp(phi) @ self.R_i_b
-        w = self.omega
-        base = self._stamp_rel - self.t
+        return state_attitude(self.R_i_b, self.omega, self._stamp_rel - self.t, phi)
 
-        def attitude(shift: float) -> tuple[np.ndarray, np.ndarray]:
-            dt = shift + base
-            R = R_now if abs(dt) < 1e-12 else R_now @ so3_exp(w * dt)
-            return R, w
-
-        return attitude
+    def _predict(self, theta: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
+                 phi: np.ndarray | None = None):
+        """The model's prediction of ``u_i`` around the current state (and ``phi``)."""
+        return self.model.predict_state(theta, u_i, ctx, self.R_i_b, self.omega,
+                                        self._stamp_rel - self.t, phi,
+                                        compiled=self.compiled_step)
 
     def initialize(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
                    sigma: np.ndarray) -> bool:
@@ -411,8 +413,7 @@ class StarFilter:
         self.R_i_b = R_i_b
         self.omega = self.rate_at(t_exp)
         idx = np.flatnonzero(keep)
-        pred = model.predict(theta, u_i[keep], subset_context(ctx, idx),
-                             self._attitude_function())
+        pred = self._predict(theta, u_i[keep], subset_context(ctx, idx))
         Hf = pred.H_attitude.reshape(-1, 3)
         Ht_all = pred.H_parameters.reshape(-1, model.size)
         Ht = Ht_all[:, :self.P_est]
@@ -614,18 +615,24 @@ class StarFilter:
         return self._star_update(uv, u_i, ctx, sigma, t_exp)
 
     def _star_update(self, uv, u_i, ctx, sigma, t_exp) -> FrameUpdate:
-        model, c = self.model, self.config
+        c = self.config
         n = len(uv)
         N = self.N
         R_meas = sigma**2
         theta0 = self.theta.copy()
-        pred0 = model.predict(theta0, u_i, ctx, self._attitude_function())
+        pred0 = self._predict(theta0, u_i, ctx)
         H0, Hb0 = self._star_jacobian(pred0)
         nu0 = uv - pred0.uv
-        S_blocks = (H0 @ self.P) @ H0.transpose(0, 2, 1)
-        S_blocks[:, 0, 0] += R_meas
-        S_blocks[:, 1, 1] += R_meas
-        nis_stars = block_nis(nu0, S_blocks)
+        jit = cov.compiled_kernels() if self.compiled_step else None
+        if jit is not None:
+            S_blocks, nis_stars = jit.star_blocks(H0, np.ascontiguousarray(self.P),
+                                                  np.ascontiguousarray(R_meas, dtype=float),
+                                                  nu0)
+        else:
+            S_blocks = (H0 @ self.P) @ H0.transpose(0, 2, 1)
+            S_blocks[:, 0, 0] += R_meas
+            S_blocks[:, 1, 1] += R_meas
+            nis_stars = block_nis(nu0, S_blocks)
         gate = self.gate.decide(nis_stars, pred0.directions_st)
         # the last 10 frames as bits: one odd frame is counted, a pattern is reported
         self._mismatch_bits = ((self._mismatch_bits << 1) | int(gate.mismatch)) & 0x3FF
@@ -672,12 +679,12 @@ class StarFilter:
                 ctx_acc = subset_context(ctx, idx)
             th = theta0.copy()
             th[:self.P_est] += dx[self.it]
-            pred = model.predict(th, u_i[idx], ctx_acc, self._attitude_function(dx[self.ia]))
+            pred = self._predict(th, u_i[idx], ctx_acc, dx[self.ia])
             Hn, _ = self._star_jacobian(pred)
             return Hn.reshape(-1, N), pred.uv.reshape(-1)
 
         res = cov.iterated_update(self.P, H, h, z, r_diag, relinearize, self.update_policy,
-                                  self.ia, self.it)
+                                  self.ia, self.it, compiled=self.compiled_step)
         if not res.ok:
             self.counters.add("update_failed")
             log.warning("t=%.3f s: %s: frame skipped", t_exp, res.reason)

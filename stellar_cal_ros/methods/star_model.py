@@ -33,6 +33,28 @@ AttitudeFunction = Callable[[float], tuple[np.ndarray, np.ndarray]]
 frame's reported stamp (``ctx.stamp``).  Relative, because float POSIX seconds resolve only
 0.24 µs: ``(stamp + 0.02) − stamp`` is 0.02 ± 1e-7 s, 4e-5 px during a 5 °/s slew."""
 
+_ZERO3 = np.zeros(3)
+
+
+def state_attitude(R_i_b: np.ndarray, omega: np.ndarray, base: float,
+                   phi: np.ndarray | None = None) -> AttitudeFunction:
+    """The attitude function of a filter state: ``s -> (Exp(φ) R_i_b Exp(ω (s + base)), ω)``.
+
+    ``R_i_b`` (3, 3) and the body rate ``omega`` (3,), rad/s, hold at the filter's time;
+    ``base`` = frame stamp − filter time, s, so the attitude ``s`` seconds after the stamp
+    is ``s + base`` after the state's (no rotation when ``|s + base| < 1e-12``); ``phi``
+    (3,), optional, is a left attitude correction (relinearization).
+    :func:`predict_chain` computes the same.
+    """
+    R_now = R_i_b if phi is None else so3_exp(phi) @ R_i_b
+
+    def attitude(shift: float) -> tuple[np.ndarray, np.ndarray]:
+        dt = shift + base
+        R = R_now if abs(dt) < 1e-12 else R_now @ so3_exp(omega * dt)
+        return R, omega
+
+    return attitude
+
 
 @dataclass
 class Prediction:
@@ -44,7 +66,7 @@ class Prediction:
     directions_st: np.ndarray  # (n, 3)
     R_i_st: np.ndarray  # (3, 3)
     t_exposure: float
-    camera: CameraModel
+    camera: CameraModel | None  # None from the compiled chain (StarModel.predict_state)
 
 
 class StarModel:
@@ -95,6 +117,7 @@ class StarModel:
                                               prior.gyro_error_matrix)
         self._accel_fixed = self._fixed_sensor(Stage.ACCEL, prior.accel_bias,
                                                prior.accel_error_matrix)
+        self._compiled: Any = False  # see compiled_chain (False: not built yet)
 
     def _fixed_effects(self, prior) -> list[tuple[Effect, np.ndarray]]:
         from stellar_cal_ros.effects import registry
@@ -322,6 +345,50 @@ class StarModel:
                 sl = self.slices[eff.id]
                 H[:, :, sl] += Jd_skew @ eff.tracker_rotation_jacobian(theta[sl], ctx)
         return Prediction(uv, H_att, H, d, R_i_st, t_exp, camera)
+
+    def compiled_chain(self) -> Any:
+        """The star chain in compiled form (:mod:`~stellar_cal_ros.methods.star_chain`).
+
+        Built on first use (it imports numba); None without numba or when an effect has no
+        affine form.
+        """
+        if self._compiled is False:
+            from stellar_cal_ros.methods.star_chain import compile_chain
+
+            self._compiled = compile_chain(self)
+        return self._compiled
+
+    def predict_state(self, theta: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
+                      R_i_b: np.ndarray, omega: np.ndarray, base: float,
+                      phi: np.ndarray | None = None, jacobians: bool = True,
+                      compiled: bool = True) -> Prediction:
+        """:meth:`predict` with a filter state's attitude (:func:`state_attitude`).
+
+        Through :func:`~stellar_cal_ros.methods.star_chain.predict_chain` (one compiled
+        call) when the model has a :meth:`compiled_chain` and ``compiled`` is True; through
+        the effects' methods otherwise — the same numbers to rounding
+        (``Prediction.camera`` is None from the compiled chain).
+        """
+        ch = self.compiled_chain() if compiled else None
+        if ch is None:
+            return self.predict(theta, u_i, ctx, state_attitude(R_i_b, omega, base, phi),
+                                jacobians)
+        from stellar_cal_ros.methods.star_chain import predict_chain
+        u = np.ascontiguousarray(u_i, dtype=float)
+        n, P = len(u), self.size
+        uv, d, R_out = np.empty((n, 2)), np.empty((n, 3)), np.empty((2, 3, 3))
+        jac = 1 if jacobians else 0
+        H_att, H_par = np.empty((n * jac, 2, 3)), np.empty((n * jac, 2, P))
+        predict_chain(np.ascontiguousarray(theta, dtype=float), u,
+                      np.ascontiguousarray(R_i_b, dtype=float),
+                      _ZERO3 if phi is None else np.ascontiguousarray(phi, dtype=float),
+                      phi is not None, np.ascontiguousarray(omega, dtype=float), float(base),
+                      ch.s0, ch.g, ch.timed, ch.R_prior, ch.T, ch.tracked, ch.c, ch.B, ch.need,
+                      jac, uv, d, H_att, H_par, R_out)
+        ctx.R_i_b, ctx.omega_b, ctx.R_i_st = R_out[0], omega, R_out[1]
+        shift = ch.s0 + float(ch.g @ theta) if ch.timed else ch.s0
+        return Prediction(uv, H_att if jacobians else None, H_par if jacobians else None, d,
+                          R_out[1], ctx.stamp + shift, None)
 
     def _camera_columns(self, steps: list[tuple[slice | None, np.ndarray, np.ndarray]]
                         ) -> tuple[np.ndarray | None, np.ndarray | None]:

@@ -1,0 +1,368 @@
+"""The filters' compiled (numba) kernels: star projection and small rotations.
+
+The per-frame star step of the filters
+(:func:`stellar_cal_ros.methods.star_chain.predict_chain`) predicts every star of a frame
+in one compiled call built from these pieces.  They compute what the numpy code computes —
+:meth:`stellar_cal_ros.core.camera.CameraModel.project` for the projection,
+:mod:`stellar_cal_ros.core.rotation` for ``Exp`` and the right Jacobian (the same Python
+functions, compiled as they are) — with the same formulas, in scalar loops instead of array
+operations.  The distortion kernel therefore repeats the formulas of
+``CameraModel._distort_block`` (scalar instead of vectorized): the numpy one stays the
+reference (it serves every caller and runs without numba), this one serves the filters'
+per-frame step; a change to one is a change to both, and ``test/test_compiled_step.py``
+fails until both agree.  Results agree to rounding, not bit for bit (the order of a few
+additions and fused multiply-adds differs).
+
+numba is optional: :data:`HAVE_NUMBA` is False when it cannot be imported, and the filters
+then predict through the effects' Python methods (same estimates).  All kernels are compiled
+once per machine (``cache=True``, in ``__pycache__``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from stellar_cal_ros.core.rotation import _jacobian_single, _so3_exp_single
+
+try:  # optional: without it the filters use the numpy path
+    from numba import njit
+except ImportError:  # pragma: no cover - exercised only without numba
+    HAVE_NUMBA = False
+
+    def njit(*args, **kwargs):  # noqa: D103 - stand-in decorator: the Python function
+        if args and callable(args[0]):
+            return args[0]
+        return lambda f: f
+else:
+    HAVE_NUMBA = True
+
+FloatArray = np.ndarray
+
+#: ``Exp(φ)`` (3, 3) of one rotation vector (compiled; :func:`.rotation.so3_exp`)
+so3_exp1 = njit(cache=True)(_so3_exp_single)
+#: ``I + sign·b [φ]× + c [φ]×²`` (compiled; ``sign`` −1: the right Jacobian)
+jacobian1 = njit(cache=True)(_jacobian_single)
+
+
+@njit(cache=True)
+def mat3_mul(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``a @ b`` of two (3, 3) matrices."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return out
+
+
+@njit(cache=True)
+def skew3(v: FloatArray) -> FloatArray:
+    """``[v]×`` (3, 3) of a 3-vector."""
+    S = np.zeros((3, 3))
+    S[0, 1], S[0, 2] = -v[2], v[1]
+    S[1, 0], S[1, 2] = v[2], -v[0]
+    S[2, 0], S[2, 1] = -v[1], v[0]
+    return S
+
+
+@njit(cache=True)
+def _proj_z(r: FloatArray, homogeneous: float) -> FloatArray:
+    return np.array([[r[2, 2], 0.0, -r[0, 2]], [0.0, r[2, 2], -r[1, 2]],
+                     [0.0, 0.0, homogeneous]])
+
+
+@njit(cache=True)
+def tilt_kernel(tau_x: float, tau_y: float) -> FloatArray:
+    """``(M, dM/dtau_x, dM/dtau_y)`` stacked (3, 3, 3), as :func:`.camera.tilt_matrix`."""
+    cx_, sx_ = math.cos(tau_x), math.sin(tau_x)
+    cy_, sy_ = math.cos(tau_y), math.sin(tau_y)
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cx_, sx_], [0.0, -sx_, cx_]])
+    drx = np.array([[0.0, 0.0, 0.0], [0.0, -sx_, cx_], [0.0, -cx_, -sx_]])
+    ry = np.array([[cy_, 0.0, -sy_], [0.0, 1.0, 0.0], [sy_, 0.0, cy_]])
+    dry = np.array([[-sy_, 0.0, -cy_], [0.0, 0.0, 0.0], [cy_, 0.0, -sy_]])
+    rxy = mat3_mul(ry, rx)
+    out = np.empty((3, 3, 3))
+    out[0] = mat3_mul(_proj_z(rxy, 1.0), rxy)
+    for k in range(2):
+        d = mat3_mul(ry, drx) if k == 0 else mat3_mul(dry, rx)
+        out[k + 1] = mat3_mul(_proj_z(d, 0.0), rxy) + mat3_mul(_proj_z(rxy, 1.0), d)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def distort_points(x: FloatArray, y: FloatArray, p: FloatArray, tilt: FloatArray, jac: int,
+                   uv: FloatArray, J_xy: FloatArray, J_p: FloatArray) -> None:
+    """Distortion, tilt and camera matrix of normalised points, with Jacobians.
+
+    Parameters
+    ----------
+    x, y : numpy.ndarray, shape (N,)
+        Normalised coordinates ``X/Z``, ``Y/Z``.
+    p : numpy.ndarray, shape (18,)
+        Camera parameters (:attr:`CameraModel.PARAMETER_NAMES`).
+    tilt : numpy.ndarray, shape (3, 3, 3)
+        :func:`tilt_kernel` of ``p[16], p[17]``.
+    jac : int
+        0: pixels only; 1: also ``J_xy``; 2: also ``J_p``.
+    uv, J_xy, J_p : numpy.ndarray, shapes (N, 2), (N, 2, 2), (N, 2, 18)
+        Outputs (``J_xy``, ``J_p`` unused below their ``jac`` level; every entry of
+        ``J_p`` is written).
+
+    The rational denominator, the prism terms and the tilt stage are skipped when their
+    coefficients are zero (their Jacobian columns are still computed).
+    """
+    fx, fy, cx, cy = p[0], p[1], p[2], p[3]
+    k1, k2, p1, p2, k3, k4, k5, k6 = p[4], p[5], p[6], p[7], p[8], p[9], p[10], p[11]
+    s1, s2, s3, s4 = p[12], p[13], p[14], p[15]
+    rational = k4 != 0.0 or k5 != 0.0 or k6 != 0.0
+    prism = s1 != 0.0 or s2 != 0.0 or s3 != 0.0 or s4 != 0.0
+    tilted = p[16] != 0.0 or p[17] != 0.0
+    M = tilt[0]
+    for i in range(x.shape[0]):
+        xi, yi = x[i], y[i]
+        xx = xi * xi
+        yy = yi * yi
+        xy2 = 2.0 * xi * yi
+        r2 = xx + yy
+        r4 = r2 * r2
+        # radial factor g = num / den
+        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        iden = 1.0
+        g = num
+        if rational:
+            iden = 1.0 / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+            g = num * iden
+        # tangential and thin prism
+        ex = r2 + 2.0 * xx  # d x''/d p2
+        ey = r2 + 2.0 * yy  # d y''/d p1
+        xd0 = xi * g + p1 * xy2 + p2 * ex
+        yd0 = yi * g + p1 * ey + p2 * xy2
+        if prism:
+            xd0 = xd0 + r2 * (s1 + s2 * r2)
+            yd0 = yd0 + r2 * (s3 + s4 * r2)
+        # tilted image plane, then camera matrix
+        iw = 1.0
+        xd, yd = xd0, yd0
+        if tilted:
+            iw = 1.0 / (M[2, 0] * xd0 + M[2, 1] * yd0 + M[2, 2])
+            xd = (M[0, 0] * xd0 + M[0, 1] * yd0 + M[0, 2]) * iw
+            yd = (M[1, 0] * xd0 + M[1, 1] * yd0 + M[1, 2]) * iw
+        uv[i, 0] = fx * xd + cx
+        uv[i, 1] = fy * yd + cy
+        if jac == 0:
+            continue
+        # T = d(u, v) / d(x'', y''), from the tilt stage and the focal lengths
+        fiw, giw = fx * iw, fy * iw
+        T00, T01, T10, T11 = fx, 0.0, 0.0, fy
+        if tilted:
+            T00 = fiw * (M[0, 0] - xd * M[2, 0])
+            T01 = fiw * (M[0, 1] - xd * M[2, 1])
+            T10 = giw * (M[1, 0] - yd * M[2, 0])
+            T11 = giw * (M[1, 1] - yd * M[2, 1])
+        # D = d(x'', y'') / d(x, y)
+        dg = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        if rational:
+            dg = (dg - g * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) * iden
+        ax = xi * dg
+        ay = yi * dg
+        if prism:
+            ax = ax + (s1 + 2.0 * s2 * r2)
+            ay = ay + (s3 + 2.0 * s4 * r2)
+        ax = ax + ax
+        ay = ay + ay
+        cross = p1 * xi + p2 * yi
+        cross = cross + cross
+        D00 = g + xi * ax + 2.0 * p1 * yi + 6.0 * p2 * xi
+        D01 = yi * ax + cross
+        D10 = xi * ay + cross
+        D11 = g + yi * ay + 6.0 * p1 * yi + 2.0 * p2 * xi
+        if tilted:
+            J_xy[i, 0, 0] = T00 * D00 + T01 * D10
+            J_xy[i, 0, 1] = T00 * D01 + T01 * D11
+            J_xy[i, 1, 0] = T10 * D00 + T11 * D10
+            J_xy[i, 1, 1] = T10 * D01 + T11 * D11
+        else:
+            J_xy[i, 0, 0] = fx * D00
+            J_xy[i, 0, 1] = fx * D01
+            J_xy[i, 1, 0] = fy * D10
+            J_xy[i, 1, 1] = fy * D11
+        if jac == 1:
+            continue
+        J = J_p[i]
+        J[:, :] = 0.0
+        J[0, 0] = xd
+        J[1, 1] = yd
+        J[0, 2] = 1.0
+        J[1, 3] = 1.0
+        # radial k1 k2 k3 (columns 4 5 8) and k4 k5 k6 (9 10 11) move (x'', y'') along
+        # (x, y) by h = d g / d k
+        r6 = r4 * r2
+        ru = T00 * xi + T01 * yi if tilted else fx * xi
+        rv = T10 * xi + T11 * yi if tilted else fy * yi
+        mg = -g * iden if rational else -g
+        for col, pw in ((4, r2), (5, r4), (8, r6)):
+            h = pw * iden if rational else pw
+            J[0, col] = ru * h
+            J[1, col] = rv * h
+        for col, pw in ((9, r2), (10, r4), (11, r6)):
+            J[0, col] = ru * (pw * mg)
+            J[1, col] = rv * (pw * mg)
+        # tangential p1, p2: d(x'', y'')/dp1 = (2xy, ey), d(x'', y'')/dp2 = (ex, 2xy)
+        if tilted:
+            J[0, 6] = T00 * xy2 + T01 * ey
+            J[1, 6] = T10 * xy2 + T11 * ey
+            J[0, 7] = T00 * ex + T01 * xy2
+            J[1, 7] = T10 * ex + T11 * xy2
+        else:
+            J[0, 6] = fx * xy2
+            J[1, 6] = fy * ey
+            J[0, 7] = fx * ex
+            J[1, 7] = fy * xy2
+        # thin prism s1 s2 (x'' only) and s3 s4 (y'' only): (r2, r4)
+        J[0, 12], J[0, 13] = T00 * r2, T00 * r4
+        J[1, 12], J[1, 13] = T10 * r2, T10 * r4
+        J[0, 14], J[0, 15] = T01 * r2, T01 * r4
+        J[1, 14], J[1, 15] = T11 * r2, T11 * r4
+        # tilt angles act after the distortion: d(w0/w2, w1/w2)/dtau, w = M (x'', y'', 1)
+        for k in range(2):
+            dM = tilt[k + 1]
+            dw2 = dM[2, 0] * xd0 + dM[2, 1] * yd0 + dM[2, 2]
+            J[0, 16 + k] = fiw * (dM[0, 0] * xd0 + dM[0, 1] * yd0 + dM[0, 2] - xd * dw2)
+            J[1, 16 + k] = giw * (dM[1, 0] * xd0 + dM[1, 1] * yd0 + dM[1, 2] - yd * dw2)
+
+
+@njit(cache=True, error_model="numpy")
+def project_points(d: FloatArray, p: FloatArray, tilt: FloatArray, jac: int, uv: FloatArray,
+                   J_d: FloatArray, J_p: FloatArray) -> None:
+    """Project camera-frame directions ``d`` (N, 3) into ``uv`` (N, 2), with Jacobians.
+
+    ``J_d`` (N, 2, 3) ``d(u, v)/d(d)`` and ``J_p`` (N, 2, 18) as :func:`distort_points`
+    (``jac`` 0: none; otherwise both).  Rows with ``z <= 0`` give NaN.
+    """
+    n = d.shape[0]
+    x = np.empty(n)
+    y = np.empty(n)
+    iz = np.empty(n)
+    for i in range(n):
+        z = d[i, 2]
+        iz[i] = 1.0 / z if z > 0.0 else np.nan
+        x[i] = d[i, 0] * iz[i]
+        y[i] = d[i, 1] * iz[i]
+    J_xy = np.empty((n if jac else 0, 2, 2))
+    distort_points(x, y, p, tilt, 2 if jac else 0, uv, J_xy, J_p)
+    if not jac:
+        return
+    # d(x, y) / d(X, Y, Z) = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]
+    for i in range(n):
+        for r in range(2):
+            a = J_xy[i, r, 0] * iz[i]
+            b = J_xy[i, r, 1] * iz[i]
+            J_d[i, r, 0] = a
+            J_d[i, r, 1] = b
+            J_d[i, r, 2] = -(a * x[i] + b * y[i])
+
+
+# ---------------------------------------------------------------------------- Kalman update
+@njit(cache=True)
+def kalman_gain(P: FloatArray, H: FloatArray, r_diag: FloatArray, nu: FloatArray
+                ) -> tuple[int, FloatArray, float]:
+    """One pass of :func:`stellar_cal_ros.core.covariance.iterated_update`: the gain.
+
+    ``S = H P Hᵀ + diag(r)``, its Cholesky factor ``L`` (LAPACK), ``K = P Hᵀ S⁻¹`` and the
+    NIS ``νᵀ S⁻¹ ν`` (forward and back substitution).  ``P`` (N, N), ``H`` (m, N), ``r_diag``
+    and ``nu`` (m,).  Returns ``(ok, K (N, m), nis)``; ``ok`` 0 when ``S`` is not positive
+    definite (then ``K`` is zero).
+    """
+    N, m = P.shape[0], H.shape[0]
+    PHt = np.ascontiguousarray(P @ np.ascontiguousarray(H.T))  # (N, m)
+    S = H @ PHt
+    for i in range(m):
+        S[i, i] += r_diag[i]
+    # Cholesky (lower), column by column
+    L = np.zeros((m, m))
+    for j in range(m):
+        s = S[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return 0, np.zeros((N, m)), math.nan
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, m):
+            s = S[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+    y = np.empty(m)
+    for i in range(m):
+        s = nu[i]
+        for k in range(i):
+            s -= L[i, k] * y[k]
+        y[i] = s / L[i, i]
+    nis = 0.0
+    for i in range(m):
+        nis += y[i] * y[i]
+    # Kᵀ = S⁻¹ (P Hᵀ)ᵀ: solve L W = H P, then Lᵀ Kᵀ = W (row operations: contiguous)
+    Kt = np.ascontiguousarray(PHt.T)  # (m, N)
+    for i in range(m):
+        for k in range(i):
+            _row_sub(Kt, i, k, L[i, k])
+        Kt[i] /= L[i, i]
+    for i in range(m - 1, -1, -1):
+        for k in range(i + 1, m):
+            _row_sub(Kt, i, k, L[k, i])
+        Kt[i] /= L[i, i]
+    return 1, np.ascontiguousarray(Kt.T), nis
+
+
+@njit(cache=True, inline="always")
+def _row_sub(X: FloatArray, i: int, k: int, coef: float) -> None:
+    """``X[i] -= coef · X[k]`` in place."""
+    for c in range(X.shape[1]):
+        X[i, c] -= coef * X[k, c]
+
+
+@njit(cache=True)
+def joseph(P: FloatArray, K: FloatArray, H: FloatArray, r_diag: FloatArray) -> FloatArray:
+    """``(I − K H) P (I − K H)ᵀ + K diag(r) Kᵀ`` (not symmetrized, :func:`kalman_gain`)."""
+    N = P.shape[0]
+    A = -(K @ H)
+    for i in range(N):
+        A[i, i] += 1.0
+    KR = K * r_diag
+    return (A @ P) @ np.ascontiguousarray(A.T) + KR @ np.ascontiguousarray(K.T)
+
+
+@njit(cache=True)
+def star_blocks(H: FloatArray, P: FloatArray, r: FloatArray, nu: FloatArray
+                ) -> tuple[FloatArray, FloatArray]:
+    """Each star's innovation covariance and NIS (the gate's inputs), compiled.
+
+    ``S_i = H_i P H_iᵀ + r_i I`` (n, 2, 2) and ``ν_iᵀ S_i⁻¹ ν_i`` (n,) for ``H`` (n, 2, N),
+    ``P`` (N, N), ``r`` (n,) variances, ``nu`` (n, 2) — as ``(H @ P) @ Hᵀ`` and
+    :func:`stellar_cal_ros.core.gating.block_nis`.
+    """
+    n, N = H.shape[0], P.shape[0]
+    S = np.empty((n, 2, 2))
+    nis = np.empty(n)
+    HP = np.empty((2, N))
+    for i in range(n):
+        for a in range(2):
+            for c in range(N):
+                acc = 0.0
+                for k in range(N):
+                    acc += H[i, a, k] * P[k, c]
+                HP[a, c] = acc
+        for a in range(2):
+            for b in range(2):
+                acc = 0.0
+                for c in range(N):
+                    acc += HP[a, c] * H[i, b, c]
+                S[i, a, b] = acc
+        S[i, 0, 0] += r[i]
+        S[i, 1, 1] += r[i]
+        s00, s01, s11 = S[i, 0, 0], S[i, 0, 1], S[i, 1, 1]
+        x, y = nu[i, 0], nu[i, 1]
+        nis[i] = (s11 * x * x - 2 * s01 * x * y + s00 * y * y) / (s00 * s11 - s01 * s01)
+    return S, nis

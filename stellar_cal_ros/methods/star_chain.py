@@ -1,0 +1,208 @@
+"""The filters' star step in compiled form (numba): every star of a frame in one call.
+
+When every effect of a :class:`~stellar_cal_ros.methods.star_model.StarModel` is a constant
+affine map of its value (:meth:`~stellar_cal_ros.effects.base.Effect.affine_form`: the
+library's installation, time offset and camera effects), the model's chain folds into a few
+constant arrays (:class:`CompiledChain`) and :func:`predict_chain` computes the centroids
+and Jacobians of :meth:`StarModel.predict` with the kernels of
+:mod:`stellar_cal_ros.core.jit`.  Any other effect (a user's ``--effect-module`` without an
+affine form, a DIRECTION effect) or a missing numba: :func:`compile_chain` returns None and
+the model predicts through the effects' Python methods — the reference path.
+
+Both paths compute the same quantities with the same formulas, in a different order of a
+few floating-point operations, so they agree to rounding (~1e-16 relative) per call.  Over
+a replay the difference grows during the ill-conditioned start-up (one frame cannot tell a
+principal-point offset from an attitude tilt, so the first updates amplify a last-bit
+difference by up to the condition number of the innovation covariance) and then stays
+bounded: after a 300 s replay the estimates of both paths differ by far less than their
+posterior σ (``test/test_compiled_step.py`` states the bound).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from stellar_cal_ros.core.jit import (
+    HAVE_NUMBA,
+    jacobian1,
+    mat3_mul,
+    njit,
+    project_points,
+    skew3,
+    so3_exp1,
+    tilt_kernel,
+)
+from stellar_cal_ros.effects.base import Stage
+
+if TYPE_CHECKING:
+    from stellar_cal_ros.methods.star_model import StarModel
+
+
+@dataclass
+class CompiledChain:
+    """The star chain of a model whose effects all have an affine form (compiled step).
+
+    With every TIME, TRACKER and CAMERA effect a constant affine map of its value
+    (:meth:`Effect.affine_form`), and no DIRECTION effect, the chain is::
+
+        Δt = s0 + g·θ              (s0: the prior's time offset when no TIME effect)
+        δ  = T θ,  R_imu_st = R_prior Exp(δ)
+        p  = c + B θ               (the camera chain folded: c from the prior, B = ∂p/∂θ)
+
+    and :func:`predict_chain` computes the centroids and Jacobians of every star of a frame
+    in one compiled call — the quantities of :meth:`StarModel.predict`, to rounding.
+    """
+
+    s0: float
+    g: np.ndarray  #: (P,) ∂Δt/∂θ, s per unit
+    timed: bool  #: the time shift depends on θ (a TIME effect with a nonzero gradient)
+    R_prior: np.ndarray  #: (3, 3) prior installation R_imu_st
+    T: np.ndarray  #: (3, P) ∂δ/∂θ
+    tracked: bool  #: TRACKER effects present
+    c: np.ndarray  #: (18,) camera parameters at θ = 0
+    B: np.ndarray  #: (18, P) ∂p/∂θ
+    need: np.ndarray  #: (k,) intp, rows of B that are not zero
+
+
+def compile_chain(model: StarModel) -> CompiledChain | None:
+    """The :class:`CompiledChain` of ``model``, or None.
+
+    None without numba or when an effect has no affine form: the model then predicts
+    through the effects' methods.
+    """
+    if not HAVE_NUMBA or model._chain[Stage.DIRECTION]:
+        return None
+    P = model.size
+    g, T = np.zeros(P), np.zeros((3, P))
+    for stage, target in ((Stage.TIME, g), (Stage.TRACKER, T)):
+        for eff in model._by_stage[stage]:
+            form = eff.affine_form()
+            if form is None:
+                return None
+            target[..., model.slices[eff.id]] = form
+    c, B = np.array(model._camera_prior, dtype=float), np.zeros((18, P))
+    for eff, sl, fixed in model._chain[Stage.CAMERA]:
+        form = eff.affine_form()
+        if form is None:
+            return None
+        J, D = (np.asarray(f, dtype=float) for f in form)
+        c, B = D @ c, D @ B
+        if sl is None:
+            c = c + J @ fixed
+        else:
+            B[:, sl] += J
+    timed = bool(model.has_time_effect and np.any(g))
+    s0 = 0.0 if model.has_time_effect else float(model.prior.time_offset)
+    return CompiledChain(s0, g, timed, np.array(model._R_imu_st_prior, dtype=float), T,
+                         bool(model._by_stage[Stage.TRACKER]), c, B,
+                         np.flatnonzero(np.any(B != 0.0, axis=1)).astype(np.intp))
+
+
+@njit(cache=True, error_model="numpy")
+def predict_chain(theta, u, R_b, phi, use_phi, w, base, s0, g, timed, R_prior, T, tracked, c,
+                  B, need, jac, uv, d, H_att, H_par, R_out):
+    """:meth:`StarModel.predict` of a :class:`CompiledChain` (compiled).
+
+    Parameters
+    ----------
+    theta : ndarray (P,)
+        The model's parameters (estimated and consider).
+    u : ndarray (n, 3)
+        Catalogue unit vectors.
+    R_b, phi, use_phi, w, base
+        The filter's attitude function (:func:`~stellar_cal_ros.methods.star_model.
+        state_attitude`): ``R(s) = Exp(φ) R_b Exp(ω (s + base))`` (φ only if ``use_phi``;
+        no rotation when ``|s + base| < 1e-12``).
+    s0, g, timed, R_prior, T, tracked, c, B, need
+        The :class:`CompiledChain`.
+    jac : int
+        1: also the Jacobians.
+    uv, d : ndarray (n, 2), (n, 3)
+        Outputs: centroids, px; directions in the tracker frame.
+    H_att, H_par : ndarray (n, 2, 3), (n, 2, P)
+        Outputs ``∂uv/∂φ``, ``∂uv/∂θ`` (with ``jac``).
+    R_out : ndarray (2, 3, 3)
+        Outputs ``R_i_b`` at the exposure and ``R_i_st``.
+    """
+    n, P = u.shape[0], theta.shape[0]
+    R_now = mat3_mul(so3_exp1(phi), R_b) if use_phi else R_b
+    shift = s0
+    if timed:
+        acc = 0.0
+        for j in range(P):
+            acc += g[j] * theta[j]
+        shift = s0 + acc
+    dt = shift + base
+    R = R_now if abs(dt) < 1e-12 else mat3_mul(R_now, so3_exp1(w * dt))
+    delta = np.zeros(3)
+    for a in range(3):
+        acc = 0.0
+        for j in range(P):
+            acc += T[a, j] * theta[j]
+        delta[a] = acc
+    R_imu_st = mat3_mul(R_prior, so3_exp1(delta))
+    R_i_st = mat3_mul(R, R_imu_st)
+    R_out[0], R_out[1] = R, R_i_st
+    for i in range(n):
+        for j in range(3):
+            d[i, j] = u[i, 0] * R_i_st[0, j] + u[i, 1] * R_i_st[1, j] + u[i, 2] * R_i_st[2, j]
+    p = c.copy()
+    for k in need:
+        acc = 0.0
+        for j in range(P):
+            acc += B[k, j] * theta[j]
+        p[k] = c[k] + acc
+    J_d = np.empty((n if jac else 0, 2, 3))
+    J_p = np.empty((n if jac else 0, 2, 18))
+    project_points(d, p, tilt_kernel(p[16], p[17]), jac, uv, J_d, J_p)
+    if not jac:
+        return
+    Jr = jacobian1(delta, -1.0)
+    for i in range(n):
+        # attitude: J_d (R_st_i [u]×)
+        S = skew3(u[i])
+        A = np.empty((3, 3))
+        for a in range(3):
+            for b in range(3):
+                A[a, b] = (R_i_st[0, a] * S[0, b] + R_i_st[1, a] * S[1, b]
+                           + R_i_st[2, a] * S[2, b])
+        for r in range(2):
+            for b in range(3):
+                H_att[i, r, b] = (J_d[i, r, 0] * A[0, b] + J_d[i, r, 1] * A[1, b]
+                                  + J_d[i, r, 2] * A[2, b])
+        # camera columns: J_p ∂p/∂θ
+        for r in range(2):
+            for j in range(P):
+                acc = 0.0
+                for k in need:
+                    acc += J_p[i, r, k] * B[k, j]
+                H_par[i, r, j] = acc
+        if timed:  # J_d R_st_b [d_b]× ω ∂Δt/∂θ
+            db = np.empty(3)
+            for a in range(3):
+                db[a] = u[i, 0] * R[0, a] + u[i, 1] * R[1, a] + u[i, 2] * R[2, a]
+            cr = np.array([db[1] * w[2] - db[2] * w[1], db[2] * w[0] - db[0] * w[2],
+                           db[0] * w[1] - db[1] * w[0]])
+            for r in range(2):
+                s = 0.0
+                for a in range(3):
+                    dd = (cr[0] * R_imu_st[0, a] + cr[1] * R_imu_st[1, a]
+                          + cr[2] * R_imu_st[2, a])
+                    s += J_d[i, r, a] * dd
+                for j in range(P):
+                    H_par[i, r, j] += s * g[j]
+        if tracked:  # (J_d [d]×) Jr(δ) ∂δ/∂θ
+            Sd = skew3(d[i])
+            for r in range(2):
+                e = np.empty(3)
+                for b in range(3):
+                    e[b] = (J_d[i, r, 0] * Sd[0, b] + J_d[i, r, 1] * Sd[1, b]
+                            + J_d[i, r, 2] * Sd[2, b])
+                f = np.empty(3)
+                for b in range(3):
+                    f[b] = e[0] * Jr[0, b] + e[1] * Jr[1, b] + e[2] * Jr[2, b]
+                for j in range(P):
+                    H_par[i, r, j] += f[0] * T[0, j] + f[1] * T[1, j] + f[2] * T[2, j]
