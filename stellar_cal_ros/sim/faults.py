@@ -682,7 +682,7 @@ def catalogue() -> list[Variant]:
          "replay=error|flagged batch=error|flagged", _GYRO, False),
         ("imu_dead_axis", "units", "gyro z axis reports zeros (the others are good)",
          _bag_from(lambda rec, r: _imu_scale(rec, np.diag([1.0, 1.0, 0.0]))),
-         "replay=error|flagged batch=error|flagged", _GYRO, False),
+         "replay=error|flagged batch=error|flagged", _GYRO, True),
         ("imu_duplicates", "stream", "1 % of IMU messages recorded twice",
          _raw_from(_duplicate(TOPIC_IMU, 0.01)), _SKIP_RB, "", False),
         ("imu_late", "stream", "1 % of IMU messages logged after their successor",
