@@ -123,3 +123,24 @@ def test_imu_clock_an_hour_off_is_named(base, tmp_path, sign):
               "-": r"start 3600\.\d+ s after .* offset by about \+3600\.\d s"}[sign]
     with pytest.raises(DataError, match=expect):
         _replay(base, f"clock_imu_{sign}1h", tmp_path)
+
+
+@pytest.mark.parametrize("jump_s, flagged", [(3600.0, True), (-3600.0, False)])
+def test_live_imu_clock_jump_is_counted_not_raised(base, jump_s, flagged):
+    """Live (``strict_clock`` off) the IMU clock jumping mid-run is counted; a leap ahead
+    that the star frames do not follow flags the result, a jump back (the older samples are
+    dropped as late, as data sent again after a restart) does not."""
+    from test_online import bag_events, feed, make
+
+    events = bag_events(base.bag)
+    events = events[:len(events) // 3]  # 50 s
+    t_mid = events[len(events) // 2][0]
+    shift = int(jump_s * 1e9)
+    moved = [(lt, i, k, (p[0] + shift, *p[1:]) if k == "imu" and lt >= t_mid else p)
+             for lt, i, k, p in events]
+    cal = make(load_calibration(base.prior))
+    feed(cal, moved)
+    cal.finish()
+    assert cal.counters.imu_clock_jumps >= 1
+    reasons = cal.calibration().extra.get("data_quality", {}).get("reasons", [])
+    assert any("IMU clock jumped" in r for r in reasons) is flagged, reasons

@@ -18,10 +18,10 @@ passed (then the last value is used: ``env_stale``).  Older messages than what w
 are dropped and counted (``imu_late``, ``frames_late``).  :meth:`Calibrator.finish`
 releases everything (end of a bag).
 
-Star frames stamped more than ``max_frame_lead_s`` after the newest IMU sample are refused
+Star frames stamped over ``max_frame_lead_s`` after the newest IMU sample are refused
 (``frames_ahead``); an IMU clock that jumps (:mod:`~stellar_cal_ros.methods.clocks`) is a
-:class:`~stellar_cal_ros.errors.DataError` with ``strict_clock`` (a replay), live it is
-counted (``imu_clock_jumps``) and the result flagged (``data_quality`` in the result).
+:class:`~stellar_cal_ros.errors.DataError` with ``strict_clock`` (a replay); live it is
+counted (``imu_clock_jumps``), and a leap past the star frames flags the result.
 
 The relative time origin, the star cleaning, σ rules, the site and the environment are
 those of :mod:`stellar_cal_ros.methods.frames`.  Memory stays bounded: the filter's IMU
@@ -312,7 +312,7 @@ class Calibrator:
             self._imu_leap = leap or self._imu_leap
             if back:
                 c.imu_clock_jumps += 1
-                self._clock_fault(clocks.back_text(back, self.t0_ns))
+                self._clock_fault(clocks.back_text(back, self.t0_ns), flag=False)
         last = self._last_imu_ns
         if last is not None and len(t) and not (len(t) == 1 and t[0] > last):
             old = t <= last
@@ -329,10 +329,14 @@ class Calibrator:
             self.imu_max_ns = tmax
         return self._pump()
 
-    def _clock_fault(self, text: str) -> None:
-        """A clock fault: DataError with ``strict_clock``, else counted and flagged once."""
+    def _clock_fault(self, text: str, flag: bool = True) -> None:
+        """DataError if ``strict_clock``, else flagged, or (stamps back: data resent?) warned."""
         if self.driver.strict_clock:
             raise DataError(text)
+        if not flag:
+            if self.counters.imu_clock_jumps == 1:
+                log.warning("%s, or data sent again (older samples dropped as imu_late)", text)
+            return
         if text not in self.faults and len(self.faults) < 20:
             log.warning("%s; the result is degraded", text)
             self.faults.append(text)
