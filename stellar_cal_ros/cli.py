@@ -102,6 +102,9 @@ def _cmd_info(args: argparse.Namespace) -> int:
     print(f"integrity: {len(problems)} damaged part(s)")
     for p in problems:
         print(f"DAMAGED {p.describe(start)}")
+    more = f" (and {len(problems) - 1} more damaged part(s))" if len(problems) > 1 else ""
+    print(f"stellar-cal info: error: damaged bag: {problems[0].describe(start)}{more}",
+          file=sys.stderr)
     return 1
 
 

@@ -38,14 +38,11 @@ REDUCED = [
     ("imu_nan_one", "batch"), ("imu_nan_one", "diagnose"), ("imu_gap_60s", "batch"),
     ("imu_deg_s", "replay"), ("imu_deg_s", "batch"), ("stars_out_of_image", "replay"),
     ("misid_swap_2pct", "batch"), ("misid_swap_15pct", "batch"), ("clock_stars_+1h", "batch"),
-    ("missing_imu_topic", "replay"), ("prior_nan_focal", "batch"),
+    ("missing_imu_topic", "replay"), ("prior_nan_focal", "batch"), ("imu_dead_axis", "batch"),
 ]
 
 #: (variant, command): why it fails today, and who fixes it
-KNOWN = {
-    ("zeroed_middle", "info"): "I/O helper: info validates chunk CRCs and names the damage "
-                               "(today: reported healthy)",
-}
+KNOWN: dict[tuple[str, str], str] = {}
 
 _VARIANTS = {v.name: v for v in catalogue()}
 

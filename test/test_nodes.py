@@ -539,8 +539,8 @@ def test_flood_of_malformed_messages_does_not_stall_the_node(ros_context, excerp
     rate, every message is taken in and counted, no good frame is lost (the replay's
     calibration) and /diagnostics shows every counter.
 
-    The garbage carries no stamp inside the run: garbage that does can displace good frames
-    (see the xfail tests below), and a flood that backs up the star queue delays good frames
+    The garbage carries no stamp inside the run (garbage that does: the two tests below),
+    and a flood that backs up the star queue delays good frames
     beyond the reorder window (dropped as late, counted) — measured with NaN frames stamped
     between the tracker's: 39–96 of 119 updates.
     """
@@ -588,40 +588,40 @@ def _garbage_frame(stamp_ns: int, n: int = 20, value: float = math.nan):
 
 
 def _stream_with(excerpt, garbage):
-    """The excerpt through an OnlineCalibrator, ``garbage(stamp)`` frames pushed before each
-    real frame; returns the filter's update count."""
-    from test_online import make
+    """The excerpt through the live driver, ``garbage(stamp)`` frames pushed before each
+    real frame; returns the driver."""
+    from test_online import feed, make
 
     path, prior, ref, counts = excerpt
     cal = make(prior)
-    for _, _, kind, p in bag_events(path):
-        if kind == "imu":
-            cal.push_imu(p[0], p[1], p[2])
-        elif kind == "stars":
-            for g in garbage(int(p.stamp_ns)):
+    for e in bag_events(path):
+        if e[2] == "stars":
+            for g in garbage(int(e[3].stamp_ns)):
                 cal.push_stars(g)
-            cal.push_stars(p)
+        feed(cal, [e])
     cal.finish()
-    return cal.filter_counters()["updates"]
+    return cal
 
 
-@pytest.mark.xfail(strict=True, reason="online.py: a garbage frame with a good frame's stamp "
-                   "arriving first makes the good one a 'duplicate' (first wins); for the "
-                   "kernel refactor: a frame with valid stars replaces a pending one without")
 def test_same_stamp_garbage_does_not_shadow_the_good_frame(excerpt):
+    """A NaN frame carrying a good frame's stamp arrives first: the good one replaces it
+    (before: it was dropped as a duplicate, first wins)."""
     path, prior, ref, counts = excerpt
-    assert _stream_with(excerpt, lambda t: [_garbage_frame(t)]) == ref.counters["updates"]
+    cal = _stream_with(excerpt, lambda t: [_garbage_frame(t)])
+    assert cal.filter_counters()["updates"] == ref.counters["updates"]
+    assert cal.counters.frames_replaced == counts["/star_tracker/stars"]
 
 
-@pytest.mark.xfail(strict=True, reason="online.py: frames stamped far ahead of the IMU fill the "
-                   "pending buffer, whose overflow evicts the good (oldest) frames; for the "
-                   "kernel refactor: refuse frames far ahead of the newest IMU sample")
 def test_future_stamped_frames_do_not_evict_good_ones(excerpt):
+    """Frames stamped a day ahead are refused and counted (before: they filled the pending
+    buffer, whose overflow evicted the good frames: 0 of 119 updates)."""
     path, prior, ref, counts = excerpt
     day = 86_400 * 10**9
-    updates = _stream_with(excerpt, lambda t: [_garbage_frame(t + day + k, value=1.0)
-                                               for k in range(3)])
-    assert updates == ref.counters["updates"], updates
+    cal = _stream_with(excerpt, lambda t: [_garbage_frame(t + day + k, value=1.0)
+                                           for k in range(3)])
+    assert cal.filter_counters()["updates"] == ref.counters["updates"]
+    assert cal.counters.frames_ahead == 3 * counts["/star_tracker/stars"]
+    assert cal.counters.frames_overflow == 0
 
 
 def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tmp_path):

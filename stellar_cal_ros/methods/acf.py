@@ -599,7 +599,7 @@ def run_acf(
         cam = model.camera_at(theta_prior, fr[0].ctx)
         check_gyro_against_stars([f.t_rel + prior.time_offset for f in fr],
                                  [cam.unproject(f.uv) for f in fr], [f.u_i for f in fr],
-                                 lambda t: chain.attitude(t)[0])
+                                 lambda t: chain.attitude(t)[0], prior.installation.as_matrix())
     ref = fr[min(max(reference_frame, 0), len(fr) - 1)]
     t_ref = ref.t_rel + prior.time_offset
     names = ["attitude.phi_x", "attitude.phi_y", "attitude.phi_z"] + model.parameter_names()

@@ -16,23 +16,23 @@ every repair in :class:`DataQuality`:
   unknown), and a stamp jumping backwards is a clock jump: both raise
   :class:`~stellar_cal_ros.errors.DataError` naming the time and size.
 
-:func:`check_gyro_against_stars` compares the gyro's rotation between star frames with the
-stars' own (a Wahba fit per frame): a ratio of 57.3 is a gyro in deg/s, ~0 a dead gyro, and
-rotation axes that no fixed rotation maps onto each other are swapped or mirrored axes.
+:func:`check_gyro_against_stars` (:mod:`stellar_cal_ros.core.gyro_check`, the check the
+filters run too) compares the gyro's rotation between star frames with the stars' own: a
+ratio of 57.3 is a gyro in deg/s, ~0 a dead gyro, and rotation axes that no fixed rotation
+maps onto each other are swapped or mirrored axes.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.core.attitude import wahba
 from stellar_cal_ros.core.earth import Site
+from stellar_cal_ros.core.gyro_check import check_gyro_against_stars  # noqa: F401 (re-exported)
 from stellar_cal_ros.core.imu import ImuBuffer
 from stellar_cal_ros.errors import BagError, DataError, StellarCalError
 from stellar_cal_ros.io.bag import BagReader, ImuSeries, StarFrame
@@ -251,139 +251,6 @@ def report_quality(data: AcfData, span: tuple[float, float], n_stars: int, n_fra
     for r in reasons:
         log.warning("ACF result degraded: %s", r)
     return reasons
-
-
-def check_gyro_against_stars(times: Sequence[float], directions_st: Sequence[np.ndarray],
-                             directions_i: Sequence[np.ndarray],
-                             attitude: Callable[[float], np.ndarray]) -> dict[str, float]:
-    """Compare the gyro's rotation between star frames with the stars' rotation.
-
-    Each frame's tracker attitude comes from its own Wahba fit (:func:`_frame_wahba`,
-    wrong identities left out); frames whose stars fit worse than 5 × the median frame's
-    are not used.  Frame pairs: up to 200 anchor frames, each with the frames 1, 2, 4, …
-    256 later.  The angle ratio (gyro / stars) uses the pairs whose star
-    rotation is 0.05–2° (a gyro reading 57× too much stays below 180° there); the axis test
-    uses pairs rotated 2–170°: gyro axes (IMU frame) and star axes (tracker frame) must map
-    onto each other by one rotation (the installation) when they span more than one
-    direction.
-
-    Parameters
-    ----------
-    times : sequence of float
-        Relative time of each frame, s (increasing).
-    directions_st : sequence of ndarray (n_k, 3)
-        Measured star directions in the tracker frame (centroids unprojected with the
-        prior camera).
-    directions_i : sequence of ndarray (n_k, 3)
-        Their catalogue directions (inertial).
-    attitude : callable
-        ``t → R_n0_b(t)`` (3, 3) from the gyro chain.
-
-    Returns
-    -------
-    dict
-        ``ratio`` (median gyro angle / star angle), ``pairs`` (pairs in the ratio),
-        ``axis_misfit_deg`` (95th percentile of the angle between the gyro axes and the
-        star axes after the best fixed rotation; NaN if not tested).
-
-    Raises
-    ------
-    DataError
-        The gyro's rotation is not the stars' (wrong units, a dead gyro, swapped or
-        mirrored axes); the message names the likely cause.
-    """
-    n = len(times)
-    anchors = np.unique(np.linspace(0, n - 1, min(n, 200)).astype(int)).tolist()
-    needed = sorted({i + lag for i in anchors for lag in (0, *_LAGS) if i + lag < n})
-    fits = {k: _frame_wahba(np.asarray(directions_st[k]), np.asarray(directions_i[k]))
-            for k in needed}
-    rms = [e for _, e in fits.values() if np.isfinite(e)]
-    worst = 5.0 * max(float(np.median(rms)), 1e-5) if rms else np.inf
-
-    good = {k for k, (_, e) in fits.items() if e <= worst}  # frames their stars fit
-    pairs = np.array([(i, i + lag) for i in anchors for lag in _LAGS
-                      if i + lag < n and i in good and i + lag in good], dtype=int)
-    if not len(pairs):
-        return {"ratio": float("nan"), "pairs": 0, "axis_misfit_deg": float("nan")}
-    R_s = {k: fits[k][0] for k in good}
-    R_g = {k: attitude(float(times[k])) for k in good}
-    a_s = _rotvecs([R_s[i].T @ R_s[j] for i, j in pairs])
-    a_g = _rotvecs([R_g[i].T @ R_g[j] for i, j in pairs])
-    th_s, th_g = np.linalg.norm(a_s, axis=1), np.linalg.norm(a_g, axis=1)
-    in_ratio = (th_s >= np.deg2rad(0.05)) & (th_s <= np.deg2rad(2.0))
-    in_axes = (th_s >= np.deg2rad(2.0)) & (th_s <= np.deg2rad(170.0)) & (th_g > 1e-9)
-    ratio_s, ratio_g = th_s[in_ratio], th_g[in_ratio]
-    ax_s = a_s[in_axes] / th_s[in_axes, None]
-    ax_g = a_g[in_axes] / th_g[in_axes, None]
-    out = {"ratio": float("nan"), "pairs": len(ratio_s), "axis_misfit_deg": float("nan")}
-    if len(ratio_s):
-        ratio = float(np.median(ratio_g / ratio_s))
-        out["ratio"] = ratio
-        if not 0.5 < ratio < 2.0:  # a prior focal length tens of % off moves it that much
-            raise DataError(_ratio_cause(ratio, len(ratio_s)))
-    if len(ax_s) >= 3:
-        A_s, A_g = ax_s, ax_g
-        sv = np.linalg.svd(A_g, compute_uv=False)
-        if sv[1] > 0.2 * sv[0]:
-            R = wahba(A_s, A_g)  # R_imu_st: gyro axes (IMU) ≈ R · star axes (tracker)
-            mis = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", A_s @ R.T, A_g), -1, 1)))
-            out["axis_misfit_deg"] = float(np.percentile(mis, 95))
-            if out["axis_misfit_deg"] > 5.0:
-                raise DataError(
-                    f"the gyro's rotation axes between star frames match the stars' by no "
-                    f"fixed rotation (95 % of {len(ax_s)} frame pairs within "
-                    f"{out['axis_misfit_deg']:.1f} deg): IMU axes swapped, mirrored or "
-                    "mislabelled")
-    return out
-
-
-_LAGS = (1, 2, 4, 8, 16, 32, 64, 128, 256)
-
-
-def _frame_wahba(v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray | None, float]:
-    """``R_i_st`` of one frame and the RMS error of its inliers, rad (inf if < 3 stars).
-
-    Refitted (up to 4 times) without the stars more than 4 × the inliers' median error
-    (at least 20") off, until the inliers do not change.
-    """
-    ok = np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(u), axis=1)
-    if ok.sum() < 3:
-        return None, float("inf")
-    v, u = v[ok], u[ok]
-
-    def errors(R: np.ndarray) -> np.ndarray:
-        return np.arccos(np.clip(np.einsum("ij,ij->i", v @ R.T, u), -1, 1))
-
-    inl = np.ones(len(v), dtype=bool)
-    R = wahba(v, u)
-    for _ in range(4):
-        err = errors(R)
-        new = err <= max(4.0 * float(np.median(err[inl])), 1e-4)
-        if new.sum() < 3 or np.array_equal(new, inl):
-            break
-        inl = new
-        R = wahba(v[inl], u[inl])
-    return R, float(np.sqrt(np.mean(errors(R)[inl] ** 2)))
-
-
-def _rotvecs(mats: list[np.ndarray]) -> np.ndarray:
-    """Rotation vectors (k, 3) of rotation matrices."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(np.asarray(mats)).as_rotvec()
-
-
-def _ratio_cause(ratio: float, pairs: int) -> str:
-    head = (f"the gyro turns {ratio:.4g} x as far as the stars between star frames (median "
-            f"over {pairs} frame pairs)")
-    deg = 180.0 / np.pi
-    if abs(ratio / deg - 1.0) < 0.1:
-        return head + ": /imu/data looks like deg/s, the contract says rad/s"
-    if abs(ratio * deg - 1.0) < 0.1:
-        return head + ": the rates look converted from deg/s to rad/s twice"
-    if ratio < 0.05:
-        return head + ": the gyro shows almost no rotation (dead, disconnected or stuck)"
-    return head + ": wrong gyro units or scale"
 
 
 def load_acf_data(

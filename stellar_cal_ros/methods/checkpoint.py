@@ -138,7 +138,9 @@ def save_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
         "counters": dataclasses.asdict(cal.counters),
         "t0_ns": cal.t0_ns, "nominal_dt": cal.nominal_dt, "imu_max_ns": cal.imu_max_ns,
         "last_imu_ns": cal._last_imu_ns, "last_frame_ns": cal._last_frame_ns,
-        "frame_index": cal._frame_index,
+        "frame_index": cal._frame_index, "faults": list(cal.faults),
+        "imu_leap": None if cal._imu_leap is None else list(cal._imu_leap),
+        "first_frame_ns": cal._first_frame_ns,
         "imu_queue": enc.enc({"t": q.t[:q.n], "w": q.w[:q.n], "f": q.f[:q.n],
                               "sorted": q.sorted}, "q"),
         "staged": enc.enc(list(cal._staged), "staged"),
@@ -184,6 +186,9 @@ def load_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
     cal.t0_ns, cal.nominal_dt = meta["t0_ns"], meta["nominal_dt"]
     cal.imu_max_ns, cal._last_imu_ns = meta["imu_max_ns"], meta["last_imu_ns"]
     cal._last_frame_ns, cal._frame_index = meta["last_frame_ns"], meta["frame_index"]
+    cal.faults = list(meta.get("faults", []))
+    cal._imu_leap = None if meta.get("imu_leap") is None else tuple(meta["imu_leap"])
+    cal._first_frame_ns = meta.get("first_frame_ns")
     qd = _dec(meta["imu_queue"], a)
     cal._imu = _ImuQueue()
     cal._imu.push(qd["t"], qd["w"], qd["f"])

@@ -18,6 +18,11 @@ passed (then the last value is used: ``env_stale``).  Older messages than what w
 are dropped and counted (``imu_late``, ``frames_late``).  :meth:`Calibrator.finish`
 releases everything (end of a bag).
 
+Star frames stamped over ``max_frame_lead_s`` after the newest IMU sample are refused
+(``frames_ahead``); an IMU clock that jumps (:mod:`~stellar_cal_ros.methods.clocks`) is a
+:class:`~stellar_cal_ros.errors.DataError` with ``strict_clock`` (a replay); live it is
+counted (``imu_clock_jumps``), and a leap past the star frames flags the result.
+
 The relative time origin, the star cleaning, σ rules, the site and the environment are
 those of :mod:`stellar_cal_ros.methods.frames`.  Memory stays bounded: the filter's IMU
 history is trimmed to what it still needs, environment series to ``env_history_s``, and the
@@ -35,9 +40,9 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.core.types import StarFrame
-from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.errors import DataError, ModelError
 from stellar_cal_ros.io.calibration import Calibration
-from stellar_cal_ros.methods import models
+from stellar_cal_ros.methods import clocks, models
 from stellar_cal_ros.methods.frames import (
     ENV_KEYS,
     T0_IMU_SAMPLES,
@@ -88,6 +93,9 @@ class DriverConfig:
     #: are held, so a frame finds its IMU already integrated (the per-sample work stays in
     #: the IMU callbacks, off the frame's path; the result does not depend on the split)
     imu_flush_live: int = 8
+    max_frame_lead_s: float = 10.0  #: frames stamped this far after the newest IMU: refused
+    clock_jump_s: float = 10.0  #: IMU stamps jumping back (or leaping ahead) by more: a clock
+    strict_clock: bool = False  #: a clock jump raises DataError (replay) instead of a flag
     converge_window: int = 20  #: updates over which convergence is judged
     converge_sigma_ratio: float = 0.98  #: every σ(now)/σ(window ago) above this: settled
     converge_nis_ratio: float = 2.0  #: mean NIS/dof over the window below this: consistent
@@ -102,6 +110,7 @@ class InputCounters:
     imu_late: int = 0  # older than the released IMU (beyond the reorder window)
     imu_duplicate: int = 0  # same stamp as an already released sample
     imu_wrong_frame: int = 0
+    imu_clock_jumps: int = 0  # IMU stamps jumping back, or leaping ahead past star frames
     frames_received: int = 0
     frames_reordered: int = 0  # arrived after a frame with a later stamp (put in order)
     frames_late: int = 0
@@ -109,6 +118,8 @@ class InputCounters:
     frames_overflow: int = 0
     frames_wrong_frame: int = 0
     frames_no_site: int = 0
+    frames_ahead: int = 0  # stamped more than max_frame_lead_s after the newest IMU sample
+    frames_replaced: int = 0  # a pending frame with the same stamp and fewer usable stars
     stars_bad_sigma: int = 0  # negative or NaN σ in the message: the default σ was used
     env_received: int = 0
     env_invalid: int = 0
@@ -252,6 +263,9 @@ class Calibrator:
         self._frames_pending: list[StarFrame] = []  # sorted by stamp
         self._last_frame_ns: int | None = None  # last frame handed on
         self.env = {k: EnvSeries() for k in ENV_KEYS}
+        self.faults: list[str] = []  #: why the result is degraded (clocks; one line each)
+        self._imu_leap: tuple[int, int] | None = None  # (last stamp before, first after), ns
+        self._first_frame_ns: int | None = None  # stamp of the first star frame received
         self.sites = SiteEstimator(self.driver.max_fixes)
         self._inputs: dict[int, Any] = {}
         self._conv: deque[tuple[np.ndarray, float, int]] = deque(
@@ -293,6 +307,12 @@ class Calibrator:
             ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
             c.imu_invalid += int((~ok).sum())
             t, w, f = t[ok], w[ok], f[ok]
+        if len(t) and self.imu_max_ns is not None:
+            leap, back = clocks.imu_jumps(t, self.imu_max_ns, int(self.driver.clock_jump_s * 1e9))
+            self._imu_leap = leap or self._imu_leap
+            if back:
+                c.imu_clock_jumps += 1
+                self._clock_fault(clocks.back_text(back, self.t0_ns), flag=False)
         last = self._last_imu_ns
         if last is not None and len(t) and not (len(t) == 1 and t[0] > last):
             old = t <= last
@@ -309,6 +329,18 @@ class Calibrator:
             self.imu_max_ns = tmax
         return self._pump()
 
+    def _clock_fault(self, text: str, flag: bool = True) -> None:
+        """DataError if ``strict_clock``, else flagged, or (stamps back: data resent?) warned."""
+        if self.driver.strict_clock:
+            raise DataError(text)
+        if not flag:
+            if self.counters.imu_clock_jumps == 1:
+                log.warning("%s, or data sent again (older samples dropped as imu_late)", text)
+            return
+        if text not in self.faults and len(self.faults) < 20:
+            log.warning("%s; the result is degraded", text)
+            self.faults.append(text)
+
     def push_stars(self, frame: StarFrame) -> list[FrameOutcome]:
         """One ``StarCentroidArray`` (as a :class:`StarFrame`); returns processed frames.
 
@@ -318,6 +350,7 @@ class Calibrator:
         c = self.counters
         c.frames_received += 1
         stamp = int(frame.stamp_ns)
+        self._first_frame_ns = self._first_frame_ns or stamp
 
         def dropped(reason: str) -> list[FrameOutcome]:
             setattr(c, "frames_" + reason, getattr(c, "frames_" + reason) + 1)
@@ -330,18 +363,36 @@ class Calibrator:
             return dropped("late")
         if self._last_frame_ns is not None and stamp <= self._last_frame_ns:
             return dropped("duplicate" if stamp == self._last_frame_ns else "late")
+        if self.imu_max_ns is not None:
+            if stamp > self.imu_max_ns + int(self.driver.max_frame_lead_s * 1e9):
+                if not c.frames_ahead:
+                    log.warning("star frame stamped %.3f s after the newest IMU sample: refused "
+                                "(counted as frames_ahead; clocks that disagree?)",
+                                (stamp - self.imu_max_ns) * 1e-9)
+                return dropped("ahead")
+            if clocks.inside_leap(stamp, self._imu_leap, self.window_ns):
+                c.imu_clock_jumps += 1
+                self._clock_fault(clocks.leap_text(self._imu_leap, stamp, self.t0_ns))
+        cam = self.prior.camera
+        inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px)
         pending = self._frames_pending
         if not pending or stamp > int(pending[-1].stamp_ns):  # in order: the usual case
             pending.append(frame)
         else:
-            stamps = [f.stamp_ns for f in pending]
-            if stamp in stamps:
-                return dropped("duplicate")
-            i = int(np.searchsorted(np.asarray(stamps, dtype=np.int64), stamp))
+            stamps = np.asarray([f.stamp_ns for f in pending], dtype=np.int64)
+            i = int(np.searchsorted(stamps, stamp))
+            if i < len(pending) and stamps[i] == stamp:
+                # the same stamp twice: keep the one with more usable stars (a garbage
+                # message carrying a good frame's stamp must not shadow it)
+                if len(inp.uv) <= len(self._inputs[stamp].uv):
+                    return dropped("duplicate")
+                c.frames_duplicate += 1
+                c.frames_replaced += 1
+                pending[i] = frame
+                self._inputs[stamp] = inp
+                return self._pump()
             c.frames_reordered += 1
             pending.insert(i, frame)
-        cam = self.prior.camera
-        inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px)
         if inp.bad_sigma:
             if not c.stars_bad_sigma:
                 log.warning("star message at %.3f: %d stars with negative or NaN sigma; the "
@@ -686,7 +737,21 @@ class Calibrator:
                                  self.stamp(), estimated=len(theta))
         cal.extra["derived"] = derived_quantities(self.model, full, self.covariance())
         cal.extra["consistency"] = consistency(self.stats)
+        reasons = self.degraded()
+        if reasons:
+            cal.extra["data_quality"] = {"degraded": True, "reasons": reasons}
         return cal
+
+    def degraded(self) -> list[str]:
+        """Why the result is not to be trusted (one line each; empty: nothing known).
+
+        Clock faults (:attr:`faults`), the filter's (a gyro that disagrees with the stars,
+        found late), and more than 10 % of the star frames refused as stamped far ahead of
+        the IMU.
+        """
+        out = list(self.faults) + (list(self.filter.data_faults) if self.filter else [])
+        ahead = clocks.ahead_text(self.counters, self.driver.max_frame_lead_s, 0.1)
+        return out + [ahead] if ahead else out
 
     def filter_counters(self) -> dict[str, int]:
         """Counters of the filter (zeros before it starts), ``extra`` flattened."""
@@ -723,8 +788,11 @@ class Calibrator:
         return {"imu": self._imu.n + self._staged_n, "frames": len(self._frames_pending)}
 
     def require_initialized(self) -> None:
-        """Raise :class:`ModelError` naming why no frame could start the filter."""
+        """Raise why no frame could start the filter (DataError: offset clocks)."""
         if self.initialized:
             return
         counts = {k: v for k, v in self.all_counters().items() if v}
-        raise ModelError(f"no star frame could initialize the attitude (counters: {counts})")
+        why = clocks.offset_text(counts, self._first_frame_ns, self.t0_ns)
+        raise (DataError if why else ModelError)(
+            f"no star frame could initialize the attitude{': ' + why if why else ''}"
+            f" (counters: {counts})")

@@ -23,9 +23,11 @@ same for all methods lives here, once:
   state (box-plus per block) and the covariance reset; periodic check-and-repair of P;
 * IMU faults, once: samples go through :class:`~stellar_cal_ros.core.imu.ImuBuffer`, which
   bridges missing intervals; the propagation inflates the covariance by the bridging error;
-* a gyro in the wrong unit (deg/s): when a re-acquisition follows frames that the gyro
-  could not predict, the gyro's rotation since the last acquisition is compared with the
-  stars' — a ratio of 57.3 raises :class:`~stellar_cal_ros.errors.DataError` naming it;
+* a gyro that breaks the contract (deg/s, dead, swapped or mirrored axes): the gyro's own
+  rotation between frames is compared with the stars' (:mod:`~stellar_cal_ros.core.
+  gyro_check`, the ACF's check too); a fault found over the first frames raises
+  :class:`~stellar_cal_ros.errors.DataError` naming it, one found later flags the result
+  (:attr:`StarFilter.data_faults`);
 * the sensitivity of the state to *consider* parameters (candidate effects kept at their
   prior value): :class:`~stellar_cal_ros.core.covariance.Sensitivity`, for score tests and
   reliability in the diagnosis.
@@ -46,6 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from stellar_cal_ros.core import covariance as cov
+from stellar_cal_ros.core import gyro_check
 from stellar_cal_ros.core.attitude import fit_frame_attitude, wahba
 from stellar_cal_ros.core.gating import GatePolicy, block_nis, fov_tan2
 from stellar_cal_ros.core.imu import ImuBuffer
@@ -57,9 +60,6 @@ from stellar_cal_ros.errors import DataError, ModelError
 from stellar_cal_ros.methods.star_model import StarModel, state_attitude
 
 log = logging.getLogger(__name__)
-
-#: gyro-to-star rotation ratio of a gyro that reports deg/s where rad/s is expected
-DEG_PER_RAD = 180.0 / math.pi
 
 
 class NoImuError(Exception):
@@ -144,7 +144,7 @@ class KernelConfig:
     reinit_after: int = 3  #: consecutive frames with stars but no accepted update: re-acquire
     covariance_check_every: int = 50  #: check P (finite, symmetric, PD) every N updates
     init_second_order: bool = True  #: initial attitude covariance with the 2nd-order term
-    unit_check: bool = True  #: refuse a gyro that reports deg/s (DataError)
+    unit_check: bool = True  #: check the gyro against the stars (deg/s, dead, axes)
 
 
 class StarFilter:
@@ -224,7 +224,10 @@ class StarFilter:
         self._stamp_posix = 0.0  # reported stamp of the frame being processed (POSIX s)
         self._stamp_rel = 0.0  # the same, relative to t0 (from integer ns: exact)
         self._acquired: tuple[float, np.ndarray, int] | None = None  # (t, R_i_b, updates)
-        self.unit_checked = False
+        #: the gyro-against-stars check's state (None: off or decided)
+        self.gyro_watch = gyro_check.new_watch() if c.unit_check else None
+        self._R_prior: tuple[np.ndarray, bool] | None = None  # (R_i_b propagated, gap)
+        self.data_faults: list[str] = []  #: why the result is degraded (one line each)
         self.sensitivity = cov.Sensitivity(self.N, self.n_consider) if self.n_consider \
             else None
 
@@ -503,11 +506,9 @@ class StarFilter:
         After an IMU gap or a lost lock the nominal attitude (and velocity, position) carry
         errors the covariance does not describe; updating them would pull θ.  Their rows and
         columns of P are cleared and :meth:`initialize` sets them as at the start.  Before
-        that, the gyro's rotation since the last acquisition is compared with the stars'
-        (:meth:`_check_gyro_unit`).  False (state unchanged) if the frame cannot align.
+        False (state unchanged) if the frame cannot align.
         """
         saved = self._snapshot(full=True)
-        R_prop, acquired = self.R_i_b, self._acquired
         nav = self.layout.navigation_index
         self.P[nav, :] = 0.0
         self.P[:, nav] = 0.0
@@ -516,37 +517,30 @@ class StarFilter:
             return False
         self.counters.init_frames -= 1
         self.counters.reinitializations += 1
-        if acquired is not None and R_prop is not None:
-            self._check_gyro_unit(acquired, R_prop)
         self._after_reacquire()
         return True
 
-    def _check_gyro_unit(self, acquired: tuple[float, np.ndarray, int],
-                         R_prop: np.ndarray) -> None:
-        """Refuse a gyro whose rotation is 57.3× (or 1/57.3×) the stars' since acquisition.
+    def _watch_gyro(self, uv: np.ndarray, u_i: np.ndarray,
+                    R_prior: np.ndarray | None) -> None:
+        """Add the frame to the gyro-against-stars check (:mod:`~stellar_cal_ros.core.gyro_check`).
 
-        ``R_prop`` is the gyro-propagated attitude just before re-acquisition; it was not
-        corrected by any update only if every frame since the acquisition was rejected,
-        which is when a wrong unit shows.  Needs a star rotation of at least 100″ (Earth
-        rotation alone gives that within 7 s) to be decisive.
+        ``R_prior``: the attitude propagated to the frame (None: the gyro chain starts again).
+        A fault found over the first :data:`~stellar_cal_ros.core.gyro_check.EARLY_FRAMES`
+        frames raises :class:`DataError`; later it flags the result (:attr:`data_faults`).
         """
-        t_a, R_a, updates = acquired
-        if not self.config.unit_check or self.counters.updates != updates:
+        w = self.gyro_watch
+        prior = self.model.prior
+        cause = gyro_check.watch_frame(w, self.t, lambda: prior.camera.unproject(uv), u_i,
+                                       R_prior, self.R_i_b, prior.installation.as_matrix())
+        if w["done"]:
+            self.gyro_watch = None
+        if not cause:
             return
-        ang_star = float(np.linalg.norm(so3_log(self.R_i_b @ R_a.T)))
-        ang_gyro = float(np.linalg.norm(so3_log(R_prop @ R_a.T)))
-        if ang_star < 5e-4:
-            return
-        ratio = ang_gyro / ang_star
-        for factor, unit in ((DEG_PER_RAD, "deg/s"), (1.0 / DEG_PER_RAD, "rad/s given "
-                                                       "as deg/s (rates 57.3x too small)")):
-            if abs(ratio / factor - 1.0) < 0.2:
-                raise DataError(
-                    f"the gyro's rotation between t={t_a:.1f} s and t={self.t:.1f} s is "
-                    f"{ratio:.1f}x the stars' ({math.degrees(ang_gyro):.4f} deg vs "
-                    f"{math.degrees(ang_star):.4f} deg): the IMU angular_velocity looks like "
-                    f"{unit}; the contract (sensor_msgs/Imu) is rad/s")
-        self.unit_checked = True
+        self.counters.add("gyro_star_mismatch")
+        if w["frames"] <= gyro_check.EARLY_FRAMES:
+            raise DataError(cause)
+        log.warning("t=%.1f s: %s; the result is degraded", self.t, cause)
+        self.data_faults.append(cause)
 
     # ------------------------------------------------------------------ state snapshots
     def _nav_values(self) -> dict[str, np.ndarray]:
@@ -606,6 +600,8 @@ class StarFilter:
         except NoImuError:
             self.counters.skipped_no_imu += 1
             return None
+        if self.gyro_watch is not None:
+            self._R_prior = (self.R_i_b.copy(), self._gap_pending)
         if self._gap_pending:
             self._gap_pending = False
             if self.reacquire(uv, u_i, ctx, sigma):
@@ -756,9 +752,16 @@ class StarFilter:
         self._stamp_posix = ctx.stamp
         self._stamp_rel = t_rel
         if not self.initialized:
-            self.initialize(uv, u_i, ctx, sigma)
+            if self.initialize(uv, u_i, ctx, sigma) and self.gyro_watch is not None:
+                self._watch_gyro(uv, u_i, None)
             return None
-        return self.update(uv, u_i, ctx, sigma)
+        self._R_prior = None
+        upd = self.update(uv, u_i, ctx, sigma)
+        if self._R_prior is not None and self.gyro_watch is not None:
+            R, gap = self._R_prior
+            self._R_prior = None
+            self._watch_gyro(uv, u_i, None if gap else R)
+        return upd
 
 
 def wahba_inliers(camera, uv: np.ndarray, u_i: np.ndarray, outlier_px: float) -> np.ndarray:

@@ -52,9 +52,13 @@ def _events_from_data(data: BagData):
     """``(stamp_ns, role, payload)`` of a :class:`BagData` in time order (in memory)."""
     stamps = data.imu_stamp_ns
     out = []
-    for a in range(0, len(stamps), IMU_BLOCK):
-        b = min(a + IMU_BLOCK, len(stamps))
-        out.append((int(stamps[b - 1]), 0, "imu", (stamps[a:b], data.imu_w[a:b],
+    # blocks keyed by their first stamp: a frame comes after the IMU block it falls in, as
+    # from a bag read in log order (never far ahead of the newest IMU sample); cut where the
+    # stamps step by more than a second, so that the frames of an IMU gap come before it
+    cuts = np.flatnonzero(np.abs(np.diff(np.asarray(stamps, dtype=np.int64))) > 10**9) + 1
+    starts = sorted(set(range(0, len(stamps), IMU_BLOCK)) | set(cuts.tolist()))
+    for a, b in zip(starts, starts[1:] + [len(stamps)], strict=True):
+        out.append((int(stamps[a]), 0, "imu", (stamps[a:b], data.imu_w[a:b],
                                                    data.imu_f[a:b])))
     # frames in list (log) order: each keyed by the latest stamp so far, so a frame logged
     # late comes after its successors, as from a bag
@@ -205,7 +209,8 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
     cfg = config
     # a replay never drops frames for memory: what is held is bounded by the look-ahead
     drv = driver or DriverConfig(reorder_window_s=REPLAY_REORDER_S,
-                                 max_pending_frames=1_000_000, batch_frames=True)
+                                 max_pending_frames=1_000_000, batch_frames=True,
+                                 strict_clock=True)
     # IMU ahead of the frames: the filter takes it in large vectorized batches, and the
     # swaying strapdown gets full reference windows, as over a whole bag
     drv.imu_lookahead_s = max(drv.imu_lookahead_s, REPLAY_LOOKAHEAD_S)

@@ -680,6 +680,9 @@ def catalogue() -> list[Variant]:
         ("imu_dead", "units", "gyro reports zeros while the tracker turns",
          _bag_from(lambda rec, r: _imu_scale(rec, np.zeros((3, 3)))),
          "replay=error|flagged batch=error|flagged", _GYRO, False),
+        ("imu_dead_axis", "units", "gyro z axis reports zeros (the others are good)",
+         _bag_from(lambda rec, r: _imu_scale(rec, np.diag([1.0, 1.0, 0.0]))),
+         "replay=error|flagged batch=error|flagged", _GYRO, True),
         ("imu_duplicates", "stream", "1 % of IMU messages recorded twice",
          _raw_from(_duplicate(TOPIC_IMU, 0.01)), _SKIP_RB, "", False),
         ("imu_late", "stream", "1 % of IMU messages logged after their successor",
@@ -725,6 +728,9 @@ def catalogue() -> list[Variant]:
         ("clock_stars_+1h", "time", "star tracker clock 1 h ahead of the IMU's",
          _raw_from(_clock_jump((TOPIC_STARS,), 3600.0, 0.0)),
          "replay=error batch=error diagnose=error", _CLOCK, True),
+        *[(f"clock_imu_{sign}1h", "time", f"IMU clock {sign}1 h off the star tracker's",
+           _raw_from(_clock_jump((TOPIC_IMU,), float(f"{sign}3600"), 0.0)),
+           "replay=error batch=error diagnose=error", _CLOCK, False) for sign in "+-"],
         ("clock_imu_jump_-1h", "time", "IMU clock jumps back 1 h mid-run",
          _raw_from(_clock_jump((TOPIC_IMU,), -3600.0, 0.5)), "replay=error batch=error",
          _CLOCK, False),
@@ -743,8 +749,10 @@ def catalogue() -> list[Variant]:
         ("missing_gnss_topic", "topics", "no /gnss/fix (not needed by the baseline)",
          _bag_from(_drop_topic(TOPIC_FIX)), "replay=ok|skip batch=ok|skip", "", False),
         # -- priors
-        *[(name, "prior", text, _prior_from(fn), "replay=error batch=error", cause,
-           name in ("prior_no_camera", "prior_nan_focal"))
+        # a negative σ is warned about (its magnitude or the default is used), not refused
+        *[(name, "prior", text, _prior_from(fn),
+           "replay=error|skip batch=error|skip" if name == "prior_sigma_negative"
+           else "replay=error batch=error", cause, name in ("prior_no_camera", "prior_nan_focal"))
           for name, text, fn, cause in _PRIORS],
         ("prior_no_sigma", "prior", "no sigma block", _prior_from(_without("sigma")),
          "replay=error|skip|flagged batch=error|skip|flagged", r"sigma", False),

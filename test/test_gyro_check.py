@@ -1,0 +1,146 @@
+"""The gyro against the stars (issue 13), and clocks that disagree.
+
+``stellar_cal_ros.core.gyro_check`` compares the gyro's rotation between star frames with the
+stars' own; the filters run it while they stream (``methods/kernel.py``), the ACF over the
+whole run.  First on synthetic rotation vectors (each fault class and a sound gyro), then
+through ``replay`` on a simulated 150 s ``psce_rotations`` run (±30° steps about x, y, z)
+and variants of it from ``stellar_cal_ros.sim.faults``: swapped axes, a dead gyro and a gyro
+in deg/s are refused over the first frames, a gyro whose z axis is dead is flagged when the
+z steps show it (t = 120 s), the clean run raises no alarm, and an IMU clock 1 h off the
+tracker's is a DataError naming the offset.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from stellar_cal_ros.core import gyro_check
+from stellar_cal_ros.errors import DataError
+from stellar_cal_ros.io.calibration import load_calibration
+from stellar_cal_ros.methods.replay import replay
+from stellar_cal_ros.sim.faults import catalogue, make_base
+
+#: the installation used for the synthetic pairs (IMU ← tracker)
+R_IMU_ST = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()
+
+
+def _pairs(seed: int = 0) -> np.ndarray:
+    """Star rotation vectors (tracker frame), rad: 60 pairs of 0.1–1.5°, 60 of 3–40°."""
+    rng = np.random.default_rng(seed)
+    axes = rng.normal(size=(120, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    ang = np.deg2rad(np.concatenate([rng.uniform(0.1, 1.5, 60), rng.uniform(3.0, 40.0, 60)]))
+    return axes * ang[:, None]
+
+
+def _gyro(a_s: np.ndarray, matrix: np.ndarray, noise: float = 1e-6,
+          seed: int = 1) -> np.ndarray:
+    """The gyro's rotation vectors (IMU frame) of the same pairs through ``matrix``."""
+    rng = np.random.default_rng(seed)
+    rot = Rotation.from_rotvec(a_s @ R_IMU_ST.T)  # what a sound gyro measures
+    w = rot.as_rotvec() @ np.asarray(matrix).T  # its components mixed / scaled
+    return Rotation.from_rotvec(w).as_rotvec() + rng.normal(scale=noise, size=w.shape)
+
+
+def test_a_sound_gyro_passes_every_test():
+    a_s = _pairs()
+    out = gyro_check.judge(a_s, _gyro(a_s, np.eye(3)), R_IMU_ST)
+    assert out["cause"] == ""
+    assert abs(out["ratio"] - 1.0) < 1e-3 and out["pairs_off"] == 0
+    assert out["axis_misfit_deg"] < 0.01 and out["prior_misfit_deg"] < 0.01
+
+
+@pytest.mark.parametrize("matrix, pattern", [
+    (np.eye(3) * 180.0 / np.pi, r"looks like deg/s"),
+    (np.zeros((3, 3)), r"almost no rotation"),
+    (np.diag([1.0, 1.0, 0.0]), r"dead, stuck or mis-scaled gyro axis"),
+    (np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), r"swapped, mirrored"),
+], ids=["deg_s", "dead", "dead_z_axis", "x_y_swapped"])
+def test_each_gyro_fault_is_named(matrix, pattern):
+    a_s = _pairs()
+    out = gyro_check.judge(a_s, _gyro(a_s, matrix), R_IMU_ST)
+    assert out["cause"], out
+    assert re.search(pattern, out["cause"]), out["cause"]
+
+
+def test_a_dead_axis_the_motion_never_exercises_cannot_be_seen():
+    """Rotations about x and y only: a dead z axis changes nothing the stars can check."""
+    a_s = _pairs()
+    a_s[:, 2] = 0.0
+    a_s_imu = a_s @ R_IMU_ST.T
+    a_s_imu[:, 2] = 0.0  # rotations about IMU x, y only
+    a_s = a_s_imu @ R_IMU_ST
+    assert gyro_check.judge(a_s, _gyro(a_s, np.diag([1.0, 1.0, 0.0])), R_IMU_ST)["cause"] == ""
+
+
+# ---------------------------------------------------------------------------- replays
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    return make_base(tmp_path_factory.mktemp("gyro") / "base", duration=150.0, seed=1)
+
+
+_VARIANTS = {v.name: v for v in catalogue()}
+
+
+def _replay(base, name: str | None, tmp_path):
+    bag = base.bag if name is None else _VARIANTS[name].make(base, tmp_path / name).bag
+    return replay(bag, load_calibration(base.prior), "psce")
+
+
+def test_clean_run_raises_no_alarm(base, tmp_path):
+    res = _replay(base, None, tmp_path)
+    assert "gyro_star_mismatch" not in res.counters
+    assert "data_quality" not in res.calibration.extra
+    assert res.counters["updates"] >= 295  # of 300 frames
+
+
+@pytest.mark.parametrize("name, pattern", [
+    ("imu_axes_swapped", r"IMU axes swapped, mirrored or mislabelled"),
+    ("imu_dead", r"almost no rotation \(dead"),
+    ("imu_deg_s", r"57\.\d+ x as far as the stars.*deg/s"),
+])
+def test_gyro_faults_are_refused_over_the_first_frames(base, tmp_path, name, pattern):
+    with pytest.raises(DataError, match=pattern):
+        _replay(base, name, tmp_path)
+
+
+def test_dead_z_axis_is_flagged_when_the_z_steps_show_it(base, tmp_path):
+    res = _replay(base, "imu_dead_axis", tmp_path)
+    reasons = res.calibration.extra["data_quality"]["reasons"]
+    assert res.calibration.extra["data_quality"]["degraded"] is True
+    assert any("dead, stuck or mis-scaled gyro axis" in r for r in reasons), reasons
+    assert res.counters["gyro_star_mismatch"] == 1
+
+
+@pytest.mark.parametrize("sign", ["+", "-"])
+def test_imu_clock_an_hour_off_is_named(base, tmp_path, sign):
+    # the IMU stamps +1 h: the tracker's start 3600 s before them, and the reverse
+    expect = {"+": r"start 3599\.\d+ s before .* offset by about -3599\.\d s",
+              "-": r"start 3600\.\d+ s after .* offset by about \+3600\.\d s"}[sign]
+    with pytest.raises(DataError, match=expect):
+        _replay(base, f"clock_imu_{sign}1h", tmp_path)
+
+
+@pytest.mark.parametrize("jump_s, flagged", [(3600.0, True), (-3600.0, False)])
+def test_live_imu_clock_jump_is_counted_not_raised(base, jump_s, flagged):
+    """Live (``strict_clock`` off) the IMU clock jumping mid-run is counted; a leap ahead
+    that the star frames do not follow flags the result, a jump back (the older samples are
+    dropped as late, as data sent again after a restart) does not."""
+    from test_online import bag_events, feed, make
+
+    events = bag_events(base.bag)
+    events = events[:len(events) // 3]  # 50 s
+    t_mid = events[len(events) // 2][0]
+    shift = int(jump_s * 1e9)
+    moved = [(lt, i, k, (p[0] + shift, *p[1:]) if k == "imu" and lt >= t_mid else p)
+             for lt, i, k, p in events]
+    cal = make(load_calibration(base.prior))
+    feed(cal, moved)
+    cal.finish()
+    assert cal.counters.imu_clock_jumps >= 1
+    reasons = cal.calibration().extra.get("data_quality", {}).get("reasons", [])
+    assert any("IMU clock jumped" in r for r in reasons) is flagged, reasons
