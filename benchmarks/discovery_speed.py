@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -98,12 +99,25 @@ def _row(name: str, workers: int, m: dict[str, float], target: str) -> str:
             f"{m['pss_mb']:10.0f}   {target}")
 
 
+def where_the_time_goes(stdout: str, runs: bool) -> None:
+    """Print where a command's time went.
+
+    Its path lines (runs and seconds per round) and, with ``runs``, its per-run progress
+    lines (each run's own wall time in its worker).
+    """
+    for line in stdout.splitlines():
+        if re.match(r"\s+round \d+:", line) or (runs and re.search(r"\(\d+\.\d s\)$", line)):
+            print(f"    {line.strip()}")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Print the table (and the ratio 1 worker / 2 workers of each repetition)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--only", choices=["sky", "round"], default=None)
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--workers", default="1,2", help="worker counts to interleave")
+    ap.add_argument("--detail", action="store_true",
+                    help="print each round's runs and seconds, and each run's wall time")
     args = ap.parse_args(argv)
     counts = [int(w) for w in args.workers.split(",")]
     print("command: " + " ".join([sys.executable, *sys.argv]))
@@ -122,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
                     added = next((line for line in m["stdout"].splitlines()
                                   if line.startswith("final model")), "")
                     print(_row("sky", 2, m, "whole path <= 60 s") + f"  ({added[:60]}...)")
+                    if args.detail:
+                        where_the_time_goes(m["stdout"], runs=False)
         if args.only in (None, "round"):
             bag = ensure_2h_bag()
             prior = bag.with_suffix(".prior.yaml")
@@ -133,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
                                  f"{tmp}/round{w}"])
                     walls[w] = m["wall"]
                     print(_row("round", w, m, "<= 30 s, <= 500 MB"), flush=True)
+                    if args.detail:
+                        where_the_time_goes(m["stdout"], runs=True)
                 if 1 in walls and 2 in walls:
                     print(f"speed-up 1 -> 2 workers: {walls[1] / walls[2]:.2f}x (target >= 1.8)",
                           flush=True)
