@@ -20,13 +20,15 @@ shared machine hits both alike.  The 2-h bag is simulated once into
 Run::
 
     python benchmarks/discovery_speed.py                 # everything, 1 repetition
-    python benchmarks/discovery_speed.py --only round --repeat 2
+    python benchmarks/discovery_speed.py --only round --repeat 2 --detail
+    python benchmarks/discovery_speed.py --only breakdown   # where a 2-h round's time goes
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -38,6 +40,7 @@ from pathlib import Path
 import psutil
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's package (the measured commands run in ROOT)
 SKY = ROOT.parent / "shared" / "data" / "psce_sky_900s.mcap"
 
 
@@ -98,12 +101,64 @@ def _row(name: str, workers: int, m: dict[str, float], target: str) -> str:
             f"{m['pss_mb']:10.0f}   {target}")
 
 
+def where_the_time_goes(stdout: str, runs: bool) -> None:
+    """Print where a command's time went.
+
+    Its path lines (runs and seconds per round) and, with ``runs``, its per-run progress
+    lines (each run's own wall time in its worker).
+    """
+    for line in stdout.splitlines():
+        if re.match(r"\s+round \d+:", line) or (runs and re.search(r"\(\d+\.\d s\)$", line)):
+            print(f"    {line.strip()}")
+
+
+def breakdown(bag: Path) -> None:
+    """Where a 2-h round's time goes, in this process (one core).
+
+    Read the bag, the current model's run alone, the screening run scoring every candidate,
+    and each half of the candidates (what one of two workers runs).
+    """
+    from stellar_cal_ros.diagnosis import screening
+    from stellar_cal_ros.diagnosis.discover import _applicable, method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import bag_facts, quiet
+    from stellar_cal_ros.effects import registry
+    from stellar_cal_ros.io.calibration import load_calibration
+    from stellar_cal_ros.methods.replay import read_bag_data
+
+    spec = method_spec("psce")
+    prior = rerun_prior(load_calibration(bag.with_suffix(".prior.yaml")))
+    t0 = time.process_time()
+    data = read_bag_data(bag)
+    facts = bag_facts(data)
+    rows = [("read the bag", time.process_time() - t0)]
+    cands = [e for e in registry.available()
+             if e not in spec.baseline and not _applicable(e, spec, facts)]
+
+    def run(label: str, consider: list[str]) -> None:
+        t = time.process_time()
+        with quiet():
+            result = spec.runner(data, prior, [], consider=consider or None)
+            if consider:
+                spec.screen(result, consider)
+        rows.append((label, time.process_time() - t))
+
+    run("current model alone", [])
+    run(f"screening run, all {len(cands)} candidates", cands)
+    for i, part in enumerate(screening.parts(cands, 2)):
+        run(f"screening part {i + 1}/2 ({len(part)}: {','.join(part)[:40]})", part)
+    print("breakdown (CPU s of this process, one core):")
+    for label, sec in rows:
+        print(f"    {label:62s} {sec:7.1f}")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Print the table (and the ratio 1 worker / 2 workers of each repetition)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--only", choices=["sky", "round"], default=None)
+    ap.add_argument("--only", choices=["sky", "round", "breakdown"], default=None)
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--workers", default="1,2", help="worker counts to interleave")
+    ap.add_argument("--detail", action="store_true",
+                    help="print each round's runs and seconds, and each run's wall time")
     args = ap.parse_args(argv)
     counts = [int(w) for w in args.workers.split(",")]
     print("command: " + " ".join([sys.executable, *sys.argv]))
@@ -122,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
                     added = next((line for line in m["stdout"].splitlines()
                                   if line.startswith("final model")), "")
                     print(_row("sky", 2, m, "whole path <= 60 s") + f"  ({added[:60]}...)")
+                    if args.detail:
+                        where_the_time_goes(m["stdout"], runs=False)
         if args.only in (None, "round"):
             bag = ensure_2h_bag()
             prior = bag.with_suffix(".prior.yaml")
@@ -133,9 +190,13 @@ def main(argv: list[str] | None = None) -> int:
                                  f"{tmp}/round{w}"])
                     walls[w] = m["wall"]
                     print(_row("round", w, m, "<= 30 s, <= 500 MB"), flush=True)
+                    if args.detail:
+                        where_the_time_goes(m["stdout"], runs=True)
                 if 1 in walls and 2 in walls:
                     print(f"speed-up 1 -> 2 workers: {walls[1] / walls[2]:.2f}x (target >= 1.8)",
                           flush=True)
+    if args.only == "breakdown":
+        breakdown(ensure_2h_bag())
     print(f"load average {os.getloadavg()[0]:.1f} at the end (shared machine: other jobs "
           "slow every row alike)")
     return 0

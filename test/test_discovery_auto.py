@@ -145,18 +145,19 @@ def test_prior_uncertain_effects_are_candidates_listed_first(tmp_path):
 
 
 def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns():
-    """Candidates carry RunStats (no filter, no residual table); a plugged screening pass
-    keeps the candidates it rejects from being re-run."""
+    """Candidates carry RunStats (no filter, no residual table); a plugged score function
+    keeps the candidates it rejects from being re-run; the screening run (candidates as
+    consider parameters) is the current model's run: no separate re-run of it."""
     sim, data = _sim({"time_offset": 5e-4}, seed=14, duration=150.0)
     calls = []
     base_spec = method_spec("psce")
 
     def runner(d, p, effects, **kw):
-        calls.append(tuple(effects))
+        calls.append((tuple(effects), tuple(kw.get("consider") or ())))
         return base_spec.runner(d, p, effects, **kw)
 
-    def screen(bag, calibration, method, effects, candidates, window, baseline=None):
-        assert method == "psce" and effects == [] and 0 < window < 1
+    def screen(result, candidates):
+        assert result.filter.sensitivity is not None and result.residuals is not None
         return {e: ((500.0 if e == "time_offset" else 0.5), 1, np.eye(1) * 1e8)
                 for e in candidates}
 
@@ -165,12 +166,22 @@ def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns(
                                     ["time_offset", "pixel_aspect"])
     assert base.residuals is not None and isinstance(base, RunStats)
     by = {c.effect: c for c in results}
-    assert ("pixel_aspect",) not in calls and ("time_offset",) in calls
+    # one screening run, then the re-run of the candidate that passed (and the top one's
+    # refined run); never the current model alone, never the screened-out candidate
+    assert calls[0][0] == () and set(calls[0][1]) == {"pixel_aspect", "time_offset"}
+    assert ((), ()) not in calls and (("pixel_aspect",), ()) not in calls
+    assert (("time_offset",), ()) in calls
     assert by["pixel_aspect"].status == "screened_out" and by["pixel_aspect"].run is None
     top = by["time_offset"]
     assert top.significant and isinstance(top.run, RunStats) and top.run.residuals is None
     assert top.refined_run is not None and top.refined_run.residuals is not None
     assert not hasattr(top.run, "filter")
+    # the screening run's statistics are those of the current model alone
+    alone = spec.runner(data, rank_candidates.__globals__["rerun_prior"](sim.prior), [],
+                        keep_tables=False)
+    assert base.window["log_likelihood"] == alone.stats.window(0.5)["log_likelihood"]
+    assert base.names == alone.filter.model.parameter_names()
+    np.testing.assert_array_equal(base.theta, alone.filter.theta)
 
 
 def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):
@@ -192,6 +203,31 @@ def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):
     from_bytes = load_bag(BagBytes.of(paths["bag"]))
     assert len(from_bytes.frames) == len(data.frames)
     assert np.array_equal(from_bytes.imu_w, data.imu_w)
+
+
+def test_auto_with_two_dask_workers_chooses_as_one_worker(tmp_path):
+    """--auto on a 2-worker LocalCluster gives the path of a 1-worker one: the screening
+    split into two parts (one per worker) changes no score test and no decision."""
+    sim, data = _sim({"time_offset": 0.01, "gyro_scale_factor": 1e-4}, seed=21,
+                     duration=120.0)
+    cands = ["time_offset", "pixel_aspect", "gyro_scale_factor", "image_plane_tilt"]
+    s = {n: diagnose(data, sim.prior, "psce", [], tmp_path / str(n), candidates=cands,
+                     plots=False, verbose=False, auto=True, workers=n) for n in (1, 2)}
+    assert s[2]["executor"] == "on 2 local worker processes"
+    assert s[1]["added"] == s[2]["added"]
+    assert set(s[2]["added"]) == {"time_offset", "gyro_scale_factor"}, s[2]["path"]
+    assert [p["action"] for p in s[1]["path"]] == [p["action"] for p in s[2]["path"]]
+    for eff in s[1]["added"]:
+        for name, (value, sigma) in s[1]["final_estimates"][eff].items():
+            v2, s2 = s[2]["final_estimates"][eff][name]
+            assert v2 == pytest.approx(value, rel=1e-9) and s2 == pytest.approx(sigma, rel=1e-9)
+    for a, b in zip(s[1]["path"], s[2]["path"], strict=True):
+        assert a["log_likelihood"] == pytest.approx(b["log_likelihood"], rel=1e-12)
+        ra = {r["effect"]: (r["status"], r["p_value"]) for r in a["rejected"]}
+        rb = {r["effect"]: (r["status"], r["p_value"]) for r in b["rejected"]}
+        assert ra.keys() == rb.keys()
+        for e, (status, p) in ra.items():
+            assert rb[e][0] == status and rb[e][1] == pytest.approx(p, rel=1e-9, nan_ok=True)
 
 
 def test_lambda0_and_mdb_against_closed_forms():

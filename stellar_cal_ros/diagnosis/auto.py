@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from stellar_cal_ros.diagnosis import screening
 from stellar_cal_ros.diagnosis.discover import (
     ALPHA,
     MIN_EXPLAINED,
@@ -196,6 +197,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
     first: RunStats | None = None
     current: RunStats | None = None
     stopped = ""
+    local = True
     with open_runner(bag, spec, evaluation_fraction, options.get("workers", 0),
                      options.get("scheduler")) as runs:
         uncertain = prior_uncertain(calibration, set(spec.baseline) | set(user))
@@ -211,7 +213,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             prior = rerun_prior(state.start)
             base, results, extras = rank_round(
                 r, state.start, state.extra, [e for e in pool if e not in state.dropped],
-                condition=False, more=_checks(state, prior, calibration, pool))
+                condition=False, more=_checks(state, prior, calibration, pool),
+                screen=local)
             if current is not None and current is not first:
                 current.residuals = None  # keep the first and the newest table only
             current = base
@@ -254,6 +257,9 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                     c.effect for c in results if c is not top and c.significant_alone
                     and c.statistic >= RIVAL_SCORE * top.statistic][:MAX_RIVALS]
             state.start, state.last = follow.calibration, added or removed
+            # the run of the next model tells whether a local (score) test can screen
+            # its candidates; if not, the next round re-runs them all at once
+            local = screening.is_local(follow)
     return _write(out, calibration, spec, state, path, history, first, current, results,
                   evaluation_fraction, plots, runs, stopped, time.perf_counter() - t_start)
 

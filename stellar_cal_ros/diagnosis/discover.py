@@ -95,8 +95,10 @@ PHYSICAL_TOL_FRACTION = 0.25
 class MethodSpec:
     """How the diagnosis runs one estimation method.
 
-    ``runner`` is the only way the diagnosis calls an estimator; ``screen`` the method's
-    one-pass score test (:func:`~stellar_cal_ros.diagnosis.screening.screen_function`).
+    ``runner`` is the only way the diagnosis calls an estimator; ``screen`` turns its run
+    with the candidates as consider parameters into their score tests
+    (:func:`~stellar_cal_ros.diagnosis.screening.kernel_scores`; ``None``: no screening,
+    every candidate is re-run).
     """
 
     name: str
@@ -107,17 +109,19 @@ class MethodSpec:
 
 
 def _runner(method: str) -> Runner:
-    """``(data, prior, effects, keep_tables=False, eval_fraction=0.5) -> ReplayResult``.
+    """``(data, prior, effects, keep_tables=False, eval_fraction=0.5, consider=None)``.
 
-    Without ``keep_tables`` the run keeps only its running statistics (the evaluation
-    window's log-likelihood, RMS, NIS, whiteness): no residual table, no history.
+    Returns the ReplayResult.  Without ``keep_tables`` the run keeps only its running
+    statistics (the evaluation window's log-likelihood, RMS, NIS, whiteness): no residual
+    table, no history.  ``consider``: candidates tracked for the screening's score tests.
     """
     def run(data: BagData, prior: Calibration, effects: list[str],
-            keep_tables: bool = False, eval_fraction: float = 0.5) -> ReplayResult:
+            keep_tables: bool = False, eval_fraction: float = 0.5,
+            consider: list[str] | None = None) -> ReplayResult:
         from stellar_cal_ros.methods.replay import replay
 
         return replay(data, prior, method, effects, keep_tables=keep_tables,
-                      eval_fraction=eval_fraction)
+                      eval_fraction=eval_fraction, consider=consider)
 
     return run
 
@@ -382,17 +386,29 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunStats, reference: R
                 "and diagnose again")
 
 
+#: a screening run goes first (the round's re-runs wait for it)
+_SCREEN_COST = 10.0
+
+
+def _candidate_task(r: Round, prior: Calibration, extra: list[str], effect_id: str) -> Task:
+    return Task(effect_id, candidate_prior(prior, effect_id, r.user_prior),
+                tuple(extra) + (effect_id,), cost=_cost(effect_id))
+
+
 def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
-               base: RunStats | None = None, condition: bool = True,
-               keep_residuals: bool = True, more: list[Task] | None = None,
+               condition: bool = True, keep_residuals: bool = True,
+               more: list[Task] | None = None, screen: bool = True,
                ) -> tuple[RunStats, list[CandidateResult], dict[str, RunStats]]:
-    """One round: screen, re-run the current model and the candidates, decide.
+    """One round: screen, re-run the candidates that pass, decide.
 
     ``start`` gives the start values (:func:`rerun_prior`); ``extra`` are the model's
-    effects beyond the baseline; ``base`` a run of that model from ``start`` if one exists
-    already.  With ``condition`` the strong candidates are tested again after the top one
-    (:func:`condition_on_top`).  ``more``: further runs to execute in the same batch
-    (their statistics are returned by key, undecided).
+    effects beyond the baseline.  The screening runs (one per worker, each scoring a part
+    of the candidates) are the current model's re-run; with ``screen=False`` (the caller
+    expects the current model far from consistent, where a local test says nothing) the
+    current model and every candidate are re-run at once.  With ``condition`` the strong
+    candidates are tested again after the top one (:func:`condition_on_top`).  ``more``:
+    further runs to execute with the first batch (their statistics are returned by key,
+    undecided).
     """
     prior = rerun_prior(start)
     in_model = set(r.spec.baseline) | set(extra)
@@ -405,24 +421,38 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         else:
             testable.append(effect_id)
     alpha_mdb = ALPHA / max(len(testable), 1)
-    screened = screening.run_screen(r.runs, r.spec.screen, prior, r.spec.name, extra,
-                                    testable, r.fraction, r.spec.baseline) or {}
-    cands = {e: CandidateResult(e, "ranked", screen=screened.get(e),
-                                prior_uncertain=e in r.uncertain) for e in testable}
-    tasks = [] if base is not None else [Task("current model", prior, tuple(extra),
-                                              keep_residuals, cost=1.0)]
-    for e, c in cands.items():
-        if c.screen is not None and not c.screen.passes:
-            c.status, c.dof = "screened_out", c.screen.dof
-            c.p_value = c.screen.p_value
+    more = list(more or [])
+    cands = {e: CandidateResult(e, "ranked", prior_uncertain=e in r.uncertain)
+             for e in testable}
+    current = Task("current model", prior, tuple(extra), keep_residuals, cost=1.0)
+    base = None
+    if screen and r.spec.screen is not None and testable:
+        groups = screening.parts(testable, r.runs.workers)
+        first = [Task(f"screen {i + 1}/{len(groups)}", prior, tuple(extra),
+                      keep_residuals and i == 0, cost=_SCREEN_COST, screen=tuple(g))
+                 for i, g in enumerate(groups)]
+        out = r.runs.run_all(first + more, r.done)
+        screens = [out.pop(t.key) for t in first]
+        scores = screening.collect(screens)
+        rerun = []
+        for e, c in cands.items():
+            c.screen = scores.get(e)
+            if c.screen is None or c.screen.passes:
+                rerun.append(e)
+                continue
+            c.status, c.dof, c.p_value = "screened_out", c.screen.dof, c.screen.p_value
             c.detect = reliability.detectability(e, c.screen.information, alpha_mdb)
             if not _untestable(c):
                 c.reason = f"score test p = {c.p_value:.2g}: not re-run"
-            continue
-        tasks.append(Task(e, candidate_prior(prior, e, r.user_prior), tuple(extra) + (e,),
-                          cost=_cost(e)))
-    out = r.runs.run_all(tasks + list(more or []), r.done)
-    extras = {t.key: out.pop(t.key) for t in more or []}
+        # every screening run is the current model's run (consider parameters leave the
+        # filter alone): the first that finished is the reference
+        base = next((s for s in screens if s.ok), None)
+        tasks = [_candidate_task(r, prior, extra, e) for e in rerun]
+        out.update(r.runs.run_all(tasks if base is not None else [current] + tasks, r.done))
+    else:
+        out = r.runs.run_all([current] + [_candidate_task(r, prior, extra, e)
+                                          for e in testable] + more, r.done)
+    extras = {t.key: out.pop(t.key) for t in more}
     if base is None:
         base = out.pop("current model")
         if not base.ok:

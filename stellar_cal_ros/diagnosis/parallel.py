@@ -44,7 +44,6 @@ from stellar_cal_ros.diagnosis.runstats import (
     RunStats,
     bag_facts,
     evaluate,
-    register_effect_classes,
 )
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import Calibration
@@ -65,6 +64,8 @@ class Task:
     effects: tuple[str, ...]
     keep_residuals: bool = False
     cost: float = 1.0  #: expected relative run time: longer runs are started first
+    #: candidates this run scores (a screening run, :mod:`~stellar_cal_ros.diagnosis.screening`)
+    screen: tuple[str, ...] = ()
 
 
 def user_effect_classes() -> tuple[type, ...]:
@@ -73,12 +74,6 @@ def user_effect_classes() -> tuple[type, ...]:
 
     builtin = set(registry._BUILTIN)
     return tuple(cls for cls in registry.EFFECTS.values() if cls not in builtin)
-
-
-def _call_with_classes(classes: tuple[type, ...], fn: Callable, *args: Any) -> Any:
-    """``fn(*args)`` in a worker that first learns the user's effect classes."""
-    register_effect_classes(classes)
-    return fn(*args)
 
 
 def _file_size(path: str) -> int:
@@ -110,7 +105,7 @@ class Runs:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes."""
         for task in sorted(tasks, key=lambda t: -t.cost):
             out = evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
-                           task.keep_residuals, ())
+                           task.keep_residuals, (), task.screen)
             if done:
                 done(task, out)
             yield task, out
@@ -119,10 +114,6 @@ class Runs:
                 done: Callable[[Task, RunStats], None] | None = None) -> dict[str, RunStats]:
         """Run ``tasks`` and return ``{key: stats}``."""
         return {t.key: s for t, s in self.map(tasks, done)}
-
-    def call(self, fn: Callable, *args: Any) -> Any:
-        """Call ``fn(bag, *args)`` where the runs execute (the screening pass)."""
-        return fn(self.bag, *args)
 
     def close(self) -> None:
         """Release the workers."""
@@ -181,7 +172,8 @@ class DaskRuns(Runs):
         for task in tasks:
             fut = self.client.submit(evaluate, self.remote_bag, self.spec, task.prior,
                                      task.effects, self.fraction, task.keep_residuals,
-                                     self.classes, pure=False, priority=int(100 * task.cost),
+                                     self.classes, task.screen, pure=False,
+                                     priority=int(100 * task.cost),
                                      key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
             futures[fut] = task
         for fut in as_completed(futures):
@@ -194,10 +186,6 @@ class DaskRuns(Runs):
             if done:
                 done(task, out)
             yield task, out
-
-    def call(self, fn, *args):  # noqa: D102
-        return self.client.submit(_call_with_classes, self.classes, fn, self.remote_bag,
-                                  *args, pure=False).result()
 
     def close(self) -> None:  # noqa: D102
         with contextlib.suppress(Exception):

@@ -81,6 +81,9 @@ class RunStats:
     epp_jacobian: np.ndarray | None = None
     seconds: float = 0.0  #: wall time of the run
     residuals: Table | None = None
+    #: a screening run's raw score tests, ``{effect: (LM, dof, I, M)}``
+    #: (:mod:`~stellar_cal_ros.diagnosis.screening`)
+    scores: dict[str, tuple] | None = None
     error: str = ""
 
     @property
@@ -111,12 +114,12 @@ class RunStats:
         return dict(zip(self.names, self.theta.tolist(), strict=True))
 
 
-def _epp_jacobian(model, theta: np.ndarray) -> np.ndarray:
-    """∂(equivalent principal point)/∂θ by central differences, (2, n)."""
+def _epp_jacobian(model, theta: np.ndarray, columns: int) -> np.ndarray:
+    """∂(equivalent principal point)/∂θ[:columns] by central differences, (2, columns)."""
     n = model.size
     zero = np.zeros((n, n))
-    J = np.zeros((2, n))
-    for j in range(n):
+    J = np.zeros((2, columns))
+    for j in range(columns):
         h = 1e-6 * max(1.0, abs(theta[j]))
         tp, tm = theta.copy(), theta.copy()
         tp[j] += h
@@ -132,21 +135,22 @@ def run_statistics(result: ReplayResult, fraction: float,
     """Reduce a run to its :class:`RunStats` (the one place that reads a ReplayResult)."""
     flt = result.filter
     model = flt.model
+    n = flt.P_est  # the estimated θ (a screening run's consider entries follow it)
     theta = np.array(flt.theta, dtype=float)
-    P = np.array(flt.P[flt.it, flt.it], dtype=float)  # the estimated θ
+    P = np.array(flt.P[flt.it, flt.it], dtype=float)
     derived = {k: v for k, v in (result.derived or {}).items()
                if isinstance(v, (int, float, list, tuple)) and not isinstance(v, bool)}
     try:
-        J = _epp_jacobian(model, theta)
+        J = _epp_jacobian(model, theta, n)
     except Exception:  # a model without a camera chain: no derived bias
         J = None
     return RunStats(
         effects=(),
-        names=model.parameter_names(),
-        slices={k: (s.start, s.stop) for k, s in model.slices.items()},
-        theta=theta,
+        names=model.parameter_names()[:n],
+        slices={k: (s.start, s.stop) for k, s in model.slices.items() if s.stop <= n},
+        theta=theta[:n],
         P=0.5 * (P + P.T),
-        prior_sigma=np.array(model.initial_sigma, dtype=float),
+        prior_sigma=np.array(model.initial_sigma[:n], dtype=float),
         # the run's own streaming statistics over its evaluation window (every run alike,
         # whether or not it kept its residual table)
         window=result.stats.window(fraction),
@@ -210,21 +214,28 @@ def quiet(name: str = "stellar_cal_ros.methods", level: int = logging.ERROR):
 
 def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
              fraction: float, keep_residuals: bool = False,
-             effect_classes: tuple[type, ...] = ()) -> RunStats:
+             effect_classes: tuple[type, ...] = (),
+             screen: tuple[str, ...] = ()) -> RunStats:
     """Run ``spec.runner`` on the bag and return the run's statistics (worker entry point).
 
     A failing run returns a :class:`RunStats` with ``error`` set (the diagnosis reports it
     and goes on); with ``keep_residuals`` the residual table is returned too, with the
     gravity direction in the tracker frame added (:mod:`~stellar_cal_ros.diagnosis.context`).
+    ``screen``: candidates scored by this run (a screening run: they are *consider*
+    parameters, which leave the filter's estimate unchanged; ``spec.screen`` turns the
+    run into their raw score tests, kept in :attr:`RunStats.scores`).
     """
     t0 = time.perf_counter()
     try:
         register_effect_classes(effect_classes)
         data = load_bag(bag)
+        kw = {"consider": list(screen)} if screen else {}
         with quiet():
             result = spec.runner(data, prior, list(effects), keep_tables=keep_residuals,
-                                 eval_fraction=fraction)
+                                 eval_fraction=fraction, **kw)
         out = run_statistics(result, fraction, keep_residuals)
+        if screen:
+            out.scores = spec.screen(result, list(screen))
         if keep_residuals:
             from stellar_cal_ros.diagnosis.context import add_gravity_regressors
 

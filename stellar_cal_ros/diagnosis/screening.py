@@ -6,25 +6,35 @@ A round of the diagnosis is
    the *current* model: with the sensitivity of the filter's state to the candidates'
    parameters (Willsky–Jones recursion), the score ``s`` and Fisher information ``I`` of
    each candidate over the evaluation window give ``LM = sᵀ I⁻¹ s ~ χ²_k`` under "not
-   missing";
+   missing".  The sensitivity does not feed back into the filter, so this run *is* the
+   current model's re-run (its statistics are the round's reference: no separate run);
 2. **full augmented re-runs**, in parallel, of the candidates whose screening p-value is
    below :data:`SCREEN_P` (a loose threshold: the decision is the augmented run's);
 3. the decision rules of :mod:`~stellar_cal_ros.diagnosis.discover`.
 
-The screening function is pluggable, in one place: :func:`screen_function` returns the
-kernel's screening for a method, or ``None`` — then every candidate passes and step 2
-re-runs them all (the behaviour before screening existed).  Its signature::
+With several workers the candidates are split into parts (:func:`parts`), one screening
+run per part, concurrently: each part repeats the filter (cheap) and carries the
+sensitivity of its own candidates only (the expensive part); the score test of a candidate
+uses its own block of ``s`` and ``I`` only, so the split changes no number.
 
-    screen(bag, calibration, method, effects, candidates, window)
-        -> {effect_id: (LM, dof, I)}            or (LM, dof, I, M)
+The score function is pluggable: :attr:`~stellar_cal_ros.diagnosis.discover.MethodSpec.
+screen` is called where the run executes, on the run made with the candidates as consider
+parameters::
 
-``bag`` is a :class:`~stellar_cal_ros.methods.replay.BagData`, ``calibration`` the start
-values of the round (the same prior as the re-runs, :func:`~stellar_cal_ros.diagnosis.
-discover.rerun_prior`), ``effects`` the model's effects beyond the method's baseline,
-``window`` the evaluation fraction (the last ``window`` of the frames).  ``I`` is (k, k)
-in the effect's units⁻² over the window; the optional ``M`` (n_θ, k) is the sensitivity of
-the current model's final θ to the candidate (consider analysis), which gives the
-reliability report for candidates that are not re-run.
+    screen(result, candidates) -> {effect_id: (LM, dof, I)}     or (LM, dof, I, M)
+
+``I`` is (k, k) in the effect's units⁻² over the evaluation window; the optional ``M``
+(n_θ, k) is the sensitivity of the current model's final θ to the candidate (consider
+analysis), which gives the reliability report for candidates that are not re-run.  A
+method without one (``screen=None``) re-runs every candidate.
+
+When is the score test trusted?  It is a local test: its LM equals the likelihood-ratio
+statistic to first order around the current model.  Far from consistency (NIS/dof above
+:data:`SCREEN_MAX_DISPERSION`, or the filter lost lock) the innovations are not the small
+perturbations the sensitivity describes, and every candidate is re-run.  Close to it, the
+test uses the same quasi-likelihood correction as the re-runs' ratio test (LM divided by
+the dispersion), at the loose level :data:`SCREEN_P` — measured against the full re-runs in
+``benchmarks/discovery_screening.py`` (doc/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -36,10 +46,16 @@ from typing import Any
 import numpy as np
 from scipy import stats as sps
 
-from stellar_cal_ros.diagnosis.runstats import BagRef, load_bag
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.effects.base import Stage
 
 #: a candidate is re-run when its score test's unadjusted p-value is below this
 SCREEN_P = 0.05
+
+#: the score test is local: when the current model is this far off (NIS/dof), or lost lock
+#: and re-acquired, its linearization no longer predicts what an added effect would do, and
+#: every candidate is re-run
+SCREEN_MAX_DISPERSION = 2.0
 
 ScreenFn = Callable[..., dict[str, tuple]]
 
@@ -48,72 +64,103 @@ ScreenFn = Callable[..., dict[str, tuple]]
 class ScreenResult:
     """The score test of one candidate."""
 
-    lm: float
+    lm: float  #: sᵀ I⁻¹ s, not divided by the dispersion
     dof: int
     information: np.ndarray  #: (k, k) over the evaluation window
     sensitivity: np.ndarray | None = None  #: (n_θ, k): ∂θ̂/∂β of the current model
+    dispersion: float = 1.0  #: of the screening run (mean NIS/dof, at least 1)
+    local: bool = True  #: the current model is close enough for a local test
+
+    @property
+    def statistic(self) -> float:
+        """The quasi-score statistic LM / dispersion (as the re-runs' Λ is divided)."""
+        return self.lm / self.dispersion
 
     @property
     def p_value(self) -> float:
-        """P(χ²_dof > LM)."""
-        return float(sps.chi2.sf(max(self.lm, 0.0), max(self.dof, 1)))
+        """P(χ²_dof > LM / dispersion)."""
+        return float(sps.chi2.sf(max(self.statistic, 0.0), max(self.dof, 1)))
 
     @property
     def passes(self) -> bool:
-        """Worth a full augmented re-run."""
-        return self.p_value < SCREEN_P
+        """Worth a full augmented re-run (always, when the test is not local)."""
+        return not self.local or self.p_value < SCREEN_P
 
 
-#: the score test is local: when the current model is this far off (NIS/dof), or lost lock
-#: and re-acquired, its linearization no longer predicts what an added effect would do, and
-#: every candidate is re-run
-SCREEN_MAX_DISPERSION = 2.0
+def kernel_scores(result, candidates: list[str]) -> dict[str, tuple]:
+    """The kernel's score tests of a run made with ``consider=candidates``."""
+    from stellar_cal_ros.methods.screening import score_tests
+
+    return {eid: (c.lm, c.dof, c.info, c.bias_per_unit)
+            for eid, c in score_tests(result, list(candidates)).items()}
 
 
 def screen_function(method: str) -> ScreenFn | None:
-    """The screening pass of ``method``: the kernel's one-pass score test."""
-    return _kernel_screen
+    """The screening of ``method``: the kernel's one-pass score test (both filters)."""
+    return kernel_scores
 
 
-def _kernel_screen(bag, calibration, method: str, effects: list[str], candidates: list[str],
-                   window: float, baseline: tuple[str, ...] | None = None) -> dict[str, tuple]:
-    """One run of the current model with the candidates as consider parameters.
+def is_local(run) -> bool:
+    """Whether a run is close enough to consistent for the score test.
 
-    Returns ``{id: (LM, dof, I, M)}``; when the run is too far from consistent for a local
-    test (see :data:`SCREEN_MAX_DISPERSION`) every candidate gets LM = ∞ (re-run them all).
+    ``run`` is a :class:`~stellar_cal_ros.diagnosis.runstats.RunStats`: NIS/dof at most
+    :data:`SCREEN_MAX_DISPERSION`, and it never lost lock.
     """
-    from stellar_cal_ros.methods.replay import replay
-    from stellar_cal_ros.methods.screening import score_tests
-
-    r = replay(bag, calibration, method, effects, consider=list(candidates),
-               baseline=baseline, keep_tables=False, eval_fraction=window)
-    scores = score_tests(r, list(candidates))
-    nis = r.stats.nis_per_dof()[0]
-    local = np.isfinite(nis) and nis <= SCREEN_MAX_DISPERSION and not (
-        r.counters.get("reinitializations", 0) or r.counters.get("frames_lost_lock", 0))
-    return {eid: (c.lm if local else np.inf, c.dof, c.info, c.bias_per_unit)
-            for eid, c in scores.items()}
+    if not run.ok or not run.window:
+        return False
+    nis = run.window["nis"]["mean"] / 2.0
+    lost = run.counters.get("reinitializations", 0) or run.counters.get("frames_lost_lock", 0)
+    return bool(np.isfinite(nis) and nis <= SCREEN_MAX_DISPERSION and not lost)
 
 
-def _screen_where_the_bag_is(bag: BagRef, fn: ScreenFn, calibration, method: str,
-                             effects: list[str], candidates: list[str], window: float,
-                             baseline: tuple[str, ...] | None) -> dict[str, tuple]:
-    return fn(load_bag(bag), calibration, method, effects, candidates, window, baseline)
+def dispersion(run) -> float:
+    """Mean NIS/dof of a run's window, at least 1 (the quasi-likelihood factor)."""
+    return max(1.0, run.window["nis"]["mean"] / 2.0)
 
 
-def run_screen(runs, fn: ScreenFn | None, calibration, method: str, effects: list[str],
-               candidates: list[str], window: float,
-               baseline: tuple[str, ...] | None = None) -> dict[str, ScreenResult] | None:
-    """Screen ``candidates`` where the runs execute; ``None`` without a screening pass."""
-    if fn is None or not candidates:
-        return None
-    raw: dict[str, Any] = runs.call(_screen_where_the_bag_is, fn, calibration, method,
-                                    list(effects), list(candidates), window,
-                                    None if baseline is None else tuple(baseline))
-    out = {}
-    for eid, item in raw.items():
-        lm, dof, info = item[:3]
-        sens = item[3] if len(item) > 3 else None
-        out[eid] = ScreenResult(float(lm), int(dof), np.atleast_2d(np.asarray(info, float)),
-                                None if sens is None else np.asarray(sens, dtype=float))
+#: relative cost of an effect's sensitivity columns: the astrometric corrections compute
+#: their pyerfa correction per frame for the sensitivity alone
+_COLUMN_COST = {Stage.DIRECTION: 4.0}
+
+
+def _screen_cost(effect_id: str) -> float:
+    eff = registry.create(effect_id)
+    return eff.size * _COLUMN_COST.get(eff.stage, 1.0)
+
+
+def parts(candidates: list[str], n: int) -> list[list[str]]:
+    """Split ``candidates`` into at most ``n`` parts of similar screening cost.
+
+    Longest first, each to the cheapest part so far (the order within a part keeps the
+    candidates' order).
+    """
+    n = max(1, min(n, len(candidates)))
+    loads = [0.0] * n
+    out: list[list[str]] = [[] for _ in range(n)]
+    for e in sorted(candidates, key=_screen_cost, reverse=True):
+        k = int(np.argmin(loads))
+        out[k].append(e)
+        loads[k] += _screen_cost(e)
+    order = {e: i for i, e in enumerate(candidates)}
+    return [sorted(p, key=order.__getitem__) for p in out if p]
+
+
+def collect(runs: list[Any]) -> dict[str, ScreenResult]:
+    """The :class:`ScreenResult` of every candidate scored by the screening ``runs``.
+
+    Each run is a :class:`~stellar_cal_ros.diagnosis.runstats.RunStats` whose ``scores``
+    holds its part's raw score tests; all parts ran the same current model.
+    """
+    out: dict[str, ScreenResult] = {}
+    for run in runs:
+        if not run.ok or run.scores is None:
+            continue
+        local, disp = is_local(run), dispersion(run)
+        for eid, item in run.scores.items():
+            lm, dof, info = item[:3]
+            sens = item[3] if len(item) > 3 else None
+            out[eid] = ScreenResult(float(lm), int(dof),
+                                    np.atleast_2d(np.asarray(info, dtype=float)),
+                                    None if sens is None else np.asarray(sens, dtype=float),
+                                    disp, local)
     return out
