@@ -106,7 +106,7 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline", type=Path, help="another checkout to time the same way")
     ap.add_argument("--frames", action="store_true", help="also the per-frame latency")
     args = ap.parse_args(argv)
-    bag = args.bag or ensure_bag(args.duration)
+    bag = Path(args.bag).resolve() if args.bag else ensure_bag(args.duration)
     prior = Path(str(bag).removesuffix(".mcap") + ".prior.yaml")
     tmp = Path(tempfile.mkdtemp(prefix="psce_speed_"))
     runs: dict[str, tuple[list[str], Path]] = {}

@@ -335,11 +335,13 @@ class Round:
         if self.progress:
             self.progress(text)
 
-    def done(self, task: Task, out: RunStats) -> None:
-        """Progress line of one finished run."""
+    def done(self, task: Task, out: RunStats, where: str = "") -> None:
+        """Progress line of one finished run (``where``: ``run 4/11, ETA 20 s``)."""
         what = "+".join(task.effects[-2:]) if task.effects else "current model"
-        self.tell(f"{task.key:28s} {what} ({out.seconds:.1f} s)"
-                  + (f" failed: {out.error}" if out.error else ""))
+        name = what if task.key == what else f"{task.key}: {what}"
+        self.tell(f"{name} ({out.seconds:.1f} s)"
+                  + (f" failed: {out.error}" if out.error else "")
+                  + (f"; {where}" if where else ""))
 
 
 def _untestable(cand: CandidateResult) -> bool:

@@ -32,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import time
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -111,9 +112,26 @@ class Runs:
             yield task, out
 
     def run_all(self, tasks: list[Task],
-                done: Callable[[Task, RunStats], None] | None = None) -> dict[str, RunStats]:
-        """Run ``tasks`` and return ``{key: stats}``."""
-        return {t.key: s for t, s in self.map(tasks, done)}
+                done: Callable[[Task, RunStats, str], None] | None = None
+                ) -> dict[str, RunStats]:
+        """Run ``tasks`` and return ``{key: stats}``.
+
+        ``done(task, stats, where)`` is called as each finishes; ``where`` reads
+        ``run 4/11, ETA 20 s`` (no ETA after the last).
+        """
+        from stellar_cal_ros.progress import format_seconds
+
+        n, start, count = len(tasks), time.perf_counter(), [0]
+
+        def counted(task: Task, out: RunStats) -> None:
+            count[0] += 1
+            if done is None:
+                return
+            k = count[0]
+            left = (time.perf_counter() - start) / k * (n - k)
+            done(task, out, f"run {k}/{n}" + (f", ETA {format_seconds(left)}" if k < n else ""))
+
+        return {t.key: s for t, s in self.map(tasks, counted)}
 
     def close(self) -> None:
         """Release the workers."""
