@@ -222,12 +222,14 @@ def test_auto_with_two_dask_workers_chooses_as_one_worker(tmp_path):
             v2, s2 = s[2]["final_estimates"][eff][name]
             assert v2 == pytest.approx(value, rel=1e-9) and s2 == pytest.approx(sigma, rel=1e-9)
     for a, b in zip(s[1]["path"], s[2]["path"], strict=True):
-        assert a["log_likelihood"] == pytest.approx(b["log_likelihood"], rel=1e-12)
+        # the parts carry different consider sets, so the compiled update works on
+        # matrices of other sizes: equal to rounding (measured 1.5e-11 relative), not bitwise
+        assert a["log_likelihood"] == pytest.approx(b["log_likelihood"], rel=1e-9)
         ra = {r["effect"]: (r["status"], r["p_value"]) for r in a["rejected"]}
         rb = {r["effect"]: (r["status"], r["p_value"]) for r in b["rejected"]}
         assert ra.keys() == rb.keys()
         for e, (status, p) in ra.items():
-            assert rb[e][0] == status and rb[e][1] == pytest.approx(p, rel=1e-9, nan_ok=True)
+            assert rb[e][0] == status and rb[e][1] == pytest.approx(p, rel=1e-6, nan_ok=True)
 
 
 def test_lambda0_and_mdb_against_closed_forms():
