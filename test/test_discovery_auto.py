@@ -179,9 +179,12 @@ def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns(
     # the screening run's statistics are those of the current model alone
     alone = spec.runner(data, rank_candidates.__globals__["rerun_prior"](sim.prior), [],
                         keep_tables=False)
-    assert base.window["log_likelihood"] == alone.stats.window(0.5)["log_likelihood"]
+    # (to rounding: the consider columns change the compiled update's matrix sizes)
+    assert base.window["log_likelihood"] == pytest.approx(
+        alone.stats.window(0.5)["log_likelihood"], rel=1e-8)  # measured 1.4e-9
     assert base.names == alone.filter.model.parameter_names()
-    np.testing.assert_array_equal(base.theta, alone.filter.theta)
+    f = alone.filter
+    assert np.max(np.abs(base.theta - f.theta) / f.sigma()[f.it]) < 1e-6
 
 
 def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):

@@ -133,7 +133,8 @@ def _checks(state: _State, prior: Calibration, original: Calibration,
                     or y not in pool:
                 continue
             tasks.append(Task(f"{y} for {x}", candidate_prior(
-                without(prior, [x], original), y, original), rest + (y,), cost=1.5))
+                without(prior, [x], original), y, original), rest + (y,), cost=1.5,
+                candidate=True))
     return tasks
 
 

@@ -109,7 +109,7 @@ class MethodSpec:
 
 
 def _runner(method: str) -> Runner:
-    """``(data, prior, effects, keep_tables=False, eval_fraction=0.5, consider=None)``.
+    """The runner ``(data, prior, effects, keep_tables, eval_fraction, consider, candidate)``.
 
     Returns the ReplayResult.  Without ``keep_tables`` the run keeps only its running
     statistics (the evaluation window's log-likelihood, RMS, NIS, whiteness): no residual
@@ -117,10 +117,15 @@ def _runner(method: str) -> Runner:
     """
     def run(data: BagData, prior: Calibration, effects: list[str],
             keep_tables: bool = False, eval_fraction: float = 0.5,
-            consider: list[str] | None = None) -> ReplayResult:
+            consider: list[str] | None = None, candidate: bool = False) -> ReplayResult:
+        from stellar_cal_ros.methods.driver import FILTERS
         from stellar_cal_ros.methods.replay import replay
 
-        return replay(data, prior, method, effects, keep_tables=keep_tables,
+        # the gyro-against-stars check judges the data: the current model's run raises on
+        # a fault; a candidate's run only flags it, since the compensated gyro it checks
+        # carries that candidate's gyro-error estimates, which diverge when it is wrong
+        config = FILTERS[method][1](unit_check_raises=False) if candidate else None
+        return replay(data, prior, method, effects, config, keep_tables=keep_tables,
                       eval_fraction=eval_fraction, consider=consider)
 
     return run
@@ -394,7 +399,7 @@ _SCREEN_COST = 10.0
 
 def _candidate_task(r: Round, prior: Calibration, extra: list[str], effect_id: str) -> Task:
     return Task(effect_id, candidate_prior(prior, effect_id, r.user_prior),
-                tuple(extra) + (effect_id,), cost=_cost(effect_id))
+                tuple(extra) + (effect_id,), cost=_cost(effect_id), candidate=True)
 
 
 def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
@@ -547,7 +552,7 @@ def condition_on_top(r: Round, extra: list[str], results: list[CandidateResult],
     with_top = tuple(extra) + (top.effect,)
     tasks = [Task("refined " + top.effect, prior, with_top, keep_residuals, cost=1.0)]
     tasks += [Task(c.effect + " after", candidate_prior(prior, c.effect, r.user_prior),
-                   with_top + (c.effect,), cost=_cost(c.effect)) for c in rest]
+                   with_top + (c.effect,), cost=_cost(c.effect), candidate=True) for c in rest]
     out = r.runs.run_all(tasks, r.done)
     refined = out.pop("refined " + top.effect)
     if not refined.ok:

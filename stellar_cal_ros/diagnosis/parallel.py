@@ -67,6 +67,7 @@ class Task:
     cost: float = 1.0  #: expected relative run time: longer runs are started first
     #: candidates this run scores (a screening run, :mod:`~stellar_cal_ros.diagnosis.screening`)
     screen: tuple[str, ...] = ()
+    candidate: bool = False  #: an augmented run (its data faults are flagged, not raised)
 
 
 def user_effect_classes() -> tuple[type, ...]:
@@ -106,7 +107,7 @@ class Runs:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes."""
         for task in sorted(tasks, key=lambda t: -t.cost):
             out = evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
-                           task.keep_residuals, (), task.screen)
+                           task.keep_residuals, (), task.screen, task.candidate)
             if done:
                 done(task, out)
             yield task, out
@@ -190,7 +191,7 @@ class DaskRuns(Runs):
         for task in tasks:
             fut = self.client.submit(evaluate, self.remote_bag, self.spec, task.prior,
                                      task.effects, self.fraction, task.keep_residuals,
-                                     self.classes, task.screen, pure=False,
+                                     self.classes, task.screen, task.candidate, pure=False,
                                      priority=int(100 * task.cost),
                                      key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
             futures[fut] = task

@@ -215,7 +215,7 @@ def quiet(name: str = "stellar_cal_ros.methods", level: int = logging.ERROR):
 def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
              fraction: float, keep_residuals: bool = False,
              effect_classes: tuple[type, ...] = (),
-             screen: tuple[str, ...] = ()) -> RunStats:
+             screen: tuple[str, ...] = (), candidate: bool = False) -> RunStats:
     """Run ``spec.runner`` on the bag and return the run's statistics (worker entry point).
 
     A failing run returns a :class:`RunStats` with ``error`` set (the diagnosis reports it
@@ -223,13 +223,16 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
     gravity direction in the tracker frame added (:mod:`~stellar_cal_ros.diagnosis.context`).
     ``screen``: candidates scored by this run (a screening run: they are *consider*
     parameters, which leave the filter's estimate unchanged; ``spec.screen`` turns the
-    run into their raw score tests, kept in :attr:`RunStats.scores`).
+    run into their raw score tests, kept in :attr:`RunStats.scores`).  ``candidate``: an
+    augmented run, whose data faults the runner flags instead of raising.
     """
     t0 = time.perf_counter()
     try:
         register_effect_classes(effect_classes)
         data = load_bag(bag)
-        kw = {"consider": list(screen)} if screen else {}
+        kw: dict = {"consider": list(screen)} if screen else {}
+        if candidate:
+            kw["candidate"] = True
         with quiet():
             result = spec.runner(data, prior, list(effects), keep_tables=keep_residuals,
                                  eval_fraction=fraction, **kw)

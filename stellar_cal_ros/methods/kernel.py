@@ -145,6 +145,9 @@ class KernelConfig:
     covariance_check_every: int = 50  #: check P (finite, symmetric, PD) every N updates
     init_second_order: bool = True  #: initial attitude covariance with the 2nd-order term
     unit_check: bool = True  #: check the gyro against the stars (deg/s, dead, axes)
+    #: a gyro fault over the first frames raises (False: flagged only — a diagnosis's
+    #: candidate runs, whose gyro-error estimates may diverge with a wrong candidate)
+    unit_check_raises: bool = True
 
 
 class StarFilter:
@@ -537,7 +540,7 @@ class StarFilter:
         if not cause:
             return
         self.counters.add("gyro_star_mismatch")
-        if w["frames"] <= gyro_check.EARLY_FRAMES:
+        if w["frames"] <= gyro_check.EARLY_FRAMES and self.config.unit_check_raises:
             raise DataError(cause)
         log.warning("t=%.1f s: %s; the result is degraded", self.t, cause)
         self.data_faults.append(cause)
