@@ -141,7 +141,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     _load_effect_modules(args.effect_module)
     prior = load_prior(args.prior)
     if args.init_from is not None:
-        from stellar_cal_ros.methods.acf import prior_from_result
+        from stellar_cal_ros.methods.init_from import prior_from_result
 
         prior = prior_from_result(prior, load_calibration(args.init_from), args.init_from)
     effects = _effect_list(args.effects)
