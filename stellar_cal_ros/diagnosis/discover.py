@@ -109,7 +109,7 @@ class MethodSpec:
 
 
 def _runner(method: str) -> Runner:
-    """The runner ``(data, prior, effects, keep_tables, eval_fraction, consider, candidate)``.
+    """The runner ``(data, prior, effects, keep_tables, eval_fraction, consider, gyro_fault)``.
 
     Returns the ReplayResult.  Without ``keep_tables`` the run keeps only its running
     statistics (the evaluation window's log-likelihood, RMS, NIS, whiteness): no residual
@@ -117,16 +117,11 @@ def _runner(method: str) -> Runner:
     """
     def run(data: BagData, prior: Calibration, effects: list[str],
             keep_tables: bool = False, eval_fraction: float = 0.5,
-            consider: list[str] | None = None, candidate: bool = False) -> ReplayResult:
-        from stellar_cal_ros.methods.driver import FILTERS
+            consider: list[str] | None = None, gyro_fault: str = "raise") -> ReplayResult:
         from stellar_cal_ros.methods.replay import replay
 
-        # the gyro-against-stars check judges the data: the current model's run raises on
-        # a fault; a candidate's run only flags it, since the compensated gyro it checks
-        # carries that candidate's gyro-error estimates, which diverge when it is wrong
-        config = FILTERS[method][1](unit_check_raises=False) if candidate else None
-        return replay(data, prior, method, effects, config, keep_tables=keep_tables,
-                      eval_fraction=eval_fraction, consider=consider)
+        return replay(data, prior, method, effects, keep_tables=keep_tables,
+                      eval_fraction=eval_fraction, consider=consider, gyro_fault=gyro_fault)
 
     return run
 

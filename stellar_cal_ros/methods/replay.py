@@ -8,6 +8,7 @@ Every skipped frame, star or IMU sample is counted; nothing is dropped silently.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -118,8 +119,6 @@ def _events_from_reader(reader: BagReader, topics: dict[str, str]):
 
 def _slice(block, a: int, b: int):
     """Rows ``a:b`` of a series dataclass (arrays sliced, scalars kept)."""
-    import dataclasses
-
     n = len(block.stamp_ns)
     kw = {}
     for f in dataclasses.fields(block):
@@ -167,7 +166,8 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
            history: str | Path | None = None, keep_tables: bool = True,
            progress: bool = False, topics: dict[str, str] | None = None,
            on_error: str = "raise", driver: DriverConfig | None = None,
-           eval_fraction: float = 0.5, filter_cls=None) -> ReplayResult:
+           eval_fraction: float = 0.5, filter_cls=None,
+           gyro_fault: str = "raise") -> ReplayResult:
     """Run a filter method over a bag (path or :class:`BagData`); return the result.
 
     Parameters
@@ -202,11 +202,21 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         The statistics' evaluation window is the last ``eval_fraction`` of the bag's span.
     filter_cls : type, optional
         A subclass of the method's filter to run instead (e.g. a bound recursion).
+    gyro_fault : str
+        ``raise``: a gyro that does not turn as the stars do over the first frames raises
+        :class:`~stellar_cal_ros.errors.DataError` (deg/s, dead, swapped axes); ``flag``:
+        it is counted and flags the result (a diagnosis's candidate runs).
     """
     models.check_method(method)
+    if gyro_fault not in ("raise", "flag"):
+        raise ValueError(f"gyro_fault must be 'raise' or 'flag', got {gyro_fault!r}")
     names = dict(TOPICS)
     names.update(topics or {})
     cfg = config
+    if gyro_fault == "flag":
+        from stellar_cal_ros.methods.driver import FILTERS
+
+        cfg = dataclasses.replace(cfg or FILTERS[method][1](), unit_check_raises=False)
     # a replay never drops frames for memory: what is held is bounded by the look-ahead
     drv = driver or DriverConfig(reorder_window_s=REPLAY_REORDER_S,
                                  max_pending_frames=1_000_000, batch_frames=True,
