@@ -23,7 +23,8 @@ this order:
    is not added once the cause is in the model.
 4. **stop** when none of these applies (or after ``max_rounds`` rounds).
 
-The next round starts from the calibration of the chosen run; its re-run of the new model
+The next round starts the effects the discovery added from the chosen run's estimates and
+everything else from the user's calibration (:func:`restart`); its re-run of the new model
 is its reference.  Only statistics are kept per run; the residual tables kept are those of
 the first and the newest model (the report's panels and the structure tests).
 """
