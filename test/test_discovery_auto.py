@@ -295,3 +295,26 @@ def test_plausible_size_of_user_effects():
         assert reliability.shown("installation.rx", np.deg2rad(1 / 3600)) == "1 arcsec"
     finally:
         registry.EFFECTS.pop("test_plausible_delay")
+
+
+def test_next_round_restarts_the_users_effects_from_the_users_values():
+    """The chosen run's principal point and installation absorbed a tilt; the next round
+    starts them from the user's calibration, and keeps the discovered time offset."""
+    from scipy.spatial.transform import Rotation
+
+    from stellar_cal_ros.diagnosis.auto import restart
+    from stellar_cal_ros.effects import registry
+
+    sim = simulate(get_scenario("psce_rotations"), duration=5.0, seed=1)
+    user = sim.prior
+    chosen = copy.deepcopy(user)
+    pp, dt = (registry.create(e) for e in ("principal_point", "time_offset"))
+    pp.store(pp.initial(user)[0] + [-31.0, -40.0], np.array([0.2, 0.2]), chosen)
+    chosen.installation = Rotation.from_rotvec([0.01, -0.008, 0.0]) * user.installation
+    dt.store(np.array([0.005]), np.array([7e-6]), chosen)
+    out = restart(chosen, method_spec("psce").baseline, user)
+    assert pp.initial(out)[0] == pytest.approx(pp.initial(user)[0], abs=1e-9)
+    assert (user.installation.inv() * out.installation).magnitude() < 1e-12
+    assert (user.installation.inv() * chosen.installation).magnitude() > 0.012
+    assert dt.initial(out)[0] == pytest.approx([0.005], abs=1e-12)
+    assert pp.initial(chosen)[0][1] == pytest.approx(pp.initial(user)[0][1] - 40.0)  # a copy
