@@ -210,6 +210,10 @@ class DaskRuns(Runs):
         with contextlib.suppress(Exception):
             self.client.close()
         if self.cluster is not None:
+            # a worker busy past the nanny's 4 s grace is killed: expected at shutdown on a
+            # loaded machine, not a warning for the user (kept with -v)
+            if not log.isEnabledFor(logging.DEBUG):
+                logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
             with contextlib.suppress(Exception):
                 self.cluster.close()
 
