@@ -226,7 +226,6 @@ class StarFilter:
         self._good: tuple[np.ndarray, ...] | None = None
         self._stamp_posix = 0.0  # reported stamp of the frame being processed (POSIX s)
         self._stamp_rel = 0.0  # the same, relative to t0 (from integer ns: exact)
-        self._acquired: tuple[float, np.ndarray, int] | None = None  # (t, R_i_b, updates)
         #: the gyro-against-stars check's state (None: off or decided)
         self.gyro_watch = gyro_check.new_watch() if c.unit_check else None
         self._R_prior: tuple[np.ndarray, bool] | None = None  # (R_i_b propagated, gap)
@@ -442,7 +441,6 @@ class StarFilter:
         self.counters.init_frames += 1
         self._rejected_in_row = 0
         self._good = self._snapshot()
-        self._acquired = (t_exp, R_i_b.copy(), self.counters.updates)
         log.info("attitude initialized at t=%.3f s from %d stars", t_exp, int(keep.sum()))
         return True
 
@@ -508,7 +506,7 @@ class StarFilter:
 
         After an IMU gap or a lost lock the nominal attitude (and velocity, position) carry
         errors the covariance does not describe; updating them would pull θ.  Their rows and
-        columns of P are cleared and :meth:`initialize` sets them as at the start.  Before
+        columns of P are cleared and :meth:`initialize` sets them as at the start.
         False (state unchanged) if the frame cannot align.
         """
         saved = self._snapshot(full=True)
@@ -554,7 +552,7 @@ class StarFilter:
         snap = (self.P.copy(), self.theta.copy(), None if self.R_i_b is None
                 else self.R_i_b.copy(), self._nav_values())
         if full:
-            snap += (self.t, self._k, self._acquired,
+            snap += (self.t, self._k,
                      None if self.sensitivity is None else self.sensitivity.M.copy())
         return snap
 
@@ -565,7 +563,7 @@ class StarFilter:
         for name, value in nav.items():
             setattr(self, name, value.copy())
         if len(snap) > 4:
-            self.t, self._k, self._acquired, M = snap[4:]
+            self.t, self._k, M = snap[4:]
             if M is not None:
                 self.sensitivity.M = M
         self._omega_stale = True
