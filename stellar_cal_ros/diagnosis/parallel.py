@@ -101,15 +101,11 @@ class Runs:
         """Applicability facts of the bag (site, head temperature, frames, duration)."""
         return bag_facts(self.bag)
 
-    def map(self, tasks: list[Task],
-            done: Callable[[Task, RunStats], None] | None = None) -> Iterator[tuple[Task,
-                                                                                   RunStats]]:
+    def map(self, tasks: list[Task]) -> Iterator[tuple[Task, RunStats]]:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes."""
         for task in sorted(tasks, key=lambda t: -t.cost):
             out = evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
                            task.keep_residuals, (), task.screen, task.candidate)
-            if done:
-                done(task, out)
             yield task, out
 
     def run_all(self, tasks: list[Task],
@@ -122,17 +118,14 @@ class Runs:
         """
         from stellar_cal_ros.progress import format_seconds
 
-        n, start, count = len(tasks), time.perf_counter(), [0]
-
-        def counted(task: Task, out: RunStats) -> None:
-            count[0] += 1
-            if done is None:
-                return
-            k = count[0]
-            left = (time.perf_counter() - start) / k * (n - k)
-            done(task, out, f"run {k}/{n}" + (f", ETA {format_seconds(left)}" if k < n else ""))
-
-        return {t.key: s for t, s in self.map(tasks, counted)}
+        n, start, out = len(tasks), time.perf_counter(), {}
+        for k, (task, stats) in enumerate(self.map(tasks), 1):
+            out[task.key] = stats
+            if done is not None:
+                left = (time.perf_counter() - start) / k * (n - k)
+                done(task, stats, f"run {k}/{n}"
+                     + (f", ETA {format_seconds(left)}" if k < n else ""))
+        return out
 
     def close(self) -> None:
         """Release the workers."""
@@ -184,7 +177,7 @@ class DaskRuns(Runs):
     def facts(self) -> dict[str, Any]:  # noqa: D102
         return self.client.submit(bag_facts, self.remote_bag, pure=False).result()
 
-    def map(self, tasks, done=None):  # noqa: D102
+    def map(self, tasks):  # noqa: D102
         from distributed import as_completed
 
         futures = {}
@@ -202,8 +195,6 @@ class DaskRuns(Runs):
             except Exception as exc:  # a worker died (killed, out of memory): a failed run
                 out = RunStats(effects=task.effects, error=f"{type(exc).__name__}: {exc}")
             fut.release()
-            if done:
-                done(task, out)
             yield task, out
 
     def close(self) -> None:  # noqa: D102
