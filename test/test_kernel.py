@@ -13,7 +13,7 @@ from stellar_cal_ros.core import covariance as cov
 from stellar_cal_ros.core.gating import GatePolicy, block_nis, chi2_2_quantile
 from stellar_cal_ros.core.imu import ImuBuffer
 from stellar_cal_ros.core.rotation import so3_exp, so3_log
-from stellar_cal_ros.core.state import StateLayout
+from stellar_cal_ros.core.state import Block, ErrorState, StateLayout
 from stellar_cal_ros.errors import ModelError
 
 
@@ -35,6 +35,46 @@ def test_layout_offsets_assemble_and_boxplus():
     assert np.allclose(lay["velocity"].boxplus(np.ones(3), d), 1 + d)
     with pytest.raises(ValueError):
         StateLayout([("a", 1), ("a", 2)])
+
+
+def test_error_state_owns_injection_reset_and_snapshots():
+    """ErrorState: box-plus per block into its nominal value (θ blocks are slices of one
+    vector whose consider tail no block touches), the rotation reset G P Gᵀ with the
+    sensitivity's rows alike, the noise of bridged IMU intervals on the driven blocks, and
+    snapshots that give back P, the nominal values and M."""
+    rng = np.random.default_rng(7)
+    lay = StateLayout([Block("attitude", 3, kind="rotation", navigation=True, driven_by="gyro"),
+                       Block("a", 2, nominal="theta", index=slice(0, 2)),
+                       Block("b", 1, nominal="theta", index=slice(2, 3)),
+                       Block("velocity", 3, navigation=True, driven_by="accel")])
+    R0, th0, v0 = so3_exp([0.1, -0.2, 0.3]), np.array([1.0, 2.0, 3.0, 9.0]), np.ones(3)
+    st = ErrorState(lay, {"attitude": R0, "theta": th0.copy(), "velocity": v0}, n_consider=1)
+    P0 = _spd(9, rng)
+    st.P = P0.copy()
+    st.sensitivity.M = rng.normal(size=(9, 1))
+    M0 = st.sensitivity.M.copy()
+    snap = st.snapshot(sensitivity=True)
+    dx = rng.normal(scale=1e-2, size=9)
+    st.inject(dx)
+    np.testing.assert_allclose(st.nominal["attitude"], so3_exp(dx[:3]) @ R0, atol=1e-15)
+    np.testing.assert_array_equal(st.nominal["theta"], np.append(th0[:3] + dx[3:6], 9.0))
+    np.testing.assert_array_equal(st.nominal["velocity"], v0 + dx[6:])
+    G = np.eye(9)
+    G[:3, :3] += 0.5 * np.array([[0, -dx[2], dx[1]], [dx[2], 0, -dx[0]],
+                                 [-dx[1], dx[0], 0]])
+    np.testing.assert_allclose(st.P, G @ P0 @ G.T, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(st.sensitivity.M, G @ M0, rtol=1e-13, atol=1e-15)
+    st.restore(snap)
+    assert np.array_equal(st.P, P0) and np.array_equal(st.sensitivity.M, M0)
+    assert np.array_equal(st.nominal["attitude"], R0)
+    assert np.array_equal(st.nominal["theta"], th0)
+    st.add_noise({"gyro": 2.0, "accel": 3.0})
+    d = np.diag(st.P - P0)
+    np.testing.assert_allclose(d, [2, 2, 2, 0, 0, 0, 3, 3, 3], atol=1e-12)
+    st.forget(lay.navigation_index)
+    assert not st.P[:, :3].any() and not st.P[6:].any() and st.P[3:6, 3:6].all()
+    with pytest.raises(ValueError):
+        ErrorState(lay, {"attitude": R0, "theta": th0})
 
 
 def test_propagate_coupled_equals_dense():

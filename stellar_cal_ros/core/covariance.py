@@ -352,6 +352,10 @@ class Sensitivity:
         G = np.array([[1.0, -z, y], [z, 1.0, -x], [-y, x, 1.0]])
         self.M[sl] = G @ self.M[sl]
 
+    def set_rows(self, rows: slice, value: np.ndarray) -> None:
+        """The response of re-initialized states ``rows`` (e.g. the attitude at acquisition)."""
+        self.M[rows] = value
+
     def clear_rows(self, index: np.ndarray) -> None:
         """Forget the response of re-acquired (re-initialized) states."""
         self.M[index] = 0.0

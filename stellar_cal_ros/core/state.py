@@ -16,15 +16,25 @@ Conventions
 * ``vector`` blocks: nominal a float vector, box-plus ``x ← x + δx``.
 * *navigation* blocks are the ones an acquisition (or re-acquisition after an IMU gap or a
   lost lock) sets from scratch; parameter blocks keep their estimate across it.
+* a block corrects a *nominal* value (``nominal``, default its own name), or a part of one
+  (``index``): the estimated effects' blocks are slices of one parameter vector θ.
+* ``driven_by`` names the white sensor noise ("gyro", "accel") that enters a block directly
+  (the attitude, the velocity): a bridged IMU interval inflates those blocks.
+
+:class:`ErrorState` is the one owner of the covariance: it holds the nominal values, ``P``
+and the consider sensitivity, and every change of ``P`` (propagation, update, injection and
+reset, acquisition, repair, snapshots) is one of its methods, built on the functions of
+:mod:`stellar_cal_ros.core.covariance`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from stellar_cal_ros.core import covariance as cov
 from stellar_cal_ros.core.rotation import so3_exp
 
 
@@ -37,6 +47,14 @@ class Block:
     offset: int = 0
     kind: str = "vector"  #: "rotation" (left, Exp) or "vector" (additive)
     navigation: bool = False  #: set by acquisition, not kept across a re-acquisition
+    nominal: str = ""  #: the nominal value it corrects ("": its own name)
+    index: slice | None = None  #: its part of that nominal value (None: all of it)
+    driven_by: str = ""  #: white sensor noise entering it directly ("gyro", "accel")
+
+    @property
+    def value_name(self) -> str:
+        """Name of the nominal value this block corrects."""
+        return self.nominal or self.name
 
     @property
     def sl(self) -> slice:
@@ -70,7 +88,7 @@ class StateLayout:
                 b = Block(name, int(size), 0, kind, nav)
             if b.name in self.blocks:
                 raise ValueError(f"duplicate state block {b.name!r}")
-            b = Block(b.name, b.size, offset, b.kind, b.navigation)
+            b = replace(b, offset=offset)
             self.blocks[b.name] = b
             offset += b.size
         self.size = offset
@@ -109,3 +127,195 @@ class StateLayout:
     def __repr__(self) -> str:
         inner = ", ".join(f"{b.name}[{b.offset}:{b.offset + b.size}]" for b in self.blocks.values())
         return f"StateLayout({inner})"
+
+
+class ErrorState:
+    """Nominal values, error covariance and consider sensitivity of a :class:`StateLayout`.
+
+    The one owner of ``P`` (after OpenVINS's ``StateHelper``): the filters change it only
+    through these methods.
+
+    Parameters
+    ----------
+    layout : StateLayout
+    nominal : dict
+        Initial nominal value of every name the blocks correct (``Block.value_name``);
+        e.g. ``{"attitude": None, "theta": θ}``.
+    n_consider : int
+        Number of consider parameters whose sensitivity is carried
+        (:class:`~stellar_cal_ros.core.covariance.Sensitivity`; 0: none).
+    """
+
+    def __init__(self, layout: StateLayout, nominal: dict[str, np.ndarray | None],
+                 n_consider: int = 0) -> None:
+        self.layout = layout
+        self.N = layout.size
+        self.P = np.zeros((self.N, self.N))
+        self.nominal: dict[str, np.ndarray | None] = dict(nominal)
+        missing = {b.value_name for b in layout.blocks.values()} - set(self.nominal)
+        if missing:
+            raise ValueError(f"no nominal value for {sorted(missing)}")
+        self.sensitivity = cov.Sensitivity(self.N, n_consider) if n_consider else None
+        self._rotations = [b for b in layout.blocks.values() if b.kind == "rotation"]
+        # box-plus of additive blocks that follow each other in the error state and in
+        # their nominal value: one addition per run (the same arithmetic, fewer calls)
+        runs: list[list] = []
+        for b in layout.blocks.values():
+            if b.kind != "vector":
+                continue
+            idx = b.index if b.index is not None else slice(0, b.size)
+            last = runs[-1] if runs else None
+            if last is not None and last[0] == b.value_name and last[1].stop == b.offset \
+                    and last[2].stop == idx.start and b.index is not None:
+                last[1] = slice(last[1].start, b.sl.stop)
+                last[2] = slice(last[2].start, idx.stop)
+            else:
+                runs.append([b.value_name, b.sl, idx, b.index is None])
+        self._runs = [tuple(r) for r in runs]
+
+    # ------------------------------------------------------------------ views
+    def sl(self, name: str) -> slice:
+        """Slice of block ``name`` in the error state."""
+        return self.layout.sl(name)
+
+    def sigma(self) -> np.ndarray:
+        """1-σ of the error state."""
+        return np.sqrt(np.maximum(np.diag(self.P), 0.0))
+
+    # ------------------------------------------------------------------ direct settings
+    def _index(self, x) -> slice | np.ndarray:
+        return self.layout.sl(x) if isinstance(x, str) else x
+
+    def assign(self, rows, cols, value: np.ndarray) -> None:
+        """``P[rows, cols] = value`` and its transpose (rows, cols: block names or slices)."""
+        r, c = self._index(rows), self._index(cols)
+        self.P[r, c] = value
+        if r != c:
+            self.P[c, r] = self.P[r, c].T
+
+    def add_diagonal(self, q: np.ndarray) -> None:
+        """``P += diag(q)`` (q (N,))."""
+        self.P.flat[::self.N + 1] += q
+
+    def add_noise(self, variances: dict[str, float]) -> None:
+        """``var · I`` on the blocks ``driven_by`` each sensor (a bridged IMU interval)."""
+        for b in self.layout.blocks.values():
+            var = variances.get(b.driven_by) if b.driven_by else None
+            if var is not None:
+                self.P[b.sl, b.sl] += var * np.eye(b.size)
+
+    def forget(self, index: np.ndarray) -> None:
+        """Zero the rows and columns ``index`` (states to be set again from scratch)."""
+        self.P[index, :] = 0.0
+        self.P[:, index] = 0.0
+
+    # ------------------------------------------------------------------ propagation
+    def propagate(self, Phi: np.ndarray, q_flat: tuple[np.ndarray, np.ndarray] | None = None,
+                  Phi_consider: np.ndarray | None = None) -> None:
+        """``P ← Φ P Φᵀ + Q`` symmetrized; ``q_flat = (flat index, values)`` of Q's entries.
+
+        The sensitivity follows (``M ← Φ M + Φ_β``, ``Phi_consider`` (N, m)).
+        """
+        Pn = Phi @ self.P @ Phi.T
+        if q_flat is not None:
+            Pn.ravel()[q_flat[0]] += q_flat[1]
+        self.P = 0.5 * (Pn + Pn.T)
+        if self.sensitivity is not None:
+            self.sensitivity.propagate(Phi, Phi_consider)
+
+    def propagate_coupled(self, rows: slice, cols: slice, F: np.ndarray,
+                          q_diag: np.ndarray | None = None,
+                          F_consider: np.ndarray | None = None) -> None:
+        """``Φ = I + F`` with F only in ``[rows, cols]`` (:func:`~.covariance.propagate_coupled`).
+
+        ``F_consider`` (rows, m): the consider columns of the driven rows (sensitivity).
+        """
+        cov.propagate_coupled(self.P, rows, cols, F, q_diag)
+        if self.sensitivity is not None:
+            self.sensitivity.propagate_coupled(rows, cols, F, F_consider)
+
+    # ------------------------------------------------------------------ updates
+    def iterated_update(self, H: np.ndarray, h: np.ndarray, z: np.ndarray,
+                        r_diag: np.ndarray, relinearize, policy: cov.UpdatePolicy,
+                        rotation: slice, others: slice | None,
+                        H_consider: np.ndarray | None = None,
+                        compiled: bool = False) -> cov.UpdateResult:
+        """:func:`~.covariance.iterated_update` of ``P``; on success P (and M) take it.
+
+        The correction ``res.dx`` is not injected (:meth:`inject`).  ``H_consider`` (m, n_c):
+        the measurement's consider columns (sensitivity update with the prior's S).
+        """
+        res = cov.iterated_update(self.P, H, h, z, r_diag, relinearize, policy, rotation,
+                                  others, compiled=compiled)
+        if not res.ok:
+            return res
+        sens = self.sensitivity
+        if sens is not None:
+            S = res.H @ self.P @ res.H.T
+            S.ravel()[::len(S) + 1] += r_diag
+            sens.update(res.H, H_consider, res.K, z - h, S)
+        self.P = res.P
+        return res
+
+    def linear_update(self, H: np.ndarray, nu: np.ndarray, R: np.ndarray
+                      ) -> tuple[np.ndarray, float]:
+        """One linear update (:func:`~.covariance.linear_update`): returns ``(dx, NIS)``.
+
+        The measurement sees no consider parameter.  ``dx`` is not injected.
+        """
+        P0 = self.P
+        dx, self.P, K, nis = cov.linear_update(P0, H, nu, R)
+        if self.sensitivity is not None:
+            self.sensitivity.update(H, np.zeros((len(nu), self.sensitivity.size)), K, nu,
+                                    H @ P0 @ H.T + R)
+        return dx, nis
+
+    def inject(self, dx: np.ndarray) -> None:
+        """Box-plus ``dx`` into the nominal values (per block), reset P (and M), symmetrize.
+
+        A rotation block's covariance is reset by ``G = I + ½[δφ]×``
+        (:func:`~.covariance.reset_rotation`).
+        """
+        nom = self.nominal
+        for b in self._rotations:
+            nom[b.value_name] = b.boxplus(nom[b.value_name], dx[b.sl])
+        for name, sl, idx, whole in self._runs:
+            if whole:
+                nom[name] = nom[name] + dx[sl]
+            else:
+                nom[name][idx] += dx[sl]
+        for b in self._rotations:
+            cov.reset_rotation(self.P, b.sl, dx[b.sl])
+        self.P = 0.5 * (self.P + self.P.T)
+        if self.sensitivity is not None:
+            for b in self._rotations:
+                self.sensitivity.reset_rotation(b.sl, dx[b.sl])
+
+    # ------------------------------------------------------------------ health
+    def check(self, name: str = "covariance") -> None:
+        """:func:`~.covariance.check` of P (raises ModelError)."""
+        cov.check(self.P, name)
+
+    def repair(self) -> bool:
+        """Replace P by its nearest positive definite matrix; False if it is not finite."""
+        fixed = cov.repair(self.P)
+        if fixed is None:
+            return False
+        self.P = fixed
+        return True
+
+    # ------------------------------------------------------------------ snapshots
+    def snapshot(self, sensitivity: bool = False) -> tuple:
+        """Copies of P and the nominal values (and the sensitivity M)."""
+        nom = {k: None if v is None else v.copy() for k, v in self.nominal.items()}
+        M = self.sensitivity.M.copy() if sensitivity and self.sensitivity is not None \
+            else None
+        return self.P.copy(), nom, M
+
+    def restore(self, snap: tuple) -> None:
+        """Back to a :meth:`snapshot` (M only if it was taken with it)."""
+        P, nom, M = snap
+        self.P = P.copy()
+        self.nominal.update({k: None if v is None else v.copy() for k, v in nom.items()})
+        if M is not None:
+            self.sensitivity.M = M.copy()

@@ -30,7 +30,7 @@ from stellar_cal_ros.methods.results import RunStats
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "stellar_cal_checkpoint/3"
+CHECKPOINT_FORMAT = "stellar_cal_checkpoint/4"
 #: filter attributes rebuilt by the constructor (configuration, caches, workspaces)
 _FILTER_SKIP = {"model", "config", "layout", "gate", "update_policy", "grid", "site",
                 "_affine", "_sensor_cache", "_cref_cache", "_Phi", "_at_cache"}
@@ -89,10 +89,13 @@ def _filter_state(flt, enc: _Encoder) -> dict[str, Any]:
             out[k] = {"__imu__": enc.enc(v.state(), "f.imu")}
         elif k == "_prefix":
             out[k] = None if v is None else {"__prefix__": enc.enc(v.state(), "f.prefix")}
-        elif k == "sensitivity":
-            out[k] = None if v is None else {"__sens__": enc.enc(
-                {"M": v.M, "score": v.score, "info": v.info, "frames": v.frames,
-                 "accumulate": v.accumulate}, "f.sens")}
+        elif k == "state":  # the ErrorState: covariance, nominal values, sensitivity
+            sens = v.sensitivity
+            out[k] = {"__state__": enc.enc(
+                {"P": v.P, "nominal": v.nominal,
+                 "sensitivity": None if sens is None else {
+                     "M": sens.M, "score": sens.score, "info": sens.info,
+                     "frames": sens.frames, "accumulate": sens.accumulate}}, "f.state")}
         elif k == "counters":
             out[k] = enc.enc(dataclasses.asdict(v), "f.counters")
         else:
@@ -106,13 +109,15 @@ def _restore_filter(flt, state: dict[str, Any], arrays: dict[str, np.ndarray]) -
             flt.imu.load_state(_dec(v["__imu__"], arrays))
         elif isinstance(v, dict) and "__prefix__" in v:
             flt._prefix.load_state(_dec(v["__prefix__"], arrays))
-        elif isinstance(v, dict) and "__sens__" in v:
-            s = _dec(v["__sens__"], arrays)
-            for name, value in s.items():
-                setattr(flt.sensitivity, name, value)
+        elif isinstance(v, dict) and "__state__" in v:
+            s = _dec(v["__state__"], arrays)
+            flt.state.P = s["P"]
+            flt.state.nominal.update(s["nominal"])
+            for name, value in (s["sensitivity"] or {}).items():
+                setattr(flt.state.sensitivity, name, value)
         elif k == "counters":
             flt.counters = FilterCounters(**_dec(v, arrays))
-        elif k == "_prefix" or k == "sensitivity":
+        elif k == "_prefix":
             continue
         else:
             setattr(flt, k, _dec(v, arrays))

@@ -32,10 +32,13 @@ same for all methods lives here, once:
   prior value): :class:`~stellar_cal_ros.core.covariance.Sensitivity`, for score tests and
   reliability in the diagnosis.
 
+The covariance belongs to :class:`~stellar_cal_ros.core.state.ErrorState` (:attr:`StarFilter.
+state`): the kernel and the methods change it only through its methods.
+
 A method (:mod:`~stellar_cal_ros.methods.psce`, :mod:`~stellar_cal_ros.methods.swaying`)
-defines its blocks, its propagation (:meth:`StarFilter.propagate`, :meth:`StarFilter.
-rate_at`, :meth:`StarFilter._on_imu_appended`) and its extra measurements
-(:meth:`StarFilter._before_star_update`).
+declares its navigation blocks (:attr:`StarFilter.navigation_blocks`), its propagation
+(:meth:`StarFilter.propagate`, :meth:`StarFilter.rate_at`, :meth:`StarFilter.
+_on_imu_appended`) and its extra measurements (:meth:`StarFilter._before_star_update`).
 """
 
 from __future__ import annotations
@@ -52,8 +55,8 @@ from stellar_cal_ros.core import gyro_check
 from stellar_cal_ros.core.attitude import fit_frame_attitude, wahba
 from stellar_cal_ros.core.gating import GatePolicy, block_nis, fov_tan2
 from stellar_cal_ros.core.imu import ImuBuffer
-from stellar_cal_ros.core.rotation import so3_exp, so3_log
-from stellar_cal_ros.core.state import StateLayout
+from stellar_cal_ros.core.rotation import so3_log
+from stellar_cal_ros.core.state import Block, ErrorState, StateLayout
 from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
 from stellar_cal_ros.effects.base import FrameContext
 from stellar_cal_ros.errors import DataError, ModelError
@@ -164,9 +167,6 @@ class StarFilter:
     config : KernelConfig
     nominal_dt : float
         Nominal IMU sample interval, s.
-    nav_blocks : sequence of (name, size)
-        The method's navigation vector blocks after θ (nominal values in attributes of the
-        same name, e.g. ``velocity``).
     consider : int
         Number of trailing θ entries of ``model`` that are consider parameters.
     """
@@ -176,9 +176,12 @@ class StarFilter:
     #: the compiled gain (False: the effects' Python methods and numpy/LAPACK — the
     #: reference path, the same estimates to rounding amplified by the start-up)
     compiled_step = True
+    #: the method's navigation blocks after θ (e.g. the swaying filter's velocity); their
+    #: nominal values start at zero and are set by :meth:`_acquire_navigation`
+    navigation_blocks: tuple[Block, ...] = ()
 
     def __init__(self, model: StarModel, t0: float, config: KernelConfig, nominal_dt: float,
-                 nav_blocks: tuple[tuple[str, int], ...] = (), consider: int = 0) -> None:
+                 consider: int = 0) -> None:
         self.model = model
         self.config = config
         c = config
@@ -186,28 +189,28 @@ class StarFilter:
         self.n_consider = int(consider)
         P_all = model.size
         self.P_est = P_all - self.n_consider
-        blocks = [("attitude", 3, "rotation", True)]
-        blocks += [(e.id, e.size, "vector", False) for e in model.effects
-                   if model.slices[e.id].stop <= self.P_est]
-        blocks += [(name, size, "vector", True) for name, size in nav_blocks]
+        blocks = [Block("attitude", 3, kind="rotation", navigation=True, driven_by="gyro")]
+        blocks += [Block(e.id, e.size, nominal="theta", index=model.slices[e.id])
+                   for e in model.effects if model.slices[e.id].stop <= self.P_est]
+        blocks += list(self.navigation_blocks)
         self.layout = StateLayout(blocks)
         self.N = self.layout.size
         self.ia = slice(0, 3)
         self.it = slice(3, 3 + self.P_est)
-        self._nav_blocks = tuple(name for name, _ in nav_blocks)
-        self.theta = model.initial_value.copy()
-        self.P = np.zeros((self.N, self.N))
-        self.P[self.it, self.it] = np.diag(model.initial_sigma[:self.P_est] ** 2)
+        self._nav_blocks = tuple(b.name for b in self.navigation_blocks)
+        nominal = {"attitude": None, "theta": model.initial_value.copy()}
+        nominal.update({b.value_name: np.zeros(b.size) for b in self.navigation_blocks})
+        #: nominal values, covariance and consider sensitivity (the one owner of P)
+        self.state = ErrorState(self.layout, nominal, self.n_consider)
+        self.state.assign(self.it, self.it, np.diag(model.initial_sigma[:self.P_est] ** 2))
         q = [e.process_noise_density() for e in model.effects]
         self.q_theta = (np.concatenate(q) ** 2 if q else np.zeros(0))[:self.P_est]
         self.q_gyro = (c.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR) ** 2
-        accel_vrw = getattr(c, "accel_vrw_mps_sqrth", 0.0) / 60.0  # m/s/√s
         self.imu = ImuBuffer(nominal_dt, c.imu_bridge_factor, c.gap_rate_sigma,
                              c.gap_accel_sigma, c.gap_reacquire_s,
                              math.sqrt(self.q_gyro / nominal_dt),
-                             accel_vrw / math.sqrt(nominal_dt))
+                             self.accel_noise_density() / math.sqrt(nominal_dt))
         self.nominal_dt = float(nominal_dt)
-        self.R_i_b: np.ndarray | None = None
         self.t: float | None = None
         self._omega = np.zeros(3)
         self._omega_stale = False
@@ -230,10 +233,40 @@ class StarFilter:
         self.gyro_watch = gyro_check.new_watch() if c.unit_check else None
         self._R_prior: tuple[np.ndarray, bool] | None = None  # (R_i_b propagated, gap)
         self.data_faults: list[str] = []  #: why the result is degraded (one line each)
-        self.sensitivity = cov.Sensitivity(self.N, self.n_consider) if self.n_consider \
-            else None
 
     # ------------------------------------------------------------------ views
+    @property
+    def P(self) -> np.ndarray:
+        """Error-state covariance (N, N), held by :attr:`state`."""
+        return self.state.P
+
+    @P.setter
+    def P(self, value: np.ndarray) -> None:
+        self.state.P = value
+
+    @property
+    def R_i_b(self) -> np.ndarray | None:
+        """Nominal IMU attitude (body to inertial); None before acquisition."""
+        return self.state.nominal["attitude"]
+
+    @R_i_b.setter
+    def R_i_b(self, value: np.ndarray | None) -> None:
+        self.state.nominal["attitude"] = value
+
+    @property
+    def theta(self) -> np.ndarray:
+        """Nominal parameters of every effect of the model (consider ones included)."""
+        return self.state.nominal["theta"]
+
+    @theta.setter
+    def theta(self, value: np.ndarray) -> None:
+        self.state.nominal["theta"] = value
+
+    @property
+    def sensitivity(self) -> cov.Sensitivity | None:
+        """The state's sensitivity to the consider parameters (None: none)."""
+        return self.state.sensitivity
+
     @property
     def initialized(self) -> bool:
         """True once the attitude has been acquired from a star frame."""
@@ -259,7 +292,7 @@ class StarFilter:
 
     def sigma(self) -> np.ndarray:
         """1-sigma of the error state (attitude, θ, navigation)."""
-        return np.sqrt(np.maximum(np.diag(self.P), 0.0))
+        return self.state.sigma()
 
     def theta_estimated(self) -> np.ndarray:
         """The estimated part of θ."""
@@ -315,6 +348,10 @@ class StarFilter:
         return cut
 
     # ------------------------------------------------------------------ method hooks
+    def accel_noise_density(self) -> float:
+        """White specific-force noise the method models, m/s/√s (0: it uses no accelerometer)."""
+        return 0.0
+
     def _on_imu_appended(self, first: int) -> None:
         """Samples ``first:`` of :attr:`imu` are new (e.g. extend a prefix)."""
 
@@ -344,10 +381,7 @@ class StarFilter:
         var_w, var_f, long_gap, n_entered = self.imu.bridged_variance(ta, tb, ma, mb)
         if not var_w and not n_entered:
             return
-        self.P[self.ia, self.ia] += var_w * np.eye(3)
-        if "velocity" in self.layout:
-            sv = self.layout.sl("velocity")
-            self.P[sv, sv] += var_f * np.eye(3)
+        self.state.add_noise({"gyro": var_w, "accel": var_f})
         if long_gap:
             self._gap_pending = True
             log.warning("IMU gap before t=%.3f s: the attitude is re-acquired from the stars",
@@ -431,12 +465,11 @@ class StarFilter:
         Ptt = self.P[it, it]
         Q2 = self._init_second_order(uv[keep], u_i[keep], ctx, fit.R_i_st, R_i_b, M, Ht) \
             if self.P_est and c.init_second_order else 0.0
-        self.P[ia, ia] = M @ Ptt @ M.T + s2 * np.linalg.inv(info) + Q2
-        self.P[ia, it] = -M @ Ptt
-        self.P[it, ia] = self.P[ia, it].T
+        self.state.assign(ia, ia, M @ Ptt @ M.T + s2 * np.linalg.inv(info) + Q2)
+        self.state.assign(ia, it, -M @ Ptt)
         if self.sensitivity is not None:
             self.sensitivity.clear_rows(self.layout.navigation_index)
-            self.sensitivity.M[ia] = -np.linalg.solve(info, Hf.T @ Ht_all[:, self.P_est:])
+            self.sensitivity.set_rows(ia, -np.linalg.solve(info, Hf.T @ Ht_all[:, self.P_est:]))
         self._acquire_navigation(t_exp)
         self.counters.init_frames += 1
         self._rejected_in_row = 0
@@ -510,9 +543,7 @@ class StarFilter:
         False (state unchanged) if the frame cannot align.
         """
         saved = self._snapshot(full=True)
-        nav = self.layout.navigation_index
-        self.P[nav, :] = 0.0
-        self.P[:, nav] = 0.0
+        self.state.forget(self.layout.navigation_index)
         if not self.initialize(uv, u_i, ctx, sigma):
             self._restore(saved)
             return False
@@ -544,42 +575,23 @@ class StarFilter:
         self.data_faults.append(cause)
 
     # ------------------------------------------------------------------ state snapshots
-    def _nav_values(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self, name).copy() for name in self._nav_blocks}
-
     def _snapshot(self, full: bool = False) -> tuple:
-        """Copy of the estimate (P, θ, R, navigation); ``full`` adds time and counters."""
-        snap = (self.P.copy(), self.theta.copy(), None if self.R_i_b is None
-                else self.R_i_b.copy(), self._nav_values())
+        """Copy of the estimate (P, nominal values); ``full`` adds time and sensitivity."""
+        snap = (self.state.snapshot(sensitivity=full),)
         if full:
-            snap += (self.t, self._k,
-                     None if self.sensitivity is None else self.sensitivity.M.copy())
+            snap += (self.t, self._k)
         return snap
 
     def _restore(self, snap: tuple) -> None:
-        self.P, self.theta, self.R_i_b, nav = (snap[0].copy(), snap[1].copy(),
-                                               None if snap[2] is None else snap[2].copy(),
-                                               snap[3])
-        for name, value in nav.items():
-            setattr(self, name, value.copy())
-        if len(snap) > 4:
-            self.t, self._k, M = snap[4:]
-            if M is not None:
-                self.sensitivity.M = M
+        self.state.restore(snap[0])
+        if len(snap) > 1:
+            self.t, self._k = snap[1:]
         self._omega_stale = True
 
     # ------------------------------------------------------------------ updates
     def inject(self, dx: np.ndarray) -> None:
         """Apply the error estimate to the nominal state (box-plus) and reset P."""
-        dphi = dx[self.ia]
-        self.R_i_b = so3_exp(dphi) @ self.R_i_b
-        self.theta[:self.P_est] += dx[self.it]
-        for name in self._nav_blocks:
-            setattr(self, name, getattr(self, name) + dx[self.layout.sl(name)])
-        cov.reset_rotation(self.P, self.ia, dphi)
-        self.P = 0.5 * (self.P + self.P.T)
-        if self.sensitivity is not None:
-            self.sensitivity.reset_rotation(self.ia, dphi)
+        self.state.inject(dx)
         self._omega_stale = True
 
     def _star_jacobian(self, pred) -> tuple[np.ndarray, np.ndarray]:
@@ -680,18 +692,13 @@ class StarFilter:
             Hn, _ = self._star_jacobian(pred)
             return Hn.reshape(-1, N), pred.uv.reshape(-1)
 
-        res = cov.iterated_update(self.P, H, h, z, r_diag, relinearize, self.update_policy,
-                                  self.ia, self.it, compiled=self.compiled_step)
+        Hb = Hb0[idx].reshape(-1, self.n_consider) if self.n_consider else None
+        res = self.state.iterated_update(H, h, z, r_diag, relinearize, self.update_policy,
+                                         self.ia, self.it, Hb, compiled=self.compiled_step)
         if not res.ok:
             self.counters.add("update_failed")
             log.warning("t=%.3f s: %s: frame skipped", t_exp, res.reason)
             return result
-        sens = self.sensitivity
-        if sens is not None:
-            S = res.H @ self.P @ res.H.T
-            S.ravel()[::len(S) + 1] += r_diag
-            sens.update(res.H, Hb0[idx].reshape(-1, self.n_consider), res.K, z - h, S)
-        self.P = res.P
         self.inject(res.dx)
         self.counters.updates += 1
         if c.covariance_check_every and self.counters.updates % c.covariance_check_every == 0:
@@ -705,12 +712,10 @@ class StarFilter:
         """Cheap health check of P; repair (or roll back) instead of going on corrupted."""
         self.counters.covariance_checks += 1
         try:
-            cov.check(self.P, f"{self.method} covariance")
+            self.state.check(f"{self.method} covariance")
         except ModelError as exc:
             self.counters.covariance_repairs += 1
-            fixed = cov.repair(self.P)
-            if fixed is not None:
-                self.P = fixed
+            if self.state.repair():
                 log.warning("%s: repaired (eigenvalues clipped)", exc)
             elif self._good is not None:
                 self._restore(self._good)

@@ -36,7 +36,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stellar_cal_ros.core import covariance as cov
 from stellar_cal_ros.core.imu_prefix import ImuPrefix
 from stellar_cal_ros.core.rotation import (
     quat_from_matrix,
@@ -97,7 +96,7 @@ class PsceFilter(StarFilter):
 
     def __init__(self, model: StarModel, t0: float, config: PsceConfig | None = None, *,
                  nominal_dt: float, consider: int = 0) -> None:
-        super().__init__(model, t0, config or PsceConfig(), nominal_dt, (), consider)
+        super().__init__(model, t0, config or PsceConfig(), nominal_dt, consider)
         self._prefix: ImuPrefix | None = None
         b, E, Jb, JE = model.sensor_model(self.theta, Stage.GYRO)
         # Fast propagation needs rates linear in θ with a constant Jacobian: bias-type GYRO
@@ -149,10 +148,8 @@ class PsceFilter(StarFilter):
         ``Phi`` (3, P_all): the estimated columns drive the covariance, the consider ones
         the sensitivity.
         """
-        F = Phi[:, :self.P_est]
-        cov.propagate_coupled(self.P, self.ia, self.it, F, self._q_diag * total)
-        if self.sensitivity is not None:
-            self.sensitivity.propagate_coupled(self.ia, self.it, F, Phi[:, self.P_est:])
+        self.state.propagate_coupled(self.ia, self.it, Phi[:, :self.P_est],
+                                     self._q_diag * total, Phi[:, self.P_est:])
 
     def _propagate_fast(self, t_target: float) -> bool:
         """Propagation from the prefix integrals (see :class:`ImuPrefix`); False: not valid.
@@ -245,7 +242,7 @@ class PsceFilter(StarFilter):
                 Phi = Phi - np.einsum("nij,njp,n->ip", R_all, JEw, dts)
             self._apply_transition(Phi, total)
         else:
-            self.P.flat[::len(self.P) + 1] += self._q_diag * total
+            self.state.add_diagonal(self._q_diag * total)
         self._inflate_bridged(k, m, self.t, t_target)
         self.R_i_b = R_all[-1]
         self.omega = w_hat[-1]

@@ -58,7 +58,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stellar_cal_ros.core import covariance as cov
 from stellar_cal_ros.core import earth
 from stellar_cal_ros.core.rotation import (
     quat_from_matrix,
@@ -67,6 +66,7 @@ from stellar_cal_ros.core.rotation import (
     skew,
     so3_exp,
 )
+from stellar_cal_ros.core.state import Block
 from stellar_cal_ros.core.strapdown import (
     attitude_increments,
     attitude_prefix,
@@ -181,12 +181,13 @@ class SwayingFilter(StarFilter):
 
     method = "swaying_base"
     baseline = BASELINE_EFFECTS
+    navigation_blocks = (Block("velocity", 3, navigation=True, driven_by="accel"),
+                         Block("position", 3, navigation=True))
 
     def __init__(self, model: StarModel, t0: float, site: earth.Site,
                  config: SwayingConfig | None = None, *, nominal_dt: float,
                  consider: int = 0) -> None:
-        super().__init__(model, t0, config or SwayingConfig(), nominal_dt,
-                         (("velocity", 3), ("position", 3)), consider)
+        super().__init__(model, t0, config or SwayingConfig(), nominal_dt, consider)
         c = self.config
         self.site = site
         P = self.P_est
@@ -204,8 +205,6 @@ class SwayingFilter(StarFilter):
         self.q_accel = (c.accel_vrw_mps_sqrth / 60.0) ** 2
         self.r_site0 = earth.site_position_gcrs(site, self.t0, c.dut1)
         self.grid = EarthGrid(self.t0, c.grid_step_s, c.grid_chunk_s, self._grid_functions())
-        self.velocity = np.zeros(3)
-        self.position = np.zeros(3)
         self._theta_ref = self.theta.copy()
         self._win = (0, 0)
         self._win_theta = self.theta.copy()
@@ -250,7 +249,29 @@ class SwayingFilter(StarFilter):
         self._qd_index = (e[:, 0] * N + e[:, 1]).astype(int)
         self._qd = tuple(e[:, c_] for c_ in range(2, 7))
 
-    # ------------------------------------------------------------------ aliases
+    def accel_noise_density(self) -> float:
+        """White specific-force noise, m/s/√s."""
+        return self.config.accel_vrw_mps_sqrth / 60.0
+
+    # ------------------------------------------------------------------ nominal values
+    @property
+    def velocity(self) -> np.ndarray:
+        """Nominal inertial velocity, m/s (GCRS)."""
+        return self.state.nominal["velocity"]
+
+    @velocity.setter
+    def velocity(self, value: np.ndarray) -> None:
+        self.state.nominal["velocity"] = value
+
+    @property
+    def position(self) -> np.ndarray:
+        """Nominal position relative to the site at t0, m (GCRS axes)."""
+        return self.state.nominal["position"]
+
+    @position.setter
+    def position(self, value: np.ndarray) -> None:
+        self.state.nominal["position"] = value
+
     @property
     def v(self) -> np.ndarray:
         """Nominal inertial velocity (alias of ``velocity``)."""
@@ -526,12 +547,9 @@ class SwayingFilter(StarFilter):
     def _propagate_covariance(self, Phi: np.ndarray, F_b: np.ndarray | None, T: float,
                               k: int, m: int, ta: float, tb: float) -> None:
         """``P ← Φ P Φᵀ + Q_d`` over an interval of length T, then the bridging inflation."""
-        Pn = Phi @ self.P @ Phi.T
         q1, q2, q3, gm2, itau2 = self._qd
-        Pn.ravel()[self._qd_index] += (q1 + (q2 + q3 * T) * T) * T + gm2 * -np.expm1(-T * itau2)
-        self.P = 0.5 * (Pn + Pn.T)
-        if self.sensitivity is not None:
-            self.sensitivity.propagate(Phi, F_b)
+        q = (q1 + (q2 + q3 * T) * T) * T + gm2 * -np.expm1(-T * itau2)
+        self.state.propagate(Phi, (self._qd_index, q), F_b)
         self._inflate_bridged(k, m, ta, tb)
 
     def _propagate_samples(self, t_target: float, k: int, m: int) -> None:
@@ -605,8 +623,8 @@ class SwayingFilter(StarFilter):
         c = self.config
         self.velocity = self.site_velocity(t_exp)
         self.position = self.site_position(t_exp)
-        self.P[self.iv, self.iv] = c.initial_velocity_sigma_mps**2 * np.eye(3)
-        self.P[self.ir, self.ir] = c.sway_displacement_sigma_m**2 * np.eye(3)
+        self.state.assign(self.iv, self.iv, c.initial_velocity_sigma_mps**2 * np.eye(3))
+        self.state.assign(self.ir, self.ir, c.sway_displacement_sigma_m**2 * np.eye(3))
         self._level_check(t_exp)
 
     def _after_reacquire(self) -> None:
@@ -652,11 +670,7 @@ class SwayingFilter(StarFilter):
             return
         self.last_reference_t = self.t
         nu, H, R = self.reference_measurement()
-        P0 = self.P
-        dx, self.P, K, nis = cov.linear_update(P0, H, nu, R)
-        if self.sensitivity is not None:
-            self.sensitivity.update(H, np.zeros((3, self.n_consider)), K, nu,
-                                    H @ P0 @ H.T + R)
+        dx, nis = self.state.linear_update(H, nu, R)
         self.inject(dx)
         key = "position_updates" if self.config.velocity_reference == "position" \
             else "velocity_updates"
