@@ -19,7 +19,7 @@ def _modules(sub: str) -> list[str]:
 
 def test_core_and_methods_import_with_rclpy_unavailable():
     mods = _modules("core") + _modules("effects") + _modules("methods") + \
-        _modules("diagnosis") + _modules("sim")
+        _modules("diagnosis") + _modules("sim") + _modules("sky")
     code = ("import sys\n"
             "for m in ('rclpy', 'stellar_cal_msgs', 'sensor_msgs'):\n"
             "    sys.modules[m] = None  # any import of them raises ImportError\n"

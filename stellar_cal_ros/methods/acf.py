@@ -101,6 +101,7 @@ from stellar_cal_ros.methods.acf_robust import (
 )
 from stellar_cal_ros.methods.init_from import prior_from_result  # noqa: F401 (re-exported)
 from stellar_cal_ros.methods.star_model import StarModel
+from stellar_cal_ros.sky.identify import identify_frames, needs_identification
 
 log = logging.getLogger(__name__)
 
@@ -572,6 +573,11 @@ def run_acf(
     tell = progress or (lambda stage: None)
     data = source if isinstance(source, AcfData) else load_acf_data(source, star_topic,
                                                                       imu_topic)
+    if any(needs_identification(f) for f in data.frames):  # unidentified centroids
+        data.frames, ident = identify_frames(
+            data.frames, prior.camera, prior.installation.as_matrix(), data.imu.stamp_ns,
+            data.imu.angular_velocity)
+        log.info("identification of unidentified centroids: %s", ident.as_dict())
     tell(ACF_STAGES[0])
     ids = list(ACF_EFFECTS if effects is None else effects)
     if not ids:

@@ -65,6 +65,11 @@ from stellar_cal_ros.methods.results import (
 )
 from stellar_cal_ros.methods.swaying import SwayingConfig, SwayingFilter
 from stellar_cal_ros.methods.traditional import TraditionalConfig, TraditionalFilter
+from stellar_cal_ros.sky.identify import (
+    Identifier,
+    needs_identification,
+    predicted_attitude,
+)
 
 log = logging.getLogger(__name__)
 
@@ -275,6 +280,8 @@ class Calibrator:
         self._frame_index = 0
         self._history_keys: tuple[str, ...] | None = None  # see _record_history
         self._history_sigma_index: np.ndarray | None = None
+        self.identifier = None  # the star identification of unidentified frames (lazy)
+        self._to_identify: set[int] = set()  # stamps of pending frames to identify
 
     def reset(self) -> None:
         """Forget everything (the prior, effects and configuration stay)."""
@@ -375,6 +382,8 @@ class Calibrator:
                 self._clock_fault(clocks.leap_text(self._imu_leap, stamp, self.t0_ns))
         cam = self.prior.camera
         inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px)
+        if needs_identification(frame):  # identified when processed, with the IMU's hint
+            self._to_identify.add(stamp)
         pending = self._frames_pending
         if not pending or stamp > int(pending[-1].stamp_ns):  # in order: the usual case
             pending.append(frame)
@@ -565,13 +574,16 @@ class Calibrator:
             ready, stale = self._env_ready(stamp, final)
             if not ready:
                 break
-            if not final and len(inp.uv):
+            if not final and (len(inp.uv) or stamp in self._to_identify):
                 shift = self._time_shift(stamp, inp)
                 t_exp = (stamp - self.t0_ns) * 1e-9 + shift
                 if imu_end <= t_exp + lookahead:
                     break  # the IMU does not cover the exposure yet
-            ctx = frame_context(stamp, inp, self.site, self.env) if len(inp.uv) else None
             self._flush_staged()
+            if stamp in self._to_identify:
+                self._to_identify.discard(stamp)
+                fr, inp = self._identify(fr, inp, stamp)
+            ctx = frame_context(stamp, inp, self.site, self.env) if len(inp.uv) else None
             self._frames_pending.pop(0)
             self._inputs.pop(stamp, None)
             self._last_frame_ns = stamp
@@ -582,6 +594,31 @@ class Calibrator:
         if processed:
             self._trim()
         return out
+
+    def _identify(self, frame: StarFrame, inp, stamp: int):
+        """Identify a frame's unidentified centroids (:mod:`stellar_cal_ros.sky.identify`).
+
+        Lost-in-space until the filter has an attitude; then tracking with the attitude the
+        filter predicts for the exposure (its last attitude carried by the IMU rates held), and
+        lost-in-space again when tracking fails.
+        """
+        flt = self.filter
+        hint, unc = None, None
+        ctx = frame_context(stamp, inp, self.site, self.env)
+        theta = flt.theta if flt is not None else self.model.initial_value
+        camera = self.model.camera_at(theta, ctx)
+        if self.identifier is None:
+            self.identifier = Identifier(camera)
+        self.identifier.set_camera(camera)
+        if flt is not None and flt.initialized:
+            t_exp = (stamp - self.t0_ns) * 1e-9 + self._time_shift(stamp, inp)
+            R_imu_st, _ = self.model.installation_at(theta, ctx)
+            hint = predicted_attitude(flt.R_i_b, flt.t, t_exp, flt.imu.t, flt.imu.w) @ R_imu_st
+            var = np.linalg.eigvalsh(flt.P[flt.ia, flt.ia]).max()
+            unc = float(np.clip(np.degrees(5.0 * math.sqrt(max(var, 0.0))), 0.05, 2.0))
+        frame, _ = self.identifier.identify_frame(frame, hint, hint_uncertainty_deg=unc)
+        cam = self.prior.camera
+        return frame, frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px)
 
     def _time_shift(self, stamp: int, inp) -> float:
         """Seconds from a frame's stamp to its modelled exposure (current θ)."""
@@ -762,9 +799,12 @@ class Calibrator:
         return out
 
     def all_counters(self) -> dict[str, Any]:
-        """Input and filter counters together."""
+        """Input and filter counters together (and the identification's, if it ran)."""
         out = dict(vars(self.counters))
         out.update(self.filter_counters())
+        if self.identifier is not None:
+            out.update({"identify_" + k: v
+                        for k, v in self.identifier.counters.as_dict().items()})
         return out
 
     def convergence(self) -> dict[str, Any]:
