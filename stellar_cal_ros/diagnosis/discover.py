@@ -570,9 +570,11 @@ def hidden_effects(base: RunStats, results: list[CandidateResult]) -> list[dict[
 
     For each applicable library effect not in the model (ranked, implausible, not testable
     or screened out) with an augmented run or a screening sensitivity: its minimal
-    detectable size and the largest bias an undetected effect of that size (at most its
-    plausible size) puts into each estimated parameter and into the equivalent principal
-    point; ``dominates`` lists those where the bias exceeds their σ in the current model.
+    detectable size and the bias each of its parameters at that size (at most its plausible
+    size) puts into each estimated parameter and into the equivalent principal point, and
+    what its blind directions could shift (:func:`~stellar_cal_ros.diagnosis.reliability.
+    external_reliability`); ``dominates`` lists those where the bias exceeds their σ in
+    the current model.
     """
     from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
 
@@ -588,6 +590,7 @@ def hidden_effects(base: RunStats, results: list[CandidateResult]) -> list[dict[
                                          base.names, derived)
         elif c.screen is not None and c.screen.sensitivity is not None:
             rows = dict(zip(base.names, c.screen.sensitivity, strict=False))
+            rows.update(c.screen.derived)
         else:
             rows = {}
         out.append(reliability.external_reliability(c.detect, rows, sigma))

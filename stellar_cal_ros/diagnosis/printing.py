@@ -116,20 +116,37 @@ def print_discovery(summary: dict[str, Any]) -> None:
 
 
 def print_reliability(entries: list[dict[str, Any]], per_effect: int = 4) -> None:
-    """What could still be hiding: each effect's MDB and the σ its bias would dominate."""
+    """What could still be hiding: each effect's MDB and the σ its bias would dominate.
+
+    Each bias is that of one parameter of the effect alone at its printed MDB (named in
+    brackets): the shift an injection of that size reproduces.  Directions the data cannot
+    see are a separate clause, with what an effect of plausible size there could shift.
+    """
     if not entries:
         return
     print("what could still be hiding (minimal detectable size on this bag, power "
-          f"{reliability.POWER:.0%}):")
+          f"{reliability.POWER:.0%}; each bias is that parameter alone at its MDB):")
     for e in entries:
         mdb = ", ".join(f"{n} {reliability.shown(e['effect'] + '.' + n, v)}"
                         for n, v in e["mdb"].items())
         flag = "" if e["testable"] else " (not testable: above its plausible size)"
         line = f"  {e['effect']:22s} MDB {mdb}{flag}"
         dom = sorted(e["dominates"], key=lambda n: -e["biases"][n] / e["sigma"][n])
+        src = e.get("bias_parameter", {})
         if dom:
             line += "; would bias " + ", ".join(
-                f"{n} by {e['biases_shown'][n]} (sigma {e['sigma_shown'][n]})"
+                f"{n} by {e['biases_shown'][n]}"
+                + (f" [{src[n]}]" if len(e["mdb"]) > 1 and src.get(n) else "")
+                + f" (sigma {e['sigma_shown'][n]})"
                 for n in dom[:per_effect]) + (f" and {len(dom) - per_effect} more"
                                               if len(dom) > per_effect else "")
+        blind = e.get("blind") or {}
+        bdom = sorted(blind.get("dominates", []),
+                      key=lambda n: -blind["biases"][n] / e["sigma"][n])
+        if bdom:
+            line += (f"; blind to {len(blind['directions'])} direction(s) "
+                     f"({'; '.join(blind['directions'])}): up to its plausible size there it "
+                     "would move " + ", ".join(f"{n} by {blind['biases_shown'][n]}"
+                                               for n in bdom[:per_effect])
+                     + " with no trace in the residuals")
         print(line)

@@ -18,12 +18,14 @@ An effect is *not testable with this motion* only when its MDB exceeds its plaus
 physical size (:data:`PLAUSIBLE_SIZE`) in every direction — never because the posterior
 stays near a prior σ that may have been set too small.
 
-External reliability: an effect of MDB size left out of the model biases the estimated
-parameters θ by ``b_θ = −P_θβ P_ββ⁻¹ b_β`` (the shift of the conditional mean when β is
-pinned to zero; P is the augmented run's joint posterior).  Over every undetectable β
-(``bᵀ I b ≤ λ₀``) the largest bias of ``gᵀθ`` is ``sqrt(λ₀ hᵀ I⁻¹ h)`` with
-``h = −P_ββ⁻¹ P_βθ g``; an effect larger than its plausible size is not expected either, so
-the plausible ellipsoid's bound ``sqrt(hᵀ D² h)`` caps it (D = plausible sizes).
+External reliability: an effect β = b left out of the model shifts the estimated
+parameters θ by ``b_θ = −P_θβ P_ββ⁻¹ b`` (the shift of the conditional mean when β is
+pinned to zero; P is the augmented run's joint posterior), or ``−M_θ b`` from a screening
+pass's sensitivity.  The report states, per parameter of the effect, the shift that
+parameter alone at its printed MDB causes — the number an injection of that size
+reproduces (``test/test_reliability_injection.py``, ``benchmarks/reliability_injection.py``)
+— and, separately, the directions the data cannot see at all with the shift an effect of
+plausible size along them leaves undetected (:func:`blind_directions`).
 """
 
 from __future__ import annotations
@@ -147,7 +149,7 @@ class Detectability:
                 "plausible_size": {n: float(p) for n, p in zip(names, self.plausible,
                                                                 strict=True)},
                 "mdb_over_plausible": self.ratio, "testable": self.testable,
-                "alpha": self.alpha, "power": POWER}
+                "alpha": self.alpha, "power": POWER, "lam0": self.lam0, "dof": self.dof}
 
 
 def detectability(effect_id: str, information: np.ndarray, alpha: float) -> Detectability:
@@ -235,40 +237,79 @@ def bias_rows(names_aug: list[str], P_aug: np.ndarray, beta: slice, model_names:
     return rows
 
 
-def external_reliability(det: Detectability, rows: dict[str, np.ndarray],
-                         model_sigma: dict[str, float]) -> dict[str, Any]:
-    """Largest bias an undetectable ``det.effect`` puts into each estimated quantity.
+def blind_directions(det: Detectability) -> np.ndarray:
+    """Directions of ``det.effect`` the data cannot see, ``(k, n_blind)`` at plausible size.
 
-    ``rows`` from :func:`bias_rows` (or a screening pass's sensitivity); ``model_sigma``
-    the posterior σ of each quantity in the current model (same units).  Returns
-    ``{"effect", "mdb", ..., "biases": {name: bias}, "biases_shown": {name: text},
-    "dominates": [names whose bias exceeds DOMINATES_SIGMA σ]}``.
+    The eigen-directions of the information whitened by the plausible sizes along which an
+    effect as large as plausible stays below the test's non-centrality λ₀: an effect there,
+    up to its plausible size, leaves no detectable trace (e.g. the antisymmetric part of a
+    gyro misalignment, a rotation of the gyro axes that the installation absorbs one to
+    one).  Each column is the effect vector (its units) of one such direction, scaled to
+    the plausible ellipsoid.
     """
     D = det.plausible
-    Iw = _sym(det.information * np.outer(D, D))  # whitened by the plausible sizes
-    w, V = np.linalg.eigh(Iw)
-    # three valid upper bounds of |hᵀb| over {bᵀIb ≤ λ₀} ∩ {|D⁻¹b| ≤ 1}: the MDB
-    # ellipsoid alone (infinite if some direction carries no information), the plausible
-    # ellipsoid alone, and their average ellipsoid (which contains the intersection)
-    small = w <= 1e-12 * max(float(w.max(initial=0.0)), 1e-300)
-    M = 0.5 * (Iw / det.lam0 + np.eye(len(D)))
+    w, V = np.linalg.eigh(_sym(det.information * np.outer(D, D)))
+    return D[:, None] * V[:, w < det.lam0]
 
-    def worst(h: np.ndarray) -> float:
-        hw = np.asarray(h, dtype=float) * D
-        bounds = [float(np.sqrt(max(hw @ hw, 0.0))),
-                  float(np.sqrt(max(hw @ np.linalg.solve(M, hw), 0.0)))]
-        c = V.T @ hw
-        if not np.any(np.abs(c[small]) > 1e-12 * max(float(np.abs(c).max(initial=0.0)),
-                                                      1e-300)):
-            bounds.append(float(np.sqrt(det.lam0 * np.sum(c[~small] ** 2 / w[~small]))))
-        return min(bounds)
 
-    biases = {name: worst(h) for name, h in rows.items()}
+def _direction_text(effect_id: str, v: np.ndarray) -> str:
+    """A direction of an effect in words: ``'0.71 e01 - 0.71 e10'``."""
+    names = registry.create(effect_id).parameter_names
+    u = np.asarray(v, dtype=float) / max(float(np.abs(v).max()), 1e-300)
+    u = u / np.linalg.norm(u)
+    terms = [(c, n) for c, n in zip(u, names, strict=True) if abs(c) >= 0.2]
+    text = " ".join(f"{'-' if c < 0 else '+'} {abs(c):.2g} {n}" for c, n in terms)
+    return text[2:] if text.startswith("+ ") else text
+
+
+def external_reliability(det: Detectability, rows: dict[str, np.ndarray],
+                         model_sigma: dict[str, float]) -> dict[str, Any]:
+    """The bias an undetected ``det.effect`` of its printed MDB puts into each quantity.
+
+    ``rows`` from :func:`bias_rows` (or a screening pass's sensitivity): leaving out the
+    effect at ``b`` shifts quantity q by ``h_q · b``; ``model_sigma`` the posterior σ of
+    each quantity in the current model (same units).
+
+    Every number is the shift an injection of the printed size reproduces (issue 21): for
+    each parameter j of the effect, the effect with that parameter alone at its printed MDB
+    (``sqrt(λ₀ / I_jj)``, at most its plausible size when the MDB exceeds it) shifts q by
+    ``h_qj · size_j``; ``biases[q]`` is the largest of these over j (signed, in
+    ``biases_signed``), ``bias_parameter[q]`` the j that gives it.  Directions the data
+    cannot see at all (:func:`blind_directions`) are a separate statement, ``blind``: up to
+    its plausible size an effect there moves q by up to ``|h_q D V_b|`` and no test can
+    tell.  (The worst bias over the whole undetectable set mixed the two: for a gyro
+    misalignment it printed the plausible-size rotation of the gyro axes — 150 arcsec of
+    installation — beside a 3 arcsec MDB, ~60x what that MDB does.)
+
+    Returns ``{"effect", "mdb", ..., "hidden_size", "biases", "biases_signed",
+    "bias_parameter", "biases_shown", "dominates", "sigma", "sigma_shown", "blind"}``.
+    """
+    names = list(det.mdb)
+    size = np.array([min(det.mdb[n], p) for n, p in zip(names, det.plausible, strict=True)])
+    biases, signed, source = {}, {}, {}
+    for q, h in rows.items():
+        shifts = np.asarray(h, dtype=float) * size
+        j = int(np.argmax(np.abs(shifts))) if shifts.size else 0
+        signed[q] = float(shifts[j]) if shifts.size else 0.0
+        biases[q], source[q] = abs(signed[q]), names[j] if names else ""
     dominates = [name for name, b in biases.items()
                  if model_sigma.get(name, 0.0) > 0
                  and b > DOMINATES_SIGMA * model_sigma[name]]
-    return {"effect": det.effect, **det.as_dict(), "biases": biases,
+    B = blind_directions(det) if det.testable else np.zeros((len(names), 0))
+    blind: dict[str, Any] = {}
+    if B.shape[1]:
+        worst = {q: float(np.linalg.norm(np.asarray(h, dtype=float) @ B))
+                 for q, h in rows.items()}
+        blind = {"directions": [_direction_text(det.effect, B[:, i])
+                                for i in range(B.shape[1])],
+                 "biases": worst, "biases_shown": {n: shown(n, b) for n, b in worst.items()},
+                 "dominates": [n for n, b in worst.items() if model_sigma.get(n, 0.0) > 0
+                               and b > DOMINATES_SIGMA * model_sigma[n]]}
+    sig_names = set(dominates) | set(blind.get("dominates", []))
+    return {"effect": det.effect, **det.as_dict(),
+            "hidden_size": dict(zip(names, map(float, size), strict=True)),
+            "biases": biases, "biases_signed": signed, "bias_parameter": source,
             "biases_shown": {n: shown(n, b) for n, b in biases.items()},
-            "sigma": {n: model_sigma[n] for n in dominates},
-            "sigma_shown": {n: shown(n, model_sigma[n]) for n in dominates},
-            "dominates": dominates}
+            "sigma": {n: model_sigma[n] for n in sig_names},
+            "sigma_shown": {n: shown(n, model_sigma[n]) for n in sig_names},
+            "dominates": dominates, "blind": blind}

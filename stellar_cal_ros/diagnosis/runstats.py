@@ -114,7 +114,7 @@ class RunStats:
         return dict(zip(self.names, self.theta.tolist(), strict=True))
 
 
-def _epp_jacobian(model, theta: np.ndarray, columns: int) -> np.ndarray:
+def epp_jacobian(model, theta: np.ndarray, columns: int) -> np.ndarray:
     """∂(equivalent principal point)/∂θ[:columns] by central differences, (2, columns)."""
     n = model.size
     zero = np.zeros((n, n))
@@ -141,7 +141,7 @@ def run_statistics(result: ReplayResult, fraction: float,
     derived = {k: v for k, v in (result.derived or {}).items()
                if isinstance(v, (int, float, list, tuple)) and not isinstance(v, bool)}
     try:
-        J = _epp_jacobian(model, theta, n)
+        J = epp_jacobian(model, theta, n)
     except Exception:  # a model without a camera chain: no derived bias
         J = None
     return RunStats(

@@ -21,7 +21,7 @@ The score function is pluggable: :attr:`~stellar_cal_ros.diagnosis.discover.Meth
 screen` is called where the run executes, on the run made with the candidates as consider
 parameters::
 
-    screen(result, candidates) -> {effect_id: (LM, dof, I)}     or (LM, dof, I, M)
+    screen(result, candidates) -> {effect_id: (LM, dof, I)}  or (LM, dof, I, M[, derived])
 
 ``I`` is (k, k) in the effect's units⁻² over the evaluation window; the optional ``M``
 (n_θ, k) is the sensitivity of the current model's final θ to the candidate (consider
@@ -40,7 +40,7 @@ the dispersion), at the loose level :data:`SCREEN_P` — measured against the fu
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -70,6 +70,9 @@ class ScreenResult:
     sensitivity: np.ndarray | None = None  #: (n_θ, k): ∂θ̂/∂β of the current model
     dispersion: float = 1.0  #: of the screening run (mean NIS/dof, at least 1)
     local: bool = True  #: the current model is close enough for a local test
+    #: bias rows of derived quantities per unit of β: ``{name: (k,)}`` (the equivalent
+    #: principal point)
+    derived: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def statistic(self) -> float:
@@ -88,11 +91,30 @@ class ScreenResult:
 
 
 def kernel_scores(result, candidates: list[str]) -> dict[str, tuple]:
-    """The kernel's score tests of a run made with ``consider=candidates``."""
+    """The kernel's score tests of a run made with ``consider=candidates``.
+
+    ``{effect: (LM, dof, I, bias_per_unit, derived)}``; ``derived`` holds the bias rows of
+    the equivalent principal point, ``J_θ (−M_θ) − J_β`` (its error in the current model
+    minus the shift the effect itself makes).
+    """
+    from stellar_cal_ros.diagnosis.runstats import EPP_NAMES, epp_jacobian
     from stellar_cal_ros.methods.screening import score_tests
 
-    return {eid: (c.lm, c.dof, c.info, c.bias_per_unit)
-            for eid, c in score_tests(result, list(candidates)).items()}
+    flt = result.filter
+    n = flt.P_est
+    try:
+        J = epp_jacobian(flt.model, np.asarray(flt.theta, dtype=float), flt.model.size)
+    except Exception:  # a model without a camera chain: no derived rows
+        J = None
+    out = {}
+    for eid, c in score_tests(result, list(candidates)).items():
+        derived = {}
+        if J is not None:
+            sl = flt.model.slices[eid]
+            rows = J[:, :n] @ c.bias_per_unit - J[:, sl]
+            derived = dict(zip(EPP_NAMES, rows, strict=True))
+        out[eid] = (c.lm, c.dof, c.info, c.bias_per_unit, derived)
+    return out
 
 
 def screen_function(method: str) -> ScreenFn | None:
@@ -159,8 +181,10 @@ def collect(runs: list[Any]) -> dict[str, ScreenResult]:
         for eid, item in run.scores.items():
             lm, dof, info = item[:3]
             sens = item[3] if len(item) > 3 else None
+            derived = {k: np.asarray(v, dtype=float)
+                       for k, v in (item[4] if len(item) > 4 else {}).items()}
             out[eid] = ScreenResult(float(lm), int(dof),
                                     np.atleast_2d(np.asarray(info, dtype=float)),
                                     None if sens is None else np.asarray(sens, dtype=float),
-                                    disp, local)
+                                    disp, local, derived)
     return out

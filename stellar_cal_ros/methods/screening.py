@@ -15,7 +15,9 @@ parameters.  For each candidate c (its block of parameters, the others at their 
   ``d`` of ``I_cc`` (eigenvalue ``ι``), an effect of size ``√(λ₀ / ι)`` is found with power
   ``power`` by a test of size ``alpha`` (``λ₀`` the non-centrality of χ²_k that reaches it);
 * the bias an undetected effect of that size leaves in the estimated parameters (external
-  reliability): ``−M_θ b`` with ``M`` the state's sensitivity at the end of the run.
+  reliability): ``−M_θ b`` with ``M`` the state's sensitivity at the end of the run — per
+  parameter of the candidate at its own MDB (:meth:`CandidateScore.bias_of_mdb`), the
+  shift an injection of that size reproduces.
 
 Innovations a wrong model over-disperses (NIS/dof > 1) inflate every LM; the caller divides
 by the dispersion (quasi-score), as the likelihood-ratio test does.
@@ -52,13 +54,26 @@ class CandidateScore:
 
         return float(chi2.sf(self.lm / max(dispersion, 1e-300), self.dof))
 
-    def bias_of_mdb(self) -> np.ndarray:
-        """Bias of the estimated parameters from an undetected effect of minimal size.
+    def mdb_per_parameter(self, alpha: float = 0.001, power: float = 0.8) -> np.ndarray:
+        """MDB of each parameter alone, ``sqrt(λ₀ / I_jj)`` (k,), inf where I_jj = 0."""
+        lam = noncentrality(max(self.dof, 1), alpha, power)
+        d = np.diag(self.info)
+        return np.where(d > 0, np.sqrt(lam / np.where(d > 0, d, 1.0)), math.inf)
 
-        Per eigen-direction of the candidate's information: (P_est, k), column j for
-        direction j.
+    def bias_of_mdb(self, alpha: float = 0.001, power: float = 0.8) -> np.ndarray:
+        """Shift of the estimated parameters from each candidate parameter alone at its MDB.
+
+        (P_est, k): column j is ``bias_per_unit[:, j] · MDB_j`` — what injecting parameter
+        j at its MDB does to the current model's estimate (a direction the data do not see
+        has an infinite MDB and no column worth printing: NaN).  Not along the eigenvectors
+        of ``info``: an eigen-direction with almost no information (a gyro misalignment's
+        antisymmetric part, which the installation absorbs) has an MDB of thousands of
+        arcsec and would print a bias of the same size beside a few-arcsec MDB.
         """
-        return self.bias_per_unit @ (self.mdb_directions * self.mdb[None, :])
+        mdb = self.mdb_per_parameter(alpha, power)
+        with np.errstate(invalid="ignore"):
+            return np.where(np.isfinite(mdb)[None, :], self.bias_per_unit * mdb[None, :],
+                            np.nan)
 
 
 def noncentrality(dof: int, alpha: float = 0.001, power: float = 0.8) -> float:

@@ -1,0 +1,80 @@
+"""Inject an effect of a given size and measure what it does: the check of every printed number.
+
+The diagnosis prints, for every library effect not in the model, its minimal detectable
+size (MDB) on the user's bag and the shift an undetected effect of that size leaves in the
+estimated parameters (:mod:`~stellar_cal_ros.diagnosis.reliability`).  This module turns
+such a claim into an injection: the same data (same seed, or the user's own trajectory
+re-rendered by ``stellar-cal twin``) with the effect added at the printed size, run through
+the same model, and the shift measured as the paired difference (the noise cancels).
+
+:func:`simulation_value` converts a parameter value (the effect's units) into the value
+``simulate --effect`` / ``twin --effect`` take; :func:`paired_shift` measures the shift of
+every estimated quantity between two runs.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.effects import registry
+
+
+def simulation_value(effect_id: str, delta: np.ndarray) -> np.ndarray:
+    """The ``--effect`` value of a parameter change ``delta`` (the effect's units).
+
+    The inverse of :meth:`~stellar_cal_ros.effects.base.Effect.from_simulation` for an
+    effect whose simulated value is zero otherwise (``simulation_relative`` effects are
+    offsets from the nominal value, so the same inverse holds).
+    """
+    eff = registry.create(effect_id)
+    v = np.asarray(delta, dtype=float).reshape(-1)
+    if eff.simulation_scale is not None:
+        v = v / np.asarray(eff.simulation_scale, dtype=float)
+    return v
+
+
+def parameter_delta(effect_id: str, parameter: str, size: float) -> np.ndarray:
+    """The effect's parameter vector with ``parameter`` alone at ``size``."""
+    eff = registry.create(effect_id)
+    out = np.zeros(eff.size)
+    out[list(eff.parameter_names).index(parameter)] = size
+    return out
+
+
+def run_values(result) -> dict[str, float]:
+    """Estimated parameters and the equivalent principal point of a replay, by name."""
+    from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
+
+    flt = result.filter
+    n = flt.P_est
+    out = dict(zip(flt.model.parameter_names()[:n], map(float, flt.theta[:n]), strict=True))
+    epp = (result.derived or {}).get("equivalent_principal_point_px")
+    if epp is not None:
+        out.update(zip(EPP_NAMES, map(float, epp), strict=True))
+    return out
+
+
+def paired_shift(clean: dict[str, float], injected: dict[str, float],
+                 true_shift: dict[str, float] | None = None) -> dict[str, float]:
+    """Shift of every quantity from the clean run to the injected one.
+
+    ``true_shift``: what the effect itself does to a derived quantity (the equivalent
+    principal point of a camera effect); the bias is the estimate's shift minus it.
+    """
+    true_shift = true_shift or {}
+    return {k: injected[k] - v - true_shift.get(k, 0.0) for k, v in clean.items()
+            if k in injected}
+
+
+def claims(entry: dict[str, Any]) -> dict[str, list[str]]:
+    """The printed bias claims of one reliability entry, grouped by the injected parameter.
+
+    ``{parameter: [quantities whose printed bias comes from that parameter alone]}``, over
+    the quantities the report lists (``dominates``).
+    """
+    out: dict[str, list[str]] = {}
+    for q in entry.get("dominates", []):
+        out.setdefault(entry["bias_parameter"][q], []).append(q)
+    return out
