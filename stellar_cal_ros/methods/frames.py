@@ -310,11 +310,13 @@ def clean_imu(stamp_ns: np.ndarray, w: np.ndarray, f: np.ndarray, where: str = "
 
 
 def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
-                  on_error: str = "raise") -> BagData:
+                  on_error: str = "raise", require_imu: bool = True) -> BagData:
     """Read everything a calibration needs from a contract bag (whole-bag form).
 
     The batch methods and the diagnosis use it; the Kalman filters stream the bag
-    (:func:`stellar_cal_ros.methods.replay.replay`) with the same rules.
+    (:func:`stellar_cal_ros.methods.replay.replay`) with the same rules.  With
+    ``require_imu=False`` a bag of star frames only (``stellar-cal solve``'s) reads too:
+    the IMU arrays are then empty and times are relative to the first star frame.
     """
     names = dict(TOPICS)
     names.update(topics or {})
@@ -323,11 +325,12 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
     # holds; bad messages are dropped and counted (BagReader.skipped) with a warning.
     with BagReader(path, on_error=on_error) as reader:
         available = reader.topics()
-        for key in ("imu", "stars"):
+        need = ("imu", "stars") if require_imu or names["imu"] in available else ("stars",)
+        for key in need:
             if names[key] not in available:
                 raise BagError(f"{path}: required topic {names[key]} is missing "
                                f"(topics: {', '.join(sorted(available)) or 'none'})")
-        imu = reader.read_imu(names["imu"])
+        imu = reader.read_imu(names["imu"]) if "imu" in need else None
         frames = reader.read_star_frames(names["stars"])
         site = None
         if names["fix"] in available:
@@ -338,11 +341,17 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
             site = est.site
         scalars = {key: reader.read_scalar(names[key]) if names[key] in available else None
                    for key in ENV_KEYS}
-    stamps, w, f, dropped = clean_imu(imu.stamp_ns, imu.angular_velocity,
-                                      imu.linear_acceleration, str(path))
-    if len(stamps) < 2:
-        raise BagError(f"{path}: {names['imu']} has {len(stamps)} usable messages")
-    t0_ns, nominal_dt = time_origin(stamps)
+    if imu is None:
+        if not frames:
+            raise BagError(f"{path}: {names['stars']} holds no star frames")
+        stamps, w, f, dropped = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), 0
+        t0_ns, nominal_dt = min(fr.stamp_ns for fr in frames), 0.0
+    else:
+        stamps, w, f, dropped = clean_imu(imu.stamp_ns, imu.angular_velocity,
+                                          imu.linear_acceleration, str(path))
+        if len(stamps) < 2:
+            raise BagError(f"{path}: {names['imu']} has {len(stamps)} usable messages")
+        t0_ns, nominal_dt = time_origin(stamps)
     return BagData(
         t0_ns=t0_ns, imu_t=(stamps - t0_ns) * 1e-9, imu_w=w, imu_f=f, frames=frames,
         site=site, head_temperature=scalars["head"], air_temperature=scalars["air"],
