@@ -256,6 +256,10 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     from stellar_cal_ros.progress import progress
 
     prior = load_prior(args.prior)
+    if args.method == "bundle":
+        from stellar_cal_ros.bundle_cli import cmd_batch_bundle
+
+        return cmd_batch_bundle(args, prior)
     if args.residuals is not None and args.residuals.suffix.lower() == ".parquet":
         write_residuals(args.residuals, {"probe": np.zeros(0)})  # fail early without pyarrow
     with progress(len(ACF_STAGES), "acf", unit="stages", enabled=not args.quiet) as p:
@@ -382,11 +386,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_replay)
 
-    b = sub.add_parser("batch", help="attitude-correlated-frames batch least squares")
-    _run_arguments(b, "contract bag (a turntable or slew sequence)", ["acf"],
-                   "acf: attitude-correlated frames, Liu et al.", "RESULT.yaml to write (plus "
-                   "RESULT.covariance.yaml)", "comma-separated effect ids to estimate "
-                   "(default: the ACF set)")
+    b = sub.add_parser("batch", help="batch least squares: attitude-correlated frames (acf) "
+                                     "or star frames alone (bundle)")
+    _run_arguments(b, "contract bag (acf: a turntable or slew sequence with IMU; bundle: "
+                   "star frames, IMU not needed)", ["acf", "bundle"],
+                   "acf: attitude-correlated frames, Liu et al.; bundle: one free attitude "
+                   "per frame and one camera, with leave-one-frame-out cross-validation",
+                   "RESULT.yaml to write (plus RESULT.covariance.yaml)",
+                   "comma-separated effect ids (acf: to estimate, default the ACF set; "
+                   "bundle: added to focal_length, principal_point, radial_k1k2)")
     b.add_argument("--residuals", type=Path, default=None,
                    help="RES.csv (or .parquet): per-star residuals of the fit")
     b.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"],
@@ -405,8 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
         d.add_argument("bag", type=Path, help="contract bag to diagnose on")
         d.add_argument("--calibration", required=True, type=Path,
                        help="RESULT.yaml (or a prior) the diagnosis starts from")
-        d.add_argument("--method", required=True, choices=["psce", "swaying_base"],
-                       help="the filter whose model is diagnosed")
+        d.add_argument("--method", required=True, choices=["psce", "swaying_base", "bundle"],
+                       help="the method whose model is diagnosed (bundle: held-out "
+                            "residuals of each frame take the innovations' place)")
         d.add_argument("--effects", default="",
                        help="comma-separated effect ids already in the model (as for replay)")
         d.add_argument("-o", "--output", required=True, type=Path, help="REPORT_DIR")

@@ -120,6 +120,11 @@ def _runner(method: str) -> Runner:
             consider: list[str] | None = None, gyro_fault: str = "raise") -> ReplayResult:
         from stellar_cal_ros.methods.replay import replay
 
+        if not len(data.imu_t):
+            from stellar_cal_ros.errors import BagError
+
+            raise BagError(f"{method} needs /imu/data, absent from the bag (the bundle "
+                           "method calibrates star frames alone)")
         return replay(data, prior, method, effects, keep_tables=keep_tables,
                       eval_fraction=eval_fraction, consider=consider, gyro_fault=gyro_fault)
 
@@ -151,7 +156,12 @@ def method_spec(method: str) -> MethodSpec:
         return MethodSpec("swaying_base", tuple(swaying.BASELINE_EFFECTS),
                           _CAMERA_SIDE + (Stage.ACCEL,), _swaying_runner,
                           screening.screen_function("swaying_base"))
-    raise ModelError(f"diagnose: unknown method {method!r} (psce | swaying_base)")
+    if method == "bundle":  # held-out residuals as innovations; every candidate re-run
+        from stellar_cal_ros.methods import bundle, bundle_runs
+
+        return MethodSpec("bundle", bundle.BASELINE_EFFECTS, bundle.STAGES,
+                          bundle_runs.run_for_diagnosis, None)
+    raise ModelError(f"diagnose: unknown method {method!r} (psce | swaying_base | bundle)")
 
 
 @dataclass

@@ -181,9 +181,9 @@ def load_bag(ref: BagRef) -> BagData:
             with tempfile.TemporaryDirectory() as tmp:
                 path = Path(tmp) / ref.name
                 path.write_bytes(ref.data)
-                _BAG_CACHE[key] = read_bag_data(path)
+                _BAG_CACHE[key] = read_bag_data(path, require_imu=False)
         else:
-            _BAG_CACHE[key] = read_bag_data(ref)
+            _BAG_CACHE[key] = read_bag_data(ref, require_imu=False)
     return _BAG_CACHE[key]
 
 

@@ -204,6 +204,8 @@ class _Normal:
     V_stars: np.ndarray  # (P, P) stars only
     sum_wz: float  # Σ w·|e|² over the stars
     n_stars: int
+    Vk: list[np.ndarray] = field(default_factory=list)  # (P, P) per frame
+    gthk: list[np.ndarray] = field(default_factory=list)  # (P,) per frame
 
 
 class Bundle:
@@ -264,7 +266,7 @@ class Bundle:
         P = self.P if with_theta else 0
         V = np.zeros((P, P))
         g = np.zeros(P)
-        U, W, gk = [], [], []
+        U, W, gk, Vk, gthk = [], [], [], [], []
         cost, sum_wz, n = 0.0, 0.0, 0
         for R, f in zip(Rs, self.frames, strict=True):
             e, A, B = self.residuals(theta, R, f)
@@ -287,8 +289,10 @@ class Bundle:
                 B2 = np.where(bad[:, None, None], 0.0, B).reshape(-1, P)
                 W.append(Aw.T @ B2)
                 Bw = B2 * ww[:, None]
-                V += B2.T @ Bw
-                g += Bw.T @ e2
+                Vk.append(B2.T @ Bw)
+                gthk.append(Bw.T @ e2)
+                V += Vk[-1]
+                g += gthk[-1]
             else:
                 W.append(np.zeros((3, 0)))
         V_stars = V.copy()
@@ -299,7 +303,25 @@ class Bundle:
             g -= d / self.sigma_prior
         else:
             cost += self._prior_cost(theta)
-        return _Normal(cost, V, g, U, W, gk, V_stars, sum_wz, n)
+        return _Normal(cost, V, g, U, W, gk, V_stars, sum_wz, n, Vk, gthk)
+
+    @staticmethod
+    def without_frame(ne: _Normal, schur_full: tuple[np.ndarray, np.ndarray, list],
+                      k: int) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The Gauss–Newton step ``(Δθ, [Δφ_j, j ≠ k])`` of the problem without frame ``k``.
+
+        From the full problem's normal equations at the same point and their Schur
+        complement ``schur_full`` (:meth:`schur` at λ = 0): frame ``k``'s terms are taken
+        out, so the step costs no evaluation of the model.
+        """
+        S, b, Uinv = schur_full
+        W, Ui, gk = ne.W[k], Uinv[k], ne.gk[k]
+        S_k = S + W.T @ Ui @ W - ne.Vk[k]
+        b_k = b + W.T @ (Ui @ gk) - ne.gthk[k]
+        dtheta = _solve_equilibrated(0.5 * (S_k + S_k.T), b_k)
+        dphi = [Uj @ (g - Wj @ dtheta) for j, (Uj, Wj, g) in
+                enumerate(zip(Uinv, ne.W, ne.gk, strict=True)) if j != k]
+        return dtheta, dphi
 
     @staticmethod
     def schur(ne: _Normal, lam: float = 0.0, stars_only: bool = False
@@ -559,6 +581,24 @@ def _bag_data(source: Any) -> BagData:
     return source if isinstance(source, BagData) else read_bag_data(source, require_imu=False)
 
 
+def identify(data: BagData, prior: Calibration) -> dict[str, float]:
+    """Identify unidentified centroids (contract §2) in place; their counts ({} if none).
+
+    Lost-in-space per frame under the prior camera (tracking with the gyro rates when the
+    bag has an IMU): :func:`~stellar_cal_ros.sky.identify.identify_frames`.
+    """
+    from stellar_cal_ros.sky.identify import identify_frames, needs_identification
+
+    if not any(needs_identification(f) for f in data.frames):
+        return {}
+    data.frames, counters = identify_frames(data.frames, prior.camera,
+                                            prior.installation.as_matrix(),
+                                            data.imu_stamp_ns, data.imu_w)
+    out = counters.as_dict()
+    log.info("identification of unidentified centroids: %s", out)
+    return out
+
+
 def make_model(prior: Calibration, effects: Sequence[str] | None
                ) -> tuple[StarModel, np.ndarray, np.ndarray]:
     """The bundle's star model for ``effects`` (added to the baseline), its prior θ and σ."""
@@ -615,6 +655,7 @@ def run_bundle(
     tell = progress or (lambda text: None)
     data = _bag_data(source)
     model, theta_prior, sigma_prior = make_model(prior, effects)
+    identified = identify(data, prior)
     counts = BundleCounts()
     frames = bundle_frames(data, prior, counts, min_stars_per_frame)
     if len(frames) < 2:
@@ -662,6 +703,8 @@ def run_bundle(
     cal.extra["data_quality"] = {**{k: v for k, v in counts.as_dict().items() if v},
                                  "degraded": bool(result.degraded),
                                  "reasons": list(result.degraded)}
+    if identified:
+        cal.extra["identification"] = identified
     cal.extra["fit"] = {"frames": len(frames), "stars": int(inl.sum()),
                         "rms_px": rms, "sigma_px": result.sigma_px,
                         "variance_factor": s2, "loss": loss}

@@ -24,7 +24,7 @@ import numpy as np
 
 from stellar_cal_ros.core.rotation import so3_exp
 from stellar_cal_ros.core.units import ARCSEC
-from stellar_cal_ros.methods.bundle import Bundle, BundleResult, _constant
+from stellar_cal_ros.methods.bundle import Bundle, BundleFrame, BundleResult, _constant
 
 #: a held-out star beyond this many times the frame's median residual is not scored
 REJECT_FACTOR = 5.0
@@ -110,6 +110,11 @@ class HeldOut:
     #: per frame: the stated σ (n,) of the held-out stars
     sigma: list[np.ndarray]
     theta: list[np.ndarray] = field(default_factory=list)  #: the fold's camera θ
+    #: per frame: predicted covariance (n, 2, 2) of each held-out residual, px²
+    covariance: list[np.ndarray] = field(default_factory=list)
+    #: per frame: the predicted centroids (n, 2) and tracker-frame directions (n, 3)
+    uv_pred: list[np.ndarray] = field(default_factory=list)
+    directions: list[np.ndarray] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
         """The result's ``cross_validation`` block (contract §5)."""
@@ -122,18 +127,53 @@ class HeldOut:
                 "stars": [int(s.scored.sum()) for s in self.scores]}
 
 
+def residual_covariance(b: Bundle, theta: np.ndarray, R: np.ndarray, f: BundleFrame,
+                        scored: np.ndarray, P_theta: np.ndarray, s2: float) -> np.ndarray:
+    """Predicted covariance (n, 2, 2) px² of the held-out residuals of frame ``f``.
+
+    The residual of a held-out star is ``Π (ε − B δθ)``: its noise and the fold camera's
+    error ``δθ`` (covariance ``P_theta``), less what the frame's own attitude fit (on the
+    ``scored`` stars) absorbs (``Π``, whitened).  Stars not scored keep their noise alone.
+    """
+    _, A, B = b.residuals(theta, R, f)
+    var = (f.sigma * b.sigma_scale) ** 2 * (s2 if np.isfinite(s2) else 1.0)
+    out = var[:, None, None] * np.eye(2)[None]
+    m = scored & np.all(np.isfinite(A), axis=(1, 2)) & np.all(np.isfinite(B), axis=(1, 2))
+    if m.sum() < 2:
+        return out
+    scale = np.sqrt(var[m] / (f.sigma[m] * b.sigma_scale) ** 2)[:, None, None]
+    A2 = (A[m] / scale).reshape(-1, 3)  # whitened by the fold's σ̂
+    B2 = (B[m] / scale).reshape(-1, B.shape[2])
+    C = np.eye(len(A2)) + B2 @ P_theta @ B2.T
+    Pi = np.eye(len(A2)) - A2 @ np.linalg.pinv(A2.T @ A2) @ A2.T
+    C = Pi @ C @ Pi
+    idx = np.flatnonzero(m)
+    for k, j in enumerate(idx):
+        out[j] = var[j] * C[2 * k:2 * k + 2, 2 * k:2 * k + 2]
+    return out
+
+
 def cross_validate(result: BundleResult, max_iterations: int = 30) -> HeldOut:
     """Hold out each fitted frame of ``result`` in turn (module docstring)."""
+    from stellar_cal_ros.core.rotation import so3_exp
+    from stellar_cal_ros.methods.bundle import Fit
+
     model = result.model
     frames, Rs = result.frames, result.attitudes
     out = HeldOut([], [], [], [])
+    full = Bundle(model, frames, result.theta_prior, result.sigma_prior, result.loss)
+    ne_full = full.normal(result.theta, Rs)
+    schur_full = Bundle.schur(ne_full, 0.0)
     for k, f in enumerate(frames):
         others = [fr for j, fr in enumerate(frames) if j != k]
-        R_others = [R for j, R in enumerate(Rs) if j != k]
+        # first step without frame k from the full problem's normal equations, then LM
+        dtheta, dphi = Bundle.without_frame(ne_full, schur_full, k)
+        R_others = [so3_exp(d) @ R for d, R in
+                    zip(dphi, [R for j, R in enumerate(Rs) if j != k], strict=True)]
         b = Bundle(model, others, result.theta_prior, result.sigma_prior, result.loss)
-        theta, _, ne, _ = b.solve(result.theta, R_others, max_iterations=max_iterations)
-        dof = 2 * ne.n_stars - 3 * len(others) - b.P
-        s2 = ne.sum_wz / dof if dof > 0 else float("nan")
+        theta, R_fit, ne, it = b.solve(result.theta + dtheta, R_others,
+                                       max_iterations=max_iterations)
+        P_theta, s2 = Fit(theta, R_fit, ne, b, it).covariance()
         cam = model.camera_at(theta, f.ctx)
 
         def predict(R: np.ndarray, theta=theta, f=f) -> np.ndarray:
@@ -146,4 +186,12 @@ def cross_validate(result: BundleResult, max_iterations: int = 30) -> HeldOut:
         out.variance_factor.append(float(s2))
         out.sigma.append(f.sigma)
         out.theta.append(theta)
+        full = f.subset(np.ones(len(f.uv), dtype=bool))
+        out.covariance.append(residual_covariance(b, theta, score.attitude, full,
+                                                  score.scored, P_theta, s2))
+        with np.errstate(all="ignore"):
+            pred = model.predict(theta, f.u_i, f.ctx, _constant(score.attitude),
+                                 jacobians=False)
+        out.uv_pred.append(pred.uv)
+        out.directions.append(pred.directions_st)
     return out

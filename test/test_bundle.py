@@ -1,0 +1,255 @@
+"""Bundle method (issue 22.3): camera from star frames alone, on simulated frames with truth.
+
+Every number the user reads is checked against simulation: the estimate against the truth
+and the Cramér–Rao bound, its σ (NEES over Monte Carlo), the variance factor, the held-out
+RMS (against the noise it must equal) and the rule that computes it.
+"""
+
+from __future__ import annotations
+
+import copy
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from stellar_cal_ros.core.units import ARCSEC
+from stellar_cal_ros.errors import ModelError, StellarCalError
+from stellar_cal_ros.methods import bundle as bd
+from stellar_cal_ros.methods.bundle_cv import held_out_frame
+from stellar_cal_ros.methods.frames import bag_data_from_simulation
+from stellar_cal_ros.methods.replay import truth_parameters
+from stellar_cal_ros.sim.scenarios import get_scenario
+from stellar_cal_ros.sim.world import simulate
+
+SIGMA_PX = 0.05
+
+
+@pytest.fixture(scope="module")
+def world():
+    """Noise-free frames of seven attitudes (Tan et al.'s rotations), their truth."""
+    sc = get_scenario("psce_rotations")
+    sc.centroid_noise_px = 0.0
+    r = simulate(sc, duration=400, seed=1)
+    data = bag_data_from_simulation(r)
+    data.frames = data.frames[::50]  # 16 frames
+    model, theta_prior, sigma_prior = bd.make_model(r.prior, ["tangential"])
+    frames = bd.bundle_frames(data, r.prior)
+    for f in frames:
+        f.sigma = np.full(len(f.uv), SIGMA_PX)
+    theta = truth_parameters(model, r.truth)
+    R0, _ = bd.initial_attitudes(model, theta, frames)
+    _, R_true, ne, _ = bd.Bundle(model, frames, theta, sigma_prior).solve(theta, R0,
+                                                                          with_theta=False)
+    assert ne.sum_wz < 1e-12  # the frames are exactly the model at the truth
+    return {"sim": r, "data": data, "model": model, "frames": frames, "theta": theta,
+            "attitudes": R_true, "sigma_prior": sigma_prior}
+
+
+def _noisy(frames, rng, sigma=SIGMA_PX):
+    out = []
+    for f in frames:
+        g = copy.copy(f)
+        g.uv = f.uv + sigma * rng.standard_normal(f.uv.shape)
+        g.use = np.ones(len(f.uv), dtype=bool)
+        out.append(g)
+    return out
+
+
+def test_bundle_at_cramer_rao_bound_with_honest_sigma(world):
+    """Monte Carlo: errors against the CRLB (efficiency) and against the reported σ (NEES)."""
+    model, theta, sp = world["model"], world["theta"], world["sigma_prior"]
+    crlb = bd.crlb_bundle(world["frames"], model, theta, world["attitudes"], sp)
+    info = np.linalg.inv(crlb)
+    rng = np.random.default_rng(7)
+    runs, P = 30, model.size
+    eff, nees, s2s = [], [], []
+    for _ in range(runs):
+        th_prior = theta + sp * rng.standard_normal(P)  # prior centre drawn: Bayesian bound
+        fit, n_out = bd.fit_bundle(model, _noisy(world["frames"], rng), th_prior,
+                                  world["attitudes"], th_prior, sp)
+        cov, s2 = fit.covariance()
+        e = fit.theta - theta
+        eff.append(e @ info @ e)
+        nees.append(e @ np.linalg.solve(cov, e))
+        s2s.append(s2)
+    # mean of chi2(P)/P-distributed sums: P ± 3 sqrt(2P/runs)
+    tol = 3.0 * np.sqrt(2.0 * P / runs)
+    assert abs(np.mean(eff) - P) < tol, (np.mean(eff), P)   # at the bound
+    assert abs(np.mean(nees) - P) < tol, (np.mean(nees), P)  # σ honest
+    n = sum(len(f.uv) for f in world["frames"])
+    dof = 2 * n - 3 * len(world["frames"]) - P
+    assert abs(np.mean(s2s) - 1.0) < 3.0 * np.sqrt(2.0 / dof / runs)
+
+
+def test_schur_solution_equals_dense_least_squares(world):
+    """The block elimination gives scipy's dense solution and the dense covariance."""
+    from scipy.optimize import least_squares
+
+    from stellar_cal_ros.core.rotation import so3_exp
+
+    model, theta0, sp = world["model"], world["theta"], world["sigma_prior"]
+    frames = _noisy(world["frames"][:4], np.random.default_rng(3))
+    Rs = world["attitudes"][:4]
+    prob = bd.Bundle(model, frames, theta0, sp)
+    th, R_fit, ne, _ = prob.solve(theta0, Rs)
+    N = len(frames)
+
+    def fun(x):
+        phi, t = x[:3 * N].reshape(N, 3), x[3 * N:]
+        r = [prob.residuals(t, so3_exp(p) @ R, f, jacobians=False)[0].ravel()
+             for p, R, f in zip(phi, Rs, frames, strict=True)]
+        return np.concatenate(r + [(t - theta0) / sp])
+
+    ref = least_squares(fun, np.concatenate([np.zeros(3 * N), theta0]), x_scale="jac",
+                        xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    sig = np.sqrt(np.diag(bd.crlb_bundle(frames, model, th, R_fit, sp)))
+    assert np.all(np.abs(ref.x[3 * N:] - th) < 1e-3 * sig)
+    J = ref.jac
+    dense = np.linalg.inv(J.T @ J)[3 * N:, 3 * N:]
+    assert np.allclose(np.sqrt(np.diag(dense)), sig, rtol=1e-3)
+
+
+def test_held_out_rule_rejects_beyond_five_medians_and_scores_in_arcsec():
+    """The contract's rule on a pinhole with one misidentified star."""
+    from stellar_cal_ros.core.rotation import so3_exp
+
+    rng = np.random.default_rng(0)
+    f = 2000.0
+    d = np.column_stack([rng.uniform(-0.1, 0.1, (30, 2)), np.ones(30)])
+    u_i = d / np.linalg.norm(d, axis=1, keepdims=True)
+    R_true = so3_exp(np.array([0.3, -0.2, 0.1]))
+
+    def predict(R):
+        c = u_i @ R
+        return f * c[:, :2] / c[:, 2:] + 500.0
+
+    uv = predict(R_true) + 0.1 * rng.standard_normal((30, 2))
+    uv[5] += 40.0  # a wrong identity
+    score = held_out_frame(predict, so3_exp(np.array([1e-3, 0, 0])) @ R_true, uv,
+                           (1 / f, 1 / f))
+    assert score.rejected == 1 and not score.scored[5]
+    res = score.residuals[score.scored]
+    expect = np.sqrt(np.mean(np.sum((res / f) ** 2, axis=1))) / ARCSEC
+    assert score.rms_arcsec == pytest.approx(expect, rel=1e-12)
+    # the attitude fit does not see the wrong star: the rest scatter as the noise does
+    assert 0.7 < score.rms_arcsec / (np.sqrt(2) * 0.1 / f / ARCSEC) < 1.3
+
+
+def test_bundle_run_recovers_truth_and_held_out_rms_equals_noise(world):
+    """One run: estimate within 4σ of the truth, held-out RMS the noise's (arcsec)."""
+    data = copy.copy(world["data"])
+    rng = np.random.default_rng(11)
+    data.frames = []
+    for fr in world["data"].frames:
+        g = copy.copy(fr)
+        g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
+        g.sigma = np.full(len(fr.uv), SIGMA_PX)
+        data.frames.append(g)
+    res = bd.run_bundle(data, world["sim"].prior, ["tangential"])
+    z = (res.theta - world["theta"]) / res.sigma
+    assert np.all(np.abs(z) < 4.0), dict(zip(res.parameter_names, z, strict=True))
+    cv = res.cross_validation
+    assert len(cv["held_out_rms_arcsec"]) == len(cv["rejected"]) == len(data.frames)
+    # held-out residual: noise of 2 axes, less the 3 attitude dof, plus the fold camera error
+    n = np.array(cv["stars"])
+    f = res.calibration.camera.fx
+    expect = np.sqrt(np.mean(2 * SIGMA_PX ** 2 * (1 - 1.5 / n))) / f / ARCSEC
+    assert cv["mean_arcsec"] == pytest.approx(expect, rel=0.12)
+    assert sum(cv["rejected"]) <= 2
+    assert res.calibration.extra["cross_validation"] == cv
+    assert res.variance_factor == pytest.approx(1.0, abs=0.15)
+
+
+def test_wrong_identities_are_left_out(world):
+    """Stars labelled as another star are gated and counted; the estimate stays unbiased."""
+    data = copy.copy(world["data"])
+    rng = np.random.default_rng(5)
+    data.frames = []
+    n_bad = 0
+    for fr in world["data"].frames:
+        g = copy.copy(fr)
+        g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
+        g.sigma = np.full(len(fr.uv), SIGMA_PX)
+        ra, dec = g.right_ascension.copy(), g.declination.copy()
+        k = rng.permutation(len(ra))[:2]  # swap two stars' identities (inside the field)
+        ra[k], dec[k] = ra[k[::-1]], dec[k[::-1]]
+        g.right_ascension, g.declination = ra, dec
+        n_bad += 2
+        data.frames.append(g)
+    res = bd.run_bundle(data, world["sim"].prior, ["tangential"], cross_validate=False)
+    rejected = res.counts.stars_misidentified + res.counts.stars_outliers
+    assert n_bad <= rejected <= n_bad + 3
+    z = (res.theta - world["theta"]) / res.sigma
+    assert np.all(np.abs(z) < 4.0)
+
+
+def test_effects_the_bundle_cannot_see_are_refused(world):
+    prior = world["sim"].prior
+    for eid in ("installation", "time_offset", "gyro_bias"):
+        with pytest.raises(ModelError, match="cannot see"):
+            bd.make_model(prior, [eid])
+    data = copy.copy(world["data"])
+    data.site = None
+    with pytest.raises(ModelError, match="needs the site"):
+        bd.run_bundle(data, prior, ["refraction"], cross_validate=False)
+    data.frames = data.frames[:1]
+    with pytest.raises(StellarCalError, match="at least 2 star frames"):
+        bd.run_bundle(data, prior, [], cross_validate=False)
+
+
+def test_cli_batch_bundle_writes_the_contract_result(tmp_path):
+    """``stellar-cal batch --method bundle`` end to end, and its one-line errors."""
+    from sim_bags import simulated_bag
+
+    bag, prior, _ = simulated_bag("psce_rotations", 8.0)
+    out = tmp_path / "bundle.yaml"
+    run = [sys.executable, "-m", "stellar_cal_ros", "batch", str(bag), "--method", "bundle",
+           "--prior", str(prior), "-o", str(out), "-q"]
+    proc = subprocess.run(run + ["--effects", "tangential"], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "held-out RMS" in proc.stdout
+    doc = yaml.safe_load(out.read_text())
+    assert doc["method"] == "bundle"
+    cv = doc["cross_validation"]
+    assert set(cv) >= {"held_out_rms_arcsec", "mean_arcsec", "rejected"}
+    assert len(cv["held_out_rms_arcsec"]) == len(cv["rejected"]) == 16
+    assert cv["mean_arcsec"] == pytest.approx(np.mean(cv["held_out_rms_arcsec"]))
+    assert doc["sigma"]["camera"]["camera_matrix"]["data"][0] > 0
+    assert (tmp_path / "bundle.covariance.yaml").exists()
+    bad = subprocess.run(run + ["--effects", "installation"], capture_output=True, text=True,
+                         timeout=300)
+    assert bad.returncode == 1
+    assert bad.stderr.strip().count("\n") == 0 and "cannot see" in bad.stderr
+
+
+def test_diagnose_bundle_names_the_missing_effect(world, tmp_path):
+    """The loop on star frames: tangential distortion missing from the model is found from
+    held-out residuals, and adding it lowers the held-out RMS; effects the bundle cannot see
+    are not applicable."""
+    from stellar_cal_ros.diagnosis.run import diagnose
+
+    r = world["sim"]
+    data = bag_data_from_simulation(r)
+    rng = np.random.default_rng(2)
+    frames = []
+    for fr in data.frames[::25]:  # 32 frames, seven attitudes
+        g = copy.copy(fr)
+        g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
+        frames.append(g)
+    data.frames = frames
+    start = bd.run_bundle(data, r.prior, [], cross_validate=False).calibration
+    summary = diagnose(data, start, "bundle", [], tmp_path, plots=False, verbose=False,
+                       candidates=["tangential", "pixel_aspect", "radial_k3", "installation",
+                                   "time_offset"])
+    assert summary["recommendation"] == "tangential"
+    top = summary["candidates"][0]
+    assert top["effect"] == "tangential" and top["p_value"] < 1e-3
+    assert np.hypot(*top["rms_after_px"]) < np.hypot(*summary["residual_rms_px"])
+    na = {c["effect"] for c in summary["not_applicable"]}
+    assert {"installation", "time_offset"} <= na
+    # held-out residuals at the noise the messages state, once tangential is in
+    assert np.hypot(*top["rms_after_px"]) == pytest.approx(np.sqrt(2) * SIGMA_PX, rel=0.1)
