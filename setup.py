@@ -32,6 +32,7 @@ setup(
             "stellar-cal = stellar_cal_ros.cli:main",
             "calibrator = stellar_cal_ros.nodes.calibrator:main",
             "player = stellar_cal_ros.nodes.player:main",
+            "star_extractor = stellar_cal_ros.nodes.star_extractor:main",
         ],
     },
 )

