@@ -57,7 +57,6 @@ from rclpy.exceptions import (
     InvalidParameterValueException,
     ParameterUninitializedException,
 )
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -73,7 +72,7 @@ from stellar_cal_msgs.msg import (
 
 from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.effects import registry
-from stellar_cal_ros.errors import CheckpointError, StellarCalError
+from stellar_cal_ros.errors import CheckpointError
 from stellar_cal_ros.io.calibration import load_calibration, save_calibration
 from stellar_cal_ros.methods.checkpoint import load_checkpoint, save_checkpoint
 from stellar_cal_ros.methods.driver import FILTERS, Calibrator, DriverConfig, FrameOutcome
@@ -707,34 +706,10 @@ def make_executor():
 
 def main(argv: list[str] | None = None) -> int:
     """Run the node until shutdown; write the checkpoint and the calibration on the way out."""
-    args = list(argv if argv is not None else sys.argv)
-    ros_args = args.index("--ros-args") if "--ros-args" in args else len(args)
-    if any(a in ("-h", "--help") for a in args[1:ros_args]):
-        print(usage())
-        return 0
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = CalibratorNode()
-        executor = make_executor()
-        executor.add_node(node)
-        # spin_once in a Python loop: Ctrl-C / SIGTERM reach the interpreter between calls
-        # (EventsExecutor.spin() waits in C++ and does not return on SIGINT)
-        while rclpy.ok():
-            executor.spin_once(timeout_sec=0.2)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, OSError, StellarCalError) as exc:  # parameters, prior file
-        print(f"calibrator: {exc}", file=sys.stderr)
-        code = 2
-    finally:
-        if node is not None:
-            node.finish()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    from stellar_cal_ros.nodes.runner import run_node
 
+    return run_node("calibrator", CalibratorNode, usage, argv, make_executor,
+                    lambda node: node.finish())
 
 if __name__ == "__main__":
     sys.exit(main())

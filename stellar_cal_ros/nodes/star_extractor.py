@@ -25,8 +25,6 @@ import time
 from typing import Any
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
@@ -207,32 +205,10 @@ class StarExtractorNode(Node):
 
 def main(argv: list[str] | None = None) -> int:
     """Run the node until shutdown."""
-    args = list(argv if argv is not None else sys.argv)
-    ros_args = args.index("--ros-args") if "--ros-args" in args else len(args)
-    if any(a in ("-h", "--help") for a in args[1:ros_args]):
-        print(usage())
-        return 0
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = StarExtractorNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while rclpy.ok():
-            executor.spin_once(timeout_sec=0.2)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, OSError, StellarCalError) as exc:
-        print(f"star_extractor: {exc}", file=sys.stderr)
-        code = 2
-    finally:
-        if node is not None:
-            node._report()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    from stellar_cal_ros.nodes.runner import run_node
 
+    return run_node("star_extractor", StarExtractorNode, usage, argv,
+                    finish=lambda node: node._report())
 
 if __name__ == "__main__":
     sys.exit(main())
