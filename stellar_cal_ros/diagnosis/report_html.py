@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros import __version__
-from stellar_cal_ros.diagnosis import report, stats
+from stellar_cal_ros.diagnosis import reliability, report, stats
 from stellar_cal_ros.effects import registry
 
 Table = dict[str, np.ndarray]
@@ -176,10 +176,32 @@ def provenance_table(calibration: Any, result_path: Path | None, bag: Path | Non
     return f"<table>{body}</table>"
 
 
-def _summary_line(res: Table, fraction: float) -> str:
-    mask = stats.evaluation_mask(res, fraction)
-    rms, exp = stats.rms(res, mask), stats.expected_rms(res, mask)
+def window_mask(res: Table, fraction: float, calibration: Any = None) -> np.ndarray:
+    """Stars of the run's evaluation window.
+
+    From the result's ``consistency.window_start`` (the window the run's own verdict
+    used), else the last ``fraction`` of the table's frames.
+    """
+    cons = (calibration.extra.get("consistency") or {}) if calibration is not None else {}
+    start = cons.get("window_start")
+    if isinstance(start, (int, float)) and len(res["t"]):
+        return np.asarray(res["t"], float) >= start
+    return stats.evaluation_mask(res, fraction)
+
+
+def nis_per_dof(res: Table, mask: np.ndarray) -> dict[str, float]:
+    """NIS per degree of freedom of the window's accepted stars and its 95 % band.
+
+    Each star has 2 dof; this is the one NIS figure every command and report prints.
+    """
     nis = stats.nis_consistency({**res, "nis": report._nis(res)}, mask)
+    return {k: v / 2.0 if k != "n" else v for k, v in nis.items()}
+
+
+def _summary_line(res: Table, fraction: float, calibration: Any = None) -> str:
+    mask = window_mask(res, fraction, calibration)
+    rms, exp = stats.rms(res, mask), stats.expected_rms(res, mask)
+    nis = nis_per_dof(res, mask)
     ok = nis["lower"] <= nis["mean"] <= nis["upper"]
     verdict = ("consistent with the noise model" if ok else
                "<span class=warn>larger than the noise model allows: an effect is missing "
@@ -189,10 +211,10 @@ def _summary_line(res: Table, fraction: float) -> str:
     m = mask & stats.accepted(res)
     gated = int(np.sum(mask & ~stats.accepted(res)))
     return (f"Innovation RMS <b>{rms[0]:.4f} / {rms[1]:.4f} px</b> (u / v) against the "
-            f"{exp[0]:.4f} / {exp[1]:.4f} px the model expects; mean NIS per star "
+            f"{exp[0]:.4f} / {exp[1]:.4f} px the model expects; NIS/dof "
             f"<b>{nis['mean']:.3f}</b> (95 % band {nis['lower']:.3f} … {nis['upper']:.3f}): "
-            f"{verdict}. {int(m.sum())} stars accepted, {gated} gated, in the last "
-            f"{fraction:.0%} of the frames.")
+            f"{verdict}. {int(m.sum())} stars accepted, {gated} gated, in the evaluation "
+            "window (the second half of the run).")
 
 
 # ------------------------------------------------------------------------------ pages
@@ -247,7 +269,10 @@ def _candidates_html(summary: dict[str, Any]) -> str:
             expl = registry.create(c["effect"]).explanation
         except Exception:  # noqa: BLE001 - a plugin effect not loaded here
             expl = ""
-        est = ", ".join(f"{k}={v:.4g}±{c['sigma'][k]:.2g}" for k, v in c["estimate"].items())
+        eff = c["effect"]
+        est = ", ".join(f"{k} = {reliability.shown(f'{eff}.{k}', v)} ± "
+                        f"{reliability.shown(f'{eff}.{k}', c['sigma'][k])}"
+                        for k, v in c["estimate"].items())
         rows.append(
             f"<tr class={'sig' if c['significant'] else 'ns'}><td><b>{_e(c['effect'])}</b></td>"
             f"<td class=num>{c['score']:.1f}</td><td class=num>{c['p_value']:.2g}"
@@ -300,8 +325,8 @@ def write_html(out_dir: Path, summary: dict[str, Any], images: list[tuple[str, s
             f"{_e(', '.join(summary['model']['effects']))}. Evaluation: "
             f"{_e(summary['evaluation'])}.</p><p>Innovation RMS <b>{rms[0]:.4f} / "
             f"{rms[1]:.4f} px</b> (u / v) against the {exp[0]:.4f} / {exp[1]:.4f} px the model "
-            f"expects; mean NIS per star {nis['mean']:.3f} (consistent: {nis['lower']:.3f} … "
-            f"{nis['upper']:.3f}).</p><h2>Candidate effects</h2><p>Best first; green = "
+            f"expects; NIS/dof {nis['mean'] / 2:.3f} (consistent: {nis['lower'] / 2:.3f} … "
+            f"{nis['upper'] / 2:.3f}).</p><h2>Candidate effects</h2><p>Best first; green = "
             "significant after correction, and still significant once the top one is "
             f"added.</p>{_candidates_html(summary)}<h2>Unexplained structure</h2>"
             f"{_unexplained_html(summary, unexplained_image)}<h2>Not ranked</h2><ul>{unobs}</ul>"
@@ -361,7 +386,7 @@ def write_run_report(out_dir: str | Path, calibration: Any, residuals: Table,
                         report.plot_parameter_history(history, out / "parameters.png", tv)))
         figs.insert(4, ("nis", "Consistency: NIS over time",
                         report.plot_nis(history, out / "nis.png")))
-    body = [f"<p>{_summary_line(residuals, fraction)}</p>",
+    body = [f"<p>{_summary_line(residuals, fraction, calibration)}</p>",
             "<h2 id='values'>Calibrated values ± σ</h2>",
             calibration_table(history, calibration, tv)]
     body += [_figure(a, t, img, _CAPTIONS[a]) for a, t, img in figs]
@@ -390,6 +415,21 @@ class RunData:
     history: Table | None = None
     path: Path | None = None
     residual_source: str = ""
+
+
+def model_change(method_a: str, ea: list[str], method_b: str, eb: list[str]) -> str:
+    """One sentence on how B's model differs from A's.
+
+    A change of method is not an added effect.
+    """
+    added = [e for e in eb if e not in ea]
+    removed = [e for e in ea if e not in eb]
+    if method_a != method_b:
+        return (f"A and B are different methods ({method_a} and {method_b}), not one model "
+                f"with an effect added: B estimates {', '.join(added) or 'nothing'} that A "
+                f"does not, A estimates {', '.join(removed) or 'nothing'} that B does not.")
+    return (f"B adds {', '.join(added) or 'nothing'}" +
+            (f" and drops {', '.join(removed)}" if removed else "") + " to A's model.")
 
 
 def estimated_effects(calibration: Any, history: Table | None = None) -> list[str]:
@@ -458,18 +498,15 @@ def comparison_table(a: RunData, b: RunData, truth: dict[str, float] | None = No
 
 def _stats_row(r: RunData, fraction: float) -> str:
     res = r.residuals
-    mask = stats.evaluation_mask(res, fraction)
+    mask = window_mask(res, fraction, r.calibration)
     rms, exp = stats.rms(res, mask), stats.expected_rms(res, mask)
-    nis = stats.nis_consistency({**res, "nis": report._nis(res)}, mask)
-    h = r.history
-    nis_h = (float(np.sum(h["nis"]) / max(np.sum(h["dof"]), 1))
-             if h is not None and len(h.get("nis", ())) else float("nan"))
+    nis = nis_per_dof(res, mask)
     gated = int(np.sum(mask & ~stats.accepted(res)))
     effects = ", ".join(estimated_effects(r.calibration, r.history)) or "(not recorded)"
     return (f"<tr><td>{_e(r.name)}</td><td>{_e(effects)}</td><td class=num>{rms[0]:.4f} / "
             f"{rms[1]:.4f}</td><td class=num>{exp[0]:.4f} / {exp[1]:.4f}</td>"
             f"<td class=num>{nis['mean']:.3f} ({nis['lower']:.3f} … {nis['upper']:.3f})</td>"
-            f"<td class=num>{_fmt(nis_h, 4)}</td><td class=num>{gated}</td></tr>")
+            f"<td class=num>{gated}</td></tr>")
 
 
 def write_compare_report(out_dir: str | Path, a: RunData, b: RunData, truth: Any = None,
@@ -491,10 +528,7 @@ def write_compare_report(out_dir: str | Path, a: RunData, b: RunData, truth: Any
             tv = {**tv, **report.truth_values(a.history, a.calibration, truth)}
     ea, eb = estimated_effects(a.calibration, a.history), estimated_effects(b.calibration,
                                                                              b.history)
-    added = [e for e in eb if e not in ea]
-    removed = [e for e in ea if e not in eb]
-    change = (f"B adds {', '.join(added) or 'nothing'}" +
-              (f" and drops {', '.join(removed)}" if removed else "") + " to A's model.")
+    change = model_change(a.calibration.method, ea, b.calibration.method, eb)
     figs = _run_figures(out, panels, cam.width, cam.height, centre, fraction)
     for key, r in (("a", a), ("b", b)):
         if r.history is not None:

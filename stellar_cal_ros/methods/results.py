@@ -369,6 +369,8 @@ def consistency(stats: RunStats) -> dict[str, Any]:
     out = {"nis_per_dof": nis, "interval": [lo, hi], "whiteness_p": p, "verdict": verdict,
            "stars": stats.stars, "rms_px": list(stats.rms()),
            "expected_rms_px": list(stats.expected_rms())}
+    if stats.eval_start is not None:  # POSIX s: the window's first reported frame stamp
+        out["window_start"] = float(stats.eval_start)
     if stats.ref_dof:
         out["reference_nis_per_dof"] = ref
     return out
