@@ -88,6 +88,34 @@ def _shares(b: dict[str, Any], conv: str) -> list[str]:
     return out
 
 
+def _mark_correlation(ax, lin: dict[str, Any], names: list[str]) -> None:
+    """Mark beside the total what the sources would give if independent.
+
+    A note says when their correlations make the total differ from it (even smaller than
+    a component).
+    """
+    if "total" not in names:
+        return
+    k = names.index("total")
+    srcs = [s for s in names if s != "total"]
+    indep = {c: float(np.sqrt(sum(lin[s][c] ** 2 for s in srcs))) for c in ("cross", "roll")}
+    ax.plot([k - 0.4, k], [indep["cross"]] * 2, "k--", lw=1.2)
+    ax.plot([k, k + 0.4], [indep["roll"]] * 2, "k--", lw=1.2,
+            label="total if the sources were independent")
+    tot = {c: lin["total"][c] for c in ("cross", "roll")}
+    top = max([indep["cross"], indep["roll"]] + [lin[s][c] for s in names
+                                                  for c in ("cross", "roll")])
+    ax.set_ylim(0, 1.45 * top)  # room for the legend above the bars
+    if any(abs(tot[c] - indep[c]) > 0.01 * max(indep[c], 1e-12) for c in tot):
+        ax.set_ylim(0, 2.0 * top)  # and for the note
+        ax.text(0.02, 0.76, "the total is not the root-sum-square of the bars: the sources'\n"
+                "errors are correlated (estimated together, they compensate each other):\n"
+                f"cross {tot['cross']:.3g}\" (independent: {indep['cross']:.3g}\"), roll "
+                f"{tot['roll']:.3g}\" (independent: {indep['roll']:.3g}\")",
+                transform=ax.transAxes, va="top", fontsize=7,
+                bbox={"facecolor": "white", "alpha": 0.85, "edgecolor": "0.6"})
+
+
 def plot_budget(b: dict[str, Any], out_dir: Path) -> list[Path]:
     """Write ``incident_angle.png``, ``attitude.png`` and ``fov_map.png``; return the paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -138,7 +166,8 @@ def plot_budget(b: dict[str, Any], out_dir: Path) -> list[Path]:
         ax.set_xticks(x, names, rotation=30, ha="right")
         ax.set_ylabel("arcsec (1σ, linear)")
         ax.set_title(_TITLES[conv])
-        ax.legend(fontsize=8)
+        _mark_correlation(ax, lin, names)
+        ax.legend(fontsize=8, loc="upper left")
         ax.grid(alpha=0.3, axis="y")
     fig.tight_layout()
     paths.append(out_dir / "attitude.png")

@@ -84,6 +84,15 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+def _display(parameter: str) -> tuple[float, str]:
+    """Factor and unit a parameter's error is shown in (the reports' display units)."""
+    from stellar_cal_ros.diagnosis.report import display_unit, parameter_unit
+
+    if parameter.startswith("eqpp."):
+        return 1.0, "px"
+    return display_unit(parameter, parameter_unit(parameter))
+
+
 def format_summary(stats: list[dict[str, Any]]) -> str:
     """Text tables of :func:`summarize`."""
     lines = []
@@ -93,9 +102,12 @@ def format_summary(stats: list[dict[str, Any]]) -> str:
         if g["parameters"]:
             lo, hi = next(iter(g["parameters"].values()))["ratio_interval"]
             lines.append(f"  {'parameter':28s} {'RMS error':>11s} {'mean sigma':>11s} "
-                         f"{'RMS/sigma':>9s}   (95 % if consistent: {lo:.2f} .. {hi:.2f})")
+                         f"{'unit':8s} {'RMS/sigma':>9s}   (95 % if consistent: {lo:.2f} .. "
+                         f"{hi:.2f})")
             for p, s in g["parameters"].items():
-                lines.append(f"  {p:28s} {s['rms_error']:11.4g} {s['mean_sigma']:11.4g} "
+                scale, unit = _display(p)
+                lines.append(f"  {p:28s} {s['rms_error'] * scale:11.4g} "
+                             f"{s['mean_sigma'] * scale:11.4g} {unit or '-':8s} "
                              f"{s['ratio']:9.2f}")
         if "nees" in g:
             n = g["nees"]
@@ -114,6 +126,19 @@ def format_summary(stats: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def histogram_groups(stats: list[dict[str, Any]], parameter: str
+                     ) -> tuple[list[tuple[str, np.ndarray]], int]:
+    """Return the normalised errors of ``parameter`` per group and the histogram's range.
+
+    Variants are not pooled; the half range is at least 4 and holds every value.
+    """
+    zs = [(g["group"], np.asarray(g["parameters"][parameter]["normalized"], float))
+          for g in stats if parameter in g["parameters"]]
+    zs = [(label, z[np.isfinite(z)]) for label, z in zs]
+    zmax = max([4.0] + [float(np.max(np.abs(z))) for _, z in zs if len(z)])
+    return zs, math.ceil(zmax)
+
+
 def _plots(stats: list[dict[str, Any]], out_dir: Path) -> list[str]:
     names = sorted({p for g in stats for p in g["parameters"]})
     if not names:
@@ -121,14 +146,17 @@ def _plots(stats: list[dict[str, Any]], out_dir: Path) -> list[str]:
     ncol = 4
     nrow = -(-len(names) // ncol)
     fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 2.8 * nrow), squeeze=False)
-    x = np.linspace(-4, 4, 200)
     for ax, p in zip(axes.flat, names, strict=False):
-        z = np.concatenate([g["parameters"][p]["normalized"] for g in stats
-                            if p in g["parameters"]])
-        z = z[np.isfinite(z)]
-        ax.hist(z, bins=np.linspace(-4, 4, 17), density=True, alpha=0.7)
+        zs, lim = histogram_groups(stats, p)
+        bins = np.linspace(-lim, lim, 4 * lim + 1)
+        for label, z in zs:
+            ax.hist(z, bins=bins, density=True, alpha=0.5 if len(zs) > 1 else 0.7,
+                    histtype="stepfilled", label=f"{label} (n={len(z)})")
+        x = np.linspace(-lim, lim, 400)
         ax.plot(x, np.exp(-0.5 * x**2) / math.sqrt(2 * math.pi), "k-", lw=1)
-        ax.set_title(f"{p}\n(error / sigma, n={len(z)})", fontsize=8)
+        ax.set_title(f"{p}\n(error / sigma; N(0,1) if consistent)", fontsize=8)
+        if len(zs) > 1:
+            ax.legend(fontsize=6)
     for ax in list(axes.flat)[len(names):]:
         ax.axis("off")
     fig.tight_layout()
