@@ -16,8 +16,10 @@ budget     attitude error budget of a result or a spec (stellar_cal_ros.budget)
 campaign   many simulate/replay/diagnose/budget runs on Dask (stellar_cal_ros.campaign)
 solve      star images -> identified centroids in a contract bag + prior (stellar_cal_ros.sky)
 
-Every error raised on purpose (:class:`stellar_cal_ros.errors.StellarCalError`) is printed as
-one clear line and gives exit status 1; a usage error gives 2.
+Every error raised on purpose (:class:`stellar_cal_ros.errors.StellarCalError`) and every
+operating-system error (an output path that cannot be written: a file in the way of a
+directory, no permission, a full disk) is printed as one clear line and gives exit status 1
+(``-v`` logs the traceback too); a usage error gives 2.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import argparse
 import logging
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -82,8 +85,6 @@ def _cmd_effects(args: argparse.Namespace) -> int:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    import warnings
-
     from stellar_cal_ros.io.bag import BagReader
 
     with warnings.catch_warnings(record=True), BagReader(args.bag, on_error="skip") as reader:
@@ -99,6 +100,12 @@ def _cmd_info(args: argparse.Namespace) -> int:
         what = "every chunk decompresses and matches its CRC" if "mcap" in reader.storage \
             else "every message could be read"
         print(f"integrity: {what}")
+        missing = _no_stars_text(topics)
+        if missing and "extract them" in missing:  # star images: data, in another form
+            print(f"note: {missing}")
+        elif missing:
+            print(f"stellar-cal info: error: {args.bag}: {missing}", file=sys.stderr)
+            return 1
         return 0
     print(f"integrity: {len(problems)} damaged part(s)")
     for p in problems:
@@ -109,21 +116,58 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 1
 
 
+def _no_stars_text(topics: dict) -> str:
+    """Why no command can calibrate on a bag with these topics ('' if it can)."""
+    from stellar_cal_ros.io.bag import DEFAULT_TOPICS
+
+    stars = DEFAULT_TOPICS["stars"]
+    info = topics.get(stars)
+    if info is not None and info.message_count > 0 and \
+            "StarCentroidArray" in info.schema_name:
+        return ""
+    if info is None:
+        what = f"no {stars} topic"
+    elif info.message_count == 0:
+        what = f"{stars} holds no message"
+    else:
+        what = f"{stars} is {info.schema_name}, not stellar_cal_msgs/msg/StarCentroidArray"
+    images = [t for t, i in topics.items() if i.schema_name.endswith("/Image")]
+    if images:
+        return (f"{what}; extract them from {', '.join(sorted(images))} first (the "
+                "star_extractor node, doc/ros_nodes.md)")
+    return f"{what}: nothing to calibrate on (the contract's star centroids, doc/interfaces.md)"
+
+
 def _effect_list(text: str) -> list[str]:
     return [e.strip() for e in (text or "").split(",") if e.strip()]
 
 
 def load_prior(path: Path):
-    """Load a prior calibration; warn (one line each, then a count) about its σ block."""
+    """Load a prior calibration; warn (one line each, then a count) about its keys and σ."""
+    from stellar_cal_ros.effects import registry
     from stellar_cal_ros.io.calibration import load_calibration, prior_warnings
 
     prior = load_calibration(path)
-    warnings = prior_warnings(prior, str(path))
-    for w in warnings:
+    problems = prior_warnings(prior, str(path), {e: cls.parameter_names for e, cls in
+                                                 registry.EFFECTS.items()})
+    for w in problems:
         log.warning("%s", w)
-    if len(warnings) > 1:
-        log.warning("%s: %d problems in the sigma block", path, len(warnings))
+    if len(problems) > 1:
+        log.warning("%s: %d problems (above): the run uses the defaults in their place",
+                    path, len(problems))
     return prior
+
+
+def note_residual_file(path: Path | None) -> None:
+    """Record the residual table a run wrote in its result's provenance.
+
+    Its name and SHA-256: ``report`` and ``compare`` refuse another run's table.
+    """
+    if path is not None:
+        from stellar_cal_ros.io.calibration import note_provenance
+        from stellar_cal_ros.io.identity import file_digest
+
+        note_provenance(residuals={"file": str(path), "sha256": file_digest(path)})
 
 
 def _load_effect_modules(paths: list[Path] | None) -> None:
@@ -155,6 +199,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     result = replay(args.bag, prior, args.method, effects, config, residuals=args.residuals,
                     history=history_path, keep_tables=False, progress=not args.quiet,
                     on_error=args.on_error)
+    note_residual_file(args.residuals)
     save_calibration(result.calibration, args.output, covariance=result.covariance)
     print_replay_summary(result, prior)
     print(f"wrote {args.output}, {history_path}"
@@ -222,10 +267,9 @@ def print_diagnosis(summary: dict, calibration=None) -> None:
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from stellar_cal_ros.diagnosis.run import diagnose
-    from stellar_cal_ros.io.calibration import load_calibration
 
     _load_effect_modules(args.effect_module)
-    cal = load_calibration(args.calibration)
+    cal = load_prior(args.calibration)
     candidates = _effect_list(args.candidates) or None
     if args.workers is not None and args.workers < 0:
         raise StellarCalError("--workers must be >= 0 (0: no worker processes)")
@@ -273,10 +317,11 @@ def _cmd_batch(args: argparse.Namespace) -> int:
         res = run_acf(args.bag, prior, parse_effects(args.effects), loss=args.loss,
                       outlier_probability=args.outlier_probability or None,
                       progress=stage_done)
-    save_calibration(res.calibration, args.output,
-                     covariance=(res.parameter_names[3:], res.covariance[3:, 3:]))
     if args.residuals is not None:
         write_residuals(args.residuals, res.residuals)
+        note_residual_file(args.residuals)
+    save_calibration(res.calibration, args.output,
+                     covariance=(res.parameter_names[3:], res.covariance[3:, 3:]))
     gated = int(np.sum(res.residuals["gated"]))
     q = res.quality
     print(f"acf: {len(res.frames)} frames, {len(res.residuals['du']) - gated} stars "
@@ -357,7 +402,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=_cmd_effects)
 
     i = sub.add_parser("info", help="topics, counts and time span of a bag; checks every chunk's "
-                                    "CRC (exit 1 and one line per damaged part if any)")
+                                    "CRC (exit 1 and one line per damaged part if any, or "
+                                    "when it holds no star centroids)")
     i.add_argument("bag", type=Path, help="a .mcap file, a rosbag2 directory or a ROS 1 .bag")
     i.set_defaults(func=_cmd_info)
 
@@ -464,6 +510,78 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args.output, duration=args.duration)
 
 
+#: the output paths of each command: (argument, is a directory), checked before it runs
+OUTPUTS: dict[str, tuple[tuple[str, bool], ...]] = {
+    "simulate": (("output", False),), "replay": (("output", False), ("residuals", False),
+                                                 ("history", False), ("viz", False)),
+    "batch": (("output", False), ("residuals", False)), "export": (("output", False),),
+    **{c: (("output", True),) for c in ("diagnose", "discover", "report", "compare",
+                                         "budget", "campaign", "demo")},
+}
+
+
+#: commands whose first run on a machine compiles the filter kernels (a notice says so)
+COMPILES = ("replay", "diagnose", "discover", "demo", "campaign")
+
+
+def _one_line_warning(command: str):
+    """Return a ``warnings.showwarning`` printing ``stellar-cal CMD: warning: TEXT``.
+
+    No source line: the text names the file and what was lost.
+    """
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"stellar-cal {command}: warning: {message}", file=file or sys.stderr)
+
+    return show
+
+
+def _hint(args: argparse.Namespace, exc: StellarCalError) -> str:
+    """What to do about a damaged bag, for the commands that can read past the damage."""
+    from stellar_cal_ros.errors import BagError, MessageDecodeError
+
+    damaged = isinstance(exc, MessageDecodeError) or (
+        isinstance(exc, BagError) and "truncated or corrupt" in str(exc))
+    if damaged and getattr(args, "on_error", None) == "raise":
+        return (f" (`--on-error skip` calibrates on what the bag holds, counting what is "
+                f"lost; `stellar-cal info {args.bag}` lists the damage)")
+    return ""
+
+
+def check_output(path: Path, directory: bool) -> None:
+    """Raise a one-line error now if ``path`` cannot be written (not after the work)."""
+    import os
+
+    kind = "directory" if directory else "file"
+    if path.exists():
+        if directory != path.is_dir():
+            raise StellarCalError(f"{path} exists and is a {'file' if directory else 'directory'}"
+                                  f"; the output is a {kind}: choose another path")
+        where = path if directory else path.parent
+    else:
+        where = path.parent
+        while not where.exists() and where != where.parent:
+            where = where.parent
+        if not where.is_dir():
+            raise StellarCalError(f"cannot write {path}: {where} is a file, not a directory: "
+                                  "choose another path")
+    if not os.access(where, os.W_OK | os.X_OK):
+        raise StellarCalError(f"cannot write {path}: {where or Path('.')} is not writable")
+
+
+def os_error_text(exc: OSError) -> str:
+    """One line for an operating-system error: the path, what is wrong, what to do."""
+    where = exc.filename if exc.filename is not None else ""
+    what = exc.strerror or str(exc)
+    if isinstance(exc, (FileExistsError, NotADirectoryError)):
+        what += " (a file stands where the output needs a directory: choose another -o path)"
+    elif isinstance(exc, IsADirectoryError):
+        what += " (a directory stands where a file is needed)"
+    elif isinstance(exc, PermissionError):
+        what += " (no permission: choose a writable path)"
+    return f"{where}: {what}" if where else what
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``stellar-cal`` and ``python -m stellar_cal_ros``."""
     parser = build_parser()
@@ -471,19 +589,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     from datetime import UTC, datetime
 
     from stellar_cal_ros.io.calibration import set_provenance
+    from stellar_cal_ros.io.identity import deferred_bag_identity
 
+    bag = getattr(args, "bag", None)
     set_provenance(command="stellar-cal " + " ".join(sys.argv[1:] if argv is None else argv),
                    version=__version__, date=datetime.now(UTC).isoformat(
-                       timespec="seconds"), bag=getattr(args, "bag", None),
+                       timespec="seconds"), bag=bag, bag_id=deferred_bag_identity(bag),
                    prior=getattr(args, "prior", None))
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
     try:
-        return int(args.func(args) or 0)
+        for name, directory in OUTPUTS.get(args.command, ()):
+            if getattr(args, name, None) is not None:
+                check_output(Path(getattr(args, name)), directory)
+        if args.command in COMPILES:
+            from stellar_cal_ros.progress import compile_notice
+
+            compile_notice()
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning(args.command)
+            return int(args.func(args) or 0)
     except StellarCalError as exc:
-        print(f"stellar-cal {args.command}: error: {exc}", file=sys.stderr)
+        print(f"stellar-cal {args.command}: error: {exc}{_hint(args, exc)}", file=sys.stderr)
+        return 1
+    except OSError as exc:  # an output path that cannot be written, a vanished input
+        log.debug("traceback", exc_info=True)
+        print(f"stellar-cal {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

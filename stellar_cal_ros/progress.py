@@ -178,3 +178,41 @@ def progress(total: int, desc: str = "", unit: str = "", stream: TextIO | None =
     """
     return Progress(total, desc, unit=unit, stream=stream, enabled=enabled, step=step,
                     mode=mode, notes=notes)
+
+
+def compiled_kernels_cold() -> bool:
+    """True when the filters' numba kernels have no usable compiled cache yet.
+
+    The first run after an install or a change of the kernels' source compiles them (≈30 s
+    on 2 cores); numba's cache index of each compiled function is then empty (or stale:
+    another source stamp).  False without numba or when the cache cannot be inspected.
+    """
+    try:
+        from stellar_cal_ros.core import jit
+        from stellar_cal_ros.methods import star_chain
+    except ImportError:  # pragma: no cover - the package's own modules
+        return False
+    if not jit.HAVE_NUMBA:
+        return False
+    for mod in (star_chain, jit):
+        for obj in vars(mod).values():
+            cache = getattr(obj, "_cache", None)
+            load = getattr(getattr(cache, "_cache_file", None), "_load_index", None)
+            if load is None or getattr(obj, "__module__", None) != mod.__name__ or \
+                    getattr(obj, "targetoptions", {}).get("inline") == "always":
+                continue  # (an inlined kernel is compiled into its callers only)
+            try:
+                if not load():
+                    return True
+            except Exception:  # noqa: BLE001 - numba internals: say nothing rather than fail
+                return False
+    return False
+
+
+def compile_notice(stream: TextIO | None = None) -> bool:
+    """Say (one line) that the first run compiles the filter kernels, when it will."""
+    if not compiled_kernels_cold():
+        return False
+    print("first run here: compiling the filter's numba kernels (about 30 s, once; cached in "
+          "__pycache__ for later runs)", file=stream or sys.stderr, flush=True)
+    return True

@@ -61,11 +61,49 @@ def _truth_for(bag: Path | None):
     return load_calibration(truth) if truth.is_file() else None
 
 
+def check_run_files(cal, result: Path, residuals: Path | None, bag: Path | None,
+                    bag_ids: dict[str, str | None] | None = None) -> None:
+    """Refuse a residual table or a bag that is not the one ``result``'s run used.
+
+    The result's ``provenance`` records the SHA-256 of the residual table its run wrote and
+    the bag's content identity (:mod:`stellar_cal_ros.io.identity`); a result without them
+    (older, or from the live node) cannot be checked, which is said once.
+    """
+    from stellar_cal_ros.io.identity import bag_identity, file_digest
+
+    prov = cal.extra.get("provenance") or {}
+    if residuals is not None:
+        rec = prov.get("residuals") if isinstance(prov.get("residuals"), dict) else {}
+        if rec.get("sha256"):
+            if file_digest(residuals) != rec["sha256"]:
+                raise StellarCalError(
+                    f"{residuals} is not the residual table of the run that wrote {result} "
+                    f"(that run wrote {rec.get('file', '?')}, whose content differs): give "
+                    "that file, or --bag to re-run the result on its bag")
+        else:
+            log.warning("%s records no residual table of its run: cannot check that %s "
+                        "belongs to it", result, residuals)
+    if bag is not None:
+        if prov.get("bag_id"):
+            if bag_ids is None:
+                bag_ids = {}
+            if str(bag) not in bag_ids:
+                bag_ids[str(bag)] = bag_identity(bag)
+            if bag_ids[str(bag)] != prov["bag_id"]:
+                raise StellarCalError(
+                    f"{bag} is not the bag {result} was computed from ({prov.get('bag', '?')};"
+                    " their content differs): give that bag")
+        else:
+            log.warning("%s records no bag identity: cannot check that it was computed from "
+                        "%s", result, bag)
+
+
 def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
                    data_cache: dict[str, Any]) -> tuple[dict, dict | None, str]:
     """The run's residual table: the given file, or a re-run on the bag (with its history)."""
     from stellar_cal_ros.io.residuals import read_residuals
 
+    check_run_files(cal, result, given, bag, data_cache.setdefault("bag_ids", {}))
     if given is not None:
         return read_residuals(given), None, f"residuals from {given}"
     if bag is None:
@@ -111,8 +149,14 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     cache: dict[str, Any] = {}
     runs = []
     given = args.residuals or [None, None]
-    for path, res_path in zip((args.a, args.b), given, strict=True):
-        cal = load_calibration(path)
+    cals = [load_calibration(args.a), load_calibration(args.b)]
+    ids = [(c.extra.get("provenance") or {}).get("bag_id") for c in cals]
+    if ids[0] and ids[1] and ids[0] != ids[1]:
+        bags = [(c.extra.get("provenance") or {}).get("bag", "?") for c in cals]
+        raise StellarCalError(f"{args.a} and {args.b} were computed from different bags "
+                              f"({bags[0]} and {bags[1]}): compare puts two runs on one bag "
+                              "side by side")
+    for path, res_path, cal in zip((args.a, args.b), given, cals, strict=True):
         res, rerun_hist, source = _residuals_for(cal, path, res_path, args.bag, cache)
         hist = _history_for(path, None) or rerun_hist
         runs.append(RunData(path.stem, cal, res, hist, path, source))

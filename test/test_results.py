@@ -118,7 +118,7 @@ def test_prior_sigma_problems_are_warned_one_line_each(sim, tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="stellar_cal_ros"):
         load_prior(tmp_path / "p.yaml")
     lines = [r.getMessage() for r in caplog.records]
-    assert len(lines) == 3 and "2 problems in the sigma block" in lines[-1]
+    assert len(lines) == 3 and "2 problems (above)" in lines[-1]
     prior.sigma = {}
     assert len(prior_warnings(prior)) == 1 and "no 'sigma' block" in prior_warnings(prior)[0]
 

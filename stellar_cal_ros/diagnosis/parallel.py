@@ -217,10 +217,16 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
     ``workers=None`` means one worker process per core (at most
     :data:`MAX_DEFAULT_WORKERS`).
     """
-    if isinstance(bag, (str, Path)) and not Path(bag).is_file():
-        from stellar_cal_ros.errors import BagError
+    if isinstance(bag, (str, Path)):
+        if not Path(bag).exists():
+            from stellar_cal_ros.errors import BagError
 
-        raise BagError(f"{bag}: no such bag file")
+            raise BagError(f"{bag}: no such bag (a .mcap or ROS 1 .bag file, or a rosbag2 "
+                           "directory)")
+        if Path(bag).is_dir():  # a rosbag2 directory: read once here, sent to the runs as data
+            from stellar_cal_ros.methods.replay import read_bag_data
+
+            bag = read_bag_data(bag)
     runs = (DaskRuns(bag, spec, fraction, workers, scheduler) if scheduler or workers != 0
             else Runs(bag, spec, fraction))
     try:

@@ -540,7 +540,7 @@ def write_compare_report(out_dir: str | Path, a: RunData, b: RunData, truth: Any
     body = [f"<p>{_e(change)}</p>",
             "<h2 id='before-after'>Residuals before / after</h2><table><tr><th>run</th>"
             "<th>estimated effects</th><th>RMS u / v, px</th><th>expected u / v, px</th>"
-            "<th>mean NIS per star (95 % band)</th><th>NIS/dof (history)</th><th>gated</th>"
+            "<th>NIS/dof (95 % band)</th><th>gated</th>"
             f"</tr>{_stats_row(a, fraction)}{_stats_row(b, fraction)}</table>",
             "<h2 id='params-diff'>Parameter differences</h2>", comparison_table(a, b, tv)]
     seen = set()

@@ -53,6 +53,8 @@ __all__ = [
     "load_covariance",
     "prior_warnings",
     "save_calibration",
+    "note_provenance",
+    "run_provenance",
     "set_provenance",
     "store_estimate",
 ]
@@ -141,6 +143,9 @@ class Calibration:
     frames: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_FRAMES))
     estimated: list[str] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
+    #: keys of the file this calibration was read from that no reader uses (misspellings
+    #: among them: ``time_ofset``, ``sigma.gyro.bais``), for :func:`prior_warnings`
+    unused_keys: list[str] = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
         self.gyro_bias = np.asarray(self.gyro_bias, dtype=np.float64).reshape(3)
@@ -319,7 +324,7 @@ def calibration_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> Calib
         raise CalibrationFileError(
             f"{source}: 'estimated' must be a list of effect ids, got {estimated!r}")
     extra = {k: _plain(v) for k, v in d.items() if k not in _KNOWN_KEYS}
-    return Calibration(
+    cal = Calibration(
         camera=camera,
         installation=Rotation.from_quat(q),
         gyro_bias=gyro_bias,
@@ -335,6 +340,55 @@ def calibration_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> Calib
         estimated=list(estimated),
         extra=extra,
     )
+    cal.unused_keys = unused_keys(d)
+    return cal
+
+
+#: the keys each block of the file may hold (doc/interfaces.md §3); ``None``: any key
+_BLOCK_KEYS: dict[str, tuple[str, ...] | None] = {
+    "installation": ("quaternion_xyzw",),
+    "gyro": ("bias", "error_matrix"),
+    "accelerometer": ("bias", "error_matrix"),
+    "frames": ("imu", "star_tracker"),
+    "sigma": ("camera", "installation", "gyro", "accelerometer", "time_offset", "effects"),
+    "sigma.camera": ("camera_matrix", "distortion_coefficients"),
+    "sigma.installation": ("rotation_vector",),
+    "sigma.gyro": ("bias", "error_matrix"),
+    "sigma.accelerometer": ("bias", "error_matrix"),
+}
+#: top-level keys results carry besides the contract's (written by this package)
+_RESULT_KEYS = ("provenance", "consistency", "derived", "data_quality", "covariance_file",
+                "cross_validation", "noise")
+
+
+def _suggest(key: str, known: Any) -> str:
+    import difflib
+
+    close = difflib.get_close_matches(str(key), list(known), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def unused_keys(d: Mapping[str, Any]) -> list[str]:
+    """Keys of a calibration document no reader uses, each ``path (did you mean ...?)``.
+
+    Unknown top-level keys are allowed (a newer version's, a result's own); only those
+    close to a contract key (``time_ofset``) are listed there.  Inside the blocks whose keys
+    the contract fixes (``gyro``, ``installation``, ``sigma`` ...) every unknown key is.
+    """
+    import difflib
+
+    out = []
+    for key in d:
+        if key not in _KNOWN_KEYS and key not in _RESULT_KEYS and difflib.get_close_matches(
+                str(key), _KNOWN_KEYS, n=1, cutoff=0.8):
+            out.append(f"{key}{_suggest(key, _KNOWN_KEYS)}")
+    for path, allowed in _BLOCK_KEYS.items():
+        block: Any = d
+        for part in path.split("."):
+            block = block.get(part) if isinstance(block, Mapping) else None
+        if isinstance(block, Mapping) and allowed is not None:
+            out += [f"{path}.{k}{_suggest(k, allowed)}" for k in block if k not in allowed]
+    return out
 
 
 def _check_sigma(sigma: Mapping[str, Any], src: str) -> None:
@@ -501,10 +555,9 @@ def save_calibration(cal: Calibration, path: str | os.PathLike[str],
         file, if any, is left untouched).
     """
     p = Path(path)
-    if _RUN_PROVENANCE and cal.method not in ("prior", "truth") and \
-            "provenance" not in cal.extra:
+    if _RUN_PROVENANCE and cal.method not in ("prior", "truth"):
         cal = copy.copy(cal)
-        cal.extra = {**cal.extra, "provenance": dict(_RUN_PROVENANCE)}
+        cal.extra = {**cal.extra, "provenance": run_provenance(cal.extra.get("provenance"))}
     if covariance is not None:
         cov = covariance if isinstance(covariance, Covariance) else Covariance.from_tuple(
             covariance)
@@ -553,12 +606,36 @@ def set_provenance(**items: Any) -> None:
 
     Every result (a calibration whose ``method`` is not ``prior`` / ``truth``) that
     :func:`save_calibration` writes afterwards carries these items under ``provenance``
-    (unless it has one already).  Called once by the command line; ``None`` values are
-    left out; no items clears the record.
+    (the record of the run it was computed from, if any, moves to ``provenance.input``,
+    :func:`run_provenance`).  Called once by the command line; ``None`` values are
+    left out; a callable is evaluated when the first result is written (e.g. the bag's
+    identity, :func:`stellar_cal_ros.io.identity.bag_identity`); no items clears the
+    record.
     """
     _RUN_PROVENANCE.clear()
     _RUN_PROVENANCE.update({k: _plain(v) if not isinstance(v, os.PathLike) else str(v)
                             for k, v in items.items() if v is not None})
+
+
+def note_provenance(**items: Any) -> None:
+    """Add items to this process's record (e.g. the residual file a run wrote)."""
+    _RUN_PROVENANCE.update({k: _plain(v) for k, v in items.items() if v is not None})
+
+
+def run_provenance(earlier: Any = None) -> dict[str, Any]:
+    """Return the provenance record of this process for a result it writes.
+
+    A result computed from another one (``discover`` from a replay's result) names the
+    command that made it; the earlier record, if different, is kept under ``input``
+    (its command, version and date only: one step back, not a growing chain).
+    """
+    out = {k: v() if callable(v) else v for k, v in _RUN_PROVENANCE.items()}
+    _RUN_PROVENANCE.update(out)  # evaluated once (a bag identity reads the bag)
+    out = {k: v for k, v in out.items() if v is not None}
+    if isinstance(earlier, Mapping) and earlier.get("command") and \
+            earlier.get("command") != out.get("command"):
+        out["input"] = {k: earlier[k] for k in ("command", "version", "date") if k in earlier}
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -729,8 +806,14 @@ def _walk_numbers(x: Any, where: str):
         yield where, float(x)
 
 
-def prior_warnings(cal: Calibration, source: str = "prior") -> list[str]:
-    """Problems of a calibration's σ block when it is used as a prior (one line each).
+def prior_warnings(cal: Calibration, source: str = "prior",
+                   effects: Mapping[str, Any] | None = None) -> list[str]:
+    """Problems of a calibration when it is used as a prior (one line each).
+
+    Keys no reader uses (:attr:`Calibration.unused_keys`: a misspelled ``time_ofset`` or
+    ``sigma.gyro.bais`` would otherwise be silently ignored); with ``effects`` (effect id →
+    its parameter names) ids and parameters under ``effects`` and ``sigma.effects`` that no
+    effect has.
 
     A prior without a ``sigma`` block gives every estimated quantity its effect's default σ;
     a negative or NaN σ is not an uncertainty (the estimators treat such an entry as
@@ -742,16 +825,33 @@ def prior_warnings(cal: Calibration, source: str = "prior") -> list[str]:
         The loaded prior.
     source : str
         File name for the messages.
+    effects : mapping, optional
+        Known effect ids and their parameter names (the effect registry's).
 
     Returns
     -------
     list of str
-        One warning per problem (empty when the σ block is sound).
+        One warning per problem (empty when the file is sound).
     """
+    out = [f"{source}: unknown key {k}: ignored (doc/interfaces.md lists the keys)"
+           for k in cal.unused_keys]
+    for block, where in ((cal.effects, "effects"),
+                         ((cal.sigma or {}).get("effects") or {}, "sigma.effects")):
+        if effects is None or not isinstance(block, Mapping):
+            continue
+        for eid, params in block.items():
+            if eid not in effects:
+                out.append(f"{source}: {where}.{eid}: no effect of that id{_suggest(eid, effects)}:"
+                           " ignored (`stellar-cal effects` lists them)")
+                continue
+            for name in params if isinstance(params, Mapping) else ():
+                if name not in effects[eid]:
+                    out.append(f"{source}: {where}.{eid}.{name}: not a parameter of {eid}"
+                               f"{_suggest(name, effects[eid])}: ignored (its parameters: "
+                               f"{', '.join(effects[eid])})")
     if not cal.sigma:
-        return [f"{source}: no 'sigma' block: every estimated quantity starts from its "
-                "effect's default σ (see doc/interfaces.md)"]
-    out = []
+        return out + [f"{source}: no 'sigma' block: every estimated quantity starts from its "
+                      "effect's default σ (see doc/interfaces.md)"]
     for where, v in _walk_numbers(cal.sigma, "sigma"):
         if math.isnan(v):
             out.append(f"{source}: {where} is NaN (not an uncertainty)")

@@ -1,0 +1,259 @@
+"""The user's path (issue 25): every command reads every bag, errors in one line, runs
+that do not belong together are refused, provenance names the command that made a result.
+
+Each test reproduces what a user ran into with the command line itself (``cli.main``) on a
+short simulated bag and its copies converted with ``rosbags`` (an independent writer).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from sim_bags import psce_bag
+
+from stellar_cal_ros import cli
+from stellar_cal_ros.cli import main
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.io.calibration import load_calibration, prior_warnings
+
+DURATION = 60.0
+
+
+def _convert(src: Path, dst: Path, storage: str = "sqlite3", exclude=()) -> Path:
+    from rosbags.convert import convert
+
+    convert([src], dst, storage, 8, None, "file", None, None, list(exclude), [], [], [])
+    return dst
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Two bags of one scenario (seeds 7, 8), a rosbag2 sqlite3 copy of the first, and a
+    replay of each with its residual table."""
+    d = tmp_path_factory.mktemp("userpath")
+    out = {}
+    for key, seed in (("a", 7), ("b", 8)):
+        bag, prior, _ = psce_bag(DURATION, seed=seed)
+        out[f"bag_{key}"], out[f"prior_{key}"] = bag, prior
+        res, cal = d / f"res_{key}.csv", d / f"run_{key}.yaml"
+        assert main(["replay", str(bag), "--method", "psce", "--prior", str(prior), "-o",
+                     str(cal), "--residuals", str(res), "-q"]) == 0
+        out[f"run_{key}"], out[f"res_{key}"] = cal, res
+    out["dir_a"] = _convert(out["bag_a"], d / "a_sqlite3")
+    out["d"] = d
+    return out
+
+
+def _one_error_line(err: str, command: str) -> str:
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert "Traceback" not in err, err
+    assert lines and lines[-1].startswith(f"stellar-cal {command}: error: "), err
+    return lines[-1]
+
+
+# ------------------------------------------------------------------ 1. every command, every bag
+def test_diagnose_and_discover_read_a_rosbag2_directory(runs, tmp_path, capsys):
+    args = ["--method", "psce", "--workers", "0", "--no-plots", "--candidates", "time_offset"]
+    assert main(["diagnose", str(runs["bag_a"]), "--calibration", str(runs["run_a"]), "-o",
+                 str(tmp_path / "mcap"), *args]) == 0
+    assert main(["diagnose", str(runs["dir_a"]), "--calibration", str(runs["run_a"]), "-o",
+                 str(tmp_path / "dir"), *args]) == 0, capsys.readouterr().err
+    a, b = (json.loads((tmp_path / k / "diagnosis.json").read_text()) for k in ("mcap", "dir"))
+    assert a["residual_rms_px"] == pytest.approx(b["residual_rms_px"], rel=1e-12)
+    assert main(["discover", str(runs["dir_a"]), "--calibration", str(runs["run_a"]), "-o",
+                 str(tmp_path / "found"), *args]) == 0
+    # 6. the discovered calibration names the command that made it, the replay as its input
+    prov = load_calibration(tmp_path / "found" / "calibration.yaml").extra["provenance"]
+    assert prov["command"].startswith("stellar-cal discover "), prov
+    assert prov["input"]["command"].startswith("stellar-cal replay "), prov
+    assert main(["diagnose", str(tmp_path / "nothing"), "--calibration", str(runs["run_a"]),
+                 "-o", str(tmp_path / "x"), *args]) == 1
+    assert "no such bag" in _one_error_line(capsys.readouterr().err, "diagnose")
+
+
+def test_info_fails_on_a_bag_without_star_centroids(runs, tmp_path, capsys):
+    bag = _convert(runs["bag_a"], tmp_path / "no_stars", "mcap",
+                   exclude=["/star_tracker/stars"])
+    assert main(["info", str(bag)]) == 1
+    line = _one_error_line(capsys.readouterr().err, "info")
+    assert "no /star_tracker/stars topic" in line
+    assert main(["info", str(runs["dir_a"])]) == 0
+
+
+def test_a_truncated_bag_says_what_to_do_in_one_line_per_problem(runs, tmp_path, capsys):
+    raw = Path(runs["bag_a"]).read_bytes()
+    bag = tmp_path / "cut.mcap"
+    bag.write_bytes(raw[: len(raw) // 2])
+    base = ["replay", str(bag), "--method", "psce", "--prior", str(runs["prior_a"]), "-q"]
+    assert main([*base, "-o", str(tmp_path / "r.yaml")]) == 1
+    err = capsys.readouterr().err
+    assert "--on-error skip" in _one_error_line(err, "replay")
+    assert main([*base, "--on-error", "skip", "-o", str(tmp_path / "r2.yaml")]) == 0
+    err = capsys.readouterr().err
+    assert "UserWarning" not in err and ".py:" not in err, err
+    assert "stellar-cal replay: warning: truncated or corrupt bag" in err
+
+
+# ------------------------------------------------------------------ 3. unwritable outputs
+def _commands(runs, out: str) -> dict[str, list[str]]:
+    bag, prior, run, res = (str(runs[k]) for k in ("bag_a", "prior_a", "run_a", "res_a"))
+    return {
+        "simulate": ["simulate", "--scenario", "psce_rotations", "-o", f"{out}/x.mcap"],
+        "replay": ["replay", bag, "--method", "psce", "--prior", prior, "-o", f"{out}/r.yaml"],
+        "batch": ["batch", bag, "--method", "acf", "--prior", prior, "-o", f"{out}/r.yaml"],
+        "diagnose": ["diagnose", bag, "--calibration", run, "--method", "psce", "-o", out],
+        "discover": ["discover", bag, "--calibration", run, "--method", "psce", "-o",
+                     f"{out}/d"],
+        "report": ["report", run, "--residuals", res, "-o", out],
+        "compare": ["compare", run, run, "--residuals", res, res, "-o", f"{out}/c"],
+        "budget": ["budget", run, "-o", f"{out}/b"],
+        "export": ["export", run, "--format", "kalibr", "-o", f"{out}/k.yaml"],
+        "campaign": ["campaign", f"{out}/spec.yaml", "-o", f"{out}/c"],
+    }
+
+
+def test_an_unwritable_output_path_is_one_line_before_any_work(runs, tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("in the way\n")
+    for name, argv in _commands(runs, str(blocker)).items():
+        assert main(argv) == 1, name
+        line = _one_error_line(capsys.readouterr().err, name)
+        assert str(blocker) in line, line
+
+
+def test_any_os_error_of_a_command_is_one_line(monkeypatch, tmp_path, capsys):
+    def full_disk(args):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "x.yaml"))
+
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    parser._subparsers._group_actions[0].choices["effects"].set_defaults(func=full_disk)
+    assert main(["effects"]) == 1
+    line = _one_error_line(capsys.readouterr().err, "effects")
+    assert "No space left on device" in line and "x.yaml" in line
+
+
+# ------------------------------------------------------------------ 4. misspelled prior keys
+def test_misspelled_prior_keys_are_named_with_the_key_meant(runs, tmp_path, caplog):
+    doc = yaml.safe_load(Path(runs["prior_a"]).read_text())
+    doc["time_ofset"] = doc.pop("time_offset")
+    doc["sigma"]["gyro"]["bais"] = doc["sigma"]["gyro"].pop("bias")
+    doc["sigma"]["time_ofset"] = doc["sigma"].pop("time_offset")
+    doc["effects"] = {"refraction": {"scael": 1.0}, "abberation": {"scale": 1.0}}
+    path = tmp_path / "typo.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    with caplog.at_level(logging.WARNING, logger="stellar_cal_ros"):
+        cli.load_prior(path)
+    text = caplog.text
+    for key, meant in (("time_ofset", "time_offset"), ("sigma.time_ofset", "time_offset"),
+                       ("sigma.gyro.bais", "bias"), ("effects.refraction.scael", "scale"),
+                       ("effects.abberation", "aberration")):
+        assert key in text and f"'{meant}'" in text, (key, text)
+    # sound files (a prior, a result used as a prior) give no such warning
+    known = {e: c.parameter_names for e, c in registry.EFFECTS.items()}
+    for sound in (runs["prior_a"], runs["run_a"]):
+        assert prior_warnings(load_calibration(sound), "x", known) == [], sound
+
+
+# ------------------------------------------------------------------ 5. runs combined
+def test_report_refuses_residuals_and_bags_of_another_run(runs, tmp_path, capsys):
+    run, other_res = str(runs["run_a"]), str(runs["res_b"])
+    assert main(["report", run, "--residuals", other_res, "-o", str(tmp_path / "r1")]) == 1
+    assert "is not the residual table" in _one_error_line(capsys.readouterr().err, "report")
+    assert main(["report", run, "--residuals", str(runs["res_a"]), "--bag",
+                 str(runs["bag_b"]), "-o", str(tmp_path / "r2")]) == 1
+    assert "is not the bag" in _one_error_line(capsys.readouterr().err, "report")
+    # the same recording in another container is the same bag
+    assert main(["report", run, "--residuals", str(runs["res_a"]), "--bag",
+                 str(runs["dir_a"]), "-o", str(tmp_path / "r3")]) == 0
+    page = (tmp_path / "r3" / "report.html").read_text()
+    # 8. one NIS figure: the run's own NIS/dof, over the same window
+    nis = load_calibration(run).extra["consistency"]["nis_per_dof"]
+    assert f"NIS/dof <b>{nis:.3f}</b>" in page
+    assert "per star" not in page
+
+
+def test_compare_refuses_runs_of_different_bags(runs, tmp_path, capsys):
+    assert main(["compare", str(runs["run_a"]), str(runs["run_b"]), "--residuals",
+                 str(runs["res_a"]), str(runs["res_b"]), "-o", str(tmp_path / "c")]) == 1
+    assert "different bags" in _one_error_line(capsys.readouterr().err, "compare")
+
+
+def test_a_change_of_method_is_not_an_added_effect():
+    from stellar_cal_ros.diagnosis.report_html import model_change
+
+    text = model_change("psce", ["installation", "focal_length", "gyro_bias"],
+                        "swaying_base", ["installation", "gyro_bias", "accel_bias"])
+    assert "adds" not in text and "different methods" in text
+    assert "B estimates accel_bias" in text and "A estimates focal_length" in text
+    assert model_change("psce", ["a"], "psce", ["a", "b"]) == "B adds b to A's model."
+
+
+# ------------------------------------------------------------------ 8. smaller items
+def test_first_run_says_it_compiles(monkeypatch, runs, tmp_path, capsys):
+    import stellar_cal_ros.progress as progress
+
+    monkeypatch.setattr(progress, "compiled_kernels_cold", lambda: True)
+    assert main(["replay", str(runs["bag_a"]), "--method", "psce", "--prior",
+                 str(runs["prior_a"]), "-o", str(tmp_path / "r.yaml"), "-q"]) == 0
+    assert "compiling the filter's numba kernels" in capsys.readouterr().err
+
+
+def test_the_compile_check_sees_an_empty_cache(tmp_path):
+    import subprocess
+    import sys
+
+    code = "from stellar_cal_ros.progress import compiled_kernels_cold as c; print(c())"
+    env = {**__import__("os").environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=env, timeout=120)
+    assert out.stdout.strip() == "True", out.stderr[-2000:]
+
+
+def test_budget_plot_says_why_the_total_is_below_its_components():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from stellar_cal_ros.budget.report import _mark_correlation
+
+    lin = {"centroid": {"cross": 0.84, "roll": 8.46}, "principal_point": {"cross": 6.1,
+           "roll": 0.15}, "installation": {"cross": 6.2, "roll": 0.2},
+           "total": {"cross": 0.88, "roll": 8.46}}
+    fig, ax = plt.subplots()
+    _mark_correlation(ax, lin, list(lin))
+    notes = [t.get_text() for t in ax.texts]
+    plt.close(fig)
+    indep = np.sqrt(0.84**2 + 6.1**2 + 6.2**2)
+    assert len(notes) == 1 and "correlated" in notes[0]
+    assert f"independent: {indep:.3g}" in notes[0]
+
+
+def test_campaign_tables_carry_units_and_histograms_keep_every_value(tmp_path):
+    from stellar_cal_ros.campaign import summary
+
+    stats = [{"group": g, "runs": 3, "failed": 0, "mean_run_seconds": 1.0, "parameters": {
+        "gyro_bias.bx": {"n": 3, "rms_error": 4.8e-8, "mean_sigma": 4.8e-8, "ratio": 1.0,
+                         "ratio_interval": [0.5, 1.5], "normalized": z}}}
+        for g, z in (("a", [0.1, -0.5, 6.5]), ("b", [0.2, 1.0, -1.0]))]
+    text = summary.format_summary(stats)
+    assert "deg/h" in text and "0.0099" in text  # 4.8e-8 rad/s in deg/h
+    zs, lim = summary.histogram_groups(stats, "gyro_bias.bx")
+    assert [label for label, _ in zs] == ["a", "b"]  # not pooled
+    assert lim >= 6.5
+
+
+def test_runs_can_be_copied_away_and_still_checked(runs, tmp_path):
+    """The check compares content, not paths: a moved result and residual table pass."""
+    for k in ("run_a", "res_a"):
+        shutil.copy(runs[k], tmp_path / Path(runs[k]).name)
+    assert main(["report", str(tmp_path / "run_a.yaml"), "--residuals",
+                 str(tmp_path / "res_a.csv"), "-o", str(tmp_path / "rep")]) == 0
