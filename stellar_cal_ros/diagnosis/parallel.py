@@ -226,7 +226,7 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
         if Path(bag).is_dir():  # a rosbag2 directory: read once here, sent to the runs as data
             from stellar_cal_ros.methods.replay import read_bag_data
 
-            bag = read_bag_data(bag)
+            bag = read_bag_data(bag, require_imu=False)
     runs = (DaskRuns(bag, spec, fraction, workers, scheduler) if scheduler or workers != 0
             else Runs(bag, spec, fraction))
     try:
