@@ -253,3 +253,21 @@ def test_diagnose_bundle_names_the_missing_effect(world, tmp_path):
     assert {"installation", "time_offset"} <= na
     # held-out residuals at the noise the messages state, once tangential is in
     assert np.hypot(*top["rms_after_px"]) == pytest.approx(np.sqrt(2) * SIGMA_PX, rel=0.1)
+
+
+def test_frame_of_another_focus_is_named(world):
+    """A frame taken at another focal length (0.2 % here) is named, the others are not."""
+    data = copy.copy(world["data"])
+    rng = np.random.default_rng(4)
+    data.frames = []
+    for k, fr in enumerate(world["data"].frames[:8]):
+        g = copy.copy(fr)
+        g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
+        if k == 5:
+            g.uv = 511.5 + 1.002 * (g.uv - 511.5)
+        g.sigma = np.full(len(fr.uv), SIGMA_PX)
+        data.frames.append(g)
+    res = bd.run_bundle(data, world["sim"].prior, ["tangential"])
+    nis = res.cross_validation["nis_per_dof"]
+    assert [r.split(" does not")[0] for r in res.degraded] == ["frame 5"], res.degraded
+    assert max(np.delete(nis, 5)) < 2.0 < 10.0 < nis[5]

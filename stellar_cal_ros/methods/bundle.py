@@ -698,6 +698,14 @@ def run_bundle(
 
         cv = run_cv(result)
         result.cross_validation, result.held_out = cv.summary(), cv
+        nis = result.cross_validation["nis_per_dof"]
+        for k in cv.inconsistent():
+            result.degraded.append(
+                f"frame {cv.frames[k]} does not share the other frames' camera: held-out "
+                f"RMS {cv.scores[k].rms_arcsec:.3g} arcsec, NIS/dof {nis[k]:.3g} against a "
+                f"median {float(np.median(np.delete(nis, k))):.3g} of the others (another "
+                "focus or zoom, another camera, or wrong identifications): calibrate "
+                "without it")
         tell("cross-validation")
     cal.extra = dict(cal.extra)
     cal.extra["data_quality"] = {**{k: v for k, v in counts.as_dict().items() if v},

@@ -28,6 +28,9 @@ from stellar_cal_ros.methods.bundle import Bundle, BundleFrame, BundleResult, _c
 
 #: a held-out star beyond this many times the frame's median residual is not scored
 REJECT_FACTOR = 5.0
+#: a frame whose held-out NIS/dof is this many times the other frames' median does not
+#: share their camera (another focus or zoom, a different camera, wrong identifications)
+INCONSISTENT_FACTOR = 4.0
 
 
 @dataclass
@@ -117,14 +120,49 @@ class HeldOut:
     directions: list[np.ndarray] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
-        """The result's ``cross_validation`` block (contract §5)."""
+        """The result's ``cross_validation`` block (contract §5).
+
+        Plus, per frame, ``frames`` (bag index), ``stars`` scored and ``nis_per_dof``.
+        """
         rms = [float(s.rms_arcsec) for s in self.scores]
         finite = [r for r in rms if np.isfinite(r)]
         return {"held_out_rms_arcsec": rms,
                 "mean_arcsec": float(np.mean(finite)) if finite else float("nan"),
                 "rejected": [int(s.rejected) for s in self.scores],
                 "frames": list(self.frames),
-                "stars": [int(s.scored.sum()) for s in self.scores]}
+                "stars": [int(s.scored.sum()) for s in self.scores],
+                "nis_per_dof": [float(x) for x in self.nis_per_dof()]}
+
+    def nis_per_dof(self) -> np.ndarray:
+        """Per frame: the scored stars' mean held-out NIS / 2 (1: as predicted).
+
+        Each star's NIS is against its own predicted covariance, which already carries what
+        the frame's attitude fit absorbs (:func:`residual_covariance`): 2 on average.
+        """
+        out = []
+        for sc, S in zip(self.scores, self.covariance, strict=True):
+            m = sc.scored
+            if not m.any():
+                out.append(float("nan"))
+                continue
+            r = sc.residuals[m]
+            nis = np.einsum("ni,nij,nj->n", r, np.linalg.inv(S[m]), r)
+            out.append(float(nis.mean() / 2.0))
+        return np.asarray(out)
+
+    def inconsistent(self, factor: float = INCONSISTENT_FACTOR) -> list[int]:
+        """Positions of frames that do not share the others' camera.
+
+        Their held-out NIS/dof exceeds ``factor`` × the other frames' median (and ``factor``).
+        """
+        nis = self.nis_per_dof()
+        out = []
+        for k, v in enumerate(nis):
+            others = np.delete(nis, k)
+            others = others[np.isfinite(others)]
+            if len(others) and v > factor * max(float(np.median(others)), 1.0):
+                out.append(k)
+        return out
 
 
 def residual_covariance(b: Bundle, theta: np.ndarray, R: np.ndarray, f: BundleFrame,
