@@ -43,19 +43,20 @@ def _data(bench, frames):
                          head_temperature=None, air_temperature=None, pressure=None)
 
 
-def test_same_centroids_same_held_out_as_tetra3rs(bench, images):
-    """On tetra3rs's own moment centroids the bundle matches its calibrate_camera (the issue
-    measured the same: the centroids limit both), every frame identified."""
-    from stellar_cal_ros.methods.bundle import run_bundle
-
-    frames, fovs, _, _ = bench.identified_frames(images, "tetra3rs")
-    assert all(len(f.uv) >= 25 for f in frames)
-    prior = bench.pinhole_prior(1280, 960, float(np.nanmedian(fovs)))
-    res = run_bundle(_data(bench, frames), prior, [])
-    ours = res.cross_validation["mean_arcsec"]
-    t3 = bench.tetra3rs_loo(images, [("radial", 4)])[0]
-    assert ours <= 1.1 * np.mean(t3.held_out), (ours, t3.held_out)
-    assert not res.degraded
+def test_held_out_rms_against_tetra3rs(bench):
+    """After discover --method bundle, on the project's PSF-fit centroids: held-out RMS at
+    most 0.9x tetra3rs calibrate_camera's (the issue's acceptance; measured 0.62x), by the
+    same rule and against its own re-solve RMSE; on tetra3rs's moment centroids the two
+    fits are equal within 10 % (the centroids are the difference), every frame identified."""
+    out = bench.compare(FRAMES, IMAGES, discover=True, t3_models=(("radial", 4),))
+    rows = {r.name.split(",")[0]: r for r in out["rows"]}
+    psf, moments = rows["ours: psf centroids"], rows["ours: tetra3rs centroids"]
+    t3 = rows["tetra3rs radial"]
+    assert all(n >= 25 for n in out["ours"]["psf"]["identified"])
+    assert np.mean(psf.held_out) <= 0.9 * np.mean(t3.held_out), (psf.held_out, t3.held_out)
+    assert np.mean(psf.held_out) <= 0.9 * np.mean(t3.own)
+    assert np.mean(moments.held_out) <= 1.1 * np.mean(t3.held_out)
+    assert sum(psf.rejected) <= 3
 
 
 def test_a_frame_of_another_camera_state_is_named(bench, images):
