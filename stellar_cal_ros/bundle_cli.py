@@ -44,7 +44,8 @@ def print_bundle_summary(res) -> None:
     n_stars = int((~res.residuals["gated"]).sum())
     print(f"bundle: {len(res.frames)} of {c.frames_read} frames ({c.frames_few_stars} with too "
           f"few stars), {n_stars} stars ({c.stars_misidentified} misidentified, "
-          f"{c.stars_outliers} outliers left out), RMS |duv| {res.rms_px:.4f} px, "
+          f"{c.stars_outliers} outliers left out; {c.stars_unidentified} unidentified and "
+          f"{c.stars_unusable} unusable not fitted), RMS |duv| {res.rms_px:.4f} px, "
           f"sigma-hat {res.sigma_px:.4f} px (variance factor {res.variance_factor:.3g}), "
           f"{res.iterations} iterations, loss {res.loss}")
     extra = [e.id for e in res.model.effects if e.id not in BASELINE_EFFECTS]

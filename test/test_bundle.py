@@ -8,8 +8,10 @@ RMS (against the noise it must equal) and the rule that computes it.
 from __future__ import annotations
 
 import copy
+import importlib.util
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,68 +22,48 @@ from stellar_cal_ros.errors import ModelError, StellarCalError
 from stellar_cal_ros.methods import bundle as bd
 from stellar_cal_ros.methods.bundle_cv import held_out_frame
 from stellar_cal_ros.methods.frames import bag_data_from_simulation
-from stellar_cal_ros.methods.replay import truth_parameters
-from stellar_cal_ros.sim.scenarios import get_scenario
-from stellar_cal_ros.sim.world import simulate
 
 SIGMA_PX = 0.05
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bundle_bound.py"
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bundle_bound", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
 
 
 @pytest.fixture(scope="module")
-def world():
+def bench():
+    return _bench()
+
+
+@pytest.fixture(scope="module")
+def world(bench):
     """Noise-free frames of seven attitudes (Tan et al.'s rotations), their truth."""
-    sc = get_scenario("psce_rotations")
-    sc.centroid_noise_px = 0.0
-    r = simulate(sc, duration=400, seed=1)
-    data = bag_data_from_simulation(r)
-    data.frames = data.frames[::50]  # 16 frames
-    model, theta_prior, sigma_prior = bd.make_model(r.prior, ["tangential"])
-    frames = bd.bundle_frames(data, r.prior)
-    for f in frames:
-        f.sigma = np.full(len(f.uv), SIGMA_PX)
-    theta = truth_parameters(model, r.truth)
-    R0, _ = bd.initial_attitudes(model, theta, frames)
-    _, R_true, ne, _ = bd.Bundle(model, frames, theta, sigma_prior).solve(theta, R0,
-                                                                          with_theta=False)
-    assert ne.sum_wz < 1e-12  # the frames are exactly the model at the truth
-    return {"sim": r, "data": data, "model": model, "frames": frames, "theta": theta,
-            "attitudes": R_true, "sigma_prior": sigma_prior}
+    w = bench.world(n_frames=16, noise_px=SIGMA_PX)
+    assert w["misfit"] < 1e-12  # the frames are exactly the model at the truth
+    return w
 
 
 def _noisy(frames, rng, sigma=SIGMA_PX):
-    out = []
-    for f in frames:
-        g = copy.copy(f)
-        g.uv = f.uv + sigma * rng.standard_normal(f.uv.shape)
-        g.use = np.ones(len(f.uv), dtype=bool)
-        out.append(g)
-    return out
+    return _bench().noisy(frames, rng, sigma)
 
 
-def test_bundle_at_cramer_rao_bound_with_honest_sigma(world):
-    """Monte Carlo: errors against the CRLB (efficiency) and against the reported σ (NEES)."""
-    model, theta, sp = world["model"], world["theta"], world["sigma_prior"]
-    crlb = bd.crlb_bundle(world["frames"], model, theta, world["attitudes"], sp)
-    info = np.linalg.inv(crlb)
-    rng = np.random.default_rng(7)
-    runs, P = 30, model.size
-    eff, nees, s2s = [], [], []
-    for _ in range(runs):
-        th_prior = theta + sp * rng.standard_normal(P)  # prior centre drawn: Bayesian bound
-        fit, n_out = bd.fit_bundle(model, _noisy(world["frames"], rng), th_prior,
-                                  world["attitudes"], th_prior, sp)
-        cov, s2 = fit.covariance()
-        e = fit.theta - theta
-        eff.append(e @ info @ e)
-        nees.append(e @ np.linalg.solve(cov, e))
-        s2s.append(s2)
-    # mean of chi2(P)/P-distributed sums: P ± 3 sqrt(2P/runs)
+def test_bundle_at_cramer_rao_bound_with_honest_sigma(world, bench):
+    """Monte Carlo (reduced form of benchmarks/bundle_bound.py): errors against the CRLB
+    (efficiency) and against the reported σ (NEES), and the variance factor."""
+    mc = bench.monte_carlo(world, runs=30, seed=7)
+    P, runs = mc["P"], mc["runs"]
+    # means of chi2(P)-distributed values: P ± 3 sqrt(2P/runs)
     tol = 3.0 * np.sqrt(2.0 * P / runs)
-    assert abs(np.mean(eff) - P) < tol, (np.mean(eff), P)   # at the bound
-    assert abs(np.mean(nees) - P) < tol, (np.mean(nees), P)  # σ honest
+    assert abs(np.mean(mc["efficiency_chi2"]) - P) < tol  # at the bound
+    assert abs(np.mean(mc["nees"]) - P) < tol  # σ honest
     n = sum(len(f.uv) for f in world["frames"])
     dof = 2 * n - 3 * len(world["frames"]) - P
-    assert abs(np.mean(s2s) - 1.0) < 3.0 * np.sqrt(2.0 / dof / runs)
+    assert abs(np.mean(mc["variance_factor"]) - 1.0) < 3.0 * np.sqrt(2.0 / dof / runs)
 
 
 def test_schur_solution_equals_dense_least_squares(world):

@@ -106,7 +106,8 @@ class BundleCounts:
 
     frames_read: int = 0
     frames_few_stars: int = 0
-    stars_unusable: int = 0  #: unidentified, non-finite or off the detector
+    stars_unidentified: int = 0  #: catalog_id 0 and no direction (not identified)
+    stars_unusable: int = 0  #: non-finite or off the detector
     stars_bad_sigma: int = 0  #: message σ negative or NaN (default used)
     stars_misidentified: int = 0  #: catalogue direction far off the measured one
     stars_outliers: int = 0  #: beyond the outlier gate after a robust fit
@@ -132,7 +133,10 @@ def bundle_frames(data: BagData, prior: Calibration, counts: BundleCounts | None
     for k, fr in enumerate(data.frames):
         c.frames_read += 1
         inp = frame_inputs(fr, w, h, default_sigma)
-        c.stars_unusable += int((~inp.ok).sum())
+        unknown = int(np.sum((np.asarray(fr.catalog_id) == 0)
+                             & ~np.isfinite(fr.right_ascension)))
+        c.stars_unidentified += unknown
+        c.stars_unusable += int((~inp.ok).sum()) - unknown
         c.stars_bad_sigma += inp.bad_sigma
         if len(inp.uv) < min_stars:
             c.frames_few_stars += 1
@@ -662,7 +666,8 @@ def run_bundle(
         raise StellarCalError(
             f"the bundle method needs at least 2 star frames with >= {min_stars_per_frame} "
             f"identified stars; the bag has {len(frames)} of {counts.frames_read} "
-            f"({counts.stars_unusable} stars unidentified, non-finite or off the detector)")
+            f"({counts.stars_unidentified} stars unidentified, {counts.stars_unusable} "
+            "non-finite or off the detector)")
     check_context(model, frames)
     Rs, counts.stars_misidentified = initial_attitudes(model, theta_prior, frames, gate_deg)
     n_used = sum(int(f.use.sum()) for f in frames)
