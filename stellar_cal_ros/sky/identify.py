@@ -63,7 +63,7 @@ class IdentifyConfig:
     ambiguity_px: float = 1.5  #: another catalogue star this close to a matched one ...
     ambiguity_magnitudes: float = 3.0  #: ... and at most this much fainter: ambiguous
     hip_radius_arcsec: float = 1.5  #: Gaia-to-Hipparcos cross-match radius (at J2016.0)
-    max_magnitude_difference: float = 1.5  #: Hipparcos Hp against the solver's magnitude
+    max_magnitude_difference: float = 2.5  #: Hp against the solver's G (red stars: G−Hp to −2)
     match_threshold: float = 1e-5  #: solver's false-positive probability budget
     solve_timeout_ms: int = 3000  #: lost-in-space wall-clock limit per frame
     min_matches: int = 4  #: fewer accepted stars: the frame is not identified
