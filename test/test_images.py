@@ -106,7 +106,7 @@ def test_solve_command_identifies_rendered_frames(rendered_sky, capsys):
         fix = reader.read_navsat("/gnss/fix")
     assert len(frames) == 3 and len(fix) == 3
     assert np.allclose(fix.latitude_deg, 48.1)
-    n_id = n_true = n_stars = 0
+    n_id = n_stars = 0
     for fr, name in zip(frames, names, strict=True):
         uv_t, hip_t = truth[name]
         j, near = _match(fr.uv, uv_t)
@@ -115,11 +115,10 @@ def test_solve_command_identifies_rendered_frames(rendered_sky, capsys):
         # every identification is the true star (false-identification rate 0)
         assert np.all(fr.catalog_id[ident & near] == hip_t[j[ident & near]])
         assert not (ident & ~near).any()
-        assert np.all(fr.sigma > 0)
+        assert np.all(fr.sigma > 0) and ident.all()  # identified frames: identified stars
         n_id += ident.sum()
-        n_true += near.sum()
         n_stars += len(uv_t)
-    assert n_id >= 0.7 * n_true  # identification rate among the stars extracted
+    assert n_id >= 0.75 * n_stars  # identification rate among the rendered stars (to mag 7)
     prior = load_calibration(bag.with_suffix(".prior.yaml"))
     s_f = prior.sigma["camera"]["camera_matrix"]["data"][0]
     # distortion and principal point not modelled by the solve: the σ must cover them

@@ -6,8 +6,9 @@ lost-in-space identification (:mod:`.identify`; field from ``--fov`` or searched
 the solved fields, and the images are identified a second time through that camera (the
 solver then sees the same pinhole in every frame).  The bag holds one
 ``StarCentroidArray`` per image on ``/star_tracker/stars`` (stamped from ``--stamps`` or the
-image's own time; stars the identification did not take stay in the message unidentified:
-``catalog_id`` 0, RA/Dec NaN) and, with ``--site``, one ``/gnss/fix`` per frame.
+image's own time) with its identified stars — an image that could not be identified keeps
+all its centroids unidentified (``catalog_id`` 0, RA/Dec NaN) for the calibration methods
+to try again — and, with ``--site``, one ``/gnss/fix`` per frame.
 
 ``BAG.prior.yaml``: the camera of the solve and its σ: the focal length's from the scatter of
 the solved fields (at least 0.2 %), the principal point at the image centre with σ 2 % of
@@ -84,13 +85,16 @@ def read_stamps(path: str | Path) -> dict[str, float]:
 
 
 def star_frame(s: SolvedImage) -> StarFrame:
-    """The contract message of a solved image."""
+    """The contract message of a solved image: its identified stars, or, when the image
+    could not be identified, all its centroids unidentified (for a method to try again)."""
     c, ident = s.centroids, s.identification
+    keep = ident.identified if ident.status != "failed" else np.ones(len(c), bool)
     return StarFrame(stamp_ns=int(s.stamp_ns), frame_id=STAR_TRACKER_FRAME,
                      exposure_time=float(s.image.exposure_s),
-                     catalog_id=ident.catalog_id.astype(np.uint32),
-                     right_ascension=ident.right_ascension, declination=ident.declination,
-                     uv=c.uv, magnitude=ident.magnitude, sigma=c.sigma)
+                     catalog_id=ident.catalog_id[keep].astype(np.uint32),
+                     right_ascension=ident.right_ascension[keep],
+                     declination=ident.declination[keep], uv=c.uv[keep],
+                     magnitude=ident.magnitude[keep], sigma=c.sigma[keep])
 
 
 def solve_images(paths: list[str], fov_deg: float | None = None,
