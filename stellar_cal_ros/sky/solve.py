@@ -85,8 +85,11 @@ def read_stamps(path: str | Path) -> dict[str, float]:
 
 
 def star_frame(s: SolvedImage) -> StarFrame:
-    """The contract message of a solved image: its identified stars, or, when the image
-    could not be identified, all its centroids unidentified (for a method to try again)."""
+    """The contract message of a solved image.
+
+    Its identified stars, or, when the image could not be identified, all its centroids
+    unidentified (for a method to try again).
+    """
     c, ident = s.centroids, s.identification
     keep = ident.identified if ident.status != "failed" else np.ones(len(c), bool)
     return StarFrame(stamp_ns=int(s.stamp_ns), frame_id=STAR_TRACKER_FRAME,
