@@ -106,6 +106,9 @@ def test_unidentified_bag_replays_like_the_identified_one(bag_pair):
     assert c["identify_lost_in_space"] == 1  # then IMU-aided tracking
     assert c["identify_tracking"] == len(data.frames) - 1
     assert c["identify_stars_identified"] >= 0.9 * c["identify_stars"]
+    flags = b.calibration.extra["identification"]  # written into the result YAML
+    assert flags["frames"] == len(data.frames) and flags["ambiguous"] == c["identify_ambiguous"]
+    assert "identification" not in a.calibration.extra
     names, cov = a.covariance
     sa = np.sqrt(np.diag(cov))
     sb = np.sqrt(np.diag(b.covariance[1]))

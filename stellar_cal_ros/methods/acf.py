@@ -573,6 +573,7 @@ def run_acf(
     tell = progress or (lambda stage: None)
     data = source if isinstance(source, AcfData) else load_acf_data(source, star_topic,
                                                                       imu_topic)
+    ident = None
     if any(needs_identification(f) for f in data.frames):  # unidentified centroids
         data.frames, ident = identify_frames(
             data.frames, prior.camera, prior.installation.as_matrix(), data.imu.stamp_ns,
@@ -686,6 +687,8 @@ def run_acf(
     cal.extra = dict(cal.extra)
     cal.extra["data_quality"] = {**quality.counts(), "degraded": bool(degraded),
                                  "reasons": degraded}
+    if ident is not None:  # the result says how its stars were identified
+        cal.extra["identification"] = ident.as_dict()
     derived = {}
     if "installation" in model.slices:
         from stellar_cal_ros.methods.results import equivalent_principal_point

@@ -777,6 +777,8 @@ class Calibrator:
         reasons = self.degraded()
         if reasons:
             cal.extra["data_quality"] = {"degraded": True, "reasons": reasons}
+        if self.identifier is not None:  # the result says how its stars were identified
+            cal.extra["identification"] = self.identifier.counters.as_dict()
         return cal
 
     def degraded(self) -> list[str]:
