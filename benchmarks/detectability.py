@@ -70,12 +70,7 @@ import time
 
 import numpy as np
 
-from stellar_cal_ros.diagnosis.discover import (
-    PHYSICAL_VALUE,
-    _applicable,
-    method_spec,
-    rank_candidates,
-)
+from stellar_cal_ros.diagnosis.discover import _applicable, method_spec, rank_candidates
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay_psce
 from stellar_cal_ros.sim.scenarios import get_scenario
@@ -118,7 +113,7 @@ def one_seed(effect: str, size: float, seed: int, duration: float,
     # Screen: the effect's own augmented run, corrected for the whole pool.
     # The astrometric scales are measured as free parameters (their physical-size check
     # would reject any non-physical scale by design): the MDS is their detectability.
-    free = effect not in PHYSICAL_VALUE
+    free = registry.effect_class(effect).physical_value is None
     _, own = rank_candidates(data, cal, spec, [], [effect], physical_check=free)
     c = own[0]
     p_adj = min(1.0, c.p_value * len(pool))

@@ -9,6 +9,8 @@ from the initial one.
 from __future__ import annotations
 
 import copy
+import inspect
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.core.catalog import load_catalog, posix_to_jyear
 from stellar_cal_ros.core.earth import Site
 from stellar_cal_ros.effects import registry
-from stellar_cal_ros.effects.base import CAMERA_INDEX, Effect, FrameContext, Stage
+from stellar_cal_ros.effects.base import CAMERA_INDEX, Effect, ExportRole, FrameContext, Stage
 from stellar_cal_ros.errors import ModelError
 from stellar_cal_ros.io.calibration import load_calibration, save_calibration
 from stellar_cal_ros.sim.scenarios import get_scenario
@@ -143,6 +145,46 @@ def test_effect_metadata(eid):
     assert eff.process_noise_density().shape == (eff.size,)
     assert len(eff.explanation.strip()) > 80, "explanation: cause, size, residual signature"
     assert eff.id in repr(eff)
+
+
+#: the application order, which is also the layout of θ (the golden replay holds it)
+APPLICATION_ORDER = (
+    "installation", "focal_length", "pixel_aspect", "principal_point", "radial_k1k2",
+    "radial_k3", "tangential", "image_plane_tilt", "thermal_focal_length", "gyro_bias",
+    "gyro_scale_factor", "gyro_misalignment", "accel_bias", "accel_scale_factor",
+    "time_offset", "proper_motion", "aberration", "refraction",
+)
+
+
+def test_one_file_per_effect_in_the_order_its_classes_declare():
+    classes = [registry.EFFECTS[i] for i in CONTRACT_IDS]
+    assert sorted(Path(inspect.getfile(c)).name for c in classes) == sorted(
+        f"{i}.py" for i in CONTRACT_IDS)
+    assert all(registry.is_library(c) for c in classes)
+    assert tuple(registry.available()) == APPLICATION_ORDER
+    keys = [(c.stage, c.order) for c in classes]
+    assert len(set(keys)) == len(keys), "two effects of one stage share an order"
+    ids = [e.id for e in registry.create_many(list(reversed(CONTRACT_IDS)))]
+    assert tuple(ids) == APPLICATION_ORDER
+
+
+@pytest.mark.parametrize("eid", ALL_IDS)
+def test_declarations_on_the_class(eid, sim):
+    """Plausible size (converted for this camera), display unit, export and budget role."""
+    eff = registry.create(eid)
+    assert eff.plausible is not None, "state the plausible size where the effect acts"
+    size = eff.plausible_parameters(sim.prior)
+    assert size.shape == (eff.size,) and np.all(np.isfinite(size)) and np.all(size > 0)
+    # the conversion is invertible: the plausible size, where it acts, is the statement
+    stated = np.broadcast_to(np.asarray(eff.plausible.size, dtype=float), (eff.size,))
+    np.testing.assert_allclose(eff.where_it_acts(size, sim.prior), stated, rtol=1e-12)
+    for name in eff.parameter_names:
+        unit, factor = eff.display(name)
+        assert isinstance(unit, str) and factor > 0
+    assert isinstance(eff.export(), ExportRole)
+    if eff.budget_source is not None:
+        assert eff.stage in (Stage.CAMERA, Stage.TRACKER)
+    assert eff.physical_value is None or eff.stage is Stage.DIRECTION
 
 
 # ------------------------------------------------------------------ own-stage Jacobians

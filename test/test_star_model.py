@@ -356,7 +356,11 @@ def user_effect_file(tmp_path):
 
 def test_user_effect_module(user_effect_file, sim, stars):
     assert registry.load_effect_module(user_effect_file) == ["test_user_cx_scale"]
-    assert registry.available()[-1] == "test_user_cx_scale"
+    # after every library effect of its stage (order 100 > the library's 10-90)
+    ids = registry.available()
+    camera = [i for i in ids if registry.EFFECTS[i].stage is Stage.CAMERA]
+    assert camera[-1] == "test_user_cx_scale"
+    assert ids.index("test_user_cx_scale") == ids.index(camera[-2]) + 1
     # the same file again (a second command in one process) is the same effect ...
     assert registry.load_effect_module(user_effect_file) == ["test_user_cx_scale"]
     other = user_effect_file.with_name("other_effect.py")

@@ -20,11 +20,14 @@ from typing import Any
 
 import numpy as np
 import yaml
+from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.budget.propagation import N_PARAMETERS
 from stellar_cal_ros.core.camera import CameraModel
-from stellar_cal_ros.effects.base import CAMERA_INDEX, _camera_sigma
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.effects.base import CAMERA_INDEX, FrameContext, Stage, _camera_sigma
 from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.io.calibration import Calibration
 
 __all__ = [
     "CENTROID",
@@ -42,21 +45,10 @@ CENTROID = "centroid"
 SOURCE_ORDER = ("centroid", "principal_point", "focal_length", "pixel_aspect", "distortion",
                 "image_plane_tilt", "installation")
 
-# estimator parameter name -> (source, camera entry or installation axis)
-_GROUP_OF_EFFECT = {
-    "principal_point": "principal_point",
-    "focal_length": "focal_length",
-    "pixel_aspect": "pixel_aspect",
-    "radial_k1k2": "distortion",
-    "radial_k3": "distortion",
-    "tangential": "distortion",
-    "image_plane_tilt": "image_plane_tilt",
-    "installation": "installation",
-}
+# a camera parameter named by itself (a spec, a sigma block) -> its source
 _GROUP_OF_CAMERA = {"fx": "focal_length", "fy": "focal_length", "cx": "principal_point",
                     "cy": "principal_point", "tau_x": "image_plane_tilt",
                     "tau_y": "image_plane_tilt"}
-_INSTALLATION_AXES = {"rx": 0, "ry": 1, "rz": 2}
 
 
 @dataclass
@@ -143,8 +135,8 @@ def parameter_direction(name: str, camera: CameraModel) -> tuple[str, np.ndarray
         ``effect.parameter`` as the estimators name it, or a camera parameter
         (:attr:`CameraModel.PARAMETER_NAMES`), or ``installation.rx|ry|rz``.
     camera : CameraModel
-        Needed for ``focal_length.f`` (``fy = f · fy/fx``) and ``pixel_aspect.aspect``
-        (``∂fy/∂a = fx``).
+        The linearisation point (e.g. ``focal_length.f`` moves ``fy`` by ``fy/fx``,
+        ``pixel_aspect.aspect`` by ``fx``: :func:`effect_directions`).
 
     Returns
     -------
@@ -155,22 +147,34 @@ def parameter_direction(name: str, camera: CameraModel) -> tuple[str, np.ndarray
     if not effect and name in CAMERA_INDEX:
         col[CAMERA_INDEX[name]] = 1.0
         return _GROUP_OF_CAMERA.get(name, "distortion"), col
-    group = _GROUP_OF_EFFECT.get(effect)
-    if group is None:
+    columns = effect_directions(effect, camera)
+    if columns is None or par not in columns[1]:
         return None
-    if effect == "installation":
-        if par not in _INSTALLATION_AXES:
-            return None
-        col[18 + _INSTALLATION_AXES[par]] = 1.0
-    elif effect == "focal_length":
-        col[CAMERA_INDEX["fx"]], col[CAMERA_INDEX["fy"]] = 1.0, camera.fy / camera.fx
-    elif effect == "pixel_aspect":
-        col[CAMERA_INDEX["fy"]] = camera.fx
-    elif par in CAMERA_INDEX:
-        col[CAMERA_INDEX[par]] = 1.0
+    return columns[0], columns[1][par]
+
+
+def effect_directions(effect_id: str, camera: CameraModel
+                      ) -> tuple[str, dict[str, np.ndarray]] | None:
+    """The budget source of an effect and the column of ``D`` (21,) of each parameter.
+
+    Both come from the effect's class: its ``budget_source`` (None: not part of a budget)
+    and its stage's Jacobian at ``camera`` — ``∂p/∂value`` (18 OpenCV parameters) for a
+    CAMERA effect, ``∂δ/∂value`` (installation rotation) for a TRACKER effect.
+    """
+    if effect_id not in registry.EFFECTS:
+        return None
+    eff = registry.create(effect_id)
+    if eff.budget_source is None or eff.stage not in (Stage.CAMERA, Stage.TRACKER):
+        return None
+    cal = Calibration(camera=camera, installation=Rotation.identity())
+    value, _ = eff.initial(cal)
+    ctx = FrameContext(stamp=0.0)
+    D = np.zeros((N_PARAMETERS, eff.size))
+    if eff.stage is Stage.CAMERA:
+        D[:18] = eff.camera_jacobian(value, camera.parameters(), ctx)[0]
     else:
-        return None
-    return group, col
+        D[18:] = eff.tracker_rotation_jacobian(value, ctx)
+    return eff.budget_source, {n: D[:, i] for i, n in enumerate(eff.parameter_names)}
 
 
 def _assemble(camera: CameraModel, names: list[str], covariance: np.ndarray,

@@ -31,7 +31,7 @@ minimal detectable size on this bag (MDB, from the information its augmented run
 direction — e.g. a time offset without rotation.  Effects needing inputs the bag lacks
 (site, head temperature) or acting in a stage the method does not model (accelerometer
 effects for PSCE) are not applicable.  An effect whose size physics fixes (the astrometric
-corrections, :data:`PHYSICAL_VALUE`) is reported as implausible instead of ranked when its
+corrections, ``Effect.physical_value``) is reported as implausible instead of ranked when its
 fitted scale is far from the physical one: the data then follow part of its pattern for
 another reason.
 
@@ -79,12 +79,11 @@ MIN_EXPLAINED = 0.1
 #: level of the tests after Bonferroni
 ALPHA = 0.01
 
-#: Effects whose size physics fixes (astrometric corrections, parameter = scale, 1 =
-#: physical).  If one is missing, its estimated scale is 1; an estimate far from it means
-#: the data follow a *fraction* of the correction, i.e. another cause with a similar
-#: pattern (measured: an isotropic gyro scale factor of 3e-5 fits as aberration × 0.35).
-PHYSICAL_VALUE: dict[str, float] = {"aberration": 1.0, "refraction": 1.0,
-                                    "proper_motion": 1.0}
+# Effects whose size physics fixes declare it on their class (``physical_value``:
+# astrometric corrections, parameter = scale, 1 = physical).  If one is missing, its
+# estimated scale is 1; an estimate far from it means the data follow a *fraction* of the
+# correction, i.e. another cause with a similar pattern (measured: an isotropic gyro scale
+# factor of 3e-5 fits as aberration × 0.35).
 #: an estimate is implausible when it is clearly non-zero and differs from the physical
 #: value by more than this many posterior sigmas *and* this fraction of the value
 PHYSICAL_TOL_SIGMA = 5.0
@@ -265,16 +264,17 @@ def rerun_prior(calibration: Calibration, model_effects: list[str] | None = None
     return prior
 
 
-def candidate_sigma(effect_id: str, user_prior: Calibration | None) -> np.ndarray:
+def candidate_sigma(effect_id: str, user_prior: Calibration | None,
+                    calibration: Calibration | None = None) -> np.ndarray:
     """Prior σ of a candidate in its augmented run: never below its plausible size.
 
     The largest of the user's prior σ (``user_prior``'s sigma block), the effect's default
-    σ and its plausible physical size: a prior σ set too small must not keep a large
-    effect from being fitted and tested.
+    σ and its plausible physical size for ``calibration``'s camera (default: the user's):
+    a prior σ set too small must not keep a large effect from being fitted and tested.
     """
     eff = registry.create(effect_id)
     sig = np.maximum(np.asarray(eff.default_sigma, dtype=float),
-                     reliability.plausible_size(effect_id))
+                     reliability.plausible_size(effect_id, calibration or user_prior))
     if user_prior is not None:
         sig = np.maximum(sig, eff.initial(user_prior)[1])
     return sig
@@ -286,7 +286,7 @@ def candidate_prior(prior: Calibration, effect_id: str,
     out = copy.deepcopy(prior)
     eff = registry.create(effect_id)
     value, _ = eff.initial(out)
-    eff.store(value, candidate_sigma(effect_id, user_prior), out)
+    eff.store(value, candidate_sigma(effect_id, user_prior, prior), out)
     return out
 
 
@@ -361,9 +361,10 @@ def _untestable(cand: CandidateResult) -> bool:
         return False
     cand.status = "unobservable"
     mdb = ", ".join(reliability.shown(f"{cand.effect}.{n}", v) for n, v in det.mdb.items())
-    cand.reason = (f"not testable with this motion: its minimal detectable size ({mdb}) "
-                   f"is {det.ratio:.3g} x its plausible size even along its best-"
-                   "determined direction")
+    where = det.where_text()
+    cand.reason = (f"not testable with this motion: its minimal detectable size ({mdb}"
+                   + (f"; {where}" if where else "") + f") is {det.ratio:.3g} x its plausible "
+                   "size even along its best-determined direction")
     return True
 
 
@@ -380,11 +381,11 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunStats, reference: R
     cand.rms_after_px = tuple(run.window["rms"])
     share = run.window["n_window"] / max(run.window["n_accepted"], 1)
     info = reliability.data_information(run.P[sl, sl], run.prior_sigma[sl], share)
-    cand.detect = reliability.detectability(cand.effect, info, alpha_mdb)
+    cand.detect = reliability.detectability(cand.effect, info, alpha_mdb, r.user_prior)
     if _untestable(cand):
         return
     cand.statistic, cand.p_value, cand.explained = reference.compare(run, eff.size)
-    phys = PHYSICAL_VALUE.get(cand.effect)
+    phys = eff.physical_value
     if r.physical_check and phys is not None:
         est, sig = float(value[0]), float(sig_post[0])
         # clearly present, yet clearly not at its physical size
@@ -453,7 +454,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
                 rerun.append(e)
                 continue
             c.status, c.dof, c.p_value = "screened_out", c.screen.dof, c.screen.p_value
-            c.detect = reliability.detectability(e, c.screen.information, alpha_mdb)
+            c.detect = reliability.detectability(e, c.screen.information, alpha_mdb,
+                                                 r.user_prior)
             if not _untestable(c):
                 c.reason = f"score test p = {c.p_value:.2g}: not re-run"
         # every screening run is the current model's run (consider parameters leave the

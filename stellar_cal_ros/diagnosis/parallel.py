@@ -74,8 +74,7 @@ def user_effect_classes() -> tuple[type, ...]:
     """Registered effect classes that a fresh worker process would not know."""
     from stellar_cal_ros.effects import registry
 
-    builtin = set(registry._BUILTIN)
-    return tuple(cls for cls in registry.EFFECTS.values() if cls not in builtin)
+    return tuple(cls for cls in registry.EFFECTS.values() if not registry.is_library(cls))
 
 
 def _file_size(path: str) -> int:

@@ -15,7 +15,8 @@ minimum detectable sizes of ``benchmarks/detectability.py`` (see doc/workflow.md
 screening pass (:mod:`~stellar_cal_ros.diagnosis.screening`) may supply ``I`` directly.
 
 An effect is *not testable with this motion* only when its MDB exceeds its plausible
-physical size (:data:`PLAUSIBLE_SIZE`) in every direction — never because the posterior
+physical size (stated on its class where it acts and converted to its parameters for the
+run's camera, :func:`plausible_size`) in every direction — never because the posterior
 stays near a prior σ that may have been set too small.
 
 External reliability: an effect β = b left out of the model shifts the estimated
@@ -45,41 +46,14 @@ POWER = 0.8
 #: a parameter is "dominated" when a hidden effect's bias exceeds this many of its sigmas
 DOMINATES_SIGMA = 1.0
 
-#: Plausible physical size of each library effect, per parameter, in the effect's units:
-#: the largest value seen in practice (not a typical value).  An effect whose MDB exceeds
-#: it in every direction cannot be found with this motion and is not ranked.  A user
-#: effect declares ``plausible_size`` on its class; otherwise its default σ is used.
-PLAUSIBLE_SIZE: dict[str, tuple[float, ...]] = {
-    "installation": (np.deg2rad(0.2),) * 3,
-    "focal_length": (20.0,),
-    "principal_point": (20.0, 20.0),
-    "radial_k1k2": (0.3, 1.0),
-    "tangential": (2e-3, 2e-3),
-    "pixel_aspect": (1e-3,),  # 0.1 %: non-square pixels or a skewed readout
-    "radial_k3": (2.0,),
-    "image_plane_tilt": (1e-2, 1e-2),  # rad: detector mounting tolerance up to ~0.6 deg
-    "thermal_focal_length": (1e-4,),  # 1/degC: lens barrel expansion and dn/dT together
-    "gyro_bias": (np.deg2rad(1.0) / 3600.0,) * 3,  # 1 deg/h
-    "gyro_scale_factor": (1e-3,) * 3,  # 1000 ppm (MEMS)
-    "gyro_misalignment": (1e-3,) * 6,  # rad, ~200 arcsec
-    "accel_bias": (1e-2,) * 3,  # m/s^2, ~1 mg
-    "accel_scale_factor": (1e-3,) * 3,
-    "time_offset": (0.05,),  # s: readout, transport, clock offsets
-    "aberration": (1.0,),  # astrometric corrections: scale 1 is the physical size
-    "refraction": (1.0,),
-    "proper_motion": (1.0,),
-}
+def plausible_size(effect_id: str, calibration: Any = None) -> np.ndarray:
+    """Plausible size per parameter of ``effect_id`` (its units) for ``calibration``'s camera.
 
-
-def plausible_size(effect_id: str) -> np.ndarray:
-    """Plausible size per parameter of ``effect_id`` (its units), see :data:`PLAUSIBLE_SIZE`."""
-    if effect_id in PLAUSIBLE_SIZE:
-        return np.asarray(PLAUSIBLE_SIZE[effect_id], dtype=float)
-    eff = registry.create(effect_id)
-    declared = getattr(eff, "plausible_size", None)
-    size = declared if declared is not None else eff.default_sigma
-    out = np.broadcast_to(np.asarray(size, dtype=float), (eff.size,)).copy()
-    return np.where(out > 0, out, np.asarray(eff.default_sigma, dtype=float))
+    Each effect states its plausible size where it acts on its class (``plausible``: px at
+    the detector corner, arcsec, ppm, ms ...); :meth:`Effect.plausible_parameters` converts
+    it to the parameters for this camera (a k3 is 5 px at the corner, whatever the lens).
+    """
+    return registry.create(effect_id).plausible_parameters(calibration)
 
 
 @lru_cache(maxsize=256)
@@ -136,6 +110,10 @@ class Detectability:
     mdb: dict[str, float] = field(default_factory=dict)  # per parameter, effect units
     #: MDB / plausible size along the best-determined direction (≤ 1: testable)
     ratio: float = float("inf")
+    #: the plausible size as the class states it, per parameter (e.g. '5 px at the
+    #: detector corner'), and each MDB in that statement's unit where the camera converts it
+    plausible_text: dict[str, str] = field(default_factory=dict)
+    mdb_where_it_acts: dict[str, float] = field(default_factory=dict)
 
     @property
     def testable(self) -> bool:
@@ -149,51 +127,65 @@ class Detectability:
                 "plausible_size": {n: float(p) for n, p in zip(names, self.plausible,
                                                                 strict=True)},
                 "mdb_over_plausible": self.ratio, "testable": self.testable,
+                "plausible_statement": dict(self.plausible_text),
+                "mdb_where_it_acts": dict(self.mdb_where_it_acts),
                 "alpha": self.alpha, "power": POWER, "lam0": self.lam0, "dof": self.dof}
 
+    def where_text(self) -> str:
+        """MDB and plausible size where the effect acts, when the camera converts them.
 
-def detectability(effect_id: str, information: np.ndarray, alpha: float) -> Detectability:
-    """MDB per parameter and the testability of ``effect_id`` given its information."""
+        E.g. ``k3 0.19 px at the detector corner (plausible 5 px at the detector corner)``;
+        '' for a size stated in the parameters' own units (arcsec, ms, ppm).
+        """
+        out = []
+        for n, v in self.mdb_where_it_acts.items():
+            statement = self.plausible_text.get(n, "")
+            unit = statement.split(" ", 1)[1] if " " in statement else ""
+            if np.isfinite(v):
+                out.append(f"{n} {v:.3g} {unit} (plausible {statement})")
+        return ", ".join(out)
+
+
+def detectability(effect_id: str, information: np.ndarray, alpha: float,
+                  calibration: Any = None) -> Detectability:
+    """MDB per parameter and the testability of ``effect_id`` given its information.
+
+    ``calibration``: the run's calibration, whose camera converts a plausible size stated
+    in px at the detector corner to the parameters (:func:`plausible_size`).
+    """
     eff = registry.create(effect_id)
     info = np.atleast_2d(np.asarray(information, dtype=float))
     k = info.shape[0]
     lam = lambda0(alpha, k)
-    D = plausible_size(effect_id)
+    D = plausible_size(effect_id, calibration)
     diag = np.diag(info)
     mdb = {n: float(np.sqrt(lam / d)) if d > 0 else float("inf")
            for n, d in zip(eff.parameter_names, diag, strict=True)}
     mu = np.linalg.eigvalsh(_sym(info * np.outer(D, D)))
     top = float(mu.max()) if mu.size else 0.0
     ratio = float(np.sqrt(lam / top)) if top > 0 else float("inf")
-    return Detectability(effect_id, k, alpha, lam, info, D, mdb, ratio)
+    text, where = {}, {}
+    if eff.plausible is not None:
+        text = {n: eff.plausible.text(i) for i, n in enumerate(eff.parameter_names)}
+        if eff.plausible_depends_on_camera():
+            acts = eff.where_it_acts(np.array(list(mdb.values())), calibration)
+            where = {n: float(a) for n, a in zip(eff.parameter_names, acts, strict=True)}
+    return Detectability(effect_id, k, alpha, lam, info, D, mdb, ratio, text, where)
 
 
 # ----------------------------------------------------------------------------- display units
-_UNIT_DISPLAY = {"rad": ("arcsec", np.rad2deg(1.0) * 3600.0), "s": ("ms", 1e3),
-                 "rad/s": ("deg/h", np.rad2deg(1.0) * 3600.0),
-                 "m/s^2": ("ug", 1.0 / 9.80665e-6), "px": ("px", 1.0),
-                 "1/degC": ("ppm/degC", 1e6)}
-_EFFECT_DISPLAY = {"pixel_aspect": ("ppm", 1e6), "gyro_scale_factor": ("ppm", 1e6),
-                   "accel_scale_factor": ("ppm", 1e6), "image_plane_tilt": ("mrad", 1e3),
-                   "aberration": ("x physical", 1.0), "refraction": ("x physical", 1.0),
-                   "proper_motion": ("x physical", 1.0)}
-
-
 def display_unit(parameter: str) -> tuple[str, float]:
-    """(unit, factor) the user reads a parameter ``effect.name`` in: px, arcsec, ppm, ms."""
+    """(unit, factor) the user reads a parameter ``effect.name`` in: px, arcsec, ppm, ms.
+
+    Declared on the effect's class (:meth:`Effect.display`); an unknown name is shown raw.
+    """
     effect_id, _, name = parameter.partition(".")
     if effect_id == "equivalent_principal_point":
         return "px", 1.0
-    if effect_id in _EFFECT_DISPLAY:
-        return _EFFECT_DISPLAY[effect_id]
     try:
-        eff = registry.create(effect_id)
-        unit = eff.units[list(eff.parameter_names).index(name)]
-    except Exception:  # an unknown name: show it raw
+        return registry.effect_class(effect_id).display(name)
+    except Exception:  # an unknown effect or unit: show it raw
         return "", 1.0
-    if unit == "1":
-        return "", 1.0  # dimensionless (distortion coefficients)
-    return _UNIT_DISPLAY.get(unit, (unit, 1.0))
 
 
 def shown(parameter: str, value: float) -> str:

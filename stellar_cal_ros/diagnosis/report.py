@@ -26,7 +26,9 @@ import numpy as np  # noqa: E402
 from matplotlib import colors  # noqa: E402
 from scipy import stats as sps  # noqa: E402
 
-from stellar_cal_ros.diagnosis import stats  # noqa: E402
+from stellar_cal_ros.diagnosis import reliability, stats  # noqa: E402
+from stellar_cal_ros.effects import registry  # noqa: E402
+from stellar_cal_ros.effects.base import UNIT_DISPLAY, unit_factor  # noqa: E402
 
 Table = dict[str, np.ndarray]
 Panels = Sequence[tuple[str, Table]]
@@ -90,21 +92,16 @@ def _eval(res: Table, fraction: float) -> np.ndarray:
 
 
 def display_unit(name: str, unit: str) -> tuple[float, str]:
-    """Factor and unit to show a parameter in: arcsec, deg/h, µg, ppm, ms where apt."""
-    eff = name.split(".", 1)[0]
-    if eff in ("gyro_scale_factor", "accel_scale_factor"):
-        return 1e6, "ppm"
-    if unit == "rad":
-        return ARCSEC_PER_RAD, "arcsec"
-    if unit == "rad/s":
-        return ARCSEC_PER_RAD, "deg/h"
-    if unit in ("m/s^2", "m/s²"):
-        return 1e6 / 9.80665, "µg"
-    if unit == "s":
-        return 1e3, "ms"
-    if unit == "1/degC":
-        return 1e6, "ppm/°C"
-    return 1.0, "" if unit == "1" else unit
+    """Factor and unit to show a parameter in, as its effect's class declares it.
+
+    Arcsec, deg/h, ug, ppm, mrad, ms where apt; a name of no known effect by ``unit``.
+    """
+    effect_id = name.split(".", 1)[0]
+    if effect_id in registry.EFFECTS or effect_id == "equivalent_principal_point":
+        shown, factor = reliability.display_unit(name)
+        return factor, shown
+    shown = UNIT_DISPLAY.get(unit, unit)
+    return (unit_factor(unit, shown) if shown and unit else 1.0), shown
 
 
 def parameter_unit(name: str) -> str:

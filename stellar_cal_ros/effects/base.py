@@ -12,13 +12,39 @@ rate::
 
 For each stage the effect implements a value function and its Jacobian (analytic; the test
 suite checks every one against finite differences).  The estimators compose the stages, so
-adding an effect to a filter needs no change to the filter: write a subclass, give it an
-``id``, and register it (see :mod:`stellar_cal_ros.effects.registry`).
+adding an effect to a filter needs no change to the filter: write a subclass with an ``id``
+in a file of its own in this package (the registry finds it), or load it as a plugin (see
+:mod:`stellar_cal_ros.effects.registry`).
 
-Parameters are plain vectors.  Their meaning, units, prior sigma and the process noise of
-a random-walk model are declared on the class; ``initial`` reads the starting value from a
-prior :class:`~stellar_cal_ros.io.calibration.Calibration` and ``store`` writes an estimate
-back into one.
+Parameters are plain vectors.  Everything the rest of the package needs to know about an
+effect is declared on its class, so a new effect is one file:
+
+==================  ======================================================================
+attribute           read by
+==================  ======================================================================
+``stage``,          the filters (which stage the effect acts in), the application order
+``order``           within that stage (lower first; it also fixes the state layout)
+``parameter_names``  every table, result file and report
+``units``,
+``default_sigma``,
+``process_noise``
+``plausible``       the diagnosis: the largest size seen in practice, stated where the
+                    effect acts (px at the detector corner, arcsec, ms, ppm ...) and
+                    converted to the parameters for the run's camera
+                    (:meth:`Effect.plausible_parameters`)
+``physical_value``  the diagnosis: the value physics fixes (astrometric scales: 1)
+``display_units``   every printed number (arcsec, ppm, mrad, ms ...)
+``export_role``     ``stellar-cal export``: where the value goes (:class:`ExportRole`)
+``budget_source``   ``stellar-cal budget``: the error source it belongs to (None: not part
+                    of a tracker budget); the budget's direction is the stage's Jacobian
+``simulation_*``    ``stellar-cal simulate --effect ID=V``
+``requires``,       the diagnosis (applicability) and ``stellar-cal effects``
+``explanation``
+==================  ======================================================================
+
+``initial`` reads the starting value from a prior
+:class:`~stellar_cal_ros.io.calibration.Calibration` and ``store`` writes an estimate back
+into one.
 """
 
 from __future__ import annotations
@@ -30,6 +56,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from stellar_cal_ros.core.earth import Site
+from stellar_cal_ros.core.units import ARCSEC, DEG, DEG_PER_HOUR, MICRO_G, MS, PPM
+from stellar_cal_ros.errors import ModelError
 
 
 class Stage(enum.Enum):
@@ -41,6 +69,83 @@ class Stage(enum.Enum):
     TIME = "time"
     TRACKER = "tracker"
     CAMERA = "camera"
+
+
+#: order of the stages in the estimated parameter vector θ (the layout, not the physics:
+#: effects of different stages never act on each other's output)
+STAGE_ORDER = (Stage.TRACKER, Stage.CAMERA, Stage.GYRO, Stage.ACCEL, Stage.TIME,
+               Stage.DIRECTION)
+
+
+class ExportRole(enum.Enum):
+    """What ``stellar-cal export`` does with an effect's stored value."""
+
+    CAMERA = "camera"  #: it lives in the camera block: exported as far as OpenCV's model can
+    EXTRINSIC = "extrinsic"  #: the camera–IMU transform / time shift of the target file
+    IMU = "imu"  #: an inertial-sensor error: the camera formats hold none (listed)
+    STAR_DIRECTIONS = "star_directions"  #: a correction of the star directions (listed)
+    NOT_EXPORTABLE = "not_exportable"  #: a sensor effect no target format can express
+
+
+#: the unit a parameter of each unit is shown in (others: as they are; "1": no unit)
+UNIT_DISPLAY: dict[str, str] = {"rad": "arcsec", "s": "ms", "rad/s": "deg/h", "m/s^2": "ug",
+                                "1/degC": "ppm/degC", "1": ""}
+
+
+#: unit → (dimension, value in the dimension's base unit): what :func:`unit_factor` converts
+_UNITS: dict[str, tuple[str, float]] = {
+    "rad": ("angle", 1.0), "mrad": ("angle", 1e-3), "deg": ("angle", DEG),
+    "arcsec": ("angle", ARCSEC), "s": ("time", 1.0), "ms": ("time", MS),
+    "rad/s": ("rate", 1.0), "deg/h": ("rate", DEG_PER_HOUR), "m/s^2": ("accel", 1.0),
+    "ug": ("accel", MICRO_G), "mg": ("accel", 1e3 * MICRO_G), "1": ("ratio", 1.0),
+    "ppm": ("ratio", PPM), "%": ("ratio", 1e-2), "px": ("px", 1.0),
+    "1/degC": ("per_degC", 1.0), "ppm/degC": ("per_degC", PPM),
+    "x physical": ("ratio", 1.0),
+}
+
+
+def unit_factor(unit: str, to: str) -> float:
+    """How many ``to`` one ``unit`` is (``unit_factor('rad', 'arcsec')`` = 206264.8).
+
+    Raises :class:`~stellar_cal_ros.errors.ModelError` for units of different kinds or a unit
+    it does not know (unless both are the same string).
+    """
+    if unit == to:
+        return 1.0
+    a, b = _UNITS.get(unit), _UNITS.get(to)
+    if a is None or b is None or a[0] != b[0]:
+        raise ModelError(f"cannot convert {unit!r} to {to!r}")
+    return a[1] / b[1]
+
+
+@dataclass(frozen=True)
+class Plausible:
+    """The largest size of an effect seen in practice, stated where it acts.
+
+    ``size`` (one number for every parameter, or one per parameter) is in ``unit``:
+
+    * ``at=""`` (the default): the parameters themselves, in the effect's display unit
+      (``720 arcsec``, ``1000 ppm``, ``50 ms``) or its parameter unit;
+    * ``at="corner"``: pixels of image displacement at the detector's corner (the largest
+      over the detector) — for coefficients whose meaning depends on the lens (distortion:
+      a k3 of 2 is 0.05 px at the corner of a 15° field and 60 px at that of a 60° field).
+
+    An effect converts it to its parameters for the run's camera with
+    :meth:`Effect.plausible_parameters`; a class may override :meth:`Effect.plausible_gain`
+    for another statement (the focal length: a fraction of f).
+    """
+
+    size: float | tuple[float, ...]
+    unit: str
+    at: str = ""
+
+    def text(self, index: int = 0) -> str:
+        """The statement, e.g. ``'5 px at the detector corner'``."""
+        sizes = np.atleast_1d(np.asarray(self.size, dtype=float))
+        size = sizes[min(index, sizes.size - 1)]
+        unit = "" if self.unit == "1" else f" {self.unit}"
+        where = {"corner": " at the detector corner"}.get(self.at, "")
+        return f"{size:g}{unit}{where}"
 
 
 @dataclass
@@ -81,11 +186,106 @@ class Effect:
     simulation_units: ClassVar[tuple[str, ...] | None] = None
     simulation_scale: ClassVar[tuple[float, ...] | None] = None
     simulation_relative: ClassVar[bool] = False
+    #: position in its stage: effects of one stage apply in increasing order (the library's
+    #: use 10-90; the default puts a new effect after every library effect of its stage)
+    order: ClassVar[int] = 100
+    #: largest size seen in practice, where the effect acts (None: the default σ, in the
+    #: parameter units); see :class:`Plausible` and :meth:`plausible_parameters`
+    plausible: ClassVar[Plausible | None] = None
+    #: the value physics fixes, for an effect whose parameter scales a known correction
+    #: (astrometric: 1); an estimate far from it means another cause with a similar pattern
+    physical_value: ClassVar[float | None] = None
+    #: (unit, factor from the parameter unit) every parameter is shown in; None: from
+    #: :data:`UNIT_DISPLAY` by each parameter's unit
+    display_units: ClassVar[tuple[str, float] | None] = None
+    #: what ``stellar-cal export`` does with the stored value (None: by stage, see
+    #: :meth:`export`)
+    export_role: ClassVar[ExportRole | None] = None
+    #: error source of a tracker budget (``stellar-cal budget``) the parameters belong to,
+    #: e.g. ``"distortion"``; None: not part of a budget
+    budget_source: ClassVar[str | None] = None
 
     @property
     def size(self) -> int:
         """Number of parameters."""
         return len(self.parameter_names)
+
+    # ------------------------------------------------------------------ declarations
+    @classmethod
+    def display(cls, name: str | None = None) -> tuple[str, float]:
+        """(unit, factor) a user reads parameter ``name`` in (``'arcsec'``, 206264.8).
+
+        ``display_units`` if declared, else the parameter's unit through
+        :data:`UNIT_DISPLAY` (an unknown unit is shown as it is).
+        """
+        if cls.display_units is not None:
+            return cls.display_units
+        names = list(cls.parameter_names)
+        unit = cls.units[names.index(name)] if name in names and cls.units else (
+            cls.units[0] if cls.units else "1")
+        shown = UNIT_DISPLAY.get(unit, unit)
+        return shown, (unit_factor(unit, shown) if shown else 1.0)
+
+    @classmethod
+    def export(cls) -> ExportRole:
+        """The export role: declared, else by stage (camera, extrinsic, IMU, directions)."""
+        if cls.export_role is not None:
+            return cls.export_role
+        return {Stage.CAMERA: ExportRole.NOT_EXPORTABLE, Stage.TRACKER: ExportRole.EXTRINSIC,
+                Stage.TIME: ExportRole.EXTRINSIC, Stage.GYRO: ExportRole.IMU,
+                Stage.ACCEL: ExportRole.IMU,
+                Stage.DIRECTION: ExportRole.STAR_DIRECTIONS}[cls.stage]
+
+    def plausible_gain(self, calibration: Any) -> np.ndarray:
+        """Size where the effect acts (in ``plausible.unit``) per unit of each parameter (k,).
+
+        ``at="corner"``: the largest image displacement over the detector of
+        ``calibration``'s camera per unit parameter (:func:`corner_gain`); otherwise the
+        conversion from the parameter's unit to ``plausible.unit`` (:func:`unit_factor`).
+        """
+        pl = self.plausible
+        if pl is not None and pl.at == "corner":
+            return corner_gain(self, calibration)
+        units = self.units or ("1",) * self.size
+        return np.array([unit_factor(u, pl.unit if pl is not None else u) for u in units])
+
+    def plausible_parameters(self, calibration: Any = None) -> np.ndarray:
+        """The plausible size in the parameters' units (k,), for ``calibration``'s camera.
+
+        ``plausible.size / plausible_gain``; without a ``plausible`` statement, a
+        ``plausible_size`` tuple on the class (parameter units, the older form), else the
+        default σ.  A size that cannot be converted (no camera given for a camera-dependent
+        statement, a parameter that does not move the image) falls back to the default σ.
+        """
+        default = np.asarray(self.default_sigma, dtype=float)
+        pl = self.plausible
+        if pl is None:
+            legacy = getattr(type(self), "plausible_size", None)
+            size = default if legacy is None or callable(legacy) else legacy
+            out = np.broadcast_to(np.asarray(size, dtype=float), (self.size,)).copy()
+            return np.where(out > 0, out, default)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out = np.broadcast_to(np.asarray(pl.size, dtype=float), (self.size,)) / \
+                np.asarray(self.plausible_gain(calibration), dtype=float)
+        return np.where(np.isfinite(out) & (out > 0), out, default)
+
+    def plausible_depends_on_camera(self) -> bool:
+        """The plausible statement needs the camera (px at the corner, a share of f)."""
+        pl = self.plausible
+        return pl is not None and (pl.at == "corner"
+                                   or type(self).plausible_gain is not Effect.plausible_gain)
+
+    def where_it_acts(self, value: np.ndarray, calibration: Any = None) -> np.ndarray:
+        """``|value|`` per parameter in the unit of the plausible statement (k,).
+
+        E.g. a k3 as px at the detector corner of ``calibration``'s camera (NaN without a
+        camera); the parameter units when the class states no ``plausible``.
+        """
+        v = np.abs(np.asarray(value, dtype=float))
+        pl = self.plausible
+        if pl is None:
+            return v
+        return v * np.asarray(self.plausible_gain(calibration), dtype=float)
 
     # ------------------------------------------------------------------ prior and result
     def initial(self, prior: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -208,6 +408,32 @@ class Effect:
         return f"<effect {self.id}: {', '.join(self.parameter_names)}>"
 
 
+#: detector points (fractions of width and height) where :func:`corner_gain` looks
+_GRID = np.linspace(0.0, 1.0, 5)
+
+
+def corner_gain(effect: Effect, calibration: Any) -> np.ndarray:
+    """Largest image displacement (px) over the detector per unit of each parameter (k,).
+
+    For a CAMERA-stage effect at the calibration's camera and value: the detector's
+    corners, edges and centre (a 5 × 5 grid) are unprojected with the camera, and the
+    displacement per unit parameter is ``|∂(u, v)/∂p · ∂p/∂value|`` (the camera's analytic
+    projection Jacobian times the effect's); the largest over the grid, normally at a
+    corner.  Other stages, or no camera: NaN (the caller falls back to the default σ).
+    """
+    if effect.stage is not Stage.CAMERA or getattr(calibration, "camera", None) is None:
+        return np.full(effect.size, np.nan)
+    cam = calibration.camera
+    value, _ = effect.initial(calibration)
+    gu, gv = np.meshgrid(_GRID * (cam.width - 1.0), _GRID * (cam.height - 1.0))
+    d = cam.unproject(np.column_stack([gu.ravel(), gv.ravel()]))
+    d = d[np.all(np.isfinite(d), axis=1)]
+    _, _, J_p = cam.project(d, jacobians=True)  # (n, 2, 18)
+    J_e, _ = effect.camera_jacobian(value, cam.parameters(), FrameContext(stamp=0.0))
+    disp = np.einsum("nij,jk->nik", J_p, np.asarray(J_e, dtype=float))  # (n, 2, k)
+    return np.linalg.norm(disp, axis=1).max(axis=0)
+
+
 def _mapping_or_empty(x: Any) -> dict:
     return x if isinstance(x, dict) else {}
 
@@ -228,6 +454,7 @@ CAMERA_INDEX = {
          "s1", "s2", "s3", "s4", "tau_x", "tau_y")
     )
 }
+FX, FY = CAMERA_INDEX["fx"], CAMERA_INDEX["fy"]
 
 
 class CameraSetEffect(Effect):
@@ -239,6 +466,7 @@ class CameraSetEffect(Effect):
     """
 
     stage = Stage.CAMERA
+    export_role = ExportRole.CAMERA
     camera_entries: ClassVar[tuple[str, ...]] = ()
 
     def _index(self) -> list[int]:

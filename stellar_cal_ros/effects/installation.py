@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stellar_cal_ros.effects.base import Effect, FrameContext, Stage
+from stellar_cal_ros.effects.base import Effect, ExportRole, FrameContext, Plausible, Stage
 
 
 class Installation(Effect):
@@ -15,6 +15,10 @@ class Installation(Effect):
 
     id = "installation"
     stage = Stage.TRACKER
+    order = 10
+    budget_source = "installation"
+    export_role = ExportRole.EXTRINSIC
+    plausible = Plausible(0.2, "deg")
     parameter_names = ("rx", "ry", "rz")
     units = ("rad", "rad", "rad")
     default_sigma = (np.deg2rad(0.2),) * 3

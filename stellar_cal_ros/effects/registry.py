@@ -1,85 +1,149 @@
-"""Registry of effects: contract ids → classes, plus user plugins.
+"""Registry of effects: contract ids → classes, found where they are written.
 
-Built-in effects are listed here; a user adds one by
+A library effect is one module of this package (``effects/<id>.py``); the registry imports
+every module here whose name does not start with ``_`` (those hold shared helpers) and
+registers each :class:`~stellar_cal_ros.effects.base.Effect` subclass with an ``id`` that
+the module defines.  A user adds one by
 
+- dropping such a file into this package,
 - passing ``--effect-module my_effect.py`` (a file defining :class:`Effect` subclasses), or
 - installing a package with an entry point in group ``stellar_cal_ros.effects``.
 
+Nothing lists the effects: the package's files and the entry points are read on the first
+look-up (:data:`EFFECTS`, :func:`available`, :func:`create`), so an entry-point effect is
+known wherever an id is resolved.  The application order comes from the classes too: by
+stage (:data:`~stellar_cal_ros.effects.base.STAGE_ORDER`), then by each class's ``order``
+(e.g. focal length before pixel aspect before thermal scaling), then by id.
+
 :func:`create` returns a fresh instance (effects keep per-run state such as the prior's
-nominal installation).  Within one stage, effects are applied in registry order, which is
-the physical order (e.g. focal length before pixel aspect before thermal scaling).
+nominal installation).
 """
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import inspect
+import logging
+import pkgutil
+from collections.abc import Iterator, MutableMapping
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from stellar_cal_ros.effects.astrometric import Aberration, ProperMotion, Refraction
-from stellar_cal_ros.effects.base import Effect
-from stellar_cal_ros.effects.camera_effects import (
-    FocalLength,
-    ImagePlaneTilt,
-    PixelAspect,
-    PrincipalPoint,
-    RadialK1K2,
-    RadialK3,
-    Tangential,
-    ThermalFocalLength,
-)
-from stellar_cal_ros.effects.installation import Installation
-from stellar_cal_ros.effects.sensor_effects import (
-    AccelBias,
-    AccelScaleFactor,
-    GyroBias,
-    GyroMisalignment,
-    GyroScaleFactor,
-)
-from stellar_cal_ros.effects.time_offset import TimeOffset
+from stellar_cal_ros.effects.base import STAGE_ORDER, Effect
 from stellar_cal_ros.errors import ModelError
 
-_BUILTIN: list[type[Effect]] = [
-    Installation,
-    FocalLength,
-    PixelAspect,
-    PrincipalPoint,
-    RadialK1K2,
-    RadialK3,
-    Tangential,
-    ImagePlaneTilt,
-    ThermalFocalLength,
-    GyroBias,
-    GyroScaleFactor,
-    GyroMisalignment,
-    AccelBias,
-    AccelScaleFactor,
-    TimeOffset,
-    ProperMotion,
-    Aberration,
-    Refraction,
-]
+log = logging.getLogger(__name__)
 
-EFFECTS: dict[str, type[Effect]] = {cls.id: cls for cls in _BUILTIN}
 ENTRY_POINT_GROUP = "stellar_cal_ros.effects"
-_plugins_loaded = False
+_PACKAGE = __name__.rpartition(".")[0]
+#: the package's own folder: what a fresh process (a Dask worker) discovers too
+_HOME = Path(__file__).resolve().parent
 
 
-def _load_entry_points() -> None:
-    global _plugins_loaded
-    if _plugins_loaded:
-        return
-    _plugins_loaded = True
+def order_key(cls: type[Effect]) -> tuple[int, int, str]:
+    """Application (and state-layout) order of an effect class: stage, ``order``, id."""
+    stage = STAGE_ORDER.index(cls.stage) if cls.stage in STAGE_ORDER else len(STAGE_ORDER)
+    return stage, int(cls.order), cls.id
+
+
+class _Registry(MutableMapping):
+    """id → effect class; loads the package's effect files and entry points on first use.
+
+    Iterates in application order (:func:`order_key`).
+    """
+
+    def __init__(self) -> None:
+        self._classes: dict[str, type[Effect]] = {}
+        self._sorted: list[str] | None = None
+        self._loaded = False
+        self._loading = False
+        #: modules and entry points that failed to load: name → reason (reported on look-up)
+        self.failed: dict[str, str] = {}
+
+    def _ensure(self) -> None:
+        if self._loaded or self._loading:
+            return
+        self._loading = True
+        try:
+            _discover(self)
+            _load_entry_points(self)
+        finally:
+            self._loading = False
+        self._loaded = True
+
+    def reload(self) -> None:
+        """Look again at the package's files (after a new one was added to its path)."""
+        self._loaded = False
+        self._ensure()
+
+    def __getitem__(self, key: str) -> type[Effect]:
+        self._ensure()
+        return self._classes[key]
+
+    def __setitem__(self, key: str, cls: type[Effect]) -> None:
+        self._classes[key] = cls
+        self._sorted = None
+
+    def __delitem__(self, key: str) -> None:
+        del self._classes[key]
+        self._sorted = None
+
+    def __contains__(self, key: object) -> bool:
+        self._ensure()
+        return key in self._classes
+
+    def __iter__(self) -> Iterator[str]:
+        self._ensure()
+        if self._sorted is None:
+            self._sorted = sorted(self._classes, key=lambda k: order_key(self._classes[k]))
+        return iter(list(self._sorted))
+
+    def __len__(self) -> int:
+        self._ensure()
+        return len(self._classes)
+
+
+EFFECTS: _Registry = _Registry()
+
+
+def _effect_classes(module) -> list[type[Effect]]:
+    return [obj for obj in vars(module).values()
+            if inspect.isclass(obj) and issubclass(obj, Effect) and obj.id
+            and obj.__module__ == module.__name__]
+
+
+def _discover(registry: _Registry) -> None:
+    """Import every effect module of the package (its ``__path__``) and register its classes."""
+    package = importlib.import_module(_PACKAGE)
+    for info in pkgutil.iter_modules(package.__path__):
+        name = info.name
+        if name.startswith("_") or name in ("base", "registry") or info.ispkg:
+            continue
+        try:
+            module = importlib.import_module(f"{_PACKAGE}.{name}")
+        except Exception as exc:  # a broken file must not take the library down with it
+            registry.failed[name] = f"{type(exc).__name__}: {exc}"
+            log.warning("effect module %s failed to import: %s", name, exc)
+            continue
+        for cls in _effect_classes(module):
+            register(cls)
+
+
+def _load_entry_points(registry: _Registry) -> None:
     for ep in entry_points(group=ENTRY_POINT_GROUP):
-        register(ep.load())
+        try:
+            register(ep.load())
+        except Exception as exc:  # a broken plugin: reported, the others still load
+            registry.failed[f"entry point {ep.name}"] = f"{type(exc).__name__}: {exc}"
+            log.warning("effect entry point %s (%s) failed to load: %s", ep.name, ep.value, exc)
 
 
 def register(cls: type[Effect]) -> type[Effect]:
     """Register an effect class (usable as a decorator); its ``id`` must be new."""
     if not (inspect.isclass(cls) and issubclass(cls, Effect)) or not cls.id:
         raise ModelError(f"{cls!r} is not an Effect subclass with an id")
-    old = EFFECTS.get(cls.id)
+    old = EFFECTS._classes.get(cls.id)
     if old is not None and old is not cls and not _same_source(old, cls):
         raise ModelError(f"effect id {cls.id!r} is already registered (by {old.__module__})")
     EFFECTS[cls.id] = cls
@@ -93,8 +157,17 @@ def _same_source(a: type, b: type) -> bool:
         src == getattr(b, "_effect_source", None)
 
 
+def is_library(cls: type[Effect]) -> bool:
+    """The class comes from a file in the package's own folder (a fresh process finds it)."""
+    module = inspect.getmodule(cls)
+    path = getattr(module, "__file__", None)
+    return (cls.__module__.startswith(_PACKAGE + ".") and path is not None
+            and Path(path).resolve().parent == _HOME)
+
+
 def load_effect_module(path: str | Path) -> list[str]:
     """Import a Python file and register every :class:`Effect` subclass it defines."""
+    EFFECTS._ensure()
     path = Path(path)
     if not path.is_file():
         raise ModelError(f"effect module {path} does not exist")
@@ -107,12 +180,10 @@ def load_effect_module(path: str | Path) -> list[str]:
     except Exception as exc:  # a user's file: report any failure clearly
         raise ModelError(f"effect module {path} failed to import: {exc}") from exc
     ids = []
-    for obj in vars(module).values():
-        if inspect.isclass(obj) and issubclass(obj, Effect) and obj.id and \
-                obj.__module__ == module.__name__:
-            obj._effect_source = str(path.resolve())
-            register(obj)
-            ids.append(obj.id)
+    for obj in _effect_classes(module):
+        obj._effect_source = str(path.resolve())
+        register(obj)
+        ids.append(obj.id)
     if not ids:
         raise ModelError(f"effect module {path} defines no Effect subclass with an id")
     return ids
@@ -120,25 +191,27 @@ def load_effect_module(path: str | Path) -> list[str]:
 
 def available() -> list[str]:
     """Ids of every registered effect, in application order."""
-    _load_entry_points()
     return list(EFFECTS)
+
+
+def effect_class(effect_id: str) -> type[Effect]:
+    """The class of ``effect_id`` (a one-line error naming the known ids if unknown)."""
+    try:
+        return EFFECTS[effect_id]
+    except KeyError:
+        failed = "".join(f"; {k} failed to load ({v})" for k, v in EFFECTS.failed.items())
+        raise ModelError(
+            f"unknown effect {effect_id!r}; available: {', '.join(EFFECTS)}{failed}"
+        ) from None
 
 
 def create(effect_id: str) -> Effect:
     """Return a new instance of the effect ``effect_id``."""
-    _load_entry_points()
-    try:
-        return EFFECTS[effect_id]()
-    except KeyError:
-        raise ModelError(
-            f"unknown effect {effect_id!r}; available: {', '.join(EFFECTS)}"
-        ) from None
+    return effect_class(effect_id)()
 
 
 def create_many(ids: list[str]) -> list[Effect]:
     """Instances for ``ids`` (duplicates removed), sorted in application order."""
-    _load_entry_points()
     unique = list(dict.fromkeys(i for i in ids if i))
     effects = [create(i) for i in unique]
-    order = {k: n for n, k in enumerate(EFFECTS)}
-    return sorted(effects, key=lambda e: order[e.id])
+    return sorted(effects, key=lambda e: order_key(type(e)))

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.effects.base import Effect, FrameContext, Stage
+from stellar_cal_ros.effects.base import Effect, ExportRole, FrameContext, Plausible, Stage
 
 
 class TimeOffset(Effect):
@@ -14,6 +14,9 @@ class TimeOffset(Effect):
 
     id = "time_offset"
     stage = Stage.TIME
+    order = 10
+    export_role = ExportRole.EXTRINSIC
+    plausible = Plausible(50.0, "ms")  # readout, transport, clock offsets
     parameter_names = ("dt",)
     units = ("s",)
     default_sigma = (0.05,)

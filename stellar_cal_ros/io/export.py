@@ -35,6 +35,8 @@ import numpy as np
 import yaml
 
 from stellar_cal_ros.core.camera import OPENCV_DISTORTION_NAMES, CameraModel
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.effects.base import ExportRole
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import Calibration
 
@@ -42,8 +44,6 @@ __all__ = ["FORMATS", "Export", "default_output", "export_calibration", "write_e
 
 FORMATS = ("kalibr", "openvins", "camera_info")
 DEFAULT_ROSTOPIC = "/star_tracker/image_raw"
-
-_ASTROMETRIC = ("aberration", "refraction", "proper_motion")
 
 
 @dataclass
@@ -136,9 +136,17 @@ def _common_warnings(cal: Calibration, fmt: str, holds: str) -> list[str]:
     for eff, params in cal.effects.items():
         values = ", ".join(f"{k}={v:.6g}" if isinstance(v, (int, float)) else f"{k}={v}"
                            for k, v in (params or {}).items())
-        if eff in _ASTROMETRIC:
+        # the class says what its value is (an effect not loaded here: a sensor effect)
+        role = registry.EFFECTS[eff].export() if eff in registry.EFFECTS else None
+        if role is ExportRole.STAR_DIRECTIONS:
             out.append(f"not exported: {eff} ({values}): a correction of the star directions, "
                        "not of the sensor")
+        elif role is ExportRole.IMU:
+            out.append(f"not exported: effect {eff} ({values}): an inertial-sensor error (the "
+                       f"{fmt} file holds {holds} only)")
+        elif role is ExportRole.EXTRINSIC:
+            out.append(f"not exported: effect {eff} ({values}): the {fmt} format's camera–IMU "
+                       "transform and time shift cannot express it")
         else:
             out.append(f"not exported: effect {eff} ({values}): OpenCV's camera model and the "
                        f"{fmt} format cannot express it")

@@ -139,10 +139,9 @@ class StarModel:
         fixed = [(e, None, v) for e, v in self.fixed_effects if e.stage is stage]
         if not fixed:
             return chain
-        from stellar_cal_ros.effects import registry
+        from stellar_cal_ros.effects.registry import order_key
 
-        order = {k: n for n, k in enumerate(registry.EFFECTS)}
-        return sorted(chain + fixed, key=lambda c: order.get(c[0].id, len(order)))
+        return sorted(chain + fixed, key=lambda c: order_key(type(c[0])))
 
     def _camera_copy_plan(self) -> tuple[np.ndarray, np.ndarray, list] | None:
         """The camera chain as one copy ``p[dst] = θ[src] · scale``, when it is one.
@@ -153,7 +152,8 @@ class StarModel:
         (a product by 1.0 is exact), without an 18-vector copy and two Jacobian look-ups
         per effect per frame.  None otherwise (the general chain).
         """
-        from stellar_cal_ros.effects.camera_effects import FX, FY, FocalLength
+        from stellar_cal_ros.effects.base import FX, FY
+        from stellar_cal_ros.effects.focal_length import FocalLength
 
         dst, src, scale = [], [], []
         for eff, sl, fixed in self._chain[Stage.CAMERA]:

@@ -1,0 +1,49 @@
+"""Proper motion of the stars from J2000.0 to the date (Hipparcos 2)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stellar_cal_ros.effects._direction import ScaledDirection
+from stellar_cal_ros.errors import ModelError
+
+
+class ProperMotion(ScaledDirection):
+    """Proper motion of the stars from J2000.0 to the date (Hipparcos 2)."""
+
+    id = "proper_motion"
+    order = 10
+    explanation = (
+        "Stars move on the sky, up to several arcsec per year for nearby ones; messages carry "
+        "J2000.0 places, so after 27 years a few stars sit up to 100 arcsec from where the "
+        "model expects them. Residual: large errors on a few particular stars (by catalog id), "
+        "always the same direction for the same star, whatever the attitude."
+    )
+
+    def delta(self, u_i, ctx):  # noqa: D102
+        from stellar_cal_ros.core.catalog import load_catalog, posix_to_jyear
+
+        ids = np.asarray(ctx.catalog_id, dtype=np.int64).reshape(-1)
+        out = np.zeros_like(u_i)
+        if ids.size == 0:  # no identifications in the context: no star is known
+            return out
+        if ids.size != len(u_i):
+            raise ModelError(f"proper_motion: {ids.size} catalog ids for {len(u_i)} directions")
+        cat = _full_catalog(load_catalog)
+        idx = cat.index_of(ids)
+        known = idx >= 0
+        if np.any(known):
+            sub = cat.subset(idx[known])
+            jyear = float(posix_to_jyear(ctx.stamp))
+            out[known] = sub.directions(jyear) - sub.directions(2000.0)
+        return out
+
+
+_CATALOG = None
+
+
+def _full_catalog(loader):
+    global _CATALOG
+    if _CATALOG is None:
+        _CATALOG = loader(mag_limit=None)
+    return _CATALOG
