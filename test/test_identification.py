@@ -129,8 +129,10 @@ def test_unidentified_bag_batch_like_the_identified_one(bag_pair):
     from stellar_cal_ros.methods.acf_data import AcfData
 
     imu = ImuSeries(data.imu_stamp_ns, data.imu_w, data.imu_f)
-    a = run_acf(AcfData(frames=data.frames, imu=imu, t0_ns=data.t0_ns), prior)
-    b = run_acf(AcfData(frames=stripped.frames, imu=imu, t0_ns=data.t0_ns), prior)
+    half = slice(0, len(data.frames) // 2)  # 60 s of frames: the test's time
+    a = run_acf(AcfData(frames=data.frames[half], imu=imu, t0_ns=data.t0_ns), prior)
+    b = run_acf(AcfData(frames=stripped.frames[half], imu=imu, t0_ns=data.t0_ns), prior)
+    assert b.calibration.extra["identification"]["failed"] == 0
     ca, cb = a.calibration.camera, b.calibration.camera
     sa = np.asarray(a.calibration.sigma["camera"]["camera_matrix"]["data"])[[0, 2, 5]]
     sb = np.asarray(b.calibration.sigma["camera"]["camera_matrix"]["data"])[[0, 2, 5]]
