@@ -2,7 +2,7 @@
 
 Part 1 (``--realsky DIR``, default ``../shared/realsky``): every JPEG through the
 project's pipeline (``sky.solve.solve_images``, one image = one camera, field searched
-over 5-25 deg) and through tetra3rs alone (its own extraction and lost-in-space, 5-30 deg
+over 5-30 deg) and through tetra3rs alone (its own extraction and lost-in-space, 5-30 deg
 database).  For each star the project identified, the independent solve's match at the
 same centroid (within 1.5 px) must be the same star: < 2″ apart at the solver catalogue's
 epoch.  Part 2 (``--rendered N``): N images of the real sky (Hipparcos, random attitudes)

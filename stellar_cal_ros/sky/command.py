@@ -20,7 +20,7 @@ def add_solve_parser(sub) -> None:
     s.add_argument("--site", metavar="LAT,LON,H",
                    help="observing site (deg, deg, m above WGS84): written as /gnss/fix")
     s.add_argument("--fov", type=float, metavar="DEG",
-                   help="horizontal field of view estimate (default: searched over 5-25 deg)")
+                   help="horizontal field of view estimate (default: searched over 5-30 deg)")
     s.set_defaults(func=_cmd_solve)
 
 

@@ -74,14 +74,21 @@ class Centroids:
 def _saturation(img: np.ndarray, level: float | None) -> float:
     """The saturation level (inf: none).
 
-    The configured one, else the image's maximum when it is a full ADC range (2^k − 1,
-    k = 8..16) reached by at least two pixels.
+    The configured one; else the image's maximum when it is a full ADC range (2^k − 1,
+    k = 8..16) reached by at least two pixels, or when at least five pixels share it in the
+    upper half of the integer type's range (a 12-bit sensor scaled to 16 bits saturates at
+    65520, not 65535).
     """
     if level is not None:
         return float(level)
     top = float(img.max())
+    count = int(np.count_nonzero(img >= top))
     full = {float(2 ** k - 1) for k in range(8, 17)}
-    return top if top in full and np.count_nonzero(img >= top) >= 2 else math.inf
+    if top in full and count >= 2:
+        return top
+    if img.dtype.kind in "ui" and count >= 5 and top >= 0.5 * np.iinfo(img.dtype).max:
+        return top
+    return math.inf
 
 
 def extract_stars(image: np.ndarray, config: ExtractConfig | None = None) -> Centroids:

@@ -37,7 +37,7 @@ from stellar_cal_ros.sky.images import StarImage, parse_utc, read_image
 log = logging.getLogger(__name__)
 
 STAR_TRACKER_FRAME = "star_tracker_optical_frame"
-DEFAULT_FOV = (15.0, 10.0)  #: field estimate and search half-range when --fov is not given
+DEFAULT_FOV = (17.5, 12.5)  #: field estimate, search half-range without --fov: 5-30 deg
 
 
 @dataclass
