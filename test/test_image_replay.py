@@ -17,7 +17,7 @@ from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 from stellar_cal_ros.sky.extract import extract_stars
 
-DURATION_S = 40.0
+DURATION_S = 30.0
 
 
 def test_image_stream_calibrates_like_the_centroid_bag():

@@ -130,16 +130,20 @@ def render_image(uv: np.ndarray, magnitude: np.ndarray, width: int, height: int,
         if a >= b or c >= d:
             continue
         expected[c:d, a:b] += electrons[i] * np.outer(fy[i, c - v0:d - v0], fx[i, a - u0:b - u0])
-    e = rng.poisson(expected).astype(float)
-    e = np.minimum(e, sensor.full_well_e)
-    adu = e / sensor.gain_e_per_adu + sensor.bias_adu + \
-        rng.normal(0.0, sensor.read_noise_e / sensor.gain_e_per_adu, e.shape)
+    # in place on one buffer: electrons (Poisson, full well) -> ADU + read noise -> ADC
+    adu = rng.poisson(expected).astype(np.float64)
+    np.minimum(adu, sensor.full_well_e, out=adu)
+    adu *= 1.0 / sensor.gain_e_per_adu
+    adu += rng.standard_normal(adu.shape) * (sensor.read_noise_e / sensor.gain_e_per_adu) \
+        + sensor.bias_adu
     n_hot = rng.binomial(width * height, sensor.hot_pixel_fraction)
     hot = np.c_[rng.integers(0, width, n_hot), rng.integers(0, height, n_hot)]
     adu[hot[:, 1], hot[:, 0]] += sensor.hot_pixel_adu
     top = float(2 ** sensor.bits - 1)
     sat_level = sensor.saturation_adu
-    adu = np.clip(np.rint(adu), 0.0, top)
+    np.rint(adu, out=adu)
+    np.maximum(adu, 0.0, out=adu)
+    np.minimum(adu, top, out=adu)
     iu = np.clip(np.rint(uv[:, 0]).astype(int), 0, width - 1)
     iv = np.clip(np.rint(uv[:, 1]).astype(int), 0, height - 1)
     peak_e = expected[iv, iu]
