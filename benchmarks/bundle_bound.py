@@ -90,7 +90,7 @@ def rendered(frames: list, rng: np.random.Generator, size: tuple[int, int],
         c = extract_stars(render_image(f.uv, f.magnitude, *size, sensor, rng).image)
         d, j = cKDTree(c.uv).query(f.uv)
         ok = d < 1.0
-        g = f.subset(ok)
+        g = copy.copy(f.subset(ok))  # a copy even when every star was found
         g.uv, g.sigma = c.uv[j[ok]], c.sigma[j[ok]]
         out.append(g)
     return out

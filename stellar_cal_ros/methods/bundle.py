@@ -89,13 +89,20 @@ class BundleFrame:
             self.use = np.ones(len(self.uv), dtype=bool)
 
     def subset(self, mask: np.ndarray | None = None) -> BundleFrame:
-        """The frame restricted to ``mask`` (default: its inliers)."""
+        """The frame restricted to ``mask`` (default: its inliers); itself when all are.
+
+        The context's ``extra`` (the apparent-place corrections' cache, keyed by content)
+        is shared, so a subset fitted again and again (the cross-validation's folds) does
+        not compute them again.
+        """
         m = self.use if mask is None else mask
+        if np.all(m):
+            return self
         ctx = FrameContext(stamp=self.ctx.stamp, catalog_id=self.ctx.catalog_id[m],
                            magnitude=self.ctx.magnitude[m], site=self.ctx.site,
                            head_temperature_c=self.ctx.head_temperature_c,
                            air_temperature_c=self.ctx.air_temperature_c,
-                           pressure_pa=self.ctx.pressure_pa)
+                           pressure_pa=self.ctx.pressure_pa, extra=self.ctx.extra)
         return BundleFrame(self.index, self.stamp_ns, self.uv[m], self.u_i[m], self.sigma[m],
                            self.catalog_id[m], self.magnitude[m], ctx)
 
@@ -222,9 +229,10 @@ class Bundle:
 
     def __init__(self, model: StarModel, frames: list[BundleFrame], theta_prior: np.ndarray,
                  sigma_prior: np.ndarray, loss: str = "linear", f_scale: float = 3.0,
-                 sigma_scale: float = 1.0) -> None:
+                 sigma_scale: float = 1.0, masks: list[np.ndarray] | None = None) -> None:
         self.model = model
-        self.frames = [f.subset() for f in frames]
+        self.frames = ([f.subset() for f in frames] if masks is None else
+                       [f.subset(m) for f, m in zip(frames, masks, strict=True)])
         self.theta_prior = np.asarray(theta_prior, dtype=float)
         self.sigma_prior = np.asarray(sigma_prior, dtype=float)
         self.loss, self.f_scale, self.sigma_scale = loss, f_scale, sigma_scale
@@ -510,8 +518,8 @@ def fit_bundle(model: StarModel, frames: list[BundleFrame], theta0: np.ndarray,
         return fit, 0
 
     def beyond(f_: Fit, scale: float) -> list[np.ndarray]:
-        probe = Bundle(model, [fr.subset(m) for fr, m in zip(frames, ident, strict=True)],
-                       theta_prior, sigma_prior, sigma_scale=scale)
+        probe = Bundle(model, frames, theta_prior, sigma_prior, sigma_scale=scale,
+                       masks=ident)
         es = star_residuals(probe, f_.theta, f_.attitudes, probe.frames)
         flat = np.concatenate([e.reshape(-1) for e in es])
         out = beyond_gate(np.nan_to_num(flat, nan=1e6), outlier_probability)

@@ -224,8 +224,7 @@ def cross_validate(result: BundleResult, max_iterations: int = 30) -> HeldOut:
         out.variance_factor.append(float(s2))
         out.sigma.append(f.sigma)
         out.theta.append(theta)
-        full = f.subset(np.ones(len(f.uv), dtype=bool))
-        out.covariance.append(residual_covariance(b, theta, score.attitude, full,
+        out.covariance.append(residual_covariance(b, theta, score.attitude, f,
                                                   score.scored, P_theta, s2))
         with np.errstate(all="ignore"):
             pred = model.predict(theta, f.u_i, f.ctx, _constant(score.attitude),
