@@ -272,9 +272,10 @@ def test_bundle_from_rendered_images(world, bench):
     assert 1 / 1.5 ** 2 < s2 < 1.5 ** 2 and n_out <= 2
 
 
-def test_refraction_and_aberration_from_site_and_time():
-    """Apparent place from the bag's site, stamps and weather: with refraction in the sky,
-    its scale is estimated at 1 (physics), aberration's too, and the held-out RMS falls."""
+@pytest.fixture(scope="module")
+def sky():
+    """32 frames of a sky with refraction and aberration (site, stamps and weather in the
+    bag) and the rotation sequence's tangential distortion, 0.05 px noise."""
     from stellar_cal_ros.methods.frames import bag_data_from_simulation
     from stellar_cal_ros.sim.scenarios import get_scenario
     from stellar_cal_ros.sim.world import simulate
@@ -283,6 +284,13 @@ def test_refraction_and_aberration_from_site_and_time():
                  effects={"refraction": [1.0], "aberration": [1.0]})
     data = bag_data_from_simulation(r)
     data.frames = data.frames[::25]
+    return r, data
+
+
+def test_refraction_and_aberration_from_site_and_time(sky):
+    """Apparent place from the bag's site, stamps and weather: with refraction in the sky,
+    its scale is estimated at 1 (physics), aberration's too, and the held-out RMS falls."""
+    r, data = sky
     without = bd.run_bundle(data, r.prior, ["tangential"])
     res = bd.run_bundle(data, r.prior, ["tangential", "refraction", "aberration"])
     for eid in ("refraction", "aberration"):
@@ -292,3 +300,47 @@ def test_refraction_and_aberration_from_site_and_time():
     assert res.sigma[k] < 0.1
     assert res.cross_validation["mean_arcsec"] < 0.95 * without.cross_validation["mean_arcsec"]
     assert without.variance_factor > 1.15 > 1.1 > res.variance_factor
+
+
+def test_discover_bundle_adds_the_missing_effects_and_the_error_falls(sky, tmp_path):
+    """The whole loop on star frames (discover --method bundle from the baseline): it adds
+    refraction and tangential distortion — what the sky and the camera have beyond the
+    baseline and the data can detect (aberration's scale has σ 0.45 here) — and stops, the
+    held-out RMS falling round by round to the noise."""
+    from stellar_cal_ros.diagnosis.run import diagnose
+
+    r, data = sky
+    start = bd.run_bundle(data, r.prior, [], cross_validate=False).calibration
+    s = diagnose(data, start, "bundle", [], tmp_path, plots=False, verbose=False, auto=True,
+                 workers=0)
+    assert s["added"] == ["refraction", "tangential"], s["added"]
+    rms = [np.hypot(*step["rms_px"]) for step in s["path"]]
+    assert rms[0] > rms[1] > rms[2]
+    assert rms[2] == pytest.approx(np.sqrt(2) * SIGMA_PX, rel=0.05)
+    scale = s["final_estimates"]["refraction"]["scale"]
+    assert abs(scale[0] - 1.0) < 3 * scale[1]
+    cv = yaml.safe_load((tmp_path / "calibration.yaml").read_text())["cross_validation"]
+    assert cv["mean_arcsec"] < 3.8
+
+
+def test_fold_camera_is_the_refit_without_the_frame(world):
+    """The cross-validation's camera of each fold (one Gauss–Newton step on the normal
+    equations without the frame) is the converged fit of the other frames, to 0.01 σ."""
+    model, sp = world["model"], world["sigma_prior"]
+    frames = _noisy(world["frames"][:10], np.random.default_rng(1))
+    fit, _ = bd.fit_bundle(model, frames, world["theta"], world["attitudes"][:10],
+                           world["theta"], sp)
+    sig = np.sqrt(np.diag(fit.covariance()[0]))
+    full = bd.Bundle(model, frames, world["theta"], sp)
+    ne = full.normal(fit.theta, fit.attitudes)
+    schur = bd.Bundle.schur(ne, 0.0)
+    for k in (0, 4, 9):
+        dtheta, cov, s2 = full.without_frame(ne, schur, k)
+        others = [f for j, f in enumerate(frames) if j != k]
+        b = bd.Bundle(model, others, world["theta"], sp)
+        th, R, ne_k, it = b.solve(fit.theta, [R for j, R in enumerate(fit.attitudes)
+                                              if j != k], tol=1e-10)
+        assert np.all(np.abs(fit.theta + dtheta - th) < 0.01 * sig)
+        ref_cov, ref_s2 = bd.Fit(th, R, ne_k, b, it).covariance()
+        assert s2 == pytest.approx(ref_s2, rel=0.02)
+        assert np.allclose(np.sqrt(np.diag(cov)), np.sqrt(np.diag(ref_cov)), rtol=0.02)

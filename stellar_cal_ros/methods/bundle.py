@@ -217,6 +217,8 @@ class _Normal:
     n_stars: int
     Vk: list[np.ndarray] = field(default_factory=list)  # (P, P) per frame
     gthk: list[np.ndarray] = field(default_factory=list)  # (P,) per frame
+    zk: list[float] = field(default_factory=list)  # Σ w·|e|² per frame
+    nk: list[int] = field(default_factory=list)  # stars per frame
 
 
 class Bundle:
@@ -278,7 +280,7 @@ class Bundle:
         P = self.P if with_theta else 0
         V = np.zeros((P, P))
         g = np.zeros(P)
-        U, W, gk, Vk, gthk = [], [], [], [], []
+        U, W, gk, Vk, gthk, zk, nk = [], [], [], [], [], [], []
         cost, sum_wz, n = 0.0, 0.0, 0
         for R, f in zip(Rs, self.frames, strict=True):
             e, A, B = self.residuals(theta, R, f)
@@ -289,8 +291,10 @@ class Bundle:
             rho, w = self._rho(np.where(bad, 0.0, z))
             w = np.where(bad, 0.0, w)
             cost += float(np.sum(np.where(bad, 1e12, rho)))
-            sum_wz += float(np.sum(w * np.where(bad, 0.0, z)))
-            n += int((~bad).sum())
+            zk.append(float(np.sum(w * np.where(bad, 0.0, z))))
+            nk.append(int((~bad).sum()))
+            sum_wz += zk[-1]
+            n += nk[-1]
             ww = np.repeat(w, 2)
             e2 = np.where(bad[:, None], 0.0, e).reshape(-1)
             A2 = np.where(bad[:, None, None], 0.0, A).reshape(-1, 3)
@@ -315,25 +319,32 @@ class Bundle:
             g -= d / self.sigma_prior
         else:
             cost += self._prior_cost(theta)
-        return _Normal(cost, V, g, U, W, gk, V_stars, sum_wz, n, Vk, gthk)
+        return _Normal(cost, V, g, U, W, gk, V_stars, sum_wz, n, Vk, gthk, zk, nk)
 
-    @staticmethod
-    def without_frame(ne: _Normal, schur_full: tuple[np.ndarray, np.ndarray, list],
-                      k: int) -> tuple[np.ndarray, list[np.ndarray]]:
-        """The Gauss–Newton step ``(Δθ, [Δφ_j, j ≠ k])`` of the problem without frame ``k``.
+    def without_frame(self, ne: _Normal, schur_full: tuple[np.ndarray, np.ndarray, list],
+                      k: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """The camera of the problem without frame ``k``: ``(Δθ, covariance, s²)``.
 
-        From the full problem's normal equations at the same point and their Schur
-        complement ``schur_full`` (:meth:`schur` at λ = 0): frame ``k``'s terms are taken
-        out, so the step costs no evaluation of the model.
+        One Gauss–Newton step from the full problem's solution, on its normal equations with
+        frame ``k``'s terms taken out (the Schur complement ``schur_full`` of :meth:`schur`
+        at λ = 0, so no evaluation of the model): at the full solution the fold's gradient
+        is frame ``k``'s alone, and the step lands on the fold's own solution to second
+        order (measured: within 0.007 σ of a converged refit, ``test/test_bundle.py``).
+        The covariance is the fold's ``(S_k / s_k² + Λ_prior)⁻¹``, ``s_k²`` the variance
+        factor of the other frames' stars.
         """
         S, b, Uinv = schur_full
         W, Ui, gk = ne.W[k], Uinv[k], ne.gk[k]
         S_k = S + W.T @ Ui @ W - ne.Vk[k]
+        S_k = 0.5 * (S_k + S_k.T)
         b_k = b + W.T @ (Ui @ gk) - ne.gthk[k]
-        dtheta = _solve_equilibrated(0.5 * (S_k + S_k.T), b_k)
-        dphi = [Uj @ (g - Wj @ dtheta) for j, (Uj, Wj, g) in
-                enumerate(zip(Uinv, ne.W, ne.gk, strict=True)) if j != k]
-        return dtheta, dphi
+        dtheta = _solve_equilibrated(S_k, b_k)
+        dof = 2 * (ne.n_stars - ne.nk[k]) - 3 * (len(ne.U) - 1) - self.P
+        s2 = (ne.sum_wz - ne.zk[k]) / dof if dof > 0 else float("nan")
+        prior = np.diag(1.0 / self.sigma_prior ** 2)
+        info = (S_k - prior) / s2 + prior if np.isfinite(s2) else S_k
+        cov = _equilibrated_inverse(info)
+        return dtheta, 0.5 * (cov + cov.T), float(s2)
 
     @staticmethod
     def schur(ne: _Normal, lam: float = 0.0, stars_only: bool = False
