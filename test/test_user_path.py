@@ -257,3 +257,36 @@ def test_runs_can_be_copied_away_and_still_checked(runs, tmp_path):
         shutil.copy(runs[k], tmp_path / Path(runs[k]).name)
     assert main(["report", str(tmp_path / "run_a.yaml"), "--residuals",
                  str(tmp_path / "res_a.csv"), "-o", str(tmp_path / "rep")]) == 0
+
+
+# ------------------------------------------------------------------ 2. the live window
+def test_statistics_blocks_merge_exactly(runs):
+    """The live node's blocks (HalfWindowStats) merge into what one RunStats over the same
+    frames holds, whiteness lag across the seams included; a checkpoint keeps them."""
+    import dataclasses
+
+    from test_online import bag_events, feed
+
+    from stellar_cal_ros.methods.driver import Calibrator
+    from stellar_cal_ros.methods.results import HalfWindowStats, RunStats, stats_from_dict
+
+    cal = Calibrator(load_calibration(runs["prior_a"]), "psce")
+    updates = [o.update for o in feed(cal, bag_events(runs["bag_a"])) + cal.finish()
+               if o.update is not None]
+    whole, blocks = RunStats(), HalfWindowStats(max_blocks=4)
+    for u in updates:
+        whole.add(u)
+        blocks.add(u)
+    assert len(blocks.blocks) <= 4 and blocks.block_s >= 8.0  # coarsened as it grew
+    merged = RunStats()
+    for b in blocks.blocks:
+        merged.merge(b)
+    a, b = whole.summary(), merged.summary()
+    for key in ("frames", "stars", "nis_per_dof", "loglik", "rms_px"):
+        assert a[key] == pytest.approx(b[key], rel=1e-12), key
+    assert a["whiteness"]["p_value"] == pytest.approx(b["whiteness"]["p_value"], rel=1e-9)
+    again = stats_from_dict(dataclasses.asdict(blocks))
+    assert again.current().summary()["nis_per_dof"] == blocks.current().summary()["nis_per_dof"]
+    half = blocks.current()
+    assert half.eval_start >= blocks.t_first + 0.5 * (blocks.t_last - blocks.t_first)
+    assert 0 < half.stars < whole.stars

@@ -558,6 +558,49 @@ class BagReader:
 
     # -- generic ---------------------------------------------------------------------------
 
+    def iter_raw(
+        self, topics: Iterable[str] | None = None
+    ) -> Iterator[tuple[str, int, bytes]]:
+        """Yield every message of ``topics`` (all if None) as its CDR payload.
+
+        Parameters
+        ----------
+        topics : iterable of str, optional
+            Topics to read; None reads all.
+
+        Yields
+        ------
+        (topic, log_time_ns, payload)
+            In log-time order (ties in file order); ``payload`` is the serialized message
+            as ROS 2 publishes it (a ROS 1 bag's messages converted to CDR).
+        """
+        for _, topic, log_time, raw in self._raw(topics):
+            yield topic, log_time, raw
+
+    def _raw(self, topics: Iterable[str] | None) -> Iterator[tuple[int, str, int, bytes]]:
+        """(channel id, topic, log time, payload) of ``topics`` in log-time order."""
+        channels = self._channels()
+        want = None
+        if topics is not None:
+            tset = set(topics)
+            want = {c for c, ch in channels.items() if ch.topic in tset}
+
+        def batches() -> Iterator[tuple[int, Fields]]:
+            for rows in self._rows(want, "messages"):
+                n = len(rows)
+                objs = np.empty(n, dtype=object)
+                mv = memoryview(rows.buf)
+                for i in range(n):
+                    cid = int(rows.channel[i])
+                    o, ln = int(rows.offset[i]), int(rows.length[i])
+                    objs[i] = (cid, channels[cid].topic if cid in channels else f"#{cid}",
+                               int(rows.log_time[i]), bytes(mv[o : o + ln]))
+                yield rows.start_ns, {"obj": objs, "log": rows.log_time,
+                                      "seq": rows.order_key(np.arange(n))}
+
+        for d in time_ordered(batches()):
+            yield from d["obj"]
+
     def iter_messages(
         self, topics: Iterable[str] | None = None
     ) -> Iterator[tuple[str, int, object]]:
@@ -574,37 +617,16 @@ class BagReader:
             In log-time order (ties in file order); ``message`` is an object with the ROS
             field names (``mcap_ros2`` dynamic object for MCAP, ``rosbags`` message else).
         """
-        channels = self._channels()
-        want = None
-        if topics is not None:
-            tset = set(topics)
-            want = {c for c, ch in channels.items() if ch.topic in tset}
         counter: dict[str, list[Any]] = {}
-
-        def batches() -> Iterator[tuple[int, Fields]]:
-            for rows in self._rows(want, "messages"):
-                n = len(rows)
-                objs = np.empty(n, dtype=object)
-                keep = np.ones(n, bool)
-                mv = memoryview(rows.buf)
-                for i in range(n):
-                    cid = int(rows.channel[i])
-                    topic = channels[cid].topic if cid in channels else f"#{cid}"
-                    o, ln = int(rows.offset[i]), int(rows.length[i])
-                    try:
-                        msg = self._src.decoder(cid)(bytes(mv[o : o + ln]))
-                    except Exception as exc:  # the generic decoders raise assorted errors
-                        keep[i] = False
-                        reason = str(exc) if isinstance(exc, BagError) else \
-                            f"{type(exc).__name__}: {exc}"
-                        self._bad(topic, int(rows.log_time[i]), reason, counter)
-                        continue
-                    objs[i] = (topic, int(rows.log_time[i]), msg)
-                yield rows.start_ns, {"obj": objs[keep], "log": rows.log_time[keep],
-                                      "seq": rows.order_key(np.flatnonzero(keep))}
-
-        for d in time_ordered(batches()):
-            yield from d["obj"]
+        for cid, topic, log_time, raw in self._raw(topics):
+            try:
+                msg = self._src.decoder(cid)(raw)
+            except Exception as exc:  # the generic decoders raise assorted errors
+                reason = str(exc) if isinstance(exc, BagError) else \
+                    f"{type(exc).__name__}: {exc}"
+                self._bad(topic, log_time, reason, counter)
+                continue
+            yield topic, log_time, msg
         self._report_skipped(counter)
 
     def raw_schema(self, topic: str) -> tuple[str, str]:

@@ -26,7 +26,7 @@ from stellar_cal_ros.io.checkpoint import read_checkpoint, write_checkpoint
 from stellar_cal_ros.methods.driver import Calibrator, InputCounters, _ImuQueue
 from stellar_cal_ros.methods.frames import FrameInputs
 from stellar_cal_ros.methods.kernel import FilterCounters
-from stellar_cal_ros.methods.results import RunStats
+from stellar_cal_ros.methods.results import stats_from_dict
 
 log = logging.getLogger(__name__)
 
@@ -216,7 +216,7 @@ def load_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
     for item in _dec(meta["conv"], a):
         cal._conv.append(tuple(item))
     st = _dec(meta["stats"], a)
-    cal.stats = RunStats(**{k: v for k, v in st.items()})
+    cal.stats = stats_from_dict(st)
     if meta["filter"] is not None:
         cal._build_filter()
         _restore_filter(cal.filter, meta["filter"], a)

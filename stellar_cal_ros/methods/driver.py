@@ -56,6 +56,7 @@ from stellar_cal_ros.methods.kernel import FilterCounters, FrameUpdate
 from stellar_cal_ros.methods.psce import PsceConfig, PsceFilter
 from stellar_cal_ros.methods.results import (
     RESIDUAL_COLUMNS,
+    HalfWindowStats,
     RunStats,
     TableSink,
     consistency,
@@ -104,6 +105,9 @@ class DriverConfig:
     converge_window: int = 20  #: updates over which convergence is judged
     converge_sigma_ratio: float = 0.98  #: every σ(now)/σ(window ago) above this: settled
     converge_nis_ratio: float = 2.0  #: mean NIS/dof over the window below this: consistent
+    #: judge consistency on the second half of the data seen so far (the live node: no end
+    #: is known; :class:`~.results.HalfWindowStats`) instead of a window fixed in advance
+    live_window: bool = False
 
 
 @dataclass
@@ -276,7 +280,8 @@ class Calibrator:
         self._conv: deque[tuple[np.ndarray, float, int]] = deque(
             maxlen=max(self.driver.converge_window, 1) + 1)
         self.last_update: FrameUpdate | None = None
-        self.stats = RunStats(self.eval_start)
+        self.stats = HalfWindowStats() if self.driver.live_window else \
+            RunStats(self.eval_start)
         self._frame_index = 0
         self._history_keys: tuple[str, ...] | None = None  # see _record_history
         self._history_sigma_index: np.ndarray | None = None
@@ -773,7 +778,7 @@ class Calibrator:
         cal = result_calibration(self.prior, self.model, full, sig_full, self.method,
                                  self.stamp(), estimated=len(theta))
         cal.extra["derived"] = derived_quantities(self.model, full, self.covariance())
-        cal.extra["consistency"] = consistency(self.stats)
+        cal.extra["consistency"] = consistency(self.stats.current())
         reasons = self.degraded()
         if reasons:
             cal.extra["data_quality"] = {"degraded": True, "reasons": reasons}

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -254,6 +255,31 @@ class RunStats:
             self.ref_nis += nis
             self.ref_dof += dof
 
+    def merge(self, later: RunStats) -> None:
+        """Add the statistics of ``later`` (the frames that came after this one's), exactly.
+
+        Every sum adds; the lag-1 sum gains the one product across the seam (this one's last
+        frame mean with ``later``'s first).
+        """
+        mine, theirs = self.__dict__, later.__dict__
+        for name in _SUMS:
+            mine[name] += theirs[name]
+        a, b = self._w, later._w
+        for k in (0, 1):
+            if not b["n"][k]:
+                continue
+            if a["n"][k]:
+                a["lag"][k] += b["lag"][k] + a["last"][k] * b["first"][k]
+            else:
+                a["first"][k], a["lag"][k] = b["first"][k], b["lag"][k]
+            for key in ("n", "s", "s2"):
+                a[key][k] += b[key][k]
+            a["last"][k] = b["last"][k]
+
+    def current(self) -> RunStats:
+        """The statistics a verdict is made of now (this object: its window is fixed)."""
+        return self
+
     # ------------------------------------------------------------------ summaries
     def log_likelihood(self) -> float:
         """Gaussian log-likelihood of the window's innovations, each star's NIS capped.
@@ -334,6 +360,104 @@ class RunStats:
                 "expected_rms_px": list(self.expected_rms()), "nis_per_dof": nis,
                 "nis_interval": list(interval), "whiteness": self.whiteness(),
                 "loglik": self.log_likelihood(), "eval_start": self.eval_start}
+
+
+#: the additive fields of :class:`RunStats` (all but the window start and the lag sums)
+_SUMS = tuple(f.name for f in dataclasses.fields(RunStats) if f.name not in ("eval_start", "_w"))
+
+
+def _copy_stats(st: RunStats) -> RunStats:
+    out = copy.copy(st)
+    out._w = {k: list(v) for k, v in st._w.items()}
+    return out
+
+
+@dataclass
+class HalfWindowStats:
+    """:class:`RunStats` of the second half of the data seen so far (the live node's window).
+
+    A replay judges the second half of the bag (the filter has converged there); a live run
+    has no end to take a half of.  This keeps the statistics in blocks of data time — at
+    most ``max_blocks``; adjacent blocks merge pairwise as the run grows, so memory stays
+    bounded for a node that runs for days — and :meth:`current` merges the blocks that
+    start at or after the middle of the frame stamps seen so far: the replay's window, up to
+    one block (span / ``max_blocks`` or less, times 2).  ``add`` / ``add_reference`` as
+    :class:`RunStats`.
+    """
+
+    max_blocks: int = 128
+    block_s: float = 1.0  #: data time a new block covers (doubles at each merge)
+    t_first: float | None = None  #: first frame stamp seen, POSIX s
+    t_last: float | None = None  #: latest
+    starts: list[float] = field(default_factory=list)
+    blocks: list[RunStats] = field(default_factory=list)
+    accepted_total: int = 0  #: accepted stars of the whole run
+    #: the merged closed blocks of the window and what they were merged for (a verdict at
+    #: 1 Hz merges one block, not all, while the window's first block stays the same)
+    _merged: tuple | None = field(default=None, repr=False, compare=False)
+
+    def _block(self, t: float) -> RunStats:
+        if self.t_first is None:
+            self.t_first = t
+        self.t_last = t if self.t_last is None else max(self.t_last, t)
+        if not self.blocks or t >= self.starts[-1] + self.block_s:
+            self.starts.append(t)
+            self.blocks.append(RunStats())
+            if len(self.blocks) > self.max_blocks:
+                self._coarsen()
+        return self.blocks[-1]
+
+    def _coarsen(self) -> None:
+        starts, blocks = [], []
+        for k in range(0, len(self.blocks), 2):
+            b = self.blocks[k]
+            if k + 1 < len(self.blocks):
+                b.merge(self.blocks[k + 1])
+            starts.append(self.starts[k])
+            blocks.append(b)
+        self.starts, self.blocks = starts, blocks
+        self.block_s *= 2.0
+
+    def add(self, upd) -> None:
+        """Add one frame update."""
+        self.accepted_total += int(np.count_nonzero(upd.accepted))
+        self._block(float(upd.stamp)).add(upd)
+
+    def add_reference(self, stamp: float, nis: float, dof: int) -> None:
+        """Add one update of another measurement."""
+        self._block(float(stamp)).add_reference(stamp, nis, dof)
+
+    def current(self) -> RunStats:
+        """The merged statistics of the second half of the frames seen so far."""
+        if self.t_first is None:
+            return RunStats()
+        mid = self.t_first + 0.5 * (self.t_last - self.t_first)
+        i = next((k for k, t in enumerate(self.starts) if t >= mid), len(self.starts))
+        last = len(self.blocks) - 1
+        key = (i, last, self.block_s)
+        if self._merged is None or self._merged[0] != key:
+            closed = RunStats()
+            for b in self.blocks[i:last]:
+                closed.merge(b)
+            self._merged = (key, closed)
+        out = _copy_stats(self._merged[1])
+        if i <= last:
+            out.merge(self.blocks[last])
+        out.eval_start = self.starts[i] if i <= last else mid
+        out.accepted_total = self.accepted_total
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> HalfWindowStats:
+        """Inverse of ``dataclasses.asdict`` (a checkpoint)."""
+        d = {k: v for k, v in d.items() if k != "_merged"}
+        return cls(**{**d, "blocks": [RunStats(**b) for b in d["blocks"]],
+                      "starts": list(d["starts"])})
+
+
+def stats_from_dict(d: dict[str, Any]) -> RunStats | HalfWindowStats:
+    """A :class:`RunStats` or :class:`HalfWindowStats` from ``dataclasses.asdict``."""
+    return HalfWindowStats.from_dict(d) if "blocks" in d else RunStats(**d)
 
 
 #: NIS/dof beyond the χ² interval by more than this is a model mismatch (small departures

@@ -73,11 +73,18 @@ from stellar_cal_msgs.msg import (
 from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.errors import CheckpointError
-from stellar_cal_ros.io.calibration import load_calibration, save_calibration
+from stellar_cal_ros.io.calibration import load_calibration, prior_warnings, save_calibration
 from stellar_cal_ros.methods.checkpoint import load_checkpoint, save_checkpoint
 from stellar_cal_ros.methods.driver import FILTERS, Calibrator, DriverConfig, FrameOutcome
-from stellar_cal_ros.methods.results import NullSink
+from stellar_cal_ros.methods.results import NullSink, consistency, mismatch_text
+from stellar_cal_ros.nodes.health import (
+    RosoutBridge,
+    node_provenance,
+    verdict_status,
+    verdict_values,
+)
 from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
+from stellar_cal_ros.nodes.runner import check_parameter_names
 
 try:  # /tf_static: tf2_msgs comes with every ROS 2 install, not with the PyPI wheels
     from tf2_msgs.msg import TFMessage
@@ -171,9 +178,17 @@ class CalibratorNode(Node):
         super().__init__(node_name, **kwargs)
         self._lock = threading.RLock()
         self._declare_parameters()
+        check_parameter_names(self)  # a typo (outptu_file) is an error, not ignored
         p = self._read_parameters()  # raises ValueError on invalid values
         self.p = p
+        self._bridge = RosoutBridge(self.get_logger())
+        self._bridge.install()  # the library's warnings (model mismatch ...) go to /rosout
         prior = load_calibration(p["prior_file"])
+        for w in prior_warnings(prior, p["prior_file"], {
+                e: c.parameter_names for e, c in registry.EFFECTS.items()}):
+            self.get_logger().warning(w)
+        node_provenance(self.get_fully_qualified_name(), p,
+                        {k: v[0] for k, v in PARAMETERS.items()})
         frames = dict(prior.frames)
         if p["imu_frame_id"]:
             frames["imu"] = p["imu_frame_id"]
@@ -189,7 +204,7 @@ class CalibratorNode(Node):
             reorder_window_s=p["reorder_window_s"], environment_wait_s=p["environment_wait_s"],
             t0_imu_samples=p["t0_imu_samples"], converge_window=p["converge_window"],
             converge_sigma_ratio=p["converge_sigma_ratio"],
-            converge_nis_ratio=p["converge_nis_ratio"])
+            converge_nis_ratio=p["converge_nis_ratio"], live_window=True)
         # the residuals are published, not kept: a node runs for days (bounded memory)
         self.cal = Calibrator(prior, p["method"], p["effects"], self.filter_config,
                               self.driver_config, frames, residuals=NullSink(),
@@ -253,6 +268,10 @@ class CalibratorNode(Node):
         self.get_logger().info(
             f"calibrator ready: method={p['method']} effects={p['effects'] or '[]'} "
             f"({len(self.cal.parameter_names())} parameters), prior {p['prior_file']}")
+        if not p["output_file"]:
+            self.get_logger().warning(
+                "output_file is not set: the calibration is not written at shutdown (set "
+                "-p output_file:=RESULT.yaml, or call ~/save_calibration)")
         # Start-up objects (modules, messages, the model) are long-lived: keep them out of
         # the cyclic collector so that full collections in a callback stay short.
         gc.collect()
@@ -361,6 +380,10 @@ class CalibratorNode(Node):
                     self.get_logger().info(f"calibration written to {path}")
                 except Exception as exc:  # noqa: BLE001
                     self.get_logger().error(f"writing the calibration failed: {exc}")
+            else:
+                self.get_logger().warning("output_file is not set: the calibration was not "
+                                          "written")
+            self._bridge.remove()
 
     # ------------------------------------------------------------------ services
     def _srv_save(self, request, response):
@@ -590,27 +613,33 @@ class CalibratorNode(Node):
             conv = self.cal.convergence()
             pending = self.cal.pending()
             initialized = self.cal.initialized
+            cons = consistency(self.cal.stats.current())  # the replay's statistics, so far
         lat = np.asarray(self.latency_s) * 1e3
         st = DiagnosticStatus()
         st.name = f"{self.get_name()}: {self.p['method']} calibration"
         st.hardware_id = f"{self.frame_ids['imu']}+{self.frame_ids['star_tracker']}"
-        problems = []
+        problems, silent = [], {}
         for key in ("imu", "stars"):
             last = self._rx_last_wall[key]
             if last is None:
                 problems.append(f"no {key} yet")
             elif now - last > self.p["silence_timeout_s"]:
-                problems.append(f"{key} silent for {now - last:.0f} s")
+                silent[key] = now - last  # (the seconds go to the values: a constant text)
+                problems.append(f"{key} silent (nothing for over "
+                                f"{self.p['silence_timeout_s']:g} s)")
         if problems:
             st.level = DiagnosticStatus.WARN
             st.message = "; ".join(problems)
         elif not initialized:
             st.level, st.message = DiagnosticStatus.WARN, "waiting for attitude initialization"
-        elif not conv["converged"]:
-            st.level, st.message = DiagnosticStatus.OK, "estimating (not converged yet)"
         else:
-            st.level, st.message = DiagnosticStatus.OK, "converged"
+            st.level, st.message = verdict_status(cons, conv["converged"])
+        if cons.get("verdict") == "model mismatch":
+            self._warn("model_mismatch", mismatch_text(cons) + " (second half of the data "
+                       "so far)")
         values: dict[str, Any] = {f"rate.{k}_hz": f"{v:.2f}" for k, v in rates.items()}
+        values.update({f"silent.{k}_s": f"{v:.0f}" for k, v in silent.items()})
+        values.update(verdict_values(cons))
         values.update({f"received.{k}": v for k, v in self.received.items()})
         values.update({f"input.{k}": v for k, v in counters.items()})
         values.update({f"filter.{k}": v for k, v in fc.items()})
@@ -618,7 +647,8 @@ class CalibratorNode(Node):
         values["callback_errors"] = self.callback_errors
         values["backlog_updates"] = self.backlog_updates
         values["converged"] = conv["converged"]
-        values["nis_per_dof"] = f"{conv['nis_ratio']:.3f}"
+        # (the convergence test's: the last converge_window updates, joint over each frame)
+        values["convergence.nis_per_dof"] = f"{conv['nis_ratio']:.3f}"
         values["sigma_ratio_min"] = f"{conv['sigma_ratio_min']:.4f}"
         last = self.cal.last_update
         values["last_nis"] = f"{last.nis:.3f}" if last is not None else "nan"
@@ -627,9 +657,8 @@ class CalibratorNode(Node):
             values["latency_p99_ms"] = f"{np.percentile(lat, 99):.3f}"
         st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         self._warn_counters({**counters, **fc, "callback_errors": self.callback_errors})
-        for pr in problems:
-            if "silent" in pr:
-                self._warn("silent_" + pr.split()[0], pr)
+        for key, seconds in silent.items():
+            self._warn(f"silent_{key}", f"{key} silent for {seconds:.0f} s")
         return st
 
     def _publish_diagnostics(self) -> None:

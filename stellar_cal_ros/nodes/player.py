@@ -1,4 +1,4 @@
-"""``player`` node: publish a contract MCAP bag (``ros2 run stellar_cal_ros player``).
+"""``player`` node: publish a contract bag (``ros2 run stellar_cal_ros player``).
 
 Messages go out unchanged (their CDR bytes from the bag), in log-time order, on the bag's
 topic names (remappable), with:
@@ -12,11 +12,14 @@ topic names (remappable), with:
 * ``/clock`` (rosgraph_msgs/Clock) with the bag's log time every ``clock_period_s`` of bag
   time, for nodes run with ``use_sim_time: true``.
 
-The bag is read with the ``mcap`` library (no rosbag2 needed), chunk CRCs verified.
-``start_offset_s`` and ``duration_s`` select a part of it.  The bag is checked before
-anything is published (:func:`check_bag`: missing, not MCAP, truncated / no summary); a
-damaged chunk met while playing stops the playback.  Either way the node prints one line
-``player: error: ...`` and exits with status 1.
+The bag — a ``.mcap`` file, a rosbag2 directory (MCAP or sqlite3) or a ROS 1 ``.bag``, the
+formats every ``stellar-cal`` command reads — is read with
+:class:`~stellar_cal_ros.io.reader.BagReader` (no rosbag2 needed; chunk CRCs verified; a ROS
+1 bag's messages converted to CDR).  ``start_offset_s`` and ``duration_s`` select a part of
+it.  The bag is checked before anything is published (:func:`check_bag`: missing, not a
+bag, truncated / no summary); a damaged chunk met while playing stops the playback.  Either
+way the node prints one line ``player: error: ...`` and exits with status 1.  ``player
+--help`` lists the parameters; an unknown parameter name (a typo) is an error.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import struct
 import sys
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,6 +44,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from stellar_cal_ros.errors import BagError, StellarCalError
+from stellar_cal_ros.io.schemas import normalize_type
+from stellar_cal_ros.nodes.runner import check_parameter_names
 
 IMU_TYPE = "sensor_msgs/msg/Imu"
 
@@ -73,31 +79,40 @@ class PlayStats:
     bag_s: float = 0.0
 
 
-def check_bag(path: str):
-    """Open ``path`` and return its MCAP summary, or raise BagError naming what is wrong."""
-    from mcap.reader import make_reader
+def check_bag(path: str) -> tuple[dict[str, Any], int, int]:
+    """Check ``path`` before anything is published: ``(topics, start_ns, end_ns)``.
 
+    Any bag :class:`~stellar_cal_ros.io.reader.BagReader` reads (a ``.mcap`` file, a
+    rosbag2 directory, a ROS 1 ``.bag``); an MCAP file must have its summary (a recording
+    that was not closed is refused: ``stellar-cal info`` shows what is readable).
+
+    Raises
+    ------
+    BagError
+        Missing, not a bag, no summary, no message.
+    """
+    from stellar_cal_ros.io.reader import BagReader
+
+    if not os.path.exists(path):
+        raise BagError(f"bag not found: {path}")
     try:
-        with open(path, "rb") as fh:
-            summary = make_reader(fh).get_summary()
-    except FileNotFoundError:
-        raise BagError(f"bag not found: {path}") from None
-    except IsADirectoryError:
-        raise BagError(f"{path} is a directory, not an MCAP file") from None
-    except OSError as exc:
-        raise BagError(f"cannot open bag {path}: {exc.strerror or exc}") from None
-    except Exception as exc:  # noqa: BLE001 - any parse failure: the file is damaged
-        if type(exc).__name__ == "InvalidMagic" or os.path.getsize(path) < 16:
-            raise BagError(f"{path} is not an MCAP file") from None
-        raise BagError(f"{path}: truncated or corrupt MCAP file (summary unreadable: "
-                       f"{type(exc).__name__}: {exc}); `stellar-cal info` shows what is "
-                       "readable") from None
-    if summary is None or summary.statistics is None:
-        raise BagError(f"{path} has no summary section: truncated or not closed (the "
-                       "recorder was killed?); `stellar-cal info` shows what is readable")
-    if not summary.channels:
-        raise BagError(f"{path} holds no channels")
-    return summary
+        with warnings.catch_warnings(), BagReader(path) as reader:
+            warnings.simplefilter("ignore")
+            if not reader.has_summary:
+                raise BagError(f"{path} has no summary section: truncated or not closed (the "
+                               "recorder was killed?); `stellar-cal info` shows what is "
+                               "readable")
+            topics = reader.topics()
+            start, end = reader.start_ns, reader.end_ns
+    except BagError as exc:
+        text = str(exc)
+        if "MCAP" in text and os.path.isfile(path) and "magic" in text.lower():
+            raise BagError(f"{path} is not an MCAP file, a rosbag2 directory or a ROS 1 bag") \
+                from None
+        raise
+    if not topics or start is None or end is None:
+        raise BagError(f"{path} holds no message")
+    return topics, start, end
 
 
 def message_class(type_name: str):
@@ -122,13 +137,16 @@ class PlayerNode(Node):
         for name, (default, text) in PARAMETERS.items():
             self.declare_parameter(name, default,
                                    ParameterDescriptor(description=text, read_only=True))
+        check_parameter_names(self)
         self.p = {name: _value(self, name) for name in PARAMETERS}
         self.p["topics"] = [t for t in (self.p["topics"] or []) if t]
         if not self.p["bag"]:
-            raise ValueError("parameter 'bag' is required")
+            raise ValueError("parameter 'bag' is required (`player --help` lists the "
+                             "parameters)")
         if self.p["rate"] < 0 or self.p["max_lag_s"] <= 0 or self.p["qos_depth"] < 1:
             raise ValueError("rate must be >= 0, max_lag_s > 0 and qos_depth >= 1")
-        self.summary = check_bag(self.p["bag"])  # BagError: nothing is published
+        # BagError: nothing is published
+        self.topics, self.start_ns, self.end_ns = check_bag(self.p["bag"])
         self.error: str | None = None  # why a playback stopped early
         self.consumer_ns = -1  # newest IMU stamp the consumer reported
         self.stats = PlayStats()
@@ -159,20 +177,21 @@ class PlayerNode(Node):
             self._cond.notify_all()
 
     def _make_publishers(self) -> dict[str, Any]:
-        summary = self.summary
         want = set(self.p["topics"]) if self.p["topics"] else None
-        for ch in summary.channels.values():
-            if want is not None and ch.topic not in want or ch.topic in self._pubs:
+        for topic, info in self.topics.items():
+            if want is not None and topic not in want or topic in self._pubs:
                 continue
-            schema = summary.schemas.get(ch.schema_id)
+            name = info.schema_name
             try:
-                cls = message_class(schema.name)
+                if "|" in name:
+                    raise ValueError("the topic's channels have different types")
+                cls = message_class(name)
             except (ImportError, AttributeError, ValueError) as exc:
-                self.get_logger().warning(f"{ch.topic}: type {schema.name} not available "
+                self.get_logger().warning(f"{topic}: type {name} not available "
                                           f"({exc}); not played")
                 continue
-            self._pubs[ch.topic] = (self.create_publisher(cls, ch.topic, self._qos),
-                                    schema.name == IMU_TYPE)
+            self._pubs[topic] = (self.create_publisher(cls, topic, self._qos),
+                                 normalize_type(name) == IMU_TYPE)
         return self._pubs
 
     def _wait_for_subscribers(self) -> None:
@@ -205,26 +224,24 @@ class PlayerNode(Node):
 
     def play(self) -> PlayStats:
         """Publish the bag (blocking; call from a thread other than the executor's)."""
-        from mcap.reader import make_reader
+        from stellar_cal_ros.io.reader import BagReader
 
         rate = float(self.p["rate"])
         clock_ns = int(self.p["clock_period_s"] * 1e9)
-        with open(self.p["bag"], "rb") as fh:
-            reader = make_reader(fh, validate_crcs=True)
+        with BagReader(self.p["bag"]) as reader:  # strict: damage stops the playback
             pubs = self._make_publishers()
             self._wait_for_subscribers()
-            stats = self.summary.statistics
-            start = stats.message_start_time + int(self.p["start_offset_s"] * 1e9)
-            end = stats.message_end_time + 1 if self.p["duration_s"] <= 0 else \
+            start = self.start_ns + int(self.p["start_offset_s"] * 1e9)
+            end = self.end_ns + 1 if self.p["duration_s"] <= 0 else \
                 start + int(self.p["duration_s"] * 1e9)
             t_wall0 = time.perf_counter()
             first_log = None
             next_clock = None
-            for _schema, channel, message in reader.iter_messages(
-                    topics=list(pubs), starting_at=start, ending_before=end, log_time_order=True):
-                if self._stop.is_set():
+            for topic, log_ns, data in reader.iter_raw(list(pubs)):
+                if self._stop.is_set() or log_ns >= end:
                     break
-                log_ns = message.log_time
+                if log_ns < start:
+                    continue
                 if first_log is None:
                     first_log = next_clock = log_ns
                 if rate > 0:
@@ -236,8 +253,7 @@ class PlayerNode(Node):
                     c.clock = rclpy.time.Time(nanoseconds=log_ns).to_msg()
                     self.clock_pub.publish(c)
                     next_clock = log_ns + clock_ns
-                pub, is_imu = pubs[channel.topic]
-                data = bytes(message.data)
+                pub, is_imu = pubs[topic]
                 if is_imu and rate == 0 and len(data) >= 12:
                     sec, nsec = struct.unpack_from("<iI" if data[1] == 1 else ">iI", data, 4)
                     imu_ns = sec * 1_000_000_000 + nsec
@@ -254,9 +270,28 @@ class PlayerNode(Node):
         return self.stats
 
 
+def usage() -> str:
+    """``player --help``: how to run it and its parameters."""
+    lines = ["usage: player --ros-args -p bag:=BAG [-p NAME:=VALUE ...] [--params-file "
+             "config/player.yaml] [-r /imu/data:=/my/imu ...]",
+             "       (ros2 run stellar_cal_ros player --ros-args ...)", "",
+             "Publish a bag (.mcap, rosbag2 directory or ROS 1 .bag) on its topics; see "
+             "doc/ros_nodes.md.", "", "parameters (read-only, set at start):"]
+    for name, (default, text) in PARAMETERS.items():
+        shown = "[]" if isinstance(default, Parameter.Type) else repr(default)
+        lines.append(f"  {name:24s} {text} (default {shown})")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Play the bag, then exit (or keep spinning if ``exit_when_done`` is false)."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
+    from stellar_cal_ros.nodes.runner import help_requested
+
+    args = list(argv if argv is not None else sys.argv)
+    if help_requested(args):
+        print(usage())
+        return 0
+    rclpy.init(args=args)
     node = None
     try:
         node = PlayerNode()

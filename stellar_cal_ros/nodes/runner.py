@@ -12,6 +12,33 @@ from rclpy.executors import ExternalShutdownException
 from stellar_cal_ros.errors import StellarCalError
 
 
+def help_requested(args: list[str]) -> bool:
+    """Whether ``-h``/``--help`` is among the arguments before ``--ros-args``."""
+    ros_args = args.index("--ros-args") if "--ros-args" in args else len(args)
+    return any(a in ("-h", "--help") for a in args[1:ros_args])
+
+
+def check_parameter_names(node: Any) -> None:
+    """Raise ValueError naming every ``-p NAME:=...`` the node does not declare.
+
+    rclpy keeps an override it has no declaration for and says nothing: a typo
+    (``outptu_file``) would leave the real parameter at its default (no file written at
+    shutdown).  Call after the node declared its parameters.
+    """
+    import difflib
+
+    declared = set(node._parameters)
+    unknown = [n for n in getattr(node, "_parameter_overrides", {})
+               if n not in declared and not n.startswith("qos_overrides.")]
+    if unknown:
+        hints = []
+        for n in sorted(unknown):
+            close = difflib.get_close_matches(n, sorted(declared), n=1, cutoff=0.6)
+            hints.append(f"{n!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+        raise ValueError(f"invalid parameters: unknown parameter {', '.join(hints)}; "
+                         f"`{node.get_name()} --help` lists them")
+
+
 def run_node(name: str, factory: Callable[[], Any], usage: Callable[[], str],
              argv: list[str] | None = None, executor: Callable[[], Any] | None = None,
              finish: Callable[[Any], None] | None = None) -> int:
@@ -22,8 +49,7 @@ def run_node(name: str, factory: Callable[[], Any], usage: Callable[[], str],
     (``EventsExecutor.spin()`` waits in C++ and does not return on SIGINT).
     """
     args = list(argv if argv is not None else sys.argv)
-    ros_args = args.index("--ros-args") if "--ros-args" in args else len(args)
-    if any(a in ("-h", "--help") for a in args[1:ros_args]):
+    if help_requested(args):
         print(usage())
         return 0
     rclpy.init(args=args)
