@@ -22,8 +22,12 @@ Usage::
 
     .venv/bin/python benchmarks/realsky_bundle.py      # the 4 frames of one camera
     .venv/bin/python benchmarks/realsky_bundle.py --frames FRAMES   # e.g. the 3 of one state
+    .venv/bin/python benchmarks/realsky_bundle.py --images DIR --frames FILES --fov DEG ...
 
-(FRAMES: ``jan1_g90_e100ms,jan1_g90_e50ms,test_5mp_g100_e50ms``.)
+(FRAMES: ``jan1_g90_e100ms,jan1_g90_e50ms,test_5mp_g100_e50ms``; a name without a suffix is
+a ``.jpg``.)  Your own frames: ``--images DIR --frames a.tif,b.tif,c.tif --fov 22 --stamps
+STAMPS.csv --site LAT,LON,H`` (``stellar-cal solve``'s stamps CSV and site: our pipeline
+then has the times and place, so refraction and aberration are candidates).
 """
 
 from __future__ import annotations
@@ -57,10 +61,15 @@ def default_images() -> Path:
 
 
 def load_grey(path: Path) -> np.ndarray:
-    """An image as a 2-D grey array (8-bit JPEG/PNG through Pillow)."""
-    from PIL import Image
+    """An image as a 2-D grey array (JPEG/PNG/TIFF, 8 or 16 bit, FITS: sky/images.py)."""
+    from stellar_cal_ros.sky.images import read_image
 
-    return np.asarray(Image.open(path).convert("L"))
+    return np.asarray(read_image(path).pixels)
+
+
+def image_path(images_dir: Path, name: str) -> Path:
+    """``name`` in ``images_dir`` (``.jpg`` when it has no suffix)."""
+    return images_dir / (name if Path(name).suffix else f"{name}.jpg")
 
 
 # ----------------------------------------------------------------------------- ours
@@ -88,9 +97,10 @@ def extract(img: np.ndarray, method: str) -> Centroids:
     return Centroids(uv, np.array([d.brightness for d in det]), np.zeros(len(det)))
 
 
-def identified_frames(images: list[np.ndarray], centroids: str
+def identified_frames(images: list[np.ndarray], centroids: str, fov_deg: float = FOV_DEG,
+                      stamps: list[float] | None = None
                       ) -> tuple[list[StarFrame], list[float], list[int], list[Centroids]]:
-    """Our identification of every image.
+    """Our identification of every image (``stamps``: POSIX s of each, else J2000.0 + k s).
 
     Returns the frames (identified stars only), the solved fields, the number of centroids
     detected and the detections.
@@ -98,7 +108,8 @@ def identified_frames(images: list[np.ndarray], centroids: str
     from stellar_cal_ros.sky.identify import Identifier, IdentifyConfig
 
     h, w = images[0].shape
-    ident = Identifier(None, IdentifyConfig(fov_deg=FOV_DEG, fov_max_error_deg=1.5), (w, h))
+    ident = Identifier(None, IdentifyConfig(fov_deg=fov_deg,
+                                            fov_max_error_deg=0.15 * fov_deg), (w, h))
     frames, fovs, detected, cents = [], [], [], []
     for k, img in enumerate(images):
         c = extract(img, centroids)
@@ -106,7 +117,8 @@ def identified_frames(images: list[np.ndarray], centroids: str
         res = ident.identify(c.uv, brightness=c.brightness)
         ok = res.identified
         frames.append(StarFrame(
-            stamp_ns=int((J2000_POSIX + k) * 1e9), frame_id="star_tracker_optical_frame",
+            stamp_ns=int(round(((stamps[k] if stamps else J2000_POSIX + k)) * 1e9)),
+            frame_id="star_tracker_optical_frame",
             exposure_time=0.0, catalog_id=res.catalog_id[ok].astype(np.uint32),
             right_ascension=res.right_ascension[ok], declination=res.declination[ok],
             uv=c.uv[ok], magnitude=res.magnitude[ok], sigma=c.sigma[ok]))
@@ -145,13 +157,19 @@ class Ours:
     path: list[str] = field(default_factory=list)
 
 
-def ours(frames: list[StarFrame], prior: Calibration, discover: bool = True) -> Ours:
-    """``discover --method bundle`` from the baseline, then the final model's CV."""
+def ours(frames: list[StarFrame], prior: Calibration, discover: bool = True,
+         site: tuple[float, float, float] | None = None) -> Ours:
+    """``discover --method bundle`` from the baseline, then the final model's CV.
+
+    ``site`` (lat, lon deg, height m) makes refraction and aberration candidates.
+    """
+    from stellar_cal_ros.core.earth import Site
     from stellar_cal_ros.diagnosis.run import diagnose
     from stellar_cal_ros.methods.bundle import run_bundle
 
     data = BagData(t0_ns=frames[0].stamp_ns, imu_t=np.zeros(0), imu_w=np.zeros((0, 3)),
-                   imu_f=np.zeros((0, 3)), frames=frames, site=None, head_temperature=None,
+                   imu_f=np.zeros((0, 3)), frames=frames,
+                   site=Site(*site) if site else None, head_temperature=None,
                    air_temperature=None, pressure=None)
     t0 = time.process_time()
     start = run_bundle(data, prior, [], cross_validate=False).calibration
@@ -195,7 +213,8 @@ class Row:
 
 
 def tetra3rs_loo(images: list[np.ndarray], models: list[tuple[str, int]],
-                 centroids: list[Centroids] | None = None, label: str = "") -> list[Row]:
+                 centroids: list[Centroids] | None = None, label: str = "",
+                 fov_deg: float = FOV_DEG) -> list[Row]:
     """tetra3rs alone: solve, ``calibrate_camera`` on the others, re-solve each frame.
 
     ``centroids``: the detections to use (default: tetra3rs's own extraction).
@@ -206,7 +225,7 @@ def tetra3rs_loo(images: list[np.ndarray], models: list[tuple[str, int]],
 
     h, w = images[0].shape
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    db = database.solver_database(*database.band_for(FOV_DEG))
+    db = database.solver_database(*database.band_for(fov_deg))
     cents, sols = [], []
     for k, img in enumerate(images):
         if centroids is None:
@@ -217,8 +236,9 @@ def tetra3rs_loo(images: list[np.ndarray], models: list[tuple[str, int]],
             order = np.argsort(-c.brightness, kind="stable")
             xy = np.column_stack([c.uv[order] - centre, c.brightness[order]])
         cents.append(xy)
-        sols.append(db.solve_from_centroids(xy, fov_estimate_deg=FOV_DEG,
-                                            fov_max_error_deg=1.5, image_shape=(h, w)))
+        sols.append(db.solve_from_centroids(xy, fov_estimate_deg=fov_deg,
+                                            fov_max_error_deg=0.15 * fov_deg,
+                                            image_shape=(h, w)))
     out = []
     for model, order in models:
         name = f"tetra3rs {model}" + (f" {order}" if model == "polynomial" else "") + label
@@ -251,23 +271,33 @@ T3_MODELS = (("radial", 4), ("polynomial", 2), ("polynomial", 4))
 
 
 def compare(names: list[str], images_dir: Path, discover: bool = True,
-            t3_models: tuple[tuple[str, int], ...] = T3_MODELS) -> dict:
-    """Every pipeline on the frames ``names`` (see the module docstring)."""
-    images = [load_grey(images_dir / f"{n}.jpg") for n in names]
+            t3_models: tuple[tuple[str, int], ...] = T3_MODELS, fov_deg: float = FOV_DEG,
+            stamps: dict[str, float] | None = None,
+            site: tuple[float, float, float] | None = None) -> dict:
+    """Every pipeline on the frames ``names`` (see the module docstring).
+
+    ``stamps`` ({file name: POSIX s}, ``stellar-cal solve``'s ``--stamps`` CSV) and ``site``
+    give our pipeline the times and place (refraction, aberration); tetra3rs uses neither.
+    """
+    paths = [image_path(images_dir, n) for n in names]
+    images = [load_grey(p) for p in paths]
+    times = [stamps[p.name] for p in paths] if stamps else None
     h, w = images[0].shape
     rows, extra = [], {}
     for centroids in ("psf", "tetra3rs"):
-        frames, fovs, detected, cents = identified_frames(images, centroids)
-        prior = pinhole_prior(w, h, float(np.nanmedian(fovs)))
-        mine = ours(frames, prior, discover)
+        frames, fovs, detected, cents = identified_frames(images, centroids, fov_deg, times)
+        fov_deg = float(np.nanmedian(fovs))
+        prior = pinhole_prior(w, h, fov_deg)
+        mine = ours(frames, prior, discover, site)
         rows.append(Row(f"ours: {centroids} centroids, bundle" + (" after discover" if discover
                                                                     else ""),
                         mine.held_out, mine.rejected, mine.stars))
         extra[centroids] = {"added": mine.added, "path": mine.path, "seconds": mine.seconds,
                             "identified": [len(f.uv) for f in frames], "detected": detected}
         if centroids == "psf":
-            rows += tetra3rs_loo(images, [t3_models[0]], cents, " on our psf centroids")
-    rows += tetra3rs_loo(images, list(t3_models))
+            rows += tetra3rs_loo(images, [t3_models[0]], cents, " on our psf centroids",
+                                 fov_deg)
+    rows += tetra3rs_loo(images, list(t3_models), fov_deg=fov_deg)
     return {"names": names, "rows": rows, "ours": extra}
 
 
@@ -305,12 +335,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--images", type=Path, default=default_images())
     p.add_argument("--frames", default=",".join(ONE_CAMERA))
     p.add_argument("--no-discover", action="store_true", help="the baseline model only")
+    p.add_argument("--fov", type=float, default=FOV_DEG, help="horizontal field, deg")
+    p.add_argument("--stamps", type=Path, default=None,
+                   help="file,utc CSV (as for stellar-cal solve): our pipeline gets the times")
+    p.add_argument("--site", default=None, metavar="LAT,LON,H",
+                   help="the site (deg, deg, m): refraction and aberration become candidates")
     args = p.parse_args(argv)
     if not args.images.is_dir():
         print(f"no real-sky images at {args.images}", file=sys.stderr)
         return 1
     logging.basicConfig(level=logging.WARNING)
-    out = compare(args.frames.split(","), args.images, not args.no_discover)
+    from stellar_cal_ros.sky.solve import parse_site, read_stamps
+
+    out = compare(args.frames.split(","), args.images, not args.no_discover,
+                  fov_deg=args.fov,
+                  stamps=read_stamps(args.stamps) if args.stamps else None,
+                  site=parse_site(args.site) if args.site else None)
     print_table(out)
     return 0
 

@@ -34,7 +34,7 @@ def bench():
 
 @pytest.fixture(scope="module")
 def images(bench):
-    return [bench.load_grey(IMAGES / f"{n}.jpg") for n in FRAMES]
+    return [bench.load_grey(bench.image_path(IMAGES, n)) for n in FRAMES]
 
 
 def _data(bench, frames):
@@ -63,7 +63,7 @@ def test_a_frame_of_another_camera_state_is_named(bench, images):
     """test2_g100_e50ms (another focus/zoom) is named as not sharing the others' camera."""
     from stellar_cal_ros.methods.bundle import run_bundle
 
-    odd = bench.load_grey(IMAGES / "test2_g100_e50ms.jpg")
+    odd = bench.load_grey(bench.image_path(IMAGES, "test2_g100_e50ms"))
     frames, fovs, _, _ = bench.identified_frames(images + [odd], "tetra3rs")
     prior = bench.pinhole_prior(1280, 960, float(np.nanmedian(fovs)))
     res = run_bundle(_data(bench, frames), prior, [])
