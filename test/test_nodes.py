@@ -784,3 +784,66 @@ def test_player_help_and_every_bag_format(tmp_path):
                            env=_node_env(), capture_output=True, text=True, timeout=120)
         assert p.returncode == 0, (bag, p.stderr)
         assert f"played {total} messages" in p.stdout + p.stderr, (bag, p.stderr)
+
+
+# ------------------------------------------------------------------------- TF out of the box
+def test_tf_static_carries_the_calibrated_installation(ros_context, excerpt, tmp_path):
+    """Issue 25.7: the set-up builds tf2_msgs where the wheels have none, so /tf_static
+    carries imu_link -> star_tracker_optical_frame: a subscriber's transform is the result
+    YAML's installation."""
+    from rclpy.qos import DurabilityPolicy
+    from tf2_msgs.msg import TFMessage
+
+    path, prior, ref, counts = excerpt
+    prefix = "/tf" + uuid.uuid4().hex[:8]
+    cal = make_calibrator(ros_context, prefix, tmp_path, estimate_rate_hz=0.0)
+    assert cal.pub_tf_static is not None
+    listener = rclpy.create_node("tf_listener_" + prefix[1:], context=ros_context)
+    got = []
+    listener.create_subscription(TFMessage, "/tf_static", got.append, QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    with Spinner(ros_context, cal, listener):
+        feed(cal.cal, bag_events(path))
+        cal.finish()  # writes result.yaml
+        cal._publish_estimate()
+        saved = load_calibration(tmp_path / "result.yaml")
+        q_want = saved.installation.as_quat()
+
+        def latest_matches():
+            if not got:
+                return False
+            r = got[-1].transforms[0].transform.rotation
+            return abs(abs(np.dot([r.x, r.y, r.z, r.w], q_want)) - 1.0) < 1e-12
+
+        wait_for(latest_matches, what="/tf_static with the result's installation")
+    tf = got[-1].transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("imu_link", "star_tracker_optical_frame")
+    t = tf.transform.translation
+    assert (t.x, t.y, t.z) == (0.0, 0.0, 0.0)
+    assert saved.installation.as_quat() == pytest.approx(ref.calibration.installation.as_quat(),
+                                                         abs=1e-9)
+    cal.destroy_node()
+    listener.destroy_node()
+
+
+def test_the_built_tf2_msgs_is_jazzys_on_the_wire():
+    """The TFMessage type hash (RIHS01) of the installed tf2_msgs is ROS 2 Jazzy's (the one
+    rosbags computes from its own Jazzy definitions): tf2 listeners, RViz and Foxglove on
+    another machine read our /tf_static."""
+    import json
+    import sys
+
+    from rosbags.typesys import Stores, get_typestore
+
+    try:  # an apt install (sourced); the PyPI venv sets no AMENT_PREFIX_PATH
+        from ament_index_python.packages import get_package_share_directory
+
+        share = Path(get_package_share_directory("tf2_msgs"))
+    except (OSError, LookupError):
+        share = Path(sys.prefix) / "share" / "tf2_msgs"
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for name in ("TFMessage", "TF2Error"):
+        doc = json.loads((share / "msg" / f"{name}.json").read_text())
+        ours = {h["type_name"]: h["hash_string"] for h in doc["type_hashes"]}
+        assert ours[f"tf2_msgs/msg/{name}"] == store.hash_rihs01(f"tf2_msgs/msg/{name}")

@@ -20,8 +20,9 @@ Published (node-relative names, i.e. ``/calibrator/...`` by default):
   distortion model;
 * ``~/installation`` (geometry_msgs/TransformStamped): ``imu_link → star_tracker_optical_frame``;
 * ``/tf_static`` (tf2_msgs/TFMessage, transient local, as a static transform broadcaster):
-  the same transform, re-sent when it changes (needs the tf2_msgs package; without it the
-  node says so once and publishes ``~/installation`` only);
+  the same transform, re-sent when it changes (needs the tf2_msgs package: every ROS 2
+  install has it, ``scripts/setup.sh`` builds it for the PyPI wheels; without it the node
+  warns once and publishes ``~/installation`` only);
 * ``~/residuals`` (stellar_cal_msgs/StarResidualArray): one per star frame received — empty
   with ``nis`` NaN when the frame was skipped or dropped (so it doubles as the
   acknowledgement the ``player`` uses for flow control);
@@ -86,7 +87,8 @@ from stellar_cal_ros.nodes.health import (
 from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
 from stellar_cal_ros.nodes.runner import check_parameter_names
 
-try:  # /tf_static: tf2_msgs comes with every ROS 2 install, not with the PyPI wheels
+try:  # /tf_static: tf2_msgs comes with every ROS 2 install; on the PyPI wheels (which have
+    # none) scripts/setup.sh builds it from vendor/tf2_msgs
     from tf2_msgs.msg import TFMessage
 except ImportError:  # pragma: no cover - depends on the installation
     TFMessage = None
@@ -240,8 +242,9 @@ class CalibratorNode(Node):
             TFMessage, "/tf_static", latched)
         self._tf_sent: tuple[float, ...] | None = None
         if TFMessage is None:
-            self.get_logger().info("tf2_msgs is not installed: the installation goes to "
-                                   "~/installation only, not to /tf_static")
+            self.get_logger().warning("tf2_msgs is not installed (run scripts/setup.sh, "
+                                      "which builds it): the installation goes to "
+                                      "~/installation only, not to /tf_static")
         self.pub_installation = self.create_publisher(TransformStamped, "~/installation",
                                                       out_qos)
         self.pub_residuals = self.create_publisher(StarResidualArray, "~/residuals", out_qos)
