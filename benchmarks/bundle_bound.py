@@ -103,9 +103,10 @@ def monte_carlo(w: dict, runs: int, seed: int = 7, images: bool = False) -> dict
     adding Gaussian noise; the bound is then that of the extractor's stated σ, run by run.
     """
     from stellar_cal_ros.methods import bundle as bd
+    from stellar_cal_ros.methods.bundle_bound import crlb_bundle
 
     model, theta, sp = w["model"], w["theta"], w["sigma_prior"]
-    crlb = bd.crlb_bundle(w["frames"], model, theta, w["attitudes"], sp)
+    crlb = crlb_bundle(w["frames"], model, theta, w["attitudes"], sp)
     rng = np.random.default_rng(seed)
     P = model.size
     err, sig, eff, nees, s2s, bounds = [], [], [], [], [], []
@@ -115,7 +116,7 @@ def monte_carlo(w: dict, runs: int, seed: int = 7, images: bool = False) -> dict
         cam = w["sim"].prior.camera
         frames = (rendered(w["frames"], rng, (cam.width, cam.height)) if images
                   else noisy(w["frames"], rng, w["noise_px"]))
-        bound = bd.crlb_bundle(frames, model, theta, w["attitudes"], sp) if images else crlb
+        bound = crlb_bundle(frames, model, theta, w["attitudes"], sp) if images else crlb
         fit, _ = bd.fit_bundle(model, frames, th_prior, w["attitudes"], th_prior, sp)
         cov, s2 = fit.covariance()
         e = fit.theta - theta

@@ -24,8 +24,8 @@ the final fit runs on the inliers with the chosen loss.
 Covariance: ``(S / s² + Λ_prior)⁻¹`` with ``S`` the camera block of the star information
 with the attitudes marginalised (Schur complement) and ``s²`` the variance factor of the
 star rows (σ̂ = s · the stated σ): honest when the stated centroid σ is wrong by a factor.
-:func:`information_at` gives the same matrix at given parameters without ``s²`` — at the
-truth, the Cramér–Rao bound (:func:`crlb_bundle`).
+:func:`~stellar_cal_ros.methods.bundle_bound.information_at` gives the same matrix at given
+parameters without ``s²`` — at the truth, the Cramér–Rao bound (``bundle_bound.crlb_bundle``).
 
 Cross-validation (:mod:`~stellar_cal_ros.methods.bundle_cv`): each frame held out in turn.
 """
@@ -780,24 +780,3 @@ def residual_table(fit: Fit, frames: list[BundleFrame], s: float) -> dict[str, n
             put(name, np.zeros(n))
         put("head_temperature", np.full(n, f.ctx.head_temperature_c))
     return {k: np.concatenate(v) for k, v in cols.items()}
-
-
-def information_at(model: StarModel, frames: list[BundleFrame], theta: np.ndarray,
-                   attitudes: list[np.ndarray], sigma_prior: np.ndarray) -> np.ndarray:
-    """Fisher information of θ (attitudes marginalised, prior included) at given values.
-
-    With the stated σ of the frames (no variance factor): at the truth, its inverse is the
-    Cramér–Rao bound of the bundle.
-    """
-    b = Bundle(model, frames, theta, sigma_prior)
-    ne = b.normal(theta, attitudes)
-    S, _, _ = Bundle.schur(ne, 0.0, stars_only=True)
-    return S + np.diag(1.0 / sigma_prior ** 2)
-
-
-def crlb_bundle(frames: list[BundleFrame], model: StarModel, theta_true: np.ndarray,
-                attitudes_true: list[np.ndarray], sigma_prior: np.ndarray) -> np.ndarray:
-    """Cramér–Rao bound of θ: the inverse of :func:`information_at` at the truth."""
-    cov = _equilibrated_inverse(information_at(model, frames, theta_true, attitudes_true,
-                                               sigma_prior))
-    return 0.5 * (cov + cov.T)
