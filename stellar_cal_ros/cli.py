@@ -4,8 +4,8 @@ Commands
 --------
 simulate   write a synthetic contract bag + ``*.truth.yaml`` + ``*.prior.yaml``
 info       list the topics, message counts and time span of a bag
-replay     Kalman-filter calibration over a bag (psce, swaying_base)
-batch      attitude-correlated-frames batch calibration
+replay     Kalman-filter calibration over a bag (the filter methods: psce, swaying_base ...)
+batch      batch calibration over a whole bag (the batch methods: acf ...)
 diagnose   compare model and measurements, rank missing effects (--auto: add them)
 discover   diagnose --auto
 report     plots and an HTML page of one calibration run
@@ -15,6 +15,9 @@ demo       the built-in end-to-end demonstration
 budget     attitude error budget of a result or a spec (stellar_cal_ros.budget)
 campaign   many simulate/replay/diagnose/budget runs on Dask (stellar_cal_ros.campaign)
 solve      star images -> identified centroids in a contract bag + prior (stellar_cal_ros.sky)
+
+The ``--method`` choices are the registered methods (:mod:`stellar_cal_ros.methods.registry`);
+``--method-module FILE.py`` adds a user's method file.
 
 Every error raised on purpose (:class:`stellar_cal_ros.errors.StellarCalError`) and every
 operating-system error (an output path that cannot be written: a file in the way of a
@@ -178,9 +181,22 @@ def _load_effect_modules(paths: list[Path] | None) -> None:
         log.info("loaded effects %s from %s", ", ".join(ids), path)
 
 
+def _load_method_modules(argv: Sequence[str]) -> None:
+    """Register the ``--method-module`` files before the parser checks ``--method``."""
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    pre.add_argument("--method-module", type=Path, action="append", default=[])
+    known, _ = pre.parse_known_args(list(argv))
+    if known.method_module:
+        from stellar_cal_ros.methods import registry
+
+        for path in known.method_module:
+            name = registry.load_method_module(path)
+            log.info("loaded method %s from %s", name, path)
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from stellar_cal_ros.io.calibration import load_calibration, save_calibration
-    from stellar_cal_ros.methods.driver import FILTERS
+    from stellar_cal_ros.methods import registry
     from stellar_cal_ros.methods.replay import replay
 
     _load_effect_modules(args.effect_module)
@@ -190,7 +206,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
         prior = prior_from_result(prior, load_calibration(args.init_from), args.init_from)
     effects = _effect_list(args.effects)
-    config = FILTERS[args.method][1]()
+    config = registry.get(args.method).config_cls()
     if args.centroid_sigma is not None:
         config.centroid_sigma_px = args.centroid_sigma
     if args.gyro_arw is not None:
@@ -212,9 +228,11 @@ def print_replay_summary(result, prior) -> None:
     import numpy as np
 
     from stellar_cal_ros.core.units import ARCSEC, DEG_PER_HOUR, MICRO_G
-    from stellar_cal_ros.methods import models
+    from stellar_cal_ros.effects.base import Stage
+    from stellar_cal_ros.methods import models, registry
     from stellar_cal_ros.methods.results import mismatch_text
 
+    spec = registry.get(result.method)
     st = result.stats.summary()
     cons = result.calibration.extra.get("consistency", {})
     print(f"replayed {result.duration:.0f} s in {result.read_seconds:.2f} s reading + "
@@ -229,7 +247,7 @@ def print_replay_summary(result, prior) -> None:
     counts = ", ".join(f"{k}={v}" for k, v in result.counters.items() if v)
     print(f"counts: {counts}")
     extra = list(result.effects)
-    print("model: " + ", ".join(models.BASELINES[result.method])
+    print("model: " + ", ".join(spec.baseline)
           + (" + " + ", ".join(extra) if extra else ""))
     hint = models.uncertain_not_in_model(prior, result.method,
                                          [e.id for e in result.filter.model.effects])
@@ -254,7 +272,7 @@ def print_replay_summary(result, prior) -> None:
                                                    strict=True)))
     print(f"installation quaternion_xyzw: {np.round(cal.installation.as_quat(), 9).tolist()}")
     print(f"gyro bias: {np.round(np.asarray(cal.gyro_bias) / DEG_PER_HOUR, 5).tolist()} deg/h"
-          + ("" if result.method == "psce" else "; accelerometer bias: "
+          + ("" if Stage.ACCEL not in spec.stages else "; accelerometer bias: "
              f"{np.round(np.asarray(cal.accel_bias) / MICRO_G, 2).tolist()} ug"))
 
 
@@ -297,52 +315,31 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     from stellar_cal_ros.io.calibration import save_calibration
     from stellar_cal_ros.io.residuals import write_residuals
-    from stellar_cal_ros.methods.acf import ACF_STAGES, ARCSEC, parse_effects, run_acf
+    from stellar_cal_ros.methods import registry
     from stellar_cal_ros.progress import progress
 
+    spec = registry.get(args.method)
     prior = load_prior(args.prior)
-    if args.method == "bundle":
-        from stellar_cal_ros.bundle_cli import cmd_batch_bundle
-
-        return cmd_batch_bundle(args, prior)
     if args.residuals is not None and args.residuals.suffix.lower() == ".parquet":
         write_residuals(args.residuals, {"probe": np.zeros(0)})  # fail early without pyarrow
-    with progress(len(ACF_STAGES), "acf", unit="stages", enabled=not args.quiet) as p:
-        def stage_done(name: str) -> None:
+    steps = spec.steps
+    options = {"loss": args.loss, "outlier_probability": args.outlier_probability or None}
+    with progress(max(len(steps), 1), args.method, unit="stages",
+                  enabled=not args.quiet) as p:
+        def step_done(name: str) -> None:
             p.update(1)
-            if p.n < len(ACF_STAGES):
-                p.note(f"acf stage {p.n + 1}/{len(ACF_STAGES)}: {ACF_STAGES[p.n]}")
+            if p.n < len(steps):
+                p.note(f"{args.method} stage {p.n + 1}/{len(steps)}: {steps[p.n]}")
 
-        p.note(f"acf stage 1/{len(ACF_STAGES)}: {ACF_STAGES[0]}", eta=False)
-        res = run_acf(args.bag, prior, parse_effects(args.effects), loss=args.loss,
-                      outlier_probability=args.outlier_probability or None,
-                      progress=stage_done)
+        if steps:
+            p.note(f"{args.method} stage 1/{len(steps)}: {steps[0]}", eta=False)
+        res = spec.batch(args.bag, prior, _effect_list(args.effects), options, step_done)
     if args.residuals is not None:
         write_residuals(args.residuals, res.residuals)
         note_residual_file(args.residuals)
-    save_calibration(res.calibration, args.output,
-                     covariance=(res.parameter_names[3:], res.covariance[3:, 3:]))
-    gated = int(np.sum(res.residuals["gated"]))
-    q = res.quality
-    print(f"acf: {len(res.frames)} frames, {len(res.residuals['du']) - gated} stars "
-          f"({gated} gated: {q.stars_misidentified} misidentified, {q.stars_outliers} "
-          f"outliers), RMS |Δuv| {res.rms_px:.4f} px, σ̂ {res.sigma_px:.4f} px, "
-          f"{res.iterations} evaluations, loss {res.loss}")
-    if q.counts():
-        print(f"data: {q.summary()}")
-    for reason in res.degraded:
-        print(f"result degraded: {reason}")
-    for name, value, sigma in zip(res.parameter_names[3:], res.theta, res.sigma[3:],
-                                  strict=True):
-        unit = ""
-        if name.startswith("installation."):
-            value, sigma, unit = value / ARCSEC, sigma / ARCSEC, " arcsec (vs prior)"
-        print(f"  {name:28s} {value:+.8g} ± {sigma:.3g}{unit}")
-    eq = res.derived
-    if eq:
-        print("equivalent principal point: ({:.3f}, {:.3f}) +- ({:.3f}, {:.3f}) px".format(
-            *eq["equivalent_principal_point_px"], *eq["equivalent_principal_point_sigma_px"]))
-    print(res.observability.summary())
+    save_calibration(res.calibration, args.output, covariance=res.covariance)
+    for line in res.lines:
+        print(line)
     print(f"wrote {args.output}" + (f" and {args.residuals}" if args.residuals else "")
           + f" (covariance: {args.output.with_suffix('').name}.covariance.yaml)")
     return 0
@@ -355,11 +352,34 @@ def _not_yet(issue: int, what: str):
     return run
 
 
-def _run_arguments(p: argparse.ArgumentParser, bag: str, methods: list[str], method: str,
+class _HelpFormatter(argparse.HelpFormatter):
+    """Help that lists the registered methods (read only when help is printed)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        from stellar_cal_ros.methods.registry import MethodNames
+
+        text = super()._get_help_string(action)
+        if isinstance(action.choices, MethodNames):
+            text = f"{text}: {action.choices.describe().replace('%', '%%')}"
+        return text
+
+
+def _method_arguments(p: argparse.ArgumentParser, what: str, **select) -> None:
+    """``--method`` (choices: the registered methods of ``select``) and ``--method-module``."""
+    from stellar_cal_ros.methods.registry import MethodNames
+
+    p.add_argument("--method", required=True, choices=MethodNames(**select), metavar="METHOD",
+                   help=what)
+    p.add_argument("--method-module", type=Path, action="append", metavar="FILE.py",
+                   help="Python file declaring a method (METHOD = MethodSpec(...), "
+                        "doc/workflow.md); repeatable")
+
+
+def _run_arguments(p: argparse.ArgumentParser, bag: str, kind: str, method: str,
                    output: str, effects: str) -> None:
     """The arguments every calibration command has: bag, method, prior, output, effects."""
     p.add_argument("bag", type=Path, help=bag)
-    p.add_argument("--method", required=True, choices=methods, help=method)
+    _method_arguments(p, method, kind=kind)
     p.add_argument("--prior", required=True, type=Path,
                    help="PRIOR.yaml: nominal values and their sigmas (doc/interfaces.md)")
     p.add_argument("-o", "--output", required=True, type=Path, help=output)
@@ -407,11 +427,10 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("bag", type=Path, help="a .mcap file, a rosbag2 directory or a ROS 1 .bag")
     i.set_defaults(func=_cmd_info)
 
-    r = sub.add_parser("replay", help="Kalman-filter calibration over a bag")
-    _run_arguments(r, "contract bag to calibrate on", ["psce", "swaying_base", "traditional"],
-                   "psce: Tan et al. (rotating vehicle); swaying_base: Zhang et al. (ship at "
-                   "sea, accelerometer-levelled); traditional: zero-velocity reference (for "
-                   "comparison)", "RESULT.yaml to write (plus "
+    r = sub.add_parser("replay", help="Kalman-filter calibration over a bag",
+                       formatter_class=_HelpFormatter)
+    _run_arguments(r, "contract bag to calibrate on", "filter",
+                   "the filter method", "RESULT.yaml to write (plus "
                    "RESULT.history.csv)", "comma-separated effect ids to add to the "
                    "method's baseline model")
     r.add_argument("--init-from", type=Path, default=None, metavar="RESULT.yaml",
@@ -433,15 +452,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_replay)
 
-    b = sub.add_parser("batch", help="batch least squares: attitude-correlated frames (acf) "
-                                     "or star frames alone (bundle)")
-    _run_arguments(b, "contract bag (acf: a turntable or slew sequence with IMU; bundle: "
-                   "star frames, IMU not needed)", ["acf", "bundle"],
-                   "acf: attitude-correlated frames, Liu et al.; bundle: one free attitude "
-                   "per frame and one camera, with leave-one-frame-out cross-validation",
-                   "RESULT.yaml to write (plus RESULT.covariance.yaml)",
-                   "comma-separated effect ids (acf: to estimate, default the ACF set; "
-                   "bundle: added to focal_length, principal_point, radial_k1k2)")
+    b = sub.add_parser("batch", help="batch least squares over a whole bag (acf, bundle ...)",
+                       formatter_class=_HelpFormatter)
+    _run_arguments(b, "contract bag (e.g. a turntable or slew sequence)", "batch",
+                   "the batch method", "RESULT.yaml to write (plus "
+                   "RESULT.covariance.yaml)", "comma-separated effect ids to add to the "
+                   "method's set (-id removes one)")
     b.add_argument("--residuals", type=Path, default=None,
                    help="RES.csv (or .parquet): per-star residuals of the fit")
     b.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"],
@@ -456,13 +472,11 @@ def build_parser() -> argparse.ArgumentParser:
     for name, text in (("diagnose", "compare model and measurements (--auto: add effects "
                                     "until nothing is significant)"),
                        ("discover", "diagnose --auto: forward selection of missing effects")):
-        d = sub.add_parser(name, help=text)
+        d = sub.add_parser(name, help=text, formatter_class=_HelpFormatter)
         d.add_argument("bag", type=Path, help="contract bag to diagnose on")
         d.add_argument("--calibration", required=True, type=Path,
                        help="RESULT.yaml (or a prior) the diagnosis starts from")
-        d.add_argument("--method", required=True, choices=["psce", "swaying_base", "bundle"],
-                       help="the method whose model is diagnosed (bundle: held-out "
-                            "residuals of each frame take the innovations' place)")
+        _method_arguments(d, "the method whose model is diagnosed", diagnosable=True)
         d.add_argument("--effects", default="",
                        help="comma-separated effect ids already in the model (as for replay)")
         d.add_argument("-o", "--output", required=True, type=Path, help="REPORT_DIR")
@@ -584,6 +598,12 @@ def os_error_text(exc: OSError) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``stellar-cal`` and ``python -m stellar_cal_ros``."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        _load_method_modules(argv)
+    except StellarCalError as exc:
+        print(f"stellar-cal: error: {exc}", file=sys.stderr)
+        return 1
     parser = build_parser()
     args = parser.parse_args(argv)
     from datetime import UTC, datetime
@@ -592,7 +612,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from stellar_cal_ros.io.identity import deferred_bag_identity
 
     bag = getattr(args, "bag", None)
-    set_provenance(command="stellar-cal " + " ".join(sys.argv[1:] if argv is None else argv),
+    set_provenance(command="stellar-cal " + " ".join(argv),
                    version=__version__, date=datetime.now(UTC).isoformat(
                        timespec="seconds"), bag=bag, bag_id=deferred_bag_identity(bag),
                    prior=getattr(args, "prior", None))

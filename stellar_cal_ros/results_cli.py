@@ -96,6 +96,24 @@ def check_run_files(cal, result: Path, residuals: Path | None, bag: Path | None,
         else:
             log.warning("%s records no bag identity: cannot check that it was computed from "
                         "%s", result, bag)
+def _rerun_method(cal) -> str:
+    """The method a result is re-run with: its own if it can be, else PSCE."""
+    from stellar_cal_ros.methods import registry
+
+    spec = registry.find(cal.method)
+    return spec.name if spec is not None and spec.diagnosable else "psce"
+
+
+def _settled_fraction(cal, given: Path | None) -> float:
+    """The part of the residuals that is settled (the report's evaluation window).
+
+    A filter's innovations after convergence (the second half); a batch fit's residuals are
+    all final (and so are given files of results that are not a filter's).
+    """
+    from stellar_cal_ros.methods import registry
+
+    spec = registry.get(_rerun_method(cal)) if given is None else registry.find(cal.method)
+    return 0.5 if spec is not None and spec.kind == "filter" else 1.0
 
 
 def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
@@ -114,7 +132,7 @@ def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
 
     if "data" not in data_cache:
         data_cache["data"] = read_bag_data(bag)
-    method = cal.method if cal.method in ("psce", "swaying_base") else "psce"
+    method = _rerun_method(cal)
     spec = method_spec(method)
     effects = [e for e in cal.estimated if e not in spec.baseline]
     log.info("re-running %s on %s from %s (effects: %s)", method, bag, result,
@@ -133,8 +151,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     res, rerun_hist, source = _residuals_for(cal, args.result, args.residuals, args.bag, cache)
     hist = _history_for(args.result, args.history) or rerun_hist
     summary = json.loads(args.diagnosis.read_text()) if args.diagnosis else None
-    # a filter's innovations settle after convergence; a batch fit's residuals are all final
-    fraction = 1.0 if cal.method in ("acf", "iac") else 0.5
+    fraction = _settled_fraction(cal, args.residuals)
     path = write_run_report(args.output, cal, res, history=hist, summary=summary,
                             truth=_truth_for(args.bag), result_path=args.result,
                             bag=args.bag, residual_source=source, fraction=fraction)

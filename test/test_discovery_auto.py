@@ -20,7 +20,7 @@ import pytest
 from scipy import stats as sps
 
 from stellar_cal_ros.diagnosis import reliability
-from stellar_cal_ros.diagnosis.discover import MethodSpec, method_spec, rank_candidates
+from stellar_cal_ros.diagnosis.discover import DiagnosisSpec, method_spec, rank_candidates
 from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.diagnosis.runstats import RunStats
 from stellar_cal_ros.effects.base import Effect, Stage
@@ -161,7 +161,7 @@ def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns(
         return {e: ((500.0 if e == "time_offset" else 0.5), 1, np.eye(1) * 1e8)
                 for e in candidates}
 
-    spec = MethodSpec("psce", base_spec.baseline, base_spec.stages, runner, screen)
+    spec = DiagnosisSpec("psce", base_spec.baseline, base_spec.stages, runner, screen)
     base, results = rank_candidates(data, sim.prior, spec, [],
                                     ["time_offset", "pixel_aspect"])
     assert base.residuals is not None and isinstance(base, RunStats)

@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 from stellar_cal_ros.diagnosis import stats
-from stellar_cal_ros.diagnosis.discover import MethodSpec, method_spec, rank_candidates
+from stellar_cal_ros.diagnosis.discover import DiagnosisSpec, method_spec, rank_candidates
 from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay_psce, truth_parameters
@@ -185,7 +185,7 @@ def _reduced_spec(dropped):
     """The PSCE method with ``dropped`` removed from its baseline."""
     spec = method_spec("psce")
     baseline = tuple(e for e in spec.baseline if e != dropped)
-    return MethodSpec(spec.name, baseline, spec.stages,
+    return DiagnosisSpec(spec.name, baseline, spec.stages,
                       lambda d, p, e, **kw: replay_psce(d, p, e, baseline=baseline, **kw))
 
 

@@ -70,23 +70,20 @@ def simulate_run(run: dict[str, Any]):
 
 def replay_bag(bag, prior, method: str, effects: list[str] | None = None,
                config: dict[str, Any] | None = None):
-    """Calibrate a bag (path or in-memory ``BagData``) with ``method``; return the ReplayResult.
+    """Calibrate a bag (path or in-memory ``BagData``) with a filter method; the ReplayResult.
 
-    ``config`` holds fields of the method's configuration (``PsceConfig`` or
-    ``SwayingConfig``).
+    ``config`` holds fields of the method's configuration (its registered ``config_cls``:
+    ``PsceConfig``, ``SwayingConfig`` ...).
     """
     from stellar_cal_ros.errors import ModelError
+    from stellar_cal_ros.methods import registry
+    from stellar_cal_ros.methods.replay import replay
 
-    if method == "psce":
-        from stellar_cal_ros.methods.psce import PsceConfig
-        from stellar_cal_ros.methods.replay import replay_psce
-
-        return replay_psce(bag, prior, list(effects or []), _config(PsceConfig, config))
-    if method == "swaying_base":
-        from stellar_cal_ros.methods.swaying import SwayingConfig, replay_swaying
-
-        return replay_swaying(bag, prior, list(effects or []), _config(SwayingConfig, config))
-    raise ModelError(f"campaign: method {method!r} is not one of psce, swaying_base")
+    spec = registry.get(method)
+    if spec.kind != "filter":
+        raise ModelError(f"campaign: method {method!r} is not a filter method (one of "
+                         f"{', '.join(registry.names('filter'))})")
+    return replay(bag, prior, method, list(effects or []), _config(spec.config_cls, config))
 
 
 def diagnose_bag(bag, calibration, method: str, effects: list[str], out_dir: Path,

@@ -68,7 +68,8 @@ from stellar_cal_ros.diagnosis.runstats import RunStats
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.io.calibration import Calibration
-from stellar_cal_ros.methods.replay import BagData, ReplayResult
+from stellar_cal_ros.methods import registry as methods
+from stellar_cal_ros.methods.replay import BagData, ReplayResult, method_runner
 
 log = logging.getLogger(__name__)
 
@@ -91,8 +92,8 @@ PHYSICAL_TOL_FRACTION = 0.25
 
 
 @dataclass
-class MethodSpec:
-    """How the diagnosis runs one estimation method.
+class DiagnosisSpec:
+    """How the diagnosis runs one estimation method (from its registered spec).
 
     ``runner`` is the only way the diagnosis calls an estimator; ``screen`` turns its run
     with the candidates as consider parameters into their score tests
@@ -107,60 +108,15 @@ class MethodSpec:
     screen: screening.ScreenFn | None = None
 
 
-def _runner(method: str) -> Runner:
-    """The runner ``(data, prior, effects, keep_tables, eval_fraction, consider, gyro_fault)``.
+def method_spec(method: str) -> DiagnosisSpec:
+    """The :class:`DiagnosisSpec` of a registered method that can be re-run on a bag.
 
-    Returns the ReplayResult.  Without ``keep_tables`` the run keeps only its running
-    statistics (the evaluation window's log-likelihood, RMS, NIS, whiteness): no residual
-    table, no history.  ``consider``: candidates tracked for the screening's score tests.
+    Every library effect is a candidate, except those acting in a stage the method does not
+    model (the accelerometer's for PSCE).
     """
-    def run(data: BagData, prior: Calibration, effects: list[str],
-            keep_tables: bool = False, eval_fraction: float = 0.5,
-            consider: list[str] | None = None, gyro_fault: str = "raise") -> ReplayResult:
-        from stellar_cal_ros.methods.replay import replay
-
-        if not len(data.imu_t):
-            from stellar_cal_ros.errors import BagError
-
-            raise BagError(f"{method} needs /imu/data, absent from the bag (the bundle "
-                           "method calibrates star frames alone)")
-        return replay(data, prior, method, effects, keep_tables=keep_tables,
-                      eval_fraction=eval_fraction, consider=consider, gyro_fault=gyro_fault)
-
-    return run
-
-
-_psce_runner = _runner("psce")
-_swaying_runner = _runner("swaying_base")
-
-
-_CAMERA_SIDE = (Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA)
-
-
-def method_spec(method: str) -> MethodSpec:
-    """The :class:`MethodSpec` of ``psce`` or ``swaying_base``.
-
-    Every library effect is a candidate for both methods, except the accelerometer's for
-    PSCE (it has no accelerometer model).
-    """
-    from stellar_cal_ros.errors import ModelError
-    from stellar_cal_ros.methods.psce import BASELINE_EFFECTS
-
-    if method == "psce":
-        return MethodSpec("psce", BASELINE_EFFECTS, _CAMERA_SIDE, _psce_runner,
-                          screening.screen_function("psce"))
-    if method == "swaying_base":
-        from stellar_cal_ros.methods import swaying
-
-        return MethodSpec("swaying_base", tuple(swaying.BASELINE_EFFECTS),
-                          _CAMERA_SIDE + (Stage.ACCEL,), _swaying_runner,
-                          screening.screen_function("swaying_base"))
-    if method == "bundle":  # held-out residuals as innovations; every candidate re-run
-        from stellar_cal_ros.methods import bundle, bundle_runs
-
-        return MethodSpec("bundle", bundle.BASELINE_EFFECTS, bundle.STAGES,
-                          bundle_runs.run_for_diagnosis, None)
-    raise ModelError(f"diagnose: unknown method {method!r} (psce | swaying_base | bundle)")
+    spec = methods.get(method)
+    return DiagnosisSpec(spec.name, spec.baseline, spec.stages, method_runner(method),
+                         screening.screen_function(method))
 
 
 @dataclass
@@ -305,7 +261,7 @@ def prior_uncertain(calibration: Calibration, in_model: set[str]) -> list[str]:
     return [e for e in found if e not in in_model]
 
 
-def _applicable(effect_id: str, spec: MethodSpec, facts: dict[str, Any] | BagData) -> str:
+def _applicable(effect_id: str, spec: DiagnosisSpec, facts: dict[str, Any] | BagData) -> str:
     if isinstance(facts, BagData):
         facts = {"site": facts.site is not None,
                  "head_temperature": facts.head_temperature is not None}
@@ -332,7 +288,7 @@ class Round:
     """What every round of one diagnosis shares."""
 
     runs: Runs
-    spec: MethodSpec
+    spec: DiagnosisSpec
     facts: dict[str, Any]
     fraction: float = 0.5
     user_prior: Calibration | None = None  #: the calibration the user gave (its sigmas)
@@ -501,7 +457,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
 def rank_candidates(
     data: BagData,
     calibration: Calibration,
-    spec: MethodSpec,
+    spec: DiagnosisSpec,
     model_effects: list[str],
     candidates: list[str] | None = None,
     evaluation_fraction: float = 0.5,
@@ -610,7 +566,7 @@ def hidden_effects(base: RunStats, results: list[CandidateResult]) -> list[dict[
 
 
 def summary_dict(base: RunStats, results: list[CandidateResult],
-                 unexplained: list, spec: MethodSpec,
+                 unexplained: list, spec: DiagnosisSpec,
                  model_effects: list[str], evaluation_fraction: float) -> dict[str, Any]:
     """``diagnosis.json`` (contract §5), plus extra keys readers may ignore."""
     from stellar_cal_ros.methods.results import data_quality

@@ -11,7 +11,8 @@ and plotted).
 :func:`evaluate` is the function the workers execute.  It takes the bag as a path (read
 once per worker and cached), as the bag's bytes (when the workers do not share the
 parent's filesystem) or as an in-memory :class:`~stellar_cal_ros.methods.replay.BagData`,
-and calls the estimator only through :attr:`MethodSpec.runner`.  :func:`run_statistics` is
+and calls the estimator only through :attr:`~stellar_cal_ros.diagnosis.discover.
+DiagnosisSpec.runner`.  :func:`run_statistics` is
 the single place that reads a :class:`~stellar_cal_ros.methods.replay.ReplayResult`.
 """
 

@@ -17,7 +17,7 @@ run per part, concurrently: each part repeats the filter (cheap) and carries the
 sensitivity of its own candidates only (the expensive part); the score test of a candidate
 uses its own block of ``s`` and ``I`` only, so the split changes no number.
 
-The score function is pluggable: :attr:`~stellar_cal_ros.diagnosis.discover.MethodSpec.
+The score function is pluggable: :attr:`~stellar_cal_ros.diagnosis.discover.DiagnosisSpec.
 screen` is called where the run executes, on the run made with the candidates as consider
 parameters::
 
@@ -48,6 +48,7 @@ from scipy import stats as sps
 
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import Stage
+from stellar_cal_ros.methods import registry as methods
 
 #: a candidate is re-run when its score test's unadjusted p-value is below this
 SCREEN_P = 0.05
@@ -118,8 +119,13 @@ def kernel_scores(result, candidates: list[str]) -> dict[str, tuple]:
 
 
 def screen_function(method: str) -> ScreenFn | None:
-    """The screening of ``method``: the kernel's one-pass score test (both filters)."""
-    return kernel_scores
+    """The screening of ``method``: the kernel's one-pass score test, or None.
+
+    The score test needs runs that carry consider parameters
+    (:attr:`~stellar_cal_ros.methods.registry.MethodSpec.consider`: the filter methods); for
+    any other method every candidate is re-run.
+    """
+    return kernel_scores if methods.get(method).consider else None
 
 
 def is_local(run) -> bool:

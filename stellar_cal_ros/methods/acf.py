@@ -71,7 +71,6 @@ from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.core.attitude import wahba
 from stellar_cal_ros.core.rotation import left_jacobian, so3_exp
-from stellar_cal_ros.core.strapdown import attitude_increments, propagate_attitude
 from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.effects.registry import create_many
 from stellar_cal_ros.errors import ModelError, StellarCalError
@@ -86,10 +85,13 @@ from stellar_cal_ros.methods.acf_covariance import (
 from stellar_cal_ros.methods.acf_data import (
     AcfData,
     DataQuality,
+    GyroChain,
     check_gyro_against_stars,
     check_overlap,
     load_acf_data,
     report_quality,
+    select_frames,
+    unit_vectors,
 )
 from stellar_cal_ros.methods.acf_robust import (
     _gate_outliers,
@@ -100,6 +102,7 @@ from stellar_cal_ros.methods.acf_robust import (
     beyond_gate,
 )
 from stellar_cal_ros.methods.init_from import prior_from_result  # noqa: F401 (re-exported)
+from stellar_cal_ros.methods.registry import BatchOutput, MethodSpec
 from stellar_cal_ros.methods.star_model import StarModel
 from stellar_cal_ros.sky.identify import identify_frames, needs_identification
 
@@ -123,57 +126,6 @@ OUTLIER_PROBABILITY = 1.0 - 1e-6
 A wrong identity is off by degrees (thousands of σ); the gate's false alarms (10⁻⁶ a star)
 leave clean runs of up to ~10⁵ stars untouched in practice."""
 ARCSEC = np.pi / 180.0 / 3600.0
-
-
-# ============================================================================ gyro chain
-class GyroChain:
-    """Attitude changes from one propagation of the IMU, interpolated to any time.
-
-    ``R(t)`` is the body attitude in the frame of the body at the start of the first IMU
-    interval ("n0"); ``C(t)`` (3, P) is the first-order left perturbation of ``R(t)`` per
-    unit change of θ through the gyro sensor model (zero unless gyro effects are estimated).
-    """
-
-    def __init__(self, data: AcfData, model: StarModel, theta0: np.ndarray) -> None:
-        g = data.gyro()  # sorted, finite, gaps bridged (counted in data.quality)
-        t, dt = g.t, g.dt
-        self.nodes = np.concatenate([[t[0] - dt[0]], t])  # interval k: nodes[k] .. nodes[k+1]
-        self.dt = dt
-        w = model.corrected_rates(theta0, g.w)
-        self.rates = w
-        self.phi = attitude_increments(w, dt)
-        R = propagate_attitude(Rotation.identity(), w, dt).as_matrix()
-        self.R = np.concatenate([np.eye(3)[None], R])  # at nodes
-        # sensitivity to θ: δw = −(Jb + JE·w) Δθ
-        P = model.size
-        self.C = np.zeros((len(self.nodes), 3, P))
-        _, _, Jb, JE = model.sensor_model(theta0, Stage.GYRO)
-        if P and (np.any(Jb) or np.any(JE)):
-            B = -(Jb[None] + np.einsum("ijp,nj->nip", JE, w))  # (N, 3, P)
-            R_mid = 0.5 * (self.R[:-1] + self.R[1:])
-            self.C[1:] = np.cumsum(np.einsum("nij,njp->nip", R_mid, B) * dt[:, None, None],
-                                   axis=0)
-
-    @property
-    def span(self) -> tuple[float, float]:
-        """First and last time covered by the IMU (relative s)."""
-        return float(self.nodes[0]), float(self.nodes[-1])
-
-    def _locate(self, t: float) -> tuple[int, float]:
-        j = int(np.searchsorted(self.nodes, t, side="right")) - 1
-        j = min(max(j, 0), len(self.dt) - 1)
-        s = (t - self.nodes[j]) / self.dt[j]
-        return j, s
-
-    def attitude(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """``R_n0_b(t)`` (3, 3) and the body rate ω (3,) at relative time ``t``."""
-        j, s = self._locate(t)
-        return self.R[j] @ so3_exp(s * self.phi[j]), self.rates[j]
-
-    def sensitivity(self, t: float) -> np.ndarray:
-        """``C(t)`` (3, P), linear interpolation between IMU nodes."""
-        j, s = self._locate(t)
-        return (1.0 - s) * self.C[j] + s * self.C[min(j + 1, len(self.C) - 1)]
 
 
 # ============================================================================ results
@@ -211,34 +163,6 @@ class AcfResult:
 
 
 # ============================================================================ helpers
-def _select_frames(n: int, frames: Any) -> np.ndarray:
-    """Indices from None / 'all' / 'odd' / 'even' (1-based, as Liu counts) / ints / mask."""
-    if frames is None or (isinstance(frames, str) and frames == "all"):
-        return np.arange(n)
-    if isinstance(frames, str):
-        if frames == "odd":
-            return np.arange(0, n, 2)
-        if frames == "even":
-            return np.arange(1, n, 2)
-        raise StellarCalError(f"frames must be 'all', 'odd', 'even' or indices, got {frames!r}")
-    if isinstance(frames, slice):
-        return np.arange(n)[frames]
-    idx = np.asarray(frames)
-    if idx.dtype == bool:
-        if idx.shape != (n,):
-            raise StellarCalError(f"frame mask must have {n} entries, got {idx.shape}")
-        return np.flatnonzero(idx)
-    idx = np.asarray(idx, dtype=np.int64).ravel()
-    if idx.size and (idx.min() < -n or idx.max() >= n):
-        raise StellarCalError(f"frame index out of range 0..{n - 1}")
-    return np.unique(np.where(idx < 0, idx + n, idx))
-
-
-def _unit_vectors(ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
-    cd = np.cos(dec)
-    return np.stack([np.cos(ra) * cd, np.sin(ra) * cd, np.sin(dec)], axis=1)
-
-
 @dataclass
 class _Frame:
     index: int
@@ -315,7 +239,7 @@ def _prepare_frames(data: AcfData, idx: np.ndarray, chain: GyroChain, time_offse
         for key, (ts, vs) in data.scalars.items():
             setattr(ctx, key, float(np.interp(t_rel, ts, vs)))
         out.append(_Frame(int(k), t_rel, fr.stamp_ns * 1e-9,
-                          _unit_vectors(fr.right_ascension[ok], fr.declination[ok]),
+                          unit_vectors(fr.right_ascension[ok], fr.declination[ok]),
                           uv[ok], sig, fr.catalog_id[ok].astype(np.int64),
                           np.asarray(fr.magnitude, dtype=float)[ok], ctx))
     return out
@@ -590,7 +514,7 @@ def run_acf(
     if np.any(~np.isfinite(sigma_prior)) or np.any(sigma_prior <= 0):
         raise ModelError("every estimated parameter needs a positive prior σ")
     chain = GyroChain(data, model, theta_prior)
-    idx = _select_frames(len(data.frames), frames)
+    idx = select_frames(len(data.frames), frames)
     quality = data.quality
     fr = _prepare_frames(data, idx, chain, prior.time_offset, sigma_px, min_stars_per_frame,
                          (prior.camera.width, prior.camera.height), quality)
@@ -785,7 +709,7 @@ def reprojection_rms(result: AcfResult, frames: Any = None, data: AcfData | None
     ``per_axis`` returns ``(rms_u, rms_v)`` instead.
     """
     data = result.data if data is None else data
-    idx = _select_frames(len(data.frames), frames)
+    idx = select_frames(len(data.frames), frames)
     fr = _prepare_frames(data, idx, result.chain, result.model.prior.time_offset, None, 1)
     if not fr:
         raise StellarCalError("no frames with stars to evaluate")
@@ -812,3 +736,47 @@ def parse_effects(text: str | Sequence[str] | None,
         elif it not in out:
             out.append(it)
     return out
+
+
+def summary_lines(res: AcfResult) -> list[str]:
+    """What ``stellar-cal batch --method acf`` prints about a fit."""
+    gated = int(np.sum(res.residuals["gated"]))
+    q = res.quality
+    out = [f"acf: {len(res.frames)} frames, {len(res.residuals['du']) - gated} stars "
+           f"({gated} gated: {q.stars_misidentified} misidentified, {q.stars_outliers} "
+           f"outliers), RMS |Δuv| {res.rms_px:.4f} px, σ̂ {res.sigma_px:.4f} px, "
+           f"{res.iterations} evaluations, loss {res.loss}"]
+    if q.counts():
+        out.append(f"data: {q.summary()}")
+    out += [f"result degraded: {reason}" for reason in res.degraded]
+    for name, value, sigma in zip(res.parameter_names[3:], res.theta, res.sigma[3:],
+                                  strict=True):
+        unit = ""
+        if name.startswith("installation."):
+            value, sigma, unit = value / ARCSEC, sigma / ARCSEC, " arcsec (vs prior)"
+        out.append(f"  {name:28s} {value:+.8g} ± {sigma:.3g}{unit}")
+    eq = res.derived
+    if eq:
+        out.append("equivalent principal point: ({:.3f}, {:.3f}) +- ({:.3f}, {:.3f}) px".format(
+            *eq["equivalent_principal_point_px"], *eq["equivalent_principal_point_sigma_px"]))
+    out.append(res.observability.summary())
+    return out
+
+
+def batch(bag: str | os.PathLike[str], prior: Calibration, effects: Sequence[str],
+          options: dict[str, Any], progress: Callable[[str], None] | None) -> BatchOutput:
+    """``stellar-cal batch --method acf``: :func:`run_acf` with the command's options."""
+    res = run_acf(bag, prior, parse_effects(effects), loss=options.get("loss", "linear"),
+                  outlier_probability=options.get("outlier_probability", OUTLIER_PROBABILITY),
+                  progress=progress)
+    return BatchOutput(res.calibration, (res.parameter_names[3:], res.covariance[3:, 3:]),
+                       res.residuals, summary_lines(res), res)
+
+
+METHOD = MethodSpec(
+    name="acf", kind="batch",
+    summary="attitude-correlated frames, Liu et al. 2017: the gyros tie every frame to the "
+            "first (a turntable or slew sequence)",
+    baseline=ACF_EFFECTS,
+    stages=(Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA),
+    batch=batch, steps=ACF_STAGES)

@@ -26,14 +26,12 @@ from stellar_cal_ros.methods.acf import (
     MIN_FRAMES,
     MIN_STARS_PER_FRAME,
     AcfResult,
-    GyroChain,
     _initial_attitude,
     _prepare_frames,
     _Problem,
-    _select_frames,
 )
 from stellar_cal_ros.methods.acf_covariance import _arw_density, _inverse
-from stellar_cal_ros.methods.acf_data import AcfData, load_acf_data
+from stellar_cal_ros.methods.acf_data import AcfData, GyroChain, load_acf_data, select_frames
 from stellar_cal_ros.methods.star_model import StarModel
 
 
@@ -130,7 +128,7 @@ def crlb_acf(
     model = StarModel(create_many(ids), prior)
     theta = truth_parameters(model, truth)
     chain = GyroChain(data, model, theta)
-    idx = _select_frames(len(data.frames), frames)
+    idx = select_frames(len(data.frames), frames)
     fr = _prepare_frames(data, idx, chain, prior.time_offset, sigma_px, MIN_STARS_PER_FRAME)
     if len(fr) < MIN_FRAMES:
         raise StellarCalError(f"the bound needs at least {MIN_FRAMES} frames with stars")

@@ -1,5 +1,8 @@
 """Data of the ACF batch calibration: star frames and IMU samples of one run, checked.
 
+Also the gyro chain (:class:`GyroChain`: one propagation of the IMU, interpolated to any
+frame) and the frame selection shared with the interstar-angle baseline.
+
 :func:`load_acf_data` reads what the method needs from a contract bag.  Times are relative
 seconds ``(stamp_ns − t0_ns)·1e-9`` with ``t0_ns`` the first IMU stamp.
 
@@ -30,12 +33,17 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.core.earth import Site
 from stellar_cal_ros.core.gyro_check import check_gyro_against_stars  # noqa: F401 (re-exported)
 from stellar_cal_ros.core.imu import ImuBuffer
+from stellar_cal_ros.core.rotation import so3_exp
+from stellar_cal_ros.core.strapdown import attitude_increments, propagate_attitude
+from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.errors import BagError, DataError, StellarCalError
 from stellar_cal_ros.io.bag import BagReader, ImuSeries, StarFrame
+from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
 
@@ -302,3 +310,84 @@ def load_acf_data(
     data = AcfData(frames=frames, imu=imu, t0_ns=t0, site=site)
     data.scalars = {k: (data.rel(st), v) for k, (st, v) in scalars.items()}
     return data
+
+
+# ============================================================================ gyro chain
+class GyroChain:
+    """Attitude changes from one propagation of the IMU, interpolated to any time.
+
+    ``R(t)`` is the body attitude in the frame of the body at the start of the first IMU
+    interval ("n0"); ``C(t)`` (3, P) is the first-order left perturbation of ``R(t)`` per
+    unit change of θ through the gyro sensor model (zero unless gyro effects are estimated).
+    """
+
+    def __init__(self, data: AcfData, model: StarModel, theta0: np.ndarray) -> None:
+        g = data.gyro()  # sorted, finite, gaps bridged (counted in data.quality)
+        t, dt = g.t, g.dt
+        self.nodes = np.concatenate([[t[0] - dt[0]], t])  # interval k: nodes[k] .. nodes[k+1]
+        self.dt = dt
+        w = model.corrected_rates(theta0, g.w)
+        self.rates = w
+        self.phi = attitude_increments(w, dt)
+        R = propagate_attitude(Rotation.identity(), w, dt).as_matrix()
+        self.R = np.concatenate([np.eye(3)[None], R])  # at nodes
+        # sensitivity to θ: δw = −(Jb + JE·w) Δθ
+        P = model.size
+        self.C = np.zeros((len(self.nodes), 3, P))
+        _, _, Jb, JE = model.sensor_model(theta0, Stage.GYRO)
+        if P and (np.any(Jb) or np.any(JE)):
+            B = -(Jb[None] + np.einsum("ijp,nj->nip", JE, w))  # (N, 3, P)
+            R_mid = 0.5 * (self.R[:-1] + self.R[1:])
+            self.C[1:] = np.cumsum(np.einsum("nij,njp->nip", R_mid, B) * dt[:, None, None],
+                                   axis=0)
+
+    @property
+    def span(self) -> tuple[float, float]:
+        """First and last time covered by the IMU (relative s)."""
+        return float(self.nodes[0]), float(self.nodes[-1])
+
+    def _locate(self, t: float) -> tuple[int, float]:
+        j = int(np.searchsorted(self.nodes, t, side="right")) - 1
+        j = min(max(j, 0), len(self.dt) - 1)
+        s = (t - self.nodes[j]) / self.dt[j]
+        return j, s
+
+    def attitude(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """``R_n0_b(t)`` (3, 3) and the body rate ω (3,) at relative time ``t``."""
+        j, s = self._locate(t)
+        return self.R[j] @ so3_exp(s * self.phi[j]), self.rates[j]
+
+    def sensitivity(self, t: float) -> np.ndarray:
+        """``C(t)`` (3, P), linear interpolation between IMU nodes."""
+        j, s = self._locate(t)
+        return (1.0 - s) * self.C[j] + s * self.C[min(j + 1, len(self.C) - 1)]
+
+
+# ============================================================================ frames
+def select_frames(n: int, frames: Any) -> np.ndarray:
+    """Indices from None / 'all' / 'odd' / 'even' (1-based, as Liu counts) / ints / mask."""
+    if frames is None or (isinstance(frames, str) and frames == "all"):
+        return np.arange(n)
+    if isinstance(frames, str):
+        if frames == "odd":
+            return np.arange(0, n, 2)
+        if frames == "even":
+            return np.arange(1, n, 2)
+        raise StellarCalError(f"frames must be 'all', 'odd', 'even' or indices, got {frames!r}")
+    if isinstance(frames, slice):
+        return np.arange(n)[frames]
+    idx = np.asarray(frames)
+    if idx.dtype == bool:
+        if idx.shape != (n,):
+            raise StellarCalError(f"frame mask must have {n} entries, got {idx.shape}")
+        return np.flatnonzero(idx)
+    idx = np.asarray(idx, dtype=np.int64).ravel()
+    if idx.size and (idx.min() < -n or idx.max() >= n):
+        raise StellarCalError(f"frame index out of range 0..{n - 1}")
+    return np.unique(np.where(idx < 0, idx + n, idx))
+
+
+def unit_vectors(ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
+    """Inertial unit vectors of right ascensions and declinations (rad), (n, 3)."""
+    cd = np.cos(dec)
+    return np.stack([np.cos(ra) * cd, np.sin(ra) * cd, np.sin(dec)], axis=1)

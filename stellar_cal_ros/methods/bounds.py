@@ -19,7 +19,7 @@ import dataclasses
 import math
 
 from stellar_cal_ros.io.calibration import Calibration
-from stellar_cal_ros.methods.driver import FILTERS
+from stellar_cal_ros.methods import registry
 
 
 def bound_filter_class(filter_cls):
@@ -40,10 +40,10 @@ def crlb(bag, prior: Calibration, truth: Calibration, method: str = "psce",
     """Posterior Cramér–Rao bound of ``method`` with ``effects`` over ``bag`` (a ReplayResult)."""
     from stellar_cal_ros.methods.replay import replay
 
-    base_cls, cfg_cls = FILTERS[method]
+    spec = registry.get(method)
     ref = copy.deepcopy(truth)
     ref.sigma = copy.deepcopy(prior.sigma)
-    cfg = dataclasses.replace(config or cfg_cls(), gate_probability=1.0, max_iterations=1,
+    cfg = dataclasses.replace(config or spec.config_cls(), gate_probability=1.0, max_iterations=1,
                               scale_gate_by_frame=False, fov_margin=math.inf, unit_check=False)
     return replay(bag, ref, method, effects, cfg,
-                  filter_cls=bound_filter_class(filter_cls or base_cls))
+                  filter_cls=bound_filter_class(filter_cls or spec.filter_cls))

@@ -52,7 +52,6 @@ from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
 
-METHOD = "bundle"
 #: the bundle's baseline model: a pinhole and the first two radial terms
 BASELINE_EFFECTS: tuple[str, ...] = ("focal_length", "principal_point", "radial_k1k2")
 #: the stages a free attitude per frame can see
@@ -701,7 +700,7 @@ def run_bundle(
     sig_stated = float(np.median(np.concatenate([f.sigma[f.use] for f in frames])))
     theta = fit.theta
     cal = store_estimate(prior, model.effects, model.slices, theta, np.sqrt(np.diag(cov)),
-                         METHOD, float(frames[-1].stamp_ns * 1e-9))
+                         "bundle", float(frames[-1].stamp_ns * 1e-9))
     table = residual_table(fit, frames, np.sqrt(s2) if np.isfinite(s2) else 1.0)
     inl = ~table["gated"]
     rms = float(np.sqrt(np.mean(table["du"][inl] ** 2 + table["dv"][inl] ** 2)))

@@ -1,4 +1,9 @@
-"""The bundle as the diagnosis runs it: held-out residuals take the innovations' place.
+"""The bundle method's spec: its batch command and its runs as the diagnosis sees them.
+
+``METHOD`` registers ``bundle`` (:mod:`~stellar_cal_ros.methods.registry`):
+``stellar-cal batch --method bundle`` runs :func:`batch` (the solver:
+:mod:`~stellar_cal_ros.methods.bundle`), ``diagnose``/``discover --method bundle`` run
+:func:`run_for_diagnosis`, in which held-out residuals take the innovations' place.
 
 The diagnosis (``diagnose`` / ``discover``) compares models by a *prequential* likelihood:
 each measurement predicted by an estimate that has not seen it.  For the Kalman filters
@@ -25,9 +30,15 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.io.calibration import Calibration
-from stellar_cal_ros.methods.bundle import BundleResult, run_bundle
+from stellar_cal_ros.methods.bundle import (
+    BASELINE_EFFECTS,
+    STAGES,
+    BundleResult,
+    run_bundle,
+)
 from stellar_cal_ros.methods.bundle_cv import HeldOut
 from stellar_cal_ros.methods.kernel import FrameUpdate
+from stellar_cal_ros.methods.registry import BatchOutput, MethodSpec
 from stellar_cal_ros.methods.results import RunStats
 from stellar_cal_ros.methods.star_model import StarModel
 
@@ -136,3 +147,50 @@ def run_for_diagnosis(data: Any, prior: Calibration, effects: list[str],
 
         raise ModelError("the bundle method has no consider parameters (no screening)")
     return as_run(run_bundle(data, prior, effects), keep_tables)
+
+
+def summary_lines(res: BundleResult) -> list[str]:
+    """What ``stellar-cal batch --method bundle`` prints: fit, parameters ± σ, held-out RMS."""
+    c = res.counts
+    n_stars = int((~res.residuals["gated"]).sum())
+    out = [f"bundle: {len(res.frames)} of {c.frames_read} frames ({c.frames_few_stars} with "
+           f"too few stars), {n_stars} stars ({c.stars_misidentified} misidentified, "
+           f"{c.stars_outliers} outliers left out; {c.stars_unidentified} unidentified and "
+           f"{c.stars_unusable} unusable not fitted), RMS |duv| {res.rms_px:.4f} px, "
+           f"sigma-hat {res.sigma_px:.4f} px (variance factor {res.variance_factor:.3g}), "
+           f"{res.iterations} iterations, loss {res.loss}"]
+    extra = [e.id for e in res.model.effects if e.id not in BASELINE_EFFECTS]
+    out.append("model: " + ", ".join(BASELINE_EFFECTS)
+               + (" + " + ", ".join(extra) if extra else ""))
+    out += [f"result degraded: {reason}" for reason in res.degraded]
+    for name, value, sigma, sp in zip(res.parameter_names, res.theta, res.sigma,
+                                      res.sigma_prior, strict=True):
+        note = "  (prior-dominated)" if sigma > 0.5 * sp else ""
+        out.append(f"  {name:28s} {value:+.8g} ± {sigma:.3g}{note}")
+    cv = res.cross_validation
+    if cv:
+        per = " ".join(f"{v:.2f}" for v in cv["held_out_rms_arcsec"])
+        out.append(f"held-out RMS (each frame alone, camera from the others): mean "
+                   f"{cv['mean_arcsec']:.3f} arcsec; per frame: {per}")
+        if any(cv["rejected"]):
+            out.append(f"  stars beyond 5x the frame's median left out: {sum(cv['rejected'])}"
+                       f" (per frame: {' '.join(map(str, cv['rejected']))})")
+    return out
+
+
+def batch(bag: Any, prior: Calibration, effects: list[str], options: dict[str, Any],
+          progress: Any) -> BatchOutput:
+    """``stellar-cal batch --method bundle``: :func:`run_bundle` with the command's options."""
+    res = run_bundle(bag, prior, effects, loss=options.get("loss", "linear"),
+                     outlier_probability=options.get("outlier_probability"),
+                     progress=progress)
+    return BatchOutput(res.calibration, (res.parameter_names, res.covariance), res.residuals,
+                       summary_lines(res), res)
+
+
+METHOD = MethodSpec(
+    name="bundle", kind="batch",
+    summary="star frames alone (no IMU): one free attitude per frame and one camera, with "
+            "leave-one-frame-out cross-validation",
+    baseline=BASELINE_EFFECTS, stages=STAGES, batch=batch,
+    steps=("initial attitudes", "fit", "cross-validation"), runner=run_for_diagnosis)

@@ -2,8 +2,9 @@
 
 :class:`Calibrator` takes IMU samples (one at a time or in blocks), star frames,
 temperatures, pressure and GNSS fixes in whatever order a transport or a bag delivers them,
-and drives a PSCE or swaying-base filter (:data:`FILTERS`).  The ``calibrator`` ROS node
-feeds it from callbacks; :func:`stellar_cal_ros.methods.replay.replay` feeds it from a bag
+and drives the filter of a registered filter method (:mod:`~stellar_cal_ros.methods.
+registry`: PSCE, swaying-base, traditional, a user's).  The ``calibrator`` ROS node feeds it
+from callbacks; :func:`stellar_cal_ros.methods.replay.replay` feeds it from a bag
 read in one pass — the same code, so a live run and a replay of its recording agree.
 
 Reorder buffer
@@ -42,7 +43,7 @@ import numpy as np
 from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.errors import DataError, ModelError
 from stellar_cal_ros.io.calibration import Calibration
-from stellar_cal_ros.methods import clocks, models
+from stellar_cal_ros.methods import clocks, models, registry
 from stellar_cal_ros.methods.frames import (
     ENV_KEYS,
     T0_IMU_SAMPLES,
@@ -53,7 +54,6 @@ from stellar_cal_ros.methods.frames import (
     time_origin,
 )
 from stellar_cal_ros.methods.kernel import FilterCounters, FrameUpdate
-from stellar_cal_ros.methods.psce import PsceConfig, PsceFilter
 from stellar_cal_ros.methods.results import (
     RESIDUAL_COLUMNS,
     HalfWindowStats,
@@ -64,8 +64,6 @@ from stellar_cal_ros.methods.results import (
     residual_rows,
     result_calibration,
 )
-from stellar_cal_ros.methods.swaying import SwayingConfig, SwayingFilter
-from stellar_cal_ros.methods.traditional import TraditionalConfig, TraditionalFilter
 from stellar_cal_ros.sky.identify import (
     Identifier,
     needs_identification,
@@ -73,11 +71,6 @@ from stellar_cal_ros.sky.identify import (
 )
 
 log = logging.getLogger(__name__)
-
-#: filter class and configuration class of each method
-FILTERS = {"psce": (PsceFilter, PsceConfig), "swaying_base": (SwayingFilter, SwayingConfig),
-           "traditional": (TraditionalFilter, TraditionalConfig)}
-
 
 @dataclass
 class DriverConfig:
@@ -203,7 +196,7 @@ class Calibrator:
     prior : Calibration
         Prior calibration (nominal values and their sigmas).
     method : str
-        ``psce``, ``swaying_base`` or ``traditional``.
+        A registered filter method (``psce``, ``swaying_base``, ``traditional``, ...).
     effects : list of str
         Effects estimated on top of the method's baseline (``-id`` removes an added one).
     config : KernelConfig subclass, optional
@@ -231,24 +224,26 @@ class Calibrator:
                  consider: list[str] | None = None, residuals: TableSink | None = None,
                  history: TableSink | None = None, eval_start: float | None = None,
                  baseline: tuple[str, ...] | None = None, filter_cls=None) -> None:
-        models.check_method(method)
+        self.spec = spec = registry.get(method)
+        if spec.kind != "filter":
+            raise ModelError(f"{method} is a {spec.kind} method, not a filter: "
+                             "stellar-cal batch runs it")
         self.prior = prior
         self.method = method
-        self.baseline = models.BASELINES[method] if baseline is None else tuple(baseline)
+        self.baseline = spec.baseline if baseline is None else tuple(baseline)
         self.effects = models.resolve_effects(method, effects, self.baseline)
         self.consider = [e for e in (consider or [])
                          if e not in self.effects and e not in self.baseline]
-        self.filter_cls, cfg_cls = FILTERS[method]
-        if filter_cls is not None:  # a variant (e.g. the Cramér–Rao bound recursion)
-            self.filter_cls = filter_cls
-        self.config = config or cfg_cls()
+        # filter_cls: a variant of the method's filter (e.g. the Cramér–Rao bound recursion)
+        self.filter_cls = filter_cls or spec.filter_cls
+        self.config = config or spec.config_cls()
         self.driver = driver or DriverConfig()
         self.frames = dict(prior.frames if frames is None else frames)
         self.model = models.build_model(prior, method, self.effects, self.consider,
                                         self.baseline)
         self.n_consider = sum(e.size for e in self.model.effects if e.id in self.consider)
         self.requires = {r for e in self.model.effects for r in e.requires}
-        if method in models.NEEDS_SITE:
+        if spec.needs_site:
             self.requires.add("site")
         self.window_ns = int(round(self.driver.reorder_window_s * 1e9))
         self.env_wait_ns = int(round(self.driver.environment_wait_s * 1e9))
@@ -497,7 +492,7 @@ class Calibrator:
             return True
         if not self._staged_n or (self._staged_n < self.driver.t0_imu_samples and not final):
             return False
-        if "site" in self.requires and self.method in models.NEEDS_SITE and self.site is None:
+        if self.spec.needs_site and self.site is None:
             return False
         t = np.concatenate([s[0] for s in self._staged])
         if len(t) < 2:
@@ -508,7 +503,7 @@ class Calibrator:
 
     def _build_filter(self) -> None:
         """The filter for the known time origin (and site)."""
-        if self.method in models.NEEDS_SITE:
+        if self.spec.needs_site:
             self.filter = self.filter_cls(self.model, self.t0_ns * 1e-9, self.site, self.config,
                                           nominal_dt=self.nominal_dt, consider=self.n_consider)
         else:

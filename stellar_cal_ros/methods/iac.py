@@ -226,7 +226,7 @@ def run_iac(
     star_topic : str
         Star centroid topic when reading a bag.
     """
-    from stellar_cal_ros.methods.acf import _select_frames, _unit_vectors
+    from stellar_cal_ros.methods.acf_data import select_frames, unit_vectors
 
     if isinstance(source, list):
         all_frames = source
@@ -241,7 +241,7 @@ def run_iac(
         raise StellarCalError(f"the interstar-angle method estimates camera effects only, "
                               f"not {bad}")
     model = StarModel(eff, prior)
-    idx = _select_frames(len(all_frames), frames)
+    idx = select_frames(len(all_frames), frames)
     uvs, us, sigs = [], [], []
     for k in idx:
         fr = all_frames[int(k)]
@@ -252,7 +252,7 @@ def run_iac(
             continue
         s = np.asarray(fr.sigma, dtype=float)[ok]
         uvs.append(np.asarray(fr.uv, dtype=float)[ok])
-        us.append(_unit_vectors(fr.right_ascension[ok], fr.declination[ok]))
+        us.append(unit_vectors(fr.right_ascension[ok], fr.declination[ok]))
         sigs.append(np.full(n, sigma_px) if sigma_px is not None else np.where(s > 0, s, 1.0))
     th0, sp = model.initial_value.copy(), model.initial_sigma.copy()
     pairs = _Pairs(model, uvs, us, sigs, prior.camera.fx, th0, sp)
@@ -336,8 +336,8 @@ def crlb_iac(
     :class:`IacBound`).
     """
     from stellar_cal_ros.core.attitude import wahba
-    from stellar_cal_ros.methods.acf import _select_frames, _unit_vectors
     from stellar_cal_ros.methods.acf_covariance import _inverse
+    from stellar_cal_ros.methods.acf_data import select_frames, unit_vectors
     from stellar_cal_ros.methods.replay import truth_parameters
 
     eff = create_many(list(IAC_EFFECTS if effects is None else effects))
@@ -349,13 +349,13 @@ def crlb_iac(
     P = model.size
     info = np.diag(1.0 / sp ** 2)
     uvs, us, sigs = [], [], []
-    for k in _select_frames(len(source), frames):
+    for k in select_frames(len(source), frames):
         fr = source[int(k)]
         ok = (fr.catalog_id != 0) & np.isfinite(fr.right_ascension) & \
             np.all(np.isfinite(fr.uv), axis=1)
         if ok.sum() < 3:
             continue
-        u = _unit_vectors(fr.right_ascension[ok], fr.declination[ok])
+        u = unit_vectors(fr.right_ascension[ok], fr.declination[ok])
         uv = np.asarray(fr.uv, dtype=float)[ok]
         s = np.asarray(fr.sigma, dtype=float)[ok]
         s = np.full(len(uv), sigma_px) if sigma_px is not None else np.where(s > 0, s, 1.0)

@@ -5,7 +5,8 @@ adds (``--effects``; ``-id`` removes an added one, the baseline cannot be remove
 effect the prior calls uncertain (a positive σ for one of its quantities,
 :func:`prior_uncertain_effects`) but that is not in the model is *not* added silently: the
 replay names it ("the prior says ... is uncertain; not in the model") and the diagnosis
-tests it first among the candidates.  The same rule for PSCE and the swaying-base filter.
+tests it first among the candidates.  The same rule for every method; a method's baseline
+and the stages it models are its :class:`~stellar_cal_ros.methods.registry.MethodSpec`'s.
 
 *Consider* effects are appended after the estimated ones: they are predicted through but
 kept at their prior value, and the filter tracks the state's sensitivity to them (the
@@ -19,34 +20,12 @@ import logging
 import numpy as np
 
 from stellar_cal_ros.effects import registry
-from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.errors import ModelError
 from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.methods import registry as methods
 from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
-
-#: baseline effects of each filter method
-BASELINES: dict[str, tuple[str, ...]] = {
-    "psce": ("gyro_bias", "installation", "principal_point", "focal_length", "radial_k1k2",
-             "tangential"),
-    "swaying_base": ("gyro_bias", "accel_bias", "installation"),
-    "traditional": ("gyro_bias", "accel_bias", "installation"),
-}
-#: stages each method models (PSCE has no accelerometer model)
-STAGES: dict[str, tuple[Stage, ...]] = {
-    "psce": (Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA),
-    "swaying_base": tuple(Stage),
-    "traditional": tuple(Stage),
-}
-#: methods that need the site (``/gnss/fix``) whatever the effects
-NEEDS_SITE = {"swaying_base", "traditional"}
-
-
-def check_method(method: str) -> None:
-    """Raise :class:`ModelError` for an unknown filter method."""
-    if method not in BASELINES:
-        raise ModelError(f"unknown method {method!r} (one of {', '.join(BASELINES)})")
 
 
 def resolve_effects(method: str, requested: list[str] | None,
@@ -56,8 +35,8 @@ def resolve_effects(method: str, requested: list[str] | None,
     Unknown ids raise :class:`ModelError` (with the known ones); effects acting in a stage
     the method does not model (accelerometer effects for PSCE) too.
     """
-    check_method(method)
-    base = BASELINES[method] if baseline is None else tuple(baseline)
+    spec = methods.get(method)
+    base = spec.baseline if baseline is None else tuple(baseline)
     out: list[str] = []
     for item in requested or []:
         item = item.strip()
@@ -72,7 +51,7 @@ def resolve_effects(method: str, requested: list[str] | None,
         if item not in registry.EFFECTS:
             raise ModelError(f"unknown effect {item!r}; known: {', '.join(registry.available())}")
         stage = registry.EFFECTS[item].stage
-        if stage not in STAGES[method]:
+        if stage not in spec.stages:
             raise ModelError(f"effect {item} acts on the {stage.value} stage, which the "
                              f"{method} method does not model")
         if item not in out and item not in base:
@@ -84,8 +63,7 @@ def build_model(prior: Calibration, method: str, effects: list[str] | None = Non
                 consider: list[str] | None = None,
                 baseline: tuple[str, ...] | None = None) -> StarModel:
     """StarModel of the method's baseline + ``effects``, then the ``consider`` effects."""
-    check_method(method)
-    base = BASELINES[method] if baseline is None else tuple(baseline)
+    base = methods.get(method).baseline if baseline is None else tuple(baseline)
     ids = list(base) + [e for e in (effects or []) if e not in base]
     extra = [e for e in (consider or []) if e not in ids]
     # estimated effects in application order, then the consider ones (trailing θ entries)
@@ -171,6 +149,6 @@ def prior_uncertain_effects(prior: Calibration) -> list[str]:
 def uncertain_not_in_model(prior: Calibration, method: str, model_effects: list[str]
                            ) -> list[str]:
     """Effects the prior calls uncertain that the model leaves fixed (and the method models)."""
-    have = set(model_effects)
+    have, stages = set(model_effects), methods.get(method).stages
     return [e for e in prior_uncertain_effects(prior)
-            if e not in have and registry.EFFECTS[e].stage in STAGES[method]]
+            if e not in have and registry.EFFECTS[e].stage in stages]

@@ -53,6 +53,7 @@ from stellar_cal_ros.methods.kernel import (  # noqa: F401 (re-exported for call
     NoImuError,
     StarFilter,
 )
+from stellar_cal_ros.methods.registry import MethodSpec
 from stellar_cal_ros.methods.star_model import StarModel
 
 BASELINE_EFFECTS = (
@@ -92,7 +93,6 @@ class PsceFilter(StarFilter):
     """
 
     method = "psce"
-    baseline = BASELINE_EFFECTS
 
     def __init__(self, model: StarModel, t0: float, config: PsceConfig | None = None, *,
                  nominal_dt: float, consider: int = 0) -> None:
@@ -248,3 +248,13 @@ class PsceFilter(StarFilter):
         self.omega = w_hat[-1]
         self.t = t_target
         self._k = m
+
+
+METHOD = MethodSpec(
+    name="psce", kind="filter",
+    summary="Tan et al. 2018: a rotating vehicle; installation, gyro bias and camera "
+            "intrinsics from star centroids",
+    baseline=BASELINE_EFFECTS,
+    # no accelerometer model
+    stages=(Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA),
+    filter_cls=PsceFilter, config_cls=PsceConfig)

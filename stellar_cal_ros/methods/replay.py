@@ -9,6 +9,7 @@ Every skipped frame, star or IMU sample is counted; nothing is dropped silently.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from pathlib import Path
@@ -16,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.errors import BagError
+from stellar_cal_ros.errors import BagError, ModelError
 from stellar_cal_ros.io.bag import BagReader
 from stellar_cal_ros.io.calibration import Calibration
-from stellar_cal_ros.methods import models
+from stellar_cal_ros.methods import models, registry
 from stellar_cal_ros.methods.driver import Calibrator, DriverConfig
 from stellar_cal_ros.methods.frames import (  # noqa: F401 (re-exported)
     TOPIC_FIX,
@@ -177,7 +178,8 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
     prior : Calibration
         Where the calibration starts (values and σ).
     method : str
-        ``psce``, ``swaying_base`` or ``traditional``.
+        A registered filter method (``psce``, ``swaying_base``, ``traditional``, ...:
+        :mod:`~stellar_cal_ros.methods.registry`).
     effects : list of str
         Effects added to the method's baseline (:mod:`stellar_cal_ros.methods.models`).
     config : KernelConfig subclass, optional
@@ -207,16 +209,14 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         :class:`~stellar_cal_ros.errors.DataError` (deg/s, dead, swapped axes); ``flag``:
         it is counted and flags the result (a diagnosis's candidate runs).
     """
-    models.check_method(method)
+    spec = registry.get(method)
     if gyro_fault not in ("raise", "flag"):
         raise ValueError(f"gyro_fault must be 'raise' or 'flag', got {gyro_fault!r}")
     names = dict(TOPICS)
     names.update(topics or {})
     cfg = config
-    if gyro_fault == "flag":
-        from stellar_cal_ros.methods.driver import FILTERS
-
-        cfg = dataclasses.replace(cfg or FILTERS[method][1](), unit_check_raises=False)
+    if gyro_fault == "flag" and spec.kind == "filter":
+        cfg = dataclasses.replace(cfg or spec.config_cls(), unit_check_raises=False)
     # a replay never drops frames for memory: what is held is bounded by the look-ahead
     drv = driver or DriverConfig(reorder_window_s=REPLAY_REORDER_S,
                                  max_pending_frames=1_000_000, batch_frames=True,
@@ -224,9 +224,9 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
     # IMU ahead of the frames: the filter takes it in large vectorized batches, and the
     # swaying strapdown gets full reference windows, as over a whole bag
     drv.imu_lookahead_s = max(drv.imu_lookahead_s, REPLAY_LOOKAHEAD_S)
-    if method != "psce" and not getattr(cfg, "exact_propagation", False):
-        window = getattr(cfg, "reference_window_s", None) or 120.0
-        drv.imu_lookahead_s = max(drv.imu_lookahead_s, window + 1.0)
+    if spec.imu_lookahead is not None:
+        drv.imu_lookahead_s = max(drv.imu_lookahead_s,
+                                  spec.imu_lookahead(cfg or spec.config_cls()))
     res_sink = TableSink(residuals, RESIDUAL_COLUMNS) if residuals is not None or keep_tables \
         else NullSink()
     hist_sink = TableSink(history) if history is not None or keep_tables else NullSink()
@@ -351,6 +351,36 @@ class _Progress:
 
 
 # ---------------------------------------------------------------------------- entry points
+def method_runner(method: str) -> registry.Runner:
+    """How the diagnosis, ``report``/``compare`` and campaigns run ``method`` on a bag.
+
+    The method's own :attr:`~stellar_cal_ros.methods.registry.MethodSpec.runner` if it has
+    one, else (a filter method) :func:`replay` with it:
+    ``runner(data, prior, effects, keep_tables=False, eval_fraction=0.5, consider=None,
+    gyro_fault="raise") -> ReplayResult``.  The runner carries the spec, so a worker process
+    that does not know a user's method registers it.
+    """
+    spec = registry.get(method)
+    if spec.runner is not None:
+        return spec.runner
+    if spec.kind != "filter":
+        raise ModelError(f"the {method} method cannot be re-run on a bag (it has no runner)")
+    return functools.partial(_replay_runner, spec)
+
+
+def _replay_runner(spec: registry.MethodSpec, data, prior: Calibration, effects: list[str],
+                   keep_tables: bool = False, eval_fraction: float = 0.5,
+                   consider: list[str] | None = None, gyro_fault: str = "raise"
+                   ) -> ReplayResult:
+    if registry.find(spec.name) is None:  # a user's method, in a fresh worker process
+        registry.register(spec)
+    if isinstance(data, BagData) and not len(data.imu_t):
+        raise BagError(f"{spec.name} needs /imu/data, absent from the bag (a batch method "
+                       "without an IMU, e.g. bundle, calibrates star frames alone)")
+    return replay(data, prior, spec.name, effects, keep_tables=keep_tables,
+                  eval_fraction=eval_fraction, consider=consider, gyro_fault=gyro_fault)
+
+
 def replay_psce(bag: str | Path | BagData, prior: Calibration, effects: list[str] | None = None,
                 config=None, progress: bool = False,
                 baseline: tuple[str, ...] | None = None, **kw) -> ReplayResult:

@@ -77,6 +77,7 @@ from stellar_cal_ros.core.units import DEG_PER_HOUR, G0
 from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.errors import ModelError
 from stellar_cal_ros.methods.kernel import KernelConfig, NoImuError, StarFilter
+from stellar_cal_ros.methods.registry import MethodSpec
 from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
@@ -180,7 +181,6 @@ class SwayingFilter(StarFilter):
     """
 
     method = "swaying_base"
-    baseline = BASELINE_EFFECTS
     navigation_blocks = (Block("velocity", 3, navigation=True, driven_by="accel"),
                          Block("position", 3, navigation=True))
 
@@ -706,3 +706,16 @@ def crlb_swaying(bag, prior, truth, effects: list[str] | None = None,
     from stellar_cal_ros.methods.bounds import crlb
 
     return crlb(bag, prior, truth, "swaying_base", effects, config, filter_cls)
+
+
+def replay_lookahead(config: SwayingConfig) -> float:
+    """IMU seconds a replay holds ahead of a frame: a full reference window (vectorized)."""
+    return 0.0 if config.exact_propagation else (config.reference_window_s or 120.0) + 1.0
+
+
+METHOD = MethodSpec(
+    name="swaying_base", kind="filter",
+    summary="Zhang et al. 2018: a ship at sea, accelerometer-levelled, in the inertial "
+            "frame; needs /gnss/fix",
+    baseline=BASELINE_EFFECTS, needs_site=True,
+    filter_cls=SwayingFilter, config_cls=SwayingConfig, imu_lookahead=replay_lookahead)

@@ -24,7 +24,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from stellar_cal_ros.core import earth
-from stellar_cal_ros.methods.swaying import SwayingConfig, SwayingFilter
+from stellar_cal_ros.methods.registry import MethodSpec
+from stellar_cal_ros.methods.swaying import (
+    BASELINE_EFFECTS,
+    SwayingConfig,
+    SwayingFilter,
+    replay_lookahead,
+)
 
 
 @dataclass
@@ -73,3 +79,11 @@ def replay_traditional(bag, prior, effects: list[str] | None = None,
 
     return replay(bag, prior, "traditional", effects, config or TraditionalConfig(),
                   progress=progress, **kw)
+
+
+METHOD = MethodSpec(
+    name="traditional", kind="filter",
+    summary="zero velocity w.r.t. the Earth as the reference (the comparison method of "
+            "Zhang et al.); needs /gnss/fix",
+    baseline=BASELINE_EFFECTS, needs_site=True,
+    filter_cls=TraditionalFilter, config_cls=TraditionalConfig, imu_lookahead=replay_lookahead)

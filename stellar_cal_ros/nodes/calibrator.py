@@ -1,7 +1,8 @@
 """``calibrator`` node: live calibration (``ros2 run stellar_cal_ros calibrator``).
 
-``method:=psce`` (Tan et al. 2018, default) or ``method:=swaying_base`` (Zhang et al. 2018:
-a ship at its mooring; needs ``/gnss/fix`` for the site and gravity in the inertial frame).
+``method:=psce`` (Tan et al. 2018, default), ``method:=swaying_base`` (Zhang et al. 2018:
+a ship at its mooring; needs ``/gnss/fix`` for the site and gravity in the inertial frame), or
+any other registered filter method (:mod:`~stellar_cal_ros.methods.registry`).
 A thin rclpy shell around :class:`~stellar_cal_ros.methods.driver.Calibrator`, the same
 driver ``stellar-cal replay`` uses: callbacks convert messages to numbers and push them; the
 driver decides when a star frame can be processed (reorder window, IMU coverage) and the
@@ -75,8 +76,9 @@ from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.errors import CheckpointError
 from stellar_cal_ros.io.calibration import load_calibration, prior_warnings, save_calibration
+from stellar_cal_ros.methods import registry as methods
 from stellar_cal_ros.methods.checkpoint import load_checkpoint, save_checkpoint
-from stellar_cal_ros.methods.driver import FILTERS, Calibrator, DriverConfig, FrameOutcome
+from stellar_cal_ros.methods.driver import Calibrator, DriverConfig, FrameOutcome
 from stellar_cal_ros.methods.results import NullSink, consistency, mismatch_text
 from stellar_cal_ros.nodes.health import (
     RosoutBridge,
@@ -93,12 +95,10 @@ try:  # /tf_static: tf2_msgs comes with every ROS 2 install; on the PyPI wheels 
 except ImportError:  # pragma: no cover - depends on the installation
     TFMessage = None
 
-METHODS = ("psce", "swaying_base")
-
 #: name: (default, description, range (lo, hi) or choices or None)
 PARAMETERS: dict[str, tuple[Any, str, Any]] = {
     "prior_file": ("", "calibration YAML the filter starts from (required)", None),
-    "method": ("psce", "estimation method", METHODS),
+    "method": ("psce", "estimation method: a registered filter method", None),
     "effects": (Parameter.Type.STRING_ARRAY,
                 "effect ids estimated on top of the method's baseline (doc/interfaces.md)", None),
     "centroid_sigma_px": (0.0, "centroid 1-sigma used when a star's sigma is 0, px (0: the "
@@ -197,7 +197,8 @@ class CalibratorNode(Node):
         if p["star_frame_id"]:
             frames["star_tracker"] = p["star_frame_id"]
         self.frame_ids = frames
-        self.filter_config = FILTERS[p["method"]][1](gate_probability=p["gate_probability"])
+        self.filter_config = methods.get(p["method"]).config_cls(
+            gate_probability=p["gate_probability"])
         if p["centroid_sigma_px"] > 0:
             self.filter_config.centroid_sigma_px = p["centroid_sigma_px"]
         if p["gyro_arw_deg_sqrth"] > 0:
@@ -297,6 +298,8 @@ class CalibratorNode(Node):
                         from_value=float(limits[0]), to_value=float(limits[1]), step=0.0)]
             elif isinstance(limits, tuple):
                 desc.additional_constraints = "one of: " + ", ".join(limits)
+            elif name == "method":
+                desc.additional_constraints = "one of: " + ", ".join(methods.names("filter"))
             try:
                 self.declare_parameter(name, default, desc)
             except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
@@ -313,6 +316,9 @@ class CalibratorNode(Node):
             elif isinstance(limits, tuple) and not isinstance(v, (str, bool)) and (
                     not math.isfinite(v) or not limits[0] <= v <= limits[1]):
                 errors.append(f"{name}={v!r} outside [{limits[0]}, {limits[1]}]")
+        if p["method"] not in methods.names("filter"):
+            errors.append(f"method={p['method']!r} is not one of "
+                          f"{tuple(methods.names('filter'))}")
         if not p["prior_file"]:
             errors.append("prior_file is required")
         elif not Path(p["prior_file"]).is_file():

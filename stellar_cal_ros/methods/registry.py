@@ -1,0 +1,248 @@
+"""The method registry: every estimation method is one file that declares one spec.
+
+A method file defines, at module level, ``METHOD = MethodSpec(...)``: its name, whether it
+is a streaming *filter* or a *batch* fit, its baseline effects, the stages it models, whether
+it needs the site, and what runs it.  The registry collects them:
+
+* the package's own: every module of ``stellar_cal_ros/methods/`` whose source has a line
+  starting ``METHOD = MethodSpec(`` is imported on first use (only those: the others, and
+  their imports, stay unloaded);
+* installed ones: entry points in the group ``stellar_cal_ros.methods`` (each names a
+  :class:`MethodSpec` or a module holding ``METHOD``);
+* a user's file: :func:`load_method_module` (``stellar-cal ... --method-module FILE.py``).
+
+Everything that dispatches on a method reads it here: the command line (``--method`` of
+``replay``, ``batch``, ``diagnose`` and ``discover``), the streaming driver and the
+``calibrator`` node (filter class and configuration), the model rule
+(:mod:`~stellar_cal_ros.methods.models`), the diagnosis
+(:func:`~stellar_cal_ros.diagnosis.discover.method_spec`), campaigns, checkpoints and the
+result commands.  A new method is one file plus its tests.
+
+Filter methods
+    ``filter_cls`` is a :class:`~stellar_cal_ros.methods.kernel.StarFilter` subclass built as
+    ``filter_cls(model, t0, [site,] config, nominal_dt=..., consider=...)`` (``site`` when
+    ``needs_site``), ``config_cls`` its :class:`~stellar_cal_ros.methods.kernel.KernelConfig`
+    subclass.  The replay, the node, the diagnosis and campaigns run it through the one
+    streaming driver (:class:`~stellar_cal_ros.methods.driver.Calibrator`).
+Batch methods
+    ``batch(bag, prior, effects, options, progress)`` fits a whole bag and returns a
+    :class:`BatchOutput` (what ``stellar-cal batch`` writes and prints); ``effects`` is the
+    ``--effects`` list (ids added to the method's set, ``-id`` removes one), ``options`` holds
+    the ``batch`` command's ``loss`` and ``outlier_probability``, and ``progress`` is called
+    with the name of each of ``steps`` as it ends.  With a ``runner`` the method can also be
+    diagnosed.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import logging
+import re
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any
+
+from stellar_cal_ros.effects.base import Stage
+from stellar_cal_ros.errors import ModelError
+
+log = logging.getLogger(__name__)
+
+KINDS = ("filter", "batch")
+ENTRY_POINT_GROUP = "stellar_cal_ros.methods"
+#: how a method file of the package declares its spec (the registry imports only these)
+_DECLARATION = re.compile(r"^METHOD = MethodSpec\(", re.MULTILINE)
+
+#: ``runner(data, prior, effects, keep_tables=False, eval_fraction=0.5, consider=None,
+#: gyro_fault="raise") -> ReplayResult``: one run over a bag as the diagnosis sees it
+Runner = Callable[..., Any]
+
+
+@dataclass
+class BatchOutput:
+    """What a batch method's fit gives ``stellar-cal batch``."""
+
+    calibration: Any  #: the result (:class:`~stellar_cal_ros.io.calibration.Calibration`)
+    covariance: tuple[list[str], Any]  #: (names, matrix) of the estimated parameters
+    residuals: dict[str, Any]  #: per-star residual table (columns), ``--residuals``
+    lines: list[str]  #: the summary printed
+    result: Any = None  #: the method's own result object
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """What one estimation method is and what runs it (see the module docstring)."""
+
+    name: str  #: ``--method`` value and the result's ``method`` key
+    kind: str  #: ``filter`` (streaming Kalman filter) or ``batch`` (a fit of the whole bag)
+    summary: str  #: one line for ``--help``: the paper, and when to use it
+    #: effects always estimated (``--effects`` adds to them; they cannot be removed)
+    baseline: tuple[str, ...]
+    stages: tuple[Stage, ...] = tuple(Stage)  #: stages it models (effects elsewhere: refused)
+    needs_site: bool = False  #: needs ``/gnss/fix`` whatever the effects
+    filter_cls: type | None = None  #: filter methods: the StarFilter subclass
+    config_cls: type | None = None  #: its configuration dataclass (filters: KernelConfig)
+    #: filter methods: data seconds of IMU a replay holds ahead of the frame being processed,
+    #: from the configuration (a strapdown's reference window); None: the replay's default
+    imu_lookahead: Callable[[Any], float] | None = None
+    #: batch methods: the fit run by ``stellar-cal batch`` (module docstring)
+    batch: Callable[..., Any] | None = None
+    steps: tuple[str, ...] = ()  #: batch methods: named steps reported as progress
+    #: one run as the diagnosis, ``report`` and campaigns see it (:data:`Runner`); None for a
+    #: filter method: the streaming replay.  A batch method without one cannot be diagnosed.
+    runner: Runner | None = None
+    #: its runs can carry *consider* parameters (the kernel's sensitivity), which the
+    #: diagnosis' one-pass screening needs; None: True for filter methods
+    consider: bool | None = None
+    source: str = field(default="", compare=False)  #: where it was declared (messages)
+
+    def __post_init__(self) -> None:
+        if not self.name or not re.fullmatch(r"[a-z][a-z0-9_]*", self.name):
+            raise ModelError(f"method name {self.name!r}: lower-case letters, digits, _")
+        if self.kind not in KINDS:
+            raise ModelError(f"method {self.name}: kind {self.kind!r} is not one of {KINDS}")
+        object.__setattr__(self, "baseline", tuple(self.baseline))
+        object.__setattr__(self, "stages", tuple(Stage(s) for s in self.stages))
+        if self.consider is None:
+            object.__setattr__(self, "consider", self.kind == "filter")
+        if self.kind == "filter" and (self.filter_cls is None or self.config_cls is None):
+            raise ModelError(f"filter method {self.name} needs filter_cls and config_cls")
+        if self.kind == "batch" and self.batch is None:
+            raise ModelError(f"batch method {self.name} needs its batch function")
+
+    @property
+    def diagnosable(self) -> bool:
+        """Whether ``diagnose``/``discover`` can run it (a filter, or a batch runner)."""
+        return self.kind == "filter" or self.runner is not None
+
+
+METHODS: dict[str, MethodSpec] = {}
+_loaded = False
+
+
+def _package_files() -> Iterator[str]:
+    """Module names of this package's files that declare a method (sorted by file name)."""
+    here = Path(__file__).parent
+    for path in sorted(here.glob("*.py")):
+        if path.stem != "registry" and _DECLARATION.search(path.read_text(encoding="utf-8")):
+            yield f"{__package__}.{path.stem}"
+
+
+def _load() -> None:
+    """Collect the package's methods, then installed plugins (once)."""
+    global _loaded
+    if _loaded:
+        return
+    _loaded = True
+    for name in _package_files():
+        _register_module(importlib.import_module(name), name)
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            obj = ep.load()
+        except Exception as exc:  # an installed plugin: say which, go on with the rest
+            log.warning("method plugin %s failed to load: %s", ep.value, exc)
+            continue
+        if isinstance(obj, MethodSpec):
+            register(obj)
+        else:
+            _register_module(obj, ep.value)
+
+
+def _register_module(module: Any, where: str) -> MethodSpec:
+    spec = getattr(module, "METHOD", None)
+    if not isinstance(spec, MethodSpec):
+        raise ModelError(f"{where} declares no METHOD = MethodSpec(...)")
+    if not spec.source:
+        object.__setattr__(spec, "source", where)
+    return register(spec)
+
+
+def register(spec: MethodSpec) -> MethodSpec:
+    """Add a method; its name must be new (the same spec again is a no-op)."""
+    if not isinstance(spec, MethodSpec):
+        raise ModelError(f"{spec!r} is not a MethodSpec")
+    old = METHODS.get(spec.name)
+    if old is not None and old != spec:
+        raise ModelError(f"method {spec.name!r} is already registered"
+                         + (f" (by {old.source})" if old.source else ""))
+    METHODS[spec.name] = spec
+    return spec
+
+
+def load_method_module(path: str | Path) -> str:
+    """Import a user's Python file and register the ``METHOD`` it declares; its name."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"method module {path} does not exist")
+    _load()
+    mod_spec = importlib.util.spec_from_file_location(
+        f"stellar_cal_user_method_{path.stem}", path)
+    if mod_spec is None or mod_spec.loader is None:
+        raise ModelError(f"cannot import method module {path}")
+    module = importlib.util.module_from_spec(mod_spec)
+    try:
+        mod_spec.loader.exec_module(module)
+    except Exception as exc:  # a user's file: report any failure in one line
+        raise ModelError(f"method module {path} failed to import: "
+                         f"{type(exc).__name__}: {exc}") from exc
+    spec = getattr(module, "METHOD", None)
+    if isinstance(spec, MethodSpec) and spec.name in METHODS and \
+            METHODS[spec.name].source == str(path.resolve()):
+        METHODS[spec.name] = spec  # the same file loaded again
+        object.__setattr__(spec, "source", str(path.resolve()))
+        return spec.name
+    if isinstance(spec, MethodSpec):
+        object.__setattr__(spec, "source", str(path.resolve()))
+    return _register_module(module, str(path)).name
+
+
+def get(name: str) -> MethodSpec:
+    """The spec of ``name``; :class:`ModelError` naming the known ones otherwise."""
+    _load()
+    try:
+        return METHODS[name]
+    except KeyError:
+        raise ModelError(f"unknown method {name!r} (one of {', '.join(names())})") from None
+
+
+def find(name: str | None) -> MethodSpec | None:
+    """The spec of ``name``, None when no method has that name (``prior``, ``truth`` ...)."""
+    _load()
+    return METHODS.get(name or "")
+
+
+def names(kind: str | None = None, diagnosable: bool = False) -> list[str]:
+    """Registered method names (filters first, each kind in file order)."""
+    _load()
+    out = [s for s in METHODS.values() if kind is None or s.kind == kind]
+    out = [s for s in out if s.diagnosable or not diagnosable]
+    return [s.name for s in sorted(out, key=lambda s: KINDS.index(s.kind))]
+
+
+class MethodNames:
+    """Method names resolved when first read.
+
+    As argparse ``choices`` they import no method until a command takes ``--method``
+    (``stellar-cal -h`` and ``stellar-cal info`` stay fast).
+    """
+
+    def __init__(self, kind: str | None = None, diagnosable: bool = False) -> None:
+        self.kind, self.diagnosable = kind, diagnosable
+
+    def _names(self) -> list[str]:
+        return names(self.kind, self.diagnosable)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._names()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names())
+
+    def __len__(self) -> int:
+        return len(self._names())
+
+    def describe(self) -> str:
+        """``name: summary`` of each, ``;``-separated (``--help``)."""
+        return "; ".join(f"{n}: {get(n).summary}" for n in self._names())
