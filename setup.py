@@ -10,7 +10,8 @@ data_files = [
     ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
     ("share/" + package_name, ["package.xml"]),
 ]
-for subdir, pattern in (("config", "config/*.yaml"), ("launch", "launch/*.py")):
+for subdir, pattern in (("config", "config/*.yaml"), ("config", "config/*.json"),
+                        ("launch", "launch/*.py")):
     files = sorted(glob(pattern))
     if files:  # an empty entry would only create an empty directory
         data_files.append(("share/" + package_name + "/" + subdir, files))

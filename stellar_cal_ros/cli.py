@@ -213,14 +213,31 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         config.gyro_arw_deg_sqrth = args.gyro_arw
     history_path = args.history or args.output.with_suffix(".history.csv")
     result = replay(args.bag, prior, args.method, effects, config, residuals=args.residuals,
-                    history=history_path, keep_tables=False, progress=not args.quiet,
-                    on_error=args.on_error)
+                    history=history_path, keep_tables=args.viz is not None and
+                    args.residuals is None, progress=not args.quiet, on_error=args.on_error)
     note_residual_file(args.residuals)
     save_calibration(result.calibration, args.output, covariance=result.covariance)
     print_replay_summary(result, prior)
     print(f"wrote {args.output}, {history_path}"
           + (f" and {args.residuals}" if args.residuals else ""))
+    if args.viz is not None:
+        _write_viz(args.viz, result, history_path, args.residuals)
     return 0
+
+
+def _write_viz(path: Path, result, history_path: Path, residuals_path: Path | None) -> None:
+    """``replay --viz``: the run as a Foxglove view (MCAP + the layout beside it)."""
+    from stellar_cal_ros.io.residuals import read_residuals
+    from stellar_cal_ros.viz import layout_json, write_viz
+
+    res = read_residuals(residuals_path) if residuals_path else result.residuals
+    t0 = time.perf_counter()
+    counts = write_viz(path, read_residuals(history_path), res, result.calibration,
+                       result.method)
+    lay = path.with_suffix(".layout.json")
+    lay.write_text(layout_json())
+    print(f"wrote {path} ({', '.join(f'{v} {k}' for k, v in counts.items())} messages, "
+          f"{time.perf_counter() - t0:.1f} s): open it in Foxglove with the layout {lay}")
 
 
 def print_replay_summary(result, prior) -> None:
@@ -449,6 +466,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--on-error", choices=["raise", "skip"], default="raise",
                    help="skip: calibrate a truncated bag on what it holds, dropping and "
                         "counting malformed messages (default: stop with an error)")
+    r.add_argument("--viz", type=Path, default=None, metavar="VIZ.mcap",
+                   help="also write the run as a Foxglove view: estimates with their sigma, "
+                        "NIS, /diagnostics and the residual field over time, plus the layout "
+                        "VIZ.layout.json (doc/visualization.md)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_replay)
 

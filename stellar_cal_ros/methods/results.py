@@ -500,6 +500,19 @@ def consistency(stats: RunStats) -> dict[str, Any]:
     return out
 
 
+#: the live status text of each consistency verdict (``/diagnostics`` of the node and of
+#: ``replay --viz``) (constant texts: a monitor keys on
+#: them; the numbers are in the status' values ``consistency.*``)
+VERDICT_MESSAGES = {
+    "model mismatch": "model mismatch: the innovations exceed the noise model (NIS/dof "
+                      "above its interval or correlated in time); the model misses an "
+                      "effect and every sigma is conditional on it: run `stellar-cal "
+                      "diagnose` on a recording",
+    "conservative": "innovations below the noise model (NIS/dof under its interval): noise "
+                    "levels set too high",
+}
+
+
 def mismatch_text(cons: dict[str, Any]) -> str:
     """The loud line a model mismatch earns (empty when consistent)."""
     if cons.get("verdict") != "model mismatch":

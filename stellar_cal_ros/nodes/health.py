@@ -24,17 +24,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 
 from stellar_cal_ros import __version__
 from stellar_cal_ros.io.calibration import set_provenance
-
-#: ``/diagnostics`` message of each consistency verdict (constant texts: a monitor keys on
-#: them; the numbers are in the status' values ``consistency.*``)
-VERDICT_MESSAGES = {
-    "model mismatch": "model mismatch: the innovations exceed the noise model (NIS/dof "
-                      "above its interval or correlated in time); the model misses an "
-                      "effect and every sigma is conditional on it: run `stellar-cal "
-                      "diagnose` on a recording",
-    "conservative": "innovations below the noise model (NIS/dof under its interval): noise "
-                    "levels set too high",
-}
+from stellar_cal_ros.methods.results import VERDICT_MESSAGES
 
 
 def verdict_status(cons: dict[str, Any], converged: bool) -> tuple[bytes, str]:
