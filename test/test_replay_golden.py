@@ -1,9 +1,12 @@
 """Performance work must not change results: a 300 s PSCE replay against golden values.
 
 The golden values were produced by the driver and kernel before the speed work of issue 17
-(commit ebd3c6c) and are reproduced to 1e-9 relative by the numpy path (bit for bit when
-written).  The compiled star step (numba, the default) computes the same quantities in a
-different order of a few operations: the ill-conditioned start-up amplifies that last-bit
+(commit ebd3c6c), and regenerated once on purpose when the filters got one IMU propagation
+(issue 23: the attitude Jacobian at each sample's midpoint instead of its end, checked
+against finite differences in ``test/test_propagation.py``; θ moved by ≤ 8.4e-5 σ, σ by
+≤ 1.2e-5 relative).  The numpy path reproduces them to 1e-9 relative (θ to 1e-6 σ).
+The compiled star step (numba, the default) computes the same quantities in a different
+order of a few operations: the ill-conditioned start-up amplifies that last-bit
 difference (as it amplifies one ulp of one centroid) to ~1e-8 relative, ~2e-4 of the
 posterior σ; it is held to ``SIGMA_TOL`` σ (``test/test_compiled_step.py``).  A change
 meant to alter the estimates (a new model, another simulator) must regenerate them on
@@ -28,21 +31,24 @@ from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
 GOLDEN_THETA = [
-    0.0003802138203169455, 0.0009548360052978144, 0.0014542524040975096,
-    3968.9795006522563, 516.4490121177539, 521.9216118892223, 0.1316707142148864,
-    -0.4513065823154906, 0.0005549164700785663, 0.0005073062253523699,
-    3.994049640351784e-08, 4.6269932318992484e-08, 5.964655266694793e-08]
+    0.00038021350324812174, 0.0009548357756718738, 0.0014542522472031478, 3968.979500651627,
+    516.4490121153586, 521.9216118825183, 0.13167071423516868, -0.4513065829258398,
+    0.0005549164691175973, 0.0005073062250578596, 3.994049814556365e-08,
+    4.626993234421187e-08, 5.964655254855526e-08]
 GOLDEN_SIGMA = [
-    2.696989586666506e-06, 2.3693038078436404e-06, 2.0353240767790953e-06,
-    5.0089387826136244e-05, 4.882949413684086e-05, 1.8683569420762307e-06,
-    0.024694831841026794, 0.19289364234281228, 0.19859591393561576, 0.0008012401999349403,
-    0.02430394751293839, 2.5902280756764558e-05, 2.4809137639682494e-05,
-    1.88240085552441e-08, 1.7294249209145338e-08, 1.9226326283781367e-08]
+    2.6969568045098475e-06, 2.369289854263743e-06, 2.0353196312981225e-06,
+    5.008938683516101e-05, 4.882949432813946e-05, 1.8683511183641305e-06,
+    0.024694831841359958, 0.1928936423212778, 0.19859591391619044, 0.0008012401999551603,
+    0.024303947513801237, 2.590228075455983e-05, 2.4809137635828e-05,
+    1.8824008601930388e-08, 1.729424921093037e-08, 1.922632619921948e-08]
 GOLDEN_UPDATES = 599
-GOLDEN_LOGLIK = 18599.31906032765
+GOLDEN_LOGLIK = 18599.319063071805
 GOLDEN_RESIDUAL_ROWS = 12183
-GOLDEN_HISTORY_NIS_SUM = 24575.340547372798
+GOLDEN_HISTORY_NIS_SUM = 24575.340541165497
 RTOL = 1e-9
+#: numpy path: |θ − golden| / σ (a parameter near zero, the gyro bias, is not held to 1e-9
+#: of its value: another BLAS rounds it ~1e-8 σ differently)
+NUMPY_SIGMA_TOL = 1e-6
 SIGMA_TOL = 2e-3  # compiled path: |θ − golden| / σ
 
 
@@ -64,11 +70,9 @@ def test_replay_matches_golden_values(sim_data, compiled, monkeypatch) -> None:
     res = _replay(sim_data)
     f = res.filter
     rtol = 1e-6 if compiled else RTOL
-    if compiled:
-        sigma = np.asarray(GOLDEN_SIGMA[:len(GOLDEN_THETA)])
-        assert np.max(np.abs(f.theta - GOLDEN_THETA) / sigma) <= SIGMA_TOL
-    else:
-        np.testing.assert_allclose(f.theta, GOLDEN_THETA, rtol=RTOL, atol=0)
+    sigma = np.asarray(GOLDEN_SIGMA[3:3 + len(GOLDEN_THETA)])
+    z = np.abs(f.theta - GOLDEN_THETA) / sigma
+    assert np.max(z) <= (SIGMA_TOL if compiled else NUMPY_SIGMA_TOL), z
     np.testing.assert_allclose(np.sqrt(np.diag(f.P)), GOLDEN_SIGMA, rtol=rtol, atol=0)
     assert res.counters["updates"] == GOLDEN_UPDATES
     assert len(res.residuals["t"]) == GOLDEN_RESIDUAL_ROWS

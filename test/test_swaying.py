@@ -138,7 +138,7 @@ def test_fast_propagation_matches_per_sample(sim_bag):
     z = (fast.theta - exact.theta) / s_exact
     assert np.all(np.abs(z) < 0.1), dict(zip(fast.model.parameter_names(), z, strict=True))
     np.testing.assert_allclose(fast.sigma()[fast.it], s_exact, rtol=0.02)
-    assert fast.reference_rebuilds == 0
+    assert fast.propagation.rebuilds == 0
 
 
 def test_replay_speed(sim_bag):

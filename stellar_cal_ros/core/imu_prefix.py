@@ -1,6 +1,7 @@
-"""Gyro attitude and its time integral, accumulated once per IMU sample (PSCE propagation).
+"""The reference strapdown of the filters' IMU propagation, accumulated once per IMU sample.
 
-See :class:`ImuPrefix`.  numpy only.
+See :class:`ImuPrefix`; :mod:`stellar_cal_ros.core.propagation` turns its rows into the
+propagation over a star interval.  numpy only.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import math
 import numpy as np
 
 from stellar_cal_ros.core.rotation import quat_from_rotvec, so3_exp
-from stellar_cal_ros.core.strapdown import _quat_multiply_soa
+from stellar_cal_ros.core.strapdown import _quat_multiply_soa, _so3_integral_coefficients
 
 _BLOCK = 32  # samples per block of the prefix's attitude products (see ImuPrefix)
 _CHUNK = 16384  # samples per piece of a long extension (cache)
@@ -18,18 +19,31 @@ _SMALL = 8  # extensions of up to this many samples take the scalar path (live u
 _STALE_DQ = np.zeros((0, 4))  # block_dq while _lv holds the partial block
 _PREFIX_ROWS = {  # per-sample arrays of ImuPrefix: trailing shape, dtype
     "tp": ((), np.float64), "w_hat": ((3,), np.float64), "C": ((3, 3), np.float64),
-    "S": ((3, 3), np.float64),
+    "phi": ((3,), np.float64),
 }
+_ACCEL_ROWS = {"f_hat": ((3,), np.float64), "du": ((3,), np.float64),
+               "gdt": ((3,), np.float64)}
+_BOUNDARY = ("tp", "C")  # n + 1 rows (sample boundaries); the others n rows (samples)
 
 
 class ImuPrefix:
-    """Gyro attitude and its time integral, accumulated once per IMU sample.
+    """The reference strapdown: attitude (and specific-force increments) per IMU sample.
 
-    With the rates ``ω̂_ref`` of the reference parameters ``θ_ref`` (the prior), ``C(t)``
-    is the body attitude at ``t`` relative to the start of the data and ``S_k = Σ_{j<k}
-    C_{j+1} Δt_j``.  Over any interval ``(t_a, t_b]``: ``ΔR = C(t_a)ᵀ C(t_b)`` and
-    ``Σ R̂_j Δt_j = R̂(t_a) C(t_a)ᵀ (S differences + partial samples)`` — two lookups
-    instead of a per-sample loop per star frame.  Increments have the coning correction.
+    Under the sensor corrections of reference parameters ``θ_ref`` (the bias ``b`` and
+    ``A = (I + E)⁻¹`` of the gyro, and of the accelerometer when ``accel`` is given), per
+    sample ``j`` (the interval ``(tp_j, tp_{j+1}]`` ending at its stamp): the corrected rate
+    ``w_hat``, the rotation increment ``phi`` (coning-corrected) and ``C_j``, the body
+    attitude at ``tp_j`` relative to the start of the reference (``C_{j+1} = C_j
+    Exp(phi_j)``); with an accelerometer also the corrected specific force ``f_hat``, its
+    velocity increment ``du`` in the body frame at the sample start (rotation and sculling
+    compensated, :func:`~stellar_cal_ros.core.strapdown.velocity_increments`) and the
+    gravitation increment ``gdt = g(mid) Δt`` (``gravity(t)``, a function of time only).
+    Over any interval the attitude change is ``C(t_a)ᵀ C(t_b)``: two lookups
+    (:meth:`at`), and every sum the propagation needs is a sum of these rows.
+
+    The first sample of a reference takes its coning and sculling terms from ``start``
+    (the end time, rotation and velocity increments of the sample before it, corrected
+    alike), or from nothing at the start of the data.
 
     Samples are appended with :meth:`extend` (the constructor holds none) and old ones
     dropped with :meth:`drop`, so a live filter keeps the fast path.  Every stored value is
@@ -47,23 +61,29 @@ class ImuPrefix:
     path (≈ 0.03 instead of ≈ 0.25 ms per call).
     """
 
-    def __init__(self, nominal_dt: float, theta_ref: np.ndarray, b: np.ndarray, E: np.ndarray,
-                 Jb: np.ndarray) -> None:
+    def __init__(self, nominal_dt: float, b: np.ndarray, A: np.ndarray | None = None, *,
+                 accel: tuple[np.ndarray, np.ndarray | None] | None = None,
+                 gravity=None, base: int = 0,
+                 start: tuple[float, np.ndarray, np.ndarray] | None = None) -> None:
         self.nominal_dt = float(nominal_dt)
-        self.theta_ref = theta_ref.copy()
         self.b = np.asarray(b, dtype=float).copy()
-        if np.any(E):
-            self.A = np.linalg.inv(np.eye(3) + E)
-            self.G = -self.A @ Jb
-        else:
-            self.A = None
-            self.G = -Jb
+        self.A = None if A is None else np.asarray(A, dtype=float).copy()
+        self.has_accel = accel is not None
+        self.b_a, self.A_a = (None, None) if accel is None else (
+            np.asarray(accel[0], dtype=float).copy(),
+            None if accel[1] is None else np.asarray(accel[1], dtype=float).copy())
+        self.gravity = gravity
         self.n = 0  # samples held
-        self.base = 0  # absolute index of the first sample held (samples dropped before it)
+        self.base = int(base)  # absolute index of the first sample held
         self._at_cache: tuple[tuple[tuple[int, float], np.ndarray], ...] = \
             (((-1, 0.0), np.eye(3)),) * 2  # at(): ((absolute sample, t), C)
         self.t_end = -np.inf
         self.dtheta_last = np.zeros(3)  # for the coning term of the next sample
+        self.dv_last = np.zeros(3)  # for the sculling term of the next sample
+        self.t_start = None if start is None else float(start[0])
+        if start is not None:
+            self.dtheta_last = np.asarray(start[1], dtype=float).copy()
+            self.dv_last = np.asarray(start[2], dtype=float).copy()
         self.anchor = np.array([0.0, 0.0, 0.0, 1.0])  # attitude at the current block's start
         self.block_dq = np.zeros((0, 4))  # increments of the current (partial) block
         # scan levels of the current partial block for the scalar path: one entry per
@@ -71,20 +91,24 @@ class ImuPrefix:
         # 4 floats; None: not known (after load_state), rebuilt from block_dq when needed
         self._lv: list[list[list[float]]] | None = []
         # Storage with spare capacity (amortized appends, drops without copies); the
-        # public arrays are views: tp, C, S have n + 1 rows (boundaries), w_hat n rows
+        # public arrays are views: tp, C have n + 1 rows (boundaries), the others n rows
         # (samples).
         self._lo = 0
-        self._buf = {k: np.zeros((0,) + shape, dtype=dt) for k, (shape, dt) in _PREFIX_ROWS.items()}
-        self._buf["C"] = np.eye(3)[None].copy()
-        self._buf["S"] = np.zeros((1, 3, 3))
-        self._buf["tp"] = np.zeros(1)
-        self._buf["w_hat"] = np.zeros((1, 3))
+        self._fields = dict(_PREFIX_ROWS, **(_ACCEL_ROWS if self.has_accel else {}))
+        self._buf = {k: np.zeros((1,) + shape, dtype=dt)
+                     for k, (shape, dt) in self._fields.items()}
+        self._buf["C"][0] = np.eye(3)
         self._views()
+
+    @property
+    def end(self) -> int:
+        """Absolute index of the first sample not held."""
+        return self.base + self.n
 
     def _views(self) -> None:
         lo, n, buf = self._lo, self.n, self._buf
-        for k in _PREFIX_ROWS:
-            setattr(self, k, buf[k][lo:lo + n + (0 if k == "w_hat" else 1)])
+        for k in self._fields:
+            setattr(self, k, buf[k][lo:lo + n + (1 if k in _BOUNDARY else 0)])
 
     def _reserve(self, m: int) -> None:
         """Room for m more samples: compact or grow the buffers."""
@@ -94,39 +118,38 @@ class ImuPrefix:
             return
         new_cap = rows if self.n == 0 else max(2 * rows, 1024)
         lo, n = self._lo, self.n
-        for k, (shape, dt) in _PREFIX_ROWS.items():
+        for k, (shape, dt) in self._fields.items():
             old = self._buf[k]
             arr = np.zeros((new_cap,) + shape, dtype=dt)
             arr[:n + 1] = old[lo:lo + n + 1]
             self._buf[k] = arr
         self._lo = 0
 
-    def extend(self, imu_t: np.ndarray, imu_w: np.ndarray) -> None:
-        """Append samples (stamps increasing, after the last one held)."""
+    def extend(self, imu_t: np.ndarray, imu_w: np.ndarray, imu_f: np.ndarray | None = None
+               ) -> None:
+        """Append samples (stamps increasing, after the last one held; ``imu_f`` with accel)."""
         m = len(imu_t)
         if m == 0:
             return
         if m > _CHUNK:  # cache-sized pieces; the result does not depend on the split
             self._reserve(m)
             for a in range(0, m, _CHUNK):
-                self.extend(imu_t[a:a + _CHUNK], imu_w[a:a + _CHUNK])
+                self.extend(imu_t[a:a + _CHUNK], imu_w[a:a + _CHUNK],
+                            None if imu_f is None else imu_f[a:a + _CHUNK])
             return
-        first = self.base == 0 and self.n == 0
+        first = self.n == 0
         if m <= _SMALL and not first:
-            self._extend_small(imu_t, imu_w)
+            self._extend_small(imu_t, imu_w, imu_f)
             return
-        t_prev = imu_t[0] - self.nominal_dt if first else self.tp[-1]
+        if first:
+            t_prev = imu_t[0] - self.nominal_dt if self.t_start is None else self.t_start
+        else:
+            t_prev = self.tp[-1]
         dt = np.diff(np.concatenate([[t_prev], imu_t]))
-        d = imu_w - self.b
-        if self.A is not None:  # explicit sums: the same rounding for any batch size
-            A = self.A
-            d = np.stack([d[:, 0] * A[i, 0] + d[:, 1] * A[i, 1] + d[:, 2] * A[i, 2]
-                          for i in range(3)], axis=1)
+        d = _corrected(imu_w, self.b, self.A)
         dth = d * dt[:, None]
         prev = np.concatenate([self.dtheta_last[None], dth[:-1]])
         phi = dth + np.cross(prev, dth) / 12.0
-        if first:
-            phi[0] = dth[0]
         block_dq = self._partial_dq()
         seq = np.concatenate([block_dq, quat_from_rotvec(phi)])
         r, old = len(seq), len(block_dq)
@@ -150,11 +173,11 @@ class ImuPrefix:
             buf["tp"][i0] = t_prev
         buf["tp"][i0 + 1:i0 + m + 1] = imu_t
         buf["w_hat"][i0:i0 + m] = d
+        buf["phi"][i0:i0 + m] = phi
         C = buf["C"][i0 + 1:i0 + m + 1]
         _quat_soa_to_matrix(q.reshape(4, -1)[:, old:r], C)
-        S = buf["S"][i0:i0 + m + 1]
-        np.multiply(C, dt[:, None, None], out=S[1:])
-        np.cumsum(S, axis=0, out=S)  # row 0 is the last sum held: sequential continuation
+        if self.has_accel:
+            self._accel_rows(i0, imu_t, dt, dth, imu_f)
         self.n += m
         self.t_end = float(imu_t[-1])
         self.dtheta_last = dth[-1].copy()
@@ -180,7 +203,25 @@ class ImuPrefix:
             self._lv = lv
         return self._lv
 
-    def _extend_small(self, imu_t: np.ndarray, imu_w: np.ndarray) -> None:
+    def _accel_rows(self, i0: int, imu_t: np.ndarray, dt: np.ndarray, dth: np.ndarray,
+                    imu_f: np.ndarray) -> None:
+        """The specific-force rows of the samples written at ``i0``.
+
+        Elementwise: the same values for any batch size.
+        """
+        fa = _corrected(np.asarray(imu_f, dtype=float).reshape(-1, 3), self.b_a, self.A_a)
+        dv = fa * dt[:, None]
+        dth_prev = np.concatenate([self.dtheta_last[None], dth[:-1]])
+        dv_prev = np.concatenate([self.dv_last[None], dv[:-1]])
+        m = len(dt)
+        buf = self._buf
+        buf["f_hat"][i0:i0 + m] = fa
+        buf["du"][i0:i0 + m] = sculled_increments(dth, dv, dth_prev, dv_prev)
+        buf["gdt"][i0:i0 + m] = self.gravity(imu_t - 0.5 * dt) * dt[:, None]
+        self.dv_last = dv[-1].copy()
+
+    def _extend_small(self, imu_t: np.ndarray, imu_w: np.ndarray,
+                      imu_f: np.ndarray | None = None) -> None:
         """A few samples, one at a time: the floating-point operations of :meth:`extend`.
 
         Per sample: the bias-corrected rate (explicit sums with ``A``), the coning-corrected
@@ -200,6 +241,7 @@ class ImuPrefix:
         px, py, pz = self.dtheta_last.tolist()
         rows = []
         phis = np.empty((m, 3))
+        dths = np.empty((m, 3))
         for j in range(m):
             t = ts[j]
             dt = t - t_prev
@@ -215,6 +257,7 @@ class ImuPrefix:
             cy = pz * hx - px * hz
             cz = px * hy - py * hx
             phis[j] = (hx + cx / 12.0, hy + cy / 12.0, hz + cz / 12.0)
+            dths[j] = (hx, hy, hz)
             rows.append((t, dt, dx, dy, dz))
             px, py, pz = hx, hy, hz
             t_prev = t
@@ -222,7 +265,6 @@ class ImuPrefix:
         lv = self._levels()
         anchor = self.anchor.tolist()
         ax, ay, az, aw = anchor
-        S_prev = buf["S"][i0].ravel().tolist()
         for j in range(m):
             t, dt, dx, dy, dz = rows[j]
             i = i0 + j
@@ -242,11 +284,13 @@ class ImuPrefix:
             qw = aw * w - ax * x - ay * y - az * z
             ax, ay, az, aw = anchor
             C = _quat_to_matrix_rows(qx, qy, qz, qw)
-            S_prev = [s_ + c_ * dt for s_, c_ in zip(S_prev, C, strict=True)]
             buf["tp"][i + 1] = t
             buf["w_hat"][i] = (dx, dy, dz)
             buf["C"][i + 1].flat = C
-            buf["S"][i + 1].flat = S_prev
+        buf["phi"][i0:i0 + m] = phis
+        if self.has_accel:
+            self._accel_rows(i0, np.asarray(ts), np.array([r[1] for r in rows]), dths,
+                             imu_f)
         self._lv = lv
         self.anchor = np.array(anchor)
         self.block_dq = _STALE_DQ
@@ -265,39 +309,43 @@ class ImuPrefix:
         self.base += cut
         self._views()
 
+    _SCALARS = ("nominal_dt", "b", "n", "base", "t_end", "dtheta_last", "dv_last", "anchor")
+
     def state(self) -> dict[str, np.ndarray]:
-        """Everything that defines the prefix, as arrays (checkpoints)."""
-        out = {k: np.asarray(getattr(self, k)).copy() for k in _PREFIX_ROWS}
-        for k in ("nominal_dt", "theta_ref", "b", "G", "n", "base", "t_end",
-                  "dtheta_last", "anchor"):
+        """Everything that defines the prefix, as arrays (checkpoints; not ``gravity``)."""
+        out = {k: np.asarray(getattr(self, k)).copy() for k in self._fields}
+        for k in self._SCALARS:
             out[k] = np.asarray(getattr(self, k)).copy()
         out["block_dq"] = self._partial_dq().copy()
-        if self.A is not None:
-            out["A"] = self.A.copy()
+        for k in ("A", "b_a", "A_a", "t_start"):
+            if getattr(self, k) is not None:
+                out[k] = np.asarray(getattr(self, k)).copy()
         return out
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
-        """Restore :meth:`state`."""
+        """Restore :meth:`state` (into a prefix built with the same accelerometer setting)."""
         for k, v in state.items():
-            if k in _PREFIX_ROWS:
+            if k in self._fields:
                 continue
             v = np.array(v)
             setattr(self, k, v.item() if v.ndim == 0 else v)
-        self.A = np.array(state["A"]) if "A" in state else None
+        for k in ("A", "b_a", "A_a", "t_start"):
+            if k not in state:
+                setattr(self, k, None)
         self.n, self.base = int(self.n), int(self.base)
         self._lv = None  # rebuilt from block_dq by the scalar path when needed
         self._at_cache = (((-1, 0.0), np.eye(3)),) * 2
         self._lo = 0
         self._buf = {}
-        for k, (shape, dt) in _PREFIX_ROWS.items():
-            rows = self.n + (0 if k == "w_hat" else 1)
+        for k, (shape, dt) in self._fields.items():
+            rows = self.n + (1 if k in _BOUNDARY else 0)
             arr = np.zeros((self.n + 1,) + shape, dtype=dt)
             arr[:rows] = state[k]
             self._buf[k] = arr
         self._views()
 
     def at(self, m: int, t: float) -> np.ndarray:
-        """``C(t)`` for ``t`` in sample ``m``.
+        """``C(t)`` for ``t`` in row ``m`` (the sample's increment split linearly in time).
 
         The last two results are kept (by absolute sample and time): a star frame's
         propagation starts where the previous one ended.
@@ -306,10 +354,34 @@ class ImuPrefix:
         for k, C in self._at_cache:
             if k == key:
                 return C
-        tau = t - self.tp[m]
-        C = self.C[m] @ so3_exp(self.w_hat[m] * tau) if tau > 0.0 else self.C[m].copy()
+        a = (t - self.tp[m]) / (self.tp[m + 1] - self.tp[m])
+        C = self.C[m] @ so3_exp(a * self.phi[m]) if a > 0.0 else self.C[m].copy()
         self._at_cache = (self._at_cache[-1], (key, C))
         return C
+
+
+def _corrected(x: np.ndarray, b: np.ndarray, A: np.ndarray | None) -> np.ndarray:
+    """``A (x − b)`` per row, with explicit sums (the same rounding for any batch size)."""
+    d = x - b
+    if A is None:
+        return d
+    return np.stack([d[:, 0] * A[i, 0] + d[:, 1] * A[i, 1] + d[:, 2] * A[i, 2]
+                     for i in range(3)], axis=1)
+
+
+def sculled_increments(dth: np.ndarray, dv: np.ndarray, dth_prev: np.ndarray,
+                       dv_prev: np.ndarray) -> np.ndarray:
+    """Velocity increments in the body frame at each sample's start (n, 3).
+
+    :func:`~stellar_cal_ros.core.strapdown.velocity_increments` with the previous sample's
+    increments given (elementwise: the same values for any batch size).
+    """
+    p = np.sqrt(dth[:, 0] * dth[:, 0] + dth[:, 1] * dth[:, 1] + dth[:, 2] * dth[:, 2])
+    a, b = _so3_integral_coefficients(p)
+    c1 = np.cross(dth, dv)
+    du = dv + a[:, None] * c1 + b[:, None] * np.cross(dth, c1)
+    du += (np.cross(dth_prev, dv) + np.cross(dv_prev, dth)) / 12.0
+    return du
 
 
 def _block_scan(dq: np.ndarray, levels: np.ndarray | None = None) -> np.ndarray:

@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = "stellar_cal_checkpoint/4"
 #: filter attributes rebuilt by the constructor (configuration, caches, workspaces)
 _FILTER_SKIP = {"model", "config", "layout", "gate", "update_policy", "grid", "site",
-                "_affine", "_sensor_cache", "_cref_cache", "_Phi", "_at_cache"}
+                "_Phi"}
 
 
 class _Encoder:
@@ -85,10 +85,8 @@ def _filter_state(flt, enc: _Encoder) -> dict[str, Any]:
     for k, v in vars(flt).items():
         if k in _FILTER_SKIP:
             continue
-        if k == "imu":
-            out[k] = {"__imu__": enc.enc(v.state(), "f.imu")}
-        elif k == "_prefix":
-            out[k] = None if v is None else {"__prefix__": enc.enc(v.state(), "f.prefix")}
+        if k in ("imu", "propagation"):  # objects that say what defines them
+            out[k] = {"__obj__": enc.enc(v.state(), f"f.{k}")}
         elif k == "state":  # the ErrorState: covariance, nominal values, sensitivity
             sens = v.sensitivity
             out[k] = {"__state__": enc.enc(
@@ -105,10 +103,8 @@ def _filter_state(flt, enc: _Encoder) -> dict[str, Any]:
 
 def _restore_filter(flt, state: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
     for k, v in state.items():
-        if isinstance(v, dict) and "__imu__" in v:
-            flt.imu.load_state(_dec(v["__imu__"], arrays))
-        elif isinstance(v, dict) and "__prefix__" in v:
-            flt._prefix.load_state(_dec(v["__prefix__"], arrays))
+        if isinstance(v, dict) and "__obj__" in v:
+            getattr(flt, k).load_state(_dec(v["__obj__"], arrays))
         elif isinstance(v, dict) and "__state__" in v:
             s = _dec(v["__state__"], arrays)
             flt.state.P = s["P"]
@@ -117,8 +113,6 @@ def _restore_filter(flt, state: dict[str, Any], arrays: dict[str, np.ndarray]) -
                 setattr(flt.state.sensitivity, name, value)
         elif k == "counters":
             flt.counters = FilterCounters(**_dec(v, arrays))
-        elif k == "_prefix":
-            continue
         else:
             setattr(flt, k, _dec(v, arrays))
 

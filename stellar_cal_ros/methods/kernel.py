@@ -35,10 +35,14 @@ same for all methods lives here, once:
 The covariance belongs to :class:`~stellar_cal_ros.core.state.ErrorState` (:attr:`StarFilter.
 state`): the kernel and the methods change it only through its methods.
 
+The IMU propagation is :class:`~stellar_cal_ros.core.propagation.ImuPropagation` (attitude,
+and velocity and position when the method's blocks are driven by the accelerometer), one for
+every method.
+
 A method (:mod:`~stellar_cal_ros.methods.psce`, :mod:`~stellar_cal_ros.methods.swaying`)
-declares its navigation blocks (:attr:`StarFilter.navigation_blocks`), its propagation
-(:meth:`StarFilter.propagate`, :meth:`StarFilter.rate_at`, :meth:`StarFilter.
-_on_imu_appended`) and its extra measurements (:meth:`StarFilter._before_star_update`).
+declares its navigation blocks (:attr:`StarFilter.navigation_blocks`), its transition from
+the propagation (:meth:`StarFilter._transition`: which blocks, which process noise) and its
+extra measurements (:meth:`StarFilter._before_star_update`).
 """
 
 from __future__ import annotations
@@ -55,10 +59,11 @@ from stellar_cal_ros.core import gyro_check
 from stellar_cal_ros.core.attitude import fit_frame_attitude, wahba
 from stellar_cal_ros.core.gating import GatePolicy, block_nis, fov_tan2
 from stellar_cal_ros.core.imu import ImuBuffer
+from stellar_cal_ros.core.propagation import ImuPropagation, SensorModel, Step
 from stellar_cal_ros.core.rotation import so3_log
 from stellar_cal_ros.core.state import Block, ErrorState, StateLayout
 from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
-from stellar_cal_ros.effects.base import FrameContext
+from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.errors import DataError, ModelError
 from stellar_cal_ros.methods.star_model import StarModel, state_attitude
 
@@ -136,6 +141,13 @@ class KernelConfig:
     relinearize_rad: float = 2e-4  #: iterate only if the attitude correction exceeds this
     relinearize_sigma: float = 0.5  #: ... or a parameter moves by more than this × σ
     imu_bridge_factor: float = 1.5  #: an IMU interval longer than this × nominal is bridged
+    #: rebuild the reference strapdown for every interval (per-sample propagation under the
+    #: current θ: the reference path, several times slower)
+    exact_propagation: bool = False
+    #: a first-order attitude correction for θ̂ − θ_ref larger than this rebuilds the
+    #: reference strapdown under the current θ̂ (second-order error < this²)
+    fast_propagation_max_rad: float = 1e-5
+    reference_window_s: float = math.inf  #: a reference older than this is rebuilt
     gap_rate_sigma: float = 1e-3  #: rad/s, rate error over a gap of several samples
     gap_accel_sigma: float = 0.5  #: m/s², specific-force error over such a gap
     fov_margin: float = 1.3  #: stars predicted beyond this × the half-diagonal: rejected
@@ -211,6 +223,18 @@ class StarFilter:
                              math.sqrt(self.q_gyro / nominal_dt),
                              self.accel_noise_density() / math.sqrt(nominal_dt))
         self.nominal_dt = float(nominal_dt)
+        sig = model.initial_sigma
+        step = np.where(np.isfinite(sig) & (sig > 0), sig, 1e-3)
+
+        def sensor(stage: Stage) -> SensorModel:
+            return SensorModel(lambda th: model.sensor_model(th, stage), self.theta, step)
+
+        accel = any(b.driven_by == "accel" for b in self.navigation_blocks)
+        #: the IMU propagation (attitude; velocity and position with an accelerometer)
+        self.propagation = ImuPropagation(
+            self.nominal_dt, sensor(Stage.GYRO), sensor(Stage.ACCEL) if accel else None,
+            self.gravitation if accel else None, c.fast_propagation_max_rad,
+            c.reference_window_s, c.exact_propagation)
         self.t: float | None = None
         self._omega = np.zeros(3)
         self._omega_stale = False
@@ -329,7 +353,7 @@ class StarFilter:
         before = self.imu.counters["imu_bridged"]
         self.imu.append(t, w, ff)
         self.counters.imu_gaps += self.imu.counters["imu_bridged"] - before
-        self._on_imu_appended(n0)
+        self.propagation.appended(self.imu, n0, self.theta)
         return len(t)
 
     def drop_imu(self, cut: int) -> int:
@@ -344,7 +368,7 @@ class StarFilter:
             return 0
         self.imu.drop(cut)
         self._k -= cut
-        self._on_imu_dropped(cut)
+        self.propagation.dropped(self.imu)
         return cut
 
     # ------------------------------------------------------------------ method hooks
@@ -352,19 +376,38 @@ class StarFilter:
         """White specific-force noise the method models, m/s/√s (0: it uses no accelerometer)."""
         return 0.0
 
-    def _on_imu_appended(self, first: int) -> None:
-        """Samples ``first:`` of :attr:`imu` are new (e.g. extend a prefix)."""
+    def gravitation(self, t: np.ndarray) -> np.ndarray:
+        """Gravitation at relative times ``t`` (n, 3), m/s² (methods that carry velocity)."""
+        raise NotImplementedError
 
-    def _on_imu_dropped(self, cut: int) -> None:
-        """The first ``cut`` samples were dropped."""
+    def _transition(self, step: Step) -> None:
+        """Apply a propagation step: the nominal navigation values and the covariance."""
+        raise NotImplementedError
 
+    # ------------------------------------------------------------------ propagation
     def propagate(self, t_target: float) -> None:
         """Propagate nominal state and covariance to ``t_target`` (relative s)."""
-        raise NotImplementedError
+        if t_target <= self.t:
+            if t_target < self.t - 1e-9:
+                raise ModelError("cannot propagate backwards in time")
+            return
+        k = self._k
+        m = self.imu.index(t_target)
+        if m >= len(self.imu):
+            raise NoImuError()
+        step = self.propagation.step(self.imu, k, m, self.t, t_target, self.R_i_b,
+                                     self.theta)
+        self.R_i_b = step.R
+        self._transition(step)
+        self._inflate_bridged(k, m, self.t, t_target)
+        self.t = t_target
+        self._k = m
+        self._omega_stale = True  # the corrected rate of sample m, when next needed
 
     def rate_at(self, t: float) -> np.ndarray:
         """Corrected body rate of the IMU sample covering relative time ``t``."""
-        raise NotImplementedError
+        m = min(self.imu.index(t), len(self.imu) - 1)
+        return self.propagation.gyro.corrected(self.imu.w[m], self.theta)
 
     def _acquire_navigation(self, t_exp: float) -> None:
         """Set the method's navigation blocks (nominal and covariance) at acquisition."""
