@@ -638,9 +638,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                        timespec="seconds"), bag=bag, bag_id=deferred_bag_identity(bag),
                    prior=getattr(args, "prior", None))
     logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
+        level=logging.DEBUG if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    if not args.verbose:  # the package's own INFO lines; third-party ones only with -v
+        logging.getLogger("stellar_cal_ros").setLevel(logging.INFO)
     try:
         for name, directory in OUTPUTS.get(args.command, ()):
             if getattr(args, name, None) is not None:

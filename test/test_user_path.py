@@ -290,3 +290,22 @@ def test_statistics_blocks_merge_exactly(runs):
     half = blocks.current()
     assert half.eval_start >= blocks.t_first + 0.5 * (blocks.t_last - blocks.t_first)
     assert 0 < half.stars < whole.stars
+
+
+def test_third_party_info_lines_only_with_verbose():
+    """Coordinator's first-user run of `solve`: tetra3's INFO lines drowned the summary."""
+    import subprocess
+    import sys
+
+    code = ("import logging, sys\nfrom stellar_cal_ros import cli\n"
+            "def run(args):\n"
+            "    logging.getLogger('tetra3.solver.database').info('THIRD PARTY')\n"
+            "    logging.getLogger('stellar_cal_ros.sky').info('OURS')\n    return 0\n"
+            "parser = cli.build_parser()\ncli.build_parser = lambda: parser\n"
+            "parser._subparsers._group_actions[0].choices['effects'].set_defaults(func=run)\n"
+            "sys.exit(cli.main(sys.argv[1:]))\n")
+    for argv, third in ((["effects"], False), (["-v", "effects"], True)):
+        p = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True,
+                           timeout=120)
+        assert p.returncode == 0, p.stderr
+        assert "OURS" in p.stderr and ("THIRD PARTY" in p.stderr) == third, p.stderr

@@ -130,7 +130,7 @@ def solve_images(paths: list[str], fov_deg: float | None = None,
     fovs = []
     for im, c in zip(images, cents, strict=True):
         ident = first.identify(c.uv, brightness=c.flux)
-        log.info("%s: %d stars, %s (%d identified, field %.3f deg)", im.path, len(c),
+        log.debug("%s: %d stars, %s (%d identified, field %.3f deg)", im.path, len(c),
                  ident.status, ident.n_identified, ident.fov_deg)
         if ident.status != "failed":
             fovs.append(ident.fov_deg)
