@@ -80,6 +80,9 @@ def _cmd_effects(args: argparse.Namespace) -> int:
                                         strict=False)))
         print(f"    simulate --effect {eid}=" + ",".join(["V"] * size) + "  in "
               + ", ".join(sim_units))
+        if cls.plausible is not None:
+            print("    plausible size (largest seen in practice): "
+                  + ", ".join(dict.fromkeys(cls.plausible.text(i) for i in range(size))))
         if args.verbose_text and cls.explanation:
             print("    " + cls.explanation)
     print("simulator only (no library effect models them): "

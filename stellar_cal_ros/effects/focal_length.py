@@ -25,7 +25,8 @@ class FocalLength(Effect):
     order = 10
     budget_source = "focal_length"
     export_role = ExportRole.CAMERA
-    plausible = Plausible(20.0, "px")
+    #: a share of the focal length (manufacturing tolerance, focus): 20 px of the demo's f
+    plausible = Plausible(0.5, "% of f")
     stage = Stage.CAMERA
     parameter_names = ("f",)
     units = ("px",)
@@ -51,6 +52,11 @@ class FocalLength(Effect):
         p[FX], p[FY] = value[0], value[0] * self.ratio
         cal.camera = cal.camera.with_parameters(p)
         _store_camera_sigma(cal, ("fx", "fy"), np.array([sigma[0], sigma[0] * self.ratio]))
+
+    def plausible_gain(self, calibration: Any) -> np.ndarray:
+        """Percent of the camera's focal length per px (NaN without a camera)."""
+        cam = getattr(calibration, "camera", None)
+        return np.array([100.0 / cam.fx if cam is not None else np.nan])
 
     def camera_parameters(self, value, p, ctx):  # noqa: D102
         out = p.copy()

@@ -11,7 +11,7 @@ class Tangential(CameraSetEffect):
     id = "tangential"
     order = 60
     budget_source = "distortion"
-    plausible = Plausible(2e-3, "1")
+    plausible = Plausible(2.0, "px", at="corner")
     camera_entries = ("p1", "p2")
     parameter_names = ("p1", "p2")
     units = ("1", "1")
