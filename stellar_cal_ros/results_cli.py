@@ -131,7 +131,7 @@ def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
     from stellar_cal_ros.methods.replay import read_bag_data
 
     if "data" not in data_cache:
-        data_cache["data"] = read_bag_data(bag)
+        data_cache["data"] = read_bag_data(bag, require_imu=False)  # star-only: bundle
     method = _rerun_method(cal)
     spec = method_spec(method)
     effects = [e for e in cal.estimated if e not in spec.baseline]

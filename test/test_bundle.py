@@ -345,3 +345,34 @@ def test_fold_camera_is_the_refit_without_the_frame(world):
         ref_cov, ref_s2 = bd.Fit(th, R, ne_k, b, it).covariance()
         assert s2 == pytest.approx(ref_s2, rel=0.02)
         assert np.allclose(np.sqrt(np.diag(cov)), np.sqrt(np.diag(ref_cov)), rtol=0.02)
+
+
+def test_star_only_bag_batch_and_report(world, tmp_path, capsys):
+    """A bag of star frames alone (no IMU, as ``solve`` writes): batch and report run on it
+    (the report re-runs the bundle: held-out residuals); replay refuses it in one line."""
+    from stellar_cal_ros.cli import main
+    from stellar_cal_ros.io.bag import BagWriter
+    from stellar_cal_ros.io.calibration import save_calibration
+
+    bag, prior = tmp_path / "stars.mcap", tmp_path / "prior.yaml"
+    rng = np.random.default_rng(8)
+    with BagWriter(bag) as w:
+        for fr in world["data"].frames[:6]:
+            g = copy.copy(fr)
+            g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
+            w.write_star_frame(g, "/star_tracker/stars")
+    save_calibration(world["sim"].prior, prior)
+
+    def run(*args) -> int:
+        return main([str(a) for a in args])
+
+    assert run("batch", bag, "--method", "bundle", "--prior", prior, "-q", "-o",
+               tmp_path / "a.yaml") == 0
+    # the report re-runs the result's method on the bag (compare reads the bag the same way)
+    assert run("report", tmp_path / "a.yaml", "--bag", bag, "-o", tmp_path / "rep") == 0
+    assert (tmp_path / "rep" / "report.html").exists()
+    capsys.readouterr()
+    assert run("replay", bag, "--method", "psce", "--prior", prior, "-o",
+               tmp_path / "c.yaml") == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "/imu/data" in err, err

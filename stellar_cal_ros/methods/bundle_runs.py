@@ -65,6 +65,7 @@ class BundleRun:
     counters: dict[str, int]
     residuals: dict[str, np.ndarray] | None
     derived: dict[str, Any] = field(default_factory=dict)
+    history: dict[str, np.ndarray] | None = None  #: a batch fit has no state history
 
 
 def frame_updates(result: BundleResult, held: HeldOut) -> list[FrameUpdate]:
