@@ -376,3 +376,25 @@ def test_star_only_bag_batch_and_report(world, tmp_path, capsys):
                tmp_path / "c.yaml") == 1
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "/imu/data" in err, err
+
+
+def test_every_camera_and_direction_effect_runs(world):
+    """Every library effect of the stages a free attitude per frame sees is estimable at
+    once (finite σ, no more than its prior's), the others refused."""
+    from stellar_cal_ros.effects import registry
+
+    seen = [e for e in registry.available()
+            if registry.EFFECTS[e].stage in bd.STAGES and e not in bd.BASELINE_EFFECTS]
+    assert {"pixel_aspect", "radial_k3", "tangential", "image_plane_tilt",
+            "thermal_focal_length", "aberration", "refraction", "proper_motion"} <= set(seen)
+    data = copy.copy(world["data"])
+    rng = np.random.default_rng(6)
+    data.frames = []
+    for fr in world["data"].frames[:8]:
+        g = copy.copy(fr)
+        g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
+        data.frames.append(g)
+    res = bd.run_bundle(data, world["sim"].prior, seen, cross_validate=False)
+    assert [e.id for e in res.model.effects if e.id in seen] == [
+        e for e in registry.available() if e in seen]
+    assert np.all(np.isfinite(res.sigma)) and np.all(res.sigma <= 1.0001 * res.sigma_prior)
