@@ -71,6 +71,7 @@ from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.core.attitude import wahba
 from stellar_cal_ros.core.rotation import left_jacobian, so3_exp
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.effects.registry import create_many
 from stellar_cal_ros.errors import ModelError, StellarCalError
@@ -101,6 +102,7 @@ from stellar_cal_ros.methods.acf_robust import (
     _used,
     beyond_gate,
 )
+from stellar_cal_ros.methods.frames import star_masks, star_sigma
 from stellar_cal_ros.methods.init_from import prior_from_result  # noqa: F401 (re-exported)
 from stellar_cal_ros.methods.registry import BatchOutput, MethodSpec
 from stellar_cal_ros.methods.star_model import StarModel
@@ -118,14 +120,11 @@ PINHOLE_EFFECTS: tuple[str, ...] = ("installation", "focal_length", "principal_p
 
 MIN_FRAMES = 2
 MIN_STARS_PER_FRAME = 2
-OFF_IMAGE_MARGIN_PX = 10.0
-"""A centroid farther off the detector than this is invalid (counted, not fitted)."""
 OUTLIER_PROBABILITY = 1.0 - 1e-6
 """Default outlier gate: a star's normalized residual beyond the χ²(2) quantile (5.3 σ).
 
 A wrong identity is off by degrees (thousands of σ); the gate's false alarms (10⁻⁶ a star)
 leave clean runs of up to ~10⁵ stars untouched in practice."""
-ARCSEC = np.pi / 180.0 / 3600.0
 
 
 # ============================================================================ results
@@ -194,32 +193,25 @@ def _prepare_frames(data: AcfData, idx: np.ndarray, chain: GyroChain, time_offse
                     quality: DataQuality | None = None) -> list[_Frame]:
     """The selected frames' usable stars, with their attitude-chain time.
 
-    A star is used if it is identified (catalogue id and direction), its centroid and
-    direction are finite and (given ``image_size``) its centroid lies on the detector or
-    within :data:`OFF_IMAGE_MARGIN_PX` of it (noise moves edge stars a little off). Message
-    σ ≤ 0 or NaN become 1 px (the fit rescales by σ̂). Frames with fewer than ``min_stars``
-    such stars or outside the IMU span are skipped.
-    Everything left out is counted in ``quality`` (if given).
+    The stars every method uses (:func:`~stellar_cal_ros.methods.frames.star_masks`;
+    without ``image_size`` the detector check is left out); a message σ of 0 ("unknown"),
+    negative or NaN becomes 1 px (the fit rescales by σ̂).  Frames with fewer than
+    ``min_stars`` such stars or outside the IMU span are skipped.  Everything left out is
+    counted in ``quality`` (if given).
     """
     lo, hi = chain.span
     q = quality if quality is not None else DataQuality()
+    big = np.iinfo(np.int32).max
+    width, height = image_size if image_size is not None else (big, big)
     out = []
     for k in idx:
         fr = data.frames[int(k)]
         uv = np.asarray(fr.uv, dtype=float).reshape(-1, 2)
-        ident = (fr.catalog_id != 0) & ~(np.isnan(fr.right_ascension)
-                                         & np.isnan(fr.declination))
-        ok = ident & np.isfinite(fr.right_ascension) & np.isfinite(fr.declination) & \
-            np.all(np.isfinite(uv), axis=1)
-        q.stars_unidentified += int(np.sum(~ident))
-        q.stars_invalid += int(np.sum(ident & ~ok))
-        if image_size is not None:
-            m = OFF_IMAGE_MARGIN_PX + 0.5
-            with np.errstate(invalid="ignore"):
-                on = (uv[:, 0] >= -m) & (uv[:, 0] <= image_size[0] - 1 + m) & \
-                    (uv[:, 1] >= -m) & (uv[:, 1] <= image_size[1] - 1 + m)
-            q.stars_outside_image += int(np.sum(ok & ~on))
-            ok &= on
+        m = star_masks(fr, width, height)
+        ok = m.usable
+        q.stars_unidentified += int(np.sum(m.unidentified))
+        q.stars_invalid += int(np.sum(m.invalid))
+        q.stars_outside_image += int(np.sum(m.off_detector))
         if ok.sum() < min_stars:
             q.frames_few_stars += 1
             continue
@@ -227,13 +219,11 @@ def _prepare_frames(data: AcfData, idx: np.ndarray, chain: GyroChain, time_offse
         if not (lo <= t_rel + time_offset <= hi):
             q.frames_outside_imu += 1
             continue
-        sig = np.asarray(fr.sigma, dtype=float)[ok]
         if sigma_px is not None:
             sig = np.full(ok.sum(), float(sigma_px))
         else:
-            good = np.isfinite(sig) & (sig > 0)
-            q.stars_bad_sigma += int(np.sum(~good & (sig != 0)))  # 0: "unknown" (contract)
-            sig = np.where(good, sig, 1.0)
+            sig, bad = star_sigma(np.asarray(fr.sigma, dtype=float)[ok], 1.0)
+            q.stars_bad_sigma += bad
         ctx = FrameContext(stamp=fr.stamp_ns * 1e-9, catalog_id=fr.catalog_id[ok].astype(np.int64),
                            magnitude=np.asarray(fr.magnitude, dtype=float)[ok], site=data.site)
         for key, (ts, vs) in data.scalars.items():

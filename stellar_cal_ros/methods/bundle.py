@@ -139,10 +139,8 @@ def bundle_frames(data: BagData, prior: Calibration, counts: BundleCounts | None
     for k, fr in enumerate(data.frames):
         c.frames_read += 1
         inp = frame_inputs(fr, w, h, default_sigma)
-        unknown = int(np.sum((np.asarray(fr.catalog_id) == 0)
-                             & ~np.isfinite(fr.right_ascension)))
-        c.stars_unidentified += unknown
-        c.stars_unusable += int((~inp.ok).sum()) - unknown
+        c.stars_unidentified += inp.unidentified
+        c.stars_unusable += int((~inp.ok).sum()) - inp.unidentified
         c.stars_bad_sigma += inp.bad_sigma
         if len(inp.uv) < min_stars:
             c.frames_few_stars += 1

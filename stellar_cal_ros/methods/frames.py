@@ -3,10 +3,14 @@
 * **Relative time** (:func:`time_origin`): ``t0_ns`` = first IMU stamp − the median interval of
   the first ``T0_IMU_SAMPLES`` IMU samples; times inside the estimators are relative to it,
   from integer nanoseconds (float POSIX seconds only resolve 0.24 µs).
-* **Stars** (:func:`frame_inputs`): a star is used when it is identified (catalogue id ≠ 0),
-  its catalogue direction and centroid are finite and the centroid is on the detector; its σ
-  is the message's when positive, the configured default when 0 ("unknown", contract), and
-  the default — counted as ``stars_bad_sigma`` — when negative or NaN.
+* **Stars** — the one rule of every method, filters and batch fits alike
+  (:func:`star_masks`, :func:`star_sigma`, both in :func:`frame_inputs`): a star is used when
+  it is identified (finite catalogue RA and Dec; ``catalog_id`` 0 with a finite direction is a
+  star identified outside Hipparcos, 0 with NaN an unidentified centroid, contract §2), its
+  centroid is finite and on the detector (the pixel area ``[-0.5, width − 0.5) ×
+  [-0.5, height − 0.5)``); its σ is the message's when positive, the method's default when 0
+  ("unknown", contract), and the default — counted as ``stars_bad_sigma`` — when negative,
+  infinite or NaN.
 * **Site** (:class:`SiteEstimator`): the median of the valid fixes (finite, status ≥ 0).
 * **Environment** (:class:`EnvSeries`): temperatures and pressure interpolated linearly at the
   frame stamp over their finite samples (in seconds from the earliest finite sample).
@@ -60,14 +64,47 @@ def time_origin(stamps_ns: np.ndarray, samples: int = T0_IMU_SAMPLES) -> tuple[i
     return t0_ns, float(np.median(np.diff(rel)))
 
 
+@dataclass
+class StarMasks:
+    """What the star rule makes of each star of a message (module docstring)."""
+
+    usable: np.ndarray  #: identified, finite, on the detector
+    unidentified: np.ndarray  #: catalog_id 0 and no direction: a centroid to identify
+    off_detector: np.ndarray  #: identified and finite, but off the detector
+
+    @property
+    def invalid(self) -> np.ndarray:
+        """Neither usable, unidentified nor off the detector: non-finite values."""
+        return ~(self.usable | self.unidentified | self.off_detector)
+
+
+def star_masks(frame: StarFrame, width: int, height: int) -> StarMasks:
+    """The star rule (module docstring) applied to one message."""
+    uv = np.asarray(frame.uv, dtype=float).reshape(-1, 2)
+    ra, dec = np.asarray(frame.right_ascension), np.asarray(frame.declination)
+    direction = np.isfinite(ra) & np.isfinite(dec)
+    unidentified = (np.asarray(frame.catalog_id) == 0) & np.isnan(ra) & np.isnan(dec)
+    ok = direction & np.all(np.isfinite(uv), axis=1)
+    with np.errstate(invalid="ignore"):
+        on = (uv[:, 0] >= -0.5) & (uv[:, 0] < width - 0.5) & (uv[:, 1] >= -0.5) & \
+            (uv[:, 1] < height - 0.5)
+    return StarMasks(ok & on, unidentified, ok & ~on)
+
+
 def clean_frame(frame: StarFrame, width: int, height: int) -> np.ndarray:
-    """Mask of usable stars: identified, finite, on the detector."""
-    uv = frame.uv
-    ok = (frame.catalog_id != 0) & np.isfinite(frame.right_ascension) & \
-        np.isfinite(frame.declination) & np.all(np.isfinite(uv), axis=1)
-    ok &= (uv[:, 0] >= -0.5) & (uv[:, 0] < width - 0.5) & (uv[:, 1] >= -0.5) & \
-        (uv[:, 1] < height - 0.5)
-    return ok
+    """Mask of usable stars: identified, finite, on the detector (:func:`star_masks`)."""
+    return star_masks(frame, width, height).usable
+
+
+def star_sigma(sigma: np.ndarray, default: float) -> tuple[np.ndarray, int]:
+    """``(σ, n_bad)`` of usable stars: the message's when positive, else ``default``.
+
+    0 means "unknown" (contract); a negative, infinite or NaN σ is a bad value, counted in
+    ``n_bad``.
+    """
+    s = np.asarray(sigma, dtype=float)
+    fine = np.isfinite(s)
+    return np.where(fine & (s > 0), s, default), int(np.count_nonzero(~(fine & (s >= 0))))
 
 
 @dataclass
@@ -80,20 +117,21 @@ class FrameInputs:
     sigma: np.ndarray  #: (n,) px
     catalog_id: np.ndarray  #: (n,) int64
     magnitude: np.ndarray  #: (n,)
-    bad_sigma: int  #: stars whose message σ was negative or NaN (default used)
+    bad_sigma: int  #: stars whose message σ was negative, infinite or NaN (default used)
+    unidentified: int = 0  #: centroids without identity (catalog_id 0, NaN RA/Dec)
 
 
 def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float
                  ) -> FrameInputs:
     """Usable stars of a message and their filter inputs (see the module docstring)."""
-    ok = clean_frame(frame, width, height)
-    s = np.asarray(frame.sigma, dtype=float)[ok]
-    bad = ~(s >= 0)  # negative or NaN
-    sigma = np.where(s > 0, s, default_sigma)
+    masks = star_masks(frame, width, height)
+    ok = masks.usable
+    sigma, bad = star_sigma(np.asarray(frame.sigma, dtype=float)[ok], default_sigma)
     return FrameInputs(ok, frame.uv[ok],
                        radec_to_unit(frame.right_ascension[ok], frame.declination[ok]),
                        sigma, frame.catalog_id[ok].astype(np.int64),
-                       np.asarray(frame.magnitude, dtype=float)[ok], int(bad.sum()))
+                       np.asarray(frame.magnitude, dtype=float)[ok], bad,
+                       int(np.count_nonzero(masks.unidentified)))
 
 
 class EnvSeries:

@@ -29,12 +29,17 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
+from stellar_cal_ros.core.attitude import wahba
 from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.effects.registry import create_many
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.bag import BagReader
 from stellar_cal_ros.io.calibration import Calibration, store_estimate
+from stellar_cal_ros.methods.acf_covariance import _inverse
+from stellar_cal_ros.methods.acf_data import select_frames, unit_vectors
+from stellar_cal_ros.methods.frames import clean_frame, star_sigma
+from stellar_cal_ros.methods.results import truth_parameters
 from stellar_cal_ros.methods.star_model import StarModel
 
 IAC_EFFECTS: tuple[str, ...] = ("focal_length", "principal_point", "radial_k1k2",
@@ -163,8 +168,6 @@ class _Pairs:
         matrix: the σ̂² denominator that the correlations make differ from pairs − P), and
         the naive ``(JᵀWJ / σ̂²_expected + prior)⁻¹`` that treats the pairs as independent.
         """
-        from stellar_cal_ros.methods.acf_covariance import _inverse
-
         _, J = self.evaluate(theta)
         npair, P = self.n_pairs, J.shape[1]
         Jw, Jp = J[:npair], J[npair:]  # pairs already × w_pair; prior rows
@@ -226,8 +229,6 @@ def run_iac(
     star_topic : str
         Star centroid topic when reading a bag.
     """
-    from stellar_cal_ros.methods.acf_data import select_frames, unit_vectors
-
     if isinstance(source, list):
         all_frames = source
     else:
@@ -245,15 +246,14 @@ def run_iac(
     uvs, us, sigs = [], [], []
     for k in idx:
         fr = all_frames[int(k)]
-        ok = (fr.catalog_id != 0) & np.isfinite(fr.right_ascension) & \
-            np.all(np.isfinite(fr.uv), axis=1)
+        ok = clean_frame(fr, prior.camera.width, prior.camera.height)
         n = int(ok.sum())
         if n < 2:
             continue
-        s = np.asarray(fr.sigma, dtype=float)[ok]
         uvs.append(np.asarray(fr.uv, dtype=float)[ok])
         us.append(unit_vectors(fr.right_ascension[ok], fr.declination[ok]))
-        sigs.append(np.full(n, sigma_px) if sigma_px is not None else np.where(s > 0, s, 1.0))
+        sigs.append(np.full(n, sigma_px) if sigma_px is not None
+                    else star_sigma(np.asarray(fr.sigma, dtype=float)[ok], 1.0)[0])
     th0, sp = model.initial_value.copy(), model.initial_sigma.copy()
     pairs = _Pairs(model, uvs, us, sigs, prior.camera.fx, th0, sp)
     if pairs.n_pairs < model.size:
@@ -335,11 +335,6 @@ def crlb_iac(
     evaluates run_iac's own estimator covariance at the noise-free predicted centroids (see
     :class:`IacBound`).
     """
-    from stellar_cal_ros.core.attitude import wahba
-    from stellar_cal_ros.methods.acf_covariance import _inverse
-    from stellar_cal_ros.methods.acf_data import select_frames, unit_vectors
-    from stellar_cal_ros.methods.replay import truth_parameters
-
     eff = create_many(list(IAC_EFFECTS if effects is None else effects))
     model = StarModel(eff, prior)
     theta = truth_parameters(model, truth)
@@ -351,14 +346,13 @@ def crlb_iac(
     uvs, us, sigs = [], [], []
     for k in select_frames(len(source), frames):
         fr = source[int(k)]
-        ok = (fr.catalog_id != 0) & np.isfinite(fr.right_ascension) & \
-            np.all(np.isfinite(fr.uv), axis=1)
+        ok = clean_frame(fr, prior.camera.width, prior.camera.height)
         if ok.sum() < 3:
             continue
         u = unit_vectors(fr.right_ascension[ok], fr.declination[ok])
         uv = np.asarray(fr.uv, dtype=float)[ok]
-        s = np.asarray(fr.sigma, dtype=float)[ok]
-        s = np.full(len(uv), sigma_px) if sigma_px is not None else np.where(s > 0, s, 1.0)
+        s = np.full(len(uv), sigma_px) if sigma_px is not None \
+            else star_sigma(np.asarray(fr.sigma, dtype=float)[ok], 1.0)[0]
         R_i_st = wahba(cam_true.unproject(uv), u)
         R_i_b = R_i_st @ R_imu_st.T
 
