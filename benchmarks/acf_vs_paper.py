@@ -38,7 +38,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from stellar_cal_ros.core.camera import CameraModel
-from stellar_cal_ros.methods.acf import ARCSEC, AcfData, reprojection_rms, run_acf
+from stellar_cal_ros.core.units import ARCSEC
+from stellar_cal_ros.methods.acf import AcfData, reprojection_rms, run_acf
 from stellar_cal_ros.methods.acf_bound import (
     crlb_acf,
     installation_error_arcsec,

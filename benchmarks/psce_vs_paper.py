@@ -50,11 +50,11 @@ import numpy as np
 from scipy.stats import chi2
 
 from stellar_cal_ros.campaign.runs import bag_for_replay, replay_bag, simulate_run
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.methods.replay import equivalent_principal_point, truth_parameters
 from stellar_cal_ros.sim.scenarios import FOCAL_LENGTH_MM, PIXEL_PITCH_MM
 
 DEG_H = np.pi / 180.0 / 3600.0
-ARCSEC = np.pi / 180.0 / 3600.0
 F_MM = FOCAL_LENGTH_MM
 
 # (label, parameter name in the model, factor from model units to the paper's units)

@@ -44,7 +44,8 @@ from stellar_cal_ros.budget.propagation import (
     ring_directions,
     star_angle_errors,
 )
-from stellar_cal_ros.budget.sources import ARCSEC, CENTROID, error_model_from_spec, spec_camera
+from stellar_cal_ros.budget.sources import CENTROID, error_model_from_spec, spec_camera
+from stellar_cal_ros.core.units import ARCSEC
 
 SPEC = {
     "camera": {"focal_length_mm": 49.74, "pixel_size_mm": 0.015, "width": 1024,

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods.replay import (
     equivalent_principal_point,
@@ -40,7 +41,6 @@ from stellar_cal_ros.methods.swaying import (
     replay_swaying,
 )
 
-ARCSEC = np.rad2deg(1.0) * 3600.0
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 E_EFFECTS = ("gyro_scale_factor", "gyro_misalignment", "accel_scale_factor")
 CAMERA_EFFECTS = ("focal_length", "principal_point", "radial_k1k2", "radial_k3", "tangential")
@@ -71,19 +71,19 @@ def analyse(data, prior, truth, effects) -> dict:
     for key, r in (("bound", bound), ("filter", est)):
         f = r.filter
         sl = f.model.slices["installation"]
-        out[key] = {"sigma": f.sigma()[f.it][sl] * ARCSEC, "derived": r.derived,
+        out[key] = {"sigma": f.sigma()[f.it][sl] / ARCSEC, "derived": r.derived,
                     "nis": float(np.sum(r.history["nis"]) / np.sum(r.history["dof"]))}
     f = est.filter
     sl = f.model.slices["installation"]
     theta_true = truth_parameters(f.model, truth)
-    out["error"] = (f.theta[sl] - theta_true[sl]) * ARCSEC
+    out["error"] = (f.theta[sl] - theta_true[sl]) / ARCSEC
     d = est.derived
     if "equivalent_principal_point_px" in d:
         true_eq = equivalent_principal_point(f.model, theta_true,
                                              np.zeros((f.model.size, f.model.size)))
         out["eq_error_px"] = (np.asarray(d["equivalent_principal_point_px"])
                               - true_eq["equivalent_principal_point_px"])
-    out["boresight_error"] = d["installation_boresight_arcsec"] - theta_true[sl][2] * ARCSEC
+    out["boresight_error"] = d["installation_boresight_arcsec"] - theta_true[sl][2] / ARCSEC
     return out
 
 

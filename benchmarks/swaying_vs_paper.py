@@ -31,13 +31,12 @@ import time
 
 import numpy as np
 
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.methods.replay import BagData
 from stellar_cal_ros.methods.swaying import crlb_swaying, replay_swaying
 from stellar_cal_ros.methods.traditional import replay_traditional
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
-
-ARCSEC = np.rad2deg(1.0) * 3600.0
 
 #: Zhang Table 2: true value, proposed method, traditional method (arcsec, x y z)
 TABLE2 = {
@@ -99,16 +98,16 @@ def run_case(group: int, condition: str = "sway", seed: int = 0, duration=None,
         r = fn(data, res.prior, extra)
         f = r.filter
         sl = f.model.slices["installation"]
-        est = f.theta[sl] * ARCSEC
-        sig = f.sigma()[f.it][sl] * ARCSEC
-        P = f.P[f.it, f.it][sl, sl] * ARCSEC**2
+        est = f.theta[sl] / ARCSEC
+        sig = f.sigma()[f.it][sl] / ARCSEC
+        P = f.P[f.it, f.it][sl, sl] / ARCSEC**2
         err = est - true
         out[name] = {"est": est, "err": err, "sigma": sig,
                      "nees": float(err @ np.linalg.solve(P, err)),
                      "seconds": time.perf_counter() - t, "gated": r.counters["stars_gated"]}
     if crlb:
         b = crlb_swaying(data, res.prior, res.truth, extra).filter
-        out["crlb"] = b.sigma()[b.it][b.model.slices["installation"]] * ARCSEC
+        out["crlb"] = b.sigma()[b.it][b.model.slices["installation"]] / ARCSEC
     return out
 
 

@@ -21,8 +21,8 @@ from stellar_cal_ros.core.rotation import so3_exp
 from stellar_cal_ros.errors import DataError
 from stellar_cal_ros.methods.acf import AcfData, run_acf
 from stellar_cal_ros.methods.acf_data import check_gyro_against_stars
+from stellar_cal_ros.methods.results import boresight_pixel
 from stellar_cal_ros.sim import faults
-from stellar_cal_ros.sim.fault_campaign import equivalent_principal_point
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
@@ -41,8 +41,9 @@ def _data(rec):
 
 def _key(result, sim):
     b = sim.prior.R_imu_st[:, 2]
-    return float(np.linalg.norm(equivalent_principal_point(result.calibration, b)
-                                - equivalent_principal_point(sim.truth, b)))
+    est, tru = result.calibration, sim.truth
+    return float(np.linalg.norm(boresight_pixel(est.camera, est.R_imu_st, b)
+                                - boresight_pixel(tru.camera, tru.R_imu_st, b)))
 
 
 def _limit(clean, sim):

@@ -22,7 +22,7 @@ from scipy import stats as sps
 from stellar_cal_ros.diagnosis import reliability
 from stellar_cal_ros.diagnosis.discover import DiagnosisSpec, method_spec, rank_candidates
 from stellar_cal_ros.diagnosis.run import diagnose
-from stellar_cal_ros.diagnosis.runstats import RunStats
+from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.effects.base import Effect, Stage
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods.replay import bag_data_from_simulation
@@ -145,7 +145,7 @@ def test_prior_uncertain_effects_are_candidates_listed_first(tmp_path):
 
 
 def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns():
-    """Candidates carry RunStats (no filter, no residual table); a plugged score function
+    """Candidates carry RunSummary (no filter, no residual table); a plugged score function
     keeps the candidates it rejects from being re-run; the screening run (candidates as
     consider parameters) is the current model's run: no separate re-run of it."""
     sim, data = _sim({"time_offset": 5e-4}, seed=14, duration=150.0)
@@ -164,7 +164,7 @@ def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns(
     spec = DiagnosisSpec("psce", base_spec.baseline, base_spec.stages, runner, screen)
     base, results = rank_candidates(data, sim.prior, spec, [],
                                     ["time_offset", "pixel_aspect"])
-    assert base.residuals is not None and isinstance(base, RunStats)
+    assert base.residuals is not None and isinstance(base, RunSummary)
     by = {c.effect: c for c in results}
     # one screening run, then the re-run of the candidate that passed (and the top one's
     # refined run); never the current model alone, never the screened-out candidate
@@ -173,7 +173,7 @@ def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns(
     assert (("time_offset",), ()) in calls
     assert by["pixel_aspect"].status == "screened_out" and by["pixel_aspect"].run is None
     top = by["time_offset"]
-    assert top.significant and isinstance(top.run, RunStats) and top.run.residuals is None
+    assert top.significant and isinstance(top.run, RunSummary) and top.run.residuals is None
     assert top.refined_run is not None and top.refined_run.residuals is not None
     assert not hasattr(top.run, "filter")
     # the screening run's statistics are those of the current model alone

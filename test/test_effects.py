@@ -20,6 +20,7 @@ from stellar_cal_ros.core import astrometry
 from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.core.catalog import load_catalog, posix_to_jyear
 from stellar_cal_ros.core.earth import Site
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import CAMERA_INDEX, Effect, ExportRole, FrameContext, Stage
 from stellar_cal_ros.errors import ModelError
@@ -29,7 +30,6 @@ from stellar_cal_ros.sim.world import default_prior_sigma, simulate
 
 T0 = 1795348800.0
 SITE = Site(36.07, 120.38, 10.0)
-ARCSEC = np.deg2rad(1.0 / 3600.0)
 #: INTERFACES.md §4
 CONTRACT_IDS = (
     "installation", "principal_point", "focal_length", "pixel_aspect", "radial_k1k2",

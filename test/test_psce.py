@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods.replay import (
     bag_data_from_simulation,
@@ -31,7 +32,6 @@ from stellar_cal_ros.sim.world import simulate
 # the independent reference bags, beside the repository (absent in a plain clone)
 DATA = str(Path(__file__).resolve().parents[2] / "shared" / "data")
 DEG_H = np.pi / 180.0 / 3600.0
-ARCSEC = np.pi / 180.0 / 3600.0
 PIXEL_MM = 0.00645
 
 # Tan et al. Table 4, centroid accuracy 0.05 px (RMS over 100 runs of 2 h), model units.

@@ -33,7 +33,8 @@ from stellar_cal_ros.budget.propagation import (
     ring_directions,
     star_angle_errors,
 )
-from stellar_cal_ros.budget.sources import ARCSEC, CENTROID, ErrorModel
+from stellar_cal_ros.budget.sources import CENTROID, ErrorModel
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.errors import ModelError
 
 __all__ = ["TOTAL", "BudgetOptions", "axes_rms", "default_reference_angle", "run_budget"]

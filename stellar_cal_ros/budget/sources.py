@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.budget.propagation import N_PARAMETERS
 from stellar_cal_ros.core.camera import CameraModel
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import CAMERA_INDEX, FrameContext, Stage, _camera_sigma
 from stellar_cal_ros.errors import ModelError
@@ -39,7 +40,6 @@ __all__ = [
     "parameter_direction",
 ]
 
-ARCSEC = math.pi / 180.0 / 3600.0
 CENTROID = "centroid"
 #: Order of the sources in a budget.
 SOURCE_ORDER = ("centroid", "principal_point", "focal_length", "pixel_aspect", "distortion",

@@ -53,7 +53,7 @@ from stellar_cal_ros.diagnosis.discover import (
 )
 from stellar_cal_ros.diagnosis.parallel import Task, open_runner
 from stellar_cal_ros.diagnosis.run import finish, progress_printer
-from stellar_cal_ros.diagnosis.runstats import RunStats
+from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.io.calibration import Calibration, save_calibration
 from stellar_cal_ros.methods.replay import BagData
@@ -77,7 +77,7 @@ def _verdict(c: CandidateResult, top: CandidateResult | None) -> str:
     return c.reason or c.status
 
 
-def _estimates(run: RunStats, effect_id: str) -> dict[str, list[float]]:
+def _estimates(run: RunSummary, effect_id: str) -> dict[str, list[float]]:
     """``{param: [value, sigma]}`` of one effect in a run."""
     sl = run.block(effect_id)
     names = registry.create(effect_id).parameter_names
@@ -157,8 +157,8 @@ def _checks(state: _State, prior: Calibration, original: Calibration,
     return tasks
 
 
-def _decide_checks(state: _State, base: RunStats, extras: dict[str, RunStats]
-                   ) -> tuple[str, str, str, RunStats | None, dict[str, Any]]:
+def _decide_checks(state: _State, base: RunSummary, extras: dict[str, RunSummary]
+                   ) -> tuple[str, str, str, RunSummary | None, dict[str, Any]]:
     """(action, removed, added, run to continue from, details) from the check runs."""
     checks = {k[len("without "):]: v for k, v in extras.items()
               if k.startswith("without ") and v.ok}
@@ -214,8 +214,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
     state = _State(list(user), user, calibration)
     path: list[dict[str, Any]] = []
     history: dict[str, list[tuple[int, CandidateResult]]] = {}
-    first: RunStats | None = None
-    current: RunStats | None = None
+    first: RunSummary | None = None
+    current: RunSummary | None = None
     stopped = ""
     local = True
     with open_runner(bag, spec, evaluation_fraction, options.get("workers", 0),
@@ -298,7 +298,7 @@ def describe(step: dict[str, Any]) -> str:
     return "nothing significant"
 
 
-def _step(k: int, model: list[str], base: RunStats, results: list[CandidateResult],
+def _step(k: int, model: list[str], base: RunSummary, results: list[CandidateResult],
           top: CandidateResult | None, seconds: float, reruns: int) -> dict[str, Any]:
     w = base.window
     return {
@@ -317,7 +317,7 @@ def _step(k: int, model: list[str], base: RunStats, results: list[CandidateResul
 
 
 def _write(out: Path, calibration: Calibration, spec, state: _State, path, history, first,
-           final: RunStats, results, fraction: float, plots: bool, runs, stopped: str,
+           final: RunSummary, results, fraction: float, plots: bool, runs, stopped: str,
            seconds: float) -> dict[str, Any]:
     """The final diagnosis, the report, ``calibration.yaml`` and ``diagnosis.json``."""
     panels = [("initial model", first.residuals)]

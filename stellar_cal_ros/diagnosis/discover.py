@@ -64,7 +64,7 @@ from scipy import stats as sps
 
 from stellar_cal_ros.diagnosis import reliability, screening
 from stellar_cal_ros.diagnosis.parallel import Runs, Task
-from stellar_cal_ros.diagnosis.runstats import RunStats
+from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.io.calibration import Calibration
@@ -135,11 +135,11 @@ class CandidateResult:
     estimate: dict[str, float] = field(default_factory=dict)
     sigma: dict[str, float] = field(default_factory=dict)
     reason: str = ""
-    run: RunStats | None = None
+    run: RunSummary | None = None
     #: the top candidate only: re-run from its own calibration (:func:`condition_on_top`),
     #: what the next loop iteration starts from; its residuals carry no start-up transient
     #: of the current model's biased values
-    refined_run: RunStats | None = None
+    refined_run: RunSummary | None = None
     detect: reliability.Detectability | None = None
     screen: screening.ScreenResult | None = None
     prior_uncertain: bool = False  #: the prior calls it uncertain, the model lacks it
@@ -185,13 +185,13 @@ class Reference:
     floor: float  # 5 % of the noise variance: below it there is no excess to explain
 
     @classmethod
-    def of(cls, run: RunStats) -> Reference:
+    def of(cls, run: RunSummary) -> Reference:
         """The reference of a run's evaluation window."""
         w = run.window
         return cls(w["log_likelihood"], max(1.0, w["nis"]["mean"] / 2.0),
                    w["excess_variance"], 0.05 * w["noise_variance"])
 
-    def compare(self, run: RunStats, dof: int) -> tuple[float, float, float]:
+    def compare(self, run: RunSummary, dof: int) -> tuple[float, float, float]:
         """Statistic Λ, its unadjusted p (χ²_dof) and the fraction of the excess removed.
 
         Quasi-likelihood: when the reference misses something, every residual is
@@ -301,7 +301,7 @@ class Round:
         if self.progress:
             self.progress(text)
 
-    def done(self, task: Task, out: RunStats, where: str = "") -> None:
+    def done(self, task: Task, out: RunSummary, where: str = "") -> None:
         """Progress line of one finished run (``where``: ``run 4/11, ETA 20 s``)."""
         what = "+".join(task.effects[-2:]) if task.effects else "current model"
         name = what if task.key == what else f"{task.key}: {what}"
@@ -324,7 +324,7 @@ def _untestable(cand: CandidateResult) -> bool:
     return True
 
 
-def _fill_candidate(r: Round, cand: CandidateResult, run: RunStats, reference: Reference,
+def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference: Reference,
                     alpha_mdb: float) -> None:
     """Decision inputs of one augmented run: detectability, Λ, p, physical size."""
     cand.run = run
@@ -367,7 +367,7 @@ def _candidate_task(r: Round, prior: Calibration, extra: list[str], effect_id: s
 def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
                condition: bool = True, keep_residuals: bool = True,
                more: list[Task] | None = None, screen: bool = True,
-               ) -> tuple[RunStats, list[CandidateResult], dict[str, RunStats]]:
+               ) -> tuple[RunSummary, list[CandidateResult], dict[str, RunSummary]]:
     """One round: screen, re-run the candidates that pass, decide.
 
     ``start`` gives the start values (:func:`rerun_prior`); ``extra`` are the model's
@@ -464,7 +464,7 @@ def rank_candidates(
     progress: Callable[[str], None] | None = None,
     physical_check: bool = True,
     runs: Runs | None = None,
-) -> tuple[RunStats, list[CandidateResult]]:
+) -> tuple[RunSummary, list[CandidateResult]]:
     """Re-run the current model and every candidate; return the base run and the ranking.
 
     ``physical_check=False`` ranks the astrometric scales as free parameters (for measuring
@@ -533,7 +533,7 @@ def condition_on_top(r: Round, extra: list[str], results: list[CandidateResult],
         c.p_after = min(1.0, p * len(rest))
 
 
-def hidden_effects(base: RunStats, results: list[CandidateResult]) -> list[dict[str, Any]]:
+def hidden_effects(base: RunSummary, results: list[CandidateResult]) -> list[dict[str, Any]]:
     """What could still hide in the model: every candidate's MDB and the biases it allows.
 
     For each applicable library effect not in the model (ranked, implausible, not testable
@@ -565,7 +565,7 @@ def hidden_effects(base: RunStats, results: list[CandidateResult]) -> list[dict[
     return out
 
 
-def summary_dict(base: RunStats, results: list[CandidateResult],
+def summary_dict(base: RunSummary, results: list[CandidateResult],
                  unexplained: list, spec: DiagnosisSpec,
                  model_effects: list[str], evaluation_fraction: float) -> dict[str, Any]:
     """``diagnosis.json`` (contract §5), plus extra keys readers may ignore."""

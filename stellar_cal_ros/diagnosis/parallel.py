@@ -2,7 +2,7 @@
 
 :func:`open_runner` returns a :class:`Runs` bound to one bag and one method.  Its
 :meth:`Runs.map` takes a list of :class:`Task` (a prior and an effect list) and yields each
-run's :class:`~stellar_cal_ros.diagnosis.runstats.RunStats` as it finishes.
+run's :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary` as it finishes.
 
 Executors
 ---------
@@ -42,7 +42,7 @@ from typing import Any
 from stellar_cal_ros.diagnosis.runstats import (
     BagBytes,
     BagRef,
-    RunStats,
+    RunSummary,
     bag_facts,
     evaluate,
 )
@@ -100,7 +100,7 @@ class Runs:
         """Applicability facts of the bag (site, head temperature, frames, duration)."""
         return bag_facts(self.bag)
 
-    def map(self, tasks: list[Task]) -> Iterator[tuple[Task, RunStats]]:
+    def map(self, tasks: list[Task]) -> Iterator[tuple[Task, RunSummary]]:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes."""
         for task in sorted(tasks, key=lambda t: -t.cost):
             out = evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
@@ -108,8 +108,8 @@ class Runs:
             yield task, out
 
     def run_all(self, tasks: list[Task],
-                done: Callable[[Task, RunStats, str], None] | None = None
-                ) -> dict[str, RunStats]:
+                done: Callable[[Task, RunSummary, str], None] | None = None
+                ) -> dict[str, RunSummary]:
         """Run ``tasks`` and return ``{key: stats}``.
 
         ``done(task, stats, where)`` is called as each finishes; ``where`` reads
@@ -192,7 +192,7 @@ class DaskRuns(Runs):
             try:
                 out = fut.result()
             except Exception as exc:  # a worker died (killed, out of memory): a failed run
-                out = RunStats(effects=task.effects, error=f"{type(exc).__name__}: {exc}")
+                out = RunSummary(effects=task.effects, error=f"{type(exc).__name__}: {exc}")
             fut.release()
             yield task, out
 

@@ -16,7 +16,7 @@ from stellar_cal_ros.diagnosis.discover import (
     summary_dict,
 )
 from stellar_cal_ros.diagnosis.parallel import open_runner
-from stellar_cal_ros.diagnosis.runstats import RunStats
+from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.io.calibration import Calibration
 from stellar_cal_ros.methods.replay import BagData
 
@@ -32,7 +32,7 @@ def progress_printer(verbose: bool):
     return tell
 
 
-def finish(out: Path, calibration: Calibration, base: RunStats, final: RunStats,
+def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSummary,
            results: list[CandidateResult], spec, effects: list[str], fraction: float,
            panels: list[tuple[str, Any]], plots: bool, title: str = "stellar_cal diagnosis",
            extra_images: list[tuple[str, str]] | None = None) -> dict[str, Any]:

@@ -4,7 +4,7 @@ A candidate's augmented run produces a filter, a residual table and a state hist
 2-h bag about 100 MB.  The diagnosis needs only a few numbers from it (the innovation
 log-likelihood over the evaluation window, the NIS dispersion, the excess variance, the
 RMS, the final θ and its covariance, the counters), so every run is reduced to a
-:class:`RunStats` where it ran — in a worker process — and only that travels back.  The
+:class:`RunSummary` where it ran — in a worker process — and only that travels back.  The
 residual table is kept only when asked for (the reference run whose structure is tested
 and plotted).
 
@@ -31,12 +31,8 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.io.calibration import Calibration
-from stellar_cal_ros.methods.replay import (
-    BagData,
-    ReplayResult,
-    equivalent_principal_point,
-    read_bag_data,
-)
+from stellar_cal_ros.methods.replay import BagData, ReplayResult, read_bag_data
+from stellar_cal_ros.methods.results import epp_jacobian
 
 Table = dict[str, np.ndarray]
 
@@ -64,8 +60,13 @@ BagRef = str | Path | BagBytes | BagData
 
 
 @dataclass
-class RunStats:
-    """What the diagnosis keeps of one run (no filter, no history)."""
+class RunSummary:
+    """What the diagnosis keeps of one run (no filter, no history).
+
+    Its ``window`` is the run's own streaming statistics
+    (:class:`~stellar_cal_ros.methods.results.RunStats`, the one class of running
+    innovation statistics) summarized over the evaluation window.
+    """
 
     effects: tuple[str, ...]  #: effects beyond the method's baseline
     names: list[str] = field(default_factory=list)  #: θ parameter names
@@ -115,25 +116,9 @@ class RunStats:
         return dict(zip(self.names, self.theta.tolist(), strict=True))
 
 
-def epp_jacobian(model, theta: np.ndarray, columns: int) -> np.ndarray:
-    """∂(equivalent principal point)/∂θ[:columns] by central differences, (2, columns)."""
-    n = model.size
-    zero = np.zeros((n, n))
-    J = np.zeros((2, columns))
-    for j in range(columns):
-        h = 1e-6 * max(1.0, abs(theta[j]))
-        tp, tm = theta.copy(), theta.copy()
-        tp[j] += h
-        tm[j] -= h
-        up = equivalent_principal_point(model, tp, zero)["equivalent_principal_point_px"]
-        um = equivalent_principal_point(model, tm, zero)["equivalent_principal_point_px"]
-        J[:, j] = (np.asarray(up) - np.asarray(um)) / (2 * h)
-    return J
-
-
 def run_statistics(result: ReplayResult, fraction: float,
-                   keep_residuals: bool = False) -> RunStats:
-    """Reduce a run to its :class:`RunStats` (the one place that reads a ReplayResult)."""
+                   keep_residuals: bool = False) -> RunSummary:
+    """Reduce a run to its :class:`RunSummary` (the one place that reads a ReplayResult)."""
     flt = result.filter
     model = flt.model
     n = flt.P_est  # the estimated θ (a screening run's consider entries follow it)
@@ -142,10 +127,10 @@ def run_statistics(result: ReplayResult, fraction: float,
     derived = {k: v for k, v in (result.derived or {}).items()
                if isinstance(v, (int, float, list, tuple)) and not isinstance(v, bool)}
     try:
-        J = epp_jacobian(model, theta, n)
+        J = epp_jacobian(model, theta, n)[1]
     except Exception:  # a model without a camera chain: no derived bias
         J = None
-    return RunStats(
+    return RunSummary(
         effects=(),
         names=model.parameter_names()[:n],
         slices={k: (s.start, s.stop) for k, s in model.slices.items() if s.stop <= n},
@@ -216,15 +201,15 @@ def quiet(name: str = "stellar_cal_ros.methods", level: int = logging.ERROR):
 def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
              fraction: float, keep_residuals: bool = False,
              effect_classes: tuple[type, ...] = (),
-             screen: tuple[str, ...] = (), candidate: bool = False) -> RunStats:
+             screen: tuple[str, ...] = (), candidate: bool = False) -> RunSummary:
     """Run ``spec.runner`` on the bag and return the run's statistics (worker entry point).
 
-    A failing run returns a :class:`RunStats` with ``error`` set (the diagnosis reports it
+    A failing run returns a :class:`RunSummary` with ``error`` set (the diagnosis reports it
     and goes on); with ``keep_residuals`` the residual table is returned too, with the
     gravity direction in the tracker frame added (:mod:`~stellar_cal_ros.diagnosis.context`).
     ``screen``: candidates scored by this run (a screening run: they are *consider*
     parameters, which leave the filter's estimate unchanged; ``spec.screen`` turns the
-    run into their raw score tests, kept in :attr:`RunStats.scores`).  ``candidate``: an
+    run into their raw score tests, kept in :attr:`RunSummary.scores`).  ``candidate``: an
     augmented run, whose data faults the runner flags instead of raising.
     """
     t0 = time.perf_counter()
@@ -249,7 +234,7 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
 
             out.residuals = add_gravity_regressors(result.residuals, data, result.calibration)
     except Exception as exc:  # a candidate failing must not stop the diagnosis
-        out = RunStats(effects=tuple(effects), error=f"{type(exc).__name__}: {exc}")
+        out = RunSummary(effects=tuple(effects), error=f"{type(exc).__name__}: {exc}")
     out.effects = tuple(effects)
     out.seconds = time.perf_counter() - t0
     return out

@@ -98,13 +98,14 @@ def kernel_scores(result, candidates: list[str]) -> dict[str, tuple]:
     the equivalent principal point, ``J_θ (−M_θ) − J_β`` (its error in the current model
     minus the shift the effect itself makes).
     """
-    from stellar_cal_ros.diagnosis.runstats import EPP_NAMES, epp_jacobian
+    from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
+    from stellar_cal_ros.methods.results import epp_jacobian
     from stellar_cal_ros.methods.screening import score_tests
 
     flt = result.filter
     n = flt.P_est
     try:
-        J = epp_jacobian(flt.model, np.asarray(flt.theta, dtype=float), flt.model.size)
+        J = epp_jacobian(flt.model, np.asarray(flt.theta, dtype=float), flt.model.size)[1]
     except Exception:  # a model without a camera chain: no derived rows
         J = None
     out = {}
@@ -131,7 +132,7 @@ def screen_function(method: str) -> ScreenFn | None:
 def is_local(run) -> bool:
     """Whether a run is close enough to consistent for the score test.
 
-    ``run`` is a :class:`~stellar_cal_ros.diagnosis.runstats.RunStats`: NIS/dof at most
+    ``run`` is a :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary`: NIS/dof at most
     :data:`SCREEN_MAX_DISPERSION`, and it never lost lock.
     """
     if not run.ok or not run.window:
@@ -176,7 +177,7 @@ def parts(candidates: list[str], n: int) -> list[list[str]]:
 def collect(runs: list[Any]) -> dict[str, ScreenResult]:
     """The :class:`ScreenResult` of every candidate scored by the screening ``runs``.
 
-    Each run is a :class:`~stellar_cal_ros.diagnosis.runstats.RunStats` whose ``scores``
+    Each run is a :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary` whose ``scores``
     holds its part's raw score tests; all parts ran the same current model.
     """
     out: dict[str, ScreenResult] = {}

@@ -17,12 +17,12 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.core.rotation import so3_exp, so3_log
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.effects.registry import create_many
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import Calibration
 from stellar_cal_ros.methods.acf import (
     ACF_EFFECTS,
-    ARCSEC,
     MIN_FRAMES,
     MIN_STARS_PER_FRAME,
     AcfResult,

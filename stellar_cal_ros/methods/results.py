@@ -12,7 +12,8 @@
 * :func:`consistency` — the verdict every result YAML carries
   (``consistency: {nis_per_dof, interval, whiteness_p, verdict}``): when the model does not
   fit, the σ of the result are conditional on a wrong model and the CLI says so.
-* :func:`result_calibration`, :func:`equivalent_principal_point`, :class:`ReplayResult`.
+* :func:`result_calibration`, :func:`equivalent_principal_point` (:func:`boresight_pixel`,
+  :func:`epp_jacobian`), :class:`ReplayResult`.
 """
 
 from __future__ import annotations
@@ -612,32 +613,50 @@ def result_calibration(prior: Calibration, model: StarModel, theta: np.ndarray,
     return store_estimate(prior, effects, model.slices, theta, sigma, method, stamp)
 
 
-def equivalent_principal_point(model: StarModel, theta: np.ndarray,
-                               P_theta: np.ndarray) -> dict[str, Any]:
-    """Image position of the IMU-fixed nominal boresight (Tan et al. §3.4), with sigma.
+def boresight_pixel(camera, R_imu_st: np.ndarray, boresight_imu: np.ndarray) -> np.ndarray:
+    """Image position (px) of the IMU-fixed direction ``boresight_imu``, to first order.
 
-    ``(cx − fx·δ_y, cy + fy·δ_x)`` to first order: the combination of principal point and
-    installation tilt that a star tracker observes directly; it converges long before its
-    two parts separate.  ``P_theta`` covers the leading entries of θ it has rows for.
+    ``(cx + fx·d_x/d_z, cy + fy·d_y/d_z)`` with ``d = R_imu_stᵀ b``: for the nominal boresight,
+    the equivalent principal point (Tan et al. §3.4) — the one definition used by the
+    results, the diagnosis and the fault campaign.
+    """
+    d = R_imu_st.T @ np.asarray(boresight_imu, dtype=float)
+    return np.array([camera.cx + camera.fx * d[0] / d[2], camera.cy + camera.fy * d[1] / d[2]])
+
+
+def epp_jacobian(model: StarModel, theta: np.ndarray, columns: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The equivalent principal point at ``theta`` and its gradient (2, columns).
+
+    The gradient with respect to ``theta[:columns]`` by central differences (step
+    ``1e-6 · max(1, |θ_j|)``).
     """
     ctx = FrameContext(stamp=0.0)
-    n = len(P_theta)
+    b = model.prior.installation.as_matrix()[:, 2]  # nominal boresight in the IMU frame
 
     def value(th: np.ndarray) -> np.ndarray:
-        cam = model.camera_at(th, ctx)
-        R_imu_st, _ = model.installation_at(th, ctx)
-        b = model.prior.installation.as_matrix()[:, 2]  # nominal boresight in the IMU frame
-        d = R_imu_st.T @ b
-        return np.array([cam.cx + cam.fx * d[0] / d[2], cam.cy + cam.fy * d[1] / d[2]])
+        return boresight_pixel(model.camera_at(th, ctx), model.installation_at(th, ctx)[0], b)
 
-    v0 = value(theta)
-    J = np.zeros((2, n))
-    for j in range(n):
+    J = np.zeros((2, columns))
+    for j in range(columns):
         h = 1e-6 * max(1.0, abs(theta[j]))
         tp, tm = theta.copy(), theta.copy()
         tp[j] += h
         tm[j] -= h
         J[:, j] = (value(tp) - value(tm)) / (2 * h)
+    return value(theta), J
+
+
+def equivalent_principal_point(model: StarModel, theta: np.ndarray,
+                               P_theta: np.ndarray) -> dict[str, Any]:
+    """Image position of the IMU-fixed nominal boresight (Tan et al. §3.4), with sigma.
+
+    ``(cx − fx·δ_y, cy + fy·δ_x)`` to first order (:func:`boresight_pixel`): the combination
+    of principal point and installation tilt that a star tracker observes directly; it
+    converges long before its two parts separate.  ``P_theta`` covers the leading entries of
+    θ it has rows for.
+    """
+    v0, J = epp_jacobian(model, theta, len(P_theta))
     cov = J @ P_theta @ J.T
     return {"equivalent_principal_point_px": [float(v0[0]), float(v0[1])],
             "equivalent_principal_point_sigma_px": [float(np.sqrt(cov[0, 0])),

@@ -35,7 +35,6 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import yaml
@@ -65,17 +64,6 @@ def command_args(command: str, bag: Path, prior: Path, out: Path) -> list[str]:
 
 
 # ============================================================================ measuring
-def equivalent_principal_point(cal: Any, boresight_imu: np.ndarray) -> np.ndarray:
-    """Image position (px) of the IMU-fixed direction ``boresight_imu``.
-
-    The combination of principal point and installation tilt a star tracker observes
-    directly (Tan et al. §3.4): ``(cx + fx·d_x/d_z, cy + fy·d_y/d_z)``, ``d = R_imu_stᵀ b``.
-    """
-    d = cal.R_imu_st.T @ np.asarray(boresight_imu, dtype=float)
-    cam = cal.camera
-    return np.array([cam.cx + cam.fx * d[0] / d[2], cam.cy + cam.fy * d[1] / d[2]])
-
-
 def key_numbers(result: str | Path, truth: str | Path, prior: str | Path) -> dict[str, float]:
     """Errors of a result YAML against the truth.
 
@@ -88,10 +76,12 @@ def key_numbers(result: str | Path, truth: str | Path, prior: str | Path) -> dic
     """
     from stellar_cal_ros.core.rotation import so3_log
     from stellar_cal_ros.io.calibration import load_calibration
+    from stellar_cal_ros.methods.results import boresight_pixel
 
     est, tru, pri = load_calibration(result), load_calibration(truth), load_calibration(prior)
     b = pri.R_imu_st[:, 2]
-    e = equivalent_principal_point(est, b) - equivalent_principal_point(tru, b)
+    e = boresight_pixel(est.camera, est.R_imu_st, b) - boresight_pixel(tru.camera,
+                                                                       tru.R_imu_st, b)
     inst = so3_log(tru.R_imu_st.T @ est.R_imu_st) * (180.0 / np.pi * 3600.0)
     return {"eqpp_px": float(np.linalg.norm(e)),
             "installation_arcsec": float(np.linalg.norm(inst))}

@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.core.units import ARCSEC, DEG_PER_HOUR  # noqa: F401 (re-exported)
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.errors import ScenarioError
 

