@@ -50,16 +50,25 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     scenario = get_scenario(args.scenario)
     effects = parse_effect_arguments(args.effect or [])
     t_start = time.perf_counter()
+    if args.images:  # the truth world's stars rendered into images (sim/image_bag.py)
+        from stellar_cal_ros.sim.image_bag import write_image_simulation
+        from stellar_cal_ros.sim.render import without_noise
+
+        scenario = without_noise(scenario)
     result = simulate(scenario, duration=args.duration, seed=args.seed, effects=effects)
     t_sim = time.perf_counter() - t_start
-    paths = write_simulation(result, args.output)
+    paths = (write_image_simulation(result, args.output, args.images, seed=args.seed)
+             if args.images else write_simulation(result, args.output))
     t_all = time.perf_counter() - t_start
     m = result.meta
+    n_frames = len(result.star_frames)
+    what = (f"{n_frames} {args.images} images {scenario.width}x{scenario.height}"
+            if args.images else f"{n_frames} star frames")
     print(
         f"simulated {m['scenario']}: {m['duration_s']:.0f} s, "
-        f"{m['counts']['/imu/data']} IMU samples, {m['counts']['/star_tracker/stars']} star "
-        f"frames ({m['stars_per_frame']['mean']:.1f} stars/frame) in {t_sim:.1f} s "
-        f"(+{t_all - t_sim:.1f} s writing)"
+        f"{m['counts']['/imu/data']} IMU samples, {what} "
+        f"({m['stars_per_frame']['mean']:.1f} stars/frame) in {t_sim:.1f} s "
+        f"(+{t_all - t_sim:.1f} s {'rendering and ' if args.images else ''}writing)"
     )
     for key in ("bag", "truth", "prior", "meta"):
         print(f"  {key:5s} {paths[key]}")
@@ -102,11 +111,17 @@ def _cmd_info(args: argparse.Namespace) -> int:
         for name, info in sorted(topics.items()):
             print(f"  {name:32s} {info.schema_name:40s} {info.message_count:8d}")
         problems = reader.check()
+        if not problems:
+            from stellar_cal_ros.methods.frames import star_images_text
+
+            images, images_used = star_images_text(reader, topics, str(args.bag))
     if not problems:
         what = "every chunk decompresses and matches its CRC" if "mcap" in reader.storage \
             else "every message could be read"
         print(f"integrity: {what}")
-        missing = _no_stars_text(topics)
+        if images:
+            print(images)
+        missing = "" if images_used else _no_stars_text(topics)
         if missing and "extract them" in missing:  # star images: data, in another form
             print(f"note: {missing}")
         elif missing:
@@ -431,6 +446,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--effect-module", type=Path, action="append",
                    help="Python file defining extra Effect classes (repeatable): simulated "
                         "through the class itself")
+    s.add_argument("--images", nargs="?", const="mono16", choices=["mono16", "mono8"],
+                   default=None, metavar="ENCODING",
+                   help="write star images instead of centroids: the truth world's stars "
+                        "rendered (PSF, sky, shot/read noise, hot pixels, saturation) on "
+                        "/star_tracker/image (mono16: 12-bit sensor, default; mono8) plus "
+                        "/star_tracker/camera_info; about 0.75 MB per frame at 1024x1024")
     s.set_defaults(func=_cmd_simulate)
 
     e = sub.add_parser("effects", help="list the effect library: ids, stages, parameters, "

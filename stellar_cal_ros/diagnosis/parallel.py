@@ -222,7 +222,11 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
 
             raise BagError(f"{bag}: no such bag (a .mcap or ROS 1 .bag file, or a rosbag2 "
                            "directory)")
-        if Path(bag).is_dir():  # a rosbag2 directory: read once here, sent to the runs as data
+        from stellar_cal_ros.methods.frames import reads_star_images
+
+        # a rosbag2 directory, or star images (extracted once, not in every worker): read
+        # once here, sent to the runs as data
+        if Path(bag).is_dir() or reads_star_images(bag):
             from stellar_cal_ros.methods.replay import read_bag_data
 
             bag = read_bag_data(bag, require_imu=False)

@@ -279,14 +279,13 @@ STAR_DT_PACKED = np.dtype(
 )
 
 
-def decode_star_array(data: bytes | memoryview) -> StarFrame:
-    """Decode one ``StarCentroidArray`` CDR payload; ValueError(reason) if malformed.
+def parse_header(data: bytes | memoryview, n: int) -> tuple[int, str, int]:
+    """Encapsulation + ``std_msgs/Header`` of one payload of ``n`` bytes; ValueError(reason).
 
-    A ``StarCentroid`` element is 48 bytes when it starts 8-aligned (4 bytes of padding after
-    ``catalog_id``) and 44 bytes when ``catalog_id`` sits at 4 mod 8; after an element the
-    position is always 8-aligned, so only the first element can be the 44-byte form.
+    Returns
+    -------
+    (stamp ns, frame_id, position after the header)
     """
-    n = len(data)
     if n < 16:
         raise ValueError(f"payload of {n} bytes is shorter than a CDR header (16 bytes)")
     if data[0] != 0 or data[1] != 1:
@@ -297,8 +296,27 @@ def decode_star_array(data: bytes | memoryview) -> StarFrame:
     raw = bytes(data[16 : 16 + slen])
     if raw[-1] != 0:
         raise ValueError("frame_id is not NUL-terminated")
-    frame_id = raw[:-1].decode("utf-8", errors="replace")
-    pos = 4 + align(12 + slen, 4)
+    return int(sec) * 1_000_000_000 + int(nsec), raw[:-1].decode("utf-8", errors="replace"), \
+        16 + slen
+
+
+def header_bytes(stamp_ns: int, frame_id: str) -> bytearray:
+    """Encapsulation + ``std_msgs/Header`` (no padding after the frame_id)."""
+    fid = frame_id.encode("utf-8") + b"\x00"
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    return bytearray(struct.pack("<4siII", b"\x00\x01\x00\x00", sec, nsec, len(fid)) + fid)
+
+
+def decode_star_array(data: bytes | memoryview) -> StarFrame:
+    """Decode one ``StarCentroidArray`` CDR payload; ValueError(reason) if malformed.
+
+    A ``StarCentroid`` element is 48 bytes when it starts 8-aligned (4 bytes of padding after
+    ``catalog_id``) and 44 bytes when ``catalog_id`` sits at 4 mod 8; after an element the
+    position is always 8-aligned, so only the first element can be the 44-byte form.
+    """
+    n = len(data)
+    stamp, frame_id, pos = parse_header(data, n)
+    pos = 4 + align(pos - 4, 4)
     if pos + 8 > n:
         raise ValueError(f"payload of {n} bytes ends inside exposure_time / stars length")
     exposure, count = struct.unpack_from("<fI", data, pos)
@@ -325,7 +343,7 @@ def decode_star_array(data: bytes | memoryview) -> StarFrame:
             arr[name][0] = first[name][0]
             arr[name][1:] = rest[name]
     return StarFrame(
-        stamp_ns=int(sec) * 1_000_000_000 + int(nsec),
+        stamp_ns=stamp,
         frame_id=frame_id,
         exposure_time=float(exposure),
         catalog_id=arr["catalog_id"].astype(np.uint32),
@@ -347,19 +365,38 @@ def decode_star_frames(
     Decoded
         Fields ``obj`` (object array of :class:`StarFrame`, ``log_time_ns`` filled) and ``log``.
     """
+    mv = memoryview(buf)
+    return decode_each(lambda _, o, n: decode_star_array(mv[o : o + n]), buf, off, ln, log)
+
+
+def decode_each(
+    decode: Callable[[NDArray[np.uint8], int, int], Any],
+    buf: NDArray[np.uint8],
+    off: NDArray[np.int64],
+    ln: NDArray[np.int64],
+    log: NDArray[np.int64],
+) -> Decoded:
+    """Decode payloads one at a time: ``decode(buf, offset, length)`` -> a message object.
+
+    The object gets its ``log_time_ns``; a ValueError marks the row bad with its text.
+
+    Returns
+    -------
+    Decoded
+        Fields ``obj`` (object array of the messages) and ``log``.
+    """
     objs = np.empty(len(off), dtype=object)
     keep = np.ones(len(off), bool)
     bad: list[tuple[int, str]] = []
-    mv = memoryview(buf)
     for j, (o, n, t) in enumerate(zip(off.tolist(), ln.tolist(), log.tolist(), strict=True)):
         try:
-            fr = decode_star_array(mv[o : o + n])
+            msg = decode(buf, o, n)
         except ValueError as exc:
             keep[j] = False
             bad.append((j, str(exc)))
             continue
-        fr.log_time_ns = t
-        objs[j] = fr
+        msg.log_time_ns = t
+        objs[j] = msg
     return Decoded(keep, {"obj": objs[keep], "log": log[keep]}, [], bad)
 
 
@@ -532,9 +569,7 @@ def encode_star_frame(frame: StarFrame) -> bytes:
         Encapsulated little-endian CDR.
     """
     n = len(frame.catalog_id)
-    fid = frame.frame_id.encode("utf-8") + b"\x00"
-    sec, nsec = divmod(int(frame.stamp_ns), 1_000_000_000)
-    head = struct.pack("<4siII", b"\x00\x01\x00\x00", sec, nsec, len(fid)) + fid
+    head = header_bytes(frame.stamp_ns, frame.frame_id)
     head += b"\x00" * ((4 - (len(head) - 4) % 4) % 4)
     head += struct.pack("<fI", frame.exposure_time, n)
     if n == 0:

@@ -2,8 +2,10 @@
 
 A kind is what a topic holds: ``imu`` (``sensor_msgs/msg/Imu`` -> :class:`ImuSeries`),
 ``stars`` (``StarCentroidArray`` -> :class:`StarFrame`), ``fix`` (``NavSatFix`` ->
-:class:`NavSatSeries`) and ``scalar`` (``Temperature`` / ``FluidPressure`` ->
-:class:`ScalarSeries`). A :class:`TopicDecoder` decodes a chunk's rows of its topic in bulk
+:class:`NavSatSeries`), ``scalar`` (``Temperature`` / ``FluidPressure`` ->
+:class:`ScalarSeries`), ``image`` (``Image`` -> :class:`~stellar_cal_ros.io.image_msgs.
+ImageMessage`) and ``camera_info`` (``CameraInfo`` -> :class:`~stellar_cal_ros.io.
+image_msgs.CameraInfoMessage`). A :class:`TopicDecoder` decodes a chunk's rows of its topic in bulk
 (bad rows reported, not raised) and builds the typed result from decoded rows.
 """
 
@@ -17,20 +19,34 @@ import numpy as np
 from numpy.typing import NDArray
 
 from stellar_cal_ros.core.types import ImuSeries, NavSatSeries, ScalarSeries, StarFrame
-from stellar_cal_ros.io import cdr
+from stellar_cal_ros.io import cdr, image_msgs
 from stellar_cal_ros.io.mcap_records import Rows
 from stellar_cal_ros.io.merge import Fields
-from stellar_cal_ros.io.schemas import FLUID_PRESSURE, IMU, NAVSATFIX, STAR_ARRAY, TEMPERATURE
+from stellar_cal_ros.io.schemas import (
+    CAMERA_INFO,
+    FLUID_PRESSURE,
+    IMAGE,
+    IMU,
+    NAVSATFIX,
+    STAR_ARRAY,
+    TEMPERATURE,
+)
 
 EXPECTED: dict[str, tuple[str, ...]] = {
     "imu": (IMU,),
     "stars": (STAR_ARRAY,),
     "fix": (NAVSATFIX,),
     "scalar": (TEMPERATURE, FLUID_PRESSURE),
+    "image": (IMAGE,),
+    "camera_info": (CAMERA_INFO,),
 }
 """Kind -> the message types it decodes."""
 
-Block = ImuSeries | StarFrame | NavSatSeries | ScalarSeries
+#: kinds decoded to one object per message (the others to numpy series)
+PER_MESSAGE = ("stars", "image", "camera_info")
+
+Block = (ImuSeries | StarFrame | NavSatSeries | ScalarSeries | image_msgs.ImageMessage
+         | image_msgs.CameraInfoMessage)
 
 
 def kind_of(types: list[str]) -> str | None:
@@ -74,6 +90,8 @@ _DECODE: dict[str, Callable[..., cdr.Decoded]] = {
     "stars": cdr.decode_star_frames,
     "fix": _fix,
     "scalar": _scalar,
+    "image": image_msgs.decode_images,
+    "camera_info": image_msgs.decode_camera_infos,
 }
 
 
@@ -154,7 +172,7 @@ class TopicDecoder:
         f = np.zeros(0)
         if self.kind == "imu":
             return {"stamp": z, "log": z, "av": np.zeros((0, 3)), "la": np.zeros((0, 3))}
-        if self.kind == "stars":
+        if self.kind in PER_MESSAGE:
             return {"obj": np.empty(0, object), "log": z}
         if self.kind == "fix":
             return {"stamp": z, "lat": f, "lon": f, "alt": f, "status": z, "service": z,
@@ -166,7 +184,8 @@ class TopicDecoder:
 
         Returns
         -------
-        ImuSeries, NavSatSeries, ScalarSeries or list of StarFrame
+        ImuSeries, NavSatSeries, ScalarSeries or list (of StarFrame, ImageMessage or
+            CameraInfoMessage)
             By kind.
         """
         if d is None:
@@ -177,7 +196,7 @@ class TopicDecoder:
                 self._covs = (self.cov[0:9].copy(), self.cov[12:21].copy())
             covs = self._covs or (None, None)
             return ImuSeries(d["stamp"], d["av"], d["la"], frame, d["log"], *covs)
-        if self.kind == "stars":
+        if self.kind in PER_MESSAGE:
             return list(d["obj"])
         if self.kind == "fix":
             return NavSatSeries(d["stamp"], d["lat"], d["lon"], d["alt"], d["status"], frame,
@@ -186,7 +205,7 @@ class TopicDecoder:
 
     def blocks(self, d: Fields, imu_block: int) -> Iterator[Block]:
         """Stream blocks of one run of decoded rows (IMU split every ``imu_block`` rows)."""
-        if self.kind == "stars":
+        if self.kind in PER_MESSAGE:
             yield from d["obj"]
         elif self.kind == "imu" and len(d["log"]) > imu_block:
             for a in range(0, len(d["log"]), imu_block):

@@ -4,7 +4,8 @@
 rosbag2 directory (``metadata.yaml``; MCAP files through the same fast path, sqlite3 storage
 through ``rosbags``) or a ROS 1 ``.bag`` (through ``rosbags``), and offers the same API for all:
 :meth:`~BagReader.topics`, the time bounds, ``read_*`` per topic, :meth:`~BagReader.stream`
-(every topic interleaved in one pass), :meth:`~BagReader.iter_messages` (any type, decoded
+(every topic interleaved in one pass; star images too, a chunk at a time),
+:meth:`~BagReader.iter_messages` (any type, decoded
 generically) and :meth:`~BagReader.check` (damage report).
 """
 
@@ -28,6 +29,7 @@ from stellar_cal_ros.core.types import (
 )
 from stellar_cal_ros.errors import BagError, MessageDecodeError
 from stellar_cal_ros.io import kinds
+from stellar_cal_ros.io.image_msgs import CameraInfoMessage, ImageMessage
 from stellar_cal_ros.io.mcap_records import BagProblem, CorruptError, Rows
 from stellar_cal_ros.io.merge import Fields, concat, interleaved, time_ordered
 from stellar_cal_ros.io.sources import SourceBase, open_source
@@ -424,12 +426,46 @@ class BagReader:
         MessageDecodeError
             A malformed message (strict mode).
         """
+        yield from self._iter_objects(topic, "stars")
+
+    def _iter_objects(self, topic: str, kind: str) -> Iterator[Any]:
+        """The messages of a per-message kind (:data:`kinds.PER_MESSAGE`), log-time order."""
         counter: dict[str, list[Any]] = {}
-        dec = self._decoder(topic, "stars")
+        dec = self._decoder(topic, kind)
         batches = ((s, f[0]) for s, f in self._decoded([dec], counter, topic) if f[0] is not None)
         for d in time_ordered(batches):
             yield from d["obj"]
         self._report_skipped(counter)
+
+    def iter_images(self, topic: str = "/star_tracker/image") -> Iterator[ImageMessage]:
+        """Stream ``sensor_msgs/msg/Image`` messages in log-time order, a chunk at a time.
+
+        Parameters
+        ----------
+        topic : str
+            Image topic.
+
+        Yields
+        ------
+        ImageMessage
+            One per message, ``log_time_ns`` filled; ``data`` is a view of the chunk's
+            bytes (copy what you keep: the reader holds a chunk or two, never the bag).
+            The content (encoding, size) is checked by
+            :func:`~stellar_cal_ros.io.image_msgs.image_pixels`, not here.
+
+        Raises
+        ------
+        BagError
+            Topic missing / of another type, or truncated file (strict mode).
+        MessageDecodeError
+            A message whose CDR is malformed (strict mode).
+        """
+        yield from self._iter_objects(topic, "image")
+
+    def iter_camera_info(self, topic: str = "/star_tracker/camera_info"
+                         ) -> Iterator[CameraInfoMessage]:
+        """Stream ``sensor_msgs/msg/CameraInfo`` messages of ``topic`` (log-time order)."""
+        yield from self._iter_objects(topic, "camera_info")
 
     def read_star_frames(self, topic: str = "/star_tracker/stars") -> list[StarFrame]:
         """Read all star frames of ``topic``; see :meth:`iter_star_frames`.
@@ -482,7 +518,7 @@ class BagReader:
 
     def stream(
         self, topics: Mapping[str, str] | None = None, imu_block: int = 4096
-    ) -> Iterator[tuple[str, ImuSeries | StarFrame | NavSatSeries | ScalarSeries]]:
+    ) -> Iterator[tuple[str, kinds.Block]]:
         """Read several topics interleaved in log-time order, in one pass over the bag.
 
         Every chunk is decompressed and CRC-checked once and decoded in bulk; memory is a
@@ -496,7 +532,8 @@ class BagReader:
             block type follows the topic's message type: ``Imu`` -> :class:`ImuSeries`,
             ``StarCentroidArray`` -> :class:`StarFrame`, ``NavSatFix`` ->
             :class:`NavSatSeries`, ``Temperature`` / ``FluidPressure`` ->
-            :class:`ScalarSeries`; a topic of another type raises :class:`BagError`
+            :class:`ScalarSeries`, ``Image`` -> :class:`ImageMessage`, ``CameraInfo`` ->
+            :class:`CameraInfoMessage`; a topic of another type raises :class:`BagError`
             (``on_error="skip"``: it is left out with a warning).
         imu_block : int
             Most samples in one :class:`ImuSeries` block.
@@ -511,11 +548,12 @@ class BagReader:
             ``metadata.yaml`` order), which can differ between two formats of one
             recording. Series blocks hold one or more messages (an IMU block at most
             ``imu_block``; blocks are not necessarily maximal: they are also cut where a
-            chunk ends); a star block is one :class:`StarFrame`. Concatenating one role's
-            blocks gives exactly what ``read_imu`` / ``read_star_frames`` / ``read_navsat`` /
-            ``read_scalar`` return for its topic. Block arrays are views of the chunk's
-            decoded arrays (the IMU covariances are shared by all blocks): copy what you
-            keep for long if memory matters.
+            chunk ends); a star, image or camera-info block is one message. Concatenating
+            one role's blocks gives exactly what ``read_imu`` / ``read_star_frames`` /
+            ``read_navsat`` / ``read_scalar`` / ``iter_images`` return for its topic. Block
+            arrays are views of the chunk's decoded arrays (the IMU covariances are shared
+            by all blocks; an image's data is a view of its chunk): copy what you keep for
+            long if memory matters.
 
         Raises
         ------

@@ -10,8 +10,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 __all__ = [
+    "CAMERA_INFO",
+    "CAMERA_INFO_SCHEMA",
     "FLUID_PRESSURE",
     "FLUID_PRESSURE_SCHEMA",
+    "IMAGE",
+    "IMAGE_SCHEMA",
     "IMU",
     "IMU_SCHEMA",
     "NAVSATFIX",
@@ -76,6 +80,35 @@ _STAR_CENTROID_DEF = (
     "float32 sigma\n"
 )
 _STAR_CENTROID_ARRAY_DEF = "std_msgs/Header header\nfloat32 exposure_time\nStarCentroid[] stars\n"
+_IMAGE_DEF = (
+    "std_msgs/Header header\n"
+    "uint32 height\n"
+    "uint32 width\n"
+    "string encoding\n"
+    "uint8 is_bigendian\n"
+    "uint32 step\n"
+    "uint8[] data\n"
+)
+_CAMERA_INFO_DEF = (
+    "std_msgs/Header header\n"
+    "uint32 height\n"
+    "uint32 width\n"
+    "string distortion_model\n"
+    "float64[] d\n"
+    "float64[9] k\n"
+    "float64[9] r\n"
+    "float64[12] p\n"
+    "uint32 binning_x\n"
+    "uint32 binning_y\n"
+    "RegionOfInterest roi\n"
+)
+_ROI_DEF = (
+    "uint32 x_offset\n"
+    "uint32 y_offset\n"
+    "uint32 height\n"
+    "uint32 width\n"
+    "bool do_rectify\n"
+)
 
 
 def _concat_definition(main: str, deps: Sequence[tuple[str, str]]) -> str:
@@ -104,12 +137,20 @@ STAR_CENTROID_ARRAY_SCHEMA = _concat_definition(
     _STAR_CENTROID_ARRAY_DEF, _HDR_DEPS + [("stellar_cal_msgs/StarCentroid", _STAR_CENTROID_DEF)]
 )
 """ros2msg schema text of ``stellar_cal_msgs/msg/StarCentroidArray``."""
+IMAGE_SCHEMA = _concat_definition(_IMAGE_DEF, _HDR_DEPS)
+"""ros2msg schema text of ``sensor_msgs/msg/Image``."""
+CAMERA_INFO_SCHEMA = _concat_definition(
+    _CAMERA_INFO_DEF, _HDR_DEPS + [("sensor_msgs/RegionOfInterest", _ROI_DEF)]
+)
+"""ros2msg schema text of ``sensor_msgs/msg/CameraInfo``."""
 
 IMU = "sensor_msgs/msg/Imu"
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 TEMPERATURE = "sensor_msgs/msg/Temperature"
 FLUID_PRESSURE = "sensor_msgs/msg/FluidPressure"
 STAR_ARRAY = "stellar_cal_msgs/msg/StarCentroidArray"
+IMAGE = "sensor_msgs/msg/Image"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 
 SCHEMA_TEXTS: dict[str, str] = {
     IMU: IMU_SCHEMA,
@@ -117,6 +158,8 @@ SCHEMA_TEXTS: dict[str, str] = {
     TEMPERATURE: TEMPERATURE_SCHEMA,
     FLUID_PRESSURE: FLUID_PRESSURE_SCHEMA,
     STAR_ARRAY: STAR_CENTROID_ARRAY_SCHEMA,
+    IMAGE: IMAGE_SCHEMA,
+    CAMERA_INFO: CAMERA_INFO_SCHEMA,
 }
 """Schema name (``pkg/msg/Type``) -> full ros2msg text, for every type the writer produces."""
 

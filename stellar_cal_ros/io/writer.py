@@ -264,6 +264,52 @@ class BagWriter:
         payloads = [self.encode_star_frame(f) for f in frames]
         self._sources.append(_bytes_source(cid, [int(f.stamp_ns) for f in frames], payloads))
 
+    def write_encoded(
+        self,
+        topic: str,
+        schema_name: str,
+        schema_text: str,
+        log_time_ns: Sequence[int] | NDArray[np.int64],
+        sizes: Sequence[int] | NDArray[np.int64],
+        encode: Callable[[NDArray[np.int64]], bytes | NDArray[np.uint8]],
+    ) -> None:
+        """Queue messages whose payloads are made only when their chunk is written.
+
+        For messages too big to hold for the whole bag (star images rendered on demand):
+        :meth:`close` calls ``encode(indices)`` once per chunk with the ascending indices of
+        the messages that go into it and expects their payloads concatenated, each exactly
+        ``sizes[i]`` bytes; so memory holds one chunk, not the bag.
+
+        Parameters
+        ----------
+        topic, schema_name, schema_text : str
+            Topic, ``pkg/msg/Type`` and its ros2msg definition.
+        log_time_ns : sequence of int
+            Log (and publish) time of each message, ns.
+        sizes : sequence of int
+            Payload size of each message, bytes.
+        encode : callable
+            Indices (int64, ascending) -> their payloads, concatenated.
+        """
+        self._check_open()
+        log = np.asarray(log_time_ns, np.int64).reshape(-1)
+        lengths = np.asarray(sizes, np.int64).reshape(-1)
+        if len(log) != len(lengths):
+            raise ValueError("one size per message")
+        if not len(log):
+            return
+        cid = self._channel(topic, schema_name, schema_text)
+
+        def checked(idx: NDArray[np.int64]) -> NDArray[np.uint8]:
+            made = encode(idx)
+            out = made if isinstance(made, np.ndarray) else np.frombuffer(made, np.uint8)
+            if out.size != int(lengths[idx].sum()):
+                raise BagError(f"{topic}: encoder gave {out.size} bytes for messages of "
+                               f"{int(lengths[idx].sum())}")
+            return out
+
+        self._sources.append(_Source(cid, log, lengths, checked))
+
     def write_raw(
         self, topic: str, schema_name: str, schema_text: str, log_time_ns: int, data: bytes
     ) -> None:

@@ -43,6 +43,7 @@ from stellar_cal_ros.core.strapdown import attitude_increments, propagate_attitu
 from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.errors import BagError, DataError, StellarCalError
 from stellar_cal_ros.io.bag import BagReader, ImuSeries, StarFrame
+from stellar_cal_ros.methods.frames import TOPIC_IMAGE, bag_star_frames, star_input
 from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
@@ -274,16 +275,22 @@ def load_acf_data(
     StellarCalError
         The bag or one of the two required topics is missing, or holds no data.
     """
+    names = {"stars": star_topic, "image": TOPIC_IMAGE}
     try:
         with BagReader(bag_path) as reader:
             topics = reader.topics()
-            for topic, what in ((star_topic, "star centroids"), (imu_topic, "IMU samples")):
-                if topic not in topics:
-                    raise StellarCalError(
-                        f"{bag_path}: the ACF method needs {what} on {topic}, which the bag "
-                        f"does not have (topics: {sorted(topics)})")
+            if star_input(topics, names, str(bag_path)) is None:
+                raise StellarCalError(
+                    f"{bag_path}: the ACF method needs star centroids on {star_topic} (or "
+                    f"star images on {TOPIC_IMAGE}), which the bag does not have (topics: "
+                    f"{sorted(topics)})")
+            if imu_topic not in topics:
+                raise StellarCalError(
+                    f"{bag_path}: the ACF method needs IMU samples on {imu_topic}, which the "
+                    f"bag does not have (topics: {sorted(topics)})")
             imu = reader.read_imu(imu_topic)
-            frames = reader.read_star_frames(star_topic)
+            # centroids, or star images made into frames one at a time (frames.py)
+            frames, _ = bag_star_frames(reader, names, str(bag_path), topics)
             site = None
             scalars: dict[str, tuple[np.ndarray, np.ndarray]] = {}
             if gnss_topic in topics:

@@ -48,6 +48,7 @@ from stellar_cal_ros.methods.frames import (
     ENV_KEYS,
     T0_IMU_SAMPLES,
     EnvSeries,
+    ImageFrames,
     SiteEstimator,
     frame_context,
     frame_inputs,
@@ -128,6 +129,8 @@ class InputCounters:
     env_stale: int = 0
     fixes_received: int = 0
     fixes_invalid: int = 0
+    images_received: int = 0  # star images (a bag of images): made into frames
+    images_bad: int = 0  # images whose content is unusable (encoding, size): skipped
 
 
 @dataclass
@@ -281,6 +284,8 @@ class Calibrator:
         self._history_keys: tuple[str, ...] | None = None  # see _record_history
         self._history_sigma_index: np.ndarray | None = None
         self.identifier = None  # the star identification of unidentified frames (lazy)
+        cam = self.prior.camera
+        self.images = ImageFrames(size=(cam.width, cam.height))  # star images -> frames
         self._to_identify: set[int] = set()  # stamps of pending frames to identify
 
     def reset(self) -> None:
@@ -417,6 +422,20 @@ class Calibrator:
             self._last_frame_ns = int(old.stamp_ns)
             out.append(FrameOutcome(int(old.stamp_ns), old.frame_id, "dropped_overflow"))
         return out + self._pump()
+
+    def push_image(self, image) -> list[FrameOutcome]:
+        """One star image (:class:`~stellar_cal_ros.io.image_msgs.ImageMessage`).
+
+        Its centroids (:class:`~stellar_cal_ros.methods.frames.ImageFrames`) go on as
+        :meth:`push_stars` does, identified when processed; an unusable image comes back
+        as ``dropped_bad_image`` (counted ``images_bad``).
+        """
+        frame = self.images(image)
+        self.counters.images_received = self.images.received
+        self.counters.images_bad = self.images.bad
+        if frame is None:
+            return [FrameOutcome(int(image.stamp_ns), str(image.frame_id), "dropped_bad_image")]
+        return self.push_stars(frame)
 
     def push_scalar(self, kind: str, stamp_ns: int, value: float) -> list[FrameOutcome]:
         """A temperature (°C) or pressure (Pa): ``kind`` in ``head``, ``air``, ``pressure``."""

@@ -15,6 +15,15 @@
 * **Environment** (:class:`EnvSeries`): temperatures and pressure interpolated linearly at the
   frame stamp over their finite samples (in seconds from the earliest finite sample).
 * **Context** (:func:`frame_context`): what an effect may use for one frame.
+* **Star images** (:class:`ImageFrames`): a bag recorded with images on
+  ``/star_tracker/image`` (mono8/mono16, stamp = mid-exposure) is read one image at a time;
+  each becomes a frame of unidentified centroids through
+  :func:`~stellar_cal_ros.sky.extract.centroid_frame` (the ``star_extractor`` node's very
+  step), identified afterwards as any unidentified centroids are (the driver's IMU-aided
+  tracking; :func:`~stellar_cal_ros.sky.identify.identify_frames` in the batch methods).
+  An image whose content is unusable (encoding, size, row step) is a counted skip
+  (``images_bad``).  A bag holding both centroids and images is read through its
+  centroids (:func:`star_input`, said once).
 
 Used by the streaming driver (:mod:`stellar_cal_ros.methods.driver`, replay and live) and
 the whole-bag loader (:func:`read_bag_data`, for the batch methods and the diagnosis).
@@ -25,6 +34,7 @@ from __future__ import annotations
 import bisect
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,10 +43,12 @@ import numpy as np
 
 from stellar_cal_ros.core.catalog import radec_to_unit
 from stellar_cal_ros.core.earth import Site
-from stellar_cal_ros.core.types import ScalarSeries, StarFrame
+from stellar_cal_ros.core.types import ScalarSeries, StarFrame, TopicInfo
 from stellar_cal_ros.effects.base import FrameContext
 from stellar_cal_ros.errors import BagError
 from stellar_cal_ros.io.bag import BagReader
+from stellar_cal_ros.io.image_msgs import ImageMessage, image_pixels
+from stellar_cal_ros.sky.extract import ExtractConfig, centroid_frame
 
 log = logging.getLogger(__name__)
 
@@ -46,10 +58,14 @@ TOPIC_FIX = "/gnss/fix"
 TOPIC_HEAD_TEMPERATURE = "/star_tracker/temperature"
 TOPIC_AIR_TEMPERATURE = "/environment/temperature"
 TOPIC_PRESSURE = "/environment/pressure"
-#: default topic of each input role
+TOPIC_IMAGE = "/star_tracker/image"
+TOPIC_CAMERA_INFO = "/star_tracker/camera_info"
+#: default topic of each input role (``image``/``camera_info``: star images instead of
+#: centroids, see :func:`star_input`)
 TOPICS = {"imu": TOPIC_IMU, "stars": TOPIC_STARS, "fix": TOPIC_FIX,
           "head": TOPIC_HEAD_TEMPERATURE, "air": TOPIC_AIR_TEMPERATURE,
-          "pressure": TOPIC_PRESSURE}
+          "pressure": TOPIC_PRESSURE, "image": TOPIC_IMAGE,
+          "camera_info": TOPIC_CAMERA_INFO}
 ENV_KEYS = ("head", "air", "pressure")
 #: IMU samples whose median interval sets t0 and the nominal interval
 T0_IMU_SAMPLES = 1000
@@ -132,6 +148,179 @@ def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float
                        sigma, frame.catalog_id[ok].astype(np.int64),
                        np.asarray(frame.magnitude, dtype=float)[ok], bad,
                        int(np.count_nonzero(masks.unidentified)))
+
+
+# ---------------------------------------------------------------------------- star images
+_SAID: set[tuple[str, str, str]] = set()  # (bag, star topic, image topic) already told
+
+
+def star_input(available: Mapping[str, TopicInfo], names: Mapping[str, str],
+               where: str = "") -> str | None:
+    """Which role carries a bag's star frames: ``stars`` (centroids) or ``image``.
+
+    The centroids when the star topic holds messages, else the images when the image topic
+    does; a bag with both is read through its centroids, which is said once (an INFO line
+    per bag and process).  A topic present but empty counts as present (the readers then
+    say it is empty); None: neither topic is in the bag.
+    """
+    stars, image = names.get("stars", TOPIC_STARS), names.get("image", TOPIC_IMAGE)
+
+    def count(topic: str) -> int:
+        info = available.get(topic)
+        return -1 if info is None else int(info.message_count)
+
+    n_stars, n_image = count(stars), count(image)
+    if n_stars > 0 and n_image > 0:
+        key = (str(where), stars, image)
+        if key not in _SAID:
+            _SAID.add(key)
+            log.info("%s holds star centroids on %s and images on %s: the centroids are "
+                     "used, the images are not read", where or "the bag", stars, image)
+        return "stars"
+    if n_stars > 0 or (n_stars == 0 and n_image <= 0):
+        return "stars"
+    return "image" if n_image >= 0 else None
+
+
+def missing_stars_text(where: str, names: Mapping[str, str], available) -> str:
+    """The one-line error of a bag with neither star centroids nor star images."""
+    return (f"{where}: required topic {names.get('stars', TOPIC_STARS)} (or star images on "
+            f"{names.get('image', TOPIC_IMAGE)}) is missing (topics: "
+            f"{', '.join(sorted(available)) or 'none'})")
+
+
+class ImageFrames:
+    """Star images to frames of unidentified centroids, one image at a time, counted.
+
+    The step the ``star_extractor`` node makes too: :func:`~stellar_cal_ros.io.image_msgs.
+    image_pixels` (the content check) then :func:`~stellar_cal_ros.sky.extract.
+    centroid_frame` (detection, PSF-fit centroids, σ from the signal-to-noise).  An image
+    that fails the check (encoding other than mono8/mono16, data size not height × step,
+    a size other than the camera's when ``size`` is given) is skipped and counted in
+    :attr:`bad`, the first one with a warning.
+
+    Parameters
+    ----------
+    config : ExtractConfig, optional
+        Extraction settings.
+    size : (width, height), optional
+        The camera's image size (the prior's): images of another size are skipped.  None:
+        the first usable image's (one camera makes a bag's images).
+    where : str
+        The bag, for messages.
+    """
+
+    def __init__(self, config: ExtractConfig | None = None,
+                 size: tuple[int, int] | None = None, where: str = "") -> None:
+        self.config = config or ExtractConfig()
+        self.size = None if size is None else (int(size[0]), int(size[1]))
+        self.where = where
+        self.received = 0  #: images seen
+        self.bad = 0  #: images skipped (unusable content)
+        self.stars = 0  #: centroids extracted
+        self.cpu_s = 0.0  #: CPU time of the extraction
+        self._info_warned = False
+
+    def camera_info(self, info: Any) -> None:
+        """Check a ``CameraInfo`` beside the images against ``size`` (the prior's camera).
+
+        One of another size is warned about once; the camera used stays the prior's, and
+        images of another size are skipped.
+        """
+        got = (int(info.width), int(info.height))
+        if self.size is not None and got != self.size and got != (0, 0) and \
+                not self._info_warned:
+            self._info_warned = True
+            log.warning("%s: camera_info describes %d x %d images, the prior's camera is "
+                        "%d x %d: images of another size are skipped (images_bad)",
+                        self.where or "bag", *got, *self.size)
+
+    def __call__(self, image: ImageMessage) -> StarFrame | None:
+        """The frame of one image message (None: skipped and counted)."""
+        self.received += 1
+        try:
+            pixels = image_pixels(image)
+            got = (pixels.shape[1], pixels.shape[0])
+            self.size = self.size or got
+            if got != self.size:
+                raise ValueError(f"image of {got[0]} x {got[1]} pixels, the camera's is "
+                                 f"{self.size[0]} x {self.size[1]}")
+        except ValueError as exc:
+            self.bad += 1
+            if self.bad == 1:
+                log.warning("%simage stamped %.3f skipped: %s (further ones are counted as "
+                            "images_bad)", f"{self.where}: " if self.where else "",
+                            image.stamp_ns * 1e-9, exc)
+            return None
+        c0 = time.process_time()
+        frame = centroid_frame(pixels, image.stamp_ns, image.frame_id, 0.0, self.config)
+        self.cpu_s += time.process_time() - c0
+        self.stars += len(frame)
+        frame.log_time_ns = image.log_time_ns
+        return frame
+
+
+def bag_star_frames(reader: BagReader, names: Mapping[str, str], where: str = "",
+                    available: Mapping[str, TopicInfo] | None = None
+                    ) -> tuple[list[StarFrame], ImageFrames | None]:
+    """A bag's star frames: its centroid messages, or its images made into frames.
+
+    Images are read and turned into frames one at a time (:class:`ImageFrames`): memory
+    holds a chunk of images, never the bag's.  Returns the frames and the image converter
+    (None for centroids), whose counts say what was skipped.
+    """
+    available = reader.topics() if available is None else available
+    role = star_input(available, names, where)
+    if role is None:
+        raise BagError(missing_stars_text(where or str(reader.path), names, available))
+    if role == "stars":
+        return reader.read_star_frames(names.get("stars", TOPIC_STARS)), None
+    conv = ImageFrames(where=where or str(reader.path))
+    frames = [f for f in map(conv, reader.iter_images(names.get("image", TOPIC_IMAGE)))
+              if f is not None]
+    if conv.bad:
+        log.warning("%s: %d of %d images skipped (unusable content)", conv.where, conv.bad,
+                    conv.received)
+    return frames, conv
+
+
+def reads_star_images(path: str | Path) -> bool:
+    """True when a bag's star frames come from its images (no star centroids in it)."""
+    with BagReader(path, on_error="skip") as reader:
+        available = reader.topics()
+        return star_input(available, TOPICS, str(path)) == "image"
+
+
+def star_images_text(reader: BagReader, available: Mapping[str, TopicInfo],
+                     where: str = "") -> tuple[str, bool]:
+    """What ``stellar-cal info`` says of a bag's star images, and whether they are used.
+
+    Their count, the first image's encoding and size (or why it is unusable), the first
+    CameraInfo's camera, and whether the commands read them (no star centroids) or not;
+    ``("", False)`` for a bag without images on the contract topic.
+    """
+    info = available.get(TOPIC_IMAGE)
+    if info is None or not info.message_count:
+        return "", False
+    first = next(iter(reader.iter_images(TOPIC_IMAGE)), None)
+    desc = "none decodable"
+    if first is not None:
+        try:
+            px = image_pixels(first)
+            desc = f"{first.encoding}, {px.shape[1]} x {px.shape[0]}"
+        except ValueError as exc:
+            desc = f"the first is unusable: {exc}"
+    cam = ""
+    if available.get(TOPIC_CAMERA_INFO) is not None:
+        ci = next(iter(reader.iter_camera_info(TOPIC_CAMERA_INFO)), None)
+        if ci is not None and len(ci.k) == 9:
+            cam = (f"; camera_info {ci.width} x {ci.height}, fx {ci.k[0]:.2f} cx {ci.k[2]:.2f}"
+                   f" cy {ci.k[5]:.2f} px, {ci.distortion_model or 'no distortion model'}")
+    used = star_input(available, TOPICS, where) == "image"
+    use = ("replay, batch, diagnose and discover extract and identify their stars (the "
+           "prior's camera is used)") if used else \
+        f"not read: the star centroids on {TOPIC_STARS} are used"
+    return f"star images: {info.message_count} on {TOPIC_IMAGE} ({desc}){cam}; {use}", used
 
 
 class EnvSeries:
@@ -301,6 +490,7 @@ class BagData:
     imu_dropped: int = 0  #: duplicated-stamp or non-finite IMU messages not used
     nominal_dt: float = 0.0
     source: str = ""  #: path of the bag (empty for data made in memory)
+    images_bad: int = 0  #: star images skipped as unusable (a bag of images; ImageFrames)
 
     @property
     def t0(self) -> float:
@@ -363,13 +553,14 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
     # holds; bad messages are dropped and counted (BagReader.skipped) with a warning.
     with BagReader(path, on_error=on_error) as reader:
         available = reader.topics()
-        need = ("imu", "stars") if require_imu or names["imu"] in available else ("stars",)
-        for key in need:
-            if names[key] not in available:
-                raise BagError(f"{path}: required topic {names[key]} is missing "
-                               f"(topics: {', '.join(sorted(available)) or 'none'})")
-        imu = reader.read_imu(names["imu"]) if "imu" in need else None
-        frames = reader.read_star_frames(names["stars"])
+        if star_input(available, names, str(path)) is None:
+            raise BagError(missing_stars_text(str(path), names, available))
+        use_imu = require_imu or names["imu"] in available
+        if use_imu and names["imu"] not in available:
+            raise BagError(f"{path}: required topic {names['imu']} is missing "
+                           f"(topics: {', '.join(sorted(available)) or 'none'})")
+        imu = reader.read_imu(names["imu"]) if use_imu else None
+        frames, images = bag_star_frames(reader, names, str(path), available)
         site = None
         if names["fix"] in available:
             fix = reader.read_navsat(names["fix"])
@@ -394,7 +585,8 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
         t0_ns=t0_ns, imu_t=(stamps - t0_ns) * 1e-9, imu_w=w, imu_f=f, frames=frames,
         site=site, head_temperature=scalars["head"], air_temperature=scalars["air"],
         pressure=scalars["pressure"], read_seconds=time.perf_counter() - t_start,
-        imu_dropped=dropped, nominal_dt=nominal_dt, source=str(path))
+        imu_dropped=dropped, nominal_dt=nominal_dt, source=str(path),
+        images_bad=images.bad if images is not None else 0)
 
 
 def bag_data_from_simulation(result: Any) -> BagData:

@@ -28,7 +28,9 @@ from stellar_cal_ros.methods.frames import (  # noqa: F401 (re-exported)
     BagData,
     bag_data_from_simulation,
     clean_frame,
+    missing_stars_text,
     read_bag_data,
+    star_input,
 )
 from stellar_cal_ros.methods.results import (  # noqa: F401 (re-exported)
     RESIDUAL_COLUMNS,
@@ -133,8 +135,8 @@ def _block_events(role: str, block):
     if role == "imu":
         yield "imu", (block.stamp_ns, block.angular_velocity, block.linear_acceleration,
                       block.frame_id or None)
-    elif role == "stars":
-        yield "stars", block
+    elif role in ("stars", "image", "camera_info"):
+        yield role, block
     elif role == "fix":
         for row in zip(np.asarray(block.stamp_ns).tolist(), np.asarray(block.latitude_deg).tolist(),
                        np.asarray(block.longitude_deg).tolist(),
@@ -155,6 +157,10 @@ def _feed(cal: Calibrator, role: str, payload) -> None:
             cal.push_imu_block(*payload)
     elif role == "stars":
         cal.push_stars(payload)
+    elif role == "image":  # star images: made into frames one at a time (frames.py)
+        cal.push_image(payload)
+    elif role == "camera_info":
+        cal.images.camera_info(payload)
     elif role == "fix":
         cal.push_fix(*payload)
     else:
@@ -240,11 +246,15 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
     else:
         reader = BagReader(bag, on_error=on_error)
         available = reader.topics()
-        for key in ("imu", "stars"):
-            if names[key] not in available:
-                reader.close()
-                raise BagError(f"{bag}: required topic {names[key]} is missing "
-                               f"(topics: {', '.join(sorted(available)) or 'none'})")
+        # star centroids, or star images made into frames as they stream (frames.py)
+        stars = star_input(available, names, str(bag))
+        if names["imu"] not in available or stars is None:
+            reader.close()
+            raise BagError(missing_stars_text(str(bag), names, available) if stars is None
+                           else f"{bag}: required topic {names['imu']} is missing "
+                           f"(topics: {', '.join(sorted(available)) or 'none'})")
+        for role in ("image", "camera_info") if stars == "stars" else ("stars",):
+            names.pop(role, None)
         span = (reader.start_ns, reader.end_ns)
         cal = _calibrator(prior, method, effects, cfg, drv, consider, res_sink, hist_sink,
                           span, eval_fraction, baseline, filter_cls)

@@ -32,7 +32,8 @@ from stellar_cal_msgs.msg import StarCentroid, StarCentroidArray
 
 from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.errors import StellarCalError
-from stellar_cal_ros.sky.extract import ExtractConfig, extract_stars
+from stellar_cal_ros.io.image_msgs import camera_from_info, image_pixels
+from stellar_cal_ros.sky.extract import ExtractConfig, centroid_frame
 from stellar_cal_ros.sky.identify import Identifier, IdentifyConfig
 
 PARAMETERS: dict[str, tuple[Any, str]] = {
@@ -48,36 +49,12 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "report_period_s": (30.0, "log the counters this often (wall time), s; 0: never"),
 }
 
-_ENCODINGS = {"mono8": np.uint8, "8UC1": np.uint8, "mono16": np.uint16, "16UC1": np.uint16}
-
-
 def usage() -> str:
     """``--help`` text."""
     lines = ["usage: star_extractor [--ros-args -p NAME:=VALUE ...]", "", __doc__.strip(), "",
              "parameters:"]
     lines += [f"  {k} (default {v[0]!r}): {v[1]}" for k, v in PARAMETERS.items()]
     return "\n".join(lines)
-
-
-def image_array(msg: Image) -> np.ndarray:
-    """The pixels of a mono Image message as a 2-D array (ValueError for other encodings)."""
-    dtype = _ENCODINGS.get(msg.encoding)
-    if dtype is None:
-        raise ValueError(f"image encoding {msg.encoding!r} is not mono8/mono16")
-    dt = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
-    row = msg.width * dt.itemsize
-    buf = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(msg.height, msg.step)
-    return buf[:, :row].copy().view(dt).reshape(msg.height, msg.width).astype(dtype)
-
-
-def camera_from_info(msg: CameraInfo) -> CameraModel:
-    """The camera of a CameraInfo message (K, D in OpenCV order)."""
-    k = list(msg.k)
-    d = list(msg.d)
-    if len(d) not in (0, 4, 5, 8, 12, 14):
-        d = (d + [0.0] * 14)[:14]
-    return CameraModel(int(msg.width), int(msg.height), k[0], k[4], k[2], k[5],
-                       d or np.zeros(14))
 
 
 class StarExtractorNode(Node):
@@ -146,44 +123,41 @@ class StarExtractorNode(Node):
         c = self.counters
         c["images"] += 1
         try:
-            pixels = image_array(msg)
+            pixels = image_pixels(msg)
         except ValueError as exc:
             c["bad_images"] += 1
             self._warn_once("encoding", f"{exc}: images skipped (counted as bad_images)")
             return None
-        cents = extract_stars(pixels, self.extract)
+        stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+        # the same two steps as a bag's images in replay/batch (methods/frames.py)
+        frame = centroid_frame(pixels, stamp_ns, self.p["frame_id"], 0.0, self.extract)
         ident_obj = self._identifier(pixels.shape[1], pixels.shape[0])
-        n = len(cents)
-        ids = np.zeros(n, np.uint32)
-        ra = np.full(n, np.nan)
-        dec = np.full(n, np.nan)
-        mag = np.full(n, np.nan)
+        n = len(frame)
         keep = np.ones(n, bool)
         if ident_obj is not None and n:
-            res = ident_obj.identify(cents.uv, ident_obj.last_R_i_st, brightness=cents.flux)
+            identified, res = ident_obj.identify_frame(frame, ident_obj.last_R_i_st)
             if res.status != "failed":
                 c["identified"] += 1
                 keep = res.identified
-                ids, ra, dec, mag = res.catalog_id, res.right_ascension, res.declination, \
-                    res.magnitude
+                frame = identified
             else:
                 c["failed"] += 1
                 ident_obj.last_R_i_st = None
         c["stars"] += n
-        c["stars_identified"] += int(np.count_nonzero(ids[keep]))
+        c["stars_identified"] += int(np.count_nonzero(frame.catalog_id[keep]))
         out = StarCentroidArray()
         out.header.stamp = msg.header.stamp
         out.header.frame_id = self.p["frame_id"]
         out.exposure_time = 0.0
         for i in np.flatnonzero(keep):
             s = StarCentroid()
-            s.catalog_id = int(ids[i])
-            s.right_ascension = float(ra[i])
-            s.declination = float(dec[i])
-            s.u = float(cents.uv[i, 0])
-            s.v = float(cents.uv[i, 1])
-            s.magnitude = float(mag[i])
-            s.sigma = float(cents.sigma[i])
+            s.catalog_id = int(frame.catalog_id[i])
+            s.right_ascension = float(frame.right_ascension[i])
+            s.declination = float(frame.declination[i])
+            s.u = float(frame.uv[i, 0])
+            s.v = float(frame.uv[i, 1])
+            s.magnitude = float(frame.magnitude[i])
+            s.sigma = float(frame.sigma[i])
             out.stars.append(s)
         return out
 

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import copy
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -494,8 +495,14 @@ def _prior_calibration_of(s: Scenario) -> Calibration:
     )
 
 
-def write_simulation(result: SimulationResult, bag_path: str | Path) -> dict[str, Path]:
-    """Write the bag, ``BAG.truth.yaml``, ``BAG.prior.yaml`` and ``BAG.meta.json``."""
+def write_simulation(result: SimulationResult, bag_path: str | Path,
+                     write_frames: Callable[[BagWriter], None] | None = None
+                     ) -> dict[str, Path]:
+    """Write the bag, ``BAG.truth.yaml``, ``BAG.prior.yaml`` and ``BAG.meta.json``.
+
+    ``write_frames(writer)`` writes the star data instead of the centroid messages (the
+    images of :func:`stellar_cal_ros.sim.image_bag.write_image_simulation`).
+    """
     bag_path = Path(bag_path)
     bag_path.parent.mkdir(parents=True, exist_ok=True)
     stem = bag_path.with_suffix("")
@@ -507,8 +514,10 @@ def write_simulation(result: SimulationResult, bag_path: str | Path) -> dict[str
     }
     with BagWriter(bag_path) as w:
         w.write_imu(result.imu, "/imu/data")
-        for frame in result.star_frames:
-            w.write_star_frame(frame, "/star_tracker/stars")
+        if write_frames is not None:
+            write_frames(w)
+        else:
+            w.write_star_frames(result.star_frames, "/star_tracker/stars")
         w.write_navsat(result.navsat, "/gnss/fix")
         w.write_scalar(result.head_temperature, "/star_tracker/temperature", kind="temperature")
         w.write_scalar(result.air_temperature, "/environment/temperature", kind="temperature")

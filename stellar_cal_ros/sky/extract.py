@@ -29,9 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
+from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.sky import database
 
-__all__ = ["Centroids", "ExtractConfig", "extract_stars"]
+__all__ = ["Centroids", "ExtractConfig", "centroid_frame", "extract_stars"]
 
 _SQRT2PI = math.sqrt(2.0 * math.pi)
 
@@ -138,6 +139,24 @@ def extract_stars(image: np.ndarray, config: ExtractConfig | None = None) -> Cen
     return Centroids(fit["uv"][order], np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1])), cov,
                      fit["flux"][order], fit["snr"][order], fit["saturated"][order],
                      fit["psf"][order], bg_sigma, fit["factor"], n0, w, h)
+
+
+def centroid_frame(pixels: np.ndarray, stamp_ns: int, frame_id: str,
+                   exposure_time: float = 0.0, config: ExtractConfig | None = None
+                   ) -> StarFrame:
+    """An image's stars as a message of unidentified centroids (contract §2).
+
+    The one step from an image to a star frame: the ``star_extractor`` node and the bag
+    data path (:mod:`stellar_cal_ros.methods.frames`) both call it, then identify the frame
+    (:meth:`stellar_cal_ros.sky.identify.Identifier.identify_frame`).  Stars brightest
+    first, ``catalog_id`` 0, RA/Dec and magnitude NaN, ``sigma`` from the PSF fit.
+    """
+    c = extract_stars(pixels, config)
+    n = len(c)
+    return StarFrame(stamp_ns=int(stamp_ns), frame_id=frame_id,
+                     exposure_time=float(exposure_time), catalog_id=np.zeros(n, np.uint32),
+                     right_ascension=np.full(n, np.nan), declination=np.full(n, np.nan),
+                     uv=c.uv, magnitude=np.full(n, np.nan), sigma=c.sigma)
 
 
 def _model(p: np.ndarray, gx: np.ndarray, gy: np.ndarray, jac: bool):
