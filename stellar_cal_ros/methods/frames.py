@@ -559,17 +559,32 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
         if use_imu and names["imu"] not in available:
             raise BagError(f"{path}: required topic {names['imu']} is missing "
                            f"(topics: {', '.join(sorted(available)) or 'none'})")
-        imu = reader.read_imu(names["imu"]) if use_imu else None
-        frames, images = bag_star_frames(reader, names, str(path), available)
+        want = [k for k in ("imu", "fix", *ENV_KEYS) if names[k] in available
+                and (k != "imu" or use_imu)]
+        if star_input(available, names, str(path)) == "image":
+            # one pass: an image chunk also holds IMU, fix and temperature messages, so
+            # reading topic by topic would decompress every image chunk once per topic
+            images = ImageFrames(where=str(path))
+            blocks = _one_pass(reader, {k: names[k] for k in [*want, "image"]}, images)
+            frames = blocks.pop("image")
+        else:
+            blocks, images = {}, None
+            frames = reader.read_star_frames(names["stars"])
+        read = {"imu": reader.read_imu, "fix": reader.read_navsat}
+        whole = {k: (type(blocks[k][0]).concatenate(blocks[k]) if blocks.get(k)
+                     else read.get(k, reader.read_scalar)(names[k])) for k in want}
+        imu = whole.get("imu")
         site = None
-        if names["fix"] in available:
-            fix = reader.read_navsat(names["fix"])
+        if "fix" in whole:
+            fix = whole["fix"]
             est = SiteEstimator(max_fixes=len(fix.stamp_ns) + 1)
             est.add_many(fix.stamp_ns, fix.latitude_deg, fix.longitude_deg, fix.altitude_m,
                          fix.status)
             site = est.site
-        scalars = {key: reader.read_scalar(names[key]) if names[key] in available else None
-                   for key in ENV_KEYS}
+        scalars = {key: whole.get(key) for key in ENV_KEYS}
+    if images is not None and images.bad:
+        log.warning("%s: %d of %d images skipped (unusable content)", path, images.bad,
+                    images.received)
     if imu is None:
         if not frames:
             raise BagError(f"{path}: {names['stars']} holds no star frames")
@@ -587,6 +602,19 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
         pressure=scalars["pressure"], read_seconds=time.perf_counter() - t_start,
         imu_dropped=dropped, nominal_dt=nominal_dt, source=str(path),
         images_bad=images.bad if images is not None else 0)
+
+
+def _one_pass(reader: BagReader, topics: dict[str, str], images: ImageFrames
+              ) -> dict[str, list[Any]]:
+    """Every role's blocks in one pass over the bag, the images made into star frames."""
+    out: dict[str, list[Any]] = {role: [] for role in topics}
+    for role, block in reader.stream(topics, imu_block=1 << 20):
+        if role == "image":
+            block = images(block)
+            if block is None:
+                continue
+        out[role].append(block)
+    return out
 
 
 def bag_data_from_simulation(result: Any) -> BagData:
