@@ -111,3 +111,148 @@ def test_calibrator_truncated_checkpoint(tmp_path):
     ck.write_bytes(ck.read_bytes()[: ck.stat().st_size * 2 // 3])
     with pytest.raises(CheckpointError, match="truncated"):
         load_checkpoint(Calibrator(sim.prior), ck)
+
+
+# ---------------------------------------------------------------------------- the schema
+#: objects the filter's constructor builds from the prior, model and configuration, and
+#: workspaces every step overwrites (the swaying transition matrix)
+_BUILT = {"model", "config", "layout", "gate", "update_policy", "grid", "site", "_Phi"}
+
+
+def _differences(a, b, where=""):
+    """Where two values differ (arrays exactly, NaN = NaN; objects by ``state()``)."""
+    if hasattr(a, "state") and callable(a.state):
+        return _differences(a.state(), b.state(), where)
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        a, b = np.asarray(a), np.asarray(b)
+        same = a.shape == b.shape and a.dtype == b.dtype and np.array_equal(
+            a, b, equal_nan=a.dtype.kind in "fc")
+        return [] if same else [where]
+    if isinstance(a, float) and isinstance(b, float):
+        return [] if a == b or (a != a and b != b) else [where]
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        if len(a) != len(b) or type(a) is not type(b):
+            return [where]
+        return [d for i, (x, y) in enumerate(zip(a, b, strict=True))
+                for d in _differences(x, y, f"{where}[{i}]")]
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            return [where]
+        return [d for k in a for d in _differences(a[k], b[k], f"{where}.{k}")]
+    if hasattr(a, "__dict__") and type(a) is type(b):
+        return _differences(vars(a), vars(b), where)
+    return [] if a == b else [where]
+
+
+def _filter_differences(first, second) -> list[str]:
+    """Attributes of two filters that differ, the constructor-built objects left out; the
+    error state by what it holds (covariance, nominal values, sensitivity)."""
+    out = []
+    for k in vars(first):
+        if k in _BUILT:
+            continue
+        a, b = getattr(first, k), getattr(second, k)
+        if k == "state":
+            a = {"P": a.P, "nominal": a.nominal, "sensitivity": a.sensitivity}
+            b = {"P": b.P, "nominal": b.nominal, "sensitivity": b.sensitivity}
+        out += _differences(a, b, k)
+    return out
+
+
+def _half_way(method, scenario, consider):
+    from stellar_cal_ros.methods.driver import Calibrator, DriverConfig
+    from stellar_cal_ros.sim.scenarios import get_scenario
+    from stellar_cal_ros.sim.world import simulate
+
+    sim = simulate(get_scenario(scenario), duration=60.0, seed=4)
+
+    def make():
+        return Calibrator(sim.prior, method, None, consider=consider,
+                          driver=DriverConfig(reorder_window_s=0.05))
+
+    events = []
+    for t, w, f in zip(sim.imu.stamp_ns, sim.imu.angular_velocity,
+                       sim.imu.linear_acceleration, strict=True):
+        events.append((int(t), 0, ("imu", int(t), w, f)))
+    for fr in sim.star_frames:
+        events.append((int(fr.stamp_ns), 1, ("stars", fr)))
+    n = sim.navsat
+    for row in zip(n.stamp_ns.tolist(), n.latitude_deg.tolist(), n.longitude_deg.tolist(),
+                   n.altitude_m.tolist(), strict=True):
+        events.append((int(row[0]), -1, ("fix", *row)))
+    events.sort(key=lambda e: (e[0], e[1]))
+
+    def feed(cal, part):
+        for _, _, ev in part:
+            if ev[0] == "imu":
+                cal.push_imu(ev[1], ev[2], ev[3])
+            elif ev[0] == "stars":
+                cal.push_stars(ev[1])
+            else:
+                cal.push_fix(*ev[1:])
+
+    return make, events, feed
+
+
+@pytest.mark.parametrize("method,scenario", [("psce", "psce_rotations"),
+                                             ("swaying_base", "swaying")])
+def test_restored_filter_is_the_saved_one_attribute_for_attribute(method, scenario, tmp_path):
+    """The schema holds every part of the filter's state: after load, the filter (error
+    state, sensitivity, IMU buffer, propagation, the declared fields) equals the saved one
+    attribute for attribute, and both continue bit for bit."""
+    from stellar_cal_ros.methods.checkpoint import load_checkpoint, save_checkpoint
+
+    make, events, feed = _half_way(method, scenario, ["time_offset"])
+    first = make()
+    half = int(0.6 * len(events))
+    feed(first, events[:half])
+    assert first.filter.initialized and first.filter.counters.updates > 10
+    ck = tmp_path / "c.ckpt"
+    save_checkpoint(first, ck)
+    second = make()
+    load_checkpoint(second, ck)
+    diff = _filter_differences(first.filter, second.filter)
+    assert not diff, f"state not in the checkpoint schema: {diff}"
+    assert second.pending() == first.pending()
+    for cal in (first, second):
+        feed(cal, events[half:])
+        cal.finish()
+    np.testing.assert_array_equal(second.filter.theta, first.filter.theta)
+    np.testing.assert_array_equal(second.filter.P, first.filter.P)
+    np.testing.assert_array_equal(second.filter.sensitivity.M, first.filter.sensitivity.M)
+    assert second.all_counters() == first.all_counters()
+
+
+def test_unknown_schema_version_is_refused_in_one_line(tmp_path):
+    """Another version (a newer file, or one of the formats before the schema) is one line,
+    and the calibrator it was to be loaded into is untouched (it starts from the prior)."""
+    from stellar_cal_ros.methods.checkpoint import VERSION, load_checkpoint, save_checkpoint
+
+    make, events, feed = _half_way("psce", "psce_rotations", None)
+    cal = make()
+    feed(cal, events[:3000])
+    ck = tmp_path / "c.ckpt"
+    save_checkpoint(cal, ck)
+    arrays, meta = read_checkpoint(ck)
+    assert meta["schema"] == "stellar_cal_checkpoint" and meta["version"] == VERSION
+    assert {"blocks", "covariance", "nominal", "sensitivity", "counters", "imu",
+            "propagation", "fields"} == set(meta["filter"])
+    assert meta["filter"]["blocks"][0] == ["attitude", 3, "rotation", True]
+    for bad, says in (({**meta, "version": VERSION + 1}, f"version {VERSION + 1}"),
+                      ({k: v for k, v in meta.items() if k not in ("schema", "version")}
+                       | {"format": "stellar_cal_checkpoint/4"}, "stellar_cal_checkpoint/4")):
+        write_checkpoint(tmp_path / "other.ckpt", arrays, bad)
+        fresh = make()
+        with pytest.raises(CheckpointError) as err:
+            load_checkpoint(fresh, tmp_path / "other.ckpt")
+        text = str(err.value)
+        assert "\n" not in text and says in text and f"version {VERSION} only" in text
+        assert fresh.filter is None and fresh.counters.imu_received == 0
+    # a file of this version whose contents do not fit it: one line, and a fresh start
+    broken = {**meta, "filter": {**meta["filter"], "blocks": [["attitude", 3, "rotation",
+                                                               True]]}}
+    write_checkpoint(tmp_path / "broken.ckpt", arrays, broken)
+    fresh = make()
+    with pytest.raises(CheckpointError, match="state blocks"):
+        load_checkpoint(fresh, tmp_path / "broken.ckpt")
+    assert fresh.filter is None and fresh.counters.imu_received == 0

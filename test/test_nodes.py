@@ -461,6 +461,18 @@ def test_truncated_checkpoint_starts_from_the_prior(ros_context, excerpt, tmp_pa
     fresh.destroy_node()
 
 
+def test_checkpoint_of_another_version_starts_from_the_prior(ros_context, tmp_path):
+    """A checkpoint of an unknown schema version: one warning line, the run from the prior."""
+    from stellar_cal_ros.io.checkpoint import write_checkpoint
+
+    write_checkpoint(tmp_path / "calibrator.npz", {"x": np.zeros(2)},
+                     {"schema": "stellar_cal_checkpoint", "version": 99})
+    prefix = "/u" + uuid.uuid4().hex[:8]
+    cal = make_calibrator(ros_context, prefix, tmp_path)
+    assert cal.cal.filter is None and cal.cal.counters.imu_received == 0
+    cal.destroy_node()
+
+
 FLOOD_HZ = 400.0  # malformed star messages per second: 200 x the tracker's 2 Hz
 
 

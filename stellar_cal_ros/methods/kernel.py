@@ -191,6 +191,16 @@ class StarFilter:
     #: the method's navigation blocks after θ (e.g. the swaying filter's velocity); their
     #: nominal values start at zero and are set by :meth:`_acquire_navigation`
     navigation_blocks: tuple[Block, ...] = ()
+    #: what a checkpoint keeps of the filter besides its error state (blocks, covariance,
+    #: nominal values, sensitivity), counters, IMU buffer and propagation: checkpoint name →
+    #: attribute (:mod:`~stellar_cal_ros.methods.checkpoint`); a method adds its own
+    checkpoint_fields: dict[str, str] = {
+        "time": "t", "last_stamp": "last_stamp", "imu_index": "_k", "omega": "_omega",
+        "omega_stale": "_omega_stale", "stamp_posix": "_stamp_posix",
+        "stamp_rel": "_stamp_rel", "rejected_in_row": "_rejected_in_row",
+        "gap_pending": "_gap_pending", "last_good": "_good", "prior_attitude": "_R_prior",
+        "mismatch_warned": "_mismatch_warned", "mismatch_bits": "_mismatch_bits",
+        "gyro_watch": "gyro_watch", "data_faults": "data_faults"}
 
     def __init__(self, model: StarModel, t0: float, config: KernelConfig, nominal_dt: float,
                  consider: int = 0) -> None:

@@ -168,6 +168,10 @@ class SwayingFilter(StarFilter):
     """
 
     method = "swaying_base"
+    checkpoint_fields = {**StarFilter.checkpoint_fields,
+                         "last_reference_t": "last_reference_t",
+                         "level_check_deg": "level_check_deg",
+                         "reference_history": "reference_history"}
     navigation_blocks = (Block("velocity", 3, navigation=True, driven_by="accel"),
                          Block("position", 3, navigation=True))
 

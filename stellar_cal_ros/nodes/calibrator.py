@@ -339,7 +339,7 @@ class CalibratorNode(Node):
         try:
             load_checkpoint(self.cal, ck)
         except CheckpointError as exc:
-            self.get_logger().warning(f"cannot resume from {ck}: {exc}; starting from the prior")
+            self.get_logger().warning(f"cannot resume: {exc}; starting from the prior")
             self.cal.reset()
             return
         self.get_logger().info(
