@@ -116,8 +116,9 @@ _COUNTS = re.compile(r"^counts: (.*)$", re.MULTILINE)
 _GATED = re.compile(r"\((\d+) gated\)|(\d+) outliers?", re.IGNORECASE)
 
 
-_WARNING = re.compile(r"^WARNING [\w.]+: (.*)$|UserWarning: (.*)$|^warning: (.*)$",
-                      re.MULTILINE | re.IGNORECASE)
+# a logging warning, a raw Python warning, or the CLI's one-line "stellar-cal CMD: warning: ..."
+_WARNING = re.compile(r"^WARNING [\w.]+: (.*)$|UserWarning: (.*)$"
+                      r"|^(?:stellar-cal [\w-]+: )?warning: (.*)$", re.MULTILINE | re.IGNORECASE)
 _EQPP_SIGMA = re.compile(r"equivalent principal point: .*\+-? ?\(([-+\d.eE]+), ([-+\d.eE]+)\)")
 _USED = re.compile(r"updates=(\d+)|^acf: (\d+) frames", re.MULTILINE)
 
