@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from stellar_cal_ros.cli import main
 from stellar_cal_ros.errors import MessageDecodeError
 from stellar_cal_ros.io.bag import BagReader, BagWriter
+from stellar_cal_ros.io.identity import bag_identity
 from stellar_cal_ros.io.image_msgs import (
     camera_from_info,
     encode_camera_info,
@@ -255,3 +256,23 @@ def test_image_messages_read_alike_from_every_bag_format(tmp_path):
         assert infos == ref_infos
         assert [(s, f) for s, f, _ in imgs] == [(s, f) for s, f, _ in ref_imgs]
         assert all(np.array_equal(a[2], b[2]) for a, b in zip(imgs, ref_imgs, strict=True))
+        assert bag_identity(other) == bag_identity(src)  # provenance: one recording
+
+
+def test_batch_reads_the_images(bags, tmp_path):
+    """batch acf and bundle (each its own loader) on the image bag: every image made into a
+    frame, identified and used; diagnose/discover take the frames made once in the parent
+    process (their re-runs get the centroids, not the images)."""
+    import yaml
+
+    from stellar_cal_ros.methods.frames import reads_star_images
+
+    prior = str(bags["prior"])
+    for method in ("acf", "bundle"):
+        out = tmp_path / f"{method}.yaml"
+        assert main(["batch", str(bags["images"]), "--method", method, "--prior", prior,
+                     "-o", str(out), "-q"]) == 0
+        res = yaml.safe_load(out.read_text())
+        assert res["identification"]["frames"] == 60
+        assert res["identification"]["failed"] == 0
+    assert reads_star_images(bags["images"]) and not reads_star_images(bags["centroids"])

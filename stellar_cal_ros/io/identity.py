@@ -3,7 +3,8 @@
 A result's ``provenance`` block names the bag by path, which says little once files move or
 are converted.  :func:`bag_identity` is a short digest of the bag's *content* — message
 counts and log-time span of the IMU and star topics and the first star frames' stamps,
-catalogue ids and centroids — so the same recording as ``.mcap``, rosbag2 (MCAP or sqlite3)
+catalogue ids and centroids (of a bag of star images: the first images' stamps and
+pixels) — so the same recording as ``.mcap``, rosbag2 (MCAP or sqlite3)
 or ROS 1 ``.bag`` gives the same identity, and two recordings of one scenario (equal
 counts and times, different stars) do not.  :func:`file_digest` is the SHA-256 of a file
 (the residual table a run wrote).  ``report`` and ``compare`` check both before they put
@@ -24,6 +25,7 @@ from stellar_cal_ros.io.reader import DEFAULT_TOPICS, BagReader
 
 #: star frames read into the identity (enough to tell recordings apart, cheap to read)
 IDENTITY_FRAMES = 5
+IMAGE_TOPIC = "/star_tracker/image"
 
 
 def bag_identity(path: str | os.PathLike[str], frames: int = IDENTITY_FRAMES) -> str:
@@ -49,6 +51,14 @@ def bag_identity(path: str | os.PathLike[str], frames: int = IDENTITY_FRAMES) ->
                 h.update(np.int64(f.stamp_ns).tobytes())
                 h.update(np.asarray(f.catalog_id, np.int64).tobytes())
                 h.update(np.round(np.asarray(f.uv, np.float64), 6).tobytes())
+        elif IMAGE_TOPIC in topics:  # a bag of star images: the first images' stamps, pixels
+            h.update(f"image:{topics[IMAGE_TOPIC].message_count};".encode())
+            for k, img in enumerate(reader.iter_images(IMAGE_TOPIC)):
+                if k >= frames:
+                    break
+                h.update(np.int64(img.stamp_ns).tobytes())
+                h.update(f"{img.encoding}:{img.width}x{img.height};".encode())
+                h.update(np.asarray(img.data))
     return h.hexdigest()[:16]
 
 

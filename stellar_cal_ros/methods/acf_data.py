@@ -43,7 +43,7 @@ from stellar_cal_ros.core.strapdown import attitude_increments, propagate_attitu
 from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.errors import BagError, DataError, StellarCalError
 from stellar_cal_ros.io.bag import BagReader, ImuSeries, StarFrame
-from stellar_cal_ros.methods.frames import TOPIC_IMAGE, bag_star_frames, star_input
+from stellar_cal_ros.methods.frames import TOPIC_IMAGE, TOPICS, read_inputs, star_input
 from stellar_cal_ros.methods.star_model import StarModel
 
 log = logging.getLogger(__name__)
@@ -275,7 +275,8 @@ def load_acf_data(
     StellarCalError
         The bag or one of the two required topics is missing, or holds no data.
     """
-    names = {"stars": star_topic, "image": TOPIC_IMAGE}
+    env = {"head_temperature_c": "head", "air_temperature_c": "air", "pressure_pa": "pressure"}
+    names = dict(TOPICS, stars=star_topic, imu=imu_topic, fix=gnss_topic)
     try:
         with BagReader(bag_path) as reader:
             topics = reader.topics()
@@ -288,24 +289,19 @@ def load_acf_data(
                 raise StellarCalError(
                     f"{bag_path}: the ACF method needs IMU samples on {imu_topic}, which the "
                     f"bag does not have (topics: {sorted(topics)})")
-            imu = reader.read_imu(imu_topic)
-            # centroids, or star images made into frames one at a time (frames.py)
-            frames, _ = bag_star_frames(reader, names, str(bag_path), topics)
+            # centroids, or star images made into frames (one pass; methods/frames.py)
+            whole, frames, _ = read_inputs(reader, names, ["imu", "fix", *env.values()],
+                                           str(bag_path), topics)
+            imu = whole["imu"]
             site = None
-            scalars: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-            if gnss_topic in topics:
-                fix = reader.read_navsat(gnss_topic)
-                if len(fix):
-                    site = Site(float(np.median(fix.latitude_deg)),
-                                float(np.median(fix.longitude_deg)),
-                                float(np.median(fix.altitude_m)))
-            for key, topic in (("head_temperature_c", "/star_tracker/temperature"),
-                               ("air_temperature_c", "/environment/temperature"),
-                               ("pressure_pa", "/environment/pressure")):
-                if topic in topics:
-                    s = reader.read_scalar(topic)
-                    if len(s):
-                        scalars[key] = (np.asarray(s.stamp_ns), np.asarray(s.value))
+            fix = whole.get("fix")
+            if fix is not None and len(fix):
+                site = Site(float(np.median(fix.latitude_deg)),
+                            float(np.median(fix.longitude_deg)),
+                            float(np.median(fix.altitude_m)))
+            scalars = {key: (np.asarray(s.stamp_ns), np.asarray(s.value))
+                       for key, role in env.items()
+                       if (s := whole.get(role)) is not None and len(s)}
     except FileNotFoundError as exc:
         raise BagError(f"cannot open bag {bag_path}: {exc}") from None
     if len(imu) < 2:

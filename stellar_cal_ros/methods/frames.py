@@ -260,28 +260,46 @@ class ImageFrames:
         return frame
 
 
-def bag_star_frames(reader: BagReader, names: Mapping[str, str], where: str = "",
-                    available: Mapping[str, TopicInfo] | None = None
-                    ) -> tuple[list[StarFrame], ImageFrames | None]:
-    """A bag's star frames: its centroid messages, or its images made into frames.
+def read_inputs(reader: BagReader, names: Mapping[str, str], roles: list[str],
+                where: str = "", available: Mapping[str, TopicInfo] | None = None
+                ) -> tuple[dict[str, Any], list[StarFrame], ImageFrames | None]:
+    """A bag's star frames and the whole series of ``roles`` (those the bag has).
 
-    Images are read and turned into frames one at a time (:class:`ImageFrames`): memory
-    holds a chunk of images, never the bag's.  Returns the frames and the image converter
-    (None for centroids), whose counts say what was skipped.
+    The frames are its centroid messages, or its images made into frames one at a time
+    (:class:`ImageFrames`; memory holds a chunk of images, never the bag's).  A bag of
+    images is read in one pass: an image chunk also holds IMU, fix and temperature
+    messages, which topic by topic would decompress every image chunk once per topic.
+
+    Returns
+    -------
+    series : dict
+        Role -> :class:`ImuSeries` / :class:`NavSatSeries` / :class:`ScalarSeries`, for
+        the ``roles`` (keys of ``names``) whose topic is in the bag.
+    frames : list of StarFrame
+    images : ImageFrames or None
+        The image converter (None for centroids): its counts say what was skipped.
     """
     available = reader.topics() if available is None else available
-    role = star_input(available, names, where)
-    if role is None:
-        raise BagError(missing_stars_text(where or str(reader.path), names, available))
-    if role == "stars":
-        return reader.read_star_frames(names.get("stars", TOPIC_STARS)), None
-    conv = ImageFrames(where=where or str(reader.path))
-    frames = [f for f in map(conv, reader.iter_images(names.get("image", TOPIC_IMAGE)))
-              if f is not None]
-    if conv.bad:
-        log.warning("%s: %d of %d images skipped (unusable content)", conv.where, conv.bad,
-                    conv.received)
-    return frames, conv
+    where = where or str(reader.path)
+    star_role = star_input(available, names, where)
+    if star_role is None:
+        raise BagError(missing_stars_text(where, names, available))
+    want = [k for k in roles if names.get(k) in available]
+    blocks: dict[str, list[Any]] = {}
+    images = None
+    if star_role == "image":
+        images = ImageFrames(where=where)
+        blocks = _one_pass(reader, {k: names[k] for k in [*want, "image"]}, images)
+        frames = blocks.pop("image")
+        if images.bad:
+            log.warning("%s: %d of %d images skipped (unusable content)", where, images.bad,
+                        images.received)
+    else:
+        frames = reader.read_star_frames(names["stars"])
+    read = {"imu": reader.read_imu, "fix": reader.read_navsat}
+    series = {k: (type(blocks[k][0]).concatenate(blocks[k]) if blocks.get(k)
+                  else read.get(k, reader.read_scalar)(names[k])) for k in want}
+    return series, frames, images
 
 
 def reads_star_images(path: str | Path) -> bool:
@@ -559,20 +577,8 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
         if use_imu and names["imu"] not in available:
             raise BagError(f"{path}: required topic {names['imu']} is missing "
                            f"(topics: {', '.join(sorted(available)) or 'none'})")
-        want = [k for k in ("imu", "fix", *ENV_KEYS) if names[k] in available
-                and (k != "imu" or use_imu)]
-        if star_input(available, names, str(path)) == "image":
-            # one pass: an image chunk also holds IMU, fix and temperature messages, so
-            # reading topic by topic would decompress every image chunk once per topic
-            images = ImageFrames(where=str(path))
-            blocks = _one_pass(reader, {k: names[k] for k in [*want, "image"]}, images)
-            frames = blocks.pop("image")
-        else:
-            blocks, images = {}, None
-            frames = reader.read_star_frames(names["stars"])
-        read = {"imu": reader.read_imu, "fix": reader.read_navsat}
-        whole = {k: (type(blocks[k][0]).concatenate(blocks[k]) if blocks.get(k)
-                     else read.get(k, reader.read_scalar)(names[k])) for k in want}
+        roles = ["imu", "fix", *ENV_KEYS] if use_imu else ["fix", *ENV_KEYS]
+        whole, frames, images = read_inputs(reader, names, roles, str(path), available)
         imu = whole.get("imu")
         site = None
         if "fix" in whole:
@@ -582,9 +588,6 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
                          fix.status)
             site = est.site
         scalars = {key: whole.get(key) for key in ENV_KEYS}
-    if images is not None and images.bad:
-        log.warning("%s: %d of %d images skipped (unusable content)", path, images.bad,
-                    images.received)
     if imu is None:
         if not frames:
             raise BagError(f"{path}: {names['stars']} holds no star frames")
