@@ -431,9 +431,9 @@ class Calibrator:
         as ``dropped_bad_image`` (counted ``images_bad``).
         """
         frame = self.images(image)
-        self.counters.images_received = self.images.received
-        self.counters.images_bad = self.images.bad
+        self.counters.images_received += 1
         if frame is None:
+            self.counters.images_bad += 1
             return [FrameOutcome(int(image.stamp_ns), str(image.frame_id), "dropped_bad_image")]
         return self.push_stars(frame)
 
