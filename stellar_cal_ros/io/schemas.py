@@ -12,6 +12,8 @@ from collections.abc import Sequence
 __all__ = [
     "CAMERA_INFO",
     "CAMERA_INFO_SCHEMA",
+    "CALIBRATION_VIEW",
+    "CALIBRATION_VIEW_SCHEMA",
     "FLUID_PRESSURE",
     "FLUID_PRESSURE_SCHEMA",
     "IMAGE",
@@ -109,6 +111,25 @@ _ROI_DEF = (
     "uint32 width\n"
     "bool do_rectify\n"
 )
+_PARAMETER_ESTIMATE_DEF = (
+    "string name\n"
+    "string unit\n"
+    "float64 value\n"
+    "float64 sigma\n"
+    "float64 lo\n"
+    "float64 hi\n"
+)
+_CALIBRATION_VIEW_DEF = (
+    "std_msgs/Header header\n"
+    "ParameterEstimate[] parameters\n"
+    "uint32 updates\n"
+    "float64 nis_frame\n"
+    "float64 nis_moving\n"
+    "float64 nis_band_lo\n"
+    "float64 nis_band_hi\n"
+    "float64 nis_window\n"
+    "string verdict\n"
+)
 
 
 def _concat_definition(main: str, deps: Sequence[tuple[str, str]]) -> str:
@@ -143,6 +164,11 @@ CAMERA_INFO_SCHEMA = _concat_definition(
     _CAMERA_INFO_DEF, _HDR_DEPS + [("sensor_msgs/RegionOfInterest", _ROI_DEF)]
 )
 """ros2msg schema text of ``sensor_msgs/msg/CameraInfo``."""
+CALIBRATION_VIEW_SCHEMA = _concat_definition(
+    _CALIBRATION_VIEW_DEF,
+    _HDR_DEPS + [("stellar_cal_msgs/ParameterEstimate", _PARAMETER_ESTIMATE_DEF)],
+)
+"""ros2msg schema text of ``stellar_cal_msgs/msg/CalibrationView`` (the live view)."""
 
 IMU = "sensor_msgs/msg/Imu"
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
@@ -151,6 +177,7 @@ FLUID_PRESSURE = "sensor_msgs/msg/FluidPressure"
 STAR_ARRAY = "stellar_cal_msgs/msg/StarCentroidArray"
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+CALIBRATION_VIEW = "stellar_cal_msgs/msg/CalibrationView"
 
 SCHEMA_TEXTS: dict[str, str] = {
     IMU: IMU_SCHEMA,
