@@ -29,7 +29,11 @@ Published (node-relative names, i.e. ``/calibrator/...`` by default):
   acknowledgement the ``player`` uses for flow control);
 * ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) at ``diagnostics_rate_hz``;
 * ``~/data_clock`` (rosgraph_msgs/Clock): the newest IMU stamp consumed, every
-  ``progress_period_s`` of IMU time (flow control of the ``player``; monitoring).
+  ``progress_period_s`` of IMU time (flow control of the ``player``; monitoring);
+* ``~/view`` (stellar_cal_msgs/CalibrationView) and ``~/residual_field``
+  (sensor_msgs/CompressedImage): the live view (:mod:`~stellar_cal_ros.nodes.live_view`,
+  the layout ``config/foxglove_layout.json``); ``foxglove_port`` also serves it over a
+  Foxglove WebSocket.
 
 Services (std_srvs/Trigger): ``~/save_calibration`` (write ``output_file`` now),
 ``~/checkpoint`` (write ``checkpoint_file`` now), ``~/reset`` (restart from the prior).
@@ -80,6 +84,7 @@ from stellar_cal_ros.methods import registry as methods
 from stellar_cal_ros.methods.checkpoint import load_checkpoint, save_checkpoint
 from stellar_cal_ros.methods.driver import Calibrator, DriverConfig, FrameOutcome
 from stellar_cal_ros.methods.results import NullSink, consistency, mismatch_text
+from stellar_cal_ros.nodes import live_view
 from stellar_cal_ros.nodes.health import (
     RosoutBridge,
     node_provenance,
@@ -138,6 +143,7 @@ PARAMETERS: dict[str, tuple[Any, str, Any]] = {
                              (0.0, 1.0)),
     "converge_nis_ratio": (2.0, "converged: mean NIS/dof over the window below this",
                            (0.0, 1e6)),
+    **live_view.PARAMETERS,
 }
 
 INPUTS = {  # key: (default topic, type)
@@ -183,6 +189,8 @@ class CalibratorNode(Node):
         check_parameter_names(self)  # a typo (outptu_file) is an error, not ignored
         p = self._read_parameters()  # raises ValueError on invalid values
         self.p = p
+        # first: a Foxglove port in use stops the node before it does anything
+        self.view = live_view.LiveView(self, p) if p["view_rate_hz"] > 0 else None
         self._bridge = RosoutBridge(self.get_logger())
         self._bridge.install()  # the library's warnings (model mismatch ...) go to /rosout
         prior = load_calibration(p["prior_file"])
@@ -268,6 +276,9 @@ class CalibratorNode(Node):
         self.create_timer(1.0 / p["diagnostics_rate_hz"], self._publish_diagnostics)
         if p["checkpoint_file"] and p["checkpoint_period_s"] > 0:
             self.create_timer(p["checkpoint_period_s"], self._periodic_checkpoint)
+        if self.view is not None:
+            self.view.attach(self.cal, frames, (prior.camera.width, prior.camera.height),
+                             self.pub_diagnostics.topic_name)
         self._publish_estimate()  # the prior's camera_info and installation, latched
         self.get_logger().info(
             f"calibrator ready: method={p['method']} effects={p['effects'] or '[]'} "
@@ -319,6 +330,7 @@ class CalibratorNode(Node):
         if p["method"] not in methods.names("filter"):
             errors.append(f"method={p['method']!r} is not one of "
                           f"{tuple(methods.names('filter'))}")
+        errors += live_view.check_parameters(p)
         if not p["prior_file"]:
             errors.append("prior_file is required")
         elif not Path(p["prior_file"]).is_file():
@@ -392,6 +404,8 @@ class CalibratorNode(Node):
             else:
                 self.get_logger().warning("output_file is not set: the calibration was not "
                                           "written")
+            if self.view is not None:
+                self.view.close()
             self._bridge.remove()
 
     # ------------------------------------------------------------------ services
@@ -416,6 +430,8 @@ class CalibratorNode(Node):
             self.cal.reset()
             self._finished = False
             self._updates_published = -1
+            if self.view is not None:
+                self.view.reset()
         response.success, response.message = True, "filter reset to the prior"
         self.get_logger().warning("filter reset to the prior (service call)")
         return response
@@ -492,11 +508,13 @@ class CalibratorNode(Node):
         before the time origin is known, an IMU outage ending) is counted separately.
         """
         n_updated = 0
-        publish = self.p["publish_residuals"]
+        publish, view = self.p["publish_residuals"], self.view
         for o in outcomes:
             if publish:
                 self.pub_residuals.publish(self._residual_bytes(o) if self._raw_residuals
                                            else self._residual_msg(o))
+            if view is not None:
+                view.add(o)
             n_updated += o.status == "updated"
         if n_updated == 1:
             self.latency_s.append(time.perf_counter() - t_in)
@@ -681,6 +699,8 @@ class CalibratorNode(Node):
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [st]
         self.pub_diagnostics.publish(arr)
+        if self.view is not None:
+            self.view.diagnostics(arr)
 
     # ------------------------------------------------------------------ warnings
     def _warn(self, key: str, text: str) -> None:
@@ -716,7 +736,7 @@ def usage() -> str:
         lines.append(f"  {name:22s} {text} (default {shown}{rng})")
     lines += ["", "subscribes: " + ", ".join(t for t, _ in INPUTS.values()),
               "publishes:  ~/estimate, ~/camera_info (latched), ~/installation, /tf_static, "
-              "~/residuals, ~/data_clock, /diagnostics",
+              "~/residuals, ~/data_clock, /diagnostics, ~/view, ~/residual_field",
               "services:   ~/save_calibration, ~/checkpoint, ~/reset (std_srvs/Trigger)"]
     return "\n".join(lines)
 

@@ -52,7 +52,11 @@ def run_node(name: str, factory: Callable[[], Any], usage: Callable[[], str],
     if help_requested(args):
         print(usage())
         return 0
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # noqa: BLE001 - RCLError: malformed --ros-args (-p name:=)
+        print(f"{name}: {str(exc).split(', at ')[0]}", file=sys.stderr)
+        return 2
     node = None
     code = 0
     try:
