@@ -23,12 +23,18 @@ SingleThreadedExecutor, as ``rclpy.spin``; ``events``: ``rclpy.experimental.Even
 ``SCHED_FIFO`` at priority N, as ``chrt -f N ros2 run stellar_cal_ros calibrator`` would.
 ``--load CMD`` runs CMD in a loop in another process while playing (e.g. a test suite:
 ``--load "python -m pytest -q test/test_camera.py test/test_kernel.py"``), to measure the
-latency on a busy machine.  ``ROS_DOMAIN_ID`` is kept when set.
+latency on a busy machine.  ``ROS_DOMAIN_ID`` is kept when set.  ``--param NAME=VALUE``
+sets a calibrator parameter (e.g. ``view_rate_hz=0`` turns the live view off,
+``foxglove_port=8765`` serves it); with ``--watch`` a Foxglove WebSocket client in another
+process subscribes to every channel the node serves.  The live view's timer
+(``~/view``, ``~/residual_field``) is timed too: ``view_tick_ms`` (thread CPU per tick that
+published something) and ``field_ms`` (ticks that drew a residual field).
 
 Usage::
 
     python benchmarks/node_latency.py [--duration 60] [--window 0.05] [--bag BAG]
         [--executor single|events] [--rt-priority N] [--load CMD] [--json out.json]
+        [--param NAME=VALUE ...] [--watch]
 """
 
 from __future__ import annotations
@@ -87,6 +93,21 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
     else:
         ex = SingleThreadedExecutor()
     ex.add_node(node)
+    ticks: list[tuple[float, bool]] = []  # the live view's timer: thread CPU ms, drew a field
+    view = getattr(node, "view", None)
+    if view is not None:
+        tick = view.tick
+
+        def timed_tick() -> None:
+            before = dict(view.counts)
+            c = time.thread_time()
+            tick()
+            if view.counts != before:
+                ticks.append(((time.thread_time() - c) * 1e3,
+                              view.counts["fields"] != before["fields"]))
+
+        view.tick = timed_tick
+        view.timer.callback = timed_tick
     wall0, cpu0 = time.perf_counter(), time.process_time()
     while not os.path.exists(stop_file):
         ex.spin_once(timeout_sec=0.05)
@@ -95,11 +116,59 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
            "latency_cpu_ms": [x * 1e3 for x in getattr(node, "latency_cpu_s", ())],
            "wall_s": wall, "cpu_s": cpu,
            "updates": node.cal.filter_counters()["updates"], "received": node.received,
-           "backlog_updates": node.backlog_updates,
+           "backlog_updates": node.backlog_updates, "view_ticks": ticks,
+           "view_counts": dict(view.counts) if view is not None else None,
            "counters": {k: v for k, v in vars(node.cal.counters).items()}}
     Path(result_file).write_text(json.dumps(res))
     node.destroy_node()
     rclpy.try_shutdown()
+
+
+def watch_foxglove(port: int, stop_file: str, result_file: str) -> None:
+    """Child process: a Foxglove WebSocket client subscribed to every channel (tornado)."""
+    import asyncio
+
+    from tornado.httpclient import HTTPRequest
+    from tornado.websocket import websocket_connect
+
+    async def run() -> dict[str, int]:
+        counts = {"channels": 0, "messages": 0, "bytes": 0}
+        for _ in range(150):
+            try:
+                ws = await websocket_connect(HTTPRequest(f"ws://127.0.0.1:{port}", headers={
+                    "Sec-WebSocket-Protocol": "foxglove.sdk.v1"}), subprotocols=["foxglove.sdk.v1"])
+                break
+            except OSError:
+                await asyncio.sleep(0.2)
+        else:
+            return counts
+        while not os.path.exists(stop_file):
+            try:
+                msg = await asyncio.wait_for(ws.read_message(), 0.5)
+            except TimeoutError:
+                continue
+            if msg is None:
+                break
+            if isinstance(msg, str) and json.loads(msg)["op"] == "advertise":
+                chans = json.loads(msg)["channels"]
+                counts["channels"] += len(chans)
+                ws.write_message(json.dumps({"op": "subscribe", "subscriptions": [
+                    {"id": c["id"], "channelId": c["id"]} for c in chans]}))
+            elif isinstance(msg, bytes):
+                counts["messages"] += 1
+                counts["bytes"] += len(msg)
+        ws.close()
+        return counts
+
+    Path(result_file).write_text(json.dumps(asyncio.run(run())))
+
+
+def _param(text: str) -> tuple[str, object]:
+    name, _, value = text.partition("=")
+    try:
+        return name, json.loads(value)
+    except json.JSONDecodeError:
+        return name, value
 
 
 def default_bag() -> Path:
@@ -155,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rt-priority", type=int, default=0,
                     help="run the calibrator process SCHED_FIFO at this priority (0: no)")
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--param", type=_param, action="append", default=[],
+                    metavar="NAME=VALUE", help="a calibrator parameter (repeatable)")
+    ap.add_argument("--watch", action="store_true",
+                    help="with --param foxglove_port=N: a Foxglove client watches every channel")
     a = ap.parse_args(argv)
     global BAG
     BAG = a.bag or default_bag()
@@ -167,12 +240,18 @@ def main(argv: list[str] | None = None) -> int:
     prefix = "/bench" + uuid.uuid4().hex[:6]
     tmp = Path(tempfile.mkdtemp(prefix="node_latency_"))
     params = {"prior_file": str(prior), "reorder_window_s": a.window,
-              "t0_imu_samples": 1000, "estimate_rate_hz": 1.0, "diagnostics_rate_hz": 1.0}
+              "t0_imu_samples": 1000, "estimate_rate_hz": 1.0, "diagnostics_rate_hz": 1.0,
+              **dict(a.param)}
     ctx = mp.get_context("spawn")
     child = ctx.Process(target=run_calibrator, args=(prefix, params, str(tmp / "res.json"),
                                                       str(tmp / "stop"), a.executor,
                                                       a.rt_priority))
     child.start()
+    watcher = None
+    if a.watch and params.get("foxglove_port"):
+        watcher = ctx.Process(target=watch_foxglove, args=(
+            int(params["foxglove_port"]), str(tmp / "stop_watch"), str(tmp / "watch.json")))
+        watcher.start()
     loader = None
     if a.load:
         loader = ctx.Process(target=load_loop, args=(a.load, str(tmp / "stop_load")))
@@ -241,6 +320,9 @@ def main(argv: list[str] | None = None) -> int:
     wall = time.perf_counter() - wall0
     cpu1 = _cpu_times()
     (tmp / "stop_load").touch()
+    (tmp / "stop_watch").touch()
+    if watcher is not None:
+        watcher.join(30)
     (tmp / "stop").touch()
     if loader is not None:
         loader.join(300)
@@ -285,7 +367,19 @@ def main(argv: list[str] | None = None) -> int:
         "bag": BAG.name,
         "received": res["received"],
         "wall_s": wall,
+        "params": dict(a.param),
     }
+    ticks = res.get("view_ticks") or []
+    if res.get("view_counts") is not None:
+        views = [ms for ms, field in ticks if not field]
+        fields = [ms for ms, field in ticks if field]
+        out["view"] = {**res["view_counts"],
+                       "view_tick_ms": {"p50": float(np.median(views)),
+                                        "max": float(max(views))} if views else None,
+                       "field_ms": {"p50": float(np.median(fields)),
+                                    "max": float(max(fields))} if fields else None}
+    if watcher is not None and (tmp / "watch.json").exists():
+        out["foxglove_client"] = json.loads((tmp / "watch.json").read_text())
     print(json.dumps(out, indent=1))
     ok = out["compute_latency_ms"]["p99"] <= TARGET_P99_MS
     print(f"compute latency p50 {out['compute_latency_ms']['p50']:.2f} ms, "
@@ -304,6 +398,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"calibrator CPU {out['calibrator_cpu_percent_of_one_core']:.1f} % of one core; "
           f"per-core load " + ", ".join(f"{x:.0f} %" for x in per_core)
           + f"; load average {os.getloadavg()[0]:.2f}")
+    v = out.get("view")
+    if v:
+        def fmt(d: dict | None) -> str:
+            return f"p50 {d['p50']:.2f} / max {d['max']:.2f} ms" if d else "-"
+
+        print(f"live view: {v['views']} ~/view ({fmt(v['view_tick_ms'])} thread CPU a tick), "
+              f"{v['fields']} ~/residual_field ({fmt(v['field_ms'])}), "
+              f"{v['fields_skipped']} skipped"
+              + (f"; Foxglove client got {out['foxglove_client']['messages']} messages"
+                 if "foxglove_client" in out else ""))
     if a.json:
         Path(a.json).write_text(json.dumps(out, indent=1))
     return 0
