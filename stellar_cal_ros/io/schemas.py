@@ -10,10 +10,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 __all__ = [
-    "CAMERA_INFO",
-    "CAMERA_INFO_SCHEMA",
     "CALIBRATION_VIEW",
     "CALIBRATION_VIEW_SCHEMA",
+    "CAMERA_INFO",
+    "CAMERA_INFO_SCHEMA",
     "FLUID_PRESSURE",
     "FLUID_PRESSURE_SCHEMA",
     "IMAGE",
