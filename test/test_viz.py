@@ -323,6 +323,20 @@ def test_view_parameters_are_checked(ros_context, tmp_path):
         with pytest.raises(ValueError, match=match) as err:
             _node(ros_context, tmp_path, **bad)
         assert "\n" not in str(err.value)
+    # a whole number for a float parameter is that float (rclpy alone refuses it), in every
+    # node: -p field_period_s:=10, the player's documented -p rate:=0
+    from rclpy.parameter import Parameter
+
+    from stellar_cal_ros.nodes.player import PlayerNode
+
+    node = _node(ros_context, tmp_path, field_period_s=10)
+    assert node.p["field_period_s"] == 10.0 and node.view.period == 10.0
+    node.destroy_node()
+    player = PlayerNode("player_" + uuid.uuid4().hex[:8], context=ros_context,
+                        use_global_arguments=False, parameter_overrides=[
+                            Parameter("bag", value=str(_bag()[0])), Parameter("rate", value=0)])
+    assert player.p["rate"] == 0.0 and isinstance(player.p["rate"], float)
+    player.destroy_node()
     with socket.socket() as s:  # a port in use
         s.bind(("127.0.0.1", 0))
         s.listen()

@@ -59,8 +59,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import TransformStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import (
-    InvalidParameterTypeException,
-    InvalidParameterValueException,
     ParameterUninitializedException,
 )
 from rclpy.node import Node
@@ -92,7 +90,7 @@ from stellar_cal_ros.nodes.health import (
     verdict_values,
 )
 from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
-from stellar_cal_ros.nodes.runner import check_parameter_names
+from stellar_cal_ros.nodes.runner import check_parameter_names, declare
 
 try:  # /tf_static: tf2_msgs comes with every ROS 2 install; on the PyPI wheels (which have
     # none) scripts/setup.sh builds it from vendor/tf2_msgs
@@ -311,10 +309,7 @@ class CalibratorNode(Node):
                 desc.additional_constraints = "one of: " + ", ".join(limits)
             elif name == "method":
                 desc.additional_constraints = "one of: " + ", ".join(methods.names("filter"))
-            try:
-                self.declare_parameter(name, default, desc)
-            except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
-                raise ValueError(f"invalid parameters: {exc}") from exc
+            declare(self, name, default, desc)  # (-p rate:=1 for a float; one-line errors)
 
     def _read_parameters(self) -> dict[str, Any]:
         p = {name: _value(self, name) for name in PARAMETERS}

@@ -45,7 +45,7 @@ from rosgraph_msgs.msg import Clock
 
 from stellar_cal_ros.errors import BagError, StellarCalError
 from stellar_cal_ros.io.schemas import normalize_type
-from stellar_cal_ros.nodes.runner import check_parameter_names
+from stellar_cal_ros.nodes.runner import check_parameter_names, declare
 
 IMU_TYPE = "sensor_msgs/msg/Imu"
 
@@ -135,8 +135,7 @@ class PlayerNode(Node):
     def __init__(self, node_name: str = "player", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         for name, (default, text) in PARAMETERS.items():
-            self.declare_parameter(name, default,
-                                   ParameterDescriptor(description=text, read_only=True))
+            declare(self, name, default, ParameterDescriptor(description=text, read_only=True))
         check_parameter_names(self)
         self.p = {name: _value(self, name) for name in PARAMETERS}
         self.p["topics"] = [t for t in (self.p["topics"] or []) if t]

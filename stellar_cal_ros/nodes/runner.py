@@ -39,6 +39,27 @@ def check_parameter_names(node: Any) -> None:
                          f"`{node.get_name()} --help` lists them")
 
 
+def declare(node: Any, name: str, default: Any, descriptor: Any) -> None:
+    """``node.declare_parameter`` with the errors a user makes turned into one line.
+
+    A whole number given for a float parameter (``-p rate:=0``, ``-p field_period_s:=10``)
+    is taken as that float (rclpy alone refuses an INTEGER for a DOUBLE); a value of the
+    wrong type or out of range raises ValueError naming the parameter.
+    """
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+    from rclpy.parameter import Parameter
+
+    given = getattr(node, "_parameter_overrides", {}).get(name)
+    if isinstance(default, float) and given is not None and \
+            given.type_ == Parameter.Type.INTEGER:
+        node._parameter_overrides[name] = Parameter(name, Parameter.Type.DOUBLE,
+                                                    float(given.value))
+    try:
+        node.declare_parameter(name, default, descriptor)
+    except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
+        raise ValueError(f"invalid parameters: {exc}") from exc
+
+
 def run_node(name: str, factory: Callable[[], Any], usage: Callable[[], str],
              argv: list[str] | None = None, executor: Callable[[], Any] | None = None,
              finish: Callable[[Any], None] | None = None) -> int:

@@ -33,6 +33,7 @@ from stellar_cal_msgs.msg import StarCentroid, StarCentroidArray
 from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.image_msgs import camera_from_info, image_pixels
+from stellar_cal_ros.nodes.runner import check_parameter_names, declare
 from stellar_cal_ros.sky.extract import ExtractConfig, centroid_frame
 from stellar_cal_ros.sky.identify import Identifier, IdentifyConfig
 
@@ -62,10 +63,11 @@ class StarExtractorNode(Node):
 
     def __init__(self, name: str = "star_extractor", **kw) -> None:
         super().__init__(name, **kw)
-        for key, (default, text) in PARAMETERS.items():
-            from rcl_interfaces.msg import ParameterDescriptor
+        from rcl_interfaces.msg import ParameterDescriptor
 
-            self.declare_parameter(key, default, ParameterDescriptor(description=text))
+        for key, (default, text) in PARAMETERS.items():
+            declare(self, key, default, ParameterDescriptor(description=text))
+        check_parameter_names(self)  # a typo is an error, as in the other nodes
         p = {k: self.get_parameter(k).value for k in PARAMETERS}
         self.p = p
         self.extract = ExtractConfig(sigma_threshold=float(p["sigma_threshold"]),
