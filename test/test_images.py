@@ -30,39 +30,81 @@ def _match(found_uv, true_uv, radius=2.0):
     return j, d[np.arange(len(j)), j] < radius
 
 
-def test_centroid_bias_and_sigma_against_snr():
-    """Errors against the rendered truth: no bias, and the stated σ is the real scatter
-    (normalized error RMS near 1) from faint to saturated stars; hot pixels are not stars."""
-    rng = np.random.default_rng(5)
-    sensor = SensorConfig(hot_pixel_fraction=1e-4)
+#: the detectors of the σ check: the simulator's 12-bit and 8-bit (``--images mono8``: a
+#: background below one ADU, quantization part of the noise) sensors, a 16-bit one whose
+#: full well (plus read noise) is reached below the ADC's range, and narrow / wide PSFs
+SENSORS = {
+    "12-bit": (SensorConfig(hot_pixel_fraction=1e-4), (2.0, 11.0)),
+    "8-bit": (SensorConfig(bits=8, gain_e_per_adu=60.0, bias_adu=10.0, hot_pixel_adu=50.0,
+                           hot_pixel_fraction=1e-4), (2.0, 11.0)),
+    "16-bit": (SensorConfig(bits=16, full_well_e=60000.0, gain_e_per_adu=1.0), (0.0, 11.0)),
+    "16-bit PSF 0.7": (SensorConfig(bits=16, full_well_e=60000.0, gain_e_per_adu=1.0,
+                                    psf_sigma_px=0.7), (0.0, 11.0)),
+    "16-bit PSF 1.6": (SensorConfig(bits=16, full_well_e=60000.0, gain_e_per_adu=1.0,
+                                    psf_sigma_px=1.6), (0.0, 11.0)),
+}
+
+
+def _grid_errors(sensor, mags, rng, frames=3, size=512, step=24):
+    """Stars on a grid (one every ``step`` px, random sub-pixel places and magnitudes in
+    ``mags``) rendered and extracted: per matched star its error, covariance, SNR and
+    saturation flag; and the count of false stars: detections on a hot pixel, or away from
+    every star with SNR 5 or more (a background peak near the 5 σ detection threshold may
+    come out at SNR 3-5: about one in 3 frames here)."""
+    from stellar_cal_ros.sky.extract import ExtractConfig
+
     err, cov, snr, sat, false = [], [], [], [], 0
-    for _ in range(5):
-        uv = rng.uniform(15, [W - 15, H - 15], (60, 2))
-        r = render_image(uv, rng.uniform(1.0, 8.5, 60), W, H, sensor, rng)
-        c = extract_stars(r.image)
+    axis = np.arange(step, size - step + 1, step, dtype=float)
+    for _ in range(frames):
+        uv = np.stack(np.meshgrid(axis, axis), axis=-1).reshape(-1, 2)
+        uv += rng.uniform(-0.5, 0.5, uv.shape)
+        r = render_image(uv, rng.uniform(*mags, len(uv)), size, size, sensor, rng)
+        c = extract_stars(r.image, ExtractConfig(max_stars=len(uv) + 50))
         j, near = _match(c.uv, r.uv)
-        false += int((~near).sum())
+        hot = np.zeros(len(c.uv), bool)
+        if len(r.hot_pixels):
+            hot = np.min(np.linalg.norm(c.uv[:, None] - r.hot_pixels[None], axis=2),
+                         axis=1) < 1.5
+        false += int((~near & (hot | (c.snr >= 5.0))).sum())
         err.append(c.uv[near] - r.uv[j[near]])
         cov.append(c.covariance[near])
         snr.append(c.snr[near])
         sat.append(c.saturated[near])
-    e, cv, s, sat = np.vstack(err), np.vstack(cov), np.concatenate(snr), np.concatenate(sat)
+    return np.vstack(err), np.vstack(cov), np.concatenate(snr), np.concatenate(sat), false
+
+
+@pytest.mark.parametrize("name", list(SENSORS))
+def test_centroid_bias_and_sigma_against_snr(name):
+    """Errors against the rendered truth: no bias, and the stated σ is the real scatter
+    from SNR 5 to saturated stars: the normalized error's RMS is 1 within 3 of its sampling
+    σ, in each SNR band and over all stars; hot pixels are not stars.  (Before the noise
+    model counted the shot noise the fit absorbs, this RMS was 1.10-1.14 over all stars on
+    the 8/12/16-bit sensors and up to 1.35 with the narrow PSF.)"""
+    sensor, mags = SENSORS[name]
+    e, cv, s, sat, false = _grid_errors(sensor, mags, np.random.default_rng(5))
     z = e / np.sqrt(np.stack([cv[:, 0, 0], cv[:, 1, 1]], axis=1))
-    assert false == 0 and len(e) >= 200
-    for lo, hi in ((5, 25), (25, 100), (100, np.inf)):
+    assert false == 0 and len(e) >= 800
+
+    def check(m, label):
+        n = int(m.sum())
+        zr = float(np.sqrt(np.mean(z[m] ** 2)))
+        # √(χ²₂ₙ/2n) of n stars (two axes each): its σ is 1/√(4n)
+        tol = 3.0 / np.sqrt(4 * n)
+        assert abs(zr - 1.0) < tol, (label, n, round(zr, 3), round(tol, 3))
+        bias = np.abs(e[m].mean(axis=0))
+        assert np.all(bias < 3.0 * np.sqrt(np.mean(cv[m][:, [0, 1], [0, 1]], axis=0) / n)), \
+            (label, bias)
+
+    check(np.ones(len(z), bool), "all")
+    for lo, hi in ((5, 15), (15, 50), (50, np.inf)):
         m = (s >= lo) & (s < hi) & ~sat
-        assert m.sum() >= 25, (lo, m.sum())
-        zr = np.sqrt(np.mean(z[m] ** 2))
-        # √(χ²₂ₙ/2n) of n stars: ±3 of its σ ≈ 1/√(2·2n) around 1 (and a 15 % model margin)
-        tol = 3.0 / np.sqrt(4 * m.sum()) + 0.15
-        assert abs(zr - 1.0) < tol, (lo, hi, zr, tol)
-        assert np.all(np.abs(e[m].mean(axis=0)) < 3 * np.sqrt(np.mean(cv[m][:, 0, 0]) / m.sum())
-                      + 0.003)
-    # saturated stars are centred on their wings: far better than 0.05 px, honest σ
-    assert sat.sum() >= 20
-    bright = sat & (s > 50)  # (a faint star beside a saturated one also counts as saturated)
-    assert np.sqrt(np.mean(e[bright] ** 2)) < 0.02
-    assert 0.6 < np.sqrt(np.mean(z[sat] ** 2)) < 1.6
+        assert m.sum() >= 60, (lo, m.sum())
+        check(m, (lo, hi))
+    if name != "16-bit PSF 1.6":  # its brightest stars stay below the full well
+        assert sat.sum() >= 40
+        check(sat, "saturated")
+        # saturated stars are centred on their wings: far better than 0.05 px
+        assert np.sqrt(np.mean(e[sat & (s > 50)] ** 2)) < 0.01
 
 
 def _sky_frame(rng, R_i_st, sensor, mag_limit=7.0):
