@@ -66,6 +66,12 @@ def test_image_bag_replays_to_the_centroid_bags_calibration(bags):
     assert c["identify_failed"] == 0 and c["identify_lost_in_space"] == 1
     assert c["identify_stars_identified"] >= 0.8 * c["identify_stars"]
     assert b.calibration.extra["identification"]["frames"] == 60
+    # the extractor's σ is the centroids' true scatter, so the clean image bag is
+    # "consistent" (NIS/dof inside its χ² interval; 1.22 "model mismatch" when the σ were
+    # 10 % too small)
+    cons = b.calibration.extra["consistency"]
+    lo, hi = cons["interval"]
+    assert cons["verdict"] == "consistent" and lo < cons["nis_per_dof"] < hi, cons
     names, cov_a = a.covariance
     sa, sb = np.sqrt(np.diag(cov_a)), np.sqrt(np.diag(b.covariance[1]))
     xa, xb = a.filter.theta[:len(sa)], b.filter.theta[:len(sa)]

@@ -40,6 +40,9 @@ def test_image_stream_calibrates_like_the_centroid_bag():
     c = b.counters
     assert c["identify_failed"] == 0 and c["identify_lost_in_space"] == 1
     assert c["identify_stars_identified"] >= 0.8 * c["identify_stars"]
+    cons = b.calibration.extra["consistency"]  # honest extractor σ: no false "mismatch"
+    lo, hi = cons["interval"]
+    assert cons["verdict"] == "consistent" and lo < cons["nis_per_dof"] < hi, cons
     names, cov_a = a.covariance
     sa = np.sqrt(np.diag(cov_a))
     sb = np.sqrt(np.diag(b.covariance[1]))
