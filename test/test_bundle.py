@@ -259,7 +259,7 @@ def test_frame_of_another_focus_is_named(world):
 def test_bundle_from_rendered_images(world, bench):
     """Frames rendered as 12-bit images and centroided by the project's extractor: the
     camera within 4 σ of the truth, and the extractor's σ honest to a factor 1.5 (the fit's
-    variance factor; benchmarks/bundle_bound.py --images: 1.23 over 40 runs)."""
+    variance factor; benchmarks/bundle_bound.py --images: 1.006 over 40 runs)."""
     model, theta, sp = world["model"], world["theta"], world["sigma_prior"]
     cam = world["sim"].prior.camera
     frames = bench.rendered(world["frames"][:8], np.random.default_rng(3),
