@@ -182,8 +182,9 @@ def test_two_hour_scale_is_fast():
     """Vectorized: 30 min of psce_rotations (180 000 IMU samples) well under 10 s."""
     import time
 
-    t = time.perf_counter()
+    # CPU time of this process: on a shared CI machine the wall clock measures the neighbours
+    t = time.process_time()
     r = simulate(get_scenario("psce_rotations"), duration=1800.0, seed=1)
-    elapsed = time.perf_counter() - t
+    elapsed = time.process_time() - t
     assert r.imu.stamp_ns.size == 180_000
     assert elapsed < 10.0

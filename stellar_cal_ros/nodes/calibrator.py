@@ -74,7 +74,6 @@ from stellar_cal_msgs.msg import (
     StarResidualArray,
 )
 
-from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.errors import CheckpointError
 from stellar_cal_ros.io.calibration import load_calibration, prior_warnings, save_calibration
@@ -89,7 +88,13 @@ from stellar_cal_ros.nodes.health import (
     verdict_status,
     verdict_values,
 )
-from stellar_cal_ros.nodes.residual_cdr import encode_residual_array, encoder_matches_rmw
+from stellar_cal_ros.nodes.residual_cdr import (
+    encode_residual_array,
+    encoder_matches_rmw,
+    star_decoder_matches_rmw,
+    star_frame_from_cdr,
+    star_frame_from_message,
+)
 from stellar_cal_ros.nodes.runner import check_parameter_names, declare
 
 try:  # /tf_static: tf2_msgs comes with every ROS 2 install; on the PyPI wheels (which have
@@ -236,8 +241,15 @@ class CalibratorNode(Node):
         handlers = {"imu": self._on_imu, "stars": self._on_stars, "fix": self._on_fix,
                     "head": self._scalar_handler("head"), "air": self._scalar_handler("air"),
                     "pressure": self._scalar_handler("pressure")}
-        self._input_subs = [self.create_subscription(typ, topic, handlers[key], qos)
-                      for key, (topic, typ) in INPUTS.items()]
+        # stars arrive as bytes read by numpy (residual_cdr.star_frame_from_cdr) unless this
+        # RMW's wire format differs: rclpy's per-star objects cost ~30 ms for 5 000 stars
+        self._raw_stars = star_decoder_matches_rmw()
+        if not self._raw_stars:
+            self.get_logger().warning("star CDR decoder does not match this RMW: reading "
+                                      "StarCentroidArray as message objects (slower)")
+        self._input_subs = [self.create_subscription(typ, topic, handlers[key], qos,
+                                                     raw=key == "stars" and self._raw_stars)
+                            for key, (topic, typ) in INPUTS.items()]
         out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                              reliability=ReliabilityPolicy.RELIABLE)
         self.pub_estimate = self.create_publisher(CalibrationEstimate, "~/estimate", out_qos)
@@ -467,17 +479,9 @@ class CalibratorNode(Node):
     def _on_stars(self, msg: StarCentroidArray) -> None:
         self._guard("stars", self._push_stars, msg)
 
-    def _push_stars(self, msg: StarCentroidArray) -> list[FrameOutcome]:
-        stars = msg.stars
-        n = len(stars)
-        a = np.array([(s.catalog_id, s.right_ascension, s.declination, s.u, s.v, s.magnitude,
-                       s.sigma) for s in stars], dtype=float).reshape(n, 7)
-        frame = StarFrame(
-            stamp_ns=_stamp_ns(msg.header), frame_id=msg.header.frame_id,
-            exposure_time=float(msg.exposure_time),
-            catalog_id=np.array([s.catalog_id for s in stars], dtype=np.uint32),
-            right_ascension=a[:, 1].copy(), declination=a[:, 2].copy(),
-            uv=a[:, 3:5].copy(), magnitude=a[:, 5].copy(), sigma=a[:, 6].copy())
+    def _push_stars(self, msg: StarCentroidArray | bytes) -> list[FrameOutcome]:
+        frame = (star_frame_from_cdr(msg) if isinstance(msg, bytes)
+                 else star_frame_from_message(msg))
         return self.cal.push_stars(frame)
 
     def _on_fix(self, msg: NavSatFix) -> None:

@@ -1,4 +1,6 @@
-"""Vectorized CDR serialization of ``stellar_cal_msgs/StarResidualArray``.
+"""Vectorized CDR for the calibrator: ``StarResidualArray`` out, ``StarCentroidArray`` in.
+
+The reading side is :func:`star_frame_from_cdr` (a raw subscription's bytes as a frame).
 
 Building one ``StarResidual`` Python object per star and letting rclpy convert them field by
 field to C costs a few hundred microseconds per frame — in the ``calibrator``'s per-frame
@@ -28,6 +30,9 @@ from __future__ import annotations
 import struct
 
 import numpy as np
+
+from stellar_cal_ros.core.types import StarFrame
+from stellar_cal_ros.io.cdr import decode_star_array
 
 _ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little endian, no options
 _STRIDE = 72
@@ -127,4 +132,80 @@ def encoder_matches_rmw() -> bool:
         if h1 != h2 or not np.array_equal(r1, r2, equal_nan=True) or not (
                 n1 == n2 or (np.isnan(n1) and np.isnan(n2))):
             return False
+    return True
+
+
+def star_frame_from_message(msg) -> StarFrame:
+    """A ``StarCentroidArray`` message object as a :class:`StarFrame` (one pass over its stars)."""
+    stars = msg.stars
+    n = len(stars)
+    a = np.array([(s.catalog_id, s.right_ascension, s.declination, s.u, s.v, s.magnitude,
+                   s.sigma) for s in stars], dtype=float).reshape(n, 7)
+    sec, nanosec = msg.header.stamp.sec, msg.header.stamp.nanosec
+    return StarFrame(
+        stamp_ns=int(sec) * 1_000_000_000 + int(nanosec), frame_id=msg.header.frame_id,
+        exposure_time=float(msg.exposure_time),
+        catalog_id=np.array([s.catalog_id for s in stars], dtype=np.uint32),
+        right_ascension=a[:, 1].copy(), declination=a[:, 2].copy(),
+        uv=a[:, 3:5].copy(), magnitude=a[:, 5].copy(), sigma=a[:, 6].copy())
+
+
+def star_frame_from_cdr(data: bytes) -> StarFrame:
+    """A serialized ``StarCentroidArray`` (a raw subscription's bytes) as a :class:`StarFrame`.
+
+    rclpy builds one Python object per star (~30 ms for 5 000 stars, measured); the numpy
+    reader (:func:`stellar_cal_ros.io.cdr.decode_star_array`, the bag readers' decoder) takes
+    ~0.1 ms.  Bytes it does not read (another encapsulation, e.g. big-endian) go through rclpy's
+    deserializer; bytes neither can read raise ``ValueError`` (the node counts the message as
+    rejected).
+    """
+    try:
+        return decode_star_array(data)
+    except ValueError as fast_error:
+        from rclpy.serialization import deserialize_message
+        from stellar_cal_msgs.msg import StarCentroidArray
+
+        try:
+            msg = deserialize_message(data, StarCentroidArray)
+        except Exception:  # noqa: BLE001 - rclpy raises several types for bad bytes
+            raise ValueError(f"undecodable StarCentroidArray: {fast_error}") from None
+        return star_frame_from_message(msg)
+
+
+def star_decoder_matches_rmw() -> bool:
+    """True if :func:`star_frame_from_cdr`'s numpy path reads this RMW's bytes as the message.
+
+    Checked on serialized ``StarCentroidArray`` messages with both alignments of the first
+    star, an empty list, empty and odd frame ids and NaN values.
+    """
+    from rclpy.serialization import deserialize_message, serialize_message
+    from stellar_cal_msgs.msg import StarCentroid, StarCentroidArray
+
+    rng = np.random.default_rng(2)
+    for fid, n in (("star_tracker_optical_frame", 3), ("abcd", 2), ("abc", 2), ("", 1),
+                   ("st", 0)):
+        msg = StarCentroidArray()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 1_700_000_123, 456_789_012
+        msg.header.frame_id = fid
+        msg.exposure_time = 0.125
+        vals = rng.normal(size=(n, 6)) * 100
+        if n:
+            vals[0, 4] = np.nan
+        msg.stars = [StarCentroid(catalog_id=int(c), right_ascension=float(v[0]),
+                                  declination=float(v[1]), u=float(v[2]), v=float(v[3]),
+                                  magnitude=float(v[4]), sigma=float(v[5]))
+                     for c, v in zip(rng.integers(0, 120000, n), vals, strict=True)]
+        data = serialize_message(msg)
+        try:
+            got = decode_star_array(data)
+        except ValueError:
+            return False
+        want = star_frame_from_message(deserialize_message(data, StarCentroidArray))
+        if (got.stamp_ns, got.frame_id, got.exposure_time) != (
+                want.stamp_ns, want.frame_id, want.exposure_time):
+            return False
+        for name in ("catalog_id", "right_ascension", "declination", "uv", "magnitude",
+                     "sigma"):
+            if not np.array_equal(getattr(got, name), getattr(want, name), equal_nan=True):
+                return False
     return True
