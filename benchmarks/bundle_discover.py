@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the loop and print its path."""
     from stellar_cal_ros.diagnosis.auto import describe
     from stellar_cal_ros.diagnosis.run import diagnose
-    from stellar_cal_ros.methods import bundle as bd
+    from stellar_cal_ros.methods.bundle_runs import run_bundle
     from stellar_cal_ros.methods.frames import bag_data_from_simulation
     from stellar_cal_ros.sim.scenarios import get_scenario
     from stellar_cal_ros.sim.world import simulate
@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     data = bag_data_from_simulation(r)
     data.frames = data.frames[::max(len(data.frames) // args.frames, 1)][:args.frames]
     c0 = time.process_time()
-    start = bd.run_bundle(data, r.prior, [], cross_validate=False).calibration
+    start = run_bundle(data, r.prior, [], cross_validate=False).calibration
     with tempfile.TemporaryDirectory() as tmp:
         s = diagnose(data, start, "bundle", [], tmp, plots=False, verbose=False, auto=True,
                      workers=0)

@@ -165,7 +165,7 @@ def ours(frames: list[StarFrame], prior: Calibration, discover: bool = True,
     """
     from stellar_cal_ros.core.earth import Site
     from stellar_cal_ros.diagnosis.run import diagnose
-    from stellar_cal_ros.methods.bundle import run_bundle
+    from stellar_cal_ros.methods.bundle_runs import run_bundle
 
     data = BagData(t0_ns=frames[0].stamp_ns, imu_t=np.zeros(0), imu_w=np.zeros((0, 3)),
                    imu_f=np.zeros((0, 3)), frames=frames,

@@ -311,13 +311,6 @@ def print_replay_summary(result, prior) -> None:
              f"{np.round(np.asarray(cal.accel_bias) / MICRO_G, 2).tolist()} ug"))
 
 
-def print_diagnosis(summary: dict, calibration=None) -> None:
-    """Print the key lines of a diagnosis summary (:mod:`stellar_cal_ros.diagnosis.printing`)."""
-    from stellar_cal_ros.diagnosis.printing import print_diagnosis as show
-
-    show(summary, calibration)
-
-
 def _cmd_diagnose(args: argparse.Namespace) -> int:
     from stellar_cal_ros.diagnosis.run import diagnose
 
@@ -339,6 +332,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         print(f"wrote {summary['calibration_file']}, {args.output / 'diagnosis.json'}"
               + ("" if args.no_plots else f" and {args.output / 'report.html'}"))
         return 0
+    from stellar_cal_ros.diagnosis.printing import print_diagnosis
+
     print_diagnosis(summary, cal)
     print(f"wrote {args.output / 'diagnosis.json'}"
           + ("" if args.no_plots else f" and {args.output / 'report.html'}"))
@@ -562,7 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from stellar_cal_ros.sim.demo import run_demo
+    from stellar_cal_ros.demo import run_demo
 
     if not args.verbose:  # the demo narrates; the library's own log lines would drown it
         logging.getLogger("stellar_cal_ros").setLevel(logging.ERROR)
@@ -672,7 +667,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if getattr(args, name, None) is not None:
                 check_output(Path(getattr(args, name)), directory)
         if args.command in COMPILES:
-            from stellar_cal_ros.progress import compile_notice
+            from stellar_cal_ros.methods.star_chain import compile_notice
 
             compile_notice()
         with warnings.catch_warnings():

@@ -4,10 +4,11 @@
     the calibration in another tool's format (:mod:`stellar_cal_ros.io.export`); every
     quantity the format cannot hold is printed as a warning.
 ``report RESULT.yaml [--bag BAG] [--residuals RES] [--history HIST] [--diagnosis JSON] -o DIR``
-    PNGs and one HTML page of one run (:func:`stellar_cal_ros.diagnosis.report.write_run_report`).
+    PNGs and one HTML page of one run
+    (:func:`stellar_cal_ros.diagnosis.report_html.write_run_report`).
 ``compare A.yaml B.yaml [--bag BAG] [--residuals RES_A RES_B] -o DIR``
     two runs of the model-discovery loop side by side
-    (:func:`stellar_cal_ros.diagnosis.report.write_compare_report`).
+    (:func:`stellar_cal_ros.diagnosis.report_html.write_compare_report`).
 
 Without residual files, ``report`` and ``compare`` re-run each calibration's method on the
 bag from the calibration's values, as ``diagnose`` does (``--bag`` is needed then).
@@ -143,7 +144,7 @@ def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from stellar_cal_ros.diagnosis.report import write_run_report
+    from stellar_cal_ros.diagnosis.report_html import write_run_report
     from stellar_cal_ros.io.calibration import load_calibration
 
     cal = load_calibration(args.result)
@@ -160,7 +161,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from stellar_cal_ros.diagnosis.report import RunData, write_compare_report
+    from stellar_cal_ros.diagnosis.report_html import RunData, write_compare_report
     from stellar_cal_ros.io.calibration import load_calibration
 
     cache: dict[str, Any] = {}

@@ -9,7 +9,6 @@ import numpy as np
 from stellar_cal_ros.core.types import ImuSeries, NavSatSeries, ScalarSeries, StarFrame
 from stellar_cal_ros.io.bag import BagReader, BagWriter
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SCALARS = {"head": "/star_tracker/temperature", "air": "/environment/temperature",
            "pressure": "/environment/pressure"}
 IMU_FIELDS = ("stamp_ns", "angular_velocity", "linear_acceleration", "log_time_ns",

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import refdata
 
 from stellar_cal_ros.cli import main
 from stellar_cal_ros.errors import StellarCalError
@@ -39,9 +40,8 @@ from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
 # the independent reference bag, beside the repository (absent in a plain clone)
-REF = Path(__file__).resolve().parents[2] / "shared" / "data" / "acf_sweep_ideal"
-needs_ref = pytest.mark.skipif(not REF.with_suffix(".mcap").exists(),
-                               reason=f"reference bag not found: {REF.with_suffix('.mcap')}")
+REF = refdata.DATA / "acf_sweep_ideal"
+needs_ref = refdata.needs("acf_sweep_ideal.mcap")
 I_CX, I_CY, I_F, I_INST = 7, 8, 6, slice(3, 6)
 
 

@@ -8,14 +8,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import refdata
 
 from stellar_cal_ros.core.types import ImuSeries, NavSatSeries, ScalarSeries, StarFrame
 from stellar_cal_ros.errors import BagError, MessageDecodeError
 from stellar_cal_ros.io.bag import IMU_SCHEMA, SCHEMA_TEXTS, BagReader, BagWriter
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-BAGS = sorted(DATA.glob("*.mcap"))
-needs_data = pytest.mark.skipif(not BAGS, reason=f"reference bags not found in {DATA}")
+DATA = refdata.DATA
+BAGS = refdata.files("*.mcap")
+needs_data = refdata.needs()
 
 T0 = 1_795_348_800 * 10**9
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import refdata
 from bag_checks import (
-    DATA,
     SCALARS,
     assert_same_content,
     block_times,
@@ -24,7 +24,7 @@ from stellar_cal_ros.io import cdr
 from stellar_cal_ros.io.bag import IMU_SCHEMA, SCHEMA_TEXTS, BagReader, BagWriter
 from stellar_cal_ros.io.mcap_container import McapFile
 
-BAGS = sorted(DATA.glob("*.mcap"))
+BAGS = refdata.files("*.mcap")
 T0 = 1_795_348_800 * 10**9
 
 
@@ -261,7 +261,7 @@ def test_stream_memory_does_not_grow_with_the_bag(tmp_path: Path) -> None:
     assert peak_long < imu_bytes / 3
 
 
-@pytest.mark.skipif(not BAGS, reason=f"reference bags not found in {DATA}")
+@refdata.needs()
 @pytest.mark.parametrize("path", BAGS, ids=lambda p: p.name)
 def test_stream_on_reference_bags(path: Path) -> None:
     blocks = _stream(path)

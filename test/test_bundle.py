@@ -22,6 +22,7 @@ from stellar_cal_ros.errors import ModelError, StellarCalError
 from stellar_cal_ros.methods import bundle as bd
 from stellar_cal_ros.methods.bundle_bound import crlb_bundle
 from stellar_cal_ros.methods.bundle_cv import held_out_frame
+from stellar_cal_ros.methods.bundle_runs import run_bundle
 from stellar_cal_ros.methods.frames import bag_data_from_simulation
 
 SIGMA_PX = 0.05
@@ -131,7 +132,7 @@ def test_bundle_run_recovers_truth_and_held_out_rms_equals_noise(world):
         g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
         g.sigma = np.full(len(fr.uv), SIGMA_PX)
         data.frames.append(g)
-    res = bd.run_bundle(data, world["sim"].prior, ["tangential"])
+    res = run_bundle(data, world["sim"].prior, ["tangential"])
     z = (res.theta - world["theta"]) / res.sigma
     assert np.all(np.abs(z) < 4.0), dict(zip(res.parameter_names, z, strict=True))
     cv = res.cross_validation
@@ -162,7 +163,7 @@ def test_wrong_identities_are_left_out(world):
         g.right_ascension, g.declination = ra, dec
         n_bad += 2
         data.frames.append(g)
-    res = bd.run_bundle(data, world["sim"].prior, ["tangential"], cross_validate=False)
+    res = run_bundle(data, world["sim"].prior, ["tangential"], cross_validate=False)
     rejected = res.counts.stars_misidentified + res.counts.stars_outliers
     assert n_bad <= rejected <= n_bad + 3
     z = (res.theta - world["theta"]) / res.sigma
@@ -177,10 +178,10 @@ def test_effects_the_bundle_cannot_see_are_refused(world):
     data = copy.copy(world["data"])
     data.site = None
     with pytest.raises(ModelError, match="needs the site"):
-        bd.run_bundle(data, prior, ["refraction"], cross_validate=False)
+        run_bundle(data, prior, ["refraction"], cross_validate=False)
     data.frames = data.frames[:1]
     with pytest.raises(StellarCalError, match="at least 2 star frames"):
-        bd.run_bundle(data, prior, [], cross_validate=False)
+        run_bundle(data, prior, [], cross_validate=False)
 
 
 def test_cli_batch_bundle_writes_the_contract_result(tmp_path):
@@ -224,7 +225,7 @@ def test_diagnose_bundle_names_the_missing_effect(world, tmp_path):
         g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
         frames.append(g)
     data.frames = frames
-    start = bd.run_bundle(data, r.prior, [], cross_validate=False).calibration
+    start = run_bundle(data, r.prior, [], cross_validate=False).calibration
     summary = diagnose(data, start, "bundle", [], tmp_path, plots=False, verbose=False,
                        candidates=["tangential", "pixel_aspect", "radial_k3", "installation",
                                    "time_offset"])
@@ -250,7 +251,7 @@ def test_frame_of_another_focus_is_named(world):
             g.uv = 511.5 + 1.002 * (g.uv - 511.5)
         g.sigma = np.full(len(fr.uv), SIGMA_PX)
         data.frames.append(g)
-    res = bd.run_bundle(data, world["sim"].prior, ["tangential"])
+    res = run_bundle(data, world["sim"].prior, ["tangential"])
     nis = res.cross_validation["nis_per_dof"]
     assert [r.split(" does not")[0] for r in res.degraded] == ["frame 5"], res.degraded
     assert max(np.delete(nis, 5)) < 2.0 < 10.0 < nis[5]
@@ -292,8 +293,8 @@ def test_refraction_and_aberration_from_site_and_time(sky):
     """Apparent place from the bag's site, stamps and weather: with refraction in the sky,
     its scale is estimated at 1 (physics), aberration's too, and the held-out RMS falls."""
     r, data = sky
-    without = bd.run_bundle(data, r.prior, ["tangential"])
-    res = bd.run_bundle(data, r.prior, ["tangential", "refraction", "aberration"])
+    without = run_bundle(data, r.prior, ["tangential"])
+    res = run_bundle(data, r.prior, ["tangential", "refraction", "aberration"])
     for eid in ("refraction", "aberration"):
         k = res.parameter_names.index(f"{eid}.scale")
         assert abs(res.theta[k] - 1.0) < 3.0 * res.sigma[k], (eid, res.theta[k], res.sigma[k])
@@ -311,7 +312,7 @@ def test_discover_bundle_adds_the_missing_effects_and_the_error_falls(sky, tmp_p
     from stellar_cal_ros.diagnosis.run import diagnose
 
     r, data = sky
-    start = bd.run_bundle(data, r.prior, [], cross_validate=False).calibration
+    start = run_bundle(data, r.prior, [], cross_validate=False).calibration
     s = diagnose(data, start, "bundle", [], tmp_path, plots=False, verbose=False, auto=True,
                  workers=0)
     assert s["added"] == ["refraction", "tangential"], s["added"]
@@ -394,7 +395,7 @@ def test_every_camera_and_direction_effect_runs(world):
         g = copy.copy(fr)
         g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
         data.frames.append(g)
-    res = bd.run_bundle(data, world["sim"].prior, seen, cross_validate=False)
+    res = run_bundle(data, world["sim"].prior, seen, cross_validate=False)
     assert [e.id for e in res.model.effects if e.id in seen] == [
         e for e in registry.available() if e in seen]
     assert np.all(np.isfinite(res.sigma)) and np.all(res.sigma <= 1.0001 * res.sigma_prior)

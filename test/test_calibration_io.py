@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import refdata
 import yaml
 
 from stellar_cal_ros.errors import CalibrationFileError
@@ -17,9 +18,9 @@ from stellar_cal_ros.io.calibration import (
     save_calibration,
 )
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-REFERENCE = sorted(DATA.glob("*.prior.yaml")) + sorted(DATA.glob("*.truth.yaml"))
-needs_data = pytest.mark.skipif(not REFERENCE, reason=f"reference data not found in {DATA}")
+DATA = refdata.DATA
+REFERENCE = refdata.files("*.prior.yaml") + refdata.files("*.truth.yaml")
+needs_data = refdata.needs()
 
 
 def _doc(path: Path) -> dict:
@@ -52,17 +53,15 @@ def test_reference_files_load_and_round_trip(path: Path, tmp_path: Path) -> None
     assert calibration_from_dict(calibration_to_dict(cal)) == cal
 
 
-@needs_data
-def test_prior_sigma_layout() -> None:
-    cal = load_calibration(DATA / "psce_ideal_900s.prior.yaml")
+def test_prior_sigma_layout(reference_data) -> None:
+    cal = load_calibration(reference_data / "psce_ideal_900s.prior.yaml")
     assert len(cal.sigma["installation"]["rotation_vector"]) == 3
     assert cal.sigma["camera"]["distortion_coefficients"]["cols"] == 5
     assert cal.sigma["time_offset"] == pytest.approx(0.05)
 
 
-@needs_data
-def test_effects_of_sky_truth() -> None:
-    cal = load_calibration(DATA / "psce_sky_900s.truth.yaml")
+def test_effects_of_sky_truth(reference_data) -> None:
+    cal = load_calibration(reference_data / "psce_sky_900s.truth.yaml")
     assert cal.effects["refraction"]["humidity"] == 0.5
     assert set(cal.effects) == {"aberration", "refraction", "proper_motion"}
 

@@ -182,7 +182,7 @@ def test_clean_data_false_alarm_rate(tmp_path):
 
 def test_builtin_demo_loop_works(tmp_path, capsys):
     """The README's main command in a shorter form: the loop names the effect and fixes it."""
-    from stellar_cal_ros.sim.demo import run_demo
+    from stellar_cal_ros.demo import run_demo
 
     assert run_demo(tmp_path / "demo", duration=300.0) == 0
     out = capsys.readouterr().out

@@ -14,9 +14,9 @@ results: doc/benchmarks.md, "Model discovery: one command, in parallel".
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import pytest
+import refdata
 
 from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.io.calibration import load_calibration
@@ -24,8 +24,7 @@ from stellar_cal_ros.methods.replay import bag_data_from_simulation, read_bag_da
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-SKY = DATA / "psce_sky_900s.mcap"
+SKY = refdata.DATA / "psce_sky_900s.mcap"
 MISID = {"misidentification": 0.02}
 #: the swaying scenario's IMU errors (scale factors, misalignment, accelerometer) that a
 #: user's model would know
@@ -139,7 +138,7 @@ def test_auto_adds_exactly_the_hidden_set(tmp_path, name):
 
 
 @pytest.mark.benchmark
-@pytest.mark.skipif(not SKY.exists(), reason=f"{SKY} not available")
+@refdata.needs("psce_sky_900s.mcap")
 def test_sky_bag_whole_path_in_one_command(tmp_path):
     """The independent generator's sky bag, from its prior, in one call."""
     s = diagnose(SKY, load_calibration(SKY.with_suffix(".prior.yaml")), "psce", [], tmp_path,

@@ -13,23 +13,21 @@ implausible rather than claimed; once they are in, it is found at its physical s
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
+import refdata
 
 from stellar_cal_ros.diagnosis import stats
 from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods.replay import read_bag_data, replay_psce
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-BAG = DATA / "psce_sky_900s.mcap"
+BAG = refdata.DATA / "psce_sky_900s.mcap"
 NOISE = 0.05
 HIDDEN = {"aberration", "refraction", "proper_motion"}
 
 
 @pytest.mark.benchmark  # ~7 min serial; one command with 2 workers: test_discovery_cases.py
-@pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not available")
+@refdata.needs("psce_sky_900s.mcap")
 def test_sky_bag_loop_finds_every_hidden_effect(tmp_path):
     data = read_bag_data(BAG)
     prior = load_calibration(BAG.with_suffix(".prior.yaml"))

@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import erfa
 import numpy as np
 import pytest
+import refdata
 
 from stellar_cal_ros.core import astrometry as astro
 from stellar_cal_ros.core import catalog, earth
 
 SITE = earth.Site(36.07, 120.38, 10.0)
 T0 = 1795348800.0  # 2026-11-22T12:00:00 UTC (reference bags)
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"  # independent reference bags
 MAS = catalog.MAS
 ARCSEC = 1000.0 * MAS
 REFR = {"pressure_hpa": 1012.0, "temperature_c": 5.0, "humidity": 0.5, "wavelength_um": 0.55}
@@ -158,9 +157,7 @@ def test_catalog_directions_epoch():
 
 def _bag_stars(name: str, max_frames: int = 200):
     mcap_ros2_reader = pytest.importorskip("mcap_ros2.reader")
-    path = DATA / name
-    if not path.exists():
-        pytest.skip(f"reference bag not found: {path}")
+    path = refdata.path(name)
     hip, ra, dec = [], [], []
     for k, m in enumerate(
         mcap_ros2_reader.read_ros2_messages(str(path), topics=["/star_tracker/stars"])

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import refdata
 
 from stellar_cal_ros.cli import main
 from stellar_cal_ros.core.camera import CameraModel
@@ -18,7 +19,7 @@ from stellar_cal_ros.sim.render import SensorConfig, render_image
 from stellar_cal_ros.sky.extract import extract_stars
 from stellar_cal_ros.sky.images import read_image
 
-REALSKY = Path(__file__).resolve().parents[2] / "shared" / "realsky"
+REALSKY = refdata.REALSKY
 W, H = 1024, 768
 F = W / 2 / np.tan(np.radians(11.0) / 2)
 CAMERA = CameraModel(W, H, F, F, 515.2, 380.6, [-0.08, 0.02, 0, 0, 0])

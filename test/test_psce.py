@@ -10,11 +10,9 @@ Tolerances:
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
+import refdata
 from scipy.stats import chi2
 
 from stellar_cal_ros.core.units import ARCSEC
@@ -30,7 +28,6 @@ from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
 # the independent reference bags, beside the repository (absent in a plain clone)
-DATA = str(Path(__file__).resolve().parents[2] / "shared" / "data")
 DEG_H = np.pi / 180.0 / 3600.0
 PIXEL_MM = 0.00645
 
@@ -45,10 +42,7 @@ PAPER_RMS_2H = {
 
 
 def _bag(name):
-    path = os.path.join(DATA, name + ".mcap")
-    if not os.path.exists(path):
-        pytest.skip(f"reference bag not found: {path}")
-    return path
+    return str(refdata.path(name + ".mcap"))
 
 
 def _run_reference(name, effects):

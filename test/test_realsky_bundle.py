@@ -12,15 +12,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import refdata
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "realsky_bundle.py"
-IMAGES = Path(__file__).resolve().parents[2] / "shared" / "realsky"
+IMAGES = refdata.REALSKY
 #: the three frames of one camera in one optical state (test2_g100_e50ms is another: its own
 #: fit has k1 = -0.46 against ~0 for these)
 FRAMES = ["jan1_g90_e100ms", "jan1_g90_e50ms", "test_5mp_g100_e50ms"]
 
-pytestmark = pytest.mark.skipif(not IMAGES.is_dir(),
-                                reason=f"real-sky images not found at {IMAGES}")
+pytestmark = refdata.needs(folder=IMAGES)
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +61,7 @@ def test_held_out_rms_against_tetra3rs(bench):
 
 def test_a_frame_of_another_camera_state_is_named(bench, images):
     """test2_g100_e50ms (another focus/zoom) is named as not sharing the others' camera."""
-    from stellar_cal_ros.methods.bundle import run_bundle
+    from stellar_cal_ros.methods.bundle_runs import run_bundle
 
     odd = bench.load_grey(bench.image_path(IMAGES, "test2_g100_e50ms"))
     frames, fovs, _, _ = bench.identified_frames(images + [odd], "tetra3rs")

@@ -14,10 +14,10 @@ import math
 import os
 import time
 import uuid
-from pathlib import Path
 
 import numpy as np
 import pytest
+import refdata
 
 pytestmark = pytest.mark.ros
 
@@ -66,7 +66,7 @@ float32 magnitude
 float32 sigma
 """
 
-SHARED_BAG = Path(__file__).resolve().parents[2] / "shared" / "data" / "psce_ideal_900s.mcap"
+SHARED_BAG = refdata.DATA / "psce_ideal_900s.mcap"
 
 # One domain per process (0..101 are valid on Linux; 0 is the default others use).
 DOMAIN_ID = 1 + os.getpid() % 100
@@ -220,7 +220,7 @@ def test_cdr_matches_mcap_ros2_and_rosbags_with_contract_schema():
     assert_same_array(deserialize_message(data, StarCentroidArray), sent)
 
 
-@pytest.mark.skipif(not SHARED_BAG.exists(), reason=f"{SHARED_BAG} not present")
+@refdata.needs("psce_ideal_900s.mcap")
 def test_recorded_bag_schema_and_messages_match_built_type():
     """The reference bag's schema is the contract text and rclpy reads its messages alike."""
     if _IMPORT_ERROR is not None:

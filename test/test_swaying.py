@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import refdata
 
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.errors import StellarCalError
@@ -29,7 +30,7 @@ from stellar_cal_ros.methods.traditional import replay_traditional
 from stellar_cal_ros.sim.world import simulate, write_simulation
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data"
+DATA = refdata.DATA
 E_EFFECTS = ["gyro_scale_factor", "gyro_misalignment", "accel_scale_factor"]
 CAMERA_EFFECTS = ["principal_point", "focal_length", "radial_k1k2", "tangential"]
 #: arcsec per pixel at the reference bags' focal length
@@ -227,7 +228,7 @@ def test_imu_gap_counted(sim_bag):
     assert np.all(np.abs(err) <= 3 * sig), (err, sig)
 
 
-@pytest.mark.skipif(not (DATA / "swaying_ideal.mcap").exists(), reason="reference bag absent")
+@refdata.needs("swaying_ideal.mcap")
 def test_long_imu_gap_reacquires():
     """10 s without IMU on a swaying base (a sway period): the attitude after it is unknown.
 
@@ -255,7 +256,7 @@ def _z_all(result, truth):
     return (f.theta - truth_parameters(f.model, truth)) / f.sigma()[f.it]
 
 
-@pytest.mark.skipif(not (DATA / "swaying_ideal.mcap").exists(), reason="reference bag absent")
+@refdata.needs("swaying_ideal.mcap")
 def test_reference_bag():
     """The independent swaying_ideal bag with its own prior (issue 4 acceptance).
 
@@ -307,7 +308,7 @@ def test_reference_bag():
     assert np.sum(r0.history["nis"]) / np.sum(r0.history["dof"]) > 2.0
 
 
-@pytest.mark.skipif(not (DATA / "swaying_ideal.mcap").exists(), reason="reference bag absent")
+@refdata.needs("swaying_ideal.mcap")
 def test_reference_bag_bound():
     """Is 0.5" information-limited on swaying_ideal?  (benchmarks/swaying_bound.py)
 
@@ -355,10 +356,7 @@ def _observable_errors(result, truth):
 
 def test_one_model_rule_for_both_methods():
     """Both methods: baseline + --effects; the prior's uncertain effects are only named."""
-    prior = load_calibration(DATA / "swaying_ideal.prior.yaml") if (
-        DATA / "swaying_ideal.prior.yaml").exists() else None
-    if prior is None:
-        pytest.skip("reference prior absent: " + str(DATA))
+    prior = load_calibration(refdata.path("swaying_ideal.prior.yaml"))
     from stellar_cal_ros.methods.models import uncertain_not_in_model
 
     assert prior_uncertain_effects(prior) == [

@@ -198,9 +198,9 @@ def test_a_change_of_method_is_not_an_added_effect():
 
 # ------------------------------------------------------------------ 8. smaller items
 def test_first_run_says_it_compiles(monkeypatch, runs, tmp_path, capsys):
-    import stellar_cal_ros.progress as progress
+    from stellar_cal_ros.methods import star_chain
 
-    monkeypatch.setattr(progress, "compiled_kernels_cold", lambda: True)
+    monkeypatch.setattr(star_chain, "compiled_kernels_cold", lambda: True)
     assert main(["replay", str(runs["bag_a"]), "--method", "psce", "--prior",
                  str(runs["prior_a"]), "-o", str(tmp_path / "r.yaml"), "-q"]) == 0
     assert "compiling the filter's numba kernels" in capsys.readouterr().err
@@ -210,7 +210,7 @@ def test_the_compile_check_sees_an_empty_cache(tmp_path):
     import subprocess
     import sys
 
-    code = "from stellar_cal_ros.progress import compiled_kernels_cold as c; print(c())"
+    code = "from stellar_cal_ros.methods.star_chain import compiled_kernels_cold as c; print(c())"
     env = {**__import__("os").environ, "NUMBA_CACHE_DIR": str(tmp_path)}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env=env, timeout=120)

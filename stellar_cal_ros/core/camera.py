@@ -29,7 +29,6 @@ The camera block of the calibration YAML (``doc/interfaces.md`` §3) is the
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal, overload
@@ -37,6 +36,12 @@ from typing import Any, ClassVar, Literal, overload
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from stellar_cal_ros.core.camera_yaml import (
+    DISTORTION_MODEL_SIZES,
+    camera_block,
+    camera_kwargs,
+    is_number,
+)
 from stellar_cal_ros.errors import ModelError
 
 __all__ = [
@@ -52,13 +57,6 @@ OPENCV_DISTORTION_NAMES: tuple[str, ...] = (
     "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
     "s1", "s2", "s3", "s4", "tau_x", "tau_y",
 )  # fmt: skip
-
-#: Number of coefficients of each ``camera_calibration_parsers`` distortion model, smallest first.
-DISTORTION_MODEL_SIZES: dict[str, int] = {
-    "plumb_bob": 5,
-    "rational_polynomial": 8,
-    "opencv_full": 14,
-}
 
 # Coefficient counts OpenCV accepts for ``distCoeffs``; shorter vectors are zero-padded to 14.
 _ACCEPTED_DISTORTION_SIZES = (4, 5, 8, 12, 14)
@@ -113,10 +111,6 @@ def tilt_matrix(tau_x: float, tau_y: float) -> tuple[FloatArray, FloatArray, Flo
     return matrix, derivs[0], derivs[1]
 
 
-def _is_number(value: object) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
 @dataclass(frozen=True, eq=False)
 class CameraModel:
     """Pinhole camera with OpenCV's full distortion model (``cv2.projectPoints`` compatible).
@@ -161,12 +155,12 @@ class CameraModel:
     def __post_init__(self) -> None:
         for key in ("width", "height"):
             value = getattr(self, key)
-            if not _is_number(value) or value != int(value) or int(value) <= 0:
+            if not is_number(value) or value != int(value) or int(value) <= 0:
                 raise ModelError(f"camera {key} must be a positive integer, got {value!r}")
             object.__setattr__(self, key, int(value))
         for key in ("fx", "fy", "cx", "cy"):
             value = getattr(self, key)
-            if not _is_number(value) or not math.isfinite(float(value)):
+            if not is_number(value) or not math.isfinite(float(value)):
                 raise ModelError(f"camera {key} must be a finite number, got {value!r}")
             object.__setattr__(self, key, float(value))
         if self.fx <= 0.0 or self.fy <= 0.0:
@@ -330,8 +324,6 @@ class CameraModel:
             nonzero skew), an unknown distortion model, or a coefficient count that does not
             match the model.
         """
-        from stellar_cal_ros.core.camera_yaml import camera_kwargs
-
         return cls(**camera_kwargs(camera_block))
 
     def to_yaml_dict(self) -> dict[str, Any]:
@@ -348,8 +340,6 @@ class CameraModel:
             ``distortion_model``, ``distortion_coefficients``, ``rectification_matrix``,
             ``projection_matrix``.
         """
-        from stellar_cal_ros.core.camera_yaml import camera_block
-
         return camera_block(self)
 
     # ------------------------------------------------------------------ projection core

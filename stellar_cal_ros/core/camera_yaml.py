@@ -3,19 +3,32 @@
 :meth:`~stellar_cal_ros.core.camera.CameraModel.from_yaml_dict` and
 :meth:`~stellar_cal_ros.core.camera.CameraModel.to_yaml_dict` use these: reading validates
 every key with a clear error; writing gives a complete ``camera_calibration_parsers`` file
-(rectification and projection matrices included).
+(rectification and projection matrices included).  Below the camera model (it imports
+nothing of it): the distortion models' coefficient counts are defined here.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.core.camera import DISTORTION_MODEL_SIZES, CameraModel, _is_number
 from stellar_cal_ros.errors import ModelError
+
+#: Number of coefficients of each ``camera_calibration_parsers`` distortion model, smallest first.
+DISTORTION_MODEL_SIZES: dict[str, int] = {
+    "plumb_bob": 5,
+    "rational_polynomial": 8,
+    "opencv_full": 14,
+}
+
+
+def is_number(value: object) -> bool:
+    """A real number that is not a bool (YAML ``true`` is not a size)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def _matrix_data(
@@ -29,7 +42,7 @@ def _matrix_data(
     if not isinstance(mat, Mapping) or "data" not in mat:
         raise ModelError(f"{where} must be a mapping with 'rows', 'cols' and 'data'")
     data = mat["data"]
-    if not isinstance(data, (list, tuple)) or not all(_is_number(x) for x in data):
+    if not isinstance(data, (list, tuple)) or not all(is_number(x) for x in data):
         raise ModelError(f"{where}.data must be a list of numbers, got {data!r}")
     values = [float(x) for x in data]
     if not all(math.isfinite(x) for x in values):
@@ -39,7 +52,7 @@ def _matrix_data(
             f"{where}.data must hold {rows * cols} numbers{context}, got {len(values)}"
         )
     for dim, expected in (("rows", rows), ("cols", cols)):
-        if dim in mat and (not _is_number(mat[dim]) or mat[dim] != expected):
+        if dim in mat and (not is_number(mat[dim]) or mat[dim] != expected):
             raise ModelError(f"{where}.{dim} must be {expected}{context}, got {mat[dim]!r}")
     return values
 
@@ -48,7 +61,7 @@ def _positive_int(block: Mapping[str, Any], key: str) -> int:
     if key not in block:
         raise ModelError(f"camera.{key} is missing")
     value = block[key]
-    if not _is_number(value) or value != int(value) or int(value) <= 0:
+    if not is_number(value) or value != int(value) or int(value) <= 0:
         raise ModelError(f"camera.{key} must be a positive integer, got {value!r}")
     return int(value)
 
@@ -95,7 +108,7 @@ def camera_kwargs(camera_block: Mapping[str, Any]) -> dict[str, Any]:
             "distortion": np.asarray(coeffs), "name": name}
 
 
-def camera_block(cam: CameraModel) -> dict[str, Any]:
+def camera_block(cam: Any) -> dict[str, Any]:
     """The ``camera`` block of ``cam`` in plain Python types (see ``to_yaml_dict``)."""
     model = cam.distortion_model()
     n = DISTORTION_MODEL_SIZES[model]

@@ -51,8 +51,8 @@ from stellar_cal_ros.diagnosis.discover import (
     rank_round,
     rerun_prior,
 )
+from stellar_cal_ros.diagnosis.output import finish, progress_printer
 from stellar_cal_ros.diagnosis.parallel import Task, open_runner
-from stellar_cal_ros.diagnosis.run import finish, progress_printer
 from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.io.calibration import Calibration, save_calibration

@@ -8,8 +8,8 @@ calibration, a diagnosis summary — and writes one PNG.  ``panels`` are ``[(tit
 side by side with **one** colour scale and one reference arrow.
 
 The HTML pages that put them together are in :mod:`stellar_cal_ros.diagnosis.report_html`
-(:func:`write_run_report`, :func:`write_compare_report`, :func:`write_html`, re-exported
-here).
+(:func:`write_run_report`, :func:`write_compare_report`, :func:`write_html`), which imports
+this module (not the other way round).
 """
 
 from __future__ import annotations
@@ -521,12 +521,3 @@ def truth_values(history: Table, calibration: Any, truth: Any) -> dict[str, floa
         for p, v in zip(eff.parameter_names, value, strict=True):
             out[f"{eff_id}.{p}"] = float(v)
     return out
-
-
-def __getattr__(name: str) -> Any:
-    """The HTML writers live in :mod:`report_html`; re-exported lazily (no import cycle)."""
-    if name in ("write_html", "write_run_report", "write_compare_report", "RunData"):
-        from stellar_cal_ros.diagnosis import report_html
-
-        return getattr(report_html, name)
-    raise AttributeError(name)

@@ -7,63 +7,14 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import stats
-from stellar_cal_ros.diagnosis.discover import (
-    CandidateResult,
-    hidden_effects,
-    method_spec,
-    rank_candidates,
-    summary_dict,
-)
+from stellar_cal_ros.diagnosis.auto import discover
+from stellar_cal_ros.diagnosis.discover import method_spec, rank_candidates
+from stellar_cal_ros.diagnosis.output import finish, progress_printer
 from stellar_cal_ros.diagnosis.parallel import open_runner
-from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.io.calibration import Calibration
 from stellar_cal_ros.methods.replay import BagData
 
 log = logging.getLogger(__name__)
-
-
-def progress_printer(verbose: bool):
-    """A progress callback that prints indented lines (or nothing)."""
-    def tell(text: str) -> None:
-        if verbose:
-            print(f"   {text}", flush=True)
-
-    return tell
-
-
-def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSummary,
-           results: list[CandidateResult], spec, effects: list[str], fraction: float,
-           panels: list[tuple[str, Any]], plots: bool, title: str = "stellar_cal diagnosis",
-           extra_images: list[tuple[str, str]] | None = None) -> dict[str, Any]:
-    """Unexplained structure on ``final``'s residuals, the summary, the report files.
-
-    ``base`` is the run the candidates were compared with (the summary's RMS); ``final``
-    the run whose residual structure is tested (the model with the top candidate when
-    there is one).  Returns the summary (without writing ``diagnosis.json``).
-    """
-    cam = calibration.camera
-    centre = (cam.cx, cam.cy)
-    res = final.residuals if final.residuals is not None else base.residuals
-    unexplained = stats.regressor_tests(res, stats.evaluation_mask(res, fraction), centre)
-    summary = summary_dict(base, results, unexplained, spec, effects, fraction)
-    best = next((c for c in results if c.significant_alone), None)
-    summary["recommendation"] = best.effect if best is not None else None
-    if best is None:
-        summary["reliability"] = hidden_effects(base, results)
-    if plots:
-        from stellar_cal_ros.diagnosis import report  # matplotlib: only when plotting
-
-        report.plot_vector_fields(panels, cam.width, cam.height, fraction,
-                                  out / "vector_field.png")
-        report.plot_regressors(panels, centre, fraction, out / "regressors.png")
-        report.plot_time(panels, out / "time.png")
-        images = list(extra_images or []) + [
-            ("Mean innovation over the detector (regional bins)", "vector_field.png"),
-            ("Innovations against possible causes", "regressors.png"),
-            ("Innovations against time", "time.png")]
-        report.write_html(out, summary, images, title)
-    return summary
 
 
 def diagnose(
@@ -90,8 +41,6 @@ def diagnose(
     (:func:`~stellar_cal_ros.diagnosis.auto.discover`).
     """
     if auto:
-        from stellar_cal_ros.diagnosis.auto import discover
-
         return discover(bag, calibration, method, effects, output_dir, max_rounds,
                         candidates=candidates, evaluation_fraction=evaluation_fraction,
                         plots=plots, verbose=verbose, workers=workers, scheduler=scheduler)

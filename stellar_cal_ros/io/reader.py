@@ -32,7 +32,8 @@ from stellar_cal_ros.io import kinds
 from stellar_cal_ros.io.image_msgs import CameraInfoMessage, ImageMessage
 from stellar_cal_ros.io.mcap_records import BagProblem, CorruptError, Rows
 from stellar_cal_ros.io.merge import Fields, concat, interleaved, time_ordered
-from stellar_cal_ros.io.sources import SourceBase, open_source
+from stellar_cal_ros.io.source_base import SourceBase
+from stellar_cal_ros.io.sources import open_source
 
 __all__ = ["DEFAULT_TOPICS", "BagReader", "OnError"]
 

@@ -19,7 +19,7 @@ import numpy as np
 from stellar_cal_ros.errors import BagError
 from stellar_cal_ros.io.mcap_records import BagProblem, Channel, OnDamage, Rows, Schema
 from stellar_cal_ros.io.schemas import SCHEMA_TEXTS
-from stellar_cal_ros.io.sources import SourceBase
+from stellar_cal_ros.io.source_base import SourceBase
 
 _BATCH_MESSAGES = 4096
 _BATCH_BYTES = 4 << 20

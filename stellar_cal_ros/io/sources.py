@@ -1,9 +1,10 @@
 """Where a bag's messages come from: one MCAP file, a rosbag2 directory, a rosbags-read bag.
 
 Every source offers the same small interface to :class:`~stellar_cal_ros.io.reader.BagReader`
-(:class:`SourceBase`): channels and schemas, counts and time bounds when the index has them,
-the messages of chosen channels as :class:`~stellar_cal_ros.io.mcap_records.Rows` batches in
-chunk-start order, a generic decoder, and a damage check. :func:`open_source` picks the source
+(:class:`~stellar_cal_ros.io.source_base.SourceBase`): channels and schemas, counts and time
+bounds when the index has them, the messages of chosen channels as
+:class:`~stellar_cal_ros.io.mcap_records.Rows` batches in chunk-start order, a generic
+decoder, and a damage check. :func:`open_source` picks the source
 from what the path is:
 
 - a file starting with the MCAP magic: :class:`McapSource` (this package's parser, fast);
@@ -26,82 +27,11 @@ import numpy as np
 from stellar_cal_ros.errors import BagError
 from stellar_cal_ros.io.mcap_container import McapFile
 from stellar_cal_ros.io.mcap_records import MAGIC, BagProblem, Channel, OnDamage, Rows, Schema
-from stellar_cal_ros.io.schemas import normalize_type
+from stellar_cal_ros.io.rosbags_source import RosbagsSource
+from stellar_cal_ros.io.source_base import SourceBase
 
 _ROS1_MAGIC = b"#ROSBAG V2.0"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
-
-
-class SourceBase:
-    """What every source has: channel and schema records and the lookups built on them.
-
-    Subclasses fill :attr:`channels` and :attr:`schemas` (a channel's ``schema_id`` keys
-    :attr:`schemas`) and implement the reading methods documented on :class:`McapSource`.
-    """
-
-    storage = ""
-    profile = ""
-    library = ""
-    has_summary = True
-    channels: Mapping[int, Channel]
-    schemas: Mapping[int, Schema]
-
-    def schema(self, cid: int) -> tuple[str, str] | None:
-        """(schema name, definition text) of channel ``cid``, if it has a schema."""
-        ch = self.channels.get(cid)
-        sch = self.schemas.get(ch.schema_id) if ch else None
-        if sch is None:
-            return None
-        return sch.name, sch.data.decode("utf-8", errors="replace")
-
-    def schema_name(self, cid: int) -> str:
-        """Schema name of channel ``cid`` (``"?"`` if unknown)."""
-        found = self.schema(cid)
-        return found[0] if found else "?"
-
-    def normalized_type(self, cid: int) -> str:
-        """Message type of channel ``cid`` as ``pkg/msg/Type`` (``""`` if unknown)."""
-        found = self.schema(cid)
-        return normalize_type(found[0]) if found else ""
-
-    def start_hint(self) -> int | None:
-        """The first log time if known without reading (for relative times in messages)."""
-        bounds = self.time_bounds()
-        return bounds[0] if bounds else None
-
-    # the reading interface (implemented by every source)
-
-    def time_bounds(self) -> tuple[int | None, int | None] | None:  # pragma: no cover
-        """(first, last) log time, ns, from the index; None if only a full read can tell."""
-        raise NotImplementedError
-
-    def channels_known(self) -> bool:  # pragma: no cover
-        """Whether :attr:`channels` is complete without reading every message."""
-        raise NotImplementedError
-
-    def channel_counts(self) -> dict[int, int] | None:  # pragma: no cover
-        """Messages per channel id from the index (None: only a full read can tell)."""
-        raise NotImplementedError
-
-    def iter_rows(self, want: set[int] | None, on_damage: OnDamage) -> Iterator[Rows]:
-        """Batches of the wanted channels (None: all) in chunk-start order.
-
-        Each batch's ``start_ns`` bounds the log times of it and every later batch from
-        below. Damage is passed to ``on_damage``; reading goes on if it returns.
-        """
-        raise NotImplementedError  # pragma: no cover
-
-    def decoder(self, cid: int) -> Callable[[bytes], Any]:  # pragma: no cover
-        """Generic decoder of channel ``cid``: payload bytes -> message object."""
-        raise NotImplementedError
-
-    def check(self) -> list[BagProblem]:  # pragma: no cover
-        """Validate the whole bag; one problem per damaged part."""
-        raise NotImplementedError
-
-    def close(self) -> None:  # pragma: no cover
-        """Release the files."""
-        raise NotImplementedError
 
 
 class McapSource(McapFile, SourceBase):
@@ -335,8 +265,6 @@ def open_source(path: Path) -> SourceBase:
                 parts[0].storage = "rosbag2-mcap"
                 return parts[0]
             return MergedSource(parts, path, "rosbag2-mcap")
-        from stellar_cal_ros.io.rosbags_source import RosbagsSource
-
         return RosbagsSource(path, f"rosbag2-{storage or 'unknown'}")
     try:
         with open(path, "rb") as fh:
@@ -346,8 +274,6 @@ def open_source(path: Path) -> SourceBase:
     except OSError as exc:
         raise BagError(f"cannot open bag {path}: {exc}") from exc
     if head.startswith(_ROS1_MAGIC) or head.startswith(_SQLITE_MAGIC):
-        from stellar_cal_ros.io.rosbags_source import RosbagsSource
-
         kind = "rosbag1" if head.startswith(_ROS1_MAGIC) else "rosbag2-sqlite3"
         return RosbagsSource(path, kind)
     if path.suffix == ".bag" and not head.startswith(MAGIC):

@@ -24,25 +24,175 @@ table.
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.errors import StellarCalError
+from stellar_cal_ros.io.calibration import Calibration, store_estimate
 from stellar_cal_ros.methods.bundle import (
     BASELINE_EFFECTS,
+    GATE_DEG,
+    MIN_STARS_PER_FRAME,
+    OUTLIER_PROBABILITY,
     STAGES,
+    BundleCounts,
     BundleResult,
-    run_bundle,
+    bundle_frames,
+    check_context,
+    fit_bundle,
+    initial_attitudes,
+    make_model,
+    residual_table,
 )
 from stellar_cal_ros.methods.bundle_cv import HeldOut
+from stellar_cal_ros.methods.bundle_cv import cross_validate as held_out_folds
+from stellar_cal_ros.methods.frames import BagData, read_bag_data
 from stellar_cal_ros.methods.kernel import FrameUpdate
 from stellar_cal_ros.methods.registry import BatchOutput, MethodSpec
 from stellar_cal_ros.methods.results import RunStats
 from stellar_cal_ros.methods.star_model import StarModel
+from stellar_cal_ros.sky.identify import identify_frames, needs_identification
+
+log = logging.getLogger(__name__)
 
 
+# ============================================================================ a bag
+def _bag_data(source: Any) -> BagData:
+    return source if isinstance(source, BagData) else read_bag_data(source, require_imu=False)
+
+
+def identify(data: BagData, prior: Calibration) -> dict[str, float]:
+    """Identify unidentified centroids (contract §2) in place; their counts ({} if none).
+
+    Lost-in-space per frame under the prior camera (tracking with the gyro rates when the
+    bag has an IMU): :func:`~stellar_cal_ros.sky.identify.identify_frames`.
+    """
+    if not any(needs_identification(f) for f in data.frames):
+        return {}
+    data.frames, counters = identify_frames(data.frames, prior.camera,
+                                            prior.installation.as_matrix(),
+                                            data.imu_stamp_ns, data.imu_w)
+    out = counters.as_dict()
+    log.info("identification of unidentified centroids: %s", out)
+    return out
+
+
+def run_bundle(
+    source: Any,
+    prior: Calibration,
+    effects: Sequence[str] | None = None,
+    *,
+    loss: str = "linear",
+    outlier_probability: float | None = OUTLIER_PROBABILITY,
+    min_stars_per_frame: int = MIN_STARS_PER_FRAME,
+    gate_deg: float | None = GATE_DEG,
+    cross_validate: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> BundleResult:
+    """Calibrate the camera from star frames with a free attitude per frame.
+
+    Parameters
+    ----------
+    source : path or BagData
+        A contract bag (IMU not needed) or its data.
+    prior : Calibration
+        Starting values and prior σ of the estimated parameters; all else stays fixed
+        (including a DIRECTION or CAMERA effect under the prior's ``effects``, applied at
+        its value: e.g. ``refraction: {scale: 1.0}`` applies the physical refraction).
+    effects : list of str
+        Effects added to :data:`BASELINE_EFFECTS` (``-id`` removes an added one).
+    loss : {'linear', 'huber', 'soft_l1', 'cauchy'}
+        Loss of the final fit on the inliers.
+    outlier_probability : float or None
+        The outlier gate (None: off).
+    min_stars_per_frame : int
+        Frames with fewer usable stars are skipped (counted).
+    gate_deg : float or None
+        Identification gate, deg (None: off).
+    cross_validate : bool
+        Hold out each frame in turn (:func:`~stellar_cal_ros.methods.bundle_cv.
+        cross_validate`) and store ``cross_validation`` in the result.
+    progress : callable, optional
+        Called with a short text as each stage ends.
+
+    Raises
+    ------
+    StellarCalError
+        Too few frames or stars, effects the data cannot see or lack inputs for.
+    """
+    tell = progress or (lambda text: None)
+    data = _bag_data(source)
+    model, theta_prior, sigma_prior = make_model(prior, effects)
+    identified = identify(data, prior)
+    counts = BundleCounts()
+    frames = bundle_frames(data, prior, counts, min_stars_per_frame)
+    if len(frames) < 2:
+        raise StellarCalError(
+            f"the bundle method needs at least 2 star frames with >= {min_stars_per_frame} "
+            f"identified stars; the bag has {len(frames)} of {counts.frames_read} "
+            f"({counts.stars_unidentified} stars unidentified, {counts.stars_unusable} "
+            "non-finite or off the detector)")
+    check_context(model, frames)
+    Rs, counts.stars_misidentified = initial_attitudes(model, theta_prior, frames, gate_deg)
+    n_used = sum(int(f.use.sum()) for f in frames)
+    if 2 * n_used < 3 * len(frames) + model.size + 1:
+        raise StellarCalError(f"too few stars ({n_used}) for {3 * len(frames)} attitude and "
+                              f"{model.size} camera unknowns")
+    tell("initial attitudes")
+    fit, counts.stars_outliers = fit_bundle(model, frames, theta_prior, Rs, theta_prior,
+                                            sigma_prior, loss, outlier_probability)
+    tell(f"fit ({fit.iterations} iterations)")
+    cov, s2 = fit.covariance()
+    sig_stated = float(np.median(np.concatenate([f.sigma[f.use] for f in frames])))
+    theta = fit.theta
+    cal = store_estimate(prior, model.effects, model.slices, theta, np.sqrt(np.diag(cov)),
+                         "bundle", float(frames[-1].stamp_ns * 1e-9))
+    table = residual_table(fit, frames, np.sqrt(s2) if np.isfinite(s2) else 1.0)
+    inl = ~table["gated"]
+    rms = float(np.sqrt(np.mean(table["du"][inl] ** 2 + table["dv"][inl] ** 2)))
+    result = BundleResult(
+        calibration=cal, model=model, theta=theta, covariance=cov,
+        parameter_names=model.parameter_names(), variance_factor=s2,
+        sigma_px=sig_stated * float(np.sqrt(s2)), rms_px=rms, frames=frames,
+        attitudes=fit.attitudes, counts=counts, residuals=table, iterations=fit.iterations,
+        loss=loss, theta_prior=theta_prior, sigma_prior=sigma_prior,
+        outlier_probability=outlier_probability)
+    n_ident = sum(len(f.uv) for f in frames)
+    rejected = counts.stars_misidentified + counts.stars_outliers
+    if rejected > 0.1 * n_ident:
+        result.degraded.append(f"{rejected} of {n_ident} identified stars rejected as "
+                               "misidentified or outliers")
+    if cross_validate:
+        cv = held_out_folds(result)
+        result.cross_validation, result.held_out = cv.summary(), cv
+        nis = result.cross_validation["nis_per_dof"]
+        for k in cv.inconsistent():
+            result.degraded.append(
+                f"frame {cv.frames[k]} does not share the other frames' camera: held-out "
+                f"RMS {cv.scores[k].rms_arcsec:.3g} arcsec, NIS/dof {nis[k]:.3g} against a "
+                f"median {float(np.median(np.delete(nis, k))):.3g} of the others (another "
+                "focus or zoom, another camera, or wrong identifications): calibrate "
+                "without it")
+        tell("cross-validation")
+    cal.extra = dict(cal.extra)
+    cal.extra["data_quality"] = {**{k: v for k, v in counts.as_dict().items() if v},
+                                 "degraded": bool(result.degraded),
+                                 "reasons": list(result.degraded)}
+    if identified:
+        cal.extra["identification"] = identified
+    cal.extra["fit"] = {"frames": len(frames), "stars": int(inl.sum()),
+                        "rms_px": rms, "sigma_px": result.sigma_px,
+                        "variance_factor": s2, "loss": loss}
+    if result.cross_validation is not None:
+        cal.extra["cross_validation"] = result.cross_validation
+    return result
+
+
+# ============================================================================ diagnosis
 @dataclass
 class EstimateView:
     """The parts of a filter the diagnosis reads: model, θ, covariance, estimated count."""
@@ -111,9 +261,7 @@ def as_run(result: BundleResult, keep_tables: bool = True) -> BundleRun:
     """The :class:`BundleRun` of a cross-validated result."""
     held = result.held_out
     if held is None:
-        from stellar_cal_ros.methods.bundle_cv import cross_validate
-
-        held = result.held_out = cross_validate(result)
+        held = result.held_out = held_out_folds(result)
         result.cross_validation = held.summary()
     updates = frame_updates(result, held)
     stats = held_out_stats(updates)

@@ -8,13 +8,17 @@ The model-discovery loop on a bag with a hidden physical effect:
 4. calibrate again with the effect added (``--effects ID``);
 5. the residual RMS falls to the noise floor and the new parameter matches the truth.
 
-Each step prints what the equivalent ``stellar-cal`` command line is.
+Each step prints what the equivalent ``stellar-cal`` command line is.  An application beside
+the command line (:mod:`stellar_cal_ros.cli`), built on the same layers.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.diagnosis.printing import print_diagnosis
+from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.io.calibration import load_calibration, save_calibration
 from stellar_cal_ros.io.residuals import write_residuals
 from stellar_cal_ros.methods.replay import read_bag_data, replay_psce
@@ -25,17 +29,12 @@ HIDDEN_EFFECT = ("time_offset", 0.02)  # the tracker stamps its frames 20 ms ear
 
 
 def _rms(result) -> tuple[float, float]:
-    from stellar_cal_ros.diagnosis import stats
-
     res = result.residuals
     return stats.rms(res, stats.evaluation_mask(res))
 
 
 def run_demo(output: Path, duration: float = 600.0, seed: int = 7) -> int:
     """Run the demonstration; return a process exit status (0: the loop worked)."""
-    from stellar_cal_ros.cli import print_diagnosis
-    from stellar_cal_ros.diagnosis.run import diagnose
-
     output = Path(output)
     effect_id, value = HIDDEN_EFFECT
     bag = output / "demo.mcap"
