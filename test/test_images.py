@@ -205,8 +205,7 @@ def test_solve_errors_are_one_line(tmp_path, capsys):
     assert "no such image" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not REALSKY.is_dir(), reason="../shared/realsky (real night-sky frames) "
-                    "is not present")
+@refdata.needs(folder=REALSKY)
 def test_realsky_one_camera_every_frame_identified(tmp_path):
     """The four frames of one camera (10.9 deg): every frame identified by solve, and each
     identification is the star an independent tetra3rs solve (its own extraction and

@@ -14,8 +14,8 @@ from pathlib import Path
 
 PKG = Path(__file__).resolve().parents[1] / "stellar_cal_ros"
 
-#: layer of each package / top-level module, lowest first (core < effects < io < methods <
-#: diagnosis < apps); within a layer a package imports only itself
+#: layer of each package / top-level module, lowest first (core < effects < io < sky < methods <
+#: sim < diagnosis < viz < apps < cli); within a layer a package imports only itself
 LAYERS: dict[str, int] = {
     "__init__": 0, "errors": 0, "progress": 0,  # the package's version, errors, progress
     "core": 1,  # pure numpy: rotations, camera, IMU, covariance, state blocks, catalogue
@@ -25,9 +25,10 @@ LAYERS: dict[str, int] = {
     "methods": 5, "budget": 5,  # the estimation methods; the error budget
     "sim": 6,  # the simulator (renders through the effects and the star model)
     "diagnosis": 7,  # model discovery, reports
-    # applications: the ROS nodes, the demo, campaigns, result commands, the live view ...
-    "nodes": 8, "demo": 8, "campaign": 8, "results_cli": 8, "viz": 8,
-    "cli": 9, "__main__": 10,  # ... and the command line that dispatches to them
+    "viz": 8,  # the view's channels and pictures (replay --viz and the node's live view)
+    # applications: the ROS nodes, the demo, campaigns, result commands ...
+    "nodes": 9, "demo": 9, "campaign": 9, "results_cli": 9,
+    "cli": 10, "__main__": 11,  # ... and the command line that dispatches to them
 }
 #: the only packages that may import rclpy / ROS message packages
 ROS_PACKAGES = {"nodes"}
