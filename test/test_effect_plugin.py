@@ -1,12 +1,12 @@
-"""An effect is one file, everywhere: a new effect written in tmp_path (not in the library)
-is simulated, named by the diagnosis, and estimated down to the noise floor — with no
-other file edited (issue 12, item 4)."""
+"""An effect is one file, everywhere: the effect doc/workflow.md shows, written in tmp_path
+(not in the library), is simulated, named by the diagnosis, and estimated down to the noise
+floor — with no other file edited (issue 12, item 4)."""
 
 from __future__ import annotations
 
 import json
-import textwrap
 
+import doc_examples
 import numpy as np
 import pytest
 
@@ -14,38 +14,8 @@ from stellar_cal_ros.cli import main
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.io.calibration import load_calibration
 
-EFFECT_FILE = textwrap.dedent('''
-    """A principal point that drifts with the optical-head temperature."""
-    import numpy as np
-
-    from stellar_cal_ros.effects.base import CAMERA_INDEX, Effect, Stage
-
-
-    class ThermalPrincipalPoint(Effect):
-        id = "thermal_principal_point"
-        stage = Stage.CAMERA
-        parameter_names = ("cx_per_c", "cy_per_c")
-        units = ("px/degC", "px/degC")
-        default_sigma = (1.0, 1.0)
-        requires = ("head_temperature",)
-        explanation = "The detector shifts as the head warms: a uniform image shift that " \\
-            "follows the head temperature."
-
-        def _dT(self, ctx):
-            T = ctx.head_temperature_c
-            return 0.0 if not np.isfinite(T) else T - 20.0
-
-        def camera_parameters(self, value, p, ctx):
-            out = p.copy()
-            out[CAMERA_INDEX["cx"]] += value[0] * self._dT(ctx)
-            out[CAMERA_INDEX["cy"]] += value[1] * self._dT(ctx)
-            return out
-
-        def camera_jacobian(self, value, p, ctx):
-            J = np.zeros((18, 2))
-            J[CAMERA_INDEX["cx"], 0] = J[CAMERA_INDEX["cy"], 1] = self._dT(ctx)
-            return J, np.eye(18)
-''')
+#: the effect file doc/workflow.md shows ("Writing an effect")
+EFFECT_FILE = doc_examples.example("workflow.md", "my_effect.py")
 
 
 @pytest.fixture(scope="module")

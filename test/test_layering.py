@@ -7,6 +7,7 @@ into the core; a new package must be given its layer here.)"""
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from collections import defaultdict
@@ -147,3 +148,18 @@ def test_everything_but_the_nodes_imports_with_rclpy_unavailable():
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert int(proc.stdout.strip()) == len(mods) > 100
+
+
+def test_the_architecture_page_draws_these_layers():
+    """doc/architecture.md's layer diagram names every package with its layer here."""
+    text = (PKG.parent / "doc" / "architecture.md").read_text(encoding="utf-8")
+    diagram = text.split("## Layers", 1)[1].split("```")[1]
+    drawn: dict[str, int] = {}
+    number = None
+    for line in reversed(diagram.splitlines()):  # a package's number ends its last line
+        m = re.search(r"\s(\d+)$", line)
+        number = int(m.group(1)) if m else number
+        for name in re.findall(r"([a-z_]+)(?:/|\.py)", line):
+            drawn.setdefault(name, number)
+    expected = {k: v for k, v in LAYERS.items() if k not in ("__init__", "__main__")}
+    assert {k: drawn.get(k) for k in expected} == expected

@@ -7,6 +7,7 @@ import json
 import textwrap
 import uuid
 
+import doc_examples
 import numpy as np
 import pytest
 from sim_bags import psce_bag
@@ -24,30 +25,8 @@ from stellar_cal_ros.io.calibration import load_calibration, load_covariance
 from stellar_cal_ros.methods import models, registry
 from stellar_cal_ros.methods.replay import replay
 
-TOY_FILTER = textwrap.dedent('''
-    """PSCE with the camera held at its prior: gyro bias and installation only."""
-    from dataclasses import dataclass
-
-    from stellar_cal_ros.effects.base import Stage
-    from stellar_cal_ros.methods.psce import PsceConfig, PsceFilter
-    from stellar_cal_ros.methods.registry import MethodSpec
-
-
-    @dataclass
-    class ToyConfig(PsceConfig):
-        """PSCE's settings."""
-
-
-    class ToyFilter(PsceFilter):
-        method = "toy"
-
-
-    METHOD = MethodSpec(
-        name="toy", kind="filter", summary="PSCE with the camera fixed",
-        baseline=("gyro_bias", "installation"),
-        stages=(Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA),
-        filter_cls=ToyFilter, config_cls=ToyConfig)
-''')
+#: the method file doc/architecture.md shows ("Adding a method")
+TOY_FILTER = doc_examples.example("architecture.md", "toy_method.py")
 
 TOY_BATCH = textwrap.dedent('''
     """A batch method that returns its prior, and remembers how it was called."""
