@@ -25,13 +25,13 @@ from stellar_cal_ros.cli import build_parser, load_prior, main
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.errors import CalibrationFileError, StellarCalError
 from stellar_cal_ros.io.calibration import (
-    covariance_path,
     load_calibration,
     load_covariance,
     prior_warnings,
     save_calibration,
     store_estimate,
 )
+from stellar_cal_ros.io.covariance_file import covariance_path
 from stellar_cal_ros.io.export import export_calibration, max_displacement_px
 from stellar_cal_ros.methods.star_model import StarModel
 from stellar_cal_ros.progress import Progress, format_seconds, progress

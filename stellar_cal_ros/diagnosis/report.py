@@ -106,9 +106,9 @@ def display_unit(name: str, unit: str) -> tuple[float, str]:
 
 def parameter_unit(name: str) -> str:
     """The effect's unit of ``effect.parameter`` ('' if the effect is unknown)."""
-    from stellar_cal_ros.io.calibration import _parameter_unit
+    from stellar_cal_ros.io.covariance_file import parameter_unit as unit_of
 
-    return _parameter_unit(name)
+    return unit_of(name)
 
 
 # ------------------------------------------------------------------------------ histograms

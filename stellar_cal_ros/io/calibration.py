@@ -15,9 +15,9 @@ the file and the key.
 A result lists the effects its run estimated under ``estimated`` and holds the σ of those
 only (an entry of a fixed-shape σ array that no estimated effect owns is 0).  The full
 covariance of the estimated parameters goes to a sidecar ``RESULT.covariance.yaml``
-(:func:`save_calibration` with ``covariance=``; :func:`load_covariance`), named by the
-result's ``covariance_file`` key.  :func:`prior_warnings` lists the problems of a σ block
-read as a prior.
+(:func:`save_calibration` with ``covariance=``; :func:`load_covariance`; the document is
+:mod:`~stellar_cal_ros.io.covariance_file`), named by the result's ``covariance_file`` key.
+:func:`prior_warnings` lists the problems of a σ block read as a prior.
 """
 
 from __future__ import annotations
@@ -40,15 +40,14 @@ from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.errors import CalibrationFileError, StellarCalError
+from stellar_cal_ros.io.covariance_file import COVARIANCE_FORMAT, Covariance, covariance_path
+from stellar_cal_ros.io.yaml_style import Dumper, plain
 
 __all__ = [
-    "COVARIANCE_FORMAT",
     "FORMAT",
     "Calibration",
-    "Covariance",
     "calibration_from_dict",
     "calibration_to_dict",
-    "covariance_path",
     "load_calibration",
     "load_covariance",
     "prior_warnings",
@@ -61,9 +60,6 @@ __all__ = [
 
 FORMAT = "stellar_cal/1"
 """Value of the ``format`` key this module reads and writes."""
-
-COVARIANCE_FORMAT = "stellar_cal_covariance/1"
-"""Value of the ``format`` key of a covariance sidecar file."""
 
 DEFAULT_FRAMES = {"imu": "imu_link", "star_tracker": "star_tracker_optical_frame"}
 
@@ -222,23 +218,6 @@ def _mapping(d: Mapping[str, Any], key: str, src: str, required: bool) -> Mappin
     return block
 
 
-def _plain(x: Any) -> Any:
-    """Convert numpy scalars / arrays and tuples into plain Python (YAML-safe) values."""
-    if isinstance(x, Mapping):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, np.ndarray):
-        return [_plain(v) for v in x.reshape(-1).tolist()] if x.ndim else _plain(x.item())
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, numbers.Integral):
-        return int(x)
-    if isinstance(x, numbers.Real):
-        return float(x)
-    return x
-
-
 def _sensor_block(
     d: Mapping[str, Any], key: str, src: str, required: bool
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -309,8 +288,8 @@ def calibration_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> Calib
             raise CalibrationFileError(
                 f"{source}: effects.{k} must be a mapping {{parameter: value}}, got {v!r}"
             )
-        effects[str(k)] = _plain(v)
-    sigma = _plain(_mapping(d, "sigma", source, required=False))
+        effects[str(k)] = plain(v)
+    sigma = plain(_mapping(d, "sigma", source, required=False))
     _check_sigma(sigma, source)
     frames_raw = _mapping(d, "frames", source, required=False)
     frames = dict(DEFAULT_FRAMES)
@@ -323,7 +302,7 @@ def calibration_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> Calib
     if not isinstance(estimated, (list, tuple)) or not all(isinstance(e, str) for e in estimated):
         raise CalibrationFileError(
             f"{source}: 'estimated' must be a list of effect ids, got {estimated!r}")
-    extra = {k: _plain(v) for k, v in d.items() if k not in _KNOWN_KEYS}
+    extra = {k: plain(v) for k, v in d.items() if k not in _KNOWN_KEYS}
     cal = Calibration(
         camera=camera,
         installation=Rotation.from_quat(q),
@@ -427,48 +406,31 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
         "method": str(cal.method),
         "stamp": float(cal.stamp),
         "frames": {str(k): str(v) for k, v in cal.frames.items()},
-        "camera": _plain(cal.camera.to_yaml_dict()),
-        "installation": {"quaternion_xyzw": _plain(np.asarray(cal.installation.as_quat()))},
+        "camera": plain(cal.camera.to_yaml_dict()),
+        "installation": {"quaternion_xyzw": plain(np.asarray(cal.installation.as_quat()))},
         "gyro": {
-            "bias": _plain(np.asarray(cal.gyro_bias, float).reshape(3)),
-            "error_matrix": _plain(np.asarray(cal.gyro_error_matrix, float).reshape(9)),
+            "bias": plain(np.asarray(cal.gyro_bias, float).reshape(3)),
+            "error_matrix": plain(np.asarray(cal.gyro_error_matrix, float).reshape(9)),
         },
         "accelerometer": {
-            "bias": _plain(np.asarray(cal.accel_bias, float).reshape(3)),
-            "error_matrix": _plain(np.asarray(cal.accel_error_matrix, float).reshape(9)),
+            "bias": plain(np.asarray(cal.accel_bias, float).reshape(3)),
+            "error_matrix": plain(np.asarray(cal.accel_error_matrix, float).reshape(9)),
         },
         "time_offset": float(cal.time_offset),
-        "effects": _plain(cal.effects),
+        "effects": plain(cal.effects),
     }
     if cal.estimated:
         d["estimated"] = [str(e) for e in cal.estimated]
-    d["sigma"] = _plain(cal.sigma)
+    d["sigma"] = plain(cal.sigma)
     for k, v in cal.extra.items():
         if k not in d:
-            d[k] = _plain(v)
+            d[k] = plain(v)
     return d
 
 
 # --------------------------------------------------------------------------------------------
 # files
 # --------------------------------------------------------------------------------------------
-
-
-class _Dumper(yaml.SafeDumper):
-    """Block style, except flow style for lists and for mappings of scalars only."""
-
-
-def _represent_list(dumper: yaml.SafeDumper, data: list[Any]) -> yaml.Node:
-    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=True)
-
-
-def _represent_dict(dumper: yaml.SafeDumper, data: dict[str, Any]) -> yaml.Node:
-    flow = all(not isinstance(v, (dict, list)) for v in data.values())
-    return dumper.represent_mapping("tag:yaml.org,2002:map", data, flow_style=flow)
-
-
-_Dumper.add_representer(list, _represent_list)
-_Dumper.add_representer(dict, _represent_dict)
 
 
 def dump_calibration_yaml(cal: Calibration) -> str:
@@ -486,7 +448,7 @@ def dump_calibration_yaml(cal: Calibration) -> str:
     """
     return yaml.dump(
         calibration_to_dict(cal),
-        Dumper=_Dumper,
+        Dumper=Dumper,
         sort_keys=False,
         default_flow_style=False,
         width=120,
@@ -613,13 +575,13 @@ def set_provenance(**items: Any) -> None:
     record.
     """
     _RUN_PROVENANCE.clear()
-    _RUN_PROVENANCE.update({k: _plain(v) if not isinstance(v, os.PathLike) else str(v)
+    _RUN_PROVENANCE.update({k: plain(v) if not isinstance(v, os.PathLike) else str(v)
                             for k, v in items.items() if v is not None})
 
 
 def note_provenance(**items: Any) -> None:
     """Add items to this process's record (e.g. the residual file a run wrote)."""
-    _RUN_PROVENANCE.update({k: _plain(v) for k, v in items.items() if v is not None})
+    _RUN_PROVENANCE.update({k: plain(v) for k, v in items.items() if v is not None})
 
 
 def run_provenance(earlier: Any = None) -> dict[str, Any]:
@@ -639,7 +601,7 @@ def run_provenance(earlier: Any = None) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------------------------
-# results: estimated effects, covariance sidecar
+# results: estimated effects; reading the covariance sidecar (io/covariance_file.py)
 # --------------------------------------------------------------------------------------------
 
 
@@ -680,85 +642,6 @@ def store_estimate(prior: Calibration, effects: Any, slices: Mapping[str, slice]
         eff.store(theta[sl], sigma[sl], cal)
     cal.estimated = [str(eff.id) for eff in effects]
     return cal
-
-
-def covariance_path(result_path: str | os.PathLike[str]) -> Path:
-    """``RESULT.covariance.yaml`` beside ``RESULT.yaml``."""
-    p = Path(result_path)
-    return p.with_name(p.stem + ".covariance.yaml")
-
-
-def _parameter_unit(name: str) -> str:
-    """Unit of an ``effect.parameter`` from the effect registry ('' if unknown)."""
-    try:
-        from stellar_cal_ros.effects import registry
-
-        eff_id, par = name.split(".", 1)
-        eff = registry.create(eff_id)
-        return str(eff.units[list(eff.parameter_names).index(par)])
-    except Exception:  # noqa: BLE001 - a plugin effect not loaded, an odd name
-        return ""
-
-
-@dataclass
-class Covariance:
-    """Covariance of the estimated parameters of a result (the sidecar file).
-
-    Attributes
-    ----------
-    names : list of str
-        ``effect.parameter`` (e.g. ``installation.rx``, ``principal_point.cx``).
-    units : list of str
-        Unit of each parameter (``rad``, ``px``, ``rad/s``, ``s``, ...).
-    matrix : ndarray of float64, shape (n, n)
-        Covariance, units[i]·units[j].
-    """
-
-    names: list[str]
-    units: list[str]
-    matrix: NDArray[np.float64]
-
-    def __post_init__(self) -> None:
-        self.names = [str(n) for n in self.names]
-        self.matrix = np.asarray(self.matrix, dtype=np.float64)
-        n = len(self.names)
-        if self.matrix.shape != (n, n):
-            raise CalibrationFileError(
-                f"covariance matrix has shape {self.matrix.shape}; expected ({n}, {n}) for "
-                f"{n} parameter names")
-        if not self.units:
-            self.units = [_parameter_unit(nm) for nm in self.names]
-        if len(self.units) != n:
-            raise CalibrationFileError(f"covariance: {len(self.units)} units for {n} names")
-
-    @classmethod
-    def from_tuple(cls, t: tuple) -> Covariance:
-        """From ``(names, matrix)`` or ``(names, matrix, units)``."""
-        names, matrix, *rest = t
-        return cls(list(names), list(rest[0]) if rest else [], matrix)
-
-    @property
-    def sigma(self) -> NDArray[np.float64]:
-        """1-σ of each parameter, shape (n,)."""
-        return np.sqrt(np.clip(np.diag(self.matrix), 0.0, None))
-
-    def correlation(self) -> NDArray[np.float64]:
-        """Correlation matrix, shape (n, n) (0 where a σ is 0)."""
-        s = self.sigma
-        with np.errstate(invalid="ignore", divide="ignore"):
-            c = self.matrix / np.outer(s, s)
-        return np.where(np.isfinite(c), c, 0.0)
-
-    def dump_yaml(self, calibration_name: str = "") -> str:
-        """The sidecar document (``format: stellar_cal_covariance/1``)."""
-        doc = {
-            "format": COVARIANCE_FORMAT,
-            "calibration": calibration_name,
-            "parameters": list(self.names),
-            "units": list(self.units),
-            "matrix": [_plain(row) for row in self.matrix],
-        }
-        return yaml.dump(doc, Dumper=_Dumper, sort_keys=False, width=120, allow_unicode=True)
 
 
 def load_covariance(path: str | os.PathLike[str]) -> Covariance:
