@@ -110,6 +110,69 @@ def test_replay_same_estimates_both_paths(sim_data, monkeypatch) -> None:
     np.testing.assert_allclose(np.sqrt(np.diag(fast.P)), np.sqrt(np.diag(ref.P)), rtol=1e-6)
 
 
+def test_fused_frame_step_taken_and_equal_to_numpy(sim_data, monkeypatch) -> None:
+    """One compiled call per frame (issue 24.1): taken for (nearly) every update, and the
+    consider sensitivity, its score and information, and the running statistics equal the
+    numpy path's (the same start-up amplification as above bounds θ; the sums are far
+    less sensitive)."""
+    from stellar_cal_ros.methods import frame_step
+
+    sim, data = sim_data
+    calls = []
+    original = frame_step.FusedStep.call
+
+    def counted(self, *a, **k):
+        calls.append(1)
+        return original(self, *a, **k)
+
+    monkeypatch.setattr(frame_step.FusedStep, "call", counted)
+    runs = []
+    for compiled in (True, False):
+        monkeypatch.setattr(StarFilter, "compiled_step", compiled)
+        runs.append(replay(data, sim.prior, "psce", consider=["radial_k3"], keep_tables=False))
+        if compiled:
+            n_fused = len(calls)
+    fast, ref = runs
+    assert len(calls) == n_fused  # the numpy path never calls it
+    assert fast.counters["updates"] == ref.counters["updates"]
+    assert n_fused >= 0.95 * fast.counters["updates"]
+    assert _sigma_units(fast.filter, ref.filter) <= SIGMA_TOL
+    a, b = fast.filter.sensitivity, ref.filter.sensitivity
+    assert a.frames == b.frames > 0
+    np.testing.assert_allclose(a.info, b.info, rtol=1e-4)
+    # the score is a sum of innovations: compared in units of its standard deviation
+    assert np.all(np.abs(a.score - b.score) <= 1e-2 * np.sqrt(np.diag(b.info)))
+    sa, sb = fast.stats, ref.stats
+    sa, sb = (s.current() if hasattr(s, "current") else s for s in (sa, sb))
+    assert (sa.frames, sa.stars, sa.gated) == (sb.frames, sb.stars, sb.gated)
+    for name in ("sum_logdet", "sum_nis", "sum_du2", "sum_dv2", "sum_suu", "sum_svv"):
+        assert getattr(sa, name) == pytest.approx(getattr(sb, name), rel=1e-5), name
+
+
+def test_compiled_frame_inputs_equal_numpy() -> None:
+    """``frame_inputs(compiled=True)`` (one compiled loop) applies the star rule and the σ
+    rule exactly as the numpy functions: identified with catalog_id 0, unidentified,
+    off-detector, non-finite and every bad σ (0, negative, inf, NaN)."""
+    from stellar_cal_ros.core.types import StarFrame
+    from stellar_cal_ros.methods.frames import frame_inputs
+
+    nan, inf = float("nan"), float("inf")
+    frame = StarFrame(
+        stamp_ns=1, frame_id="st", exposure_time=0.1,
+        catalog_id=np.array([5, 0, 0, 7, 8, 9, 10, 11, 12], dtype=np.uint32),
+        right_ascension=np.array([0.1, 0.2, nan, 0.3, 0.4, inf, 0.5, 0.6, 0.7]),
+        declination=np.array([0.2, -0.1, nan, 0.3, 0.0, 0.1, 0.2, 0.3, -0.4]),
+        uv=np.array([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0], [-0.6, 5.0], [99.4, 5.0],
+                     [1.0, 1.0], [2.0, nan], [3.0, 3.0], [4.0, 4.0]]),
+        magnitude=np.arange(9.0), sigma=np.array([0.1, 0.0, 0.2, 0.3, -1.0, 0.1, 0.1, inf, nan]))
+    a = frame_inputs(frame, 100, 80, 0.05, compiled=True)
+    b = frame_inputs(frame, 100, 80, 0.05, compiled=False)
+    for name in ("ok", "uv", "u_i", "sigma", "catalog_id", "magnitude"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert (a.bad_sigma, a.unidentified) == (b.bad_sigma, b.unidentified) == (3, 1)
+    assert a.ok.sum() == 5
+
+
 class PlainTimeOffset(TimeOffset):
     """The library's time offset as a user would write it: no compiled form."""
 

@@ -303,7 +303,8 @@ EARLY_FRAMES = 200
 LATE_SPACING_S = 5.0
 #: records kept at most (then every other one is dropped and the spacing doubled)
 MAX_RECORDS = 400
-#: records between two judgements over the first frames (later: every record)
+#: records between two judgements (and one more at the end of the data:
+#: :func:`judge_pending`)
 JUDGE_EVERY = 10
 
 
@@ -318,7 +319,7 @@ def new_watch() -> dict[str, Any]:
     return {"t": np.zeros(0), "R_star": np.zeros((0, 3, 3)), "rms": np.zeros(0),
             "G": np.zeros((0, 3, 3)), "segment": np.zeros(0, dtype=int), "seg": 0,
             "frames": 0, "G_now": np.eye(3), "R_post": None, "spacing": LATE_SPACING_S,
-            "result": None, "done": False}
+            "result": None, "done": False, "since": 0}
 
 
 def watch_frame(state: dict[str, Any], t: float,
@@ -375,8 +376,22 @@ def watch_frame(state: dict[str, Any], t: float,
         for key in ("t", "R_star", "rms", "G", "segment"):
             s[key] = s[key][::2]
         s["spacing"] *= 2.0
-    if s["frames"] <= EARLY_FRAMES and len(s["t"]) % JUDGE_EVERY:
+    s["since"] = s.get("since", 0) + 1
+    if s["since"] < JUDGE_EVERY:
         return ""
+    return judge_pending(s, R_imu_st)
+
+
+def judge_pending(state: dict[str, Any], R_imu_st: np.ndarray | None = None) -> str:
+    """Judge the records of a streaming check (:func:`watch_frame`); the fault ('' none).
+
+    :func:`watch_frame` judges every :data:`JUDGE_EVERY` records; call this at the end of
+    the data for the records since the last judgement (nothing to do: '').
+    """
+    s = state
+    if not s.get("since", 0) or s["done"]:
+        return ""
+    s["since"] = 0
     good = _good_fits(s["rms"])
     pairs = frame_pairs(len(s["t"]), segment=s["segment"])
     pairs = pairs[good[pairs[:, 0]] & good[pairs[:, 1]]] if len(pairs) else pairs

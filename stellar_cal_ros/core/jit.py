@@ -366,3 +366,57 @@ def star_blocks(H: FloatArray, P: FloatArray, r: FloatArray, nu: FloatArray
         x, y = nu[i, 0], nu[i, 1]
         nis[i] = (s11 * x * x - 2 * s01 * x * y + s00 * y * y) / (s00 * s11 - s01 * s01)
     return S, nis
+
+
+# ---------------------------------------------------------------------------- frame inputs
+@njit(cache=True)
+def star_inputs(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray,
+                sigma: FloatArray, mag: FloatArray, width: float, height: float,
+                default_sigma: float):
+    """:func:`stellar_cal_ros.methods.frames.frame_inputs` of one message, compiled.
+
+    The star rule of :func:`~stellar_cal_ros.methods.frames.star_masks`: a star is usable when
+    its RA/Dec and centroid are finite and the centroid lies on the detector (``−0.5 ≤ u <
+    width − 0.5``, likewise v); unidentified when ``cat`` is 0 and RA and Dec are NaN.  Its σ
+    (:func:`~stellar_cal_ros.methods.frames.star_sigma`) is the message's when finite and
+    positive, ``default_sigma`` otherwise (negative, infinite or NaN ones counted).
+    Returns ``(ok (n,), uv (k, 2), u_i (k, 3), sigma (k,), catalog_id (k,) int64,
+    magnitude (k,), bad_sigma, unidentified)`` — the numpy function's values (same formulas).
+    """
+    n = uv.shape[0]
+    ok = np.empty(n, dtype=np.bool_)
+    k = 0
+    unid = 0
+    for i in range(n):
+        u, v = uv[i, 0], uv[i, 1]
+        if cat[i] == 0 and math.isnan(ra[i]) and math.isnan(dec[i]):
+            unid += 1
+        good = (math.isfinite(ra[i]) and math.isfinite(dec[i])
+                and math.isfinite(u) and math.isfinite(v))
+        good = good and u >= -0.5 and u < width - 0.5 and v >= -0.5 and v < height - 0.5
+        ok[i] = good
+        k += good
+    uv_o = np.empty((k, 2))
+    u_i = np.empty((k, 3))
+    s_o = np.empty(k)
+    c_o = np.empty(k, dtype=np.int64)
+    m_o = np.empty(k)
+    bad = 0
+    j = 0
+    for i in range(n):
+        if not ok[i]:
+            continue
+        uv_o[j, 0], uv_o[j, 1] = uv[i, 0], uv[i, 1]
+        cd = math.cos(dec[i])
+        u_i[j, 0] = cd * math.cos(ra[i])
+        u_i[j, 1] = cd * math.sin(ra[i])
+        u_i[j, 2] = math.sin(dec[i])
+        s = sigma[i]
+        fine = math.isfinite(s)
+        if not (fine and s >= 0):
+            bad += 1
+        s_o[j] = s if fine and s > 0 else default_sigma
+        c_o[j] = cat[i]
+        m_o[j] = mag[i]
+        j += 1
+    return ok, uv_o, u_i, s_o, c_o, m_o, bad, unid

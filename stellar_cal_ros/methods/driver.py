@@ -147,30 +147,61 @@ class FrameOutcome:
 
 
 class _ImuQueue:
-    """Pending IMU samples (stamps ns, rates, specific forces) in growable arrays."""
+    """Pending IMU samples (stamps ns, rates, specific forces), held as the blocks pushed.
+
+    In-order blocks (the usual case, a bag or a transport in order) are released whole or
+    split, without copying every pending sample at every release; out-of-order ones are
+    sorted once when released.  ``t``, ``w``, ``f`` (all pending samples) and ``sorted`` are
+    what a checkpoint saves.
+    """
 
     def __init__(self) -> None:
-        self.t = np.zeros(0, dtype=np.int64)
-        self.w = np.zeros((0, 3))
-        self.f = np.zeros((0, 3))
+        self._blocks: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque()
         self.n = 0
-        self.sorted = True
+        self.sorted = True  #: the blocks in order are sorted by stamp
+        #: ... and strictly increasing (no duplicated stamp)
+        self.strict = True
+        self._tail: int | None = None  # the newest pending stamp
 
-    def push(self, t: np.ndarray, w: np.ndarray, f: np.ndarray) -> None:
+    def _concat(self, i: int) -> np.ndarray:
+        if not self._blocks:
+            return np.zeros((0,) + ((3,) if i else ()), dtype=np.int64 if i == 0 else float)
+        return np.concatenate([b[i] for b in self._blocks])
+
+    @property
+    def t(self) -> np.ndarray:
+        """Every pending stamp (arrival order unless sorted)."""
+        return self._concat(0)
+
+    @property
+    def w(self) -> np.ndarray:
+        return self._concat(1)
+
+    @property
+    def f(self) -> np.ndarray:
+        return self._concat(2)
+
+    def push(self, t: np.ndarray, w: np.ndarray, f: np.ndarray,
+             increasing: bool | None = None) -> None:
+        """Append a block (``increasing``: known strictly increasing)."""
         m = len(t)
-        if self.n + m > len(self.t):
-            cap = max(2 * (self.n + m), 1024)
-            for name, shape in (("t", ()), ("w", (3,)), ("f", (3,))):
-                old = getattr(self, name)
-                arr = np.zeros((cap,) + shape, dtype=old.dtype)
-                arr[:self.n] = old[:self.n]
-                setattr(self, name, arr)
-        if self.sorted and m and ((self.n and t[0] < self.t[self.n - 1])
-                                  or (m > 1 and np.any(np.diff(t) < 0))):
+        if not m:
+            return
+        if increasing is None:
+            increasing = m < 2 or bool((t[1:] > t[:-1]).all())
+        after = self._tail is None or t[0] > self._tail
+        if self.strict and not (increasing and after):
+            self.strict = False
+        if self.sorted and not (increasing and after) and (
+                (self._tail is not None and t[0] < self._tail)
+                or (m > 1 and np.any(t[1:] < t[:-1]))):
             self.sorted = False
-        self.t[self.n:self.n + m] = t
-        self.w[self.n:self.n + m] = w
-        self.f[self.n:self.n + m] = f
+        # the newest pending stamp (the last one while sorted: what the next block is
+        # compared with)
+        top = int(t[-1]) if increasing else int(t.max())
+        self._tail = top if self._tail is None else max(self._tail, top)
+        self._blocks.append((np.array(t, dtype=np.int64), np.array(w, dtype=float),
+                             np.array(f, dtype=float)))
         self.n += m
 
     def pop(self, limit_ns: int | None, keep_max: int) -> tuple[np.ndarray, ...]:
@@ -178,17 +209,45 @@ class _ImuQueue:
         n = self.n
         if not n:
             return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+        blocks = self._blocks
         if not self.sorted:
-            o = np.argsort(self.t[:n], kind="stable")
-            self.t[:n], self.w[:n], self.f[:n] = self.t[:n][o], self.w[:n][o], self.f[:n][o]
+            t, w, f = self._concat(0), self._concat(1), self._concat(2)
+            o = np.argsort(t, kind="stable")
+            blocks.clear()
+            blocks.append((t[o], w[o], f[o]))
             self.sorted = True
-        k = n if limit_ns is None else int(np.searchsorted(self.t[:n], limit_ns, side="right"))
+            self.strict = False  # duplicates may be in it: checked when released
+        if limit_ns is None:
+            k = n
+        else:
+            k = 0
+            for b in blocks:
+                if b[0][-1] <= limit_ns:
+                    k += len(b[0])
+                    continue
+                k += int(np.searchsorted(b[0], limit_ns, side="right"))
+                break
         k = max(k, n - keep_max)
-        out = self.t[:k].copy(), self.w[:k].copy(), self.f[:k].copy()
-        rest = n - k
-        self.t[:rest], self.w[:rest], self.f[:rest] = self.t[k:n], self.w[k:n], self.f[k:n]
-        self.n = rest
-        return out
+        out = []
+        left = k
+        while left:
+            b = blocks[0]
+            if len(b[0]) <= left:
+                out.append(blocks.popleft())
+                left -= len(b[0])
+            else:
+                out.append((b[0][:left], b[1][:left], b[2][:left]))
+                blocks[0] = (b[0][left:], b[1][left:], b[2][left:])
+                left = 0
+        self.n = n - k
+        if not blocks:
+            self._tail = None
+            self.strict = True
+        if len(out) == 1:
+            return out[0]
+        if not out:
+            return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+        return tuple(np.concatenate([o[i] for o in out]) for i in range(3))
 
 
 class Calibrator:
@@ -319,14 +378,21 @@ class Calibrator:
             ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
             c.imu_invalid += int((~ok).sum())
             t, w, f = t[ok], w[ok], f[ok]
-        if len(t) and self.imu_max_ns is not None:
-            leap, back = clocks.imu_jumps(t, self.imu_max_ns, int(self.driver.clock_jump_s * 1e9))
-            self._imu_leap = leap or self._imu_leap
-            if back:
-                c.imu_clock_jumps += 1
-                self._clock_fault(clocks.back_text(back, self.t0_ns), flag=False)
+        m = len(t)
+        # strictly increasing (the usual case): first and last are the extremes
+        inc = m < 2 or bool((t[1:] > t[:-1]).all())
+        if m and self.imu_max_ns is not None:
+            jump = int(self.driver.clock_jump_s * 1e9)
+            newest = self.imu_max_ns
+            if not (inc and t[0] >= newest - jump and t[-1] <= newest + jump
+                    and t[-1] - t[0] <= jump):
+                leap, back = clocks.imu_jumps(t, newest, jump)
+                self._imu_leap = leap or self._imu_leap
+                if back:
+                    c.imu_clock_jumps += 1
+                    self._clock_fault(clocks.back_text(back, self.t0_ns), flag=False)
         last = self._last_imu_ns
-        if last is not None and len(t) and not (len(t) == 1 and t[0] > last):
+        if last is not None and m and not (inc and t[0] > last):
             old = t <= last
             if old.any():
                 dup = t[old] == self._last_imu_ns
@@ -335,8 +401,8 @@ class Calibrator:
                 t, w, f = t[~old], w[~old], f[~old]
         if not len(t):
             return []
-        self._imu.push(t, w, f)
-        tmax = int(t.max())
+        self._imu.push(t, w, f, inc)
+        tmax = int(t[-1]) if inc else int(t.max())
         if self.imu_max_ns is None or tmax > self.imu_max_ns:
             self.imu_max_ns = tmax
         return self._pump()
@@ -386,7 +452,8 @@ class Calibrator:
                 c.imu_clock_jumps += 1
                 self._clock_fault(clocks.leap_text(self._imu_leap, stamp, self.t0_ns))
         cam = self.prior.camera
-        inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px)
+        inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px,
+                           compiled=self.filter_cls.compiled_step)
         if needs_identification(frame):  # identified when processed, with the IMU's hint
             self._to_identify.add(stamp)
         pending = self._frames_pending
@@ -421,7 +488,9 @@ class Calibrator:
             c.frames_overflow += 1
             self._last_frame_ns = int(old.stamp_ns)
             out.append(FrameOutcome(int(old.stamp_ns), old.frame_id, "dropped_overflow"))
-        return out + self._pump()
+        # a replay processes frames when IMU is handed over: a star message changes nothing
+        # the pump would act on (what it releases and hands on depends on the IMU only)
+        return out + ([] if self.driver.batch_frames else self._pump())
 
     def push_image(self, image) -> list[FrameOutcome]:
         """One star image (:class:`~stellar_cal_ros.io.image_msgs.ImageMessage`).
@@ -464,6 +533,8 @@ class Calibrator:
     def finish(self) -> list[FrameOutcome]:
         """End of input: release and process everything still held; close the tables."""
         out = self._pump(final=True)
+        if self.filter is not None:
+            self.filter.finish_checks()  # the gyro watch's last judgement
         return out
 
     def close(self) -> None:
@@ -479,12 +550,18 @@ class Calibrator:
     # ------------------------------------------------------------------ pumping
     def _release_imu(self, final: bool) -> None:
         limit = None if final else self.imu_max_ns - self.window_ns
+        strict = self._imu.strict
         t, w, f = self._imu.pop(limit, self.driver.max_pending_imu)
         if not len(t):
             return
-        d = np.diff(t)
         last = self._last_imu_ns
-        if (last is None or t[0] > last) and (d > 0).all():  # the usual case
+        if strict and (last is None or t[0] > last):  # the usual case: nothing to check
+            self._last_imu_ns = int(t[-1])
+            self._staged.append((t, w, f))
+            self._staged_n += len(t)
+            return
+        d = np.diff(t)
+        if (last is None or t[0] > last) and (d > 0).all():
             keep = None
         else:
             keep = np.ones(len(t), dtype=bool)
@@ -602,7 +679,8 @@ class Calibrator:
             if stamp in self._to_identify:
                 self._to_identify.discard(stamp)
                 fr, inp = self._identify(fr, inp, stamp)
-            ctx = frame_context(stamp, inp, self.site, self.env) if len(inp.uv) else None
+            ctx = frame_context(stamp, inp, self.site, self.env, self._env_keys()) \
+                if len(inp.uv) else None
             self._frames_pending.pop(0)
             self._inputs.pop(stamp, None)
             self._last_frame_ns = stamp
@@ -613,6 +691,15 @@ class Calibrator:
         if processed:
             self._trim()
         return out
+
+    def _env_keys(self) -> tuple[str, ...]:
+        """The environment inputs a frame's context needs.
+
+        The model's, and the head temperature of the residual table when it is kept.
+        """
+        keys = ("head",) if "head_temperature" in self.requires or \
+            not self.residuals.discard else ()
+        return keys + (("air", "pressure") if "weather" in self.requires else ())
 
     def _identify(self, frame: StarFrame, inp, stamp: int):
         """Identify a frame's unidentified centroids (:mod:`stellar_cal_ros.sky.identify`).
@@ -655,13 +742,13 @@ class Calibrator:
     def _process(self, frame: StarFrame, inp, ctx) -> FrameOutcome:
         flt = self.filter
         fc = flt.counters
-        before = fc.as_dict()
+        before = (dict(vars(fc)), dict(fc.extra))  # what changes names a skip
         if ctx is None:  # no usable star: counted as the replay always did
             fc.frames += 1
             fc.skipped_few_stars += 1
             fc.stars_invalid += len(inp.ok)
             return FrameOutcome(int(frame.stamp_ns), frame.frame_id, "skipped_few_stars")
-        fc.stars_invalid += int((~inp.ok).sum())
+        fc.stars_invalid += len(inp.ok) - len(inp.uv)
         if flt.sensitivity is not None:  # score and information over the evaluation window
             flt.sensitivity.accumulate = self.eval_start is None or \
                 frame.stamp_ns * 1e-9 >= self.eval_start
@@ -682,8 +769,9 @@ class Calibrator:
             self._conv.append((sigma[flt.it], float(upd.nis), int(upd.dof)))
         else:
             after = fc.as_dict()
-            changed = [k for k in after if after[k] != before.get(k, 0)
-                       and k not in ("frames", "stars_invalid", "stars_gated")]
+            old = dict(before[0], **before[1])
+            changed = [k for k in after if after[k] != old.get(k, 0)
+                       and k not in ("frames", "stars_invalid", "stars_gated", "extra")]
             if "init_frames" in changed:
                 status = "initialized"
             elif "reinitializations" in changed:

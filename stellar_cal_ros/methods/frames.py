@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.core.catalog import radec_to_unit
+from stellar_cal_ros.core.covariance import compiled_kernels
 from stellar_cal_ros.core.earth import Site
 from stellar_cal_ros.core.types import ScalarSeries, StarFrame, TopicInfo
 from stellar_cal_ros.effects.base import FrameContext
@@ -137,9 +138,25 @@ class FrameInputs:
     unidentified: int = 0  #: centroids without identity (catalog_id 0, NaN RA/Dec)
 
 
-def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float
-                 ) -> FrameInputs:
-    """Usable stars of a message and their filter inputs (see the module docstring)."""
+def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float,
+                 compiled: bool = False) -> FrameInputs:
+    """Usable stars of a message and their filter inputs (see the module docstring).
+
+    ``compiled``: in one compiled call (:func:`stellar_cal_ros.core.jit.star_inputs`, the
+    same rules and formulas as :func:`star_masks` and :func:`star_sigma`) when numba is there.
+    """
+    jit = compiled_kernels() if compiled else None
+    if jit is not None:
+        arrays = (np.asarray(frame.uv, dtype=float).reshape(-1, 2),
+                  np.asarray(frame.right_ascension, dtype=float),
+                  np.asarray(frame.declination, dtype=float), np.asarray(frame.catalog_id),
+                  np.asarray(frame.sigma, dtype=float), np.asarray(frame.magnitude, dtype=float))
+        # the compiled loop does not check bounds: arrays of unequal lengths take the numpy
+        # path (which raises as it always did)
+        if len({len(a) for a in arrays}) == 1:
+            ok, uv, u_i, sigma, cid, mag, bad, unid = jit.star_inputs(
+                *arrays, float(width), float(height), float(default_sigma))
+            return FrameInputs(ok, uv, u_i, sigma, cid, mag, int(bad), int(unid))
     masks = star_masks(frame, width, height)
     ok = masks.usable
     sigma, bad = star_sigma(np.asarray(frame.sigma, dtype=float)[ok], default_sigma)
@@ -477,16 +494,17 @@ class SiteEstimator:
 
 
 def frame_context(stamp_ns: int, inputs: FrameInputs, site: Site | None,
-                  env: dict[str, EnvSeries]) -> FrameContext:
-    """The context effects may use for one frame."""
+                  env: dict[str, EnvSeries], keys=ENV_KEYS) -> FrameContext:
+    """The context effects may use for one frame (environment ``keys`` only, others NaN)."""
+    nan = float("nan")
     return FrameContext(
         stamp=stamp_ns * 1e-9,
         catalog_id=inputs.catalog_id,
         magnitude=inputs.magnitude,
         site=site,
-        head_temperature_c=env["head"].interp(stamp_ns),
-        air_temperature_c=env["air"].interp(stamp_ns),
-        pressure_pa=env["pressure"].interp(stamp_ns),
+        head_temperature_c=env["head"].interp(stamp_ns) if "head" in keys else nan,
+        air_temperature_c=env["air"].interp(stamp_ns) if "air" in keys else nan,
+        pressure_pa=env["pressure"].interp(stamp_ns) if "pressure" in keys else nan,
     )
 
 

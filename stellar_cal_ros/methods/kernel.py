@@ -9,10 +9,10 @@ same for all methods lives here, once:
 
 * frame handling: bad stamps, duplicates and out-of-order frames, invalid stars (non-finite
   centroids or directions, σ ≤ 0), too few stars — each counted in :class:`FilterCounters`;
-* acquisition (:meth:`StarFilter.initialize`): the attitude from one frame by a pixel-space
-  Wahba fit under the current model, with the initial attitude error correlated with θ
-  exactly as the fit makes it (``φ₀ = −M δθ + r + noise``, see :meth:`StarFilter.initialize`),
-  and the navigation blocks set by the method;
+* acquisition (:meth:`StarFilter.initialize`, in :mod:`~stellar_cal_ros.methods.
+  acquisition`): the attitude from one frame by a pixel-space Wahba fit under the current
+  model, with the initial attitude error correlated with θ exactly as the fit makes it
+  (``φ₀ = −M δθ + r + noise``), and the navigation blocks set by the method;
 * re-acquisition (:meth:`StarFilter.reacquire`) after an IMU gap longer than
   ``gap_reacquire_s`` or ``reinit_after`` rejected frames in a row (lost lock): the
   navigation blocks are cleared and set again from a frame, θ and its covariance are kept;
@@ -56,15 +56,18 @@ import numpy as np
 
 from stellar_cal_ros.core import covariance as cov
 from stellar_cal_ros.core import gyro_check
-from stellar_cal_ros.core.attitude import fit_frame_attitude, wahba
 from stellar_cal_ros.core.gating import GatePolicy, block_nis, fov_tan2
 from stellar_cal_ros.core.imu import ImuBuffer
 from stellar_cal_ros.core.propagation import ImuPropagation, SensorModel, Step
-from stellar_cal_ros.core.rotation import so3_log
 from stellar_cal_ros.core.state import Block, ErrorState, StateLayout
 from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
 from stellar_cal_ros.effects.base import FrameContext, Stage
-from stellar_cal_ros.errors import DataError, ModelError
+from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.methods.acquisition import (  # noqa: F401 (re-exported for callers)
+    Acquisition,
+    subset_context,
+    wahba_inliers,
+)
 from stellar_cal_ros.methods.star_model import StarModel, state_attitude
 
 log = logging.getLogger(__name__)
@@ -90,6 +93,9 @@ class FrameUpdate:
     directions_st: np.ndarray  #: (n, 3)
     omega_b: np.ndarray  #: (3,)
     iterations: int
+    #: the frame's terms of the running statistics (:func:`~.results.frame_sums`; None:
+    #: computed from the fields when needed)
+    sums: np.ndarray | None = None
 
 
 @dataclass
@@ -165,7 +171,7 @@ class KernelConfig:
     unit_check_raises: bool = True
 
 
-class StarFilter:
+class StarFilter(Acquisition):
     """Error-state EKF over IMU samples and star frames (see the module docstring).
 
     Parameters
@@ -245,6 +251,9 @@ class StarFilter:
             self.nominal_dt, sensor(Stage.GYRO), sensor(Stage.ACCEL) if accel else None,
             self.gravitation if accel else None, c.fast_propagation_max_rad,
             c.reference_window_s, c.exact_propagation)
+        self._q_diag = np.concatenate([np.full(3, self.q_gyro), self.q_theta,
+                                       np.zeros(self.N - 3 - self.P_est)])
+        self._frame_step = None  # the fused compiled step (frame_step.FusedStep; False: none)
         self.t: float | None = None
         self._omega = np.zeros(3)
         self._omega_stale = False
@@ -265,6 +274,8 @@ class StarFilter:
         self._stamp_rel = 0.0  # the same, relative to t0 (from integer ns: exact)
         #: the gyro-against-stars check's state (None: off or decided)
         self.gyro_watch = gyro_check.new_watch() if c.unit_check else None
+        #: the gyro watch's installation (the prior's)
+        self._R_imu_st_prior = model.prior.installation.as_matrix()
         self._R_prior: tuple[np.ndarray, bool] | None = None  # (R_i_b propagated, gap)
         self.data_faults: list[str] = []  #: why the result is degraded (one line each)
 
@@ -391,8 +402,15 @@ class StarFilter:
         raise NotImplementedError
 
     def _transition(self, step: Step) -> None:
-        """Apply a propagation step: the nominal navigation values and the covariance."""
-        raise NotImplementedError
+        """``P ← Φ P Φᵀ + Q`` for ``Φ = [[I, Φ_φθ], [0, I]]`` over the step (the default).
+
+        Attitude rows driven by θ, nothing else: the estimated columns of ``Φ_φθ`` drive the
+        covariance, the consider ones the sensitivity; ``Q = diag(σ_g², q_θ, 0…) T`` (random
+        walks).  A method with navigation blocks overrides it.
+        """
+        F = step.F[0]
+        self.state.propagate_coupled(self.ia, self.it, F[:, :self.P_est],
+                                     self._q_diag * step.T, F[:, self.P_est:])
 
     # ------------------------------------------------------------------ propagation
     def propagate(self, t_target: float) -> None:
@@ -459,174 +477,6 @@ class StarFilter:
                                         self._stamp_rel - self.t, phi,
                                         compiled=self.compiled_step)
 
-    def initialize(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
-                   sigma: np.ndarray) -> bool:
-        """Acquire the attitude (and navigation) from one frame; False if it cannot.
-
-        The frame fit under the current model gives ``φ₀ = −M δθ`` to first order, with
-        ``M = (H_φᵀ H_φ)⁻¹ H_φᵀ H_θ`` (a principal-point offset is indistinguishable from an
-        attitude tilt in one frame), plus the centroid noise ``σ² (H_φᵀ H_φ)⁻¹`` and the
-        second moment of the second-order remainder in δθ
-        (:meth:`_init_second_order`).
-        """
-        model, theta, c = self.model, self.theta, self.config
-        shift, _ = model.time_shift(theta, ctx)
-        t_exp = self._stamp_rel + shift
-        imu_t = self.imu.t
-        if not len(imu_t) or t_exp <= imu_t[0] - self.nominal_dt or t_exp >= imu_t[-1]:
-            self.counters.skipped_no_imu += 1
-            return False
-        if self.t is not None and t_exp < self.t - 1e-9:
-            return False
-        camera = model.camera_at(theta, ctx)
-        R_imu_st, _ = model.installation_at(theta, ctx)
-        keep = wahba_inliers(camera, uv, u_i, c.init_outlier_px)
-        fit = None
-        for _ in range(3):
-            if keep.sum() < max(c.min_stars, 3):
-                return False
-            try:
-                R0 = wahba(camera.unproject(uv[keep]), u_i[keep])
-                fit = fit_frame_attitude(camera, uv[keep], u_i[keep], R_i_st0=R0)
-            except (ModelError, np.linalg.LinAlgError, ValueError) as exc:
-                log.warning("attitude fit failed at t=%.3f s: %s", t_exp, exc)
-                return False
-            err = np.linalg.norm(fit.residuals, axis=1)
-            if not np.all(np.isfinite(err)):
-                return False
-            bad = err > max(c.init_outlier_px, 5 * float(np.median(err)))
-            if not np.any(bad):
-                break
-            idx = np.flatnonzero(keep)
-            keep[idx[bad]] = False
-        R_i_b = fit.R_i_st @ R_imu_st.T
-        self.t = t_exp
-        self._k = self.imu.index(t_exp)
-        self.R_i_b = R_i_b
-        self.omega = self.rate_at(t_exp)
-        idx = np.flatnonzero(keep)
-        pred = self._predict(theta, u_i[keep], subset_context(ctx, idx))
-        Hf = pred.H_attitude.reshape(-1, 3)
-        Ht_all = pred.H_parameters.reshape(-1, model.size)
-        Ht = Ht_all[:, :self.P_est]
-        info = Hf.T @ Hf
-        if not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e12:
-            return False
-        M = np.linalg.solve(info, Hf.T @ Ht) if self.P_est else np.zeros((3, 0))
-        s2 = float(np.mean(sigma[keep] ** 2))
-        ia, it = self.ia, self.it
-        Ptt = self.P[it, it]
-        Q2 = self._init_second_order(uv[keep], u_i[keep], ctx, fit.R_i_st, R_i_b, M, Ht) \
-            if self.P_est and c.init_second_order else 0.0
-        self.state.assign(ia, ia, M @ Ptt @ M.T + s2 * np.linalg.inv(info) + Q2)
-        self.state.assign(ia, it, -M @ Ptt)
-        if self.sensitivity is not None:
-            self.sensitivity.clear_rows(self.layout.navigation_index)
-            self.sensitivity.set_rows(ia, -np.linalg.solve(info, Hf.T @ Ht_all[:, self.P_est:]))
-        self._acquire_navigation(t_exp)
-        self.counters.init_frames += 1
-        self._rejected_in_row = 0
-        self._good = self._snapshot()
-        log.info("attitude initialized at t=%.3f s from %d stars", t_exp, int(keep.sum()))
-        return True
-
-    def _init_second_order(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
-                           R_i_st: np.ndarray, R_i_b: np.ndarray, M: np.ndarray,
-                           Ht: np.ndarray) -> np.ndarray:
-        """Second moment of the second-order part of the initial attitude error.
-
-        The frame fit under the current model gives ``φ₀ = −M δθ`` only to first order in
-        δθ; with datasheet priors (pixels of principal point, 0.2° of installation) the
-        quadratic remainder ``r = ½ yᵀ H y`` (``δθ = L y``, ``L Lᵀ = P_θθ``, y ~ N(0, I))
-        is some 10 µrad, far above the centroid-noise term of a 0.005-px tracker; ignoring
-        it makes the filter start, and with little process noise stay, overconfident.
-        H is measured by refitting the frame under ``θ̂ + δ`` for ``δ = ±L_j`` and
-        ``L_j + L_k``: ``e_j = ½ H_jj`` is the even part along ``L_j`` and ``H_jk =
-        r(L_j + L_k) − e_j − e_k``.  Then ``E r = Σ e_j`` and
-        ``Cov r = 2 Σ e_j e_jᵀ + Σ_{j<k} H_jk H_jkᵀ`` (exact for a quadratic r).
-        """
-        model, theta, P_est = self.model, self.theta, self.P_est
-        Ptt = self.P[self.it, self.it]
-        try:
-            L = np.linalg.cholesky(Ptt)
-        except np.linalg.LinAlgError:
-            w, V = np.linalg.eigh(Ptt)
-            L = V * np.sqrt(np.clip(w, 0.0, None))
-        # columns that do not move the stars of one frame (gyro bias) contribute nothing
-        HL = np.linalg.norm(Ht @ L, axis=0)
-        cols = np.flatnonzero(HL > 1e-9 * (1.0 + HL.max()))
-
-        def remainder(delta: np.ndarray) -> np.ndarray | None:
-            th = theta.copy()
-            th[:P_est] += delta
-            R_imu_st, _ = model.installation_at(th, ctx)
-            try:
-                fit = fit_frame_attitude(model.camera_at(th, ctx), uv, u_i, R_i_st0=R_i_st,
-                                         max_iterations=2)
-            except (ModelError, np.linalg.LinAlgError, ValueError):
-                return None
-            phi = so3_log((fit.R_i_st @ R_imu_st.T) @ R_i_b.T) + M @ delta
-            return phi if np.all(np.isfinite(phi)) else None
-
-        e = {}
-        for j in cols:
-            rp, rm = remainder(L[:, j]), remainder(-L[:, j])
-            if rp is not None and rm is not None:
-                e[j] = 0.5 * (rp + rm)
-        if not e:
-            return np.zeros((3, 3))
-        mean = sum(e.values())
-        Q = 2.0 * sum(np.outer(v, v) for v in e.values())
-        keys = sorted(e)
-        for a, j in enumerate(keys):
-            for k in keys[a + 1:]:
-                r = remainder(L[:, j] + L[:, k])
-                if r is not None:
-                    h = r - e[j] - e[k]
-                    Q = Q + np.outer(h, h)
-        return Q + np.outer(mean, mean)
-
-    def reacquire(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
-                  sigma: np.ndarray) -> bool:
-        """Re-acquire the navigation blocks from a frame; keep θ and its covariance.
-
-        After an IMU gap or a lost lock the nominal attitude (and velocity, position) carry
-        errors the covariance does not describe; updating them would pull θ.  Their rows and
-        columns of P are cleared and :meth:`initialize` sets them as at the start.
-        False (state unchanged) if the frame cannot align.
-        """
-        saved = self._snapshot(full=True)
-        self.state.forget(self.layout.navigation_index)
-        if not self.initialize(uv, u_i, ctx, sigma):
-            self._restore(saved)
-            return False
-        self.counters.init_frames -= 1
-        self.counters.reinitializations += 1
-        self._after_reacquire()
-        return True
-
-    def _watch_gyro(self, uv: np.ndarray, u_i: np.ndarray,
-                    R_prior: np.ndarray | None) -> None:
-        """Add the frame to the gyro-against-stars check (:mod:`~stellar_cal_ros.core.gyro_check`).
-
-        ``R_prior``: the attitude propagated to the frame (None: the gyro chain starts again).
-        A fault found over the first :data:`~stellar_cal_ros.core.gyro_check.EARLY_FRAMES`
-        frames raises :class:`DataError`; later it flags the result (:attr:`data_faults`).
-        """
-        w = self.gyro_watch
-        prior = self.model.prior
-        cause = gyro_check.watch_frame(w, self.t, lambda: prior.camera.unproject(uv), u_i,
-                                       R_prior, self.R_i_b, prior.installation.as_matrix())
-        if w["done"]:
-            self.gyro_watch = None
-        if not cause:
-            return
-        self.counters.add("gyro_star_mismatch")
-        if w["frames"] <= gyro_check.EARLY_FRAMES and self.config.unit_check_raises:
-            raise DataError(cause)
-        log.warning("t=%.1f s: %s; the result is degraded", self.t, cause)
-        self.data_faults.append(cause)
-
     # ------------------------------------------------------------------ state snapshots
     def _snapshot(self, full: bool = False) -> tuple:
         """Copy of the estimate (P, nominal values); ``full`` adds time and sensitivity."""
@@ -661,6 +511,10 @@ class StarFilter:
         model = self.model
         shift, _ = model.time_shift(self.theta, ctx)
         t_exp = self._stamp_rel + shift
+        if self.compiled_step:
+            done, result = self._fused_update(uv, u_i, ctx, sigma, t_exp)
+            if done:
+                return result
         try:
             self.propagate(t_exp)
         except NoImuError:
@@ -677,6 +531,7 @@ class StarFilter:
         return self._star_update(uv, u_i, ctx, sigma, t_exp)
 
     def _star_update(self, uv, u_i, ctx, sigma, t_exp) -> FrameUpdate:
+        """The star update of a propagated state (the numpy reference path)."""
         c = self.config
         n = len(uv)
         N = self.N
@@ -696,32 +551,13 @@ class StarFilter:
             S_blocks[:, 1, 1] += R_meas
             nis_stars = block_nis(nu0, S_blocks)
         gate = self.gate.decide(nis_stars, pred0.directions_st)
-        # the last 10 frames as bits: one odd frame is counted, a pattern is reported
-        self._mismatch_bits = ((self._mismatch_bits << 1) | int(gate.mismatch)) & 0x3FF
-        if gate.mismatch:
-            self.counters.add("frames_model_mismatch")
-            if not self._mismatch_warned and bin(self._mismatch_bits).count("1") >= 3:
-                self._mismatch_warned = True
-                log.warning("t=%.3f s: the stars' median NIS is %.0fx what the model expects "
-                            "(3 or more of the last 10 frames): the model misses an effect "
-                            "(run stellar-cal diagnose)", t_exp, gate.scale)
-        if gate.lost_lock:
-            self.counters.add("frames_lost_lock")
-        if gate.outside_fov:
-            self.counters.add("stars_outside_fov", gate.outside_fov)
         accepted = gate.accepted
         n_acc = int(np.count_nonzero(accepted))
-        self.counters.stars_gated += n - n_acc
+        self._gated(gate.mismatch, gate.scale, gate.lost_lock, gate.outside_fov, n, n_acc, t_exp)
         result = FrameUpdate(ctx.stamp, t_exp, accepted, uv, pred0.uv, S_blocks, nis_stars,
                              float("nan"), 0, pred0.directions_st, self.omega.copy(), 0)
         if n_acc < c.min_stars:
-            self.counters.skipped_few_stars += 1
-            self._rejected_in_row += 1
-            if self._rejected_in_row >= c.reinit_after:
-                # lost lock (e.g. after an IMU gap during a slew): re-acquire from this frame
-                log.warning("t=%.3f s: %d frames in a row rejected, re-acquiring the attitude",
-                            t_exp, self._rejected_in_row)
-                self.reacquire(uv, u_i, ctx, sigma)
+            self._too_few(uv, u_i, ctx, sigma, t_exp)
             return result
         self._rejected_in_row = 0
         idx = np.flatnonzero(accepted)
@@ -749,17 +585,111 @@ class StarFilter:
         res = self.state.iterated_update(H, h, z, r_diag, relinearize, self.update_policy,
                                          self.ia, self.it, Hb, compiled=self.compiled_step)
         if not res.ok:
-            self.counters.add("update_failed")
-            log.warning("t=%.3f s: %s: frame skipped", t_exp, res.reason)
+            self._failed(res.reason, t_exp)
             return result
         self.inject(res.dx)
+        self._updated(result, res.nis, int(len(z)), res.iterations)
+        return result
+
+    # ------------------------------------------------------------------ one compiled call
+    def _fused_update(self, uv, u_i, ctx, sigma, t_exp) -> tuple[bool, FrameUpdate | None]:
+        """Propagation and star update in one compiled call (:mod:`.frame_step`).
+
+        ``(False, None)`` when the frame needs the numpy path (nothing changed): no compiled
+        chain, a method with its own transition or measurements, a bridged IMU sample, a
+        re-acquisition pending, a reference strapdown to rebuild.
+        """
+        from stellar_cal_ros.methods import frame_step
+
+        fs = self._frame_step
+        if fs is None:
+            fs = self._frame_step = frame_step.FusedStep.build(self) or False
+        if not fs or self._gap_pending or self.t is None or t_exp <= self.t:
+            return False, None
+        imu, prop = self.imu, self.propagation
+        k = self._k
+        m = imu.index(t_exp)
+        pre = prop.prefix
+        if m >= len(imu) or pre is None or imu.base + k < pre.base or \
+                pre.end <= imu.base + m or imu.base + m - prop.ref_start >= prop.window:
+            return False, None
+        cb = imu.cum_bridged
+        if cb[m + 1] != cb[k]:
+            return False, None
+        st = self.state
+        sens = st.sensitivity
+        off = imu.base - pre.base
+        P = st.P if st.P.flags.c_contiguous else np.ascontiguousarray(st.P)
+        st.P = P
+        status, ints, floats, accepted, uv_pred, S, nis_stars, dirs, omega, R_prior = \
+            fs.call(P, self.theta, self.R_i_b, sens, pre, k + off, m + off, self.t, t_exp,
+                    prop, imu.w[m], uv, u_i, sigma, self._stamp_rel - t_exp)
+        if status == frame_step.REBUILD:
+            return False, None
+        self.t = t_exp
+        self._k = m
+        self.omega = omega
+        if self.gyro_watch is not None:
+            self._R_prior = (R_prior, False)
+        n, n_acc = len(uv), int(ints[0])
+        self._gated(bool(ints[2]), float(floats[1]), bool(ints[3]), int(ints[4]), n, n_acc,
+                    t_exp)
+        result = FrameUpdate(ctx.stamp, t_exp, accepted, uv, uv_pred, S, nis_stars,
+                             float("nan"), 0, dirs, omega.copy(), 0)
+        if status == frame_step.FEW_STARS:
+            self._too_few(uv, u_i, ctx, sigma, t_exp)
+        elif status != frame_step.UPDATED:
+            self._failed(frame_step.REASONS[status], t_exp)
+        else:
+            self._rejected_in_row = 0
+            if sens is not None and sens.accumulate:
+                sens.frames += 1
+            self._omega_stale = True
+            result.sums = floats[2:12]
+            self._updated(result, float(floats[0]), 2 * n_acc, int(ints[1]))
+        return True, result
+
+    # ------------------------------------------------------------------ update bookkeeping
+    def _gated(self, mismatch: bool, scale: float, lost: bool, outside: int, n: int,
+               n_acc: int, t_exp: float) -> None:
+        """Count what the gate decided (and warn once about a model mismatch pattern)."""
+        # the last 10 frames as bits: one odd frame is counted, a pattern is reported
+        self._mismatch_bits = ((self._mismatch_bits << 1) | int(mismatch)) & 0x3FF
+        if mismatch:
+            self.counters.add("frames_model_mismatch")
+            if not self._mismatch_warned and bin(self._mismatch_bits).count("1") >= 3:
+                self._mismatch_warned = True
+                log.warning("t=%.3f s: the stars' median NIS is %.0fx what the model expects "
+                            "(3 or more of the last 10 frames): the model misses an effect "
+                            "(run stellar-cal diagnose)", t_exp, scale)
+        if lost:
+            self.counters.add("frames_lost_lock")
+        if outside:
+            self.counters.add("stars_outside_fov", outside)
+        self.counters.stars_gated += n - n_acc
+
+    def _too_few(self, uv, u_i, ctx, sigma, t_exp) -> None:
+        """A frame with too few accepted stars: skipped; a few in a row re-acquire."""
+        self.counters.skipped_few_stars += 1
+        self._rejected_in_row += 1
+        if self._rejected_in_row >= self.config.reinit_after:
+            # lost lock (e.g. after an IMU gap during a slew): re-acquire from this frame
+            log.warning("t=%.3f s: %d frames in a row rejected, re-acquiring the attitude",
+                        t_exp, self._rejected_in_row)
+            self.reacquire(uv, u_i, ctx, sigma)
+
+    def _failed(self, reason: str, t_exp: float) -> None:
+        self.counters.add("update_failed")
+        log.warning("t=%.3f s: %s: frame skipped", t_exp, reason)
+
+    def _updated(self, result: FrameUpdate, nis: float, dof: int, iterations: int) -> None:
+        c = self.config
         self.counters.updates += 1
         if c.covariance_check_every and self.counters.updates % c.covariance_check_every == 0:
             self._check_covariance()
-        result.nis = res.nis
-        result.dof = int(len(z))
-        result.iterations = res.iterations
-        return result
+        result.nis = nis
+        result.dof = dof
+        result.iterations = iterations
 
     def _check_covariance(self) -> None:
         """Cheap health check of P; repair (or roll back) instead of going on corrupted."""
@@ -787,7 +717,7 @@ class StarFilter:
         """
         self.counters.frames += 1
         t_rel = ctx.stamp - self.t0 if t_rel is None else float(t_rel)
-        if not np.isfinite(t_rel):
+        if not math.isfinite(t_rel):
             self.counters.add("skipped_bad_stamp")
             return None
         if self.last_stamp is not None:
@@ -798,9 +728,11 @@ class StarFilter:
                 self.counters.skipped_out_of_order += 1
                 log.warning("star frame at %.6f is older than the last one: skipped", ctx.stamp)
                 return None
-        good = np.isfinite(uv).all(axis=1) & np.isfinite(u_i).all(axis=1) & \
-            np.isfinite(sigma) & (sigma > 0)
-        if not good.all():
+        # the whole frame at once first (the usual case: every star valid)
+        if not (np.isfinite(uv).all() and np.isfinite(u_i).all() and np.isfinite(sigma).all()
+                and (sigma > 0).all()):
+            good = np.isfinite(uv).all(axis=1) & np.isfinite(u_i).all(axis=1) & \
+                np.isfinite(sigma) & (sigma > 0)
             self.counters.stars_invalid += int((~good).sum())
             uv, u_i, sigma = uv[good], u_i[good], sigma[good]
             ctx = subset_context(ctx, np.flatnonzero(good))
@@ -821,35 +753,3 @@ class StarFilter:
             self._R_prior = None
             self._watch_gyro(uv, u_i, None if gap else R)
         return upd
-
-
-def wahba_inliers(camera, uv: np.ndarray, u_i: np.ndarray, outlier_px: float) -> np.ndarray:
-    """Stars consistent with one rotation (drops misidentified ones before the pixel fit).
-
-    Wahba on the unprojected centroids, then repeatedly drop the worst star while it is
-    off by more than ``max(outlier_px / f, 5 × median)`` in angle.
-    """
-    d = camera.unproject(uv)
-    keep = np.all(np.isfinite(d), axis=1) & np.all(np.isfinite(u_i), axis=1)
-    floor = outlier_px / max(camera.fx, camera.fy)
-    for _ in range(len(uv)):
-        if keep.sum() < 3:
-            break
-        R = wahba(d[keep], u_i[keep])
-        ang = np.full(len(uv), np.inf)
-        ang[keep] = np.linalg.norm(d[keep] @ R.T - u_i[keep], axis=1)
-        worst = int(np.argmax(np.where(keep, ang, -1.0)))
-        if ang[worst] <= max(floor, 5.0 * float(np.median(ang[keep]))):
-            break
-        keep[worst] = False
-    return keep
-
-
-def subset_context(ctx: FrameContext, idx: np.ndarray) -> FrameContext:
-    """The context of a subset of the frame's stars (per-star arrays sliced)."""
-    return dataclasses.replace(
-        ctx,
-        catalog_id=np.asarray(ctx.catalog_id)[idx] if len(ctx.catalog_id) else ctx.catalog_id,
-        magnitude=np.asarray(ctx.magnitude)[idx] if len(ctx.magnitude) else ctx.magnitude,
-        extra={},
-    )

@@ -28,16 +28,13 @@ Joseph-form covariance update, followed by the reset ``R̂ ← Exp(δφ) R̂``, 
 Frame handling, acquisition (with the initial attitude error correlated with θ), the gate,
 the iterated update, re-acquisition and IMU gap bridging are the shared kernel's
 (:mod:`stellar_cal_ros.methods.kernel`); this module holds what is PSCE's own: the state
-(attitude and θ, no navigation blocks) and its transition.
+(attitude and θ, no navigation blocks; the kernel's attitude transition).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
-from stellar_cal_ros.core.propagation import Step
 from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.methods.kernel import (  # noqa: F401 (re-exported for callers)
     FilterCounters,
@@ -87,18 +84,6 @@ class PsceFilter(StarFilter):
     def __init__(self, model: StarModel, t0: float, config: PsceConfig | None = None, *,
                  nominal_dt: float, consider: int = 0) -> None:
         super().__init__(model, t0, config or PsceConfig(), nominal_dt, consider)
-        self._q_diag = np.concatenate([np.full(3, self.q_gyro), self.q_theta])
-
-    def _transition(self, step: Step) -> None:
-        """``P ← Φ P Φᵀ + Q`` for ``Φ = [[I, Φ_φθ], [0, I]]`` over the step.
-
-        The estimated columns of ``Φ_φθ`` drive the covariance, the consider ones the
-        sensitivity; ``Q = diag(σ_g², q_θ) T`` (random walks).
-        """
-        F = step.F[0]
-        self.state.propagate_coupled(self.ia, self.it, F[:, :self.P_est],
-                                     self._q_diag * step.T, F[:, self.P_est:])
-
 
 METHOD = MethodSpec(
     name="psce", kind="filter",

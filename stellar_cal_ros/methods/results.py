@@ -172,6 +172,43 @@ class NullSink(TableSink):
         return None
 
 
+def frame_sums(upd) -> np.ndarray:
+    """One frame's terms of :meth:`RunStats.add` (10,) over its accepted stars.
+
+    ``[n, Σ log det S, Σ min(NIS, cap), Σ du², Σ dv², Σ S_uu, Σ S_vv, Σ NIS, whitened u
+    mean · √n, whitened v mean · √n]`` (whitened: Cholesky ``L⁻¹ ν``).  The compiled frame
+    step computes the same (:func:`~stellar_cal_ros.methods.frame_step.frame_sums`) and hands
+    it over as ``FrameUpdate.sums``.
+    """
+    acc = upd.accepted
+    n = int(acc.sum())
+    out = np.zeros(10)
+    out[0] = n
+    if not n:
+        return out
+    S = upd.S
+    if n == len(acc):  # every star accepted: the same values without the copies
+        nu, Sa, nis_acc = upd.uv - upd.uv_pred, S, upd.nis_stars
+    else:
+        nu, Sa, nis_acc = (upd.uv - upd.uv_pred)[acc], S[acc], upd.nis_stars[acc]
+    det = Sa[:, 0, 0] * Sa[:, 1, 1] - Sa[:, 0, 1] ** 2
+    out[1] = float(np.sum(np.log(np.maximum(det, 1e-300))))
+    out[2] = float(np.sum(np.minimum(nis_acc, NIS_CAP)))
+    out[3] = float(nu[:, 0] @ nu[:, 0])
+    out[4] = float(nu[:, 1] @ nu[:, 1])
+    out[5] = float(Sa[:, 0, 0].sum())
+    out[6] = float(Sa[:, 1, 1].sum())
+    out[7] = float(np.sum(nis_acc))
+    l11 = np.sqrt(Sa[:, 0, 0])
+    l21 = Sa[:, 0, 1] / l11
+    l22 = np.sqrt(np.maximum(Sa[:, 1, 1] - l21**2, 1e-300))
+    w1 = nu[:, 0] / l11
+    w2 = (nu[:, 1] - l21 * w1) / l22
+    out[8] = float(w1.mean()) * math.sqrt(n)
+    out[9] = float(w2.mean()) * math.sqrt(n)
+    return out
+
+
 @dataclass
 class RunStats:
     """Running statistics of the innovations over the evaluation window (O(1) memory).
@@ -206,12 +243,10 @@ class RunStats:
 
     def add(self, upd) -> None:
         """Add one frame update (:class:`~.kernel.FrameUpdate`)."""
-        acc = upd.accepted
-        n = int(acc.sum())
+        n = int(upd.sums[0]) if upd.sums is not None else int(np.count_nonzero(upd.accepted))
         self.accepted_total += n
         if self.eval_start is not None and upd.stamp < self.eval_start:
             return
-        S = upd.S
         self.stars_all += len(upd.uv)
         self.gated += len(upd.uv) - n
         if math.isfinite(upd.nis):
@@ -220,27 +255,17 @@ class RunStats:
         if not n:
             return
         self.frames += 1
-        if n == len(acc):  # every star accepted: the same values without the copies
-            nu, Sa, nis_acc = upd.uv - upd.uv_pred, S, upd.nis_stars
-        else:
-            nu, Sa, nis_acc = (upd.uv - upd.uv_pred)[acc], S[acc], upd.nis_stars[acc]
-        det = Sa[:, 0, 0] * Sa[:, 1, 1] - Sa[:, 0, 1] ** 2
-        self.sum_logdet += float(np.sum(np.log(np.maximum(det, 1e-300))))
-        self.sum_nis_capped += float(np.sum(np.minimum(nis_acc, NIS_CAP)))
+        sums = upd.sums if upd.sums is not None else frame_sums(upd)
+        self.sum_logdet += float(sums[1])
+        self.sum_nis_capped += float(sums[2])
         self.stars += n
-        self.sum_du2 += float(nu[:, 0] @ nu[:, 0])
-        self.sum_dv2 += float(nu[:, 1] @ nu[:, 1])
-        self.sum_suu += float(Sa[:, 0, 0].sum())
-        self.sum_svv += float(Sa[:, 1, 1].sum())
-        self.sum_nis += float(np.sum(nis_acc))
-        # whitened (Cholesky L⁻¹ ν), frame mean × √n
-        l11 = np.sqrt(Sa[:, 0, 0])
-        l21 = Sa[:, 0, 1] / l11
-        l22 = np.sqrt(np.maximum(Sa[:, 1, 1] - l21**2, 1e-300))
-        w1 = nu[:, 0] / l11
-        w2 = (nu[:, 1] - l21 * w1) / l22
+        self.sum_du2 += float(sums[3])
+        self.sum_dv2 += float(sums[4])
+        self.sum_suu += float(sums[5])
+        self.sum_svv += float(sums[6])
+        self.sum_nis += float(sums[7])
         w = self._w
-        for k, x in enumerate((float(w1.mean()) * math.sqrt(n), float(w2.mean()) * math.sqrt(n))):
+        for k, x in enumerate((float(sums[8]), float(sums[9]))):
             if w["n"][k]:
                 w["lag"][k] += x * w["last"][k]
             else:

@@ -1,0 +1,498 @@
+"""One compiled call per star frame (numba): propagation, update, statistics.
+
+Propagation, prediction, gate, iterated update, sensitivity, injection and the frame's
+terms of the running statistics.
+
+:meth:`~stellar_cal_ros.methods.kernel.StarFilter.update` takes this path when the frame is
+an ordinary one — the model has a compiled star chain
+(:mod:`~stellar_cal_ros.methods.star_chain`), the method propagates with the kernel's
+attitude transition (:meth:`StarFilter._transition`: attitude rows driven by θ, random
+walks; PSCE), no IMU sample of the interval is bridged and no re-acquisition is pending —
+and :func:`frame_step` computes, in one call, what the numpy path computes in
+:class:`~stellar_cal_ros.core.propagation.ImuPropagation`, :class:`~stellar_cal_ros.core.
+state.ErrorState`, :class:`~stellar_cal_ros.core.gating.GatePolicy`,
+:func:`~stellar_cal_ros.core.covariance.iterated_update` and
+:meth:`~stellar_cal_ros.methods.results.RunStats.add`: the same formulas, in loops.  The
+numpy path stays the reference (``StarFilter.compiled_step = False``);
+``test/test_compiled_step.py`` holds the two to a fraction of the posterior σ.
+
+Whatever needs Python — a reference strapdown to rebuild, too few stars (the re-acquisition
+logic), a failed update (its log line) — comes back as a status before or after the
+propagation, and the kernel goes on from there with the state as the numpy path leaves it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from stellar_cal_ros.core.jit import joseph, kalman_gain, mat3_mul, njit, so3_exp1, star_blocks
+from stellar_cal_ros.methods.star_chain import predict_chain
+
+#: statuses of :func:`frame_step`
+UPDATED, REBUILD, FEW_STARS, BAD_GAIN, BAD_RELINEARIZATION, NON_FINITE = 0, 1, 2, 3, 4, 5
+#: the numpy path's words for the failures
+REASONS = {BAD_GAIN: "innovation covariance not positive definite",
+           BAD_RELINEARIZATION: "relinearization left the field of view",
+           NON_FINITE: "non-finite update"}
+#: median of χ² with 2 degrees of freedom (core.gating.CHI2_2_MEDIAN)
+_CHI2_2_MEDIAN = 2.0 * math.log(2.0)
+#: config vector of :func:`frame_step` (see StarFilter._frame_config)
+CONFIG_FIELDS = ("threshold", "scale_by_frame", "mismatch_factor", "lost_lock_factor",
+                 "fov_tan2", "min_stars", "max_iterations", "iteration_tolerance",
+                 "relinearize_rad", "relinearize_sigma", "max_correction_rad", "nis_cap")
+
+
+@njit(cache=True)
+def _mat3_mul_t(a, b):
+    """``a @ bᵀ`` of two (3, 3) matrices."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[j, 0] + a[i, 1] * b[j, 1] + a[i, 2] * b[j, 2]
+    return out
+
+
+@njit(cache=True)
+def _at(tp, C, phi, m, t):
+    """:meth:`ImuPrefix.at`: ``C(t)`` in row ``m``, its increment split linearly in time."""
+    a = (t - tp[m]) / (tp[m + 1] - tp[m])
+    if a > 0.0:
+        return mat3_mul(C[m], so3_exp1(a * phi[m]))
+    return C[m].copy()
+
+
+@njit(cache=True)
+def attitude_interval(tp, C, w_hat, phi, j, mj, ta, tb, R_a, Gamma, delta, max_rad):
+    """The attitude-only :meth:`ImuPropagation._interval` (rows ``j..mj`` of the reference).
+
+    Returns ``(ok, R_b (3, 3), F (3, P))``; ``ok`` False when the first-order correction
+    exceeds ``max_rad`` (the reference is to be rebuilt; nothing else computed).
+    """
+    n = mj - j + 1
+    Ca = _at(tp, C, phi, j, ta)
+    Cb = _at(tp, C, phi, mj, tb)
+    Q = _mat3_mul_t(R_a, Ca)
+    K = Gamma.shape[0]
+    Z = np.zeros((3, K))
+    prev = ta
+    for i in range(n):
+        r = j + i
+        end = tb if i == n - 1 else tp[r + 1]
+        hw = 0.5 * (end - prev)
+        prev = end
+        Cs = Ca if i == 0 else C[r]
+        Ce = Cb if i == n - 1 else C[r + 1]
+        for a in range(3):
+            for b in range(3):
+                cm = (Cs[a, b] + Ce[a, b]) * hw
+                Z[a, b] += cm
+                if K > 3:
+                    for c in range(3):
+                        Z[a, 3 + 3 * b + c] += cm * w_hat[r, c]
+    F = Q @ (Z @ Gamma)
+    corr = F @ delta
+    if corr[0] * corr[0] + corr[1] * corr[1] + corr[2] * corr[2] > max_rad * max_rad:
+        return False, np.eye(3), F
+    return True, mat3_mul(so3_exp1(corr), mat3_mul(Q, Cb)), F
+
+
+@njit(cache=True)
+def propagate_coupled(P, M, Pe, F, q_diag):
+    """:func:`~stellar_cal_ros.core.covariance.propagate_coupled` of the attitude rows.
+
+    Rows 0:3 (attitude) driven by columns 3:3+Pe (θ), and the sensitivity
+    ``M[0:3] += F M[3:3+Pe] + F_β``.
+    """
+    N = P.shape[0]
+    rows, c0, c1 = 3, 3, 3 + Pe
+    Fe = np.ascontiguousarray(F[:, :Pe])
+    if Pe:
+        Pcc = np.ascontiguousarray(P[c0:c1, c0:c1])
+        FP = Fe @ Pcc
+        Prc = np.ascontiguousarray(P[0:rows, c0:c1])
+        Pcr = np.ascontiguousarray(P[c0:c1, 0:rows])
+        add = Fe @ Pcr + Prc @ Fe.T + FP @ Fe.T
+        cross = Prc + FP
+        for a in range(3):
+            for b in range(3):
+                P[a, b] += add[a, b]
+        for a in range(3):
+            for k in range(Pe):
+                P[a, c0 + k] = cross[a, k]
+                P[c0 + k, a] = cross[a, k]
+        if c1 < N:  # other columns of the driven rows
+            Po = np.ascontiguousarray(P[c0:c1, c1:N])
+            addo = Fe @ Po
+            for a in range(3):
+                for k in range(N - c1):
+                    P[a, c1 + k] += addo[a, k]
+                    P[c1 + k, a] += addo[a, k]
+    for i in range(N):
+        P[i, i] += q_diag[i]
+    if M.shape[1]:
+        Madd = Fe @ np.ascontiguousarray(M[c0:c1]) if Pe else np.zeros((3, M.shape[1]))
+        for a in range(3):
+            for k in range(M.shape[1]):
+                M[a, k] += Madd[a, k] + F[a, Pe + k]
+
+
+@njit(cache=True)
+def gate(nis, d, cfg, accepted):
+    """:meth:`~stellar_cal_ros.core.gating.GatePolicy.decide` (fills ``accepted``).
+
+    Returns ``(scale, mismatch, lost_lock, outside)``.
+    """
+    n = nis.shape[0]
+    fin = np.empty(n)
+    k = 0
+    for i in range(n):
+        if math.isfinite(nis[i]):
+            fin[k] = nis[i]
+            k += 1
+    scale = 1.0
+    if cfg[1] != 0.0 and k >= 3:
+        s = np.sort(fin[:k])
+        h = k // 2
+        med = s[h] if k % 2 else (s[h - 1] + s[h]) / 2.0
+        scale = max(1.0, med / _CHI2_2_MEDIAN)
+    thr = cfg[0] * scale
+    for i in range(n):
+        accepted[i] = nis[i] <= thr
+    lost = scale > cfg[3]
+    if lost:
+        for i in range(n):
+            accepted[i] = False
+    outside = 0
+    fov = cfg[4]
+    if math.isfinite(fov):
+        for i in range(n):
+            z = d[i, 2]
+            ok = z > 0 and (d[i, 0] ** 2 + d[i, 1] ** 2) / z ** 2 <= fov
+            if not ok:
+                outside += 1
+                accepted[i] = False
+    return scale, scale > cfg[2], lost, outside
+
+
+@njit(cache=True)
+def frame_sums(nu, S, nis, accepted, nis_cap):
+    """The frame's terms of :meth:`~stellar_cal_ros.methods.results.RunStats.add` (10,).
+
+    ``[n, Σ log det S, Σ min(NIS, cap), Σ du², Σ dv², Σ S_uu, Σ S_vv, Σ NIS, whitened
+    u mean · √n, whitened v mean · √n]`` over the accepted stars.
+    """
+    out = np.zeros(10)
+    n = 0
+    w1s = 0.0
+    w2s = 0.0
+    for i in range(nu.shape[0]):
+        if not accepted[i]:
+            continue
+        n += 1
+        a, b, c = S[i, 0, 0], S[i, 0, 1], S[i, 1, 1]
+        out[1] += math.log(max(a * c - b * b, 1e-300))
+        out[2] += min(nis[i], nis_cap)
+        out[3] += nu[i, 0] * nu[i, 0]
+        out[4] += nu[i, 1] * nu[i, 1]
+        out[5] += a
+        out[6] += c
+        out[7] += nis[i]
+        l11 = math.sqrt(a)
+        l21 = b / l11
+        l22 = math.sqrt(max(c - l21 * l21, 1e-300))
+        w1 = nu[i, 0] / l11
+        w1s += w1
+        w2s += (nu[i, 1] - l21 * w1) / l22
+    out[0] = n
+    if n:
+        out[8] = w1s / n * math.sqrt(n)
+        out[9] = w2s / n * math.sqrt(n)
+    return out
+
+
+@njit(cache=True)
+def _assemble(H_att, H_par, Pe, N, rows):
+    """``H`` (2·len(rows), N) of the stars ``rows`` ([φ, θ_estimated, 0...])."""
+    H = np.zeros((2 * rows.shape[0], N))
+    for q in range(rows.shape[0]):
+        i = rows[q]
+        for r in range(2):
+            for b in range(3):
+                H[2 * q + r, b] = H_att[i, r, b]
+            for k in range(Pe):
+                H[2 * q + r, 3 + k] = H_par[i, r, k]
+    return H
+
+
+@njit(cache=True)
+def frame_step(P, theta, R_a, M, score, info, accumulate,
+               tp, C, w_hat, phi, j, mj, ta, tb, Gamma, theta_ref, q_diag,
+               gyro_b0, gyro_E0, gyro_Jb, gyro_JE, gyro_theta0, w_raw,
+               uv, u, sigma, base,
+               s0, g, timed, R_prior, T, tracked, c, B, need, Pe, cfg):
+    """Propagate from ``ta`` to ``tb`` and update with one frame's stars, in place.
+
+    State (changed in place): ``P`` (N, N), ``theta`` (P_all,), ``R_a`` (3, 3) the attitude
+    (at ``ta`` on entry, at ``tb`` after), the sensitivity ``M`` (N, m), ``score`` (m,),
+    ``info`` (m, m) (``accumulate``: add this frame's terms).  Propagation: the reference
+    rows (:class:`~stellar_cal_ros.core.imu_prefix.ImuPrefix` ``tp, C, w_hat, phi``), rows
+    ``j..mj``, ``Gamma`` (3 or 12, P_all) and ``theta_ref`` of the reference, ``q_diag``
+    (N,) noise per second; ``gyro_*`` the gyro's affine correction and ``w_raw`` (3,) the
+    raw rate of the sample covering ``tb``.  Frame: ``uv`` (n, 2), ``u`` (n, 3), ``sigma``
+    (n,), ``base`` = stamp − ``tb``.  Chain: the :class:`CompiledChain`.  ``cfg``:
+    :data:`CONFIG_FIELDS`.
+
+    Returns ``(status, ints (6,) [n_acc, iterations, mismatch, lost, outside, 0],
+    floats (13,) [nis, scale, frame sums (10), 0], accepted, uv_pred, S, nis_stars,
+    directions, omega, R_prior)``; after ``REBUILD`` nothing was changed.
+    """
+    N = P.shape[0]
+    ints = np.zeros(6, dtype=np.int64)
+    floats = np.zeros(13)
+    floats[0] = np.nan
+    n = uv.shape[0]
+    empty_b = np.zeros(0, dtype=np.bool_)
+    empty2 = np.zeros((0, 2))
+    # ---- propagation
+    ok, R_b, F = attitude_interval(tp, C, w_hat, phi, j, mj, ta, tb, R_a, Gamma,
+                                   theta - theta_ref, cfg[10])
+    if not ok:
+        return (REBUILD, ints, floats, empty_b, empty2, np.zeros((0, 2, 2)), np.zeros(0),
+                np.zeros((0, 3)), np.zeros(3), np.eye(3))
+    propagate_coupled(P, M, Pe, F, q_diag * (tb - ta))
+    for a in range(3):
+        for b in range(3):
+            R_a[a, b] = R_b[a, b]
+    R_prior_out = R_b.copy()
+    # the corrected rate of the sample at tb (the gyro's affine model at θ)
+    d = theta - gyro_theta0
+    bg = gyro_b0 + gyro_Jb @ d
+    E = gyro_E0 + (gyro_JE @ d).reshape(3, 3)
+    x = w_raw - bg
+    omega = x.copy()
+    if np.any(E != 0.0):
+        A = np.linalg.inv(np.eye(3) + E)
+        omega = A @ x
+    # ---- prediction at the prior state
+    P_all = theta.shape[0]
+    theta0 = theta.copy()
+    uv_pred = np.empty((n, 2))
+    dirs = np.empty((n, 3))
+    H_att = np.empty((n, 2, 3))
+    H_par = np.empty((n, 2, P_all))
+    R_out = np.empty((2, 3, 3))
+    zero3 = np.zeros(3)
+    predict_chain(theta0, u, R_b, zero3, False, omega, base, s0, g, timed, R_prior, T, tracked,
+                  c, B, need, 1, uv_pred, dirs, H_att, H_par, R_out)
+    H0 = np.zeros((n, 2, N))
+    for i in range(n):
+        for r in range(2):
+            for b in range(3):
+                H0[i, r, b] = H_att[i, r, b]
+            for k in range(Pe):
+                H0[i, r, 3 + k] = H_par[i, r, k]
+    nu0 = uv - uv_pred
+    r_meas = sigma * sigma
+    S_blocks, nis_stars = star_blocks(H0, P, r_meas, nu0)
+    accepted = np.zeros(n, dtype=np.bool_)
+    scale, mismatch, lost, outside = gate(nis_stars, dirs, cfg, accepted)
+    floats[1] = scale
+    ints[2], ints[3], ints[4] = mismatch, lost, outside
+    idx = np.flatnonzero(accepted)
+    n_acc = idx.shape[0]
+    ints[0] = n_acc
+    if n_acc < cfg[5]:
+        return (FEW_STARS, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs, omega,
+                R_prior_out)
+    # ---- iterated update of the accepted stars
+    m2 = 2 * n_acc
+    z = np.empty(m2)
+    h = np.empty(m2)
+    rr = np.empty(m2)
+    for q in range(n_acc):
+        i = idx[q]
+        z[2 * q], z[2 * q + 1] = uv[i, 0], uv[i, 1]
+        h[2 * q], h[2 * q + 1] = uv_pred[i, 0], uv_pred[i, 1]
+        rr[2 * q] = rr[2 * q + 1] = r_meas[i]
+    H = _assemble(H_att, H_par, Pe, N, idx)
+    u_acc = np.ascontiguousarray(u[idx])
+    sig_floor = np.empty(N)
+    for i in range(N):
+        sig_floor[i] = max(math.sqrt(max(P[i, i], 0.0)), 1e-300)
+    nu = z - h
+    dx = np.zeros(N)
+    nis = np.nan
+    K = np.zeros((N, m2))
+    max_it = int(cfg[6])
+    it = 0
+    uv_r = np.empty((n_acc, 2))
+    d_r = np.empty((n_acc, 3))
+    Ha_r = np.empty((n_acc, 2, 3))
+    Hp_r = np.empty((n_acc, 2, P_all))
+    all_rows = np.arange(n_acc)
+    for it in range(1, max_it + 1):
+        okg, K, nis_it = kalman_gain(P, H, rr, nu)
+        if not okg:
+            ints[1] = it
+            return (BAD_GAIN, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs,
+                    omega, R_prior_out)
+        if it == 1:
+            nis = nis_it
+        dx_prev = dx
+        dx = K @ (z - h + H @ dx)
+        if it == max_it:
+            break
+        if it == 1:
+            small = math.sqrt(dx[0] ** 2 + dx[1] ** 2 + dx[2] ** 2) < cfg[8]
+            if small:
+                for k in range(3, 3 + Pe):
+                    if not abs(dx[k]) < cfg[9] * sig_floor[k]:
+                        small = False
+                        break
+            if small:
+                break
+        else:
+            worst = 0.0
+            for k in range(N):
+                worst = max(worst, abs(dx[k] - dx_prev[k]) / sig_floor[k])
+            if worst < cfg[7]:
+                break
+        if not np.all(np.isfinite(dx)):
+            break
+        th = theta0.copy()
+        for k in range(Pe):
+            th[k] += dx[3 + k]
+        predict_chain(th, u_acc, R_b, dx[0:3].copy(), True, omega, base, s0, g, timed,
+                      R_prior, T, tracked, c, B, need, 1, uv_r, d_r, Ha_r, Hp_r, R_out)
+        H = _assemble(Ha_r, Hp_r, Pe, N, all_rows)
+        for q in range(n_acc):
+            h[2 * q], h[2 * q + 1] = uv_r[q, 0], uv_r[q, 1]
+        if not (np.all(np.isfinite(H)) and np.all(np.isfinite(h))):
+            ints[1] = it
+            return (BAD_RELINEARIZATION, ints, floats, accepted, uv_pred, S_blocks, nis_stars,
+                    dirs, omega, R_prior_out)
+    ints[1] = it
+    if not (np.all(np.isfinite(dx)) and np.all(np.isfinite(K))):
+        return (NON_FINITE, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs,
+                omega, R_prior_out)
+    # ---- sensitivity (prior P, final H, the consider columns at the prior state)
+    mc = M.shape[1]
+    if mc:
+        PHt = P @ np.ascontiguousarray(H.T)
+        S = H @ PHt
+        for i in range(m2):
+            S[i, i] += rr[i]
+        Hb = np.empty((m2, mc))
+        for q in range(n_acc):
+            for r in range(2):
+                for k in range(mc):
+                    Hb[2 * q + r, k] = H_par[idx[q], r, Pe + k]
+        A = H @ M + Hb
+        if accumulate:
+            X = np.linalg.solve(S, np.hstack((A, nu.reshape(m2, 1))))
+            score += A.T @ X[:, mc]
+            info += A.T @ np.ascontiguousarray(X[:, :mc])
+        Mn = M - K @ A
+        for i in range(N):
+            for k in range(mc):
+                M[i, k] = Mn[i, k]
+    # ---- covariance, injection, reset
+    Pn = joseph(P, K, H, rr)
+    for k in range(Pe):
+        theta[k] += dx[3 + k]
+    R_new = mat3_mul(so3_exp1(dx[0:3].copy()), R_b)
+    for a in range(3):
+        for b in range(3):
+            R_a[a, b] = R_new[a, b]
+    hx, hy, hz = 0.5 * dx[0], 0.5 * dx[1], 0.5 * dx[2]
+    G = np.array([[1.0, -hz, hy], [hz, 1.0, -hx], [-hy, hx, 1.0]])
+    top = G @ np.ascontiguousarray(Pn[0:3])
+    for a in range(3):
+        for k in range(N):
+            Pn[a, k] = top[a, k]
+    left = np.ascontiguousarray(Pn[:, 0:3]) @ G.T
+    for k in range(N):
+        for a in range(3):
+            Pn[k, a] = left[k, a]
+    for a in range(N):
+        for b in range(N):
+            P[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
+    if mc:
+        topm = G @ np.ascontiguousarray(M[0:3])
+        for a in range(3):
+            for k in range(mc):
+                M[a, k] = topm[a, k]
+    floats[0] = nis
+    floats[2:12] = frame_sums(nu0, S_blocks, nis_stars, accepted, cfg[11])
+    return (UPDATED, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs, omega,
+            R_prior_out)
+
+
+class FusedStep:
+    """The constant inputs of :func:`frame_step` for one filter (see the module docstring).
+
+    :meth:`build` returns None when the filter's frames cannot take the fused path: no
+    compiled star chain, a gyro model that is not affine in θ, a method with velocity
+    blocks, its own transition, measurements, injection or prediction, or the per-sample
+    propagation (``exact_propagation``).
+    """
+
+    _HOOKS = ("_transition", "_before_star_update", "inject", "_star_update", "propagate",
+              "_predict", "rate_at", "update")
+
+    def __init__(self, flt, chain, gyro_affine) -> None:
+        c = flt.config
+        b0, E0, Jb, JE = gyro_affine
+        P_all = flt.model.size
+        self.gyro = (np.ascontiguousarray(b0, dtype=float), np.ascontiguousarray(E0, dtype=float),
+                     np.ascontiguousarray(Jb, dtype=float),
+                     np.ascontiguousarray(JE.reshape(9, P_all), dtype=float),
+                     np.ascontiguousarray(flt.propagation.gyro.theta0, dtype=float))
+        self.chain = (float(chain.s0), chain.g, bool(chain.timed), chain.R_prior, chain.T,
+                      bool(chain.tracked), chain.c, chain.B, chain.need)
+        from stellar_cal_ros.methods.results import NIS_CAP
+
+        values = {"threshold": flt.gate.threshold, "scale_by_frame": float(c.scale_gate_by_frame),
+                  "mismatch_factor": c.mismatch_factor, "lost_lock_factor": c.lost_lock_factor,
+                  "fov_tan2": flt.gate.fov_tan2, "min_stars": c.min_stars,
+                  "max_iterations": c.max_iterations,
+                  "iteration_tolerance": c.iteration_tolerance,
+                  "relinearize_rad": c.relinearize_rad, "relinearize_sigma": c.relinearize_sigma,
+                  "max_correction_rad": flt.propagation.max_correction_rad, "nis_cap": NIS_CAP}
+        self.cfg = np.array([float(values[k]) for k in CONFIG_FIELDS])
+        self.q_diag = np.ascontiguousarray(flt._q_diag, dtype=float)
+        self.Pe = int(flt.P_est)
+        N = flt.N
+        self.none = (np.zeros((N, 0)), np.zeros(0), np.zeros((0, 0)))
+
+    @classmethod
+    def build(cls, flt) -> FusedStep | None:
+        """The fused step of ``flt``, or None (see the class docstring)."""
+        from stellar_cal_ros.methods.kernel import StarFilter
+
+        prop = flt.propagation
+        if prop.accel is not None or prop.exact or prop.gyro._affine is None or any(
+                getattr(type(flt), h) is not getattr(StarFilter, h) for h in cls._HOOKS):
+            return None
+        chain = flt.model.compiled_chain()
+        return None if chain is None else cls(flt, chain, prop.gyro._affine)
+
+    def call(self, P, theta, R, sens, pre, j, mj, ta, tb, prop, w_raw, uv, u, sigma, base):
+        """:func:`frame_step` of the filter's current state (arrays changed in place)."""
+        if sens is None:
+            M, score, info, acc = (*self.none, False)
+        else:
+            if not sens.M.flags.c_contiguous:
+                sens.M = np.ascontiguousarray(sens.M)
+            M, score, info, acc = sens.M, sens.score, sens.info, bool(sens.accumulate)
+        if not u.flags.c_contiguous:
+            u = np.ascontiguousarray(u)
+        if not uv.flags.c_contiguous:
+            uv = np.ascontiguousarray(uv)
+        return frame_step(P, theta, R, M, score, info, acc, pre.tp, pre.C, pre.w_hat, pre.phi,
+                          j, mj, float(ta), float(tb), prop._gamma[0], prop.theta_ref,
+                          self.q_diag, *self.gyro, w_raw, uv, u,
+                          np.ascontiguousarray(sigma, dtype=float), float(base), *self.chain,
+                          self.Pe, self.cfg)
