@@ -144,3 +144,39 @@ def test_live_imu_clock_jump_is_counted_not_raised(base, jump_s, flagged):
     assert cal.counters.imu_clock_jumps >= 1
     reasons = cal.calibration().extra.get("data_quality", {}).get("reasons", [])
     assert any("IMU clock jumped" in r for r in reasons) is flagged, reasons
+
+
+@pytest.mark.parametrize("name", [None, "imu_deg_s"])
+def test_deferred_judgement_gives_the_same_verdict_between_frames(base, tmp_path, name):
+    """The live node's mode (``DriverConfig.defer_checks``, issue 24.3): a frame's update
+    only records; ``Calibrator.run_checks`` (the node's timer, between frames) judges, with
+    the replay's verdict — a gyro in deg/s is still refused with the same DataError, a
+    clean one passes."""
+    from test_online import bag_events
+
+    from stellar_cal_ros.methods.driver import Calibrator, DriverConfig
+    from stellar_cal_ros.methods.psce import PsceConfig
+
+    bag = base.bag if name is None else _VARIANTS[name].make(base, tmp_path / name).bag
+    cal = Calibrator(load_calibration(base.prior), "psce", None, PsceConfig(),
+                     DriverConfig(defer_checks=True))
+    raised, frames_at = [], []
+    for _, _, kind, p in bag_events(bag):
+        if kind == "imu":
+            cal.push_imu(p[0], p[1], frame_id=p[2])  # never raises: judgements wait
+        elif kind == "stars":
+            cal.push_stars(p)
+        w = cal.filter.gyro_watch if cal.filter is not None else None
+        if w is not None and w.get("due"):
+            frames_at.append(w["due"])
+            try:
+                cal.run_checks()
+            except DataError as exc:
+                raised.append(str(exc))
+                break
+    assert frames_at and frames_at[0] == gyro_check.JUDGE_EVERY  # due every 10th record
+    if name is None:
+        assert not raised
+        assert "gyro_star_mismatch" not in cal.filter_counters()
+    else:
+        assert len(raised) == 1 and re.search(r"57\.\d+ x as far as the stars", raised[0])

@@ -379,6 +379,9 @@ def watch_frame(state: dict[str, Any], t: float,
     s["since"] = s.get("since", 0) + 1
     if s["since"] < JUDGE_EVERY:
         return ""
+    if s.get("defer"):  # judged later, off the frame's path (:func:`judge_pending`)
+        s["due"] = s.get("due") or s["frames"]
+        return ""
     return judge_pending(s, R_imu_st)
 
 
@@ -386,12 +389,16 @@ def judge_pending(state: dict[str, Any], R_imu_st: np.ndarray | None = None) -> 
     """Judge the records of a streaming check (:func:`watch_frame`); the fault ('' none).
 
     :func:`watch_frame` judges every :data:`JUDGE_EVERY` records; call this at the end of
-    the data for the records since the last judgement (nothing to do: '').
+    the data for the records since the last judgement (nothing to do: '').  With
+    ``state["defer"]`` set (the live node) :func:`watch_frame` only marks the judgement due
+    (``state["due"]``: the frame count it fell due at) and the caller runs this between
+    frames.
     """
     s = state
     if not s.get("since", 0) or s["done"]:
         return ""
     s["since"] = 0
+    s["due"] = 0
     good = _good_fits(s["rms"])
     pairs = frame_pairs(len(s["t"]), segment=s["segment"])
     pairs = pairs[good[pairs[:, 0]] & good[pairs[:, 1]]] if len(pairs) else pairs

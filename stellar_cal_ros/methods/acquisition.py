@@ -193,18 +193,37 @@ class Acquisition:
 
     def finish_checks(self) -> None:
         """End of the data: judge what the gyro watch recorded since its last judgement."""
-        if self.gyro_watch is not None:
-            self._gyro_verdict(gyro_check.judge_pending(self.gyro_watch,
-                                                        self._R_imu_st_prior))
+        w = self.gyro_watch
+        if w is not None:
+            at = w.get("due") or w["frames"]
+            self._gyro_verdict(gyro_check.judge_pending(w, self._R_imu_st_prior), at)
 
-    def _gyro_verdict(self, cause: str) -> None:
+    def defer_gyro_judgement(self) -> None:
+        """Leave the gyro watch's judgements to :meth:`judge_gyro` (the live node).
+
+        The frame's update then only records (a Wahba fit); the judgement of all frame pairs
+        (up to ~2 ms) runs between frames.  The verdict is the same, taken a little later; a
+        fault due within the first :data:`~stellar_cal_ros.core.gyro_check.EARLY_FRAMES`
+        frames raises as it would have there.
+        """
+        if self.gyro_watch is not None:
+            self.gyro_watch["defer"] = True
+
+    def judge_gyro(self) -> None:
+        """Run the gyro watch's judgement if one is due (see :meth:`defer_gyro_judgement`)."""
+        w = self.gyro_watch
+        if w is not None and w.get("due"):
+            self.finish_checks()
+
+    def _gyro_verdict(self, cause: str, frames: int | None = None) -> None:
         w = self.gyro_watch
         if w["done"]:
             self.gyro_watch = None
         if not cause:
             return
         self.counters.add("gyro_star_mismatch")
-        if w["frames"] <= gyro_check.EARLY_FRAMES and self.config.unit_check_raises:
+        at = w["frames"] if frames is None else frames
+        if at <= gyro_check.EARLY_FRAMES and self.config.unit_check_raises:
             raise DataError(cause)
         log.warning("t=%.1f s: %s; the result is degraded", self.t, cause)
         self.data_faults.append(cause)

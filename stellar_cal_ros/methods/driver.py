@@ -102,6 +102,9 @@ class DriverConfig:
     #: judge consistency on the second half of the data seen so far (the live node: no end
     #: is known; :class:`~.results.HalfWindowStats`) instead of a window fixed in advance
     live_window: bool = False
+    #: the filter's gyro-against-stars judgement waits for :meth:`Calibrator.run_checks`
+    #: (the live node calls it between frames) instead of running in a frame's update
+    defer_checks: bool = False
 
 
 @dataclass
@@ -530,6 +533,14 @@ class Calibrator:
             return self._pump()
         return []
 
+    def run_checks(self) -> None:
+        """Run the checks :attr:`DriverConfig.defer_checks` left due (the gyro judgement).
+
+        May raise :class:`~stellar_cal_ros.errors.DataError` as a frame's update would have.
+        """
+        if self.filter is not None:
+            self.filter.judge_gyro()
+
     def finish(self) -> list[FrameOutcome]:
         """End of input: release and process everything still held; close the tables."""
         out = self._pump(final=True)
@@ -605,6 +616,8 @@ class Calibrator:
         else:
             self.filter = self.filter_cls(self.model, self.t0_ns * 1e-9, self.config,
                                           nominal_dt=self.nominal_dt, consider=self.n_consider)
+        if self.driver.defer_checks:
+            self.filter.defer_gyro_judgement()
 
     def _flush_staged(self) -> None:
         if not self._staged or self.filter is None:

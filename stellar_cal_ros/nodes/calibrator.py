@@ -158,6 +158,10 @@ INPUTS = {  # key: (default topic, type)
     "pressure": ("/environment/pressure", FluidPressure),
 }
 
+#: period of the timer that runs the judgements the frames' updates leave due (the gyro
+#: check's: about every 10th frame over the first 200, then every ~50 s of data), s
+CHECKS_PERIOD_S = 0.2
+
 #: counters whose growth is warned about (throttled)
 _WARN_COUNTERS = ("imu_invalid", "imu_late", "imu_duplicate", "imu_wrong_frame", "frames_late",
                   "frames_duplicate", "frames_overflow", "frames_wrong_frame", "frames_no_site",
@@ -218,7 +222,7 @@ class CalibratorNode(Node):
             reorder_window_s=p["reorder_window_s"], environment_wait_s=p["environment_wait_s"],
             t0_imu_samples=p["t0_imu_samples"], converge_window=p["converge_window"],
             converge_sigma_ratio=p["converge_sigma_ratio"],
-            converge_nis_ratio=p["converge_nis_ratio"], live_window=True)
+            converge_nis_ratio=p["converge_nis_ratio"], live_window=True, defer_checks=True)
         # the residuals are published, not kept: a node runs for days (bounded memory)
         self.cal = Calibrator(prior, p["method"], p["effects"], self.filter_config,
                               self.driver_config, frames, residuals=NullSink(),
@@ -284,6 +288,8 @@ class CalibratorNode(Node):
         if p["estimate_rate_hz"] > 0:
             self.create_timer(1.0 / p["estimate_rate_hz"], self._publish_estimate)
         self.create_timer(1.0 / p["diagnostics_rate_hz"], self._publish_diagnostics)
+        # the gyro-against-stars judgement runs here, between frames, not in their updates
+        self.create_timer(CHECKS_PERIOD_S, self._run_checks)
         if p["checkpoint_file"] and p["checkpoint_period_s"] > 0:
             self.create_timer(p["checkpoint_period_s"], self._periodic_checkpoint)
         if self.view is not None:
@@ -457,6 +463,15 @@ class CalibratorNode(Node):
             self.callback_errors += 1
             self._warn("callback_errors", f"{key} message rejected: "
                        f"{type(exc).__name__}: {exc}")
+
+    def _run_checks(self) -> None:
+        """The checks the frames' updates left due (Calibrator.run_checks), between frames."""
+        try:
+            with self._lock:
+                self.cal.run_checks()
+        except Exception as exc:  # noqa: BLE001 - as a frame's callback would have counted it
+            self.callback_errors += 1
+            self._warn("callback_errors", f"gyro check: {type(exc).__name__}: {exc}")
 
     def _on_imu(self, msg: Imu) -> None:
         self._guard("imu", self._push_imu, msg)
