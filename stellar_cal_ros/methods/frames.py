@@ -37,7 +37,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -49,7 +49,9 @@ from stellar_cal_ros.effects.base import FrameContext
 from stellar_cal_ros.errors import BagError
 from stellar_cal_ros.io.bag import BagReader
 from stellar_cal_ros.io.image_msgs import ImageMessage, image_pixels
-from stellar_cal_ros.sky.extract import ExtractConfig, centroid_frame
+
+if TYPE_CHECKING:
+    from stellar_cal_ros.sky.extract import ExtractConfig
 
 log = logging.getLogger(__name__)
 
@@ -229,6 +231,10 @@ class ImageFrames:
 
     def __init__(self, config: ExtractConfig | None = None,
                  size: tuple[int, int] | None = None, where: str = "") -> None:
+        # imported here: sky.extract loads scipy.stats (~1 s), which a bag of centroids
+        # never needs
+        from stellar_cal_ros.sky.extract import ExtractConfig
+
         self.config = config or ExtractConfig()
         self.size = None if size is None else (int(size[0]), int(size[1]))
         self.where = where
@@ -269,6 +275,8 @@ class ImageFrames:
                             "images_bad)", f"{self.where}: " if self.where else "",
                             image.stamp_ns * 1e-9, exc)
             return None
+        from stellar_cal_ros.sky.extract import centroid_frame
+
         c0 = time.process_time()
         frame = centroid_frame(pixels, image.stamp_ns, image.frame_id, 0.0, self.config)
         self.cpu_s += time.process_time() - c0
