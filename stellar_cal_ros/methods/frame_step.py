@@ -468,13 +468,14 @@ class FusedStep:
         self.none = (np.zeros((N, 0)), np.zeros(0), np.zeros((0, 0)))
 
     @classmethod
-    def build(cls, flt) -> FusedStep | None:
-        """The fused step of ``flt``, or None (see the class docstring)."""
-        from stellar_cal_ros.methods.kernel import StarFilter
+    def build(cls, flt, kernel_cls: type) -> FusedStep | None:
+        """The fused step of ``flt``, or None (see the class docstring).
 
+        ``kernel_cls``: the kernel's filter class (its hooks are the ones this step fuses).
+        """
         prop = flt.propagation
         if prop.accel is not None or prop.exact or prop.gyro._affine is None or any(
-                getattr(type(flt), h) is not getattr(StarFilter, h) for h in cls._HOOKS):
+                getattr(type(flt), h) is not getattr(kernel_cls, h) for h in cls._HOOKS):
             return None
         chain = flt.model.compiled_chain()
         return None if chain is None else cls(flt, chain, prop.gyro._affine)

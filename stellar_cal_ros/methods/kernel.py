@@ -603,7 +603,7 @@ class StarFilter(Acquisition):
 
         fs = self._frame_step
         if fs is None:
-            fs = self._frame_step = frame_step.FusedStep.build(self) or False
+            fs = self._frame_step = frame_step.FusedStep.build(self, StarFilter) or False
         if not fs or self._gap_pending or self.t is None or t_exp <= self.t:
             return False, None
         imu, prop = self.imu, self.propagation
