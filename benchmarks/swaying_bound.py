@@ -30,6 +30,7 @@ import numpy as np
 
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.io.calibration import load_calibration
+from stellar_cal_ros.methods.models import prior_uncertain_effects
 from stellar_cal_ros.methods.replay import (
     equivalent_principal_point,
     read_bag_data,
@@ -37,7 +38,6 @@ from stellar_cal_ros.methods.replay import (
 )
 from stellar_cal_ros.methods.swaying import (
     crlb_swaying,
-    prior_uncertain_effects,
     replay_swaying,
 )
 
