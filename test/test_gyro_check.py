@@ -147,36 +147,46 @@ def test_live_imu_clock_jump_is_counted_not_raised(base, jump_s, flagged):
 
 
 @pytest.mark.parametrize("name", [None, "imu_deg_s"])
-def test_deferred_judgement_gives_the_same_verdict_between_frames(base, tmp_path, name):
+def test_deferred_judgement_gives_the_same_records_and_verdict(base, tmp_path, name):
     """The live node's mode (``DriverConfig.defer_checks``, issue 24.3): a frame's update
-    only records; ``Calibrator.run_checks`` (the node's timer, between frames) judges, with
-    the replay's verdict — a gyro in deg/s is still refused with the same DataError, a
-    clean one passes."""
+    only keeps its centroids; ``Calibrator.run_checks`` (the node's timer, between frames)
+    fits and judges them.  Same records, same judgement and the same verdict as judging in
+    the update: a gyro in deg/s is refused with the same DataError, a clean one passes."""
     from test_online import bag_events
 
     from stellar_cal_ros.methods.driver import Calibrator, DriverConfig
     from stellar_cal_ros.methods.psce import PsceConfig
 
     bag = base.bag if name is None else _VARIANTS[name].make(base, tmp_path / name).bag
-    cal = Calibrator(load_calibration(base.prior), "psce", None, PsceConfig(),
-                     DriverConfig(defer_checks=True))
-    raised, frames_at = [], []
-    for _, _, kind, p in bag_events(bag):
-        if kind == "imu":
-            cal.push_imu(p[0], p[1], frame_id=p[2])  # never raises: judgements wait
-        elif kind == "stars":
-            cal.push_stars(p)
-        w = cal.filter.gyro_watch if cal.filter is not None else None
-        if w is not None and w.get("due"):
-            frames_at.append(w["due"])
+    prior = load_calibration(base.prior)
+    runs = []
+    for defer in (False, True):
+        cal = Calibrator(prior, "psce", None, PsceConfig(), DriverConfig(defer_checks=defer))
+        raised, kept = [], 0
+        for _, _, kind, p in bag_events(bag):
             try:
-                cal.run_checks()
+                if kind == "imu":
+                    cal.push_imu(p[0], p[1], frame_id=p[2])
+                elif kind == "stars":
+                    cal.push_stars(p)
+                w = cal.filter.gyro_watch if cal.filter is not None else None
+                if defer and w is not None and w.get("pending"):
+                    kept = max(kept, len(w["pending"]))
+                    cal.run_checks()  # as the node's timer, between two messages
             except DataError as exc:
                 raised.append(str(exc))
                 break
-    assert frames_at and frames_at[0] == gyro_check.JUDGE_EVERY  # due every 10th record
+        runs.append((cal, raised, kept))
+    (inline, r0, _), (deferred, r1, kept) = runs
+    assert kept >= 1  # the updates did defer
+    assert r0 == r1 and len(r0) == (name is not None)
     if name is None:
-        assert not raised
-        assert "gyro_star_mismatch" not in cal.filter_counters()
+        inline.finish()
+        deferred.finish()
+        a, b = inline.filter.gyro_watch, deferred.filter.gyro_watch
+        for key in ("t", "R_star", "rms", "G", "segment"):
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+        assert a["result"] == b["result"] and a["judged_at"] == b["judged_at"]
+        assert "gyro_star_mismatch" not in deferred.filter_counters()
     else:
-        assert len(raised) == 1 and re.search(r"57\.\d+ x as far as the stars", raised[0])
+        assert re.search(r"57\.\d+ x as far as the stars", r1[0])

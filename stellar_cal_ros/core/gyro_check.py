@@ -314,7 +314,8 @@ def new_watch() -> dict[str, Any]:
     Keys: ``t``, ``R_star`` (k, 3, 3), ``rms``, ``G`` (k, 3, 3) the gyro chain at each
     recorded frame, ``segment`` (k,), ``frames`` seen, ``G_now`` and ``R_post`` (the
     filter's attitude after the last frame), ``spacing`` (s), ``result`` (the last
-    :func:`judge`), ``done``.
+    :func:`judge`), ``done``; ``since`` (records since the last judgement), ``judged_at``
+    (frames seen at the last judgement); deferred (``defer``): ``pending`` frames.
     """
     return {"t": np.zeros(0), "R_star": np.zeros((0, 3, 3)), "rms": np.zeros(0),
             "G": np.zeros((0, 3, 3)), "segment": np.zeros(0, dtype=int), "seg": 0,
@@ -341,6 +342,9 @@ def watch_frame(state: dict[str, Any], t: float,
     v_st, u_i : ndarray (n, 3)
         Measured directions (tracker frame) and catalogue directions of its stars;
         ``v_st`` may be a callable returning them (called only for a frame recorded).
+        With ``state["defer"]`` set, ``v_st`` is the frame's pixel centroids (n, 2),
+        kept for :func:`record_pending` (which fits and judges between frames; a frame
+        whose fit fails there still sets the late spacing, the only difference).
     R_prior : ndarray (3, 3) or None
         The filter's ``R_i_b`` propagated to the frame before its update; None: the chain
         starts again here (first frame, or an IMU gap the gyro could not bridge).
@@ -362,43 +366,86 @@ def watch_frame(state: dict[str, Any], t: float,
         s["G_now"] = s["G_now"] @ (s["R_post"].T @ R_prior)
     s["R_post"] = np.array(R_post, dtype=float)
     s["frames"] += 1
-    if s["frames"] > EARLY_FRAMES and len(s["t"]) and t - s["t"][-1] < s["spacing"]:
+    pending = s.get("pending")
+    last = pending[-1][0] if pending else (s["t"][-1] if len(s["t"]) else None)
+    if s["frames"] > EARLY_FRAMES and last is not None and t - last < s["spacing"]:
         return ""
-    R, rms = frame_rotation(v_st() if callable(v_st) else v_st, u_i)
+    if s.get("defer"):  # recorded and judged later, off the frame's path
+        s.setdefault("pending", []).append(
+            (float(t), np.asarray(v_st), np.asarray(u_i), s["G_now"], s["seg"], s["frames"]))
+        return ""
+    if _record(s, t, v_st() if callable(v_st) else v_st, u_i, s["G_now"], s["seg"]):
+        s["judged_at"] = s["frames"]
+        return _judge(s, R_imu_st)
+    return ""
+
+
+def _record(s: dict[str, Any], t: float, v_st: np.ndarray, u_i: np.ndarray, G: np.ndarray,
+            seg: int) -> bool:
+    """Record one frame (its star rotation and gyro chain); True when a judgement is due."""
+    R, rms = frame_rotation(v_st, u_i)
     if R is None:
-        return ""
+        return False
     s["t"] = np.append(s["t"], t)
     s["R_star"] = np.concatenate([s["R_star"], R[None]])
     s["rms"] = np.append(s["rms"], rms)
-    s["G"] = np.concatenate([s["G"], s["G_now"][None]])
-    s["segment"] = np.append(s["segment"], s["seg"])
+    s["G"] = np.concatenate([s["G"], G[None]])
+    s["segment"] = np.append(s["segment"], seg)
     if len(s["t"]) > MAX_RECORDS:
         for key in ("t", "R_star", "rms", "G", "segment"):
             s[key] = s[key][::2]
         s["spacing"] *= 2.0
     s["since"] = s.get("since", 0) + 1
-    if s["since"] < JUDGE_EVERY:
-        return ""
-    if s.get("defer"):  # judged later, off the frame's path (:func:`judge_pending`)
-        s["due"] = s.get("due") or s["frames"]
-        return ""
-    return judge_pending(s, R_imu_st)
+    return s["since"] >= JUDGE_EVERY
 
 
-def judge_pending(state: dict[str, Any], R_imu_st: np.ndarray | None = None) -> str:
+def record_pending(state: dict[str, Any], unproject: Callable[[np.ndarray], np.ndarray],
+                   R_imu_st: np.ndarray | None = None) -> str:
+    """Record and judge what a deferred watch (``state["defer"]``) left pending.
+
+    With ``state["defer"]`` set (the live node) :func:`watch_frame` only keeps a frame's
+    centroids (``v_st`` are then pixel centroids) and gyro chain; this does, between
+    frames, what :func:`watch_frame` would have done frame by frame — the Wahba fit
+    (``unproject``: pixels → tracker directions) and a judgement at every
+    :data:`JUDGE_EVERY` th record — so the records and verdicts are the same.
+    ``state["judged_at"]``: the frame count of the last judgement.  The fault ('' none).
+    """
+    s = state
+    pending = s.get("pending") or []
+    s["pending"] = []
+    for t, uv, u_i, G, seg, frames in pending:
+        if s["done"]:
+            break
+        if _record(s, t, unproject(uv), u_i, G, seg):
+            s["judged_at"] = frames
+            cause = _judge(s, R_imu_st)
+            if cause:
+                return cause
+    return ""
+
+
+def judge_pending(state: dict[str, Any], R_imu_st: np.ndarray | None = None,
+                  unproject: Callable[[np.ndarray], np.ndarray] | None = None) -> str:
     """Judge the records of a streaming check (:func:`watch_frame`); the fault ('' none).
 
     :func:`watch_frame` judges every :data:`JUDGE_EVERY` records; call this at the end of
-    the data for the records since the last judgement (nothing to do: '').  With
-    ``state["defer"]`` set (the live node) :func:`watch_frame` only marks the judgement due
-    (``state["due"]``: the frame count it fell due at) and the caller runs this between
-    frames.
+    the data for the records since the last judgement (nothing to do: '').  A deferred
+    watch's pending frames are recorded first (:func:`record_pending`, ``unproject``).
     """
     s = state
+    if s.get("pending") and unproject is not None:
+        cause = record_pending(s, unproject, R_imu_st)
+        if cause:
+            return cause
     if not s.get("since", 0) or s["done"]:
         return ""
+    s["judged_at"] = s["frames"]
+    return _judge(s, R_imu_st)
+
+
+def _judge(s: dict[str, Any], R_imu_st: np.ndarray | None) -> str:
+    """Judge every record pair (:func:`judge`); the cause ('' none)."""
     s["since"] = 0
-    s["due"] = 0
     good = _good_fits(s["rms"])
     pairs = frame_pairs(len(s["t"]), segment=s["segment"])
     pairs = pairs[good[pairs[:, 0]] & good[pairs[:, 1]]] if len(pairs) else pairs
