@@ -24,13 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from stellar_cal_ros.core import earth
+from stellar_cal_ros.methods import swaying
 from stellar_cal_ros.methods.registry import MethodSpec
-from stellar_cal_ros.methods.swaying import (
-    BASELINE_EFFECTS,
-    SwayingConfig,
-    SwayingFilter,
-    replay_lookahead,
-)
+from stellar_cal_ros.methods.swaying import SwayingConfig, SwayingFilter
 
 
 @dataclass
@@ -85,5 +81,7 @@ METHOD = MethodSpec(
     name="traditional", kind="filter",
     summary="zero velocity w.r.t. the Earth as the reference (the comparison method of "
             "Zhang et al.); needs /gnss/fix",
-    baseline=BASELINE_EFFECTS, needs_site=True,
-    filter_cls=TraditionalFilter, config_cls=TraditionalConfig, imu_lookahead=replay_lookahead)
+    # the swaying-base filter with another reference: its model, site and IMU look-ahead
+    **{key: getattr(swaying.METHOD, key)
+       for key in ("baseline", "stages", "needs_site", "imu_lookahead")},
+    filter_cls=TraditionalFilter, config_cls=TraditionalConfig)
