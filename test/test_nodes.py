@@ -371,6 +371,19 @@ def test_config_files_load_into_the_nodes(ros_context, tmp_path):
     player.destroy_node()
 
 
+def test_node_provenance_stays_with_the_node(ros_context, excerpt, tmp_path):
+    """A node's record (command, prior, date) goes into its own result only: it was
+    process-wide, so a result saved later in the same process carried the node's prior
+    (seen in the suite: test_results' round trip read a node test's prior path)."""
+    from stellar_cal_ros.io.calibration import save_calibration
+
+    path, prior, ref, counts = excerpt
+    cal = make_calibrator(ros_context, "/v" + uuid.uuid4().hex[:8], tmp_path)
+    cal.destroy_node()
+    save_calibration(ref.calibration, tmp_path / "other.yaml")
+    assert "provenance" not in load_calibration(tmp_path / "other.yaml").extra
+
+
 def test_star_bytes_read_as_the_star_message():
     """The calibrator's raw star subscription reads what rclpy's deserializer reads, >= 20x
     faster on a 5 000-star message (measured: 0.08 vs 30 ms); undecodable bytes are one

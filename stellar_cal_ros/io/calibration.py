@@ -53,6 +53,7 @@ __all__ = [
     "prior_warnings",
     "save_calibration",
     "note_provenance",
+    "provenance_record",
     "run_provenance",
     "set_provenance",
     "store_estimate",
@@ -491,7 +492,8 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
 
 
 def save_calibration(cal: Calibration, path: str | os.PathLike[str],
-                     covariance: Covariance | tuple | None = None) -> None:
+                     covariance: Covariance | tuple | None = None,
+                     provenance: Mapping[str, Any] | None = None) -> None:
     """Write a calibration YAML file atomically (and its covariance sidecar).
 
     The document is validated (converted back to a :class:`Calibration`) first, written to a
@@ -509,6 +511,9 @@ def save_calibration(cal: Calibration, path: str | os.PathLike[str],
         (n, n) in the effects' units).  Written to :func:`covariance_path` of ``path``
         and named in the result's ``covariance_file`` key; when ``cal.estimated`` is empty
         it is filled from the names' effect ids.
+    provenance : mapping, optional
+        The record of the run that computed ``cal`` (a node passes its own: several nodes
+        may share a process); default the process's record (:func:`set_provenance`).
 
     Raises
     ------
@@ -517,9 +522,11 @@ def save_calibration(cal: Calibration, path: str | os.PathLike[str],
         file, if any, is left untouched).
     """
     p = Path(path)
-    if _RUN_PROVENANCE and cal.method not in ("prior", "truth"):
+    record = _RUN_PROVENANCE if provenance is None else provenance
+    if record and cal.method not in ("prior", "truth"):
         cal = copy.copy(cal)
-        cal.extra = {**cal.extra, "provenance": run_provenance(cal.extra.get("provenance"))}
+        cal.extra = {**cal.extra, "provenance": run_provenance(cal.extra.get("provenance"),
+                                                               record)}
     if covariance is not None:
         cov = covariance if isinstance(covariance, Covariance) else Covariance.from_tuple(
             covariance)
@@ -575,8 +582,7 @@ def set_provenance(**items: Any) -> None:
     record.
     """
     _RUN_PROVENANCE.clear()
-    _RUN_PROVENANCE.update({k: plain(v) if not isinstance(v, os.PathLike) else str(v)
-                            for k, v in items.items() if v is not None})
+    _RUN_PROVENANCE.update(provenance_record(**items))
 
 
 def note_provenance(**items: Any) -> None:
@@ -584,15 +590,24 @@ def note_provenance(**items: Any) -> None:
     _RUN_PROVENANCE.update({k: plain(v) for k, v in items.items() if v is not None})
 
 
-def run_provenance(earlier: Any = None) -> dict[str, Any]:
-    """Return the provenance record of this process for a result it writes.
+def provenance_record(**items: Any) -> dict[str, Any]:
+    """A provenance record as :func:`set_provenance` keeps it (``None`` values left out)."""
+    return {k: plain(v) if not isinstance(v, os.PathLike) else str(v)
+            for k, v in items.items() if v is not None}
+
+
+def run_provenance(earlier: Any = None,
+                   record: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Return the provenance record (default this process's) for a result it writes.
 
     A result computed from another one (``discover`` from a replay's result) names the
     command that made it; the earlier record, if different, is kept under ``input``
     (its command, version and date only: one step back, not a growing chain).
     """
-    out = {k: v() if callable(v) else v for k, v in _RUN_PROVENANCE.items()}
-    _RUN_PROVENANCE.update(out)  # evaluated once (a bag identity reads the bag)
+    record = _RUN_PROVENANCE if record is None else record
+    out = {k: v() if callable(v) else v for k, v in record.items()}
+    if isinstance(record, dict):
+        record.update(out)  # evaluated once (a bag identity reads the bag)
     out = {k: v for k, v in out.items() if v is not None}
     if isinstance(earlier, Mapping) and earlier.get("command") and \
             earlier.get("command") != out.get("command"):

@@ -204,8 +204,8 @@ class CalibratorNode(Node):
         for w in prior_warnings(prior, p["prior_file"], {
                 e: c.parameter_names for e, c in registry.EFFECTS.items()}):
             self.get_logger().warning(w)
-        node_provenance(self.get_fully_qualified_name(), p,
-                        {k: v[0] for k, v in PARAMETERS.items()})
+        self._provenance = node_provenance(self.get_fully_qualified_name(), p,
+                                           {k: v[0] for k, v in PARAMETERS.items()})
         frames = dict(prior.frames)
         if p["imu_frame_id"]:
             frames["imu"] = p["imu_frame_id"]
@@ -387,7 +387,7 @@ class CalibratorNode(Node):
         with self._lock:
             cal = self.cal.calibration()
             cov = self.cal.named_covariance()
-        save_calibration(cal, out, covariance=cov)
+        save_calibration(cal, out, covariance=cov, provenance=self._provenance)
         return out
 
     def _periodic_checkpoint(self) -> None:

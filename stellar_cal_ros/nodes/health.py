@@ -23,7 +23,7 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticStatus
 
 from stellar_cal_ros import __version__
-from stellar_cal_ros.io.calibration import set_provenance
+from stellar_cal_ros.io.calibration import provenance_record
 from stellar_cal_ros.methods.results import VERDICT_MESSAGES
 
 
@@ -89,17 +89,20 @@ class RosoutBridge(logging.Handler):
 
 
 def node_provenance(node_name: str, params: dict[str, Any],
-                    defaults: dict[str, Any]) -> None:
-    """Record how the node runs for the result it writes.
+                    defaults: dict[str, Any]) -> dict[str, Any]:
+    """How the node runs, for the result it writes (``save_calibration(provenance=)``).
 
-    Its parameters that differ from the defaults, version, start date, prior.
+    Its parameters that differ from the defaults, version, start date, prior.  The node
+    keeps its own record: a process-wide one would stamp another node's (or, after the
+    node is gone, a later command's) result with this node's prior and date.
     """
     given = " ".join(f"-p {k}:={v}" for k, v in params.items()
                      if k in defaults and v != defaults[k] and v not in (None, [], ""))
     exe = sys.argv[0].rsplit("/", 1)[-1].removesuffix(".py") if sys.argv and sys.argv[0] \
         else node_name
-    set_provenance(command=f"{exe} --ros-args {given}".strip(), node=node_name,
-                   version=__version__,
-                   date=datetime.now(UTC).isoformat(timespec="seconds"),
-                   prior=params.get("prior_file") or None, method=params.get("method"),
-                   effects=list(params.get("effects") or []) or None)
+    return provenance_record(command=f"{exe} --ros-args {given}".strip(), node=node_name,
+                             version=__version__,
+                             date=datetime.now(UTC).isoformat(timespec="seconds"),
+                             prior=params.get("prior_file") or None,
+                             method=params.get("method"),
+                             effects=list(params.get("effects") or []) or None)
