@@ -70,7 +70,7 @@ def _negative_and_nan(d):
 @pytest.mark.parametrize("change, lines", [
     (_negative_and_nan, [r"sigma\.camera\.camera_matrix\.data\[0\] = -[\d.e+-]+ is negative",
                          r"sigma\.camera\.camera_matrix\.data\[4\] is NaN",
-                         r"2 problems in the sigma block"]),
+                         r"2 problems \(above\): the run uses the defaults in their place"]),
     (lambda d: d.pop("sigma"), [r"no 'sigma' block: every estimated quantity starts from its "
                                 r"effect's default σ"]),
 ], ids=["negative_and_nan", "no_sigma_block"])
