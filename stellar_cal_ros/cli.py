@@ -229,10 +229,21 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         config.centroid_sigma_px = args.centroid_sigma
     if args.gyro_arw is not None:
         config.gyro_arw_deg_sqrth = args.gyro_arw
+    noise = _replay_noise(args, prior, effects, config)
     history_path = args.history or args.output.with_suffix(".history.csv")
     result = replay(args.bag, prior, args.method, effects, config, residuals=args.residuals,
                     history=history_path, keep_tables=args.viz is not None and
-                    args.residuals is None, progress=not args.quiet, on_error=args.on_error)
+                    args.residuals is None, progress=not args.quiet, on_error=args.on_error,
+                    noise=noise)
+    unknown = result.counters.get("stars_sigma_unknown", 0)
+    if unknown and not (noise and noise.unknown_sigma_px) and args.centroid_sigma is None:
+        # a σ of 0 says "unknown": measured from the run, never used as a guess
+        verdict = _measure_noise(args, prior, effects, noise, ())
+        noise = verdict.applied
+        result = replay(args.bag, prior, args.method, effects, config,
+                        residuals=args.residuals, history=history_path,
+                        keep_tables=args.viz is not None and args.residuals is None,
+                        progress=not args.quiet, on_error=args.on_error, noise=noise)
     note_residual_file(args.residuals)
     save_calibration(result.calibration, args.output, covariance=result.covariance)
     print_replay_summary(result, prior)
@@ -258,6 +269,33 @@ def _write_viz(path: Path, result, history_path: Path, residuals_path: Path | No
           f"{time.perf_counter() - t0:.1f} s): open it in Foxglove with the layout {lay}")
 
 
+def _measure_noise(args: argparse.Namespace, prior, effects, scales, components):
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis.noise import measure_bag
+
+    print("measuring the noise scales from the run ...", flush=True)
+    verdict = measure_bag(args.bag, prior, args.method, effects, scales or NoiseScales(),
+                          components)
+    for line in verdict.lines():
+        print(f"noise: {line}")
+    return verdict
+
+
+def _replay_noise(args: argparse.Namespace, prior, effects, config):
+    """The noise scales of a replay: given (--noise-scale), measured (--estimate-noise)."""
+    from stellar_cal_ros.core.noise import NoiseScales
+
+    noise = None
+    if args.noise_scale:
+        try:
+            noise = NoiseScales.parse(args.noise_scale)
+        except ValueError as exc:
+            raise StellarCalError(str(exc)) from None
+    if args.estimate_noise:
+        noise = _measure_noise(args, prior, effects, noise, None).applied
+    return noise
+
+
 def print_replay_summary(result, prior) -> None:
     """Human summary of a filter run (accuracy-relevant numbers first, mismatch loudly)."""
     import numpy as np
@@ -276,6 +314,14 @@ def print_replay_summary(result, prior) -> None:
     print(f"innovation RMS (second half, accepted stars): u={rms[0]:.4f} v={rms[1]:.4f} px "
           f"(model expects {exp[0]:.4f} {exp[1]:.4f}); NIS/dof {st['nis_per_dof']:.3f}; "
           f"verdict: {cons.get('verdict', '?')}")
+    if cons.get("noise_rescaled"):
+        n = cons.get("noise", {})
+        print("noise rescaled: stars' sigma x{:.3g}, gyro noise x{:.3g}, accelerometer noise "
+              "x{:.3g}{}".format(n.get("star_sigma_scale", 1.0), n.get("gyro_noise_scale", 1.0),
+                                 n.get("accel_noise_scale", 1.0),
+                                 ", stars with sigma 0 (unknown): measured "
+                                 f"{n['unknown_star_sigma_px']:.3g} px"
+                                 if n.get("unknown_star_sigma_px") else ""))
     loud = mismatch_text(cons)
     if loud:
         print("*" * 78 + "\n" + loud + "\n" + "*" * 78)
@@ -324,7 +370,9 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         raise StellarCalError("--max-rounds must be >= 1")
     summary = diagnose(args.bag, cal, args.method, _effect_list(args.effects), args.output,
                        candidates=candidates, plots=not args.no_plots, workers=args.workers,
-                       scheduler=args.scheduler, auto=auto, max_rounds=args.max_rounds)
+                       scheduler=args.scheduler, auto=auto, max_rounds=args.max_rounds,
+                       noise=args.noise, verify=args.verify and auto,
+                       verify_seed=args.verify_seed)
     if auto:
         from stellar_cal_ros.diagnosis.printing import print_discovery
 
@@ -480,6 +528,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="px, for stars whose message sigma is 0 (default 0.05)")
     r.add_argument("--gyro-arw", type=float, default=None,
                    help="gyro angle random walk, deg/sqrt(h) (default 0.001)")
+    r.add_argument("--noise-scale", default=None, metavar="star=S,gyro=G,accel=A",
+                   help="scale the stated noise: the stars' sigma (messages, or "
+                        "--centroid-sigma for sigma 0) by S, the gyro ARW by G, the "
+                        "accelerometer VRW by A; unknown=PX sets the sigma of stars whose "
+                        "message says 0 (what `diagnose` prints as 'use --noise-scale')")
+    r.add_argument("--estimate-noise", action="store_true",
+                   help="measure the noise scales from the run first (stars' sigma: "
+                        "within-frame variance components; gyro/accelerometer: maximum "
+                        "likelihood over re-runs), then replay with them")
     r.add_argument("--effect-module", type=Path, action="append",
                    help="Python file defining extra Effect classes (repeatable)")
     r.add_argument("--on-error", choices=["raise", "skip"], default="raise",
@@ -535,6 +592,15 @@ def build_parser() -> argparse.ArgumentParser:
                             "none, everything in this process)")
         d.add_argument("--scheduler", default=None, metavar="ADDRESS",
                        help="run the re-runs on an existing Dask cluster (tcp://host:8786)")
+        d.add_argument("--verify", action="store_true",
+                       help="--auto: check every printed MDB and bias on twins of this bag "
+                            "(the effect injected at its MDB, `stellar-cal twin`)")
+        d.add_argument("--verify-seed", type=int, default=1,
+                       help="noise seed of the --verify twins (default 1)")
+        d.add_argument("--noise", choices=["estimate", "stated"], default="estimate",
+                       help="estimate (default): measure the stars' sigma and the IMU noise "
+                            "scales first and test every effect with them; stated: use the "
+                            "noise the messages and the calibration's run state")
         d.set_defaults(func=_cmd_diagnose)
 
     m = sub.add_parser("demo", help="run the built-in demonstration")
@@ -547,11 +613,13 @@ def build_parser() -> argparse.ArgumentParser:
     from stellar_cal_ros.budget.command import add_budget_parser
     from stellar_cal_ros.campaign.command import add_campaign_parser
     from stellar_cal_ros.results_cli import add_result_commands
+    from stellar_cal_ros.sim.twin_command import add_twin_parser
     from stellar_cal_ros.sky.command import add_solve_parser
 
     add_result_commands(sub)
     add_solve_parser(sub)
     add_budget_parser(sub)
+    add_twin_parser(sub)
     add_campaign_parser(sub)
     return p
 

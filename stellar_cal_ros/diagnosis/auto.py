@@ -51,7 +51,8 @@ from stellar_cal_ros.diagnosis.discover import (
     rank_round,
     rerun_prior,
 )
-from stellar_cal_ros.diagnosis.output import finish, progress_printer
+from stellar_cal_ros.diagnosis.noise import check_noise, stated_scales
+from stellar_cal_ros.diagnosis.output import finish, progress_printer, write_report
 from stellar_cal_ros.diagnosis.parallel import Task, open_runner
 from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.effects import registry
@@ -200,7 +201,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
     ``final_estimates``, ``rejected`` and ``reliability``), ``calibration.yaml`` (the final
     model's calibration) and the report to ``output_dir``; returns the summary.
     ``options``: ``candidates``, ``evaluation_fraction``, ``plots``, ``verbose``,
-    ``workers``, ``scheduler`` as for :func:`~stellar_cal_ros.diagnosis.run.diagnose`.
+    ``workers``, ``scheduler``, ``noise`` as for :func:`~stellar_cal_ros.diagnosis.run.
+    diagnose`.
     """
     candidates = options.get("candidates")
     evaluation_fraction = options.get("evaluation_fraction", 0.5)
@@ -218,8 +220,10 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
     current: RunSummary | None = None
     stopped = ""
     local = True
+    estimate = check_noise(options.get("noise", "estimate"))
     with open_runner(bag, spec, evaluation_fraction, options.get("workers", 0),
                      options.get("scheduler")) as runs:
+        runs.noise = stated_scales(calibration)
         uncertain = prior_uncertain(calibration, set(spec.baseline) | set(user))
         r = Round(runs, spec, runs.facts(), evaluation_fraction, calibration,
                   tuple(uncertain), progress=tell)
@@ -234,7 +238,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             base, results, extras = rank_round(
                 r, state.start, state.extra, [e for e in pool if e not in state.dropped],
                 condition=False, more=_checks(state, prior, calibration, pool),
-                screen=local)
+                screen=local, measure_noise=estimate and (
+                    r.noise is None or bool(r.noise.skipped) or r.noise_stale))
             if current is not None and current is not first:
                 current.residuals = None  # keep the first and the newest table only
             current = base
@@ -250,7 +255,13 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                              c.run is not None for c in results))
             step.update({"action": action or "stop", "removed": removed or None,
                          "exchanged_for": added if action == "exchange" else None,
-                         "checks": checks})
+                         "checks": checks,
+                         "noise": None if runs.noise is None else runs.noise.as_dict()})
+            if not action and r.noise_stale and k < max_rounds and not (
+                    len(path) > 1 and path[-2]["action"] == "noise"):
+                # nothing significant, but the stars' σ scale of this model is not the one
+                # applied: measure the noise again and test once more with it
+                step["action"] = action = "noise"
             path.append(step)
             rms = base.window["rms"]
             tell(f"round {k}: RMS u={rms[0]:.4f} v={rms[1]:.4f} px, loglik "
@@ -263,6 +274,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                            f"{describe(step)}")
                 step.update(action="stop", added=None, removed=None, exchanged_for=None)
                 break
+            if action == "noise":
+                continue
             if action == "drop":
                 state.extra.remove(removed)
                 state.dropped[removed] = (
@@ -281,8 +294,19 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             # the run of the next model tells whether a local (score) test can screen
             # its candidates; if not, the next round re-runs them all at once
             local = screening.is_local(follow)
-    return _write(out, calibration, spec, state, path, history, first, current, results,
-                  evaluation_fraction, plots, runs, stopped, time.perf_counter() - t_start)
+        check = None
+        if options.get("verify"):
+            def check(final_cal, entries):
+                from stellar_cal_ros.diagnosis.runstats import load_bag
+                from stellar_cal_ros.diagnosis.verify import verify
+
+                tell("verify: the printed MDBs and biases on twins of this bag")
+                model = list(spec.baseline) + state.extra
+                return verify(load_bag(runs.bag), final_cal, method, model, entries,
+                              options.get("verify_seed", 1), tell, evaluation_fraction)
+        return _write(out, calibration, spec, state, path, history, first, current, results,
+                      evaluation_fraction, plots, runs, stopped,
+                      time.perf_counter() - t_start, r.noise, check)
 
 
 def describe(step: dict[str, Any]) -> str:
@@ -293,6 +317,8 @@ def describe(step: dict[str, Any]) -> str:
         return f"add {add['effect']} (score {add['score']:.1f}, p = {add['p_value']:.2g})"
     if a == "drop":
         return f"drop {step['removed']} (no longer needed)"
+    if a == "noise":
+        return "the stars' noise differs with this model: measure it again"
     if a == "exchange":
         return f"exchange {step['removed']} for {step['exchanged_for']}"
     return "nothing significant"
@@ -318,8 +344,12 @@ def _step(k: int, model: list[str], base: RunSummary, results: list[CandidateRes
 
 def _write(out: Path, calibration: Calibration, spec, state: _State, path, history, first,
            final: RunSummary, results, fraction: float, plots: bool, runs, stopped: str,
-           seconds: float) -> dict[str, Any]:
-    """The final diagnosis, the report, ``calibration.yaml`` and ``diagnosis.json``."""
+           seconds: float, verdict=None, verify=None) -> dict[str, Any]:
+    """The final diagnosis, the report, ``calibration.yaml`` and ``diagnosis.json``.
+
+    ``verify(calibration, reliability entries) -> rows``: ``--verify``'s check of the
+    printed MDBs and biases on twins of the bag, run before the report is written.
+    """
     panels = [("initial model", first.residuals)]
     if final is not first:
         panels.append(("final model", final.residuals))
@@ -330,7 +360,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         plot_path(path, out / "path.png")
         images.append(("The path: innovation RMS at each round", "path.png"))
     summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
-                     panels, plots, "stellar_cal discovery", images)
+                     panels, plots, "stellar_cal discovery", images, verdict, write=False)
     added = [e for e in state.extra if e not in state.user]
     summary.update({
         "path": path,
@@ -345,6 +375,13 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     cal_path = out / "calibration.yaml"
     save_calibration(final.calibration, cal_path)
     summary["calibration_file"] = str(cal_path)
+    if verify is not None:
+        summary["verify"] = verify(final.calibration, summary["reliability"])
+    from stellar_cal_ros.diagnosis.printing import discovery_lines
+
+    summary["terminal"] = discovery_lines(summary)
+    if plots:
+        write_report(out, summary, "stellar_cal discovery")
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
 

@@ -50,7 +50,11 @@ def gravity_in_tracker(data: BagData, calibration: Calibration, t_posix: np.ndar
 
 
 def add_gravity_regressors(res: Table, data: BagData, calibration: Calibration) -> Table:
-    """A copy of the residual table with ``gravity_x_st, gravity_y_st`` (unit vector)."""
+    """A copy of the residual table with the gravity direction in the tracker frame.
+
+    ``gravity_x_st, gravity_y_st`` (unit vector) and their recent change (``gravity_x_st
+    change``: minus their average over the past :data:`CHANGE_TAU_S`).
+    """
     out = dict(res)
     if len(res.get("t", ())) == 0:
         return out
@@ -61,4 +65,27 @@ def add_gravity_regressors(res: Table, data: BagData, calibration: Calibration) 
         return out
     out["gravity_x_st"] = g[inv, 0]
     out["gravity_y_st"] = g[inv, 1]
+    # the recent change: a mount that bends with gravity turns the tracker when the gravity
+    # direction changes, and the filter, whose attitude follows the gyro, sees it then and
+    # for a few seconds after (until its attitude follows the stars again): gravity minus
+    # its causal exponential average over CHANGE_TAU_S
+    for k, name in ((0, "gravity_x_st change"), (1, "gravity_y_st change")):
+        out[name] = (g[:, k] - _causal_average(uniq, g[:, k], CHANGE_TAU_S))[inv]
+    return out
+
+
+#: time constant (s) of the "recent change" of a frame regressor
+CHANGE_TAU_S = 10.0
+
+
+def _causal_average(t: np.ndarray, x: np.ndarray, tau: float) -> np.ndarray:
+    """Exponential moving average of ``x`` over the past ``tau`` s (at the times ``t``)."""
+    out = np.empty_like(x)
+    acc = x[0] if len(x) else 0.0
+    prev = t[0] if len(t) else 0.0
+    for i, (ti, xi) in enumerate(zip(t.tolist(), x.tolist(), strict=True)):
+        a = float(np.exp(-max(ti - prev, 0.0) / tau))
+        acc = a * acc + (1.0 - a) * xi
+        out[i] = acc
+        prev = ti
     return out

@@ -23,6 +23,14 @@ of the candidates that pass — concurrently, each reduced to its statistics whe
 (:mod:`~stellar_cal_ros.diagnosis.parallel`, :mod:`~stellar_cal_ros.diagnosis.runstats`) —
 and the decision rules below.
 
+Two statistics decide significance when the screening's score test is local: the score
+test ``LM / dispersion ~ χ²_k`` (the locally most powerful test, and the one the minimal
+detectable size is stated for) and the augmented run's prequential ratio Λ; a candidate's
+p is the smaller of the two, Bonferroni-corrected over the candidates *and* the two
+statistics.  Near its MDB an effect the model's own parameters nearly absorb (a thermal
+focal drift against the focal length) gains little prequential likelihood while its score
+is clear, so Λ alone would find it far less often than the printed 80 % (issue 21).
+
 Every candidate is re-run with its parameters' prior σ at least their plausible physical
 size (:func:`candidate_sigma`), so a prior σ set too small cannot hide a large effect.  An
 effect is reported *not testable with this motion* (key ``unobservable``) only when its
@@ -144,6 +152,8 @@ class CandidateResult:
     screen: screening.ScreenResult | None = None
     prior_uncertain: bool = False  #: the prior calls it uncertain, the model lacks it
 
+    #: the screening's score-test p (unadjusted) when it took part in the decision
+    p_score: float = float("nan")
     explained: float = float("nan")  # fraction of the excess residual variance removed
     #: tested again after the top candidate (:func:`condition_on_top`): its name, the
     #: statistic and Bonferroni p of adding this one to it, the fraction of what the top
@@ -295,6 +305,10 @@ class Round:
     uncertain: tuple[str, ...] = ()  #: effects the user's prior calls uncertain
     physical_check: bool = True
     progress: Callable[[str], None] | None = None
+    #: the latest noise verdict (:class:`~stellar_cal_ros.diagnosis.noise.NoiseVerdict`)
+    noise: Any = None
+    #: the stars' σ scale of the latest round's run differs from the one applied
+    noise_stale: bool = False
 
     def tell(self, text: str) -> None:
         """Report progress."""
@@ -367,8 +381,13 @@ def _candidate_task(r: Round, prior: Calibration, extra: list[str], effect_id: s
 def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
                condition: bool = True, keep_residuals: bool = True,
                more: list[Task] | None = None, screen: bool = True,
+               measure_noise: bool = False,
                ) -> tuple[RunSummary, list[CandidateResult], dict[str, RunSummary]]:
-    """One round: screen, re-run the candidates that pass, decide.
+    """One round: (the noise,) screen, re-run the candidates that pass, decide.
+
+    With ``measure_noise`` the round first measures the noise scales of the current model
+    (:func:`~stellar_cal_ros.diagnosis.noise.measure`: "noise as stated" is tested before
+    any physical effect) and runs everything else with the scales it finds (``r.noise``).
 
     ``start`` gives the start values (:func:`rerun_prior`); ``extra`` are the model's
     effects beyond the baseline.  The screening runs (one per worker, each scoring a part
@@ -380,6 +399,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     undecided).
     """
     prior = rerun_prior(start)
+    if measure_noise:
+        measure_round_noise(r, prior, extra)
     in_model = set(r.spec.baseline) | set(extra)
     results: list[CandidateResult] = []
     testable: list[str] = []
@@ -389,16 +410,22 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             results.append(CandidateResult(effect_id, "not_applicable", reason=reason))
         else:
             testable.append(effect_id)
-    alpha_mdb = ALPHA / max(len(testable), 1)
+    # two statistics decide when a local score test is available (the score test the MDB
+    # is computed for, and the augmented run's likelihood ratio): Bonferroni over both
+    use_score = bool(screen and r.spec.screen is not None and testable)
+    n_stats = 2 if use_score else 1
+    alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
     more = list(more or [])
     cands = {e: CandidateResult(e, "ranked", prior_uncertain=e in r.uncertain)
              for e in testable}
-    current = Task("current model", prior, tuple(extra), keep_residuals, cost=1.0)
+    current = Task("current model", prior, tuple(extra), keep_residuals, cost=1.0,
+                   star_noise=r.noise is not None)
     base = None
     if screen and r.spec.screen is not None and testable:
         groups = screening.parts(testable, r.runs.workers)
         first = [Task(f"screen {i + 1}/{len(groups)}", prior, tuple(extra),
-                      keep_residuals and i == 0, cost=_SCREEN_COST, screen=tuple(g))
+                      keep_residuals and i == 0, cost=_SCREEN_COST, screen=tuple(g),
+                      star_noise=r.noise is not None and i == 0)
                  for i, g in enumerate(groups)]
         out = r.runs.run_all(first + more, r.done)
         screens = [out.pop(t.key) for t in first]
@@ -429,6 +456,12 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             from stellar_cal_ros.errors import ModelError
 
             raise ModelError(f"the current model's re-run failed: {base.error}")
+    if r.noise is not None:
+        from stellar_cal_ros.diagnosis.noise import stale
+
+        # the stars' noise checked again on this model's run (free): a model that changed
+        # since the noise was measured may show another scale (a missing effect inflates it)
+        r.noise_stale = not r.noise.skipped and stale(base.star_noise)
     reference = Reference.of(base)
     for e, run in out.items():
         c = cands[e]
@@ -441,7 +474,15 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     tested = [c for c in results if c.status in ("ranked", "implausible", "screened_out")]
     m = max(len(tested), 1)
     for c in tested:
-        c.p_adjusted = min(1.0, c.p_value * m)
+        p = c.p_value
+        if c.status == "ranked" and c.screen is not None and c.screen.local:
+            # the score test of the screening pass, at the level its MDB is stated for:
+            # the prequential ratio of the augmented run alone has less power near the
+            # MDB for effects the model's own parameters nearly absorb (measured: a
+            # thermal focal drift at its MDB, score p = 0.013, ratio -2.9)
+            c.p_score = c.screen.p_value
+            p = min(p, c.screen.p_value)
+        c.p_adjusted = min(1.0, p * m * n_stats)
         if c.status == "implausible" and not c.p_adjusted < ALPHA:
             # its fit at the wrong size explains nothing significant: an ordinary
             # non-significant candidate, not a sign of another cause
@@ -454,6 +495,26 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     return base, results, extras
 
 
+def measure_round_noise(r: Round, prior: Calibration, extra: list[str]) -> None:
+    """Measure the noise of the current model; every later run of ``r`` uses its scales."""
+    from stellar_cal_ros.diagnosis import noise
+
+    if methods.get(r.spec.name).kind != "filter":
+        return  # a batch method's runner takes no noise scales (its σ: its own fit)
+    r.tell("noise: measuring the stars' sigma and the IMU noise from the run")
+    base = r.runs.run_all([Task("noise: current model", prior, tuple(extra), cost=1.0,
+                                star_noise=True)], r.done)["noise: current model"]
+    if not base.ok:
+        log.warning("noise not measured: the current model's run failed: %s", base.error)
+        return
+    comps = ("gyro", "accel") if Stage.ACCEL in r.spec.stages else ("gyro",)
+    r.noise = noise.measure(r.runs, prior, tuple(extra), base, r.tell, comps)
+    r.runs.noise = r.noise.applied
+    r.runs.verdict = r.noise
+    for line in r.noise.lines():
+        r.tell("noise: " + line)
+
+
 def rank_candidates(
     data: BagData,
     calibration: Calibration,
@@ -464,8 +525,11 @@ def rank_candidates(
     progress: Callable[[str], None] | None = None,
     physical_check: bool = True,
     runs: Runs | None = None,
+    measure_noise: bool = False,
 ) -> tuple[RunSummary, list[CandidateResult]]:
     """Re-run the current model and every candidate; return the base run and the ranking.
+
+    ``measure_noise``: measure the noise scales first (the verdict is ``runs.verdict``).
 
     ``physical_check=False`` ranks the astrometric scales as free parameters (for measuring
     their detectability at non-physical sizes, ``benchmarks/detectability.py``).  Runs in
@@ -481,7 +545,7 @@ def rank_candidates(
     pool = uncertain + [e for e in (candidates or registry.available()) if e not in uncertain]
     if candidates is not None:
         pool = [e for e in pool if e in candidates]
-    base, results, _ = rank_round(r, calibration, extra, pool)
+    base, results, _ = rank_round(r, calibration, extra, pool, measure_noise=measure_noise)
     return base, results
 
 
@@ -584,6 +648,7 @@ def summary_dict(base: RunSummary, results: list[CandidateResult],
         "candidates": [
             {"effect": c.effect, "score": c.statistic, "rms_after_px": list(c.rms_after_px),
              "p_value": c.p_adjusted, "p_value_unadjusted": c.p_value,
+             "p_value_score": None if np.isnan(c.p_score) else c.p_score,
              "explained_fraction": c.explained,
              "significant": c.significant, "significant_alone": c.significant_alone,
              "after": ({"effect": c.after, "score": c.statistic_after,

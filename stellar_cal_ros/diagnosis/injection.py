@@ -20,6 +20,41 @@ import numpy as np
 
 from stellar_cal_ros.effects import registry
 
+#: the astrometric (sky) effects at their physical size
+SKY = {"aberration": 1.0, "refraction": 1.0, "proper_motion": 1.0}
+#: the swaying scenario's sensor and camera errors, zeroed: its baseline model is then right
+SWAY_CLEAN = {k: 0.0 for k in ("principal_point", "radial_k1k2", "tangential",
+                               "gyro_scale_factor", "gyro_misalignment",
+                               "accel_scale_factor")}
+#: the simulated scenario of each method
+SCENARIO = {"psce": "psce_rotations", "swaying_base": "swaying"}
+
+
+def clean_simulation(method: str, sky: bool, seed: int, duration: float,
+                     effects: dict[str, Any] | None = None):
+    """A simulation whose effects the method's model (plus the sky, if ``sky``) all holds.
+
+    ``effects``: further effects injected (they are then what the model lacks).  Returns
+    ``(simulation, model effects)``.
+    """
+    from stellar_cal_ros.sim.scenarios import get_scenario
+    from stellar_cal_ros.sim.world import simulate
+
+    eff = dict(SWAY_CLEAN) if method == "swaying_base" else {}
+    if sky:
+        eff.update(SKY)
+    eff.update(effects or {})
+    sim = simulate(get_scenario(SCENARIO[method]), duration=duration, seed=seed, effects=eff)
+    return sim, (list(SKY) if sky else [])
+
+
+def clean_case(method: str, sky: bool, seed: int, duration: float):
+    """``(bag data, prior, model effects)`` of a clean bag (:func:`clean_simulation`)."""
+    from stellar_cal_ros.methods.replay import bag_data_from_simulation
+
+    sim, model = clean_simulation(method, sky, seed, duration)
+    return bag_data_from_simulation(sim), sim.prior, model
+
 
 def simulation_value(effect_id: str, delta: np.ndarray) -> np.ndarray:
     """The ``--effect`` value of a parameter change ``delta`` (the effect's units).

@@ -11,6 +11,7 @@ from typing import Any
 
 from stellar_cal_ros.diagnosis import stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
+from stellar_cal_ros.diagnosis.noise import not_measured, stated_scales
 from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.io.calibration import Calibration
 
@@ -27,33 +28,52 @@ def progress_printer(verbose: bool):
 def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSummary,
            results: list[CandidateResult], spec, effects: list[str], fraction: float,
            panels: list[tuple[str, Any]], plots: bool, title: str = "stellar_cal diagnosis",
-           extra_images: list[tuple[str, str]] | None = None) -> dict[str, Any]:
+           extra_images: list[tuple[str, str]] | None = None,
+           verdict=None, write: bool = True) -> dict[str, Any]:
     """Unexplained structure on ``final``'s residuals, the summary, the report files.
 
     ``base`` is the run the candidates were compared with (the summary's RMS); ``final``
     the run whose residual structure is tested (the model with the top candidate when
-    there is one).  Returns the summary (without writing ``diagnosis.json``).
+    there is one).  Returns the summary (without writing ``diagnosis.json``); with
+    ``write=False`` the figures are made but ``report.html`` is left to the caller
+    (:func:`write_report`, once the summary is complete).  ``verdict``: the noise verdict
+    (:class:`~stellar_cal_ros.diagnosis.noise.NoiseVerdict`), the summary's ``noise``.
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     res = final.residuals if final.residuals is not None else base.residuals
-    unexplained = stats.regressor_tests(res, stats.evaluation_mask(res, fraction), centre)
+    unexplained = stats.regressor_tests(res, stats.evaluation_mask(res, fraction), centre,
+                                        focal=(cam.fx, cam.fy))
     summary = summary_dict(base, results, unexplained, spec, effects, fraction)
+    summary["noise"] = (verdict.as_json() if verdict is not None else
+                        not_measured(stated_scales(calibration)))
     best = next((c for c in results if c.significant_alone), None)
     summary["recommendation"] = best.effect if best is not None else None
     if best is None:
         summary["reliability"] = hidden_effects(base, results)
     if plots:
-        # matplotlib: only when plotting
-        from stellar_cal_ros.diagnosis import report, report_html
+        from stellar_cal_ros.diagnosis import report  # matplotlib: only when plotting
 
         report.plot_vector_fields(panels, cam.width, cam.height, fraction,
                                   out / "vector_field.png")
         report.plot_regressors(panels, centre, fraction, out / "regressors.png")
         report.plot_time(panels, out / "time.png")
-        images = list(extra_images or []) + [
+        summary["figures"] = list(extra_images or []) + [
             ("Mean innovation over the detector (regional bins)", "vector_field.png"),
             ("Innovations against possible causes", "regressors.png"),
             ("Innovations against time", "time.png")]
-        report_html.write_html(out, summary, images, title)
+    if write:
+        from stellar_cal_ros.diagnosis.printing import diagnosis_lines
+
+        summary["terminal"] = diagnosis_lines(summary, calibration)
+        if plots:
+            write_report(out, summary, title)
     return summary
+
+
+def write_report(out: Path, summary: dict[str, Any], title: str) -> None:
+    """``report.html`` of a complete summary (its ``figures`` and ``terminal`` lines)."""
+    from stellar_cal_ros.diagnosis import report_html
+
+    report_html.write_html(out, summary, [tuple(f) for f in summary.get("figures", [])],
+                           title)

@@ -68,6 +68,10 @@ class Task:
     #: candidates this run scores (a screening run, :mod:`~stellar_cal_ros.diagnosis.screening`)
     screen: tuple[str, ...] = ()
     candidate: bool = False  #: an augmented run (its data faults are flagged, not raised)
+    #: the noise scales the run uses (:class:`~stellar_cal_ros.core.noise.NoiseScales`)
+    noise: Any = None
+    #: measure the stars' noise on this run's residuals (:mod:`~.noise`)
+    star_noise: bool = False
 
 
 def user_effect_classes() -> tuple[type, ...]:
@@ -95,6 +99,15 @@ class Runs:
         self.spec = spec
         self.fraction = fraction
         self.classes = user_effect_classes()
+        #: the noise scales every run uses unless its task says otherwise (set by the
+        #: diagnosis once it has measured them, :mod:`~stellar_cal_ros.diagnosis.noise`)
+        self.noise = None
+        #: the latest noise verdict of the diagnosis using these runs
+        self.verdict = None
+
+    def noise_of(self, task: Task):
+        """The noise scales ``task`` runs with."""
+        return task.noise if task.noise is not None else self.noise
 
     def facts(self) -> dict[str, Any]:
         """Applicability facts of the bag (site, head temperature, frames, duration)."""
@@ -104,7 +117,8 @@ class Runs:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes."""
         for task in sorted(tasks, key=lambda t: -t.cost):
             out = evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
-                           task.keep_residuals, (), task.screen, task.candidate)
+                           task.keep_residuals, (), task.screen, task.candidate,
+                           self.noise_of(task), task.star_noise)
             yield task, out
 
     def run_all(self, tasks: list[Task],
@@ -183,7 +197,8 @@ class DaskRuns(Runs):
         for task in tasks:
             fut = self.client.submit(evaluate, self.remote_bag, self.spec, task.prior,
                                      task.effects, self.fraction, task.keep_residuals,
-                                     self.classes, task.screen, task.candidate, pure=False,
+                                     self.classes, task.screen, task.candidate,
+                                     self.noise_of(task), task.star_noise, pure=False,
                                      priority=int(100 * task.cost),
                                      key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
             futures[fut] = task

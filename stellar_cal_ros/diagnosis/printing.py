@@ -1,4 +1,9 @@
-"""What ``stellar-cal diagnose`` (and ``--auto``) print: the key lines of a summary."""
+"""What ``stellar-cal diagnose`` (and ``--auto``) print: the key lines of a summary.
+
+Each ``*_lines`` function returns the lines; the ``print_*`` functions print them, and the
+report (``report.html``) carries the very same lines (issue 21 item 5: what the terminal
+shows is what the report holds).
+"""
 
 from __future__ import annotations
 
@@ -8,64 +13,93 @@ from stellar_cal_ros.diagnosis import reliability
 from stellar_cal_ros.diagnosis.auto import describe
 
 
-def print_notes(summary: dict[str, Any]) -> None:
+def notes_lines(summary: dict[str, Any]) -> list[str]:
     """The effects the prior calls uncertain that the model lacks."""
+    out: list[str] = []
     for p in summary.get("prior_uncertain", []):
-        print(f"  note: {p['note']}")
+        out.append(f"  note: {p['note']}")
+    return out
 
 
-def print_unexplained(summary: dict[str, Any], n: int = 5) -> None:
-    """Residual structure no candidate explains, strongest first."""
+def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
+    """Residual structure no candidate explains, strongest first, with its size in px."""
+    out: list[str] = []
     for u in summary["unexplained"][:n]:
-        print(f"  unexplained: {u['component']} residual vs {u['regressor']} "
-              f"(t={u['statistic']:.1f}, p={u['p_value']:.2g})")
+        size = u.get("change_px")
+        out.append(f"  unexplained: {u['component']} residual vs {u['regressor']} "
+              f"(t={u['statistic']:.1f}, p={u['p_value']:.2g}"
+              + (f"; {abs(size):.3g} px across its 5-95 % range" if size is not None else "")
+              + ")")
+    if summary["unexplained"]:
+        out.append("    (structure no library effect explains: an effect outside the library, "
+              "e.g. a centroid bias with magnitude or a mount bending with gravity; the "
+              "regressor it follows is listed first)")
+    return out
 
 
-def print_data_quality(summary: dict[str, Any]) -> None:
+def noise_lines(summary: dict[str, Any]) -> list[str]:
+    """The noise verdict (tested before any physical effect), and whether it is the cause."""
+    out: list[str] = []
+    noise = summary.get("noise") or {}
+    for line in noise.get("verdict", []):
+        out.append(f"noise: {line}")
+    if noise.get("rescaled") and not summary.get("recommendation") and \
+            not summary.get("unexplained") and not any(
+                c.get("significant") for c in summary.get("candidates", [])):
+        out.append("noise is the cause: with the measured noise the model fits and no effect is "
+              "missing (the σ of a run with the stated noise are wrong by these factors)")
+    return out
+
+
+def data_quality_lines(summary: dict[str, Any]) -> list[str]:
     """The input counters, and the data faults a diagnosis must not explain away."""
+    out: list[str] = []
     counts = summary.get("counts", {})
-    print("counts: " + ", ".join(f"{k}={v}" for k, v in counts.items()))
+    out.append("counts: " + ", ".join(f"{k}={v}" for k, v in counts.items()))
     faults = summary.get("data_quality", [])
     if faults:
-        print("data quality first: " + "; ".join(faults) + ". Residual structure from "
+        out.append("data quality first: " + "; ".join(faults) + ". Residual structure from "
               "damaged input looks like a missing effect: repair the data (or judge the "
               "candidates below with this in mind).")
+    return out
 
 
-def print_diagnosis(summary: dict, calibration=None) -> None:
+def diagnosis_lines(summary: dict, calibration=None) -> list[str]:
     """Print the key lines of a diagnosis summary.
 
     ``calibration``: the calibration diagnosed; when it is a run's result, the RMS that run
     reported is printed beside the re-run's, with why they may differ.
     """
+    out: list[str] = []
     rms, exp = summary["residual_rms_px"], summary["expected_rms_px"]
-    print(f"innovation RMS u={rms[0]:.4f} v={rms[1]:.4f} px; the model expects "
+    out.append(f"innovation RMS u={rms[0]:.4f} v={rms[1]:.4f} px; the model expects "
           f"u={exp[0]:.4f} v={exp[1]:.4f} px")
     own = (calibration.extra.get("consistency") or {}).get("rms_px") if calibration else None
     if own is not None and len(own) == 2 and \
             max(abs(a - b) for a, b in zip(own, rms, strict=True)) > 1e-4 * max(1e-12, *own):
-        print(f"  (the run that wrote this calibration reported u={own[0]:.4f} "
+        out.append(f"  (the run that wrote this calibration reported u={own[0]:.4f} "
               f"v={own[1]:.4f} px: the diagnosis re-runs the model from the calibration's "
               "values with datasheet σ on every estimated effect, as each candidate's run "
               "does; the two agree when the model fits, and differ when it does not, as "
               "a wrong model ends where it starts)")
-    print_data_quality(summary)
-    print_notes(summary)
-    print("candidates (best first):")
+    out += data_quality_lines(summary)
+    out += noise_lines(summary)
+    out += notes_lines(summary)
+    out.append("candidates (best first):")
     for c in summary["candidates"][:6]:
         flag = "SIGNIFICANT" if c["significant"] else "           "
         after = c.get("after")
         note = (f"  (not needed once {after['effect']} is added: p={after['p_value']:.2g})"
                 if after and not c["significant"] else
                 f"  (after {after['effect']}: p={after['p_value']:.2g})" if after else "")
-        print(f"  {flag} {c['effect']:22s} score {c['score']:10.1f}  p={c['p_value']:.2g}  "
+        out.append(f"  {flag} {c['effect']:22s} score {c['score']:10.1f}  p={c['p_value']:.2g}  "
               f"RMS after u={c['rms_after_px'][0]:.4f} v={c['rms_after_px'][1]:.4f} px{note}")
     also = [c["effect"] for c in sorted(summary["candidates"][1:],
                                         key=lambda c: -(c.get("after") or {}).get("score", 0))
             if c["significant"] and c.get("after")]
     if also:
         top = next(c["after"]["effect"] for c in summary["candidates"] if c.get("after"))
-        print(f"  still significant after adding {top}: "
+        out.append(f"  still significant after adding {top}: "
               f"{', '.join(also)} (add them one at a time)")
     implausible = summary.get("implausible", [])
     for u in implausible:
@@ -73,58 +107,105 @@ def print_diagnosis(summary: dict, calibration=None) -> None:
         after = u.get("after")
         note = (f"; not needed once {after['effect']} is added" if after and not after["needed"]
                 else "")
-        print(f"  implausible: {u['effect']} (fits {est:.3g} +- {sig:.2g} x its physical "
-              f"size{note})")
+        rec = summary.get("recommendation")
+        if not note and rec and rec != u["effect"]:
+            note = f"; this round cannot tell while {rec} is missing"
+        out.append(f"  implausible: {u['effect']} (fits {est:.3g} +- {sig:.2g} x its physical "
+                   f"size{note})")
     if any(not (u.get("after") and not u["after"]["needed"]) for u in implausible):
-        print("    (a physical effect at the wrong size: the structure has another cause, or "
-              "several effects are missing; add the top candidate and diagnose again)")
+        out.append("    (a physical effect at the wrong size: the structure has another cause, "
+                   "or several effects are missing; add the top candidate and diagnose again)")
     for u in summary["unobservable"]:
-        print(f"  unobservable: {u['effect']} ({u['reason']})")
+        out.append(f"  unobservable: {u['effect']} ({u['reason']})")
     for u in summary.get("screened_out", []):
-        print(f"  screened out: {u['effect']} ({u['reason']})")
-    print_unexplained(summary)
+        out.append(f"  screened out: {u['effect']} ({u['reason']})")
+    out += unexplained_lines(summary)
     rec = summary.get("recommendation")
     if not rec:
-        print_reliability(summary.get("reliability", []))
-    print(f"recommendation: add --effects {rec}" if rec else
-          "recommendation: no library effect explains the residuals better")
+        out += reliability_lines(summary.get("reliability", []))
+    out.append(f"recommendation: add --effects {rec}" if rec else
+               "recommendation: no library effect explains the residuals better")
+    out += scope_lines(summary, single_round=True)
+    return out
 
 
-def print_discovery(summary: dict[str, Any]) -> None:
+def scope_lines(summary: dict[str, Any], single_round: bool) -> list[str]:
+    """What this diagnosis can and cannot tell (issue 21 item 5)."""
+    out = []
+    rec = summary.get("recommendation")
+    if single_round and rec:
+        out.append(f"what one round can tell: {rec} is missing. Every other candidate was "
+                   f"tested alone beside the missing {rec}, which its estimate partly absorbs: "
+                   "a size far from the physical one or a weak score says little until "
+                   f"{rec} is in the model (`--effects {rec}` and diagnose again, or "
+                   "`stellar-cal discover` does the rounds)")
+    elif single_round:
+        out.append("what one round can tell: no library effect is missing above its minimal "
+                   "detectable size (below); smaller effects, the blind directions and "
+                   "effects outside the library beyond the structure listed cannot be told")
+    else:
+        out.append("what this discovery cannot tell: effects below their minimal detectable "
+                   "size and the blind directions (above), and effects outside the library "
+                   "beyond the 'unexplained' structure listed; `discover --verify` checks the "
+                   "sizes printed on twins of this bag")
+    return out
+
+
+def verify_lines(summary: dict[str, Any]) -> list[str]:
+    """The ``--verify`` results: each printed MDB and bias checked on twins of the bag."""
+    from stellar_cal_ros.diagnosis.verify import describe as verify_text
+
+    rows = summary.get("verify")
+    if not rows:
+        return []
+    holds = sum(r["holds"] for r in rows)
+    out = [f"verify (twins of this bag, the effect injected at its printed MDB, seed "
+           f"{rows[0]['seed']}): {holds} of {len(rows)} claims hold"]
+    out += [f"  {verify_text(r)}" for r in rows]
+    return out
+
+
+def discovery_lines(summary: dict[str, Any]) -> list[str]:
     """Print the path, the final estimates, the rejections and what could still hide."""
-    print_data_quality(summary)
-    print("path:")
+    out: list[str] = []
+    out += data_quality_lines(summary)
+    out += noise_lines(summary)
+    out.append("path:")
     for s in summary["path"]:
         rms, exp = s["rms_px"], s["expected_rms_px"]
-        print(f"  round {s['round']}: RMS u={rms[0]:.4f} v={rms[1]:.4f} px (expects "
+        out.append(f"  round {s['round']}: RMS u={rms[0]:.4f} v={rms[1]:.4f} px (expects "
               f"{exp[0]:.4f} {exp[1]:.4f}), loglik {s['log_likelihood']:.1f}, "
               f"{s['reruns']} runs in {s['seconds']:.1f} s -> {describe(s)}")
     for eff, params in summary["final_estimates"].items():
         text = ", ".join(f"{n} = {reliability.shown(f'{eff}.{n}', v)} +- "
                          f"{reliability.shown(f'{eff}.{n}', s)}" for n, (v, s) in params.items())
-        print(f"  added {eff}: {text}")
+        out.append(f"  added {eff}: {text}")
     if summary["stopped"] != "nothing more is significant":
-        print(f"  {summary['stopped']}")
+        out.append(f"  {summary['stopped']}")
     for rj in summary["rejected"]:
         if rj["status"] != "not_applicable":
-            print(f"  not added: {rj['effect']}: {rj['reason']}")
-    print_notes(summary)
-    print_unexplained(summary)
-    print_reliability(summary.get("reliability", []))
-    print(f"final model: {', '.join(summary['model']['effects'])}; "
+            out.append(f"  not added: {rj['effect']}: {rj['reason']}")
+    out += notes_lines(summary)
+    out += unexplained_lines(summary)
+    out += reliability_lines(summary.get("reliability", []))
+    out += verify_lines(summary)
+    out += scope_lines(summary, single_round=False)
+    out.append(f"final model: {', '.join(summary['model']['effects'])}; "
           f"{summary['executor']}, {summary['seconds']:.1f} s in all")
+    return out
 
 
-def print_reliability(entries: list[dict[str, Any]], per_effect: int = 4) -> None:
+def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> list[str]:
     """What could still be hiding: each effect's MDB and the σ its bias would dominate.
 
     Each bias is that of one parameter of the effect alone at its printed MDB (named in
     brackets): the shift an injection of that size reproduces.  Directions the data cannot
     see are a separate clause, with what an effect of plausible size there could shift.
     """
+    out: list[str] = []
     if not entries:
-        return
-    print("what could still be hiding (minimal detectable size on this bag, power "
+        return out
+    out.append("what could still be hiding (minimal detectable size on this bag, power "
           f"{reliability.POWER:.0%}; each bias is that parameter alone at its MDB):")
     for e in entries:
         mdb = ", ".join(f"{n} {reliability.shown(e['effect'] + '.' + n, v)}"
@@ -149,4 +230,21 @@ def print_reliability(entries: list[dict[str, Any]], per_effect: int = 4) -> Non
                      "would move " + ", ".join(f"{n} by {blind['biases_shown'][n]}"
                                                for n in bdom[:per_effect])
                      + " with no trace in the residuals")
+        out.append(line)
+    return out
+
+
+def print_diagnosis(summary: dict, calibration=None) -> None:
+    """Print :func:`diagnosis_lines`."""
+    print("\n".join(diagnosis_lines(summary, calibration)))
+
+
+def print_discovery(summary: dict[str, Any]) -> None:
+    """Print :func:`discovery_lines`."""
+    print("\n".join(discovery_lines(summary)))
+
+
+def print_reliability(entries: list[dict[str, Any]], per_effect: int = 4) -> None:
+    """Print :func:`reliability_lines`."""
+    for line in reliability_lines(entries, per_effect):
         print(line)

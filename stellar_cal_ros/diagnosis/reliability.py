@@ -241,7 +241,35 @@ def blind_directions(det: Detectability) -> np.ndarray:
     """
     D = det.plausible
     w, V = np.linalg.eigh(_sym(det.information * np.outer(D, D)))
-    return D[:, None] * V[:, w < det.lam0]
+    return D[:, None] * _sparse_basis(V[:, w < det.lam0])
+
+
+def _sparse_basis(B: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of span(B) that is as sparse as the space allows.
+
+    Eigenvectors of a (near-)degenerate block are arbitrary mixtures; the reduced row
+    echelon form of ``Bᵀ`` names the space by its simplest vectors (e01 − e10, e02 − e20,
+    … for a rotation of the gyro axes), orthonormalized in that order.
+    """
+    if B.shape[1] < 2:
+        return B
+    R = B.T.copy()
+    rows, cols = R.shape
+    r = 0
+    for c in range(cols):
+        if r == rows:
+            break
+        p = r + int(np.argmax(np.abs(R[r:, c])))
+        if abs(R[p, c]) < 1e-9:
+            continue
+        R[[r, p]] = R[[p, r]]
+        R[r] /= R[r, c]
+        for i in range(rows):
+            if i != r:
+                R[i] -= R[i, c] * R[r]
+        r += 1
+    Q, _ = np.linalg.qr(R.T)
+    return Q[:, :B.shape[1]]
 
 
 def _direction_text(effect_id: str, v: np.ndarray) -> str:
@@ -249,6 +277,9 @@ def _direction_text(effect_id: str, v: np.ndarray) -> str:
     names = registry.create(effect_id).parameter_names
     u = np.asarray(v, dtype=float) / max(float(np.abs(v).max()), 1e-300)
     u = u / np.linalg.norm(u)
+    lead = np.flatnonzero(np.abs(u) >= 0.2)
+    if lead.size:
+        u = u * np.sign(u[lead[0]])  # the direction's sign is immaterial: lead with +
     terms = [(c, n) for c, n in zip(u, names, strict=True) if abs(c) >= 0.2]
     text = " ".join(f"{'-' if c < 0 else '+'} {abs(c):.2g} {n}" for c, n in terms)
     return text[2:] if text.startswith("+ ") else text

@@ -306,6 +306,92 @@ def _unexplained_html(summary: dict[str, Any], image: Path | str | None = None) 
     return f"<ul>{items}</ul>{fig}"
 
 
+def _pre(lines: list[str]) -> str:
+    return "<pre>" + _e("\n".join(lines)) + "</pre>"
+
+
+def _all_candidates_html(summary: dict[str, Any]) -> str:
+    """Every candidate of the last round with its status: ranked, screened out, ..."""
+    rows = []
+    for c in summary.get("candidates", []):
+        rows.append((c["effect"], "significant" if c["significant"] else "ranked",
+                     f"{c['p_value']:.2g}", f"{c['score']:.1f}", "re-run with it"))
+    for key, status in (("implausible", "implausible"), ("screened_out", "screened out"),
+                        ("unobservable", "not testable"), ("not_applicable", "not applicable")):
+        for c in summary.get(key, []):
+            p = c.get("p_value")
+            rows.append((c["effect"], status, "" if p is None else f"{p:.2g}",
+                         "" if c.get("score") is None else f"{c['score']:.1f}",
+                         c.get("reason", "")))
+    if not rows:
+        return "<p>none</p>"
+    return ("<table><tr><th>effect</th><th>status</th><th>p</th><th>score</th><th>why</th>"
+            "</tr>" + "".join(f"<tr><td><b>{_e(a)}</b></td><td>{_e(b)}</td><td class=num>"
+                              f"{_e(c)}</td><td class=num>{_e(d)}</td><td>{_e(w)}</td></tr>"
+                              for a, b, c, d, w in rows) + "</table>")
+
+
+def _reliability_html(summary: dict[str, Any]) -> str:
+    from stellar_cal_ros.diagnosis.reliability import shown
+
+    rows = []
+    for e in summary.get("reliability", []):
+        mdb = ", ".join(f"{n} {shown(e['effect'] + '.' + n, v)}" for n, v in e["mdb"].items())
+        bias = ", ".join(f"{n} by {e['biases_shown'][n]}"
+                         + (f" [{e['bias_parameter'][n]}]" if len(e["mdb"]) > 1 else "")
+                         + f" (σ {e['sigma_shown'][n]})" for n in e["dominates"])
+        blind = e.get("blind") or {}
+        btxt = ("; ".join(blind.get("directions", [])) + ": " + ", ".join(
+            f"{n} by {blind['biases_shown'][n]}" for n in blind.get("dominates", []))
+            if blind.get("dominates") else "")
+        rows.append(f"<tr><td><b>{_e(e['effect'])}</b></td><td>{_e(mdb)}"
+                    f"{'' if e['testable'] else ' (not testable)'}</td><td>{_e(bias)}</td>"
+                    f"<td>{_e(btxt)}</td></tr>")
+    if not rows:
+        return ""
+    return ("<h2>What could still be hiding</h2><p>Minimal detectable size (power 80 %) on "
+            "this bag, and the bias each parameter alone at that size leaves (the shift an "
+            "injection reproduces); blind directions: what an effect of plausible size there "
+            "would move with no trace.</p><table><tr><th>effect</th><th>MDB</th><th>would "
+            "bias (above its σ)</th><th>blind directions</th></tr>" + "".join(rows)
+            + "</table>")
+
+
+def _discovery_html(summary: dict[str, Any]) -> str:
+    """The sections the terminal shows: noise, path, added, candidates, hiding, verify."""
+    out = []
+    noise = summary.get("noise") or {}
+    if noise.get("verdict"):
+        out.append("<h2>Noise (tested before any effect)</h2>" + _pre(noise["verdict"]))
+    if summary.get("path"):
+        rows = "".join(
+            f"<tr><td>{s['round']}</td><td>{_e(', '.join(s['model']))}</td><td class=num>"
+            f"{s['rms_px'][0]:.4f} / {s['rms_px'][1]:.4f}</td><td class=num>"
+            f"{s['expected_rms_px'][0]:.4f} / {s['expected_rms_px'][1]:.4f}</td>"
+            f"<td>{_e(s['action'])}</td></tr>" for s in summary["path"])
+        out.append("<h2>Path</h2><table><tr><th>round</th><th>model</th><th>RMS, px</th>"
+                   f"<th>expected, px</th><th>then</th></tr>{rows}</table>")
+    if summary.get("final_estimates"):
+        from stellar_cal_ros.diagnosis.reliability import shown
+
+        items = "".join(
+            f"<li><b>{_e(eff)}</b>: " + _e(", ".join(
+                f"{n} = {shown(f'{eff}.{n}', v)} ± {shown(f'{eff}.{n}', sg)}"
+                for n, (v, sg) in params.items())) + "</li>"
+            for eff, params in summary["final_estimates"].items())
+        out.append(f"<h2>Added effects</h2><ul>{items}</ul>")
+    out.append("<h2>Every candidate of the last round</h2>" + _all_candidates_html(summary))
+    out.append(_reliability_html(summary))
+    if summary.get("verify"):
+        from stellar_cal_ros.diagnosis.verify import describe
+
+        out.append("<h2>Verified on twins of this bag</h2><ul>" + "".join(
+            f"<li>{_e(describe(r))}</li>" for r in summary["verify"]) + "</ul>")
+    if summary.get("terminal"):
+        out.append("<h2>What the terminal showed</h2>" + _pre(summary["terminal"]))
+    return "".join(out)
+
+
 def write_html(out_dir: Path, summary: dict[str, Any], images: list[tuple[str, str]],
                title: str, unexplained_image: str | Path | None = None) -> Path:
     """Write the diagnosis page ``report.html`` and return its path.
@@ -321,7 +407,7 @@ def write_html(out_dir: Path, summary: dict[str, Any], images: list[tuple[str, s
     rms, exp = summary["residual_rms_px"], summary["expected_rms_px"]
     nis = summary["nis"]
     imgs = "".join(f"<h2>{_e(t)}</h2><img src='{_e(f)}'>" for t, f in images)
-    body = (f"<p>Model: <b>{_e(summary['model']['method'])}</b> with "
+    body = (_discovery_html(summary) + f"<p>Model: <b>{_e(summary['model']['method'])}</b> with "
             f"{_e(', '.join(summary['model']['effects']))}. Evaluation: "
             f"{_e(summary['evaluation'])}.</p><p>Innovation RMS <b>{rms[0]:.4f} / "
             f"{rms[1]:.4f} px</b> (u / v) against the {exp[0]:.4f} / {exp[1]:.4f} px the model "

@@ -9,6 +9,7 @@ from typing import Any
 
 from stellar_cal_ros.diagnosis.auto import discover
 from stellar_cal_ros.diagnosis.discover import method_spec, rank_candidates
+from stellar_cal_ros.diagnosis.noise import check_noise, stated_scales
 from stellar_cal_ros.diagnosis.output import finish, progress_printer
 from stellar_cal_ros.diagnosis.parallel import open_runner
 from stellar_cal_ros.io.calibration import Calibration
@@ -31,6 +32,9 @@ def diagnose(
     scheduler: str | None = None,
     auto: bool = False,
     max_rounds: int = 8,
+    noise: str = "estimate",
+    verify: bool = False,
+    verify_seed: int = 1,
 ) -> dict[str, Any]:
     """Run one diagnosis round; write ``diagnosis.json`` and ``report.html``; return the summary.
 
@@ -38,20 +42,27 @@ def diagnose(
     processes, ``None`` one per core; ``scheduler``: the address of an existing Dask
     cluster (:mod:`~stellar_cal_ros.diagnosis.parallel`).  ``auto``: add the recommended
     effect and test again, up to ``max_rounds`` rounds
-    (:func:`~stellar_cal_ros.diagnosis.auto.discover`).
+    (:func:`~stellar_cal_ros.diagnosis.auto.discover`).  ``noise``: ``estimate`` (measure
+    the noise scales first and test every effect with them, :mod:`~stellar_cal_ros.
+    diagnosis.noise`) or ``stated`` (use the noise the messages, the prior and the
+    calibration's run state).  ``verify`` (with ``auto``): check the printed MDBs and
+    biases on twins of the bag (:mod:`~stellar_cal_ros.diagnosis.verify`).
     """
     if auto:
         return discover(bag, calibration, method, effects, output_dir, max_rounds,
                         candidates=candidates, evaluation_fraction=evaluation_fraction,
-                        plots=plots, verbose=verbose, workers=workers, scheduler=scheduler)
+                        plots=plots, verbose=verbose, workers=workers, scheduler=scheduler,
+                        noise=noise, verify=verify, verify_seed=verify_seed)
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
     spec = method_spec(method)
     tell = progress_printer(verbose)
     with open_runner(bag, spec, evaluation_fraction, workers, scheduler) as runs:
         tell(f"re-runs {runs.description}")
+        runs.noise = stated_scales(calibration)
         base, results = rank_candidates(bag, calibration, spec, effects, candidates,
-                                        evaluation_fraction, progress=tell, runs=runs)
+                                        evaluation_fraction, progress=tell, runs=runs,
+                                        measure_noise=check_noise(noise))
     # the top candidate (a candidate tested after it may be significant too, but it is the
     # one to add first); its re-run from its own calibration is where the next iteration
     # starts, and the structure left is tested on it
@@ -62,6 +73,6 @@ def diagnose(
         final = best.refined_run
         panels.append((f"+ {best.effect}", final.residuals))
     summary = finish(out, calibration, base, final, results, spec, effects,
-                     evaluation_fraction, panels, plots)
+                     evaluation_fraction, panels, plots, verdict=runs.verdict)
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary

@@ -86,6 +86,9 @@ class RunSummary:
     #: a screening run's raw score tests, ``{effect: (LM, dof, I, M)}``
     #: (:mod:`~stellar_cal_ros.diagnosis.screening`)
     scores: dict[str, tuple] | None = None
+    #: the stars' noise measured on this run (:class:`~stellar_cal_ros.diagnosis.noise.
+    #: StarNoise`), when asked for
+    star_noise: Any = None
     error: str = ""
 
     @property
@@ -201,7 +204,8 @@ def quiet(name: str = "stellar_cal_ros.methods", level: int = logging.ERROR):
 def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
              fraction: float, keep_residuals: bool = False,
              effect_classes: tuple[type, ...] = (),
-             screen: tuple[str, ...] = (), candidate: bool = False) -> RunSummary:
+             screen: tuple[str, ...] = (), candidate: bool = False, noise=None,
+             star_noise: bool = False) -> RunSummary:
     """Run ``spec.runner`` on the bag and return the run's statistics (worker entry point).
 
     A failing run returns a :class:`RunSummary` with ``error`` set (the diagnosis reports it
@@ -210,13 +214,17 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
     ``screen``: candidates scored by this run (a screening run: they are *consider*
     parameters, which leave the filter's estimate unchanged; ``spec.screen`` turns the
     run into their raw score tests, kept in :attr:`RunSummary.scores`).  ``candidate``: an
-    augmented run, whose data faults the runner flags instead of raising.
+    augmented run, whose data faults the runner flags instead of raising.  ``noise``: the
+    noise scales the run uses; ``star_noise``: measure the stars' noise on its residuals
+    here, where the bag is (:func:`~stellar_cal_ros.diagnosis.noise.measure_stars`).
     """
     t0 = time.perf_counter()
     try:
         register_effect_classes(effect_classes)
         data = load_bag(bag)
         kw: dict = {"consider": list(screen)} if screen else {}
+        if noise is not None:
+            kw["noise"] = noise
         if candidate:
             # the gyro-against-stars check judges the data: the current model's run raises
             # on a fault; a candidate's run only flags it, since the compensated gyro it
@@ -224,9 +232,14 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
             # candidate is wrong
             kw["gyro_fault"] = "flag"
         with quiet():
-            result = spec.runner(data, prior, list(effects), keep_tables=keep_residuals,
+            result = spec.runner(data, prior, list(effects),
+                                 keep_tables=keep_residuals or star_noise,
                                  eval_fraction=fraction, **kw)
         out = run_statistics(result, fraction, keep_residuals)
+        if star_noise:
+            from stellar_cal_ros.diagnosis.noise import measure_stars
+
+            out.star_noise = measure_stars(result, data, spec.name, fraction, noise)
         if screen:
             out.scores = spec.screen(result, list(screen))
         if keep_residuals:

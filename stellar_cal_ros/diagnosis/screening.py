@@ -74,6 +74,7 @@ class ScreenResult:
     #: bias rows of derived quantities per unit of β: ``{name: (k,)}`` (the equivalent
     #: principal point)
     derived: dict[str, np.ndarray] = field(default_factory=dict)
+    score: np.ndarray | None = None  #: s = Σ Aᵀ S⁻¹ ν (k,)
 
     @property
     def statistic(self) -> float:
@@ -94,9 +95,10 @@ class ScreenResult:
 def kernel_scores(result, candidates: list[str]) -> dict[str, tuple]:
     """The kernel's score tests of a run made with ``consider=candidates``.
 
-    ``{effect: (LM, dof, I, bias_per_unit, derived)}``; ``derived`` holds the bias rows of
-    the equivalent principal point, ``J_θ (−M_θ) − J_β`` (its error in the current model
-    minus the shift the effect itself makes).
+    ``{effect: (LM, dof, I, bias_per_unit, derived, score)}``; ``derived`` holds the bias
+    rows of the equivalent principal point, ``J_θ (−M_θ) − J_β`` (its error in the current
+    model minus the shift the effect itself makes); ``score`` is ``s`` (the injection checks
+    compare it between paired bags).
     """
     from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
     from stellar_cal_ros.methods.results import epp_jacobian
@@ -115,7 +117,7 @@ def kernel_scores(result, candidates: list[str]) -> dict[str, tuple]:
             sl = flt.model.slices[eid]
             rows = J[:, :n] @ c.bias_per_unit - J[:, sl]
             derived = dict(zip(EPP_NAMES, rows, strict=True))
-        out[eid] = (c.lm, c.dof, c.info, c.bias_per_unit, derived)
+        out[eid] = (c.lm, c.dof, c.info, c.bias_per_unit, derived, c.info @ c.estimate)
     return out
 
 
@@ -193,5 +195,7 @@ def collect(runs: list[Any]) -> dict[str, ScreenResult]:
             out[eid] = ScreenResult(float(lm), int(dof),
                                     np.atleast_2d(np.asarray(info, dtype=float)),
                                     None if sens is None else np.asarray(sens, dtype=float),
-                                    disp, local, derived)
+                                    disp, local, derived,
+                                    np.asarray(item[5], dtype=float) if len(item) > 5
+                                    else None)
     return out

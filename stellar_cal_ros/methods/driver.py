@@ -127,6 +127,7 @@ class InputCounters:
     frames_ahead: int = 0  # stamped more than max_frame_lead_s after the newest IMU sample
     frames_replaced: int = 0  # a pending frame with the same stamp and fewer usable stars
     stars_bad_sigma: int = 0  # negative or NaN σ in the message: the default σ was used
+    stars_sigma_unknown: int = 0  # σ = 0 ("unknown") in the message: default or measured σ
     env_received: int = 0
     env_invalid: int = 0
     env_stale: int = 0
@@ -456,7 +457,7 @@ class Calibrator:
                 self._clock_fault(clocks.leap_text(self._imu_leap, stamp, self.t0_ns))
         cam = self.prior.camera
         inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px,
-                           compiled=self.filter_cls.compiled_step)
+                           self.config.noise, compiled=self.filter_cls.compiled_step)
         if needs_identification(frame):  # identified when processed, with the IMU's hint
             self._to_identify.add(stamp)
         pending = self._frames_pending
@@ -477,6 +478,7 @@ class Calibrator:
                 return self._pump()
             c.frames_reordered += 1
             pending.insert(i, frame)
+        c.stars_sigma_unknown += inp.unknown_sigma
         if inp.bad_sigma:
             if not c.stars_bad_sigma:
                 log.warning("star message at %.3f: %d stars with negative or NaN sigma; the "
@@ -894,6 +896,12 @@ class Calibrator:
                                  self.stamp(), estimated=len(theta))
         cal.extra["derived"] = derived_quantities(self.model, full, self.covariance())
         cal.extra["consistency"] = consistency(self.stats.current())
+        noise = getattr(self.config, "noise", None)
+        # whether the run used the stated noise or measured scales of it (issue 21)
+        cal.extra["consistency"]["noise_rescaled"] = bool(noise is not None
+                                                          and not noise.identity)
+        if noise is not None and not noise.identity:
+            cal.extra["consistency"]["noise"] = noise.as_dict()
         reasons = self.degraded()
         if reasons:
             cal.extra["data_quality"] = {"degraded": True, "reasons": reasons}

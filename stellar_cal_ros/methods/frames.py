@@ -9,8 +9,10 @@
   star identified outside Hipparcos, 0 with NaN an unidentified centroid, contract §2), its
   centroid is finite and on the detector (the pixel area ``[-0.5, width − 0.5) ×
   [-0.5, height − 0.5)``); its σ is the message's when positive, the method's default when 0
-  ("unknown", contract), and the default — counted as ``stars_bad_sigma`` — when negative,
-  infinite or NaN.
+  ("unknown", contract; counted as ``stars_sigma_unknown``: ``replay`` and the diagnosis
+  measure it from the run), and the default — counted as ``stars_bad_sigma`` — when
+  negative, infinite or NaN; times the run's noise scales
+  (:class:`~stellar_cal_ros.core.noise.NoiseScales`) when it has any.
 * **Site** (:class:`SiteEstimator`): the median of the valid fixes (finite, status ≥ 0).
 * **Environment** (:class:`EnvSeries`): temperatures and pressure interpolated linearly at the
   frame stamp over their finite samples (in seconds from the earliest finite sample).
@@ -115,15 +117,25 @@ def clean_frame(frame: StarFrame, width: int, height: int) -> np.ndarray:
     return star_masks(frame, width, height).usable
 
 
-def star_sigma(sigma: np.ndarray, default: float) -> tuple[np.ndarray, int]:
+def star_sigma(sigma: np.ndarray, default: float, noise=None, magnitude=None, uv=None,
+               centre: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, int]:
     """``(σ, n_bad)`` of usable stars: the message's when positive, else ``default``.
 
     0 means "unknown" (contract); a negative, infinite or NaN σ is a bad value, counted in
-    ``n_bad``.
+    ``n_bad``.  With ``noise`` (:class:`~stellar_cal_ros.core.noise.NoiseScales`, and the
+    stars' ``magnitude``, ``uv`` and the image ``centre`` for its groups) the stated σ is
+    scaled, and an unknown or bad one is the measured σ of unknown stars when there is one
+    (never 0).
     """
     s = np.asarray(sigma, dtype=float)
     fine = np.isfinite(s)
-    return np.where(fine & (s > 0), s, default), int(np.count_nonzero(~(fine & (s >= 0))))
+    n_bad = int(np.count_nonzero(~(fine & (s >= 0))))
+    if noise is None:
+        return np.where(fine & (s > 0), s, default), n_bad
+    n = len(s)
+    mag = np.full(n, np.nan) if magnitude is None else np.asarray(magnitude, dtype=float)
+    pos = np.zeros((n, 2)) if uv is None else np.asarray(uv, dtype=float)
+    return noise.star_sigma(np.where(fine & (s > 0), s, 0.0), default, mag, pos, centre), n_bad
 
 
 @dataclass
@@ -138,16 +150,20 @@ class FrameInputs:
     magnitude: np.ndarray  #: (n,)
     bad_sigma: int  #: stars whose message σ was negative, infinite or NaN (default used)
     unidentified: int = 0  #: centroids without identity (catalog_id 0, NaN RA/Dec)
+    unknown_sigma: int = 0  #: stars whose message σ was 0 ("unknown": default or measured)
 
 
 def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float,
-                 compiled: bool = False) -> FrameInputs:
+                 noise=None, compiled: bool = False) -> FrameInputs:
     """Usable stars of a message and their filter inputs (see the module docstring).
 
+    ``noise`` (:class:`~stellar_cal_ros.core.noise.NoiseScales`): the measured scales of
+    the stated σ, and the measured σ of stars whose message says 0.
     ``compiled``: in one compiled call (:func:`stellar_cal_ros.core.jit.star_inputs`, the
-    same rules and formulas as :func:`star_masks` and :func:`star_sigma`) when numba is there.
+    same rules and formulas as :func:`star_masks` and :func:`star_sigma`) when numba is there
+    and the noise is as stated.
     """
-    jit = compiled_kernels() if compiled else None
+    jit = compiled_kernels() if compiled and (noise is None or noise.identity) else None
     if jit is not None:
         arrays = (np.asarray(frame.uv, dtype=float).reshape(-1, 2),
                   np.asarray(frame.right_ascension, dtype=float),
@@ -158,15 +174,18 @@ def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float
         if len({len(a) for a in arrays}) == 1:
             ok, uv, u_i, sigma, cid, mag, bad, unid = jit.star_inputs(
                 *arrays, float(width), float(height), float(default_sigma))
-            return FrameInputs(ok, uv, u_i, sigma, cid, mag, int(bad), int(unid))
+            return FrameInputs(ok, uv, u_i, sigma, cid, mag, int(bad), int(unid),
+                               int(np.count_nonzero(arrays[4][ok] == 0)))
     masks = star_masks(frame, width, height)
     ok = masks.usable
-    sigma, bad = star_sigma(np.asarray(frame.sigma, dtype=float)[ok], default_sigma)
+    s = np.asarray(frame.sigma, dtype=float)[ok]
+    mag = np.asarray(frame.magnitude, dtype=float)[ok]
+    sigma, bad = star_sigma(s, default_sigma, noise, mag, frame.uv[ok],
+                            ((width - 1) / 2.0, (height - 1) / 2.0))
     return FrameInputs(ok, frame.uv[ok],
                        radec_to_unit(frame.right_ascension[ok], frame.declination[ok]),
-                       sigma, frame.catalog_id[ok].astype(np.int64),
-                       np.asarray(frame.magnitude, dtype=float)[ok], bad,
-                       int(np.count_nonzero(masks.unidentified)))
+                       sigma, frame.catalog_id[ok].astype(np.int64), mag, bad,
+                       int(np.count_nonzero(masks.unidentified)), int(np.count_nonzero(s == 0)))
 
 
 # ---------------------------------------------------------------------------- star images

@@ -51,6 +51,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -139,6 +140,9 @@ class KernelConfig:
     """Noise levels and decisions shared by the filters (methods subclass it)."""
 
     centroid_sigma_px: float = 0.05  #: used when a star message has sigma = 0
+    #: measured noise scales (:class:`~stellar_cal_ros.core.noise.NoiseScales`): the stars'
+    #: σ they rescale; ARW / VRW are already scaled in the fields (``NoiseScales.apply``)
+    noise: Any = None
     gyro_arw_deg_sqrth: float = 0.001  #: angle random walk of each gyro
     gate_probability: float = 0.9999  #: per-star χ² (2 dof) acceptance probability
     min_stars: int = 3  #: fewer accepted stars: the frame is skipped

@@ -174,7 +174,7 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
            progress: bool = False, topics: dict[str, str] | None = None,
            on_error: str = "raise", driver: DriverConfig | None = None,
            eval_fraction: float = 0.5, filter_cls=None,
-           gyro_fault: str = "raise") -> ReplayResult:
+           gyro_fault: str = "raise", noise=None) -> ReplayResult:
     """Run a filter method over a bag (path or :class:`BagData`); return the result.
 
     Parameters
@@ -214,6 +214,10 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         ``raise``: a gyro that does not turn as the stars do over the first frames raises
         :class:`~stellar_cal_ros.errors.DataError` (deg/s, dead, swapped axes); ``flag``:
         it is counted and flags the result (a diagnosis's candidate runs).
+    noise : NoiseScales, optional
+        Scales of the stated noise (stars' σ, gyro ARW, accelerometer VRW) the run uses
+        (:mod:`stellar_cal_ros.core.noise`; measured by :mod:`stellar_cal_ros.diagnosis.
+        noise`).
     """
     spec = registry.get(method)
     if gyro_fault not in ("raise", "flag"):
@@ -223,6 +227,8 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
     cfg = config
     if gyro_fault == "flag" and spec.kind == "filter":
         cfg = dataclasses.replace(cfg or spec.config_cls(), unit_check_raises=False)
+    if noise is not None and spec.kind == "filter":
+        cfg = noise.apply(cfg or spec.config_cls())
     # a replay never drops frames for memory: what is held is bounded by the look-ahead
     drv = driver or DriverConfig(reorder_window_s=REPLAY_REORDER_S,
                                  max_pending_frames=1_000_000, batch_frames=True,
@@ -367,7 +373,9 @@ def method_runner(method: str) -> registry.Runner:
     The method's own :attr:`~stellar_cal_ros.methods.registry.MethodSpec.runner` if it has
     one, else (a filter method) :func:`replay` with it:
     ``runner(data, prior, effects, keep_tables=False, eval_fraction=0.5, consider=None,
-    gyro_fault="raise") -> ReplayResult``.  The runner carries the spec, so a worker process
+    gyro_fault="raise", noise=None) -> ReplayResult`` (``noise``: the measured noise scales,
+    :class:`~stellar_cal_ros.core.noise.NoiseScales`; a method's own runner may take it).
+    The runner carries the spec, so a worker process
     that does not know a user's method registers it.
     """
     spec = registry.get(method)
@@ -380,15 +388,16 @@ def method_runner(method: str) -> registry.Runner:
 
 def _replay_runner(spec: registry.MethodSpec, data, prior: Calibration, effects: list[str],
                    keep_tables: bool = False, eval_fraction: float = 0.5,
-                   consider: list[str] | None = None, gyro_fault: str = "raise"
-                   ) -> ReplayResult:
+                   consider: list[str] | None = None, gyro_fault: str = "raise",
+                   noise=None) -> ReplayResult:
     if registry.find(spec.name) is None:  # a user's method, in a fresh worker process
         registry.register(spec)
     if isinstance(data, BagData) and not len(data.imu_t):
         raise BagError(f"{spec.name} needs /imu/data, absent from the bag (a batch method "
                        "without an IMU, e.g. bundle, calibrates star frames alone)")
     return replay(data, prior, spec.name, effects, keep_tables=keep_tables,
-                  eval_fraction=eval_fraction, consider=consider, gyro_fault=gyro_fault)
+                  eval_fraction=eval_fraction, consider=consider, gyro_fault=gyro_fault,
+                  noise=noise)
 
 
 def replay_psce(bag: str | Path | BagData, prior: Calibration, effects: list[str] | None = None,

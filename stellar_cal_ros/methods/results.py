@@ -540,15 +540,32 @@ VERDICT_MESSAGES = {
 
 
 def mismatch_text(cons: dict[str, Any]) -> str:
-    """The loud line a model mismatch earns (empty when consistent)."""
-    if cons.get("verdict") != "model mismatch":
+    """The loud line a model mismatch or a conservative noise earns (empty when consistent).
+
+    Either can be a wrong *noise* as much as a wrong model (issue 21): a star σ stated too
+    small raises every NIS by its square, a gyro noise stated too small makes the
+    innovations follow each other; the text says so and names the commands that tell.
+    """
+    verdict = cons.get("verdict")
+    nis = cons.get("nis_per_dof", math.nan)
+    rescaled = " (with the rescaled noise)" if cons.get("noise_rescaled") else ""
+    if verdict == "conservative":
+        return (f"NOISE OVERSTATED?{rescaled}: star NIS/dof {nis:.2f} (expected "
+                f"{cons['interval'][0]:.2f}-{cons['interval'][1]:.2f}): the innovations are "
+                f"smaller than the stated noise allows, as if the stars' sigma were "
+                f"{1.0 / math.sqrt(max(nis, 1e-12)):.2g}x too large; every sigma below is "
+                "then too wide. `stellar-cal replay --estimate-noise` measures the scales.")
+    if verdict != "model mismatch":
         return ""
     ref = cons.get("reference_nis_per_dof")
     ref_text = f", reference NIS/dof {ref:.2f}" if ref is not None else ""
-    return (f"MODEL MISMATCH: star NIS/dof {cons['nis_per_dof']:.2f}{ref_text} (expected "
+    return (f"MODEL MISMATCH{rescaled}: star NIS/dof {nis:.2f}{ref_text} (expected "
             f"{cons['interval'][0]:.2f}-{cons['interval'][1]:.2f}), whiteness p = "
-            f"{cons['whiteness_p']:.2g}: the model misses an effect; every sigma below is "
-            "conditional on this wrong model. Run `stellar-cal diagnose --auto` to find it.")
+            f"{cons['whiteness_p']:.2g}: the model misses an effect or the stated noise is "
+            f"wrong (a star sigma {math.sqrt(max(nis, 0.0)):.2g}x too small, or a gyro noise "
+            "too small, looks alike); every sigma below is conditional on this. Run "
+            "`stellar-cal diagnose --auto`: it measures the noise first, then tests the "
+            "effects (or `replay --estimate-noise` for the noise alone).")
 
 
 #: counters that say the input broke the contract (repaired, bridged or skipped): any of

@@ -1,0 +1,100 @@
+"""Family-wise false-alarm rate of the diagnosis on clean bags (issue 21 item 2).
+
+A clean bag holds only what the model holds.  On each, one ``diagnose`` round (noise
+measured first, every library candidate, the structure tests) is run from the prior; a
+false alarm is a bag with
+
+* any *significant* candidate (Bonferroni at α = 1 % over the candidates),
+* any *unexplained* line (Bonferroni at α = 1 % over the regressor × component pairs),
+* the noise found not as stated (α = 1 % over the components, and more than 5 % off).
+
+Each rate must be at most α = 1 %; the table gives the count, the rate and its one-sided
+95 % upper bound (Clopper–Pearson).  Cases: both methods, with and without the
+astrometric (sky) effects in the bag and the model.
+
+Run::
+
+    .venv/bin/python benchmarks/false_alarms.py --seeds 50
+    .venv/bin/python benchmarks/false_alarms.py --seeds 10 --cases psce
+
+The reduced form in the default suite is ``test/test_false_alarms.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+
+from scipy import stats as sps
+
+from stellar_cal_ros.diagnosis.injection import clean_case
+from stellar_cal_ros.diagnosis.run import diagnose
+
+CASES = {"psce": ("psce", False, 300.0), "psce+sky": ("psce", True, 300.0),
+         "swaying": ("swaying_base", False, 200.0),
+         "swaying+sky": ("swaying_base", True, 200.0)}
+
+
+def upper(k: int, n: int) -> float:
+    """One-sided 95 % Clopper–Pearson upper bound of a rate k / n."""
+    return 1.0 if k >= n else float(sps.beta.ppf(0.95, k + 1, n - k))
+
+
+def run_case(name: str, seeds: range, verbose: bool) -> dict[str, object]:
+    """Diagnose the clean bags of one case; count the alarms."""
+    method, sky, duration = CASES[name]
+    out = {"candidates": 0, "unexplained": 0, "noise": 0, "n": 0, "lines": [], "cpu": 0.0}
+    for seed in seeds:
+        t0 = time.process_time()
+        data, prior, effects = clean_case(method, sky, seed, duration)
+        with tempfile.TemporaryDirectory() as tmp:
+            s = diagnose(data, prior, method, effects, tmp, plots=False, verbose=False)
+        cand = [c["effect"] for c in s["candidates"] if c["significant"]]
+        une = [f"{u['component']} vs {u['regressor']} (t={u['statistic']:.1f})"
+               for u in s["unexplained"]]
+        noise = s["noise"]["rescaled"]
+        out["n"] += 1
+        out["candidates"] += bool(cand)
+        out["unexplained"] += bool(une)
+        out["noise"] += bool(noise)
+        out["cpu"] += time.process_time() - t0
+        if cand or une or noise:
+            out["lines"].append(f"  {name} seed {seed}: candidates {cand}, unexplained {une}, "
+                                f"noise {s['noise']['verdict']}")
+        if verbose:
+            print(f"{name} seed {seed}: {len(cand)} candidates, {len(une)} unexplained, "
+                  f"noise {'rescaled' if noise else 'as stated'} "
+                  f"[{time.process_time() - t0:.0f} s]", flush=True)
+    return out
+
+
+def main() -> int:
+    """Run the cases and print the table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", type=int, default=50)
+    ap.add_argument("--first-seed", type=int, default=1000)
+    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("-v", "--verbose", action="store_true")
+    args = ap.parse_args()
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    rows = []
+    for name in args.cases.split(","):
+        rows.append((name, run_case(name, seeds, args.verbose)))
+    print(f"\nfalse alarms on clean bags, {args.seeds} seeds per case (alpha = 1 %; "
+          "count, rate, one-sided 95 % upper bound)")
+    print(f"{'case':14s} {'candidates':>22s} {'unexplained':>22s} {'noise rescaled':>22s} "
+          f"{'cpu s/bag':>9s}")
+    for name, r in rows:
+        n = r["n"]
+        cells = [f"{r[k]:3d} {r[k] / n:6.1%} (<{upper(r[k], n):5.1%})"
+                 for k in ("candidates", "unexplained", "noise")]
+        print(f"{name:14s} " + " ".join(f"{c:>22s}" for c in cells) + f" {r['cpu'] / n:9.0f}")
+    for _, r in rows:
+        for line in r["lines"]:
+            print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,143 @@
+"""Noise scales: the noise a run uses, as multiples of the noise the data and the prior state.
+
+Users' noise figures are guesses (the stars' ``sigma`` field, the gyro's angle random walk
+of a datasheet), and a tracker may send ``sigma = 0`` for "unknown".  A run applies
+:class:`NoiseScales` to what is stated:
+
+* every star's σ: the message's σ (or, when it is 0, :attr:`NoiseScales.unknown_sigma_px`
+  if measured, else the configured default) times :attr:`NoiseScales.star`, times the factor
+  of its group (magnitude or image-radius bins) when the data asked for groups;
+* the gyro's angle random walk times :attr:`NoiseScales.gyro`, the accelerometer's velocity
+  random walk times :attr:`NoiseScales.accel`.
+
+1.0 everywhere is "as stated".  The diagnosis measures the scales from the run itself
+(:mod:`stellar_cal_ros.diagnosis.noise`); ``replay --noise-scale`` applies them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+#: star groups a scale may depend on
+GROUP_KINDS = ("magnitude", "radius")
+
+
+@dataclass(frozen=True)
+class NoiseScales:
+    """Multipliers of the stated noise (1.0: as stated)."""
+
+    star: float = 1.0  #: every star's σ
+    gyro: float = 1.0  #: the gyro's angle random walk
+    accel: float = 1.0  #: the accelerometer's velocity random walk
+    #: σ (px) of stars whose message says 0 ("unknown"); 0: the configured default × star
+    unknown_sigma_px: float = 0.0
+    group_by: str = ""  #: "", "magnitude" or "radius" (px from the image centre)
+    edges: tuple[float, ...] = ()  #: bin edges of the groups (ascending)
+    factors: tuple[float, ...] = ()  #: one factor per group, len(edges) + 1
+
+    def __post_init__(self) -> None:
+        for name in ("star", "gyro", "accel"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"noise scale {name} must be a positive number, got {v!r}")
+        if not (math.isfinite(self.unknown_sigma_px) and self.unknown_sigma_px >= 0):
+            raise ValueError(f"unknown star sigma must be >= 0 px, got {self.unknown_sigma_px!r}")
+        if self.group_by and self.group_by not in GROUP_KINDS:
+            raise ValueError(f"star groups by {self.group_by!r}: use one of {GROUP_KINDS}")
+        if self.group_by and len(self.factors) != len(self.edges) + 1:
+            raise ValueError("star groups need one factor per bin (len(edges) + 1)")
+        if any(not (math.isfinite(f) and f > 0) for f in self.factors):
+            raise ValueError(f"star group factors must be positive, got {self.factors!r}")
+
+    @property
+    def identity(self) -> bool:
+        """Nothing rescaled."""
+        return (self.star == 1.0 and self.gyro == 1.0 and self.accel == 1.0
+                and not self.unknown_sigma_px and not self.group_by)
+
+    def replace(self, **changes: Any) -> NoiseScales:
+        """A copy with ``changes``."""
+        return dataclasses.replace(self, **changes)
+
+    def group_of(self, magnitude: np.ndarray, uv: np.ndarray,
+                 centre: tuple[float, float]) -> np.ndarray:
+        """Group index of each star (0 when there are no groups)."""
+        n = len(uv)
+        if not self.group_by:
+            return np.zeros(n, dtype=int)
+        x = (np.asarray(magnitude, dtype=float) if self.group_by == "magnitude" else
+             np.hypot(uv[:, 0] - centre[0], uv[:, 1] - centre[1]))
+        # a star of unknown magnitude goes to the middle group
+        idx = np.searchsorted(np.asarray(self.edges, dtype=float), np.nan_to_num(
+            x, nan=float(np.median(self.edges)) if self.edges else 0.0), side="right")
+        return idx
+
+    def star_sigma(self, sigma: np.ndarray, default: float, magnitude: np.ndarray,
+                   uv: np.ndarray, centre: tuple[float, float]) -> np.ndarray:
+        """σ (px) a run uses for stars whose messages state ``sigma`` (0: unknown)."""
+        s = np.asarray(sigma, dtype=float)
+        unknown = self.unknown_sigma_px if self.unknown_sigma_px > 0 else default * self.star
+        out = np.where(s > 0, s * self.star, unknown)
+        if self.group_by:
+            out = out * np.asarray(self.factors, dtype=float)[
+                self.group_of(magnitude, uv, centre)]
+        return out
+
+    def apply(self, config: Any) -> Any:
+        """``config`` (a filter configuration) with these scales: ARW, VRW, star σ."""
+        changes: dict[str, Any] = {"noise": self}
+        if hasattr(config, "gyro_arw_deg_sqrth"):
+            changes["gyro_arw_deg_sqrth"] = config.gyro_arw_deg_sqrth * self.gyro
+        if hasattr(config, "accel_vrw_mps_sqrth"):
+            changes["accel_vrw_mps_sqrth"] = config.accel_vrw_mps_sqrth * self.accel
+        return dataclasses.replace(config, **changes)
+
+    # ------------------------------------------------------------------ files
+    def as_dict(self) -> dict[str, Any]:
+        """The calibration file's / diagnosis.json's form (contract §5 names)."""
+        out: dict[str, Any] = {"star_sigma_scale": float(self.star),
+                               "gyro_noise_scale": float(self.gyro),
+                               "accel_noise_scale": float(self.accel)}
+        if self.unknown_sigma_px:
+            out["unknown_star_sigma_px"] = float(self.unknown_sigma_px)
+        if self.group_by:
+            out["star_sigma_groups"] = {"by": self.group_by,
+                                        "edges": [float(e) for e in self.edges],
+                                        "scales": [float(f) for f in self.factors]}
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> NoiseScales:
+        """Inverse of :meth:`as_dict` (missing keys: 1.0 / none)."""
+        d = d or {}
+        groups = d.get("star_sigma_groups") or {}
+        return cls(float(d.get("star_sigma_scale", 1.0)), float(d.get("gyro_noise_scale", 1.0)),
+                   float(d.get("accel_noise_scale", 1.0)),
+                   float(d.get("unknown_star_sigma_px", 0.0) or 0.0),
+                   str(groups.get("by", "")), tuple(float(e) for e in groups.get("edges", ())),
+                   tuple(float(f) for f in groups.get("scales", ())))
+
+    @classmethod
+    def parse(cls, text: str) -> NoiseScales:
+        """``star=1.67,gyro=5,accel=1,unknown=0.05`` (the command line's form)."""
+        keys = {"star": "star", "gyro": "gyro", "accel": "accel",
+                "unknown": "unknown_sigma_px"}
+        values: dict[str, float] = {}
+        for item in text.replace(";", ",").split(","):
+            if not item.strip():
+                continue
+            key, sep, val = item.partition("=")
+            key = key.strip()
+            if not sep or key not in keys:
+                raise ValueError(f"--noise-scale takes star=S,gyro=G,accel=A,unknown=PX; "
+                                 f"got {item!r}")
+            try:
+                values[keys[key]] = float(val)
+            except ValueError:
+                raise ValueError(f"--noise-scale {key}: not a number: {val!r}") from None
+        return cls(**values)

@@ -1,0 +1,626 @@
+"""Noise as a hypothesis: measure the scales of the stated noise from the run itself.
+
+Users' noise figures are guesses, and a model that is right with a wrong σ looks like a
+model that misses an effect (a too-small σ raises every NIS; a too-small gyro noise makes
+the filter trust its propagation, so the innovations follow time and anything that drifts
+with it).  Before any physical effect is tested, the diagnosis measures
+
+* the **stars' σ scale** ``s`` (globally; per magnitude or image-radius group when the data
+  ask for it; the σ of stars whose messages say 0), from the part of each frame's
+  innovations that no attitude error can produce: the innovation vector of a frame,
+  whitened by the σ the run used, minus its least-squares fit by a small rotation of the
+  tracker (3 parameters).  What is left is centroid noise only (the common attitude error,
+  hence the gyro noise, drops out), so ``s² = Σ‖r‖² / Σ(2n − 3)`` is a variance-component
+  estimate (Helmert's, with the rotation as the nuisance) that needs no further run.
+  Per star the expectation of ``‖r_i‖²`` is ``s² (2 − h_i)`` (``h_i`` its leverage), which
+  gives the group estimates; Bartlett's statistic tests that the groups share one scale.
+* the **gyro noise scale** ``g`` (and the accelerometer's ``a``, swaying-base), by maximum
+  likelihood on the innovations: the prequential log-likelihood of the evaluation window,
+  as a function of ``ln g``, from re-runs of the current model (a parabola through three
+  runs, moved until it brackets its maximum, then refined once); σ from its curvature.
+
+Why not an adaptive filter: a Sage–Husa or innovation-matching filter adapts Q and R while
+it estimates, so its calibration σ would follow its own noise estimate, and a missing
+physical effect would be absorbed into "noise" frame by frame, out of reach of the tests
+that name effects.  A variance-component / ML estimate over the run, applied as fixed
+scales to a re-run, keeps the filter a plain Kalman filter whose σ mean what they say, and
+leaves the physical candidates to be tested on correctly weighted innovations.
+
+"Noise as stated" is rejected for a component when its scale differs from 1 by more than
+:data:`MATERIAL` (smaller misstatements change no σ the user reads by more than that) and
+its test is significant at :data:`ALPHA` (Bonferroni over the components tested).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats as sps
+
+from stellar_cal_ros.core.noise import NoiseScales
+
+#: level of the "noise as stated" tests (after Bonferroni over the components)
+ALPHA = 0.01
+#: a scale within this fraction of 1 is "as stated" (a 5 % error changes every σ by 5 %)
+MATERIAL = 0.05
+#: groups of the stars' σ: quantile bins of magnitude, radius bins as a fraction of the
+#: half-diagonal
+MAGNITUDE_BINS = 4
+RADIUS_FRACTIONS = (0.35, 0.65)
+#: the gyro / accelerometer scale search range (ln of the scale)
+LN_RANGE = math.log(300.0)
+#: log-likelihood change below which a scale search sees nothing (a third of the χ²₁ 5 %
+#: half-width: over a factor of 9 of the scale the data would have moved it far more)
+FLAT = 0.5
+
+Table = dict[str, np.ndarray]
+
+
+# ----------------------------------------------------------------------------- stars
+def used_sigma(residuals: Table, data, scales: NoiseScales, default: float,
+               width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The σ (px) the run used for each row of ``residuals``, and its message's σ.
+
+    Joined on (stamp, catalogue id) with the bag's frames; NaN where a row has no message.
+    """
+    key: dict[tuple[int, int], tuple[float, float, float, float]] = {}
+    for fr in data.frames:
+        us = int(round(int(fr.stamp_ns) / 1000))
+        mag = np.asarray(fr.magnitude, dtype=float)
+        for i, cid in enumerate(np.asarray(fr.catalog_id).tolist()):
+            key[(us, int(cid))] = (float(fr.sigma[i]), float(mag[i]), float(fr.uv[i, 0]),
+                                   float(fr.uv[i, 1]))
+    t_us = np.round(np.asarray(residuals["t"], dtype=float) * 1e6).astype(np.int64)
+    rows = [key.get((int(t), int(c))) for t, c in zip(t_us, residuals["catalog_id"],
+                                                      strict=True)]
+    msg = np.array([np.nan if r is None else r[0] for r in rows])
+    mag = np.array([np.nan if r is None else r[1] for r in rows])
+    uv = np.array([[np.nan, np.nan] if r is None else r[2:] for r in rows]).reshape(-1, 2)
+    s = np.where(np.isfinite(msg) & (msg >= 0), msg, 0.0)
+    out = scales.star_sigma(s, default, mag, uv, ((width - 1) / 2.0, (height - 1) / 2.0))
+    out[~np.isfinite(msg)] = np.nan
+    return out, msg
+
+
+@dataclass
+class StarNoise:
+    """Within-frame variance-component estimate of the stars' σ scale."""
+
+    scale: float  #: s: the σ the data show over the σ the run used
+    sigma: float  #: σ of s
+    dof: float  #: Σ(2n − 3) over the frames used
+    frames: int
+    q: np.ndarray  #: per star: ‖r_i‖² (whitened, px² / σ²)
+    m: np.ndarray  #: per star: 2 − leverage (its share of the dof)
+    magnitude: np.ndarray
+    radius: np.ndarray
+    unknown: np.ndarray  #: per star: its message said σ = 0
+    sigma_px: np.ndarray  #: per star: the σ the run used
+
+    def group(self, mask: np.ndarray) -> tuple[float, float, float]:
+        """(scale, σ, dof) of the stars in ``mask``."""
+        m = float(self.m[mask].sum())
+        if m <= 0:
+            return math.nan, math.nan, 0.0
+        v = float(self.q[mask].sum()) / m
+        # sandwich σ of the ratio estimator (robust to a non-Gaussian tail)
+        var = float(np.sum((self.q[mask] - v * self.m[mask]) ** 2)) / m**2
+        s = math.sqrt(max(v, 0.0))
+        return s, math.sqrt(var) / max(2.0 * s, 1e-300), m
+
+
+def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np.ndarray,
+               fx: float, fy: float, centre: tuple[float, float]) -> StarNoise | None:
+    """The within-frame estimate over the accepted stars of ``mask`` (see the module doc)."""
+    from stellar_cal_ros.diagnosis.stats import within_frame
+
+    ok = mask & ~np.asarray(res["gated"]).astype(bool) & np.isfinite(sigma_px) \
+        & (sigma_px > 0) & np.isfinite(np.asarray(res["du"], dtype=float))
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return None
+    sub = {k: np.asarray(res[k])[idx] for k in ("frame", "du", "dv", "x_st", "y_st", "z_st")}
+    r, lev, n_frames = within_frame(sub, sigma_px[idx], fx, fy)
+    q = (r**2).sum(1)
+    m = 2.0 - lev
+    use = np.isfinite(q) & (m > 0)
+    if not use.any():
+        return None
+    uv = np.stack([np.asarray(res["u"], dtype=float)[idx], np.asarray(res["v"],
+                                                                    dtype=float)[idx]], 1)
+    out = StarNoise(0.0, 0.0, float(m[use].sum()), n_frames, q[use], m[use],
+                    np.asarray(res["magnitude"], dtype=float)[idx][use],
+                    np.hypot(uv[use, 0] - centre[0], uv[use, 1] - centre[1]),
+                    (msg_sigma[idx] == 0)[use], sigma_px[idx][use])
+    out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
+    return out
+
+
+def _bartlett(parts: list[tuple[float, float, float]]) -> tuple[float, float]:
+    """Bartlett's statistic that the groups' variances are equal, and its p (χ²_{G−1})."""
+    parts = [(s, d) for s, _, d in parts if d > 1 and math.isfinite(s) and s > 0]
+    if len(parts) < 2:
+        return 0.0, 1.0
+    v = np.array([s * s for s, _ in parts])
+    d = np.array([d for _, d in parts])
+    pooled = float(np.sum(d * v) / np.sum(d))
+    stat = float(np.sum(d) * math.log(pooled) - np.sum(d * np.log(v)))
+    c = 1.0 + (np.sum(1.0 / d) - 1.0 / np.sum(d)) / (3.0 * (len(parts) - 1))
+    stat /= c
+    return stat, float(sps.chi2.sf(stat, len(parts) - 1))
+
+
+def star_groups(sn: StarNoise, half_diagonal: float) -> list[dict[str, Any]]:
+    """The magnitude and radius groupings: per group scale ± σ, Bartlett's p."""
+    out = []
+    mag = sn.magnitude
+    fin = np.isfinite(mag)
+    if fin.sum() > 40 and np.ptp(mag[fin]) > 0:
+        edges = np.unique(np.quantile(mag[fin], np.linspace(0, 1, MAGNITUDE_BINS + 1)[1:-1]))
+        out.append(("magnitude", edges, np.searchsorted(edges, np.nan_to_num(
+            mag, nan=float(np.median(mag[fin]))), side="right")))
+    edges = np.asarray(RADIUS_FRACTIONS) * half_diagonal
+    out.append(("radius", edges, np.searchsorted(edges, sn.radius, side="right")))
+    result = []
+    for kind, edges, gidx in out:
+        parts = [sn.group(gidx == g) for g in range(len(edges) + 1)]
+        stat, p = _bartlett(parts)
+        result.append({"by": kind, "edges": [float(e) for e in edges],
+                       "scales": [s for s, _, _ in parts], "sigma": [e for _, e, _ in parts],
+                       "dof": [d for _, _, d in parts], "statistic": stat, "p_value": p})
+    return result
+
+
+# ----------------------------------------------------------------------------- IMU (ML)
+@dataclass
+class ScaleSearch:
+    """Maximum-likelihood search of one noise scale over re-runs."""
+
+    name: str  #: "gyro" or "accel"
+    points: dict[float, float] = field(default_factory=dict)  #: ln scale → log-likelihood
+    value: float = 1.0
+    sigma: float = math.nan  #: σ of the scale (delta method from σ of its log)
+    statistic: float = 0.0  #: 2 (ℓ(ŝ) − ℓ(1))
+    p_value: float = 1.0
+    measurable: bool = True  #: the likelihood has a maximum in range
+    #: when it has none: "upper" (the scale is at most :attr:`value`, 95 %) or "lower"
+    bound: str = ""
+
+    def fit(self) -> tuple[float, float]:
+        """Vertex and curvature of the parabola through the three points nearest the best."""
+        xs = np.array(sorted(self.points))
+        ls = np.array([self.points[x] for x in xs])
+        best = int(np.argmax(ls))
+        lo = min(max(best - 1, 0), max(len(xs) - 3, 0))
+        x3, l3 = xs[lo:lo + 3], ls[lo:lo + 3]
+        if len(x3) < 3:
+            return float(xs[best]), 0.0
+        a, b, _ = np.polyfit(x3, l3, 2)
+        if a >= 0:  # no interior maximum here
+            return float(xs[best]), 0.0
+        return float(-b / (2 * a)), float(-2 * a)
+
+
+def search_scale(name: str, loglik, start: float = 0.0, step: float = math.log(3.0),
+                 max_runs: int = 9, known: dict[float, float] | None = None) -> ScaleSearch:
+    """ML scale of one noise component: ``loglik([ln s, ...]) -> [ℓ, ...]`` runs a batch.
+
+    Three points around ``start`` (ln of the scale), then the parabola's vertex, moved by
+    whole steps until the best point is inside, then refined once at the vertex (at most
+    ``max_runs`` runs); σ of ln s from the curvature, the test of "as stated" is the
+    likelihood ratio of the vertex against ln s = 0.  ``known``: points already run.
+    """
+    out = ScaleSearch(name, dict(known or {}))
+
+    def run(xs: list[float]) -> None:
+        xs = [float(np.clip(x, -LN_RANGE, LN_RANGE)) for x in xs]
+        new = [x for x in dict.fromkeys(xs) if not any(abs(x - y) < 1e-3 for y in out.points)]
+        if new:
+            out.points.update(zip(new, loglik(new), strict=True))
+
+    run([0.0, start - step, start + step] if start else [-step, 0.0, step])
+    first = np.array(list(out.points.values()))
+    if np.ptp(first) < FLAT:
+        # the likelihood does not move over a factor of 9 of the scale: nothing to measure
+        out.measurable = False
+        out.sigma = math.inf
+        return out
+    while len(out.points) < max_runs:
+        xs = sorted(out.points)
+        best = max(xs, key=out.points.get)
+        if best == xs[0] and best > -LN_RANGE + 1e-6:
+            run([best - 2 * step])
+        elif best == xs[-1] and best < LN_RANGE - 1e-6:
+            run([best + 2 * step])
+        else:
+            break
+    x_hat, curv = out.fit()
+    # refine at the vertex unless "as stated" is already the best point by far (the first
+    # three runs then settle it: a clean bag costs two runs)
+    settled = max(out.points, key=out.points.get) == 0.0 and abs(x_hat) < 0.5 * step
+    if not settled and curv > 0 and min(out.points) < x_hat < max(out.points) and \
+            min(abs(x_hat - x) for x in out.points) > 0.05 and len(out.points) < max_runs:
+        run([x_hat])
+        x_hat, curv = out.fit()
+    xs = sorted(out.points)
+    ls = np.array([out.points[x] for x in xs])
+    l_max = float(ls.max())
+    out.statistic = float(max(2.0 * (l_max - out.points[0.0]), 0.0))
+    out.p_value = float(sps.chi2.sf(out.statistic, 1))
+    sig_ln = 1.0 / math.sqrt(curv) if curv > 0 else math.inf
+    inside = xs[0] < x_hat < xs[-1]
+    if curv > 0 and inside and sig_ln <= math.log(3.0):
+        out.value = float(math.exp(x_hat))
+        out.sigma = out.value * sig_ln
+        return out
+    # no interior maximum: the likelihood rises to a plateau at one end (e.g. a gyro noise
+    # far below what the stars can see): only a one-sided 95 % bound is measurable
+    out.measurable = False
+    out.sigma = math.inf
+    low, high = ls[0] >= l_max - 0.5, ls[-1] >= l_max - 0.5  # a plateau reaching an end
+    if 0.0 < out.statistic and low != high:
+        best = 0 if low else len(xs) - 1
+        out.bound = "upper" if low else "lower"
+        cut = l_max - 0.5 * float(sps.chi2.isf(0.05, 1))
+        order = range(best, len(xs)) if best == 0 else range(best, -1, -1)
+        prev = None
+        for i in order:
+            if ls[i] < cut and prev is not None:  # interpolate the crossing
+                f = (ls[prev] - cut) / max(ls[prev] - ls[i], 1e-300)
+                out.value = float(math.exp(xs[prev] + f * (xs[i] - xs[prev])))
+                break
+            prev = i
+        else:
+            out.bound = ""
+    return out
+
+
+# ----------------------------------------------------------------------------- a run's stars
+def default_sigma(method: str) -> float:
+    """The configured σ of stars whose message says 0, for ``method``."""
+    from stellar_cal_ros.methods import registry as methods
+
+    return float(methods.get(method).config_cls().centroid_sigma_px)
+
+
+def measure_stars(result, data, method: str, fraction: float,
+                  noise: NoiseScales | None) -> StarNoise | None:
+    """The within-frame estimate on a replay's residual table (where the run executed)."""
+    from stellar_cal_ros.diagnosis.stats import evaluation_mask
+
+    res = result.residuals
+    if not res or len(res.get("t", ())) == 0:
+        return None
+    cam = result.calibration.camera
+    sig, msg = used_sigma(res, data, noise or NoiseScales(), default_sigma(method),
+                          cam.width, cam.height)
+    return star_noise(res, sig, msg, evaluation_mask(res, fraction), cam.fx, cam.fy,
+                      (cam.cx, cam.cy))
+
+
+# ----------------------------------------------------------------------------- the verdict
+def _p_two_sided(value: float, sigma: float) -> float:
+    if not (np.isfinite(sigma) and sigma > 0):
+        return 1.0
+    return float(2.0 * sps.norm.sf(abs(value - 1.0) / sigma))
+
+
+@dataclass
+class NoiseVerdict:
+    """What the data say about the stated noise, and the scales the diagnosis then uses."""
+
+    stated: NoiseScales  #: the scales the measurement started from (as stated: identity)
+    applied: NoiseScales  #: the scales the diagnosis uses from now on
+    star: float = 1.0  #: measured (relative to ``stated``)
+    star_sigma: float = math.nan
+    star_p: float = 1.0
+    star_dof: float = 0.0
+    stated_sigma_px: float = math.nan  #: median σ the stars' messages state
+    unknown: int = 0  #: stars whose message says σ = 0
+    unknown_sigma_px: float = math.nan  #: their measured σ
+    unknown_sigma_sigma: float = math.nan
+    groups: list[dict[str, Any]] = field(default_factory=list)
+    group: dict[str, Any] | None = None  #: the grouping applied (or None)
+    imu: dict[str, ScaleSearch] = field(default_factory=dict)  #: gyro / accel searches
+    rejected: list[str] = field(default_factory=list)  #: components not as stated
+    method: str = "psce"
+    #: why the noise was not measured (the model too far off), else ""
+    skipped: str = ""
+
+    @property
+    def rescaled(self) -> bool:
+        """The diagnosis uses other noise than stated."""
+        return not (self.applied.identity or self.applied == self.stated)
+
+    def scale_of(self, name: str) -> tuple[float, float]:
+        """(measured scale, σ) of ``star`` / ``gyro`` / ``accel`` (1, NaN: not measured)."""
+        if name == "star":
+            return self.star, self.star_sigma
+        s = self.imu.get(name)
+        if s is None:
+            return 1.0, math.nan
+        return (s.value, s.sigma) if s.measurable else (1.0, math.inf)
+
+    def as_json(self) -> dict[str, Any]:
+        """``diagnosis.json``'s ``noise`` block (contract §5, plus what was applied)."""
+        names = {"star": "star_sigma_scale", "gyro": "gyro_noise_scale",
+                 "accel": "accel_noise_scale"}
+        out: dict[str, Any] = {}
+        sig: dict[str, Any] = {}
+        p: dict[str, Any] = {}
+        for comp, key in names.items():
+            v, s = self.scale_of(comp)
+            out[key] = float(v) * getattr(self.stated, comp)
+            sig[key] = None if not np.isfinite(s) else float(s) * getattr(self.stated, comp)
+            p[key] = (self.star_p if comp == "star" else
+                      (self.imu[comp].p_value if comp in self.imu else None))
+        out["sigma"] = sig
+        out["p_value"] = p
+        out["as_stated"] = {names[c]: c not in self.rejected for c in names}
+        out["measured"] = {"star_sigma_scale": True,
+                           **{names[c]: bool(c in self.imu and self.imu[c].measurable)
+                              for c in ("gyro", "accel")}}
+        out["rescaled"] = self.rescaled
+        out["applied"] = self.applied.as_dict()
+        if self.unknown:
+            out["unknown_sigma"] = {"stars": self.unknown, "sigma_px": self.unknown_sigma_px,
+                                    "sigma_of_sigma_px": self.unknown_sigma_sigma}
+        if self.groups:
+            out["star_groups"] = self.groups
+        out["verdict"] = self.lines()
+        if self.skipped:
+            out["skipped"] = self.skipped
+        return out
+
+    def lines(self) -> list[str]:
+        """The terminal's lines, first of the diagnosis (noise is tested before effects)."""
+        if self.skipped:
+            return [f"not measured: {self.skipped}"]
+        out = []
+        if "star" in self.rejected:
+            s, e = self.star, self.star_sigma
+            word = "too small" if s > 1 else "too large"
+            k = s if s > 1 else 1.0 / s
+            ke = e / s**2 if s < 1 else e
+            old = self.stated_sigma_px
+            out.append(f"the stars' sigma looks {k:.3g} +- {ke:.2g} x {word} "
+                       f"({old:.3g} -> {old * s:.3g} px): use --noise-scale "
+                       f"star={self.applied.star:.3g}")
+        if self.group is not None:
+            g = self.group
+            unit = "mag" if g["by"] == "magnitude" else "px from the centre"
+            bins = _bin_text(g["edges"], unit)
+            out.append("the stars' sigma depends on " + g["by"] + ": " + ", ".join(
+                f"x{s:.3g} +- {e:.2g} ({b})" for s, e, b in zip(
+                    g["scales"], g["sigma"], bins, strict=True)) + " (applied per group)")
+        if self.unknown:
+            out.append(f"{self.unknown} stars carry sigma 0 (unknown): measured from the run "
+                       f"as {self.unknown_sigma_px:.3g} +- {self.unknown_sigma_sigma:.2g} px "
+                       "(used for them)")
+        units = {"gyro": ("gyro noise (angle random walk)", "gyro"),
+                 "accel": ("accelerometer noise (velocity random walk)", "accel")}
+        for comp, search in self.imu.items():
+            if comp in self.rejected and search.bound:
+                word = "smaller" if search.bound == "upper" else "larger"
+                out.append(f"the {units[comp][0]} looks {word} than stated: at "
+                           f"{'most' if search.bound == 'upper' else 'least'} x"
+                           f"{search.value:.3g} (95 %; beyond it the stars cannot tell): "
+                           f"use --noise-scale {units[comp][1]}="
+                           f"{getattr(self.applied, comp):.3g}")
+            elif comp in self.rejected:
+                s, e = search.value, search.sigma
+                word = "larger" if s > 1 else "smaller"
+                out.append(f"the {units[comp][0]} looks {s:.3g} +- {e:.2g} x {word} than "
+                           f"stated: use --noise-scale {units[comp][1]}="
+                           f"{getattr(self.applied, comp):.3g}")
+        if not self.rejected and not self.unknown:
+            parts = [f"stars' sigma x{self.star:.3g} +- {self.star_sigma:.2g}"]
+            for comp, search in self.imu.items():
+                parts.append(f"{comp} x{search.value:.3g} +- {search.sigma:.2g}"
+                             if search.measurable else
+                             f"{comp} at {'most' if search.bound == 'upper' else 'least'} "
+                             f"x{search.value:.3g}" if search.bound else
+                             f"{comp} not measurable on this bag")
+            out.append("noise as stated (" + ", ".join(parts) + ")")
+        return out
+
+
+def _bin_text(edges: list[float], unit: str) -> list[str]:
+    e = [f"{x:.3g}" for x in edges]
+    if not e:
+        return ["all"]
+    return ([f"< {e[0]} {unit}"] + [f"{a}-{b} {unit}" for a, b in zip(e, e[1:], strict=False)]
+            + [f">= {e[-1]} {unit}"])
+
+
+def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, half_diagonal: float,
+                n_tests: int) -> NoiseScales:
+    """Fill the stars' part of ``v`` from ``sn``; return the scales to use for the stars."""
+    applied = v.stated
+    known = ~sn.unknown
+    v.unknown = int(sn.unknown.sum())
+    if v.unknown:
+        su, esu, _ = sn.group(sn.unknown)
+        base = float(np.median(sn.sigma_px[sn.unknown]))
+        v.unknown_sigma_px, v.unknown_sigma_sigma = base * su, base * esu
+        applied = applied.replace(unknown_sigma_px=v.unknown_sigma_px)
+    if known.any():
+        v.star, v.star_sigma, v.star_dof = sn.group(known)
+        v.stated_sigma_px = float(np.median(sn.sigma_px[known])) / v.stated.star
+        v.star_p = _p_two_sided(v.star, v.star_sigma)
+        if v.star_p < ALPHA / n_tests and abs(v.star - 1.0) > MATERIAL:
+            v.rejected.append("star")
+            applied = applied.replace(star=v.stated.star * v.star)
+    sub = StarNoise(v.star, v.star_sigma, v.star_dof, sn.frames, sn.q, sn.m, sn.magnitude,
+                    sn.radius, sn.unknown, sn.sigma_px)
+    v.groups = star_groups(sub, half_diagonal)
+    best = min(v.groups, key=lambda g: g["p_value"], default=None)
+    if best is not None and best["p_value"] < ALPHA / (n_tests * len(v.groups)):
+        sc = np.asarray(best["scales"], dtype=float)
+        if np.all(np.isfinite(sc)) and sc.max() / sc.min() > 1.0 + 2 * MATERIAL:
+            overall = sub.group(np.ones(len(sub.q), dtype=bool))[0]
+            v.group = best
+            applied = applied.replace(
+                star=v.stated.star * overall, group_by=best["by"],
+                edges=tuple(best["edges"]), factors=tuple(float(x) for x in sc / overall))
+            if "star" not in v.rejected:
+                v.rejected.append("star")
+    return applied
+
+
+#: the model is too far off for the noise to be measured when its innovations, with the
+#: stars' measured σ, are still this over-dispersed (NIS/dof), or the filter lost lock
+MAX_DISPERSION = 2.0
+
+
+def far_off(base, sn: StarNoise | None) -> str:
+    """Why a run is too far from its model for the noise to be measured on it ('' if not).
+
+    A missing effect that moves the stars far from their predictions (a 20 ms time offset
+    under rotation: NIS/dof in the hundreds, lost lock) also bends the within-frame
+    residuals and the likelihood the scales are measured from: the noise is then measured
+    once the model is closer (the next round of ``discover``), not guessed from a broken run.
+    """
+    if not base.ok or not base.window:
+        return "the model's run failed"
+    lost = base.counters.get("reinitializations", 0) or base.counters.get("frames_lost_lock", 0)
+    s = 1.0
+    if sn is not None and sn.scale > 0:
+        s = sn.scale
+    nis = base.window["nis"]["mean"] / 2.0 / s**2
+    if lost or not np.isfinite(nis) or nis > MAX_DISPERSION:
+        return (f"the model is too far off (NIS/dof {base.window['nis']['mean'] / 2.0:.3g}"
+                + (", the filter lost lock" if lost else "") + "): a missing effect shapes "
+                "the residuals more than the noise does; taken as stated until it is added")
+    return ""
+
+
+def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
+            components: tuple[str, ...] = ("gyro",)) -> NoiseVerdict:
+    """Measure the noise scales on ``runs``' bag for the model ``effects`` from ``prior``.
+
+    ``base`` is a run of that model with the scales ``runs.noise`` and its stars' noise
+    measured (``Task(star_noise=True)``).  The stars first (no further run), then each IMU
+    component in ``components`` by ML over re-runs with the stars' scale applied.  Returns
+    the verdict; ``verdict.applied`` is what the diagnosis should run with.
+    """
+    from stellar_cal_ros.diagnosis.parallel import Task
+
+    stated = runs.noise or NoiseScales()
+    v = NoiseVerdict(stated, stated, method=runs.spec.name)
+    n_tests = 1 + len(components)
+    cam = prior.camera
+    sn = base.star_noise
+    applied = stated
+    v.skipped = far_off(base, sn)
+    if v.skipped:
+        if tell:
+            tell(f"noise: {v.skipped}")
+        return v
+    if sn is not None:
+        applied = judge_stars(v, sn, default_sigma(runs.spec.name),
+                              math.hypot(cam.width, cam.height) / 2.0, n_tests)
+    for comp in components:
+        cur = getattr(applied, comp)
+
+        def loglik(xs: list[float], comp=comp, cur=cur, at=applied) -> list[float]:
+            tasks = [Task(f"noise {comp} x{math.exp(x):.3g}", prior, tuple(effects),
+                          noise=at.replace(**{comp: cur * math.exp(x)}), cost=1.0)
+                     for x in xs]
+            out = runs.run_all(tasks, None)
+            return [out[t.key].window["log_likelihood"] if out[t.key].ok else -math.inf
+                    for t in tasks]
+
+        known = {0.0: base.window["log_likelihood"]} if applied == stated and base.ok else {}
+        found = search_scale(comp, loglik, known=known)
+        v.imu[comp] = found
+        if tell:
+            tell(f"noise: {comp} scale {found.value:.3g} +- {found.sigma:.2g} "
+                 f"({len(found.points)} runs)" if found.measurable else
+                 f"noise: {comp} scale at {'most' if found.bound == 'upper' else 'least'} "
+                 f"{found.value:.3g} ({len(found.points)} runs)" if found.bound else
+                 f"noise: {comp} scale not measurable on this bag")
+        if (found.measurable or found.bound) and found.p_value < ALPHA / n_tests and \
+                abs(found.value - 1.0) > MATERIAL:
+            v.rejected.append(comp)
+            applied = applied.replace(**{comp: cur * found.value})
+    v.applied = applied
+    return v
+
+
+
+def stated_scales(calibration) -> NoiseScales:
+    """The scales a calibration's run used (its consistency block), identity if none."""
+    cons = (getattr(calibration, "extra", None) or {}).get("consistency") or {}
+    try:
+        return NoiseScales.from_dict(cons.get("noise"))
+    except (TypeError, ValueError):
+        return NoiseScales()
+
+
+#: what ``--noise`` takes
+NOISE_MODES = ("estimate", "stated")
+
+
+def check_noise(mode: str) -> bool:
+    """Whether ``mode`` (``estimate`` / ``stated``) measures the noise."""
+    if mode not in NOISE_MODES:
+        from stellar_cal_ros.errors import ModelError
+
+        raise ModelError(f"--noise must be one of {', '.join(NOISE_MODES)}, got {mode!r}")
+    return mode == "estimate"
+
+
+def not_measured(scales: NoiseScales) -> dict[str, Any]:
+    """The ``noise`` block of a diagnosis that used the stated noise (``--noise stated``)."""
+    d = scales.as_dict()
+    return {"star_sigma_scale": d["star_sigma_scale"], "gyro_noise_scale": d["gyro_noise_scale"],
+            "accel_noise_scale": d["accel_noise_scale"],
+            "sigma": {k: None for k in ("star_sigma_scale", "gyro_noise_scale",
+                                        "accel_noise_scale")},
+            "measured": {k: False for k in ("star_sigma_scale", "gyro_noise_scale",
+                                            "accel_noise_scale")},
+            "rescaled": not scales.identity, "applied": d,
+            "verdict": ["noise not measured (--noise stated)"]}
+
+
+def stale(sn: StarNoise | None) -> bool:
+    """Whether a run's stars show a σ scale clearly other than the one it applied."""
+    if sn is None:
+        return False
+    known = ~sn.unknown
+    if not known.any():
+        return False
+    s, e, _ = sn.group(known)
+    return bool(_p_two_sided(s, e) < ALPHA and abs(s - 1.0) > MATERIAL)
+
+
+def measure_bag(bag, prior, method: str, effects: list[str], scales: NoiseScales,
+                components: tuple[str, ...] | None = None, tell=None,
+                fraction: float = 0.5) -> NoiseVerdict:
+    """Measure the noise scales of ``method`` + ``effects`` on ``bag`` from ``prior``.
+
+    For ``replay --estimate-noise`` (and a bag whose stars say σ = 0): one run in this
+    process with the scales ``scales``, the stars' scale from it, then the IMU components
+    by ML over re-runs (default: the gyro's, and the accelerometer's for swaying_base).
+    """
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.parallel import Runs, Task
+
+    spec = method_spec(method)
+    if components is None:
+        components = ("gyro", "accel") if method == "swaying_base" else ("gyro",)
+    runs = Runs(bag, spec, fraction)
+    runs.noise = scales
+    start = rerun_prior(prior) if prior.method != "prior" else prior
+    extra = tuple(e for e in effects if e not in spec.baseline)
+    base = runs.run_all([Task("noise: the model", start, extra, star_noise=True)])[
+        "noise: the model"]
+    if not base.ok:
+        from stellar_cal_ros.errors import ModelError
+
+        raise ModelError(f"noise not measured: the run failed: {base.error}")
+    return measure(runs, start, extra, base, tell, components)

@@ -1,0 +1,295 @@
+"""``stellar-cal twin``: the user's own bag as the test bench (issue 21 item 4).
+
+A twin is a synthetic bag with the user's trajectory, stamps, stars and measured noise,
+rendered through the effect classes with the calibration the user's run estimated — plus
+any effects injected (``--effect ID=VALUE``, the units of ``simulate --effect``).  It
+answers "would a 5 arcsec misalignment have been caught on *my* data?": diagnose the twin
+with the effect injected, and compare with the twin without it.
+
+How it is made
+--------------
+* **Trajectory**: the user's gyro samples corrected by the calibration's gyro model,
+  ``ω = (I + E)⁻¹ (w − b)``, integrated (coning-compensated) from the attitude the first
+  usable frame's stars give (the calibration's camera and installation).  This *is* the
+  twin's true attitude; the accelerometer's specific force is corrected the same way.
+* **IMU**: at the user's IMU stamps, the true rates and forces rendered through the twin's
+  sensor model (the calibration's biases and error matrices plus the injected GYRO /
+  ACCEL effects) plus white noise at the method's random walks times the measured noise
+  scales (the calibration's ``consistency.noise``).
+* **Stars**: per user frame (same stamp), the same identified stars (catalogue id, RA/Dec,
+  magnitude), rendered through :meth:`StarModel.predict` at the true attitude (the
+  simulator's chain), plus noise at the σ the run measured for them (their message's σ
+  times the star scale, or the measured σ of stars whose message says 0); the message
+  keeps the σ the user's message stated.  Unidentified stars are left out (counted).
+* the site, temperatures and pressure are the user's.
+
+The truth (``TWIN.truth.yaml``) is the calibration with the injected effects added; the
+prior (``TWIN.prior.yaml``) is the calibration as given.  The same seed gives the same
+noise, so twins with and without an effect form a paired injection.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.core.attitude import fit_frame_attitude
+from stellar_cal_ros.core.noise import NoiseScales
+from stellar_cal_ros.core.rotation import (
+    quat_from_rotvec,
+    quat_to_matrix,
+    so3_exp,
+)
+from stellar_cal_ros.core.strapdown import attitude_increments, quat_cumprod
+from stellar_cal_ros.core.types import ImuSeries, NavSatSeries, StarFrame
+from stellar_cal_ros.effects import registry
+from stellar_cal_ros.effects.base import Stage
+from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.io.calibration import Calibration, save_calibration
+from stellar_cal_ros.methods.frames import BagData, frame_context, frame_inputs
+from stellar_cal_ros.methods.star_model import StarModel
+from stellar_cal_ros.sim.truth_effects import SIM_ONLY, normalize_effect
+
+IMU_FRAME = "imu_link"
+STAR_TRACKER_FRAME = "star_tracker_optical_frame"
+
+
+@dataclass
+class Twin:
+    """A twin in memory: its bag data, its truth, and what was left out."""
+
+    data: BagData
+    truth: Calibration
+    prior: Calibration
+    injected: dict[str, np.ndarray]
+    noise: NoiseScales
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+def _model(calibration: Calibration, method: str, injected: dict[str, np.ndarray]
+           ) -> tuple[StarModel, np.ndarray]:
+    """The twin's StarModel (the calibration's effects + the injected ones) and its θ."""
+    from stellar_cal_ros.methods import registry as methods
+    from stellar_cal_ros.sim.world import MountFlexure
+
+    ids = list(methods.get(method).baseline)
+    for e in list(calibration.estimated) + [e for e in injected if e not in SIM_ONLY]:
+        if e in registry.EFFECTS and e not in ids:
+            ids.append(e)
+    effs = registry.create_many(ids)
+    theta = []
+    for eff in effs:
+        value = np.asarray(eff.initial(calibration)[0], dtype=float)
+        if eff.id in injected:
+            scale = np.asarray(eff.simulation_scale, dtype=float) \
+                if eff.simulation_scale is not None else 1.0
+            value = value + np.asarray(injected[eff.id], dtype=float) * scale
+        theta.append(value)
+    flex = injected.get("mount_flexure")
+    if flex is not None and np.any(flex != 0.0):
+        effs.append(MountFlexure())
+        theta.append(np.asarray(flex, dtype=float))
+    return StarModel(effs, calibration), (np.concatenate(theta) if theta else np.zeros(0))
+
+
+def _truth(calibration: Calibration, model: StarModel, theta: np.ndarray,
+           injected: dict[str, np.ndarray]) -> Calibration:
+    cal = copy.deepcopy(calibration)
+    cal.method = "truth"
+    for eff in model.effects:
+        if eff.id in SIM_ONLY:
+            continue
+        eff.store(theta[model.slices[eff.id]], np.zeros(eff.size), cal)
+    cal.sigma = {}
+    cal.estimated = []
+    for key in SIM_ONLY:
+        if key in injected and np.any(injected[key] != 0.0):
+            cal.effects[key] = {"value": injected[key].tolist()}
+    cal.extra = {k: v for k, v in cal.extra.items() if k not in ("consistency", "derived",
+                                                                  "covariance_file")}
+    return cal
+
+
+class _Trajectory:
+    """The twin's true attitude: integrated corrected rates, anchored on one frame."""
+
+    def __init__(self, t: np.ndarray, w: np.ndarray, R_anchor: np.ndarray, t_anchor: float):
+        dt = np.diff(t, prepend=t[0] - (np.median(np.diff(t)) if len(t) > 1 else 0.01))
+        self.t_start = np.concatenate([[t[0] - dt[0]], t[:-1]])
+        self.t, self.w = t, w
+        phi = attitude_increments(w, dt, coning=True)
+        q = np.empty((len(phi) + 1, 4))
+        q[0] = [0.0, 0.0, 0.0, 1.0]
+        q[1:] = quat_from_rotvec(phi)
+        R_rel = quat_to_matrix(quat_cumprod(q))  # R_rel[0] at t_start[0], R_rel[k+1] at t[k]
+        self.R_rel = R_rel
+        R_a = self._relative(t_anchor)
+        self.R0 = R_anchor @ R_a.T
+
+    def _relative(self, t: float) -> np.ndarray:
+        k = int(np.clip(np.searchsorted(self.t, t, side="left"), 0, len(self.t) - 1))
+        # sample k covers (t_start[k], t[k]]: rotate from its start by its rate
+        return self.R_rel[k] @ so3_exp(self.w[k] * (t - self.t_start[k]))
+
+    def rate(self, t: float) -> np.ndarray:
+        return self.w[int(np.clip(np.searchsorted(self.t, t, side="left"), 0, len(self.t) - 1))]
+
+    def R_i_b(self, t: float) -> np.ndarray:
+        return self.R0 @ self._relative(t)
+
+    def near(self, t_rel: float):
+        def attitude(shift: float) -> tuple[np.ndarray, np.ndarray]:
+            return self.R_i_b(t_rel + shift), self.rate(t_rel + shift)
+
+        return attitude
+
+
+def _method_noise(method: str) -> tuple[float, float, float]:
+    """(star default σ px, gyro ARW rad/√s, accel VRW m/s/√s) of ``method``'s defaults."""
+    from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
+    from stellar_cal_ros.methods import registry as methods
+    from stellar_cal_ros.methods.swaying import SwayingConfig
+
+    cfg = methods.get(method).config_cls()
+    vrw = getattr(cfg, "accel_vrw_mps_sqrth", SwayingConfig().accel_vrw_mps_sqrth) / 60.0
+    return cfg.centroid_sigma_px, cfg.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR, vrw
+
+
+def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] | None = None,
+              seed: int = 0, method: str | None = None,
+              noise: NoiseScales | None = None) -> Twin:
+    """The twin of ``data`` under ``calibration`` with ``effects`` injected (see the module).
+
+    ``effects``: ``{id: value}`` in the units of ``simulate --effect``; ``method``: whose
+    baseline and noise defaults apply (default: the calibration's, else psce); ``noise``:
+    the measured noise scales (default: the calibration's ``consistency.noise``).
+    """
+    from stellar_cal_ros.diagnosis.context import gravity_in_tracker
+    from stellar_cal_ros.diagnosis.noise import stated_scales
+
+    method = method or (calibration.method if calibration.method in ("psce", "swaying_base")
+                        else "psce")
+    injected = {k: normalize_effect(k, v) for k, v in (effects or {}).items()}
+    noise = noise or stated_scales(calibration)
+    rng = np.random.default_rng(seed)
+    model_cal, theta_cal = _model(calibration, method, {})
+    model, theta = _model(calibration, method, injected)
+    cam = calibration.camera
+    default_sigma, arw, vrw = _method_noise(method)
+    t = np.asarray(data.imu_t, dtype=float)
+    if len(t) < 2 or not data.frames:
+        raise ModelError("twin: the bag needs IMU samples and star frames")
+    # true rates and forces: the user's samples through the calibration's sensor model
+    w_true = model_cal.corrected_rates(theta_cal, np.asarray(data.imu_w, dtype=float))
+    f_true = model_cal.corrected_rates(theta_cal, np.asarray(data.imu_f, dtype=float),
+                                       Stage.ACCEL)
+    # anchor: the first frame whose identified stars fit an attitude
+    env = data.env()
+    anchor = None
+    for fr in data.frames:
+        inp = frame_inputs(fr, cam.width, cam.height, default_sigma)
+        if len(inp.uv) < 3:
+            continue
+        ctx = frame_context(int(fr.stamp_ns), inp, data.site, env)
+        t_rel = (int(fr.stamp_ns) - data.t0_ns) * 1e-9 + model_cal.time_shift(theta_cal, ctx)[0]
+        if not t[0] <= t_rel <= t[-1]:
+            continue
+        fit = fit_frame_attitude(cam, inp.uv, inp.u_i)
+        anchor = (fit.R_i_st @ calibration.R_imu_st.T, t_rel)
+        break
+    if anchor is None:
+        raise ModelError("twin: no frame with 3 identified stars inside the IMU span")
+    traj = _Trajectory(t, w_true, anchor[0], anchor[1])
+    # the IMU
+    b_g, E_g, _, _ = model.sensor_model(theta, Stage.GYRO)
+    b_a, E_a, _, _ = model.sensor_model(theta, Stage.ACCEL)
+    dt = data.nominal_dt or float(np.median(np.diff(t)))
+    g_sig = arw * noise.gyro / np.sqrt(dt)
+    a_sig = vrw * noise.accel / np.sqrt(dt)
+    w_twin = w_true @ (np.eye(3) + E_g).T + b_g + g_sig * rng.standard_normal(w_true.shape)
+    f_twin = f_true @ (np.eye(3) + E_a).T + b_a + a_sig * rng.standard_normal(f_true.shape)
+    # the stars
+    mb = injected.get("magnitude_bias", np.zeros(2))
+    direction = np.array([np.cos(np.deg2rad(mb[1])), np.sin(np.deg2rad(mb[1]))])
+    grav = gravity_in_tracker(dataclasses.replace(data, imu_f=f_true), calibration,
+                              np.array([f.stamp_ns * 1e-9 for f in data.frames]))
+    frames, counts = [], {"stars": 0, "unidentified_left_out": 0, "off_detector": 0}
+    centre = ((cam.width - 1) / 2.0, (cam.height - 1) / 2.0)
+    for j, fr in enumerate(data.frames):
+        inp = frame_inputs(fr, cam.width, cam.height, default_sigma)
+        counts["unidentified_left_out"] += int(np.sum(np.asarray(fr.catalog_id) == 0))
+        if len(inp.uv) == 0:
+            continue
+        ctx = frame_context(int(fr.stamp_ns), inp, data.site, env)
+        if grav is not None:
+            ctx.gravity_st = grav[j]
+        t_rel = (int(fr.stamp_ns) - data.t0_ns) * 1e-9
+        pred = model.predict(theta, inp.u_i, ctx, traj.near(t_rel), jacobians=False)
+        uv = pred.uv
+        if mb[0] != 0.0:
+            uv = uv + (mb[0] * (np.nan_to_num(inp.magnitude, nan=4.0) - 4.0))[:, None] \
+                * direction
+        stated = np.asarray(fr.sigma, dtype=float)[inp.ok]
+        sig = noise.star_sigma(np.where(stated > 0, stated, 0.0), default_sigma,
+                               inp.magnitude, uv, centre)
+        uv = uv + sig[:, None] * rng.standard_normal(uv.shape)
+        keep = (pred.directions_st[:, 2] > 0) & cam.in_image(np.nan_to_num(uv, nan=-1e9))
+        counts["off_detector"] += int((~keep).sum())
+        counts["stars"] += int(keep.sum())
+        idx = np.flatnonzero(inp.ok)[keep]
+        frames.append(StarFrame(
+            stamp_ns=int(fr.stamp_ns), frame_id=fr.frame_id or STAR_TRACKER_FRAME,
+            exposure_time=fr.exposure_time,
+            catalog_id=np.asarray(fr.catalog_id)[idx],
+            right_ascension=np.asarray(fr.right_ascension, dtype=float)[idx],
+            declination=np.asarray(fr.declination, dtype=float)[idx],
+            uv=uv[keep], magnitude=np.asarray(fr.magnitude)[idx],
+            sigma=np.asarray(fr.sigma)[idx]))
+    twin_data = dataclasses.replace(data, imu_w=w_twin, imu_f=f_twin, frames=frames,
+                                    source="")
+    prior = copy.deepcopy(calibration)
+    return Twin(twin_data, _truth(calibration, model, theta, injected), prior, injected,
+                noise, counts)
+
+
+def write_twin(twin: Twin, path: str | Path) -> dict[str, Path]:
+    """Write the twin bag, ``TWIN.truth.yaml`` and ``TWIN.prior.yaml``."""
+    from stellar_cal_ros.io.writer import BagWriter
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    stem = path.with_suffix("")
+    paths = {"bag": path, "truth": Path(f"{stem}.truth.yaml"),
+             "prior": Path(f"{stem}.prior.yaml")}
+    d = twin.data
+    stamps = d.imu_stamp_ns
+    zero9 = np.zeros(9)
+    with BagWriter(path) as w:
+        w.write_imu(ImuSeries(stamp_ns=stamps, angular_velocity=d.imu_w,
+                              linear_acceleration=d.imu_f, frame_id=IMU_FRAME,
+                              angular_velocity_covariance=zero9,
+                              linear_acceleration_covariance=zero9), "/imu/data")
+        for frame in d.frames:
+            w.write_star_frame(frame, "/star_tracker/stars")
+        if d.site is not None:
+            t_fix = np.arange(int(stamps[0]), int(stamps[-1]) + 1, 10**9, dtype=np.int64)
+            n = len(t_fix)
+            w.write_navsat(NavSatSeries(t_fix, np.full(n, d.site.latitude_deg),
+                                        np.full(n, d.site.longitude_deg),
+                                        np.full(n, d.site.height_m),
+                                        np.zeros(n, dtype=int)), "/gnss/fix")
+        for series, topic, kind in ((d.head_temperature, "/star_tracker/temperature",
+                                     "temperature"),
+                                    (d.air_temperature, "/environment/temperature",
+                                     "temperature"),
+                                    (d.pressure, "/environment/pressure", "pressure")):
+            if series is not None and len(series.stamp_ns):
+                w.write_scalar(series, topic, kind=kind)
+    save_calibration(twin.truth, paths["truth"])
+    save_calibration(twin.prior, paths["prior"])
+    return paths
