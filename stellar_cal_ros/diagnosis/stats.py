@@ -236,9 +236,9 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     frames' Newey–West sum ``Σ_k U_k² + 2 Σ_l (1 − l/(L+1)) Σ_k U_k U_{k+l}`` (``L``
     from the frame sums' own lag-1 correlation, Andrews' plug-in).  The stars of a frame
     share the attitude error (one error seen by all, not ``n`` independent ones) and an
-    imperfect filter leaves its innovations correlated from frame to frame: an i.i.d. test over the stars counts both as evidence (measured: the
-    'unexplained' lines of the demo and of a bag with understated gyro noise).  Returns
-    ``(t, two-sided p from N(0, 1))``.
+    imperfect filter leaves its innovations correlated from frame to frame: an i.i.d. test
+    over the stars counts both as evidence (measured: the 'unexplained' lines of the demo
+    and of a bag with understated gyro noise).  Returns ``(t, two-sided p from N(0, 1))``.
     """
     xc = x - x.mean()
     yc = y - y.mean()
