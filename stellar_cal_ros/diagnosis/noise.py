@@ -9,9 +9,13 @@ with it).  Before any physical effect is tested, the diagnosis measures
   ask for it; the σ of stars whose messages say 0), from the part of each frame's
   innovations that no attitude error can produce: the innovation vector of a frame,
   whitened by the σ the run used, minus its least-squares fit by a small rotation of the
-  tracker (3 parameters).  What is left is centroid noise only (the common attitude error,
-  hence the gyro noise, drops out), so ``s² = Σ‖r‖² / Σ(2n − 3)`` is a variance-component
-  estimate (Helmert's, with the rotation as the nuisance) that needs no further run.
+  tracker (3 parameters).  What is left is centroid noise (the common attitude error,
+  hence the gyro noise, drops out) and any structure of the camera side; the structure is
+  removed as the residuals' mean per detector cell and magnitude class (a field that
+  repeats from frame to frame is not noise, and is left to the candidates and the
+  structure tests), so ``s² = Σ‖r − r̄_cell‖² / Σ(2n − 3)(1 − 1/n_cell)`` is a
+  variance-component estimate (Helmert's, with the rotation and the cell means as
+  nuisance) that needs no further run.
   Per star the expectation of ``‖r_i‖²`` is ``s² (2 − h_i)`` (``h_i`` its leverage), which
   gives the group estimates; Bartlett's statistic tests that the groups share one scale.
 * the **gyro noise scale** ``g`` (and the accelerometer's ``a``, swaying-base), by maximum
@@ -124,19 +128,64 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         return None
     sub = {k: np.asarray(res[k])[idx] for k in ("frame", "du", "dv", "x_st", "y_st", "z_st")}
     r, lev, n_frames = within_frame(sub, sigma_px[idx], fx, fy)
+    uv = np.stack([np.asarray(res["u"], dtype=float)[idx], np.asarray(res["v"],
+                                                                    dtype=float)[idx]], 1)
+    # structure is not noise: a residual field that repeats from frame to frame (a missing
+    # distortion term, a magnitude-dependent bias) is removed as its mean per detector cell
+    # and magnitude class before the variance is taken (the dof it uses are not counted)
+    cell, keep_cell = _cells(uv, np.asarray(res["magnitude"], dtype=float)[idx], centre)
+    r, share = _minus_cell_means(r, cell, keep_cell)
     q = (r**2).sum(1)
-    m = 2.0 - lev
+    m = (2.0 - lev) * share
     use = np.isfinite(q) & (m > 0)
     if not use.any():
         return None
-    uv = np.stack([np.asarray(res["u"], dtype=float)[idx], np.asarray(res["v"],
-                                                                    dtype=float)[idx]], 1)
     out = StarNoise(0.0, 0.0, float(m[use].sum()), n_frames, q[use], m[use],
                     np.asarray(res["magnitude"], dtype=float)[idx][use],
                     np.hypot(uv[use, 0] - centre[0], uv[use, 1] - centre[1]),
                     (msg_sigma[idx] == 0)[use], sigma_px[idx][use])
     out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
     return out
+
+
+#: the cells whose mean residual is structure, not noise: a grid over the detector times
+#: magnitude classes, cells of at least CELL_MIN stars
+CELL_GRID = 6
+MAGNITUDE_CLASSES = 3
+CELL_MIN = 8
+
+
+def _cells(uv: np.ndarray, magnitude: np.ndarray, centre: tuple[float, float]
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Cell index of each star (detector grid × magnitude class) and which cells count."""
+    ext = 2.0 * np.nanmax(np.abs(uv - np.asarray(centre)), axis=0) + 1.0
+    ij = np.clip(((uv - np.asarray(centre)) / ext + 0.5) * CELL_GRID, 0,
+                 CELL_GRID - 1e-9).astype(int)
+    fin = np.isfinite(magnitude)
+    mclass = np.zeros(len(uv), dtype=int)
+    if fin.sum() > MAGNITUDE_CLASSES * CELL_MIN:
+        edges = np.quantile(magnitude[fin], np.linspace(0, 1, MAGNITUDE_CLASSES + 1)[1:-1])
+        mclass = np.searchsorted(edges, np.nan_to_num(magnitude, nan=float(np.median(
+            magnitude[fin]))), side="right")
+    cell = (ij[:, 0] * CELL_GRID + ij[:, 1]) * MAGNITUDE_CLASSES + mclass
+    counts = np.bincount(cell, minlength=CELL_GRID**2 * MAGNITUDE_CLASSES)
+    return cell, counts[cell] >= CELL_MIN
+
+
+def _minus_cell_means(r: np.ndarray, cell: np.ndarray, keep: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``r`` minus its mean per cell, and each star's remaining share of its dof."""
+    out = np.full_like(r, np.nan)
+    share = np.zeros(len(r))
+    ok = keep & np.all(np.isfinite(r), axis=1)
+    if not ok.any():
+        return out, share
+    n = np.bincount(cell[ok], minlength=int(cell.max()) + 1).astype(float)
+    for k in range(2):
+        mean = np.bincount(cell[ok], r[ok, k], minlength=len(n)) / np.maximum(n, 1.0)
+        out[ok, k] = r[ok, k] - mean[cell[ok]]
+    share[ok] = 1.0 - 1.0 / n[cell[ok]]
+    return out, share
 
 
 def _bartlett(parts: list[tuple[float, float, float]]) -> tuple[float, float]:

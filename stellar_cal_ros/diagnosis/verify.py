@@ -63,26 +63,45 @@ def verify(data, calibration, method: str, effects: list[str], entries: list[dic
     ``calibration``: the final model's calibration (its ``consistency.noise`` is the
     measured noise the twins get); ``effects``: the final model's effects.
     """
-    from stellar_cal_ros.diagnosis.discover import Round, method_spec, rank_round
     from stellar_cal_ros.diagnosis.noise import stated_scales
-    from stellar_cal_ros.diagnosis.parallel import Runs
     from stellar_cal_ros.sim.twin import make_twin
+
+    noise = stated_scales(calibration)
+
+    def make(injected: dict[str, np.ndarray]):
+        twin = make_twin(data, calibration, injected, seed, method, noise)
+        return twin.data, twin.counts
+
+    return check_claims(make, calibration, method, effects, entries, noise, seed, tell,
+                        fraction)
+
+
+def check_claims(make, calibration, method: str, effects: list[str], entries: list[dict],
+                 noise=None, seed: int = 1, tell=None, fraction: float = 0.5
+                 ) -> list[dict[str, Any]]:
+    """Inject each testable entry at its printed MDB into ``make(injected)`` bags and check.
+
+    ``make({effect: simulate-units value}) -> (BagData, counts)`` makes the paired bags (the
+    same noise for every call: a twin of the same seed, or the simulator with one seed);
+    ``calibration`` is where the diagnosis starts; ``noise`` the scales its runs use.
+    """
+    from stellar_cal_ros.diagnosis.discover import Round, method_spec, rank_round
+    from stellar_cal_ros.diagnosis.parallel import Runs
 
     spec = method_spec(method)
     extra = [e for e in effects if e not in spec.baseline]
-    noise = stated_scales(calibration)
     pool = [e["effect"] for e in entries]
 
-    def round_on(twin):
-        runs = Runs(twin.data, spec, fraction)
+    def round_on(data):
+        runs = Runs(data, spec, fraction)
         runs.noise = noise
         r = Round(runs, spec, runs.facts(), fraction, calibration, (), True, None)
         base, results, _ = rank_round(r, calibration, extra, pool, condition=False,
                                       keep_residuals=False)
         return base, {c.effect: c for c in results}
 
-    twin0 = make_twin(data, calibration, {}, seed, method, noise)
-    base0, _ = round_on(twin0)
+    data0, _ = make({})
+    base0, _ = round_on(data0)
     before = _values(base0)
     out = []
     for entry in entries:
@@ -93,9 +112,8 @@ def verify(data, calibration, method: str, effects: list[str], entries: list[dic
         param, listed = injected_parameter(entry)
         size = entry["hidden_size"][param]
         delta = injection.parameter_delta(eid, param, size)
-        twin = make_twin(data, calibration, {eid: injection.simulation_value(eid, delta)},
-                         seed, method, noise)
-        base, cands = round_on(twin)
+        data1, counts = make({eid: injection.simulation_value(eid, delta)})
+        base, cands = round_on(data1)
         c = cands.get(eid)
         found = bool(c is not None and c.significant)
         lam = power = float("nan")
@@ -125,7 +143,7 @@ def verify(data, calibration, method: str, effects: list[str], entries: list[dic
                "noncentrality": lam, "expected_noncentrality": entry.get("lam0"),
                "implied_power": power, "biases": checks,
                "holds": bool(holds_bias and holds_power), "seed": seed,
-               "twin_counts": twin.counts}
+               "twin_counts": counts}
         out.append(rec)
         if tell:
             tell(describe(rec))
