@@ -739,7 +739,8 @@ class Calibrator:
             unc = float(np.clip(np.degrees(5.0 * math.sqrt(max(var, 0.0))), 0.05, 2.0))
         frame, _ = self.identifier.identify_frame(frame, hint, hint_uncertainty_deg=unc)
         cam = self.prior.camera
-        return frame, frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px)
+        return frame, frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px,
+                                   self.config.noise)
 
     def _time_shift(self, stamp: int, inp) -> float:
         """Seconds from a frame's stamp to its modelled exposure (current θ)."""
