@@ -135,3 +135,23 @@ def test_replay_measures_a_sigma_of_zero(tmp_path):
     assert cons["noise_rescaled"] and cons["verdict"] == "consistent"
     # true 0.05 px; the measurement's σ is ~0.0004 px
     assert cons["noise"]["unknown_star_sigma_px"] == pytest.approx(0.05, abs=0.0015)
+
+
+def test_repeating_field_is_structure_and_defers_the_imu_noise():
+    """The cell means' χ² is χ²(dof) for noise alone and flags a field that repeats."""
+    rng = np.random.default_rng(5)
+    n = 20000
+    uv = rng.uniform(0, 1024, (n, 2))
+    mag = rng.uniform(2, 6, n)
+    cell, keep = noise._cells(uv, mag, (511.5, 511.5))
+    r = rng.standard_normal((n, 2))
+    _, _, chi2, dof = noise._minus_cell_means(r, cell, keep)
+    assert abs(chi2 - dof) < 4 * np.sqrt(2 * dof)  # χ²(dof): mean dof, σ √(2 dof)
+    field = np.stack([(uv[:, 0] - 511.5) / 511.5 * 0.2, np.zeros(n)], 1)  # 0.2 σ at the edge
+    _, _, chi2_f, _ = noise._minus_cell_means(r + field, cell, keep)
+    assert chi2_f - dof > 10 * np.sqrt(2 * dof)
+    sn = noise.StarNoise(1.0, 0.01, 2.0 * n, 1, np.ones(n), 2 * np.ones(n), mag,
+                         np.zeros(n), np.zeros(n, bool), np.ones(n), chi2_f, dof)
+    assert "repeating field" in noise.structured(sn)
+    sn.structure = float(dof)
+    assert noise.structured(sn) == ""
