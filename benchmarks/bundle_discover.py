@@ -23,7 +23,7 @@ import numpy as np
 
 def main(argv: list[str] | None = None) -> int:
     """Run the loop and print its path."""
-    from stellar_cal_ros.diagnosis.auto import describe
+    from stellar_cal_ros.diagnosis.printing import describe
     from stellar_cal_ros.diagnosis.run import diagnose
     from stellar_cal_ros.methods.bundle_runs import run_bundle
     from stellar_cal_ros.methods.frames import bag_data_from_simulation

@@ -271,7 +271,7 @@ def _write_viz(path: Path, result, history_path: Path, residuals_path: Path | No
 
 def _measure_noise(args: argparse.Namespace, prior, effects, scales, components):
     from stellar_cal_ros.core.noise import NoiseScales
-    from stellar_cal_ros.diagnosis.noise import measure_bag
+    from stellar_cal_ros.diagnosis.run import measure_bag
 
     print("measuring the noise scales from the run ...", flush=True)
     verdict = measure_bag(args.bag, prior, args.method, effects, scales or NoiseScales(),
@@ -612,8 +612,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     from stellar_cal_ros.budget.command import add_budget_parser
     from stellar_cal_ros.campaign.command import add_campaign_parser
+    from stellar_cal_ros.diagnosis.twin_command import add_twin_parser
     from stellar_cal_ros.results_cli import add_result_commands
-    from stellar_cal_ros.sim.twin_command import add_twin_parser
     from stellar_cal_ros.sky.command import add_solve_parser
 
     add_result_commands(sub)

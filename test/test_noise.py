@@ -17,7 +17,7 @@ import pytest
 
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise
-from stellar_cal_ros.diagnosis.run import diagnose
+from stellar_cal_ros.diagnosis.run import diagnose, measure_bag
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods.psce import PsceConfig
 from stellar_cal_ros.methods.replay import bag_data_from_simulation
@@ -66,7 +66,7 @@ def test_star_sigma_scale_from_within_frame_residuals(stated):
     """A sigma field 0.6x / 1.6x the truth: the scale 1/0.6, 1/1.6 within 3σ (the common
     attitude error, hence the gyro noise, drops out: a 5x gyro noise changes nothing)."""
     sim = _sim(gyro=5.0 if stated == 1.0 else 1.0)
-    v = noise.measure_bag(_stated(sim, stated), sim.prior, "psce", [], NoiseScales(),
+    v = measure_bag(_stated(sim, stated), sim.prior, "psce", [], NoiseScales(),
                           components=())
     assert v.star == pytest.approx(1.0 / stated, abs=3 * v.star_sigma)
     assert v.star_sigma < 0.02 / stated
@@ -80,7 +80,7 @@ def test_star_sigma_scale_from_within_frame_residuals(stated):
 def test_gyro_noise_scale_by_maximum_likelihood():
     """5x the gyro random walk the filter assumes: found within 3σ, and named."""
     sim = _sim(gyro=5.0)
-    v = noise.measure_bag(_stated(sim), sim.prior, "psce", [], NoiseScales())
+    v = measure_bag(_stated(sim), sim.prior, "psce", [], NoiseScales())
     g = v.imu["gyro"]
     assert g.measurable and g.value == pytest.approx(5.0, abs=3 * g.sigma) and g.sigma < 1.5
     assert v.rejected == ["gyro"] and v.applied.gyro == pytest.approx(g.value)
@@ -91,7 +91,7 @@ def test_star_sigma_by_magnitude_group():
     """Faint stars (mag > 5) state half their noise: the magnitude groups are found and
     applied, the bright ones stay as stated."""
     sim = _sim(seed=4)
-    v = noise.measure_bag(_stated(sim, faint_factor=0.5), sim.prior, "psce", [],
+    v = measure_bag(_stated(sim, faint_factor=0.5), sim.prior, "psce", [],
                           NoiseScales(), components=())
     assert v.group is not None and v.group["by"] == "magnitude", v.groups
     sc = np.asarray(v.group["scales"])

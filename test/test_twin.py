@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from stellar_cal_ros.diagnosis.discover import rerun_prior
+from stellar_cal_ros.diagnosis.twin import make_twin
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay
 from stellar_cal_ros.sim.scenarios import get_scenario
-from stellar_cal_ros.sim.twin import make_twin
 from stellar_cal_ros.sim.world import simulate, write_simulation
 
 NOISE = 0.05

@@ -54,6 +54,7 @@ from stellar_cal_ros.diagnosis.discover import (
 from stellar_cal_ros.diagnosis.noise import check_noise, stated_scales
 from stellar_cal_ros.diagnosis.output import finish, progress_printer, write_report
 from stellar_cal_ros.diagnosis.parallel import Task, open_runner
+from stellar_cal_ros.diagnosis.printing import describe
 from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.io.calibration import Calibration, save_calibration
@@ -308,21 +309,6 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
         return _write(out, calibration, spec, state, path, history, first, current, results,
                       evaluation_fraction, plots, runs, stopped,
                       time.perf_counter() - t_start, r.noise, check)
-
-
-def describe(step: dict[str, Any]) -> str:
-    """One path step in words: what the round changed."""
-    a = step["action"]
-    if a == "add":
-        add = step["added"]
-        return f"add {add['effect']} (score {add['score']:.1f}, p = {add['p_value']:.2g})"
-    if a == "drop":
-        return f"drop {step['removed']} (no longer needed)"
-    if a == "noise":
-        return "the stars' noise differs with this model: measure it again"
-    if a == "exchange":
-        return f"exchange {step['removed']} for {step['exchanged_for']}"
-    return "nothing significant"
 
 
 def _step(k: int, model: list[str], base: RunSummary, results: list[CandidateResult],

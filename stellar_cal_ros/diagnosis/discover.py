@@ -386,7 +386,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     """One round: (the noise,) screen, re-run the candidates that pass, decide.
 
     With ``measure_noise`` the round first measures the noise scales of the current model
-    (:func:`~stellar_cal_ros.diagnosis.noise.measure`: "noise as stated" is tested before
+    (:func:`~stellar_cal_ros.diagnosis.noise_runs.measure`: "noise as stated" is tested before
     any physical effect) and runs everything else with the scales it finds (``r.noise``).
 
     ``start`` gives the start values (:func:`rerun_prior`); ``extra`` are the model's
@@ -497,7 +497,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
 
 def measure_round_noise(r: Round, prior: Calibration, extra: list[str]) -> None:
     """Measure the noise of the current model; every later run of ``r`` uses its scales."""
-    from stellar_cal_ros.diagnosis import noise
+    from stellar_cal_ros.diagnosis.noise_runs import measure
 
     if methods.get(r.spec.name).kind != "filter":
         return  # a batch method's runner takes no noise scales (its σ: its own fit)
@@ -508,7 +508,7 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str]) -> None:
         log.warning("noise not measured: the current model's run failed: %s", base.error)
         return
     comps = ("gyro", "accel") if Stage.ACCEL in r.spec.stages else ("gyro",)
-    r.noise = noise.measure(r.runs, prior, tuple(extra), base, r.tell, comps)
+    r.noise = measure(r.runs, prior, tuple(extra), base, r.tell, comps)
     r.runs.noise = r.noise.applied
     r.runs.verdict = r.noise
     for line in r.noise.lines():

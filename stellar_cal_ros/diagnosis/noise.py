@@ -590,63 +590,6 @@ def structured(sn: StarNoise) -> str:
             "measured again once it is added")
 
 
-def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
-            components: tuple[str, ...] = ("gyro",)) -> NoiseVerdict:
-    """Measure the noise scales on ``runs``' bag for the model ``effects`` from ``prior``.
-
-    ``base`` is a run of that model with the scales ``runs.noise`` and its stars' noise
-    measured (``Task(star_noise=True)``).  The stars first (no further run), then each IMU
-    component in ``components`` by ML over re-runs with the stars' scale applied.  Returns
-    the verdict; ``verdict.applied`` is what the diagnosis should run with.
-    """
-    from stellar_cal_ros.diagnosis.parallel import Task
-
-    stated = runs.noise or NoiseScales()
-    v = NoiseVerdict(stated, stated, method=runs.spec.name)
-    n_tests = 1 + len(components)
-    cam = prior.camera
-    sn = base.star_noise
-    applied = stated
-    v.skipped = far_off(base, sn)
-    if v.skipped:
-        if tell:
-            tell(f"noise: {v.skipped}")
-        return v
-    if sn is not None:
-        applied = judge_stars(v, sn, default_sigma(runs.spec.name),
-                              math.hypot(cam.width, cam.height) / 2.0, n_tests)
-        v.imu_skipped = structured(sn) if components else ""
-        if v.imu_skipped:
-            components = ()  # said once, in the verdict's lines
-    for comp in components:
-        cur = getattr(applied, comp)
-
-        def loglik(xs: list[float], comp=comp, cur=cur, at=applied) -> list[float]:
-            tasks = [Task(f"noise {comp} x{math.exp(x):.3g}", prior, tuple(effects),
-                          noise=at.replace(**{comp: cur * math.exp(x)}), cost=1.0)
-                     for x in xs]
-            out = runs.run_all(tasks, None)
-            return [out[t.key].window["log_likelihood"] if out[t.key].ok else -math.inf
-                    for t in tasks]
-
-        known = {0.0: base.window["log_likelihood"]} if applied == stated and base.ok else {}
-        found = search_scale(comp, loglik, known=known)
-        v.imu[comp] = found
-        if tell:
-            tell(f"noise: {comp} scale {found.value:.3g} +- {found.sigma:.2g} "
-                 f"({len(found.points)} runs)" if found.measurable else
-                 f"noise: {comp} scale at {'most' if found.bound == 'upper' else 'least'} "
-                 f"{found.value:.3g} ({len(found.points)} runs)" if found.bound else
-                 f"noise: {comp} scale not measurable on this bag")
-        if (found.measurable or found.bound) and found.p_value < ALPHA / n_tests and \
-                abs(found.value - 1.0) > MATERIAL:
-            v.rejected.append(comp)
-            applied = applied.replace(**{comp: cur * found.value})
-    v.applied = applied
-    return v
-
-
-
 def stated_scales(calibration) -> NoiseScales:
     """The scales a calibration's run used (its consistency block), identity if none."""
     cons = (getattr(calibration, "extra", None) or {}).get("consistency") or {}
@@ -691,31 +634,3 @@ def stale(sn: StarNoise | None) -> bool:
         return False
     s, e, _ = sn.group(known)
     return bool(_p_two_sided(s, e) < ALPHA and abs(s - 1.0) > MATERIAL)
-
-
-def measure_bag(bag, prior, method: str, effects: list[str], scales: NoiseScales,
-                components: tuple[str, ...] | None = None, tell=None,
-                fraction: float = 0.5) -> NoiseVerdict:
-    """Measure the noise scales of ``method`` + ``effects`` on ``bag`` from ``prior``.
-
-    For ``replay --estimate-noise`` (and a bag whose stars say σ = 0): one run in this
-    process with the scales ``scales``, the stars' scale from it, then the IMU components
-    by ML over re-runs (default: the gyro's, and the accelerometer's for swaying_base).
-    """
-    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
-    from stellar_cal_ros.diagnosis.parallel import Runs, Task
-
-    spec = method_spec(method)
-    if components is None:
-        components = ("gyro", "accel") if method == "swaying_base" else ("gyro",)
-    runs = Runs(bag, spec, fraction)
-    runs.noise = scales
-    start = rerun_prior(prior) if prior.method != "prior" else prior
-    extra = tuple(e for e in effects if e not in spec.baseline)
-    base = runs.run_all([Task("noise: the model", start, extra, star_noise=True)])[
-        "noise: the model"]
-    if not base.ok:
-        from stellar_cal_ros.errors import ModelError
-
-        raise ModelError(f"noise not measured: the run failed: {base.error}")
-    return measure(runs, start, extra, base, tell, components)

@@ -10,7 +10,21 @@ from __future__ import annotations
 from typing import Any
 
 from stellar_cal_ros.diagnosis import reliability
-from stellar_cal_ros.diagnosis.auto import describe
+
+
+def describe(step: dict[str, Any]) -> str:
+    """One path step in words: what the round changed."""
+    a = step["action"]
+    if a == "add":
+        add = step["added"]
+        return f"add {add['effect']} (score {add['score']:.1f}, p = {add['p_value']:.2g})"
+    if a == "drop":
+        return f"drop {step['removed']} (no longer needed)"
+    if a == "noise":
+        return "the stars' noise differs with this model: measure it again"
+    if a == "exchange":
+        return f"exchange {step['removed']} for {step['exchanged_for']}"
+    return "nothing significant"
 
 
 def notes_lines(summary: dict[str, Any]) -> list[str]:

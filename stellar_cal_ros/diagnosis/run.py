@@ -7,9 +7,10 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis.auto import discover
 from stellar_cal_ros.diagnosis.discover import method_spec, rank_candidates
-from stellar_cal_ros.diagnosis.noise import check_noise, stated_scales
+from stellar_cal_ros.diagnosis.noise import NoiseVerdict, check_noise, stated_scales
 from stellar_cal_ros.diagnosis.output import finish, progress_printer
 from stellar_cal_ros.diagnosis.parallel import open_runner
 from stellar_cal_ros.io.calibration import Calibration
@@ -76,3 +77,32 @@ def diagnose(
                      evaluation_fraction, panels, plots, verdict=runs.verdict)
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+def measure_bag(bag, prior, method: str, effects: list[str], scales: NoiseScales,
+                components: tuple[str, ...] | None = None, tell=None,
+                fraction: float = 0.5) -> NoiseVerdict:
+    """Measure the noise scales of ``method`` + ``effects`` on ``bag`` from ``prior``.
+
+    For ``replay --estimate-noise`` (and a bag whose stars say σ = 0): one run in this
+    process with the scales ``scales``, the stars' scale from it, then the IMU components
+    by ML over re-runs (default: the gyro's, and the accelerometer's for swaying_base).
+    """
+    from stellar_cal_ros.diagnosis.discover import rerun_prior
+    from stellar_cal_ros.diagnosis.noise_runs import measure
+    from stellar_cal_ros.diagnosis.parallel import Runs, Task
+
+    spec = method_spec(method)
+    if components is None:
+        components = ("gyro", "accel") if method == "swaying_base" else ("gyro",)
+    runs = Runs(bag, spec, fraction)
+    runs.noise = scales
+    start = rerun_prior(prior) if prior.method != "prior" else prior
+    extra = tuple(e for e in effects if e not in spec.baseline)
+    base = runs.run_all([Task("noise: the model", start, extra, star_noise=True)])[
+        "noise: the model"]
+    if not base.ok:
+        from stellar_cal_ros.errors import ModelError
+
+        raise ModelError(f"noise not measured: the run failed: {base.error}")
+    return measure(runs, start, extra, base, tell, components)

@@ -1,7 +1,7 @@
 """``discover --verify``: the printed MDBs and biases checked on twins of the user's bag.
 
 For every effect the report lists under "what could still be hiding", a twin of the bag
-(:mod:`stellar_cal_ros.sim.twin`: the user's trajectory, stamps, stars and measured noise,
+(:mod:`stellar_cal_ros.diagnosis.twin`: the user's trajectory, stamps, stars and measured noise,
 rendered with the final calibration) is made with the effect injected at its printed MDB —
 the parameter the report names for its largest bias, else its best determined one — and a
 twin with the same seed without it.  Then, per effect:
@@ -64,7 +64,7 @@ def verify(data, calibration, method: str, effects: list[str], entries: list[dic
     measured noise the twins get); ``effects``: the final model's effects.
     """
     from stellar_cal_ros.diagnosis.noise import stated_scales
-    from stellar_cal_ros.sim.twin import make_twin
+    from stellar_cal_ros.diagnosis.twin import make_twin
 
     noise = stated_scales(calibration)
 

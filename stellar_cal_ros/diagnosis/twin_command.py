@@ -30,11 +30,11 @@ def add_twin_parser(sub) -> None:
 
 
 def _cmd_twin(args: argparse.Namespace) -> int:
+    from stellar_cal_ros.diagnosis.twin import make_twin, write_twin
     from stellar_cal_ros.effects import registry
     from stellar_cal_ros.io.calibration import load_calibration
     from stellar_cal_ros.methods.frames import read_bag_data
     from stellar_cal_ros.sim.truth_effects import parse_effect_arguments
-    from stellar_cal_ros.sim.twin import make_twin, write_twin
 
     for path in args.effect_module or []:
         registry.load_effect_module(path)

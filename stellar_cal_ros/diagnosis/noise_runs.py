@@ -1,0 +1,77 @@
+"""Noise as a hypothesis, measured over re-runs (:mod:`~stellar_cal_ros.diagnosis.noise`).
+
+:func:`measure` runs the maximum-likelihood searches of the IMU noise scales over the
+runner's re-runs (the stars' scale needs none); :mod:`~stellar_cal_ros.diagnosis.noise`
+holds the estimators and the verdict, below the runner (its runs measure the stars).
+"""
+
+from __future__ import annotations
+
+import math
+
+from stellar_cal_ros.core.noise import NoiseScales
+from stellar_cal_ros.diagnosis.noise import (
+    ALPHA,
+    MATERIAL,
+    NoiseVerdict,
+    default_sigma,
+    far_off,
+    judge_stars,
+    search_scale,
+    structured,
+)
+from stellar_cal_ros.diagnosis.parallel import Task
+
+
+def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
+            components: tuple[str, ...] = ("gyro",)) -> NoiseVerdict:
+    """Measure the noise scales on ``runs``' bag for the model ``effects`` from ``prior``.
+
+    ``base`` is a run of that model with the scales ``runs.noise`` and its stars' noise
+    measured (``Task(star_noise=True)``).  The stars first (no further run), then each IMU
+    component in ``components`` by ML over re-runs with the stars' scale applied.  Returns
+    the verdict; ``verdict.applied`` is what the diagnosis should run with.
+    """
+    stated = runs.noise or NoiseScales()
+    v = NoiseVerdict(stated, stated, method=runs.spec.name)
+    n_tests = 1 + len(components)
+    cam = prior.camera
+    sn = base.star_noise
+    applied = stated
+    v.skipped = far_off(base, sn)
+    if v.skipped:
+        if tell:
+            tell(f"noise: {v.skipped}")
+        return v
+    if sn is not None:
+        applied = judge_stars(v, sn, default_sigma(runs.spec.name),
+                              math.hypot(cam.width, cam.height) / 2.0, n_tests)
+        v.imu_skipped = structured(sn) if components else ""
+        if v.imu_skipped:
+            components = ()  # said once, in the verdict's lines
+    for comp in components:
+        cur = getattr(applied, comp)
+
+        def loglik(xs: list[float], comp=comp, cur=cur, at=applied) -> list[float]:
+            tasks = [Task(f"noise {comp} x{math.exp(x):.3g}", prior, tuple(effects),
+                          noise=at.replace(**{comp: cur * math.exp(x)}), cost=1.0)
+                     for x in xs]
+            out = runs.run_all(tasks, None)
+            return [out[t.key].window["log_likelihood"] if out[t.key].ok else -math.inf
+                    for t in tasks]
+
+        known = {0.0: base.window["log_likelihood"]} if applied == stated and base.ok else {}
+        found = search_scale(comp, loglik, known=known)
+        v.imu[comp] = found
+        if tell:
+            tell(f"noise: {comp} scale {found.value:.3g} +- {found.sigma:.2g} "
+                 f"({len(found.points)} runs)" if found.measurable else
+                 f"noise: {comp} scale at {'most' if found.bound == 'upper' else 'least'} "
+                 f"{found.value:.3g} ({len(found.points)} runs)" if found.bound else
+                 f"noise: {comp} scale not measurable on this bag")
+        if (found.measurable or found.bound) and found.p_value < ALPHA / n_tests and \
+                abs(found.value - 1.0) > MATERIAL:
+            v.rejected.append(comp)
+            applied = applied.replace(**{comp: cur * found.value})
+    v.applied = applied
+    return v
