@@ -44,8 +44,9 @@ import numpy as np
 from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.errors import CheckpointError
 from stellar_cal_ros.io.checkpoint import read_checkpoint, write_checkpoint
-from stellar_cal_ros.methods.driver import Calibrator, InputCounters, _ImuQueue
+from stellar_cal_ros.methods.driver import Calibrator, InputCounters
 from stellar_cal_ros.methods.frames import FrameInputs
+from stellar_cal_ros.methods.imu_queue import ImuQueue
 from stellar_cal_ros.methods.kernel import FilterCounters
 from stellar_cal_ros.methods.results import stats_from_dict
 
@@ -190,7 +191,7 @@ def _restore_driver(cal: Calibrator, d: dict[str, Any], a: dict[str, np.ndarray]
     cal._imu_leap = None if c["imu_leap"] is None else tuple(c["imu_leap"])
     cal._frame_index, cal.faults = d["frame_index"], list(d["faults"])
     qd = _dec(d["imu_queue"], a)
-    cal._imu = _ImuQueue()
+    cal._imu = ImuQueue()
     cal._imu.push(qd["t"], qd["w"], qd["f"])
     cal._imu.sorted = qd["sorted"]
     cal._staged = [tuple(x) for x in _dec(d["staged"], a)]
