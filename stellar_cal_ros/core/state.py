@@ -38,6 +38,22 @@ from stellar_cal_ros.core import covariance as cov
 from stellar_cal_ros.core.rotation import so3_exp
 
 
+def nominal_view(key: str, doc: str) -> property:
+    """A filter attribute that reads and writes ``self.state.nominal[key]``.
+
+    The :class:`ErrorState` owns every nominal value; a filter names its own (``R_i_b``,
+    ``theta``, ``velocity`` ...) with one line each instead of a getter/setter pair.
+    """
+
+    def get(self):  # noqa: ANN001, ANN202 - any filter holding an ErrorState as .state
+        return self.state.nominal[key]
+
+    def put(self, value) -> None:  # noqa: ANN001
+        self.state.nominal[key] = value
+
+    return property(get, put, doc=doc)
+
+
 @dataclass(frozen=True)
 class Block:
     """One block of the error state."""

@@ -72,7 +72,7 @@ from scipy.spatial.transform import Rotation
 from stellar_cal_ros.core.attitude import wahba
 from stellar_cal_ros.core.rotation import left_jacobian, so3_exp
 from stellar_cal_ros.core.units import ARCSEC
-from stellar_cal_ros.effects.base import FrameContext, Stage
+from stellar_cal_ros.effects.base import FrameContext
 from stellar_cal_ros.effects.registry import create_many
 from stellar_cal_ros.errors import ModelError, StellarCalError
 from stellar_cal_ros.io.calibration import Calibration, store_estimate
@@ -104,7 +104,7 @@ from stellar_cal_ros.methods.acf_robust import (
 )
 from stellar_cal_ros.methods.frames import star_masks, star_sigma
 from stellar_cal_ros.methods.init_from import prior_from_result  # noqa: F401 (re-exported)
-from stellar_cal_ros.methods.registry import BatchOutput, MethodSpec
+from stellar_cal_ros.methods.registry import STAGES_WITHOUT_ACCEL, BatchOutput, MethodSpec
 from stellar_cal_ros.methods.star_model import StarModel
 from stellar_cal_ros.sky.identify import identify_frames, needs_identification
 
@@ -768,5 +768,5 @@ METHOD = MethodSpec(
     summary="attitude-correlated frames, Liu et al. 2017: the gyros tie every frame to the "
             "first (a turntable or slew sequence)",
     baseline=ACF_EFFECTS,
-    stages=(Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA),
+    stages=STAGES_WITHOUT_ACCEL,
     batch=batch, steps=ACF_STAGES)

@@ -60,7 +60,7 @@ from stellar_cal_ros.core import gyro_check
 from stellar_cal_ros.core.gating import GatePolicy, block_nis, fov_tan2
 from stellar_cal_ros.core.imu import ImuBuffer
 from stellar_cal_ros.core.propagation import ImuPropagation, SensorModel, Step
-from stellar_cal_ros.core.state import Block, ErrorState, StateLayout
+from stellar_cal_ros.core.state import Block, ErrorState, StateLayout, nominal_view
 from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
 from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.errors import ModelError
@@ -293,23 +293,10 @@ class StarFilter(Acquisition):
     def P(self, value: np.ndarray) -> None:
         self.state.P = value
 
-    @property
-    def R_i_b(self) -> np.ndarray | None:
-        """Nominal IMU attitude (body to inertial); None before acquisition."""
-        return self.state.nominal["attitude"]
-
-    @R_i_b.setter
-    def R_i_b(self, value: np.ndarray | None) -> None:
-        self.state.nominal["attitude"] = value
-
-    @property
-    def theta(self) -> np.ndarray:
-        """Nominal parameters of every effect of the model (consider ones included)."""
-        return self.state.nominal["theta"]
-
-    @theta.setter
-    def theta(self, value: np.ndarray) -> None:
-        self.state.nominal["theta"] = value
+    R_i_b = nominal_view("attitude", "Nominal IMU attitude (body to inertial); None before "
+                                     "acquisition.")
+    theta = nominal_view("theta", "Nominal parameters of every effect of the model (consider "
+                                  "ones included).")
 
     @property
     def sensitivity(self) -> cov.Sensitivity | None:

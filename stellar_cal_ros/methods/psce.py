@@ -35,7 +35,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.methods.kernel import (  # noqa: F401 (re-exported for callers)
     FilterCounters,
     FrameUpdate,
@@ -43,7 +42,7 @@ from stellar_cal_ros.methods.kernel import (  # noqa: F401 (re-exported for call
     NoImuError,
     StarFilter,
 )
-from stellar_cal_ros.methods.registry import MethodSpec
+from stellar_cal_ros.methods.registry import STAGES_WITHOUT_ACCEL, MethodSpec
 from stellar_cal_ros.methods.star_model import StarModel
 
 BASELINE_EFFECTS = (
@@ -90,6 +89,5 @@ METHOD = MethodSpec(
     summary="Tan et al. 2018: a rotating vehicle; installation, gyro bias and camera "
             "intrinsics from star centroids",
     baseline=BASELINE_EFFECTS,
-    # no accelerometer model
-    stages=(Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA),
+    stages=STAGES_WITHOUT_ACCEL,
     filter_cls=PsceFilter, config_cls=PsceConfig)

@@ -71,6 +71,10 @@ class BatchOutput:
     result: Any = None  #: the method's own result object
 
 
+#: the stages of a method with no accelerometer model (PSCE, ACF): every stage but ACCEL
+STAGES_WITHOUT_ACCEL = (Stage.GYRO, Stage.DIRECTION, Stage.TIME, Stage.TRACKER, Stage.CAMERA)
+
+
 @dataclass(frozen=True)
 class MethodSpec:
     """What one estimation method is and what runs it (see the module docstring)."""

@@ -62,7 +62,7 @@ import numpy as np
 from stellar_cal_ros.core import earth
 from stellar_cal_ros.core.propagation import Step
 from stellar_cal_ros.core.rotation import skew
-from stellar_cal_ros.core.state import Block
+from stellar_cal_ros.core.state import Block, nominal_view
 from stellar_cal_ros.core.units import DEG_PER_HOUR, G0
 from stellar_cal_ros.errors import ModelError
 from stellar_cal_ros.methods.kernel import KernelConfig, StarFilter
@@ -238,23 +238,9 @@ class SwayingFilter(StarFilter):
         return self.config.accel_vrw_mps_sqrth / 60.0
 
     # ------------------------------------------------------------------ nominal values
-    @property
-    def velocity(self) -> np.ndarray:
-        """Nominal inertial velocity, m/s (GCRS)."""
-        return self.state.nominal["velocity"]
-
-    @velocity.setter
-    def velocity(self, value: np.ndarray) -> None:
-        self.state.nominal["velocity"] = value
-
-    @property
-    def position(self) -> np.ndarray:
-        """Nominal position relative to the site at t0, m (GCRS axes)."""
-        return self.state.nominal["position"]
-
-    @position.setter
-    def position(self, value: np.ndarray) -> None:
-        self.state.nominal["position"] = value
+    velocity = nominal_view("velocity", "Nominal inertial velocity, m/s (GCRS).")
+    position = nominal_view("position", "Nominal position relative to the site at t0, m "
+                                        "(GCRS axes).")
 
     @property
     def v(self) -> np.ndarray:
