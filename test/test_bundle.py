@@ -147,6 +147,26 @@ def test_bundle_run_recovers_truth_and_held_out_rms_equals_noise(world):
     assert res.variance_factor == pytest.approx(1.0, abs=0.15)
 
 
+def test_the_diagnosis_noise_scale_reaches_the_bundle(world):
+    """A σ stated 0.6x the true noise: the bundle's variance factor is ~1/0.36; with the
+    scale the diagnosis measures (star = 1/0.6, ``run_for_diagnosis(noise=)``) it is ~1."""
+    from stellar_cal_ros.core.noise import NoiseScales
+
+    data = copy.copy(world["data"])
+    rng = np.random.default_rng(12)
+    data.frames = []
+    for fr in world["data"].frames:
+        g = copy.copy(fr)
+        g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
+        g.sigma = np.full(len(fr.uv), 0.6 * SIGMA_PX)
+        data.frames.append(g)
+    stated = run_bundle(data, world["sim"].prior, [], cross_validate=False)
+    scaled = run_bundle(data, world["sim"].prior, [], cross_validate=False,
+                        noise=NoiseScales(star=1 / 0.6))
+    assert stated.variance_factor == pytest.approx(1 / 0.36, rel=0.15)
+    assert scaled.variance_factor == pytest.approx(1.0, abs=0.15)
+
+
 def test_wrong_identities_are_left_out(world):
     """Stars labelled as another star are gated and counted; the estimate stays unbiased."""
     data = copy.copy(world["data"])

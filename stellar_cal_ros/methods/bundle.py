@@ -127,8 +127,11 @@ class BundleCounts:
 
 def bundle_frames(data: BagData, prior: Calibration, counts: BundleCounts | None = None,
                   min_stars: int = MIN_STARS_PER_FRAME,
-                  default_sigma: float = DEFAULT_SIGMA_PX) -> list[BundleFrame]:
+                  default_sigma: float = DEFAULT_SIGMA_PX, noise=None) -> list[BundleFrame]:
     """The frames of ``data`` with at least ``min_stars`` usable stars (the filters' rules).
+
+    ``noise`` (:class:`~stellar_cal_ros.core.noise.NoiseScales`) scales the stars' stated σ
+    as it does in the filters (the diagnosis' measured noise).
 
     A star is used as every method uses it (:func:`~stellar_cal_ros.methods.frames.
     frame_inputs`); its context (site, stamp, weather) as the filters build it.
@@ -140,7 +143,7 @@ def bundle_frames(data: BagData, prior: Calibration, counts: BundleCounts | None
     out = []
     for k, fr in enumerate(data.frames):
         c.frames_read += 1
-        inp = frame_inputs(fr, w, h, default_sigma)
+        inp = frame_inputs(fr, w, h, default_sigma, noise)
         c.stars_unidentified += inp.unidentified
         c.stars_unusable += int((~inp.ok).sum()) - inp.unidentified
         c.stars_bad_sigma += inp.bad_sigma

@@ -92,6 +92,7 @@ def run_bundle(
     gate_deg: float | None = GATE_DEG,
     cross_validate: bool = True,
     progress: Callable[[str], None] | None = None,
+    noise=None,
 ) -> BundleResult:
     """Calibrate the camera from star frames with a free attitude per frame.
 
@@ -118,6 +119,8 @@ def run_bundle(
         cross_validate`) and store ``cross_validation`` in the result.
     progress : callable, optional
         Called with a short text as each stage ends.
+    noise : NoiseScales, optional
+        Scales of the stars' stated σ (the diagnosis' measured noise).
 
     Raises
     ------
@@ -129,7 +132,7 @@ def run_bundle(
     model, theta_prior, sigma_prior = make_model(prior, effects)
     identified = identify(data, prior)
     counts = BundleCounts()
-    frames = bundle_frames(data, prior, counts, min_stars_per_frame)
+    frames = bundle_frames(data, prior, counts, min_stars_per_frame, noise=noise)
     if len(frames) < 2:
         raise StellarCalError(
             f"the bundle method needs at least 2 star frames with >= {min_stars_per_frame} "
@@ -284,18 +287,19 @@ def as_run(result: BundleResult, keep_tables: bool = True) -> BundleRun:
 def run_for_diagnosis(data: Any, prior: Calibration, effects: list[str],
                       keep_tables: bool = False, eval_fraction: float = 0.5,
                       consider: list[str] | None = None, gyro_fault: str = "raise",
-                      ) -> BundleRun:
+                      noise=None) -> BundleRun:
     """The diagnosis' runner for the bundle (the filters' runner signature).
 
     ``eval_fraction`` is unused (every frame is held out); ``consider`` is not supported
     (the bundle has no screening pass: every candidate is re-run); ``gyro_fault`` does not
-    apply (no IMU).
+    apply (no IMU); ``noise`` scales the stars' σ (its gyro/accelerometer scales do not
+    apply).
     """
     if consider:
         from stellar_cal_ros.errors import ModelError
 
         raise ModelError("the bundle method has no consider parameters (no screening)")
-    return as_run(run_bundle(data, prior, effects), keep_tables)
+    return as_run(run_bundle(data, prior, effects, noise=noise), keep_tables)
 
 
 def summary_lines(res: BundleResult) -> list[str]:
