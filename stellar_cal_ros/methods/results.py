@@ -242,8 +242,13 @@ class RunStats:
         "first": [0.0, 0.0], "last": [0.0, 0.0]})
 
     def add(self, upd) -> None:
-        """Add one frame update (:class:`~.kernel.FrameUpdate`)."""
-        n = int(upd.sums[0]) if upd.sums is not None else int(np.count_nonzero(upd.accepted))
+        """Add one frame update (:class:`~.kernel.FrameUpdate`).
+
+        Any object with its fields will do; without the compiled step's ``sums`` they are
+        computed here (the viz rebuilds frames from a residual table).
+        """
+        pre = getattr(upd, "sums", None)
+        n = int(pre[0]) if pre is not None else int(np.count_nonzero(upd.accepted))
         self.accepted_total += n
         if self.eval_start is not None and upd.stamp < self.eval_start:
             return
@@ -255,7 +260,7 @@ class RunStats:
         if not n:
             return
         self.frames += 1
-        sums = upd.sums if upd.sums is not None else frame_sums(upd)
+        sums = pre if pre is not None else frame_sums(upd)
         self.sum_logdet += float(sums[1])
         self.sum_nis_capped += float(sums[2])
         self.stars += n
