@@ -122,16 +122,22 @@ def test_held_out_rule_rejects_beyond_five_medians_and_scores_in_arcsec():
     assert 0.7 < score.rms_arcsec / (np.sqrt(2) * 0.1 / f / ARCSEC) < 1.3
 
 
-def test_bundle_run_recovers_truth_and_held_out_rms_equals_noise(world):
-    """One run: estimate within 4σ of the truth, held-out RMS the noise's (arcsec)."""
+def _with_noise(world, seed, stated=SIGMA_PX):
+    """The world's frames with SIGMA_PX noise drawn from ``seed`` and ``stated`` as their σ."""
     data = copy.copy(world["data"])
-    rng = np.random.default_rng(11)
+    rng = np.random.default_rng(seed)
     data.frames = []
     for fr in world["data"].frames:
         g = copy.copy(fr)
         g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
-        g.sigma = np.full(len(fr.uv), SIGMA_PX)
+        g.sigma = np.full(len(fr.uv), stated)
         data.frames.append(g)
+    return data
+
+
+def test_bundle_run_recovers_truth_and_held_out_rms_equals_noise(world):
+    """One run: estimate within 4σ of the truth, held-out RMS the noise's (arcsec)."""
+    data = _with_noise(world, seed=11)
     res = run_bundle(data, world["sim"].prior, ["tangential"])
     z = (res.theta - world["theta"]) / res.sigma
     assert np.all(np.abs(z) < 4.0), dict(zip(res.parameter_names, z, strict=True))
@@ -152,14 +158,7 @@ def test_the_diagnosis_noise_scale_reaches_the_bundle(world):
     scale the diagnosis measures (star = 1/0.6, ``run_for_diagnosis(noise=)``) it is ~1."""
     from stellar_cal_ros.core.noise import NoiseScales
 
-    data = copy.copy(world["data"])
-    rng = np.random.default_rng(12)
-    data.frames = []
-    for fr in world["data"].frames:
-        g = copy.copy(fr)
-        g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
-        g.sigma = np.full(len(fr.uv), 0.6 * SIGMA_PX)
-        data.frames.append(g)
+    data = _with_noise(world, seed=12, stated=0.6 * SIGMA_PX)
     stated = run_bundle(data, world["sim"].prior, [], cross_validate=False)
     scaled = run_bundle(data, world["sim"].prior, [], cross_validate=False,
                         noise=NoiseScales(star=1 / 0.6))
