@@ -735,7 +735,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if getattr(args, name, None) is not None:
                 check_output(Path(getattr(args, name)), directory)
         if args.command in COMPILES:
-            from stellar_cal_ros.methods.star_chain import compile_notice
+            from stellar_cal_ros.methods.frame_step import compile_notice
 
             compile_notice()
         with warnings.catch_warnings():

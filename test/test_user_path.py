@@ -198,9 +198,9 @@ def test_a_change_of_method_is_not_an_added_effect():
 
 # ------------------------------------------------------------------ 8. smaller items
 def test_first_run_says_it_compiles(monkeypatch, runs, tmp_path, capsys):
-    from stellar_cal_ros.methods import star_chain
+    from stellar_cal_ros.methods import frame_step
 
-    monkeypatch.setattr(star_chain, "compiled_kernels_cold", lambda: True)
+    monkeypatch.setattr(frame_step, "compiled_kernels_cold", lambda: True)
     assert main(["replay", str(runs["bag_a"]), "--method", "psce", "--prior",
                  str(runs["prior_a"]), "-o", str(tmp_path / "r.yaml"), "-q"]) == 0
     assert "compiling the filter's numba kernels" in capsys.readouterr().err
@@ -210,11 +210,25 @@ def test_the_compile_check_sees_an_empty_cache(tmp_path):
     import subprocess
     import sys
 
-    code = "from stellar_cal_ros.methods.star_chain import compiled_kernels_cold as c; print(c())"
+    code = "from stellar_cal_ros.methods.frame_step import compiled_kernels_cold as c; print(c())"
     env = {**__import__("os").environ, "NUMBA_CACHE_DIR": str(tmp_path)}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env=env, timeout=120)
     assert out.stdout.strip() == "True", out.stderr[-2000:]
+
+
+def test_the_compile_check_looks_at_every_kernel_module():
+    """A module with cached numba kernels left out of KERNEL_MODULES compiles without the notice
+    (frame_step's kernels were missed that way: warm star_chain/jit caches said 'warm')."""
+    from pathlib import Path
+
+    import stellar_cal_ros
+    from stellar_cal_ros.methods.frame_step import KERNEL_MODULES
+
+    root = Path(stellar_cal_ros.__file__).parent
+    kernels = {"stellar_cal_ros." + ".".join(p.relative_to(root).with_suffix("").parts)
+               for p in root.rglob("*.py") if "njit(cache=True" in p.read_text()}
+    assert kernels and kernels == set(KERNEL_MODULES)
 
 
 def test_budget_plot_says_why_the_total_is_below_its_components():

@@ -23,11 +23,22 @@ propagation, and the kernel goes on from there with the state as the numpy path 
 
 from __future__ import annotations
 
+import importlib
 import math
+import sys
+from typing import TextIO
 
 import numpy as np
 
-from stellar_cal_ros.core.jit import joseph, kalman_gain, mat3_mul, njit, so3_exp1, star_blocks
+from stellar_cal_ros.core.jit import (
+    HAVE_NUMBA,
+    joseph,
+    kalman_gain,
+    mat3_mul,
+    njit,
+    so3_exp1,
+    star_blocks,
+)
 from stellar_cal_ros.methods.star_chain import predict_chain
 
 #: statuses of :func:`frame_step`
@@ -497,3 +508,42 @@ class FusedStep:
                           self.q_diag, *self.gyro, w_raw, uv, u,
                           np.ascontiguousarray(sigma, dtype=float), float(base), *self.chain,
                           self.Pe, self.cfg)
+
+
+# Every module holding cached numba kernels (test_user_path checks the list is complete).
+KERNEL_MODULES = ("stellar_cal_ros.core.jit", "stellar_cal_ros.methods.star_chain",
+                  "stellar_cal_ros.methods.frame_step")
+
+
+def compiled_kernels_cold() -> bool:
+    """True when the numba kernels of KERNEL_MODULES have no usable compiled cache yet.
+
+    The first run after an install or a change of the kernels' source compiles them (≈30 s
+    on 2 cores); numba's cache index of each compiled function is then empty (or stale:
+    another source stamp).  False without numba or when the cache cannot be inspected.
+    """
+    if not HAVE_NUMBA:
+        return False
+    for name in KERNEL_MODULES:
+        mod = importlib.import_module(name)
+        for obj in vars(mod).values():
+            cache = getattr(obj, "_cache", None)
+            load = getattr(getattr(cache, "_cache_file", None), "_load_index", None)
+            if load is None or getattr(obj, "__module__", None) != mod.__name__ or \
+                    getattr(obj, "targetoptions", {}).get("inline") == "always":
+                continue  # (an inlined kernel is compiled into its callers only)
+            try:
+                if not load():
+                    return True
+            except Exception:  # noqa: BLE001 - numba internals: say nothing rather than fail
+                return False
+    return False
+
+
+def compile_notice(stream: TextIO | None = None) -> bool:
+    """Say (one line) that the first run compiles the filter kernels, when it will."""
+    if not compiled_kernels_cold():
+        return False
+    print("first run here: compiling the filter's numba kernels (about 30 s, once; cached in "
+          "__pycache__ for later runs)", file=stream or sys.stderr, flush=True)
+    return True

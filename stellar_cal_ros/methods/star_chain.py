@@ -20,13 +20,11 @@ posterior σ (``test/test_compiled_step.py`` states the bound).
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.core import jit
 from stellar_cal_ros.core.jit import (
     HAVE_NUMBA,
     jacobian1,
@@ -205,36 +203,3 @@ def predict_chain(theta, u, R_b, phi, use_phi, w, base, s0, g, timed, R_prior, T
                     f[b] = e[0] * Jr[0, b] + e[1] * Jr[1, b] + e[2] * Jr[2, b]
                 for j in range(P):
                     H_par[i, r, j] += f[0] * T[0, j] + f[1] * T[1, j] + f[2] * T[2, j]
-
-
-def compiled_kernels_cold() -> bool:
-    """True when the filters' numba kernels have no usable compiled cache yet.
-
-    The first run after an install or a change of the kernels' source compiles them (≈30 s
-    on 2 cores); numba's cache index of each compiled function is then empty (or stale:
-    another source stamp).  False without numba or when the cache cannot be inspected.
-    """
-    if not HAVE_NUMBA:
-        return False
-    for mod in (sys.modules[__name__], jit):
-        for obj in vars(mod).values():
-            cache = getattr(obj, "_cache", None)
-            load = getattr(getattr(cache, "_cache_file", None), "_load_index", None)
-            if load is None or getattr(obj, "__module__", None) != mod.__name__ or \
-                    getattr(obj, "targetoptions", {}).get("inline") == "always":
-                continue  # (an inlined kernel is compiled into its callers only)
-            try:
-                if not load():
-                    return True
-            except Exception:  # noqa: BLE001 - numba internals: say nothing rather than fail
-                return False
-    return False
-
-
-def compile_notice(stream: TextIO | None = None) -> bool:
-    """Say (one line) that the first run compiles the filter kernels, when it will."""
-    if not compiled_kernels_cold():
-        return False
-    print("first run here: compiling the filter's numba kernels (about 30 s, once; cached in "
-          "__pycache__ for later runs)", file=stream or sys.stderr, flush=True)
-    return True
