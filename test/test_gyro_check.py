@@ -190,3 +190,34 @@ def test_deferred_judgement_gives_the_same_records_and_verdict(base, tmp_path, n
         assert "gyro_star_mismatch" not in deferred.filter_counters()
     else:
         assert re.search(r"57\.\d+ x as far as the stars", r1[0])
+
+
+def test_the_live_node_flags_a_gyro_fault_it_cannot_refuse(base, tmp_path):
+    """The node's configuration (``calibrator.live_configs``): a gyro in deg/s, judged between
+    frames over the first frames, flags the result (``data_quality``, ERROR on /diagnostics)
+    instead of raising in the node's timer (where it was only a counted callback error and
+    the saved calibration carried no word of it)."""
+    from test_online import bag_events
+
+    from stellar_cal_ros.methods.driver import Calibrator
+    from stellar_cal_ros.nodes.calibrator import PARAMETERS, live_configs
+    from stellar_cal_ros.nodes.health import DiagnosticStatus, verdict_status
+
+    params = {k: v[0] for k, v in PARAMETERS.items()}
+    params["method"] = "psce"
+    cfg, drv = live_configs(params)
+    bag = _VARIANTS["imu_deg_s"].make(base, tmp_path / "deg").bag
+    cal = Calibrator(load_calibration(base.prior), "psce", None, cfg, drv)
+    for _, _, kind, p in bag_events(bag):  # no DataError may escape
+        if kind == "imu":
+            cal.push_imu(p[0], p[1], frame_id=p[2])
+        elif kind == "stars":
+            cal.push_stars(p)
+        cal.run_checks()  # as the node's timer, between two messages
+    cal.finish()
+    reasons = cal.degraded()
+    assert len(reasons) == 1 and re.search(r"57\.\d+ x as far as the stars", reasons[0])
+    assert cal.calibration().extra["data_quality"] == {"degraded": True, "reasons": reasons}
+    level, text = verdict_status({"verdict": "consistent"}, True, reasons)
+    assert level == DiagnosticStatus.ERROR and text.startswith("result degraded: ")
+    assert verdict_status({"verdict": "consistent"}, True, [])[0] == DiagnosticStatus.OK

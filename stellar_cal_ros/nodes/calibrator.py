@@ -170,6 +170,28 @@ _WARN_COUNTERS = ("imu_invalid", "imu_late", "imu_duplicate", "imu_wrong_frame",
                   "update_failed", "covariance_repairs", "reinitializations")
 
 
+def live_configs(p: dict[str, Any]) -> tuple[Any, DriverConfig]:
+    """The filter's and the driver's configuration of a live node from its parameters ``p``.
+
+    Live, a gyro that disagrees with the stars flags the result as degraded (saved in its
+    ``data_quality`` block, ERROR on ``/diagnostics``) rather than raising: a replay refuses
+    such data, a node cannot refuse the data still to come, and an exception in its timer
+    was only counted as a callback error while the calibration went on unflagged.
+    """
+    cfg = methods.get(p["method"]).config_cls(gate_probability=p["gate_probability"],
+                                              unit_check_raises=False)
+    if p["centroid_sigma_px"] > 0:
+        cfg.centroid_sigma_px = p["centroid_sigma_px"]
+    if p["gyro_arw_deg_sqrth"] > 0:
+        cfg.gyro_arw_deg_sqrth = p["gyro_arw_deg_sqrth"]
+    drv = DriverConfig(
+        reorder_window_s=p["reorder_window_s"], environment_wait_s=p["environment_wait_s"],
+        t0_imu_samples=p["t0_imu_samples"], converge_window=p["converge_window"],
+        converge_sigma_ratio=p["converge_sigma_ratio"],
+        converge_nis_ratio=p["converge_nis_ratio"], live_window=True, defer_checks=True)
+    return cfg, drv
+
+
 def _stamp_ns(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
@@ -212,17 +234,7 @@ class CalibratorNode(Node):
         if p["star_frame_id"]:
             frames["star_tracker"] = p["star_frame_id"]
         self.frame_ids = frames
-        self.filter_config = methods.get(p["method"]).config_cls(
-            gate_probability=p["gate_probability"])
-        if p["centroid_sigma_px"] > 0:
-            self.filter_config.centroid_sigma_px = p["centroid_sigma_px"]
-        if p["gyro_arw_deg_sqrth"] > 0:
-            self.filter_config.gyro_arw_deg_sqrth = p["gyro_arw_deg_sqrth"]
-        self.driver_config = DriverConfig(
-            reorder_window_s=p["reorder_window_s"], environment_wait_s=p["environment_wait_s"],
-            t0_imu_samples=p["t0_imu_samples"], converge_window=p["converge_window"],
-            converge_sigma_ratio=p["converge_sigma_ratio"],
-            converge_nis_ratio=p["converge_nis_ratio"], live_window=True, defer_checks=True)
+        self.filter_config, self.driver_config = live_configs(p)
         # the residuals are published, not kept: a node runs for days (bounded memory)
         self.cal = Calibrator(prior, p["method"], p["effects"], self.filter_config,
                               self.driver_config, frames, residuals=NullSink(),
@@ -655,6 +667,7 @@ class CalibratorNode(Node):
             pending = self.cal.pending()
             initialized = self.cal.initialized
             cons = consistency(self.cal.stats.current())  # the replay's statistics, so far
+            degraded = self.cal.degraded()
         lat = np.asarray(self.latency_s) * 1e3
         st = DiagnosticStatus()
         st.name = f"{self.get_name()}: {self.p['method']} calibration"
@@ -674,7 +687,7 @@ class CalibratorNode(Node):
         elif not initialized:
             st.level, st.message = DiagnosticStatus.WARN, "waiting for attitude initialization"
         else:
-            st.level, st.message = verdict_status(cons, conv["converged"])
+            st.level, st.message = verdict_status(cons, conv["converged"], degraded)
         if cons.get("verdict") == "model mismatch":
             self._warn("model_mismatch", mismatch_text(cons) + " (second half of the data "
                        "so far)")
@@ -686,6 +699,7 @@ class CalibratorNode(Node):
         values.update({f"filter.{k}": v for k, v in fc.items()})
         values.update({f"pending.{k}": v for k, v in pending.items()})
         values["callback_errors"] = self.callback_errors
+        values["degraded"] = "; ".join(degraded) if degraded else "no"
         values["backlog_updates"] = self.backlog_updates
         values["converged"] = conv["converged"]
         # (the convergence test's: the last converge_window updates, joint over each frame)

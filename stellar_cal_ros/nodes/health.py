@@ -27,8 +27,17 @@ from stellar_cal_ros.io.calibration import provenance_record
 from stellar_cal_ros.methods.results import VERDICT_MESSAGES
 
 
-def verdict_status(cons: dict[str, Any], converged: bool) -> tuple[bytes, str]:
-    """``(level, message)`` of an initialized filter from its consistency block."""
+def verdict_status(cons: dict[str, Any], converged: bool,
+                   degraded: list[str] | tuple[str, ...] = ()) -> tuple[bytes, str]:
+    """``(level, message)`` of an initialized filter from its consistency block.
+
+    ``degraded``: why the result is not to be trusted (``Calibrator.degraded()``: a gyro
+    that disagrees with the stars, clock faults); any reason makes the level ERROR, whatever
+    the residuals say (a gyro in deg/s can leave them consistent).
+    """
+    if degraded:
+        more = f" (and {len(degraded) - 1} more)" if len(degraded) > 1 else ""
+        return DiagnosticStatus.ERROR, f"result degraded: {degraded[0]}{more}"
     verdict = cons.get("verdict", "no data")
     if verdict == "model mismatch":
         return DiagnosticStatus.WARN, VERDICT_MESSAGES[verdict]
