@@ -15,6 +15,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -91,6 +93,45 @@ def test_one_prediction_equals_the_numpy_chain(sim_data) -> None:
         _close(ctx_a.R_i_st, ctx_b.R_i_st)
 
 
+def test_direction_effects_predict_equal_the_numpy_chain(sim_data) -> None:
+    """The astrometric DIRECTION effects (``u' = u + s Δ``, Δ per frame) in the compiled
+    chain: centroids and every Jacobian column equal :meth:`StarModel.predict`'s, with the
+    effects estimated and with one of them fixed at its prior value (a prior's effects
+    block)."""
+    from stellar_cal_ros.methods.star_model import StarModel
+
+    sim, data = sim_data
+    fr = data.frames[len(data.frames) // 2]
+    prior = copy.deepcopy(sim.prior)
+    prior.effects = {"proper_motion": {"scale": 0.7}}
+    model = StarModel(registry.create_many(["installation", "focal_length", "aberration",
+                                            "refraction"]), prior)
+    assert model.compiled_chain() is not None and model.fixed_effects
+    theta = model.initial_value.copy()
+    theta[model.slices["aberration"]] = 0.8
+    theta[model.slices["refraction"]] = 1.3
+    ok = np.isfinite(fr.right_ascension)
+    u = np.column_stack([np.cos(fr.declination) * np.cos(fr.right_ascension),
+                         np.cos(fr.declination) * np.sin(fr.right_ascension),
+                         np.sin(fr.declination)])[ok]
+    z = u.mean(axis=0) / np.linalg.norm(u.mean(axis=0))  # boresight on the frame's stars
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    R = np.column_stack([x, np.cross(z, x), z]) @ model._R_imu_st_prior.T  # R_i_b
+
+    def ctx():
+        return FrameContext(stamp=fr.stamp_ns * 1e-9, catalog_id=fr.catalog_id[ok].astype(int),
+                            site=data.site, pressure_pa=95000.0, air_temperature_c=5.0)
+
+    for ph in (None, np.array([1e-4, -2e-4, 3e-4])):
+        a = model.predict_state(theta, u, ctx(), R, np.zeros(3), 0.0, ph, compiled=True)
+        b = model.predict_state(theta, u, ctx(), R, np.zeros(3), 0.0, ph, compiled=False)
+        for name in ("uv", "H_attitude", "H_parameters", "directions_st"):
+            _close(getattr(a, name), getattr(b, name))
+        for eid in ("aberration", "refraction"):  # the DIRECTION columns are there
+            assert np.max(np.abs(a.H_parameters[:, :, model.slices[eid]])) > 0
+
+
 def _ctx(frame) -> FrameContext:
     """A bare frame context at the frame's stamp."""
     return FrameContext(stamp=frame.stamp_ns * 1e-9)
@@ -129,7 +170,9 @@ def test_fused_frame_step_taken_and_equal_to_numpy(sim_data, monkeypatch) -> Non
     runs = []
     for compiled in (True, False):
         monkeypatch.setattr(StarFilter, "compiled_step", compiled)
-        runs.append(replay(data, sim.prior, "psce", consider=["radial_k3"], keep_tables=False))
+        # an astrometric DIRECTION effect too: its Δ comes with each frame
+        runs.append(replay(data, sim.prior, "psce", consider=["radial_k3", "proper_motion"],
+                           keep_tables=False))
         if compiled:
             n_fused = len(calls)
     fast, ref = runs

@@ -56,3 +56,6 @@ class ScaledDirection(Effect):
 
     def directions_jacobian(self, value, u_i, ctx):  # noqa: D102
         return self._cached_delta(u_i, ctx)[:, :, None]
+
+    def affine_form(self):  # noqa: D102 - u' = u + s Δ(u, ctx): Δ comes with the frame
+        return True

@@ -396,8 +396,10 @@ class Effect:
 
         CAMERA: ``(J (18, k), D (18, 18))`` with ``p' = D p + J v``; TRACKER: ``J`` (3, k)
         with ``δ = J v``; TIME: ``g`` (k,) with ``Δt = g · v`` — for every value, input and
-        context, and equal to the Jacobians the methods above return.  The filters then
-        predict every star of a frame in one compiled kernel
+        context, and equal to the Jacobians the methods above return.  DIRECTION: True when
+        ``directions(v, u, ctx) = u + Σ_j v_j C_j`` with ``C = directions_jacobian(·, u,
+        ctx)`` the same for every value (it may depend on the frame: it comes in with it).
+        The filters then predict every star of a frame in one compiled kernel
         (:class:`~stellar_cal_ros.methods.star_chain.CompiledChain`).  None (the default, and
         any map that depends on the context or is not affine): the model predicts through
         the Python methods, with the same numbers to rounding.

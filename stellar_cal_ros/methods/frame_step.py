@@ -242,7 +242,7 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
                tp, C, w_hat, phi, j, mj, ta, tb, Gamma, theta_ref, q_diag,
                gyro_b0, gyro_E0, gyro_Jb, gyro_JE, gyro_theta0, w_raw,
                uv, u, sigma, base,
-               s0, g, timed, R_prior, T, tracked, c, B, need, Pe, cfg):
+               s0, g, timed, R_prior, T, tracked, c, B, need, du, dcol, dfix, dgrp, Pe, cfg):
     """Propagate from ``ta`` to ``tb`` and update with one frame's stars, in place.
 
     State (changed in place): ``P`` (N, N), ``theta`` (P_all,), ``R_a`` (3, 3) the attitude
@@ -252,7 +252,8 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     ``j..mj``, ``Gamma`` (3 or 12, P_all) and ``theta_ref`` of the reference, ``q_diag``
     (N,) noise per second; ``gyro_*`` the gyro's affine correction and ``w_raw`` (3,) the
     raw rate of the sample covering ``tb``.  Frame: ``uv`` (n, 2), ``u`` (n, 3), ``sigma``
-    (n,), ``base`` = stamp − ``tb``.  Chain: the :class:`CompiledChain`.  ``cfg``:
+    (n,), ``base`` = stamp − ``tb``.  Chain: the :class:`CompiledChain` and ``du`` the
+    frame's DIRECTION columns (n, 3, kd).  ``cfg``:
     :data:`CONFIG_FIELDS`.
 
     Returns ``(status, ints (6,) [n_acc, iterations, mismatch, lost, outside, 0],
@@ -296,7 +297,7 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     R_out = np.empty((2, 3, 3))
     zero3 = np.zeros(3)
     predict_chain(theta0, u, R_b, zero3, False, omega, base, s0, g, timed, R_prior, T, tracked,
-                  c, B, need, 1, uv_pred, dirs, H_att, H_par, R_out)
+                  c, B, need, du, dcol, dfix, dgrp, 1, uv_pred, dirs, H_att, H_par, R_out)
     H0 = np.zeros((n, 2, N))
     for i in range(n):
         for r in range(2):
@@ -329,6 +330,7 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
         rr[2 * q] = rr[2 * q + 1] = r_meas[i]
     H = _assemble(H_att, H_par, Pe, N, idx)
     u_acc = np.ascontiguousarray(u[idx])
+    du_acc = np.ascontiguousarray(du[idx])
     sig_floor = np.empty(N)
     for i in range(N):
         sig_floor[i] = max(math.sqrt(max(P[i, i], 0.0)), 1e-300)
@@ -376,7 +378,8 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
         for k in range(Pe):
             th[k] += dx[3 + k]
         predict_chain(th, u_acc, R_b, dx[0:3].copy(), True, omega, base, s0, g, timed,
-                      R_prior, T, tracked, c, B, need, 1, uv_r, d_r, Ha_r, Hp_r, R_out)
+                      R_prior, T, tracked, c, B, need, du_acc, dcol, dfix, dgrp, 1, uv_r, d_r,
+                      Ha_r, Hp_r, R_out)
         H = _assemble(Ha_r, Hp_r, Pe, N, all_rows)
         for q in range(n_acc):
             h[2 * q], h[2 * q + 1] = uv_r[q, 0], uv_r[q, 1]
@@ -461,8 +464,10 @@ class FusedStep:
                      np.ascontiguousarray(Jb, dtype=float),
                      np.ascontiguousarray(JE.reshape(9, P_all), dtype=float),
                      np.ascontiguousarray(flt.propagation.gyro.theta0, dtype=float))
+        self.compiled_chain = chain
         self.chain = (float(chain.s0), chain.g, bool(chain.timed), chain.R_prior, chain.T,
                       bool(chain.tracked), chain.c, chain.B, chain.need)
+        self.directions = (chain.dcol, chain.dfix, chain.dgrp)
         from stellar_cal_ros.methods.results import NIS_CAP
 
         values = {"threshold": flt.gate.threshold, "scale_by_frame": float(c.scale_gate_by_frame),
@@ -491,7 +496,8 @@ class FusedStep:
         chain = flt.model.compiled_chain()
         return None if chain is None else cls(flt, chain, prop.gyro._affine)
 
-    def call(self, P, theta, R, sens, pre, j, mj, ta, tb, prop, w_raw, uv, u, sigma, base):
+    def call(self, P, theta, R, sens, pre, j, mj, ta, tb, prop, w_raw, uv, u, sigma, base,
+             ctx):
         """:func:`frame_step` of the filter's current state (arrays changed in place)."""
         if sens is None:
             M, score, info, acc = (*self.none, False)
@@ -507,6 +513,7 @@ class FusedStep:
                           j, mj, float(ta), float(tb), prop._gamma[0], prop.theta_ref,
                           self.q_diag, *self.gyro, w_raw, uv, u,
                           np.ascontiguousarray(sigma, dtype=float), float(base), *self.chain,
+                          self.compiled_chain.direction_columns(u, ctx), *self.directions,
                           self.Pe, self.cfg)
 
 

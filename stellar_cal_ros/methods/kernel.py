@@ -614,7 +614,7 @@ class StarFilter(Acquisition):
         st.P = P
         status, ints, floats, accepted, uv_pred, S, nis_stars, dirs, omega, R_prior = \
             fs.call(P, self.theta, self.R_i_b, sens, pre, k + off, m + off, self.t, t_exp,
-                    prop, imu.w[m], uv, u_i, sigma, self._stamp_rel - t_exp)
+                    prop, imu.w[m], uv, u_i, sigma, self._stamp_rel - t_exp, ctx)
         if status == frame_step.REBUILD:
             return False, None
         self.t = t_exp

@@ -43,8 +43,10 @@ class CompiledChain:
     """The star chain of a model whose effects all have an affine form (compiled step).
 
     With every TIME, TRACKER and CAMERA effect a constant affine map of its value
-    (:meth:`Effect.affine_form`), and no DIRECTION effect, the chain is::
+    (:meth:`Effect.affine_form`) and every DIRECTION effect affine in its value with
+    columns ``C`` that come with the frame, the chain is::
 
+        u' = u + Σ v C(u, ctx)     (DIRECTION; C from :meth:`direction_columns`)
         Δt = s0 + g·θ              (s0: the prior's time offset when no TIME effect)
         δ  = T θ,  R_imu_st = R_prior Exp(δ)
         p  = c + B θ               (the camera chain folded: c from the prior, B = ∂p/∂θ)
@@ -62,6 +64,28 @@ class CompiledChain:
     c: np.ndarray  #: (18,) camera parameters at θ = 0
     B: np.ndarray  #: (18, P) ∂p/∂θ
     need: np.ndarray  #: (k,) intp, rows of B that are not zero
+    #: DIRECTION effects in chain order: (effect, slice of θ or None, fixed value or None);
+    #: each maps ``u' = u + Σ_j v_j C_j(u, ctx)`` (:func:`direction_columns` gives ``C``)
+    directions: list = None  # type: ignore[assignment]
+    dcol: np.ndarray = None  # type: ignore[assignment]  #: (kd,) intp θ index, -1: fixed
+    dfix: np.ndarray = None  # type: ignore[assignment]  #: (kd,) value of a fixed column
+    dgrp: np.ndarray = None  # type: ignore[assignment]  #: (effects + 1,) column offsets
+
+    def direction_columns(self, u: np.ndarray, ctx: Any) -> np.ndarray:
+        """The frame's DIRECTION columns ``C`` (n, 3, kd) of :func:`predict_chain`.
+
+        Column j of effect e is ``∂u'/∂v_j`` (:meth:`Effect.directions_jacobian`, which an
+        effect with an affine DIRECTION form returns for any value); (n, 3, 0) without
+        DIRECTION effects.
+        """
+        n = len(u)
+        if not self.directions:
+            return np.zeros((n, 3, 0))
+        out = np.empty((n, 3, len(self.dcol)))
+        for k, (eff, sl, fixed) in enumerate(self.directions):
+            v = fixed if sl is None else np.zeros(eff.size)
+            out[:, :, self.dgrp[k]:self.dgrp[k + 1]] = eff.directions_jacobian(v, u, ctx)
+        return out
 
 
 def compile_chain(model: Any) -> CompiledChain | None:
@@ -70,8 +94,17 @@ def compile_chain(model: Any) -> CompiledChain | None:
     None without numba or when an effect has no affine form: the model then predicts
     through the effects' methods.
     """
-    if not HAVE_NUMBA or model._chain[Stage.DIRECTION]:
+    if not HAVE_NUMBA:
         return None
+    directions, dcol, dfix, dgrp = [], [], [], [0]
+    for eff, sl, fixed in model._chain[Stage.DIRECTION]:
+        if not eff.affine_form():
+            return None
+        directions.append((eff, sl, fixed))
+        for j in range(eff.size):
+            dcol.append(-1 if sl is None else sl.start + j)
+            dfix.append(float(fixed[j]) if sl is None else 0.0)
+        dgrp.append(len(dcol))
     P = model.size
     g, T = np.zeros(P), np.zeros((3, P))
     for stage, target in ((Stage.TIME, g), (Stage.TRACKER, T)):
@@ -95,26 +128,47 @@ def compile_chain(model: Any) -> CompiledChain | None:
     s0 = 0.0 if model.has_time_effect else float(model.prior.time_offset)
     return CompiledChain(s0, g, timed, np.array(model._R_imu_st_prior, dtype=float), T,
                          bool(model._by_stage[Stage.TRACKER]), c, B,
-                         np.flatnonzero(np.any(B != 0.0, axis=1)).astype(np.intp))
+                         np.flatnonzero(np.any(B != 0.0, axis=1)).astype(np.intp),
+                         directions, np.array(dcol, dtype=np.intp), np.array(dfix, dtype=float),
+                         np.array(dgrp, dtype=np.intp))
+
+
+@njit(cache=True)
+def _apply_directions(u, du, theta, dcol, dfix, dgrp):
+    """``u' = u + Σ_e ((u + Σ_j v_j C_j) − u)`` (:meth:`StarModel.predict`'s order)."""
+    if dcol.shape[0] == 0:
+        return u
+    out = u.copy()
+    for e in range(dgrp.shape[0] - 1):
+        for i in range(u.shape[0]):
+            for a in range(3):
+                s = u[i, a]
+                for j in range(dgrp[e], dgrp[e + 1]):
+                    v = dfix[j] if dcol[j] < 0 else theta[dcol[j]]
+                    s += v * du[i, a, j]
+                out[i, a] += s - u[i, a]
+    return out
 
 
 @njit(cache=True, error_model="numpy")
-def predict_chain(theta, u, R_b, phi, use_phi, w, base, s0, g, timed, R_prior, T, tracked, c,
-                  B, need, jac, uv, d, H_att, H_par, R_out):
+def predict_chain(theta, u_cat, R_b, phi, use_phi, w, base, s0, g, timed, R_prior, T, tracked,
+                  c, B, need, du, dcol, dfix, dgrp, jac, uv, d, H_att, H_par, R_out):
     """:meth:`StarModel.predict` of a :class:`CompiledChain` (compiled).
 
     Parameters
     ----------
     theta : ndarray (P,)
         The model's parameters (estimated and consider).
-    u : ndarray (n, 3)
+    u_cat : ndarray (n, 3)
         Catalogue unit vectors.
     R_b, phi, use_phi, w, base
         The filter's attitude function (:func:`~stellar_cal_ros.methods.star_model.
         state_attitude`): ``R(s) = Exp(φ) R_b Exp(ω (s + base))`` (φ only if ``use_phi``;
         no rotation when ``|s + base| < 1e-12``).
-    s0, g, timed, R_prior, T, tracked, c, B, need
+    s0, g, timed, R_prior, T, tracked, c, B, need, dcol, dfix, dgrp
         The :class:`CompiledChain`.
+    du : ndarray (n, 3, kd)
+        The frame's DIRECTION columns (:meth:`CompiledChain.direction_columns`).
     jac : int
         1: also the Jacobians.
     uv, d : ndarray (n, 2), (n, 3)
@@ -124,7 +178,8 @@ def predict_chain(theta, u, R_b, phi, use_phi, w, base, s0, g, timed, R_prior, T
     R_out : ndarray (2, 3, 3)
         Outputs ``R_i_b`` at the exposure and ``R_i_st``.
     """
-    n, P = u.shape[0], theta.shape[0]
+    n, P = u_cat.shape[0], theta.shape[0]
+    u = _apply_directions(u_cat, du, theta, dcol, dfix, dgrp)
     R_now = mat3_mul(so3_exp1(phi), R_b) if use_phi else R_b
     shift = s0
     if timed:
@@ -203,3 +258,15 @@ def predict_chain(theta, u, R_b, phi, use_phi, w, base, s0, g, timed, R_prior, T
                     f[b] = e[0] * Jr[0, b] + e[1] * Jr[1, b] + e[2] * Jr[2, b]
                 for j in range(P):
                     H_par[i, r, j] += f[0] * T[0, j] + f[1] * T[1, j] + f[2] * T[2, j]
+        # DIRECTION columns of θ: J_d R_st_i ∂u/∂v
+        for j in range(dcol.shape[0]):
+            col = dcol[j]
+            if col < 0:
+                continue
+            e = np.empty(3)
+            for a in range(3):
+                e[a] = (du[i, 0, j] * R_i_st[0, a] + du[i, 1, j] * R_i_st[1, a]
+                        + du[i, 2, j] * R_i_st[2, a])
+            for r in range(2):
+                H_par[i, r, col] += (J_d[i, r, 0] * e[0] + J_d[i, r, 1] * e[1]
+                                     + J_d[i, r, 2] * e[2])

@@ -384,6 +384,7 @@ class StarModel:
                       _ZERO3 if phi is None else np.ascontiguousarray(phi, dtype=float),
                       phi is not None, np.ascontiguousarray(omega, dtype=float), float(base),
                       ch.s0, ch.g, ch.timed, ch.R_prior, ch.T, ch.tracked, ch.c, ch.B, ch.need,
+                      ch.direction_columns(u, ctx), ch.dcol, ch.dfix, ch.dgrp,
                       jac, uv, d, H_att, H_par, R_out)
         ctx.R_i_b, ctx.omega_b, ctx.R_i_st = R_out[0], omega, R_out[1]
         shift = ch.s0 + float(ch.g @ theta) if ch.timed else ch.s0
