@@ -64,10 +64,13 @@ def bag_events(path: Path) -> list[tuple[int, int, str, object]]:
 
 
 def feed(cal: Calibrator, events) -> list:
+    """Push ``(log time, index, kind, payload)`` events; kind ``imu_block``: (stamps, rates)."""
     out = []
     for _, _, kind, p in events:
         if kind == "imu":
             out += cal.push_imu(p[0], p[1], frame_id=p[2])
+        elif kind == "imu_block":
+            out += cal.push_imu_block(p[0], p[1], frame_id="imu_link")
         elif kind == "stars":
             out += cal.push_stars(p)
         elif kind == "fix":
@@ -265,3 +268,77 @@ def test_site_and_environment_caches_follow_the_inputs(excerpt, tmp_path):
     back.push_fix(*extra)
     tail = np.asarray([g[1:] for g in fixes[-49:]] + [extra[1:]])
     assert back.site.latitude_deg == float(np.median(tail[:, 0]))
+
+
+def _batch_events(events, damage: bool):
+    """The events with consecutive IMU samples in blocks (a replay's reading), optionally
+    damaged: a block sent twice, a late sample, a clock jump back, a non-finite sample."""
+    out: list = []
+    run: list = []
+
+    def close() -> None:
+        if run:
+            out.append((0, 0, "imu_block", (np.array([p[0] for p in run], dtype=np.int64),
+                                             np.array([p[1] for p in run], dtype=float))))
+            run.clear()
+
+    for _, _, kind, p in events:
+        if kind == "imu":
+            run.append(p)
+            if len(run) >= 23:  # blocks cut also by size, as a chunk's end cuts them
+                close()
+            continue
+        close()
+        out.append((0, 0, kind, p))
+    close()
+    if damage:  # from the end, so that the positions found stay valid
+        imu = [k for k, e in enumerate(out) if e[2] == "imu_block"]
+        at = [imu[len(imu) * q // 5] for q in (1, 2, 3, 4)]
+        t, w = out[at[3]][3]
+        w = w.copy()
+        w[3] = np.nan
+        out[at[3]] = (0, 0, "imu_block", (t, w))
+        t, w = out[at[2]][3]  # the clock jumps back 20 s
+        out.insert(at[2] + 1, (0, 0, "imu_block", (t - 20 * 10**9, w)))
+        t, w = out[at[1]][3]  # late by 0.3 s (within the window) and by 1.5 s (beyond)
+        out.insert(at[1] + 1, (0, 0, "imu_block", (t[:2] - [3 * 10**8, 15 * 10**8], w[:2])))
+        t, w = out[imu[imu.index(at[0]) - 10]][3]  # resent ~2 s later: duplicates
+        out.insert(at[0] + 1, (0, 0, "imu_block", (t.copy(), w.copy())))
+    return out
+
+
+@pytest.mark.parametrize("damage", [False, True])
+def test_replay_driver_deferred_imu_release_changes_nothing(excerpt, tmp_path, monkeypatch,
+                                                            damage):
+    """A replay's driver leaves the IMU release of in-order blocks for later
+    (Calibrator._defer_release): outcomes, counters and estimates are those of the driver
+    that releases at every block, on damaged input and across a checkpoint too."""
+    _, prior, _, events = excerpt
+    blocks = _batch_events(events, damage)
+
+    def run(defer: bool, checkpoint: bool):
+        drv = DriverConfig(reorder_window_s=1.0, batch_frames=True, imu_batch=300,
+                           max_pending_frames=1_000_000)
+        cal = Calibrator(prior, "psce", None, PsceConfig(), drv)
+        if not defer:
+            monkeypatch.setattr(cal, "_defer_release", lambda *a: False)
+        half = len(blocks) // 2
+        out = feed(cal, blocks[:half])
+        if checkpoint:
+            save_checkpoint(cal, tmp_path / "ck.npz")
+            cal = Calibrator(prior, "psce", None, PsceConfig(), drv)
+            load_checkpoint(cal, tmp_path / "ck.npz")
+        out += feed(cal, blocks[half:]) + cal.finish()
+        return cal, [(o.stamp_ns, o.status) for o in out]
+
+    ref, ref_out = run(False, False)
+    assert sum(s == "updated" for _, s in ref_out) > 100
+    if damage:
+        c = ref.counters
+        assert c.imu_duplicate and c.imu_late and c.imu_clock_jumps and c.imu_invalid
+    for checkpoint in (False, True):
+        cal, out = run(True, checkpoint)
+        assert out == ref_out
+        assert cal.all_counters() == ref.all_counters()
+        np.testing.assert_array_equal(cal.filter.theta, ref.filter.theta)
+        np.testing.assert_array_equal(cal.filter.P, ref.filter.P)

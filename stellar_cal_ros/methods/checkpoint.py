@@ -152,6 +152,7 @@ def _identity(cal: Calibrator) -> dict[str, Any]:
 
 def _driver_section(cal: Calibrator, enc: _Encoder) -> dict[str, Any]:
     """The ``driver`` section of the schema (module docstring)."""
+    cal._settle_imu()  # the IMU releases a replay's driver deferred: saved as done
     q = cal._imu
     return {
         "counters": dataclasses.asdict(cal.counters),

@@ -153,6 +153,7 @@ class Calibrator:
         self._last_imu_ns: int | None = None  # last released IMU stamp
         self._staged: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._staged_n = 0
+        self._deferred = False  # IMU blocks queued whose release is due (_defer_release)
         self._frames_pending: list[StarFrame] = []  # sorted by stamp
         self._last_frame_ns: int | None = None  # last frame handed on
         self.env = {k: EnvSeries() for k in ENV_KEYS}
@@ -218,6 +219,10 @@ class Calibrator:
                 if back:
                     c.imu_clock_jumps += 1
                     self._clock_fault(clocks.back_text(back, self.t0_ns), flag=False)
+        if m and inc and self._defer_release(t, w, f):
+            return [] if self._staged_n + self._imu.count_upto(
+                self.imu_max_ns - self.window_ns) < self.driver.imu_batch else self._pump()
+        self._settle_imu()
         last = self._last_imu_ns
         if last is not None and m and not (inc and t[0] > last):
             old = t <= last
@@ -233,6 +238,42 @@ class Calibrator:
         if self.imu_max_ns is None or tmax > self.imu_max_ns:
             self.imu_max_ns = tmax
         return self._pump()
+
+    def _defer_release(self, t: np.ndarray, w: np.ndarray, f: np.ndarray) -> bool:
+        """Queue an in-order block whose release can wait (a replay); False: not taken.
+
+        With ``batch_frames`` and the filter running, a pump after an IMU block only moves
+        the samples older than the reorder window to the staged batch, until the batch is
+        full and the frames are processed.  For a block strictly after everything pushed,
+        within the clock-jump bounds, into a queue in strict order, that move can wait: the
+        releases are prefixes of one sorted queue, so releasing later up to the current
+        limit (:meth:`_settle_imu`, and every :meth:`_pump`) gives the same staged samples,
+        and the batch is handed over at the same block (the caller counts what the pump
+        would release).  Frees a replay from a pump per message run; what a checkpoint
+        saves and every count stay as without it.
+        """
+        q = self._imu
+        if not self.driver.batch_frames or self.filter is None or not q.strict:
+            return False
+        newest = self.imu_max_ns
+        jump = int(self.driver.clock_jump_s * 1e9)
+        t0, t1 = int(t[0]), int(t[-1])
+        after = q.tail if q.n else self._last_imu_ns
+        if (after is not None and t0 <= after) or newest is None or t0 < newest - jump \
+                or t1 > newest + jump or t1 - t0 > jump \
+                or q.n + len(t) > self.driver.max_pending_imu:
+            return False
+        q.push(t, w, f, True)
+        if t1 > newest:
+            self.imu_max_ns = t1
+        self._deferred = True
+        return True
+
+    def _settle_imu(self) -> None:
+        """Do the IMU release :meth:`_defer_release` left (as the pumps would have)."""
+        if self._deferred:
+            self._deferred = False
+            self._release_imu(False)
 
     def _clock_fault(self, text: str, flag: bool = True) -> None:
         """DataError if ``strict_clock``, else flagged, or (stamps back: data resent?) warned."""
@@ -385,6 +426,7 @@ class Calibrator:
 
     # ------------------------------------------------------------------ pumping
     def _release_imu(self, final: bool) -> None:
+        self._deferred = False
         limit = None if final else self.imu_max_ns - self.window_ns
         strict = self._imu.strict
         t, w, f = self._imu.pop(limit, self.driver.max_pending_imu)

@@ -250,11 +250,7 @@ class ImageFrames:
 
     def __init__(self, config: ExtractConfig | None = None,
                  size: tuple[int, int] | None = None, where: str = "") -> None:
-        # imported here: sky.extract loads scipy.stats (~1 s), which a bag of centroids
-        # never needs
-        from stellar_cal_ros.sky.extract import ExtractConfig
-
-        self.config = config or ExtractConfig()
+        self._config = config  # default made on first use: see config
         self.size = None if size is None else (int(size[0]), int(size[1]))
         self.where = where
         self.received = 0  #: images seen
@@ -262,6 +258,19 @@ class ImageFrames:
         self.stars = 0  #: centroids extracted
         self.cpu_s = 0.0  #: CPU time of the extraction
         self._info_warned = False
+
+    @property
+    def config(self) -> ExtractConfig:
+        """The extraction's settings (default: ``sky.extract.ExtractConfig()``).
+
+        Made on first use: sky.extract loads scipy.stats (~1 s), which a bag of centroids
+        never needs, and every driver holds an ImageFrames.
+        """
+        if self._config is None:
+            from stellar_cal_ros.sky.extract import ExtractConfig
+
+            self._config = ExtractConfig()
+        return self._config
 
     def camera_info(self, info: Any) -> None:
         """Check a ``CameraInfo`` beside the images against ``size`` (the prior's camera).

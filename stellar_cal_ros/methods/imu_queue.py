@@ -48,6 +48,24 @@ class ImuQueue:
         """Every pending specific force (m/s²), as :attr:`t`."""
         return self._concat(2)
 
+    @property
+    def tail(self) -> int | None:
+        """The newest pending stamp (None: nothing pending)."""
+        return self._tail
+
+    def count_upto(self, limit_ns: int) -> int:
+        """Pending samples stamped ≤ ``limit_ns`` (the queue sorted: :attr:`sorted`)."""
+        k = self.n
+        for b in reversed(self._blocks):
+            t = b[0]
+            if t[0] > limit_ns:
+                k -= len(t)
+                continue
+            if t[-1] > limit_ns:
+                k -= len(t) - int(np.searchsorted(t, limit_ns, side="right"))
+            break
+        return k
+
     def push(self, t: np.ndarray, w: np.ndarray, f: np.ndarray,
              increasing: bool | None = None) -> None:
         """Append a block (``increasing``: known strictly increasing)."""

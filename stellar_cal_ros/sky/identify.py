@@ -142,9 +142,10 @@ class IdentifyCounters:
 
 def needs_identification(frame: StarFrame) -> bool:
     """True when a frame carries unidentified centroids (id 0 and RA/Dec NaN, contract §2)."""
-    if not len(frame.catalog_id):
+    cid = np.asarray(frame.catalog_id)
+    if cid.all():  # every star has an identity (or none is there): the usual case, one test
         return False
-    unknown = (np.asarray(frame.catalog_id) == 0) & ~np.isfinite(frame.right_ascension)
+    unknown = (cid == 0) & ~np.isfinite(frame.right_ascension)
     return bool(unknown.any())
 
 
