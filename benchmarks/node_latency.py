@@ -108,6 +108,7 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
 
         view.tick = timed_tick
         view.timer.callback = timed_tick
+    marks = _mark_events(node)
     wall0, cpu0 = time.perf_counter(), time.process_time()
     while not os.path.exists(stop_file):
         ex.spin_once(timeout_sec=0.05)
@@ -118,10 +119,78 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
            "updates": node.cal.filter_counters()["updates"], "received": node.received,
            "backlog_updates": node.backlog_updates, "view_ticks": ticks,
            "view_counts": dict(view.counts) if view is not None else None,
-           "counters": {k: v for k, v in vars(node.cal.counters).items()}}
+           "counters": {k: v for k, v in vars(node.cal.counters).items()},
+           "marks": marks}
     Path(result_file).write_text(json.dumps(res))
     node.destroy_node()
     rclpy.try_shutdown()
+
+
+def _mark_events(node) -> list[dict]:
+    """What ran inside each timed frame callback (the tail's suspects), one dict per latency.
+
+    Garbage collections (``gc.callbacks``: ms and the oldest generation), the filter's
+    covariance check, the IMU history trim (``drop_imu``) and the gyro judgement; the list
+    grows as ``node.latency_s`` does.
+    """
+    import gc
+
+    from stellar_cal_ros.methods.kernel import StarFilter
+
+    ev = {"gc_ms": 0.0, "gc_gen": -1, "cov_check": 0, "imu_trim": 0, "gyro_judge": 0}
+    t_gc = [0.0]
+
+    def on_gc(phase: str, info: dict) -> None:
+        if phase == "start":
+            t_gc[0] = time.perf_counter()
+        else:
+            ev["gc_ms"] += (time.perf_counter() - t_gc[0]) * 1e3
+            ev["gc_gen"] = max(ev["gc_gen"], int(info["generation"]))
+
+    gc.callbacks.append(on_gc)
+    def counting(f, key: str):
+        def counted(*a, **k):
+            ev[key] += 1
+            return f(*a, **k)
+
+        return counted
+
+    for name, key in (("_check_covariance", "cov_check"), ("drop_imu", "imu_trim"),
+                      ("judge_gyro", "gyro_judge")):
+        setattr(StarFilter, name, counting(getattr(StarFilter, name), key))
+    marks: list[dict] = []
+    guard = node._guard
+
+    def timed_guard(key, fn, msg) -> None:
+        n = len(node.latency_s)
+        for k in ev:
+            ev[k] = -1 if k == "gc_gen" else 0
+        guard(key, fn, msg)
+        if len(node.latency_s) != n or len(node.latency_s) == node.latency_s.maxlen:
+            marks.append(dict(ev, ms=node.latency_s[-1] * 1e3))
+
+    node._guard = timed_guard
+    return marks
+
+
+def _tail_report(marks: list[dict]) -> dict:
+    """Of the frames at or above the p99 latency: how many ran a GC, a covariance check ..."""
+    if not marks:
+        return {}
+    ms = np.array([m["ms"] for m in marks])
+    p99 = float(np.percentile(ms, 99))
+    tail = [m for m in marks if m["ms"] >= p99]
+    out = {"frames": len(marks), "tail_frames": len(tail), "tail_ms": [m["ms"] for m in tail]}
+    for key, hit in (("gc_any", lambda m: m["gc_gen"] >= 0),
+                     ("gc_gen2", lambda m: m["gc_gen"] == 2),
+                     ("cov_check", lambda m: m["cov_check"] > 0),
+                     ("imu_trim", lambda m: m["imu_trim"] > 0),
+                     ("gyro_judge", lambda m: m["gyro_judge"] > 0)):
+        with_ = [m["ms"] for m in marks if hit(m)]
+        out[key] = {"in_tail": sum(hit(m) for m in tail), "frames": len(with_),
+                    "median_ms": float(np.median(with_)) if with_ else None}
+    out["gc_ms_total"] = float(sum(m["gc_ms"] for m in marks))
+    return out
 
 
 def watch_foxglove(port: int, stop_file: str, result_file: str) -> None:
@@ -369,6 +438,7 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": wall,
         "params": dict(a.param),
     }
+    out["tail"] = _tail_report(res.get("marks") or [])
     ticks = res.get("view_ticks") or []
     if res.get("view_counts") is not None:
         views = [ms for ms, field in ticks if not field]
@@ -398,6 +468,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"calibrator CPU {out['calibrator_cpu_percent_of_one_core']:.1f} % of one core; "
           f"per-core load " + ", ".join(f"{x:.0f} %" for x in per_core)
           + f"; load average {os.getloadavg()[0]:.2f}")
+    tail = out["tail"]
+    if tail:
+        print(f"the {tail['tail_frames']} frames at/above p99 ("
+              + ", ".join(f"{x:.2f}" for x in tail["tail_ms"]) + " ms) ran: "
+              + ", ".join(f"{k} {tail[k]['in_tail']}" for k in (
+                  "gc_any", "gc_gen2", "cov_check", "imu_trim", "gyro_judge"))
+              + "; over all frames: " + ", ".join(
+                  f"{k} {tail[k]['frames']} (median {tail[k]['median_ms'] or 0:.2f} ms)"
+                  for k in ("gc_any", "cov_check", "imu_trim")))
     v = out.get("view")
     if v:
         def fmt(d: dict | None) -> str:
