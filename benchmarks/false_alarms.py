@@ -16,6 +16,7 @@ Run::
 
     .venv/bin/python benchmarks/false_alarms.py --seeds 50
     .venv/bin/python benchmarks/false_alarms.py --seeds 10 --cases psce
+    .venv/bin/python benchmarks/false_alarms.py --seeds 50 --records fa.jsonl  # resumable
 
 The reduced form in the default suite is ``test/test_false_alarms.py``.
 """
@@ -23,8 +24,10 @@ The reduced form in the default suite is ``test/test_false_alarms.py``.
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
+from pathlib import Path
 
 from scipy import stats as sps
 
@@ -41,31 +44,49 @@ def upper(k: int, n: int) -> float:
     return 1.0 if k >= n else float(sps.beta.ppf(0.95, k + 1, n - k))
 
 
-def run_case(name: str, seeds: range, verbose: bool) -> dict[str, object]:
-    """Diagnose the clean bags of one case; count the alarms."""
+def diagnose_seed(name: str, seed: int) -> dict[str, object]:
+    """Diagnose one clean bag; the record written per seed (so a partial run is kept)."""
     method, sky, duration = CASES[name]
+    t0 = time.process_time()
+    data, prior, effects = clean_case(method, sky, seed, duration)
+    with tempfile.TemporaryDirectory() as tmp:
+        s = diagnose(data, prior, method, effects, tmp, plots=False, verbose=False)
+    return {"case": name, "seed": seed,
+            "candidates": [c["effect"] for c in s["candidates"] if c["significant"]],
+            "unexplained": [f"{u['component']} vs {u['regressor']} (t={u['statistic']:.1f})"
+                            for u in s["unexplained"]],
+            "noise": bool(s["noise"]["rescaled"]), "verdict": s["noise"]["verdict"],
+            "cpu": time.process_time() - t0}
+
+
+def load_records(path: Path | None) -> dict[tuple[str, int], dict]:
+    """Per-seed records already written by an earlier (partial) run."""
+    done: dict[tuple[str, int], dict] = {}
+    if path is not None and path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                done[(r["case"], int(r["seed"]))] = r
+    return done
+
+
+def run_case(name: str, seeds: range, done: dict | None = None) -> dict[str, object]:
+    """Count the alarms of one case (diagnosing the seeds not already in ``done``)."""
+    done = {} if done is None else done
     out = {"candidates": 0, "unexplained": 0, "noise": 0, "n": 0, "lines": [], "cpu": 0.0}
     for seed in seeds:
-        t0 = time.process_time()
-        data, prior, effects = clean_case(method, sky, seed, duration)
-        with tempfile.TemporaryDirectory() as tmp:
-            s = diagnose(data, prior, method, effects, tmp, plots=False, verbose=False)
-        cand = [c["effect"] for c in s["candidates"] if c["significant"]]
-        une = [f"{u['component']} vs {u['regressor']} (t={u['statistic']:.1f})"
-               for u in s["unexplained"]]
-        noise = s["noise"]["rescaled"]
+        r = done.get((name, seed))
+        if r is None:
+            r = done[(name, seed)] = diagnose_seed(name, seed)
+        cand, une, noise = r["candidates"], r["unexplained"], r["noise"]
         out["n"] += 1
         out["candidates"] += bool(cand)
         out["unexplained"] += bool(une)
         out["noise"] += bool(noise)
-        out["cpu"] += time.process_time() - t0
+        out["cpu"] += r["cpu"]
         if cand or une or noise:
             out["lines"].append(f"  {name} seed {seed}: candidates {cand}, unexplained {une}, "
-                                f"noise {s['noise']['verdict']}")
-        if verbose:
-            print(f"{name} seed {seed}: {len(cand)} candidates, {len(une)} unexplained, "
-                  f"noise {'rescaled' if noise else 'as stated'} "
-                  f"[{time.process_time() - t0:.0f} s]", flush=True)
+                                f"noise {r['verdict']}")
     return out
 
 
@@ -75,12 +96,29 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=50)
     ap.add_argument("--first-seed", type=int, default=1000)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--records", type=Path, default=None,
+                    help="JSON-lines file: one record per diagnosed seed is appended; seeds "
+                         "already in it are not run again (resume a partial run)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
+    done = load_records(args.records)
+    cases = args.cases.split(",")
+    for seed in seeds:            # seed-major: a partial run covers every case
+        for name in cases:
+            if (name, seed) not in done:
+                done[(name, seed)] = r = diagnose_seed(name, seed)
+                if args.records is not None:
+                    with args.records.open("a") as fh:
+                        fh.write(json.dumps(r) + "\n")
+                if args.verbose:
+                    print(f"{name} seed {seed}: {len(r['candidates'])} candidates, "
+                          f"{len(r['unexplained'])} unexplained, noise "
+                          f"{'rescaled' if r['noise'] else 'as stated'} [{r['cpu']:.0f} s]",
+                          flush=True)
     rows = []
-    for name in args.cases.split(","):
-        rows.append((name, run_case(name, seeds, args.verbose)))
+    for name in cases:
+        rows.append((name, run_case(name, seeds, done)))
     print(f"\nfalse alarms on clean bags, {args.seeds} seeds per case (alpha = 1 %; "
           "count, rate, one-sided 95 % upper bound)")
     print(f"{'case':14s} {'candidates':>22s} {'unexplained':>22s} {'noise rescaled':>22s} "

@@ -6,7 +6,7 @@ of a datasheet), and a tracker may send ``sigma = 0`` for "unknown".  A run appl
 
 * every star's σ: the message's σ (or, when it is 0, :attr:`NoiseScales.unknown_sigma_px`
   if measured, else the configured default) times :attr:`NoiseScales.star`, times the factor
-  of its group (magnitude or image-radius bins) when the data asked for groups;
+  of its group (magnitude, image-radius, column or row bins) when the data asked for groups;
 * the gyro's angle random walk times :attr:`NoiseScales.gyro`, the accelerometer's velocity
   random walk times :attr:`NoiseScales.accel`.
 
@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 #: star groups a scale may depend on
-GROUP_KINDS = ("magnitude", "radius")
+GROUP_KINDS = ("magnitude", "radius", "column", "row")
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,8 @@ class NoiseScales:
     accel: float = 1.0  #: the accelerometer's velocity random walk
     #: σ (px) of stars whose message says 0 ("unknown"); 0: the configured default × star
     unknown_sigma_px: float = 0.0
-    group_by: str = ""  #: "", "magnitude" or "radius" (px from the image centre)
+    #: "", "magnitude", "radius" (px from the image centre), "column" or "row" (px)
+    group_by: str = ""
     edges: tuple[float, ...] = ()  #: bin edges of the groups (ascending)
     factors: tuple[float, ...] = ()  #: one factor per group, len(edges) + 1
 
@@ -70,8 +71,10 @@ class NoiseScales:
         n = len(uv)
         if not self.group_by:
             return np.zeros(n, dtype=int)
-        x = (np.asarray(magnitude, dtype=float) if self.group_by == "magnitude" else
-             np.hypot(uv[:, 0] - centre[0], uv[:, 1] - centre[1]))
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        x = {"magnitude": lambda: np.asarray(magnitude, dtype=float),
+             "radius": lambda: np.hypot(uv[:, 0] - centre[0], uv[:, 1] - centre[1]),
+             "column": lambda: uv[:, 0], "row": lambda: uv[:, 1]}[self.group_by]()
         # a star of unknown magnitude goes to the middle group
         idx = np.searchsorted(np.asarray(self.edges, dtype=float), np.nan_to_num(
             x, nan=float(np.median(self.edges)) if self.edges else 0.0), side="right")

@@ -37,6 +37,7 @@ its test is significant at :data:`ALPHA` (Bonferroni over the components tested)
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -45,20 +46,18 @@ import numpy as np
 from scipy import stats as sps
 
 from stellar_cal_ros.core.noise import NoiseScales
+from stellar_cal_ros.diagnosis.noise_imu import ScaleSearch
 
 #: level of the "noise as stated" tests (after Bonferroni over the components)
 ALPHA = 0.01
 #: a scale within this fraction of 1 is "as stated" (a 5 % error changes every σ by 5 %)
 MATERIAL = 0.05
-#: groups of the stars' σ: quantile bins of magnitude, radius bins as a fraction of the
-#: half-diagonal
-MAGNITUDE_BINS = 4
-RADIUS_FRACTIONS = (0.35, 0.65)
-#: the gyro / accelerometer scale search range (ln of the scale)
-LN_RANGE = math.log(300.0)
-#: log-likelihood change below which a scale search sees nothing (a third of the χ²₁ 5 %
-#: half-width: over a factor of 9 of the scale the data would have moved it far more)
-FLAT = 0.5
+#: groups of the stars' σ: GROUP_BINS bins of magnitude and radius (quantiles of the stars)
+#: and of column and row (equal widths of the detector: a region of the detector whose
+#: noise differs), tested fine, then neighbours that agree merged (:func:`_merge`)
+GROUP_BINS = 8
+#: neighbouring bins whose scales differ by less than this many σ are one group
+MERGE_Z = 3.0
 
 Table = dict[str, np.ndarray]
 
@@ -107,6 +106,27 @@ class StarNoise:
     #: field that repeats from frame to frame, which no noise makes
     structure: float = 0.0
     structure_dof: int = 0
+    uv: np.ndarray | None = None  #: per star: its centroid (px), for the column/row groups
+    #: the per-star means' χ² (whitened, in units of the scale found) and its dof: an error
+    #: that repeats star by star (a catalogue position), which no centroid noise makes
+    repeat: float = 0.0
+    repeat_dof: float = 0.0
+    #: when significant, the per-star error's RMS (px per axis), removed before the scale
+    repeat_removed: float = 0.0
+
+    @property
+    def repeat_p(self) -> float:
+        """The p-value of "no error that repeats star by star" (χ² of the star means)."""
+        if self.repeat_dof <= 0:
+            return 1.0
+        return float(sps.chi2.sf(self.repeat, self.repeat_dof))
+
+    @property
+    def repeat_rms_px(self) -> float:
+        """RMS per axis (px) of the per-star errors: the χ²'s excess over its dof."""
+        n = max(float(len(self.q)), 1.0)
+        px = float(np.median(self.sigma_px)) * self.scale if len(self.sigma_px) else 0.0
+        return math.sqrt(max(self.repeat - self.repeat_dof, 0.0) / n / 2.0) * px
 
     @property
     def structure_p(self) -> float:
@@ -146,18 +166,57 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     # and magnitude class before the variance is taken (the dof it uses are not counted)
     cell, keep_cell = _cells(uv, np.asarray(res["magnitude"], dtype=float)[idx], centre)
     r, share, chi2, dof = _minus_cell_means(r, cell, keep_cell)
-    q = (r**2).sum(1)
-    m = (2.0 - lev) * share
-    use = np.isfinite(q) & (m > 0)
-    if not use.any():
+    # ... and so is an error that repeats star by star (a catalogue position error): its
+    # per-star means are tested, and removed when significant
+    rep, rep_dof, r_star, share_star = star_means(r, share, np.asarray(res["catalog_id"])[idx])
+
+    def estimate(r, share):
+        q = (r**2).sum(1)
+        m = (2.0 - lev) * share
+        use = np.isfinite(q) & (m > 0)
+        if not use.any():
+            return None
+        out = StarNoise(0.0, 0.0, float(m[use].sum()), n_frames, q[use], m[use],
+                        np.asarray(res["magnitude"], dtype=float)[idx][use],
+                        np.hypot(uv[use, 0] - centre[0], uv[use, 1] - centre[1]),
+                        (msg_sigma[idx] == 0)[use], sigma_px[idx][use], uv=uv[use])
+        out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
+        return out
+
+    out = estimate(r, share)
+    if out is None:
         return None
-    out = StarNoise(0.0, 0.0, float(m[use].sum()), n_frames, q[use], m[use],
-                    np.asarray(res["magnitude"], dtype=float)[idx][use],
-                    np.hypot(uv[use, 0] - centre[0], uv[use, 1] - centre[1]),
-                    (msg_sigma[idx] == 0)[use], sigma_px[idx][use])
-    out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
+    out.repeat, out.repeat_dof = rep / max(out.scale, 1e-300) ** 2, rep_dof
+    if out.repeat_p < ALPHA:
+        rms = out.repeat_rms_px
+        out = estimate(r_star, share_star) or out
+        out.repeat, out.repeat_dof, out.repeat_removed = rep / max(out.scale, 1e-300) ** 2, \
+            rep_dof, rms
     out.structure, out.structure_dof = chi2 / max(out.scale, 1e-300) ** 2, dof
     return out
+
+
+def star_means(r: np.ndarray, share: np.ndarray, star: np.ndarray
+               ) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """The per-star means of the whitened residuals ``r``: their χ², its dof, ``r`` without them.
+
+    Stars seen in at least two frames count; the χ² is ``Σ_s n_s ‖r̄_s‖²`` and its
+    expectation for noise alone ``Σ_s 2 mean(share)`` (``share``: each residual's share of
+    its dof left by earlier fits).  Returns ``(χ², dof, r − r̄_star, share (1 − 1/n_s))``.
+    """
+    ok = np.all(np.isfinite(r), axis=1) & (share > 0)
+    out, share_out = r.copy(), share.copy()
+    if not ok.any():
+        return 0.0, 0.0, out, share_out
+    _, k = np.unique(np.asarray(star)[ok], return_inverse=True)
+    n = np.bincount(k).astype(float)
+    means = np.stack([np.bincount(k, r[ok, c]) / n for c in range(2)], 1)
+    multi = n >= 2
+    chi2 = float(np.sum(n[multi] * (means[multi] ** 2).sum(1)))
+    dof = float(2.0 * np.sum((np.bincount(k, share[ok]) / n)[multi]))
+    out[ok] = r[ok] - means[k]
+    share_out[ok] = share[ok] * (1.0 - 1.0 / n[k])
+    return chi2, dof, out, share_out
 
 
 #: the cells whose mean residual is structure, not noise: a grid over the detector times
@@ -219,129 +278,57 @@ def _bartlett(parts: list[tuple[float, float, float]]) -> tuple[float, float]:
     return stat, float(sps.chi2.sf(stat, len(parts) - 1))
 
 
-def star_groups(sn: StarNoise, half_diagonal: float) -> list[dict[str, Any]]:
-    """The magnitude and radius groupings: per group scale ± σ, Bartlett's p."""
+def _merge(sn: StarNoise, gidx: np.ndarray, edges: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float, float]]]:
+    """Merge neighbouring bins whose scales agree (within :data:`MERGE_Z` σ).
+
+    Bins are tested fine (a step in the noise at 4.5 mag or at column 683 falls inside one
+    bin, whose mixed scale is then a small share of the stars) and reported coarse: the
+    pair of neighbours closest in scale is merged until every neighbour differs.  Returns
+    the remaining edges, the group index of each star and the groups' (scale, σ, dof).
+    """
+    edges = np.asarray(edges, dtype=float)
+    while len(edges):
+        parts = [sn.group(gidx == g) for g in range(len(edges) + 1)]
+        z = [abs(a[0] - b[0]) / math.hypot(a[1], b[1]) if all(
+            math.isfinite(x) and x > 0 for x in (a[0], b[0], a[1], b[1])) else 0.0
+            for a, b in zip(parts, parts[1:], strict=False)]
+        k = int(np.argmin(z))
+        if z[k] >= MERGE_Z:
+            return edges, gidx, parts
+        edges = np.delete(edges, k)
+        gidx = np.where(gidx > k, gidx - 1, gidx)
+    return edges, gidx, [sn.group(np.ones(len(gidx), dtype=bool))]
+
+
+def star_groups(sn: StarNoise, size: tuple[int, int] | None = None) -> list[dict[str, Any]]:
+    """The magnitude, radius, column and row groupings: per group scale ± σ, Bartlett's p.
+
+    ``size``: the detector's (width, height) px (no column / row groups without it).  The
+    test is Bartlett's over :data:`GROUP_BINS` fine bins; the groups reported (and applied)
+    are those bins with agreeing neighbours merged.
+    """
     out = []
+    q = np.linspace(0, 1, GROUP_BINS + 1)[1:-1]
     mag = sn.magnitude
     fin = np.isfinite(mag)
     if fin.sum() > 40 and np.ptp(mag[fin]) > 0:
-        edges = np.unique(np.quantile(mag[fin], np.linspace(0, 1, MAGNITUDE_BINS + 1)[1:-1]))
-        out.append(("magnitude", edges, np.searchsorted(edges, np.nan_to_num(
-            mag, nan=float(np.median(mag[fin]))), side="right")))
-    edges = np.asarray(RADIUS_FRACTIONS) * half_diagonal
-    out.append(("radius", edges, np.searchsorted(edges, sn.radius, side="right")))
+        out.append(("magnitude", np.unique(np.quantile(mag[fin], q)),
+                    np.nan_to_num(mag, nan=float(np.median(mag[fin])))))
+    if len(sn.radius) > 40 and np.ptp(sn.radius) > 0:  # quantiles: the corners are sparse
+        out.append(("radius", np.unique(np.quantile(sn.radius, q)), sn.radius))
+    if size is not None and sn.uv is not None:
+        for k, kind in enumerate(("column", "row")):
+            out.append((kind, q * size[k], sn.uv[:, k]))
     result = []
-    for kind, edges, gidx in out:
-        parts = [sn.group(gidx == g) for g in range(len(edges) + 1)]
-        stat, p = _bartlett(parts)
+    for kind, edges, x in out:
+        gidx = np.searchsorted(edges, x, side="right")
+        stat, p = _bartlett([sn.group(gidx == g) for g in range(len(edges) + 1)])
+        edges, gidx, parts = _merge(sn, gidx, edges)
         result.append({"by": kind, "edges": [float(e) for e in edges],
                        "scales": [s for s, _, _ in parts], "sigma": [e for _, e, _ in parts],
                        "dof": [d for _, _, d in parts], "statistic": stat, "p_value": p})
     return result
-
-
-# ----------------------------------------------------------------------------- IMU (ML)
-@dataclass
-class ScaleSearch:
-    """Maximum-likelihood search of one noise scale over re-runs."""
-
-    name: str  #: "gyro" or "accel"
-    points: dict[float, float] = field(default_factory=dict)  #: ln scale → log-likelihood
-    value: float = 1.0
-    sigma: float = math.nan  #: σ of the scale (delta method from σ of its log)
-    statistic: float = 0.0  #: 2 (ℓ(ŝ) − ℓ(1))
-    p_value: float = 1.0
-    measurable: bool = True  #: the likelihood has a maximum in range
-    #: when it has none: "upper" (the scale is at most :attr:`value`, 95 %) or "lower"
-    bound: str = ""
-
-    def fit(self) -> tuple[float, float]:
-        """Vertex and curvature of the parabola through the three points nearest the best."""
-        xs = np.array(sorted(self.points))
-        ls = np.array([self.points[x] for x in xs])
-        best = int(np.argmax(ls))
-        lo = min(max(best - 1, 0), max(len(xs) - 3, 0))
-        x3, l3 = xs[lo:lo + 3], ls[lo:lo + 3]
-        if len(x3) < 3:
-            return float(xs[best]), 0.0
-        a, b, _ = np.polyfit(x3, l3, 2)
-        if a >= 0:  # no interior maximum here
-            return float(xs[best]), 0.0
-        return float(-b / (2 * a)), float(-2 * a)
-
-
-def search_scale(name: str, loglik, start: float = 0.0, step: float = math.log(3.0),
-                 max_runs: int = 9, known: dict[float, float] | None = None) -> ScaleSearch:
-    """ML scale of one noise component: ``loglik([ln s, ...]) -> [ℓ, ...]`` runs a batch.
-
-    Three points around ``start`` (ln of the scale), then the parabola's vertex, moved by
-    whole steps until the best point is inside, then refined once at the vertex (at most
-    ``max_runs`` runs); σ of ln s from the curvature, the test of "as stated" is the
-    likelihood ratio of the vertex against ln s = 0.  ``known``: points already run.
-    """
-    out = ScaleSearch(name, dict(known or {}))
-
-    def run(xs: list[float]) -> None:
-        xs = [float(np.clip(x, -LN_RANGE, LN_RANGE)) for x in xs]
-        new = [x for x in dict.fromkeys(xs) if not any(abs(x - y) < 1e-3 for y in out.points)]
-        if new:
-            out.points.update(zip(new, loglik(new), strict=True))
-
-    run([0.0, start - step, start + step] if start else [-step, 0.0, step])
-    first = np.array(list(out.points.values()))
-    if np.ptp(first) < FLAT:
-        # the likelihood does not move over a factor of 9 of the scale: nothing to measure
-        out.measurable = False
-        out.sigma = math.inf
-        return out
-    while len(out.points) < max_runs:
-        xs = sorted(out.points)
-        best = max(xs, key=out.points.get)
-        if best == xs[0] and best > -LN_RANGE + 1e-6:
-            run([best - 2 * step])
-        elif best == xs[-1] and best < LN_RANGE - 1e-6:
-            run([best + 2 * step])
-        else:
-            break
-    x_hat, curv = out.fit()
-    # refine at the vertex unless "as stated" is already the best point by far (the first
-    # three runs then settle it: a clean bag costs two runs)
-    settled = max(out.points, key=out.points.get) == 0.0 and abs(x_hat) < 0.5 * step
-    if not settled and curv > 0 and min(out.points) < x_hat < max(out.points) and \
-            min(abs(x_hat - x) for x in out.points) > 0.05 and len(out.points) < max_runs:
-        run([x_hat])
-        x_hat, curv = out.fit()
-    xs = sorted(out.points)
-    ls = np.array([out.points[x] for x in xs])
-    l_max = float(ls.max())
-    out.statistic = float(max(2.0 * (l_max - out.points[0.0]), 0.0))
-    out.p_value = float(sps.chi2.sf(out.statistic, 1))
-    sig_ln = 1.0 / math.sqrt(curv) if curv > 0 else math.inf
-    inside = xs[0] < x_hat < xs[-1]
-    if curv > 0 and inside and sig_ln <= math.log(3.0):
-        out.value = float(math.exp(x_hat))
-        out.sigma = out.value * sig_ln
-        return out
-    # no interior maximum: the likelihood rises to a plateau at one end (e.g. a gyro noise
-    # far below what the stars can see): only a one-sided 95 % bound is measurable
-    out.measurable = False
-    out.sigma = math.inf
-    low, high = ls[0] >= l_max - 0.5, ls[-1] >= l_max - 0.5  # a plateau reaching an end
-    if 0.0 < out.statistic and low != high:
-        best = 0 if low else len(xs) - 1
-        out.bound = "upper" if low else "lower"
-        cut = l_max - 0.5 * float(sps.chi2.isf(0.05, 1))
-        order = range(best, len(xs)) if best == 0 else range(best, -1, -1)
-        prev = None
-        for i in order:
-            if ls[i] < cut and prev is not None:  # interpolate the crossing
-                f = (ls[prev] - cut) / max(ls[prev] - ls[i], 1e-300)
-                out.value = float(math.exp(xs[prev] + f * (xs[i] - xs[prev])))
-                break
-            prev = i
-        else:
-            out.bound = ""
-    return out
 
 
 # ----------------------------------------------------------------------------- a run's stars
@@ -368,10 +355,16 @@ def measure_stars(result, data, method: str, fraction: float,
 
 
 # ----------------------------------------------------------------------------- the verdict
-def _p_two_sided(value: float, sigma: float) -> float:
+def p_two_sided(value: float, sigma: float) -> float:
+    """Two-sided p of "the scale is 1" for a measured ``value`` ± ``sigma`` (normal)."""
     if not (np.isfinite(sigma) and sigma > 0):
         return 1.0
     return float(2.0 * sps.norm.sf(abs(value - 1.0) / sigma))
+
+
+_IMU_WORDS = {"gyro": ("gyro noise (angle random walk)", "attitude", "gyro"),
+              "accel": ("accelerometer noise (velocity random walk)", "velocity", "accel")}
+
 
 
 @dataclass
@@ -397,6 +390,12 @@ class NoiseVerdict:
     skipped: str = ""
     #: why the IMU noise was not measured although the stars' was (a repeating field), or ""
     imu_skipped: str = ""
+    #: an error that repeats star by star, removed before the stars' scale (or None)
+    repeat: dict[str, float] | None = None
+    #: the IMU's own samples: component -> {scale, sigma, white}
+    samples: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: components whose ML scale (the stars) exceeds what the samples show: motion, not noise
+    beyond: list[str] = field(default_factory=list)
 
     @property
     def rescaled(self) -> bool:
@@ -407,6 +406,9 @@ class NoiseVerdict:
         """(measured scale, σ) of ``star`` / ``gyro`` / ``accel`` (1, NaN: not measured)."""
         if name == "star":
             return self.star, self.star_sigma
+        smp = self.samples.get(name)
+        if smp and smp["white"]:
+            return smp["scale"], smp["sigma"]
         s = self.imu.get(name)
         if s is None:
             return 1.0, math.nan
@@ -423,14 +425,23 @@ class NoiseVerdict:
             v, s = self.scale_of(comp)
             out[key] = float(v) * getattr(self.stated, comp)
             sig[key] = None if not np.isfinite(s) else float(s) * getattr(self.stated, comp)
+            smp = self.samples.get(comp) or {}
             p[key] = (self.star_p if comp == "star" else
+                      p_two_sided(smp["scale"], smp["sigma"]) if smp.get("white") else
                       (self.imu[comp].p_value if comp in self.imu else None))
         out["sigma"] = sig
         out["p_value"] = p
         out["as_stated"] = {names[c]: c not in self.rejected for c in names}
         out["measured"] = {"star_sigma_scale": True,
-                           **{names[c]: bool(c in self.imu and self.imu[c].measurable)
+                           **{names[c]: bool(c in self.imu and self.imu[c].measurable or
+                                             (self.samples.get(c) or {}).get("white"))
                               for c in ("gyro", "accel")}}
+        if self.samples:
+            out["imu_samples"] = {names[c]: d for c, d in self.samples.items()}
+        if self.beyond:
+            out["motion_beyond_noise"] = {
+                names[c]: {"stars_scale": self.imu[c].value, "sigma": self.imu[c].sigma,
+                           "samples_scale": self.samples[c]["scale"]} for c in self.beyond}
         out["rescaled"] = self.rescaled
         out["applied"] = self.applied.as_dict()
         if self.unknown:
@@ -438,6 +449,8 @@ class NoiseVerdict:
                                     "sigma_of_sigma_px": self.unknown_sigma_sigma}
         if self.groups:
             out["star_groups"] = self.groups
+        if self.repeat:
+            out["star_repeat"] = self.repeat
         out["verdict"] = self.lines()
         if self.skipped:
             out["skipped"] = self.skipped
@@ -445,12 +458,45 @@ class NoiseVerdict:
             out["imu_skipped"] = self.imu_skipped
         return out
 
+    def _sample_lines(self) -> list[str]:
+        """The IMU noise measured from its own samples, where it is not as stated."""
+        out = []
+        for comp, smp in self.samples.items():
+            if comp not in self.rejected or not smp["white"]:
+                continue
+            s, e = smp["scale"], smp["sigma"]
+            word = "larger" if s > 1 else "smaller"
+            check = ""
+            if comp in self.imu and self.imu[comp].measurable and comp not in self.beyond:
+                check = f"; the stars agree: x{self.imu[comp].value:.3g} +- " \
+                    f"{self.imu[comp].sigma:.2g} of it"
+            out.append(f"the {_IMU_WORDS[comp][0]} looks {s:.3g} +- {e:.2g} x {word} than stated "
+                       f"(the {comp}'s own samples{check}): use --noise-scale "
+                       f"{_IMU_WORDS[comp][2]}={getattr(self.applied, comp):.3g}")
+        return out
+
+    def _beyond_lines(self) -> list[str]:
+        """Motion the stars see beyond the IMU's own noise (not applied as noise)."""
+        out = []
+        for comp in self.beyond:
+            f, smp = self.imu[comp], self.samples[comp]
+            out.append(f"the stars see more {_IMU_WORDS[comp][1]} motion than the {comp}'s "
+                       f"noise explains: they would need x{f.value:.3g} +- {f.sigma:.2g} the "
+                       f"noise its own samples show (x{smp['scale']:.3g} +- "
+                       f"{smp['sigma']:.2g} of the stated): not {comp} noise but an effect "
+                       "the model lacks (a candidate below, if one is significant), else the "
+                       "tracker moving against the IMU (a wobble, a flexing mount) or a "
+                       f"wandering {comp} bias, neither in the library (noise kept at the "
+                       "samples')")
+        return out
+
     def lines(self) -> list[str]:
         """The terminal's lines, first of the diagnosis (noise is tested before effects)."""
+        out = self._sample_lines()
         if self.skipped:
-            return [f"not measured: {self.skipped}"]
-        out = []
-        if "star" in self.rejected:
+            return [f"not measured: {self.skipped}"] + out
+        out += self._beyond_lines()
+        if "star" in self.rejected and self.group is None:
             s, e = self.star, self.star_sigma
             word = "too small" if s > 1 else "too large"
             k = s if s > 1 else 1.0 / s
@@ -461,11 +507,18 @@ class NoiseVerdict:
                        f"star={self.applied.star:.3g}")
         if self.group is not None:
             g = self.group
-            unit = "mag" if g["by"] == "magnitude" else "px from the centre"
-            bins = _bin_text(g["edges"], unit)
-            out.append("the stars' sigma depends on " + g["by"] + ": " + ", ".join(
-                f"x{s:.3g} +- {e:.2g} ({b})" for s, e, b in zip(
-                    g["scales"], g["sigma"], bins, strict=True)) + " (applied per group)")
+            bins = _bin_text(g["edges"], GROUP_UNITS[g["by"]])
+            out.append(f"the stars' sigma ({self.stated_sigma_px:.3g} px stated) depends on "
+                       + g["by"] + ": " + ", ".join(
+                           f"x{s:.3g} +- {e:.2g} ({b})" for s, e, b in zip(
+                               g["scales"], g["sigma"], bins, strict=True))
+                       + " (applied per group; `replay --estimate-noise` measures them)")
+        if self.repeat:
+            out.append(f"the stars' residuals repeat star by star (chi2 {self.repeat['chi2']:.0f}"
+                       f" / {self.repeat['dof']:.0f} dof, p = {self.repeat['p_value']:.2g}): "
+                       f"a per-star position error of {self.repeat['rms_px']:.2g} px rms per "
+                       "axis (catalogue positions, identification), not centroid noise; the "
+                       "sigma is measured without it")
         if self.unknown:
             out.append(f"{self.unknown} stars carry sigma 0 (unknown): measured from the run "
                        f"as {self.unknown_sigma_px:.3g} +- {self.unknown_sigma_sigma:.2g} px "
@@ -473,6 +526,8 @@ class NoiseVerdict:
         units = {"gyro": ("gyro noise (angle random walk)", "gyro"),
                  "accel": ("accelerometer noise (velocity random walk)", "accel")}
         for comp, search in self.imu.items():
+            if (self.samples.get(comp) or {}).get("white"):
+                continue  # said from the samples
             if comp in self.rejected and search.bound:
                 word = "smaller" if search.bound == "upper" else "larger"
                 out.append(f"the {units[comp][0]} looks {word} than stated: at "
@@ -490,7 +545,13 @@ class NoiseVerdict:
             out.append(f"IMU noise taken as stated: {self.imu_skipped}")
         if not self.rejected and not self.unknown:
             parts = [f"stars' sigma x{self.star:.3g} +- {self.star_sigma:.2g}"]
+            for comp, smp in self.samples.items():
+                if smp["white"]:
+                    parts.append(f"{comp} x{smp['scale']:.3g} +- {smp['sigma']:.2g} "
+                                 "(its samples)")
             for comp, search in self.imu.items():
+                if (self.samples.get(comp) or {}).get("white"):
+                    continue
                 parts.append(f"{comp} x{search.value:.3g} +- {search.sigma:.2g}"
                              if search.measurable else
                              f"{comp} at {'most' if search.bound == 'upper' else 'least'} "
@@ -498,6 +559,11 @@ class NoiseVerdict:
                              f"{comp} not measurable on this bag")
             out.append("noise as stated (" + ", ".join(parts) + ")")
         return out
+
+
+#: how a grouping's bins are printed
+GROUP_UNITS = {"magnitude": "mag", "radius": "px from the centre", "column": "px column",
+               "row": "px row"}
 
 
 def _bin_text(edges: list[float], unit: str) -> list[str]:
@@ -508,10 +574,14 @@ def _bin_text(edges: list[float], unit: str) -> list[str]:
             + [f">= {e[-1]} {unit}"])
 
 
-def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, half_diagonal: float,
-                n_tests: int) -> NoiseScales:
-    """Fill the stars' part of ``v`` from ``sn``; return the scales to use for the stars."""
-    applied = v.stated
+def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int, int],
+                n_tests: int, applied: NoiseScales | None = None) -> NoiseScales:
+    """Fill the stars' part of ``v`` from ``sn``; return the scales to use for the stars.
+
+    ``size``: the detector's (width, height), px (the column / row groups); ``applied``:
+    the scales so far (default: as stated).
+    """
+    applied = v.stated if applied is None else applied
     known = ~sn.unknown
     v.unknown = int(sn.unknown.sum())
     if v.unknown:
@@ -519,16 +589,18 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, half_diagonal: f
         base = float(np.median(sn.sigma_px[sn.unknown]))
         v.unknown_sigma_px, v.unknown_sigma_sigma = base * su, base * esu
         applied = applied.replace(unknown_sigma_px=v.unknown_sigma_px)
+    if sn.repeat_removed:
+        v.repeat = {"chi2": sn.repeat, "dof": sn.repeat_dof, "p_value": sn.repeat_p,
+                    "rms_px": sn.repeat_removed}
     if known.any():
         v.star, v.star_sigma, v.star_dof = sn.group(known)
         v.stated_sigma_px = float(np.median(sn.sigma_px[known])) / v.stated.star
-        v.star_p = _p_two_sided(v.star, v.star_sigma)
+        v.star_p = p_two_sided(v.star, v.star_sigma)
         if v.star_p < ALPHA / n_tests and abs(v.star - 1.0) > MATERIAL:
             v.rejected.append("star")
             applied = applied.replace(star=v.stated.star * v.star)
-    sub = StarNoise(v.star, v.star_sigma, v.star_dof, sn.frames, sn.q, sn.m, sn.magnitude,
-                    sn.radius, sn.unknown, sn.sigma_px)
-    v.groups = star_groups(sub, half_diagonal)
+    sub = dataclasses.replace(sn, scale=v.star, sigma=v.star_sigma, dof=v.star_dof)
+    v.groups = star_groups(sub, size)
     best = min(v.groups, key=lambda g: g["p_value"], default=None)
     if best is not None and best["p_value"] < ALPHA / (n_tests * len(v.groups)):
         sc = np.asarray(best["scales"], dtype=float)
@@ -582,12 +654,42 @@ def structured(sn: StarNoise) -> str:
     explained (the next round of ``discover``).
     """
     p = sn.structure_p
+    if sn.repeat_removed:
+        return (f"the stars' residuals repeat star by star ({sn.repeat_removed:.2g} px rms): "
+                "the attitude follows the per-star errors of the stars in view, which a "
+                "larger gyro noise would absorb")
     if p >= ALPHA:
         return ""
     rms = math.sqrt(max(sn.structure / max(float(sn.m.sum()), 1.0), 0.0))
     return (f"the stars show a repeating field (cell means chi2 {sn.structure:.0f} / "
             f"{sn.structure_dof} dof, p = {p:.2g}, {rms:.2g} x the noise rms): a missing effect, "
             "measured again once it is added")
+
+
+def repeat_finding(res: Table, mask: np.ndarray, fx: float, fy: float,
+                   centre: tuple[float, float]):
+    """The 'unexplained' test of an error that repeats star by star, on a run's residuals.
+
+    The innovations of ``mask``'s accepted stars, whitened by their predicted σ, minus the
+    frame's attitude fit and the detector cells' means (:func:`star_noise`'s steps), then
+    the χ² of the per-star means against its dof (:func:`star_means`).  Returns a
+    :class:`~stellar_cal_ros.diagnosis.stats.RegressorFinding` (regressor ``catalogue
+    star``, statistic ``(χ² − dof) / √(2 dof)``, unadjusted one-sided p, size = the per-star
+    error's RMS per axis, px), or None when there is nothing to test.
+    """
+    from stellar_cal_ros.diagnosis.stats import RegressorFinding
+
+    ok = mask & ~np.asarray(res["gated"]).astype(bool)
+    if ok.sum() < 20:
+        return None
+    sig = np.sqrt(np.maximum(0.5 * (np.asarray(res["s_uu"], dtype=float)
+                                    + np.asarray(res["s_vv"], dtype=float)), 1e-300))
+    sn = star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok, fx, fy, centre)
+    if sn is None or sn.repeat_dof <= 0:
+        return None
+    z = (sn.repeat - sn.repeat_dof) / math.sqrt(2.0 * sn.repeat_dof)
+    rms = sn.repeat_removed or sn.repeat_rms_px
+    return RegressorFinding("catalogue star", "u, v", float(z), float(sn.repeat_p), float(rms))
 
 
 def stated_scales(calibration) -> NoiseScales:
@@ -633,4 +735,4 @@ def stale(sn: StarNoise | None) -> bool:
     if not known.any():
         return False
     s, e, _ = sn.group(known)
-    return bool(_p_two_sided(s, e) < ALPHA and abs(s - 1.0) > MATERIAL)
+    return bool(p_two_sided(s, e) < ALPHA and abs(s - 1.0) > MATERIAL)

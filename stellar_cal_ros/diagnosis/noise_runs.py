@@ -17,9 +17,10 @@ from stellar_cal_ros.diagnosis.noise import (
     default_sigma,
     far_off,
     judge_stars,
-    search_scale,
+    p_two_sided,
     structured,
 )
+from stellar_cal_ros.diagnosis.noise_imu import imu_sample_scale, search_scale
 from stellar_cal_ros.diagnosis.parallel import Task
 
 
@@ -28,24 +29,30 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
     """Measure the noise scales on ``runs``' bag for the model ``effects`` from ``prior``.
 
     ``base`` is a run of that model with the scales ``runs.noise`` and its stars' noise
-    measured (``Task(star_noise=True)``).  The stars first (no further run), then each IMU
-    component in ``components`` by ML over re-runs with the stars' scale applied.  Returns
-    the verdict; ``verdict.applied`` is what the diagnosis should run with.
+    measured (``Task(star_noise=True)``).  First the IMU's own samples (no run: their
+    sample-to-sample noise, :func:`~.noise.imu_sample_scale`, which no missing effect
+    moves); then the stars (no further run); then each IMU component in ``components`` by
+    ML over re-runs with the stars' scale applied.  Where the samples look white they
+    measure the sensor's noise and the ML is their check: attitude (velocity) motion the
+    stars see beyond the samples' noise is a motion of the tracker against the IMU (or a
+    wandering bias), not sensor noise, and is said as such, not applied.  Returns the
+    verdict; ``verdict.applied`` is what the diagnosis should run with.
     """
     stated = runs.noise or NoiseScales()
     v = NoiseVerdict(stated, stated, method=runs.spec.name)
     n_tests = 1 + len(components)
     cam = prior.camera
     sn = base.star_noise
-    applied = stated
+    applied = _from_samples(v, runs, components, n_tests)
     v.skipped = far_off(base, sn)
     if v.skipped:
         if tell:
             tell(f"noise: {v.skipped}")
+        v.applied = applied
         return v
     if sn is not None:
-        applied = judge_stars(v, sn, default_sigma(runs.spec.name),
-                              math.hypot(cam.width, cam.height) / 2.0, n_tests)
+        applied = judge_stars(v, sn, default_sigma(runs.spec.name), (cam.width, cam.height),
+                              n_tests, applied)
         v.imu_skipped = structured(sn) if components else ""
         if v.imu_skipped:
             components = ()  # said once, in the verdict's lines
@@ -69,9 +76,39 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
                  f"noise: {comp} scale at {'most' if found.bound == 'upper' else 'least'} "
                  f"{found.value:.3g} ({len(found.points)} runs)" if found.bound else
                  f"noise: {comp} scale not measurable on this bag")
-        if (found.measurable or found.bound) and found.p_value < ALPHA / n_tests and \
-                abs(found.value - 1.0) > MATERIAL:
+        significant = (found.measurable or found.bound) and found.p_value < ALPHA / n_tests \
+            and abs(found.value - 1.0) > MATERIAL
+        if comp in v.samples and v.samples[comp]["white"]:
+            # the samples measured the sensor; the stars asking for more is motion, not noise
+            if significant and found.measurable and found.value > 1.0 + BEYOND:
+                v.beyond.append(comp)
+            continue
+        if significant:
             v.rejected.append(comp)
             applied = applied.replace(**{comp: cur * found.value})
     v.applied = applied
     return v
+
+
+#: the stars' ML scale over the samples' above which the excess is motion, not noise
+BEYOND = 0.5
+
+
+def _from_samples(v: NoiseVerdict, runs, components: tuple[str, ...], n_tests: int
+                  ) -> NoiseScales:
+    """The IMU components' scales from their own samples (where they look white)."""
+    from stellar_cal_ros.diagnosis.runstats import load_bag
+
+    applied = v.stated
+    if not components:
+        return applied
+    data = load_bag(runs.bag)
+    for comp in components:
+        s, e, white = imu_sample_scale(data, runs.spec.name, comp, v.stated)
+        if not math.isfinite(s):
+            continue
+        v.samples[comp] = {"scale": float(s), "sigma": float(e), "white": bool(white)}
+        if white and p_two_sided(s, e) < ALPHA / n_tests and abs(s - 1.0) > MATERIAL:
+            v.rejected.append(comp)
+            applied = applied.replace(**{comp: getattr(v.stated, comp) * s})
+    return applied

@@ -11,7 +11,7 @@ from typing import Any
 
 from stellar_cal_ros.diagnosis import stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
-from stellar_cal_ros.diagnosis.noise import not_measured, stated_scales
+from stellar_cal_ros.diagnosis.noise import not_measured, repeat_finding, stated_scales
 from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.io.calibration import Calibration
 
@@ -42,8 +42,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     res = final.residuals if final.residuals is not None else base.residuals
-    unexplained = stats.regressor_tests(res, stats.evaluation_mask(res, fraction), centre,
-                                        focal=(cam.fx, cam.fy))
+    mask = stats.evaluation_mask(res, fraction)
+    unexplained = stats.regressor_tests(
+        res, mask, centre, focal=(cam.fx, cam.fy),
+        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre)])
     summary = summary_dict(base, results, unexplained, spec, effects, fraction)
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(stated_scales(calibration)))

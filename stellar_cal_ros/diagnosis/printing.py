@@ -40,14 +40,24 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
     out: list[str] = []
     for u in summary["unexplained"][:n]:
         size = u.get("change_px")
-        out.append(f"  unexplained: {u['component']} residual vs {u['regressor']} "
+        what = f"{u['component']} residual"
+        span = "across its 5-95 % range"
+        if u["regressor"] == "catalogue star":
+            what, span = "residual repeating", "rms per axis left in the residuals"
+        elif u["component"] == "size":
+            what = "residual spread (size)"
+        out.append(f"  unexplained: {what} vs {u['regressor']} "
               f"(t={u['statistic']:.1f}, p={u['p_value']:.2g}"
-              + (f"; {abs(size):.3g} px across its 5-95 % range" if size is not None else "")
+              + (f"; {abs(size):.3g} px {span}" if size is not None else "")
               + ")")
     if summary["unexplained"]:
         out.append("    (structure no library effect explains: an effect outside the library, "
-              "e.g. a centroid bias with magnitude or a mount bending with gravity; the "
-              "regressor it follows is listed first)")
+              "e.g. a centroid bias with magnitude, a mount bending with gravity, a per-star "
+              "catalogue error; the regressor it follows is listed first)")
+    if any(u["component"] == "size" for u in summary["unexplained"][:n]):
+        out.append("    (a spread that follows a regressor is noise that depends on it, or a "
+                   "bias whose direction changes along it: state the stars' sigma per "
+                   "magnitude / region if it is the noise)")
     return out
 
 

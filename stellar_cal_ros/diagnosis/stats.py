@@ -292,8 +292,8 @@ def _components(sub: Table, du: np.ndarray, dv: np.ndarray, su: np.ndarray,
 
 
 def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, float],
-                    alpha: float = 0.01, focal: tuple[float, float] | None = None
-                    ) -> list[RegressorFinding]:
+                    alpha: float = 0.01, focal: tuple[float, float] | None = None,
+                    extra: list[RegressorFinding] | None = None) -> list[RegressorFinding]:
     """Correlation of residual components (u, v, radial, size) with each regressor.
 
     One frame-robust score test per pair (:func:`frame_robust_t`: the frames, not the
@@ -306,7 +306,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     property of the frame (time, rate, temperature, gravity) is tested on the innovations.
     Only pairs significant at ``alpha`` after correction are returned, strongest first,
     each with the size of the structure (the residual's change across the regressor's
-    5–95 % range, px).
+    5–95 % range, px).  ``extra``: further tests (unadjusted p) in the same family, e.g.
+    the per-star repeat of :func:`~stellar_cal_ros.diagnosis.noise.repeat_finding`.
     """
     m = mask & accepted(res)
     if m.sum() < 20:
@@ -341,6 +342,7 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
             lo, hi = np.percentile(x[ok2], [5, 95])
             slope = np.polyfit(x[ok2], y_px[ok2], 1)[0] * (hi - lo)
             tests.append(RegressorFinding(rname, cname, float(tstat), float(p), float(slope)))
+    tests += [t for t in (extra or []) if t is not None]
     m_tests = max(len(tests), 1)
     found = []
     for tst in tests:

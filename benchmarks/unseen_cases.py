@@ -1,0 +1,302 @@
+r"""Cases the diagnosis was not built on (issue 21 acceptance): is the user told the truth.
+
+Each case is a bag a user could bring: a right model whose noise is stated wrongly in a way
+the noise table of doc/benchmarks.md does not cover (per magnitude, in one region of the
+detector, a constant σ for noise that grows with magnitude, the IMU's noise with or without
+a real library effect, the swaying-base method), or an effect that no library effect models
+(a centroid bias growing with magnitude, a mount flexing with gravity, a periodic attitude
+wobble, a per-star catalogue position error).  Every bag is diagnosed through the CLI as a
+new user would::
+
+    stellar-cal discover BAG.mcap --calibration BAG.prior.yaml --method M --auto \
+        -o BAG.d --no-plots --workers 0
+
+and the table gives what the terminal and ``diagnosis.json`` say against the truth, with a
+verdict: ``ok`` when the noise named (and its scale) and the effects added are the truth
+and no library name is given to an effect outside the library.
+
+Run::
+
+    .venv/bin/python benchmarks/unseen_cases.py OUT                  # every case
+    .venv/bin/python benchmarks/unseen_cases.py OUT --cases mag2x,flex
+    .venv/bin/python benchmarks/unseen_cases.py OUT --list
+
+Bags are written once into OUT (kept: re-running only re-diagnoses; ``--rewrite`` writes
+them again).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from stellar_cal_ros.diagnosis.injection import SWAY_CLEAN
+from stellar_cal_ros.sim.scenarios import get_scenario
+from stellar_cal_ros.sim.world import simulate, write_simulation
+
+#: the scenarios' stated centroid σ (px) and their pixel scale (arcsec / px)
+PSCE_SIGMA = 0.05
+ARCSEC_PER_PX = 206264.806 / (25.6 / 0.00645)
+
+
+@dataclass
+class Case:
+    """One unseen case: how its bag is made and what is true."""
+
+    method: str  #: psce or swaying_base
+    truth: str  #: what is true, in words
+    #: the noise the diagnosis should name: component -> scale, or {} (noise as stated)
+    noise: dict[str, float] = field(default_factory=dict)
+    #: library effects the diagnosis should add (and nothing else)
+    effects: tuple[str, ...] = ()
+    #: the effect lies outside the library: its structure should come out as 'unexplained'
+    outside: bool = False
+    #: the regressor that carries the out-of-library structure (ranked first), or ""
+    regressor: str = ""
+    #: stars' σ grouping the noise should find ("magnitude", "radius", ...), or ""
+    group_by: str = ""
+    scenario_changes: dict = field(default_factory=dict)  #: Scenario fields changed
+    sim_effects: dict = field(default_factory=dict)  #: --effect values of the simulation
+    #: post-processing of the simulation (true noise, message σ, catalogue, wobble)
+    post: Callable | None = None
+    duration: float = 300.0
+
+
+def _renoise(sim, true_sigma: Callable, stated: float, seed: int) -> None:
+    """Add per-star noise ``true_sigma(mag, uv)`` to noise-free centroids; σ field ``stated``."""
+    rng = np.random.default_rng(seed + 7919)
+    for f in sim.star_frames:
+        mag = np.asarray(f.magnitude, dtype=float)
+        s = true_sigma(mag, np.asarray(f.uv, dtype=float))
+        f.uv = np.asarray(f.uv, dtype=float) + s[:, None] * rng.standard_normal(f.uv.shape)
+        f.sigma = np.full(len(mag), stated)
+
+
+def _sigma_field(factor: float) -> Callable:
+    def post(sim, seed):
+        for f in sim.star_frames:
+            f.sigma = np.asarray(f.sigma, dtype=float) * factor
+    return post
+
+
+def _mag2x(sim, seed):
+    # bright stars (mag < 4.5) as stated, faint stars (mag >= 4.5) twice the stated σ
+    _renoise(sim, lambda m, uv: np.where(m < 4.5, PSCE_SIGMA, 2.0 * PSCE_SIGMA), PSCE_SIGMA,
+             seed)
+
+
+def _region(sim, seed):
+    # the right third of the detector (u > 2/3 of the width): twice the stated σ
+    w = sim.prior.camera.width
+    _renoise(sim, lambda m, uv: np.where(uv[:, 0] > 2.0 * w / 3.0, 2.0 * PSCE_SIGMA,
+                                         PSCE_SIGMA), PSCE_SIGMA, seed)
+
+
+def _magslope(sim, seed):
+    # true σ doubles every 2 magnitudes (0.025 px at mag 2, 0.05 at 4, 0.1 at 6); the
+    # messages state a constant 0.05 px
+    _renoise(sim, lambda m, uv: PSCE_SIGMA * 2.0 ** ((np.nan_to_num(m, nan=4.0) - 4.0) / 2.0),
+             PSCE_SIGMA, seed)
+
+
+def _wobble(sim, seed, amplitude_px=0.1, period_s=45.0):
+    # the tracker wobbles against the IMU (no gyro sees it): every star of a frame shifted by
+    # (a sin, a cos) of a 45 s period (a small rotation about the tracker's x and y axes)
+    t0 = sim.star_frames[0].stamp_ns
+    for f in sim.star_frames:
+        ph = 2.0 * np.pi * (f.stamp_ns - t0) * 1e-9 / period_s
+        f.uv = np.asarray(f.uv, dtype=float) + amplitude_px * np.array([np.sin(ph),
+                                                                        np.cos(ph)])
+
+
+def _catalogue(sim, seed, arcsec=2.0):
+    # every catalogue star's position in the messages is off by its own fixed error
+    # (N(0, 2") per axis): the tracker's catalogue, not the sky
+    rng = np.random.default_rng(seed + 104729)
+    off: dict[int, np.ndarray] = {}
+    rad = np.deg2rad(arcsec / 3600.0)
+    for f in sim.star_frames:
+        ra = np.asarray(f.right_ascension, dtype=float).copy()
+        dec = np.asarray(f.declination, dtype=float).copy()
+        for i, cid in enumerate(np.asarray(f.catalog_id).tolist()):
+            d = off.setdefault(int(cid), rad * rng.standard_normal(2))
+            ra[i] += d[0] / max(np.cos(dec[i]), 1e-6)
+            dec[i] += d[1]
+        f.right_ascension, f.declination = ra, dec
+
+
+CASES: dict[str, Case] = {
+    # ---- noise stated wrongly, the model right
+    "mag2x": Case("psce", "faint stars (mag >= 4.5) 2x the stated 0.05 px, bright as stated",
+                  noise={"star": 0.0}, group_by="magnitude", post=_mag2x,
+                  scenario_changes={"centroid_noise_px": 0.0}),
+    "region": Case("psce", "right third of the detector (u > 683 px) 2x the stated 0.05 px",
+                   noise={"star": 0.0}, group_by="column", post=_region,
+                   scenario_changes={"centroid_noise_px": 0.0}),
+    "magslope": Case("psce", "true sigma 0.05 * 2^((mag - 4) / 2) px, stated 0.05 px "
+                     "constant", noise={"star": 0.0}, group_by="magnitude", post=_magslope,
+                     scenario_changes={"centroid_noise_px": 0.0}),
+    "sway_accel5": Case("swaying_base", "accelerometer VRW 5x the stated",
+                        noise={"accel": 5.0}, scenario_changes={"accel_vrw_mps_sqrth": 5.0},
+                        sim_effects=dict(SWAY_CLEAN), duration=200.0),
+    "gyro3_gsf": Case("psce", "gyro ARW 3x the stated + gyro_scale_factor 300 ppm (z)",
+                      noise={"gyro": 3.0}, effects=("gyro_scale_factor",),
+                      scenario_changes={"gyro_arw_deg_sqrth": 3.0},
+                      sim_effects={"gyro_scale_factor": [0.0, 0.0, 3e-4]}),
+    "s07_aspect": Case("psce", "stars' sigma field 0.7x the true 0.05 px + pixel_aspect 300 ppm",
+                       noise={"star": 1.0 / 0.7}, effects=("pixel_aspect",),
+                       sim_effects={"pixel_aspect": 3e-4}, post=_sigma_field(0.7)),
+    "sway_s06": Case("swaying_base", "stars' sigma field 0.6x the true 0.058 px",
+                     noise={"star": 1.0 / 0.6}, sim_effects=dict(SWAY_CLEAN),
+                     post=_sigma_field(0.6), duration=200.0),
+    # ---- effects outside the library
+    "magbias": Case("psce", "centroid bias 0.02 px per magnitude from mag 4, along 30 deg "
+                    "(not in the library)", outside=True, regressor="magnitude",
+                    sim_effects={"magnitude_bias": [0.02, 30.0]}),
+    "flex": Case("psce", "mount flexure 5 arcsec per unit lateral gravity (not in the library)",
+                 outside=True, regressor="gravity",
+                 sim_effects={"mount_flexure": 5.0}),
+    "wobble": Case("psce", "tracker wobble 0.1 px (5 arcsec), 45 s period, not seen by the "
+                   "gyro (not in the library)", outside=True, regressor="time",
+                   post=_wobble),
+    "catalogue": Case("psce", "per-star catalogue position error N(0, 2 arcsec) per axis "
+                      "(not in the library)", outside=True, regressor="catalogue star",
+                      post=_catalogue),
+}
+
+
+def write_case(name: str, out: Path, seed: int) -> dict[str, Path]:
+    """Simulate case ``name`` and write ``OUT/name.mcap`` with its prior."""
+    case = CASES[name]
+    sc = get_scenario({"psce": "psce_rotations", "swaying_base": "swaying"}[case.method])
+    changes = {}
+    for k, v in case.scenario_changes.items():  # factors of the scenario's value, 0: zero
+        changes[k] = getattr(sc, k) * v if v else 0.0
+    sc = dataclasses.replace(sc, **changes)
+    sim = simulate(sc, duration=case.duration, seed=seed, effects=case.sim_effects)
+    if case.post is not None:
+        case.post(sim, seed)
+    return write_simulation(sim, out / f"{name}.mcap")
+
+
+def diagnose_case(name: str, out: Path) -> dict:
+    """``stellar-cal discover --auto`` on the case's bag; terminal lines and the summary."""
+    case = CASES[name]
+    bag = out / f"{name}.mcap"
+    d = out / f"{name}.d"
+    exe = Path(sys.executable).with_name("stellar-cal")
+    cmd = [str(exe), "discover", str(bag), "--calibration", str(out / f"{name}.prior.yaml"),
+           "--method", case.method, "--auto", "-o", str(d), "--no-plots", "--workers", "0"]
+    t0 = time.time()
+    p = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
+    summ = {}
+    if (d / "diagnosis.json").exists():
+        summ = json.loads((d / "diagnosis.json").read_text())
+    return {"cmd": " ".join(["stellar-cal"] + cmd[1:]), "rc": p.returncode,
+            "stdout": p.stdout, "stderr": p.stderr, "summary": summ,
+            "wall": time.time() - t0}
+
+
+def _rounds(summ: dict) -> list[dict]:
+    return summ.get("rounds") or [summ]
+
+
+def said(r: dict) -> dict:
+    """What the user is told: noise lines, effects added, unexplained lines, traceback."""
+    s = r["summary"]
+    noise_lines, unexplained, added = [], [], []
+    for line in r["stdout"].splitlines():
+        low = line.lower()
+        if ("sigma" in low or "noise" in low) and ("looks" in low or "depends" in low or
+                                                   "as stated" in low or "taken" in low):
+            noise_lines.append(line.strip())
+        if "unexplained:" in low:
+            unexplained.append(line.strip())
+    added = list(s.get("added", s.get("effects_added", []))) if s else []
+    return {"noise": noise_lines, "unexplained": unexplained, "added": added,
+            "traceback": "Traceback" in r["stderr"] or r["rc"] not in (0,)}
+
+
+def judge(name: str, r: dict) -> list[str]:
+    """What in the report misleads the user ([] when it is the truth)."""
+    case = CASES[name]
+    w = said(r)
+    bad = []
+    if w["traceback"]:
+        bad.append(f"exit {r['rc']}: {r['stderr'].strip().splitlines()[-1:]}")
+        return bad
+    noise = (r["summary"].get("noise") or {})
+    applied = noise.get("applied") or {}
+    extra = [e for e in w["added"] if e not in case.effects]
+    missing = [e for e in case.effects if e not in w["added"]]
+    if extra:
+        bad.append(f"added {extra} (not in the truth)")
+    if missing:
+        bad.append(f"missed {missing}")
+    keys = {"star": "star_sigma_scale", "gyro": "gyro_noise_scale", "accel": "accel_noise_scale"}
+    for comp, key in keys.items():
+        want = case.noise.get(comp)
+        got = float(applied.get(key, 1.0))
+        if want is None and abs(got - 1.0) > 0.1 and not case.outside:
+            bad.append(f"{comp} noise rescaled x{got:.3g} (stated right)")
+        elif want and abs(got / want - 1.0) > 0.15:
+            bad.append(f"{comp} scale x{got:.3g}, truth x{want:.3g}")
+    if case.group_by:
+        grp = (applied.get("star_sigma_groups") or {}).get("by", "")
+        if grp != case.group_by:
+            bad.append(f"stars' sigma grouped by {grp or 'nothing'}, truth {case.group_by}")
+    if case.outside:
+        if not w["unexplained"]:
+            bad.append("no 'unexplained' line")
+        elif case.regressor and case.regressor not in w["unexplained"][0]:
+            bad.append(f"first 'unexplained' line is not {case.regressor}")
+    elif w["unexplained"]:
+        bad.append(f"{len(w['unexplained'])} 'unexplained' lines on a case without structure")
+    return bad
+
+
+def main() -> int:
+    """Write the bags, diagnose them, print the table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--seed", type=int, default=21)
+    ap.add_argument("--rewrite", action="store_true")
+    ap.add_argument("--list", action="store_true")
+    a = ap.parse_args()
+    if a.list:
+        for k, c in CASES.items():
+            print(f"{k:12s} {c.method:13s} {c.truth}")
+        return 0
+    rows = []
+    for name in a.cases.split(","):
+        if a.rewrite or not (a.out / f"{name}.mcap").exists():
+            write_case(name, a.out, a.seed)
+        r = diagnose_case(name, a.out)
+        (a.out / f"{name}.terminal.txt").write_text(r["stdout"] + r["stderr"])
+        bad = judge(name, r)
+        w = said(r)
+        rows.append((name, r, w, bad))
+        print(f"== {name}: {CASES[name].truth}\n   $ {r['cmd']}\n   noise: "
+              + (" | ".join(w["noise"]) or "-") + f"\n   added: {w['added']}\n   unexplained: "
+              + (" | ".join(w["unexplained"][:3]) or "-")
+              + f"\n   verdict: {'ok' if not bad else '; '.join(bad)}  [{r['wall']:.0f} s]",
+              flush=True)
+    print(f"\n{'case':12s} {'verdict':60s}")
+    for name, _, _, bad in rows:
+        print(f"{name:12s} {'ok' if not bad else '; '.join(bad)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

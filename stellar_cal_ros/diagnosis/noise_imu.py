@@ -1,0 +1,183 @@
+"""The IMU's noise scales: maximum likelihood over re-runs, and the IMU's own samples.
+
+Part of noise as a hypothesis (:mod:`~stellar_cal_ros.diagnosis.noise`, whose doc says
+why): the gyro (accelerometer) noise scale by maximum likelihood on the stars'
+innovations over re-runs of the model (:func:`search_scale`), and the white noise of the
+IMU's own samples (:func:`imu_sample_scale`: second differences, a robust scale), which no
+missing effect of the stars' model moves and which is therefore the check of the first.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats as sps
+
+from stellar_cal_ros.core.noise import NoiseScales
+
+#: the gyro / accelerometer scale search range (ln of the scale)
+LN_RANGE = math.log(300.0)
+#: log-likelihood change below which a scale search sees nothing (a third of the χ²₁ 5 %
+#: half-width: over a factor of 9 of the scale the data would have moved it far more)
+FLAT = 0.5
+
+
+# ----------------------------------------------------------------------------- IMU (ML)
+@dataclass
+class ScaleSearch:
+    """Maximum-likelihood search of one noise scale over re-runs."""
+
+    name: str  #: "gyro" or "accel"
+    points: dict[float, float] = field(default_factory=dict)  #: ln scale → log-likelihood
+    value: float = 1.0
+    sigma: float = math.nan  #: σ of the scale (delta method from σ of its log)
+    statistic: float = 0.0  #: 2 (ℓ(ŝ) − ℓ(1))
+    p_value: float = 1.0
+    measurable: bool = True  #: the likelihood has a maximum in range
+    #: when it has none: "upper" (the scale is at most :attr:`value`, 95 %) or "lower"
+    bound: str = ""
+
+    def fit(self) -> tuple[float, float]:
+        """Vertex and curvature of the parabola through the three points nearest the best."""
+        xs = np.array(sorted(self.points))
+        ls = np.array([self.points[x] for x in xs])
+        best = int(np.argmax(ls))
+        lo = min(max(best - 1, 0), max(len(xs) - 3, 0))
+        x3, l3 = xs[lo:lo + 3], ls[lo:lo + 3]
+        if len(x3) < 3:
+            return float(xs[best]), 0.0
+        a, b, _ = np.polyfit(x3, l3, 2)
+        if a >= 0:  # no interior maximum here
+            return float(xs[best]), 0.0
+        return float(-b / (2 * a)), float(-2 * a)
+
+
+def search_scale(name: str, loglik, start: float = 0.0, step: float = math.log(3.0),
+                 max_runs: int = 9, known: dict[float, float] | None = None) -> ScaleSearch:
+    """ML scale of one noise component: ``loglik([ln s, ...]) -> [ℓ, ...]`` runs a batch.
+
+    Three points around ``start`` (ln of the scale), then the parabola's vertex, moved by
+    whole steps until the best point is inside, then refined once at the vertex (at most
+    ``max_runs`` runs); σ of ln s from the curvature, the test of "as stated" is the
+    likelihood ratio of the vertex against ln s = 0.  ``known``: points already run.
+    """
+    out = ScaleSearch(name, dict(known or {}))
+
+    def run(xs: list[float]) -> None:
+        xs = [float(np.clip(x, -LN_RANGE, LN_RANGE)) for x in xs]
+        new = [x for x in dict.fromkeys(xs) if not any(abs(x - y) < 1e-3 for y in out.points)]
+        if new:
+            out.points.update(zip(new, loglik(new), strict=True))
+
+    run([0.0, start - step, start + step] if start else [-step, 0.0, step])
+    first = np.array(list(out.points.values()))
+    if np.ptp(first) < FLAT:
+        # the likelihood does not move over a factor of 9 of the scale: nothing to measure
+        out.measurable = False
+        out.sigma = math.inf
+        return out
+    while len(out.points) < max_runs:
+        xs = sorted(out.points)
+        best = max(xs, key=out.points.get)
+        if best == xs[0] and best > -LN_RANGE + 1e-6:
+            run([best - 2 * step])
+        elif best == xs[-1] and best < LN_RANGE - 1e-6:
+            run([best + 2 * step])
+        else:
+            break
+    x_hat, curv = out.fit()
+    # refine at the vertex unless "as stated" is already the best point by far (the first
+    # three runs then settle it: a clean bag costs two runs)
+    settled = max(out.points, key=out.points.get) == 0.0 and abs(x_hat) < 0.5 * step
+    if not settled and curv > 0 and min(out.points) < x_hat < max(out.points) and \
+            min(abs(x_hat - x) for x in out.points) > 0.05 and len(out.points) < max_runs:
+        run([x_hat])
+        x_hat, curv = out.fit()
+    xs = sorted(out.points)
+    ls = np.array([out.points[x] for x in xs])
+    l_max = float(ls.max())
+    out.statistic = float(max(2.0 * (l_max - out.points[0.0]), 0.0))
+    out.p_value = float(sps.chi2.sf(out.statistic, 1))
+    sig_ln = 1.0 / math.sqrt(curv) if curv > 0 else math.inf
+    inside = xs[0] < x_hat < xs[-1]
+    if curv > 0 and inside and sig_ln <= math.log(3.0):
+        out.value = float(math.exp(x_hat))
+        out.sigma = out.value * sig_ln
+        return out
+    # no interior maximum: the likelihood rises to a plateau at one end (e.g. a gyro noise
+    # far below what the stars can see): only a one-sided 95 % bound is measurable
+    out.measurable = False
+    out.sigma = math.inf
+    low, high = ls[0] >= l_max - 0.5, ls[-1] >= l_max - 0.5  # a plateau reaching an end
+    if 0.0 < out.statistic and low != high:
+        best = 0 if low else len(xs) - 1
+        out.bound = "upper" if low else "lower"
+        cut = l_max - 0.5 * float(sps.chi2.isf(0.05, 1))
+        order = range(best, len(xs)) if best == 0 else range(best, -1, -1)
+        prev = None
+        for i in order:
+            if ls[i] < cut and prev is not None:  # interpolate the crossing
+                f = (ls[prev] - cut) / max(ls[prev] - ls[i], 1e-300)
+                out.value = float(math.exp(xs[prev] + f * (xs[i] - xs[prev])))
+                break
+            prev = i
+        else:
+            out.bound = ""
+    return out
+
+
+# ----------------------------------------------------------------------------- IMU (samples)
+#: the samples' second differences look white when their lag-1 correlation is within this
+#: of white noise's −2/3 (an IMU that low-pass filters its output has far stronger
+#: correlation, and its sample-to-sample noise says nothing about its random walk)
+WHITE_TOLERANCE = 0.08
+
+
+def sample_noise(samples: np.ndarray) -> tuple[float, float, bool]:
+    """The white noise σ of an IMU's own samples (per sample), its σ, whether they look white.
+
+    Second differences cancel any motion smooth over two sample intervals and leave
+    ``6 σ²`` of white noise; a robust scale (MAD) per axis ignores the few samples at a
+    slew's corners; the axes' median is the estimate.  The samples look white when the
+    second differences' lag-1 correlation is −2/3 ± :data:`WHITE_TOLERANCE`.
+    """
+    x = np.asarray(samples, dtype=float)
+    x = x[np.all(np.isfinite(x), axis=1)]
+    if len(x) < 100:
+        return math.nan, math.nan, False
+    d = np.diff(x, n=2, axis=0)
+    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0) * 1.4826 / math.sqrt(6.0)
+    sigma = float(np.median(mad))
+    # the MAD's relative σ for a normal sample is ~1.17/√(2N); the second differences are
+    # correlated (their effective count is ~N/2.4)
+    err = sigma * 1.17 / math.sqrt(2.0 * len(d) / 2.4 * 3)
+    dc = np.clip(d - np.median(d, axis=0), -4 * mad * math.sqrt(6), 4 * mad * math.sqrt(6))
+    rho = float(np.median([np.corrcoef(dc[1:, k], dc[:-1, k])[0, 1] for k in range(d.shape[1])]))
+    return sigma, err, abs(rho + 2.0 / 3.0) < WHITE_TOLERANCE
+
+
+def imu_sample_scale(data, method: str, comp: str, stated: NoiseScales
+                     ) -> tuple[float, float, bool]:
+    """(scale, σ, white) of ``comp`` ("gyro" / "accel") from the IMU's own samples.
+
+    The scale is the samples' white noise over the per-sample σ the run assumes (the
+    method's random walk times ``stated``'s scale, at the bag's IMU rate).
+    """
+    from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
+    from stellar_cal_ros.methods import registry as methods
+
+    cfg = methods.get(method).config_cls()
+    dt = float(np.median(np.diff(data.imu_t))) if len(data.imu_t) > 2 else math.nan
+    if comp == "gyro":
+        per_sample = cfg.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR * stated.gyro
+        samples = data.imu_w
+    else:
+        per_sample = getattr(cfg, "accel_vrw_mps_sqrth", math.nan) / 60.0 * stated.accel
+        samples = data.imu_f
+    if not (dt > 0 and per_sample > 0):
+        return math.nan, math.nan, False
+    per_sample /= math.sqrt(dt)
+    sigma, err, white = sample_noise(samples)
+    return sigma / per_sample, err / per_sample, white
