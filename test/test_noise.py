@@ -219,3 +219,20 @@ def test_error_repeating_star_by_star_is_not_noise():
     assert chi2 - dof == pytest.approx(float((off**2).sum()), rel=0.1)
     s2 = float((rest**2).sum() / (2 * share2.sum()))
     assert s2 == pytest.approx(1.0, abs=0.03)  # the scale without the repeat: as stated
+
+
+def test_spread_left_by_the_noise_groups_is_noise_not_a_lead():
+    """Unseen case 'mag2x': after the magnitude groups are applied, the residuals' spread
+    still follows magnitude inside the bin the true step cuts; that line goes with the
+    noise, while a bias (u, v) along magnitude stays an 'unexplained' lead."""
+    from stellar_cal_ros.diagnosis.stats import RegressorFinding
+
+    size = RegressorFinding("magnitude", "size", 4.2, 1e-3, 0.06)
+    bias = RegressorFinding("magnitude", "u", 6.0, 1e-6, 0.1)
+    other = RegressorFinding("u (column)", "size", 5.0, 1e-4, 0.07)
+    v = noise.NoiseVerdict(NoiseScales(), NoiseScales())
+    assert noise.within_groups([size, bias], v) == ([size, bias], [])
+    v.group = {"by": "magnitude"}
+    assert noise.within_groups([size, bias, other], v) == ([bias, other], [size])
+    v.group = {"by": "column"}
+    assert noise.within_groups([size, bias, other], v) == ([size, bias], [other])

@@ -692,6 +692,27 @@ def repeat_finding(res: Table, mask: np.ndarray, fx: float, fy: float,
     return RegressorFinding("catalogue star", "u, v", float(z), float(sn.repeat_p), float(rms))
 
 
+#: the residual regressor of each grouping of the stars' σ
+GROUP_REGRESSOR = {"magnitude": "magnitude", "radius": "radius", "column": "u (column)",
+                   "row": "v (row)"}
+
+
+def within_groups(findings: list, verdict: NoiseVerdict | None) -> tuple[list, list]:
+    """Split 'unexplained' findings: ``(kept, spread the noise groups leave)``.
+
+    When the stars' σ was applied per group of a regressor (magnitude, radius, column, row),
+    a residual *spread* (the ``size`` component) that still follows that regressor is the
+    noise varying within the groups (a step at 4.5 mag falls inside one bin), not an effect
+    outside the library: it is said with the noise, not as an 'unexplained' lead.
+    """
+    group = getattr(verdict, "group", None)
+    if not group:
+        return list(findings), []
+    reg = GROUP_REGRESSOR.get(group["by"])
+    spread = [f for f in findings if f.component == "size" and f.regressor == reg]
+    return [f for f in findings if f not in spread], spread
+
+
 def stated_scales(calibration) -> NoiseScales:
     """The scales a calibration's run used (its consistency block), identity if none."""
     cons = (getattr(calibration, "extra", None) or {}).get("consistency") or {}

@@ -11,7 +11,12 @@ from typing import Any
 
 from stellar_cal_ros.diagnosis import stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
-from stellar_cal_ros.diagnosis.noise import not_measured, repeat_finding, stated_scales
+from stellar_cal_ros.diagnosis.noise import (
+    not_measured,
+    repeat_finding,
+    stated_scales,
+    within_groups,
+)
 from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.io.calibration import Calibration
 
@@ -46,9 +51,19 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     unexplained = stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
         extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre)])
+    unexplained, spread = within_groups(unexplained, verdict)
     summary = summary_dict(base, results, unexplained, spec, effects, fraction)
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(stated_scales(calibration)))
+    if spread:
+        summary["noise"]["residual_spread"] = [
+            {"regressor": f.regressor, "statistic": f.statistic, "p_value": f.p_value,
+             "change_px": f.slope_px} for f in spread]
+        summary["noise"]["verdict"] = list(summary["noise"]["verdict"]) + [
+            f"the residuals' spread still follows {f.regressor} (t={f.statistic:.1f}, "
+            f"p={f.p_value:.2g}): the noise varies within the {verdict.group['by']} groups "
+            "applied (a per-star sigma in the messages would follow it), not an effect"
+            for f in spread]
     best = next((c for c in results if c.significant_alone), None)
     summary["recommendation"] = best.effect if best is not None else None
     if best is None:
