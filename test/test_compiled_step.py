@@ -93,23 +93,31 @@ def test_one_prediction_equals_the_numpy_chain(sim_data) -> None:
         _close(ctx_a.R_i_st, ctx_b.R_i_st)
 
 
-def test_direction_effects_predict_equal_the_numpy_chain(sim_data) -> None:
-    """The astrometric DIRECTION effects (``u' = u + s Δ``, Δ per frame) in the compiled
+@pytest.mark.parametrize("estimated, fixed", [
+    (["aberration", "refraction", "pixel_aspect", "thermal_focal_length"],
+     {"proper_motion": {"scale": 0.7}}),
+    (["aberration", "pixel_aspect"],
+     {"thermal_focal_length": {"coefficient_per_c": 3e-5, "reference_temperature_c": 10.0}})])
+def test_direction_and_bilinear_effects_predict_equal_the_numpy_chain(sim_data, estimated,
+                                                                      fixed) -> None:
+    """The astrometric DIRECTION effects (``u' = u + s Δ``, Δ per frame) and the bilinear
+    camera effects (pixel aspect, thermal focal length: ``BilinearCamera``) in the compiled
     chain: centroids and every Jacobian column equal :meth:`StarModel.predict`'s, with the
-    effects estimated and with one of them fixed at its prior value (a prior's effects
-    block)."""
+    effects estimated and fixed at a prior value (a prior's effects block)."""
     from stellar_cal_ros.methods.star_model import StarModel
 
     sim, data = sim_data
     fr = data.frames[len(data.frames) // 2]
     prior = copy.deepcopy(sim.prior)
-    prior.effects = {"proper_motion": {"scale": 0.7}}
-    model = StarModel(registry.create_many(["installation", "focal_length", "aberration",
-                                            "refraction"]), prior)
+    prior.effects = fixed
+    model = StarModel(registry.create_many(["installation", "focal_length", "radial_k1k2",
+                                            *estimated]), prior)
     assert model.compiled_chain() is not None and model.fixed_effects
     theta = model.initial_value.copy()
-    theta[model.slices["aberration"]] = 0.8
-    theta[model.slices["refraction"]] = 1.3
+    for eid, v in (("aberration", 0.8), ("refraction", 1.3), ("pixel_aspect", 2e-3),
+                   ("thermal_focal_length", 4e-5)):
+        if eid in model.slices:
+            theta[model.slices[eid]] = v
     ok = np.isfinite(fr.right_ascension)
     u = np.column_stack([np.cos(fr.declination) * np.cos(fr.right_ascension),
                          np.cos(fr.declination) * np.sin(fr.right_ascension),
@@ -121,14 +129,15 @@ def test_direction_effects_predict_equal_the_numpy_chain(sim_data) -> None:
 
     def ctx():
         return FrameContext(stamp=fr.stamp_ns * 1e-9, catalog_id=fr.catalog_id[ok].astype(int),
-                            site=data.site, pressure_pa=95000.0, air_temperature_c=5.0)
+                            site=data.site, pressure_pa=95000.0, air_temperature_c=5.0,
+                            head_temperature_c=27.0)
 
     for ph in (None, np.array([1e-4, -2e-4, 3e-4])):
         a = model.predict_state(theta, u, ctx(), R, np.zeros(3), 0.0, ph, compiled=True)
         b = model.predict_state(theta, u, ctx(), R, np.zeros(3), 0.0, ph, compiled=False)
         for name in ("uv", "H_attitude", "H_parameters", "directions_st"):
             _close(getattr(a, name), getattr(b, name))
-        for eid in ("aberration", "refraction"):  # the DIRECTION columns are there
+        for eid in estimated:  # their columns are there
             assert np.max(np.abs(a.H_parameters[:, :, model.slices[eid]])) > 0
 
 

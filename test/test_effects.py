@@ -252,6 +252,27 @@ def test_other_stages_are_neutral(eid, sim, stars):
         assert not np.any(J) and np.array_equal(D, np.eye(18))
 
 
+@pytest.mark.parametrize("eid", ["pixel_aspect", "thermal_focal_length"])
+def test_bilinear_camera_form_is_the_effect(eid, sim, stars):
+    """``BilinearCamera`` (the compiled chain's form) gives the effect's own camera
+    parameters and both Jacobians, at any value, camera and frame."""
+    from stellar_cal_ros.effects.base import BilinearCamera
+
+    eff = registry.create(eid)
+    form = eff.affine_form()
+    assert isinstance(form, BilinearCamera)
+    ctx, p = make_ctx(stars), camera_p()
+    s = eff.camera_scale(ctx)
+    for value in (np.array([0.0]), np.array([3e-3]), np.array([-2e-5])):
+        M = form.D0 + np.einsum("j,jab->ab", value * s, form.Dv)
+        np.testing.assert_allclose(M @ p + form.J0 @ value,
+                                   eff.camera_parameters(value, p, ctx), rtol=1e-15)
+        J, D = eff.camera_jacobian(value, p, ctx)
+        np.testing.assert_allclose(M, D, rtol=0, atol=1e-15)
+        Jf = np.einsum("j,jab,b->aj", s, form.Dv, p) + form.J0
+        np.testing.assert_allclose(Jf, J, rtol=1e-15)
+
+
 # ------------------------------------------------------------------ physics of the directions
 def test_direction_effects_at_scale_one_are_the_astrometry(stars):
     ids, u_i, _ = stars
@@ -285,6 +306,38 @@ def test_direction_cache_follows_content_not_identity(stars):
         np.testing.assert_allclose(got, fresh, rtol=0, atol=1e-15)
         sub = eff.directions_jacobian(np.ones(1), u_i[:4], ctx)  # a subset, same context
         assert sub.shape == (4, 3, 1)
+
+
+def test_direction_table_of_a_bag_equals_each_frame(stars):
+    """``prepare`` (every star of a bag in one pyerfa call) gives each frame the Δ its own
+    call gives, for every star or a subset in another order; a frame whose context differs
+    from what was prepared (weather, site, a star not there) is computed, not looked up."""
+    ids, u_i, _ = stars
+    stamps = T0 + np.array([40.0, 100.0, 160.0])
+    u_frames = [u_i[:-1], u_i, u_i[1:]]
+    id_frames = [ids[:-1], ids, ids[1:]]
+    for eid in ("aberration", "refraction", "proper_motion"):
+        eff, ref = registry.create(eid), registry.create(eid)
+        eff.prepare(stamps, id_frames, u_frames, SITE, np.full(3, 101200.0), np.full(3, 5.0))
+        for sub in (slice(None), [4, 1, 0, 7, 2, 8]):
+            ctx = make_ctx(stars)
+            ctx.catalog_id = ids[sub]
+            got = eff._prepared(u_i[sub], ctx)
+            assert got is not None
+            np.testing.assert_array_equal(got, ref.delta(u_i[sub], make_ctx(stars) if
+                                                         sub == slice(None) else ctx))
+        ctx = make_ctx(stars)
+        ctx.site = None
+        assert eff._prepared(u_i, ctx) is None
+        ctx = make_ctx(stars)
+        ctx.catalog_id = ids + 1  # other stars
+        assert eff._prepared(u_i, ctx) is None
+        ctx = make_ctx(stars)
+        ctx.pressure_pa = 90000.0
+        assert (eff._prepared(u_i, ctx) is None) == (eid == "refraction")
+        ctx = make_ctx(stars)
+        ctx.catalog_id = ids[:4]  # few stars: pyerfa exact, not the bag's interpolation
+        assert eff._prepared(u_i[:4], ctx) is None
 
 
 def test_proper_motion_without_identifications(stars):

@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import erfa
 import numpy as np
@@ -110,9 +111,14 @@ def posix_to_jyear(t: ArrayLike) -> NDArray[np.float64]:
     return np.asarray(erfa.epj(tt1, tt2))
 
 
-def _jyear_to_jd(epoch_jyear: float) -> tuple[float, float]:
-    """Two-part JD (TT) of a Julian epoch: ``(2451545, 365.25 (epoch - 2000))``."""
-    return 2451545.0, (float(epoch_jyear) - 2000.0) * 365.25
+def _jyear_to_jd(epoch_jyear: ArrayLike) -> tuple[float, Any]:
+    """Two-part JD (TT) of a Julian epoch: ``(2451545, 365.25 (epoch - 2000))``.
+
+    A float for a scalar epoch; an array (one epoch per star) otherwise.
+    """
+    if np.ndim(epoch_jyear) == 0:
+        return 2451545.0, (float(epoch_jyear) - 2000.0) * 365.25
+    return 2451545.0, (np.asarray(epoch_jyear, dtype=float) - 2000.0) * 365.25
 
 
 @dataclass
@@ -162,14 +168,15 @@ class StarCatalog:
         )
 
     def propagate(
-        self, epoch_jyear: float
+        self, epoch_jyear: ArrayLike
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Propagate the astrometry to another epoch by rigorous space motion.
 
         Parameters
         ----------
-        epoch_jyear : float
-            Julian epoch (TT), e.g. 2000.0 or :func:`posix_to_jyear` of an exposure.
+        epoch_jyear : float or ndarray (n,)
+            Julian epoch (TT), e.g. 2000.0 or :func:`posix_to_jyear` of an exposure (or one
+            per star).
 
         Returns
         -------

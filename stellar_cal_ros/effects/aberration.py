@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from stellar_cal_ros.core import astrometry
 from stellar_cal_ros.effects._direction import ScaledDirection
 
@@ -22,6 +20,5 @@ class Aberration(ScaledDirection):
         "and whose pattern is fixed to the sky, not the tracker."
     )
 
-    def delta(self, u_i, ctx):  # noqa: D102
-        u = astrometry.aberration(u_i, np.full(len(u_i), ctx.stamp), ctx.site, 1.0)
-        return u - u_i
+    def delta_stars(self, u, t, catalog_id, site, pressure_pa, air_temperature_c):  # noqa: D102
+        return astrometry.aberration(u, t, site, 1.0) - u

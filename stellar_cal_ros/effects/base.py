@@ -148,6 +148,22 @@ class Plausible:
         return f"{size:g}{unit}{where}"
 
 
+@dataclass(frozen=True)
+class BilinearCamera:
+    """A CAMERA map bilinear in the value and the camera vector (compiled form).
+
+    ``p' = (D0 + Σ_j v_j s_j Dv_j) p + J0 v`` with ``s = Effect.camera_scale(ctx)`` (k,)
+    per frame: the pixel aspect (``fy = fx (1 + a)``) and the thermal focal length
+    (``f (1 + c ΔT)``) — constant matrices ``D0`` (18, 18), ``Dv`` (k, 18, 18), ``J0``
+    (18, k).  Its Jacobians: ``∂p'/∂p = D0 + Σ v_j s_j Dv_j``, ``∂p'/∂v_j = s_j Dv_j p +
+    J0[:, j]``.
+    """
+
+    D0: np.ndarray
+    Dv: np.ndarray
+    J0: np.ndarray
+
+
 @dataclass
 class FrameContext:
     """What an effect may use to model one star frame (all optional but ``stamp``)."""
@@ -390,6 +406,10 @@ class Effect:
         """Return (∂p'/∂value (18, k), ∂p'/∂p (18, 18))."""
         return np.zeros((18, self.size)), np.eye(18)
 
+    def camera_scale(self, ctx: FrameContext) -> np.ndarray:
+        """The frame's scales ``s`` (k,) of a :class:`BilinearCamera` form (ones)."""
+        return np.ones(self.size)
+
     # ------------------------------------------------------------------ compiled form
     def affine_form(self) -> Any:
         """The stage map as a constant affine map of the value, for the compiled star step.
@@ -399,6 +419,7 @@ class Effect:
         context, and equal to the Jacobians the methods above return.  DIRECTION: True when
         ``directions(v, u, ctx) = u + Σ_j v_j C_j`` with ``C = directions_jacobian(·, u,
         ctx)`` the same for every value (it may depend on the frame: it comes in with it).
+        CAMERA may also be a :class:`BilinearCamera` (with :meth:`camera_scale` per frame).
         The filters then predict every star of a frame in one compiled kernel
         (:class:`~stellar_cal_ros.methods.star_chain.CompiledChain`).  None (the default, and
         any map that depends on the context or is not affine): the model predicts through

@@ -6,7 +6,15 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.effects.base import FX, FY, Effect, ExportRole, Plausible, Stage
+from stellar_cal_ros.effects.base import (
+    FX,
+    FY,
+    BilinearCamera,
+    Effect,
+    ExportRole,
+    Plausible,
+    Stage,
+)
 
 
 class PixelAspect(Effect):
@@ -53,3 +61,10 @@ class PixelAspect(Effect):
         D[FY, FY] = 0.0
         D[FY, FX] = 1.0 + value[0]
         return J, D
+
+    def affine_form(self):  # noqa: D102 - fy = fx + a fx
+        D0 = np.eye(18)
+        D0[FY, FY], D0[FY, FX] = 0.0, 1.0
+        Dv = np.zeros((1, 18, 18))
+        Dv[0, FY, FX] = 1.0
+        return BilinearCamera(D0, Dv, np.zeros((18, 1)))

@@ -20,21 +20,21 @@ class ProperMotion(ScaledDirection):
         "always the same direction for the same star, whatever the attitude."
     )
 
-    def delta(self, u_i, ctx):  # noqa: D102
+    def delta_stars(self, u, t, catalog_id, site, pressure_pa, air_temperature_c):  # noqa: D102
         from stellar_cal_ros.core.catalog import load_catalog, posix_to_jyear
 
-        ids = np.asarray(ctx.catalog_id, dtype=np.int64).reshape(-1)
-        out = np.zeros_like(u_i)
+        ids = np.asarray(catalog_id, dtype=np.int64).reshape(-1)
+        out = np.zeros_like(u)
         if ids.size == 0:  # no identifications in the context: no star is known
             return out
-        if ids.size != len(u_i):
-            raise ModelError(f"proper_motion: {ids.size} catalog ids for {len(u_i)} directions")
+        if ids.size != len(u):
+            raise ModelError(f"proper_motion: {ids.size} catalog ids for {len(u)} directions")
         cat = _full_catalog(load_catalog)
         idx = cat.index_of(ids)
         known = idx >= 0
         if np.any(known):
             sub = cat.subset(idx[known])
-            jyear = float(posix_to_jyear(ctx.stamp))
+            jyear = np.asarray(posix_to_jyear(np.asarray(t, dtype=float)[known]))
             out[known] = sub.directions(jyear) - sub.directions(2000.0)
         return out
 

@@ -25,11 +25,11 @@ class Refraction(ScaledDirection):
         "looks lower. Residual correlates with elevation; absent in space."
     )
 
-    def delta(self, u_i, ctx):  # noqa: D102
-        if ctx.site is None:
+    uses_weather = True
+
+    def delta_stars(self, u, t, catalog_id, site, pressure_pa, air_temperature_c):  # noqa: D102
+        if site is None:
             raise ModelError("refraction needs the site (/gnss/fix) in the frame context")
-        p = ctx.pressure_pa if np.isfinite(ctx.pressure_pa) else STANDARD_PRESSURE_PA
-        T = ctx.air_temperature_c if np.isfinite(ctx.air_temperature_c) else STANDARD_TEMPERATURE_C
-        u = astrometry.refraction(u_i, np.full(len(u_i), ctx.stamp), ctx.site,
-                                  pressure_hpa=p / 100.0, temperature_c=T)
-        return u - u_i
+        p = np.where(np.isfinite(pressure_pa), pressure_pa, STANDARD_PRESSURE_PA)
+        T = np.where(np.isfinite(air_temperature_c), air_temperature_c, STANDARD_TEMPERATURE_C)
+        return astrometry.refraction(u, t, site, pressure_hpa=p / 100.0, temperature_c=T) - u

@@ -6,7 +6,15 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.effects.base import FX, FY, Effect, FrameContext, Plausible, Stage
+from stellar_cal_ros.effects.base import (
+    FX,
+    FY,
+    BilinearCamera,
+    Effect,
+    FrameContext,
+    Plausible,
+    Stage,
+)
 
 
 class ThermalFocalLength(Effect):
@@ -58,3 +66,11 @@ class ThermalFocalLength(Effect):
         D = np.eye(18)
         D[FX, FX] = D[FY, FY] = 1.0 + value[0] * dT
         return J, D
+
+    def affine_form(self):  # noqa: D102 - f' = f + c ΔT f
+        Dv = np.zeros((1, 18, 18))
+        Dv[0, FX, FX] = Dv[0, FY, FY] = 1.0
+        return BilinearCamera(np.eye(18), Dv, np.zeros((18, 1)))
+
+    def camera_scale(self, ctx):  # noqa: D102
+        return np.array([self._dT(ctx)])

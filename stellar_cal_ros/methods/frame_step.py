@@ -242,7 +242,8 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
                tp, C, w_hat, phi, j, mj, ta, tb, Gamma, theta_ref, q_diag,
                gyro_b0, gyro_E0, gyro_Jb, gyro_JE, gyro_theta0, w_raw,
                uv, u, sigma, base,
-               s0, g, timed, R_prior, T, tracked, c, B, need, du, dcol, dfix, dgrp, Pe, cfg):
+               s0, g, timed, R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du, bscale,
+               Pe, cfg):
     """Propagate from ``ta`` to ``tb`` and update with one frame's stars, in place.
 
     State (changed in place): ``P`` (N, N), ``theta`` (P_all,), ``R_a`` (3, 3) the attitude
@@ -252,8 +253,8 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     ``j..mj``, ``Gamma`` (3 or 12, P_all) and ``theta_ref`` of the reference, ``q_diag``
     (N,) noise per second; ``gyro_*`` the gyro's affine correction and ``w_raw`` (3,) the
     raw rate of the sample covering ``tb``.  Frame: ``uv`` (n, 2), ``u`` (n, 3), ``sigma``
-    (n,), ``base`` = stamp − ``tb``.  Chain: the :class:`CompiledChain` and ``du`` the
-    frame's DIRECTION columns (n, 3, kd).  ``cfg``:
+    (n,), ``base`` = stamp − ``tb``.  Chain: the :class:`CompiledChain`, with the frame's
+    ``du, bscale`` (:meth:`CompiledChain.frame_inputs`).  ``cfg``:
     :data:`CONFIG_FIELDS`.
 
     Returns ``(status, ints (6,) [n_acc, iterations, mismatch, lost, outside, 0],
@@ -297,7 +298,8 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     R_out = np.empty((2, 3, 3))
     zero3 = np.zeros(3)
     predict_chain(theta0, u, R_b, zero3, False, omega, base, s0, g, timed, R_prior, T, tracked,
-                  c, B, need, du, dcol, dfix, dgrp, 1, uv_pred, dirs, H_att, H_par, R_out)
+                  c, B, need, dcol, dfix, dgrp, cam, du, bscale, 1, uv_pred, dirs, H_att, H_par,
+                  R_out)
     H0 = np.zeros((n, 2, N))
     for i in range(n):
         for r in range(2):
@@ -378,8 +380,8 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
         for k in range(Pe):
             th[k] += dx[3 + k]
         predict_chain(th, u_acc, R_b, dx[0:3].copy(), True, omega, base, s0, g, timed,
-                      R_prior, T, tracked, c, B, need, du_acc, dcol, dfix, dgrp, 1, uv_r, d_r,
-                      Ha_r, Hp_r, R_out)
+                      R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du_acc, bscale, 1,
+                      uv_r, d_r, Ha_r, Hp_r, R_out)
         H = _assemble(Ha_r, Hp_r, Pe, N, all_rows)
         for q in range(n_acc):
             h[2 * q], h[2 * q + 1] = uv_r[q, 0], uv_r[q, 1]
@@ -467,7 +469,7 @@ class FusedStep:
         self.compiled_chain = chain
         self.chain = (float(chain.s0), chain.g, bool(chain.timed), chain.R_prior, chain.T,
                       bool(chain.tracked), chain.c, chain.B, chain.need)
-        self.directions = (chain.dcol, chain.dfix, chain.dgrp)
+        self.directions = (chain.dcol, chain.dfix, chain.dgrp, chain.cam)
         from stellar_cal_ros.methods.results import NIS_CAP
 
         values = {"threshold": flt.gate.threshold, "scale_by_frame": float(c.scale_gate_by_frame),
@@ -513,7 +515,7 @@ class FusedStep:
                           j, mj, float(ta), float(tb), prop._gamma[0], prop.theta_ref,
                           self.q_diag, *self.gyro, w_raw, uv, u,
                           np.ascontiguousarray(sigma, dtype=float), float(base), *self.chain,
-                          self.compiled_chain.direction_columns(u, ctx), *self.directions,
+                          *self.directions, *self.compiled_chain.frame_inputs(u, ctx),
                           self.Pe, self.cfg)
 
 

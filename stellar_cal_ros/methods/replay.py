@@ -247,6 +247,8 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         span = _span_of_data(bag)
         cal = _calibrator(prior, method, effects, cfg, drv, consider, res_sink, hist_sink,
                           span, eval_fraction, baseline, filter_cls)
+        if hasattr(cal.model, "prepare_frames"):  # the astrometric corrections, in one call
+            cal.model.prepare_frames(bag)
         events = _events_from_data(bag)
         reader = None
     else:

@@ -37,6 +37,8 @@ from stellar_cal_ros.core.jit import (
 )
 from stellar_cal_ros.effects.base import Stage
 
+_NO_SCALE = np.zeros(0)
+
 
 @dataclass
 class CompiledChain:
@@ -70,6 +72,20 @@ class CompiledChain:
     dcol: np.ndarray = None  # type: ignore[assignment]  #: (kd,) intp θ index, -1: fixed
     dfix: np.ndarray = None  # type: ignore[assignment]  #: (kd,) value of a fixed column
     dgrp: np.ndarray = None  # type: ignore[assignment]  #: (effects + 1,) column offsets
+    #: the camera chain's bilinear steps (:func:`_camera_at`; empty: ``p = c + B θ``)
+    cam: tuple = ()
+    bilinear: list = None  # type: ignore[assignment]  #: their effects (camera_scale)
+
+    def frame_inputs(self, u: np.ndarray, ctx: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``(du, bscale)`` of one frame.
+
+        :meth:`direction_columns` and the bilinear camera steps' scales
+        (:meth:`Effect.camera_scale`).
+        """
+        if not self.bilinear:
+            return self.direction_columns(u, ctx), _NO_SCALE
+        return self.direction_columns(u, ctx), np.concatenate(
+            [np.asarray(e.camera_scale(ctx), dtype=float) for e in self.bilinear])
 
     def direction_columns(self, u: np.ndarray, ctx: Any) -> np.ndarray:
         """The frame's DIRECTION columns ``C`` (n, 3, kd) of :func:`predict_chain`.
@@ -113,24 +129,119 @@ def compile_chain(model: Any) -> CompiledChain | None:
             if form is None:
                 return None
             target[..., model.slices[eff.id]] = form
+    camera = _camera_chain(model, P)
+    if camera is None:
+        return None
+    c, B, cam, bilinear = camera
+    timed = bool(model.has_time_effect and np.any(g))
+    s0 = 0.0 if model.has_time_effect else float(model.prior.time_offset)
+    return CompiledChain(s0, g, timed, np.array(model._R_imu_st_prior, dtype=float), T,
+                         bool(model._by_stage[Stage.TRACKER]), c, B,
+                         _camera_rows(B, cam), directions, np.array(dcol, dtype=np.intp),
+                         np.array(dfix, dtype=float), np.array(dgrp, dtype=np.intp), cam,
+                         bilinear)
+
+
+def _camera_chain(model: Any, P: int) -> tuple | None:
+    """The camera chain folded: ``(c, B, cam, bilinear)``, or None (an effect without form).
+
+    Affine steps fold into ``p = c + B θ``; each :class:`~stellar_cal_ros.effects.base.
+    BilinearCamera` step is kept (``cam``: see :func:`_camera_at`), followed by the fold of
+    the affine steps after it.
+    """
+    from stellar_cal_ros.effects.base import BilinearCamera
+
     c, B = np.array(model._camera_prior, dtype=float), np.zeros((18, P))
+    steps: list = []  # (D0, Dv, J0, cols, fixed) and the fold (A, Bb, cb) after each
+    bilinear: list = []  # (effect, k) of each step (its camera_scale per frame)
     for eff, sl, fixed in model._chain[Stage.CAMERA]:
         form = eff.affine_form()
         if form is None:
             return None
+        if isinstance(form, BilinearCamera):
+            cols = np.full(eff.size, -1) if sl is None else np.arange(sl.start, sl.stop)
+            fix = np.asarray(fixed, dtype=float) if sl is None else np.zeros(eff.size)
+            steps.append([form, cols, fix, np.eye(18), np.zeros((18, P)), np.zeros(18)])
+            bilinear.append(eff)
+            continue
         J, D = (np.asarray(f, dtype=float) for f in form)
+        if steps:  # after a bilinear step: fold into its (A, Bb, cb)
+            st = steps[-1]
+            st[3], st[4], st[5] = D @ st[3], D @ st[4], D @ st[5]
+            if sl is None:
+                st[5] = st[5] + J @ fixed
+            else:
+                st[4][:, sl] += J
+            continue
         c, B = D @ c, D @ B
         if sl is None:
             c = c + J @ fixed
         else:
             B[:, sl] += J
-    timed = bool(model.has_time_effect and np.any(g))
-    s0 = 0.0 if model.has_time_effect else float(model.prior.time_offset)
-    return CompiledChain(s0, g, timed, np.array(model._R_imu_st_prior, dtype=float), T,
-                         bool(model._by_stage[Stage.TRACKER]), c, B,
-                         np.flatnonzero(np.any(B != 0.0, axis=1)).astype(np.intp),
-                         directions, np.array(dcol, dtype=np.intp), np.array(dfix, dtype=float),
-                         np.array(dgrp, dtype=np.intp))
+    k = sum(len(st[1]) for st in steps)
+    grp = np.zeros(len(steps) + 1, dtype=np.intp)
+    D0s, As = np.zeros((len(steps), 18, 18)), np.zeros((len(steps), 18, 18))
+    Dvs, J0s = np.zeros((k, 18, 18)), np.zeros((18, k))
+    bcol, bfix = np.zeros(k, dtype=np.intp), np.zeros(k)
+    Bbs, cbs = np.zeros((len(steps), 18, P)), np.zeros((len(steps), 18))
+    for b, (form, cols, fix, A, Bb, cb) in enumerate(steps):
+        grp[b + 1] = grp[b] + len(cols)
+        sl = slice(grp[b], grp[b + 1])
+        D0s[b], As[b], Bbs[b], cbs[b] = form.D0, A, Bb, cb
+        Dvs[sl], J0s[:, sl], bcol[sl], bfix[sl] = form.Dv, form.J0, cols, fix
+    return c, B, (D0s, Dvs, J0s, bcol, bfix, grp, As, Bbs, cbs), bilinear
+
+
+def _camera_rows(B: np.ndarray, cam: tuple) -> np.ndarray:
+    """Rows of ``∂p/∂θ`` that can be nonzero (the projection's Jacobian columns needed)."""
+    D0s, Dvs, J0s, bcol, _, grp, As, Bbs, _ = cam
+    pat = np.abs(B)
+    for b in range(len(D0s)):
+        Mabs = np.abs(D0s[b]) + np.abs(Dvs[grp[b]:grp[b + 1]]).sum(axis=0)
+        pat = Mabs @ pat
+        for j in range(grp[b], grp[b + 1]):
+            if bcol[j] >= 0:
+                pat[:, bcol[j]] += np.abs(Dvs[j]).sum(axis=1) + np.abs(J0s[:, j])
+        pat = np.abs(As[b]) @ pat + np.abs(Bbs[b])
+    return np.flatnonzero(np.any(pat != 0.0, axis=1)).astype(np.intp)
+
+
+@njit(cache=True)
+def _camera_at(theta, c, B, need, cam, bscale):
+    """Camera vector ``p`` (18,) and ``∂p/∂θ`` (18, P) of ``theta``.
+
+    ``p = c + B θ`` without bilinear steps (``B`` itself returned); with them, each step
+    ``p ← (D0 + Σ v s Dv) p + J0 v`` and the fold after it, ``p ← A p + Bb θ + cb``, in
+    forward mode.
+    """
+    D0s, Dvs, J0s, bcol, bfix, grp, As, Bbs, cbs = cam
+    P = theta.shape[0]
+    p = c.copy()
+    if D0s.shape[0] == 0:
+        for k in need:
+            acc = 0.0
+            for j in range(P):
+                acc += B[k, j] * theta[j]
+            p[k] = c[k] + acc
+        return p, B
+    p = c + B @ theta
+    dp = B.copy()
+    for b in range(D0s.shape[0]):
+        M = D0s[b].copy()
+        for j in range(grp[b], grp[b + 1]):
+            v = bfix[j] if bcol[j] < 0 else theta[bcol[j]]
+            M += (v * bscale[j]) * Dvs[j]
+        pn = M @ p
+        for j in range(grp[b], grp[b + 1]):
+            v = bfix[j] if bcol[j] < 0 else theta[bcol[j]]
+            pn += J0s[:, j] * v
+        dpn = M @ dp
+        for j in range(grp[b], grp[b + 1]):
+            if bcol[j] >= 0:
+                dpn[:, bcol[j]] += bscale[j] * (Dvs[j] @ p) + J0s[:, j]
+        p = As[b] @ pn + Bbs[b] @ theta + cbs[b]
+        dp = As[b] @ dpn + Bbs[b]
+    return p, dp
 
 
 @njit(cache=True)
@@ -152,7 +263,8 @@ def _apply_directions(u, du, theta, dcol, dfix, dgrp):
 
 @njit(cache=True, error_model="numpy")
 def predict_chain(theta, u_cat, R_b, phi, use_phi, w, base, s0, g, timed, R_prior, T, tracked,
-                  c, B, need, du, dcol, dfix, dgrp, jac, uv, d, H_att, H_par, R_out):
+                  c, B, need, dcol, dfix, dgrp, cam, du, bscale, jac, uv, d, H_att, H_par,
+                  R_out):
     """:meth:`StarModel.predict` of a :class:`CompiledChain` (compiled).
 
     Parameters
@@ -165,10 +277,11 @@ def predict_chain(theta, u_cat, R_b, phi, use_phi, w, base, s0, g, timed, R_prio
         The filter's attitude function (:func:`~stellar_cal_ros.methods.star_model.
         state_attitude`): ``R(s) = Exp(φ) R_b Exp(ω (s + base))`` (φ only if ``use_phi``;
         no rotation when ``|s + base| < 1e-12``).
-    s0, g, timed, R_prior, T, tracked, c, B, need, dcol, dfix, dgrp
+    s0, g, timed, R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam
         The :class:`CompiledChain`.
-    du : ndarray (n, 3, kd)
-        The frame's DIRECTION columns (:meth:`CompiledChain.direction_columns`).
+    du, bscale : ndarray (n, 3, kd), (kb,)
+        The frame's DIRECTION columns and bilinear camera scales
+        (:meth:`CompiledChain.frame_inputs`).
     jac : int
         1: also the Jacobians.
     uv, d : ndarray (n, 2), (n, 3)
@@ -201,12 +314,7 @@ def predict_chain(theta, u_cat, R_b, phi, use_phi, w, base, s0, g, timed, R_prio
     for i in range(n):
         for j in range(3):
             d[i, j] = u[i, 0] * R_i_st[0, j] + u[i, 1] * R_i_st[1, j] + u[i, 2] * R_i_st[2, j]
-    p = c.copy()
-    for k in need:
-        acc = 0.0
-        for j in range(P):
-            acc += B[k, j] * theta[j]
-        p[k] = c[k] + acc
+    p, Bx = _camera_at(theta, c, B, need, cam, bscale)
     J_d = np.empty((n if jac else 0, 2, 3))
     J_p = np.empty((n if jac else 0, 2, 18))
     project_points(d, p, tilt_kernel(p[16], p[17]), jac, uv, J_d, J_p)
@@ -230,7 +338,7 @@ def predict_chain(theta, u_cat, R_b, phi, use_phi, w, base, s0, g, timed, R_prio
             for j in range(P):
                 acc = 0.0
                 for k in need:
-                    acc += J_p[i, r, k] * B[k, j]
+                    acc += J_p[i, r, k] * Bx[k, j]
                 H_par[i, r, j] = acc
         if timed:  # J_d R_st_b [d_b]× ω ∂Δt/∂θ
             db = np.empty(3)

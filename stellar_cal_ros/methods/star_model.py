@@ -346,6 +346,31 @@ class StarModel:
                 H[:, :, sl] += Jd_skew @ eff.tracker_rotation_jacobian(theta[sl], ctx)
         return Prediction(uv, H_att, H, d, R_i_st, t_exp, camera)
 
+    def prepare_frames(self, data: Any) -> None:
+        """Let the DIRECTION effects compute their corrections for a whole bag at once.
+
+        ``data``: a :class:`~stellar_cal_ros.methods.frames.BagData` about to be replayed.
+        An effect with a ``prepare`` method (the astrometric ones,
+        :meth:`~stellar_cal_ros.effects._direction.ScaledDirection.prepare`) computes every
+        identified star's correction in one call; each frame then looks its stars up
+        instead of calling pyerfa (frames whose context differs are computed as before).
+        """
+        effs = [e for e, _, _ in self._chain[Stage.DIRECTION] if hasattr(e, "prepare")]
+        if not effs or not data.frames:
+            return
+        from stellar_cal_ros.core.catalog import radec_to_unit
+
+        env = data.env()
+        stamps = np.array([f.stamp_ns for f in data.frames], dtype=np.int64)
+        ids, u = [], []
+        for f in data.frames:
+            ok = np.isfinite(f.right_ascension) & np.isfinite(f.declination)
+            ids.append(np.asarray(f.catalog_id, dtype=np.int64)[ok])
+            u.append(radec_to_unit(f.right_ascension[ok], f.declination[ok]))
+        pressure, air = env["pressure"].interp(stamps), env["air"].interp(stamps)
+        for eff in effs:
+            eff.prepare(stamps * 1e-9, ids, u, data.site, pressure, air)
+
     def compiled_chain(self) -> Any:
         """The star chain in compiled form (:mod:`~stellar_cal_ros.methods.star_chain`).
 
@@ -384,7 +409,7 @@ class StarModel:
                       _ZERO3 if phi is None else np.ascontiguousarray(phi, dtype=float),
                       phi is not None, np.ascontiguousarray(omega, dtype=float), float(base),
                       ch.s0, ch.g, ch.timed, ch.R_prior, ch.T, ch.tracked, ch.c, ch.B, ch.need,
-                      ch.direction_columns(u, ctx), ch.dcol, ch.dfix, ch.dgrp,
+                      ch.dcol, ch.dfix, ch.dgrp, ch.cam, *ch.frame_inputs(u, ctx),
                       jac, uv, d, H_att, H_par, R_out)
         ctx.R_i_b, ctx.omega_b, ctx.R_i_st = R_out[0], omega, R_out[1]
         shift = ch.s0 + float(ch.g @ theta) if ch.timed else ch.s0
