@@ -342,3 +342,34 @@ def test_replay_driver_deferred_imu_release_changes_nothing(excerpt, tmp_path, m
         assert cal.all_counters() == ref.all_counters()
         np.testing.assert_array_equal(cal.filter.theta, ref.filter.theta)
         np.testing.assert_array_equal(cal.filter.P, ref.filter.P)
+
+
+def test_deferred_checks_leave_the_frame_updates_and_count_the_same(excerpt, monkeypatch):
+    """The live node's driver (defer_checks) runs the covariance check in run_checks, not in
+    a frame's update; the estimates and, once finished, every count are the driver's
+    without it."""
+    from stellar_cal_ros.methods.kernel import StarFilter
+
+    _, prior, _, events = excerpt
+    ref = make(prior)
+    feed(ref, events)
+    ref.finish()
+    cal = Calibrator(prior, "psce", None, PsceConfig(),
+                     DriverConfig(reorder_window_s=WINDOW_S, defer_checks=True))
+    where: list[str] = []
+    check = StarFilter._check_covariance
+    monkeypatch.setattr(StarFilter, "_check_covariance",
+                        lambda self: (where.append(phase[0]), check(self)))
+    phase = ["update"]
+    for k in range(0, len(events), 500):
+        phase[0] = "update"
+        feed(cal, events[k:k + 500])
+        phase[0] = "timer"
+        cal.run_checks()
+    phase[0] = "finish"
+    cal.finish()
+    assert where and "update" not in where and where.count("timer") >= 1
+    assert cal.all_counters() == ref.all_counters()
+    assert cal.filter_counters()["covariance_checks"] == ref.filter.counters.updates // 50 > 1
+    np.testing.assert_array_equal(cal.filter.theta, ref.filter.theta)
+    np.testing.assert_array_equal(cal.filter.P, ref.filter.P)

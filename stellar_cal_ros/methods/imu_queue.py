@@ -1,7 +1,8 @@
-"""The live driver's queue of pending IMU samples (:class:`ImuQueue`).
+"""The driver's queue of pending IMU samples (:class:`ImuQueue`) and their release.
 
 :class:`~stellar_cal_ros.methods.driver.Calibrator` holds IMU samples here until the
-reorder window has passed, then releases them in stamp order.
+reorder window has passed, then releases them in stamp order (:class:`ImuRelease`, the
+driver's IMU path: release, the replay's deferred release, hand-over to the filter).
 """
 
 from __future__ import annotations
@@ -133,3 +134,93 @@ class ImuQueue:
         if not out:
             return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
         return tuple(np.concatenate([o[i] for o in out]) for i in range(3))
+
+
+class ImuRelease:
+    """The driver's IMU release (a mixin of :class:`~stellar_cal_ros.methods.driver.Calibrator`).
+
+    Uses the driver's ``_imu`` (an :class:`ImuQueue`), ``_staged`` / ``_staged_n`` (released,
+    not yet handed to the filter), ``_last_imu_ns``, ``_deferred``, ``imu_max_ns``,
+    ``window_ns``, ``t0_ns``, ``counters``, ``driver`` (its DriverConfig) and ``filter``.
+    """
+
+    def _defer_release(self, t: np.ndarray, w: np.ndarray, f: np.ndarray) -> bool:
+        """Queue an in-order block whose release can wait (a replay); False: not taken.
+
+        With ``batch_frames`` and the filter running, a pump after an IMU block only moves
+        the samples older than the reorder window to the staged batch, until the batch is
+        full and the frames are processed.  For a block strictly after everything pushed,
+        within the clock-jump bounds, into a queue in strict order, that move can wait: the
+        releases are prefixes of one sorted queue, so releasing later up to the current
+        limit (:meth:`_settle_imu`, and every :meth:`_pump`) gives the same staged samples,
+        and the batch is handed over at the same block (the caller counts what the pump
+        would release).  Frees a replay from a pump per message run; what a checkpoint
+        saves and every count stay as without it.
+        """
+        q = self._imu
+        if not self.driver.batch_frames or self.filter is None or not q.strict:
+            return False
+        newest = self.imu_max_ns
+        jump = int(self.driver.clock_jump_s * 1e9)
+        t0, t1 = int(t[0]), int(t[-1])
+        after = q.tail if q.n else self._last_imu_ns
+        if (after is not None and t0 <= after) or newest is None or t0 < newest - jump \
+                or t1 > newest + jump or t1 - t0 > jump \
+                or q.n + len(t) > self.driver.max_pending_imu:
+            return False
+        q.push(t, w, f, True)
+        if t1 > newest:
+            self.imu_max_ns = t1
+        self._deferred = True
+        return True
+
+    def _settle_imu(self) -> None:
+        """Do the IMU release :meth:`_defer_release` left (as the pumps would have)."""
+        if self._deferred:
+            self._deferred = False
+            self._release_imu(False)
+
+    def _release_imu(self, final: bool) -> None:
+        self._deferred = False
+        limit = None if final else self.imu_max_ns - self.window_ns
+        strict = self._imu.strict
+        t, w, f = self._imu.pop(limit, self.driver.max_pending_imu)
+        if not len(t):
+            return
+        last = self._last_imu_ns
+        if strict and (last is None or t[0] > last):  # the usual case: nothing to check
+            self._last_imu_ns = int(t[-1])
+            self._staged.append((t, w, f))
+            self._staged_n += len(t)
+            return
+        d = np.diff(t)
+        if (last is None or t[0] > last) and (d > 0).all():
+            keep = None
+        else:
+            keep = np.ones(len(t), dtype=bool)
+            keep[1:] = d > 0  # duplicated stamps within the released block
+            if last is not None:
+                keep &= t > last
+        if keep is not None and not keep.all():
+            bad = ~keep
+            same = np.zeros(len(t), dtype=bool)
+            same[1:] = d == 0
+            if self._last_imu_ns is not None:
+                same |= t == self._last_imu_ns
+            self.counters.imu_duplicate += int((bad & same).sum())
+            self.counters.imu_late += int((bad & ~same).sum())
+            t, w, f = t[keep], w[keep], f[keep]
+        if not len(t):
+            return
+        self._last_imu_ns = int(t[-1])
+        self._staged.append((t, w, f))
+        self._staged_n += len(t)
+
+    def _flush_staged(self) -> None:
+        if not self._staged or self.filter is None:
+            return
+        t = np.concatenate([s[0] for s in self._staged])
+        w = np.concatenate([s[1] for s in self._staged])
+        f = np.concatenate([s[2] for s in self._staged])
+        self._staged, self._staged_n = [], 0
+        self.filter.extend_imu((t - self.t0_ns) * 1e-9, w, f)

@@ -212,6 +212,9 @@ class StarFilter(Acquisition):
         "mismatch_warned": "_mismatch_warned", "mismatch_bits": "_mismatch_bits",
         "gyro_watch": "gyro_watch", "data_faults": "data_faults"}
 
+    #: the periodic covariance check waits for :meth:`run_checks` (:meth:`defer_checks`)
+    checks_deferred = False
+
     def __init__(self, model: StarModel, t0: float, config: KernelConfig, nominal_dt: float,
                  consider: int = 0) -> None:
         self.model = model
@@ -676,11 +679,38 @@ class StarFilter(Acquisition):
     def _updated(self, result: FrameUpdate, nis: float, dof: int, iterations: int) -> None:
         c = self.config
         self.counters.updates += 1
-        if c.covariance_check_every and self.counters.updates % c.covariance_check_every == 0:
+        if c.covariance_check_every and self.counters.updates % c.covariance_check_every == 0 \
+                and not self.checks_deferred:
             self._check_covariance()
         result.nis = nis
         result.dof = dof
         result.iterations = iterations
+
+    def defer_checks(self) -> None:
+        """Leave the periodic checks to :meth:`run_checks` (the live node's timer).
+
+        The gyro judgement (:meth:`defer_gyro_judgement`) and the covariance health check
+        due every ``covariance_check_every`` updates then run between frames, not in a
+        frame's update (where the check's eigen-decomposition put the frame in the
+        latency tail); the counts are the same once the checks have run.
+        """
+        self.checks_deferred = True
+        self.defer_gyro_judgement()
+
+    def run_checks(self) -> None:
+        """Run what :meth:`defer_checks` left due (may raise as a frame's update would)."""
+        self.judge_gyro()
+        self.check_covariance_due()
+
+    def check_covariance_due(self) -> None:
+        """The deferred covariance check, if an update count it was due at has passed."""
+        every = self.config.covariance_check_every
+        if not (self.checks_deferred and every):
+            return
+        due = self.counters.updates // every
+        if due > self.counters.covariance_checks:  # one check for all that are due
+            self.counters.covariance_checks = due - 1
+            self._check_covariance()
 
     def _check_covariance(self) -> None:
         """Cheap health check of P; repair (or roll back) instead of going on corrupted."""
