@@ -22,6 +22,7 @@ Run::
     python benchmarks/discovery_speed.py                 # everything, 1 repetition
     python benchmarks/discovery_speed.py --only round --repeat 2 --detail
     python benchmarks/discovery_speed.py --only breakdown   # where a 2-h round's time goes
+    python benchmarks/discovery_speed.py --only breakdown --duration 1800   # a shorter bag
 """
 
 from __future__ import annotations
@@ -96,6 +97,13 @@ def ensure_2h_bag() -> Path:
     return ensure_bag(7200.0)
 
 
+def _bag(duration: float) -> Path:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from psce_speed import ensure_bag
+
+    return ensure_bag(duration)
+
+
 def _row(name: str, workers: int, m: dict[str, float], target: str) -> str:
     return (f"{name:8s} {workers:7d} {m['wall']:9.1f} {m['cpu']:8.1f} {m['rss_mb']:10.0f} "
             f"{m['pss_mb']:10.0f}   {target}")
@@ -157,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", choices=["sky", "round", "breakdown"], default=None)
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--workers", default="1,2", help="worker counts to interleave")
+    ap.add_argument("--duration", type=float, default=7200.0,
+                    help="bag length of the breakdown, s (the round is always 2 h)")
     ap.add_argument("--detail", action="store_true",
                     help="print each round's runs and seconds, and each run's wall time")
     args = ap.parse_args(argv)
@@ -196,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"speed-up 1 -> 2 workers: {walls[1] / walls[2]:.2f}x (target >= 1.8)",
                           flush=True)
     if args.only == "breakdown":
-        breakdown(ensure_2h_bag())
+        breakdown(ensure_2h_bag() if args.duration == 7200.0 else _bag(args.duration))
     print(f"load average {os.getloadavg()[0]:.1f} at the end (shared machine: other jobs "
           "slow every row alike)")
     return 0
