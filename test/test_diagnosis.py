@@ -72,6 +72,12 @@ def test_second_effect_behind_a_large_one_is_named_after_it(tmp_path):
     assert not by["gyro_misalignment"]["significant"]  # significant alone, a copycat
 
 
+# Covered in the default suite, over every candidate (a superset of CANDIDATES):
+# test_false_alarms.py::test_clean_bag_raises_no_alarm[psce-False-...] (nothing significant,
+# no recommendation, nothing unexplained, noise as stated); a clean run's residuals at the
+# noise: test_twin.py (RMS = noise to 5 %) and, on the reference bag,
+# test_psce.py::test_reference_bag_innovations (RMS <= 1.03 x noise, NIS in its interval).
+@pytest.mark.benchmark
 def test_clean_data_claims_nothing(tmp_path):
     sim, paths, data = _bag(tmp_path, {}, seed=22)
     base = replay_psce(data, sim.prior)
@@ -181,10 +187,16 @@ def test_clean_data_false_alarm_rate(tmp_path):
 
 
 def test_builtin_demo_loop_works(tmp_path, capsys):
-    """The README's main command in a shorter form: the loop names the effect and fixes it."""
+    """The README's main command in a shorter form: the loop names the effect and fixes it.
+
+    150 s of the README's 600 s: the hidden 20 ms time offset is ~270 x its minimum
+    detectable size at 150 s (5.3e-5 s at 300 s, doc/benchmarks.md) and is estimated to
+    +-0.009 ms; the RMS after adding it is 1.002 x the noise (the demo's own 1.05 x limit),
+    the checks of what else is claimed hold at the diagnosis's stated alpha at any length.
+    At 150 s a look-alike (refraction) is listed as implausible, so the last check runs."""
     from stellar_cal_ros.demo import run_demo
 
-    assert run_demo(tmp_path / "demo", duration=300.0) == 0
+    assert run_demo(tmp_path / "demo", duration=150.0) == 0
     out = capsys.readouterr().out
     assert "the diagnosis named time_offset" in out and "the loop worked" in out
     assert (tmp_path / "demo" / "diagnosis" / "report.html").exists()
