@@ -217,12 +217,13 @@ def said(r: dict) -> dict:
     noise_lines, unexplained, added = [], [], []
     for line in r["stdout"].splitlines():
         low = line.lower()
-        if ("sigma" in low or "noise" in low) and ("looks" in low or "depends" in low or
-                                                   "as stated" in low or "taken" in low):
+        if line.startswith("noise:"):  # the final verdict (progress lines are indented)
             noise_lines.append(line.strip())
         if "unexplained:" in low:
             unexplained.append(line.strip())
-    added = list(s.get("added", s.get("effects_added", []))) if s else []
+    added = list(s.get("added", [])) if s else []
+    # the progress lines repeat the verdict: each line once
+    noise_lines, unexplained = list(dict.fromkeys(noise_lines)), list(dict.fromkeys(unexplained))
     return {"noise": noise_lines, "unexplained": unexplained, "added": added,
             "traceback": "Traceback" in r["stderr"] or r["rc"] not in (0,)}
 

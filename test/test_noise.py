@@ -236,3 +236,20 @@ def test_spread_left_by_the_noise_groups_is_noise_not_a_lead():
     assert noise.within_groups([size, bias, other], v) == ([bias, other], [size])
     v.group = {"by": "column"}
     assert noise.within_groups([size, bias, other], v) == ([size, bias], [other])
+
+
+def test_imu_sample_noise_sees_white_noise_through_motion_and_refuses_filtered_samples():
+    """The IMU's own samples: white noise of σ 0.01 on a smooth motion with slew corners is
+    measured within 3 of its σ and looks white; the same noise low-pass filtered (an IMU
+    that filters its output) does not look white, so it is not used."""
+    from stellar_cal_ros.diagnosis.noise_imu import sample_noise
+
+    rng = np.random.default_rng(11)
+    t = np.arange(30000) * 0.01
+    motion = np.stack([np.sin(0.3 * t), np.where((t % 60) < 10, 0.5, 0.0), 0.1 * t], 1)
+    x = motion + 0.01 * rng.standard_normal((len(t), 3))
+    s, e, white = sample_noise(x)
+    assert white and s == pytest.approx(0.01, abs=3 * e) and e < 2e-4
+    kernel = np.ones(4) / 4.0
+    filtered = np.stack([np.convolve(x[:, k], kernel, "same") for k in range(3)], 1)
+    assert not sample_noise(filtered)[2]

@@ -240,8 +240,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 r, state.start, state.extra, [e for e in pool if e not in state.dropped],
                 condition=False, more=_checks(state, prior, calibration, pool),
                 screen=local, measure_noise=estimate and (
-                    r.noise is None or bool(r.noise.skipped or r.noise.imu_skipped)
-                    or r.noise_stale))
+                    r.noise is None or bool(r.noise.skipped or r.noise.imu_skipped
+                                            or r.noise.beyond) or r.noise_stale))
             if current is not None and current is not first:
                 current.residuals = None  # keep the first and the newest table only
             current = base

@@ -557,7 +557,14 @@ class NoiseVerdict:
                              f"{comp} at {'most' if search.bound == 'upper' else 'least'} "
                              f"x{search.value:.3g}" if search.bound else
                              f"{comp} not measurable on this bag")
-            out.append("noise as stated (" + ", ".join(parts) + ")")
+            if self.stated.identity:
+                out.append("noise as stated (" + ", ".join(parts) + ")")
+            else:  # measured again on a later round: relative to the scales applied so far
+                d = self.stated.as_dict()
+                out.append("noise as measured before (" + ", ".join(
+                    f"{k.split('_')[0]} x{v:.3g}" for k, v in d.items()
+                    if k.endswith("_scale") and v != 1.0) + " of the stated; now "
+                    + ", ".join(parts) + " of that)")
         return out
 
 
