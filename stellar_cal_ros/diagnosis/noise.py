@@ -516,9 +516,10 @@ class NoiseVerdict:
         if self.repeat:
             out.append(f"the stars' residuals repeat star by star (chi2 {self.repeat['chi2']:.0f}"
                        f" / {self.repeat['dof']:.0f} dof, p = {self.repeat['p_value']:.2g}): "
-                       f"a per-star position error of {self.repeat['rms_px']:.2g} px rms per "
-                       "axis (catalogue positions, identification), not centroid noise; the "
-                       "sigma is measured without it")
+                       f"a per-star position error of at least {self.repeat['rms_px']:.2g} px "
+                       "rms per axis (what the detector cells' means leave of it: with few "
+                       "stars in view they take most) from the catalogue positions or the "
+                       "identification, not centroid noise; the sigma is measured without it")
         if self.unknown:
             out.append(f"{self.unknown} stars carry sigma 0 (unknown): measured from the run "
                        f"as {self.unknown_sigma_px:.3g} +- {self.unknown_sigma_sigma:.2g} px "

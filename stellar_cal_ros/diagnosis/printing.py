@@ -43,7 +43,7 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
         what = f"{u['component']} residual"
         span = "across its 5-95 % range"
         if u["regressor"] == "catalogue star":
-            what, span = "residual repeating", "rms per axis left in the residuals"
+            what, span = "residual repeating", "rms per axis at least (left by the cells)"
         elif u["component"] == "size":
             what = "residual spread (size)"
         out.append(f"  unexplained: {what} vs {u['regressor']} "
