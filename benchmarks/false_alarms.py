@@ -70,12 +70,19 @@ def load_records(path: Path | None) -> dict[tuple[str, int], dict]:
     return done
 
 
-def run_case(name: str, seeds: range, done: dict | None = None) -> dict[str, object]:
-    """Count the alarms of one case (diagnosing the seeds not already in ``done``)."""
+def run_case(name: str, seeds: range, done: dict | None = None,
+             recorded_only: bool = False) -> dict[str, object]:
+    """Count the alarms of one case.
+
+    The seeds not already in ``done`` are diagnosed, unless ``recorded_only``: then only
+    those in ``done`` are counted.
+    """
     done = {} if done is None else done
     out = {"candidates": 0, "unexplained": 0, "noise": 0, "n": 0, "lines": [], "cpu": 0.0}
     for seed in seeds:
         r = done.get((name, seed))
+        if r is None and recorded_only:
+            continue
         if r is None:
             r = done[(name, seed)] = diagnose_seed(name, seed)
         cand, une, noise = r["candidates"], r["unexplained"], r["noise"]
@@ -99,13 +106,16 @@ def main() -> int:
     ap.add_argument("--records", type=Path, default=None,
                     help="JSON-lines file: one record per diagnosed seed is appended; seeds "
                          "already in it are not run again (resume a partial run)")
+    ap.add_argument("--recorded-only", action="store_true",
+                    help="run nothing: the table of the seeds already in --records (a partial run; "
+                         "the files of several processes concatenated)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     done = load_records(args.records)
     cases = args.cases.split(",")
-    for seed in seeds:            # seed-major: a partial run covers every case
-        for name in cases:
+    for seed in [] if args.recorded_only else seeds:  # seed-major: a partial run covers
+        for name in cases:                             # every case
             if (name, seed) not in done:
                 done[(name, seed)] = r = diagnose_seed(name, seed)
                 if args.records is not None:
@@ -118,13 +128,14 @@ def main() -> int:
                           flush=True)
     rows = []
     for name in cases:
-        rows.append((name, run_case(name, seeds, done)))
-    print(f"\nfalse alarms on clean bags, {args.seeds} seeds per case (alpha = 1 %; "
-          "count, rate, one-sided 95 % upper bound)")
+        rows.append((name, run_case(name, seeds, done, args.recorded_only)))
+    n_seeds = ", ".join(f"{r['n']}" for _, r in rows)
+    print(f"\nfalse alarms on clean bags, seeds {seeds.start}-{seeds.stop - 1}: {n_seeds} bags "
+          "per case (alpha = 1 %; count, rate, one-sided 95 % upper bound)")
     print(f"{'case':14s} {'candidates':>22s} {'unexplained':>22s} {'noise rescaled':>22s} "
           f"{'cpu s/bag':>9s}")
     for name, r in rows:
-        n = r["n"]
+        n = max(r["n"], 1)
         cells = [f"{r[k]:3d} {r[k] / n:6.1%} (<{upper(r[k], n):5.1%})"
                  for k in ("candidates", "unexplained", "noise")]
         print(f"{name:14s} " + " ".join(f"{c:>22s}" for c in cells) + f" {r['cpu'] / n:9.0f}")

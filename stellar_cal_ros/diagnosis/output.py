@@ -50,7 +50,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     mask = stats.evaluation_mask(res, fraction)
     unexplained = stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
-        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre)])
+        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre),
+               *stats.periodic_findings(res, mask)])
     unexplained, spread = within_groups(unexplained, verdict)
     summary = summary_dict(base, results, unexplained, spec, effects, fraction)
     summary["noise"] = (verdict.as_json() if verdict is not None else

@@ -44,6 +44,8 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
         span = "across its 5-95 % range"
         if u["regressor"] == "catalogue star":
             what, span = "residual repeating", "rms per axis at least (left by the cells)"
+        elif u["regressor"].startswith("time (periodic"):
+            what, span = f"{u['component']} residual", "amplitude"
         elif u["component"] == "size":
             what = "residual spread (size)"
         out.append(f"  unexplained: {what} vs {u['regressor']} "

@@ -272,6 +272,49 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     return t, float(2.0 * stats.norm.sf(abs(t)))
 
 
+def periodic_findings(res: Table, mask: np.ndarray) -> list[RegressorFinding]:
+    """A periodic residual every star of a frame shares (u and v): Fisher's g test.
+
+    A motion of the tracker against the IMU that the gyro does not see (a wobble) moves
+    every star of a frame alike and comes back with its period: no star regressor follows
+    it and a straight line in time averages it out.  Per component, the frames' mean
+    innovation (px, the evaluation window, frames in time order) is tested for one periodic
+    term by Fisher's g (the periodogram's largest ordinate over their sum; p ≈ m (1 − g)^(m−1)
+    for m ordinates, innovations of a right model being white); the size is the fitted
+    sinusoid's amplitude (px).  Returns unadjusted findings (regressor ``time (periodic,
+    P s)``), for :func:`regressor_tests`' ``extra``.
+    """
+    m = mask & accepted(res)
+    out: list[RegressorFinding] = []
+    if m.sum() < 20:
+        return out
+    frame = np.asarray(res["frame"])[m]
+    uniq, inv = np.unique(frame, return_inverse=True)
+    if len(uniq) < 32:
+        return out
+    cnt = np.bincount(inv).astype(float)
+    t = np.bincount(inv, np.asarray(res["t"], dtype=float)[m]) / cnt
+    order = np.argsort(t)
+    t = t[order]
+    for comp, key in (("frame mean u", "du"), ("frame mean v", "dv")):
+        y = (np.bincount(inv, np.asarray(res[key], dtype=float)[m]) / cnt)[order]
+        y = y - y.mean()
+        spec = np.abs(np.fft.rfft(y)[1:-1]) ** 2  # neither the mean nor Nyquist
+        n_ord = len(spec)
+        if n_ord < 8 or not spec.sum() > 0:
+            continue
+        k = int(np.argmax(spec))
+        g = float(spec[k] / spec.sum())
+        p = float(min(1.0, n_ord * (1.0 - g) ** (n_ord - 1)))
+        period = (t[-1] - t[0]) * len(y) / (len(y) - 1) / (k + 1)
+        w = 2.0 * np.pi / period
+        X = np.stack([np.sin(w * t), np.cos(w * t)], 1)
+        amp = float(np.hypot(*np.linalg.lstsq(X, y, rcond=None)[0]))
+        z = float(stats.norm.isf(max(p, 1e-300) / 2.0))
+        out.append(RegressorFinding(f"time (periodic, {period:.3g} s)", comp, z, p, amp))
+    return out
+
+
 #: regressors that vary from star to star within a frame (tested on the within-frame
 #: residuals); the others are properties of the frame (tested on the innovations)
 STAR_REGRESSORS = ("magnitude", "u (column)", "v (row)", "radius")
