@@ -237,6 +237,10 @@ def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> lis
         mdb = ", ".join(f"{n} {reliability.shown(e['effect'] + '.' + n, v)}"
                         for n, v in e["mdb"].items())
         flag = "" if e["testable"] else " (not testable: above its plausible size)"
+        if e["testable"] and e.get("physical_value") is not None:
+            flag = (f" (physics fixes it at {e['physical_value']:g}x: a structure with its "
+                    "pattern is flagged from this size on, as 'implausible' below "
+                    f"{e['implausible_below']:g}x)")
         line = f"  {e['effect']:22s} MDB {mdb}{flag}"
         dom = sorted(e["dominates"], key=lambda n: -e["biases"][n] / e["sigma"][n])
         src = e.get("bias_parameter", {})

@@ -7,10 +7,14 @@ the parameter the report names for its largest bias, else its best determined on
 twin with the same seed without it.  Then, per effect:
 
 * **detection**: one diagnosis round on the injected twin (the final model, every
-  candidate): is the effect a significant candidate?  One twin is one draw; the *power* is
-  read from the measured non-centrality: the paired difference of the effect's score
-  between the two twins, ``λ = Δsᵀ I⁻¹ Δs``, gives ``P(χ²_k(λ) > crit)`` — 80 % when the
-  printed MDB is right;
+  candidate): does the round's decision flag the effect?  One twin is one draw.  The
+  paired difference of the effect's score between the two twins, ``λ = Δsᵀ I⁻¹ Δs``, is
+  the score's noise-free response: λ₀ (the non-centrality the MDB is stated for) when the
+  score is linear in the effect up to its MDB.  It is not the power: it checks the
+  sensitivity, not the test's distribution, and an effect the model absorbs to first
+  order (an image-plane tilt) responds non-linearly (0.55x at +MDB, 1.47x at -MDB) while
+  the decision still finds it as often as stated.  The power is measured over seeds, from
+  the injected runs' own statistics (``benchmarks/reliability_injection.py``);
 * **bias**: the current model's estimates on the two twins: the shift of every listed
   quantity against the printed bias (within ± 30 %: holds).
 
@@ -30,8 +34,8 @@ from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import Stage
 
-#: the printed numbers hold when the implied power is within these bounds and every
-#: listed shift within this ratio of its printed bias
+#: the printed numbers hold when the paired score response's power is within these bounds
+#: and every listed shift within this ratio of its printed bias
 POWER_RANGE = (0.65, 0.95)
 RATIO_RANGE = (0.7, 1.3)
 
@@ -77,13 +81,27 @@ def verify(data, calibration, method: str, effects: list[str], entries: list[dic
 
 
 def check_claims(make, calibration, method: str, effects: list[str], entries: list[dict],
-                 noise=None, seed: int = 1, tell=None, fraction: float = 0.5
+                 noise=None, seed: int = 1, tell=None, fraction: float = 0.5,
+                 only: list[str] | None = None, signs: tuple[int, ...] = (1,)
                  ) -> list[dict[str, Any]]:
     """Inject each testable entry at its printed MDB into ``make(injected)`` bags and check.
 
     ``make({effect: simulate-units value}) -> (BagData, counts)`` makes the paired bags (the
     same noise for every call: a twin of the same seed, or the simulator with one seed);
     ``calibration`` is where the diagnosis starts; ``noise`` the scales its runs use.
+
+    Every round tests all of ``entries``' effects (the report's candidates: the same
+    family-wise correction as the report's decision); ``only`` restricts which are
+    injected, ``signs`` the signs of the injected size (an MDB is a size: either sign).
+
+    Per injection: ``found`` — the round's decision flags it (significant, or significant
+    but at a size its physics rules out, 'implausible': the report says a structure with
+    its pattern is there); ``named`` — significant as itself; ``score_statistic`` — the
+    decision's score statistic on the injected bag (over seeds its mean minus the dof is
+    the measured non-centrality, ``benchmarks/reliability_injection.py``);
+    ``noncentrality`` — ``Δsᵀ I⁻¹ Δs`` of the paired score difference, the
+    noise-free response of the score (λ₀ when the score is linear in the effect up to its
+    MDB).
     """
     from stellar_cal_ros.diagnosis.discover import Round, method_spec, rank_round
     from stellar_cal_ros.diagnosis.parallel import Runs
@@ -101,53 +119,94 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
         return base, {c.effect: c for c in results}
 
     data0, _ = make({})
-    base0, _ = round_on(data0)
+    base0, cands0 = round_on(data0)
     before = _values(base0)
     out = []
     for entry in entries:
-        if not entry.get("testable"):
+        if not entry.get("testable") or (only is not None and entry["effect"] not in only):
             continue
-        eid = entry["effect"]
-        eff = registry.create(eid)
-        param, listed = injected_parameter(entry)
-        size = entry["hidden_size"][param]
-        delta = injection.parameter_delta(eid, param, size)
-        data1, counts = make({eid: injection.simulation_value(eid, delta)})
-        base, cands = round_on(data1)
-        c = cands.get(eid)
-        found = bool(c is not None and c.significant)
-        lam = power = float("nan")
-        s0 = (base0.scores or {}).get(eid)
-        s1 = (base.scores or {}).get(eid)
-        if s0 is not None and s1 is not None and len(s0) > 5 and len(s1) > 5:
-            d = np.asarray(s1[5]) - np.asarray(s0[5])
-            info = np.atleast_2d(np.asarray(s0[2], dtype=float))
-            lam = float(d @ np.linalg.pinv(info) @ d)
-            k = int(entry.get("dof", eff.size))
-            crit = sps.chi2.isf(entry["alpha"], k)
-            power = float(sps.ncx2.sf(crit, k, lam))
-        shift = injection.paired_shift(before, _values(base))
-        checks = []
-        for q in listed:
-            if q.startswith("equivalent_principal_point") and eff.stage in (Stage.CAMERA,
-                                                                             Stage.TRACKER):
-                continue  # the effect moves the true value itself
-            printed = entry["biases_signed"][q]
-            checks.append({"quantity": q, "printed": printed, "measured": shift.get(q),
-                           "ratio": shift.get(q, np.nan) / printed if printed else np.nan})
-        ratios = [c["ratio"] for c in checks]
-        holds_bias = all(RATIO_RANGE[0] <= r <= RATIO_RANGE[1] for r in ratios)
-        holds_power = bool(np.isfinite(power) and POWER_RANGE[0] <= power <= POWER_RANGE[1])
-        rec = {"effect": eid, "parameter": param, "size": size,
-               "size_shown": _shown(eid, param, size), "found": found,
-               "noncentrality": lam, "expected_noncentrality": entry.get("lam0"),
-               "implied_power": power, "biases": checks,
-               "holds": bool(holds_bias and holds_power), "seed": seed,
-               "twin_counts": counts}
-        out.append(rec)
-        if tell:
-            tell(describe(rec))
+        for sign in signs:
+            rec = _inject(make, round_on, entry, base0, cands0, before, int(sign))
+            rec["seed"] = seed
+            out.append(rec)
+            if tell:
+                tell(describe(rec))
     return out
+
+
+def _inject(make, round_on, entry, base0, cands0, before, sign: int) -> dict[str, Any]:
+    """One entry injected at ``sign`` x its printed MDB: the check's record."""
+    eid = entry["effect"]
+    eff = registry.create(eid)
+    param, listed = injected_parameter(entry)
+    size = sign * entry["hidden_size"][param]
+    delta = injection.parameter_delta(eid, param, size)
+    data1, counts = make({eid: injection.simulation_value(eid, delta)})
+    base, cands = round_on(data1)
+    c = cands.get(eid)
+    lam = float("nan")
+    s0 = (base0.scores or {}).get(eid)
+    s1 = (base.scores or {}).get(eid)
+    if s0 is not None and s1 is not None and len(s0) > 5 and len(s1) > 5:
+        d = np.asarray(s1[5]) - np.asarray(s0[5])
+        info = np.atleast_2d(np.asarray(s0[2], dtype=float))
+        lam = float(d @ np.linalg.pinv(info) @ d)
+    k = int(entry.get("dof", eff.size))
+    crit = sps.chi2.isf(entry["alpha"], k)
+    shift = injection.paired_shift(before, _values(base))
+    checks = []
+    for q in listed:
+        if q.startswith("equivalent_principal_point") and eff.stage in (Stage.CAMERA,
+                                                                         Stage.TRACKER):
+            continue  # the effect moves the true value itself
+        printed = sign * entry["biases_signed"][q]
+        checks.append({"quantity": q, "printed": printed, "measured": shift.get(q),
+                       "ratio": shift.get(q, np.nan) / printed if printed else np.nan})
+    ratios = [c["ratio"] for c in checks]
+    holds_bias = all(RATIO_RANGE[0] <= r <= RATIO_RANGE[1] for r in ratios)
+    response = float(sps.ncx2.sf(crit, k, lam)) if np.isfinite(lam) else float("nan")
+    holds_score = bool(np.isfinite(response)
+                       and POWER_RANGE[0] <= response <= POWER_RANGE[1])
+    c0 = cands0.get(eid)
+    return {"effect": eid, "parameter": param, "size": size, "sign": sign,
+            "size_shown": _shown(eid, param, size),
+            "found": flagged(c),
+            "named": bool(c is not None and c.significant),
+            "noncentrality": lam, "expected_noncentrality": entry.get("lam0"),
+            "paired_power": response, "dof": k, "alpha": entry["alpha"],
+            "biases": checks, "holds": bool(holds_bias and holds_score),
+            "twin_counts": counts, **_decision(c),
+            "clean_score_statistic": (c0.screen.statistic if c0 is not None
+                                      and c0.screen is not None else float("nan"))}
+
+
+def flagged(c) -> bool:
+    """The round's decision flags candidate ``c``: significant, or 'implausible'.
+
+    An implausible candidate is significant (:func:`~stellar_cal_ros.diagnosis.discover.
+    decide`) at a size its physics rules out: the report says a structure with its
+    pattern is there, from another cause -- the right call for an astrometric scale
+    injected at a fraction of its physical size, and a detection all the same.
+    """
+    return bool(c is not None and (c.significant or c.status == "implausible"))
+
+
+def _decision(c) -> dict[str, Any]:
+    """What the round's decision saw on the injected bag (for the power benchmark)."""
+    if c is None:
+        return {"status": "absent", "reason": "", "p_adjusted": float("nan"),
+                "lr_statistic": float("nan"), "lr_p": float("nan"),
+                "score_statistic": float("nan"), "score_p": float("nan"),
+                "score_local": False, "estimate": {}, "sigma_post": {},
+                "explained": float("nan")}
+    scr = c.screen
+    return {"status": c.status, "reason": c.reason, "p_adjusted": c.p_adjusted,
+            "lr_statistic": c.statistic, "lr_p": c.p_value,
+            "score_statistic": scr.statistic if scr is not None else float("nan"),
+            "score_p": scr.p_value if scr is not None else float("nan"),
+            "score_local": bool(scr is not None and scr.local),
+            "estimate": dict(c.estimate), "sigma_post": dict(c.sigma),
+            "explained": c.explained}
 
 
 def _shown(eid: str, param: str, value: float) -> str:
@@ -163,8 +222,9 @@ def describe(rec: dict[str, Any]) -> str:
     parts = [f"{rec['effect']} {rec['parameter']} = {rec['size_shown']}: "
              f"{'found' if rec['found'] else 'missed'} on the twin"]
     if np.isfinite(rec["noncentrality"]):
-        parts.append(f"non-centrality {rec['noncentrality']:.3g} (MDB claims "
-                     f"{rec['expected_noncentrality']:.3g}: power {rec['implied_power']:.0%})")
+        parts.append(f"score response (paired) {rec['noncentrality']:.3g} (MDB claims "
+                     f"{rec['expected_noncentrality']:.3g}: {rec['paired_power']:.0%} at the "
+                     "test's level)")
     for c in rec["biases"]:
         parts.append(f"{c['quantity']} moved {shown(c['quantity'], c['measured'])} "
                      f"(printed {shown(c['quantity'], c['printed'])})")
