@@ -209,13 +209,16 @@ def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):
 
 
 def test_auto_with_two_dask_workers_chooses_as_one_worker(tmp_path):
-    """--auto on a 2-worker LocalCluster gives the path of a 1-worker one: the screening
-    split into two parts (one per worker) changes no score test and no decision."""
+    """--auto on a 2-worker LocalCluster gives the path of one worker: the screening split
+    into two parts (one per worker) changes no score test and no decision.  The one worker
+    is this process (``workers=0``: one part, as a 1-worker cluster has; a 1-worker
+    LocalCluster is run in test_existing_dask_scheduler_and_a_bag_sent_as_bytes)."""
     sim, data = _sim({"time_offset": 0.01, "gyro_scale_factor": 1e-4}, seed=21,
                      duration=120.0)
     cands = ["time_offset", "pixel_aspect", "gyro_scale_factor", "image_plane_tilt"]
-    s = {n: diagnose(data, sim.prior, "psce", [], tmp_path / str(n), candidates=cands,
-                     plots=False, verbose=False, auto=True, workers=n) for n in (1, 2)}
+    s = {max(n, 1): diagnose(data, sim.prior, "psce", [], tmp_path / str(n), candidates=cands,
+                             plots=False, verbose=False, auto=True, workers=n) for n in (0, 2)}
+    assert s[1]["executor"] == "in this process"
     assert s[2]["executor"] == "on 2 local worker processes"
     assert s[1]["added"] == s[2]["added"]
     assert set(s[2]["added"]) == {"time_offset", "gyro_scale_factor"}, s[2]["path"]
