@@ -56,6 +56,11 @@ def diagnose_seed(name: str, seed: int) -> dict[str, object]:
             "unexplained": [f"{u['component']} vs {u['regressor']} (t={u['statistic']:.1f})"
                             for u in s["unexplained"]],
             "noise": bool(s["noise"]["rescaled"]), "verdict": s["noise"]["verdict"],
+            # every re-run candidate's tests (their null distribution over the seeds)
+            "tests": {c["effect"]: {"p_ratio": c["p_value_unadjusted"],
+                                    "p_score": c["p_value_score"], "p_adjusted": c["p_value"],
+                                    "statistic": c["score"], "dof": c["dof"]}
+                      for c in s["candidates"]},
             "cpu": time.process_time() - t0}
 
 
