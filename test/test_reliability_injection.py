@@ -35,7 +35,7 @@ DURATION, SEED = 150.0, 5
 
 def _data(effects=None):
     sim = simulate(get_scenario("psce_rotations"), duration=DURATION, seed=SEED,
-                   effects=effects or {})
+                   effects=effects or {}, paired_with={} if effects else None)
     return sim, bag_data_from_simulation(sim)
 
 

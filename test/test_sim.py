@@ -148,6 +148,35 @@ def test_seed_determinism(tmp_path):
     assert pa["bag"].read_bytes() == pb["bag"].read_bytes()
 
 
+def _star_noise(effects, paired_with=None, duration=30.0, seed=5):
+    """Centroid noise per (frame, catalogue id): the bag minus its noise-free twin."""
+    def uv(sc):
+        r = simulate(sc, duration=duration, seed=seed, effects=effects,
+                     paired_with=paired_with)
+        return {(j, int(c)): p for j, f in enumerate(r.star_frames)
+                for c, p in zip(f.catalog_id, f.uv, strict=True)}
+    noisy, exact = uv(get_scenario("psce_rotations")), uv(_noise_free("psce_rotations"))
+    return {k: noisy[k] - exact[k] for k in noisy}
+
+
+def test_an_injection_paired_with_the_clean_bag_keeps_its_noise():
+    """An injected effect must not change the clean bag's noise (the paired difference of
+    an injection is the effect alone).  Unpaired, a camera or time effect moves the star
+    cone, and every later draw of the random stream shifts with it."""
+    clean = _star_noise({})
+    injected = {"pixel_aspect": -1e-3, "time_offset": 0.05}
+    for paired_with, expect_same in ((None, False), ({}, True)):
+        noise = _star_noise(injected, paired_with)
+        shared = [k for k in noise if k in clean]
+        assert len(shared) > 0.99 * len(clean)
+        # equal to the rounding of (uv + n) - uv (the noise is 0.05 px)
+        same = sum(bool(np.allclose(noise[k], clean[k], rtol=0, atol=1e-9)) for k in shared)
+        if expect_same:
+            assert same == len(shared)
+        else:  # the failure the pairing prevents (30 s, seed 5: 35 of 1 586 keep it)
+            assert same < 0.1 * len(shared)
+
+
 def test_written_bag_follows_contract(tmp_path):
     sc = get_scenario("swaying")
     r = simulate(sc, duration=20.0, seed=2)

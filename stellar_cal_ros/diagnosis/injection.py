@@ -34,8 +34,9 @@ def clean_simulation(method: str, sky: bool, seed: int, duration: float,
                      effects: dict[str, Any] | None = None):
     """A simulation whose effects the method's model (plus the sky, if ``sky``) all holds.
 
-    ``effects``: further effects injected (they are then what the model lacks).  Returns
-    ``(simulation, model effects)``.
+    ``effects``: further effects injected (they are then what the model lacks); the bag is
+    then paired with the clean one (``simulate(paired_with=)``: every star both hold gets
+    the same noise).  Returns ``(simulation, model effects)``.
     """
     from stellar_cal_ros.sim.scenarios import get_scenario
     from stellar_cal_ros.sim.world import simulate
@@ -43,8 +44,10 @@ def clean_simulation(method: str, sky: bool, seed: int, duration: float,
     eff = dict(SWAY_CLEAN) if method == "swaying_base" else {}
     if sky:
         eff.update(SKY)
+    clean = dict(eff) if effects else None
     eff.update(effects or {})
-    sim = simulate(get_scenario(SCENARIO[method]), duration=duration, seed=seed, effects=eff)
+    sim = simulate(get_scenario(SCENARIO[method]), duration=duration, seed=seed, effects=eff,
+                   paired_with=clean)
     return sim, (list(SKY) if sky else [])
 
 

@@ -227,6 +227,7 @@ def simulate(
     duration: float | None = None,
     seed: int = 0,
     effects: dict[str, Any] | None = None,
+    paired_with: dict[str, Any] | None = None,
 ) -> SimulationResult:
     """Run the truth world of ``scenario`` and return the sensor data and calibrations.
 
@@ -240,6 +241,14 @@ def simulate(
         Seed of every random draw: the same seed gives byte-identical data.
     effects : dict, optional
         Effect values overriding the scenario's (units in :mod:`.truth_effects`).
+    paired_with : dict, optional
+        The effects of a bag this one is *paired* with (an injection: the same seed and
+        these effects, plus what ``effects`` adds).  The stars whose centroid noise is
+        drawn, and their order in the random stream, are then that bag's, so every star
+        both bags hold gets the same noise, whatever the added effects do to the camera,
+        the exposure time or the installation (a wider cone would shift every later
+        draw); stars only this bag's cone holds get noise from a separate stream.  Without
+        it (the default) the bag is exactly what the seed and ``effects`` give.
     """
     duration = float(scenario.duration if duration is None else duration)
     if not duration > 0:
@@ -250,7 +259,13 @@ def simulate(
     t0 = scenario.start_posix
 
     imu = _simulate_imu(world, rng)
-    frames, star_stats = _simulate_stars(world, rng)
+    reference = None
+    if paired_with is not None:
+        ref_eff = merged_effects(scenario.effects, paired_with)
+        if set(ref_eff) != set(eff) or any(
+                not np.array_equal(ref_eff[k], eff[k]) for k in eff):
+            reference = TruthWorld(scenario, duration, ref_eff)
+    frames, star_stats = _simulate_stars(world, rng, reference)
     aux = _simulate_aux(world)
     truth = _truth_calibration(world)
     prior = _prior_calibration(world)
@@ -309,17 +324,11 @@ def _simulate_imu(world: TruthWorld, rng: np.random.Generator) -> ImuSeries:
                      linear_acceleration_covariance=np.diag([accel_sigma**2] * 3).ravel())
 
 
-def _simulate_stars(
-    world: TruthWorld, rng: np.random.Generator
-) -> tuple[list[StarFrame], dict[str, float]]:
-    s, e = world.scenario, world.effects
-    cat = load_catalog(mag_limit=s.mag_limit)
-    radec_msg = cat.message_radec()  # what a tracker message carries (J2000.0 place)
-    u_j2000 = radec_to_unit(*radec_msg)  # ... and the unit vectors a filter makes of it
-
+def _frame_contexts(world: TruthWorld) -> tuple[np.ndarray, int, list[FrameContext]]:
+    """Relative frame stamps, the first stamp (ns) and each frame's context."""
+    s = world.scenario
     stamps_rel = s.star_phase_s + np.arange(0.0, world.duration, 1.0 / s.star_rate)
     stamps_rel = stamps_rel[stamps_rel <= world.duration - 1e-9]
-    model, theta = world.model, world.theta
     stamp0 = int(round(s.start_posix * 1e9))
     head = world.head_temperature(stamps_rel)
     air = _air_temperature(s, stamps_rel)
@@ -328,25 +337,61 @@ def _simulate_stars(
                              pressure_pa=s.pressure_hpa * 100.0)
                 for t, h, a in zip(stamps_rel.tolist(), head.tolist(), air.tolist(),
                                    strict=True)]
-    # the true exposure times (TIME effects of the model, e.g. the time offset)
+    return stamps_rel, stamp0, contexts
+
+
+def _exposure_attitudes(world: TruthWorld, stamps_rel, contexts):
+    """True exposure times (TIME effects, e.g. the time offset) and ``R_i_st`` at them."""
+    model, theta = world.model, world.theta
     t_true = stamps_rel + np.array([model.time_shift(theta, c)[0] for c in contexts])
     if np.any(t_true < 0) or np.any(t_true > world.duration + 1.0):
         raise ScenarioError("time_offset moves exposures outside the simulated span")
-    R_i_st = world.R_i_b(t_true) @ world.installation().as_matrix()
+    return t_true, world.R_i_b(t_true) @ world.installation().as_matrix()
 
-    # Pass 1: candidate stars by J2000 direction (1 deg margin beyond the half-diagonal).
-    cam = world.camera()
+
+def _star_cone(world: TruthWorld, R_i_st: np.ndarray,
+               u_j2000: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate ``(frame, star)`` pairs by J2000 direction: 1 deg beyond the half-diagonal.
+
+    Frame-major, stars in catalogue order within a frame: the order the noise is drawn in.
+    """
+    s, cam = world.scenario, world.camera()
     half_diag = np.arctan(np.hypot(s.width, s.height) / 2 / min(cam.fx, cam.fy))
     cos_lim = np.cos(half_diag + np.deg2rad(1.0))
     boresight_i = R_i_st[:, :, 2]
     frame_idx, star_idx = [], []
-    for a in range(0, len(t_true), 512):
+    for a in range(0, len(R_i_st), 512):
         cosang = boresight_i[a:a + 512] @ u_j2000.T
         fi, si = np.nonzero(cosang > cos_lim)
         frame_idx.append(fi + a)
         star_idx.append(si)
-    frame_idx = np.concatenate(frame_idx)
-    star_idx = np.concatenate(star_idx)
+    return np.concatenate(frame_idx), np.concatenate(star_idx)
+
+
+def _simulate_stars(
+    world: TruthWorld, rng: np.random.Generator, reference: TruthWorld | None = None
+) -> tuple[list[StarFrame], dict[str, float]]:
+    s, e = world.scenario, world.effects
+    cat = load_catalog(mag_limit=s.mag_limit)
+    radec_msg = cat.message_radec()  # what a tracker message carries (J2000.0 place)
+    u_j2000 = radec_to_unit(*radec_msg)  # ... and the unit vectors a filter makes of it
+
+    stamps_rel, stamp0, contexts = _frame_contexts(world)
+    model, theta = world.model, world.theta
+    t_true, R_i_st = _exposure_attitudes(world, stamps_rel, contexts)
+
+    # Pass 1: candidate stars by direction.  A paired bag (an injection) takes the
+    # reference bag's candidates, in its order, and appends those only its own cone holds.
+    frame_idx, star_idx = _star_cone(world, R_i_st, u_j2000)
+    n_paired = len(star_idx)
+    if reference is not None:
+        _, R_ref = _exposure_attitudes(reference, stamps_rel, _frame_contexts(reference)[2])
+        f_ref, s_ref = _star_cone(reference, R_ref, u_j2000)
+        n_cat = len(u_j2000)
+        extra = ~np.isin(frame_idx * n_cat + star_idx, f_ref * n_cat + s_ref)
+        frame_idx = np.concatenate([f_ref, frame_idx[extra]])
+        star_idx = np.concatenate([s_ref, star_idx[extra]])
+        n_paired = len(s_ref)
 
     # Pass 2: each frame rendered through the effects with the true attitude (the filters'
     # measurement function, StarModel.predict, at the true parameters)
@@ -355,11 +400,12 @@ def _simulate_stars(
     g_st /= np.linalg.norm(g_st, axis=1, keepdims=True)
     uv = np.full((len(star_idx), 2), np.nan)
     d_z = np.full(len(star_idx), -1.0)
-    bounds = np.searchsorted(frame_idx, np.arange(len(stamps_rel) + 1))
+    by_frame = np.argsort(frame_idx, kind="stable")
+    bounds = np.searchsorted(frame_idx[by_frame], np.arange(len(stamps_rel) + 1))
     for j, ctx in enumerate(contexts):
-        sel = slice(bounds[j], bounds[j + 1])
         if bounds[j] == bounds[j + 1]:
             continue
+        sel = by_frame[bounds[j]:bounds[j + 1]]
         ctx.catalog_id = cat.hip[star_idx[sel]].astype(np.int64)
         ctx.gravity_st = g_st[j]
         pred = model.predict(theta, u_j2000[star_idx[sel]], ctx,
@@ -373,8 +419,11 @@ def _simulate_stars(
     if mb[0] != 0.0:
         direction = np.array([np.cos(np.deg2rad(mb[1])), np.sin(np.deg2rad(mb[1]))])
         uv = uv + (mb[0] * (mag - 4.0))[:, None] * direction
-    uv = uv + s.centroid_noise_px * rng.standard_normal(uv.shape)
-    keep = ok & cam.in_image(np.nan_to_num(uv, nan=-1e9))
+    noise = rng.standard_normal(uv.shape) if reference is None else np.concatenate(
+        [rng.standard_normal((n_paired, 2)),  # the reference bag's draws, star by star
+         rng.spawn(1)[0].standard_normal((len(uv) - n_paired, 2))])
+    uv = uv + s.centroid_noise_px * noise
+    keep = ok & world.camera().in_image(np.nan_to_num(uv, nan=-1e9))
     frame_idx, star_idx, uv, mag = frame_idx[keep], star_idx[keep], uv[keep], mag[keep]
 
     ids = cat.hip[star_idx].astype(np.uint32)
