@@ -52,15 +52,16 @@ def test_frame_robust_p_value_holds_its_stated_level():
     window and the frames' unequal weights), not N(0, 1): under the null its rate below
     alpha is alpha.  A short window (40 frames of 8 stars) makes the difference large: a
     star regressor on white residuals and a frame regressor (time's normal scores) on
-    residuals that share a frame error, 3000 replications.  Referred to N(0, 1) the same
-    statistics reject ~3x too often (the clean bags' 3 % 'unexplained' lines)."""
+    residuals that share a frame error, 2000 replications (~1.5 CPU-s).  Referred to
+    N(0, 1) the same statistics reject ~3x too often (the clean bags' 3 % 'unexplained'
+    lines were that reference's far tail)."""
     from scipy import stats as sps
 
     rng = np.random.default_rng(11)
     frames = np.repeat(np.arange(40), 8)
     x_time = stats.normal_scores(frames.astype(float))
     p_t, p_normal = [], []
-    for i in range(3000):
+    for i in range(2000):
         if i % 2:
             x, y = rng.standard_normal(len(frames)), rng.standard_normal(len(frames))
         else:
