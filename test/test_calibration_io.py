@@ -197,3 +197,29 @@ def test_residual_table_parquet_and_csv_round_trip(tmp_path):
         back = read_residuals(write_residuals(tmp_path / name, table))
         for key, value in table.items():
             np.testing.assert_array_equal(back[key], value)
+
+
+def test_residual_csv_bytes_are_the_csv_modules(tmp_path):
+    """Numeric columns are joined directly (no csv.writer per cell): the same bytes."""
+    import csv
+
+    from stellar_cal_ros.io.residuals import TableWriter, write_residuals
+
+    rng = np.random.default_rng(5)
+    table = {"t": rng.normal(size=40) * 1e9, "frame": np.arange(40),
+             "x": np.r_[np.nan, np.inf, -np.inf, 1e-300, -0.0, rng.normal(size=35)],
+             "gated": rng.random(40) > 0.5, "count": np.arange(40, dtype=np.uint16)}
+    with open(tmp_path / "ref.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(list(table))
+        w.writerows(zip(*[[repr(x) if v.dtype.kind == "f" else str(x) for x in v.tolist()]
+                          for v in table.values()], strict=True))
+    ref = (tmp_path / "ref.csv").read_bytes()
+    assert write_residuals(tmp_path / "a.csv", table).read_bytes() == ref
+    with TableWriter(tmp_path / "b.csv") as tw:  # streamed in chunks, an empty one first
+        tw.append({k: v[:0] for k, v in table.items()})
+        tw.append({k: v[:15] for k, v in table.items()})
+        tw.append({k: v[15:] for k, v in table.items()})
+    assert (tmp_path / "b.csv").read_bytes() == ref
+    text = dict(table, name=np.array(["a,b"] * 40))  # a string column: quoted by csv
+    assert b'"a,b"' in write_residuals(tmp_path / "c.csv", text).read_bytes()

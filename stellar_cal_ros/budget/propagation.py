@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from stellar_cal_ros.core.attitude import batched_wahba
 from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.core.rotation import skew, so3_exp
 
@@ -233,30 +234,6 @@ def frame_attitude_jacobians(field: StarField, camera: CameraModel,
 
 
 # ---------------------------------------------------------------------------- exact model
-
-
-def batched_wahba(directions_st: np.ndarray, directions_ref: np.ndarray) -> np.ndarray:
-    """Least-squares rotations ``R`` with ``directions_ref ≈ R @ directions_st`` (SVD).
-
-    The solution of :func:`stellar_cal_ros.core.attitude.wahba` (equal weights) for many
-    frames at once.
-
-    Parameters
-    ----------
-    directions_st : numpy.ndarray, shape (F, n, 3)
-        Directions in the frame to orient (the tracker's).
-    directions_ref : numpy.ndarray, shape (F, n, 3)
-        The same stars in the reference frame.
-
-    Returns
-    -------
-    numpy.ndarray, shape (F, 3, 3)
-    """
-    B = np.einsum("fki,fkj->fij", directions_ref, directions_st)
-    U, _, Vt = np.linalg.svd(B)
-    sign = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
-    U[:, :, 2] *= sign[:, None]
-    return U @ Vt
 
 
 def boresight_rotation(camera: CameraModel, model: CameraModel) -> np.ndarray:

@@ -39,6 +39,30 @@ def wahba(
     return rot.as_matrix()
 
 
+def batched_wahba(directions_st: np.ndarray, directions_ref: np.ndarray) -> np.ndarray:
+    """Least-squares rotations ``R`` with ``directions_ref ≈ R @ directions_st`` (SVD).
+
+    The solution of :func:`wahba` (equal weights) for many frames at once; numpy only,
+    without the per-call cost of scipy's ``align_vectors`` (the gyro check's fits).
+
+    Parameters
+    ----------
+    directions_st : numpy.ndarray, shape (F, n, 3)
+        Directions in the frame to orient (the tracker's).
+    directions_ref : numpy.ndarray, shape (F, n, 3)
+        The same stars in the reference frame.
+
+    Returns
+    -------
+    numpy.ndarray, shape (F, 3, 3)
+    """
+    B = np.einsum("fki,fkj->fij", directions_ref, directions_st)
+    U, _, Vt = np.linalg.svd(B)
+    sign = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    U[:, :, 2] *= sign[:, None]
+    return U @ Vt
+
+
 def fit_frame_attitude(
     camera: CameraModel,
     uv: np.ndarray,

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.core.attitude import wahba
+from stellar_cal_ros.core.attitude import batched_wahba, wahba
 from stellar_cal_ros.errors import DataError
 
 #: frame-index lags of the pairs compared (each anchor frame with the frames this far on)
@@ -52,7 +52,7 @@ MIN_AXIS_PAIRS = 3
 def frame_rotation(v_st: np.ndarray, u_i: np.ndarray) -> tuple[np.ndarray | None, float]:
     """``R_i_st`` of one frame and the RMS error of its inliers, rad (inf if < 3 stars).
 
-    Wahba's solution, refitted (up to 4 times) without the stars more than 4 × the inliers'
+    Wahba's solution (SVD), refitted (up to 4 times) without the stars more than 4 × the inliers'
     median error (at least 20") off, until the inliers do not change: wrong identities do
     not tilt it.
 
@@ -73,14 +73,14 @@ def frame_rotation(v_st: np.ndarray, u_i: np.ndarray) -> tuple[np.ndarray | None
         return np.arccos(np.clip(np.einsum("ij,ij->i", v @ R.T, u), -1, 1))
 
     inl = np.ones(len(v), dtype=bool)
-    R = wahba(v, u)
+    R = batched_wahba(v[None], u[None])[0]
     for _ in range(4):
         err = errors(R)
         new = err <= max(4.0 * float(np.median(err[inl])), 1e-4)
         if new.sum() < 3 or np.array_equal(new, inl):
             break
         inl = new
-        R = wahba(v[inl], u[inl])
+        R = batched_wahba(v[inl][None], u[inl][None])[0]
     return R, float(np.sqrt(np.mean(errors(R)[inl] ** 2)))
 
 
@@ -359,17 +359,20 @@ def watch_frame(state: dict[str, Any], t: float,
         The cause (:func:`judge`) when this frame's judgement finds a fault, else ''.
     """
     s = state
-    if R_prior is None or s["R_post"] is None:
+    R_last = s["R_post"]
+    if R_prior is None or R_last is None:
         s["G_now"] = np.eye(3)
         s["seg"] += 1
     else:
-        s["G_now"] = s["G_now"] @ (s["R_post"].T @ R_prior)
-    s["R_post"] = np.array(R_post, dtype=float)
-    s["frames"] += 1
-    pending = s.get("pending")
-    last = pending[-1][0] if pending else (s["t"][-1] if len(s["t"]) else None)
-    if s["frames"] > EARLY_FRAMES and last is not None and t - last < s["spacing"]:
-        return ""
+        s["G_now"] = s["G_now"] @ (R_last.T @ R_prior)
+    s["R_post"] = R_post.copy() if type(R_post) is np.ndarray and R_post.dtype == float \
+        else np.array(R_post, dtype=float)
+    s["frames"] = frames = s["frames"] + 1
+    if frames > EARLY_FRAMES:  # one frame per spacing after the early ones
+        pending = s.get("pending")
+        last = pending[-1][0] if pending else (s["t"][-1] if len(s["t"]) else None)
+        if last is not None and t - last < s["spacing"]:
+            return ""
     if s.get("defer"):  # recorded and judged later, off the frame's path
         s.setdefault("pending", []).append(
             (float(t), np.asarray(v_st), np.asarray(u_i), s["G_now"], s["seg"], s["frames"]))

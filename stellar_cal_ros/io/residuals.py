@@ -58,6 +58,22 @@ def _format(col: np.ndarray) -> list[str]:
     return list(map(str, col.tolist()))
 
 
+def _write_rows(fh, csv_writer, cols: list[np.ndarray]) -> None:
+    """The CSV rows of ``cols``: joined directly when no cell can need quoting.
+
+    Numbers and booleans (``repr``/``str`` of floats, integers, ``True``/``False``) never
+    hold a delimiter, quote or line break, so the ``excel`` dialect writes them as
+    ``cell,cell,...`` and CRLF — the same bytes, without the writer's per-cell checks; any other
+    column (strings) goes through ``csv_writer``.
+    """
+    formatted = [_format(c) for c in cols]
+    if formatted and all(c.dtype.kind in "fiub" for c in cols):
+        if formatted[0]:
+            fh.write("\r\n".join(map(",".join, zip(*formatted, strict=True))) + "\r\n")
+        return
+    csv_writer.writerows(zip(*formatted, strict=True))
+
+
 def write_residuals(path: str | os.PathLike[str], table: dict[str, np.ndarray]) -> Path:
     """Write a residual table to ``path`` (``.parquet`` → Parquet, anything else → CSV).
 
@@ -79,11 +95,10 @@ def write_residuals(path: str | os.PathLike[str], table: dict[str, np.ndarray]) 
         pq.write_table(pa.table({k: pa.array(v) for k, v in cols.items()}), path)
         return path
     path.parent.mkdir(parents=True, exist_ok=True)
-    formatted = [_format(v) for v in cols.values()]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(list(cols))
-        w.writerows(zip(*formatted, strict=True))
+        _write_rows(fh, w, list(cols.values()))
     return path
 
 
@@ -172,8 +187,7 @@ class TableWriter:
             if self._pending_rows >= self.row_group:
                 self._flush_parquet()
         else:
-            formatted = [_format(cols[k]) for k in self.columns]
-            self._csv.writerows(zip(*formatted, strict=True))
+            _write_rows(self._fh, self._csv, [cols[k] for k in self.columns])
 
     def _flush_parquet(self) -> None:
         if not self._pending:

@@ -201,14 +201,20 @@ class Calibrator(ImuRelease):
         if frame_id is not None and expected and frame_id != expected:
             c.imu_wrong_frame += len(t)
             return []
-        # the checks on the whole block first (the usual case: nothing to remove)
-        if not (np.isfinite(w).all() and np.isfinite(f).all() and (t > 0).all()):
-            ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
-            c.imu_invalid += int((~ok).sum())
-            t, w, f = t[ok], w[ok], f[ok]
+        # the checks on the whole block first (the usual case: nothing to remove): a sum
+        # is finite only if every term is (one that overflows takes the exact path below);
+        # strictly increasing stamps are all positive when the first is
         m = len(t)
-        # strictly increasing (the usual case): first and last are the extremes
         inc = m < 2 or bool((t[1:] > t[:-1]).all())
+        if not (math.isfinite(w.sum() + f.sum()) and (t[0] > 0 if inc and m
+                                                          else (t > 0).all())):
+            ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
+            if not ok.all():
+                c.imu_invalid += int((~ok).sum())
+                t, w, f = t[ok], w[ok], f[ok]
+                m = len(t)
+                # strictly increasing (the usual case): first and last are the extremes
+                inc = m < 2 or bool((t[1:] > t[:-1]).all())
         if m and self.imu_max_ns is not None:
             jump = int(self.driver.clock_jump_s * 1e9)
             newest = self.imu_max_ns
@@ -556,7 +562,7 @@ class Calibrator(ImuRelease):
             flt.sensitivity.accumulate = self.eval_start is None or \
                 frame.stamp_ns * 1e-9 >= self.eval_start
         upd = flt.process_frame(inp.uv, inp.u_i, ctx, inp.sigma,
-                                t_rel=(frame.stamp_ns - self.t0_ns) * 1e-9)
+                                t_rel=(frame.stamp_ns - self.t0_ns) * 1e-9, valid=inp.valid)
         ref = getattr(flt, "reference_history", None)
         if ref and ref["t"]:  # the method's other measurements: into the statistics, then gone
             for t, nis in zip(ref["t"], ref["nis"], strict=True):
@@ -605,18 +611,19 @@ class Calibrator(ImuRelease):
             for name in flt._nav_blocks:
                 keys += [f"sigma.{name}.{ax}" for ax in "xyz"]
             self._history_keys = keys = tuple(keys)
-            nav = [flt.layout.sl(name) for name in flt._nav_blocks]
+            # the row's values from [θ_estimated, σ]: each parameter then its σ, then the σ
+            # of attitude and navigation blocks
+            n_th = len(flt.theta_estimated())
+            index = np.arange(len(s))
+            nav = [index[flt.layout.sl(name)] for name in flt._nav_blocks]
+            pairs = np.empty(2 * n_th, dtype=np.intp)
+            pairs[0::2] = np.arange(n_th)
+            pairs[1::2] = n_th + index[flt.it]
             self._history_sigma_index = np.concatenate(
-                [np.arange(len(s))[flt.ia]] + [np.arange(len(s))[sl] for sl in nav]
-            ).astype(np.intp)
-        th, st = flt.theta_estimated(), s[flt.it]
-        pairs = np.empty(2 * len(th))
-        pairs[0::2] = th
-        pairs[1::2] = st
+                [pairs, n_th + index[flt.ia]] + [n_th + i for i in nav]).astype(np.intp)
         row = [float(upd.stamp), float(upd.nis), int(upd.dof), n_acc,
                len(upd.accepted) - n_acc, int(upd.iterations)]
-        row += pairs.tolist()
-        row += s[self._history_sigma_index].tolist()
+        row += np.concatenate((flt.theta_estimated(), s))[self._history_sigma_index].tolist()
         self.history.append_row(keys, row)
 
     def _trim(self) -> None:

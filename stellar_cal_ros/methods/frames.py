@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import bisect
 import logging
+import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -151,6 +152,9 @@ class FrameInputs:
     bad_sigma: int  #: stars whose message σ was negative, infinite or NaN (default used)
     unidentified: int = 0  #: centroids without identity (catalog_id 0, NaN RA/Dec)
     unknown_sigma: int = 0  #: stars whose message σ was 0 ("unknown": default or measured)
+    #: every star's centroid, direction and σ known finite (σ > 0): the filter's checks of
+    #: them can be left out (:meth:`~stellar_cal_ros.methods.kernel.StarFilter.process_frame`)
+    valid: bool = False
 
 
 def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float,
@@ -174,8 +178,13 @@ def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float
         if len({len(a) for a in arrays}) == 1:
             ok, uv, u_i, sigma, cid, mag, bad, unid = jit.star_inputs(
                 *arrays, float(width), float(height), float(default_sigma))
-            return FrameInputs(ok, uv, u_i, sigma, cid, mag, int(bad), int(unid),
-                               int(np.count_nonzero(arrays[4][ok] == 0)))
+            # σ = 0 in the message: counted among the usable stars (none: the usual case)
+            unknown = int(np.count_nonzero(arrays[4][ok] == 0)) \
+                if np.count_nonzero(arrays[4] == 0) else 0
+            # finite centroids and directions (the rule), σ the message's finite positive
+            # one or the default
+            return FrameInputs(ok, uv, u_i, sigma, cid, mag, int(bad), int(unid), unknown,
+                               valid=0.0 < default_sigma < math.inf)
     masks = star_masks(frame, width, height)
     ok = masks.usable
     s = np.asarray(frame.sigma, dtype=float)[ok]
@@ -531,7 +540,11 @@ class SiteEstimator:
 
 def frame_context(stamp_ns: int, inputs: FrameInputs, site: Site | None,
                   env: dict[str, EnvSeries], keys=ENV_KEYS) -> FrameContext:
-    """The context effects may use for one frame (environment ``keys`` only, others NaN)."""
+    """The context effects may use for one frame (environment ``keys`` only, others NaN).
+
+    The motion fields (rate, attitudes, gravity; set by whoever knows them, by assignment)
+    start as shared read-only zeros / identities instead of new arrays per frame.
+    """
     nan = float("nan")
     return FrameContext(
         stamp=stamp_ns * 1e-9,
@@ -541,7 +554,17 @@ def frame_context(stamp_ns: int, inputs: FrameInputs, site: Site | None,
         head_temperature_c=env["head"].interp(stamp_ns) if "head" in keys else nan,
         air_temperature_c=env["air"].interp(stamp_ns) if "air" in keys else nan,
         pressure_pa=env["pressure"].interp(stamp_ns) if "pressure" in keys else nan,
+        omega_b=_ZERO3, R_i_b=_EYE3, R_i_st=_EYE3, gravity_st=_ZERO3,
     )
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+_ZERO3 = _read_only(np.zeros(3))
+_EYE3 = _read_only(np.eye(3))
 
 
 # ---------------------------------------------------------------------------- whole bag

@@ -730,11 +730,14 @@ class StarFilter(Acquisition):
         self._good = self._snapshot()
 
     def process_frame(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
-                      sigma: np.ndarray, t_rel: float | None = None) -> FrameUpdate | None:
+                      sigma: np.ndarray, t_rel: float | None = None,
+                      valid: bool = False) -> FrameUpdate | None:
         """Handle one star frame: acquire or update; count every skip.
 
         ``t_rel`` is the frame stamp relative to ``t0`` in s, best computed from integer
         nanoseconds (``(stamp_ns − t0_ns) · 1e-9``); default ``ctx.stamp − t0``.
+        ``valid``: the caller knows every centroid, direction and σ finite and σ > 0
+        (:attr:`~stellar_cal_ros.methods.frames.FrameInputs.valid`): not checked again.
         """
         self.counters.frames += 1
         t_rel = ctx.stamp - self.t0 if t_rel is None else float(t_rel)
@@ -750,8 +753,8 @@ class StarFilter(Acquisition):
                 log.warning("star frame at %.6f is older than the last one: skipped", ctx.stamp)
                 return None
         # the whole frame at once first (the usual case: every star valid)
-        if not (np.isfinite(uv).all() and np.isfinite(u_i).all() and np.isfinite(sigma).all()
-                and (sigma > 0).all()):
+        if not valid and not (np.isfinite(uv).all() and np.isfinite(u_i).all()
+                              and np.isfinite(sigma).all() and (sigma > 0).all()):
             good = np.isfinite(uv).all(axis=1) & np.isfinite(u_i).all(axis=1) & \
                 np.isfinite(sigma) & (sigma > 0)
             self.counters.stars_invalid += int((~good).sum())
