@@ -208,7 +208,7 @@ def test_swaying_base_live_equals_its_replay(ros_context, tmp_path):
     from stellar_cal_ros.core.units import ARCSEC
     from stellar_cal_ros.methods.swaying import replay_swaying
 
-    bag, prior_path, _ = swaying_bag(150.0)
+    bag, prior_path, _ = swaying_bag(60.0)
     prior = load_calibration(prior_path)
     ref = replay_swaying(bag, prior)
     prefix = "/w" + uuid.uuid4().hex[:8]
