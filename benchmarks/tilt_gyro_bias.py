@@ -12,6 +12,11 @@ re-run; the odd part of the paired shift over the size is the first-order respon
     .venv/bin/python benchmarks/tilt_gyro_bias.py --seeds 5,6,7,8,9,10,11,12      # seeds
     .venv/bin/python benchmarks/tilt_gyro_bias.py --parameter best \
         --effects gyro_misalignment,gyro_scale_factor,time_offset,pixel_aspect,image_plane_tilt
+    .venv/bin/python benchmarks/tilt_gyro_bias.py --trace gyro_bias.by --size 2.1e-3  # per frame
+
+``--trace Q`` follows quantity Q frame by frame (the numpy reference step, whose
+sensitivity is the compiled one's): the filter's odd response against −M's row over time
+shows where the two part.
 """
 
 from __future__ import annotations
@@ -72,6 +77,42 @@ def measure(duration: float, seed: int, effects: list[str], parameter: str, size
     return rows
 
 
+def trace(duration: float, seed: int, effect: str, parameter: str, size: float,
+          quantity: str, every: int) -> None:
+    """Print the filter's odd response of ``quantity`` and −M's row, frame by frame."""
+    from stellar_cal_ros.methods import kernel
+
+    records: list[list] = []
+    update = kernel.StarFilter.update
+
+    def recorded(self, *args, **kwargs):
+        out = update(self, *args, **kwargs)
+        names = self.model.parameter_names()
+        i, col = names.index(quantity), names.index(f"{effect}.{parameter}") - self.P_est
+        records[-1].append((self.t, float(self.theta[i]),
+                            float(self.sensitivity.M[self.it][i, col])))
+        return out
+
+    kernel.StarFilter.compiled_step, kernel.StarFilter.update = False, recorded
+    try:
+        sim, data = _data(duration, seed)
+        prior = rerun_prior(sim.prior)
+        for sign in (0, 1, -1):
+            records.append([])
+            d = data if sign == 0 else _data(duration, seed, {effect: injection.simulation_value(
+                effect, injection.parameter_delta(effect, parameter, sign * size))})[1]
+            replay(d, prior, "psce", [], consider=[effect], keep_tables=False)
+    finally:
+        kernel.StarFilter.compiled_step, kernel.StarFilter.update = True, update
+    clean, plus, minus = records
+    print(f"{quantity} per unit {effect}.{parameter} (size {size:g}), seed {seed}")
+    print(f"{'frame':>5s} {'t s':>8s} {'-M row':>11s} {'odd response':>13s}")
+    n = min(map(len, records))
+    for k in sorted(set(range(0, n, every)) | {n - 1}):
+        odd = 0.5 * (plus[k][1] - minus[k][1]) / size
+        print(f"{k:5d} {clean[k][0]:8.2f} {-clean[k][2]:11.3e} {odd:13.3e}")
+
+
 def main() -> int:
     """Measure and print one line per (seed, effect, size, quantity), then per-seed means."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -83,7 +124,13 @@ def main() -> int:
                     help="injected size (the parameter's units); 0: its MDB")
     ap.add_argument("--fractions", default="1")
     ap.add_argument("--alpha", type=float, default=0.01 / 20)
+    ap.add_argument("--trace", default="", help="a quantity to follow frame by frame")
+    ap.add_argument("--every", type=int, default=9, help="--trace: print every n-th frame")
     args = ap.parse_args()
+    if args.trace:
+        trace(args.duration, int(args.seeds.split(",")[0]), args.effects.split(",")[0],
+              args.parameter, args.size, args.trace, args.every)
+        return 0
     seeds = [int(s) for s in args.seeds.split(",")]
     effects = args.effects.split(",")
     fractions = [float(f) for f in args.fractions.split(",")]
