@@ -116,7 +116,8 @@ def where_the_time_goes(stdout: str, runs: bool) -> None:
     lines (each run's own wall time in its worker).
     """
     for line in stdout.splitlines():
-        if re.match(r"\s+round \d+:", line) or (runs and re.search(r"\(\d+\.\d s\)$", line)):
+        if re.match(r"\s+round \d+:", line) or (
+                runs and re.search(r"\(\d+\.\d s\)(; run \d+/\d+.*)?$", line)):
             print(f"    {line.strip()}")
 
 

@@ -187,6 +187,64 @@ def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns(
     assert np.max(np.abs(base.theta - f.theta) / f.sigma()[f.it]) < 1e-6
 
 
+def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
+    """With the noise measured first, the measurement's base run (the current model at the
+    stated scales) scores the candidates: when the verdict keeps the scales it is the
+    round's screening run -- one filter pass of the current model per round, not two --
+    and the round's numbers are those of a separate screening run."""
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis import discover
+    from stellar_cal_ros.diagnosis.parallel import Runs
+
+    sim, data = _sim({"time_offset": 5e-4}, seed=14, duration=100.0)
+    base_spec = method_spec("psce")
+    cands = ["time_offset", "pixel_aspect"]
+
+    def round_(fold):
+        calls = []
+
+        def runner(d, p, effects, **kw):
+            calls.append((tuple(effects), tuple(kw.get("consider") or ()), kw.get("noise")))
+            return base_spec.runner(d, p, effects, **kw)
+
+        spec = DiagnosisSpec("psce", base_spec.baseline, base_spec.stages, runner,
+                             base_spec.screen)
+        runs = Runs(data, spec, 0.5)
+        runs.noise = NoiseScales()
+        measure = discover.measure_round_noise
+        try:
+            if not fold:  # the round as it was: a plain noise run, then a screening run
+                discover.measure_round_noise = lambda r, prior, extra, *a: measure(
+                    r, prior, extra) and None
+            base, results = rank_candidates(data, sim.prior, spec, [], cands, runs=runs,
+                                            measure_noise=True)
+        finally:
+            discover.measure_round_noise = measure
+        assert runs.verdict is not None and runs.noise == NoiseScales()  # noise kept
+        return calls, base, {c.effect: c for c in results}, runs.verdict
+
+    calls, base, by, verdict = round_(True)
+    old_calls, old_base, old_by, old_verdict = round_(False)
+    stated = [c for c in calls if c[0] == () and c[2] == NoiseScales()]
+    assert stated == [((), tuple(cands), NoiseScales())]  # one pass, scoring both
+    assert len(old_calls) == len(calls) + 1
+    assert base.residuals is not None and base.star_noise is not None
+    # the noise's base run now carries the consider columns (the compiled update works on
+    # larger matrices): its likelihood and the stars' scale equal to rounding
+    assert base.window["log_likelihood"] == pytest.approx(
+        old_base.window["log_likelihood"], rel=1e-12)
+    assert verdict.star == pytest.approx(old_verdict.star, rel=1e-9)
+    g, old_g = verdict.imu["gyro"], old_verdict.imu["gyro"]
+    assert g.value == pytest.approx(old_g.value, rel=1e-9)
+    assert g.p_value == pytest.approx(old_g.p_value, rel=1e-6, abs=1e-12)
+    for e in cands:
+        a, b = by[e], old_by[e]
+        assert (a.status, a.significant) == (b.status, b.significant)
+        assert a.screen.lm == b.screen.lm  # the same screening run
+        assert a.p_adjusted == pytest.approx(b.p_adjusted, rel=1e-9)
+    assert by["time_offset"].significant
+
+
 def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):
     """--scheduler: the user's cluster runs the round (here a 1-worker LocalCluster); a bag
     in memory is scattered to it; a worker without the file parses the bag's bytes."""

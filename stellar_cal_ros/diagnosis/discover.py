@@ -399,8 +399,6 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     undecided).
     """
     prior = rerun_prior(start)
-    if measure_noise:
-        measure_round_noise(r, prior, extra)
     in_model = set(r.spec.baseline) | set(extra)
     results: list[CandidateResult] = []
     testable: list[str] = []
@@ -414,21 +412,29 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     # is computed for, and the augmented run's likelihood ratio): Bonferroni over both
     use_score = bool(screen and r.spec.screen is not None and testable)
     n_stats = 2 if use_score else 1
+    # the noise's base run is the current model's run: when the noise it ran with is kept,
+    # it is the round's screening run (its candidates as consider parameters) or reference
+    base = (measure_round_noise(r, prior, extra, tuple(testable) if use_score else (),
+                                keep_residuals) if measure_noise else None)
     alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
     more = list(more or [])
     cands = {e: CandidateResult(e, "ranked", prior_uncertain=e in r.uncertain)
              for e in testable}
     current = Task("current model", prior, tuple(extra), keep_residuals, cost=1.0,
                    star_noise=r.noise is not None)
-    base = None
-    if screen and r.spec.screen is not None and testable:
-        groups = screening.parts(testable, r.runs.workers)
-        first = [Task(f"screen {i + 1}/{len(groups)}", prior, tuple(extra),
-                      keep_residuals and i == 0, cost=_SCREEN_COST, screen=tuple(g),
-                      star_noise=r.noise is not None and i == 0)
-                 for i, g in enumerate(groups)]
-        out = r.runs.run_all(first + more, r.done)
-        screens = [out.pop(t.key) for t in first]
+    late = list(more)  # run with the re-runs unless they can go with a screening run
+    if use_score:
+        if base is not None:  # the noise's base run scored every candidate
+            screens, out = [base], {}
+        else:
+            groups = screening.parts(testable, r.runs.workers)
+            first = [Task(f"screen {i + 1}/{len(groups)}", prior, tuple(extra),
+                          keep_residuals and i == 0, cost=_SCREEN_COST, screen=tuple(g),
+                          star_noise=r.noise is not None and i == 0)
+                     for i, g in enumerate(groups)]
+            out = r.runs.run_all(first + more, r.done)
+            screens = [out.pop(t.key) for t in first]
+            late = []  # ran with the screening
         scores = screening.collect(screens)
         rerun = []
         for e, c in cands.items():
@@ -444,11 +450,11 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         # every screening run is the current model's run (consider parameters leave the
         # filter alone): the first that finished is the reference
         base = next((s for s in screens if s.ok), None)
-        tasks = [_candidate_task(r, prior, extra, e) for e in rerun]
+        tasks = [_candidate_task(r, prior, extra, e) for e in rerun] + late
         out.update(r.runs.run_all(tasks if base is not None else [current] + tasks, r.done))
     else:
-        out = r.runs.run_all([current] + [_candidate_task(r, prior, extra, e)
-                                          for e in testable] + more, r.done)
+        out = r.runs.run_all(([current] if base is None else []) + [
+            _candidate_task(r, prior, extra, e) for e in testable] + more, r.done)
     extras = {t.key: out.pop(t.key) for t in more}
     if base is None:
         base = out.pop("current model")
@@ -509,24 +515,37 @@ def decide(c: CandidateResult, m: int, n_stats: int) -> None:
         c.status, c.reason = "ranked", ""
 
 
-def measure_round_noise(r: Round, prior: Calibration, extra: list[str]) -> None:
-    """Measure the noise of the current model; every later run of ``r`` uses its scales."""
+def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
+                        screen: tuple[str, ...] = (), keep_residuals: bool = False
+                        ) -> RunSummary | None:
+    """Measure the noise of the current model; every later run of ``r`` uses its scales.
+
+    The measurement's base run is the current model's run with the stated scales: it
+    scores the candidates ``screen`` (consider parameters leave the filter alone) and keeps
+    its residuals with ``keep_residuals``.  Returned when the verdict keeps the scales it
+    ran with -- it then *is* the round's screening run (or its current-model run), the same
+    filter pass, so the round runs it once; ``None`` when the noise changed (or was not
+    measured) and the round runs its current model again with the new scales.
+    """
     from stellar_cal_ros.diagnosis.noise_runs import measure
 
     if methods.get(r.spec.name).kind != "filter":
-        return  # a batch method's runner takes no noise scales (its σ: its own fit)
+        return None  # a batch method's runner takes no noise scales (its σ: its own fit)
     r.tell("noise: measuring the stars' sigma and the IMU noise from the run")
-    base = r.runs.run_all([Task("noise: current model", prior, tuple(extra), cost=1.0,
+    ran_with = r.runs.noise
+    base = r.runs.run_all([Task("noise: current model", prior, tuple(extra), keep_residuals,
+                                cost=_SCREEN_COST if screen else 1.0, screen=screen,
                                 star_noise=True)], r.done)["noise: current model"]
     if not base.ok:
         log.warning("noise not measured: the current model's run failed: %s", base.error)
-        return
+        return None
     comps = ("gyro", "accel") if Stage.ACCEL in r.spec.stages else ("gyro",)
     r.noise = measure(r.runs, prior, tuple(extra), base, r.tell, comps)
     r.runs.noise = r.noise.applied
     r.runs.verdict = r.noise
     for line in r.noise.lines():
         r.tell("noise: " + line)
+    return base if ran_with is not None and r.runs.noise == ran_with else None
 
 
 def rank_candidates(

@@ -97,14 +97,9 @@ BEYOND = 0.5
 def _from_samples(v: NoiseVerdict, runs, components: tuple[str, ...], n_tests: int
                   ) -> NoiseScales:
     """The IMU components' scales from their own samples (where they look white)."""
-    from stellar_cal_ros.diagnosis.runstats import load_bag
-
     applied = v.stated
-    if not components:
-        return applied
-    data = load_bag(runs.bag)
-    for comp in components:
-        s, e, white = imu_sample_scale(data, runs.spec.name, comp, v.stated)
+    for comp in components:  # computed where the bag is: the parent does not read it
+        s, e, white = runs.on_bag(imu_sample_scale, runs.spec.name, comp, v.stated)
         if not math.isfinite(s):
             continue
         v.samples[comp] = {"scale": float(s), "sigma": float(e), "white": bool(white)}

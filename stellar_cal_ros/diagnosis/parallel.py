@@ -81,6 +81,12 @@ def user_effect_classes() -> tuple[type, ...]:
     return tuple(cls for cls in registry.EFFECTS.values() if not registry.is_library(cls))
 
 
+def _on_bag(bag: BagRef, fn: Callable[..., Any], *args: Any) -> Any:
+    from stellar_cal_ros.diagnosis.runstats import load_bag
+
+    return fn(load_bag(bag), *args)
+
+
 def _file_size(path: str) -> int:
     try:
         return os.stat(path).st_size
@@ -112,6 +118,11 @@ class Runs:
     def facts(self) -> dict[str, Any]:
         """Applicability facts of the bag (site, head temperature, frames, duration)."""
         return bag_facts(self.bag)
+
+    def on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """``fn(bag_data, *args)`` where the bag is (a worker holds it; the parent never
+        reads it): for small statistics of the bag itself."""
+        return _on_bag(self.bag, fn, *args)
 
     def map(self, tasks: list[Task]) -> Iterator[tuple[Task, RunSummary]]:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes."""
@@ -189,6 +200,9 @@ class DaskRuns(Runs):
 
     def facts(self) -> dict[str, Any]:  # noqa: D102
         return self.client.submit(bag_facts, self.remote_bag, pure=False).result()
+
+    def on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:  # noqa: D102
+        return self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False).result()
 
     def map(self, tasks):  # noqa: D102
         from distributed import as_completed

@@ -47,7 +47,6 @@ import numpy as np
 from scipy import stats as sps
 
 from stellar_cal_ros.effects import registry
-from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.methods import registry as methods
 
 #: a candidate is re-run when its score test's unadjusted p-value is below this
@@ -149,14 +148,14 @@ def dispersion(run) -> float:
     return max(1.0, run.window["nis"]["mean"] / 2.0)
 
 
-#: relative cost of an effect's sensitivity columns: the astrometric corrections compute
-#: their pyerfa correction per frame for the sensitivity alone
-_COLUMN_COST = {Stage.DIRECTION: 4.0}
-
-
 def _screen_cost(effect_id: str) -> float:
-    eff = registry.create(effect_id)
-    return eff.size * _COLUMN_COST.get(eff.stage, 1.0)
+    """Relative cost of an effect's sensitivity: its columns.
+
+    Every candidate's columns go through the same compiled frame step (an astrometric
+    correction's per-frame pyerfa call, once 4x a column, is computed for the whole bag
+    before the run: ``ScaledDirection.prepare``).
+    """
+    return float(registry.create(effect_id).size)
 
 
 def parts(candidates: list[str], n: int) -> list[list[str]]:
