@@ -191,12 +191,13 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
     """With the noise measured first, the measurement's base run (the current model at the
     stated scales) scores the candidates: when the verdict keeps the scales it is the
     round's screening run -- one filter pass of the current model per round, not two --
-    and the round's numbers are those of a separate screening run."""
+    and the round's numbers are those of a separate screening run.  With two workers the
+    gyro's first ML runs go beside it and are used, not run again."""
     from stellar_cal_ros.core.noise import NoiseScales
     from stellar_cal_ros.diagnosis import discover
     from stellar_cal_ros.diagnosis.parallel import Runs
 
-    sim, data = _sim({"time_offset": 5e-4}, seed=14, duration=100.0)
+    sim, data = _sim({"time_offset": 5e-4}, seed=14, duration=60.0)
     base_spec = method_spec("psce")
     cands = ["time_offset", "pixel_aspect"]
 
@@ -211,6 +212,9 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
                              base_spec.screen)
         runs = Runs(data, spec, 0.5)
         runs.noise = NoiseScales()
+        # as with two workers: the ML runs made ahead, beside the base run (in this process
+        # one after the other)
+        runs.workers = 2 if fold else 1
         measure = discover.measure_round_noise
         try:
             if not fold:  # the round as it was: a plain noise run, then a screening run
@@ -227,6 +231,10 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
     old_calls, old_base, old_by, old_verdict = round_(False)
     stated = [c for c in calls if c[0] == () and c[2] == NoiseScales()]
     assert stated == [((), tuple(cands), NoiseScales())]  # one pass, scoring both
+    # the gyro's ML runs made ahead are the ones the search asks for: none runs twice
+    scaled = [c for c in calls if c[2] != NoiseScales()]
+    assert len(scaled) == len(set(scaled)) >= 2
+    assert set(scaled) == {c for c in old_calls if c[2] != NoiseScales()}
     assert len(old_calls) == len(calls) + 1
     assert base.residuals is not None and base.star_noise is not None
     # the noise's base run now carries the consider columns (the compiled update works on

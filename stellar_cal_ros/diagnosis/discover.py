@@ -527,20 +527,27 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     filter pass, so the round runs it once; ``None`` when the noise changed (or was not
     measured) and the round runs its current model again with the new scales.
     """
-    from stellar_cal_ros.diagnosis.noise_runs import measure
+    from stellar_cal_ros.diagnosis.noise_runs import first_runs, measure
 
     if methods.get(r.spec.name).kind != "filter":
         return None  # a batch method's runner takes no noise scales (its σ: its own fit)
     r.tell("noise: measuring the stars' sigma and the IMU noise from the run")
     ran_with = r.runs.noise
-    base = r.runs.run_all([Task("noise: current model", prior, tuple(extra), keep_residuals,
-                                cost=_SCREEN_COST if screen else 1.0, screen=screen,
-                                star_noise=True)], r.done)["noise: current model"]
-    if not base.ok:
-        log.warning("noise not measured: the current model's run failed: %s", base.error)
-        return None
     comps = ("gyro", "accel") if Stage.ACCEL in r.spec.stages else ("gyro",)
-    r.noise = measure(r.runs, prior, tuple(extra), base, r.tell, comps)
+    # with several workers the first ML runs go beside the base run (they need its result
+    # only when the stars change the scales: then they are not used)
+    ahead = first_runs(r.runs, prior, tuple(extra), comps) if r.runs.workers > 1 else []
+    try:
+        base = r.runs.run_ahead([Task("noise: current model", prior, tuple(extra),
+                                      keep_residuals, cost=_SCREEN_COST if screen else 1.0,
+                                      screen=screen, star_noise=True)], ahead,
+                                r.done)["noise: current model"]
+        if not base.ok:
+            log.warning("noise not measured: the current model's run failed: %s", base.error)
+            return None
+        r.noise = measure(r.runs, prior, tuple(extra), base, r.tell, comps)
+    finally:
+        r.runs.drop_ahead()
     r.runs.noise = r.noise.applied
     r.runs.verdict = r.noise
     for line in r.noise.lines():

@@ -54,7 +54,17 @@ class ScaleSearch:
         return float(-b / (2 * a)), float(-2 * a)
 
 
-def search_scale(name: str, loglik, start: float = 0.0, step: float = math.log(3.0),
+#: ln-scale step of :func:`search_scale` (a factor of 3)
+STEP = math.log(3.0)
+
+
+def first_points(start: float = 0.0, step: float = STEP) -> list[float]:
+    """The ln scales :func:`search_scale` runs first (its first batch, clipped)."""
+    xs = [0.0, start - step, start + step] if start else [-step, 0.0, step]
+    return [float(np.clip(x, -LN_RANGE, LN_RANGE)) for x in xs]
+
+
+def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
                  max_runs: int = 9, known: dict[float, float] | None = None) -> ScaleSearch:
     """ML scale of one noise component: ``loglik([ln s, ...]) -> [ℓ, ...]`` runs a batch.
 
@@ -71,7 +81,7 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = math.log(3
         if new:
             out.points.update(zip(new, loglik(new), strict=True))
 
-    run([0.0, start - step, start + step] if start else [-step, 0.0, step])
+    run(first_points(start, step))
     first = np.array(list(out.points.values()))
     if np.ptp(first) < FLAT:
         # the likelihood does not move over a factor of 9 of the scale: nothing to measure

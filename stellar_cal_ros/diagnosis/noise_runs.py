@@ -20,7 +20,7 @@ from stellar_cal_ros.diagnosis.noise import (
     p_two_sided,
     structured,
 )
-from stellar_cal_ros.diagnosis.noise_imu import imu_sample_scale, search_scale
+from stellar_cal_ros.diagnosis.noise_imu import first_points, imu_sample_scale, search_scale
 from stellar_cal_ros.diagnosis.parallel import Task
 
 
@@ -59,10 +59,8 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
     for comp in components:
         cur = getattr(applied, comp)
 
-        def loglik(xs: list[float], comp=comp, cur=cur, at=applied) -> list[float]:
-            tasks = [Task(f"noise {comp} x{math.exp(x):.3g}", prior, tuple(effects),
-                          noise=at.replace(**{comp: cur * math.exp(x)}), cost=1.0)
-                     for x in xs]
+        def loglik(xs: list[float], comp=comp, at=applied) -> list[float]:
+            tasks = [scale_task(comp, x, prior, effects, at) for x in xs]
             out = runs.run_all(tasks, None)
             return [out[t.key].window["log_likelihood"] if out[t.key].ok else -math.inf
                     for t in tasks]
@@ -92,6 +90,30 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
 
 #: the stars' ML scale over the samples' above which the excess is motion, not noise
 BEYOND = 0.5
+
+
+def scale_task(comp: str, x: float, prior, effects: tuple[str, ...], at: NoiseScales) -> Task:
+    """The run of the ML search of ``comp`` at ln scale ``x`` around the scales ``at``."""
+    return Task(f"noise {comp} x{math.exp(x):.3g}", prior, tuple(effects),
+                noise=at.replace(**{comp: getattr(at, comp) * math.exp(x)}), cost=1.0)
+
+
+def first_runs(runs, prior, effects: tuple[str, ...],
+               components: tuple[str, ...] = ("gyro",)) -> list[Task]:
+    """The runs :func:`measure` starts its first ML search with, if the stars keep the scales.
+
+    Known before the base run (the usual case): run beside it on an idle worker
+    (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.run_ahead`); any other case simply
+    does not use them.
+    """
+    if not components:
+        return []
+    stated = runs.noise or NoiseScales()
+    v = NoiseVerdict(stated, stated, method=runs.spec.name)
+    at = _from_samples(v, runs, components, 1 + len(components))
+    # ln s = 0 is the base run itself when the samples keep the stated scales
+    return [scale_task(components[0], x, prior, effects, at) for x in first_points()
+            if x != 0.0 or at != stated]
 
 
 def _from_samples(v: NoiseVerdict, runs, components: tuple[str, ...], n_tests: int

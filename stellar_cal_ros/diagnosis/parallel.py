@@ -6,9 +6,11 @@ run's :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary` as it finishes.
 
 Executors
 ---------
-``workers=0``
-    in this process, one run after the other (the Python API's default; tests).
-``workers=N`` (N ≥ 1; the command line's default is one per core, at most 16)
+``workers=0`` or ``1``
+    in this process, one run after the other (the Python API's default; tests).  A
+    one-worker cluster would run the same runs one after the other while adding its own
+    processes: on a 2-h round 71 CPU-s instead of 49 (measured, doc/benchmarks.md).
+``workers=N`` (N ≥ 2; the command line's default is one per core, at most 16)
     a ``dask.distributed.LocalCluster`` of N single-threaded worker *processes* (the
     Kalman filters are pure-Python loops: threads would serialize on the GIL).
 ``scheduler=ADDRESS``
@@ -110,6 +112,8 @@ class Runs:
         self.noise = None
         #: the latest noise verdict of the diagnosis using these runs
         self.verdict = None
+        #: runs made ahead of need (:meth:`run_ahead`): (task, its noise, stats)
+        self._ahead: list[tuple[Task, Any, RunSummary]] = []
 
     def noise_of(self, task: Task):
         """The noise scales ``task`` runs with."""
@@ -120,8 +124,10 @@ class Runs:
         return bag_facts(self.bag)
 
     def on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """``fn(bag_data, *args)`` where the bag is (a worker holds it; the parent never
-        reads it): for small statistics of the bag itself."""
+        """``fn(bag_data, *args)`` where the bag is (a worker; the parent never reads it).
+
+        For small statistics of the bag itself.
+        """
         return _on_bag(self.bag, fn, *args)
 
     def map(self, tasks: list[Task]) -> Iterator[tuple[Task, RunSummary]]:
@@ -142,7 +148,13 @@ class Runs:
         """
         from stellar_cal_ros.progress import format_seconds
 
-        n, start, out = len(tasks), time.perf_counter(), {}
+        out = {}
+        for task in tasks:
+            stats = self._take_ahead(task)
+            if stats is not None:
+                out[task.key] = stats
+        tasks = [t for t in tasks if t.key not in out]
+        n, start = len(tasks), time.perf_counter()
         for k, (task, stats) in enumerate(self.map(tasks), 1):
             out[task.key] = stats
             if done is not None:
@@ -150,6 +162,34 @@ class Runs:
                 done(task, stats, f"run {k}/{n}"
                      + (f", ETA {format_seconds(left)}" if k < n else ""))
         return out
+
+    def run_ahead(self, tasks: list[Task], ahead: list[Task],
+                  done: Callable[[Task, RunSummary, str], None] | None = None
+                  ) -> dict[str, RunSummary]:
+        """:meth:`run_all` of ``tasks`` and, beside them, of ``ahead``; the stats of ``tasks``.
+
+        ``ahead`` are runs a later step will probably ask for (an idle worker makes them
+        now).  Their statistics are kept until :meth:`drop_ahead`; a later :meth:`run_all`
+        of the *same* run (prior object, effects, noise scales, flags) takes them instead
+        of running it again.
+        """
+        out = self.run_all(list(tasks) + list(ahead), done)
+        self._ahead += [(t, self.noise_of(t), out.pop(t.key)) for t in ahead]
+        return out
+
+    def drop_ahead(self) -> None:
+        """Forget the runs made ahead that nobody asked for."""
+        self._ahead.clear()
+
+    def _take_ahead(self, task: Task) -> RunSummary | None:
+        for i, (t, noise, stats) in enumerate(self._ahead):
+            if (t.prior is task.prior and t.effects == task.effects
+                    and noise == self.noise_of(task) and t.keep_residuals == task.keep_residuals
+                    and t.screen == task.screen and t.candidate == task.candidate
+                    and t.star_noise == task.star_noise):
+                del self._ahead[i]
+                return stats
+        return None
 
     def close(self) -> None:
         """Release the workers."""
@@ -177,10 +217,15 @@ class DaskRuns(Runs):
                                       f"{exc}") from exc
             self.description = f"on the Dask cluster {scheduler}"
         else:
+            import dask
+
             n = workers or min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
-            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                        dashboard_address=":0",
-                                        silence_logs=logging.ERROR)
+            # no statistical profiler in the workers: it samples the running filter's stack
+            # every 10 ms of *wall* time, for a dashboard nobody opens here
+            with dask.config.set({"distributed.worker.profile.enabled": False}):
+                self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                            dashboard_address=":0",
+                                            silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
             self.description = f"on {n} local worker processes"
         self.workers = max(len(self.client.scheduler_info()["workers"]), 1)
@@ -240,11 +285,13 @@ class DaskRuns(Runs):
 @contextlib.contextmanager
 def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
                 scheduler: str | None = None) -> Iterator[Runs]:
-    """A :class:`Runs` for ``bag``: in process (``workers=0``), local Dask or a scheduler.
+    """A :class:`Runs` for ``bag``: in process (``workers`` 0 or 1), local Dask or a scheduler.
 
     ``workers=None`` means one worker process per core (at most
-    :data:`MAX_DEFAULT_WORKERS`).
+    :data:`MAX_DEFAULT_WORKERS`; in this process on a one-core machine).
     """
+    if workers is None:
+        workers = min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
     if isinstance(bag, (str, Path)):
         if not Path(bag).exists():
             from stellar_cal_ros.errors import BagError
@@ -259,7 +306,7 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
             from stellar_cal_ros.methods.replay import read_bag_data
 
             bag = read_bag_data(bag, require_imu=False)
-    runs = (DaskRuns(bag, spec, fraction, workers, scheduler) if scheduler or workers != 0
+    runs = (DaskRuns(bag, spec, fraction, workers, scheduler) if scheduler or workers > 1
             else Runs(bag, spec, fraction))
     try:
         yield runs
