@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import copy
 import importlib.util
-import subprocess
 import sys
 from pathlib import Path
 
@@ -203,18 +202,21 @@ def test_effects_the_bundle_cannot_see_are_refused(world):
         run_bundle(data, prior, [], cross_validate=False)
 
 
-def test_cli_batch_bundle_writes_the_contract_result(tmp_path):
-    """``stellar-cal batch --method bundle`` end to end, and its one-line errors."""
+def test_cli_batch_bundle_writes_the_contract_result(tmp_path, capsys):
+    """``stellar-cal batch --method bundle`` end to end, and its one-line errors (the CLI
+    in-process: no interpreter start-up)."""
     from sim_bags import simulated_bag
+
+    from stellar_cal_ros.cli import main
 
     bag, prior, _ = simulated_bag("psce_rotations", 8.0)
     out = tmp_path / "bundle.yaml"
-    run = [sys.executable, "-m", "stellar_cal_ros", "batch", str(bag), "--method", "bundle",
-           "--prior", str(prior), "-o", str(out), "-q"]
-    proc = subprocess.run(run + ["--effects", "tangential"], capture_output=True, text=True,
-                          timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "held-out RMS" in proc.stdout
+    run = ["batch", str(bag), "--method", "bundle", "--prior", str(prior), "-o", str(out), "-q"]
+    capsys.readouterr()
+    rc = main(run + ["--effects", "tangential"])
+    proc = capsys.readouterr()
+    assert rc == 0, proc.err[-2000:]
+    assert "held-out RMS" in proc.out
     doc = yaml.safe_load(out.read_text())
     assert doc["method"] == "bundle"
     cv = doc["cross_validation"]
@@ -223,10 +225,9 @@ def test_cli_batch_bundle_writes_the_contract_result(tmp_path):
     assert cv["mean_arcsec"] == pytest.approx(np.mean(cv["held_out_rms_arcsec"]))
     assert doc["sigma"]["camera"]["camera_matrix"]["data"][0] > 0
     assert (tmp_path / "bundle.covariance.yaml").exists()
-    bad = subprocess.run(run + ["--effects", "installation"], capture_output=True, text=True,
-                         timeout=300)
-    assert bad.returncode == 1
-    assert bad.stderr.strip().count("\n") == 0 and "cannot see" in bad.stderr
+    assert main(run + ["--effects", "installation"]) == 1
+    bad = capsys.readouterr()
+    assert bad.err.strip().count("\n") == 0 and "cannot see" in bad.err
 
 
 def test_diagnose_bundle_names_the_missing_effect(world, tmp_path):

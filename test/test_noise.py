@@ -9,8 +9,6 @@ diagnosis must name the noise, with the value to use, and no physical effect.
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -121,20 +119,23 @@ def test_diagnose_names_the_noise_not_an_effect(tmp_path):
     assert not any(c["significant"] for c in s["candidates"])
 
 
-def test_replay_measures_a_sigma_of_zero(tmp_path):
+def test_replay_measures_a_sigma_of_zero(tmp_path, capsys):
     """Stars whose message says sigma = 0 ("unknown"): replay measures their noise from the
-    run and the result says the noise was rescaled."""
+    run and the result says the noise was rescaled (the CLI in-process: no interpreter
+    start-up)."""
+    from stellar_cal_ros.cli import main
+
     sim = _sim(seed=7)
     for f in sim.star_frames:
         f.sigma = np.zeros(len(f.sigma), dtype=np.float32)
     bag = tmp_path / "zero.mcap"
     write_simulation(sim, bag)
-    out = subprocess.run([sys.executable, "-m", "stellar_cal_ros", "replay", str(bag),
-                          "--method", "psce", "--prior", str(tmp_path / "zero.prior.yaml"),
-                          "-o", str(tmp_path / "r.yaml"), "-q"],
-                         capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "stars carry sigma 0 (unknown): measured from the run" in out.stdout
+    capsys.readouterr()
+    rc = main(["replay", str(bag), "--method", "psce", "--prior",
+               str(tmp_path / "zero.prior.yaml"), "-o", str(tmp_path / "r.yaml"), "-q"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err[-2000:]
+    assert "stars carry sigma 0 (unknown): measured from the run" in out.out
     cons = load_calibration(tmp_path / "r.yaml").extra["consistency"]
     assert cons["noise_rescaled"] and cons["verdict"] == "consistent"
     # true 0.05 px; the measurement's σ is ~0.0004 px
