@@ -10,13 +10,12 @@ the printed MDBs and biases on twins, and its report carries what the terminal s
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from html import unescape
 
 import numpy as np
 import pytest
 
+from stellar_cal_ros.cli import main
 from stellar_cal_ros.diagnosis.discover import rerun_prior
 from stellar_cal_ros.diagnosis.twin import make_twin
 from stellar_cal_ros.io.calibration import load_calibration
@@ -51,7 +50,7 @@ def test_twin_without_injection_is_fitted_by_the_calibration(user_run):
     assert np.allclose(twin.truth.gyro_bias, cal.gyro_bias)
 
 
-def test_twin_command_injects_an_effect_that_is_recovered(user_run, tmp_path):
+def test_twin_command_injects_an_effect_that_is_recovered(user_run, tmp_path, capsys):
     """``stellar-cal twin --effect time_offset=0.005``: the truth says +5 ms, and a replay
     of the twin with the effect estimates it within 3 σ."""
     sim, data, cal = user_run
@@ -60,12 +59,12 @@ def test_twin_command_injects_an_effect_that_is_recovered(user_run, tmp_path):
     from stellar_cal_ros.io.calibration import save_calibration
 
     save_calibration(cal, tmp_path / "result.yaml")
-    out = subprocess.run([sys.executable, "-m", "stellar_cal_ros", "twin", str(bag),
-                          "--calibration", str(tmp_path / "result.yaml"), "-o",
-                          str(tmp_path / "twin.mcap"), "--effect", "time_offset=0.005",
-                          "--seed", "4"], capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "injected: time_offset=0.005" in out.stdout
+    capsys.readouterr()
+    rc = main(["twin", str(bag), "--calibration", str(tmp_path / "result.yaml"), "-o",
+               str(tmp_path / "twin.mcap"), "--effect", "time_offset=0.005", "--seed", "4"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err[-2000:]
+    assert "injected: time_offset=0.005" in out.out
     truth = load_calibration(tmp_path / "twin.truth.yaml")
     assert truth.time_offset == pytest.approx(cal.time_offset + 0.005)
     run = replay(tmp_path / "twin.mcap", rerun_prior(cal), "psce", ["time_offset"],
@@ -75,19 +74,19 @@ def test_twin_command_injects_an_effect_that_is_recovered(user_run, tmp_path):
     assert abs(dt - truth.time_offset) < 3 * sig, (dt, truth.time_offset, sig)
 
 
-def test_discover_verify_checks_the_printed_numbers_on_twins(user_run, tmp_path):
+def test_discover_verify_checks_the_printed_numbers_on_twins(user_run, tmp_path, capsys):
     """``discover --verify``: every testable effect of "what could still be hiding" is
     injected at its printed MDB into twins; the measured non-centrality is the claimed one
     and the listed biases move as printed.  The report carries the terminal's sections."""
     sim, data, _ = user_run
     bag = tmp_path / "user.mcap"
     write_simulation(sim, bag)
-    out = subprocess.run([sys.executable, "-m", "stellar_cal_ros", "discover", str(bag),
-                          "--calibration", str(tmp_path / "user.prior.yaml"), "--method",
-                          "psce", "-o", str(tmp_path / "d"), "--workers", "0", "--verify",
-                          "--candidates", "pixel_aspect,thermal_focal_length"],
-                         capture_output=True, text=True, timeout=1200)
-    assert out.returncode == 0, out.stderr[-3000:]
+    capsys.readouterr()
+    rc = main(["discover", str(bag), "--calibration", str(tmp_path / "user.prior.yaml"),
+               "--method", "psce", "-o", str(tmp_path / "d"), "--workers", "0", "--verify",
+               "--candidates", "pixel_aspect,thermal_focal_length"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err[-3000:]
     summary = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     rows = summary["verify"]
     assert {r["effect"] for r in rows} == {"pixel_aspect", "thermal_focal_length"}
@@ -95,7 +94,7 @@ def test_discover_verify_checks_the_printed_numbers_on_twins(user_run, tmp_path)
         assert r["noncentrality"] == pytest.approx(r["expected_noncentrality"], rel=0.3), r
         for b in r["biases"]:
             assert 0.7 < b["ratio"] < 1.3, (r["effect"], b)
-    assert "verify (twins of this bag" in out.stdout
+    assert "verify (twins of this bag" in out.out
     html = unescape((tmp_path / "d" / "report.html").read_text())
     for section in ("Noise (tested before any effect)", "Path", "Every candidate of the last "
                     "round", "What could still be hiding", "Verified on twins of this bag",
