@@ -239,7 +239,10 @@ def test_long_imu_gap_reacquires():
     prior = load_calibration(DATA / "swaying_ideal.prior.yaml")
     truth = load_calibration(DATA / "swaying_ideal.truth.yaml")
     data = read_bag_data(DATA / "swaying_ideal.mcap")
-    keep = ~((data.imu_t > 150.0) & (data.imu_t < 160.0))
+    # the first 250 s of the 386 s bag: the gap, its ~20 frames and 90 s after it (the
+    # counts below do not depend on the length, the z-scores are in the run's own sigma)
+    data.frames = [f for f in data.frames if f.stamp_ns - data.t0_ns < 250 * 10**9]
+    keep = ~((data.imu_t > 150.0) & (data.imu_t < 160.0)) & (data.imu_t < 250.0)
     data.imu_t, data.imu_w, data.imu_f = data.imu_t[keep], data.imu_w[keep], data.imu_f[keep]
     r = replay_swaying(data, prior, prior_uncertain_effects(prior))
     c = r.counters
