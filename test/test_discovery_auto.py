@@ -215,6 +215,8 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
         # as with two workers: the ML runs made ahead, beside the base run (in this process
         # one after the other)
         runs.workers = 2 if fold else 1
+        compute = runs._compute_on_bag  # the IMU samples' statistic: asked for twice, made once
+        runs._compute_on_bag = lambda fn, *a: bag_stats[fold].append((fn, a)) or compute(fn, *a)
         measure = discover.measure_round_noise
         try:
             if not fold:  # the round as it was: a plain noise run, then a screening run
@@ -227,8 +229,10 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
         assert runs.verdict is not None and runs.noise == NoiseScales()  # noise kept
         return calls, base, {c.effect: c for c in results}, runs.verdict
 
+    bag_stats = {True: [], False: []}
     calls, base, by, verdict = round_(True)
     old_calls, old_base, old_by, old_verdict = round_(False)
+    assert len(bag_stats[True]) == len(set(bag_stats[True])) == 1  # gyro: first runs + measure
     stated = [c for c in calls if c[0] == () and c[2] == NoiseScales()]
     assert stated == [((), tuple(cands), NoiseScales())]  # one pass, scoring both
     # the gyro's ML runs made ahead are the ones the search asks for: none runs twice

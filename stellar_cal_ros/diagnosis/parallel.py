@@ -114,6 +114,8 @@ class Runs:
         self.verdict = None
         #: runs made ahead of need (:meth:`run_ahead`): (task, its noise, stats)
         self._ahead: list[tuple[Task, Any, RunSummary]] = []
+        #: :meth:`on_bag`'s results by ``(fn, args)``: a statistic of the bag is computed once
+        self._of_bag: dict[tuple, Any] = {}
 
     def noise_of(self, task: Task):
         """The noise scales ``task`` runs with."""
@@ -126,8 +128,16 @@ class Runs:
     def on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(bag_data, *args)`` where the bag is (a worker; the parent never reads it).
 
-        For small statistics of the bag itself.
+        For small statistics of the bag itself (``args`` hashable): computed once per
+        ``(fn, args)``, however many steps (the noise's first runs, its measurement, each
+        round) ask for it.
         """
+        key = (fn, args)
+        if key not in self._of_bag:
+            self._of_bag[key] = self._compute_on_bag(fn, *args)
+        return self._of_bag[key]
+
+    def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         return _on_bag(self.bag, fn, *args)
 
     def map(self, tasks: list[Task]) -> Iterator[tuple[Task, RunSummary]]:
@@ -246,7 +256,7 @@ class DaskRuns(Runs):
     def facts(self) -> dict[str, Any]:  # noqa: D102
         return self.client.submit(bag_facts, self.remote_bag, pure=False).result()
 
-    def on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:  # noqa: D102
+    def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         return self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False).result()
 
     def map(self, tasks):  # noqa: D102
