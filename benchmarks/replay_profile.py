@@ -46,7 +46,6 @@ TIMED = [
     *[(imu_queue.ImuQueue, n, "ImuQueue." + n) for n in ("push", "count_upto", "pop")],
     (results.TableSink, "append_row", "TableSink.append_row"),
     (results.RunStats, "add", "RunStats.add"),
-    (replay_mod, "_feed", "replay._feed"),
 ]
 
 

@@ -342,6 +342,9 @@ def decode_star_array(data: bytes | memoryview) -> StarFrame:
         for name in _STAR_NAMES:
             arr[name][0] = first[name][0]
             arr[name][1:] = rest[name]
+    uv = np.empty((count, 2))  # (u, v) side by side, one copy
+    uv[:, 0] = arr["u"]
+    uv[:, 1] = arr["v"]
     return StarFrame(
         stamp_ns=stamp,
         frame_id=frame_id,
@@ -349,7 +352,7 @@ def decode_star_array(data: bytes | memoryview) -> StarFrame:
         catalog_id=arr["catalog_id"].astype(np.uint32),
         right_ascension=arr["ra"].astype(np.float64),
         declination=arr["dec"].astype(np.float64),
-        uv=np.stack([arr["u"], arr["v"]], axis=1).astype(np.float64).reshape(count, 2),
+        uv=uv,
         magnitude=arr["mag"].astype(np.float64),
         sigma=arr["sigma"].astype(np.float64),
     )

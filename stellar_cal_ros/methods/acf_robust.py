@@ -15,7 +15,6 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from stellar_cal_ros.errors import StellarCalError
 
@@ -71,6 +70,8 @@ def _robust_weights(kind: str, r: np.ndarray, c: float) -> np.ndarray:
 
 
 def _solve(problem: Any, x0: np.ndarray, loss: str, f_scale: float, max_nfev: int):
+    from scipy.optimize import least_squares  # (on first use: a replay never needs it)
+
     rho = _make_loss(loss, problem.n_star, f_scale)
     res = least_squares(problem.fun, x0, jac=problem.jac, loss=rho, f_scale=1.0,
                         method="trf", x_scale="jac", max_nfev=max_nfev,

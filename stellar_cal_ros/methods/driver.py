@@ -135,6 +135,7 @@ class Calibrator(ImuRelease):
         if spec.needs_site:
             self.requires.add("site")
         self.window_ns = int(round(self.driver.reorder_window_s * 1e9))
+        self._jump_ns = int(self.driver.clock_jump_s * 1e9)  # a jump of the IMU clock
         self.env_wait_ns = int(round(self.driver.environment_wait_s * 1e9))
         self.residuals = residuals if residuals is not None else TableSink(
             columns=RESIDUAL_COLUMNS)
@@ -216,18 +217,19 @@ class Calibrator(ImuRelease):
                 # strictly increasing (the usual case): first and last are the extremes
                 inc = m < 2 or bool((t[1:] > t[:-1]).all())
         if m and self.imu_max_ns is not None:
-            jump = int(self.driver.clock_jump_s * 1e9)
+            jump = self._jump_ns
             newest = self.imu_max_ns
-            if not (inc and t[0] >= newest - jump and t[-1] <= newest + jump
-                    and t[-1] - t[0] <= jump):
+            t_first, t_last = int(t[0]), int(t[-1])
+            if not (inc and t_first >= newest - jump and t_last <= newest + jump
+                    and t_last - t_first <= jump):
                 leap, back = clocks.imu_jumps(t, newest, jump)
                 self._imu_leap = leap or self._imu_leap
                 if back:
                     c.imu_clock_jumps += 1
                     self._clock_fault(clocks.back_text(back, self.t0_ns), flag=False)
-        if m and inc and self._defer_release(t, w, f):
-            return [] if self._staged_n + self._imu.count_upto(
-                self.imu_max_ns - self.window_ns) < self.driver.imu_batch else self._pump()
+            elif self._defer_release(t, w, f, t_first, t_last):
+                return [] if self._staged_n + self._imu.count_upto(
+                    self.imu_max_ns - self.window_ns) < self.driver.imu_batch else self._pump()
         self._settle_imu()
         last = self._last_imu_ns
         if last is not None and m and not (inc and t[0] > last):

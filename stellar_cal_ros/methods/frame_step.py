@@ -484,6 +484,10 @@ class FusedStep:
         self.Pe = int(flt.P_est)
         N = flt.N
         self.none = (np.zeros((N, 0)), np.zeros(0), np.zeros((0, 0)))
+        # the reference's Γ (``prop._gamma``, a tuple replaced at each rebuild) as a C array:
+        # a column slice would take numba's non-contiguous matrix product (a copy per call)
+        self._gamma_of: tuple | None = None
+        self._gamma = np.zeros((3, 0))
 
     @classmethod
     def build(cls, flt, kernel_cls: type) -> FusedStep | None:
@@ -511,12 +515,16 @@ class FusedStep:
             u = np.ascontiguousarray(u)
         if not uv.flags.c_contiguous:
             uv = np.ascontiguousarray(uv)
+        if not (sigma.flags.c_contiguous and sigma.dtype == float):
+            sigma = np.ascontiguousarray(sigma, dtype=float)
+        gamma = prop._gamma
+        if gamma is not self._gamma_of:  # a new reference: its Γ as a C array, once
+            self._gamma_of, self._gamma = gamma, np.ascontiguousarray(gamma[0])
+        du, bscale = self.compiled_chain.frame_inputs(u, ctx)
         return frame_step(P, theta, R, M, score, info, acc, pre.tp, pre.C, pre.w_hat, pre.phi,
-                          j, mj, float(ta), float(tb), prop._gamma[0], prop.theta_ref,
-                          self.q_diag, *self.gyro, w_raw, uv, u,
-                          np.ascontiguousarray(sigma, dtype=float), float(base), *self.chain,
-                          *self.directions, *self.compiled_chain.frame_inputs(u, ctx),
-                          self.Pe, self.cfg)
+                          j, mj, float(ta), float(tb), self._gamma, prop.theta_ref,
+                          self.q_diag, *self.gyro, w_raw, uv, u, sigma, float(base),
+                          *self.chain, *self.directions, du, bscale, self.Pe, self.cfg)
 
 
 # Every module holding cached numba kernels (test_user_path checks the list is complete).

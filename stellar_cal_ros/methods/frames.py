@@ -495,7 +495,8 @@ class SiteEstimator:
     def add(self, stamp_ns: int, lat: float, lon: float, alt: float, status: int = 0) -> bool:
         """Add a fix; False (not used) when invalid."""
         vals = (float(lat), float(lon), float(alt))
-        if not all(np.isfinite(vals)) or status < 0 or abs(vals[0]) > 90:
+        if not (math.isfinite(vals[0]) and math.isfinite(vals[1]) and math.isfinite(vals[2])) \
+                or status < 0 or abs(vals[0]) > 90:
             return False
         n = len(self.stamp_ns)
         if n == len(self.values):

@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from stellar_cal_ros.core.attitude import wahba
 from stellar_cal_ros.core.types import StarFrame
@@ -261,6 +260,8 @@ def run_iac(
     evaluate = pairs.evaluate
     if loss not in ("linear", "huber", "soft_l1", "cauchy"):
         raise StellarCalError(f"loss must be linear, huber, soft_l1 or cauchy, got {loss!r}")
+    from scipy.optimize import least_squares  # (on first use: a replay never needs it)
+
     res = least_squares(lambda t: evaluate(t)[0], th0, jac=lambda t: evaluate(t)[1],
                         loss=loss, f_scale=3.0, x_scale="jac", max_nfev=max_nfev,
                         xtol=1e-12, ftol=1e-12, gtol=1e-10)

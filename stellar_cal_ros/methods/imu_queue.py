@@ -144,7 +144,8 @@ class ImuRelease:
     ``window_ns``, ``t0_ns``, ``counters``, ``driver`` (its DriverConfig) and ``filter``.
     """
 
-    def _defer_release(self, t: np.ndarray, w: np.ndarray, f: np.ndarray) -> bool:
+    def _defer_release(self, t: np.ndarray, w: np.ndarray, f: np.ndarray, t0: int,
+                       t1: int) -> bool:
         """Queue an in-order block whose release can wait (a replay); False: not taken.
 
         With ``batch_frames`` and the filter running, a pump after an IMU block only moves
@@ -155,17 +156,16 @@ class ImuRelease:
         limit (:meth:`_settle_imu`, and every :meth:`_pump`) gives the same staged samples,
         and the batch is handed over at the same block (the caller counts what the pump
         would release).  Frees a replay from a pump per message run; what a checkpoint
-        saves and every count stay as without it.
+        saves and every count stay as without it.  The caller has checked the block strictly
+        increasing from ``t0`` to ``t1`` (ns) and within the clock-jump bounds of the newest
+        sample pushed.
         """
         q = self._imu
         if not self.driver.batch_frames or self.filter is None or not q.strict:
             return False
         newest = self.imu_max_ns
-        jump = int(self.driver.clock_jump_s * 1e9)
-        t0, t1 = int(t[0]), int(t[-1])
         after = q.tail if q.n else self._last_imu_ns
-        if (after is not None and t0 <= after) or newest is None or t0 < newest - jump \
-                or t1 > newest + jump or t1 - t0 > jump \
+        if (after is not None and t0 <= after) or newest is None \
                 or q.n + len(t) > self.driver.max_pending_imu:
             return False
         q.push(t, w, f, True)

@@ -175,6 +175,18 @@ class KernelConfig:
     unit_check_raises: bool = True
 
 
+_FRAME_STEP: list = []
+
+
+def _frame_step_module():
+    """:mod:`.frame_step` (imported on first use: it imports numba), then remembered."""
+    if not _FRAME_STEP:
+        from stellar_cal_ros.methods import frame_step
+
+        _FRAME_STEP.append(frame_step)
+    return _FRAME_STEP[0]
+
+
 class StarFilter(Acquisition):
     """Error-state EKF over IMU samples and star frames (see the module docstring).
 
@@ -503,7 +515,8 @@ class StarFilter(Acquisition):
                sigma: np.ndarray) -> FrameUpdate | None:
         """Propagate to the frame's exposure and update with its stars."""
         model = self.model
-        shift, _ = model.time_shift(self.theta, ctx)
+        shift = model.time_shift(self.theta, ctx)[0] if model.has_time_effect else \
+            float(model.prior.time_offset)  # (time_shift's value, without its gradient)
         t_exp = self._stamp_rel + shift
         if self.compiled_step:
             done, result = self._fused_update(uv, u_i, ctx, sigma, t_exp)
@@ -593,13 +606,14 @@ class StarFilter(Acquisition):
         chain, a method with its own transition or measurements, a bridged IMU sample, a
         re-acquisition pending, a reference strapdown to rebuild.
         """
-        from stellar_cal_ros.methods import frame_step
-
         fs = self._frame_step
         if fs is None:
+            from stellar_cal_ros.methods import frame_step
+
             fs = self._frame_step = frame_step.FusedStep.build(self, StarFilter) or False
         if not fs or self._gap_pending or self.t is None or t_exp <= self.t:
             return False, None
+        frame_step = _frame_step_module()
         imu, prop = self.imu, self.propagation
         k = self._k
         m = imu.index(t_exp)

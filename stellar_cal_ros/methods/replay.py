@@ -91,7 +91,13 @@ def _events_from_reader(reader: BagReader, topics: dict[str, str]):
     stream = getattr(reader, "stream", None)
     if stream is not None:
         for role, block in stream(topics=topics, imu_block=IMU_BLOCK):
-            yield from _block_events(role, block)
+            if role == "imu":  # (most blocks: one generator level less)
+                yield "imu", (block.stamp_ns, block.angular_velocity,
+                              block.linear_acceleration, block.frame_id or None)
+            elif role == "stars":
+                yield "stars", block
+            else:
+                yield from _block_events(role, block)
         return
     # readers without a streaming pass: each topic whole, merged by stamp
     available = reader.topics()
@@ -149,22 +155,23 @@ def _block_events(role: str, block):
             yield role, (t, v)
 
 
-def _feed(cal: Calibrator, role: str, payload) -> None:
-    if role == "imu":
-        if len(payload) == 4:
-            cal.push_imu_block(*payload[:3], frame_id=payload[3])
-        else:
-            cal.push_imu_block(*payload)
-    elif role == "stars":
-        cal.push_stars(payload)
-    elif role == "image":  # star images: made into frames one at a time (frames.py)
-        cal.push_image(payload)
-    elif role == "camera_info":
-        cal.images.camera_info(payload)
-    elif role == "fix":
-        cal.push_fix(*payload)
-    else:
-        cal.push_scalar(role, *payload)
+def _handlers(cal: Calibrator) -> dict[str, Any]:
+    """``role -> call(payload)``: the driver call of each event role of the replay."""
+    out: dict[str, Any] = {
+        # (stamps, rates, forces[, frame_id]): the frame id (None: any) last, by position
+        "imu": lambda p: cal.push_imu_block(*p),
+        "stars": cal.push_stars,
+        "image": cal.push_image,  # star images: made into frames one at a time (frames.py)
+        "camera_info": cal.images.camera_info,
+        "fix": lambda p: cal.push_fix(*p),
+    }
+    for key in ("head", "air", "pressure"):
+        out[key] = functools.partial(_push_scalar, cal.push_scalar, key)
+    return out
+
+
+def _push_scalar(push, key: str, payload) -> None:
+    push(key, *payload)
 
 
 def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
@@ -268,21 +275,22 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
                           span, eval_fraction, baseline, filter_cls)
         events = _events_from_reader(reader, {k: v for k, v in names.items()})
     bar = _Progress(span, progress)
+    handlers = _handlers(cal)
+    clock = time.perf_counter
     try:
-        it = iter(events)
-        while True:
-            t1 = time.perf_counter()
-            try:
-                role, payload = next(it)
-            except StopIteration:
-                break
-            t2 = time.perf_counter()
-            _feed(cal, role, payload)
-            t3 = time.perf_counter()
+        t1 = clock()
+        for role, payload in events:
+            t2 = clock()
             t_read += t2 - t1
-            t_filter += t3 - t2
+            try:
+                call = handlers[role]
+            except KeyError:  # a role without a driver call: the scalar call says so
+                call = functools.partial(_push_scalar, cal.push_scalar, role)
+            call(payload)
             if role == "imu" and bar.enabled:
                 bar.update(int(np.asarray(payload[0])[-1]))
+            t1 = clock()
+            t_filter += t1 - t2
         t2 = time.perf_counter()
         cal.finish()
         t_filter += time.perf_counter() - t2
