@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stellar_cal_ros.diagnosis import injection, reliability, verify
+from stellar_cal_ros.diagnosis import injection, printing, reliability, verify
 from stellar_cal_ros.diagnosis.discover import rerun_prior
 from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.effects import registry
@@ -59,6 +59,29 @@ def clean(tmp_path_factory):
 def _score(result, eid):
     c = score_tests(result, [eid])[eid]
     return c.info @ c.estimate, c.info
+
+
+def test_a_small_bias_beside_a_large_shift_is_a_first_order_remainder():
+    """The tilt case below: at its MDB the installation moves ~30 sigma and the printed
+    gyro-bias shift (1.2 sigma) is a remainder the filter does not reproduce.  A bias above
+    its sigma but below FIRST_ORDER_SHARE of the same parameter's largest shift (in sigmas)
+    is said apart, not listed; a bias beside shifts of its own size is listed."""
+    det = reliability.detectability("image_plane_tilt", np.diag([4e5, 4e5]), 1e-3)
+    size = min(det.mdb["tau_x"], det.plausible[0])
+    assert size == min(det.mdb["tau_y"], det.plausible[1])
+    sigma = {"installation.rx": 1e-4 * size, "gyro_bias.by": 1e-8 * size,
+             "tangential.p1": 1.0e-6 * size}
+    rows = {"installation.rx": np.array([30e-4, 0.0]),  # 30 sigma
+            "gyro_bias.by": np.array([-1.2e-8, 0.0]),  # 1.2 sigma: 0.04 of the largest
+            "tangential.p1": np.array([0.0, 2e-6])}  # 2 sigma: tau_y's largest
+    out = reliability.external_reliability(det, rows, sigma)
+    assert out["dominates"] == ["installation.rx", "tangential.p1"]
+    assert out["remainders"] == ["gyro_bias.by"]
+    assert out["largest_shift_sigma"]["tau_x"] == pytest.approx(30.0)
+    assert out["sigma"]["gyro_bias.by"] == sigma["gyro_bias.by"]
+    assert injection.claims(out) == {"tau_x": ["installation.rx"], "tau_y": ["tangential.p1"]}
+    text = "\n".join(printing.reliability_lines([out]))
+    assert "first-order remainders" in text and "gyro_bias.by" in text
 
 
 @pytest.mark.parametrize("effect", [e for e in EFFECTS if e != "image_plane_tilt"])
@@ -138,17 +161,23 @@ def test_image_plane_tilt_mdb_holds_in_the_scores_odd_part(clean):
     odd = 0.5 * (responses[0] - responses[1])
     lam = float(odd @ np.linalg.solve(info, odd))
     assert lam == pytest.approx(entry["lam0"], rel=0.3)
-    # the printed biases are the linear shifts: the odd part of the paired shifts
-    off = {}
-    for q in listed:
-        if not q.startswith("equivalent_principal_point"):  # the camera's own
-            linear = 0.5 * (shifts[0][q] - shifts[1][q])
-            if not 0.7 <= linear / entry["biases_signed"][q] <= 1.3:
-                off[q] = (entry["biases_signed"][q], shifts[0][q], shifts[1][q])
-    # still off (150 s, seed 5): the printed gyro_bias.by bias (-3.3e-8 rad/s, 1.2 of its
-    # sigma) is not what the injection does (+3.5e-9 at +MDB, +4.6e-10 at -MDB).  Not the
-    # tilt's non-linearity (odd part +3.2e-9 at 0.1 MDB) nor this seed's noise (seeds 5-12:
-    # odd response 0.4e-9 +- 0.5e-9 against -M b = -1.8e-8): the sensitivity's gyro-bias
-    # rows of a tilt are 4-7x the filter's first-order response, for this effect only
-    # (benchmarks/tilt_gyro_bias.py, doc/benchmarks.md)
-    assert set(off) == {"gyro_bias.by"}, off
+    # the listed biases are the linear shifts: the odd part of the paired shifts
+    def off(quantities):
+        out = {}
+        for q in quantities:
+            if not q.startswith("equivalent_principal_point"):  # the camera's own
+                linear = 0.5 * (shifts[0][q] - shifts[1][q])
+                if not 0.7 <= linear / entry["biases_signed"][q] <= 1.3:
+                    out[q] = (entry["biases_signed"][q], shifts[0][q], shifts[1][q])
+        return out
+
+    assert listed and not off(listed), off(listed)
+    # beside the ~30 sigma installation / principal-point shift, the printed gyro_bias.by
+    # (-3.3e-8 rad/s, 1.2 sigma) is a first-order remainder the filter does not reproduce
+    # (+3.5e-9 at +MDB, +4.6e-10 at -MDB): the sensitivity recursion holds the gain fixed,
+    # and at the slew after the 53 s hold the filter corrects ~1.5 mrad along the attitude
+    # / installation / principal-point combination (benchmarks/tilt_gyro_bias.py --reseed,
+    # doc/benchmarks.md).  It is said apart, not listed as a bias.
+    remainders = entry["remainders"]
+    assert "gyro_bias.by" in remainders and "gyro_bias.by" not in entry["dominates"]
+    assert set(off(remainders)) >= {"gyro_bias.by"}

@@ -251,6 +251,12 @@ def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> lis
                 + f" (sigma {e['sigma_shown'][n]})"
                 for n in dom[:per_effect]) + (f" and {len(dom) - per_effect} more"
                                               if len(dom) > per_effect else "")
+        rem = e.get("remainders", [])
+        if rem:
+            line += (f"; beside its {max(e['largest_shift_sigma'].values()):.0f} sigma shift, "
+                     "first-order remainders an injection need not reproduce: " + ", ".join(
+                         f"{n} by {e['biases_shown'][n]}" for n in rem[:per_effect])
+                     + (f" and {len(rem) - per_effect} more" if len(rem) > per_effect else ""))
         blind = e.get("blind") or {}
         bdom = sorted(blind.get("dominates", []),
                       key=lambda n: -blind["biases"][n] / e["sigma"][n])

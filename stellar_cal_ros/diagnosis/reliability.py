@@ -45,6 +45,11 @@ from stellar_cal_ros.effects import registry
 POWER = 0.8
 #: a parameter is "dominated" when a hidden effect's bias exceeds this many of its sigmas
 DOMINATES_SIGMA = 1.0
+#: a printed bias is first-order only (``remainders``) below this share of the largest
+#: shift, in sigmas, the same injection makes: the filter's response beside a large shift
+#: departs from the sensitivity recursion by up to a few % of that shift (doc/benchmarks.md,
+#: image_plane_tilt's gyro-bias rows: 1.7-4.5 % of a 29 sigma installation shift)
+FIRST_ORDER_SHARE = 0.15
 
 def plausible_size(effect_id: str, calibration: Any = None) -> np.ndarray:
     """Plausible size per parameter of ``effect_id`` (its units) for ``calibration``'s camera.
@@ -304,20 +309,35 @@ def external_reliability(det: Detectability, rows: dict[str, np.ndarray],
     misalignment it printed the plausible-size rotation of the gyro axes — 150 arcsec of
     installation — beside a 3 arcsec MDB, ~60x what that MDB does.)
 
+    A bias above the parameter's σ is listed in ``dominates`` unless it is below
+    :data:`FIRST_ORDER_SHARE` of the largest shift (in σ) the same parameter of the effect
+    makes (``largest_shift_sigma``): then it is a first-order remainder (``remainders``)
+    that an injection need not reproduce (an image-plane tilt moves the installation by
+    ~30 σ and the gyro bias by a printed 1.2 σ that the filter's response does not have).
+
     Returns ``{"effect", "mdb", ..., "hidden_size", "biases", "biases_signed",
-    "bias_parameter", "biases_shown", "dominates", "sigma", "sigma_shown", "blind"}``.
+    "bias_parameter", "biases_shown", "dominates", "sigma", "sigma_shown", "blind",
+    "remainders", "largest_shift_sigma"}``.
     """
     names = list(det.mdb)
     size = np.array([min(det.mdb[n], p) for n, p in zip(names, det.plausible, strict=True)])
-    biases, signed, source = {}, {}, {}
+    biases, signed, source, col = {}, {}, {}, {}
+    largest = np.zeros(len(names))  # each parameter's largest shift, in sigmas
     for q, h in rows.items():
         shifts = np.asarray(h, dtype=float) * size
         j = int(np.argmax(np.abs(shifts))) if shifts.size else 0
         signed[q] = float(shifts[j]) if shifts.size else 0.0
-        biases[q], source[q] = abs(signed[q]), names[j] if names else ""
-    dominates = [name for name, b in biases.items()
-                 if model_sigma.get(name, 0.0) > 0
-                 and b > DOMINATES_SIGMA * model_sigma[name]]
+        biases[q], source[q], col[q] = abs(signed[q]), names[j] if names else "", j
+        if shifts.size and model_sigma.get(q, 0.0) > 0:
+            largest = np.fmax(largest, np.abs(shifts) / model_sigma[q])
+    listed = [name for name, b in biases.items()
+              if model_sigma.get(name, 0.0) > 0
+              and b > DOMINATES_SIGMA * model_sigma[name]]
+    # beside a much larger shift of the same injection a bias is a remainder the
+    # first-order recursion does not hold to 30 % (doc/benchmarks.md): said apart
+    remainders = [n for n in listed
+                  if biases[n] < FIRST_ORDER_SHARE * largest[col[n]] * model_sigma[n]]
+    dominates = [n for n in listed if n not in remainders]
     B = blind_directions(det) if det.testable else np.zeros((len(names), 0))
     blind: dict[str, Any] = {}
     if B.shape[1]:
@@ -328,11 +348,12 @@ def external_reliability(det: Detectability, rows: dict[str, np.ndarray],
                  "biases": worst, "biases_shown": {n: shown(n, b) for n, b in worst.items()},
                  "dominates": [n for n, b in worst.items() if model_sigma.get(n, 0.0) > 0
                                and b > DOMINATES_SIGMA * model_sigma[n]]}
-    sig_names = set(dominates) | set(blind.get("dominates", []))
+    sig_names = set(listed) | set(blind.get("dominates", []))
     return {"effect": det.effect, **det.as_dict(),
             "hidden_size": dict(zip(names, map(float, size), strict=True)),
             "biases": biases, "biases_signed": signed, "bias_parameter": source,
             "biases_shown": {n: shown(n, b) for n, b in biases.items()},
             "sigma": {n: model_sigma[n] for n in sig_names},
             "sigma_shown": {n: shown(n, model_sigma[n]) for n in sig_names},
-            "dominates": dominates, "blind": blind}
+            "dominates": dominates, "blind": blind, "remainders": remainders,
+            "largest_shift_sigma": {n: float(v) for n, v in zip(names, largest, strict=True)}}

@@ -340,6 +340,9 @@ def _reliability_html(summary: dict[str, Any]) -> str:
         bias = ", ".join(f"{n} by {e['biases_shown'][n]}"
                          + (f" [{e['bias_parameter'][n]}]" if len(e["mdb"]) > 1 else "")
                          + f" (σ {e['sigma_shown'][n]})" for n in e["dominates"])
+        if e.get("remainders"):
+            bias += ("; first order only: " if bias else "first order only: ") + ", ".join(
+                f"{n} by {e['biases_shown'][n]}" for n in e["remainders"])
         blind = e.get("blind") or {}
         btxt = ("; ".join(blind.get("directions", [])) + ": " + ", ".join(
             f"{n} by {blind['biases_shown'][n]}" for n in blind.get("dominates", []))
