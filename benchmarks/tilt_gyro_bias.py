@@ -13,15 +13,22 @@ re-run; the odd part of the paired shift over the size is the first-order respon
     .venv/bin/python benchmarks/tilt_gyro_bias.py --parameter best \
         --effects gyro_misalignment,gyro_scale_factor,time_offset,pixel_aspect,image_plane_tilt
     .venv/bin/python benchmarks/tilt_gyro_bias.py --trace gyro_bias.by --size 2.1e-3  # per frame
+    .venv/bin/python benchmarks/tilt_gyro_bias.py --reseed 0,60,119,120,121,200 \
+        --trace gyro_bias.by --size 2e-4 [--noise 0]
 
 ``--trace Q`` follows quantity Q frame by frame (the numpy reference step, whose
 sensitivity is the compiled one's): the filter's odd response against −M's row over time
-shows where the two part.
+shows where the two part.  ``--reseed K,…`` sets the recursion's column to the measured odd
+response right after update K (0: the acquisition) and prints its end value for Q: where
+re-seeding stops mattering, the updates that follow are linearized right and the
+discrepancy was made before; it also lists the updates with the largest attitude
+corrections.  ``--noise 0`` draws no centroid or IMU noise (the stated σ unchanged).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import numpy as np
 
@@ -36,15 +43,32 @@ QUANTITIES = ("gyro_bias.bx", "gyro_bias.by", "gyro_bias.bz", "installation.rx",
               "installation.ry", "principal_point.cy", "radial_k1k2.k2", "tangential.p1")
 
 
-def _data(duration: float, seed: int, effects=None):
-    sim = simulate(get_scenario("psce_rotations"), duration=duration, seed=seed,
+def _data(duration: float, seed: int, effects=None, noise: float = 1.0):
+    scenario = get_scenario("psce_rotations")
+    quiet = dataclasses.replace(scenario, centroid_noise_px=noise * scenario.centroid_noise_px,
+                                gyro_arw_deg_sqrth=noise * scenario.gyro_arw_deg_sqrth,
+                                accel_vrw_mps_sqrth=noise * scenario.accel_vrw_mps_sqrth)
+    sim = simulate(quiet, duration=duration, seed=seed,
                    effects=effects or {}, paired_with={} if effects else None)
+    if noise != 1.0:  # the noise the messages state stays the scenario's
+        stated = simulate(scenario, duration=duration, seed=seed)
+        sim = dataclasses.replace(sim, imu=stated.imu.__class__(
+            **{**vars(sim.imu), "angular_velocity_covariance":
+               stated.imu.angular_velocity_covariance, "linear_acceleration_covariance":
+               stated.imu.linear_acceleration_covariance}), star_frames=[
+            dataclasses.replace(f, sigma=np.full(len(f.sigma), scenario.centroid_noise_px))
+            for f in sim.star_frames], prior=stated.prior)
     return sim, bag_data_from_simulation(sim)
 
 
 def measure(duration: float, seed: int, effects: list[str], parameter: str, size: float,
-            fractions: list[float], alpha: float) -> list[dict]:
-    """Rows ``{effect, parameter, fraction, quantity, printed, odd, sigma}`` of one seed."""
+            fractions: list[float], alpha: float, quantities=QUANTITIES) -> list[dict]:
+    """Rows ``{effect, parameter, fraction, quantity, printed, odd, sigma, share}``, one seed.
+
+    ``share``: the row's |printed| / σ over the largest of the injection's rows (what
+    :data:`~stellar_cal_ros.diagnosis.reliability.FIRST_ORDER_SHARE` bounds);
+    ``quantities`` None: every estimated parameter.
+    """
     sim, data = _data(duration, seed)
     prior = rerun_prior(sim.prior)
     base = replay(data, prior, "psce", [], consider=effects, keep_tables=False)
@@ -61,6 +85,7 @@ def measure(duration: float, seed: int, effects: list[str], parameter: str, size
         b = size if size > 0 else float(mdb[j])
         printed = dict(zip(names, cs.bias_per_unit[:, j] * b, strict=False))
         p = cs.parameters[j].split(".", 1)[1]
+        largest = max(abs(v) / sigma[q] for q, v in printed.items() if sigma.get(q, 0) > 0)
         for f in fractions:
             shifts = []
             for sign in (1, -1):
@@ -68,12 +93,13 @@ def measure(duration: float, seed: int, effects: list[str], parameter: str, size
                 _, inj = _data(duration, seed, {eid: injection.simulation_value(eid, delta)})
                 run = replay(inj, prior, "psce", [], consider=[eid], keep_tables=False)
                 shifts.append(injection.paired_shift(before, injection.run_values(run)))
-            for q in QUANTITIES:
+            for q in names if quantities is None else quantities:
                 if q in printed and q in shifts[0]:
                     rows.append({"seed": seed, "effect": eid, "parameter": p, "size": b,
                                  "fraction": f, "quantity": q, "printed": printed[q],
                                  "odd": 0.5 * (shifts[0][q] - shifts[1][q]) / f,
-                                 "sigma": sigma.get(q, np.nan)})
+                                 "sigma": sigma.get(q, np.nan),
+                                 "share": abs(printed[q]) / sigma.get(q, np.nan) / largest})
     return rows
 
 
@@ -113,6 +139,95 @@ def trace(duration: float, seed: int, effect: str, parameter: str, size: float,
         print(f"{k:5d} {clean[k][0]:8.2f} {-clean[k][2]:11.3e} {odd:13.3e}")
 
 
+def reseed(duration: float, seed: int, effect: str, parameter: str, size: float,
+           quantity: str, ks: list[int], noise: float) -> None:
+    """End value of −M's row for ``quantity`` with the column re-seeded after update K."""
+    from stellar_cal_ros.core.rotation import so3_log
+    from stellar_cal_ros.methods import kernel
+
+    update, initialize = kernel.StarFilter.update, kernel.StarFilter.initialize
+    inject = kernel.StarFilter.inject
+    mode: dict = {}
+    states: dict[int, list] = {1: [], -1: []}
+    steps: list[tuple] = []
+
+    def after(self, n: int) -> None:
+        self._n = n
+        col = self.model.parameter_names().index(f"{effect}.{parameter}") - self.P_est
+        if mode["sign"]:
+            states[mode["sign"]].append((self.R_i_b.copy(), self.theta[:self.P_est].copy()))
+        elif n == mode["k"]:
+            self.sensitivity.M[:, col] = -measured[n]
+
+    def upd(self, *args, **kwargs):
+        out = update(self, *args, **kwargs)
+        after(self, self._n + 1)
+        return out
+
+    def corrected(self, dx):
+        if mode["sign"] == 0 and mode["k"] == ks[0]:
+            steps.append((self._n + 1, self.t, float(np.linalg.norm(dx[self.ia]))))
+        return inject(self, dx)
+
+    def init(self, *args, **kwargs):
+        ok = initialize(self, *args, **kwargs)
+        if ok:
+            after(self, 0)
+        return ok
+
+    kernel.StarFilter.compiled_step = False
+    kernel.StarFilter.update, kernel.StarFilter.initialize = upd, init
+    kernel.StarFilter.inject = corrected
+    try:
+        sim, data = _data(duration, seed, noise=noise)
+        prior = rerun_prior(sim.prior)
+        for sign in (1, -1):
+            mode.update(sign=sign, k=-1)
+            replay(_data(duration, seed, {effect: injection.simulation_value(
+                effect, injection.parameter_delta(effect, parameter, sign * size))}, noise)[1],
+                prior, "psce", [], consider=[effect], keep_tables=False)
+        measured = [np.concatenate([so3_log(a[0] @ b[0].T), a[1] - b[1]]) / (2 * size)
+                    for a, b in zip(states[1], states[-1], strict=True)]
+        names = None
+        print(f"{quantity} per unit {effect}.{parameter} (size {size:g}), seed {seed}, "
+              f"noise x{noise:g}: measured end value, then −M's end value re-seeded after "
+              "update K")
+        for k in ks:
+            mode.update(sign=0, k=k)
+            flt = replay(data, prior, "psce", [], consider=[effect], keep_tables=False).filter
+            names = ["attitude.x", "attitude.y", "attitude.z"] + \
+                flt.model.parameter_names()[:flt.P_est]
+            col = flt.model.parameter_names().index(f"{effect}.{parameter}") - flt.P_est
+            i = names.index(quantity)
+            if k == ks[0]:
+                print(f"  measured {measured[-1][i]:11.3e}")
+            print(f"  K {k:4d}  {-flt.sensitivity.M[i, col]:11.3e}")
+        print("largest attitude corrections (update, t s, |correction| rad):")
+        for n, t, a in sorted(steps, key=lambda r: -r[2])[:5]:
+            print(f"  {n:4d} {t:8.2f} {a:9.2e}")
+    finally:
+        kernel.StarFilter.compiled_step = True
+        kernel.StarFilter.update, kernel.StarFilter.initialize = update, initialize
+        kernel.StarFilter.inject = inject
+
+
+def _by_share(rows: list[dict], floor: float = 0.3) -> None:
+    """Per effect: measured/printed of the rows above ``floor`` σ, by share."""
+    from stellar_cal_ros.diagnosis.reliability import FIRST_ORDER_SHARE
+
+    print(f"\nrows above {floor} σ: measured/printed (min-max) at share >= "
+          f"{FIRST_ORDER_SHARE} and below it")
+    for eid in dict.fromkeys(r["effect"] for r in rows):
+        sel = [r for r in rows if r["effect"] == eid and abs(r["printed"]) > floor * r["sigma"]]
+        line = f"  {eid:22s}"
+        for part in ([r for r in sel if r["share"] >= FIRST_ORDER_SHARE],
+                     [r for r in sel if r["share"] < FIRST_ORDER_SHARE]):
+            ratio = [r["odd"] / r["printed"] for r in part]
+            line += (f"  {len(part):2d} rows {min(ratio):6.3f}-{max(ratio):6.3f}" if part
+                     else f"  {0:2d} rows {'':13s}")
+        print(line)
+
+
 def main() -> int:
     """Measure and print one line per (seed, effect, size, quantity), then per-seed means."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -126,7 +241,17 @@ def main() -> int:
     ap.add_argument("--alpha", type=float, default=0.01 / 20)
     ap.add_argument("--trace", default="", help="a quantity to follow frame by frame")
     ap.add_argument("--every", type=int, default=9, help="--trace: print every n-th frame")
+    ap.add_argument("--reseed", default="", help="--trace Q: re-seed −M after these updates")
+    ap.add_argument("--noise", type=float, default=1.0, help="--reseed: noise drawn (x)")
+    ap.add_argument("--quantities", default="",
+                    help="'all': every estimated parameter (default: the gyro-bias rows "
+                         "and the tilt's), with a summary by share")
     args = ap.parse_args()
+    if args.reseed:
+        reseed(args.duration, int(args.seeds.split(",")[0]), args.effects.split(",")[0],
+               args.parameter, args.size, args.trace or "gyro_bias.by",
+               [int(k) for k in args.reseed.split(",")], args.noise)
+        return 0
     if args.trace:
         trace(args.duration, int(args.seeds.split(",")[0]), args.effects.split(",")[0],
               args.parameter, args.size, args.trace, args.every)
@@ -137,20 +262,24 @@ def main() -> int:
     size = args.size if args.parameter != "best" else 0.0
     rows = []
     print(f"{'seed':>4s} {'effect':20s} {'param':8s} {'x size':>6s} {'quantity':20s} "
-          f"{'printed':>11s} {'odd/size':>11s} {'ratio':>7s} {'|printed|/σ':>11s}")
+          f"{'printed':>11s} {'odd/size':>11s} {'ratio':>7s} {'|printed|/σ':>11s} "
+          f"{'share':>6s}")
+    quantities = None if args.quantities == "all" else QUANTITIES
     for seed in seeds:
         for r in measure(args.duration, seed, effects, args.parameter, size, fractions,
-                         args.alpha):
+                         args.alpha, quantities):
             rows.append(r)
             print(f"{r['seed']:4d} {r['effect']:20s} {r['parameter']:8s} {r['fraction']:6.2g} "
                   f"{r['quantity']:20s} {r['printed']:11.3e} {r['odd']:11.3e} "
-                  f"{r['odd'] / r['printed']:7.3f} {abs(r['printed']) / r['sigma']:11.2f}",
-                  flush=True)
+                  f"{r['odd'] / r['printed']:7.3f} {abs(r['printed']) / r['sigma']:11.2f} "
+                  f"{r['share']:6.3f}", flush=True)
+    if quantities is None:
+        _by_share(rows)
     if len(seeds) > 1:
         print("\nover seeds (mean printed, mean odd ± its standard error, ratio of means)")
         for eid in effects:
             for f in fractions:
-                for q in QUANTITIES:
+                for q in dict.fromkeys(r["quantity"] for r in rows):
                     sel = [r for r in rows if r["effect"] == eid and r["quantity"] == q
                            and r["fraction"] == f]
                     if not sel:

@@ -46,9 +46,10 @@ POWER = 0.8
 #: a parameter is "dominated" when a hidden effect's bias exceeds this many of its sigmas
 DOMINATES_SIGMA = 1.0
 #: a printed bias is first-order only (``remainders``) below this share of the largest
-#: shift, in sigmas, the same injection makes: the filter's response beside a large shift
-#: departs from the sensitivity recursion by up to a few % of that shift (doc/benchmarks.md,
-#: image_plane_tilt's gyro-bias rows: 1.7-4.5 % of a 29 sigma installation shift)
+#: shift, in sigmas, the same injection makes: beside a large shift the filter's response
+#: departs from the sensitivity recursion by up to ~1.3 % of that shift (doc/benchmarks.md,
+#: image_plane_tilt at its MDB: gyro_bias.bz off by 0.95 sigma beside 78 sigma), so 30 %
+#: needs >= 0.045 of it; 0.15 leaves a factor 3
 FIRST_ORDER_SHARE = 0.15
 
 def plausible_size(effect_id: str, calibration: Any = None) -> np.ndarray:
