@@ -23,6 +23,11 @@ response right after update K (0: the acquisition) and prints its end value for 
 re-seeding stops mattering, the updates that follow are linearized right and the
 discrepancy was made before; it also lists the updates with the largest attitude
 corrections.  ``--noise 0`` draws no centroid or IMU noise (the stated σ unchanged).
+``--acquisition`` compares the acquisition's rows (−M of the attitude right after it) with
+the acquired attitude's measured odd response, the filter started from the prior and from
+the truth (the linearization point of the effect's Jacobian)::
+
+    .venv/bin/python benchmarks/tilt_gyro_bias.py --acquisition --size 2e-4 --duration 5
 """
 
 from __future__ import annotations
@@ -228,6 +233,41 @@ def _by_share(rows: list[dict], floor: float = 0.3) -> None:
         print(line)
 
 
+def acquisition(duration: float, seed: int, effect: str, parameter: str, size: float) -> None:
+    """The acquisition's attitude rows against the acquired attitude's odd response."""
+    from stellar_cal_ros.core.rotation import so3_log
+    from stellar_cal_ros.methods import kernel
+
+    initialize = kernel.StarFilter.initialize
+    got: list[tuple] = []
+
+    def init(self, *args, **kwargs):
+        ok = initialize(self, *args, **kwargs)
+        if ok:
+            col = self.model.parameter_names().index(f"{effect}.{parameter}") - self.P_est
+            got.append((self.R_i_b.copy(), -self.sensitivity.M[self.ia, col].copy()))
+        return ok
+
+    bags = [_data(duration, seed, {effect: injection.simulation_value(
+        effect, injection.parameter_delta(effect, parameter, sign * size))} if sign else None)
+        for sign in (0, 1, -1)]
+    print(f"attitude per unit {effect}.{parameter} after the acquisition (size {size:g}, "
+          f"seed {seed}): the recursion's rows, the measured odd response, their ratio")
+    kernel.StarFilter.initialize = init
+    try:
+        for start in ("prior", "truth"):
+            got.clear()
+            cal = rerun_prior(getattr(bags[0][0], start))
+            for _, data in bags:
+                replay(data, cal, "psce", [], consider=[effect], keep_tables=False)
+            measured = so3_log(got[1][0] @ got[2][0].T) / (2 * size)
+            print(f"  from the {start:5s}  rows {np.array2string(got[0][1], precision=4)}  "
+                  f"measured {np.array2string(measured, precision=4)}  ratio "
+                  f"{np.array2string(got[0][1] / measured, precision=4)}")
+    finally:
+        kernel.StarFilter.initialize = initialize
+
+
 def main() -> int:
     """Measure and print one line per (seed, effect, size, quantity), then per-seed means."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -243,10 +283,16 @@ def main() -> int:
     ap.add_argument("--every", type=int, default=9, help="--trace: print every n-th frame")
     ap.add_argument("--reseed", default="", help="--trace Q: re-seed −M after these updates")
     ap.add_argument("--noise", type=float, default=1.0, help="--reseed: noise drawn (x)")
+    ap.add_argument("--acquisition", action="store_true",
+                    help="the acquisition's rows against the measured response")
     ap.add_argument("--quantities", default="",
                     help="'all': every estimated parameter (default: the gyro-bias rows "
                          "and the tilt's), with a summary by share")
     args = ap.parse_args()
+    if args.acquisition:
+        acquisition(args.duration, int(args.seeds.split(",")[0]), args.effects.split(",")[0],
+                    args.parameter, args.size)
+        return 0
     if args.reseed:
         reseed(args.duration, int(args.seeds.split(",")[0]), args.effects.split(",")[0],
                args.parameter, args.size, args.trace or "gyro_bias.by",
