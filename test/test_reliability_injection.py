@@ -62,7 +62,7 @@ def _score(result, eid):
 
 
 def test_a_small_bias_beside_a_large_shift_is_a_first_order_remainder():
-    """The tilt case below: at its MDB the installation moves ~30 sigma and the printed
+    """The tilt case below: at its MDB the installation moves ~100 sigma and the printed
     gyro-bias shift (1.2 sigma) is a remainder the filter does not reproduce.  A bias above
     its sigma but below FIRST_ORDER_SHARE of the same parameter's largest shift (in sigmas)
     is said apart, not listed; a bias beside shifts of its own size is listed."""
@@ -172,7 +172,7 @@ def test_image_plane_tilt_mdb_holds_in_the_scores_odd_part(clean):
         return out
 
     assert listed and not off(listed), off(listed)
-    # beside the ~30 sigma installation / principal-point shift, the printed gyro_bias.by
+    # beside the ~100 sigma installation / principal-point shift, the printed gyro_bias.by
     # (-3.3e-8 rad/s, 1.2 sigma) is a first-order remainder the filter does not reproduce
     # (+3.5e-9 at +MDB, +4.6e-10 at -MDB): the sensitivity recursion holds the gain fixed,
     # and at the slew after the 53 s hold the filter corrects ~1.5 mrad along the attitude

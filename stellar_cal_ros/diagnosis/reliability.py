@@ -314,7 +314,7 @@ def external_reliability(det: Detectability, rows: dict[str, np.ndarray],
     :data:`FIRST_ORDER_SHARE` of the largest shift (in σ) the same parameter of the effect
     makes (``largest_shift_sigma``): then it is a first-order remainder (``remainders``)
     that an injection need not reproduce (an image-plane tilt moves the installation by
-    ~30 σ and the gyro bias by a printed 1.2 σ that the filter's response does not have).
+    ~100 σ and the gyro bias by a printed 1.2 σ that the filter's response does not have).
 
     Returns ``{"effect", "mdb", ..., "hidden_size", "biases", "biases_signed",
     "bias_parameter", "biases_shown", "dominates", "sigma", "sigma_shown", "blind",
