@@ -1,7 +1,8 @@
 """Model discovery, effect by effect (issue 5).
 
 For every library effect that is a candidate for the PSCE method, the demo scenario
-(``psce_rotations``, 0.05 px, 200 s, fixed seed) is simulated with the effect at 5-7 times
+(``psce_rotations``, 0.05 px, 200 s -- 120 s where the power allows, ``SHORT_S`` --, fixed
+seed) is simulated with the effect at 5-7 times
 its minimum detectable size (MDS at 300 s from ``benchmarks/detectability.py``: 6-10 times,
 scaled to 200 s as 1/sqrt(duration), the thermal drift's as duration^-1.5); the baseline model is
 calibrated and diagnosed over **all** applicable candidates.  The effect must rank first and
@@ -60,6 +61,15 @@ CASES = {
     "refraction": (1.0, 48),  # physical: 31 ×; 25 ×; p 0
     "proper_motion": (1.0, 49),  # physical: 22 ×; 18 ×; p 0
 }
+#: cases whose power allows a 120 s bag (the others keep DURATION).  Measured at 120 s: the
+#: decision statistic's margin over its Bonferroni critical value (one-sided normal
+#: equivalents, ≥ 5 σ asked) and the RMS after adding the effect / noise (≤ 1.05 asked):
+#: pixel_aspect 12.5 σ, 1.029; gyro_misalignment 16.6 σ, 1.017; proper_motion p 0
+#: (underflow), 0.996.  Not shortened: image_plane_tilt and time_offset (RMS after 1.12
+#: and 1.051 × noise at 120 s: the fixed run settles later than that), thermal_focal_length
+#: (3.6 σ), radial_k3 (RMS after 1.047), gyro_scale_factor, aberration and refraction (they
+#: rank first ahead of each other by a small gap in the statistic).
+SHORT_S = {"pixel_aspect": 120.0, "gyro_misalignment": 120.0, "proper_motion": 120.0}
 
 
 def _simulate(effects, seed, scenario=None, duration=DURATION):
@@ -85,8 +95,8 @@ def _broad_tilt_prior(prior, sigma=0.05):
     return prior
 
 
-def _check_found_and_fixed(tmp_path, effect, size, seed, scenario=None):
-    sim, data = _simulate({effect: size}, seed, scenario)
+def _check_found_and_fixed(tmp_path, effect, size, seed, scenario=None, duration=DURATION):
+    sim, data = _simulate({effect: size}, seed, scenario, duration)
     base = replay_psce(data, sim.prior)
     summary = diagnose(data, base.calibration, "psce", [], tmp_path / "rep", plots=False,
                        verbose=False)
@@ -130,7 +140,7 @@ def _check_found_and_fixed(tmp_path, effect, size, seed, scenario=None):
 @pytest.mark.parametrize("effect", list(CASES))
 def test_missing_effect_ranks_first_and_adding_it_fixes(tmp_path, effect):
     size, seed = CASES[effect]
-    _check_found_and_fixed(tmp_path, effect, size, seed)
+    _check_found_and_fixed(tmp_path, effect, size, seed, duration=SHORT_S.get(effect, DURATION))
 
 
 def test_radial_k3_wide_field(tmp_path):
