@@ -389,7 +389,9 @@ def test_diagnose_swaying_runs(tmp_path):
     """`stellar-cal diagnose --method swaying_base` (two candidates, no plots).
 
     A smoke test of the command (no statistic is checked), so on a 100 s excerpt of the
-    module's swaying scenario rather than its 386 s bag.
+    module's swaying scenario rather than its 386 s bag; the re-runs in this process
+    (``--workers 0``: two candidates do not pay for starting a 2-process cluster; that path
+    is test_discovery_auto's discover/diagnose commands with ``--workers 2``).
     """
     import json
 
@@ -402,7 +404,7 @@ def test_diagnose_swaying_runs(tmp_path):
     out = tmp_path / "diag"
     assert main(["diagnose", str(path), "--calibration", str(path.with_suffix(".prior.yaml")),
                  "--method", "swaying_base", "--candidates", "time_offset,gyro_scale_factor",
-                 "--no-plots", "-o", str(out)]) == 0
+                 "--workers", "0", "--no-plots", "-o", str(out)]) == 0
     summary = json.loads((out / "diagnosis.json").read_text())
     assert summary["format"] == "stellar_cal_diagnosis/1"
     assert summary["model"]["method"] == "swaying_base"
