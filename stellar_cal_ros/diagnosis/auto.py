@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import screening
+from stellar_cal_ros.diagnosis import flexure, screening
 from stellar_cal_ros.diagnosis.discover import (
     ALPHA,
     MIN_EXPLAINED,
@@ -134,6 +134,8 @@ class _State:
     #: exchanges tried: (out, in, the model then); retried once the model has changed
     tried: set[tuple[str, str, frozenset]] = field(default_factory=set)
     last: str = ""  #: the effect changed last (not checked again at once)
+    #: the flexure-shaped test after each add: (its result, the effects added by then)
+    remainders: list[tuple[dict | None, list[str]]] = field(default_factory=list)
 
     def checkable(self) -> list[str]:
         """Added effects whose need is tested this round."""
@@ -242,6 +244,14 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 screen=local, measure_noise=estimate and (
                     r.noise is None or bool(r.noise.skipped or r.noise.imu_skipped
                                             or r.noise.beyond) or r.noise_stale))
+            if path and path[-1]["action"] == "add" and flexure.may_stand_in(state.last):
+                # the effect just added may stand in for a mount bending with gravity
+                # (outside the library): the remainder on this round's model (its run)
+                tell(f"after {state.last}: testing for a gravity-shaped remainder (mount "
+                     "flexure)")
+                got = flexure.after_add(runs, base, prior, tuple(state.extra))
+                path[-1]["remainder"] = got
+                state.remainders.append((got, [e for e in state.extra if e not in state.user]))
             if current is not None and current is not first:
                 current.residuals = None  # keep the first and the newest table only
             current = base
@@ -346,9 +356,15 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
 
         plot_path(path, out / "path.png")
         images.append(("The path: innovation RMS at each round", "path.png"))
-    summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
-                     panels, plots, "stellar_cal discovery", images, verdict, write=False)
     added = [e for e in state.extra if e not in state.user]
+    # the flexure-shaped tests after the adds: Bonferroni over those made
+    found = [flexure.finding(got, after, len(state.remainders))
+             for got, after in state.remainders]
+    outside = flexure.significant(found, ALPHA)
+    like = outside[0].detail["after"] if outside else None
+    summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
+                     panels, plots, "stellar_cal discovery", images, verdict, write=False,
+                     outside=outside, like=like)
     summary.update({
         "path": path,
         "added": added,
@@ -359,6 +375,9 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         "seconds": seconds,
     })
     summary.setdefault("reliability", [])
+    if summary.get("remainder"):
+        # effects added after the remainder was found (they may absorb it in turn)
+        summary["remainder"]["later"] = added[len(summary["remainder"]["like"]):]
     cal_path = out / "calibration.yaml"
     save_calibration(final.calibration, cal_path)
     summary["calibration_file"] = str(cal_path)

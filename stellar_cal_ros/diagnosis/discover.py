@@ -709,7 +709,8 @@ def summary_dict(base: RunSummary, results: list[CandidateResult],
         ],
         "unexplained": [
             {"regressor": f.regressor, "component": f.component, "statistic": f.statistic,
-             "p_value": f.p_value, "change_px": f.slope_px}
+             "p_value": f.p_value, "change_px": f.slope_px,
+             **({"detail": f.detail} if f.detail else {})}
             for f in unexplained
         ],
         "prior_uncertain": [

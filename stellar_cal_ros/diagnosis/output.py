@@ -34,7 +34,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
            results: list[CandidateResult], spec, effects: list[str], fraction: float,
            panels: list[tuple[str, Any]], plots: bool, title: str = "stellar_cal diagnosis",
            extra_images: list[tuple[str, str]] | None = None,
-           verdict=None, write: bool = True) -> dict[str, Any]:
+           verdict=None, write: bool = True, outside: list | None = None,
+           like: list[str] | None = None) -> dict[str, Any]:
     """Unexplained structure on ``final``'s residuals, the summary, the report files.
 
     ``base`` is the run the candidates were compared with (the summary's RMS); ``final``
@@ -43,6 +44,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     ``write=False`` the figures are made but ``report.html`` is left to the caller
     (:func:`write_report`, once the summary is complete).  ``verdict``: the noise verdict
     (:class:`~stellar_cal_ros.diagnosis.noise.NoiseVerdict`), the summary's ``noise``.
+    ``outside``: significant findings of the flexure-shaped test after an added effect
+    (:mod:`~stellar_cal_ros.diagnosis.flexure`, adjusted over their own tests), listed among
+    the 'unexplained' lines; with them ``summary["remainder"]`` says that the added effects
+    ``like`` (default: the recommendation) explain the structure only in part.
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
@@ -53,6 +58,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre),
                *stats.periodic_findings(res, mask)])
     unexplained, spread = within_groups(unexplained, verdict)
+    outside = list(outside or [])
+    unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
     summary = summary_dict(base, results, unexplained, spec, effects, fraction)
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(stated_scales(calibration)))
@@ -67,6 +74,12 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
             for f in spread]
     best = next((c for c in results if c.significant_alone), None)
     summary["recommendation"] = best.effect if best is not None else None
+    like = like if like is not None else ([best.effect] if best is not None else [])
+    if outside and like:
+        from stellar_cal_ros.diagnosis.flexure import remainder_text
+
+        top = next(u for u in summary["unexplained"] if u.get("detail"))
+        summary["remainder"] = dict(top, like=list(like), text=remainder_text(like, top))
     if best is None:
         summary["reliability"] = hidden_effects(base, results)
     if plots:

@@ -130,9 +130,13 @@ class Runs:
 
         For small statistics of the bag itself (``args`` hashable): computed once per
         ``(fn, args)``, however many steps (the noise's first runs, its measurement, each
-        round) ask for it.
+        round) ask for it; with unhashable ``args`` (a calibration) computed every time.
         """
         key = (fn, args)
+        try:
+            hash(key)
+        except TypeError:
+            return self._compute_on_bag(fn, *args)
         if key not in self._of_bag:
             self._of_bag[key] = self._compute_on_bag(fn, *args)
         return self._of_bag[key]

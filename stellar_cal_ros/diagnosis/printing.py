@@ -48,6 +48,8 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
             what, span = f"{u['component']} residual", "amplitude"
         elif u["component"] == "size":
             what = "residual spread (size)"
+        elif u.get("detail"):
+            what, span = "residual", "at most (99 % of the stars)"
         out.append(f"  unexplained: {what} vs {u['regressor']} "
               f"(t={u['statistic']:.1f}, p={u['p_value']:.2g}"
               + (f"; {abs(size):.3g} px {span}" if size is not None else "")
@@ -149,8 +151,12 @@ def diagnosis_lines(summary: dict, calibration=None) -> list[str]:
     rec = summary.get("recommendation")
     if not rec:
         out += reliability_lines(summary.get("reliability", []))
-    out.append(f"recommendation: add --effects {rec}" if rec else
-               "recommendation: no library effect explains the residuals better")
+    rem = summary.get("remainder")
+    if rec and rem:
+        out.append(f"recommendation: add --effects {rec}, but the structure is {rem['text']}")
+    else:
+        out.append(f"recommendation: add --effects {rec}" if rec else
+                   "recommendation: no library effect explains the residuals better")
     out += scope_lines(summary, single_round=True)
     return out
 
@@ -160,7 +166,10 @@ def scope_lines(summary: dict[str, Any], single_round: bool) -> list[str]:
     out = []
     rec = summary.get("recommendation")
     if single_round and rec:
-        out.append(f"what one round can tell: {rec} is missing. Every other candidate was "
+        what = (f"{rec} is missing" if not summary.get("remainder") else
+                f"{rec} explains most of what is missing, not all of it (the gravity-shaped "
+                "remainder above)")
+        out.append(f"what one round can tell: {what}. Every other candidate was "
                    f"tested alone beside the missing {rec}, which its estimate partly absorbs: "
                    "a size far from the physical one or a weak score says little until "
                    f"{rec} is in the model (`--effects {rec}` and diagnose again, or "
@@ -206,6 +215,12 @@ def discovery_lines(summary: dict[str, Any]) -> list[str]:
         text = ", ".join(f"{n} = {reliability.shown(f'{eff}.{n}', v)} +- "
                          f"{reliability.shown(f'{eff}.{n}', s)}" for n, (v, s) in params.items())
         out.append(f"  added {eff}: {text}")
+    rem = summary.get("remainder")
+    if rem:
+        later = rem.get("later") or []
+        out.append(f"  the residuals after {'+'.join(rem['like'])} were {rem['text']}"
+                   + (f"; {', '.join(later)}, added after it, may absorb that remainder in "
+                      "turn (the rounds' 'remainder' in diagnosis.json)" if later else ""))
     if summary["stopped"] != "nothing more is significant":
         out.append(f"  {summary['stopped']}")
     for rj in summary["rejected"]:

@@ -8,8 +8,9 @@ from pathlib import Path
 from typing import Any
 
 from stellar_cal_ros.core.noise import NoiseScales
+from stellar_cal_ros.diagnosis import flexure
 from stellar_cal_ros.diagnosis.auto import discover
-from stellar_cal_ros.diagnosis.discover import method_spec, rank_candidates
+from stellar_cal_ros.diagnosis.discover import ALPHA, method_spec, rank_candidates, rerun_prior
 from stellar_cal_ros.diagnosis.noise import NoiseVerdict, check_noise, stated_scales
 from stellar_cal_ros.diagnosis.output import finish, progress_printer
 from stellar_cal_ros.diagnosis.parallel import open_runner
@@ -64,17 +65,28 @@ def diagnose(
         base, results = rank_candidates(bag, calibration, spec, effects, candidates,
                                         evaluation_fraction, progress=tell, runs=runs,
                                         measure_noise=check_noise(noise))
-    # the top candidate (a candidate tested after it may be significant too, but it is the
-    # one to add first); its re-run from its own calibration is where the next iteration
-    # starts, and the structure left is tested on it
-    best = next((c for c in results if c.significant_alone), None)
+        # the top candidate (a candidate tested after it may be significant too, but it is
+        # the one to add first); its re-run from its own calibration is where the next
+        # iteration starts, and the structure left is tested on it -- and for a remainder
+        # shaped like a mount bending with gravity, which it may stand in for
+        best = next((c for c in results if c.significant_alone), None)
+        outside = []
+        if best is not None and best.refined_run is not None and \
+                flexure.may_stand_in(best.effect):
+            tell(f"after {best.effect}: testing for a gravity-shaped remainder (mount flexure)")
+            extra = tuple(e for e in effects if e not in spec.baseline) + (best.effect,)
+            # the refined run's own start (discover.condition_on_top)
+            got = flexure.after_add(runs, best.refined_run, rerun_prior(best.run.calibration),
+                                    extra)
+            outside = flexure.significant([flexure.finding(got, [best.effect])], ALPHA)
     final = base
     panels = [("current model", base.residuals)]
     if best is not None and best.refined_run is not None:
         final = best.refined_run
         panels.append((f"+ {best.effect}", final.residuals))
     summary = finish(out, calibration, base, final, results, spec, effects,
-                     evaluation_fraction, panels, plots, verdict=runs.verdict)
+                     evaluation_fraction, panels, plots, verdict=runs.verdict,
+                     outside=outside)
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
 

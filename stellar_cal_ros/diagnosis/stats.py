@@ -139,6 +139,8 @@ class RegressorFinding:
     statistic: float
     p_value: float
     slope_px: float  # residual change across the regressor's 5-95 % range, px
+    #: what a test shaped like one effect outside the library adds (its fitted size, ...)
+    detail: dict | None = None
 
 
 def regressors(res: Table, camera_centre: tuple[float, float]) -> dict[str, np.ndarray]:

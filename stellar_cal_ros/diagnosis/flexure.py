@@ -1,0 +1,225 @@
+"""A remainder shaped like a mount that bends with gravity, after a library effect is added.
+
+No library effect models a tracker that turns against the IMU with the gravity direction
+(mount flexure: a rotation ``ρ = c · (z × g_st)``, ``g_st`` the unit gravity in the tracker
+frame, ``c`` in rad per unit lateral gravity).  On a motion of steps about the IMU axes its
+increments are rotations about the step axis that a gyro scale factor reproduces to ~98 %
+(doc/benchmarks.md): the library effect is then significant and the generic gravity
+regressors of the 'unexplained' lines see nothing after it, because the filter absorbs an
+attitude offset within a few frames of each step and what is left is a short transient.
+
+The test here is shaped like the flexure *as the filter sees it*.  The model just chosen is
+run twice on the bag: as it is, and with every centroid moved as a tracker rotation of
+:data:`PROBE` per unit lateral gravity would move it (gravity from the accelerometer,
+:func:`~stellar_cal_ros.diagnosis.context.gravity_in_tracker`).  The filter is linear at these
+sizes, so the difference of the two runs' innovations per star is the innovation response
+``S`` to the flexure, after everything the model's own parameters (the added effect too)
+absorb of it — the sensitivity the screening's score test computes for a library effect,
+here by finite difference.  The innovations ``ν`` of the model are regressed on ``S``
+(both whitened by the innovation covariance, u and v of every star), the frames as the
+units: :func:`~stellar_cal_ros.diagnosis.stats.frame_robust_t`, referred to t_ν as every
+'unexplained' line.  ``c = Σ Sᵀ C⁻¹ ν / Σ Sᵀ C⁻¹ S`` is the flexure that would leave this
+remainder, and the size printed is the remainder's displacement ``|S c|`` (99th percentile
+over the stars, px).
+
+Measured (``benchmarks/flexure_remainder.py``, doc/benchmarks.md): 40″ on 300 s of
+``psce_rotations`` with gyro_scale_factor added, t = 12.6 (c = 44 ± 3″); the same bag with a
+true gyro scale factor instead, t = 1.1.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.core.units import ARCSEC
+from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.diagnosis.context import gravity_in_tracker
+from stellar_cal_ros.io.calibration import Calibration
+
+log = logging.getLogger(__name__)
+
+#: the flexure the response is measured with (rad of tracker rotation per unit lateral
+#: gravity): far above the filter's numerical noise, far below any non-linearity or gate
+PROBE = 5.0 * ARCSEC
+#: the gravity direction must change by at least this much (unit vector, x or y in the
+#: tracker frame) over the evaluation window, or the test has nothing to go on
+MIN_GRAVITY_CHANGE = 0.01
+#: the 'unexplained' regressor of the finding (a gravity regressor: the lines rank it by p)
+REGRESSOR = "gravity_st (mount-flexure shape)"
+
+
+def with_flexure(data, calibration: Calibration, rate: float):
+    """A copy of the bag whose centroids carry a flexure of ``rate`` rad per unit gravity.
+
+    Each star's direction in the tracker frame (pinhole through ``calibration``'s camera)
+    is turned by ``−ρ``, ``ρ = rate · (z × g_st)`` (the tracker turned by ``ρ``); ``None``
+    when the bag has no usable accelerometer.
+    """
+    cam = calibration.camera
+    t = np.array([f.stamp_ns * 1e-9 for f in data.frames])
+    g = gravity_in_tracker(data, calibration, t) if len(t) else None
+    if g is None:
+        return None
+    frames = []
+    for f, gk in zip(data.frames, g, strict=True):
+        uv = np.asarray(f.uv, dtype=float)
+        if len(uv) == 0:
+            frames.append(f)
+            continue
+        d = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy,
+                      np.ones(len(uv))], 1)
+        d = d - np.cross(rate * np.cross([0.0, 0.0, 1.0], gk), d)
+        moved = copy.copy(f)
+        moved.uv = np.stack([cam.cx + cam.fx * d[:, 0] / d[:, 2],
+                             cam.cy + cam.fy * d[:, 1] / d[:, 2]], 1)
+        frames.append(moved)
+    out = copy.copy(data)
+    out.frames = frames
+    return out
+
+
+def _aligned(a: dict, b: dict) -> tuple[dict, dict]:
+    """The rows of two residual tables that are the same star of the same frame."""
+    ka = np.asarray(a["frame"], dtype=np.int64) * (1 << 32) + np.asarray(a["catalog_id"],
+                                                                         dtype=np.int64)
+    kb = np.asarray(b["frame"], dtype=np.int64) * (1 << 32) + np.asarray(b["catalog_id"],
+                                                                         dtype=np.int64)
+    _, ia, ib = np.intersect1d(ka, kb, return_indices=True)
+    return ({k: np.asarray(v)[ia] for k, v in a.items()},
+            {k: np.asarray(v)[ib] for k, v in b.items()})
+
+
+def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, float] | None:
+    """The flexure-shaped test of the innovations ``res`` given the run with the probe.
+
+    ``res``: the model's residual table with the gravity columns; ``moved``: the same
+    model's run on the bag with the probe (at least its evaluation window).
+
+    ``{t, p_value, arcsec_per_g, sigma_arcsec_per_g, change_px, rms_px, frames}``
+    (``p_value`` unadjusted, from t_ν); ``None`` without enough stars or gravity change.
+    """
+    win = stats.evaluation_mask(res, fraction)
+    a, b = _aligned({k: np.asarray(v)[win] for k, v in res.items()}, moved)
+    m = stats.accepted(a) & stats.accepted(b)
+    if m.sum() < 20:
+        return None
+    moves = [float(np.ptp(np.asarray(a[k])[m])) for k in ("gravity_x_st", "gravity_y_st")
+             if k in a]
+    if not moves or not max(moves) > MIN_GRAVITY_CHANGE:
+        return None
+    sub = {k: v[m] for k, v in a.items()}
+    per = PROBE / ARCSEC
+    S = np.stack([b["du"][m] - a["du"][m], b["dv"][m] - a["dv"][m]], 1) / per  # px/arcsec
+    cov = {"s_uu": sub["s_uu"], "s_uv": sub["s_uv"], "s_vv": sub["s_vv"]}
+    w_nu = stats.whitened(sub)
+    w_s = stats.whitened({"du": S[:, 0], "dv": S[:, 1], **cov})
+    info = float(np.sum(w_s * w_s))
+    if not info > 0:
+        return None
+    frame = np.asarray(sub["frame"])
+    t, p = stats.frame_robust_t(w_s.ravel(), w_nu.ravel(), np.repeat(frame, 2))
+    c = float(np.sum(w_s * w_nu)) / info
+    shown = np.hypot(*(S * c).T)
+    return {"t": float(t), "p_value": float(p), "arcsec_per_g": c,
+            "sigma_arcsec_per_g": float(1.0 / np.sqrt(info)),
+            "change_px": float(np.percentile(shown, 99)),
+            "rms_px": float(np.sqrt(np.mean(shown**2))),
+            "frames": int(len(np.unique(frame)))}
+
+
+#: the columns of the probe's run the test needs (the rest stays where the bag is)
+_MOVED_COLUMNS = ("t", "frame", "catalog_id", "du", "dv", "gated")
+
+
+def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fraction: float,
+                   noise=None) -> dict[str, np.ndarray] | None:
+    """The model's run on the bag with the probe added, where the bag is.
+
+    For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag`: the same call as the
+    diagnosis's run of ``effects`` from ``prior`` with ``noise`` (so the two differ by the
+    probe only), the probe's pattern from ``prior``'s installation and camera.  Returns the
+    run's evaluation window (:data:`_MOVED_COLUMNS`); ``None`` when the bag has no usable
+    accelerometer or the run fails (the test is an addition: it never stops a diagnosis).
+    """
+    from stellar_cal_ros.diagnosis.runstats import quiet
+
+    moved_bag = with_flexure(data, prior, PROBE)
+    if moved_bag is None:
+        return None
+    kw: dict[str, Any] = {"noise": noise} if noise is not None else {}
+    try:
+        with quiet():
+            moved = spec.runner(moved_bag, prior, list(effects), keep_tables=True,
+                                eval_fraction=fraction, **kw)
+    except Exception as exc:
+        log.warning("the flexure-shaped test did not run: %s: %s", type(exc).__name__, exc)
+        return None
+    res = moved.residuals
+    if res is None or not len(res.get("t", ())):
+        return None
+    keep = stats.evaluation_mask(res, fraction)
+    return {k: np.asarray(res[k])[keep] for k in _MOVED_COLUMNS}
+
+
+def after_add(runs, run, prior: Calibration, effects: tuple[str, ...]
+              ) -> dict[str, float] | None:
+    """The flexure-shaped test of ``run`` (the model ``effects`` from ``prior``).
+
+    ``run``: the diagnosis's :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary` of
+    that model, with its residuals; ``runs``: its :class:`~stellar_cal_ros.diagnosis.
+    parallel.Runs` (method, window and the noise scales ``run`` ran with).  One more run of
+    the model, with the probe, where the bag is.
+    """
+    if run is None or not run.ok or run.residuals is None:
+        return None
+    moved = runs.on_bag(measure_on_bag, runs.spec, prior, tuple(effects), runs.fraction,
+                        runs.noise)
+    if moved is None:
+        return None
+    return remainder_statistics(run.residuals, moved, runs.fraction)
+
+
+def may_stand_in(effect_id: str) -> bool:
+    """Whether an added library effect can take up a flexure (and hide it), so is tested.
+
+    A flexure turns every star of a frame alike, by an angle that follows the attitude: a
+    gyro, time, installation or direction effect can reproduce part of that; a camera
+    effect is a map of the detector, fixed whatever the attitude, and cannot.
+    """
+    from stellar_cal_ros.effects import registry
+    from stellar_cal_ros.effects.base import Stage
+
+    return registry.create(effect_id).stage is not Stage.CAMERA
+
+
+def finding(result: dict[str, float] | None, after: list[str], m: int = 1
+            ) -> stats.RegressorFinding | None:
+    """The 'unexplained' line of a test result, Bonferroni over ``m`` such tests."""
+    if result is None:
+        return None
+    what = f"{REGRESSOR[:-1]}, after {'+'.join(after)})" if after else REGRESSOR
+    return stats.RegressorFinding(what, "u, v", result["t"],
+                                  min(1.0, result["p_value"] * max(m, 1)),
+                                  result["change_px"], detail=dict(result, after=list(after)))
+
+
+def remainder_text(like: list[str], f: dict[str, Any]) -> str:
+    """What the report says when a library effect is significant and the remainder too."""
+    d = f.get("detail") or {}
+    name = "+".join(like)
+    return (f"mostly {name}-like, with a gravity-shaped remainder ({abs(f['change_px']):.3g} px "
+            f"at most, t={f['statistic']:.1f}, p={f['p_value']:.2g}): an effect outside the "
+            f"library may be acting -- a mount bending with gravity by "
+            f"{d.get('arcsec_per_g', float('nan')):.3g} +- "
+            f"{d.get('sigma_arcsec_per_g', float('nan')):.2g} arcsec per unit lateral gravity "
+            f"would leave it; {name} improves the fit but may stand in for it")
+
+
+def significant(findings: list[stats.RegressorFinding | None], alpha: float
+                ) -> list[stats.RegressorFinding]:
+    """The findings (Bonferroni-adjusted over their own tests) below ``alpha``."""
+    return [f for f in findings if f is not None and f.p_value < alpha]
