@@ -136,7 +136,7 @@ _MOVED_COLUMNS = ("t", "frame", "catalog_id", "du", "dv", "gated")
 
 
 def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fraction: float,
-                   noise=None) -> dict[str, np.ndarray] | None:
+                   noise=None, classes: tuple[type, ...] = ()) -> dict[str, np.ndarray] | None:
     """The model's run on the bag with the probe added, where the bag is.
 
     For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag`: the same call as the
@@ -144,8 +144,11 @@ def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fra
     probe only), the probe's pattern from ``prior``'s installation and camera.  Returns the
     run's evaluation window (:data:`_MOVED_COLUMNS`); ``None`` when the bag has no usable
     accelerometer or the run fails (the test is an addition: it never stops a diagnosis).
+    ``classes``: user effect classes a fresh worker process does not know.
     """
-    from stellar_cal_ros.diagnosis.runstats import quiet
+    from stellar_cal_ros.diagnosis.runstats import quiet, register_effect_classes
+
+    register_effect_classes(classes)
 
     moved_bag = with_flexure(data, prior, PROBE)
     if moved_bag is None:
@@ -177,7 +180,7 @@ def after_add(runs, run, prior: Calibration, effects: tuple[str, ...]
     if run is None or not run.ok or run.residuals is None:
         return None
     moved = runs.on_bag(measure_on_bag, runs.spec, prior, tuple(effects), runs.fraction,
-                        runs.noise)
+                        runs.noise, runs.classes)
     if moved is None:
         return None
     return remainder_statistics(run.residuals, moved, runs.fraction)

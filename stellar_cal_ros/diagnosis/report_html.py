@@ -298,7 +298,7 @@ def _unexplained_html(summary: dict[str, Any], image: Path | str | None = None) 
     items = "".join(
         f"<li>{_e(u['component'])} residual vs <b>{_e(u['regressor'])}</b>: t = "
         f"{u['statistic']:.1f}, p = {u['p_value']:.2g}, change {u.get('change_px', 0):.3f} px "
-        "across its 5–95 % range"
+        + ("at most (99 % of the stars)" if u.get("detail") else "across its 5–95 % range")
         + (f" (<a href='#unexplained-plot'>plot {k + 1}</a>)" if image else "") + "</li>"
         for k, u in enumerate(summary.get("unexplained", []))) or "<li>none</li>"
     fig = (f"<img id='unexplained-plot' src='{_e(Path(image).name)}' alt='unexplained'>"
