@@ -174,7 +174,7 @@ def test_mount_flexure_is_not_named_gyro_scale_factor_alone(tmp_path):
     fixes`` case of a non-camera effect.
     """
     truth = 40.0
-    sim, data = _simulate({"mount_flexure": truth}, 52)
+    sim, data = _simulate({"mount_flexure": truth}, 52, duration=200.0)  # its power: 200 s
     base = replay_psce(data, sim.prior)
     summary = diagnose(data, base.calibration, "psce", [], tmp_path / "rep",
                        candidates=["gyro_scale_factor"], plots=False, verbose=False,
