@@ -59,7 +59,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
                *stats.periodic_findings(res, mask)])
     unexplained, spread = within_groups(unexplained, verdict)
     outside = list(outside or [])
-    unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
+    if outside:  # into the ranking of the lines (regressor_tests' order: p, then |t|)
+        unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
     summary = summary_dict(base, results, unexplained, spec, effects, fraction)
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(stated_scales(calibration)))
