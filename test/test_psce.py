@@ -216,7 +216,7 @@ def test_imu_prefix_independent_of_batching():
         k = int(rng.integers(1, 200))
         many.extend(t[i:i + k], w[i:i + k])
         i += k
-    for k in ("tp", "w_hat", "C", "phi"):
+    for k in ("tp", "w_hat", "C", "phi", "slope"):
         assert np.array_equal(getattr(one, k), getattr(many, k)), k
     dt = np.diff(np.concatenate([[t[0] - 0.005], t]))
     C = quat_to_matrix(quat_cumprod(quat_from_rotvec(attitude_increments(w - b, dt))))
@@ -262,9 +262,9 @@ def test_imu_prefix_sample_by_sample_is_bit_identical(misaligned, monkeypatch):
             again.load_state(many.state())
             many = again
     assert len(small) > 300  # the scalar path was taken
-    for key in ("tp", "w_hat", "C", "phi"):
+    for key in ("tp", "w_hat", "C", "phi", "slope"):
         assert np.array_equal(getattr(one, key), getattr(many, key)), key
-    for key in ("anchor", "block_dq", "dtheta_last"):
+    for key in ("anchor", "block_dq", "dtheta_last", "w_last", "dt_last"):
         assert np.array_equal(one.state()[key], many.state()[key]), key
 
 

@@ -198,13 +198,13 @@ class ImuPropagation:
         """A new reference from sample ``k`` (to ``stop``, default all held) under ``theta``."""
         b, A, Gg = self.gyro.at(theta)
         start = None
-        if k > 0:  # the sample before: the coning and sculling terms of sample k
+        if k > 0:  # the sample before: the coning and sculling terms and slope of sample k
             t_prev = float(imu.t[k - 1])
             dt_prev = t_prev - imu.interval_start(k - 1)
-            dth = self.gyro.corrected(imu.w[k - 1], theta) * dt_prev
+            w_prev = self.gyro.corrected(imu.w[k - 1], theta)
             dv = self.accel.corrected(imu.f[k - 1], theta) * dt_prev if self.accel \
                 else np.zeros(3)
-            start = (t_prev, dth, dv)
+            start = (t_prev, w_prev * dt_prev, dv, w_prev, dt_prev)
         accel = None
         if self.accel is not None:
             b_a, A_a, Ga = self.accel.at(theta)

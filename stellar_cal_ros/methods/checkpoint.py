@@ -53,8 +53,9 @@ from stellar_cal_ros.methods.results import stats_from_dict
 log = logging.getLogger(__name__)
 
 SCHEMA = "stellar_cal_checkpoint"
-#: the schema version this code writes and reads (5: explicit filter schema)
-VERSION = 5
+#: the schema version this code writes and reads (5: explicit filter schema; 6: the IMU
+#: reference's in-sample slope rows, core.imu_prefix)
+VERSION = 6
 
 
 class _Encoder:

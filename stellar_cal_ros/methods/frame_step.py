@@ -30,6 +30,7 @@ from typing import TextIO
 
 import numpy as np
 
+from stellar_cal_ros.core.imu_prefix import in_sample_rotvec
 from stellar_cal_ros.core.jit import (
     HAVE_NUMBA,
     joseph,
@@ -65,25 +66,28 @@ def _mat3_mul_t(a, b):
     return out
 
 
+_in_sample_rotvec = njit(cache=True)(in_sample_rotvec)
+
+
 @njit(cache=True)
-def _at(tp, C, phi, m, t):
-    """:meth:`ImuPrefix.at`: ``C(t)`` in row ``m``, its increment split linearly in time."""
+def _at(tp, C, phi, slope, m, t):
+    """:meth:`ImuPrefix.at`: ``C(t)`` in row ``m`` (the same in-sample rotation)."""
     a = (t - tp[m]) / (tp[m + 1] - tp[m])
     if a > 0.0:
-        return mat3_mul(C[m], so3_exp1(a * phi[m]))
+        return mat3_mul(C[m], so3_exp1(_in_sample_rotvec(a, phi[m], slope[m])))
     return C[m].copy()
 
 
 @njit(cache=True)
-def attitude_interval(tp, C, w_hat, phi, j, mj, ta, tb, R_a, Gamma, delta, max_rad):
+def attitude_interval(tp, C, w_hat, phi, slope, j, mj, ta, tb, R_a, Gamma, delta, max_rad):
     """The attitude-only :meth:`ImuPropagation._interval` (rows ``j..mj`` of the reference).
 
     Returns ``(ok, R_b (3, 3), F (3, P))``; ``ok`` False when the first-order correction
     exceeds ``max_rad`` (the reference is to be rebuilt; nothing else computed).
     """
     n = mj - j + 1
-    Ca = _at(tp, C, phi, j, ta)
-    Cb = _at(tp, C, phi, mj, tb)
+    Ca = _at(tp, C, phi, slope, j, ta)
+    Cb = _at(tp, C, phi, slope, mj, tb)
     Q = _mat3_mul_t(R_a, Ca)
     K = Gamma.shape[0]
     Z = np.zeros((3, K))
@@ -239,7 +243,7 @@ def _assemble(H_att, H_par, Pe, N, rows):
 
 @njit(cache=True)
 def frame_step(P, theta, R_a, M, score, info, accumulate,
-               tp, C, w_hat, phi, j, mj, ta, tb, Gamma, theta_ref, q_diag,
+               tp, C, w_hat, phi, slope, j, mj, ta, tb, Gamma, theta_ref, q_diag,
                gyro_b0, gyro_E0, gyro_Jb, gyro_JE, gyro_theta0, w_raw,
                uv, u, sigma, base,
                s0, g, timed, R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du, bscale,
@@ -249,8 +253,8 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     State (changed in place): ``P`` (N, N), ``theta`` (P_all,), ``R_a`` (3, 3) the attitude
     (at ``ta`` on entry, at ``tb`` after), the sensitivity ``M`` (N, m), ``score`` (m,),
     ``info`` (m, m) (``accumulate``: add this frame's terms).  Propagation: the reference
-    rows (:class:`~stellar_cal_ros.core.imu_prefix.ImuPrefix` ``tp, C, w_hat, phi``), rows
-    ``j..mj``, ``Gamma`` (3 or 12, P_all) and ``theta_ref`` of the reference, ``q_diag``
+    rows (:class:`~stellar_cal_ros.core.imu_prefix.ImuPrefix` ``tp, C, w_hat, phi,
+    slope``), rows ``j..mj``, ``Gamma`` (3 or 12, P_all) and ``theta_ref`` of the reference, ``q_diag``
     (N,) noise per second; ``gyro_*`` the gyro's affine correction and ``w_raw`` (3,) the
     raw rate of the sample covering ``tb``.  Frame: ``uv`` (n, 2), ``u`` (n, 3), ``sigma``
     (n,), ``base`` = stamp − ``tb``.  Chain: the :class:`CompiledChain`, with the frame's
@@ -269,7 +273,7 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     empty_b = np.zeros(0, dtype=np.bool_)
     empty2 = np.zeros((0, 2))
     # ---- propagation
-    ok, R_b, F = attitude_interval(tp, C, w_hat, phi, j, mj, ta, tb, R_a, Gamma,
+    ok, R_b, F = attitude_interval(tp, C, w_hat, phi, slope, j, mj, ta, tb, R_a, Gamma,
                                    theta - theta_ref, cfg[10])
     if not ok:
         return (REBUILD, ints, floats, empty_b, empty2, np.zeros((0, 2, 2)), np.zeros(0),
@@ -522,7 +526,7 @@ class FusedStep:
             self._gamma_of, self._gamma = gamma, np.ascontiguousarray(gamma[0])
         du, bscale = self.compiled_chain.frame_inputs(u, ctx)
         return frame_step(P, theta, R, M, score, info, acc, pre.tp, pre.C, pre.w_hat, pre.phi,
-                          j, mj, float(ta), float(tb), self._gamma, prop.theta_ref,
+                          pre.slope, j, mj, float(ta), float(tb), self._gamma, prop.theta_ref,
                           self.q_diag, *self.gyro, w_raw, uv, u, sigma, float(base),
                           *self.chain, *self.directions, du, bscale, self.Pe, self.cfg)
 
