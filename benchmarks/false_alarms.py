@@ -17,6 +17,8 @@ Run::
     .venv/bin/python benchmarks/false_alarms.py --seeds 50
     .venv/bin/python benchmarks/false_alarms.py --seeds 10 --cases psce
     .venv/bin/python benchmarks/false_alarms.py --seeds 50 --records fa.jsonl  # resumable
+    .venv/bin/python benchmarks/false_alarms.py --seeds 50 --records fa.jsonl --recorded-only \
+        --score-levels  # + each candidate's unadjusted score p below 5 % / 1 %: its level
 
 The reduced form in the default suite is ``test/test_false_alarms.py``.
 """
@@ -114,6 +116,10 @@ def main() -> int:
     ap.add_argument("--recorded-only", action="store_true",
                     help="run nothing: the table of the seeds already in --records (a partial run; "
                          "the files of several processes concatenated)")
+    ap.add_argument("--score-levels", action="store_true",
+                    help="also count, per case and candidate, the bags whose unadjusted score "
+                         "p is below 5 %% and 1 %% (the screening re-runs those below 5 %%: "
+                         "a candidate's test at its level gives ~5 %% and ~1 %% of the bags)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args()
     seeds = range(args.first_seed, args.first_seed + args.seeds)
@@ -147,7 +153,27 @@ def main() -> int:
     for _, r in rows:
         for line in r["lines"]:
             print(line)
+    if args.score_levels:
+        print_score_levels(cases, seeds, done)
     return 0
+
+
+def print_score_levels(cases: list[str], seeds: range, done: dict) -> None:
+    """Per case and candidate: recorded bags with score p below 5 % and 1 %."""
+    print("\nunadjusted score p of each candidate (bags below 5 % / below 1 %, of n bags)")
+    for name in cases:
+        recs = [done[(name, s)] for s in seeds if (name, s) in done]
+        low: dict[str, list[int]] = {}
+        for r in recs:
+            for effect, t in r["tests"].items():
+                p = t["p_score"]
+                if p is not None:
+                    c = low.setdefault(effect, [0, 0])
+                    c[0] += p < 0.05
+                    c[1] += p < 0.01
+        cells = ", ".join(f"{e} {a}/{b}" for e, (a, b) in
+                          sorted(low.items(), key=lambda kv: (-kv[1][0], kv[0])))
+        print(f"  {name} (n = {len(recs)}): {cells or 'none below 5 %'}")
 
 
 if __name__ == "__main__":

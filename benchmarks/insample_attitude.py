@@ -32,8 +32,8 @@ from stellar_cal_ros.core.imu_prefix import ImuPrefix
 from stellar_cal_ros.core.rotation import so3_exp, so3_log
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.sim.scenarios import get_scenario
-from stellar_cal_ros.sim.world import TruthWorld
 from stellar_cal_ros.sim.truth_effects import merged_effects
+from stellar_cal_ros.sim.world import TruthWorld
 
 
 def _log(R: np.ndarray) -> np.ndarray:

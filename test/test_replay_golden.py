@@ -7,7 +7,8 @@ against finite differences in ``test/test_propagation.py``; θ moved by ≤ 8.4e
 ≤ 1.2e-5 relative), and again for the second-order attitude inside an IMU sample (issue 21:
 the rate linear through two samples' means instead of the sample's mean held, 0.04" RMS of
 in-sample attitude on this scenario, ``benchmarks/insample_attitude.py``; θ moved by
-≤ 0.015 σ, σ by ≤ 2.3e-5 relative, the log-likelihood by −0.10).  The numpy path reproduces them to 1e-9 relative (θ to 1e-6 σ).
+≤ 0.015 σ, σ by ≤ 2.3e-5 relative, the log-likelihood by −0.10).  The numpy path
+reproduces them to 1e-9 relative (θ to 1e-6 σ).
 The compiled star step (numba, the default) computes the same quantities in a different
 order of a few operations: the ill-conditioned start-up amplifies that last-bit
 difference (as it amplifies one ulp of one centroid) to ~1e-8 relative, ~2e-4 of the

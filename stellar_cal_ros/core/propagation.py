@@ -24,7 +24,13 @@ the current nominal attitude:
   ``F_φ = Q Σ_j C_mid,j [I, ŵ_jᵀ ⊗ I] Δt_j Γ_g`` the attitude error per parameter error
   (``φ̇ = R̂ G_g δθ``, summed exactly between frames since φ̇ has no φ term; ``C_mid`` the
   mean of the sample's end attitudes: a rate error over a sample rotates the attitude by
-  ``R_start J_l(φ) δω Δt``, the midpoint to first order);
+  ``R_start J_l(φ) δω Δt``, the midpoint to first order).  The attitude at ``t_a`` and
+  ``t_b`` inside their samples is second order (:meth:`ImuPrefix.at`: the rate linear
+  through the sample's and the previous sample's means); ``F`` weights the partial
+  samples by their length alone: exact for a bias (the line's weights sum to the
+  length), and for a scale or misalignment off by the line's share ``a (1 − a) / 2`` of
+  the rate's change over one sample (~1e-5 of the column at 1 rad/s² and 100 Hz, within
+  the finite-difference check of ``test/test_propagation.py``);
 * with an accelerometer, velocity and position: ``v̂(t_b) = v̂(t_a) + Q Σ C Δu + Σ g Δt +
   F_v δθ``, ``r̂`` likewise with the trapezoid weights, their attitude columns
   ``−[Δv]×`` and parameter columns ``F_v, F_r`` (specific-force sensor rows, and the

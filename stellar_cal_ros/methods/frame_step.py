@@ -253,8 +253,8 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     State (changed in place): ``P`` (N, N), ``theta`` (P_all,), ``R_a`` (3, 3) the attitude
     (at ``ta`` on entry, at ``tb`` after), the sensitivity ``M`` (N, m), ``score`` (m,),
     ``info`` (m, m) (``accumulate``: add this frame's terms).  Propagation: the reference
-    rows (:class:`~stellar_cal_ros.core.imu_prefix.ImuPrefix` ``tp, C, w_hat, phi,
-    slope``), rows ``j..mj``, ``Gamma`` (3 or 12, P_all) and ``theta_ref`` of the reference, ``q_diag``
+    rows (:class:`~stellar_cal_ros.core.imu_prefix.ImuPrefix` ``tp, C, w_hat, phi, slope``),
+    rows ``j..mj``, ``Gamma`` (3 or 12, P_all) and ``theta_ref`` of the reference, ``q_diag``
     (N,) noise per second; ``gyro_*`` the gyro's affine correction and ``w_raw`` (3,) the
     raw rate of the sample covering ``tb``.  Frame: ``uv`` (n, 2), ``u`` (n, 3), ``sigma``
     (n,), ``base`` = stamp − ``tb``.  Chain: the :class:`CompiledChain`, with the frame's
