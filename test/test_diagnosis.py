@@ -140,16 +140,31 @@ USER_EFFECT = textwrap.dedent('''
 ''')
 
 
-def test_user_effect_runs_the_whole_loop_from_the_command_line(tmp_path):
-    """simulate → replay → diagnose with a plugin file → replay with it: RMS at the floor."""
+def test_user_effect_runs_the_whole_loop_from_the_command_line(tmp_path, capsys):
+    """simulate → replay → diagnose with a plugin file → replay with it: RMS at the floor.
+
+    The diagnose runs as ``python -m stellar_cal_ros`` in a subprocess (the module entry
+    point, and the user's effect file loaded in the Dask worker processes its default of
+    one worker per core starts); the other three commands through ``cli.main`` here (the
+    same parser and code, without a second interpreter's imports each)."""
+    from stellar_cal_ros.cli import main
+    from stellar_cal_ros.effects import registry
+
     module = tmp_path / "my_effect.py"
     module.write_text(USER_EFFECT)
     exe = [sys.executable, "-m", "stellar_cal_ros"]
 
-    def run(*args):
+    def subprocess_run(*args):
         out = subprocess.run(exe + list(args), capture_output=True, text=True, timeout=600)
         assert out.returncode == 0, out.stderr[-2000:]
         return out.stdout
+
+    def run(*args):
+        capsys.readouterr()
+        rc = main(list(args))
+        out = capsys.readouterr()
+        assert rc == 0, out.err[-2000:]
+        return out.out
 
     bag = tmp_path / "u.mcap"
     run("simulate", "--scenario", "psce_rotations", "--duration", "200", "--seed", "5",
@@ -157,13 +172,17 @@ def test_user_effect_runs_the_whole_loop_from_the_command_line(tmp_path):
     prior = tmp_path / "u.prior.yaml"
     run("replay", str(bag), "--method", "psce", "--prior", str(prior), "-o",
         str(tmp_path / "base.yaml"), "-q")
-    text = run("diagnose", str(bag), "--calibration", str(tmp_path / "base.yaml"), "--method",
-               "psce", "--effect-module", str(module), "--candidates", "readout_delay,pixel_aspect",
-               "-o", str(tmp_path / "rep"), "--no-plots")
+    text = subprocess_run("diagnose", str(bag), "--calibration", str(tmp_path / "base.yaml"),
+                          "--method", "psce", "--effect-module", str(module), "--candidates",
+                          "readout_delay,pixel_aspect", "-o", str(tmp_path / "rep"),
+                          "--no-plots")
     assert "recommendation: add --effects readout_delay" in text
-    text = run("replay", str(bag), "--method", "psce", "--prior", str(prior),
-               "--effect-module", str(module), "--effects", "readout_delay", "-o",
-               str(tmp_path / "fixed.yaml"), "-q")
+    try:
+        text = run("replay", str(bag), "--method", "psce", "--prior", str(prior),
+                   "--effect-module", str(module), "--effects", "readout_delay", "-o",
+                   str(tmp_path / "fixed.yaml"), "-q")
+    finally:  # the user's effect leaves this process's registry with the test
+        registry.EFFECTS.pop("readout_delay", None)
     line = next(x for x in text.splitlines() if x.startswith("innovation RMS"))
     rms = [float(p.split("=")[1].split()[0]) for p in line.split(":")[1].split(";")[0].split()
            if "=" in p]
