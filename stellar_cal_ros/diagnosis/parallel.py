@@ -112,8 +112,8 @@ class Runs:
         self.noise = None
         #: the latest noise verdict of the diagnosis using these runs
         self.verdict = None
-        #: runs made ahead of need (:meth:`run_ahead`): (task, its noise, stats)
-        self._ahead: list[tuple[Task, Any, RunSummary]] = []
+        #: runs made ahead of need (:meth:`run_ahead`): (task, its noise, stats or a future)
+        self._ahead: list[tuple[Task, Any, Any]] = []
         #: :meth:`on_bag`'s results by ``(fn, args)``: a statistic of the bag is computed once
         self._of_bag: dict[tuple, Any] = {}
 
@@ -144,21 +144,28 @@ class Runs:
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         return _on_bag(self.bag, fn, *args)
 
-    def map(self, tasks: list[Task]) -> Iterator[tuple[Task, RunSummary]]:
-        """Run ``tasks``; yield ``(task, stats)`` as each finishes."""
+    def map(self, tasks: list[Task], ahead: list[Task] = ()
+            ) -> Iterator[tuple[Task, RunSummary]]:
+        """Run ``tasks``; yield ``(task, stats)`` as each finishes.
+
+        ``ahead`` (:meth:`run_ahead`) are run after them and kept, not yielded.
+        """
         for task in sorted(tasks, key=lambda t: -t.cost):
-            out = evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
-                           task.keep_residuals, (), task.screen, task.candidate,
-                           self.noise_of(task), task.star_noise)
-            yield task, out
+            yield task, self._evaluate(task)
+        self._ahead += [(t, self.noise_of(t), self._evaluate(t)) for t in ahead]
+
+    def _evaluate(self, task: Task) -> RunSummary:
+        return evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
+                        task.keep_residuals, (), task.screen, task.candidate,
+                        self.noise_of(task), task.star_noise)
 
     def run_all(self, tasks: list[Task],
-                done: Callable[[Task, RunSummary, str], None] | None = None
-                ) -> dict[str, RunSummary]:
+                done: Callable[[Task, RunSummary, str], None] | None = None,
+                ahead: list[Task] = ()) -> dict[str, RunSummary]:
         """Run ``tasks`` and return ``{key: stats}``.
 
         ``done(task, stats, where)`` is called as each finishes; ``where`` reads
-        ``run 4/11, ETA 20 s`` (no ETA after the last).
+        ``run 4/11, ETA 20 s`` (no ETA after the last).  ``ahead``: see :meth:`run_ahead`.
         """
         from stellar_cal_ros.progress import format_seconds
 
@@ -169,7 +176,7 @@ class Runs:
                 out[task.key] = stats
         tasks = [t for t in tasks if t.key not in out]
         n, start = len(tasks), time.perf_counter()
-        for k, (task, stats) in enumerate(self.map(tasks), 1):
+        for k, (task, stats) in enumerate(self.map(tasks, ahead), 1):
             out[task.key] = stats
             if done is not None:
                 left = (time.perf_counter() - start) / k * (n - k)
@@ -183,13 +190,14 @@ class Runs:
         """:meth:`run_all` of ``tasks`` and, beside them, of ``ahead``; the stats of ``tasks``.
 
         ``ahead`` are runs a later step will probably ask for (an idle worker makes them
-        now).  Their statistics are kept until :meth:`drop_ahead`; a later :meth:`run_all`
-        of the *same* run (prior object, effects, noise scales, flags) takes them instead
-        of running it again.
+        now).  They are kept until :meth:`drop_ahead`; a later :meth:`run_all` of the
+        *same* run (prior object, effects, noise scales, flags) takes them instead of
+        running it again.  This returns when ``tasks`` are done: on a cluster
+        (:class:`DaskRuns`) the runs ahead go on meanwhile (one nobody takes would
+        otherwise hold the round up by its length, and :meth:`drop_ahead` cancels those
+        not started); in this process they run after ``tasks``.
         """
-        out = self.run_all(list(tasks) + list(ahead), done)
-        self._ahead += [(t, self.noise_of(t), out.pop(t.key)) for t in ahead]
-        return out
+        return self.run_all(list(tasks), done, list(ahead))
 
     def drop_ahead(self) -> None:
         """Forget the runs made ahead that nobody asked for."""
@@ -202,8 +210,12 @@ class Runs:
                     and t.screen == task.screen and t.candidate == task.candidate
                     and t.star_noise == task.star_noise):
                 del self._ahead[i]
-                return stats
+                return self._resolve(t, stats)
         return None
+
+    def _resolve(self, task: Task, stats: Any) -> RunSummary:
+        """The statistics of a run made ahead (in this process: already there)."""
+        return stats
 
     def close(self) -> None:
         """Release the workers."""
@@ -263,26 +275,42 @@ class DaskRuns(Runs):
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         return self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False).result()
 
-    def map(self, tasks):  # noqa: D102
+    def _submit(self, task: Task) -> Any:
+        return self.client.submit(evaluate, self.remote_bag, self.spec, task.prior,
+                                  task.effects, self.fraction, task.keep_residuals,
+                                  self.classes, task.screen, task.candidate,
+                                  self.noise_of(task), task.star_noise, pure=False,
+                                  priority=int(100 * task.cost),
+                                  key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
+
+    @staticmethod
+    def _result(task: Task, fut: Any) -> RunSummary:
+        try:
+            out = fut.result()
+        except Exception as exc:  # a worker died (killed, out of memory): a failed run
+            out = RunSummary(effects=task.effects, error=f"{type(exc).__name__}: {exc}")
+        fut.release()
+        return out
+
+    def map(self, tasks, ahead=()):  # noqa: D102
         from distributed import as_completed
 
-        futures = {}
-        for task in tasks:
-            fut = self.client.submit(evaluate, self.remote_bag, self.spec, task.prior,
-                                     task.effects, self.fraction, task.keep_residuals,
-                                     self.classes, task.screen, task.candidate,
-                                     self.noise_of(task), task.star_noise, pure=False,
-                                     priority=int(100 * task.cost),
-                                     key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
-            futures[fut] = task
+        futures = {self._submit(task): task for task in tasks}
+        # submitted after ``tasks`` (an idle worker takes them), kept as futures
+        self._ahead += [(t, self.noise_of(t), self._submit(t)) for t in ahead]
         for fut in as_completed(futures):
             task = futures.pop(fut)
-            try:
-                out = fut.result()
-            except Exception as exc:  # a worker died (killed, out of memory): a failed run
-                out = RunSummary(effects=task.effects, error=f"{type(exc).__name__}: {exc}")
-            fut.release()
-            yield task, out
+            yield task, self._result(task, fut)
+
+    def drop_ahead(self) -> None:  # noqa: D102
+        for _, _, fut in self._ahead:
+            if not isinstance(fut, RunSummary):
+                with contextlib.suppress(Exception):
+                    fut.cancel()  # not started: not run (one already running finishes)
+        super().drop_ahead()
+
+    def _resolve(self, task: Task, stats: Any) -> RunSummary:
+        return stats if isinstance(stats, RunSummary) else self._result(task, stats)
 
     def close(self) -> None:  # noqa: D102
         with contextlib.suppress(Exception):
