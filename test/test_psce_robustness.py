@@ -158,6 +158,30 @@ def test_lost_lock_reacquires(sim):
     assert flt.counters.updates > 70
 
 
+def test_failed_reacquisitions_back_off(sim):
+    """Re-acquisitions that fail (or are lost again before any accepted update: a model far
+    from the data) are spaced out -- after 3 rejected frames, then 6, 12, 24, ... (at most
+    48), not at every frame (each is a full second-order initialisation); a re-acquisition
+    that holds resets the wait."""
+    from stellar_cal_ros.core.rotation import so3_exp
+
+    data, flt = _filter(sim)
+    for f in data.frames[:40]:
+        _feed(flt, data, f)
+    flt.R_i_b = so3_exp(np.array([0.0, 0.05, 0.0])) @ flt.R_i_b  # 3° off
+    flt.gyro_watch["R_post"] = None
+    waited = []
+    flt.reacquire = lambda *a: waited.append(flt._rejected_in_row) or False  # cannot align
+    for f in data.frames[40:100]:
+        _feed(flt, data, f)
+    assert waited == [3, 6, 12, 24]  # before: an attempt at each of the 58 frames after 3
+    del flt.reacquire  # the filter's own again: the next attempt (48 frames on) holds
+    for f in data.frames[100:200]:
+        _feed(flt, data, f)
+    assert flt.counters.reinitializations == 1 and flt._reacquire_streak == 0
+    assert flt.counters.updates > 40 + 40
+
+
 def test_covariance_check_repairs(sim):
     data, flt = _filter(sim)
     for f in data.frames[:30]:

@@ -167,6 +167,9 @@ class KernelConfig:
     lost_lock_factor: float = 1e4  #: ... this ×: the attitude is lost, the frame rejected
     scale_gate_by_frame: bool = True  #: False: plain χ² gate (bound computations)
     reinit_after: int = 3  #: consecutive frames with stars but no accepted update: re-acquire
+    #: a re-acquisition lost again before any accepted update doubles the rejected frames
+    #: the next one waits for, up to 2**this x ``reinit_after``
+    reacquire_backoff: int = 4
     covariance_check_every: int = 50  #: check P (finite, symmetric, PD) every N updates
     init_second_order: bool = True  #: initial attitude covariance with the 2nd-order term
     unit_check: bool = True  #: check the gyro against the stars (deg/s, dead, axes)
@@ -220,6 +223,7 @@ class StarFilter(Acquisition):
         "time": "t", "last_stamp": "last_stamp", "imu_index": "_k", "omega": "_omega",
         "omega_stale": "_omega_stale", "stamp_posix": "_stamp_posix",
         "stamp_rel": "_stamp_rel", "rejected_in_row": "_rejected_in_row",
+        "reacquire_streak": "_reacquire_streak",
         "gap_pending": "_gap_pending", "last_good": "_good", "prior_attitude": "_R_prior",
         "mismatch_warned": "_mismatch_warned", "mismatch_bits": "_mismatch_bits",
         "gyro_watch": "gyro_watch", "data_faults": "data_faults"}
@@ -287,6 +291,7 @@ class StarFilter(Acquisition):
         self._mismatch_bits = 0  # model-mismatch flags of the last 10 frames
         self.last_stamp: float | None = None
         self._rejected_in_row = 0
+        self._reacquire_streak = 0  # lost-lock re-acquisitions since the last accepted update
         self._gap_pending = False
         self._good: tuple[np.ndarray, ...] | None = None
         self._stamp_posix = 0.0  # reported stamp of the frame being processed (POSIX s)
@@ -566,7 +571,7 @@ class StarFilter(Acquisition):
         if n_acc < c.min_stars:
             self._too_few(uv, u_i, ctx, sigma, t_exp)
             return result
-        self._rejected_in_row = 0
+        self._rejected_in_row = self._reacquire_streak = 0
         idx = np.flatnonzero(accepted)
         if n_acc == n:  # every star accepted (the usual case): the same values, no copies
             z, r_diag = uv.reshape(-1), np.repeat(R_meas, 2)
@@ -649,7 +654,7 @@ class StarFilter(Acquisition):
         elif status != frame_step.UPDATED:
             self._failed(frame_step.REASONS[status], t_exp)
         else:
-            self._rejected_in_row = 0
+            self._rejected_in_row = self._reacquire_streak = 0
             if sens is not None and sens.accumulate:
                 sens.frames += 1
             self._omega_stale = True
@@ -677,14 +682,25 @@ class StarFilter(Acquisition):
         self.counters.stars_gated += n - n_acc
 
     def _too_few(self, uv, u_i, ctx, sigma, t_exp) -> None:
-        """A frame with too few accepted stars: skipped; a few in a row re-acquire."""
+        """A frame with too few accepted stars: skipped; a few in a row re-acquire.
+
+        ``reinit_after`` rejected frames in a row re-acquire; when re-acquisitions keep
+        failing or keep being lost before any accepted update (a model far from the data:
+        a diagnosis's wrong candidate), each further one waits for twice as many rejected
+        frames (at most 2**``reacquire_backoff`` x): every attempt costs a full
+        second-order initialisation, ~0.2-0.4 s, and was made at every third frame.
+        """
+        c = self.config
         self.counters.skipped_few_stars += 1
         self._rejected_in_row += 1
-        if self._rejected_in_row >= self.config.reinit_after:
+        wait = c.reinit_after << min(self._reacquire_streak, c.reacquire_backoff)
+        if self._rejected_in_row >= wait:
             # lost lock (e.g. after an IMU gap during a slew): re-acquire from this frame
             log.warning("t=%.3f s: %d frames in a row rejected, re-acquiring the attitude",
                         t_exp, self._rejected_in_row)
-            self.reacquire(uv, u_i, ctx, sigma)
+            self._reacquire_streak += 1
+            if not self.reacquire(uv, u_i, ctx, sigma):
+                self._rejected_in_row = 0  # the next attempt waits ``wait`` frames again
 
     def _failed(self, reason: str, t_exp: float) -> None:
         self.counters.add("update_failed")
