@@ -377,4 +377,13 @@ def test_regressor_plots_of_a_batch_table(tmp_path):
                 "p_value": 1e-3}]
     assert report.plot_unexplained(res, finding, (512.0, 512.0), 0.5,
                                    tmp_path / "u.png").is_file()
+    # a flexure-shaped remainder has no residual-table column: its panel states the test
+    flex = {"regressor": "gravity_st (mount-flexure shape, after gyro_scale_factor)",
+            "component": "u, v", "statistic": 7.9, "p_value": 3e-5, "change_px": 0.043,
+            "detail": {"arcsec_per_g": 43.8, "sigma_arcsec_per_g": 2.6}}
+    text = report._finding_text(flex)
+    assert "t = 7.9" in text and "0.043 px" in text and "43.8 +- 2.6 arcsec" in text
+    assert "not in the residual table" not in text
+    assert report.plot_unexplained(res, [flex], (512.0, 512.0), 0.5,
+                                   tmp_path / "f.png").is_file()
     assert report.plot_histograms([("acf", res)], 0.5, tmp_path / "h.png").is_file()

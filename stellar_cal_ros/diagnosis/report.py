@@ -323,6 +323,25 @@ def plot_regressors(panels: Panels, centre: tuple[float, float], fraction: float
     return _save(fig, path, dpi=80)
 
 
+def _finding_text(f: dict[str, Any]) -> str:
+    """The panel of a finding whose regressor is no column of the residual table.
+
+    A flexure-shaped remainder (:mod:`~stellar_cal_ros.diagnosis.flexure`) is tested
+    against the filter's response to a flexure probe, not against a column: the panel says
+    its test and size instead of a scatter plot.
+    """
+    head = (f"{f['regressor']}\n{f['component']}: t = {f['statistic']:.1f}, "
+            f"p = {f['p_value']:.2g}")
+    d = f.get("detail") or {}
+    if "arcsec_per_g" in d:
+        return (head + f"\nremainder {abs(f.get('change_px', float('nan'))):.3g} px at most"
+                f"\nas a mount bending {d['arcsec_per_g']:.3g} +- "
+                f"{d.get('sigma_arcsec_per_g', float('nan')):.2g} arcsec per unit lateral gravity"
+                "\n(tested against the filter's response to a flexure probe:"
+                "\nno residual-table column to plot it against)")
+    return head + "\n(no column of the residual table to plot it against)"
+
+
 def plot_unexplained(res: Table, findings: Sequence[dict[str, Any]],
                      centre: tuple[float, float], fraction: float, path: Path,
                      max_panels: int = 6, seed: int = 0) -> Path | None:
@@ -343,8 +362,8 @@ def plot_unexplained(res: Table, findings: Sequence[dict[str, Any]],
     for ax, f in zip(axes.ravel(), findings, strict=False):
         x = _regressor_values(res, centre, f["regressor"])
         if x is None:
-            ax.text(0.5, 0.5, f"{f['regressor']}: not in the residual table", ha="center",
-                    transform=ax.transAxes)
+            ax.text(0.5, 0.5, _finding_text(f), ha="center", va="center", fontsize=8,
+                    transform=ax.transAxes, wrap=True)
             ax.axis("off")
             continue
         y = _component(res, centre, f["component"])
