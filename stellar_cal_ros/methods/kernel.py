@@ -520,8 +520,7 @@ class StarFilter(Acquisition):
                sigma: np.ndarray) -> FrameUpdate | None:
         """Propagate to the frame's exposure and update with its stars."""
         model = self.model
-        shift = model.time_shift(self.theta, ctx)[0] if model.has_time_effect else \
-            float(model.prior.time_offset)  # (time_shift's value, without its gradient)
+        shift = model.exposure_shift(self.theta, ctx)
         t_exp = self._stamp_rel + shift
         if self.compiled_step:
             done, result = self._fused_update(uv, u_i, ctx, sigma, t_exp)
@@ -611,14 +610,12 @@ class StarFilter(Acquisition):
         chain, a method with its own transition or measurements, a bridged IMU sample, a
         re-acquisition pending, a reference strapdown to rebuild.
         """
+        frame_step = _frame_step_module()
         fs = self._frame_step
         if fs is None:
-            from stellar_cal_ros.methods import frame_step
-
             fs = self._frame_step = frame_step.FusedStep.build(self, StarFilter) or False
         if not fs or self._gap_pending or self.t is None or t_exp <= self.t:
             return False, None
-        frame_step = _frame_step_module()
         imu, prop = self.imu, self.propagation
         k = self._k
         m = imu.index(t_exp)

@@ -237,6 +237,12 @@ class StarModel:
         return np.linalg.solve(np.eye(3) + E, (measured - b).T).T
 
     # ------------------------------------------------------------------ stars
+    def exposure_shift(self, theta: np.ndarray, ctx: FrameContext) -> float:
+        """:meth:`time_shift`'s value alone (a frame's update needs no gradient)."""
+        if not self.has_time_effect:
+            return float(self.prior.time_offset)
+        return self.time_shift(theta, ctx)[0]
+
     def time_shift(self, theta: np.ndarray, ctx: FrameContext) -> tuple[float, np.ndarray]:
         """Seconds from the stamp to the modelled exposure, and its gradient (P,)."""
         if not self.has_time_effect:
