@@ -92,8 +92,7 @@ def _events_from_reader(reader: BagReader, topics: dict[str, str]):
     if stream is not None:
         for role, block in stream(topics=topics, imu_block=IMU_BLOCK):
             if role == "imu":  # (most blocks: one generator level less)
-                yield "imu", (block.stamp_ns, block.angular_velocity,
-                              block.linear_acceleration, block.frame_id or None)
+                yield "imu", _imu_payload(block)
             elif role == "stars":
                 yield "stars", block
             else:
@@ -136,11 +135,16 @@ def _slice(block, a: int, b: int):
     return type(block)(**kw)
 
 
+def _imu_payload(block) -> tuple:
+    """``Calibrator.push_imu_block``'s arguments of an IMU block (frame id None: any)."""
+    return (block.stamp_ns, block.angular_velocity, block.linear_acceleration,
+            block.frame_id or None)
+
+
 def _block_events(role: str, block):
     """Driver calls of one reader block."""
     if role == "imu":
-        yield "imu", (block.stamp_ns, block.angular_velocity, block.linear_acceleration,
-                      block.frame_id or None)
+        yield "imu", _imu_payload(block)
     elif role in ("stars", "image", "camera_info"):
         yield role, block
     elif role == "fix":
