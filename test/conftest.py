@@ -14,3 +14,21 @@ from refdata import DATA, path  # noqa: E402
 def reference_data():
     """The reference-data folder (``../shared/data``); skips, saying so, when it is absent."""
     return path(".", DATA).resolve()
+
+
+@pytest.fixture
+def cli(capsys):
+    """``cli(*args)``: a ``stellar-cal`` command through ``cli.main`` in this process.
+
+    Asserts it exits 0 (the message: its stderr's tail) and returns its stdout.
+    """
+    from stellar_cal_ros.cli import main
+
+    def run(*args):
+        capsys.readouterr()
+        rc = main(list(args))
+        out = capsys.readouterr()
+        assert rc == 0, out.err[-3000:]
+        return out.out
+
+    return run

@@ -140,14 +140,13 @@ USER_EFFECT = textwrap.dedent('''
 ''')
 
 
-def test_user_effect_runs_the_whole_loop_from_the_command_line(tmp_path, capsys):
+def test_user_effect_runs_the_whole_loop_from_the_command_line(tmp_path, cli):
     """simulate → replay → diagnose with a plugin file → replay with it: RMS at the floor.
 
     The diagnose runs as ``python -m stellar_cal_ros`` in a subprocess (the module entry
     point, and the user's effect file loaded in the Dask worker processes its default of
     one worker per core starts); the other three commands through ``cli.main`` here (the
     same parser and code, without a second interpreter's imports each)."""
-    from stellar_cal_ros.cli import main
     from stellar_cal_ros.effects import registry
 
     module = tmp_path / "my_effect.py"
@@ -159,12 +158,7 @@ def test_user_effect_runs_the_whole_loop_from_the_command_line(tmp_path, capsys)
         assert out.returncode == 0, out.stderr[-2000:]
         return out.stdout
 
-    def run(*args):
-        capsys.readouterr()
-        rc = main(list(args))
-        out = capsys.readouterr()
-        assert rc == 0, out.err[-2000:]
-        return out.out
+    run = cli
 
     bag = tmp_path / "u.mcap"
     run("simulate", "--scenario", "psce_rotations", "--duration", "200", "--seed", "5",

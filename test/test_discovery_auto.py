@@ -36,7 +36,7 @@ def _sim(effects, seed, duration=300.0):
     return sim, bag_data_from_simulation(sim)
 
 
-def test_discover_command_with_two_dask_workers(tmp_path, capsys):
+def test_discover_command_with_two_dask_workers(tmp_path, cli):
     """One command, a 2-worker LocalCluster: the two hidden effects, nothing else.
 
     The commands run through ``cli.main`` in this process (the workers are processes of
@@ -44,14 +44,8 @@ def test_discover_command_with_two_dask_workers(tmp_path, capsys):
     test_diagnosis/test_faults).  A 120 s bag (200 s before): measured, each added effect's
     statistic lies over its round's Bonferroni critical value by 10.7 σ (time_offset) and
     13.1 σ (pixel_aspect) in one-sided normal equivalents; nothing is left in round 3."""
-    from stellar_cal_ros.cli import main
 
-    def run(*args):
-        capsys.readouterr()
-        rc = main(list(args))
-        out = capsys.readouterr()
-        assert rc == 0, out.err[-3000:]
-        return out.out
+    run = cli
 
     bag = tmp_path / "two.mcap"
     run("simulate", "--scenario", "psce_rotations", "--duration", "120", "--seed", "8",
