@@ -48,15 +48,23 @@ CAM = CameraModel(1024, 1024, 3969.0, 3970.2, 516.0, 509.0,
 STEP = np.r_[[1e-2] * 4, [1e-3] * 2, [1e-4] * 2, [1e-3] * 8, [1e-4] * 2, [1e-6] * 3]
 
 
-def test_batched_wahba_is_the_core_wahba():
+def test_the_wahba_solver_finds_the_rotation_and_matches_scipy():
     rng = np.random.default_rng(3)
     d = rng.normal(size=(4, 6, 3))
     d /= np.linalg.norm(d, axis=2, keepdims=True)
     R_true = Rotation.random(4, random_state=4).as_matrix()
-    ref = np.einsum("fij,fkj->fki", R_true, d) + rng.normal(0, 1e-3, (4, 6, 3))
-    R = batched_wahba(d, ref)
-    for f in range(4):
-        np.testing.assert_allclose(R[f], wahba(d[f], ref[f]), atol=1e-12)
+    exact = np.einsum("fij,fkj->fki", R_true, d)
+    np.testing.assert_allclose(batched_wahba(d, exact), R_true, atol=1e-12)
+    ref = exact + rng.normal(0, 1e-3, (4, 6, 3))
+    w = rng.uniform(0.5, 2.0, (4, 6))
+    R = batched_wahba(d, ref, w)
+    for f in range(4):  # scipy's SVD solution is the independent reference
+        scipy_R = Rotation.align_vectors(ref[f], d[f], weights=w[f])[0].as_matrix()
+        np.testing.assert_allclose(R[f], scipy_R, atol=1e-12)
+        np.testing.assert_array_equal(wahba(d[f], ref[f], w[f]), R[f])
+    assert np.abs(batched_wahba(d, ref) - R).max() > 1e-6  # the weights changed the fit
+    with pytest.raises(ModelError):
+        wahba(d[0, :1], ref[0, :1])
 
 
 @pytest.mark.parametrize("convention", CONVENTIONS)

@@ -30,20 +30,27 @@ def wahba(
 ) -> np.ndarray:
     """Least-squares rotation ``R_i_st`` with ``directions_i ≈ R_i_st @ directions_st``.
 
-    Uses :meth:`scipy.spatial.transform.Rotation.align_vectors` (SVD solution of Wahba's
-    problem).  Needs at least two non-parallel directions.
+    One frame of :func:`batched_wahba` (the one Wahba solver).  Needs at least two
+    non-parallel directions.
     """
     if len(directions_st) < 2:
         raise ModelError("Wahba's problem needs at least two stars")
-    rot, _ = Rotation.align_vectors(directions_i, directions_st, weights=weights)
-    return rot.as_matrix()
+    w = None if weights is None else np.asarray(weights, dtype=float)[None]
+    return batched_wahba(
+        np.asarray(directions_st, dtype=float)[None], np.asarray(directions_i, dtype=float)[None], w
+    )[0]
 
 
-def batched_wahba(directions_st: np.ndarray, directions_ref: np.ndarray) -> np.ndarray:
+def batched_wahba(
+    directions_st: np.ndarray, directions_ref: np.ndarray, weights: np.ndarray | None = None
+) -> np.ndarray:
     """Least-squares rotations ``R`` with ``directions_ref ≈ R @ directions_st`` (SVD).
 
-    The solution of :func:`wahba` (equal weights) for many frames at once; numpy only,
-    without the per-call cost of scipy's ``align_vectors`` (the gyro check's fits).
+    ``B = Σ w ref stᵀ = U S Vᵀ``, ``R = U diag(1, 1, det U · det V) Vᵀ``, for many frames at
+    once, then through a unit quaternion (:class:`scipy.spatial.transform.Rotation`), which
+    keeps ``RᵀR`` at the identity to ~1e-15 (2e-15 without).  With equal weights a frame's
+    ``R`` is bit for bit :meth:`~scipy.spatial.transform.Rotation.align_vectors`'s, at a
+    fraction of its per-call cost.
 
     Parameters
     ----------
@@ -51,16 +58,21 @@ def batched_wahba(directions_st: np.ndarray, directions_ref: np.ndarray) -> np.n
         Directions in the frame to orient (the tracker's).
     directions_ref : numpy.ndarray, shape (F, n, 3)
         The same stars in the reference frame.
+    weights : numpy.ndarray, shape (F, n), optional
+        Non-negative weight of each pair (equal weights if omitted).
 
     Returns
     -------
     numpy.ndarray, shape (F, 3, 3)
     """
-    B = np.einsum("fki,fkj->fij", directions_ref, directions_st)
+    if weights is None:
+        B = np.einsum("fki,fkj->fij", directions_ref, directions_st)
+    else:
+        B = np.einsum("fk,fki,fkj->fij", weights, directions_ref, directions_st)
     U, _, Vt = np.linalg.svd(B)
     sign = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
     U[:, :, 2] *= sign[:, None]
-    return U @ Vt
+    return Rotation.from_matrix(U @ Vt, assume_valid=True).as_matrix()
 
 
 def fit_frame_attitude(
