@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from stellar_cal_ros.diagnosis.injection import SWAY_CLEAN
+from stellar_cal_ros.sim import tracker_errors
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate, write_simulation
 
@@ -65,6 +66,8 @@ class Case:
     regressor: str = ""
     #: stars' σ grouping the noise should find ("magnitude", "radius", ...), or ""
     group_by: str = ""
+    #: per-axis truth of an IMU noise whose axes differ (its scale is then their RMS)
+    axes: dict[str, tuple[float, ...]] = field(default_factory=dict)
     scenario_changes: dict = field(default_factory=dict)  #: Scenario fields changed
     sim_effects: dict = field(default_factory=dict)  #: --effect values of the simulation
     #: post-processing of the simulation (true noise, message σ, catalogue, wobble)
@@ -74,12 +77,7 @@ class Case:
 
 def _renoise(sim, true_sigma: Callable, stated: float, seed: int) -> None:
     """Add per-star noise ``true_sigma(mag, uv)`` to noise-free centroids; σ field ``stated``."""
-    rng = np.random.default_rng(seed + 7919)
-    for f in sim.star_frames:
-        mag = np.asarray(f.magnitude, dtype=float)
-        s = true_sigma(mag, np.asarray(f.uv, dtype=float))
-        f.uv = np.asarray(f.uv, dtype=float) + s[:, None] * rng.standard_normal(f.uv.shape)
-        f.sigma = np.full(len(mag), stated)
+    tracker_errors.renoise(sim, true_sigma, stated, seed)
 
 
 def _sigma_field(factor: float) -> Callable:
@@ -135,6 +133,39 @@ def _catalogue(sim, seed, arcsec=2.0):
         f.right_ascension, f.declination = ra, dec
 
 
+def _scurve(sim, seed, amplitude_px=0.08):
+    # pixel locking on the noise-free centroid, then the stated 0.05 px noise
+    tracker_errors.s_curve(sim, amplitude_px)
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _rolling(sim, seed, readout_s=0.03):
+    # rows read out over 30 ms (the stamp is the middle row's time)
+    tracker_errors.rolling_shutter(sim, readout_s)
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _outliers(sim, seed):
+    # 3 % of the centroids 10 sigma off (blends, hot pixels), the rest as stated
+    tracker_errors.outliers(sim, 0.03, 10.0, seed)
+
+
+def _ar1(sim, seed):
+    # each star's centroid noise an AR(1) over frames, tau 5 frames, marginal 0.05 px stated
+    tracker_errors.ar1_noise(sim, PSCE_SIGMA, 5.0, seed)
+
+
+def _gyro_z4(sim, seed):
+    # the gyro's z axis 4x the stated white noise, x and y as stated
+    tracker_errors.imu_noise_axis(sim, "gyro", 2, 4.0, seed)
+
+
+def _sigma0_mag(sim, seed):
+    # sigma = 0 ("unknown") in every message; true sigma grows with magnitude as magslope
+    _renoise(sim, lambda m, uv: PSCE_SIGMA * 2.0 ** ((np.nan_to_num(m, nan=4.0) - 4.0) / 2.0),
+             0.0, seed)
+
+
 CASES: dict[str, Case] = {
     # ---- noise stated wrongly, the model right
     "mag2x": Case("psce", "faint stars (mag >= 4.5) 2x the stated 0.05 px, bright as stated",
@@ -172,6 +203,36 @@ CASES: dict[str, Case] = {
     "catalogue": Case("psce", "per-star catalogue position error N(0, 2 arcsec) per axis "
                       "(not in the library)", outside=True, regressor="catalogue star",
                       post=_catalogue),
+    # ---- 2026-11-26 afternoon: what a real tracker and IMU produce (sim/tracker_errors.py)
+    "scurve": Case("psce", "pixel locking: centroid bias 0.08 sin(2 pi u) px per axis "
+                   "(sub-pixel phase; not in the library)", outside=True,
+                   regressor="sub-pixel phase", post=_scurve,
+                   scenario_changes={"centroid_noise_px": 0.0}),
+    "rolling": Case("psce", "rolling shutter: rows read over 30 ms, stamp at the middle row "
+                    "(not in the library)", outside=True,
+                    regressor="rolling-shutter", post=_rolling,
+                    scenario_changes={"centroid_noise_px": 0.0}),
+    "sway_rolling": Case("swaying_base", "rolling shutter on a swaying base: rows read over "
+                         "30 ms, stamp at the middle row (not in the library)", outside=True,
+                         regressor="rolling-shutter", post=_rolling,
+                         sim_effects=dict(SWAY_CLEAN), duration=200.0,
+                         scenario_changes={"centroid_noise_px": 0.0}),
+    "outliers": Case("psce", "3 % of the centroids 10 sigma off, the rest 0.05 px as stated",
+                     noise={}, post=_outliers),
+    "ar1": Case("psce", "centroid noise AR(1) over frames per star (tau 5 frames), marginal "
+                "0.05 px as stated", noise={}, post=_ar1,
+                scenario_changes={"centroid_noise_px": 0.0}),
+    "gyro_z4": Case("psce", "gyro z axis 4x the stated ARW, x and y as stated",
+                    noise={"gyro": float(np.sqrt(6.0))}, axes={"gyro": (1.0, 1.0, 4.0)},
+                    post=_gyro_z4),
+    "sway_accel_over3": Case("swaying_base", "accelerometer VRW a third of the stated (the "
+                             "method's configured VRW 3x too large)",
+                             noise={"accel": 1.0 / 3.0}, sim_effects=dict(SWAY_CLEAN),
+                             scenario_changes={"accel_vrw_mps_sqrth": 1.0 / 3.0},
+                             duration=200.0),
+    "sigma0_mag": Case("psce", "sigma = 0 in every message; true sigma 0.05 * 2^((mag - 4) / 2)"
+                       " px", noise={"star": 0.0}, group_by="magnitude", post=_sigma0_mag,
+                       scenario_changes={"centroid_noise_px": 0.0}),
 }
 
 
@@ -252,6 +313,10 @@ def judge(name: str, r: dict) -> list[str]:
             bad.append(f"{comp} noise rescaled x{got:.3g} (stated right)")
         elif want and abs(got / want - 1.0) > 0.15:
             bad.append(f"{comp} scale x{got:.3g}, truth x{want:.3g}")
+    for comp, want in case.axes.items():
+        got = ((noise.get("imu_samples") or {}).get(keys[comp]) or {}).get("axes")
+        if not got or not np.allclose(got, want, rtol=0.15):
+            bad.append(f"{comp} per axis {got}, truth {list(want)}")
     if case.group_by:
         grp = (applied.get("star_sigma_groups") or {}).get("by", "")
         if grp != case.group_by:

@@ -1,0 +1,138 @@
+"""Simulator-only star-tracker errors that no library effect models (issue 21, unseen cases).
+
+Each function changes a finished :class:`~stellar_cal_ros.sim.world.SimulationResult` in
+place, the way a real tracker's centroiding or readout spoils its messages; none is an
+effect of the library (the diagnosis must call them noise or 'unexplained', never a
+library name).  The centroids' own noise is expected to be drawn by the caller (a scenario
+with ``centroid_noise_px = 0`` and :func:`renoise`) where the error acts on the noise-free
+centroid.
+
+==================  ==============================================================================
+function            what a tracker does
+==================  ==============================================================================
+``renoise``         per-star centroid noise ``σ(mag, uv)``; the messages state any σ (0: unknown)
+``s_curve``         pixel locking: a centroid bias ``A sin(2π u)`` per axis, periodic in the
+                    centroid's sub-pixel phase (a PSF sampled by too few pixels)
+``rolling_shutter`` rows read out over ``T``: row ``v`` exposed ``(v/H − ½) T`` after the stamp,
+                    the star displaced by its image velocity times that
+``outliers``        a fraction of centroids off by ``k σ`` (blends, hot pixels, cosmic rays)
+``ar1_noise``       centroid noise correlated in time per star (AR(1), ``τ`` frames)
+``imu_noise_axis``  extra white noise on one gyro or accelerometer axis, not in the covariance
+==================  ==============================================================================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+
+def renoise(sim, true_sigma: Callable, stated: float, seed: int) -> None:
+    """Add per-star noise ``true_sigma(mag, uv)`` (px) to the centroids; σ field ``stated``."""
+    rng = np.random.default_rng(seed + 7919)
+    for f in sim.star_frames:
+        mag = np.asarray(f.magnitude, dtype=float)
+        s = np.broadcast_to(true_sigma(mag, np.asarray(f.uv, dtype=float)), mag.shape)
+        f.uv = np.asarray(f.uv, dtype=float) + s[:, None] * rng.standard_normal(f.uv.shape)
+        f.sigma = np.full(len(mag), float(stated))
+
+
+def s_curve(sim, amplitude_px: float) -> None:
+    """Pixel locking: ``u += A sin(2π u)``, ``v += A sin(2π v)`` (pixel centres at integers).
+
+    The centroid of an under-sampled PSF is pulled toward the pixel centre: an error odd
+    about the centre and periodic with one pixel, of amplitude ``A`` (0.05-0.1 px is
+    typical of a defocused PSF a few pixels wide).
+    """
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        f.uv = uv + amplitude_px * np.sin(2.0 * np.pi * uv)
+
+
+def image_velocity(sim) -> list[np.ndarray]:
+    """Each star's true image velocity (px/s, ``(n, 2)`` per frame), pinhole at the truth."""
+    world = sim.truth_world
+    cam = world.camera()
+    R_imu_st = world.installation().as_matrix()
+    t0 = int(round(world.scenario.start_posix * 1e9))
+    out = []
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float).reshape(-1, 2)
+        t = np.array([(f.stamp_ns - t0) * 1e-9])
+        w_st = R_imu_st.T @ world.omega_ib_b(t)[0]
+        x = (uv[:, 0] - cam.cx) / cam.fx
+        y = (uv[:, 1] - cam.cy) / cam.fy
+        d = np.stack([x, y, np.ones_like(x)], 1)
+        dd = -np.cross(w_st, d)  # a fixed inertial direction seen from the rotating tracker
+        out.append(np.stack([cam.fx * (dd[:, 0] - x * dd[:, 2]),
+                             cam.fy * (dd[:, 1] - y * dd[:, 2])], 1))
+    return out
+
+
+def rolling_shutter(sim, readout_s: float) -> None:
+    """Rows read out over ``readout_s``: row ``v`` seen ``(v/H − ½)·T`` after the stamp.
+
+    The stamp is the middle row's time (so no common time offset); every star moves by its
+    image velocity over its row's offset: a displacement ∝ row × rate, zero at rest.
+    """
+    h = float(sim.truth_world.camera().height)
+    for f, vel in zip(sim.star_frames, image_velocity(sim), strict=True):
+        uv = np.asarray(f.uv, dtype=float)
+        dt = (uv[:, 1] / h - 0.5) * readout_s
+        f.uv = uv + dt[:, None] * vel
+
+
+def outliers(sim, fraction: float, k_sigma: float, seed: int) -> None:
+    """A ``fraction`` of the centroids moved by ``k_sigma`` × their stated-or-scenario σ."""
+    rng = np.random.default_rng(seed + 15485863)
+    s0 = sim.scenario.centroid_noise_px
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        hit = rng.random(len(uv)) < fraction
+        if hit.any():
+            uv = uv.copy()
+            uv[hit] += k_sigma * s0 * rng.standard_normal((int(hit.sum()), 2))
+        f.uv = uv
+
+
+def ar1_noise(sim, sigma_px: float, tau_frames: float, seed: int,
+              stated: float | None = None) -> None:
+    """Centroid noise of each star an AR(1) over frames (marginal ``σ``, time constant τ).
+
+    A star that leaves and comes back continues its process over the gap.  The σ field
+    states ``stated`` (default ``σ``: the marginal noise is stated right, only its
+    correlation is not).
+    """
+    rng = np.random.default_rng(seed + 6700417)
+    phi = float(np.exp(-1.0 / tau_frames))
+    last: dict[int, tuple[int, np.ndarray]] = {}
+    for j, f in enumerate(sim.star_frames):
+        uv = np.asarray(f.uv, dtype=float).copy()
+        for i, cid in enumerate(np.asarray(f.catalog_id).tolist()):
+            n = rng.standard_normal(2)
+            prev = last.get(int(cid))
+            if prev is None:
+                e = sigma_px * n
+            else:
+                a = phi ** (j - prev[0])
+                e = a * prev[1] + sigma_px * np.sqrt(1.0 - a * a) * n
+            last[int(cid)] = (j, e)
+            uv[i] += e
+        f.uv = uv
+        f.sigma = np.full(len(uv), float(sigma_px if stated is None else stated))
+
+
+def imu_noise_axis(sim, sensor: str, axis: int, factor: float, seed: int) -> None:
+    """One gyro (``"gyro"``) or accelerometer axis's white noise made ``factor`` x the stated.
+
+    Extra noise is added; the messages' covariance is unchanged.
+    """
+    rng = np.random.default_rng(seed + 999331)
+    imu = sim.imu
+    field = "angular_velocity" if sensor == "gyro" else "linear_acceleration"
+    cov = np.asarray(getattr(imu, field + "_covariance"), dtype=float).reshape(3, 3)
+    sd = np.sqrt(cov[axis, axis]) * np.sqrt(max(factor**2 - 1.0, 0.0))
+    data = np.asarray(getattr(imu, field), dtype=float).copy()
+    data[:, axis] += sd * rng.standard_normal(len(data))
+    setattr(imu, field, data)
