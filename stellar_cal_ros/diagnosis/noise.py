@@ -46,6 +46,7 @@ import numpy as np
 from scipy import stats as sps
 
 from stellar_cal_ros.core.noise import NoiseScales
+from stellar_cal_ros.diagnosis import noise_structure
 from stellar_cal_ros.diagnosis.noise_imu import ScaleSearch
 
 #: level of the "noise as stated" tests (after Bonferroni over the components)
@@ -165,10 +166,23 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     # distortion term, a magnitude-dependent bias) is removed as its mean per detector cell
     # and magnitude class before the variance is taken (the dof it uses are not counted)
     cell, keep_cell = _cells(uv, np.asarray(res["magnitude"], dtype=float)[idx], centre)
+    # (a bias periodic in the centroid's sub-pixel phase, pixel locking, first: the cells'
+    # means would take part of it and leave the rest to look like a per-star error)
+    sub_share = np.ones(len(idx))
+    if "u_pred" in res:
+        r, sub_share = noise_structure.minus_subpixel(r, sub_share, np.stack(
+            [np.asarray(res["u_pred"], dtype=float)[idx],
+             np.asarray(res["v_pred"], dtype=float)[idx]], 1), ALPHA)
     r, share, chi2, dof = _minus_cell_means(r, cell, keep_cell)
+    share = share * sub_share
     # ... and so is an error that repeats star by star (a catalogue position error): its
     # per-star means are tested, and removed when significant
-    rep, rep_dof, r_star, share_star = star_means(r, share, np.asarray(res["catalog_id"])[idx])
+    stars = np.asarray(res["catalog_id"])[idx]
+    rep, rep_dof, r_star, share_star = star_means(r, share, stars)
+    # noise correlated over a few frames makes each star's mean vary more than 1/n: the χ²
+    # is referred to that (the lag correlation of the residuals about their star's mean,
+    # which a fixed per-star error does not raise)
+    rep /= noise_structure.track_inflation(r_star, stars)
 
     def estimate(r, share):
         q = (r**2).sum(1)
@@ -470,8 +484,12 @@ class NoiseVerdict:
             if comp in self.imu and self.imu[comp].measurable and comp not in self.beyond:
                 check = f"; the stars agree: x{self.imu[comp].value:.3g} +- " \
                     f"{self.imu[comp].sigma:.2g} of it"
+            axes = ""
+            if smp.get("axes"):
+                axes = ("; per axis x" + ", x".join(f"{a:.3g}" for a in smp["axes"])
+                        + " (x, y, z): one scale for all axes, their RMS")
             out.append(f"the {_IMU_WORDS[comp][0]} looks {s:.3g} +- {e:.2g} x {word} than stated "
-                       f"(the {comp}'s own samples{check}): use --noise-scale "
+                       f"(the {comp}'s own samples{axes}{check}): use --noise-scale "
                        f"{_IMU_WORDS[comp][2]}={getattr(self.applied, comp):.3g}")
         return out
 

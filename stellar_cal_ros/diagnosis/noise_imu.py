@@ -145,35 +145,47 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
 WHITE_TOLERANCE = 0.08
 
 
-def sample_noise(samples: np.ndarray) -> tuple[float, float, bool]:
+#: the axes' white noise differs when the noisiest axis is this many times the quietest: the
+#: estimate is then their RMS (the one scale a filter with one random walk for all axes
+#: should take: it keeps the attitude's total noise), not their median (which would keep
+#: the quiet axes' value and miss one axis 4x noisier: measured, unseen case ``gyro_z4``)
+AXES_DIFFER = 1.25
+
+
+def sample_noise(samples: np.ndarray, axes: bool = False):
     """The white noise σ of an IMU's own samples (per sample), its σ, whether they look white.
 
     Second differences cancel any motion smooth over two sample intervals and leave
     ``6 σ²`` of white noise; a robust scale (MAD) per axis ignores the few samples at a
-    slew's corners; the axes' median is the estimate.  The samples look white when the
-    second differences' lag-1 correlation is −2/3 ± :data:`WHITE_TOLERANCE`.
+    slew's corners; the axes' median is the estimate, or their RMS when they differ
+    (:data:`AXES_DIFFER`).  The samples look white when the second differences' lag-1
+    correlation is −2/3 ± :data:`WHITE_TOLERANCE`.  ``axes``: also return the per-axis σ.
     """
     x = np.asarray(samples, dtype=float)
     x = x[np.all(np.isfinite(x), axis=1)]
     if len(x) < 100:
-        return math.nan, math.nan, False
+        return (math.nan, math.nan, False) + ((np.full(3, math.nan),) if axes else ())
     d = np.diff(x, n=2, axis=0)
     mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0) * 1.4826 / math.sqrt(6.0)
     sigma = float(np.median(mad))
+    if np.min(mad) > 0 and np.max(mad) > AXES_DIFFER * np.min(mad):
+        sigma = float(np.sqrt(np.mean(mad**2)))
     # the MAD's relative σ for a normal sample is ~1.17/√(2N); the second differences are
     # correlated (their effective count is ~N/2.4)
     err = sigma * 1.17 / math.sqrt(2.0 * len(d) / 2.4 * 3)
     dc = np.clip(d - np.median(d, axis=0), -4 * mad * math.sqrt(6), 4 * mad * math.sqrt(6))
     rho = float(np.median([np.corrcoef(dc[1:, k], dc[:-1, k])[0, 1] for k in range(d.shape[1])]))
-    return sigma, err, abs(rho + 2.0 / 3.0) < WHITE_TOLERANCE
+    out = (sigma, err, abs(rho + 2.0 / 3.0) < WHITE_TOLERANCE)
+    return out + (mad,) if axes else out
 
 
 def imu_sample_scale(data, method: str, comp: str, stated: NoiseScales
-                     ) -> tuple[float, float, bool]:
-    """(scale, σ, white) of ``comp`` ("gyro" / "accel") from the IMU's own samples.
+                     ) -> tuple[float, float, bool, tuple[float, ...]]:
+    """(scale, σ, white, per-axis scales) of ``comp`` ("gyro" / "accel") from its samples.
 
     The scale is the samples' white noise over the per-sample σ the run assumes (the
-    method's random walk times ``stated``'s scale, at the bag's IMU rate).
+    method's random walk times ``stated``'s scale, at the bag's IMU rate).  The per-axis
+    scales are ``()`` unless the axes differ (:data:`AXES_DIFFER`).
     """
     from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
     from stellar_cal_ros.methods import registry as methods
@@ -187,7 +199,9 @@ def imu_sample_scale(data, method: str, comp: str, stated: NoiseScales
         per_sample = getattr(cfg, "accel_vrw_mps_sqrth", math.nan) / 60.0 * stated.accel
         samples = data.imu_f
     if not (dt > 0 and per_sample > 0):
-        return math.nan, math.nan, False
+        return math.nan, math.nan, False, ()
     per_sample /= math.sqrt(dt)
-    sigma, err, white = sample_noise(samples)
-    return sigma / per_sample, err / per_sample, white
+    sigma, err, white, mad = sample_noise(samples, axes=True)
+    differ = bool(np.min(mad) > 0 and np.max(mad) > AXES_DIFFER * np.min(mad))
+    return (sigma / per_sample, err / per_sample, white,
+            tuple(float(m / per_sample) for m in mad) if differ else ())

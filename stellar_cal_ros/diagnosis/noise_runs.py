@@ -121,10 +121,12 @@ def _from_samples(v: NoiseVerdict, runs, components: tuple[str, ...], n_tests: i
     """The IMU components' scales from their own samples (where they look white)."""
     applied = v.stated
     for comp in components:  # computed where the bag is: the parent does not read it
-        s, e, white = runs.on_bag(imu_sample_scale, runs.spec.name, comp, v.stated)
+        s, e, white, axes = runs.on_bag(imu_sample_scale, runs.spec.name, comp, v.stated)
         if not math.isfinite(s):
             continue
         v.samples[comp] = {"scale": float(s), "sigma": float(e), "white": bool(white)}
+        if axes:  # one axis unlike the others: said per axis, the scale is their RMS
+            v.samples[comp]["axes"] = [float(a) for a in axes]
         if white and p_two_sided(s, e) < ALPHA / n_tests and abs(s - 1.0) > MATERIAL:
             v.rejected.append(comp)
             applied = applied.replace(**{comp: getattr(v.stated, comp) * s})
