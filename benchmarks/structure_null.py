@@ -61,7 +61,8 @@ def bag_tests(name: str, seed: int) -> tuple[list[tuple[float, float]], list[flo
     extra_p = [f.p_value for f in extra]  # regressor_tests adjusts them in place
     stats.frame_robust_t = record
     try:
-        lines = stats.regressor_tests(res, mask, centre, focal=(cam.fx, cam.fy), extra=extra)
+        lines = stats.regressor_tests(res, mask, centre, focal=(cam.fx, cam.fy), extra=extra,
+                                      R_imu_st=prior.R_imu_st)
     finally:
         stats.frame_robust_t = inner
     return seen, extra_p, lines
