@@ -114,6 +114,9 @@ class StarNoise:
     repeat_dof: float = 0.0
     #: when significant, the per-star error's RMS (px per axis), removed before the scale
     repeat_removed: float = 0.0
+    #: lag-one correlation of a star's consecutive residuals (about its mean), and pairs
+    track_rho: float = 0.0
+    track_pairs: int = 0
 
     @property
     def repeat_p(self) -> float:
@@ -182,7 +185,9 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     # noise correlated over a few frames makes each star's mean vary more than 1/n: the χ²
     # is referred to that (the lag correlation of the residuals about their star's mean,
     # which a fixed per-star error does not raise)
-    rep /= noise_structure.track_inflation(r_star, stars)
+    infl, rho, pairs = noise_structure.track_inflation(r_star, stars)
+    rep /= infl
+    chi2 /= infl  # the cells' means too (with few stars in view a cell is a star or two)
 
     def estimate(r, share):
         q = (r**2).sum(1)
@@ -207,6 +212,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         out.repeat, out.repeat_dof, out.repeat_removed = rep / max(out.scale, 1e-300) ** 2, \
             rep_dof, rms
     out.structure, out.structure_dof = chi2 / max(out.scale, 1e-300) ** 2, dof
+    out.track_rho, out.track_pairs = rho, pairs
     return out
 
 
@@ -395,6 +401,7 @@ class NoiseVerdict:
     unknown: int = 0  #: stars whose message says σ = 0
     unknown_sigma_px: float = math.nan  #: their measured σ
     unknown_sigma_sigma: float = math.nan
+    unknown_base_px: float = math.nan  #: the σ the run assumed for them (the default)
     groups: list[dict[str, Any]] = field(default_factory=list)
     group: dict[str, Any] | None = None  #: the grouping applied (or None)
     imu: dict[str, ScaleSearch] = field(default_factory=dict)  #: gyro / accel searches
@@ -410,6 +417,8 @@ class NoiseVerdict:
     samples: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: components whose ML scale (the stars) exceeds what the samples show: motion, not noise
     beyond: list[str] = field(default_factory=list)
+    #: the stars' noise correlated from frame to frame: {rho, inflation, sigma_scale} or None
+    correlated: dict[str, float] | None = None
 
     @property
     def rescaled(self) -> bool:
@@ -465,6 +474,8 @@ class NoiseVerdict:
             out["star_groups"] = self.groups
         if self.repeat:
             out["star_repeat"] = self.repeat
+        if self.correlated:
+            out["star_correlated"] = self.correlated
         out["verdict"] = self.lines()
         if self.skipped:
             out["skipped"] = self.skipped
@@ -514,7 +525,10 @@ class NoiseVerdict:
         if self.skipped:
             return [f"not measured: {self.skipped}"] + out
         out += self._beyond_lines()
-        if "star" in self.rejected and self.group is None:
+        if self.correlated:
+            out.append(noise_structure.correlated_line(self.correlated, self.applied.star))
+        if "star" in self.rejected and self.group is None and \
+                (not self.correlated or abs(self.star - 1.0) > MATERIAL):
             s, e = self.star, self.star_sigma
             word = "too small" if s > 1 else "too large"
             k = s if s > 1 else 1.0 / s
@@ -526,7 +540,10 @@ class NoiseVerdict:
         if self.group is not None:
             g = self.group
             bins = _bin_text(g["edges"], GROUP_UNITS[g["by"]])
-            out.append(f"the stars' sigma ({self.stated_sigma_px:.3g} px stated) depends on "
+            said = (f"{self.stated_sigma_px:.3g} px stated" if np.isfinite(
+                self.stated_sigma_px) else "0 = unknown in every message: the factors are of "
+                f"the {self.unknown_base_px:.3g} px default")
+            out.append(f"the stars' sigma ({said}) depends on "
                        + g["by"] + ": " + ", ".join(
                            f"x{s:.3g} +- {e:.2g} ({b})" for s, e, b in zip(
                                g["scales"], g["sigma"], bins, strict=True))
@@ -614,6 +631,7 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
         su, esu, _ = sn.group(sn.unknown)
         base = float(np.median(sn.sigma_px[sn.unknown]))
         v.unknown_sigma_px, v.unknown_sigma_sigma = base * su, base * esu
+        v.unknown_base_px = base
         applied = applied.replace(unknown_sigma_px=v.unknown_sigma_px)
     if sn.repeat_removed:
         v.repeat = {"chi2": sn.repeat, "dof": sn.repeat_dof, "p_value": sn.repeat_p,
@@ -638,6 +656,11 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
                 edges=tuple(best["edges"]), factors=tuple(float(x) for x in sc / overall))
             if "star" not in v.rejected:
                 v.rejected.append("star")
+    v.correlated = noise_structure.correlated(sn.track_rho, sn.track_pairs, 2 * MATERIAL)
+    if v.correlated:
+        applied = applied.replace(star=applied.star * v.correlated["sigma_scale"])
+        if "star" not in v.rejected:
+            v.rejected.append("star")
     return applied
 
 

@@ -44,8 +44,8 @@ def minus_subpixel(r: np.ndarray, share: np.ndarray, uv: np.ndarray, alpha: floa
     return out, share_out
 
 
-def track_inflation(r: np.ndarray, star: np.ndarray) -> float:
-    """How much more than ``1/n`` a star's mean varies: ``(1 + ρ) / (1 − ρ)``, at least 1.
+def track_inflation(r: np.ndarray, star: np.ndarray) -> tuple[float, float, int]:
+    """How much more than ``1/n`` a star's mean varies: ``((1 + ρ) / (1 − ρ), ρ, pairs)``.
 
     ``ρ``: the lag-one correlation of ``r`` (whitened residuals about each star's mean, rows
     in time order) between a star's consecutive residuals, pooled over the stars and axes,
@@ -60,8 +60,33 @@ def track_inflation(r: np.ndarray, star: np.ndarray) -> float:
     rr, st = rr[order], st[order]
     same = st[1:] == st[:-1]
     if same.sum() < 20:
-        return 1.0
+        return 1.0, 0.0, int(same.sum())
     a, b = rr[1:][same], rr[:-1][same]
     den = math.sqrt(float(np.sum(a * a)) * float(np.sum(b * b)))
     rho = float(np.clip(np.sum(a * b) / den, 0.0, 0.95)) if den > 0 else 0.0
-    return (1.0 + rho) / (1.0 - rho)
+    return (1.0 + rho) / (1.0 - rho), rho, int(same.sum())
+
+
+def correlated(rho: float, pairs: int, material: float) -> dict[str, float] | None:
+    """The stars' noise correlated from frame to frame, if it is (else None).
+
+    Significant (``ρ`` above 3 of its σ ``1/√pairs``) and material (the inflation ``f =
+    (1 + ρ)/(1 − ρ)`` above ``1 + material``): each frame's stars then carry ~1/f of what
+    white noise of their σ would about the slowly varying parameters, so a filter that
+    takes the noise as white must take σ √f (measured: unseen case ``ar1``, τ = 5 frames;
+    without it a candidate's score test, which assumes white innovations, added
+    thermal_focal_length at p = 6e-4).
+    """
+    f = (1.0 + rho) / (1.0 - rho)
+    if pairs and rho > 3.0 / math.sqrt(pairs) and f > 1.0 + material:
+        return {"rho": float(rho), "inflation": float(f), "sigma_scale": float(math.sqrt(f))}
+    return None
+
+
+def correlated_line(c: dict[str, float], applied_star: float) -> str:
+    """The noise verdict's line for :func:`correlated`."""
+    return (f"the stars' centroid noise is correlated from frame to frame along each star's "
+            f"track (lag-1 rho = {c['rho']:.2f}): noise, not an effect; each frame carries "
+            f"~1/{c['inflation']:.3g} of what white noise of its sigma would, so a filter that "
+            f"takes it as white needs sigma x{c['sigma_scale']:.3g}: use --noise-scale "
+            f"star={applied_star:.3g} (applied; NIS/dof then reads below 1)")

@@ -442,7 +442,7 @@ def _components(sub: Table, du: np.ndarray, dv: np.ndarray, su: np.ndarray,
 #: regressor names of the tests shaped like a tracker's readout and centroiding
 #: (:func:`shaped_tests`)
 SUBPIXEL = "sub-pixel phase"
-ROLLING = "v (row) x image velocity (rolling-shutter shape)"
+ROLLING = "v (row) x image velocity (rolling-shutter shape"
 
 
 def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float, float],
@@ -463,8 +463,9 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     each star by its image velocity times that; the image velocity is ``J ω`` (the star's
     :func:`attitude_columns`, the gyro rate in the tracker frame: ``R_imu_st`` the
     installation; without it the test is not made).  Regressor ``(v − c_y) J ω``, projected
-    like the residuals on what no frame attitude explains; its ``detail`` is the readout
-    time ``T`` (ms, over the rows ``2 c_y``).
+    like the residuals on what no frame attitude explains; the readout time ``|T|`` (ms,
+    over the rows ``2 c_y``; its sign, the readout's direction, is the slope's) is in the
+    regressor's name, as the period is in :func:`periodic_findings`'.
     """
     out: list[RegressorFinding] = []
     frame = np.asarray(sub["frame"])
@@ -482,7 +483,8 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
                                *focal)
         return np.concatenate([r[:, 0], r[:, 1]])
 
-    def one(name: str, x: np.ndarray, detail=None) -> None:
+    def one(name, x: np.ndarray) -> None:
+        """``name``: the regressor's name, or a function of the fitted slope giving it."""
         ok = np.isfinite(x) & np.isfinite(y)
         if ok.sum() < 40 or len(np.unique(cl[ok])) < 10 or not np.ptp(x[ok]) > 0:
             return
@@ -490,8 +492,8 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
         xc = x[ok] - x[ok].mean()
         b = float(xc @ y_px[ok]) / float(xc @ xc)
         lo, hi = np.percentile(x[ok], [5, 95])
-        d = detail(b) if detail else None
-        out.append(RegressorFinding(name, "u, v", float(t), float(p), b * (hi - lo), d))
+        out.append(RegressorFinding(name if isinstance(name, str) else name(b), "u, v",
+                                    float(t), float(p), b * (hi - lo)))
 
     for fn, label in ((np.sin, "sin"), (np.cos, "cos")):
         one(f"{SUBPIXEL} ({label} 2 pi u, {label} 2 pi v)",
@@ -501,8 +503,8 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
         w_st = w_b @ np.asarray(R_imu_st, dtype=float)  # R^T ω per row
         vel = np.einsum("nij,nj->ni", attitude_columns(sub, *focal), w_st)
         height = 2.0 * centre[1]
-        one(ROLLING, project((v - centre[1])[:, None] * vel),  # px · px/s
-            lambda b: {"readout_ms": float(b * height * 1e3)})
+        one(lambda b: f"{ROLLING}, readout {abs(b) * height * 1e3:.3g} ms)",
+            project((v - centre[1])[:, None] * vel))  # px · px/s
     return out
 
 
