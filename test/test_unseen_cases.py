@@ -72,6 +72,9 @@ def test_pixel_locking_is_unexplained_with_the_subpixel_phase_first():
 
     found = _findings(_bag(post))
     assert found and found[0].regressor.startswith(stats.SUBPIXEL), found[:3]
+    # the other leads are tested without it: none of the gravity leads its per-dwell
+    # means lent them before (radial vs gravity_x_st, t = -6.6)
+    assert not any(f.regressor.startswith("gravity") for f in found)
     want = 2.0 * amp * np.sin(2.0 * np.pi * 0.2)  # sin's 5-95 % range: ±0.951
     assert abs(found[0].slope_px) == pytest.approx(want, rel=0.15)
 

@@ -508,6 +508,24 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     return out
 
 
+def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
+    """``du``, ``dv`` without their fit by ``sin, cos 2π u`` (``v`` for ``dv``).
+
+    Of the predicted centroid: what is left of the innovations once pixel locking is taken
+    out.
+    """
+    out = {}
+    for key, pos in (("du", "u_pred"), ("dv", "v_pred")):
+        ph = 2.0 * np.pi * np.asarray(sub[pos] if pos in sub else sub[pos[0]], dtype=float)
+        X = np.stack([np.sin(ph), np.cos(ph), np.ones_like(ph)], 1)
+        y = np.asarray(sub[key], dtype=float)
+        ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
+        b = np.linalg.lstsq(X[ok], y[ok], rcond=None)[0]
+        b[2] = 0.0  # the mean stays
+        out[key] = y - X @ b
+    return out
+
+
 def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, float],
                     alpha: float = 0.01, focal: tuple[float, float] | None = None,
                     extra: list[RegressorFinding] | None = None,
@@ -534,16 +552,28 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
         return []
     sub = {k: v[m] for k, v in res.items()}
     su, sv, suv = sub["s_uu"], sub["s_vv"], sub["s_uv"]
-    plain = _components(sub, sub["du"], sub["dv"], su, sv, suv, camera_centre)
-    inside = None
-    if focal is not None:
-        sig = np.sqrt(np.maximum(0.5 * (su + sv), 1e-300))
+    sig = np.sqrt(np.maximum(0.5 * (su + sv), 1e-300))
+
+    def components(sub):
+        plain = _components(sub, sub["du"], sub["dv"], su, sv, suv, camera_centre)
+        if focal is None:
+            return plain, None
         r, lev, _ = within_frame(sub, sig, focal[0], focal[1])
         keep = np.clip(1.0 - 0.5 * lev, 1e-3, 1.0)  # each star's share of its 2 dof
         var = sig**2 * keep
-        inside = _components(sub, r[:, 0] * sig, r[:, 1] * sig, var, var,
-                             np.zeros_like(var), camera_centre)
+        return plain, _components(sub, r[:, 0] * sig, r[:, 1] * sig, var, var,
+                                  np.zeros_like(var), camera_centre)
+
+    plain, inside = components(sub)
     regs = regressors(sub, camera_centre)
+    shaped = shaped_tests(sub, inside, sig, focal, camera_centre, R_imu_st) \
+        if inside is not None else []
+    bound = 4 * len(regs) + len(shaped) + len(extra or [])  # the family's size, at most
+    if any(f.regressor.startswith(SUBPIXEL) and f.p_value * bound < alpha for f in shaped):
+        # the other regressors are tested on the residuals without the pixel locking (it
+        # would lend them its per-dwell means: a 'radial vs gravity' lead, measured)
+        sub = dict(sub, **subpixel_removed(sub))
+        plain, inside = components(sub)
     frame = np.asarray(sub["frame"])
     tests = []
     for rname, x in regs.items():
@@ -562,8 +592,7 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
             lo, hi = np.percentile(x[ok2], [5, 95])
             slope = np.polyfit(x[ok2], y_px[ok2], 1)[0] * (hi - lo)
             tests.append(RegressorFinding(rname, cname, float(tstat), float(p), float(slope)))
-    if inside is not None:
-        tests += shaped_tests(sub, inside, sig, focal, camera_centre, R_imu_st)
+    tests += shaped
     tests += [t for t in (extra or []) if t is not None]
     m_tests = max(len(tests), 1)
     found = []
