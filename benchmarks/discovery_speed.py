@@ -12,6 +12,10 @@ Targets (2 cores):
 * ``sky``    the independent sky bag's whole path, ``discover`` from its prior, ≤ 60 s;
 * ``round``  one ``diagnose`` round on a 2-h ``psce_rotations`` bag, ≤ 30 s, ≤ 500 MB;
 * ``speedup`` the same round with 1 and with 2 workers: ≥ 1.8×;
+* ``cases``  each multi-effect acceptance case of ``test/test_discovery_cases.py`` (its bag
+  simulated once into ``.cache``) in one ``discover`` command, ≤ 60 s;
+* ``small``  a ``diagnose`` of a 150 s bag with the command line's default workers,
+  ``--workers 0`` and ``--workers 2``: what a local cluster costs a small command;
 * ``several`` one ``diagnose`` round where several candidates pass the screening (the
   acceptance case ``psce_camera_imu_time``'s three hidden effects on a 900 s bag) with 1
   and 2 workers: the round the 1 → 2 worker target is about.
@@ -27,6 +31,9 @@ Run::
     python benchmarks/discovery_speed.py --only breakdown   # where a 2-h round's time goes
     python benchmarks/discovery_speed.py --only breakdown --duration 1800   # a shorter bag
     python benchmarks/discovery_speed.py --only several --repeat 2 --detail
+    python benchmarks/discovery_speed.py --only cases --workers 0,2 --detail   # acceptance
+    python benchmarks/discovery_speed.py --only cases --case swaying_sky_mode --workers 2
+    python benchmarks/discovery_speed.py --only small --repeat 2   # the CLI's default workers
 """
 
 from __future__ import annotations
@@ -118,6 +125,32 @@ def several_bag(duration: float = 900.0) -> Path:
     return path
 
 
+def small_bag(duration: float = 150.0) -> Path:
+    """A short psce_rotations bag with a 5 ms time offset (a small ``diagnose``)."""
+    from stellar_cal_ros.sim.scenarios import get_scenario
+    from stellar_cal_ros.sim.world import simulate, write_simulation
+
+    path = Path(__file__).parent / ".cache" / f"psce_small_{int(duration)}s.mcap"
+    if not path.exists():
+        write_simulation(simulate(get_scenario("psce_rotations"), duration=duration, seed=5,
+                                  effects={"time_offset": 0.005}), path)
+    return path
+
+
+def case_bag(name: str) -> tuple[Path, object]:
+    """An acceptance case's bag (``test/test_discovery_cases.py`` CASES), simulated once."""
+    from stellar_cal_ros.sim.world import write_simulation
+
+    sys.path.insert(0, str(ROOT / "test"))
+    from test_discovery_cases import CASES
+
+    case = CASES[name]
+    path = Path(__file__).parent / ".cache" / f"case_{name}.mcap"
+    if not path.exists():
+        write_simulation(case.simulate(), path)
+    return path, case
+
+
 def _bag(duration: float) -> Path:
     sys.path.insert(0, str(Path(__file__).parent))
     from psce_speed import ensure_bag
@@ -184,15 +217,19 @@ def breakdown(bag: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Print the table (and the ratio 1 worker / 2 workers of each repetition)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--only", choices=["sky", "round", "several", "breakdown"], default=None)
+    ap.add_argument("--only", choices=["sky", "round", "several", "breakdown", "cases",
+                                       "small"], default=None)
+    ap.add_argument("--case", action="append", default=None,
+                    help="--only cases: this acceptance case (repeatable; default: all)")
     ap.add_argument("--repeat", type=int, default=1)
-    ap.add_argument("--workers", default="1,2", help="worker counts to interleave")
+    ap.add_argument("--workers", default="1,2",
+                    help="worker counts to interleave (cases: also 'default', no --workers)")
     ap.add_argument("--duration", type=float, default=7200.0,
                     help="bag length of the breakdown, s (the round is always 2 h)")
     ap.add_argument("--detail", action="store_true",
                     help="print each round's runs and seconds, and each run's wall time")
     args = ap.parse_args(argv)
-    counts = [int(w) for w in args.workers.split(",")]
+    counts = [int(w) for w in args.workers.split(",") if w != "default"]
     print("command: " + " ".join([sys.executable, *sys.argv]))
     print(f"cpu count {os.cpu_count()}, load average {os.getloadavg()[0]:.1f} at start")
     print(f"{'case':8s} {'workers':>7s} {'wall s':>9s} {'CPU s':>8s} {'peak RSS':>10s} "
@@ -211,6 +248,43 @@ def main(argv: list[str] | None = None) -> int:
                     print(_row("sky", 2, m, "whole path <= 60 s") + f"  ({added[:60]}...)")
                     if args.detail:
                         where_the_time_goes(m["stdout"], runs=False)
+        if args.only == "cases":
+            sys.path.insert(0, str(ROOT / "test"))
+            from test_discovery_cases import CASES
+
+            for name in args.case or list(CASES):
+                bag, case = case_bag(name)
+                for _ in range(args.repeat):
+                    for w in args.workers.split(","):
+                        flag = [] if w == "default" else ["--workers", w]
+                        m = measure(["discover", str(bag), "--calibration",
+                                     str(bag.with_suffix(".prior.yaml")), "--method",
+                                     case.method, "--effects", ",".join(case.user),
+                                     "--no-plots", "-o", f"{tmp}/{name}{w}", *flag])
+                        added = ", ".join(re.findall(r"^\s+added (\w+):", m["stdout"],
+                                                     re.MULTILINE))
+                        added += "; " + next((line.split("; ")[-1] for line in
+                                              m["stdout"].splitlines()
+                                              if line.startswith("final model")), "")
+                        print(f"{name}\n         {w:>7s} {m['wall']:9.1f} {m['cpu']:8.1f} "
+                              f"{m['rss_mb']:10.0f} {m['pss_mb']:10.0f}   <= 60 s  "
+                              f"({added})", flush=True)
+                        if args.detail:
+                            where_the_time_goes(m["stdout"], runs=True)
+        if args.only == "small":
+            # the command line's default (automatic) against --workers 0 and 2 (the old
+            # default on two cores): what a cluster costs a small diagnose
+            bag = small_bag()
+            for _ in range(args.repeat):
+                for w in ("0", "2", "default"):
+                    flag = [] if w == "default" else ["--workers", w]
+                    m = measure(["diagnose", str(bag), "--calibration",
+                                 str(bag.with_suffix(".prior.yaml")), "--method", "psce",
+                                 "--no-plots", "-o", f"{tmp}/small{w}", *flag])
+                    print(f"small    {w:>7s} {m['wall']:9.1f} {m['cpu']:8.1f} "
+                          f"{m['rss_mb']:10.0f} {m['pss_mb']:10.0f}", flush=True)
+                    if args.detail:
+                        where_the_time_goes(m["stdout"], runs=True)
         rounds = [("round", ensure_2h_bag, "<= 30 s, <= 500 MB"),
                   ("several", several_bag, "1 -> 2 workers >= 1.8x")]
         for case, make_bag, target in rounds:

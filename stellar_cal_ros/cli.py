@@ -588,8 +588,9 @@ def build_parser() -> argparse.ArgumentParser:
         d.add_argument("--max-rounds", type=int, default=8,
                        help="--auto: at most this many test rounds (default 8)")
         d.add_argument("--workers", type=int, default=None,
-                       help="worker processes for the re-runs (default: one per core; 0 "
-                            "or 1: none, everything in this process)")
+                       help="worker processes for the re-runs (default: automatic, in this "
+                            "process until a batch of re-runs would take >= 20 CPU-s, then "
+                            "one per core; 0 or 1: none, everything in this process)")
         d.add_argument("--scheduler", default=None, metavar="ADDRESS",
                        help="run the re-runs on an existing Dask cluster (tcp://host:8786)")
         d.add_argument("--verify", action="store_true",

@@ -23,7 +23,7 @@ from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.effects.base import Effect, Stage
 from stellar_cal_ros.io.calibration import load_calibration
-from stellar_cal_ros.methods.replay import bag_data_from_simulation
+from stellar_cal_ros.methods.replay import BagData, bag_data_from_simulation
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
@@ -391,3 +391,38 @@ def test_next_round_restarts_the_users_effects_from_the_users_values():
     assert (user.installation.inv() * chosen.installation).magnitude() > 0.012
     assert dt.initial(out)[0] == pytest.approx([0.005], abs=1e-12)
     assert pp.initial(chosen)[0][1] == pytest.approx(pp.initial(user)[0][1] - 40.0)  # a copy
+
+
+def test_automatic_workers_start_a_cluster_only_for_a_batch_that_pays(monkeypatch):
+    """``workers=None`` (the command line's default): runs stay in this process until a
+    batch would take CLUSTER_PAYS_S CPU-s here (its runs x the mean CPU-s of the runs made
+    so far); then the cluster starts, for that batch and every later one."""
+    from stellar_cal_ros.diagnosis import parallel
+
+    made, started = [], []
+
+    def fake_evaluate(bag, spec, prior, effects, *rest):
+        made.append(effects)
+        return RunSummary(effects=tuple(effects))
+
+    monkeypatch.setattr(parallel, "evaluate", fake_evaluate)
+    monkeypatch.setattr(parallel.DaskRuns, "_connect", lambda self: started.append(1))
+    bag = object.__new__(BagData)  # never read: every run is faked
+    with parallel.open_runner(bag, method_spec("psce"), 0.5, None) as runs:
+        assert isinstance(runs, parallel.DaskRuns) and runs.client is None
+        assert runs.workers == 1 and "in this process" in runs.description
+        task = parallel.Task("a", None, ("time_offset",))
+        one = parallel.Task("b", None, ("pixel_aspect",))
+        assert set(runs.run_all([task, one])) == {"a", "b"}  # nothing measured yet: here
+        assert len(made) == 2 and not started
+        per_run = parallel.CLUSTER_PAYS_S / 2
+        runs._cpu = [1, per_run * 0.99]  # two such runs: just below the rule
+        runs.run_all([task, one])
+        assert len(made) == 4 and not started
+        assert not runs.pays([task]) and not runs.pays([])  # one run never pays
+        runs._cpu = [1, per_run]  # two runs of this length pay for the cluster
+        assert runs.pays([task, one])
+        runs.run_all([task, one])
+        assert started == [1]
+    with parallel.open_runner(bag, method_spec("psce"), 0.5, 0) as runs:
+        assert type(runs) is parallel.Runs  # --workers 0: never a cluster

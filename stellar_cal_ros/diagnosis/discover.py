@@ -535,8 +535,10 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     ran_with = r.runs.noise
     comps = ("gyro", "accel") if Stage.ACCEL in r.spec.stages else ("gyro",)
     # with several workers the first ML runs go beside the base run (they need its result
-    # only when the stars change the scales: then they are not used)
-    ahead = first_runs(r.runs, prior, tuple(extra), comps) if r.runs.workers > 1 else []
+    # only when the stars change the scales: then they are not used); not in a round that
+    # is not screened: its model was far off, where the verdict skips the ML search
+    ahead = (first_runs(r.runs, prior, tuple(extra), comps)
+             if r.runs.workers > 1 and screen else [])
     try:
         base = r.runs.run_ahead([Task("noise: current model", prior, tuple(extra),
                                       keep_residuals, cost=_SCREEN_COST if screen else 1.0,

@@ -10,9 +10,18 @@ Executors
     in this process, one run after the other (the Python API's default; tests).  A
     one-worker cluster would run the same runs one after the other while adding its own
     processes: on a 2-h round 71 CPU-s instead of 49 (measured, doc/benchmarks.md).
-``workers=N`` (N ≥ 2; the command line's default is one per core, at most 16)
+``workers=N`` (N ≥ 2)
     a ``dask.distributed.LocalCluster`` of N single-threaded worker *processes* (the
     Kalman filters are pure-Python loops: threads would serialize on the GIL).
+``workers=None`` (the command line's default: automatic)
+    in this process until a batch of runs would take at least :data:`CLUSTER_PAYS_S`
+    CPU seconds one after the other (the batch's runs × the mean CPU time of the runs made
+    so far here), then a local cluster of one worker per core (at most 16) for that batch
+    and every later one.  A cluster costs each command ~15 CPU-s (its processes' start,
+    and each worker importing the package, loading the compiled kernels and reading the
+    bag: measured, doc/benchmarks.md) and several seconds of wall time before its first
+    run ends; a round of a few short runs (a ``diagnose`` near the model, a 2-h round's
+    noise runs) is done sooner in this process.  On a one-core machine: in this process.
 ``scheduler=ADDRESS``
     an existing Dask cluster (``tcp://host:8786``): the user's cluster, its workers as
     they are.
@@ -47,6 +56,7 @@ from stellar_cal_ros.diagnosis.runstats import (
     RunSummary,
     bag_facts,
     evaluate,
+    forget_bags,
 )
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import Calibration
@@ -56,6 +66,9 @@ log = logging.getLogger(__name__)
 #: the default number of local workers is one per core, up to this (a round has ~10-20
 #: runs, and each worker holds the bag)
 MAX_DEFAULT_WORKERS = 16
+#: ``workers=None``: a batch of runs goes to a (then started) local cluster when it would
+#: take at least this many CPU seconds in this process (see the module's doc)
+CLUSTER_PAYS_S = 20.0
 
 
 @dataclass
@@ -225,14 +238,25 @@ class DaskRuns(Runs):
     """Runs on a Dask cluster: a LocalCluster of processes, or the user's scheduler."""
 
     def __init__(self, bag: BagRef, spec, fraction: float, workers: int | None = None,
-                 scheduler: str | None = None) -> None:
+                 scheduler: str | None = None, lazy: bool = False) -> None:
         super().__init__(bag, spec, fraction)
+        self.cluster = self.client = None
+        self._start = (workers, scheduler)
+        #: ``lazy``: in this process until a batch pays for the cluster (:meth:`pays`)
+        self._cpu = [0, 0.0]  #: runs made in this process, their CPU seconds
+        if lazy:
+            self.description = "in this process (a local cluster once a batch pays for it)"
+            self.workers = 1
+        else:
+            self._connect()
+
+    def _connect(self) -> None:
+        workers, scheduler = self._start
         try:
             from distributed import Client, LocalCluster
         except ImportError as exc:  # pragma: no cover - a dependency of the package
             raise StellarCalError("parallel diagnosis needs dask.distributed "
                                   "(pip install 'dask[distributed]')") from exc
-        self.cluster = None
         if not log.isEnabledFor(logging.DEBUG):  # its start-up chatter, unless -v
             logging.getLogger("distributed").setLevel(logging.WARNING)
         if scheduler:
@@ -254,6 +278,9 @@ class DaskRuns(Runs):
                                             silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
             self.description = f"on {n} local worker processes"
+            if self._cpu[0]:
+                self.description += f" (after {self._cpu[0]} runs in this process)"
+                forget_bags()  # the workers hold the bag from now on
         self.workers = max(len(self.client.scheduler_info()["workers"]), 1)
         self.remote_bag = self._place_bag()
 
@@ -269,11 +296,27 @@ class DaskRuns(Runs):
             bag = BagBytes.of(bag)
         return self.client.scatter(bag, broadcast=True, hash=False)
 
+    def pays(self, tasks: list[Task]) -> bool:
+        """Whether ``tasks`` would take :data:`CLUSTER_PAYS_S` CPU-s here (lazy mode)."""
+        n, cpu = self._cpu
+        return len(tasks) > 1 and n > 0 and len(tasks) * cpu / n >= CLUSTER_PAYS_S
+
     def facts(self) -> dict[str, Any]:  # noqa: D102
+        if self.client is None:
+            return super().facts()
         return self.client.submit(bag_facts, self.remote_bag, pure=False).result()
 
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
+        if self.client is None:
+            return super()._compute_on_bag(fn, *args)
         return self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False).result()
+
+    def _evaluate(self, task: Task) -> RunSummary:
+        t = time.process_time()
+        out = super()._evaluate(task)
+        self._cpu[0] += 1
+        self._cpu[1] += time.process_time() - t
+        return out
 
     def _submit(self, task: Task) -> Any:
         return self.client.submit(evaluate, self.remote_bag, self.spec, task.prior,
@@ -293,6 +336,13 @@ class DaskRuns(Runs):
         return out
 
     def map(self, tasks, ahead=()):  # noqa: D102
+        if self.client is None and self.pays(list(tasks) + list(ahead)):
+            log.info("%d runs of ~%.1f CPU-s each: starting a local cluster", len(tasks),
+                     self._cpu[1] / self._cpu[0])
+            self._connect()
+        if self.client is None:
+            yield from super().map(tasks, ahead)
+            return
         from distributed import as_completed
 
         futures = {self._submit(task): task for task in tasks}
@@ -313,6 +363,8 @@ class DaskRuns(Runs):
         return stats if isinstance(stats, RunSummary) else self._result(task, stats)
 
     def close(self) -> None:  # noqa: D102
+        if self.client is None:
+            return
         with contextlib.suppress(Exception):
             self.client.close()
         if self.cluster is not None:
@@ -329,9 +381,11 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
                 scheduler: str | None = None) -> Iterator[Runs]:
     """A :class:`Runs` for ``bag``: in process (``workers`` 0 or 1), local Dask or a scheduler.
 
-    ``workers=None`` means one worker process per core (at most
-    :data:`MAX_DEFAULT_WORKERS`; in this process on a one-core machine).
+    ``workers=None`` means automatic: in this process, and one worker process per core
+    (at most :data:`MAX_DEFAULT_WORKERS`) from the first batch of runs that pays for them
+    (:data:`CLUSTER_PAYS_S`; in this process on a one-core machine).
     """
+    lazy = workers is None and not scheduler
     if workers is None:
         workers = min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
     if isinstance(bag, (str, Path)):
@@ -348,7 +402,7 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
             from stellar_cal_ros.methods.replay import read_bag_data
 
             bag = read_bag_data(bag, require_imu=False)
-    runs = (DaskRuns(bag, spec, fraction, workers, scheduler) if scheduler or workers > 1
+    runs = (DaskRuns(bag, spec, fraction, workers, scheduler, lazy) if scheduler or workers > 1
             else Runs(bag, spec, fraction))
     try:
         yield runs

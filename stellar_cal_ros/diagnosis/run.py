@@ -41,7 +41,8 @@ def diagnose(
     """Run one diagnosis round; write ``diagnosis.json`` and ``report.html``; return the summary.
 
     ``workers``: 0 runs the re-runs in this process, N on a local Dask cluster of N
-    processes, ``None`` one per core; ``scheduler``: the address of an existing Dask
+    processes, ``None`` automatic (in this process until a batch of runs pays for a
+    cluster of one worker per core); ``scheduler``: the address of an existing Dask
     cluster (:mod:`~stellar_cal_ros.diagnosis.parallel`).  ``auto``: add the recommended
     effect and test again, up to ``max_rounds`` rounds
     (:func:`~stellar_cal_ros.diagnosis.auto.discover`).  ``noise``: ``estimate`` (measure

@@ -176,6 +176,11 @@ def load_bag(ref: BagRef) -> BagData:
     return _BAG_CACHE[key]
 
 
+def forget_bags() -> None:
+    """Drop the bags :func:`load_bag` holds (this process hands its runs to workers now)."""
+    _BAG_CACHE.clear()
+
+
 def register_effect_classes(classes: tuple[type, ...]) -> None:
     """Register user effect classes a fresh worker process does not know yet."""
     from stellar_cal_ros.effects import registry

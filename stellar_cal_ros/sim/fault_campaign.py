@@ -47,8 +47,10 @@ COMMANDS: dict[str, list[str]] = {
     "replay_skip": ["replay", "{bag}", "--method", "psce", "--prior", "{prior}", "-o",
                     "{out}", "-q", "--on-error", "skip"],
     "batch": ["batch", "{bag}", "--method", "acf", "--prior", "{prior}", "-o", "{out}"],
+    # in this process: a fault bag's round is a few short runs (a local cluster would add
+    # ~15 CPU-s per command), and a campaign judging an older checkout runs it alike
     "diagnose": ["diagnose", "{bag}", "--method", "psce", "--calibration", "{prior}", "-o",
-                 "{out_dir}", "--no-plots"],
+                 "{out_dir}", "--no-plots", "--workers", "0"],
     "info": ["info", "{bag}"],
 }
 """``python -m stellar_cal_ros`` arguments of each command (``{...}`` filled per run)."""
