@@ -126,14 +126,14 @@ def several_bag(duration: float = 900.0) -> Path:
 
 
 def small_bag(duration: float = 150.0) -> Path:
-    """A short psce_rotations bag with a 5 ms time offset (a small ``diagnose``)."""
+    """A short psce_rotations bag, one small effect (a ``diagnose`` near the model)."""
     from stellar_cal_ros.sim.scenarios import get_scenario
     from stellar_cal_ros.sim.world import simulate, write_simulation
 
-    path = Path(__file__).parent / ".cache" / f"psce_small_{int(duration)}s.mcap"
+    path = Path(__file__).parent / ".cache" / f"psce_small_aspect_{int(duration)}s.mcap"
     if not path.exists():
         write_simulation(simulate(get_scenario("psce_rotations"), duration=duration, seed=5,
-                                  effects={"time_offset": 0.005}), path)
+                                  effects={"pixel_aspect": 1e-4}), path)
     return path
 
 
