@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 from stellar_cal_ros.core.earth import Site
 from stellar_cal_ros.core.gyro_check import check_gyro_against_stars  # noqa: F401 (re-exported)
 from stellar_cal_ros.core.imu import ImuBuffer
+from stellar_cal_ros.core.imu_prefix import in_sample_rotvec, sample_slopes
 from stellar_cal_ros.core.rotation import so3_exp
 from stellar_cal_ros.core.strapdown import attitude_increments, propagate_attitude
 from stellar_cal_ros.effects.base import Stage
@@ -322,6 +323,9 @@ class GyroChain:
     ``R(t)`` is the body attitude in the frame of the body at the start of the first IMU
     interval ("n0"); ``C(t)`` (3, P) is the first-order left perturbation of ``R(t)`` per
     unit change of θ through the gyro sensor model (zero unless gyro effects are estimated).
+    Inside an IMU interval the attitude is the filters' second-order one
+    (:func:`~stellar_cal_ros.core.imu_prefix.in_sample_rotvec`: the rate linear through the
+    interval's and the previous interval's mean rates).
     """
 
     def __init__(self, data: AcfData, model: StarModel, theta0: np.ndarray) -> None:
@@ -332,6 +336,8 @@ class GyroChain:
         w = model.corrected_rates(theta0, g.w)
         self.rates = w
         self.phi = attitude_increments(w, dt)
+        self.slope = sample_slopes(w, dt, np.concatenate([np.zeros((1, 3)), w[:-1]]),
+                                   np.concatenate([[0.0], dt[:-1]]))  # first: none
         R = propagate_attitude(Rotation.identity(), w, dt).as_matrix()
         self.R = np.concatenate([np.eye(3)[None], R])  # at nodes
         # sensitivity to θ: δw = −(Jb + JE·w) Δθ
@@ -358,7 +364,7 @@ class GyroChain:
     def attitude(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """``R_n0_b(t)`` (3, 3) and the body rate ω (3,) at relative time ``t``."""
         j, s = self._locate(t)
-        return self.R[j] @ so3_exp(s * self.phi[j]), self.rates[j]
+        return self.R[j] @ so3_exp(in_sample_rotvec(s, self.phi[j], self.slope[j])), self.rates[j]
 
     def sensitivity(self, t: float) -> np.ndarray:
         """``C(t)`` (3, P), linear interpolation between IMU nodes."""
