@@ -149,6 +149,25 @@ def test_time_offset_jacobian_is_the_rate(sim, stars):
     assert pred.t_exposure == ctx.stamp + 0.04
 
 
+def test_the_exposure_shift_builds_a_context_only_for_a_time_effect(sim, stars):
+    """The one no-time-effect rule: the prior's offset, and a lazy context never built."""
+    ctx = make_ctx(stars[0])
+    built = []
+
+    def lazy():
+        built.append(ctx)
+        return ctx
+
+    plain = StarModel(registry.create_many(BASELINE), sim.prior)
+    theta = theta_of(plain)
+    assert plain.exposure_shift(theta, lazy) == plain.time_shift(theta, ctx)[0] \
+        == sim.prior.time_offset
+    assert not built
+    timed = StarModel(registry.create_many(["time_offset"]), sim.prior)
+    assert timed.exposure_shift(np.array([0.04]), lazy) == pytest.approx(0.04, abs=1e-15)
+    assert built == [ctx]
+
+
 def test_subset_prediction_with_a_shared_context(sim, stars):
     """A subset u_i[mask] predicted with the same context (as the filters do) is exact."""
     ids, u_i = stars

@@ -539,10 +539,8 @@ class Calibrator(ImuRelease):
 
     def _time_shift(self, stamp: int, inp) -> float:
         """Seconds from a frame's stamp to its modelled exposure (current θ)."""
-        if not self.model.has_time_effect:
-            return float(self.prior.time_offset)
-        ctx = frame_context(stamp, inp, self.site, self.env)
-        return self.model.time_shift(self.filter.theta, ctx)[0]
+        return self.model.exposure_shift(
+            self.filter.theta, lambda: frame_context(stamp, inp, self.site, self.env))
 
     def _imu_end_rel(self) -> float:
         """Relative stamp of the newest IMU sample released (staged or in the filter)."""

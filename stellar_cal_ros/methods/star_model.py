@@ -237,11 +237,16 @@ class StarModel:
         return np.linalg.solve(np.eye(3) + E, (measured - b).T).T
 
     # ------------------------------------------------------------------ stars
-    def exposure_shift(self, theta: np.ndarray, ctx: FrameContext) -> float:
-        """:meth:`time_shift`'s value alone (a frame's update needs no gradient)."""
+    def exposure_shift(self, theta: np.ndarray,
+                       ctx: FrameContext | Callable[[], FrameContext]) -> float:
+        """:meth:`time_shift`'s value alone (a frame's update needs no gradient).
+
+        ``ctx`` may be a function that builds the frame's context: it is called only when a
+        time effect needs it (the driver's look-ahead builds none without one).
+        """
         if not self.has_time_effect:
             return float(self.prior.time_offset)
-        return self.time_shift(theta, ctx)[0]
+        return self.time_shift(theta, ctx() if callable(ctx) else ctx)[0]
 
     def time_shift(self, theta: np.ndarray, ctx: FrameContext) -> tuple[float, np.ndarray]:
         """Seconds from the stamp to the modelled exposure, and its gradient (P,)."""
