@@ -187,6 +187,28 @@ def test_rounds_keep_statistics_only_and_the_screening_hook_decides_what_reruns(
     assert np.max(np.abs(base.theta - f.theta) / f.sigma()[f.it]) < 1e-6
 
 
+def test_a_run_made_ahead_is_taken_by_the_same_run_only():
+    """Runs._take_ahead: a task equal but for its name and cost (and noise given or inherited
+    alike) takes the run made ahead; a task differing in any field of the run does not."""
+    from dataclasses import replace
+
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis.parallel import Runs, Task
+
+    runs = Runs("no-bag.mcap", None, 0.5)
+    runs.noise = NoiseScales()
+    made = Task("ahead", object(), ("a",), screen=("b",))  # a prior compares as an object
+    runs._ahead = [(made, runs.noise_of(made), "its stats")]
+    for other in (replace(made, prior=object()), replace(made, effects=("c",)),
+                  replace(made, keep_residuals=True), replace(made, screen=()),
+                  replace(made, candidate=True), replace(made, noise=NoiseScales(star=2.0)),
+                  replace(made, star_noise=True)):
+        assert runs._take_ahead(other) is None
+    assert runs._take_ahead(replace(made, key="asked", cost=3.0, noise=NoiseScales())) \
+        == "its stats"
+    assert runs._ahead == []
+
+
 def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
     """With the noise measured first, the measurement's base run (the current model at the
     stated scales) scores the candidates: when the verdict keeps the scales it is the

@@ -46,7 +46,7 @@ import os
 import time
 import uuid
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -73,13 +73,19 @@ CLUSTER_PAYS_S = 20.0
 
 @dataclass
 class Task:
-    """One run: the method's baseline plus ``effects``, started from ``prior``."""
+    """One run: the method's baseline plus ``effects``, started from ``prior``.
 
-    key: str
+    Two tasks are equal when they are the same run: every field but the name ``key`` and
+    the ``cost`` estimate (the prior compared as an object: ``Calibration`` has no value
+    equality), so a field added here counts unless it is marked ``compare=False``.
+    """
+
+    key: str = field(compare=False)
     prior: Calibration
     effects: tuple[str, ...]
     keep_residuals: bool = False
-    cost: float = 1.0  #: expected relative run time: longer runs are started first
+    #: expected relative run time: longer runs are started first
+    cost: float = field(default=1.0, compare=False)
     #: candidates this run scores (a screening run, :mod:`~stellar_cal_ros.diagnosis.screening`)
     screen: tuple[str, ...] = ()
     candidate: bool = False  #: an augmented run (its data faults are flagged, not raised)
@@ -217,11 +223,9 @@ class Runs:
         self._ahead.clear()
 
     def _take_ahead(self, task: Task) -> RunSummary | None:
+        run = replace(task, noise=self.noise_of(task))
         for i, (t, noise, stats) in enumerate(self._ahead):
-            if (t.prior is task.prior and t.effects == task.effects
-                    and noise == self.noise_of(task) and t.keep_residuals == task.keep_residuals
-                    and t.screen == task.screen and t.candidate == task.candidate
-                    and t.star_noise == task.star_noise):
+            if replace(t, noise=noise) == run:
                 del self._ahead[i]
                 return self._resolve(t, stats)
         return None
