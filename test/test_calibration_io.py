@@ -223,3 +223,29 @@ def test_residual_csv_bytes_are_the_csv_modules(tmp_path):
     assert (tmp_path / "b.csv").read_bytes() == ref
     text = dict(table, name=np.array(["a,b"] * 40))  # a string column: quoted by csv
     assert b'"a,b"' in write_residuals(tmp_path / "c.csv", text).read_bytes()
+
+
+def test_history_rows_gathered_in_blocks_are_the_row_by_row_bytes(tmp_path):
+    """TableSink.append_row with arrays: one gather per block, the same file and table."""
+    from stellar_cal_ros.methods.results import TableSink
+
+    rng = np.random.default_rng(6)
+    keys = ("t", "dof", "a", "b", "c", "d")
+    take = np.array([0, 3, 1, 2])
+    rows = [([float(rng.normal()), int(k)], (rng.normal(size=2), np.r_[np.nan, rng.normal()]))
+            for k in range(25)]
+    one, gathered = (TableSink(tmp_path / "one.csv", chunk_rows=7),
+                     TableSink(tmp_path / "gathered.csv", chunk_rows=7))
+    memory = TableSink(chunk_rows=7)
+    expected = [np.concatenate(a)[take[2]] for _, a in rows]
+    for head, arrays in rows:
+        one.append_row(keys, head + np.concatenate(arrays)[take].tolist())
+        gathered.append_row(keys, list(head), arrays, take)
+        memory.append_row(keys, list(head), arrays, take)
+        arrays[0][:] = 0.0  # the sink keeps copies
+    for sink in (one, gathered):
+        sink.close()
+    assert (tmp_path / "gathered.csv").read_bytes() == (tmp_path / "one.csv").read_bytes()
+    table = memory.table()
+    assert table["dof"].dtype.kind == "i" and table["t"].dtype.kind == "f"
+    np.testing.assert_array_equal(table["c"], expected)

@@ -621,10 +621,10 @@ class Calibrator(ImuRelease):
             pairs[1::2] = n_th + index[flt.it]
             self._history_sigma_index = np.concatenate(
                 [pairs, n_th + index[flt.ia]] + [n_th + i for i in nav]).astype(np.intp)
-        row = [float(upd.stamp), float(upd.nis), int(upd.dof), n_acc,
-               len(upd.accepted) - n_acc, int(upd.iterations)]
-        row += np.concatenate((flt.theta_estimated(), s))[self._history_sigma_index].tolist()
-        self.history.append_row(keys, row)
+        # the parameters and σ gathered by the sink for a block of rows at once
+        self.history.append_row(keys, [float(upd.stamp), float(upd.nis), int(upd.dof), n_acc,
+                                       len(upd.accepted) - n_acc, int(upd.iterations)],
+                                (flt.theta_estimated(), s), self._history_sigma_index)
 
     def _trim(self) -> None:
         """Drop IMU samples and environment data the filter can no longer need."""

@@ -89,6 +89,8 @@ class TableSink:
         self._buf_rows = 0
         self._row_keys: tuple[str, ...] | None = None  # append_row buffer
         self._row_values: list[list] = []
+        self._row_arrays: list[list[np.ndarray]] = []
+        self._row_take: np.ndarray | None = None
 
     def append(self, chunk: dict[str, np.ndarray]) -> None:
         """Add rows."""
@@ -98,21 +100,41 @@ class TableSink:
             self._flush_rows()
         self._buffer(chunk, n)
 
-    def append_row(self, keys: tuple[str, ...], values: list) -> None:
-        """Add one row: column names (pass the same tuple every call) and their scalars."""
-        if keys is not self._row_keys and self._row_values:
+    def append_row(self, keys: tuple[str, ...], values: list,
+                   arrays: tuple[np.ndarray, ...] = (), take: np.ndarray | None = None) -> None:
+        """Add one row: column names (pass the same tuple every call) and their values.
+
+        ``values``: the first cells (scalars); the others ``np.concatenate(arrays)[take]``
+        (pass the same ``take`` every call), gathered for all buffered rows at once: the
+        cells are what ``values + np.concatenate(arrays)[take].tolist()`` would give (the
+        arrays are copied).
+        """
+        if (keys is not self._row_keys or take is not self._row_take) and self._row_values:
             self._flush_rows()
         self._row_keys = keys
+        self._row_take = take
         self._row_values.append(values)
+        if take is not None:
+            self._row_arrays.append([np.array(a, dtype=float) for a in arrays])
         self.rows += 1
         if len(self._row_values) >= self.chunk_rows:
             self._flush_rows()
 
     def _flush_rows(self) -> None:
         rows, self._row_values = self._row_values, []
-        cols = zip(*rows, strict=True)
-        self._buffer({k: np.array(c) for k, c in zip(self._row_keys, cols, strict=True)},
-                     len(rows))
+        arrays, self._row_arrays = self._row_arrays, []
+        keys = self._row_keys
+        chunk = {k: np.array(c) for k, c in zip(keys, zip(*rows, strict=True), strict=False)}
+        if self._row_take is not None:  # the array cells: one gather for every row
+            block = np.concatenate([np.stack(c) for c in zip(*arrays, strict=True)],
+                                   axis=1)[:, self._row_take]
+            head = len(rows[0])
+            if head + block.shape[1] != len(keys):
+                raise ValueError(f"{len(keys)} columns, {head + block.shape[1]} cells a row")
+            chunk.update(zip(keys[head:], block.T, strict=True))
+        elif len(chunk) != len(keys):
+            raise ValueError(f"{len(keys)} columns, {len(rows[0])} cells a row")
+        self._buffer(chunk, len(rows))
 
     def _buffer(self, chunk: dict[str, np.ndarray], n: int) -> None:
         # chunks merge only with chunks of the same columns and dtypes (same values, same
@@ -168,7 +190,7 @@ class NullSink(TableSink):
     def append(self, chunk) -> None:  # noqa: D102
         return None
 
-    def append_row(self, keys, values) -> None:  # noqa: D102
+    def append_row(self, keys, values, arrays=(), take=None) -> None:  # noqa: D102
         return None
 
 
