@@ -268,6 +268,100 @@ def acquisition(duration: float, seed: int, effect: str, parameter: str, size: f
         kernel.StarFilter.initialize = initialize
 
 
+def probe_check(duration: float, seed: int, effects: list[str]) -> list[dict]:
+    """Every row the report prints, after the probe runs, against the simulator's injection.
+
+    The clean bag is diagnosed as a user's would be (noise measured, every candidate; the
+    rows the first order does not hold are measured by probe runs on the bag,
+    :mod:`stellar_cal_ros.diagnosis.reliability_probe`); each effect's parameters that
+    carry a listed or probed row are injected with the simulator (same seed) at ± their
+    printed size and the current model re-run.  Rows ``{seed, effect, parameter, sign,
+    quantity, printed, measured, sigma, listed, probed}``: ``listed`` — the report lists the
+    row at that sign (:func:`~stellar_cal_ros.diagnosis.injection.claims`); ``probed`` — a
+    probe replaced its first-order value (``first_order`` then holds that value).  The
+    equivalent principal point of a camera effect is left out (the effect moves its true
+    value too: the simulator's shift is not the printed error).
+    """
+    import tempfile
+
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis.run import diagnose
+    from stellar_cal_ros.effects import registry
+    from stellar_cal_ros.effects.base import Stage
+
+    sim, data = _data(duration, seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = diagnose(data, sim.prior, "psce", [], tmp, plots=False, verbose=False)
+    noise = NoiseScales.from_dict(summary["noise"]["applied"])
+    prior = rerun_prior(sim.prior)
+    clean = replay(data, prior, "psce", [], keep_tables=False, noise=noise)
+    before = injection.run_values(clean)
+    sigma = dict(zip(clean.filter.model.parameter_names(),
+                     np.sqrt(np.diag(clean.filter.P)[clean.filter.it]), strict=False))
+    sigma.update(zip(("equivalent_principal_point.u", "equivalent_principal_point.v"),
+                     (clean.derived or {}).get("equivalent_principal_point_sigma_px",
+                                               (np.nan, np.nan)), strict=True))
+    rows = []
+    for entry in summary.get("reliability", []):
+        eid = entry["effect"]
+        if eid not in effects:
+            continue
+        first = {q: v for p in entry.get("probe", {}).values()
+                 for q, v in p["first_order"].items()}
+        shown = set(entry["dominates"]) | set(first) | set(entry.get("remainders", []))
+        camera = registry.create(eid).stage in (Stage.CAMERA, Stage.TRACKER)
+        shown = {q for q in shown if not (camera and q.startswith("equivalent_principal"))}
+        for parameter in dict.fromkeys(entry["bias_parameter"][q] for q in sorted(shown)):
+            for sign in (1, -1):
+                delta = injection.parameter_delta(eid, parameter,
+                                                  sign * entry["hidden_size"][parameter])
+                _, inj = _data(duration, seed, {eid: injection.simulation_value(eid, delta)})
+                shift = injection.paired_shift(before, injection.run_values(replay(
+                    inj, prior, "psce", [], keep_tables=False, noise=noise)))
+                listed = injection.claims(entry, sign).get(parameter, [])
+                for q in sorted(shown):
+                    if entry["bias_parameter"][q] != parameter:
+                        continue
+                    rows.append({"seed": seed, "effect": eid, "parameter": parameter,
+                                 "sign": sign, "quantity": q,
+                                 "printed": injection.printed_shift(entry, q, sign),
+                                 "measured": shift[q], "first_order": sign * first.get(
+                                     q, entry["biases_signed"][q]),
+                                 "sigma": sigma.get(q, float("nan")),
+                                 "listed": q in listed, "probed": q in first,
+                                 "remainder": q in entry.get("remainders", [])})
+    return rows
+
+
+def _print_rows(rows: list[dict]) -> None:
+    for r in rows:
+        status = ("listed" if r["listed"] else "not listed") + (
+            ", probed" if r["probed"] else "") + (", remainder" if r["remainder"] else "")
+        print(f"{r['seed']:4d} {r['effect']:20s} {r['parameter']:7s} {r['sign']:+2d} "
+              f"{r['quantity']:30s} {r['printed']:10.3e} {r['measured']:10.3e} "
+              f"{r['measured'] / r['printed']:6.3f} {r['first_order']:11.3e} "
+              f"{r['measured'] / r['first_order']:6.3f} "
+              f"{abs(r['measured']) / r['sigma']:6.2f} {status}", flush=True)
+
+
+def _print_probe(rows: list[dict]) -> None:
+    listed = [r for r in rows if r["listed"]]
+    held = [r for r in listed if 0.7 <= r["measured"] / r["printed"] <= 1.3]
+    probed = [r for r in rows if r["probed"]]
+    print(f"\nlisted rows within 0.7-1.3 of the printed shift: {len(held)} of {len(listed)}"
+          f" (probed: {sum(r['listed'] for r in probed)} listed, "
+          f"{sum(not r['listed'] for r in probed)} measured below σ at that sign)")
+    for eid in dict.fromkeys(r["effect"] for r in rows):
+        sel = [r for r in listed if r["effect"] == eid]
+        ratio = [r["measured"] / r["printed"] for r in sel]
+        pr = [r for r in rows if r["effect"] == eid and r["probed"]]
+        print(f"  {eid:22s} {len(sel):3d} listed rows, measured/printed "
+              + (f"{min(ratio):.3f}-{max(ratio):.3f}" if ratio else "-")
+              + (f"; {len(pr)} probed rows: first-order ratio "
+                 f"{min(r['measured'] / r['first_order'] for r in pr):.3f}-"
+                 f"{max(r['measured'] / r['first_order'] for r in pr):.3f}" if pr else ""))
+
+
 def main() -> int:
     """Measure and print one line per (seed, effect, size, quantity), then per-seed means."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -288,7 +382,24 @@ def main() -> int:
     ap.add_argument("--quantities", default="",
                     help="'all': every estimated parameter (default: the gyro-bias rows "
                          "and the tilt's), with a summary by share")
+    ap.add_argument("--probe", action="store_true",
+                    help="every printed row after the probe runs against the simulator's "
+                         "injection at ± its size (--effects all: every library effect)")
     args = ap.parse_args()
+    if args.probe:
+        from stellar_cal_ros.effects import registry
+
+        effects = list(registry.available()) if args.effects == "all" else \
+            args.effects.split(",")
+        rows = []
+        print(f"{'seed':>4s} {'effect':20s} {'param':7s} {'±':>2s} {'quantity':30s} "
+              f"{'printed':>10s} {'measured':>10s} {'ratio':>6s} {'first-order':>11s} "
+              f"{'ratio':>6s} {'|m|/σ':>6s} status")
+        for seed in (int(s) for s in args.seeds.split(",")):
+            rows += probe_check(args.duration, seed, effects)
+            _print_rows([r for r in rows if r["seed"] == seed])
+        _print_probe(rows)
+        return 0
     if args.acquisition:
         acquisition(args.duration, int(args.seeds.split(",")[0]), args.effects.split(",")[0],
                     args.parameter, args.size)

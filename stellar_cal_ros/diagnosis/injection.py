@@ -94,6 +94,17 @@ def run_values(result) -> dict[str, float]:
     return out
 
 
+def summary_values(run) -> dict[str, float]:
+    """:func:`run_values` of a diagnosis run (a ``RunSummary``)."""
+    from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
+
+    out = run.value_by_name()
+    epp = (run.derived or {}).get("equivalent_principal_point_px")
+    if epp is not None:
+        out.update(zip(EPP_NAMES, map(float, epp), strict=True))
+    return out
+
+
 def paired_shift(clean: dict[str, float], injected: dict[str, float],
                  true_shift: dict[str, float] | None = None) -> dict[str, float]:
     """Shift of every quantity from the clean run to the injected one.
@@ -106,13 +117,28 @@ def paired_shift(clean: dict[str, float], injected: dict[str, float],
             if k in injected}
 
 
-def claims(entry: dict[str, Any]) -> dict[str, list[str]]:
+def printed_shift(entry: dict[str, Any], quantity: str, sign: float = 1.0) -> float:
+    """The shift the report prints for ``quantity`` with the effect at ``sign`` × its size.
+
+    Linear in the sign (``sign · biases_signed``) unless a probe measured the row at both
+    signs (``biases_minus``, :mod:`~stellar_cal_ros.diagnosis.reliability_probe`).
+    """
+    if sign < 0 and quantity in entry.get("biases_minus", {}):
+        return float(entry["biases_minus"][quantity])
+    return float(np.sign(sign)) * float(entry["biases_signed"][quantity])
+
+
+def claims(entry: dict[str, Any], sign: float = 1.0) -> dict[str, list[str]]:
     """The printed bias claims of one reliability entry, grouped by the injected parameter.
 
     ``{parameter: [quantities whose printed bias comes from that parameter alone]}``, over
-    the quantities the report lists (``dominates``).
+    the quantities the report lists (``dominates``) whose printed shift at ``sign`` × size
+    exceeds their σ (a row a probe measured large at one sign only is claimed there).
     """
+    from stellar_cal_ros.diagnosis.reliability import DOMINATES_SIGMA
+
     out: dict[str, list[str]] = {}
     for q in entry.get("dominates", []):
-        out.setdefault(entry["bias_parameter"][q], []).append(q)
+        if abs(printed_shift(entry, q, sign)) > DOMINATES_SIGMA * entry["sigma"][q]:
+            out.setdefault(entry["bias_parameter"][q], []).append(q)
     return out

@@ -35,7 +35,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
            panels: list[tuple[str, Any]], plots: bool, title: str = "stellar_cal diagnosis",
            extra_images: list[tuple[str, str]] | None = None,
            verdict=None, write: bool = True, outside: list | None = None,
-           like: list[str] | None = None) -> dict[str, Any]:
+           like: list[str] | None = None, runs=None) -> dict[str, Any]:
     """Unexplained structure on ``final``'s residuals, the summary, the report files.
 
     ``base`` is the run the candidates were compared with (the summary's RMS); ``final``
@@ -47,7 +47,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     ``outside``: significant findings of the flexure-shaped test after an added effect
     (:mod:`~stellar_cal_ros.diagnosis.flexure`, adjusted over their own tests), listed among
     the 'unexplained' lines; with them ``summary["remainder"]`` says that the added effects
-    ``like`` (default: the recommendation) explain the structure only in part.
+    ``like`` (default: the recommendation) explain the structure only in part.  ``runs``:
+    the round's :class:`~stellar_cal_ros.diagnosis.parallel.Runs` (open): the printed biases
+    the first order does not hold are measured by probe runs on the bag
+    (:mod:`~stellar_cal_ros.diagnosis.reliability_probe`).
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
@@ -83,6 +86,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         summary["remainder"] = dict(top, like=list(like), text=remainder_text(like, top))
     if best is None:
         summary["reliability"] = hidden_effects(base, results)
+        if runs is not None:
+            from stellar_cal_ros.diagnosis.reliability_probe import probe_entries
+
+            probe_entries(summary["reliability"], base, runs)
     if plots:
         from stellar_cal_ros.diagnosis import report  # matplotlib: only when plotting
 

@@ -259,13 +259,23 @@ def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> lis
         line = f"  {e['effect']:22s} MDB {mdb}{flag}"
         dom = sorted(e["dominates"], key=lambda n: -e["biases"][n] / e["sigma"][n])
         src = e.get("bias_parameter", {})
+        minus = e.get("biases_minus", {})
         if dom:
             line += "; would bias " + ", ".join(
                 f"{n} by {e['biases_shown'][n]}"
                 + (f" [{src[n]}]" if len(e["mdb"]) > 1 and src.get(n) else "")
+                + (f" (measured: {reliability.shown(n, e['biases_signed'][n])} at +MDB, "
+                   f"{reliability.shown(n, minus[n])} at -MDB)" if n in minus else "")
                 + f" (sigma {e['sigma_shown'][n]})"
                 for n in dom[:per_effect]) + (f" and {len(dom) - per_effect} more"
                                               if len(dom) > per_effect else "")
+        below = [n for p in e.get("probe", {}).values() for n in p["unlisted"]]
+        if below:
+            line += ("; first order off, measured by a probe run at +-MDB below its sigma: "
+                     + ", ".join(f"{n} (first order {reliability.shown(n, _first(e, n))})"
+                                 for n in below[:per_effect])
+                     + (f" and {len(below) - per_effect} more" if len(below) > per_effect
+                        else ""))
         rem = e.get("remainders", [])
         if rem:
             line += (f"; beside its {max(e['largest_shift_sigma'].values()):.0f} sigma shift, "
@@ -283,6 +293,12 @@ def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> lis
                      + " with no trace in the residuals")
         out.append(line)
     return out
+
+
+def _first(entry: dict[str, Any], quantity: str) -> float:
+    """The first-order bias of a row a probe run replaced."""
+    return next(p["first_order"][quantity] for p in entry["probe"].values()
+                if quantity in p["first_order"])
 
 
 def print_diagnosis(summary: dict, calibration=None) -> None:

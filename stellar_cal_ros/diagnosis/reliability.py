@@ -49,7 +49,8 @@ DOMINATES_SIGMA = 1.0
 #: shift, in sigmas, the same injection makes: beside a large shift the filter's response
 #: departs from the sensitivity recursion by up to 1.4 % of that shift (doc/benchmarks.md,
 #: image_plane_tilt at its MDB, seeds 5-12: gyro_bias.by 1.32 sigma printed, ~0 measured,
-#: beside 97.6 sigma), so 30 % needs >= 0.047 of it; 0.15 leaves a factor 3
+#: beside 97.6 sigma), so 30 % needs >= 0.047 of it; 0.15 leaves a factor 3.  A diagnosis
+#: measures these rows by probe runs (:mod:`~stellar_cal_ros.diagnosis.reliability_probe`)
 FIRST_ORDER_SHARE = 0.15
 
 def plausible_size(effect_id: str, calibration: Any = None) -> np.ndarray:
@@ -314,7 +315,9 @@ def external_reliability(det: Detectability, rows: dict[str, np.ndarray],
     :data:`FIRST_ORDER_SHARE` of the largest shift (in σ) the same parameter of the effect
     makes (``largest_shift_sigma``): then it is a first-order remainder (``remainders``)
     that an injection need not reproduce (an image-plane tilt moves the installation by
-    ~100 σ and the gyro bias by a printed 1.2 σ that the filter's response does not have).
+    ~100 σ and the gyro bias by a printed 1.2 σ that the filter's response does not have);
+    a diagnosis measures those rows by probe runs on the bag
+    (:func:`~stellar_cal_ros.diagnosis.reliability_probe.probe_entries`).
 
     Returns ``{"effect", "mdb", ..., "hidden_size", "biases", "biases_signed",
     "bias_parameter", "biases_shown", "dominates", "sigma", "sigma_shown", "blind",

@@ -337,9 +337,16 @@ def _reliability_html(summary: dict[str, Any]) -> str:
     rows = []
     for e in summary.get("reliability", []):
         mdb = ", ".join(f"{n} {shown(e['effect'] + '.' + n, v)}" for n, v in e["mdb"].items())
+        minus = e.get("biases_minus", {})
         bias = ", ".join(f"{n} by {e['biases_shown'][n]}"
                          + (f" [{e['bias_parameter'][n]}]" if len(e["mdb"]) > 1 else "")
+                         + (f" (measured: {shown(n, e['biases_signed'][n])} at +MDB, "
+                            f"{shown(n, minus[n])} at −MDB)" if n in minus else "")
                          + f" (σ {e['sigma_shown'][n]})" for n in e["dominates"])
+        below = [n for p in e.get("probe", {}).values() for n in p["unlisted"]]
+        if below:
+            bias += ("; " if bias else "") + "first order off, measured below σ: " + ", ".join(
+                below)
         if e.get("remainders"):
             bias += ("; first order only: " if bias else "first order only: ") + ", ".join(
                 f"{n} by {e['biases_shown'][n]}" for n in e["remainders"])

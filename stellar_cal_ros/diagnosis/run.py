@@ -80,14 +80,16 @@ def diagnose(
             got = flexure.after_add(runs, best.refined_run, rerun_prior(best.run.calibration),
                                     extra)
             outside = flexure.significant([flexure.finding(got, [best.effect])], ALPHA)
-    final = base
-    panels = [("current model", base.residuals)]
-    if best is not None and best.refined_run is not None:
-        final = best.refined_run
-        panels.append((f"+ {best.effect}", final.residuals))
-    summary = finish(out, calibration, base, final, results, spec, effects,
-                     evaluation_fraction, panels, plots, verdict=runs.verdict,
-                     outside=outside)
+        final = base
+        panels = [("current model", base.residuals)]
+        if best is not None and best.refined_run is not None:
+            final = best.refined_run
+            panels.append((f"+ {best.effect}", final.residuals))
+        # with the runner open: the printed biases the first order does not hold are
+        # measured by probe runs on the bag
+        summary = finish(out, calibration, base, final, results, spec, effects,
+                         evaluation_fraction, panels, plots, verdict=runs.verdict,
+                         outside=outside, runs=runs)
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
 

@@ -77,6 +77,8 @@ class RunSummary:
     #: the evaluation window's statistics (:meth:`stellar_cal_ros.methods.results.RunStats.window`)
     window: dict[str, Any] = field(default_factory=dict)
     calibration: Calibration | None = None
+    #: the calibration the run started from (a re-run with a probe starts there too)
+    prior: Calibration | None = None
     counters: dict[str, int] = field(default_factory=dict)
     derived: dict[str, Any] = field(default_factory=dict)
     #: gradient of the equivalent principal point (u, v) with respect to θ, (2, n)
@@ -254,6 +256,7 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
     except Exception as exc:  # a candidate failing must not stop the diagnosis
         out = RunSummary(effects=tuple(effects), error=f"{type(exc).__name__}: {exc}")
     out.effects = tuple(effects)
+    out.prior = prior
     out.seconds = time.perf_counter() - t0
     return out
 

@@ -30,7 +30,6 @@ import numpy as np
 from scipy import stats as sps
 
 from stellar_cal_ros.diagnosis import injection
-from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import Stage
 
@@ -38,14 +37,6 @@ from stellar_cal_ros.effects.base import Stage
 #: and every listed shift within this ratio of its printed bias
 POWER_RANGE = (0.65, 0.95)
 RATIO_RANGE = (0.7, 1.3)
-
-
-def _values(run) -> dict[str, float]:
-    out = run.value_by_name()
-    epp = run.derived.get("equivalent_principal_point_px")
-    if epp is not None:
-        out.update(zip(EPP_NAMES, map(float, epp), strict=True))
-    return out
 
 
 def injected_parameter(entry: dict[str, Any]) -> tuple[str, list[str]]:
@@ -120,7 +111,7 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
 
     data0, _ = make({})
     base0, cands0 = round_on(data0)
-    before = _values(base0)
+    before = injection.summary_values(base0)
     out = []
     for entry in entries:
         if not entry.get("testable") or (only is not None and entry["effect"] not in only):
@@ -138,7 +129,8 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int) -> dict[str
     """One entry injected at ``sign`` x its printed MDB: the check's record."""
     eid = entry["effect"]
     eff = registry.create(eid)
-    param, listed = injected_parameter(entry)
+    param, _ = injected_parameter(entry)
+    listed = injection.claims(entry, sign).get(param, [])
     size = sign * entry["hidden_size"][param]
     delta = injection.parameter_delta(eid, param, size)
     data1, counts = make({eid: injection.simulation_value(eid, delta)})
@@ -153,13 +145,13 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int) -> dict[str
         lam = float(d @ np.linalg.pinv(info) @ d)
     k = int(entry.get("dof", eff.size))
     crit = sps.chi2.isf(entry["alpha"], k)
-    shift = injection.paired_shift(before, _values(base))
+    shift = injection.paired_shift(before, injection.summary_values(base))
     checks = []
     for q in listed:
         if q.startswith("equivalent_principal_point") and eff.stage in (Stage.CAMERA,
                                                                          Stage.TRACKER):
             continue  # the effect moves the true value itself
-        printed = sign * entry["biases_signed"][q]
+        printed = injection.printed_shift(entry, q, sign)
         checks.append({"quantity": q, "printed": printed, "measured": shift.get(q),
                        "ratio": shift.get(q, np.nan) / printed if printed else np.nan})
     ratios = [c["ratio"] for c in checks]
