@@ -21,6 +21,16 @@ this order:
    the excess variance, the rule of a single ``diagnose``.  Every other candidate is tested
    again in the next round, so an effect that only copied part of the real cause's pattern
    is not added once the cause is in the model.
+   Once a remainder shaped like a mount bending with gravity (outside the library) was
+   significant after an add (:mod:`~stellar_cal_ros.diagnosis.flexure`), a candidate that
+   may stand in for it (not a camera effect) is added only if it explains the data beyond
+   that flexure: its ratio with a flexure fitted beside it in both models
+   (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`; two runs of its model).  The effect
+   whose add showed the remainder is tested the same way (one run: the model before it
+   with the probe) and flagged, when it explains nothing beyond, as standing in for the
+   flexure; the remainder is the first 'unexplained' line.  (A mount flexure on steps
+   about the IMU axes: gyro_scale_factor is added, flagged, and gyro_misalignment, which
+   would absorb the remainder next, is not.)
 4. **stop** when none of these applies (or after ``max_rounds`` rounds).
 
 The next round starts the effects the discovery added from the chosen run's estimates and
@@ -136,6 +146,11 @@ class _State:
     last: str = ""  #: the effect changed last (not checked again at once)
     #: the flexure-shaped test after each add: (its result, the effects added by then)
     remainders: list[tuple[dict | None, list[str]]] = field(default_factory=list)
+    #: a flexure-shaped remainder was significant after an add: from then on a non-camera
+    #: candidate is added only if it explains the data beyond the flexure direction
+    outside: bool = False
+    #: the current model's prior and effects (the flexure test of the model before an add)
+    prior: Calibration | None = None
 
     def checkable(self) -> list[str]:
         """Added effects whose need is tested this round."""
@@ -244,14 +259,22 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 screen=local, measure_noise=estimate and (
                     r.noise is None or bool(r.noise.skipped or r.noise.imu_skipped
                                             or r.noise.beyond) or r.noise_stale))
+            here = None  # the flexure-shaped test of this round's model, when it ran
             if path and path[-1]["action"] == "add" and flexure.may_stand_in(state.last):
                 # the effect just added may stand in for a mount bending with gravity
                 # (outside the library): the remainder on this round's model (its run)
                 tell(f"after {state.last}: testing for a gravity-shaped remainder (mount "
                      "flexure)")
-                got = flexure.after_add(runs, base, prior, tuple(state.extra))
+                here = got = flexure.after_add(runs, base, prior, tuple(state.extra))
                 path[-1]["remainder"] = got
                 state.remainders.append((got, [e for e in state.extra if e not in state.user]))
+                if flexure.significant([flexure.finding(got, [], len(state.remainders))],
+                                       ALPHA):
+                    state.outside = True
+                    got["beyond"] = _stand_in(runs, state, path[-1], current, got)
+            elif state.outside:
+                here = flexure.after_add(runs, base, prior, tuple(state.extra))
+            state.prior = prior
             if current is not None and current is not first:
                 current.residuals = None  # keep the first and the newest table only
             current = base
@@ -259,12 +282,22 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             for c in results:
                 history.setdefault(c.effect, []).append((k, c))
             action, removed, added, follow, checks = _decide_checks(state, base, extras)
-            top = next((c for c in results if c.significant_alone), None)
+            top, refused = _top(runs, state, base, here, prior, calibration, results, tell)
             if not action and top is not None:
                 action, added, follow = "add", top.effect, top.run
             step = _step(k, model, base, results, top if action == "add" else None,
                          time.perf_counter() - t0, 1 + len(extras) + sum(
                              c.run is not None for c in results))
+            for c, b in refused:
+                # significant alone, but only along the flexure the remainder showed
+                step["beyond_remainder"] = {**step.get("beyond_remainder", {}), c.effect: b}
+                why = (f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing "
+                       "beyond the gravity-shaped remainder (its ratio with a mount flexure "
+                       f"fitted beside it {b['statistic']:.1f}, chi2 with {b['dof']}, p = "
+                       f"{b['p_value']:.2g}): not added")
+                for rj in step["rejected"]:
+                    if rj["effect"] == c.effect:
+                        rj["reason"] = why
             step.update({"action": action or "stop", "removed": removed or None,
                          "exchanged_for": added if action == "exchange" else None,
                          "checks": checks,
@@ -280,6 +313,10 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                  f"{base.window['log_likelihood']:.1f} -> {describe(step)} "
                  f"[{step['seconds']:.1f} s]")
             if not action:
+                if refused:
+                    stopped = ("stopped: nothing significant beyond the gravity-shaped "
+                               "remainder (" + ", ".join(c.effect for c, _ in refused)
+                               + " only along it: not added; see 'unexplained')")
                 break
             if k == max_rounds:
                 stopped = (f"stopped after --max-rounds {max_rounds} before: "
@@ -319,6 +356,51 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
         return _write(out, calibration, spec, state, path, history, first, current, results,
                       evaluation_fraction, plots, runs, stopped,
                       time.perf_counter() - t_start, r.noise, check)
+
+
+def _stand_in(runs, state: _State, step: dict[str, Any], before: RunSummary | None,
+              after: dict[str, float]) -> dict[str, Any] | None:
+    """Whether the effect ``step`` added explains anything beyond a flexure.
+
+    ``before``: the run of the model it was added to (its residuals kept: the previous
+    round's base); ``after``: the flexure-shaped test of the model with it.  One run (the
+    model before, with the probe).
+    """
+    if before is None or before.residuals is None or state.prior is None:
+        return None
+    x = step["added"]["effect"]
+    without = flexure.after_add(runs, before, state.prior,
+                                tuple(e for e in state.extra if e != x))
+    return flexure.beyond(step["added"]["score"], registry.create(x).size,
+                          Reference.of(before).dispersion, after, without)
+
+
+def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibration,
+         calibration: Calibration, results: list[CandidateResult], tell
+         ) -> tuple[CandidateResult | None, list[tuple[CandidateResult, dict]]]:
+    """The candidate to add, and those refused as a flexure's stand-ins.
+
+    The first candidate significant alone, except that once a flexure-shaped remainder
+    was found (``state.outside``) a candidate that may stand in for a flexure is added only
+    if it explains the data beyond it (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`:
+    its ratio beside a fitted flexure, two runs of its model); camera effects as always.
+    """
+    refused = []
+    for c in results:
+        if not c.significant_alone:
+            continue
+        if not (state.outside and here is not None and flexure.may_stand_in(c.effect)):
+            return c, refused
+        tell(f"{c.effect}: testing it beyond the gravity-shaped remainder")
+        effects = tuple(state.extra) + (c.effect,)
+        with_c = runs.on_bag(flexure.pair_on_bag, runs.spec,
+                             candidate_prior(prior, c.effect, calibration), effects,
+                             runs.fraction, runs.noise, runs.classes)
+        b = flexure.beyond(c.statistic, c.dof, Reference.of(base).dispersion, with_c, here)
+        if b is None or b["needed"]:
+            return c, refused
+        refused.append((c, b))
+    return None, refused
 
 
 def _step(k: int, model: list[str], base: RunSummary, results: list[CandidateResult],

@@ -25,6 +25,14 @@ over the stars, px).
 Measured (``benchmarks/flexure_remainder.py``, doc/benchmarks.md): 40″ on 300 s of
 ``psce_rotations`` with gyro_scale_factor added, t = 12.6 (c = 44 ± 3″); the same bag with a
 true gyro scale factor instead, t = 1.1.
+
+Once the remainder is significant, which library effects are needed *beside* a flexure is
+a nested test (:func:`beyond`): the flexure fitted as a nuisance regressor in the model with
+and without the effect (``chi2 = c² Σ Sᵀ C⁻¹ S``, the whitened sum of squares it removes)
+turns the effect's ratio Λ into its ratio given a flexure, ``Λ + (chi2_with − chi2_without)
+/ dispersion``, χ² with the effect's dof.  ``discover`` adds a non-camera candidate then only
+if that is significant, and flags the effect the remainder was found after when it is not
+(40″, 300 s: gyro_scale_factor −921 for 3 dof, gyro_misalignment after it −9.3 for 6).
 """
 
 from __future__ import annotations
@@ -125,6 +133,7 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
     c = float(np.sum(w_s * w_nu)) / info
     shown = np.hypot(*(S * c).T)
     return {"t": float(t), "p_value": float(p), "arcsec_per_g": c,
+            "chi2": c * c * info,
             "sigma_arcsec_per_g": float(1.0 / np.sqrt(info)),
             "change_px": float(np.percentile(shown, 99)),
             "rms_px": float(np.sqrt(np.mean(shown**2))),
@@ -136,7 +145,8 @@ _MOVED_COLUMNS = ("t", "frame", "catalog_id", "du", "dv", "gated")
 
 
 def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fraction: float,
-                   noise=None, classes: tuple[type, ...] = ()) -> dict[str, np.ndarray] | None:
+                   noise=None, classes: tuple[type, ...] = (), candidate: bool = False
+                   ) -> dict[str, np.ndarray] | None:
     """The model's run on the bag with the probe added, where the bag is.
 
     For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag`: the same call as the
@@ -144,7 +154,8 @@ def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fra
     probe only), the probe's pattern from ``prior``'s installation and camera.  Returns the
     run's evaluation window (:data:`_MOVED_COLUMNS`); ``None`` when the bag has no usable
     accelerometer or the run fails (the test is an addition: it never stops a diagnosis).
-    ``classes``: user effect classes a fresh worker process does not know.
+    ``classes``: user effect classes a fresh worker process does not know; ``candidate``:
+    an augmented run (a gyro fault is flagged, not raised, as in its own run).
     """
     from stellar_cal_ros.diagnosis.runstats import quiet, register_effect_classes
 
@@ -154,6 +165,8 @@ def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fra
     if moved_bag is None:
         return None
     kw: dict[str, Any] = {"noise": noise} if noise is not None else {}
+    if candidate:
+        kw["gyro_fault"] = "flag"
     try:
         with quiet():
             moved = spec.runner(moved_bag, prior, list(effects), keep_tables=True,
@@ -184,6 +197,48 @@ def after_add(runs, run, prior: Calibration, effects: tuple[str, ...]
     if moved is None:
         return None
     return remainder_statistics(run.residuals, moved, runs.fraction)
+
+
+def pair_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fraction: float,
+                noise=None, classes: tuple[type, ...] = ()) -> dict[str, float] | None:
+    """The flexure-shaped test of a candidate model: its run and its run with the probe.
+
+    For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag` (both runs where the bag
+    is; only the statistics travel): a candidate's own run keeps no residual table.
+    """
+    from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
+
+    register_effect_classes(classes)
+    run = evaluate(data, spec, prior, effects, fraction, True, classes, candidate=True,
+                   noise=noise)
+    if not run.ok or run.residuals is None:
+        return None
+    moved = measure_on_bag(data, spec, prior, effects, fraction, noise, classes, True)
+    return None if moved is None else remainder_statistics(run.residuals, moved, fraction)
+
+
+def beyond(statistic: float, dof: int, dispersion: float, with_effect: dict | None,
+           without: dict | None) -> dict[str, Any] | None:
+    """Whether an effect explains the data beyond the flexure direction.
+
+    The two models, each with a flexure fitted beside it (the probe's response ``S`` as a
+    nuisance regressor of the innovations, :func:`remainder_statistics`): the effect's
+    ratio ``statistic`` (Λ against the model without it, quasi-likelihood with
+    ``dispersion``) plus what the fitted flexure gains with the effect (``with_effect``'s
+    ``chi2``, whitened) minus what it gains without it (``without``'s): the nested test of
+    the effect given a flexure, χ² with ``dof``.  ``None`` when either test did not run.
+
+    ``{statistic, dof, p_value, needed}``: ``needed`` at the diagnosis's α.
+    """
+    from scipy import stats as sps
+
+    from stellar_cal_ros.diagnosis.discover import ALPHA
+
+    if with_effect is None or without is None:
+        return None
+    lam = float(statistic + (with_effect["chi2"] - without["chi2"]) / dispersion)
+    p = float(sps.chi2.sf(max(lam, 0.0), dof))
+    return {"statistic": lam, "dof": int(dof), "p_value": p, "needed": p < ALPHA}
 
 
 def may_stand_in(effect_id: str) -> bool:
@@ -219,7 +274,19 @@ def remainder_text(like: list[str], f: dict[str, Any]) -> str:
             f"library may be acting -- a mount bending with gravity by "
             f"{d.get('arcsec_per_g', float('nan')):.3g} +- "
             f"{d.get('sigma_arcsec_per_g', float('nan')):.2g} arcsec per unit lateral gravity "
-            f"would leave it; {name} improves the fit but may stand in for it")
+            f"would leave it; {name} " + _stand_in(d.get("beyond")))
+
+
+def _stand_in(b: dict[str, Any] | None) -> str:
+    """What the report says of the effect the remainder was found after."""
+    if not b:
+        return "improves the fit but may stand in for it"
+    test = (f"its ratio with a flexure fitted beside it {b['statistic']:.1f}, chi2 with "
+            f"{b['dof']}, p={b['p_value']:.2g}")
+    if b["needed"]:
+        return f"improves the fit beyond such a flexure too ({test})"
+    return (f"explains nothing beyond such a flexure ({test}): it stands in for it, and its "
+            "estimate is not a gyro calibration to use")
 
 
 def significant(findings: list[stats.RegressorFinding | None], alpha: float
