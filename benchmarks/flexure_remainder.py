@@ -5,7 +5,9 @@ the demo motion (steps of 30 deg about the IMU axes) is ~98 % a gyro scale facto
 adds gyro_scale_factor, then tests the model it added for a flexure-shaped remainder
 (:mod:`~stellar_cal_ros.diagnosis.flexure`).  For each size this prints what discover adds,
 the remainder test after each add (t, p Bonferroni over the adds, its size in px, the
-flexure that would leave it) and the first 'unexplained' line.
+flexure that would leave it; when significant, the added effect's ratio beside a fitted
+flexure and the candidates refused as explaining nothing beyond it) and the first
+'unexplained' line.
 
 ``--null-seeds N``: the same test on bags with a *true* gyro scale factor (1e-4 per axis,
 no flexure) and gyro_scale_factor in the model, over N seeds: the share of p below 5 %,
@@ -52,10 +54,16 @@ def discover_row(size: float, seed: int, duration: float) -> str:
     for step in s["path"]:
         if "remainder" in step:
             r = step["remainder"]
+            b = (r or {}).get("beyond")
             tests.append(f"after {step['added']['effect']}: " + (
                 "not run" if r is None else
                 f"t={r['t']:.1f} p={r['p_value']:.2g} {r['change_px']:.3f} px "
-                f"({r['arcsec_per_g']:.1f}+-{r['sigma_arcsec_per_g']:.1f}\")"))
+                f"({r['arcsec_per_g']:.1f}+-{r['sigma_arcsec_per_g']:.1f}\")")
+                + ("" if not b else f", {step['added']['effect']} beyond it "
+                   f"{b['statistic']:.1f} ({b['dof']} dof): "
+                   + ("needed" if b["needed"] else "stand-in")))
+        for e, b in (step.get("beyond_remainder") or {}).items():
+            tests.append(f"{e} beyond it {b['statistic']:.1f} ({b['dof']} dof): not added")
     first = s["unexplained"][0] if s["unexplained"] else None
     said = ("remainder said" if s.get("remainder") else "no remainder said")
     return (f"| {size:g}\u2033 | {', '.join(s['added']) or '-'} | {'; '.join(tests) or '-'} | "

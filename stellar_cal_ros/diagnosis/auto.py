@@ -21,16 +21,19 @@ this order:
    the excess variance, the rule of a single ``diagnose``.  Every other candidate is tested
    again in the next round, so an effect that only copied part of the real cause's pattern
    is not added once the cause is in the model.
-   Once a remainder shaped like a mount bending with gravity (outside the library) was
-   significant after an add (:mod:`~stellar_cal_ros.diagnosis.flexure`), a candidate that
-   may stand in for it (not a camera effect) is added only if it explains the data beyond
-   that flexure: its ratio with a flexure fitted beside it in both models
-   (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`; two runs of its model).  The effect
-   whose add showed the remainder is tested the same way (one run: the model before it
-   with the probe) and flagged, when it explains nothing beyond, as standing in for the
-   flexure; the remainder is the first 'unexplained' line.  (A mount flexure on steps
-   about the IMU axes: gyro_scale_factor is added, flagged, and gyro_misalignment, which
-   would absorb the remainder next, is not.)
+   When a remainder shaped like a mount bending with gravity (outside the library) is
+   significant after an add (:mod:`~stellar_cal_ros.diagnosis.flexure`), the effect just
+   added is tested beyond a flexure: its ratio with a flexure fitted beside it in both
+   models (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`; one run: the model before it
+   with the probe).  If it explains the data beyond the flexure, the remainder may be a
+   library effect still missing (a gyro scale factor is ~98 % a flexure on steps about the
+   IMU axes) and the next round goes on as usual.  If not, it is flagged as standing in for
+   the flexure, and from then on a candidate that may stand in for one (not a camera
+   effect) is added only if it explains the data beyond the flexure (two runs of its
+   model).  (A mount flexure: gyro_scale_factor is added, flagged, and gyro_misalignment,
+   which would absorb the remainder next, is not.)  A remainder that a later add leaves
+   insignificant is not reported (it was that effect's); the last one is the first
+   'unexplained' line.
 4. **stop** when none of these applies (or after ``max_rounds`` rounds).
 
 The next round starts the effects the discovery added from the chosen run's estimates and
@@ -270,8 +273,12 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 state.remainders.append((got, [e for e in state.extra if e not in state.user]))
                 if flexure.significant([flexure.finding(got, [], len(state.remainders))],
                                        ALPHA):
-                    state.outside = True
-                    got["beyond"] = _stand_in(runs, state, path[-1], current, got)
+                    # a flexure, or a library effect still missing (a gyro scale factor is
+                    # ~98 % one on steps about the IMU axes): the effect just added decides.
+                    # If it explains the data beyond a flexure, the remainder may be the
+                    # next candidate; if not, it stands in for one, and so would the next
+                    got["beyond"] = b = _stand_in(runs, state, path[-1], current, got)
+                    state.outside = state.outside or bool(b and not b["needed"])
             elif state.outside:
                 here = flexure.after_add(runs, base, prior, tuple(state.extra))
             state.prior = prior
@@ -439,10 +446,14 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         plot_path(path, out / "path.png")
         images.append(("The path: innovation RMS at each round", "path.png"))
     added = [e for e in state.extra if e not in state.user]
-    # the flexure-shaped tests after the adds: Bonferroni over those made
+    # the flexure-shaped tests after the adds: Bonferroni over those made; a remainder
+    # that a later add left insignificant was that effect's (a library effect still
+    # missing then), not a flexure's
     found = [flexure.finding(got, after, len(state.remainders))
              for got, after in state.remainders]
-    outside = flexure.significant(found, ALPHA)
+    cleared = [i for i, f in enumerate(found)
+               if f is not None and not flexure.significant([f], ALPHA)]
+    outside = flexure.significant(found[cleared[-1] + 1 if cleared else 0:], ALPHA)
     like = outside[0].detail["after"] if outside else None
     summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
                      panels, plots, "stellar_cal discovery", images, verdict, write=False,
