@@ -152,7 +152,7 @@ class _State:
     #: a flexure-shaped remainder was significant after an add: from then on a non-camera
     #: candidate is added only if it explains the data beyond the flexure direction
     outside: bool = False
-    #: the current model's prior and effects (the flexure test of the model before an add)
+    #: the prior of the latest round's runs (the flexure test of the model before an add)
     prior: Calibration | None = None
 
     def checkable(self) -> list[str]:
@@ -289,7 +289,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             for c in results:
                 history.setdefault(c.effect, []).append((k, c))
             action, removed, added, follow, checks = _decide_checks(state, base, extras)
-            top, refused = _top(runs, state, base, here, prior, calibration, results, tell)
+            top, refused = (_top(runs, state, base, here, prior, calibration, results, tell)
+                            if not action else (None, []))
             if not action and top is not None:
                 action, added, follow = "add", top.effect, top.run
             step = _step(k, model, base, results, top if action == "add" else None,
