@@ -197,6 +197,7 @@ def test_mount_flexure_is_unexplained_and_no_stand_in_is_added_for_it(tmp_path):
     step = summary["path"][-1]
     gm = step["beyond_remainder"]["gyro_misalignment"]
     assert not gm["needed"] and gm["p_value"] > 0.05, gm
+    assert summary["recommendation"] is None and summary["reliability"], summary.keys()
     rejected = {r["effect"]: r["reason"] for r in summary["rejected"]}
     assert "beyond the gravity-shaped remainder" in rejected["gyro_misalignment"], rejected
     text = "\n".join(summary["terminal"])

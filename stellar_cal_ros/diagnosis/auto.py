@@ -458,7 +458,8 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     like = outside[0].detail["after"] if outside else None
     summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
                      panels, plots, "stellar_cal discovery", images, verdict, write=False,
-                     outside=outside, like=like, runs=runs)
+                     outside=outside, like=like, runs=runs,
+                     refused=tuple(path[-1].get("beyond_remainder") or ()) if path else ())
     summary.update({
         "path": path,
         "added": added,

@@ -35,7 +35,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
            panels: list[tuple[str, Any]], plots: bool, title: str = "stellar_cal diagnosis",
            extra_images: list[tuple[str, str]] | None = None,
            verdict=None, write: bool = True, outside: list | None = None,
-           like: list[str] | None = None, runs=None) -> dict[str, Any]:
+           like: list[str] | None = None, runs=None, refused: tuple[str, ...] = ()
+           ) -> dict[str, Any]:
     """Unexplained structure on ``final``'s residuals, the summary, the report files.
 
     ``base`` is the run the candidates were compared with (the summary's RMS); ``final``
@@ -50,7 +51,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     ``like`` (default: the recommendation) explain the structure only in part.  ``runs``:
     the round's :class:`~stellar_cal_ros.diagnosis.parallel.Runs` (open): the printed biases
     the first order does not hold are measured by probe runs on the bag
-    (:mod:`~stellar_cal_ros.diagnosis.reliability_probe`).
+    (:mod:`~stellar_cal_ros.diagnosis.reliability_probe`).  ``refused``: candidates
+    significant alone that are not recommended (discover's stand-ins for a flexure).
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
@@ -76,7 +78,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
             f"p={f.p_value:.2g}): the noise varies within the {verdict.group['by']} groups "
             "applied (a per-star sigma in the messages would follow it), not an effect"
             for f in spread]
-    best = next((c for c in results if c.significant_alone), None)
+    best = next((c for c in results if c.significant_alone and c.effect not in refused),
+                None)
     summary["recommendation"] = best.effect if best is not None else None
     like = like if like is not None else ([best.effect] if best is not None else [])
     if outside and like:
