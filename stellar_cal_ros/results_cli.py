@@ -135,7 +135,7 @@ def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
         data_cache["data"] = read_bag_data(bag, require_imu=False)  # star-only: bundle
     method = _rerun_method(cal)
     spec = method_spec(method)
-    effects = [e for e in cal.estimated if e not in spec.baseline]
+    effects = list(spec.beyond_baseline(cal.estimated))
     log.info("re-running %s on %s from %s (effects: %s)", method, bag, result,
              ", ".join(effects) or "baseline")
     run = spec.runner(data_cache["data"], rerun_prior(cal, effects), effects, keep_tables=True)

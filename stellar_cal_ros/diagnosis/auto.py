@@ -233,7 +233,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
     out.mkdir(parents=True, exist_ok=True)
     spec = method_spec(method)
     tell = progress_printer(options.get("verbose", True))
-    user = tuple(e for e in effects if e not in spec.baseline)
+    user = spec.beyond_baseline(effects)
     state = _State(list(user), user, calibration)
     path: list[dict[str, Any]] = []
     history: dict[str, list[tuple[int, CandidateResult]]] = {}

@@ -115,6 +115,10 @@ class DiagnosisSpec:
     runner: Runner
     screen: screening.ScreenFn | None = None
 
+    def beyond_baseline(self, effects) -> tuple[str, ...]:
+        """The effects of ``effects`` beyond the method's baseline, in their order."""
+        return tuple(e for e in effects if e not in self.baseline)
+
 
 def method_spec(method: str) -> DiagnosisSpec:
     """The :class:`DiagnosisSpec` of a registered method that can be re-run on a bag.
@@ -578,7 +582,7 @@ def rank_candidates(
     this process unless ``runs`` (:func:`~stellar_cal_ros.diagnosis.parallel.open_runner`)
     is given.
     """
-    extra = [e for e in model_effects if e not in spec.baseline]
+    extra = spec.beyond_baseline(model_effects)
     runs = runs or Runs(data, spec, evaluation_fraction)
     in_model = set(spec.baseline) | set(extra)
     uncertain = prior_uncertain(calibration, in_model)
@@ -735,7 +739,7 @@ def summary_dict(base: RunSummary, results: list[CandidateResult],
                            for c in results if c.status in ("not_applicable", "failed")],
         "nis": w["nis"],
         "whiteness": w["whiteness"],
-        "model": {"method": spec.name, "effects": list(spec.baseline) + [
-            e for e in model_effects if e not in spec.baseline]},
+        "model": {"method": spec.name,
+                  "effects": [*spec.baseline, *spec.beyond_baseline(model_effects)]},
         "evaluation": f"innovations of the last {evaluation_fraction:.0%} of the frames",
     }

@@ -75,7 +75,7 @@ def diagnose(
         if best is not None and best.refined_run is not None and \
                 flexure.may_stand_in(best.effect):
             tell(f"after {best.effect}: testing for a gravity-shaped remainder (mount flexure)")
-            extra = tuple(e for e in effects if e not in spec.baseline) + (best.effect,)
+            extra = spec.beyond_baseline(effects) + (best.effect,)
             # the refined run's own start (discover.condition_on_top)
             got = flexure.after_add(runs, best.refined_run, rerun_prior(best.run.calibration),
                                     extra)
@@ -113,7 +113,7 @@ def measure_bag(bag, prior, method: str, effects: list[str], scales: NoiseScales
     runs = Runs(bag, spec, fraction)
     runs.noise = scales
     start = rerun_prior(prior) if prior.method != "prior" else prior
-    extra = tuple(e for e in effects if e not in spec.baseline)
+    extra = spec.beyond_baseline(effects)
     base = runs.run_all([Task("noise: the model", start, extra, star_noise=True)])[
         "noise: the model"]
     if not base.ok:

@@ -98,7 +98,7 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
     from stellar_cal_ros.diagnosis.parallel import Runs
 
     spec = method_spec(method)
-    extra = [e for e in effects if e not in spec.baseline]
+    extra = spec.beyond_baseline(effects)
     pool = [e["effect"] for e in entries]
 
     def round_on(data):
