@@ -75,10 +75,9 @@ def diagnose(
         if best is not None and best.refined_run is not None and \
                 flexure.may_stand_in(best.effect):
             tell(f"after {best.effect}: testing for a gravity-shaped remainder (mount flexure)")
-            extra = spec.beyond_baseline(effects) + (best.effect,)
-            # the refined run's own start (discover.condition_on_top)
-            got = flexure.after_add(runs, best.refined_run, rerun_prior(best.run.calibration),
-                                    extra)
+            # the refined run's own start and model (discover.condition_on_top)
+            refined = best.refined_run
+            got = flexure.after_add(runs, refined, refined.prior, refined.effects)
             outside = flexure.significant([flexure.finding(got, [best.effect])], ALPHA)
         final = base
         panels = [("current model", base.residuals)]
@@ -103,7 +102,6 @@ def measure_bag(bag, prior, method: str, effects: list[str], scales: NoiseScales
     process with the scales ``scales``, the stars' scale from it, then the IMU components
     by ML over re-runs (default: the gyro's, and the accelerometer's for swaying_base).
     """
-    from stellar_cal_ros.diagnosis.discover import rerun_prior
     from stellar_cal_ros.diagnosis.noise_runs import measure
     from stellar_cal_ros.diagnosis.parallel import Runs, Task
 
