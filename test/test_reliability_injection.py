@@ -88,6 +88,7 @@ def test_a_small_bias_beside_a_large_shift_is_a_first_order_remainder():
     assert injection.claims(out) == {"tau_x": ["installation.rx"], "tau_y": ["tangential.p1"]}
     text = "\n".join(printing.reliability_lines([out]))
     assert "first-order remainders" in text and "gyro_bias.by" in text
+    _same_words_in_the_report(out, text)
 
 
 def test_a_probe_run_replaces_the_rows_the_first_order_does_not_hold():
@@ -123,6 +124,19 @@ def test_a_probe_run_replaces_the_rows_the_first_order_does_not_hold():
     assert injection.claims(entry, -1) == {"tau_x": ["installation.rx", "radial_k1k2.k2"]}
     text = "\n".join(printing.reliability_lines([entry]))
     assert "at -MDB" in text and "measured by a probe run" in text and "gyro_bias.by" in text
+    _same_words_in_the_report(entry, text)
+
+
+def _same_words_in_the_report(entry, text):
+    """The report's row says the biases and first-order clauses in the terminal's words."""
+    from stellar_cal_ros.diagnosis.report_html import _reliability_html
+
+    row = _reliability_html({"reliability": [entry]})
+    clauses = [printing.bias_phrase(entry, n) for n in entry["dominates"]]
+    clauses += printing.first_order_phrases(entry)
+    assert clauses
+    for clause in clauses:
+        assert clause in text and clause.replace("sigma", "σ") in row, clause
 
 
 @pytest.mark.parametrize("effect", [e for e in EFFECTS if e != "image_plane_tilt"])

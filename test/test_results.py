@@ -360,6 +360,34 @@ def test_compare_two_runs(two_runs, tmp_path):
         assert (out / f"{png}.png").is_file(), png
 
 
+def test_unexplained_sizes_read_the_same_in_the_terminal_and_the_report():
+    from stellar_cal_ros.diagnosis import printing
+    from stellar_cal_ros.diagnosis.report_html import _unexplained_html
+
+    summary = {"unexplained": [
+        {"regressor": "angular rate", "component": "size", "statistic": 12.0,
+         "p_value": 1e-9, "change_px": 0.3},
+        {"regressor": "catalogue star", "component": "u, v", "statistic": 5.0,
+         "p_value": 1e-4, "change_px": 0.02},
+        {"regressor": "time (periodic 12 s)", "component": "u", "statistic": 5.0,
+         "p_value": 1e-4, "change_px": -0.02},
+        {"regressor": "gravity_st (mount-flexure shape, after gyro_scale_factor)",
+         "component": "u, v", "statistic": 7.9, "p_value": 3e-5, "change_px": 0.043,
+         "detail": {"arcsec_per_g": 40.0}},
+        {"regressor": "magnitude", "component": "v", "statistic": 3.9, "p_value": 3e-3}]}
+    text = "\n".join(printing.unexplained_lines(summary))
+    page = _unexplained_html(summary)
+    for u, size in zip(summary["unexplained"],
+                       ["0.3 px across its 5-95 % range", "0.02 px rms per axis at least",
+                        "0.02 px amplitude", "0.043 px at most (99 % of the stars)", ""],
+                       strict=True):
+        what, said = printing.unexplained_phrase(u)
+        assert said.startswith(size) and (size == "") == (said == "")
+        assert f"{what} vs {u['regressor']}" in text
+        assert f"{what} vs <b>{u['regressor']}</b>" in page and said in text and said in page
+    assert "0.000 px" not in page  # no size is not a size of 0
+
+
 def test_regressor_plots_of_a_batch_table(tmp_path):
     """An ACF residual table has no body rate or temperature: those panels are left out."""
     from stellar_cal_ros.diagnosis import report

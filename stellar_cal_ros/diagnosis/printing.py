@@ -35,25 +35,34 @@ def notes_lines(summary: dict[str, Any]) -> list[str]:
     return out
 
 
+def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
+    """What an 'unexplained' line is a structure of, and its size ('' if none).
+
+    E.g. ``("u residual", "0.043 px across its 5-95 % range")``: the one phrasing of the
+    terminal (:func:`unexplained_lines`) and the report (``report_html``).
+    """
+    size = u.get("change_px")
+    what = f"{u['component']} residual"
+    span = "across its 5-95 % range"
+    if u["regressor"] == "catalogue star":
+        what, span = "residual repeating", "rms per axis at least (left by the cells)"
+    elif u["regressor"].startswith("time (periodic"):
+        span = "amplitude"
+    elif u["component"] == "size":
+        what = "residual spread (size)"
+    elif u.get("detail"):
+        what, span = "residual", "at most (99 % of the stars)"
+    return what, (f"{abs(size):.3g} px {span}" if size is not None else "")
+
+
 def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
     """Residual structure no candidate explains, strongest first, with its size in px."""
     out: list[str] = []
     for u in summary["unexplained"][:n]:
-        size = u.get("change_px")
-        what = f"{u['component']} residual"
-        span = "across its 5-95 % range"
-        if u["regressor"] == "catalogue star":
-            what, span = "residual repeating", "rms per axis at least (left by the cells)"
-        elif u["regressor"].startswith("time (periodic"):
-            what, span = f"{u['component']} residual", "amplitude"
-        elif u["component"] == "size":
-            what = "residual spread (size)"
-        elif u.get("detail"):
-            what, span = "residual", "at most (99 % of the stars)"
+        what, size = unexplained_phrase(u)
         out.append(f"  unexplained: {what} vs {u['regressor']} "
               f"(t={u['statistic']:.1f}, p={u['p_value']:.2g}"
-              + (f"; {abs(size):.3g} px {span}" if size is not None else "")
-              + ")")
+              + (f"; {size}" if size else "") + ")")
     if summary["unexplained"]:
         out.append("    (structure no library effect explains: an effect outside the library, "
               "e.g. a centroid bias with magnitude, a mount bending with gravity, a per-star "
@@ -249,8 +258,7 @@ def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> lis
     out.append("what could still be hiding (minimal detectable size on this bag, power "
           f"{reliability.POWER:.0%}; each bias is that parameter alone at its MDB):")
     for e in entries:
-        mdb = ", ".join(f"{n} {reliability.shown(e['effect'] + '.' + n, v)}"
-                        for n, v in e["mdb"].items())
+        mdb = mdb_phrase(e)
         flag = "" if e["testable"] else " (not testable: above its plausible size)"
         if e["testable"] and e.get("physical_value") is not None:
             flag = (f" (physics fixes it at {e['physical_value']:g}x: a structure with its "
@@ -258,30 +266,9 @@ def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> lis
                     f"{e['implausible_below']:g}x)")
         line = f"  {e['effect']:22s} MDB {mdb}{flag}"
         dom = sorted(e["dominates"], key=lambda n: -e["biases"][n] / e["sigma"][n])
-        src = e.get("bias_parameter", {})
-        minus = e.get("biases_minus", {})
         if dom:
-            line += "; would bias " + ", ".join(
-                f"{n} by {e['biases_shown'][n]}"
-                + (f" [{src[n]}]" if len(e["mdb"]) > 1 and src.get(n) else "")
-                + (f" (measured: {reliability.shown(n, e['biases_signed'][n])} at +MDB, "
-                   f"{reliability.shown(n, minus[n])} at -MDB)" if n in minus else "")
-                + f" (sigma {e['sigma_shown'][n]})"
-                for n in dom[:per_effect]) + (f" and {len(dom) - per_effect} more"
-                                              if len(dom) > per_effect else "")
-        below = [n for p in e.get("probe", {}).values() for n in p["unlisted"]]
-        if below:
-            line += ("; first order off, measured by a probe run at +-MDB below its sigma: "
-                     + ", ".join(f"{n} (first order {reliability.shown(n, _first(e, n))})"
-                                 for n in below[:per_effect])
-                     + (f" and {len(below) - per_effect} more" if len(below) > per_effect
-                        else ""))
-        rem = e.get("remainders", [])
-        if rem:
-            line += (f"; beside its {max(e['largest_shift_sigma'].values()):.0f} sigma shift, "
-                     "first-order remainders an injection need not reproduce: " + ", ".join(
-                         f"{n} by {e['biases_shown'][n]}" for n in rem[:per_effect])
-                     + (f" and {len(rem) - per_effect} more" if len(rem) > per_effect else ""))
+            line += "; would bias " + _listed([bias_phrase(e, n) for n in dom], per_effect)
+        line += "".join("; " + c for c in first_order_phrases(e, per_effect))
         blind = e.get("blind") or {}
         bdom = sorted(blind.get("dominates", []),
                       key=lambda n: -blind["biases"][n] / e["sigma"][n])
@@ -293,6 +280,58 @@ def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> lis
                      + " with no trace in the residuals")
         out.append(line)
     return out
+
+
+def mdb_phrase(entry: dict[str, Any]) -> str:
+    """An effect's minimal detectable size per parameter, e.g. ``tau_x 3.1e-05 rad``."""
+    return ", ".join(f"{n} {reliability.shown(entry['effect'] + '.' + n, v)}"
+                     for n, v in entry["mdb"].items())
+
+
+def bias_phrase(entry: dict[str, Any], quantity: str, sigma: str = "sigma") -> str:
+    """The bias an effect at its MDB puts into ``quantity``, as the terminal and report say it.
+
+    ``quantity by <bias> [<the effect's parameter>] (measured: <at +MDB>, <at -MDB>)
+    (sigma <its σ>)``: the bracket when the effect has several parameters, the measured
+    clause when probe runs replaced the first order.  ``sigma``: its symbol.
+    """
+    src = entry.get("bias_parameter", {})
+    minus = entry.get("biases_minus", {})
+    shown = reliability.shown
+    return (f"{quantity} by {entry['biases_shown'][quantity]}"
+            + (f" [{src[quantity]}]" if len(entry["mdb"]) > 1 and src.get(quantity) else "")
+            + (f" (measured: {shown(quantity, entry['biases_signed'][quantity])} at +MDB, "
+               f"{shown(quantity, minus[quantity])} at -MDB)" if quantity in minus else "")
+            + f" ({sigma} {entry['sigma_shown'][quantity]})")
+
+
+def first_order_phrases(entry: dict[str, Any], limit: int | None = None,
+                        sigma: str = "sigma") -> list[str]:
+    """The clauses on the rows an effect's first-order biases do not hold, as said everywhere.
+
+    The rows a probe run measured below their σ (with their first-order value), then the
+    remainders set apart beside the injection's largest shift; ``limit`` names at most
+    that many of each.
+    """
+    out = []
+    below = [n for p in entry.get("probe", {}).values() for n in p["unlisted"]]
+    if below:
+        out.append(f"first order off, measured by a probe run at +-MDB below its {sigma}: "
+                   + _listed([f"{n} (first order {reliability.shown(n, _first(entry, n))})"
+                              for n in below], limit))
+    rem = entry.get("remainders", [])
+    if rem:
+        out.append(f"beside its {max(entry['largest_shift_sigma'].values()):.0f} {sigma} "
+                   "shift, first-order remainders an injection need not reproduce: "
+                   + _listed([f"{n} by {entry['biases_shown'][n]}" for n in rem], limit))
+    return out
+
+
+def _listed(items: list[str], limit: int | None) -> str:
+    """``a, b and 3 more`` (all of them without a limit)."""
+    if limit is None or len(items) <= limit:
+        return ", ".join(items)
+    return ", ".join(items[:limit]) + f" and {len(items) - limit} more"
 
 
 def _first(entry: dict[str, Any], quantity: str) -> float:

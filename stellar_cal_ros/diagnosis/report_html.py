@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros import __version__
-from stellar_cal_ros.diagnosis import reliability, report, stats
+from stellar_cal_ros.diagnosis import printing, reliability, report, stats
 from stellar_cal_ros.effects import registry
 
 Table = dict[str, np.ndarray]
@@ -296,11 +296,11 @@ def _after_note(c: dict[str, Any]) -> str:
 
 def _unexplained_html(summary: dict[str, Any], image: Path | str | None = None) -> str:
     items = "".join(
-        f"<li>{_e(u['component'])} residual vs <b>{_e(u['regressor'])}</b>: t = "
-        f"{u['statistic']:.1f}, p = {u['p_value']:.2g}, change {u.get('change_px', 0):.3f} px "
-        + ("at most (99 % of the stars)" if u.get("detail") else "across its 5–95 % range")
+        f"<li>{_e(what)} vs <b>{_e(u['regressor'])}</b>: t = {u['statistic']:.1f}, "
+        f"p = {u['p_value']:.2g}" + (f", {_e(size)}" if size else "")
         + (f" (<a href='#unexplained-plot'>plot {k + 1}</a>)" if image else "") + "</li>"
-        for k, u in enumerate(summary.get("unexplained", []))) or "<li>none</li>"
+        for k, u in enumerate(summary.get("unexplained", []))
+        for what, size in [printing.unexplained_phrase(u)]) or "<li>none</li>"
     fig = (f"<img id='unexplained-plot' src='{_e(Path(image).name)}' alt='unexplained'>"
            f"<p class=cap>{_CAPTIONS['unexplained']}</p>" if image else "")
     return f"<ul>{items}</ul>{fig}"
@@ -332,24 +332,12 @@ def _all_candidates_html(summary: dict[str, Any]) -> str:
 
 
 def _reliability_html(summary: dict[str, Any]) -> str:
-    from stellar_cal_ros.diagnosis.reliability import shown
-
     rows = []
     for e in summary.get("reliability", []):
-        mdb = ", ".join(f"{n} {shown(e['effect'] + '.' + n, v)}" for n, v in e["mdb"].items())
-        minus = e.get("biases_minus", {})
-        bias = ", ".join(f"{n} by {e['biases_shown'][n]}"
-                         + (f" [{e['bias_parameter'][n]}]" if len(e["mdb"]) > 1 else "")
-                         + (f" (measured: {shown(n, e['biases_signed'][n])} at +MDB, "
-                            f"{shown(n, minus[n])} at −MDB)" if n in minus else "")
-                         + f" (σ {e['sigma_shown'][n]})" for n in e["dominates"])
-        below = [n for p in e.get("probe", {}).values() for n in p["unlisted"]]
-        if below:
-            bias += ("; " if bias else "") + "first order off, measured below σ: " + ", ".join(
-                below)
-        if e.get("remainders"):
-            bias += ("; first order only: " if bias else "first order only: ") + ", ".join(
-                f"{n} by {e['biases_shown'][n]}" for n in e["remainders"])
+        mdb = printing.mdb_phrase(e)
+        bias = "; ".join(
+            ([", ".join(printing.bias_phrase(e, n, "σ") for n in e["dominates"])]
+             if e["dominates"] else []) + printing.first_order_phrases(e, sigma="σ"))
         blind = e.get("blind") or {}
         btxt = ("; ".join(blind.get("directions", [])) + ": " + ", ".join(
             f"{n} by {blind['biases_shown'][n]}" for n in blind.get("dominates", []))
@@ -382,8 +370,7 @@ def _discovery_html(summary: dict[str, Any]) -> str:
         out.append("<h2>Path</h2><table><tr><th>round</th><th>model</th><th>RMS, px</th>"
                    f"<th>expected, px</th><th>then</th></tr>{rows}</table>")
     if summary.get("final_estimates"):
-        from stellar_cal_ros.diagnosis.reliability import shown
-
+        shown = reliability.shown
         items = "".join(
             f"<li><b>{_e(eff)}</b>: " + _e(", ".join(
                 f"{n} = {shown(f'{eff}.{n}', v)} ± {shown(f'{eff}.{n}', sg)}"
