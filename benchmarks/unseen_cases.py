@@ -220,7 +220,8 @@ CASES: dict[str, Case] = {
     "outliers": Case("psce", "3 % of the centroids 10 sigma off, the rest 0.05 px as stated",
                      noise={}, post=_outliers),
     "ar1": Case("psce", "centroid noise AR(1) over frames per star (tau 5 frames), marginal "
-                "0.05 px as stated", noise={}, post=_ar1,
+                "0.05 px as stated (a white-noise filter needs sigma x sqrt((1+rho)/(1-rho)) "
+                "= 3.17)", noise={"star": 3.17}, post=_ar1,
                 scenario_changes={"centroid_noise_px": 0.0}),
     "gyro_z4": Case("psce", "gyro z axis 4x the stated ARW, x and y as stated",
                     noise={"gyro": float(np.sqrt(6.0))}, axes={"gyro": (1.0, 1.0, 4.0)},
