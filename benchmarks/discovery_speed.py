@@ -16,6 +16,8 @@ Targets (2 cores):
   simulated once into ``.cache``) in one ``discover`` command, ≤ 60 s;
 * ``small``  a ``diagnose`` of a 150 s bag with the command line's default workers,
   ``--workers 0`` and ``--workers 2``: what a local cluster costs a small command;
+* ``profile`` where an acceptance case's CPU goes in one process, by kind of run;
+* ``cluster`` what a local cluster costs, step by step (start, first runs, warm runs);
 * ``several`` one ``diagnose`` round where several candidates pass the screening (the
   acceptance case ``psce_camera_imu_time``'s three hidden effects on a 900 s bag) with 1
   and 2 workers: the round the 1 → 2 worker target is about.
@@ -34,6 +36,8 @@ Run::
     python benchmarks/discovery_speed.py --only cases --workers 0,2 --detail   # acceptance
     python benchmarks/discovery_speed.py --only cases --case swaying_sky_mode --workers 2
     python benchmarks/discovery_speed.py --only small --repeat 2   # the CLI's default workers
+    python benchmarks/discovery_speed.py --only profile --case swaying_sky_mode  # run kinds
+    python benchmarks/discovery_speed.py --only cluster --workers 0,2 --repeat 2  # its cost
 """
 
 from __future__ import annotations
@@ -151,6 +155,98 @@ def case_bag(name: str) -> tuple[Path, object]:
     return path, case
 
 
+def _kind(key: str) -> str:
+    """The kind of a run, from its task key (diagnosis/discover.py, auto.py, noise_runs.py)."""
+    if key.startswith("noise: current"):
+        return "noise base runs (= screening runs when kept)"
+    if key.startswith("noise "):
+        return "ML noise-scale runs"
+    if key.startswith("without ") or " for " in key:
+        return "checks (without x, rival for x)"
+    if key.startswith("screen") or key == "current model":
+        return "current-model / screening re-runs"
+    return "candidate re-runs"
+
+
+def profile_case(name: str) -> None:
+    """Where one acceptance case's ``discover`` goes, in this process: CPU s per run kind."""
+    import collections
+
+    from stellar_cal_ros.diagnosis import parallel
+    from stellar_cal_ros.diagnosis.run import diagnose
+    from stellar_cal_ros.io.calibration import load_calibration
+
+    bag, case = case_bag(name)
+    rows: dict[str, list[float]] = collections.defaultdict(lambda: [0, 0.0])
+    evaluate, on_bag = parallel.Runs._evaluate, parallel.Runs._compute_on_bag
+
+    def timed(label: str, fn, *args):
+        t = time.process_time()
+        out = fn(*args)
+        rows[label][0] += 1
+        rows[label][1] += time.process_time() - t
+        return out
+
+    parallel.Runs._evaluate = lambda self, task: timed(_kind(task.key), evaluate, self, task)
+    parallel.Runs._compute_on_bag = lambda self, fn, *a: timed(
+        f"on the bag: {fn.__module__.split('.')[-1]}.{fn.__name__}", on_bag, self, fn, *a)
+    t0, w0 = time.process_time(), time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        s = diagnose(str(bag), load_calibration(bag.with_suffix(".prior.yaml")), case.method,
+                     list(case.user), tmp, plots=False, verbose=False, auto=True, workers=0)
+    total = time.process_time() - t0
+    print(f"{name} in this process: added {', '.join(s['added'])}; "
+          f"{sum(p['reruns'] for p in s['path'])} runs in the path; "
+          f"{total:.1f} CPU-s, {time.perf_counter() - w0:.1f} s wall")
+    for label, (n, sec) in sorted(rows.items(), key=lambda kv: -kv[1][1]):
+        print(f"    {label:52s} {n:4d} {sec:7.1f}")
+    print(f"    {'the rest (statistics, decisions, report)':52s}      "
+          f"{total - sum(sec for _, sec in rows.values()):7.1f}")
+
+
+def cluster_cost(workers: int) -> None:
+    """CPU s of the process tree per step: runner start, 2 runs (cold), 2 runs (warm), close.
+
+    Of the small bag's ``time_offset`` candidate run, in this process (``workers=0``) or on
+    a local cluster of ``workers`` processes (psutil: the parent and its live children).
+    """
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.parallel import Task, open_runner
+    from stellar_cal_ros.io.calibration import load_calibration
+
+    def tree() -> float:
+        total = 0.0
+        for p in [psutil.Process(), *psutil.Process().children(recursive=True)]:
+            try:
+                t = p.cpu_times()
+                total += t.user + t.system + t.children_user + t.children_system
+            except psutil.NoSuchProcess:
+                continue
+        return total
+
+    bag = small_bag()
+    prior = rerun_prior(load_calibration(bag.with_suffix(".prior.yaml")))
+    steps, last = [], tree()
+
+    def step(label: str) -> None:
+        nonlocal last
+        now = tree()
+        steps.append((label, now - last))
+        last = now
+
+    with open_runner(str(bag), method_spec("psce"), 0.5, workers) as runs:
+        step(f"start ({runs.description})")
+        for label in ("2 runs, first (import, kernels, bag)", "the same 2 runs, warm"):
+            runs.run_all([Task(f"{label}{i}", prior, ("time_offset",), candidate=True)
+                          for i in range(2)])
+            step(label)
+    step("close")
+    print(f"cluster cost, workers={workers} (CPU s of the tree):")
+    for label, sec in steps:
+        print(f"    {label:52s} {sec:6.1f}")
+    print(f"    {'total':52s} {sum(sec for _, sec in steps):6.1f}")
+
+
 def _bag(duration: float) -> Path:
     sys.path.insert(0, str(Path(__file__).parent))
     from psce_speed import ensure_bag
@@ -218,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     """Print the table (and the ratio 1 worker / 2 workers of each repetition)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--only", choices=["sky", "round", "several", "breakdown", "cases",
-                                       "small"], default=None)
+                                       "small", "profile", "cluster"], default=None)
     ap.add_argument("--case", action="append", default=None,
                     help="--only cases: this acceptance case (repeatable; default: all)")
     ap.add_argument("--repeat", type=int, default=1)
@@ -305,6 +401,13 @@ def main(argv: list[str] | None = None) -> int:
                 if 1 in walls and 2 in walls:
                     print(f"speed-up 1 -> 2 workers: {walls[1] / walls[2]:.2f}x (target >= 1.8)",
                           flush=True)
+    if args.only == "profile":
+        for name in args.case or ["swaying_time_tilt_misalignment"]:
+            profile_case(name)
+    if args.only == "cluster":
+        for _ in range(args.repeat):
+            for w in counts:
+                cluster_cost(w)
     if args.only == "breakdown":
         breakdown(ensure_2h_bag() if args.duration == 7200.0 else _bag(args.duration))
     print(f"load average {os.getloadavg()[0]:.1f} at the end (shared machine: other jobs "

@@ -283,7 +283,8 @@ class DaskRuns(Runs):
             self.client = Client(self.cluster)
             self.description = f"on {n} local worker processes"
             if self._cpu[0]:
-                self.description += f" (after {self._cpu[0]} runs in this process)"
+                n = self._cpu[0]
+                self.description += f" (after {n} run{'s' * (n > 1)} in this process)"
                 forget_bags()  # the workers hold the bag from now on
         self.workers = max(len(self.client.scheduler_info()["workers"]), 1)
         self.remote_bag = self._place_bag()
