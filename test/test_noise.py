@@ -87,6 +87,9 @@ def test_gyro_noise_scale_from_its_samples_checked_by_maximum_likelihood():
     assert g.measurable and g.value == pytest.approx(1.0, abs=3 * g.sigma) and not v.beyond
     assert "gyro noise (angle random walk) looks" in " ".join(v.lines())
     assert "the stars agree" in " ".join(v.lines())
+    # a check the stars do not pass is not called agreement (one noisy gyro axis: x0.754)
+    v.imu["gyro"] = dataclasses.replace(g, value=1.0 - 5 * g.sigma)
+    assert "the stars see: x" in " ".join(v.lines()) and "agree" not in " ".join(v.lines())
 
 
 def test_star_sigma_by_magnitude_group():

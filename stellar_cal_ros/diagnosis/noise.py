@@ -493,8 +493,9 @@ class NoiseVerdict:
             word = "larger" if s > 1 else "smaller"
             check = ""
             if comp in self.imu and self.imu[comp].measurable and comp not in self.beyond:
-                check = f"; the stars agree: x{self.imu[comp].value:.3g} +- " \
-                    f"{self.imu[comp].sigma:.2g} of it"
+                f = self.imu[comp]
+                verb = "agree" if abs(f.value - 1.0) <= 3.0 * f.sigma else "see"
+                check = f"; the stars {verb}: x{f.value:.3g} +- {f.sigma:.2g} of it"
             axes = ""
             if smp.get("axes"):
                 axes = ("; per axis x" + ", x".join(f"{a:.3g}" for a in smp["axes"])
