@@ -12,16 +12,17 @@ was 4-7x what the filter does, doc/benchmarks.md).  Those rows are flagged
 (``remainders``: below :data:`~stellar_cal_ros.diagnosis.reliability.FIRST_ORDER_SHARE` of
 the injection's largest shift in σ).
 
-For each flagged (effect, parameter) the current model is re-run **once** on the user's own
-bag with the effect injected at its printed size (:func:`with_effect`: the effect classes
+For each flagged (effect, parameter) the current model is re-run **twice** on the user's
+own bag, with the effect injected at +MDB and at −MDB (:func:`with_effect`: the effect classes
 render it at the trajectory, camera and sensors the run estimated — the twin's renderer,
 :mod:`~stellar_cal_ros.diagnosis.twin`, without noise — and the increment is added to the
 user's centroids and IMU samples), where the bag is (``Runs.on_bag``, as the flexure probe
 of :mod:`~stellar_cal_ros.diagnosis.flexure`).  The paired difference of the two runs is
-the filter's full response at that size, noise and gain response included; every row of
-that parameter keeps its first-order value where the probe agrees within
-:data:`AGREE`, else the report prints the measured shift (``measured``).  Cost: one run per
-flagged (effect, parameter); none on a bag where no row is flagged.
+the filter's full response at that size, noise and gain response included (both signs:
+the response is not odd in the effect); every row of that parameter keeps its first-order
+value where the probe agrees within :data:`AGREE` at both signs, else the report prints the
+measured shifts (:func:`apply`).  Cost: two runs per flagged (effect, parameter); none on a
+bag where no row is flagged.
 """
 
 from __future__ import annotations
@@ -95,11 +96,12 @@ def own_shift(calibration, method: str, effect_id: str, delta: np.ndarray) -> di
     (:func:`~stellar_cal_ros.diagnosis.reliability.bias_rows`).
     """
     from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
-    from stellar_cal_ros.diagnosis.twin import _model
+    from stellar_cal_ros.diagnosis.twin import twin_model
     from stellar_cal_ros.methods.results import epp_jacobian
 
     value = {effect_id: injection.simulation_value(effect_id, delta)}
-    (m0, th0), (m1, th1) = _model(calibration, method, {}), _model(calibration, method, value)
+    m0, th0 = twin_model(calibration, method, {})
+    m1, th1 = twin_model(calibration, method, value)
     step = epp_jacobian(m1, th1, 0)[0] - epp_jacobian(m0, th0, 0)[0]
     return dict(zip(EPP_NAMES, map(float, step), strict=True))
 

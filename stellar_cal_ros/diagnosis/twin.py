@@ -71,7 +71,7 @@ class Twin:
     counts: dict[str, int] = field(default_factory=dict)
 
 
-def _model(calibration: Calibration, method: str, injected: dict[str, np.ndarray]
+def twin_model(calibration: Calibration, method: str, injected: dict[str, np.ndarray]
            ) -> tuple[StarModel, np.ndarray]:
     """The twin's StarModel (the calibration's effects + the injected ones) and its θ."""
     from stellar_cal_ros.methods import registry as methods
@@ -177,8 +177,8 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
     injected = {k: normalize_effect(k, v) for k, v in (effects or {}).items()}
     noise = noise or stated_scales(calibration)
     rng = np.random.default_rng(seed)
-    model_cal, theta_cal = _model(calibration, method, {})
-    model, theta = _model(calibration, method, injected)
+    model_cal, theta_cal = twin_model(calibration, method, {})
+    model, theta = twin_model(calibration, method, injected)
     cam = calibration.camera
     default_sigma, arw, vrw = _method_noise(method)
     t = np.asarray(data.imu_t, dtype=float)
