@@ -13,9 +13,13 @@ flexure and the candidates refused as explaining nothing beyond it) and the firs
 no flexure) and gyro_scale_factor in the model, over N seeds: the share of p below 5 %,
 1 %, 0.1 % (each must be its level: the test's p is from t_nu, frame-robust).
 
+``--with ID=SIZE`` (repeatable): a true library effect in the bag beside the flexure (the
+mixed case: is the true effect still added, and the remainder still said?).
+
 Run::
 
     .venv/bin/python benchmarks/flexure_remainder.py --sizes 10,20,40,80 --null-seeds 20
+    .venv/bin/python benchmarks/flexure_remainder.py --sizes 40 --with gyro_misalignment=1e-4
 """
 
 from __future__ import annotations
@@ -41,9 +45,9 @@ def _bag(effects: dict, seed: int, duration: float):
     return sim, bag_data_from_simulation(sim)
 
 
-def discover_row(size: float, seed: int, duration: float) -> str:
-    """One size: what discover adds and says."""
-    sim, data = _bag({"mount_flexure": size}, seed, duration)
+def discover_row(size: float, seed: int, duration: float, also: dict | None = None) -> str:
+    """One size: what discover adds and says (``also``: true library effects beside it)."""
+    sim, data = _bag({"mount_flexure": size, **(also or {})}, seed, duration)
     base = replay_psce(data, sim.prior)
     t0 = time.process_time()
     with tempfile.TemporaryDirectory() as tmp:
@@ -90,14 +94,18 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=52)
     ap.add_argument("--duration", type=float, default=300.0)
     ap.add_argument("--null-seeds", type=int, default=0)
+    ap.add_argument("--with", dest="also", action="append", default=[], metavar="ID=SIZE",
+                    help="a true library effect in the bag beside the flexure (repeatable)")
     ap.add_argument("--first-null-seed", type=int, default=2000)
     args = ap.parse_args()
-    print(f"psce_rotations, {args.duration:g} s, seed {args.seed}; discover (noise estimated)")
+    also = {k: float(v) for k, v in (a.split("=", 1) for a in args.also)}
+    print(f"psce_rotations, {args.duration:g} s, seed {args.seed}; discover (noise estimated)"
+          + "".join(f"; true {k} {v:g}" for k, v in also.items()))
     print("| flexure | added | remainder test after each add | first 'unexplained' | report "
           "| CPU-s |")
     print("|---|---|---|---|---|---|")
     for size in (float(x) for x in args.sizes.split(",") if x):
-        print(discover_row(size, args.seed, args.duration), flush=True)
+        print(discover_row(size, args.seed, args.duration, also), flush=True)
     if args.null_seeds:
         ps = np.array([null_p(s, args.duration) for s in range(
             args.first_null_seed, args.first_null_seed + args.null_seeds)])
