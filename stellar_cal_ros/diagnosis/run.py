@@ -10,7 +10,13 @@ from typing import Any
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import flexure
 from stellar_cal_ros.diagnosis.auto import discover
-from stellar_cal_ros.diagnosis.discover import ALPHA, method_spec, rank_candidates, rerun_prior
+from stellar_cal_ros.diagnosis.discover import (
+    ALPHA,
+    Reference,
+    method_spec,
+    rank_candidates,
+    rerun_prior,
+)
 from stellar_cal_ros.diagnosis.noise import NoiseVerdict, check_noise, stated_scales
 from stellar_cal_ros.diagnosis.output import finish, progress_printer
 from stellar_cal_ros.diagnosis.parallel import open_runner
@@ -78,6 +84,13 @@ def diagnose(
             # the refined run's own start and model (discover.condition_on_top)
             refined = best.refined_run
             got = flexure.after_add(runs, refined, refined.prior, refined.effects)
+            if flexure.significant([flexure.finding(got, [best.effect])], ALPHA) and \
+                    base.prior is not None:
+                # whether it explains anything beyond a flexure (as discover tests it):
+                # one more run, the current model with the probe
+                got["beyond"] = flexure.beyond(
+                    best.statistic, best.dof, Reference.of(base).dispersion, got,
+                    flexure.after_add(runs, base, base.prior, base.effects))
             outside = flexure.significant([flexure.finding(got, [best.effect])], ALPHA)
         final = base
         panels = [("current model", base.residuals)]
