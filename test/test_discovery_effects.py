@@ -199,6 +199,25 @@ def test_single_diagnose_round_says_the_recommendation_stands_in_for_a_flexure(
     assert "stands in for it" in "\n".join(summary["terminal"])
 
 
+def test_remainder_text_says_what_the_beyond_test_found():
+    """The three verdicts of the remainder line: no beyond test (its extra run failed),
+    needed beyond a flexure, and a stand-in."""
+    from stellar_cal_ros.diagnosis.flexure import remainder_text
+
+    f = {"change_px": 0.033, "statistic": 7.8, "p_value": 2.6e-5,
+         "detail": {"arcsec_per_g": 40.8, "sigma_arcsec_per_g": 4.3}}
+    said = remainder_text(["gyro_scale_factor"], f)
+    assert "0.033 px" in said and "40.8 +- 4.3 arcsec" in said
+    assert said.endswith("gyro_scale_factor improves the fit but may stand in for it"), said
+    for needed, words in ((True, "improves the fit beyond such a flexure too"),
+                          (False, "explains nothing beyond such a flexure")):
+        b = {"statistic": 469.4 if needed else -315.4, "dof": 3, "needed": needed,
+             "p_value": 1e-100 if needed else 1.0}
+        said = remainder_text(["gyro_scale_factor"], {**f, "detail": {**f["detail"],
+                                                                        "beyond": b}})
+        assert words in said and ("stands in for it" in said) is not needed, said
+
+
 def test_mount_flexure_is_unexplained_and_no_stand_in_is_added_for_it(tmp_path, flexure_bag):
     """Mount bending with gravity (outside the library), ``discover``: the gyro scale factor
     that takes up ~98 % of it on this motion is added (the fit improves) but flagged as
