@@ -126,3 +126,48 @@ def test_one_noisy_gyro_axis_is_measured_per_axis():
     x = np.random.default_rng(3).standard_normal((20000, 3)) * [1.0, 1.1, 0.95]
     s1, _, _, mad = sample_noise(x, axes=True)
     assert s1 == pytest.approx(float(np.median(mad)))
+
+
+def test_rolling_shutter_on_a_swaying_base_is_no_noise_and_has_no_stand_in():
+    """30 ms readout on a swaying base (~3 px of sway), 100 s: the stars' σ is measured
+    without the readout's shape (before: "sigma x39", by row, 'correlated'), the shape's
+    fit on the innovations is significant (readout within 20 %), and a time_offset, which
+    discover added for it before, explains nothing beyond that fit
+    (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`, discover's stand-in rule).  On a
+    clean swaying bag the fit is not significant (the rule does not fire)."""
+    from stellar_cal_ros.diagnosis import flexure, rolling
+    from stellar_cal_ros.diagnosis.discover import Reference, candidate_prior
+    from stellar_cal_ros.diagnosis.injection import SWAY_CLEAN
+
+    def runs(readout):
+        sc = dataclasses.replace(get_scenario("swaying"), centroid_noise_px=0.0)
+        sim = simulate(sc, duration=100.0, seed=21, effects=dict(SWAY_CLEAN))
+        if readout:
+            tracker_errors.rolling_shutter(sim, readout)
+        tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, 21)
+        data, spec, prior = bag_data_from_simulation(sim), method_spec("swaying_base"), \
+            rerun_prior(sim.prior)
+        base = evaluate(data, spec, prior, (), 0.5, keep_residuals=True, star_noise=True)
+        return data, spec, prior, base
+
+    data, spec, prior, base = runs(0.03)
+    # the readout's shape removed, the stars' σ is near the stated (1.18; x18.1 without it)
+    # and the model is too far off for the noise to be measured: taken as stated
+    assert base.star_noise.scale < 1.3
+    assert correlated(base.star_noise.track_rho, base.star_noise.track_pairs, 0.1) is None
+    assert "too far off" in noise.far_off(base, base.star_noise)
+    shutter = rolling.of_run(base, 0.5)
+    assert shutter["p_value"] < 0.01
+    assert shutter["readout_ms"] == pytest.approx(30.0, rel=0.2)
+    # the rule, where the noise had been rescaled as before (x18): time_offset is then
+    # significant alone, and explains nothing beyond the fit
+    scaled = NoiseScales(star=18.1)
+    base = evaluate(data, spec, prior, (), 0.5, keep_residuals=True, noise=scaled)
+    with_to = evaluate(data, spec, candidate_prior(prior, "time_offset", prior),
+                       ("time_offset",), 0.5, keep_residuals=True, candidate=True,
+                       noise=scaled)
+    lam, p, _ = Reference.of(base).compare(with_to, 1)
+    b = flexure.beyond(lam, 1, Reference.of(base).dispersion, rolling.of_run(with_to, 0.5),
+                       rolling.of_run(base, 0.5))
+    assert p < 0.01 and not b["needed"], (lam, p, b)
+    assert rolling.of_run(runs(0.0)[3], 0.5)["p_value"] > 0.01

@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import flexure, screening
+from stellar_cal_ros.diagnosis import flexure, rolling, screening
 from stellar_cal_ros.diagnosis.discover import (
     ALPHA,
     MIN_EXPLAINED,
@@ -289,19 +289,25 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             for c in results:
                 history.setdefault(c.effect, []).append((k, c))
             action, removed, added, follow, checks = _decide_checks(state, base, extras)
-            top, refused = (_top(runs, state, base, here, prior, calibration, results, tell)
-                            if not action else (None, []))
+            shutter = rolling.of_run(base, runs.fraction) if not action else None
+            if shutter is not None and not shutter["p_value"] < ALPHA:
+                shutter = None
+            top, refused = (_top(runs, state, base, here, prior, calibration, results, tell,
+                                 shutter) if not action else (None, []))
             if not action and top is not None:
                 action, added, follow = "add", top.effect, top.run
             step = _step(k, model, base, results, top if action == "add" else None,
                          time.perf_counter() - t0, 1 + len(extras) + sum(
                              c.run is not None for c in results))
             for c, b in refused:
-                # significant alone, but only along the flexure the remainder showed
+                # significant alone, but only along the flexure (or rolling shutter) the
+                # remainder showed
                 step["beyond_remainder"] = {**step.get("beyond_remainder", {}), c.effect: b}
+                what, fitted = b.get("remainder", ("the gravity-shaped remainder",
+                                                   "a mount flexure"))
                 why = (f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing "
-                       "beyond the gravity-shaped remainder (its ratio with a mount flexure "
-                       f"fitted beside it {b['statistic']:.1f}, chi2 with {b['dof']}, p = "
+                       f"beyond {what} (its ratio with {fitted} fitted beside it "
+                       f"{b['statistic']:.1f}, chi2 with {b['dof']}, p = "
                        f"{b['p_value']:.2g}): not added")
                 for rj in step["rejected"]:
                     if rj["effect"] == c.effect:
@@ -322,8 +328,9 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                  f"[{step['seconds']:.1f} s]")
             if not action:
                 if refused:
-                    stopped = ("stopped: nothing significant beyond the gravity-shaped "
-                               "remainder (" + ", ".join(c.effect for c, _ in refused)
+                    what = refused[0][1].get("remainder", ("the gravity-shaped remainder",))
+                    stopped = (f"stopped: nothing significant beyond {what[0]} ("
+                               + ", ".join(c.effect for c, _ in refused)
                                + " only along it: not added; see 'unexplained')")
                 break
             if k == max_rounds:
@@ -384,19 +391,34 @@ def _stand_in(runs, state: _State, step: dict[str, Any], before: RunSummary | No
 
 
 def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibration,
-         calibration: Calibration, results: list[CandidateResult], tell
+         calibration: Calibration, results: list[CandidateResult], tell,
+         shutter: dict | None = None
          ) -> tuple[CandidateResult | None, list[tuple[CandidateResult, dict]]]:
-    """The candidate to add, and those refused as a flexure's stand-ins.
+    """The candidate to add, and those refused as a flexure's (a rolling shutter's) stand-ins.
 
     The first candidate significant alone, except that once a flexure-shaped remainder
     was found (``state.outside``) a candidate that may stand in for a flexure is added only
     if it explains the data beyond it (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`:
     its ratio beside a fitted flexure, two runs of its model); camera effects as always.
+    ``shutter``: the current model's rolling-shutter fit when significant
+    (:mod:`~stellar_cal_ros.diagnosis.rolling`): then every candidate is added only if it
+    explains the data beyond that fit (one run of its model).
     """
     refused = []
     for c in results:
         if not c.significant_alone:
             continue
+        if shutter is not None:
+            tell(f"{c.effect}: testing it beyond the rolling-shutter-shaped remainder")
+            with_c = runs.on_bag(rolling.candidate_on_bag, runs.spec,
+                                 candidate_prior(prior, c.effect, calibration),
+                                 tuple(state.extra) + (c.effect,), runs.fraction, runs.noise,
+                                 runs.classes)
+            b = flexure.beyond(c.statistic, c.dof, Reference.of(base).dispersion, with_c,
+                               shutter)
+            if b is not None and not b["needed"]:
+                refused.append((c, dict(b, remainder=rolling.REMAINDER)))
+                continue
         if not (state.outside and here is not None and flexure.may_stand_in(c.effect)):
             return c, refused
         tell(f"{c.effect}: testing it beyond the gravity-shaped remainder")

@@ -152,9 +152,14 @@ class StarNoise:
 
 
 def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np.ndarray,
-               fx: float, fy: float, centre: tuple[float, float]) -> StarNoise | None:
-    """The within-frame estimate over the accepted stars of ``mask`` (see the module doc)."""
-    from stellar_cal_ros.diagnosis.stats import within_frame
+               fx: float, fy: float, centre: tuple[float, float],
+               R_imu_st: np.ndarray | None = None) -> StarNoise | None:
+    """The within-frame estimate over the accepted stars of ``mask`` (see the module doc).
+
+    With the installation ``R_imu_st``, a rolling shutter's shape is removed first where
+    it is significant (:func:`~.noise_structure.minus_rolling`).
+    """
+    from stellar_cal_ros.diagnosis.stats import rolling_columns, within_frame
 
     ok = mask & ~np.asarray(res["gated"]).astype(bool) & np.isfinite(sigma_px) \
         & (sigma_px > 0) & np.isfinite(np.asarray(res["du"], dtype=float))
@@ -176,6 +181,12 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         r, sub_share = noise_structure.minus_subpixel(r, sub_share, np.stack(
             [np.asarray(res["u_pred"], dtype=float)[idx],
              np.asarray(res["v_pred"], dtype=float)[idx]], 1), ALPHA)
+    # (and a rolling shutter's shape: the row times the image velocity; its readout is
+    # structure, not a σ growing with the row nor noise correlated along the tracks)
+    x = rolling_columns({k: np.asarray(res[k])[idx] for k in res}, (fx, fy), centre, R_imu_st)
+    if x is not None:
+        x = within_frame(dict(sub, du=x[:, 0], dv=x[:, 1]), sigma_px[idx], fx, fy)[0]
+    r, sub_share = noise_structure.minus_rolling(r, sub_share, x, ALPHA)
     r, share, chi2, dof = _minus_cell_means(r, cell, keep_cell)
     share = share * sub_share
     # ... and so is an error that repeats star by star (a catalogue position error): its
@@ -371,7 +382,7 @@ def measure_stars(result, data, method: str, fraction: float,
     sig, msg = used_sigma(res, data, noise or NoiseScales(), default_sigma(method),
                           cam.width, cam.height)
     return star_noise(res, sig, msg, evaluation_mask(res, fraction), cam.fx, cam.fy,
-                      (cam.cx, cam.cy))
+                      (cam.cx, cam.cy), result.calibration.R_imu_st)
 
 
 # ----------------------------------------------------------------------------- the verdict
@@ -721,7 +732,7 @@ def structured(sn: StarNoise) -> str:
 
 
 def repeat_finding(res: Table, mask: np.ndarray, fx: float, fy: float,
-                   centre: tuple[float, float]):
+                   centre: tuple[float, float], R_imu_st: np.ndarray | None = None):
     """The 'unexplained' test of an error that repeats star by star, on a run's residuals.
 
     The innovations of ``mask``'s accepted stars, whitened by their predicted σ, minus the
@@ -738,7 +749,8 @@ def repeat_finding(res: Table, mask: np.ndarray, fx: float, fy: float,
         return None
     sig = np.sqrt(np.maximum(0.5 * (np.asarray(res["s_uu"], dtype=float)
                                     + np.asarray(res["s_vv"], dtype=float)), 1e-300))
-    sn = star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok, fx, fy, centre)
+    sn = star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok, fx, fy, centre,
+                    R_imu_st)
     if sn is None or sn.repeat_dof <= 0:
         return None
     z = (sn.repeat - sn.repeat_dof) / math.sqrt(2.0 * sn.repeat_dof)

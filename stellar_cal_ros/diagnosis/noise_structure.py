@@ -44,6 +44,33 @@ def minus_subpixel(r: np.ndarray, share: np.ndarray, uv: np.ndarray, alpha: floa
     return out, share_out
 
 
+def minus_rolling(r: np.ndarray, share: np.ndarray, x: np.ndarray | None, alpha: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``r`` without its fit by a rolling shutter's shape ``x``, where it is significant.
+
+    ``x``: :func:`~stellar_cal_ros.diagnosis.stats.rolling_columns` projected and whitened
+    as ``r`` (the within-frame residuals).  One coefficient (the readout time), its χ²
+    tested at ``alpha``; when significant the fit is removed (a rolling shutter is
+    structure, an 'unexplained' lead of its own, not noise: measured, unseen case
+    ``sway_rolling``, 30 ms read as "sigma x39" grouped by row), each residual's share of
+    its dof reduced by its leverage.  Otherwise ``r`` is returned unchanged.
+    """
+    if x is None:
+        return r, share
+    ok = np.all(np.isfinite(r), axis=1) & (share > 0) & np.all(np.isfinite(x), axis=1)
+    info = float(np.sum(x[ok] ** 2))
+    if ok.sum() < 50 or not info > 0:
+        return r, share
+    b = float(np.sum(x[ok] * r[ok])) / info
+    chi2 = b * b * info / max(float(np.mean(share[ok])), 1e-12)
+    if sps.chi2.sf(chi2, 1) >= alpha:
+        return r, share
+    out, share_out = r.copy(), share.copy()
+    out[ok] = r[ok] - b * x[ok]
+    share_out[ok] = share[ok] * np.clip(1.0 - np.sum(x[ok] ** 2, 1) / info, 0.0, 1.0)
+    return out, share_out
+
+
 def track_inflation(r: np.ndarray, star: np.ndarray) -> tuple[float, float, int]:
     """How much more than ``1/n`` a star's mean varies: ``((1 + ρ) / (1 − ρ), ρ, pairs)``.
 

@@ -498,14 +498,63 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     for fn, label in ((np.sin, "sin"), (np.cos, "cos")):
         one(f"{SUBPIXEL} ({label} 2 pi u, {label} 2 pi v)",
             project(np.stack([fn(2.0 * np.pi * u), fn(2.0 * np.pi * v)], 1)))
-    if R_imu_st is not None and all(k in sub for k in ("omega_x", "x_st")):
-        w_b = np.stack([sub["omega_x"], sub["omega_y"], sub["omega_z"]], 1)
-        w_st = w_b @ np.asarray(R_imu_st, dtype=float)  # R^T ω per row
-        vel = np.einsum("nij,nj->ni", attitude_columns(sub, *focal), w_st)
+    x = rolling_columns(sub, focal, centre, R_imu_st)
+    if x is not None:
         height = 2.0 * centre[1]
-        one(lambda b: f"{ROLLING}, readout {abs(b) * height * 1e3:.3g} ms)",
-            project((v - centre[1])[:, None] * vel))  # px · px/s
+        one(lambda b: f"{ROLLING}, readout {abs(b) * height * 1e3:.3g} ms)", project(x))
     return out
+
+
+def rolling_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
+                    R_imu_st: np.ndarray | None) -> np.ndarray | None:
+    """A rolling shutter's displacement per second of readout offset, ``(n, 2)`` px · px/s.
+
+    ``(v − c_y) J ω``: the row's offset from the middle row times the star's image velocity
+    (its :func:`attitude_columns` times the gyro rate in the tracker frame, ``R_imu_st`` the
+    installation; ``v`` of the predicted centroid where there is one).  ``None`` without
+    the installation or the rate columns.
+    """
+    if R_imu_st is None or not all(k in sub for k in ("omega_x", "x_st")):
+        return None
+    v = np.asarray(sub["v_pred"] if "v_pred" in sub else sub["v"], dtype=float)
+    w_b = np.stack([np.asarray(sub[k], dtype=float) for k in ("omega_x", "omega_y",
+                                                              "omega_z")], 1)
+    w_st = w_b @ np.asarray(R_imu_st, dtype=float)  # R^T ω per row
+    vel = np.einsum("nij,nj->ni", attitude_columns(sub, *focal), w_st)
+    return (v - centre[1])[:, None] * vel
+
+
+def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
+                      focal: tuple[float, float], R_imu_st: np.ndarray | None
+                      ) -> dict[str, float] | None:
+    """The innovations' fit by a rolling shutter's shape (a nuisance regressor).
+
+    The innovations of ``mask``'s accepted stars and :func:`rolling_columns`, both whitened
+    by the innovation covariance, u and v of every star; the frames as the units
+    (:func:`frame_robust_t`).  ``{t, p_value (unadjusted), chi2 (the whitened sum of squares
+    the fit removes), readout_ms}``, or ``None`` without the columns.  What
+    :func:`~stellar_cal_ros.diagnosis.flexure.beyond` takes beside a candidate: whether it
+    explains the data beyond a rolling shutter (``discover``'s stand-in rule).
+    """
+    m = mask & accepted(res)
+    if m.sum() < 20:
+        return None
+    sub = {k: np.asarray(v)[m] for k, v in res.items()}
+    x = rolling_columns(sub, focal, centre, R_imu_st)
+    if x is None:
+        return None
+    cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
+    w_nu = whitened(sub)
+    w_x = whitened({"du": x[:, 0], "dv": x[:, 1], **cov})
+    ok = np.all(np.isfinite(w_x), 1) & np.all(np.isfinite(w_nu), 1)
+    info = float(np.sum(w_x[ok] ** 2))
+    if ok.sum() < 20 or not info > 0:
+        return None
+    frame = np.repeat(np.asarray(sub["frame"])[ok], 2)
+    t, p = frame_robust_t(w_x[ok].ravel(), w_nu[ok].ravel(), frame)
+    c = float(np.sum(w_x[ok] * w_nu[ok])) / info
+    return {"t": float(t), "p_value": float(p), "chi2": c * c * info,
+            "readout_ms": abs(c) * 2.0 * centre[1] * 1e3}
 
 
 def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
