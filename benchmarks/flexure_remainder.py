@@ -15,11 +15,15 @@ no flexure) and gyro_scale_factor in the model, over N seeds: the share of p bel
 
 ``--with ID=SIZE`` (repeatable): a true library effect in the bag beside the flexure (the
 mixed case: is the true effect still added, and the remainder still said?).
+``--single``: a single ``diagnose`` round instead of discover (its recommendation and what
+it says of the remainder).
 
 Run::
 
     .venv/bin/python benchmarks/flexure_remainder.py --sizes 10,20,40,80 --null-seeds 20
     .venv/bin/python benchmarks/flexure_remainder.py --sizes 40 --with gyro_misalignment=1e-4
+    .venv/bin/python benchmarks/flexure_remainder.py --single --sizes 40 \
+        --with gyro_scale_factor=1e-4
 """
 
 from __future__ import annotations
@@ -75,6 +79,20 @@ def discover_row(size: float, seed: int, duration: float, also: dict | None = No
                if first else "-") + f" | {said} | {cpu:.0f} |")
 
 
+def single_row(size: float, seed: int, duration: float, also: dict | None = None) -> str:
+    """One size, a single ``diagnose`` round: what it recommends and says of the remainder."""
+    sim, data = _bag({"mount_flexure": size, **(also or {})}, seed, duration)
+    base = replay_psce(data, sim.prior)
+    t0 = time.process_time()
+    with tempfile.TemporaryDirectory() as tmp:
+        s = diagnose(data, base.calibration, "psce", [], tmp, plots=False, verbose=False)
+    cpu = time.process_time() - t0
+    rem = s.get("remainder")
+    said = "no remainder said" if not rem else rem["text"].split(" -- ")[0] + " ... " + (
+        rem["text"].split(" would leave it; ")[-1])
+    return f"| {size:g}\u2033 | {s['recommendation'] or '-'} | {said} | {cpu:.0f} |"
+
+
 def null_p(seed: int, duration: float) -> float:
     """The remainder test's p on a bag with a true gyro scale factor, gsf in the model."""
     sim, data = _bag({"gyro_scale_factor": 1e-4}, seed, duration)
@@ -94,6 +112,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=52)
     ap.add_argument("--duration", type=float, default=300.0)
     ap.add_argument("--null-seeds", type=int, default=0)
+    ap.add_argument("--single", action="store_true",
+                    help="a single diagnose round instead of discover")
     ap.add_argument("--with", dest="also", action="append", default=[], metavar="ID=SIZE",
                     help="a true library effect in the bag beside the flexure (repeatable)")
     ap.add_argument("--first-null-seed", type=int, default=2000)
@@ -101,10 +121,17 @@ def main() -> int:
     also = {k: float(v) for k, v in (a.split("=", 1) for a in args.also)}
     print(f"psce_rotations, {args.duration:g} s, seed {args.seed}; discover (noise estimated)"
           + "".join(f"; true {k} {v:g}" for k, v in also.items()))
-    print("| flexure | added | remainder test after each add | first 'unexplained' | report "
-          "| CPU-s |")
-    print("|---|---|---|---|---|---|")
-    for size in (float(x) for x in args.sizes.split(",") if x):
+    sizes = [float(x) for x in args.sizes.split(",") if x]
+    if args.single:
+        print("| flexure | recommendation | remainder | CPU-s |\n|---|---|---|---|")
+        for size in sizes:
+            print(single_row(size, args.seed, args.duration, also), flush=True)
+        sizes = []
+    else:
+        print("| flexure | added | remainder test after each add | first 'unexplained' | "
+              "report | CPU-s |")
+        print("|---|---|---|---|---|---|")
+    for size in sizes:
         print(discover_row(size, args.seed, args.duration, also), flush=True)
     if args.null_seeds:
         ps = np.array([null_p(s, args.duration) for s in range(
