@@ -732,7 +732,7 @@ def structured(sn: StarNoise) -> str:
 
 
 def repeat_finding(res: Table, mask: np.ndarray, fx: float, fy: float,
-                   centre: tuple[float, float], R_imu_st: np.ndarray | None = None):
+                   centre: tuple[float, float]):
     """The 'unexplained' test of an error that repeats star by star, on a run's residuals.
 
     The innovations of ``mask``'s accepted stars, whitened by their predicted σ, minus the
@@ -749,8 +749,7 @@ def repeat_finding(res: Table, mask: np.ndarray, fx: float, fy: float,
         return None
     sig = np.sqrt(np.maximum(0.5 * (np.asarray(res["s_uu"], dtype=float)
                                     + np.asarray(res["s_vv"], dtype=float)), 1e-300))
-    sn = star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok, fx, fy, centre,
-                    R_imu_st)
+    sn = star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok, fx, fy, centre)
     if sn is None or sn.repeat_dof <= 0:
         return None
     z = (sn.repeat - sn.repeat_dof) / math.sqrt(2.0 * sn.repeat_dof)

@@ -60,7 +60,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     mask = stats.evaluation_mask(res, fraction)
     unexplained = stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
-        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st),
+        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre),
                *stats.periodic_findings(res, mask)], R_imu_st=calibration.R_imu_st)
     unexplained, spread = within_groups(unexplained, verdict)
     outside = list(outside or [])
