@@ -122,17 +122,13 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
     sub = {k: v[m] for k, v in a.items()}
     per = PROBE / ARCSEC
     S = np.stack([b["du"][m] - a["du"][m], b["dv"][m] - a["dv"][m]], 1) / per  # px/arcsec
-    cov = {"s_uu": sub["s_uu"], "s_uv": sub["s_uv"], "s_vv": sub["s_vv"]}
-    w_nu = stats.whitened(sub)
-    w_s = stats.whitened({"du": S[:, 0], "dv": S[:, 1], **cov})
-    info = float(np.sum(w_s * w_s))
-    if not info > 0:
+    fit = stats.whitened_fit(sub, S)
+    if fit is None:
         return None
+    t, p, c, info = fit
     frame = np.asarray(sub["frame"])
-    t, p = stats.frame_robust_t(w_s.ravel(), w_nu.ravel(), np.repeat(frame, 2))
-    c = float(np.sum(w_s * w_nu)) / info
     shown = np.hypot(*(S * c).T)
-    return {"t": float(t), "p_value": float(p), "arcsec_per_g": c,
+    return {"t": t, "p_value": p, "arcsec_per_g": c,
             "chi2": c * c * info,
             "sigma_arcsec_per_g": float(1.0 / np.sqrt(info)),
             "change_px": float(np.percentile(shown, 99)),

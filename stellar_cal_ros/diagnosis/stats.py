@@ -543,6 +543,24 @@ def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
     x = rolling_columns(sub, focal, centre, R_imu_st)
     if x is None:
         return None
+    fit = whitened_fit(sub, x)
+    if fit is None:
+        return None
+    t, p, c, info = fit
+    return {"t": t, "p_value": p, "chi2": c * c * info,
+            "readout_ms": abs(c) * 2.0 * centre[1] * 1e3}
+
+
+def whitened_fit(sub: Table, x: np.ndarray) -> tuple[float, float, float, float] | None:
+    """The innovations of ``sub`` fitted by one displacement pattern ``x`` (``(n, 2)`` px).
+
+    Both whitened by the innovation covariance (:func:`whitened`), u and v of every star
+    where both are finite; the frames as the units (:func:`frame_robust_t`).  ``(t, p
+    (unadjusted), c, info)``: ``c`` the pattern's fitted size, ``info`` the whitened
+    ``xᵀx`` (the fit removes ``c² info`` of χ², ``σ(c) = 1/√info``); ``None`` with fewer
+    than 20 stars or no information.  The nuisance fits of ``discover``'s stand-in rules
+    (a rolling shutter here, a mount flexure in :mod:`~stellar_cal_ros.diagnosis.flexure`).
+    """
     cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
     w_nu = whitened(sub)
     w_x = whitened({"du": x[:, 0], "dv": x[:, 1], **cov})
@@ -553,8 +571,7 @@ def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
     frame = np.repeat(np.asarray(sub["frame"])[ok], 2)
     t, p = frame_robust_t(w_x[ok].ravel(), w_nu[ok].ravel(), frame)
     c = float(np.sum(w_x[ok] * w_nu[ok])) / info
-    return {"t": float(t), "p_value": float(p), "chi2": c * c * info,
-            "readout_ms": abs(c) * 2.0 * centre[1] * 1e3}
+    return float(t), float(p), c, info
 
 
 def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
