@@ -74,6 +74,10 @@ def discover_row(size: float, seed: int, duration: float, also: dict | None = No
             tests.append(f"{e} beyond it {b['statistic']:.1f} ({b['dof']} dof): not added")
     first = s["unexplained"][0] if s["unexplained"] else None
     said = ("remainder said" if s.get("remainder") else "no remainder said")
+    h = s.get("flexure_hiding")
+    if h:
+        said += (f"; a flexure up to {h['arcsec_per_g']:.3g}\"/g could still hide (MDB; after "
+                 f"{'+'.join(h['after'])}, sigma {h['sigma_arcsec_per_g']:.2g}\"/g)")
     return (f"| {size:g}\u2033 | {', '.join(s['added']) or '-'} | {'; '.join(tests) or '-'} | "
             + (f"{first['regressor']} (p={first['p_value']:.2g}, {first['change_px']:.3f} px)"
                if first else "-") + f" | {said} | {cpu:.0f} |")

@@ -318,6 +318,10 @@ def test_auto_with_two_dask_workers_chooses_as_one_worker(tmp_path):
     # (t = -43 there; time_offset explains far beyond a flexure, so gsf is tested as usual):
     # once it is in, the remainder is gone and no effect outside the library is said
     assert "remainder" not in s[1] and "remainder" not in s[2], s[1].get("remainder")
+    # then the report bounds what a flexure could still be (its MDB in "/g after the adds)
+    h = s[1]["flexure_hiding"]
+    assert h is not None and h["p_value"] > 0.01 and h["arcsec_per_g"] > 0, h
+    assert "could still hide with this motion" in "\n".join(s[1]["terminal"])
     assert [p["action"] for p in s[1]["path"]] == [p["action"] for p in s[2]["path"]]
     for eff in s[1]["added"]:
         for name, (value, sigma) in s[1]["final_estimates"][eff].items():

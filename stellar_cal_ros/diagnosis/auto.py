@@ -478,6 +478,9 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
                if f is not None and not flexure.significant([f], ALPHA)]
     outside = flexure.significant(found[cleared[-1] + 1 if cleared else 0:], ALPHA)
     like = outside[0].detail["after"] if outside else None
+    # no remainder said: the flexure the last test would have seen (its MDB, ″/g)
+    hidden = (flexure.hiding(*state.remainders[-1], len(state.remainders), ALPHA)
+              if state.remainders and not outside else None)
     summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
                      panels, plots, "stellar_cal discovery", images, verdict, write=False,
                      outside=outside, like=like, runs=runs,
@@ -490,6 +493,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         "rejected": _rejected(history, state, path),
         "workers": runs.workers, "executor": runs.description,
         "seconds": seconds,
+        "flexure_hiding": hidden,
     })
     summary.setdefault("reliability", [])
     if summary.get("remainder"):

@@ -285,6 +285,42 @@ def _stand_in(b: dict[str, Any] | None) -> str:
             "estimate is not a gyro calibration to use")
 
 
+def hiding(result: dict[str, float] | None, after: list[str], m: int, alpha: float
+           ) -> dict[str, Any] | None:
+    """What a flexure-shaped test that found nothing still lets hide: its MDB in ″/g.
+
+    The flexure the test (:func:`remainder_statistics` of the model ``after``, Bonferroni
+    over ``m`` such tests at ``alpha``) detects with power
+    :data:`~stellar_cal_ros.diagnosis.reliability.POWER`: ``σ √λ₀(α/m, 1)``, ``σ`` the
+    larger of the frame-robust standard error ``|c / t|`` and the whitened ``1/√info``.
+    A motion whose steps about the gyro axes alias a flexure with the gyro terms in the
+    model makes it large (40″/g + a true gyro misalignment: ~25″/g σ after both).
+    ``None`` when the test did not run.
+    """
+    from stellar_cal_ros.diagnosis.reliability import POWER, lambda0
+
+    if result is None:
+        return None
+    t, c = result["t"], result["arcsec_per_g"]
+    se = float(result["sigma_arcsec_per_g"])
+    if t and np.isfinite(t):
+        se = max(se, abs(c / t))
+    return {"arcsec_per_g": se * float(np.sqrt(lambda0(alpha / max(m, 1), 1))),
+            "sigma_arcsec_per_g": se, "estimate_arcsec_per_g": c, "t": t,
+            "p_value": min(1.0, result["p_value"] * max(m, 1)), "after": list(after),
+            "power": POWER}
+
+
+def hiding_text(h: dict[str, Any]) -> str:
+    """The 'what could still be hiding' line of a mount flexure (outside the library)."""
+    after = "+".join(h["after"]) or "the model"
+    return (f"a mount flexure (outside the library) up to {h['arcsec_per_g']:.3g} arcsec per "
+            f"unit lateral gravity could still hide with this motion (its MDB: seen with "
+            f"power {h['power']:.0%} at that size; the gravity-shaped test after {after}: "
+            f"{h['estimate_arcsec_per_g']:.3g} +- {h['sigma_arcsec_per_g']:.2g} arcsec/g, "
+            f"p={h['p_value']:.2g})")
+
+
 def significant(findings: list[stats.RegressorFinding | None], alpha: float
                 ) -> list[stats.RegressorFinding]:
     """The findings (Bonferroni-adjusted over their own tests) below ``alpha``."""

@@ -238,6 +238,10 @@ def discovery_lines(summary: dict[str, Any]) -> list[str]:
     out += notes_lines(summary)
     out += unexplained_lines(summary)
     out += reliability_lines(summary.get("reliability", []))
+    if summary.get("flexure_hiding"):
+        from stellar_cal_ros.diagnosis.flexure import hiding_text
+
+        out.append(f"  {hiding_text(summary['flexure_hiding'])}")
     out += verify_lines(summary)
     out += scope_lines(summary, single_round=False)
     out.append(f"final model: {', '.join(summary['model']['effects'])}; "
