@@ -116,6 +116,13 @@ def _check_found_and_fixed(tmp_path, effect, size, seed, scenario=None, duration
     assert summary["recommendation"] == effect
     # the flexure-shaped remainder test (after a non-camera effect): no false remainder
     assert "remainder" not in summary, summary["remainder"]
+    if effect in ("gyro_scale_factor", "gyro_misalignment", "time_offset"):
+        # then the round bounds a flexure instead (its MDB): the bag holds none, so the
+        # test's estimate lies within 3 of the sigma the MDB is made of
+        h = summary["flexure_hiding"]
+        assert h is not None and h["after"] == [effect], h
+        assert abs(h["estimate_arcsec_per_g"]) < 3.0 * h["sigma_arcsec_per_g"], h
+        assert "could still hide with this motion" in "\n".join(summary["terminal"])
     # add it: a fresh calibration from the prior
     prior = sim.prior
     if effect == "image_plane_tilt":

@@ -35,8 +35,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
            panels: list[tuple[str, Any]], plots: bool, title: str = "stellar_cal diagnosis",
            extra_images: list[tuple[str, str]] | None = None,
            verdict=None, write: bool = True, outside: list | None = None,
-           like: list[str] | None = None, runs=None, refused: tuple[str, ...] = ()
-           ) -> dict[str, Any]:
+           like: list[str] | None = None, runs=None, refused: tuple[str, ...] = (),
+           hiding: dict[str, Any] | None = None) -> dict[str, Any]:
     """Unexplained structure on ``final``'s residuals, the summary, the report files.
 
     ``base`` is the run the candidates were compared with (the summary's RMS); ``final``
@@ -87,6 +87,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
 
         top = next(u for u in summary["unexplained"] if u.get("detail"))
         summary["remainder"] = dict(top, like=list(like), text=remainder_text(like, top))
+    if hiding:
+        summary["flexure_hiding"] = hiding  # the flexure's MDB (flexure.hiding)
     if best is None:
         summary["reliability"] = hidden_effects(base, results)
         if runs is not None:

@@ -166,8 +166,18 @@ def diagnosis_lines(summary: dict, calibration=None) -> list[str]:
     else:
         out.append(f"recommendation: add --effects {rec}" if rec else
                    "recommendation: no library effect explains the residuals better")
+    out += flexure_hiding_lines(summary)
     out += scope_lines(summary, single_round=True)
     return out
+
+
+def flexure_hiding_lines(summary: dict[str, Any]) -> list[str]:
+    """The mount flexure's MDB when its gravity-shaped test found nothing (one line)."""
+    if not summary.get("flexure_hiding"):
+        return []
+    from stellar_cal_ros.diagnosis.flexure import hiding_text
+
+    return [f"  {hiding_text(summary['flexure_hiding'])}"]
 
 
 def scope_lines(summary: dict[str, Any], single_round: bool) -> list[str]:
@@ -238,10 +248,7 @@ def discovery_lines(summary: dict[str, Any]) -> list[str]:
     out += notes_lines(summary)
     out += unexplained_lines(summary)
     out += reliability_lines(summary.get("reliability", []))
-    if summary.get("flexure_hiding"):
-        from stellar_cal_ros.diagnosis.flexure import hiding_text
-
-        out.append(f"  {hiding_text(summary['flexure_hiding'])}")
+    out += flexure_hiding_lines(summary)
     out += verify_lines(summary)
     out += scope_lines(summary, single_round=False)
     out.append(f"final model: {', '.join(summary['model']['effects'])}; "

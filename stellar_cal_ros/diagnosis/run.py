@@ -77,7 +77,7 @@ def diagnose(
         # iteration starts, and the structure left is tested on it -- and for a remainder
         # shaped like a mount bending with gravity, which it may stand in for
         best = next((c for c in results if c.significant_alone), None)
-        outside = []
+        outside, hidden = [], None
         if best is not None and best.refined_run is not None and \
                 flexure.may_stand_in(best.effect):
             tell(f"after {best.effect}: testing for a gravity-shaped remainder (mount flexure)")
@@ -92,6 +92,8 @@ def diagnose(
                     best.statistic, best.dof, Reference.of(base).dispersion, got,
                     flexure.after_add(runs, base, base.prior, base.effects))
             outside = flexure.significant([flexure.finding(got, [best.effect])], ALPHA)
+            # no remainder: what a flexure could still be beside the recommendation
+            hidden = None if outside else flexure.hiding(got, [best.effect], 1, ALPHA)
         final = base
         panels = [("current model", base.residuals)]
         if best is not None and best.refined_run is not None:
@@ -101,7 +103,7 @@ def diagnose(
         # measured by probe runs on the bag
         summary = finish(out, calibration, base, final, results, spec, effects,
                          evaluation_fraction, panels, plots, verdict=runs.verdict,
-                         outside=outside, runs=runs)
+                         outside=outside, runs=runs, hiding=hidden)
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
 
