@@ -53,7 +53,9 @@ def minus_rolling(r: np.ndarray, share: np.ndarray, x: np.ndarray | None, alpha:
     tested at ``alpha``; when significant the fit is removed (a rolling shutter is
     structure, an 'unexplained' lead of its own, not noise: measured, unseen case
     ``sway_rolling``, 30 ms read as "sigma x39" grouped by row), each residual's share of
-    its dof reduced by its leverage.  Otherwise ``r`` is returned unchanged.
+    its row's 2 dof reduced by half its leverage (the leverages sum to 1: one coefficient,
+    one dof removed, as :func:`minus_subpixel` counts 4 for 4).  Otherwise ``r`` is
+    returned unchanged.
     """
     if x is None:
         return r, share
@@ -67,7 +69,7 @@ def minus_rolling(r: np.ndarray, share: np.ndarray, x: np.ndarray | None, alpha:
         return r, share
     out, share_out = r.copy(), share.copy()
     out[ok] = r[ok] - b * x[ok]
-    share_out[ok] = share[ok] * np.clip(1.0 - np.sum(x[ok] ** 2, 1) / info, 0.0, 1.0)
+    share_out[ok] = share[ok] * np.clip(1.0 - 0.5 * np.sum(x[ok] ** 2, 1) / info, 0.0, 1.0)
     return out, share_out
 
 
