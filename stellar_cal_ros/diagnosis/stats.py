@@ -473,9 +473,7 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     y = np.concatenate([yu, yv])
     y_px = np.concatenate([yu_px, yv_px])
     cl = np.concatenate([frame, frame])
-    # the phase of the predicted centroid (no noise of its own frame in it) where there is one
-    u = np.asarray(sub["u_pred"] if "u_pred" in sub else sub["u"], dtype=float)
-    v = np.asarray(sub["v_pred"] if "v_pred" in sub else sub["v"], dtype=float)
+    u, v = predicted_position(sub, "u"), predicted_position(sub, "v")
 
     def project(xy: np.ndarray) -> np.ndarray:
         """``(n, 2)`` regressor → its part no frame attitude explains, u and v stacked."""
@@ -505,6 +503,17 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     return out
 
 
+def predicted_position(sub: Table, axis: str) -> np.ndarray:
+    """Column ``axis`` (``"u"`` or ``"v"``) of the predicted centroid, else the measured one.
+
+    The predicted centroid carries no noise of its own frame, so a regressor of position
+    (a sub-pixel phase, a rolling shutter's row) is not correlated with that frame's noise;
+    tables without ``u_pred``/``v_pred`` fall back to the measured centroid.
+    """
+    key = f"{axis}_pred"
+    return np.asarray(sub[key] if key in sub else sub[axis], dtype=float)
+
+
 def rolling_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
                     R_imu_st: np.ndarray | None) -> np.ndarray | None:
     """A rolling shutter's displacement per second of readout offset, ``(n, 2)`` px · px/s.
@@ -516,7 +525,7 @@ def rolling_columns(sub: Table, focal: tuple[float, float], centre: tuple[float,
     """
     if R_imu_st is None or not all(k in sub for k in ("omega_x", "x_st")):
         return None
-    v = np.asarray(sub["v_pred"] if "v_pred" in sub else sub["v"], dtype=float)
+    v = predicted_position(sub, "v")
     w_b = np.stack([np.asarray(sub[k], dtype=float) for k in ("omega_x", "omega_y",
                                                               "omega_z")], 1)
     w_st = w_b @ np.asarray(R_imu_st, dtype=float)  # R^T ω per row
@@ -581,8 +590,8 @@ def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
     out.
     """
     out = {}
-    for key, pos in (("du", "u_pred"), ("dv", "v_pred")):
-        ph = 2.0 * np.pi * np.asarray(sub[pos] if pos in sub else sub[pos[0]], dtype=float)
+    for key, axis in (("du", "u"), ("dv", "v")):
+        ph = 2.0 * np.pi * predicted_position(sub, axis)
         X = np.stack([np.sin(ph), np.cos(ph), np.ones_like(ph)], 1)
         y = np.asarray(sub[key], dtype=float)
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
