@@ -415,3 +415,17 @@ def test_regressor_plots_of_a_batch_table(tmp_path):
     assert report.plot_unexplained(res, [flex], (512.0, 512.0), 0.5,
                                    tmp_path / "f.png").is_file()
     assert report.plot_histograms([("acf", res)], 0.5, tmp_path / "h.png").is_file()
+
+
+def test_estimates_read_the_same_in_the_terminal_and_the_report():
+    """An added effect's and a candidate's ``value ± σ`` come from one phrase
+    (printing.estimate_phrase), in the parameter's display unit."""
+    from stellar_cal_ros.diagnosis import printing
+    from stellar_cal_ros.diagnosis.report_html import _candidates_html
+
+    said = printing.estimate_phrase("time_offset", "dt", 0.0123, 1e-4)
+    assert said == "dt = 12.3 ms +- 0.1 ms"
+    page = _candidates_html({"candidates": [
+        {"effect": "time_offset", "score": 40.0, "p_value": 1e-8, "significant": True,
+         "rms_after_px": [0.05, 0.05], "estimate": {"dt": 0.0123}, "sigma": {"dt": 1e-4}}]})
+    assert said.replace("+-", "±") in page

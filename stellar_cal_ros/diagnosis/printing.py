@@ -231,8 +231,7 @@ def discovery_lines(summary: dict[str, Any]) -> list[str]:
               f"{exp[0]:.4f} {exp[1]:.4f}), loglik {s['log_likelihood']:.1f}, "
               f"{s['reruns']} runs in {s['seconds']:.1f} s -> {describe(s)}")
     for eff, params in summary["final_estimates"].items():
-        text = ", ".join(f"{n} = {reliability.shown(f'{eff}.{n}', v)} +- "
-                         f"{reliability.shown(f'{eff}.{n}', s)}" for n, (v, s) in params.items())
+        text = ", ".join(estimate_phrase(eff, n, v, s) for n, (v, s) in params.items())
         out.append(f"  added {eff}: {text}")
     rem = summary.get("remainder")
     if rem:
@@ -291,6 +290,16 @@ def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> lis
                      + " with no trace in the residuals")
         out.append(line)
     return out
+
+
+def estimate_phrase(effect: str, name: str, value: float, sigma: float, pm: str = "+-"
+                    ) -> str:
+    """``name = value +- sigma`` of parameter ``name`` of ``effect``, in its display unit.
+
+    ``pm``: the plus-minus sign (``"±"`` in the HTML report).
+    """
+    key = f"{effect}.{name}"
+    return f"{name} = {reliability.shown(key, value)} {pm} {reliability.shown(key, sigma)}"
 
 
 def mdb_phrase(entry: dict[str, Any]) -> str:

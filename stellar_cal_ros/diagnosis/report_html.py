@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros import __version__
-from stellar_cal_ros.diagnosis import printing, reliability, report, stats
+from stellar_cal_ros.diagnosis import printing, report, stats
 from stellar_cal_ros.effects import registry
 
 Table = dict[str, np.ndarray]
@@ -270,8 +270,7 @@ def _candidates_html(summary: dict[str, Any]) -> str:
         except Exception:  # noqa: BLE001 - a plugin effect not loaded here
             expl = ""
         eff = c["effect"]
-        est = ", ".join(f"{k} = {reliability.shown(f'{eff}.{k}', v)} ± "
-                        f"{reliability.shown(f'{eff}.{k}', c['sigma'][k])}"
+        est = ", ".join(printing.estimate_phrase(eff, k, v, c["sigma"][k], "±")
                         for k, v in c["estimate"].items())
         rows.append(
             f"<tr class={'sig' if c['significant'] else 'ns'}><td><b>{_e(c['effect'])}</b></td>"
@@ -370,10 +369,9 @@ def _discovery_html(summary: dict[str, Any]) -> str:
         out.append("<h2>Path</h2><table><tr><th>round</th><th>model</th><th>RMS, px</th>"
                    f"<th>expected, px</th><th>then</th></tr>{rows}</table>")
     if summary.get("final_estimates"):
-        shown = reliability.shown
         items = "".join(
             f"<li><b>{_e(eff)}</b>: " + _e(", ".join(
-                f"{n} = {shown(f'{eff}.{n}', v)} ± {shown(f'{eff}.{n}', sg)}"
+                printing.estimate_phrase(eff, n, v, sg, "±")
                 for n, (v, sg) in params.items())) + "</li>"
             for eff, params in summary["final_estimates"].items())
         out.append(f"<h2>Added effects</h2><ul>{items}</ul>")
