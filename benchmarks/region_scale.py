@@ -2,7 +2,7 @@
 
 `benchmarks/unseen_cases.py`'s `region` bag: the right third of the detector (u > 683 px)
 has twice the stated 0.05 px centroid noise.  The stars' σ scale per column group
-(:func:`~stellar_cal_ros.diagnosis.noise.star_noise`, one Helmert step on the run with the
+(:func:`~stellar_cal_ros.diagnosis.noise_stars.star_noise`, one Helmert step on the run with the
 stated σ) is printed three ways on the same run, to split the bias between its causes:
 
 1. as the diagnosis computes it (accepted stars, the rotation fit weighted by the stated σ);
@@ -28,6 +28,7 @@ import numpy as np
 
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise as nz
+from stellar_cal_ros.diagnosis import noise_stars
 from stellar_cal_ros.diagnosis.stats import evaluation_mask
 from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay_psce
 from stellar_cal_ros.sim.scenarios import get_scenario
@@ -48,7 +49,7 @@ def row(seed: int) -> str:
     data = bag_data_from_simulation(sim)
     run = replay_psce(data, sim.prior, keep_tables=True)
     res, cam = run.residuals, run.calibration.camera
-    sig, msg = nz.used_sigma(res, data, NoiseScales(), nz.default_sigma("psce"), cam.width,
+    sig, msg = noise_stars.used_sigma(res, data, NoiseScales(), nz.default_sigma("psce"), cam.width,
                              cam.height)
     mask = evaluation_mask(res, 0.5)
     u = np.asarray(res["u"], dtype=float)
@@ -58,7 +59,7 @@ def row(seed: int) -> str:
     every = dict(res, gated=np.zeros_like(gated))
 
     def scales(table, sigma):
-        sn = nz.star_noise(table, sigma, msg, mask, cam.fx, cam.fy, (cam.cx, cam.cy))
+        sn = noise_stars.star_noise(table, sigma, msg, mask, cam.fx, cam.fy, (cam.cx, cam.cy))
         right = sn.uv[:, 0] > edge
         return sn.group(right)[:2], sn.group(~right)[0]
 

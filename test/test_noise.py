@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from stellar_cal_ros.core.noise import NoiseScales
-from stellar_cal_ros.diagnosis import noise
+from stellar_cal_ros.diagnosis import noise, noise_stars
 from stellar_cal_ros.diagnosis.run import diagnose, measure_bag
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods.psce import PsceConfig
@@ -151,14 +151,14 @@ def test_repeating_field_is_structure_and_defers_the_imu_noise():
     n = 20000
     uv = rng.uniform(0, 1024, (n, 2))
     mag = rng.uniform(2, 6, n)
-    cell, keep = noise._cells(uv, mag, (511.5, 511.5))
+    cell, keep = noise_stars._cells(uv, mag, (511.5, 511.5))
     r = rng.standard_normal((n, 2))
-    _, _, chi2, dof = noise._minus_cell_means(r, cell, keep)
+    _, _, chi2, dof = noise_stars._minus_cell_means(r, cell, keep)
     assert abs(chi2 - dof) < 4 * np.sqrt(2 * dof)  # χ²(dof): mean dof, σ √(2 dof)
     field = np.stack([(uv[:, 0] - 511.5) / 511.5 * 0.2, np.zeros(n)], 1)  # 0.2 σ at the edge
-    _, _, chi2_f, _ = noise._minus_cell_means(r + field, cell, keep)
+    _, _, chi2_f, _ = noise_stars._minus_cell_means(r + field, cell, keep)
     assert chi2_f - dof > 10 * np.sqrt(2 * dof)
-    sn = noise.StarNoise(1.0, 0.01, 2.0 * n, 1, np.ones(n), 2 * np.ones(n), mag,
+    sn = noise_stars.StarNoise(1.0, 0.01, 2.0 * n, 1, np.ones(n), 2 * np.ones(n), mag,
                          np.zeros(n), np.zeros(n, bool), np.ones(n), chi2_f, dof)
     assert "repeating field" in noise.structured(sn)
     sn.structure = float(dof)
@@ -172,7 +172,7 @@ def _star_noise(n=20000, seed=8, factor=None):
     mag = rng.uniform(2, 6, n)
     s = np.ones(n) if factor is None else factor(mag, uv)
     r = s[:, None] * rng.standard_normal((n, 2))
-    sn = noise.StarNoise(0.0, 0.0, 2.0 * n, n // 30, (r**2).sum(1), 2 * np.ones(n), mag,
+    sn = noise_stars.StarNoise(0.0, 0.0, 2.0 * n, n // 30, (r**2).sum(1), 2 * np.ones(n), mag,
                          np.hypot(uv[:, 0] - 511.5, uv[:, 1] - 511.5), np.zeros(n, bool),
                          0.05 * np.ones(n), uv=uv)
     sn.scale, sn.sigma, _ = sn.group(np.ones(n, bool))
@@ -213,11 +213,11 @@ def test_error_repeating_star_by_star_is_not_noise():
     star = np.repeat(np.arange(stars), seen)
     r = rng.standard_normal((stars * seen, 2))
     share = np.ones(len(star))
-    chi2, dof, _, _ = noise.star_means(r, share, star)
+    chi2, dof, _, _ = noise_stars.star_means(r, share, star)
     assert dof == pytest.approx(2 * stars)
     assert abs(chi2 - dof) < 4 * np.sqrt(2 * dof)
     off = 0.5 * rng.standard_normal((stars, 2))[star]  # 0.5 σ per star and axis
-    chi2, dof, rest, share2 = noise.star_means(r + off, share, star)
+    chi2, dof, rest, share2 = noise_stars.star_means(r + off, share, star)
     assert (chi2 - dof) / np.sqrt(2 * dof) > 20
     # the excess is the offsets' variance: Σ n ‖δ‖² = (χ² − dof), within 10 %
     assert chi2 - dof == pytest.approx(float((off**2).sum()), rel=0.1)

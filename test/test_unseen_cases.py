@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from stellar_cal_ros.core.noise import NoiseScales
-from stellar_cal_ros.diagnosis import noise, stats
+from stellar_cal_ros.diagnosis import noise, noise_stars, stats
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
 from stellar_cal_ros.diagnosis.noise import repeat_finding
 from stellar_cal_ros.diagnosis.noise_structure import correlated
@@ -56,7 +56,7 @@ def _findings(sim, star_noise=False):
         return found
     ok = mask & ~np.asarray(res["gated"]).astype(bool)
     sig = np.sqrt(0.5 * (np.asarray(res["s_uu"]) + np.asarray(res["s_vv"])))
-    return found, noise.star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok,
+    return found, noise_stars.star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok,
                                    cam.fx, cam.fy, centre)
 
 

@@ -1,6 +1,6 @@
 """Structure the stars' σ is measured without, beyond the cells' means and star means.
 
-Part of :func:`~stellar_cal_ros.diagnosis.noise.star_noise` (cases the diagnosis was not
+Part of :func:`~stellar_cal_ros.diagnosis.noise_stars.star_noise` (cases the diagnosis was not
 built on, ``benchmarks/unseen_cases.py``): a bias periodic in the centroid's sub-pixel
 phase (pixel locking) is removed before the variance is taken, and the per-star repeat's
 χ² is referred to the lag correlation noise correlated over frames gives the star means.

@@ -1,0 +1,336 @@
+"""The stars' σ scale measured within frames, and its groups (part of :mod:`.noise`).
+
+From the part of each frame's innovations no attitude error can produce (the frame's
+whitened innovations minus their fit by a small rotation of the tracker), with the
+structure that is not noise removed first (cell means, pixel locking, a rolling shutter's
+shape, per-star errors: :mod:`.noise_structure`): :func:`star_noise` gives the
+variance-component estimate :class:`StarNoise`, :func:`star_groups` its magnitude, radius,
+column and row groups (Bartlett's test, neighbours that agree merged).  What the estimate
+means for the verdict ("noise as stated" or not) is :mod:`.noise`'s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import stats as sps
+
+from stellar_cal_ros.core.noise import NoiseScales
+from stellar_cal_ros.diagnosis import noise_structure
+
+#: level of the "noise as stated" tests (after Bonferroni over the components), and of the
+#: structure fits removed before the stars' σ is taken
+ALPHA = 0.01
+
+#: groups of the stars' σ: GROUP_BINS bins of magnitude and radius (quantiles of the stars)
+#: and of column and row (equal widths of the detector: a region of the detector whose
+#: noise differs), tested fine, then neighbours that agree merged (:func:`_merge`)
+GROUP_BINS = 8
+#: neighbouring bins whose scales differ by less than this many σ are one group
+MERGE_Z = 3.0
+
+Table = dict[str, np.ndarray]
+
+
+def used_sigma(residuals: Table, data, scales: NoiseScales, default: float,
+               width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The σ (px) the run used for each row of ``residuals``, and its message's σ.
+
+    Joined on (stamp, catalogue id) with the bag's frames; NaN where a row has no message.
+    """
+    key: dict[tuple[int, int], tuple[float, float, float, float]] = {}
+    for fr in data.frames:
+        us = int(round(int(fr.stamp_ns) / 1000))
+        mag = np.asarray(fr.magnitude, dtype=float)
+        for i, cid in enumerate(np.asarray(fr.catalog_id).tolist()):
+            key[(us, int(cid))] = (float(fr.sigma[i]), float(mag[i]), float(fr.uv[i, 0]),
+                                   float(fr.uv[i, 1]))
+    t_us = np.round(np.asarray(residuals["t"], dtype=float) * 1e6).astype(np.int64)
+    rows = [key.get((int(t), int(c))) for t, c in zip(t_us, residuals["catalog_id"],
+                                                      strict=True)]
+    msg = np.array([np.nan if r is None else r[0] for r in rows])
+    mag = np.array([np.nan if r is None else r[1] for r in rows])
+    uv = np.array([[np.nan, np.nan] if r is None else r[2:] for r in rows]).reshape(-1, 2)
+    s = np.where(np.isfinite(msg) & (msg >= 0), msg, 0.0)
+    out = scales.star_sigma(s, default, mag, uv, ((width - 1) / 2.0, (height - 1) / 2.0))
+    out[~np.isfinite(msg)] = np.nan
+    return out, msg
+
+
+@dataclass
+class StarNoise:
+    """Within-frame variance-component estimate of the stars' σ scale."""
+
+    scale: float  #: s: the σ the data show over the σ the run used
+    sigma: float  #: σ of s
+    dof: float  #: Σ(2n − 3) over the frames used
+    frames: int
+    q: np.ndarray  #: per star: ‖r_i‖² (whitened, px² / σ²)
+    m: np.ndarray  #: per star: 2 − leverage (its share of the dof)
+    magnitude: np.ndarray
+    radius: np.ndarray
+    unknown: np.ndarray  #: per star: its message said σ = 0
+    sigma_px: np.ndarray  #: per star: the σ the run used
+    #: the cell means' χ² (whitened, in units of the scale found) and its dof: a residual
+    #: field that repeats from frame to frame, which no noise makes
+    structure: float = 0.0
+    structure_dof: int = 0
+    uv: np.ndarray | None = None  #: per star: its centroid (px), for the column/row groups
+    #: the per-star means' χ² (whitened, in units of the scale found) and its dof: an error
+    #: that repeats star by star (a catalogue position), which no centroid noise makes
+    repeat: float = 0.0
+    repeat_dof: float = 0.0
+    #: when significant, the per-star error's RMS (px per axis), removed before the scale
+    repeat_removed: float = 0.0
+    #: lag-one correlation of a star's consecutive residuals (about its mean), and pairs
+    track_rho: float = 0.0
+    track_pairs: int = 0
+
+    @property
+    def repeat_p(self) -> float:
+        """The p-value of "no error that repeats star by star" (χ² of the star means)."""
+        if self.repeat_dof <= 0:
+            return 1.0
+        return float(sps.chi2.sf(self.repeat, self.repeat_dof))
+
+    @property
+    def repeat_rms_px(self) -> float:
+        """RMS per axis (px) of the per-star errors: the χ²'s excess over its dof."""
+        n = max(float(len(self.q)), 1.0)
+        px = float(np.median(self.sigma_px)) * self.scale if len(self.sigma_px) else 0.0
+        return math.sqrt(max(self.repeat - self.repeat_dof, 0.0) / n / 2.0) * px
+
+    @property
+    def structure_p(self) -> float:
+        """The p-value of "no repeating field" (χ² of the cell means)."""
+        if self.structure_dof <= 0:
+            return 1.0
+        return float(sps.chi2.sf(self.structure, self.structure_dof))
+
+    def group(self, mask: np.ndarray) -> tuple[float, float, float]:
+        """(scale, σ, dof) of the stars in ``mask``."""
+        m = float(self.m[mask].sum())
+        if m <= 0:
+            return math.nan, math.nan, 0.0
+        v = float(self.q[mask].sum()) / m
+        # sandwich σ of the ratio estimator (robust to a non-Gaussian tail)
+        var = float(np.sum((self.q[mask] - v * self.m[mask]) ** 2)) / m**2
+        s = math.sqrt(max(v, 0.0))
+        return s, math.sqrt(var) / max(2.0 * s, 1e-300), m
+
+
+def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np.ndarray,
+               fx: float, fy: float, centre: tuple[float, float],
+               R_imu_st: np.ndarray | None = None) -> StarNoise | None:
+    """The within-frame estimate over the accepted stars of ``mask`` (see the module doc).
+
+    With the installation ``R_imu_st``, a rolling shutter's shape is removed first where
+    it is significant (:func:`~.noise_structure.minus_rolling`).
+    """
+    from stellar_cal_ros.diagnosis.stats import rolling_columns, within_frame
+
+    ok = mask & ~np.asarray(res["gated"]).astype(bool) & np.isfinite(sigma_px) \
+        & (sigma_px > 0) & np.isfinite(np.asarray(res["du"], dtype=float))
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return None
+    sub = {k: np.asarray(res[k])[idx] for k in ("frame", "du", "dv", "x_st", "y_st", "z_st")}
+    r, lev, n_frames = within_frame(sub, sigma_px[idx], fx, fy)
+    uv = np.stack([np.asarray(res["u"], dtype=float)[idx], np.asarray(res["v"],
+                                                                    dtype=float)[idx]], 1)
+    # structure is not noise: a residual field that repeats from frame to frame (a missing
+    # distortion term, a magnitude-dependent bias) is removed as its mean per detector cell
+    # and magnitude class before the variance is taken (the dof it uses are not counted)
+    cell, keep_cell = _cells(uv, np.asarray(res["magnitude"], dtype=float)[idx], centre)
+    # (a bias periodic in the centroid's sub-pixel phase, pixel locking, first: the cells'
+    # means would take part of it and leave the rest to look like a per-star error)
+    sub_share = np.ones(len(idx))
+    if "u_pred" in res:
+        r, sub_share = noise_structure.minus_subpixel(r, sub_share, np.stack(
+            [np.asarray(res["u_pred"], dtype=float)[idx],
+             np.asarray(res["v_pred"], dtype=float)[idx]], 1), ALPHA)
+    # (and a rolling shutter's shape: the row times the image velocity; its readout is
+    # structure, not a σ growing with the row nor noise correlated along the tracks)
+    x = rolling_columns({k: np.asarray(res[k])[idx] for k in res}, (fx, fy), centre, R_imu_st)
+    if x is not None:
+        x = within_frame(dict(sub, du=x[:, 0], dv=x[:, 1]), sigma_px[idx], fx, fy)[0]
+    r, sub_share = noise_structure.minus_rolling(r, sub_share, x, ALPHA)
+    r, share, chi2, dof = _minus_cell_means(r, cell, keep_cell)
+    share = share * sub_share
+    # ... and so is an error that repeats star by star (a catalogue position error): its
+    # per-star means are tested, and removed when significant
+    stars = np.asarray(res["catalog_id"])[idx]
+    rep, rep_dof, r_star, share_star = star_means(r, share, stars)
+    # noise correlated over a few frames makes each star's mean vary more than 1/n: the χ²
+    # is referred to that (the lag correlation of the residuals about their star's mean,
+    # which a fixed per-star error does not raise)
+    infl, rho, pairs = noise_structure.track_inflation(r_star, stars)
+    rep /= infl
+    chi2 /= infl  # the cells' means too (with few stars in view a cell is a star or two)
+
+    def estimate(r, share):
+        q = (r**2).sum(1)
+        m = (2.0 - lev) * share
+        use = np.isfinite(q) & (m > 0)
+        if not use.any():
+            return None
+        out = StarNoise(0.0, 0.0, float(m[use].sum()), n_frames, q[use], m[use],
+                        np.asarray(res["magnitude"], dtype=float)[idx][use],
+                        np.hypot(uv[use, 0] - centre[0], uv[use, 1] - centre[1]),
+                        (msg_sigma[idx] == 0)[use], sigma_px[idx][use], uv=uv[use])
+        out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
+        return out
+
+    out = estimate(r, share)
+    if out is None:
+        return None
+    out.repeat, out.repeat_dof = rep / max(out.scale, 1e-300) ** 2, rep_dof
+    if out.repeat_p < ALPHA:
+        rms = out.repeat_rms_px
+        out = estimate(r_star, share_star) or out
+        out.repeat, out.repeat_dof, out.repeat_removed = rep / max(out.scale, 1e-300) ** 2, \
+            rep_dof, rms
+    out.structure, out.structure_dof = chi2 / max(out.scale, 1e-300) ** 2, dof
+    out.track_rho, out.track_pairs = rho, pairs
+    return out
+
+
+def star_means(r: np.ndarray, share: np.ndarray, star: np.ndarray
+               ) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """The per-star means of the whitened residuals ``r``: their χ², its dof, ``r`` without them.
+
+    Stars seen in at least two frames count; the χ² is ``Σ_s n_s ‖r̄_s‖²`` and its
+    expectation for noise alone ``Σ_s 2 mean(share)`` (``share``: each residual's share of
+    its dof left by earlier fits).  Returns ``(χ², dof, r − r̄_star, share (1 − 1/n_s))``.
+    """
+    ok = np.all(np.isfinite(r), axis=1) & (share > 0)
+    out, share_out = r.copy(), share.copy()
+    if not ok.any():
+        return 0.0, 0.0, out, share_out
+    _, k = np.unique(np.asarray(star)[ok], return_inverse=True)
+    n = np.bincount(k).astype(float)
+    means = np.stack([np.bincount(k, r[ok, c]) / n for c in range(2)], 1)
+    multi = n >= 2
+    chi2 = float(np.sum(n[multi] * (means[multi] ** 2).sum(1)))
+    dof = float(2.0 * np.sum((np.bincount(k, share[ok]) / n)[multi]))
+    out[ok] = r[ok] - means[k]
+    share_out[ok] = share[ok] * (1.0 - 1.0 / n[k])
+    return chi2, dof, out, share_out
+
+
+#: the cells whose mean residual is structure, not noise: a grid over the detector times
+#: magnitude classes, cells of at least CELL_MIN stars
+CELL_GRID = 6
+MAGNITUDE_CLASSES = 3
+CELL_MIN = 8
+
+
+def _cells(uv: np.ndarray, magnitude: np.ndarray, centre: tuple[float, float]
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Cell index of each star (detector grid × magnitude class) and which cells count."""
+    ext = 2.0 * np.nanmax(np.abs(uv - np.asarray(centre)), axis=0) + 1.0
+    ij = np.clip(((uv - np.asarray(centre)) / ext + 0.5) * CELL_GRID, 0,
+                 CELL_GRID - 1e-9).astype(int)
+    fin = np.isfinite(magnitude)
+    mclass = np.zeros(len(uv), dtype=int)
+    if fin.sum() > MAGNITUDE_CLASSES * CELL_MIN:
+        edges = np.quantile(magnitude[fin], np.linspace(0, 1, MAGNITUDE_CLASSES + 1)[1:-1])
+        mclass = np.searchsorted(edges, np.nan_to_num(magnitude, nan=float(np.median(
+            magnitude[fin]))), side="right")
+    cell = (ij[:, 0] * CELL_GRID + ij[:, 1]) * MAGNITUDE_CLASSES + mclass
+    counts = np.bincount(cell, minlength=CELL_GRID**2 * MAGNITUDE_CLASSES)
+    return cell, counts[cell] >= CELL_MIN
+
+
+def _minus_cell_means(r: np.ndarray, cell: np.ndarray, keep: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """``r`` minus its mean per cell, each star's share of its dof, the cell means' χ².
+
+    The χ² is ``Σ n_c ‖r̄_c‖²`` (whitened r, scale 1), its dof 2 per cell.
+    """
+    out = np.full_like(r, np.nan)
+    share = np.zeros(len(r))
+    ok = keep & np.all(np.isfinite(r), axis=1)
+    if not ok.any():
+        return out, share, 0.0, 0
+    n = np.bincount(cell[ok], minlength=int(cell.max()) + 1).astype(float)
+    chi2 = 0.0
+    for k in range(2):
+        mean = np.bincount(cell[ok], r[ok, k], minlength=len(n)) / np.maximum(n, 1.0)
+        out[ok, k] = r[ok, k] - mean[cell[ok]]
+        chi2 += float(np.sum(n * mean**2))
+    share[ok] = 1.0 - 1.0 / n[cell[ok]]
+    return out, share, chi2, 2 * int(np.count_nonzero(n))
+
+
+def _bartlett(parts: list[tuple[float, float, float]]) -> tuple[float, float]:
+    """Bartlett's statistic that the groups' variances are equal, and its p (χ²_{G−1})."""
+    parts = [(s, d) for s, _, d in parts if d > 1 and math.isfinite(s) and s > 0]
+    if len(parts) < 2:
+        return 0.0, 1.0
+    v = np.array([s * s for s, _ in parts])
+    d = np.array([d for _, d in parts])
+    pooled = float(np.sum(d * v) / np.sum(d))
+    stat = float(np.sum(d) * math.log(pooled) - np.sum(d * np.log(v)))
+    c = 1.0 + (np.sum(1.0 / d) - 1.0 / np.sum(d)) / (3.0 * (len(parts) - 1))
+    stat /= c
+    return stat, float(sps.chi2.sf(stat, len(parts) - 1))
+
+
+def _merge(sn: StarNoise, gidx: np.ndarray, edges: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float, float]]]:
+    """Merge neighbouring bins whose scales agree (within :data:`MERGE_Z` σ).
+
+    Bins are tested fine (a step in the noise at 4.5 mag or at column 683 falls inside one
+    bin, whose mixed scale is then a small share of the stars) and reported coarse: the
+    pair of neighbours closest in scale is merged until every neighbour differs.  Returns
+    the remaining edges, the group index of each star and the groups' (scale, σ, dof).
+    """
+    edges = np.asarray(edges, dtype=float)
+    while len(edges):
+        parts = [sn.group(gidx == g) for g in range(len(edges) + 1)]
+        z = [abs(a[0] - b[0]) / math.hypot(a[1], b[1]) if all(
+            math.isfinite(x) and x > 0 for x in (a[0], b[0], a[1], b[1])) else 0.0
+            for a, b in zip(parts, parts[1:], strict=False)]
+        k = int(np.argmin(z))
+        if z[k] >= MERGE_Z:
+            return edges, gidx, parts
+        edges = np.delete(edges, k)
+        gidx = np.where(gidx > k, gidx - 1, gidx)
+    return edges, gidx, [sn.group(np.ones(len(gidx), dtype=bool))]
+
+
+def star_groups(sn: StarNoise, size: tuple[int, int] | None = None) -> list[dict[str, Any]]:
+    """The magnitude, radius, column and row groupings: per group scale ± σ, Bartlett's p.
+
+    ``size``: the detector's (width, height) px (no column / row groups without it).  The
+    test is Bartlett's over :data:`GROUP_BINS` fine bins; the groups reported (and applied)
+    are those bins with agreeing neighbours merged.
+    """
+    out = []
+    q = np.linspace(0, 1, GROUP_BINS + 1)[1:-1]
+    mag = sn.magnitude
+    fin = np.isfinite(mag)
+    if fin.sum() > 40 and np.ptp(mag[fin]) > 0:
+        out.append(("magnitude", np.unique(np.quantile(mag[fin], q)),
+                    np.nan_to_num(mag, nan=float(np.median(mag[fin])))))
+    if len(sn.radius) > 40 and np.ptp(sn.radius) > 0:  # quantiles: the corners are sparse
+        out.append(("radius", np.unique(np.quantile(sn.radius, q)), sn.radius))
+    if size is not None and sn.uv is not None:
+        for k, kind in enumerate(("column", "row")):
+            out.append((kind, q * size[k], sn.uv[:, k]))
+    result = []
+    for kind, edges, x in out:
+        gidx = np.searchsorted(edges, x, side="right")
+        stat, p = _bartlett([sn.group(gidx == g) for g in range(len(edges) + 1)])
+        edges, gidx, parts = _merge(sn, gidx, edges)
+        result.append({"by": kind, "edges": [float(e) for e in edges],
+                       "scales": [s for s, _, _ in parts], "sigma": [e for _, e, _ in parts],
+                       "dof": [d for _, _, d in parts], "statistic": stat, "p_value": p})
+    return result
+
+
+# ----------------------------------------------------------------------------- a run's stars
