@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.diagnosis import rolling, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
     not_measured,
@@ -57,16 +57,18 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     res = final.residuals if final.residuals is not None else base.residuals
-    mask = stats.evaluation_mask(res, fraction)
-    unexplained = stats.regressor_tests(
-        res, mask, centre, focal=(cam.fx, cam.fy),
-        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre),
-               *stats.periodic_findings(res, mask)], R_imu_st=calibration.R_imu_st)
+    unexplained = line_tests(res, calibration, fraction)
     unexplained, spread = within_groups(unexplained, verdict)
     outside = list(outside or [])
     if outside:  # into the ranking of the lines (regressor_tests' order: p, then |t|)
         unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
+    # a rolling shutter whose consequences rank before it goes first (one run without it)
+    unexplained, follows = rolling.first_if_cause(
+        unexplained, final if final.residuals is not None else base, runs, line_tests)
     summary = summary_dict(base, results, unexplained, spec, effects, fraction)
+    for i, u in enumerate(summary["unexplained"]):
+        if i in follows:
+            u["follows"] = "rolling shutter"
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(stated_scales(calibration)))
     if spread:
@@ -113,6 +115,17 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         if plots:
             write_report(out, summary, title)
     return summary
+
+
+def line_tests(res, calibration: Calibration, fraction: float) -> list:
+    """The 'unexplained' tests of a residual table (significant, strongest first)."""
+    cam = calibration.camera
+    centre = (cam.cx, cam.cy)
+    mask = stats.evaluation_mask(res, fraction)
+    return stats.regressor_tests(
+        res, mask, centre, focal=(cam.fx, cam.fy),
+        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre),
+               *stats.periodic_findings(res, mask)], R_imu_st=calibration.R_imu_st)
 
 
 def write_report(out: Path, summary: dict[str, Any], title: str) -> None:

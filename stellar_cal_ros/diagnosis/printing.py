@@ -62,7 +62,9 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
         what, size = unexplained_phrase(u)
         out.append(f"  unexplained: {what} vs {u['regressor']} "
               f"(t={u['statistic']:.1f}, p={u['p_value']:.2g}"
-              + (f"; {size}" if size else "") + ")")
+              + (f"; {size}" if size else "")
+              + ("; follows the rolling shutter: gone once its fitted readout is taken out "
+                 "of the centroids" if u.get("follows") else "") + ")")
     if summary["unexplained"]:
         out.append("    (structure no library effect explains: an effect outside the library, "
               "e.g. a centroid bias with magnitude, a mount bending with gravity, a per-star "

@@ -17,6 +17,10 @@ candidate so tested, its residuals kept where the bag is.
 
 from __future__ import annotations
 
+import dataclasses
+
+import numpy as np
+
 from stellar_cal_ros.diagnosis import stats
 from stellar_cal_ros.io.calibration import Calibration
 
@@ -54,3 +58,87 @@ def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
     run = evaluate(data, spec, prior, effects, fraction, True, classes, candidate=True,
                    noise=noise)
     return of_run(run, fraction)
+
+
+def taken_out(data, calibration: Calibration, coefficient: float):
+    """A copy of the bag with a fitted rolling shutter taken out of its centroids.
+
+    Each centroid moved back by ``coefficient`` × :func:`~stellar_cal_ros.diagnosis.stats.
+    rolling_columns` (the innovations being measured − predicted, the fit says the
+    measurement holds that much of the shape); the star's direction from its centroid
+    (pinhole of ``calibration``'s camera), the gyro rate interpolated at the frame's stamp.
+    """
+    cam = calibration.camera
+    frames = []
+    for f in data.frames:
+        uv = np.asarray(f.uv, dtype=float).reshape(-1, 2)
+        if not len(uv) or not len(data.imu_t):
+            frames.append(f)
+            continue
+        t = (f.stamp_ns - data.t0_ns) * 1e-9
+        w = np.array([np.interp(t, data.imu_t, data.imu_w[:, k]) for k in range(3)])
+        sub = {"x_st": (uv[:, 0] - cam.cx) / cam.fx, "y_st": (uv[:, 1] - cam.cy) / cam.fy,
+               "z_st": np.ones(len(uv)), "v": uv[:, 1],
+               **{f"omega_{a}": np.full(len(uv), w[k]) for k, a in enumerate("xyz")}}
+        x = stats.rolling_columns(sub, (cam.fx, cam.fy), (cam.cx, cam.cy),
+                                  calibration.R_imu_st)
+        frames.append(dataclasses.replace(f, uv=uv - coefficient * x))
+    return dataclasses.replace(data, frames=frames)
+
+
+def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
+                         fraction: float, noise, classes: tuple[type, ...],
+                         calibration: Calibration, coefficient: float, tests
+                         ) -> tuple[tuple[str, str], ...] | None:
+    """The 'unexplained' lines (regressor, component) of a run on the bag without the shutter.
+
+    One run of the same model on :func:`taken_out` (for :meth:`~stellar_cal_ros.diagnosis.
+    parallel.Runs.on_bag`); the rolling-shutter line's own name (its readout) is cut at the
+    shape's name.  ``tests(residuals, calibration, fraction)``: the diagnosis's 'unexplained'
+    tests (:func:`~stellar_cal_ros.diagnosis.output.line_tests`).
+    """
+    from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
+
+    register_effect_classes(classes)
+    run = evaluate(taken_out(data, calibration, coefficient), spec, prior, effects,
+                   fraction, True, classes, noise=noise)
+    if not run.ok or run.residuals is None:
+        return None
+    return tuple((stats.ROLLING if f.regressor.startswith(stats.ROLLING) else f.regressor,
+                  f.component) for f in tests(run.residuals, run.calibration, fraction))
+
+
+def first_if_cause(found: list, run, runs, tests) -> tuple[list, set[int]]:
+    """``found`` with the rolling-shutter line first when the lines before it are its doing.
+
+    A rolling shutter that acts only while the tracker turns fast (a PSCE bag's slews: ~20
+    of its frames) has a t of −52 referred to t_ν with ν ≈ 2-3 (p ~ 1e-3), while the
+    calibration those frames pull leaves camera-shaped and per-star lines over every dwell
+    frame (t 14-38, p ~ 1e-18): ranked by p, the cause came fifth.  The evidence that they
+    are its consequence: one run of the same model on the bag with the fitted readout taken
+    out of the centroids (:func:`taken_out`); the lines ranked before the shape that are no
+    longer significant there follow it.  Returns the reordered lines and the indices (in
+    the returned list) of those that follow the shutter (``tests``: as in
+    :func:`lines_without_on_bag`); unchanged without a significant
+    shape line, when it is first already, or without a runner.
+    """
+    at = next((i for i, f in enumerate(found) if f.regressor.startswith(stats.ROLLING)), None)
+    if at is None or at == 0 or runs is None or run is None or not run.ok \
+            or run.prior is None:
+        return found, set()
+    fit = of_run(run, runs.fraction)
+    if fit is None:
+        return found, set()
+    left = runs.on_bag(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
+                       runs.fraction, runs.noise, runs.classes, run.calibration,
+                       fit["coefficient"], tests)
+    if left is None:
+        return found, set()
+    left = set(left)
+    follows = [f for f in found[:at] if (f.regressor, f.component) not in left]
+    if not follows:
+        return found, set()
+    stays = [f for f in found[:at] if (f.regressor, f.component) in left]
+    out = stays + [found[at]] + follows + found[at + 1:]
+    first = len(stays) + 1
+    return out, set(range(first, first + len(follows)))

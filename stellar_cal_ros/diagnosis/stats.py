@@ -541,7 +541,9 @@ def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
     The innovations of ``mask``'s accepted stars and :func:`rolling_columns`, both whitened
     by the innovation covariance, u and v of every star; the frames as the units
     (:func:`frame_robust_t`).  ``{t, p_value (unadjusted), chi2 (the whitened sum of squares
-    the fit removes), readout_ms}``, or ``None`` without the columns.  What
+    the fit removes), readout_ms, coefficient}`` (``coefficient``: the fitted size, s per px
+    of row offset, signed: the innovations ≈ it × the columns), or ``None`` without the
+    columns.  What
     :func:`~stellar_cal_ros.diagnosis.flexure.beyond` takes beside a candidate: whether it
     explains the data beyond a rolling shutter (``discover``'s stand-in rule).
     """
@@ -557,7 +559,7 @@ def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
         return None
     t, p, c, info = fit
     return {"t": t, "p_value": p, "chi2": c * c * info,
-            "readout_ms": abs(c) * 2.0 * centre[1] * 1e3}
+            "readout_ms": abs(c) * 2.0 * centre[1] * 1e3, "coefficient": c}
 
 
 def whitened_fit(sub: Table, x: np.ndarray) -> tuple[float, float, float, float] | None:
