@@ -93,9 +93,9 @@ def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...
     """The 'unexplained' lines (regressor, component) of a run on the bag without the shutter.
 
     One run of the same model on :func:`taken_out` (for :meth:`~stellar_cal_ros.diagnosis.
-    parallel.Runs.on_bag`); the rolling-shutter line's own name (its readout) is cut at the
-    shape's name.  ``tests(residuals, calibration, fraction)``: the diagnosis's 'unexplained'
-    tests (:func:`~stellar_cal_ros.diagnosis.output.line_tests`).
+    parallel.Runs.on_bag`); what a line's fit reads (a readout, a period) is cut from its
+    name.  ``tests(residuals, calibration, fraction)``: the diagnosis's 'unexplained' tests
+    (:func:`~stellar_cal_ros.diagnosis.output.line_tests`).
     """
     from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
 
@@ -104,8 +104,17 @@ def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...
                    fraction, True, classes, noise=noise)
     if not run.ok or run.residuals is None:
         return None
-    return tuple((stats.ROLLING if f.regressor.startswith(stats.ROLLING) else f.regressor,
-                  f.component) for f in tests(run.residuals, run.calibration, fraction))
+    return tuple(_line(f) for f in tests(run.residuals, run.calibration, fraction))
+
+
+def _line(f) -> tuple[str, str]:
+    """A line's (regressor, component) without what its fit reads (a readout, a period)."""
+    name = f.regressor
+    if name.startswith(stats.ROLLING):
+        name = stats.ROLLING
+    elif "(periodic" in name:
+        name = name.split(",")[0]
+    return name, f.component
 
 
 def first_if_cause(found: list, run, runs, tests) -> tuple[list, set[int]]:
@@ -135,10 +144,10 @@ def first_if_cause(found: list, run, runs, tests) -> tuple[list, set[int]]:
     if left is None:
         return found, set()
     left = set(left)
-    follows = [f for f in found[:at] if (f.regressor, f.component) not in left]
+    follows = [f for f in found[:at] if _line(f) not in left]
     if not follows:
         return found, set()
-    stays = [f for f in found[:at] if (f.regressor, f.component) in left]
+    stays = [f for f in found[:at] if _line(f) in left]
     out = stays + [found[at]] + follows + found[at + 1:]
     first = len(stays) + 1
     return out, set(range(first, first + len(follows)))
