@@ -279,15 +279,14 @@ def probe_check(duration: float, seed: int, effects: list[str]) -> list[dict]:
     quantity, printed, measured, sigma, listed, probed}``: ``listed`` — the report lists the
     row at that sign (:func:`~stellar_cal_ros.diagnosis.injection.claims`); ``probed`` — a
     probe replaced its first-order value (``first_order`` then holds that value).  The
-    equivalent principal point of a camera effect is left out (the effect moves its true
-    value too: the simulator's shift is not the printed error).
+    equivalent principal point's shift is measured less what the effect does to its true
+    value (:func:`~stellar_cal_ros.diagnosis.reliability_probe.own_shift`), as printed.
     """
     import tempfile
 
     from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis import reliability_probe
     from stellar_cal_ros.diagnosis.run import diagnose
-    from stellar_cal_ros.effects import registry
-    from stellar_cal_ros.effects.base import Stage
 
     sim, data = _data(duration, seed)
     with tempfile.TemporaryDirectory() as tmp:
@@ -309,15 +308,14 @@ def probe_check(duration: float, seed: int, effects: list[str]) -> list[dict]:
         first = {q: v for p in entry.get("probe", {}).values()
                  for q, v in p["first_order"].items()}
         shown = set(entry["dominates"]) | set(first) | set(entry.get("remainders", []))
-        camera = registry.create(eid).stage in (Stage.CAMERA, Stage.TRACKER)
-        shown = {q for q in shown if not (camera and q.startswith("equivalent_principal"))}
         for parameter in dict.fromkeys(entry["bias_parameter"][q] for q in sorted(shown)):
             for sign in (1, -1):
                 delta = injection.parameter_delta(eid, parameter,
                                                   sign * entry["hidden_size"][parameter])
                 _, inj = _data(duration, seed, {eid: injection.simulation_value(eid, delta)})
                 shift = injection.paired_shift(before, injection.run_values(replay(
-                    inj, prior, "psce", [], keep_tables=False, noise=noise)))
+                    inj, prior, "psce", [], keep_tables=False, noise=noise)),
+                    reliability_probe.own_shift(sim.truth, "psce", eid, delta))
                 listed = injection.claims(entry, sign).get(parameter, [])
                 for q in sorted(shown):
                     if entry["bias_parameter"][q] != parameter:

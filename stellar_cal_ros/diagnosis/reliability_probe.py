@@ -91,9 +91,14 @@ def with_effect(data, calibration, method: str, effect_id: str, delta: np.ndarra
 def own_shift(calibration, method: str, effect_id: str, delta: np.ndarray) -> dict[str, float]:
     """What the effect at ``delta`` itself does to the equivalent principal point (px).
 
-    A camera or tracker effect moves the true value too; the printed bias of the
-    equivalent principal point is the estimate's shift minus this
-    (:func:`~stellar_cal_ros.diagnosis.reliability.bias_rows`).
+    An effect can move the true value too; the printed bias of the equivalent principal
+    point is the estimate's shift minus this
+    (:func:`~stellar_cal_ros.diagnosis.reliability.bias_rows`), and so is every measured
+    one (the probe here, ``discover --verify``, the injection tests).  The point is the
+    image of the nominal boresight, which the installation puts at the principal point:
+    an effect acting about the principal point (focal length, aspect, distortion, an
+    image-plane tilt) leaves it where it is (0 px), a principal-point offset moves it one
+    to one.
     """
     from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
     from stellar_cal_ros.diagnosis.twin import twin_model
