@@ -83,26 +83,25 @@ def parameter_delta(effect_id: str, parameter: str, size: float) -> np.ndarray:
 
 def run_values(result) -> dict[str, float]:
     """Estimated parameters and the equivalent principal point of a replay, by name."""
-    from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
-
     flt = result.filter
     n = flt.P_est
     out = dict(zip(flt.model.parameter_names()[:n], map(float, flt.theta[:n]), strict=True))
-    epp = (result.derived or {}).get("equivalent_principal_point_px")
-    if epp is not None:
-        out.update(zip(EPP_NAMES, map(float, epp), strict=True))
-    return out
+    return _with_epp(out, result.derived)
 
 
 def summary_values(run) -> dict[str, float]:
     """:func:`run_values` of a diagnosis run (a ``RunSummary``)."""
+    return _with_epp(run.value_by_name(), run.derived)
+
+
+def _with_epp(values: dict[str, float], derived: dict | None) -> dict[str, float]:
+    """``values`` and the equivalent principal point of ``derived`` (if there), by name."""
     from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
 
-    out = run.value_by_name()
-    epp = (run.derived or {}).get("equivalent_principal_point_px")
+    epp = (derived or {}).get("equivalent_principal_point_px")
     if epp is not None:
-        out.update(zip(EPP_NAMES, map(float, epp), strict=True))
-    return out
+        values.update(zip(EPP_NAMES, map(float, epp), strict=True))
+    return values
 
 
 def paired_shift(clean: dict[str, float], injected: dict[str, float],
