@@ -30,7 +30,7 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
 
     ``base`` is a run of that model with the scales ``runs.noise`` and its stars' noise
     measured (``Task(star_noise=True)``).  First the IMU's own samples (no run: their
-    sample-to-sample noise, :func:`~.noise.imu_sample_scale`, which no missing effect
+    sample-to-sample noise, :func:`~.noise_imu.imu_sample_scale`, which no missing effect
     moves); then the stars (no further run); then each IMU component in ``components`` by
     ML over re-runs with the stars' scale applied.  Where the samples look white they
     measure the sensor's noise and the ML is their check: attitude (velocity) motion the

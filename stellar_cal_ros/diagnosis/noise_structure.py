@@ -79,8 +79,9 @@ def track_inflation(r: np.ndarray, star: np.ndarray) -> tuple[float, float, int]
     ``ρ``: the lag-one correlation of ``r`` (whitened residuals about each star's mean, rows
     in time order) between a star's consecutive residuals, pooled over the stars and axes,
     clipped to [0, 0.95]; the AR(1) factor of the mean's variance.  White centroid noise
-    gives ~1 (the χ² of :func:`star_means` unchanged); an error fixed per star gives ~1
-    too (its mean is removed first); noise correlated over τ frames gives about ``2 τ``
+    gives ~1 (the χ² of :func:`~.noise_stars.star_means` unchanged); an error fixed per
+    star gives ~1 too (its mean is removed first); noise correlated over τ frames gives
+    about ``2 τ``
     (measured: unseen case ``ar1``, τ = 5 frames, χ² 427 for 156 dof without it).
 
     The residuals are taken about each star's own mean, which biases the lag correlation
