@@ -429,3 +429,19 @@ def test_estimates_read_the_same_in_the_terminal_and_the_report():
         {"effect": "time_offset", "score": 40.0, "p_value": 1e-8, "significant": True,
          "rms_after_px": [0.05, 0.05], "estimate": {"dt": 0.0123}, "sigma": {"dt": 1e-4}}]})
     assert said.replace("+-", "±") in page
+
+
+def test_a_line_that_follows_the_rolling_shutter_says_so_in_the_terminal_and_the_report():
+    """An 'unexplained' line ranked after the rolling shutter's (``follows`` in
+    diagnosis.json) is marked alike on the terminal and in report.html."""
+    from stellar_cal_ros.diagnosis import printing
+    from stellar_cal_ros.diagnosis.report_html import _unexplained_html
+
+    line = {"regressor": "radius", "component": "u", "statistic": -12.6, "p_value": 1.6e-6,
+            "change_px": 0.05}
+    summary = {"unexplained": [dict(line, follows="rolling shutter"), line]}
+    said = printing.follows_phrase(summary["unexplained"][0])
+    assert said.startswith("follows the rolling shutter") and not printing.follows_phrase(line)
+    terminal = printing.unexplained_lines(summary)
+    assert said in terminal[0] and said not in terminal[1], terminal
+    assert _unexplained_html(summary).count(said) == 1

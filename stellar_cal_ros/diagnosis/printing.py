@@ -55,6 +55,17 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
     return what, (f"{abs(size):.3g} px {span}" if size is not None else "")
 
 
+def follows_phrase(u: dict[str, Any]) -> str:
+    """Why an 'unexplained' line is ranked after the rolling shutter's (its ``follows``).
+
+    The one phrasing of the terminal and the report; ``""`` when the line follows nothing.
+    """
+    if not u.get("follows"):
+        return ""
+    return (f"follows the {u['follows']}: gone once its fitted readout is taken out of the "
+            "centroids")
+
+
 def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
     """Residual structure no candidate explains, strongest first, with its size in px."""
     out: list[str] = []
@@ -62,9 +73,8 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
         what, size = unexplained_phrase(u)
         out.append(f"  unexplained: {what} vs {u['regressor']} "
               f"(t={u['statistic']:.1f}, p={u['p_value']:.2g}"
-              + (f"; {size}" if size else "")
-              + ("; follows the rolling shutter: gone once its fitted readout is taken out "
-                 "of the centroids" if u.get("follows") else "") + ")")
+              + (f"; {size}" if size else "") + (f"; {follows_phrase(u)}" if u.get("follows")
+                                                 else "") + ")")
     if summary["unexplained"]:
         out.append("    (structure no library effect explains: an effect outside the library, "
               "e.g. a centroid bias with magnitude, a mount bending with gravity, a per-star "

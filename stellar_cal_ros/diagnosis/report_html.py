@@ -297,6 +297,7 @@ def _unexplained_html(summary: dict[str, Any], image: Path | str | None = None) 
     items = "".join(
         f"<li>{_e(what)} vs <b>{_e(u['regressor'])}</b>: t = {u['statistic']:.1f}, "
         f"p = {u['p_value']:.2g}" + (f", {_e(size)}" if size else "")
+        + (f"; {_e(printing.follows_phrase(u))}" if u.get("follows") else "")
         + (f" (<a href='#unexplained-plot'>plot {k + 1}</a>)" if image else "") + "</li>"
         for k, u in enumerate(summary.get("unexplained", []))
         for what, size in [printing.unexplained_phrase(u)]) or "<li>none</li>"
