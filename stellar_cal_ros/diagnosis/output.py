@@ -89,8 +89,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
 
         top = next(u for u in summary["unexplained"] if u.get("detail"))
         summary["remainder"] = dict(top, like=list(like), text=remainder_text(like, top))
-    if hiding:
-        summary["flexure_hiding"] = hiding  # the flexure's MDB (flexure.hiding)
+    # the flexure's MDB (flexure.hiding); null when its test found a remainder or did not run
+    summary["flexure_hiding"] = hiding or None
     if best is None:
         summary["reliability"] = hidden_effects(base, results)
         if runs is not None:
