@@ -18,12 +18,21 @@ mixed case: is the true effect still added, and the remainder still said?).
 ``--single``: a single ``diagnose`` round instead of discover (its recommendation and what
 it says of the remainder).
 
+``--at-mdb N``: the printed MDB checked by injection (issue 21: power 80 % +- 15 %).  For
+each of N seeds (from ``--seed``): the bag without a flexure (``--with`` effects, by default
+a true gyro_scale_factor 1e-4, so the test runs after it) is diagnosed, the MDB it prints
+("a mount flexure ... up to X arcsec per unit lateral gravity could still hide") read, and
+a flexure of exactly X injected into the same seed's bag; detected when the report says the
+gravity-shaped remainder.  Prints each seed's MDB, t and verdict, the share detected (with
+its binomial sigma) and the mean t at the MDB against the shift the MDB is made of.
+
 Run::
 
     .venv/bin/python benchmarks/flexure_remainder.py --sizes 10,20,40,80 --null-seeds 20
     .venv/bin/python benchmarks/flexure_remainder.py --sizes 40 --with gyro_misalignment=1e-4
     .venv/bin/python benchmarks/flexure_remainder.py --single --sizes 40 \
         --with gyro_scale_factor=1e-4
+    .venv/bin/python benchmarks/flexure_remainder.py --single --at-mdb 20 --seed 300
 """
 
 from __future__ import annotations
@@ -97,6 +106,68 @@ def single_row(size: float, seed: int, duration: float, also: dict | None = None
     return f"| {size:g}\u2033 | {s['recommendation'] or '-'} | {said} | {cpu:.0f} |"
 
 
+def _report(effects: dict, seed: int, duration: float, single: bool) -> tuple[dict, float]:
+    """The summary of one ``diagnose`` round (``single``) or of discover, and its CPU-s."""
+    sim, data = _bag(effects, seed, duration)
+    base = replay_psce(data, sim.prior)
+    t0 = time.process_time()
+    with tempfile.TemporaryDirectory() as tmp:
+        s = diagnose(data, base.calibration, "psce", [], tmp, plots=False, verbose=False,
+                     auto=not single)
+    return s, time.process_time() - t0
+
+
+def mdb_row(seed: int, duration: float, also: dict, single: bool) -> dict:
+    """One seed: the MDB printed on the bag without a flexure, then that flexure injected."""
+    clean, cpu = _report(also, seed, duration, single)
+    h = clean.get("flexure_hiding")
+    if not h:
+        return {"seed": seed, "mdb": None, "cpu": cpu,
+                "why": "remainder said" if clean.get("remainder") else "no test"}
+    mdb = float(h["arcsec_per_g"])
+    hit, cpu2 = _report({"mount_flexure": mdb, **also}, seed, duration, single)
+    rem = hit.get("remainder")
+    again = hit.get("flexure_hiding") or {}
+    t = rem["statistic"] if rem else again.get("t", float("nan"))
+    return {"seed": seed, "mdb": mdb, "sigma": float(h["sigma_arcsec_per_g"]),
+            "nu": h.get("nu"), "shift": mdb / float(h["sigma_arcsec_per_g"]),
+            "t": float(t), "detected": bool(rem), "cpu": cpu + cpu2,
+            "after": "+".join(h["after"]),
+            "injected_after": (rem or {}).get("detail", {}).get("after")
+            or again.get("after")}
+
+
+def at_mdb(seeds: range, duration: float, also: dict, single: bool) -> None:
+    """The table of :func:`mdb_row` over ``seeds`` and the power at the printed MDB."""
+    print("| seed | after | printed MDB \"/g | sigma \"/g | nu | MDB/sigma | t at the MDB | "
+          "remainder said | CPU-s |\n|---|---|---|---|---|---|---|---|---|")
+    rows = []
+    for seed in seeds:
+        r = mdb_row(seed, duration, also, single)
+        rows.append(r)
+        if r["mdb"] is None:
+            print(f"| {seed} | - | none printed ({r['why']}) | | | | | | {r['cpu']:.0f} |",
+                  flush=True)
+            continue
+        nu = f"{r['nu']:.0f}" if r["nu"] else "-"
+        print(f"| {seed} | {r['after']} | {r['mdb']:.2f} | {r['sigma']:.2f} | {nu} | "
+              f"{r['shift']:.2f} | {r['t']:.2f} | {'yes' if r['detected'] else 'no'} | "
+              f"{r['cpu']:.0f} |", flush=True)
+    got = [r for r in rows if r["mdb"] is not None]
+    if not got:
+        print("no MDB printed on any seed")
+        return
+    k, n = sum(r["detected"] for r in got), len(got)
+    share = k / n
+    ts = np.abs([r["t"] for r in got])
+    print(f"power at the printed MDB: {k}/{n} = {share:.0%} +- "
+          f"{np.sqrt(share * (1 - share) / n):.0%}"
+          f" (binomial; target 80 % +- 15 %); |t| at the MDB {ts.mean():.2f} +- "
+          f"{ts.std(ddof=1) / np.sqrt(n) if n > 1 else float('nan'):.2f} (mean +- its sigma) "
+          f"against the shift the MDB is made of {np.mean([r['shift'] for r in got]):.2f}; "
+          f"{len(rows) - n} seed(s) printed no MDB")
+
+
 def null_p(seed: int, duration: float) -> float:
     """The remainder test's p on a bag with a true gyro scale factor, gsf in the model."""
     sim, data = _bag({"gyro_scale_factor": 1e-4}, seed, duration)
@@ -121,11 +192,19 @@ def main() -> int:
     ap.add_argument("--with", dest="also", action="append", default=[], metavar="ID=SIZE",
                     help="a true library effect in the bag beside the flexure (repeatable)")
     ap.add_argument("--first-null-seed", type=int, default=2000)
+    ap.add_argument("--at-mdb", type=int, default=0, metavar="N",
+                    help="inject a flexure at the MDB each of N seeds prints (from --seed)")
     args = ap.parse_args()
     also = {k: float(v) for k, v in (a.split("=", 1) for a in args.also)}
     print(f"psce_rotations, {args.duration:g} s, seed {args.seed}; discover (noise estimated)"
           + "".join(f"; true {k} {v:g}" for k, v in also.items()))
     sizes = [float(x) for x in args.sizes.split(",") if x]
+    if args.at_mdb:
+        also = also or {"gyro_scale_factor": 1e-4}
+        print(("a single diagnose round" if args.single else "discover")
+              + f", power at the printed flexure MDB; bag: {also}")
+        at_mdb(range(args.seed, args.seed + args.at_mdb), args.duration, also, args.single)
+        return 0
     if args.single:
         print("| flexure | recommendation | remainder | CPU-s |\n|---|---|---|---|")
         for size in sizes:

@@ -123,6 +123,10 @@ def _check_found_and_fixed(tmp_path, effect, size, seed, scenario=None, duration
         assert h is not None and h["after"] == [effect], h
         assert abs(h["estimate_arcsec_per_g"]) < 3.0 * h["sigma_arcsec_per_g"], h
         assert "could still hide with this motion" in "\n".join(summary["terminal"])
+        # and the HTML report's hiding table carries it, in the terminal's words
+        page = (tmp_path / "rep" / "report.html").read_text()
+        mdb, test = flexure.hiding_phrases(h, "±")
+        assert flexure.HIDING_NAME in page and mdb in page and test in page
     # add it: a fresh calibration from the prior
     prior = sim.prior
     if effect == "image_plane_tilt":
@@ -206,6 +210,27 @@ def test_single_diagnose_round_says_the_recommendation_stands_in_for_a_flexure(
     assert "stands in for it" in "\n".join(summary["terminal"])
 
 
+def test_flexure_mdb_shift_is_the_t_nu_tests_power():
+    """``reliability.delta_t`` (the flexure MDB's shift in sigmas): a two-sided t_nu test
+    at alpha rejects a shift of delta_t sigmas with power 80 % (simulated: the normal
+    estimate over an independent chi2_nu scale, 40 000 draws, 3 binomial sigmas), and tends
+    to the normal's sqrt(lambda0) as nu grows."""
+    from scipy import stats as sps
+
+    from stellar_cal_ros.diagnosis import reliability
+
+    rng = np.random.default_rng(7)
+    n = 40_000
+    for alpha, nu in ((0.01, 11.0), (0.01, 30.0), (0.005, 60.0)):
+        d = reliability.delta_t(alpha, nu)
+        t = (rng.standard_normal(n) + d) / np.sqrt(rng.chisquare(nu, n) / nu)
+        power = np.mean(np.abs(t) > sps.t.isf(alpha / 2.0, nu))
+        assert abs(power - 0.8) < 3.0 * np.sqrt(0.16 / n), (alpha, nu, d, power)
+        assert d > np.sqrt(reliability.lambda0(alpha, 1))
+    assert reliability.delta_t(0.01, 1e6) == pytest.approx(
+        np.sqrt(reliability.lambda0(0.01, 1)), rel=2e-3)
+
+
 def test_remainder_text_says_what_the_beyond_test_found():
     """The three verdicts of the remainder line: no beyond test (its extra run failed),
     needed beyond a flexure, and a stand-in."""
@@ -273,6 +298,18 @@ def test_mount_flexure_is_unexplained_and_no_stand_in_is_added_for_it(tmp_path, 
     assert h["sigma_arcsec_per_g"] >= d["sigma_arcsec_per_g"], h
     assert abs(h["estimate_arcsec_per_g"] - truth) < 3.0 * h["sigma_arcsec_per_g"], h
     assert 2.5 * h["sigma_arcsec_per_g"] < h["arcsec_per_g"] < truth, h
+    # the MDB is the size this test detects with the stated power, on its own t_nu
+    # reference: at a flexure of the MDB its t would be MDB |t / c| on average (the
+    # innovations move by MDB S, the fit's residuals and so its variance do not), and the
+    # two-sided t_nu test at alpha then has power 80 % (65-95 % asked of the injections,
+    # benchmarks/flexure_remainder.py --at-mdb); the normal's sqrt(lambda0) read 5-15 % low
+    from scipy import stats as sps
+
+    nu = d["nu"]
+    crit = sps.t.isf(0.01 / 2.0, nu)
+    mean_t = h["arcsec_per_g"] * abs(d["t"] / d["arcsec_per_g"])
+    power = sps.nct.sf(crit, nu, mean_t)
+    assert 0.65 < power < 0.95 and 5.0 < nu < 200.0, (power, nu, mean_t)
     said = flexure.hiding_text(h)
     assert said.startswith("a mount flexure (outside the library) up to ") and \
         "could still hide with this motion" in said, said

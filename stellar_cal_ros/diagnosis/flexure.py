@@ -107,8 +107,9 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
     ``res``: the model's residual table with the gravity columns; ``moved``: the same
     model's run on the bag with the probe (at least its evaluation window).
 
-    ``{t, p_value, arcsec_per_g, sigma_arcsec_per_g, change_px, rms_px, frames}``
-    (``p_value`` unadjusted, from t_ν); ``None`` without enough stars or gravity change.
+    ``{t, p_value, nu, arcsec_per_g, sigma_arcsec_per_g, change_px, rms_px, frames}``
+    (``p_value`` unadjusted, from t_ν, ``nu`` its degrees of freedom); ``None`` without
+    enough stars or gravity change.
     """
     win = stats.evaluation_mask(res, fraction)
     a, b = _aligned({k: np.asarray(v)[win] for k, v in res.items()}, moved)
@@ -122,13 +123,13 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
     sub = {k: v[m] for k, v in a.items()}
     per = PROBE / ARCSEC
     S = np.stack([b["du"][m] - a["du"][m], b["dv"][m] - a["dv"][m]], 1) / per  # px/arcsec
-    fit = stats.whitened_fit(sub, S)
+    fit = stats.whitened_fit(sub, S, dof=True)
     if fit is None:
         return None
-    t, p, c, info = fit
+    t, p, c, info, nu = fit
     frame = np.asarray(sub["frame"])
     shown = np.hypot(*(S * c).T)
-    return {"t": t, "p_value": p, "arcsec_per_g": c,
+    return {"t": t, "p_value": p, "nu": nu, "arcsec_per_g": c,
             "chi2": c * c * info,
             "sigma_arcsec_per_g": float(1.0 / np.sqrt(info)),
             "change_px": float(np.percentile(shown, 99)),
@@ -291,13 +292,17 @@ def hiding(result: dict[str, float] | None, after: list[str], m: int, alpha: flo
 
     The flexure the test (:func:`remainder_statistics` of the model ``after``, Bonferroni
     over ``m`` such tests at ``alpha``) detects with power
-    :data:`~stellar_cal_ros.diagnosis.reliability.POWER`: ``σ √λ₀(α/m, 1)``, ``σ`` the
-    larger of the frame-robust standard error ``|c / t|`` and the whitened ``1/√info``.
+    :data:`~stellar_cal_ros.diagnosis.reliability.POWER`: ``σ δ``, ``δ`` the shift at
+    which the test's own t_ν reference (two-sided, level ``α/m``) has that power
+    (:func:`~stellar_cal_ros.diagnosis.reliability.delta_t`; ν ≈ 30 makes it ~6 % above
+    the normal's ``√λ₀(α/m, 1)``), ``σ`` the larger of the frame-robust standard error
+    ``|c / t|`` and the whitened ``1/√info``.  Measured against injections at the printed
+    MDB (``benchmarks/flexure_remainder.py --at-mdb``, doc/benchmarks.md).
     A motion whose steps about the gyro axes alias a flexure with the gyro terms in the
     model makes it large (40″/g + a true gyro misalignment: ~25″/g σ after both).
     ``None`` when the test did not run.
     """
-    from stellar_cal_ros.diagnosis.reliability import POWER, lambda0
+    from stellar_cal_ros.diagnosis.reliability import POWER, delta_t, lambda0
 
     if result is None:
         return None
@@ -305,20 +310,36 @@ def hiding(result: dict[str, float] | None, after: list[str], m: int, alpha: flo
     se = float(result["sigma_arcsec_per_g"])
     if t and np.isfinite(t):
         se = max(se, abs(c / t))
-    return {"arcsec_per_g": se * float(np.sqrt(lambda0(alpha / max(m, 1), 1))),
+    level = alpha / max(m, 1)
+    nu = result.get("nu")
+    shift = delta_t(level, nu) if nu else float(np.sqrt(lambda0(level, 1)))
+    return {"arcsec_per_g": se * shift, "nu": nu,
             "sigma_arcsec_per_g": se, "estimate_arcsec_per_g": c, "t": t,
             "p_value": min(1.0, result["p_value"] * max(m, 1)), "after": list(after),
             "power": POWER}
 
 
+#: what the hiding line and the report's row call the flexure
+HIDING_NAME = "mount flexure (outside the library)"
+
+
+def hiding_phrases(h: dict[str, Any], pm: str = "+-") -> tuple[str, str]:
+    """``(MDB, the test)`` of :func:`hiding`'s result, in words.
+
+    The terminal line's and the HTML report's row's one phrasing (``pm``: the plus-minus
+    sign, ``"±"`` in HTML).
+    """
+    after = "+".join(h["after"]) or "the model"
+    return (f"{h['arcsec_per_g']:.3g} arcsec per unit lateral gravity",
+            f"the gravity-shaped test after {after}: {h['estimate_arcsec_per_g']:.3g} {pm} "
+            f"{h['sigma_arcsec_per_g']:.2g} arcsec/g, p={h['p_value']:.2g}")
+
+
 def hiding_text(h: dict[str, Any]) -> str:
     """The 'what could still be hiding' line of a mount flexure (outside the library)."""
-    after = "+".join(h["after"]) or "the model"
-    return (f"a mount flexure (outside the library) up to {h['arcsec_per_g']:.3g} arcsec per "
-            f"unit lateral gravity could still hide with this motion (its MDB: seen with "
-            f"power {h['power']:.0%} at that size; the gravity-shaped test after {after}: "
-            f"{h['estimate_arcsec_per_g']:.3g} +- {h['sigma_arcsec_per_g']:.2g} arcsec/g, "
-            f"p={h['p_value']:.2g})")
+    mdb, test = hiding_phrases(h)
+    return (f"a {HIDING_NAME} up to {mdb} could still hide with this motion (its MDB: seen "
+            f"with power {h['power']:.0%} at that size; {test})")
 
 
 def significant(findings: list[stats.RegressorFinding | None], alpha: float

@@ -192,6 +192,21 @@ def flexure_hiding_lines(summary: dict[str, Any]) -> list[str]:
     return [f"  {hiding_text(summary['flexure_hiding'])}"]
 
 
+def flexure_hiding_row(summary: dict[str, Any], pm: str = "±"
+                       ) -> tuple[str, str, str] | None:
+    """The flexure's row of the report's hiding table: ``(name, MDB, the test)``.
+
+    The phrasing of :func:`flexure_hiding_lines`; ``None`` when no bound was made.
+    """
+    h = summary.get("flexure_hiding")
+    if not h:
+        return None
+    from stellar_cal_ros.diagnosis.flexure import HIDING_NAME, hiding_phrases
+
+    mdb, test = hiding_phrases(h, pm)
+    return HIDING_NAME, f"{mdb} (power {h['power']:.0%})", test
+
+
 def scope_lines(summary: dict[str, Any], single_round: bool) -> list[str]:
     """What this diagnosis can and cannot tell (issue 21 item 5)."""
     out = []

@@ -78,6 +78,27 @@ def lambda0(alpha: float, dof: int, power: float = POWER) -> float:
     return float(optimize.brentq(gap, 1e-9, hi, xtol=1e-6))
 
 
+def delta_t(alpha: float, nu: float, power: float = POWER) -> float:
+    """Shift δ (in σ) at which a two-sided t_ν test of level ``alpha`` has power ``power``.
+
+    The t_ν counterpart of ``√λ₀(alpha, 1)`` (:func:`lambda0`), for a test referred to
+    Student's t (the frame-robust tests, :func:`~stellar_cal_ros.diagnosis.stats.
+    frame_robust_t`): ``P(|T| > t_ν,1−α/2) = power``, ``T`` non-central t with ``δ``.
+    """
+    nu = min(max(float(nu), 1.0), 1e4)  # scipy's nct is NaN far out; t_1e4 is the normal
+    crit = sps.t.isf(alpha / 2.0, nu)
+
+    def gap(d: float) -> float:
+        # the far tail by symmetry (scipy's nct.cdf is NaN there for small ν)
+        return float(sps.nct.sf(crit, nu, d) + np.nan_to_num(sps.nct.sf(crit, nu, -d))
+                     - power)
+
+    hi = crit + 4.0
+    while gap(hi) < 0:
+        hi *= 2.0
+    return float(optimize.brentq(gap, 0.0, hi, xtol=1e-6))
+
+
 def _sym(A: np.ndarray) -> np.ndarray:
     return 0.5 * (A + A.T)
 

@@ -345,6 +345,11 @@ def _reliability_html(summary: dict[str, Any]) -> str:
         rows.append(f"<tr><td><b>{_e(e['effect'])}</b></td><td>{_e(mdb)}"
                     f"{'' if e['testable'] else ' (not testable)'}</td><td>{_e(bias)}</td>"
                     f"<td>{_e(btxt)}</td></tr>")
+    flex = printing.flexure_hiding_row(summary)
+    if flex:
+        # outside the library: its MDB from the gravity-shaped test that found nothing
+        rows.append(f"<tr><td><b>{_e(flex[0])}</b></td><td>{_e(flex[1])}</td>"
+                    f"<td>{_e(flex[2])}</td><td></td></tr>")
     if not rows:
         return ""
     return ("<h2>What could still be hiding</h2><p>Minimal detectable size (power 80 %) on "

@@ -230,7 +230,7 @@ def normal_scores(x: np.ndarray) -> np.ndarray:
 
 
 def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
-                   lags: int | None = None) -> tuple[float, float]:
+                   lags: int | None = None, dof: bool = False) -> tuple[float, ...]:
     """The slope's t of ``y`` on ``x``, robust to correlation within and across frames.
 
     The slope ``b`` by least squares; its variance from the scores ``U_k = Σ (x − x̄)(y −
@@ -250,13 +250,13 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     bags were these tails).  :func:`hac_reference`
     gives ν and the small-sample factor of ``V`` (Satterthwaite, Bell–McCaffrey) under the
     null of frames independent with stars exchangeable within a frame.  Returns ``(t,
-    two-sided p from t_ν)``.
+    two-sided p from t_ν)``, ``(t, p, ν)`` with ``dof`` (an MDB on the same reference).
     """
     xc = x - x.mean()
     yc = y - y.mean()
     sxx = float(xc @ xc)
     if not sxx > 0:
-        return 0.0, 1.0
+        return (0.0, 1.0, 1.0) if dof else (0.0, 1.0)
     b = float(xc @ yc) / sxx
     _, k = np.unique(cluster, return_inverse=True)
     # the frames' scores at the fitted slope (a Wald t: a real structure must not count as
@@ -281,10 +281,11 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     for lag in range(1, L + 1):
         V += 2.0 * (1.0 - lag / (L + 1.0)) * float(U[lag:] @ U[:-lag])
     if not V > 0:
-        return 0.0, 1.0
-    dof, factor = hac_reference(xc, e, k, L)
+        return (0.0, 1.0, 1.0) if dof else (0.0, 1.0)
+    nu, factor = hac_reference(xc, e, k, L)
     t = float(b * sxx / np.sqrt(V / factor))
-    return t, float(2.0 * stats.t.sf(abs(t), dof))
+    p = float(2.0 * stats.t.sf(abs(t), nu))
+    return (t, p, nu) if dof else (t, p)
 
 
 def hac_reference(xc: np.ndarray, e: np.ndarray, k: np.ndarray, L: int
@@ -562,15 +563,17 @@ def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
             "readout_ms": abs(c) * 2.0 * centre[1] * 1e3, "coefficient": c}
 
 
-def whitened_fit(sub: Table, x: np.ndarray) -> tuple[float, float, float, float] | None:
+def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
+                 ) -> tuple[float, ...] | None:
     """The innovations of ``sub`` fitted by one displacement pattern ``x`` (``(n, 2)`` px).
 
     Both whitened by the innovation covariance (:func:`whitened`), u and v of every star
     where both are finite; the frames as the units (:func:`frame_robust_t`).  ``(t, p
     (unadjusted), c, info)``: ``c`` the pattern's fitted size, ``info`` the whitened
     ``xᵀx`` (the fit removes ``c² info`` of χ², ``σ(c) = 1/√info``); ``None`` with fewer
-    than 20 stars or no information.  The nuisance fits of ``discover``'s stand-in rules
-    (a rolling shutter here, a mount flexure in :mod:`~stellar_cal_ros.diagnosis.flexure`).
+    than 20 stars or no information (``dof``: ν of the t_ν reference appended).  The
+    nuisance fits of ``discover``'s stand-in rules (a rolling shutter here, a mount
+    flexure in :mod:`~stellar_cal_ros.diagnosis.flexure`).
     """
     cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
     w_nu = whitened(sub)
@@ -580,9 +583,9 @@ def whitened_fit(sub: Table, x: np.ndarray) -> tuple[float, float, float, float]
     if ok.sum() < 20 or not info > 0:
         return None
     frame = np.repeat(np.asarray(sub["frame"])[ok], 2)
-    t, p = frame_robust_t(w_x[ok].ravel(), w_nu[ok].ravel(), frame)
+    t, p, nu = frame_robust_t(w_x[ok].ravel(), w_nu[ok].ravel(), frame, dof=True)
     c = float(np.sum(w_x[ok] * w_nu[ok])) / info
-    return float(t), float(p), c, info
+    return (float(t), float(p), c, info) + ((float(nu),) if dof else ())
 
 
 def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
