@@ -160,6 +160,26 @@ def test_track_rho_is_unbiased_about_the_star_means_and_short_tracks_read_white(
         assert track_inflation(r, star)[:2] == (1.0, 0.0), frames
 
 
+def test_structure_fits_take_one_dof_per_coefficient():
+    """noise_structure.minus_rolling (one coefficient) and minus_subpixel (2 per axis) take
+    exactly that many dof from the rows' 2 each when their fit is removed: Σ 2 Δshare = 1
+    and 4 (the leverages of a least-squares fit sum to its coefficients).  minus_rolling
+    had taken 2 for 1."""
+    from stellar_cal_ros.diagnosis.noise_structure import minus_rolling, minus_subpixel
+
+    rng = np.random.default_rng(9)
+    n = 2000
+    share = np.ones(n)
+    x = rng.standard_normal((n, 2))
+    r = rng.standard_normal((n, 2)) + 0.3 * x  # a readout far above its sigma
+    _, got = minus_rolling(r, share, x, 0.01)
+    assert 2.0 * float(np.sum(share - got)) == pytest.approx(1.0, rel=1e-9)
+    uv = rng.uniform(0.0, 1024.0, (n, 2))
+    r = rng.standard_normal((n, 2)) + 0.3 * np.sin(2.0 * np.pi * uv)  # pixel locking
+    _, got = minus_subpixel(r, share, uv, 0.01)
+    assert 2.0 * float(np.sum(share - got)) == pytest.approx(4.0, rel=1e-9)
+
+
 def test_one_noisy_gyro_axis_is_measured_per_axis():
     """The gyro's z axis 4x its stated white noise, x and y as stated: the samples' scale
     is the axes' RMS (√6 = 2.45; the median of the axes said 1.0 and discover then added a
