@@ -483,7 +483,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
               if state.remainders and not outside else None)
     summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
                      panels, plots, "stellar_cal discovery", images, verdict, write=False,
-                     outside=outside, like=like, runs=runs,
+                     outside=outside, like=like, runs=runs, hiding=hidden,
                      refused=tuple(path[-1].get("beyond_remainder") or ()) if path else ())
     summary.update({
         "path": path,
@@ -493,7 +493,6 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         "rejected": _rejected(history, state, path),
         "workers": runs.workers, "executor": runs.description,
         "seconds": seconds,
-        "flexure_hiding": hidden,
     })
     summary.setdefault("reliability", [])
     if summary.get("remainder"):

@@ -56,15 +56,14 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
-    res = final.residuals if final.residuals is not None else base.residuals
-    unexplained = line_tests(res, calibration, fraction)
+    shown = final if final.residuals is not None else base  # the run the lines are of
+    unexplained = line_tests(shown.residuals, calibration, fraction)
     unexplained, spread = within_groups(unexplained, verdict)
     outside = list(outside or [])
     if outside:  # into the ranking of the lines (regressor_tests' order: p, then |t|)
         unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
     # a rolling shutter whose consequences rank before it goes first (one run without it)
-    unexplained, follows = rolling.first_if_cause(
-        unexplained, final if final.residuals is not None else base, runs, line_tests)
+    unexplained, follows = rolling.first_if_cause(unexplained, shown, runs, line_tests)
     summary = summary_dict(base, results, unexplained, spec, effects, fraction)
     for i, u in enumerate(summary["unexplained"]):
         if i in follows:
