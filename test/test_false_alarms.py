@@ -47,6 +47,51 @@ def test_frame_robust_t_is_standard_normal_under_a_common_frame_error():
     assert np.std(t_rob) == pytest.approx(1.0, abs=0.15)
 
 
+def test_degenerate_structure_test_has_no_reference_and_the_flexure_no_mdb():
+    """No spread of the regressor (a flexure response the same for every star: after
+    whitening, a constant), or innovations that are exactly the fit (zero variance): no t
+    can be made.  ``frame_robust_t(dof=True)`` then has no reference (ν None), the whitened
+    fit is None, and the flexure's test says nothing (``flexure_hiding`` null, no line), as
+    when gravity does not change.  Before: ν = 1 where the spread was exactly 0, and
+    ``flexure.hiding`` printed a t_1-based MDB (81.6 σ at α = 0.01, the normal's 3.42 σ) for
+    a test never made; where it was rounding (a constant minus its computed mean, the
+    probe moving every star alike), a test of the rounding (ν 11, t 1.1: "up to 1.06 arcsec
+    per unit lateral gravity could still hide"), and an exact fit read t 3.9e15."""
+    from stellar_cal_ros.core.units import ARCSEC
+    from stellar_cal_ros.diagnosis import flexure
+
+    rng = np.random.default_rng(4)
+    frames = np.repeat(np.arange(60), 6)
+    n = len(frames)
+    y = rng.standard_normal(n)
+    for c in (0.04, 0.1234, 7.1):  # a constant minus its computed mean is rounding, not 0
+        assert stats.frame_robust_t(np.full(n, c), y, frames, dof=True) == (0.0, 1.0, None)
+    x = rng.standard_normal(n)
+    assert stats.frame_robust_t(x, 2.7 * x + 0.3, frames, dof=True) == (0.0, 1.0, None)
+    assert stats.frame_robust_t(x, 2.7 * x + 0.3, frames) == (0.0, 1.0)  # the default form
+    assert stats.frame_robust_t(x, y, frames, dof=True)[2] > 5.0  # real data keep their ν
+    # the flexure's test on a bag whose probe moved every star alike, then exactly as the
+    # innovations are: 60 frames of 6 stars, gravity changing along the window
+    per = flexure.PROBE / ARCSEC
+    sd = 0.05
+    res = {"t": frames * 0.5, "frame": frames, "catalog_id": np.tile(np.arange(6), 60),
+           "gated": np.zeros(n, bool), "du": sd * y, "dv": sd * rng.standard_normal(n),
+           "s_uu": np.full(n, sd**2), "s_uv": np.zeros(n), "s_vv": np.full(n, sd**2),
+           "gravity_x_st": np.linspace(-0.3, 0.3, n), "gravity_y_st": np.zeros(n)}
+    alike = dict(res, du=res["du"] + 0.01 * per, dv=res["dv"] + 0.01 * per)
+    pattern = np.linspace(-1.0, 1.0, n) * sd
+    exact = dict(res, du=3.0 * pattern, dv=np.zeros(n))
+    moved = dict(exact, du=exact["du"] + pattern * per)
+    for r, m in ((res, alike), (exact, moved)):
+        got = flexure.remainder_statistics(r, m, 0.5)
+        assert got is None, got
+        assert flexure.hiding(got, ["gyro_scale_factor"], 1, 0.01) is None
+    # a test that is made keeps its MDB (the same table, the response varying by star)
+    varied = dict(res, du=res["du"] + pattern * per)
+    h = flexure.hiding(flexure.remainder_statistics(res, varied, 0.5), ["gsf"], 1, 0.01)
+    assert h is not None and h["nu"] > 5.0 and np.isfinite(h["arcsec_per_g"]), h
+
+
 def test_frame_robust_p_value_holds_its_stated_level():
     """The printed p of the structure test is referred to t_nu (Satterthwaite over the lag
     window and the frames' unequal weights), not N(0, 1): under the null its rate below

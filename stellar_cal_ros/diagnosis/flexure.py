@@ -109,7 +109,8 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
 
     ``{t, p_value, nu, arcsec_per_g, sigma_arcsec_per_g, change_px, rms_px, frames}``
     (``p_value`` unadjusted, from t_ν, ``nu`` its degrees of freedom); ``None`` without
-    enough stars or gravity change.
+    enough stars or gravity change, or when no t can be made (the response the same for
+    every star, or the innovations exactly its fit: :func:`~.stats.whitened_fit`).
     """
     win = stats.evaluation_mask(res, fraction)
     a, b = _aligned({k: np.asarray(v)[win] for k, v in res.items()}, moved)
@@ -300,7 +301,7 @@ def hiding(result: dict[str, float] | None, after: list[str], m: int, alpha: flo
     MDB (``benchmarks/flexure_remainder.py --at-mdb``, doc/benchmarks.md).
     A motion whose steps about the gyro axes alias a flexure with the gyro terms in the
     model makes it large (40″/g + a true gyro misalignment: ~25″/g σ after both).
-    ``None`` when the test did not run.
+    ``None`` when the test did not run or could not be made (``result`` None).
     """
     from stellar_cal_ros.diagnosis.reliability import POWER, delta_t, lambda0
 

@@ -229,8 +229,14 @@ def normal_scores(x: np.ndarray) -> np.ndarray:
     return stats.norm.ppf(stats.rankdata(x) / (len(x) + 1.0))
 
 
+#: :func:`frame_robust_t`'s input is degenerate when the spread of ``x`` is below this share of
+#: ``Σ x²`` or ``V`` below this share of ``Σ x_c² Σ y_c²``: far above double rounding (~1e-32,
+#: a constant ``x`` minus its computed mean, or an exact fit's residuals), far below any data
+DEGENERATE = 1e-24
+
+
 def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
-                   lags: int | None = None, dof: bool = False) -> tuple[float, ...]:
+                   lags: int | None = None, dof: bool = False) -> tuple[float | None, ...]:
     """The slope's t of ``y`` on ``x``, robust to correlation within and across frames.
 
     The slope ``b`` by least squares; its variance from the scores ``U_k = Σ (x − x̄)(y −
@@ -251,12 +257,15 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     gives ν and the small-sample factor of ``V`` (Satterthwaite, Bell–McCaffrey) under the
     null of frames independent with stars exchangeable within a frame.  Returns ``(t,
     two-sided p from t_ν)``, ``(t, p, ν)`` with ``dof`` (an MDB on the same reference).
+    Degenerate input (no spread of ``x``, or ``V`` zero: ``y`` exactly ``b x``, see
+    :data:`DEGENERATE`) makes no test: ``(0, 1)``, and with ``dof`` ``ν = None`` (no
+    reference, so no MDB either).
     """
     xc = x - x.mean()
     yc = y - y.mean()
     sxx = float(xc @ xc)
-    if not sxx > 0:
-        return (0.0, 1.0, 1.0) if dof else (0.0, 1.0)
+    if not sxx > DEGENERATE * float(x @ x):  # a constant x leaves its mean's rounding
+        return (0.0, 1.0, None) if dof else (0.0, 1.0)
     b = float(xc @ yc) / sxx
     _, k = np.unique(cluster, return_inverse=True)
     # the frames' scores at the fitted slope (a Wald t: a real structure must not count as
@@ -280,8 +289,8 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     V = float(U @ U)
     for lag in range(1, L + 1):
         V += 2.0 * (1.0 - lag / (L + 1.0)) * float(U[lag:] @ U[:-lag])
-    if not V > 0:
-        return (0.0, 1.0, 1.0) if dof else (0.0, 1.0)
+    if not V > DEGENERATE * sxx * float(yc @ yc):  # y exactly b x: rounding is all e is
+        return (0.0, 1.0, None) if dof else (0.0, 1.0)
     nu, factor = hac_reference(xc, e, k, L)
     t = float(b * sxx / np.sqrt(V / factor))
     p = float(2.0 * stats.t.sf(abs(t), nu))
@@ -570,10 +579,13 @@ def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
     Both whitened by the innovation covariance (:func:`whitened`), u and v of every star
     where both are finite; the frames as the units (:func:`frame_robust_t`).  ``(t, p
     (unadjusted), c, info)``: ``c`` the pattern's fitted size, ``info`` the whitened
-    ``xᵀx`` (the fit removes ``c² info`` of χ², ``σ(c) = 1/√info``); ``None`` with fewer
-    than 20 stars or no information (``dof``: ν of the t_ν reference appended).  The
-    nuisance fits of ``discover``'s stand-in rules (a rolling shutter here, a mount
-    flexure in :mod:`~stellar_cal_ros.diagnosis.flexure`).
+    ``xᵀx`` (the fit removes ``c² info`` of χ², ``σ(c) = 1/√info``; ``dof``: ν of the t_ν
+    reference appended); ``None`` with fewer than 20 stars or no information, and with
+    ``dof`` also when no test can be made (:func:`frame_robust_t` degenerate: the whitened
+    pattern does not vary, or the innovations are exactly the fit; without ``dof`` ``t =
+    0, p = 1`` then, and ``c``, ``info`` still hold).  The nuisance fits of ``discover``'s
+    stand-in rules (a rolling shutter here, a mount flexure in
+    :mod:`~stellar_cal_ros.diagnosis.flexure`).
     """
     cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
     w_nu = whitened(sub)
@@ -584,6 +596,8 @@ def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
         return None
     frame = np.repeat(np.asarray(sub["frame"])[ok], 2)
     t, p, nu = frame_robust_t(w_x[ok].ravel(), w_nu[ok].ravel(), frame, dof=True)
+    if dof and nu is None:
+        return None
     c = float(np.sum(w_x[ok] * w_nu[ok])) / info
     return (float(t), float(p), c, info) + ((float(nu),) if dof else ())
 
