@@ -257,3 +257,48 @@ def test_imu_sample_noise_sees_white_noise_through_motion_and_refuses_filtered_s
     kernel = np.ones(4) / 4.0
     filtered = np.stack([np.convolve(x[:, k], kernel, "same") for k in range(3)], 1)
     assert not sample_noise(filtered)[2]
+
+
+def test_correlated_noise_line_names_both_factors_of_the_scale_to_use():
+    """Unseen case 'ar1' (each star's noise an AR(1) over frames, lag-1 ρ 0.81): the line
+    printed 'sigma x3.08: use --noise-scale star=2.97' without saying why two numbers.  The
+    scale to use is the stars' scatter within frames times √((1+ρ)/(1−ρ)); the line names
+    both and their product, each number the one it comes from.  The two rounds of the case:
+    the scatter (0.964) within 5 % of the stated, kept (x1); then measured again with the
+    x3.08 applied (0.313 of it), and applied (0.964 x 3.08 = 2.97)."""
+    import re
+
+    rho, scatter = 0.81, 0.964
+    k = np.sqrt((1 + rho) / (1 - rho))
+    for stated, kept in ((1.0, 1.0), (k, scatter)):
+        sn = _star_noise(factor=lambda m, uv, s=stated: np.full(len(m), scatter / s))
+        sn.magnitude = np.full(len(sn.q), np.nan)  # no groups: one scatter
+        sn.radius, sn.uv = np.zeros(len(sn.q)), None
+        sn.track_rho, sn.track_pairs = rho, 5000
+        v = noise.NoiseVerdict(NoiseScales(star=stated), NoiseScales(star=stated))
+        applied = v.applied = noise.judge_stars(v, sn, 0.05, (1024, 1024), 1)  # as measure()
+        assert v.correlated["sigma_scale"] == pytest.approx(k, rel=1e-12)
+        assert v.star * stated == pytest.approx(scatter, abs=3 * v.star_sigma * stated)
+        assert applied.star == pytest.approx(kept * k, rel=0.01)  # kept: the measured within 1 %
+        line = next(x for x in v.lines() if "correlated from frame to frame" in x)
+        # no second line of the scatter alone ('x1.03 too large: use star=3.09')
+        assert not any("sigma looks" in x for x in v.lines()), v.lines()
+        got = re.search(r"needs the sigma x([\d.]+) \(= sqrt\(([\d.]+)\)\) on top of the "
+                        r"stars' scatter within frames \(([\d.]+) x the messages' sigma\): use "
+                        r"--noise-scale star=([\d.]+) \(their product", line)
+        assert got, line
+        shown_k, infl, white, use = (float(g) for g in got.groups())
+        assert shown_k == float(f"{k:.3g}") and infl == float(f"{(1 + rho) / (1 - rho):.3g}")
+        assert use == float(f"{applied.star:.3g}")
+        assert white == float(f"{applied.star / k:.3g}")
+        assert white == pytest.approx(kept, rel=0.01)
+        assert white * shown_k == pytest.approx(use, rel=0.005)  # the product, as printed
+    # the terminal and report.html show the same line (diagnosis.json's noise.verdict)
+    import html
+
+    from stellar_cal_ros.diagnosis.printing import noise_lines
+    from stellar_cal_ros.diagnosis.report_html import _discovery_html
+
+    summary = {"noise": v.as_json()}
+    assert f"noise: {line}" in noise_lines(summary)
+    assert line in html.unescape(_discovery_html(summary))

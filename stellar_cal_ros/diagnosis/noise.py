@@ -238,8 +238,10 @@ class NoiseVerdict:
         out += self._beyond_lines()
         if self.correlated:
             out.append(noise_structure.correlated_line(self.correlated, self.applied.star))
-        white = self.star * (self.correlated or {}).get("sigma_scale", 1.0)
-        if "star" in self.rejected and self.group is None and abs(white - 1.0) > MATERIAL:
+        # with correlated noise its line names the scatter and the product to use: a line of
+        # the scatter alone said 'x1.04 too large: use star=3.08' (unseen case ar1)
+        if "star" in self.rejected and self.group is None and not self.correlated and \
+                abs(self.star - 1.0) > MATERIAL:
             s, e = self.star, self.star_sigma
             word = "too small" if s > 1 else "too large"
             k = s if s > 1 else 1.0 / s

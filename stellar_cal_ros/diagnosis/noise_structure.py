@@ -132,9 +132,22 @@ def correlated(rho: float, pairs: int, material: float) -> dict[str, float] | No
 
 
 def correlated_line(c: dict[str, float], applied_star: float) -> str:
-    """The noise verdict's line for :func:`correlated`."""
+    """The noise verdict's line for :func:`correlated`.
+
+    One phrasing: the terminal and the report both show ``noise.verdict``.  Two factors
+    make the scale to use, and the line names both: ``applied_star`` (the stars' scale the
+    diagnosis now runs with, relative to the messages' σ) is the stars' scatter within
+    frames (``applied_star / sigma_scale``: the white scale, measured or kept as stated)
+    times ``sigma_scale`` ``= √((1+ρ)/(1−ρ))`` for the correlation.  Said as ``sigma
+    x3.08: use --noise-scale star=2.97``, the two numbers read as a contradiction (unseen
+    case ``ar1``: the scatter 0.964 x the stated).
+    """
+    k = c["sigma_scale"]
+    white = applied_star / k
     return (f"the stars' centroid noise is correlated from frame to frame along each star's "
             f"track (lag-1 rho = {c['rho']:.2f}): noise, not an effect; each frame carries "
-            f"~1/{c['inflation']:.3g} of what white noise of its sigma would, so a filter that "
-            f"takes it as white needs sigma x{c['sigma_scale']:.3g}: use --noise-scale "
-            f"star={applied_star:.3g} (applied; NIS/dof then reads below 1)")
+            f"~1/{c['inflation']:.3g} of what white noise of its sigma would, so a filter "
+            f"that takes it as white needs the sigma x{k:.3g} (= sqrt({c['inflation']:.3g})) "
+            f"on top of the stars' scatter within frames ({white:.3g} x the messages' "
+            f"sigma): use --noise-scale star={applied_star:.3g} (their product, the one "
+            "scale to give; applied; NIS/dof then reads below 1)")
