@@ -386,6 +386,9 @@ def test_unexplained_sizes_read_the_same_in_the_terminal_and_the_report():
         assert f"{what} vs {u['regressor']}" in text
         assert f"{what} vs <b>{u['regressor']}</b>" in page and said in text and said in page
     assert "0.000 px" not in page  # no size is not a size of 0
+    # 'follows' is said only of a line the rolling shutter explains (below), not of the
+    # regressor a line is against (was: 'the regressor it follows is listed first')
+    assert "follow" not in text and "varies with" in text, text
 
 
 def test_regressor_plots_of_a_batch_table(tmp_path):
@@ -444,4 +447,6 @@ def test_a_line_that_follows_the_rolling_shutter_says_so_in_the_terminal_and_the
     assert said.startswith("follows the rolling shutter") and not printing.follows_phrase(line)
     terminal = printing.unexplained_lines(summary)
     assert said in terminal[0] and said not in terminal[1], terminal
+    assert terminal[2].count("follow") == 1 and "follows the rolling shutter comes after the " \
+        "shutter's" in terminal[2], terminal
     assert _unexplained_html(summary).count(said) == 1

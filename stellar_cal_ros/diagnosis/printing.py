@@ -76,11 +76,16 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
               + (f"; {size}" if size else "") + (f"; {follows_phrase(u)}" if u.get("follows")
                                                  else "") + ")")
     if summary["unexplained"]:
+        # not "the regressor it follows": 'follows' marks a line the rolling shutter explains
+        shown = summary["unexplained"][:n]
         out.append("    (structure no library effect explains: an effect outside the library, "
               "e.g. a centroid bias with magnitude, a mount bending with gravity, a per-star "
-              "catalogue error; the regressor it follows is listed first)")
+              "catalogue error; each line names after 'vs' the regressor the residual varies "
+              "with, the most significant line first"
+              + ("; a line that follows the rolling shutter comes after the shutter's"
+                 if any(u.get("follows") for u in shown) else "") + ")")
     if any(u["component"] == "size" for u in summary["unexplained"][:n]):
-        out.append("    (a spread that follows a regressor is noise that depends on it, or a "
+        out.append("    (a spread that varies with a regressor is noise that depends on it, or a "
                    "bias whose direction changes along it: state the stars' sigma per "
                    "magnitude / region if it is the noise)")
     return out
