@@ -119,7 +119,7 @@ def data_quality_lines(summary: dict[str, Any]) -> list[str]:
 
 
 def diagnosis_lines(summary: dict, calibration=None) -> list[str]:
-    """Print the key lines of a diagnosis summary.
+    """The key lines of a diagnosis summary (:func:`print_diagnosis` prints them).
 
     ``calibration``: the calibration diagnosed; when it is a run's result, the RMS that run
     reported is printed beside the re-run's, with why they may differ.

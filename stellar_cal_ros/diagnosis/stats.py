@@ -634,10 +634,11 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     (:func:`within_frame`, with ``focal`` = (fx, fy)): the attitude error every star of a
     frame shares is no evidence about magnitude or position, only noise for that test.  A
     property of the frame (time, rate, temperature, gravity) is tested on the innovations.
-    Only pairs significant at ``alpha`` after correction are returned, strongest first,
-    each with the size of the structure (the residual's change across the regressor's
-    5–95 % range, px).  ``extra``: further tests (unadjusted p) in the same family, e.g.
-    the per-star repeat of :func:`~stellar_cal_ros.diagnosis.noise.repeat_finding`.  With
+    Only pairs significant at ``alpha`` after correction are returned, most significant
+    first (adjusted p, then ``|t|``), each with the size of the structure (the residual's
+    change across the regressor's 5–95 % range, px).  ``extra``: further tests (unadjusted
+    p) in the same family, e.g. the per-star repeat of
+    :func:`~stellar_cal_ros.diagnosis.noise.repeat_finding`.  With
     ``focal``, the within-frame residuals are also tested against the sub-pixel phase and
     (with the installation ``R_imu_st``) a rolling shutter's shape (:func:`shaped_tests`).
     """
