@@ -32,8 +32,12 @@ this order:
    effect) is added only if it explains the data beyond the flexure (two runs of its
    model).  (A mount flexure: gyro_scale_factor is added, flagged, and gyro_misalignment,
    which would absorb the remainder next, is not.)  A remainder that a later add leaves
-   insignificant is not reported (it was that effect's); the last one is the first
-   'unexplained' line.
+   insignificant is not reported (it was that effect's) unless the test with that add in
+   the model could not have seen a flexure of the size the remainder was (its MDB above
+   it, :func:`~stellar_cal_ros.diagnosis.flexure.alias`; no run): then the two are not
+   told apart by this motion, the add is marked "could be a mount flexure (outside the
+   library): this motion cannot separate them" (a mount flexure beside a true gyro scale
+   factor: gyro_misalignment) and the remainder stays the first 'unexplained' line.
 4. **stop** when none of these applies (or after ``max_rounds`` rounds).
 
 The next round starts the effects the discovery added from the chosen run's estimates and
@@ -154,6 +158,9 @@ class _State:
     outside: bool = False
     #: the prior of the latest round's runs (the flexure test of the model before an add)
     prior: Calibration | None = None
+    #: indexes into ``remainders`` of the tests after an add that took up a significant
+    #: remainder but explains nothing beyond a flexure either (the two not told apart)
+    aliased: set[int] = field(default_factory=set)
 
     def checkable(self) -> list[str]:
         """Added effects whose need is tested this round."""
@@ -279,6 +286,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                     # next candidate; if not, it stands in for one, and so would the next
                     got["beyond"] = b = _stand_in(runs, state, path[-1], current, got)
                     state.outside = state.outside or bool(b and not b["needed"])
+                else:
+                    _alias(state, path)
             elif state.outside:
                 here = flexure.after_add(runs, base, prior, tuple(state.extra))
             state.prior = prior
@@ -390,6 +399,28 @@ def _stand_in(runs, state: _State, step: dict[str, Any], before: RunSummary | No
                           Reference.of(before).dispersion, after, without)
 
 
+def _alias(state: _State, path: list[dict[str, Any]]) -> None:
+    """Mark the add that took up a significant gravity-shaped remainder if a flexure could too.
+
+    ``path[-1]`` added the effect; the test after it (``state.remainders[-1]``) found
+    nothing, the one after the add before it (``path[-2]``) a remainder.  When the test
+    with the effect could not see a flexure of the size that remainder was
+    (:func:`~stellar_cal_ros.diagnosis.flexure.alias`: its MDB above it; no run) the step
+    gains ``could_be_flexure`` and the remainder is not taken as the effect's
+    (``state.aliased``).
+    """
+    prev = path[-2].get("remainder") if len(path) > 1 and path[-2]["action"] == "add" else None
+    got = state.remainders[-1][0]
+    if not prev or "beyond" not in prev or got is None:
+        return  # the remainder before this add was not significant (or not tested)
+    a = flexure.alias(prev, got, len(state.remainders), ALPHA)
+    if a is None:
+        return
+    a["text"] = flexure.alias_text(path[-1]["added"]["effect"], a)
+    path[-1]["could_be_flexure"] = a
+    state.aliased.add(len(state.remainders) - 1)
+
+
 def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibration,
          calibration: Calibration, results: list[CandidateResult], tell,
          shutter: dict | None = None
@@ -474,8 +505,8 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     # missing then), not a flexure's
     found = [flexure.finding(got, after, len(state.remainders))
              for got, after in state.remainders]
-    cleared = [i for i, f in enumerate(found)
-               if f is not None and not flexure.significant([f], ALPHA)]
+    cleared = [i for i, f in enumerate(found) if f is not None and i not in state.aliased
+               and not flexure.significant([f], ALPHA)]
     outside = flexure.significant(found[cleared[-1] + 1 if cleared else 0:], ALPHA)
     like = outside[0].detail["after"] if outside else None
     # no remainder said: the flexure the last test would have seen (its MDB, ″/g)
@@ -498,6 +529,10 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     if summary.get("remainder"):
         # effects added after the remainder was found (they may absorb it in turn)
         summary["remainder"]["later"] = added[len(summary["remainder"]["like"]):]
+        # the later adds a flexure explains as well (not told apart by this motion)
+        summary["remainder"]["could_be_flexure"] = {
+            s["added"]["effect"]: s["could_be_flexure"] for s in path
+            if s.get("could_be_flexure") and s["added"]["effect"] in added}
     cal_path = out / "calibration.yaml"
     save_calibration(final.calibration, cal_path)
     summary["calibration_file"] = str(cal_path)

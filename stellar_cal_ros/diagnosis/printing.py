@@ -17,7 +17,9 @@ def describe(step: dict[str, Any]) -> str:
     a = step["action"]
     if a == "add":
         add = step["added"]
-        return f"add {add['effect']} (score {add['score']:.1f}, p = {add['p_value']:.2g})"
+        alias = " -- could be a mount flexure, see below" if step.get("could_be_flexure") else ""
+        return (f"add {add['effect']} (score {add['score']:.1f}, p = {add['p_value']:.2g})"
+                f"{alias}")
     if a == "drop":
         return f"drop {step['removed']} (no longer needed)"
     if a == "noise":
@@ -264,13 +266,15 @@ def discovery_lines(summary: dict[str, Any]) -> list[str]:
               f"{s['reruns']} runs in {s['seconds']:.1f} s -> {describe(s)}")
     for eff, params in summary["final_estimates"].items():
         text = ", ".join(estimate_phrase(eff, n, v, s) for n, (v, s) in params.items())
-        out.append(f"  added {eff}: {text}")
+        out.append(f"  added {eff}: {text}{added_caveat(summary, eff)}")
     rem = summary.get("remainder")
     if rem:
-        later = rem.get("later") or []
+        alias = rem.get("could_be_flexure") or {}
+        later = [e for e in rem.get("later") or [] if e not in alias]
         out.append(f"  the residuals after {'+'.join(rem['like'])} were {rem['text']}"
                    + (f"; {', '.join(later)}, added after it, may absorb that remainder in "
-                      "turn (the rounds' 'remainder' in diagnosis.json)" if later else ""))
+                      "turn (the rounds' 'remainder' in diagnosis.json)" if later else "")
+                   + "".join(f"; {b['text']}" for b in alias.values()))
     if summary["stopped"] != "nothing more is significant":
         out.append(f"  {summary['stopped']}")
     for rj in summary["rejected"]:
@@ -285,6 +289,19 @@ def discovery_lines(summary: dict[str, Any]) -> list[str]:
     out.append(f"final model: {', '.join(summary['model']['effects'])}; "
           f"{summary['executor']}, {summary['seconds']:.1f} s in all")
     return out
+
+
+def added_caveat(summary: dict[str, Any], effect: str) -> str:
+    """What follows an added effect's estimates when a mount flexure explains it as well.
+
+    ``" -- could be a mount flexure (outside the library): this motion cannot separate
+    them"`` (:data:`~stellar_cal_ros.diagnosis.flexure.ALIAS_TEXT`), else ``""``: the
+    terminal's and the report's one phrasing.
+    """
+    from stellar_cal_ros.diagnosis.flexure import ALIAS_TEXT
+
+    alias = (summary.get("remainder") or {}).get("could_be_flexure") or {}
+    return f" -- {ALIAS_TEXT}" if effect in alias else ""
 
 
 def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> list[str]:

@@ -378,7 +378,8 @@ def _discovery_html(summary: dict[str, Any]) -> str:
         items = "".join(
             f"<li><b>{_e(eff)}</b>: " + _e(", ".join(
                 printing.estimate_phrase(eff, n, v, sg, "±")
-                for n, (v, sg) in params.items())) + "</li>"
+                for n, (v, sg) in params.items()) + printing.added_caveat(summary, eff))
+            + "</li>"
             for eff, params in summary["final_estimates"].items())
         out.append(f"<h2>Added effects</h2><ul>{items}</ul>")
     out.append("<h2>Every candidate of the last round</h2>" + _all_candidates_html(summary))
