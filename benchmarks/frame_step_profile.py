@@ -10,6 +10,9 @@ once) with the PSCE filter and keeps the arguments of ``--frames`` ordinary call
 times, hot (the same frame ``--repeat`` times, CPU time per call):
 
 * ``frame_step`` itself;
+* the same step ``--repeat`` times inside one compiled call (the state reset from copies
+  each time): the per-frame cost of a batched call over a pump's frames, which pays no
+  marshalling, no boxing and no Python between two steps;
 * the call alone: a compiled function taking the same arguments and returning at once
   (argument marshalling), and one that also builds and returns a result tuple of the same
   shape (the boxing of the returned arrays);
@@ -39,6 +42,16 @@ from stellar_cal_ros.methods.replay import replay
 from stellar_cal_ros.methods.star_chain import predict_chain
 
 sys.path.insert(0, str(Path(__file__).parent))
+
+
+@njit
+def _loop_steps(K, P0, theta0, R0, *rest):
+    """``K`` steps of the same frame in one compiled call (state reset from copies each time)."""
+    nis = 0.0
+    for _ in range(K):
+        out = fsm.frame_step(P0.copy(), theta0.copy(), R0.copy(), *rest)
+        nis += out[2][0]
+    return nis
 
 
 @njit
@@ -105,13 +118,14 @@ def main(argv=None) -> int:
     def fresh():
         return tuple(x.copy() if isinstance(x, np.ndarray) else x for x in a)
 
-    (P, theta, R_a, M, _score, _info, _acc, tp, C, w_hat, phi, j, mj, ta, tb, Gamma, theta_ref,
+    (P, theta, R_a, M, _score, _info, _acc, tp, C, w_hat, phi, slope, j, mj, ta, tb, Gamma,
+     theta_ref,
      q_diag, _b0, _E0, _Jb, _JE, _th0, w_raw, uv, u, sigma, base, s0, g, timed, R_prior, T,
      tracked, c, B, need, dcol, dfix, dgrp, cam, du, bscale, Pe, cfg) = a
     n, N, P_all = len(uv), P.shape[0], len(theta)
     iterations = [int(fsm.frame_step(*tuple(x.copy() if isinstance(x, np.ndarray) else x
                                              for x in c_))[1][1]) for c_ in calls]
-    ok, R_b, F = fsm.attitude_interval(tp, C, w_hat, phi, j, mj, ta, tb, R_a, Gamma,
+    ok, R_b, F = fsm.attitude_interval(tp, C, w_hat, phi, slope, j, mj, ta, tb, R_a, Gamma,
                                        theta - theta_ref, cfg[10])
     uv_p, dirs = np.empty((n, 2)), np.empty((n, 3))
     H_att, H_par, R_out = np.empty((n, 2, 3)), np.empty((n, 2, P_all)), np.empty((2, 3, 3))
@@ -135,7 +149,8 @@ def main(argv=None) -> int:
         ("  call alone (marshalling)", _noop, fresh),
         ("  call + result tuple", _noop_tuple, fresh),
         ("  attitude interval", fsm.attitude_interval,
-         lambda: (tp, C, w_hat, phi, j, mj, ta, tb, R_a, Gamma, theta - theta_ref, cfg[10])),
+         lambda: (tp, C, w_hat, phi, slope, j, mj, ta, tb, R_a, Gamma, theta - theta_ref,
+                  cfg[10])),
         ("  covariance propagation", fsm.propagate_coupled,
          lambda: (P.copy(), M, Pe, F, q_diag * (tb - ta))),
         ("  prediction + Jacobians", predict_chain, predict),
@@ -151,6 +166,13 @@ def main(argv=None) -> int:
     print(f"{'':34s} {'µs/call':>8s}")
     for label, f, make in rows:
         print(f"{label:34s} {per_call(f, make, args.repeat):8.1f}")
+    # the same step K times inside one compiled call: what a batched call over a pump's
+    # frames would pay per frame (no marshalling, no boxing, no Python between two steps)
+    _loop_steps(1, *fresh())
+    t = time.process_time()
+    _loop_steps(args.repeat, *fresh())
+    print(f"{'frame_step in one compiled loop':34s} "
+          f"{(time.process_time() - t) / args.repeat * 1e6:8.1f}  (per frame, 3 state copies)")
     return 0
 
 
