@@ -240,3 +240,28 @@ def test_rolling_shutter_on_a_swaying_base_is_no_noise_and_has_no_stand_in():
                        rolling.of_run(base, 0.5))
     assert p < 0.01 and not b["needed"], (lam, p, b)
     assert rolling.of_run(runs(0.0)[3], 0.5)["p_value"] > 0.01
+
+
+def test_rolling_taken_out_interpolates_all_stamps_at_once_as_frame_by_frame():
+    """``rolling.taken_out`` reads the gyro rate at every frame stamp in one ``np.interp``
+    per axis: the centroids it writes are those of the frame-by-frame reading (3
+    ``np.interp`` per frame, as before), bit for bit, and a frame without stars is kept."""
+    sim = simulate(get_scenario("psce_rotations"), duration=8.0, seed=5)
+    data = bag_data_from_simulation(sim)
+    data = dataclasses.replace(data, frames=[dataclasses.replace(data.frames[0], uv=np.zeros(
+        (0, 2)))] + list(data.frames[1:]))
+    cal, coef = sim.prior, 1.3e-5
+    cam = cal.camera
+    got = rolling.taken_out(data, cal, coef)
+    assert got.frames[0] is data.frames[0]
+    for f, g in zip(data.frames[1:], got.frames[1:], strict=True):
+        uv = np.asarray(f.uv, dtype=float).reshape(-1, 2)
+        t = (f.stamp_ns - data.t0_ns) * 1e-9
+        w = [np.interp(t, data.imu_t, data.imu_w[:, k]) for k in range(3)]
+        sub = {"x_st": (uv[:, 0] - cam.cx) / cam.fx, "y_st": (uv[:, 1] - cam.cy) / cam.fy,
+               "z_st": np.ones(len(uv)), "v": uv[:, 1],
+               **{f"omega_{a}": np.full(len(uv), w[k]) for k, a in enumerate("xyz")}}
+        want = uv - coef * stats.rolling_columns(sub, (cam.fx, cam.fy), (cam.cx, cam.cy),
+                                                 cal.R_imu_st)
+        assert np.array_equal(np.asarray(g.uv), want)
+    assert not np.array_equal(np.asarray(got.frames[1].uv), np.asarray(data.frames[1].uv))

@@ -66,20 +66,23 @@ def taken_out(data, calibration: Calibration, coefficient: float):
     Each centroid moved back by ``coefficient`` × :func:`~stellar_cal_ros.diagnosis.stats.
     rolling_columns` (the innovations being measured − predicted, the fit says the
     measurement holds that much of the shape); the star's direction from its centroid
-    (pinhole of ``calibration``'s camera), the gyro rate interpolated at the frame's stamp.
+    (pinhole of ``calibration``'s camera), the gyro rate interpolated at the frames' stamps
+    (3 ``np.interp`` over all stamps at once).
     """
     cam = calibration.camera
+    if not len(data.imu_t):
+        return dataclasses.replace(data, frames=list(data.frames))
+    t = np.array([(f.stamp_ns - data.t0_ns) * 1e-9 for f in data.frames])
+    w = np.stack([np.interp(t, data.imu_t, data.imu_w[:, k]) for k in range(3)], 1)
     frames = []
-    for f in data.frames:
+    for f, w_f in zip(data.frames, w, strict=True):
         uv = np.asarray(f.uv, dtype=float).reshape(-1, 2)
-        if not len(uv) or not len(data.imu_t):
+        if not len(uv):
             frames.append(f)
             continue
-        t = (f.stamp_ns - data.t0_ns) * 1e-9
-        w = np.array([np.interp(t, data.imu_t, data.imu_w[:, k]) for k in range(3)])
         sub = {"x_st": (uv[:, 0] - cam.cx) / cam.fx, "y_st": (uv[:, 1] - cam.cy) / cam.fy,
                "z_st": np.ones(len(uv)), "v": uv[:, 1],
-               **{f"omega_{a}": np.full(len(uv), w[k]) for k, a in enumerate("xyz")}}
+               **{f"omega_{a}": np.full(len(uv), w_f[k]) for k, a in enumerate("xyz")}}
         x = stats.rolling_columns(sub, (cam.fx, cam.fy), (cam.cx, cam.cy),
                                   calibration.R_imu_st)
         frames.append(dataclasses.replace(f, uv=uv - coefficient * x))
