@@ -92,7 +92,11 @@ def test_pixel_locking_is_unexplained_with_the_subpixel_phase_first():
 
 def test_rolling_shutter_readout_is_measured_from_the_row_shape():
     """Rows read out over 30 ms (stamp at the middle row): the rolling-shutter test (row x
-    image velocity from the gyro) is significant and gives the readout time within 20 %."""
+    image velocity from the gyro) is significant and the readout it prints, its fit plus
+    the fit of the re-run with that fit taken out (``rolling.readout_s``), is the truth
+    within 1 ms (29.73 here; seeds 21-25: 29.81 +- 0.10 ms, the fit's frame-robust sigma
+    0.31-0.47 ms).  One run's fit alone reads ~12 % short (26.3 ms; the one-pass line
+    25.1): the filter's calibration takes up part of the shape."""
     def post(sim):
         tracker_errors.rolling_shutter(sim, 0.03)
         tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, 21)
@@ -101,7 +105,7 @@ def test_rolling_shutter_readout_is_measured_from_the_row_shape():
     found = [f for f in lines if f.regressor.startswith(stats.ROLLING)]
     assert found and found[0].p_value < 0.01
     readout = float(found[0].regressor.split("readout ")[1].split(" ms")[0])
-    assert readout == pytest.approx(30.0, rel=0.2)
+    assert readout == pytest.approx(30.0, abs=1.0)
     # ranked first: by p it came after 'u vs radius' (t = -12.6, p = 1.6e-6; its own t =
     # -101 is referred to t_nu with nu ~ 2-3, the slews' few frames), a footprint of the
     # calibration the slews pull, gone in a run with the fitted readout taken out

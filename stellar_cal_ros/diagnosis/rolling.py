@@ -92,12 +92,14 @@ def taken_out(data, calibration: Calibration, coefficient: float):
 def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
                          fraction: float, noise, classes: tuple[type, ...],
                          calibration: Calibration, coefficient: float, tests
-                         ) -> tuple[tuple[str, str], ...] | None:
-    """The 'unexplained' lines (regressor, component) of a run on the bag without the shutter.
+                         ) -> tuple[tuple[tuple[str, str], ...], float | None] | None:
+    """The 'unexplained' lines of a run on the bag without the shutter, and its remainder.
 
     One run of the same model on :func:`taken_out` (for :meth:`~stellar_cal_ros.diagnosis.
-    parallel.Runs.on_bag`); what a line's fit reads (a readout, a period) is cut from its
-    name.  ``tests(residuals, calibration, fraction)``: the diagnosis's 'unexplained' tests
+    parallel.Runs.on_bag`): the lines as (regressor, component), what a line's fit reads
+    (a readout, a period) cut from its name, and the rolling-shutter fit's signed
+    coefficient on that run (:func:`of_run`; ``None`` without it).  ``tests(residuals,
+    calibration, fraction)``: the diagnosis's 'unexplained' tests
     (:func:`~stellar_cal_ros.diagnosis.output.line_tests`).
     """
     from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
@@ -107,7 +109,25 @@ def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...
                    fraction, True, classes, noise=noise)
     if not run.ok or run.residuals is None:
         return None
-    return tuple(_line(f) for f in tests(run.residuals, run.calibration, fraction))
+    rest = of_run(run, fraction)
+    return (tuple(_line(f) for f in tests(run.residuals, run.calibration, fraction)),
+            None if rest is None else float(rest["coefficient"]))
+
+
+def readout_s(first: float, rest: float | None, height: float) -> float:
+    """The readout time (s) from the fit of a run and of its re-run with that fit taken out.
+
+    The filter the innovations come from takes up part of the shutter's shape in its
+    calibration (measured, 150 s PSCE bag, 30 ms: the principal point's row pulled by
+    27 px), so one run's fit reads ``a`` × the truth, ``a`` ≈ 0.88 there (26.4 ms), while
+    with the true readout taken out nothing is left (0.1-0.3 ms): attenuation by the
+    fitted terms, not by an error in the regressor.  The re-run's fit of what is left,
+    ``rest`` ≈ ``a (c − first)``, added: one fixed-point step (``(1 − a)² c`` short, 29.8
+    ms measured; the two-run extrapolation ``first / (1 − rest/first)`` read 30.3 ms, the
+    response not quite linear).  ``|c|`` × the detector's rows ``height`` (the simulator's
+    ``(v/H − ½) T``; ``2 c_y`` would put the pulled principal point in it: 27.7 ms).
+    """
+    return abs(first + (rest or 0.0)) * height
 
 
 def _line(f) -> tuple[str, str]:
@@ -131,20 +151,28 @@ def first_if_cause(found: list, run, runs, tests) -> tuple[list, set[int]]:
     out of the centroids (:func:`taken_out`); the lines ranked before the shape that are no
     longer significant there follow it.  Returns the reordered lines and the indices (in
     the returned list) of those that follow the shutter (``tests``: as in
-    :func:`lines_without_on_bag`); unchanged without a significant
-    shape line, when it is first already, or without a runner.
+    :func:`lines_without_on_bag`); unchanged without a significant shape line or without
+    a runner.  The same re-run, made also when the shape is first already, gives the
+    readout the line prints (:func:`readout_s`: the run's fit alone reads it ~12 % short;
+    without a runner the line keeps the one-pass slope of
+    :func:`~stellar_cal_ros.diagnosis.stats.shaped_tests`).
     """
     at = next((i for i, f in enumerate(found) if f.regressor.startswith(stats.ROLLING)), None)
-    if at is None or at == 0 or runs is None or run is None or not run.ok \
-            or run.prior is None:
+    if at is None or runs is None or run is None or not run.ok or run.prior is None:
         return found, set()
     fit = of_run(run, runs.fraction)
     if fit is None:
         return found, set()
-    left = runs.on_bag(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
-                       runs.fraction, runs.noise, runs.classes, run.calibration,
-                       fit["coefficient"], tests)
-    if left is None:
+    again = runs.on_bag(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
+                        runs.fraction, runs.noise, runs.classes, run.calibration,
+                        fit["coefficient"], tests)
+    if again is None:
+        return found, set()
+    left, rest = again
+    found = list(found)
+    ms = readout_s(fit["coefficient"], rest, run.calibration.camera.height) * 1e3
+    found[at] = dataclasses.replace(found[at], regressor=f"{stats.ROLLING}, readout {ms:.3g} ms)")
+    if at == 0:
         return found, set()
     left = set(left)
     follows = [f for f in found[:at] if _line(f) not in left]
