@@ -50,6 +50,23 @@ def test_twin_without_injection_is_fitted_by_the_calibration(user_run):
     assert np.allclose(twin.truth.gyro_bias, cal.gyro_bias)
 
 
+def test_twins_sharing_a_scene_are_the_twins_made_alone(user_run):
+    """The reliability probe renders its twins from one twin_scene: the same arrays."""
+    from stellar_cal_ros.diagnosis.twin import twin_scene
+
+    _, data, cal = user_run
+    scene = twin_scene(data, cal, "psce")
+    for effects in ({}, {"image_plane_tilt": [0.5, -0.3]}, {"gyro_scale_factor": [2e-4] * 3}):
+        alone = make_twin(data, cal, effects, seed=5, method="psce")
+        shared = make_twin(data, cal, effects, seed=5, method="psce", scene=scene)
+        assert alone.counts == shared.counts
+        assert np.array_equal(alone.data.imu_w, shared.data.imu_w)
+        assert np.array_equal(alone.data.imu_f, shared.data.imu_f)
+        assert len(alone.data.frames) == len(shared.data.frames)
+        for a, b in zip(alone.data.frames, shared.data.frames, strict=True):
+            assert np.array_equal(a.uv, b.uv) and np.array_equal(a.catalog_id, b.catalog_id)
+
+
 def test_twin_command_injects_an_effect_that_is_recovered(user_run, tmp_path, capsys):
     """``stellar-cal twin --effect time_offset=0.005``: the truth says +5 ms, and a replay
     of the twin with the effect estimates it within 3 σ."""

@@ -47,25 +47,31 @@ AGREE = 0.1
 _NOISELESS = NoiseScales(star=1e-12, gyro=1e-12, accel=1e-12)
 
 
-def rendered(data, calibration, method: str, effects: dict[str, Any] | None = None):
-    """The noise-free twin of the bag under ``calibration`` with ``effects`` (simulate units)."""
+def rendered(data, calibration, method: str, effects: dict[str, Any] | None = None,
+             scene=None):
+    """The noise-free twin of the bag under ``calibration`` with ``effects`` (simulate units).
+
+    ``scene``: :func:`~stellar_cal_ros.diagnosis.twin.twin_scene` of the same bag,
+    calibration and method, shared by the renders of one probe (the same twin).
+    """
     from stellar_cal_ros.diagnosis.twin import make_twin
 
-    return make_twin(data, calibration, effects or {}, 0, method, _NOISELESS).data
+    return make_twin(data, calibration, effects or {}, 0, method, _NOISELESS, scene).data
 
 
 def with_effect(data, calibration, method: str, effect_id: str, delta: np.ndarray,
-                plain=None):
+                plain=None, scene=None):
     """The user's bag with ``effect_id`` at ``delta`` (its units) added, rendered.
 
     The increment is the difference of two noise-free twins (:func:`rendered`) of the bag
     under ``calibration`` (the run's estimate), without (``plain``, if already made) and
     with the effect: per star of each frame (by stamp and catalogue id; a star the twin
-    leaves off the detector keeps its centroid) and per IMU sample.
+    leaves off the detector keeps its centroid) and per IMU sample.  ``scene``: see
+    :func:`rendered`.
     """
-    plain = plain if plain is not None else rendered(data, calibration, method)
+    plain = plain if plain is not None else rendered(data, calibration, method, scene=scene)
     moved = rendered(data, calibration, method,
-                     {effect_id: injection.simulation_value(effect_id, delta)})
+                     {effect_id: injection.simulation_value(effect_id, delta)}, scene)
     by_stamp = {a.stamp_ns: (a, b) for a, b in zip(plain.frames, moved.frames, strict=True)}
     frames = []
     for f in data.frames:
@@ -129,12 +135,17 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
     register_effect_classes(classes)
     kw: dict[str, Any] = {"noise": noise} if noise is not None else {}
     out: list[dict[str, float] | None] = []
-    plain = None
+    plain = scene = None
     for effect_id, delta in probes:
         try:
-            plain = plain if plain is not None else rendered(data, calibration, spec.name)
+            if scene is None:
+                from stellar_cal_ros.diagnosis.twin import twin_scene
+
+                scene = twin_scene(data, calibration, spec.name)
+            plain = plain if plain is not None else rendered(data, calibration, spec.name,
+                                                             scene=scene)
             moved = with_effect(data, calibration, spec.name, effect_id, np.asarray(delta),
-                                plain)
+                                plain, scene)
             with quiet():
                 run = spec.runner(moved, prior, list(effects), keep_tables=False,
                                   eval_fraction=fraction, **kw)

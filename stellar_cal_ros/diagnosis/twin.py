@@ -160,25 +160,36 @@ def _method_noise(method: str) -> tuple[float, float, float]:
     return cfg.centroid_sigma_px, cfg.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR, vrw
 
 
-def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] | None = None,
-              seed: int = 0, method: str | None = None,
-              noise: NoiseScales | None = None) -> Twin:
-    """The twin of ``data`` under ``calibration`` with ``effects`` injected (see the module).
+@dataclass
+class TwinScene:
+    """What every twin of one bag under one calibration shares (:func:`twin_scene`).
 
-    ``effects``: ``{id: value}`` in the units of ``simulate --effect``; ``method``: whose
-    baseline and noise defaults apply (default: the calibration's, else psce); ``noise``:
-    the measured noise scales (default: the calibration's ``consistency.noise``).
+    The true trajectory, rates and forces come from the user's samples through the
+    calibration's model, and each frame's usable stars and context from the message: none
+    depends on the injected effects, the seed or the noise, so twins of one bag (the
+    reliability probe renders five) make them once.
     """
+
+    method: str
+    default_sigma: float
+    arw: float
+    vrw: float
+    t: np.ndarray
+    w_true: np.ndarray
+    f_true: np.ndarray
+    traj: _Trajectory
+    #: per user frame: (its usable stars, their context or None without stars, unidentified)
+    frames: list[tuple[Any, Any, int]]
+
+
+def twin_scene(data: BagData, calibration: Calibration, method: str | None = None
+               ) -> TwinScene:
+    """The shared part of every twin of ``data`` under ``calibration`` (see :func:`make_twin`)."""
     from stellar_cal_ros.diagnosis.context import gravity_in_tracker
-    from stellar_cal_ros.diagnosis.noise import stated_scales
 
     method = method or (calibration.method if calibration.method in ("psce", "swaying_base")
                         else "psce")
-    injected = {k: normalize_effect(k, v) for k, v in (effects or {}).items()}
-    noise = noise or stated_scales(calibration)
-    rng = np.random.default_rng(seed)
     model_cal, theta_cal = twin_model(calibration, method, {})
-    model, theta = twin_model(calibration, method, injected)
     cam = calibration.camera
     default_sigma, arw, vrw = _method_noise(method)
     t = np.asarray(data.imu_t, dtype=float)
@@ -205,29 +216,62 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
     if anchor is None:
         raise ModelError("twin: no frame with 3 identified stars inside the IMU span")
     traj = _Trajectory(t, w_true, anchor[0], anchor[1])
+    grav = gravity_in_tracker(dataclasses.replace(data, imu_f=f_true), calibration,
+                              np.array([f.stamp_ns * 1e-9 for f in data.frames]))
+    frames = []
+    for j, fr in enumerate(data.frames):
+        inp = frame_inputs(fr, cam.width, cam.height, default_sigma)
+        unidentified = int(np.sum(np.asarray(fr.catalog_id) == 0))
+        ctx = None
+        if len(inp.uv):
+            ctx = frame_context(int(fr.stamp_ns), inp, data.site, env)
+            if grav is not None:
+                ctx.gravity_st = grav[j]
+        frames.append((inp, ctx, unidentified))
+    return TwinScene(method, default_sigma, arw, vrw, t, w_true, f_true, traj, frames)
+
+
+def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] | None = None,
+              seed: int = 0, method: str | None = None,
+              noise: NoiseScales | None = None, scene: TwinScene | None = None) -> Twin:
+    """The twin of ``data`` under ``calibration`` with ``effects`` injected (see the module).
+
+    ``effects``: ``{id: value}`` in the units of ``simulate --effect``; ``method``: whose
+    baseline and noise defaults apply (default: the calibration's, else psce); ``noise``:
+    the measured noise scales (default: the calibration's ``consistency.noise``);
+    ``scene``: :func:`twin_scene` of the same ``data``, ``calibration`` and ``method``,
+    made once for several twins (the same twin as without it).
+    """
+    from stellar_cal_ros.diagnosis.noise import stated_scales
+
+    scene = scene if scene is not None else twin_scene(data, calibration, method)
+    method = scene.method
+    injected = {k: normalize_effect(k, v) for k, v in (effects or {}).items()}
+    noise = noise or stated_scales(calibration)
+    rng = np.random.default_rng(seed)
+    model, theta = twin_model(calibration, method, injected)
+    cam = calibration.camera
+    default_sigma, t, w_true, f_true = scene.default_sigma, scene.t, scene.w_true, scene.f_true
+    traj = scene.traj
     # the IMU
     b_g, E_g, _, _ = model.sensor_model(theta, Stage.GYRO)
     b_a, E_a, _, _ = model.sensor_model(theta, Stage.ACCEL)
     dt = data.nominal_dt or float(np.median(np.diff(t)))
-    g_sig = arw * noise.gyro / np.sqrt(dt)
-    a_sig = vrw * noise.accel / np.sqrt(dt)
+    g_sig = scene.arw * noise.gyro / np.sqrt(dt)
+    a_sig = scene.vrw * noise.accel / np.sqrt(dt)
     w_twin = w_true @ (np.eye(3) + E_g).T + b_g + g_sig * rng.standard_normal(w_true.shape)
     f_twin = f_true @ (np.eye(3) + E_a).T + b_a + a_sig * rng.standard_normal(f_true.shape)
     # the stars
     mb = injected.get("magnitude_bias", np.zeros(2))
     direction = np.array([np.cos(np.deg2rad(mb[1])), np.sin(np.deg2rad(mb[1]))])
-    grav = gravity_in_tracker(dataclasses.replace(data, imu_f=f_true), calibration,
-                              np.array([f.stamp_ns * 1e-9 for f in data.frames]))
     frames, counts = [], {"stars": 0, "unidentified_left_out": 0, "off_detector": 0}
     centre = ((cam.width - 1) / 2.0, (cam.height - 1) / 2.0)
-    for j, fr in enumerate(data.frames):
-        inp = frame_inputs(fr, cam.width, cam.height, default_sigma)
-        counts["unidentified_left_out"] += int(np.sum(np.asarray(fr.catalog_id) == 0))
-        if len(inp.uv) == 0:
+    for fr, (inp, ctx, unidentified) in zip(data.frames, scene.frames, strict=True):
+        counts["unidentified_left_out"] += unidentified
+        if ctx is None:
             continue
-        ctx = frame_context(int(fr.stamp_ns), inp, data.site, env)
-        if grav is not None:
-            ctx.gravity_st = grav[j]
+        # predict sets the context's motion fields: each twin starts from the message's
+        ctx = copy.copy(ctx)
         t_rel = (int(fr.stamp_ns) - data.t0_ns) * 1e-9
         pred = model.predict(theta, inp.u_i, ctx, traj.near(t_rel), jacobians=False)
         uv = pred.uv
