@@ -227,7 +227,7 @@ def test_error_repeating_star_by_star_is_not_noise():
 
 def test_spread_left_by_the_noise_groups_is_noise_not_a_lead():
     """Unseen case 'mag2x': after the magnitude groups are applied, the residuals' spread
-    still follows magnitude inside the bin the true step cuts; that line goes with the
+    still varies with magnitude inside the bin the true step cuts; that line goes with the
     noise, while a bias (u, v) along magnitude stays an 'unexplained' lead."""
     from stellar_cal_ros.diagnosis.stats import RegressorFinding
 

@@ -82,6 +82,8 @@ def test_twin_command_injects_an_effect_that_is_recovered(user_run, tmp_path, ca
     out = capsys.readouterr()
     assert rc == 0, out.err[-2000:]
     assert "injected: time_offset=0.005" in out.out
+    assert "noise: stars' sigma x1 of the messages', white; gyro x1, accelerometer x1" \
+        in out.out, out.out
     truth = load_calibration(tmp_path / "twin.truth.yaml")
     assert truth.time_offset == pytest.approx(cal.time_offset + 0.005)
     run = replay(tmp_path / "twin.mcap", rerun_prior(cal), "psce", ["time_offset"],

@@ -22,6 +22,8 @@ from stellar_cal_ros.diagnosis.noise import repeat_finding
 from stellar_cal_ros.diagnosis.noise_structure import correlated
 from stellar_cal_ros.diagnosis.output import line_tests
 from stellar_cal_ros.diagnosis.runstats import evaluate
+from stellar_cal_ros.diagnosis.twin import make_twin
+from stellar_cal_ros.diagnosis.twin_command import noise_line
 from stellar_cal_ros.methods.replay import bag_data_from_simulation
 from stellar_cal_ros.sim import tracker_errors
 from stellar_cal_ros.sim.scenarios import get_scenario
@@ -114,7 +116,14 @@ def test_rolling_shutter_readout_is_measured_from_the_row_shape():
     assert ("radius", "u") in {(lines[i].regressor, lines[i].component) for i in follows}
 
 
-def test_noise_correlated_over_frames_is_noise_not_a_repeat_nor_a_period():
+@pytest.fixture(scope="module")
+def ar1_sim():
+    """The unseen case 'ar1', reduced: each star's noise an AR(1) over frames (τ = 5
+    frames, marginal σ as stated)."""
+    return _bag(lambda sim: tracker_errors.ar1_noise(sim, SIGMA, 5.0, 21))
+
+
+def test_noise_correlated_over_frames_is_noise_not_a_repeat_nor_a_period(ar1_sim):
     """Each star's centroid noise an AR(1) over frames (τ = 5 frames, marginal σ as
     stated): no 'unexplained' line (before: 'repeating vs catalogue star' t = 16.5 and two
     periodic frame-mean lines: the star-mean χ² and Fisher's g assumed white noise), no
@@ -123,10 +132,7 @@ def test_noise_correlated_over_frames_is_noise_not_a_repeat_nor_a_period():
     bias, 0.78); the noise is named correlated (lag-1 ρ of the star tracks e^(-1/5) = 0.82
     within 0.04: measured 0.804, 0.810, 0.818 on seeds 21-23, the cells' p 0.03-0.99), with
     σ √((1+ρ)/(1−ρ)) to use.  The clean bag's tracks are not called correlated."""
-    def post(sim):
-        tracker_errors.ar1_noise(sim, SIGMA, 5.0, 21)
-
-    found, sn = _findings(_bag(post), star_noise=True)
+    found, sn = _findings(ar1_sim, star_noise=True)
     assert found == []
     assert sn.repeat_p > 0.01 and sn.structure_p > 0.01
     c = correlated(sn.track_rho, sn.track_pairs, 0.1)
@@ -269,3 +275,57 @@ def test_rolling_taken_out_interpolates_all_stamps_at_once_as_frame_by_frame():
                                                  cal.R_imu_st)
         assert np.array_equal(np.asarray(g.uv), want)
     assert not np.array_equal(np.asarray(got.frames[1].uv), np.asarray(data.frames[1].uv))
+
+
+def _measured_noise(data, prior):
+    """The stars' noise as the diagnosis measures it (the current model's run, its
+    within-frame estimate, the verdict's scales): (verdict, applied scales, StarNoise)."""
+    run = evaluate(data, method_spec("psce"), rerun_prior(prior), (), 0.5, star_noise=True)
+    v = noise.NoiseVerdict(NoiseScales(), NoiseScales())
+    size = (prior.camera.width, prior.camera.height)
+    return v, noise.judge_stars(v, run.star_noise, SIGMA, size, 1), run.star_noise
+
+
+def test_twin_renders_the_correlated_noise_it_measured(ar1_sim):
+    """Issue 21.4: a twin renders the stars' noise the run measured.  The 'ar1' bag's
+    diagnosis applies star = scatter x √((1+ρ)/(1−ρ)) with ρ (``consistency.noise``
+    carries ``star_correlated``); the twin had rendered white noise at that applied scale
+    (seed 21: scatter 2.85, ρ 0).  Now each star's noise is the simulator's AR(1)
+    (``tracker_errors.Ar1Tracks``) along its track.  A twin at the bag's truth (marginal
+    1.0, ρ = e^(-1/5)) re-measured gives the user bag's scatter and ρ within 3 σ of their
+    difference (the scale's σ for AR(1) noise: the white one times √((1+ρ²)/(1−ρ²)), a
+    sample variance of correlated values; ρ: Bartlett's); a twin at the measured scales
+    gives ρ back within 3 σ and is correlated; the white case stays white."""
+    data = bag_data_from_simulation(ar1_sim)
+    prior = ar1_sim.prior
+    v, applied, sn = _measured_noise(data, prior)
+    assert v.correlated is not None and applied.star_rho == pytest.approx(sn.track_rho)
+    assert applied.star == pytest.approx(v.star * applied.star_inflation, rel=1e-9)
+    assert NoiseScales.from_dict(applied.as_dict()) == applied  # through the result YAML
+    # the twin command's one line: the scatter it renders and the correlation
+    line = noise_line(applied)
+    assert f"stars' sigma x{v.star:.3g} of the messages'" in line, line
+    assert f"AR(1), lag-1 rho {sn.track_rho:.2f}; a white-noise filter needs " \
+           f"x{applied.star:.3g}" in line, line
+
+    def sigmas(v, sn):
+        rho = sn.track_rho
+        return (v.star_sigma * np.sqrt((1 + rho**2) / (1 - rho**2)),
+                np.sqrt((1 - rho**2) / (2 * sn.track_pairs)))
+
+    s_user, r_user = sigmas(v, sn)
+    rho = float(np.exp(-0.2))
+    truth = NoiseScales(star=np.sqrt((1 + rho) / (1 - rho)), star_rho=rho)
+    v_t, _, sn_t = _measured_noise(make_twin(data, prior, {}, 3, "psce", truth).data, prior)
+    s_t, r_t = sigmas(v_t, sn_t)
+    assert abs(v_t.star - v.star) < 3 * np.hypot(s_user, s_t), (v_t.star, v.star)
+    assert abs(sn_t.track_rho - sn.track_rho) < 3 * np.hypot(r_user, r_t)
+    v_m, applied_m, sn_m = _measured_noise(
+        make_twin(data, prior, {}, 3, "psce", applied).data, prior)
+    assert v_m.correlated is not None
+    assert abs(sn_m.track_rho - sn.track_rho) < 3 * np.hypot(r_user, sigmas(v_m, sn_m)[1])
+    # white: the scale, uncorrelated
+    v_w, applied_w, sn_w = _measured_noise(
+        make_twin(data, prior, {}, 3, "psce", NoiseScales(star=1.3)).data, prior)
+    assert v_w.correlated is None and applied_w.star_rho == 0.0
+    assert v_w.star == pytest.approx(1.3, abs=4 * v_w.star_sigma)

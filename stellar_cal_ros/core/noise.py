@@ -40,6 +40,10 @@ class NoiseScales:
     group_by: str = ""
     edges: tuple[float, ...] = ()  #: bin edges of the groups (ascending)
     factors: tuple[float, ...] = ()  #: one factor per group, len(edges) + 1
+    #: lag-one correlation of each star's centroid noise from frame to frame, as measured
+    #: (0: white); ``star`` then holds √((1 + ρ)/(1 − ρ)) on top of the stars' scatter
+    #: within frames, the white stand-in a filter needs (:meth:`within_frames` undoes it)
+    star_rho: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("star", "gyro", "accel"):
@@ -54,16 +58,32 @@ class NoiseScales:
             raise ValueError("star groups need one factor per bin (len(edges) + 1)")
         if any(not (math.isfinite(f) and f > 0) for f in self.factors):
             raise ValueError(f"star group factors must be positive, got {self.factors!r}")
+        if not (math.isfinite(self.star_rho) and 0.0 <= self.star_rho < 1.0):
+            raise ValueError(f"star noise correlation must be in [0, 1), got {self.star_rho!r}")
 
     @property
     def identity(self) -> bool:
         """Nothing rescaled."""
         return (self.star == 1.0 and self.gyro == 1.0 and self.accel == 1.0
-                and not self.unknown_sigma_px and not self.group_by)
+                and not self.unknown_sigma_px and not self.group_by and not self.star_rho)
 
     def replace(self, **changes: Any) -> NoiseScales:
         """A copy with ``changes``."""
         return dataclasses.replace(self, **changes)
+
+    @property
+    def star_inflation(self) -> float:
+        """√((1 + ρ)/(1 − ρ)): the factor ``star`` holds for the stars' correlated noise."""
+        return math.sqrt((1.0 + self.star_rho) / (1.0 - self.star_rho))
+
+    def within_frames(self) -> NoiseScales:
+        """The scales of the stars' noise within one frame (its marginal σ), white.
+
+        ``star`` without :attr:`star_inflation`; the σ measured for stars whose message
+        says 0 is a scatter already.  What a bag with this noise has in each frame (the
+        twin renders it, correlated by :attr:`star_rho` along each star's track).
+        """
+        return self.replace(star=self.star / self.star_inflation, star_rho=0.0)
 
     def group_of(self, magnitude: np.ndarray, uv: np.ndarray,
                  centre: tuple[float, float]) -> np.ndarray:
@@ -112,6 +132,9 @@ class NoiseScales:
             out["star_sigma_groups"] = {"by": self.group_by,
                                         "edges": [float(e) for e in self.edges],
                                         "scales": [float(f) for f in self.factors]}
+        if self.star_rho:
+            out["star_correlated"] = {"rho": float(self.star_rho),
+                                      "sigma_scale": float(self.star_inflation)}
         return out
 
     @classmethod
@@ -119,11 +142,12 @@ class NoiseScales:
         """Inverse of :meth:`as_dict` (missing keys: 1.0 / none)."""
         d = d or {}
         groups = d.get("star_sigma_groups") or {}
+        rho = float((d.get("star_correlated") or {}).get("rho", 0.0) or 0.0)
         return cls(float(d.get("star_sigma_scale", 1.0)), float(d.get("gyro_noise_scale", 1.0)),
                    float(d.get("accel_noise_scale", 1.0)),
                    float(d.get("unknown_star_sigma_px", 0.0) or 0.0),
                    str(groups.get("by", "")), tuple(float(e) for e in groups.get("edges", ())),
-                   tuple(float(f) for f in groups.get("scales", ())))
+                   tuple(float(f) for f in groups.get("scales", ())), rho)
 
     @classmethod
     def parse(cls, text: str) -> NoiseScales:

@@ -355,7 +355,7 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
         v.star_p = p_two_sided(v.star, v.star_sigma)
         if v.star_p < ALPHA / n_tests and abs(v.star - 1.0) > MATERIAL:
             v.rejected.append("star")
-            applied = applied.replace(star=v.stated.star * v.star)
+            applied = applied.replace(star=v.stated.star * v.star, star_rho=0.0)
     sub = dataclasses.replace(sn, scale=v.star, sigma=v.star_sigma, dof=v.star_dof)
     v.groups = star_groups(sub, size)
     best = min(v.groups, key=lambda g: g["p_value"], default=None)
@@ -365,7 +365,7 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
             overall = sub.group(np.ones(len(sub.q), dtype=bool))[0]
             v.group = best
             applied = applied.replace(
-                star=v.stated.star * overall, group_by=best["by"],
+                star=v.stated.star * overall, star_rho=0.0, group_by=best["by"],
                 edges=tuple(best["edges"]), factors=tuple(float(x) for x in sc / overall))
             if "star" not in v.rejected:
                 v.rejected.append("star")
@@ -375,7 +375,9 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
     v.correlated = noise_structure.correlated(sn.track_rho, sn.track_pairs, 2 * MATERIAL) \
         if sn.structure_p >= ALPHA and not sn.repeat_removed else None
     if v.correlated:
-        applied = applied.replace(star=applied.star * v.correlated["sigma_scale"])
+        # the scale a filter needs, and the correlation it stands for (a twin renders it)
+        applied = applied.replace(star=applied.star * v.correlated["sigma_scale"],
+                                  star_rho=v.correlated["rho"])
         if "star" not in v.rejected:
             v.rejected.append("star")
     return applied
@@ -468,7 +470,7 @@ def within_groups(findings: list, verdict: NoiseVerdict | None) -> tuple[list, l
     """Split 'unexplained' findings: ``(kept, spread the noise groups leave)``.
 
     When the stars' σ was applied per group of a regressor (magnitude, radius, column, row),
-    a residual *spread* (the ``size`` component) that still follows that regressor is the
+    a residual *spread* (the ``size`` component) that still varies with that regressor is the
     noise varying within the groups (a step at 4.5 mag falls inside one bin), not an effect
     outside the library: it is said with the noise, not as an 'unexplained' lead.
     """

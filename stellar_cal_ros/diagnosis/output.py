@@ -75,9 +75,9 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
             {"regressor": f.regressor, "statistic": f.statistic, "p_value": f.p_value,
              "change_px": f.slope_px} for f in spread]
         summary["noise"]["verdict"] = list(summary["noise"]["verdict"]) + [
-            f"the residuals' spread still follows {f.regressor} (t={f.statistic:.1f}, "
+            f"the residuals' spread still varies with {f.regressor} (t={f.statistic:.1f}, "
             f"p={f.p_value:.2g}): the noise varies within the {verdict.group['by']} groups "
-            "applied (a per-star sigma in the messages would follow it), not an effect"
+            "applied (a per-star sigma in the messages would track it), not an effect"
             for f in spread]
     best = next((c for c in results if c.significant_alone and c.effect not in refused),
                 None)

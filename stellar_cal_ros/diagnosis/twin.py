@@ -20,7 +20,12 @@ How it is made
   magnitude), rendered through :meth:`StarModel.predict` at the true attitude (the
   simulator's chain), plus noise at the σ the run measured for them (their message's σ
   times the star scale, or the measured σ of stars whose message says 0); the message
-  keeps the σ the user's message stated.  Unidentified stars are left out (counted).
+  keeps the σ the user's message stated.  When the run measured the stars' noise
+  correlated from frame to frame (``consistency.noise.star_correlated``: the scale it
+  applied is the scatter within frames times √((1+ρ)/(1−ρ))), each star's noise is an
+  AR(1) along its track with that ρ and the scatter as its marginal σ (the simulator's
+  :class:`~stellar_cal_ros.sim.tracker_errors.Ar1Tracks`).  Unidentified stars are left
+  out (counted).
 * the site, temperatures and pressure are the user's.
 
 The truth (``TWIN.truth.yaml``) is the calibration with the injected effects added; the
@@ -53,6 +58,7 @@ from stellar_cal_ros.errors import ModelError
 from stellar_cal_ros.io.calibration import Calibration, save_calibration
 from stellar_cal_ros.methods.frames import BagData, frame_context, frame_inputs
 from stellar_cal_ros.methods.star_model import StarModel
+from stellar_cal_ros.sim.tracker_errors import Ar1Tracks
 from stellar_cal_ros.sim.truth_effects import SIM_ONLY, normalize_effect
 
 IMU_FRAME = "imu_link"
@@ -266,7 +272,12 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
     direction = np.array([np.cos(np.deg2rad(mb[1])), np.sin(np.deg2rad(mb[1]))])
     frames, counts = [], {"stars": 0, "unidentified_left_out": 0, "off_detector": 0}
     centre = ((cam.width - 1) / 2.0, (cam.height - 1) / 2.0)
-    for fr, (inp, ctx, unidentified) in zip(data.frames, scene.frames, strict=True):
+    # the stars' noise as measured: each frame's scatter, correlated along each star's track
+    # when the run measured that (the simulator's AR(1), sim.tracker_errors.ar1_noise)
+    marginal = noise.within_frames()
+    tracks = Ar1Tracks(noise.star_rho, rng) if noise.star_rho > 0 else None
+    for j, (fr, (inp, ctx, unidentified)) in enumerate(zip(data.frames, scene.frames,
+                                                           strict=True)):
         counts["unidentified_left_out"] += unidentified
         if ctx is None:
             continue
@@ -279,9 +290,11 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
             uv = uv + (mb[0] * (np.nan_to_num(inp.magnitude, nan=4.0) - 4.0))[:, None] \
                 * direction
         stated = np.asarray(fr.sigma, dtype=float)[inp.ok]
-        sig = noise.star_sigma(np.where(stated > 0, stated, 0.0), default_sigma,
-                               inp.magnitude, uv, centre)
-        uv = uv + sig[:, None] * rng.standard_normal(uv.shape)
+        sig = marginal.star_sigma(np.where(stated > 0, stated, 0.0), default_sigma,
+                                  inp.magnitude, uv, centre)
+        z = rng.standard_normal(uv.shape) if tracks is None else \
+            tracks.draw(j, np.asarray(fr.catalog_id)[inp.ok])
+        uv = uv + sig[:, None] * z
         keep = (pred.directions_st[:, 2] > 0) & cam.in_image(np.nan_to_num(uv, nan=-1e9))
         counts["off_detector"] += int((~keep).sum())
         counts["stars"] += int(keep.sum())

@@ -29,6 +29,23 @@ def add_twin_parser(sub) -> None:
     t.set_defaults(func=_cmd_twin)
 
 
+def noise_line(noise) -> str:
+    """The one line saying which noise a twin renders (its :class:`NoiseScales`)."""
+    n = noise.within_frames()
+    star = f"stars' sigma x{n.star:.3g} of the messages'"
+    if n.unknown_sigma_px:
+        star += f" (sigma-0 stars {n.unknown_sigma_px:.3g} px)"
+    if n.group_by:
+        star += f", per {n.group_by} x" + ", x".join(f"{f:.3g}" for f in n.factors)
+    if noise.star_rho:
+        star += (f", correlated from frame to frame along each star's track (AR(1), lag-1 "
+                 f"rho {noise.star_rho:.2f}; a white-noise filter needs x{noise.star:.3g})")
+    else:
+        star += ", white"
+    return (f"{star}; gyro x{noise.gyro:.3g}, accelerometer x{noise.accel:.3g} "
+            "(white; 1 = as stated)")
+
+
 def _cmd_twin(args: argparse.Namespace) -> int:
     from stellar_cal_ros.diagnosis.twin import make_twin, write_twin
     from stellar_cal_ros.effects import registry
@@ -43,12 +60,11 @@ def _cmd_twin(args: argparse.Namespace) -> int:
     data = read_bag_data(args.bag)
     twin = make_twin(data, cal, effects, args.seed, args.method)
     paths = write_twin(twin, args.output)
-    n = twin.noise.as_dict()
     print(f"twin of {args.bag}: {len(twin.data.frames)} star frames "
           f"({twin.counts['stars']} stars; {twin.counts['unidentified_left_out']} unidentified "
           f"left out, {twin.counts['off_detector']} moved off the detector), "
-          f"{len(twin.data.imu_t)} IMU samples; noise: stars' sigma x{n['star_sigma_scale']:.3g}"
-          f", gyro x{n['gyro_noise_scale']:.3g}, accelerometer x{n['accel_noise_scale']:.3g}")
+          f"{len(twin.data.imu_t)} IMU samples")
+    print("noise: " + noise_line(twin.noise))
     print("injected: " + (", ".join(f"{k}={','.join(f'{x:g}' for x in v)}"
                                      for k, v in effects.items()) or "nothing"))
     for key in ("bag", "truth", "prior"):

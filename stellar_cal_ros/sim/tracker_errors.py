@@ -96,6 +96,37 @@ def outliers(sim, fraction: float, k_sigma: float, seed: int) -> None:
         f.uv = uv
 
 
+class Ar1Tracks:
+    """Unit-variance AR(1) noise per star track over frames (lag-one correlation ``rho``).
+
+    :meth:`draw` gives the ``(n, 2)`` draws of frame ``j``'s stars (their catalogue ids);
+    a star that leaves and comes back continues its process over the gap (``rho`` to the
+    power of the frames missed).  Scaled by each star's σ it is noise of marginal σ whose
+    consecutive values correlate by ``rho``: the simulator's :func:`ar1_noise` and the
+    twin's rendering of correlated centroid noise (:mod:`stellar_cal_ros.diagnosis.twin`).
+    """
+
+    def __init__(self, rho: float, rng: np.random.Generator):
+        self.rho, self.rng = float(rho), rng
+        self.last: dict[int, tuple[int, np.ndarray]] = {}
+
+    def draw(self, j: int, catalog_id) -> np.ndarray:
+        """The ``(n, 2)`` unit-variance draws of frame ``j``'s stars (``catalog_id``)."""
+        ids = np.asarray(catalog_id).tolist()
+        out = np.empty((len(ids), 2))
+        for i, cid in enumerate(ids):
+            n = self.rng.standard_normal(2)
+            prev = self.last.get(int(cid))
+            if prev is None:
+                e = n
+            else:
+                a = self.rho ** (j - prev[0])
+                e = a * prev[1] + np.sqrt(1.0 - a * a) * n
+            self.last[int(cid)] = (j, e)
+            out[i] = e
+        return out
+
+
 def ar1_noise(sim, sigma_px: float, tau_frames: float, seed: int,
               stated: float | None = None) -> None:
     """Centroid noise of each star an AR(1) over frames (marginal ``σ``, time constant τ).
@@ -104,22 +135,11 @@ def ar1_noise(sim, sigma_px: float, tau_frames: float, seed: int,
     states ``stated`` (default ``σ``: the marginal noise is stated right, only its
     correlation is not).
     """
-    rng = np.random.default_rng(seed + 6700417)
-    phi = float(np.exp(-1.0 / tau_frames))
-    last: dict[int, tuple[int, np.ndarray]] = {}
+    tracks = Ar1Tracks(float(np.exp(-1.0 / tau_frames)),
+                       np.random.default_rng(seed + 6700417))
     for j, f in enumerate(sim.star_frames):
-        uv = np.asarray(f.uv, dtype=float).copy()
-        for i, cid in enumerate(np.asarray(f.catalog_id).tolist()):
-            n = rng.standard_normal(2)
-            prev = last.get(int(cid))
-            if prev is None:
-                e = sigma_px * n
-            else:
-                a = phi ** (j - prev[0])
-                e = a * prev[1] + sigma_px * np.sqrt(1.0 - a * a) * n
-            last[int(cid)] = (j, e)
-            uv[i] += e
-        f.uv = uv
+        uv = np.asarray(f.uv, dtype=float)
+        f.uv = uv + sigma_px * tracks.draw(j, f.catalog_id)
         f.sigma = np.full(len(uv), float(sigma_px if stated is None else stated))
 
 
