@@ -33,6 +33,12 @@ turns the effect's ratio Λ into its ratio given a flexure, ``Λ + (chi2_with �
 / dispersion``, χ² with the effect's dof.  ``discover`` adds a non-camera candidate then only
 if that is significant, and flags the effect the remainder was found after when it is not
 (40″, 300 s: gyro_scale_factor −921 for 3 dof, gyro_misalignment after it −9.3 for 6).
+
+A remainder that a later add takes up was that add's only if the test after it could
+still see a flexure of that size (:func:`alias`); when the add leaves the test blind to it
+(a flexure beside a true gyro scale factor: gyro_misalignment after it, σ 5.5 → 37.9″/g)
+the add is marked "could be a mount flexure (outside the library): this motion cannot
+separate them" (:data:`ALIAS_TEXT`) and the remainder is still said.
 """
 
 from __future__ import annotations
