@@ -260,3 +260,64 @@ def test_the_equivalent_principal_points_own_shift_is_taken_out(clean):
                                    {"equivalent_principal_point.u": 1.7},
                                    {"equivalent_principal_point.u": 0.5})
     assert shift["equivalent_principal_point.u"] == pytest.approx(0.2)
+
+
+def _steps_by_dict(user, plain, moved):
+    """The per-frame dictionaries reliability_probe.with_effect used (the reference)."""
+    import copy
+
+    by_stamp = {a.stamp_ns: (a, b) for a, b in zip(plain, moved, strict=True)}
+    out = []
+    for f in user:
+        pair = by_stamp.get(f.stamp_ns)
+        if pair is None:
+            out.append(f)
+            continue
+        rows_b = {int(c): i for i, c in enumerate(pair[1].catalog_id)}
+        step = {int(c): pair[1].uv[rows_b[int(c)]] - pair[0].uv[i]
+                for i, c in enumerate(pair[0].catalog_id) if int(c) in rows_b}
+        uv = np.array(f.uv, dtype=float, copy=True)
+        for i, c in enumerate(np.asarray(f.catalog_id)):
+            if int(c) in step:
+                uv[i] += step[int(c)]
+        g = copy.copy(f)
+        g.uv = uv
+        out.append(g)
+    return out
+
+
+def test_the_probes_steps_in_arrays_are_the_per_frame_sums():
+    """add_steps (whole-bag arrays) gives the per-frame dictionaries' centroids exactly:
+    stars off one twin's detector, repeated ids and stamps, frames the twins do not hold."""
+    from stellar_cal_ros.core.types import StarFrame
+
+    rng = np.random.default_rng(4)
+
+    def frame(stamp, ids):
+        n = len(ids)
+        return StarFrame(stamp_ns=stamp, frame_id="st", exposure_time=0.01,
+                         catalog_id=np.asarray(ids, dtype=np.uint32),
+                         right_ascension=rng.uniform(0, 6, n), declination=rng.uniform(-1, 1, n),
+                         uv=rng.uniform(0, 1000, (n, 2)), magnitude=rng.uniform(2, 6, n),
+                         sigma=np.full(n, 0.05))
+
+    user, plain, moved = [], [], []
+    for k in range(60):
+        ids = list(rng.choice(np.arange(1, 40), size=rng.integers(0, 8), replace=False))
+        if k % 7 == 3 and ids:
+            ids.append(ids[0])  # an id twice in a frame
+        stamp = 10**9 + (k - (k % 11 == 5)) * 10**8  # a stamp twice
+        user.append(frame(stamp, ids + [0]))
+        if k % 13 == 6:
+            continue  # a frame the twins left out
+        kept = [c for c in ids if rng.random() > 0.15]  # off the detector in one twin
+        plain.append(frame(stamp, kept if k % 2 else ids))
+        moved.append(frame(stamp, ids if k % 2 else kept))
+    got = reliability_probe.add_steps(user, plain, moved)
+    want = _steps_by_dict(user, plain, moved)
+    assert len(got) == len(want)
+    moved_any = False
+    for g, w, u in zip(got, want, user, strict=True):
+        assert np.array_equal(g.uv, w.uv)
+        moved_any |= not np.array_equal(g.uv, u.uv)
+    assert moved_any
