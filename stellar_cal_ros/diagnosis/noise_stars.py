@@ -158,6 +158,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     if x is not None:
         x = within_frame(dict(sub, du=x[:, 0], dv=x[:, 1]), sigma_px[idx], fx, fy)[0]
     r, sub_share = noise_structure.minus_rolling(r, sub_share, x, ALPHA)
+    r_cells = r  # (the cells' χ² is referred to the tracks' lag below)
     r, share, chi2, dof = _minus_cell_means(r, cell, keep_cell)
     share = share * sub_share
     # ... and so is an error that repeats star by star (a catalogue position error): its
@@ -167,9 +168,10 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     # noise correlated over a few frames makes each star's mean vary more than 1/n: the χ²
     # is referred to that (the lag correlation of the residuals about their star's mean,
     # which a fixed per-star error does not raise)
-    infl, rho, pairs = noise_structure.track_inflation(r_star, stars)
-    rep /= infl
-    chi2 /= infl  # the cells' means too (with few stars in view a cell is a star or two)
+    _, rho, pairs = noise_structure.track_inflation(r_star, stars)
+    if rho > 0:  # each mean referred to the variance of a mean of its tracks' frames
+        rep = noise_structure.lagged_chi2(r, stars, stars, rho, share > 0, 2)
+        chi2 = noise_structure.lagged_chi2(r_cells, cell, stars, rho, keep_cell)
 
     def estimate(r, share):
         q = (r**2).sum(1)
