@@ -79,6 +79,11 @@ def discover_row(size: float, seed: int, duration: float, also: dict | None = No
                 + ("" if not b else f", {step['added']['effect']} beyond it "
                    f"{b['statistic']:.1f} ({b['dof']} dof): "
                    + ("needed" if b["needed"] else "stand-in")))
+        a = step.get("could_be_flexure")
+        if a:
+            tests.append(f"{step['added']['effect']} marked: could be a mount flexure "
+                         f"({a['arcsec_per_g']:.1f}\"/g before it; seen with power 50 % "
+                         f"from {a['mdb_after_arcsec_per_g']:.0f}\"/g after it)")
         for e, b in (step.get("beyond_remainder") or {}).items():
             tests.append(f"{e} beyond it {b['statistic']:.1f} ({b['dof']} dof): not added")
     first = s["unexplained"][0] if s["unexplained"] else None
