@@ -225,6 +225,58 @@ def test_compiled_frame_inputs_equal_numpy() -> None:
     assert a.ok.sum() == 5
 
 
+def test_compiled_imu_screen_equals_numpy(sim_data) -> None:
+    """``jit.imu_block_screen`` decides what the driver's numpy screen decides (strictly
+    increasing; every stamp positive, every sample finite), on clean and damaged blocks —
+    NaN, inf, a sum that overflows, zero and negative stamps, repeated and reversed stamps,
+    empty, one sample, strided and read-only arrays; and the driver counts and keeps the
+    same samples through either."""
+    from stellar_cal_ros.core import jit
+    from stellar_cal_ros.methods.driver import Calibrator
+
+    if not jit.HAVE_NUMBA:
+        pytest.skip("numba not importable: the driver takes the numpy screen")
+    rng = np.random.default_rng(5)
+    t0 = np.arange(1, 9, dtype=np.int64) * 10_000_000
+    w0, f0 = rng.normal(size=(8, 3)), rng.normal(size=(8, 3))
+    blocks = [(t0, w0, f0), (t0[:0], w0[:0], f0[:0]), (t0[:1], w0[:1], f0[:1])]
+    for what in ("nan", "inf", "big", "zero", "negative", "repeat", "reverse"):
+        t, w, f = t0.copy(), w0.copy(), f0.copy()
+        if what in ("nan", "inf"):
+            w[3, 1] = float(what)
+        elif what == "big":
+            f[:] = 1e308  # finite samples whose sum overflows
+        elif what in ("zero", "negative"):
+            t[0] = 0 if what == "zero" else -5
+        elif what == "repeat":
+            t[4] = t[3]
+        else:
+            t = t[::-1]
+        blocks.append((t, w, f))
+    ro = (t0.copy(), w0.copy(), f0.copy())
+    for a in ro:
+        a.flags.writeable = False
+    blocks += [ro, (t0[::2], np.asfortranarray(w0)[::2], f0[::2])]
+    for t, w, f in blocks:
+        inc = len(t) < 2 or bool((t[1:] > t[:-1]).all())
+        clean = bool((t > 0).all() and np.isfinite(w).all() and np.isfinite(f).all())
+        assert jit.imu_block_screen(t, w, f) == (inc, clean)
+    sim, _ = sim_data
+    counts = []
+    for screen in (None, False):  # compiled (on first use), numpy
+        cal = Calibrator(sim.prior, "psce")
+        cal._imu_screen = screen
+        base = 0
+        for t, w, f in blocks:
+            with np.errstate(over="ignore"):  # the numpy screen's sum of the 1e308 block
+                cal.push_imu_block(np.where(t > 0, t + base, t), w, f)
+            base += 1_000_000_000
+        counts.append((vars(cal.counters), cal._imu.t.tolist(), cal._last_imu_ns))
+        assert (cal._imu_screen is not False) == (screen is None)
+    assert counts[0] == counts[1]
+    assert counts[0][0]["imu_invalid"] == 4  # NaN, inf, zero and negative stamps
+
+
 class PlainTimeOffset(TimeOffset):
     """The library's time offset as a user would write it: no compiled form."""
 

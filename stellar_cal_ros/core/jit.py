@@ -420,3 +420,28 @@ def star_inputs(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray
         m_o[j] = mag[i]
         j += 1
     return ok, uv_o, u_i, s_o, c_o, m_o, bad, unid
+
+
+# ---------------------------------------------------------------------------- IMU blocks
+@njit(cache=True)
+def imu_block_screen(t: np.ndarray, w: np.ndarray, f: np.ndarray) -> tuple[bool, bool]:
+    """``(increasing, clean)`` of an IMU block, in one pass (the driver's usual case).
+
+    ``t`` (m,) stamps ns, ``w`` and ``f`` (m, 3).  ``increasing``: stamps strictly
+    increasing; ``clean``: every stamp positive and every rate and force finite — what
+    ``Calibrator.push_imu_block``'s numpy screen decides, element by element (no sum that
+    could overflow).
+    """
+    m = t.shape[0]
+    inc = True
+    for i in range(1, m):
+        if not t[i] > t[i - 1]:
+            inc = False
+            break
+    for i in range(m):
+        if not t[i] > 0:
+            return inc, False
+        for k in range(3):
+            if not (math.isfinite(w[i, k]) and math.isfinite(f[i, k])):
+                return inc, False
+    return inc, True

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from stellar_cal_ros.core.covariance import compiled_kernels
 from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.errors import DataError, ModelError
 from stellar_cal_ros.io.calibration import Calibration
@@ -141,6 +142,8 @@ class Calibrator(ImuRelease):
             columns=RESIDUAL_COLUMNS)
         self.history = history if history is not None else TableSink()
         self.eval_start = eval_start
+        # the compiled IMU block screen (core.jit.imu_block_screen), False: numpy (on first use)
+        self._imu_screen: Any = None
         self._reset_state()
 
     # ------------------------------------------------------------------ state
@@ -202,13 +205,22 @@ class Calibrator(ImuRelease):
         if frame_id is not None and expected and frame_id != expected:
             c.imu_wrong_frame += len(t)
             return []
-        # the checks on the whole block first (the usual case: nothing to remove): a sum
-        # is finite only if every term is (one that overflows takes the exact path below);
-        # strictly increasing stamps are all positive when the first is
+        # the checks on the whole block first (the usual case: nothing to remove), in one
+        # compiled pass when the filter's kernels are compiled; else a sum is finite only
+        # if every term is (one that overflows takes the exact path below), and strictly
+        # increasing stamps are all positive when the first is
         m = len(t)
-        inc = m < 2 or bool((t[1:] > t[:-1]).all())
-        if not (math.isfinite(w.sum() + f.sum()) and (t[0] > 0 if inc and m
-                                                          else (t > 0).all())):
+        screen = self._imu_screen
+        if screen is None:
+            jit = compiled_kernels() if self.filter_cls.compiled_step else None
+            screen = self._imu_screen = jit.imu_block_screen if jit is not None else False
+        if screen and m:
+            inc, clean = screen(t, w, f)
+        else:
+            inc = m < 2 or bool((t[1:] > t[:-1]).all())
+            clean = math.isfinite(w.sum() + f.sum()) and (t[0] > 0 if inc and m
+                                                           else (t > 0).all())
+        if not clean:
             ok = (t > 0) & np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(f), axis=1)
             if not ok.all():
                 c.imu_invalid += int((~ok).sum())
