@@ -48,6 +48,14 @@ def test_twin_without_injection_is_fitted_by_the_calibration(user_run):
     # the twin's truth is the calibration (nothing injected)
     assert twin.truth.camera.cx == pytest.approx(cal.camera.cx)
     assert np.allclose(twin.truth.gyro_bias, cal.gyro_bias)
+    # its gyro noise is the one rendered (the run's, x1 here), measured from its samples as
+    # the diagnosis does: its true rates had kept the user's noise under the fresh one,
+    # x1.41 +- 0.009 (sqrt 2)
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis.noise_imu import imu_sample_scale
+
+    g, sg, white = imu_sample_scale(twin.data, "psce", "gyro", NoiseScales())[:3]
+    assert white and abs(g - 1.0) < 4 * sg + 0.02, (g, sg)
 
 
 def test_twins_sharing_a_scene_are_the_twins_made_alone(user_run):
