@@ -272,6 +272,16 @@ def test_rolling_shutter_on_a_swaying_base_is_no_noise_and_has_no_stand_in():
     shutter = rolling.of_run(base, 0.5)
     assert shutter["p_value"] < 0.01
     assert shutter["readout_ms"] == pytest.approx(30.0, rel=0.2)
+    # the readout the line prints (its fit + the re-run's, rolling.readout_s): within 1 ms
+    from types import SimpleNamespace
+
+    runner = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(),
+                             on_bag=lambda fn, *a: fn(data, *a))
+    lines, _ = rolling.first_if_cause(line_tests(base.residuals, prior, 0.5), base, runner,
+                                      line_tests)
+    assert lines[0].regressor.startswith(stats.ROLLING), lines[:2]
+    assert float(lines[0].regressor.split("readout ")[1].split(" ms")[0]) == \
+        pytest.approx(30.0, abs=1.0)
     # the rule, where the noise had been rescaled as before (x18): time_offset is then
     # significant alone, and explains nothing beyond the fit
     scaled = NoiseScales(star=18.1)
