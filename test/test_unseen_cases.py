@@ -11,6 +11,7 @@ not as structure.  The whole table (every case through ``stellar-cal discover``)
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -52,7 +53,6 @@ def _findings(sim, star_noise=False, ranked=False):
     run = evaluate(data, method_spec("psce"), rerun_prior(prior), (), 0.5,
                    keep_residuals=True)
     if ranked:
-        from types import SimpleNamespace
 
         runs = SimpleNamespace(spec=method_spec("psce"), fraction=0.5, noise=None,
                                classes=(), on_bag=lambda fn, *a: fn(data, *a))
@@ -293,7 +293,28 @@ def test_rolling_shutter_on_a_swaying_base_is_no_noise_and_has_no_stand_in():
     b = flexure.beyond(lam, 1, Reference.of(base).dispersion, rolling.of_run(with_to, 0.5),
                        rolling.of_run(base, 0.5))
     assert p < 0.01 and not b["needed"], (lam, p, b)
+    # the fit stays significant beside it: discover refuses it as the shutter's stand-in
+    assert rolling.stand_in(SimpleNamespace(statistic=lam, dof=1),
+                            Reference.of(base).dispersion, rolling.of_run(with_to, 0.5),
+                            rolling.of_run(base, 0.5), 0.01) is not None
     assert rolling.of_run(runs(0.0)[3], 0.5)["p_value"] > 0.01
+
+
+def test_a_shutter_fit_that_vanishes_beside_a_candidate_does_not_refuse_it():
+    """``rolling.stand_in`` on the numbers of the acceptance case swaying_time_tilt_misalignment
+    (true 5 ms time offset, model far off: NIS/dof 135): the shutter's fit on the current
+    model (χ² 175 513, uncapped) is gone beside time_offset (3.0, p 0.90) while Λ (NIS
+    capped) is 288, so the beyond ratio reads −1013.8; the fit was time_offset's stand-in
+    and time_offset is not refused.  The same ratio with the fit still significant beside
+    it (a true readout) refuses it."""
+    c = SimpleNamespace(statistic=287.997, dof=1)
+    shutter = {"t": -12.15, "p_value": 1.17e-12, "chi2": 175513.09}
+    gone = {"t": -0.128, "p_value": 0.899, "chi2": 2.998}
+    assert rolling.stand_in(c, 134.816, gone, shutter, 0.01) is None
+    kept = dict(gone, t=-12.0, p_value=1e-12)
+    b = rolling.stand_in(c, 134.816, kept, shutter, 0.01)
+    assert b["statistic"] == pytest.approx(-1013.85, abs=0.05) and not b["needed"]
+    assert b["remainder"] == rolling.REMAINDER
 
 
 def test_rolling_taken_out_interpolates_all_stamps_at_once_as_frame_by_frame():

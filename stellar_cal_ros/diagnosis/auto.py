@@ -433,7 +433,8 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     its ratio beside a fitted flexure, two runs of its model); camera effects as always.
     ``shutter``: the current model's rolling-shutter fit when significant
     (:mod:`~stellar_cal_ros.diagnosis.rolling`): then every candidate is added only if it
-    explains the data beyond that fit (one run of its model).
+    explains the data beyond that fit or the fit is not significant beside it
+    (:func:`~stellar_cal_ros.diagnosis.rolling.stand_in`, one run of its model).
     """
     refused = []
     for c in results:
@@ -445,10 +446,9 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
                                  candidate_prior(prior, c.effect, calibration),
                                  tuple(state.extra) + (c.effect,), runs.fraction, runs.noise,
                                  runs.classes)
-            b = flexure.beyond(c.statistic, c.dof, Reference.of(base).dispersion, with_c,
-                               shutter)
-            if b is not None and not b["needed"]:
-                refused.append((c, dict(b, remainder=rolling.REMAINDER)))
+            b = rolling.stand_in(c, Reference.of(base).dispersion, with_c, shutter, ALPHA)
+            if b is not None:
+                refused.append((c, b))
                 continue
         if not (state.outside and here is not None and flexure.may_stand_in(c.effect)):
             return c, refused

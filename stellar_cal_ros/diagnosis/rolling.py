@@ -60,6 +60,30 @@ def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
     return of_run(run, fraction)
 
 
+def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
+             alpha: float) -> dict | None:
+    """Whether ``candidate`` stands in for the rolling shutter fitted on the current model.
+
+    The beyond test (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`: the candidate's Λ
+    plus the fit's χ² beside it (``with_c``, :func:`candidate_on_bag`) minus the fit's χ²
+    without it (``shutter``)), when it finds nothing beyond the fit, and only if the fit is
+    still significant at ``alpha`` beside the candidate.  A true readout keeps its shape
+    beside any one library effect (each takes only a part of it: unseen case
+    ``sway_rolling``, 30 ms, the fit's t −657 → −409 beside a time offset); a fit that
+    vanishes beside the candidate was the candidate's stand-in, not the reverse (a true 5 ms
+    time offset on a swaying bag whose model is far off, NIS/dof 135: the fit's χ² 175 513
+    → 3.0, p 0.90; its uncapped χ² against the NIS-capped Λ 288 made the ratio −1013.8,
+    and time_offset was refused).  The beyond result (``remainder``: :data:`REMAINDER`)
+    when refused, else ``None``.
+    """
+    from stellar_cal_ros.diagnosis import flexure
+
+    b = flexure.beyond(candidate.statistic, candidate.dof, dispersion, with_c, shutter)
+    if b is None or b["needed"] or not with_c["p_value"] < alpha:
+        return None
+    return dict(b, remainder=REMAINDER)
+
+
 def taken_out(data, calibration: Calibration, coefficient: float):
     """A copy of the bag with a fitted rolling shutter taken out of its centroids.
 
