@@ -6,7 +6,7 @@ once: the table prints the one-pass readout of the 'unexplained' line
 (``stats.shaped_tests``), the whitened fit on the innovations (``rolling.of_run``, as
 |coefficient| × rows), its frame-robust σ (|fit| / |t|), the fit of the re-run with that
 fit taken out of the centroids (``rolling.lines_without_on_bag``), and the readout printed
-(``rolling.readout_s``: the two added); ``--truth-out`` also runs the bag with the true
+(``stats.readout_s``: the two added); ``--truth-out`` also runs the bag with the true
 readout taken out (what is left is the estimator's own bias at the truth).
 
 Run::
@@ -59,7 +59,7 @@ def one(seed: int, scenario: str, duration: float, readout: float, truth_out: bo
            if line else float("nan"),
            "fit": abs(c) * rows * 1e3, "sigma": abs(c) / abs(fit["t"]) * rows * 1e3,
            "rest": (rest or 0.0) * np.sign(c) * rows * 1e3,
-           "printed": rolling.readout_s(c, rest, rows) * 1e3,
+           "printed": stats.readout_s(c, rest, rows) * 1e3,
            "cy": run.calibration.camera.cy}
     if truth_out:
         cam = dataclasses.replace(run.calibration.camera, cy=rows / 2.0)

@@ -62,7 +62,7 @@ def bag_tests(name: str, seed: int) -> tuple[list[tuple[float, float]], list[flo
     stats.frame_robust_t = record
     try:
         lines = stats.regressor_tests(res, mask, centre, focal=(cam.fx, cam.fy), extra=extra,
-                                      R_imu_st=prior.R_imu_st)
+                                      R_imu_st=prior.R_imu_st, height=cam.height)
     finally:
         stats.frame_robust_t = inner
     return seen, extra_p, lines

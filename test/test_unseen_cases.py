@@ -64,7 +64,7 @@ def _findings(sim, star_noise=False, ranked=False):
     extra = [repeat_finding(res, mask, cam.fx, cam.fy, centre),
              *stats.periodic_findings(res, mask)]
     found = stats.regressor_tests(res, mask, centre, focal=(cam.fx, cam.fy), extra=extra,
-                                  R_imu_st=prior.R_imu_st)
+                                  R_imu_st=prior.R_imu_st, height=cam.height)
     if not star_noise:
         return found
     ok = mask & ~np.asarray(res["gated"]).astype(bool)
@@ -95,7 +95,7 @@ def test_pixel_locking_is_unexplained_with_the_subpixel_phase_first():
 def test_rolling_shutter_readout_is_measured_from_the_row_shape():
     """Rows read out over 30 ms (stamp at the middle row): the rolling-shutter test (row x
     image velocity from the gyro) is significant and the readout it prints, its fit plus
-    the fit of the re-run with that fit taken out (``rolling.readout_s``), is the truth
+    the fit of the re-run with that fit taken out (``stats.readout_s``), is the truth
     within 1 ms (29.73 here; seeds 21-25: 29.81 +- 0.10 ms, the fit's frame-robust sigma
     0.31-0.47 ms).  One run's fit alone reads ~12 % short (26.3 ms; the one-pass line
     25.1): the filter's calibration takes up part of the shape."""
@@ -272,7 +272,7 @@ def test_rolling_shutter_on_a_swaying_base_is_no_noise_and_has_no_stand_in():
     shutter = rolling.of_run(base, 0.5)
     assert shutter["p_value"] < 0.01
     assert shutter["readout_ms"] == pytest.approx(30.0, rel=0.2)
-    # the readout the line prints (its fit + the re-run's, rolling.readout_s): within 1 ms
+    # the readout the line prints (its fit + the re-run's, stats.readout_s): within 1 ms
     from types import SimpleNamespace
 
     runner = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(),
@@ -282,6 +282,27 @@ def test_rolling_shutter_on_a_swaying_base_is_no_noise_and_has_no_stand_in():
     assert lines[0].regressor.startswith(stats.ROLLING), lines[:2]
     assert float(lines[0].regressor.split("readout ")[1].split(" ms")[0]) == \
         pytest.approx(30.0, abs=1.0)
+    # where the re-run fails the line keeps its one-pass slope, over the detector's rows
+    # as well (stats.readout_s, the one formula; was 2 c_y of the filter-pulled principal
+    # point): twice the rows, twice the readout, the fits unchanged
+    failed = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(),
+                             on_bag=lambda fn, *a: None)
+
+    def one_pass(cal):
+        got, _ = rolling.first_if_cause(line_tests(base.residuals, cal, 0.5), base, failed,
+                                        line_tests)
+        line = next(f for f in got if f.regressor.startswith(stats.ROLLING))
+        return float(line.regressor.split("readout ")[1].split(" ms")[0])
+
+    rows2 = dataclasses.replace(prior, camera=dataclasses.replace(
+        prior.camera, height=2 * prior.camera.height))
+    ms = one_pass(prior)
+    assert one_pass(rows2) == pytest.approx(2 * ms, abs=0.16)
+    fitted = base.calibration
+    assert rolling.of_table(base.residuals, dataclasses.replace(fitted, camera=dataclasses.replace(
+        fitted.camera, height=2 * fitted.camera.height)), 0.5)["readout_ms"] == \
+        pytest.approx(2 * shutter["readout_ms"], rel=1e-12)
+    assert ms == pytest.approx(30.0, rel=0.2)
     # the rule, where the noise had been rescaled as before (x18): time_offset is then
     # significant alone, and explains nothing beyond the fit
     scaled = NoiseScales(star=18.1)

@@ -124,7 +124,8 @@ def line_tests(res, calibration: Calibration, fraction: float) -> list:
     return stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
         extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre),
-               *stats.periodic_findings(res, mask)], R_imu_st=calibration.R_imu_st)
+               *stats.periodic_findings(res, mask)], R_imu_st=calibration.R_imu_st,
+        height=cam.height)
 
 
 def write_report(out: Path, summary: dict[str, Any], title: str) -> None:

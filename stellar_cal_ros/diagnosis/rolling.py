@@ -34,7 +34,8 @@ def of_table(res, calibration: Calibration, fraction: float) -> dict[str, float]
         return None
     cam = calibration.camera
     return stats.rolling_remainder(res, stats.evaluation_mask(res, fraction),
-                                   (cam.cx, cam.cy), (cam.fx, cam.fy), calibration.R_imu_st)
+                                   (cam.cx, cam.cy), (cam.fx, cam.fy), calibration.R_imu_st,
+                                   cam.height)
 
 
 def of_run(run, fraction: float) -> dict[str, float] | None:
@@ -138,22 +139,6 @@ def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...
             None if rest is None else float(rest["coefficient"]))
 
 
-def readout_s(first: float, rest: float | None, height: float) -> float:
-    """The readout time (s) from the fit of a run and of its re-run with that fit taken out.
-
-    The filter the innovations come from takes up part of the shutter's shape in its
-    calibration (measured, 150 s PSCE bag, 30 ms: the principal point's row pulled by
-    27 px), so one run's fit reads ``a`` × the truth, ``a`` ≈ 0.88 there (26.4 ms), while
-    with the true readout taken out nothing is left (0.1-0.3 ms): attenuation by the
-    fitted terms, not by an error in the regressor.  The re-run's fit of what is left,
-    ``rest`` ≈ ``a (c − first)``, added: one fixed-point step (``(1 − a)² c`` short, 29.8
-    ms measured; the two-run extrapolation ``first / (1 − rest/first)`` read 30.3 ms, the
-    response not quite linear).  ``|c|`` × the detector's rows ``height`` (the simulator's
-    ``(v/H − ½) T``; ``2 c_y`` would put the pulled principal point in it: 27.7 ms).
-    """
-    return abs(first + (rest or 0.0)) * height
-
-
 def _line(f) -> tuple[str, str]:
     """A line's (regressor, component) without what its fit reads (a readout, a period)."""
     name = f.regressor
@@ -177,9 +162,10 @@ def first_if_cause(found: list, run, runs, tests) -> tuple[list, set[int]]:
     the returned list) of those that follow the shutter (``tests``: as in
     :func:`lines_without_on_bag`); unchanged without a significant shape line or without
     a runner.  The same re-run, made also when the shape is first already, gives the
-    readout the line prints (:func:`readout_s`: the run's fit alone reads it ~12 % short;
-    without a runner the line keeps the one-pass slope of
-    :func:`~stellar_cal_ros.diagnosis.stats.shaped_tests`).
+    readout the line prints (:func:`~stellar_cal_ros.diagnosis.stats.readout_s`: the
+    run's fit alone reads it ~12 % short; without a runner, or when the re-run fails, the
+    line keeps the one-pass slope of :func:`~stellar_cal_ros.diagnosis.stats.shaped_tests`,
+    over the detector's rows too).
     """
     at = next((i for i, f in enumerate(found) if f.regressor.startswith(stats.ROLLING)), None)
     if at is None or runs is None or run is None or not run.ok or run.prior is None:
@@ -194,7 +180,7 @@ def first_if_cause(found: list, run, runs, tests) -> tuple[list, set[int]]:
         return found, set()
     left, rest = again
     found = list(found)
-    ms = readout_s(fit["coefficient"], rest, run.calibration.camera.height) * 1e3
+    ms = stats.readout_s(fit["coefficient"], rest, run.calibration.camera.height) * 1e3
     found[at] = dataclasses.replace(found[at], regressor=f"{stats.ROLLING}, readout {ms:.3g} ms)")
     if at == 0:
         return found, set()

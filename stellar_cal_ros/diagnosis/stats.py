@@ -456,8 +456,8 @@ ROLLING = "v (row) x image velocity (rolling-shutter shape"
 
 
 def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float, float],
-                 centre: tuple[float, float], R_imu_st: np.ndarray | None = None
-                 ) -> list[RegressorFinding]:
+                 centre: tuple[float, float], R_imu_st: np.ndarray | None = None,
+                 height: float | None = None) -> list[RegressorFinding]:
     """Tests of two tracker errors no straight line in one regressor follows (unadjusted).
 
     **Sub-pixel phase** (pixel locking, an S-curve): a centroid of an under-sampled PSF is
@@ -472,9 +472,10 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     **Rolling shutter**: a row ``v`` read out ``(v − c_y)/H · T`` after the stamp moves
     each star by its image velocity times that; the image velocity is ``J ω`` (the star's
     :func:`attitude_columns`, the gyro rate in the tracker frame: ``R_imu_st`` the
-    installation; without it the test is not made).  Regressor ``(v − c_y) J ω``, projected
-    like the residuals on what no frame attitude explains; the readout time ``|T|`` (ms,
-    over the rows ``2 c_y``; its sign, the readout's direction, is the slope's) is in the
+    installation; without it or the detector's rows ``height`` the test is not made).
+    Regressor ``(v − c_y) J ω``, projected like the residuals on what no frame attitude
+    explains; the readout time ``|T|`` (ms, :func:`readout_s` of the slope: over the
+    detector's rows; its sign, the readout's direction, is the slope's) is in the
     regressor's name, as the period is in :func:`periodic_findings`'.
     """
     out: list[RegressorFinding] = []
@@ -507,10 +508,30 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
         one(f"{SUBPIXEL} ({label} 2 pi u, {label} 2 pi v)",
             project(np.stack([fn(2.0 * np.pi * u), fn(2.0 * np.pi * v)], 1)))
     x = rolling_columns(sub, focal, centre, R_imu_st)
-    if x is not None:
-        height = 2.0 * centre[1]
-        one(lambda b: f"{ROLLING}, readout {abs(b) * height * 1e3:.3g} ms)", project(x))
+    if x is not None and height is not None:
+        one(lambda b: f"{ROLLING}, readout {readout_s(b, None, height) * 1e3:.3g} ms)",
+            project(x))
     return out
+
+
+def readout_s(first: float, rest: float | None, height: float) -> float:
+    """The readout time (s) from the fit of a run and of its re-run with that fit taken out.
+
+    The filter the innovations come from takes up part of the shutter's shape in its
+    calibration (measured, 150 s PSCE bag, 30 ms: the principal point's row pulled by
+    27 px), so one run's fit reads ``a`` × the truth, ``a`` ≈ 0.88 there (26.4 ms), while
+    with the true readout taken out nothing is left (0.1-0.3 ms): attenuation by the
+    fitted terms, not by an error in the regressor.  The re-run's fit of what is left,
+    ``rest`` ≈ ``a (c − first)``, added: one fixed-point step (``(1 − a)² c`` short, 29.8
+    ms measured; the two-run extrapolation ``first / (1 − rest/first)`` read 30.3 ms, the
+    response not quite linear).  ``|c|`` × the detector's rows ``height`` (the simulator's
+    ``(v/H − ½) T``; ``2 c_y`` would put the pulled principal point in it: 27.7 ms).  The
+    one formula of every readout the diagnosis gives: the line's (this, from
+    :func:`~stellar_cal_ros.diagnosis.rolling.first_if_cause`), the one-pass line's it
+    falls back to (:func:`shaped_tests`, ``rest`` None) and :func:`rolling_remainder`'s
+    ``readout_ms``.
+    """
+    return abs(first + (rest or 0.0)) * height
 
 
 def predicted_position(sub: Table, axis: str) -> np.ndarray:
@@ -544,14 +565,15 @@ def rolling_columns(sub: Table, focal: tuple[float, float], centre: tuple[float,
 
 
 def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
-                      focal: tuple[float, float], R_imu_st: np.ndarray | None
-                      ) -> dict[str, float] | None:
+                      focal: tuple[float, float], R_imu_st: np.ndarray | None,
+                      height: float) -> dict[str, float] | None:
     """The innovations' fit by a rolling shutter's shape (a nuisance regressor).
 
     The innovations of ``mask``'s accepted stars and :func:`rolling_columns`, both whitened
     by the innovation covariance, u and v of every star; the frames as the units
     (:func:`frame_robust_t`).  ``{t, p_value (unadjusted), chi2 (the whitened sum of squares
-    the fit removes), readout_ms, coefficient}`` (``coefficient``: the fitted size, s per px
+    the fit removes), readout_ms (:func:`readout_s` over the detector's rows ``height``),
+    coefficient}`` (``coefficient``: the fitted size, s per px
     of row offset, signed: the innovations ≈ it × the columns), or ``None`` without the
     columns.  What
     :func:`~stellar_cal_ros.diagnosis.flexure.beyond` takes beside a candidate: whether it
@@ -569,7 +591,7 @@ def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
         return None
     t, p, c, info = fit
     return {"t": t, "p_value": p, "chi2": c * c * info,
-            "readout_ms": abs(c) * 2.0 * centre[1] * 1e3, "coefficient": c}
+            "readout_ms": readout_s(c, None, height) * 1e3, "coefficient": c}
 
 
 def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
@@ -623,7 +645,8 @@ def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
 def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, float],
                     alpha: float = 0.01, focal: tuple[float, float] | None = None,
                     extra: list[RegressorFinding] | None = None,
-                    R_imu_st: np.ndarray | None = None) -> list[RegressorFinding]:
+                    R_imu_st: np.ndarray | None = None, height: float | None = None
+                    ) -> list[RegressorFinding]:
     """Correlation of residual components (u, v, radial, size) with each regressor.
 
     One frame-robust score test per pair (:func:`frame_robust_t`: the frames, not the
@@ -640,7 +663,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     p) in the same family, e.g. the per-star repeat of
     :func:`~stellar_cal_ros.diagnosis.noise.repeat_finding`.  With
     ``focal``, the within-frame residuals are also tested against the sub-pixel phase and
-    (with the installation ``R_imu_st``) a rolling shutter's shape (:func:`shaped_tests`).
+    (with the installation ``R_imu_st`` and the detector's rows ``height``) a rolling
+    shutter's shape (:func:`shaped_tests`).
     """
     m = mask & accepted(res)
     if m.sum() < 20:
@@ -661,7 +685,7 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
 
     plain, inside = components(sub)
     regs = regressors(sub, camera_centre)
-    shaped = shaped_tests(sub, inside, sig, focal, camera_centre, R_imu_st) \
+    shaped = shaped_tests(sub, inside, sig, focal, camera_centre, R_imu_st, height) \
         if inside is not None else []
     bound = 4 * len(regs) + len(shaped) + len(extra or [])  # the family's size, at most
     if any(f.regressor.startswith(SUBPIXEL) and f.p_value * bound < alpha for f in shaped):
