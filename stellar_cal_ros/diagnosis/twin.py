@@ -189,26 +189,47 @@ class TwinScene:
     frames: list[tuple[Any, Any, int]]
 
 
-#: samples in the centred mean that takes the IMU's noise out of the twin's true motion
-SMOOTH_SAMPLES = 11
+#: the span (s) of the centred mean that takes the IMU's noise out of the twin's true
+#: motion: 11 samples at 100 Hz (:func:`smooth_count`)
+SMOOTH_S = 0.1
 
 
-def smooth_samples(x: np.ndarray) -> np.ndarray:
-    """``x`` (rates or forces, a row per IMU sample): its centred mean of 11 samples.
+def smooth_count(t: np.ndarray) -> int:
+    """The samples in :func:`smooth_samples`' mean for IMU stamps ``t`` (s): a fixed time.
 
-    The ends are padded with their own sample (:data:`SMOOTH_SAMPLES`).  The white noise
-    left in is ~1/11 of its variance and, low-passed, barely seen by the samples' own
-    noise estimate (150 s psce twin: the gyro's samples read x1.01 +- 0.006 of the noise
-    rendered, x1.41 unsmoothed; swaying accelerometer x1.00, was x1.42); motion slower
-    than ~10 samples (0.1 s at 100 Hz) passes.  The twin's stars and IMU both follow the
-    smoothed motion, so the twin is consistent whatever it smooths away.
+    The largest odd count whose span ``(n − 1)/rate`` is at most :data:`SMOOTH_S` (to
+    0.1 % of a sample, for the stamps' jitter; the rate from the median step), at least
+    3: 11 at 100 Hz, 5 at 50 Hz, 21 at 200 Hz.  A count fixed in samples would keep less
+    of the motion at a lower rate (11 samples at 50 Hz keep 0.71 of a 2 Hz motion; 5 keep
+    0.94, 11 at 100 Hz 0.92).
+    """
+    dt = np.diff(np.asarray(t, dtype=float))
+    step = float(np.median(dt)) if len(dt) else 0.0
+    if not np.isfinite(step) or step <= 0.0:
+        return 3
+    half = int(np.floor(0.5 * SMOOTH_S / step + 1e-3))  # stamps' jitter: 11 at 100 Hz
+    return max(3, 2 * half + 1)
+
+
+def smooth_samples(x: np.ndarray, n: int) -> np.ndarray:
+    """``x`` (rates or forces, a row per IMU sample): its centred mean of ``n`` samples.
+
+    ``n`` odd, from :func:`smooth_count` (a fixed time, 0.1 s); the ends are padded with
+    their own sample.  The white noise left in is ~1/n of its variance (the same noise
+    density whatever the rate) and, low-passed, barely seen by the samples' own noise
+    estimate (150 s psce twin at 100 Hz: the gyro's samples read x1.01 +- 0.006 of the
+    noise rendered, x1.41 unsmoothed; swaying accelerometer x1.00, was x1.42).  Kept
+    amplitude of a motion at 1 / 2 / 5 Hz: 0.98 / 0.92 / 0.57 at 100 Hz (11 samples),
+    0.98 / 0.94 / 0.65 at 50 Hz (5), 0.98 / 0.93 / 0.60 at 200 Hz (21).  The twin's stars
+    and IMU both follow the smoothed motion, so the twin is consistent whatever it smooths
+    away.
     """
     from scipy.ndimage import uniform_filter1d
 
     x = np.asarray(x, dtype=float)
-    if len(x) < SMOOTH_SAMPLES:
+    if len(x) < n:
         return x
-    return uniform_filter1d(x, SMOOTH_SAMPLES, axis=0, mode="nearest")
+    return uniform_filter1d(x, n, axis=0, mode="nearest")
 
 
 def twin_scene(data: BagData, calibration: Calibration, method: str | None = None
@@ -227,10 +248,11 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
     # true rates and forces: the user's samples through the calibration's sensor model,
     # smoothed: the samples' own noise is no motion of the twin (left in, the twin's IMU
     # carried it plus its fresh noise: the gyro's samples read 1.41x the measured noise)
+    n = smooth_count(t)
     w_true = smooth_samples(model_cal.corrected_rates(
-        theta_cal, np.asarray(data.imu_w, dtype=float)))
+        theta_cal, np.asarray(data.imu_w, dtype=float)), n)
     f_true = smooth_samples(model_cal.corrected_rates(
-        theta_cal, np.asarray(data.imu_f, dtype=float), Stage.ACCEL))
+        theta_cal, np.asarray(data.imu_f, dtype=float), Stage.ACCEL), n)
     # anchor: the first frame whose identified stars fit an attitude
     env = data.env()
     anchor = None
