@@ -441,7 +441,7 @@ def repeat_finding(res: Table, mask: np.ndarray, fx: float, fy: float,
     The innovations of ``mask``'s accepted stars, whitened by their predicted σ, minus the
     frame's attitude fit and the detector cells' means (the steps of
     :func:`~.noise_stars.star_noise`), then the χ² of the per-star means against its dof
-    (:func:`~.noise_stars.star_after_cells`).  Returns a
+    (:func:`~.noise_stars.star_means`).  Returns a
     :class:`~stellar_cal_ros.diagnosis.stats.RegressorFinding` (regressor ``catalogue
     star``, statistic ``(χ² − dof) / √(2 dof)``, unadjusted one-sided p, size = the per-star
     error's RMS per axis, px), or None when there is nothing to test.
