@@ -126,12 +126,7 @@ def track_inflation(r: np.ndarray, star: np.ndarray) -> tuple[float, float, int]
 def _slope(n: np.ndarray, rho: float, step: float = 1e-4) -> float:
     """d/dρ of the ratio :func:`_unbiased_rho` solves (one-sided, within [0, 0.95])."""
     lo = min(max(rho, 0.0), 0.95 - step)
-
-    def h(x: float) -> float:
-        num, den = _lag_moments(n, x)
-        return num / den
-
-    return (h(lo + step) - h(lo)) / step
+    return (_lag_ratio(n, lo + step) - _lag_ratio(n, lo)) / step
 
 
 def mean_factor(n: np.ndarray, rho: float) -> np.ndarray:
@@ -191,6 +186,16 @@ def _lag_moments(n: np.ndarray, rho: float) -> tuple[float, float]:
     return float(np.sum((n - 1.0) * rho + rest)), float(np.sum((n - 1.0) + rest))
 
 
+def _lag_ratio(n: np.ndarray, rho: float) -> float:
+    """What the pooled lag-one ratio of AR(1) tracks of ``n`` frames reads.
+
+    The ratio of :func:`_lag_moments`; :func:`_unbiased_rho` solves it, :func:`_slope` is its
+    slope.
+    """
+    num, den = _lag_moments(n, rho)
+    return num / den
+
+
 def _unbiased_rho(raw: float, n: np.ndarray) -> float:
     """The AR(1) ``ρ`` whose tracks of ``n`` frames read ``raw`` about their means, in [0, 0.95].
 
@@ -199,8 +204,7 @@ def _unbiased_rho(raw: float, n: np.ndarray) -> float:
     noise reads (``−1/(n − 1)`` per track: −1 for a 2-frame track).
     """
     def h(rho: float) -> float:
-        num, den = _lag_moments(n, rho)
-        return num / den - raw
+        return _lag_ratio(n, rho) - raw
 
     if not len(n) or h(0.0) >= 0.0:
         return 0.0
