@@ -388,7 +388,7 @@ def hiding(result: dict[str, float] | None, after: list[str], m: int, alpha: flo
     model makes it large (40″/g + a true gyro misalignment: ~25″/g σ after both).
     ``None`` when the test did not run or could not be made (``result`` None).
     """
-    from stellar_cal_ros.diagnosis.reliability import POWER, delta_t, lambda0
+    from stellar_cal_ros.diagnosis.reliability import POWER, delta_t
 
     if result is None:
         return None
@@ -398,8 +398,8 @@ def hiding(result: dict[str, float] | None, after: list[str], m: int, alpha: flo
     if robust is not None and np.isfinite(robust):
         se = max(se, robust)
     level = alpha / max(m, 1)
-    nu = result.get("nu")
-    shift = delta_t(level, nu) if nu else float(np.sqrt(lambda0(level, 1)))
+    nu = result["nu"]  # remainder_statistics gives a result only where t_nu is made
+    shift = delta_t(level, nu)
     return {"arcsec_per_g": se * shift, "nu": nu,
             "sigma_arcsec_per_g": se, "estimate_arcsec_per_g": c, "t": t,
             "p_value": min(1.0, result["p_value"] * max(m, 1)), "after": list(after),
