@@ -221,3 +221,57 @@ def test_the_live_node_flags_a_gyro_fault_it_cannot_refuse(base, tmp_path):
     level, text = verdict_status({"verdict": "consistent"}, True, reasons)
     assert level == DiagnosticStatus.ERROR and text.startswith("result degraded: ")
     assert verdict_status({"verdict": "consistent"}, True, [])[0] == DiagnosticStatus.OK
+
+
+def _frame_rotation_general(v_st, u_i):
+    """The general form of ``frame_rotation`` (every star masked, ``np.median``): the
+    reference its fast paths (all finite, every star an inlier) must equal bit for bit."""
+    v, u = np.asarray(v_st, dtype=float), np.asarray(u_i, dtype=float)
+    ok = np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(u), axis=1)
+    if ok.sum() < 3:
+        return None, float("inf")
+    v, u = v[ok], u[ok]
+
+    def errors(R):
+        return np.arccos(np.clip(np.einsum("ij,ij->i", v @ R.T, u), -1, 1))
+
+    inl = np.ones(len(v), dtype=bool)
+    R = gyro_check.batched_wahba(v[None], u[None])[0]
+    for _ in range(4):
+        err = errors(R)
+        new = err <= max(4.0 * float(np.median(err[inl])), 1e-4)
+        if new.sum() < 3 or np.array_equal(new, inl):
+            break
+        inl = new
+        R = gyro_check.batched_wahba(v[inl][None], u[inl][None])[0]
+    return R, float(np.sqrt(np.mean(errors(R)[inl] ** 2)))
+
+
+def test_frame_rotation_fast_paths_equal_the_general_form_bit_for_bit():
+    # the watch's records (and so its verdicts) must not move: clean frames, frames with
+    # wrong identities (refits), non-finite stars, too few stars, odd and even counts
+    rng = np.random.default_rng(5)
+    kinds = {"clean": 0, "refit": 0, "masked": 0, "few": 0}
+    for i in range(600):
+        n = int(rng.integers(0, 30))
+        R = Rotation.random(random_state=i).as_matrix()
+        v = rng.standard_normal((n, 3))
+        v /= np.linalg.norm(v, axis=1)[:, None]
+        u = v @ R.T + 10 ** rng.uniform(-8, -4) * rng.standard_normal((n, 3))
+        wrong = bool(n and rng.random() < 0.3)  # wrong identities: the fit refits
+        if wrong:
+            u[rng.integers(0, n, size=rng.integers(1, 4))] += 0.01 * rng.standard_normal(3)
+        if n and rng.random() < 0.1:
+            v[rng.integers(0, n)] = np.nan
+        if n and rng.random() < 0.05:
+            u[rng.integers(0, n), 1] = np.inf
+        R_ref, rms_ref = _frame_rotation_general(v, u)
+        R_new, rms_new = gyro_check.frame_rotation(v, u)
+        if R_ref is None:
+            kinds["few"] += 1
+            assert R_new is None and rms_new == rms_ref
+            continue
+        kinds["masked" if not (np.isfinite(v).all() and np.isfinite(u).all()) else
+              "refit" if wrong else "clean"] += 1
+        assert np.array_equal(R_new, R_ref) and rms_new == rms_ref, i
+    assert min(kinds.values()) >= 10, kinds  # every kind of frame was tried

@@ -373,3 +373,33 @@ def test_deferred_checks_leave_the_frame_updates_and_count_the_same(excerpt, mon
     assert cal.filter_counters()["covariance_checks"] == ref.filter.counters.updates // 50 > 1
     np.testing.assert_array_equal(cal.filter.theta, ref.filter.theta)
     np.testing.assert_array_equal(cal.filter.P, ref.filter.P)
+
+
+def test_imu_blocks_handed_over_are_queued_without_a_copy_others_are_copied(excerpt):
+    """``push_imu_block(..., owned=True)`` (a replay's decoded blocks) is held as it is; a
+    caller's block (``owned`` False: the live node may reuse its buffer) is copied, so
+    writing to it afterwards changes nothing pending."""
+    from stellar_cal_ros.methods.imu_queue import ImuQueue
+
+    q = ImuQueue()
+    t = np.arange(1, 6, dtype=np.int64) * 10_000_000
+    w, f = np.ones((5, 3)), np.zeros((5, 3))
+    q.push(t, w, f)
+    t2, w2, f2 = t + 50_000_000, 2 * w, f.copy()
+    q.push(t2, w2, f2, True, copy=False)
+    assert q._blocks[1][0] is t2 and q._blocks[1][1] is w2
+    t[:] = 0
+    w[:] = 9.0
+    assert np.array_equal(q.t, np.concatenate([np.arange(1, 6) * 10_000_000, t2]))
+    assert np.array_equal(q.w[:5], np.ones((5, 3)))
+    # through the driver (nothing released yet: all of it pending)
+    prior = excerpt[1]
+    for owned in (False, True):
+        cal = Calibrator(prior, "psce", None, PsceConfig(), DriverConfig(reorder_window_s=1.0))
+        t = np.arange(1, 6, dtype=np.int64) * 10_000_000
+        w, f = np.full((5, 3), 0.01), np.zeros((5, 3))
+        cal.push_imu_block(t, w, f, owned=owned)
+        assert np.shares_memory(cal._imu._blocks[0][1], w) == owned
+        if not owned:
+            w[:] = 9.0
+        assert np.array_equal(cal._imu.w, np.full((5, 3), 0.01))

@@ -19,6 +19,8 @@ only.
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -64,24 +66,35 @@ def frame_rotation(v_st: np.ndarray, u_i: np.ndarray) -> tuple[np.ndarray | None
         Their catalogue directions, inertial frame.
     """
     v, u = np.asarray(v_st, dtype=float), np.asarray(u_i, dtype=float)
-    ok = np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(u), axis=1)
-    if ok.sum() < 3:
+    if not (math.isfinite(v.sum()) and math.isfinite(u.sum())):  # (else: all finite)
+        ok = np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(u), axis=1)
+        v, u = v[ok], u[ok]
+    if len(v) < 3:
         return None, float("inf")
-    v, u = v[ok], u[ok]
 
     def errors(R: np.ndarray) -> np.ndarray:
         return np.arccos(np.clip(np.einsum("ij,ij->i", v @ R.T, u), -1, 1))
 
-    inl = np.ones(len(v), dtype=bool)
+    inl = None  # every star an inlier
     R = batched_wahba(v[None], u[None])[0]
     for _ in range(4):
         err = errors(R)
-        new = err <= max(4.0 * float(np.median(err[inl])), 1e-4)
-        if new.sum() < 3 or np.array_equal(new, inl):
+        new = err <= max(4.0 * _median(err if inl is None else err[inl]), 1e-4)
+        n_new = int(np.count_nonzero(new))
+        if n_new < 3 or (n_new == len(new) if inl is None else np.array_equal(new, inl)):
             break
         inl = new
         R = batched_wahba(v[inl][None], u[inl][None])[0]
-    return R, float(np.sqrt(np.mean(errors(R)[inl] ** 2)))
+    err = errors(R)
+    return R, float(np.sqrt(np.mean((err if inl is None else err[inl]) ** 2)))
+
+
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of finite values (the same float: the middle one, or the mean of the
+    two middle ones), without its general machinery."""
+    s = np.sort(x)
+    m = len(s) // 2
+    return float(s[m]) if len(s) % 2 else float((s[m - 1] + s[m]) / 2.0)
 
 
 def rotvecs(mats: Any) -> np.ndarray:

@@ -188,18 +188,24 @@ class Calibrator(ImuRelease):
                  frame_id: str | None = None) -> list[FrameOutcome]:
         """One ``sensor_msgs/Imu`` sample; returns the frames this made processable."""
         return self.push_imu_block(np.array([stamp_ns], dtype=np.int64),
-                                   np.reshape(angular_velocity, (1, 3)),
+                                   np.array(angular_velocity, dtype=float).reshape(1, 3),
                                    None if linear_acceleration is None
-                                   else np.reshape(linear_acceleration, (1, 3)), frame_id)
+                                   else np.array(linear_acceleration, dtype=float).reshape(1, 3),
+                                   frame_id, owned=True)
 
     def push_imu_block(self, stamp_ns, angular_velocity, linear_acceleration=None,
-                       frame_id: str | None = None) -> list[FrameOutcome]:
-        """Several IMU samples (arrival order; stamps ns, rad/s, m/s²)."""
+                       frame_id: str | None = None, owned: bool = False) -> list[FrameOutcome]:
+        """Several IMU samples (arrival order; stamps ns, rad/s, m/s²).
+
+        ``owned``: the caller hands the arrays over (it never writes to them afterwards, as
+        a replay's decoded blocks): the pending queue holds them without a copy.
+        """
         c = self.counters
         t = np.asarray(stamp_ns, dtype=np.int64).reshape(-1)
         w = np.asarray(angular_velocity, dtype=float).reshape(-1, 3)
         f = np.zeros_like(w) if linear_acceleration is None else \
             np.asarray(linear_acceleration, dtype=float).reshape(-1, 3)
+        copy = not owned
         c.imu_received += len(t)
         expected = self.frames.get("imu")
         if frame_id is not None and expected and frame_id != expected:
@@ -239,7 +245,7 @@ class Calibrator(ImuRelease):
                 if back:
                     c.imu_clock_jumps += 1
                     self._clock_fault(clocks.back_text(back, self.t0_ns), flag=False)
-            elif self._defer_release(t, w, f, t_first, t_last):
+            elif self._defer_release(t, w, f, t_first, t_last, copy):
                 return [] if self._staged_n + self._imu.count_upto(
                     self.imu_max_ns - self.window_ns) < self.driver.imu_batch else self._pump()
         self._settle_imu()
@@ -253,7 +259,7 @@ class Calibrator(ImuRelease):
                 t, w, f = t[~old], w[~old], f[~old]
         if not len(t):
             return []
-        self._imu.push(t, w, f, inc)
+        self._imu.push(t, w, f, inc, copy)
         tmax = int(t[-1]) if inc else int(t.max())
         if self.imu_max_ns is None or tmax > self.imu_max_ns:
             self.imu_max_ns = tmax

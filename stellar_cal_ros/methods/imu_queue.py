@@ -68,8 +68,12 @@ class ImuQueue:
         return k
 
     def push(self, t: np.ndarray, w: np.ndarray, f: np.ndarray,
-             increasing: bool | None = None) -> None:
-        """Append a block (``increasing``: known strictly increasing)."""
+             increasing: bool | None = None, copy: bool = True) -> None:
+        """Append a block (``increasing``: known strictly increasing).
+
+        ``copy=False``: the caller hands the arrays over (int64 stamps, float rates and
+        forces, never written to afterwards): they are held as they are, not copied.
+        """
         m = len(t)
         if not m:
             return
@@ -86,8 +90,10 @@ class ImuQueue:
         # compared with)
         top = int(t[-1]) if increasing else int(t.max())
         self._tail = top if self._tail is None else max(self._tail, top)
-        self._blocks.append((np.array(t, dtype=np.int64), np.array(w, dtype=float),
-                             np.array(f, dtype=float)))
+        if copy:
+            t, w, f = np.array(t, dtype=np.int64), np.array(w, dtype=float), \
+                np.array(f, dtype=float)
+        self._blocks.append((t, w, f))
         self.n += m
 
     def pop(self, limit_ns: int | None, keep_max: int) -> tuple[np.ndarray, ...]:
@@ -145,7 +151,7 @@ class ImuRelease:
     """
 
     def _defer_release(self, t: np.ndarray, w: np.ndarray, f: np.ndarray, t0: int,
-                       t1: int) -> bool:
+                       t1: int, copy: bool = True) -> bool:
         """Queue an in-order block whose release can wait (a replay); False: not taken.
 
         With ``batch_frames`` and the filter running, a pump after an IMU block only moves
@@ -158,7 +164,7 @@ class ImuRelease:
         would release).  Frees a replay from a pump per message run; what a checkpoint
         saves and every count stay as without it.  The caller has checked the block strictly
         increasing from ``t0`` to ``t1`` (ns) and within the clock-jump bounds of the newest
-        sample pushed.
+        sample pushed; ``copy``: as :meth:`ImuQueue.push`'s.
         """
         q = self._imu
         if not self.driver.batch_frames or self.filter is None or not q.strict:
@@ -168,7 +174,7 @@ class ImuRelease:
         if (after is not None and t0 <= after) or newest is None \
                 or q.n + len(t) > self.driver.max_pending_imu:
             return False
-        q.push(t, w, f, True)
+        q.push(t, w, f, True, copy)
         if t1 > newest:
             self.imu_max_ns = t1
         self._deferred = True

@@ -163,7 +163,8 @@ def _handlers(cal: Calibrator) -> dict[str, Any]:
     """``role -> call(payload)``: the driver call of each event role of the replay."""
     out: dict[str, Any] = {
         # (stamps, rates, forces[, frame_id]): the frame id (None: any) last, by position
-        "imu": lambda p: cal.push_imu_block(*p),
+        # a decoded block is the replay's own (never written to): queued without a copy
+        "imu": lambda p: cal.push_imu_block(*p, owned=True),
         "stars": cal.push_stars,
         "image": cal.push_image,  # star images: made into frames one at a time (frames.py)
         "camera_info": cal.images.camera_info,
