@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy import stats as sps
 
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise, noise_stars
@@ -223,6 +224,39 @@ def test_error_repeating_star_by_star_is_not_noise():
     assert chi2 - dof == pytest.approx(float((off**2).sum()), rel=0.1)
     s2 = float((rest**2).sum() / (2 * share2.sum()))
     assert s2 == pytest.approx(1.0, abs=0.03)  # the scale without the repeat: as stated
+
+
+def test_star_repeat_after_the_cells_is_chi2_of_its_exact_dof():
+    """The per-star repeat is tested after the detector cells' means, which take most of a
+    star's mean: its dof is 2 (stars − star/cell groups), not Σ 2 (1 − 1/n_s).  White
+    tracks crossing 1-3 random cells (5 stars a cell on average): the χ² mean equals the
+    dof within 4 σ and p is uniform (mean 0.5 within 4 σ; benchmarks/ar1_level.py's white
+    draws, 150 stars, 200 draws: χ² 288.6 for
+    288.1, p 0.494; the old count 177.6 for 295.2); one star a cell leaves no dof; a
+    per-star error of 0.15 σ (a catalogue error, ~7 σ of the χ²) is detected at 1 %
+    (0.1 σ, ~3.5 σ of the χ²: 29 of 40)."""
+    rng = np.random.default_rng(3)
+    reps, P, chi2s, dofs, hits = 40, [], [], [], 0
+    for _ in range(reps):
+        n = rng.integers(10, 60, size=120)
+        star = np.repeat(np.arange(120), n)
+        cell = np.concatenate([rng.integers(0, 24, size=3)[np.minimum(
+            np.arange(k) * rng.integers(1, 4) // k, 2)] for k in n])
+        r = rng.standard_normal((len(star), 2))
+        keep = np.ones(len(star), dtype=bool)
+        chi2, dof = noise_stars.star_after_cells(r, cell, keep, star)
+        P.append(sps.chi2.sf(chi2, dof))
+        chi2s.append(chi2)
+        dofs.append(dof)
+        off = 0.15 * rng.standard_normal((120, 2))[star]
+        hits += sps.chi2.sf(*noise_stars.star_after_cells(r + off, cell, keep, star)) < 0.01
+    assert abs(np.mean(chi2s) - np.mean(dofs)) < 4 * np.sqrt(2 * np.mean(dofs) / reps)
+    assert abs(np.mean(P) - 0.5) < 4 / np.sqrt(12 * reps)
+    assert hits >= 0.9 * reps, hits
+    one = np.repeat(np.arange(30), 20)  # one star a cell: the cells take all
+    chi2, dof = noise_stars.star_after_cells(rng.standard_normal((600, 2)), one,
+                                             np.ones(600, dtype=bool), one)
+    assert dof == 0 and chi2 == pytest.approx(0.0, abs=1e-8)
 
 
 def test_spread_left_by_the_noise_groups_is_noise_not_a_lead():
