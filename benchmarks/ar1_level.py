@@ -25,7 +25,7 @@ import numpy as np
 from scipy import stats as sps
 
 from stellar_cal_ros.diagnosis import noise_structure as ns
-from stellar_cal_ros.diagnosis.noise_stars import _minus_cell_means, star_means
+from stellar_cal_ros.diagnosis.noise_stars import _minus_cell_means, star_after_cells, star_means
 
 #: the cells of noise_stars (6 x 6 grid x 3 magnitude classes) and its CELL_MIN
 CELLS, CELL_MIN = 108, 8
@@ -67,16 +67,16 @@ def pvalues(r: np.ndarray, star: np.ndarray, cell: np.ndarray, old: bool = False
     """
     keep = np.bincount(cell)[cell] >= CELL_MIN
     _, _, chi2, dof = _minus_cell_means(r, cell, keep)
-    share = np.ones(len(r))
-    rep, rep_dof, r_star, _ = star_means(r, share, star)
+    _, _, r_star, _ = star_means(r, np.ones(len(r)), star)
     if old:
         rho = _old_rho(r_star, star)
         f = (1.0 + rho) / (1.0 - rho)
+        rep, rep_dof = star_after_cells(r, cell, keep, star)
         rep, chi2 = rep / f, chi2 / f
     else:
         _, rho, _ = ns.track_inflation(r_star, star)
+        rep, rep_dof = star_after_cells(r, cell, keep, star, None, rho)
         if rho > 0:
-            rep = ns.lagged_chi2(r, star, star, rho, share > 0, 2)
             chi2 = ns.lagged_chi2(r, cell, star, rho, keep)
     return float(sps.chi2.sf(rep, rep_dof)), float(sps.chi2.sf(chi2, dof)), float(rho)
 

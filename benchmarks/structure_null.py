@@ -56,7 +56,7 @@ def bag_tests(name: str, seed: int) -> tuple[list[tuple[float, float]], list[flo
         seen.append((t, p))
         return t, p
 
-    extra = [f for f in (repeat_finding(res, mask, cam.fx, cam.fy, centre),
+    extra = [f for f in (repeat_finding(res, mask, cam.fx, cam.fy, centre, prior.R_imu_st),
                          *stats.periodic_findings(res, mask)) if f is not None]
     extra_p = [f.p_value for f in extra]  # regressor_tests adjusts them in place
     stats.frame_robust_t = record

@@ -19,7 +19,6 @@ import pytest
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise, noise_stars, rolling, stats
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
-from stellar_cal_ros.diagnosis.noise import repeat_finding
 from stellar_cal_ros.diagnosis.noise_structure import correlated
 from stellar_cal_ros.diagnosis.output import line_tests
 from stellar_cal_ros.diagnosis.runstats import evaluate
@@ -61,16 +60,13 @@ def _findings(sim, star_noise=False, ranked=False):
     res, cam = run.residuals, prior.camera
     mask = stats.evaluation_mask(res, 0.5)
     centre = (cam.cx, cam.cy)
-    extra = [repeat_finding(res, mask, cam.fx, cam.fy, centre),
-             *stats.periodic_findings(res, mask)]
-    found = stats.regressor_tests(res, mask, centre, focal=(cam.fx, cam.fy), extra=extra,
-                                  R_imu_st=prior.R_imu_st, height=cam.height)
+    found = line_tests(res, prior, 0.5)
     if not star_noise:
         return found
     ok = mask & ~np.asarray(res["gated"]).astype(bool)
     sig = np.sqrt(0.5 * (np.asarray(res["s_uu"]) + np.asarray(res["s_vv"])))
     return found, noise_stars.star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok,
-                                   cam.fx, cam.fy, centre)
+                                   cam.fx, cam.fy, centre, prior.R_imu_st)
 
 
 def test_pixel_locking_is_unexplained_with_the_subpixel_phase_first():

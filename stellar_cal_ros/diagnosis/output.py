@@ -123,7 +123,7 @@ def line_tests(res, calibration: Calibration, fraction: float) -> list:
     mask = stats.evaluation_mask(res, fraction)
     return stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
-        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre),
+        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st),
                *stats.periodic_findings(res, mask)], R_imu_st=calibration.R_imu_st,
         height=cam.height)
 
