@@ -355,3 +355,29 @@ def test_star_repeat_after_the_cells_holds_its_level_on_ar1_tracks():
     rng, reps = np.random.default_rng(11), 60
     P = np.array([pvalues(*draw(rng, np.exp(-0.2)))[0] for _ in range(reps)])
     assert abs(P.mean() - 0.5) < 4.0 / np.sqrt(12.0 * reps), P.mean()
+
+
+def test_trace_after_cells_is_the_projections_trace_of_the_ar1_covariance():
+    """``noise_stars._trace_after_cells`` (what one axis of the repeat expects under AR(1)
+    along each star's rows) equals ``tr((P_{S+C} − P_C) Σ)`` built densely on a small case
+    (12 stars, 1-3 cells each of 5), and ``stars − groups`` for white noise."""
+    from scipy.linalg import block_diag
+
+    rng = np.random.default_rng(4)
+    n = rng.integers(3, 15, size=12)
+    star = np.repeat(np.arange(12), n)
+    cell = np.concatenate([rng.integers(0, 5, size=3)[np.minimum(np.arange(k) * 3 // k, 2)]
+                           for k in n])
+    S, C = np.eye(12)[star], np.eye(5)[cell]
+    proj = lambda X: X @ np.linalg.pinv(X.T @ X) @ X.T  # noqa: E731
+    Q = proj(np.hstack([S, C])) - proj(C)
+    ns_, nc = np.bincount(star).astype(float), np.bincount(cell, minlength=5).astype(float)
+    A = np.diag(nc) - (C.T @ S) @ np.diag(1.0 / ns_) @ (S.T @ C)
+    Ap = np.linalg.pinv(A, rcond=1e-10, hermitian=True)
+    for rho in (0.0, 0.5, 0.82):
+        cov = block_diag(*[rho ** np.abs(np.subtract.outer(np.arange(k), np.arange(k)))
+                           for k in n])
+        got = noise_stars._trace_after_cells(star, cell, ns_, nc, Ap, rho)
+        assert got == pytest.approx(float(np.trace(Q @ cov)), rel=1e-9)
+    assert noise_stars._trace_after_cells(star, cell, ns_, nc, Ap, 0.0) == pytest.approx(
+        np.linalg.matrix_rank(Q))
