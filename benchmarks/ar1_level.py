@@ -4,7 +4,9 @@ The stars' noise tests (:func:`~stellar_cal_ros.diagnosis.noise_stars.star_noise
 χ² of the star means and of the detector cells' means to the lag correlation of the tracks
 (:func:`~stellar_cal_ros.diagnosis.noise_structure.track_inflation` estimates ``ρ``,
 :func:`~stellar_cal_ros.diagnosis.noise_structure.lagged_chi2` divides each mean by the
-exact variance of a mean of its tracks' frames).  Here the residuals are pure AR(1) tracks
+exact variance of a mean of its tracks' frames; the repeat is the stars' sum of squares
+after the cells' means, :func:`~stellar_cal_ros.diagnosis.noise_stars.star_after_cells`,
+referred to the exact trace of the AR(1) covariance through its projection).  Here the residuals are pure AR(1) tracks
 of known ``ρ`` (unit variance, 10-80 frames each, 150 stars, each track crossing 1-3 of 108
 cells in consecutive segments, rows in time order as a residual table holds them), so both
 p-values must be uniform: the table prints their mean (0.5), the share below 5 % and 1 %,
