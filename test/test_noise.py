@@ -381,3 +381,31 @@ def test_trace_after_cells_is_the_projections_trace_of_the_ar1_covariance():
         assert got == pytest.approx(float(np.trace(Q @ cov)), rel=1e-9)
     assert noise_stars._trace_after_cells(star, cell, ns_, nc, Ap, 0.0) == pytest.approx(
         np.linalg.matrix_rank(Q))
+
+
+def test_sigma_zero_stars_take_the_correlation_factor_too():
+    """Issue 21.4: stars whose message says σ = 0 ('unknown', measured from the run) carry
+    the same AR(1) noise along their tracks as the others: the scale a white-noise filter
+    needs is their measured scatter x √((1+ρ)/(1−ρ)), as for the stated stars (before, they
+    kept the white scatter, 1/3.08 of it at ρ 0.81).  A quarter of the stars at σ 0 (the
+    run's 0.05 px default), all with a true scatter of 0.964 x the σ used; the twin's
+    within-frame scales take the factor off again, and the line names what is used."""
+    rho, scatter = 0.81, 0.964
+    k = np.sqrt((1 + rho) / (1 - rho))
+    sn = _star_noise(factor=lambda m, uv: np.full(len(m), scatter))
+    sn.magnitude = np.full(len(sn.q), np.nan)  # no groups: one scatter
+    sn.radius, sn.uv = np.zeros(len(sn.q)), None
+    sn.unknown = np.arange(len(sn.q)) % 4 == 0
+    sn.track_rho, sn.track_pairs = rho, 5000
+    v = noise.NoiseVerdict(NoiseScales(), NoiseScales())
+    applied = v.applied = noise.judge_stars(v, sn, 0.05, (1024, 1024), 1)
+    assert v.correlated["sigma_scale"] == pytest.approx(k, rel=1e-12)
+    # the measured scatter of the σ-0 stars: the truth within 3 of its σ
+    assert v.unknown_sigma_px == pytest.approx(0.05 * scatter, abs=3 * v.unknown_sigma_sigma)
+    assert applied.unknown_sigma_px == pytest.approx(v.unknown_sigma_px * k, rel=1e-12)
+    assert applied.star_inflation == pytest.approx(k, rel=1e-12)
+    white = applied.within_frames()
+    assert white.unknown_sigma_px == pytest.approx(v.unknown_sigma_px, rel=1e-12)
+    assert white.star == pytest.approx(applied.star / k, rel=1e-12)
+    line = next(x for x in v.lines() if "carry sigma 0" in x)
+    assert f"{v.unknown_sigma_px * k:.3g} px" in line and f"x{k:.3g}" in line, line

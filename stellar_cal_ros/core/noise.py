@@ -79,11 +79,13 @@ class NoiseScales:
     def within_frames(self) -> NoiseScales:
         """The scales of the stars' noise within one frame (its marginal σ), white.
 
-        ``star`` without :attr:`star_inflation`; the σ measured for stars whose message
-        says 0 is a scatter already.  What a bag with this noise has in each frame (the
-        twin renders it, correlated by :attr:`star_rho` along each star's track).
+        ``star`` and the σ of stars whose message says 0 without :attr:`star_inflation`
+        (both carry it under correlated noise).  What a bag with this noise has in each
+        frame (the twin renders it, correlated by :attr:`star_rho` along each star's track).
         """
-        return self.replace(star=self.star / self.star_inflation, star_rho=0.0)
+        k = self.star_inflation
+        return self.replace(star=self.star / k, unknown_sigma_px=self.unknown_sigma_px / k,
+                            star_rho=0.0)
 
     def group_of(self, magnitude: np.ndarray, uv: np.ndarray,
                  centre: tuple[float, float]) -> np.ndarray:

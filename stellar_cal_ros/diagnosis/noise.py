@@ -271,7 +271,10 @@ class NoiseVerdict:
         if self.unknown:
             out.append(f"{self.unknown} stars carry sigma 0 (unknown): measured from the run "
                        f"as {self.unknown_sigma_px:.3g} +- {self.unknown_sigma_sigma:.2g} px "
-                       "(used for them)")
+                       + (f"(used for them x{self.correlated['sigma_scale']:.3g} for the "
+                          "frame-to-frame correlation: "
+                          f"{self.unknown_sigma_px * self.correlated['sigma_scale']:.3g} px)"
+                          if self.correlated else "(used for them)"))
         units = {"gyro": ("gyro noise (angle random walk)", "gyro"),
                  "accel": ("accelerometer noise (velocity random walk)", "accel")}
         for comp, search in self.imu.items():
@@ -376,8 +379,11 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
         if sn.structure_p >= ALPHA and not sn.repeat_removed else None
     if v.correlated:
         # the scale a filter needs, and the correlation it stands for (a twin renders it)
-        applied = applied.replace(star=applied.star * v.correlated["sigma_scale"],
-                                  star_rho=v.correlated["rho"])
+        # σ-0 stars' noise is the same process: their measured scatter takes the factor too
+        # (before, they kept the white scatter: ~1/3 of what the filter needs at ρ 0.81)
+        k = v.correlated["sigma_scale"]
+        applied = applied.replace(star=applied.star * k, star_rho=v.correlated["rho"],
+                                  unknown_sigma_px=applied.unknown_sigma_px * k)
         if "star" not in v.rejected:
             v.rejected.append("star")
     return applied
