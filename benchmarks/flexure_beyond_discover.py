@@ -11,7 +11,9 @@ evaluation window (both runs' accepted, aligned stars):
 * ``dSS``: the candidate's reduction of the uncapped whitened sum of squares;
 * ``dSS capped``: the same with each star's NIS capped at 13.8, as the log-likelihood does;
 * ``dlogdet``: what the candidate's parameter uncertainty adds to Σ log det S;
-* ``flex chi2`` without / with: the flexure's in-sample χ², uncapped and capped.
+* ``flex chi2`` without / with: the flexure's in-sample χ², uncapped, NIS-capped at the
+  least-squares size, and the capped gain ``flexure.beyond`` adds (``stats.capped_gain``:
+  the best size for the capped sum, ≥ 0; since 2026-11-27).
 
 Cases: ``to`` = test_discovery_auto's bag (psce_rotations 120 s, seed 21, 10 ms time offset +
 a true 1e-4 gyro scale factor, four candidates); ``flexure`` = test_discovery_effects'
@@ -26,6 +28,7 @@ Run::
     .venv/bin/python benchmarks/flexure_beyond_discover.py to --rule every
     .venv/bin/python benchmarks/flexure_beyond_discover.py flexure
     .venv/bin/python benchmarks/flexure_beyond_discover.py mixed
+    .venv/bin/python benchmarks/flexure_beyond_discover.py flexure --seed 53
 """
 
 from __future__ import annotations
@@ -78,7 +81,7 @@ def _parts(res, moved, fraction):
     det = sub["s_uu"] * sub["s_vv"] - sub["s_uv"] ** 2
     got.update(ss=float(q.sum()), ss_capped=float(np.minimum(q, CAP).sum()),
                logdet=float(np.log(det[ok]).sum()), n=int(ok.sum()),
-               chi2_capped=float(np.minimum(q, CAP).sum() - np.minimum(qf, CAP).sum()))
+               chi2_capped_ls=float(np.minimum(q, CAP).sum() - np.minimum(qf, CAP).sum()))
     return got
 
 
@@ -89,8 +92,10 @@ def _beyond(statistic, dof, dispersion, w, wo):
         print(f"beyond ({dof} dof, dispersion {dispersion:.3f}): discover {out['statistic']:.1f}"
               f" | raw: 2dLL (Lambda) {lam:.1f}, dSS {wo['ss'] - w['ss']:.1f}, dSS capped "
               f"{wo['ss_capped'] - w['ss_capped']:.1f}, dlogdet {w['logdet'] - wo['logdet']:.1f}"
-              f"; flex chi2 without/with {wo['chi2']:.1f}/{w['chi2']:.1f}, capped "
-              f"{wo['chi2_capped']:.1f}/{w['chi2_capped']:.1f}; stars {wo['n']}/{w['n']}",
+              f"; flex chi2 without/with {wo['chi2']:.1f}/{w['chi2']:.1f}, capped at the "
+              f"least-squares c {wo['chi2_capped_ls']:.1f}/{w['chi2_capped_ls']:.1f}, capped "
+              f"gain (what beyond adds) {wo['chi2_capped']:.1f}/{w['chi2_capped']:.1f}; "
+              f"stars {wo['n']}/{w['n']}",
               flush=True)
     return out
 
@@ -102,8 +107,10 @@ def main() -> None:
     ap.add_argument("--rule", choices=("main", "every"), default="main",
                     help="every: test each later non-camera candidate beyond a significant "
                          "remainder (H34's trial), not only after a stand-in")
+    ap.add_argument("--seed", type=int, default=None, help="another seed of the case's bag")
     a = ap.parse_args()
     effects, seed, duration, cands, noise, refit = CASES[a.case]
+    seed = seed if a.seed is None else a.seed
     flexure.remainder_statistics = _parts
     flexure.beyond = _beyond
     if a.rule == "every":

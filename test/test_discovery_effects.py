@@ -206,8 +206,10 @@ def test_single_diagnose_round_says_the_recommendation_stands_in_for_a_flexure(
     assert summary["unexplained"][0]["regressor"] == rem["regressor"], summary["unexplained"]
     d = rem["detail"]
     assert abs(d["arcsec_per_g"] - FLEXURE) < 3.0 * d["sigma_arcsec_per_g"], d
-    # beyond a flexure: discover's test on this bag measured -315 (chi2, 3 dof)
-    assert not d["beyond"]["needed"] and d["beyond"]["p_value"] > 0.05, d["beyond"]
+    # beyond a flexure, both terms NIS-capped (flexure.beyond): discover's test on this
+    # bag measured 10.6 (chi2, 3 dof, p 0.014; -314.7 with the flexure's chi2 uncapped)
+    b = d["beyond"]
+    assert not b["needed"] and b["p_value"] > 0.01 and not b["negative"], b
     assert "stands in for it" in rem["text"] and "outside the library" in rem["text"], rem
     assert "stands in for it" in "\n".join(summary["terminal"])
 
@@ -243,13 +245,54 @@ def test_remainder_text_says_what_the_beyond_test_found():
     said = remainder_text(["gyro_scale_factor"], f)
     assert "0.033 px" in said and "40.8 +- 4.3 arcsec" in said
     assert said.endswith("gyro_scale_factor improves the fit but may stand in for it"), said
-    for needed, words in ((True, "improves the fit beyond such a flexure too"),
-                          (False, "explains nothing beyond such a flexure")):
-        b = {"statistic": 469.4 if needed else -315.4, "dof": 3, "needed": needed,
-             "p_value": 1e-100 if needed else 1.0}
+    for stat, needed, words in (
+            (469.4, True, "improves the fit beyond such a flexure too"),
+            (10.6, False, "explains nothing beyond such a flexure (its ratio with a flexure "
+                          "fitted beside it 10.6, chi2 with 3, p=0.014)"),
+            (-29.7, False, "explains nothing beyond such a flexure (its ratio with a flexure "
+                           "fitted beside it -29.7 < 0 for 3 dof: with a flexure fitted the "
+                           "model predicts worse with it than without it, no chi2 test)")):
+        b = flexure.beyond(stat, 3, 1.0, {"chi2_capped": 0.0}, {"chi2_capped": 0.0})
+        assert b["needed"] is needed and b["negative"] is (stat < 0), b
         said = remainder_text(["gyro_scale_factor"], {**f, "detail": {**f["detail"],
                                                                         "beyond": b}})
         assert words in said and ("stands in for it" in said) is not needed, said
+
+
+def test_beyond_adds_the_flexures_gain_in_the_currency_of_the_ratio():
+    """``flexure.beyond``: Λ (NIS capped at 13.8 per star) plus the flexure's gain with the
+    effect minus without it, that gain too with each star's NIS capped
+    (``stats.capped_gain``); the uncapped ``chi2`` is not used.  On white innovations with a
+    pattern of known size the capped gain tends to the uncapped ``c² info`` as the cap
+    grows, is below it at 13.8 when stars exceed the cap, and is never negative (a
+    least-squares ``c`` that loses in the capped sum is not what a fitted flexure gains)."""
+    rng = np.random.default_rng(5)
+    sub = _table(rng, frames=80)
+    n = len(sub["du"])
+    x = 0.01 * rng.standard_normal((n, 2))
+    sub["du"] = sub["du"] + 3.0 * x[:, 0]
+    sub["dv"] = sub["dv"] + 3.0 * x[:, 1]
+    t, _, c, info = stats.whitened_fit(sub, x)
+    assert stats.capped_gain(sub, x, c, cap=1e12) == pytest.approx(c * c * info, rel=1e-9)
+    assert 0.0 < stats.capped_gain(sub, x, c) <= c * c * info
+    # a few stars far beyond the cap: the least-squares fit chases them, the capped gain
+    # is what a fit gains where Λ counts (>= the gain at 0, i.e. 0, and at c)
+    far = sub.copy()
+    far["du"] = np.where(np.arange(n) < 5, 40.0 * x[:, 0] / 0.01 * 0.05, far["du"])
+    _, _, c_far, info_far = stats.whitened_fit(far, x)
+    got = stats.capped_gain(far, x, c_far)
+    assert 0.0 <= got < c_far * c_far * info_far
+    w = stats.whitened(far)
+    wx = stats.whitened({"du": x[:, 0], "dv": x[:, 1], **{k: far[k] for k in ("s_uu", "s_uv",
+                                                                              "s_vv")}})
+    capped = [float(np.minimum(np.sum(w**2, 1), 13.8).sum()
+                    - np.minimum(np.sum((w - k * wx) ** 2, 1), 13.8).sum())
+              for k in np.linspace(0.0, 2.0 * c_far, 401)]
+    assert got >= max(capped) - 1e-6 * abs(max(capped)) - 1e-9
+    # beyond uses the capped gains only
+    b = flexure.beyond(20.0, 3, 2.0, {"chi2": 1e6, "chi2_capped": 30.0},
+                       {"chi2": 5.0, "chi2_capped": 10.0})
+    assert b["statistic"] == pytest.approx(30.0) and b["needed"] and not b["negative"]
 
 
 def _table(rng, frames: int = 60, stars: int = 8, offset: float = 0.0) -> dict:
@@ -351,15 +394,22 @@ def test_mount_flexure_is_unexplained_and_no_stand_in_is_added_for_it(tmp_path, 
     assert 0.02 < first["change_px"] < 0.1, first  # measured 0.033 px
     d = first["detail"]
     assert abs(d["arcsec_per_g"] - truth) < 3.0 * d["sigma_arcsec_per_g"], d
-    # gyro_scale_factor beside a fitted flexure: measured -315 (chi2, 3 dof)
-    assert not d["beyond"]["needed"] and d["beyond"]["p_value"] > 0.05, d["beyond"]
-    # gyro_misalignment after it: significant alone, nothing beyond the flexure (-34, 6 dof)
+    # gyro_scale_factor beside a fitted flexure, both terms NIS-capped: measured 10.6
+    # (chi2, 3 dof, p 0.014: not significant at 1 %; -314.7 with the flexure's chi2
+    # uncapped, a negative ratio that is no chi2 statistic)
+    b = d["beyond"]
+    assert not b["needed"] and b["p_value"] > 0.01 and not b["negative"], b
+    # gyro_misalignment after it: significant alone, and with a flexure fitted beside both
+    # models its 6 parameters cost more than what it explains (-29.7; -34.0 uncapped):
+    # said as a negative ratio, no chi2 tail
     step = summary["path"][-1]
     gm = step["beyond_remainder"]["gyro_misalignment"]
-    assert not gm["needed"] and gm["p_value"] > 0.05, gm
+    assert not gm["needed"] and gm["negative"] and gm["statistic"] < 0, gm
     assert summary["recommendation"] is None and summary["reliability"], summary.keys()
     rejected = {r["effect"]: r["reason"] for r in summary["rejected"]}
     assert "beyond the gravity-shaped remainder" in rejected["gyro_misalignment"], rejected
+    assert "predicts worse with it than without it, no chi2 test" in \
+        rejected["gyro_misalignment"], rejected
     text = "\n".join(summary["terminal"])
     assert "stands in for it" in text and "outside the library" in text, text
     # the remainder is said, so no "could still hide" bound is printed; the bound the

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from stellar_cal_ros.core.noise import NoiseScales
-from stellar_cal_ros.diagnosis import noise, noise_stars, rolling, stats
+from stellar_cal_ros.diagnosis import flexure, noise, noise_stars, rolling, stats
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
 from stellar_cal_ros.diagnosis.noise_structure import correlated
 from stellar_cal_ros.diagnosis.output import line_tests
@@ -320,19 +320,30 @@ def test_rolling_shutter_on_a_swaying_base_is_no_noise_and_has_no_stand_in():
 
 def test_a_shutter_fit_that_vanishes_beside_a_candidate_does_not_refuse_it():
     """``rolling.stand_in`` on the numbers of the acceptance case swaying_time_tilt_misalignment
-    (true 5 ms time offset, model far off: NIS/dof 135): the shutter's fit on the current
-    model (χ² 175 513, uncapped) is gone beside time_offset (3.0, p 0.90) while Λ (NIS
-    capped) is 288, so the beyond ratio reads −1013.8; the fit was time_offset's stand-in
-    and time_offset is not refused.  The same ratio with the fit still significant beside
-    it (a true readout) refuses it."""
-    c = SimpleNamespace(statistic=287.997, dof=1)
-    shutter = {"t": -12.15, "p_value": 1.17e-12, "chi2": 175513.09}
-    gone = {"t": -0.128, "p_value": 0.899, "chi2": 2.998}
-    assert rolling.stand_in(c, 134.816, gone, shutter, 0.01) is None
+    (200 s, round 1; true 5 ms time offset, model far off): the shutter's fit on the current
+    model (χ² 65 291 uncapped, 1 156.9 with each star's NIS capped as Λ's is) is gone beside
+    time_offset (2.5, p 0.72; capped gain 0).  With the uncapped χ² the beyond ratio read
+    135.6 + (2.5 − 65 290.6)/177.7 = −231.8 (the full 900 s case −1013.8) and refused
+    time_offset before 15398c3; in one currency it is 129.1 (p 6e-30): time_offset explains
+    the data beyond the shutter's shape, and the fit vanishing beside it says the same.  A
+    candidate that explains less than the fit loses beside it, with the fit still
+    significant, is refused, its ratio negative (no χ² tail)."""
+    c = SimpleNamespace(statistic=135.609, dof=1)
+    disp = 177.7206
+    shutter = {"t": -4.066, "p_value": 1.26e-3, "chi2": 65290.61, "chi2_capped": 1156.861}
+    gone = {"t": 0.358, "p_value": 0.723, "chi2": 2.457, "chi2_capped": 0.0}
+    assert rolling.stand_in(c, disp, gone, shutter, 0.01) is None
+    b = flexure.beyond(c.statistic, 1, disp, gone, shutter)
+    assert b["statistic"] == pytest.approx(129.10, abs=0.01) and b["needed"], b
+    assert c.statistic + (gone["chi2"] - shutter["chi2"]) / disp == pytest.approx(-231.75,
+                                                                                   abs=0.01)
     kept = dict(gone, t=-12.0, p_value=1e-12)
-    b = rolling.stand_in(c, 134.816, kept, shutter, 0.01)
-    assert b["statistic"] == pytest.approx(-1013.85, abs=0.05) and not b["needed"]
-    assert b["remainder"] == rolling.REMAINDER
+    assert rolling.stand_in(c, disp, kept, shutter, 0.01) is None  # needed beyond it
+    weak = SimpleNamespace(statistic=3.0, dof=1)
+    b = rolling.stand_in(weak, disp, kept, shutter, 0.01)
+    assert b["statistic"] == pytest.approx(3.0 - 1156.861 / disp) and b["negative"]
+    assert not b["needed"] and b["remainder"] == rolling.REMAINDER
+    assert rolling.stand_in(weak, disp, gone, shutter, 0.01) is None  # the fit vanished
 
 
 def test_rolling_taken_out_interpolates_all_stamps_at_once_as_frame_by_frame():

@@ -315,9 +315,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 what, fitted = b.get("remainder", ("the gravity-shaped remainder",
                                                    "a mount flexure"))
                 why = (f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing "
-                       f"beyond {what} (its ratio with {fitted} fitted beside it "
-                       f"{b['statistic']:.1f}, chi2 with {b['dof']}, p = "
-                       f"{b['p_value']:.2g}): not added")
+                       f"beyond {what} ({flexure.ratio_text(b, fitted)}): not added")
                 for rj in step["rejected"]:
                     if rj["effect"] == c.effect:
                         rj["reason"] = why

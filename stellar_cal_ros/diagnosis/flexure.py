@@ -28,11 +28,13 @@ true gyro scale factor instead, t = 1.1.
 
 Once the remainder is significant, which library effects are needed *beside* a flexure is
 a nested test (:func:`beyond`): the flexure fitted as a nuisance regressor in the model with
-and without the effect (``chi2 = c² Σ Sᵀ C⁻¹ S``, the whitened sum of squares it removes)
-turns the effect's ratio Λ into its ratio given a flexure, ``Λ + (chi2_with − chi2_without)
-/ dispersion``, χ² with the effect's dof.  ``discover`` adds a non-camera candidate then only
-if that is significant, and flags the effect the remainder was found after when it is not
-(40″, 300 s: gyro_scale_factor −921 for 3 dof, gyro_misalignment after it −9.3 for 6).
+and without the effect (``chi2_capped``: what it removes of the whitened sum of squares
+with each star's NIS capped as in Λ) turns the effect's ratio Λ into its ratio given a
+flexure, ``Λ + (chi2_with − chi2_without) / dispersion``, χ² with the effect's dof.
+``discover`` adds a non-camera candidate then only if that is significant, and flags the
+effect the remainder was found after when it is not (40″/g, 200 s, seeds 52-61:
+gyro_scale_factor −11.1 to 10.6 for 3 dof, gyro_misalignment after it −29.7 to −62.3 for 6:
+a negative ratio, said as such).
 
 A remainder that a later add takes up was that add's only if the test after it could
 still see a flexure of that size (:func:`alias`); when the add leaves the test blind to it
@@ -137,7 +139,7 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
     frame = np.asarray(sub["frame"])
     shown = np.hypot(*(S * c).T)
     return {"t": t, "p_value": p, "nu": nu, "arcsec_per_g": c,
-            "chi2": c * c * info,
+            "chi2": c * c * info, "chi2_capped": stats.capped_gain(sub, S, c),
             "sigma_arcsec_per_g": float(1.0 / np.sqrt(info)),
             "robust_sigma_arcsec_per_g": _robust_sigma(sub, S, t, info),
             "change_px": float(np.percentile(shown, 99)),
@@ -249,10 +251,27 @@ def beyond(statistic: float, dof: int, dispersion: float, with_effect: dict | No
     nuisance regressor of the innovations, :func:`remainder_statistics`): the effect's
     ratio ``statistic`` (Λ against the model without it, quasi-likelihood with
     ``dispersion``) plus what the fitted flexure gains with the effect (``with_effect``'s
-    ``chi2``, whitened) minus what it gains without it (``without``'s): the nested test of
+    ``chi2_capped``) minus what it gains without it (``without``'s): the nested test of
     the effect given a flexure, χ² with ``dof``.  ``None`` when either test did not run.
 
-    ``{statistic, dof, p_value, needed}``: ``needed`` at the diagnosis's α.
+    One currency.  Λ is twice the gain in a log-likelihood whose per-star NIS is capped at
+    13.8 (:data:`~stellar_cal_ros.methods.results.NIS_CAP`), so the fitted flexure's gain
+    is taken with each star's NIS capped alike (:func:`~stellar_cal_ros.diagnosis.stats.
+    capped_gain`).  Until 2026-11-27 its uncapped ``c² info`` was added: on a model far
+    from the data the stars Λ caps dominate that sum, and the ratio went far negative
+    (the 200 s 40″/g flexure bag: gyro_scale_factor −314.7 for 3 dof, of which 494 was
+    the cap; a swaying bag's time offset beside a rolling shutter −1013.8: χ² 175 513
+    uncapped).  What stays in Λ and not in the flexure's gain is the prequential price of
+    the effect's own parameters (Δ Σ log det S, 13-67 on these bags): the price the same Λ
+    paid to be significant alone, so not a second currency.
+
+    A ratio below 0 is not a χ² statistic: the model with the effect predicts the data
+    worse, once a flexure is fitted beside both, than the model without it (its
+    parameters cost more than what it explains beyond the flexure).  Its p-value is then
+    not a χ² tail: ``p_value`` is 1, ``negative`` True and the verdict says so
+    (:func:`ratio_text`); the effect is not needed beyond the flexure either way.
+
+    ``{statistic, dof, p_value, needed, negative}``: ``needed`` at the diagnosis's α.
     """
     from scipy import stats as sps
 
@@ -260,9 +279,25 @@ def beyond(statistic: float, dof: int, dispersion: float, with_effect: dict | No
 
     if with_effect is None or without is None:
         return None
-    lam = float(statistic + (with_effect["chi2"] - without["chi2"]) / dispersion)
-    p = float(sps.chi2.sf(max(lam, 0.0), dof))
-    return {"statistic": lam, "dof": int(dof), "p_value": p, "needed": p < ALPHA}
+    lam = float(statistic + (with_effect["chi2_capped"] - without["chi2_capped"])
+                / dispersion)
+    negative = not lam >= 0.0
+    p = 1.0 if negative else float(sps.chi2.sf(lam, dof))
+    return {"statistic": lam, "dof": int(dof), "p_value": p, "needed": p < ALPHA,
+            "negative": negative}
+
+
+def ratio_text(b: dict[str, Any], fitted: str = "a flexure") -> str:
+    """The beyond test's result in words (terminal, report, a refused candidate's reason).
+
+    A ratio below 0 is said as what it is (the model predicts worse with the effect once
+    ``fitted`` is fitted beside both), not as a χ² tail.
+    """
+    head = f"its ratio with {fitted} fitted beside it {b['statistic']:.1f}"
+    if b.get("negative"):
+        return (f"{head} < 0 for {b['dof']} dof: with {fitted} fitted the model predicts "
+                "worse with it than without it, no chi2 test")
+    return f"{head}, chi2 with {b['dof']}, p={b['p_value']:.2g}"
 
 
 #: the power with which the test after an add must see the flexure found before it for
@@ -292,18 +327,30 @@ def alias(before: dict | None, after: dict | None, m: int, alpha: float
     sigma_after_arcsec_per_g, t_after, power}`` when the flexure would likely go unseen
     (the add is marked), else ``None``.
     """
-    from stellar_cal_ros.diagnosis.reliability import delta_t
-
     if before is None or after is None or not after.get("nu"):
         return None
-    se = after.get("robust_sigma_arcsec_per_g") or after["sigma_arcsec_per_g"]
-    seen = float(se) * delta_t(alpha / max(m, 1), after["nu"], ALIAS_POWER)
+    seen, se = alias_size(after, m, alpha)
     if not abs(before["arcsec_per_g"]) < seen:
         return None
     return {"arcsec_per_g": float(before["arcsec_per_g"]),
             "sigma_arcsec_per_g": float(before["sigma_arcsec_per_g"]),
             "mdb_after_arcsec_per_g": seen, "sigma_after_arcsec_per_g": float(se),
             "t_after": float(after["t"]), "power": ALIAS_POWER}
+
+
+def alias_size(after: dict, m: int, alpha: float) -> tuple[float, float]:
+    """The flexure (″/g) the test ``after`` sees with :data:`ALIAS_POWER`, and its σ.
+
+    ``σ δ``: ``σ`` the frame-robust standard error of the slope its ``t`` is of (the
+    whitened one where that failed), ``δ`` the shift at which its two-sided t_ν test at
+    ``α/m`` has that power.  What :func:`alias` prints; checked by injection
+    (``benchmarks/flexure_power.py``: a flexure of this size injected into the bag,
+    detected by the test of the same model in about half of the seeds).
+    """
+    from stellar_cal_ros.diagnosis.reliability import delta_t
+
+    se = float(after.get("robust_sigma_arcsec_per_g") or after["sigma_arcsec_per_g"])
+    return se * delta_t(alpha / max(m, 1), after["nu"], ALIAS_POWER), se
 
 
 #: what an added effect that a flexure explains as well is marked with (terminal, JSON,
@@ -363,8 +410,7 @@ def _stand_in(b: dict[str, Any] | None) -> str:
     """What the report says of the effect the remainder was found after."""
     if not b:
         return "improves the fit but may stand in for it"
-    test = (f"its ratio with a flexure fitted beside it {b['statistic']:.1f}, chi2 with "
-            f"{b['dof']}, p={b['p_value']:.2g}")
+    test = ratio_text(b)
     if b["needed"]:
         return f"improves the fit beyond such a flexure too ({test})"
     return (f"explains nothing beyond such a flexure ({test}): it stands in for it, and its "

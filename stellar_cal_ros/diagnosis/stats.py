@@ -591,6 +591,7 @@ def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
         return None
     t, p, c, info = fit
     return {"t": t, "p_value": p, "chi2": c * c * info,
+            "chi2_capped": capped_gain(sub, x, c),
             "readout_ms": readout_s(c, None, height) * 1e3, "coefficient": c}
 
 
@@ -622,6 +623,41 @@ def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
         return None
     c = float(np.sum(w_x[ok] * w_nu[ok])) / info
     return (float(t), float(p), c, info) + ((float(nu),) if dof else ())
+
+
+def capped_gain(sub: Table, x: np.ndarray, c: float, cap: float = 13.8) -> float:
+    """What a nuisance fit of the pattern ``x`` removes of the χ², each star's NIS capped.
+
+    ``max over k of Σ min(q, cap) − Σ min(q_k, cap)`` over the stars of ``sub`` where both
+    whitened vectors are finite (as :func:`whitened_fit`), ``q`` each star's NIS (whitened
+    u² + v²) of the innovations and ``q_k`` of the innovations minus ``k x``; ``k`` searched
+    between 0 and ``2 c`` (``c`` the least-squares size) and never worse than 0 or ``c``,
+    so the gain is ≥ 0.  The currency of a candidate's ratio Λ (twice its gain in the
+    log-likelihood whose per-star NIS is capped at ``cap``:
+    :data:`stellar_cal_ros.methods.results.NIS_CAP`, :func:`log_likelihood`), so that the
+    two can be added (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`).  ``c² info`` is
+    the uncapped gain, which on a far-off model is dominated by the stars Λ caps (a swaying
+    bag at NIS/dof 135: 175 513 uncapped); the least-squares ``c`` itself can lose in the
+    capped sum (a 10 ms time offset's baseline: −551.5 at ``c``), hence the search.
+    """
+    from scipy import optimize
+
+    cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
+    w_nu = whitened(sub)
+    w_x = whitened({"du": x[:, 0], "dv": x[:, 1], **cov})
+    ok = np.all(np.isfinite(w_x), 1) & np.all(np.isfinite(w_nu), 1)
+    w_nu, w_x = w_nu[ok], w_x[ok]
+    base = float(np.sum(np.minimum(np.sum(w_nu**2, 1), cap)))
+
+    def gain(k: float) -> float:
+        return base - float(np.sum(np.minimum(np.sum((w_nu - k * w_x) ** 2, 1), cap)))
+
+    best = max(0.0, gain(c))
+    if c != 0.0 and np.isfinite(c):
+        got = optimize.minimize_scalar(lambda k: -gain(k), bounds=sorted((0.0, 2.0 * c)),
+                                       method="bounded", options={"xatol": 1e-6 * abs(c)})
+        best = max(best, -float(got.fun))
+    return best
 
 
 def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
