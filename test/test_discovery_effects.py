@@ -421,19 +421,10 @@ def test_mount_flexure_is_unexplained_and_no_stand_in_is_added_for_it(tmp_path, 
     assert h["sigma_arcsec_per_g"] >= d["sigma_arcsec_per_g"], h
     assert abs(h["estimate_arcsec_per_g"] - truth) < 3.0 * h["sigma_arcsec_per_g"], h
     assert 2.5 * h["sigma_arcsec_per_g"] < h["arcsec_per_g"] < truth, h
-    # the MDB is the size this test detects with the stated power, on its own t_nu
-    # reference: at a flexure of the MDB its t would be MDB / (its robust sigma) on average
-    # (the innovations move by MDB S, the fit's residuals and so its variance do not;
-    # |c / t| was that sigma only where the centred slope t is of equals c), and the
-    # two-sided t_nu test at alpha then has power 80 % (65-95 % asked of the injections,
-    # benchmarks/flexure_remainder.py --at-mdb); the normal's sqrt(lambda0) read 5-15 % low
-    from scipy import stats as sps
-
-    nu = d["nu"]
-    crit = sps.t.isf(0.01 / 2.0, nu)
-    mean_t = h["arcsec_per_g"] / d["robust_sigma_arcsec_per_g"]
-    power = sps.nct.sf(crit, nu, mean_t)
-    assert 0.65 < power < 0.95 and 5.0 < nu < 200.0, (power, nu, mean_t)
+    # that the MDB is the size this test detects with power 80 % is checked by injecting a
+    # flexure of the printed size (test_flexure_power.py); the t_nu power at MDB / sigma
+    # asserted here until 2026-11-27 held by construction (MDB = sigma delta_80)
+    assert 5.0 < d["nu"] < 200.0, d["nu"]
     said = flexure.hiding_text(h)
     assert said.startswith("a mount flexure (outside the library) up to ") and \
         "could still hide with this motion" in said, said
