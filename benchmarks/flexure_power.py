@@ -165,7 +165,8 @@ def main() -> int:
                 continue
             print(f"| {r['check']} | {seed} | {r['size']:.1f} | {r['sigma']:.2f} | "
                   f"{r['nu']:.0f} | {r['shift']:.2f} | {r['t_clean']:.2f} | {r['t']:.2f} | "
-                  f"{r['estimate_clean']:.1f} / {r['estimate']:.1f} | {'yes' if r['detected'] else 'no'} | {cpu:.0f} |",
+                  f"{r['estimate_clean']:.1f} / {r['estimate']:.1f} | "
+                  f"{'yes' if r['detected'] else 'no'} | {cpu:.0f} |",
                   flush=True)
         rows += got
     for check in checks:

@@ -75,8 +75,8 @@ def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
     time offset on a swaying bag whose model is far off, NIS/dof 135: the fit's χ² 175 513
     → 3.0, p 0.90; its uncapped χ² against the NIS-capped Λ 288 made the ratio −1013.8,
     and time_offset was refused; since the fit's gain is NIS-capped too the 200 s version
-    reads 129.1 beyond it, needed, where it read −231.8).  The beyond result (``remainder``: :data:`REMAINDER`)
-    when refused, else ``None``.
+    reads 129.1 beyond it, needed, where it read −231.8).  The beyond result
+    (``remainder``: :data:`REMAINDER`) when refused, else ``None``.
     """
     from stellar_cal_ros.diagnosis import flexure
 
