@@ -184,6 +184,47 @@ def test_subset_prediction_with_a_shared_context(sim, stars):
         np.testing.assert_allclose(sub.H_parameters, full.H_parameters[mask], rtol=1e-12)
 
 
+@pytest.mark.parametrize("subset", [*SUBSETS, "flexure"])
+def test_predict_frames_is_predict_frame_by_frame(subset, sim, stars):
+    """The twin's render of many frames at once (``predict_frames``) is ``predict`` per frame.
+
+    Frames at different stamps, head temperatures (a camera chain per frame) and gravity
+    (a tracker rotation per frame: the simulator's mount flexure), star counts (one
+    without stars) and attitudes; centroids and directions to rounding (1e-9 px).
+    """
+    from stellar_cal_ros.sim.world import MountFlexure
+
+    ids, u_i = stars
+    if subset == "flexure":
+        effs = [*registry.create_many(BASELINE), MountFlexure()]
+    else:
+        effs = registry.create_many(SUBSETS[subset])
+    model = StarModel(effs, sim.prior)
+    theta = theta_of(model) if subset != "flexure" else np.r_[theta_of(
+        StarModel(effs[:-1], sim.prior)), 40.0]
+    picks = [slice(None), slice(2, 9), slice(0, 0), slice(None, None, 2), slice(1, 5)]
+    ctxs, us, attitudes = [], [], []
+    for j, sel in enumerate(picks):
+        ctx = make_ctx(ids[sel], stamp=T0 + 100.0 + 0.5 * j, head=20.0 + 3.0 * j)
+        ctx.gravity_st = np.array([0.1 * j, -0.05, 0.99])
+        R0 = sim.truth_world.R_i_b(np.array([100.0 + 0.5 * j]))[0]
+        ctxs.append(ctx)
+        us.append(u_i[sel])
+        attitudes.append(rotating_attitude(R0, ctx.stamp, omega=OMEGA * (1.0 + 0.2 * j)))
+
+    def many(shifts):
+        out = [a(s) for a, s in zip(attitudes, shifts, strict=True)]
+        return np.array([r for r, _ in out]), np.array([w for _, w in out])
+
+    uv, d = model.predict_frames(theta, us, [copy.copy(c) for c in ctxs], many)
+    one = [model.predict(theta, u, copy.copy(c), a, jacobians=False)
+           for u, c, a in zip(us, ctxs, attitudes, strict=True)]
+    np.testing.assert_allclose(uv, np.concatenate([p.uv for p in one]), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(d, np.concatenate([p.directions_st for p in one]), rtol=0,
+                               atol=1e-14)
+    assert len(uv) == sum(len(u) for u in us)
+
+
 # ------------------------------------------------------------------ the truth reproduces the data
 def _residuals(result, model, theta, frames, bound=False):
     """Centroids − predictions; with ``bound``, also a per-star bound of the float64 time.

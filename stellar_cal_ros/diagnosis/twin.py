@@ -149,6 +149,13 @@ class _Trajectory:
     def R_i_b(self, t: float) -> np.ndarray:
         return self.R0 @ self._relative(t)
 
+    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`R_i_b` and :meth:`rate` at many times ``t`` (s): (F, 3, 3), (F, 3)."""
+        t = np.asarray(t, dtype=float)
+        k = np.clip(np.searchsorted(self.t, t, side="left"), 0, len(self.t) - 1)
+        w = self.w[k]
+        return self.R0 @ (self.R_rel[k] @ so3_exp(w * (t - self.t_start[k])[:, None])), w
+
     def near(self, t_rel: float):
         def attitude(shift: float) -> tuple[np.ndarray, np.ndarray]:
             return self.R_i_b(t_rel + shift), self.rate(t_rel + shift)
@@ -324,36 +331,44 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
     # when the run measured that (the simulator's AR(1), sim.tracker_errors.ar1_noise)
     marginal = noise.within_frames()
     tracks = Ar1Tracks(noise.star_rho, rng) if noise.star_rho > 0 else None
-    for j, (fr, (inp, ctx, unidentified)) in enumerate(zip(data.frames, scene.frames,
-                                                           strict=True)):
-        counts["unidentified_left_out"] += unidentified
-        if ctx is None:
-            continue
-        # predict sets the context's motion fields: each twin starts from the message's
-        ctx = copy.copy(ctx)
-        t_rel = (int(fr.stamp_ns) - data.t0_ns) * 1e-9
-        pred = model.predict(theta, inp.u_i, ctx, traj.near(t_rel), jacobians=False)
-        uv = pred.uv
-        if mb[0] != 0.0:
-            uv = uv + (mb[0] * (np.nan_to_num(inp.magnitude, nan=4.0) - 4.0))[:, None] \
-                * direction
-        stated = np.asarray(fr.sigma, dtype=float)[inp.ok]
-        sig = marginal.star_sigma(np.where(stated > 0, stated, 0.0), default_sigma,
-                                  inp.magnitude, uv, centre)
-        z = rng.standard_normal(uv.shape) if tracks is None else \
-            tracks.draw(j, np.asarray(fr.catalog_id)[inp.ok])
-        uv = uv + sig[:, None] * z
-        keep = (pred.directions_st[:, 2] > 0) & cam.in_image(np.nan_to_num(uv, nan=-1e9))
-        counts["off_detector"] += int((~keep).sum())
-        counts["stars"] += int(keep.sum())
-        idx = np.flatnonzero(inp.ok)[keep]
+    counts["unidentified_left_out"] = sum(u for _, _, u in scene.frames)
+    # the centroids of every frame with stars in one call (StarModel.predict_frames)
+    live = [j for j, (_, ctx, _) in enumerate(scene.frames) if ctx is not None]
+    ins = [scene.frames[j][0] for j in live]
+    user = [data.frames[j] for j in live]
+    n = np.array([len(inp.u_i) for inp in ins], dtype=np.intp)
+    t_rel = (np.array([int(fr.stamp_ns) for fr in user], dtype=np.int64) - data.t0_ns) * 1e-9
+    uv, d = model.predict_frames(theta, [inp.u_i for inp in ins],
+                                 [scene.frames[j][1] for j in live],
+                                 lambda shifts: traj.at(t_rel + shifts))
+    magnitude = np.concatenate([np.zeros(0)] + [np.asarray(inp.magnitude, dtype=float)
+                                                for inp in ins])
+    if mb[0] != 0.0:
+        uv = uv + (mb[0] * (np.nan_to_num(magnitude, nan=4.0) - 4.0))[:, None] * direction
+    stated = np.concatenate([np.zeros(0)] + [np.asarray(fr.sigma, dtype=float)[inp.ok]
+                                             for fr, inp in zip(user, ins, strict=True)])
+    sig = marginal.star_sigma(np.where(stated > 0, stated, 0.0), default_sigma, magnitude,
+                              uv, centre)
+    # one draw for every star is the per-frame draws in a row (the same generator stream)
+    z = rng.standard_normal(uv.shape) if tracks is None else np.concatenate(
+        [np.zeros((0, 2))] + [tracks.draw(j, np.asarray(fr.catalog_id)[inp.ok])
+                              for j, fr, inp in zip(live, user, ins, strict=True)])
+    uv = uv + sig[:, None] * z
+    keep = (d[:, 2] > 0) & cam.in_image(np.nan_to_num(uv, nan=-1e9))
+    counts["off_detector"] = int((~keep).sum())
+    counts["stars"] = int(keep.sum())
+    ends = np.cumsum(n)
+    for fr, inp, stop, size in zip(user, ins, ends, n, strict=True):
+        rows = slice(stop - size, stop)
+        k = keep[rows]
+        idx = np.flatnonzero(inp.ok)[k]
         frames.append(StarFrame(
             stamp_ns=int(fr.stamp_ns), frame_id=fr.frame_id or STAR_TRACKER_FRAME,
             exposure_time=fr.exposure_time,
             catalog_id=np.asarray(fr.catalog_id)[idx],
             right_ascension=np.asarray(fr.right_ascension, dtype=float)[idx],
             declination=np.asarray(fr.declination, dtype=float)[idx],
-            uv=uv[keep], magnitude=np.asarray(fr.magnitude)[idx],
+            uv=uv[rows][k], magnitude=np.asarray(fr.magnitude)[idx],
             sigma=np.asarray(fr.sigma)[idx]))
     twin_data = dataclasses.replace(data, imu_w=w_twin, imu_f=f_twin, frames=frames,
                                     source="")

@@ -357,6 +357,85 @@ class StarModel:
                 H[:, :, sl] += Jd_skew @ eff.tracker_rotation_jacobian(theta[sl], ctx)
         return Prediction(uv, H_att, H, d, R_i_st, t_exp, camera)
 
+    def predict_frames(
+        self,
+        theta: np.ndarray,
+        u_i: list[np.ndarray],
+        ctxs: list[FrameContext],
+        attitudes: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`predict`'s centroids (``jacobians=False``) of many frames at once.
+
+        ``u_i``: each frame's catalogue directions (n_j, 3); ``ctxs``: their contexts;
+        ``attitudes``: ``shifts (F,) -> (R_i_b (F, 3, 3), ω_b (F, 3))``, each frame's
+        attitude function (:data:`AttitudeFunction`) evaluated at its own shift.  Returns
+        ``uv`` (N, 2) and ``directions_st`` (N, 3) of every star, frame after frame.
+
+        The same chain as :meth:`predict` in array operations over all frames (the twin's
+        render, :func:`~stellar_cal_ros.diagnosis.twin.make_twin`: ~0.2 ms of Python per
+        frame per call before); a stage whose effects take the frame's context (DIRECTION,
+        TIME, TRACKER, a camera chain that is not a plain copy) still calls them per frame,
+        and the projection groups the frames by camera.  The same numbers to rounding
+        (``test_star_model``).  Unlike :meth:`predict` it leaves the contexts' motion
+        fields unset (no effect reads them).
+        """
+        F = len(u_i)
+        counts = np.array([len(u) for u in u_i], dtype=np.intp)
+        if F == 0:
+            return np.zeros((0, 2)), np.zeros((0, 3))
+        rows = np.repeat(np.arange(F), counts)
+        u0 = np.concatenate([np.asarray(u, dtype=float).reshape(-1, 3) for u in u_i])
+        # DIRECTION stage (per frame: the corrections take the frame's context)
+        if self._chain[Stage.DIRECTION]:
+            parts = []
+            for uj, ctx in zip(u_i, ctxs, strict=True):
+                uj = np.asarray(uj, dtype=float)
+                u = uj
+                for eff, sl, fixed in self._chain[Stage.DIRECTION]:
+                    u = u + (eff.directions(self._value(theta, sl, fixed), uj, ctx) - uj)
+                parts.append(u.reshape(-1, 3))
+            u = np.concatenate(parts)
+        else:
+            u = u0
+        # TIME stage and attitude
+        if self.has_time_effect:
+            shifts = np.array([self.time_shift(theta, ctx)[0] for ctx in ctxs])
+        else:
+            shifts = np.full(F, float(self.prior.time_offset))
+        R_i_b, _ = attitudes(shifts)
+        # TRACKER stage
+        tracker = self._by_stage[Stage.TRACKER]
+        if tracker:
+            deltas = np.zeros((F, 3))
+            for eff in tracker:
+                v = theta[self.slices[eff.id]]
+                deltas = deltas + np.array([eff.tracker_rotation(v, ctx) for ctx in ctxs],
+                                           dtype=float).reshape(F, 3)
+            if np.all(deltas == deltas[0]):
+                R_imu_st = self._R_imu_st_prior @ so3_exp(deltas[0])
+            else:
+                R_imu_st = self._R_imu_st_prior @ so3_exp(deltas)
+        else:
+            R_imu_st = self._R_imu_st_prior @ so3_exp(np.zeros(3))
+        R_i_st = R_i_b @ R_imu_st
+        d = np.matmul(u[:, None, :], R_i_st[rows])[:, 0, :]  # rows R_st_i u
+        # CAMERA stage: one projection per distinct camera
+        if self._camera_copy is not None:
+            return self.prior.camera.with_parameters(self._camera_vector(theta)).project(d), d
+        ps = np.empty((F, 18))
+        for j, ctx in enumerate(ctxs):
+            p = self._camera_prior
+            for eff, sl, fixed in self._chain[Stage.CAMERA]:
+                p = eff.camera_parameters(self._value(theta, sl, fixed), p, ctx)
+            ps[j] = p
+        cams, which = np.unique(ps, axis=0, return_inverse=True)
+        which = np.asarray(which).reshape(-1)[rows]
+        uv = np.empty((len(d), 2))
+        for c, p in enumerate(cams):
+            at = which == c
+            uv[at] = self.prior.camera.with_parameters(p).project(d[at])
+        return uv, d
+
     def prepare_frames(self, data: Any) -> None:
         """Let the DIRECTION effects compute their corrections for a whole bag at once.
 
