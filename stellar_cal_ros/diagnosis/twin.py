@@ -18,7 +18,7 @@ How it is made
   ACCEL effects) plus white noise at the method's random walks times the measured noise
   scales (the calibration's ``consistency.noise``).
 * **Stars**: per user frame (same stamp), the same identified stars (catalogue id, RA/Dec,
-  magnitude), rendered through :meth:`StarModel.predict` at the true attitude (the
+  magnitude), rendered through :meth:`StarModel.predict_frames` at the true attitude (the
   simulator's chain), plus noise at the σ the run measured for them (their message's σ
   times the star scale, or the measured σ of stars whose message says 0); the message
   keeps the σ the user's message stated.  When the run measured the stars' noise
