@@ -74,8 +74,17 @@ def with_effect(data, calibration, method: str, effect_id: str, delta: np.ndarra
                      {effect_id: injection.simulation_value(effect_id, delta)}, scene)
     frames = add_steps(data.frames, plain.frames, moved.frames)
     return dataclasses.replace(data, frames=frames,
-                               imu_w=np.asarray(data.imu_w) + (moved.imu_w - plain.imu_w),
-                               imu_f=np.asarray(data.imu_f) + (moved.imu_f - plain.imu_f))
+                               imu_w=_plus(data.imu_w, moved.imu_w - plain.imu_w),
+                               imu_f=_plus(data.imu_f, moved.imu_f - plain.imu_f))
+
+
+def _plus(samples, step: np.ndarray) -> np.ndarray:
+    """``samples + step``; the user's own array where the effect leaves the IMU alone.
+
+    A camera or direction effect renders no IMU increment: the sum would be a copy of the
+    samples (2 x 17 MB on a 2-h bag, held while the probe's run replays them).
+    """
+    return samples if not step.any() else np.asarray(samples) + step
 
 
 def add_steps(user: list, plain: list, moved: list) -> list:
