@@ -259,7 +259,7 @@ def test_remainder_text_says_what_the_beyond_test_found():
         assert words in said and ("stands in for it" in said) is not needed, said
 
 
-def test_beyond_adds_the_flexures_gain_in_the_currency_of_the_ratio():
+def test_beyond_adds_the_flexures_gain_in_the_currency_of_the_ratio(monkeypatch):
     """``flexure.beyond``: Λ (NIS capped at 13.8 per star) plus the flexure's gain with the
     effect minus without it, that gain too with each star's NIS capped
     (``stats.capped_gain``); the uncapped ``chi2`` is not used.  On white innovations with a
@@ -289,6 +289,13 @@ def test_beyond_adds_the_flexures_gain_in_the_currency_of_the_ratio():
                     - np.minimum(np.sum((w - k * wx) ** 2, 1), 13.8).sum())
               for k in np.linspace(0.0, 2.0 * c_far, 401)]
     assert got >= max(capped) - 1e-6 * abs(max(capped)) - 1e-9
+    # the cap is the run's own (results.NIS_CAP, what Λ's log-likelihood caps at), not a
+    # copy of its value: moved, the gain moves with it
+    from stellar_cal_ros.methods import results
+
+    assert got == stats.capped_gain(far, x, c_far, cap=results.NIS_CAP)
+    monkeypatch.setattr(results, "NIS_CAP", 5.0)
+    assert stats.capped_gain(far, x, c_far) == stats.capped_gain(far, x, c_far, cap=5.0) != got
     # beyond uses the capped gains only
     b = flexure.beyond(20.0, 3, 2.0, {"chi2": 1e6, "chi2_capped": 30.0},
                        {"chi2": 5.0, "chi2_capped": 10.0})

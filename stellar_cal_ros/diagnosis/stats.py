@@ -625,7 +625,7 @@ def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
     return (float(t), float(p), c, info) + ((float(nu),) if dof else ())
 
 
-def capped_gain(sub: Table, x: np.ndarray, c: float, cap: float = 13.8) -> float:
+def capped_gain(sub: Table, x: np.ndarray, c: float, cap: float | None = None) -> float:
     """What a nuisance fit of the pattern ``x`` removes of the χ², each star's NIS capped.
 
     ``max over k of Σ min(q, cap) − Σ min(q_k, cap)`` over the stars of ``sub`` where both
@@ -633,7 +633,7 @@ def capped_gain(sub: Table, x: np.ndarray, c: float, cap: float = 13.8) -> float
     u² + v²) of the innovations and ``q_k`` of the innovations minus ``k x``; ``k`` searched
     between 0 and ``2 c`` (``c`` the least-squares size) and never worse than 0 or ``c``,
     so the gain is ≥ 0.  The currency of a candidate's ratio Λ (twice its gain in the
-    log-likelihood whose per-star NIS is capped at ``cap``:
+    log-likelihood whose per-star NIS is capped at ``cap``, by default the run's own
     :data:`stellar_cal_ros.methods.results.NIS_CAP`, :func:`log_likelihood`), so that the
     two can be added (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`).  ``c² info`` is
     the uncapped gain, which on a far-off model is dominated by the stars Λ caps (a swaying
@@ -642,6 +642,9 @@ def capped_gain(sub: Table, x: np.ndarray, c: float, cap: float = 13.8) -> float
     """
     from scipy import optimize
 
+    from stellar_cal_ros.methods import results
+
+    cap = results.NIS_CAP if cap is None else cap
     cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
     w_nu = whitened(sub)
     w_x = whitened({"du": x[:, 0], "dv": x[:, 1], **cov})
