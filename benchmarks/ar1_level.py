@@ -6,12 +6,14 @@ The stars' noise tests (:func:`~stellar_cal_ros.diagnosis.noise_stars.star_noise
 :func:`~stellar_cal_ros.diagnosis.noise_structure.lagged_chi2` divides each mean by the
 exact variance of a mean of its tracks' frames; the repeat is the stars' sum of squares
 after the cells' means, :func:`~stellar_cal_ros.diagnosis.noise_stars.star_after_cells`,
-referred to the exact trace of the AR(1) covariance through its projection).  Here the residuals are pure AR(1) tracks
-of known ``ρ`` (unit variance, 10-80 frames each, 150 stars, each track crossing 1-3 of 108
-cells in consecutive segments, rows in time order as a residual table holds them), so both
-p-values must be uniform: the table prints their mean (0.5), the share below 5 % and 1 %,
-Kolmogorov-Smirnov's p, and the same for the long-run factor ``(1 + ρ)/(1 − ρ)`` with the
-approximate ``ρ`` the tests had before (``--old``).
+referred to the exact trace of the AR(1) covariance through its projection).  Here the
+residuals are pure AR(1) tracks of known ``ρ`` (unit variance, 10-80 frames each, 150
+stars, each track crossing 1-3 of 108 cells in consecutive segments, rows in time order
+as a residual table holds them), so both p-values must be uniform: the table prints their
+mean (0.5), the share below 5 % and 1 %, Kolmogorov-Smirnov's p, and the same for the
+long-run factor ``(1 + ρ)/(1 − ρ)`` with the approximate ``ρ`` the tests had before
+(``--old``; its repeat rows are ``star_after_cells`` divided by that factor since H53, not
+the star-mean count the repeat had before).
 
 Run::
 

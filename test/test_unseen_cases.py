@@ -185,8 +185,9 @@ def test_repeat_and_cell_chi2_hold_their_level_on_pure_ar1_tracks():
     (``noise_structure.lagged_chi2``, ρ estimated as the diagnosis does), the p-values are
     uniform: their mean 0.5 within 4 σ (σ = 1/√(12 R), R draws; 1000 draws: 0.501 and 0.490,
     5 % level 0.060 and 0.048; the repeat after the cells' means, ``star_after_cells`` with
-    its exact AR(1) trace, 400 draws: 0.492, 5 % level 0.062).  The long-run factor (1+ρ)/(1−ρ) they had read 0.874 and
-    0.946 (no p below 5 % in 200 draws) and ρ̂ 0.816; the exact moments: ρ̂ 0.819 ± 0.006."""
+    its exact AR(1) trace, 400 draws: 0.492, 5 % level 0.062).  The long-run factor
+    (1+ρ)/(1−ρ) they had read 0.874 and 0.946 (no p below 5 % in 200 draws) and ρ̂ 0.816;
+    the exact moments: ρ̂ 0.819 ± 0.006."""
     import sys
     from pathlib import Path
 

@@ -20,7 +20,6 @@ only.
 from __future__ import annotations
 
 import math
-
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -90,8 +89,10 @@ def frame_rotation(v_st: np.ndarray, u_i: np.ndarray) -> tuple[np.ndarray | None
 
 
 def _median(x: np.ndarray) -> float:
-    """``np.median`` of finite values (the same float: the middle one, or the mean of the
-    two middle ones), without its general machinery."""
+    """``np.median`` of finite values, without its general machinery.
+
+    The same float: the middle one, or the mean of the two middle ones.
+    """
     s = np.sort(x)
     m = len(s) // 2
     return float(s[m]) if len(s) % 2 else float((s[m - 1] + s[m]) / 2.0)
