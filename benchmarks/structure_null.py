@@ -27,7 +27,7 @@ from scipy import stats as sps
 from stellar_cal_ros.diagnosis import stats
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
 from stellar_cal_ros.diagnosis.injection import clean_case
-from stellar_cal_ros.diagnosis.noise import repeat_finding
+from stellar_cal_ros.diagnosis.noise import star_lines
 from stellar_cal_ros.diagnosis.runstats import evaluate
 
 CASES = {"psce": ("psce", False, 300.0), "psce+sky": ("psce", True, 300.0),
@@ -56,8 +56,7 @@ def bag_tests(name: str, seed: int) -> tuple[list[tuple[float, float]], list[flo
         seen.append((t, p))
         return t, p
 
-    extra = [f for f in (repeat_finding(res, mask, cam.fx, cam.fy, centre, prior.R_imu_st),
-                         *stats.periodic_findings(res, mask)) if f is not None]
+    extra = star_lines(res, mask, cam.fx, cam.fy, centre, prior.R_imu_st)
     extra_p = [f.p_value for f in extra]  # regressor_tests adjusts them in place
     stats.frame_robust_t = record
     try:

@@ -144,3 +144,42 @@ def test_periodic_frame_residual_is_found_and_white_ones_pass():
     rng = np.random.default_rng(2)
     p = [f.p_value for _ in range(200) for f in periodic_findings(*table(rng, 0.0))]
     assert np.mean(np.asarray(p) < 0.01) <= 0.01 + 3 * np.sqrt(0.01 * 0.99 / len(p))
+
+
+def test_periodic_test_holds_its_level_on_red_frame_means_with_the_red_reference():
+    """Unseen case 'ar1' (each star's noise an AR(1) over frames, ρ 0.82): the frame means
+    are red and the flat reference calls that a period (150 frames: ~60 % of the tests below
+    1 %); the red reference (``red=True``, what ``noise.star_lines`` uses once the stars'
+    lag-1 ρ is significant) holds 1 % and 5 % within 3 binomial σ, and still finds a 0.05 px
+    wobble of 45 s beside such noise, at p ~1e-5 (the noise's own power near that period is
+    ~10x white's: a 0.02 px wobble reads p 0.16 / 0.06 with the red reference here, the flat
+    one's 1e-10 for it being worth no more than its 60 % on noise alone)."""
+    from stellar_cal_ros.diagnosis.stats import periodic_findings
+
+    rho = float(np.exp(-0.2))
+
+    def table(rng, frames, amp=0.0, stars=20):
+        f = np.repeat(np.arange(frames), stars)
+        t = 0.5 * f
+        out = {}
+        for key, fn in (("du", np.sin), ("dv", np.cos)):
+            e = rng.standard_normal((frames, stars))
+            x = np.empty_like(e)
+            x[0] = e[0]
+            for i in range(1, frames):
+                x[i] = rho * x[i - 1] + np.sqrt(1.0 - rho * rho) * e[i]
+            out[key] = 0.05 * x.ravel() + amp * fn(2 * np.pi * t / 45)
+        return {"frame": f, "t": t, "gated": np.zeros(len(f), bool), **out}, \
+            np.ones(len(f), bool)
+
+    rng = np.random.default_rng(4)
+    tables = [table(rng, 150) for _ in range(150)]
+    flat = np.array([f.p_value for t in tables for f in periodic_findings(*t)])
+    red = np.array([f.p_value for t in tables for f in periodic_findings(*t, True)])
+    assert np.mean(flat < 0.01) > 0.3  # what the red reference is for
+    for a in (0.01, 0.05):
+        assert abs(np.mean(red < a) - a) <= 3 * np.sqrt(a * (1 - a) / len(red)), \
+            (a, np.mean(red < a))
+    found = periodic_findings(*table(np.random.default_rng(5), 300, 0.05), True)
+    assert len(found) == 2 and all(f.p_value < 1e-4 for f in found), found
+    assert all(37 < float(f.regressor.split(", ")[1].split(" ")[0]) < 51 for f in found)

@@ -455,15 +455,46 @@ def repeat_finding(res: Table, mask: np.ndarray, fx: float, fy: float,
     star``, statistic ``(χ² − dof) / √(2 dof)``, unadjusted one-sided p, size = the per-star
     error's RMS per axis, px), or None when there is nothing to test.
     """
-    from stellar_cal_ros.diagnosis.stats import RegressorFinding
+    return _repeat_of(_line_noise(res, mask, fx, fy, centre, R_imu_st))
 
+
+def star_lines(res: Table, mask: np.ndarray, fx: float, fy: float,
+               centre: tuple[float, float], R_imu_st: np.ndarray | None = None) -> list:
+    """The 'unexplained' tests that rest on the stars' noise, from one estimate of it.
+
+    :func:`repeat_finding`'s test (if any) and the periodic frame-mean tests
+    (:func:`~stellar_cal_ros.diagnosis.stats.periodic_findings`), these referred to a red
+    spectrum when the stars' residuals are correlated from frame to frame along their
+    tracks (lag-1 ρ above 3 of its σ, :func:`~.noise_structure.correlated` without its
+    materiality): such noise makes the frame means red, and their flat reference called
+    that a period (unseen case ``ar1``, 150 s, seeds 25, 28, 30, 35: Bonferroni p 8.6e-6,
+    7.7e-5, 1.2e-6, 1.0e-6).  White noise keeps the flat reference, and a wobble its power.
+    """
+    from stellar_cal_ros.diagnosis.stats import periodic_findings
+
+    sn = _line_noise(res, mask, fx, fy, centre, R_imu_st)
+    red = sn is not None and noise_structure.correlated(
+        sn.track_rho, sn.track_pairs, 0.0) is not None
+    rep = _repeat_of(sn)
+    return ([rep] if rep is not None else []) + periodic_findings(res, mask, red)
+
+
+def _line_noise(res: Table, mask: np.ndarray, fx: float, fy: float,
+                centre: tuple[float, float], R_imu_st: np.ndarray | None):
+    """:func:`~.noise_stars.star_noise` of ``mask``'s accepted stars at the run's own σ."""
     ok = mask & ~np.asarray(res["gated"]).astype(bool)
     if ok.sum() < 20:
         return None
     sig = np.sqrt(np.maximum(0.5 * (np.asarray(res["s_uu"], dtype=float)
                                     + np.asarray(res["s_vv"], dtype=float)), 1e-300))
-    sn = star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok, fx, fy, centre,
-                    R_imu_st)
+    return star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok, fx, fy, centre,
+                      R_imu_st)
+
+
+def _repeat_of(sn):
+    """The ``catalogue star`` finding of a :func:`_line_noise` estimate (None: nothing to test)."""
+    from stellar_cal_ros.diagnosis.stats import RegressorFinding
+
     if sn is None or sn.repeat_dof <= 0:
         return None
     z = (sn.repeat - sn.repeat_dof) / math.sqrt(2.0 * sn.repeat_dof)

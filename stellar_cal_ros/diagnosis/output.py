@@ -13,7 +13,7 @@ from stellar_cal_ros.diagnosis import rolling, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
     not_measured,
-    repeat_finding,
+    star_lines,
     stated_scales,
     within_groups,
 )
@@ -123,8 +123,8 @@ def line_tests(res, calibration: Calibration, fraction: float) -> list:
     mask = stats.evaluation_mask(res, fraction)
     return stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
-        extra=[repeat_finding(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st),
-               *stats.periodic_findings(res, mask)], R_imu_st=calibration.R_imu_st,
+        extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st),
+        R_imu_st=calibration.R_imu_st,
         height=cam.height)
 
 
