@@ -440,24 +440,6 @@ def structured(sn: StarNoise) -> str:
             "measured again once it is added")
 
 
-def repeat_finding(res: Table, mask: np.ndarray, fx: float, fy: float,
-                   centre: tuple[float, float], R_imu_st: np.ndarray | None = None):
-    """The 'unexplained' test of an error that repeats star by star, on a run's residuals.
-
-    The innovations of ``mask``'s accepted stars, whitened by their predicted σ, minus the
-    frame's attitude fit, a rolling shutter's shape where it is significant (with the
-    installation ``R_imu_st``: the shutter repeats star by star, a star's row and image
-    velocity repeating along its track; without it, 30 ms read as 'catalogue star' p 9e-93
-    ranked before the shutter's own line) and the detector cells' means (the steps of
-    :func:`~.noise_stars.star_noise`), then the χ² of the per-star means beyond the cells'
-    against its exact dof (:func:`~.noise_stars.star_after_cells`).  Returns a
-    :class:`~stellar_cal_ros.diagnosis.stats.RegressorFinding` (regressor ``catalogue
-    star``, statistic ``(χ² − dof) / √(2 dof)``, unadjusted one-sided p, size = the per-star
-    error's RMS per axis, px), or None when there is nothing to test.
-    """
-    return _repeat_of(_line_noise(res, mask, fx, fy, centre, R_imu_st))
-
-
 def star_lines(res: Table, mask: np.ndarray, fx: float, fy: float,
                centre: tuple[float, float], R_imu_st: np.ndarray | None = None) -> list:
     """The 'unexplained' tests that rest on the stars' noise, from one estimate of it.
@@ -475,7 +457,7 @@ def star_lines(res: Table, mask: np.ndarray, fx: float, fy: float,
     sn = _line_noise(res, mask, fx, fy, centre, R_imu_st)
     red = sn is not None and noise_structure.correlated(
         sn.track_rho, sn.track_pairs, 0.0) is not None
-    rep = _repeat_of(sn)
+    rep = repeat_finding(sn)
     return ([rep] if rep is not None else []) + periodic_findings(res, mask, red)
 
 
@@ -491,8 +473,21 @@ def _line_noise(res: Table, mask: np.ndarray, fx: float, fy: float,
                       R_imu_st)
 
 
-def _repeat_of(sn):
-    """The ``catalogue star`` finding of a :func:`_line_noise` estimate (None: nothing to test)."""
+def repeat_finding(sn: StarNoise | None):
+    """The 'unexplained' test of an error that repeats star by star.
+
+    ``sn``: :func:`star_lines`' estimate of the stars' noise: the run's innovations of the
+    evaluation window's accepted stars, whitened by their predicted σ, minus the frame's
+    attitude fit, a rolling shutter's shape where it is significant (with the installation:
+    the shutter repeats star by star, a star's row and image velocity repeating along its
+    track; without it, 30 ms read as 'catalogue star' p 9e-93 ranked before the shutter's
+    own line) and the detector cells' means (the steps of :func:`~.noise_stars.star_noise`),
+    then the χ² of the per-star means beyond the cells' against its exact dof
+    (:func:`~.noise_stars.star_after_cells`).  Returns a
+    :class:`~stellar_cal_ros.diagnosis.stats.RegressorFinding` (regressor ``catalogue
+    star``, statistic ``(χ² − dof) / √(2 dof)``, unadjusted one-sided p, size = the per-star
+    error's RMS per axis, px), or None when there is nothing to test.
+    """
     from stellar_cal_ros.diagnosis.stats import RegressorFinding
 
     if sn is None or sn.repeat_dof <= 0:
