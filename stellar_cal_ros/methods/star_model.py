@@ -259,20 +259,29 @@ class StarModel:
             grad[sl] = eff.time_shift_jacobian(theta[sl], ctx)
         return dt, grad
 
-    def camera_at(self, theta: np.ndarray, ctx: FrameContext) -> CameraModel:
-        """Camera model of the current parameters in the frame's context."""
+    def camera_parameters_at(self, theta: np.ndarray, ctx: FrameContext) -> np.ndarray:
+        """The camera's parameter vector in the frame's context (the CAMERA stage's chain)."""
         p = self._camera_prior
         for eff, sl, fixed in self._chain[Stage.CAMERA]:
             p = eff.camera_parameters(self._value(theta, sl, fixed), p, ctx)
-        return self.prior.camera.with_parameters(p)
+        return p
+
+    def camera_at(self, theta: np.ndarray, ctx: FrameContext) -> CameraModel:
+        """Camera model of the current parameters in the frame's context."""
+        return self.prior.camera.with_parameters(self.camera_parameters_at(theta, ctx))
+
+    def tracker_delta(self, theta: np.ndarray, ctx: FrameContext) -> np.ndarray:
+        """The TRACKER stage's rotation δ (3,) in the frame's context, summed over its effects."""
+        delta = np.zeros(3)
+        for eff in self._by_stage[Stage.TRACKER]:
+            delta = delta + eff.tracker_rotation(theta[self.slices[eff.id]], ctx)
+        return delta
 
     def installation_at(
         self, theta: np.ndarray, ctx: FrameContext
     ) -> tuple[np.ndarray, np.ndarray]:
         """``R_imu_st`` and the summed tracker rotation δ."""
-        delta = np.zeros(3)
-        for eff in self._by_stage[Stage.TRACKER]:
-            delta = delta + eff.tracker_rotation(theta[self.slices[eff.id]], ctx)
+        delta = self.tracker_delta(theta, ctx)
         return self._R_imu_st_prior @ so3_exp(delta), delta
 
     def predict(
@@ -313,11 +322,7 @@ class StarModel:
         p = self._camera_prior
         fast = self._camera_copy is not None
         if not jacobians:
-            if fast:
-                p = self._camera_vector(theta)
-            else:
-                for eff, sl, fixed in self._chain[Stage.CAMERA]:
-                    p = eff.camera_parameters(self._value(theta, sl, fixed), p, ctx)
+            p = self._camera_vector(theta) if fast else self.camera_parameters_at(theta, ctx)
             camera = self.prior.camera.with_parameters(p)
             return Prediction(camera.project(d), None, None, d, R_i_st, t_exp, camera)
         cols = self._camera_copy_cols if fast else None
@@ -404,13 +409,9 @@ class StarModel:
             shifts = np.full(F, float(self.prior.time_offset))
         R_i_b, _ = attitudes(shifts)
         # TRACKER stage
-        tracker = self._by_stage[Stage.TRACKER]
-        if tracker:
-            deltas = np.zeros((F, 3))
-            for eff in tracker:
-                v = theta[self.slices[eff.id]]
-                deltas = deltas + np.array([eff.tracker_rotation(v, ctx) for ctx in ctxs],
-                                           dtype=float).reshape(F, 3)
+        if self._by_stage[Stage.TRACKER]:
+            deltas = np.array([self.tracker_delta(theta, ctx) for ctx in ctxs],
+                              dtype=float).reshape(F, 3)
             if np.all(deltas == deltas[0]):
                 R_imu_st = self._R_imu_st_prior @ so3_exp(deltas[0])
             else:
@@ -422,12 +423,7 @@ class StarModel:
         # CAMERA stage: one projection per distinct camera
         if self._camera_copy is not None:
             return self.prior.camera.with_parameters(self._camera_vector(theta)).project(d), d
-        ps = np.empty((F, 18))
-        for j, ctx in enumerate(ctxs):
-            p = self._camera_prior
-            for eff, sl, fixed in self._chain[Stage.CAMERA]:
-                p = eff.camera_parameters(self._value(theta, sl, fixed), p, ctx)
-            ps[j] = p
+        ps = np.array([self.camera_parameters_at(theta, ctx) for ctx in ctxs])
         cams, which = np.unique(ps, axis=0, return_inverse=True)
         which = np.asarray(which).reshape(-1)[rows]
         uv = np.empty((len(d), 2))
