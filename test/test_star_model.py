@@ -216,13 +216,57 @@ def test_predict_frames_is_predict_frame_by_frame(subset, sim, stars):
         out = [a(s) for a, s in zip(attitudes, shifts, strict=True)]
         return np.array([r for r, _ in out]), np.array([w for _, w in out])
 
-    uv, d = model.predict_frames(theta, us, [copy.copy(c) for c in ctxs], many)
-    one = [model.predict(theta, u, copy.copy(c), a, jacobians=False)
-           for u, c, a in zip(us, ctxs, attitudes, strict=True)]
+    many_ctx, one_ctx = [copy.copy(c) for c in ctxs], [copy.copy(c) for c in ctxs]
+    uv, d = model.predict_frames(theta, us, many_ctx, many)
+    one = [model.predict(theta, u, c, a, jacobians=False)
+           for u, c, a in zip(us, one_ctx, attitudes, strict=True)]
     np.testing.assert_allclose(uv, np.concatenate([p.uv for p in one]), rtol=0, atol=1e-9)
     np.testing.assert_allclose(d, np.concatenate([p.directions_st for p in one]), rtol=0,
                                atol=1e-14)
     assert len(uv) == sum(len(u) for u in us)
+    # the contexts' motion as predict sets it (issue 21: predict_frames had left the
+    # identity and zero rate, which an effect reading them would have used in the twin)
+    for a, b in zip(many_ctx, one_ctx, strict=True):
+        for name in ("R_i_b", "omega_b", "R_i_st"):
+            np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-15)
+        assert np.linalg.norm(a.omega_b) > 0 and not np.allclose(a.R_i_st, np.eye(3))
+
+
+def test_predict_frames_gives_tracker_effects_the_frames_motion(sim, stars):
+    """A TRACKER-stage effect that reads the frame's body rate (a plugin's mount that
+    lags the motion) renders the same centroids through ``predict_frames`` as through
+    ``predict``: before, ``predict_frames`` left ``ctx.omega_b`` at zero there (up to 520 px
+    apart at k = 2 s in this test's frames)."""
+    from stellar_cal_ros.effects.base import Effect, Stage
+
+    class RateMount(Effect):
+        id = "rate_mount_test"
+        stage = Stage.TRACKER
+        parameter_names = ("k",)
+        units = ("s",)
+        default_sigma = (1.0,)
+
+        def tracker_rotation(self, value, ctx):
+            return float(value[0]) * np.asarray(ctx.omega_b, dtype=float)
+
+    ids, u_i = stars
+    model = StarModel([*registry.create_many(BASELINE), RateMount()], sim.prior)
+    theta = np.r_[theta_of(StarModel(registry.create_many(BASELINE), sim.prior)), 2.0]
+    ctxs, us, attitudes = [], [], []
+    for j in range(3):
+        ctxs.append(make_ctx(ids, stamp=T0 + 100.0 + 0.5 * j))
+        us.append(u_i)
+        attitudes.append(rotating_attitude(sim.truth_world.R_i_b(np.array([100.0]))[0],
+                                           ctxs[-1].stamp, omega=OMEGA * (1.0 + 0.5 * j)))
+
+    def many(shifts):
+        out = [a(s) for a, s in zip(attitudes, shifts, strict=True)]
+        return np.array([r for r, _ in out]), np.array([w for _, w in out])
+
+    uv, _ = model.predict_frames(theta, us, [copy.copy(c) for c in ctxs], many)
+    one = np.concatenate([model.predict(theta, u, copy.copy(c), a, jacobians=False).uv
+                          for u, c, a in zip(us, ctxs, attitudes, strict=True)])
+    np.testing.assert_allclose(uv, one, rtol=0, atol=1e-9)
 
 
 # ------------------------------------------------------------------ the truth reproduces the data

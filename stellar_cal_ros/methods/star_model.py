@@ -381,8 +381,9 @@ class StarModel:
         frame per call before); a stage whose effects take the frame's context (DIRECTION,
         TIME, TRACKER, a camera chain that is not a plain copy) still calls them per frame,
         and the projection groups the frames by camera.  The same numbers to rounding
-        (``test_star_model``).  Unlike :meth:`predict` it leaves the contexts' motion
-        fields unset (no effect reads them).
+        (``test_star_model``).  Like :meth:`predict` it sets each context's motion
+        (``R_i_b``, ``omega_b`` before the TRACKER stage, ``R_i_st`` before the CAMERA
+        stage).
         """
         F = len(u_i)
         counts = np.array([len(u) for u in u_i], dtype=np.intp)
@@ -407,7 +408,12 @@ class StarModel:
             shifts = np.array([self.time_shift(theta, ctx)[0] for ctx in ctxs])
         else:
             shifts = np.full(F, float(self.prior.time_offset))
-        R_i_b, _ = attitudes(shifts)
+        R_i_b, omega_b = attitudes(shifts)
+        # the contexts' motion, as :meth:`predict` sets it before the TRACKER stage (an
+        # effect there, or in the CAMERA stage, may read it: a plugin's rate-dependent
+        # mount; left unset, the twin's frames gave it the identity and zero rate)
+        for j, ctx in enumerate(ctxs):
+            ctx.R_i_b, ctx.omega_b = R_i_b[j], omega_b[j]
         # TRACKER stage
         if self._by_stage[Stage.TRACKER]:
             deltas = np.array([self.tracker_delta(theta, ctx) for ctx in ctxs],
@@ -419,6 +425,8 @@ class StarModel:
         else:
             R_imu_st = self._R_imu_st_prior @ so3_exp(np.zeros(3))
         R_i_st = R_i_b @ R_imu_st
+        for j, ctx in enumerate(ctxs):
+            ctx.R_i_st = R_i_st[j]
         d = np.matmul(u[:, None, :], R_i_st[rows])[:, 0, :]  # rows R_st_i u
         # CAMERA stage: one projection per distinct camera
         if self._camera_copy is not None:
