@@ -36,7 +36,12 @@ import numpy as np
 import pytest
 
 from stellar_cal_ros.diagnosis import flexure, stats
-from stellar_cal_ros.diagnosis.discover import DiagnosisSpec, method_spec, rank_candidates
+from stellar_cal_ros.diagnosis.discover import (
+    ALPHA,
+    DiagnosisSpec,
+    method_spec,
+    rank_candidates,
+)
 from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay_psce, truth_parameters
@@ -207,9 +212,15 @@ def test_single_diagnose_round_says_the_recommendation_stands_in_for_a_flexure(
     d = rem["detail"]
     assert abs(d["arcsec_per_g"] - FLEXURE) < 3.0 * d["sigma_arcsec_per_g"], d
     # beyond a flexure, both terms NIS-capped (flexure.beyond): discover's test on this
-    # bag measured 10.6 (chi2, 3 dof, p 0.014; -314.7 with the flexure's chi2 uncapped)
+    # bag measured 10.6 (chi2, 3 dof, p 0.014; -314.7 with the flexure's chi2 uncapped).
+    # The claim is the decision the text prints, "not needed" at the diagnosis's alpha
+    # (p >= discover.ALPHA; the literal 0.01 here was the same test, written twice).  Its
+    # margin on this seed is thin because seed 52 is the largest of ten: seeds 52-61 read
+    # -11.1 to 10.6 against the critical 11.34, the stand-in verdict on all 10
+    # (doc/benchmarks.md, flexure.beyond table); a true null is rejected at alpha per bag,
+    # so that seed table, not this seed's p, is the level claim
     b = d["beyond"]
-    assert not b["needed"] and b["p_value"] > 0.01 and not b["negative"], b
+    assert not b["needed"] and b["p_value"] >= ALPHA and not b["negative"], b
     assert "stands in for it" in rem["text"] and "outside the library" in rem["text"], rem
     assert "stands in for it" in "\n".join(summary["terminal"])
 

@@ -88,6 +88,11 @@ class StarNoise:
     #: lag-one correlation of a star's consecutive residuals (about its mean), and pairs
     track_rho: float = 0.0
     track_pairs: int = 0
+    star: np.ndarray | None = None  #: per star: its catalogue id (its track)
+    #: the tracks' lag-1 ρ the scale is counted with (0: white, or not significant): the
+    #: cells' means' share of the dof (:func:`cell_shares`) and the σ and dof of
+    #: :meth:`group` (consecutive ‖r‖² of a track correlate by ρ²)
+    scatter_rho: float = 0.0
 
     @property
     def repeat_p(self) -> float:
@@ -119,7 +124,27 @@ class StarNoise:
         # sandwich σ of the ratio estimator (robust to a non-Gaussian tail)
         var = float(np.sum((self.q[mask] - v * self.m[mask]) ** 2)) / m**2
         s = math.sqrt(max(v, 0.0))
-        return s, math.sqrt(var) / max(2.0 * s, 1e-300), m
+        f = self.inflation(mask)
+        return s, math.sqrt(var * f) / max(2.0 * s, 1e-300), m / f
+
+    def inflation(self, mask: np.ndarray) -> float:
+        """How much more the sum of ``q`` over ``mask`` varies than for independent stars.
+
+        Noise correlated along the tracks (lag-1 :attr:`scatter_rho`) correlates a track's
+        consecutive ``‖r‖²`` by ρ² (Gaussian), so their sum over a track's ``n`` rows varies
+        ``f(n; ρ²)`` times more (:func:`~.noise_structure.mean_factor`): the σ of the scale
+        is the sandwich's times the square root of the rows' mean factor, and the dof the
+        groups are compared with (Bartlett's) are divided by it.  1 for white noise.
+        (Measured, 'ar1' case 300 s: the scale's seed-to-seed SD 0.015 against the
+        sandwich's 0.0064; Bartlett on the plain dof named a row group x0.32-0.36 on
+        seed 25.)
+        """
+        if not self.scatter_rho > 0.0 or self.star is None:
+            return 1.0
+        _, k = np.unique(self.star[mask], return_inverse=True)
+        n = np.bincount(k).astype(float)
+        return float(np.sum(n * noise_structure.mean_factor(n, self.scatter_rho**2))
+                     / max(n.sum(), 1.0))
 
 
 def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np.ndarray,
@@ -159,25 +184,38 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         x = within_frame(dict(sub, du=x[:, 0], dv=x[:, 1]), sigma_px[idx], fx, fy)[0]
     r, sub_share = noise_structure.minus_rolling(r, sub_share, x, ALPHA)
     r_cells = r  # (the cells' χ² is referred to the tracks' lag below)
+    stars = np.asarray(res["catalog_id"])[idx]
+    # (the tracks' lag-1 ρ read about the star means before the cells' means, which bias
+    # it low: pure AR(1) tracks of 0.819 read 0.809 after them, and the repeat's p mean
+    # 0.33)
+    _, rho_tracks, pairs_tracks = noise_structure.track_inflation(
+        star_means(r_cells, sub_share, stars)[2], stars)
+    # noise correlated along the tracks makes a cell's mean vary more than 1/n_c (a track
+    # crosses a cell in a few dozen correlated frames): the dof the cells' means take is
+    # counted for it where the correlation is significant (:func:`cell_shares`; counted as
+    # 1/n_c, the scale read 0.969 +- 0.006 on the 'ar1' case's 300 s bags, seeds 21-32)
+    scatter_rho = rho_tracks if noise_structure.correlated(rho_tracks, pairs_tracks,
+                                                           0.0) else 0.0
     r, share, chi2, dof = _minus_cell_means(r, cell, keep_cell)
+    if scatter_rho > 0.0:
+        share = np.where(share > 0, cell_shares(cell, keep_cell, stars, scatter_rho), share)
     share = share * sub_share
     # ... and so is an error that repeats star by star (a catalogue position error): its
     # per-star means are tested, and removed when significant
-    stars = np.asarray(res["catalog_id"])[idx]
     _, _, r_star, share_star = star_means(r, share, stars)
     # noise correlated over a few frames makes each star's mean vary more than 1/n: the χ²
     # is referred to that (the lag correlation of the residuals about their star's mean,
     # which a fixed per-star error does not raise)
     _, rho, pairs = noise_structure.track_inflation(r_star, stars)
     # (tested after the cells' means: χ² and dof of the stars' means beyond them, the χ²
-    # referred to the exact trace of the tracks' AR(1) covariance through its projection,
-    # ρ read about the star means before the cells' means, which bias it low: pure AR(1)
-    # tracks of 0.819 read 0.809 after them, and the repeat's p mean 0.33)
-    rho_tracks = noise_structure.track_inflation(
-        star_means(r_cells, sub_share, stars)[2], stars)[1]
+    # referred to the exact trace of the tracks' AR(1) covariance through its projection)
     rep, rep_dof = star_after_cells(r_cells, cell, keep_cell, stars, sub_share, rho_tracks)
     if rho > 0:  # each mean referred to the variance of a mean of its tracks' frames
-        chi2 = noise_structure.lagged_chi2(r_cells, cell, stars, rho, keep_cell)
+        # (with the tracks' ρ read before the cells' means, as the repeat's: read after
+        # them it is biased low, 0.809 for 0.819, and the cells' χ² high: 'ar1' 300 s
+        # seed 30 called a repeating field, p 0.0016)
+        chi2 = noise_structure.lagged_chi2(r_cells, cell, stars, max(rho, rho_tracks),
+                                           keep_cell)
 
     def estimate(r, share):
         q = (r**2).sum(1)
@@ -188,7 +226,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         out = StarNoise(0.0, 0.0, float(m[use].sum()), n_frames, q[use], m[use],
                         np.asarray(res["magnitude"], dtype=float)[idx][use],
                         np.hypot(uv[use, 0] - centre[0], uv[use, 1] - centre[1]),
-                        (msg_sigma[idx] == 0)[use], sigma_px[idx][use], uv=uv[use])
+                        (msg_sigma[idx] == 0)[use], sigma_px[idx][use], uv=uv[use],
+                        star=stars[use], scatter_rho=scatter_rho)
         out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
         return out
 
@@ -203,6 +242,34 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
             rep_dof, rms
     out.structure, out.structure_dof = chi2 / max(out.scale, 1e-300) ** 2, dof
     out.track_rho, out.track_pairs = rho, pairs
+    return out
+
+
+def cell_shares(cell: np.ndarray, keep: np.ndarray, star: np.ndarray, rho: float
+                ) -> np.ndarray:
+    """Each row's share of its dof left by its cell's mean, for noise correlated along tracks.
+
+    A cell's mean of ``n_c`` rows takes ``1ᵀ Σ_cc 1 / n_c`` of their expected sum of
+    squares (``Σ``: unit-variance AR(1) of lag-1 ``rho`` along each ``star``'s rows, in
+    time order; stars independent), not 1 as for white noise: each row of a ``keep`` cell
+    keeps ``1 − 1ᵀ Σ_cc 1 / n_c²`` (:func:`_run_sums` sums ``Σ`` over the runs of a
+    track's rows in one cell).  Rows outside the ``keep`` cells: 0.
+    """
+    out = np.zeros(len(cell))
+    ok = np.asarray(keep, dtype=bool)
+    if not ok.any():
+        return out
+    _, si = np.unique(np.asarray(star)[ok], return_inverse=True)
+    ci = np.asarray(cell)[ok]
+    G = np.zeros(int(ci.max()) + 1)
+    order = np.argsort(si, kind="stable")
+    ends = np.cumsum(np.bincount(si))
+    for s in range(len(ends)):
+        cu, M, run_cell = _run_sums(ci[order[(ends[s - 1] if s else 0):ends[s]]], rho)
+        same = run_cell[:, None] == run_cell[None, :]  # pairs of runs in one cell
+        G[cu] += np.bincount(run_cell, (M * same).sum(1), minlength=len(cu))
+    n = np.bincount(ci, minlength=len(G)).astype(float)
+    out[ok] = 1.0 - G[ci] / n[ci] ** 2
     return out
 
 
