@@ -312,7 +312,11 @@ def print_replay_summary(result, prior) -> None:
           f"{result.filter_seconds:.2f} s filtering = {result.speed:.0f}x real time")
     rms, exp = st["rms_px"], st["expected_rms_px"]
     print(f"innovation RMS (second half, accepted stars): u={rms[0]:.4f} v={rms[1]:.4f} px "
-          f"(model expects {exp[0]:.4f} {exp[1]:.4f}); NIS/dof {st['nis_per_dof']:.3f}; "
+          f"(model expects {exp[0]:.4f} {exp[1]:.4f}); NIS/dof {st['nis_per_dof']:.3f}"
+          + (" (x{:.3g} for the stars' noise declared correlated from frame to frame, rho "
+             "{:.2f}: {:.3f})".format(cons["correlated"]["inflation"],
+                                      cons["correlated"]["star_rho"], cons["nis_per_dof"])
+             if cons.get("correlated") else "") + "; "
           f"verdict: {cons.get('verdict', '?')}")
     if cons.get("noise_rescaled"):
         n = cons.get("noise", {})
@@ -532,7 +536,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scale the stated noise: the stars' sigma (messages, or "
                         "--centroid-sigma for sigma 0) by S, the gyro ARW by G, the "
                         "accelerometer VRW by A; unknown=PX sets the sigma of stars whose "
-                        "message says 0 (what `diagnose` prints as 'use --noise-scale')")
+                        "message says 0; rho=R declares the stars' noise correlated from "
+                        "frame to frame (lag-1 R; S then the whole scale a white-noise "
+                        "filter needs): the consistency is judged against it (what "
+                        "`diagnose` prints as 'use --noise-scale')")
     r.add_argument("--estimate-noise", action="store_true",
                    help="measure the noise scales from the run first (stars' sigma: "
                         "within-frame variance components; gyro/accelerometer: maximum "

@@ -319,9 +319,12 @@ def test_correlated_noise_line_names_both_factors_of_the_scale_to_use():
         assert not any("sigma looks" in x for x in v.lines()), v.lines()
         got = re.search(r"needs the sigma x([\d.]+) \(= sqrt\(([\d.]+)\)\) on top of the "
                         r"stars' scatter within frames \(([\d.]+) x the messages' sigma\): use "
-                        r"--noise-scale star=([\d.]+) \(their product", line)
+                        r"--noise-scale star=([\d.]+),rho=([\d.]+) \(their product", line)
         assert got, line
-        shown_k, infl, white, use = (float(g) for g in got.groups())
+        shown_k, infl, white, use, shown_rho = (float(g) for g in got.groups())
+        # the advice carries ρ (issue 21.3): `replay --noise-scale star=K,rho=R` judges its
+        # NIS against the correlation (test_unseen_cases, the CLI from end to end)
+        assert shown_rho == float(f"{rho:.2f}")
         assert shown_k == float(f"{k:.3g}") and infl == float(f"{(1 + rho) / (1 - rho):.3g}")
         assert use == float(f"{applied.star:.3g}")
         assert white == float(f"{applied.star / k:.3g}")

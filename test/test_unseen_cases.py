@@ -449,3 +449,51 @@ def test_twin_renders_the_correlated_noise_it_measured(ar1_sim):
         make_twin(data, prior, {}, 3, "psce", NoiseScales(star=1.3)).data, prior)
     assert v_w.correlated is None and applied_w.star_rho == 0.0
     assert v_w.star == pytest.approx(1.3, abs=4 * v_w.star_sigma)
+
+
+def test_correlated_noise_advice_is_a_command_the_replay_accepts(ar1_sim, tmp_path, capsys):
+    """Issue 21.3: on the 'ar1' bag ``discover`` names the noise correlated and prints the
+    scale to use with its ρ (``--noise-scale star=K,rho=R``); ``replay`` takes that exact
+    advice and judges its NIS against the declared correlation: the verdict is consistent,
+    NIS/dof x k² (k² = (1+ρ)/(1−ρ)) within 10 % of 1, no MODEL MISMATCH.  Before, the advice
+    named only star=K and the replay with it said "MODEL MISMATCH (with the rescaled noise):
+    NIS/dof 0.11, whiteness p 9.5e-44" (300 s bag, star=2.96): a white filter with σ x K reads
+    NIS/dof 1/k², and the frame means follow each other by ρ; the same run without the rho
+    still says so here."""
+    import re
+
+    import yaml
+
+    from stellar_cal_ros.cli import main
+    from stellar_cal_ros.sim.world import write_simulation
+
+    bag = tmp_path / "ar1.mcap"
+    write_simulation(ar1_sim, bag)
+    prior = str(tmp_path / "ar1.prior.yaml")
+    capsys.readouterr()
+    rc = main(["discover", str(bag), "--calibration", prior, "--method", "psce", "-o",
+               str(tmp_path / "d"), "--workers", "0", "--no-plots",
+               "--candidates", "pixel_aspect"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    advice = re.findall(r"use --noise-scale (star=[0-9.]+,rho=[0-9.]+)", out)
+    assert advice, out[-3000:]
+    rho = float(advice[-1].split("rho=")[1])
+    assert rho == pytest.approx(np.exp(-0.2), abs=0.04)
+
+    def replay_with(scale):
+        capsys.readouterr()
+        res = tmp_path / f"rep{len(scale)}.yaml"
+        assert main(["replay", str(bag), "--prior", prior, "--method", "psce", "-o",
+                     str(res), "--noise-scale", scale, "-q"]) == 0
+        return capsys.readouterr().out, yaml.safe_load(res.read_text())["consistency"]
+
+    text, cons = replay_with(advice[-1])
+    assert cons["verdict"] == "consistent" and "MODEL MISMATCH" not in text, text
+    assert "NOISE OVERSTATED" not in text
+    assert cons["nis_per_dof"] == pytest.approx(1.0, abs=0.1), cons
+    assert cons["nis_per_dof"] == pytest.approx(
+        cons["correlated"]["nis_per_dof_raw"] * (1 + rho) / (1 - rho), rel=1e-9)
+    # the same scale without its ρ: judged as white noise, it is the contradiction it was
+    text, cons = replay_with(advice[-1].split(",")[0])
+    assert cons["verdict"] == "model mismatch" and "MODEL MISMATCH" in text

@@ -153,9 +153,15 @@ class NoiseScales:
 
     @classmethod
     def parse(cls, text: str) -> NoiseScales:
-        """``star=1.67,gyro=5,accel=1,unknown=0.05`` (the command line's form)."""
+        """``star=1.67,gyro=5,accel=1,unknown=0.05,rho=0.81`` (the command line's form).
+
+        ``rho``: the stars' noise correlated from frame to frame (lag-1 ρ of each star's
+        track, :attr:`star_rho`), ``star`` then the whole scale a white-noise filter needs
+        (the diagnosis's advice for correlated noise, ``star=K,rho=R``): the run's
+        consistency judges its NIS and whiteness against that correlation.
+        """
         keys = {"star": "star", "gyro": "gyro", "accel": "accel",
-                "unknown": "unknown_sigma_px"}
+                "unknown": "unknown_sigma_px", "rho": "star_rho"}
         values: dict[str, float] = {}
         for item in text.replace(";", ",").split(","):
             if not item.strip():
@@ -163,7 +169,8 @@ class NoiseScales:
             key, sep, val = item.partition("=")
             key = key.strip()
             if not sep or key not in keys:
-                raise ValueError(f"--noise-scale takes star=S,gyro=G,accel=A,unknown=PX; "
+                raise ValueError(f"--noise-scale takes star=S,gyro=G,accel=A,unknown=PX,"
+                                 f"rho=R; "
                                  f"got {item!r}")
             try:
                 values[keys[key]] = float(val)

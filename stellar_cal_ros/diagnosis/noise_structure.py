@@ -247,5 +247,6 @@ def correlated_line(c: dict[str, float], applied_star: float) -> str:
             f"~1/{c['inflation']:.3g} of what white noise of its sigma would, so a filter "
             f"that takes it as white needs the sigma x{k:.3g} (= sqrt({c['inflation']:.3g})) "
             f"on top of the stars' scatter within frames ({white:.3g} x the messages' "
-            f"sigma): use --noise-scale star={applied_star:.3g} (their product, the one "
-            "scale to give; applied; NIS/dof then reads below 1)")
+            f"sigma): use --noise-scale star={applied_star:.3g},rho={c['rho']:.2f} (their "
+            "product, the one scale to give, and the correlation it stands for; applied; "
+            f"NIS/dof then reads ~1/{c['inflation']:.3g}, judged against it)")

@@ -708,8 +708,8 @@ class Calibrator(ImuRelease):
         cal = result_calibration(self.prior, self.model, full, sig_full, self.method,
                                  self.stamp(), estimated=len(theta))
         cal.extra["derived"] = derived_quantities(self.model, full, self.covariance())
-        cal.extra["consistency"] = consistency(self.stats.current())
         noise = getattr(self.config, "noise", None)
+        cal.extra["consistency"] = consistency(self.stats.current(), noise)
         # whether the run used the stated noise or measured scales of it (issue 21)
         cal.extra["consistency"]["noise_rescaled"] = bool(noise is not None
                                                           and not noise.identity)

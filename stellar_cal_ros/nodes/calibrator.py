@@ -666,7 +666,8 @@ class CalibratorNode(Node):
             conv = self.cal.convergence()
             pending = self.cal.pending()
             initialized = self.cal.initialized
-            cons = consistency(self.cal.stats.current())  # the replay's statistics, so far
+            cons = consistency(self.cal.stats.current(),  # the replay's statistics, so far
+                               getattr(self.cal.config, "noise", None))
             degraded = self.cal.degraded()
         lat = np.asarray(self.latency_s) * 1e3
         st = DiagnosticStatus()

@@ -143,7 +143,8 @@ class LiveView:
             return
         theta, sigma = cal.state()
         fields = view_fields(cal.parameter_names(), theta, sigma, updates, self.nis,
-                             consistency(cal.stats.current()))
+                             consistency(cal.stats.current(),
+                                         getattr(getattr(cal, "config", None), "noise", None)))
         data = self.messages.view(int(round(self.t_last * 1e9)), self.frames["imu"], fields)
         self.pub_view.publish(data)
         if "view" in self.channels:
