@@ -250,11 +250,12 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     print(f"wrote {args.output}, {history_path}"
           + (f" and {args.residuals}" if args.residuals else ""))
     if args.viz is not None:
-        _write_viz(args.viz, result, history_path, args.residuals)
+        _write_viz(args.viz, result, history_path, args.residuals, noise)
     return 0
 
 
-def _write_viz(path: Path, result, history_path: Path, residuals_path: Path | None) -> None:
+def _write_viz(path: Path, result, history_path: Path, residuals_path: Path | None,
+               noise=None) -> None:
     """``replay --viz``: the run as a Foxglove view (MCAP + the layout beside it)."""
     from stellar_cal_ros.io.residuals import read_residuals
     from stellar_cal_ros.viz import layout_json, write_viz
@@ -262,7 +263,7 @@ def _write_viz(path: Path, result, history_path: Path, residuals_path: Path | No
     res = read_residuals(residuals_path) if residuals_path else result.residuals
     t0 = time.perf_counter()
     counts = write_viz(path, read_residuals(history_path), res, result.calibration,
-                       result.method)
+                       result.method, noise=noise)
     lay = path.with_suffix(".layout.json")
     lay.write_text(layout_json())
     print(f"wrote {path} ({', '.join(f'{v} {k}' for k, v in counts.items())} messages, "

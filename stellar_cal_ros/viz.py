@@ -274,8 +274,12 @@ def _frame_updates(res: dict[str, np.ndarray]):
 
 def write_viz(path: str | Path, history: dict[str, np.ndarray],
               residuals: dict[str, np.ndarray], calibration: Any, method: str,
-              field_period_s: float = 30.0) -> dict[str, int]:
-    """Write the view of one run to ``path`` (MCAP); returns the messages per topic."""
+              field_period_s: float = 30.0, noise: Any = None) -> dict[str, int]:
+    """Write the view of one run to ``path`` (MCAP); returns the messages per topic.
+
+    ``noise``: the run's :class:`~stellar_cal_ros.core.noise.NoiseScales`, so the view's
+    verdict is the replay's (a ``--noise-scale star=K,rho=R`` run is judged under its ρ).
+    """
     import foxglove
 
     from stellar_cal_ros.methods.results import VERDICT_MESSAGES, HalfWindowStats, consistency
@@ -300,7 +304,7 @@ def write_viz(path: str | Path, history: dict[str, np.ndarray],
             while k_frame < len(frames) and frames[k_frame].stamp <= t + 1e-9:
                 stats.add(frames[k_frame])
                 k_frame += 1
-            cons = consistency(stats.current())
+            cons = consistency(stats.current(), noise)
             fields = view_fields(names, [history[n][i] for n in names],
                                  [history["sigma." + n][i] for n in names], i + 1,
                                  list(zip(nis[max(0, i + 1 - MOVING):i + 1].tolist(),

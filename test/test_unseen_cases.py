@@ -481,15 +481,24 @@ def test_correlated_noise_advice_is_a_command_the_replay_accepts(ar1_sim, tmp_pa
     rho = float(advice[-1].split("rho=")[1])
     assert rho == pytest.approx(np.exp(-0.2), abs=0.04)
 
-    def replay_with(scale):
+    def replay_with(scale, *extra):
         capsys.readouterr()
         res = tmp_path / f"rep{len(scale)}.yaml"
         assert main(["replay", str(bag), "--prior", prior, "--method", "psce", "-o",
-                     str(res), "--noise-scale", scale, "-q"]) == 0
+                     str(res), "--noise-scale", scale, "-q", *extra]) == 0
         return capsys.readouterr().out, yaml.safe_load(res.read_text())["consistency"]
 
-    text, cons = replay_with(advice[-1])
+    text, cons = replay_with(advice[-1], "--viz", str(tmp_path / "v.mcap"))
     assert cons["verdict"] == "consistent" and "MODEL MISMATCH" not in text, text
+    # the view (replay --viz) judges the run as the replay does, under the declared ρ
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(tmp_path / "v.mcap", "rb") as fh:
+        views = [m for _s, c, _m, m in make_reader(
+            fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+            topics=["/calibrator/view"])]
+    assert views[-1].verdict == "consistent"
     assert "NOISE OVERSTATED" not in text
     assert cons["nis_per_dof"] == pytest.approx(1.0, abs=0.1), cons
     assert cons["nis_per_dof"] == pytest.approx(
