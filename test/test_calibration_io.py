@@ -208,7 +208,9 @@ def test_residual_csv_bytes_are_the_csv_modules(tmp_path):
     rng = np.random.default_rng(5)
     table = {"t": rng.normal(size=40) * 1e9, "frame": np.arange(40),
              "x": np.r_[np.nan, np.inf, -np.inf, 1e-300, -0.0, rng.normal(size=35)],
-             "gated": rng.random(40) > 0.5, "count": np.arange(40, dtype=np.uint16)}
+             "gated": rng.random(40) > 0.5, "count": np.arange(40, dtype=np.uint16),
+             "big": np.r_[1e16, -1e300, 5e-324, 0.1, 123456789.0, rng.normal(size=35) * 1e20],
+             "f32": rng.normal(size=40).astype(np.float32), "neg": -np.arange(40)}
     with open(tmp_path / "ref.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(list(table))
@@ -221,6 +223,12 @@ def test_residual_csv_bytes_are_the_csv_modules(tmp_path):
         tw.append({k: v[:15] for k, v in table.items()})
         tw.append({k: v[15:] for k, v in table.items()})
     assert (tmp_path / "b.csv").read_bytes() == ref
+    for one in ("x", "gated"):  # a single column
+        with open(tmp_path / "ref1.csv", "w", newline="") as fh:
+            csv.writer(fh).writerows([[one]] + [[repr(x) if table[one].dtype.kind == "f"
+                                                 else str(x)] for x in table[one].tolist()])
+        assert write_residuals(tmp_path / "one.csv", {one: table[one]}).read_bytes() == \
+            (tmp_path / "ref1.csv").read_bytes()
     text = dict(table, name=np.array(["a,b"] * 40))  # a string column: quoted by csv
     assert b'"a,b"' in write_residuals(tmp_path / "c.csv", text).read_bytes()
 

@@ -275,3 +275,19 @@ def test_frame_rotation_fast_paths_equal_the_general_form_bit_for_bit():
               "refit" if wrong else "clean"] += 1
         assert np.array_equal(R_new, R_ref) and rms_new == rms_ref, i
     assert min(kinds.values()) >= 10, kinds  # every kind of frame was tried
+
+
+def test_watch_gyro_chain_is_the_matmul_chain_bit_for_bit():
+    # watch_frame advances the gyro chain with ``ndarray.dot`` (cheaper than ``@`` on 3 x 3):
+    # over a long run of frames the chain it records is the ``@`` product's, bit for bit
+    rng = np.random.default_rng(7)
+    R = Rotation.random(3000, random_state=8).as_matrix()
+    R_prior = R @ Rotation.from_rotvec(1e-4 * rng.standard_normal((3000, 3))).as_matrix()
+    s = gyro_check.new_watch()
+    G = np.eye(3)
+    for k in range(3000):
+        gyro_check.watch_frame(s, 0.1 * k, np.zeros((0, 3)), np.zeros((0, 3)),
+                               R_prior[k] if k else None, R[k])
+        if k:
+            G = G @ (R[k - 1].T @ R_prior[k])
+        assert np.array_equal(s["G_now"], G), k

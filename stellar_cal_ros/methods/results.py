@@ -282,17 +282,18 @@ class RunStats:
         if not n:
             return
         self.frames += 1
-        sums = pre if pre is not None else frame_sums(upd)
-        self.sum_logdet += float(sums[1])
-        self.sum_nis_capped += float(sums[2])
+        # Python floats in one call (the same values as ``float(sums[k])`` each)
+        sums = (pre if pre is not None else frame_sums(upd)).tolist()
+        self.sum_logdet += sums[1]
+        self.sum_nis_capped += sums[2]
         self.stars += n
-        self.sum_du2 += float(sums[3])
-        self.sum_dv2 += float(sums[4])
-        self.sum_suu += float(sums[5])
-        self.sum_svv += float(sums[6])
-        self.sum_nis += float(sums[7])
+        self.sum_du2 += sums[3]
+        self.sum_dv2 += sums[4]
+        self.sum_suu += sums[5]
+        self.sum_svv += sums[6]
+        self.sum_nis += sums[7]
         w = self._w
-        for k, x in enumerate((float(sums[8]), float(sums[9]))):
+        for k, x in enumerate((sums[8], sums[9])):
             if w["n"][k]:
                 w["lag"][k] += x * w["last"][k]
             else:
