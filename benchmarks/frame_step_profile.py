@@ -13,6 +13,9 @@ times, hot (the same frame ``--repeat`` times, CPU time per call):
 * the same step ``--repeat`` times inside one compiled call (the state reset from copies
   each time): the per-frame cost of a batched call over a pump's frames, which pays no
   marshalling, no boxing and no Python between two steps;
+* :func:`~stellar_cal_ros.methods.frame_step.frame_steps`, the replay's batched call: the
+  frame 50 times in a row in one call (each frame's state kept, as a replay's run up to its
+  next covariance check), its marshalling included, per frame;
 * the call alone: a compiled function taking the same arguments and returning at once
   (argument marshalling), and one that also builds and returns a result tuple of the same
   shape (the boxing of the returned arrays);
@@ -38,6 +41,7 @@ import numpy as np
 from stellar_cal_ros.core.jit import joseph, kalman_gain, njit, star_blocks
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods import frame_step as fsm
+from stellar_cal_ros.methods.kernel import StarFilter
 from stellar_cal_ros.methods.replay import replay
 from stellar_cal_ros.methods.star_chain import predict_chain
 
@@ -81,11 +85,32 @@ def capture(bag: Path, frames: int) -> list[tuple]:
         return original(*a)
 
     fsm.frame_step = keep
+    StarFilter.batched_step = False  # one Python call a frame (the batched call is timed below)
     try:
         replay(bag, prior, "psce", keep_tables=False)
     finally:
         fsm.frame_step = original
+        StarFilter.batched_step = True
     return calls
+
+
+def batched_args(a: tuple, K: int) -> tuple:
+    """:func:`~stellar_cal_ros.methods.frame_step.frame_steps` arguments of ``K`` frames.
+
+    ``K`` times the frame of the ``frame_step`` arguments ``a`` (the same interval and stars,
+    one after another).
+    """
+    (P, theta, R_a, M, score, info, acc, tp, C, w_hat, phi, slope, j, mj, ta, tb, Gamma,
+     theta_ref, q_diag, b0, E0, Jb, JE, th0, w_raw, uv, u, sigma, base, *chain) = a
+    *consts, du, bscale, Pe, cfg = chain
+    n = len(uv)
+    rep = lambda x: np.ascontiguousarray(np.concatenate([x] * K))  # noqa: E731
+    return (P.copy(), theta.copy(), R_a.copy(), M.copy(), score.copy(), info.copy(),
+            np.full(K, bool(acc)), tp, C, w_hat, phi, slope, np.full(K, j, dtype=np.int64),
+            np.full(K, mj, dtype=np.int64), np.full(K, ta), np.full(K, tb), Gamma, theta_ref,
+            q_diag, b0, E0, Jb, JE, th0, np.tile(w_raw, (K, 1)), rep(uv), rep(u), rep(sigma),
+            np.arange(K + 1, dtype=np.int64) * n, np.full(K, base), *consts, rep(du),
+            np.tile(bscale, (K, 1)).reshape(K, len(bscale)), Pe, cfg)
 
 
 def per_call(f, make_args, repeat: int) -> float:
@@ -173,6 +198,18 @@ def main(argv=None) -> int:
     _loop_steps(args.repeat, *fresh())
     print(f"{'frame_step in one compiled loop':34s} "
           f"{(time.process_time() - t) / args.repeat * 1e6:8.1f}  (per frame, 3 state copies)")
+    # the replay's batched call (frame_steps: a run of up to 50 frames, to the next
+    # covariance check), the marshalling of its arguments and results included
+    K = 50
+    calls_b = max(args.repeat // K, 1)
+    sets = [batched_args(a, K) for _ in range(calls_b + 1)]
+    fsm.frame_steps(*sets[0])
+    t = time.process_time()
+    for s_ in sets[1:]:
+        fsm.frame_steps(*s_)
+    print(f"{'frame_steps (the batched call)':34s} "
+          f"{(time.process_time() - t) / (calls_b * K) * 1e6:8.1f}  (per frame, runs of {K}, "
+          "each frame's state kept)")
     return 0
 
 

@@ -176,6 +176,7 @@ def test_fused_frame_step_taken_and_equal_to_numpy(sim_data, monkeypatch) -> Non
         return original(self, *a, **k)
 
     monkeypatch.setattr(frame_step.FusedStep, "call", counted)
+    monkeypatch.setattr(StarFilter, "batched_step", False)  # one call a frame (counted)
     runs = []
     for compiled in (True, False):
         monkeypatch.setattr(StarFilter, "compiled_step", compiled)
@@ -199,6 +200,80 @@ def test_fused_frame_step_taken_and_equal_to_numpy(sim_data, monkeypatch) -> Non
     assert (sa.frames, sa.stars, sa.gated) == (sb.frames, sb.stars, sb.gated)
     for name in ("sum_logdet", "sum_nis", "sum_du2", "sum_dv2", "sum_suu", "sum_svv"):
         assert getattr(sa, name) == pytest.approx(getattr(sb, name), rel=1e-5), name
+
+
+def _damaged(data):
+    """The bag with IMU gaps (one bridged, one long), dropped frames, frames with outliers
+    (gated stars), frames with too few stars (skipped; a run of them re-acquires), a
+    frame with a non-finite centroid and a frame sent twice."""
+    import dataclasses
+
+    t = data.imu_t
+    keep = ~(((t > 60.0) & (t < 60.025)) | ((t > 150.0) & (t < 153.0)))
+    rng = np.random.default_rng(11)
+    frames = []
+    for i, fr in enumerate(data.frames):
+        if i % 37 == 5:
+            continue  # dropped
+        fr = copy.deepcopy(fr)
+        if i % 23 == 7:  # outliers: gated
+            fr.uv[:3] += rng.choice([-1.0, 1.0], size=(3, 2)) * 40.0
+        if 400 <= i < 404 or i % 97 == 50:  # too few stars (a run of 4: re-acquired)
+            fr = dataclasses.replace(fr, catalog_id=fr.catalog_id[:2],
+                                     right_ascension=fr.right_ascension[:2],
+                                     declination=fr.declination[:2], uv=fr.uv[:2],
+                                     magnitude=fr.magnitude[:2], sigma=fr.sigma[:2])
+        if i == 300:
+            fr.uv[1, 0] = np.nan
+        frames.append(fr)
+        if i == 200:
+            frames.append(copy.deepcopy(fr))
+    return dataclasses.replace(data, imu_t=t[keep], imu_w=data.imu_w[keep],
+                               imu_f=data.imu_f[keep], frames=frames)
+
+
+def test_batched_frame_steps_equal_one_call_a_frame(sim_data, monkeypatch) -> None:
+    """A replay's runs of frames stepped in one compiled call (``StarFilter.batched_step``)
+    give what one call a frame gives, bit for bit: the state, the consider sensitivity and
+    its score and information (the evaluation window starts mid-run), the history and
+    residual tables, the statistics and every counter — on a bag with IMU gaps, dropped,
+    gated, skipped, re-acquiring, invalid and repeated frames."""
+    from stellar_cal_ros.methods import frame_step
+
+    sim, data = sim_data
+    data = _damaged(data)
+    taken = []
+    original = frame_step.FrameBatch.take
+
+    def counted(self, *a, **k):
+        out = original(self, *a, **k)
+        taken.append(out is not None)
+        return out
+
+    monkeypatch.setattr(frame_step.FrameBatch, "take", counted)
+    runs = {}
+    for batched in (False, True):
+        monkeypatch.setattr(StarFilter, "batched_step", batched)
+        runs[batched] = replay(data, sim.prior, "psce", consider=["radial_k3"])
+    one, batch = runs[False], runs[True]
+    c = batch.counters
+    assert c["skipped_few_stars"] >= 5 and c["reinitializations"] >= 1 and c["imu_gaps"] >= 1
+    assert c["stars_gated"] >= 30 and c["frames_duplicate"] == 1 and c["stars_invalid"] >= 1
+    assert sum(taken) >= 0.9 * c["updates"]  # most frames came out of a batch
+    assert one.counters == c
+    fa, fb = one.filter, batch.filter
+    for name in ("theta", "P", "R_i_b"):
+        np.testing.assert_array_equal(getattr(fa, name), getattr(fb, name), err_msg=name)
+    sa, sb = fa.sensitivity, fb.sensitivity
+    assert sa.frames == sb.frames > 0
+    for name in ("M", "score", "info"):
+        np.testing.assert_array_equal(getattr(sa, name), getattr(sb, name), err_msg=name)
+    for table in ("history", "residuals"):
+        ta, tb = getattr(one, table), getattr(batch, table)
+        assert list(ta) == list(tb) and len(ta["t"]) > 0
+        for k in ta:
+            np.testing.assert_array_equal(ta[k], tb[k], err_msg=f"{table}.{k}")
+    assert vars(one.stats) == vars(batch.stats)
 
 
 def test_compiled_frame_inputs_equal_numpy() -> None:

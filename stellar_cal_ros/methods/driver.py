@@ -489,6 +489,12 @@ class Calibrator(ImuRelease):
         lookahead = self.driver.imu_lookahead_s
         imu_end = self._imu_end_rel()
         processed = False
+        # a replay's ready frames go to the filter together (one compiled call steps a run of
+        # them: StarFilter.prepare_frames) when what readies a frame does not depend on the
+        # filter's state (no time effect: the exposure shift is the prior's); identification
+        # needs the filter's attitude: the frames before it go first
+        run: list | None = [] if self.driver.batch_frames and \
+            not self.model.has_time_effect else None
         while self._frames_pending:
             fr = self._frames_pending[0]
             stamp = int(fr.stamp_ns)
@@ -505,6 +511,8 @@ class Calibrator(ImuRelease):
                     break  # the IMU does not cover the exposure yet
             self._flush_staged()
             if stamp in self._to_identify:
+                if run:
+                    out += self._process_run(run)
                 self._to_identify.discard(stamp)
                 fr, inp = self._identify(fr, inp, stamp)
             ctx = frame_context(stamp, inp, self.site, self.env, self._env_keys()) \
@@ -514,11 +522,41 @@ class Calibrator(ImuRelease):
             self._last_frame_ns = stamp
             if stale:
                 self.counters.env_stale += 1
-            out.append(self._process(fr, inp, ctx))
+            if run is None:
+                out.append(self._process(fr, inp, ctx))
+            else:
+                run.append((fr, inp, ctx))
             processed = True
+        if run:
+            out += self._process_run(run)
         if processed:
             self._trim()
         return out
+
+    def _process_run(self, run: list) -> list[FrameOutcome]:
+        """:meth:`_process` of each of ``run``, a replay's ready (frame, inputs, context).
+
+        The filter first steps the frames it can in one compiled call
+        (:meth:`~stellar_cal_ros.methods.kernel.StarFilter.prepare_frames`); ``run`` is
+        emptied.
+        """
+        flt = self.filter
+        frames = [(inp.uv, inp.u_i, ctx, inp.sigma, (fr.stamp_ns - self.t0_ns) * 1e-9,
+                   self._accumulates(fr.stamp_ns)) for fr, inp, ctx in run]
+        out = []
+        i = 0
+        while i < len(run):  # a run ends at a covariance check, a reference rebuild, ...
+            stepped = flt.prepare_frames(frames[i:]) if len(run) - i > 1 else 0
+            for fr, inp, ctx in run[i:i + max(stepped, 1)]:
+                out.append(self._process(fr, inp, ctx))
+            i += max(stepped, 1)
+        flt.prepare_frames([])  # (what is left of a batch, dropped: a workspace)
+        run.clear()
+        return out
+
+    def _accumulates(self, stamp_ns: int) -> bool:
+        """Whether a frame's score and information enter the sensitivity (evaluation window)."""
+        return self.eval_start is None or stamp_ns * 1e-9 >= self.eval_start
 
     def _env_keys(self) -> tuple[str, ...]:
         """The environment inputs a frame's context needs.
@@ -577,8 +615,7 @@ class Calibrator(ImuRelease):
             return FrameOutcome(int(frame.stamp_ns), frame.frame_id, "skipped_few_stars")
         fc.stars_invalid += len(inp.ok) - len(inp.uv)
         if flt.sensitivity is not None:  # score and information over the evaluation window
-            flt.sensitivity.accumulate = self.eval_start is None or \
-                frame.stamp_ns * 1e-9 >= self.eval_start
+            flt.sensitivity.accumulate = self._accumulates(frame.stamp_ns)
         upd = flt.process_frame(inp.uv, inp.u_i, ctx, inp.sigma,
                                 t_rel=(frame.stamp_ns - self.t0_ns) * 1e-9, valid=inp.valid)
         ref = getattr(flt, "reference_history", None)

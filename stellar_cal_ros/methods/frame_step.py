@@ -450,6 +450,88 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
             R_prior_out)
 
 
+@njit(cache=True)
+def frame_steps(P, theta, R_a, M, score, info, acc,
+                tp, C, w_hat, phi, slope, js, mjs, tas, tbs, Gamma, theta_ref, q_diag,
+                gyro_b0, gyro_E0, gyro_Jb, gyro_JE, gyro_theta0, w_raw,
+                uv, u, sigma, offs, base,
+                s0, g, timed, R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du, bscale,
+                Pe, cfg):
+    """:func:`frame_step` over ``K`` frames in a row, on copies of the state (a pump's batch).
+
+    Frame ``i``'s inputs: ``acc[i]``, rows ``js[i]..mjs[i]``, ``tas[i]``, ``tbs[i]``,
+    ``w_raw[i]``, ``base[i]``, ``bscale[i]``, its stars rows ``offs[i]:offs[i + 1]`` of
+    ``uv, u, sigma, du``; the rest as :func:`frame_step`.  The state arguments are not
+    changed: each frame's state after it is returned, so that the caller commits them one
+    frame at a time (the same floats as ``K`` calls of :func:`frame_step`).  Stops after the
+    first frame not ``UPDATED`` and before a ``REBUILD`` (not done).
+
+    Returns ``(done, status (K,), ints (K, 6), floats (K, 13), accepted, uv_pred, S,
+    nis_stars, directions (stars rows), omega (K, 3), R_prior (K, 3, 3), P (K, N, N),
+    theta (K, P_all), R (K, 3, 3), M (K, N, m), score (K, m), info (K, m, m))``.
+    """
+    K = js.shape[0]
+    N = P.shape[0]
+    n_all = uv.shape[0]
+    mc = M.shape[1]
+    P_ = P.copy()
+    th_ = theta.copy()
+    R_ = R_a.copy()
+    M_ = M.copy()
+    sc_ = score.copy()
+    in_ = info.copy()
+    status = np.full(K, -1, dtype=np.int64)
+    ints = np.zeros((K, 6), dtype=np.int64)
+    floats = np.zeros((K, 13))
+    accepted = np.zeros(n_all, dtype=np.bool_)
+    uv_pred = np.zeros((n_all, 2))
+    S = np.zeros((n_all, 2, 2))
+    nis = np.zeros(n_all)
+    dirs = np.zeros((n_all, 3))
+    omega = np.zeros((K, 3))
+    R_pr = np.zeros((K, 3, 3))
+    Ps = np.empty((K, N, N))
+    ths = np.empty((K, theta.shape[0]))
+    Rs = np.empty((K, 3, 3))
+    Ms = np.empty((K, N, mc))
+    scs = np.empty((K, mc))
+    ins = np.empty((K, mc, mc))
+    done = 0
+    for i in range(K):
+        a, b = offs[i], offs[i + 1]
+        st, it_, fl, ac, up, Sb, ns, dr, om, rp = frame_step(
+            P_, th_, R_, M_, sc_, in_, acc[i], tp, C, w_hat, phi, slope, js[i], mjs[i],
+            tas[i], tbs[i], Gamma, theta_ref, q_diag, gyro_b0, gyro_E0, gyro_Jb, gyro_JE,
+            gyro_theta0, w_raw[i], uv[a:b], u[a:b], sigma[a:b], base[i], s0, g, timed,
+            R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du[a:b], bscale[i], Pe,
+            cfg)
+        if st == REBUILD:
+            break
+        status[i] = st
+        ints[i] = it_
+        floats[i] = fl
+        m = ac.shape[0]
+        if m == b - a:
+            accepted[a:b] = ac
+            uv_pred[a:b] = up
+            S[a:b] = Sb
+            nis[a:b] = ns
+            dirs[a:b] = dr
+        omega[i] = om
+        R_pr[i] = rp
+        Ps[i] = P_
+        ths[i] = th_
+        Rs[i] = R_
+        Ms[i] = M_
+        scs[i] = sc_
+        ins[i] = in_
+        done = i + 1
+        if st != UPDATED:
+            break
+    return (done, status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_pr, Ps, ths,
+            Rs, Ms, scs, ins)
+
+
 class FusedStep:
     """The constant inputs of :func:`frame_step` for one filter (see the module docstring).
 
@@ -529,6 +611,95 @@ class FusedStep:
                           pre.slope, j, mj, float(ta), float(tb), self._gamma, prop.theta_ref,
                           self.q_diag, *self.gyro, w_raw, uv, u, sigma, float(base),
                           *self.chain, *self.directions, du, bscale, self.Pe, self.cfg)
+
+
+    def batch(self, P, theta, R, sens, pre, prop, imu_w, frames) -> FrameBatch | None:
+        """:func:`frame_steps` over ``frames`` from the filter's current state.
+
+        ``frames``: ``(uv, u, sigma, base, ctx, j, mj, ta, tb, m, accumulate)`` of each frame
+        in order, as :meth:`call` would take them (``m``: the IMU row of ``w_raw``).  The
+        state is not changed: :meth:`FrameBatch.take` commits each frame's.  None: no frame.
+        """
+        if not frames:
+            return None
+        if sens is None:
+            M, score, info = self.none
+        else:
+            if not sens.M.flags.c_contiguous:
+                sens.M = np.ascontiguousarray(sens.M)
+            M, score, info = sens.M, sens.score, sens.info
+        gamma = prop._gamma
+        if gamma is not self._gamma_of:
+            self._gamma_of, self._gamma = gamma, np.ascontiguousarray(gamma[0])
+        K = len(frames)
+        offs = np.zeros(K + 1, dtype=np.int64)
+        offs[1:] = np.cumsum([len(f[0]) for f in frames])
+        chain = self.compiled_chain
+        inputs = [chain.frame_inputs(f[1], f[4]) for f in frames]
+        col = np.array([f[5:11] for f in frames], dtype=float)  # j, mj, ta, tb, m, acc
+        uv = np.concatenate([f[0] for f in frames]).reshape(-1, 2)
+        u = np.concatenate([f[1] for f in frames]).reshape(-1, 3)
+        sigma = np.concatenate([f[2] for f in frames]).astype(float, copy=False)
+        du = np.concatenate([d for d, _ in inputs])
+        bscale = np.array([b for _, b in inputs], dtype=float).reshape(K, len(inputs[0][1]))
+        base = np.array([f[3] for f in frames], dtype=float)
+        js, mjs = col[:, 0].astype(np.int64), col[:, 1].astype(np.int64)
+        w_raw = np.ascontiguousarray(imu_w[col[:, 4].astype(np.int64)], dtype=float)
+        try:
+            out = frame_steps(P, theta, R, M, score, info, col[:, 5] != 0.0, pre.tp, pre.C,
+                              pre.w_hat, pre.phi, pre.slope, js, mjs,
+                              np.ascontiguousarray(col[:, 2]), np.ascontiguousarray(col[:, 3]),
+                              self._gamma, prop.theta_ref, self.q_diag, *self.gyro, w_raw, uv,
+                              u, sigma, offs, base, *self.chain, *self.directions, du, bscale,
+                              self.Pe, self.cfg)
+        except Exception:  # noqa: BLE001 - the frame's own call raises it, in its turn
+            return None
+        if not out[0]:
+            return None
+        return FrameBatch(out, frames, offs, gamma, pre, P, theta, R, M)
+
+
+class FrameBatch:
+    """The results of :meth:`FusedStep.batch`, handed out frame by frame (:meth:`take`)."""
+
+    def __init__(self, out, frames, offs, gamma, pre, P, theta, R, M) -> None:
+        self.out = out
+        self.done = int(out[0])
+        self.frames = frames
+        self.offs = offs.tolist()
+        self.key = (gamma, pre, P, theta, R, M)
+        self.i = 0
+
+    def take(self, P, theta, R, sens, uv, j, mj, ta, tb, gamma, pre):
+        """Frame ``i``'s :func:`frame_step` result, its state committed; None: not the frame.
+
+        The frame must be the next one of the batch with the same rows, times, stars array,
+        accumulation flag and state arrays; otherwise nothing is changed (the caller then
+        drops the batch and calls :func:`frame_step`).
+        """
+        i = self.i
+        if i >= self.done:
+            return None
+        f = self.frames[i]
+        M = sens.M if sens is not None else self.key[5]
+        acc = bool(sens.accumulate) if sens is not None else f[10]
+        if not (uv is f[0] and j == f[5] and mj == f[6] and ta == f[7] and tb == f[8]
+                and acc == f[10] and all(a is b for a, b in zip(
+                    self.key, (gamma, pre, P, theta, R, M), strict=True))):
+            return None
+        (_, status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_prior, Ps, ths,
+         Rs, Ms, scs, ins) = self.out
+        P[...] = Ps[i]
+        theta[...] = ths[i]
+        R[...] = Rs[i]
+        if sens is not None:
+            M[...] = Ms[i]
+            sens.score[...] = scs[i]
+            sens.info[...] = ins[i]
+        self.i = i + 1
+        a, b = self.offs[i], self.offs[i + 1]
+        return (int(status[i]), ints[i], floats[i], accepted[a:b], uv_pred[a:b], S[a:b],
+                nis[a:b], dirs[a:b], omega[i].copy(), R_prior[i])
 
 
 # Every module holding cached numba kernels (test_user_path checks the list is complete).

@@ -213,6 +213,11 @@ class StarFilter(Acquisition):
     #: the compiled gain (False: the effects' Python methods and numpy/LAPACK — the
     #: reference path, the same estimates to rounding amplified by the start-up)
     compiled_step = True
+    #: a replay's run of frames takes the fused step in one compiled call
+    #: (:meth:`prepare_frames`; False: one call a frame — the same floats)
+    batched_step = True
+    #: at most this many frames a batch
+    batch_frames_max = 64
     #: the method's navigation blocks after θ (e.g. the swaying filter's velocity); their
     #: nominal values start at zero and are set by :meth:`_acquire_navigation`
     navigation_blocks: tuple[Block, ...] = ()
@@ -277,6 +282,7 @@ class StarFilter(Acquisition):
         self._q_diag = np.concatenate([np.full(3, self.q_gyro), self.q_theta,
                                        np.zeros(self.N - 3 - self.P_est)])
         self._frame_step = None  # the fused compiled step (frame_step.FusedStep; False: none)
+        self._batch = None  # the coming frames' fused steps (frame_step.FrameBatch)
         self.t: float | None = None
         self._omega = np.zeros(3)
         self._omega_stale = False
@@ -611,29 +617,26 @@ class StarFilter(Acquisition):
         re-acquisition pending, a reference strapdown to rebuild.
         """
         frame_step = _frame_step_module()
-        fs = self._frame_step
-        if fs is None:
-            fs = self._frame_step = frame_step.FusedStep.build(self, StarFilter) or False
-        if not fs or self._gap_pending or self.t is None or t_exp <= self.t:
+        fs = self._fused_step()
+        rows = self._fused_rows(self.t, self._k, t_exp) if fs else None
+        if rows is None:
+            self._batch = None
             return False, None
+        m, j, mj = rows
         imu, prop = self.imu, self.propagation
-        k = self._k
-        m = imu.index(t_exp)
         pre = prop.prefix
-        if m >= len(imu) or pre is None or imu.base + k < pre.base or \
-                pre.end <= imu.base + m or imu.base + m - prop.ref_start >= prop.window:
-            return False, None
-        cb = imu.cum_bridged
-        if cb[m + 1] != cb[k]:
-            return False, None
         st = self.state
         sens = st.sensitivity
-        off = imu.base - pre.base
         P = st.P if st.P.flags.c_contiguous else np.ascontiguousarray(st.P)
         st.P = P
-        status, ints, floats, accepted, uv_pred, S, nis_stars, dirs, omega, R_prior = \
-            fs.call(P, self.theta, self.R_i_b, sens, pre, k + off, m + off, self.t, t_exp,
-                    prop, imu.w[m], uv, u_i, sigma, self._stamp_rel - t_exp, ctx)
+        batch = self._batch
+        got = batch.take(P, self.theta, self.R_i_b, sens, uv, j, mj, self.t, t_exp,
+                         prop._gamma, pre) if batch is not None else None
+        if got is None:  # not a frame of the batch (or none): the one call
+            self._batch = None
+            got = fs.call(P, self.theta, self.R_i_b, sens, pre, j, mj, self.t, t_exp, prop,
+                          imu.w[m], uv, u_i, sigma, self._stamp_rel - t_exp, ctx)
+        status, ints, floats, accepted, uv_pred, S, nis_stars, dirs, omega, R_prior = got
         if status == frame_step.REBUILD:
             return False, None
         self.t = t_exp
@@ -658,6 +661,81 @@ class StarFilter(Acquisition):
             result.sums = floats[2:12]
             self._updated(result, float(floats[0]), 2 * n_acc, int(ints[1]))
         return True, result
+
+    def _fused_step(self):
+        """The filter's :class:`~.frame_step.FusedStep` (built on first use), or False."""
+        fs = self._frame_step
+        if fs is None:
+            fs = self._frame_step = _frame_step_module().FusedStep.build(self, StarFilter) \
+                or False
+        return fs
+
+    def _fused_rows(self, t: float | None, k: int, t_exp: float) -> tuple[int, int, int] | None:
+        """``(m, j, mj)`` of the fused step from ``(t, k)`` to ``t_exp``; None: numpy path.
+
+        ``m`` the IMU sample covering ``t_exp``, ``j..mj`` the rows of the reference prefix;
+        None with a bridged sample in the interval, a re-acquisition pending, a time not
+        after ``t``, or rows outside the reference.
+        """
+        if self._gap_pending or t is None or t_exp <= t:
+            return None
+        imu, prop = self.imu, self.propagation
+        m = imu.index(t_exp)
+        pre = prop.prefix
+        if m >= len(imu) or pre is None or imu.base + k < pre.base or \
+                pre.end <= imu.base + m or imu.base + m - prop.ref_start >= prop.window:
+            return None
+        cb = imu.cum_bridged
+        if cb[m + 1] != cb[k]:
+            return None
+        off = imu.base - pre.base
+        return m, k + off, m + off
+
+    def prepare_frames(self, frames: list[tuple]) -> int:
+        """Run the fused step of a run of coming frames in one compiled call (a replay's pump).
+
+        ``frames``: ``(uv, u_i, ctx, sigma, t_rel, accumulate)`` of the frames
+        :meth:`process_frame` will be given next, in that order (``accumulate``: the
+        sensitivity's flag the caller will set for it).  The leading frames that take the
+        fused step as things stand (valid stars, in order, no time effect, no covariance
+        check due among them) are stepped by :func:`~.frame_step.frame_steps` at once; each
+        :meth:`process_frame` then takes its frame's result and state instead of a call of
+        its own — the same floats.  Any other frame (or any other call) drops what is left.
+        Returns the frames stepped.
+        """
+        self._batch = None
+        fs = self._fused_step() if self.compiled_step and self.batched_step and \
+            self.initialized else False
+        if not fs or self.model.has_time_effect or len(frames) < 2:
+            return 0
+        c = self.config
+        every = c.covariance_check_every
+        left = every - self.counters.updates % every if every and not self.checks_deferred \
+            else len(frames)
+        left = min(left, self.batch_frames_max)  # (the batch keeps each frame's state)
+        shift = self.model.exposure_shift(self.theta, None)
+        t, k, last = self.t, self._k, self.last_stamp
+        imu = self.imu
+        run = []
+        for uv, u_i, ctx, sigma, t_rel, acc in frames[:left]:
+            if ctx is None or len(uv) < c.min_stars or not math.isfinite(t_rel) or \
+                    (last is not None and t_rel <= last):
+                break
+            t_exp = t_rel + shift
+            rows = self._fused_rows(t, k, t_exp)
+            if rows is None:
+                break
+            m, j, mj = rows
+            run.append((uv, u_i, sigma, t_rel - t_exp, ctx, j, mj, t, t_exp, m, acc))
+            t, k, last = t_exp, m, t_rel
+        if len(run) < 2:
+            return 0
+        st = self.state
+        if not st.P.flags.c_contiguous:
+            st.P = np.ascontiguousarray(st.P)
+        self._batch = fs.batch(st.P, self.theta, self.R_i_b, st.sensitivity,
+                               self.propagation.prefix, self.propagation, imu.w, run)
+        return self._batch.done if self._batch is not None else 0
 
     # ------------------------------------------------------------------ update bookkeeping
     def _gated(self, mismatch: bool, scale: float, lost: bool, outside: int, n: int,
@@ -708,6 +786,7 @@ class StarFilter(Acquisition):
         self.counters.updates += 1
         if c.covariance_check_every and self.counters.updates % c.covariance_check_every == 0 \
                 and not self.checks_deferred:
+            self._batch = None  # (the check may repair the state)
             self._check_covariance()
         result.nis = nis
         result.dof = dof
