@@ -37,6 +37,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -73,6 +74,15 @@ class Case:
     #: post-processing of the simulation (true noise, message σ, catalogue, wobble)
     post: Callable | None = None
     duration: float = 300.0
+    #: the σ (px) the diagnosis should measure for stars whose message says 0 (0: none)
+    unknown_px: float = 0.0
+    #: the truth lies in the noise, along this regressor: an 'unexplained' *spread* line
+    #: ('size') on it tells the truth (the noise varies along it), any other line does not
+    spread_along: str = ""
+    #: words one of the noise / 'unexplained' lines must hold (the truth named), or ""
+    told: str = ""
+    #: regressors that must not lead the 'unexplained' lines (a false physical lead)
+    not_first: tuple[str, ...] = ()
 
 
 def _renoise(sim, true_sigma: Callable, stated: float, seed: int) -> None:
@@ -166,6 +176,38 @@ def _sigma0_mag(sim, seed):
              0.0, seed)
 
 
+def _step2x(sim, seed):
+    # the stated 0.05 px right for the first half of the frames, 2x in the second half
+    frames = sim.star_frames
+    half = len(frames) // 2
+    _renoise(SimpleNamespace(star_frames=frames[:half]), lambda m, uv: PSCE_SIGMA,
+             PSCE_SIGMA, seed)
+    _renoise(SimpleNamespace(star_frames=frames[half:]), lambda m, uv: 2.0 * PSCE_SIGMA,
+             PSCE_SIGMA, seed + 1)
+
+
+def _t3(sim, seed):
+    # Student-t (3 dof) centroid noise scaled to the stated 0.05 px RMS
+    tracker_errors.heavy_tails(sim, PSCE_SIGMA, 3.0, seed)
+
+
+def _bias_walk(sim, seed):
+    # gyro bias instability: the bias a random walk of 0.3 deg/h/sqrt(h) (~0.09 deg/h over
+    # 300 s); the model's gyro bias is a constant
+    tracker_errors.gyro_bias_walk(sim, 0.3, seed)
+
+
+def _jitter(sim, seed):
+    # every frame's stamp off its exposure by N(0, 1 ms)
+    tracker_errors.stamp_jitter(sim, 1e-3, seed)
+
+
+def _sigma0_half(sim, seed):
+    # sigma = 0 ("unknown") in every other message, the right 0.05 px in the rest
+    for f in sim.star_frames[1::2]:
+        f.sigma = np.zeros(len(f.sigma))
+
+
 CASES: dict[str, Case] = {
     # ---- noise stated wrongly, the model right
     "mag2x": Case("psce", "faint stars (mag >= 4.5) 2x the stated 0.05 px, bright as stated",
@@ -234,6 +276,31 @@ CASES: dict[str, Case] = {
     "sigma0_mag": Case("psce", "sigma = 0 in every message; true sigma 0.05 * 2^((mag - 4) / 2)"
                        " px", noise={"star": 0.0}, group_by="magnitude", post=_sigma0_mag,
                        scenario_changes={"centroid_noise_px": 0.0}),
+    # ---- 2026-11-27 (H63): noise stated wrongly in more ways, and errors no effect models
+    "step2x": Case("psce", "stars' sigma as stated (0.05 px) for the first half of the run, "
+                   "2x in the second half: their RMS 1.58x the stated; the noise changes with "
+                   "time", noise={"star": float(np.sqrt(2.5))}, spread_along="time",
+                   post=_step2x, scenario_changes={"centroid_noise_px": 0.0}),
+    "t3": Case("psce", "centroid noise Student-t, 3 dof, scaled to the stated 0.05 px RMS "
+               "(heavy tails; sigma right on average)", noise={}, post=_t3,
+               scenario_changes={"centroid_noise_px": 0.0}),
+    "s06_gyro3": Case("psce", "stars' sigma field 0.6x the true 0.05 px AND gyro ARW 3x the "
+                      "stated", noise={"star": 1.0 / 0.6, "gyro": 3.0},
+                      scenario_changes={"gyro_arw_deg_sqrth": 3.0}, post=_sigma_field(0.6)),
+    "sway_s16_accel3": Case("swaying_base", "stars' sigma field 1.6x the true 0.058 px AND "
+                            "accelerometer VRW 3x the stated", noise={"star": 1.0 / 1.6,
+                                                                       "accel": 3.0},
+                            sim_effects=dict(SWAY_CLEAN), post=_sigma_field(1.6),
+                            scenario_changes={"accel_vrw_mps_sqrth": 3.0}, duration=200.0),
+    "bias_walk": Case("psce", "gyro bias instability: a random walk of 0.3 deg/h/sqrt(h) per "
+                      "axis (~0.09 deg/h over the run), the model's bias constant; no thermal "
+                      "effect (not in the library)", outside=True, told="gyro",
+                      not_first=("temperature",), post=_bias_walk),
+    "jitter": Case("psce", "frame stamps off the exposure by N(0, 1 ms) each (not in the "
+                   "library)", outside=True, post=_jitter),
+    "sigma0_half": Case("psce", "sigma = 0 in every other message, the right 0.05 px in the "
+                        "rest: the unknown ones measured 0.05 px", noise={},
+                        unknown_px=PSCE_SIGMA, post=_sigma0_half),
 }
 
 
@@ -322,14 +389,30 @@ def judge(name: str, r: dict) -> list[str]:
         grp = (applied.get("star_sigma_groups") or {}).get("by", "")
         if grp != case.group_by:
             bad.append(f"stars' sigma grouped by {grp or 'nothing'}, truth {case.group_by}")
-    if case.outside:
-        if not w["unexplained"]:
+    if case.unknown_px:
+        got = ((noise.get("unknown_sigma") or {}).get("sigma_px"))
+        if got is None or abs(got / case.unknown_px - 1.0) > 0.15:
+            bad.append(f"sigma-0 stars measured {got} px, truth {case.unknown_px:.3g}")
+    lines = w["unexplained"]
+    if case.spread_along:  # the noise's own spread along its regressor is the truth
+        lines = [u for u in lines if not _spread_line(u, case.spread_along)]
+    if case.not_first and lines and any(k in lines[0] for k in case.not_first):
+        bad.append(f"first 'unexplained' line is a false lead: {lines[0][:80]}")
+    if case.told and not any(case.told in x for x in w["noise"] + lines):
+        bad.append(f"no line names the {case.told}")
+    if case.outside and not case.told:  # the structure said as 'unexplained', its carrier first
+        if not lines:
             bad.append("no 'unexplained' line")
-        elif case.regressor and case.regressor not in w["unexplained"][0]:
+        elif case.regressor and case.regressor not in lines[0]:
             bad.append(f"first 'unexplained' line is not {case.regressor}")
-    elif w["unexplained"]:
-        bad.append(f"{len(w['unexplained'])} 'unexplained' lines on a case without structure")
+    elif not case.outside and lines:
+        bad.append(f"{len(lines)} 'unexplained' lines on a case without structure")
     return bad
+
+
+def _spread_line(line: str, regressor: str) -> bool:
+    """Whether an 'unexplained' line is the residuals' spread (size) along ``regressor``."""
+    return f"spread (size) vs {regressor}" in line
 
 
 def main() -> int:

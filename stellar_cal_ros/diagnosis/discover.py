@@ -439,7 +439,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             out = r.runs.run_all(first + more, r.done)
             screens = [out.pop(t.key) for t in first]
             late = []  # ran with the screening
-        scores = screening.collect(screens)
+        # motion beyond the IMU's noise correlates the innovations: no local score test
+        scores = screening.collect(screens, white=not (r.noise and r.noise.beyond))
         rerun = []
         for e, c in cands.items():
             c.screen = scores.get(e)

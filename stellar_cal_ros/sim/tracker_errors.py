@@ -18,6 +18,9 @@ function            what a tracker does
 ``outliers``        a fraction of centroids off by ``k σ`` (blends, hot pixels, cosmic rays)
 ``ar1_noise``       centroid noise correlated in time per star (AR(1), ``τ`` frames)
 ``imu_noise_axis``  extra white noise on one gyro or accelerometer axis, not in the covariance
+``heavy_tails``     centroid noise Student-t (``ν`` dof), scaled to a stated RMS
+``gyro_bias_walk``  gyro bias instability: a random walk in the bias the model holds constant
+``stamp_jitter``    each frame stamped with a random error (the exposure's true time unknown)
 ==================  ==============================================================================
 """
 
@@ -156,3 +159,50 @@ def imu_noise_axis(sim, sensor: str, axis: int, factor: float, seed: int) -> Non
     data = np.asarray(getattr(imu, field), dtype=float).copy()
     data[:, axis] += sd * rng.standard_normal(len(data))
     setattr(imu, field, data)
+
+
+def heavy_tails(sim, sigma_px: float, dof: float, seed: int) -> None:
+    """Centroid noise Student-t with ``dof`` (> 2) degrees of freedom, RMS ``sigma_px``.
+
+    Each axis draws ``t_ν · σ √((ν − 2)/ν)`` (variance ``σ²``: the σ field, set to
+    ``sigma_px``, is right on average; a few centroids lie far out, as blends and cosmic
+    rays make them).
+    """
+    if not dof > 2:
+        raise ValueError(f"Student-t noise needs dof > 2 for a finite RMS, got {dof}")
+    rng = np.random.default_rng(seed + 32452843)
+    k = sigma_px * np.sqrt((dof - 2.0) / dof)
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        f.uv = uv + k * rng.standard_t(dof, uv.shape)
+        f.sigma = np.full(len(uv), float(sigma_px))
+
+
+def gyro_bias_walk(sim, density_deg_h_sqrth: float, seed: int) -> np.ndarray:
+    """The gyro bias wanders: a random walk of ``density`` deg/h/√h on each axis.
+
+    Added to the gyro samples (the bias at the first sample is the scenario's); the model's
+    gyro bias is a constant, so this is gyro bias instability no library effect states.
+    Returns the walk added (rad/s, ``(N, 3)``).
+    """
+    rng = np.random.default_rng(seed + 86028121)
+    imu = sim.imu
+    t = np.asarray(imu.stamp_ns, dtype=np.int64)
+    dt = np.diff(t, prepend=t[0]).astype(float) * 1e-9
+    q = np.deg2rad(density_deg_h_sqrth) / 3600.0 / 60.0  # rad/s per √s
+    walk = np.cumsum(q * np.sqrt(dt)[:, None] * rng.standard_normal((len(t), 3)), axis=0)
+    imu.angular_velocity = np.asarray(imu.angular_velocity, dtype=float) + walk
+    return walk
+
+
+def stamp_jitter(sim, sigma_s: float, seed: int) -> np.ndarray:
+    """Each frame's stamp off its exposure's true time by N(0, ``sigma_s``), independently.
+
+    What a tracker whose clock is read with a jitter sends: the stars are where they were
+    at the exposure, the stamp is not.  Returns the errors (s, one per frame).
+    """
+    rng = np.random.default_rng(seed + 49979687)
+    err = sigma_s * rng.standard_normal(len(sim.star_frames))
+    for f, e in zip(sim.star_frames, err, strict=True):
+        f.stamp_ns = int(f.stamp_ns + round(float(e) * 1e9))
+    return err
