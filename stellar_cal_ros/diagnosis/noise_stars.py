@@ -93,6 +93,9 @@ class StarNoise:
     #: cells' means' share of the dof (:func:`cell_shares`) and the σ and dof of
     #: :meth:`group` (consecutive ‖r‖² of a track correlate by ρ²)
     scatter_rho: float = 0.0
+    #: the same estimate on the stretch before the window (stars of known σ): ``{scale,
+    #: sigma, from_s, to_s}`` (seconds from the run's first frame), or None
+    before: dict[str, float] | None = None
 
     @property
     def repeat_p(self) -> float:
