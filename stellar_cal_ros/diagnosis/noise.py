@@ -437,7 +437,7 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
 
 
 #: the stars' σ before the window and in it differ materially beyond this ratio (measured on
-#: the 26 unseen-case bags: 0.87-1.06 where the noise is stationary, the lowest a 30 ms
+#: the 26 unseen-case bags: 0.86-1.06 where the noise is stationary, the lowest a 30 ms
 #: rolling shutter's motion-dependent shape; 2.00 for a noise that doubles mid-run)
 CHANGES = 1.0 + 4 * MATERIAL
 
