@@ -340,6 +340,44 @@ def test_direction_table_of_a_bag_equals_each_frame(stars):
         assert eff._prepared(u_i[:4], ctx) is None
 
 
+def test_a_bags_direction_tables_are_made_once(sim):
+    """Models replayed over the same bag in memory share each direction effect's table
+    (``StarModel.prepare_frames``, ``BagData.prepared``): the same numbers as a table made
+    for the bag afresh; another bag (``dataclasses.replace``), other frames or a pickled
+    copy make their own."""
+    import dataclasses
+    import pickle
+
+    from stellar_cal_ros.methods.frames import bag_data_from_simulation
+    from stellar_cal_ros.methods.replay import build_model
+
+    def tables(model) -> dict:
+        return {type(e).__name__: e.prepared_table()[1]
+                for e, _, _ in model._chain[Stage.DIRECTION]}
+
+    data = bag_data_from_simulation(sim)
+    first = build_model(sim.prior, ["aberration", "refraction", "proper_motion"])
+    first.prepare_frames(data)
+    again = build_model(sim.prior, ["aberration"])
+    again.prepare_frames(data)
+    assert tables(again)["Aberration"] is tables(first)["Aberration"]  # made once
+    other = dataclasses.replace(data)
+    assert not other.prepared  # a new bag object starts empty
+    fresh = build_model(sim.prior, ["aberration"])
+    fresh.prepare_frames(other)
+    shared, made = tables(again)["Aberration"], tables(fresh)["Aberration"]
+    assert made is not shared and len(made) == len(shared) > 100
+    for stamp, row in made.items():
+        np.testing.assert_array_equal(row.delta, shared[stamp].delta)
+        np.testing.assert_array_equal(row.ids, shared[stamp].ids)
+    data.frames = data.frames[:-1]  # other frames: made again
+    fewer = build_model(sim.prior, ["aberration"])
+    fewer.prepare_frames(data)
+    assert tables(fewer)["Aberration"] is not shared
+    assert len(tables(fewer)["Aberration"]) == len(shared) - 1
+    assert not pickle.loads(pickle.dumps(data)).prepared  # not sent to a worker
+
+
 def test_proper_motion_without_identifications(stars):
     eff = registry.create("proper_motion")
     ctx = make_ctx(stars)

@@ -116,6 +116,22 @@ def test_dead_z_axis_is_flagged_when_the_z_steps_show_it(base, tmp_path):
     assert res.counters["gyro_star_mismatch"] == 1
 
 
+def test_the_check_off_changes_no_estimate(base, tmp_path):
+    """``gyro_fault="off"`` (the reliability probe's re-runs): the check does not run — the
+    dead z axis is neither counted nor flagged — and every estimate and σ is the checked
+    run's, bit for bit (the check only counts and flags)."""
+    bag = _VARIANTS["imu_dead_axis"].make(base, tmp_path / "dead_z").bag
+    checked = replay(bag, load_calibration(base.prior), "psce", gyro_fault="flag")
+    off = replay(bag, load_calibration(base.prior), "psce", gyro_fault="off")
+    assert checked.counters["gyro_star_mismatch"] == 1
+    assert "gyro_star_mismatch" not in off.counters
+    assert "data_quality" not in off.calibration.extra
+    np.testing.assert_array_equal(off.filter.theta, checked.filter.theta)
+    np.testing.assert_array_equal(off.covariance[1], checked.covariance[1])
+    with pytest.raises(ValueError, match="gyro_fault"):
+        replay(bag, load_calibration(base.prior), "psce", gyro_fault="ignore")
+
+
 @pytest.mark.parametrize("sign", ["+", "-"])
 def test_imu_clock_an_hour_off_is_named(base, tmp_path, sign):
     # the IMU stamps +1 h: the tracker's start 3600 s before them, and the reverse

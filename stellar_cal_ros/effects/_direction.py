@@ -113,6 +113,22 @@ class ScaledDirection(Effect):
             self._table[float(stamps[k])] = _Prepared(
                 ids[sl], uu[sl], d[sl], (float(pressure_pa[k]), float(air_temperature_c[k])))
 
+    def prepared_table(self) -> tuple[Site | None, dict]:
+        """What :meth:`prepare` made (the site and the table).
+
+        Another instance of this class takes it (:meth:`use_prepared`) for the same bag
+        instead of calling pyerfa again.
+        """
+        return self._site, self._table
+
+    def use_prepared(self, made: tuple[Site | None, dict]) -> None:
+        """Take :meth:`prepared_table` of another instance of this class on the same bag.
+
+        Δ is a function of the stars, times, site and weather alone (not of the scale):
+        the table is the same numbers :meth:`prepare` would compute; it is only read.
+        """
+        self._site, self._table = made
+
     def _prepared(self, u: np.ndarray, ctx: FrameContext) -> np.ndarray | None:
         """The frame's Δ from the table of :meth:`prepare`, or None."""
         table = getattr(self, "_table", None)

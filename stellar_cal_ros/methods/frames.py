@@ -38,7 +38,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -587,6 +587,22 @@ class BagData:
     nominal_dt: float = 0.0
     source: str = ""  #: path of the bag (empty for data made in memory)
     images_bad: int = 0  #: star images skipped as unusable (a bag of images; ImageFrames)
+    #: what runs over this data compute from it alone and share (the direction effects'
+    #: tables, :meth:`~stellar_cal_ros.methods.star_model.StarModel.prepare_frames`), under
+    #: a key of the fields it was made from (:meth:`prepared_for`); not a constructor
+    #: argument: ``dataclasses.replace`` starts an empty one
+    prepared: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def prepared_for(self, key: tuple) -> dict:
+        """:attr:`prepared`, emptied first when it was made under another ``key``."""
+        if self.prepared.get("key") != key:
+            self.prepared.clear()
+            self.prepared["key"] = key
+        return self.prepared
+
+    def __getstate__(self) -> dict:
+        """Pickled (a Dask scatter, a copy) without :attr:`prepared`: made again there."""
+        return {**self.__dict__, "prepared": {}}
 
     @property
     def t0(self) -> float:

@@ -225,20 +225,25 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
     gyro_fault : str
         ``raise``: a gyro that does not turn as the stars do over the first frames raises
         :class:`~stellar_cal_ros.errors.DataError` (deg/s, dead, swapped axes); ``flag``:
-        it is counted and flags the result (a diagnosis's candidate runs).
+        it is counted and flags the result (a diagnosis's candidate runs); ``off``: the
+        check does not run (a re-run of a bag whose gyro a run of the same diagnosis has
+        judged, and whose own counters and calibration nobody reads: the reliability
+        probe's runs).  The check changes no estimate, only the counters and flags.
     noise : NoiseScales, optional
         Scales of the stated noise (stars' σ, gyro ARW, accelerometer VRW) the run uses
         (:mod:`stellar_cal_ros.core.noise`; measured by :mod:`stellar_cal_ros.diagnosis.
         noise`).
     """
     spec = registry.get(method)
-    if gyro_fault not in ("raise", "flag"):
-        raise ValueError(f"gyro_fault must be 'raise' or 'flag', got {gyro_fault!r}")
+    if gyro_fault not in ("raise", "flag", "off"):
+        raise ValueError(f"gyro_fault must be 'raise', 'flag' or 'off', got {gyro_fault!r}")
     names = dict(TOPICS)
     names.update(topics or {})
     cfg = config
     if gyro_fault == "flag" and spec.kind == "filter":
         cfg = dataclasses.replace(cfg or spec.config_cls(), unit_check_raises=False)
+    if gyro_fault == "off" and spec.kind == "filter":
+        cfg = dataclasses.replace(cfg or spec.config_cls(), unit_check=False)
     if noise is not None and spec.kind == "filter":
         cfg = noise.apply(cfg or spec.config_cls())
     # a replay never drops frames for memory: what is held is bounded by the look-ahead
