@@ -126,6 +126,49 @@ def test_a_probe_run_replaces_the_rows_the_first_order_does_not_hold():
     _same_words_in_the_report(entry, text)
 
 
+def test_the_probe_split_over_workers_gives_the_rows_of_one_call(monkeypatch):
+    """On several workers the probe's (effect, parameter) pairs go out as parts (each with
+    both signs, ``Runs.on_bag_each``); the entries come out as from one call."""
+    import copy
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.diagnosis.runstats import RunSummary
+
+    det = reliability.detectability("image_plane_tilt", np.diag([4e5, 4e5]), 1e-3)
+    size = min(det.mdb["tau_x"], det.plausible[0])
+    sigma = {"installation.rx": 1e-4 * size, "gyro_bias.by": 1e-8 * size}
+    rows = {"installation.rx": np.array([30e-4, 0.0]), "gyro_bias.by": np.array([-1.2e-8, 0.0])}
+    entry = reliability.external_reliability(det, rows, sigma)
+    base = RunSummary(effects=(), names=list(sigma), theta=np.zeros(2), P=np.eye(2),
+                      calibration=object(), prior=object())
+
+    def measured(data, *args):  # a stand-in for the probe's runs: values of the injection
+        return [{"installation.rx": 40.0 * d[0], "gyro_bias.by": 1e-6 * d[0] ** 2}
+                for _, d in args[-1]]
+
+    def entries() -> list:  # three pairs, each injected at its own size
+        out = [copy.deepcopy(entry) for _ in range(3)]
+        for k, e in enumerate(out):
+            e["hidden_size"]["tau_x"] *= k + 1
+        return out
+
+    monkeypatch.setattr(reliability_probe, "measure_on_bag", measured)
+    got, parts = [], []
+    for workers in (1, 2, 3):
+        def each(fn, calls, workers=workers):
+            parts.append((workers, [len(c[-1]) for c in calls]))
+            return [fn(None, *c) for c in calls]
+
+        runs = SimpleNamespace(workers=workers, spec=None, fraction=0.5, noise=None,
+                               classes=(), on_bag_each=each)
+        made = entries()
+        assert reliability_probe.probe_entries(made, base, runs) == 6
+        got.append(made)
+    assert parts == [(1, [6]), (2, [2, 4]), (3, [2, 2, 2])]
+    assert got[0][0]["biases_signed"] != got[0][2]["biases_signed"]  # the sizes show
+    assert got[1] == got[0] and got[2] == got[0]
+
+
 def _same_words_in_the_report(entry, text):
     """The report's row says the biases and first-order clauses in the terminal's words."""
     from stellar_cal_ros.diagnosis.report_html import _reliability_html

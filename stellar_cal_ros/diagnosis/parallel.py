@@ -163,6 +163,13 @@ class Runs:
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         return _on_bag(self.bag, fn, *args)
 
+    def on_bag_each(self, fn: Callable[..., Any], calls: list[tuple]) -> list[Any]:
+        """``[fn(bag_data, *args) for args in calls]`` where the bag is, not cached.
+
+        On a cluster the calls run concurrently (one task each); here one after the other.
+        """
+        return [self._compute_on_bag(fn, *args) for args in calls]
+
     def map(self, tasks: list[Task], ahead: list[Task] = ()
             ) -> Iterator[tuple[Task, RunSummary]]:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes.
@@ -315,6 +322,13 @@ class DaskRuns(Runs):
         if self.client is None:
             return super()._compute_on_bag(fn, *args)
         return self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False).result()
+
+    def on_bag_each(self, fn: Callable[..., Any], calls: list[tuple]) -> list[Any]:  # noqa: D102
+        if self.client is None or len(calls) < 2:
+            return super().on_bag_each(fn, calls)
+        futures = [self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False)
+                   for args in calls]
+        return [f.result() for f in futures]
 
     def _evaluate(self, task: Task) -> RunSummary:
         t = time.process_time()

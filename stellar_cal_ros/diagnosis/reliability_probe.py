@@ -312,8 +312,16 @@ def probe_entries(entries: list[dict[str, Any]], base, runs) -> int:
     probes = tuple((entry["effect"], tuple(injection.parameter_delta(
         entry["effect"], parameter, sign * entry["hidden_size"][parameter]).tolist()))
         for entry, parameter in todo for sign in (1.0, -1.0))
-    got = runs.on_bag(measure_on_bag, runs.spec, base.prior, tuple(base.effects),
-                      runs.fraction, runs.noise, runs.classes, base.calibration, probes)
+    # one call renders the bag's twin once for all its probes; on several workers the
+    # (effect, parameter) pairs are split over them, each part rendering the twin itself
+    # (the same noise-free numbers), so the probe's runs are not one worker's serial tail
+    parts = max(1, min(runs.workers, len(todo)))
+    bounds = [2 * (len(todo) * i // parts) for i in range(parts + 1)]
+    args = (runs.spec, base.prior, tuple(base.effects), runs.fraction, runs.noise,
+            runs.classes, base.calibration)
+    got = [row for part in runs.on_bag_each(measure_on_bag, [
+        (*args, probes[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)])
+        for row in part]
     before, sigma = injection.summary_values(base), base.sigma_by_name()
     for k, (entry, parameter) in enumerate(todo):
         plus, minus = got[2 * k], got[2 * k + 1]
