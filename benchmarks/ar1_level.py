@@ -15,9 +15,14 @@ long-run factor ``(1 + ρ)/(1 − ρ)`` with the approximate ``ρ`` the tests ha
 (``--old``; its repeat rows are ``star_after_cells`` divided by that factor since H53, not
 the star-mean count the repeat had before).
 
+White + AR(1) tracks (``--rho 0.81873:0.265``: the AR(1) carries 0.265 of the variance,
+the rest white) are read by the tracks' white + AR(1) model
+(:func:`~stellar_cal_ros.diagnosis.noise_structure.track_model`); ``--pure`` reads every
+draw as one AR(1) of its lag-1 ρ, as before that model.
+
 Run::
 
-    .venv/bin/python benchmarks/ar1_level.py --reps 1000 --rho 0.81873,0.5,0
+    .venv/bin/python benchmarks/ar1_level.py --reps 1000 --rho 0.81873,0.5,0,0.81873:0.265
 """
 
 from __future__ import annotations
@@ -35,12 +40,14 @@ from stellar_cal_ros.diagnosis.noise_stars import _minus_cell_means, star_after_
 CELLS, CELL_MIN = 108, 8
 
 
-def draw(rng, rho: float, stars: int = 150, lengths: tuple[int, int] = (10, 80)
-         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def draw(rng, rho: float, stars: int = 150, lengths: tuple[int, int] = (10, 80),
+         share: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``stars`` AR(1) tracks (u, v) of unit variance: rows ``(n, 2)``, star ids, cell ids.
 
     Each track has a length uniform in ``lengths``, starts at a frame in [0, 200) and
     crosses 1-3 cells in consecutive segments; rows sorted by frame (then star).
+    ``share`` below 1: white + AR(1) tracks, the AR(1) carrying ``share`` of the variance
+    (a white draw after the rest; ``share`` 1 draws the same as before).
     """
     n = rng.integers(lengths[0], lengths[1] + 1, size=stars)
     x = np.empty((stars, lengths[1], 2))
@@ -59,6 +66,8 @@ def draw(rng, rho: float, stars: int = 150, lengths: tuple[int, int] = (10, 80)
         cell.append(rng.integers(0, CELLS, size=pieces[s])[seg])
         frame.append(start[s] + np.arange(n[s]))
     r, star, cell, frame = (np.concatenate(a) for a in (rows, star, cell, frame))
+    if share != 1.0:
+        r = np.sqrt(share) * r + np.sqrt(1.0 - share) * rng.standard_normal(r.shape)
     order = np.lexsort((star, frame))
     return r[order], star[order], cell[order]
 
@@ -77,11 +86,12 @@ def pvalues(r: np.ndarray, star: np.ndarray, cell: np.ndarray, old: bool = False
         f = (1.0 + rho) / (1.0 - rho)
         rep, rep_dof = star_after_cells(r, cell, keep, star)
         rep, chi2 = rep / f, chi2 / f
-    else:
-        _, rho, _ = ns.track_inflation(r_star, star)
-        rep, rep_dof = star_after_cells(r, cell, keep, star, None, rho)
+    else:  # the tracks' white + AR(1) model (a pure AR(1) unless the lags ask for white)
+        track = ns.track_model(r_star, star)
+        rho = track.phi
+        rep, rep_dof = star_after_cells(r, cell, keep, star, None, rho, track.share)
         if rho > 0:
-            chi2 = ns.lagged_chi2(r, cell, star, rho, keep)
+            chi2 = ns.lagged_chi2(r, cell, star, rho, keep, share=track.share)
     return float(sps.chi2.sf(rep, rep_dof)), float(sps.chi2.sf(chi2, dof)), float(rho)
 
 
@@ -101,20 +111,29 @@ def main() -> int:
     """Print the level table."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=1000)
-    ap.add_argument("--rho", default="0.81873,0.5,0")
+    ap.add_argument("--rho", default="0.81873,0.5,0",
+                    help="AR(1) coefficients, each RHO or RHO:SHARE (white + AR(1), the AR "
+                         "carrying SHARE of the variance)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--old", action="store_true", help="also the long-run factor")
+    ap.add_argument("--pure", action="store_true",
+                    help="the tracks read as one AR(1) of their lag-1 rho (before H59)")
     args = ap.parse_args()
-    print(f"{'rho':>7} {'factor':>9} {'test':>7} {'mean p':>12} {'p<5%':>6} {'p<1%':>6} "
-          f"{'KS p':>7} {'rho hat':>13}")
-    for rho in (float(v) for v in args.rho.split(",")):
+    if args.pure:
+        ns.SHARE_Z = float("inf")
+    print(f"{'rho':>7} {'share':>5} {'factor':>9} {'test':>7} {'mean p':>12} {'p<5%':>6} "
+          f"{'p<1%':>6} {'KS p':>7} {'rho hat':>13}")
+    for item in args.rho.split(","):
+        rho_s, _, share_s = item.partition(":")
+        rho, share = float(rho_s), float(share_s or 1.0)
         for old in ((False, True) if args.old else (False,)):
             rng = np.random.default_rng(args.seed)
             t0 = time.process_time()
-            P = np.array([pvalues(*draw(rng, rho), old=old) for _ in range(args.reps)])
+            P = np.array([pvalues(*draw(rng, rho, share=share), old=old)
+                          for _ in range(args.reps)])
             for j, name in enumerate(("repeat", "cells")):
                 p = P[:, j]
-                print(f"{rho:7.4g} {'long-run' if old else 'finite':>9} {name:>7} "
+                print(f"{rho:7.4g} {share:5.3g} {'long-run' if old else 'finite':>9} {name:>7} "
                       f"{p.mean():6.3f}+-{p.std() / np.sqrt(len(p)):.3f} "
                       f"{np.mean(p < 0.05):6.3f} {np.mean(p < 0.01):6.3f} "
                       f"{sps.kstest(p, 'uniform').pvalue:7.2g} "

@@ -317,9 +317,10 @@ def test_correlated_noise_line_names_both_factors_of_the_scale_to_use():
         line = next(x for x in v.lines() if "correlated from frame to frame" in x)
         # no second line of the scatter alone ('x1.03 too large: use star=3.09')
         assert not any("sigma looks" in x for x in v.lines()), v.lines()
-        got = re.search(r"needs the sigma x([\d.]+) \(= sqrt\(([\d.]+)\)\) on top of the "
-                        r"stars' scatter within frames \(([\d.]+) x the messages' sigma\): use "
-                        r"--noise-scale star=([\d.]+),rho=([\d.]+) \(their product", line)
+        got = re.search(r"needs the sigma x([\d.]+)(?: \+- [\d.e-]+)? \(= sqrt\(([\d.]+)\)\) "
+                        r"on top of the stars' scatter within frames \(([\d.]+) x the "
+                        r"messages' sigma\): use --noise-scale star=([\d.]+),rho=([\d.]+) "
+                        r"\(their product", line)
         assert got, line
         shown_k, infl, white, use, shown_rho = (float(g) for g in got.groups())
         # the advice carries ρ (issue 21.3): `replay --noise-scale star=K,rho=R` judges its
@@ -363,7 +364,8 @@ def test_star_repeat_after_the_cells_holds_its_level_on_ar1_tracks():
 def test_trace_after_cells_is_the_projections_trace_of_the_ar1_covariance():
     """``noise_stars._trace_after_cells`` (what one axis of the repeat expects under AR(1)
     along each star's rows) equals ``tr((P_{S+C} − P_C) Σ)`` built densely on a small case
-    (12 stars, 1-3 cells each of 5), and ``stars − groups`` for white noise."""
+    (12 stars, 1-3 cells each of 5), and ``stars − groups`` for white noise; white +
+    AR(1) noise, ``Σ = (1 − w) I + w Σ_AR``, the same (issue 21, H59)."""
     from scipy.linalg import block_diag
 
     rng = np.random.default_rng(4)
@@ -382,6 +384,12 @@ def test_trace_after_cells_is_the_projections_trace_of_the_ar1_covariance():
                            for k in n])
         got = noise_stars._trace_after_cells(star, cell, ns_, nc, Ap, rho)
         assert got == pytest.approx(float(np.trace(Q @ cov)), rel=1e-9)
+        # white + AR(1) (the AR carrying w of the variance): linear in Σ; w 1 is the AR(1)
+        w = 0.3
+        assert noise_stars._trace_after_cells(star, cell, ns_, nc, Ap, rho, w) == \
+            pytest.approx(float(np.trace(Q @ ((1 - w) * np.eye(len(star)) + w * cov))),
+                          rel=1e-9)
+        assert noise_stars._trace_after_cells(star, cell, ns_, nc, Ap, rho, 1.0) == got
     assert noise_stars._trace_after_cells(star, cell, ns_, nc, Ap, 0.0) == pytest.approx(
         np.linalg.matrix_rank(Q))
 

@@ -42,8 +42,12 @@ class NoiseScales:
     factors: tuple[float, ...] = ()  #: one factor per group, len(edges) + 1
     #: lag-one correlation of each star's centroid noise from frame to frame, as measured
     #: (0: white); ``star`` then holds √((1 + ρ)/(1 − ρ)) on top of the stars' scatter
-    #: within frames, the white stand-in a filter needs (:meth:`within_frames` undoes it)
+    #: within frames, the white stand-in a filter needs (:meth:`within_frames` undoes it).
+    #: With :attr:`star_ar_share` below 1: the coefficient of the AR(1) part of white +
+    #: AR(1) noise (lags ``w ρ^k``), the factor √((1 − w) + w (1 + ρ)/(1 − ρ))
     star_rho: float = 0.0
+    #: the AR(1)'s share ``w`` of the stars' noise variance, the rest white (1: pure AR(1))
+    star_ar_share: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("star", "gyro", "accel"):
@@ -60,6 +64,9 @@ class NoiseScales:
             raise ValueError(f"star group factors must be positive, got {self.factors!r}")
         if not (math.isfinite(self.star_rho) and 0.0 <= self.star_rho < 1.0):
             raise ValueError(f"star noise correlation must be in [0, 1), got {self.star_rho!r}")
+        if not (math.isfinite(self.star_ar_share) and 0.0 <= self.star_ar_share <= 1.0):
+            raise ValueError(f"star noise AR(1) share must be in [0, 1], got "
+                             f"{self.star_ar_share!r}")
 
     @property
     def identity(self) -> bool:
@@ -73,8 +80,15 @@ class NoiseScales:
 
     @property
     def star_inflation(self) -> float:
-        """√((1 + ρ)/(1 − ρ)): the factor ``star`` holds for the stars' correlated noise."""
-        return math.sqrt((1.0 + self.star_rho) / (1.0 - self.star_rho))
+        """√((1 + ρ)/(1 − ρ)): the factor ``star`` holds for the stars' correlated noise.
+
+        White + AR(1) (:attr:`star_ar_share` ``w`` < 1): √((1 − w) + w (1 + ρ)/(1 − ρ)), the
+        diagnosis's long-run factor
+        (:func:`~stellar_cal_ros.diagnosis.noise_structure.long_run`, the same formula).
+        """
+        ar = (1.0 + self.star_rho) / (1.0 - self.star_rho)
+        w = self.star_ar_share
+        return math.sqrt(ar if w == 1.0 else (1.0 - w) + w * ar)
 
     def within_frames(self) -> NoiseScales:
         """The scales of the stars' noise within one frame (its marginal σ), white.
@@ -85,7 +99,7 @@ class NoiseScales:
         """
         k = self.star_inflation
         return self.replace(star=self.star / k, unknown_sigma_px=self.unknown_sigma_px / k,
-                            star_rho=0.0)
+                            star_rho=0.0, star_ar_share=1.0)
 
     def group_of(self, magnitude: np.ndarray, uv: np.ndarray,
                  centre: tuple[float, float]) -> np.ndarray:
@@ -137,6 +151,8 @@ class NoiseScales:
         if self.star_rho:
             out["star_correlated"] = {"rho": float(self.star_rho),
                                       "sigma_scale": float(self.star_inflation)}
+            if self.star_ar_share != 1.0:
+                out["star_correlated"]["ar_share"] = float(self.star_ar_share)
         return out
 
     @classmethod
@@ -145,11 +161,12 @@ class NoiseScales:
         d = d or {}
         groups = d.get("star_sigma_groups") or {}
         rho = float((d.get("star_correlated") or {}).get("rho", 0.0) or 0.0)
+        share = float((d.get("star_correlated") or {}).get("ar_share", 1.0))
         return cls(float(d.get("star_sigma_scale", 1.0)), float(d.get("gyro_noise_scale", 1.0)),
                    float(d.get("accel_noise_scale", 1.0)),
                    float(d.get("unknown_star_sigma_px", 0.0) or 0.0),
                    str(groups.get("by", "")), tuple(float(e) for e in groups.get("edges", ())),
-                   tuple(float(f) for f in groups.get("scales", ())), rho)
+                   tuple(float(f) for f in groups.get("scales", ())), rho, share)
 
     @classmethod
     def parse(cls, text: str) -> NoiseScales:

@@ -401,7 +401,8 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
         v.star_p = p_two_sided(v.star, v.star_sigma)
         if v.star_p < ALPHA / n_tests and abs(v.star - 1.0) > MATERIAL:
             v.rejected.append("star")
-            applied = applied.replace(star=v.stated.star * v.star, star_rho=0.0)
+            applied = applied.replace(star=v.stated.star * v.star, star_rho=0.0,
+                                      star_ar_share=1.0)
         v.changes = changes_over_run(sn, v.star, v.star_sigma, v.stated.star, n_tests)
         v.tails = heavy_tails(sn, known, v.star)
         if v.changes and "star" not in v.rejected:  # not as stated, whatever the window says
@@ -415,21 +416,24 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
             overall = sub.group(np.ones(len(sub.q), dtype=bool))[0]
             v.group = best
             applied = applied.replace(
-                star=v.stated.star * overall, star_rho=0.0, group_by=best["by"],
+                star=v.stated.star * overall, star_rho=0.0, star_ar_share=1.0, group_by=best["by"],
                 edges=tuple(best["edges"]), factors=tuple(float(x) for x in sc / overall))
             if "star" not in v.rejected:
                 v.rejected.append("star")
     # only where no field or per-star error is left: a missing effect that varies along a
     # star's track correlates its residuals too, and is no noise to inflate (measured: a
     # 30 ms rolling shutter on a swaying base read rho 0.57)
-    v.correlated = noise_structure.correlated(sn.track_rho, sn.track_pairs, 2 * MATERIAL) \
-        if sn.structure_p >= ALPHA and not sn.repeat_removed else None
+    v.correlated = noise_structure.correlated(
+        sn.track_rho, sn.track_pairs, 2 * MATERIAL, sn.track_phi, sn.track_share,
+        sn.track_factor_sigma) if sn.structure_p >= ALPHA and not sn.repeat_removed else None
     if v.correlated:
         # the scale a filter needs, and the correlation it stands for (a twin renders it)
         # σ-0 stars' noise is the same process: their measured scatter takes the factor too
         # (before, they kept the white scatter: ~1/3 of what the filter needs at ρ 0.81)
         k = v.correlated["sigma_scale"]
-        applied = applied.replace(star=applied.star * k, star_rho=v.correlated["rho"],
+        c = v.correlated
+        applied = applied.replace(star=applied.star * k, star_rho=c.get("phi", c["rho"]),
+                                  star_ar_share=c.get("ar_share", 1.0),
                                   unknown_sigma_px=applied.unknown_sigma_px * k)
         if "star" not in v.rejected:
             v.rejected.append("star")

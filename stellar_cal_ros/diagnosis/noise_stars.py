@@ -85,17 +85,26 @@ class StarNoise:
     repeat_dof: float = 0.0
     #: when significant, the per-star error's RMS (px per axis), removed before the scale
     repeat_removed: float = 0.0
-    #: lag-one correlation of a star's consecutive residuals (about its mean), and pairs
+    #: lag-one correlation of a star's consecutive residuals (about its mean) as a pure
+    #: AR(1) reads it, and pairs (its σ ≈ 1/√pairs): the test of white noise
     track_rho: float = 0.0
     track_pairs: int = 0
     star: np.ndarray | None = None  #: per star: its catalogue id (its track)
     #: the tracks' lag-1 ρ the scale is counted with (0: white, or not significant): the
     #: cells' means' share of the dof (:func:`cell_shares`) and the σ and dof of
-    #: :meth:`group` (consecutive ‖r‖² of a track correlate by ρ²)
+    #: :meth:`group` (consecutive ‖r‖² of a track correlate by ρ²); white + AR(1) noise:
+    #: the AR(1)'s coefficient, ``scatter_share`` its share of the variance (1: pure AR(1))
     scatter_rho: float = 0.0
     #: the same estimate on the stretch before the window (stars of known σ): ``{scale,
     #: sigma, from_s, to_s}`` (seconds from the run's first frame), or None
     before: dict[str, float] | None = None
+    scatter_share: float = 1.0
+    #: the tracks' noise model (:func:`~.noise_structure.track_model`): white plus an AR(1)
+    #: of coefficient ``track_phi`` (None: ``track_rho``) carrying ``track_share`` of the
+    #: variance (1: pure AR(1)), and the σ of its long-run factor
+    track_phi: float | None = None
+    track_share: float = 1.0
+    track_factor_sigma: float = math.nan
 
     @property
     def repeat_p(self) -> float:
@@ -146,7 +155,9 @@ class StarNoise:
             return 1.0
         _, k = np.unique(self.star[mask], return_inverse=True)
         n = np.bincount(k).astype(float)
-        return float(np.sum(n * noise_structure.mean_factor(n, self.scatter_rho**2))
+        # (white + AR(1): the squares' lags (w φ^k)², an AR of φ² carrying w²)
+        return float(np.sum(n * noise_structure.mean_factor(n, self.scatter_rho**2,
+                                                             self.scatter_share**2))
                      / max(n.sum(), 1.0))
 
 
@@ -190,18 +201,20 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     stars = np.asarray(res["catalog_id"])[idx]
     # (the tracks' lag-1 ρ read about the star means before the cells' means, which bias
     # it low: pure AR(1) tracks of 0.819 read 0.809 after them, and the repeat's p mean
-    # 0.33)
-    _, rho_tracks, pairs_tracks = noise_structure.track_inflation(
-        star_means(r_cells, sub_share, stars)[2], stars)
+    # 0.33; white + AR(1) along the tracks: :func:`~.noise_structure.track_model`, a pure
+    # AR(1) unless the lags ask for white noise beside it)
+    rep_track = noise_structure.track_model(star_means(r_cells, sub_share, stars)[2], stars)
+    rho_tracks, pairs_tracks = rep_track.rho, rep_track.pairs
     # noise correlated along the tracks makes a cell's mean vary more than 1/n_c (a track
     # crosses a cell in a few dozen correlated frames): the dof the cells' means take is
     # counted for it where the correlation is significant (:func:`cell_shares`; counted as
     # 1/n_c, the scale read 0.969 +- 0.006 on the 'ar1' case's 300 s bags, seeds 21-32)
-    scatter_rho = rho_tracks if noise_structure.correlated(rho_tracks, pairs_tracks,
-                                                           0.0) else 0.0
+    significant = noise_structure.correlated(rho_tracks, pairs_tracks, 0.0) is not None
+    scatter_rho, scatter_share = (rep_track.phi, rep_track.share) if significant else (0.0, 1.0)
     r, share, chi2, dof = _minus_cell_means(r, cell, keep_cell)
     if scatter_rho > 0.0:
-        share = np.where(share > 0, cell_shares(cell, keep_cell, stars, scatter_rho), share)
+        share = np.where(share > 0, cell_shares(cell, keep_cell, stars, scatter_rho,
+                                                scatter_share), share)
     share = share * sub_share
     # ... and so is an error that repeats star by star (a catalogue position error): its
     # per-star means are tested, and removed when significant
@@ -209,16 +222,20 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     # noise correlated over a few frames makes each star's mean vary more than 1/n: the χ²
     # is referred to that (the lag correlation of the residuals about their star's mean,
     # which a fixed per-star error does not raise)
-    _, rho, pairs = noise_structure.track_inflation(r_star, stars)
+    track = noise_structure.track_model(r_star, stars)
     # (tested after the cells' means: χ² and dof of the stars' means beyond them, the χ²
-    # referred to the exact trace of the tracks' AR(1) covariance through its projection)
-    rep, rep_dof = star_after_cells(r_cells, cell, keep_cell, stars, sub_share, rho_tracks)
-    if rho > 0:  # each mean referred to the variance of a mean of its tracks' frames
-        # (with the tracks' ρ read before the cells' means, as the repeat's: read after
-        # them it is biased low, 0.809 for 0.819, and the cells' χ² high: 'ar1' 300 s
-        # seed 30 called a repeating field, p 0.0016)
-        chi2 = noise_structure.lagged_chi2(r_cells, cell, stars, max(rho, rho_tracks),
-                                           keep_cell)
+    # referred to the exact trace of the tracks' covariance through its projection, the
+    # model read about the star means before the cells' means: ``rep_track`` above)
+    rep, rep_dof = star_after_cells(r_cells, cell, keep_cell, stars, sub_share, rep_track.phi,
+                                    rep_track.share)
+    # each cell's mean referred to the variance of a mean of its tracks' frames (with the
+    # tracks' model read before the cells' means, as the repeat's: read after them ρ is
+    # biased low, 0.809 for 0.819, and the cells' χ² high: 'ar1' 300 s seed 30 called a
+    # repeating field, p 0.0016; the larger factor of the two readings)
+    cells_track = max(track, rep_track, key=lambda t: t.factor)
+    if track.phi > 0:
+        chi2 = noise_structure.lagged_chi2(r_cells, cell, stars, cells_track.phi, keep_cell,
+                                           share=cells_track.share)
 
     def estimate(r, share):
         q = (r**2).sum(1)
@@ -230,7 +247,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
                         np.asarray(res["magnitude"], dtype=float)[idx][use],
                         np.hypot(uv[use, 0] - centre[0], uv[use, 1] - centre[1]),
                         (msg_sigma[idx] == 0)[use], sigma_px[idx][use], uv=uv[use],
-                        star=stars[use], scatter_rho=scatter_rho)
+                        star=stars[use], scatter_rho=scatter_rho,
+                        scatter_share=scatter_share)
         out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
         return out
 
@@ -244,19 +262,23 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         out.repeat, out.repeat_dof, out.repeat_removed = rep / max(out.scale, 1e-300) ** 2, \
             rep_dof, rms
     out.structure, out.structure_dof = chi2 / max(out.scale, 1e-300) ** 2, dof
-    out.track_rho, out.track_pairs = rho, pairs
+    out.track_rho, out.track_pairs = track.rho, track.pairs
+    out.track_phi, out.track_share = track.phi, track.share
+    out.track_factor_sigma = track.factor_sigma
     return out
 
 
-def cell_shares(cell: np.ndarray, keep: np.ndarray, star: np.ndarray, rho: float
-                ) -> np.ndarray:
+def cell_shares(cell: np.ndarray, keep: np.ndarray, star: np.ndarray, rho: float,
+                ar_share: float = 1.0) -> np.ndarray:
     """Each row's share of its dof left by its cell's mean, for noise correlated along tracks.
 
     A cell's mean of ``n_c`` rows takes ``1ᵀ Σ_cc 1 / n_c`` of their expected sum of
     squares (``Σ``: unit-variance AR(1) of lag-1 ``rho`` along each ``star``'s rows, in
     time order; stars independent), not 1 as for white noise: each row of a ``keep`` cell
     keeps ``1 − 1ᵀ Σ_cc 1 / n_c²`` (:func:`_run_sums` sums ``Σ`` over the runs of a
-    track's rows in one cell).  Rows outside the ``keep`` cells: 0.
+    track's rows in one cell).  Rows outside the ``keep`` cells: 0.  White + AR(1) noise
+    (``ar_share`` the AR's part of the variance): ``1ᵀ Σ_cc 1`` is linear in ``Σ``, ``(1 −
+    w) n_c`` plus ``w`` the AR's.
     """
     out = np.zeros(len(cell))
     ok = np.asarray(keep, dtype=bool)
@@ -272,6 +294,8 @@ def cell_shares(cell: np.ndarray, keep: np.ndarray, star: np.ndarray, rho: float
         same = run_cell[:, None] == run_cell[None, :]  # pairs of runs in one cell
         G[cu] += np.bincount(run_cell, (M * same).sum(1), minlength=len(cu))
     n = np.bincount(ci, minlength=len(G)).astype(float)
+    if ar_share != 1.0:
+        G = (1.0 - ar_share) * n + ar_share * G
     out[ok] = 1.0 - G[ci] / n[ci] ** 2
     return out
 
@@ -300,8 +324,8 @@ def star_means(r: np.ndarray, share: np.ndarray, star: np.ndarray
 
 
 def star_after_cells(r: np.ndarray, cell: np.ndarray, keep: np.ndarray, star: np.ndarray,
-                     share: np.ndarray | None = None, rho: float = 0.0
-                     ) -> tuple[float, float]:
+                     share: np.ndarray | None = None, rho: float = 0.0,
+                     ar_share: float = 1.0) -> tuple[float, float]:
     """The χ² of the per-star means beyond the detector cells' means, and its exact dof.
 
     ``r``: whitened residuals ``(n, 2)`` before the cells' means, rows of the cells ``keep``
@@ -317,7 +341,8 @@ def star_after_cells(r: np.ndarray, cell: np.ndarray, keep: np.ndarray, star: np
     sum of squares from ``stars − groups`` to the trace of its covariance through the
     projection (:func:`_trace_after_cells`); the χ² is referred to that (mean exact; the
     ratio of the star means' lagged and plain χ² made it ~13 % conservative at ρ 0.82,
-    because the cells take the long parts of a track's mean).
+    because the cells take the long parts of a track's mean).  ``ar_share``: white + AR(1)
+    noise, the AR's share of the variance (:func:`~.noise_structure.track_model`).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -344,13 +369,13 @@ def star_after_cells(r: np.ndarray, cell: np.ndarray, keep: np.ndarray, star: np
         z = np.bincount(ci, x[:, k] - ms[si], minlength=C)
         chi2 += float(ns @ ms**2 + z @ Ap @ z - nc @ mc**2)
     if rho > 0.0 and S > groups:
-        chi2 *= (S - groups) / _trace_after_cells(si, ci, ns, nc, Ap, rho)
+        chi2 *= (S - groups) / _trace_after_cells(si, ci, ns, nc, Ap, rho, ar_share)
     dof = 2.0 * (S - groups) * (float(np.mean(share[ok])) if share is not None else 1.0)
     return max(chi2, 0.0), dof
 
 
 def _trace_after_cells(si: np.ndarray, ci: np.ndarray, ns: np.ndarray, nc: np.ndarray,
-                       Ap: np.ndarray, rho: float) -> float:
+                       Ap: np.ndarray, rho: float, share: float = 1.0) -> float:
     """``tr((P_{S+C} − P_C) Σ)``: what one axis of :func:`star_after_cells` expects under AR(1).
 
     ``Σ``: unit-variance AR(1) of lag-1 ``rho`` along each star's rows (``si``, in time
@@ -359,7 +384,12 @@ def _trace_after_cells(si: np.ndarray, ci: np.ndarray, ns: np.ndarray, nc: np.nd
     trace is ``tr(P_S Σ) + tr(A⁺ Cᵀ M Σ M C) − tr(P_C Σ)`` (``M``: minus the star means):
     ``Σ_s f(n_s)`` (:func:`~.noise_structure.mean_factor`), the cells' term summed star by
     star, and ``Σ_c 1ᵀ Σ_cc 1 / n_c``; white noise (``rho`` 0) gives ``stars − groups``.
+    White + AR(1) noise (``share`` the AR's part of the variance, ``Σ = (1 − w) I + w
+    Σ_AR``): the trace is linear in ``Σ``, ``(1 − w)`` the white trace plus ``w`` the AR's.
     """
+    if share != 1.0:
+        return (1.0 - share) * _trace_after_cells(si, ci, ns, nc, Ap, 0.0) \
+            + share * _trace_after_cells(si, ci, ns, nc, Ap, rho)
     C = len(nc)
     B, within = np.zeros((C, C)), np.zeros(C)
     # each star's rows in time order (a stable sort by star) and Σ's sums over the runs of

@@ -10,6 +10,7 @@ gives their means (:func:`lagged_chi2`, the exact variance of a finite track's m
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats as sps
@@ -129,22 +130,36 @@ def _slope(n: np.ndarray, rho: float, step: float = 1e-4) -> float:
     return (_lag_ratio(n, lo + step) - _lag_ratio(n, lo)) / step
 
 
-def mean_factor(n: np.ndarray, rho: float) -> np.ndarray:
-    """``n`` × the variance of the mean of ``n`` frames of a unit-variance AR(1) of lag-1 ``rho``.
+def mean_factor(n: np.ndarray, rho: float, share: float = 1.0) -> np.ndarray:
+    """``n`` × the variance of the mean of ``n`` frames of unit-variance track noise.
 
-    ``1 + 2 Σ_{k<n} (1 − k/n) ρ^k = (1 + ρ)/(1 − ρ) − 2ρ (1 − ρⁿ) / (n (1 − ρ)²)``: 1 for
-    one frame, ``1 + ρ`` for two, the long-run factor of :func:`track_inflation` only as
+    The noise: white plus an AR(1) of coefficient ``rho`` carrying ``share`` (``w``) of the
+    variance, lags ``ρ_k = w ρ^k`` (k ≥ 1; ``share`` 1: a pure AR(1), 0: white).  ``1 + 2
+    Σ_{k<n} (1 − k/n) w ρ^k = (1 − w) + w [(1 + ρ)/(1 − ρ) − 2ρ (1 − ρⁿ) / (n (1 − ρ)²)]``:
+    1 for one frame, ``1 + w ρ`` for two, the long-run factor of :func:`long_run` only as
     ``n`` grows (ρ 0.82, 55 frames: 8.2 of 10.1; the long-run factor made the tests it
     divides ~10 % conservative on such tracks).
     """
     n = np.maximum(np.asarray(n, dtype=float), 1.0)
     if not rho > 0.0:
         return np.ones_like(n)
-    return (1.0 + rho) / (1.0 - rho) - 2.0 * rho * (1.0 - rho**n) / (n * (1.0 - rho) ** 2)
+    ar = (1.0 + rho) / (1.0 - rho) - 2.0 * rho * (1.0 - rho**n) / (n * (1.0 - rho) ** 2)
+    return ar if share == 1.0 else (1.0 - share) + share * ar
+
+
+def long_run(rho: float, share: float = 1.0) -> float:
+    """The long-run factor ``(1 − w) + w (1 + ρ)/(1 − ρ)`` of :func:`mean_factor`.
+
+    What a track's mean varies more than ``1/n`` as ``n`` grows, and the variance a filter
+    that takes the noise as white must take (``share`` 1: ``(1 + ρ)/(1 − ρ)``, today's
+    pure AR(1)).
+    """
+    ar = (1.0 + rho) / (1.0 - rho)
+    return ar if share == 1.0 else (1.0 - share) + share * ar
 
 
 def lagged_chi2(r: np.ndarray, group: np.ndarray, track: np.ndarray, rho: float,
-                use: np.ndarray, min_count: int = 1) -> float:
+                use: np.ndarray, min_count: int = 1, share: float = 1.0) -> float:
     """``Σ_g n_g ‖r̄_g‖² / F_g``: the χ² of the group means of ``r``, each referred to its lag.
 
     ``r``: whitened residuals ``(n, 2)`` (rows of each ``track`` in time order), ``group``:
@@ -155,7 +170,8 @@ def lagged_chi2(r: np.ndarray, group: np.ndarray, track: np.ndarray, rho: float,
     expectation ``2 F_g``, ``F_g = Σ_s m_{g,s} f(m_{g,s}) / n_g`` (``f``:
     :func:`mean_factor`, a track's rows in a group taken as consecutive): each group's
     term divided by its own ``F_g`` is a χ² of 2 dof.  White noise (``rho`` 0): the plain
-    χ².
+    χ².  ``share``: the AR(1)'s share of the variance (white + AR(1) noise,
+    :func:`track_model`; 1: pure AR(1)).
     """
     ok = np.asarray(use, dtype=bool) & np.all(np.isfinite(r), axis=1)
     if not ok.any():
@@ -167,7 +183,7 @@ def lagged_chi2(r: np.ndarray, group: np.ndarray, track: np.ndarray, rho: float,
     means = np.stack([np.bincount(gi, x[:, c]) / n for c in range(2)], 1)
     pair, pi = np.unique(gi.astype(np.int64) * (int(ti.max()) + 1) + ti, return_inverse=True)
     m = np.bincount(pi).astype(float)
-    F = np.bincount(pair // (int(ti.max()) + 1), m * mean_factor(m, rho),
+    F = np.bincount(pair // (int(ti.max()) + 1), m * mean_factor(m, rho, share),
                     minlength=len(n)) / n
     keep = n >= min_count
     return float(np.sum(n[keep] * (means[keep] ** 2).sum(1) / F[keep]))
@@ -213,19 +229,183 @@ def _unbiased_rho(raw: float, n: np.ndarray) -> float:
     return float(brentq(h, 0.0, 0.95, xtol=1e-6))
 
 
-def correlated(rho: float, pairs: int, material: float) -> dict[str, float] | None:
+#: lags the white + AR(1) model is fitted on (:func:`track_model`): at ρ 0.82 (τ 5 frames)
+#: the AR part's lag 10 is still 0.14 of its lag 1
+MODEL_LAGS = 10
+#: groups of stars the model's σ is taken over (delete-a-group jackknife)
+JACKKNIFE_GROUPS = 10
+#: the AR(1)'s share below 1 by this many of its σ: white + AR(1), else a pure AR(1)
+SHARE_Z = 3.0
+
+
+@dataclass
+class TrackNoise:
+    """The stars' track noise: white plus an AR(1) (:func:`track_model`)."""
+
+    rho: float  #: lag-1 ρ as a pure AR(1) reads it (:func:`track_inflation`): the test
+    pairs: int  #: what ``rho`` is worth (its σ ≈ 1/√pairs)
+    phi: float  #: the AR(1)'s coefficient (``rho`` when pure)
+    share: float = 1.0  #: the AR(1)'s share of the variance (1: pure AR(1), 0: white)
+    factor_sigma: float = math.nan  #: σ of :attr:`factor` (jackknife over the stars)
+    share_sigma: float = math.nan  #: σ of the fitted share
+
+    @property
+    def factor(self) -> float:
+        """The long-run factor (:func:`long_run`)."""
+        return long_run(self.phi, self.share)
+
+
+def track_model(r: np.ndarray, star: np.ndarray, lags: int = MODEL_LAGS) -> TrackNoise:
+    """The stars' track noise as white plus an AR(1): ``ρ_k = w φ^k`` for ``k ≥ 1``.
+
+    A tracker's centroid noise is rarely one AR(1): photon noise is white from frame to
+    frame, the PSF's and background's errors drift over a few frames.  Read as a pure
+    AR(1) from the lag-1 correlation alone (:func:`track_inflation`) such noise gives the
+    long-run factor far too small (white 0.05 px + AR(1) 0.03 px, τ 5 frames: lag-1 ρ̂
+    0.2, factor (1 + ρ)/(1 − ρ) = 1.5; true (1 − w) + w (1 + φ)/(1 − φ) = 3.4, ``w`` 0.26,
+    φ 0.82), and the detector cells' χ² then called the noise a 'repeating field' (p < 1 %
+    on 5 of 6 seeds, ``benchmarks/mixed_noise.py``).
+
+    ``r``: whitened residuals about each star's mean (rows in time order), as
+    :func:`track_inflation` takes them.  When the lag-1 ρ is significant (3 σ), ``(w, φ)``
+    are fitted to the pooled lag ratios of lags 1..``lags``, each referred to what tracks
+    of their lengths read about their means (:func:`_lag_k_moments`, the bias
+    :func:`_unbiased_rho` handles at lag 1), weighted by their pairs; their σ by a
+    delete-a-group jackknife over :data:`JACKKNIFE_GROUPS` groups of stars.  The model is
+    white + AR(1) only where ``w`` is below 1 by :data:`SHARE_Z` of its σ; else the pure
+    AR(1) of lag 1, today's numbers exactly (its factor's σ by the same jackknife).
+    """
+    _, rho, pairs = track_inflation(r, star)
+    out = TrackNoise(rho, pairs, rho)
+    if not (pairs and rho > 3.0 / math.sqrt(pairs)):
+        return out
+    sums, n, group = _lag_sums(r, star, lags)
+    fit = _fit_mixed(sums, n)
+    G = int(group.max()) + 1 if len(group) else 0
+    if G < 3:
+        return out
+    jack = []
+    for g in range(G):
+        keep = group != g
+        sub = sums[:, :, keep]
+        raw1 = float(sub[0, 0].sum() / math.sqrt(sub[0, 1].sum() * sub[0, 2].sum()))
+        jack.append((*_fit_mixed(sub, n[keep]), long_run(_unbiased_rho(raw1, n[keep][
+            n[keep] >= 2]), 1.0)))
+    J = np.array([(w, long_run(phi, w), f1) for w, phi, f1 in jack])
+    var = (G - 1.0) / G * np.sum((J - J.mean(0)) ** 2, axis=0)
+    w_sigma, f_sigma, f1_sigma = (float(math.sqrt(v)) for v in var)
+    w, phi = fit
+    if w + SHARE_Z * w_sigma < 1.0:
+        return TrackNoise(rho, pairs, phi, w, f_sigma, w_sigma)
+    out.factor_sigma, out.share_sigma = f1_sigma, w_sigma
+    return out
+
+
+def _lag_sums(r: np.ndarray, star: np.ndarray, lags: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per star, lag ``k`` = 1..``lags``: Σ x_t x_{t+k}, Σ x_{t+k}², Σ x_t² (both axes).
+
+    Returns the sums ``(lags, 3, stars)``, the stars' row counts and each star's jackknife
+    group.
+    """
+    ok = np.all(np.isfinite(r), axis=1)
+    rr, st = r[ok], np.asarray(star)[ok]
+    order = np.argsort(st, kind="stable")
+    rr, st = rr[order], st[order]
+    _, si = np.unique(st, return_inverse=True)
+    S = int(si.max()) + 1 if len(si) else 0
+    sums = np.zeros((lags, 3, S))
+    for k in range(1, lags + 1):
+        same = si[k:] == si[:-k]
+        a, b, s = rr[k:][same], rr[:-k][same], si[k:][same]
+        for j, v in enumerate(((a * b).sum(1), (a * a).sum(1), (b * b).sum(1))):
+            sums[k - 1, j] = np.bincount(s, v, minlength=S)
+    n = np.bincount(si, minlength=S).astype(float)
+    # groups by a fixed permutation of the stars (not their order: ids cluster by sky)
+    group = np.random.default_rng(0).permutation(S) % min(JACKKNIFE_GROUPS, S)
+    return sums, n, group
+
+
+def _lag_k_moments(n: np.ndarray, rho: float, share: float, k: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_lag_moments` at lags ``k`` of white + AR(1) tracks (``share`` the AR's).
+
+    A stationary track of ``n`` frames with lags ``γ``: ``E Σ_{t ≤ n−k} (x_t − x̄)(x_{t+k}
+    − x̄) = (n − k) γ_k − (n + k) V + 2 C_k`` and, ``γ_k`` taken as 1, the sum of squares
+    of the pairs' first members; ``V`` the mean's variance, ``C_k = Σ_{t ≤ k} cov(x_t,
+    x̄)``: ``k/n`` for white noise, ``[k (1 + ρ) − ρ (1 − ρ^k)(1 + ρ^(n−k))/(1 − ρ)] / (n
+    (1 − ρ))`` for the AR(1).  Both linear in the covariance: the white part's and the
+    AR's weighted by ``1 − w`` and ``w``.  Tracks of at most ``k`` frames have no pair.
+    Returns the sums over the tracks, one per lag.
+    """
+    n = np.asarray(n, dtype=float)[None, :]
+    k = np.asarray(k, dtype=float)[:, None]
+    has = n > k
+    nk = np.where(has, n - k, 0.0)
+    wn, wd = np.sum(-nk / n, 1), np.sum(nk * (1.0 - 1.0 / n), 1)
+    if not rho > 0.0 or share == 0.0:
+        return wn, wd
+    V = mean_factor(n, rho) / n
+    C = (k * (1.0 + rho) - rho * (1.0 - rho**k) * (1.0 + rho ** nk) / (1.0 - rho)) \
+        / (n * (1.0 - rho))
+    rest = np.where(has, -(n + k) * V + 2.0 * C, 0.0)
+    an, ad = np.sum(nk * rho**k + rest, 1), np.sum(nk + rest, 1)
+    return (1.0 - share) * wn + share * an, (1.0 - share) * wd + share * ad
+
+
+def _fit_mixed(sums: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+    """``(w, φ)`` whose expected lag ratios (:func:`_lag_k_moments`) fit the pooled ones.
+
+    ``sums``: :func:`_lag_sums` of the stars used; least squares weighted by each lag's
+    pairs, ``w`` in [0, 1], ``φ`` in [0, 0.95].
+    """
+    from scipy.optimize import least_squares
+
+    tot = sums.sum(2)
+    den = np.sqrt(tot[:, 1] * tot[:, 2])
+    lag = np.flatnonzero(den > 0)
+    if len(lag) < 2:
+        return 1.0, 0.0
+    raw = tot[lag, 0] / den[lag]
+    k = lag + 1.0
+    pairs = np.sum(np.maximum(n[None, :] - k[:, None], 0.0), 1)
+    wt = np.sqrt(pairs / pairs.max())
+
+    def resid(p):
+        num, d = _lag_k_moments(n, p[1], p[0], k)
+        return wt * (np.where(d > 0, num / np.where(d > 0, d, 1.0), 0.0) - raw)
+
+    r1, r2 = float(raw[0]), float(raw[1])
+    phi0 = float(np.clip(r2 / r1, 0.2, 0.9)) if r1 > 0 else 0.5
+    w0 = float(np.clip(r1 / phi0, 0.05, 0.95))
+    fit = least_squares(resid, [w0, phi0], bounds=([0.0, 0.0], [1.0, 0.95]), xtol=1e-8)
+    return float(fit.x[0]), float(fit.x[1])
+
+
+def correlated(rho: float, pairs: int, material: float, phi: float | None = None,
+               share: float = 1.0, factor_sigma: float = math.nan
+               ) -> dict[str, float] | None:
     """The stars' noise correlated from frame to frame, if it is (else None).
 
-    Significant (``ρ`` above 3 of its σ ``1/√pairs``) and material (the inflation ``f =
-    (1 + ρ)/(1 − ρ)`` above ``1 + material``): each frame's stars then carry ~1/f of what
+    Significant (the lag-1 ``ρ`` above 3 of its σ ``1/√pairs``) and material (the long-run
+    inflation ``f`` above ``1 + material``): each frame's stars then carry ~1/f of what
     white noise of their σ would about the slowly varying parameters, so a filter that
     takes the noise as white must take σ √f (measured: unseen case ``ar1``, τ = 5 frames;
     without it a candidate's score test, which assumes white innovations, added
-    thermal_focal_length at p = 6e-4).
+    thermal_focal_length at p = 6e-4).  ``f``: :func:`long_run` of the tracks' model
+    (:func:`track_model`: white + AR(1) of coefficient ``phi`` carrying ``share`` of the
+    variance; ``phi`` None and ``share`` 1, a pure AR(1) of ``ρ``: ``(1 + ρ)/(1 − ρ)``);
+    ``factor_sigma``: σ of ``f`` (``sigma_scale_sigma`` the σ of √f).
     """
-    f = (1.0 + rho) / (1.0 - rho)
+    phi = rho if phi is None else phi
+    f = long_run(phi, share)
     if pairs and rho > 3.0 / math.sqrt(pairs) and f > 1.0 + material:
-        return {"rho": float(rho), "inflation": float(f), "sigma_scale": float(math.sqrt(f))}
+        out = {"rho": float(rho), "inflation": float(f), "sigma_scale": float(math.sqrt(f))}
+        if share != 1.0:
+            out.update(phi=float(phi), ar_share=float(share))
+        if math.isfinite(factor_sigma):
+            out["sigma_scale_sigma"] = float(factor_sigma / (2.0 * math.sqrt(f)))
+        return out
     return None
 
 
@@ -238,14 +418,21 @@ def correlated_line(c: dict[str, float], applied_star: float) -> str:
     frames (``applied_star / sigma_scale``: the white scale, measured or kept as stated)
     times ``sigma_scale`` ``= √((1+ρ)/(1−ρ))`` for the correlation.  Said as ``sigma
     x3.08: use --noise-scale star=2.97``, the two numbers read as a contradiction (unseen
-    case ``ar1``: the scatter 0.964 x the stated).
+    case ``ar1``: the scatter 0.964 x the stated).  White + AR(1) noise (``ar_share`` in
+    ``c``) names its two parts, and ``sigma_scale`` its σ where measured.
     """
     k = c["sigma_scale"]
     white = applied_star / k
+    model = f"lag-1 rho = {c['rho']:.2f}"
+    if "ar_share" in c:
+        model = (f"white + AR(1): {model}, an AR(1) of coefficient {c['phi']:.2f} carrying "
+                 f"{c['ar_share']:.2f} of the variance")
+    pm = f" +- {c['sigma_scale_sigma']:.2g}" if "sigma_scale_sigma" in c else ""
     return (f"the stars' centroid noise is correlated from frame to frame along each star's "
-            f"track (lag-1 rho = {c['rho']:.2f}): noise, not an effect; each frame carries "
+            f"track ({model}): noise, not an effect; each frame carries "
             f"~1/{c['inflation']:.3g} of what white noise of its sigma would, so a filter "
-            f"that takes it as white needs the sigma x{k:.3g} (= sqrt({c['inflation']:.3g})) "
+            f"that takes it as white needs the sigma x{k:.3g}{pm} "
+            f"(= sqrt({c['inflation']:.3g})) "
             f"on top of the stars' scatter within frames ({white:.3g} x the messages' "
             f"sigma): use --noise-scale star={applied_star:.3g},rho={c['rho']:.2f} (their "
             "product, the one scale to give, and the correlation it stands for; applied; "

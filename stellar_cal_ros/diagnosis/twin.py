@@ -25,8 +25,9 @@ How it is made
   correlated from frame to frame (``consistency.noise.star_correlated``: the scale it
   applied is the scatter within frames times √((1+ρ)/(1−ρ))), each star's noise is an
   AR(1) along its track with that ρ and the scatter as its marginal σ (the simulator's
-  :class:`~stellar_cal_ros.sim.tracker_errors.Ar1Tracks`).  Unidentified stars are left
-  out (counted).
+  :class:`~stellar_cal_ros.sim.tracker_errors.Ar1Tracks`; white + AR(1) noise, ``ar_share``
+  ``w`` < 1: the AR(1) carries ``w`` of the variance, the factor √((1 − w) + w (1+ρ)/(1−ρ))).
+  Unidentified stars are left out (counted).
 * the site, temperatures and pressure are the user's.
 
 The truth (``TWIN.truth.yaml``) is the calibration with the injected effects added; the
@@ -333,7 +334,7 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
     # the stars' noise as measured: each frame's scatter, correlated along each star's track
     # when the run measured that (the simulator's AR(1), sim.tracker_errors.ar1_noise)
     marginal = noise.within_frames()
-    tracks = Ar1Tracks(noise.star_rho, rng) if noise.star_rho > 0 else None
+    tracks = Ar1Tracks(noise.star_rho, rng, noise.star_ar_share) if noise.star_rho > 0 else None
     counts["unidentified_left_out"] = sum(u for _, _, u in scene.frames)
     # the centroids of every frame with stars in one call (StarModel.predict_frames)
     live = [j for j, (_, ctx, _) in enumerate(scene.frames) if ctx is not None]

@@ -37,7 +37,12 @@ def noise_line(noise) -> str:
         star += f" (sigma-0 stars {n.unknown_sigma_px:.3g} px)"
     if n.group_by:
         star += f", per {n.group_by} x" + ", x".join(f"{f:.3g}" for f in n.factors)
-    if noise.star_rho:
+    if noise.star_rho and noise.star_ar_share != 1.0:
+        star += (f", correlated from frame to frame along each star's track (white + AR(1): "
+                 f"an AR(1) of coefficient {noise.star_rho:.2f} carrying "
+                 f"{noise.star_ar_share:.2f} of the variance; a white-noise filter needs "
+                 f"x{noise.star:.3g})")
+    elif noise.star_rho:
         star += (f", correlated from frame to frame along each star's track (AR(1), lag-1 "
                  f"rho {noise.star_rho:.2f}; a white-noise filter needs x{noise.star:.3g})")
     else:

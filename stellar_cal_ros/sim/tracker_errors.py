@@ -26,6 +26,7 @@ function            what a tracker does
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -107,10 +108,13 @@ class Ar1Tracks:
     power of the frames missed).  Scaled by each star's σ it is noise of marginal σ whose
     consecutive values correlate by ``rho``: the simulator's :func:`ar1_noise` and the
     twin's rendering of correlated centroid noise (:mod:`stellar_cal_ros.diagnosis.twin`).
+    ``share`` below 1: white + AR(1) noise of unit variance, the AR(1) carrying ``share`` of
+    it (lags ``share ρ^k``, :func:`~stellar_cal_ros.diagnosis.noise_structure.track_model`),
+    a white draw per star after its AR(1)'s (``share`` 1 draws nothing more).
     """
 
-    def __init__(self, rho: float, rng: np.random.Generator):
-        self.rho, self.rng = float(rho), rng
+    def __init__(self, rho: float, rng: np.random.Generator, share: float = 1.0):
+        self.rho, self.rng, self.share = float(rho), rng, float(share)
         self.last: dict[int, tuple[int, np.ndarray]] = {}
 
     def draw(self, j: int, catalog_id) -> np.ndarray:
@@ -126,7 +130,8 @@ class Ar1Tracks:
                 a = self.rho ** (j - prev[0])
                 e = a * prev[1] + np.sqrt(1.0 - a * a) * n
             self.last[int(cid)] = (j, e)
-            out[i] = e
+            out[i] = e if self.share == 1.0 else math.sqrt(self.share) * e + math.sqrt(
+                1.0 - self.share) * self.rng.standard_normal(2)
         return out
 
 
