@@ -289,7 +289,7 @@ def track_model(r: np.ndarray, star: np.ndarray, lags: int = MODEL_LAGS) -> Trac
         keep = group != g
         sub = sums[:, :, keep]
         raw1 = float(sub[0, 0].sum() / math.sqrt(sub[0, 1].sum() * sub[0, 2].sum()))
-        jack.append((*_fit_mixed(sub, n[keep]), long_run(_unbiased_rho(raw1, n[keep][
+        jack.append((*_fit_mixed(sub, n[keep], fit), long_run(_unbiased_rho(raw1, n[keep][
             n[keep] >= 2]), 1.0)))
     J = np.array([(w, long_run(phi, w), f1) for w, phi, f1 in jack])
     var = (G - 1.0) / G * np.sum((J - J.mean(0)) ** 2, axis=0)
@@ -353,11 +353,13 @@ def _lag_k_moments(n: np.ndarray, rho: float, share: float, k: np.ndarray
     return (1.0 - share) * wn + share * an, (1.0 - share) * wd + share * ad
 
 
-def _fit_mixed(sums: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+def _fit_mixed(sums: np.ndarray, n: np.ndarray, start: tuple[float, float] | None = None
+               ) -> tuple[float, float]:
     """``(w, φ)`` whose expected lag ratios (:func:`_lag_k_moments`) fit the pooled ones.
 
     ``sums``: :func:`_lag_sums` of the stars used; least squares weighted by each lag's
-    pairs, ``w`` in [0, 1], ``φ`` in [0, 0.95].
+    pairs, ``w`` in [0, 1], ``φ`` in [0, 0.95], from ``start`` (the jackknife's: the full
+    fit) or from lags 1 and 2.
     """
     from scipy.optimize import least_squares
 
@@ -375,10 +377,12 @@ def _fit_mixed(sums: np.ndarray, n: np.ndarray) -> tuple[float, float]:
         num, d = _lag_k_moments(n, p[1], p[0], k)
         return wt * (np.where(d > 0, num / np.where(d > 0, d, 1.0), 0.0) - raw)
 
-    r1, r2 = float(raw[0]), float(raw[1])
-    phi0 = float(np.clip(r2 / r1, 0.2, 0.9)) if r1 > 0 else 0.5
-    w0 = float(np.clip(r1 / phi0, 0.05, 0.95))
-    fit = least_squares(resid, [w0, phi0], bounds=([0.0, 0.0], [1.0, 0.95]), xtol=1e-8)
+    if start is None:
+        r1, r2 = float(raw[0]), float(raw[1])
+        phi0 = float(np.clip(r2 / r1, 0.2, 0.9)) if r1 > 0 else 0.5
+        start = (float(np.clip(r1 / phi0, 0.05, 0.95)), phi0)
+    x0 = np.clip(start, [1e-6, 1e-6], [1.0 - 1e-6, 0.95 - 1e-6])
+    fit = least_squares(resid, x0, bounds=([0.0, 0.0], [1.0, 0.95]), xtol=1e-6)
     return float(fit.x[0]), float(fit.x[1])
 
 
