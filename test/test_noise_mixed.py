@@ -150,6 +150,16 @@ def test_noise_scales_and_twin_carry_the_mixed_model():
     assert NoiseScales.from_dict(NoiseScales(star_rho=0.5).as_dict()).star_ar_share == 1.0
     with pytest.raises(ValueError):
         NoiseScales(star_rho=0.5, star_ar_share=1.5)
+    # the verdict's advice, as printed, parses back to the applied scales (replay judges
+    # its NIS against star_inflation: the same factor)
+    import re
+
+    c = ns.correlated(0.18, 5000, 0.1, PHI, W, 0.5)
+    line = ns.correlated_line(c, 1.79)
+    advice = re.search(r"use --noise-scale (\S+) \(their product", line).group(1)
+    back = NoiseScales.parse(advice)
+    assert back.star_rho == float(f"{PHI:.2f}") and back.star_ar_share == float(f"{W:.2f}")
+    assert back.star_inflation == pytest.approx(c["sigma_scale"], rel=0.01)
     ids = np.arange(400)
     a = Ar1Tracks(PHI, np.random.default_rng(1))
     b = Ar1Tracks(PHI, np.random.default_rng(1), 1.0)

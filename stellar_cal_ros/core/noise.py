@@ -175,10 +175,12 @@ class NoiseScales:
         ``rho``: the stars' noise correlated from frame to frame (lag-1 ρ of each star's
         track, :attr:`star_rho`), ``star`` then the whole scale a white-noise filter needs
         (the diagnosis's advice for correlated noise, ``star=K,rho=R``): the run's
-        consistency judges its NIS and whiteness against that correlation.
+        consistency judges its NIS and whiteness against that correlation.  ``share``:
+        white + AR(1) noise, ``rho`` then the AR(1)'s coefficient and ``share`` its part of
+        the variance (:attr:`star_ar_share`; the advice prints ``star=K,rho=R,share=W``).
         """
         keys = {"star": "star", "gyro": "gyro", "accel": "accel",
-                "unknown": "unknown_sigma_px", "rho": "star_rho"}
+                "unknown": "unknown_sigma_px", "rho": "star_rho", "share": "star_ar_share"}
         values: dict[str, float] = {}
         for item in text.replace(";", ",").split(","):
             if not item.strip():
@@ -187,7 +189,7 @@ class NoiseScales:
             key = key.strip()
             if not sep or key not in keys:
                 raise ValueError(f"--noise-scale takes star=S,gyro=G,accel=A,unknown=PX,"
-                                 f"rho=R; "
+                                 f"rho=R,share=W; "
                                  f"got {item!r}")
             try:
                 values[keys[key]] = float(val)

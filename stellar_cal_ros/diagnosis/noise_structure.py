@@ -436,12 +436,16 @@ def correlated_line(c: dict[str, float], applied_star: float) -> str:
         model = (f"white + AR(1): {model}, an AR(1) of coefficient {c['phi']:.2f} carrying "
                  f"{c['ar_share']:.2f} of the variance")
     pm = f" +- {c['sigma_scale_sigma']:.2g}" if "sigma_scale_sigma" in c else ""
+    # the advice's correlation: the AR(1)'s coefficient and share for white + AR(1) noise
+    # (`NoiseScales.parse`: its star_inflation is the factor printed)
+    arg = f"rho={c['rho']:.2f}" if "ar_share" not in c else \
+        f"rho={c['phi']:.2f},share={c['ar_share']:.2f}"
     return (f"the stars' centroid noise is correlated from frame to frame along each star's "
             f"track ({model}): noise, not an effect; each frame carries "
             f"~1/{c['inflation']:.3g} of what white noise of its sigma would, so a filter "
             f"that takes it as white needs the sigma x{k:.3g}{pm} "
             f"(= sqrt({c['inflation']:.3g})) "
             f"on top of the stars' scatter within frames ({white:.3g} x the messages' "
-            f"sigma): use --noise-scale star={applied_star:.3g},rho={c['rho']:.2f} (their "
+            f"sigma): use --noise-scale star={applied_star:.3g},{arg} (their "
             "product, the one scale to give, and the correlation it stands for; applied; "
             f"NIS/dof then reads ~1/{c['inflation']:.3g}, judged against it)")
