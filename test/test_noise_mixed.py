@@ -171,3 +171,27 @@ def test_noise_scales_and_twin_carry_the_mixed_model():
         lag = float(np.mean(x[k:] * x[:-k]))
         assert lag == pytest.approx(W * PHI**k, abs=4 * math.sqrt(ns.long_run(PHI, W) / (
             x.size / 2)))
+
+
+def test_declared_lags_of_the_replays_consistency_match_simulated_frames():
+    """``NoiseScales.star_lags``: what ``replay --noise-scale star=K,rho=φ,share=w`` judges
+    its frames against.  On 600 simulated white + AR(1) series of 800 frames (w 0.265,
+    φ 0.82) the lag-1 estimates centre on w φ (0.217) with n·var 1.42 (Bartlett), and the
+    mean square's variance is 1.28x a white one's; the pure AR(1)'s ρ (0.82) and
+    1 − ρ² (0.33) and (1+ρ²)/(1−ρ²) (5.07) that consistency used before would pass a
+    frame-mean lag-1 of 0.5 as 'consistent' (8 σ above w φ).  Tolerances: 4 σ of each
+    statistic over the 600 series."""
+    lag1, bartlett, squares = NoiseScales(star_rho=PHI, star_ar_share=W).star_lags()
+    assert NoiseScales(star_rho=PHI).star_lags() == pytest.approx(
+        (PHI, 1.0 - PHI**2, (1.0 + PHI**2) / (1.0 - PHI**2)), rel=1e-12)
+    assert NoiseScales().star_lags() == (0.0, 1.0, 1.0)
+    n, ids = 800, np.arange(300)
+    t = Ar1Tracks(PHI, np.random.default_rng(7), W)
+    x = np.stack([t.draw(j, ids) for j in range(n)]).reshape(n, -1)  # frames × series
+    d = x - x.mean(axis=0)
+    r1 = (d[1:] * d[:-1]).sum(axis=0) / (d * d).sum(axis=0)
+    m = x.shape[1]
+    assert r1.mean() == pytest.approx(lag1, abs=4 * math.sqrt(bartlett / n / m) + 3.0 / n)
+    assert n * r1.var() == pytest.approx(bartlett, rel=4 * math.sqrt(2.0 / (m - 1)))
+    sq = n * (x * x).mean(axis=0).var() / 2.0
+    assert sq == pytest.approx(squares, rel=4 * math.sqrt(2.0 / (m - 1)) + 0.05)

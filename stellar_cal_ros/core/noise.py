@@ -90,6 +90,23 @@ class NoiseScales:
         w = self.star_ar_share
         return math.sqrt(ar if w == 1.0 else (1.0 - w) + w * ar)
 
+    def star_lags(self) -> tuple[float, float, float]:
+        """``(ρ₁, n·var(r₁), 1 + 2 Σ ρ_k²)`` of the stars' declared noise over frames.
+
+        ρ_k = w ρ^k (``w`` = :attr:`star_ar_share`, ρ = :attr:`star_rho`; w = 1: a pure AR(1),
+        w = 0 or ρ = 0: white).  ρ₁ = w ρ is the lag-1 correlation the frames' mean
+        innovations keep; n·var(r₁) is Bartlett's variance of its estimate from n frames,
+        Σ_{k≥1} (ρ_{k+1} + ρ_{k−1} − 2 ρ₁ ρ_k)² = (1 + w ρ² − 2 w² ρ²)²
+        + w² ρ² (1 + ρ² − 2 w ρ²)² / (1 − ρ²) (1 − ρ² for a pure AR(1)); the last is the
+        factor on the variance of a mean of squares (a Gaussian's squares correlate by ρ_k²):
+        1 + 2 w² ρ² / (1 − ρ²), (1 + ρ²)/(1 − ρ²) for a pure AR(1).
+        """
+        rho, w = self.star_rho, self.star_ar_share
+        r2 = rho * rho
+        bartlett = ((1.0 + w * r2 - 2.0 * w * w * r2) ** 2
+                    + w * w * r2 * (1.0 + r2 - 2.0 * w * r2) ** 2 / (1.0 - r2))
+        return w * rho, bartlett, 1.0 + 2.0 * w * w * r2 / (1.0 - r2)
+
     def within_frames(self) -> NoiseScales:
         """The scales of the stars' noise within one frame (its marginal σ), white.
 

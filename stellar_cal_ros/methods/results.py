@@ -535,11 +535,12 @@ def consistency(stats: RunStats, noise: Any = None) -> dict[str, Any]:
     declares the stars' noise correlated from frame to frame (``star_rho`` ρ > 0, the
     diagnosis's ``--noise-scale star=K,rho=R``), the stars' σ holds the factor
     ``k = star_inflation`` a white-noise filter needs, so each frame's NIS/dof reads ~1/k²
-    and the frame means follow each other by up to ρ: NIS/dof is judged times k² (its
-    interval widened by the correlated squares' √((1+ρ²)/(1−ρ²))) and the whiteness test
-    is one-sided, lag-1 above ρ.  Judged as white, the advice the diagnosis printed read
-    "MODEL MISMATCH (with the rescaled noise): NIS/dof 0.11, whiteness p 9.5e-44" (unseen
-    case ``ar1``, 300 s, star=2.96).
+    and the frame means follow each other by up to ρ₁ (ρ for a pure AR(1), w ρ for white +
+    AR(1), ``share=w``): NIS/dof is judged times k² (its interval widened by the correlated
+    squares' √(1 + 2 Σ ρ_k²)) and the whiteness test is one-sided, lag-1 above ρ₁
+    (:meth:`~stellar_cal_ros.core.noise.NoiseScales.star_lags`).  Judged as white, the
+    advice the diagnosis printed read "MODEL MISMATCH (with the rescaled noise): NIS/dof
+    0.11, whiteness p 9.5e-44" (unseen case ``ar1``, 300 s, star=2.96).
     """
     nis, (lo, hi) = stats.nis_per_dof()
     wh = stats.whiteness()
@@ -549,14 +550,16 @@ def consistency(stats: RunStats, noise: Any = None) -> dict[str, Any]:
     if rho > 0.0 and math.isfinite(nis):
         k2 = float(noise.star_inflation) ** 2
         raw, nis = nis, nis * k2
-        widen = math.sqrt((1.0 + rho**2) / (1.0 - rho**2))
+        lag1, bartlett, squares = noise.star_lags()
+        widen = math.sqrt(squares)
         lo, hi = max(0.0, 1.0 - (1.0 - lo) * widen), 1.0 + (hi - 1.0) * widen
-        # lag-1 of the frame means above ρ (Bartlett's σ √((1 − ρ²)/n) of an AR(1)'s lag-1
+        # lag-1 of the frame means above the declared one (w ρ; Bartlett's σ √(b/n) of its
         # estimate), the upper tail of the larger axis, Bonferroni over the two
         n = max(min(stats._w["n"]), 1)
-        over = max(wh.get("lag1_u", 0.0), wh.get("lag1_v", 0.0)) - rho
-        p = min(1.0, math.erfc(over * math.sqrt(n / (1.0 - rho**2)) / math.sqrt(2.0)))
-        declared = {"star_rho": rho, "nis_per_dof_raw": raw, "inflation": k2,
+        over = max(wh.get("lag1_u", 0.0), wh.get("lag1_v", 0.0)) - lag1
+        p = min(1.0, math.erfc(over * math.sqrt(n / bartlett) / math.sqrt(2.0)))
+        declared = {"star_rho": rho, "star_ar_share": float(noise.star_ar_share),
+                    "nis_per_dof_raw": raw, "inflation": k2,
                     "lag1": [wh.get("lag1_u", 0.0), wh.get("lag1_v", 0.0)]}
     ref = stats.ref_nis / stats.ref_dof if stats.ref_dof else math.nan
     ref_hi = 1.0 + 1.959964 * math.sqrt(2.0 / stats.ref_dof) if stats.ref_dof else math.inf
