@@ -488,8 +488,21 @@ def test_correlated_noise_advice_is_a_command_the_replay_accepts(ar1_sim, tmp_pa
                      str(res), "--noise-scale", scale, "-q", *extra]) == 0
         return capsys.readouterr().out, yaml.safe_load(res.read_text())["consistency"]
 
-    text, cons = replay_with(advice[-1], "--viz", str(tmp_path / "v.mcap"))
+    text, cons = replay_with(advice[-1], "--viz", str(tmp_path / "v.mcap"), "--residuals",
+                             str(tmp_path / "r.csv"))
     assert cons["verdict"] == "consistent" and "MODEL MISMATCH" not in text, text
+    # the HTML report of the run (``report --residuals``) judges it as the replay does: its
+    # NIS/dof x k² in the run's band; before, "smaller than the noise model expects (noise
+    # set too high?)" beside the YAML's 'consistent'
+    assert main(["report", str(tmp_path / f"rep{len(advice[-1])}.yaml"), "--residuals",
+                 str(tmp_path / "r.csv"), "-o", str(tmp_path / "html")]) == 0
+    page = (tmp_path / "html" / "report.html").read_text()
+    shown = re.search(r"NIS/dof <b>([0-9.]+)</b> \(x([0-9.]+) for the stars' noise declared "
+                      r"correlated", page)
+    assert shown and "consistent with the noise model" in page, page[:3000]
+    assert "smaller than the noise model expects" not in page
+    assert float(shown.group(2)) == pytest.approx(cons["correlated"]["inflation"], rel=1e-2)
+    assert float(shown.group(1)) == pytest.approx(cons["nis_per_dof"], rel=0.02)
     # the view (replay --viz) judges the run as the replay does, under the declared ρ
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory

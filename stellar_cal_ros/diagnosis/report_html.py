@@ -198,10 +198,32 @@ def nis_per_dof(res: Table, mask: np.ndarray) -> dict[str, float]:
     return {k: v / 2.0 if k != "n" else v for k, v in nis.items()}
 
 
+def judged_nis(res: Table, mask: np.ndarray, calibration: Any = None
+               ) -> tuple[dict[str, float], str]:
+    """:func:`nis_per_dof` as the run judged it, and a note of why (empty when as white).
+
+    A run that declared its stars' noise correlated (``--noise-scale star=K,rho=R``) holds
+    in their σ the factor a white-noise filter needs, so its NIS/dof reads ~1/k²: it is
+    judged as the run judged it (:func:`~stellar_cal_ros.methods.results.consistency`:
+    times its k², in its widened band; the calibration's ``consistency.correlated``), not
+    as white noise ("smaller than the noise model expects").
+    """
+    nis = nis_per_dof(res, mask)
+    cons = (calibration.extra.get("consistency") or {}) if calibration is not None else {}
+    corr = cons.get("correlated")
+    if not corr or len(cons.get("interval") or ()) != 2:
+        return nis, ""
+    raw = nis["mean"]
+    nis = dict(nis, mean=raw * corr["inflation"], lower=cons["interval"][0],
+               upper=cons["interval"][1])
+    return nis, (f" (x{corr['inflation']:.3g} for the stars' noise declared correlated from "
+                 f"frame to frame, rho {corr['star_rho']:.2f}; {raw:.3f} as white)")
+
+
 def _summary_line(res: Table, fraction: float, calibration: Any = None) -> str:
     mask = window_mask(res, fraction, calibration)
     rms, exp = stats.rms(res, mask), stats.expected_rms(res, mask)
-    nis = nis_per_dof(res, mask)
+    nis, declared = judged_nis(res, mask, calibration)
     ok = nis["lower"] <= nis["mean"] <= nis["upper"]
     verdict = ("consistent with the noise model" if ok else
                "<span class=warn>larger than the noise model allows: an effect is missing "
@@ -212,7 +234,8 @@ def _summary_line(res: Table, fraction: float, calibration: Any = None) -> str:
     gated = int(np.sum(mask & ~stats.accepted(res)))
     return (f"Innovation RMS <b>{rms[0]:.4f} / {rms[1]:.4f} px</b> (u / v) against the "
             f"{exp[0]:.4f} / {exp[1]:.4f} px the model expects; NIS/dof "
-            f"<b>{nis['mean']:.3f}</b> (95 % band {nis['lower']:.3f} … {nis['upper']:.3f}): "
+            f"<b>{nis['mean']:.3f}</b>{declared} (95 % band {nis['lower']:.3f} … "
+            f"{nis['upper']:.3f}): "
             f"{verdict}. {int(m.sum())} stars accepted, {gated} gated, in the evaluation "
             "window (the second half of the run).")
 
@@ -588,7 +611,7 @@ def _stats_row(r: RunData, fraction: float) -> str:
     res = r.residuals
     mask = window_mask(res, fraction, r.calibration)
     rms, exp = stats.rms(res, mask), stats.expected_rms(res, mask)
-    nis = nis_per_dof(res, mask)
+    nis, _ = judged_nis(res, mask, r.calibration)
     gated = int(np.sum(mask & ~stats.accepted(res)))
     effects = ", ".join(estimated_effects(r.calibration, r.history)) or "(not recorded)"
     return (f"<tr><td>{_e(r.name)}</td><td>{_e(effects)}</td><td class=num>{rms[0]:.4f} / "
