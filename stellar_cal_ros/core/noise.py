@@ -23,6 +23,18 @@ from typing import Any
 
 import numpy as np
 
+
+def long_run(rho: float, share: float = 1.0) -> float:
+    """The long-run factor ``(1 − w) + w (1 + ρ)/(1 − ρ)`` of white + AR(1) noise.
+
+    Lags ``ρ_k = w ρ^k``: what a track's mean varies more than ``1/n`` as ``n`` grows, and
+    the variance a filter that takes the noise as white must take (``share`` 1:
+    ``(1 + ρ)/(1 − ρ)``, a pure AR(1)).  The one formula of :attr:`NoiseScales.star_inflation`
+    and of the diagnosis (:mod:`~stellar_cal_ros.diagnosis.noise_structure`).
+    """
+    ar = (1.0 + rho) / (1.0 - rho)
+    return ar if share == 1.0 else (1.0 - share) + share * ar
+
 #: star groups a scale may depend on
 GROUP_KINDS = ("magnitude", "radius", "column", "row")
 
@@ -83,12 +95,9 @@ class NoiseScales:
         """√((1 + ρ)/(1 − ρ)): the factor ``star`` holds for the stars' correlated noise.
 
         White + AR(1) (:attr:`star_ar_share` ``w`` < 1): √((1 − w) + w (1 + ρ)/(1 − ρ)), the
-        diagnosis's long-run factor
-        (:func:`~stellar_cal_ros.diagnosis.noise_structure.long_run`, the same formula).
+        long-run factor (:func:`long_run`).
         """
-        ar = (1.0 + self.star_rho) / (1.0 - self.star_rho)
-        w = self.star_ar_share
-        return math.sqrt(ar if w == 1.0 else (1.0 - w) + w * ar)
+        return math.sqrt(long_run(self.star_rho, self.star_ar_share))
 
     def star_lags(self) -> tuple[float, float, float]:
         """``(ρ₁, n·var(r₁), 1 + 2 Σ ρ_k²)`` of the stars' declared noise over frames.
@@ -98,14 +107,14 @@ class NoiseScales:
         innovations keep; n·var(r₁) is Bartlett's variance of its estimate from n frames,
         Σ_{k≥1} (ρ_{k+1} + ρ_{k−1} − 2 ρ₁ ρ_k)² = (1 + w ρ² − 2 w² ρ²)²
         + w² ρ² (1 + ρ² − 2 w ρ²)² / (1 − ρ²) (1 − ρ² for a pure AR(1)); the last is the
-        factor on the variance of a mean of squares (a Gaussian's squares correlate by ρ_k²):
-        1 + 2 w² ρ² / (1 − ρ²), (1 + ρ²)/(1 − ρ²) for a pure AR(1).
+        factor on the variance of a mean of squares (a Gaussian's squares correlate by ρ_k²,
+        lags w² ρ^(2k)): :func:`long_run` (ρ², w²), (1 + ρ²)/(1 − ρ²) for a pure AR(1).
         """
         rho, w = self.star_rho, self.star_ar_share
         r2 = rho * rho
         bartlett = ((1.0 + w * r2 - 2.0 * w * w * r2) ** 2
                     + w * w * r2 * (1.0 + r2 - 2.0 * w * r2) ** 2 / (1.0 - r2))
-        return w * rho, bartlett, 1.0 + 2.0 * w * w * r2 / (1.0 - r2)
+        return w * rho, bartlett, long_run(r2, w * w)
 
     def within_frames(self) -> NoiseScales:
         """The scales of the stars' noise within one frame (its marginal σ), white.

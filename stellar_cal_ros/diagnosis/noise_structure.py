@@ -16,6 +16,8 @@ import numpy as np
 from scipy import stats as sps
 from scipy.optimize import brentq
 
+from stellar_cal_ros.core.noise import long_run  # the one long-run factor (also here: ns.long_run)
+
 
 def minus_subpixel(r: np.ndarray, share: np.ndarray, uv: np.ndarray, alpha: float
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -144,17 +146,6 @@ def mean_factor(n: np.ndarray, rho: float, share: float = 1.0) -> np.ndarray:
     if not rho > 0.0:
         return np.ones_like(n)
     ar = (1.0 + rho) / (1.0 - rho) - 2.0 * rho * (1.0 - rho**n) / (n * (1.0 - rho) ** 2)
-    return ar if share == 1.0 else (1.0 - share) + share * ar
-
-
-def long_run(rho: float, share: float = 1.0) -> float:
-    """The long-run factor ``(1 − w) + w (1 + ρ)/(1 − ρ)`` of :func:`mean_factor`.
-
-    What a track's mean varies more than ``1/n`` as ``n`` grows, and the variance a filter
-    that takes the noise as white must take (``share`` 1: ``(1 + ρ)/(1 − ρ)``, today's
-    pure AR(1)).
-    """
-    ar = (1.0 + rho) / (1.0 - rho)
     return ar if share == 1.0 else (1.0 - share) + share * ar
 
 
