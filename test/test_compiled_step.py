@@ -234,33 +234,57 @@ def _damaged(data):
 
 def test_batched_frame_steps_equal_one_call_a_frame(sim_data, monkeypatch) -> None:
     """A replay's runs of frames stepped in one compiled call (``StarFilter.batched_step``)
-    give what one call a frame gives, bit for bit: the state, the consider sensitivity and
-    its score and information (the evaluation window starts mid-run), the history and
-    residual tables, the statistics and every counter — on a bag with IMU gaps, dropped,
-    gated, skipped, re-acquiring, invalid and repeated frames."""
+    and committed a batch at once (``StarFilter.commit_batch``: counters, gate counts, gyro
+    watch; the driver's statistics and history rows per batch) give what one call a frame
+    gives, bit for bit: the state, the consider sensitivity and its score and information
+    (the evaluation window starts mid-run), the history and residual tables, the statistics,
+    the gyro watch's records, chain and verdicts and every counter — on a bag with IMU gaps,
+    dropped, gated, skipped, re-acquiring, invalid and repeated frames; and without tables
+    (no ``FrameUpdate`` made on the batch path) the same statistics."""
     from stellar_cal_ros.methods import frame_step
 
     sim, data = sim_data
     data = _damaged(data)
-    taken = []
+    taken, committed = [], []
     original = frame_step.FrameBatch.take
+    commit = StarFilter.commit_batch
 
     def counted(self, *a, **k):
         out = original(self, *a, **k)
         taken.append(out is not None)
         return out
 
+    def counted_commit(self, *a, **k):
+        out = commit(self, *a, **k)
+        committed.append(0 if out is None else out.count)
+        return out
+
     monkeypatch.setattr(frame_step.FrameBatch, "take", counted)
+    monkeypatch.setattr(StarFilter, "commit_batch", counted_commit)
     runs = {}
     for batched in (False, True):
         monkeypatch.setattr(StarFilter, "batched_step", batched)
         runs[batched] = replay(data, sim.prior, "psce", consider=["radial_k3"])
+        runs[batched, "no tables"] = replay(data, sim.prior, "psce", consider=["radial_k3"],
+                                            keep_tables=False)
     one, batch = runs[False], runs[True]
     c = batch.counters
     assert c["skipped_few_stars"] >= 5 and c["reinitializations"] >= 1 and c["imu_gaps"] >= 1
     assert c["stars_gated"] >= 30 and c["frames_duplicate"] == 1 and c["stars_invalid"] >= 1
-    assert sum(taken) >= 0.9 * c["updates"]  # most frames came out of a batch
+    # most frames came out of a batch, most of them committed a batch at once
+    assert sum(taken) + sum(committed) >= 0.9 * c["updates"]
+    assert sum(committed) >= 0.5 * c["updates"] and sum(taken) >= 10
     assert one.counters == c
+    assert vars(runs[False, "no tables"].stats) == vars(runs[True, "no tables"].stats) == \
+        vars(one.stats)
+    assert runs[False, "no tables"].counters == runs[True, "no tables"].counters == c
+    wa, wb = one.filter.gyro_watch, batch.filter.gyro_watch
+    assert (wa is None) == (wb is None) and one.filter.data_faults == batch.filter.data_faults
+    if wa is not None:
+        assert sorted(wa) == sorted(wb) and len(wa["t"]) >= 10
+        for key in wa:
+            np.testing.assert_array_equal(np.asarray(wa[key], dtype=object),
+                                          np.asarray(wb[key], dtype=object), err_msg=key)
     fa, fb = one.filter, batch.filter
     for name in ("theta", "P", "R_i_b"):
         np.testing.assert_array_equal(getattr(fa, name), getattr(fb, name), err_msg=name)

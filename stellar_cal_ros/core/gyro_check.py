@@ -402,6 +402,47 @@ def watch_frame(state: dict[str, Any], t: float,
     return ""
 
 
+def watch_frames(state: dict[str, Any], t: list, uv: list, u_i: list, R_prior: np.ndarray,
+                 R_post: np.ndarray, R_imu_st: np.ndarray | None,
+                 unproject: Callable[[np.ndarray], np.ndarray], start: int,
+                 stop: int) -> tuple[int, str]:
+    """:func:`watch_frame` of frames ``start .. stop - 1`` in a row (a replay's batch).
+
+    The same chain (the same products, in the same order), records and verdicts: frame
+    ``i`` has exposure ``t[i]``, pixel centroids ``uv[i]`` (``unproject``: to tracker
+    directions, for a frame recorded) and catalogue directions ``u_i[i]``, attitudes
+    ``R_prior[i]`` and ``R_post[i]`` (arrays the caller no longer writes).  Returns after
+    the first frame recorded — its judgement's cause goes to the caller's verdict before
+    the next frame — ``(the next frame, cause)``; ``(stop, '')`` when none is.
+    """
+    s = state
+    G, R_last, frames = s["G_now"], s["R_post"], s["frames"]
+    pending = s.get("pending")
+    last = pending[-1][0] if pending else (s["t"][-1] if len(s["t"]) else None)
+    spacing = s["spacing"]
+    for i in range(start, stop):
+        if R_last is None:
+            G = np.eye(3)
+            s["seg"] += 1
+        else:
+            G = G.dot(R_last.T.dot(R_prior[i]))
+        R_last = R_post[i]
+        frames += 1
+        if frames > EARLY_FRAMES and last is not None and t[i] - last < spacing:
+            continue
+        s["G_now"], s["R_post"], s["frames"] = G, R_last, frames
+        if s.get("defer"):
+            s.setdefault("pending", []).append(
+                (float(t[i]), np.asarray(uv[i]), np.asarray(u_i[i]), G, s["seg"], frames))
+            return i + 1, ""
+        if _record(s, t[i], unproject(uv[i]), u_i[i], G, s["seg"]):
+            s["judged_at"] = frames
+            return i + 1, _judge(s, R_imu_st)
+        return i + 1, ""
+    s["G_now"], s["R_post"], s["frames"] = G, R_last, frames
+    return stop, ""
+
+
 def _record(s: dict[str, Any], t: float, v_st: np.ndarray, u_i: np.ndarray, G: np.ndarray,
             seg: int) -> bool:
     """Record one frame (its star rotation and gyro chain); True when a judgement is due."""

@@ -547,12 +547,72 @@ class Calibrator(ImuRelease):
         i = 0
         while i < len(run):  # a run ends at a covariance check, a reference rebuild, ...
             stepped = flt.prepare_frames(frames[i:]) if len(run) - i > 1 else 0
-            for fr, inp, ctx in run[i:i + max(stepped, 1)]:
+            done = self._commit_batch(run[i:i + stepped], out) if stepped else 0
+            for fr, inp, ctx in run[i + done:i + max(stepped, 1)]:
                 out.append(self._process(fr, inp, ctx))
             i += max(stepped, 1)
         flt.prepare_frames([])  # (what is left of a batch, dropped: a workspace)
         run.clear()
         return out
+
+    def _commit_batch(self, part: list, out: list) -> int:
+        """The leading frames of ``part`` (a batch the filter stepped) committed at once.
+
+        What :meth:`_process` does frame by frame — the filter's bookkeeping
+        (:meth:`~stellar_cal_ros.methods.kernel.StarFilter.commit_batch`), convergence
+        window, residual rows, statistics (:meth:`~.results.RunStats.add_block`), history rows
+        (:meth:`~.results.TableSink.append_rows`) and outcomes — for the leading frames whose
+        stars are all valid and which updated; ``FrameUpdate`` objects only for a consumer
+        (the residual table, statistics other than :class:`~.results.RunStats`, outcomes with
+        :attr:`DriverConfig.frame_updates`; the last frame's is :attr:`last_update`).
+        Returns the frames done (appended to ``out``); the rest go frame by frame.
+        """
+        flt = self.filter
+        if getattr(flt, "reference_history", None) is not None:
+            return 0  # (a method's other measurements go into the statistics frame by frame)
+        q = 0
+        for _, inp, _ in part:  # (process_frame re-checks a frame's stars otherwise)
+            if not inp.valid:
+                break
+            q += 1
+        b = flt.commit_batch(q) if q else None
+        if b is None:
+            return 0
+        k = b.count
+        part = part[:k]
+        fc = flt.counters
+        fc.stars_invalid += sum(len(inp.ok) - len(inp.uv) for _, inp, _ in part)
+        index0 = self._frame_index
+        self._frame_index += k
+        nis = b.nis.tolist()
+        sig_t = b.sigma[:, flt.it]
+        for i in range(max(0, k - (self._conv.maxlen or k)), k):
+            self._conv.append((sig_t[i], nis[i], b.dof[i]))
+        keep = self.driver.frame_updates
+        stats = self.stats if type(self.stats) is RunStats else None
+        upds = [b.update(i) for i in range(k)] if keep or stats is None or \
+            not self.residuals.discard else None
+        self.last_update = upds[-1] if upds else b.update(k - 1)
+        if not self.residuals.discard:
+            for i, (_, inp, ctx) in enumerate(part):
+                self.residuals.append(residual_rows(upds[i], index0 + i, inp.catalog_id,
+                                                    inp.magnitude, ctx.head_temperature_c))
+        if stats is None:
+            for u in upds:
+                self.stats.add(u)
+        else:
+            stats.add_block(b.stamps, b.n, b.nis, b.dof, b.sums)
+        if not self.history.discard:
+            keys = self._history_layout(b.sigma[0])
+            heads = [[float(t), x, d, a, m - a, int(it)] for t, x, d, a, m, it in zip(
+                b.stamps, nis, b.dof, b.n_acc, b.n, b.iterations.tolist(), strict=True)]
+            self.history.append_rows(keys, heads, (b.theta, b.sigma),
+                                     self._history_sigma_index)
+        for i, (fr, inp, ctx) in enumerate(part):
+            out.append(FrameOutcome(int(fr.stamp_ns), fr.frame_id, "updated",
+                                    upds[i] if keep else None, inp.catalog_id, inp.magnitude,
+                                    ctx.head_temperature_c))
+        return k
 
     def _accumulates(self, stamp_ns: int) -> bool:
         """Whether a frame's score and information enter the sensitivity (evaluation window)."""
@@ -655,8 +715,16 @@ class Calibrator(ImuRelease):
 
     def _record_history(self, upd: FrameUpdate, s: np.ndarray) -> None:
         """One history row: the update and the state after it (``s``: its 1-σ)."""
-        flt = self.filter
         n_acc = int(np.count_nonzero(upd.accepted))
+        keys = self._history_layout(s)
+        # the parameters and σ gathered by the sink for a block of rows at once
+        self.history.append_row(keys, [float(upd.stamp), float(upd.nis), int(upd.dof), n_acc,
+                                       len(upd.accepted) - n_acc, int(upd.iterations)],
+                                (self.filter.theta_estimated(), s), self._history_sigma_index)
+
+    def _history_layout(self, s: np.ndarray) -> tuple[str, ...]:
+        """The history's columns (and, once, the index of their θ and σ cells)."""
+        flt = self.filter
         keys = self._history_keys
         if keys is None:
             keys = ["t", "nis", "dof", "stars", "gated", "iterations"]
@@ -676,10 +744,7 @@ class Calibrator(ImuRelease):
             pairs[1::2] = n_th + index[flt.it]
             self._history_sigma_index = np.concatenate(
                 [pairs, n_th + index[flt.ia]] + [n_th + i for i in nav]).astype(np.intp)
-        # the parameters and σ gathered by the sink for a block of rows at once
-        self.history.append_row(keys, [float(upd.stamp), float(upd.nis), int(upd.dof), n_acc,
-                                       len(upd.accepted) - n_acc, int(upd.iterations)],
-                                (flt.theta_estimated(), s), self._history_sigma_index)
+        return keys
 
     def _trim(self) -> None:
         """Drop IMU samples and environment data the filter can no longer need."""

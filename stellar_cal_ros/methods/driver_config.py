@@ -50,6 +50,11 @@ class DriverConfig:
     #: the filter's gyro-against-stars judgement waits for :meth:`Calibrator.run_checks`
     #: (the live node calls it between frames) instead of running in a frame's update
     defer_checks: bool = False
+    #: the outcomes of frames a replay's batch committed at once carry their
+    #: :class:`~stellar_cal_ros.methods.kernel.FrameUpdate` (False: None there, and none is
+    #: made unless the residual table or the statistics need it; ``Calibrator.last_update``
+    #: is kept either way)
+    frame_updates: bool = True
 
 
 @dataclass

@@ -702,6 +702,51 @@ class FrameBatch:
                 nis[a:b], dirs[a:b], omega[i].copy(), R_prior[i])
 
 
+class BatchCommit:
+    """The frames :meth:`~stellar_cal_ros.methods.kernel.StarFilter.commit_batch` committed.
+
+    Their values as arrays, a row a frame, for the run's statistics and history:
+    ``stamps`` (POSIX s), ``nis``, ``dof``, ``iterations``, ``n`` (stars), ``n_acc``
+    (accepted), ``sums`` (the statistics' terms, (count, 10)), ``sigma`` (1-σ of the state
+    after each, (count, N)) and ``theta`` (the estimated θ after each); :meth:`update` makes a
+    frame's :class:`~stellar_cal_ros.methods.kernel.FrameUpdate` (the one the frame-by-frame
+    path makes) for a caller that keeps them.
+    """
+
+    def __init__(self, batch: FrameBatch, count: int, n: list, n_acc: list,
+                 sigma_last: np.ndarray, theta_last: np.ndarray, p_est: int) -> None:
+        out = batch.out
+        self._out = out
+        self._frames = batch.frames
+        self._offs = batch.offs
+        self.count = q = int(count)
+        ints, floats, Ps, ths = out[2], out[3], out[11], out[12]
+        self.stamps = [f[4].stamp for f in self._frames[:q]]
+        self.nis = floats[:q, 0]
+        self.n = n
+        self.n_acc = n_acc
+        self.dof = [2 * a for a in n_acc]
+        self.iterations = ints[:q, 1]
+        self.sums = floats[:q, 2:12]
+        # the state after each frame (the last: the filter's own, after a covariance check)
+        sigma = np.sqrt(np.maximum(np.diagonal(Ps[:q], axis1=1, axis2=2), 0.0))
+        sigma[q - 1] = sigma_last
+        theta = ths[:q, :p_est].copy()
+        theta[q - 1] = theta_last
+        self.sigma, self.theta = sigma, theta
+
+    def update(self, i: int):
+        """Frame ``i``'s :class:`~stellar_cal_ros.methods.kernel.FrameUpdate`."""
+        from stellar_cal_ros.methods.kernel import FrameUpdate
+
+        (_, _, ints, floats, accepted, uv_pred, S, nis, dirs, omega) = self._out[:10]
+        f = self._frames[i]
+        a, b = self._offs[i], self._offs[i + 1]
+        return FrameUpdate(f[4].stamp, f[8], accepted[a:b], f[0], uv_pred[a:b], S[a:b],
+                           nis[a:b], float(floats[i, 0]), self.dof[i], dirs[a:b],
+                           omega[i].copy(), int(ints[i, 1]), floats[i, 2:12])
+
+
 # Every module holding cached numba kernels (test_user_path checks the list is complete).
 KERNEL_MODULES = ("stellar_cal_ros.core.jit", "stellar_cal_ros.methods.star_chain",
                   "stellar_cal_ros.methods.frame_step")

@@ -726,7 +726,7 @@ class StarFilter(Acquisition):
             if rows is None:
                 break
             m, j, mj = rows
-            run.append((uv, u_i, sigma, t_rel - t_exp, ctx, j, mj, t, t_exp, m, acc))
+            run.append((uv, u_i, sigma, t_rel - t_exp, ctx, j, mj, t, t_exp, m, acc, t_rel))
             t, k, last = t_exp, m, t_rel
         if len(run) < 2:
             return 0
@@ -736,6 +736,94 @@ class StarFilter(Acquisition):
         self._batch = fs.batch(st.P, self.theta, self.R_i_b, st.sensitivity,
                                self.propagation.prefix, self.propagation, imu.w, run)
         return self._batch.done if self._batch is not None else 0
+
+    def commit_batch(self, limit: int):
+        """Commit the prepared batch's leading updated frames at once (at most ``limit``).
+
+        What :meth:`process_frame` of each would do, frame after frame, for frames the
+        batch stepped (:meth:`prepare_frames`) to ``UPDATED`` with a finite NIS, given as
+        prepared (valid stars: the caller knows): counters, gate counts, the state after
+        the last of them (only that one is written), a covariance check due at the last,
+        the gyro watch fed each frame's propagated and updated attitudes
+        (:func:`~stellar_cal_ros.core.gyro_check.watch_frames`).  None (nothing done) when
+        the batch is not at its start, its first frame is not such a frame, or the gyro
+        watch is within its first frames (a fault there raises in that frame's turn).
+        The frames after those committed are taken one at a time as before.  Returns the
+        :class:`~.frame_step.BatchCommit` (the frames' values for the statistics and the
+        history; their :class:`FrameUpdate` on request).
+        """
+        b = self._batch
+        w = self.gyro_watch
+        if b is None or b.i or limit < 1 or (w is not None and (
+                w["frames"] < gyro_check.EARLY_FRAMES or w["done"])):
+            return None
+        frame_step = _frame_step_module()
+        (_, status, ints, floats, _, _, _, _, _, omega, R_pr, Ps, ths, Rs, Ms, scs,
+         ins) = b.out
+        q = min(int(limit), b.done)
+        ok = (status[:q] == frame_step.UPDATED) & np.isfinite(floats[:q, 0])
+        if not ok.all():
+            q = int(np.argmin(ok))
+        if q < 1:
+            return None
+        frames = b.frames
+        last = q - 1
+        f_last = frames[last]
+        st = self.state
+        sens = st.sensitivity
+        st.P[...] = Ps[last]  # (the arrays the batch was made from: FrameBatch.take's)
+        self.theta[...] = ths[last]
+        self.R_i_b[...] = Rs[last]
+        if sens is not None:
+            sens.M[...] = Ms[last]
+            sens.score[...] = scs[last]
+            sens.info[...] = ins[last]
+            sens.frames += sum(1 for f in frames[:q] if f[10])
+            sens.accumulate = f_last[10]
+        b.i = q
+        fc = self.counters
+        fc.frames += q
+        self.last_stamp = f_last[11]
+        self._stamp_posix = f_last[4].stamp
+        self._stamp_rel = f_last[11]
+        self.t = f_last[8]
+        self._k = f_last[9]
+        self.omega = omega[last].copy()
+        self._omega_stale = True
+        self._R_prior = None
+        offs = b.offs
+        n = [offs[i + 1] - offs[i] for i in range(q)]
+        n_acc = ints[:q, 0].tolist()
+        if ints[:q, 2:5].any():  # a mismatch, lost lock or stars outside: frame by frame
+            for i in range(q):
+                self._gated(bool(ints[i, 2]), float(floats[i, 1]), bool(ints[i, 3]),
+                            int(ints[i, 4]), n[i], n_acc[i], frames[i][8])
+        else:
+            self._mismatch_bits = (self._mismatch_bits << q) & 0x3FF
+            fc.stars_gated += sum(n) - sum(n_acc)
+        self._rejected_in_row = self._reacquire_streak = 0
+        fc.updates += q
+        every = self.config.covariance_check_every
+        if every and fc.updates % every == 0 and not self.checks_deferred:
+            # (prepare_frames ends a batch at the update a check is due at: the last one)
+            self._batch = None
+            self._check_covariance()
+        if self.gyro_watch is not None:
+            R_post = Rs[:q].copy()
+            R_post[last] = self.R_i_b  # (the state after a check's repair, as frame by frame)
+            t_exp = [f[8] for f in frames[:q]]
+            uv = [f[0] for f in frames[:q]]
+            u_i = [f[1] for f in frames[:q]]
+            unproject = self.model.prior.camera.unproject
+            i = 0
+            while i < q and self.gyro_watch is not None:
+                i, cause = gyro_check.watch_frames(self.gyro_watch, t_exp, uv, u_i, R_pr, R_post,
+                                                   self._R_imu_st_prior, unproject, i, q)
+                self.t = t_exp[i - 1]  # (the verdict's log line names the frame)
+                self._gyro_verdict(cause)
+            self.t = f_last[8]
+        return frame_step.BatchCommit(b, q, n, n_acc, st.sigma(), self.theta_estimated(),
+                                      self.P_est)
 
     # ------------------------------------------------------------------ update bookkeeping
     def _gated(self, mismatch: bool, scale: float, lost: bool, outside: int, n: int,

@@ -249,7 +249,7 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
     # a replay never drops frames for memory: what is held is bounded by the look-ahead
     drv = driver or DriverConfig(reorder_window_s=REPLAY_REORDER_S,
                                  max_pending_frames=1_000_000, batch_frames=True,
-                                 strict_clock=True)
+                                 strict_clock=True, frame_updates=False)
     # IMU ahead of the frames: the filter takes it in large vectorized batches, and the
     # swaying strapdown gets full reference windows, as over a whole bag
     drv.imu_lookahead_s = max(drv.imu_lookahead_s, REPLAY_LOOKAHEAD_S)

@@ -120,6 +120,25 @@ class TableSink:
         if len(self._row_values) >= self.chunk_rows:
             self._flush_rows()
 
+    def append_rows(self, keys: tuple[str, ...], values: list[list],
+                    arrays: tuple[np.ndarray, ...], take: np.ndarray) -> None:
+        """:meth:`append_row` of several rows: ``values[i]`` and the rows ``a[i]`` of each of
+        ``arrays`` (2-D, handed over: the caller no longer writes to them) — the same cells.
+        """
+        if (keys is not self._row_keys or take is not self._row_take) and self._row_values:
+            self._flush_rows()
+        self._row_keys = keys
+        self._row_take = take
+        i, m = 0, len(values)
+        while i < m:  # up to a chunk's end at a time, as row by row
+            j = min(m, i + self.chunk_rows - len(self._row_values))
+            self._row_values += values[i:j]
+            self._row_arrays += zip(*(a[i:j] for a in arrays), strict=True)
+            self.rows += j - i
+            i = j
+            if len(self._row_values) >= self.chunk_rows:
+                self._flush_rows()
+
     def _flush_rows(self) -> None:
         rows, self._row_values = self._row_values, []
         arrays, self._row_arrays = self._row_arrays, []
@@ -193,6 +212,9 @@ class NullSink(TableSink):
     def append_row(self, keys, values, arrays=(), take=None) -> None:  # noqa: D102
         return None
 
+    def append_rows(self, keys, values, arrays, take) -> None:  # noqa: D102
+        return None
+
 
 def frame_sums(upd) -> np.ndarray:
     """One frame's terms of :meth:`RunStats.add` (10,) over its accepted stars.
@@ -229,6 +251,13 @@ def frame_sums(upd) -> np.ndarray:
     out[8] = float(w1.mean()) * math.sqrt(n)
     out[9] = float(w2.mean()) * math.sqrt(n)
     return out
+
+
+def _running(start: float, x: np.ndarray) -> float:
+    """``start + x[0] + x[1] + ...`` added in that order (the same float as a loop)."""
+    if not len(x):
+        return start
+    return float(np.add.accumulate(np.concatenate([[start], x]))[-1])
 
 
 @dataclass
@@ -302,6 +331,55 @@ class RunStats:
             w["s"][k] += x
             w["s2"][k] += x * x
             w["last"][k] = x
+
+    def add_block(self, stamps: list, n_stars: list, nis: np.ndarray, dof: list,
+                  sums: np.ndarray) -> None:
+        """:meth:`add` of frames in a row at once, bit for bit (a replay's batch).
+
+        Frame ``i``: its reported stamp, its stars, NIS, dof and :func:`frame_sums` row
+        ``sums[i]`` (the compiled step's).  The float sums are accumulated in the frames'
+        order (``np.add.accumulate`` from the running value: the additions one ``add`` a
+        frame makes), the integer ones summed.
+        """
+        sums = np.asarray(sums, dtype=float)
+        n = sums[:, 0].astype(np.int64)
+        self.accepted_total += int(n.sum())
+        keep = np.ones(len(n), dtype=bool) if self.eval_start is None else \
+            np.asarray(stamps, dtype=float) >= self.eval_start
+        if not keep.all():
+            n, nis, sums = n[keep], np.asarray(nis)[keep], sums[keep]
+            n_stars = [x for x, k in zip(n_stars, keep, strict=True) if k]
+            dof = [x for x, k in zip(dof, keep, strict=True) if k]
+        if not len(n):
+            return
+        self.stars_all += sum(n_stars)
+        self.gated += sum(n_stars) - int(n.sum())
+        nis = np.asarray(nis, dtype=float)
+        fin = np.isfinite(nis)
+        self.frame_nis = _running(self.frame_nis, nis[fin])
+        self.frame_dof += sum(d for d, f in zip(dof, fin.tolist(), strict=True) if f)
+        has = n > 0
+        if not has.all():
+            n, sums = n[has], sums[has]
+        if not len(n):
+            return
+        self.frames += len(n)
+        self.stars += int(n.sum())
+        for name, k in (("sum_logdet", 1), ("sum_nis_capped", 2), ("sum_du2", 3),
+                        ("sum_dv2", 4), ("sum_suu", 5), ("sum_svv", 6), ("sum_nis", 7)):
+            setattr(self, name, _running(getattr(self, name), sums[:, k]))
+        w = self._w
+        for k in (0, 1):
+            x = sums[:, 8 + k]
+            if w["n"][k]:
+                w["lag"][k] = _running(w["lag"][k], x * np.concatenate([[w["last"][k]], x[:-1]]))
+            else:
+                w["first"][k] = float(x[0])
+                w["lag"][k] = _running(w["lag"][k], x[1:] * x[:-1])
+            w["n"][k] += len(x)
+            w["s"][k] = _running(w["s"][k], x)
+            w["s2"][k] = _running(w["s2"][k], x * x)
+            w["last"][k] = float(x[-1])
 
     def add_reference(self, stamp: float, nis: float, dof: int) -> None:
         """Add one update of another measurement (e.g. the inertial reference Z1)."""
