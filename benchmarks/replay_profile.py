@@ -33,12 +33,20 @@ from stellar_cal_ros.methods import replay as replay_mod
 TIMED = [
     *[(driver.Calibrator, n, "Calibrator." + n) for n in (
         "push_imu_block", "push_stars", "push_scalar", "push_fix", "_pump", "_process",
-        "_record_history", "_trim", "_flush_staged", "_defer_release", "_release_imu")],
+        "_record_history", "_trim", "_flush_staged", "_defer_release", "_release_imu",
+        "_process_run", "_commit_batch")],
     (driver, "frame_inputs", "frame_inputs"), (driver, "frame_context", "frame_context"),
     *[(kernel.StarFilter, n, "StarFilter." + n) for n in (
         "process_frame", "update", "_fused_update", "extend_imu", "_watch_gyro", "sigma",
-        "_gated", "_updated")],
+        "_gated", "_updated", "prepare_frames", "commit_batch")],
     (frame_step.FusedStep, "call", "FusedStep.call"),
+    (frame_step.FusedStep, "batch", "FusedStep.batch"),
+    (frame_step, "frame_steps", "frame_steps (compiled)"),
+    (frame_step.FrameBatch, "take", "FrameBatch.take"),
+    (frame_step.BatchCommit, "__init__", "BatchCommit"),
+    (gyro_check, "watch_frames", "gyro_check.watch_frames"),
+    (results.TableSink, "append_rows", "TableSink.append_rows"),
+    (results.RunStats, "add_block", "RunStats.add_block"),
     (frame_step, "frame_step", "frame_step (compiled)"),
     (star_chain.CompiledChain, "frame_inputs", "CompiledChain.frame_inputs"),
     (gyro_check, "watch_frame", "gyro_check.watch_frame"),

@@ -445,6 +445,8 @@ class Calibrator(ImuRelease):
 
     def _env_ready(self, stamp_ns: int, final: bool) -> tuple[bool, bool]:
         """(ready, stale) of the environment inputs the model needs for a frame."""
+        if not self.requires:
+            return True, False
         need = []
         if "head_temperature" in self.requires:
             need.append(self.env["head"])
@@ -495,6 +497,10 @@ class Calibrator(ImuRelease):
         # needs the filter's attitude: the frames before it go first
         run: list | None = [] if self.driver.batch_frames and \
             not self.model.has_time_effect else None
+        # without a time effect a frame's exposure shift is the prior's (no context needed)
+        fixed_shift = None if self.model.has_time_effect else \
+            self.model.exposure_shift(self.filter.theta, None)
+        env_keys = self._env_keys()
         while self._frames_pending:
             fr = self._frames_pending[0]
             stamp = int(fr.stamp_ns)
@@ -505,17 +511,18 @@ class Calibrator(ImuRelease):
             if not ready:
                 break
             if not final and (len(inp.uv) or stamp in self._to_identify):
-                shift = self._time_shift(stamp, inp)
+                shift = self._time_shift(stamp, inp) if fixed_shift is None else fixed_shift
                 t_exp = (stamp - self.t0_ns) * 1e-9 + shift
                 if imu_end <= t_exp + lookahead:
                     break  # the IMU does not cover the exposure yet
-            self._flush_staged()
+            if self._staged:
+                self._flush_staged()
             if stamp in self._to_identify:
                 if run:
                     out += self._process_run(run)
                 self._to_identify.discard(stamp)
                 fr, inp = self._identify(fr, inp, stamp)
-            ctx = frame_context(stamp, inp, self.site, self.env, self._env_keys()) \
+            ctx = frame_context(stamp, inp, self.site, self.env, env_keys) \
                 if len(inp.uv) else None
             self._frames_pending.pop(0)
             self._inputs.pop(stamp, None)
