@@ -122,8 +122,10 @@ class TableSink:
 
     def append_rows(self, keys: tuple[str, ...], values: list[list],
                     arrays: tuple[np.ndarray, ...], take: np.ndarray) -> None:
-        """:meth:`append_row` of several rows: ``values[i]`` and the rows ``a[i]`` of each of
-        ``arrays`` (2-D, handed over: the caller no longer writes to them) — the same cells.
+        """:meth:`append_row` of several rows at once, the same cells.
+
+        Row ``i``: ``values[i]`` and the rows ``a[i]`` of each of ``arrays`` (2-D, handed
+        over: the caller no longer writes to them).
         """
         if (keys is not self._row_keys or take is not self._row_take) and self._row_values:
             self._flush_rows()
