@@ -450,3 +450,34 @@ def test_a_line_that_follows_the_rolling_shutter_says_so_in_the_terminal_and_the
     assert terminal[2].count("follow") == 1 and "follows the rolling shutter comes after the " \
         "shutter's" in terminal[2], terminal
     assert _unexplained_html(summary).count(said) == 1
+
+
+def test_run_stats_add_block_is_add_a_frame_at_a_time_bit_for_bit() -> None:
+    """``RunStats.add_block`` (a replay's batch) leaves every sum as one ``add`` a frame
+    does, to the bit: blocks across the evaluation window's start, a frame without accepted
+    stars, a NaN NIS, a first block that starts the whiteness sums and later ones that
+    continue them."""
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.methods.results import RunStats
+
+    rng = np.random.default_rng(3)
+    K = 40
+    stamps = (1000.0 + np.arange(K) * 0.5).tolist()
+    n_stars = rng.integers(3, 20, size=K).tolist()
+    sums = rng.normal(size=(K, 10)) * rng.uniform(0.1, 1e3, size=10)
+    sums[:, 0] = [rng.integers(0, n + 1) for n in n_stars]
+    sums[7, 0] = 0  # no accepted star
+    nis = rng.chisquare(20, size=K)
+    nis[11] = np.nan
+    dof = [2 * int(a) for a in sums[:, 0]]
+    for eval_start in (None, stamps[13] - 0.1, stamps[0] - 1.0, stamps[-1] + 1.0):
+        one, block = RunStats(eval_start), RunStats(eval_start)
+        for i in range(K):
+            one.add(SimpleNamespace(stamp=stamps[i], uv=np.zeros((n_stars[i], 2)),
+                                    nis=float(nis[i]), dof=dof[i], sums=sums[i],
+                                    accepted=None))
+        for a, b in ((0, 5), (5, 6), (6, 25), (25, K)):
+            block.add_block(stamps[a:b], n_stars[a:b], nis[a:b], dof[a:b], sums[a:b])
+        assert vars(one) == vars(block), eval_start
+    assert one.frames == 0 and block.accepted_total == int(sums[:, 0].sum())
