@@ -119,7 +119,12 @@ def _settled_fraction(cal, given: Path | None) -> float:
 
 def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
                    data_cache: dict[str, Any]) -> tuple[dict, dict | None, str]:
-    """The run's residual table: the given file, or a re-run on the bag (with its history)."""
+    """The run's residual table: the given file, or a re-run on the bag (with its history).
+
+    The re-run uses the noise scales the result's run applied (its consistency block's
+    ``noise``: ``replay --noise-scale`` or ``--estimate-noise``), so its residuals, NIS and
+    verdict are those of that run, not of the noise as the bag states it.
+    """
     from stellar_cal_ros.io.residuals import read_residuals
 
     check_run_files(cal, result, given, bag, data_cache.setdefault("bag_ids", {}))
@@ -129,6 +134,7 @@ def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
         raise StellarCalError(f"{result}: give its residual file (--residuals, written by "
                               "'replay --residuals') or the bag (--bag) to re-run it on")
     from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.noise import stated_scales
     from stellar_cal_ros.methods.replay import read_bag_data
 
     if "data" not in data_cache:
@@ -136,11 +142,16 @@ def _residuals_for(cal, result: Path, given: Path | None, bag: Path | None,
     method = _rerun_method(cal)
     spec = method_spec(method)
     effects = list(spec.beyond_baseline(cal.estimated))
-    log.info("re-running %s on %s from %s (effects: %s)", method, bag, result,
-             ", ".join(effects) or "baseline")
-    run = spec.runner(data_cache["data"], rerun_prior(cal, effects), effects, keep_tables=True)
-    return run.residuals, run.history, (f"residuals from a re-run of {method} on the bag, "
-                                        f"starting at the values of {result.name}")
+    noise = stated_scales(cal)
+    log.info("re-running %s on %s from %s (effects: %s; noise %s)", method, bag, result,
+             ", ".join(effects) or "baseline",
+             "as stated" if noise.identity else f"as the run rescaled it: {noise.as_dict()}")
+    run = spec.runner(data_cache["data"], rerun_prior(cal, effects), effects, keep_tables=True,
+                      noise=None if noise.identity else noise)
+    return run.residuals, run.history, (
+        f"residuals from a re-run of {method} on the bag, starting at the values of "
+        f"{result.name}" + ("" if noise.identity else ", with the noise scales its run "
+                            "applied"))
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
