@@ -599,6 +599,33 @@ def test_heavy_tailed_noise_is_named_and_gaussian_noise_is_not():
         assert v0.tails is None, v0.lines()
 
 
+def test_gated_stars_are_the_tails_or_misidentified_never_both(tmp_path):
+    """One claim about one piece of evidence: Student-t noise (3 dof, unseen case ``t3``)
+    gates ~2 % of the stars; the diagnosis names the noise heavy-tailed, and its data
+    quality must not also call the gated stars "misidentified stars" (before: "121 stars
+    gated (1.9 % of 6255 ...): misidentified stars. ... repair the data" beside "stars the
+    gate rejects are likely its tails, not misidentified stars").  Gaussian noise with 3 %
+    of 10-sigma outliers (misidentifications) is the data's fault: said so, no tails."""
+    from stellar_cal_ros.diagnosis.run import diagnose
+    from stellar_cal_ros.methods.results import GATED_FACTOR
+
+    cases = {"t3": _bag(lambda s: tracker_errors.heavy_tails(s, SIGMA, 3.0, 21)),
+             "outliers": _bag(lambda s: tracker_errors.outliers(s, 0.03, 10.0, 21),
+                              noise_free=False)}
+    for name, sim in cases.items():
+        s = diagnose(bag_data_from_simulation(sim), sim.prior, "psce", [], tmp_path / name,
+                     candidates=["pixel_aspect"], plots=False, verbose=False, workers=0)
+        gated = s["counts"]["stars_gated"]
+        assert gated > GATED_FACTOR * 1e-4 * 6000, s["counts"]  # far beyond the gate's 0.01 %
+        tails = any("heavy-tailed" in x for x in s["noise"]["verdict"])
+        misid = [x for x in s["data_quality"] if "misidentified" in x]
+        assert tails == (name == "t3"), s["noise"]["verdict"]
+        assert bool(misid) == (name == "outliers"), s["data_quality"]
+        said = [x for x in s["terminal"] if "misidentified" in x]
+        # the terminal says 'misidentified' once, as the data's fault or as what they are not
+        assert len(said) == 1 and ("not misidentified" in said[0]) == (name == "t3"), said
+
+
 def _sim_prior(post, **kw):
     sim = _bag(post, **kw)
     return bag_data_from_simulation(sim), sim.prior

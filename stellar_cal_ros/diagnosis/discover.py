@@ -686,8 +686,14 @@ def hidden_effects(base: RunSummary, results: list[CandidateResult]) -> list[dic
 
 def summary_dict(base: RunSummary, results: list[CandidateResult],
                  unexplained: list, spec: DiagnosisSpec,
-                 model_effects: list[str], evaluation_fraction: float) -> dict[str, Any]:
-    """``diagnosis.json`` (contract §5), plus extra keys readers may ignore."""
+                 model_effects: list[str], evaluation_fraction: float,
+                 heavy_tails: bool = False) -> dict[str, Any]:
+    """``diagnosis.json`` (contract §5), plus extra keys readers may ignore.
+
+    ``heavy_tails``: the noise verdict names the stars' noise heavy-tailed (its data quality
+    then does not call the gated stars misidentified, :func:`~stellar_cal_ros.methods.
+    results.data_quality`).
+    """
     from stellar_cal_ros.methods.results import data_quality
 
     w = base.window
@@ -696,7 +702,7 @@ def summary_dict(base: RunSummary, results: list[CandidateResult],
         "format": "stellar_cal_diagnosis/1",
         "counts": {k: v for k, v in base.counters.items() if v},
         "data_quality": data_quality(base.counters, int(w["n_accepted"]),
-                                     w["nis"]["mean"] / 2.0),
+                                     w["nis"]["mean"] / 2.0, heavy_tails=heavy_tails),
         "residual_rms_px": list(w["rms"]),
         "expected_rms_px": list(w["expected_rms"]),
         "log_likelihood": w["log_likelihood"],

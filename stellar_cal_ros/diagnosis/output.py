@@ -64,7 +64,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
     # a rolling shutter whose consequences rank before it goes first (one run without it)
     unexplained, follows = rolling.first_if_cause(unexplained, shown, runs, line_tests)
-    summary = summary_dict(base, results, unexplained, spec, effects, fraction)
+    summary = summary_dict(base, results, unexplained, spec, effects, fraction,
+                           heavy_tails=bool(getattr(verdict, "tails", None)))
     for i, u in enumerate(summary["unexplained"]):
         if i in follows:
             u["follows"] = "rolling shutter"
