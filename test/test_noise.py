@@ -180,6 +180,33 @@ def _star_noise(n=20000, seed=8, factor=None):
     return sn
 
 
+def test_noise_that_changes_advises_no_scale_it_did_not_apply():
+    """The stars' σ x1.45 before the window and x1.07 in it, few stars (the window's scale
+    ±0.03, not told from the stated at ALPHA / 3): the change over the run is said, rejects
+    "as stated", and the window's scale is not applied -- so no line may advise a scale.
+    Before: "the stars' sigma looks 1.08 +- 0.03 x too small (0.05 -> 0.054 px): use
+    --noise-scale star=1" (the advice was the applied scale, the stated 1) beside "(the
+    window's is applied ...)".  With more stars the window's x1.07 is significant: applied,
+    and advised as applied."""
+    for n, applied_window in ((300, False), (1000, True)):
+        sn = _star_noise(n=n, seed=0, factor=lambda m, uv: np.full(len(m), 1.07))
+        sn.before = {"scale": 1.45, "sigma": 0.02, "from_s": 75.0, "to_s": 150.0}
+        v = noise.NoiseVerdict(NoiseScales(), NoiseScales())
+        v.applied = noise.judge_stars(v, sn, 0.05, (1024, 1024), 3)
+        assert v.changes is not None and "star" in v.rejected and v.group is None
+        assert abs(v.star - 1.07) < 3 * v.star_sigma
+        assert (v.applied.star != 1.0) == applied_window, (v.star, v.star_sigma, v.star_p)
+        lines = v.lines()
+        advice = [x for x in lines if "--noise-scale star=" in x]
+        change = next(x for x in lines if "changes over the run" in x)
+        if applied_window:
+            assert advice and advice[0].endswith(f"star={v.applied.star:.3g}"), lines
+            assert "the window's is applied" in change
+        else:
+            assert not advice, lines
+            assert "the window's is not told from the stated, which is kept" in change
+
+
 def test_star_sigma_groups_find_the_region_and_the_step():
     """Unseen cases (benchmarks/unseen_cases.py 'region', 'mag2x'): the right third of the
     detector, or the stars fainter than 4.5 mag, twice as noisy as stated.  The grouping

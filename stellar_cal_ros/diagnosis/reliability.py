@@ -373,7 +373,10 @@ def external_reliability(det: Detectability, rows: dict[str, np.ndarray],
                  "biases": worst, "biases_shown": {n: shown(n, b) for n, b in worst.items()},
                  "dominates": [n for n, b in worst.items() if model_sigma.get(n, 0.0) > 0
                                and b > DOMINATES_SIGMA * model_sigma[n]]}
-    sig_names = set(listed) | set(blind.get("dominates", []))
+    # in the rows' order (a set's order varies with the interpreter's string hashing:
+    # diagnosis.json's sigma blocks came out in another order each run)
+    shown_also = set(listed) | set(blind.get("dominates", []))
+    sig_names = [q for q in rows if q in shown_also]
     return {"effect": det.effect, **det.as_dict(),
             "hidden_size": dict(zip(names, map(float, size), strict=True)),
             "biases": biases, "biases_signed": signed, "bias_parameter": source,
