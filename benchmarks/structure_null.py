@@ -51,8 +51,8 @@ def bag_tests(name: str, seed: int) -> tuple[list[tuple[float, float]], list[flo
     seen: list[tuple[float, float]] = []
     inner = stats.frame_robust_t
 
-    def record(x, y, cluster, lags=None):
-        t, p = inner(x, y, cluster, lags)
+    def record(x, y, cluster, lags=None, track=None):
+        t, p = inner(x, y, cluster, lags, track=track)
         seen.append((t, p))
         return t, p
 

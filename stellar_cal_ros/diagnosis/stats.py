@@ -221,6 +221,11 @@ def within_frame(res: Table, sigma: np.ndarray, fx: float, fy: float
     return r, lev, used
 
 
+def star_tracks(sub: Table) -> np.ndarray | None:
+    """Each row's star (its catalogue id) for :func:`frame_robust_t`'s ``track``, or ``None``."""
+    return np.asarray(sub["catalog_id"]) if "catalog_id" in sub else None
+
+
 def hac_bandwidth(n_frames: int) -> int:
     """Newey–West lag window over frames: ``⌊4 (n / 100)^(2/9)⌋`` (at least 1)."""
     return max(1, int(4.0 * (max(n_frames, 1) / 100.0) ** (2.0 / 9.0)))
@@ -238,7 +243,8 @@ DEGENERATE = 1e-24
 
 
 def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
-                   lags: int | None = None, dof: bool = False) -> tuple[float | None, ...]:
+                   lags: int | None = None, dof: bool = False,
+                   track: np.ndarray | None = None) -> tuple[float | None, ...]:
     """The slope's t of ``y`` on ``x``, robust to correlation within and across frames.
 
     The slope ``b`` by least squares; its variance from the scores ``U_k = Σ (x − x̄)(y −
@@ -262,6 +268,12 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     Degenerate input (no spread of ``x``, or ``V`` zero: ``y`` exactly ``b x``, see
     :data:`DEGENERATE`) makes no test: ``(0, 1)``, and with ``dof`` ``ν = None`` (no
     reference, so no MDB either).
+
+    ``track`` (each row's star, e.g. its catalogue id): the stars' tracks are clusters too
+    (:func:`track_variance`).  A star's centroid noise can stay correlated along its track
+    for longer than any window read from the frame scores (white + AR(1) noise: lag-1 ~0.2,
+    lags ``w φ^k`` with φ 0.82), and one test's 150-300 frame scores read their own lags
+    too noisily to size a window for it (doc/benchmarks.md "Star tracks as clusters").
     """
     xc = x - x.mean()
     yc = y - y.mean()
@@ -294,9 +306,38 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     if not V > DEGENERATE * sxx * float(yc @ yc):  # y exactly b x: rounding is all e is
         return (0.0, 1.0, None) if dof else (0.0, 1.0)
     nu, factor = hac_reference(xc, e, k, L)
+    if track is not None:
+        V_two, nu_tracks = track_variance(xc * e, k, np.asarray(track), L, V)
+        if V_two > V:
+            V, nu = V_two, min(nu, nu_tracks)
     t = float(b * sxx / np.sqrt(V / factor))
     p = float(2.0 * stats.t.sf(abs(t), nu))
     return (t, p, nu) if dof else (t, p)
+
+
+def track_variance(q: np.ndarray, k: np.ndarray, track: np.ndarray, L: int, V_frames: float
+                   ) -> tuple[float, float]:
+    """Two-way variance of a score sum: frames (with their lag window) and stars' tracks.
+
+    ``q`` the rows' scores, ``k`` their frame index (time order), ``track`` their star.
+    With ``c_sk`` a star's score in frame ``k``: ``V = V_frames + Σ_s (Σ_k c_sk)² − Σ_s
+    Σ_kj w_|k−j| c_sk c_sj`` (Cameron, Gelbach & Miller's two-way clustering, the frames'
+    Bartlett weights ``w`` over ``L`` lags: a star's own pairs counted once, at full
+    weight, however far apart along its track; pairs of different stars as the frames'
+    window has them).  Returns ``(V, ν)``, ν Satterthwaite's over the tracks under
+    independence (``(Σ d_s)² / Σ d_s²``, ``d_s`` a track's ``Σ q²``: a regressor carried
+    by a few stars has few units).
+    """
+    _, s = np.unique(track, return_inverse=True)
+    n, ns = int(k.max()) + 1, int(s.max()) + 1
+    C = np.bincount(s * n + k, q, minlength=ns * n).reshape(ns, n)
+    by_track = C.sum(1)
+    same = float(np.sum(C * C))
+    for lag in range(1, min(L, n - 1) + 1):
+        same += 2.0 * (1.0 - lag / (L + 1.0)) * float(np.sum(C[:, lag:] * C[:, :-lag]))
+    d = np.bincount(s, q * q, minlength=ns)
+    nu = float(d.sum() ** 2 / max(float(d @ d), 1e-300))
+    return V_frames + float(by_track @ by_track) - same, max(nu - 1.0, 1.0)
 
 
 def hac_reference(xc: np.ndarray, e: np.ndarray, k: np.ndarray, L: int
@@ -523,6 +564,8 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     y = np.concatenate([yu, yv])
     y_px = np.concatenate([yu_px, yv_px])
     cl = np.concatenate([frame, frame])
+    star = star_tracks(sub)
+    tr = None if star is None else np.concatenate([star, star])
     u, v = predicted_position(sub, "u"), predicted_position(sub, "v")
 
     def project(xy: np.ndarray) -> np.ndarray:
@@ -536,7 +579,7 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
         ok = np.isfinite(x) & np.isfinite(y)
         if ok.sum() < 40 or len(np.unique(cl[ok])) < 10 or not np.ptp(x[ok]) > 0:
             return
-        t, p = frame_robust_t(x[ok], y[ok], cl[ok])
+        t, p = frame_robust_t(x[ok], y[ok], cl[ok], track=None if tr is None else tr[ok])
         xc = x[ok] - x[ok].mean()
         b = float(xc @ y_px[ok]) / float(xc @ xc)
         lo, hi = np.percentile(x[ok], [5, 95])
@@ -772,6 +815,7 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
         sub = dict(sub, **subpixel_removed(sub))
         plain, inside = components(sub)
     frame = np.asarray(sub["frame"])
+    star = star_tracks(sub)
     tests = []
     for rname, x in regs.items():
         x = np.asarray(x, dtype=float)
@@ -785,7 +829,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
                 continue
             # on the regressor's normal scores: a skewed regressor (the angular rate, high
             # in a few frames only) must not let a handful of frames decide the test
-            tstat, p = frame_robust_t(normal_scores(x[ok2]), y[ok2], frame[ok2])
+            tstat, p = frame_robust_t(normal_scores(x[ok2]), y[ok2], frame[ok2],
+                                      track=None if star is None else star[ok2])
             lo, hi = np.percentile(x[ok2], [5, 95])
             slope = np.polyfit(x[ok2], y_px[ok2], 1)[0] * (hi - lo)
             tests.append(RegressorFinding(rname, cname, float(tstat), float(p), float(slope)))
