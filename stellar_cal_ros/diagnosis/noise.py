@@ -570,7 +570,8 @@ def structured(sn: StarNoise) -> str:
 
 
 def star_lines(res: Table, mask: np.ndarray, fx: float, fy: float,
-               centre: tuple[float, float], R_imu_st: np.ndarray | None = None) -> list:
+               centre: tuple[float, float], R_imu_st: np.ndarray | None = None,
+               sn: StarNoise | None = None) -> list:
     """The 'unexplained' tests that rest on the stars' noise, from one estimate of it.
 
     :func:`repeat_finding`'s test (if any) and the periodic frame-mean tests
@@ -580,17 +581,32 @@ def star_lines(res: Table, mask: np.ndarray, fx: float, fy: float,
     materiality): such noise makes the frame means red, and their flat reference called
     that a period (unseen case ``ar1``, 150 s, seeds 25, 28, 30, 35: Bonferroni p 8.6e-6,
     7.7e-5, 1.2e-6, 1.0e-6).  White noise keeps the flat reference, and a wobble its power.
+    ``sn``: that estimate (:func:`line_noise`) when the caller has it.
     """
     from stellar_cal_ros.diagnosis.stats import periodic_findings
 
-    sn = _line_noise(res, mask, fx, fy, centre, R_imu_st)
-    red = sn is not None and noise_structure.correlated(
-        sn.track_rho, sn.track_pairs, 0.0) is not None
+    sn = line_noise(res, mask, fx, fy, centre, R_imu_st) if sn is None else sn
+    red = track_lags(sn) is not None
     rep = repeat_finding(sn)
     return ([rep] if rep is not None else []) + periodic_findings(res, mask, red)
 
 
-def _line_noise(res: Table, mask: np.ndarray, fx: float, fy: float,
+def track_lags(sn: StarNoise | None) -> tuple[float, float] | None:
+    """``(w, φ)``: the stars' noise correlated ``w φ^l`` at lag ``l`` along their tracks.
+
+    Where the tracks' lag-1 ρ is above 3 of its σ (:func:`~.noise_structure.correlated`
+    without its materiality, as :func:`star_lines`' red reference); ``None`` for white
+    tracks.  A pure AR(1) is ``(1, ρ)``, white + AR(1) its share and coefficient
+    (:func:`~.noise_structure.track_model`).  What the structure tests take
+    (:func:`~stellar_cal_ros.diagnosis.stats.frame_robust_t`'s ``track_lags``).
+    """
+    if sn is None or noise_structure.correlated(sn.track_rho, sn.track_pairs, 0.0) is None:
+        return None
+    return (float(sn.track_share),
+            float(sn.track_rho if sn.track_phi is None else sn.track_phi))
+
+
+def line_noise(res: Table, mask: np.ndarray, fx: float, fy: float,
                 centre: tuple[float, float], R_imu_st: np.ndarray | None):
     """:func:`~.noise_stars.star_noise` of ``mask``'s accepted stars at the run's own σ."""
     ok = mask & ~np.asarray(res["gated"]).astype(bool)

@@ -12,9 +12,11 @@ from typing import Any
 from stellar_cal_ros.diagnosis import rolling, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
+    line_noise,
     not_measured,
     star_lines,
     stated_scales,
+    track_lags,
     within_groups,
 )
 from stellar_cal_ros.diagnosis.runstats import RunSummary
@@ -122,11 +124,12 @@ def line_tests(res, calibration: Calibration, fraction: float) -> list:
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     mask = stats.evaluation_mask(res, fraction)
+    sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st)
     return stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
-        extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st),
+        extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, sn),
         R_imu_st=calibration.R_imu_st,
-        height=cam.height)
+        height=cam.height, track_lags=track_lags(sn))
 
 
 def write_report(out: Path, summary: dict[str, Any], title: str) -> None:

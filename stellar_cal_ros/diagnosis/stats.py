@@ -244,7 +244,8 @@ DEGENERATE = 1e-24
 
 def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
                    lags: int | None = None, dof: bool = False,
-                   track: np.ndarray | None = None) -> tuple[float | None, ...]:
+                   track: np.ndarray | None = None,
+                   track_lags: tuple[float, float] | None = None) -> tuple[float | None, ...]:
     """The slope's t of ``y`` on ``x``, robust to correlation within and across frames.
 
     The slope ``b`` by least squares; its variance from the scores ``U_k = Σ (x − x̄)(y −
@@ -269,15 +270,16 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     :data:`DEGENERATE`) makes no test: ``(0, 1)``, and with ``dof`` ``ν = None`` (no
     reference, so no MDB either).
 
-    ``track`` (each row's star, e.g. its catalogue id): the stars' tracks are clusters too,
-    ``V`` the two-way sum of :func:`track_variance` and ν the smaller of the frames' and
-    the tracks' (on white noise the sum's extra terms average zero: no flooring at the
-    frames' ``V``, which made the test conservative, 1.25 % below 5 % in
-    ``test_stats_tracks.py``'s white draws).  A star's centroid noise can stay correlated
-    along its track for longer than any window read from the frame scores (white + AR(1)
-    noise: lag-1 ~0.2, lags ``w φ^k`` with φ 0.82), and one test's 150-300 frame scores
-    read their own lags too noisily to size a window for it (doc/benchmarks.md "Star
-    tracks as clusters").
+    ``track`` (each row's star, e.g. its catalogue id) with ``track_lags = (w, φ)``: the
+    stars' centroid noise is correlated along each star's track as ``w φ^l`` at lag ``l``
+    frames (:func:`~stellar_cal_ros.diagnosis.noise_structure.track_model`, fitted on
+    thousands of pairs about the stars' means), and ``V`` gains the part of that covariance
+    the frames' window leaves out (:func:`track_covariance`).  White + AR(1) noise (lag-1
+    ~0.2, φ 0.82) stays correlated for ~20 frames, where a window read from one test's
+    150-300 frame scores is 4-5 frames long, and those scores read their own lags too
+    noisily to size a longer one (doc/benchmarks.md "The stars' track model in the
+    structure tests").  The model, not the residuals: clustering by star (two-way) also
+    took a structure's per-star lack of fit for noise (magnitude bias, t 36.5 -> 9.3).
     """
     xc = x - x.mean()
     yc = y - y.mean()
@@ -310,38 +312,40 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     if not V > DEGENERATE * sxx * float(yc @ yc):  # y exactly b x: rounding is all e is
         return (0.0, 1.0, None) if dof else (0.0, 1.0)
     nu, factor = hac_reference(xc, e, k, L)
-    if track is not None:
-        V_two, nu_tracks = track_variance(xc * e, k, np.asarray(track), L, V)
-        if V_two > 0.0:  # two-way sums can go negative (never seen here): the frames' then
-            V, nu = V_two, min(nu, nu_tracks)
+    if track is not None and track_lags is not None:
+        # the rows' own variance: about their frame's mean (an error the frame's stars
+        # share is no part of a star's track)
+        cnt = np.bincount(k, minlength=n)
+        r = e - (np.bincount(k, e, minlength=n) / np.maximum(cnt, 1))[k]
+        var = float(r @ r) / max(len(e) - int(np.sum(cnt > 0)), 1)
+        V += var * track_covariance(xc, k, np.asarray(track), L, *track_lags)
     t = float(b * sxx / np.sqrt(V / factor))
     p = float(2.0 * stats.t.sf(abs(t), nu))
     return (t, p, nu) if dof else (t, p)
 
 
-def track_variance(q: np.ndarray, k: np.ndarray, track: np.ndarray, L: int, V_frames: float
-                   ) -> tuple[float, float]:
-    """Two-way variance of a score sum: frames (with their lag window) and stars' tracks.
+def track_covariance(xc: np.ndarray, k: np.ndarray, track: np.ndarray, L: int, w: float,
+                     phi: float) -> float:
+    """What the frames' lag window misses of a score sum's variance under correlated tracks.
 
-    ``q`` the rows' scores, ``k`` their frame index (time order), ``track`` their star.
-    With ``c_sk`` a star's score in frame ``k``: ``V = V_frames + Σ_s (Σ_k c_sk)² − Σ_s
-    Σ_kj w_|k−j| c_sk c_sj`` (Cameron, Gelbach & Miller's two-way clustering, the frames'
-    Bartlett weights ``w`` over ``L`` lags: a star's own pairs counted once, at full
-    weight, however far apart along its track; pairs of different stars as the frames'
-    window has them).  Returns ``(V, ν)``, ν Satterthwaite's over the tracks under
-    independence (``(Σ d_s)² / Σ d_s²``, ``d_s`` a track's ``Σ q²``: a regressor carried
-    by a few stars has few units).
+    Rows' noise of one variance, correlated ``w φ^l`` between a star's rows ``l`` frames
+    apart (``k`` the frame index in time order, ``track`` the star): with ``a_sk`` the sum
+    of ``xc`` over star ``s``'s rows in frame ``k``, ``Σ_s Σ_{l ≥ 1} 2 (1 − b_l) w φ^l Σ_k
+    a_sk a_s,k+l``, ``b_l`` the Bartlett weight :func:`frame_robust_t`'s window gives lag
+    ``l`` (``1 − l/(L+1)`` up to ``L``, 0 beyond), in units of the rows' variance.  Lags
+    until ``w φ^l`` falls below 1e-4.
     """
+    if not (w > 0.0 and 0.0 < phi < 1.0):
+        return 0.0
     _, s = np.unique(track, return_inverse=True)
     n, ns = int(k.max()) + 1, int(s.max()) + 1
-    C = np.bincount(s * n + k, q, minlength=ns * n).reshape(ns, n)
-    by_track = C.sum(1)
-    same = float(np.sum(C * C))
-    for lag in range(1, min(L, n - 1) + 1):
-        same += 2.0 * (1.0 - lag / (L + 1.0)) * float(np.sum(C[:, lag:] * C[:, :-lag]))
-    d = np.bincount(s, q * q, minlength=ns)
-    nu = float(d.sum() ** 2 / max(float(d @ d), 1e-300))
-    return V_frames + float(by_track @ by_track) - same, max(nu - 1.0, 1.0)
+    A = np.bincount(s * n + k, xc, minlength=ns * n).reshape(ns, n)
+    last = min(n - 1, int(math.ceil(math.log(1e-4 / w) / math.log(phi))) if w > 1e-4 else 0)
+    tot = 0.0
+    for lag in range(1, last + 1):
+        left = max(0.0, 1.0 - lag / (L + 1.0)) if lag <= L else 0.0
+        tot += 2.0 * (1.0 - left) * w * phi**lag * float(np.sum(A[:, lag:] * A[:, :-lag]))
+    return tot
 
 
 def hac_reference(xc: np.ndarray, e: np.ndarray, k: np.ndarray, L: int
@@ -541,7 +545,8 @@ ROLLING = "v (row) x image velocity (rolling-shutter shape"
 
 def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float, float],
                  centre: tuple[float, float], R_imu_st: np.ndarray | None = None,
-                 height: float | None = None) -> list[RegressorFinding]:
+                 height: float | None = None,
+                 track_lags: tuple[float, float] | None = None) -> list[RegressorFinding]:
     """Tests of two tracker errors no straight line in one regressor follows (unadjusted).
 
     **Sub-pixel phase** (pixel locking, an S-curve): a centroid of an under-sampled PSF is
@@ -583,7 +588,8 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
         ok = np.isfinite(x) & np.isfinite(y)
         if ok.sum() < 40 or len(np.unique(cl[ok])) < 10 or not np.ptp(x[ok]) > 0:
             return
-        t, p = frame_robust_t(x[ok], y[ok], cl[ok], track=None if tr is None else tr[ok])
+        t, p = frame_robust_t(x[ok], y[ok], cl[ok], track=None if tr is None else tr[ok],
+                              track_lags=track_lags)
         xc = x[ok] - x[ok].mean()
         b = float(xc @ y_px[ok]) / float(xc @ xc)
         lo, hi = np.percentile(x[ok], [5, 95])
@@ -704,9 +710,7 @@ def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
     if ok.sum() < 20 or not info > 0:
         return None
     frame = np.repeat(np.asarray(sub["frame"])[ok], 2)
-    star = star_tracks(sub)
-    t, p, nu = frame_robust_t(w_x[ok].ravel(), w_nu[ok].ravel(), frame, dof=True,
-                              track=None if star is None else np.repeat(star[ok], 2))
+    t, p, nu = frame_robust_t(w_x[ok].ravel(), w_nu[ok].ravel(), frame, dof=True)
     if dof and nu is None:
         return None
     c = float(np.sum(w_x[ok] * w_nu[ok])) / info
@@ -772,7 +776,8 @@ def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
 def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, float],
                     alpha: float = 0.01, focal: tuple[float, float] | None = None,
                     extra: list[RegressorFinding] | None = None,
-                    R_imu_st: np.ndarray | None = None, height: float | None = None
+                    R_imu_st: np.ndarray | None = None, height: float | None = None,
+                    track_lags: tuple[float, float] | None = None
                     ) -> list[RegressorFinding]:
     """Correlation of residual components (u, v, radial, size) with each regressor.
 
@@ -791,7 +796,9 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     :func:`~stellar_cal_ros.diagnosis.noise.repeat_finding`.  With
     ``focal``, the within-frame residuals are also tested against the sub-pixel phase and
     (with the installation ``R_imu_st`` and the detector's rows ``height``) a rolling
-    shutter's shape (:func:`shaped_tests`).
+    shutter's shape (:func:`shaped_tests`).  ``track_lags = (w, φ)``: the stars' noise
+    correlated ``w φ^l`` along their tracks (:func:`frame_robust_t`; the size's as its
+    squares, ``w² φ^(2l)``), ``None`` where the tracks are white.
     """
     m = mask & accepted(res)
     if m.sum() < 20:
@@ -812,8 +819,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
 
     plain, inside = components(sub)
     regs = regressors(sub, camera_centre)
-    shaped = shaped_tests(sub, inside, sig, focal, camera_centre, R_imu_st, height) \
-        if inside is not None else []
+    shaped = shaped_tests(sub, inside, sig, focal, camera_centre, R_imu_st, height,
+                          track_lags) if inside is not None else []
     bound = 4 * len(regs) + len(shaped) + len(extra or [])  # the family's size, at most
     if any(f.regressor.startswith(SUBPIXEL) and f.p_value * bound < alpha for f in shaped):
         # the other regressors are tested on the residuals without the pixel locking (it
@@ -822,6 +829,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
         plain, inside = components(sub)
     frame = np.asarray(sub["frame"])
     star = star_tracks(sub)
+    # a Gaussian's squares correlate as its correlation squared: the size's lags
+    squared = None if track_lags is None else (track_lags[0] ** 2, track_lags[1] ** 2)
     tests = []
     for rname, x in regs.items():
         x = np.asarray(x, dtype=float)
@@ -836,7 +845,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
             # on the regressor's normal scores: a skewed regressor (the angular rate, high
             # in a few frames only) must not let a handful of frames decide the test
             tstat, p = frame_robust_t(normal_scores(x[ok2]), y[ok2], frame[ok2],
-                                      track=None if star is None else star[ok2])
+                                      track=None if star is None else star[ok2],
+                                      track_lags=squared if cname == "size" else track_lags)
             lo, hi = np.percentile(x[ok2], [5, 95])
             slope = np.polyfit(x[ok2], y_px[ok2], 1)[0] * (hi - lo)
             tests.append(RegressorFinding(rname, cname, float(tstat), float(p), float(slope)))
