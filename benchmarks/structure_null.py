@@ -51,8 +51,8 @@ def bag_tests(name: str, seed: int) -> tuple[list[tuple[float, float]], list[flo
     seen: list[tuple[float, float]] = []
     inner = stats.frame_robust_t
 
-    def record(x, y, cluster, lags=None, track=None):
-        t, p = inner(x, y, cluster, lags, track=track)
+    def record(x, y, cluster, lags=None, **tracks):
+        t, p = inner(x, y, cluster, lags, **tracks)
         seen.append((t, p))
         return t, p
 
