@@ -9,6 +9,7 @@ diagnosis must name the noise, with the value to use, and no physical effect.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -499,3 +500,43 @@ def test_trace_after_cells_is_linear_in_a_track_length():
     got = noise_stars._trace_after_cells(*args, rho)
     assert rank >= 1
     assert (1 - rho) / (1 + rho) * rank <= got <= (1 + rho) / (1 - rho) * rank, (got, rank)
+
+
+def _frames_of_few_stars(rng, frames=200, stars=60, per=(3, 5), f=1000.0, c=512.0):
+    """A residual table of frames of ``per`` stars from a field of ``stars`` (pinhole)."""
+    uv0 = rng.uniform(50, 974, size=(stars, 2))
+    mag = rng.uniform(3, 6, size=stars)
+    fr, ids = [], []
+    for t in range(frames):
+        k = rng.choice(stars, size=rng.integers(per[0], per[1] + 1), replace=False)
+        fr += [t] * len(k)
+        ids += list(k)
+    fr, ids = np.array(fr), np.array(ids)
+    x, y = (uv0[ids, 0] - c) / f, (uv0[ids, 1] - c) / f
+    nrm = np.sqrt(x * x + y * y + 1.0)
+    return {"frame": fr, "catalog_id": ids, "u": uv0[ids, 0], "v": uv0[ids, 1],
+            "magnitude": mag[ids], "x_st": x / nrm, "y_st": y / nrm, "z_st": 1.0 / nrm,
+            "t": 0.5 * fr, "gated": np.zeros(len(fr), dtype=bool)}
+
+
+def test_star_scale_sigma_counts_the_frames_shared_attitude_fit():
+    """White noise in frames of 3-5 stars: the scale's printed σ is its scatter over 200
+    draws within 3/√(2·200) (measured 1.07), and √(1/(2 dof)) within 10 % (0.95; not
+    exact: the cells' means act after the frames' fits).  Each frame's attitude fit takes 3
+    of its 6-10 dof, so its stars' ‖r‖² covary: summed row by row (main) the σ read 0.78x
+    the scatter (0.80x √(1/(2 dof))); the scores are now summed per frame first."""
+    rng = np.random.default_rng(5)
+    res = _frames_of_few_stars(rng)
+    n = len(res["t"])
+    sig = np.full(n, 0.05)
+    got = []
+    for _ in range(200):
+        res["du"], res["dv"] = (0.05 * rng.standard_normal((2, n)))
+        sn = noise_stars.star_noise(res, sig, sig, np.ones(n, dtype=bool), 1000.0, 1000.0,
+                                    (512.0, 512.0))
+        got.append((sn.scale, sn.sigma, sn.dof))
+    s, e, dof = np.array(got).T
+    printed = math.sqrt(np.mean(e**2))
+    assert s.std(ddof=1) / printed == pytest.approx(1.0, abs=3.0 / math.sqrt(2.0 * len(s)))
+    assert printed == pytest.approx(math.sqrt(1.0 / (2.0 * dof.mean())), rel=0.1)
+    assert s.mean() == pytest.approx(1.0, abs=4 * s.std() / math.sqrt(len(s)))
