@@ -127,6 +127,25 @@ def test_long_run_factors_printed_sigma_holds_its_z_over_draws():
     assert math.sqrt(np.mean(z**2)) < 1.0 + 4 * tol, (np.mean(z), np.std(z))
 
 
+def test_long_run_factors_sigma_stays_bounded_where_phi_sits_on_its_bound():
+    """Strongly correlated white + AR(1) tracks (φ 0.95, the fit's bound; w 0.5; 40
+    stars; the factor 20): the jackknife's one-step replicates stay inside the fit's
+    bounds.  Unbounded they stepped toward φ = 1 and the printed σ of the factor ran
+    to 2e3 (rms 332 over these 40 draws against the factors' SD 3.1); bounded, rms 4.8:
+    on the bound the σ is conservative (the fit cannot move past it), never wild."""
+    from ar1_level import draw
+
+    rng, got = np.random.default_rng(3), []
+    for _ in range(40):
+        r, star, _ = draw(rng, ns.PHI_MAX, stars=40, share=0.5)
+        t = ns.track_model(noise_stars.star_means(r, np.ones(len(r)), star)[2], star)
+        got.append((t.factor, t.factor_sigma))
+    K, sK = np.array(got).T
+    assert np.all(np.isfinite(sK)) and sK.max() < ns.long_run(ns.PHI_MAX, 0.5)
+    ratio = math.sqrt(np.mean(sK**2)) / K.std(ddof=1)
+    assert 1.0 - 3.0 / math.sqrt(2 * 40) < ratio < 2.0, ratio
+
+
 def test_repeat_and_cells_hold_their_level_on_white_plus_ar1_tracks():
     """The per-star repeat and the cells' χ² on white + AR(1) tracks (``ar1_level``'s
     draws, ``--rho 0.81873:0.265``): p mean 0.5 within 4 σ (60 draws: 0.536, 0.537 ±
