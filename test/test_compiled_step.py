@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -321,7 +322,14 @@ def test_compiled_frame_inputs_equal_numpy() -> None:
     for name in ("ok", "uv", "u_i", "sigma", "catalog_id", "magnitude"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     assert (a.bad_sigma, a.unidentified) == (b.bad_sigma, b.unidentified) == (3, 1)
+    # the usable star with σ 0 (counted in the compiled loop); an unusable one is not
+    assert a.unknown_sigma == b.unknown_sigma == 1
     assert a.ok.sum() == 5
+    # arrays of unequal lengths: the numpy path's error, whichever is asked for
+    short = dataclasses.replace(frame, magnitude=np.arange(8.0))
+    for compiled in (True, False):
+        with pytest.raises(IndexError):
+            frame_inputs(short, 100, 80, 0.05, compiled=compiled)
 
 
 def test_compiled_imu_screen_equals_numpy(sim_data) -> None:

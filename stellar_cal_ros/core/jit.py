@@ -381,9 +381,16 @@ def star_inputs(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray
     (:func:`~stellar_cal_ros.methods.frames.star_sigma`) is the message's when finite and
     positive, ``default_sigma`` otherwise (negative, infinite or NaN ones counted).
     Returns ``(ok (n,), uv (k, 2), u_i (k, 3), sigma (k,), catalog_id (k,) int64,
-    magnitude (k,), bad_sigma, unidentified)`` — the numpy function's values (same formulas).
+    magnitude (k,), bad_sigma, unidentified, unknown_sigma)`` — the numpy function's values
+    (same formulas; ``unknown_sigma``: usable stars whose σ is 0).  Arrays of unequal lengths
+    (the loops do not check bounds) give ``bad_sigma`` −1 and nothing else: the caller then
+    takes the numpy path.
     """
     n = uv.shape[0]
+    if ra.shape[0] != n or dec.shape[0] != n or cat.shape[0] != n or sigma.shape[0] != n \
+            or mag.shape[0] != n:
+        return (np.zeros(0, dtype=np.bool_), np.empty((0, 2)), np.empty((0, 3)), np.empty(0),
+                np.empty(0, dtype=np.int64), np.empty(0), -1, 0, 0)
     ok = np.empty(n, dtype=np.bool_)
     k = 0
     unid = 0
@@ -402,6 +409,7 @@ def star_inputs(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray
     c_o = np.empty(k, dtype=np.int64)
     m_o = np.empty(k)
     bad = 0
+    unknown = 0
     j = 0
     for i in range(n):
         if not ok[i]:
@@ -415,11 +423,12 @@ def star_inputs(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray
         fine = math.isfinite(s)
         if not (fine and s >= 0):
             bad += 1
+        unknown += s == 0
         s_o[j] = s if fine and s > 0 else default_sigma
         c_o[j] = cat[i]
         m_o[j] = mag[i]
         j += 1
-    return ok, uv_o, u_i, s_o, c_o, m_o, bad, unid
+    return ok, uv_o, u_i, s_o, c_o, m_o, bad, unid, unknown
 
 
 # ---------------------------------------------------------------------------- IMU blocks

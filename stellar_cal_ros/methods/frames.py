@@ -173,17 +173,13 @@ def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float
                   np.asarray(frame.right_ascension, dtype=float),
                   np.asarray(frame.declination, dtype=float), np.asarray(frame.catalog_id),
                   np.asarray(frame.sigma, dtype=float), np.asarray(frame.magnitude, dtype=float))
-        # the compiled loop does not check bounds: arrays of unequal lengths take the numpy
-        # path (which raises as it always did)
-        if len({len(a) for a in arrays}) == 1:
-            ok, uv, u_i, sigma, cid, mag, bad, unid = jit.star_inputs(
-                *arrays, float(width), float(height), float(default_sigma))
-            # σ = 0 in the message: counted among the usable stars (none: the usual case)
-            unknown = int(np.count_nonzero(arrays[4][ok] == 0)) \
-                if np.count_nonzero(arrays[4] == 0) else 0
-            # finite centroids and directions (the rule), σ the message's finite positive
-            # one or the default
-            return FrameInputs(ok, uv, u_i, sigma, cid, mag, int(bad), int(unid), unknown,
+        ok, uv, u_i, sigma, cid, mag, bad, unid, unknown = jit.star_inputs(
+            *arrays, float(width), float(height), float(default_sigma))
+        # bad −1: arrays of unequal lengths, which take the numpy path (it raises as it
+        # always did); else finite centroids and directions (the rule), σ the message's
+        # finite positive one or the default, σ = 0 counted among the usable stars
+        if bad >= 0:
+            return FrameInputs(ok, uv, u_i, sigma, cid, mag, bad, unid, unknown,
                                valid=0.0 < default_sigma < math.inf)
     masks = star_masks(frame, width, height)
     ok = masks.usable
