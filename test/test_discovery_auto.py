@@ -202,7 +202,7 @@ def test_a_run_made_ahead_is_taken_by_the_same_run_only():
     for other in (replace(made, prior=object()), replace(made, effects=("c",)),
                   replace(made, keep_residuals=True), replace(made, screen=()),
                   replace(made, candidate=True), replace(made, noise=NoiseScales(star=2.0)),
-                  replace(made, star_noise=True)):
+                  replace(made, star_noise=True), replace(made, gyro_check=False)):
         assert runs._take_ahead(other) is None
     assert runs._take_ahead(replace(made, key="asked", cost=3.0, noise=NoiseScales())) \
         == "its stats"
@@ -228,6 +228,7 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
 
         def runner(d, p, effects, **kw):
             calls.append((tuple(effects), tuple(kw.get("consider") or ()), kw.get("noise")))
+            checks.append((kw.get("noise"), kw.get("gyro_fault", "raise")))
             return base_spec.runner(d, p, effects, **kw)
 
         spec = DiagnosisSpec("psce", base_spec.baseline, base_spec.stages, runner,
@@ -252,7 +253,13 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
         return calls, base, {c.effect: c for c in results}, runs.verdict
 
     bag_stats = {True: [], False: []}
+    checks = []
     calls, base, by, verdict = round_(True)
+    # the ML search's runs skip the gyro check (they read the log-likelihood alone); the
+    # current model's run, which judges the gyro, and the candidates' (flagged) do not
+    assert {g for n, g in checks if n != NoiseScales()} == {"off"}
+    assert checks[0] == (NoiseScales(), "raise")
+    assert {g for n, g in checks if n == NoiseScales()} == {"raise", "flag"}
     old_calls, old_base, old_by, old_verdict = round_(False)
     assert len(bag_stats[True]) == len(set(bag_stats[True])) == 1  # gyro: first runs + measure
     stated = [c for c in calls if c[0] == () and c[2] == NoiseScales()]
@@ -276,6 +283,54 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
         assert (a.status, a.significant) == (b.status, b.significant)
         assert a.screen.lm == b.screen.lm  # the same screening run
         assert a.p_adjusted == pytest.approx(b.p_adjusted, rel=1e-9)
+    assert by["time_offset"].significant
+
+
+def test_a_round_not_screened_sends_its_candidates_beside_the_base_run():
+    """A round that is not screened (the model far off): on several workers its candidates'
+    runs go ahead beside the noise's base run, each is made once and taken by the round,
+    and the round's numbers are those of one worker (here in this process, ``workers`` 2
+    as a cluster would have it: the runs made ahead follow the base run)."""
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis import discover
+    from stellar_cal_ros.diagnosis.parallel import Runs
+
+    sim, data = _sim({"time_offset": 0.02}, seed=14, duration=60.0)
+    base_spec = method_spec("psce")
+    cands = ["time_offset", "pixel_aspect"]
+
+    def round_(workers):
+        calls = []
+
+        def runner(d, p, effects, **kw):
+            # before the noise's verdict: made beside the base run
+            early.append((tuple(effects), runs.verdict is None))
+            calls.append((tuple(effects), tuple(kw.get("consider") or ()), kw.get("noise")))
+            return base_spec.runner(d, p, effects, **kw)
+
+        calls, early = [], []
+        spec = DiagnosisSpec("psce", base_spec.baseline, base_spec.stages, runner,
+                             base_spec.screen)
+        runs = Runs(data, spec, 0.5)
+        runs.noise = NoiseScales()
+        runs.workers = workers
+        r = discover.Round(runs, spec, runs.facts(), 0.5, sim.prior)
+        base, results, _ = discover.rank_round(r, sim.prior, [], cands, condition=False,
+                                               screen=False, measure_noise=True)
+        return calls, base, {c.effect: c for c in results}, runs, dict(early)
+
+    calls, base, by, runs, early = round_(2)
+    one_calls, one_base, one_by, _, one_early = round_(1)
+    assert runs.verdict.skipped  # far off: the IMU's search is skipped, the scales kept
+    assert runs._ahead == []  # every run made ahead was taken
+    assert sorted(calls) == sorted(one_calls)  # the same runs, each once
+    assert len(calls) == 1 + len(cands)
+    assert all(early.values())  # two workers: every candidate beside the base run
+    assert one_early == {(): True, ("time_offset",): False, ("pixel_aspect",): False}
+    assert base.window["log_likelihood"] == one_base.window["log_likelihood"]
+    for e in cands:
+        a, b = by[e], one_by[e]
+        assert (a.status, a.statistic, a.p_adjusted) == (b.status, b.statistic, b.p_adjusted)
     assert by["time_offset"].significant
 
 

@@ -418,10 +418,14 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     n_stats = 2 if use_score else 1
     # the noise's base run is the current model's run: when the noise it ran with is kept,
     # it is the round's screening run (its candidates as consider parameters) or reference
-    base = (measure_round_noise(r, prior, extra, tuple(testable) if use_score else (),
-                                keep_residuals) if measure_noise else None)
-    alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
     more = list(more or [])
+    # not screened: the candidates' runs are known now (built once: a run made ahead is
+    # taken by the same Task)
+    cand_tasks = [] if use_score else [_candidate_task(r, prior, extra, e) for e in testable]
+    base = (measure_round_noise(r, prior, extra, tuple(testable) if use_score else (),
+                                keep_residuals, cand_tasks + more)
+            if measure_noise else None)
+    alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
     cands = {e: CandidateResult(e, "ranked", prior_uncertain=e in r.uncertain)
              for e in testable}
     current = Task("current model", prior, tuple(extra), keep_residuals, cost=1.0,
@@ -458,8 +462,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         tasks = [_candidate_task(r, prior, extra, e) for e in rerun] + late
         out.update(r.runs.run_all(tasks if base is not None else [current] + tasks, r.done))
     else:
-        out = r.runs.run_all(([current] if base is None else []) + [
-            _candidate_task(r, prior, extra, e) for e in testable] + more, r.done)
+        out = r.runs.run_all(([current] if base is None else []) + cand_tasks + more,
+                             r.done)
     extras = {t.key: out.pop(t.key) for t in more}
     if base is None:
         base = out.pop("current model")
@@ -521,8 +525,8 @@ def decide(c: CandidateResult, m: int, n_stats: int) -> None:
 
 
 def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
-                        screen: tuple[str, ...] = (), keep_residuals: bool = False
-                        ) -> RunSummary | None:
+                        screen: tuple[str, ...] = (), keep_residuals: bool = False,
+                        beside: list[Task] = ()) -> RunSummary | None:
     """Measure the noise of the current model; every later run of ``r`` uses its scales.
 
     The measurement's base run is the current model's run with the stated scales: it
@@ -531,6 +535,12 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     ran with -- it then *is* the round's screening run (or its current-model run), the same
     filter pass, so the round runs it once; ``None`` when the noise changed (or was not
     measured) and the round runs its current model again with the new scales.
+
+    ``beside``: the runs a round that is not screened makes next (its candidates'), sent
+    ahead beside the base run on several workers, so that the second worker does not idle
+    through it; kept for the round when the verdict keeps the scales they ran with (the
+    usual case far from the model: the verdict then skips the IMU's search), else
+    dropped.  The round must ask for the same :class:`Task` objects.
     """
     from stellar_cal_ros.diagnosis.noise_runs import first_runs, measure
 
@@ -544,17 +554,25 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     # is not screened: its model was far off, where the verdict skips the ML search
     ahead = (first_runs(r.runs, prior, tuple(extra), comps)
              if r.runs.workers > 1 and screen else [])
+    # a round that is not screened: its candidates' runs beside the base run (they wait
+    # for nothing it finds unless the noise changes)
+    beside = list(beside) if r.runs.workers > 1 and not screen else []
+    kept: list[Task] = []
     try:
+        # the base run first: everything after it waits for it
         base = r.runs.run_ahead([Task("noise: current model", prior, tuple(extra),
-                                      keep_residuals, cost=_SCREEN_COST if screen else 1.0,
-                                      screen=screen, star_noise=True)], ahead,
+                                      keep_residuals,
+                                      cost=_SCREEN_COST if screen or beside else 1.0,
+                                      screen=screen, star_noise=True)], ahead + beside,
                                 r.done)["noise: current model"]
         if not base.ok:
             log.warning("noise not measured: the current model's run failed: %s", base.error)
             return None
         r.noise = measure(r.runs, prior, tuple(extra), base, r.tell, comps)
+        if r.noise.applied == ran_with:
+            kept = beside
     finally:
-        r.runs.drop_ahead()
+        r.runs.drop_ahead(keep=kept)
     r.runs.noise = r.noise.applied
     r.runs.verdict = r.noise
     for line in r.noise.lines():

@@ -90,12 +90,22 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
 
 #: the stars' ML scale over the samples' above which the excess is motion, not noise
 BEYOND = 0.5
+#: the search's runs go before runs queued ahead of need (a round's candidates beside its
+#: base run, :func:`~stellar_cal_ros.diagnosis.discover.measure_round_noise`): the search
+#: waits for them, and the candidates' runs wait for the verdict
+SEARCH_COST = 10.0
 
 
 def scale_task(comp: str, x: float, prior, effects: tuple[str, ...], at: NoiseScales) -> Task:
-    """The run of the ML search of ``comp`` at ln scale ``x`` around the scales ``at``."""
+    """The run of the ML search of ``comp`` at ln scale ``x`` around the scales ``at``.
+
+    Without the gyro-against-stars check: the search reads the run's log-likelihood alone
+    (the check changes no estimate), and :func:`measure` runs only after the current
+    model's run on the bag, which judged the gyro, succeeded (≈ 1 CPU-s a run on a 2-h bag).
+    """
     return Task(f"noise {comp} x{math.exp(x):.3g}", prior, tuple(effects),
-                noise=at.replace(**{comp: getattr(at, comp) * math.exp(x)}), cost=1.0)
+                noise=at.replace(**{comp: getattr(at, comp) * math.exp(x)}),
+                cost=SEARCH_COST, gyro_check=False)
 
 
 def first_runs(runs, prior, effects: tuple[str, ...],

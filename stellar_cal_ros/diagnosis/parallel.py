@@ -69,6 +69,9 @@ MAX_DEFAULT_WORKERS = 16
 #: ``workers=None``: a batch of runs goes to a (then started) local cluster when it would
 #: take at least this many CPU seconds in this process (see the module's doc)
 CLUSTER_PAYS_S = 20.0
+#: Dask priority of :meth:`Runs.on_bag` (a run's is 100 × its cost): a small statistic of
+#: the bag that the diagnosis waits for goes before the runs queued ahead of need
+ON_BAG_PRIORITY = 1_000_000
 
 
 @dataclass
@@ -93,6 +96,9 @@ class Task:
     noise: Any = None
     #: measure the stars' noise on this run's residuals (:mod:`~.noise`)
     star_noise: bool = False
+    #: run the gyro-against-stars check (False: a re-run whose counters nobody reads, of a
+    #: bag a run of the same diagnosis has judged: the noise scales' ML runs)
+    gyro_check: bool = True
 
 
 def user_effect_classes() -> tuple[type, ...]:
@@ -183,7 +189,7 @@ class Runs:
     def _evaluate(self, task: Task) -> RunSummary:
         return evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
                         task.keep_residuals, (), task.screen, task.candidate,
-                        self.noise_of(task), task.star_noise)
+                        self.noise_of(task), task.star_noise, task.gyro_check)
 
     def run_all(self, tasks: list[Task],
                 done: Callable[[Task, RunSummary, str], None] | None = None,
@@ -196,16 +202,21 @@ class Runs:
         from stellar_cal_ros.progress import format_seconds
 
         out = {}
+        taken = []
         for task in tasks:
             stats = self._take_ahead(task)
             if stats is not None:
                 out[task.key] = stats
+                taken.append(task)
         tasks = [t for t in tasks if t.key not in out]
-        n, start = len(tasks), time.perf_counter()
-        for k, (task, stats) in enumerate(self.map(tasks, ahead), 1):
+        n, start = len(tasks) + len(taken), time.perf_counter()
+        if done is not None:  # made ahead: reported as the round's runs
+            for k, task in enumerate(taken, 1):
+                done(task, out[task.key], f"run {k}/{n} (made ahead)")
+        for k, (task, stats) in enumerate(self.map(tasks, ahead), len(taken) + 1):
             out[task.key] = stats
             if done is not None:
-                left = (time.perf_counter() - start) / k * (n - k)
+                left = (time.perf_counter() - start) / (k - len(taken)) * (n - k)
                 done(task, stats, f"run {k}/{n}"
                      + (f", ETA {format_seconds(left)}" if k < n else ""))
         return out
@@ -225,9 +236,9 @@ class Runs:
         """
         return self.run_all(list(tasks), done, list(ahead))
 
-    def drop_ahead(self) -> None:
-        """Forget the runs made ahead that nobody asked for."""
-        self._ahead.clear()
+    def drop_ahead(self, keep: list[Task] = ()) -> None:
+        """Forget the runs made ahead that nobody asked for, except the tasks ``keep``."""
+        self._ahead = [a for a in self._ahead if any(a[0] is t for t in keep)]
 
     def _take_ahead(self, task: Task) -> RunSummary | None:
         run = replace(task, noise=self.noise_of(task))
@@ -321,7 +332,9 @@ class DaskRuns(Runs):
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         if self.client is None:
             return super()._compute_on_bag(fn, *args)
-        return self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False).result()
+        # before any queued run: a statistic of the bag is what the next step waits for
+        return self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False,
+                                  priority=ON_BAG_PRIORITY).result()
 
     def on_bag_each(self, fn: Callable[..., Any], calls: list[tuple]) -> list[Any]:  # noqa: D102
         if self.client is None or len(calls) < 2:
@@ -341,7 +354,8 @@ class DaskRuns(Runs):
         return self.client.submit(evaluate, self.remote_bag, self.spec, task.prior,
                                   task.effects, self.fraction, task.keep_residuals,
                                   self.classes, task.screen, task.candidate,
-                                  self.noise_of(task), task.star_noise, pure=False,
+                                  self.noise_of(task), task.star_noise, task.gyro_check,
+                                  pure=False,
                                   priority=int(100 * task.cost),
                                   key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
 
@@ -371,12 +385,12 @@ class DaskRuns(Runs):
             task = futures.pop(fut)
             yield task, self._result(task, fut)
 
-    def drop_ahead(self) -> None:  # noqa: D102
-        for _, _, fut in self._ahead:
-            if not isinstance(fut, RunSummary):
+    def drop_ahead(self, keep: list[Task] = ()) -> None:  # noqa: D102
+        for task, _, fut in self._ahead:
+            if not isinstance(fut, RunSummary) and not any(task is t for t in keep):
                 with contextlib.suppress(Exception):
                     fut.cancel()  # not started: not run (one already running finishes)
-        super().drop_ahead()
+        super().drop_ahead(keep)
 
     def _resolve(self, task: Task, stats: Any) -> RunSummary:
         return stats if isinstance(stats, RunSummary) else self._result(task, stats)

@@ -212,7 +212,7 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
              fraction: float, keep_residuals: bool = False,
              effect_classes: tuple[type, ...] = (),
              screen: tuple[str, ...] = (), candidate: bool = False, noise=None,
-             star_noise: bool = False) -> RunSummary:
+             star_noise: bool = False, gyro_check: bool = True) -> RunSummary:
     """Run ``spec.runner`` on the bag and return the run's statistics (worker entry point).
 
     A failing run returns a :class:`RunSummary` with ``error`` set (the diagnosis reports it
@@ -224,6 +224,9 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
     augmented run, whose data faults the runner flags instead of raising.  ``noise``: the
     noise scales the run uses; ``star_noise``: measure the stars' noise on its residuals
     here, where the bag is (:func:`~stellar_cal_ros.diagnosis.noise.measure_stars`).
+    ``gyro_check=False``: the gyro-against-stars check does not run (``gyro_fault="off"``:
+    it changes no estimate, only the counters and flags; for re-runs of a bag whose gyro
+    the diagnosis's current-model run has judged, whose counters nobody reads).
     """
     t0 = time.perf_counter()
     try:
@@ -238,6 +241,8 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
             # checks carries that candidate's gyro-error estimates, which diverge when the
             # candidate is wrong
             kw["gyro_fault"] = "flag"
+        if not gyro_check:
+            kw["gyro_fault"] = "off"
         with quiet():
             result = spec.runner(data, prior, list(effects),
                                  keep_tables=keep_residuals or star_noise,
