@@ -422,9 +422,10 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     # not screened: the candidates' runs are known now (built once: a run made ahead is
     # taken by the same Task)
     cand_tasks = [] if use_score else [_candidate_task(r, prior, extra, e) for e in testable]
-    base = (measure_round_noise(r, prior, extra, tuple(testable) if use_score else (),
-                                keep_residuals, cand_tasks + more)
-            if measure_noise else None)
+    measured = (measure_round_noise(r, prior, extra, tuple(testable) if use_score else (),
+                                    keep_residuals, cand_tasks + more)
+                if measure_noise else None)
+    base = measured[0] if measured else None
     alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
     cands = {e: CandidateResult(e, "ranked", prior_uncertain=e in r.uncertain)
              for e in testable}
@@ -432,8 +433,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
                    star_noise=r.noise is not None)
     late = list(more)  # run with the re-runs unless they can go with a screening run
     if use_score:
-        if base is not None:  # the noise's base run scored every candidate
-            screens, out = [base], {}
+        if base is not None:  # the noise's base run (and its parts) scored the candidates
+            screens, out = measured, {}
         else:
             groups = screening.parts(testable, r.runs.workers)
             first = [Task(f"screen {i + 1}/{len(groups)}", prior, tuple(extra),
@@ -526,7 +527,7 @@ def decide(c: CandidateResult, m: int, n_stats: int) -> None:
 
 def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
                         screen: tuple[str, ...] = (), keep_residuals: bool = False,
-                        beside: list[Task] = ()) -> RunSummary | None:
+                        beside: list[Task] = ()) -> list[RunSummary] | None:
     """Measure the noise of the current model; every later run of ``r`` uses its scales.
 
     The measurement's base run is the current model's run with the stated scales: it
@@ -534,7 +535,12 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     its residuals with ``keep_residuals``.  Returned when the verdict keeps the scales it
     ran with -- it then *is* the round's screening run (or its current-model run), the same
     filter pass, so the round runs it once; ``None`` when the noise changed (or was not
-    measured) and the round runs its current model again with the new scales.
+    measured) and the round runs its current model again with the new scales.  On several
+    workers the screening is split into parts as without the noise
+    (:func:`~stellar_cal_ros.diagnosis.screening.parts`): the base run scores the first,
+    runs of the same model beside it the others (the sensitivities are most of a screening
+    run's time; each candidate's score uses its own columns only).  Returned: the base run
+    first, then those.
 
     ``beside``: the runs a round that is not screened makes next (its candidates'), sent
     ahead beside the base run on several workers, so that the second worker does not idle
@@ -558,13 +564,17 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     # for nothing it finds unless the noise changes)
     beside = list(beside) if r.runs.workers > 1 and not screen else []
     kept: list[Task] = []
+    groups = screening.parts(list(screen), r.runs.workers) if screen else [[]]
+    others = [Task(f"screen {i + 2}/{len(groups)}", prior, tuple(extra), False,
+                   cost=_SCREEN_COST, screen=tuple(g)) for i, g in enumerate(groups[1:])]
     try:
         # the base run first: everything after it waits for it
-        base = r.runs.run_ahead([Task("noise: current model", prior, tuple(extra),
+        done = r.runs.run_ahead([Task("noise: current model", prior, tuple(extra),
                                       keep_residuals,
                                       cost=_SCREEN_COST if screen or beside else 1.0,
-                                      screen=screen, star_noise=True)], ahead + beside,
-                                r.done)["noise: current model"]
+                                      screen=tuple(groups[0]), star_noise=True)] + others,
+                                ahead + beside, r.done)
+        base = done["noise: current model"]
         if not base.ok:
             log.warning("noise not measured: the current model's run failed: %s", base.error)
             return None
@@ -577,7 +587,8 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     r.runs.verdict = r.noise
     for line in r.noise.lines():
         r.tell("noise: " + line)
-    return base if ran_with is not None and r.runs.noise == ran_with else None
+    return ([base] + [done[t.key] for t in others]
+            if ran_with is not None and r.runs.noise == ran_with else None)
 
 
 def rank_candidates(
