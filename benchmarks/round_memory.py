@@ -1,0 +1,107 @@
+"""RSS at the stages of one 2-h ``diagnose`` round in process, and the arrays held (issue 24.2).
+
+Wraps ``runstats.load_bag``, ``noise_runs.measure``, ``output.line_tests`` and
+``reliability_probe.measure_on_bag``; after each prints the RSS before → after, the peak so
+far (``ru_maxrss``) and, for the bag, the bytes of the numpy arrays it holds.  ``--trim``
+calls glibc's ``malloc_trim(0)`` after each stage (what the allocator keeps but does not
+use).
+
+Run::
+
+    python benchmarks/round_memory.py [--trim]
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import functools
+import gc
+import resource
+import sys
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+PROC = psutil.Process()
+
+
+def rss() -> float:
+    """RSS of the process, MB."""
+    return PROC.memory_info().rss / 2**20
+
+
+def peak() -> float:
+    """Peak RSS of the process so far, MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def nbytes(obj, seen=None) -> int:
+    """Bytes of the numpy arrays reachable through dicts, lists and attributes."""
+    seen = seen if seen is not None else set()
+    if id(obj) in seen:
+        return 0
+    seen.add(id(obj))
+    if isinstance(obj, np.ndarray):
+        return obj.nbytes
+    if isinstance(obj, dict):
+        return sum(nbytes(v, seen) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(nbytes(v, seen) for v in obj)
+    if hasattr(obj, "__dict__"):
+        return nbytes(vars(obj), seen)
+    return 0
+
+
+def main() -> int:
+    """Run the round and print the stages."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--trim", action="store_true")
+    args = ap.parse_args()
+    libc = ctypes.CDLL("libc.so.6") if args.trim else None
+    print(f"python: rss {rss():.0f}", flush=True)
+    from discovery_speed import ensure_2h_bag
+
+    import stellar_cal_ros.diagnosis.noise_runs as nr
+    import stellar_cal_ros.diagnosis.output as out
+    import stellar_cal_ros.diagnosis.reliability_probe as rp
+    import stellar_cal_ros.diagnosis.run as runmod
+    import stellar_cal_ros.diagnosis.runstats as rs
+    import stellar_cal_ros.methods.frame_step  # noqa: F401  (numba, as a run imports it)
+    from stellar_cal_ros.io.calibration import load_calibration
+
+    print(f"imports: rss {rss():.0f}", flush=True)
+
+    def wrap(mod, name, what=None):
+        f = getattr(mod, name)
+
+        @functools.wraps(f)
+        def g(*a, **k):
+            r0 = rss()
+            res = f(*a, **k)
+            if libc is not None:
+                gc.collect()
+                libc.malloc_trim(0)
+            extra = what(res) if what else ""
+            print(f"  {name}: rss {r0:.0f}->{rss():.0f} peak {peak():.0f} {extra}", flush=True)
+            return res
+        setattr(mod, name, g)
+
+    wrap(rs, "load_bag", lambda res: f"bag arrays {nbytes(res) / 2**20:.0f} MB")
+    wrap(nr, "measure")
+    wrap(rp, "measure_on_bag")
+    wrap(out, "line_tests")
+    bag = ensure_2h_bag()
+    cal = load_calibration(bag.with_suffix(".prior.yaml"))
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        runmod.diagnose(str(bag), cal, "psce", [], tmp, plots=False, verbose=False, workers=0)
+    print(f"end: rss {rss():.0f} peak {peak():.0f}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
