@@ -710,11 +710,15 @@ class BatchCommit:
     (accepted), ``sums`` (the statistics' terms, (count, 10)), ``sigma`` (1-σ of the state
     after each, (count, N)) and ``theta`` (the estimated θ after each); :meth:`update` makes a
     frame's :class:`~stellar_cal_ros.methods.kernel.FrameUpdate` (the one the frame-by-frame
-    path makes) for a caller that keeps them.
+    path makes) for a caller that keeps them.  ``update_cls``: that class, handed in by the
+    kernel (this module does not import the kernel, which imports it: as
+    :meth:`FusedStep.build`'s ``kernel_cls``).
     """
 
     def __init__(self, batch: FrameBatch, count: int, n: list, n_acc: list,
-                 sigma_last: np.ndarray, theta_last: np.ndarray, p_est: int) -> None:
+                 sigma_last: np.ndarray, theta_last: np.ndarray, p_est: int,
+                 update_cls: type) -> None:
+        self._update_cls = update_cls
         out = batch.out
         self._out = out
         self._frames = batch.frames
@@ -737,14 +741,13 @@ class BatchCommit:
 
     def update(self, i: int):
         """Frame ``i``'s :class:`~stellar_cal_ros.methods.kernel.FrameUpdate`."""
-        from stellar_cal_ros.methods.kernel import FrameUpdate
-
         (_, _, ints, floats, accepted, uv_pred, S, nis, dirs, omega) = self._out[:10]
         f = self._frames[i]
         a, b = self._offs[i], self._offs[i + 1]
-        return FrameUpdate(f[4].stamp, f[8], accepted[a:b], f[0], uv_pred[a:b], S[a:b],
-                           nis[a:b], float(floats[i, 0]), self.dof[i], dirs[a:b],
-                           omega[i].copy(), int(ints[i, 1]), floats[i, 2:12])
+        return self._update_cls(f[4].stamp, f[8], accepted[a:b], f[0], uv_pred[a:b],
+                                S[a:b], nis[a:b], float(floats[i, 0]), self.dof[i],
+                                dirs[a:b], omega[i].copy(), int(ints[i, 1]),
+                                floats[i, 2:12])
 
 
 # Every module holding cached numba kernels (test_user_path checks the list is complete).

@@ -823,7 +823,7 @@ class StarFilter(Acquisition):
                 self._gyro_verdict(cause)
             self.t = f_last[8]
         return frame_step.BatchCommit(b, q, n, n_acc, st.sigma(), self.theta_estimated(),
-                                      self.P_est)
+                                      self.P_est, FrameUpdate)
 
     # ------------------------------------------------------------------ update bookkeeping
     def _gated(self, mismatch: bool, scale: float, lost: bool, outside: int, n: int,
