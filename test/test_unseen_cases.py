@@ -289,10 +289,10 @@ def test_structure_fits_hold_their_level_on_ar1_noise(ar1_table, monkeypatch):
     χ² is significant at 1 %: on pure AR(1) centroid noise (τ 5 frames, the 'ar1' case's;
     40 draws put into one bag's residual table, ``benchmarks/nuisance_level.py``) they fire
     in at most 1 % + 4 binomial σ of the draws (≤ 3 of 40): their χ² referred to the tracks'
-    correlation (noise_structure.track_fit, the model the cells' test reads).  Taken as
-    white they fired in ~40 % and ~8 % of 300 s draws (200 draws: 0.415 and 0.080), and so
-    they do here (checked with the white fits below).  White noise keeps the white fits
-    (no model: the previous code's numbers bit for bit)."""
+    correlation (noise_structure.track_fit, the model the cells' test reads): 0 and 1 of 40
+    here.  Taken as white (main) they fired in 14 and 3 of these 40 draws (a 300 s table,
+    200 draws: 0.415 and 0.080), checked below for the sub-pixel fit.  White noise keeps
+    the white fits (no model: the previous code's numbers bit for bit)."""
     nl, (res, cam, R) = ar1_table
     reps = 40
     limit = reps * 0.01 + 4.0 * np.sqrt(reps * 0.01 * 0.99)
