@@ -42,19 +42,13 @@ def minus_subpixel(r: np.ndarray, share: np.ndarray, uv: np.ndarray, alpha: floa
     ok = np.all(np.isfinite(r), axis=1) & (share > 0) & np.all(np.isfinite(uv), axis=1)
     if ok.sum() < 50:
         return r, share, 1.0
-    out, share_out = r.copy(), share.copy()
     if lags is not None:
         ph = 2.0 * np.pi * uv[ok]
         X = np.zeros((int(ok.sum()), 2, 4))
         X[:, 0, :2] = np.stack([np.sin(ph[:, 0]), np.cos(ph[:, 0])], 1)
         X[:, 1, 2:] = np.stack([np.sin(ph[:, 1]), np.cos(ph[:, 1])], 1)
-        fit, chi2, lev = track_fit(r[ok], X, np.asarray(star)[ok], lags)
-        p = float(sps.chi2.sf(chi2 / max(float(np.mean(share[ok])), 1e-12), 4))
-        if p >= alpha:
-            return r, share, p
-        out[ok] = r[ok] - fit
-        share_out[ok] = share[ok] * np.clip(1.0 - lev, 0.0, 1.0)
-        return out, share_out, p
+        return _minus_track_fit(r, share, ok, X, star, lags, alpha)
+    out, share_out = r.copy(), share.copy()
     chi2, lev = 0.0, np.zeros(int(ok.sum()))
     fits = []
     for k in range(2):
@@ -97,15 +91,9 @@ def minus_rolling(r: np.ndarray, share: np.ndarray, x: np.ndarray | None, alpha:
     info = float(np.sum(x[ok] ** 2))
     if ok.sum() < 50 or not info > 0:
         return r, share, 1.0
-    out, share_out = r.copy(), share.copy()
     if lags is not None:
-        fit, chi2, lev = track_fit(r[ok], x[ok][:, :, None], np.asarray(star)[ok], lags)
-        p = float(sps.chi2.sf(chi2 / max(float(np.mean(share[ok])), 1e-12), 1))
-        if p >= alpha:
-            return r, share, p
-        out[ok] = r[ok] - fit
-        share_out[ok] = share[ok] * np.clip(1.0 - lev, 0.0, 1.0)
-        return out, share_out, p
+        return _minus_track_fit(r, share, ok, x[ok][:, :, None], star, lags, alpha)
+    out, share_out = r.copy(), share.copy()
     b = float(np.sum(x[ok] * r[ok])) / info
     chi2 = b * b * info / max(float(np.mean(share[ok])), 1e-12)
     p = float(sps.chi2.sf(chi2, 1))
@@ -113,6 +101,26 @@ def minus_rolling(r: np.ndarray, share: np.ndarray, x: np.ndarray | None, alpha:
         return r, share, p
     out[ok] = r[ok] - b * x[ok]
     share_out[ok] = share[ok] * np.clip(1.0 - 0.5 * np.sum(x[ok] ** 2, 1) / info, 0.0, 1.0)
+    return out, share_out, p
+
+
+def _minus_track_fit(r: np.ndarray, share: np.ndarray, ok: np.ndarray, X: np.ndarray,
+                     star: np.ndarray | None, lags: tuple[float, float], alpha: float
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`minus_subpixel`'s and :func:`minus_rolling`'s test and removal under ``lags``.
+
+    ``X``: the fit's regressors ``(rows of ok, 2, p)``; the χ² of :func:`track_fit` in units
+    of the mean ``share`` left, tested at ``alpha`` on ``p`` dof; when significant the fit is
+    removed and each row's share reduced by its part of ``tr(G H)``.  Returns ``(r, share,
+    p)``, ``r`` and ``share`` unchanged when not significant.
+    """
+    fit, chi2, lev = track_fit(r[ok], X, np.asarray(star)[ok], lags)
+    p = float(sps.chi2.sf(chi2 / max(float(np.mean(share[ok])), 1e-12), X.shape[2]))
+    if p >= alpha:
+        return r, share, p
+    out, share_out = r.copy(), share.copy()
+    out[ok] = r[ok] - fit
+    share_out[ok] = share[ok] * np.clip(1.0 - lev, 0.0, 1.0)
     return out, share_out, p
 
 
