@@ -375,31 +375,21 @@ def watch_frame(state: dict[str, Any], t: float,
     str
         The cause (:func:`judge`) when this frame's judgement finds a fault, else ''.
     """
-    s = state
-    R_last = s["R_post"]
-    if R_prior is None or R_last is None:
-        s["G_now"] = np.eye(3)
-        s["seg"] += 1
-    else:
-        # ``dot``: the same BLAS product as ``@`` (bit for bit, test_gyro_check), 2.5x
-        # cheaper a call on 3 x 3
-        s["G_now"] = s["G_now"].dot(R_last.T.dot(R_prior))
-    s["R_post"] = R_post.copy() if type(R_post) is np.ndarray and R_post.dtype is _F8 \
+    # the one-frame case of watch_frames; R_post copied (the caller's array changes later)
+    R_post = R_post.copy() if type(R_post) is np.ndarray and R_post.dtype is _F8 \
         else np.array(R_post, dtype=float)
-    s["frames"] = frames = s["frames"] + 1
-    if frames > EARLY_FRAMES:  # one frame per spacing after the early ones
-        pending = s.get("pending")
-        last = pending[-1][0] if pending else (s["t"][-1] if len(s["t"]) else None)
-        if last is not None and t - last < s["spacing"]:
-            return ""
-    if s.get("defer"):  # recorded and judged later, off the frame's path
-        s.setdefault("pending", []).append(
-            (float(t), np.asarray(v_st), np.asarray(u_i), s["G_now"], s["seg"], s["frames"]))
-        return ""
-    if _record(s, t, v_st() if callable(v_st) else v_st, u_i, s["G_now"], s["seg"]):
-        s["judged_at"] = s["frames"]
-        return _judge(s, R_imu_st)
-    return ""
+    if state.get("defer") or not callable(v_st):
+        unproject = _same
+    else:
+        def unproject(_uv: np.ndarray) -> np.ndarray:
+            return v_st()
+    return watch_frames(state, (t,), (v_st,), (u_i,), (R_prior,), (R_post,), R_imu_st,
+                        unproject, 0, 1)[1]
+
+
+def _same(x: np.ndarray) -> np.ndarray:
+    """The directions as given (:func:`watch_frame`'s ``v_st`` when not a callable)."""
+    return x
 
 
 def watch_frames(state: dict[str, Any], t: list, uv: list, u_i: list, R_prior: np.ndarray,
@@ -414,6 +404,7 @@ def watch_frames(state: dict[str, Any], t: list, uv: list, u_i: list, R_prior: n
     ``R_prior[i]`` and ``R_post[i]`` (arrays the caller no longer writes).  Returns after
     the first frame recorded — its judgement's cause goes to the caller's verdict before
     the next frame — ``(the next frame, cause)``; ``(stop, '')`` when none is.
+    ``R_prior[i]`` None: the chain starts again at frame ``i`` (:func:`watch_frame`).
     """
     s = state
     G, R_last, frames = s["G_now"], s["R_post"], s["frames"]
@@ -421,11 +412,14 @@ def watch_frames(state: dict[str, Any], t: list, uv: list, u_i: list, R_prior: n
     last = pending[-1][0] if pending else (s["t"][-1] if len(s["t"]) else None)
     spacing = s["spacing"]
     for i in range(start, stop):
-        if R_last is None:
+        R_pr = R_prior[i]
+        if R_last is None or R_pr is None:
             G = np.eye(3)
             s["seg"] += 1
         else:
-            G = G.dot(R_last.T.dot(R_prior[i]))
+            # ``dot``: the same BLAS product as ``@`` (bit for bit, test_gyro_check), 2.5x
+            # cheaper a call on 3 x 3
+            G = G.dot(R_last.T.dot(R_pr))
         R_last = R_post[i]
         frames += 1
         if frames > EARLY_FRAMES and last is not None and t[i] - last < spacing:

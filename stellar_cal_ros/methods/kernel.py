@@ -50,6 +50,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -645,8 +646,7 @@ class StarFilter(Acquisition):
         if self.gyro_watch is not None:
             self._R_prior = (R_prior, False)
         n, n_acc = len(uv), int(ints[0])
-        self._gated(bool(ints[2]), float(floats[1]), bool(ints[3]), int(ints[4]), n, n_acc,
-                    t_exp)
+        self._count_gated(ints[None], floats[None], (n,), (n_acc,), (t_exp,))
         result = FrameUpdate(ctx.stamp, t_exp, accepted, uv, uv_pred, S, nis_stars,
                              float("nan"), 0, dirs, omega.copy(), 0)
         if status == frame_step.FEW_STARS:
@@ -654,7 +654,6 @@ class StarFilter(Acquisition):
         elif status != frame_step.UPDATED:
             self._failed(frame_step.REASONS[status], t_exp)
         else:
-            self._rejected_in_row = self._reacquire_streak = 0
             if sens is not None and sens.accumulate:
                 sens.frames += 1
             self._omega_stale = True
@@ -794,20 +793,8 @@ class StarFilter(Acquisition):
         offs = b.offs
         n = [offs[i + 1] - offs[i] for i in range(q)]
         n_acc = ints[:q, 0].tolist()
-        if ints[:q, 2:5].any():  # a mismatch, lost lock or stars outside: frame by frame
-            for i in range(q):
-                self._gated(bool(ints[i, 2]), float(floats[i, 1]), bool(ints[i, 3]),
-                            int(ints[i, 4]), n[i], n_acc[i], frames[i][8])
-        else:
-            self._mismatch_bits = (self._mismatch_bits << q) & 0x3FF
-            fc.stars_gated += sum(n) - sum(n_acc)
-        self._rejected_in_row = self._reacquire_streak = 0
-        fc.updates += q
-        every = self.config.covariance_check_every
-        if every and fc.updates % every == 0 and not self.checks_deferred:
-            # (prepare_frames ends a batch at the update a check is due at: the last one)
-            self._batch = None
-            self._check_covariance()
+        self._count_gated(ints, floats, n, n_acc, [f[8] for f in frames[:q]])
+        self._count_updates(q)
         if self.gyro_watch is not None:
             R_post = Rs[:q].copy()
             R_post[last] = self.R_i_b  # (the state after a check's repair, as frame by frame)
@@ -826,6 +813,37 @@ class StarFilter(Acquisition):
                                       self.P_est, FrameUpdate)
 
     # ------------------------------------------------------------------ update bookkeeping
+    def _count_gated(self, ints: np.ndarray, floats: np.ndarray, n: Sequence[int],
+                     n_acc: Sequence[int], t_exp: Sequence[float]) -> None:
+        """:meth:`_gated` of compiled steps in a row (one frame, or a batch's committed ones).
+
+        Row ``i`` of ``ints`` / ``floats`` (:func:`~.frame_step.frame_step`'s) is frame ``i``'s
+        gate: mismatch, lost lock and stars outside the field (``ints[i, 2:5]``), the NIS
+        scale (``floats[i, 1]``); ``n``, ``n_acc``: its stars and accepted stars.
+        """
+        q = len(n)
+        if ints[:q, 2:5].any():  # a mismatch, lost lock or stars outside: frame by frame
+            for i in range(q):
+                self._gated(bool(ints[i, 2]), float(floats[i, 1]), bool(ints[i, 3]),
+                            int(ints[i, 4]), n[i], n_acc[i], t_exp[i])
+        else:  # what _gated does for q frames none of which is flagged
+            self._mismatch_bits = (self._mismatch_bits << q) & 0x3FF
+            self.counters.stars_gated += sum(n) - sum(n_acc)
+
+    def _count_updates(self, q: int) -> None:
+        """Count ``q`` frames updated in a row (the state now the last one's).
+
+        The counters, and the covariance check when one is due at the last (none is due
+        before it: the caller's part; :meth:`prepare_frames` ends a batch there).
+        """
+        self._rejected_in_row = self._reacquire_streak = 0
+        fc = self.counters
+        fc.updates += q
+        every = self.config.covariance_check_every
+        if every and fc.updates % every == 0 and not self.checks_deferred:
+            self._batch = None  # (the check may repair the state)
+            self._check_covariance()
+
     def _gated(self, mismatch: bool, scale: float, lost: bool, outside: int, n: int,
                n_acc: int, t_exp: float) -> None:
         """Count what the gate decided (and warn once about a model mismatch pattern)."""
@@ -870,12 +888,7 @@ class StarFilter(Acquisition):
         log.warning("t=%.3f s: %s: frame skipped", t_exp, reason)
 
     def _updated(self, result: FrameUpdate, nis: float, dof: int, iterations: int) -> None:
-        c = self.config
-        self.counters.updates += 1
-        if c.covariance_check_every and self.counters.updates % c.covariance_check_every == 0 \
-                and not self.checks_deferred:
-            self._batch = None  # (the check may repair the state)
-            self._check_covariance()
+        self._count_updates(1)
         result.nis = nis
         result.dof = dof
         result.iterations = iterations
