@@ -105,6 +105,13 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     prior = args.prior or Path(str(args.bag).removesuffix(".mcap") + ".prior.yaml")
     start = time.process_time()  # interpreter start and the imports above
+    if frame_step.compiled_kernels_cold():
+        # compiled with the timers in place, frame_steps would hold the timed wrapper of
+        # frame_step (a Python function): its compilation fails, every batch falls back
+        # to one call a frame, and the table times that instead
+        print("the numba kernels are not compiled yet: run one replay first (e.g. "
+              "benchmarks/psce_speed.py, or stellar-cal replay), then this", file=sys.stderr)
+        return 2
     out = Path(tempfile.mkdtemp(prefix="replay_profile_")) / "result.yaml"
     calls, incl, excl, total = timed_replay(
         ["replay", str(args.bag), "--method", args.method, "--prior", str(prior), "-o",
