@@ -139,3 +139,32 @@ def test_replay_gives_the_same_calibration_on_every_format(bags, tmp_path: Path)
         assert got.keys() == ref.keys()
         for k, v in ref.items():
             assert got[k] == pytest.approx(v, rel=1e-9, abs=1e-300), f"{fmt}: {k}"
+
+
+def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
+                                                           monkeypatch) -> None:
+    """A bag's IMU blocks merged across star frames (``replay._merged_imu``) reach the
+    driver in fewer calls; where the filter's IMU chunks and frame runs split changes, not
+    a float: the history CSV byte for byte and every number of the result as with the
+    blocks as read (``IMU_MERGE_S`` 0: no merge)."""
+    from stellar_cal_ros.methods import driver
+    from stellar_cal_ros.methods import replay as replay_mod
+
+    calls: list[int] = []
+    original = driver.Calibrator.push_imu_block
+
+    def counted(self, *a, **k):
+        calls[-1] += 1
+        return original(self, *a, **k)
+
+    monkeypatch.setattr(driver.Calibrator, "push_imu_block", counted)
+    merge = replay_mod.IMU_MERGE_S
+    out = {}
+    for s in (0.0, merge):
+        monkeypatch.setattr(replay_mod, "IMU_MERGE_S", s)
+        calls.append(0)
+        numbers = _replay(bags["mcap"], tmp_path / f"merge{s}.yaml")
+        out[s] = numbers, (tmp_path / f"merge{s}.history.csv").read_bytes()
+    assert 0 < calls[1] < 0.5 * calls[0]
+    assert out[merge][0] == out[0.0][0] and len(out[merge][0]) > 50
+    assert out[merge][1] == out[0.0][1] and out[merge][1].count(b"\n") > 100
