@@ -173,12 +173,16 @@ class ImuPrefix:
         pad[:r] = seq
         levels = np.empty((6, 4, _BLOCK)) if r % _BLOCK else None
         L = _block_scan(pad.reshape(nb, _BLOCK, 4), levels)  # (4, nb, B)
-        anchors = np.empty((4, nb))
-        a = self.anchor
+        # the blocks' anchors in Python floats (the same operations as on arrays; a
+        # 4 096-sample extension has 128 of them)
+        a = self.anchor.tolist()
+        ends = L[:, :, -1].T.tolist()
+        rows = []
         for j in range(nb):
-            anchors[:, j] = a
+            rows.append(a)
             if j < nb - 1 or r % _BLOCK == 0:
-                a = _quat_mul_normalized(a, L[:, j, -1])
+                a = _quat_mul_floats(a, ends[j])
+        anchors = np.array(rows).T.copy()
         q = np.empty_like(L)
         _quat_multiply_soa(anchors[:, :, None], L, q, np.empty(L.shape[1:]))
         self._reserve(m)
@@ -196,7 +200,7 @@ class ImuPrefix:
         self.n += m
         self.t_end = float(imu_t[-1])
         self.dtheta_last = dth[-1].copy()
-        self.anchor = a
+        self.anchor = np.array(a)
         self.block_dq = seq[(nb - 1) * _BLOCK:].copy() if r % _BLOCK else np.zeros((0, 4))
         # the scan levels of the partial block, per position (for _extend_small)
         self._lv = levels[:, :, :r % _BLOCK].transpose(2, 0, 1).tolist() \
@@ -296,7 +300,7 @@ class ImuPrefix:
             nrm = math.sqrt(x * x + y * y + z * z + w * w)
             x, y, z, w = x / nrm, y / nrm, z / nrm, w / nrm
             if len(lv) == _BLOCK - 1:  # the block is complete: next anchor, new block
-                anchor = _quat_mul_normalized(np.array(anchor), np.array([x, y, z, w])).tolist()
+                anchor = _quat_mul_floats(anchor, (x, y, z, w))
                 lv = []
             else:
                 lv.append(levels)
@@ -497,16 +501,16 @@ def _quat_to_matrix_rows(x: float, y: float, z: float, w: float) -> list[float]:
             2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)]
 
 
-def _quat_mul_normalized(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``p ⊗ q`` normalized (scalar-last)."""
-    px, py, pz, pw = (float(v) for v in p)
-    qx, qy, qz, qw = (float(v) for v in q)
+def _quat_mul_floats(p, q) -> list[float]:
+    """``p ⊗ q`` normalized (scalar-last), of four Python floats each."""
+    px, py, pz, pw = p
+    qx, qy, qz, qw = q
     x = pw * qx + px * qw + py * qz - pz * qy
     y = pw * qy - px * qz + py * qw + pz * qx
     z = pw * qz + px * qy - py * qx + pz * qw
     w = pw * qw - px * qx - py * qy - pz * qz
     n = (x * x + y * y + z * z + w * w) ** 0.5
-    return np.array([x / n, y / n, z / n, w / n])
+    return [x / n, y / n, z / n, w / n]
 
 
 def _quat_soa_to_matrix(q: np.ndarray, out: np.ndarray) -> None:
