@@ -304,7 +304,12 @@ def print_replay_summary(result, prior) -> None:
     from stellar_cal_ros.core.units import ARCSEC, DEG_PER_HOUR, MICRO_G
     from stellar_cal_ros.effects.base import Stage
     from stellar_cal_ros.methods import models, registry
-    from stellar_cal_ros.methods.results import mismatch_text
+    from stellar_cal_ros.methods.results import (
+        counts_line,
+        data_quality,
+        mismatch_text,
+        quality_line,
+    )
 
     spec = registry.get(result.method)
     st = result.stats.summary()
@@ -330,8 +335,11 @@ def print_replay_summary(result, prior) -> None:
     loud = mismatch_text(cons)
     if loud:
         print("*" * 78 + "\n" + loud + "\n" + "*" * 78)
-    counts = ", ".join(f"{k}={v}" for k, v in result.counters.items() if v)
-    print(f"counts: {counts}")
+    print(counts_line(result.counters))
+    # what the counters say about the input, as the diagnosis says it (one line)
+    print(quality_line(data_quality(result.counters, result.stats.accepted_total,
+                                    st["nis_per_dof"]))
+          or "data quality: no input fault counted")
     extra = list(result.effects)
     print("model: " + ", ".join(spec.baseline)
           + (" + " + ", ".join(extra) if extra else ""))

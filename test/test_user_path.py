@@ -323,3 +323,34 @@ def test_third_party_info_lines_only_with_verbose():
                            timeout=120)
         assert p.returncode == 0, p.stderr
         assert "OURS" in p.stderr and ("THIRD PARTY" in p.stderr) == third, p.stderr
+
+
+# ------------------------------------------------------------- replay's data-quality line
+def test_replay_says_the_data_quality_in_one_line(runs, tmp_path, capsys):
+    """Replay's end-of-run summary says what its counters say about the input, in the one
+    line the diagnosis prints (``results.quality_line`` of ``results.data_quality``): 1 %
+    of the gyro samples NaN is named with its count, a clean bag says so (main: no line)."""
+    from stellar_cal_ros.methods.results import data_quality, quality_line
+    from stellar_cal_ros.sim.scenarios import get_scenario
+    from stellar_cal_ros.sim.world import simulate, write_simulation
+
+    sim = simulate(get_scenario("psce_rotations"), duration=DURATION, seed=7)
+    bad = np.random.default_rng(3).random(len(sim.imu.stamp_ns)) < 0.01
+    sim.imu.angular_velocity[bad] = np.nan
+    paths = write_simulation(sim, tmp_path / "nan_gyro.mcap")
+    out = {}
+    for key, bag, prior in (("clean", runs["bag_a"], runs["prior_a"]),
+                            ("nan", paths["bag"], paths["prior"])):
+        capsys.readouterr()
+        assert main(["replay", str(bag), "--method", "psce", "--prior", str(prior), "-o",
+                     str(tmp_path / f"{key}.yaml"), "-q"]) == 0
+        out[key] = [ln for ln in capsys.readouterr().out.splitlines()
+                    if ln.startswith("data quality")]
+    assert out["clean"] == ["data quality: no input fault counted"], out
+    assert len(out["nan"]) == 1, out
+    assert out["nan"][0].startswith(f"data quality first: {int(bad.sum())} IMU samples with "
+                                    "non-finite values or stamps (bridged); "), out
+    # the diagnosis's phrasing, from the same function
+    n = int(bad.sum())
+    faults = data_quality({"imu_invalid": n, "imu_gaps": n, "imu_bridged": n}, 1000)
+    assert out["nan"][0] == quality_line(faults), out

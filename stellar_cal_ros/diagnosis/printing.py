@@ -109,15 +109,12 @@ def noise_lines(summary: dict[str, Any]) -> list[str]:
 
 def data_quality_lines(summary: dict[str, Any]) -> list[str]:
     """The input counters, and the data faults a diagnosis must not explain away."""
-    out: list[str] = []
-    counts = summary.get("counts", {})
-    out.append("counts: " + ", ".join(f"{k}={v}" for k, v in counts.items()))
-    faults = summary.get("data_quality", [])
-    if faults:
-        out.append("data quality first: " + "; ".join(faults) + ". Residual structure from "
-              "damaged input looks like a missing effect: repair the data (or judge the "
-              "candidates below with this in mind).")
-    return out
+    from stellar_cal_ros.methods.results import counts_line, quality_line
+
+    out = [counts_line(summary.get("counts", {}))]
+    faults = quality_line(summary.get("data_quality", []),
+                          "or judge the candidates below with this in mind")
+    return out + ([faults] if faults else [])
 
 
 def diagnosis_lines(summary: dict, calibration=None) -> list[str]:

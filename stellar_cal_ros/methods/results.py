@@ -761,6 +761,24 @@ def data_quality(counters: dict[str, Any], stars_accepted: int,
     return out
 
 
+def counts_line(counters: dict[str, Any]) -> str:
+    """The input counters in one line (the non-zero ones): what replay and the diagnosis print."""
+    return "counts: " + ", ".join(f"{k}={v}" for k, v in counters.items() if v)
+
+
+def quality_line(faults: list[str], then: str = "") -> str:
+    """The data faults of :func:`data_quality` in one line ('' when there are none).
+
+    The one phrasing of replay's end-of-run summary and the diagnosis's terminal; ``then``:
+    what to do besides repairing the data (the diagnosis: judge its candidates with it).
+    """
+    if not faults:
+        return ""
+    return ("data quality first: " + "; ".join(faults) + ". Residual structure from damaged "
+            "input looks like a missing effect: repair the data" + (f" ({then})" if then else "")
+            + ".")
+
+
 # ---------------------------------------------------------------------------- results
 @dataclass
 class ReplayResult:
