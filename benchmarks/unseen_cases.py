@@ -300,7 +300,7 @@ CASES: dict[str, Case] = {
                       not_first=("temperature",), post=_bias_walk),
     "jitter": Case("psce", "frame stamps off the exposure by N(0, 1 ms) each: 0.09 px rms "
                    "at the slews' image speeds (not in the library; carried by the image "
-                   "velocity, the angular rate)", outside=True, regressor="angular rate",
+                   "velocity, the angular rate)", outside=True, regressor="image rate",
                    post=_jitter),
     "sigma0_half": Case("psce", "sigma = 0 in every other message, the right 0.05 px in the "
                         "rest: the unknown ones measured 0.05 px", noise={},

@@ -50,6 +50,8 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
         what, span = "residual repeating", "rms per axis at least (left by the cells)"
     elif u["regressor"].startswith("time (periodic"):
         span = "amplitude"
+    elif u["component"] == "along motion":  # stats.motion_spread: a noise in the stamps
+        what, span = "residual spread along each star's motion", "rms at that image speed"
     elif u["component"] == "size":
         what = "residual spread (size)"
     elif u.get("detail"):
