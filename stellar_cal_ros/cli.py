@@ -338,7 +338,7 @@ def print_replay_summary(result, prior) -> None:
     print(counts_line(result.counters))
     # what the counters say about the input, as the diagnosis says it (one line)
     print(quality_line(data_quality(result.counters, result.stats.accepted_total,
-                                    st["nis_per_dof"]))
+                                    st["nis_per_dof"]), lead="data quality")
           or "data quality: no input fault counted")
     extra = list(result.effects)
     print("model: " + ", ".join(spec.baseline)

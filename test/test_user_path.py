@@ -328,8 +328,10 @@ def test_third_party_info_lines_only_with_verbose():
 # ------------------------------------------------------------- replay's data-quality line
 def test_replay_says_the_data_quality_in_one_line(runs, tmp_path, capsys):
     """Replay's end-of-run summary says what its counters say about the input, in the one
-    line the diagnosis prints (``results.quality_line`` of ``results.data_quality``): 1 %
-    of the gyro samples NaN is named with its count, a clean bag says so (main: no line)."""
+    phrasing the diagnosis prints (``results.quality_line`` of ``results.data_quality``; led
+    "data quality", not the diagnosis's "data quality first", which the fault campaign reads
+    as a flag: a counted skip is none): 1 % of the gyro samples NaN is named with its count,
+    a clean bag says so (main: no line)."""
     from stellar_cal_ros.methods.results import data_quality, quality_line
     from stellar_cal_ros.sim.scenarios import get_scenario
     from stellar_cal_ros.sim.world import simulate, write_simulation
@@ -348,9 +350,9 @@ def test_replay_says_the_data_quality_in_one_line(runs, tmp_path, capsys):
                     if ln.startswith("data quality")]
     assert out["clean"] == ["data quality: no input fault counted"], out
     assert len(out["nan"]) == 1, out
-    assert out["nan"][0].startswith(f"data quality first: {int(bad.sum())} IMU samples with "
+    assert out["nan"][0].startswith(f"data quality: {int(bad.sum())} IMU samples with "
                                     "non-finite values or stamps (bridged); "), out
     # the diagnosis's phrasing, from the same function
     n = int(bad.sum())
     faults = data_quality({"imu_invalid": n, "imu_gaps": n, "imu_bridged": n}, 1000)
-    assert out["nan"][0] == quality_line(faults), out
+    assert out["nan"][0] == quality_line(faults, lead="data quality"), out

@@ -766,15 +766,19 @@ def counts_line(counters: dict[str, Any]) -> str:
     return "counts: " + ", ".join(f"{k}={v}" for k, v in counters.items() if v)
 
 
-def quality_line(faults: list[str], then: str = "") -> str:
+def quality_line(faults: list[str], then: str = "", lead: str = "data quality first") -> str:
     """The data faults of :func:`data_quality` in one line ('' when there are none).
 
     The one phrasing of replay's end-of-run summary and the diagnosis's terminal; ``then``:
-    what to do besides repairing the data (the diagnosis: judge its candidates with it).
+    what to do besides repairing the data (the diagnosis: judge its candidates with it);
+    ``lead``: the diagnosis's "data quality first" (read before its candidates, and what the
+    fault campaign reads as a run's flag, :func:`~stellar_cal_ros.sim.fault_campaign.
+    result_flag`), replay's "data quality" (its counted skips are no flag: the result's
+    ``data_quality.degraded`` is).
     """
     if not faults:
         return ""
-    return ("data quality first: " + "; ".join(faults) + ". Residual structure from damaged "
+    return (f"{lead}: " + "; ".join(faults) + ". Residual structure from damaged "
             "input looks like a missing effect: repair the data" + (f" ({then})" if then else "")
             + ".")
 
