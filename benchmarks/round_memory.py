@@ -1,14 +1,16 @@
-"""RSS at the stages of one 2-h ``diagnose`` round in process, and the arrays held (issue 24.2).
+"""RSS and CPU-s at the stages of one 2-h ``diagnose`` round in process (issue 24.2).
 
 Wraps ``runstats.load_bag``, ``noise_runs.measure``, ``output.line_tests`` and
 ``reliability_probe.measure_on_bag``; after each prints the RSS before → after, the peak so
-far (``ru_maxrss``) and, for the bag, the bytes of the numpy arrays it holds.  ``--trim``
+far (``ru_maxrss``), the stage's CPU-s (``process_time``; a stage inside another is counted
+in both) and, for the bag, the bytes of the numpy arrays it holds.  ``--probe`` adds the
+reliability probe's twin scene, renders and steps.  ``--trim``
 calls glibc's ``malloc_trim(0)`` after each stage (what the allocator keeps but does not
 use).
 
 Run::
 
-    python benchmarks/round_memory.py [--trim]
+    python benchmarks/round_memory.py [--trim] [--probe]
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import functools
 import gc
 import resource
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +62,8 @@ def main() -> int:
     """Run the round and print the stages."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--trim", action="store_true")
+    ap.add_argument("--probe", action="store_true",
+                    help="also the reliability probe's parts: its scene, renders and steps")
     args = ap.parse_args()
     libc = ctypes.CDLL("libc.so.6") if args.trim else None
     print(f"python: rss {rss():.0f}", flush=True)
@@ -79,13 +84,15 @@ def main() -> int:
 
         @functools.wraps(f)
         def g(*a, **k):
-            r0 = rss()
+            r0, c0 = rss(), time.process_time()
             res = f(*a, **k)
+            c1 = time.process_time() - c0
             if libc is not None:
                 gc.collect()
                 libc.malloc_trim(0)
             extra = what(res) if what else ""
-            print(f"  {name}: rss {r0:.0f}->{rss():.0f} peak {peak():.0f} {extra}", flush=True)
+            print(f"  {name}: rss {r0:.0f}->{rss():.0f} peak {peak():.0f} cpu {c1:.2f} s {extra}",
+                  flush=True)
             return res
         setattr(mod, name, g)
 
@@ -93,13 +100,19 @@ def main() -> int:
     wrap(nr, "measure")
     wrap(rp, "measure_on_bag")
     wrap(out, "line_tests")
+    if args.probe:
+        import stellar_cal_ros.diagnosis.twin as tw
+
+        wrap(tw, "twin_scene")
+        wrap(rp, "rendered")
+        wrap(rp, "add_steps")
     bag = ensure_2h_bag()
     cal = load_calibration(bag.with_suffix(".prior.yaml"))
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
         runmod.diagnose(str(bag), cal, "psce", [], tmp, plots=False, verbose=False, workers=0)
-    print(f"end: rss {rss():.0f} peak {peak():.0f}", flush=True)
+    print(f"end: rss {rss():.0f} peak {peak():.0f} cpu {time.process_time():.1f} s", flush=True)
     return 0
 
 

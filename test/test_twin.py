@@ -75,6 +75,39 @@ def test_twins_sharing_a_scene_are_the_twins_made_alone(user_run):
             assert np.array_equal(a.uv, b.uv) and np.array_equal(a.catalog_id, b.catalog_id)
 
 
+def test_the_probes_injection_renders_no_imu_only_where_the_effect_leaves_it_alone(user_run):
+    """The reliability probe renders all its injections before its runs and skips the IMU
+    of an effect that leaves the sensor model alone: the same stars' steps bit for bit
+    (the IMU's noise is still drawn), and the same bag as the sum of the two full twins."""
+    from stellar_cal_ros.diagnosis import reliability_probe as rp
+    from stellar_cal_ros.diagnosis.twin import twin_scene
+
+    _, data, cal = user_run
+    scene = twin_scene(data, cal, "psce")
+    plain = rp.rendered(data, cal, "psce", scene=scene)
+    for eid, delta, moves in (("image_plane_tilt", [1e-3, -5e-4], False),
+                              ("gyro_scale_factor", [2e-4, -1e-4, 3e-4], True)):
+        delta = np.asarray(delta)
+        assert rp.moves_imu(cal, "psce", eid, delta) is moves
+        full = rp.injection_of(data, cal, "psce", eid, delta, plain, scene)
+        assert (full.imu_w is not None) is moves
+        light = rp.injection_of(data, cal, "psce", eid, delta, scene=scene, imu=False)
+        for a, b in zip(full.stars, light.stars, strict=True):
+            assert np.array_equal(a, b)
+        # the bag: the user's plus (twin with the effect - twin without), as before
+        moved = rp.rendered(data, cal, "psce",
+                            {eid: rp.injection.simulation_value(eid, delta)}, scene)
+        bag = full.on(data)
+        want = rp.add_steps(data.frames, plain.frames, moved.frames)
+        for a, b in zip(bag.frames, want, strict=True):
+            assert np.array_equal(a.uv, b.uv)
+        step_w = moved.imu_w - plain.imu_w
+        assert np.array_equal(bag.imu_w, data.imu_w + step_w if moves else data.imu_w)
+        assert bool(np.abs(step_w).max() > 0) is moves
+        if not moves:  # the tilt moves the stars (up to 0.095 px here)
+            assert np.abs(light.stars[2]).max() > 0.05
+
+
 def test_twin_command_injects_an_effect_that_is_recovered(user_run, tmp_path, capsys):
     """``stellar-cal twin --effect time_offset=0.005``: the truth says +5 ms, and a replay
     of the twin with the effect estimates it within 3 σ."""

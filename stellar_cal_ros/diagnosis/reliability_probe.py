@@ -48,52 +48,129 @@ _NOISELESS = NoiseScales(star=1e-12, gyro=1e-12, accel=1e-12)
 
 
 def rendered(data, calibration, method: str, effects: dict[str, Any] | None = None,
-             scene=None):
+             scene=None, imu: bool = True):
     """The noise-free twin of the bag under ``calibration`` with ``effects`` (simulate units).
 
     ``scene``: :func:`~stellar_cal_ros.diagnosis.twin.twin_scene` of the same bag,
     calibration and method, shared by the renders of one probe (the same twin).
+    ``imu=False``: the IMU is not rendered (the same stars; see ``make_twin``).
     """
     from stellar_cal_ros.diagnosis.twin import make_twin
 
-    return make_twin(data, calibration, effects or {}, 0, method, _NOISELESS, scene).data
+    return make_twin(data, calibration, effects or {}, 0, method, _NOISELESS, scene,
+                     imu=imu).data
+
+
+def moves_imu(calibration, method: str, effect_id: str, delta: np.ndarray) -> bool:
+    """Whether ``effect_id`` at ``delta`` changes the twin's IMU sensor model.
+
+    Where it does not (a camera or direction effect), the twins with and without it render
+    the same IMU samples, bit for bit: their difference is zero and the probe need not
+    render them (:func:`injection_of`).
+    """
+    from stellar_cal_ros.diagnosis.twin import twin_model
+    from stellar_cal_ros.effects.base import Stage
+
+    m0, th0 = twin_model(calibration, method, {})
+    m1, th1 = twin_model(calibration, method,
+                         {effect_id: injection.simulation_value(effect_id, delta)})
+    for stage in (Stage.GYRO, Stage.ACCEL):
+        a, b = m0.sensor_model(th0, stage)[:2], m1.sensor_model(th1, stage)[:2]
+        if any(not np.array_equal(x, y) for x, y in zip(a, b, strict=True)):
+            return True
+    return False
+
+
+def _moves_imu(calibration, method: str, effect_id: str, delta) -> bool:
+    """:func:`moves_imu`; ``True`` where it cannot tell (the render then says why)."""
+    try:
+        return moves_imu(calibration, method, effect_id, np.asarray(delta))
+    except Exception:  # the probe's render reports it
+        return True
+
+
+@dataclasses.dataclass
+class Injection:
+    """What an effect adds to the user's bag (:func:`injection_of`), without the bag.
+
+    ``stars``: :func:`star_steps` (the frames the twins hold, the user's star rows they
+    move and by how much); ``imu_w``, ``imu_f``: the samples' steps, ``None`` where zero.
+    Small beside the twins it comes from (a 2-h bag: ~2 MB for a camera effect), so a
+    probe renders every injection first and replays them after its twins are dropped.
+    """
+
+    stars: tuple[np.ndarray, np.ndarray, np.ndarray]
+    imu_w: np.ndarray | None
+    imu_f: np.ndarray | None
+
+    def on(self, data):
+        """``data`` with the injection added (:func:`with_effect`'s bag)."""
+        return dataclasses.replace(
+            data, frames=moved_frames(data.frames, *self.stars),
+            imu_w=data.imu_w if self.imu_w is None else np.asarray(data.imu_w) + self.imu_w,
+            imu_f=data.imu_f if self.imu_f is None else np.asarray(data.imu_f) + self.imu_f)
+
+
+def injection_of(data, calibration, method: str, effect_id: str, delta: np.ndarray,
+                 plain=None, scene=None, imu: bool = True) -> Injection:
+    """The increment of ``effect_id`` at ``delta`` (its units) on the user's bag.
+
+    The difference of two noise-free twins (:func:`rendered`) of the bag under
+    ``calibration`` (the run's estimate), without (``plain``, if already made) and with the
+    effect: per star of each frame (by stamp and catalogue id; a star the twin leaves off
+    the detector keeps its centroid) and per IMU sample.  ``scene``: see :func:`rendered`;
+    ``imu=False`` where the effect leaves the IMU alone (:func:`moves_imu`; ``plain`` may
+    then hold the user's samples).
+    """
+    plain = plain if plain is not None else rendered(data, calibration, method, scene=scene,
+                                                     imu=imu)
+    moved = rendered(data, calibration, method,
+                     {effect_id: injection.simulation_value(effect_id, delta)}, scene,
+                     imu=imu)
+    stars = star_steps(data.frames, plain.frames, moved.frames)
+    if not imu:
+        return Injection(stars, None, None)
+    return Injection(stars, _step(moved.imu_w, plain.imu_w), _step(moved.imu_f, plain.imu_f))
 
 
 def with_effect(data, calibration, method: str, effect_id: str, delta: np.ndarray,
                 plain=None, scene=None):
     """The user's bag with ``effect_id`` at ``delta`` (its units) added, rendered.
 
-    The increment is the difference of two noise-free twins (:func:`rendered`) of the bag
-    under ``calibration`` (the run's estimate), without (``plain``, if already made) and
-    with the effect: per star of each frame (by stamp and catalogue id; a star the twin
-    leaves off the detector keeps its centroid) and per IMU sample.  ``scene``: see
-    :func:`rendered`.
+    :func:`injection_of` on ``data``.
     """
-    plain = plain if plain is not None else rendered(data, calibration, method, scene=scene)
-    moved = rendered(data, calibration, method,
-                     {effect_id: injection.simulation_value(effect_id, delta)}, scene)
-    frames = add_steps(data.frames, plain.frames, moved.frames)
-    return dataclasses.replace(data, frames=frames,
-                               imu_w=_plus(data.imu_w, moved.imu_w - plain.imu_w),
-                               imu_f=_plus(data.imu_f, moved.imu_f - plain.imu_f))
+    return injection_of(data, calibration, method, effect_id, delta, plain, scene).on(data)
 
 
-def _plus(samples, step: np.ndarray) -> np.ndarray:
-    """``samples + step``; the user's own array where the effect leaves the IMU alone.
+def _step(moved: np.ndarray, plain: np.ndarray) -> np.ndarray | None:
+    """``moved − plain``; ``None`` where it is zero.
 
     A camera or direction effect renders no IMU increment: the sum would be a copy of the
     samples (2 x 17 MB on a 2-h bag, held while the probe's run replays them).
     """
-    return samples if not step.any() else np.asarray(samples) + step
+    step = moved - plain
+    return step if step.any() else None
 
 
 def add_steps(user: list, plain: list, moved: list) -> list:
     """``user``'s frames with each star moved by its step from ``plain`` to ``moved``.
 
     Per star of each frame, by stamp and catalogue id (the last row of an id or a stamp
-    that repeats); a star or frame the twins do not both hold keeps its centroid.  In
-    arrays over the whole bag: the per-frame dictionaries it replaces cost ~1 CPU-s per
-    probe run on a 2-h bag; the same sums (test_reliability_injection holds it to them).
+    that repeats); a star or frame the twins do not both hold keeps its centroid.
+    (:func:`star_steps`, then :func:`moved_frames`.)
+    """
+    return moved_frames(user, *star_steps(user, plain, moved))
+
+
+def star_steps(user: list, plain: list, moved: list
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The step of each star of ``user`` from ``plain`` to ``moved`` (see :func:`add_steps`).
+
+    ``(pair, hit, step)``: per user frame the twins' frame of its stamp (−1: none), per
+    star row of the user's frames whether the twins both hold it, and the steps of those
+    rows in order.  In arrays over the whole bag: the per-frame dictionaries it replaces
+    cost ~1 CPU-s per probe run on a 2-h bag; the same sums (test_reliability_injection
+    holds it to them).
     """
     k_of = {int(a.stamp_ns): k for k, a in enumerate(plain)}
     pair = np.array([k_of.get(int(f.stamp_ns), -1) for f in user], dtype=np.int64)
@@ -115,7 +192,13 @@ def add_steps(user: list, plain: list, moved: list) -> list:
     at = np.minimum(np.searchsorted(s_key, u_key), max(len(s_key) - 1, 0))
     hit = (np.repeat(pair, [len(f.catalog_id) for f in user]) >= 0) & (len(s_key) > 0)
     hit[hit] = s_key[at[hit]] == u_key[hit]
+    return pair, hit, step[at[hit]]
+
+
+def moved_frames(user: list, pair: np.ndarray, hit: np.ndarray, step: np.ndarray) -> list:
+    """``user``'s frames with the steps of :func:`star_steps` added to their centroids."""
     frames, start = [], 0
+    taken = np.concatenate([[0], np.cumsum(hit)])
     for j, f in enumerate(user):
         n = len(f.catalog_id)
         rows = slice(start, start + n)
@@ -126,7 +209,7 @@ def add_steps(user: list, plain: list, moved: list) -> list:
         uv = np.array(f.uv, dtype=float, copy=True)
         h = hit[rows]
         if h.any():
-            uv[h] += step[at[rows][h]]
+            uv[h] += step[taken[rows.start]:taken[rows.stop]]
         g = _shallow(f)
         g.uv = uv
         frames.append(g)
@@ -215,26 +298,42 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
     kw: dict[str, Any] = {"gyro_fault": "off"}
     if noise is not None:
         kw["noise"] = noise
-    out: list[dict[str, float] | None] = []
+    # every injection first (one scene and plain twin for all), then the runs: the twins
+    # (on a 2-h bag the scene ~100 MB, each render ~20-60 MB) are not held while the filter
+    # replays, nor a previous probe's moved bag while the next is rendered
+    injections: list[Injection | Exception] = []
     plain = scene = None
+    imu = [_moves_imu(calibration, spec.name, e, d) for e, d in probes]
     # the probe's runs replay other data: the direction effects' tables the round's runs
     # shared on this bag (≈ 20 MB an effect on a 2-h bag) are not held through its renders
     if hasattr(data, "prepared"):
         data.prepared.clear()
-    for effect_id, delta in probes:
+    for (effect_id, delta), moves in zip(probes, imu, strict=True):
         try:
             if scene is None:
                 from stellar_cal_ros.diagnosis.twin import twin_scene
 
                 scene = twin_scene(data, calibration, spec.name)
-            plain = plain if plain is not None else rendered(data, calibration, spec.name,
-                                                             scene=scene)
-            moved = with_effect(data, calibration, spec.name, effect_id, np.asarray(delta),
-                                plain, scene)
+            # the plain twin renders the IMU if any probe of this call moves it
+            plain = plain if plain is not None else rendered(
+                data, calibration, spec.name, scene=scene, imu=any(imu))
+            injections.append(injection_of(data, calibration, spec.name, effect_id,
+                                           np.asarray(delta), plain, scene, imu=moves))
+        except Exception as exc:
+            injections.append(exc)
+    del plain, scene
+    out: list[dict[str, float] | None] = []
+    for (effect_id, delta), inj in zip(probes, injections, strict=True):
+        try:
+            if isinstance(inj, Exception):
+                raise inj
+            moved = inj.on(data)
             with quiet():
                 run = spec.runner(moved, prior, list(effects), keep_tables=False,
                                   eval_fraction=fraction, **kw)
+            del moved
             values = injection.run_values(run)
+            del run
             for q, v in own_shift(calibration, spec.name, effect_id,
                                   np.asarray(delta)).items():
                 if q in values:

@@ -298,14 +298,18 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
 
 def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] | None = None,
               seed: int = 0, method: str | None = None,
-              noise: NoiseScales | None = None, scene: TwinScene | None = None) -> Twin:
+              noise: NoiseScales | None = None, scene: TwinScene | None = None,
+              imu: bool = True) -> Twin:
     """The twin of ``data`` under ``calibration`` with ``effects`` injected (see the module).
 
     ``effects``: ``{id: value}`` in the units of ``simulate --effect``; ``method``: whose
     baseline and noise defaults apply (default: the calibration's, else psce); ``noise``:
     the measured noise scales (default: the calibration's ``consistency.noise``);
     ``scene``: :func:`twin_scene` of the same ``data``, ``calibration`` and ``method``,
-    made once for several twins (the same twin as without it).
+    made once for several twins (the same twin as without it).  ``imu=False``: the IMU is
+    not rendered (the twin holds the user's samples); its noise is still drawn, so the
+    stars are the same numbers (for the reliability probe, whose camera effects leave the
+    IMU alone: 2 x 17 MB and their temporaries a render on a 2-h bag).
     """
     from stellar_cal_ros.diagnosis.noise import stated_scales
 
@@ -324,8 +328,12 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
     dt = data.nominal_dt or float(np.median(np.diff(t)))
     g_sig = scene.arw * noise.gyro / np.sqrt(dt)
     a_sig = scene.vrw * noise.accel / np.sqrt(dt)
-    w_twin = w_true @ (np.eye(3) + E_g).T + b_g + g_sig * rng.standard_normal(w_true.shape)
-    f_twin = f_true @ (np.eye(3) + E_a).T + b_a + a_sig * rng.standard_normal(f_true.shape)
+    if imu:
+        w_twin = w_true @ (np.eye(3) + E_g).T + b_g + g_sig * rng.standard_normal(w_true.shape)
+        f_twin = f_true @ (np.eye(3) + E_a).T + b_a + a_sig * rng.standard_normal(f_true.shape)
+    else:
+        w_twin, f_twin = data.imu_w, data.imu_f
+        _skip_normals(rng, w_true.size + f_true.size)
     # the stars
     mb = injected.get("magnitude_bias", np.zeros(2))
     direction = np.array([np.cos(np.deg2rad(mb[1])), np.sin(np.deg2rad(mb[1]))])
@@ -379,6 +387,17 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
     prior = copy.deepcopy(calibration)
     return Twin(twin_data, _truth(calibration, model, theta, injected), prior, injected,
                 noise, counts)
+
+
+def _skip_normals(rng: np.random.Generator, n: int, chunk: int = 1 << 16) -> None:
+    """Draw ``n`` standard normals from ``rng`` and drop them, ``chunk`` at a time.
+
+    The generator is then where one ``standard_normal`` of ``n`` values leaves it (its
+    draws are sequential), without holding them.
+    """
+    while n > 0:
+        rng.standard_normal(min(n, chunk))
+        n -= chunk
 
 
 def write_twin(twin: Twin, path: str | Path) -> dict[str, Path]:
