@@ -105,7 +105,7 @@ def main() -> int:
 
         wrap(tw, "twin_scene")
         wrap(rp, "rendered")
-        wrap(rp, "add_steps")
+        wrap(rp, "star_steps")
     bag = ensure_2h_bag()
     cal = load_calibration(bag.with_suffix(".prior.yaml"))
     import tempfile

@@ -313,7 +313,7 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
             if scene is None:
                 from stellar_cal_ros.diagnosis.twin import twin_scene
 
-                scene = twin_scene(data, calibration, spec.name)
+                scene = twin_scene(data, calibration, spec.name, imu=any(imu))
             # the plain twin renders the IMU if any probe of this call moves it
             plain = plain if plain is not None else rendered(
                 data, calibration, spec.name, scene=scene, imu=any(imu))

@@ -194,7 +194,8 @@ class TwinScene:
     vrw: float
     t: np.ndarray
     w_true: np.ndarray
-    f_true: np.ndarray
+    #: None in a scene for twins without the IMU (``twin_scene(imu=False)``)
+    f_true: np.ndarray | None
     traj: _Trajectory
     #: per user frame: (its usable stars, their context or None without stars, unidentified)
     frames: list[tuple[Any, Any, int]]
@@ -243,9 +244,13 @@ def smooth_samples(x: np.ndarray, n: int) -> np.ndarray:
     return uniform_filter1d(x, n, axis=0, mode="nearest")
 
 
-def twin_scene(data: BagData, calibration: Calibration, method: str | None = None
-               ) -> TwinScene:
-    """The shared part of every twin of ``data`` under ``calibration`` (see :func:`make_twin`)."""
+def twin_scene(data: BagData, calibration: Calibration, method: str | None = None,
+               imu: bool = True) -> TwinScene:
+    """The shared part of every twin of ``data`` under ``calibration`` (see :func:`make_twin`).
+
+    ``imu=False``: for twins made with ``make_twin(imu=False)`` only; the true forces are
+    not kept (17 MB on a 2-h bag; the rates are the trajectory's).
+    """
     from stellar_cal_ros.diagnosis.context import gravity_in_tracker
 
     method = method or (calibration.method if calibration.method in ("psce", "swaying_base")
@@ -293,7 +298,8 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
             if grav is not None:
                 ctx.gravity_st = grav[j]
         frames.append((inp, ctx, unidentified))
-    return TwinScene(method, default_sigma, arw, vrw, t, w_true, f_true, traj, frames)
+    return TwinScene(method, default_sigma, arw, vrw, t, w_true, f_true if imu else None,
+                     traj, frames)
 
 
 def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] | None = None,
@@ -328,12 +334,14 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
     dt = data.nominal_dt or float(np.median(np.diff(t)))
     g_sig = scene.arw * noise.gyro / np.sqrt(dt)
     a_sig = scene.vrw * noise.accel / np.sqrt(dt)
+    if imu and f_true is None:
+        raise ValueError("make_twin: this scene was made without the IMU (imu=False)")
     if imu:
         w_twin = w_true @ (np.eye(3) + E_g).T + b_g + g_sig * rng.standard_normal(w_true.shape)
         f_twin = f_true @ (np.eye(3) + E_a).T + b_a + a_sig * rng.standard_normal(f_true.shape)
     else:
         w_twin, f_twin = data.imu_w, data.imu_f
-        _skip_normals(rng, w_true.size + f_true.size)
+        _skip_normals(rng, 2 * w_true.size)  # the rates' and the forces' noise
     # the stars
     mb = injected.get("magnitude_bias", np.zeros(2))
     direction = np.array([np.cos(np.deg2rad(mb[1])), np.sin(np.deg2rad(mb[1]))])
