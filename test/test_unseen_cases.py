@@ -16,6 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from stellar_cal_ros.core.gating import chi2_2_quantile
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import flexure, noise, noise_stars, rolling, stats
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
@@ -24,6 +25,7 @@ from stellar_cal_ros.diagnosis.output import line_tests
 from stellar_cal_ros.diagnosis.runstats import evaluate
 from stellar_cal_ros.diagnosis.twin import make_twin
 from stellar_cal_ros.diagnosis.twin_command import noise_line
+from stellar_cal_ros.methods.psce import PsceConfig
 from stellar_cal_ros.methods.replay import bag_data_from_simulation
 from stellar_cal_ros.sim import tracker_errors
 from stellar_cal_ros.sim.scenarios import get_scenario
@@ -692,17 +694,54 @@ def test_noise_that_changes_mid_run_is_said_with_both_scales():
     assert v1.changes is None and applied1.identity, v1.lines()
 
 
+def test_error_repeating_star_by_star_prints_a_true_lower_bound():
+    """Each star off by its own fixed offset (``tracker_errors.star_offsets``, 0.03 px rms
+    per axis: a catalogue position error) in a 150 s psce bag of 0.05 px noise: the verdict
+    says the residuals repeat star by star, "a per-star position error of at least X px
+    rms per axis" with X below the offsets' true rms (the detector cells' means take part
+    of it; seeds 21-23: X 0.0147, 0.0093, 0.0113 px for 0.029-0.030), and the stars' scale
+    measured without it is as stated within 3 σ (seed 21: 1.0062 +- 0.011)."""
+    box = {}
+    sim = _bag(lambda s: box.update(off=tracker_errors.star_offsets(s, 0.03, 21)),
+               noise_free=False)
+    v, _, sn = _measured_noise(bag_data_from_simulation(sim), sim.prior)
+    assert v.repeat is not None and v.repeat["p_value"] < 1e-6, v.lines()
+    seen = {int(c) for f in sim.star_frames for c in np.asarray(f.catalog_id).tolist()}
+    truth = float(np.sqrt(np.mean([box["off"][c] ** 2 for c in seen])))
+    x = v.repeat["rms_px"]
+    assert 0.25 * truth < x < truth, (x, truth)
+    line = [t for t in v.lines() if "repeat star by star" in t]
+    assert line and f"at least {x:.2g} px" in line[0]
+    assert abs(v.star - 1.0) < 3 * v.star_sigma, (v.star, v.star_sigma)
+
+
 def test_heavy_tailed_noise_is_named_and_gaussian_noise_is_not():
     """Student-t centroid noise (3 dof) at the stated 0.05 px RMS: the verdict names the
     heavy tails (the share of stars beyond the Gaussian 99.9 % bound > 8 x its 0.1 %) and
     the gated core's σ (the 300 s unseen case ``t3``: x0.842, 1.4 % beyond); before, only
-    "sigma 1.19 x too large" beside "218 stars gated: misidentified stars".  Gaussian noise
-    and 3 % of 10-sigma outliers (gated, the rest Gaussian) say nothing of tails."""
+    "sigma 1.19 x too large" beside "218 stars gated: misidentified stars".  The printed
+    share is the one Student-t noise has at the measured core scale.  Gaussian noise and 3 %
+    of 10-sigma outliers (gated, the rest Gaussian) say nothing of tails."""
     v, _, sn = _measured_noise(*_sim_prior(lambda s: tracker_errors.heavy_tails(
         s, SIGMA, 3.0, 21)))
     t = v.tails
     assert t is not None and t["share"] > noise.TAILS * t["expected"] and t["p_value"] < 1e-6
     assert any("heavy-tailed" in x for x in v.lines())
+    # the printed share is Student-t's own at the core's scale: each axis t_3 σ/√3, the
+    # stars the filter's gate accepts (χ²₂ at its probability, of the stated σ), beyond
+    # the bound at the measured scale; within 3 σ of the share's binomial σ and the
+    # scale's (seed 21: 1.59 % printed, 1.70 % expected, σ 0.27 %; seeds 22-24: 1.76 /
+    # 1.68, 1.24 / 1.91, 1.59 / 1.29 %)
+    x = (np.random.default_rng(0).standard_t(3.0, (1_000_000, 2)) ** 2).sum(1) / 3.0
+    x = x[x < chi2_2_quantile(PsceConfig().gate_probability)]
+
+    def share(scale):
+        return float(np.mean(x > noise.TAIL_BOUND * scale**2))
+
+    n, expected = int(np.sum(sn.m[~sn.unknown] > 0)), share(v.star)
+    d_scale = 0.5 * (share(v.star - v.star_sigma) - share(v.star + v.star_sigma))
+    assert abs(t["share"] - expected) < 3.0 * np.hypot(
+        np.sqrt(expected * (1.0 - expected) / n), d_scale), (t, expected, n, d_scale)
     assert v.as_json()["star_tails"] == t
     for post in (lambda s: None, lambda s: tracker_errors.outliers(s, 0.03, 10.0, 21)):
         v0, _, _ = _measured_noise(*_sim_prior(post, noise_free=False))

@@ -21,6 +21,8 @@ function            what a tracker does
 ``heavy_tails``     centroid noise Student-t (``ν`` dof), scaled to a stated RMS
 ``gyro_bias_walk``  gyro bias instability: a random walk in the bias the model holds constant
 ``stamp_jitter``    each frame stamped with a random error (the exposure's true time unknown)
+``star_offsets``    each star's centroid off by its own fixed offset in every frame (a catalogue
+                    position error, a proper motion the catalogue lacks)
 ==================  ==============================================================================
 """
 
@@ -211,3 +213,20 @@ def stamp_jitter(sim, sigma_s: float, seed: int) -> np.ndarray:
     for f, e in zip(sim.star_frames, err, strict=True):
         f.stamp_ns = int(f.stamp_ns + round(float(e) * 1e9))
     return err
+
+
+def star_offsets(sim, rms_px: float, seed: int) -> dict[int, np.ndarray]:
+    """Each star off by its own fixed offset, N(0, ``rms_px``²) per axis, in every frame.
+
+    What a catalogue position error (or a proper motion the catalogue lacks) does to the
+    centroids over a short run: an error that repeats star by star, not noise.  Returns
+    the offsets (px) by catalogue id.
+    """
+    rng = np.random.default_rng(seed + 67867967)
+    ids = sorted({int(c) for f in sim.star_frames for c in np.asarray(f.catalog_id).tolist()})
+    off = dict(zip(ids, rms_px * rng.standard_normal((len(ids), 2)), strict=True))
+    for f in sim.star_frames:
+        cid = np.asarray(f.catalog_id).tolist()
+        if cid:
+            f.uv = np.asarray(f.uv, dtype=float) + np.array([off[int(c)] for c in cid])
+    return off
