@@ -205,16 +205,24 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         if "u_pred" in res else None
     # (and a rolling shutter's shape: the row times the image velocity; its readout is
     # structure, not a σ growing with the row nor noise correlated along the tracks)
+    def projected(c: np.ndarray) -> np.ndarray:
+        """Columns ``c`` (n, 2) in px through the frames' attitude fit, whitened as ``r``."""
+        return within_frame(dict(sub, du=c[:, 0], dv=c[:, 1]), sigma_px[idx], fx, fy)[0]
+
     x = rolling_columns({k: np.asarray(res[k])[idx] for k in res}, (fx, fy), centre, R_imu_st)
     if x is not None:
-        x = within_frame(dict(sub, du=x[:, 0], dv=x[:, 1]), sigma_px[idx], fx, fy)[0]
+        x = projected(x)
+    # (the sub-pixel regressors too: fitted raw, 0.08 px of locking left the scale at 1.04)
+    X_sub = None if uv_pred is None else np.stack(
+        [projected(c) for c in np.moveaxis(noise_structure.subpixel_columns(uv_pred), 2, 0)],
+        2)
     # both fits' χ² referred to the tracks' correlation where it is significant, as the
     # cells' (:func:`_fit_lags`; white tracks: the white fits, as before)
-    lags = _fit_lags(r, sub_share, uv_pred, x, stars)
+    lags = _fit_lags(r, sub_share, uv_pred, x, stars, X_sub)
     p_sub = 1.0
     if uv_pred is not None:
         r, sub_share, p_sub = noise_structure.minus_subpixel(r, sub_share, uv_pred, ALPHA,
-                                                             stars, lags)
+                                                             stars, lags, X_sub)
     r, sub_share, p_roll = noise_structure.minus_rolling(r, sub_share, x, ALPHA, stars, lags)
     r_cells = r  # (the cells' χ² is referred to the tracks' lag below)
     # (the tracks' lag-1 ρ read about the star means before the cells' means, which bias
@@ -294,7 +302,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
 
 
 def _fit_lags(r: np.ndarray, share: np.ndarray, uv: np.ndarray | None, x: np.ndarray | None,
-              stars: np.ndarray) -> tuple[float, float] | None:
+              stars: np.ndarray, X_sub: np.ndarray | None = None
+              ) -> tuple[float, float] | None:
     """The tracks' ``(w, φ)`` the structure fits' χ² are referred to, or None (white).
 
     Read by :func:`~.noise_structure.track_model` about the star means, as the cells'
@@ -309,7 +318,7 @@ def _fit_lags(r: np.ndarray, share: np.ndarray, uv: np.ndarray | None, x: np.nda
     """
     rr = r
     if uv is not None:
-        rr = noise_structure.minus_subpixel(rr, share, uv, 1.0)[0]
+        rr = noise_structure.minus_subpixel(rr, share, uv, 1.0, columns=X_sub)[0]
     rr = noise_structure.minus_rolling(rr, share, x, 1.0)[0]
     model = noise_structure.track_model(star_means(rr, share, stars)[2], stars)
     if noise_structure.correlated(model.rho, model.pairs, 0.0) is None:
