@@ -387,11 +387,13 @@ def star_shares_after_cells(share: np.ndarray, sub_share: np.ndarray, star: np.n
 
     ``share``: the shares after the cells' means (:func:`_minus_cell_means`; rows of share 0
     count for neither mean), ``sub_share``: the part of it earlier fits left.  The star
-    means of residuals without their cells' means (``r_c = (I − P_C) r``) take ``h_i =
-    ((I − P_C) P_S (I − P_C))_ii`` of row ``i``'s expected square, not ``1/n_s``: ``h_i =
-    1/n_s − 2 n_sc/(n_c n_s) + Σ_s' n_s'c² / (n_s' n_c²)`` (``n_sc``: the star's rows in the
-    row's cell ``c``), summing to ``S − tr(P_S P_C)``.  A star whose track stays in one cell
-    has had its mean taken by the cell (``h`` 0).  Returns ``share − sub_share · h`` (≥ 0).
+    means of residuals without their cells' means (``r_c = (I − P_C) r``, then ``r'' = (I −
+    P_S) r_c``) take ``h_i = (I − P_C)_ii − ((I − P_S)(I − P_C)(I − P_S))_ii`` of row
+    ``i``'s expected square, not ``1/n_s``: ``h_i = 1/n_s − 2 n_sc/(n_c n_s) + Σ_c'
+    n_sc'² / (n_c' n_s²)`` (``n_sc``: the star's rows in the row's cell ``c``), summing to
+    ``S − tr(P_S P_C)``.  A star whose track stays in one cell keeps ``1 − 1/n_s`` (the
+    cell's mean leaves its star mean's residuals alone; ``h = 1/n_s − 1/n_c``).  Returns
+    ``share − sub_share · h`` (≥ 0).
     """
     ok = share > 0
     out = np.zeros(len(share))
@@ -404,8 +406,8 @@ def star_shares_after_cells(share: np.ndarray, sub_share: np.ndarray, star: np.n
     pair, k = np.unique(si.astype(np.int64) * (int(ci.max()) + 1) + ci, return_inverse=True)
     nsc = np.bincount(k).astype(float)
     p_s, p_c = pair // (int(ci.max()) + 1), pair % (int(ci.max()) + 1)
-    g = np.bincount(p_c, nsc**2 / ns[p_s], minlength=len(nc))
-    h = 1.0 / ns[si] - 2.0 * nsc[k] / (nc[ci] * ns[si]) + g[ci] / nc[ci] ** 2
+    g = np.bincount(p_s, nsc**2 / nc[p_c], minlength=len(ns))  # per star: Σ_c n_sc²/n_c
+    h = 1.0 / ns[si] - 2.0 * nsc[k] / (nc[ci] * ns[si]) + g[si] / ns[si] ** 2
     out[ok] = np.clip(share[ok] - sub_share[ok] * h, 0.0, None)
     return out
 
