@@ -21,19 +21,11 @@ once per machine (``cache=True``, in ``__pycache__``).
 from __future__ import annotations
 
 import math
-import sys
 
 import numpy as np
 
 from stellar_cal_ros.core.rotation import _jacobian_single, _so3_exp_single
 
-# numba imports ``coverage`` (when installed) at its own import, only to report the lines of
-# compiled code to a coverage run already active then; that costs ~0.09 CPU-s per process
-# (``import numba`` 0.48 -> 0.40 CPU-s, ~5 % of a 60 s replay; issue 24.1).  A coverage run
-# imports ``coverage`` before this module, so it is hidden only from processes without one.
-_HIDE_COVERAGE = "coverage" not in sys.modules
-if _HIDE_COVERAGE:
-    sys.modules["coverage"] = None  # type: ignore[assignment]  # import -> ImportError
 try:  # optional: without it the filters use the numpy path
     from numba import njit
 except ImportError:  # pragma: no cover - exercised only without numba
@@ -45,9 +37,6 @@ except ImportError:  # pragma: no cover - exercised only without numba
         return lambda f: f
 else:
     HAVE_NUMBA = True
-finally:
-    if _HIDE_COVERAGE and sys.modules.get("coverage", 0) is None:
-        del sys.modules["coverage"]  # later imports of coverage work as usual
 
 FloatArray = np.ndarray
 
