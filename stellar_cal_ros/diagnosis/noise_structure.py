@@ -60,28 +60,8 @@ def minus_subpixel(r: np.ndarray, share: np.ndarray, uv: np.ndarray, alpha: floa
         ok &= np.all(np.isfinite(columns), axis=(1, 2))
     if ok.sum() < 50:
         return r, share, 1.0
-    if columns is not None:
-        return _minus_track_fit(r, share, ok, columns[ok], star,
-                                (0.0, 0.0) if lags is None else lags, alpha)
-    if lags is not None:
-        return _minus_track_fit(r, share, ok, subpixel_columns(uv[ok]), star, lags, alpha)
-    out, share_out = r.copy(), share.copy()
-    chi2, lev = 0.0, np.zeros(int(ok.sum()))
-    fits = []
-    for k in range(2):
-        ph = 2.0 * np.pi * uv[ok, k]
-        X = np.stack([np.sin(ph), np.cos(ph)], 1)
-        G = np.linalg.inv(X.T @ X)
-        b = G @ (X.T @ r[ok, k])
-        chi2 += float(b @ np.linalg.solve(G, b)) / max(float(np.mean(share[ok])), 1e-12)
-        fits.append(X @ b)
-        lev += 0.5 * np.einsum("ij,jk,ik->i", X, G, X)
-    p = float(sps.chi2.sf(chi2, 4))
-    if p >= alpha:
-        return r, share, p
-    out[ok] = r[ok] - np.stack(fits, 1)
-    share_out[ok] = share[ok] * np.clip(1.0 - lev, 0.0, 1.0)
-    return out, share_out, p
+    X = columns[ok] if columns is not None else subpixel_columns(uv[ok])
+    return _minus_track_fit(r, share, ok, X, star, (0.0, 0.0) if lags is None else lags, alpha)
 
 
 def minus_rolling(r: np.ndarray, share: np.ndarray, x: np.ndarray | None, alpha: float,
