@@ -13,7 +13,8 @@ both hold, and the spread of the ratio (how far 1.2 is from what noise does).
 Run::
 
     .venv/bin/python benchmarks/changes_level.py --seeds 50               # 2 cases x 50
-    .venv/bin/python benchmarks/changes_level.py --seeds 50 --cases psce,psce+sky,swaying,swaying+sky
+    .venv/bin/python benchmarks/changes_level.py --seeds 50 \
+        --cases psce,psce+sky,swaying,swaying+sky
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ def upper(k: int, n: int) -> float:
 
 
 def main() -> int:
+    """Run the seeds, print the level table; 0 on success."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=50)
     ap.add_argument("--first-seed", type=int, default=2000)

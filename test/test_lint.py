@@ -16,7 +16,7 @@ pytestmark = pytest.mark.linter
 
 ROOT = Path(__file__).resolve().parents[1]
 RUFF = Path(sys.prefix) / "bin" / "ruff"
-TARGETS = ["stellar_cal_ros", "test", "setup.py"]
+TARGETS = ["stellar_cal_ros", "test", "benchmarks", "setup.py"]
 
 
 @functools.cache
