@@ -627,3 +627,50 @@ def test_star_scale_sigma_counts_the_frames_shared_attitude_fit():
     assert s.std(ddof=1) / printed == pytest.approx(1.0, abs=3.0 / math.sqrt(2.0 * len(s)))
     assert printed == pytest.approx(math.sqrt(1.0 / (2.0 * dof.mean())), rel=0.1)
     assert s.mean() == pytest.approx(1.0, abs=4 * s.std() / math.sqrt(len(s)))
+
+
+# ----------------------------------------------------------------------------- printed numbers
+def test_noise_as_measured_before_prints_both_factors_of_the_true_scale():
+    """A later round, the stars' 0.6x sigma already rescaled (star x1.67 applied): "noise as
+    measured before (star x1.67 of the stated; now stars' sigma x s +- e, gyro x g +- e
+    (its samples) of that)".  The printed factors' product must be the truth 1/0.6 within
+    3 of its σ, and the gyro's (stated right) 1 within 3σ (seed 3: x1.67 * x0.992 +-
+    0.0084 = 1.653 for 1.667; gyro x1 +- 0.0052)."""
+    import re
+
+    sim = _sim()
+    v = measure_bag(_stated(sim, 0.6), sim.prior, "psce", [], NoiseScales(star=1 / 0.6))
+    line = next(x for x in v.lines() if x.startswith("noise as measured before"))
+    m = re.search(r"star x(\S+) of the stated; now stars' sigma x(\S+) \+- (\S+),", line)
+    before, now, e = (float(x) for x in m.groups())
+    assert before * now == pytest.approx(1 / 0.6, abs=3 * before * e), line
+    g = re.search(r"gyro x(\S+) \+- (\S+) \(its samples\)", line)
+    assert float(g[1]) == pytest.approx(1.0, abs=3 * float(g[2])), line
+
+
+def test_far_off_line_prints_the_nis_per_dof_at_the_true_sigma():
+    """The model far off (a gyro random walk 100x the filter's) on a bag whose stars state
+    half their noise: the far-off line's NIS/dof must be the model's misfit, the NIS/dof
+    computed with each star's innovation covariance holding the true 0.05 px (seed 3:
+    printed 11.19 for 11.20).  It printed the run's own NIS/dof, 44.5: the stated
+    sigma's error (x4) that the decision itself had divided out."""
+    import re
+
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+    from stellar_cal_ros.diagnosis.stats import accepted, evaluation_mask
+
+    sim = _sim(gyro=100.0)
+    data = _stated(sim, 0.5)
+    base = evaluate(data, method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
+                    keep_residuals=True, star_noise=True)
+    line = noise.far_off(base, base.star_noise)
+    printed = float(re.search(r"NIS/dof (\S+?)[ ,)]", line)[1])
+    r = base.residuals
+    k = evaluation_mask(r, 0.5) & accepted(r)
+    du, dv, b = r["du"][k], r["dv"][k], r["s_uv"][k]
+    extra = 0.05**2 - (0.5 * 0.05) ** 2  # the true σ² for the stated
+    a, c = r["s_uu"][k] + extra, r["s_vv"][k] + extra
+    truth = float(np.mean((c * du**2 - 2 * b * du * dv + a * dv**2) / (a * c - b * b)) / 2)
+    assert truth > 2 * noise.MAX_DISPERSION  # far off indeed
+    assert printed == pytest.approx(truth, rel=0.05), (printed, truth, line)
