@@ -697,3 +697,31 @@ def test_imu_scale_search_finds_the_maximum_of_a_likelihood_far_from_a_parabola(
         curv = 2 * n * (truth**2 / (floor + truth**2)) ** 2
         assert s.measurable and s.value == pytest.approx(truth, abs=0.3 * s.sigma), (truth, s)
         assert s.sigma / s.value == pytest.approx(1 / np.sqrt(curv), rel=0.2), (truth, s)
+
+
+def test_beyond_line_prints_what_the_stars_need_over_the_white_samples():
+    """The 'beyond' line: a gyro whose samples carry its stated white noise plus a wandering
+    part (white noise 3x the stated, averaged over 10 samples: a drift the second
+    differences barely see, ~ white to the stars at 2 Hz).  The stars need sqrt(1 + 3²) =
+    3.16 x the stated noise, the samples show sqrt(1 + 4 * 3² / (6 * 10²)) = 1.03: both
+    printed numbers within 3 of their printed σ (seed 3: x3.64 +- 0.51, x1.03 +- 0.0054;
+    seeds 4, 5: x3.40 +- 0.46, x3.07 +- 0.52), and the noise kept at the samples'."""
+    import re
+
+    from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
+
+    k, n = 3.0, 10
+    sim = _sim()
+    data = _stated(sim)
+    per_sample = sim.scenario.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR / np.sqrt(0.01)
+    c = np.cumsum(k * per_sample * np.random.default_rng(103).standard_normal(
+        (len(data.imu_w) + n, 3)), axis=0)
+    data.imu_w = data.imu_w + (c[n:] - c[:-n])[:len(data.imu_w)] / n
+    v = measure_bag(data, sim.prior, "psce", [], NoiseScales())
+    assert v.beyond == ["gyro"] and v.applied.gyro == 1.0
+    line = next(x for x in v.lines() if x.startswith("the stars see more attitude motion"))
+    m = re.search(r"need x(\S+) \+- (\S+) the noise its own samples show \(x(\S+) \+- (\S+) "
+                  "of the stated\)", line)
+    need, e_need, smp, e_smp = (float(x) for x in m.groups())
+    assert need == pytest.approx(np.sqrt(1 + k**2), abs=3 * e_need), line
+    assert smp == pytest.approx(np.sqrt(1 + 4 * k**2 / (6 * n**2)), abs=3 * e_smp), line
