@@ -731,10 +731,11 @@ def test_residual_spread_line_holds_its_level_and_reads_an_injected_spread():
     """The 'residual spread (size) vs X' line's t and p on a clean bag's own rows (frames,
     stars, regressors), its innovations replaced by white draws at 0.05 px: over 40 draws
     each regressor's t has mean 0 and SD 1 within 3 of their standard errors (seed 3: means
-    -0.29..0.25, SDs 0.85..1.15), and the unadjusted p (the printed p is Bonferroni over
-    the family) is below 2 % in 2 % of the tests within 3 binomial σ.  Then a spread that
+    -0.29..0.25, SDs 0.86..1.16), and the unadjusted p (the printed p is Bonferroni over
+    the family) is below 2 % in 2 % of the tests within 3 binomial σ (14 of 440, 8.8
+    expected).  Then a spread that
     grows 20 % per magnitude: the magnitude line is printed in every draw, and its size,
-    |du, dv|'s change across the 5-95 % range, reads 0.0184 px for the 0.0226 px injected
+    |du, dv|'s change across the 5-95 % range, reads 0.0181 px for the 0.0226 px injected
     (sqrt(pi/2) x 0.01 px/mag x 1.80 mag): the frame's attitude fit takes its leverage's
     share of each star's spread (~10 % of the variance with ~16 stars a frame)."""
     from stellar_cal_ros.diagnosis import stats
