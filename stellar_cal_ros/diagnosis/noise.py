@@ -21,8 +21,9 @@ with it).  Before any physical effect is tested, the diagnosis measures
   (Measured in :mod:`.noise_stars`; this module judges it.)
 * the **gyro noise scale** ``g`` (and the accelerometer's ``a``, swaying-base), by maximum
   likelihood on the innovations: the prequential log-likelihood of the evaluation window,
-  as a function of ``ln g``, from re-runs of the current model (a parabola through three
-  runs, moved until it brackets its maximum, then refined once); σ from its curvature.
+  as a function of ``ln g``, from re-runs of the current model (three runs a factor of 3
+  apart, moved until they bracket its maximum, then triples of runs a factor of 1.22
+  apart around the vertex until it lies inside one); σ from that triple's curvature.
 
 Why not an adaptive filter: a Sage–Husa or innovation-matching filter adapts Q and R while
 it estimates, so its calibration σ would follow its own noise estimate, and a missing
