@@ -36,6 +36,7 @@ def _seeds(text: str) -> list[int]:
 
 
 def main() -> None:
+    """Print each seed's search and the spread over seeds (the module's doc)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="3-10")
     ap.add_argument("--gyro", type=float, default=5.0, help="true gyro noise / stated")
