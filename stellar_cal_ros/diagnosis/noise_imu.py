@@ -114,12 +114,16 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
     settled = max(out.points, key=out.points.get) == 0.0 and abs(x_hat) < 0.5 * step
     while not settled and len(out.points) + 3 <= max_runs and curv > 0 and \
             min(out.points) < x_hat < max(out.points):
+        before = len(out.points)
         run([x_hat - REFINE, x_hat, x_hat + REFINE])
         lo, hi = x_hat - REFINE - 1e-3, x_hat + REFINE + 1e-3
         near = {x: v for x, v in out.points.items() if lo <= x <= hi}
         x_new, c_new = ScaleSearch(name, near).fit()
         if c_new > 0 and lo < x_new < hi:  # the maximum is inside: its parabola is local
             x_hat, curv = x_new, c_new
+            break
+        if len(out.points) == before:  # a triple run before: no progress (no cycling)
+            x_hat, curv = out.fit()
             break
         if c_new <= 0:  # not concave there (far from the maximum): toward its best end
             x_new = x_hat + math.copysign(3 * REFINE, max(near, key=near.get) - x_hat)
