@@ -153,14 +153,43 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
         order = range(best, len(xs)) if best == 0 else range(best, -1, -1)
         prev = None
         for i in order:
-            if ls[i] < cut and prev is not None:  # interpolate the crossing
-                f = (ls[prev] - cut) / max(ls[prev] - ls[i], 1e-300)
-                out.value = float(math.exp(xs[prev] + f * (xs[i] - xs[prev])))
+            if ls[i] < cut and prev is not None:  # the crossing, bisected, interpolated
+                a, b = _bisect_crossing(out, run, xs[prev], xs[i], cut)
+                la, lb = out.points[a], out.points[b]
+                f = (la - cut) / max(la - lb, 1e-300)
+                out.value = float(math.exp(a + f * (b - a)))
                 break
             prev = i
         else:
             out.bound = ""
     return out
+
+
+#: the bound's crossing is bisected until its bracket is this narrow (ln scale: 5 %)
+CROSSING = 0.05
+
+
+def _bisect_crossing(out: ScaleSearch, run, a: float, b: float, cut: float,
+                     max_runs: int = 6) -> tuple[float, float]:
+    """Narrow ``[a, b]`` (``ℓ(a) ≥ cut > ℓ(b)``) by runs at its midpoint; the final bracket.
+
+    The likelihood bends sharply where it leaves its plateau, so a straight line between
+    points a factor of 3-9 apart put the crossing far from it: on a likelihood flat from
+    x4 up, "at least x13" for a truth of x10 (the 95 % bound held the truth in 14 % of
+    draws).  Bisection brings the bracket to :data:`CROSSING`, where a line is fair.
+    """
+    for _ in range(max_runs):
+        if abs(b - a) <= CROSSING:
+            break
+        mid = 0.5 * (a + b)
+        run([mid])
+        if mid not in out.points:
+            break
+        if out.points[mid] >= cut:
+            a = mid
+        else:
+            b = mid
+    return a, b
 
 
 # ----------------------------------------------------------------------------- IMU (samples)
