@@ -84,6 +84,37 @@ def test_builtin_methods_are_found_from_their_files():
         models.resolve_effects("psce", ["accel_bias"])
 
 
+def test_one_method_looked_up_imports_only_its_file():
+    """``get``/``find``/``in MethodNames`` import only the file declaring the name (a psce
+    replay loads neither the ACF, bundle nor swaying-base modules: ~0.05 CPU-s of its
+    start-up, issue 24.1); listing them all loads every one, in file order as before."""
+    import subprocess
+    import sys
+
+    code = textwrap.dedent("""
+        import sys
+        from stellar_cal_ros.methods import registry
+        from stellar_cal_ros.methods.registry import MethodNames
+        assert registry.get("traditional").name == "traditional"
+        assert "psce" in MethodNames(kind="filter") and "psce" in MethodNames(diagnosable=True)
+        assert "psce" not in MethodNames(kind="batch")
+        assert registry.find("psce").kind == "filter"
+        mods = ("acf", "acf_data", "acf_covariance", "bundle_runs", "bundle", "iac")
+        print(sorted(m for m in mods if "stellar_cal_ros.methods." + m in sys.modules))
+        print(registry.names("filter"), "acf" in registry.names("batch"))
+        print("stellar_cal_ros.methods.acf" in sys.modules)
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.splitlines()
+    assert lines[0] == "[]"
+    # traditional was looked up first: the list keeps the files' order all the same
+    assert lines[1].startswith("['psce', 'swaying_base', 'traditional']") and \
+        lines[1].endswith("True")
+    assert lines[2] == "True"
+
+
 def test_a_spec_is_checked_when_declared(tmp_path):
     with pytest.raises(ModelError, match="needs filter_cls"):
         registry.MethodSpec(name="x", kind="filter", summary="", baseline=())

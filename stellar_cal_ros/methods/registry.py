@@ -6,7 +6,11 @@ it needs the site, and what runs it.  The registry collects them:
 
 * the package's own: every module of ``stellar_cal_ros/methods/`` whose source has a line
   starting ``METHOD = MethodSpec(`` is imported on first use (only those: the others, and
-  their imports, stay unloaded);
+  their imports, stay unloaded).  A look-up of one name (:func:`get`, :func:`find`, ``in``
+  :class:`MethodNames`) imports only the file whose declaration names it
+  (``METHOD = MethodSpec(name="psce", ...``): a ``psce`` replay does not import the ACF,
+  bundle or swaying-base modules, nor read the installed entry points (a plugin cannot
+  take a package method's name anyway: :func:`register` refuses it);
 * installed ones: entry points in the group ``stellar_cal_ros.methods`` (each names a
   :class:`MethodSpec` or a module holding ``METHOD``);
 * a user's file: :func:`load_method_module` (``stellar-cal ... --method-module FILE.py``).
@@ -41,7 +45,6 @@ import logging
 import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +57,8 @@ KINDS = ("filter", "batch")
 ENTRY_POINT_GROUP = "stellar_cal_ros.methods"
 #: how a method file of the package declares its spec (the registry imports only these)
 _DECLARATION = re.compile(r"^METHOD = MethodSpec\(", re.MULTILINE)
+#: the name a declaration gives first (``METHOD = MethodSpec(name="psce", ...``)
+_DECLARED_NAME = re.compile(r'^METHOD = MethodSpec\(\s*name="([a-z][a-z0-9_]*)"', re.MULTILINE)
 
 #: ``runner(data, prior, effects, keep_tables=False, eval_fraction=0.5, consider=None,
 #: gyro_fault="raise") -> ReplayResult``: one run over a bag as the diagnosis sees it
@@ -124,14 +129,37 @@ class MethodSpec:
 
 METHODS: dict[str, MethodSpec] = {}
 _loaded = False
+#: package methods registered by a one-name look-up before the full load (:func:`_load`
+#: registers them again in file order, so that :func:`names` keeps its order)
+_early: set[str] = set()
+_declarations: list[tuple[str, str | None]] | None = None
+
+
+def _package_declarations() -> list[tuple[str, str | None]]:
+    """(module, declared name or None) of this package's files that declare a method.
+
+    Sorted by file name; the name is None when the declaration does not start with a
+    literal ``name="..."`` (such a file is imported by every one-name look-up).
+    """
+    global _declarations
+    if _declarations is None:
+        here = Path(__file__).parent
+        out = []
+        for path in sorted(here.glob("*.py")):
+            if path.stem == "registry":
+                continue
+            text = path.read_text(encoding="utf-8")
+            if _DECLARATION.search(text):
+                m = _DECLARED_NAME.search(text)
+                out.append((f"{__package__}.{path.stem}", m.group(1) if m else None))
+        _declarations = out
+    return _declarations
 
 
 def _package_files() -> Iterator[str]:
     """Module names of this package's files that declare a method (sorted by file name)."""
-    here = Path(__file__).parent
-    for path in sorted(here.glob("*.py")):
-        if path.stem != "registry" and _DECLARATION.search(path.read_text(encoding="utf-8")):
-            yield f"{__package__}.{path.stem}"
+    for module, _ in _package_declarations():
+        yield module
 
 
 def _load() -> None:
@@ -141,7 +169,15 @@ def _load() -> None:
         return
     _loaded = True
     for name in _package_files():
-        _register_module(importlib.import_module(name), name)
+        module = importlib.import_module(name)
+        spec = getattr(module, "METHOD", None)
+        if isinstance(spec, MethodSpec) and spec.name in _early \
+                and METHODS.get(spec.name) is spec:
+            del METHODS[spec.name]  # registered early by a look-up: again, in file order
+        _register_module(module, name)
+    _early.clear()
+    from importlib.metadata import entry_points  # (~0.05 s: only when all are listed)
+
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         try:
             obj = ep.load()
@@ -152,6 +188,27 @@ def _load() -> None:
             register(obj)
         else:
             _register_module(obj, ep.value)
+
+
+def _lookup(name: str) -> MethodSpec | None:
+    """The spec of ``name``, importing only the package file that declares it if it can.
+
+    Before the full load, a name some package file declares is imported from that file
+    alone; any other name loads everything (plugins and all) and is looked up there.
+    """
+    spec = METHODS.get(name)
+    if spec is not None or _loaded:
+        return spec
+    for module, declared in _package_declarations():
+        if declared is None or declared == name:
+            spec = _register_module(importlib.import_module(module), module)
+            if not _loaded:
+                _early.add(spec.name)
+    spec = METHODS.get(name)
+    if spec is not None:
+        return spec
+    _load()
+    return METHODS.get(name)
 
 
 def _register_module(module: Any, where: str) -> MethodSpec:
@@ -204,17 +261,15 @@ def load_method_module(path: str | Path) -> str:
 
 def get(name: str) -> MethodSpec:
     """The spec of ``name``; :class:`ModelError` naming the known ones otherwise."""
-    _load()
-    try:
-        return METHODS[name]
-    except KeyError:
-        raise ModelError(f"unknown method {name!r} (one of {', '.join(names())})") from None
+    spec = _lookup(name)
+    if spec is None:
+        raise ModelError(f"unknown method {name!r} (one of {', '.join(names())})")
+    return spec
 
 
 def find(name: str | None) -> MethodSpec | None:
     """The spec of ``name``, None when no method has that name (``prior``, ``truth`` ...)."""
-    _load()
-    return METHODS.get(name or "")
+    return _lookup(name or "")
 
 
 def names(kind: str | None = None, diagnosable: bool = False) -> list[str]:
@@ -239,7 +294,9 @@ class MethodNames:
         return names(self.kind, self.diagnosable)
 
     def __contains__(self, name: object) -> bool:
-        return name in self._names()
+        spec = _lookup(name) if isinstance(name, str) else None  # (one file, not all)
+        return spec is not None and (self.kind is None or spec.kind == self.kind) and \
+            (spec.diagnosable or not self.diagnosable)
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._names())
