@@ -146,7 +146,9 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
     """A bag's IMU blocks merged across star frames (``replay._merged_imu``) reach the
     driver in fewer calls; where the filter's IMU chunks and frame runs split changes, not
     a float: the history CSV byte for byte and every number of the result as with the
-    blocks as read (``IMU_MERGE_S`` 0: no merge)."""
+    blocks as read (``IMU_MERGE_S`` 0: no merge).  A run that reads no environment or fix
+    message (``_env_unread``: this psce replay) merges across those too, fewer calls still,
+    the same bytes."""
     from stellar_cal_ros.methods import driver
     from stellar_cal_ros.methods import replay as replay_mod
 
@@ -158,13 +160,58 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
         return original(self, *a, **k)
 
     monkeypatch.setattr(driver.Calibrator, "push_imu_block", counted)
-    merge = replay_mod.IMU_MERGE_S
-    out = {}
-    for s in (0.0, merge):
+    merge, quiet = replay_mod.IMU_MERGE_S, replay_mod.IMU_MERGE_QUIET_S
+    unread = replay_mod._env_unread
+    out = []
+    # as read; across star frames only (cut at each environment or fix message); across all
+    for s, q, across_env in ((0.0, 0.0, False), (merge, quiet, False), (merge, quiet, True)):
         monkeypatch.setattr(replay_mod, "IMU_MERGE_S", s)
+        monkeypatch.setattr(replay_mod, "IMU_MERGE_QUIET_S", q)
+        monkeypatch.setattr(replay_mod, "_env_unread",
+                            unread if across_env else lambda cal: False)
         calls.append(0)
-        numbers = _replay(bags["mcap"], tmp_path / f"merge{s}.yaml")
-        out[s] = numbers, (tmp_path / f"merge{s}.history.csv").read_bytes()
-    assert 0 < calls[1] < 0.5 * calls[0]
-    assert out[merge][0] == out[0.0][0] and len(out[merge][0]) > 50
-    assert out[merge][1] == out[0.0][1] and out[merge][1].count(b"\n") > 100
+        numbers = _replay(bags["mcap"], tmp_path / f"merge{len(calls)}.yaml")
+        out.append((numbers, (tmp_path / f"merge{len(calls)}.history.csv").read_bytes()))
+    assert 0 < calls[2] < 0.2 * calls[1] and 0 < calls[1] < 0.5 * calls[0], calls
+    assert out[1][0] == out[0][0] == out[2][0] and len(out[0][0]) > 50
+    assert out[1][1] == out[0][1] == out[2][1] and out[0][1].count(b"\n") > 100
+
+
+def test_imu_merges_across_environment_messages_only_when_nothing_reads_them(bags) -> None:
+    """``_env_unread``: a psce replay without a residual table reads no environment or fix
+    message; a residual table (the head temperature column), a thermal effect (the head
+    temperature) or a site-bound method (the fixes' median) does, and its IMU blocks are
+    cut at those messages as before.  The merge hands the messages on in their order."""
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.io.calibration import load_calibration
+    from stellar_cal_ros.methods import replay as replay_mod
+    from stellar_cal_ros.methods.driver import Calibrator
+    from stellar_cal_ros.methods.results import NullSink, TableSink
+
+    prior = load_calibration(bags["mcap"].parent / "sim.prior.yaml")
+    assert replay_mod._env_unread(Calibrator(prior, "psce", residuals=NullSink()))
+    assert not replay_mod._env_unread(Calibrator(prior, "psce", residuals=TableSink()))
+    assert not replay_mod._env_unread(Calibrator(prior, "psce", ["thermal_focal_length"],
+                                                 residuals=NullSink()))
+    assert not replay_mod._env_unread(Calibrator(prior, "swaying_base", residuals=NullSink()))
+
+    def imu(t0):
+        t = np.arange(t0, t0 + 3, dtype=np.int64) * 10**7
+        return "imu", SimpleNamespace(stamp_ns=t, angular_velocity=np.zeros((3, 3)),
+                                      linear_acceleration=None, frame_id="imu")
+
+    head = SimpleNamespace(stamp_ns=np.array([5]), value=np.array([20.0]))
+    fix = SimpleNamespace(stamp_ns=np.array([6]), latitude_deg=np.array([1.0]),
+                          longitude_deg=np.array([2.0]), altitude_m=np.array([3.0]),
+                          status=np.array([0]))
+    stream = [imu(0), ("stars", "F1"), ("head", head), imu(3), ("fix", fix), ("stars", "F2"),
+              imu(6)]
+    cut = [(r, p if r != "imu" else len(p[0])) for r, p in replay_mod._merged_imu(stream)]
+    assert cut == [("imu", 3), ("stars", "F1"), ("head", (5, 20.0)), ("imu", 3),
+                   ("fix", (6, 1.0, 2.0, 3.0, 0)), ("stars", "F2"), ("imu", 3)]
+    across = replay_mod.ENV_ROLES | {"stars"}
+    merged = [(r, p if r != "imu" else len(p[0]))
+              for r, p in replay_mod._merged_imu(stream, across, 30.0)]
+    assert merged == [("imu", 9), ("stars", "F1"), ("head", (5, 20.0)),
+                      ("fix", (6, 1.0, 2.0, 3.0, 0)), ("stars", "F2")]
