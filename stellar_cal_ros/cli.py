@@ -364,7 +364,7 @@ def print_replay_summary(result, prior) -> None:
             f'{v:+.3f}"+-{s:.3f}' for v, s in zip(flt.theta[sl] / ARCSEC,
                                                    flt.sigma()[flt.it][sl] / ARCSEC,
                                                    strict=True)))
-    print(f"installation quaternion_xyzw: {np.round(cal.installation.as_quat(), 9).tolist()}")
+    print(f"installation quaternion_xyzw: {np.round(cal.installation_quat, 9).tolist()}")
     print(f"gyro bias: {np.round(np.asarray(cal.gyro_bias) / DEG_PER_HOUR, 5).tolist()} deg/h"
           + ("" if Stage.ACCEL not in spec.stages else "; accelerometer bias: "
              f"{np.round(np.asarray(cal.accel_bias) / MICRO_G, 2).tolist()} ug"))

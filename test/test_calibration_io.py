@@ -257,3 +257,47 @@ def test_history_rows_gathered_in_blocks_are_the_row_by_row_bytes(tmp_path):
     table = memory.table()
     assert table["dof"].dtype.kind == "i" and table["t"].dtype.kind == "f"
     np.testing.assert_array_equal(table["c"], expected)
+
+
+def test_installation_is_the_rotation_of_the_files_quaternion_bit_for_bit(tmp_path: Path) -> None:
+    """A file's installation is kept as its unit quaternion and made a ``Rotation`` when
+    read (issue 24.1: a replay no longer imports ``scipy.spatial``): the same floats as
+    ``Rotation.from_quat`` of the file's numbers, and the installation effect's result is
+    ``prior.installation * Rotation.from_rotvec(δ)``, bit for bit."""
+    import copy
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    from stellar_cal_ros.effects.installation import Installation
+    from stellar_cal_ros.io.calibration import store_estimate
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        q = rng.normal(size=4)  # a file's quaternion: unit to its printed digits
+        d = _minimal()
+        d["installation"]["quaternion_xyzw"] = (q / np.linalg.norm(q)
+                                                * (1 + rng.uniform(-1e-9, 1e-9))).tolist()
+        cal = calibration_from_dict(d)
+        ref = Rotation.from_quat(d["installation"]["quaternion_xyzw"])
+        assert isinstance(cal.installation, Rotation)
+        assert np.array_equal(cal.installation.as_quat(), ref.as_quat())
+        assert np.array_equal(cal.installation_quat, ref.as_quat())
+        assert np.array_equal(cal.R_imu_st, ref.as_matrix())
+        eff = Installation()
+        eff.initial(cal)
+        delta = rng.normal(size=3) * rng.choice([1e-5, 1e-3, 0.1])
+        out = store_estimate(cal, [eff], {"installation": slice(0, 3)}, delta, np.ones(3),
+                             "psce", 0.0)
+        want = ref * Rotation.from_rotvec(delta)
+        assert np.array_equal(out.installation.as_quat(), want.as_quat())
+        assert np.array_equal(out.R_imu_st, want.as_matrix())
+        assert np.array_equal(eff.nominal.as_quat(), ref.as_quat())
+    # a Rotation assigned, copies and replacements: the same rotation
+    cal.installation = want
+    assert cal.installation is want and np.array_equal(cal.installation_quat, want.as_quat())
+    for other in (copy.deepcopy(cal), dataclasses.replace(cal)):
+        assert other == cal and np.array_equal(other.installation.as_quat(), want.as_quat())
+    save_calibration(out, tmp_path / "r.yaml")
+    back = load_calibration(tmp_path / "r.yaml")
+    assert back == out  # (to 1e-15: the file's numbers are the quaternion's repr)

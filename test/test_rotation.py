@@ -229,3 +229,38 @@ def test_jacobian_series_continuity() -> None:
         rot.left_jacobian_inverse,
     ):
         np.testing.assert_allclose(f(below), f(above), atol=1e-15, rtol=0)
+
+
+def test_scipy_floats_without_scipy_are_rotations_bit_for_bit() -> None:
+    """``scipy_*`` (what a replay uses instead of importing ``scipy.spatial``, issue 24.1)
+    give ``Rotation``'s floats exactly: normalising, to a matrix, from an orthonormal matrix
+    (every pivot, ties, few and many matrices), from rotation vectors on both sides of the
+    series' 1e-3 rad, and composing stored quaternions."""
+    rng = np.random.default_rng(24)
+    n = 20_000
+    q = rng.normal(size=(n, 4)) * rng.choice([1e-3, 1.0, 1e3], size=(n, 1))
+    r = Rotation.from_quat(q)
+    assert np.array_equal(rot.scipy_quat(q), r.as_quat())
+    assert np.array_equal(rot.scipy_matrix(r.as_quat()), r.as_matrix())
+    U, _, Vt = np.linalg.svd(r.as_matrix() + rng.normal(size=(n, 3, 3)) * 1e-9)
+    m = U @ Vt
+    m[np.linalg.det(m) < 0] *= -1
+    m[:6] = [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1]),
+             Rotation.from_rotvec([0, 0, np.pi / 2]).as_matrix(),
+             Rotation.from_rotvec([np.pi, 0, 0]).as_matrix()]
+    ref = Rotation.from_matrix(m, assume_valid=True)
+    assert np.array_equal(rot.scipy_quat_from_matrix(m), ref.as_quat())
+    assert np.array_equal(rot.scipy_matrix_roundtrip(m), ref.as_matrix())
+    for k in (1, 2, 3, 8):  # the Python-float path of a few matrices
+        for a in range(0, 600, k):
+            assert np.array_equal(rot.scipy_matrix_roundtrip(m[a:a + k]),
+                                  Rotation.from_matrix(m[a:a + k], assume_valid=True).as_matrix())
+    v = rng.normal(size=(n, 3)) * rng.choice([0.0, 1e-6, 0.999e-3, 1e-3, 1.001e-3, 1e-2, 3.0],
+                                              size=(n, 1))
+    assert np.array_equal(rot.scipy_quat_from_rotvec(v), Rotation.from_rotvec(v).as_quat())
+    assert np.array_equal(rot.scipy_quat_from_rotvec(v[7]), Rotation.from_rotvec(v[7]).as_quat())
+    assert np.array_equal(rot.scipy_compose(r.as_quat(), rot.scipy_quat_from_rotvec(v)),
+                          (r * Rotation.from_rotvec(v)).as_quat())
+    # (normalising a stored quaternion again moves some by an ulp: the functions take the
+    # stored one, never Rotation.from_quat of it)
+    assert not np.array_equal(rot.scipy_quat(r.as_quat()), r.as_quat())

@@ -8,10 +8,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.core.camera import CameraModel
-from stellar_cal_ros.core.rotation import skew, so3_exp
+from stellar_cal_ros.core.rotation import scipy_matrix_roundtrip, skew, so3_exp
 from stellar_cal_ros.errors import ModelError
 
 
@@ -47,7 +46,8 @@ def batched_wahba(
     """Least-squares rotations ``R`` with ``directions_ref ≈ R @ directions_st`` (SVD).
 
     ``B = Σ w ref stᵀ = U S Vᵀ``, ``R = U diag(1, 1, det U · det V) Vᵀ``, for many frames at
-    once, then through a unit quaternion (:class:`scipy.spatial.transform.Rotation`), which
+    once, then through a unit quaternion (:class:`scipy.spatial.transform.Rotation`'s floats:
+    :func:`~stellar_cal_ros.core.rotation.scipy_matrix_roundtrip`), which
     keeps ``RᵀR`` at the identity to ~1e-15 (2e-15 without).  With equal weights a frame's
     ``R`` is bit for bit :meth:`~scipy.spatial.transform.Rotation.align_vectors`'s, at a
     fraction of its per-call cost.
@@ -72,7 +72,7 @@ def batched_wahba(
     U, _, Vt = np.linalg.svd(B)
     sign = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
     U[:, :, 2] *= sign[:, None]
-    return Rotation.from_matrix(U @ Vt, assume_valid=True).as_matrix()
+    return scipy_matrix_roundtrip(U @ Vt)
 
 
 def fit_frame_attitude(

@@ -36,6 +36,12 @@ __all__ = [
     "left_jacobian_inverse",
     "orthonormalize",
     "quat_conjugate",
+    "scipy_compose",
+    "scipy_matrix",
+    "scipy_matrix_roundtrip",
+    "scipy_quat",
+    "scipy_quat_from_matrix",
+    "scipy_quat_from_rotvec",
     "quat_from_matrix",
     "quat_from_rotvec",
     "quat_multiply",
@@ -542,3 +548,132 @@ def left_jacobian_inverse(phi: ArrayLike) -> FloatArray:
         Inverse left Jacobians (dimensionless).
     """
     return _jacobian_inverse(phi, -1.0)
+
+
+# ------------------------------------------------------------------------------------------
+# The floats of scipy's ``Rotation`` without importing it (issue 24.1: ``scipy.spatial``
+# costs a replay ~0.1 CPU-s of start-up).  Each function below performs the operations of
+# scipy's compiled conversion in the same order (IEEE double, no fused multiply-add), so its
+# result is bit for bit ``Rotation``'s — held by test_rotation.py on random inputs.  Quaternions
+# are scalar-last and *stored* (what ``Rotation.as_quat()`` returns); the functions above
+# (Shepperd's method, sinc forms) are this package's own and round differently.
+# ------------------------------------------------------------------------------------------
+
+
+def _norm4(q: FloatArray) -> FloatArray:
+    return np.sqrt(((q[..., 0] * q[..., 0] + q[..., 1] * q[..., 1]) + q[..., 2] * q[..., 2])
+                   + q[..., 3] * q[..., 3])
+
+
+def scipy_quat(q: ArrayLike) -> FloatArray:
+    """``Rotation.from_quat(q).as_quat()``: ``q`` over its norm, shape (..., 4)."""
+    q = np.array(q, dtype=np.float64)
+    return q / _norm4(q)[..., None]
+
+
+def scipy_matrix(q: ArrayLike) -> FloatArray:
+    """``as_matrix()`` of a ``Rotation`` that stores the unit quaternion ``q`` (..., 4)."""
+    q = np.asarray(q, dtype=np.float64)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    xx, yy, zz, ww = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    m = np.empty(q.shape[:-1] + (3, 3))
+    m[..., 0, 0] = ((xx - yy) - zz) + ww
+    m[..., 0, 1] = 2 * (xy - zw)
+    m[..., 0, 2] = 2 * (xz + yw)
+    m[..., 1, 0] = 2 * (xy + zw)
+    m[..., 1, 1] = ((-xx + yy) - zz) + ww
+    m[..., 1, 2] = 2 * (yz - xw)
+    m[..., 2, 0] = 2 * (xz - yw)
+    m[..., 2, 1] = 2 * (yz + xw)
+    m[..., 2, 2] = ((-xx - yy) + zz) + ww
+    return m
+
+
+def scipy_quat_from_matrix(R: ArrayLike) -> FloatArray:
+    """``Rotation.from_matrix(R, assume_valid=True).as_quat()`` (R orthonormal, (..., 3, 3)).
+
+    The pivot is the largest of the diagonal and the trace (the first one on a tie); the
+    quaternion is not made canonical (w may be negative).
+    """
+    R = np.asarray(R, dtype=np.float64)
+    m = [[R[..., a, b] for b in range(3)] for a in range(3)]
+    tr = (m[0][0] + m[1][1]) + m[2][2]
+    one = 1 - tr
+    cands = np.stack([
+        np.stack([one + 2 * m[0][0], m[1][0] + m[0][1], m[2][0] + m[0][2], m[2][1] - m[1][2]],
+                 axis=-1),
+        np.stack([m[0][1] + m[1][0], one + 2 * m[1][1], m[2][1] + m[1][2], m[0][2] - m[2][0]],
+                 axis=-1),
+        np.stack([m[0][2] + m[2][0], m[1][2] + m[2][1], one + 2 * m[2][2], m[1][0] - m[0][1]],
+                 axis=-1),
+        np.stack([m[2][1] - m[1][2], m[0][2] - m[2][0], m[1][0] - m[0][1], 1 + tr], axis=-1),
+    ], axis=-2)
+    pick = np.argmax(np.stack([m[0][0], m[1][1], m[2][2], tr], axis=-1), axis=-1)
+    q = np.take_along_axis(cands, pick[..., None, None], axis=-2)[..., 0, :]
+    return q / _norm4(q)[..., None]
+
+
+def _roundtrip_one(R: list) -> list:
+    """:func:`scipy_matrix_roundtrip` of one matrix (nested lists of Python floats)."""
+    (a, b, c), (d, e, f), (g, h, i) = R
+    tr = (a + e) + i
+    piv = max(range(4), key=(a, e, i, tr).__getitem__)  # (the first largest)
+    if piv == 0:
+        x, y, z, w = (1 - tr) + 2 * a, d + b, g + c, h - f
+    elif piv == 1:
+        x, y, z, w = b + d, (1 - tr) + 2 * e, h + f, c - g
+    elif piv == 2:
+        x, y, z, w = c + g, f + h, (1 - tr) + 2 * i, d - b
+    else:
+        x, y, z, w = h - f, c - g, d - b, 1 + tr
+    n = math.sqrt(((x * x + y * y) + z * z) + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    xx, yy, zz, ww = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return [[((xx - yy) - zz) + ww, 2 * (xy - zw), 2 * (xz + yw)],
+            [2 * (xy + zw), ((-xx + yy) - zz) + ww, 2 * (yz - xw)],
+            [2 * (xz - yw), 2 * (yz + xw), ((-xx - yy) + zz) + ww]]
+
+
+def scipy_matrix_roundtrip(R: ArrayLike) -> FloatArray:
+    """``Rotation.from_matrix(R, assume_valid=True).as_matrix()`` of matrices (F, 3, 3).
+
+    A few matrices go through Python floats (a few µs each), many through numpy.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if R.ndim == 3 and len(R) <= 8:
+        return np.array([_roundtrip_one(r) for r in R.tolist()]).reshape(R.shape)
+    return scipy_matrix(scipy_quat_from_matrix(R))
+
+
+def scipy_quat_from_rotvec(phi: ArrayLike) -> FloatArray:
+    """``Rotation.from_rotvec(phi).as_quat()`` (..., 3) → (..., 4); not normalised again.
+
+    Row by row with :mod:`math`'s ``sin``/``cos`` (the C library's, as scipy's; numpy's own
+    vectorised ones may round differently on some CPUs).
+    """
+    phi = np.asarray(phi, dtype=np.float64)
+    out = []
+    for x, y, z in phi.reshape(-1, 3).tolist():
+        angle = math.sqrt((x * x + y * y) + z * z)
+        if angle <= 1e-3:
+            a2 = angle * angle
+            scale = (0.5 - a2 / 48) + a2 * a2 / 3840
+        else:
+            scale = math.sin(angle / 2) / angle
+        out.append((scale * x, scale * y, scale * z, math.cos(angle / 2)))
+    return np.array(out, dtype=np.float64).reshape(phi.shape[:-1] + (4,))
+
+
+def scipy_compose(p: ArrayLike, q: ArrayLike) -> FloatArray:
+    """``(Rotation(p) * Rotation(q)).as_quat()`` of stored quaternions (..., 4), normalised."""
+    p = np.asarray(p, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    px, py, pz, pw = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    qx, qy, qz, qw = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = np.stack([(pw * qx + qw * px) + (py * qz - pz * qy),
+                  (pw * qy + qw * py) + (pz * qx - px * qz),
+                  (pw * qz + qw * pz) + (px * qy - py * qx),
+                  ((pw * qw - px * qx) - py * qy) - pz * qz], axis=-1)
+    return r / _norm4(r)[..., None]

@@ -21,11 +21,15 @@ no Coriolis or centrifugal terms appear because the frame does not rotate.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 __all__ = [
     "attitude_increments",
@@ -156,6 +160,8 @@ def attitude_prefix(phi: ArrayLike) -> NDArray[np.float64]:
         ``C_aᵀ C_b`` — two lookups instead of a product over the samples in between
         (:func:`quat_cumprod`: rounding ~``log2(N) eps``).
     """
+    from scipy.spatial.transform import Rotation  # (here: a replay does not call it)
+
     p = np.asarray(phi, dtype=np.float64).reshape(-1, 3)
     q = np.empty((p.shape[0] + 1, 4))
     q[0] = (0.0, 0.0, 0.0, 1.0)
@@ -247,6 +253,8 @@ def propagate_attitude(
         ``R_k = R_{k-1} Exp(phi_k)``: the attitude at the END of each sample interval (at each
         stamp), computed as ``q_0 (x) Exp(phi_1) (x) ... `` with :func:`quat_cumprod`.
     """
+    from scipy.spatial.transform import Rotation  # (here: a replay does not call it)
+
     w = np.asarray(angular_velocity, dtype=np.float64)
     if gyro_bias is not None:
         w = w - np.asarray(gyro_bias, dtype=np.float64)
@@ -323,7 +331,8 @@ def velocity_increments(
 
 
 def _as_matrices(R: Rotation | ArrayLike) -> NDArray[np.float64]:
-    if isinstance(R, Rotation):
+    transform = sys.modules.get("scipy.spatial.transform")  # (not imported: R is no Rotation)
+    if transform is not None and isinstance(R, transform.Rotation):
         return R.as_matrix()
     return np.asarray(R, dtype=np.float64)
 

@@ -5,9 +5,11 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from stellar_cal_ros.core.rotation import scipy_compose, scipy_quat_from_rotvec
 from stellar_cal_ros.effects.base import Effect, ExportRole, FrameContext, Plausible, Stage
+
+_IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
 
 
 class Installation(Effect):
@@ -33,16 +35,31 @@ class Installation(Effect):
     )
 
     def __init__(self) -> None:
-        self.nominal = Rotation.identity()
+        #: the prior's installation as its unit quaternion (``Rotation.as_quat()``): the
+        #: result is composed with the floats of ``nominal * Rotation.from_rotvec(δ)``
+        #: without importing ``scipy.spatial`` (:mod:`~stellar_cal_ros.core.rotation`)
+        self.nominal_quat = _IDENTITY_Q
+
+    @property
+    def nominal(self):
+        """The prior's installation, a ``scipy`` ``Rotation``."""
+        from scipy.spatial.transform import Rotation
+
+        return Rotation(self.nominal_quat, normalize=False)
+
+    @nominal.setter
+    def nominal(self, value) -> None:
+        self.nominal_quat = np.asarray(value.as_quat(), dtype=float)
 
     def initial(self, prior: Any) -> tuple[np.ndarray, np.ndarray]:  # noqa: D102
-        self.nominal = prior.installation
+        self.nominal_quat = prior.installation_quat
         sig = (prior.sigma or {}).get("installation", {}).get("rotation_vector")
         sigma = np.asarray(sig, dtype=float) if sig else np.asarray(self.default_sigma)
         return np.zeros(3), sigma
 
     def store(self, value: np.ndarray, sigma: np.ndarray, cal: Any) -> None:  # noqa: D102
-        cal.installation = self.nominal * Rotation.from_rotvec(value)
+        cal.set_installation_quat(scipy_compose(self.nominal_quat,
+                                                scipy_quat_from_rotvec(value)))
         cal.sigma["installation"] = {"rotation_vector": [float(s) for s in sigma]}
 
     def tracker_rotation(self, value: np.ndarray, ctx: FrameContext) -> np.ndarray:  # noqa: D102

@@ -31,17 +31,20 @@ import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from stellar_cal_ros.core.camera import CameraModel
+from stellar_cal_ros.core.rotation import scipy_matrix, scipy_quat
 from stellar_cal_ros.errors import CalibrationFileError, StellarCalError
 from stellar_cal_ros.io.covariance_file import COVARIANCE_FORMAT, Covariance, covariance_path
 from stellar_cal_ros.io.yaml_style import Dumper, plain
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 __all__ = [
     "FORMAT",
@@ -98,6 +101,10 @@ class Calibration:
         Projection model (pinhole + OpenCV distortion, 14 coefficients).
     installation : scipy.spatial.transform.Rotation
         ``R_imu_st``: star tracker frame in the IMU frame, ``v_imu = R_imu_st v_st``.
+        Made from its unit quaternion when first read: a file's calibration holds the
+        quaternion (:attr:`installation_quat`, :attr:`R_imu_st` read it without importing
+        ``scipy.spatial``, ~0.1 CPU-s of a replay's start-up); assigning a ``Rotation``
+        works as always.
     gyro_bias : ndarray of float64, shape (3,)
         rad/s, IMU frame.
     gyro_error_matrix : ndarray of float64, shape (3, 3)
@@ -156,14 +163,33 @@ class Calibration:
 
     @property
     def R_imu_st(self) -> NDArray[np.float64]:
-        """Installation rotation matrix, shape (3, 3)."""
-        return np.asarray(self.installation.as_matrix(), dtype=np.float64)
+        """Installation rotation matrix, shape (3, 3) (``installation.as_matrix()``)."""
+        return scipy_matrix(self._installation_quat())
+
+    @property
+    def installation_quat(self) -> NDArray[np.float64]:
+        """The installation's unit quaternion ``[x, y, z, w]`` (``installation.as_quat()``)."""
+        return self._installation_quat().copy()
+
+    def set_installation_quat(self, q: NDArray[np.float64]) -> None:
+        """The installation from the unit quaternion a ``Rotation`` would store.
+
+        Not normalised again: e.g. a :mod:`~stellar_cal_ros.core.rotation` ``scipy_*`` result.
+        """
+        self.installation = _UnitQuat(q)
+
+    def _installation_quat(self) -> NDArray[np.float64]:
+        q = self.__dict__.get("_inst_q")
+        if q is None:
+            q = self.__dict__["_inst_q"] = np.asarray(self.installation.as_quat(),
+                                                      dtype=np.float64)
+        return q
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Calibration):
             return NotImplemented
-        q1 = self.installation.as_quat()
-        q2 = other.installation.as_quat()
+        q1 = self._installation_quat()
+        q2 = other._installation_quat()
         same_rot = bool(np.allclose(q1, q2, rtol=0, atol=1e-15) or np.allclose(q1, -q2, atol=1e-15))
         arrays = ("gyro_bias", "gyro_error_matrix", "accel_bias", "accel_error_matrix")
         scalars = ("time_offset", "effects", "sigma", "method", "stamp", "frames", "estimated",
@@ -176,6 +202,37 @@ class Calibration:
         )
 
     __hash__ = None  # type: ignore[assignment]
+
+
+class _UnitQuat:
+    """An installation given as a stored unit quaternion (``set_installation_quat``)."""
+
+    __slots__ = ("q",)
+
+    def __init__(self, q) -> None:
+        self.q = np.array(q, dtype=np.float64).reshape(4)
+
+
+def _get_installation(self: Calibration) -> Rotation:
+    rot = self.__dict__.get("_inst_rot")
+    if rot is None:  # the Rotation that stores this quaternion, as Rotation.from_quat made it
+        from scipy.spatial.transform import Rotation
+
+        rot = self.__dict__["_inst_rot"] = Rotation(self.__dict__["_inst_q"], normalize=False)
+    return rot
+
+
+def _set_installation(self: Calibration, value: Any) -> None:
+    if isinstance(value, _UnitQuat):
+        self.__dict__["_inst_q"], self.__dict__["_inst_rot"] = value.q, None
+    else:
+        self.__dict__["_inst_q"], self.__dict__["_inst_rot"] = None, value
+
+
+# set after the dataclass is made: its __init__ (and dataclasses.replace, copy) go through it
+Calibration.installation = property(  # type: ignore[assignment]
+    _get_installation, _set_installation,
+    doc="R_imu_st as a scipy Rotation (made from the unit quaternion when first read).")
 
 
 # --------------------------------------------------------------------------------------------
@@ -306,7 +363,7 @@ def calibration_from_dict(d: Mapping[str, Any], source: str = "<dict>") -> Calib
     extra = {k: plain(v) for k, v in d.items() if k not in _KNOWN_KEYS}
     cal = Calibration(
         camera=camera,
-        installation=Rotation.from_quat(q),
+        installation=_UnitQuat(scipy_quat(q)),  # Rotation.from_quat(q)'s quaternion
         gyro_bias=gyro_bias,
         gyro_error_matrix=gyro_err,
         accel_bias=acc_bias,
@@ -408,7 +465,7 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
         "stamp": float(cal.stamp),
         "frames": {str(k): str(v) for k, v in cal.frames.items()},
         "camera": plain(cal.camera.to_yaml_dict()),
-        "installation": {"quaternion_xyzw": plain(np.asarray(cal.installation.as_quat()))},
+        "installation": {"quaternion_xyzw": plain(cal.installation_quat)},
         "gyro": {
             "bias": plain(np.asarray(cal.gyro_bias, float).reshape(3)),
             "error_matrix": plain(np.asarray(cal.gyro_error_matrix, float).reshape(9)),

@@ -306,7 +306,7 @@ class StarFilter(Acquisition):
         #: the gyro-against-stars check's state (None: off or decided)
         self.gyro_watch = gyro_check.new_watch() if c.unit_check else None
         #: the gyro watch's installation (the prior's)
-        self._R_imu_st_prior = model.prior.installation.as_matrix()
+        self._R_imu_st_prior = model.prior.R_imu_st
         self._R_prior: tuple[np.ndarray, bool] | None = None  # (R_i_b propagated, gap)
         self.data_faults: list[str] = []  #: why the result is degraded (one line each)
 

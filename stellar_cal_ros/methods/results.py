@@ -841,7 +841,7 @@ def epp_jacobian(model: StarModel, theta: np.ndarray, columns: int
     ``1e-6 · max(1, |θ_j|)``).
     """
     ctx = FrameContext(stamp=0.0)
-    b = model.prior.installation.as_matrix()[:, 2]  # nominal boresight in the IMU frame
+    b = model.prior.R_imu_st[:, 2]  # nominal boresight in the IMU frame
 
     def value(th: np.ndarray) -> np.ndarray:
         return boresight_pixel(model.camera_at(th, ctx), model.installation_at(th, ctx)[0], b)

@@ -104,7 +104,7 @@ class StarModel:
         self.initial_sigma = np.concatenate(sigmas) if sigmas else np.zeros(0)
         self._camera_prior = prior.camera.parameters()
         self._camera_cols_cache: tuple[Any, Any, Any] | None = None  # see _camera_columns
-        self._R_imu_st_prior = prior.installation.as_matrix()  # cached: scipy is slow per call
+        self._R_imu_st_prior = prior.R_imu_st  # cached: scipy is slow per call
         self._by_stage = {st: [e for e in self.effects if e.stage is st] for st in Stage}
         self.fixed_effects: list[tuple[Effect, np.ndarray]] = self._fixed_effects(prior)
         # DIRECTION and CAMERA chains: (effect, slice of θ or None, fixed value or None)
