@@ -340,6 +340,24 @@ def test_structure_fits_hold_their_level_on_ar1_noise(ar1_table, monkeypatch):
         (white.scale, white.sigma, white.subpixel_p, white.rolling_p, white.structure)
 
 
+def test_ar1_scale_sigma_is_its_scatter_over_draws(ar1_table):
+    """The stars' scale σ printed under AR(1) centroid noise (τ ≈ 9.5 frames, φ 0.9) is the
+    scale's SD over 160 pure draws into one 150 s bag's residual table: SD / rms printed σ
+    within 1 ± 2 of the ratio's σ, 1/√(2 (N − 1)) (0.056).  The σ counts the variance of
+    Σ q through the frames' attitude fit and the cells' means, and that of the dof the cells'
+    shares take from ρ̂ (read from the same residuals: a realization with more long-run
+    power reads both more Σ q and a higher ρ̂; noise_stars._correlated_variance).  Here
+    1.073; the sandwich × the tracks' factor (main) read 1.264 on the same draws (0.973 /
+    1.130 with seed 5; 300 s bags 21-90: 1.129 ± 0.096, main 1.224 ± 0.104)."""
+    nl, (res, cam, R) = ar1_table
+    reps = 160
+    rng = np.random.default_rng(7)
+    got = np.array([(sn.scale, sn.sigma) for sn in (
+        nl.one(res, cam, R, SIGMA * nl.track_noise(res, rng, 0.9)) for _ in range(reps))])
+    ratio = got[:, 0].std(ddof=1) / np.sqrt(np.mean(got[:, 1] ** 2))
+    assert abs(ratio - 1.0) < 2.0 / np.sqrt(2.0 * (reps - 1)), ratio
+
+
 def test_structure_fits_find_pixel_locking_and_a_readout_under_ar1_noise(ar1_table):
     """Referred to the tracks' correlation, the fits still find what they are for under
     AR(1) noise (τ 5 frames): pixel locking of PIXEL px and a 3 ms readout fire in every

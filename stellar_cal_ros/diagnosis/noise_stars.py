@@ -111,6 +111,10 @@ class StarNoise:
     #: below :data:`ALPHA`; referred to the tracks' correlation where it is significant)
     subpixel_p: float = 1.0
     rolling_p: float = 1.0
+    #: tracks correlated (:attr:`scatter_rho` > 0): the variance of ``log s²`` over all the
+    #: rows, exact through the steps (:func:`_correlated_variance`), the σ and dof of the
+    #: scale over all the rows (:meth:`group`); None: white tracks (the sandwich alone)
+    log_variance: float | None = None
 
     @property
     def repeat_p(self) -> float:
@@ -143,11 +147,15 @@ class StarNoise:
         # summed per frame first: a frame's stars share its attitude fit (3 dof taken
         # from a few stars' residuals make their ‖r‖² covary: row by row the σ read 0.86x
         # the scatter on white noise in frames of 4-7 stars, 0.96x in a psce bag's ~20)
+        s = math.sqrt(max(v, 0.0))
+        if self.log_variance is not None and self.scatter_rho > 0.0 and bool(np.all(mask)):
+            # all the rows, tracks correlated: the variance through every step under the
+            # tracks' model (:func:`_correlated_variance`); its dof as a χ²'s (2 / Var log)
+            return s, 0.5 * s * math.sqrt(self.log_variance), 2.0 / self.log_variance
         e = self.q[mask] - v * self.m[mask]
         if self.frame is not None:
             e = np.bincount(np.unique(self.frame[mask], return_inverse=True)[1].reshape(-1), e)
         var = float(np.sum(e**2)) / m**2
-        s = math.sqrt(max(v, 0.0))
         f = self.inflation(mask)
         return s, math.sqrt(var * f) / max(2.0 * s, 1e-300), m / f
 
@@ -239,8 +247,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     scatter_rho, scatter_share = (rep_track.phi, rep_track.share) if significant else (0.0, 1.0)
     r, share, chi2, dof = _minus_cell_means(r, cell, keep_cell)
     if scatter_rho > 0.0:
-        share = np.where(share > 0, cell_shares(cell, keep_cell, stars, scatter_rho,
-                                                scatter_share), share)
+        cells_at_rho = cell_shares(cell, keep_cell, stars, scatter_rho, scatter_share)
+        share = np.where(share > 0, cells_at_rho, share)
     share = share * sub_share
     # ... and so is an error that repeats star by star (a catalogue position error): its
     # per-star means are tested, and removed when significant
@@ -287,18 +295,213 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     out = estimate(r, share)
     if out is None:
         return None
+    final = (r, share)
     out.repeat, out.repeat_dof = rep / max(out.scale, 1e-300) ** 2, rep_dof
     if out.repeat_p < ALPHA:
         rms = out.repeat_rms_px
-        out = estimate(r_star, share_star) or out
+        star_out = estimate(r_star, share_star)
+        if star_out is not None:
+            out, final = star_out, (r_star, share_star)
         out.repeat, out.repeat_dof, out.repeat_removed = rep / max(out.scale, 1e-300) ** 2, \
             rep_dof, rms
+    if scatter_rho > 0.0:
+        # tracks correlated: the σ of the scale from the variance of Σ q through the
+        # frames' attitude fit, the cells' means and the stars' (when removed), and of the
+        # dof it is divided by, which the cells' shares take from ρ̂ (:func:`cell_shares`),
+        # read from the same residuals: not the sandwich times a per-track factor
+        dm = 0.0
+        if scatter_share == 1.0:  # (white + AR(1): (w, φ) fitted jointly, not counted)
+            step = 1e-4
+            d_cells = (cell_shares(cell, keep_cell, stars, scatter_rho + step)
+                       - cells_at_rho) / step
+            r_f, share_f = final
+            use = np.isfinite((r_f**2).sum(1)) & ((2.0 - lev) * share_f > 0)
+            dm = float(np.sum(((2.0 - lev) * sub_share * d_cells)[use]))
+        out.log_variance = _correlated_variance(
+            sub, sigma_px[idx], fx, fy, r_cells, cell, keep_cell, stars, final,
+            out.repeat_removed > 0, lev, (scatter_share, scatter_rho), out, dm)
+        out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
     out.structure, out.structure_dof = chi2 / max(out.scale, 1e-300) ** 2, dof
     out.track_rho, out.track_pairs = track.rho, track.pairs
     out.track_phi, out.track_share = track.phi, track.share
     out.track_factor_sigma = track.factor_sigma
     out.subpixel_p, out.rolling_p = p_sub, p_roll
     return out
+
+
+#: Rademacher probes of :func:`quadratic_variance`'s traces (fixed seed): enough for
+#: TRACE_ROWS probe-rows, at most TRACE_PROBES.  One probe on a 300 s psce table (5 700
+#: rows) put the scale's σ within ~2 % of 256 probes' (16: 0.4 %); the spread falls as
+#: 1/√(rows × probes), so a 2-h bag's 140 000 rows take one (the cost is linear in both)
+TRACE_PROBES = 16
+TRACE_ROWS = 100_000
+
+
+def _indicator(label: np.ndarray):
+    """The sparse ``(groups, rows)`` indicator of ``label`` and each group's row count."""
+    from scipy.sparse import csr_matrix
+
+    _, k = np.unique(label, return_inverse=True)
+    k = np.asarray(k).reshape(-1)
+    ind = csr_matrix((np.ones(len(k)), (k, np.arange(len(k)))), shape=(int(k.max()) + 1, len(k)))
+    return ind, np.bincount(k).astype(float)
+
+
+def _minus_means(label: np.ndarray, rows: np.ndarray):
+    """``z ↦ z`` minus its mean per ``label`` over ``rows``, 0 elsewhere (a projection)."""
+    ind, n = _indicator(np.asarray(label)[rows])
+
+    def step(z: np.ndarray) -> np.ndarray:
+        out = np.zeros_like(z)
+        zr = z[rows].reshape(int(rows.sum()), -1)
+        out[rows] = (zr - ind.T @ ((ind @ zr) / n[:, None])).reshape(z[rows].shape)
+        return out
+    return step
+
+
+def _minus_frame_fit(A: np.ndarray, frame: np.ndarray):
+    """``z ↦ (I − P_W) z``: :func:`~.stats.within_frame`'s attitude fit as a projection.
+
+    ``A``: the whitened attitude columns ``(n, 2, 3)`` of rows whose frames it fitted.
+    """
+    ind, _ = _indicator(frame)
+    Gi = np.linalg.inv((ind @ np.einsum("iak,ial->ikl", A, A).reshape(len(A), 9)
+                        ).reshape(-1, 3, 3))
+    Af = A.reshape(len(A), 2, 3)
+
+    def step(z: np.ndarray) -> np.ndarray:
+        K = z.shape[2]
+        b = (ind @ np.einsum("iak,iaj->ikj", Af, z).reshape(len(A), 3 * K)).reshape(-1, 3, K)
+        c = Gi @ b
+        return z - np.einsum("iak,ikj->iaj", Af, (ind.T @ c.reshape(len(c), 3 * K)
+                                                  ).reshape(len(A), 3, K))
+    return step
+
+
+def quadratic_variance(forms: list, track: np.ndarray, lags: tuple[float, float],
+                       probes: int | None = None) -> tuple[float, ...]:
+    """``tr(X Σ Y Σ)`` over the pairs of ``forms`` (``z ~ N(0, Σ)``): ``Cov(zᵀXz, zᵀYz) / 2``.
+
+    Each form ``X = Mᵀ M`` (or ``Mᵀ K M`` when its last step ``K`` is symmetric but no
+    projection): its steps ``M`` applied in order, each symmetric (a fit's or a group's means
+    removed, rows left out set to 0), then back (``X = P_1 … P_k … P_1``).  ``Σ``: the tracks'
+    unit-variance noise (:func:`~.noise_structure.along_tracks` with ``lags``, rows of each
+    ``track`` in time order, the axes independent).  For a Gaussian ``z``, ``Var zᵀXz = 2
+    tr((XΣ)²)``.  By Hutchinson's estimator over ``probes`` Rademacher vectors ``u`` of a
+    fixed seed, ``uᵀ X Σ Y Σ u`` (O(n) a probe: no n × n matrix; ``probes`` None: as
+    :data:`TRACE_ROWS` asks).  Returns the pairs ``(0, 0), (0, 1), (1, 1), …`` in that
+    order (one form: one trace).
+    """
+    n = len(track)
+    if probes is None:
+        probes = int(min(TRACE_PROBES, max(1, math.ceil(TRACE_ROWS / max(n, 1)))))
+    u = np.random.default_rng(0).choice([-1.0, 1.0], size=(n, 2, probes))
+
+    def apply(steps, z):
+        for st in steps:
+            z = st(z)
+        for st in steps[-2::-1]:
+            z = st(z)
+        return z
+
+    Su = noise_structure.along_tracks(u, track, lags)
+    Xu = [apply(f, u) for f in forms]
+    SXSu = [noise_structure.along_tracks(apply(f, Su), track, lags) for f in forms]
+    return tuple(float(np.sum(Xu[a] * SXSu[b])) / probes
+                 for a in range(len(forms)) for b in range(a, len(forms)))
+
+
+def _correlated_variance(sub: Table, sigma: np.ndarray, fx: float, fy: float,
+                         r_cells: np.ndarray, cell: np.ndarray, keep_cell: np.ndarray,
+                         stars: np.ndarray, final: tuple[np.ndarray, np.ndarray],
+                         star_removed: bool, lev: np.ndarray, lags: tuple[float, float],
+                         out: StarNoise, dm_drho: float = 0.0) -> float:
+    """:attr:`StarNoise.log_variance`: the variance of ``log s² = log Σ q − log m``.
+
+    ``Σ q = zᵀ A z``: the steps of :func:`star_noise` as projections of the rows its
+    frames' attitude fit kept (its fit, the cells' means over the ``keep_cell`` rows, the
+    stars' means when removed, the rows summed; :func:`quadratic_variance`), ``z`` the
+    whitened noise of covariance ``s² Σ`` (the tracks' model ``lags``).  ``m``: the dof,
+    the cells' shares of it counted with the tracks' ρ̂ (``dm_drho`` its slope; 0: not
+    counted), read from the same residuals by :func:`~.noise_structure.track_inflation`
+    (the lag-1 ratio ``L / √(S_a S_b)`` of the rows about their star means, before the
+    cells'): linearized, ``d raw = zᵀ E z``, a quadratic form too.  Hence ``Var log Σ q =
+    2 tr((AΣ)²)/m²``, ``Var ρ̂ = 2 tr((EΣ)²)/slope²`` and their covariance ``2 tr(AΣEΣ)/(m
+    slope)``.  A realization with more long-run power reads both more ``Σ q`` and a higher ρ̂
+    (whose cells' means then take more dof): the two add.  Measured, 100 pure AR(1) draws
+    in one 300 s table: ``Σ q`` and ``m`` correlate −0.72; the scale's SD 0.0173 for 0.0159
+    with ``m`` held (the sandwich times the tracks' factor printed 0.0150).
+    """
+    from stellar_cal_ros.diagnosis.stats import attitude_columns
+
+    rows = np.all(np.isfinite(r_cells), axis=1)  # the frames the attitude fit took
+    sel = {k: np.asarray(v)[rows] for k, v in sub.items()}
+    A = attitude_columns(sel, fx, fy) / sigma[rows, None, None]
+    keep = np.asarray(keep_cell)[rows]
+    track = stars[rows]
+    r_f, share_f = final
+    used = np.isfinite((r_f[rows] ** 2).sum(1)) & ((2.0 - lev[rows]) * share_f[rows] > 0)
+    fit = _minus_frame_fit(A, sel["frame"])
+    steps = [fit, _minus_means(cell[rows], keep)]
+    if star_removed:
+        steps.append(_minus_means(track, keep & (share_f[rows] > 0)))
+    steps.append(lambda z: np.where(used[:, None, None], z, 0.0))
+    m = float(out.m.sum())
+    forms = [steps]
+    form = _lag1_form(r_cells[rows] / max(out.scale, 1e-300), track, lags[1]) \
+        if dm_drho != 0.0 else None
+    g = 0.0
+    if form is not None:
+        lag1, g = form
+        g *= dm_drho / m
+        forms.append([fit, _minus_means(track, np.ones(len(track), dtype=bool)), lag1])
+    t = quadratic_variance(forms, track, lags)
+    if len(t) == 1:
+        return 2.0 * t[0] / m**2
+    t_aa, t_ae, t_ee = t
+    return 2.0 * t_aa / m**2 - 4.0 * g * t_ae / m + 2.0 * g * g * t_ee
+
+
+def _lag1_form(x: np.ndarray, track: np.ndarray, rho: float) -> tuple[Any, float] | None:
+    """The lag-1 ratio's linearization: the step ``z ↦ K z`` and ``dρ̂/d raw``.
+
+    ``x``: whitened residuals at unit scale ``(n, 2)`` (rows of each ``track`` in time
+    order) before their star means; :func:`~.noise_structure.track_inflation` reads ``raw
+    = L / √(S_a S_b)`` of them about their star means (``L = Σ x_t·x_(t+1)`` over a
+    track's consecutive rows, ``S_a``, ``S_b`` the squares of the pairs' later and
+    earlier members) and solves it for ρ̂.  ``d raw = raw (dL/L − dS_a/(2 S_a) − dS_b/(2
+    S_b))`` is the quadratic form ``xᵀ K x`` (``K`` symmetric, applied here to rows about
+    their star means; its value at ``x`` is 0).  ``rho``: the ρ̂ read.  Returns ``(K as a
+    step, 1/slope)``, the slope :func:`~.noise_structure.rho_slope`'s, or None (no lag-1
+    correlation to linearize).
+    """
+    order = np.argsort(track, kind="stable")
+    ts = np.asarray(track)[order]
+    same = ts[1:] == ts[:-1]
+    _, k = np.unique(ts, return_inverse=True)
+    xs = x[order]
+    xs = xs - (np.stack([np.bincount(k, xs[:, c]) for c in range(2)], 1)
+               / np.bincount(k)[:, None])[k]
+    a, b = xs[1:][same], xs[:-1][same]
+    L, Sa, Sb = float(np.sum(a * b)), float(np.sum(a * a)), float(np.sum(b * b))
+    raw = L / math.sqrt(Sa * Sb)
+    n = np.bincount(k).astype(float)
+    slope = noise_structure.rho_slope(n[n >= 2], rho)
+    if not (L > 0.0 and slope > 0.0):
+        return None
+    later = np.r_[False, same]  # rows that are a pair's later member
+    earlier = np.r_[same, False]
+    wd = (later / (2.0 * Sa) + earlier / (2.0 * Sb))[:, None, None]
+
+    def step(z: np.ndarray) -> np.ndarray:
+        zs = z[order]
+        nb = np.zeros_like(zs)  # ½ the neighbours in the track: (B z)
+        nb[1:][same] += 0.5 * zs[:-1][same]
+        nb[:-1][same] += 0.5 * zs[1:][same]
+        out = np.empty_like(z)
+        out[order] = raw * (nb / L - wd * zs)
+        return out
+    return step, 1.0 / slope
 
 
 def _fit_lags(r: np.ndarray, share: np.ndarray, uv: np.ndarray | None, x: np.ndarray | None,

@@ -239,6 +239,15 @@ def _slope(n: np.ndarray, rho: float, step: float = 1e-4) -> float:
     return (_lag_ratio(n, lo + step) - _lag_ratio(n, lo)) / step
 
 
+def rho_slope(n: np.ndarray, rho: float) -> float:
+    """d/dρ of the lag-1 ratio tracks of ``n`` frames read about their means (at ``rho``).
+
+    :func:`track_inflation`'s ρ̂ moves by ``d raw / rho_slope`` when its raw ratio moves by
+    ``d raw`` (the linearization :func:`~.noise_stars.star_noise`'s σ takes).
+    """
+    return _slope(np.asarray(n, dtype=float), rho)
+
+
 def mean_factor(n: np.ndarray, rho: float, share: float = 1.0) -> np.ndarray:
     """``n`` × the variance of the mean of ``n`` frames of unit-variance track noise.
 
