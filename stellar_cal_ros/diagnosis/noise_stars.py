@@ -226,12 +226,13 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         2)
     # both fits' χ² referred to the tracks' correlation where it is significant, as the
     # cells' (:func:`_fit_lags`; white tracks: the white fits, as before)
-    lags = _fit_lags(r, sub_share, uv_pred, x, stars, X_sub)
-    p_sub = 1.0
-    if uv_pred is not None:
-        r, sub_share, p_sub = noise_structure.minus_subpixel(r, sub_share, uv_pred, ALPHA,
-                                                             stars, lags, X_sub)
-    r, sub_share, p_roll = noise_structure.minus_rolling(r, sub_share, x, ALPHA, stars, lags)
+    # (fitted together, each tested given the other, noise_structure.minus_fits: run first,
+    # the sub-pixel fit took part of a 3 ms readout's shape and fired in 6 of 100 white
+    # draws at 1 %)
+    blocks = _structure_blocks(uv_pred, X_sub, x)
+    lags = _fit_lags(r, sub_share, blocks, stars)
+    r, sub_share, (p_sub, p_roll) = noise_structure.minus_fits(r, sub_share, blocks, ALPHA,
+                                                               stars, lags)
     r_cells = r  # (the cells' χ² is referred to the tracks' lag below)
     # (the tracks' lag-1 ρ read about the star means before the cells' means, which bias
     # it low: pure AR(1) tracks of 0.819 read 0.809 after them, and the repeat's p mean
@@ -504,25 +505,31 @@ def _lag1_form(x: np.ndarray, track: np.ndarray, rho: float) -> tuple[Any, float
     return step, 1.0 / slope
 
 
-def _fit_lags(r: np.ndarray, share: np.ndarray, uv: np.ndarray | None, x: np.ndarray | None,
-              stars: np.ndarray, X_sub: np.ndarray | None = None
-              ) -> tuple[float, float] | None:
+def _structure_blocks(uv: np.ndarray | None, X_sub: np.ndarray | None, x: np.ndarray | None
+                      ) -> list[np.ndarray | None]:
+    """The sub-pixel and rolling-shutter fits' blocks of :func:`~.noise_structure.minus_fits`.
+
+    None where a fit has no regressors (no predicted centroids, no installation).
+    """
+    return [None if uv is None else noise_structure.subpixel_block(uv, X_sub),
+            noise_structure.rolling_block(x)]
+
+
+def _fit_lags(r: np.ndarray, share: np.ndarray, blocks: list[np.ndarray | None],
+              stars: np.ndarray) -> tuple[float, float] | None:
     """The tracks' ``(w, φ)`` the structure fits' χ² are referred to, or None (white).
 
     Read by :func:`~.noise_structure.track_model` about the star means, as the cells'
-    test reads it, on the residuals with both fits (:func:`~.noise_structure.
-    minus_subpixel`, :func:`~.noise_structure.minus_rolling`) taken out whatever their
-    χ² (a real pixel locking or readout, correlated along a track as the star crosses
-    pixels, would otherwise be read as correlated noise and discount its own test);
-    significant as :func:`star_noise` counts it (:func:`~.noise_structure.correlated`
-    without its materiality, :func:`~.noise.track_lags`' rule).  Pure AR(1) noise of τ 5
-    frames, taken as white, fired the sub-pixel fit in 41.5 % of 200 draws and the rolling
-    fit in 8 % at 1 % (``benchmarks/nuisance_level.py``; referred: 1.5 % and 0 %).
+    test reads it, on the residuals with the fits of ``blocks`` (:func:`_structure_blocks`,
+    :func:`~.noise_structure.minus_fits`) taken out whatever their χ² (a real pixel locking
+    or readout, correlated along a track as the star crosses pixels, would otherwise be
+    read as correlated noise and discount its own test); significant as :func:`star_noise`
+    counts it (:func:`~.noise_structure.correlated` without its materiality,
+    :func:`~.noise.track_lags`' rule).  Pure AR(1) noise of τ 5 frames, taken as white,
+    fired the sub-pixel fit in 41.5 % of 200 draws and the rolling fit in 8 % at 1 %
+    (``benchmarks/nuisance_level.py``; referred: 1.5 % and 0 %).
     """
-    rr = r
-    if uv is not None:
-        rr = noise_structure.minus_subpixel(rr, share, uv, 1.0, columns=X_sub)[0]
-    rr = noise_structure.minus_rolling(rr, share, x, 1.0)[0]
+    rr = noise_structure.minus_fits(r, share, blocks, 1.0)[0]
     model = noise_structure.track_model(star_means(rr, share, stars)[2], stars)
     if noise_structure.correlated(model.rho, model.pairs, 0.0) is None:
         return None

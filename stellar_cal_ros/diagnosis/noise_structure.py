@@ -28,6 +28,16 @@ def subpixel_columns(uv: np.ndarray) -> np.ndarray:
     return X
 
 
+def subpixel_block(uv: np.ndarray, columns: np.ndarray | None = None) -> np.ndarray:
+    """:func:`minus_fits`' block of the sub-pixel fit, NaN on the rows whose ``uv`` is not finite.
+
+    ``columns``: the projected regressors (:func:`minus_subpixel`); None: the raw
+    :func:`subpixel_columns` of ``uv``.
+    """
+    X = subpixel_columns(uv) if columns is None else np.asarray(columns, dtype=float)
+    return np.where(np.all(np.isfinite(uv), axis=1)[:, None, None], X, np.nan)
+
+
 def minus_subpixel(r: np.ndarray, share: np.ndarray, uv: np.ndarray, alpha: float,
                    star: np.ndarray | None = None,
                    lags: tuple[float, float] | None = None,
@@ -35,18 +45,16 @@ def minus_subpixel(r: np.ndarray, share: np.ndarray, uv: np.ndarray, alpha: floa
                    ) -> tuple[np.ndarray, np.ndarray, float]:
     """``r`` without a bias periodic in the sub-pixel phase of ``uv``, where it is significant.
 
-    Per axis, the whitened residuals fitted by ``sin 2πu, cos 2πu`` (``v`` for the rows),
-    the 4 coefficients' χ² tested at ``alpha``; when significant the fit is removed
-    (pixel locking is structure, an 'unexplained' lead of its own, not noise: measured,
-    unseen case ``scurve``, 0.08 px said as "sigma 1.46x too small"), each residual's share
-    of its dof reduced by its leverage.  Otherwise ``r`` is returned unchanged.  Also
-    returns the χ²'s p-value (1 when not tested).
+    :func:`minus_fits` of the one block :func:`subpixel_block`: per axis ``sin 2πu, cos
+    2πu`` (``v`` for the rows), the 4 coefficients' χ² tested at ``alpha``; when
+    significant the fit is removed (pixel locking is structure, an 'unexplained' lead of
+    its own, not noise: measured, unseen case ``scurve``, 0.08 px said as "sigma 1.46x too
+    small"), each residual's share of its dof reduced by its leverage.  Otherwise ``r`` is
+    returned unchanged.  Also returns the χ²'s p-value (1 when not tested).
 
-    ``lags``: the stars' noise correlated along their tracks (``(w, φ)`` of
-    :func:`~.noise.track_lags`, each ``star``'s rows in time order): the χ² and the
-    leverages are referred to it (:func:`track_fit`, as the detector cells' means are by
-    :func:`lagged_chi2`).  Taken as white, pure AR(1) noise of τ 5 frames fired this fit
-    in 41.5 % of 200 draws at ``alpha`` 1 %, referred in 1.5 % (one 300 s bag's residuals,
+    ``lags``: the stars' noise correlated along their tracks (:func:`minus_fits`).  Taken
+    as white, pure AR(1) noise of τ 5 frames fired this fit in 41.5 % of 200 draws at
+    ``alpha`` 1 %, referred in 1.5 % (one 300 s bag's residuals,
     ``benchmarks/nuisance_level.py``).
 
     ``columns``: :func:`subpixel_columns` of ``uv`` projected and whitened as ``r`` (the
@@ -55,13 +63,8 @@ def minus_subpixel(r: np.ndarray, share: np.ndarray, uv: np.ndarray, alpha: floa
     space ``r`` lies in: 0.08 px of locking left the stars' scale at 1.04 ± 0.006 on
     white noise (100 draws, projected: ~1.00; ``benchmarks/nuisance_level.py``).
     """
-    ok = np.all(np.isfinite(r), axis=1) & (share > 0) & np.all(np.isfinite(uv), axis=1)
-    if columns is not None:
-        ok &= np.all(np.isfinite(columns), axis=(1, 2))
-    if ok.sum() < 50:
-        return r, share, 1.0
-    X = columns[ok] if columns is not None else subpixel_columns(uv[ok])
-    return _minus_track_fit(r, share, ok, X, star, (0.0, 0.0) if lags is None else lags, alpha)
+    r, share, (p,) = minus_fits(r, share, [subpixel_block(uv, columns)], alpha, star, lags)
+    return r, share, p
 
 
 def minus_rolling(r: np.ndarray, share: np.ndarray, x: np.ndarray | None, alpha: float,
@@ -71,55 +74,93 @@ def minus_rolling(r: np.ndarray, share: np.ndarray, x: np.ndarray | None, alpha:
     """``r`` without its fit by a rolling shutter's shape ``x``, where it is significant.
 
     ``x``: :func:`~stellar_cal_ros.diagnosis.stats.rolling_columns` projected and whitened
-    as ``r`` (the within-frame residuals).  One coefficient (the readout time), its χ²
-    tested at ``alpha``; when significant the fit is removed (a rolling shutter is
-    structure, an 'unexplained' lead of its own, not noise: measured, unseen case
-    ``sway_rolling``, 30 ms read as "sigma x39" grouped by row), each residual's share of
-    its row's 2 dof reduced by half its leverage (the leverages sum to 1: one coefficient,
-    one dof removed, as :func:`minus_subpixel` counts 4 for 4).  Otherwise ``r`` is
-    returned unchanged.  Also returns the χ²'s p-value (1 when not tested).  ``lags``:
-    as :func:`minus_subpixel`'s (the χ² and leverages referred to the tracks' correlation,
-    :func:`track_fit`; taken as white, pure AR(1) noise fired this fit in 8 % of 200 draws,
-    referred in 0 %).
+    as ``r`` (the within-frame residuals).  :func:`minus_fits` of its one column (the
+    readout time), its χ² tested at ``alpha``; when significant the fit is removed (a
+    rolling shutter is structure, an 'unexplained' lead of its own, not noise: measured,
+    unseen case ``sway_rolling``, 30 ms read as "sigma x39" grouped by row), each
+    residual's share of its row's 2 dof reduced by half its leverage (the leverages sum to
+    1: one coefficient, one dof removed, as :func:`minus_subpixel` counts 4 for 4).
+    Otherwise ``r`` is returned unchanged.  Also returns the χ²'s p-value (1 when not
+    tested).  ``lags``: as :func:`minus_subpixel`'s (taken as white, pure AR(1) noise fired
+    this fit in 8 % of 200 draws, referred in 0 %).
     """
-    if x is None:
-        return r, share, 1.0
-    ok = np.all(np.isfinite(r), axis=1) & (share > 0) & np.all(np.isfinite(x), axis=1)
-    info = float(np.sum(x[ok] ** 2))
-    if ok.sum() < 50 or not info > 0:
-        return r, share, 1.0
-    if lags is not None:
-        return _minus_track_fit(r, share, ok, x[ok][:, :, None], star, lags, alpha)
-    out, share_out = r.copy(), share.copy()
-    b = float(np.sum(x[ok] * r[ok])) / info
-    chi2 = b * b * info / max(float(np.mean(share[ok])), 1e-12)
-    p = float(sps.chi2.sf(chi2, 1))
-    if p >= alpha:
-        return r, share, p
-    out[ok] = r[ok] - b * x[ok]
-    share_out[ok] = share[ok] * np.clip(1.0 - 0.5 * np.sum(x[ok] ** 2, 1) / info, 0.0, 1.0)
-    return out, share_out, p
+    r, share, (p,) = minus_fits(r, share, [rolling_block(x)], alpha, star, lags)
+    return r, share, p
 
 
-def _minus_track_fit(r: np.ndarray, share: np.ndarray, ok: np.ndarray, X: np.ndarray,
-                     star: np.ndarray | None, lags: tuple[float, float], alpha: float
-                     ) -> tuple[np.ndarray, np.ndarray, float]:
-    """:func:`minus_subpixel`'s and :func:`minus_rolling`'s test and removal under ``lags``.
+def rolling_block(x: np.ndarray | None) -> np.ndarray | None:
+    """:func:`minus_fits`' block of the rolling-shutter fit ``(n, 2, 1)``, or None."""
+    return None if x is None else np.asarray(x, dtype=float)[:, :, None]
 
-    ``X``: the fit's regressors ``(rows of ok, 2, p)``; the χ² of :func:`track_fit` in units
-    of the mean ``share`` left, tested at ``alpha`` on ``p`` dof; when significant the fit is
-    removed and each row's share reduced by its part of ``tr(G H)``.  Returns ``(r, share,
-    p)``, ``r`` and ``share`` unchanged when not significant.
+
+#: rows a structure fit needs to be tested (:func:`minus_fits`)
+MIN_ROWS = 50
+
+
+def minus_fits(r: np.ndarray, share: np.ndarray, blocks: list[np.ndarray | None],
+               alpha: float, star: np.ndarray | None = None,
+               lags: tuple[float, float] | None = None
+               ) -> tuple[np.ndarray, np.ndarray, tuple[float, ...]]:
+    """``r`` without the structure fits of ``blocks`` that are significant, each given the others.
+
+    ``blocks``: each a fit's regressors ``(n, 2, p_k)`` (row, axis, coefficient),
+    projected and whitened as ``r`` (:func:`subpixel_block`, :func:`rolling_block`), or
+    None (not tested: p 1).  A block is tested on the rows where ``r``, ``share`` (> 0) and
+    every tested block are finite; a block with fewer than :data:`MIN_ROWS` finite rows, or
+    a column of zeros there, is not tested.  All the blocks' columns are fitted together
+    (:func:`track_fit`) and each block's χ² is its coefficients' given the others' (their
+    covariance ``G H G``'s block), in units of the mean ``share`` left, tested at ``alpha``
+    on its ``p_k`` dof.  The blocks that fire are then fitted together without those that
+    did not, and removed, each row's share reduced by its part of ``tr(G H)``
+    (:func:`track_fit`).  Returns ``(r, share, p per block)``, ``r`` and ``share``
+    unchanged when none fires.
+
+    ``lags``: the stars' noise correlated along their tracks (``(w, φ)`` of
+    :func:`~.noise.track_lags`, each ``star``'s rows in time order): the χ² and the
+    shares are referred to it (:func:`track_fit`, as the detector cells' means are by
+    :func:`lagged_chi2`); None: white.
+
+    Fitted in turn, the first fit takes what it shares with the next: a 3 ms rolling
+    readout on white noise fired the sub-pixel fit, run first, in 6 of 100 draws at 1 %
+    (mean p 0.35); each given the other, 3 of 100, the white level (mean p 0.49), and a
+    0.08 px locking fires the rolling fit in 0 of 100 (``benchmarks/nuisance_level.py``,
+    doc/benchmarks.md).  One block: its plain fit.
     """
+    out_p = [1.0] * len(blocks)
+    ok = np.all(np.isfinite(r), axis=1) & (share > 0)
+    use = []
+    for k, X in enumerate(blocks):
+        if X is None:
+            continue
+        fin = np.all(np.isfinite(X), axis=(1, 2))
+        if (ok & fin).sum() < MIN_ROWS or not np.all(
+                np.sum(np.where(fin[:, None, None], X, 0.0) ** 2, axis=(0, 1)) > 0):
+            continue
+        use.append(k)
+        ok &= fin
+    if not use or ok.sum() < MIN_ROWS:
+        return r, share, tuple(out_p)
+    X = np.concatenate([blocks[k][ok] for k in use], axis=2)
+    sizes = [blocks[k].shape[2] for k in use]
+    cuts = np.cumsum([0] + sizes)
     track = np.zeros(len(r)) if star is None else np.asarray(star)  # (white: not read)
-    fit, chi2, lev = track_fit(r[ok], X, track[ok], lags)
-    p = float(sps.chi2.sf(chi2 / max(float(np.mean(share[ok])), 1e-12), X.shape[2]))
-    if p >= alpha:
-        return r, share, p
+    lags = (0.0, 0.0) if lags is None else lags
+    SX = along_tracks(X, track[ok], lags)
+    _, chi2, _ = _track_fit(r[ok], X, SX, sizes)
+    unit = max(float(np.mean(share[ok])), 1e-12)
+    fired = []
+    for j, k in enumerate(use):
+        out_p[k] = float(sps.chi2.sf(chi2[j] / unit, sizes[j]))
+        if out_p[k] < alpha:
+            fired.extend(range(cuts[j], cuts[j + 1]))
+    if not fired:
+        return r, share, tuple(out_p)
+    fit, _, lev = (_track_fit(r[ok], X[:, :, fired], SX[:, :, fired])
+                   if len(fired) < X.shape[2] else _track_fit(r[ok], X, SX))
     out, share_out = r.copy(), share.copy()
     out[ok] = r[ok] - fit
     share_out[ok] = share[ok] * np.clip(1.0 - lev, 0.0, 1.0)
-    return out, share_out, p
+    return out, share_out, tuple(out_p)
 
 
 def along_tracks(x: np.ndarray, track: np.ndarray, lags: tuple[float, float]) -> np.ndarray:
@@ -172,14 +213,31 @@ def track_fit(r: np.ndarray, X: np.ndarray, track: np.ndarray, lags: tuple[float
     (``½ x_iᵀ G x_i`` for white noise, the leverages the white fits use).  Returns the
     fit ``X b`` ``(n, 2)``, the χ² and those shares.
     """
+    return _track_fit(r, X, along_tracks(X, track, lags))
+
+
+def _track_fit(r: np.ndarray, X: np.ndarray, SX: np.ndarray,
+               sizes: list[int] | None = None):
+    """:func:`track_fit` given ``SX = Σ X`` (:func:`along_tracks`).
+
+    ``sizes``: the columns in consecutive blocks; then the χ² is an array, each block's
+    ``b_kᵀ [(G H G)_kk]⁻¹ b_k`` (its coefficients given the other blocks'; one block:
+    :func:`track_fit`'s).
+    """
     n, _, p = X.shape
     Xf = X.reshape(n * 2, p)
     G = np.linalg.inv(Xf.T @ Xf)
     c = Xf.T @ r.reshape(n * 2)
-    SX = along_tracks(X, track, lags)  # (n, 2, p): the axes' columns independently
     H = Xf.T @ SX.reshape(n * 2, p)
     H = 0.5 * (H + H.T)
-    chi2 = float(c @ np.linalg.solve(H, c))
+    if sizes is None or len(sizes) == 1:
+        chi2 = float(c @ np.linalg.solve(H, c))
+        chi2 = chi2 if sizes is None else np.array([chi2])
+    else:
+        b, V = G @ c, G @ H @ G
+        cuts = np.cumsum([0] + list(sizes))
+        chi2 = np.array([float(b[i:j] @ np.linalg.solve(V[i:j, i:j], b[i:j]))
+                         for i, j in zip(cuts[:-1], cuts[1:], strict=True)])
     fit = (Xf @ (G @ c)).reshape(n, 2)
     lev = 0.5 * np.einsum("iap,pq,iaq->i", X, G, SX)
     return fit, chi2, lev
