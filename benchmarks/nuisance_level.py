@@ -2,18 +2,19 @@ r"""The stars' structure fits under AR(1) centroid noise: how often they fire, a
 
 :func:`~stellar_cal_ros.diagnosis.noise_stars.star_noise` removes a bias periodic in the
 centroids' sub-pixel phase (:func:`~stellar_cal_ros.diagnosis.noise_structure.minus_subpixel`)
-and a rolling shutter's shape (:func:`~stellar_cal_ros.diagnosis.noise_structure.minus_rolling`)
-where their χ² is significant at ``noise_stars.ALPHA`` (1 %).  On noise alone each must fire
-in ≈ 1 % of the draws.  One residual table of a ``psce_rotations`` bag (the current model's
+and a rolling shutter's shape
+(:func:`~stellar_cal_ros.diagnosis.noise_structure.minus_rolling`) where their χ² is
+significant at ``noise_stars.ALPHA`` (1 %), both fitted together and each tested given the
+other (:func:`~stellar_cal_ros.diagnosis.noise_structure.minus_fits`). On noise alone each must
+fire in ≈ 1 % of the draws. One residual table of a ``psce_rotations`` bag (the current model's
 run, its evaluation half), its ``du, dv`` replaced by draws of the centroid noise along each
 star's rows (``--rho``: an AR(1) of that coefficient per frame, 0 white, ``RHO:SHARE`` white +
-AR(1), marginal σ 0.05 px as stated), then ``star_noise``: the share of draws whose fits
-fire (p < 1 %) with its binomial σ (at least the σ of 1 % over the draws), their mean p
-(0.5 ± 1/√(12 draws) on noise alone), the mean scale ± its SD over the draws, the
-mean printed σ of the scale, the SD over it (1 when the printed σ is honest) and the
-tracks' mean lag-1 ρ.  ``--subpixel A`` adds ``A`` px ×
-``sin 2π u`` (and v) to every draw, ``--readout MS`` a rolling shutter of that readout:
-the share then is the fit's power.
+AR(1), marginal σ 0.05 px as stated), then ``star_noise``: the share of draws whose fits fire
+(p < 1 %) with its binomial σ (at least the σ of 1 % over the draws), their mean p (0.5 ±
+1/√(12 draws) on noise alone), the mean scale ± its SD over the draws, the mean printed σ of
+the scale, the SD over it (1 when the printed σ is honest) and the tracks' mean lag-1 ρ.
+``--subpixel A`` adds ``A`` px × ``sin 2π u`` (and v) to every draw, ``--readout MS`` a rolling
+shutter of that readout: the share then is the fit's power.
 
 Run::
 
