@@ -421,7 +421,7 @@ def test_a_readout_does_not_fire_the_subpixel_fit(ar1_table):
     (noise_structure.minus_fits), at its level: ≤ 1 % + 4 binomial σ (≤ 1 of 20; 0 here),
     its mean p within 4 σ (1/√(12 · 20)) of ½ (0.56).  Fitted first and alone (before), the
     sub-pixel fit took part of the readout's shape: 7 of 20, mean p 0.09 (300 s table: 3 ms
-    fired it in 6 of 100, mean p 0.35; ``benchmarks/nuisance_level.py --rho 0 --readout
+    fired it in 6 of 100, mean p 0.33; ``benchmarks/nuisance_level.py --rho 0 --readout
     3``).  And a 0.08 px pixel locking does not fire the rolling fit (≤ 1 of 20)."""
     nl, table = ar1_table
     got, p = _fires(nl, table, 0.0, 20, seed=3, readout=0.010)

@@ -107,7 +107,8 @@ def minus_fits(r: np.ndarray, share: np.ndarray, blocks: list[np.ndarray | None]
     projected and whitened as ``r`` (:func:`subpixel_block`, :func:`rolling_block`), or
     None (not tested: p 1).  A block is tested on the rows where ``r``, ``share`` (> 0) and
     every tested block are finite; a block with fewer than :data:`MIN_ROWS` finite rows, or
-    a column of zeros there, is not tested.  All the blocks' columns are fitted together
+    a column of zeros there, is not tested (nor are any when their columns are dependent
+    on the rows used).  All the blocks' columns are fitted together
     (:func:`track_fit`) and each block's χ² is its coefficients' given the others' (their
     covariance ``G H G``'s block), in units of the mean ``share`` left, tested at ``alpha``
     on its ``p_k`` dof.  The blocks that fire are then fitted together without those that
@@ -122,9 +123,9 @@ def minus_fits(r: np.ndarray, share: np.ndarray, blocks: list[np.ndarray | None]
 
     Fitted in turn, the first fit takes what it shares with the next: a 3 ms rolling
     readout on white noise fired the sub-pixel fit, run first, in 6 of 100 draws at 1 %
-    (mean p 0.35); each given the other, 3 of 100, the white level (mean p 0.49), and a
-    0.08 px locking fires the rolling fit in 0 of 100 (``benchmarks/nuisance_level.py``,
-    doc/benchmarks.md).  One block: its plain fit.
+    (mean p 0.33; 10 ms: 92 of 100); each given the other, 3 of 100, the white level (mean
+    p 0.49; 10 ms: 3), and a 0.08 px locking fires the rolling fit in 0 of 100
+    (``benchmarks/nuisance_level.py``, doc/benchmarks.md).  One block: its plain fit.
     """
     out_p = [1.0] * len(blocks)
     ok = np.all(np.isfinite(r), axis=1) & (share > 0)
@@ -133,8 +134,7 @@ def minus_fits(r: np.ndarray, share: np.ndarray, blocks: list[np.ndarray | None]
         if X is None:
             continue
         fin = np.all(np.isfinite(X), axis=(1, 2))
-        if (ok & fin).sum() < MIN_ROWS or not np.all(
-                np.sum(np.where(fin[:, None, None], X, 0.0) ** 2, axis=(0, 1)) > 0):
+        if (ok & fin).sum() < MIN_ROWS or not np.all(np.sum(X[ok & fin] ** 2, axis=(0, 1)) > 0):
             continue
         use.append(k)
         ok &= fin
@@ -146,7 +146,10 @@ def minus_fits(r: np.ndarray, share: np.ndarray, blocks: list[np.ndarray | None]
     track = np.zeros(len(r)) if star is None else np.asarray(star)  # (white: not read)
     lags = (0.0, 0.0) if lags is None else lags
     SX = along_tracks(X, track[ok], lags)
-    _, chi2, _ = _track_fit(r[ok], X, SX, sizes)
+    try:
+        _, chi2, _ = _track_fit(r[ok], X, SX, sizes)
+    except np.linalg.LinAlgError:  # the blocks' columns dependent on these rows: not tested
+        return r, share, tuple(out_p)
     unit = max(float(np.mean(share[ok])), 1e-12)
     fired = []
     for j, k in enumerate(use):
