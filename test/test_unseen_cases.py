@@ -365,7 +365,7 @@ def test_structure_fits_hold_their_level_on_ar1_noise(ar1_table, monkeypatch):
     χ² is significant at 1 %: on pure AR(1) centroid noise (τ 5 frames, the 'ar1' case's;
     20 draws put into one bag's residual table, ``benchmarks/nuisance_level.py``) they fire
     in at most 1 % + 4 binomial σ of the draws (≤ 1 of 20): their χ² referred to the tracks'
-    correlation (noise_structure.track_fit, the model the cells' test reads): 0 and 1 of 20
+    correlation (noise_structure.track_fit, the model the cells' test reads): 0 and 0 of 20
     here.  Taken as white (before H72) the sub-pixel fit fired in 6 of these 20 draws (a
     300 s table, 200 draws: 0.415; the comparison: the benchmark test below).  White noise
     keeps the white fits (no model: the previous code's numbers bit for bit)."""
