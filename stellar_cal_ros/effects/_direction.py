@@ -36,13 +36,65 @@ _SAME_STAR = 1e-12
 
 @dataclass
 class _Prepared:
-    """One frame's stars in the table of :meth:`ScaledDirection.prepare` (frame order)."""
+    """One frame's stars in the table of :meth:`ScaledDirection.prepare` (views of it)."""
 
     ids: np.ndarray  #: catalogue numbers (unique, nonzero)
     u: np.ndarray  #: (n, 3) their directions
     delta: np.ndarray  #: (n, 3) their Δ
     weather: tuple[float, float]  #: pressure (Pa), air temperature (°C) it was made with
-    order: np.ndarray | None = None  #: argsort of ``ids`` (made when a subset is looked up)
+
+
+class _Table:
+    """The frames of :meth:`ScaledDirection.prepare` in a few arrays, looked up by stamp.
+
+    Every frame's stars are rows ``start[j]:start[j + 1]`` of ``ids``, ``u`` and ``delta``;
+    a frame is found by its stamp (POSIX s; of frames with the same stamp, the last).  One
+    object per frame (a dataclass and three views, ≈ 0.6 kB a frame and effect: 27 MB for
+    the three direction effects of a 2-h bag, held through a diagnosis round) is made only
+    when a frame is looked up (:meth:`get`), and dropped with it.
+    """
+
+    def __init__(self, stamps: list[float], start: np.ndarray, ids: np.ndarray,
+                 u: np.ndarray, delta: np.ndarray, weather: np.ndarray) -> None:
+        self._row = {t: j for j, t in enumerate(stamps)}  # the last frame of a stamp
+        self.start, self.ids, self.u, self.delta, self.weather = start, ids, u, delta, weather
+        self._order: dict[int, np.ndarray] = {}  # argsort of a frame's ids, made when needed
+
+    def __len__(self) -> int:
+        return len(self._row)
+
+    def __bool__(self) -> bool:
+        return bool(self._row)
+
+    def frame(self, stamp: float) -> int | None:
+        """The row of the frame of ``stamp`` (None: not prepared)."""
+        return self._row.get(stamp)
+
+    def get(self, stamp: float) -> _Prepared | None:
+        """The frame of ``stamp`` (None: not prepared)."""
+        j = self._row.get(stamp)
+        if j is None:
+            return None
+        sl = slice(int(self.start[j]), int(self.start[j + 1]))
+        return _Prepared(self.ids[sl], self.u[sl], self.delta[sl],
+                         (float(self.weather[j, 0]), float(self.weather[j, 1])))
+
+    def __getitem__(self, stamp: float) -> _Prepared:
+        got = self.get(stamp)
+        if got is None:
+            raise KeyError(stamp)
+        return got
+
+    def items(self):
+        """``(stamp, frame)`` of every prepared frame."""
+        return ((t, self.get(t)) for t in self._row)
+
+    def order(self, stamp: float) -> np.ndarray:
+        """The argsort of the ids of the frame of ``stamp`` (made once)."""
+        j = self._row[stamp]
+        if j not in self._order:
+            self._order[j] = np.argsort(self[stamp].ids, kind="stable")
+        return self._order[j]
 
 
 def _same_floats(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
@@ -94,7 +146,7 @@ class ScaledDirection(Effect):
         :data:`_EXACT_BELOW` stars or fewer) is computed as before: the table changes no
         number (one call for many stars computes each star as its frame's call does).
         """
-        self._site, self._table = site, {}
+        self._site, self._table = site, None
         keep = [k for k, ids in enumerate(catalog_ids)
                 if len(ids) and ids.min() > 0 and len(np.unique(ids)) == len(ids)]
         if not keep:
@@ -107,13 +159,13 @@ class ScaledDirection(Effect):
         d = self.delta_stars(uu, np.asarray(stamps, dtype=float)[kk][rows], ids, site,
                              np.asarray(pressure_pa, dtype=float)[kk][rows],
                              np.asarray(air_temperature_c, dtype=float)[kk][rows])
-        ends = np.cumsum(n)
-        for j, k in enumerate(keep):
-            sl = slice(ends[j] - n[j], ends[j])
-            self._table[float(stamps[k])] = _Prepared(
-                ids[sl], uu[sl], d[sl], (float(pressure_pa[k]), float(air_temperature_c[k])))
+        start = np.concatenate([[0], np.cumsum(n)])
+        weather = np.stack([np.asarray(pressure_pa, dtype=float)[kk],
+                            np.asarray(air_temperature_c, dtype=float)[kk]], axis=1)
+        self._table = _Table(np.asarray(stamps, dtype=float)[kk].tolist(), start, ids, uu, d,
+                             weather)
 
-    def prepared_table(self) -> tuple[Site | None, dict]:
+    def prepared_table(self) -> tuple[Site | None, _Table | None]:
         """What :meth:`prepare` made (the site and the table).
 
         Another instance of this class takes it (:meth:`use_prepared`) for the same bag
@@ -121,7 +173,7 @@ class ScaledDirection(Effect):
         """
         return self._site, self._table
 
-    def use_prepared(self, made: tuple[Site | None, dict]) -> None:
+    def use_prepared(self, made: tuple[Site | None, _Table | None]) -> None:
         """Take :meth:`prepared_table` of another instance of this class on the same bag.
 
         Δ is a function of the stars, times, site and weather alone (not of the scale):
@@ -144,10 +196,9 @@ class ScaledDirection(Effect):
         if len(ids) == len(hit.ids) and np.array_equal(ids, hit.ids):
             rows = hit.u, hit.delta  # every star of the frame (the usual case)
         else:
-            if hit.order is None:
-                hit.order = np.argsort(hit.ids, kind="stable")
-            k = np.searchsorted(hit.ids, ids, sorter=hit.order)
-            pos = hit.order[np.minimum(k, len(hit.ids) - 1)]
+            order = table.order(float(ctx.stamp))
+            k = np.searchsorted(hit.ids, ids, sorter=order)
+            pos = order[np.minimum(k, len(hit.ids) - 1)]
             if np.any(hit.ids[pos] != ids):
                 return None
             rows = hit.u[pos], hit.delta[pos]

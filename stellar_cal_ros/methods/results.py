@@ -199,8 +199,15 @@ class TableSink:
         self._flush()
         if not self._chunks:
             return {k: np.zeros(0) for k in (self.columns or ())}
-        keys = list(self._chunks[0])
-        return {k: np.concatenate([c[k] for c in self._chunks]) for k in keys}
+        # column by column, each column's chunks dropped once joined: the table and its
+        # chunks are not held at once (a 2-h bag's residual table is ~65 MB), and the sink
+        # keeps the joined table as its one chunk (a second call returns the same arrays)
+        chunks, self._chunks = self._chunks, []
+        out = {}
+        for k in list(chunks[0]):
+            out[k] = np.concatenate([c.pop(k) for c in chunks])
+        self._chunks = [dict(out)]
+        return out
 
 
 class NullSink(TableSink):

@@ -1,0 +1,153 @@
+"""What a diagnosis round holds per frame stays small (issue 24.2: the 2-h round's memory).
+
+A 2-h bag has 14 400 frames: a Python object per frame and per effect held through a round
+costs ~0.5 kB each (a dataclass, its dict, three array views), 27 MB for the three
+direction effects' tables alone; a table joined while its chunks are still held doubles
+it at the moment of the join.  And the compiled kernels' cache must survive two processes
+compiling into it at once (a diagnosis's Dask workers, a suite beside a benchmark).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+import os
+import subprocess
+import sys
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from stellar_cal_ros.effects.base import Stage
+from stellar_cal_ros.methods.frames import bag_data_from_simulation
+from stellar_cal_ros.methods.replay import build_model
+from stellar_cal_ros.methods.results import TableSink
+from stellar_cal_ros.sim.scenarios import get_scenario
+from stellar_cal_ros.sim.world import simulate
+
+DIRECTION = ["aberration", "refraction", "proper_motion"]
+
+
+@pytest.fixture(scope="module")
+def sim():
+    sc = get_scenario("psce_rotations")
+    return simulate(sc, duration=120.0, seed=5)
+
+
+def _traced(fn):
+    """``fn()`` and the bytes it leaves allocated (tracemalloc), its result kept alive."""
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        out = fn()
+        gc.collect()
+        return out, tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+
+
+def test_a_bags_direction_tables_hold_arrays_not_an_object_per_frame(sim):
+    """The three direction effects' tables of a bag (``StarModel.prepare_frames``, held by
+    the bag through a round) cost their stars' numbers and a lookup entry per frame:
+    ≤ 3 × 56 B per star (id, direction, Δ) + the inputs' 32 B per star, and ≤ 900 B per
+    frame for the inputs' two arrays and three lookups (0.56 kB measured).  One object
+    per frame and effect cost 2.2 kB a frame (measured on the code before)."""
+    data = bag_data_from_simulation(sim)
+    first = build_model(sim.prior, DIRECTION)
+    first.prepare_frames(data)  # the catalogue, pyerfa: once
+    other = dataclasses.replace(data)  # a new bag object: its tables made again
+    model = build_model(sim.prior, DIRECTION)
+    _, held = _traced(lambda: model.prepare_frames(other))
+    frames = len(other.frames)
+    stars = sum(len(f.catalog_id) for f in other.frames)
+    assert frames > 200 and stars > 10 * frames
+    per_frame = (held - (3 * 56 + 32) * stars) / frames
+    assert per_frame < 900, f"{per_frame:.0f} B a frame beyond the stars numbers"
+    # every frame's lookup: the numbers of the first bag's tables (test_effects: pyerfa's)
+    def tables(m):
+        return {type(e).__name__: e.prepared_table()[1] for e, _, _ in m._chain[Stage.DIRECTION]}
+
+    made, shared = tables(model), tables(first)
+    for name, table in made.items():
+        assert len(table) == len(shared[name]) > 200, name
+        for stamp, row in table.items():
+            assert row.delta.shape == row.u.shape == (len(row.ids), 3)
+            np.testing.assert_array_equal(row.ids, shared[name][stamp].ids)
+            np.testing.assert_array_equal(row.delta, shared[name][stamp].delta)
+
+
+def test_a_tables_join_does_not_hold_its_chunks_beside_it():
+    """``TableSink.table`` joins column by column, dropping each column's chunks: at no
+    time are a column's chunks and the whole table held together (peak above the chunks:
+    one column), and the sink then holds the table once; the same arrays as one
+    ``np.concatenate`` per column, again on a second call."""
+    rng = np.random.default_rng(0)
+    cols = ("t", "u", "v", "du", "dv", "nis")
+    parts = [{k: rng.normal(size=300) for k in cols} for _ in range(200)]
+    column = 300 * 200 * 8
+    gc.collect()
+    tracemalloc.start()  # before the chunks: their release is counted
+    try:
+        sink = TableSink(chunk_rows=512)
+        for p in parts:
+            sink.append({k: v.copy() for k, v in p.items()})
+        gc.collect()
+        before = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        table = sink.table()
+        gc.collect()
+        after, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak - before < 1.5 * column, (peak - before) / column
+    assert after - before < 0.5 * column, (after - before) / column
+    for k in cols:
+        np.testing.assert_array_equal(table[k], np.concatenate([p[k] for p in parts]))
+    again = sink.table()
+    assert all(np.array_equal(again[k], table[k]) for k in cols)
+
+
+_STAR_BLOCKS = """
+import sys
+import numpy as np
+from stellar_cal_ros.core.jit import star_blocks
+rng = np.random.default_rng(7)
+n, N = 6, 9
+H = rng.normal(size=(n, 2, N))
+A = rng.normal(size=(N, N))
+P = A @ A.T + N * np.eye(N)
+r = rng.uniform(0.5, 2.0, n)
+nu = rng.normal(size=(n, 2))
+S, nis = star_blocks(H, P, r, nu)
+S0 = np.einsum("iak,kl,ibl->iab", H, P, H) + r[:, None, None] * np.eye(2)
+nis0 = np.einsum("ia,iab,ib->i", nu, np.linalg.inv(S0), nu)
+assert np.allclose(S, S0, rtol=1e-12, atol=0) and np.allclose(nis, nis0, rtol=1e-10, atol=0)
+print(repr(float(nis.sum())))
+"""
+
+
+def test_two_processes_compile_into_one_fresh_numba_cache(tmp_path):
+    """Two processes that start at once on an empty cache (``NUMBA_CACHE_DIR``) both
+    compile ``star_blocks``, write it, and compute what numpy does; a third one then runs
+    it from the cache.  (An acceptance run once failed in a worktree whose cache four
+    processes rewrote at once: ``SystemError: CPUDispatcher(star_blocks) returned a result
+    with an exception set``.)"""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"), OMP_NUM_THREADS="1",
+               OPENBLAS_NUM_THREADS="1")
+    env.pop("NUMBA_DISABLE_JIT", None)
+
+    def start():
+        return subprocess.Popen([sys.executable, "-c", _STAR_BLOCKS], env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    procs = [start(), start()]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for p, (_, err) in zip(procs, outs, strict=True):
+        assert p.returncode == 0, err[-2000:]
+    assert any((tmp_path / "numba").rglob("*star_blocks*.nbi")), "nothing was cached"
+    third = start()
+    out3, err3 = third.communicate(timeout=600)
+    assert third.returncode == 0, err3[-2000:]
+    assert outs[0][0] == outs[1][0] == out3 and out3.strip()
