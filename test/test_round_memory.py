@@ -109,6 +109,20 @@ def test_a_tables_join_does_not_hold_its_chunks_beside_it():
     assert all(np.array_equal(again[k], table[k]) for k in cols)
 
 
+def test_a_tables_join_leaves_the_callers_chunks_whole():
+    """``TableSink.table`` empties its chunks' dicts as it joins them; a chunk handed to
+    ``append`` (one chunk is kept as it came) is the caller's dict, which must keep its
+    columns (the join emptied it: ``{}`` after ``table()``)."""
+    for rows in (3, 2000):  # below and above a chunk's rows
+        chunk = {"a": np.arange(float(rows)), "b": np.ones(rows)}
+        sink = TableSink()
+        sink.append(chunk)
+        table = sink.table()
+        assert sorted(chunk) == ["a", "b"] and len(chunk["a"]) == rows
+        np.testing.assert_array_equal(table["a"], chunk["a"])
+        np.testing.assert_array_equal(sink.table()["b"], chunk["b"])
+
+
 _STAR_BLOCKS = """
 import sys
 import numpy as np

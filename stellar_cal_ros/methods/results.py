@@ -177,7 +177,9 @@ class TableSink:
         buf, self._buf, self._buf_rows = self._buf, [], 0
         if not buf:
             return
-        merged = buf[0] if len(buf) == 1 else {
+        # (one chunk: the sink's own dict of the caller's arrays; :meth:`table` empties its
+        # chunks' dicts as it joins them, which must not empty a dict the caller keeps)
+        merged = dict(buf[0]) if len(buf) == 1 else {
             k: np.concatenate([np.asarray(c[k]) for c in buf]) for k in buf[0]}
         if self._writer is not None:
             self._writer.append(merged)
