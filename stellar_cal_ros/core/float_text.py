@@ -97,7 +97,7 @@ def _pow5bits(e):
     return ((e * 1217359) >> 19) + 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _shortest(bits, inv_lo, inv_hi, pow_lo, pow_hi):
     """Ryu's ``d2d``: (digits, decimal exponent) of a finite nonzero double's bit pattern."""
     mant = bits & np.uint64((1 << 52) - 1)
@@ -191,7 +191,7 @@ def _shortest(bits, inv_lo, inv_hi, pow_lo, pow_hi):
     return out, e10 + removed
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _put_float(buf, pos, x, bits, inv_lo, inv_hi, pow_lo, pow_hi, digits):
     """Write ``repr(x)`` at ``buf[pos:]`` (``bits``: x's bit pattern); the new position."""
     if x != x:
@@ -273,7 +273,7 @@ def _put_float(buf, pos, x, bits, inv_lo, inv_hi, pow_lo, pow_hi, digits):
     return pos + 2
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _put_int(buf, pos, v, digits):
     if v == 0:
         buf[pos] = 48

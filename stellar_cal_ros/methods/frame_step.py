@@ -752,7 +752,7 @@ class BatchCommit:
 
 # Every module holding cached numba kernels (test_user_path checks the list is complete).
 KERNEL_MODULES = ("stellar_cal_ros.core.jit", "stellar_cal_ros.methods.star_chain",
-                  "stellar_cal_ros.methods.frame_step")
+                  "stellar_cal_ros.methods.frame_step", "stellar_cal_ros.core.float_text")
 
 
 def compiled_kernels_cold() -> bool:
