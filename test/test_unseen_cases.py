@@ -382,6 +382,22 @@ def test_structure_fits_hold_their_level_on_ar1_noise(ar1_table, monkeypatch):
         (white.scale, white.sigma, white.subpixel_p, white.rolling_p, white.structure)
 
 
+def test_a_nonpositive_trace_estimate_falls_back_to_the_sandwich(ar1_table, monkeypatch):
+    """The AR(1) scale's σ comes from a stochastic trace (noise_stars.quadratic_variance,
+    one probe on a large table): should its estimate of Var log s² come out ≤ 0 or not
+    finite, star_noise falls back to the sandwich × the tracks' factor (a finite,
+    positive σ), never a square root of a negative number."""
+    nl, (res, cam, R) = ar1_table
+    noise_draw = SIGMA * nl.track_noise(res, np.random.default_rng(7), 0.9)
+    sn = nl.one(res, cam, R, noise_draw)
+    assert sn.log_variance is not None and sn.log_variance > 0  # the path is taken
+    for bad in (-1e-6, 0.0, float("nan")):
+        monkeypatch.setattr(noise_stars, "_correlated_variance", lambda *a, v=bad: v)
+        fb = nl.one(res, cam, R, noise_draw)
+        assert fb.log_variance is None and fb.scale == pytest.approx(sn.scale, rel=1e-12)
+        assert np.isfinite(fb.sigma) and 0.5 * sn.sigma < fb.sigma < 2.0 * sn.sigma
+
+
 def test_ar1_scale_sigma_is_its_scatter_over_draws(ar1_table):
     """The stars' scale σ printed under AR(1) centroid noise (τ ≈ 9.5 frames, φ 0.9) is the
     scale's SD over 160 pure draws into one 150 s bag's residual table: SD / rms printed σ

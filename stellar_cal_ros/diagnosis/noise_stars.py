@@ -321,6 +321,10 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         out.log_variance = _correlated_variance(
             sub, sigma_px[idx], fx, fy, r_cells, cell, keep_cell, stars, final,
             out.repeat_removed > 0, lev, (scatter_share, scatter_rho), out, dm)
+        if not (math.isfinite(out.log_variance) and out.log_variance > 0.0):
+            # (a stochastic trace of a few probes on a tiny table can come out <= 0: the
+            # sandwich times the tracks' factor then, never a sqrt of a negative)
+            out.log_variance = None
         out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
     out.structure, out.structure_dof = chi2 / max(out.scale, 1e-300) ** 2, dof
     out.track_rho, out.track_pairs = track.rho, track.pairs
