@@ -560,9 +560,40 @@ def left_jacobian_inverse(phi: ArrayLike) -> FloatArray:
 # ------------------------------------------------------------------------------------------
 
 
+def _sum_squares(x, y, z, w):
+    """``x² + y² + z² + w²`` in scipy's order (Python floats or arrays alike)."""
+    return ((x * x + y * y) + z * z) + w * w
+
+
 def _norm4(q: FloatArray) -> FloatArray:
-    return np.sqrt(((q[..., 0] * q[..., 0] + q[..., 1] * q[..., 1]) + q[..., 2] * q[..., 2])
-                   + q[..., 3] * q[..., 3])
+    return np.sqrt(_sum_squares(q[..., 0], q[..., 1], q[..., 2], q[..., 3]))
+
+
+def _matrix_rows(x, y, z, w) -> tuple:
+    """The rows of the matrix of the unit quaternion ``(x, y, z, w)``, as scipy forms them.
+
+    Python floats or arrays alike (the same IEEE operations in the same order).
+    """
+    xx, yy, zz, ww = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return ((((xx - yy) - zz) + ww, 2 * (xy - zw), 2 * (xz + yw)),
+            (2 * (xy + zw), ((-xx + yy) - zz) + ww, 2 * (yz - xw)),
+            (2 * (xz - yw), 2 * (yz + xw), ((-xx - yy) + zz) + ww))
+
+
+def _pivot_quat(m, tr, piv: int) -> tuple:
+    """The (unnormalised) quaternion scipy forms of the matrix ``m`` (nested 3 × 3), pivot ``piv``.
+
+    ``piv`` 0-2: the diagonal entry, 3: the trace ``tr``.  Python floats or arrays alike.
+    """
+    one = 1 - tr
+    if piv == 0:
+        return one + 2 * m[0][0], m[1][0] + m[0][1], m[2][0] + m[0][2], m[2][1] - m[1][2]
+    if piv == 1:
+        return m[0][1] + m[1][0], one + 2 * m[1][1], m[2][1] + m[1][2], m[0][2] - m[2][0]
+    if piv == 2:
+        return m[0][2] + m[2][0], m[1][2] + m[2][1], one + 2 * m[2][2], m[1][0] - m[0][1]
+    return m[2][1] - m[1][2], m[0][2] - m[2][0], m[1][0] - m[0][1], 1 + tr
 
 
 def scipy_quat(q: ArrayLike) -> FloatArray:
@@ -574,19 +605,11 @@ def scipy_quat(q: ArrayLike) -> FloatArray:
 def scipy_matrix(q: ArrayLike) -> FloatArray:
     """``as_matrix()`` of a ``Rotation`` that stores the unit quaternion ``q`` (..., 4)."""
     q = np.asarray(q, dtype=np.float64)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    xx, yy, zz, ww = x * x, y * y, z * z, w * w
-    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    rows = _matrix_rows(q[..., 0], q[..., 1], q[..., 2], q[..., 3])
     m = np.empty(q.shape[:-1] + (3, 3))
-    m[..., 0, 0] = ((xx - yy) - zz) + ww
-    m[..., 0, 1] = 2 * (xy - zw)
-    m[..., 0, 2] = 2 * (xz + yw)
-    m[..., 1, 0] = 2 * (xy + zw)
-    m[..., 1, 1] = ((-xx + yy) - zz) + ww
-    m[..., 1, 2] = 2 * (yz - xw)
-    m[..., 2, 0] = 2 * (xz - yw)
-    m[..., 2, 1] = 2 * (yz + xw)
-    m[..., 2, 2] = ((-xx - yy) + zz) + ww
+    for a in range(3):
+        for b in range(3):
+            m[..., a, b] = rows[a][b]
     return m
 
 
@@ -599,16 +622,8 @@ def scipy_quat_from_matrix(R: ArrayLike) -> FloatArray:
     R = np.asarray(R, dtype=np.float64)
     m = [[R[..., a, b] for b in range(3)] for a in range(3)]
     tr = (m[0][0] + m[1][1]) + m[2][2]
-    one = 1 - tr
-    cands = np.stack([
-        np.stack([one + 2 * m[0][0], m[1][0] + m[0][1], m[2][0] + m[0][2], m[2][1] - m[1][2]],
-                 axis=-1),
-        np.stack([m[0][1] + m[1][0], one + 2 * m[1][1], m[2][1] + m[1][2], m[0][2] - m[2][0]],
-                 axis=-1),
-        np.stack([m[0][2] + m[2][0], m[1][2] + m[2][1], one + 2 * m[2][2], m[1][0] - m[0][1]],
-                 axis=-1),
-        np.stack([m[2][1] - m[1][2], m[0][2] - m[2][0], m[1][0] - m[0][1], 1 + tr], axis=-1),
-    ], axis=-2)
+    cands = np.stack([np.stack(_pivot_quat(m, tr, piv), axis=-1) for piv in range(4)],
+                     axis=-2)
     pick = np.argmax(np.stack([m[0][0], m[1][1], m[2][2], tr], axis=-1), axis=-1)
     q = np.take_along_axis(cands, pick[..., None, None], axis=-2)[..., 0, :]
     return q / _norm4(q)[..., None]
@@ -616,24 +631,11 @@ def scipy_quat_from_matrix(R: ArrayLike) -> FloatArray:
 
 def _roundtrip_one(R: list) -> list:
     """:func:`scipy_matrix_roundtrip` of one matrix (nested lists of Python floats)."""
-    (a, b, c), (d, e, f), (g, h, i) = R
-    tr = (a + e) + i
-    piv = max(range(4), key=(a, e, i, tr).__getitem__)  # (the first largest)
-    if piv == 0:
-        x, y, z, w = (1 - tr) + 2 * a, d + b, g + c, h - f
-    elif piv == 1:
-        x, y, z, w = b + d, (1 - tr) + 2 * e, h + f, c - g
-    elif piv == 2:
-        x, y, z, w = c + g, f + h, (1 - tr) + 2 * i, d - b
-    else:
-        x, y, z, w = h - f, c - g, d - b, 1 + tr
-    n = math.sqrt(((x * x + y * y) + z * z) + w * w)
-    x, y, z, w = x / n, y / n, z / n, w / n
-    xx, yy, zz, ww = x * x, y * y, z * z, w * w
-    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
-    return [[((xx - yy) - zz) + ww, 2 * (xy - zw), 2 * (xz + yw)],
-            [2 * (xy + zw), ((-xx + yy) - zz) + ww, 2 * (yz - xw)],
-            [2 * (xz - yw), 2 * (yz + xw), ((-xx - yy) + zz) + ww]]
+    tr = (R[0][0] + R[1][1]) + R[2][2]
+    piv = max(range(4), key=(R[0][0], R[1][1], R[2][2], tr).__getitem__)  # (the first largest)
+    x, y, z, w = _pivot_quat(R, tr, piv)
+    n = math.sqrt(_sum_squares(x, y, z, w))
+    return [list(row) for row in _matrix_rows(x / n, y / n, z / n, w / n)]
 
 
 def scipy_matrix_roundtrip(R: ArrayLike) -> FloatArray:
