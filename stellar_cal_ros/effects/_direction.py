@@ -63,13 +63,6 @@ class _Table:
     def __len__(self) -> int:
         return len(self._row)
 
-    def __bool__(self) -> bool:
-        return bool(self._row)
-
-    def frame(self, stamp: float) -> int | None:
-        """The row of the frame of ``stamp`` (None: not prepared)."""
-        return self._row.get(stamp)
-
     def get(self, stamp: float) -> _Prepared | None:
         """The frame of ``stamp`` (None: not prepared)."""
         j = self._row.get(stamp)
