@@ -222,6 +222,10 @@ def test_repeating_field_is_structure_and_defers_the_imu_noise():
     sn = noise_stars.StarNoise(1.0, 0.01, 2.0 * n, 1, np.ones(n), 2 * np.ones(n), mag,
                          np.zeros(n), np.zeros(n, bool), np.ones(n), chi2_f, dof)
     assert "repeating field" in noise.structured(sn)
+    assert "across the stars' tracks" not in noise.structured(sn)  # (flips not drawn)
+    sn.structure_flip_p = 0.114
+    assert "p = 0.0085" not in noise.structured(sn) and \
+        "; across the stars' tracks p = 0.11, " in noise.structured(sn)
     sn.structure = float(dof)
     assert noise.structured(sn) == ""
 
@@ -884,3 +888,51 @@ def test_quadratic_variance_is_the_dense_traces():
     assert np.allclose(got, want, rtol=0.02), (got, want)
     assert noise_stars.quadratic_variance(forms[:1], track, lags, probes=20000)[0] == \
         pytest.approx(want[0], rel=0.02)
+
+
+def test_repeating_field_sign_flip_p_holds_its_level_and_finds_a_field():
+    """The repeating-field line's "across the stars' tracks p" (the cell means' χ² against
+    sign flips of whole tracks: noise_structure.flip_p) on a clean bag's own rows (frames,
+    stars, cells), its innovations replaced by draws at 0.05 px.  White draws: 40 p
+    uniform, mean 0.5 within 3 / sqrt(12 x 40) (0.444; the χ² p beside it 0.669: the
+    frames' fit leaves each row 1 - lev/2 of its variance); AR(1) along each star's track
+    (φ 0.82, τ 5 frames), 20 draws: 0.471 (χ² 0.765).  A field that repeats, u shifted by
+    σ x the column's offset from the centre over the half width, 10 draws: flips p at most
+    0.002 (χ² below 1e-140); 0.5 σ: flips 0.0005-0.073, χ² below 1e-18 (why the flips are
+    not the decision: a cell here holds the tracks of one or two stars)."""
+    from stellar_cal_ros.diagnosis import stats
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+
+    sim = _sim()
+    base = evaluate(_stated(sim), method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
+                    keep_residuals=True)
+    res0, cam = dict(base.residuals), base.calibration.camera
+    mask = stats.evaluation_mask(res0, 0.5) & ~np.asarray(res0["gated"], bool)
+    n = len(res0["du"])
+    star = np.asarray(res0["catalog_id"])
+    order = np.lexsort((np.asarray(res0["frame"]), star))  # each star's rows in time order
+    new = np.r_[True, star[order][1:] != star[order][:-1]]
+    rng = np.random.default_rng(9)
+    u0 = np.asarray(res0["u"], dtype=float)
+
+    def draw(phi=0.0, field=0.0):
+        e = rng.standard_normal((n, 2))
+        if phi:
+            x = e[order].copy()
+            for i in range(1, n):  # AR(1) along the track, stationary at its start
+                if not new[i]:
+                    x[i] = phi * x[i - 1] + np.sqrt(1 - phi**2) * x[i]
+            e[order] = x
+        du = 0.05 * e[:, 0] + field * 0.05 * (u0 - cam.cx) / cam.cx
+        res = dict(res0, du=du, dv=0.05 * e[:, 1])
+        sn = noise_stars.star_noise(res, np.full(n, 0.05), np.ones(n), mask, cam.fx, cam.fy,
+                                    (cam.cx, cam.cy), base.calibration.R_imu_st, flips=True)
+        return sn.structure_flip_p, sn.structure_p
+
+    white = np.array([draw() for _ in range(40)])
+    ar1 = np.array([draw(np.exp(-0.2)) for _ in range(20)])
+    for p in (white, ar1):
+        assert abs(p[:, 0].mean() - 0.5) < 3 / np.sqrt(12 * len(p)), p.mean(0)
+    field = np.array([draw(field=1.0) for _ in range(10)])
+    assert np.all(field[:, 0] < 0.01) and np.all(field[:, 1] < 1e-6), field

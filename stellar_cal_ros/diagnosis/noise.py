@@ -572,9 +572,13 @@ def structured(sn: StarNoise) -> str:
     # the field's rms per axis over the noise's: the χ²'s excess over its dof (the cells'
     # means of noise alone make the dof; counted in, a 0.12 σ checkerboard read 0.19)
     rms = math.sqrt(max(sn.structure - sn.structure_dof, 0.0) / max(float(sn.m.sum()), 1.0))
+    # (whether the stars' tracks share it: the same χ² against sign flips of whole tracks,
+    # exact but blind where a cell holds one star's track, noise_stars.StarNoise.structure_p)
+    shared = "" if sn.structure_flip_p is None else \
+        f"; across the stars' tracks p = {sn.structure_flip_p:.2g}"
     return (f"the stars show a repeating field (cell means chi2 {sn.structure:.0f} / "
-            f"{sn.structure_dof} dof, p = {p:.2g}, {rms:.2g} x the noise rms): a missing effect, "
-            "measured again once it is added")
+            f"{sn.structure_dof} dof, p = {p:.2g}{shared}, {rms:.2g} x the noise rms): a "
+            "missing effect, measured again once it is added")
 
 
 def star_lines(res: Table, mask: np.ndarray, fx: float, fy: float,

@@ -111,6 +111,10 @@ class StarNoise:
     #: below :data:`ALPHA`; referred to the tracks' correlation where it is significant)
     subpixel_p: float = 1.0
     rolling_p: float = 1.0
+    #: the p of the cell means' χ² against its sign flips of whole tracks
+    #: (:func:`~.noise_structure.flip_p`): whether the field is one the stars' tracks
+    #: share; drawn where :attr:`structure_p` is below :data:`ALPHA` (None: not drawn)
+    structure_flip_p: float | None = None
     #: tracks correlated (:attr:`scatter_rho` > 0): the variance of ``log s²`` over all the
     #: rows, exact through the steps (:func:`_correlated_variance`), the σ and dof of the
     #: scale over all the rows (:meth:`group`); None: white tracks (the sandwich alone)
@@ -132,7 +136,16 @@ class StarNoise:
 
     @property
     def structure_p(self) -> float:
-        """The p-value of "no repeating field" (χ² of the cell means)."""
+        """The p-value of "no repeating field" (χ² of the cell means).
+
+        Not exact (H76): the χ² of ``2 × cells`` dof takes each row's variance as 1 where
+        the frames' fit leaves ``1 − lev/2`` (conservative), and the tracks' correlation
+        as modelled.  The exact reference, sign flips of whole tracks
+        (:attr:`structure_flip_p`), is not the decision: where a cell holds the tracks of
+        one or two stars it cannot tell a field from per-star errors, and it lost the
+        power to find one (a field 0.5 σ at the detector's edge on a psce bag's rows: χ²
+        p below 1e-18 in 10 of 10 draws, flips 0.0005-0.07).
+        """
         if self.structure_dof <= 0:
             return 1.0
         return float(sps.chi2.sf(self.structure, self.structure_dof))
@@ -183,11 +196,13 @@ class StarNoise:
 
 def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np.ndarray,
                fx: float, fy: float, centre: tuple[float, float],
-               R_imu_st: np.ndarray | None = None) -> StarNoise | None:
+               R_imu_st: np.ndarray | None = None, flips: bool = False) -> StarNoise | None:
     """The within-frame estimate over the accepted stars of ``mask`` (see the module doc).
 
     With the installation ``R_imu_st``, a rolling shutter's shape is removed first where
-    it is significant (:func:`~.noise_structure.minus_rolling`).
+    it is significant (:func:`~.noise_structure.minus_rolling`).  The cells' sign-flip p
+    (:attr:`StarNoise.structure_flip_p`) is drawn where their χ²'s p is below
+    :data:`ALPHA`, or always with ``flips``.
     """
     from stellar_cal_ros.diagnosis.stats import rolling_columns, within_frame
 
@@ -273,9 +288,14 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     # biased low, 0.809 for 0.819, and the cells' χ² high: 'ar1' 300 s seed 30 called a
     # repeating field, p 0.0016; the larger factor of the two readings)
     cells_track = max(track, rep_track, key=lambda t: t.factor)
+    cells_lag = (cells_track.phi, cells_track.share) if track.phi > 0 else (0.0, 1.0)
     if track.phi > 0:
         chi2 = noise_structure.lagged_chi2(r_cells, cell, stars, cells_track.phi, keep_cell,
                                            share=cells_track.share)
+    # (and where it reads a field: the same statistic against sign flips of whole tracks,
+    # :func:`~.noise_structure.flip_p`, whether the stars' tracks share it)
+    flip = (lambda: noise_structure.flip_p(r_cells, cell, stars, cells_lag[0], keep_cell,
+                                           share=cells_lag[1])) if dof > 0 else None
 
     def estimate(r, share):
         q = (r**2).sum(1)
@@ -327,6 +347,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
             out.log_variance = None
         out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
     out.structure, out.structure_dof = chi2 / max(out.scale, 1e-300) ** 2, dof
+    if flip is not None and (flips or out.structure_p < ALPHA):
+        out.structure_flip_p = flip()
     out.track_rho, out.track_pairs = track.rho, track.pairs
     out.track_phi, out.track_share = track.phi, track.share
     out.track_factor_sigma = track.factor_sigma
