@@ -502,14 +502,12 @@ def _lag1_form(x: np.ndarray, track: np.ndarray, rho: float) -> tuple[Any, float
     step, 1/slope)``, the slope :func:`~.noise_structure.rho_slope`'s, or None (no lag-1
     correlation to linearize).
     """
-    order = np.argsort(track, kind="stable")
-    ts = np.asarray(track)[order]
-    same = ts[1:] == ts[:-1]
+    order, ts = noise_structure.in_track_order(track)
     _, k = np.unique(ts, return_inverse=True)
     xs = x[order]
     xs = xs - (np.stack([np.bincount(k, xs[:, c]) for c in range(2)], 1)
                / np.bincount(k)[:, None])[k]
-    a, b = xs[1:][same], xs[:-1][same]
+    a, b, same = noise_structure.lag_pairs(xs, ts)
     L, Sa, Sb = float(np.sum(a * b)), float(np.sum(a * a)), float(np.sum(b * b))
     raw = L / math.sqrt(Sa * Sb)
     n = np.bincount(k).astype(float)

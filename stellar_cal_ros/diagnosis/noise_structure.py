@@ -276,13 +276,10 @@ def track_inflation(r: np.ndarray, star: np.ndarray) -> tuple[float, float, int]
     over ``n`` frames: :func:`mean_factor`, as the tests of :func:`lagged_chi2` use).
     """
     ok = np.all(np.isfinite(r), axis=1)
-    rr, st = r[ok], np.asarray(star)[ok]
-    order = np.argsort(st, kind="stable")  # each star's rows, in time order
-    rr, st = rr[order], st[order]
-    same = st[1:] == st[:-1]
+    order, st = in_track_order(np.asarray(star)[ok])
+    a, b, same = lag_pairs(r[ok][order], st)
     if same.sum() < 20:
         return 1.0, 0.0, int(same.sum())
-    a, b = rr[1:][same], rr[:-1][same]
     den = math.sqrt(float(np.sum(a * a)) * float(np.sum(b * b)))
     n = np.bincount(np.unique(st, return_inverse=True)[1]).astype(float)
     n = n[n >= 2]
@@ -292,6 +289,22 @@ def track_inflation(r: np.ndarray, star: np.ndarray) -> tuple[float, float, int]
     # correlated 8 times in 200 on the raw pairs)
     slope = _slope(n, rho)
     return (1.0 + rho) / (1.0 - rho), rho, int(same.sum() * min(slope, 1.0) ** 2)
+
+
+def in_track_order(track: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(order, track[order])``: each track's rows together, in time order (the rows given
+    in time order; a stable sort), as the lag pairs (:func:`lag_pairs`) take them."""
+    order = np.argsort(track, kind="stable")
+    return order, np.asarray(track)[order]
+
+
+def lag_pairs(xs: np.ndarray, ts: np.ndarray, k: int = 1
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A track's rows ``k`` apart: ``(later, earlier, same)`` of rows ``xs`` in track order
+    (:func:`in_track_order`, ``ts`` their tracks); ``same[i]``: rows ``i`` and ``i + k``
+    of the sorted rows are of one track."""
+    same = ts[k:] == ts[:-k]
+    return xs[k:][same], xs[:-k][same], same
 
 
 def _slope(n: np.ndarray, rho: float, step: float = 1e-4) -> float:
@@ -539,15 +552,14 @@ def _lag_sums(r: np.ndarray, star: np.ndarray, lags: int
     group.
     """
     ok = np.all(np.isfinite(r), axis=1)
-    rr, st = r[ok], np.asarray(star)[ok]
-    order = np.argsort(st, kind="stable")
-    rr, st = rr[order], st[order]
+    order, st = in_track_order(np.asarray(star)[ok])
+    rr = r[ok][order]
     _, si = np.unique(st, return_inverse=True)
     S = int(si.max()) + 1 if len(si) else 0
     sums = np.zeros((lags, 3, S))
     for k in range(1, lags + 1):
-        same = si[k:] == si[:-k]
-        a, b, s = rr[k:][same], rr[:-k][same], si[k:][same]
+        a, b, same = lag_pairs(rr, si, k)
+        s = si[k:][same]
         for j, v in enumerate(((a * b).sum(1), (a * a).sum(1), (b * b).sum(1))):
             sums[k - 1, j] = np.bincount(s, v, minlength=S)
     n = np.bincount(si, minlength=S).astype(float)
