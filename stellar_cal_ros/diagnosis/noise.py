@@ -248,8 +248,12 @@ class NoiseVerdict:
         out = []
         for comp in self.beyond:
             f, smp = self.imu[comp], self.samples[comp]
+            # (the search's scale is of the noise applied, the stated one where the samples
+            # are within MATERIAL of it: said over the samples' own, as its words say)
+            k = getattr(self.applied, comp) / getattr(self.stated, comp) / smp["scale"]
             out.append(f"the stars see more {_IMU_WORDS[comp][1]} motion than the {comp}'s "
-                       f"noise explains: they would need x{f.value:.3g} +- {f.sigma:.2g} the "
+                       f"noise explains: they would need x{f.value * k:.3g} +- "
+                       f"{f.sigma * k:.2g} the "
                        f"noise its own samples show (x{smp['scale']:.3g} +- "
                        f"{smp['sigma']:.2g} of the stated): not {comp} noise but an effect "
                        "the model lacks (a candidate below, if one is significant), else the "
