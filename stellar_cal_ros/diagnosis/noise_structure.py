@@ -292,17 +292,22 @@ def track_inflation(r: np.ndarray, star: np.ndarray) -> tuple[float, float, int]
 
 
 def in_track_order(track: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(order, track[order])``: each track's rows together, in time order (the rows given
-    in time order; a stable sort), as the lag pairs (:func:`lag_pairs`) take them."""
+    """``(order, track[order])``: each track's rows together, in time order.
+
+    The rows given in time order (a stable sort), as the lag pairs (:func:`lag_pairs`)
+    take them.
+    """
     order = np.argsort(track, kind="stable")
     return order, np.asarray(track)[order]
 
 
 def lag_pairs(xs: np.ndarray, ts: np.ndarray, k: int = 1
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A track's rows ``k`` apart: ``(later, earlier, same)`` of rows ``xs`` in track order
-    (:func:`in_track_order`, ``ts`` their tracks); ``same[i]``: rows ``i`` and ``i + k``
-    of the sorted rows are of one track."""
+    """A track's rows ``k`` apart: ``(later, earlier, same)``.
+
+    ``xs``: rows in track order (:func:`in_track_order`), ``ts`` their tracks; ``same[i]``:
+    rows ``i`` and ``i + k`` of the sorted rows are of one track.
+    """
     same = ts[k:] == ts[:-k]
     return xs[k:][same], xs[:-k][same], same
 
@@ -366,8 +371,10 @@ def lagged_chi2(r: np.ndarray, group: np.ndarray, track: np.ndarray, rho: float,
 def _group_terms(r: np.ndarray, group: np.ndarray, track: np.ndarray, rho: float,
                  ok: np.ndarray, share: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`lagged_chi2`'s pieces over rows ``ok``: ``(r[ok], group index, track index,
-    n_g, F_g)``."""
+    """:func:`lagged_chi2`'s pieces over rows ``ok``.
+
+    ``(r[ok], group index, track index, n_g, F_g)``.
+    """
     x = r[ok]
     _, gi = np.unique(np.asarray(group)[ok], return_inverse=True)
     _, ti = np.unique(np.asarray(track)[ok], return_inverse=True)
