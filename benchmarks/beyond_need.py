@@ -26,6 +26,17 @@ from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
 
+def with_drift(sim, data, k: float, seed: int, n: int = 10) -> None:
+    """Add to ``data``'s gyro samples white noise ``k`` x the stated averaged over ``n``.
+
+    (``sim``: the simulation ``data`` is of; the draws from ``default_rng(100 + seed)``.)
+    """
+    per_sample = sim.scenario.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR / np.sqrt(0.01)
+    c = np.cumsum(k * per_sample * np.random.default_rng(100 + seed).standard_normal(
+        (len(data.imu_w) + n, 3)), axis=0)
+    data.imu_w = data.imu_w + (c[n:] - c[:-n])[:len(data.imu_w)] / n
+
+
 def main() -> int:
     """One line per seed, then the summary."""
     ap = argparse.ArgumentParser()
@@ -39,10 +50,7 @@ def main() -> int:
     for seed in range(a, b + 1):
         sim = simulate(get_scenario("psce_rotations"), duration=200.0, seed=seed)
         data = bag_data_from_simulation(sim)
-        per_sample = sim.scenario.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR / np.sqrt(0.01)
-        c = np.cumsum(k * per_sample * np.random.default_rng(100 + seed).standard_normal(
-            (len(data.imu_w) + n, 3)), axis=0)
-        data.imu_w = data.imu_w + (c[n:] - c[:-n])[:len(data.imu_w)] / n
+        with_drift(sim, data, k, seed, n)
         v = measure_bag(data, sim.prior, "psce", [], NoiseScales())
         line = next((x for x in v.lines() if x.startswith("the stars see more")), "")
         m = re.search(r"need x(\S+) \+- (\S+) the noise", line)

@@ -742,18 +742,18 @@ def test_beyond_line_prints_what_the_stars_need_over_the_white_samples():
     stated: the search's scale (of the stated) is printed over the samples' 1.03 as the
     words say (it was printed as is, 3 % high)."""
     import re
+    import sys
+    from pathlib import Path
 
-    from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from beyond_need import with_drift
 
     n = 10
 
     def line(seed, k):
         sim = _sim(seed=seed)
         data = _stated(sim)
-        per_sample = sim.scenario.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR / np.sqrt(0.01)
-        c = np.cumsum(k * per_sample * np.random.default_rng(100 + seed).standard_normal(
-            (len(data.imu_w) + n, 3)), axis=0)
-        data.imu_w = data.imu_w + (c[n:] - c[:-n])[:len(data.imu_w)] / n
+        with_drift(sim, data, k, seed, n)
         v = measure_bag(data, sim.prior, "psce", [], NoiseScales())
         samples = np.sqrt(1 + 4 * k**2 / (6 * n**2))
         assert v.beyond == ["gyro"], (seed, v.beyond)
