@@ -177,6 +177,46 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
     assert out[1][1] == out[0][1] == out[2][1] and out[0][1].count(b"\n") > 100
 
 
+def _same(a, b) -> bool:
+    """Equal values, types and array dtypes/shapes, through tuples, lists and dataclasses."""
+    import dataclasses
+
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and \
+            a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
+    if dataclasses.is_dataclass(a):
+        return type(a) is type(b) and all(_same(getattr(a, f.name), getattr(b, f.name))
+                                          for f in dataclasses.fields(a))
+    if isinstance(a, tuple | list):
+        return type(a) is type(b) and len(a) == len(b) and all(map(_same, a, b))
+    return type(a) is type(b) and a == b
+
+
+@pytest.mark.parametrize("fmt", ["mcap", *FORMATS])
+def test_replay_events_from_releases_are_those_of_the_stream(bags, fmt: str) -> None:
+    """A replay reads a bag a release of rows at a time (``BagReader.stream_releases``,
+    ``replay._release_items``): the driver gets the same calls, in the same order, with the
+    same arrays as from the stream's blocks (``replay._merged_imu``) — as read (no merge),
+    across star frames, across all; IMU runs cut every 4096 samples and every 7."""
+    from stellar_cal_ros.methods import replay as replay_mod
+
+    settings = [(frozenset({"stars"}), 0.0), (frozenset({"stars"}), None),
+                (replay_mod.ENV_ROLES | {"stars"}, 30.0)]
+    for across, limit in settings:
+        for imu_block in (replay_mod.IMU_BLOCK, 7):
+            with BagReader(bags[fmt]) as r:
+                want = list(replay_mod._merged_imu(r.stream(imu_block=imu_block), across,
+                                                   limit))
+            with BagReader(bags[fmt]) as r:
+                got = list(replay_mod._merge_items(
+                    replay_mod._release_items(r.stream_releases(), imu_block), across, limit))
+            assert len(got) == len(want) > 300
+            roles = {role for role, _ in got}
+            assert roles >= {"imu", "stars", "fix", "head", "air", "pressure"}
+            bad = [k for k, (g, w) in enumerate(zip(got, want, strict=True)) if not _same(g, w)]
+            assert not bad, (fmt, across, limit, imu_block, bad[:3])
+
+
 def test_imu_merges_across_environment_messages_only_when_nothing_reads_them(bags) -> None:
     """``_env_unread``: a psce replay without a residual table reads no environment or fix
     message; a residual table (the head temperature column), a thermal effect (the head

@@ -145,6 +145,7 @@ def test_overlapping_chunks_and_ties(tmp_path: Path) -> None:
         starts = sorted(c.start for c in r._src.plan())
         assert starts.count(T0) >= 2  # overlapping chunks indeed
         blocks = list(r.stream(imu_block=1000))
+        _assert_same_blocks(_cut_releases(r.stream_releases(), 1000), blocks)
     _assert_ordered(blocks)
     got = join_stream(blocks)
     np.testing.assert_array_equal(got["imu"].stamp_ns, imu.stamp_ns)
@@ -156,6 +157,45 @@ def test_overlapping_chunks_and_ties(tmp_path: Path) -> None:
     k = order.index((T0 + 500_000_000, "stars"))
     assert order[k - 1] == (T0 + 500_000_000, "imu")
     assert_same_content_subset(got, BagReader(path))
+
+
+def _cut_releases(releases, imu_block: int) -> list:
+    """``stream_releases`` cut as its docstring says: at the role changes of each release's
+    order, an IMU run every ``imu_block`` rows, a list of messages one a block."""
+    import dataclasses
+
+    from stellar_cal_ros.io.merge import runs
+
+    def rows(block, a, b):
+        n = len(block.stamp_ns)
+        return dataclasses.replace(block, **{
+            f.name: getattr(block, f.name)[a:b] for f in dataclasses.fields(block)
+            if isinstance(getattr(block, f.name), np.ndarray) and
+            getattr(block, f.name).ndim and len(getattr(block, f.name)) == n})
+
+    out = []
+    for roles, blocks, order in releases:
+        assert len(order) == sum(len(b) for b in blocks if b is not None)
+        for r, a, b in runs(order):
+            block = blocks[r]
+            if isinstance(block, list):
+                out += [(roles[r], m) for m in block[a:b]]
+            else:
+                step = imu_block if roles[r] == "imu" else b - a
+                out += [(roles[r], rows(block, c, min(c + step, b))) for c in range(a, b, step)]
+    return out
+
+
+def _assert_same_blocks(got: list, want: list) -> None:
+    assert [r for r, _ in got] == [r for r, _ in want]
+    for (_, g), (_, w) in zip(got, want, strict=True):
+        assert type(g) is type(w)
+        for k, v in vars(w).items():
+            if isinstance(v, np.ndarray):
+                assert v.dtype == getattr(g, k).dtype
+                np.testing.assert_array_equal(getattr(g, k), v)
+            else:
+                assert getattr(g, k) == v
 
 
 def assert_same_content_subset(got: dict, reader: BagReader) -> None:
@@ -178,6 +218,8 @@ def test_ties_keep_file_order_within_a_chunk(tmp_path: Path) -> None:
     path = _mcap_in_call_order(tmp_path / "ties.mcap", msgs, chunk_size=1 << 20)
     roles = [(r, len(b) if r == "imu" else 1) for r, b in _stream(path)]
     assert roles == [("imu", 1), ("stars", 1), ("imu", 2)]
+    with BagReader(path) as r:
+        _assert_same_blocks(_cut_releases(r.stream_releases(), 4096), _stream(path))
 
 
 def test_unchunked_file(tmp_path: Path) -> None:

@@ -50,10 +50,10 @@ def time_ordered(batches: Iterable[tuple[int, Fields]]) -> Iterator[Fields]:
         yield rows
 
 
-def interleaved(
+def releases(
     batches: Iterable[tuple[int, list[Fields | None]]], n_roles: int
-) -> Iterator[tuple[int, Fields]]:
-    """Merge decoded batches of several topics into one log-time ordered sequence of runs.
+) -> Iterator[tuple[list[Fields | None], NDArray[np.int64]]]:
+    """Merge decoded batches of several topics into log-time ordered releases.
 
     Parameters
     ----------
@@ -66,15 +66,17 @@ def interleaved(
 
     Yields
     ------
-    (int, Fields)
-        ``(role, rows)``: runs of consecutive messages of one role, in log-time order (ties in
-        file order); each role's rows are in the order :func:`time_ordered` gives. A run may
-        be cut where a chunk's rows become final, so two consecutive runs can have the same
-        role.
+    (list of Fields or None, ndarray of int64)
+        ``(rows, order)``: the rows that became final, per role (None: none), each role's in
+        the order :func:`time_ordered` gives; and ``order[i]``, the role of the ``i``-th of
+        them in log-time order (ties in file order).  The ``k``-th ``r`` in ``order`` is row
+        ``k`` of ``rows[r]``.  A release ends where a chunk's rows become final.
     """
     pending: list[Fields | None] = [None] * n_roles
     for start_ns, per_role in batches:
-        yield from _release(pending, start_ns)
+        out = _release(pending, start_ns)
+        if out is not None:
+            yield out
         for r, data in enumerate(per_role):
             if data is None or not len(data["log"]):
                 continue
@@ -86,38 +88,80 @@ def interleaved(
                     np.argsort(log, kind="stable")
                 merged = take(merged, order)
             pending[r] = merged
-    yield from _release(pending, None)
+    out = _release(pending, None)
+    if out is not None:
+        yield out
 
 
-def _release(pending: list[Fields | None], bound: int | None) -> Iterator[tuple[int, Fields]]:
-    """Yield the runs of the pending rows below ``bound`` (all if None), keep the rest."""
-    heads: list[tuple[int, Fields]] = []
+def interleaved(
+    batches: Iterable[tuple[int, list[Fields | None]]], n_roles: int
+) -> Iterator[tuple[int, Fields]]:
+    """Merge decoded batches of several topics into one log-time ordered sequence of runs.
+
+    Parameters
+    ----------
+    batches, n_roles
+        As :func:`releases`.
+
+    Yields
+    ------
+    (int, Fields)
+        ``(role, rows)``: runs of consecutive messages of one role, in log-time order (ties in
+        file order); each role's rows are in the order :func:`time_ordered` gives. A run may
+        be cut where a chunk's rows become final, so two consecutive runs can have the same
+        role.
+    """
+    for rows, order in releases(batches, n_roles):
+        present = [r for r, p in enumerate(rows) if p is not None]
+        if len(present) == 1:
+            yield present[0], rows[present[0]]
+            continue
+        for r, a, b in runs(order):
+            yield r, take(rows[r], slice(a, b))
+
+
+def runs(order: NDArray[np.int64]) -> Iterator[tuple[int, int, int]]:
+    """``(role, a, b)``: the runs of one role in a release's ``order`` (:func:`releases`).
+
+    A run is rows ``a:b`` of that role's rows.
+    """
+    if not len(order):
+        return
+    cuts = np.flatnonzero(order[1:] != order[:-1]) + 1
+    role = order[np.concatenate([[0], cuts])].tolist()
+    size = np.diff(np.concatenate([[0], cuts, [len(order)]])).tolist()
+    pos = [0] * (max(role) + 1)
+    for r, n in zip(role, size, strict=True):
+        k = pos[r]
+        pos[r] = k + n
+        yield r, k, k + n
+
+
+def _release(pending: list[Fields | None], bound: int | None
+             ) -> tuple[list[Fields | None], NDArray[np.int64]] | None:
+    """The pending rows below ``bound`` (all if None) and their roles' order; keep the rest."""
+    rows: list[Fields | None] = [None] * len(pending)
+    present: list[int] = []
     for r, p in enumerate(pending):
         if p is None or not len(p["log"]):
             continue
         k = len(p["log"]) if bound is None else int(np.searchsorted(p["log"], bound, "left"))
         if k == len(p["log"]):
-            heads.append((r, p))
+            rows[r] = p
             pending[r] = None
         elif k:
-            heads.append((r, take(p, slice(0, k))))
+            rows[r] = take(p, slice(0, k))
             pending[r] = take(p, slice(k, None))
-    if not heads:
-        return
-    if len(heads) == 1:
-        yield heads[0]
-        return
+        else:
+            continue
+        present.append(r)
+    if not present:
+        return None
+    if len(present) == 1:
+        r = present[0]
+        return rows, np.full(len(rows[r]["log"]), r, np.int64)  # type: ignore[index]
+    heads = [(r, rows[r]) for r in present]
     log = np.concatenate([h["log"] for _, h in heads])
     seq = np.concatenate([h["seq"] for _, h in heads])
     role = np.concatenate([np.full(len(h["log"]), r, np.int64) for r, h in heads])
-    role = role[np.lexsort((seq, log))]
-    cuts = np.flatnonzero(role[1:] != role[:-1]) + 1
-    starts = np.concatenate([[0], cuts]).tolist()
-    stops = np.concatenate([cuts, [len(role)]]).tolist()
-    pos = dict.fromkeys((r for r, _ in heads), 0)
-    rows = dict(heads)
-    for a, b in zip(starts, stops, strict=True):
-        r = int(role[a])
-        k = pos[r]
-        pos[r] = k + (b - a)
-        yield r, take(rows[r], slice(k, k + b - a))
+    return rows, role[np.lexsort((seq, log))]

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from stellar_cal_ros.core.types import (
     ImuSeries,
@@ -31,7 +32,7 @@ from stellar_cal_ros.errors import BagError, MessageDecodeError
 from stellar_cal_ros.io import kinds
 from stellar_cal_ros.io.image_msgs import CameraInfoMessage, ImageMessage
 from stellar_cal_ros.io.mcap_records import BagProblem, CorruptError, Rows
-from stellar_cal_ros.io.merge import Fields, concat, interleaved, time_ordered
+from stellar_cal_ros.io.merge import Fields, concat, interleaved, releases, time_ordered
 from stellar_cal_ros.io.source_base import SourceBase
 from stellar_cal_ros.io.sources import open_source
 
@@ -566,6 +567,56 @@ class BagReader:
         """
         if imu_block < 1:
             raise ValueError("imu_block must be >= 1")
+        roles, decoders = self._stream_decoders(topics)
+        counter: dict[str, list[Any]] = {}
+        if decoders:
+            batches = self._decoded(decoders, counter, "the stream")
+            for r, fields in interleaved(batches, len(decoders)):
+                yield from ((roles[r], b) for b in decoders[r].blocks(fields, imu_block))
+        for d in decoders:
+            d.warn_frames()
+        self._report_skipped(counter)
+
+    def stream_releases(
+        self, topics: Mapping[str, str] | None = None
+    ) -> Iterator[tuple[list[str], list[kinds.Block | list[Any] | None], NDArray[np.int64]]]:
+        """What :meth:`stream` yields, a release of rows at a time (no Python object a run).
+
+        Parameters
+        ----------
+        topics : mapping of str to str, optional
+            As :meth:`stream`.
+
+        Yields
+        ------
+        (roles, blocks, order)
+            ``roles``: the streamed roles (the same list every time); ``blocks[r]``: the
+            rows of ``roles[r]`` that became final, one series (a list of messages for a
+            star, image or camera-info topic; None: no row); ``order[i]``: the index in
+            ``roles`` of the ``i``-th of these messages in log-time order (ties in file
+            order), the ``k``-th ``r`` being row ``k`` of ``blocks[r]``.  Cutting each
+            release's blocks at the role changes of ``order`` (and an IMU run every
+            ``imu_block`` rows) gives :meth:`stream`'s blocks, in its order.
+
+        Raises
+        ------
+        BagError, MessageDecodeError
+            As :meth:`stream`.
+        """
+        roles, decoders = self._stream_decoders(topics)
+        counter: dict[str, list[Any]] = {}
+        if decoders:
+            batches = self._decoded(decoders, counter, "the stream")
+            for rows, order in releases(batches, len(decoders)):
+                yield roles, [None if d is None else dec.build(d)
+                              for dec, d in zip(decoders, rows, strict=True)], order
+        for dec in decoders:
+            dec.warn_frames()
+        self._report_skipped(counter)
+
+    def _stream_decoders(self, topics: Mapping[str, str] | None
+                         ) -> tuple[list[str], list[kinds.TopicDecoder]]:
+        """The roles a stream reads and their decoders (unknown types raised or left out)."""
         topics = dict(DEFAULT_TOPICS if topics is None else topics)
         roles: list[str] = []
         decoders: list[kinds.TopicDecoder] = []
@@ -577,19 +628,12 @@ class BagReader:
                        f"reads {', '.join(t for e in kinds.EXPECTED.values() for t in e)}")
                 if self.on_error == "raise":
                     raise BagError(msg)
-                warnings.warn(msg + "; left out", stacklevel=2)
+                warnings.warn(msg + "; left out", stacklevel=3)
             if kind is None:
                 continue
             roles.append(role)
             decoders.append(self._decoder(topic, kind, missing_ok=True))
-        counter: dict[str, list[Any]] = {}
-        if decoders:
-            batches = self._decoded(decoders, counter, "the stream")
-            for r, fields in interleaved(batches, len(decoders)):
-                yield from ((roles[r], b) for b in decoders[r].blocks(fields, imu_block))
-        for d in decoders:
-            d.warn_frames()
-        self._report_skipped(counter)
+        return roles, decoders
 
     def _topic_types(self, topic: str) -> list[str]:
         return [self._src.normalized_type(c) for c, ch in self._channels().items()

@@ -20,6 +20,7 @@ import numpy as np
 from stellar_cal_ros.errors import BagError, ModelError
 from stellar_cal_ros.io.bag import BagReader
 from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.io.merge import runs
 from stellar_cal_ros.methods import models, registry
 from stellar_cal_ros.methods.driver import Calibrator, DriverConfig
 from stellar_cal_ros.methods.frames import (  # noqa: F401 (re-exported)
@@ -100,13 +101,15 @@ def _events_from_reader(reader: BagReader, topics: dict[str, str], env_unread: b
     ``env_unread``: nothing the run computes reads the environment and fix messages
     (:func:`_env_unread`); the IMU blocks then merge across them too.
     """
+    across, limit = (ENV_ROLES | {"stars"}, IMU_MERGE_QUIET_S) if env_unread else \
+        (frozenset({"stars"}), None)
+    releases = getattr(reader, "stream_releases", None)
+    if releases is not None:
+        yield from _merge_items(_release_items(releases(topics=topics)), across, limit)
+        return
     stream = getattr(reader, "stream", None)
     if stream is not None:
-        blocks = stream(topics=topics, imu_block=IMU_BLOCK)
-        if env_unread:
-            yield from _merged_imu(blocks, ENV_ROLES | {"stars"}, IMU_MERGE_QUIET_S)
-        else:
-            yield from _merged_imu(blocks)
+        yield from _merged_imu(stream(topics=topics, imu_block=IMU_BLOCK), across, limit)
         return
     # readers without a streaming pass: each topic whole, merged by stamp
     available = reader.topics()
@@ -164,55 +167,121 @@ def _merged_imu(blocks, across=frozenset({"stars"}), limit_s: float | None = Non
     frames on the same samples: its IMU chunks and frame runs are cut elsewhere, which
     changes no float; test_replay_golden, the 2-h bag's history CSV byte for byte).
 
-    ``across``: the roles a merge passes over (held, then handed on after it in their
-    order); ``limit_s``: the data seconds of a merge (None: :data:`IMU_MERGE_S`).  A replay
-    whose run reads no environment or fix message passes over those too
-    (:func:`_env_unread`; :data:`IMU_MERGE_QUIET_S`): the 2-h bag's 7 200 IMU calls
-    become 240.
+    ``blocks``: ``(role, block)`` as :meth:`BagReader.stream` yields them.  ``across``: the
+    roles a merge passes over (held, then handed on after it in their order); ``limit_s``:
+    the data seconds of a merge (None: :data:`IMU_MERGE_S`).  A replay whose run reads no
+    environment or fix message passes over those too (:func:`_env_unread`;
+    :data:`IMU_MERGE_QUIET_S`): the 2-h bag's 7 200 IMU calls become 240.
     """
-    held: list = []  # IMU blocks of one merge
-    later: list = []  # (role, block) of the other messages logged among them
-    limit = int((IMU_MERGE_S if limit_s is None else limit_s) * 1e9)
+    return _merge_items(_block_items(blocks), across, limit_s)
 
-    def merged():
-        if len(held) == 1:
-            out = _imu_payload(held[0])
-        else:
-            f = [b.linear_acceleration for b in held]
-            out = (np.concatenate([b.stamp_ns for b in held]),
-                   np.concatenate([b.angular_velocity for b in held]),
-                   None if any(x is None for x in f) else np.concatenate(f),
-                   held[0].frame_id or None)
-        held.clear()
-        return out
 
-    def handed_on():
-        for role, block in later:
-            yield from _block_events(role, block)
-        later.clear()
+#: the role of an IMU piece among :func:`_merge_items`' items
+_PIECE = "imu piece"
 
+
+def _block_items(blocks):
+    """:func:`_merge_items`' items of a stream's ``(role, block)``."""
     for role, block in blocks:
-        if role == "imu":
-            if held and not (block.frame_id == held[0].frame_id and len(block.stamp_ns) and
-                             block.stamp_ns[0] > held[-1].stamp_ns[-1] and
-                             block.stamp_ns[-1] - held[0].stamp_ns[0] <= limit):
-                yield "imu", merged()
-                yield from handed_on()
-            if len(block.stamp_ns):
-                held.append(block)
-            else:  # (as it came)
-                yield "imu", _imu_payload(block)
+        if role != "imu":
+            yield from _block_events(role, block)
             continue
-        if held and role in across:
-            later.append((role, block))
-            continue
+        t = block.stamp_ns
+        if len(t):
+            yield _PIECE, (t[0], t[-1], block.frame_id,
+                           (t, block.angular_velocity, block.linear_acceleration), 0, len(t))
+        else:  # (as it came: cuts a merge)
+            yield "imu", _imu_payload(block)
+
+
+def _release_items(releases, imu_block: int = IMU_BLOCK):
+    """:func:`_merge_items`' items of :meth:`BagReader.stream_releases`.
+
+    The same as :func:`_block_items` of :meth:`BagReader.stream`'s blocks (an IMU run cut
+    every ``imu_block`` samples), without a block object a run.
+    """
+    for roles, blocks, order in releases:
+        events: list = [None] * len(roles)
+        for r, (role, block) in enumerate(zip(roles, blocks, strict=True)):
+            if block is None:
+                continue
+            if role == "imu":
+                t = block.stamp_ns
+                st = t.tolist()
+                arrays = (t, block.angular_velocity, block.linear_acceleration)
+                frame = block.frame_id
+            else:
+                events[r] = block if role in _ONE_A_MESSAGE else _row_events(role, block)
+        for r, a, b in runs(order):
+            role = roles[r]
+            if role == "imu":
+                for c in range(a, b, imu_block):
+                    d = min(c + imu_block, b)
+                    yield _PIECE, (st[c], st[d - 1], frame, arrays, c, d)
+            else:
+                ev = events[r]
+                for i in range(a, b):
+                    yield role, ev[i]
+
+
+def _merge_items(items, across=frozenset({"stars"}), limit_s: float | None = None):
+    """The driver's events of a bag's items in log order, IMU pieces merged (:func:`_merged_imu`).
+
+    ``items``: ``(role, payload)`` events, and ``(_PIECE, (first stamp, last stamp,
+    frame id, (stamps, rates, forces), a, b))`` for IMU samples ``a:b`` of those arrays.
+    A piece joins the held ones when it has their frame id, its first stamp is above the
+    held last one and its last stamp at most ``limit_s`` after the held first one; pieces
+    of one set of arrays that follow each other are handed on as one slice.
+    """
+    held: list[list] = []  # [arrays, a, b] of one merge
+    later: list = []  # the events of ``across`` roles logged among them
+    limit = int((IMU_MERGE_S if limit_s is None else limit_s) * 1e9)
+    frame = first = last = None
+    for role, p in items:
+        piece = role is _PIECE
         if held:
-            yield "imu", merged()
-            yield from handed_on()
-        yield from _block_events(role, block)
+            if piece:
+                f, g, fid, arrays, a, b = p
+                if fid == frame and f > last and g - first <= limit:  # joins the merge
+                    h = held[-1]
+                    if h[0] is arrays and h[2] == a:
+                        h[2] = b
+                    else:
+                        held.append([arrays, a, b])
+                    last = g
+                    continue
+            elif role in across:
+                later.append((role, p))
+                continue
+            yield "imu", _joined(held, frame)
+            held = []
+            if later:
+                yield from later
+                later = []
+        if piece:
+            f, g, fid, arrays, a, b = p
+            held.append([arrays, a, b])
+            frame, first, last = fid, f, g
+        else:
+            yield role, p
     if held:
-        yield "imu", merged()
-    yield from handed_on()
+        yield "imu", _joined(held, frame)
+    yield from later
+
+
+def _joined(held: list[list], frame_id: str) -> tuple:
+    """``Calibrator.push_imu_block``'s arguments of held IMU pieces (frame id None: any)."""
+    if len(held) == 1:
+        (t, w, f), a, b = held[0]
+        if a == 0 and b == len(t):
+            return t, w, f, frame_id or None
+        return t[a:b], w[a:b], None if f is None else f[a:b], frame_id or None
+    forces = [f for (_, _, f), _, _ in held]
+    return (np.concatenate([t[a:b] for (t, _, _), a, b in held]),
+            np.concatenate([w[a:b] for (_, w, _), a, b in held]),
+            None if any(f is None for f in forces) else
+            np.concatenate([f[a:b] for (_, _, f), a, b in held]),
+            frame_id or None)
 
 
 def _slice(block, a: int, b: int):
@@ -231,22 +300,31 @@ def _imu_payload(block) -> tuple:
             block.frame_id or None)
 
 
+#: roles whose reader block is one message (the others: series of messages)
+_ONE_A_MESSAGE = ("stars", "image", "camera_info")
+
+
 def _block_events(role: str, block):
     """Driver calls of one reader block."""
     if role == "imu":
         yield "imu", _imu_payload(block)
-    elif role in ("stars", "image", "camera_info"):
+    elif role in _ONE_A_MESSAGE:
         yield role, block
-    elif role == "fix":
-        for row in zip(np.asarray(block.stamp_ns).tolist(), np.asarray(block.latitude_deg).tolist(),
-                       np.asarray(block.longitude_deg).tolist(),
-                       np.asarray(block.altitude_m).tolist(), np.asarray(block.status).tolist(),
-                       strict=True):
-            yield "fix", row
     else:
-        for t, v in zip(np.asarray(block.stamp_ns).tolist(), np.asarray(block.value).tolist(),
-                        strict=True):
-            yield role, (t, v)
+        for p in _row_events(role, block):
+            yield role, p
+
+
+def _row_events(role: str, block) -> list:
+    """The driver calls' payloads of a series block, one a message."""
+    if role == "fix":
+        return list(zip(np.asarray(block.stamp_ns).tolist(),
+                        np.asarray(block.latitude_deg).tolist(),
+                        np.asarray(block.longitude_deg).tolist(),
+                        np.asarray(block.altitude_m).tolist(),
+                        np.asarray(block.status).tolist(), strict=True))
+    return list(zip(np.asarray(block.stamp_ns).tolist(), np.asarray(block.value).tolist(),
+                    strict=True))
 
 
 def _handlers(cal: Calibrator) -> dict[str, Any]:
