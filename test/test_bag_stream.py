@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import tracemalloc
 import warnings
 from pathlib import Path
@@ -160,10 +161,11 @@ def test_overlapping_chunks_and_ties(tmp_path: Path) -> None:
 
 
 def _cut_releases(releases, imu_block: int) -> list:
-    """``stream_releases`` cut as its docstring says: at the role changes of each release's
-    order, an IMU run every ``imu_block`` rows, a list of messages one a block."""
-    import dataclasses
+    """``stream_releases`` cut as its docstring says.
 
+    At the role changes of each release's order, an IMU run every ``imu_block`` rows, a list
+    of messages one a block.
+    """
     from stellar_cal_ros.io.merge import runs
 
     def rows(block, a, b):
@@ -309,3 +311,71 @@ def test_stream_on_reference_bags(path: Path) -> None:
     blocks = _stream(path)
     _assert_ordered(blocks)
     assert_same_content(join_stream(blocks), read_all(BagReader(path)))
+
+
+def _random_frame(rng, t: int, n: int, frame_id: str = "st") -> StarFrame:
+    uv = rng.uniform(0, 1024, (n, 2))
+    return StarFrame(t, frame_id, float(np.float32(rng.uniform(0, 0.2))),
+                     rng.integers(0, 2**32, n, dtype=np.uint64).astype(np.uint32),
+                     rng.uniform(0, 6.3, n), rng.uniform(-1.5, 1.5, n), uv,
+                     rng.normal(5, 2, n).astype(np.float32).astype(float),
+                     np.where(rng.random(n) < 0.1, np.nan,
+                              rng.uniform(0, 0.1, n)).astype(np.float32).astype(float))
+
+
+def _batch(payloads: list[bytes]) -> tuple:
+    """One buffer holding ``payloads`` (1-byte gaps), their offsets, lengths, log times."""
+    off, buf = [], b""
+    for p in payloads:
+        buf += b"\xee"
+        off.append(len(buf))
+        buf += p
+    ln = [len(p) for p in payloads]
+    return (np.frombuffer(buf, np.uint8), np.array(off, np.int64), np.array(ln, np.int64),
+            T0 + 7 * np.arange(len(payloads), dtype=np.int64))
+
+
+def _assert_frames_equal(got: StarFrame, want: StarFrame) -> None:
+    for k, v in vars(want).items():
+        g = getattr(got, k)
+        if isinstance(v, np.ndarray):
+            assert g.dtype == v.dtype and g.shape == v.shape, k
+            np.testing.assert_array_equal(g, v)
+        else:
+            assert type(g) is type(v) and g == v, k
+
+
+def test_star_frames_in_bulk_are_decode_star_array_s() -> None:
+    """A batch of well-formed star payloads of one frame_id (8-aligned star arrays: what a
+    tracker writes) is decoded in one numpy pass; each frame is ``decode_star_array``'s,
+    value for value and dtype for dtype: empty frames, NaN sigmas, trailing padding.  A
+    batch with a second frame_id (of another length, of the same), a packed first star
+    (frame_id "cam1") or a malformed
+    payload is decoded one payload at a time (the errors said as before)."""
+    rng = np.random.default_rng(3)
+    frames = [_random_frame(rng, T0 + k * 10**8 + k, n) for k, n in
+              enumerate([25, 0, 1, 40, 17, 0, 3])]
+    payloads = [cdr.encode_star_frame(f) + b"\x00" * (k % 4) for k, f in enumerate(frames)]
+    buf, off, ln, log = _batch(payloads)
+    assert cdr._star_frames_bulk(buf, off, ln, log) is not None
+    dec = cdr.decode_star_frames(buf, off, ln, log)
+    assert dec.keep.all() and not dec.bad and len(dec.fields["obj"]) == len(frames)
+    np.testing.assert_array_equal(dec.fields["log"], log)
+    for k, got in enumerate(dec.fields["obj"]):
+        want = cdr.decode_star_array(payloads[k])
+        want.log_time_ns = int(log[k])
+        _assert_frames_equal(got, want)
+        _assert_frames_equal(got, dataclasses.replace(frames[k], log_time_ns=int(log[k])))
+    other = cdr.encode_star_frame(_random_frame(rng, T0, 4, "other"))
+    same_size = cdr.encode_star_frame(_random_frame(rng, T0, 4, "su"))
+    packed = cdr.encode_star_frame(_random_frame(rng, T0, 4, "cam1"))
+    short = payloads[0][:-9]
+    for odd, bad in ((other, 0), (same_size, 0), (packed, 0), (short, 1)):
+        batch = _batch([*payloads[:3], odd, *payloads[3:]])
+        assert cdr._star_frames_bulk(*batch) is None
+        dec = cdr.decode_star_frames(*batch)
+        assert len(dec.bad) == bad and len(dec.fields["obj"]) == len(frames) + 1 - bad
+        if not bad:
+            want = cdr.decode_star_array(odd)
+            want.log_time_ns = int(batch[3][3])
+            _assert_frames_equal(dec.fields["obj"][3], want)

@@ -368,8 +368,64 @@ def decode_star_frames(
     Decoded
         Fields ``obj`` (object array of :class:`StarFrame`, ``log_time_ns`` filled) and ``log``.
     """
+    bulk = _star_frames_bulk(buf, off, ln, log)
+    if bulk is not None:
+        return bulk
     mv = memoryview(buf)
     return decode_each(lambda _, o, n: decode_star_array(mv[o : o + n]), buf, off, ln, log)
+
+
+def _star_frames_bulk(
+    buf: NDArray[np.uint8], off: NDArray[np.int64], ln: NDArray[np.int64], log: NDArray[np.int64]
+) -> Decoded | None:
+    """:func:`decode_star_frames` of a well-formed batch in one numpy pass (None: not one).
+
+    Every payload well formed, one frame_id, every star array 8-aligned (what a tracker
+    writes); otherwise None, and the batch is decoded one payload at a time, each error
+    said as :func:`decode_star_array` says it.  The frames are :func:`decode_star_array`'s,
+    value for value and dtype for dtype (their arrays are slices of the batch's).
+    """
+    n = len(off)
+    if n < 2:
+        return None
+    stamp, strlen, ok, bad = _header_bulk(buf, off, ln, STAR_ARRAY)
+    if bad or not ok.all() or np.any(strlen != strlen[0]):
+        return None
+    pos = 4 + align(16 + strlen - 4, 4)
+    if np.any(pos + 8 > ln):
+        return None
+    head = windows(buf, off + pos, 8)
+    exposure = np.ascontiguousarray(head[:, :4]).view("<f4")[:, 0]
+    count = np.ascontiguousarray(head[:, 4:]).view("<u4")[:, 0].astype(np.int64)
+    pos = pos + 8
+    expected = pos + 48 * count
+    if np.any((pos - 4) % 8 != 0) or np.any(ln < expected) or np.any(ln > expected + MAX_PAD):
+        return None
+    chars = windows(buf, off + 16, int(strlen[0]) - 1)
+    if not np.all(chars == chars[0]):
+        return None
+    frame_id = bytes(chars[0]).decode("utf-8", errors="replace")
+    total = int(count.sum())
+    first = np.cumsum(count) - count
+    at = np.repeat(off + pos, count) + 48 * (np.arange(total) - np.repeat(first, count))
+    arr = windows(buf, at, 48).view(STAR_DT_ALIGNED)[:, 0] if total else \
+        np.zeros(0, STAR_DT_ALIGNED)
+    catalog = arr["catalog_id"].astype(np.uint32)
+    ra = arr["ra"].astype(np.float64)
+    dec = arr["dec"].astype(np.float64)
+    mag = arr["mag"].astype(np.float64)
+    sigma = arr["sigma"].astype(np.float64)
+    uv = np.empty((total, 2))
+    uv[:, 0] = arr["u"]
+    uv[:, 1] = arr["v"]
+    objs = np.empty(n, dtype=object)
+    bounds = np.concatenate([first, [total]]).tolist()
+    for j, (t, e, lt) in enumerate(zip(stamp.tolist(), exposure.astype(np.float64).tolist(),
+                                       log.tolist(), strict=True)):
+        a, b = bounds[j], bounds[j + 1]
+        objs[j] = StarFrame(t, frame_id, e, catalog[a:b], ra[a:b], dec[a:b], uv[a:b],
+                            mag[a:b], sigma[a:b], lt)
+    return Decoded(np.ones(n, bool), {"obj": objs, "log": log}, [], [])
 
 
 def decode_each(

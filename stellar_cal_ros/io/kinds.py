@@ -140,9 +140,10 @@ class TopicDecoder:
         errors : list of (int, str)
             Log time and reason of every message not decoded, in time order.
         """
-        if not self._other_list and len(self._good_list) == 1 and rows.channel.size and \
-                np.all(rows.channel == self._good_list[0]):
-            sel = np.arange(len(rows))
+        if len(self._good_list) == 1:  # (one channel: a comparison, not isin's sort)
+            mine = rows.channel == self._good_list[0]
+            sel = np.arange(len(rows)) if not self._other_list and mine.all() else \
+                np.flatnonzero(mine)
         else:
             sel = np.flatnonzero(np.isin(rows.channel, self._good_list))
         errors: list[tuple[int, str]] = []
