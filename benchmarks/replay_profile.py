@@ -7,8 +7,9 @@ Usage::
 Runs ``stellar-cal replay BAG --method M --prior PRIOR -o TMP -q`` in this process (what the
 CLI does: the history CSV is written) with ``time.process_time`` around the functions of
 the per-message path, and prints for each its calls, inclusive and exclusive CPU seconds
-(exclusive: without the timed functions it calls) and exclusive µs per call; then the
-reading alone (the bag's events, nothing fed) in the same process.  The timers cost about
+(exclusive: without the timed functions it calls) and exclusive µs per call — the replay's
+reading (its events generator) a row too, a call an event; then the reading alone (every
+message as an event, no quiet merge, nothing fed) in the same process.  The timers cost about
 1 µs a call (≈ 0.5 CPU-s on the 2-h bag of ``psce_speed.py``).  Use it with
 ``psce_speed.py``, which times whole processes against rosbags.
 """
@@ -61,6 +62,9 @@ TIMED = [
 # push_imu_block's screen).  numba is imported inside the timed replay, where the replay
 # imports it, so that "start and imports" stays the script's own.
 NUMBA_FIRST = "numba first calls (cache loads)"
+# the replay's reading: the time inside its events generator (decompression, decoding, the
+# merge of the chunks and of the IMU runs), a call an event
+READING = "reading (the replay's events)"
 
 
 def timed_replay(argv: list[str]) -> tuple[dict, dict, dict, float]:
@@ -90,6 +94,25 @@ def timed_replay(argv: list[str]) -> tuple[dict, dict, dict, float]:
 
         setattr(owner, name, w)
 
+    def wrap_events(f):
+        @functools.wraps(f)
+        def events(*a, **k):
+            it = f(*a, **k)
+            while True:
+                t = time.process_time()
+                try:
+                    item = next(it)
+                except StopIteration:
+                    return
+                finally:
+                    d = time.process_time() - t
+                    incl[READING] += d
+                    excl[READING] += d
+                    calls[READING] += 1
+                yield item
+
+        return events
+
     t = time.process_time()
     from numba.core.dispatcher import Dispatcher
 
@@ -97,11 +120,14 @@ def timed_replay(argv: list[str]) -> tuple[dict, dict, dict, float]:
     originals = [(owner, name, getattr(owner, name)) for owner, name, _ in timed]
     for owner, name, label in timed:
         wrap(owner, name, label)
+    events = replay_mod._events_from_reader
+    replay_mod._events_from_reader = wrap_events(events)
     try:
         cli.main(argv)
     finally:
         for owner, name, f in originals:
             setattr(owner, name, f)
+        replay_mod._events_from_reader = events
     return calls, incl, excl, time.process_time() - t
 
 
@@ -127,7 +153,7 @@ def main(argv=None) -> int:
          str(out), "-q"])
     t = time.process_time()
     n = 0
-    with BagReader(args.bag) as reader:
+    with BagReader(args.bag) as reader:  # (every message to the driver: no quiet merge)
         for _ in replay_mod._events_from_reader(reader, dict(replay_mod.TOPICS)):
             n += 1
     reading = time.process_time() - t
