@@ -606,7 +606,8 @@ def build_parser() -> argparse.ArgumentParser:
         d.add_argument("--workers", type=int, default=None,
                        help="worker processes for the re-runs (default: automatic, in this "
                             "process until a batch of re-runs would take >= 20 CPU-s, then "
-                            "one per core; 0 or 1: none, everything in this process)")
+                            "one per core; in this process on 1-2 cores; 0 or 1: none, "
+                            "everything in this process)")
         d.add_argument("--scheduler", default=None, metavar="ADDRESS",
                        help="run the re-runs on an existing Dask cluster (tcp://host:8786)")
         d.add_argument("--verify", action="store_true",

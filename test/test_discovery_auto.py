@@ -498,6 +498,11 @@ def test_automatic_workers_start_a_cluster_only_for_a_batch_that_pays(monkeypatc
     monkeypatch.setattr(parallel, "evaluate", fake_evaluate)
     monkeypatch.setattr(parallel.DaskRuns, "_connect", lambda self: started.append(1))
     bag = object.__new__(BagData)  # never read: every run is faked
+    # on two cores (or one) the default stays in this process, however long the batch
+    monkeypatch.setattr(parallel.os, "cpu_count", lambda: parallel.IN_PROCESS_CORES)
+    with parallel.open_runner(bag, method_spec("psce"), 0.5, None) as runs:
+        assert type(runs) is parallel.Runs
+    monkeypatch.setattr(parallel.os, "cpu_count", lambda: parallel.IN_PROCESS_CORES + 2)
     with parallel.open_runner(bag, method_spec("psce"), 0.5, None) as runs:
         assert isinstance(runs, parallel.DaskRuns) and runs.client is None
         assert runs.workers == 1 and "in this process" in runs.description

@@ -548,23 +548,37 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     usual case far from the model: the verdict then skips the IMU's search), else
     dropped.  The round must ask for the same :class:`Task` objects.
     """
-    from stellar_cal_ros.diagnosis.noise_runs import first_runs, measure
+    from stellar_cal_ros.diagnosis.noise_runs import first_runs, measure, start_samples
 
     if methods.get(r.spec.name).kind != "filter":
         return None  # a batch method's runner takes no noise scales (its σ: its own fit)
     r.tell("noise: measuring the stars' sigma and the IMU noise from the run")
     ran_with = r.runs.noise
     comps = ("gyro", "accel") if Stage.ACCEL in r.spec.stages else ("gyro",)
-    # with several workers the first ML runs go beside the base run (they need its result
-    # only when the stars change the scales: then they are not used); not in a round that
-    # is not screened: its model was far off, where the verdict skips the ML search
-    ahead = (first_runs(r.runs, prior, tuple(extra), comps)
-             if r.runs.workers > 1 and screen else [])
+    groups = screening.parts(list(screen), r.runs.workers) if screen else [[]]
+
+    def ahead() -> list[Task]:
+        # called once the base run and its screening parts are handed out: the IMU
+        # samples' scales (the verdict's, and the first ML runs' start) go to the first
+        # free worker, not before the base run (the parts would then queue behind a
+        # worker's run instead of taking the free one)
+        start_samples(r.runs, comps)
+        # with several workers the first ML runs go beside the base run (they need its
+        # result only when the stars change the scales: then they are not used); not in a
+        # round that is not screened: its model was far off, where the verdict skips the
+        # ML search.  Only as many as workers idle once their screening part is done
+        # before the base run (which also measures the stars' noise and keeps its
+        # residuals): a run a worker starts just before the verdict holds it up by its
+        # length when the verdict needs no search (far off: measured, doc/benchmarks.md)
+        if r.runs.workers < 2 or not screen:
+            return []
+        idle = r.runs.workers - 1 if len(groups) > 1 else r.runs.workers
+        return first_runs(r.runs, prior, tuple(extra), comps)[:idle]
+
     # a round that is not screened: its candidates' runs beside the base run (they wait
     # for nothing it finds unless the noise changes)
     beside = list(beside) if r.runs.workers > 1 and not screen else []
     kept: list[Task] = []
-    groups = screening.parts(list(screen), r.runs.workers) if screen else [[]]
     others = [Task(f"screen {i + 2}/{len(groups)}", prior, tuple(extra), False,
                    cost=_SCREEN_COST, screen=tuple(g)) for i, g in enumerate(groups[1:])]
     try:
@@ -573,7 +587,7 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
                                       keep_residuals,
                                       cost=_SCREEN_COST if screen or beside else 1.0,
                                       screen=tuple(groups[0]), star_noise=True)] + others,
-                                ahead + beside, r.done)
+                                lambda: ahead() + beside, r.done)
         base = done["noise: current model"]
         if not base.ok:
             log.warning("noise not measured: the current model's run failed: %s", base.error)

@@ -207,19 +207,29 @@ def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fra
     return {k: np.asarray(res[k])[keep] for k in _MOVED_COLUMNS}
 
 
-def after_add(runs, run, prior: Calibration, effects: tuple[str, ...]
+def probe_later(runs, prior: Calibration, effects: tuple[str, ...]):
+    """The probe run :func:`after_add` makes, as a function to call for its result.
+
+    On a cluster it starts now (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.later`):
+    a caller that may need a second test starts it beside the first.
+    """
+    return runs.later(measure_on_bag, runs.spec, prior, tuple(effects), runs.fraction,
+                      runs.noise, runs.classes)
+
+
+def after_add(runs, run, prior: Calibration, effects: tuple[str, ...], probe=None
               ) -> dict[str, float] | None:
     """The flexure-shaped test of ``run`` (the model ``effects`` from ``prior``).
 
     ``run``: the diagnosis's :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary` of
     that model, with its residuals; ``runs``: its :class:`~stellar_cal_ros.diagnosis.
     parallel.Runs` (method, window and the noise scales ``run`` ran with).  One more run of
-    the model, with the probe, where the bag is.
+    the model, with the probe, where the bag is (``probe``: that run, started already by
+    :func:`probe_later` with the same arguments).
     """
     if run is None or not run.ok or run.residuals is None:
         return None
-    moved = runs.on_bag(measure_on_bag, runs.spec, prior, tuple(effects), runs.fraction,
-                        runs.noise, runs.classes)
+    moved = (probe or probe_later(runs, prior, effects))()
     if moved is None:
         return None
     return remainder_statistics(run.residuals, moved, runs.fraction)

@@ -126,6 +126,17 @@ def first_runs(runs, prior, effects: tuple[str, ...],
             if x != 0.0 or at != stated]
 
 
+def start_samples(runs, components: tuple[str, ...] = ("gyro",)) -> None:
+    """Start the IMU samples' scales (:func:`_from_samples`) on a free worker, if any.
+
+    So that :func:`first_runs` and :func:`measure` find them computed beside the base run
+    instead of waiting for them (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag_soon`).
+    """
+    stated = runs.noise or NoiseScales()
+    for comp in components:
+        runs.on_bag_soon(imu_sample_scale, runs.spec.name, comp, stated)
+
+
 def _from_samples(v: NoiseVerdict, runs, components: tuple[str, ...], n_tests: int
                   ) -> NoiseScales:
     """The IMU components' scales from their own samples (where they look white)."""

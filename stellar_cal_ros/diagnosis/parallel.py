@@ -21,7 +21,10 @@ Executors
     and each worker importing the package, loading the compiled kernels and reading the
     bag: measured, doc/benchmarks.md) and several seconds of wall time before its first
     run ends; a round of a few short runs (a ``diagnose`` near the model, a 2-h round's
-    noise runs) is done sooner in this process.  On a one-core machine: in this process.
+    noise runs) is done sooner in this process.  On a machine of at most
+    :data:`IN_PROCESS_CORES` cores: in this process (two workers and the parent share two
+    cores: measured, a round of ten re-runs gains at most 1.1-1.4x on idle cores for
+    +70 % CPU and +700 MB, and loses wall time beside any other job).
 ``scheduler=ADDRESS``
     an existing Dask cluster (``tcp://host:8786``): the user's cluster, its workers as
     they are.
@@ -50,6 +53,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from stellar_cal_ros.diagnosis import timeline
 from stellar_cal_ros.diagnosis.runstats import (
     BagBytes,
     BagRef,
@@ -66,12 +70,20 @@ log = logging.getLogger(__name__)
 #: the default number of local workers is one per core, up to this (a round has ~10-20
 #: runs, and each worker holds the bag)
 MAX_DEFAULT_WORKERS = 16
+#: ``workers=None`` on a machine of at most this many cores: in this process (measured on
+#: 2 cores, doc/benchmarks.md "the second worker's start, the critical path")
+IN_PROCESS_CORES = 2
 #: ``workers=None``: a batch of runs goes to a (then started) local cluster when it would
 #: take at least this many CPU seconds in this process (see the module's doc)
 CLUSTER_PAYS_S = 20.0
 #: Dask priority of :meth:`Runs.on_bag` (a run's is 100 × its cost): a small statistic of
 #: the bag that the diagnosis waits for goes before the runs queued ahead of need
 ON_BAG_PRIORITY = 1_000_000
+#: Dask priority below every run waited for, of a run made ahead of need
+#: (:meth:`Runs.run_ahead`): an idle worker takes it, a worker with a run someone waits for
+#: (a screening part beside the base run) does that first (measured: an ML run ahead taken
+#: before the second screening part held the round up by its length)
+AHEAD_PRIORITY = -1_000_000
 
 
 @dataclass
@@ -101,6 +113,14 @@ class Task:
     gyro_check: bool = True
 
 
+#: runs ahead of need (:meth:`Runs.run_ahead`): the tasks, or a function returning them
+Ahead = list[Task] | tuple[Task, ...] | Callable[[], list[Task]]
+
+
+def _tasks(ahead: Ahead) -> list[Task]:
+    return list(ahead()) if callable(ahead) else list(ahead)
+
+
 def user_effect_classes() -> tuple[type, ...]:
     """Registered effect classes that a fresh worker process would not know."""
     from stellar_cal_ros.effects import registry
@@ -112,6 +132,11 @@ def _on_bag(bag: BagRef, fn: Callable[..., Any], *args: Any) -> Any:
     from stellar_cal_ros.diagnosis.runstats import load_bag
 
     return fn(load_bag(bag), *args)
+
+
+def _run(key: str, batch: int, bag: BagRef, fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(bag, *args)`` where it runs (a worker, or here): on the timeline when it is on."""
+    return timeline.traced(key, batch, bag, fn, *args)
 
 
 def _file_size(path: str) -> int:
@@ -141,6 +166,8 @@ class Runs:
         self._ahead: list[tuple[Task, Any, Any]] = []
         #: :meth:`on_bag`'s results by ``(fn, args)``: a statistic of the bag is computed once
         self._of_bag: dict[tuple, Any] = {}
+        #: the batches of runs handed out (:mod:`~stellar_cal_ros.diagnosis.timeline`)
+        self._batches = timeline.Batches()
 
     def noise_of(self, task: Task):
         """The noise scales ``task`` runs with."""
@@ -148,7 +175,11 @@ class Runs:
 
     def facts(self) -> dict[str, Any]:
         """Applicability facts of the bag (site, head temperature, frames, duration)."""
-        return bag_facts(self.bag)
+        batch = self._batches.open()
+        try:
+            return _run("facts", batch[0], self.bag, bag_facts)
+        finally:
+            self._batches.close(batch, ["facts"])
 
     def on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(bag_data, *args)`` where the bag is (a worker; the parent never reads it).
@@ -166,34 +197,63 @@ class Runs:
             self._of_bag[key] = self._compute_on_bag(fn, *args)
         return self._of_bag[key]
 
+    def on_bag_soon(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Start :meth:`on_bag` ``(fn, *args)`` now where a worker is free; ask for it later.
+
+        On a cluster the statistic goes before any queued run, beside the runs handed out
+        next (a later :meth:`on_bag` of the same ``(fn, args)`` waits for it); in this
+        process nothing happens now (it is computed when asked for).
+        """
+
+    def later(self, fn: Callable[..., Any], *args: Any) -> Callable[[], Any]:
+        """``fn(bag_data, *args)`` as a function to call when its value is needed.
+
+        On a cluster the computation starts now (beside whatever the parent waits for
+        next; a value nobody asks for is dropped, a computation already started runs to its
+        end); in this process it runs when the value is asked for.  Not cached.
+        """
+        return lambda: self._compute_on_bag(fn, *args)
+
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
-        return _on_bag(self.bag, fn, *args)
+        batch = self._batches.open()
+        try:
+            return _run(fn.__name__, batch[0], self.bag, _on_bag, fn, *args)
+        finally:
+            self._batches.close(batch, [fn.__name__])
 
     def on_bag_each(self, fn: Callable[..., Any], calls: list[tuple]) -> list[Any]:
         """``[fn(bag_data, *args) for args in calls]`` where the bag is, not cached.
 
         On a cluster the calls run concurrently (one task each); here one after the other.
         """
-        return [self._compute_on_bag(fn, *args) for args in calls]
+        batch = self._batches.open()
+        try:
+            return [_run(f"{fn.__name__} {i}", batch[0], self.bag, _on_bag, fn, *args)
+                    for i, args in enumerate(calls)]
+        finally:
+            self._batches.close(batch, [f"{fn.__name__} {i}" for i in range(len(calls))])
 
-    def map(self, tasks: list[Task], ahead: list[Task] = ()
+    def map(self, tasks: list[Task], ahead: Ahead = ()
             ) -> Iterator[tuple[Task, RunSummary]]:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes.
 
         ``ahead`` (:meth:`run_ahead`) are run after them and kept, not yielded.
         """
+        batch = self._batches.open()
         for task in sorted(tasks, key=lambda t: -t.cost):
-            yield task, self._evaluate(task)
-        self._ahead += [(t, self.noise_of(t), self._evaluate(t)) for t in ahead]
+            yield task, self._evaluate(task, batch[0])
+        self._ahead += [(t, self.noise_of(t), self._evaluate(t, batch[0]))
+                        for t in _tasks(ahead)]
+        self._batches.close(batch, [t.key for t in tasks])
 
-    def _evaluate(self, task: Task) -> RunSummary:
-        return evaluate(self.bag, self.spec, task.prior, task.effects, self.fraction,
-                        task.keep_residuals, (), task.screen, task.candidate,
-                        self.noise_of(task), task.star_noise, task.gyro_check)
+    def _evaluate(self, task: Task, batch: int = 0) -> RunSummary:
+        return _run(task.key, batch, self.bag, evaluate, self.spec, task.prior, task.effects,
+                    self.fraction, task.keep_residuals, (), task.screen, task.candidate,
+                    self.noise_of(task), task.star_noise, task.gyro_check)
 
     def run_all(self, tasks: list[Task],
                 done: Callable[[Task, RunSummary, str], None] | None = None,
-                ahead: list[Task] = ()) -> dict[str, RunSummary]:
+                ahead: Ahead = ()) -> dict[str, RunSummary]:
         """Run ``tasks`` and return ``{key: stats}``.
 
         ``done(task, stats, where)`` is called as each finishes; ``where`` reads
@@ -221,7 +281,7 @@ class Runs:
                      + (f", ETA {format_seconds(left)}" if k < n else ""))
         return out
 
-    def run_ahead(self, tasks: list[Task], ahead: list[Task],
+    def run_ahead(self, tasks: list[Task], ahead: Ahead,
                   done: Callable[[Task, RunSummary, str], None] | None = None
                   ) -> dict[str, RunSummary]:
         """:meth:`run_all` of ``tasks`` and, beside them, of ``ahead``; the stats of ``tasks``.
@@ -232,9 +292,11 @@ class Runs:
         running it again.  This returns when ``tasks`` are done: on a cluster
         (:class:`DaskRuns`) the runs ahead go on meanwhile (one nobody takes would
         otherwise hold the round up by its length, and :meth:`drop_ahead` cancels those
-        not started); in this process they run after ``tasks``.
+        not started); in this process they run after ``tasks``.  ``ahead`` may be a
+        function returning them, called once ``tasks`` are handed out (when building them
+        waits for a worker, :meth:`on_bag`, the runs ``tasks`` are not held up by it).
         """
-        return self.run_all(list(tasks), done, list(ahead))
+        return self.run_all(list(tasks), done, ahead if callable(ahead) else list(ahead))
 
     def drop_ahead(self, keep: list[Task] = ()) -> None:
         """Forget the runs made ahead that nobody asked for, except the tasks ``keep``."""
@@ -254,6 +316,7 @@ class Runs:
 
     def close(self) -> None:
         """Release the workers."""
+        timeline.Batches.end()
 
 
 class DaskRuns(Runs):
@@ -292,6 +355,8 @@ class DaskRuns(Runs):
             import dask
 
             n = workers or min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
+            timeline.write({"kind": "cluster", "time": time.time(),
+                            "cpu": time.process_time()})
             # no statistical profiler in the workers: it samples the running filter's stack
             # every 10 ms of *wall* time, for a dashboard nobody opens here
             with dask.config.set({"distributed.worker.profile.enabled": False}):
@@ -327,36 +392,72 @@ class DaskRuns(Runs):
     def facts(self) -> dict[str, Any]:  # noqa: D102
         if self.client is None:
             return super().facts()
-        return self.client.submit(bag_facts, self.remote_bag, pure=False).result()
+        batch = self._batches.open()
+        out = self.client.submit(_run, "facts", batch[0], self.remote_bag, bag_facts,
+                                 pure=False).result()
+        self._batches.close(batch, ["facts"])
+        return out
+
+    def on_bag_soon(self, fn: Callable[..., Any], *args: Any) -> None:  # noqa: D102
+        key = (fn, args)
+        if self.client is None or key in self._of_bag:
+            return
+        batch = self._batches.open()
+        fut = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
+                                 *args, pure=False, priority=ON_BAG_PRIORITY)
+        self._of_bag[key] = _Soon(fut, batch, fn.__name__, self._batches)
+
+    def on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:  # noqa: D102
+        out = super().on_bag(fn, *args)
+        if isinstance(out, _Soon):
+            out = self._of_bag[(fn, args)] = out.result()
+        return out
+
+    def later(self, fn: Callable[..., Any], *args: Any) -> Callable[[], Any]:  # noqa: D102
+        if self.client is None:
+            return super().later(fn, *args)
+        batch = self._batches.open()
+        fut = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
+                                 *args, pure=False, priority=ON_BAG_PRIORITY)
+        return _Soon(fut, batch, fn.__name__, self._batches).result
 
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         if self.client is None:
             return super()._compute_on_bag(fn, *args)
         # before any queued run: a statistic of the bag is what the next step waits for
-        return self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False,
-                                  priority=ON_BAG_PRIORITY).result()
+        batch = self._batches.open()
+        out = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
+                                 *args, pure=False, priority=ON_BAG_PRIORITY).result()
+        self._batches.close(batch, [fn.__name__])
+        return out
 
     def on_bag_each(self, fn: Callable[..., Any], calls: list[tuple]) -> list[Any]:  # noqa: D102
         if self.client is None or len(calls) < 2:
             return super().on_bag_each(fn, calls)
-        futures = [self.client.submit(_on_bag, self.remote_bag, fn, *args, pure=False)
-                   for args in calls]
-        return [f.result() for f in futures]
+        batch = self._batches.open()
+        keys = [f"{fn.__name__} {i}" for i in range(len(calls))]
+        futures = [self.client.submit(_run, k, batch[0], self.remote_bag, _on_bag, fn, *args,
+                                      pure=False) for k, args in zip(keys, calls, strict=True)]
+        out = [f.result() for f in futures]
+        self._batches.close(batch, keys)
+        return out
 
-    def _evaluate(self, task: Task) -> RunSummary:
+    def _evaluate(self, task: Task, batch: int = 0) -> RunSummary:
         t = time.process_time()
-        out = super()._evaluate(task)
+        out = super()._evaluate(task, batch)
         self._cpu[0] += 1
         self._cpu[1] += time.process_time() - t
         return out
 
-    def _submit(self, task: Task) -> Any:
-        return self.client.submit(evaluate, self.remote_bag, self.spec, task.prior,
+    def _submit(self, task: Task, batch: int, ahead: bool = False) -> Any:
+        return self.client.submit(_run, task.key, batch, self.remote_bag, evaluate,
+                                  self.spec, task.prior,
                                   task.effects, self.fraction, task.keep_residuals,
                                   self.classes, task.screen, task.candidate,
                                   self.noise_of(task), task.star_noise, task.gyro_check,
                                   pure=False,
-                                  priority=int(100 * task.cost),
+                                  priority=int(100 * task.cost)
+                                  + (AHEAD_PRIORITY if ahead else 0),
                                   key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
 
     @staticmethod
@@ -369,6 +470,8 @@ class DaskRuns(Runs):
         return out
 
     def map(self, tasks, ahead=()):  # noqa: D102
+        if self.client is None:  # (lazy) nothing handed out before ``ahead`` is built
+            ahead = _tasks(ahead)
         if self.client is None and self.pays(list(tasks) + list(ahead)):
             log.info("%d runs of ~%.1f CPU-s each: starting a local cluster", len(tasks),
                      self._cpu[1] / self._cpu[0])
@@ -378,12 +481,15 @@ class DaskRuns(Runs):
             return
         from distributed import as_completed
 
-        futures = {self._submit(task): task for task in tasks}
+        batch = self._batches.open()
+        futures = {self._submit(task, batch[0]): task for task in tasks}
         # submitted after ``tasks`` (an idle worker takes them), kept as futures
-        self._ahead += [(t, self.noise_of(t), self._submit(t)) for t in ahead]
+        self._ahead += [(t, self.noise_of(t), self._submit(t, batch[0], ahead=True))
+                        for t in _tasks(ahead)]
         for fut in as_completed(futures):
             task = futures.pop(fut)
             yield task, self._result(task, fut)
+        self._batches.close(batch, [t.key for t in tasks])
 
     def drop_ahead(self, keep: list[Task] = ()) -> None:  # noqa: D102
         for task, _, fut in self._ahead:
@@ -396,6 +502,7 @@ class DaskRuns(Runs):
         return stats if isinstance(stats, RunSummary) else self._result(task, stats)
 
     def close(self) -> None:  # noqa: D102
+        timeline.Batches.end()
         if self.client is None:
             return
         with contextlib.suppress(Exception):
@@ -409,6 +516,21 @@ class DaskRuns(Runs):
                 self.cluster.close()
 
 
+@dataclass
+class _Soon:
+    """A statistic of the bag started ahead (:meth:`Runs.on_bag_soon`), not yet asked for."""
+
+    future: Any
+    batch: tuple[int, float, float]
+    name: str
+    batches: timeline.Batches
+
+    def result(self) -> Any:
+        out = self.future.result()
+        self.batches.close(self.batch, [self.name])
+        return out
+
+
 @contextlib.contextmanager
 def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
                 scheduler: str | None = None) -> Iterator[Runs]:
@@ -416,11 +538,13 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
 
     ``workers=None`` means automatic: in this process, and one worker process per core
     (at most :data:`MAX_DEFAULT_WORKERS`) from the first batch of runs that pays for them
-    (:data:`CLUSTER_PAYS_S`; in this process on a one-core machine).
+    (:data:`CLUSTER_PAYS_S`; in this process on a machine of at most
+    :data:`IN_PROCESS_CORES` cores).
     """
     lazy = workers is None and not scheduler
     if workers is None:
-        workers = min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
+        cores = os.cpu_count() or 1
+        workers = min(cores, MAX_DEFAULT_WORKERS) if cores > IN_PROCESS_CORES else 1
     if isinstance(bag, (str, Path)):
         if not Path(bag).exists():
             from stellar_cal_ros.errors import BagError

@@ -83,6 +83,11 @@ def diagnose(
             tell(f"after {best.effect}: testing for a gravity-shaped remainder (mount flexure)")
             # the refined run's own start and model (discover.condition_on_top)
             refined = best.refined_run
+            # the second test's probe run, if it may be needed, beside the first's on a
+            # cluster (in this process it runs only when needed)
+            second = (flexure.probe_later(runs, base.prior, base.effects)
+                      if base.prior is not None and base.ok and base.residuals is not None
+                      and refined.ok and refined.residuals is not None else None)
             got = flexure.after_add(runs, refined, refined.prior, refined.effects)
             if flexure.significant([flexure.finding(got, [best.effect])], ALPHA) and \
                     base.prior is not None:
@@ -90,7 +95,7 @@ def diagnose(
                 # one more run, the current model with the probe
                 got["beyond"] = flexure.beyond(
                     best.statistic, best.dof, Reference.of(base).dispersion, got,
-                    flexure.after_add(runs, base, base.prior, base.effects))
+                    flexure.after_add(runs, base, base.prior, base.effects, second))
             outside = flexure.significant([flexure.finding(got, [best.effect])], ALPHA)
             # no remainder: what a flexure could still be beside the recommendation
             hidden = None if outside else flexure.hiding(got, [best.effect], 1, ALPHA)
