@@ -54,6 +54,10 @@ def replay(events: list[dict]) -> dict:
         raise ValueError("no batch on the timeline")
     parent = next(iter(batches.values()))["pid"]
     tasks = sorted((e for e in events if e["kind"] == "task"), key=lambda e: e["start"])
+    for t in tasks:  # started and never asked for (its batch was never closed): handed
+        if t["batch"] not in batches:  # out with the last batch before it started
+            t["batch"] = max((b["batch"] for b in batches.values()
+                              if b["submit"] <= t["start"]), default=min(batches))
     starts = {e["pid"]: e for e in events if e["kind"] == "process"}
     cluster = next((e for e in events if e["kind"] == "cluster"), None)
     end = next((e for e in events if e["kind"] == "end"), None)

@@ -82,6 +82,12 @@ def test_the_replay_runs_each_worker_s_tasks_in_order_after_its_start():
          "cpu": 1.0, "read": 0.0},
         {"kind": "end", "pid": p, "time": 41.0, "cpu": 3.4},
     ]
+    # a run started and never asked for (its batch never closed) holds its worker up too
+    never = {"kind": "task", "pid": w2, "key": "e", "batch": 9, "start": 22.0, "end": 23.0,
+             "cpu": 0.5, "read": 0.0}
+    assert replay(ev + [never])["idle"] == pytest.approx(10.0)  # d after it: 8.5..9.5
+    never["cpu"] = 1.5
+    assert replay(ev + [never])["idle"] == pytest.approx(11.0)  # d 9.5..10.5, + 0.5
     r = replay(ev)
     # a: w1 free at 1 + 0.5, batch at 1.5 -> 1.5..5.5; b: w2 free at 3 -> 3..8
     # the parent: 5.5 + 1 = 6.5; c 6.5..9.5; d after b: 8..9 -> 9.5; + 0.5 at the end

@@ -202,7 +202,8 @@ class Runs:
 
         On a cluster the statistic goes before any queued run, beside the runs handed out
         next (a later :meth:`on_bag` of the same ``(fn, args)`` waits for it); in this
-        process nothing happens now (it is computed when asked for).
+        process, or with unhashable ``args``, nothing happens now (it is computed when
+        asked for).
         """
 
     def later(self, fn: Callable[..., Any], *args: Any) -> Callable[[], Any]:
@@ -400,7 +401,10 @@ class DaskRuns(Runs):
 
     def on_bag_soon(self, fn: Callable[..., Any], *args: Any) -> None:  # noqa: D102
         key = (fn, args)
-        if self.client is None or key in self._of_bag:
+        try:
+            if self.client is None or key in self._of_bag:
+                return
+        except TypeError:  # unhashable args: not cached, so not started ahead either
             return
         batch = self._batches.open()
         fut = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
