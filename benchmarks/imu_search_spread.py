@@ -30,6 +30,22 @@ from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate
 
 
+def gyro_bag(seed: int, gyro: float, duration: float = 200.0, white: bool = False):
+    """A psce simulation with ``gyro`` x the stated gyro random walk, and its bag data.
+
+    The bag's gyro samples are smoothed by [1 2 1] / 4 (``white``: as simulated).
+    """
+    sc = get_scenario("psce_rotations")
+    sc = dataclasses.replace(sc, gyro_arw_deg_sqrth=sc.gyro_arw_deg_sqrth * gyro)
+    sim = simulate(sc, duration=duration, seed=seed)
+    data = bag_data_from_simulation(sim)
+    if not white:
+        kernel = np.array([0.25, 0.5, 0.25])
+        data.imu_w = np.stack([np.convolve(data.imu_w[:, i], kernel, "same")
+                               for i in range(3)], 1)
+    return sim, data
+
+
 def _seeds(text: str) -> list[int]:
     a, _, b = text.partition("-")
     return list(range(int(a), int(b or a) + 1))
@@ -42,16 +58,10 @@ def main() -> None:
     ap.add_argument("--gyro", type=float, default=5.0, help="true gyro noise / stated")
     ap.add_argument("--duration", type=float, default=200.0)
     args = ap.parse_args()
-    kernel = np.array([0.25, 0.5, 0.25])
     rows = []
-    print("seed | value | sigma | runs | z")
+    print("seed | value | sigma | runs | z | Var(score)/curv")
     for seed in _seeds(args.seeds):
-        sc = get_scenario("psce_rotations")
-        sc = dataclasses.replace(sc, gyro_arw_deg_sqrth=sc.gyro_arw_deg_sqrth * args.gyro)
-        sim = simulate(sc, duration=args.duration, seed=seed)
-        data = bag_data_from_simulation(sim)
-        data.imu_w = np.stack([np.convolve(data.imu_w[:, i], kernel, "same")
-                               for i in range(3)], 1)
+        sim, data = gyro_bag(seed, args.gyro, args.duration)
         v = measure_bag(data, sim.prior, "psce", [], NoiseScales())
         g = v.imu["gyro"]
         if not g.measurable:
@@ -60,7 +70,8 @@ def main() -> None:
         sig_ln = g.sigma / g.value
         z = (math.log(g.value) - math.log(args.gyro)) / sig_ln
         rows.append((math.log(g.value), sig_ln, z))
-        print(f"{seed} | {g.value:.3f} | {g.sigma:.3f} | {len(g.points)} | {z:+.2f}", flush=True)
+        print(f"{seed} | {g.value:.3f} | {g.sigma:.3f} | {len(g.points)} | {z:+.2f} | "
+              f"{g.dispersion:.2f}", flush=True)
     if len(rows) < 2:
         return
     ln, sig, z = (np.array(c) for c in zip(*rows, strict=True))

@@ -23,8 +23,10 @@ with it).  Before any physical effect is tested, the diagnosis measures
   likelihood on the innovations: the prequential log-likelihood of the evaluation window,
   as a function of ``ln g``, from re-runs of the current model (three runs a factor of 3
   apart, moved until they bracket its maximum, then triples of runs a factor of 1.22
-  apart around the vertex until it lies inside one); σ from that triple's curvature times
-  a calibrated 1.25 (:data:`.noise_imu.SIGMA_INFLATION`: the curvature alone was small).
+  apart around the vertex until it lies inside one); σ of ln g the sandwich of that
+  triple: the variance of the score over the window's frames over the curvature² (the
+  log-likelihood is a composite one, each star's own NIS while a frame's stars share one
+  attitude error: :meth:`.noise_imu.ScaleSearch.sandwich`; the curvature alone was small).
 
 Why not an adaptive filter: a Sage–Husa or innovation-matching filter adapts Q and R while
 it estimates, so its calibration σ would follow its own noise estimate, and a missing

@@ -38,14 +38,18 @@ class ScaleSearch:
     measurable: bool = True  #: the likelihood has a maximum in range
     #: when it has none: "upper" (the scale is at most :attr:`value`, 95 %) or "lower"
     bound: str = ""
+    #: the variance of the log-likelihood's score over its curvature, from its frames (the
+    #: sandwich's factor on σ²; 1 for a likelihood whose runs gave no frames)
+    dispersion: float = 1.0
+    #: ln scale → the runs' log-likelihood frame by frame ``(2, frames)``, while searching
+    frames: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
 
     def fit(self) -> tuple[float, float]:
         """Vertex and curvature of the parabola through the three points nearest the best."""
+        x3 = self.fit_points()
+        l3 = np.array([self.points[x] for x in x3])
         xs = np.array(sorted(self.points))
-        ls = np.array([self.points[x] for x in xs])
-        best = int(np.argmax(ls))
-        lo = min(max(best - 1, 0), max(len(xs) - 3, 0))
-        x3, l3 = xs[lo:lo + 3], ls[lo:lo + 3]
+        best = int(np.argmax([self.points[x] for x in xs]))
         if len(x3) < 3:
             return float(xs[best]), 0.0
         a, b, _ = np.polyfit(x3, l3, 2)
@@ -53,20 +57,53 @@ class ScaleSearch:
             return float(xs[best]), 0.0
         return float(-b / (2 * a)), float(-2 * a)
 
+    def fit_points(self) -> list[float]:
+        """The (up to) three points :meth:`fit` takes: those nearest the best, in order."""
+        xs = sorted(self.points)
+        best = int(np.argmax([self.points[x] for x in xs]))
+        lo = min(max(best - 1, 0), max(len(xs) - 3, 0))
+        return xs[lo:lo + 3]
+
+    def sandwich(self, xs: list[float], curv: float, at: float) -> float:
+        """Var(score) / curvature of the log-likelihood at ``at``, from its frames at ``xs``.
+
+        Each frame's score at ``at`` is the slope there of the parabola through its terms at
+        the three points ``xs`` (at the outermost two that ran with frames, their difference
+        quotient); their variance over the frames (centred), summed, is the score's variance
+        when the frames' scores are uncorrelated (measured: their lag 1-30
+        autocorrelations sum to -0.04, and batch means over 10-20 blocks of the run agree,
+        doc/benchmarks.md).  1 without frames (a likelihood, not a composite one).
+        """
+        have = [x for x in sorted(xs) if x in self.frames]
+        if len(have) < 2 or not curv > 0:
+            return 1.0
+        if len(have) > 2:  # Lagrange: the derivative at ``at`` of the parabola through 3
+            x0, x1, x2 = have[0], have[len(have) // 2], have[-1]
+            have = [x0, x1, x2]
+            w = [(2 * at - x1 - x2) / ((x0 - x1) * (x0 - x2)),
+                 (2 * at - x0 - x2) / ((x1 - x0) * (x1 - x2)),
+                 (2 * at - x0 - x1) / ((x2 - x0) * (x2 - x1))]
+        else:
+            w = [-1.0 / (have[1] - have[0]), 1.0 / (have[1] - have[0])]
+        common = self.frames[have[0]][0]
+        for x in have[1:]:
+            common = np.intersect1d(common, self.frames[x][0])
+        if len(common) < MIN_FRAMES:
+            return 1.0
+        d = np.zeros(len(common))
+        for wj, x in zip(w, have, strict=True):
+            f = self.frames[x]
+            d += wj * f[1, np.searchsorted(f[0], common)]
+        return float(len(d) * np.var(d) / curv)
+
 
 #: ln-scale step of :func:`search_scale` (a factor of 3)
 STEP = math.log(3.0)
 #: half-width (ln scale) of the runs either side of the maximum that give its curvature (a
 #: factor of 1.22: about 2 of σ(ln s) where the gyro is measured well)
 REFINE = 0.2
-#: the printed σ of ln s over the likelihood's own 1 / sqrt(curvature).  The stars'
-#: innovations' log-likelihood is a quasi-likelihood here (each star's own NIS, the frame's
-#: stars sharing one attitude error; the gyro's noise not the filter's white random walk):
-#: over seeds its score at the truth varies more than its curvature says (psce 200 s, gyro
-#: 5x, samples smoothed, a fine grid in ln s on 40 seeds: Var(score) / curvature 1.42, SD
-#: of the maximum 0.153 +- 0.017 against 1 / sqrt(curvature) 0.120), so σ from the
-#: curvature alone was ~1.25x small (doc/benchmarks.md, issue 21: calibrated, not derived)
-SIGMA_INFLATION = 1.25
+#: fewest frames two runs share for :meth:`ScaleSearch.sandwich` (below: the curvature's σ)
+MIN_FRAMES = 20
 
 
 def first_points(start: float = 0.0, step: float = STEP) -> list[float]:
@@ -90,8 +127,12 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
     def run(xs: list[float]) -> None:
         xs = [float(np.clip(x, -LN_RANGE, LN_RANGE)) for x in xs]
         new = [x for x in dict.fromkeys(xs) if not any(abs(x - y) < 1e-3 for y in out.points)]
-        if new:
-            out.points.update(zip(new, loglik(new), strict=True))
+        for x, v in zip(new, loglik(new) if new else [], strict=True):
+            if isinstance(v, tuple):  # (ℓ, its frames)
+                v, f = v
+                if f is not None:
+                    out.frames[x] = f
+            out.points[x] = float(v)
 
     run(first_points(start, step))
     first = np.array(list(out.points.values()))
@@ -110,6 +151,7 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
         else:
             break
     x_hat, curv = out.fit()
+    used = out.fit_points()
     # refine at the vertex unless "as stated" is already the best point by far (the first
     # three runs then settle it: a clean bag costs two runs).  The log-likelihood is far
     # from a parabola in ln s over the search's factor-of-3 steps (flat toward small
@@ -129,25 +171,36 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
         x_new, c_new = ScaleSearch(name, near).fit()
         if c_new > 0 and lo < x_new < hi:  # the maximum is inside: its parabola is local
             x_hat, curv = x_new, c_new
+            used = ScaleSearch(name, near).fit_points()
             break
         if len(out.points) == before:  # a triple run before: no progress (no cycling)
             x_hat, curv = out.fit()
+            used = out.fit_points()
             break
         if c_new <= 0:  # not concave there (far from the maximum): toward its best end
             x_new = x_hat + math.copysign(3 * REFINE, max(near, key=near.get) - x_hat)
         x_hat = float(np.clip(x_new, x_hat - 3 * REFINE, x_hat + 3 * REFINE))
     else:
         x_hat, curv = (x_hat, curv) if settled else out.fit()
+        used = used if settled else out.fit_points()
     xs = sorted(out.points)
     ls = np.array([out.points[x] for x in xs])
     l_max = float(ls.max())
     out.statistic = float(max(2.0 * (l_max - out.points[0.0]), 0.0))
     out.p_value = float(sps.chi2.sf(out.statistic, 1))
-    sig_ln = 1.0 / math.sqrt(curv) if curv > 0 else math.inf
+    # σ of ln s: the sandwich Var(score) / curvature², not 1 / curvature.  The stars'
+    # log-likelihood is a composite one (each star's own NIS, while a frame's stars share
+    # one attitude error): its score varies more than its curvature says, by the stars'
+    # correlation within a frame (psce 200 s, gyro 5x, seeds 3-42, at the truth: Var of
+    # the score over seeds / curvature 1.43 +- 0.32; per frame 1.31, per star 0.94; no
+    # correlation between frames; doc/benchmarks.md, issue 21)
+    out.dispersion = out.sandwich(used, curv, x_hat)
+    out.frames = {}
+    sig_ln = math.sqrt(out.dispersion / curv) if curv > 0 else math.inf
     inside = xs[0] < x_hat < xs[-1]
     if curv > 0 and inside and sig_ln <= math.log(3.0):
         out.value = float(math.exp(x_hat))
-        out.sigma = out.value * sig_ln * SIGMA_INFLATION
+        out.sigma = out.value * sig_ln
         return out
     # no interior maximum: the likelihood rises to a plateau at one end (e.g. a gyro noise
     # far below what the stars can see): only a one-sided 95 % bound is measurable

@@ -59,11 +59,11 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
     for comp in components:
         cur = getattr(applied, comp)
 
-        def loglik(xs: list[float], comp=comp, at=applied) -> list[float]:
+        def loglik(xs: list[float], comp=comp, at=applied) -> list:
             tasks = [scale_task(comp, x, prior, effects, at) for x in xs]
             out = runs.run_all(tasks, None)
-            return [out[t.key].window["log_likelihood"] if out[t.key].ok else -math.inf
-                    for t in tasks]
+            return [(out[t.key].window["log_likelihood"], out[t.key].frame_loglik)
+                    if out[t.key].ok else -math.inf for t in tasks]
 
         known = {0.0: base.window["log_likelihood"]} if applied == stated and base.ok else {}
         found = search_scale(comp, loglik, known=known)
@@ -102,10 +102,11 @@ def scale_task(comp: str, x: float, prior, effects: tuple[str, ...], at: NoiseSc
     Without the gyro-against-stars check: the search reads the run's log-likelihood alone
     (the check changes no estimate), and :func:`measure` runs only after the current
     model's run on the bag, which judged the gyro, succeeded (≈ 1 CPU-s a run on a 2-h bag).
+    With the log-likelihood frame by frame (the search's sandwich σ).
     """
     return Task(f"noise {comp} x{math.exp(x):.3g}", prior, tuple(effects),
                 noise=at.replace(**{comp: getattr(at, comp) * math.exp(x)}),
-                cost=SEARCH_COST, gyro_check=False)
+                cost=SEARCH_COST, gyro_check=False, frame_loglik=True)
 
 
 def first_runs(runs, prior, effects: tuple[str, ...],

@@ -111,6 +111,9 @@ class Task:
     #: run the gyro-against-stars check (False: a re-run whose counters nobody reads, of a
     #: bag a run of the same diagnosis has judged: the noise scales' ML runs)
     gyro_check: bool = True
+    #: keep the run's log-likelihood frame by frame (:attr:`RunSummary.frame_loglik`: the
+    #: IMU noise search's sandwich σ; the run keeps its residual table while it lasts)
+    frame_loglik: bool = False
 
 
 #: runs ahead of need (:meth:`Runs.run_ahead`): the tasks, or a function returning them
@@ -250,7 +253,8 @@ class Runs:
     def _evaluate(self, task: Task, batch: int = 0) -> RunSummary:
         return _run(task.key, batch, self.bag, evaluate, self.spec, task.prior, task.effects,
                     self.fraction, task.keep_residuals, (), task.screen, task.candidate,
-                    self.noise_of(task), task.star_noise, task.gyro_check)
+                    self.noise_of(task), task.star_noise, task.gyro_check,
+                    task.frame_loglik)
 
     def run_all(self, tasks: list[Task],
                 done: Callable[[Task, RunSummary, str], None] | None = None,
@@ -459,7 +463,7 @@ class DaskRuns(Runs):
                                   task.effects, self.fraction, task.keep_residuals,
                                   self.classes, task.screen, task.candidate,
                                   self.noise_of(task), task.star_noise, task.gyro_check,
-                                  pure=False,
+                                  task.frame_loglik, pure=False,
                                   priority=int(100 * task.cost)
                                   + (AHEAD_PRIORITY if ahead else 0),
                                   key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")

@@ -91,6 +91,9 @@ class RunSummary:
     #: the stars' noise measured on this run (:class:`~stellar_cal_ros.diagnosis.noise.
     #: StarNoise`), when asked for
     star_noise: Any = None
+    #: the window's log-likelihood frame by frame, ``(2, frames)`` (frame indices, terms:
+    #: :meth:`~stellar_cal_ros.methods.results.RunStats.frame_log_likelihood`), when asked for
+    frame_loglik: np.ndarray | None = None
     error: str = ""
 
     @property
@@ -212,7 +215,8 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
              fraction: float, keep_residuals: bool = False,
              effect_classes: tuple[type, ...] = (),
              screen: tuple[str, ...] = (), candidate: bool = False, noise=None,
-             star_noise: bool = False, gyro_check: bool = True) -> RunSummary:
+             star_noise: bool = False, gyro_check: bool = True,
+             frame_loglik: bool = False) -> RunSummary:
     """Run ``spec.runner`` on the bag and return the run's statistics (worker entry point).
 
     A failing run returns a :class:`RunSummary` with ``error`` set (the diagnosis reports it
@@ -227,6 +231,8 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
     ``gyro_check=False``: the gyro-against-stars check does not run (``gyro_fault="off"``:
     it changes no estimate, only the counters and flags; for re-runs of a bag whose gyro
     the diagnosis's current-model run has judged, whose counters nobody reads).
+    ``frame_loglik``: keep the window's log-likelihood frame by frame
+    (:attr:`RunSummary.frame_loglik`).
     """
     t0 = time.perf_counter()
     try:
@@ -245,13 +251,15 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
             kw["gyro_fault"] = "off"
         with quiet():
             result = spec.runner(data, prior, list(effects),
-                                 keep_tables=keep_residuals or star_noise,
+                                 keep_tables=keep_residuals or star_noise or frame_loglik,
                                  eval_fraction=fraction, **kw)
         out = run_statistics(result, fraction, keep_residuals)
         if star_noise:
             from stellar_cal_ros.diagnosis.noise import measure_stars
 
             out.star_noise = measure_stars(result, data, spec.name, fraction, noise)
+        if frame_loglik:
+            out.frame_loglik = result.stats.frame_log_likelihood(result.residuals)
         if screen:
             out.scores = spec.screen(result, list(screen))
         if keep_residuals:

@@ -440,6 +440,28 @@ class RunStats:
         return -0.5 * (self.sum_nis_capped + self.sum_logdet + self.stars * c
                        + self.gated * (NIS_CAP + fill + c))
 
+    def frame_log_likelihood(self, res: dict[str, np.ndarray]) -> np.ndarray:
+        """:meth:`log_likelihood` frame by frame, from the run's residual table ``res``.
+
+        ``(2, frames)``: the window's frame indices and each frame's terms (its stars'
+        alike, a gated star at the cap with the window's mean log-determinant); they sum to
+        :meth:`log_likelihood`.  The per-frame terms give a sandwich (the IMU noise search's
+        σ, :func:`stellar_cal_ros.diagnosis.noise_imu.search_scale`).
+        """
+        t = np.asarray(res["t"], dtype=float)
+        win = t >= self.eval_start if self.eval_start is not None else np.ones(len(t), bool)
+        if not self.stars or not np.any(win):
+            return np.zeros((2, 0))
+        ok = ~np.asarray(res["gated"]).astype(bool)[win]
+        a, b, d = (np.asarray(res[k], dtype=float)[win] for k in ("s_uu", "s_uv", "s_vv"))
+        nis = np.minimum(np.asarray(res["nis"], dtype=float)[win], NIS_CAP)
+        logdet = np.log(np.maximum(np.where(ok, a * d - b * b, 1.0), 1e-300))
+        c = _LOG_2PI_2
+        terms = -0.5 * np.where(ok, nis + logdet + c,
+                                NIS_CAP + self.sum_logdet / self.stars + c)
+        frames, inv = np.unique(np.asarray(res["frame"])[win], return_inverse=True)
+        return np.stack([frames.astype(float), np.bincount(inv, weights=terms)])
+
     def window(self, fraction: float) -> dict[str, Any]:
         """The statistics the diagnosis decides with, over the evaluation window."""
         nis, (lo, hi) = self.nis_per_dof()
