@@ -140,6 +140,7 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
         # the likelihood does not move over a factor of 9 of the scale: nothing to measure
         out.measurable = False
         out.sigma = math.inf
+        out.frames = {}
         return out
     while len(out.points) < max_runs:
         xs = sorted(out.points)
@@ -194,13 +195,14 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
     # correlation within a frame (psce 200 s, gyro 5x, seeds 3-42, at the truth: Var of
     # the score over seeds / curvature 1.43 +- 0.32; per frame 1.31, per star 0.94; no
     # correlation between frames; doc/benchmarks.md, issue 21)
+    # (whether there is a maximum to speak of is the likelihood's own width, as before)
     out.dispersion = out.sandwich(used, curv, x_hat)
     out.frames = {}
-    sig_ln = math.sqrt(out.dispersion / curv) if curv > 0 else math.inf
+    sig_ln = 1.0 / math.sqrt(curv) if curv > 0 else math.inf
     inside = xs[0] < x_hat < xs[-1]
     if curv > 0 and inside and sig_ln <= math.log(3.0):
         out.value = float(math.exp(x_hat))
-        out.sigma = out.value * sig_ln
+        out.sigma = out.value * sig_ln * math.sqrt(out.dispersion)
         return out
     # no interior maximum: the likelihood rises to a plateau at one end (e.g. a gyro noise
     # far below what the stars can see): only a one-sided 95 % bound is measurable
@@ -223,6 +225,7 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
             prev = i
         else:
             out.bound = ""
+    out.frames = {}  # the bisection's runs'
     return out
 
 
