@@ -5,7 +5,8 @@ The stars' window log-likelihood the IMU noise search maximises
 curvature says.  Per seed a psce bag (200 s) with ``--gyro`` x the stated gyro random walk
 (its samples smoothed [1 2 1] / 4 unless ``--white``) is run at the truth ln s and ± ``--h``;
 each window frame's terms (:meth:`~stellar_cal_ros.methods.results.RunStats.
-frame_log_likelihood`) give its score (central difference) and the sum's curvature J.
+frame_log_likelihood`, the runs in :func:`~stellar_cal_ros.methods.results.keeping_frames`)
+give its score (central difference) and the sum's curvature J.
 Printed per seed: the score U at the truth, J, and Var(U) / J estimated within the run
 four ways — the stars as independent (each star's own score), the frames as independent,
 Newey-West over 20 frames, batch means over 10 blocks — then over seeds the mean of each
@@ -27,20 +28,19 @@ from imu_search_spread import gyro_bag  # this directory: the benchmark's bag
 
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis.discover import method_spec
+from stellar_cal_ros.methods.results import NIS_CAP, keeping_frames
 
 LAGS = 30
 
 
 def _stars(r) -> np.ndarray:
-    """Each window star's log-likelihood term."""
+    """Each window star's log-likelihood term (a gated star: at the cap, its own det 1)."""
     res = r.residuals
     win = res["t"] >= r.stats.eval_start
-    one = {k: np.asarray(v)[win] for k, v in res.items()}
-    terms = []
-    for i in range(int(win.sum())):  # each star as a one-star table (the same formula)
-        row = {k: v[i:i + 1] for k, v in one.items()}
-        terms.append(r.stats.frame_log_likelihood(row)[1, 0])
-    return np.array(terms)
+    ok = ~res["gated"].astype(bool)[win]
+    a, b, d = (res[k][win] for k in ("s_uu", "s_uv", "s_vv"))
+    nis = np.where(ok, np.minimum(res["nis"][win], NIS_CAP), NIS_CAP)
+    return -0.5 * (nis + np.log(np.where(ok, a * d - b * b, 1.0)))
 
 
 def _newey_west(s: np.ndarray, lags: int) -> float:
@@ -73,10 +73,11 @@ def main() -> None:
     print("seed | U at truth | J | " + " | ".join(f"{n} / J" for n in names))
     for seed in range(int(a), int(b or a) + 1):
         sim, data = gyro_bag(seed, args.gyro, white=args.white)
-        runs = [spec.runner(data, sim.prior, [], keep_tables=True, eval_fraction=0.5,
-                            noise=NoiseScales(gyro=math.exp(x)), gyro_fault="off")
-                for x in (t - args.h, t, t + args.h)]
-        fl = [r.stats.frame_log_likelihood(r.residuals) for r in runs]
+        with keeping_frames():
+            runs = [spec.runner(data, sim.prior, [], keep_tables=True, eval_fraction=0.5,
+                                noise=NoiseScales(gyro=math.exp(x)), gyro_fault="off")
+                    for x in (t - args.h, t, t + args.h)]
+        fl = [r.stats.frame_log_likelihood() for r in runs]
         if not all(np.array_equal(f[0], fl[0][0]) for f in fl):
             print(f"{seed} | the runs' window frames differ: skipped")
             continue

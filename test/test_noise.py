@@ -741,6 +741,40 @@ def test_imu_search_sigma_is_the_sandwich_of_a_composite_likelihood():
     assert np.mean(disp) == pytest.approx(m, rel=0.1), np.mean(disp)
 
 
+def test_frame_log_likelihood_is_the_windows_star_terms_by_frame():
+    """RunStats.frame_log_likelihood (the search's sandwich reads it): a run inside
+    keeping_frames gives each window frame's terms, the same as its residual table's stars'
+    (min(NIS, 13.8) + log det S + 2 ln 2π, × -1/2) summed by frame, and they sum to the
+    run's log-likelihood; a run outside keeps none.  Gyro 5x, stated gyro x3, the stars
+    stating 0.6 of their σ: 5 of the window's stars gated (their terms at the cap with the
+    window's mean log det), the window's 200 frames all present."""
+    from stellar_cal_ros.diagnosis.discover import method_spec
+    from stellar_cal_ros.methods.results import NIS_CAP, keeping_frames
+
+    sim = _sim(seed=4, gyro=5.0)
+    data = _stated(sim, 0.6)
+    spec = method_spec("psce")
+    with keeping_frames():
+        r = spec.runner(data, sim.prior, [], keep_tables=True, eval_fraction=0.5,
+                        noise=NoiseScales(gyro=3.0), gyro_fault="off")
+    f = r.stats.frame_log_likelihood()
+    res = r.residuals
+    win = res["t"] >= r.stats.eval_start
+    ok = ~res["gated"].astype(bool)
+    det = res["s_uu"] * res["s_vv"] - res["s_uv"] ** 2
+    fill = np.mean(np.log(det[win & ok]))
+    terms = -0.5 * (np.where(ok, np.minimum(res["nis"], NIS_CAP) + np.log(np.where(ok, det, 1)),
+                             NIS_CAP + fill) + 2 * np.log(2 * np.pi))
+    stamps, inv = np.unique(res["t"][win], return_inverse=True)
+    assert len(stamps) > 150 and np.array_equal(f[0], stamps), (f.shape, len(stamps))
+    assert np.any(win & ~ok), "no gated star: the fill term is not checked"
+    np.testing.assert_allclose(f[1], np.bincount(inv, weights=terms[win]), rtol=1e-9)
+    assert f[1].sum() == pytest.approx(r.stats.log_likelihood(), rel=1e-12)
+    r2 = spec.runner(data, sim.prior, [], eval_fraction=0.5, noise=NoiseScales(gyro=3.0),
+                     gyro_fault="off")
+    assert r2.stats.frame_log_likelihood() is None
+
+
 def test_imu_search_sigma_covers_the_spread_of_its_value_over_seeds():
     """The search's printed "x s +- e" over seeds (issue 21): gyro 5x, samples smoothed
     (not white: the stars' likelihood speaks), psce 200 s, seeds 3-14.  z = ln(s / 5) /

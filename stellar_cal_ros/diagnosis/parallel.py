@@ -112,7 +112,7 @@ class Task:
     #: bag a run of the same diagnosis has judged: the noise scales' ML runs)
     gyro_check: bool = True
     #: keep the run's log-likelihood frame by frame (:attr:`RunSummary.frame_loglik`: the
-    #: IMU noise search's sandwich σ; the run keeps its residual table while it lasts)
+    #: IMU noise search's sandwich σ; a few numbers a frame)
     frame_loglik: bool = False
 
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from stellar_cal_ros.io.calibration import Calibration
 from stellar_cal_ros.methods.replay import BagData, ReplayResult, read_bag_data
-from stellar_cal_ros.methods.results import epp_jacobian
+from stellar_cal_ros.methods.results import epp_jacobian, keeping_frames
 
 Table = dict[str, np.ndarray]
 
@@ -232,7 +232,7 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
     it changes no estimate, only the counters and flags; for re-runs of a bag whose gyro
     the diagnosis's current-model run has judged, whose counters nobody reads).
     ``frame_loglik``: keep the window's log-likelihood frame by frame
-    (:attr:`RunSummary.frame_loglik`).
+    (:attr:`RunSummary.frame_loglik`, :func:`~stellar_cal_ros.methods.results.keeping_frames`).
     """
     t0 = time.perf_counter()
     try:
@@ -249,9 +249,9 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
             kw["gyro_fault"] = "flag"
         if not gyro_check:
             kw["gyro_fault"] = "off"
-        with quiet():
+        with quiet(), keeping_frames() if frame_loglik else contextlib.nullcontext():
             result = spec.runner(data, prior, list(effects),
-                                 keep_tables=keep_residuals or star_noise or frame_loglik,
+                                 keep_tables=keep_residuals or star_noise,
                                  eval_fraction=fraction, **kw)
         out = run_statistics(result, fraction, keep_residuals)
         if star_noise:
@@ -259,7 +259,7 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
 
             out.star_noise = measure_stars(result, data, spec.name, fraction, noise)
         if frame_loglik:
-            out.frame_loglik = result.stats.frame_log_likelihood(result.residuals)
+            out.frame_loglik = result.stats.frame_log_likelihood()
         if screen:
             out.scores = spec.screen(result, list(screen))
         if keep_residuals:

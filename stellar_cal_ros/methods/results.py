@@ -18,9 +18,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import copy
 import dataclasses
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,10 +39,26 @@ RESIDUAL_COLUMNS = (
     "s_uu", "s_uv", "s_vv", "nis", "magnitude", "gated",
     "x_st", "y_st", "z_st", "omega_x", "omega_y", "omega_z", "head_temperature",
 )
+#: inside :func:`keeping_frames`: each new :class:`RunStats` keeps its frames' terms
+_KEEP_FRAMES: contextvars.ContextVar[bool] = contextvars.ContextVar("keep_frames", default=False)
 #: a star's NIS is capped here in the log-likelihood (a few misidentified stars must not
 #: dominate the comparison of two models)
 NIS_CAP = 13.8
 _LOG_2PI_2 = 2 * np.log(2 * np.pi)  # the log-likelihood's constant (as a float64)
+
+
+@contextlib.contextmanager
+def keeping_frames() -> Iterator[None]:
+    """Runs started inside keep their window's log-likelihood frame by frame.
+
+    (:meth:`RunStats.frame_log_likelihood`: a few numbers a frame, without the residual
+    table, which on a 2-h bag costs 1.3 CPU-s and ~80 MB a run.)
+    """
+    token = _KEEP_FRAMES.set(True)
+    try:
+        yield
+    finally:
+        _KEEP_FRAMES.reset(token)
 
 
 def residual_rows(upd, frame_index: int, ids: np.ndarray, mag: np.ndarray,
@@ -303,6 +322,12 @@ class RunStats:
         "n": [0, 0], "s": [0.0, 0.0], "s2": [0.0, 0.0], "lag": [0.0, 0.0],
         "first": [0.0, 0.0], "last": [0.0, 0.0]})
 
+    def __post_init__(self) -> None:
+        # the window's frames' [stamp, stars, accepted, Σ log det S, Σ min(NIS, cap)]
+        # column blocks, inside :func:`keeping_frames` only (not a field: no checkpoint,
+        # no merge of sums carries it)
+        self._frames: list[np.ndarray] | None = [] if _KEEP_FRAMES.get() else None
+
     def add(self, upd) -> None:
         """Add one frame update (:class:`~.kernel.FrameUpdate`).
 
@@ -320,10 +345,15 @@ class RunStats:
             self.frame_nis += upd.nis
             self.frame_dof += upd.dof
         if not n:
+            if self._frames is not None:
+                self._frames.append(np.array([[upd.stamp], [len(upd.uv)], [0.0], [0.0], [0.0]]))
             return
         self.frames += 1
         # Python floats in one call (the same values as ``float(sums[k])`` each)
         sums = (pre if pre is not None else frame_sums(upd)).tolist()
+        if self._frames is not None:
+            self._frames.append(np.array([[upd.stamp], [len(upd.uv)], [n], [sums[1]],
+                                          [sums[2]]], dtype=float))
         self.sum_logdet += sums[1]
         self.sum_nis_capped += sums[2]
         self.stars += n
@@ -365,6 +395,11 @@ class RunStats:
             return
         self.stars_all += sum(n_stars)
         self.gated += sum(n_stars) - int(n.sum())
+        if self._frames is not None:
+            st = np.asarray(stamps, dtype=float)
+            self._frames.append(np.stack([st[keep] if not keep.all() else st,
+                                          np.asarray(n_stars, dtype=float), n.astype(float),
+                                          sums[:, 1], sums[:, 2]]))
         nis = np.asarray(nis, dtype=float)
         fin = np.isfinite(nis)
         self.frame_nis = _running(self.frame_nis, nis[fin])
@@ -407,6 +442,8 @@ class RunStats:
         mine, theirs = self.__dict__, later.__dict__
         for name in _SUMS:
             mine[name] += theirs[name]
+        if self._frames is not None and later._frames is not None:
+            self._frames += later._frames
         a, b = self._w, later._w
         for k in (0, 1):
             if not b["n"][k]:
@@ -440,27 +477,25 @@ class RunStats:
         return -0.5 * (self.sum_nis_capped + self.sum_logdet + self.stars * c
                        + self.gated * (NIS_CAP + fill + c))
 
-    def frame_log_likelihood(self, res: dict[str, np.ndarray]) -> np.ndarray:
-        """:meth:`log_likelihood` frame by frame, from the run's residual table ``res``.
+    def frame_log_likelihood(self) -> np.ndarray | None:
+        """:meth:`log_likelihood` frame by frame, when the run kept its frames' terms.
 
-        ``(2, frames)``: the window's frame indices and each frame's terms (its stars'
-        alike, a gated star at the cap with the window's mean log-determinant); they sum to
-        :meth:`log_likelihood`.  The per-frame terms give a sandwich (the IMU noise search's
-        σ, :func:`stellar_cal_ros.diagnosis.noise_imu.search_scale`).
+        ``(2, frames)``: the window's frames' reported stamps (ascending) and each frame's
+        terms (its stars' alike, a gated star at the cap with the window's mean
+        log-determinant); they sum to :meth:`log_likelihood`.  ``None`` unless the run ran
+        inside :func:`keeping_frames` (the IMU noise search's runs: their sandwich σ,
+        :meth:`stellar_cal_ros.diagnosis.noise_imu.ScaleSearch.sandwich`).
         """
-        t = np.asarray(res["t"], dtype=float)
-        win = t >= self.eval_start if self.eval_start is not None else np.ones(len(t), bool)
-        if not self.stars or not np.any(win):
+        if self._frames is None:
+            return None
+        if not self.stars or not self._frames:
             return np.zeros((2, 0))
-        ok = ~np.asarray(res["gated"]).astype(bool)[win]
-        a, b, d = (np.asarray(res[k], dtype=float)[win] for k in ("s_uu", "s_uv", "s_vv"))
-        nis = np.minimum(np.asarray(res["nis"], dtype=float)[win], NIS_CAP)
-        logdet = np.log(np.maximum(np.where(ok, a * d - b * b, 1.0), 1e-300))
+        f = np.concatenate(self._frames, axis=1)
+        f = f[:, np.argsort(f[0], kind="stable")]
         c = _LOG_2PI_2
-        terms = -0.5 * np.where(ok, nis + logdet + c,
-                                NIS_CAP + self.sum_logdet / self.stars + c)
-        frames, inv = np.unique(np.asarray(res["frame"])[win], return_inverse=True)
-        return np.stack([frames.astype(float), np.bincount(inv, weights=terms)])
+        fill = self.sum_logdet / self.stars
+        terms = -0.5 * (f[4] + f[3] + f[2] * c + (f[1] - f[2]) * (NIS_CAP + fill + c))
+        return np.stack([f[0], terms])
 
     def window(self, fraction: float) -> dict[str, Any]:
         """The statistics the diagnosis decides with, over the evaluation window."""
