@@ -44,6 +44,7 @@ install_requires = [
     "tqdm>=4.64",
     "dask>=2026.8",
     "distributed>=2026.8",
+    "psutil>=5.9",  # diagnosis.timeline: a worker process's start time (distributed needs it too)
 ]
 
 setup(

@@ -39,7 +39,7 @@ PKG = ROOT / "stellar_cal_ros"
 ROSDISTRO_KEYS = {
     "python3-numpy": "numpy", "python3-scipy": "scipy", "python3-numba": "numba",
     "python3-yaml": "pyyaml", "python3-matplotlib": "matplotlib", "python3-pil": "pillow",
-    "python3-tqdm": "tqdm", "python3-rosbags-pip": "rosbags",
+    "python3-tqdm": "tqdm", "python3-rosbags-pip": "rosbags", "python3-psutil": "psutil",
     "mcap-ros2-support": "mcap-ros2-support",
 }
 #: the ament linters the ros2pkg template lists (no test of this repository runs them)
