@@ -61,6 +61,18 @@ def rendered(data, calibration, method: str, effects: dict[str, Any] | None = No
                      imu=imu).data
 
 
+def rendered_stars(data, calibration, method: str, effects: dict[str, Any] | None = None,
+                   scene=None, imu: bool = True):
+    """:func:`rendered` without its frames: the stars in arrays and the IMU samples.
+
+    (:func:`~stellar_cal_ros.diagnosis.twin.render`: the same numbers, what
+    :func:`injection_of` needs; a 2-h bag's twin as 14 400 messages ≈ 10 MB a render.)
+    """
+    from stellar_cal_ros.diagnosis.twin import render
+
+    return render(data, calibration, effects or {}, 0, method, _NOISELESS, scene, imu=imu)
+
+
 def moves_imu(calibration, method: str, effect_id: str, delta: np.ndarray) -> bool:
     """Whether ``effect_id`` at ``delta`` changes the twin's IMU sensor model.
 
@@ -122,12 +134,12 @@ def injection_of(data, calibration, method: str, effect_id: str, delta: np.ndarr
     ``imu=False`` where the effect leaves the IMU alone (:func:`moves_imu`; ``plain`` may
     then hold the user's samples).
     """
-    plain = plain if plain is not None else rendered(data, calibration, method, scene=scene,
-                                                     imu=imu)
-    moved = rendered(data, calibration, method,
-                     {effect_id: injection.simulation_value(effect_id, delta)}, scene,
-                     imu=imu)
-    stars = star_steps(data.frames, plain.frames, moved.frames)
+    plain = plain if plain is not None else rendered_stars(data, calibration, method,
+                                                           scene=scene, imu=imu)
+    moved = rendered_stars(data, calibration, method,
+                           {effect_id: injection.simulation_value(effect_id, delta)}, scene,
+                           imu=imu)
+    stars = star_steps(data.frames, _twin_stars(plain), _twin_stars(moved))
     if not imu:
         return Injection(stars, None, None)
     return Injection(stars, _step(moved.imu_w, plain.imu_w), _step(moved.imu_f, plain.imu_f))
@@ -140,6 +152,11 @@ def with_effect(data, calibration, method: str, effect_id: str, delta: np.ndarra
     :func:`injection_of` on ``data``.
     """
     return injection_of(data, calibration, method, effect_id, delta, plain, scene).on(data)
+
+
+def _twin_stars(twin):
+    """A twin's stars for :func:`star_steps`: its frames, or :func:`rendered_stars`' columns."""
+    return twin.stars.kept() if hasattr(twin, "stars") else twin.frames
 
 
 def _step(moved: np.ndarray, plain: np.ndarray) -> np.ndarray | None:
@@ -162,24 +179,25 @@ def add_steps(user: list, plain: list, moved: list) -> list:
     return moved_frames(user, *star_steps(user, plain, moved))
 
 
-def star_steps(user: list, plain: list, moved: list
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def star_steps(user: list, plain, moved) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The step of each star of ``user`` from ``plain`` to ``moved`` (see :func:`add_steps`).
 
     ``(pair, hit, step)``: per user frame the twins' frame of its stamp (−1: none), per
     star row of the user's frames whether the twins both hold it, and the steps of those
     rows in order.  In arrays over the whole bag: the per-frame dictionaries it replaces
     cost ~1 CPU-s per probe run on a 2-h bag; the same sums (test_reliability_injection
-    holds it to them).
+    holds it to them).  ``plain``, ``moved``: the twins' frames, or their stars as columns
+    ``(stamps, counts, ids, uv)`` (:meth:`~stellar_cal_ros.diagnosis.twin.TwinStars.kept`).
     """
-    k_of = {int(a.stamp_ns): k for k, a in enumerate(plain)}
-    pair = np.array([k_of.get(int(f.stamp_ns), -1) for f in user], dtype=np.int64)
-    cids = [_ids(fs) for fs in (plain, moved, user)]
-    codes = np.unique(np.concatenate(cids))
-    a_key = _keys(plain, np.arange(len(plain)), cids[0], codes)
-    b_key = _keys(moved, np.arange(len(moved)), cids[1], codes)
-    u_key = _keys(user, pair, cids[2], codes)
-    a_uv, b_uv = _uv(plain), _uv(moved)
+    u_stamp, u_n, u_ids, _ = _columns(user)
+    a_stamp, a_n, a_ids, a_uv = _columns(plain)
+    _, b_n, b_ids, b_uv = _columns(moved)
+    k_of = {s: k for k, s in enumerate(a_stamp.tolist())}
+    pair = np.array([k_of.get(s, -1) for s in u_stamp.tolist()], dtype=np.int64)
+    codes = np.unique(np.concatenate([a_ids, b_ids, u_ids]))
+    a_key = _keys(a_n, np.arange(len(a_n)), a_ids, codes)
+    b_key = _keys(b_n, np.arange(len(b_n)), b_ids, codes)
+    u_key = _keys(u_n, pair, u_ids, codes)
     # per (frame, star) of both twins the last row (as the dict over them kept), sorted
     a_last, b_last = _last(a_key), _last(b_key)
     # both key lists are sorted and distinct (np.unique's order): the plain twin's stars the
@@ -190,7 +208,7 @@ def star_steps(user: list, plain: list, moved: list
     s_key = a_sorted[both]
     step = b_uv[b_last[in_b[both]]] - a_uv[a_last[both]]
     at = np.minimum(np.searchsorted(s_key, u_key), max(len(s_key) - 1, 0))
-    hit = (np.repeat(pair, [len(f.catalog_id) for f in user]) >= 0) & (len(s_key) > 0)
+    hit = (np.repeat(pair, u_n) >= 0) & (len(s_key) > 0)
     hit[hit] = s_key[at[hit]] == u_key[hit]
     return pair, hit, step[at[hit]]
 
@@ -225,23 +243,24 @@ def _shallow(frame):
     return g
 
 
-def _ids(frames) -> np.ndarray:
-    """The catalogue ids of every star of ``frames``, in order."""
-    return np.concatenate([np.zeros(0, dtype=np.int64)]
-                          + [np.asarray(f.catalog_id, dtype=np.int64).reshape(-1)
-                             for f in frames])
+def _columns(frames) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(stamps, counts, ids, uv)`` of ``frames``' stars (already columns: as given)."""
+    if isinstance(frames, tuple):
+        return frames
+    stamps = np.array([int(f.stamp_ns) for f in frames], dtype=np.int64)
+    counts = np.array([len(f.catalog_id) for f in frames], dtype=np.intp)
+    ids = np.concatenate([np.zeros(0, dtype=np.int64)]
+                         + [np.asarray(f.catalog_id, dtype=np.int64).reshape(-1)
+                            for f in frames])
+    uv = np.concatenate([np.zeros((0, 2))] + [np.asarray(f.uv, dtype=float).reshape(-1, 2)
+                                              for f in frames])
+    return stamps, counts, ids, uv
 
 
-def _uv(frames) -> np.ndarray:
-    """The centroids of every star of ``frames``, in order."""
-    return np.concatenate([np.zeros((0, 2))] + [np.asarray(f.uv, dtype=float).reshape(-1, 2)
-                                                for f in frames])
-
-
-def _keys(frames, index: np.ndarray, ids: np.ndarray, codes: np.ndarray) -> np.ndarray:
-    """One key per star of ``frames``: its frame's ``index`` and its id's place in ``codes``."""
-    n = [len(f.catalog_id) for f in frames]
-    return np.repeat(np.asarray(index, dtype=np.int64), n) * len(codes) \
+def _keys(counts: np.ndarray, index: np.ndarray, ids: np.ndarray, codes: np.ndarray
+          ) -> np.ndarray:
+    """One key per star: its frame's ``index`` and its id's place in ``codes``."""
+    return np.repeat(np.asarray(index, dtype=np.int64), counts) * len(codes) \
         + np.searchsorted(codes, ids)
 
 
@@ -315,7 +334,7 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
 
                 scene = twin_scene(data, calibration, spec.name, imu=any(imu))
             # the plain twin renders the IMU if any probe of this call moves it
-            plain = plain if plain is not None else rendered(
+            plain = plain if plain is not None else rendered_stars(
                 data, calibration, spec.name, scene=scene, imu=any(imu))
             injections.append(injection_of(data, calibration, spec.name, effect_id,
                                            np.asarray(delta), plain, scene, imu=moves))

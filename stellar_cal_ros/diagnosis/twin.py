@@ -41,7 +41,7 @@ import copy
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -178,6 +178,52 @@ def _method_noise(method: str) -> tuple[float, float, float]:
     return cfg.centroid_sigma_px, cfg.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR, vrw
 
 
+class _Stars(NamedTuple):
+    """What :func:`frame_context` reads of a frame's inputs."""
+
+    catalog_id: np.ndarray
+    magnitude: np.ndarray
+
+
+@dataclass
+class SceneStars:
+    """Each user frame's usable stars and context inputs, in arrays over the bag.
+
+    What :func:`frame_inputs` and :func:`frame_context` give per frame, kept as columns
+    (a ``(FrameInputs, FrameContext)`` pair per frame cost ≈ 7 kB a frame, ≈ 100 MB of a
+    2-h bag's 14 400 frames): star rows are the frames' usable stars in order.
+    """
+
+    stamp_ns: np.ndarray  #: (F,) int64, the user frames' stamps
+    count: np.ndarray  #: (F,) usable stars per frame
+    messages: np.ndarray  #: (F,) stars in each frame's message (usable or not)
+    usable: np.ndarray  #: every message star of every frame: usable (frame_inputs' ``ok``)
+    u_i: np.ndarray  #: (N, 3) catalogue directions of the usable stars
+    catalog_id: np.ndarray  #: (N,) int64
+    magnitude: np.ndarray  #: (N,)
+    unidentified: np.ndarray  #: (F,) centroids without identity per frame
+    head: np.ndarray  #: (F,) head temperature at the stamp, °C (NaN: none)
+    air: np.ndarray  #: (F,) air temperature, °C
+    pressure: np.ndarray  #: (F,) Pa
+    gravity: np.ndarray | None  #: (F, 3) unit gravity in the tracker frame, None: unknown
+    #: per frame the context's ``extra`` (the direction effects' caches), shared by the
+    #: renders of one scene as the contexts were
+    extra: list[dict]
+
+    def context(self, j: int, site, start: int):
+        """Frame ``j``'s context (its stars from row ``start``), as :func:`frame_context`."""
+        n = int(self.count[j])
+        stars = _Stars(self.catalog_id[start:start + n], self.magnitude[start:start + n])
+        ctx = frame_context(int(self.stamp_ns[j]), stars, site, {}, keys=())
+        ctx.head_temperature_c = float(self.head[j])
+        ctx.air_temperature_c = float(self.air[j])
+        ctx.pressure_pa = float(self.pressure[j])
+        if self.gravity is not None:
+            ctx.gravity_st = self.gravity[j]
+        ctx.extra = self.extra[j]
+        return ctx
+
+
 @dataclass
 class TwinScene:
     """What every twin of one bag under one calibration shares (:func:`twin_scene`).
@@ -197,8 +243,8 @@ class TwinScene:
     #: None in a scene for twins without the IMU (``twin_scene(imu=False)``)
     f_true: np.ndarray | None
     traj: _Trajectory
-    #: per user frame: (its usable stars, their context or None without stars, unidentified)
-    frames: list[tuple[Any, Any, int]]
+    #: every user frame's usable stars and context, in arrays (:class:`SceneStars`)
+    stars: SceneStars
 
 
 #: the span (s) of the centred mean that takes the IMU's noise out of the twin's true
@@ -288,18 +334,74 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
     traj = _Trajectory(t, w_true, anchor[0], anchor[1])
     grav = gravity_in_tracker(dataclasses.replace(data, imu_f=f_true), calibration,
                               np.array([f.stamp_ns * 1e-9 for f in data.frames]))
-    frames = []
+    return TwinScene(method, default_sigma, arw, vrw, t, w_true, f_true if imu else None,
+                     traj, _scene_stars(data, cam, default_sigma, env, grav))
+
+
+def _scene_stars(data: BagData, cam, default_sigma: float, env, grav) -> SceneStars:
+    """The frames' usable stars (:func:`frame_inputs`, per frame) and context inputs."""
+    parts: dict[str, list] = {"usable": [], "u_i": [], "catalog_id": [], "magnitude": []}
+    count = np.zeros(len(data.frames), dtype=np.intp)
+    messages = np.zeros(len(data.frames), dtype=np.intp)
+    unidentified = np.zeros(len(data.frames), dtype=np.intp)
     for j, fr in enumerate(data.frames):
         inp = frame_inputs(fr, cam.width, cam.height, default_sigma)
-        unidentified = int(np.sum(np.asarray(fr.catalog_id) == 0))
-        ctx = None
-        if len(inp.uv):
-            ctx = frame_context(int(fr.stamp_ns), inp, data.site, env)
-            if grav is not None:
-                ctx.gravity_st = grav[j]
-        frames.append((inp, ctx, unidentified))
-    return TwinScene(method, default_sigma, arw, vrw, t, w_true, f_true if imu else None,
-                     traj, frames)
+        unidentified[j] = int(np.sum(np.asarray(fr.catalog_id) == 0))
+        count[j] = len(inp.uv)
+        messages[j] = len(inp.ok)
+        parts["usable"].append(np.asarray(inp.ok, dtype=bool).reshape(-1))
+        parts["u_i"].append(np.asarray(inp.u_i, dtype=float).reshape(-1, 3))
+        parts["catalog_id"].append(np.asarray(inp.catalog_id, dtype=np.int64).reshape(-1))
+        parts["magnitude"].append(np.asarray(inp.magnitude, dtype=float).reshape(-1))
+    empty = {"usable": np.zeros(0, bool), "u_i": np.zeros((0, 3)),
+             "catalog_id": np.zeros(0, np.int64), "magnitude": np.zeros(0)}
+    cols = {k: np.concatenate([empty[k]] + v) for k, v in parts.items()}
+    del parts
+    stamps = np.array([int(fr.stamp_ns) for fr in data.frames], dtype=np.int64)
+    # the environment at each stamp (frame_context's interpolation, per frame)
+    at = {k: np.array([env[k].interp(int(s)) for s in stamps], dtype=float)
+          for k in ("head", "air", "pressure")}
+    return SceneStars(stamps, count, messages, cols["usable"], cols["u_i"], cols["catalog_id"],
+                      cols["magnitude"], unidentified, at["head"], at["air"],
+                      at["pressure"], grav, [{} for _ in stamps])
+
+
+@dataclass
+class TwinStars:
+    """A twin's stars in arrays over its frames, before they are made into messages.
+
+    The twin's frames are the user's frames with usable stars (``live``, in order); row
+    by row the usable stars of those frames (:class:`SceneStars`), rendered (``uv``) and
+    whether the twin keeps them (in front of the camera and on the detector).
+    """
+
+    live: np.ndarray  #: (K,) the user frame of each twin frame
+    stamp_ns: np.ndarray  #: (K,) int64, their stamps
+    count: np.ndarray  #: (K,) rendered stars per twin frame (kept or not)
+    keep: np.ndarray  #: (N,) bool
+    uv: np.ndarray  #: (N, 2) px
+    catalog_id: np.ndarray  #: (N,) int64
+
+    def kept(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The kept stars as the twin's frames hold them: ``(stamps, counts, ids, uv)``."""
+        ends = np.cumsum(self.count)
+        before = np.concatenate([[0], np.cumsum(self.keep)])
+        counts = before[ends] - before[ends - self.count]
+        return self.stamp_ns, counts, self.catalog_id[self.keep], self.uv[self.keep]
+
+
+@dataclass
+class Rendered:
+    """What :func:`render` makes: the twin's IMU samples and stars, and its model."""
+
+    imu_w: np.ndarray
+    imu_f: np.ndarray
+    stars: TwinStars
+    counts: dict[str, int]
+    model: StarModel
+    theta: np.ndarray
+    injected: dict[str, np.ndarray]
+    noise: NoiseScales
 
 
 def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] | None = None,
@@ -316,6 +418,42 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
     not rendered (the twin holds the user's samples); its noise is still drawn, so the
     stars are the same numbers (for the reliability probe, whose camera effects leave the
     IMU alone: 2 x 17 MB and their temporaries a render on a 2-h bag).
+    """
+    scene = scene if scene is not None else twin_scene(data, calibration, method)
+    r = render(data, calibration, effects, seed, method, noise, scene, imu)
+    stars, sc = r.stars, scene.stars
+    # the message rows of each frame's usable stars, and the frames' first message rows
+    where = np.flatnonzero(sc.usable)
+    first = np.cumsum(sc.messages) - sc.messages
+    frames = []
+    for j, stop, size in zip(stars.live.tolist(), np.cumsum(stars.count).tolist(),
+                             stars.count.tolist(), strict=True):
+        fr = data.frames[j]
+        rows = slice(stop - size, stop)
+        k = stars.keep[rows]
+        idx = where[rows][k] - first[j]
+        frames.append(StarFrame(
+            stamp_ns=int(fr.stamp_ns), frame_id=fr.frame_id or STAR_TRACKER_FRAME,
+            exposure_time=fr.exposure_time,
+            catalog_id=np.asarray(fr.catalog_id)[idx],
+            right_ascension=np.asarray(fr.right_ascension, dtype=float)[idx],
+            declination=np.asarray(fr.declination, dtype=float)[idx],
+            uv=stars.uv[rows][k], magnitude=np.asarray(fr.magnitude)[idx],
+            sigma=np.asarray(fr.sigma)[idx]))
+    twin_data = dataclasses.replace(data, imu_w=r.imu_w, imu_f=r.imu_f, frames=frames,
+                                    source="")
+    prior = copy.deepcopy(calibration)
+    return Twin(twin_data, _truth(calibration, r.model, r.theta, r.injected), prior,
+                r.injected, r.noise, r.counts)
+
+
+def render(data: BagData, calibration: Calibration, effects: dict[str, Any] | None = None,
+           seed: int = 0, method: str | None = None, noise: NoiseScales | None = None,
+           scene: TwinScene | None = None, imu: bool = True) -> Rendered:
+    """:func:`make_twin`'s IMU samples and stars, in arrays (the same arguments).
+
+    The twin's frames are not made: the reliability probe needs only the stars' steps
+    (a 2-h bag's 14 400 messages ≈ 10 MB and 0.2 CPU-s a render).
     """
     from stellar_cal_ros.diagnosis.noise import stated_scales
 
@@ -343,58 +481,45 @@ def make_twin(data: BagData, calibration: Calibration, effects: dict[str, Any] |
         w_twin, f_twin = data.imu_w, data.imu_f
         _skip_normals(rng, 2 * w_true.size)  # the rates' and the forces' noise
     # the stars
+    sc = scene.stars
     mb = injected.get("magnitude_bias", np.zeros(2))
     direction = np.array([np.cos(np.deg2rad(mb[1])), np.sin(np.deg2rad(mb[1]))])
-    frames, counts = [], {"stars": 0, "unidentified_left_out": 0, "off_detector": 0}
+    counts = {"stars": 0, "unidentified_left_out": 0, "off_detector": 0}
     centre = ((cam.width - 1) / 2.0, (cam.height - 1) / 2.0)
     # the stars' noise as measured: each frame's scatter, correlated along each star's track
     # when the run measured that (the simulator's AR(1), sim.tracker_errors.ar1_noise)
     marginal = noise.within_frames()
     tracks = Ar1Tracks(noise.star_rho, rng, noise.star_ar_share) if noise.star_rho > 0 else None
-    counts["unidentified_left_out"] = sum(u for _, _, u in scene.frames)
-    # the centroids of every frame with stars in one call (StarModel.predict_frames)
-    live = [j for j, (_, ctx, _) in enumerate(scene.frames) if ctx is not None]
-    ins = [scene.frames[j][0] for j in live]
-    user = [data.frames[j] for j in live]
-    n = np.array([len(inp.u_i) for inp in ins], dtype=np.intp)
-    t_rel = (np.array([int(fr.stamp_ns) for fr in user], dtype=np.int64) - data.t0_ns) * 1e-9
-    uv, d = model.predict_frames(theta, [inp.u_i for inp in ins],
-                                 [scene.frames[j][1] for j in live],
-                                 lambda shifts: traj.at(t_rel + shifts))
-    magnitude = np.concatenate([np.zeros(0)] + [np.asarray(inp.magnitude, dtype=float)
-                                                for inp in ins])
+    counts["unidentified_left_out"] = int(sc.unidentified.sum())
+    # the centroids of every frame with stars in one call (StarModel.predict_frames); the
+    # frames' contexts made for this render only (columns of the scene)
+    live = np.flatnonzero(sc.count > 0)
+    n = sc.count[live]
+    starts = (np.cumsum(sc.count) - sc.count)[live].tolist()
+    ctxs = [sc.context(j, data.site, a) for j, a in zip(live.tolist(), starts, strict=True)]
+    t_rel = (sc.stamp_ns[live] - data.t0_ns) * 1e-9
+    uv, d = model.predict_frames(theta, [sc.u_i[a:a + k] for a, k in
+                                         zip(starts, n.tolist(), strict=True)],
+                                 ctxs, lambda shifts: traj.at(t_rel + shifts))
+    del ctxs
+    magnitude = sc.magnitude
     if mb[0] != 0.0:
         uv = uv + (mb[0] * (np.nan_to_num(magnitude, nan=4.0) - 4.0))[:, None] * direction
-    stated = np.concatenate([np.zeros(0)] + [np.asarray(fr.sigma, dtype=float)[inp.ok]
-                                             for fr, inp in zip(user, ins, strict=True)])
+    stated = np.concatenate([np.zeros(0)] + [np.asarray(fr.sigma, dtype=float).reshape(-1)
+                                             for fr in data.frames])[sc.usable]
     sig = marginal.star_sigma(np.where(stated > 0, stated, 0.0), default_sigma, magnitude,
                               uv, centre)
     # one draw for every star is the per-frame draws in a row (the same generator stream)
     z = rng.standard_normal(uv.shape) if tracks is None else np.concatenate(
-        [np.zeros((0, 2))] + [tracks.draw(j, np.asarray(fr.catalog_id)[inp.ok])
-                              for j, fr, inp in zip(live, user, ins, strict=True)])
+        [np.zeros((0, 2))] + [tracks.draw(j, sc.catalog_id[a:a + k]) for j, a, k in
+                              zip(live.tolist(), starts, n.tolist(), strict=True)])
     uv = uv + sig[:, None] * z
     keep = (d[:, 2] > 0) & cam.in_image(np.nan_to_num(uv, nan=-1e9))
     counts["off_detector"] = int((~keep).sum())
     counts["stars"] = int(keep.sum())
-    ends = np.cumsum(n)
-    for fr, inp, stop, size in zip(user, ins, ends, n, strict=True):
-        rows = slice(stop - size, stop)
-        k = keep[rows]
-        idx = np.flatnonzero(inp.ok)[k]
-        frames.append(StarFrame(
-            stamp_ns=int(fr.stamp_ns), frame_id=fr.frame_id or STAR_TRACKER_FRAME,
-            exposure_time=fr.exposure_time,
-            catalog_id=np.asarray(fr.catalog_id)[idx],
-            right_ascension=np.asarray(fr.right_ascension, dtype=float)[idx],
-            declination=np.asarray(fr.declination, dtype=float)[idx],
-            uv=uv[rows][k], magnitude=np.asarray(fr.magnitude)[idx],
-            sigma=np.asarray(fr.sigma)[idx]))
-    twin_data = dataclasses.replace(data, imu_w=w_twin, imu_f=f_twin, frames=frames,
-                                    source="")
-    prior = copy.deepcopy(calibration)
-    return Twin(twin_data, _truth(calibration, model, theta, injected), prior, injected,
-                noise, counts)
+    return Rendered(w_twin, f_twin, TwinStars(live, sc.stamp_ns[live], n, keep, uv,
+                                              sc.catalog_id), counts,
+                    model, theta, injected, noise)
 
 
 def _skip_normals(rng: np.random.Generator, n: int, chunk: int = 1 << 16) -> None:
