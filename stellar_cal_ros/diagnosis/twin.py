@@ -128,12 +128,14 @@ class _Trajectory:
 
     def __init__(self, t: np.ndarray, w: np.ndarray, R_anchor: np.ndarray, t_anchor: float):
         dt = np.diff(t, prepend=t[0] - (np.median(np.diff(t)) if len(t) > 1 else 0.01))
-        self.t_start = np.concatenate([[t[0] - dt[0]], t[:-1]])
+        # sample k covers (t_start(k), t[k]]: the previous stamp (not held: 6 MB on 2 h)
+        self._first = float(t[0] - dt[0])
         self.t, self.w = t, w
         phi = attitude_increments(w, dt, coning=True)
         q = np.empty((len(phi) + 1, 4))
         q[0] = [0.0, 0.0, 0.0, 1.0]
         q[1:] = quat_from_rotvec(phi)
+        del phi  # not held through the scan (17 MB on a 2-h bag)
         # the attitude after each sample, as quaternions (q_rel[0] at t_start[0], q_rel[k+1] at
         # t[k]); turned into matrices only where a frame looks (a matrix per IMU sample of a
         # 2-h bag was 52 MB and 0.3 s; quat_to_matrix is row by row, the same numbers)
@@ -141,10 +143,15 @@ class _Trajectory:
         R_a = self._relative(t_anchor)
         self.R0 = R_anchor @ R_a.T
 
+    def t_start(self, k):
+        """Start of sample ``k`` (index or array): the stamp before it."""
+        k = np.asarray(k)
+        return np.where(k > 0, self.t[np.maximum(k - 1, 0)], self._first)
+
     def _relative(self, t: float) -> np.ndarray:
         k = int(np.clip(np.searchsorted(self.t, t, side="left"), 0, len(self.t) - 1))
         # sample k covers (t_start[k], t[k]]: rotate from its start by its rate
-        return quat_to_matrix(self.q_rel[k]) @ so3_exp(self.w[k] * (t - self.t_start[k]))
+        return quat_to_matrix(self.q_rel[k]) @ so3_exp(self.w[k] * (t - self.t_start(k)))
 
     def rate(self, t: float) -> np.ndarray:
         return self.w[int(np.clip(np.searchsorted(self.t, t, side="left"), 0, len(self.t) - 1))]
@@ -158,7 +165,7 @@ class _Trajectory:
         k = np.clip(np.searchsorted(self.t, t, side="left"), 0, len(self.t) - 1)
         w = self.w[k]
         return self.R0 @ (quat_to_matrix(self.q_rel[k]) @ so3_exp(
-            w * (t - self.t_start[k])[:, None])), w
+            w * (t - self.t_start(k))[:, None])), w
 
     def near(self, t_rel: float):
         def attitude(shift: float) -> tuple[np.ndarray, np.ndarray]:
@@ -315,6 +322,10 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
         theta_cal, np.asarray(data.imu_w, dtype=float)), n)
     f_true = smooth_samples(model_cal.corrected_rates(
         theta_cal, np.asarray(data.imu_f, dtype=float), Stage.ACCEL), n)
+    grav = gravity_in_tracker(dataclasses.replace(data, imu_f=f_true), calibration,
+                              np.array([f.stamp_ns * 1e-9 for f in data.frames]))
+    if not imu:
+        f_true = None  # not held while the trajectory is integrated
     # anchor: the first frame whose identified stars fit an attitude
     env = data.env()
     anchor = None
@@ -332,10 +343,8 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
     if anchor is None:
         raise ModelError("twin: no frame with 3 identified stars inside the IMU span")
     traj = _Trajectory(t, w_true, anchor[0], anchor[1])
-    grav = gravity_in_tracker(dataclasses.replace(data, imu_f=f_true), calibration,
-                              np.array([f.stamp_ns * 1e-9 for f in data.frames]))
-    return TwinScene(method, default_sigma, arw, vrw, t, w_true, f_true if imu else None,
-                     traj, _scene_stars(data, cam, default_sigma, env, grav))
+    return TwinScene(method, default_sigma, arw, vrw, t, w_true, f_true, traj,
+                     _scene_stars(data, cam, default_sigma, env, grav))
 
 
 def _scene_stars(data: BagData, cam, default_sigma: float, env, grav) -> SceneStars:
