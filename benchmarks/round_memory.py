@@ -104,7 +104,7 @@ def main() -> int:
         import stellar_cal_ros.diagnosis.twin as tw
 
         wrap(tw, "twin_scene")
-        wrap(rp, "rendered")
+        wrap(rp, "rendered_stars")
         wrap(rp, "star_steps")
     bag = ensure_2h_bag()
     cal = load_calibration(bag.with_suffix(".prior.yaml"))
