@@ -410,10 +410,7 @@ class DaskRuns(Runs):
                 return
         except TypeError:  # unhashable args: not cached, so not started ahead either
             return
-        batch = self._batches.open()
-        fut = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
-                                 *args, pure=False, priority=ON_BAG_PRIORITY)
-        self._of_bag[key] = _Soon(fut, batch, fn.__name__, self._batches)
+        self._of_bag[key] = self._submit_on_bag(fn, *args)
 
     def on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:  # noqa: D102
         out = super().on_bag(fn, *args)
@@ -424,20 +421,20 @@ class DaskRuns(Runs):
     def later(self, fn: Callable[..., Any], *args: Any) -> Callable[[], Any]:  # noqa: D102
         if self.client is None:
             return super().later(fn, *args)
-        batch = self._batches.open()
-        fut = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
-                                 *args, pure=False, priority=ON_BAG_PRIORITY)
-        return _Soon(fut, batch, fn.__name__, self._batches).result
+        return self._submit_on_bag(fn, *args).result
 
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         if self.client is None:
             return super()._compute_on_bag(fn, *args)
+        return self._submit_on_bag(fn, *args).result()
+
+    def _submit_on_bag(self, fn: Callable[..., Any], *args: Any) -> _Soon:
+        """``fn(bag_data, *args)`` submitted now, its own batch on the timeline."""
         # before any queued run: a statistic of the bag is what the next step waits for
         batch = self._batches.open()
-        out = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
-                                 *args, pure=False, priority=ON_BAG_PRIORITY).result()
-        self._batches.close(batch, [fn.__name__])
-        return out
+        fut = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
+                                 *args, pure=False, priority=ON_BAG_PRIORITY)
+        return _Soon(fut, batch, fn.__name__, self._batches)
 
     def on_bag_each(self, fn: Callable[..., Any], calls: list[tuple]) -> list[Any]:  # noqa: D102
         if self.client is None or len(calls) < 2:
