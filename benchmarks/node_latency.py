@@ -15,7 +15,22 @@ topics unchanged.  Reported:
   are published at their mid-exposure stamp, before that IMU exists);
 * **compute CPU**: the calibrator thread's CPU time over the same interval (the wall
   latency minus it is time the thread was preempted or blocked);
-* CPU: the calibrator process's CPU time / wall time, and per-core load from /proc/stat.
+* CPU: the calibrator process's CPU time / wall time, and per-core load from /proc/stat;
+* **the end-to-end split** of every frame after the first 10 s (one monotonic clock in all
+  processes): ``wait`` (frame published → the IMU sample that releases it published: the
+  reorder window by design, more when this publisher falls behind its schedule), ``publish``
+  (that sample's ``publish()`` call), ``queue`` (→ the node's callback entry: DDS, and the
+  executor busy with another of the node's callbacks, ``busy_ms``), ``compute`` (→ the
+  residuals published) and ``deliver`` (→ received here); the tail frames (e2e ≥ p99) one
+  by one, and how far the publisher fell behind its real-time schedule.
+
+``--node echo`` runs, instead of the calibrator, a node with the same topics and QoS that
+does no work (it publishes an empty ``~/residuals`` as soon as the IMU sample
+``--window`` newer than a frame arrives): what the machine and DDS alone give.
+``--busy N`` runs N busy Python loops beside the node (a CPU load that does not vary from
+run to run as a test suite does); ``--source-rt-priority N`` runs this process (publisher and
+subscriber of the residuals) ``SCHED_FIFO`` too, as a sensor driver and a consumer given the
+node's priority would be.
 
 ``--executor`` picks the calibrator's executor (``single``: rclpy's
 SingleThreadedExecutor, as ``rclpy.spin``; ``events``: ``rclpy.experimental.EventsExecutor``).
@@ -33,7 +48,8 @@ published something) and ``field_ms`` (ticks that drew a residual field).
 Usage::
 
     python benchmarks/node_latency.py [--duration 60] [--window 0.05] [--bag BAG]
-        [--executor single|events] [--rt-priority N] [--load CMD] [--json out.json]
+        [--executor single|events] [--rt-priority N] [--load CMD] [--busy N]
+        [--node calibrator|echo] [--source-rt-priority N] [--json out.json]
         [--param NAME=VALUE ...] [--watch]
 """
 
@@ -69,8 +85,12 @@ def _cpu_times() -> list[tuple[int, int]]:
 
 
 def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
-                   executor: str = "single", rt_priority: int = 0) -> None:
-    """Child process: spin the calibrator until ``stop_file`` exists, dump its statistics."""
+                   executor: str = "single", rt_priority: int = 0,
+                   kind: str = "calibrator") -> None:
+    """Child process: spin the node until ``stop_file`` exists, dump its statistics.
+
+    ``kind``: ``calibrator``, or ``echo`` (:func:`echo_node`).
+    """
     if rt_priority:  # as `chrt -f N ros2 run ...` would start it (needs CAP_SYS_NICE)
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
     import rclpy
@@ -84,8 +104,12 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
     for topic, _ in INPUTS.values():
         args += ["-r", f"{topic}:={prefix}{topic}"]
     args += ["-r", f"/diagnostics:={prefix}/diagnostics"]
-    node = CalibratorNode("calibrator" + prefix.replace("/", "_"), cli_args=args,
-                          parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+    name = "calibrator" + prefix.replace("/", "_")
+    if kind == "echo":
+        node = echo_node(name, args, params["reorder_window_s"])
+    else:
+        node = CalibratorNode(name, cli_args=args, parameter_overrides=[
+            Parameter(k, value=v) for k, v in params.items()])
     if executor == "events":
         from rclpy.experimental import EventsExecutor
 
@@ -108,7 +132,8 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
 
         view.tick = timed_tick
         view.timer.callback = timed_tick
-    marks = _mark_events(node)
+    marks = _mark_events(node) if kind != "echo" else []
+    split = _split_events(node)
     wall0, cpu0 = time.perf_counter(), time.process_time()
     while not os.path.exists(stop_file):
         ex.spin_once(timeout_sec=0.05)
@@ -120,7 +145,7 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
            "backlog_updates": node.backlog_updates, "view_ticks": ticks,
            "view_counts": dict(view.counts) if view is not None else None,
            "counters": {k: v for k, v in vars(node.cal.counters).items()},
-           "marks": marks}
+           "marks": marks, **split}
     Path(result_file).write_text(json.dumps(res))
     node.destroy_node()
     rclpy.try_shutdown()
@@ -171,6 +196,184 @@ def _mark_events(node) -> list[dict]:
 
     node._guard = timed_guard
     return marks
+
+
+def _split_events(node) -> dict:
+    """Per updated frame, the times the end-to-end split needs.
+
+    All are ``perf_counter``, which is CLOCK_MONOTONIC: one clock for every process.
+
+    ``frames``: [stamp_ns, stars callback entry, entry of the callback that released the
+    frame, its key (0: an IMU sample, 1: the frame itself, 2: another input), the releasing
+    IMU sample's stamp_ns (or 0), residuals published]; ``busy``: [name, start, end] of every
+    timer callback and of every input callback over 0.5 ms — what the executor was doing
+    while a released frame's message waited in its queue.
+    """
+    frames: list[list] = []
+    busy: list[list] = []
+    star_cb: dict[int, float] = {}
+    ctx = {"key": "", "imu": 0}
+    guard, handle = node._guard, node._handle
+
+    def split_guard(key, fn, msg) -> None:
+        t0 = time.perf_counter()
+        ctx["key"] = key
+        ctx["imu"] = (msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                      if key == "imu" else 0)
+        ctx["t"] = t0
+        guard(key, fn, msg)
+        t1 = time.perf_counter()
+        if t1 - t0 > 5e-4:
+            busy.append([key, t0, t1])
+
+    def split_handle(outcomes, t_in, c_in=None) -> None:
+        handle(outcomes, t_in, c_in)
+        t_out = time.perf_counter()
+        code = {"imu": 0, "stars": 1}.get(ctx["key"], 2)
+        for o in outcomes:
+            if o.status == "updated":
+                frames.append([int(o.stamp_ns), star_cb.pop(int(o.stamp_ns), float("nan")),
+                               t_in, code, ctx["imu"], t_out])
+
+    cal = getattr(node, "cal", None)
+    if cal is not None and hasattr(cal, "push_stars"):
+        push = cal.push_stars
+
+        def split_push(frame):
+            star_cb[int(frame.stamp_ns)] = ctx["t"]
+            return push(frame)
+
+        cal.push_stars = split_push
+    node._guard, node._handle = split_guard, split_handle
+    for timer in node.timers:
+        cb = timer.callback
+        name = getattr(cb, "__name__", "timer").lstrip("_")
+
+        def timed(cb=cb, name=name) -> None:
+            t0 = time.perf_counter()
+            cb()
+            busy.append([name, t0, time.perf_counter()])
+
+        timer.callback = timed
+    return {"frames": frames, "busy": busy}
+
+
+def echo_node(name: str, args: list[str], window_s: float):
+    """A node with the calibrator's topics and none of its work: the machine's own tail.
+
+    It subscribes to the same inputs (stars as raw bytes, IMU as messages, the same QoS) and
+    publishes an empty ``~/residuals`` (``dof`` 1) for a star frame as soon as an IMU sample
+    ``window_s`` newer than the frame arrives — the calibrator's reorder-window release,
+    without the filter.  Its callbacks go through ``_guard``/``_handle`` like the
+    calibrator's, so the benchmark's instrumentation times both alike.
+    """
+    from types import SimpleNamespace
+
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Imu
+    from stellar_cal_msgs.msg import StarCentroidArray, StarResidualArray
+
+    class Echo(Node):
+        def __init__(self) -> None:
+            super().__init__(name, cli_args=args)
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                             reliability=ReliabilityPolicy.RELIABLE)
+            out = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                             reliability=ReliabilityPolicy.RELIABLE)
+            self.window_ns = int(round(window_s * 1e9))
+            self.pending: list[int] = []
+            self.latency_s: list[float] = []
+            self.latency_cpu_s: list[float] = []
+            self.received = {"imu": 0, "stars": 0}
+            self.backlog_updates = 0
+            self.updates = 0
+            self.pub = self.create_publisher(StarResidualArray, "~/residuals", out)
+            self.create_subscription(Imu, "/imu/data", self._on_imu, qos)
+            self.create_subscription(StarCentroidArray, "/star_tracker/stars", self._on_stars,
+                                     qos, raw=True)
+            self.cal = SimpleNamespace(filter_counters=lambda: {"updates": self.updates},
+                                       counters=SimpleNamespace())
+
+        def _on_imu(self, msg) -> None:
+            self._guard("imu", self._push_imu, msg)
+
+        def _on_stars(self, data: bytes) -> None:
+            self._guard("stars", self._push_stars, data)
+
+        def _guard(self, key, fn, msg) -> None:
+            t_in, c_in = time.perf_counter(), time.thread_time()
+            self.received[key] += 1
+            out = fn(msg)
+            if out:
+                self._handle(out, t_in, c_in)
+
+        def _push_imu(self, msg) -> list:
+            t = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            done = [s for s in self.pending if s <= t - self.window_ns]
+            self.pending = [s for s in self.pending if s > t - self.window_ns]
+            return [SimpleNamespace(stamp_ns=s, status="updated") for s in done]
+
+        def _push_stars(self, data: bytes) -> list:
+            sec, nsec = np.frombuffer(data, "<i4", 2, 4)  # CDR LE: after the 4-byte header
+            self.pending.append(int(sec) * 1_000_000_000 + int(np.uint32(nsec)))
+            return []
+
+        def _handle(self, outcomes, t_in, c_in=None) -> None:
+            for o in outcomes:
+                m = StarResidualArray()
+                m.header.stamp.sec, m.header.stamp.nanosec = divmod(o.stamp_ns, 1_000_000_000)
+                m.dof = 1
+                self.pub.publish(m)
+                self.updates += 1
+            if len(outcomes) == 1:
+                self.latency_s.append(time.perf_counter() - t_in)
+                self.latency_cpu_s.append(time.thread_time() - c_in)
+
+    return Echo()
+
+
+def _split_report(res: dict, pub_t: dict[int, float], pub_done: dict[int, float],
+                  rx: dict[int, float], settle_ns: int) -> dict:
+    """The end-to-end latency of each frame split where it was spent (ms).
+
+    * ``wait``: the frame's publication → the publication of the message that released it
+      (the IMU sample ``reorder_window_s`` of data later; by design ≈ the window, more when
+      the publisher fell behind);
+    * ``publish``: that message's ``publish()`` call in the benchmark's process (the
+      publisher preempted in it shows here);
+    * ``queue``: that call's return → the callback's entry in the node (DDS delivery, and
+      the executor busy with something else: ``busy_ms`` of it in the node's own callbacks);
+    * ``compute``: callback entry → residuals published;
+    * ``deliver``: residuals published → received by the benchmark's subscriber.
+    """
+    rows = []
+    busy = res.get("busy") or []
+    for stamp, _t_star, t_cb, code, imu, t_out in res.get("frames") or []:
+        if stamp < settle_ns or stamp not in pub_t or stamp not in rx:
+            continue
+        rel = imu if code == 0 else stamp if code == 1 else None
+        if rel not in pub_t:
+            continue
+        t_rel, t_done = pub_t[rel], pub_done[rel]
+        blocked = sum(max(0.0, min(b1, t_cb) - max(b0, t_done)) for _, b0, b1 in busy)
+        names = sorted({n for n, b0, b1 in busy if b1 > t_done and b0 < t_cb})
+        rows.append({"stamp": stamp, "e2e": (rx[stamp] - pub_t[stamp]) * 1e3,
+                     "wait": (t_rel - pub_t[stamp]) * 1e3, "publish": (t_done - t_rel) * 1e3,
+                     "queue": (t_cb - t_done) * 1e3,
+                     "compute": (t_out - t_cb) * 1e3, "deliver": (rx[stamp] - t_out) * 1e3,
+                     "busy_ms": blocked * 1e3, "busy": names})
+    if not rows:
+        return {}
+    out: dict = {"frames": len(rows)}
+    for k in ("e2e", "wait", "publish", "queue", "compute", "deliver", "busy_ms"):
+        x = np.array([r[k] for r in rows])
+        out[k] = {"p50": float(np.percentile(x, 50)), "p99": float(np.percentile(x, 99)),
+                  "max": float(x.max())}
+    p99 = np.percentile([r["e2e"] for r in rows], 99)
+    out["tail"] = [{k: (round(v, 2) if isinstance(v, float) else v) for k, v in r.items()
+                    if k != "stamp"} for r in rows if r["e2e"] >= p99]
+    return out
 
 
 def _tail_report(marks: list[dict]) -> dict:
@@ -257,6 +460,14 @@ def load_loop(cmd: str, stop_file: str) -> None:
                        stderr=subprocess.DEVNULL, check=False)
 
 
+def busy_loop(stop_file: str) -> None:
+    """Child process: a CPU-bound Python loop (a core's worth of load) until ``stop_file``."""
+    n = 0
+    while not os.path.exists(stop_file):
+        for _ in range(200_000):
+            n += 1
+
+
 def load_stream(duration_s: float):
     """The messages to publish: (stamp_ns, kind, payload) in stamp order."""
     from mcap.reader import make_reader
@@ -290,8 +501,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bag", type=Path, help="bag to play (default: simulated 600 s)")
     ap.add_argument("--executor", choices=("single", "events"), default="single")
     ap.add_argument("--load", help="shell command run in a loop beside the node")
+    ap.add_argument("--busy", type=int, default=0, metavar="N",
+                    help="N processes of a busy Python loop beside the node (CPU load)")
+    ap.add_argument("--node", choices=("calibrator", "echo"), default="calibrator",
+                    help="echo: a node with the same topics and no work (the machine's tail)")
     ap.add_argument("--rt-priority", type=int, default=0,
                     help="run the calibrator process SCHED_FIFO at this priority (0: no)")
+    ap.add_argument("--source-rt-priority", type=int, default=0, metavar="N",
+                    help="run this process (the publisher and the residuals' subscriber) "
+                         "SCHED_FIFO at N while playing (0: no)")
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--param", type=_param, action="append", default=[],
                     metavar="NAME=VALUE", help="a calibrator parameter (repeatable)")
@@ -314,7 +532,7 @@ def main(argv: list[str] | None = None) -> int:
     ctx = mp.get_context("spawn")
     child = ctx.Process(target=run_calibrator, args=(prefix, params, str(tmp / "res.json"),
                                                       str(tmp / "stop"), a.executor,
-                                                      a.rt_priority))
+                                                      a.rt_priority, a.node))
     child.start()
     watcher = None
     if a.watch and params.get("foxglove_port"):
@@ -325,6 +543,10 @@ def main(argv: list[str] | None = None) -> int:
     if a.load:
         loader = ctx.Process(target=load_loop, args=(a.load, str(tmp / "stop_load")))
         loader.start()
+    busy = [ctx.Process(target=busy_loop, args=(str(tmp / "stop_load"),))
+            for _ in range(a.busy)]
+    for b in busy:
+        b.start()
     stream = load_stream(a.duration)
 
     import rclpy
@@ -332,6 +554,9 @@ def main(argv: list[str] | None = None) -> int:
     from sensor_msgs.msg import FluidPressure, Imu, NavSatFix, Temperature
     from stellar_cal_msgs.msg import StarCentroidArray, StarResidualArray
 
+    if a.source_rt_priority:  # after the children started (they must not inherit it);
+        # before rclpy.init, so that the DDS threads of this process inherit it
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(a.source_rt_priority))
     rclpy.init()
     node = rclpy.create_node("bench_source" + prefix.replace("/", "_"))
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -342,11 +567,16 @@ def main(argv: list[str] | None = None) -> int:
     p_imu = node.create_publisher(Imu, prefix + "/imu/data", qos)
     sent: dict[int, float] = {}
     e2e: list[tuple[int, float]] = []
+    pub_t: dict[int, float] = {}  # every message's publication (perf_counter), by stamp
+    pub_done: dict[int, float] = {}  # ... and the return of its publish() call
+    lag: list[float] = []  # publication − its real-time target, s (the publisher behind)
+    rx: dict[int, float] = {}
 
     def on_res(msg) -> None:
         s = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         if s in sent and msg.dof > 0:
-            e2e.append((s, (time.perf_counter() - sent.pop(s)) * 1e3))
+            rx[s] = time.perf_counter()
+            e2e.append((s, (rx[s] - sent.pop(s)) * 1e3))
 
     node.create_subscription(StarResidualArray,
                              f"/calibrator{prefix.replace('/', '_')}/residuals", on_res, qos)
@@ -378,24 +608,36 @@ def main(argv: list[str] | None = None) -> int:
                 float, w)
             (imu.linear_acceleration.x, imu.linear_acceleration.y,
              imu.linear_acceleration.z) = map(float, f)
+            pub_t[stamp] = t = time.perf_counter()
             p_imu.publish(imu)
         else:
+            pub_t[stamp] = t = time.perf_counter()
             if kind == "/star_tracker/stars":
-                sent[stamp] = time.perf_counter()
+                sent[stamp] = t
             pubs[kind].publish(payload)
+        pub_done[stamp] = time.perf_counter()
+        lag.append(t - target)
     end = time.perf_counter() + 1.0
     while time.perf_counter() < end:
         ex.spin_once(timeout_sec=0.05)
     wall = time.perf_counter() - wall0
     cpu1 = _cpu_times()
+    if a.source_rt_priority:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     (tmp / "stop_load").touch()
     (tmp / "stop_watch").touch()
     if watcher is not None:
         watcher.join(30)
     (tmp / "stop").touch()
+    for b in busy:
+        b.join(30)
     if loader is not None:
         loader.join(300)
-    child.join(30)
+    child.join(60)
+    if not (tmp / "res.json").exists():
+        print(f"the node process left no results (exit code {child.exitcode}; its errors are "
+              "above)", file=sys.stderr)
+        return 1
     res = json.loads((tmp / "res.json").read_text())
     node.destroy_node()
     rclpy.try_shutdown()
@@ -432,6 +674,7 @@ def main(argv: list[str] | None = None) -> int:
         "reorder_window_s": a.window,
         "executor": a.executor,
         "rt_priority": a.rt_priority,
+        "source_rt_priority": a.source_rt_priority,
         "load": a.load or "",
         "bag": BAG.name,
         "received": res["received"],
@@ -439,6 +682,13 @@ def main(argv: list[str] | None = None) -> int:
         "params": dict(a.param),
     }
     out["tail"] = _tail_report(res.get("marks") or [])
+    out["node"] = a.node
+    out["busy"] = a.busy
+    lag_ms = np.asarray(lag) * 1e3
+    out["publisher_lag_ms"] = {"p50": float(np.percentile(lag_ms, 50)),
+                               "p99": float(np.percentile(lag_ms, 99)),
+                               "max": float(lag_ms.max())}
+    out["split"] = _split_report(res, pub_t, pub_done, rx, settle_ns)
     ticks = res.get("view_ticks") or []
     if res.get("view_counts") is not None:
         views = [ms for ms, field in ticks if not field]
@@ -451,6 +701,19 @@ def main(argv: list[str] | None = None) -> int:
     if watcher is not None and (tmp / "watch.json").exists():
         out["foxglove_client"] = json.loads((tmp / "watch.json").read_text())
     print(json.dumps(out, indent=1))
+    sp = out["split"]
+    if sp:
+        print(f"end-to-end split over {sp['frames']} frames (ms, p50 / p99 / max): " + "; ".join(
+            f"{k} {sp[k]['p50']:.2f} / {sp[k]['p99']:.2f} / {sp[k]['max']:.2f}"
+            for k in ("e2e", "wait", "publish", "queue", "compute", "deliver", "busy_ms")))
+        print("  tail frames: " + " | ".join(
+            f"e2e {r['e2e']:.1f} = wait {r['wait']:.1f} + publish {r['publish']:.1f} + queue "
+            f"{r['queue']:.1f} (busy "
+            f"{r['busy_ms']:.1f} {','.join(r['busy']) or '-'}) + compute {r['compute']:.2f} "
+            f"+ deliver {r['deliver']:.1f}" for r in sp["tail"]))
+    pl = out["publisher_lag_ms"]
+    print(f"publisher behind its real-time schedule (ms): p50 {pl['p50']:.2f}, "
+          f"p99 {pl['p99']:.2f}, max {pl['max']:.2f}")
     ok = out["compute_latency_ms"]["p99"] <= TARGET_P99_MS
     print(f"compute latency p50 {out['compute_latency_ms']['p50']:.2f} ms, "
           f"p99 {out['compute_latency_ms']['p99']:.2f} ms (target ≤ {TARGET_P99_MS} ms: "

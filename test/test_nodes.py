@@ -32,7 +32,8 @@ try:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import CameraInfo, Imu, Temperature
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import CameraInfo, Imu, NavSatFix, Temperature
     from std_srvs.srv import Trigger
     from stellar_cal_msgs.msg import (
         CalibrationEstimate,
@@ -197,6 +198,12 @@ def test_bag_through_topics_equals_offline_replay(ros_context, excerpt, tmp_path
     st = diag.msgs[-1].status[0]
     keys = {kv.key: kv.value for kv in st.values}
     assert keys["received.imu"] == str(n_imu) and "latency_p99_ms" in keys
+    # the verdict it publishes is the replay's (the second half of the data so far)
+    ref_cons = ref.calibration.extra["consistency"]
+    assert st.level == DiagnosticStatus.OK, st.message
+    assert keys["consistency.verdict"] == ref_cons["verdict"] == "consistent"
+    assert float(keys["consistency.nis_per_dof"]) == pytest.approx(ref_cons["nis_per_dof"],
+                                                                   rel=0.03)
     print(f"\n{stats.messages} messages in {wall:.2f} s ({stats.messages / wall:.0f} msg/s)")
     cal.destroy_node()
     player.destroy_node()
@@ -255,6 +262,7 @@ def test_garbage_input_is_counted_and_survived(ros_context, tmp_path):
     p_imu = src.create_publisher(Imu, prefix + "/imu/data", qos)
     p_st = src.create_publisher(StarCentroidArray, prefix + "/star_tracker/stars", qos)
     p_t = src.create_publisher(Temperature, prefix + "/star_tracker/temperature", qos)
+    p_fix = src.create_publisher(NavSatFix, prefix + "/gnss/fix", qos)
     diag = Collector(src, DiagnosticArray, prefix + "/diagnostics")
     stamp0 = 1_795_348_800 * 10**9
 
@@ -291,21 +299,33 @@ def test_garbage_input_is_counted_and_survived(ros_context, tmp_path):
         t = Temperature()
         t.temperature = math.nan
         p_t.publish(t)
+        fix = NavSatFix()
+        fix.latitude = math.nan
+        p_fix.publish(fix)
+        # bytes that are no StarCentroidArray (a truncated one, another type's): the
+        # decoder refuses them, the node counts a rejected message and goes on
+        good = serialize_message(stars(60))
+        p_st.publish(good[:30])
+        p_st.publish(serialize_message(t))
         for k in range(43, 80):
             p_imu.publish(imu(k))
-        wait_for(lambda: cal.received["imu"] == 79 and cal.received["stars"] == 4
-                 and cal.received["head"] == 1, what="garbage delivered")
+        p_st.publish(good)  # and still decodes the next good frame
+        wait_for(lambda: cal.received["imu"] == 79 and cal.received["stars"] == 7
+                 and cal.received["head"] == 1 and cal.received["fix"] == 1,
+                 what="garbage delivered")
         time.sleep(0.6)  # both inputs silent now
         wait_for(lambda: any(d.status[0].level == DiagnosticStatus.WARN and "silent" in
                              d.status[0].message for d in diag.msgs), what="silence warning")
     c = cal.cal.counters
     assert c.imu_wrong_frame == 1 and c.imu_invalid == 1 and c.imu_late == 1
-    assert c.frames_wrong_frame == 1 and c.env_invalid == 1
+    assert c.frames_wrong_frame == 1 and c.env_invalid == 1 and c.fixes_invalid == 1
+    assert c.frames_received == 5  # 4 decodable garbage frames + the good one
     fc = cal.cal.filter_counters()
     assert fc["skipped_few_stars"] >= 2  # the empty and the all-NaN frame
-    assert cal.callback_errors == 0
+    assert cal.callback_errors == 2  # the two undecodable payloads, and nothing else
     keys = {kv.key: kv.value for kv in diag.msgs[-1].status[0].values}
     assert keys["input.imu_wrong_frame"] == "1" and keys["input.frames_wrong_frame"] == "1"
+    assert keys["input.fixes_invalid"] == "1" and keys["callback_errors"] == "2"
     assert np.isfinite(cal.cal.state()[0]).all()
     cal.destroy_node()
     src.destroy_node()
