@@ -195,6 +195,7 @@ def _mark_events(node) -> list[dict]:
             marks.append(dict(ev, ms=node.latency_s[-1] * 1e3))
 
     node._guard = timed_guard
+    node.bench_events = ev  # what ran in the last input callback (read by _split_events)
     return marks
 
 
@@ -215,6 +216,8 @@ def _split_events(node) -> dict:
     ctx = {"key": "", "imu": 0}
     guard, handle = node._guard, node._handle
 
+    ev = getattr(node, "bench_events", None)
+
     def split_guard(key, fn, msg) -> None:
         t0 = time.perf_counter()
         ctx["key"] = key
@@ -223,8 +226,11 @@ def _split_events(node) -> dict:
         ctx["t"] = t0
         guard(key, fn, msg)
         t1 = time.perf_counter()
-        if t1 - t0 > 5e-4:
-            busy.append([key, t0, t1])
+        if t1 - t0 > 5e-4:  # with what ran in it (a collection, the IMU trim ...)
+            what = [k for k, v in (ev or {}).items() if k not in ("gc_ms", "gc_gen") and v]
+            if ev and ev["gc_gen"] >= 0:
+                what.append(f"gc{ev['gc_gen']}")
+            busy.append([key + "".join("+" + w for w in what), t0, t1])
 
     def split_handle(outcomes, t_in, c_in=None) -> None:
         handle(outcomes, t_in, c_in)
@@ -689,6 +695,12 @@ def main(argv: list[str] | None = None) -> int:
                                "p99": float(np.percentile(lag_ms, 99)),
                                "max": float(lag_ms.max())}
     out["split"] = _split_report(res, pub_t, pub_done, rx, settle_ns)
+    long_cb: dict[str, list[float]] = {}  # the node's callbacks over 1 ms, by what ran
+    for name, b0, b1 in res.get("busy") or []:  # (after the first 10 s, as the split)
+        if b1 - b0 > 1e-3 and b0 >= wall0 + 10.0:
+            long_cb.setdefault(name, []).append((b1 - b0) * 1e3)
+    out["callbacks_over_1ms"] = {k: {"n": len(v), "max_ms": max(v)} for k, v in
+                                 sorted(long_cb.items())}
     ticks = res.get("view_ticks") or []
     if res.get("view_counts") is not None:
         views = [ms for ms, field in ticks if not field]
@@ -711,6 +723,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['queue']:.1f} (busy "
             f"{r['busy_ms']:.1f} {','.join(r['busy']) or '-'}) + compute {r['compute']:.2f} "
             f"+ deliver {r['deliver']:.1f}" for r in sp["tail"]))
+    if out["callbacks_over_1ms"]:
+        print("node callbacks over 1 ms after 10 s (count, max ms): " + ", ".join(
+            f"{k} {v['n']} ({v['max_ms']:.1f})" for k, v in out["callbacks_over_1ms"].items()))
     pl = out["publisher_lag_ms"]
     print(f"publisher behind its real-time schedule (ms): p50 {pl['p50']:.2f}, "
           f"p99 {pl['p99']:.2f}, max {pl['max']:.2f}")
