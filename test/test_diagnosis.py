@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -212,6 +213,87 @@ def test_diagnosis_json_is_the_same_bytes_run_after_run(tmp_path, cli):
     # the case the test is about: entries with several sigma rows
     assert any(len(e.get("sigma", {})) > 1 for e in summary["reliability"])
     assert written[0] == written[1]
+
+
+def test_diagnosis_json_does_not_depend_on_how_the_screening_is_split(tmp_path, monkeypatch):
+    """Issue 21/24: ``diagnosis.json`` describes the bag and the model, not the schedule.
+
+    ``--workers 0`` scores every candidate in the base run (one screening part); with two
+    workers the candidates are split in two parts and the base run scores the first only
+    (here in this process, ``Runs.workers`` 2 as a 2-worker cluster has it).  Before, the
+    part holding thermal_focal_length waited for the head temperature, and its run's
+    ``env_stale`` (frames released with a stale temperature: here the sensor's series
+    ends early) went into the counts when that part was the base run (``--workers 0``) and not
+    when it was not (2 workers): the model, PSCE's baseline, reads no temperature, and a
+    replay of it counts none.  The file has no timing field: the whole of it is compared
+    (floats to rounding)."""
+    from stellar_cal_ros.diagnosis import parallel, screening
+    from stellar_cal_ros.diagnosis import run as run_module
+
+    cands = ["gyro_scale_factor", "time_offset", "pixel_aspect", "thermal_focal_length"]
+    # the split this test is about: the base run's part (the first) without thermal
+    assert "thermal_focal_length" not in screening.parts(cands, 2)[0]
+    sim, paths, data = _bag(tmp_path, {}, duration=100.0, seed=21)
+    # the sensor's temperature ends 10 s before the bag: those frames wait for it in vain
+    # and go with its last value (stale; 2 frames a second)
+    h = data.head_temperature
+    keep = (h.stamp_ns - data.t0_ns) * 1e-9 < 90.0
+    data = dataclasses.replace(data, head_temperature=dataclasses.replace(
+        h, stamp_ns=h.stamp_ns[keep], value=h.value[keep], variance=h.variance[keep]))
+    calibration = replay_psce(data, sim.prior).calibration
+    # a model that reads the temperature counts them
+    stale = replay_psce(data, calibration, ["thermal_focal_length"]).counters["env_stale"]
+    assert stale >= 18
+    opened = []
+
+    def runner(*args, **kw):
+        ctx = parallel.open_runner(*args, **kw)
+
+        class Split:
+            def __enter__(self):
+                runs = ctx.__enter__()
+                runs.workers = workers
+                opened.append(runs)
+                return runs
+
+            def __exit__(self, *exc):
+                return ctx.__exit__(*exc)
+        return Split()
+
+    monkeypatch.setattr(run_module, "open_runner", runner)
+    written = {}
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}"
+        diagnose(data, calibration, "psce", [], out, candidates=cands, plots=False,
+                 verbose=False, workers=0)
+        written[workers] = (out / "diagnosis.json").read_text()
+    assert [r.workers for r in opened] == [1, 2]
+    one, two = json.loads(written[1]), json.loads(written[2])
+    # the case: thermal is scored (its part waited for the temperature), the bag has gaps
+    assert any(e["effect"] == "thermal_focal_length"
+               for k in ("candidates", "screened_out") for e in one[k])
+    assert one["counts"] == two["counts"]
+    assert one["counts"]["env_received"] > 0 and "env_stale" not in one["counts"]
+    # every key, string, integer and flag equal; floats to rounding: the parts carry other
+    # consider sets, so the compiled update works on matrices of other sizes (measured:
+    # 1.6e-12 relative at most, the MDBs and biases of the sensitivities)
+    _same_to_rounding(one, two)
+
+
+def _same_to_rounding(a, b, path: str = "", rel: float = 1e-9) -> None:
+    """``a`` and ``b`` (parsed JSON) equal, floats to ``rel``; the path of a difference."""
+    if isinstance(a, float) and isinstance(b, float):
+        assert a == pytest.approx(b, rel=rel, abs=1e-300, nan_ok=True), path
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and list(a) == list(b), path
+        for k in a:
+            _same_to_rounding(a[k], b[k], f"{path}/{k}", rel)
+    elif isinstance(a, list):
+        assert isinstance(b, list) and len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _same_to_rounding(x, y, f"{path}[{i}]", rel)
+    else:
+        assert type(a) is type(b) and a == b, (path, a, b)
 
 
 @pytest.mark.benchmark

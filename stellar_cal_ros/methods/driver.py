@@ -133,8 +133,16 @@ class Calibrator(ImuRelease):
                                         self.baseline)
         self.n_consider = sum(e.size for e in self.model.effects if e.id in self.consider)
         self.requires = {r for e in self.model.effects for r in e.requires}
+        #: what the estimated model itself needs (``requires`` without the consider
+        #: parameters'): ``env_stale`` counts the frames released without these; a frame
+        #: also waits for what the consider parameters need (their sensitivities read it),
+        #: which a replay of the model would not, so that count would describe how a
+        #: diagnosis groups its candidates, not the bag and the model
+        self.model_requires = {r for e in self.model.effects if e.id not in self.consider
+                               for r in e.requires}
         if spec.needs_site:
             self.requires.add("site")
+            self.model_requires.add("site")
         self.window_ns = int(round(self.driver.reorder_window_s * 1e9))
         self._jump_ns = int(self.driver.clock_jump_s * 1e9)  # a jump of the IMU clock
         self.env_wait_ns = int(round(self.driver.environment_wait_s * 1e9))
@@ -444,21 +452,32 @@ class Calibrator(ImuRelease):
             self.filter.defer_checks()
 
     def _env_ready(self, stamp_ns: int, final: bool) -> tuple[bool, bool]:
-        """(ready, stale) of the environment inputs the model needs for a frame."""
+        """(ready, stale) of the environment inputs the model needs for a frame.
+
+        Ready once every input of :attr:`requires` (the consider parameters' too) covers
+        the frame, or after ``environment_wait_s``; stale when one of the *model's*
+        (:attr:`model_requires`) still does not then.  A frame that waits longer for a
+        consider parameter's input is released no earlier than without it, and only ever
+        by the same timeout when the model's input is missing: the count is the one a
+        run of the model alone makes.
+        """
         if not self.requires:
             return True, False
-        need = []
-        if "head_temperature" in self.requires:
-            need.append(self.env["head"])
-        if "weather" in self.requires:
-            need += [self.env["air"], self.env["pressure"]]
-        waiting = [s for s in need if not s.covers(stamp_ns)]
-        site_missing = "site" in self.requires and self.site is None
-        if not waiting and not site_missing:
+        if not self._env_missing(stamp_ns, self.requires):
             return True, False
         if final or self.imu_max_ns - self.window_ns >= stamp_ns + self.env_wait_ns:
-            return True, True
+            return True, self._env_missing(stamp_ns, self.model_requires)
         return False, False
+
+    def _env_missing(self, stamp_ns: int, requires: set[str]) -> bool:
+        """Whether an input of ``requires`` does not cover ``stamp_ns`` yet."""
+        need = []
+        if "head_temperature" in requires:
+            need.append(self.env["head"])
+        if "weather" in requires:
+            need += [self.env["air"], self.env["pressure"]]
+        return any(not s.covers(stamp_ns) for s in need) or \
+            ("site" in requires and self.site is None)
 
     def _pump(self, final: bool = False) -> list[FrameOutcome]:
         """Release what the data clock allows and process the frames that are ready."""
