@@ -84,12 +84,23 @@ def _events_from_data(data: BagData):
         s = data.site
         out.append((data.t0_ns, -1, "fix", (data.t0_ns, s.latitude_deg, s.longitude_deg,
                                              s.height_m, 0)))
+    # an environment sample goes before the IMU block its stamp falls in: a bag read in log
+    # order has it by the time the IMU reaches it, which is when the driver releases a frame
+    # (the look-ahead holds frames REPLAY_LOOKAHEAD_S of IMU longer).  Keyed by its own stamp
+    # it came after the whole block, and a frame in the block's last second, whose next
+    # temperature lies in the next block, went with a stale temperature (env_stale 12 on a
+    # 300 s bag; a thermal model's estimates moved by up to 1.3 sigma against the file's)
+    block_t0 = np.asarray(stamps, dtype=np.int64)[starts] if len(stamps) else \
+        np.zeros(0, np.int64)
     for key, series in (("head", data.head_temperature), ("air", data.air_temperature),
                         ("pressure", data.pressure)):
         if series is not None:
-            for t, v in zip(np.asarray(series.stamp_ns).tolist(),
-                            np.asarray(series.value).tolist(), strict=True):
-                out.append((int(t), -1, key, (int(t), v)))
+            st = np.asarray(series.stamp_ns, dtype=np.int64)
+            j = np.searchsorted(block_t0, st, side="right") - 1
+            keys = np.where(j >= 0, block_t0[np.maximum(j, 0)], st) if len(block_t0) else st
+            for k, t, v in zip(keys.tolist(), st.tolist(), np.asarray(series.value).tolist(),
+                               strict=True):
+                out.append((int(k), -1, key, (int(t), v)))
     out.sort(key=lambda e: (e[0], e[1]))
     for _, _, role, payload in out:
         yield role, payload
