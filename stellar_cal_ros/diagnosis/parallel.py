@@ -17,14 +17,18 @@ Executors
     in this process until a batch of runs would take at least :data:`CLUSTER_PAYS_S`
     CPU seconds one after the other (the batch's runs × the mean CPU time of the runs made
     so far here), then a local cluster of one worker per core (at most 16) for that batch
-    and every later one.  A cluster costs each command ~15 CPU-s (its processes' start,
-    and each worker importing the package, loading the compiled kernels and reading the
-    bag: measured, doc/benchmarks.md) and several seconds of wall time before its first
-    run ends; a round of a few short runs (a ``diagnose`` near the model, a 2-h round's
-    noise runs) is done sooner in this process.  On a machine of at most
-    :data:`IN_PROCESS_CORES` cores: in this process (two workers and the parent share two
-    cores: measured, a round of ten re-runs gains at most 1.1-1.4x on idle cores for
-    +70 % CPU and +700 MB, and loses wall time beside any other job).
+    and every later one.  The workers are forked from this process where the platform
+    can (:func:`start_method`: Linux): they start holding its imports, its loaded compiled
+    kernels and the bag, ready in 0.9-1.8 s for 0.1-0.2 CPU-s on 2 cores; spawned, each
+    imports the package, loads the kernels and reads the bag (13-18 s and 2.5-2.9 CPU-s
+    at the same load: measured, doc/benchmarks.md), and the rule asks for
+    :data:`CLUSTER_PAYS_SPAWNED_S`.  Besides the start, Dask's scheduler and client take
+    the parent's CPU while it waits, and runs side by side take more CPU each; a round of
+    a few short runs (a ``diagnose`` near the model) is done sooner in this process.  On
+    a machine of at most :data:`IN_PROCESS_CORES` cores: in this process (two workers
+    and the parent share two cores: measured, a round of ten re-runs gains at most
+    1.1-1.4x on idle cores for +70 % CPU and +700 MB, and loses wall time beside any
+    other job).
 ``scheduler=ADDRESS``
     an existing Dask cluster (``tcp://host:8786``): the user's cluster, its workers as
     they are.
@@ -32,7 +36,8 @@ Executors
 How the bag reaches the workers
 -------------------------------
 A bag given by path is sent as the path: each worker reads it once and caches it (a
-worker process keeps one bag).  The parent first asks every worker for the file's size;
+worker process keeps one bag; forked local workers start with it, read once by the parent
+before the fork).  The parent first asks every worker for the file's size;
 when a worker cannot see the file (no shared filesystem) the bag's *bytes* are scattered
 to all workers once (``Client.scatter(broadcast=True)``) and each worker parses its copy —
 the parent never pickles a parsed bag.  A bag already in memory
@@ -74,8 +79,15 @@ MAX_DEFAULT_WORKERS = 16
 #: 2 cores, doc/benchmarks.md "the second worker's start, the critical path")
 IN_PROCESS_CORES = 2
 #: ``workers=None``: a batch of runs goes to a (then started) local cluster when it would
-#: take at least this many CPU seconds in this process (see the module's doc)
-CLUSTER_PAYS_S = 20.0
+#: take at least this many CPU seconds in this process (see the module's doc).  A batch of
+#: C CPU-s gains wall time on N workers when C > S / (1 - k/N), S the cluster's start (wall
+#: until every worker holds the bag) and k the runs' CPU on N busy workers against here.
+#: Measured on 2 cores (doc/benchmarks.md "forked workers"): forked workers S 0.9-1.8 s, k
+#: 1.1-1.6 (load 10-18; 1.17-1.36 at lower load): C* <= 8.6 s on 2 workers, ~3 s on 4
+CLUSTER_PAYS_S = 10.0
+#: :data:`CLUSTER_PAYS_S` where the workers are spawned (no ``fork``: macOS, Windows):
+#: each imports the package, loads the kernels and reads the bag, S ~5 s on idle cores
+CLUSTER_PAYS_SPAWNED_S = 20.0
 #: Dask priority of :meth:`Runs.on_bag` (a run's is 100 × its cost): a small statistic of
 #: the bag that the diagnosis waits for goes before the runs queued ahead of need
 ON_BAG_PRIORITY = 1_000_000
@@ -140,6 +152,24 @@ def _on_bag(bag: BagRef, fn: Callable[..., Any], *args: Any) -> Any:
 def _run(key: str, batch: int, bag: BagRef, fn: Callable[..., Any], *args: Any) -> Any:
     """``fn(bag, *args)`` where it runs (a worker, or here): on the timeline when it is on."""
     return timeline.traced(key, batch, bag, fn, *args)
+
+
+def start_method() -> str:
+    """How the local cluster's worker processes start: ``fork`` where the platform has it.
+
+    A forked worker starts with this process's imports, its loaded compiled kernels and the
+    bag it holds (:func:`~stellar_cal_ros.diagnosis.runstats.load_bag`); a spawned one
+    imports the package, loads the kernels and reads the bag itself.  Measured on 2 cores
+    (``benchmarks/cluster_start.py``, doc/benchmarks.md): two workers ready in 0.9-1.8 s
+    and 0.1-0.2 CPU-s forked, 13-18 s and 2.5-2.9 CPU-s spawned.  ``fork`` is Linux's
+    (macOS and Windows spawn: forking there is unsafe or missing).
+    """
+    import multiprocessing
+    import sys
+
+    if sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods():
+        return "fork"
+    return "spawn"
 
 
 def _file_size(path: str) -> int:
@@ -362,18 +392,24 @@ class DaskRuns(Runs):
             n = workers or min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
             timeline.write({"kind": "cluster", "time": time.time(),
                             "cpu": time.process_time()})
+            method = start_method()
+            if method == "fork" and isinstance(self.bag, str):
+                from stellar_cal_ros.diagnosis.runstats import load_bag
+
+                load_bag(self.bag)  # read once here: every worker is forked holding it
             # no statistical profiler in the workers: it samples the running filter's stack
             # every 10 ms of *wall* time, for a dashboard nobody opens here
-            with dask.config.set({"distributed.worker.profile.enabled": False}):
+            with dask.config.set({"distributed.worker.profile.enabled": False,
+                                  "distributed.worker.multiprocessing-method": method}):
                 self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                             dashboard_address=":0",
                                             silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
+            forget_bags()  # the workers hold the bag from now on
             self.description = f"on {n} local worker processes"
             if self._cpu[0]:
                 n = self._cpu[0]
                 self.description += f" (after {n} run{'s' * (n > 1)} in this process)"
-                forget_bags()  # the workers hold the bag from now on
         self.workers = max(len(self.client.scheduler_info()["workers"]), 1)
         self.remote_bag = self._place_bag()
 
@@ -390,9 +426,13 @@ class DaskRuns(Runs):
         return self.client.scatter(bag, broadcast=True, hash=False)
 
     def pays(self, tasks: list[Task]) -> bool:
-        """Whether ``tasks`` would take :data:`CLUSTER_PAYS_S` CPU-s here (lazy mode)."""
+        """Whether ``tasks`` would take :data:`CLUSTER_PAYS_S` CPU-s here (lazy mode).
+
+        :data:`CLUSTER_PAYS_SPAWNED_S` where the workers are spawned (:func:`start_method`).
+        """
         n, cpu = self._cpu
-        return len(tasks) > 1 and n > 0 and len(tasks) * cpu / n >= CLUSTER_PAYS_S
+        least = CLUSTER_PAYS_S if start_method() == "fork" else CLUSTER_PAYS_SPAWNED_S
+        return len(tasks) > 1 and n > 0 and len(tasks) * cpu / n >= least
 
     def facts(self) -> dict[str, Any]:  # noqa: D102
         if self.client is None:
