@@ -255,3 +255,32 @@ def test_imu_merges_across_environment_messages_only_when_nothing_reads_them(bag
               for r, p in replay_mod._merged_imu(stream, across, 30.0)]
     assert merged == [("imu", 9), ("stars", "F1"), ("head", (5, 20.0)),
                       ("fix", (6, 1.0, 2.0, 3.0, 0)), ("stars", "F2")]
+
+
+@pytest.mark.parametrize("fmt", ["mcap", *FORMATS])
+def test_read_whole_is_each_topics_read_in_one_pass(bags, fmt: str) -> None:
+    """``BagReader.read_whole`` (what ``read_bag_data`` reads through) gives what the
+    ``read_*`` methods give topic by topic — values, dtypes, frame ids — reading the bag's
+    chunks once, not once a topic; a conversion of the star messages sees them in order
+    and drops its None; a topic of another type is refused as ``read_imu`` refuses it."""
+    from bag_checks import SCALARS
+
+    topics = {"stars": ("/star_tracker/stars", "stars"), "imu": ("/imu/data", "imu"),
+              "fix": ("/gnss/fix", "fix"), **{k: (t, "scalar") for k, t in SCALARS.items()}}
+    want = read_all(BagReader(bags[fmt]))
+    with BagReader(bags[fmt]) as r:
+        passes = []
+        rows = r._rows
+        r._rows = lambda want_, what: passes.append(what) or rows(want_, what)
+        got = r.read_whole(topics)
+        seen: list = []
+        half = r.read_whole({"stars": topics["stars"]},  # every other frame, in order
+                            convert={"stars": lambda f: seen.append(f) or
+                                     (f if len(seen) % 2 else None)})
+    assert len(passes) == 2
+    assert list(got) == list(topics)
+    bad = [k for k in topics if not _same(got[k], want[k])]
+    assert not bad and len(got["stars"]) > 100 and len(got["imu"].stamp_ns) > 10_000, bad
+    assert _same(seen, want["stars"]) and _same(half["stars"], want["stars"][0::2])
+    with BagReader(bags[fmt]) as r, pytest.raises(BagError, match="expected sensor_msgs/msg/Imu"):
+        r.read_whole({"imu": ("/gnss/fix", "imu")})

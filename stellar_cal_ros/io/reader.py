@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 import struct
 import warnings
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -515,6 +515,66 @@ class BagReader:
         """
         parts, dec = self._read_topic(topic, "scalar")
         return dec.build(concat(parts) if parts else None)
+
+    def read_whole(self, topics: Mapping[str, tuple[str, str]],
+                   convert: Mapping[str, Callable[[Any], Any]] | None = None
+                   ) -> dict[str, Any]:
+        """Several topics read whole in one pass over the bag (each chunk read once).
+
+        What one ``read_*`` call a topic gives, without decompressing and checking every
+        chunk once per topic.
+
+        Parameters
+        ----------
+        topics : mapping of str to (str, str)
+            Role -> ``(topic, kind)``, the kind a key of :data:`kinds.EXPECTED` (``imu``,
+            ``stars``, ``fix``, ``scalar``, ``image``, ``camera_info``).  A topic missing
+            or of another type raises :class:`BagError` as the ``read_*`` of its kind does
+            (checked in the mapping's order, before anything is read).
+        convert : mapping of str to callable, optional
+            Role -> a function applied to each message of a per-message kind as it is read
+            (a None result is left out): memory then holds a chunk of those messages, not
+            the topic's (star images made into frames).
+
+        Returns
+        -------
+        dict of str to object
+            Role -> what :meth:`read_imu`, :meth:`read_star_frames`, :meth:`read_navsat`,
+            :meth:`read_scalar`, ``list(iter_images(...))`` or ``list(iter_camera_info(...))``
+            return for its topic (each message converted when ``convert`` says so).
+
+        Raises
+        ------
+        BagError, MessageDecodeError
+            As those methods (``on_error="raise"``).
+        """
+        roles = list(topics)
+        decoders = [self._decoder(topic, kind) for topic, kind in topics.values()]
+        if not decoders:
+            return {}
+        convert = convert or {}
+        counter: dict[str, list[Any]] = {}
+        parts: dict[str, list[Any]] = {role: [] for role in roles}
+        what = ", ".join(dict.fromkeys(topic for topic, _ in topics.values()))
+        for rows, _ in releases(self._decoded(decoders, counter, what), len(decoders)):
+            for role, dec, d in zip(roles, decoders, rows, strict=True):
+                if d is None:
+                    continue
+                if dec.kind not in kinds.PER_MESSAGE:
+                    d.pop("seq", None)
+                    parts[role].append(d)
+                elif role in convert:
+                    parts[role].extend(o for o in map(convert[role], d["obj"]) if o is not None)
+                else:
+                    parts[role].extend(d["obj"])
+        out: dict[str, Any] = {}
+        for role, dec in zip(roles, decoders, strict=True):
+            got = parts[role]
+            out[role] = got if dec.kind in kinds.PER_MESSAGE else \
+                dec.build(concat(got) if got else None)
+            dec.warn_frames()
+        self._report_skipped(counter)
+        return out
 
     # -- one pass over every topic ---------------------------------------------------------
 

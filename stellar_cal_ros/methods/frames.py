@@ -318,15 +318,20 @@ class ImageFrames:
         return frame
 
 
+#: the reader's kind of each series role (the environment's: ``scalar``)
+_SERIES_KIND = {"imu": "imu", "fix": "fix"}
+
+
 def read_inputs(reader: BagReader, names: Mapping[str, str], roles: list[str],
                 where: str = "", available: Mapping[str, TopicInfo] | None = None
                 ) -> tuple[dict[str, Any], list[StarFrame], ImageFrames | None]:
     """A bag's star frames and the whole series of ``roles`` (those the bag has).
 
     The frames are its centroid messages, or its images made into frames one at a time
-    (:class:`ImageFrames`; memory holds a chunk of images, never the bag's).  A bag of
-    images is read in one pass: an image chunk also holds IMU, fix and temperature
-    messages, which topic by topic would decompress every image chunk once per topic.
+    (:class:`ImageFrames`; memory holds a chunk of images, never the bag's).  Every
+    topic is read in one pass (:meth:`BagReader.read_whole`): a chunk holds messages of
+    every topic, which topic by topic would be decompressed and checked once per topic
+    (six passes over a contract bag of centroids).
 
     Returns
     -------
@@ -343,20 +348,16 @@ def read_inputs(reader: BagReader, names: Mapping[str, str], roles: list[str],
     if star_role is None:
         raise BagError(missing_stars_text(where, names, available))
     want = [k for k in roles if names.get(k) in available]
-    blocks: dict[str, list[Any]] = {}
-    images = None
-    if star_role == "image":
-        images = ImageFrames(where=where)
-        blocks = _one_pass(reader, {k: names[k] for k in [*want, "image"]}, images)
-        frames = blocks.pop("image")
-        if images.bad:
-            log.warning("%s: %d of %d images skipped (unusable content)", where, images.bad,
-                        images.received)
-    else:
-        frames = reader.read_star_frames(names["stars"])
-    read = {"imu": reader.read_imu, "fix": reader.read_navsat}
-    series = {k: (type(blocks[k][0]).concatenate(blocks[k]) if blocks.get(k)
-                  else read.get(k, reader.read_scalar)(names[k])) for k in want}
+    images = ImageFrames(where=where) if star_role == "image" else None
+    # one pass over the bag for every topic (each chunk decompressed and checked once);
+    # the star topic first, as its errors were said first
+    topics = {star_role: (names[star_role], star_role)}
+    topics.update({k: (names[k], _SERIES_KIND.get(k, "scalar")) for k in want})
+    series = reader.read_whole(topics, convert=None if images is None else {"image": images})
+    frames = series.pop(star_role)
+    if images is not None and images.bad:
+        log.warning("%s: %d of %d images skipped (unusable content)", where, images.bad,
+                    images.received)
     return series, frames, images
 
 
@@ -695,19 +696,6 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
         pressure=scalars["pressure"], read_seconds=time.perf_counter() - t_start,
         imu_dropped=dropped, nominal_dt=nominal_dt, source=str(path),
         images_bad=images.bad if images is not None else 0)
-
-
-def _one_pass(reader: BagReader, topics: dict[str, str], images: ImageFrames
-              ) -> dict[str, list[Any]]:
-    """Every role's blocks in one pass over the bag, the images made into star frames."""
-    out: dict[str, list[Any]] = {role: [] for role in topics}
-    for role, block in reader.stream(topics, imu_block=1 << 20):
-        if role == "image":
-            block = images(block)
-            if block is None:
-                continue
-        out[role].append(block)
-    return out
 
 
 def bag_data_from_simulation(result: Any) -> BagData:
