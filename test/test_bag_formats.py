@@ -148,18 +148,26 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
     a float: the history CSV byte for byte and every number of the result as with the
     blocks as read (``IMU_MERGE_S`` 0: no merge).  A run that reads no environment or fix
     message (``_env_unread``: this psce replay) merges across those too, fewer calls still,
-    the same bytes."""
+    and hands them on a release's rows a call (``push_scalars``, ``push_fixes``): the same
+    bytes."""
     from stellar_cal_ros.methods import driver
     from stellar_cal_ros.methods import replay as replay_mod
 
     calls: list[int] = []
-    original = driver.Calibrator.push_imu_block
+    each: list[dict[str, int]] = []
 
-    def counted(self, *a, **k):
-        calls[-1] += 1
-        return original(self, *a, **k)
+    def counted(name):
+        original = getattr(driver.Calibrator, name)
 
-    monkeypatch.setattr(driver.Calibrator, "push_imu_block", counted)
+        def call(self, *a, **k):
+            if name == "push_imu_block":
+                calls[-1] += 1
+            each[-1][name] = each[-1].get(name, 0) + 1
+            return original(self, *a, **k)
+        return call
+
+    for name in ("push_imu_block", "push_scalar", "push_fix", "push_scalars", "push_fixes"):
+        monkeypatch.setattr(driver.Calibrator, name, counted(name))
     merge, quiet = replay_mod.IMU_MERGE_S, replay_mod.IMU_MERGE_QUIET_S
     unread = replay_mod._env_unread
     out = []
@@ -170,9 +178,16 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
         monkeypatch.setattr(replay_mod, "_env_unread",
                             unread if across_env else lambda cal: False)
         calls.append(0)
+        each.append({})
         numbers = _replay(bags["mcap"], tmp_path / f"merge{len(calls)}.yaml")
         out.append((numbers, (tmp_path / f"merge{len(calls)}.history.csv").read_bytes()))
     assert 0 < calls[2] < 0.2 * calls[1] and 0 < calls[1] < 0.5 * calls[0], calls
+    scalars, fixes = each[0]["push_scalar"], each[0]["push_fix"]
+    assert scalars > 300 and fixes > 100 and each[1] == each[0] | {"push_imu_block": calls[1]}
+    # the bulk calls: a release's rows of a role (the first fixes before the filter starts
+    # go one at a time: each may start it)
+    assert "push_scalar" not in each[2] and each[2].get("push_fix", 0) < 0.2 * fixes, each
+    assert 0 < each[2]["push_scalars"] < 0.2 * scalars and 0 < each[2]["push_fixes"], each
     assert out[1][0] == out[0][0] == out[2][0] and len(out[0][0]) > 50
     assert out[1][1] == out[0][1] == out[2][1] and out[0][1].count(b"\n") > 100
 

@@ -403,3 +403,56 @@ def test_imu_blocks_handed_over_are_queued_without_a_copy_others_are_copied(exce
         if not owned:
             w[:] = 9.0
         assert np.array_equal(cal._imu.w, np.full((5, 3), 0.01))
+
+
+def test_bulk_environment_and_fix_pushes_are_those_one_at_a_time(excerpt):
+    """``push_scalars`` / ``push_fixes`` (a replay's release of rows in one call) leave the
+    driver as ``push_scalar`` / ``push_fix`` of each in their order do — counts, each series
+    (values, order, interpolation origin), the site, what comes back — in bulk when none of
+    them could pump, one at a time when one could (fixes before the filter starts; a thermal
+    effect's frames wait for the head temperature)."""
+    _, prior, _, events = excerpt
+    rng = np.random.default_rng(3)
+    t = events[2999][0]
+    s = 10**9
+    batches = [  # (kind, stamps, values): in order with a NaN and a stamp 0; in order after
+        # the held ones; out of order (the one-at-a-time insertion); empty
+        ("head", [t - 5 * s, t - 4 * s, 0, t - 2 * s], [20.0, np.nan, 21.0, 22.0]),
+        ("air", [t + s, t + 2 * s], [3.0, 4.0]),
+        ("head", [t + 3 * s, t + 4 * s], [23.0, 24.0]),
+        ("head", [t + 6 * s, t - 3 * s, t + 5 * s], [26.0, 21.5, np.inf]),
+        ("pressure", [], [])]
+    lat, lon, alt = rng.normal([45.0, 7.0, 100.0], [1e-3, 1e-3, 5.0], (6, 3)).T
+    lat[2] = np.nan
+    fixes = (np.arange(6) * s + t, lat, lon, alt, np.array([0, 0, 0, -1, 0, 2]))
+    for effects, started in ((None, True), (None, False), (["thermal_focal_length"], True)):
+        one, bulk = make(prior, effects=effects), make(prior, effects=effects)
+        if started:
+            feed(one, events[:3000])
+            feed(bulk, events[:3000])
+        quiet = started and effects is None
+        if quiet:  # nothing could pump: the bulk calls never take the one-at-a-time path
+            bulk.push_scalar = bulk.push_fix = lambda *a: pytest.fail("not in bulk")
+        before = dataclasses.asdict(one.counters)
+        held = len(one.env["head"].stamp_ns)
+        got, want = [], []
+        for kind, st, v in batches:
+            want += [o for a in zip(st, v, strict=True) for o in one.push_scalar(kind, *a)]
+            got += bulk.push_scalars(kind, np.array(st, dtype=np.int64), np.array(v))
+        want += [o for row in zip(*(np.asarray(a).tolist() for a in fixes), strict=True)
+                 for o in one.push_fix(*row)]
+        got += bulk.push_fixes(*fixes)
+        assert got == want
+        assert dataclasses.asdict(bulk.counters) == dataclasses.asdict(one.counters)
+        after = dataclasses.asdict(one.counters)
+        assert [after[k] - before[k] for k in ("env_received", "env_invalid", "fixes_received",
+                                               "fixes_invalid")] == [11, 3, 6, 2]
+        for kind in ("head", "air", "pressure"):
+            a, b = one.env[kind], bulk.env[kind]
+            assert (b.stamp_ns, b.value, b.ref_ns) == (a.stamp_ns, a.value, a.ref_ns), kind
+            assert all(type(x) is int for x in b.stamp_ns) and \
+                all(type(x) is float for x in b.value)
+        assert len(one.env["head"].stamp_ns) == held + 6
+        assert started or one.env["head"].ref_ns == t - 5 * s
+        assert bulk.sites.stamp_ns == one.sites.stamp_ns and bulk.site == one.site
+        assert np.array_equal(bulk.sites.values, one.sites.values)

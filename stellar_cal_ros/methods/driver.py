@@ -397,6 +397,49 @@ class Calibrator(ImuRelease):
             return self._pump()
         return []
 
+    def push_scalars(self, kind: str, stamp_ns, values) -> list[FrameOutcome]:
+        """Several temperatures or pressures of one ``kind``, in their order.
+
+        What :meth:`push_scalar` does for each (counts, the series), in bulk when none of
+        them could pump (the model needs no input: a frame never waits for them).
+        """
+        if kind not in self.env:
+            raise ValueError(f"unknown scalar input {kind!r} (one of {ENV_KEYS})")
+        if self.requires:  # each may release a frame waiting for it: one at a time
+            out: list[FrameOutcome] = []
+            for t, v in zip(np.asarray(stamp_ns).tolist(), np.asarray(values).tolist(),
+                            strict=True):
+                out += self.push_scalar(kind, t, v)
+            return out
+        s = np.asarray(stamp_ns, dtype=np.int64).reshape(-1)
+        v = np.asarray(values, dtype=float).reshape(-1)
+        if len(s) != len(v):
+            raise ValueError(f"{len(s)} stamps and {len(v)} values")
+        ok = (s > 0) & np.isfinite(v)
+        self.counters.env_received += len(s)
+        self.counters.env_invalid += int(len(s) - np.count_nonzero(ok))
+        self.env[kind].extend(s[ok], v[ok])
+        return []
+
+    def push_fixes(self, stamp_ns, latitude_deg, longitude_deg, altitude_m, status
+                   ) -> list[FrameOutcome]:
+        """Several ``NavSatFix`` in their order: what :meth:`push_fix` does for each.
+
+        In bulk once the filter runs and its model needs no site (then none of them pumps).
+        """
+        if self.filter is None or "site" in self.requires:
+            out: list[FrameOutcome] = []
+            for row in zip(np.asarray(stamp_ns).tolist(), np.asarray(latitude_deg).tolist(),
+                           np.asarray(longitude_deg).tolist(), np.asarray(altitude_m).tolist(),
+                           np.asarray(status).tolist(), strict=True):
+                out += self.push_fix(*row)
+            return out
+        n = len(stamp_ns)
+        self.counters.fixes_received += n
+        self.counters.fixes_invalid += self.sites.add_many(stamp_ns, latitude_deg,
+                                                           longitude_deg, altitude_m, status)
+        return []
+
     def run_checks(self) -> None:
         """Run the checks :attr:`DriverConfig.defer_checks` left due.
 

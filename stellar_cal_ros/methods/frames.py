@@ -435,6 +435,28 @@ class EnvSeries:
         self.stamp_ns.insert(i, stamp_ns)
         self.value.insert(i, value)
 
+    def extend(self, stamp_ns: np.ndarray, value: np.ndarray) -> None:
+        """Insert samples in their order: what :meth:`add` of each does.
+
+        In bulk when they come in stamp order after the held ones (the usual case).
+        """
+        s = np.asarray(stamp_ns, dtype=np.int64)
+        if not len(s):
+            return
+        if (self.stamp_ns and int(s[0]) < self.stamp_ns[-1]) or bool(np.any(s[1:] < s[:-1])):
+            for t, v in zip(s.tolist(), np.asarray(value).tolist(), strict=True):
+                self.add(t, v)
+            return
+        v = np.asarray(value, dtype=float)
+        fin = np.isfinite(v)
+        if fin.any():
+            first = int(s[fin].min())
+            if self.ref_ns is None or first < self.ref_ns:
+                self.ref_ns = first
+        self.version += len(s)
+        self.stamp_ns.extend(s.tolist())
+        self.value.extend(v.tolist())
+
     def restore(self, stamp_ns: list[int], value: list[float], ref_ns: int | None) -> None:
         """Replace the samples (checkpoint load)."""
         self.version += 1

@@ -112,11 +112,12 @@ def _events_from_reader(reader: BagReader, topics: dict[str, str], env_unread: b
     ``env_unread``: nothing the run computes reads the environment and fix messages
     (:func:`_env_unread`); the IMU blocks then merge across them too.
     """
-    across, limit = (ENV_ROLES | {"stars"}, IMU_MERGE_QUIET_S) if env_unread else \
-        (frozenset({"stars"}), None)
+    across, limit = (ENV_ROLES | _ROWS_ROLES | {"stars"}, IMU_MERGE_QUIET_S) if env_unread \
+        else (frozenset({"stars"}), None)
     releases = getattr(reader, "stream_releases", None)
     if releases is not None:
-        yield from _merge_items(_release_items(releases(topics=topics)), across, limit)
+        yield from _merge_items(_release_items(releases(topics=topics), rows=env_unread),
+                                across, limit)
         return
     stream = getattr(reader, "stream", None)
     if stream is not None:
@@ -205,14 +206,20 @@ def _block_items(blocks):
             yield "imu", _imu_payload(block)
 
 
-def _release_items(releases, imu_block: int = IMU_BLOCK):
+def _release_items(releases, imu_block: int = IMU_BLOCK, rows: bool = False):
     """:func:`_merge_items`' items of :meth:`BagReader.stream_releases`.
 
     The same as :func:`_block_items` of :meth:`BagReader.stream`'s blocks (an IMU run cut
-    every ``imu_block`` samples), without a block object a run.
+    every ``imu_block`` samples), without a block object a run.  ``rows``: the
+    environment and fix messages of a release go as one event a role (``scalars``:
+    ``(role, stamps, values)``; ``fixes``: ``(stamps, lat, lon, alt, status)``; the
+    driver's bulk calls) where the role's last one of the release was — for a run that
+    reads none of them (:func:`_env_unread`), whose quiet merge hands them on after the
+    IMU logged around them anyway.
     """
     for roles, blocks, order in releases:
         events: list = [None] * len(roles)
+        last: list = [None] * len(roles)  # rows: a role's rows in the release, else None
         for r, (role, block) in enumerate(zip(roles, blocks, strict=True)):
             if block is None:
                 continue
@@ -221,6 +228,9 @@ def _release_items(releases, imu_block: int = IMU_BLOCK):
                 st = t.tolist()
                 arrays = (t, block.angular_velocity, block.linear_acceleration)
                 frame = block.frame_id
+            elif rows and role in ENV_ROLES:
+                last[r] = len(block.stamp_ns)
+                events[r] = _rows_event(role, block)
             else:
                 events[r] = block if role in _ONE_A_MESSAGE else _row_events(role, block)
         for r, a, b in runs(order):
@@ -229,10 +239,25 @@ def _release_items(releases, imu_block: int = IMU_BLOCK):
                 for c in range(a, b, imu_block):
                     d = min(c + imu_block, b)
                     yield _PIECE, (st[c], st[d - 1], frame, arrays, c, d)
+            elif last[r] is not None:
+                if b == last[r]:
+                    yield events[r]
             else:
                 ev = events[r]
                 for i in range(a, b):
                     yield role, ev[i]
+
+
+#: the event roles of a release's environment and fix messages in bulk (:func:`_release_items`)
+_ROWS_ROLES = frozenset({"scalars", "fixes"})
+
+
+def _rows_event(role: str, block) -> tuple:
+    """The bulk event of a series block's messages (:func:`_release_items`' ``rows``)."""
+    if role == "fix":
+        return "fixes", (block.stamp_ns, block.latitude_deg, block.longitude_deg,
+                         block.altitude_m, block.status)
+    return "scalars", (role, block.stamp_ns, block.value)
 
 
 def _merge_items(items, across=frozenset({"stars"}), limit_s: float | None = None):
@@ -348,6 +373,8 @@ def _handlers(cal: Calibrator) -> dict[str, Any]:
         "image": cal.push_image,  # star images: made into frames one at a time (frames.py)
         "camera_info": cal.images.camera_info,
         "fix": lambda p: cal.push_fix(*p),
+        "scalars": lambda p: cal.push_scalars(*p),
+        "fixes": lambda p: cal.push_fixes(*p),
     }
     for key in ("head", "air", "pressure"):
         out[key] = functools.partial(_push_scalar, cal.push_scalar, key)
