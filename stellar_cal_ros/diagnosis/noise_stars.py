@@ -204,7 +204,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     (:attr:`StarNoise.structure_flip_p`) is drawn where their χ²'s p is below
     :data:`ALPHA`, or always with ``flips``.
     """
-    from stellar_cal_ros.diagnosis.stats import rolling_columns, within_frame
+    from stellar_cal_ros.diagnosis.stats import FrameFit, rolling_columns
 
     ok = mask & ~np.asarray(res["gated"]).astype(bool) & np.isfinite(sigma_px) \
         & (sigma_px > 0) & np.isfinite(np.asarray(res["du"], dtype=float))
@@ -212,7 +212,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     if len(idx) == 0:
         return None
     sub = {k: np.asarray(res[k])[idx] for k in ("frame", "du", "dv", "x_st", "y_st", "z_st")}
-    r, lev, n_frames = within_frame(sub, sigma_px[idx], fx, fy)
+    fit = FrameFit(sub, sigma_px[idx], fx, fy)  # (the frames' fit, for every column below)
+    r, lev, n_frames = fit.residual(sub["du"], sub["dv"]), fit.leverage, fit.frames
     uv = np.stack([np.asarray(res["u"], dtype=float)[idx], np.asarray(res["v"],
                                                                     dtype=float)[idx]], 1)
     # structure is not noise: a residual field that repeats from frame to frame (a missing
@@ -230,7 +231,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     # structure, not a σ growing with the row nor noise correlated along the tracks)
     def projected(c: np.ndarray) -> np.ndarray:
         """Columns ``c`` (n, 2) in px through the frames' attitude fit, whitened as ``r``."""
-        return within_frame(dict(sub, du=c[:, 0], dv=c[:, 1]), sigma_px[idx], fx, fy)[0]
+        return fit.residual(c[:, 0], c[:, 1])
 
     x = rolling_columns({k: np.asarray(res[k])[idx] for k in res}, (fx, fy), centre, R_imu_st)
     if x is not None:

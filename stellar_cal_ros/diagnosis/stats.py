@@ -193,32 +193,69 @@ def within_frame(res: Table, sigma: np.ndarray, fx: float, fy: float
     :func:`attitude_columns` over σ: what no attitude error (hence no gyro noise, no
     installation or timing error that rotates the whole frame) can produce — centroid noise
     and the structure of the camera side.  Returns ``(r (n, 2), leverage (n,), frames)``;
-    rows of smaller frames are NaN, leverage 2.
+    rows of smaller frames are NaN, leverage 2.  (:class:`FrameFit` of the table applied to
+    its ``du, dv``; a caller projecting several columns through the same frames makes the
+    :class:`FrameFit` once.)
     """
-    n = len(sigma)
-    J = attitude_columns(res, fx, fy)
-    y = np.stack([np.asarray(res["du"], dtype=float),
-                  np.asarray(res["dv"], dtype=float)], 1) / sigma[:, None]
-    A = J / sigma[:, None, None]
-    r = np.full((n, 2), np.nan)
-    lev = np.full(n, 2.0)
-    frames = np.asarray(res["frame"])
-    order = np.argsort(frames, kind="stable")
-    cuts = np.flatnonzero(np.diff(frames[order])) + 1
-    used = 0
-    for part in np.split(order, cuts):
-        if len(part) < 3:
-            continue
-        Ak = A[part].reshape(-1, 3)
-        yk = y[part].reshape(-1)
-        try:
-            Gi = np.linalg.inv(Ak.T @ Ak)
-        except np.linalg.LinAlgError:
-            continue
-        r[part] = (yk - Ak @ (Gi @ (Ak.T @ yk))).reshape(-1, 2)
-        lev[part] = np.einsum("ij,jk,ik->i", Ak, Gi, Ak).reshape(-1, 2).sum(1)
-        used += 1
-    return r, lev, used
+    fit = FrameFit(res, sigma, fx, fy)
+    return fit.residual(res["du"], res["dv"]), fit.leverage, fit.frames
+
+
+class FrameFit:
+    """The frames' attitude fit of :func:`within_frame`, made once for any columns.
+
+    The stars' whitened :func:`attitude_columns` ``A``, frame by frame, and ``(AᵀA)⁻¹``:
+    :meth:`residual` gives ``(I − A (AᵀA)⁻¹ Aᵀ) y/σ`` of any ``(du, dv)`` over the same
+    rows.  The frames of one star count are stacked and computed in one call each (the same
+    per-frame products and inverses as a loop over the frames).
+    """
+
+    def __init__(self, res: Table, sigma: np.ndarray, fx: float, fy: float) -> None:
+        self.n = n = len(sigma)
+        self.sigma = sigma
+        A = attitude_columns(res, fx, fy) / sigma[:, None, None]
+        frames = np.asarray(res["frame"])
+        order = np.argsort(frames, kind="stable")
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(frames[order])) + 1])
+        sizes = np.diff(np.concatenate([starts, [n]])) if n else np.zeros(0, int)
+        self.leverage = np.full(n, 2.0)
+        #: per star count: ``(rows (k, s), A (k, 2s, 3), (AᵀA)⁻¹ (k, 3, 3))``
+        self.groups: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        used = 0
+        for s in np.unique(sizes[sizes >= 3]) if n else ():
+            rows = order[starts[sizes == s][:, None] + np.arange(s)]
+            Ak = A[rows].reshape(len(rows), 2 * s, 3)
+            G = np.matmul(Ak.transpose(0, 2, 1), Ak)
+            try:
+                Gi = np.linalg.inv(G)
+            except np.linalg.LinAlgError:  # the frames one by one: a singular one is left out
+                keep = []
+                Gi = np.zeros_like(G)
+                for i in range(len(rows)):
+                    try:
+                        Gi[i] = np.linalg.inv(G[i])
+                    except np.linalg.LinAlgError:
+                        continue
+                    keep.append(i)
+                rows, Ak, Gi = rows[keep], Ak[keep], Gi[keep]
+            if not len(rows):
+                continue
+            self.leverage[rows] = np.einsum("bij,bjk,bik->bi", Ak, Gi, Ak
+                                            ).reshape(len(rows), s, 2).sum(2)
+            self.groups.append((rows, Ak, Gi))
+            used += len(rows)
+        self.frames = used
+
+    def residual(self, du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+        """``(n, 2)``: ``(du, dv)/σ`` minus each frame's attitude fit (NaN outside the frames)."""
+        y = np.stack([np.asarray(du, dtype=float), np.asarray(dv, dtype=float)], 1) \
+            / self.sigma[:, None]
+        r = np.full((self.n, 2), np.nan)
+        for rows, Ak, Gi in self.groups:
+            yk = y[rows].reshape(len(rows), -1)
+            b = np.matmul(Gi, np.matmul(Ak.transpose(0, 2, 1), yk[:, :, None]))
+            r[rows] = (yk - np.matmul(Ak, b)[:, :, 0]).reshape(len(rows), -1, 2)
+        return r
 
 
 def star_tracks(sub: Table) -> np.ndarray | None:
@@ -587,10 +624,13 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     tr = None if star is None else np.concatenate([star, star])
     u, v = predicted_position(sub, "u"), predicted_position(sub, "v")
 
+    fits: list[FrameFit] = []  # (the frames' fit, made once for every regressor)
+
     def project(xy: np.ndarray) -> np.ndarray:
         """``(n, 2)`` regressor → its part no frame attitude explains, u and v stacked."""
-        r, _, _ = within_frame(dict(sub, du=xy[:, 0] * sigma, dv=xy[:, 1] * sigma), sigma,
-                               *focal)
+        if not fits:
+            fits.append(FrameFit(sub, sigma, *focal))
+        r = fits[0].residual(xy[:, 0] * sigma, xy[:, 1] * sigma)
         return np.concatenate([r[:, 0], r[:, 1]])
 
     def one(name, x: np.ndarray) -> None:
