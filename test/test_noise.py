@@ -1107,3 +1107,30 @@ def test_frame_fit_is_the_per_frame_loop_bit_for_bit():
     fit = FrameFit(res, sigma, fx, fy)
     r1, _, _ = within_frame(dict(res, du=c[:, 0], dv=c[:, 1]), sigma, fx, fy)
     assert np.array_equal(fit.residual(c[:, 0], c[:, 1]), r1, equal_nan=True)
+
+
+def test_used_sigma_joins_the_messages_as_a_dict_filled_in_order():
+    """``noise_stars.used_sigma`` joins the residual rows to the bag's stars on (stamp in µs,
+    catalogue id) with arrays (a dict of 228 000 tuples on the 2-h bag held ≈ 100 MB): a
+    row without its star is NaN, a key twice in the bag takes its last star (a dict's
+    overwrite), a star of another stamp or id does not match."""
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.diagnosis.noise_stars import used_sigma
+
+    def frame(stamp_ns, ids, sig):
+        n = len(ids)
+        return SimpleNamespace(stamp_ns=stamp_ns, catalog_id=np.array(ids, dtype=np.uint32),
+                               sigma=np.array(sig, float), magnitude=np.arange(n) + 3.0,
+                               uv=np.arange(2.0 * n).reshape(n, 2) + 100.0)
+
+    t0 = 1_795_000_000_000_000_000
+    frames = [frame(t0, [5, 7, 9], [0.01, 0.02, 0.03]),
+              frame(t0 + 500_000_000, [7, 7], [0.04, 0.05]),  # id 7 twice: the last counts
+              frame(t0 + 1_000_000_400, [9], [0.0]),  # σ 0: the default
+              frame(t0 + 2_000_000_000, [], [])]
+    res = {"t": np.array([t0, t0, t0 + 5e8, t0 + 1_000_000_400, t0 + 2e9, t0]) / 1e9,
+           "catalog_id": np.array([9, 5, 7, 9, 9, 8])}
+    out, msg = used_sigma(res, SimpleNamespace(frames=frames), NoiseScales(), 0.07, 1024, 1024)
+    assert np.array_equal(msg, [0.03, 0.01, 0.05, 0.0, np.nan, np.nan], equal_nan=True)
+    assert np.array_equal(out, [0.03, 0.01, 0.05, 0.07, np.nan, np.nan], equal_nan=True)
