@@ -167,6 +167,20 @@ def test_star_sigma_by_magnitude_group():
     assert bright[0] == pytest.approx(0.05, rel=0.1)
 
 
+def test_a_sigma_field_that_varies_star_by_star_is_said_as_its_range():
+    """The messages state 0.05 px for bright stars and 0.1 px (2x the truth) for faint ones
+    (unseen case ``mag_faint_over2``): the group line gave the median, "the stars' sigma
+    (0.1 px stated) depends on magnitude", a σ no bright star's message holds; now it
+    gives the stated range and says the factors are of each star's own.  A constant field
+    keeps its one value (the test above)."""
+    sim = _sim(seed=4)
+    v = measure_bag(_stated(sim, faint_factor=2.0), sim.prior, "psce", [],
+                    NoiseScales(), components=())
+    assert v.group is not None and v.group["by"] == "magnitude", v.groups
+    line = next(x for x in v.lines() if "depends on" in x)
+    assert "(0.05-0.1 px stated, the factors of each star's own)" in line, line
+
+
 def test_diagnose_names_the_noise_not_an_effect(tmp_path):
     """The issue's first row: a clean bag whose sigma field states 0.6x the noise.  The
     diagnosis says the stars' sigma is 1.67x too small, with the value to use, and names no

@@ -129,6 +129,9 @@ class NoiseVerdict:
     star_p: float = 1.0
     star_dof: float = 0.0
     stated_sigma_px: float = math.nan  #: median σ the stars' messages state
+    #: 5 % and 95 % points of the σ the stars' messages state (a field that varies star by
+    #: star is said as its range, not as its median)
+    stated_sigma_range: tuple[float, float] = (math.nan, math.nan)
     unknown: int = 0  #: stars whose message says σ = 0
     unknown_sigma_px: float = math.nan  #: their measured σ
     unknown_sigma_sigma: float = math.nan
@@ -264,6 +267,19 @@ class NoiseVerdict:
                        "samples')")
         return out
 
+    def _stated_varies(self) -> bool:
+        lo, hi = self.stated_sigma_range
+        return bool(np.isfinite(lo) and np.isfinite(hi) and lo > 0 and hi > STATED_SPREAD * lo)
+
+    def _stated_px(self, scale: float = 1.0) -> str:
+        """The σ the messages state, times ``scale``: their median, or their 5-95 % range
+        where it varies star by star (unseen case ``mag_faint_over2``: 0.05 px for bright
+        stars, 0.1 px for faint ones was said "0.1 px stated")."""
+        if self._stated_varies():
+            lo, hi = self.stated_sigma_range
+            return f"{lo * scale:.3g}-{hi * scale:.3g}"
+        return f"{self.stated_sigma_px * scale:.3g}"
+
     def lines(self) -> list[str]:
         """The terminal's lines, first of the diagnosis (noise is tested before effects)."""
         out = self._sample_lines()
@@ -284,15 +300,16 @@ class NoiseVerdict:
             word = "too small" if s > 1 else "too large"
             k = s if s > 1 else 1.0 / s
             ke = e / s**2 if s < 1 else e
-            old = self.stated_sigma_px
             out.append(f"the stars' sigma looks {k:.3g} +- {ke:.2g} x {word} "
-                       f"({old:.3g} -> {old * s:.3g} px): use --noise-scale "
+                       f"({self._stated_px()} -> {self._stated_px(s)} px): use --noise-scale "
                        f"star={self.applied.star:.3g}")
         if self.group is not None:
             g = self.group
             bins = _bin_text(g["edges"], GROUP_UNITS[g["by"]])
-            said = (f"{self.stated_sigma_px:.3g} px stated" if np.isfinite(
-                self.stated_sigma_px) else "0 = unknown in every message: the factors are of "
+            said = (f"{self._stated_px()} px stated" + (
+                ", the factors of each star's own" if self._stated_varies() else "")
+                if np.isfinite(self.stated_sigma_px) else
+                "0 = unknown in every message: the factors are of "
                 f"the {self.unknown_base_px:.3g} px default")
             out.append(f"the stars' sigma ({said}) depends on "
                        + g["by"] + ": " + ", ".join(
@@ -377,6 +394,9 @@ class NoiseVerdict:
         return out
 
 
+#: the messages' σ (5-95 % points) vary beyond this ratio: said as a range, not a median
+STATED_SPREAD = 1.1
+
 #: how a grouping's bins are printed
 GROUP_UNITS = {"magnitude": "mag", "radius": "px from the centre", "column": "px column",
                "row": "px row"}
@@ -412,6 +432,8 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
     if known.any():
         v.star, v.star_sigma, v.star_dof = sn.group(known)
         v.stated_sigma_px = float(np.median(sn.sigma_px[known])) / v.stated.star
+        v.stated_sigma_range = tuple(float(x) / v.stated.star for x in np.percentile(
+            sn.sigma_px[known], [5.0, 95.0]))
         v.star_p = p_two_sided(v.star, v.star_sigma)
         if v.star_p < ALPHA / n_tests and abs(v.star - 1.0) > MATERIAL:
             v.rejected.append("star")
