@@ -83,6 +83,8 @@ class Case:
     told: str = ""
     #: regressors that must not lead the 'unexplained' lines (a false physical lead)
     not_first: tuple[str, ...] = ()
+    #: words no noise / 'unexplained' line may hold (a false claim about the noise), or ""
+    not_told: str = ""
 
 
 def _renoise(sim, true_sigma: Callable, stated: float, seed: int) -> None:
@@ -208,6 +210,75 @@ def _sigma0_half(sim, seed):
         f.sigma = np.zeros(len(f.sigma))
 
 
+# ---- 2026-11-27 evening (H100): fourth pass
+
+
+def _mag_faint_over2(sim, seed):
+    # true 0.05 px everywhere; the messages state 0.05 px for bright stars (mag < 4.5) and
+    # 0.1 px (2x too large) for faint ones
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+    for f in sim.star_frames:
+        m = np.asarray(f.magnitude, dtype=float)
+        f.sigma = np.where(m < 4.5, PSCE_SIGMA, 2.0 * PSCE_SIGMA)
+
+
+def _sigma0_faint(sim, seed):
+    # faint stars (mag >= 4.5) carry sigma 0 ("unknown") and their true noise is 0.1 px;
+    # bright stars 0.05 px as stated
+    _renoise(sim, lambda m, uv: np.where(m < 4.5, PSCE_SIGMA, 2.0 * PSCE_SIGMA), PSCE_SIGMA,
+             seed)
+    for f in sim.star_frames:
+        m = np.asarray(f.magnitude, dtype=float)
+        f.sigma = np.where(m < 4.5, PSCE_SIGMA, 0.0)
+
+
+def _accel_z4(sim, seed):
+    # the accelerometer's z axis 4x the stated white noise, x and y as stated
+    tracker_errors.imu_noise_axis(sim, "accel", 2, 4.0, seed)
+
+
+def _step2x_first(sim, seed):
+    # 2x the stated 0.05 px in the first half of the frames, as stated in the second half
+    # (the evaluation window)
+    frames = sim.star_frames
+    half = len(frames) // 2
+    _renoise(SimpleNamespace(star_frames=frames[:half]), lambda m, uv: 2.0 * PSCE_SIGMA,
+             PSCE_SIGMA, seed)
+    _renoise(SimpleNamespace(star_frames=frames[half:]), lambda m, uv: PSCE_SIGMA,
+             PSCE_SIGMA, seed + 1)
+
+
+def _magbias_radial(sim, seed, px_per_mag=0.03):
+    # a centroid bias away from the principal point, 0.03 px per magnitude fainter than 4
+    # (the same length at every radius), then the stated noise
+    tracker_errors.radial_by_mag(sim, px_per_mag)
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _ripple(sim, seed, amplitude_px=0.08, periods=3.0):
+    # a centroid ripple along the columns: u += A sin(2 pi periods u / width) (three periods
+    # across the detector: no polynomial distortion of the library makes it), then the
+    # stated noise
+    w = sim.prior.camera.width
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float).copy()
+        uv[:, 0] += amplitude_px * np.sin(2.0 * np.pi * periods * uv[:, 0] / w)
+        f.uv = uv
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _quadrant(sim, seed, shift_px=0.05):
+    # stars in the detector's upper-left quadrant (u, v below the centre) shifted by
+    # (0.05, 0.05) px (a detector defect or a stitched sensor: a step, no polynomial),
+    # then the stated noise
+    w, h = sim.prior.camera.width, sim.prior.camera.height
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        inside = (uv[:, 0] < w / 2.0) & (uv[:, 1] < h / 2.0)
+        f.uv = uv + shift_px * inside[:, None]
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
 CASES: dict[str, Case] = {
     # ---- noise stated wrongly, the model right
     "mag2x": Case("psce", "faint stars (mag >= 4.5) 2x the stated 0.05 px, bright as stated",
@@ -305,6 +376,45 @@ CASES: dict[str, Case] = {
     "sigma0_half": Case("psce", "sigma = 0 in every other message, the right 0.05 px in the "
                         "rest: the unknown ones measured 0.05 px", noise={},
                         unknown_px=PSCE_SIGMA, post=_sigma0_half),
+    # ---- 2026-11-27 evening (H100): fourth pass
+    "mag_faint_over2": Case("psce", "true 0.05 px everywhere; sigma field right for bright "
+                            "stars (mag < 4.5), 2x too large (0.1 px) for faint ones",
+                            noise={"star": 0.0}, group_by="magnitude", post=_mag_faint_over2,
+                            not_told="heavy-tailed",
+                            scenario_changes={"centroid_noise_px": 0.0}),
+    "sigma0_faint": Case("psce", "faint stars (mag >= 4.5) carry sigma 0 and are truly 0.1 "
+                         "px; bright stars 0.05 px as stated", noise={}, unknown_px=0.1,
+                         post=_sigma0_faint, scenario_changes={"centroid_noise_px": 0.0}),
+    "sway_accel_z4": Case("swaying_base", "accelerometer z axis 4x the stated VRW, x and y "
+                          "and the gyro as stated", noise={"accel": float(np.sqrt(6.0))},
+                          axes={"accel": (1.0, 1.0, 4.0)}, sim_effects=dict(SWAY_CLEAN),
+                          post=_accel_z4, duration=200.0),
+    "s06_gyro_over3": Case("psce", "stars' sigma field 0.6x the true 0.05 px (understated) "
+                           "AND gyro ARW a third of the stated (overstated 3x)",
+                           noise={"star": 1.0 / 0.6, "gyro": 1.0 / 3.0},
+                           scenario_changes={"gyro_arw_deg_sqrth": 1.0 / 3.0},
+                           post=_sigma_field(0.6)),
+    "step2x_first": Case("psce", "stars' sigma 2x the stated 0.05 px in the first half of "
+                         "the run, as stated in the second half (the evaluation window): "
+                         "nothing to apply, the change over the run said", noise={},
+                         told="changes over the run", spread_along="time",
+                         post=_step2x_first, scenario_changes={"centroid_noise_px": 0.0}),
+    "magbias_radial": Case("psce", "centroid bias away from the principal point, 0.03 px "
+                           "per magnitude fainter than 4, the same at every radius (not in "
+                           "the library)", outside=True, regressor="magnitude",
+                           post=_magbias_radial, scenario_changes={"centroid_noise_px": 0.0}),
+    "ripple": Case("psce", "centroid ripple along the columns, 0.08 sin(2 pi 3 u / width) px "
+                   "(three periods across the detector; no library distortion)",
+                   outside=True, regressor="u (column)", post=_ripple,
+                   scenario_changes={"centroid_noise_px": 0.0}),
+    "quadrant": Case("psce", "stars in the detector's upper-left quadrant shifted by (0.05, "
+                     "0.05) px (a step on the detector, no library distortion)",
+                     outside=True, regressor="", post=_quadrant,
+                     scenario_changes={"centroid_noise_px": 0.0}),
+    "sway_flex": Case("swaying_base", "mount flexure 10 arcsec per unit lateral gravity on the "
+                      "swaying base, whose gravity direction changes without a step about a "
+                      "gyro axis (not in the library)", outside=True, regressor="gravity",
+                      sim_effects={**SWAY_CLEAN, "mount_flexure": 10.0}, duration=200.0),
 }
 
 
@@ -402,6 +512,8 @@ def judge(name: str, r: dict) -> list[str]:
         lines = [u for u in lines if not _spread_line(u, case.spread_along)]
     if case.not_first and lines and any(k in lines[0] for k in case.not_first):
         bad.append(f"first 'unexplained' line is a false lead: {lines[0][:80]}")
+    if case.not_told and any(case.not_told in x for x in w["noise"] + lines):
+        bad.append(f"a line calls the noise {case.not_told} (not true)")
     if case.told and not any(case.told in x for x in w["noise"] + lines):
         bad.append(f"no line names the {case.told}")
     if case.outside and not case.told:  # the structure said as 'unexplained', its carrier first

@@ -930,3 +930,100 @@ def test_gated_stars_are_the_tails_or_misidentified_never_both(tmp_path):
 def _sim_prior(post, **kw):
     sim = _bag(post, **kw)
     return bag_data_from_simulation(sim), sim.prior
+
+
+# ---- fourth pass (H100): cases built after the diagnosis, reduced
+
+
+def _radial_magnitude_bias(px_per_mag):
+    """``tracker_errors.radial_by_mag`` then the stated noise; returns (post, the
+    stars' magnitudes per frame)."""
+    mags = []
+
+    def post(sim):
+        tracker_errors.radial_by_mag(sim, px_per_mag)
+        mags.extend(np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=4.0)
+                    for f in sim.star_frames)
+        tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, 21)
+    return post, mags
+
+
+def test_radial_bias_with_magnitude_is_unexplained_by_magnitude_with_its_size():
+    """Unseen case ``magbias_radial`` (fourth pass): stars pushed away from the principal
+    point by 0.03 px per magnitude fainter than 4, the same at every radius.  No library
+    effect is named (``discover`` adds nothing on 300 s, seed 21); the first 'unexplained'
+    line is the radial residual vs magnitude.  Its size reads short of the true bias's
+    straight-line change over the magnitudes' 5-95 % range (150 s seed 21: 0.0390 for
+    0.0527 px, 0.74x; the run's calibration takes part of it and the bias is a hinge at
+    mag 4, not a line): asserted within 0.5-1.2x of it."""
+    k = 0.03
+    post, mags = _radial_magnitude_bias(k)
+    found = _findings(_bag(post))
+    assert found and found[0].regressor == "magnitude" and found[0].component == "radial", \
+        found[:3]
+    assert found[0].p_value < 1e-6
+    m = np.concatenate(mags[len(mags) // 2:])
+    lo, hi = np.percentile(m, [5.0, 95.0])
+    slope = np.polyfit(m, k * np.maximum(m - 4.0, 0.0), 1)[0]
+    assert 0.5 < abs(found[0].slope_px) / (slope * (hi - lo)) < 1.2
+
+
+def test_noise_twice_the_stated_before_the_window_only_is_said_and_not_applied():
+    """Unseen case ``step2x_first``: the stars' σ 2x the stated in the first half of the
+    run, as stated in the second (the evaluation window).  The change over the run is said
+    with both scales (x2 before the window, x1 in it, each within 3 σ), and nothing is
+    applied: the window is as stated (``step2x``, its mirror, applies the window's x2)."""
+    def post(sim):
+        frames = sim.star_frames
+        h = len(frames) // 2
+        tracker_errors.renoise(SimpleNamespace(star_frames=frames[:h]),
+                               lambda m, uv: 2.0 * SIGMA, SIGMA, 21)
+        tracker_errors.renoise(SimpleNamespace(star_frames=frames[h:]), lambda m, uv: SIGMA,
+                               SIGMA, 22)
+
+    sim = _bag(post)
+    v, applied, sn = _measured_noise(bag_data_from_simulation(sim), sim.prior)
+    c = v.changes
+    assert c is not None, (v.star, sn.before)
+    assert abs(c["before"] - 2.0) < 3 * c["sigma_before"], c
+    assert abs(c["window"] - 1.0) < 3 * c["sigma_window"], c
+    assert applied.identity and "star" in v.rejected
+    line = [x for x in v.lines() if "changes over the run" in x]
+    assert line and "the window's is not told from the stated, which is kept" in line[0]
+
+
+def test_one_noisy_accelerometer_axis_on_a_swaying_base_is_measured_per_axis():
+    """Unseen case ``sway_accel_z4``: the accelerometer's z axis 4x its stated white noise,
+    x, y and the gyro as stated, on the swaying base: the accelerometer's samples read the
+    axes' RMS (√6 = 2.45) with each axis within 5 % (300 s discover:
+    'accel ... looks 2.49 +- 0.013 x larger than stated ... per axis x0.999, x0.989,
+    x4.07', nothing added)."""
+    from stellar_cal_ros.diagnosis.injection import SWAY_CLEAN
+    from stellar_cal_ros.diagnosis.noise_imu import imu_sample_scale
+
+    sim = simulate(get_scenario("swaying"), duration=DURATION, seed=21,
+                   effects=dict(SWAY_CLEAN))
+    tracker_errors.imu_noise_axis(sim, "accel", 2, 4.0, 21)
+    data = bag_data_from_simulation(sim)
+    s, e, white, axes = imu_sample_scale(data, "swaying_base", "accel", NoiseScales())
+    assert white and s == pytest.approx(np.sqrt(6.0), abs=max(3 * e, 0.05))
+    assert np.allclose(axes, [1.0, 1.0, 4.0], rtol=0.05)
+
+
+def test_star_noise_understated_and_gyro_noise_overstated_are_both_measured():
+    """Unseen case ``s06_gyro_over3``: the stars' σ field 0.6x the truth and the gyro's
+    stated ARW 3x its truth (wrong in opposite directions): the stars' scale reads 1/0.6
+    and the gyro's samples 1/3, each within 3 σ (300 s discover: gyro x0.333 +- 0.0014,
+    stars x1.68 +- 0.013, both said with the value to use, nothing added)."""
+    from stellar_cal_ros.diagnosis.noise_imu import imu_sample_scale
+
+    sc = get_scenario("psce_rotations")
+    sim = simulate(dataclasses.replace(sc, gyro_arw_deg_sqrth=sc.gyro_arw_deg_sqrth / 3.0),
+                   duration=DURATION, seed=21)
+    for f in sim.star_frames:
+        f.sigma = np.asarray(f.sigma, dtype=float) * 0.6
+    data = bag_data_from_simulation(sim)
+    v, applied, _ = _measured_noise(data, sim.prior)
+    assert abs(v.star - 1.0 / 0.6) < 3 * v.star_sigma and applied.star == pytest.approx(v.star)
+    g, eg, white, _ = imu_sample_scale(data, "psce", "gyro", NoiseScales())
+    assert white and abs(g - 1.0 / 3.0) < 3 * eg, (g, eg)

@@ -272,9 +272,11 @@ class NoiseVerdict:
         return bool(np.isfinite(lo) and np.isfinite(hi) and lo > 0 and hi > STATED_SPREAD * lo)
 
     def _stated_px(self, scale: float = 1.0) -> str:
-        """The σ the messages state, times ``scale``: their median, or their 5-95 % range
-        where it varies star by star (unseen case ``mag_faint_over2``: 0.05 px for bright
-        stars, 0.1 px for faint ones was said "0.1 px stated")."""
+        """The σ the messages state, times ``scale``: their median, or their 5-95 % range.
+
+        The range where it varies star by star (unseen case ``mag_faint_over2``: 0.05 px
+        for bright stars, 0.1 px for faint ones was said "0.1 px stated").
+        """
         if self._stated_varies():
             lo, hi = self.stated_sigma_range
             return f"{lo * scale:.3g}-{hi * scale:.3g}"

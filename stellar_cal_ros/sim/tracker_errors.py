@@ -23,6 +23,8 @@ function            what a tracker does
 ``stamp_jitter``    each frame stamped with a random error (the exposure's true time unknown)
 ``star_offsets``    each star's centroid off by its own fixed offset in every frame (a catalogue
                     position error, a proper motion the catalogue lacks)
+``radial_by_mag``   a centroid bias away from the principal point growing with magnitude, the
+                    same length at every radius (no focal length or distortion makes it)
 ==================  ==============================================================================
 """
 
@@ -230,3 +232,20 @@ def star_offsets(sim, rms_px: float, seed: int) -> dict[int, np.ndarray]:
         if cid:
             f.uv = np.asarray(f.uv, dtype=float) + np.array([off[int(c)] for c in cid])
     return off
+
+
+def radial_by_mag(sim, px_per_mag: float, from_mag: float = 4.0) -> None:
+    """Each centroid pushed away from the principal point, more for fainter stars.
+
+    By ``px_per_mag`` per magnitude fainter than ``from_mag`` (0 for brighter stars), the
+    same length at every radius.  A centroider that clips faint stars' wings unevenly
+    about the optical axis: no focal length (∝ radius) or radial distortion (∝ radius³)
+    makes it.
+    """
+    cam = sim.prior.camera
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        d = uv - np.array([cam.cx, cam.cy])
+        unit = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+        m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=from_mag)
+        f.uv = uv + px_per_mag * np.maximum(m - from_mag, 0.0)[:, None] * unit
