@@ -181,6 +181,26 @@ def test_a_sigma_field_that_varies_star_by_star_is_said_as_its_range():
     assert "(0.05-0.1 px stated, the factors of each star's own)" in line, line
 
 
+def test_a_later_rounds_scale_on_kept_groups_advises_the_groups_not_one_scale():
+    """A later round measures the stars' σ relative to the scales applied before; when those
+    hold σ groups (an earlier round's magnitude groups, kept), its one scale multiplies
+    them.  The line said "use --noise-scale star=1.56" (unseen case ``sigma0_faint``, seed
+    22), which a replay applies to every star alike: the bright stars' σ then 1.56x the
+    messages' where the run used 0.9x.  Now it gives each group's factor of the messages'
+    σ; without kept groups the one scale stays the advice."""
+    before = NoiseScales(star=1.84, group_by="magnitude", edges=(4.02, 4.8),
+                         factors=(0.58, 0.87, 1.07))
+    v = noise.NoiseVerdict(before, before.replace(star=1.84 / 1.18))
+    v.star, v.star_sigma, v.rejected = 1.0 / 1.18, 0.015, ["star"]
+    v.stated_sigma_px, v.stated_sigma_range = 0.036, (0.029, 0.0435)
+    line = next(x for x in v.lines() if "looks 1.18" in x)
+    assert "--noise-scale star=" not in line, line
+    assert "x0.904 (< 4.02 mag), x1.36 (4.02-4.8 mag), x1.67 (>= 4.8 mag)" in line, line
+    v.stated = v.applied = NoiseScales(star=2.0)
+    v.applied = NoiseScales(star=2.0 / 1.18)
+    assert "use --noise-scale star=1.69" in " ".join(v.lines())
+
+
 def test_diagnose_names_the_noise_not_an_effect(tmp_path):
     """The issue's first row: a clean bag whose sigma field states 0.6x the noise.  The
     diagnosis says the stars' sigma is 1.67x too small, with the value to use, and names no

@@ -267,6 +267,21 @@ class NoiseVerdict:
                        "samples')")
         return out
 
+    def _star_advice(self) -> str:
+        """What to give replay for the stars' σ: one scale, or the groups kept from before.
+
+        An earlier round's groups are multiplied by this round's scale (unseen case
+        ``sigma0_faint``, seed 22: "use --noise-scale star=1.56" while the applied σ kept
+        the magnitude groups, whose bright stars then read x0.9 of the messages' σ).
+        """
+        a = self.applied
+        if not a.group_by:
+            return f"use --noise-scale star={a.star:.3g}"
+        bins = _bin_text(list(a.edges), GROUP_UNITS.get(a.group_by, ""))
+        return (f"with the {a.group_by} groups measured before, now x" + ", x".join(
+            f"{a.star * f:.3g} ({b})" for f, b in zip(a.factors, bins, strict=True))
+            + " of the messages' sigma (`replay --estimate-noise` measures them)")
+
     def _stated_varies(self) -> bool:
         lo, hi = self.stated_sigma_range
         return bool(np.isfinite(lo) and np.isfinite(hi) and lo > 0 and hi > STATED_SPREAD * lo)
@@ -303,8 +318,8 @@ class NoiseVerdict:
             k = s if s > 1 else 1.0 / s
             ke = e / s**2 if s < 1 else e
             out.append(f"the stars' sigma looks {k:.3g} +- {ke:.2g} x {word} "
-                       f"({self._stated_px()} -> {self._stated_px(s)} px): use --noise-scale "
-                       f"star={self.applied.star:.3g}")
+                       f"({self._stated_px()} -> {self._stated_px(s)} px): "
+                       + self._star_advice())
         if self.group is not None:
             g = self.group
             bins = _bin_text(g["edges"], GROUP_UNITS[g["by"]])
