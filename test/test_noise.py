@@ -147,17 +147,22 @@ def test_star_sigma_by_magnitude_group():
     """Faint stars (mag > 5) state half their noise: the magnitude groups are found and
     applied, the bright ones stay as stated.  Each printed group scale ``x s +- e (bin)``
     whose bin lies on one side of the step is its truth (1 bright, 2 faint) within 3 e
-    (seed 4: x1.018 +- 0.018 below 5.0025 mag, x1.966 +- 0.021 above)."""
+    (seed 4: x1.018 +- 0.018 below 5.0025 mag, x1.966 +- 0.021 above; since the step of
+    the messages' σ is an edge, x1.018 +- 0.018 below 4.98 mag, x1.966 +- 0.021 above)."""
     sim = _sim(seed=4)
-    v = measure_bag(_stated(sim, faint_factor=0.5), sim.prior, "psce", [],
-                          NoiseScales(), components=())
+    data = _stated(sim, faint_factor=0.5)
+    v = measure_bag(data, sim.prior, "psce", [], NoiseScales(), components=())
     assert v.group is not None and v.group["by"] == "magnitude", v.groups
     sc = np.asarray(v.group["scales"])
     assert sc.max() / sc.min() > 1.5
     edges = [-np.inf, *v.group["edges"], np.inf]
+    # (the step of the stated σ is an edge: midway between the magnitudes of the accepted
+    # stars beside 5.0: 4.98 here)
+    mags = np.concatenate([np.asarray(f.magnitude, dtype=float) for f in data.frames])
+    above = mags[mags > 5.0].min()
     sides = set()
     for lo, hi, scale, e in zip(edges[:-1], edges[1:], sc, v.group["sigma"], strict=True):
-        truth = 1.0 if hi <= 5.01 else 2.0 if lo >= 4.99 else None
+        truth = 1.0 if hi <= above else 2.0 if lo >= 4.97 else None
         if truth is not None:
             sides.add(truth)
             assert abs(scale - truth) < 3.0 * e, (lo, hi, scale, e)
@@ -199,6 +204,90 @@ def test_a_later_rounds_scale_on_kept_groups_advises_the_groups_not_one_scale():
     v.stated = v.applied = NoiseScales(star=2.0)
     v.applied = NoiseScales(star=2.0 / 1.18)
     assert "use --noise-scale star=1.69" in " ".join(v.lines())
+
+
+def _step_bag(seed, sigma0):
+    """150 s psce bag with a step of the messages' σ at 4.5 mag (unseen cases sigma0_faint,
+    mag_faint_over2): ``sigma0``, faint stars say σ = 0 and are truly 0.1 px (bright 0.05
+    px, stated); else every star truly 0.05 px, faint ones stated 0.1 px."""
+    from stellar_cal_ros.sim import tracker_errors
+
+    sc = dataclasses.replace(get_scenario("psce_rotations"), centroid_noise_px=0.0)
+    sim = simulate(sc, duration=150.0, seed=seed)
+    faint = 0.1 if sigma0 else 0.05
+    tracker_errors.renoise(sim, lambda m, uv: np.where(m < 4.5, 0.05, faint), 0.05, seed)
+    for f in sim.star_frames:
+        f.sigma = np.where(np.asarray(f.magnitude) < 4.5, 0.05, 0.0 if sigma0 else 0.1)
+    return sim, bag_data_from_simulation(sim)
+
+
+def test_sigma_zero_stars_keep_their_own_sigma_beside_the_groups():
+    """Faint stars say σ = 0 and are truly 0.1 px, bright ones state their 0.05 px (unseen
+    case ``sigma0_faint``).  The magnitude groups were measured over all stars, the σ-0
+    ones in them, and applied on top of the σ-0 stars' own measured σ (seed 4: groups
+    x1.12 / x1.96 at 4.56 mag, a σ-0 star then 0.1025 px where 0.0981 was measured; on the
+    300 s case rounds compounded to "x0.582 (< 4.02 mag)" for bright stars stated right).
+    Now the groups are of the stated stars only: no grouping (they all state right), and a
+    σ-0 star's σ is its measured one, the truth 0.1 px within 3 of its σ.  (The bright
+    stars' one scale reads x1.12 +- 0.034 here: the frames' attitude fit weights the σ-0
+    stars at the 0.05 px default in this first run, not yet at their 0.1 px.)"""
+    sim, data = _step_bag(4, sigma0=True)
+    v = measure_bag(data, sim.prior, "psce", [], NoiseScales(), components=())
+    assert v.group is None, v.group
+    assert v.unknown_sigma_px == pytest.approx(0.1, abs=3 * v.unknown_sigma_sigma)
+    a = v.applied
+    got = a.star_sigma(np.array([0.0, 0.0]), 0.05, np.array([4.6, 5.5]), np.zeros((2, 2)),
+                       (0, 0))
+    assert got == pytest.approx([v.unknown_sigma_px] * 2, rel=1e-12)
+    # kept groups (as a replay given them) leave a measured σ-0 star's σ alone too
+    g = a.replace(group_by="magnitude", edges=(4.5,), factors=(1.0, 2.0))
+    got = g.star_sigma(np.array([0.0, 0.05]), 0.05, np.array([5.5, 5.5]), np.zeros((2, 2)),
+                       (0, 0))
+    assert got == pytest.approx([v.unknown_sigma_px, 0.1 * a.star], rel=1e-12)
+
+
+def test_a_step_of_the_stated_sigma_is_a_group_edge_and_no_heavy_tail():
+    """Every star truly 0.05 px; the messages state 0.05 px below 4.5 mag and 0.1 px above
+    (unseen case ``mag_faint_over2``).  The tails were judged at the stars' one scale
+    (x0.573) while groups x0.958 / x0.508 were applied: the bright stars, 1.67x that one
+    scale, read "heavy-tailed: 1.1 % beyond the 99.9 % bound, p = 1.2e-17" (seed 4) for
+    Gaussian noise.  Now the tails are judged at each star's group's scale, and the step of
+    the messages' σ is an edge of the groups (the 300 s case's quantile edges 4.02 and 4.8
+    mixed the two under one factor): each group lies on one side of the step and reads
+    its truth (x1 bright, x0.5 faint) within 3 of its σ."""
+    sim, data = _step_bag(4, sigma0=False)
+    v = measure_bag(data, sim.prior, "psce", [], NoiseScales(), components=())
+    assert v.tails is None and not any("heavy-tailed" in x for x in v.lines()), v.lines()
+    assert v.group is not None and v.group["by"] == "magnitude", v.groups
+    mags = np.concatenate([np.asarray(f.magnitude, dtype=float) for f in data.frames])
+    below, above = mags[mags < 4.5].max(), mags[mags >= 4.5].min()
+    assert any(below < e <= above for e in v.group["edges"]), v.group["edges"]
+    edges = [-np.inf, *v.group["edges"], np.inf]
+    for lo, hi, scale, e in zip(edges[:-1], edges[1:], v.group["scales"], v.group["sigma"],
+                                strict=True):
+        truth = 1.0 if hi <= above else 0.5 if lo > below else None
+        assert truth is not None, (lo, hi)
+        assert abs(scale - truth) < 3.0 * e, (lo, hi, scale, e)
+
+
+def test_the_stated_sigmas_steps_along_a_variable():
+    """:func:`noise_stars._stated_steps`: the midpoints where the messages' σ steps along a
+    variable, none where it is constant or varies star by star."""
+    x = np.array([3.0, 3.5, 4.2, 4.8, 5.0, 6.0])
+    use = np.ones(6, dtype=bool)
+
+    def sn(stated):
+        return dataclasses.replace(_star_noise(n=6), stated_px=np.asarray(stated, dtype=float))
+
+    assert noise_stars._stated_steps(sn([.05, .05, .05, .1, .1, .1]), x, use) == \
+        pytest.approx([4.5])
+    assert len(noise_stars._stated_steps(sn([.05] * 6), x, use)) == 0
+    steps = noise_stars._stated_steps(sn([.05, .1] * 3), x, use)
+    assert len(steps) == 5  # five steps (<= GROUP_BINS - 1): still a step function of x
+    rng = np.random.default_rng(1)
+    xs = np.sort(rng.uniform(3, 6, 200))
+    wild = dataclasses.replace(_star_noise(n=200), stated_px=rng.choice([.05, .1], 200))
+    assert len(noise_stars._stated_steps(wild, xs, np.ones(200, dtype=bool))) == 0
 
 
 def test_diagnose_names_the_noise_not_an_effect(tmp_path):

@@ -4,9 +4,10 @@ Users' noise figures are guesses (the stars' ``sigma`` field, the gyro's angle r
 of a datasheet), and a tracker may send ``sigma = 0`` for "unknown".  A run applies
 :class:`NoiseScales` to what is stated:
 
-* every star's σ: the message's σ (or, when it is 0, :attr:`NoiseScales.unknown_sigma_px`
-  if measured, else the configured default) times :attr:`NoiseScales.star`, times the factor
-  of its group (magnitude, image-radius, column or row bins) when the data asked for groups;
+* every star's σ: the message's σ times :attr:`NoiseScales.star`, times the factor of its
+  group (magnitude, image-radius, column or row bins) when the data asked for groups; when
+  the message's σ is 0, :attr:`NoiseScales.unknown_sigma_px` if measured (its own: no group
+  factor), else the configured default times :attr:`NoiseScales.star` and its group's factor;
 * the gyro's angle random walk times :attr:`NoiseScales.gyro`, the accelerometer's velocity
   random walk times :attr:`NoiseScales.accel`.
 
@@ -149,8 +150,9 @@ class NoiseScales:
         unknown = self.unknown_sigma_px if self.unknown_sigma_px > 0 else default * self.star
         out = np.where(s > 0, s * self.star, unknown)
         if self.group_by:
-            out = out * np.asarray(self.factors, dtype=float)[
-                self.group_of(magnitude, uv, centre)]
+            f = np.asarray(self.factors, dtype=float)[self.group_of(magnitude, uv, centre)]
+            # (a σ-0 star's measured σ is its own, measured beside the groups, not in them)
+            out = out * np.where((s > 0) | (self.unknown_sigma_px <= 0), f, 1.0)
         return out
 
     def apply(self, config: Any) -> Any:

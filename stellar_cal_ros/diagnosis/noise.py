@@ -57,6 +57,7 @@ from stellar_cal_ros.diagnosis.noise_stars import (
     ALPHA,
     StarNoise,
     Table,
+    group_index,
     star_groups,
     star_noise,
     used_sigma,
@@ -457,22 +458,41 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
             applied = applied.replace(star=v.stated.star * v.star, star_rho=0.0,
                                       star_ar_share=1.0)
         v.changes = changes_over_run(sn, v.star, v.star_sigma, v.stated.star, n_tests)
-        v.tails = heavy_tails(sn, known, v.star)
         if v.changes and "star" not in v.rejected:  # not as stated, whatever the window says
             v.rejected.append("star")
     sub = dataclasses.replace(sn, scale=v.star, sigma=v.star_sigma, dof=v.star_dof)
-    v.groups = star_groups(sub, size)
+    # the groups are of the stars whose messages state a σ: a σ-0 star keeps its own
+    # measured σ (above), which a group's factor would multiply (unseen case sigma0_faint:
+    # faint σ-0 stars at 0.1 px in the groups of stated bright ones, the faint group's x1.98
+    # applied on top of their measured 0.1 px, and rounds that compounded to "x0.582
+    # (< 4.02 mag)" for bright stars stated right)
+    # (no message states one: the groups are of every star, factors of the default σ,
+    # which the σ-0 stars then take with the groups' factors instead of one measured σ)
+    grouped = known if known.any() else np.ones(len(known), dtype=bool)
+    v.groups = star_groups(sub, size, grouped)
     best = min(v.groups, key=lambda g: g["p_value"], default=None)
     if best is not None and best["p_value"] < ALPHA / (n_tests * len(v.groups)):
         sc = np.asarray(best["scales"], dtype=float)
         if np.all(np.isfinite(sc)) and sc.max() / sc.min() > 1.0 + 2 * MATERIAL:
-            overall = sub.group(np.ones(len(sub.q), dtype=bool))[0]
+            overall = sub.group(grouped)[0]
             v.group = best
             applied = applied.replace(
                 star=v.stated.star * overall, star_rho=0.0, star_ar_share=1.0, group_by=best["by"],
                 edges=tuple(best["edges"]), factors=tuple(float(x) for x in sc / overall))
             if "star" not in v.rejected:
                 v.rejected.append("star")
+    if known.any():
+        # judged at each star's own group's scale when groups are applied: at the one
+        # scale, the stars of a group above it are its "tails" (mag_faint_over2: "1 %
+        # beyond the 99.9 % bound, p = 1e-37" for Gaussian noise)
+        v.tails = heavy_tails(sn, known, v.star if v.group is None else np.asarray(
+            v.group["scales"], dtype=float)[group_index(sn, v.group)])
+    if not known.any() and applied.group_by:
+        # every σ-0 star in the groups (this round's or kept from before): the default σ
+        # times the scale and its group's factor, not one measured σ
+        if v.group is None:
+            applied = applied.replace(star=v.stated.star * su)
+        applied = applied.replace(unknown_sigma_px=0.0)
     # only where no field or per-star error is left: a missing effect that varies along a
     # star's track correlates its residuals too, and is no noise to inflate (measured: a
     # 30 ms rolling shutter on a swaying base read rho 0.57)
@@ -538,8 +558,11 @@ TAIL_BOUND = -2.0 * math.log(1e-3)
 TAILS = 8.0
 
 
-def heavy_tails(sn: StarNoise, known: np.ndarray, scale: float) -> dict[str, float] | None:
+def heavy_tails(sn: StarNoise, known: np.ndarray, scale: float | np.ndarray
+                ) -> dict[str, float] | None:
     """The share of stars beyond :data:`TAIL_BOUND` when it is heavy (else None).
+
+    ``scale``: the measured scale, one or each star's (its group's).
 
     Noise with heavy tails (Student-t: blends, cosmic rays, a PSF with wings) looks like
     Gaussian noise of a smaller σ plus "misidentified stars" the gate rejects (unseen case
@@ -549,14 +572,16 @@ def heavy_tails(sn: StarNoise, known: np.ndarray, scale: float) -> dict[str, flo
     point is tested (binomial, one-sided) and must exceed :data:`TAILS` x the 0.1 %, where
     no field or per-star error is left (as for :func:`changes_over_run`).
     """
-    if not (np.isfinite(scale) and scale > 0) or sn.repeat_removed or sn.structure_p < ALPHA:
+    scale = np.broadcast_to(np.asarray(scale, dtype=float), sn.q.shape)[known]
+    if not np.all(np.isfinite(scale) & (scale > 0)) or sn.repeat_removed or \
+            sn.structure_p < ALPHA:
         return None  # structure left in the residuals is no tail of the noise
     q, m = sn.q[known], sn.m[known]
     ok = m > 0
     n = int(ok.sum())
     if n < 200:
         return None
-    x = q[ok] / (0.5 * m[ok] * scale**2)
+    x = q[ok] / (0.5 * m[ok] * scale[ok]**2)
     k = int(np.sum(x > TAIL_BOUND))
     expected = math.exp(-0.5 * TAIL_BOUND)
     p = float(sps.binom.sf(k - 1, n, expected))

@@ -148,6 +148,8 @@ class StarNoise:
     #: rows, exact through the steps (:func:`_correlated_variance`), the σ and dof of the
     #: scale over all the rows (:meth:`group`); None: white tracks (the sandwich alone)
     log_variance: float | None = None
+    #: per star: the σ its message states (px; 0: unknown), or None
+    stated_px: np.ndarray | None = None
 
     @property
     def repeat_p(self) -> float:
@@ -339,7 +341,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
                         (msg_sigma[idx] == 0)[use], sigma_px[idx][use], uv=uv[use],
                         star=stars[use], scatter_rho=scatter_rho,
                         frame=np.asarray(res["frame"])[idx][use],
-                        scatter_share=scatter_share)
+                        scatter_share=scatter_share, stated_px=msg_sigma[idx][use])
         out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
         return out
 
@@ -843,7 +845,8 @@ def _bartlett(parts: list[tuple[float, float, float]]) -> tuple[float, float]:
     return stat, float(sps.chi2.sf(stat, len(parts) - 1))
 
 
-def _merge(sn: StarNoise, gidx: np.ndarray, edges: np.ndarray
+def _merge(sn: StarNoise, gidx: np.ndarray, edges: np.ndarray, use: np.ndarray,
+           steps: np.ndarray | None = None
            ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float, float]]]:
     """Merge neighbouring bins whose scales agree (within :data:`MERGE_Z` σ).
 
@@ -858,38 +861,91 @@ def _merge(sn: StarNoise, gidx: np.ndarray, edges: np.ndarray
         z = [abs(a[0] - b[0]) / math.hypot(a[1], b[1]) if all(
             math.isfinite(x) and x > 0 for x in (a[0], b[0], a[1], b[1])) else 0.0
             for a, b in zip(parts, parts[1:], strict=False)]
-        k = int(np.argmin(z))
+        # (an edge at a step of the messages' σ, ``steps``, goes last: a small bin between
+        # it and a quantile edge beside it merged across the step, mag_faint_over2 seed 4)
+        last = np.isin(edges, steps) if steps is not None and len(steps) else \
+            np.zeros(len(z), dtype=bool)
+        k = int(np.argmin(np.where(last & (np.asarray(z) < MERGE_Z), math.inf, z))) \
+            if np.any(~last & (np.asarray(z) < MERGE_Z)) else int(np.argmin(z))
         if z[k] >= MERGE_Z:
             return edges, gidx, parts
         edges = np.delete(edges, k)
         gidx = np.where(gidx > k, gidx - 1, gidx)
-    return edges, gidx, [sn.group(np.ones(len(gidx), dtype=bool))]
+    return edges, gidx, [sn.group(use)]
 
 
-def star_groups(sn: StarNoise, size: tuple[int, int] | None = None) -> list[dict[str, Any]]:
+def group_x(sn: StarNoise, kind: str) -> np.ndarray:
+    """Each star's value of the grouping variable ``kind`` (magnitude: NaN at the median)."""
+    if kind == "magnitude":
+        mag = sn.magnitude
+        fin = np.isfinite(mag)
+        return np.nan_to_num(mag, nan=float(np.median(mag[fin])) if fin.any() else 0.0)
+    if kind == "radius":
+        return sn.radius
+    return sn.uv[:, ("column", "row").index(kind)]
+
+
+def group_index(sn: StarNoise, group: dict[str, Any]) -> np.ndarray:
+    """Each star's index in the grouping ``group`` (a :func:`star_groups` entry)."""
+    return np.searchsorted(np.asarray(group["edges"], dtype=float), group_x(sn, group["by"]),
+                           side="right")
+
+
+#: the messages' σ is a step function of a grouping's variable when, in its order, it
+#: changes at most this many times (more: it varies star by star, no edge of its own)
+STATED_STEPS = GROUP_BINS - 1
+
+
+def _stated_steps(sn: StarNoise, x: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Where the messages' σ steps along ``x`` (midpoints), if it is a few steps of it."""
+    if sn.stated_px is None:
+        return np.empty(0)
+    ok = use & np.isfinite(x) & np.isfinite(sn.stated_px) & (sn.stated_px > 0)
+    if ok.sum() < 2:
+        return np.empty(0)
+    order = np.argsort(x[ok], kind="stable")
+    xs, ss = x[ok][order], sn.stated_px[ok][order]
+    change = np.flatnonzero(np.abs(np.diff(ss)) > 0.01 * np.minimum(ss[1:], ss[:-1]))
+    if not 0 < len(change) <= STATED_STEPS or np.any(xs[change + 1] <= xs[change]):
+        return np.empty(0)  # constant, star by star, or two σ at one value of x
+    return 0.5 * (xs[change] + xs[change + 1])
+
+
+def star_groups(sn: StarNoise, size: tuple[int, int] | None = None,
+                use: np.ndarray | None = None) -> list[dict[str, Any]]:
     """The magnitude, radius, column and row groupings: per group scale ± σ, Bartlett's p.
 
     ``size``: the detector's (width, height) px (no column / row groups without it).  The
     test is Bartlett's over :data:`GROUP_BINS` fine bins; the groups reported (and applied)
-    are those bins with agreeing neighbours merged.
+    are those bins with agreeing neighbours merged.  ``use``: the stars grouped (default
+    all; the diagnosis passes the stars of stated σ, :func:`~.noise.judge_stars`).
     """
+    use = np.ones(len(sn.q), dtype=bool) if use is None else np.asarray(use, dtype=bool)
     out = []
     q = np.linspace(0, 1, GROUP_BINS + 1)[1:-1]
     mag = sn.magnitude
-    fin = np.isfinite(mag)
+    fin = np.isfinite(mag) & use
     if fin.sum() > 40 and np.ptp(mag[fin]) > 0:
-        out.append(("magnitude", np.unique(np.quantile(mag[fin], q)),
-                    np.nan_to_num(mag, nan=float(np.median(mag[fin])))))
-    if len(sn.radius) > 40 and np.ptp(sn.radius) > 0:  # quantiles: the corners are sparse
-        out.append(("radius", np.unique(np.quantile(sn.radius, q)), sn.radius))
+        out.append(("magnitude", np.unique(np.quantile(mag[fin], q)), group_x(sn, "magnitude")))
+    rad = sn.radius[use]
+    if len(rad) > 40 and np.ptp(rad) > 0:  # quantiles: the corners are sparse
+        out.append(("radius", np.unique(np.quantile(rad, q)), sn.radius))
     if size is not None and sn.uv is not None:
         for k, kind in enumerate(("column", "row")):
             out.append((kind, q * size[k], sn.uv[:, k]))
+    # where the messages' σ steps along a grouping's variable (a tracker that states one σ
+    # for bright stars and another for faint ones), its step is an edge too: a bin across
+    # it mixed right and wrong messages under one factor (unseen case mag_faint_over2:
+    # stated 0.05 px below 4.5 mag, 0.1 above, edges 4.02 and 4.8, the middle group
+    # x0.732 for stars truly x1 and x0.5, and a false "heavy-tailed" line)
+    out = [(kind, edges, x, _stated_steps(sn, x, use)) for kind, edges, x in out]
     result = []
-    for kind, edges, x in out:
-        gidx = np.searchsorted(edges, x, side="right")
+    for kind, edges, x, steps in out:
+        edges = np.unique(np.concatenate([edges, steps]))
+        # (stars outside ``use`` in no group: index -1)
+        gidx = np.where(use, np.searchsorted(edges, x, side="right"), -1)
         stat, p = _bartlett([sn.group(gidx == g) for g in range(len(edges) + 1)])
-        edges, gidx, parts = _merge(sn, gidx, edges)
+        edges, gidx, parts = _merge(sn, gidx, edges, use, steps)
         result.append({"by": kind, "edges": [float(e) for e in edges],
                        "scales": [s for s, _, _ in parts], "sigma": [e for _, e, _ in parts],
                        "dof": [d for _, _, d in parts], "statistic": stat, "p_value": p})
