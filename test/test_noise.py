@@ -204,6 +204,13 @@ def test_a_later_rounds_scale_on_kept_groups_advises_the_groups_not_one_scale():
     v.stated = v.applied = NoiseScales(star=2.0)
     v.applied = NoiseScales(star=2.0 / 1.18)
     assert "use --noise-scale star=1.69" in " ".join(v.lines())
+    # the σ it leads to is the messages' times the composed scale (sigma0_faint 300 s, its
+    # second round: "looks 1.07 x too large (0.05 -> 0.0468 px): use star=0.993")
+    v.stated, v.applied = NoiseScales(star=1.062), NoiseScales(star=1.062 / 1.07)
+    v.star, v.stated_sigma_px, v.stated_sigma_range = 1 / 1.07, 0.05, (0.05, 0.05)
+    line = next(x for x in v.lines() if "looks 1.07" in x)
+    assert "too large for the x1.06 applied before (0.05 -> 0.0496 px): use --noise-scale " \
+        "star=0.993" in line, line
 
 
 def _step_bag(seed, sigma0):

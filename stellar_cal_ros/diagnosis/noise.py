@@ -318,8 +318,15 @@ class NoiseVerdict:
             word = "too small" if s > 1 else "too large"
             k = s if s > 1 else 1.0 / s
             ke = e / s**2 if s < 1 else e
-            out.append(f"the stars' sigma looks {k:.3g} +- {ke:.2g} x {word} "
-                       f"({self._stated_px()} -> {self._stated_px(s)} px): "
+            # (a later round's scale is of the one applied before: the σ it leads to is the
+            # messages' times the composed scale, 0.05 -> 0.0497 px, not x the increment,
+            # "0.05 -> 0.0468 px" on unseen case sigma0_faint's second round)
+            a = self.applied
+            before = "" if self.stated.star == 1.0 or a.group_by else \
+                f" for the x{self.stated.star:.3g} applied before"
+            out.append(f"the stars' sigma looks {k:.3g} +- {ke:.2g} x {word}{before} "
+                       f"({self._stated_px()} -> "
+                       f"{self._stated_px(s if a.group_by else a.star)} px): "
                        + self._star_advice())
         if self.group is not None:
             g = self.group
