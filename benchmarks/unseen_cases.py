@@ -268,14 +268,8 @@ def _ripple(sim, seed, amplitude_px=0.08, periods=3.0):
 
 
 def _quadrant(sim, seed, shift_px=0.05):
-    # stars in the detector's upper-left quadrant (u, v below the centre) shifted by
-    # (0.05, 0.05) px (a detector defect or a stitched sensor: a step, no polynomial),
-    # then the stated noise
-    w, h = sim.prior.camera.width, sim.prior.camera.height
-    for f in sim.star_frames:
-        uv = np.asarray(f.uv, dtype=float)
-        inside = (uv[:, 0] < w / 2.0) & (uv[:, 1] < h / 2.0)
-        f.uv = uv + shift_px * inside[:, None]
+    # a step on the detector (tracker_errors.quadrant_step), then the stated noise
+    tracker_errors.quadrant_step(sim, shift_px)
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 

@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import flexure, rolling, screening
+from stellar_cal_ros.diagnosis import flexure, leads, rolling, screening
 from stellar_cal_ros.diagnosis.discover import (
     ALPHA,
     MIN_EXPLAINED,
@@ -309,11 +309,13 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                          time.perf_counter() - t0, 1 + len(extras) + sum(
                              c.run is not None for c in results))
             for c, b in refused:
-                # significant alone, but only along the flexure (or rolling shutter) the
-                # remainder showed
+                # significant alone, but only along the flexure (rolling shutter, outside-
+                # library field) the remainder showed
                 step["beyond_remainder"] = {**step.get("beyond_remainder", {}), c.effect: b}
                 what, fitted = b.get("remainder", ("the gravity-shaped remainder",
                                                    "a mount flexure"))
+                if b.get("lead_size_px") is not None:
+                    what = f"{what} ({b['lead_size_px']:.3g} px at most)"
                 why = (f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing "
                        f"beyond {what} ({flexure.ratio_text(b, fitted)}): not added")
                 for rj in step["rejected"]:
@@ -435,16 +437,25 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     (:func:`~stellar_cal_ros.diagnosis.rolling.stand_in`, one run of its model).
     """
     refused = []
+    fields = None  # the outside-library leads of the current model, once a candidate asks
     for c in results:
         if not c.significant_alone:
             continue
-        if shutter is not None:
-            tell(f"{c.effect}: testing it beyond the rolling-shutter-shaped remainder")
-            with_c = runs.on_bag(rolling.candidate_on_bag, runs.spec,
+        if fields is None:
+            fields = leads.significant(leads.of_run(base, runs.fraction), ALPHA)
+        if shutter is not None or fields:
+            what = ", ".join(([rolling.REMAINDER[0]] if shutter is not None else [])
+                             + [leads.NAMES[k][0] for k in fields])
+            tell(f"{c.effect}: testing it beyond {what}")
+            with_c = runs.on_bag(leads.candidate_on_bag, runs.spec,
                                  candidate_prior(prior, c.effect, calibration),
                                  tuple(state.extra) + (c.effect,), runs.fraction, runs.noise,
-                                 runs.classes)
-            b = rolling.stand_in(c, Reference.of(base).dispersion, with_c, shutter, ALPHA)
+                                 runs.classes) or {}
+            dispersion = Reference.of(base).dispersion
+            b = None if shutter is None else rolling.stand_in(
+                c, dispersion, with_c.get("rolling"), shutter, ALPHA)
+            for kind, lead in fields.items():
+                b = b or leads.stand_in(c, dispersion, with_c.get(kind), lead, kind, ALPHA)
             if b is not None:
                 refused.append((c, b))
                 continue
@@ -510,9 +521,13 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     # no remainder said: the flexure the last test would have seen (its MDB, ″/g)
     hidden = (flexure.hiding(*state.remainders[-1], len(state.remainders), ALPHA)
               if state.remainders and not outside else None)
+    # the outside-library fields a candidate was refused beside: their lines, if still there
+    kinds = sorted({b["lead"] for s in path for b in (s.get("beyond_remainder") or {}).values()
+                    if b.get("lead")})
+    fields = leads.findings(final, fraction, kinds, ALPHA) if kinds else []
     summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
                      panels, plots, "stellar_cal discovery", images, verdict, write=False,
-                     outside=outside, like=like, runs=runs, hiding=hidden,
+                     outside=outside + fields, like=like, runs=runs, hiding=hidden,
                      refused=tuple(path[-1].get("beyond_remainder") or ()) if path else ())
     summary.update({
         "path": path,

@@ -86,10 +86,11 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
                 None)
     summary["recommendation"] = best.effect if best is not None else None
     like = like if like is not None else ([best.effect] if best is not None else [])
-    if outside and like:
+    # (the flexure's line: an outside-library field's line has no 'after')
+    top = next((u for u in summary["unexplained"] if "after" in (u.get("detail") or {})), None)
+    if outside and like and top is not None:
         from stellar_cal_ros.diagnosis.flexure import remainder_text
 
-        top = next(u for u in summary["unexplained"] if u.get("detail"))
         summary["remainder"] = dict(top, like=list(like), text=remainder_text(like, top))
     # the flexure's MDB (flexure.hiding); null when its test found a remainder or did not run
     summary["flexure_hiding"] = hiding or None

@@ -45,28 +45,13 @@ def of_run(run, fraction: float) -> dict[str, float] | None:
     return of_table(run.residuals, run.calibration, fraction)
 
 
-def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
-                     fraction: float, noise=None, classes: tuple[type, ...] = ()
-                     ) -> dict[str, float] | None:
-    """The rolling-shutter fit of a candidate model's run, where the bag is.
-
-    For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag` (only the statistics
-    travel): a candidate's own run keeps no residual table.
-    """
-    from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
-
-    register_effect_classes(classes)
-    run = evaluate(data, spec, prior, effects, fraction, True, classes, candidate=True,
-                   noise=noise)
-    return of_run(run, fraction)
-
-
 def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
-             alpha: float) -> dict | None:
+             alpha: float, remainder: tuple[str, str] = REMAINDER) -> dict | None:
     """Whether ``candidate`` stands in for the rolling shutter fitted on the current model.
 
     The beyond test (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`: the candidate's Λ
-    plus the fit's χ² beside it (``with_c``, :func:`candidate_on_bag`) minus the fit's χ²
+    plus the fit's χ² beside it (``with_c``, :func:`~stellar_cal_ros.diagnosis.leads.
+    candidate_on_bag`'s ``rolling``) minus the fit's χ²
     without it (``shutter``)), when it finds nothing beyond the fit, and only if the fit is
     still significant at ``alpha`` beside the candidate.  A true readout keeps its shape
     beside any one library effect (each takes only a part of it: unseen case
@@ -76,14 +61,16 @@ def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
     → 3.0, p 0.90; its uncapped χ² against the NIS-capped Λ 288 made the ratio −1013.8,
     and time_offset was refused; since the fit's gain is NIS-capped too the 200 s version
     reads 129.1 beyond it, needed, where it read −231.8).  The beyond result
-    (``remainder``: :data:`REMAINDER`) when refused, else ``None``.
+    (``remainder``: :data:`REMAINDER`, or the other nuisance field's names given) when
+    refused, else ``None``.  The same rule for the outside-library fields of
+    :mod:`~stellar_cal_ros.diagnosis.leads` (``shutter`` then a field's fit).
     """
     from stellar_cal_ros.diagnosis import flexure
 
     b = flexure.beyond(candidate.statistic, candidate.dof, dispersion, with_c, shutter)
     if b is None or b["needed"] or not with_c["p_value"] < alpha:
         return None
-    return dict(b, remainder=REMAINDER)
+    return dict(b, remainder=remainder)
 
 
 def taken_out(data, calibration: Calibration, coefficient: float):

@@ -234,6 +234,19 @@ def star_offsets(sim, rms_px: float, seed: int) -> dict[int, np.ndarray]:
     return off
 
 
+def quadrant_step(sim, shift_px: float = 0.05) -> None:
+    """Stars in the detector's upper-left quadrant moved by ``shift_px`` along u and v.
+
+    (u, v below the centre.)  A detector defect or a stitched sensor: a step that no
+    library effect (a polynomial of the detector) makes.
+    """
+    w, h = sim.prior.camera.width, sim.prior.camera.height
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        inside = (uv[:, 0] < w / 2.0) & (uv[:, 1] < h / 2.0)
+        f.uv = uv + shift_px * inside[:, None]
+
+
 def radial_by_mag(sim, px_per_mag: float, from_mag: float = 4.0) -> None:
     """Each centroid pushed away from the principal point, more for fainter stars.
 

@@ -1,0 +1,223 @@
+"""Outside-library leads as nuisance fields: ``discover``'s stand-in rule beside them.
+
+A structure no library effect models can still be taken up, in part, by one: a step of the
+centroids on one detector quadrant by an image-plane tilt's second-order field (unseen case
+``quadrant``: image_plane_tilt 9.5 mrad added, p 9e-68), a centroid bias that grows with
+magnitude by the gyro terms and the pixel aspect through the changing mix of the stars in
+view (a twin of the independent 900 s PSCE bag with ``magnitude_bias=0.02,30``: three
+library effects added before the right 'unexplained: u residual vs magnitude' line).  The
+rule already made for a rolling shutter and a mount flexure
+(:func:`~stellar_cal_ros.diagnosis.rolling.stand_in`, :func:`~stellar_cal_ros.diagnosis.
+flexure.beyond`) applies to them once their shape is a nuisance regressor of the
+innovations: a field of the detector's cells (a per-cell offset, u and v, on the grid of
+the noise's cell means, :data:`~stellar_cal_ros.diagnosis.noise_stars.CELL_GRID`) and a
+field along magnitude (offsets linear in magnitude, along u, v and the radius).
+
+Each field has many columns; the one displacement pattern fitted is their least-squares
+combination on the frames *before* the evaluation window (the direction), tested and sized
+in the window (:func:`~stellar_cal_ros.diagnosis.stats.whitened_fit`: the frame-robust
+t_ν of every 'unexplained' line, ``chi2_capped`` in the candidates' currency).  A direction
+chosen on the data it is tested on would make a χ²_k of a t; chosen on other frames it is a
+fixed pattern for the window's test.  A field is a lead when that test is significant on the
+current model (Bonferroni over the fields); a candidate is then added only if it explains
+the data beyond the field, or the field is no longer significant beside it (the rolling
+shutter's rule, :func:`~stellar_cal_ros.diagnosis.rolling.stand_in`).  Nothing runs unless a
+candidate is significant alone; on a bag where no field is a lead nothing changes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.diagnosis.noise_stars import CELL_GRID
+from stellar_cal_ros.io.calibration import Calibration
+
+#: what a refused candidate's reason calls each field and the fit beside it
+NAMES = {
+    "cells": ("the detector-cells-shaped remainder", "a per-cell offset field"),
+    "magnitude": ("the magnitude-shaped remainder", "an offset linear in magnitude"),
+}
+
+
+def columns(sub: dict, kind: str, centre: tuple[float, float]) -> np.ndarray | None:
+    """The field's displacement columns ``(n, 2, k)`` px per unit coefficient."""
+    du = np.asarray(sub["u"], dtype=float) - centre[0]
+    dv = np.asarray(sub["v"], dtype=float) - centre[1]
+    n = len(du)
+    if kind == "magnitude":
+        m = np.asarray(sub["magnitude"], dtype=float)
+        fin = np.isfinite(m)
+        if fin.sum() < 20 or np.ptp(m[fin]) == 0:
+            return None
+        m = np.where(fin, m - np.median(m[fin]), 0.0)
+        r = np.maximum(np.hypot(du, dv), 1e-9)
+        x = np.zeros((n, 2, 3))
+        x[:, 0, 0] = m
+        x[:, 1, 1] = m
+        x[:, 0, 2], x[:, 1, 2] = m * du / r, m * dv / r
+        return x
+    uv = np.stack([du, dv], 1)
+    ext = 2.0 * np.nanmax(np.abs(uv), axis=0) + 1.0
+    ij = np.clip((uv / ext + 0.5) * CELL_GRID, 0, CELL_GRID - 1e-9).astype(int)
+    cell = ij[:, 0] * CELL_GRID + ij[:, 1]
+    used = np.unique(cell)
+    if len(used) < 2:
+        return None
+    x = np.zeros((n, 2, 2 * len(used)))
+    for j, c in enumerate(used):
+        on = cell == c
+        x[on, 0, 2 * j] = 1.0
+        x[on, 1, 2 * j + 1] = 1.0
+    return x
+
+
+#: the 'unexplained' line of each field (a field a candidate was refused beside)
+REGRESSORS = {
+    "cells": "the detector's cells (a per-cell offset field, outside the library)",
+    "magnitude": "magnitude (an offset field along u, v and the radius, outside the library)",
+}
+
+
+def findings(run, fraction: float, kinds, alpha: float) -> list[stats.RegressorFinding]:
+    """The 'unexplained' lines of the fields ``kinds`` on ``run``, where significant.
+
+    Bonferroni over the fields as :func:`significant`; the size is the fitted field's
+    displacement (99th percentile over the window's stars, px).
+    """
+    got = of_run(run, fraction)
+    out = []
+    for kind in kinds:
+        f = got.get(kind)
+        if f is None or not f["p_value"] * len(NAMES) < alpha:
+            continue
+        out.append(stats.RegressorFinding(REGRESSORS[kind], "u, v", f["t"],
+                                          min(1.0, f["p_value"] * len(NAMES)), f["size_px"],
+                                          detail={"field": kind, **f}))
+    return out
+
+
+def field_fit(res, calibration: Calibration, fraction: float, kind: str
+              ) -> dict[str, float] | None:
+    """The innovations' fit by one field (:func:`columns`) in the evaluation window.
+
+    The direction: the whitened least-squares combination of the columns over the accepted
+    stars before the window; the window's test of that one pattern
+    (:func:`~stellar_cal_ros.diagnosis.stats.whitened_fit`).  ``{t, p_value, chi2,
+    chi2_capped, size_px}`` (``size_px``: 99th percentile of the fitted field's
+    displacement over the window's stars), or ``None``.
+    """
+    if res is None or not len(res.get("t", ())):
+        return None
+    cam = calibration.camera
+    centre = (cam.cx, cam.cy)
+    acc = stats.accepted(res)
+    inside = stats.evaluation_mask(res, fraction)
+    before, window = acc & ~inside, acc & inside
+    if before.sum() < 50 or window.sum() < 50:
+        return None
+    sb = {k: np.asarray(v)[before] for k, v in res.items()}
+    xb = columns(sb, kind, centre)
+    if xb is None:
+        return None
+    cov = {k: sb[k] for k in ("s_uu", "s_uv", "s_vv")}
+    w_nu = stats.whitened(sb)
+    w_x = np.stack([stats.whitened({"du": xb[:, 0, j], "dv": xb[:, 1, j], **cov})
+                    for j in range(xb.shape[2])], 2)  # (n, 2, k)
+    ok = np.all(np.isfinite(w_nu), 1) & np.all(np.isfinite(w_x), (1, 2))
+    if ok.sum() < 20:
+        return None
+    a = w_x[ok].reshape(-1, xb.shape[2])
+    coef = np.linalg.lstsq(a, w_nu[ok].ravel(), rcond=None)[0]
+    if not np.any(coef):
+        return None
+    sw = {k: np.asarray(v)[window] for k, v in res.items()}
+    xw = columns(sw, kind, centre)
+    if xw is None:
+        return None
+    # the window's cells that the frames before held no star of add nothing (coef 0)
+    if kind == "cells":
+        xw = _align_cells(sb, sw, centre, coef)
+        if xw is None:
+            return None
+        pattern = xw
+    else:
+        pattern = xw @ coef
+    fit = stats.whitened_fit(sw, pattern)
+    if fit is None:
+        return None
+    t, p, c, info = fit
+    size = np.hypot(*(c * pattern).T)
+    return {"t": t, "p_value": p, "chi2": c * c * info,
+            "chi2_capped": stats.capped_gain(sw, pattern, c),
+            "size_px": float(np.percentile(size, 99)) if len(size) else 0.0}
+
+
+def _align_cells(sb: dict, sw: dict, centre: tuple[float, float], coef: np.ndarray
+                 ) -> np.ndarray | None:
+    """The window's stars' offsets of the cell field fitted before it (``(n, 2)`` px)."""
+    def cells(sub, ext):
+        uv = np.stack([np.asarray(sub["u"], float) - centre[0],
+                       np.asarray(sub["v"], float) - centre[1]], 1)
+        ij = np.clip((uv / ext + 0.5) * CELL_GRID, 0, CELL_GRID - 1e-9).astype(int)
+        return ij[:, 0] * CELL_GRID + ij[:, 1]
+
+    uvb = np.stack([np.asarray(sb["u"], float) - centre[0],
+                    np.asarray(sb["v"], float) - centre[1]], 1)
+    ext = 2.0 * np.nanmax(np.abs(uvb), axis=0) + 1.0
+    used = np.unique(cells(sb, ext))
+    table = np.zeros((CELL_GRID * CELL_GRID, 2))
+    table[used, 0], table[used, 1] = coef[0::2], coef[1::2]
+    out = table[cells(sw, ext)]
+    return out if np.any(out) else None
+
+
+def fits(res, calibration: Calibration, fraction: float) -> dict[str, dict | None]:
+    """Every field's fit (:func:`field_fit`) of a residual table."""
+    return {kind: field_fit(res, calibration, fraction, kind) for kind in NAMES}
+
+
+def of_run(run, fraction: float) -> dict[str, dict | None]:
+    """:func:`fits` of a :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary`."""
+    if run is None or not run.ok or run.residuals is None:
+        return {}
+    return fits(run.residuals, run.calibration, fraction)
+
+
+def significant(found: dict[str, dict | None], alpha: float) -> dict[str, dict]:
+    """The fields that are leads: significant at ``alpha`` (Bonferroni over the fields)."""
+    return {k: f for k, f in found.items()
+            if f is not None and f["p_value"] * len(NAMES) < alpha}
+
+
+def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
+                     fraction: float, noise=None, classes: tuple[type, ...] = ()
+                     ) -> dict[str, dict | None]:
+    """The rolling-shutter fit and every field's fit of a candidate model's run.
+
+    For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag` (one run where the bag is;
+    only the statistics travel): ``{"rolling": ..., "cells": ..., "magnitude": ...}``.
+    """
+    from stellar_cal_ros.diagnosis import rolling
+    from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
+
+    register_effect_classes(classes)
+    run = evaluate(data, spec, prior, effects, fraction, True, classes, candidate=True,
+                   noise=noise)
+    out = {"rolling": rolling.of_run(run, fraction)}
+    out.update(of_run(run, fraction))
+    return out
+
+
+def stand_in(candidate, dispersion: float, with_c: dict | None, lead: dict, kind: str,
+             alpha: float) -> dict | None:
+    """Whether ``candidate`` stands in for the field ``kind`` fitted on the current model.
+
+    :func:`~stellar_cal_ros.diagnosis.rolling.stand_in`'s rule with this field: the beyond
+    result (``remainder``: :data:`NAMES`; ``lead``: ``kind``; ``lead_size_px``: the field's
+    size on the current model) when refused, else ``None``.
+    """
+    from stellar_cal_ros.diagnosis import rolling
+
+    b = rolling.stand_in(candidate, dispersion, with_c, lead, alpha, NAMES[kind])
+    return None if b is None else dict(b, lead=kind, lead_size_px=lead["size_px"])
