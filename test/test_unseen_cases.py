@@ -1027,3 +1027,47 @@ def test_star_noise_understated_and_gyro_noise_overstated_are_both_measured():
     assert abs(v.star - 1.0 / 0.6) < 3 * v.star_sigma and applied.star == pytest.approx(v.star)
     g, eg, white, _ = imu_sample_scale(data, "psce", "gyro", NoiseScales())
     assert white and abs(g - 1.0 / 3.0) < 3 * eg, (g, eg)
+
+
+def _top_beside_leads(post, candidates, seed=21):
+    """``discover``'s choice of the candidate to add (``auto._top``) on a 150 s PSCE bag
+    that ``post`` changes (then the stated 0.05 px noise): the baseline run and each
+    candidate's, the leads (``leads.of_run``) of the baseline."""
+    from stellar_cal_ros.diagnosis import auto, leads
+    from stellar_cal_ros.diagnosis.discover import Reference, candidate_prior
+
+    sim = _bag(post, seed=seed)
+    tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, seed)
+    data, spec, prior = bag_data_from_simulation(sim), method_spec("psce"), \
+        rerun_prior(sim.prior)
+    base = evaluate(data, spec, prior, (), 0.5, keep_residuals=True)
+    results = []
+    for effect in candidates:
+        run = evaluate(data, spec, candidate_prior(prior, effect, prior), (effect,), 0.5,
+                       keep_residuals=True, candidate=True)
+        dof = len(run.theta) - len(base.theta)
+        lam, p, _ = Reference.of(base).compare(run, dof)
+        results.append(SimpleNamespace(effect=effect, statistic=lam, dof=dof,
+                                       significant_alone=p < 0.01 / len(candidates),
+                                       p_adjusted=p, run=run))
+    runs = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(),
+                           on_bag=lambda fn, *a: fn(data, *a))
+    state = auto._State([], (), prior)
+    top, refused = auto._top(runs, state, base, None, prior, prior, results, lambda s: None)
+    return top, refused, results, leads.of_run(base, 0.5)
+
+
+def test_a_step_on_one_detector_quadrant_gets_no_library_name():
+    """Unseen case ``quadrant`` (stars of the upper-left quadrant moved 0.05 px along u and
+    v; no library effect makes a step), reduced to 150 s: image_plane_tilt is significant
+    alone (Λ 80 for 2 dof, p 4e-18; the 300 s bag's discover added it at 9.5 mrad), but the
+    detector's per-cell offset field is a lead (t 17, 0.025 px) and the tilt explains
+    nothing beyond it (ratio −10.9 < 0): ``discover`` does not add it.  On main it was added."""
+    top, refused, results, found = _top_beside_leads(
+        lambda sim: tracker_errors.quadrant_step(sim, 0.05), ("image_plane_tilt",))
+    assert results[0].significant_alone, results[0]
+    cells = found["cells"]
+    assert cells["p_value"] < 1e-6 and 0.01 < cells["size_px"] < 0.05, cells
+    assert top is None, top.effect
+    (c, b), = refused
+    assert c.effect == "image_plane_tilt" and not b["needed"] and b["lead"] == "cells", b
