@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from stellar_cal_ros.diagnosis import stats
-from stellar_cal_ros.diagnosis.noise_stars import CELL_GRID
+from stellar_cal_ros.diagnosis.noise_stars import CELL_GRID, detector_cells
 from stellar_cal_ros.io.calibration import Calibration
 
 #: what a refused candidate's reason calls each field and the fit beside it
@@ -57,10 +57,7 @@ def columns(sub: dict, kind: str, centre: tuple[float, float]) -> np.ndarray | N
         x[:, 1, 1] = m
         x[:, 0, 2], x[:, 1, 2] = m * du / r, m * dv / r
         return x
-    uv = np.stack([du, dv], 1)
-    ext = 2.0 * np.nanmax(np.abs(uv), axis=0) + 1.0
-    ij = np.clip((uv / ext + 0.5) * CELL_GRID, 0, CELL_GRID - 1e-9).astype(int)
-    cell = ij[:, 0] * CELL_GRID + ij[:, 1]
+    cell, _ = detector_cells(_uv(sub), centre)
     used = np.unique(cell)
     if len(used) < 2:
         return None
@@ -132,17 +129,13 @@ def field_fit(res, calibration: Calibration, fraction: float, kind: str
     if not np.any(coef):
         return None
     sw = {k: np.asarray(v)[window] for k, v in res.items()}
-    xw = columns(sw, kind, centre)
-    if xw is None:
-        return None
-    # the window's cells that the frames before held no star of add nothing (coef 0)
     if kind == "cells":
-        xw = _align_cells(sb, sw, centre, coef)
-        if xw is None:
-            return None
-        pattern = xw
+        pattern = _align_cells(sb, sw, centre, coef)
     else:
-        pattern = xw @ coef
+        xw = columns(sw, kind, centre)
+        pattern = None if xw is None else xw @ coef
+    if pattern is None:
+        return None
     fit = stats.whitened_fit(sw, pattern)
     if fit is None:
         return None
@@ -153,22 +146,27 @@ def field_fit(res, calibration: Calibration, fraction: float, kind: str
             "size_px": float(np.percentile(size, 99)) if len(size) else 0.0}
 
 
+def _uv(sub: dict) -> np.ndarray:
+    """``(n, 2)`` centroids (px) of a residual table's rows."""
+    return np.stack([np.asarray(sub["u"], float), np.asarray(sub["v"], float)], 1)
+
+
 def _align_cells(sb: dict, sw: dict, centre: tuple[float, float], coef: np.ndarray
                  ) -> np.ndarray | None:
-    """The window's stars' offsets of the cell field fitted before it (``(n, 2)`` px)."""
-    def cells(sub, ext):
-        uv = np.stack([np.asarray(sub["u"], float) - centre[0],
-                       np.asarray(sub["v"], float) - centre[1]], 1)
-        ij = np.clip((uv / ext + 0.5) * CELL_GRID, 0, CELL_GRID - 1e-9).astype(int)
-        return ij[:, 0] * CELL_GRID + ij[:, 1]
+    """The window's stars' offsets of the cell field fitted before it (``(n, 2)`` px).
 
-    uvb = np.stack([np.asarray(sb["u"], float) - centre[0],
-                    np.asarray(sb["v"], float) - centre[1]], 1)
-    ext = 2.0 * np.nanmax(np.abs(uvb), axis=0) + 1.0
-    used = np.unique(cells(sb, ext))
+    On the grid of the frames before the window (:func:`columns`' cells, their extent);
+    the window's cells that those frames held no star of add nothing (coefficient 0).
+    ``None`` when the window's stars lie in fewer than two cells or the field is 0 on them.
+    """
+    if len(np.unique(detector_cells(_uv(sw), centre)[0])) < 2:  # on the window's own grid
+        return None
+    before, ext = detector_cells(_uv(sb), centre)
+    window, _ = detector_cells(_uv(sw), centre, ext)
     table = np.zeros((CELL_GRID * CELL_GRID, 2))
+    used = np.unique(before)
     table[used, 0], table[used, 1] = coef[0::2], coef[1::2]
-    out = table[cells(sw, ext)]
+    out = table[window]
     return out if np.any(out) else None
 
 

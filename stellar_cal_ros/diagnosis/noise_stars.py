@@ -793,19 +793,32 @@ MAGNITUDE_CLASSES = 3
 CELL_MIN = 8
 
 
+def detector_cells(uv: np.ndarray, centre: tuple[float, float],
+                   ext: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each star's cell of the :data:`CELL_GRID` × :data:`CELL_GRID` detector grid, and its extent.
+
+    The cell is a flat index; the extent is px along u and v: twice the largest offset from
+    ``centre`` plus 1, unless ``ext`` gives another table's (:mod:`~stellar_cal_ros.
+    diagnosis.leads` puts a window's stars on the grid of the frames before it).
+    """
+    d = uv - np.asarray(centre)
+    if ext is None:
+        ext = 2.0 * np.nanmax(np.abs(d), axis=0) + 1.0
+    ij = np.clip((d / ext + 0.5) * CELL_GRID, 0, CELL_GRID - 1e-9).astype(int)
+    return ij[:, 0] * CELL_GRID + ij[:, 1], ext
+
+
 def _cells(uv: np.ndarray, magnitude: np.ndarray, centre: tuple[float, float]
            ) -> tuple[np.ndarray, np.ndarray]:
     """Cell index of each star (detector grid × magnitude class) and which cells count."""
-    ext = 2.0 * np.nanmax(np.abs(uv - np.asarray(centre)), axis=0) + 1.0
-    ij = np.clip(((uv - np.asarray(centre)) / ext + 0.5) * CELL_GRID, 0,
-                 CELL_GRID - 1e-9).astype(int)
+    grid, _ = detector_cells(uv, centre)
     fin = np.isfinite(magnitude)
     mclass = np.zeros(len(uv), dtype=int)
     if fin.sum() > MAGNITUDE_CLASSES * CELL_MIN:
         edges = np.quantile(magnitude[fin], np.linspace(0, 1, MAGNITUDE_CLASSES + 1)[1:-1])
         mclass = np.searchsorted(edges, np.nan_to_num(magnitude, nan=float(np.median(
             magnitude[fin]))), side="right")
-    cell = (ij[:, 0] * CELL_GRID + ij[:, 1]) * MAGNITUDE_CLASSES + mclass
+    cell = grid * MAGNITUDE_CLASSES + mclass
     counts = np.bincount(cell, minlength=CELL_GRID**2 * MAGNITUDE_CLASSES)
     return cell, counts[cell] >= CELL_MIN
 
