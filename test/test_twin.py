@@ -190,3 +190,42 @@ def test_twin_smoothing_window_is_a_fixed_time_and_unchanged_at_100_hz(user_run)
     kept = np.ptp(smooth_samples(x, smooth_count(t))[100:-100]) / np.ptp(x[100:-100])
     old = np.ptp(smooth_samples(x, 11)[100:-100]) / np.ptp(x[100:-100])
     assert kept == pytest.approx(0.938, abs=0.01) and old == pytest.approx(0.712, abs=0.01)
+
+
+def test_a_sky_effect_at_the_wrong_fraction_of_its_physical_size_is_implausible(user_run):
+    """A structure with aberration's pattern at a size physics rules out is flagged
+    'implausible', never ranked significant (added as if it were aberration); at its
+    physical size it is ranked and estimated there.
+
+    Twins of the 150 s bag (seed 3), aberration injected at a scale s (1 = physical);
+    candidates aberration, proper motion, refraction.  Measured: s = -0.13 fits
+    -0.098 +- 0.022 (4.5 sigma from zero, score p ~1e-5): main ea90b97 ranked it
+    significant (its rule also asked |estimate| > 5 sigma); s = -0.5 fits -0.47 +- 0.022;
+    s = 1 fits 1.03 +- 0.022.  The rule: significant at the family-wise 1 % and more than
+    5 sigma and 25 % from the physical value.
+    """
+    from stellar_cal_ros.diagnosis.discover import (
+        PHYSICAL_TOL_FRACTION,
+        PHYSICAL_TOL_SIGMA,
+        method_spec,
+        rank_candidates,
+    )
+
+    _, data, cal = user_run
+    pool = ["aberration", "proper_motion", "refraction"]
+    for scale in (-0.13, -0.5, 1.0):
+        twin = make_twin(data, cal, {"aberration": [scale]}, seed=3, method="psce")
+        _, results = rank_candidates(twin.data, cal, method_spec("psce"), [],
+                                     candidates=pool)
+        c = next(r for r in results if r.effect == "aberration")
+        est, sig = c.estimate["scale"], c.sigma["scale"]
+        assert abs(est - scale) < 4 * sig, (scale, est, sig)  # the fit is the injected one
+        if scale == 1.0:
+            assert c.status == "ranked" and c.significant, (c.status, c.reason)
+            continue
+        assert abs(est - 1.0) > max(PHYSICAL_TOL_SIGMA * sig, PHYSICAL_TOL_FRACTION)
+        assert c.status == "implausible", (scale, c.status, est, sig, c.p_adjusted)
+        assert c.p_adjusted < 0.01 and not c.significant, (scale, c.p_adjusted)
+        assert f"the data fit {est:.3g}" in c.reason, c.reason
+        # nothing with aberration's pattern is added in its name
+        assert not any(r.significant and r.effect == "aberration" for r in results)
