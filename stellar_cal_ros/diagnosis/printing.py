@@ -246,8 +246,10 @@ def verify_lines(summary: dict[str, Any]) -> list[str]:
     if not rows:
         return []
     holds = sum(r["holds"] for r in rows)
+    safe = sum(r.get("verdict") == "conservative" for r in rows)
     out = [f"verify (twins of this bag, the effect injected at its printed MDB, seed "
-           f"{rows[0]['seed']}): {holds} of {len(rows)} claims hold"]
+           f"{rows[0]['seed']}): {holds} of {len(rows)} claims hold"
+           + (f" ({safe} conservatively: on the safe side)" if safe else "")]
     out += [f"  {verify_text(r)}" for r in rows]
     return out
 

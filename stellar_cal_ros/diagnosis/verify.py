@@ -18,6 +18,13 @@ twin with the same seed without it.  Then, per effect:
 * **bias**: the current model's estimates on the two twins: the shift of every listed
   quantity against the printed bias (within ± 30 %: holds).
 
+A claim is one-sided where it errs on the safe side (:func:`claim_verdict`): a score
+response *above* the power band (the effect is seen more easily than printed: the MDB
+overstates what could hide) and a shift *smaller* than printed (the printed bias overstates
+what the effect does) are conservative: the claim holds, and the record says so
+(``verdict`` "conservative").  A response below the band, a shift larger than printed or
+in the other direction at its size, fails.
+
 "Would a 5 arcsec misalignment have been caught on my data?" is then answered on the
 user's own motion, star field and noise.
 """
@@ -161,10 +168,8 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
         checks.append({"quantity": q, "printed": printed, "measured": shift.get(q),
                        "ratio": shift.get(q, np.nan) / printed if printed else np.nan})
     ratios = [c["ratio"] for c in checks]
-    holds_bias = all(RATIO_RANGE[0] <= r <= RATIO_RANGE[1] for r in ratios)
     response = float(sps.ncx2.sf(crit, k, lam)) if np.isfinite(lam) else float("nan")
-    holds_score = bool(np.isfinite(response)
-                       and POWER_RANGE[0] <= response <= POWER_RANGE[1])
+    verdict, conservative = claim_verdict(response, ratios)
     c0 = cands0.get(eid)
     return {"effect": eid, "parameter": param, "size": size, "sign": sign,
             "size_shown": _shown(eid, param, size),
@@ -172,10 +177,36 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
             "named": bool(c is not None and c.significant),
             "noncentrality": lam, "expected_noncentrality": entry.get("lam0"),
             "paired_power": response, "dof": k, "alpha": entry["alpha"],
-            "biases": checks, "holds": bool(holds_bias and holds_score),
+            "biases": checks, "holds": verdict != "fails", "verdict": verdict,
+            "conservative": conservative,
             "twin_counts": counts, **_decision(c),
             "clean_score_statistic": (c0.screen.statistic if c0 is not None
                                       and c0.screen is not None else float("nan"))}
+
+
+def claim_verdict(power: float, ratios: list[float]) -> tuple[str, list[str]]:
+    """``("holds" | "conservative" | "fails", what errs on the safe side)`` of one claim.
+
+    ``power``: the paired score response's power at the test's level (the MDB claims
+    :data:`POWER_RANGE`); ``ratios``: each listed quantity's measured shift / printed bias
+    (:data:`RATIO_RANGE` holds).  A power above the band (seen more easily than printed) and
+    a shift smaller than printed, of either sign, err on the safe side: the claim holds,
+    conservatively.  A power below the band or not measured, a shift larger than printed,
+    in the other direction at its size, or not measured, fails.
+    """
+    safe = []
+    if not (np.isfinite(power) and power >= POWER_RANGE[0]):
+        return "fails", []
+    if power > POWER_RANGE[1]:
+        safe.append("seen more easily than printed")
+    small = False
+    for r in ratios:
+        if not np.isfinite(r) or r > RATIO_RANGE[1] or r <= -RATIO_RANGE[0]:
+            return "fails", []
+        small = small or r < RATIO_RANGE[0]
+    if small:
+        safe.append("moved less than printed")
+    return ("conservative" if safe else "holds"), safe
 
 
 def flagged(c) -> bool:
@@ -226,4 +257,8 @@ def describe(rec: dict[str, Any]) -> str:
     for c in rec["biases"]:
         parts.append(f"{c['quantity']} moved {shown(c['quantity'], c['measured'])} "
                      f"(printed {shown(c['quantity'], c['printed'])})")
-    return "; ".join(parts) + (" -> holds" if rec["holds"] else " -> DOES NOT HOLD")
+    if not rec["holds"]:
+        return "; ".join(parts) + " -> DOES NOT HOLD"
+    safe = rec.get("conservative") or []
+    return "; ".join(parts) + (f" -> holds (conservative: {', '.join(safe)})" if safe
+                               else " -> holds")
