@@ -225,8 +225,9 @@ def test_diagnosis_json_does_not_depend_on_how_the_screening_is_split(tmp_path, 
     ``env_stale`` (frames released with a stale temperature: here the sensor's series
     ends early) went into the counts when that part was the base run (``--workers 0``) and not
     when it was not (2 workers): the model, PSCE's baseline, reads no temperature, and a
-    replay of it counts none.  The file has no timing field: the whole of it is compared
-    (floats to rounding)."""
+    replay of it counts none.  The candidate's stale input is ``env_stale_candidates``,
+    joined over the screening's runs by frame.  The file has no timing field: the whole of
+    it is compared (floats to rounding)."""
     from stellar_cal_ros.diagnosis import parallel, screening
     from stellar_cal_ros.diagnosis import run as run_module
 
@@ -274,6 +275,9 @@ def test_diagnosis_json_does_not_depend_on_how_the_screening_is_split(tmp_path, 
                for k in ("candidates", "screened_out") for e in one[k])
     assert one["counts"] == two["counts"]
     assert one["counts"]["env_received"] > 0 and "env_stale" not in one["counts"]
+    # the frames thermal was scored on with the stale temperature are counted apart, as
+    # many as a model that reads the temperature runs with (absent before, issue 21)
+    assert one["counts"]["env_stale_candidates"] == stale, (one["counts"], stale)
     # every key, string, integer and flag equal; floats to rounding: the parts carry other
     # consider sets, so the compiled update works on matrices of other sizes (measured:
     # 1.6e-12 relative at most, the MDBs and biases of the sensitivities)

@@ -466,6 +466,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         # every screening run is the current model's run (consider parameters leave the
         # filter alone): the first that finished is the reference
         base = next((s for s in screens if s.ok), None)
+        if base is not None:
+            _count_stale_candidates(base, screens)
         tasks = [_candidate_task(r, prior, extra, e) for e in rerun] + late
         out.update(r.runs.run_all(tasks if base is not None else [current] + tasks, r.done))
     else:
@@ -503,6 +505,22 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     if condition:
         condition_on_top(r, extra, results, keep_residuals=keep_residuals)
     return base, results, extras
+
+
+def _count_stale_candidates(base: RunSummary, screens: list[RunSummary]) -> None:
+    """Count the frames a candidate was scored on with a stale input only it needs.
+
+    ``env_stale_candidates`` in ``base``'s counters (e.g. a thermal candidate's head
+    temperature).
+
+    ``env_stale`` counts the frames the *model* ran with a stale input (what a replay of it
+    counts); the screening's frames are joined over its runs by stamp, so that the count is
+    the same however the candidates are split among them (a frame's wait for an input ends
+    at the same timeout whichever other inputs its run waits for).
+    """
+    stale = set().union(*(s.consider_stale_ns for s in screens if s.ok))
+    if stale:
+        base.counters = {**base.counters, "env_stale_candidates": len(stale)}
 
 
 def decide(c: CandidateResult, m: int, n_stats: int) -> None:

@@ -94,6 +94,10 @@ class RunSummary:
     #: the window's log-likelihood frame by frame, ``(2, frames)`` (frame indices, terms:
     #: :meth:`~stellar_cal_ros.methods.results.RunStats.frame_log_likelihood`), when asked for
     frame_loglik: np.ndarray | None = None
+    #: stamps of the frames its consider parameters (a screening run's candidates) were
+    #: scored on with a stale input only they need (:attr:`~stellar_cal_ros.methods.driver.
+    #: Calibrator.consider_stale_ns`)
+    consider_stale_ns: tuple[int, ...] = ()
     error: str = ""
 
     @property
@@ -150,6 +154,7 @@ def run_statistics(result: ReplayResult, fraction: float,
         window=result.stats.window(fraction),
         calibration=result.calibration,
         counters=dict(result.counters),
+        consider_stale_ns=tuple(getattr(result, "consider_stale_ns", ())),
         derived=derived,
         epp_jacobian=J,
         residuals=result.residuals if keep_residuals else None,

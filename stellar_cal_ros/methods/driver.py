@@ -143,6 +143,9 @@ class Calibrator(ImuRelease):
         if spec.needs_site:
             self.requires.add("site")
             self.model_requires.add("site")
+        #: what only the consider parameters need: a frame released without it has their
+        #: sensitivities computed on a stale value (:attr:`consider_stale_ns`)
+        self._consider_requires = self.requires - self.model_requires
         self.window_ns = int(round(self.driver.reorder_window_s * 1e9))
         self._jump_ns = int(self.driver.clock_jump_s * 1e9)  # a jump of the IMU clock
         self.env_wait_ns = int(round(self.driver.environment_wait_s * 1e9))
@@ -157,6 +160,10 @@ class Calibrator(ImuRelease):
     # ------------------------------------------------------------------ state
     def _reset_state(self) -> None:
         self.counters = InputCounters()
+        #: stamps of the frames released while an input only the consider parameters need
+        #: (:attr:`_consider_requires`) did not cover them (not counted in ``env_stale``):
+        #: a stamp list, so that the runs of a split screening can be joined
+        self.consider_stale_ns: list[int] = []
         self.filter = None
         self.t0_ns: int | None = None
         self.nominal_dt: float | None = None
@@ -591,6 +598,8 @@ class Calibrator(ImuRelease):
             self._last_frame_ns = stamp
             if stale:
                 self.counters.env_stale += 1
+            elif self._consider_requires and self._env_missing(stamp, self._consider_requires):
+                self.consider_stale_ns.append(stamp)
             if run is None:
                 out.append(self._process(fr, inp, ctx))
             else:

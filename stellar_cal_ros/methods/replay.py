@@ -555,7 +555,8 @@ def _result(cal: Calibrator, t_read: float, t_filter: float, skipped) -> ReplayR
         residuals=cal.residuals.table(), history=hist,
         counters=counters, read_seconds=t_read, filter_seconds=t_filter,
         duration=duration, filter=flt, derived=derived, stats=cal.stats,
-        method=cal.method, effects=list(cal.effects))
+        method=cal.method, effects=list(cal.effects),
+        consider_stale_ns=list(cal.consider_stale_ns))
 
 
 def _log_counters(counters: dict[str, int]) -> None:

@@ -867,6 +867,8 @@ class ReplayResult:
     stats: RunStats | None = None
     method: str = ""
     effects: list[str] = field(default_factory=list)
+    #: frames released with a stale input only the consider parameters need (stamps, ns)
+    consider_stale_ns: list[int] = field(default_factory=list)
 
     @property
     def speed(self) -> float:
