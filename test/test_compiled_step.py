@@ -233,19 +233,10 @@ def _damaged(data):
                                imu_f=data.imu_f[keep], frames=frames)
 
 
-def test_batched_frame_steps_equal_one_call_a_frame(sim_data, monkeypatch) -> None:
-    """A replay's runs of frames stepped in one compiled call (``StarFilter.batched_step``)
-    and committed a batch at once (``StarFilter.commit_batch``: counters, gate counts, gyro
-    watch; the driver's statistics and history rows per batch) give what one call a frame
-    gives, bit for bit: the state, the consider sensitivity and its score and information
-    (the evaluation window starts mid-run), the history and residual tables, the statistics,
-    the gyro watch's records, chain and verdicts and every counter — on a bag with IMU gaps,
-    dropped, gated, skipped, re-acquiring, invalid and repeated frames; and without tables
-    (no ``FrameUpdate`` made on the batch path) the same statistics."""
+def _count_batches(monkeypatch) -> tuple[list, list]:
+    """Lists that record each frame taken from a batch and each batch committed at once."""
     from stellar_cal_ros.methods import frame_step
 
-    sim, data = sim_data
-    data = _damaged(data)
     taken, committed = [], []
     original = frame_step.FrameBatch.take
     commit = StarFilter.commit_batch
@@ -262,6 +253,21 @@ def test_batched_frame_steps_equal_one_call_a_frame(sim_data, monkeypatch) -> No
 
     monkeypatch.setattr(frame_step.FrameBatch, "take", counted)
     monkeypatch.setattr(StarFilter, "commit_batch", counted_commit)
+    return taken, committed
+
+
+def test_batched_frame_steps_equal_one_call_a_frame(sim_data, monkeypatch) -> None:
+    """A replay's runs of frames stepped in one compiled call (``StarFilter.batched_step``)
+    and committed a batch at once (``StarFilter.commit_batch``: counters, gate counts, gyro
+    watch; the driver's statistics and history rows per batch) give what one call a frame
+    gives, bit for bit: the state, the consider sensitivity and its score and information
+    (the evaluation window starts mid-run), the history and residual tables, the statistics,
+    the gyro watch's records, chain and verdicts and every counter — on a bag with IMU gaps,
+    dropped, gated, skipped, re-acquiring, invalid and repeated frames; and without tables
+    (no ``FrameUpdate`` made on the batch path) the same statistics."""
+    sim, data = sim_data
+    data = _damaged(data)
+    taken, committed = _count_batches(monkeypatch)
     runs = {}
     for batched in (False, True):
         monkeypatch.setattr(StarFilter, "batched_step", batched)
@@ -286,6 +292,12 @@ def test_batched_frame_steps_equal_one_call_a_frame(sim_data, monkeypatch) -> No
         for key in wa:
             np.testing.assert_array_equal(np.asarray(wa[key], dtype=object),
                                           np.asarray(wb[key], dtype=object), err_msg=key)
+    _same_run(one, batch, 1)
+
+
+def _same_run(one, batch, rows: int) -> None:
+    """Two replays' state, consider sensitivity, tables (``rows`` or more) and statistics
+    are the same floats."""
     fa, fb = one.filter, batch.filter
     for name in ("theta", "P", "R_i_b"):
         np.testing.assert_array_equal(getattr(fa, name), getattr(fb, name), err_msg=name)
@@ -295,10 +307,56 @@ def test_batched_frame_steps_equal_one_call_a_frame(sim_data, monkeypatch) -> No
         np.testing.assert_array_equal(getattr(sa, name), getattr(sb, name), err_msg=name)
     for table in ("history", "residuals"):
         ta, tb = getattr(one, table), getattr(batch, table)
-        assert list(ta) == list(tb) and len(ta["t"]) > 0
+        assert list(ta) == list(tb) and len(ta["t"]) >= rows
         for k in ta:
             np.testing.assert_array_equal(ta[k], tb[k], err_msg=f"{table}.{k}")
     assert vars(one.stats) == vars(batch.stats)
+
+
+@pytest.mark.parametrize("gyro_fault", ["raise", "off"])
+def test_batched_steps_with_a_time_offset_equal_one_call_a_frame(monkeypatch,
+                                                                  gyro_fault) -> None:
+    """A time offset held as a consider parameter (the screening's candidate) keeps every
+    frame's exposure shift at its value: the replay's frames are stepped in batches, and the
+    state, the consider sensitivity (with its ``∂uv/∂Δt`` column: the offset's information
+    is positive), its score and information, the tables, statistics and counters are those
+    of one call a frame, bit for bit.  An estimated time offset moves the shift at each
+    update: its frames go one call a frame (no batch), the same floats.  A 19 s bag whose
+    prior offset (4 ms) is not the truth's (0): the shift is in every exposure time; with the
+    gyro watch (its first frames: each frame taken from the batch) and without it (batches
+    committed at once)."""
+    sim = simulate(get_scenario("psce_rotations"), duration=19.0, seed=4)
+    data = bag_data_from_simulation(sim)
+    prior = copy.deepcopy(sim.prior)
+    prior.time_offset = 0.004
+    taken, committed = _count_batches(monkeypatch)
+    for kw in ({"consider": ["time_offset", "radial_k3"]},
+               {"effects": ["time_offset"], "consider": ["radial_k3"]}):
+        runs = {}
+        for batched in (False, True):
+            monkeypatch.setattr(StarFilter, "batched_step", batched)
+            taken.clear()
+            committed.clear()
+            runs[batched] = replay(data, prior, "psce", gyro_fault=gyro_fault, **kw)
+        one, batch = runs[False], runs[True]
+        f = batch.filter
+        n_up = batch.counters["updates"]
+        assert n_up >= 30 and f.model.has_time_effect
+        i_dt = f.model.slices["time_offset"].start
+        assert f.model.fixed_exposure_shift(f.theta, f.P_est) == \
+            (None if "effects" in kw else prior.time_offset)
+        if "effects" in kw:  # estimated: the shift moves, no batch
+            assert i_dt < f.P_est and sum(taken) == sum(committed) == 0
+            assert f.theta[i_dt] != prior.time_offset
+        else:
+            assert i_dt >= f.P_est and f.theta[i_dt] == prior.time_offset
+            assert sum(taken) + sum(committed) >= 0.9 * n_up
+            if gyro_fault == "off":
+                assert sum(committed) >= 0.5 * n_up
+            k = i_dt - f.P_est
+            assert f.sensitivity.info[k, k] > 0 and np.any(f.sensitivity.M[:, k] != 0)
+        assert one.counters == batch.counters
+        _same_run(one, batch, 30)
 
 
 def test_compiled_frame_inputs_equal_numpy() -> None:

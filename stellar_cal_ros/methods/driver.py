@@ -560,15 +560,16 @@ class Calibrator(ImuRelease):
         lookahead = self.driver.imu_lookahead_s
         imu_end = self._imu_end_rel()
         processed = False
+        # a frame's exposure shift when every frame has the same (no time effect: the prior's;
+        # a time effect held as a consider parameter: its value; no context needed)
+        flt = self.filter
+        fixed_shift = self.model.fixed_exposure_shift(flt.theta, flt.P_est)
         # a replay's ready frames go to the filter together (one compiled call steps a run of
         # them: StarFilter.prepare_frames) when what readies a frame does not depend on the
-        # filter's state (no time effect: the exposure shift is the prior's); identification
-        # needs the filter's attitude: the frames before it go first
-        run: list | None = [] if self.driver.batch_frames and \
-            not self.model.has_time_effect else None
-        # without a time effect a frame's exposure shift is the prior's (no context needed)
-        fixed_shift = None if self.model.has_time_effect else \
-            self.model.exposure_shift(self.filter.theta, None)
+        # filter's state (that fixed shift); identification needs the filter's attitude:
+        # the frames before it go first
+        run: list | None = [] if self.driver.batch_frames and fixed_shift is not None \
+            else None
         env_keys = self._env_keys()
         while self._frames_pending:
             fr = self._frames_pending[0]

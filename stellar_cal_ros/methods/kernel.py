@@ -696,7 +696,8 @@ class StarFilter(Acquisition):
         ``frames``: ``(uv, u_i, ctx, sigma, t_rel, accumulate)`` of the frames
         :meth:`process_frame` will be given next, in that order (``accumulate``: the
         sensitivity's flag the caller will set for it).  The leading frames that take the
-        fused step as things stand (valid stars, in order, no time effect, no covariance
+        fused step as things stand (valid stars, in order, an exposure shift the same for
+        every frame — :meth:`~.star_model.StarModel.fixed_exposure_shift` —, no covariance
         check due among them) are stepped by :func:`~.frame_step.frame_steps` at once; each
         :meth:`process_frame` then takes its frame's result and state instead of a call of
         its own — the same floats.  Any other frame (or any other call) drops what is left.
@@ -705,14 +706,16 @@ class StarFilter(Acquisition):
         self._batch = None
         fs = self._fused_step() if self.compiled_step and self.batched_step and \
             self.initialized else False
-        if not fs or self.model.has_time_effect or len(frames) < 2:
+        # a frame's exposure time must not depend on the frames before it in the batch: the
+        # prior's offset, or a time effect held as a consider parameter
+        shift = self.model.fixed_exposure_shift(self.theta, self.P_est) if fs else None
+        if shift is None or len(frames) < 2:
             return 0
         c = self.config
         every = c.covariance_check_every
         left = every - self.counters.updates % every if every and not self.checks_deferred \
             else len(frames)
         left = min(left, self.batch_frames_max)  # (the batch keeps each frame's state)
-        shift = self.model.exposure_shift(self.theta, None)
         t, k, last = self.t, self._k, self.last_stamp
         imu = self.imu
         run = []

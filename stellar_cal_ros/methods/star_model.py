@@ -248,6 +248,23 @@ class StarModel:
             return float(self.prior.time_offset)
         return self.time_shift(theta, ctx() if callable(ctx) else ctx)[0]
 
+    def fixed_exposure_shift(self, theta: np.ndarray, n_estimated: int) -> float | None:
+        """The exposure shift of every frame of a filter that estimates ``θ[:n_estimated]``.
+
+        A filter keeps its consider parameters (the trailing entries) at their values: with
+        no TIME effect (the prior's offset), or TIME effects whose shift is a constant map of
+        their value (:meth:`Effect.affine_form`: no frame dependence) and whose parameters
+        are all consider, every frame's :meth:`exposure_shift` is this same float (from
+        ``theta``, the filter's nominal θ).  None when the shift can change between frames
+        (an estimated or frame-dependent TIME effect).
+        """
+        if not self.has_time_effect:
+            return float(self.prior.time_offset)
+        for eff in self._by_stage[Stage.TIME]:
+            if eff.affine_form() is None or self.slices[eff.id].start < n_estimated:
+                return None
+        return self.exposure_shift(theta, None)
+
     def time_shift(self, theta: np.ndarray, ctx: FrameContext) -> tuple[float, np.ndarray]:
         """Seconds from the stamp to the modelled exposure, and its gradient (P,)."""
         if not self.has_time_effect:
