@@ -143,6 +143,30 @@ class NoiseScales:
             x, nan=float(np.median(self.edges)) if self.edges else 0.0), side="right")
         return idx
 
+    def times_groups(self, by: str, edges: tuple[float, ...], factors: tuple[float, ...]
+                     ) -> NoiseScales:
+        """These scales with every star's group factor multiplied by ``factors`` of ``by``.
+
+        A later measurement of the stars' σ is relative to the σ these scales give: groups it
+        finds compose with the groups kept (the bins of both, each the product of its two
+        factors), they do not replace them.  Groups of another variable than :attr:`group_by`
+        cannot be one grouping: ValueError (the caller folds them, :func:`~stellar_cal_ros.
+        diagnosis.noise.judge_stars`).
+        """
+        if self.group_by and self.group_by != by:
+            raise ValueError(f"star groups by {by!r} on groups by {self.group_by!r}")
+        old_e = np.asarray(self.edges if self.group_by else (), dtype=float)
+        old_f = np.asarray(self.factors if self.group_by else (1.0,), dtype=float)
+        new_e, new_f = np.asarray(edges, dtype=float), np.asarray(factors, dtype=float)
+        e = np.unique(np.concatenate([old_e, new_e]))
+        # each bin of the union lies inside one bin of each: its lower edge (or below the
+        # first) finds both
+        x = np.concatenate([[e[0] - 1.0], e]) if len(e) else np.zeros(1)
+        f = old_f[np.searchsorted(old_e, x, side="right")] \
+            * new_f[np.searchsorted(new_e, x, side="right")]
+        return self.replace(group_by=by, edges=tuple(float(v) for v in e),
+                            factors=tuple(float(v) for v in f))
+
     def star_sigma(self, sigma: np.ndarray, default: float, magnitude: np.ndarray,
                    uv: np.ndarray, centre: tuple[float, float]) -> np.ndarray:
         """σ (px) a run uses for stars whose messages state ``sigma`` (0: unknown)."""
@@ -200,6 +224,9 @@ class NoiseScales:
     def parse(cls, text: str) -> NoiseScales:
         """``star=1.67,gyro=5,accel=1,unknown=0.05,rho=0.81`` (the command line's form).
 
+        ``by=magnitude,edges=4.51,factors=1/0.5``: the stars' σ groups (:attr:`group_by`,
+        :attr:`edges`, :attr:`factors`), as the diagnosis advises them (:meth:`advice`).
+
         ``rho``: the stars' noise correlated from frame to frame (lag-1 ρ of each star's
         track, :attr:`star_rho`), ``star`` then the whole scale a white-noise filter needs
         (the diagnosis's advice for correlated noise, ``star=K,rho=R``): the run's
@@ -209,18 +236,47 @@ class NoiseScales:
         """
         keys = {"star": "star", "gyro": "gyro", "accel": "accel",
                 "unknown": "unknown_sigma_px", "rho": "star_rho", "share": "star_ar_share"}
-        values: dict[str, float] = {}
+        values: dict[str, Any] = {}
         for item in text.replace(";", ",").split(","):
             if not item.strip():
                 continue
             key, sep, val = item.partition("=")
             key = key.strip()
+            if sep and key == "by":
+                values["group_by"] = val.strip()
+                continue
+            if sep and key in ("edges", "factors"):
+                try:
+                    values[key] = tuple(float(x) for x in val.split("/") if x.strip())
+                except ValueError:
+                    raise ValueError(f"--noise-scale {key}: numbers separated by '/', got "
+                                     f"{val!r}") from None
+                continue
             if not sep or key not in keys:
                 raise ValueError(f"--noise-scale takes star=S,gyro=G,accel=A,unknown=PX,"
-                                 f"rho=R,share=W; "
+                                 f"rho=R,share=W,by=GROUPING,edges=E1/E2,factors=F0/F1/F2; "
                                  f"got {item!r}")
             try:
                 values[keys[key]] = float(val)
             except ValueError:
                 raise ValueError(f"--noise-scale {key}: not a number: {val!r}") from None
+        if ("edges" in values or "factors" in values) and not values.get("group_by"):
+            raise ValueError("--noise-scale edges/factors need by=magnitude|radius|column|row")
         return cls(**values)
+
+    def advice(self, digits: int = 4) -> str:
+        """The ``--noise-scale`` text of these scales' stars' part (:meth:`parse` reads it).
+
+        ``star=S``, or with groups ``by=B,edges=E1/E2,factors=F0/F1/F2`` (each group's
+        factor of the messages' σ: ``S`` times its own, the σ :meth:`star_sigma` gives),
+        and ``unknown=PX`` where the σ of σ-0 stars was measured.
+        """
+        if self.group_by:
+            out = (f"by={self.group_by},edges="
+                   + "/".join(f"{e:.{digits}g}" for e in self.edges)
+                   + ",factors=" + "/".join(f"{self.star * f:.{digits}g}" for f in self.factors))
+        else:
+            out = f"star={self.star:.{digits}g}"
+        if self.unknown_sigma_px > 0:
+            out += f",unknown={self.unknown_sigma_px:.{digits}g}"
+        return out

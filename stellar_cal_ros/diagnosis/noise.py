@@ -55,16 +55,19 @@ from stellar_cal_ros.diagnosis import noise_structure
 from stellar_cal_ros.diagnosis.noise_imu import ScaleSearch
 from stellar_cal_ros.diagnosis.noise_stars import (
     ALPHA,
+    MATERIAL,
     StarNoise,
     Table,
     group_index,
+    group_x,
+    significant_grouping,
     star_groups,
     star_noise,
     used_sigma,
 )
 
-#: a scale within this fraction of 1 is "as stated" (a 5 % error changes every σ by 5 %)
-MATERIAL = 0.05
+#: the frames' fit made again this many times at the measured σ (:func:`measure_stars`)
+FIT_PASSES = 2
 
 
 def default_sigma(method: str) -> float:
@@ -87,8 +90,11 @@ def measure_stars(result, data, method: str, fraction: float,
                           cam.width, cam.height)
 
     def on(mask):
+        # (the frames' attitude fit weighted again by the σ measured where the data find the
+        # σ used wrong for part of the stars: noise_stars.star_noise's passes)
         return star_noise(res, sig, msg, mask, cam.fx, cam.fy, (cam.cx, cam.cy),
-                          result.calibration.R_imu_st)
+                          result.calibration.R_imu_st, size=(cam.width, cam.height),
+                          passes=FIT_PASSES)
 
     sn = on(evaluation_mask(res, fraction))
     if sn is not None:
@@ -139,6 +145,9 @@ class NoiseVerdict:
     unknown_base_px: float = math.nan  #: the σ the run assumed for them (the default)
     groups: list[dict[str, Any]] = field(default_factory=list)
     group: dict[str, Any] | None = None  #: the grouping applied (or None)
+    #: the groups applied composed with those of earlier rounds, of the messages' σ:
+    #: ``{by, edges, scales, sigma}`` (None: this round's are the messages' own)
+    composed: dict[str, Any] | None = None
     imu: dict[str, ScaleSearch] = field(default_factory=dict)  #: gyro / accel searches
     rejected: list[str] = field(default_factory=list)  #: components not as stated
     method: str = "psce"
@@ -244,10 +253,15 @@ class NoiseVerdict:
             if smp.get("axes"):
                 axes = ("; per axis x" + ", x".join(f"{a:.3g}" for a in smp["axes"])
                         + " (x, y, z): one scale for all axes, their RMS")
-            out.append(f"the {_IMU_WORDS[comp][0]} looks {s:.3g} +- {e:.2g} x {word} than stated "
-                       f"(the {comp}'s own samples{axes}{check}): use --noise-scale "
-                       f"{_IMU_WORDS[comp][2]}={getattr(self.applied, comp):.3g}")
+            out.append(f"the {_IMU_WORDS[comp][0]} looks {s:.3g} +- {e:.2g} x {word} than "
+                       f"{self._imu_stated(comp)}(the {comp}'s own samples{axes}{check}): use "
+                       f"--noise-scale {_IMU_WORDS[comp][2]}={getattr(self.applied, comp):.3g}")
         return out
+
+    def _imu_stated(self, comp: str) -> str:
+        """"stated " or, on a later round, the scale applied before (its factor's reference)."""
+        k = getattr(self.stated, comp)
+        return "stated " if k == 1.0 else f"the x{k:.3g} of the stated applied before "
 
     def _beyond_lines(self) -> list[str]:
         """Motion the stars see beyond the IMU's own noise (not applied as noise)."""
@@ -277,11 +291,11 @@ class NoiseVerdict:
         """
         a = self.applied
         if not a.group_by:
-            return f"use --noise-scale star={a.star:.3g}"
+            return f"use --noise-scale {a.advice(3)}"
         bins = _bin_text(list(a.edges), GROUP_UNITS.get(a.group_by, ""))
         return (f"with the {a.group_by} groups measured before, now x" + ", x".join(
             f"{a.star * f:.3g} ({b})" for f, b in zip(a.factors, bins, strict=True))
-            + " of the messages' sigma (`replay --estimate-noise` measures them)")
+            + f" of the messages' sigma: use --noise-scale {a.advice()}")
 
     def _stated_varies(self) -> bool:
         lo, hi = self.stated_sigma_range
@@ -336,11 +350,19 @@ class NoiseVerdict:
                 if np.isfinite(self.stated_sigma_px) else
                 "0 = unknown in every message: the factors are of "
                 f"the {self.unknown_base_px:.3g} px default")
+            # (on a later round the groups are said composed with the scales applied
+            # before, of the messages' σ: this round's alone are of the σ the run used)
+            c = self.composed or g
+            bins = _bin_text(c["edges"], GROUP_UNITS[c["by"]])
+            before = "" if self.composed is None else \
+                ", with the scales measured before (this round x" + ", x".join(
+                    f"{s:.3g}" for s in g["scales"]) + ")"
             out.append(f"the stars' sigma ({said}) depends on "
-                       + g["by"] + ": " + ", ".join(
+                       + c["by"] + ": " + ", ".join(
                            f"x{s:.3g} +- {e:.2g} ({b})" for s, e, b in zip(
-                               g["scales"], g["sigma"], bins, strict=True))
-                       + " (applied per group; `replay --estimate-noise` measures them)")
+                               c["scales"], c["sigma"], bins, strict=True))
+                       + f"{before} (applied per group: use --noise-scale "
+                       f"{self.applied.advice()}; `replay --estimate-noise` measures them)")
         if self.changes:
             c = self.changes
             out.append(f"the stars' sigma changes over the run: x{c['before']:.3g} +- "
@@ -373,7 +395,9 @@ class NoiseVerdict:
                        + (f"(used for them x{self.correlated['sigma_scale']:.3g} for the "
                           "frame-to-frame correlation: "
                           f"{self.unknown_sigma_px * self.correlated['sigma_scale']:.3g} px)"
-                          if self.correlated else "(used for them)"))
+                          if self.correlated else "(used for them" + (
+                              f": use --noise-scale unknown={self.applied.unknown_sigma_px:.3g})"
+                              if self.applied.unknown_sigma_px > 0 else ")")))
         units = {"gyro": ("gyro noise (angle random walk)", "gyro"),
                  "accel": ("accelerometer noise (velocity random walk)", "accel")}
         for comp, search in self.imu.items():
@@ -390,8 +414,8 @@ class NoiseVerdict:
                 s, e = search.value, search.sigma
                 word = "larger" if s > 1 else "smaller"
                 out.append(f"the {units[comp][0]} looks {s:.3g} +- {e:.2g} x {word} than "
-                           f"stated: use --noise-scale {units[comp][1]}="
-                           f"{getattr(self.applied, comp):.3g}")
+                           f"{self._imu_stated(comp)}".rstrip() + ": use --noise-scale "
+                           f"{units[comp][1]}={getattr(self.applied, comp):.3g}")
         if self.imu_skipped:
             out.append(f"IMU noise taken as stated: {self.imu_skipped}")
         if not self.rejected and not self.unknown:
@@ -411,12 +435,55 @@ class NoiseVerdict:
             if self.stated.identity:
                 out.append("noise as stated (" + ", ".join(parts) + ")")
             else:  # measured again on a later round: relative to the scales applied so far
-                d = self.stated.as_dict()
-                out.append("noise as measured before (" + ", ".join(
-                    f"{k.split('_')[0]} x{v:.3g}" for k, v in d.items()
-                    if k.endswith("_scale") and v != 1.0) + " of the stated; now "
-                    + ", ".join(parts) + " of that)")
+                out.append(self._measured_before_line(parts))
+        elif "star" not in self.rejected and (self.stated.star != 1.0 or self.stated.group_by):
+            # (another component rejected: the stars' σ kept from before is still said, with
+            # the value to use; it was not said at all)
+            out.append(self._measured_before_line(
+                [f"stars' sigma x{self.star:.3g} +- {self.star_sigma:.2g}"], stars_only=True))
         return out
+
+    def _measured_before_line(self, parts: list[str], stars_only: bool = False) -> str:
+        """A later round that keeps the scales applied before: the σ they lead to, to use.
+
+        Its measurements are of the σ applied so far: said composed with it, of the stated
+        σ, with the ``--noise-scale`` to use (the product; the last round's measurement is
+        the best one of it).  "noise as measured before (star x1.73 of the stated; now
+        stars' sigma x0.97 +- 0.0042 of that)" left the product to the user (unseen case
+        ``psce_sky_900s`` with its σ field 0.6x: 1.68, for a true 1.67).
+        """
+        st = self.stated
+        use = []
+        said = []
+        if st.star != 1.0 or st.group_by:
+            k = st.star * self.star
+            if st.group_by:
+                bins = _bin_text(list(st.edges), GROUP_UNITS.get(st.group_by, ""))
+                said.append("stars' sigma x" + ", x".join(
+                    f"{k * f:.3g} ({b})" for f, b in zip(st.factors, bins, strict=True))
+                    + f" +- {st.star * self.star_sigma:.2g} of the messages' sigma (by "
+                    f"{st.group_by})")
+            else:
+                said.append(f"stars' sigma {self._stated_px()} -> {self._stated_px(k)} px "
+                            f"(x{k:.3g} +- {st.star * self.star_sigma:.2g} of the stated)")
+            use.append(st.replace(star=k).advice())
+        for comp in ("gyro", "accel"):
+            before = getattr(st, comp)
+            if before == 1.0 or stars_only:
+                continue
+            v, e = self.scale_of(comp)
+            if not np.isfinite(e):
+                v, e = 1.0, math.nan
+            k = before * v
+            said.append(f"{comp} x{k:.3g}" + (f" +- {before * e:.2g}" if np.isfinite(e) else "")
+                        + " of the stated")
+            use.append(f"{comp}={k:.3g}")
+        d = st.as_dict()
+        now = (" (this round: " + ", ".join(parts) + " of the scales applied before, "
+               + ", ".join(f"{k.split('_')[0]} x{v:.3g}" for k, v in d.items()
+                           if k.endswith("_scale") and v != 1.0) + ")")
+        return ("noise as measured before: " + ", ".join(said) + now
+                + (": use --noise-scale " + ",".join(use) if use else ""))
 
 
 #: the messages' σ (5-95 % points) vary beyond this ratio: said as a range, not a median
@@ -433,6 +500,53 @@ def _bin_text(edges: list[float], unit: str) -> list[str]:
         return ["all"]
     return ([f"< {e[0]} {unit}"] + [f"{a}-{b} {unit}" for a, b in zip(e, e[1:], strict=False)]
             + [f">= {e[-1]} {unit}"])
+
+
+def _compose_groups(applied: NoiseScales, stated: NoiseScales, best: dict[str, Any],
+                    overall: float, sn: StarNoise, grouped: np.ndarray
+                    ) -> tuple[NoiseScales, dict[str, Any] | None]:
+    """``applied`` with the groups ``best`` measured on top of the groups ``stated`` kept.
+
+    The scales ``best`` found are of the σ ``stated`` gave, which held an earlier round's
+    groups: the applied factors are the products (:meth:`NoiseScales.times_groups`), not this
+    round's alone, which replaced them.  Groups of another variable are folded into this
+    round's bins: each bin's factor times the kept factors' mean over its stars, as its
+    scale measured them (``1 / √(mean of m / f²)``); the earlier variable's own steps are then
+    lost.  Returns the scales and, where an earlier grouping or scale was composed, the
+    composed groups ``{by, edges, scales, sigma}`` of the messages' σ (else None).
+    """
+    f_new = np.asarray(best["scales"], dtype=float) / overall
+    sig_new = np.asarray(best["sigma"], dtype=float)
+    fold = np.ones(len(f_new))
+    if stated.group_by and stated.group_by != best["by"]:
+        old = np.asarray(stated.factors, dtype=float)[np.searchsorted(
+            np.asarray(stated.edges, dtype=float), group_x(sn, stated.group_by), side="right")]
+        gi = group_index(sn, best)
+        for j in range(len(f_new)):
+            k = grouped & (gi == j)
+            if sn.m[k].sum() > 0:
+                fold[j] = 1.0 / math.sqrt(float(np.sum(sn.m[k] / old[k] ** 2) / sn.m[k].sum()))
+        applied = applied.replace(group_by="", edges=(), factors=())
+    out = applied.times_groups(best["by"], tuple(best["edges"]), tuple(f_new * fold))
+    # (a bin of the union no star lies in, between an edge kept and a step of this round's
+    # beside it: left out, its edge dropped; no star's σ changes)
+    e, f = list(out.edges), list(out.factors)
+    filled = np.bincount(np.searchsorted(np.asarray(e, dtype=float), group_x(sn, best["by"])[
+        grouped], side="right"), minlength=len(f)) > 0
+    for k in range(len(f) - 1, -1, -1):
+        if not filled[k] and len(f) > 1:
+            del f[k], e[min(k, len(e) - 1)]
+    out = out.replace(edges=tuple(e), factors=tuple(f))
+    if not (stated.group_by or stated.star != 1.0):
+        return out, None
+    # each composed bin's σ: its scale's σ of this round times the factor it multiplied
+    e_new = np.asarray(best["edges"], dtype=float)
+    x = np.concatenate([[out.edges[0] - 1.0], out.edges]) if out.edges else np.zeros(1)
+    j = np.searchsorted(e_new, x, side="right")
+    before = np.asarray(out.factors) / f_new[j] / fold[j] * out.star / overall
+    composed = np.asarray(out.factors) * out.star
+    return out, {"by": best["by"], "edges": list(out.edges), "scales": composed.tolist(),
+                 "sigma": (sig_new[j] * fold[j] * before).tolist()}
 
 
 def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int, int],
@@ -456,9 +570,11 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
                     "rms_px": sn.repeat_removed}
     if known.any():
         v.star, v.star_sigma, v.star_dof = sn.group(known)
-        v.stated_sigma_px = float(np.median(sn.sigma_px[known])) / v.stated.star
-        v.stated_sigma_range = tuple(float(x) / v.stated.star for x in np.percentile(
-            sn.sigma_px[known], [5.0, 95.0]))
+        # (the messages' own σ: the σ used holds the groups kept from an earlier round too)
+        said, k = (sn.sigma_px[known], v.stated.star) if sn.stated_px is None or \
+            v.stated.group_by == "" else (sn.stated_px[known], 1.0)
+        v.stated_sigma_px = float(np.median(said)) / k
+        v.stated_sigma_range = tuple(float(x) / k for x in np.percentile(said, [5.0, 95.0]))
         v.star_p = p_two_sided(v.star, v.star_sigma)
         if v.star_p < ALPHA / n_tests and abs(v.star - 1.0) > MATERIAL:
             v.rejected.append("star")
@@ -477,17 +593,15 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
     # which the σ-0 stars then take with the groups' factors instead of one measured σ)
     grouped = known if known.any() else np.ones(len(known), dtype=bool)
     v.groups = star_groups(sub, size, grouped)
-    best = min(v.groups, key=lambda g: g["p_value"], default=None)
-    if best is not None and best["p_value"] < ALPHA / (n_tests * len(v.groups)):
-        sc = np.asarray(best["scales"], dtype=float)
-        if np.all(np.isfinite(sc)) and sc.max() / sc.min() > 1.0 + 2 * MATERIAL:
-            overall = sub.group(grouped)[0]
-            v.group = best
-            applied = applied.replace(
-                star=v.stated.star * overall, star_rho=0.0, star_ar_share=1.0, group_by=best["by"],
-                edges=tuple(best["edges"]), factors=tuple(float(x) for x in sc / overall))
-            if "star" not in v.rejected:
-                v.rejected.append("star")
+    best = significant_grouping(v.groups, n_tests)
+    if best is not None:
+        overall = sub.group(grouped)[0]
+        v.group = best
+        applied, v.composed = _compose_groups(applied.replace(
+            star=v.stated.star * overall, star_rho=0.0, star_ar_share=1.0), v.stated, best,
+            overall, sub, grouped)
+        if "star" not in v.rejected:
+            v.rejected.append("star")
     if known.any():
         # judged at each star's own group's scale when groups are applied: at the one
         # scale, the stars of a group above it are its "tails" (mag_faint_over2: "1 %

@@ -31,6 +31,9 @@ ALPHA = 0.01
 GROUP_BINS = 8
 #: neighbouring bins whose scales differ by less than this many σ are one group
 MERGE_Z = 3.0
+#: a scale within this fraction of 1 is "as stated" (a 5 % error changes every σ by 5 %);
+#: groups are applied when their scales span more than twice it
+MATERIAL = 0.05
 
 Table = dict[str, np.ndarray]
 
@@ -227,13 +230,108 @@ class StarNoise:
 
 def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np.ndarray,
                fx: float, fy: float, centre: tuple[float, float],
-               R_imu_st: np.ndarray | None = None, flips: bool = False) -> StarNoise | None:
+               R_imu_st: np.ndarray | None = None, flips: bool = False,
+               size: tuple[int, int] | None = None, passes: int = 0) -> StarNoise | None:
     """The within-frame estimate over the accepted stars of ``mask`` (see the module doc).
 
     With the installation ``R_imu_st``, a rolling shutter's shape is removed first where
     it is significant (:func:`~.noise_structure.minus_rolling`).  The cells' sign-flip p
     (:attr:`StarNoise.structure_flip_p`) is drawn where their χ²'s p is below
     :data:`ALPHA`, or always with ``flips``.
+
+    ``passes``: where the estimate finds the σ the run used wrong for part of the stars
+    (σ groups significant as the verdict applies them, :func:`significant_grouping`, with
+    ``size`` the detector's; or the σ-0 stars' scale unlike the others'), the frames'
+    attitude fit is made again up to ``passes`` times with each star weighted by its
+    measured σ (:func:`fit_weights`).  Helmert's estimate is unbiased at the right weights
+    only: a frame's attitude fit weighted by the σ being measured takes from each star's
+    residual a share of the others' noise at the wrong weight (unseen case
+    ``mag_faint_over2``, faint stars stated 2x: the bright group read x0.949 +- 0.016 for a
+    true 1.0).  The scales stay of the σ the run used (``sigma_px``); where nothing is
+    significant no pass is made and the estimate is the one fit's, bit for bit.
+    """
+    out = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre, R_imu_st, flips)
+    last = None
+    for _ in range(passes):
+        w = fit_weights(out, res, sigma_px, msg_sigma, centre, size)
+        if w is None or (last is not None and np.nanmax(np.abs(w / last - 1.0)) < WEIGHTS_TOL):
+            break
+        out, last = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre,
+                                     R_imu_st, flips, w), w
+    return out
+
+
+#: the fit's weights are iterated no further once no star's moves by more than this
+WEIGHTS_TOL = 1e-3
+
+
+def significant_grouping(groups: list[dict[str, Any]], n_tests: int) -> dict[str, Any] | None:
+    """The grouping of the stars' σ the verdict applies, or None.
+
+    The one of :func:`star_groups` with the smallest Bartlett p, when that p is below
+    :data:`ALPHA` over ``n_tests`` components and the groupings (Bonferroni) and its
+    groups' scales span more than ``1 + 2`` :data:`MATERIAL`.
+    """
+    best = min(groups, key=lambda g: g["p_value"], default=None)
+    if best is None or not best["p_value"] < ALPHA / (n_tests * len(groups)):
+        return None
+    sc = np.asarray(best["scales"], dtype=float)
+    if not (np.all(np.isfinite(sc)) and sc.max() / sc.min() > 1.0 + 2 * MATERIAL):
+        return None
+    return best
+
+
+def fit_weights(sn: StarNoise | None, res: Table, sigma_px: np.ndarray,
+                msg_sigma: np.ndarray, centre: tuple[float, float],
+                size: tuple[int, int] | None) -> np.ndarray | None:
+    """Each row's measured σ over the σ the run used, for :func:`star_noise`'s fit; or None.
+
+    The stars of stated σ: their group's scale (the grouping :func:`significant_grouping`
+    would apply with one component tested); σ-0 stars: their own scale where it differs
+    from the stated stars' by more than :data:`MATERIAL` and 3 of its σ.  None where neither
+    applies (the fit's weights are then right as far as the data tell).
+    """
+    if sn is None:
+        return None
+    known = ~sn.unknown
+    w = np.ones(len(sigma_px))
+    msg = np.asarray(msg_sigma, dtype=float)
+    moved = False
+    if known.any():
+        s, e, _ = sn.group(known)
+        if not (math.isfinite(s) and s > 0):
+            return None
+        best = significant_grouping(star_groups(sn, size, known), 1)
+        if best is not None:
+            uv = np.stack([np.asarray(res["u"], dtype=float), np.asarray(res["v"], dtype=float)],
+                          1)
+            x = {"magnitude": lambda: np.nan_to_num(
+                    np.asarray(res["magnitude"], dtype=float),
+                    nan=float(np.median(sn.magnitude[np.isfinite(sn.magnitude)]))
+                    if np.isfinite(sn.magnitude).any() else 0.0),
+                 "radius": lambda: np.hypot(uv[:, 0] - centre[0], uv[:, 1] - centre[1]),
+                 "column": lambda: uv[:, 0], "row": lambda: uv[:, 1]}[best["by"]]()
+            g = np.searchsorted(np.asarray(best["edges"], dtype=float), x, side="right")
+            w = np.asarray(best["scales"], dtype=float)[g] / s
+            moved = True
+        if sn.unknown.any():
+            su, esu, _ = sn.group(sn.unknown)
+            if math.isfinite(su) and su > 0 and abs(su / s - 1.0) > MATERIAL and \
+                    abs(su - s) > 3.0 * math.hypot(esu, e):
+                w = np.where(msg == 0, su / s, w)
+                moved = True
+    return np.where(np.isfinite(w) & (w > 0), w, 1.0) if moved else None
+
+
+def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
+                     mask: np.ndarray, fx: float, fy: float, centre: tuple[float, float],
+                     R_imu_st: np.ndarray | None = None, flips: bool = False,
+                     weights: np.ndarray | None = None) -> StarNoise | None:
+    """:func:`star_noise` with the frames' fit weighted by ``sigma_px × weights`` (None: 1).
+
+    The residuals and the columns projected through the fit are then brought back to the
+    units of ``sigma_px`` (× ``weights``): ``E‖r_i‖² = s_i² (2 − h_i)`` with ``h_i`` the
+    weighted fit's leverage and ``s_i`` star ``i``'s σ over ``sigma_px``.
     """
     from stellar_cal_ros.diagnosis.stats import FrameFit, rolling_columns
 
@@ -243,8 +341,15 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     if len(idx) == 0:
         return None
     sub = {k: np.asarray(res[k])[idx] for k in ("frame", "du", "dv", "x_st", "y_st", "z_st")}
-    fit = FrameFit(sub, sigma_px[idx], fx, fy)  # (the frames' fit, for every column below)
-    r, lev, n_frames = fit.residual(sub["du"], sub["dv"]), fit.leverage, fit.frames
+    w = None if weights is None else np.asarray(weights, dtype=float)[idx]
+    fit_sigma = sigma_px[idx] if w is None else sigma_px[idx] * w
+    fit = FrameFit(sub, fit_sigma, fx, fy)  # (the frames' fit, for every column below)
+
+    def back(x: np.ndarray) -> np.ndarray:
+        """Whitened by the fit's σ -> by ``sigma_px`` (the weights' units: identity if none)."""
+        return x if w is None else x * w.reshape((-1,) + (1,) * (x.ndim - 1))
+
+    r, lev, n_frames = back(fit.residual(sub["du"], sub["dv"])), fit.leverage, fit.frames
     uv = np.stack([np.asarray(res["u"], dtype=float)[idx], np.asarray(res["v"],
                                                                     dtype=float)[idx]], 1)
     # structure is not noise: a residual field that repeats from frame to frame (a missing
@@ -262,7 +367,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     # structure, not a σ growing with the row nor noise correlated along the tracks)
     def projected(c: np.ndarray) -> np.ndarray:
         """Columns ``c`` (n, 2) in px through the frames' attitude fit, whitened as ``r``."""
-        return fit.residual(c[:, 0], c[:, 1])
+        return back(fit.residual(c[:, 0], c[:, 1]))
 
     x = rolling_columns({k: np.asarray(res[k])[idx] for k in res}, (fx, fy), centre, R_imu_st)
     if x is not None:
@@ -371,8 +476,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
             use = np.isfinite((r_f**2).sum(1)) & ((2.0 - lev) * share_f > 0)
             dm = float(np.sum(((2.0 - lev) * sub_share * d_cells)[use]))
         out.log_variance = _correlated_variance(
-            sub, sigma_px[idx], fx, fy, r_cells, cell, keep_cell, stars, final,
-            out.repeat_removed > 0, lev, (scatter_share, scatter_rho), out, dm)
+            sub, fit_sigma, fx, fy, r_cells, cell, keep_cell, stars, final,
+            out.repeat_removed > 0, lev, (scatter_share, scatter_rho), out, dm, w)
         if not (math.isfinite(out.log_variance) and out.log_variance > 0.0):
             # (a stochastic trace of a few probes on a tiny table can come out <= 0: the
             # sandwich times the tracks' factor then, never a sqrt of a negative)
@@ -474,7 +579,8 @@ def _correlated_variance(sub: Table, sigma: np.ndarray, fx: float, fy: float,
                          r_cells: np.ndarray, cell: np.ndarray, keep_cell: np.ndarray,
                          stars: np.ndarray, final: tuple[np.ndarray, np.ndarray],
                          star_removed: bool, lev: np.ndarray, lags: tuple[float, float],
-                         out: StarNoise, dm_drho: float = 0.0) -> float:
+                         out: StarNoise, dm_drho: float = 0.0,
+                         weights: np.ndarray | None = None) -> float:
     """:attr:`StarNoise.log_variance`: the variance of ``log s² = log Σ q − log m``.
 
     ``Σ q = zᵀ A z``: the steps of :func:`star_noise` as projections of the rows its
@@ -502,6 +608,9 @@ def _correlated_variance(sub: Table, sigma: np.ndarray, fx: float, fy: float,
     used = np.isfinite((r_f[rows] ** 2).sum(1)) & ((2.0 - lev[rows]) * share_f[rows] > 0)
     fit = _minus_frame_fit(A, sel["frame"])
     steps = [fit, _minus_means(cell[rows], keep)]
+    if weights is not None:  # (the fit's whitening back to the run's σ: a diagonal step)
+        wr = np.asarray(weights, dtype=float)[rows][:, None, None]
+        steps.insert(1, lambda z: z * wr)
     if star_removed:
         steps.append(_minus_means(track, keep & (share_f[rows] > 0)))
     steps.append(lambda z: np.where(used[:, None, None], z, 0.0))
@@ -913,12 +1022,16 @@ def _stated_steps(sn: StarNoise, x: np.ndarray, use: np.ndarray) -> np.ndarray:
     """Where the messages' σ steps along ``x`` (midpoints), if it is a few steps of it."""
     if sn.stated_px is None:
         return np.empty(0)
-    ok = use & np.isfinite(x) & np.isfinite(sn.stated_px) & (sn.stated_px > 0)
+    # (and of the σ the run used: the messages' times the scales applied, whose groups kept
+    # from an earlier round step too; where the messages' σ is 0 it is not a step of theirs)
+    used = np.where(sn.stated_px > 0, sn.sigma_px, sn.stated_px)
+    ok = use & np.isfinite(x) & np.isfinite(used) & (used > 0)
     if ok.sum() < 2:
         return np.empty(0)
     order = np.argsort(x[ok], kind="stable")
-    xs, ss = x[ok][order], sn.stated_px[ok][order]
-    change = np.flatnonzero(np.abs(np.diff(ss)) > 0.01 * np.minimum(ss[1:], ss[:-1]))
+    xs, ss, ms = x[ok][order], used[ok][order], sn.stated_px[ok][order]
+    change = np.flatnonzero((np.abs(np.diff(ss)) > 0.01 * np.minimum(ss[1:], ss[:-1]))
+                            | (np.abs(np.diff(ms)) > 0.01 * np.minimum(ms[1:], ms[:-1])))
     if not 0 < len(change) <= STATED_STEPS or np.any(xs[change + 1] <= xs[change]):
         return np.empty(0)  # constant, star by star, or two σ at one value of x
     return 0.5 * (xs[change] + xs[change + 1])
