@@ -221,6 +221,8 @@ class NoiseVerdict:
                                     "sigma_of_sigma_px": self.unknown_sigma_sigma}
         if self.groups:
             out["star_groups"] = self.groups
+        if self.composed:  # (with the scales of earlier rounds, of the messages' σ)
+            out["star_groups_composed"] = self.composed
         if self.repeat:
             out["star_repeat"] = self.repeat
         if self.correlated:
