@@ -547,7 +547,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "accelerometer VRW by A; unknown=PX sets the sigma of stars whose "
                         "message says 0; rho=R declares the stars' noise correlated from "
                         "frame to frame (lag-1 R; S then the whole scale a white-noise "
-                        "filter needs): the consistency is judged against it (what "
+                        "filter needs): the consistency is judged against it; "
+                        "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2 gives "
+                        "the stars' sigma per group, each factor of the messages' sigma (what "
                         "`diagnose` prints as 'use --noise-scale')")
     r.add_argument("--estimate-noise", action="store_true",
                    help="measure the noise scales from the run first (stars' sigma: "

@@ -56,9 +56,21 @@ def test_noise_scales_parse_store_and_apply():
     cfg = s.apply(PsceConfig())
     assert cfg.gyro_arw_deg_sqrth == pytest.approx(5 * PsceConfig().gyro_arw_deg_sqrth)
     assert cfg.noise is s and NoiseScales().identity and not s.identity
-    for bad in ("star=-1", "star=x", "speed=2"):
+    for bad in ("star=-1", "star=x", "speed=2", "edges=4.5,factors=1/2", "by=magnitude,"
+                "edges=4.5,factors=1", "by=colour,edges=1,factors=1/2", "by=row,edges=a"):
         with pytest.raises(ValueError):
             NoiseScales.parse(bad)
+    # the groups as the diagnosis advises them (each group's factor of the messages' σ)
+    p = NoiseScales.parse("by=magnitude,edges=4.02/4.8,factors=0.9/1.3/1.6,unknown=0.1")
+    assert (p.group_by, p.edges, p.factors, p.star, p.unknown_sigma_px) == \
+        ("magnitude", (4.02, 4.8), (0.9, 1.3, 1.6), 1.0, 0.1)
+    g2 = g.replace(unknown_sigma_px=0.07)
+    assert NoiseScales.parse(g2.advice()).star_sigma(
+        np.array([0.01, 0.01, 0.0]), 0.05, np.array([4.0, 6.0, 4.0]), np.zeros((3, 2)),
+        (0.0, 0.0)) == pytest.approx([0.02, 0.06, 0.07])
+    # later groups compose with the kept ones: the bins of both, products
+    c = g.times_groups("magnitude", (4.5, 5.5), (1.0, 2.0, 4.0))
+    assert (c.edges, c.factors) == ((4.5, 5.0, 5.5), (1.0, 2.0, 6.0, 12.0))
 
 
 @pytest.mark.parametrize("stated", [1.0, 0.6, 1.6])
