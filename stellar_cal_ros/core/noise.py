@@ -269,7 +269,8 @@ class NoiseScales:
 
         ``star=S``, or with groups ``by=B,edges=E1/E2,factors=F0/F1/F2`` (each group's
         factor of the messages' σ: ``S`` times its own, the σ :meth:`star_sigma` gives),
-        and ``unknown=PX`` where the σ of σ-0 stars was measured.
+        and ``unknown=PX`` where the σ of σ-0 stars was measured, ``rho=R[,share=W]`` where
+        the stars' noise is declared correlated.
         """
         if self.group_by:
             out = (f"by={self.group_by},edges="
@@ -279,4 +280,7 @@ class NoiseScales:
             out = f"star={self.star:.{digits}g}"
         if self.unknown_sigma_px > 0:
             out += f",unknown={self.unknown_sigma_px:.{digits}g}"
+        if self.star_rho:  # (the correlation the scale stands for: its consistency's reference)
+            out += f",rho={self.star_rho:.{digits}g}" + (
+                f",share={self.star_ar_share:.{digits}g}" if self.star_ar_share != 1.0 else "")
         return out
