@@ -406,8 +406,8 @@ CASES: dict[str, Case] = {
                      outside=True, regressor="", post=_quadrant,
                      scenario_changes={"centroid_noise_px": 0.0}),
     "sway_flex": Case("swaying_base", "mount flexure 10 arcsec per unit lateral gravity on the "
-                      "swaying base, whose gravity direction changes without a step about a "
-                      "gyro axis (not in the library)", outside=True, regressor="gravity",
+                      "swaying base, turned by the sway and its acceleration, which no gyro "
+                      "term follows (not in the library)", outside=True, regressor="gravity",
                       sim_effects={**SWAY_CLEAN, "mount_flexure": 10.0}, duration=200.0),
 }
 

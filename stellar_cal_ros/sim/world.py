@@ -173,6 +173,8 @@ class TruthWorld:
 class MountFlexure(Effect):
     """Simulator-only: tracker rotation ∝ lateral gravity in the tracker frame.
 
+    ``ctx.gravity_st``: the direction of the load the mount carries, minus the specific
+    force (gravity on a still base; gravity and the base's acceleration on a moving one).
     Not in the library: the diagnosis must report it as unexplained structure.
     """
 
@@ -395,8 +397,12 @@ def _simulate_stars(
 
     # Pass 2: each frame rendered through the effects with the true attitude (the filters'
     # measurement function, StarModel.predict, at the true parameters)
-    g_i = world.R_i_e(t_true) @ world.gravity_e
-    g_st = np.einsum("nji,nj->ni", R_i_st, g_i)
+    # the load a mount bends under (MountFlexure): the specific force's direction, gravity
+    # and the base's acceleration alike (a mount cannot tell them apart; what the
+    # accelerometer measures, the diagnosis's flexure probe and the twins use).  On a still
+    # base it is the gravity direction; on the swaying base the sway's acceleration turns it
+    # by ~0.05 rad RMS, as much as the sway turns gravity (until 2026-11-27: gravity alone)
+    g_st = -world.specific_force_b(t_true) @ world.installation().as_matrix()
     g_st /= np.linalg.norm(g_st, axis=1, keepdims=True)
     uv = np.full((len(star_idx), 2), np.nan)
     d_z = np.full(len(star_idx), -1.0)
