@@ -161,6 +161,10 @@ class _State:
     #: indexes into ``remainders`` of the tests after an add that took up a significant
     #: remainder but explains nothing beyond a flexure either (the two not told apart)
     aliased: set[int] = field(default_factory=set)
+    #: the latest round's outside-library fits made by :func:`_top` (``gravity``: one run)
+    lead: dict[str, dict | None] = field(default_factory=dict)
+    #: the latest round's candidates tested beside a lead: effect → lead → its beyond test
+    beside: dict[str, dict[str, dict | None]] = field(default_factory=dict)
 
     def checkable(self) -> list[str]:
         """Added effects whose need is tested this round."""
@@ -263,6 +267,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             model = list(spec.baseline) + state.extra
             tell(f"round {k}: {', '.join(model)}; re-runs {runs.description}")
             prior = rerun_prior(state.start)
+            state.lead, state.beside = {}, {}
             base, results, extras = rank_round(
                 r, state.start, state.extra, [e for e in pool if e not in state.dropped],
                 condition=False, more=_checks(state, prior, calibration, pool),
@@ -321,6 +326,9 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 for rj in step["rejected"]:
                     if rj["effect"] == c.effect:
                         rj["reason"] = why
+            if state.beside:
+                # every candidate tested beside a lead: its ratio beyond it, added or not
+                step["beside_leads"] = state.beside
             step.update({"action": action or "stop", "removed": removed or None,
                          "exchanged_for": added if action == "exchange" else None,
                          "checks": checks,
@@ -438,23 +446,38 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     """
     refused = []
     fields = None  # the outside-library leads of the current model, once a candidate asks
+    state.beside = {}  # each candidate tested beside a lead: its beyond results
     for c in results:
         if not c.significant_alone:
             continue
         if fields is None:
             fields = leads.significant(leads.of_run(base, runs.fraction), ALPHA)
-        if shutter is not None or fields:
+        # a mount bending with gravity: a lead for a candidate that may stand in for one
+        # (before an add: after one, the flexure-shaped test and ``state.outside`` decide)
+        gravity = not state.outside and flexure.may_stand_in(c.effect)
+        if gravity and "gravity" not in state.lead:
+            state.lead["gravity"] = here if here is not None else leads.gravity_of(
+                runs, base, prior, tuple(state.extra))
+            if here is None:
+                tell("testing for a gravity-shaped remainder (mount flexure) on "
+                     f"{'+'.join(state.extra) or 'the baseline'}")
+        beside = dict(fields)
+        if gravity:
+            beside.update(leads.significant({"gravity": state.lead["gravity"]}, ALPHA))
+        if shutter is not None or beside:
             what = ", ".join(([rolling.REMAINDER[0]] if shutter is not None else [])
-                             + [leads.NAMES[k][0] for k in fields])
+                             + [leads.NAMES[k][0] for k in beside])
             tell(f"{c.effect}: testing it beyond {what}")
             with_c = runs.on_bag(leads.candidate_on_bag, runs.spec,
                                  candidate_prior(prior, c.effect, calibration),
                                  tuple(state.extra) + (c.effect,), runs.fraction, runs.noise,
-                                 runs.classes) or {}
+                                 runs.classes, "gravity" in beside) or {}
             dispersion = Reference.of(base).dispersion
             b = None if shutter is None else rolling.stand_in(
                 c, dispersion, with_c.get("rolling"), shutter, ALPHA)
-            for kind, lead in fields.items():
+            for kind, lead in beside.items():
+                state.beside.setdefault(c.effect, {})[kind] = _beyond_lead(
+                    c, dispersion, with_c.get(kind), lead)
                 b = b or leads.stand_in(c, dispersion, with_c.get(kind), lead, kind, ALPHA)
             if b is not None:
                 refused.append((c, b))
@@ -471,6 +494,17 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             return c, refused
         refused.append((c, b))
     return None, refused
+
+
+def _beyond_lead(c: CandidateResult, dispersion: float, with_c: dict | None, lead: dict
+                 ) -> dict[str, Any] | None:
+    """A candidate's beyond test beside a lead and the lead's test beside it (for the JSON)."""
+    b = flexure.beyond(c.statistic, c.dof, dispersion, with_c, lead)
+    if b is None:
+        return None
+    return dict(b, lead_t=float(lead["t"]), lead_p_value=float(lead["p_value"]),
+                lead_size_px=float(lead["size_px"]), beside_t=float(with_c["t"]),
+                beside_p_value=float(with_c["p_value"]))
 
 
 def _step(k: int, model: list[str], base: RunSummary, results: list[CandidateResult],
@@ -524,7 +558,10 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     # the outside-library fields a candidate was refused beside: their lines, if still there
     kinds = sorted({b["lead"] for s in path for b in (s.get("beyond_remainder") or {}).values()
                     if b.get("lead")})
-    fields = leads.findings(final, fraction, kinds, ALPHA) if kinds else []
+    known = dict(state.lead)
+    if "gravity" in kinds and "gravity" not in known:
+        known["gravity"] = leads.gravity_of(runs, final, state.prior, tuple(state.extra))
+    fields = leads.findings(final, fraction, kinds, ALPHA, known) if kinds else []
     summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
                      panels, plots, "stellar_cal discovery", images, verdict, write=False,
                      outside=outside + fields, like=like, runs=runs, hiding=hidden,

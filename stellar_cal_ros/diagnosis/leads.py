@@ -23,13 +23,21 @@ current model (Bonferroni over the fields); a candidate is then added only if it
 the data beyond the field, or the field is no longer significant beside it (the rolling
 shutter's rule, :func:`~stellar_cal_ros.diagnosis.rolling.stand_in`).  Nothing runs unless a
 candidate is significant alone; on a bag where no field is a lead nothing changes.
+
+A third field is a mount bending with gravity (unseen case ``sway_flex``: 10″/g on the
+swaying base was named gyro_scale_factor −46, −43 ppm with nothing unexplained).  Its one
+pattern is the flexure probe's response (:mod:`~stellar_cal_ros.diagnosis.flexure`, the
+test made after an add, the same functions): one more run of the current model, with the
+probe, and one of the candidate's, asked only for a candidate that may stand in for a
+flexure (not a camera effect) and before any add found a remainder (after one,
+``state.outside`` and :func:`~stellar_cal_ros.diagnosis.flexure.beyond` decide).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.diagnosis import flexure, stats
 from stellar_cal_ros.diagnosis.noise_stars import CELL_GRID, detector_cells
 from stellar_cal_ros.io.calibration import Calibration
 
@@ -37,7 +45,11 @@ from stellar_cal_ros.io.calibration import Calibration
 NAMES = {
     "cells": ("the detector-cells-shaped remainder", "a per-cell offset field"),
     "magnitude": ("the magnitude-shaped remainder", "an offset linear in magnitude"),
+    "gravity": ("the gravity-shaped remainder", "a mount flexure"),
 }
+#: the fields made of columns of the residual table (:func:`columns`); the gravity field is
+#: the flexure probe's response (:mod:`~stellar_cal_ros.diagnosis.flexure`), one more run
+FIELDS = ("cells", "magnitude")
 
 
 def columns(sub: dict, kind: str, centre: tuple[float, float]) -> np.ndarray | None:
@@ -73,25 +85,45 @@ def columns(sub: dict, kind: str, centre: tuple[float, float]) -> np.ndarray | N
 REGRESSORS = {
     "cells": "the detector's cells (a per-cell offset field, outside the library)",
     "magnitude": "magnitude (an offset field along u, v and the radius, outside the library)",
+    "gravity": flexure.REGRESSOR,
 }
 
 
-def findings(run, fraction: float, kinds, alpha: float) -> list[stats.RegressorFinding]:
+def findings(run, fraction: float, kinds, alpha: float, known: dict | None = None
+             ) -> list[stats.RegressorFinding]:
     """The 'unexplained' lines of the fields ``kinds`` on ``run``, where significant.
 
     Bonferroni over the fields as :func:`significant`; the size is the fitted field's
-    displacement (99th percentile over the window's stars, px).
+    displacement (99th percentile over the window's stars, px).  ``known``: fits of
+    ``run`` already made (the gravity field's needs a run: :func:`gravity_of`); a field
+    of :data:`FIELDS` not in it is fitted here.
     """
-    got = of_run(run, fraction)
+    known = dict(known or {})
+    got = {k: known[k] if k in known else field_fit(run.residuals, run.calibration,
+                                                    fraction, k)
+           for k in kinds if k in known or (k in FIELDS and _has_table(run))}
     out = []
     for kind in kinds:
         f = got.get(kind)
         if f is None or not f["p_value"] * len(NAMES) < alpha:
             continue
-        out.append(stats.RegressorFinding(REGRESSORS[kind], "u, v", f["t"],
+        out.append(stats.RegressorFinding(_regressor(kind, f), "u, v", f["t"],
                                           min(1.0, f["p_value"] * len(NAMES)), f["size_px"],
                                           detail={"field": kind, **f}))
     return out
+
+
+def _has_table(run) -> bool:
+    return run is not None and run.ok and run.residuals is not None
+
+
+def _regressor(kind: str, f: dict) -> str:
+    """The line's regressor; the gravity field's says the flexure that would leave it."""
+    if kind != "gravity":
+        return REGRESSORS[kind]
+    return (f"{flexure.REGRESSOR[:-1]}: {f['arcsec_per_g']:.3g} +- "
+            f"{f['sigma_arcsec_per_g']:.2g} arcsec per unit lateral gravity, outside the "
+            "library)")
 
 
 def field_fit(res, calibration: Calibration, fraction: float, kind: str
@@ -171,15 +203,42 @@ def _align_cells(sb: dict, sw: dict, centre: tuple[float, float], coef: np.ndarr
 
 
 def fits(res, calibration: Calibration, fraction: float) -> dict[str, dict | None]:
-    """Every field's fit (:func:`field_fit`) of a residual table."""
-    return {kind: field_fit(res, calibration, fraction, kind) for kind in NAMES}
+    """Every column field's fit (:func:`field_fit`) of a residual table (:data:`FIELDS`)."""
+    return {kind: field_fit(res, calibration, fraction, kind) for kind in FIELDS}
 
 
 def of_run(run, fraction: float) -> dict[str, dict | None]:
     """:func:`fits` of a :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary`."""
-    if run is None or not run.ok or run.residuals is None:
+    if not _has_table(run):
         return {}
     return fits(run.residuals, run.calibration, fraction)
+
+
+def gravity_fit(res: dict, moved: dict | None, fraction: float) -> dict[str, float] | None:
+    """The gravity field's fit: the flexure-shaped test of the innovations ``res``.
+
+    :func:`~stellar_cal_ros.diagnosis.flexure.remainder_statistics` (the probe's response
+    as the one pattern) given the model's run with the probe ``moved``; ``size_px`` its
+    remainder's displacement (99th percentile, px) as the other fields'.  ``None`` where
+    the test cannot be made.
+    """
+    f = None if moved is None else flexure.remainder_statistics(res, moved, fraction)
+    return None if f is None else dict(f, size_px=f["change_px"])
+
+
+def gravity_of(runs, run, prior: Calibration, effects: tuple[str, ...]
+               ) -> dict[str, float] | None:
+    """The gravity field's fit on the current model ``run`` (its residuals kept).
+
+    One run where the bag is: the model ``effects`` from ``prior`` with the flexure probe
+    (:func:`~stellar_cal_ros.diagnosis.flexure.measure_on_bag`, the same call as the
+    flexure-shaped test after an add: the two are one test).
+    """
+    if not _has_table(run):
+        return None
+    moved = runs.on_bag(flexure.measure_on_bag, runs.spec, prior, tuple(effects),
+                        runs.fraction, runs.noise, runs.classes)
+    return gravity_fit(run.residuals, moved, runs.fraction)
 
 
 def significant(found: dict[str, dict | None], alpha: float) -> dict[str, dict]:
@@ -189,12 +248,14 @@ def significant(found: dict[str, dict | None], alpha: float) -> dict[str, dict]:
 
 
 def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
-                     fraction: float, noise=None, classes: tuple[type, ...] = ()
-                     ) -> dict[str, dict | None]:
+                     fraction: float, noise=None, classes: tuple[type, ...] = (),
+                     gravity: bool = False) -> dict[str, dict | None]:
     """The rolling-shutter fit and every field's fit of a candidate model's run.
 
     For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag` (one run where the bag is;
-    only the statistics travel): ``{"rolling": ..., "cells": ..., "magnitude": ...}``.
+    only the statistics travel): ``{"rolling": ..., "cells": ..., "magnitude": ...}``,
+    with ``"gravity"`` (:func:`gravity_fit`: one more run, the model with the probe) when
+    ``gravity``.
     """
     from stellar_cal_ros.diagnosis import rolling
     from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
@@ -204,6 +265,9 @@ def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
                    noise=noise)
     out = {"rolling": rolling.of_run(run, fraction)}
     out.update(of_run(run, fraction))
+    if gravity and _has_table(run):
+        out["gravity"] = gravity_fit(run.residuals, flexure.measure_on_bag(
+            data, spec, prior, effects, fraction, noise, classes, True), fraction)
     return out
 
 
