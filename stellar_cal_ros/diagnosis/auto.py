@@ -456,11 +456,11 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
         # (before an add: after one, the flexure-shaped test and ``state.outside`` decide)
         gravity = not state.outside and flexure.may_stand_in(c.effect)
         if gravity and "gravity" not in state.lead:
-            state.lead["gravity"] = here if here is not None else leads.gravity_of(
-                runs, base, prior, tuple(state.extra))
-            if here is None:
+            if here is None:  # else the test after the add just made is this model's
                 tell("testing for a gravity-shaped remainder (mount flexure) on "
                      f"{'+'.join(state.extra) or 'the baseline'}")
+            state.lead["gravity"] = leads.as_lead(here) if here is not None else \
+                leads.gravity_of(runs, base, prior, tuple(state.extra))
         beside = dict(fields)
         if gravity:
             beside.update(leads.significant({"gravity": state.lead["gravity"]}, ALPHA))

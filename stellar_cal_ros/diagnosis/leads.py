@@ -222,7 +222,12 @@ def gravity_fit(res: dict, moved: dict | None, fraction: float) -> dict[str, flo
     remainder's displacement (99th percentile, px) as the other fields'.  ``None`` where
     the test cannot be made.
     """
-    f = None if moved is None else flexure.remainder_statistics(res, moved, fraction)
+    return as_lead(None if moved is None else flexure.remainder_statistics(res, moved,
+                                                                            fraction))
+
+
+def as_lead(f: dict[str, float] | None) -> dict[str, float] | None:
+    """A flexure-shaped test's result as the gravity field's fit (``size_px``: its size)."""
     return None if f is None else dict(f, size_px=f["change_px"])
 
 
