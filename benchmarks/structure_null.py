@@ -5,9 +5,10 @@ regressor (:func:`~stellar_cal_ros.diagnosis.stats.regressor_tests`).  This scri
 current model (stated noise) on clean bags (:func:`~stellar_cal_ros.diagnosis.injection.
 clean_case`, the false-alarm benchmark's bags), collects every test's unadjusted p (the
 frame-robust t referred to t_ν) and the same t referred to N(0, 1), and prints the share of
-tests below 5 %, 1 % and 0.1 % (each must be its level), with the bags that print a line
-(Bonferroni at 1 %, the per-star and periodic tests included).  Only the current model's
-run: a few seconds per bag, against ~10 s for a whole diagnosis
+tests below 5 %, 1 % and 0.1 % (each must be its level; the ripple tests of
+:func:`~stellar_cal_ros.diagnosis.stats.shaped_tests` among them, and on their own row), with
+the bags that print a line (Bonferroni at 1 %, the per-star and periodic tests included).
+Only the current model's run: a few seconds per bag, against ~10 s for a whole diagnosis
 (``benchmarks/false_alarms.py``), whose 'unexplained' column is the same test on the same
 run when no candidate is significant and the noise is kept as stated.
 
@@ -58,13 +59,24 @@ def bag_tests(name: str, seed: int) -> tuple[list[tuple[float, float]], list[flo
 
     extra = star_lines(res, mask, cam.fx, cam.fy, centre, prior.R_imu_st)
     extra_p = [f.p_value for f in extra]  # regressor_tests adjusts them in place
+    made = stats.RegressorFinding
+    ripple: list[float] = []
+
+    class Recorded(made):
+        def __post_init__(self):  # the ripple tests' unadjusted p, as they are made
+            if self.regressor.split(" (")[0] in ("u", "v") and stats.RIPPLE in self.regressor:
+                ripple.append(self.p_value)
+
     stats.frame_robust_t = record
+    stats.RegressorFinding = Recorded
     try:
         lines = stats.regressor_tests(res, mask, centre, focal=(cam.fx, cam.fy), extra=extra,
-                                      R_imu_st=prior.R_imu_st, height=cam.height)
+                                      R_imu_st=prior.R_imu_st, height=cam.height,
+                                      width=cam.width)
     finally:
         stats.frame_robust_t = inner
-    return seen, extra_p, lines
+        stats.RegressorFinding = made
+    return seen, extra_p, lines, ripple
 
 
 def main() -> int:
@@ -75,25 +87,26 @@ def main() -> int:
     ap.add_argument("--cases", default="psce,swaying")
     args = ap.parse_args()
     t0 = time.process_time()
-    T, P, E, flagged, n = [], [], [], [], 0
+    T, P, E, R, flagged, n = [], [], [], [], [], 0
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         for name in args.cases.split(","):
-            seen, extra, lines = bag_tests(name, seed)
+            seen, extra, lines, ripple = bag_tests(name, seed)
             n += 1
             T += [t for t, _ in seen]
             P += [p for _, p in seen]
             E += extra
+            R += ripple
             if lines:
                 flagged.append(f"{name} {seed}: " + ", ".join(
                     f"{f.component} vs {f.regressor} (t={f.statistic:.1f})" for f in lines))
-    T, P, E = np.asarray(T), np.asarray(P), np.asarray(E)
+    T, P, E, R = np.asarray(T), np.asarray(P), np.asarray(E), np.asarray(R)
     normal = 2.0 * sps.norm.sf(np.abs(T))
     print(f"structure tests on {n} clean bags ({args.cases}, seeds {args.first_seed}-"
           f"{args.first_seed + args.seeds - 1}): {len(T)} regressor tests, {len(E)} per-star "
           f"and periodic tests [{time.process_time() - t0:.0f} CPU-s]")
     print(f"{'share of p below':28s} {'5 %':>7s} {'1 %':>7s} {'0.1 %':>7s}")
     for label, p in (("t_nu (printed)", P), ("same t, N(0,1)", normal),
-                     ("per-star + periodic", E)):
+                     (f"of which ripple ({len(R)})", R), ("per-star + periodic", E)):
         print(f"{label:28s} " + " ".join(f"{np.mean(p < a):7.2%}" for a in (0.05, 0.01, 0.001)))
     print(f"bags with an 'unexplained' line (Bonferroni 1 %): {len(flagged)} of {n}")
     for line in flagged:

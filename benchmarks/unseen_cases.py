@@ -256,14 +256,9 @@ def _magbias_radial(sim, seed, px_per_mag=0.03):
 
 
 def _ripple(sim, seed, amplitude_px=0.08, periods=3.0):
-    # a centroid ripple along the columns: u += A sin(2 pi periods u / width) (three periods
-    # across the detector: no polynomial distortion of the library makes it), then the
-    # stated noise
-    w = sim.prior.camera.width
-    for f in sim.star_frames:
-        uv = np.asarray(f.uv, dtype=float).copy()
-        uv[:, 0] += amplitude_px * np.sin(2.0 * np.pi * periods * uv[:, 0] / w)
-        f.uv = uv
+    # a centroid ripple along the columns (tracker_errors.column_ripple: three periods
+    # across the detector), then the stated noise
+    tracker_errors.column_ripple(sim, amplitude_px, periods)
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 

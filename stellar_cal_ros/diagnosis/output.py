@@ -130,7 +130,7 @@ def line_tests(res, calibration: Calibration, fraction: float) -> list:
         res, mask, centre, focal=(cam.fx, cam.fy),
         extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, sn),
         R_imu_st=calibration.R_imu_st,
-        height=cam.height, track_lags=track_lags(sn))
+        height=cam.height, track_lags=track_lags(sn), width=cam.width)
 
 
 def write_report(out: Path, summary: dict[str, Any], title: str) -> None:

@@ -48,7 +48,7 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
     span = "across its 5-95 % range"
     if u["regressor"] == "catalogue star":
         what, span = "residual repeating", "rms per axis at least (left by the cells)"
-    elif u["regressor"].startswith("time (periodic"):
+    elif " (periodic" in u["regressor"]:  # in time, or a ripple over the detector
         span = "amplitude"
     elif u["component"] == "along motion":  # stats.motion_spread: a noise in the stamps
         what, span = "residual spread along each star's motion", "rms at that image speed"

@@ -588,12 +588,18 @@ def _components(sub: Table, du: np.ndarray, dv: np.ndarray, su: np.ndarray,
 #: (:func:`shaped_tests`)
 SUBPIXEL = "sub-pixel phase"
 ROLLING = "v (row) x image velocity (rolling-shutter shape"
+#: the word of a ripple's regressor name (:func:`shaped_tests`: ``u (column) (periodic
+#: 455 px, sin)``), and its periods across the detector: a few, each period well above a
+#: cell of the noise's grid and the stars' spacing (the ``unseen_cases`` ripple has 3)
+RIPPLE = "periodic"
+POSITION_PERIODS = (1, 2, 3, 4)
 
 
 def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float, float],
                  centre: tuple[float, float], R_imu_st: np.ndarray | None = None,
                  height: float | None = None,
-                 track_lags: tuple[float, float] | None = None) -> list[RegressorFinding]:
+                 track_lags: tuple[float, float] | None = None,
+                 width: float | None = None) -> list[RegressorFinding]:
     """Tests of two tracker errors no straight line in one regressor follows (unadjusted).
 
     **Sub-pixel phase** (pixel locking, an S-curve): a centroid of an under-sampled PSF is
@@ -613,6 +619,17 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     explains; the readout time ``|T|`` (ms, :func:`readout_s` of the slope: over the
     detector's rows; its sign, the readout's direction, is the slope's) is in the
     regressor's name, as the period is in :func:`periodic_findings`'.
+
+    **A ripple over the detector** (a structure periodic in position, which no straight line
+    in u or v follows and no polynomial distortion of the library makes: a stitched
+    detector's or a flat-field's periodic centroid error): for each axis ``a`` (u over the
+    detector's ``width``, v over its ``height``, without them ``2 c``), each of
+    :data:`POSITION_PERIODS` ``k`` periods across it, each displaced axis (u, v) and each
+    phase, the pattern ``sin`` (or ``cos``) ``(2π k a / extent)`` along that axis, projected
+    like the residuals and tested as the others (``8 k_max`` tests, each counted in the
+    family).  The size is the amplitude of the sine and cosine fitted together (px; the
+    same on both findings of a pair), the period (px) in the regressor's name
+    (:data:`RIPPLE`).
     """
     out: list[RegressorFinding] = []
     frame = np.asarray(sub["frame"])
@@ -633,8 +650,12 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
         r = fits[0].residual(xy[:, 0] * sigma, xy[:, 1] * sigma)
         return np.concatenate([r[:, 0], r[:, 1]])
 
-    def one(name, x: np.ndarray) -> None:
-        """``name``: the regressor's name, or a function of the fitted slope giving it."""
+    def one(name, x: np.ndarray, component: str = "u, v",
+            size: float | None = None) -> None:
+        """One test of ``x``; ``name``: the regressor's name, or a function of the slope.
+
+        ``size``: the finding's size (default: the slope's change over ``x``'s 5–95 %).
+        """
         ok = np.isfinite(x) & np.isfinite(y)
         if ok.sum() < 40 or len(np.unique(cl[ok])) < 10 or not np.ptp(x[ok]) > 0:
             return
@@ -643,12 +664,30 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
         xc = x[ok] - x[ok].mean()
         b = float(xc @ y_px[ok]) / float(xc @ xc)
         lo, hi = np.percentile(x[ok], [5, 95])
-        out.append(RegressorFinding(name if isinstance(name, str) else name(b), "u, v",
-                                    float(t), float(p), b * (hi - lo)))
+        out.append(RegressorFinding(name if isinstance(name, str) else name(b), component,
+                                    float(t), float(p), b * (hi - lo) if size is None
+                                    else size))
 
     for fn, label in ((np.sin, "sin"), (np.cos, "cos")):
         one(f"{SUBPIXEL} ({label} 2 pi u, {label} 2 pi v)",
             project(np.stack([fn(2.0 * np.pi * u), fn(2.0 * np.pi * v)], 1)))
+    extents = (width if width else 2.0 * centre[0], height if height else 2.0 * centre[1])
+    for axis, pos, extent in (("u (column)", u, extents[0]), ("v (row)", v, extents[1])):
+        for k in POSITION_PERIODS:
+            ph = 2.0 * np.pi * k * pos / extent
+            for d, comp in enumerate(("u", "v")):
+                cols = []
+                for fn in (np.sin, np.cos):
+                    xy = np.zeros((len(pos), 2))
+                    xy[:, d] = fn(ph)
+                    cols.append(project(xy))
+                X = np.stack(cols, 1)
+                ok = np.all(np.isfinite(X), 1) & np.isfinite(y_px)
+                amp = float(np.hypot(*np.linalg.lstsq(X[ok], y_px[ok] - y_px[ok].mean(),
+                                                      rcond=None)[0])) \
+                    if ok.sum() >= 40 else math.nan
+                for x, label in zip(cols, ("sin", "cos"), strict=True):
+                    one(f"{axis} ({RIPPLE} {extent / k:.0f} px, {label})", x, comp, amp)
     x = rolling_columns(sub, focal, centre, R_imu_st)
     if x is not None and height is not None:
         one(lambda b: f"{ROLLING}, readout {readout_s(b, None, height) * 1e3:.3g} ms)",
@@ -947,8 +986,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
                     alpha: float = 0.01, focal: tuple[float, float] | None = None,
                     extra: list[RegressorFinding] | None = None,
                     R_imu_st: np.ndarray | None = None, height: float | None = None,
-                    track_lags: tuple[float, float] | None = None
-                    ) -> list[RegressorFinding]:
+                    track_lags: tuple[float, float] | None = None,
+                    width: float | None = None) -> list[RegressorFinding]:
     """Correlation of residual components (u, v, radial, size) with each regressor.
 
     One frame-robust score test per pair (:func:`frame_robust_t`: the frames, not the
@@ -992,7 +1031,7 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     plain, inside = components(sub)
     regs = regressors(sub, camera_centre)
     shaped = shaped_tests(sub, inside, sig, focal, camera_centre, R_imu_st, height,
-                          track_lags) if inside is not None else []
+                          track_lags, width) if inside is not None else []
     # the family's size, at most (the stamp-noise test of motion_spread among them)
     bound = 4 * len(regs) + len(shaped) + len(extra or []) + 1
     if any(f.regressor.startswith(SUBPIXEL) and f.p_value * bound < alpha for f in shaped):

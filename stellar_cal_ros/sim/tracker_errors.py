@@ -262,3 +262,17 @@ def radial_by_mag(sim, px_per_mag: float, from_mag: float = 4.0) -> None:
         unit = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
         m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=from_mag)
         f.uv = uv + px_per_mag * np.maximum(m - from_mag, 0.0)[:, None] * unit
+
+
+def column_ripple(sim, amplitude_px: float, periods: float = 3.0) -> None:
+    """A centroid ripple along the columns: ``u += A sin(2π periods u / width)``.
+
+    A stitched detector's or a flat field's periodic error (``periods`` across the
+    detector's width): no polynomial distortion of the library makes it (unseen case
+    ``ripple``).
+    """
+    w = sim.prior.camera.width
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float).copy()
+        uv[:, 0] += amplitude_px * np.sin(2.0 * np.pi * periods * uv[:, 0] / w)
+        f.uv = uv
