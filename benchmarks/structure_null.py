@@ -52,10 +52,10 @@ def bag_tests(name: str, seed: int) -> tuple[list[tuple[float, float]], list[flo
     seen: list[tuple[float, float]] = []
     inner = stats.frame_robust_t
 
-    def record(x, y, cluster, lags=None, **tracks):
-        t, p = inner(x, y, cluster, lags, **tracks)
-        seen.append((t, p))
-        return t, p
+    def record(x, y, cluster, lags=None, **kw):
+        out = inner(x, y, cluster, lags, **kw)  # (t, p), or (t, p, ν) with dof=True
+        seen.append(out[:2])
+        return out
 
     extra = star_lines(res, mask, cam.fx, cam.fy, centre, prior.R_imu_st)
     extra_p = [f.p_value for f in extra]  # regressor_tests adjusts them in place
@@ -63,7 +63,8 @@ def bag_tests(name: str, seed: int) -> tuple[list[tuple[float, float]], list[flo
     ripple: list[float] = []
 
     class Recorded(made):
-        def __post_init__(self):  # the ripple tests' unadjusted p, as they are made
+        def __init__(self, *args, **kw):  # the ripple tests' unadjusted p, as they are made
+            super().__init__(*args, **kw)
             if self.regressor.split(" (")[0] in ("u", "v") and stats.RIPPLE in self.regressor:
                 ripple.append(self.p_value)
 
