@@ -760,7 +760,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             compile_notice()
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning(args.command)
-            return int(args.func(args) or 0)
+            code = int(args.func(args) or 0)
+        if args.command in COMPILES:  # the kernels it compiled or loaded: the next notice's
+            from stellar_cal_ros.methods.frame_step import record_kernels_used
+
+            record_kernels_used()
+        return code
     except StellarCalError as exc:
         print(f"stellar-cal {args.command}: error: {exc}{_hint(args, exc)}", file=sys.stderr)
         return 1

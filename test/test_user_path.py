@@ -217,6 +217,62 @@ def test_the_compile_check_sees_an_empty_cache(tmp_path):
     assert out.stdout.strip() == "True", out.stderr[-2000:]
 
 
+_KERNEL_STEP = """
+import json, os, sys
+sys.path.insert(0, sys.argv[1])
+from stellar_cal_ros.methods import frame_step as fs
+mods = ("h109k.a", "h109k.b")
+before = fs.kernels_cold(mods)
+every = any(not o._cache._cache_file._load_index() for _, _, o in fs._kernels(mods))
+import h109k.b
+assert h109k.b.entry(1.0) == 4.0
+fs.record_kernels_used(mods)
+print(json.dumps([before, every, fs.kernels_cold(mods)]))
+"""
+
+
+def test_the_compile_check_judges_the_kernels_a_run_uses(tmp_path):
+    """A kernel only other kernels call, whose source changed under unchanged callers, is never
+    compiled again (numba loads the callers from their cache): its stale index said 'cold' for
+    ever (core.jit.skew3 under star_chain.predict_chain).  Each step is a fresh process:
+    [cold before the run, cold judged by every kernel's index, cold after the run]."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    pkg = tmp_path / "src" / "h109k"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    helper = "from numba import njit\n\n\n@njit(cache=True)\ndef helper(x):\n    return x + 1.0\n"
+    (pkg / "a.py").write_text(helper)
+    (pkg / "b.py").write_text("from numba import njit\n\nfrom h109k.a import helper\n\n\n"
+                              "@njit(cache=True)\ndef entry(x):\n    return 2.0 * helper(x)\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+
+    def step():
+        out = subprocess.run([sys.executable, "-c", _KERNEL_STEP, str(tmp_path / "src")],
+                             capture_output=True, text=True, env=env, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    def edit(path, comment):  # another source stamp (numba's: mtime and size)
+        path.write_text(path.read_text() + f"# {comment}\n")
+        st = path.stat()
+        os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+
+    assert step() == [True, True, False]  # fresh: compiles, then warm
+    assert step() == [False, False, False]
+    edit(pkg / "a.py", "the helper's file changes, not its caller's")
+    assert step() == [True, True, False]  # judged once (the last run compiled it) ...
+    # ... then no longer: the caller came from its cache, the helper's index stays stale
+    # (judged by every index, as before, it would say 'cold' for ever)
+    assert step() == [False, True, False]
+    assert step() == [False, True, False]
+    edit(pkg / "b.py", "the caller's file changes")
+    assert step() == [True, True, False]  # the entry compiles (and the helper into it)
+
+
 def test_the_compile_check_looks_at_every_kernel_module():
     """A module with cached numba kernels left out of KERNEL_MODULES compiles without the notice
     (frame_step's kernels were missed that way: warm star_chain/jit caches said 'warm')."""

@@ -24,8 +24,10 @@ propagation, and the kernel goes on from there with the state as the numpy path 
 from __future__ import annotations
 
 import importlib
+import json
 import math
 import sys
+from pathlib import Path
 from typing import TextIO
 
 import numpy as np
@@ -755,29 +757,97 @@ KERNEL_MODULES = ("stellar_cal_ros.core.jit", "stellar_cal_ros.methods.star_chai
                   "stellar_cal_ros.methods.frame_step", "stellar_cal_ros.core.float_text")
 
 
+def _kernels(modules: tuple[str, ...]) -> list[tuple[str, str, object]]:
+    """``(module, name, dispatcher)`` of each cached, not inlined numba kernel of ``modules``."""
+    out = []
+    for name in modules:
+        mod = importlib.import_module(name)
+        for key, obj in vars(mod).items():
+            cache = getattr(obj, "_cache", None)
+            if getattr(getattr(cache, "_cache_file", None), "_load_index", None) is None or \
+                    getattr(obj, "__module__", None) != mod.__name__ or \
+                    getattr(obj, "targetoptions", {}).get("inline") == "always":
+                continue  # (an inlined kernel is compiled into its callers only)
+            out.append((name, key, obj))
+    return out
+
+
+#: beside a module's numba cache index files: the module's kernels the last run compiled or
+#: loaded (:func:`record_kernels_used`)
+USED_MARKER = "{module}.kernels-used.json"
+
+
+def _marker(module: str, obj) -> Path:
+    return Path(obj._cache._cache_path) / USED_MARKER.format(module=module)
+
+
+def _used(module: str, obj) -> set[str] | None:
+    """The kernels of ``module`` a run used (its marker), None where no run has said."""
+    try:
+        return set(json.loads(_marker(module, obj).read_text())["used"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def kernels_cold(modules: tuple[str, ...]) -> bool:
+    """True when a kernel of ``modules`` that a run calls has no usable compiled cache.
+
+    A kernel's cache is numba's index file; it is empty (a fresh install) or stale (another
+    source stamp) until the kernel is compiled again.  Judged are the kernels the last run
+    compiled or loaded (:func:`record_kernels_used`), every kernel where no run has said:
+    a kernel that only other kernels call is compiled into *their* cache files, so when its
+    own source changes but theirs does not, numba loads the callers as they are and never
+    rewrites the callee's index (``core.jit.skew3`` under ``star_chain.predict_chain``):
+    judged by its index, every run said "compiling" and compiled nothing.
+    """
+    by_module: dict[str, set[str] | None] = {}
+    for module, name, obj in _kernels(modules):
+        if module not in by_module:
+            by_module[module] = _used(module, obj)
+        used = by_module[module]
+        if used is not None and name not in used:
+            continue
+        if not obj._cache._cache_file._load_index():
+            return True
+    return False
+
+
+def record_kernels_used(modules: tuple[str, ...] = ()) -> None:
+    """Write each module's marker (:data:`USED_MARKER`): its kernels this process used.
+
+    Used: compiled or loaded from the cache here (the dispatcher holds an overload), or
+    used by an earlier run and still cached (a kernel of the other method).  A kernel
+    whose callers came from the cache is neither, and :func:`kernels_cold` stops judging
+    it.  Nothing is written where the cache directory cannot be (the check then judges
+    every kernel, as before).
+    """
+    if not HAVE_NUMBA:
+        return
+    kernels = _kernels(modules or KERNEL_MODULES)
+    for module in dict.fromkeys(m for m, _, _ in kernels):
+        mine = [(name, obj) for m, name, obj in kernels if m == module]
+        before = _used(module, mine[0][1]) or set()
+        try:
+            used = sorted(name for name, obj in mine if obj.overloads or (
+                name in before and obj._cache._cache_file._load_index()))
+            _marker(module, mine[0][1]).write_text(json.dumps({"used": used}))
+        except Exception:  # noqa: BLE001 - a read-only cache, numba internals: no marker
+            continue
+
+
 def compiled_kernels_cold() -> bool:
-    """True when the numba kernels of KERNEL_MODULES have no usable compiled cache yet.
+    """True when the numba kernels of KERNEL_MODULES a run calls have no usable cache yet.
 
     The first run after an install or a change of the kernels' source compiles them (≈30 s
-    on 2 cores); numba's cache index of each compiled function is then empty (or stale:
-    another source stamp).  False without numba or when the cache cannot be inspected.
+    on 2 cores): :func:`kernels_cold`.  False without numba or when the cache cannot be
+    inspected.
     """
     if not HAVE_NUMBA:
         return False
-    for name in KERNEL_MODULES:
-        mod = importlib.import_module(name)
-        for obj in vars(mod).values():
-            cache = getattr(obj, "_cache", None)
-            load = getattr(getattr(cache, "_cache_file", None), "_load_index", None)
-            if load is None or getattr(obj, "__module__", None) != mod.__name__ or \
-                    getattr(obj, "targetoptions", {}).get("inline") == "always":
-                continue  # (an inlined kernel is compiled into its callers only)
-            try:
-                if not load():
-                    return True
-            except Exception:  # noqa: BLE001 - numba internals: say nothing rather than fail
-                return False
-    return False
+    try:
+        return kernels_cold(KERNEL_MODULES)
+    except Exception:  # noqa: BLE001 - numba internals: say nothing rather than fail
+        return False
 
 
 def compile_notice(stream: TextIO | None = None) -> bool:
