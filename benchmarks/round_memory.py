@@ -10,7 +10,7 @@ use).
 
 Run::
 
-    python benchmarks/round_memory.py [--trim] [--probe]
+    python benchmarks/round_memory.py [--trim] [--probe] [--calibration R.yaml] [--default-malloc]
 """
 
 from __future__ import annotations
@@ -62,10 +62,21 @@ def main() -> int:
     """Run the round and print the stages."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--trim", action="store_true")
+    ap.add_argument("--calibration", type=Path, default=None,
+                    help="the round's calibration (default: the bag's prior)")
+    ap.add_argument("--default-malloc", action="store_true",
+                    help="leave glibc's mapping threshold to rise (before core.memory)")
     ap.add_argument("--probe", action="store_true",
                     help="also the reliability probe's parts: its scene, renders and steps")
     args = ap.parse_args()
     libc = ctypes.CDLL("libc.so.6") if args.trim else None
+    if not args.default_malloc:  # as the command line's diagnose does
+        try:
+            from stellar_cal_ros.core.memory import return_freed_arrays
+        except ImportError:  # a checkout before it
+            pass
+        else:
+            return_freed_arrays()
     print(f"python: rss {rss():.0f}", flush=True)
     from discovery_speed import ensure_2h_bag
 
@@ -107,7 +118,7 @@ def main() -> int:
         wrap(rp, "rendered_stars")
         wrap(rp, "star_steps")
     bag = ensure_2h_bag()
-    cal = load_calibration(bag.with_suffix(".prior.yaml"))
+    cal = load_calibration(args.calibration or bag.with_suffix(".prior.yaml"))
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:

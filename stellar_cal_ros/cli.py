@@ -664,6 +664,8 @@ OUTPUTS: dict[str, tuple[tuple[str, bool], ...]] = {
 
 #: commands whose first run on a machine compiles the filter kernels (a notice says so)
 COMPILES = ("replay", "diagnose", "discover", "demo", "campaign")
+#: commands of diagnosis rounds: glibc's mapping threshold fixed (core.memory)
+ROUNDS = ("diagnose", "discover")
 
 
 def _one_line_warning(command: str):
@@ -754,6 +756,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name, directory in OUTPUTS.get(args.command, ()):
             if getattr(args, name, None) is not None:
                 check_output(Path(getattr(args, name)), directory)
+        if args.command in ROUNDS:  # the arrays a stage drops go back to the system
+            from stellar_cal_ros.core.memory import return_freed_arrays
+
+            return_freed_arrays()
         if args.command in COMPILES:
             from stellar_cal_ros.methods.frame_step import compile_notice
 

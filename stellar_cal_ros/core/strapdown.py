@@ -100,13 +100,17 @@ def _quat_multiply_soa(
     ow -= mul(az, bz, out=tmp)
 
 
-def quat_cumprod(q: ArrayLike) -> NDArray[np.float64]:
+def quat_cumprod(q: ArrayLike, overwrite: bool = False) -> NDArray[np.float64]:
     """Return the running Hamilton products ``P_k = q_0 (x) q_1 (x) ... (x) q_k``.
 
     Parameters
     ----------
     q : array_like, shape (N, 4)
         Unit quaternions ``(x, y, z, w)``.
+    overwrite : bool, optional
+        ``q`` may be scanned in place where it is the transpose of a C-contiguous
+        ``(4, N)`` float array (its values are then lost; no copy: 23 MB on a 2-h bag's
+        samples).  The same numbers either way.
 
     Returns
     -------
@@ -126,7 +130,7 @@ def quat_cumprod(q: ArrayLike) -> NDArray[np.float64]:
     P = np.asarray(q, dtype=np.float64)
     if P.ndim != 2 or P.shape[1] != 4:
         raise ValueError(f"q must have shape (N, 4), got {P.shape}")
-    Q = np.ascontiguousarray(P.T)  # (4, N), a copy
+    Q = P.T if overwrite and P.T.flags.c_contiguous else np.ascontiguousarray(P.T)  # (4, N)
     n = Q.shape[1]
     buf = np.empty_like(Q)
     tmp = np.empty(n)
@@ -139,6 +143,7 @@ def quat_cumprod(q: ArrayLike) -> NDArray[np.float64]:
         npass += 1
         if npass % 8 == 0:
             Q /= np.sqrt(np.einsum("ij,ij->j", Q, Q))
+    del buf, tmp  # not held beside the copy below (2 x 23 MB on a 2-h bag's samples)
     if n:
         Q /= np.sqrt(np.einsum("ij,ij->j", Q, Q))
     return np.ascontiguousarray(Q.T)
