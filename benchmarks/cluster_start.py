@@ -1,4 +1,4 @@
-"""What starting the diagnosis' local Dask cluster costs, spawned or forked (issue 24.2).
+"""What starting the diagnosis' local Dask cluster costs: spawned, forked, fork server (24.2).
 
 The automatic executor (``workers=None``, :mod:`stellar_cal_ros.diagnosis.parallel`)
 starts a ``LocalCluster`` once a batch of runs would take :data:`~stellar_cal_ros.
@@ -13,14 +13,18 @@ one process as the automatic executor has it (the bag read and one run made here
 * ``CPU``: CPU seconds of the parent and its children over the start (psutil, children
   read before the cluster closes).
 
-Worker processes are spawned (Dask's default: fresh interpreters) or forked from the parent
-(``distributed.worker.multiprocessing-method: fork``: the imports, the loaded kernels and
-the bag read are inherited).
+Worker processes are spawned (Dask's default: fresh interpreters), forked from the parent
+(``fork``: the imports, the loaded kernels and the bag read are inherited, but the parent
+runs threads), or forked from multiprocessing's fork server (``forkserver``, the package's
+default on Linux: a fresh single-threaded process that imports the package and reads the
+bag once, :func:`~stellar_cal_ros.diagnosis.parallel.local_cluster`).  The fork server
+starts with the first such cluster of a process and serves the later ones: a repeat's
+``forkserver`` row after the first is a warm server (as a later round's cluster).
 
 Run::
 
     python benchmarks/cluster_start.py --bag benchmarks/.cache/psce_rotations_600s.mcap
-    python benchmarks/cluster_start.py --bag BAG.mcap --method spawn,fork --repeat 2
+    python benchmarks/cluster_start.py --bag BAG.mcap --method spawn,fork,forkserver --repeat 2
 """
 
 from __future__ import annotations
@@ -57,17 +61,14 @@ def _run_seconds(bag, spec, prior) -> tuple[float, float]:
 
 def start(bag: str, method: str, spec, prior) -> dict[str, float]:
     """One cluster of two workers started the way ``method`` says; its costs."""
-    import dask
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
+    from stellar_cal_ros.diagnosis.parallel import local_cluster
     from stellar_cal_ros.diagnosis.runstats import bag_facts, load_bag
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
     cpu0, t0 = _tree_cpu(), time.perf_counter()
-    with dask.config.set({"distributed.worker.profile.enabled": False,
-                          "distributed.worker.multiprocessing-method": method}):
-        cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                               dashboard_address=":0", silence_logs=logging.ERROR)
+    cluster = local_cluster(2, bag, method)  # the diagnosis' own start
     client = Client(cluster)
     up = time.perf_counter() - t0
     workers = list(client.scheduler_info()["workers"])
@@ -91,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     """Print one line per cluster start: its wall seconds and CPU."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bag", type=Path, required=True, help="BAG.mcap, BAG.prior.yaml beside")
-    ap.add_argument("--method", default="spawn,fork")
+    ap.add_argument("--method", default="spawn,fork,forkserver")
     ap.add_argument("--repeat", type=int, default=1)
     args = ap.parse_args(argv)
     from stellar_cal_ros.diagnosis.discover import method_spec
@@ -108,12 +109,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"load average {os.getloadavg()[0]:.1f}; {args.bag.name}: bag read here {read:.2f} s, "
           f"the run here {here[0][0]:.2f} s wall {here[0][1]:.2f} CPU-s (first), "
           f"{here[1][0]:.2f} s wall {here[1][1]:.2f} CPU-s (second)")
-    print(f"{'start':>6} {'up s':>6} {'ready s':>8} {'CPU s':>6} {'1st run s':>10} "
+    print(f"{'start':>10} {'up s':>6} {'ready s':>8} {'CPU s':>6} {'1st run s':>10} "
           f"{'its CPU':>8} {'CPU s':>6}")
     for _ in range(args.repeat):
         for method in args.method.split(","):
             m = start(bag, method, spec, prior)
-            print(f"{method:>6} {m['up']:6.2f} {m['ready']:8.2f} {m['cpu_ready']:6.2f} "
+            print(f"{method:>10} {m['up']:6.2f} {m['ready']:8.2f} {m['cpu_ready']:6.2f} "
                   f"{m['first']:10.2f} {m['first_cpu']:8.2f} {m['cpu']:6.2f}")
     print(f"load average {os.getloadavg()[0]:.1f} at the end.  up: LocalCluster and Client "
           "made; ready: every worker has read the bag (a statistic of it back); CPU s: the "

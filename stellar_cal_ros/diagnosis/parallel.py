@@ -154,22 +154,157 @@ def _run(key: str, batch: int, bag: BagRef, fn: Callable[..., Any], *args: Any) 
     return timeline.traced(key, batch, bag, fn, *args)
 
 
-def start_method() -> str:
-    """How the local cluster's worker processes start: ``fork`` where the platform has it.
+#: environment override of how the local cluster's workers start: ``forkserver``, ``fork``
+#: or ``spawn`` (else :func:`start_method` decides)
+START_ENV = "STELLAR_CAL_WORKER_START"
+#: Dask's own key (and its environment form) for the same choice, honoured when set
+DASK_START_KEY = "distributed.worker.multiprocessing-method"
+DASK_START_ENV = "DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD"
 
-    A forked worker starts with this process's imports, its loaded compiled kernels and the
-    bag it holds (:func:`~stellar_cal_ros.diagnosis.runstats.load_bag`); a spawned one
-    imports the package, loads the kernels and reads the bag itself.  Measured on 2 cores
-    (``benchmarks/cluster_start.py``, doc/benchmarks.md): two workers ready in 0.9-1.8 s
-    and 0.1-0.2 CPU-s forked, 13-18 s and 2.5-2.9 CPU-s spawned.  ``fork`` is Linux's
-    (macOS and Windows spawn: forking there is unsafe or missing).
+
+def start_method() -> str:
+    """How the local cluster's worker processes start.
+
+    ``forkserver`` where the platform has it (Linux), else ``spawn`` (macOS and Windows,
+    where forking is unsafe or missing).  The fork server is a fresh single-threaded
+    process that imports the package (and reads the bag: :func:`local_cluster`) once;
+    every worker is forked from it, holding them.  Forking *this* process (``fork``) gave
+    the same start but copies a process that runs threads (Dask's event loop, which starts
+    the workers; a lock one of them holds stays locked in the child).  Measured on 2 cores
+    (``benchmarks/cluster_start.py``, doc/benchmarks.md).
+
+    A user's choice goes first: :data:`START_ENV`, then Dask's
+    ``distributed.worker.multiprocessing-method`` when it is set (its environment variable
+    :data:`DASK_START_ENV`, or a value other than Dask's default ``spawn``).
     """
     import multiprocessing
     import sys
 
-    if sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods():
-        return "fork"
+    have = multiprocessing.get_all_start_methods()
+    asked = os.environ.get(START_ENV, "").strip() or _dask_start_method()
+    if asked:
+        if asked not in have:
+            raise StellarCalError(f"the workers cannot start by {asked!r} here "
+                                  f"({START_ENV} or {DASK_START_KEY}): one of "
+                                  f"{', '.join(have)}")
+        return asked
+    if sys.platform.startswith("linux") and "forkserver" in have:
+        return "forkserver"
     return "spawn"
+
+
+def _dask_start_method() -> str:
+    """Dask's ``multiprocessing-method`` where a user set it, else ``""``."""
+    import dask
+
+    try:
+        import distributed  # noqa: F401  (its defaults are in the config from its import)
+    except ImportError:  # pragma: no cover - a dependency of the package
+        pass
+    value = str(dask.config.get(DASK_START_KEY, "") or "")
+    return value if (DASK_START_ENV in os.environ or value not in ("", "spawn")) else ""
+
+
+#: the fork server's bag: :mod:`~stellar_cal_ros.diagnosis.worker_start` reads it
+WORKER_BAG_ENV = "STELLAR_CAL_WORKER_BAG"
+
+
+def local_cluster(n: int, bag: BagRef | None = None, method: str | None = None):
+    """A ``LocalCluster`` of ``n`` single-threaded worker processes started by ``method``.
+
+    ``method``: :func:`start_method`'s unless given.  ``forkserver``: the fork server
+    preloads :mod:`~stellar_cal_ros.diagnosis.worker_start` (the package's imports and,
+    for a ``bag`` given by path, the bag), so each worker starts holding them as a forked
+    one did.  ``fork``: a bag given by path is read here first (the workers inherit it).
+    The server starts with the first cluster of this process and serves the later ones
+    (a later bag is read by each worker).
+    """
+    import dask
+    from distributed import LocalCluster
+
+    method = method or start_method()
+    if method == "fork" and isinstance(bag, str):
+        from stellar_cal_ros.diagnosis.runstats import load_bag
+
+        load_bag(bag)  # read once here: every worker is forked holding it
+    # no statistical profiler in the workers: it samples the running filter's stack
+    # every 10 ms of *wall* time, for a dashboard nobody opens here
+    with dask.config.set({"distributed.worker.profile.enabled": False,
+                          DASK_START_KEY: method}), _server_bag(method, bag):
+        if method == "forkserver":
+            _preload_package()
+            _server_for(bag)
+        return LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                            dashboard_address=":0", silence_logs=logging.ERROR)
+
+
+def _preload_package() -> None:
+    """Add :mod:`~stellar_cal_ros.diagnosis.worker_start` to the fork server's preload.
+
+    Dask sets its own list (``distributed`` and its dependencies) the first time it asks
+    for the context; asked here first, then extended.
+    """
+    import multiprocessing.forkserver as fs
+
+    from distributed.utils import get_mp_context
+
+    get_mp_context()  # Dask's preload list, set once
+    have = list(getattr(fs._forkserver, "_preload_modules", None) or [])
+    mine = "stellar_cal_ros.diagnosis.worker_start"
+    if mine not in have:
+        fs.set_forkserver_preload(have + [mine])
+
+
+#: the bag the running fork server read (``(path, size, mtime)``; None: none, or a server
+#: this module did not start)
+_SERVER_BAG: list[tuple | None] = [None]
+
+
+def _server_for(bag: BagRef | None) -> None:
+    """Stop a running fork server that does not hold ``bag`` (a path): the next starts.
+
+    A server reads its bag when it starts; one started for another bag (or by another
+    user of the fork server, without the package's preload) would leave every worker to
+    read the bag itself.
+    """
+    import multiprocessing.forkserver as fs
+
+    key = _bag_key(bag)
+    server = fs._forkserver
+    if getattr(server, "_forkserver_pid", None) is not None and _SERVER_BAG[0] != key:
+        try:
+            server._stop()
+        except Exception:  # noqa: BLE001 - multiprocessing internals: the workers read it
+            log.debug("the fork server was not restarted", exc_info=True)
+            return
+    _SERVER_BAG[0] = key
+
+
+def _bag_key(bag: BagRef | None) -> tuple | None:
+    if not isinstance(bag, str):
+        return None
+    try:
+        st = os.stat(bag)
+    except OSError:
+        return None
+    return (bag, st.st_size, st.st_mtime_ns)
+
+
+@contextlib.contextmanager
+def _server_bag(method: str, bag: BagRef | None):
+    """:data:`WORKER_BAG_ENV` = the bag's path while a fork server may start."""
+    if method != "forkserver" or not isinstance(bag, str):
+        yield
+        return
+    was = os.environ.get(WORKER_BAG_ENV)
+    os.environ[WORKER_BAG_ENV] = bag
+    try:
+        yield
+    finally:
+        if was is None:
+            os.environ.pop(WORKER_BAG_ENV, None)
+        else:
+            os.environ[WORKER_BAG_ENV] = was
 
 
 def _file_size(path: str) -> int:
@@ -373,7 +508,7 @@ class DaskRuns(Runs):
     def _connect(self) -> None:
         workers, scheduler = self._start
         try:
-            from distributed import Client, LocalCluster
+            from distributed import Client
         except ImportError as exc:  # pragma: no cover - a dependency of the package
             raise StellarCalError("parallel diagnosis needs dask.distributed "
                                   "(pip install 'dask[distributed]')") from exc
@@ -387,23 +522,10 @@ class DaskRuns(Runs):
                                       f"{exc}") from exc
             self.description = f"on the Dask cluster {scheduler}"
         else:
-            import dask
-
             n = workers or min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
             timeline.write({"kind": "cluster", "time": time.time(),
                             "cpu": time.process_time()})
-            method = start_method()
-            if method == "fork" and isinstance(self.bag, str):
-                from stellar_cal_ros.diagnosis.runstats import load_bag
-
-                load_bag(self.bag)  # read once here: every worker is forked holding it
-            # no statistical profiler in the workers: it samples the running filter's stack
-            # every 10 ms of *wall* time, for a dashboard nobody opens here
-            with dask.config.set({"distributed.worker.profile.enabled": False,
-                                  "distributed.worker.multiprocessing-method": method}):
-                self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                            dashboard_address=":0",
-                                            silence_logs=logging.ERROR)
+            self.cluster = local_cluster(n, self.bag)
             self.client = Client(self.cluster)
             forget_bags()  # the workers hold the bag from now on
             self.description = f"on {n} local worker processes"
@@ -431,7 +553,7 @@ class DaskRuns(Runs):
         :data:`CLUSTER_PAYS_SPAWNED_S` where the workers are spawned (:func:`start_method`).
         """
         n, cpu = self._cpu
-        least = CLUSTER_PAYS_S if start_method() == "fork" else CLUSTER_PAYS_SPAWNED_S
+        least = CLUSTER_PAYS_S if start_method() != "spawn" else CLUSTER_PAYS_SPAWNED_S
         return len(tasks) > 1 and n > 0 and len(tasks) * cpu / n >= least
 
     def facts(self) -> dict[str, Any]:  # noqa: D102

@@ -1,0 +1,72 @@
+"""How the diagnosis' local Dask workers start (diagnosis/parallel.py: start_method, local_cluster).
+
+The default on Linux is multiprocessing's fork server: a fresh single-threaded process that
+imports the package and reads the bag once (diagnosis/worker_start.py), from which every
+worker is forked -- not a fork of the diagnosis process, which runs Dask's event-loop
+thread.  A user's choice (the package's variable, Dask's key or its variable) goes first.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import pytest
+
+from stellar_cal_ros.diagnosis import parallel
+from stellar_cal_ros.errors import StellarCalError
+
+
+@pytest.fixture
+def no_choice(monkeypatch):
+    monkeypatch.delenv(parallel.START_ENV, raising=False)
+    monkeypatch.delenv(parallel.DASK_START_ENV, raising=False)
+    return monkeypatch
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the fork server: Linux")
+def test_the_default_is_the_fork_server_and_a_users_choice_goes_first(no_choice):
+    import dask
+
+    assert parallel.start_method() == "forkserver"
+    no_choice.setenv(parallel.START_ENV, "spawn")
+    assert parallel.start_method() == "spawn"
+    no_choice.setenv(parallel.START_ENV, "vfork")
+    with pytest.raises(StellarCalError, match="cannot start by 'vfork'"):
+        parallel.start_method()
+    no_choice.delenv(parallel.START_ENV)
+    with dask.config.set({parallel.DASK_START_KEY: "fork"}):
+        assert parallel.start_method() == "fork"
+    # Dask's default ('spawn') is no choice of the user's ...
+    with dask.config.set({parallel.DASK_START_KEY: "spawn"}):
+        assert parallel.start_method() == "forkserver"
+        # ... unless its environment variable says it
+        no_choice.setenv(parallel.DASK_START_ENV, "spawn")
+        assert parallel.start_method() == "spawn"
+
+
+def _held():
+    """In a worker: its parent process and the bags it holds before any task."""
+    from stellar_cal_ros.diagnosis import runstats
+
+    return os.getppid(), [k[1] for k in runstats._BAG_CACHE]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the fork server: Linux")
+def test_fork_server_workers_start_holding_the_bag_and_are_not_forks_of_this_process(
+        tmp_path, no_choice):
+    from distributed import Client
+
+    from stellar_cal_ros.cli import main
+
+    for seed in (3, 4):  # the second cluster's bag is another: the server starts again
+        bag = tmp_path / f"b{seed}.mcap"
+        assert main(["simulate", "--scenario", "psce_rotations", "--duration", "20",
+                     "--seed", str(seed), "-o", str(bag)]) == 0
+        with parallel.local_cluster(2, str(bag)) as cluster, Client(cluster) as client:
+            held = client.run(_held)
+            assert len(held) == 2
+            for ppid, bags in held.values():
+                assert ppid != os.getpid()  # forked from the server, not from here
+                assert bags == [str(bag)]  # the server read it: the worker did not
+        assert os.environ.get(parallel.WORKER_BAG_ENV) is None  # only while it starts
