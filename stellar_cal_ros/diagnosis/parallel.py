@@ -17,11 +17,13 @@ Executors
     in this process until a batch of runs would take at least :data:`CLUSTER_PAYS_S`
     CPU seconds one after the other (the batch's runs × the mean CPU time of the runs made
     so far here), then a local cluster of one worker per core (at most 16) for that batch
-    and every later one.  The workers are forked from this process where the platform
-    can (:func:`start_method`: Linux): they start holding its imports, its loaded compiled
-    kernels and the bag, ready in 0.9-1.8 s for 0.1-0.2 CPU-s on 2 cores; spawned, each
-    imports the package, loads the kernels and reads the bag (13-18 s and 2.5-2.9 CPU-s
-    at the same load: measured, doc/benchmarks.md), and the rule asks for
+    and every later one.  The workers are forked from multiprocessing's fork server where
+    the platform has one (:func:`start_method`: Linux; :func:`local_cluster`): a fresh
+    single-threaded process that imports the package and reads the bag once
+    (:mod:`~stellar_cal_ros.diagnosis.worker_start`), so they start holding both (not a
+    fork of this process, which runs Dask's event-loop thread); each loads the compiled
+    kernels at its first run.  Spawned, each imports the package, loads the kernels and
+    reads the bag (measured, doc/benchmarks.md), and the rule asks for
     :data:`CLUSTER_PAYS_SPAWNED_S`.  Besides the start, Dask's scheduler and client take
     the parent's CPU while it waits, and runs side by side take more CPU each; a round of
     a few short runs (a ``diagnose`` near the model) is done sooner in this process.  On
@@ -36,8 +38,8 @@ Executors
 How the bag reaches the workers
 -------------------------------
 A bag given by path is sent as the path: each worker reads it once and caches it (a
-worker process keeps one bag; forked local workers start with it, read once by the parent
-before the fork).  The parent first asks every worker for the file's size;
+worker process keeps one bag; local workers start with it, read once by the fork server,
+or by this process before a ``fork``).  The parent first asks every worker for the file's size;
 when a worker cannot see the file (no shared filesystem) the bag's *bytes* are scattered
 to all workers once (``Client.scatter(broadcast=True)``) and each worker parses its copy —
 the parent never pickles a parsed bag.  A bag already in memory
@@ -82,11 +84,14 @@ IN_PROCESS_CORES = 2
 #: take at least this many CPU seconds in this process (see the module's doc).  A batch of
 #: C CPU-s gains wall time on N workers when C > S / (1 - k/N), S the cluster's start (wall
 #: until every worker holds the bag) and k the runs' CPU on N busy workers against here.
+#: With workers forked from this process (``fork``, a user's choice: :func:`start_method`).
 #: Measured on 2 cores (doc/benchmarks.md "forked workers"): forked workers S 0.9-1.8 s, k
 #: 1.1-1.6 (load 10-18; 1.17-1.36 at lower load): C* <= 8.6 s on 2 workers, ~3 s on 4
 CLUSTER_PAYS_S = 10.0
-#: :data:`CLUSTER_PAYS_S` where the workers are spawned (no ``fork``: macOS, Windows):
-#: each imports the package, loads the kernels and reads the bag, S ~5 s on idle cores
+#: :data:`CLUSTER_PAYS_S` where the workers are spawned (macOS, Windows) or forked from the
+#: fork server (Linux's default, :func:`start_method`): the package imported and the bag
+#: read in a fresh process before the first worker holds it, S ~5 s on idle cores (spawned),
+#: the fork server's start as long at 2.8 against 3.0 CPU-s (doc/benchmarks.md, H109)
 CLUSTER_PAYS_SPAWNED_S = 20.0
 #: Dask priority of :meth:`Runs.on_bag` (a run's is 100 × its cost): a small statistic of
 #: the bag that the diagnosis waits for goes before the runs queued ahead of need
@@ -550,10 +555,11 @@ class DaskRuns(Runs):
     def pays(self, tasks: list[Task]) -> bool:
         """Whether ``tasks`` would take :data:`CLUSTER_PAYS_S` CPU-s here (lazy mode).
 
-        :data:`CLUSTER_PAYS_SPAWNED_S` where the workers are spawned (:func:`start_method`).
+        :data:`CLUSTER_PAYS_SPAWNED_S` where the workers are not forked from this process
+        (spawned, or from the fork server: :func:`start_method`).
         """
         n, cpu = self._cpu
-        least = CLUSTER_PAYS_S if start_method() != "spawn" else CLUSTER_PAYS_SPAWNED_S
+        least = CLUSTER_PAYS_S if start_method() == "fork" else CLUSTER_PAYS_SPAWNED_S
         return len(tasks) > 1 and n > 0 and len(tasks) * cpu / n >= least
 
     def facts(self) -> dict[str, Any]:  # noqa: D102
