@@ -57,7 +57,8 @@ def test_noise_scales_parse_store_and_apply():
     assert cfg.gyro_arw_deg_sqrth == pytest.approx(5 * PsceConfig().gyro_arw_deg_sqrth)
     assert cfg.noise is s and NoiseScales().identity and not s.identity
     for bad in ("star=-1", "star=x", "speed=2", "edges=4.5,factors=1/2", "by=magnitude,"
-                "edges=4.5,factors=1", "by=colour,edges=1,factors=1/2", "by=row,edges=a"):
+                "edges=4.5,factors=1", "by=colour,edges=1,factors=1/2", "by=row,edges=a",
+                "by=magnitude,edges=4.5/4.0,factors=1/2/3", "by=row,edges=nan,factors=1/2"):
         with pytest.raises(ValueError):
             NoiseScales.parse(bad)
     # the groups as the diagnosis advises them (each group's factor of the messages' σ)

@@ -73,6 +73,11 @@ class NoiseScales:
             raise ValueError(f"star groups by {self.group_by!r}: use one of {GROUP_KINDS}")
         if self.group_by and len(self.factors) != len(self.edges) + 1:
             raise ValueError("star groups need one factor per bin (len(edges) + 1)")
+        if any(not math.isfinite(e) for e in self.edges) \
+                or any(b < a for a, b in zip(self.edges[:-1], self.edges[1:], strict=True)):
+            # a bin is found by a sorted search: unsorted edges would give stars another
+            # bin's factor, silently
+            raise ValueError(f"star group edges must be finite and increasing, got {self.edges!r}")
         if any(not (math.isfinite(f) and f > 0) for f in self.factors):
             raise ValueError(f"star group factors must be positive, got {self.factors!r}")
         if not (math.isfinite(self.star_rho) and 0.0 <= self.star_rho < 1.0):
