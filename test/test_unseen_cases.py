@@ -1060,7 +1060,8 @@ def _top_of(sim, method, candidates):
                                        significant_alone=p < 0.01 / len(candidates),
                                        p_adjusted=p, run=run))
     runs = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(),
-                           on_bag=lambda fn, *a: fn(data, *a))
+                           on_bag=lambda fn, *a: fn(data, *a),
+                           later=lambda fn, *a: lambda: fn(data, *a))
     state = auto._State([], (), prior)
     top, refused = auto._top(runs, state, base, None, prior, prior, results, lambda s: None)
     return top, refused, results, base, state

@@ -446,7 +446,6 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     """
     refused = []
     fields = None  # the outside-library leads of the current model, once a candidate asks
-    state.beside = {}  # each candidate tested beside a lead: its beyond results
     for c in results:
         if not c.significant_alone:
             continue

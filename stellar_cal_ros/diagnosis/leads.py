@@ -103,10 +103,7 @@ def findings(run, fraction: float, kinds, alpha: float, known: dict | None = Non
                                                     fraction, k)
            for k in kinds if k in known or (k in FIELDS and _has_table(run))}
     out = []
-    for kind in kinds:
-        f = got.get(kind)
-        if f is None or not f["p_value"] * len(NAMES) < alpha:
-            continue
+    for kind, f in significant({k: got.get(k) for k in kinds}, alpha).items():
         out.append(stats.RegressorFinding(_regressor(kind, f), "u, v", f["t"],
                                           min(1.0, f["p_value"] * len(NAMES)), f["size_px"],
                                           detail={"field": kind, **f}))
@@ -235,15 +232,11 @@ def gravity_of(runs, run, prior: Calibration, effects: tuple[str, ...]
                ) -> dict[str, float] | None:
     """The gravity field's fit on the current model ``run`` (its residuals kept).
 
-    One run where the bag is: the model ``effects`` from ``prior`` with the flexure probe
-    (:func:`~stellar_cal_ros.diagnosis.flexure.measure_on_bag`, the same call as the
-    flexure-shaped test after an add: the two are one test).
+    The flexure-shaped test after an add
+    (:func:`~stellar_cal_ros.diagnosis.flexure.after_add`: one run where the bag is, the
+    model ``effects`` from ``prior`` with the probe) as a lead: the two are one test.
     """
-    if not _has_table(run):
-        return None
-    moved = runs.on_bag(flexure.measure_on_bag, runs.spec, prior, tuple(effects),
-                        runs.fraction, runs.noise, runs.classes)
-    return gravity_fit(run.residuals, moved, runs.fraction)
+    return as_lead(flexure.after_add(runs, run, prior, tuple(effects)))
 
 
 def significant(found: dict[str, dict | None], alpha: float) -> dict[str, dict]:
