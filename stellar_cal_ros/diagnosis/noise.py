@@ -60,6 +60,7 @@ from stellar_cal_ros.diagnosis.noise_stars import (
     Table,
     group_index,
     group_x,
+    known_groups,
     significant_grouping,
     star_groups,
     star_noise,
@@ -294,10 +295,9 @@ class NoiseVerdict:
         a = self.applied
         if not a.group_by:
             return f"use --noise-scale {a.advice(3)}"
-        bins = _bin_text(list(a.edges), GROUP_UNITS.get(a.group_by, ""))
-        return (f"with the {a.group_by} groups measured before, now x" + ", x".join(
-            f"{a.star * f:.3g} ({b})" for f, b in zip(a.factors, bins, strict=True))
-            + f" of the messages' sigma: use --noise-scale {a.advice()}")
+        return (f"with the {a.group_by} groups measured before, now x"
+                + _factors_text(a, a.star)
+                + f" of the messages' sigma: use --noise-scale {a.advice()}")
 
     def _stated_varies(self) -> bool:
         lo, hi = self.stated_sigma_range
@@ -346,7 +346,6 @@ class NoiseVerdict:
                        + self._star_advice())
         if self.group is not None:
             g = self.group
-            bins = _bin_text(g["edges"], GROUP_UNITS[g["by"]])
             said = (f"{self._stated_px()} px stated" + (
                 ", the factors of each star's own" if self._stated_varies() else "")
                 if np.isfinite(self.stated_sigma_px) else
@@ -460,10 +459,8 @@ class NoiseVerdict:
         if st.star != 1.0 or st.group_by:
             k = st.star * self.star
             if st.group_by:
-                bins = _bin_text(list(st.edges), GROUP_UNITS.get(st.group_by, ""))
-                said.append("stars' sigma x" + ", x".join(
-                    f"{k * f:.3g} ({b})" for f, b in zip(st.factors, bins, strict=True))
-                    + f" +- {st.star * self.star_sigma:.2g} of the messages' sigma (by "
+                said.append("stars' sigma x" + _factors_text(st, k)
+                            + f" +- {st.star * self.star_sigma:.2g} of the messages' sigma (by "
                     f"{st.group_by})")
             else:
                 said.append(f"stars' sigma {self._stated_px()} -> {self._stated_px(k)} px "
@@ -502,6 +499,12 @@ def _bin_text(edges: list[float], unit: str) -> list[str]:
         return ["all"]
     return ([f"< {e[0]} {unit}"] + [f"{a}-{b} {unit}" for a, b in zip(e, e[1:], strict=False)]
             + [f">= {e[-1]} {unit}"])
+
+
+def _factors_text(scales: NoiseScales, k: float) -> str:
+    """``F0 (bin 0), xF1 (bin 1), ...``: the groups of ``scales``, each factor times ``k``."""
+    bins = _bin_text(list(scales.edges), GROUP_UNITS.get(scales.group_by, ""))
+    return ", x".join(f"{k * f:.3g} ({b})" for f, b in zip(scales.factors, bins, strict=True))
 
 
 def _compose_groups(applied: NoiseScales, stated: NoiseScales, best: dict[str, Any],
@@ -594,7 +597,7 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
     # (no message states one: the groups are of every star, factors of the default σ,
     # which the σ-0 stars then take with the groups' factors instead of one measured σ)
     grouped = known if known.any() else np.ones(len(known), dtype=bool)
-    v.groups = star_groups(sub, size, grouped)
+    v.groups = known_groups(sub, size) if known.any() else star_groups(sub, size, grouped)
     best = significant_grouping(v.groups, n_tests)
     if best is not None:
         overall = sub.group(grouped)[0]

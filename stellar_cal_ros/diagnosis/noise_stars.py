@@ -12,7 +12,7 @@ means for the verdict ("noise as stated" or not) is :mod:`.noise`'s.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -153,6 +153,10 @@ class StarNoise:
     log_variance: float | None = None
     #: per star: the σ its message states (px; 0: unknown), or None
     stated_px: np.ndarray | None = None
+    #: ``(size, groups)``: :func:`star_groups` of the stars of stated σ with the detector
+    #: ``size``, as :func:`fit_weights` made them on these rows (the verdict's own groups,
+    #: :func:`known_groups`: not made twice); None: not made
+    groups_made: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def repeat_p(self) -> float:
@@ -301,7 +305,8 @@ def fit_weights(sn: StarNoise | None, res: Table, sigma_px: np.ndarray,
         s, e, _ = sn.group(known)
         if not (math.isfinite(s) and s > 0):
             return None
-        best = significant_grouping(star_groups(sn, size, known), 1)
+        sn.groups_made = (size, star_groups(sn, size, known))
+        best = significant_grouping(sn.groups_made[1], 1)
         if best is not None:
             uv = np.stack([np.asarray(res["u"], dtype=float), np.asarray(res["v"], dtype=float)],
                           1)
@@ -994,6 +999,19 @@ def _merge(sn: StarNoise, gidx: np.ndarray, edges: np.ndarray, use: np.ndarray,
         edges = np.delete(edges, k)
         gidx = np.where(gidx > k, gidx - 1, gidx)
     return edges, gidx, [sn.group(use)]
+
+
+def known_groups(sn: StarNoise, size: tuple[int, int] | None) -> list[dict[str, Any]]:
+    """:func:`star_groups` of the stars of stated σ (``~sn.unknown``), made once per rows.
+
+    :func:`fit_weights` made them already where :func:`star_noise` stopped on these rows;
+    the scale, σ and dof of a :class:`StarNoise` (what a verdict replaces) do not enter
+    them.
+    """
+    made = sn.groups_made
+    if made is not None and made[0] == size:
+        return made[1]
+    return star_groups(sn, size, ~sn.unknown)
 
 
 def group_x(sn: StarNoise, kind: str) -> np.ndarray:
