@@ -559,8 +559,12 @@ class DaskRuns(Runs):
         (spawned, or from the fork server: :func:`start_method`).
         """
         n, cpu = self._cpu
-        least = CLUSTER_PAYS_S if start_method() == "fork" else CLUSTER_PAYS_SPAWNED_S
-        return len(tasks) > 1 and n > 0 and len(tasks) * cpu / n >= least
+        if not (len(tasks) > 1 and n > 0):
+            return False
+        c = len(tasks) * cpu / n
+        # how the workers start matters between the two bounds only (start_method imports
+        # Dask, which an in-process round otherwise never loads)
+        return c >= CLUSTER_PAYS_SPAWNED_S or (c >= CLUSTER_PAYS_S and start_method() == "fork")
 
     def facts(self) -> dict[str, Any]:  # noqa: D102
         if self.client is None:
