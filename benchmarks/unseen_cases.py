@@ -85,6 +85,10 @@ class Case:
     not_first: tuple[str, ...] = ()
     #: words no noise / 'unexplained' line may hold (a false claim about the noise), or ""
     not_told: str = ""
+    #: a twin of the user's calibrated bag (`stellar-cal twin`): ``(effect, parameter,
+    #: factor)`` injects ``effect`` with ``parameter`` at ``factor`` x the MDB that
+    #: ``discover --auto`` printed for it on the clean bag (the other parameters 0)
+    twin: tuple = ()
 
 
 def _renoise(sim, true_sigma: Callable, stated: float, seed: int) -> None:
@@ -268,6 +272,80 @@ def _quadrant(sim, seed, shift_px=0.05):
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 
+# ---- 2026-11-28 night (H116): fifth pass
+
+
+def _sigma_per_star(sim, seed, spread=0.3):
+    # true 0.05 px everywhere; each catalogue star's sigma field off by its own lognormal
+    # factor exp(0.3 z - 0.045) (30 % random, 1 on average): the ML scale of the stated
+    # sigma is sqrt(E[factor^-2]) = exp(0.27 / 2) = 1.145
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+    rng = np.random.default_rng(seed + 1299709)
+    fac: dict[int, float] = {}
+    for f in sim.star_frames:
+        ids = np.asarray(f.catalog_id).tolist()
+        f.sigma = PSCE_SIGMA * np.array(
+            [fac.setdefault(int(c), float(np.exp(spread * rng.standard_normal()
+                                                 - spread ** 2 / 2.0))) for c in ids])
+
+
+def _ar1_mixed(sim, seed, tau_frames=10.0, share=0.5):
+    # half of each star's 0.05 px centroid noise white, half an AR(1) over frames (tau 10
+    # frames); the marginal 0.05 px stated right
+    tracks = tracker_errors.Ar1Tracks(float(np.exp(-1.0 / tau_frames)),
+                                      np.random.default_rng(seed + 6700417), share=share)
+    for j, f in enumerate(sim.star_frames):
+        uv = np.asarray(f.uv, dtype=float)
+        f.uv = uv + PSCE_SIGMA * tracks.draw(j, f.catalog_id)
+        f.sigma = np.full(len(uv), PSCE_SIGMA)
+
+
+def _saturation(sim, seed, px_per_mag=0.04, from_mag=4.0):
+    # bright stars (mag < 4) pulled toward the detector's centre by 0.04 px per magnitude
+    # brighter than 4 (a saturated PSF's clipped core), then the stated noise
+    cam = sim.prior.camera
+    c = np.array([cam.width / 2.0, cam.height / 2.0])
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        d = c - uv
+        unit = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+        m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=from_mag)
+        f.uv = uv + px_per_mag * np.maximum(from_mag - m, 0.0)[:, None] * unit
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _focal_drift(sim, seed, ppm=150.0):
+    # the focal length drifts linearly over the run (-75 ppm at the start to +75 ppm at the
+    # end: ~0.1 px at the field's edge) and the bag has NO tracker temperature topic
+    from stellar_cal_ros.core.types import ScalarSeries
+    cam = sim.prior.camera
+    c = np.array([cam.cx, cam.cy])
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    for f in sim.star_frames:
+        x = (f.stamp_ns - t0) / max(t1 - t0, 1) - 0.5
+        uv = np.asarray(f.uv, dtype=float)
+        f.uv = c + (uv - c) * (1.0 + ppm * 1e-6 * x)
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+    sim.head_temperature = ScalarSeries(np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0),
+                                        sim.head_temperature.frame_id)
+
+
+def _hot_pixel(sim, seed, uv0=(1500.0, 500.0), radius_px=30.0):
+    # a hot-pixel cluster at (1500, 500) px: a star passing within 30 px of it is reported
+    # at the cluster (the tracker took the false star for it) in those frames; the rest
+    # 0.05 px as stated
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+    rng = np.random.default_rng(seed + 32452843)
+    hot = np.asarray(uv0, dtype=float)
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        d = np.linalg.norm(uv - hot, axis=1)
+        if len(d) and d.min() < radius_px:
+            uv = uv.copy()
+            uv[int(np.argmin(d))] = hot + PSCE_SIGMA * rng.standard_normal(2)
+            f.uv = uv
+
+
 CASES: dict[str, Case] = {
     # ---- noise stated wrongly, the model right
     "mag2x": Case("psce", "faint stars (mag >= 4.5) 2x the stated 0.05 px, bright as stated",
@@ -404,6 +482,44 @@ CASES: dict[str, Case] = {
                       "swaying base, turned by the sway and its acceleration, which no gyro "
                       "term follows (not in the library)", outside=True, regressor="gravity",
                       sim_effects={**SWAY_CLEAN, "mount_flexure": 10.0}, duration=200.0),
+    # ---- 2026-11-28 night (H116): fifth pass
+    "gyro_over3": Case("psce", "gyro ARW a third of the stated (the configured ARW 3x too "
+                       "large), the stars as stated", noise={"gyro": 1.0 / 3.0},
+                       scenario_changes={"gyro_arw_deg_sqrth": 1.0 / 3.0}),
+    "sway_accel2": Case("swaying_base", "accelerometer VRW 2x the stated on the swaying base",
+                        noise={"accel": 2.0}, scenario_changes={"accel_vrw_mps_sqrth": 2.0},
+                        sim_effects=dict(SWAY_CLEAN), duration=200.0),
+    "sigma_per_star": Case("psce", "true 0.05 px; each star's sigma field off by its own "
+                           "random factor (lognormal, 30 %, 1 on average): the stated sigma's "
+                           "ML scale 1.145", noise={"star": 1.145}, post=_sigma_per_star,
+                           scenario_changes={"centroid_noise_px": 0.0}),
+    "ar1_mixed": Case("psce", "half of each star's 0.05 px noise white, half AR(1) over "
+                      "frames (tau 10 frames), marginal stated right (a white-noise filter "
+                      "needs sigma x sqrt(0.5 (1+rho)/(1-rho) + 0.5) = 3.24)",
+                      noise={"star": 3.24}, post=_ar1_mixed,
+                      scenario_changes={"centroid_noise_px": 0.0}),
+    "saturation": Case("psce", "bright stars pulled toward the detector centre, 0.04 px per "
+                       "magnitude brighter than 4 (saturation; not in the library)",
+                       outside=True, regressor="magnitude", post=_saturation,
+                       scenario_changes={"centroid_noise_px": 0.0}),
+    "focal_drift": Case("psce", "focal length drifting linearly over the run (150 ppm, ~0.1 "
+                        "px at the edge) and NO tracker temperature topic (thermal_focal_length"
+                        " has no regressor: not in the library here)", outside=True,
+                        regressor="time", post=_focal_drift,
+                        scenario_changes={"centroid_noise_px": 0.0}),
+    "hot_pixel": Case("psce", "a hot-pixel cluster at (1500, 500) px taken for a star passing "
+                      "within 30 px of it (the centroid reported at the cluster in those "
+                      "frames); the rest 0.05 px as stated", noise={}, post=_hot_pixel,
+                      scenario_changes={"centroid_noise_px": 0.0}),
+    "flex20": Case("psce", "mount flexure 20 arcsec per unit lateral gravity (not in the "
+                   "library)", outside=True, regressor="gravity",
+                   sim_effects={"mount_flexure": 20.0}),
+    "twin_gm2": Case("psce", "the user's calibrated clean bag's twin with gyro_misalignment "
+                     "e02 at 2x the MDB `discover` printed for it (stellar-cal twin)",
+                     effects=("gyro_misalignment",), twin=("gyro_misalignment", "e02", 2.0)),
+    "twin_aspect2": Case("psce", "the user's calibrated clean bag's twin with pixel_aspect at "
+                         "2x the MDB `discover` printed for it (stellar-cal twin)",
+                         effects=("pixel_aspect",), twin=("pixel_aspect", "aspect", 2.0)),
 }
 
 
@@ -418,7 +534,29 @@ def write_case(name: str, out: Path, seed: int) -> dict[str, Path]:
     sim = simulate(sc, duration=case.duration, seed=seed, effects=case.sim_effects)
     if case.post is not None:
         case.post(sim, seed)
-    return write_simulation(sim, out / f"{name}.mcap")
+    if not case.twin:
+        return write_simulation(sim, out / f"{name}.mcap")
+    return _write_twin(name, write_simulation(sim, out / f"{name}.base.mcap"), out)
+
+
+def _write_twin(name: str, base: dict[str, Path], out: Path) -> dict[str, Path]:
+    """The user calibrates ``base`` (``discover --auto``), then asks for a twin of it with
+    the case's effect at a multiple of the MDB printed for it: ``OUT/name.mcap``."""
+    case = CASES[name]
+    effect, param, factor = case.twin
+    exe = str(Path(sys.executable).with_name("stellar-cal"))
+    d = out / f"{name}.base.d"
+    subprocess.run([exe, "discover", str(base["bag"]), "--calibration", str(base["prior"]),
+                    "--method", case.method, "--auto", "-o", str(d), "--no-plots",
+                    "--workers", "0"], check=True, capture_output=True, env=os.environ.copy())
+    summ = json.loads((d / "diagnosis.json").read_text())
+    mdb = next(r["mdb"] for r in summ["reliability"] if r.get("effect") == effect)
+    value = ",".join(f"{factor * mdb[k]:.6g}" if k == param else "0" for k in mdb)
+    subprocess.run([exe, "twin", str(base["bag"]), "--calibration",
+                    str(d / "calibration.yaml"), "-o", str(out / f"{name}.mcap"), "--effect",
+                    f"{effect}={value}"], check=True, capture_output=True,
+                   env=os.environ.copy())
+    return {"bag": out / f"{name}.mcap", "prior": out / f"{name}.prior.yaml"}
 
 
 def diagnose_case(name: str, out: Path) -> dict:
