@@ -289,15 +289,10 @@ def _sigma_per_star(sim, seed, spread=0.3):
                                                  - spread ** 2 / 2.0))) for c in ids])
 
 
-def _ar1_mixed(sim, seed, tau_frames=10.0, share=0.5):
+def _ar1_mixed(sim, seed):
     # half of each star's 0.05 px centroid noise white, half an AR(1) over frames (tau 10
     # frames); the marginal 0.05 px stated right
-    tracks = tracker_errors.Ar1Tracks(float(np.exp(-1.0 / tau_frames)),
-                                      np.random.default_rng(seed + 6700417), share=share)
-    for j, f in enumerate(sim.star_frames):
-        uv = np.asarray(f.uv, dtype=float)
-        f.uv = uv + PSCE_SIGMA * tracks.draw(j, f.catalog_id)
-        f.sigma = np.full(len(uv), PSCE_SIGMA)
+    tracker_errors.ar1_noise(sim, PSCE_SIGMA, 10.0, seed, share=0.5)
 
 
 def _saturation(sim, seed, px_per_mag=0.04, from_mag=4.0):
@@ -330,8 +325,8 @@ def _focal_drift(sim, seed, ppm=150.0):
                                         sim.head_temperature.frame_id)
 
 
-def _hot_pixel(sim, seed, uv0=(1500.0, 500.0), radius_px=30.0):
-    # a hot-pixel cluster at (1500, 500) px: a star passing within 30 px of it is reported
+def _hot_pixel(sim, seed, uv0=(800.0, 250.0), radius_px=30.0):
+    # a hot-pixel cluster at (800, 250) px (of 1024 x 1024): a star passing within 30 px of it is reported
     # at the cluster (the tracker took the false star for it) in those frames; the rest
     # 0.05 px as stated
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
@@ -507,7 +502,7 @@ CASES: dict[str, Case] = {
                         " has no regressor: not in the library here)", outside=True,
                         regressor="time", post=_focal_drift,
                         scenario_changes={"centroid_noise_px": 0.0}),
-    "hot_pixel": Case("psce", "a hot-pixel cluster at (1500, 500) px taken for a star passing "
+    "hot_pixel": Case("psce", "a hot-pixel cluster at (800, 250) px taken for a star passing "
                       "within 30 px of it (the centroid reported at the cluster in those "
                       "frames); the rest 0.05 px as stated", noise={}, post=_hot_pixel,
                       scenario_changes={"centroid_noise_px": 0.0}),

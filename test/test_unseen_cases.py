@@ -1160,3 +1160,26 @@ def test_the_ripple_family_holds_its_level_on_white_draws():
     assert abs(t.mean()) < 3 / np.sqrt(len(t)), t.mean()
     assert abs(t.std(ddof=1) - 1) < 3 / np.sqrt(2 * (len(t) - 1)), t.std(ddof=1)
     assert abs(small - 0.01 * len(t)) < 3 * np.sqrt(0.01 * 0.99 * len(t)), (small, len(t))
+
+
+def test_a_declared_temperature_topic_without_messages_is_absent(tmp_path):
+    """A bag that declares /star_tracker/temperature but holds no message on it (a node that
+    advertised and never published; unseen case ``focal_drift``) has no head temperature:
+    thermal_focal_length is not applicable for that reason, not 'not testable with this
+    motion' at an infinite MDB.  The air temperature it does hold is read."""
+    from stellar_cal_ros.core.types import ScalarSeries
+    from stellar_cal_ros.diagnosis.discover import _applicable
+    from stellar_cal_ros.io.bag import BagReader
+    from stellar_cal_ros.methods.frames import read_bag_data
+    from stellar_cal_ros.sim.world import write_simulation
+
+    sim = simulate(get_scenario("psce_rotations"), duration=10.0, seed=3)
+    n_air = len(sim.air_temperature)
+    sim.head_temperature = ScalarSeries(np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
+    bag = write_simulation(sim, tmp_path / "no_head.mcap")["bag"]
+    with BagReader(bag) as r:
+        assert r.topics()["/star_tracker/temperature"].message_count == 0
+    data = read_bag_data(bag)
+    assert data.head_temperature is None and len(data.air_temperature) == n_air > 0
+    assert _applicable("thermal_focal_length", method_spec("psce"), data) == (
+        "needs /star_tracker/temperature, absent from the bag")

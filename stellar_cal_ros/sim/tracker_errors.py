@@ -140,15 +140,16 @@ class Ar1Tracks:
 
 
 def ar1_noise(sim, sigma_px: float, tau_frames: float, seed: int,
-              stated: float | None = None) -> None:
+              stated: float | None = None, share: float = 1.0) -> None:
     """Centroid noise of each star an AR(1) over frames (marginal ``σ``, time constant τ).
 
     A star that leaves and comes back continues its process over the gap.  The σ field
     states ``stated`` (default ``σ``: the marginal noise is stated right, only its
-    correlation is not).
+    correlation is not).  ``share`` below 1: white + AR(1) noise, the AR(1) carrying that
+    share of the variance (:class:`Ar1Tracks`; unseen case ``ar1_mixed``).
     """
     tracks = Ar1Tracks(float(np.exp(-1.0 / tau_frames)),
-                       np.random.default_rng(seed + 6700417))
+                       np.random.default_rng(seed + 6700417), share=share)
     for j, f in enumerate(sim.star_frames):
         uv = np.asarray(f.uv, dtype=float)
         f.uv = uv + sigma_px * tracks.draw(j, f.catalog_id)
