@@ -326,9 +326,9 @@ def _focal_drift(sim, seed, ppm=150.0):
 
 
 def _hot_pixel(sim, seed, uv0=(800.0, 250.0), radius_px=30.0):
-    # a hot-pixel cluster at (800, 250) px (of 1024 x 1024): a star passing within 30 px of it is reported
-    # at the cluster (the tracker took the false star for it) in those frames; the rest
-    # 0.05 px as stated
+    # a hot-pixel cluster at (800, 250) px (of 1024 x 1024): a star passing within 30 px
+    # of it is reported at the cluster (the tracker took the false star for it) in those
+    # frames; the rest 0.05 px as stated
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
     rng = np.random.default_rng(seed + 32452843)
     hot = np.asarray(uv0, dtype=float)
@@ -535,8 +535,11 @@ def write_case(name: str, out: Path, seed: int) -> dict[str, Path]:
 
 
 def _write_twin(name: str, base: dict[str, Path], out: Path) -> dict[str, Path]:
-    """The user calibrates ``base`` (``discover --auto``), then asks for a twin of it with
-    the case's effect at a multiple of the MDB printed for it: ``OUT/name.mcap``."""
+    """A twin of ``base`` with the case's effect at a multiple of its printed MDB.
+
+    The user calibrates ``base`` (``discover --auto``), then asks ``stellar-cal twin`` for
+    ``OUT/name.mcap``: the case's effect at ``factor`` x the MDB printed for it.
+    """
     case = CASES[name]
     effect, param, factor = case.twin
     exe = str(Path(sys.executable).with_name("stellar-cal"))
