@@ -295,17 +295,10 @@ def _ar1_mixed(sim, seed):
     tracker_errors.ar1_noise(sim, PSCE_SIGMA, 10.0, seed, share=0.5)
 
 
-def _saturation(sim, seed, px_per_mag=0.04, from_mag=4.0):
+def _saturation(sim, seed, px_per_mag=0.04):
     # bright stars (mag < 4) pulled toward the detector's centre by 0.04 px per magnitude
     # brighter than 4 (a saturated PSF's clipped core), then the stated noise
-    cam = sim.prior.camera
-    c = np.array([cam.width / 2.0, cam.height / 2.0])
-    for f in sim.star_frames:
-        uv = np.asarray(f.uv, dtype=float)
-        d = c - uv
-        unit = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
-        m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=from_mag)
-        f.uv = uv + px_per_mag * np.maximum(from_mag - m, 0.0)[:, None] * unit
+    tracker_errors.saturation_pull(sim, px_per_mag)
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 

@@ -25,6 +25,8 @@ function            what a tracker does
                     position error, a proper motion the catalogue lacks)
 ``radial_by_mag``   a centroid bias away from the principal point growing with magnitude, the
                     same length at every radius (no focal length or distortion makes it)
+``saturation_pull`` bright stars' centroids pulled toward the detector's centre, more the
+                    brighter (a saturated core)
 ==================  ==============================================================================
 """
 
@@ -263,6 +265,24 @@ def radial_by_mag(sim, px_per_mag: float, from_mag: float = 4.0) -> None:
         unit = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
         m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=from_mag)
         f.uv = uv + px_per_mag * np.maximum(m - from_mag, 0.0)[:, None] * unit
+
+
+def saturation_pull(sim, px_per_mag: float, from_mag: float = 4.0) -> None:
+    """Each centroid of a bright star pulled toward the detector's centre.
+
+    By ``px_per_mag`` per magnitude brighter than ``from_mag`` (0 for fainter stars): a
+    saturated PSF's clipped core, whose centroid a centroider biases toward the middle of
+    the detector (unseen case ``saturation``); the mirror of :func:`radial_by_mag`, about
+    the detector's centre rather than the principal point.
+    """
+    cam = sim.prior.camera
+    c = np.array([cam.width / 2.0, cam.height / 2.0])
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        d = c - uv
+        unit = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+        m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=from_mag)
+        f.uv = uv + px_per_mag * np.maximum(from_mag - m, 0.0)[:, None] * unit
 
 
 def column_ripple(sim, amplitude_px: float, periods: float = 3.0) -> None:
