@@ -19,6 +19,7 @@ from scipy import stats as sps
 
 from stellar_cal_ros.core.gating import chi2_2_quantile
 from stellar_cal_ros.core.noise import NoiseScales
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import flexure, noise, noise_stars, rolling, stats
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
 from stellar_cal_ros.diagnosis.noise_structure import correlated
@@ -1101,9 +1102,49 @@ def test_a_mount_flexing_on_a_swaying_base_gets_no_library_name():
     assert top is None, top.effect
     g = state.lead["gravity"]
     assert g["p_value"] < 1e-6, g
-    assert abs(g["arcsec_per_g"] - 10.0) < 3 * g["sigma_arcsec_per_g"] + 1.5, g
+    # the printed size against the truth, within 3 of the sigma it prints (measured 9.47
+    # +- 0.66; over seeds its spread is that sigma and its mean the truth: the next test
+    # and doc/benchmarks.md "The flexure's printed size")
+    assert abs(g["arcsec_per_g"] - 10.0) < 3 * g["sigma_arcsec_per_g"], g
     (c, b), = refused
     assert c.effect == "gyro_scale_factor" and not b["needed"] and b["lead"] == "gravity", b
+
+
+def test_the_flexure_probe_reads_a_swaying_mounts_true_response():
+    """The flexure the gravity field prints is ``c = Σ Sᵀ C⁻¹ ν / Σ Sᵀ C⁻¹ S`` (the
+    innovations ``ν`` on the probe's response ``S``): the truth when the response of the
+    real flexure is ``c S``.  Paired bags (the same seed's noise, ``clean_simulation``), 120 s
+    of sway with and without a 10″/g mount: the innovations' difference is the flexure's own
+    response, noise-free, and its fit on ``S`` must be 10.  Measured 10.04 (the probe's load
+    over ``context.LOAD_WINDOW_S``, 0.1 s); with the 1 s mean of the gravity regressors it
+    was 10.34 (the sway's acceleration attenuated), the systematic part of the case's
+    reading; the rest of seeds 21/22's 8.8/9.06″/g at 200 s is their noise (the clean bags
+    alone read −1.54/−1.24″/g, the 20-seed null's spread is 0.53″/g against the printed
+    σ 0.54).  Tolerance 1 % (a third of what the 1 s window made; no noise enters)."""
+    from stellar_cal_ros.diagnosis.injection import clean_simulation
+
+    spec = method_spec("swaying_base")
+    runs = {}
+    for size in (0.0, 10.0):
+        sim, _ = clean_simulation("swaying_base", False, 21, 120.0,
+                                  {"mount_flexure": size} if size else None)
+        data, prior = bag_data_from_simulation(sim), rerun_prior(sim.prior)
+        runs[size] = evaluate(data, spec, prior, (), 0.5, keep_residuals=True).residuals
+    moved = flexure.measure_on_bag(data, spec, prior, (), 0.5)
+    win = {k: {c: np.asarray(v)[stats.evaluation_mask(r, 0.5)] for c, v in r.items()}
+           for k, r in runs.items()}
+    flexed, clean = flexure._aligned(win[10.0], win[0.0])
+    flexed, probe = flexure._aligned(flexed, moved)
+    clean, _ = flexure._aligned(clean, probe)
+    m = stats.accepted(flexed) & stats.accepted(probe) & stats.accepted(clean)
+    assert m.sum() > 1000, m.sum()
+    per = flexure.PROBE / ARCSEC
+    S = np.stack([probe[c][m] - flexed[c][m] for c in ("du", "dv")], 1) / per
+    own = {k: v[m] for k, v in flexed.items()}
+    own.update(du=flexed["du"][m] - clean["du"][m], dv=flexed["dv"][m] - clean["dv"][m])
+    fit = stats.whitened_fit(own, S)
+    assert fit is not None
+    assert abs(fit[2] / 10.0 - 1.0) < 0.01, fit
 
 
 def test_a_ripple_along_the_columns_is_unexplained_by_u_with_its_amplitude():

@@ -26,9 +26,22 @@ Table = dict[str, np.ndarray]
 MIN_SPECIFIC_FORCE = 5.0
 
 
+#: the span (s) of the specific force's mean that is the load a mount bends under (the
+#: flexure probe, :mod:`~stellar_cal_ros.diagnosis.flexure`, and a twin's injected
+#: flexure): a mount follows its load quasi-statically, so the mean is only short enough
+#: to keep the accelerometer's noise out.  The 1 s of the gravity regressors kept 0.967 of
+#: the swaying base's acceleration, so the probe read a flexure's true response 3.4 % high
+#: (10.34″/g for 10 on 200 s sway_flex, seed 21; 10.04 at 0.1 s, 10.04 at 0.02 s)
+LOAD_WINDOW_S = 0.1
+
+
 def gravity_in_tracker(data: BagData, calibration: Calibration, t_posix: np.ndarray,
                        window_s: float = 1.0) -> np.ndarray | None:
-    """Unit gravity direction in the tracker frame at POSIX times ``t_posix`` (n, 3)."""
+    """Unit gravity direction in the tracker frame at POSIX times ``t_posix`` (n, 3).
+
+    The specific force's mean over ``window_s`` about each time (1 s: the 'unexplained'
+    lines' gravity regressors; :data:`LOAD_WINDOW_S`: the load a mount bends under).
+    """
     f = np.asarray(data.imu_f, dtype=float)
     t_imu = np.asarray(data.imu_t, dtype=float)
     if f.ndim != 2 or len(f) < 2 or not np.all(np.isfinite(f)):

@@ -53,7 +53,7 @@ import numpy as np
 
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import stats
-from stellar_cal_ros.diagnosis.context import gravity_in_tracker
+from stellar_cal_ros.diagnosis.context import LOAD_WINDOW_S, gravity_in_tracker
 from stellar_cal_ros.io.calibration import Calibration
 
 log = logging.getLogger(__name__)
@@ -72,12 +72,13 @@ def with_flexure(data, calibration: Calibration, rate: float):
     """A copy of the bag whose centroids carry a flexure of ``rate`` rad per unit gravity.
 
     Each star's direction in the tracker frame (pinhole through ``calibration``'s camera)
-    is turned by ``−ρ``, ``ρ = rate · (z × g_st)`` (the tracker turned by ``ρ``); ``None``
-    when the bag has no usable accelerometer.
+    is turned by ``−ρ``, ``ρ = rate · (z × g_st)`` (the tracker turned by ``ρ``), ``g_st``
+    the specific force's direction over :data:`~.context.LOAD_WINDOW_S` (the load, as the
+    simulator's mount bends under it); ``None`` when the bag has no usable accelerometer.
     """
     cam = calibration.camera
     t = np.array([f.stamp_ns * 1e-9 for f in data.frames])
-    g = gravity_in_tracker(data, calibration, t) if len(t) else None
+    g = gravity_in_tracker(data, calibration, t, LOAD_WINDOW_S) if len(t) else None
     if g is None:
         return None
     frames = []

@@ -307,7 +307,7 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
     ``imu=False``: for twins made with ``make_twin(imu=False)`` only; the true forces are
     not kept (17 MB on a 2-h bag; the rates are the trajectory's).
     """
-    from stellar_cal_ros.diagnosis.context import gravity_in_tracker
+    from stellar_cal_ros.diagnosis.context import LOAD_WINDOW_S, gravity_in_tracker
 
     method = method or (calibration.method if calibration.method in ("psce", "swaying_base")
                         else "psce")
@@ -326,7 +326,8 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
     f_true = smooth_samples(model_cal.corrected_rates(
         theta_cal, np.asarray(data.imu_f, dtype=float), Stage.ACCEL), n)
     grav = gravity_in_tracker(dataclasses.replace(data, imu_f=f_true), calibration,
-                              np.array([f.stamp_ns * 1e-9 for f in data.frames]))
+                              np.array([f.stamp_ns * 1e-9 for f in data.frames]),
+                              LOAD_WINDOW_S)  # the load an injected flexure follows
     if not imu:
         f_true = None  # not held while the trajectory is integrated
     # anchor: the first frame whose identified stars fit an attitude
