@@ -18,8 +18,10 @@ its run with the probe: :func:`~stellar_cal_ros.diagnosis.flexure.pair_on_bag`, 
 stated, window 0.5); the printed size X is read; a flexure of exactly X (the simulator's
 ``mount_flexure``) is injected into the same seed's bag and the same model's test made
 again: detected when ``p m < α``.  Prints each seed's X, t and verdict, then for each check
-the share detected (binomial σ) against the stated power and the mean t at X (its σ from
-the seeds' scatter) against the shift δ X is made of.
+the share detected (binomial σ) against the stated power, the mean t at X (its σ from
+the seeds' scatter) against the shift δ X is made of, and what the flexure the test prints
+moved by, over the size injected (its mean over the seeds ± its standard error: 1 when the
+printed flexure reads the truth).
 
 ``--factor F`` injects F X instead of X (F = 0.7: what a wrong MDB factor would print; the
 checks must fail).
@@ -112,7 +114,11 @@ def summary(rows: list[dict]) -> dict:
     mean, var = zip(*(sps.nct.stats(r["nu"], r["shift"], moments="mv") for r in got),
                     strict=True)
     response, expected = responses(got)
-    return {"n": n, "k": k, "share": k / n, "binomial_sigma": np.sqrt(power * (1 - power) / n),
+    read = np.array([(r["estimate"] - r["estimate_clean"]) / r["size"] for r in got
+                     if r["estimate"] is not None])
+    sigma_read = float(read.std(ddof=1) / np.sqrt(len(read))) if len(read) > 1 else np.nan
+    return {"read": float(read.mean()), "sigma_read": sigma_read,
+            "n": n, "k": k, "share": k / n, "binomial_sigma": np.sqrt(power * (1 - power) / n),
             "power": power, "mean_t": float(t.mean()), "expected_t": float(np.mean(mean)),
             "z": float((t.sum() - np.sum(mean)) / np.sqrt(np.sum(var))),
             "shift": float(np.mean([r["shift"] for r in got])),
@@ -177,7 +183,8 @@ def main() -> int:
               f"{s['shift']:.2f}; z = {s['z']:.2f}); t moved by {s['response']:.3f} delta "
               f"({s['response_min']:.3f}..{s['response_max']:.3f}) where the size says "
               f"{s['expected_response']:.3f}: gap {s['response_gap']:.3f} +- "
-              f"{s['sigma_response_gap']:.3f}")
+              f"{s['sigma_response_gap']:.3f}; the estimate moved by {s['read']:.3f} +- "
+              f"{s['sigma_read']:.3f} of the size injected (1: it reads the truth)")
     return 0
 
 

@@ -7,7 +7,8 @@ adds gyro_scale_factor, then tests the model it added for a flexure-shaped remai
 the remainder test after each add (t, p Bonferroni over the adds, its size in px, the
 flexure that would leave it; when significant, the added effect's ratio beside a fitted
 flexure and the candidates refused as explaining nothing beyond it) and the first
-'unexplained' line.
+'unexplained' line (with the flexure it reads, ″/g ± its σ, when it is the gravity field
+or the remainder).
 
 ``--null-seeds N``: the same test on bags with a *true* gyro scale factor (1e-4 per axis,
 no flexure) and gyro_scale_factor in the model, over N seeds: the share of p below 5 %,
@@ -92,9 +93,12 @@ def discover_row(size: float, seed: int, duration: float, also: dict | None = No
     if h:
         said += (f"; a flexure up to {h['arcsec_per_g']:.3g}\"/g could still hide (MDB; after "
                  f"{'+'.join(h['after'])}, sigma {h['sigma_arcsec_per_g']:.2g}\"/g)")
+    d = (first or {}).get("detail") or {}
+    size_read = (f", {d['arcsec_per_g']:.1f}+-{d['sigma_arcsec_per_g']:.1f}\"/g"
+                 if "arcsec_per_g" in d else "")
     return (f"| {size:g}\u2033 | {', '.join(s['added']) or '-'} | {'; '.join(tests) or '-'} | "
-            + (f"{first['regressor']} (p={first['p_value']:.2g}, {first['change_px']:.3f} px)"
-               if first else "-") + f" | {said} | {cpu:.0f} |")
+            + (f"{first['regressor']} (p={first['p_value']:.2g}, {first['change_px']:.3f} px"
+               f"{size_read})" if first else "-") + f" | {said} | {cpu:.0f} |")
 
 
 def single_row(size: float, seed: int, duration: float, also: dict | None = None) -> str:
