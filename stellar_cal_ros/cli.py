@@ -236,8 +236,11 @@ def _cmd_replay(args: argparse.Namespace) -> int:
                     args.residuals is None, progress=not args.quiet, on_error=args.on_error,
                     noise=noise)
     unknown = result.counters.get("stars_sigma_unknown", 0)
-    if unknown and not (noise and noise.unknown_sigma_px) and args.centroid_sigma is None:
-        # a σ of 0 says "unknown": measured from the run, never used as a guess
+    if unknown and not (noise and (noise.unknown_sigma_px or noise.group_by)) and \
+            args.centroid_sigma is None:
+        # a σ of 0 says "unknown": measured from the run, never used as a guess (unless the
+        # scales given say it: unknown=PX, or groups, which a σ-0 star takes on the default
+        # when no unknown= is given: the advice of a bag where no message states a σ)
         verdict = _measure_noise(args, prior, effects, noise, ())
         noise = verdict.applied
         result = replay(args.bag, prior, args.method, effects, config,

@@ -278,8 +278,9 @@ class NoiseScales:
         the stars' noise is declared correlated.
         """
         if self.group_by:
+            # (edges exact, shortest round trip: a star on a rounded edge changed bins)
             out = (f"by={self.group_by},edges="
-                   + "/".join(f"{e:.{digits}g}" for e in self.edges)
+                   + "/".join(repr(float(e)) for e in self.edges)
                    + ",factors=" + "/".join(f"{self.star * f:.{digits}g}" for f in self.factors))
         else:
             out = f"star={self.star:.{digits}g}"

@@ -60,9 +60,9 @@ from stellar_cal_ros.diagnosis.noise_stars import (
     Table,
     group_index,
     group_x,
+    grouped_stars,
     known_groups,
     significant_grouping,
-    star_groups,
     star_noise,
     used_sigma,
 )
@@ -79,8 +79,15 @@ def default_sigma(method: str) -> float:
 
 
 def measure_stars(result, data, method: str, fraction: float,
-                  noise: NoiseScales | None) -> StarNoise | None:
-    """The within-frame estimate on a replay's residual table (where the run executed)."""
+                  noise: NoiseScales | None, summary=None) -> StarNoise | None:
+    """The within-frame estimate on a replay's residual table (where the run executed).
+
+    ``summary``: the run's :class:`~.runstats.RunSummary`; where :func:`far_off` finds the
+    run too far from its model (the verdict then skips the noise), the frames' fit is not
+    weighted again at the measured σ (:func:`~.noise_stars.star_noise`'s ``weigh``): the
+    skip line's NIS/dof is at the one fit's scale (clean swaying 300 s seed 21 diagnosed
+    from a replayed result: the passes moved it from 7.82, x3.48, to 9.29, x3.2).
+    """
     from stellar_cal_ros.diagnosis.stats import evaluation_mask
 
     res = result.residuals
@@ -90,12 +97,19 @@ def measure_stars(result, data, method: str, fraction: float,
     sig, msg = used_sigma(res, data, noise or NoiseScales(), default_sigma(method),
                           cam.width, cam.height)
 
+    near = []  # (whether the run is near its model: decided on the window's one fit)
+
     def on(mask):
         # (the frames' attitude fit weighted again by the σ measured where the data find the
         # σ used wrong for part of the stars: noise_stars.star_noise's passes)
         return star_noise(res, sig, msg, mask, cam.fx, cam.fy, (cam.cx, cam.cy),
                           result.calibration.R_imu_st, size=(cam.width, cam.height),
-                          passes=FIT_PASSES)
+                          passes=FIT_PASSES, weigh=weigh, kept=noise or NoiseScales())
+
+    def weigh(first: StarNoise) -> bool:
+        if not near:
+            near.append(summary is None or not far_off(summary, first))
+        return near[0]
 
     sn = on(evaluation_mask(res, fraction))
     if sn is not None:
@@ -144,6 +158,7 @@ class NoiseVerdict:
     unknown_sigma_px: float = math.nan  #: their measured σ
     unknown_sigma_sigma: float = math.nan
     unknown_base_px: float = math.nan  #: the σ the run assumed for them (the default)
+    default_px: float = math.nan  #: the configured σ of σ-0 stars (what groups of them are of)
     groups: list[dict[str, Any]] = field(default_factory=list)
     group: dict[str, Any] | None = None  #: the grouping applied (or None)
     #: the groups applied composed with those of earlier rounds, of the messages' σ:
@@ -350,7 +365,7 @@ class NoiseVerdict:
                 ", the factors of each star's own" if self._stated_varies() else "")
                 if np.isfinite(self.stated_sigma_px) else
                 "0 = unknown in every message: the factors are of "
-                f"the {self.unknown_base_px:.3g} px default")
+                f"the {self.default_px:.3g} px default")
             # (on a later round the groups are said composed with the scales applied
             # before, of the messages' σ: this round's alone are of the σ the run used)
             c = self.composed or g
@@ -358,10 +373,13 @@ class NoiseVerdict:
             before = "" if self.composed is None else \
                 ", with the scales measured before (this round x" + ", x".join(
                     f"{s:.3g}" for s in g["scales"]) + ")"
+            # (no message states a σ: each group's σ in px too, the σ its stars are given)
+            px = [f" = {self.default_px * s:.3g} px"
+                  if not np.isfinite(self.stated_sigma_px) else "" for s in c["scales"]]
             out.append(f"the stars' sigma ({said}) depends on "
                        + c["by"] + ": " + ", ".join(
-                           f"x{s:.3g} +- {e:.2g} ({b})" for s, e, b in zip(
-                               c["scales"], c["sigma"], bins, strict=True))
+                           f"x{s:.3g} +- {e:.2g}{p} ({b})" for s, e, p, b in zip(
+                               c["scales"], c["sigma"], px, bins, strict=True))
                        + f"{before} (applied per group: use --noise-scale "
                        f"{self.applied.advice()}; `replay --estimate-noise` measures them)")
         if self.changes:
@@ -390,7 +408,14 @@ class NoiseVerdict:
                        "rms per axis (what the detector cells' means leave of it: with few "
                        "stars in view they take most) from the catalogue positions or the "
                        "identification, not centroid noise; the sigma is measured without it")
-        if self.unknown:
+        if self.unknown and self.group is not None and not np.isfinite(self.stated_sigma_px):
+            # (every message says 0 and the groups are theirs: the one σ measured over all
+            # of them is not what they are given; it read "(used for them)")
+            out.append(f"{self.unknown} stars carry sigma 0 (unknown) in every message: "
+                       f"measured from the run as {self.unknown_sigma_px:.3g} +- "
+                       f"{self.unknown_sigma_sigma:.2g} px over all of them, per "
+                       f"{self.group['by']} group as above (used for them per group)")
+        elif self.unknown:
             out.append(f"{self.unknown} stars carry sigma 0 (unknown): measured from the run "
                        f"as {self.unknown_sigma_px:.3g} +- {self.unknown_sigma_sigma:.2g} px "
                        + (f"(used for them x{self.correlated['sigma_scale']:.3g} for the "
@@ -507,6 +532,32 @@ def _factors_text(scales: NoiseScales, k: float) -> str:
     return ", x".join(f"{k * f:.3g} ({b})" for f, b in zip(scales.factors, bins, strict=True))
 
 
+def short_edges(edges: list[float], x: np.ndarray) -> list[float]:
+    """``edges`` each moved to the shortest decimal that splits the stars ``x`` as it does.
+
+    A quantile edge lies on a star's own value (a star's many rows repeat it), and the
+    advice printed it to 4 digits: the star went to the other bin in a replay given the
+    advice (an all-σ-0 bag, edge 4.5578 printed 4.558: NIS/dof 1.076 where the measured
+    scales gave 1.006).  Each edge becomes a short decimal strictly above the largest star
+    below it and at most the smallest star at or above it (the bins keep every star).
+    """
+    x = np.sort(np.asarray(x, dtype=float)[np.isfinite(x)])
+    out = []
+    for e in edges:
+        i = int(np.searchsorted(x, e, side="left"))
+        lo = x[i - 1] if i > 0 else -math.inf
+        hi = x[i] if i < len(x) else math.inf
+        mid = e if not (math.isfinite(lo) and math.isfinite(hi)) else 0.5 * (lo + hi)
+        d = e
+        for k in range(1, 16):
+            c = float(f"{mid:.{k}g}")
+            if lo < c <= hi:
+                d = c
+                break
+        out.append(d)
+    return out
+
+
 def _compose_groups(applied: NoiseScales, stated: NoiseScales, best: dict[str, Any],
                     overall: float, sn: StarNoise, grouped: np.ndarray
                     ) -> tuple[NoiseScales, dict[str, Any] | None]:
@@ -514,25 +565,21 @@ def _compose_groups(applied: NoiseScales, stated: NoiseScales, best: dict[str, A
 
     The scales ``best`` found are of the σ ``stated`` gave, which held an earlier round's
     groups: the applied factors are the products (:meth:`NoiseScales.times_groups`), not this
-    round's alone, which replaced them.  Groups of another variable are folded into this
-    round's bins: each bin's factor times the kept factors' mean over its stars, as its
-    scale measured them (``1 / √(mean of m / f²)``); the earlier variable's own steps are then
-    lost.  Returns the scales and, where an earlier grouping or scale was composed, the
-    composed groups ``{by, edges, scales, sigma}`` of the messages' σ (else None).
+    round's alone, which replaced them.  Groups of another variable were measured of the σ
+    before the kept factors (:func:`~.noise_stars.star_groups`) and replace them (one
+    variable at a time: the earlier variable's steps are then lost; before, they were
+    folded into this round's bins, ``1 / √(mean of m / f²)`` of the kept factors over a
+    bin's stars, from bins measured of the σ used).  Returns the scales and, where an
+    earlier grouping or scale was composed, the composed groups ``{by, edges, scales,
+    sigma}`` of the messages' σ (else None).
     """
     f_new = np.asarray(best["scales"], dtype=float) / overall
     sig_new = np.asarray(best["sigma"], dtype=float)
-    fold = np.ones(len(f_new))
     if stated.group_by and stated.group_by != best["by"]:
-        old = np.asarray(stated.factors, dtype=float)[np.searchsorted(
-            np.asarray(stated.edges, dtype=float), group_x(sn, stated.group_by), side="right")]
-        gi = group_index(sn, best)
-        for j in range(len(f_new)):
-            k = grouped & (gi == j)
-            if sn.m[k].sum() > 0:
-                fold[j] = 1.0 / math.sqrt(float(np.sum(sn.m[k] / old[k] ** 2) / sn.m[k].sum()))
+        # (measured of the σ before the kept factors, noise_stars.star_groups: they replace
+        # the kept groups, nothing to fold)
         applied = applied.replace(group_by="", edges=(), factors=())
-    out = applied.times_groups(best["by"], tuple(best["edges"]), tuple(f_new * fold))
+    out = applied.times_groups(best["by"], tuple(best["edges"]), tuple(f_new))
     # (a bin of the union no star lies in, between an edge kept and a step of this round's
     # beside it: left out, its edge dropped; no star's σ changes)
     e, f = list(out.edges), list(out.factors)
@@ -541,17 +588,18 @@ def _compose_groups(applied: NoiseScales, stated: NoiseScales, best: dict[str, A
     for k in range(len(f) - 1, -1, -1):
         if not filled[k] and len(f) > 1:
             del f[k], e[min(k, len(e) - 1)]
-    out = out.replace(edges=tuple(e), factors=tuple(f))
+    out = out.replace(edges=tuple(short_edges(e, group_x(sn, best["by"])[grouped])),
+                      factors=tuple(f))
     if not (stated.group_by or stated.star != 1.0):
         return out, None
     # each composed bin's σ: its scale's σ of this round times the factor it multiplied
     e_new = np.asarray(best["edges"], dtype=float)
     x = np.concatenate([[out.edges[0] - 1.0], out.edges]) if out.edges else np.zeros(1)
     j = np.searchsorted(e_new, x, side="right")
-    before = np.asarray(out.factors) / f_new[j] / fold[j] * out.star / overall
+    before = np.asarray(out.factors) / f_new[j] * out.star / overall
     composed = np.asarray(out.factors) * out.star
     return out, {"by": best["by"], "edges": list(out.edges), "scales": composed.tolist(),
-                 "sigma": (sig_new[j] * fold[j] * before).tolist()}
+                 "sigma": (sig_new[j] * before).tolist()}
 
 
 def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int, int],
@@ -564,6 +612,7 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
     applied = v.stated if applied is None else applied
     known = ~sn.unknown
     v.unknown = int(sn.unknown.sum())
+    v.default_px = default
     if v.unknown:
         su, esu, _ = sn.group(sn.unknown)
         base = float(np.median(sn.sigma_px[sn.unknown]))
@@ -596,14 +645,20 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
     # (< 4.02 mag)" for bright stars stated right)
     # (no message states one: the groups are of every star, factors of the default σ,
     # which the σ-0 stars then take with the groups' factors instead of one measured σ)
-    grouped = known if known.any() else np.ones(len(known), dtype=bool)
-    v.groups = known_groups(sub, size) if known.any() else star_groups(sub, size, grouped)
+    grouped = grouped_stars(sn)
+    v.groups = known_groups(sub, size, v.stated)
     best = significant_grouping(v.groups, n_tests)
     if best is not None:
         overall = sub.group(grouped)[0]
         v.group = best
+        ref = v.stated
+        if not known.any() and ref.unknown_sigma_px > 0:
+            # (every message says 0 and an earlier round gave them one measured σ: that is
+            # the σ these groups are of, the default times its ratio; composed with the
+            # stated scale, they gave the σ-0 stars the default times the groups' factors)
+            ref = ref.replace(star=ref.unknown_sigma_px / default, unknown_sigma_px=0.0)
         applied, v.composed = _compose_groups(applied.replace(
-            star=v.stated.star * overall, star_rho=0.0, star_ar_share=1.0), v.stated, best,
+            star=ref.star * overall, star_rho=0.0, star_ar_share=1.0), ref, best,
             overall, sub, grouped)
         if "star" not in v.rejected:
             v.rejected.append("star")

@@ -11,6 +11,7 @@ means for the verdict ("noise as stated" or not) is :mod:`.noise`'s.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -235,7 +236,8 @@ class StarNoise:
 def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np.ndarray,
                fx: float, fy: float, centre: tuple[float, float],
                R_imu_st: np.ndarray | None = None, flips: bool = False,
-               size: tuple[int, int] | None = None, passes: int = 0) -> StarNoise | None:
+               size: tuple[int, int] | None = None, passes: int = 0,
+               weigh=None, kept: NoiseScales | None = None) -> StarNoise | None:
     """The within-frame estimate over the accepted stars of ``mask`` (see the module doc).
 
     With the installation ``R_imu_st``, a rolling shutter's shape is removed first where
@@ -253,11 +255,19 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     ``mag_faint_over2``, faint stars stated 2x: the bright group read x0.949 +- 0.016 for a
     true 1.0).  The scales stay of the σ the run used (``sigma_px``); where nothing is
     significant no pass is made and the estimate is the one fit's, bit for bit.
+
+    ``weigh``: a test of the one fit's estimate (True: the passes may be made); a run too
+    far from its model (:func:`~.noise.far_off`) keeps the one fit's weights: the groups a
+    pass would weight by are measured through residuals a missing effect shapes more than
+    the noise does, and the noise is not judged on such a run anyway.  ``kept``: the
+    scales the run used (:func:`fit_weights`).
     """
     out = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre, R_imu_st, flips)
+    if weigh is not None and out is not None and passes and not weigh(out):
+        return out
     last = None
     for _ in range(passes):
-        w = fit_weights(out, res, sigma_px, msg_sigma, centre, size)
+        w = fit_weights(out, res, sigma_px, msg_sigma, centre, size, kept)
         if w is None or (last is not None and np.nanmax(np.abs(w / last - 1.0)) < WEIGHTS_TOL):
             break
         out, last = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre,
@@ -287,44 +297,59 @@ def significant_grouping(groups: list[dict[str, Any]], n_tests: int) -> dict[str
 
 def fit_weights(sn: StarNoise | None, res: Table, sigma_px: np.ndarray,
                 msg_sigma: np.ndarray, centre: tuple[float, float],
-                size: tuple[int, int] | None) -> np.ndarray | None:
+                size: tuple[int, int] | None, kept: NoiseScales | None = None
+                ) -> np.ndarray | None:
     """Each row's measured σ over the σ the run used, for :func:`star_noise`'s fit; or None.
 
     The stars of stated σ: their group's scale (the grouping :func:`significant_grouping`
     would apply with one component tested); σ-0 stars: their own scale where it differs
-    from the stated stars' by more than :data:`MATERIAL` and 3 of its σ.  None where neither
-    applies (the fit's weights are then right as far as the data tell).
+    from the stated stars' by more than :data:`MATERIAL` and 3 of its σ.  Where no message
+    states a σ, every star is grouped (the verdict's groups then are of every star,
+    :func:`known_groups`): a bag whose σ-0 stars are noisier when faint had its groups
+    measured through a fit that weighted them all alike.  None where nothing applies (the
+    fit's weights are then right as far as the data tell).
+
+    ``kept``: the scales the run used; groups of another variable than theirs are of the σ
+    before the kept factors (:func:`star_groups`), and a star is weighted by its group's
+    scale over its own kept factor (the σ the verdict then gives it).
     """
     if sn is None:
         return None
     known = ~sn.unknown
+    grouped = known if known.any() else np.ones(len(known), dtype=bool)
     w = np.ones(len(sigma_px))
     msg = np.asarray(msg_sigma, dtype=float)
     moved = False
-    if known.any():
-        s, e, _ = sn.group(known)
-        if not (math.isfinite(s) and s > 0):
-            return None
-        sn.groups_made = (size, star_groups(sn, size, known))
-        best = significant_grouping(sn.groups_made[1], 1)
-        if best is not None:
-            uv = np.stack([np.asarray(res["u"], dtype=float), np.asarray(res["v"], dtype=float)],
-                          1)
-            x = {"magnitude": lambda: np.nan_to_num(
-                    np.asarray(res["magnitude"], dtype=float),
-                    nan=float(np.median(sn.magnitude[np.isfinite(sn.magnitude)]))
-                    if np.isfinite(sn.magnitude).any() else 0.0),
-                 "radius": lambda: np.hypot(uv[:, 0] - centre[0], uv[:, 1] - centre[1]),
-                 "column": lambda: uv[:, 0], "row": lambda: uv[:, 1]}[best["by"]]()
-            g = np.searchsorted(np.asarray(best["edges"], dtype=float), x, side="right")
-            w = np.asarray(best["scales"], dtype=float)[g] / s
+    s, e, _ = sn.group(grouped)
+    if not (math.isfinite(s) and s > 0):
+        return None
+    sn.groups_made = ((size, kept), star_groups(sn, size, grouped, kept))
+    best = significant_grouping(sn.groups_made[1], 1)
+    if best is not None:
+        uv = np.stack([np.asarray(res["u"], dtype=float), np.asarray(res["v"], dtype=float)],
+                      1)
+        mag = np.asarray(res["magnitude"], dtype=float)
+        x = {"magnitude": lambda: np.nan_to_num(
+                mag, nan=float(np.median(sn.magnitude[np.isfinite(sn.magnitude)]))
+                if np.isfinite(sn.magnitude).any() else 0.0),
+             "radius": lambda: np.hypot(uv[:, 0] - centre[0], uv[:, 1] - centre[1]),
+             "column": lambda: uv[:, 0], "row": lambda: uv[:, 1]}[best["by"]]()
+        g = np.searchsorted(np.asarray(best["edges"], dtype=float), x, side="right")
+        scales = np.asarray(best["scales"], dtype=float)
+        w = scales[g] / s
+        if kept is not None and kept.group_by and kept.group_by != best["by"]:
+            # (another variable's groups are of the σ before the kept factors,
+            # :func:`star_groups`: each star's σ is its group's scale of that, the kept
+            # factor it was used with taken off)
+            f = np.asarray(kept.factors, dtype=float)[kept.group_of(mag, uv, centre)]
+            w = w / np.where((msg > 0) | (kept.unknown_sigma_px <= 0), f, 1.0)
+        moved = True
+    if known.any() and sn.unknown.any():
+        su, esu, _ = sn.group(sn.unknown)
+        if math.isfinite(su) and su > 0 and abs(su / s - 1.0) > MATERIAL and \
+                abs(su - s) > 3.0 * math.hypot(esu, e):
+            w = np.where(msg == 0, su / s, w)
             moved = True
-        if sn.unknown.any():
-            su, esu, _ = sn.group(sn.unknown)
-            if math.isfinite(su) and su > 0 and abs(su / s - 1.0) > MATERIAL and \
-                    abs(su - s) > 3.0 * math.hypot(esu, e):
-                w = np.where(msg == 0, su / s, w)
-                moved = True
     return np.where(np.isfinite(w) & (w > 0), w, 1.0) if moved else None
 
 
@@ -1001,17 +1026,28 @@ def _merge(sn: StarNoise, gidx: np.ndarray, edges: np.ndarray, use: np.ndarray,
     return edges, gidx, [sn.group(use)]
 
 
-def known_groups(sn: StarNoise, size: tuple[int, int] | None) -> list[dict[str, Any]]:
-    """:func:`star_groups` of the stars of stated σ (``~sn.unknown``), made once per rows.
+def known_groups(sn: StarNoise, size: tuple[int, int] | None,
+                 kept: NoiseScales | None = None) -> list[dict[str, Any]]:
+    """:func:`star_groups` of the stars grouped (:func:`grouped_stars`), made once per rows.
 
     :func:`fit_weights` made them already where :func:`star_noise` stopped on these rows;
     the scale, σ and dof of a :class:`StarNoise` (what a verdict replaces) do not enter
     them.
     """
     made = sn.groups_made
-    if made is not None and made[0] == size:
+    if made is not None and made[0] == (size, kept):
         return made[1]
-    return star_groups(sn, size, ~sn.unknown)
+    return star_groups(sn, size, grouped_stars(sn), kept)
+
+
+def grouped_stars(sn: StarNoise) -> np.ndarray:
+    """The stars the σ groups are of: those of stated σ, or every star where none states one.
+
+    A σ-0 star beside stated ones keeps its own measured σ (:func:`~.noise.judge_stars`);
+    where no message states a σ, the groups are of every star, factors of the default σ.
+    """
+    known = ~sn.unknown
+    return known if known.any() else np.ones(len(known), dtype=bool)
 
 
 def group_x(sn: StarNoise, kind: str) -> np.ndarray:
@@ -1048,22 +1084,52 @@ def _stated_steps(sn: StarNoise, x: np.ndarray, use: np.ndarray) -> np.ndarray:
         return np.empty(0)
     order = np.argsort(x[ok], kind="stable")
     xs, ss, ms = x[ok][order], used[ok][order], sn.stated_px[ok][order]
-    change = np.flatnonzero((np.abs(np.diff(ss)) > 0.01 * np.minimum(ss[1:], ss[:-1]))
-                            | (np.abs(np.diff(ms)) > 0.01 * np.minimum(ms[1:], ms[:-1])))
-    if not 0 < len(change) <= STATED_STEPS or np.any(xs[change + 1] <= xs[change]):
-        return np.empty(0)  # constant, star by star, or two σ at one value of x
-    return 0.5 * (xs[change] + xs[change + 1])
+
+    def changes(a: np.ndarray) -> np.ndarray:
+        return np.abs(np.diff(a)) > 0.01 * np.minimum(a[1:], a[:-1])
+
+    def steps(change: np.ndarray) -> np.ndarray:
+        if not 0 < len(change) <= STATED_STEPS or np.any(xs[change + 1] <= xs[change]):
+            return np.empty(0)  # constant, star by star, or two σ at one value of x
+        return 0.5 * (xs[change] + xs[change + 1])
+
+    both = steps(np.flatnonzero(changes(ss) | changes(ms)))
+    if len(both) or np.all(ss == ms):
+        return both
+    # (the σ used varies star by star along x where it holds another variable's groups,
+    # kept from an earlier round: the messages' own steps are still edges; their loss
+    # put the faint stars of 4.5-4.56 mag, stated 2x, in the bright group of a magnitude
+    # grouping under kept column groups)
+    return steps(np.flatnonzero(changes(ms)))
 
 
 def star_groups(sn: StarNoise, size: tuple[int, int] | None = None,
-                use: np.ndarray | None = None) -> list[dict[str, Any]]:
+                use: np.ndarray | None = None, kept: NoiseScales | None = None
+                ) -> list[dict[str, Any]]:
     """The magnitude, radius, column and row groupings: per group scale ± σ, Bartlett's p.
 
     ``size``: the detector's (width, height) px (no column / row groups without it).  The
     test is Bartlett's over :data:`GROUP_BINS` fine bins; the groups reported (and applied)
     are those bins with agreeing neighbours merged.  ``use``: the stars grouped (default
     all; the diagnosis passes the stars of stated σ, :func:`~.noise.judge_stars`).
+
+    ``kept``: the scales the run used.  Where they hold groups, a grouping of another
+    variable is measured of the σ before the kept factors (each star's ``q`` times its
+    kept factor squared: its scale of the messages' σ times ``kept.star``), since it
+    replaces them (one variable at a time); measured of the σ used, its bins each mixed
+    stars the kept factors set apart and had to be folded (a column grouping x1 / x0.6 kept
+    under a magnitude one: faint bins split by their stars' columns, x0.458-0.542 for 0.5,
+    the z of 66 bins over seeds 4-15 of SD 1.29).  The kept variable's own grouping stays
+    of the σ used (its factors compose, :meth:`NoiseScales.times_groups`).
     """
+    if kept is not None and kept.group_by:
+        f = np.asarray(kept.factors, dtype=float)[np.searchsorted(
+            np.asarray(kept.edges, dtype=float), group_x(sn, kept.group_by), side="right")]
+        f = np.where(~sn.unknown | (kept.unknown_sigma_px <= 0), f, 1.0)
+        before = dataclasses.replace(sn, q=sn.q * f**2, log_variance=None, groups_made=None)
+        own = star_groups(sn, size, use)
+        other = star_groups(before, size, use)
+        return [a if a["by"] == kept.group_by else b for a, b in zip(own, other, strict=True)]
     use = np.ones(len(sn.q), dtype=bool) if use is None else np.asarray(use, dtype=bool)
     out = []
     q = np.linspace(0, 1, GROUP_BINS + 1)[1:-1]

@@ -262,7 +262,7 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
         if star_noise:
             from stellar_cal_ros.diagnosis.noise import measure_stars
 
-            out.star_noise = measure_stars(result, data, spec.name, fraction, noise)
+            out.star_noise = measure_stars(result, data, spec.name, fraction, noise, out)
         if frame_loglik:
             out.frame_loglik = result.stats.frame_log_likelihood()
         if screen:
