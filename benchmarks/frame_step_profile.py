@@ -108,9 +108,11 @@ def batched_args(a: tuple, K: int) -> tuple:
     return (P.copy(), theta.copy(), R_a.copy(), M.copy(), score.copy(), info.copy(),
             np.full(K, bool(acc)), tp, C, w_hat, phi, slope, np.full(K, j, dtype=np.int64),
             np.full(K, mj, dtype=np.int64), np.full(K, ta), np.full(K, tb), Gamma, theta_ref,
-            q_diag, b0, E0, Jb, JE, th0, np.tile(w_raw, (K, 1)), rep(uv), rep(u), rep(sigma),
-            np.arange(K + 1, dtype=np.int64) * n, np.full(K, base), *consts, rep(du),
-            np.tile(bscale, (K, 1)).reshape(K, len(bscale)), Pe, cfg)
+            q_diag, b0, E0, Jb, JE, th0, np.tile(w_raw, (K, 1)), np.arange(K, dtype=np.int64),
+            rep(uv), rep(u), rep(sigma), np.arange(K + 1, dtype=np.int64) * n, np.full(K, base),
+            *consts, rep(du), np.tile(bscale, (K, 1)).reshape(K, len(bscale)), Pe, cfg,
+            np.full(K, tb + base), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0),
+            np.zeros(1, dtype=np.int64), np.array([0.0, 0, 0, 0, 0, 0, 0, np.inf, 0.0]))
 
 
 def per_call(f, make_args, repeat: int) -> float:

@@ -203,31 +203,36 @@ def test_fused_frame_step_taken_and_equal_to_numpy(sim_data, monkeypatch) -> Non
         assert getattr(sa, name) == pytest.approx(getattr(sb, name), rel=1e-5), name
 
 
-def _damaged(data):
-    """The bag with IMU gaps (one bridged, one long), dropped frames, frames with outliers
-    (gated stars), frames with too few stars (skipped; a run of them re-acquires), a
-    frame with a non-finite centroid and a frame sent twice."""
+def _damaged(data, gaps=((60.0, 60.025), (150.0, 153.0)), dropped=lambda i: i % 37 == 5,
+             outliers=lambda i: i % 23 == 7, few=lambda i: 400 <= i < 404 or i % 97 == 50,
+             bad: int = 300, twice: int = 200, seed: int = 11):
+    """The bag with IMU gaps (``gaps``: one bridged, one long), dropped frames, frames with
+    outliers (gated stars), frames with too few stars (skipped; a run of them re-acquires),
+    a frame with a non-finite centroid (``bad``) and a frame sent twice (``twice``); the
+    defaults: a 300 s bag's."""
     import dataclasses
 
     t = data.imu_t
-    keep = ~(((t > 60.0) & (t < 60.025)) | ((t > 150.0) & (t < 153.0)))
-    rng = np.random.default_rng(11)
+    keep = np.ones(len(t), dtype=bool)
+    for a, b in gaps:
+        keep &= ~((t > a) & (t < b))
+    rng = np.random.default_rng(seed)
     frames = []
     for i, fr in enumerate(data.frames):
-        if i % 37 == 5:
-            continue  # dropped
+        if dropped(i):
+            continue
         fr = copy.deepcopy(fr)
-        if i % 23 == 7:  # outliers: gated
+        if outliers(i):  # gated
             fr.uv[:3] += rng.choice([-1.0, 1.0], size=(3, 2)) * 40.0
-        if 400 <= i < 404 or i % 97 == 50:  # too few stars (a run of 4: re-acquired)
+        if few(i):
             fr = dataclasses.replace(fr, catalog_id=fr.catalog_id[:2],
                                      right_ascension=fr.right_ascension[:2],
                                      declination=fr.declination[:2], uv=fr.uv[:2],
                                      magnitude=fr.magnitude[:2], sigma=fr.sigma[:2])
-        if i == 300:
+        if i == bad:
             fr.uv[1, 0] = np.nan
         frames.append(fr)
-        if i == 200:
+        if i == twice:
             frames.append(copy.deepcopy(fr))
     return dataclasses.replace(data, imu_t=t[keep], imu_w=data.imu_w[keep],
                                imu_f=data.imu_f[keep], frames=frames)
@@ -321,7 +326,8 @@ def test_batched_steps_with_a_time_offset_equal_one_call_a_frame(monkeypatch,
     state, the consider sensitivity (with its ``∂uv/∂Δt`` column: the offset's information
     is positive), its score and information, the tables, statistics and counters are those
     of one call a frame, bit for bit.  An estimated time offset moves the shift at each
-    update: its frames go one call a frame (no batch), the same floats.  A 19 s bag whose
+    update: the batch finds each frame's exposure time from the state before it, the same
+    floats (the readiness boundary and damaged frames: the test after this).  A 19 s bag whose
     prior offset (4 ms) is not the truth's (0): the shift is in every exposure time; with the
     gyro watch (its first frames: each frame taken from the batch) and without it (batches
     committed at once)."""
@@ -345,8 +351,8 @@ def test_batched_steps_with_a_time_offset_equal_one_call_a_frame(monkeypatch,
         i_dt = f.model.slices["time_offset"].start
         assert f.model.fixed_exposure_shift(f.theta, f.P_est) == \
             (None if "effects" in kw else prior.time_offset)
-        if "effects" in kw:  # estimated: the shift moves, no batch
-            assert i_dt < f.P_est and sum(taken) == sum(committed) == 0
+        if "effects" in kw:  # estimated: the shift moves, the call follows it
+            assert i_dt < f.P_est and sum(taken) + sum(committed) >= 0.9 * n_up
             assert f.theta[i_dt] != prior.time_offset
         else:
             assert i_dt >= f.P_est and f.theta[i_dt] == prior.time_offset
@@ -357,6 +363,103 @@ def test_batched_steps_with_a_time_offset_equal_one_call_a_frame(monkeypatch,
             assert f.sensitivity.info[k, k] > 0 and np.any(f.sensitivity.M[:, k] != 0)
         assert one.counters == batch.counters
         _same_run(one, batch, 30)
+
+
+def _damaged_short(data):
+    """:func:`_damaged` for a 19 s bag (frames at 2 Hz; four in a row with too few stars)."""
+    return _damaged(data, ((6.0, 6.025), (14.0, 14.4)), lambda i: False, lambda i: i % 7 == 3,
+                    lambda i: 20 <= i < 24 or i == 9, 12, 15, 12)
+
+
+#: look-aheads that put a frame at the readiness boundary of the 19 s bags' pumps (IMU
+#: blocks of 0.5 s, frames at 2 Hz: the newest IMU stamp is 0.2463 s after the first frame
+#: not handed on): 2 ms inside the first update's shift change (4 ms -> ~0: not ready by the
+#: prior's offset, ready by the run's estimate), and 15 µs inside the estimate's wander
+#: later (ready by the state before a run, not by the one its turn finds)
+_BOUNDARY_LOOKAHEADS = (0.2443, 0.246315)
+
+
+@pytest.mark.parametrize("method", ["psce", "swaying_base"])
+def test_batched_steps_with_an_estimated_time_offset_equal_one_call_a_frame(monkeypatch,
+                                                                           method) -> None:
+    """An estimated time offset: the replay's frames are stepped in batches whose compiled
+    call finds each frame's exposure time, IMU rows and readiness from the state after the
+    frame before, and the state, sensitivity (score, information), tables, statistics and
+    counters are those of one call a frame, bit for bit — on a short bag (19 s) with gated,
+    skipped, re-acquired, invalid and repeated frames and IMU gaps, and on the same bag
+    clean with the driver's pumps every 0.5 s of IMU and a look-ahead that puts frames on
+    the readiness boundary: a frame not
+    ready by the state before a run but ready by the state its turn finds (handed on in the
+    same pump) and one ready before but not at its turn (left pending: the batch stops
+    before it).  The swaying-base filter (velocity driven by the accelerometer) takes no
+    compiled step: one call a frame in both, the same floats."""
+    from stellar_cal_ros.methods import driver as driver_mod
+    from stellar_cal_ros.methods import replay as replay_mod
+    from stellar_cal_ros.methods.driver_config import DriverConfig
+
+    scenario = "psce_rotations" if method == "psce" else "swaying"
+    sim = simulate(get_scenario(scenario), duration=19.0, seed=4)
+    clean = bag_data_from_simulation(sim)
+    prior = copy.deepcopy(sim.prior)
+    prior.time_offset = 0.004
+    taken, committed = _count_batches(monkeypatch)
+    events = {"left": 0, "runs": []}
+    run_out = driver_mod.Calibrator._run_out
+
+    def counted(self, run, *a):
+        events["runs"][-1] += 1
+        done = run_out(self, run, *a)
+        events["left"] += not done
+        return done
+
+    pump = driver_mod.Calibrator._pump
+
+    def pumped(self, *a, **k):
+        events["runs"].append(0)
+        return pump(self, *a, **k)
+
+    monkeypatch.setattr(driver_mod.Calibrator, "_run_out", counted)
+    monkeypatch.setattr(driver_mod.Calibrator, "_pump", pumped)
+    monkeypatch.setattr(replay_mod, "IMU_BLOCK", 50)
+    both = 0
+    cases = [(clean, look) for look in _BOUNDARY_LOOKAHEADS] + [(_damaged_short(clean), 0.29)]
+    for data, look in cases:
+        monkeypatch.setattr(replay_mod, "REPLAY_LOOKAHEAD_S", look)
+        for gyro_fault in ("raise", "off"):
+            runs = {}
+            for batched in (False, True):
+                monkeypatch.setattr(StarFilter, "batched_step", batched)
+                taken.clear()
+                committed.clear()
+                events["left"] = 0
+                events["runs"].clear()
+                drv = DriverConfig(reorder_window_s=replay_mod.REPLAY_REORDER_S,
+                                   max_pending_frames=1_000_000, batch_frames=True,
+                                   strict_clock=True, frame_updates=False, imu_batch=64)
+                runs[batched] = replay(data, prior, method, effects=["time_offset"],
+                                       consider=["radial_k3"], gyro_fault=gyro_fault,
+                                       driver=drv)
+            one, batch = runs[False], runs[True]
+            f = batch.filter
+            c = batch.counters
+            assert c["updates"] >= 20
+            if data is not clean:
+                assert c["skipped_few_stars"] >= 5 and c["reinitializations"] >= 1
+                assert c["imu_gaps"] >= 1 and c["stars_gated"] >= 5
+                assert c["frames_duplicate"] == 1 and c["stars_invalid"] >= 1
+            i_dt = f.model.slices["time_offset"].start
+            assert i_dt < f.P_est and f.theta[i_dt] != prior.time_offset
+            assert one.counters == c
+            _same_run(one, batch, 20)
+            if method == "psce":
+                assert sum(taken) + sum(committed) >= 0.5 * c["updates"]
+                if gyro_fault == "off":
+                    assert sum(committed) >= 0.3 * c["updates"]
+                if data is clean:  # the boundary: runs left pending, frames a later run took
+                    both |= bool(events["left"]) | 2 * any(n >= 2 for n in events["runs"])
+            else:
+                assert sum(taken) == sum(committed) == 0
+    assert method != "psce" or both == 3
 
 
 def test_compiled_frame_inputs_equal_numpy() -> None:

@@ -382,16 +382,7 @@ class Calibrator(ImuRelease):
 
     def push_scalar(self, kind: str, stamp_ns: int, value: float) -> list[FrameOutcome]:
         """A temperature (°C) or pressure (Pa): ``kind`` in ``head``, ``air``, ``pressure``."""
-        if kind not in self.env:
-            raise ValueError(f"unknown scalar input {kind!r} (one of {ENV_KEYS})")
-        self.counters.env_received += 1
-        value = float(value)
-        if stamp_ns <= 0 or not math.isfinite(value):
-            self.counters.env_invalid += 1
-            return []
-        self.env[kind].add(int(stamp_ns), value)
-        # a frame may have been waiting for this input (the data clock did not move)
-        return self._pump() if self._frames_pending and self.requires else []
+        return self.push_scalars(kind, (stamp_ns,), (value,))
 
     def push_fix(self, stamp_ns: int, latitude_deg: float, longitude_deg: float,
                  altitude_m: float, status: int = 0) -> list[FrameOutcome]:
@@ -405,28 +396,34 @@ class Calibrator(ImuRelease):
         return []
 
     def push_scalars(self, kind: str, stamp_ns, values) -> list[FrameOutcome]:
-        """Several temperatures or pressures of one ``kind``, in their order.
+        """Several temperatures or pressures of one ``kind`` (:meth:`push_scalar`), in order.
 
-        What :meth:`push_scalar` does for each (counts, the series), in bulk when none of
-        them could pump (the model needs no input: a frame never waits for them).
+        A sample with a stamp ≤ 0 or a non-finite value is counted (``env_invalid``) and
+        dropped.  When the model needs an input, a frame may have been waiting for each
+        sample (the data clock did not move): the frames are pumped after each; otherwise
+        the samples go into the series at once.
         """
         if kind not in self.env:
             raise ValueError(f"unknown scalar input {kind!r} (one of {ENV_KEYS})")
-        if self.requires:  # each may release a frame waiting for it: one at a time
-            out: list[FrameOutcome] = []
-            for t, v in zip(np.asarray(stamp_ns).tolist(), np.asarray(values).tolist(),
-                            strict=True):
-                out += self.push_scalar(kind, t, v)
-            return out
         s = np.asarray(stamp_ns, dtype=np.int64).reshape(-1)
         v = np.asarray(values, dtype=float).reshape(-1)
         if len(s) != len(v):
             raise ValueError(f"{len(s)} stamps and {len(v)} values")
         ok = (s > 0) & np.isfinite(v)
-        self.counters.env_received += len(s)
-        self.counters.env_invalid += int(len(s) - np.count_nonzero(ok))
-        self.env[kind].extend(s[ok], v[ok])
-        return []
+        c = self.counters
+        c.env_received += len(s)
+        c.env_invalid += int(len(s) - np.count_nonzero(ok))
+        series = self.env[kind]
+        if not self.requires:  # no frame waits for them
+            series.extend(s[ok], v[ok])
+            return []
+        out: list[FrameOutcome] = []
+        for t, x, good in zip(s.tolist(), v.tolist(), ok.tolist(), strict=True):
+            if good:
+                series.add(t, x)
+                if self._frames_pending:
+                    out += self._pump()
+        return out
 
     def push_fixes(self, stamp_ns, latitude_deg, longitude_deg, altitude_m, status
                    ) -> list[FrameOutcome]:
@@ -559,80 +556,121 @@ class Calibrator(ImuRelease):
         limit = None if final else self.imu_max_ns - self.window_ns
         lookahead = self.driver.imu_lookahead_s
         imu_end = self._imu_end_rel()
-        processed = False
+        n_pending = len(self._frames_pending)
         # a frame's exposure shift when every frame has the same (no time effect: the prior's;
         # a time effect held as a consider parameter: its value; no context needed)
         flt = self.filter
         fixed_shift = self.model.fixed_exposure_shift(flt.theta, flt.P_est)
+        moving = fixed_shift is None
         # a replay's ready frames go to the filter together (one compiled call steps a run of
-        # them: StarFilter.prepare_frames) when what readies a frame does not depend on the
-        # filter's state (that fixed shift); identification needs the filter's attitude:
-        # the frames before it go first
-        run: list | None = [] if self.driver.batch_frames and fixed_shift is not None \
-            else None
+        # them: StarFilter.prepare_frames), also when the shift moves with the estimate (an
+        # estimated time offset) and the filter's call follows it: a frame is then ready by
+        # the state its turn finds, which the run checks (_process_run), and those the run
+        # leaves stay pending; identification needs the filter's attitude: the frames before
+        # it go first
+        run: list | None = [] if self.driver.batch_frames and (
+            not moving or flt.batches_moving_shift()) else None
+        ready = (imu_end, lookahead) if moving and not final else None
         env_keys = self._env_keys()
-        while self._frames_pending:
-            fr = self._frames_pending[0]
+        pending = self._frames_pending
+        i = 0  # the frames pending[:i] are in run (popped as they are processed)
+        while i < len(pending):
+            fr = pending[i]
             stamp = int(fr.stamp_ns)
             if limit is not None and stamp > limit:
                 break
             inp = self._inputs[stamp]
-            ready, stale = self._env_ready(stamp, final)
-            if not ready:
+            ok, stale = self._env_ready(stamp, final)
+            if not ok:
                 break
             if not final and (len(inp.uv) or stamp in self._to_identify):
-                shift = self._time_shift(stamp, inp) if fixed_shift is None else fixed_shift
+                # (a moving shift by the state before the run: the run checks it again)
+                shift = self._time_shift(stamp, inp) if moving else fixed_shift
                 t_exp = (stamp - self.t0_ns) * 1e-9 + shift
                 if imu_end <= t_exp + lookahead:
+                    if run and moving and self._run_out(run, out, fixed_shift, ready):
+                        i = 0  # the run's updates moved the shift: this frame again
+                        continue
                     break  # the IMU does not cover the exposure yet
             if self._staged:
                 self._flush_staged()
             if stamp in self._to_identify:
-                if run:
-                    out += self._process_run(run)
+                if run:  # the frames before it first, then this one again
+                    i = 0
+                    if self._run_out(run, out, fixed_shift, ready):
+                        continue
+                    break
                 self._to_identify.discard(stamp)
                 fr, inp = self._identify(fr, inp, stamp)
             ctx = frame_context(stamp, inp, self.site, self.env, env_keys) \
                 if len(inp.uv) else None
-            self._frames_pending.pop(0)
-            self._inputs.pop(stamp, None)
-            self._last_frame_ns = stamp
-            if stale:
-                self.counters.env_stale += 1
-            elif self._consider_requires and self._env_missing(stamp, self._consider_requires):
-                self.consider_stale_ns.append(stamp)
             if run is None:
+                self._released(stale)
                 out.append(self._process(fr, inp, ctx))
             else:
-                run.append((fr, inp, ctx))
-            processed = True
+                run.append((fr, inp, ctx, stale))
+                i += 1
         if run:
-            out += self._process_run(run)
-        if processed:
+            self._run_out(run, out, fixed_shift, ready)
+        if len(pending) < n_pending:
             self._trim()
         return out
 
-    def _process_run(self, run: list) -> list[FrameOutcome]:
-        """:meth:`_process` of each of ``run``, a replay's ready (frame, inputs, context).
+    def _released(self, stale: bool) -> None:
+        """The first pending frame goes to the filter: popped, its input counts."""
+        fr = self._frames_pending.pop(0)
+        stamp = int(fr.stamp_ns)
+        self._inputs.pop(stamp, None)
+        self._last_frame_ns = stamp
+        if stale:
+            self.counters.env_stale += 1
+        elif self._consider_requires and self._env_missing(stamp, self._consider_requires):
+            self.consider_stale_ns.append(stamp)
 
+    def _run_out(self, run: list, out: list, shift: float | None,
+                 ready: tuple[float, float] | None) -> bool:
+        """Process ``run``, the leading pending frames, and release those processed.
+
+        :meth:`_process_run`; ``run`` is emptied.  False when frames of it were left pending
+        (not ready under the state their turn found).
+        """
+        k = self._process_run(run, out, shift, ready)
+        for _, _, _, stale in run[:k]:
+            self._released(stale)
+        left = k < len(run)
+        run.clear()
+        return not left
+
+    def _process_run(self, run: list, out: list, shift: float | None,
+                     ready: tuple[float, float] | None) -> int:
+        """:meth:`_process` of the leading ready frames of ``run``; returns how many.
+
+        ``run``: a replay's (frame, inputs, context, stale) in order; the outcomes are
+        appended to ``out``.
         The filter first steps the frames it can in one compiled call
-        (:meth:`~stellar_cal_ros.methods.kernel.StarFilter.prepare_frames`); ``run`` is
-        emptied.
+        (:meth:`~stellar_cal_ros.methods.kernel.StarFilter.prepare_frames`, given the fixed
+        exposure ``shift``, None: it moves).  ``ready = (imu_end, lookahead)``: a frame is
+        ready only when its exposure time under the state its turn finds is covered
+        (``imu_end > t_exp + lookahead``: the driver's test for one frame); the run stops
+        before the first frame that is not.  None: every frame of the run is ready.
         """
         flt = self.filter
         frames = [(inp.uv, inp.u_i, ctx, inp.sigma, (fr.stamp_ns - self.t0_ns) * 1e-9,
-                   self._accumulates(fr.stamp_ns)) for fr, inp, ctx in run]
-        out = []
+                   self._accumulates(fr.stamp_ns)) for fr, inp, ctx, _ in run]
         i = 0
         while i < len(run):  # a run ends at a covariance check, a reference rebuild, ...
-            stepped = flt.prepare_frames(frames[i:]) if len(run) - i > 1 else 0
+            if ready is not None and i and len(run[i][1].uv):
+                fr, inp = run[i][:2]
+                t_exp = frames[i][4] + self._time_shift(int(fr.stamp_ns), inp)
+                if ready[0] <= t_exp + ready[1]:
+                    break
+            stepped = flt.prepare_frames(frames[i:], shift, ready) if len(run) - i > 1 else 0
             done = self._commit_batch(run[i:i + stepped], out) if stepped else 0
-            for fr, inp, ctx in run[i + done:i + max(stepped, 1)]:
+            for fr, inp, ctx, _ in run[i + done:i + max(stepped, 1)]:
                 out.append(self._process(fr, inp, ctx))
             i += max(stepped, 1)
         flt.prepare_frames([])  # (what is left of a batch, dropped: a workspace)
-        run.clear()
-        return out
+        return i
 
     def _commit_batch(self, part: list, out: list) -> int:
         """The leading frames of ``part`` (a batch the filter stepped) committed at once.
@@ -650,7 +688,7 @@ class Calibrator(ImuRelease):
         if getattr(flt, "reference_history", None) is not None:
             return 0  # (a method's other measurements go into the statistics frame by frame)
         q = 0
-        for _, inp, _ in part:  # (process_frame re-checks a frame's stars otherwise)
+        for _, inp, _, _ in part:  # (process_frame re-checks a frame's stars otherwise)
             if not inp.valid:
                 break
             q += 1
@@ -660,7 +698,7 @@ class Calibrator(ImuRelease):
         k = b.count
         part = part[:k]
         fc = flt.counters
-        fc.stars_invalid += sum(len(inp.ok) - len(inp.uv) for _, inp, _ in part)
+        fc.stars_invalid += sum(len(inp.ok) - len(inp.uv) for _, inp, _, _ in part)
         index0 = self._frame_index
         self._frame_index += k
         nis = b.nis.tolist()
@@ -673,7 +711,7 @@ class Calibrator(ImuRelease):
             not self.residuals.discard else None
         self.last_update = upds[-1] if upds else b.update(k - 1)
         if not self.residuals.discard:
-            for i, (_, inp, ctx) in enumerate(part):
+            for i, (_, inp, ctx, _) in enumerate(part):
                 self.residuals.append(residual_rows(upds[i], index0 + i, inp.catalog_id,
                                                     inp.magnitude, ctx.head_temperature_c))
         if stats is None:
@@ -687,7 +725,7 @@ class Calibrator(ImuRelease):
                 b.stamps, nis, b.dof, b.n_acc, b.n, b.iterations.tolist(), strict=True)]
             self.history.append_rows(keys, heads, (b.theta, b.sigma),
                                      self._history_sigma_index)
-        for i, (fr, inp, ctx) in enumerate(part):
+        for i, (fr, inp, ctx, _) in enumerate(part):
             out.append(FrameOutcome(int(fr.stamp_ns), fr.frame_id, "updated",
                                     upds[i] if keep else None, inp.catalog_id, inp.magnitude,
                                     ctx.head_temperature_c))

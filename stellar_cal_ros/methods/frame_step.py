@@ -455,18 +455,31 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
 @njit(cache=True)
 def frame_steps(P, theta, R_a, M, score, info, acc,
                 tp, C, w_hat, phi, slope, js, mjs, tas, tbs, Gamma, theta_ref, q_diag,
-                gyro_b0, gyro_E0, gyro_Jb, gyro_JE, gyro_theta0, w_raw,
+                gyro_b0, gyro_E0, gyro_Jb, gyro_JE, gyro_theta0, imu_w, ms,
                 uv, u, sigma, offs, base,
                 s0, g, timed, R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du, bscale,
-                Pe, cfg):
+                Pe, cfg, t_rel, tix, tg, imu_t, cumb, lim):
     """:func:`frame_step` over ``K`` frames in a row, on copies of the state (a pump's batch).
 
-    Frame ``i``'s inputs: ``acc[i]``, rows ``js[i]..mjs[i]``, ``tas[i]``, ``tbs[i]``,
-    ``w_raw[i]``, ``base[i]``, ``bscale[i]``, its stars rows ``offs[i]:offs[i + 1]`` of
-    ``uv, u, sigma, du``; the rest as :func:`frame_step`.  The state arguments are not
-    changed: each frame's state after it is returned, so that the caller commits them one
-    frame at a time (the same floats as ``K`` calls of :func:`frame_step`).  Stops after the
-    first frame not ``UPDATED`` and before a ``REBUILD`` (not done).
+    Frame ``i``'s inputs: ``acc[i]``, rows ``js[i]..mjs[i]``, ``tas[i]``, ``tbs[i]``, the
+    raw rate ``imu_w[ms[i]]``, ``base[i]``, ``bscale[i]``, its stars rows
+    ``offs[i]:offs[i + 1]`` of ``uv, u, sigma, du``; the rest as :func:`frame_step`.  The
+    state arguments are not changed: each frame's state after it is returned, so that the
+    caller commits them one frame at a time (the same floats as ``K`` calls of
+    :func:`frame_step`).  Stops after the first frame not ``UPDATED`` and before a
+    ``REBUILD`` (not done).
+
+    ``lim[0]`` ≠ 0: the exposure times move with the estimate (an estimated time offset):
+    frame ``i``'s ``tbs, base, ms, js, mjs`` and (``i`` > 0) ``tas`` are computed here, in
+    place, from the state after frame ``i − 1`` as the kernel computes them for its frame
+    (``StarFilter.update``, ``_fused_rows``): exposure shift ``Σ tg[q] θ[tix[q]]`` (the
+    TIME effects' affine forms), ``tb = t_rel[i] + shift``, the IMU sample covering it in
+    ``imu_t`` (first stamp ≥ tb), rows offset by ``lim[2] − lim[3]``.  The batch stops
+    before a frame the driver would not hand on yet (``lim[7] > tb + lim[8]`` fails: the
+    IMU received does not cover its exposure), whose time is not after the one before, or
+    whose rows leave the reference or contain a bridged sample (``cumb``).  ``lim``:
+    ``[vary, k0, imu base, prefix base, prefix end, reference start, window, IMU end,
+    look-ahead]``.
 
     Returns ``(done, status (K,), ints (K, 6), floats (K, 13), accepted, uv_pred, S,
     nis_stars, directions (stars rows), omega (K, 3), R_prior (K, 3, 3), P (K, N, N),
@@ -499,12 +512,42 @@ def frame_steps(P, theta, R_a, M, score, info, acc,
     scs = np.empty((K, mc))
     ins = np.empty((K, mc, mc))
     done = 0
+    vary = lim[0] != 0.0
+    n_imu = imu_t.shape[0]
+    k = int(lim[1])
+    ib, pb, pe, rs = int(lim[2]), int(lim[3]), int(lim[4]), int(lim[5])
     for i in range(K):
+        if vary:  # this frame's exposure time under the state after the frame before
+            if i > 0:
+                tas[i] = tbs[i - 1]
+                k = ms[i - 1]
+            shift = 0.0
+            for q in range(tix.shape[0]):
+                shift += tg[q] * th_[tix[q]]
+            tb = t_rel[i] + shift
+            if not (lim[7] > tb + lim[8]) or not (tb > tas[i]):
+                break
+            lo, hi = 0, n_imu
+            while lo < hi:  # np.searchsorted(imu_t, tb, side="left")
+                mid = (lo + hi) // 2
+                if imu_t[mid] < tb:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            m = lo
+            if m >= n_imu or ib + k < pb or pe <= ib + m or ib + m - rs >= lim[6] or \
+                    cumb[m + 1] != cumb[k]:
+                break
+            tbs[i] = tb
+            base[i] = t_rel[i] - tb
+            ms[i] = m
+            js[i] = k + ib - pb
+            mjs[i] = m + ib - pb
         a, b = offs[i], offs[i + 1]
         st, it_, fl, ac, up, Sb, ns, dr, om, rp = frame_step(
             P_, th_, R_, M_, sc_, in_, acc[i], tp, C, w_hat, phi, slope, js[i], mjs[i],
             tas[i], tbs[i], Gamma, theta_ref, q_diag, gyro_b0, gyro_E0, gyro_Jb, gyro_JE,
-            gyro_theta0, w_raw[i], uv[a:b], u[a:b], sigma[a:b], base[i], s0, g, timed,
+            gyro_theta0, imu_w[ms[i]], uv[a:b], u[a:b], sigma[a:b], base[i], s0, g, timed,
             R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du[a:b], bscale[i], Pe,
             cfg)
         if st == REBUILD:
@@ -576,6 +619,9 @@ class FusedStep:
         # a column slice would take numba's non-contiguous matrix product (a copy per call)
         self._gamma_of: tuple | None = None
         self._gamma = np.zeros((3, 0))
+        #: :meth:`batch`'s ``vary`` of exposure times fixed before the call (none moves)
+        self._fixed = (np.zeros(0, dtype=np.int64), np.zeros(0),
+                       np.array([0.0, 0, 0, 0, 0, 0, 0, math.inf, 0.0]))
 
     @classmethod
     def build(cls, flt, kernel_cls: type) -> FusedStep | None:
@@ -615,12 +661,17 @@ class FusedStep:
                           *self.chain, *self.directions, du, bscale, self.Pe, self.cfg)
 
 
-    def batch(self, P, theta, R, sens, pre, prop, imu_w, frames) -> FrameBatch | None:
+    def batch(self, P, theta, R, sens, pre, prop, imu, frames, vary=None
+              ) -> FrameBatch | None:
         """:func:`frame_steps` over ``frames`` from the filter's current state.
 
-        ``frames``: ``(uv, u, sigma, base, ctx, j, mj, ta, tb, m, accumulate)`` of each frame
-        in order, as :meth:`call` would take them (``m``: the IMU row of ``w_raw``).  The
-        state is not changed: :meth:`FrameBatch.take` commits each frame's.  None: no frame.
+        ``frames``: ``(uv, u, sigma, base, ctx, j, mj, ta, tb, m, accumulate, t_rel)`` of
+        each frame in order, as :meth:`call` would take them (``m``: the IMU row of the raw
+        rate; ``imu``: the filter's :class:`~stellar_cal_ros.core.imu.ImuBuffer`).
+        ``vary``: None, or ``(tix, tg, lim)`` of exposure times that move with the estimate
+        (:func:`frame_steps`): the frames' ``base, j, mj, tb, m`` (and ``ta`` after the
+        first) are then found by the call, and the batch's frames carry them.  The state is
+        not changed: :meth:`FrameBatch.take` commits each frame's.  None: no frame.
         """
         if not frames:
             return None
@@ -638,7 +689,7 @@ class FusedStep:
         offs[1:] = np.cumsum([len(f[0]) for f in frames])
         chain = self.compiled_chain
         inputs = [chain.frame_inputs(f[1], f[4]) for f in frames]
-        col = np.array([f[5:11] for f in frames], dtype=float)  # j, mj, ta, tb, m, acc
+        col = np.array([f[5:12] for f in frames], dtype=float)  # j, mj, ta, tb, m, acc, t_rel
         uv = np.concatenate([f[0] for f in frames]).reshape(-1, 2)
         u = np.concatenate([f[1] for f in frames]).reshape(-1, 3)
         sigma = np.concatenate([f[2] for f in frames]).astype(float, copy=False)
@@ -646,18 +697,28 @@ class FusedStep:
         bscale = np.array([b for _, b in inputs], dtype=float).reshape(K, len(inputs[0][1]))
         base = np.array([f[3] for f in frames], dtype=float)
         js, mjs = col[:, 0].astype(np.int64), col[:, 1].astype(np.int64)
-        w_raw = np.ascontiguousarray(imu_w[col[:, 4].astype(np.int64)], dtype=float)
+        ms = col[:, 4].astype(np.int64)
+        tas, tbs = np.ascontiguousarray(col[:, 2]), np.ascontiguousarray(col[:, 3])
+        tix, tg, lim = vary if vary is not None else self._fixed
         try:
             out = frame_steps(P, theta, R, M, score, info, col[:, 5] != 0.0, pre.tp, pre.C,
-                              pre.w_hat, pre.phi, pre.slope, js, mjs,
-                              np.ascontiguousarray(col[:, 2]), np.ascontiguousarray(col[:, 3]),
-                              self._gamma, prop.theta_ref, self.q_diag, *self.gyro, w_raw, uv,
-                              u, sigma, offs, base, *self.chain, *self.directions, du, bscale,
-                              self.Pe, self.cfg)
+                              pre.w_hat, pre.phi, pre.slope, js, mjs, tas, tbs,
+                              self._gamma, prop.theta_ref, self.q_diag, *self.gyro, imu.w, ms,
+                              uv, u, sigma, offs, base, *self.chain, *self.directions, du,
+                              bscale, self.Pe, self.cfg, np.ascontiguousarray(col[:, 6]), tix,
+                              tg, imu.t, imu.cum_bridged, lim)
         except Exception:  # noqa: BLE001 - the frame's own call raises it, in its turn
             return None
-        if not out[0]:
+        done = int(out[0])
+        if not done:
             return None
+        if vary is not None:  # the frames as the call found them (FrameBatch.take's check)
+            rows = zip(base[:done].tolist(), js[:done].tolist(), mjs[:done].tolist(),
+                       tas[:done].tolist(), tbs[:done].tolist(), ms[:done].tolist(),
+                       strict=True)
+            frames = [f[:3] + (b, f[4], j, mj, ta, tb, m) + f[10:]
+                      for f, (b, j, mj, ta, tb, m) in zip(frames, rows, strict=False)] + \
+                frames[done:]
         return FrameBatch(out, frames, offs, gamma, pre, P, theta, R, M)
 
 

@@ -690,26 +690,48 @@ class StarFilter(Acquisition):
         off = imu.base - pre.base
         return m, k + off, m + off
 
-    def prepare_frames(self, frames: list[tuple]) -> int:
+    def batches_moving_shift(self) -> bool:
+        """Whether :meth:`prepare_frames` batches frames whose exposure shift moves.
+
+        An estimated time offset (``StarModel.affine_exposure_shift``): the compiled call
+        finds each frame's exposure time.  The driver then gathers a replay's ready frames
+        in runs for it even so.
+        """
+        return bool(self.compiled_step and self.batched_step and self._fused_step()
+                    and self.model.affine_exposure_shift() is not None)
+
+    def prepare_frames(self, frames: list[tuple], shift: float | None | bool = False,
+                       ready: tuple[float, float] | None = None) -> int:
         """Run the fused step of a run of coming frames in one compiled call (a replay's pump).
 
         ``frames``: ``(uv, u_i, ctx, sigma, t_rel, accumulate)`` of the frames
         :meth:`process_frame` will be given next, in that order (``accumulate``: the
         sensitivity's flag the caller will set for it).  The leading frames that take the
-        fused step as things stand (valid stars, in order, an exposure shift the same for
-        every frame — :meth:`~.star_model.StarModel.fixed_exposure_shift` —, no covariance
-        check due among them) are stepped by :func:`~.frame_step.frame_steps` at once; each
+        fused step as things stand (valid stars, in order, no covariance check due among
+        them) are stepped by :func:`~.frame_step.frame_steps` at once; each
         :meth:`process_frame` then takes its frame's result and state instead of a call of
         its own — the same floats.  Any other frame (or any other call) drops what is left.
         Returns the frames stepped.
+
+        ``shift``: the exposure shift every frame has
+        (:meth:`~.star_model.StarModel.fixed_exposure_shift`; False: computed here).  None
+        (an estimated time offset): each frame's exposure time, IMU rows and the reference's
+        bounds are found in the compiled call from the state after the frame before
+        (:meth:`batches_moving_shift`); ``ready = (imu_end, lookahead)`` then stops the
+        batch before a frame the driver would not hand on yet under that state
+        (``imu_end <= t_exp + lookahead``; None: every frame is ready).
         """
         self._batch = None
         fs = self._fused_step() if self.compiled_step and self.batched_step and \
             self.initialized else False
-        # a frame's exposure time must not depend on the frames before it in the batch: the
-        # prior's offset, or a time effect held as a consider parameter
-        shift = self.model.fixed_exposure_shift(self.theta, self.P_est) if fs else None
-        if shift is None or len(frames) < 2:
+        if not fs:
+            return 0
+        if shift is False:
+            shift = self.model.fixed_exposure_shift(self.theta, self.P_est)
+        # a frame's exposure time depends on the frames before it in the batch when the shift
+        # moves (an estimated time offset): the compiled call finds it (vary)
+        vary = self.model.affine_exposure_shift() if shift is None else None
+        if (shift is None and vary is None) or len(frames) < 2:
             return 0
         c = self.config
         every = c.covariance_check_every
@@ -723,6 +745,10 @@ class StarFilter(Acquisition):
             if ctx is None or len(uv) < c.min_stars or not math.isfinite(t_rel) or \
                     (last is not None and t_rel <= last):
                 break
+            if vary is not None:  # (the call finds the rest)
+                run.append((uv, u_i, sigma, math.nan, ctx, 0, 0, t, math.nan, 0, acc, t_rel))
+                last = t_rel
+                continue
             t_exp = t_rel + shift
             rows = self._fused_rows(t, k, t_exp)
             if rows is None:
@@ -735,8 +761,16 @@ class StarFilter(Acquisition):
         st = self.state
         if not st.P.flags.c_contiguous:
             st.P = np.ascontiguousarray(st.P)
-        self._batch = fs.batch(st.P, self.theta, self.R_i_b, st.sensitivity,
-                               self.propagation.prefix, self.propagation, imu.w, run)
+        pre, prop = self.propagation.prefix, self.propagation
+        if vary is not None:
+            if self._gap_pending or t is None or pre is None:
+                return 0
+            end, look = ready if ready is not None else (math.inf, 0.0)
+            window = float(prop.window)
+            vary = vary + (np.array([1.0, k, imu.base, pre.base, pre.end, prop.ref_start,
+                                     window, end, look]),)
+        self._batch = fs.batch(st.P, self.theta, self.R_i_b, st.sensitivity, pre, prop, imu,
+                               run, vary)
         return self._batch.done if self._batch is not None else 0
 
     def commit_batch(self, limit: int):

@@ -265,6 +265,30 @@ class StarModel:
                 return None
         return self.exposure_shift(theta, None)
 
+    def affine_exposure_shift(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(index, gain)`` with :meth:`exposure_shift` ``= Σ_q gain[q] θ[index[q]]``, or None.
+
+        For TIME effects that are all constant affine maps of their values
+        (:meth:`Effect.affine_form`: no frame dependence), summed from 0.0 in the model's
+        order, as :meth:`time_shift` sums them; None without a TIME effect (the prior's
+        offset) or with one that is not such a map.  The compiled batch computes an
+        estimated offset's exposure times with it (``frame_step.frame_steps``).
+        """
+        if not self.has_time_effect:
+            return None
+        index: list[int] = []
+        gain: list[float] = []
+        for eff in self._by_stage[Stage.TIME]:
+            g = eff.affine_form()
+            if g is None:
+                return None
+            start = self.slices[eff.id].start
+            for q, v in enumerate(np.asarray(g, dtype=float).reshape(-1).tolist()):
+                if v != 0.0:
+                    index.append(start + q)
+                    gain.append(v)
+        return np.array(index, dtype=np.int64), np.array(gain, dtype=float)
+
     def time_shift(self, theta: np.ndarray, ctx: FrameContext) -> tuple[float, np.ndarray]:
         """Seconds from the stamp to the modelled exposure, and its gradient (P,)."""
         if not self.has_time_effect:
