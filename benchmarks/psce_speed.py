@@ -4,6 +4,7 @@ Usage::
 
     python benchmarks/psce_speed.py [--bag BAG.mcap] [--duration 7200] [--repeat 3]
                                     [--baseline CHECKOUT] [--frames] [--no-mcap-ros2]
+                                    [--effects time_offset]
 
 Without ``--bag`` a 2 h ``psce_rotations`` bag (Tan et al. setting) is simulated once and
 cached under ``benchmarks/.cache/``.  Each repetition runs, interleaved (machine load hits
@@ -106,6 +107,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3, help="interleaved repetitions")
     ap.add_argument("--baseline", type=Path, help="another checkout to time the same way")
     ap.add_argument("--frames", action="store_true", help="also the per-frame latency")
+    ap.add_argument("--effects", default="",
+                    help="replay's --effects (e.g. time_offset: an estimated offset)")
     ap.add_argument("--no-mcap-ros2", action="store_true",
                     help="leave out mcap_ros2's decode (not in the ratio; the slowest run)")
     args = ap.parse_args(argv)
@@ -116,7 +119,8 @@ def main(argv=None) -> int:
 
     def replay_cmd(tag: str) -> list[str]:
         return [sys.executable, "-m", "stellar_cal_ros", "replay", str(bag), "--method",
-                "psce", "--prior", str(prior), "-o", str(tmp / f"{tag}.yaml"), "-q"]
+                "psce", "--prior", str(prior), "-o", str(tmp / f"{tag}.yaml"), "-q"] + \
+            (["--effects", args.effects] if args.effects else [])
 
     runs["replay"] = (replay_cmd("new"), ROOT)
     if args.baseline:
