@@ -13,16 +13,22 @@ innovations: a field of the detector's cells (a per-cell offset, u and v, on the
 the noise's cell means, :data:`~stellar_cal_ros.diagnosis.noise_stars.CELL_GRID`) and a
 field along magnitude (offsets linear in magnitude, along u, v and the radius).
 
-Each field has many columns; the one displacement pattern fitted is their least-squares
-combination on the frames *before* the evaluation window (the direction), tested and sized
-in the window (:func:`~stellar_cal_ros.diagnosis.stats.whitened_fit`: the frame-robust
-t_ν of every 'unexplained' line, ``chi2_capped`` in the candidates' currency).  A direction
+Each field has many columns.  A field is fixed on the detector (:func:`detector_grid`: the
+bag's centroids, the same for every model compared).  The lead's test is one displacement
+pattern: the columns' least-squares combination on the frames *before* the evaluation
+window (the direction), tested and sized in the window (:func:`~stellar_cal_ros.diagnosis.
+stats.whitened_fit`: the frame-robust t_ν of every 'unexplained' line).  A direction
 chosen on the data it is tested on would make a χ²_k of a t; chosen on other frames it is a
 fixed pattern for the window's test.  A field is a lead when that test is significant on the
 current model (Bonferroni over the fields); a candidate is then added only if it explains
 the data beyond the field, or the field is no longer significant beside it (the rolling
-shutter's rule, :func:`~stellar_cal_ros.diagnosis.rolling.stand_in`).  Nothing runs unless a
-candidate is significant alone; on a bag where no field is a lead nothing changes.
+shutter's rule, :func:`~stellar_cal_ros.diagnosis.rolling.stand_in`).  "Beyond" is the
+nested ratio: the candidate's Λ plus what the field removes of the capped χ² with the
+candidate minus without it, each field fitted on the window itself, every column, per
+quarter of its time (:func:`window_gain`, ``chi2_capped``: the direction's own noise and a
+static field made the ratio's null far from χ²: unseen case ``quadrant`` 300 s seed 22
+added the tilt at 26.5).  Nothing runs unless a candidate is significant alone; on a bag
+where no field is a lead nothing changes.
 
 A third field is a mount bending with gravity (unseen case ``sway_flex``: 10″/g on the
 swaying base was named gyro_scale_factor −46, −43 ppm with nothing unexplained).  Its one
@@ -53,31 +59,26 @@ FIELDS = ("cells", "magnitude")
 
 
 def columns(sub: dict, kind: str, centre: tuple[float, float]) -> np.ndarray | None:
-    """The field's displacement columns ``(n, 2, k)`` px per unit coefficient."""
+    """The magnitude field's displacement columns ``(n, 2, 3)`` px per unit coefficient.
+
+    Offsets linear in magnitude along u, v and the radius; ``None`` without 20 finite
+    magnitudes that vary.  (The cells field's columns, a per-cell offset along u and one
+    along v, are solved cell by cell: :func:`_cell_offsets`.)
+    """
+    if kind != "magnitude":
+        raise ValueError(f"columns: no dense columns for the {kind!r} field")
     du = np.asarray(sub["u"], dtype=float) - centre[0]
     dv = np.asarray(sub["v"], dtype=float) - centre[1]
-    n = len(du)
-    if kind == "magnitude":
-        m = np.asarray(sub["magnitude"], dtype=float)
-        fin = np.isfinite(m)
-        if fin.sum() < 20 or np.ptp(m[fin]) == 0:
-            return None
-        m = np.where(fin, m - np.median(m[fin]), 0.0)
-        r = np.maximum(np.hypot(du, dv), 1e-9)
-        x = np.zeros((n, 2, 3))
-        x[:, 0, 0] = m
-        x[:, 1, 1] = m
-        x[:, 0, 2], x[:, 1, 2] = m * du / r, m * dv / r
-        return x
-    cell, _ = detector_cells(_uv(sub), centre)
-    used = np.unique(cell)
-    if len(used) < 2:
+    m = np.asarray(sub["magnitude"], dtype=float)
+    fin = np.isfinite(m)
+    if fin.sum() < 20 or np.ptp(m[fin]) == 0:
         return None
-    x = np.zeros((n, 2, 2 * len(used)))
-    for j, c in enumerate(used):
-        on = cell == c
-        x[on, 0, 2 * j] = 1.0
-        x[on, 1, 2 * j + 1] = 1.0
+    m = np.where(fin, m - np.median(m[fin]), 0.0)
+    r = np.maximum(np.hypot(du, dv), 1e-9)
+    x = np.zeros((len(du), 2, 3))
+    x[:, 0, 0] = m
+    x[:, 1, 1] = m
+    x[:, 0, 2], x[:, 1, 2] = m * du / r, m * dv / r
     return x
 
 
@@ -99,8 +100,7 @@ def findings(run, fraction: float, kinds, alpha: float, known: dict | None = Non
     of :data:`FIELDS` not in it is fitted here.
     """
     known = dict(known or {})
-    got = {k: known[k] if k in known else field_fit(run.residuals, run.calibration,
-                                                    fraction, k)
+    got = {k: known[k] if k in known else field_fit(run.residuals, fraction, k)
            for k in kinds if k in known or (k in FIELDS and _has_table(run))}
     out = []
     for kind, f in significant({k: got.get(k) for k in kinds}, alpha).items():
@@ -123,56 +123,136 @@ def _regressor(kind: str, f: dict) -> str:
             "library)")
 
 
-def field_fit(res, calibration: Calibration, fraction: float, kind: str
-              ) -> dict[str, float] | None:
-    """The innovations' fit by one field (:func:`columns`) in the evaluation window.
+def field_fit(res, fraction: float, kind: str) -> dict[str, float] | None:
+    """The innovations' fit by one field in the evaluation window.
 
-    The direction: the whitened least-squares combination of the columns over the accepted
-    stars before the window; the window's test of that one pattern
-    (:func:`~stellar_cal_ros.diagnosis.stats.whitened_fit`).  ``{t, p_value, chi2,
-    chi2_capped, size_px}`` (``size_px``: 99th percentile of the fitted field's
-    displacement over the window's stars), or ``None``.
+    The field is fixed on the detector (:func:`detector_grid`: the centre and extent of the
+    bag's centroids), not on a model's principal point, so that every model compared on a
+    bag is given the same columns.  The lead's test: the whitened least-squares
+    combination of the columns over the accepted stars before the window (the direction),
+    tested in the window as one pattern (:func:`~stellar_cal_ros.diagnosis.stats.
+    whitened_fit`): ``t``, ``p_value``, ``chi2`` (its ``c² info``) and ``size_px`` (99th
+    percentile of the fitted pattern's displacement over the window's stars).
+    ``chi2_capped``, what the field removes of the window's NIS-capped χ² for a
+    candidate's ratio beyond it (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`), is
+    the field fitted on the window itself, every column (``columns``: how many;
+    :func:`window_gain`).  ``None`` when no test.
     """
     if res is None or not len(res.get("t", ())):
         return None
-    cam = calibration.camera
-    centre = (cam.cx, cam.cy)
+    grid = detector_grid(res)
     acc = stats.accepted(res)
     inside = stats.evaluation_mask(res, fraction)
     before, window = acc & ~inside, acc & inside
-    if before.sum() < 50 or window.sum() < 50:
+    if grid is None or before.sum() < 50 or window.sum() < 50:
         return None
     sb = {k: np.asarray(v)[before] for k, v in res.items()}
-    xb = columns(sb, kind, centre)
-    if xb is None:
-        return None
-    cov = {k: sb[k] for k in ("s_uu", "s_uv", "s_vv")}
-    w_nu = stats.whitened(sb)
-    w_x = np.stack([stats.whitened({"du": xb[:, 0, j], "dv": xb[:, 1, j], **cov})
-                    for j in range(xb.shape[2])], 2)  # (n, 2, k)
-    ok = np.all(np.isfinite(w_nu), 1) & np.all(np.isfinite(w_x), (1, 2))
-    if ok.sum() < 20:
-        return None
-    a = w_x[ok].reshape(-1, xb.shape[2])
-    coef = np.linalg.lstsq(a, w_nu[ok].ravel(), rcond=None)[0]
-    if not np.any(coef):
-        return None
     sw = {k: np.asarray(v)[window] for k, v in res.items()}
     if kind == "cells":
-        pattern = _align_cells(sb, sw, centre, coef)
+        table = _cell_offsets(sb, _cells(sb, grid))
+        cell = _cells(sw, grid)
+        pattern = None if table is None or len(np.unique(cell)) < 2 else table[cell]
     else:
-        xw = columns(sw, kind, centre)
+        xb = columns(sb, kind, grid[0])
+        coef = None if xb is None else _lstsq(sb, xb)
+        xw = None if coef is None else columns(sw, kind, grid[0])
         pattern = None if xw is None else xw @ coef
-    if pattern is None:
+    if pattern is None or not np.any(pattern):
         return None
     fit = stats.whitened_fit(sw, pattern)
     if fit is None:
         return None
     t, p, c, info = fit
     size = np.hypot(*(c * pattern).T)
-    return {"t": t, "p_value": p, "chi2": c * c * info,
-            "chi2_capped": stats.capped_gain(sw, pattern, c),
+    gain, k = window_gain(sw, kind, grid)
+    return {"t": t, "p_value": p, "chi2": c * c * info, "chi2_capped": gain, "columns": k,
             "size_px": float(np.percentile(size, 99)) if len(size) else 0.0}
+
+
+def detector_grid(res) -> tuple[tuple[float, float], np.ndarray] | None:
+    """The fields' frame on the detector: the centre (px) and extent of the table's centroids.
+
+    Every row (gated or not, every frame): the same for every model run on one bag.  The
+    midpoint of the centroids' range and that range + 1 px, so that the grid of
+    :func:`~stellar_cal_ros.diagnosis.noise_stars.detector_cells` spans the detector's
+    stars.  (On the model's estimated principal point a tilt's run moved the grid by 20-40
+    px from the baseline's, and 26-29 % of a 150 s quadrant bag's window stars changed
+    cell between the two models.)  ``None`` without a finite centroid.
+    """
+    uv = _uv(res)
+    uv = uv[np.all(np.isfinite(uv), 1)]
+    if not len(uv):
+        return None
+    lo, hi = uv.min(0), uv.max(0)
+    return (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2)), hi - lo + 1.0
+
+
+def _cells(sub: dict, grid) -> np.ndarray:
+    return detector_cells(_uv(sub), *grid)[0]
+
+
+#: the window's parts (equal spans of time) each given its own field for the nuisance gain
+#: (:func:`window_gain`)
+WINDOW_PARTS = 4
+
+
+def window_gain(sw: dict, kind: str, grid) -> tuple[float, int]:
+    """What the field fitted on the window's stars ``sw`` removes of their capped χ².
+
+    Every column fitted (whitened least squares on the detector's ``grid``,
+    :func:`detector_grid`), in each of :data:`WINDOW_PARTS` equal spans of the window's
+    time on its own; the gain with each star's NIS capped (:func:`~stellar_cal_ros.
+    diagnosis.stats.capped_gain` along the fitted displacement), and the number of
+    columns.  Fitted on the sample it removes, the same columns on the same stars for a
+    model with a candidate and without it, so that the difference of the two gains is the
+    nested ratio's: what each takes of the noise (~``columns``) is the same noise's.
+
+    Why not the lead's direction (fitted before the window): it carries noise of its own
+    (72 cell coefficients on the frames before the window) that does not cancel between
+    the two models (unseen case ``quadrant`` 300 s seed 22: image_plane_tilt's ratio
+    beyond it 26.5 for 2 dof, added; −37.9 on the same bag with noise-free centroids).  Why
+    the parts: a step a field fits in the filter, the run takes up in part into its
+    camera states and keeps doing so through the window, so the cells' offsets drift;
+    a candidate with states of its own follows part of the drift that one static field
+    cannot (noise-free centroids, 300 s seeds 21 / 22: the tilt's ratio 9.5 / 7.1
+    beyond one field, −5.3 / −8.6 beyond halves, −7.0 / −8.6 beyond quarters).
+    ``(0, 0)`` when the field cannot be fitted.
+    """
+    t = np.asarray(sw["t"], dtype=float)
+    if not len(t):
+        return 0.0, 0
+    edges = np.linspace(t.min(), t.max(), WINDOW_PARTS + 1)[1:-1]
+    part = np.searchsorted(edges, t, side="right")
+    own, k = np.zeros((len(t), 2)), 0
+    for j in range(WINDOW_PARTS):
+        on = part == j
+        sub = {key: np.asarray(v)[on] for key, v in sw.items()}
+        if kind == "cells":
+            cell = _cells(sub, grid)
+            table = _cell_offsets(sub, cell)
+            if table is not None:
+                own[on], k = table[cell], k + 2 * len(np.unique(cell))
+            continue
+        x = columns(sub, kind, grid[0])
+        coef = None if x is None else _lstsq(sub, x)
+        if coef is not None:
+            own[on], k = x @ coef, k + x.shape[2]
+    if not np.any(own):
+        return 0.0, 0
+    return stats.capped_gain(sw, own, 1.0), k
+
+
+def _lstsq(sub: dict, x: np.ndarray) -> np.ndarray | None:
+    """The columns ``x`` ``(n, 2, k)`` fitted to the innovations, whitened; ``None`` if 0."""
+    cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
+    w_nu = stats.whitened(sub)
+    w_x = np.stack([stats.whitened({"du": x[:, 0, j], "dv": x[:, 1, j], **cov})
+                    for j in range(x.shape[2])], 2)  # (n, 2, k)
+    ok = np.all(np.isfinite(w_nu), 1) & np.all(np.isfinite(w_x), (1, 2))
+    if ok.sum() < 20:
+        return None
+    coef = np.linalg.lstsq(w_x[ok].reshape(-1, x.shape[2]), w_nu[ok].ravel(), rcond=None)[0]
+    return coef if np.any(coef) else None
 
 
 def _uv(sub: dict) -> np.ndarray:
@@ -180,35 +260,47 @@ def _uv(sub: dict) -> np.ndarray:
     return np.stack([np.asarray(sub["u"], float), np.asarray(sub["v"], float)], 1)
 
 
-def _align_cells(sb: dict, sw: dict, centre: tuple[float, float], coef: np.ndarray
-                 ) -> np.ndarray | None:
-    """The window's stars' offsets of the cell field fitted before it (``(n, 2)`` px).
+def _cell_offsets(sub: dict, cell: np.ndarray) -> np.ndarray | None:
+    """Each cell's offset (u, v) fitted to the innovations of ``sub`` (``(CELL_GRID², 2)`` px).
 
-    On the grid of the frames before the window (:func:`columns`' cells, their extent);
-    the window's cells that those frames held no star of add nothing (coefficient 0).
-    ``None`` when the window's stars lie in fewer than two cells or the field is 0 on them.
+    The whitened least squares of the per-cell offset columns (:func:`columns`) solved
+    cell by cell: the normal equations are block-diagonal, ``Σ S⁻¹`` and ``Σ S⁻¹ ν`` over
+    each cell's stars (``S`` each star's innovation covariance).  0 where a cell holds no
+    star; ``None`` with fewer than 20 stars or two cells, or an offset field of 0.
     """
-    if len(np.unique(detector_cells(_uv(sw), centre)[0])) < 2:  # on the window's own grid
+    a, b, d = (np.asarray(sub[k], dtype=float) for k in ("s_uu", "s_uv", "s_vv"))
+    du, dv = np.asarray(sub["du"], dtype=float), np.asarray(sub["dv"], dtype=float)
+    det = a * d - b * b
+    ok = np.isfinite(du) & np.isfinite(dv) & np.isfinite(det) & (det > 0) & (a > 0)
+    if ok.sum() < 20 or len(np.unique(cell)) < 2:
         return None
-    before, ext = detector_cells(_uv(sb), centre)
-    window, _ = detector_cells(_uv(sw), centre, ext)
-    table = np.zeros((CELL_GRID * CELL_GRID, 2))
-    used = np.unique(before)
-    table[used, 0], table[used, 1] = coef[0::2], coef[1::2]
-    out = table[window]
-    return out if np.any(out) else None
+    cell, a, b, d, det, du, dv = (x[ok] for x in (cell, a, b, d, det, du, dv))
+    m = CELL_GRID * CELL_GRID
+
+    def total(x):
+        return np.bincount(cell, x, minlength=m)
+
+    # S⁻¹ = [[d, −b], [−b, a]] / det summed per cell, and S⁻¹ ν
+    auu, auv, avv = total(d / det), total(-b / det), total(a / det)
+    ru, rv = total((d * du - b * dv) / det), total((a * dv - b * du) / det)
+    n = auu * avv - auv * auv
+    has = n > 0
+    table = np.zeros((m, 2))
+    table[has, 0] = (avv * ru - auv * rv)[has] / n[has]
+    table[has, 1] = (auu * rv - auv * ru)[has] / n[has]
+    return table if np.any(table) else None
 
 
-def fits(res, calibration: Calibration, fraction: float) -> dict[str, dict | None]:
+def fits(res, fraction: float) -> dict[str, dict | None]:
     """Every column field's fit (:func:`field_fit`) of a residual table (:data:`FIELDS`)."""
-    return {kind: field_fit(res, calibration, fraction, kind) for kind in FIELDS}
+    return {kind: field_fit(res, fraction, kind) for kind in FIELDS}
 
 
 def of_run(run, fraction: float) -> dict[str, dict | None]:
     """:func:`fits` of a :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary`."""
     if not _has_table(run):
         return {}
-    return fits(run.residuals, run.calibration, fraction)
+    return fits(run.residuals, fraction)
 
 
 def gravity_fit(res: dict, moved: dict | None, fraction: float) -> dict[str, float] | None:
