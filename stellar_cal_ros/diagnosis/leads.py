@@ -53,7 +53,7 @@ NAMES = {
     "magnitude": ("the magnitude-shaped remainder", "an offset linear in magnitude"),
     "gravity": ("the gravity-shaped remainder", "a mount flexure"),
 }
-#: the fields made of columns of the residual table (:func:`columns`); the gravity field is
+#: the fields made of columns of the residual table (:func:`field_fit`); the gravity field is
 #: the flexure probe's response (:mod:`~stellar_cal_ros.diagnosis.flexure`), one more run
 FIELDS = ("cells", "magnitude")
 
@@ -61,7 +61,8 @@ FIELDS = ("cells", "magnitude")
 def columns(sub: dict, kind: str, centre: tuple[float, float]) -> np.ndarray | None:
     """The magnitude field's displacement columns ``(n, 2, 3)`` px per unit coefficient.
 
-    Offsets linear in magnitude along u, v and the radius; ``None`` without 20 finite
+    Offsets linear in magnitude along u, v and the radius from ``centre`` (the detector's,
+    :func:`detector_grid`); ``None`` without 20 finite
     magnitudes that vary.  (The cells field's columns, a per-cell offset along u and one
     along v, are solved cell by cell: :func:`_cell_offsets`.)
     """
@@ -263,7 +264,8 @@ def _uv(sub: dict) -> np.ndarray:
 def _cell_offsets(sub: dict, cell: np.ndarray) -> np.ndarray | None:
     """Each cell's offset (u, v) fitted to the innovations of ``sub`` (``(CELL_GRID², 2)`` px).
 
-    The whitened least squares of the per-cell offset columns (:func:`columns`) solved
+    The whitened least squares of the cells field's columns (an offset along u and one along
+    v per cell of :func:`~stellar_cal_ros.diagnosis.noise_stars.detector_cells`) solved
     cell by cell: the normal equations are block-diagonal, ``Σ S⁻¹`` and ``Σ S⁻¹ ν`` over
     each cell's stars (``S`` each star's innovation covariance).  0 where a cell holds no
     star; ``None`` with fewer than 20 stars or two cells, or an offset field of 0.
