@@ -363,7 +363,7 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
     units of ``sigma_px`` (× ``weights``): ``E‖r_i‖² = s_i² (2 − h_i)`` with ``h_i`` the
     weighted fit's leverage and ``s_i`` star ``i``'s σ over ``sigma_px``.
     """
-    from stellar_cal_ros.diagnosis.stats import FrameFit, rolling_columns
+    from stellar_cal_ros.diagnosis.stats import ROLLING_KEYS, FrameFit, rolling_columns
 
     ok = mask & ~np.asarray(res["gated"]).astype(bool) & np.isfinite(sigma_px) \
         & (sigma_px > 0) & np.isfinite(np.asarray(res["du"], dtype=float))
@@ -399,7 +399,9 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
         """Columns ``c`` (n, 2) in px through the frames' attitude fit, whitened as ``r``."""
         return back(fit.residual(c[:, 0], c[:, 1]))
 
-    x = rolling_columns({k: np.asarray(res[k])[idx] for k in res}, (fx, fy), centre, R_imu_st)
+    # (only the columns it reads: the whole table's rows were a ≈ 30 MB copy on a 2-h bag)
+    x = rolling_columns({k: np.asarray(res[k])[idx] for k in ROLLING_KEYS if k in res},
+                        (fx, fy), centre, R_imu_st)
     if x is not None:
         x = projected(x)
     # (the sub-pixel regressors too: fitted raw, 0.08 px of locking left the scale at 1.04)

@@ -38,7 +38,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
            extra_images: list[tuple[str, str]] | None = None,
            verdict=None, write: bool = True, outside: list | None = None,
            like: list[str] | None = None, runs=None, refused: tuple[str, ...] = (),
-           hiding: dict[str, Any] | None = None) -> dict[str, Any]:
+           hiding: dict[str, Any] | None = None, drop_tables: bool = False) -> dict[str, Any]:
     """Unexplained structure on ``final``'s residuals, the summary, the report files.
 
     ``base`` is the run the candidates were compared with (the summary's RMS); ``final``
@@ -55,6 +55,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     the first order does not hold are measured by probe runs on the bag
     (:mod:`~stellar_cal_ros.diagnosis.reliability_probe`).  ``refused``: candidates
     significant alone that are not recommended (discover's stand-ins for a flexure).
+    ``drop_tables``: the caller reads no residual table after this (a round of
+    :func:`~stellar_cal_ros.diagnosis.run.diagnose`): without plots, ``base``'s and
+    ``final``'s tables (44 MB on a 2-h bag) are dropped once the lines are tested, before
+    the probe runs render their twins.
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
@@ -66,6 +70,9 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
     # a rolling shutter whose consequences rank before it goes first (one run without it)
     unexplained, follows = rolling.first_if_cause(unexplained, shown, runs, line_tests)
+    if drop_tables and not plots:
+        base.residuals = final.residuals = shown = None
+        panels.clear()
     summary = summary_dict(base, results, unexplained, spec, effects, fraction,
                            heavy_tails=bool(getattr(verdict, "tails", None)))
     for i, u in enumerate(summary["unexplained"]):

@@ -60,6 +60,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.diagnosis import timeline
 from stellar_cal_ros.diagnosis.runstats import (
     BagBytes,
@@ -155,8 +156,15 @@ def _on_bag(bag: BagRef, fn: Callable[..., Any], *args: Any) -> Any:
 
 
 def _run(key: str, batch: int, bag: BagRef, fn: Callable[..., Any], *args: Any) -> Any:
-    """``fn(bag, *args)`` where it runs (a worker, or here): on the timeline when it is on."""
-    return timeline.traced(key, batch, bag, fn, *args)
+    """``fn(bag, *args)`` where it runs (a worker, or here): on the timeline when it is on.
+
+    Then the heap's pages the run freed go back to the system (:func:`~stellar_cal_ros.
+    core.memory.trim_freed`): the next run's arrays are not held beside them.
+    """
+    try:
+        return timeline.traced(key, batch, bag, fn, *args)
+    finally:
+        trim_freed()
 
 
 #: environment override of how the local cluster's workers start: ``forkserver``, ``fork``

@@ -108,7 +108,7 @@ def diagnose(
         # measured by probe runs on the bag
         summary = finish(out, calibration, base, final, results, spec, effects,
                          evaluation_fraction, panels, plots, verdict=runs.verdict,
-                         outside=outside, runs=runs, hiding=hidden)
+                         outside=outside, runs=runs, hiding=hidden, drop_tables=True)
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
 

@@ -846,6 +846,10 @@ def predicted_position(sub: Table, axis: str) -> np.ndarray:
     return np.asarray(sub[key] if key in sub else sub[axis], dtype=float)
 
 
+#: the residual table's columns :func:`rolling_columns` reads
+ROLLING_KEYS = ("omega_x", "omega_y", "omega_z", "x_st", "y_st", "z_st", "v_pred", "v")
+
+
 def rolling_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
                     R_imu_st: np.ndarray | None) -> np.ndarray | None:
     """A rolling shutter's displacement per second of readout offset, ``(n, 2)`` px · px/s.
