@@ -303,3 +303,25 @@ def test_the_heaps_free_pages_are_trimmed_only_where_the_threshold_was_fixed():
                          timeout=120, check=True,
                          env=dict(env, MALLOC_MMAP_THRESHOLD_="1048576")).stdout.split()
     assert out == ["False", "False", "False"]
+
+
+def test_a_bags_direction_tables_forgotten_are_made_again_the_same(sim):
+    """``runstats.forget_prepared`` (a round's ``finish`` before its lines, the probe
+    before its renders) drops the bag's direction tables; a later run's model makes them
+    again with the same numbers."""
+    from stellar_cal_ros.diagnosis.runstats import forget_prepared
+
+    data = bag_data_from_simulation(sim)
+    first = build_model(sim.prior, DIRECTION)
+    first.prepare_frames(data)
+    held = {k: v for k, v in data.prepared.items() if isinstance(k, type)}
+    assert len(held) == 3 and "inputs" in data.prepared
+    forget_prepared(data)
+    assert not data.prepared
+    again = build_model(sim.prior, DIRECTION)
+    again.prepare_frames(data)
+    for cls, (_, table) in held.items():
+        made = data.prepared[cls][1]
+        assert made is not table and len(made) == len(table) > 200
+        for a in ("start", "ids", "u", "delta", "weather"):
+            np.testing.assert_array_equal(getattr(made, a), getattr(table, a))

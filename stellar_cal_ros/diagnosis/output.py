@@ -19,7 +19,7 @@ from stellar_cal_ros.diagnosis.noise import (
     track_lags,
     within_groups,
 )
-from stellar_cal_ros.diagnosis.runstats import RunSummary
+from stellar_cal_ros.diagnosis.runstats import RunSummary, forget_prepared
 from stellar_cal_ros.io.calibration import Calibration
 
 
@@ -55,13 +55,18 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     the first order does not hold are measured by probe runs on the bag
     (:mod:`~stellar_cal_ros.diagnosis.reliability_probe`).  ``refused``: candidates
     significant alone that are not recommended (discover's stand-ins for a flexure).
-    ``drop_tables``: the caller reads no residual table after this (a round of
-    :func:`~stellar_cal_ros.diagnosis.run.diagnose`): without plots, ``base``'s and
-    ``final``'s tables (44 MB on a 2-h bag) are dropped once the lines are tested, before
-    the probe runs render their twins.
+    ``drop_tables``: the caller reads no table after this (a round of
+    :func:`~stellar_cal_ros.diagnosis.run.diagnose`): the bag's direction tables
+    (:func:`~stellar_cal_ros.diagnosis.runstats.forget_prepared`, 37 MB on a 2-h bag) are
+    dropped before the lines are tested, and without plots ``base``'s and ``final``'s
+    residual tables (44 MB) once they are, before the probe runs render their twins.
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
+    if drop_tables and runs is not None:
+        # the round's runs that share the direction tables are done (the lines re-run
+        # a model only for a rolling shutter, the probe replays its twins)
+        runs.on_bag_each(forget_prepared, [()])  # (not cached: every round's finish)
     shown = final if final.residuals is not None else base  # the run the lines are of
     unexplained = line_tests(shown.residuals, calibration, fraction)
     unexplained, spread = within_groups(unexplained, verdict)

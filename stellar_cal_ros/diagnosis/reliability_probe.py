@@ -307,7 +307,11 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
     (:func:`own_shift`); ``None`` for a run that fails (the probe is an addition: it never
     stops a diagnosis).
     """
-    from stellar_cal_ros.diagnosis.runstats import quiet, register_effect_classes
+    from stellar_cal_ros.diagnosis.runstats import (
+        forget_prepared,
+        quiet,
+        register_effect_classes,
+    )
 
     register_effect_classes(classes)
     # the gyro-against-stars check is off: it changes no estimate, the current model's run
@@ -325,8 +329,7 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
     imu = [_moves_imu(calibration, spec.name, e, d) for e, d in probes]
     # the probe's runs replay other data: the direction effects' tables the round's runs
     # shared on this bag (≈ 20 MB an effect on a 2-h bag) are not held through its renders
-    if hasattr(data, "prepared"):
-        data.prepared.clear()
+    forget_prepared(data)
     for (effect_id, delta), moves in zip(probes, imu, strict=True):
         try:
             if scene is None:
