@@ -480,6 +480,7 @@ CASES: dict[str, Case] = {
     "sigma_per_star": Case("psce", "true 0.05 px; each star's sigma field off by its own "
                            "random factor (lognormal, 30 %, 1 on average): the stated sigma's "
                            "ML scale 1.145", noise={"star": 1.145}, post=_sigma_per_star,
+                           told="wrong star by star",  # (H118: said as such, not grouped)
                            scenario_changes={"centroid_noise_px": 0.0}),
     "ar1_mixed": Case("psce", "half of each star's 0.05 px noise white, half AR(1) over "
                       "frames (tau 10 frames), marginal stated right (a white-noise filter "

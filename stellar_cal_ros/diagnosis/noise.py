@@ -62,8 +62,10 @@ from stellar_cal_ros.diagnosis.noise_stars import (
     group_x,
     grouped_stars,
     known_groups,
+    own_scales,
     significant_grouping,
     star_noise,
+    star_spread,
     used_sigma,
 )
 
@@ -184,6 +186,9 @@ class NoiseVerdict:
     changes: dict[str, float] | None = None
     #: the stars' noise heavier-tailed than Gaussian: {share, expected, p_value} or None
     tails: dict[str, float] | None = None
+    #: the stated σ wrong star by star (:func:`star_levels`): {F, p_value, stars, rows,
+    #: spread, ...} or None
+    per_star: dict[str, float] | None = None
 
     @property
     def rescaled(self) -> bool:
@@ -247,6 +252,8 @@ class NoiseVerdict:
             out["star_changes"] = self.changes
         if self.tails:
             out["star_tails"] = self.tails
+        if self.per_star:
+            out["star_per_star"] = self.per_star
         out["verdict"] = self.lines()
         if self.skipped:
             out["skipped"] = self.skipped
@@ -382,6 +389,8 @@ class NoiseVerdict:
                                c["scales"], c["sigma"], px, bins, strict=True))
                        + f"{before} (applied per group: use --noise-scale "
                        f"{self.applied.advice()}; `replay --estimate-noise` measures them)")
+        if self.per_star:
+            out.append(self._per_star_line())
         if self.changes:
             c = self.changes
             out.append(f"the stars' sigma changes over the run: x{c['before']:.3g} +- "
@@ -468,6 +477,26 @@ class NoiseVerdict:
             out.append(self._measured_before_line(
                 [f"stars' sigma x{self.star:.3g} +- {self.star_sigma:.2g}"], stars_only=True))
         return out
+
+    def _per_star_line(self) -> str:
+        """The stated σ wrong star by star: what it is, and what to do about it."""
+        d = self.per_star
+        k = 100.0 * 0.5 * d["spread"]  # a σ factor's spread: half its variance factor's
+        within = "" if self.group is None else f" within the {self.group['by']} groups"
+        if "star" in self.rejected and self.group is None and \
+                abs(self.applied.star / self.stated.star - 1.0) > MATERIAL:
+            avg = f"use --noise-scale {self.applied.advice(3)} for their average"
+        elif self.group is None:
+            avg = (f"their average is as stated (x{self.star:.3g} +- {self.star_sigma:.2g}), "
+                   "no --noise-scale")
+        else:
+            avg = "the groups' scales above are their averages"
+        return (f"the stars' sigma is wrong star by star: each star's own scatter differs "
+                f"from its stated sigma by ~{k:.2g} % at random{within} (SD across "
+                f"{d['stars']:.0f} stars; F = {d['F']:.3g}, p = {d['p_value']:.2g}; not a "
+                f"trend in magnitude, radius or position); {avg}; the fix is in the "
+                "tracker's sigma of each star, which one --noise-scale cannot state. Residual "
+                "spread that follows which stars are in view is this, not an effect")
 
     def _measured_before_line(self, parts: list[str], stars_only: bool = False) -> str:
         """A later round that keeps the scales applied before: the σ they lead to, to use.
@@ -648,6 +677,18 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
     grouped = grouped_stars(sn)
     v.groups = known_groups(sub, size, v.stated)
     best = significant_grouping(v.groups, n_tests)
+    # the stated σ wrong star by star (beyond the groups' steps): the groupings are then
+    # judged with the stars as their units (a random factor per star made the rows' groups
+    # "x0.889 .. x1.2 by magnitude", unseen case sigma_per_star)
+    lev = star_levels(sn, grouped, None if best is None else group_index(sn, best))
+    if lev is not None:
+        v.groups = [dict(g, p_rows=g["p_value"], p_value=max(g["p_value"], (star_spread(
+            sn, grouped, group_index(sn, g)) or {"groups_p": 1.0})["groups_p"]))
+            for g in v.groups]
+        best = significant_grouping(v.groups, n_tests)
+        v.per_star = star_levels(sn, grouped, None if best is None else group_index(sn, best))
+        if v.per_star is not None and "star" not in v.rejected:
+            v.rejected.append("star")
     if best is not None:
         overall = sub.group(grouped)[0]
         v.group = best
@@ -666,8 +707,11 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
         # judged at each star's own group's scale when groups are applied: at the one
         # scale, the stars of a group above it are its "tails" (mag_faint_over2: "1 %
         # beyond the 99.9 % bound, p = 1e-37" for Gaussian noise)
-        v.tails = heavy_tails(sn, known, v.star if v.group is None else np.asarray(
-            v.group["scales"], dtype=float)[group_index(sn, v.group)])
+        # (and at each star's own scale where the σ is wrong star by star: a mixture of
+        # the stars' σ is heavy-tailed at any one, "0.82 % beyond", sigma_per_star)
+        v.tails = heavy_tails(sn, known, own_scales(sn, known) if v.per_star else
+                              v.star if v.group is None else np.asarray(
+                                  v.group["scales"], dtype=float)[group_index(sn, v.group)])
     if not known.any() and applied.group_by:
         # every σ-0 star in the groups (this round's or kept from before): the default σ
         # times the scale and its group's factor, not one measured σ
@@ -867,6 +911,23 @@ def track_lags(sn: StarNoise | None) -> tuple[float, float] | None:
         return None
     return (float(sn.track_share),
             float(sn.track_rho if sn.track_phi is None else sn.track_phi))
+
+
+def star_levels(sn: StarNoise | None, use: np.ndarray | None = None,
+                gidx: np.ndarray | None = None) -> dict[str, float] | None:
+    """The stated σ wrong star by star (:func:`~.noise_stars.star_spread`), when it is.
+
+    Significant at :data:`ALPHA` and material (the stars' σ factors spread by more than
+    :data:`MATERIAL`, half their variance factors' spread), where no field or per-star
+    position error is left (those make a star's residuals large too: said as themselves).
+    ``use``/``gidx``: the stars tested and their groups (about each group's own level).
+    """
+    if sn is None or sn.repeat_removed or sn.structure_p < ALPHA:
+        return None
+    d = star_spread(sn, use, gidx)
+    if d is None or not (d["p_value"] < ALPHA and 0.5 * d["spread"] > MATERIAL):
+        return None
+    return d
 
 
 def line_noise(res: Table, mask: np.ndarray, fx: float, fy: float,

@@ -14,6 +14,7 @@ from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, 
 from stellar_cal_ros.diagnosis.noise import (
     line_noise,
     not_measured,
+    star_levels,
     star_lines,
     stated_scales,
     track_lags,
@@ -79,7 +80,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         base.residuals = final.residuals = shown = None
         panels.clear()
     summary = summary_dict(base, results, unexplained, spec, effects, fraction,
-                           heavy_tails=bool(getattr(verdict, "tails", None)))
+                           # (a σ wrong star by star: the gate's rejects are the tails of
+                           # the stars stated too small, not misidentified stars)
+                           heavy_tails=bool(getattr(verdict, "tails", None)
+                                            or getattr(verdict, "per_star", None)))
     for i, u in enumerate(summary["unexplained"]):
         if i in follows:
             u["follows"] = "rolling shutter"
@@ -142,7 +146,8 @@ def line_tests(res, calibration: Calibration, fraction: float) -> list:
         res, mask, centre, focal=(cam.fx, cam.fy),
         extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, sn),
         R_imu_st=calibration.R_imu_st,
-        height=cam.height, track_lags=track_lags(sn), width=cam.width)
+        height=cam.height, track_lags=track_lags(sn), width=cam.width,
+        star_levels=star_levels(sn) is not None)
 
 
 def write_report(out: Path, summary: dict[str, Any], title: str) -> None:

@@ -282,7 +282,8 @@ DEGENERATE = 1e-24
 def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
                    lags: int | None = None, dof: bool = False,
                    track: np.ndarray | None = None,
-                   track_lags: tuple[float, float] | None = None) -> tuple[float | None, ...]:
+                   track_lags: tuple[float, float] | None = None,
+                   track_level: bool = False) -> tuple[float | None, ...]:
     """The slope's t of ``y`` on ``x``, robust to correlation within and across frames.
 
     The slope ``b`` by least squares; its variance from the scores ``U_k = Σ (x − x̄)(y −
@@ -317,6 +318,16 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     noisily to size a longer one (doc/benchmarks.md "The stars' track model in the
     structure tests").  The model, not the residuals: clustering by star (two-way) also
     took a structure's per-star lack of fit for noise (magnitude bias, t 36.5 -> 9.3).
+
+    ``track_level`` (with ``track``): each star's rows share a level of their own, ``y``'s
+    mean differs star by star (a σ stated wrong by each star's own factor: its whitened
+    size is that factor², :func:`~.noise_stars.star_spread`), a covariance ``τ²`` between a
+    star's rows at every lag, which the frames' window holds only up to ``L``: ``V`` gains
+    ``τ² Σ_s Σ_{k≠j} (1 − b_|k−j|) a_sk a_sj`` (:func:`track_level_covariance`), ``τ²`` the
+    stars' means' variance beyond their rows' (about their frame's mean, at the fitted
+    slope: a real change along ``x`` is no star's level).  The stars in view when ``x`` is
+    high are then a sample of stars, not of noise (unseen case ``sigma_per_star``: 'spread
+    vs time, head temperature, gravity' at t ~ 6-8, measured).
     """
     xc = x - x.mean()
     yc = y - y.mean()
@@ -356,6 +367,8 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
         r = e - (np.bincount(k, e, minlength=n) / np.maximum(cnt, 1))[k]
         var = float(r @ r) / max(len(e) - int(np.sum(cnt > 0)), 1)
         V += var * track_covariance(xc, k, np.asarray(track), L, *track_lags)
+    if track is not None and track_level:
+        V += track_level_covariance(xc, e, k, np.asarray(track), L)
     t = float(b * sxx / np.sqrt(V / factor))
     p = float(2.0 * stats.t.sf(abs(t), nu))
     return (t, p, nu) if dof else (t, p)
@@ -381,18 +394,63 @@ def track_covariance(xc: np.ndarray, k: np.ndarray, track: np.ndarray, L: int, w
     if last < 1:
         return 0.0
     _, s = np.unique(track, return_inverse=True)
-    ns = int(s.max()) + 1
-    lo = np.full(ns, n, dtype=np.int64)
-    np.minimum.at(lo, s, k)
-    hi = np.zeros(ns, dtype=np.int64)
-    np.maximum.at(hi, s, k)
-    start = np.concatenate([[0], np.cumsum(hi - lo + 1 + last)])
-    A = np.bincount(start[s] + k - lo[s], xc, minlength=int(start[-1]))
+    A = track_sums(xc, k, s, n, last)
     tot = 0.0
     for lag in range(1, last + 1):
         kept = 1.0 - lag / (L + 1.0) if lag <= L else 0.0
         tot += 2.0 * (1.0 - kept) * w * phi**lag * float(A[lag:] @ A[:-lag])
     return tot
+
+
+def track_sums(xc: np.ndarray, k: np.ndarray, s: np.ndarray, n: int, gap: int) -> np.ndarray:
+    """``xc`` summed per star ``s`` and frame ``k`` (of ``n``), the stars laid end to end.
+
+    Each star's frames from its first to its last, ``gap`` zeros after each, so that no lag
+    up to ``gap`` reaches the next star (H70's layout: a 2-h window's call 0.02 CPU-s, a
+    stars × frames table's 0.7-2).
+    """
+    ns = int(s.max()) + 1
+    lo = np.full(ns, n, dtype=np.int64)
+    np.minimum.at(lo, s, k)
+    hi = np.zeros(ns, dtype=np.int64)
+    np.maximum.at(hi, s, k)
+    start = np.concatenate([[0], np.cumsum(hi - lo + 1 + gap)])
+    return np.bincount(start[s] + k - lo[s], xc, minlength=int(start[-1]))
+
+
+def track_level_covariance(xc: np.ndarray, e: np.ndarray, k: np.ndarray, track: np.ndarray,
+                           L: int) -> float:
+    """What the frames' lag window misses of a score sum's variance when tracks have levels.
+
+    :func:`frame_robust_t`'s ``track_level``: ``e`` the rows' residuals at the fitted slope,
+    ``k`` their frame (time order), ``track`` their star.  ``τ²`` by the method of moments
+    from the one-way ANOVA of ``e`` about its frame's mean on the stars (``(B − W) / n₀``,
+    0 when below), times ``Σ_s [(Σ_k a_sk)² − Σ_k a_sk² − 2 Σ_{l=1..L} b_l Σ_k a_sk
+    a_s,k+l]`` (``a_sk`` the sum of ``xc`` over star ``s``'s rows in frame ``k``, ``b_l``
+    the window's Bartlett weights): the pairs of a star's rows beyond the window and the
+    part of those inside it the weights leave out.
+    """
+    n = int(k.max()) + 1
+    cnt = np.bincount(k, minlength=n)
+    r = e - (np.bincount(k, e, minlength=n) / np.maximum(cnt, 1))[k]
+    _, s = np.unique(track, return_inverse=True)
+    s = s.reshape(-1)
+    ns = np.bincount(s).astype(float)
+    S, N = len(ns), len(r)
+    if S < 3 or N - S < 2:
+        return 0.0
+    ms = np.bincount(s, r) / ns
+    B = float(np.sum(ns * ms**2)) / (S - 1)
+    W = float(np.sum((r - ms[s]) ** 2)) / (N - S)
+    n0 = (N - float(np.sum(ns**2)) / N) / (S - 1)
+    tau2 = max(B - W, 0.0) / n0
+    if not tau2 > 0.0:
+        return 0.0
+    A = track_sums(xc, k, s, n, L)
+    tot = float(np.sum(np.bincount(s, xc, minlength=S) ** 2)) - float(A @ A)
+    for lag in range(1, L + 1):
+        tot -= 2.0 * (1.0 - lag / (L + 1.0)) * float(A[lag:] @ A[:-lag])
+    return tau2 * max(tot, 0.0)
 
 
 def hac_reference(xc: np.ndarray, e: np.ndarray, k: np.ndarray, L: int
@@ -991,7 +1049,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
                     extra: list[RegressorFinding] | None = None,
                     R_imu_st: np.ndarray | None = None, height: float | None = None,
                     track_lags: tuple[float, float] | None = None,
-                    width: float | None = None) -> list[RegressorFinding]:
+                    width: float | None = None,
+                    star_levels: bool = False) -> list[RegressorFinding]:
     """Correlation of residual components (u, v, radial, size) with each regressor.
 
     One frame-robust score test per pair (:func:`frame_robust_t`: the frames, not the
@@ -1013,7 +1072,9 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     stamps, their spread along each star's motion from frame to frame (:func:`motion_spread`,
     with the installation).  ``track_lags = (w, φ)``: the stars' noise
     correlated ``w φ^l`` along their tracks (:func:`frame_robust_t`; the size's as its
-    squares, ``w² φ^(2l)``), ``None`` where the tracks are white.
+    squares, ``w² φ^(2l)``), ``None`` where the tracks are white.  ``star_levels``: the
+    stated σ is wrong star by star (:func:`~.noise_stars.star_spread`, significant): the
+    size is tested against each star's own level (:func:`frame_robust_t`'s ``track_level``).
     """
     m = mask & accepted(res)
     if m.sum() < 20:
@@ -1062,7 +1123,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
             # in a few frames only) must not let a handful of frames decide the test
             tstat, p = frame_robust_t(normal_scores(x[ok2]), y[ok2], frame[ok2],
                                       track=None if star is None else star[ok2],
-                                      track_lags=squared if cname == "size" else track_lags)
+                                      track_lags=squared if cname == "size" else track_lags,
+                                      track_level=star_levels and cname == "size")
             lo, hi = np.percentile(x[ok2], [5, 95])
             slope = np.polyfit(x[ok2], y_px[ok2], 1)[0] * (hi - lo)
             tests.append(RegressorFinding(rname, cname, float(tstat), float(p), float(slope)))
