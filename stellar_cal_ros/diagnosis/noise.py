@@ -920,7 +920,8 @@ def star_levels(sn: StarNoise | None, use: np.ndarray | None = None,
     Significant at :data:`ALPHA` and material (the stars' σ factors spread by more than
     :data:`MATERIAL`, half their variance factors' spread), where no field or per-star
     position error is left (those make a star's residuals large too: said as themselves),
-    and no star's message says σ = 0.  ``use``/``gidx``: the stars tested and their groups (about each group's own level).
+    and no star's message says σ = 0.  ``use``/``gidx``: the stars tested and their
+    groups (about each group's own level).
     """
     if sn is None or sn.repeat_removed or sn.structure_p < ALPHA or bool(np.any(sn.unknown)):
         # (nor beside σ-0 stars: the frames' fit weights them at a σ not theirs until
