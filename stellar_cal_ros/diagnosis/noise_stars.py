@@ -316,7 +316,7 @@ def fit_weights(sn: StarNoise | None, res: Table, sigma_px: np.ndarray,
     if sn is None:
         return None
     known = ~sn.unknown
-    grouped = known if known.any() else np.ones(len(known), dtype=bool)
+    grouped = grouped_stars(sn)
     w = np.ones(len(sigma_px))
     msg = np.asarray(msg_sigma, dtype=float)
     moved = False
@@ -939,8 +939,8 @@ def detector_cells(uv: np.ndarray, centre: tuple[float, float],
     """Each star's cell of the :data:`CELL_GRID` × :data:`CELL_GRID` detector grid, and its extent.
 
     The cell is a flat index; the extent is px along u and v: twice the largest offset from
-    ``centre`` plus 1, unless ``ext`` gives another table's (:mod:`~stellar_cal_ros.
-    diagnosis.leads` puts a window's stars on the grid of the frames before it).
+    ``centre`` plus 1, unless ``ext`` gives another's (:func:`~stellar_cal_ros.diagnosis.
+    leads.detector_grid`: one grid fixed on the detector for every model of a bag).
     """
     d = uv - np.asarray(centre)
     if ext is None:
@@ -1129,9 +1129,8 @@ def star_groups(sn: StarNoise, size: tuple[int, int] | None = None,
             np.asarray(kept.edges, dtype=float), group_x(sn, kept.group_by), side="right")]
         f = np.where(~sn.unknown | (kept.unknown_sigma_px <= 0), f, 1.0)
         before = dataclasses.replace(sn, q=sn.q * f**2, log_variance=None, groups_made=None)
-        own = star_groups(sn, size, use)
-        other = star_groups(before, size, use)
-        return [a if a["by"] == kept.group_by else b for a, b in zip(own, other, strict=True)]
+    else:
+        before = sn
     use = np.ones(len(sn.q), dtype=bool) if use is None else np.asarray(use, dtype=bool)
     out = []
     q = np.linspace(0, 1, GROUP_BINS + 1)[1:-1]
@@ -1156,8 +1155,10 @@ def star_groups(sn: StarNoise, size: tuple[int, int] | None = None,
         edges = np.unique(np.concatenate([edges, steps]))
         # (stars outside ``use`` in no group: index -1)
         gidx = np.where(use, np.searchsorted(edges, x, side="right"), -1)
-        stat, p = _bartlett([sn.group(gidx == g) for g in range(len(edges) + 1)])
-        edges, gidx, parts = _merge(sn, gidx, edges, use, steps)
+        # (the kept variable's own grouping of the σ used, another's of the σ before)
+        src = sn if kept is None or kind == kept.group_by else before
+        stat, p = _bartlett([src.group(gidx == g) for g in range(len(edges) + 1)])
+        edges, gidx, parts = _merge(src, gidx, edges, use, steps)
         result.append({"by": kind, "edges": [float(e) for e in edges],
                        "scales": [s for s, _, _ in parts], "sigma": [e for _, e, _ in parts],
                        "dof": [d for _, _, d in parts], "statistic": stat, "p_value": p})
