@@ -20,7 +20,7 @@ from stellar_cal_ros.diagnosis.noise import (
     track_lags,
     within_groups,
 )
-from stellar_cal_ros.diagnosis.runstats import RunSummary, forget_prepared
+from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.io.calibration import Calibration
 
 
@@ -67,7 +67,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     if drop_tables and runs is not None:
         # the round's runs that share the direction tables are done (the lines re-run
         # a model only for a rolling shutter, the probe replays its twins)
-        runs.on_bag_each(forget_prepared, [()])  # (not cached: every round's finish)
+        runs.forget_tables()
     shown = final if final.residuals is not None else base  # the run the lines are of
     unexplained = line_tests(shown.residuals, calibration, fraction)
     unexplained, spread = within_groups(unexplained, verdict)
@@ -77,7 +77,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     # a rolling shutter whose consequences rank before it goes first (one run without it)
     unexplained, follows = rolling.first_if_cause(unexplained, shown, runs, line_tests)
     if drop_tables and not plots:
-        base.residuals = final.residuals = shown = None
+        base.residuals = final.residuals = None
         panels.clear()
     summary = summary_dict(base, results, unexplained, spec, effects, fraction,
                            # (a σ wrong star by star: the gate's rejects are the tails of

@@ -69,9 +69,12 @@ from stellar_cal_ros.diagnosis.runstats import (
     bag_facts,
     evaluate,
     forget_bags,
+    forget_held_prepared,
+    forget_prepared,
 )
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.methods.replay import BagData
 
 log = logging.getLogger(__name__)
 
@@ -403,6 +406,14 @@ class Runs:
         finally:
             self._batches.close(batch, [fn.__name__])
 
+    def forget_tables(self) -> None:
+        """The bag's shared direction tables dropped where the runs hold the bag.
+
+        (:func:`~stellar_cal_ros.diagnosis.runstats.forget_prepared`; a later run that
+        needs them makes them again, the same numbers.)
+        """
+        self.on_bag_each(forget_prepared, [()])
+
     def on_bag_each(self, fn: Callable[..., Any], calls: list[tuple]) -> list[Any]:
         """``[fn(bag_data, *args) for args in calls]`` where the bag is, not cached.
 
@@ -615,6 +626,16 @@ class DaskRuns(Runs):
         fut = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
                                  *args, pure=False, priority=ON_BAG_PRIORITY)
         return _Soon(fut, batch, fn.__name__, self._batches)
+
+    def forget_tables(self) -> None:  # noqa: D102
+        if self.client is None:
+            return super().forget_tables()
+        # the workers hold the bag (this process forgot its own when they started): one
+        # call through on_bag_each would read it again here and leave theirs
+        if isinstance(self.bag, BagData):
+            forget_prepared(self.bag)
+        self.client.run(forget_held_prepared)
+        return None
 
     def on_bag_each(self, fn: Callable[..., Any], calls: list[tuple]) -> list[Any]:  # noqa: D102
         if self.client is None or len(calls) < 2:

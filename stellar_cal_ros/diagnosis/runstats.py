@@ -188,6 +188,13 @@ def load_bag(ref: BagRef) -> BagData:
     return _BAG_CACHE[key]
 
 
+def forget_held_prepared() -> None:
+    """:func:`forget_prepared` on every bag this process holds (none is read), then a trim."""
+    for data in _BAG_CACHE.values():
+        forget_prepared(data)
+    trim_freed()
+
+
 def forget_prepared(data: BagData) -> None:
     """Drop the direction effects' tables the runs on ``data`` shared.
 
