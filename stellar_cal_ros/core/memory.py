@@ -27,8 +27,8 @@ M_MMAP_THRESHOLD = -3
 MMAP_THRESHOLD = 1 << 20
 #: glibc's own environment setting of the same; a user's value is left alone
 ENV = "MALLOC_MMAP_THRESHOLD_"
-#: whether :func:`return_freed_arrays` set the threshold in this process
-_SET = [False]
+#: glibc's ``malloc_trim``, once :func:`return_freed_arrays` set the threshold here
+_TRIM: list = [None]
 
 
 def return_freed_arrays(threshold: int = MMAP_THRESHOLD) -> bool:
@@ -44,8 +44,17 @@ def return_freed_arrays(threshold: int = MMAP_THRESHOLD) -> bool:
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int
-    _SET[0] = bool(mallopt(M_MMAP_THRESHOLD, int(threshold)))
-    return _SET[0]
+    if not mallopt(M_MMAP_THRESHOLD, int(threshold)):
+        return False
+    try:
+        malloc_trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        malloc_trim = None
+    else:
+        malloc_trim.argtypes = [ctypes.c_size_t]
+        malloc_trim.restype = ctypes.c_int
+    _TRIM[0] = malloc_trim
+    return True
 
 
 def trim_freed() -> bool:
@@ -55,13 +64,7 @@ def trim_freed() -> bool:
     workers).  A few ms on a 2-h round's heap; the pages a later stage touches again are
     faulted in afresh.
     """
-    if not _SET[0]:
+    if _TRIM[0] is None:
         return False
-    try:
-        malloc_trim = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):
-        return False
-    malloc_trim.argtypes = [ctypes.c_size_t]
-    malloc_trim.restype = ctypes.c_int
-    malloc_trim(0)
+    _TRIM[0](0)
     return True

@@ -312,8 +312,9 @@ def sample_noise(samples: np.ndarray, axes: bool = False):
     # samples are 17 MB, an axis' temporaries 6 MB each): the numbers are the whole
     # block's, since every median and correlation is per axis
     mad, rhos = np.zeros(x.shape[1]), []
+    every = bool(ok.all())
     for k in range(x.shape[1]):
-        d = np.diff(x[ok, k] if not ok.all() else np.ascontiguousarray(x[:, k]), n=2)
+        d = np.diff(x[:, k] if every else x[ok, k], n=2)
         dev = d - np.median(d)
         mad[k] = np.median(np.abs(dev)) * 1.4826 / math.sqrt(6.0)
         dc = np.clip(dev, -4 * mad[k] * math.sqrt(6), 4 * mad[k] * math.sqrt(6))

@@ -703,8 +703,8 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
         # a topic the bag declares but that holds no message (a node advertised it and
         # never published) is absent: an effect needing it is not applicable, not "not
         # testable with this motion" (MDB inf; unseen case focal_drift)
-        scalars = {key: s if s is not None and len(s) else None
-                   for key, s in ((key, whole.get(key)) for key in ENV_KEYS)}
+        scalars = {key: (s if (s := whole.get(key)) is not None and len(s) else None)
+                   for key in ENV_KEYS}
     if imu is None:
         if not frames:
             raise BagError(f"{path}: {names['stars']} holds no star frames")

@@ -724,14 +724,14 @@ class StarFilter(Acquisition):
         self._batch = None
         fs = self._fused_step() if self.compiled_step and self.batched_step and \
             self.initialized else False
-        if not fs:
+        if not fs or len(frames) < 2:  # (the driver's [] drops a batch's rest: no shift)
             return 0
         if shift is False:
             shift = self.model.fixed_exposure_shift(self.theta, self.P_est)
         # a frame's exposure time depends on the frames before it in the batch when the shift
         # moves (an estimated time offset): the compiled call finds it (vary)
         vary = self.model.affine_exposure_shift() if shift is None else None
-        if (shift is None and vary is None) or len(frames) < 2:
+        if shift is None and vary is None:
             return 0
         c = self.config
         every = c.covariance_check_every

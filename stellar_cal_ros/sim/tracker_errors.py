@@ -259,12 +259,21 @@ def radial_by_mag(sim, px_per_mag: float, from_mag: float = 4.0) -> None:
     makes it.
     """
     cam = sim.prior.camera
+    _radial_shift(sim, (cam.cx, cam.cy), from_mag,
+                  lambda m: px_per_mag * np.maximum(m - from_mag, 0.0))
+
+
+def _radial_shift(sim, centre: tuple[float, float], from_mag: float, shift_of_mag) -> None:
+    """Each centroid moved away from ``centre`` by ``shift_of_mag(magnitude)`` px (< 0: toward).
+
+    (A star without a magnitude takes ``from_mag``'s.)
+    """
     for f in sim.star_frames:
         uv = np.asarray(f.uv, dtype=float)
-        d = uv - np.array([cam.cx, cam.cy])
+        d = uv - np.asarray(centre, dtype=float)
         unit = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
         m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=from_mag)
-        f.uv = uv + px_per_mag * np.maximum(m - from_mag, 0.0)[:, None] * unit
+        f.uv = uv + shift_of_mag(m)[:, None] * unit
 
 
 def saturation_pull(sim, px_per_mag: float, from_mag: float = 4.0) -> None:
@@ -276,13 +285,8 @@ def saturation_pull(sim, px_per_mag: float, from_mag: float = 4.0) -> None:
     the detector's centre rather than the principal point.
     """
     cam = sim.prior.camera
-    c = np.array([cam.width / 2.0, cam.height / 2.0])
-    for f in sim.star_frames:
-        uv = np.asarray(f.uv, dtype=float)
-        d = c - uv
-        unit = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
-        m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=from_mag)
-        f.uv = uv + px_per_mag * np.maximum(from_mag - m, 0.0)[:, None] * unit
+    _radial_shift(sim, (cam.width / 2.0, cam.height / 2.0), from_mag,
+                  lambda m: -px_per_mag * np.maximum(from_mag - m, 0.0))
 
 
 def column_ripple(sim, amplitude_px: float, periods: float = 3.0) -> None:
