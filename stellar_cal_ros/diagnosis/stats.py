@@ -360,15 +360,16 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     if not V > DEGENERATE * sxx * float(yc @ yc):  # y exactly b x: rounding is all e is
         return (0.0, 1.0, None) if dof else (0.0, 1.0)
     nu, factor = hac_reference(xc, e, k, L)
-    if track is not None and track_lags is not None:
-        # the rows' own variance: about their frame's mean (an error the frame's stars
-        # share is no part of a star's track)
+    if track is not None and (track_lags is not None or track_level):
+        # the rows' residuals about their frame's mean (an error the frame's stars share
+        # is no part of a star's track): the tracks' variance and their levels' ANOVA
         cnt = np.bincount(k, minlength=n)
         r = e - (np.bincount(k, e, minlength=n) / np.maximum(cnt, 1))[k]
-        var = float(r @ r) / max(len(e) - int(np.sum(cnt > 0)), 1)
-        V += var * track_covariance(xc, k, np.asarray(track), L, *track_lags)
-    if track is not None and track_level:
-        V += track_level_covariance(xc, e, k, np.asarray(track), L)
+        if track_lags is not None:
+            var = float(r @ r) / max(len(e) - int(np.sum(cnt > 0)), 1)
+            V += var * track_covariance(xc, k, np.asarray(track), L, *track_lags)
+        if track_level:
+            V += track_level_covariance(xc, r, k, np.asarray(track), L)
     t = float(b * sxx / np.sqrt(V / factor))
     p = float(2.0 * stats.t.sf(abs(t), nu))
     return (t, p, nu) if dof else (t, p)
@@ -418,21 +419,19 @@ def track_sums(xc: np.ndarray, k: np.ndarray, s: np.ndarray, n: int, gap: int) -
     return np.bincount(start[s] + k - lo[s], xc, minlength=int(start[-1]))
 
 
-def track_level_covariance(xc: np.ndarray, e: np.ndarray, k: np.ndarray, track: np.ndarray,
+def track_level_covariance(xc: np.ndarray, r: np.ndarray, k: np.ndarray, track: np.ndarray,
                            L: int) -> float:
     """What the frames' lag window misses of a score sum's variance when tracks have levels.
 
-    :func:`frame_robust_t`'s ``track_level``: ``e`` the rows' residuals at the fitted slope,
-    ``k`` their frame (time order), ``track`` their star.  ``τ²`` by the method of moments
-    from the one-way ANOVA of ``e`` about its frame's mean on the stars (``(B − W) / n₀``,
+    :func:`frame_robust_t`'s ``track_level``: ``r`` the rows' residuals at the fitted slope
+    about their frame's mean, ``k`` their frame (time order), ``track`` their star.  ``τ²``
+    by the method of moments from the one-way ANOVA of ``r`` on the stars (``(B − W) / n₀``,
     0 when below), times ``Σ_s [(Σ_k a_sk)² − Σ_k a_sk² − 2 Σ_{l=1..L} b_l Σ_k a_sk
     a_s,k+l]`` (``a_sk`` the sum of ``xc`` over star ``s``'s rows in frame ``k``, ``b_l``
     the window's Bartlett weights): the pairs of a star's rows beyond the window and the
     part of those inside it the weights leave out.
     """
     n = int(k.max()) + 1
-    cnt = np.bincount(k, minlength=n)
-    r = e - (np.bincount(k, e, minlength=n) / np.maximum(cnt, 1))[k]
     _, s = np.unique(track, return_inverse=True)
     s = s.reshape(-1)
     ns = np.bincount(s).astype(float)
