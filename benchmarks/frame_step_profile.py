@@ -13,9 +13,13 @@ times, hot (the same frame ``--repeat`` times, CPU time per call):
 * the same step ``--repeat`` times inside one compiled call (the state reset from copies
   each time): the per-frame cost of a batched call over a pump's frames, which pays no
   marshalling, no boxing and no Python between two steps;
-* :func:`~stellar_cal_ros.methods.frame_step.frame_steps`, the replay's batched call: the
-  frame 50 times in a row in one call (each frame's state kept, as a replay's run up to its
-  next covariance check), its marshalling included, per frame;
+* :func:`~stellar_cal_ros.methods.frame_step.frame_steps`, the replay's batched call, on the
+  longest run of frames a batched replay of the bag handed it (its own arguments, kept from
+  a second replay with ``StarFilter.batched_step`` True: consecutive frames, each from the
+  state the one before left), its marshalling included, per frame; beside it the same
+  frames as one :func:`~stellar_cal_ros.methods.frame_step.frame_step` call each (the state
+  carried from frame to frame, as the per-frame replay calls them; the final state is
+  checked equal to the batched call's, bit for bit);
 * the call alone: a compiled function taking the same arguments and returning at once
   (argument marshalling), and one that also builds and returns a result tuple of the same
   shape (the boxing of the returned arrays);
@@ -65,7 +69,7 @@ def _noop(*args):
 
 @njit
 def _noop_tuple(*args):
-    n = args[24].shape[0]
+    n = args[25].shape[0]  # (uv: the frame's stars)
     return (0, np.zeros(6, dtype=np.int64), np.zeros(13), np.zeros(n, dtype=np.bool_),
             np.zeros((n, 2)), np.zeros((n, 2, 2)), np.zeros(n), np.zeros((n, 3)), np.zeros(3),
             np.eye(3))
@@ -94,25 +98,51 @@ def capture(bag: Path, frames: int) -> list[tuple]:
     return calls
 
 
-def batched_args(a: tuple, K: int) -> tuple:
-    """:func:`~stellar_cal_ros.methods.frame_step.frame_steps` arguments of ``K`` frames.
+def capture_run(bag: Path) -> tuple | None:
+    """Copies of the arguments of the last longest :func:`frame_steps` call of a batched replay.
 
-    ``K`` times the frame of the ``frame_step`` arguments ``a`` (the same interval and stars,
-    one after another).
+    Only a call that stepped every frame it was given (``done`` = K) is kept: its frames are
+    then each a :func:`frame_step` call of the per-frame replay, from the state the frame
+    before left.  None: no batch.
     """
-    (P, theta, R_a, M, score, info, acc, tp, C, w_hat, phi, slope, j, mj, ta, tb, Gamma,
-     theta_ref, q_diag, b0, E0, Jb, JE, th0, w_raw, uv, u, sigma, base, *chain) = a
-    *consts, du, bscale, Pe, cfg = chain
-    n = len(uv)
-    rep = lambda x: np.ascontiguousarray(np.concatenate([x] * K))  # noqa: E731
-    return (P.copy(), theta.copy(), R_a.copy(), M.copy(), score.copy(), info.copy(),
-            np.full(K, bool(acc)), tp, C, w_hat, phi, slope, np.full(K, j, dtype=np.int64),
-            np.full(K, mj, dtype=np.int64), np.full(K, ta), np.full(K, tb), Gamma, theta_ref,
-            q_diag, b0, E0, Jb, JE, th0, np.tile(w_raw, (K, 1)), np.arange(K, dtype=np.int64),
-            rep(uv), rep(u), rep(sigma), np.arange(K + 1, dtype=np.int64) * n, np.full(K, base),
-            *consts, rep(du), np.tile(bscale, (K, 1)).reshape(K, len(bscale)), Pe, cfg,
-            np.full(K, tb + base), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0),
-            np.zeros(1, dtype=np.int64), np.array([0.0, 0, 0, 0, 0, 0, 0, np.inf, 0.0]))
+    prior = load_calibration(str(bag).removesuffix(".mcap") + ".prior.yaml")
+    best: list = [None, 0]
+    original = fsm.frame_steps
+
+    def keep(*a):
+        kept = tuple(x.copy() if isinstance(x, np.ndarray) else x for x in a)
+        out = original(*a)
+        if int(out[0]) == len(a[12]) >= best[1]:  # (the last longest: a settled run)
+            best[:] = [kept, len(a[12])]
+        return out
+
+    fsm.frame_steps = keep
+    try:
+        replay(bag, prior, "psce", keep_tables=False)
+    finally:
+        fsm.frame_steps = original
+    return best[0]
+
+
+def split_run(b: tuple) -> tuple[tuple, list]:
+    """The state and each frame's other :func:`frame_step` arguments of a run ``b``.
+
+    ``b``: :func:`frame_steps` arguments (fixed exposure times: the rows and times as given).
+    Returns ``(state, frames)``: ``state`` = ``(P, theta, R_a, M, score, info)``, ``frames[i]``
+    the arguments after the state, for frame ``i``.
+    """
+    (P, theta, R_a, M, score, info, acc, tp, C, w_hat, phi, slope, js, mjs, tas, tbs, Gamma,
+     theta_ref, q_diag, b0, E0, Jb, JE, th0, imu_w, ms, uv, u, sigma, offs, base, *rest) = b
+    *consts, du, bscale, Pe, cfg = rest[:-6]
+    frames = []
+    for i in range(len(js)):
+        a, e = int(offs[i]), int(offs[i + 1])
+        frames.append((bool(acc[i]), tp, C, w_hat, phi, slope, int(js[i]), int(mjs[i]),
+                       float(tas[i]), float(tbs[i]), Gamma, theta_ref, q_diag, b0, E0, Jb, JE,
+                       th0, imu_w[ms[i]].copy(), uv[a:e].copy(), u[a:e].copy(),
+                       sigma[a:e].copy(), float(base[i]), *consts, du[a:e].copy(),
+                       bscale[i].copy(), Pe, cfg))
+    return (P, theta, R_a, M, score, info), frames
 
 
 def per_call(f, make_args, repeat: int) -> float:
@@ -200,18 +230,37 @@ def main(argv=None) -> int:
     _loop_steps(args.repeat, *fresh())
     print(f"{'frame_step in one compiled loop':34s} "
           f"{(time.process_time() - t) / args.repeat * 1e6:8.1f}  (per frame, 3 state copies)")
-    # the replay's batched call (frame_steps: a run of up to 50 frames, to the next
-    # covariance check), the marshalling of its arguments and results included
-    K = 50
-    calls_b = max(args.repeat // K, 1)
-    sets = [batched_args(a, K) for _ in range(calls_b + 1)]
-    fsm.frame_steps(*sets[0])
+    # the replay's batched call (frame_steps) on a run of consecutive frames it was handed,
+    # against the same frames one frame_step call each (the state carried, as a replay
+    # without batches calls them)
+    b = capture_run(args.bag)
+    if b is None:
+        print("no batched call stepped a whole run")
+        return 0
+    state, frames = split_run(b)
+    K = len(frames)
+    reps = max(args.repeat // K, 1)
+    fsm.frame_steps(*b)
     t = time.process_time()
-    for s_ in sets[1:]:
-        fsm.frame_steps(*s_)
-    print(f"{'frame_steps (the batched call)':34s} "
-          f"{(time.process_time() - t) / (calls_b * K) * 1e6:8.1f}  (per frame, runs of {K}, "
-          "each frame's state kept)")
+    for _ in range(reps):
+        out = fsm.frame_steps(*b)
+    t_batch = (time.process_time() - t) / (reps * K) * 1e6
+    states = [tuple(x.copy() for x in state) for _ in range(reps + 1)]
+    for f in frames:
+        fsm.frame_step(*states[0], *f)
+    t = time.process_time()
+    for st in states[1:]:
+        for f in frames:
+            fsm.frame_step(*st, *f)
+    t_single = (time.process_time() - t) / (reps * K) * 1e6
+    same = all(np.array_equal(x, y[K - 1]) for x, y in zip(
+        states[-1], out[11:], strict=True))
+    its = {int(k): int(v) for k, v in zip(*np.unique(out[2][:, 1], return_counts=True),
+                                           strict=True)}
+    print(f"a replay's run of {K} consecutive frames (iterations {its}), per frame:")
+    print(f"{'frame_steps (the batched call)':34s} {t_batch:8.1f}")
+    print(f"{'frame_step, one call a frame':34s} {t_single:8.1f}  (the same frames; final state "
+          f"equal to the batch's: {same})")
     return 0
 
 
