@@ -462,6 +462,52 @@ def test_batched_steps_with_an_estimated_time_offset_equal_one_call_a_frame(monk
     assert method != "psce" or both == 3
 
 
+def test_a_moving_shift_builds_each_frame_context_once_a_look(monkeypatch) -> None:
+    """An estimated time offset: the driver's pump reads a frame's exposure shift (is the
+    IMU there yet?) from the context it then hands the frame on with, not from a second
+    one built for the shift (every frame's context was built twice: 92 contexts for the
+    38 frames of this replay, 56 now).  Counted per look at a frame: a pump, and the runs
+    it has put out before (a run's updates move the shift, and the frame is looked at
+    again).  The same run bit for bit: the estimated-offset test above."""
+    from stellar_cal_ros.methods import driver as driver_mod
+    from stellar_cal_ros.methods import replay as replay_mod
+    from stellar_cal_ros.methods.driver_config import DriverConfig
+
+    sim = simulate(get_scenario("psce_rotations"), duration=19.0, seed=4)
+    prior = copy.deepcopy(sim.prior)
+    prior.time_offset = 0.004
+    looks: dict[tuple, int] = {}
+    where = [0, 0]  # pumps, runs put out
+    context, pump, run_out = (driver_mod.frame_context, driver_mod.Calibrator._pump,
+                              driver_mod.Calibrator._run_out)
+
+    def counted(stamp_ns, *a, **k):
+        key = (*where, stamp_ns)
+        looks[key] = looks.get(key, 0) + 1
+        return context(stamp_ns, *a, **k)
+
+    def pumped(self, *a, **k):
+        where[0] += 1
+        return pump(self, *a, **k)
+
+    def ran(self, *a, **k):
+        where[1] += 1
+        return run_out(self, *a, **k)
+
+    monkeypatch.setattr(driver_mod, "frame_context", counted)
+    monkeypatch.setattr(driver_mod.Calibrator, "_pump", pumped)
+    monkeypatch.setattr(driver_mod.Calibrator, "_run_out", ran)
+    monkeypatch.setattr(replay_mod, "IMU_BLOCK", 50)
+    monkeypatch.setattr(replay_mod, "REPLAY_LOOKAHEAD_S", 0.29)
+    drv = DriverConfig(reorder_window_s=replay_mod.REPLAY_REORDER_S,
+                       max_pending_frames=1_000_000, batch_frames=True, strict_clock=True,
+                       frame_updates=False, imu_batch=64)
+    res = replay(bag_data_from_simulation(sim), prior, "psce", effects=["time_offset"],
+                 keep_tables=False, driver=drv)
+    assert res.counters["updates"] >= 20 and len(looks) >= res.counters["frames"]
+    assert max(looks.values()) == 1, sorted(k for k, v in looks.items() if v > 1)[:5]
+
+
 def test_compiled_frame_inputs_equal_numpy() -> None:
     """``frame_inputs(compiled=True)`` (one compiled loop) applies the star rule and the σ
     rule exactly as the numpy functions: identified with catalog_id 0, unidentified,

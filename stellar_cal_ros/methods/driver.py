@@ -583,9 +583,12 @@ class Calibrator(ImuRelease):
             ok, stale = self._env_ready(stamp, final)
             if not ok:
                 break
+            ctx = False  # (the frame's context, once: a moving shift reads it too)
             if not final and (len(inp.uv) or stamp in self._to_identify):
                 # (a moving shift by the state before the run: the run checks it again)
-                shift = self._time_shift(stamp, inp) if moving else fixed_shift
+                if moving and stamp not in self._to_identify:
+                    ctx = frame_context(stamp, inp, self.site, self.env, env_keys)
+                shift = self._time_shift(stamp, inp, ctx) if moving else fixed_shift
                 t_exp = (stamp - self.t0_ns) * 1e-9 + shift
                 if imu_end <= t_exp + lookahead:
                     if run and moving and self._run_out(run, out, fixed_shift, ready):
@@ -602,8 +605,9 @@ class Calibrator(ImuRelease):
                     break
                 self._to_identify.discard(stamp)
                 fr, inp = self._identify(fr, inp, stamp)
-            ctx = frame_context(stamp, inp, self.site, self.env, env_keys) \
-                if len(inp.uv) else None
+            if ctx is False:
+                ctx = frame_context(stamp, inp, self.site, self.env, env_keys) \
+                    if len(inp.uv) else None
             if run is None:
                 self._released(stale)
                 out.append(self._process(fr, inp, ctx))
@@ -661,7 +665,7 @@ class Calibrator(ImuRelease):
         while i < len(run):  # a run ends at a covariance check, a reference rebuild, ...
             if ready is not None and i and len(run[i][1].uv):
                 fr, inp = run[i][:2]
-                t_exp = frames[i][4] + self._time_shift(int(fr.stamp_ns), inp)
+                t_exp = frames[i][4] + self._time_shift(int(fr.stamp_ns), inp, run[i][2])
                 if ready[0] <= t_exp + ready[1]:
                     break
             stepped = flt.prepare_frames(frames[i:], shift, ready) if len(run) - i > 1 else 0
@@ -770,10 +774,15 @@ class Calibrator(ImuRelease):
         return frame, frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px,
                                    self.config.noise)
 
-    def _time_shift(self, stamp: int, inp) -> float:
-        """Seconds from a frame's stamp to its modelled exposure (current θ)."""
+    def _time_shift(self, stamp: int, inp, ctx=False) -> float:
+        """Seconds from a frame's stamp to its modelled exposure (current θ).
+
+        ``ctx``: the frame's context when the caller has built it (the one its update
+        gets); otherwise (False) it is built here if a time effect reads it.
+        """
         return self.model.exposure_shift(
-            self.filter.theta, lambda: frame_context(stamp, inp, self.site, self.env))
+            self.filter.theta, lambda: frame_context(stamp, inp, self.site, self.env)
+            if ctx is False else ctx)
 
     def _imu_end_rel(self) -> float:
         """Relative stamp of the newest IMU sample released (staged or in the filter)."""
