@@ -3,9 +3,10 @@
 Usage::
 
     python benchmarks/batched_equal.py BAG.mcap [--prior PRIOR.yaml] [--time-offset 0.003]
-        [--effects time_offset] [--consider radial_k3]
+        [--effects time_offset] [--consider radial_k3] [--method swaying_base]
 
-Replays the bag twice in process (``replay(bag, prior, "psce", effects, consider)``) with
+Replays the bag twice in process (``replay(bag, prior, METHOD, effects, consider)``, METHOD
+``psce`` unless ``--method`` says) with
 ``StarFilter.batched_step`` False (one compiled call a frame) then True (a run of frames in
 one call), and prints the CPU seconds of each, how many updates came from a batch (frames
 taken one by one from it; frames committed a batch at once), and the largest difference of
@@ -56,6 +57,7 @@ def main(argv=None) -> int:
     ap.add_argument("--time-offset", type=float)
     ap.add_argument("--effects", default="time_offset")
     ap.add_argument("--consider", default="radial_k3")
+    ap.add_argument("--method", default="psce")
     args = ap.parse_args(argv)
     prior = load_calibration(args.prior or Path(str(args.bag).removesuffix(".mcap")
                                                 + ".prior.yaml"))
@@ -69,7 +71,8 @@ def main(argv=None) -> int:
         StarFilter.batched_step = batched
         count.update(taken=0, committed=0)
         t = time.process_time()
-        runs[batched] = replay(args.bag, prior, "psce", effects=effects, consider=consider)
+        runs[batched] = replay(args.bag, prior, args.method, effects=effects,
+                               consider=consider)
         print(f"batched_step={batched}: {time.process_time() - t:.2f} CPU s, updates "
               f"{runs[batched].counters['updates']}, taken from a batch {count['taken']}, "
               f"committed a batch at once {count['committed']}")

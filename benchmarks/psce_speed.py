@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/psce_speed.py [--bag BAG.mcap] [--duration 7200] [--repeat 3]
                                     [--baseline CHECKOUT] [--frames] [--no-mcap-ros2]
-                                    [--effects time_offset]
+                                    [--effects time_offset] [--method swaying_base]
 
 Without ``--bag`` a 2 h ``psce_rotations`` bag (Tan et al. setting) is simulated once and
 cached under ``benchmarks/.cache/``.  Each repetition runs, interleaved (machine load hits
@@ -19,7 +19,9 @@ start and imports included):
 * ``mcap_ros2``: every message decoded by ``mcap_ros2`` (file order, its fastest mode;
   ``--no-mcap-ros2`` leaves it out: ~23 CPU-s a repetition on the 2-h bag, not in the ratio),
 
-as in ``read_speed.py``.  Printed: median wall and CPU (user + system) seconds, the speed
+as in ``read_speed.py``.  ``--method`` replays with another method (``swaying_base`` on a
+``swaying`` bag: ``stellar-cal simulate --scenario swaying``); the bag's prior is
+``BAG.prior.yaml`` either way.  Printed: median wall and CPU (user + system) seconds, the speed
 (bag seconds per wall second) and the median of the per-repetition ratios to rosbags' time —
 wall and CPU: on a shared machine the CPU ratio is the steadier one.  ``--frames`` adds
 the per-frame latency of the filter step (``process_frame``, p50 / p99, µs) from one
@@ -75,14 +77,14 @@ def _run(cmd: list[str], cwd: Path) -> tuple[float, float]:
     return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
 
 
-def frame_latency(bag: Path, prior: Path) -> tuple[float, float, int]:
+def frame_latency(bag: Path, prior: Path, method: str = "psce") -> tuple[float, float, int]:
     """p50, p99 (µs) of ``process_frame`` in one in-process replay, and the updates."""
     from stellar_cal_ros.io.calibration import load_calibration
-    from stellar_cal_ros.methods import psce
+    from stellar_cal_ros.methods.kernel import StarFilter
     from stellar_cal_ros.methods.replay import replay
 
     latencies: list[int] = []
-    original = psce.PsceFilter.process_frame
+    original = StarFilter.process_frame
 
     def timed(self, *a, **k):
         t = time.perf_counter_ns()
@@ -90,11 +92,11 @@ def frame_latency(bag: Path, prior: Path) -> tuple[float, float, int]:
         latencies.append(time.perf_counter_ns() - t)
         return out
 
-    psce.PsceFilter.process_frame = timed
+    StarFilter.process_frame = timed
     try:
-        res = replay(bag, load_calibration(prior), "psce", keep_tables=False)
+        res = replay(bag, load_calibration(prior), method, keep_tables=False)
     finally:
-        psce.PsceFilter.process_frame = original
+        StarFilter.process_frame = original
     lat = np.array(latencies) * 1e-3
     return float(np.percentile(lat, 50)), float(np.percentile(lat, 99)), res.counters["updates"]
 
@@ -109,6 +111,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", action="store_true", help="also the per-frame latency")
     ap.add_argument("--effects", default="",
                     help="replay's --effects (e.g. time_offset: an estimated offset)")
+    ap.add_argument("--method", default="psce", help="replay's --method")
     ap.add_argument("--no-mcap-ros2", action="store_true",
                     help="leave out mcap_ros2's decode (not in the ratio; the slowest run)")
     args = ap.parse_args(argv)
@@ -119,7 +122,7 @@ def main(argv=None) -> int:
 
     def replay_cmd(tag: str) -> list[str]:
         return [sys.executable, "-m", "stellar_cal_ros", "replay", str(bag), "--method",
-                "psce", "--prior", str(prior), "-o", str(tmp / f"{tag}.yaml"), "-q"] + \
+                args.method, "--prior", str(prior), "-o", str(tmp / f"{tag}.yaml"), "-q"] + \
             (["--effects", args.effects] if args.effects else [])
 
     runs["replay"] = (replay_cmd("new"), ROOT)
@@ -150,7 +153,7 @@ def main(argv=None) -> int:
               f"{np.median(a[:, 1] / ref[:, 1]):12.2f}")
     print(f"target: replay <= {TARGET} x rosbags' decode-only time")
     if args.frames:
-        p50, p99, updates = frame_latency(bag, prior)
+        p50, p99, updates = frame_latency(bag, prior, args.method)
         print(f"process_frame over {updates} updates: p50 {p50:.0f} us, p99 {p99:.0f} us")
     return 0
 
