@@ -289,6 +289,18 @@ def _sigma_per_star(sim, seed, spread=0.3):
                                                  - spread ** 2 / 2.0))) for c in ids])
 
 
+def _sigma_per_star_zero(sim, seed, share=0.4):
+    # (H124) sigma_per_star's factors, and a share (40 %) of the catalogue stars carry sigma 0
+    # ("unknown") in every message: all truly 0.05 px (the default sigma of sigma-0 stars)
+    _sigma_per_star(sim, seed)
+    rng = np.random.default_rng(seed + 15485863)
+    zero: dict[int, bool] = {}
+    for f in sim.star_frames:
+        ids = np.asarray(f.catalog_id).tolist()
+        f.sigma = np.where([zero.setdefault(int(c), bool(rng.random() < share)) for c in ids],
+                           0.0, np.asarray(f.sigma, dtype=float))
+
+
 def _ar1_mixed(sim, seed):
     # half of each star's 0.05 px centroid noise white, half an AR(1) over frames (tau 10
     # frames); the marginal 0.05 px stated right
@@ -482,6 +494,12 @@ CASES: dict[str, Case] = {
                            "ML scale 1.145", noise={"star": 1.145}, post=_sigma_per_star,
                            told="wrong star by star",  # (H118: said as such, not grouped)
                            scenario_changes={"centroid_noise_px": 0.0}),
+    "sigma_per_star_zero": Case("psce", "sigma_per_star (each star's sigma field off by its "
+                                "own 30 % lognormal factor) and 40 % of the catalogue stars "
+                                "carry sigma 0 (unknown) in every message, all truly 0.05 px",
+                                noise={"star": 1.145}, unknown_px=PSCE_SIGMA,
+                                post=_sigma_per_star_zero, told="wrong star by star",
+                                scenario_changes={"centroid_noise_px": 0.0}),
     "ar1_mixed": Case("psce", "half of each star's 0.05 px noise white, half AR(1) over "
                       "frames (tau 10 frames), marginal stated right (a white-noise filter "
                       "needs sigma x sqrt(0.5 (1+rho)/(1-rho) + 0.5) = 3.24)",

@@ -64,6 +64,7 @@ from stellar_cal_ros.diagnosis.noise_stars import (
     known_groups,
     own_scales,
     significant_grouping,
+    star_groups,
     star_noise,
     star_spread,
     used_sigma,
@@ -682,9 +683,13 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
     # "x0.889 .. x1.2 by magnitude", unseen case sigma_per_star)
     lev = star_levels(sn, grouped, None if best is None else group_index(sn, best))
     if lev is not None:
+        # (merged and their σ with the stars as units too: the rows' σ of a group's scale
+        # holds none of its stars' own levels, 0.08-0.19 x its scatter over draws of the
+        # stars' factors, and merged by it the bins kept steps of random stars, 4.9 column
+        # groups a draw for the truth's 2; the stars' σ 0.85-0.9 x, test_noise)
         v.groups = [dict(g, p_rows=g["p_value"], p_value=max(g["p_value"], (star_spread(
             sn, grouped, group_index(sn, g)) or {"groups_p": 1.0})["groups_p"]))
-            for g in v.groups]
+            for g in star_groups(sub, size, grouped, v.stated, stars=True)]
         best = significant_grouping(v.groups, n_tests)
         v.per_star = star_levels(sn, grouped, None if best is None else group_index(sn, best))
         if v.per_star is not None and "star" not in v.rejected:
@@ -919,15 +924,17 @@ def star_levels(sn: StarNoise | None, use: np.ndarray | None = None,
 
     Significant at :data:`ALPHA` and material (the stars' σ factors spread by more than
     :data:`MATERIAL`, half their variance factors' spread), where no field or per-star
-    position error is left (those make a star's residuals large too: said as themselves),
-    and no star's message says σ = 0.  ``use``/``gidx``: the stars tested and their
-    groups (about each group's own level).
+    position error is left (those make a star's residuals large too: said as themselves).
+    ``use``/``gidx``: the stars tested and their groups (about each group's own level).
+    Only stars whose message states a σ are tested, among themselves: σ-0 stars are their
+    own group, measured as one σ (before, any σ-0 star skipped the test, and a bag of
+    stated stars wrong star by star beside them read random groups and tails), and a bag
+    whose every message says 0 states no σ to be wrong.
     """
-    if sn is None or sn.repeat_removed or sn.structure_p < ALPHA or bool(np.any(sn.unknown)):
-        # (nor beside σ-0 stars: the frames' fit weights them at a σ not theirs until
-        # measured, which lends each stated star a share of their noise that depends on its
-        # place among them: bright stars stated right beside faint σ-0 ones truly 0.1 px,
-        # 150 s seed 4, read "~8.8 % star by star")
+    if sn is None or sn.repeat_removed or sn.structure_p < ALPHA:
+        return None
+    use = ~sn.unknown if use is None else np.asarray(use, dtype=bool) & ~sn.unknown
+    if not use.any():
         return None
     d = star_spread(sn, use, gidx)
     if d is None or not (d["p_value"] < ALPHA and 0.5 * d["spread"] > MATERIAL):
