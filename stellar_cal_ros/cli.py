@@ -544,16 +544,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="px, for stars whose message sigma is 0 (default 0.05)")
     r.add_argument("--gyro-arw", type=float, default=None,
                    help="gyro angle random walk, deg/sqrt(h) (default 0.001)")
-    r.add_argument("--noise-scale", default=None, metavar="star=S,gyro=G,accel=A",
-                   help="scale the stated noise: the stars' sigma (messages, or "
-                        "--centroid-sigma for sigma 0) by S, the gyro ARW by G, the "
-                        "accelerometer VRW by A; unknown=PX sets the sigma of stars whose "
-                        "message says 0; rho=R declares the stars' noise correlated from "
-                        "frame to frame (lag-1 R; S then the whole scale a white-noise "
-                        "filter needs): the consistency is judged against it; "
-                        "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2 gives "
-                        "the stars' sigma per group, each factor of the messages' sigma (what "
-                        "`diagnose` prints as 'use --noise-scale')")
+    r.add_argument("--noise-scale", default=None, metavar="KEY=VALUE,...",
+                   help="scale the stated noise (comma-separated items; what `diagnose` "
+                        "prints as 'use --noise-scale'): star=S scales the stars' sigma "
+                        "(messages, or --centroid-sigma for sigma 0) by S, gyro=G the gyro "
+                        "ARW, accel=A the accelerometer VRW; unknown=PX sets the sigma of "
+                        "stars whose message says 0; rho=R[,share=W] declares the stars' "
+                        "noise correlated from frame to frame (lag-1 R; S then the whole "
+                        "scale a white-noise filter needs): the consistency is judged "
+                        "against it.  The stars' sigma per group: "
+                        "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2 (edges "
+                        "increasing, in mag or px; one factor more than edges, each of the "
+                        "messages' sigma; '/' between numbers), e.g. "
+                        "by=magnitude,edges=4.5,factors=1/0.5; a group spec needs no "
+                        "unknown=: without it stars whose message says 0 take "
+                        "--centroid-sigma times their group's factor, with it PX alone")
     r.add_argument("--estimate-noise", action="store_true",
                    help="measure the noise scales from the run first (stars' sigma: "
                         "within-frame variance components; gyro/accelerometer: maximum "

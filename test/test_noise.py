@@ -74,6 +74,51 @@ def test_noise_scales_parse_store_and_apply():
     assert (c.edges, c.factors) == ((4.5, 5.0, 5.5), (1.0, 2.0, 6.0, 12.0))
 
 
+def test_noise_scale_help_and_errors_say_what_a_group_spec_looks_like():
+    """``replay --noise-scale`` with groups: a spec missing its edges or factors said "star
+    groups need one factor per bin (len(edges) + 1)", a wrong grouping "star groups by
+    'mag': use one of (...)" (neither naming the option nor the form), factors separated
+    by ',' "takes star=S,...,unknown=PX,...; got '0.5'", and the help's metavar was
+    ``star=S,gyro=G,accel=A``.  Now each is one line that names the option, what is wrong,
+    and the form (``core.noise.GROUP_SPEC``), which the help states too; a group spec needs
+    no ``unknown=`` (the diagnosis's advice without σ-0 stars parses back)."""
+    import argparse
+
+    from stellar_cal_ros.cli import _replay_noise, build_parser
+    from stellar_cal_ros.core.noise import GROUP_SPEC
+    from stellar_cal_ros.errors import StellarCalError
+
+    form = "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2"
+    assert form in GROUP_SPEC
+    replay = next(a for a in build_parser()._subparsers._group_actions[0].choices[
+        "replay"]._actions if "--noise-scale" in a.option_strings)
+    assert form in replay.help and "needs no unknown=" in replay.help, replay.help
+    assert replay.metavar == "KEY=VALUE,..."
+    for bad, why in (("by=magnitude", "factors= is missing"),
+                     ("by=magnitude,factors=1/0.5", "edges= is missing"),
+                     ("edges=4.5,factors=1/0.5", "by= is missing"),
+                     ("by=mag,edges=4.5,factors=1/0.5", "by='mag' is not a grouping"),
+                     ("by=magnitude,edges=4.5/5,factors=1/0.5", "2 edges need 3 factors, got 2"),
+                     ("by=magnitude,edges=4.5,factors=1,0.5", "factors: numbers separated by "
+                      "'/', not ','"),
+                     ("by=magnitude,edges=5/4.5,factors=1/0.5/2", "increasing")):
+        with pytest.raises(StellarCalError) as err:
+            _replay_noise(argparse.Namespace(noise_scale=bad, estimate_noise=False), None,
+                          [], None)
+        msg = str(err.value)
+        assert msg.startswith("--noise-scale") and why in msg and GROUP_SPEC in msg and \
+            "\n" not in msg, (bad, msg)
+    # what the diagnosis advises for groups where no message says 0: no unknown=
+    g = NoiseScales(star=1.2, group_by="column", edges=(640.0,), factors=(1.0, 0.5))
+    assert "unknown" not in g.advice() and NoiseScales.parse(g.advice()) == \
+        g.replace(star=1.0, factors=(1.2, 0.6))
+    ok = _replay_noise(argparse.Namespace(noise_scale="by=radius,edges=300/600,"
+                                          "factors=1/1.2/1.5", estimate_noise=False),
+                       None, [], None)
+    assert (ok.group_by, ok.edges, ok.factors, ok.unknown_sigma_px) == \
+        ("radius", (300.0, 600.0), (1.0, 1.2, 1.5), 0.0)
+
+
 @pytest.mark.parametrize("stated", [1.0, 0.6, 1.6])
 def test_star_sigma_scale_from_within_frame_residuals(stated):
     """A sigma field 0.6x / 1.6x the truth: the scale 1/0.6, 1/1.6 within 3σ (the common

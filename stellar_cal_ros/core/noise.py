@@ -39,6 +39,37 @@ def long_run(rho: float, share: float = 1.0) -> float:
 #: star groups a scale may depend on
 GROUP_KINDS = ("magnitude", "radius", "column", "row")
 
+#: what a group spec of ``--noise-scale`` looks like (:meth:`NoiseScales.parse`'s errors, the
+#: CLI's help): the groups stand alone, ``unknown=`` is not part of them
+GROUP_SPEC = ("a group spec is by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2 "
+              "(edges increasing, in mag or px; one factor more than edges, each of the "
+              "messages' sigma; '/' between numbers), e.g. "
+              "by=magnitude,edges=4.5,factors=1/0.5")
+#: the items ``--noise-scale`` takes
+SCALE_SPEC = ("star=S, gyro=G, accel=A, unknown=PX, rho=R, share=W, or a group spec "
+              "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2")
+
+
+def _check_groups(values: dict[str, Any]) -> None:
+    """A group spec of :meth:`NoiseScales.parse` whole: ``by=``, ``edges=``, ``factors=``.
+
+    One line saying what is missing or wrong and what a group spec looks like
+    (:data:`GROUP_SPEC`); the values themselves are checked by the class.
+    """
+    by = values.get("group_by", "")
+    edges, factors = values.get("edges"), values.get("factors")
+    if by not in GROUP_KINDS:
+        why = "by= is missing" if not by else f"by={by!r} is not a grouping"
+    elif factors is None:
+        why = "factors= is missing"
+    elif edges is None and len(factors) != 1:
+        why = "edges= is missing"
+    elif len(factors) != len(edges or ()) + 1:
+        why = f"{len(edges or ())} edges need {len(edges or ()) + 1} factors, got {len(factors)}"
+    else:
+        return
+    raise ValueError(f"--noise-scale: {why}; {GROUP_SPEC}")
+
 
 @dataclass(frozen=True)
 class NoiseScales:
@@ -242,11 +273,16 @@ class NoiseScales:
         keys = {"star": "star", "gyro": "gyro", "accel": "accel",
                 "unknown": "unknown_sigma_px", "rho": "star_rho", "share": "star_ar_share"}
         values: dict[str, Any] = {}
+        last = ""
         for item in text.replace(";", ",").split(","):
             if not item.strip():
                 continue
             key, sep, val = item.partition("=")
             key = key.strip()
+            if not sep and last in ("edges", "factors"):
+                raise ValueError(f"--noise-scale {last}: numbers separated by '/', not ',' "
+                                 f"(got {item!r} after it); {GROUP_SPEC}")
+            last = key if sep else ""
             if sep and key == "by":
                 values["group_by"] = val.strip()
                 continue
@@ -255,19 +291,22 @@ class NoiseScales:
                     values[key] = tuple(float(x) for x in val.split("/") if x.strip())
                 except ValueError:
                     raise ValueError(f"--noise-scale {key}: numbers separated by '/', got "
-                                     f"{val!r}") from None
+                                     f"{val!r}; {GROUP_SPEC}") from None
                 continue
             if not sep or key not in keys:
-                raise ValueError(f"--noise-scale takes star=S,gyro=G,accel=A,unknown=PX,"
-                                 f"rho=R,share=W,by=GROUPING,edges=E1/E2,factors=F0/F1/F2; "
-                                 f"got {item!r}")
+                raise ValueError(f"--noise-scale takes comma-separated KEY=VALUE items, "
+                                 f"{SCALE_SPEC}; got {item!r}")
             try:
                 values[keys[key]] = float(val)
             except ValueError:
                 raise ValueError(f"--noise-scale {key}: not a number: {val!r}") from None
-        if ("edges" in values or "factors" in values) and not values.get("group_by"):
-            raise ValueError("--noise-scale edges/factors need by=magnitude|radius|column|row")
-        return cls(**values)
+        if "group_by" in values or "edges" in values or "factors" in values:
+            _check_groups(values)
+        try:
+            return cls(**values)
+        except ValueError as exc:
+            raise ValueError(f"--noise-scale: {exc}" + (f"; {GROUP_SPEC}" if values.get(
+                "group_by") else "")) from None
 
     def advice(self, digits: int = 4) -> str:
         """The ``--noise-scale`` text of these scales' stars' part (:meth:`parse` reads it).
