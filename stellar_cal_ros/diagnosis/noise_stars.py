@@ -1300,8 +1300,9 @@ def star_spread(sn: StarNoise, use: np.ndarray | None = None,
     return out
 
 
-#: stars beyond this many: :func:`_adjusted_ss` solves by conjugate gradients (dense below)
-DENSE_STARS = 1500
+#: stars beyond this many: :func:`_adjusted_ss` solves by conjugate gradients (dense below;
+#: 1 500 stars of 36 000 frames: dense 2.2 s, CG 0.19 s, the same sum of squares to 2e-16)
+DENSE_STARS = 300
 
 
 def _adjusted_ss(r: np.ndarray, frame: np.ndarray, label: np.ndarray
