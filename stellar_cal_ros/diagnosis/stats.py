@@ -365,28 +365,30 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
         # is no part of a star's track): the tracks' variance and their levels' ANOVA
         cnt = np.bincount(k, minlength=n)
         r = e - (np.bincount(k, e, minlength=n) / np.maximum(cnt, 1))[k]
+        # each row's star as an index 0..S−1, once for both terms
+        s = np.unique(np.asarray(track), return_inverse=True)[1].reshape(-1)
         if track_lags is not None:
             var = float(r @ r) / max(len(e) - int(np.sum(cnt > 0)), 1)
-            V += var * track_covariance(xc, k, np.asarray(track), L, *track_lags)
+            V += var * track_covariance(xc, k, s, L, *track_lags)
         if track_level:
-            V += track_level_covariance(xc, r, k, np.asarray(track), L)
+            V += track_level_covariance(xc, r, k, s, L)
     t = float(b * sxx / np.sqrt(V / factor))
     p = float(2.0 * stats.t.sf(abs(t), nu))
     return (t, p, nu) if dof else (t, p)
 
 
-def track_covariance(xc: np.ndarray, k: np.ndarray, track: np.ndarray, L: int, w: float,
+def track_covariance(xc: np.ndarray, k: np.ndarray, s: np.ndarray, L: int, w: float,
                      phi: float) -> float:
     """What the frames' lag window misses of a score sum's variance under correlated tracks.
 
     Rows' noise of one variance, correlated ``w φ^l`` between a star's rows ``l`` frames
-    apart (``k`` the frame index in time order, ``track`` the star): with ``a_sk`` the sum
-    of ``xc`` over star ``s``'s rows in frame ``k``, ``Σ_s Σ_{l ≥ 1} 2 (1 − b_l) w φ^l Σ_k
-    a_sk a_s,k+l``, ``b_l`` the Bartlett weight :func:`frame_robust_t`'s window gives lag
-    ``l`` (``1 − l/(L+1)`` up to ``L``, 0 beyond), in units of the rows' variance.  Lags
-    until ``w φ^l`` falls below 1e-4.  Each star's frames from its first to its last laid
-    end to end, ``last`` zeros after each, so that no lag reaches the next star (H70's
-    layout: a 2-h window's call 0.02 CPU-s, a stars × frames table's 0.7-2).
+    apart (``k`` the frame index in time order, ``s`` the star's index ``0..S−1``): with
+    ``a_sk`` the sum of ``xc`` over star ``s``'s rows in frame ``k``, ``Σ_s Σ_{l ≥ 1} 2 (1
+    − b_l) w φ^l Σ_k a_sk a_s,k+l``, ``b_l`` the Bartlett weight :func:`frame_robust_t`'s
+    window gives lag ``l`` (``1 − l/(L+1)`` up to ``L``, 0 beyond), in units of the rows'
+    variance.  Lags until ``w φ^l`` falls below 1e-4.  Each star's frames from its first to
+    its last laid end to end, ``last`` zeros after each, so that no lag reaches the next
+    star (H70's layout: a 2-h window's call 0.02 CPU-s, a stars × frames table's 0.7-2).
     """
     if not (w > 1e-4 and 0.0 < phi < 1.0):
         return 0.0
@@ -394,7 +396,6 @@ def track_covariance(xc: np.ndarray, k: np.ndarray, track: np.ndarray, L: int, w
     last = min(n - 1, int(math.ceil(math.log(1e-4 / w) / math.log(phi))))
     if last < 1:
         return 0.0
-    _, s = np.unique(track, return_inverse=True)
     A = track_sums(xc, k, s, n, last)
     tot = 0.0
     for lag in range(1, last + 1):
@@ -419,21 +420,19 @@ def track_sums(xc: np.ndarray, k: np.ndarray, s: np.ndarray, n: int, gap: int) -
     return np.bincount(start[s] + k - lo[s], xc, minlength=int(start[-1]))
 
 
-def track_level_covariance(xc: np.ndarray, r: np.ndarray, k: np.ndarray, track: np.ndarray,
+def track_level_covariance(xc: np.ndarray, r: np.ndarray, k: np.ndarray, s: np.ndarray,
                            L: int) -> float:
     """What the frames' lag window misses of a score sum's variance when tracks have levels.
 
     :func:`frame_robust_t`'s ``track_level``: ``r`` the rows' residuals at the fitted slope
-    about their frame's mean, ``k`` their frame (time order), ``track`` their star.  ``τ²``
-    by the method of moments from the one-way ANOVA of ``r`` on the stars (``(B − W) / n₀``,
-    0 when below), times ``Σ_s [(Σ_k a_sk)² − Σ_k a_sk² − 2 Σ_{l=1..L} b_l Σ_k a_sk
-    a_s,k+l]`` (``a_sk`` the sum of ``xc`` over star ``s``'s rows in frame ``k``, ``b_l``
-    the window's Bartlett weights): the pairs of a star's rows beyond the window and the
-    part of those inside it the weights leave out.
+    about their frame's mean, ``k`` their frame (time order), ``s`` their star's index
+    ``0..S−1``.  ``τ²`` by the method of moments from the one-way ANOVA of ``r`` on the
+    stars (``(B − W) / n₀``, 0 when below), times ``Σ_s [(Σ_k a_sk)² − Σ_k a_sk² − 2
+    Σ_{l=1..L} b_l Σ_k a_sk a_s,k+l]`` (``a_sk`` the sum of ``xc`` over star ``s``'s rows
+    in frame ``k``, ``b_l`` the window's Bartlett weights): the pairs of a star's rows
+    beyond the window and the part of those inside it the weights leave out.
     """
     n = int(k.max()) + 1
-    _, s = np.unique(track, return_inverse=True)
-    s = s.reshape(-1)
     ns = np.bincount(s).astype(float)
     S, N = len(ns), len(r)
     if S < 3 or N - S < 2:
