@@ -58,16 +58,14 @@ NAMES = {
 FIELDS = ("cells", "magnitude")
 
 
-def columns(sub: dict, kind: str, centre: tuple[float, float]) -> np.ndarray | None:
+def columns(sub: dict, centre: tuple[float, float]) -> np.ndarray | None:
     """The magnitude field's displacement columns ``(n, 2, 3)`` px per unit coefficient.
 
     Offsets linear in magnitude along u, v and the radius from ``centre`` (the detector's,
-    :func:`detector_grid`); ``None`` without 20 finite
-    magnitudes that vary.  (The cells field's columns, a per-cell offset along u and one
-    along v, are solved cell by cell: :func:`_cell_offsets`.)
+    :func:`detector_grid`); ``None`` without 20 finite magnitudes that vary.  (The cells
+    field's columns, a per-cell offset along u and one along v, are solved cell by cell:
+    :func:`_cell_offsets`; the one place that tells the two apart: :func:`_pattern`.)
     """
-    if kind != "magnitude":
-        raise ValueError(f"columns: no dense columns for the {kind!r} field")
     du = np.asarray(sub["u"], dtype=float) - centre[0]
     dv = np.asarray(sub["v"], dtype=float) - centre[1]
     m = np.asarray(sub["magnitude"], dtype=float)
@@ -149,17 +147,10 @@ def field_fit(res, fraction: float, kind: str) -> dict[str, float] | None:
         return None
     sb = {k: np.asarray(v)[before] for k, v in res.items()}
     sw = {k: np.asarray(v)[window] for k, v in res.items()}
-    if kind == "cells":
-        table = _cell_offsets(sb, _cells(sb, grid))
-        cell = _cells(sw, grid)
-        pattern = None if table is None or len(np.unique(cell)) < 2 else table[cell]
-    else:
-        xb = columns(sb, kind, grid[0])
-        coef = None if xb is None else _lstsq(sb, xb)
-        xw = None if coef is None else columns(sw, kind, grid[0])
-        pattern = None if xw is None else xw @ coef
-    if pattern is None or not np.any(pattern):
+    got = _pattern(sb, kind, grid, sw)
+    if got is None or not np.any(got[0]):
         return None
+    pattern = got[0]
     fit = stats.whitened_fit(sw, pattern)
     if fit is None:
         return None
@@ -227,20 +218,41 @@ def window_gain(sw: dict, kind: str, grid) -> tuple[float, int]:
     own, k = np.zeros((len(t), 2)), 0
     for j in range(WINDOW_PARTS):
         on = part == j
-        sub = {key: np.asarray(v)[on] for key, v in sw.items()}
-        if kind == "cells":
-            cell = _cells(sub, grid)
-            table = _cell_offsets(sub, cell)
-            if table is not None:
-                own[on], k = table[cell], k + 2 * len(np.unique(cell))
-            continue
-        x = columns(sub, kind, grid[0])
-        coef = None if x is None else _lstsq(sub, x)
-        if coef is not None:
-            own[on], k = x @ coef, k + x.shape[2]
+        got = _pattern({key: np.asarray(v)[on] for key, v in sw.items()}, kind, grid)
+        if got is not None:
+            own[on], k = got[0], k + got[1]
     if not np.any(own):
         return 0.0, 0
     return stats.capped_gain(sw, own, 1.0), k
+
+
+def _pattern(fit: dict, kind: str, grid, on: dict | None = None
+             ) -> tuple[np.ndarray, int] | None:
+    """The field ``kind`` fitted to the innovations of ``fit``, as displacements of ``on``.
+
+    ``(pattern, k)``: the fitted field's displacement ``(n, 2)`` px on the stars of ``on``
+    (default: ``fit``'s own) and its columns there (2 per cell holding a star, or the
+    magnitude field's 3); the cells field by :func:`_cell_offsets`, the magnitude field's
+    :func:`columns` by :func:`_lstsq`, on :func:`detector_grid`'s ``grid``.  ``None`` when
+    the field cannot be fitted, or ``on`` holds no two cells or no magnitude columns.
+    """
+    if kind == "cells":
+        own = _cells(fit, grid)
+        table = _cell_offsets(fit, own)
+        cell = own if on is None else _cells(on, grid)
+        cells = len(np.unique(cell))
+        if table is None or cells < 2:
+            return None
+        return table[cell], 2 * cells
+    if kind != "magnitude":
+        raise ValueError(f"no {kind!r} field of the residual table's columns")
+    x = columns(fit, grid[0])
+    coef = None if x is None else _lstsq(fit, x)
+    if coef is not None and on is not None:
+        x = columns(on, grid[0])
+    if coef is None or x is None:
+        return None
+    return x @ coef, x.shape[2]
 
 
 def _lstsq(sub: dict, x: np.ndarray) -> np.ndarray | None:
