@@ -453,6 +453,23 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
 
 
 @njit(cache=True)
+def fused_sample(imu_t, cumb, k, tb, ib, pb, pe, rs, window):
+    """The IMU sample covering ``tb`` for the fused step from sample ``k``, or −1.
+
+    The sample: the first stamp of ``imu_t`` ≥ ``tb``.  −1 (the numpy path) when none
+    covers it, when the rows ``k..m`` leave the reference prefix (``ib`` the buffer's
+    base, ``pb..pe`` the prefix's rows, ``rs`` the reference's start, ``window`` its
+    length) or hold a bridged sample (``cumb``, the buffer's running count of them).  The
+    one check of ``StarFilter._fused_rows`` and of :func:`frame_steps`.
+    """
+    m = np.searchsorted(imu_t, tb)
+    if m >= imu_t.shape[0] or ib + k < pb or pe <= ib + m or ib + m - rs >= window or \
+            cumb[m + 1] != cumb[k]:
+        return -1
+    return m
+
+
+@njit(cache=True)
 def frame_steps(P, theta, R_a, M, score, info, acc,
                 tp, C, w_hat, phi, slope, js, mjs, tas, tbs, Gamma, theta_ref, q_diag,
                 gyro_b0, gyro_E0, gyro_Jb, gyro_JE, gyro_theta0, imu_w, ms,
@@ -513,7 +530,6 @@ def frame_steps(P, theta, R_a, M, score, info, acc,
     ins = np.empty((K, mc, mc))
     done = 0
     vary = lim[0] != 0.0
-    n_imu = imu_t.shape[0]
     k = int(lim[1])
     ib, pb, pe, rs = int(lim[2]), int(lim[3]), int(lim[4]), int(lim[5])
     for i in range(K):
@@ -527,16 +543,8 @@ def frame_steps(P, theta, R_a, M, score, info, acc,
             tb = t_rel[i] + shift
             if not (lim[7] > tb + lim[8]) or not (tb > tas[i]):
                 break
-            lo, hi = 0, n_imu
-            while lo < hi:  # np.searchsorted(imu_t, tb, side="left")
-                mid = (lo + hi) // 2
-                if imu_t[mid] < tb:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            m = lo
-            if m >= n_imu or ib + k < pb or pe <= ib + m or ib + m - rs >= lim[6] or \
-                    cumb[m + 1] != cumb[k]:
+            m = fused_sample(imu_t, cumb, k, tb, ib, pb, pe, rs, lim[6])
+            if m < 0:
                 break
             tbs[i] = tb
             base[i] = t_rel[i] - tb

@@ -679,13 +679,13 @@ class StarFilter(Acquisition):
         if self._gap_pending or t is None or t_exp <= t:
             return None
         imu, prop = self.imu, self.propagation
-        m = imu.index(t_exp)
         pre = prop.prefix
-        if m >= len(imu) or pre is None or imu.base + k < pre.base or \
-                pre.end <= imu.base + m or imu.base + m - prop.ref_start >= prop.window:
+        if pre is None:
             return None
-        cb = imu.cum_bridged
-        if cb[m + 1] != cb[k]:
+        m = int(_frame_step_module().fused_sample(
+            imu.t, imu.cum_bridged, k, t_exp, imu.base, pre.base, pre.end, prop.ref_start,
+            float(prop.window)))
+        if m < 0:
             return None
         off = imu.base - pre.base
         return m, k + off, m + off
