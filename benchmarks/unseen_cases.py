@@ -48,6 +48,7 @@ from stellar_cal_ros.sim.world import simulate, write_simulation
 
 #: the scenarios' stated centroid σ (px) and their pixel scale (arcsec / px)
 PSCE_SIGMA = 0.05
+SWAY_SIGMA = 0.058
 ARCSEC_PER_PX = 206264.806 / (25.6 / 0.00645)
 
 
@@ -346,6 +347,53 @@ def _hot_pixel(sim, seed, uv0=(800.0, 250.0), radius_px=30.0):
             f.uv = uv
 
 
+# ---- 2026-11-28 (H128): sixth pass
+
+
+def _sway_t4(sim, seed):
+    # Student-t (4 dof) centroid noise scaled to the swaying scenario's stated 0.058 px RMS
+    tracker_errors.heavy_tails(sim, SWAY_SIGMA, 4.0, seed)
+
+
+def _bias_walk10(sim, seed):
+    # gyro bias instability 10x the bias_walk case's: 3 deg/h/sqrt(h) per axis (~0.9 deg/h
+    # over 300 s); the gyro's white noise as stated, the model's bias constant
+    tracker_errors.gyro_bias_walk(sim, 3.0, seed)
+
+
+def _tilt_drift(sim, seed, mrad=1.5):
+    # the detector's tilt drifts linearly over the run about the u axis, -1.5 mrad at the
+    # start to +1.5 mrad at the end (0 on average): a keystone (1 + tilt * dv / f) of the
+    # noise-free centroids, ~0.1 px at the field's edge at either end; then the stated noise
+    cam = sim.prior.camera
+    c = np.array([cam.cx, cam.cy])
+    f_px = float(cam.fx)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    for f in sim.star_frames:
+        x = (f.stamp_ns - t0) / max(t1 - t0, 1) - 0.5
+        d = np.asarray(f.uv, dtype=float) - c
+        f.uv = c + d * (1.0 + 2.0 * mrad * 1e-3 * x * d[:, 1:2] / f_px)
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+#: the columns of the ``columns`` case's defective bands (first column of each, 8 wide)
+BAD_COLUMNS = (97, 211, 388, 459, 602, 731, 846, 950)
+
+
+def _columns(sim, seed, shift_px=0.15, width=8):
+    # a CCD fixed pattern: stars whose centroid falls on 8 bands of 8 columns (6 % of the
+    # detector's width) read 0.15 px further along u; then the stated noise
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float).copy()
+        col = np.floor(uv[:, 0])
+        bad = np.zeros(len(uv), dtype=bool)
+        for c0 in BAD_COLUMNS:
+            bad |= (col >= c0) & (col < c0 + width)
+        uv[bad, 0] += shift_px
+        f.uv = uv
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
 CASES: dict[str, Case] = {
     # ---- noise stated wrongly, the model right
     "mag2x": Case("psce", "faint stars (mag >= 4.5) 2x the stated 0.05 px, bright as stated",
@@ -527,13 +575,51 @@ CASES: dict[str, Case] = {
     "twin_aspect2": Case("psce", "the user's calibrated clean bag's twin with pixel_aspect at "
                          "2x the MDB `discover` printed for it (stellar-cal twin)",
                          effects=("pixel_aspect",), twin=("pixel_aspect", "aspect", 2.0)),
+    # ---- 2026-11-28 (H128): sixth pass
+    "sway_t4": Case("swaying_base", "centroid noise Student-t, 4 dof, scaled to the stated "
+                    "0.058 px RMS on the swaying base (heavy tails; a gated filter's core "
+                    "sigma ~x0.90)", noise={"star": 0.90}, told="heavy-tailed",
+                    post=_sway_t4, sim_effects=dict(SWAY_CLEAN), duration=200.0,
+                    scenario_changes={"centroid_noise_px": 0.0}),
+    "bias_walk10": Case("psce", "gyro bias instability 3 deg/h/sqrt(h) per axis (~0.9 deg/h "
+                        "over the run; 10x bias_walk), gyro white noise as stated, no thermal "
+                        "effect (not in the library)", outside=True, told="gyro",
+                        not_first=("temperature",), post=_bias_walk10),
+    "sway_gyro3": Case("swaying_base", "gyro ARW 3x the stated on the swaying base, the "
+                       "accelerometer and the stars as stated", noise={"gyro": 3.0},
+                       scenario_changes={"gyro_arw_deg_sqrth": 3.0},
+                       sim_effects=dict(SWAY_CLEAN), duration=200.0),
+    "sky_epoch2016": Case("psce", "the sky bag (refraction, aberration at 1x) whose catalogue "
+                          "is at epoch 2016 (Gaia) though the contract says J2000: proper "
+                          "motion 0.40x the J2000 one", effects=("aberration", "proper_motion",
+                                                                "refraction"),
+                          sim_effects={"aberration": 1.0, "refraction": 1.0,
+                                       "proper_motion": 0.4}),
+    "tilt_drift": Case("psce", "the detector's tilt drifting linearly over the run, -1.5 to "
+                       "+1.5 mrad about u (0 on average; ~0.1 px at the field's edge at "
+                       "either end; image_plane_tilt is static: not in the library)",
+                       outside=True, regressor="time", post=_tilt_drift,
+                       scenario_changes={"centroid_noise_px": 0.0}),
+    "columns": Case("psce", "CCD fixed pattern: 8 bands of 8 columns read 0.15 px further "
+                    "along u (6 % of the width; not in the library)", outside=True,
+                    regressor="u (column)", post=_columns,
+                    scenario_changes={"centroid_noise_px": 0.0}),
+    "twin_tilt1": Case("psce", "the user's calibrated clean bag's twin with image_plane_tilt "
+                       "tau_x at 1x the MDB `discover` printed for it (found in ~80 % of "
+                       "seeds)", effects=("image_plane_tilt",),
+                       twin=("image_plane_tilt", "tau_x", 1.0)),
+    "bundle_s06": Case("bundle", "camera only (`--method bundle`): stars' sigma field 0.6x "
+                       "the true 0.05 px (the bundle's baseline lacks the scenario's tangential "
+                       "distortion: it is to be added)", noise={"star": 1.0 / 0.6},
+                       effects=("tangential",), post=_sigma_field(0.6)),
 }
 
 
 def write_case(name: str, out: Path, seed: int) -> dict[str, Path]:
     """Simulate case ``name`` and write ``OUT/name.mcap`` with its prior."""
     case = CASES[name]
-    sc = get_scenario({"psce": "psce_rotations", "swaying_base": "swaying"}[case.method])
+    sc = get_scenario({"psce": "psce_rotations", "swaying_base": "swaying",
+                       "bundle": "psce_rotations"}[case.method])
     changes = {}
     for k, v in case.scenario_changes.items():  # factors of the scenario's value, 0: zero
         changes[k] = getattr(sc, k) * v if v else 0.0

@@ -230,6 +230,22 @@ def test_cli_batch_bundle_writes_the_contract_result(tmp_path, capsys):
     assert bad.err.strip().count("\n") == 0 and "cannot see" in bad.err
 
 
+def _every_25th(world, seed, stated=None):
+    """The bag's every 25th frame (32 frames, seven attitudes), noise SIGMA_PX drawn with
+    ``seed``; ``stated``: the messages' σ is that factor of it (default: as simulated)."""
+    data = bag_data_from_simulation(world["sim"])
+    rng = np.random.default_rng(seed)
+    frames = []
+    for fr in data.frames[::25]:
+        g = copy.copy(fr)
+        g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
+        if stated is not None:
+            g.sigma = np.full(len(fr.uv), stated * SIGMA_PX)
+        frames.append(g)
+    data.frames = frames
+    return data
+
+
 def test_diagnose_bundle_names_the_missing_effect(world, tmp_path):
     """The loop on star frames: tangential distortion missing from the model is found from
     held-out residuals, and adding it lowers the held-out RMS; effects the bundle cannot see
@@ -237,14 +253,7 @@ def test_diagnose_bundle_names_the_missing_effect(world, tmp_path):
     from stellar_cal_ros.diagnosis.run import diagnose
 
     r = world["sim"]
-    data = bag_data_from_simulation(r)
-    rng = np.random.default_rng(2)
-    frames = []
-    for fr in data.frames[::25]:  # 32 frames, seven attitudes
-        g = copy.copy(fr)
-        g.uv = fr.uv + SIGMA_PX * rng.standard_normal(fr.uv.shape)
-        frames.append(g)
-    data.frames = frames
+    data = _every_25th(world, 2)
     start = run_bundle(data, r.prior, [], cross_validate=False).calibration
     summary = diagnose(data, start, "bundle", [], tmp_path, plots=False, verbose=False,
                        candidates=["tangential", "pixel_aspect", "radial_k3", "installation",
@@ -257,6 +266,30 @@ def test_diagnose_bundle_names_the_missing_effect(world, tmp_path):
     assert {"installation", "time_offset"} <= na
     # held-out residuals at the noise the messages state, once tangential is in
     assert np.hypot(*top["rms_after_px"]) == pytest.approx(np.sqrt(2) * SIGMA_PX, rel=0.1)
+
+
+@pytest.mark.parametrize("stated", [0.6, 1.0])
+def test_discover_bundle_says_the_stars_sigma_its_fit_measured(world, tmp_path, stated):
+    """A camera-only diagnosis says the σ its batch fit measured (the variance factor's
+    root, with its σ), not "noise not measured (--noise stated)" (unseen case
+    ``bundle_s06``): the messages' σ 0.6x the true noise reads x1/0.6 within 3σ, right σ
+    reads "noise as stated"."""
+    from stellar_cal_ros.diagnosis.run import diagnose
+
+    r = world["sim"]
+    data = _every_25th(world, 3, stated)
+    start = run_bundle(data, r.prior, ["tangential"], cross_validate=False).calibration
+    s = diagnose(data, start, "bundle", ["tangential"], tmp_path, plots=False, verbose=False,
+                 candidates=["pixel_aspect"])
+    noise = s["noise"]
+    k, sk = noise["star_sigma_scale"], noise["sigma"]["star_sigma_scale"]
+    assert noise["measured"]["star_sigma_scale"] and 0 < sk < 0.05 * k
+    assert abs(k - 1.0 / stated) < 3 * sk, (k, sk)
+    assert noise["applied"]["star_sigma_scale"] == k
+    line = " ".join(noise["verdict"])
+    assert "--noise stated" not in line
+    assert ("too small" in line and noise["rescaled"]) if stated < 1 else \
+        ("noise as stated" in line and not noise["rescaled"]), line
 
 
 def test_frame_of_another_focus_is_named(world):

@@ -1650,3 +1650,32 @@ def test_group_sigma_beside_a_per_star_verdict_takes_the_stars_as_units():
     sc, sg = np.array([t[0] for t in two]), np.array([t[1] for t in two])
     ratio = sc.std(0, ddof=1) / np.sqrt(np.mean(sg**2, 0))
     assert np.all((ratio > 0.65) & (ratio < 1.5)), (ratio, len(two))
+@pytest.mark.parametrize("stated", [NoiseScales(), NoiseScales(star=3.87, star_rho=0.95,
+                                                               star_ar_share=0.27)])
+def test_the_per_star_line_of_a_later_round_says_the_scale_to_use_not_as_stated(stated):
+    """A later round measures the stars relative to the scales applied before: its per-star
+    line says the --noise-scale to keep (the one the first round gave), not "their average
+    is as stated (x0.298)" under a first round's star=3.77 (unseen case ``columns``)."""
+    v = noise.NoiseVerdict(stated, stated, star=0.298 if not stated.identity else 1.01,
+                           star_sigma=0.003)
+    v.per_star = {"spread": 0.34, "stars": 81, "F": 4.72, "p_value": 1.8e-38}
+    line = v._per_star_line()
+    if stated.identity:
+        assert "their average is as stated (x1.01" in line, line
+    else:
+        assert "as stated" not in line and "--noise-scale star=3.87,rho=0.95" in line, line
+
+
+@pytest.mark.parametrize("added", [[], ["tangential"]])
+def test_noise_is_the_cause_names_the_effects_discover_added(added):
+    """After `discover` added an effect, the noise line does not say "no effect is missing"
+    as if none were (unseen case ``bundle_s06``: tangential added, then the σ 1.67x)."""
+    from stellar_cal_ros.diagnosis.printing import noise_lines
+
+    summary = {"noise": {"verdict": ["x"], "rescaled": True}, "added": added,
+               "recommendation": None, "unexplained": [], "candidates": []}
+    last = noise_lines(summary)[-1]
+    if added:
+        assert "noise is the cause of the rest" in last and "(tangential)" in last, last
+    else:
+        assert last.startswith("noise is the cause: with the measured noise the model fits")

@@ -487,6 +487,12 @@ class NoiseVerdict:
         if "star" in self.rejected and self.group is None and \
                 abs(self.applied.star / self.stated.star - 1.0) > MATERIAL:
             avg = f"use --noise-scale {self.applied.advice(3)} for their average"
+        elif self.group is None and not self.stated.identity:
+            # a later round, measured relative to the scales applied before: "as stated
+            # (x0.298)" was printed under a round 1 that said star=3.77 (unseen case
+            # ``columns``: the ×3.4 of a correlated noise is not in the frames' scatter)
+            avg = (f"their average is as measured before: use --noise-scale "
+                   f"{self.applied.advice(3)}")
         elif self.group is None:
             avg = (f"their average is as stated (x{self.star:.3g} +- {self.star_sigma:.2g}), "
                    "no --noise-scale")
@@ -1021,17 +1027,42 @@ def check_noise(mode: str) -> bool:
     return mode == "estimate"
 
 
-def not_measured(scales: NoiseScales) -> dict[str, Any]:
-    """The ``noise`` block of a diagnosis that used the stated noise (``--noise stated``)."""
+def not_measured(scales: NoiseScales, fit: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The ``noise`` block of a diagnosis that measured no noise scale itself.
+
+    With ``--noise stated``, or with a batch method (``bundle``, ``acf``), whose runner takes
+    no noise scales: its fit scales the stars' σ by its own variance factor.  ``fit``: that
+    fit's block of the run's calibration (``extra["fit"]``: ``variance_factor``, ``stars``,
+    ``sigma_px``); with it the stars' scale is the factor's root, said with its σ (a χ² of
+    2 × stars dof).  "noise not measured (--noise stated)" was printed for a camera-only
+    ``discover --method bundle`` whose messages stated 0.6x the true σ, without the option
+    (unseen case ``bundle_s06``; the fit's own factor read x1.68).
+    """
     d = scales.as_dict()
-    return {"star_sigma_scale": d["star_sigma_scale"], "gyro_noise_scale": d["gyro_noise_scale"],
-            "accel_noise_scale": d["accel_noise_scale"],
-            "sigma": {k: None for k in ("star_sigma_scale", "gyro_noise_scale",
-                                        "accel_noise_scale")},
-            "measured": {k: False for k in ("star_sigma_scale", "gyro_noise_scale",
-                                            "accel_noise_scale")},
-            "rescaled": not scales.identity, "applied": d,
-            "verdict": ["noise not measured (--noise stated)"]}
+    names = ("star_sigma_scale", "gyro_noise_scale", "accel_noise_scale")
+    out = {**{k: d[k] for k in names}, "sigma": {k: None for k in names},
+           "measured": {k: False for k in names}, "rescaled": not scales.identity, "applied": d,
+           "verdict": ["noise not measured (--noise stated)"]}
+    vf = float((fit or {}).get("variance_factor") or math.nan)
+    if not (math.isfinite(vf) and vf > 0):
+        return out
+    k = scales.star * math.sqrt(vf)
+    sk = k / math.sqrt(2.0 * max(2.0 * float(fit.get("stars") or 0), 1.0))
+    fitted = float(fit.get("sigma_px") or math.nan)
+    px = (f" ({fitted / k:.3g} -> {fitted:.3g} px)" if math.isfinite(fitted) else "")
+    line = ("the stars' sigma is the batch fit's own (its variance factor; a batch method "
+            "measures no IMU noise): ")
+    if abs(k - 1.0) > MATERIAL:
+        line += (f"it looks {k:.3g} +- {sk:.2g} x too {'small' if k > 1 else 'large'}{px}; "
+                 "the fit's sigma already carry it")
+    else:
+        line += f"noise as stated (stars' sigma x{k:.3g} +- {sk:.2g})"
+    applied = {**d, "star_sigma_scale": k}
+    out.update(star_sigma_scale=k, applied=applied, verdict=[line],
+               rescaled=bool(out["rescaled"] or abs(k - 1.0) > MATERIAL))
+    out["sigma"]["star_sigma_scale"] = sk
+    out["measured"]["star_sigma_scale"] = True
+    return out
 
 
 def stale(sn: StarNoise | None) -> bool:

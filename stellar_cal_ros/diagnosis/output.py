@@ -88,7 +88,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         if i in follows:
             u["follows"] = "rolling shutter"
     summary["noise"] = (verdict.as_json() if verdict is not None else
-                        not_measured(stated_scales(calibration)))
+                        not_measured(stated_scales(calibration), _batch_fit(base, spec)))
     if spread:
         summary["noise"]["residual_spread"] = [
             {"regressor": f.regressor, "statistic": f.statistic, "p_value": f.p_value,
@@ -156,3 +156,19 @@ def write_report(out: Path, summary: dict[str, Any], title: str) -> None:
 
     report_html.write_html(out, summary, [tuple(f) for f in summary.get("figures", [])],
                            title)
+
+
+def _batch_fit(run: RunSummary, spec) -> dict[str, Any] | None:
+    """A batch method's fit block (``calibration.extra["fit"]``: its variance factor), or None.
+
+    None for a filter (its noise is measured by the verdict, or stated), even when it
+    started from a batch result that carries such a block.
+    """
+    from stellar_cal_ros.methods import registry as methods
+
+    if methods.get(spec.name).kind == "filter":
+        return None
+    cal = getattr(run, "calibration", None)
+    fit = (getattr(cal, "extra", None) or {}).get("fit")
+    return fit if isinstance(fit, dict) and "variance_factor" in fit else None
+
