@@ -963,7 +963,9 @@ def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
     Both whitened by the innovation covariance (:func:`whitened`), u and v of every star
     where both are finite; the frames as the units (:func:`frame_robust_t`).  ``(t, p
     (unadjusted), c, info)``: ``c`` the pattern's fitted size, ``info`` the whitened
-    ``xᵀx`` (the fit removes ``c² info`` of χ², ``σ(c) = 1/√info``; ``dof``: ν of the t_ν
+    ``xᵀx`` (the fit removes ``c² info`` of χ²; ``1/√info`` is ``σ(c)`` only for stars
+    independent within a frame: a pattern alike on a frame's stars sees the error they
+    share, which the frame-robust σ ``t`` is made of holds; ``dof``: ν of the t_ν
     reference appended); ``None`` with fewer than 20 stars or no information, and with
     ``dof`` also when no test can be made (:func:`frame_robust_t` degenerate: the whitened
     pattern does not vary, or the innovations are exactly the fit; without ``dof`` ``t =
