@@ -353,12 +353,12 @@ def test_flexure_printed_sigma_holds_the_error_a_frames_stars_share():
     """The flexure's printed σ against its scatter over seeds (issue 21 item 2).  The
     response is a turn of the whole tracker, alike on every star of a frame, and a frame's
     stars share part of their innovation (the predicted attitude error), which the
-    whitening star by star does not see: ``1/√info`` (printed until 2026-11-28) was 4.5 %
-    small on swaying 200 s (doc/benchmarks.md).  Here 100 null tables of 120 frames x 12
-    stars whose stated variance is right but a tenth of it is the frame's (1 + 11 x 0.1 =
-    2.1 times the variance the whitened σ assumes), the response a sway of 14 frames: the
-    printed σ is the estimate's scatter (main: 0.77 of it); the whitened one is kept, and
-    the MDB's σ is still the larger of the two."""
+    whitening star by star does not see: ``1/√info`` (printed until 2026-11-28) was 4 %
+    small on swaying 200 s, 9 % on psce (doc/benchmarks.md).  Here 100 null tables of 120
+    frames x 12 stars whose stated variance is right but a tenth of it is the frame's (1 +
+    11 x 0.1 = 2.1 times the variance the whitened σ assumes), the response a sway of 14
+    frames: the printed σ is the estimate's scatter (main: 0.77 of it); the whitened one is
+    kept, and the MDB's σ is still the larger of the two."""
     from stellar_cal_ros.core.units import ARCSEC
 
     rng = np.random.default_rng(123)

@@ -128,8 +128,9 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
     response is a turn of the whole tracker, alike on every star of a frame, and the stars
     of a frame share part of their innovation (the predicted attitude error; each star's
     covariance holds it, the whitening star by star does not see it shared), so the
-    estimate's variance is the frames' sum ``Σ_k (Σ_i x_i ν_i)²``, 1.09 times ``info``
-    on swaying 200 s (the whitened σ 4.5 % small; the frames are white beyond that).
+    estimate's variance is the frames' sum ``Σ_k (Σ_i x_i ν_i)² / info²``: 1.08 times
+    ``1/info`` on swaying 200 s, 1.18 on psce (189 and 140 null seeds, doc/benchmarks.md;
+    the whitened σ 4 and 9 % small), and the frames are white beyond that.
     """
     win = stats.evaluation_mask(res, fraction)
     a, b = _aligned({k: np.asarray(v)[win] for k, v in res.items()}, moved)
