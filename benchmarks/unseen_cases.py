@@ -319,13 +319,7 @@ def _focal_drift(sim, seed, ppm=150.0):
     # the focal length drifts linearly over the run (-75 ppm at the start to +75 ppm at the
     # end: ~0.1 px at the field's edge) and the bag has NO tracker temperature topic
     from stellar_cal_ros.core.types import ScalarSeries
-    cam = sim.prior.camera
-    c = np.array([cam.cx, cam.cy])
-    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
-    for f in sim.star_frames:
-        x = (f.stamp_ns - t0) / max(t1 - t0, 1) - 0.5
-        uv = np.asarray(f.uv, dtype=float)
-        f.uv = c + (uv - c) * (1.0 + ppm * 1e-6 * x)
+    tracker_errors.focal_drift(sim, ppm)
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
     sim.head_temperature = ScalarSeries(np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0),
                                         sim.head_temperature.frame_id)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import rolling, stats
+from stellar_cal_ros.diagnosis import rolling, scale_drift, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
     line_noise,
@@ -74,8 +74,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     outside = list(outside or [])
     if outside:  # into the ranking of the lines (regressor_tests' order: p, then |t|)
         unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
-    # a rolling shutter whose consequences rank before it goes first (one run without it)
-    unexplained, follows = rolling.first_if_cause(unexplained, shown, runs, line_tests)
+    unexplained, follows = causes_first(unexplained, shown, runs)
     if drop_tables and not plots:
         base.residuals = final.residuals = None
         panels.clear()
@@ -86,7 +85,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
                                             or getattr(verdict, "per_star", None)))
     for i, u in enumerate(summary["unexplained"]):
         if i in follows:
-            u["follows"] = "rolling shutter"
+            u["follows"] = follows[i]
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(stated_scales(calibration), _batch_fit(base, spec)))
     if spread:
@@ -134,6 +133,23 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         if plots:
             write_report(out, summary, title)
     return summary
+
+
+def causes_first(found: list, run: RunSummary, runs) -> tuple[list, dict[int, str]]:
+    """The 'unexplained' lines ``found`` of ``run`` with a cause before the lines it makes.
+
+    A drifting focal length whose lagging static scale ranks first is named before its
+    lines (:func:`~stellar_cal_ros.diagnosis.scale_drift.first_if_cause`), and a rolling
+    shutter whose consequences rank before it goes first (:func:`~stellar_cal_ros.
+    diagnosis.rolling.first_if_cause`): one run on the bag without each, only where its
+    own tests are significant.  Returns the lines and ``{index: cause}`` of those that
+    follow a cause (``summary["unexplained"][i]["follows"]``).
+    """
+    found, after = scale_drift.first_if_cause(found, run, runs, line_tests)
+    follows = {id(found[i]): scale_drift.CAUSE for i in after}
+    found, after = rolling.first_if_cause(found, run, runs, line_tests)
+    follows.update((id(found[i]), "rolling shutter") for i in after)
+    return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 
 
 def line_tests(res, calibration: Calibration, fraction: float) -> list:

@@ -54,20 +54,28 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
         what, span = "residual spread along each star's motion", "rms at that image speed"
     elif u["component"] == "size":
         what = "residual spread (size)"
+    elif (u.get("detail") or {}).get("cause") == "focal length drift":
+        span = "at the detector's corner over the run"
     elif u.get("detail"):
         what, span = "residual", "at most (99 % of the stars)"
     return what, (f"{abs(size):.3g} px {span}" if size is not None else "")
 
 
 def follows_phrase(u: dict[str, Any]) -> str:
-    """Why an 'unexplained' line is ranked after the rolling shutter's (its ``follows``).
+    """Why an 'unexplained' line is ranked after its cause's (its ``follows``).
 
     The one phrasing of the terminal and the report; ``""`` when the line follows nothing.
     """
     if not u.get("follows"):
         return ""
-    return (f"follows the {u['follows']}: gone once its fitted readout is taken out of the "
-            "centroids")
+    what = CAUSES.get(u["follows"], ("its fit", ""))[0]
+    return f"follows the {u['follows']}: gone once {what} is taken out of the centroids"
+
+
+#: each cause a line may follow: what its re-run took out of the centroids
+#: (:func:`follows_phrase`) and the cause's line in a word (:func:`unexplained_lines`)
+CAUSES = {"rolling shutter": ("its fitted readout", "shutter"),
+          "focal length drift": ("the drift", "drift")}
 
 
 def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
@@ -80,14 +88,15 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
               + (f"; {size}" if size else "") + (f"; {follows_phrase(u)}" if u.get("follows")
                                                  else "") + ")")
     if summary["unexplained"]:
-        # not "the regressor it follows": 'follows' marks a line the rolling shutter explains
+        # not "the regressor it follows": 'follows' marks a line a cause's re-run explains
         shown = summary["unexplained"][:n]
+        causes = sorted({u["follows"] for u in shown if u.get("follows")})
         out.append("    (structure no library effect explains: an effect outside the library, "
               "e.g. a centroid bias with magnitude, a mount bending with gravity, a per-star "
               "catalogue error; each line names after 'vs' the regressor the residual varies "
               "with, the most significant line first"
-              + ("; a line that follows the rolling shutter comes after the shutter's"
-                 if any(u.get("follows") for u in shown) else "") + ")")
+              + "".join(f"; a line that follows the {c} comes after the "
+                        f"{CAUSES.get(c, ('', c))[1]}'s" for c in causes) + ")")
     if any(u["component"] == "size" for u in summary["unexplained"][:n]):
         out.append("    (a spread that varies with a regressor is noise that depends on it, or a "
                    "bias whose direction changes along it: state the stars' sigma per "

@@ -123,11 +123,11 @@ def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...
     if not run.ok or run.residuals is None:
         return None
     rest = of_run(run, fraction)
-    return (tuple(_line(f) for f in tests(run.residuals, run.calibration, fraction)),
+    return (tuple(line_key(f) for f in tests(run.residuals, run.calibration, fraction)),
             None if rest is None else float(rest["coefficient"]))
 
 
-def _line(f) -> tuple[str, str]:
+def line_key(f) -> tuple[str, str]:
     """A line's (regressor, component) without what its fit reads (a readout, a period)."""
     name = f.regressor
     if name.startswith(stats.ROLLING):
@@ -173,10 +173,10 @@ def first_if_cause(found: list, run, runs, tests) -> tuple[list, set[int]]:
     if at == 0:
         return found, set()
     left = set(left)
-    follows = [f for f in found[:at] if _line(f) not in left]
+    follows = [f for f in found[:at] if line_key(f) not in left]
     if not follows:
         return found, set()
-    stays = [f for f in found[:at] if _line(f) in left]
+    stays = [f for f in found[:at] if line_key(f) in left]
     out = stays + [found[at]] + follows + found[at + 1:]
     first = len(stays) + 1
     return out, set(range(first, first + len(follows)))

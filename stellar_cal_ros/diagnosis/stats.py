@@ -1191,3 +1191,65 @@ def size_through_fit(sub: Table, sigma: np.ndarray, focal: tuple[float, float], 
     lo, hi = np.percentile(x[ok], [5, 95])
     return float(math.sqrt(math.pi / 2) * (math.sqrt(max(a + b * hi, 0.0))
                                            - math.sqrt(max(a + b * lo, 0.0))))
+
+
+def scale_change(res: Table, mask: np.ndarray, centre: tuple[float, float],
+                 focal: tuple[float, float]) -> dict[str, float] | None:
+    """A static image scale left in the residuals, and its change over the window given it.
+
+    The within-frame residuals of ``mask``'s accepted stars (u and v stacked, each frame's
+    attitude fit taken out, the frames as the units of :func:`frame_robust_t`, as
+    :func:`shaped_tests`) regressed on the scale's pattern ``(u − c_x, v − c_y)`` (the
+    *static* test: its slope a scale, ppm) and on ``(u − c_x, v − c_y) (t − t_mid)``, both
+    the regressor and the residuals taken without their static-scale part (the *change*
+    test: its slope a scale per second; without the conditioning the static scale left
+    in the residuals swamps its frame-robust variance: unseen case ``focal_drift``, t
+    1.1-1.3 plain, 5.8-7.2 given the static scale; benchmarks/scale_time_read.py).
+    ``{static_t, static_p, static_ppm, change_t, change_p, change_ppm (over the window),
+    rate_per_s (the change's slope, relative scale per s), window_s}`` (p unadjusted);
+    ``None`` with fewer than 40 stars or 10 frames.
+    """
+    m = mask & accepted(res)
+    if m.sum() < 40:
+        return None
+    sub = {k: np.asarray(v)[m] for k, v in res.items()}
+    sig = np.sqrt(np.maximum(0.5 * (sub["s_uu"] + sub["s_vv"]), 1e-300))
+    fit = FrameFit(sub, sig, *focal)
+    r = fit.residual(sub["du"], sub["dv"])
+    var = sig**2 * np.clip(1.0 - 0.5 * fit.leverage, 1e-3, 1.0)
+    inside = _components(sub, r[:, 0] * sig, r[:, 1] * sig, var, var, np.zeros_like(var),
+                         centre)
+    y = np.concatenate([inside["u"][0], inside["v"][0]])
+    y_px = np.concatenate([inside["u"][1], inside["v"][1]])
+    frame = np.asarray(sub["frame"])
+    cl = np.concatenate([frame, frame])
+    star = star_tracks(sub)
+    tr = None if star is None else np.concatenate([star, star])
+    u, v = predicted_position(sub, "u"), predicted_position(sub, "v")
+
+    def project(xy: np.ndarray) -> np.ndarray:
+        p = fit.residual(xy[:, 0] * sig, xy[:, 1] * sig)
+        return np.concatenate([p[:, 0], p[:, 1]])
+
+    t = np.asarray(sub["t"], dtype=float)
+    tc = t - 0.5 * (t.min() + t.max())
+    s = project(np.stack([u - centre[0], v - centre[1]], 1))
+    ok = np.isfinite(s) & np.isfinite(y) & np.isfinite(y_px)
+    if len(np.unique(cl[ok])) < 10 or not np.ptp(t) > 0:
+        return None
+    x = project(np.stack([(u - centre[0]) * tc, (v - centre[1]) * tc], 1))
+    ok &= np.isfinite(x)
+
+    def without_static(z: np.ndarray) -> np.ndarray:
+        return z - s * (s[ok] @ z[ok]) / (s[ok] @ s[ok])
+
+    def test(x: np.ndarray, y: np.ndarray, y_px: np.ndarray) -> tuple[float, float, float]:
+        tt, p = frame_robust_t(x[ok], y[ok], cl[ok], track=None if tr is None else tr[ok])
+        xc = x[ok] - x[ok].mean()
+        return float(tt), float(p), float(xc @ y_px[ok]) / float(xc @ xc)
+
+    st, sp, sb = test(s, y, y_px)
+    ct, cp, cb = test(without_static(x), without_static(y), without_static(y_px))
+    return {"static_t": st, "static_p": sp, "static_ppm": sb * 1e6, "change_t": ct,
+            "change_p": cp, "change_ppm": cb * float(np.ptp(t)) * 1e6, "rate_per_s": cb,
+            "window_s": float(np.ptp(t))}

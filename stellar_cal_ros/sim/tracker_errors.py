@@ -27,6 +27,7 @@ function            what a tracker does
                     same length at every radius (no focal length or distortion makes it)
 ``saturation_pull`` bright stars' centroids pulled toward the detector's centre, more the
                     brighter (a saturated core)
+``focal_drift``     the image scale (the focal length) drifting linearly over the run
 ==================  ==============================================================================
 """
 
@@ -301,3 +302,18 @@ def column_ripple(sim, amplitude_px: float, periods: float = 3.0) -> None:
         uv = np.asarray(f.uv, dtype=float).copy()
         uv[:, 0] += amplitude_px * np.sin(2.0 * np.pi * periods * uv[:, 0] / w)
         f.uv = uv
+
+
+def focal_drift(sim, ppm: float) -> None:
+    """The image scale drifting linearly over the run by ``ppm`` (of the focal length).
+
+    ``−ppm/2`` at the first frame, ``+ppm/2`` at the last, about the prior's principal
+    point.  A focal length that follows a temperature no topic carries (unseen case
+    ``focal_drift``): no library effect lets f change with time alone.
+    """
+    cam = sim.prior.camera
+    c = np.array([cam.cx, cam.cy])
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    for f in sim.star_frames:
+        x = (f.stamp_ns - t0) / max(t1 - t0, 1) - 0.5
+        f.uv = c + (np.asarray(f.uv, dtype=float) - c) * (1.0 + ppm * 1e-6 * x)
