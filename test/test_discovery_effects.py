@@ -338,7 +338,7 @@ def test_flexure_robust_sigma_is_that_of_the_slope_t_is_of():
     t, _, c, info = stats.whitened_fit(sub, S)
     x, y = (S / 0.05).ravel(), np.stack([sub["du"], sub["dv"]], 1).ravel() / 0.05
     b = float((x - x.mean()) @ (y - y.mean()) / ((x - x.mean()) @ (x - x.mean())))
-    robust = flexure._robust_sigma(sub, S, t, info)
+    robust = stats.robust_sigma(sub, S, t, info)
     assert robust == pytest.approx(abs(b / t), rel=1e-6)
     centred = 1.0 / np.sqrt((x - x.mean()) @ (x - x.mean()))  # white: the iid sigma of b
     assert 0.7 < robust / centred < 1.4, (robust, centred)
@@ -423,6 +423,94 @@ def test_an_add_that_takes_the_flexure_tests_power_is_marked():
     step = {"action": "add", "could_be_flexure": a, "added": {
         "effect": "gyro_misalignment", "score": 80.0, "p_value": 1e-12}}
     assert "could be a mount flexure" in printing.describe(step)
+
+
+def test_a_field_that_loses_power_beside_a_candidate_has_not_vanished():
+    """The stand-in rule (``rolling.stand_in`` through ``leads.stand_in``) on the numbers of
+    ``benchmarks/flexure_remainder.py --sizes 80`` and ``--sizes 40`` (300 s, seed 52,
+    doc/benchmarks.md).  80″/g, round 2 (gyro_scale_factor in the model): the gravity field
+    reads 83.27 ± 3.44″/g; beside gyro_misalignment (Λ 919.8, ratio beyond the field −2.59
+    for 6 dof) it reads 57.71 ± 23.19″/g, t 2.50, p 0.029, ν 11.5: not significant, but
+    1.1 σ from what it was: the pair gsf + misalignment spans the flexure and the test lost
+    its power, the flexure did not go.  Until this rule the candidate was added (main
+    eacb4e8: discover ended on gyro_scale_factor + gyro_misalignment, no 'unexplained'
+    line).  40″/g, round 1: 40.03 -> 18.89 ± 4.42″/g beside gyro_misalignment, t 4.10, p
+    0.035 on ν 2.59: the fall toward 0, 4.8 σ, is p 0.012 on that ν (one-sided), not
+    significant at 1 % either: refused.  A true gyro scale factor after a time offset
+    (``test_auto_with_two_dask_workers_chooses_as_one_worker``'s bag, 120 s): −26.48 ->
+    −5.98 ± 5.77″/g on ν 6.45, p 0.0053: gone, the true effect is added.  A field
+    that is gone (a true cause beside it: the size at 0, far from the size before) still
+    lets the candidate in, and a fit without a comparable
+    size keeps the old reading (not significant is gone)."""
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.diagnosis import leads, rolling
+
+    lead = {"t": 24.217, "p_value": 3.56e-11, "chi2_capped": 984.05, "size_px": 0.0829,
+            "coef": 83.265, "coef_sigma": 3.440, "coef_nu": 11.42}
+    beside = {"t": 2.4956, "p_value": 0.02888, "chi2_capped": 5.47, "coef": 57.707,
+              "coef_sigma": 23.191, "coef_nu": 11.514}
+    disp = (984.05 - 5.47) / (919.8 + 2.59)  # the run's ratio beyond the field: -2.59
+    c = SimpleNamespace(statistic=919.8, dof=6)
+    b = leads.stand_in(c, disp, beside, lead, "gravity", 0.01)
+    assert b is not None and not b["needed"] and b["negative"], b
+    assert b["statistic"] == pytest.approx(-2.59, abs=0.01) and b["lead"] == "gravity", b
+    assert not rolling.vanished(beside, lead, 0.01)
+    assert stats.size_changed(beside, lead, 0.01) is False
+    # the old rule (not significant beside it = gone) let it in
+    old = {k: v for k, v in beside.items() if not k.startswith("coef")}
+    assert leads.stand_in(c, disp, old, lead, "gravity", 0.01) is None
+    # 40"/g: half the field taken, the rest 4.1 sigma from 0 and 4.8 from before, on nu 2.6
+    before40 = dict(lead, coef=40.034, coef_sigma=3.46, coef_nu=11.0)
+    beside40 = dict(beside, t=4.1045, p_value=0.03457, coef=18.890, coef_sigma=4.419,
+                    coef_nu=2.588)
+    assert not rolling.vanished(beside40, before40, 0.01)
+    assert rolling.vanished(dict(beside40, coef_nu=30.0), before40, 0.01)  # on 30 dof: gone
+    true = {"t": -1.322, "p_value": 0.231, "coef": -5.977, "coef_sigma": 5.771,
+            "coef_nu": 6.446}
+    assert rolling.vanished(true, {"coef": -26.476}, 0.01)
+    # grown beside it (away from 0) is not gone
+    assert not rolling.vanished(dict(true, coef=-47.0), {"coef": -26.476}, 0.01)
+    # a true cause: the field at 0 beside it
+    gone = dict(beside, t=0.3, p_value=0.77, coef=1.2, coef_sigma=4.0)
+    assert rolling.vanished(gone, lead, 0.01)
+    assert leads.stand_in(c, disp, gone, lead, "gravity", 0.01) is None
+    # still significant beside it: refused whatever its size
+    assert not rolling.vanished(dict(gone, p_value=1e-4), lead, 0.01)
+
+
+@pytest.mark.parametrize("size, named", [(80.0, ["gyro_scale_factor"]), (40.0, [])])
+def test_a_large_flexure_is_not_named_as_two_gyro_effects(tmp_path, size, named):
+    """Issue 21 item 3: a 40″/g and an 80″/g flexure, 300 s of psce_rotations (seed 52),
+    discover.  Main eacb4e8 named the 80″/g one gyro_scale_factor + gyro_misalignment with
+    no 'unexplained' line, and the 40″/g one gyro_scale_factor (gyro_misalignment added
+    beside a field that lost power, then exchanged for the gyro_scale_factor refused
+    beside it).  Now gyro_misalignment is refused at both (the field beside it is not
+    gone, only weaker: ``rolling.vanished``) and the first 'unexplained' line is the
+    gravity field, its flexure within 2 σ (robust) of the truth: measured 83.27 ± 3.44 and
+    40.03 ± 3.46″/g.  At 80″/g gyro_scale_factor is still added: it explains 60.9 (3 dof)
+    beyond the linear field, the filter's response to 80″/g being second order in part
+    (``benchmarks/flexure_read.py``; doc/benchmarks.md, cause 1); no exchange brings back
+    a refused stand-in.
+
+    Reduced (~6 CPU-s each): the noise as stated and the two candidates that take the
+    flexure up (all candidates, noise estimated: ``benchmarks/flexure_remainder.py
+    --sizes 80,40``, the same adds)."""
+    sim, data = _simulate({"mount_flexure": size}, 52, duration=300.0)
+    base = replay_psce(data, sim.prior)
+    summary = diagnose(data, base.calibration, "psce", [], tmp_path / "rep", auto=True,
+                       candidates=["gyro_scale_factor", "gyro_misalignment"], plots=False,
+                       verbose=False, noise="stated")
+    assert summary["added"] == named, summary["added"]
+    assert not any(s["action"] == "exchange" for s in summary["path"]), summary["path"]
+    refused = summary["path"][-1]["beyond_remainder"]
+    assert "gyro_misalignment" in refused and refused["gyro_misalignment"]["lead"] == \
+        "gravity", refused
+    first = summary["unexplained"][0]
+    assert first["regressor"].startswith("gravity_st") and first["p_value"] < 0.01, first
+    d = first["detail"]
+    sigma = d["robust_sigma_arcsec_per_g"]
+    assert abs(d["arcsec_per_g"] - size) < 2.0 * sigma, (d["arcsec_per_g"], sigma)
 
 
 def test_mount_flexure_is_unexplained_and_no_stand_in_is_added_for_it(tmp_path, flexure_bag):

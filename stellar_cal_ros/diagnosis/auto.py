@@ -367,8 +367,14 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 state.dropped[removed] = f"exchanged for {added} in round {k}"
             else:
                 state.extra.append(added)
+                # not those refused as a field's stand-in this round: the exchange
+                # (prequential log-likelihood) does not ask the stand-in rule, and brought
+                # one back (a 40″/g flexure: gyro_misalignment exchanged for the
+                # gyro_scale_factor refused beside it)
+                stand_ins = {c.effect for c, _ in refused}
                 state.rivals[added] = [
                     c.effect for c in results if c is not top and c.significant_alone
+                    and c.effect not in stand_ins
                     and c.statistic >= RIVAL_SCORE * top.statistic][:MAX_RIVALS]
             state.start = restart(follow.calibration, spec.baseline + state.user, calibration)
             state.last = added or removed
@@ -441,16 +447,19 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     its ratio beside a fitted flexure, two runs of its model); camera effects as always.
     ``shutter``: the current model's rolling-shutter fit when significant
     (:mod:`~stellar_cal_ros.diagnosis.rolling`): then every candidate is added only if it
-    explains the data beyond that fit or the fit is not significant beside it
+    explains the data beyond that fit or the fit has vanished beside it
     (:func:`~stellar_cal_ros.diagnosis.rolling.stand_in`, one run of its model).
     """
     refused = []
-    fields = None  # the outside-library leads of the current model, once a candidate asks
+    fields, along = None, {}  # the outside-library leads of the current model (and their
+    # directions), once a candidate asks
     for c in results:
         if not c.significant_alone:
             continue
         if fields is None:
             fields = leads.significant(leads.of_run(base, runs.fraction), ALPHA)
+            # a candidate's fields are sized along this model's (one pattern, two runs)
+            along = leads.directions(base, runs.fraction, fields)
         # a mount bending with gravity: a lead for a candidate that may stand in for one
         # (before an add: after one, the flexure-shaped test and ``state.outside`` decide)
         gravity = not state.outside and flexure.may_stand_in(c.effect)
@@ -470,7 +479,7 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             with_c = runs.on_bag(leads.candidate_on_bag, runs.spec,
                                  candidate_prior(prior, c.effect, calibration),
                                  tuple(state.extra) + (c.effect,), runs.fraction, runs.noise,
-                                 runs.classes, "gravity" in beside) or {}
+                                 runs.classes, "gravity" in beside, along) or {}
             dispersion = Reference.of(base).dispersion
             b = None if shutter is None else rolling.stand_in(
                 c, dispersion, with_c.get("rolling"), shutter, ALPHA)
@@ -501,9 +510,14 @@ def _beyond_lead(c: CandidateResult, dispersion: float, with_c: dict | None, lea
     b = flexure.beyond(c.statistic, c.dof, dispersion, with_c, lead)
     if b is None:
         return None
+    sizes = {k: float(f[key]) for k, f, key in (
+        ("lead_coef", lead, "coef"), ("beside_coef", with_c, "coef"),
+        ("beside_coef_sigma", with_c, "coef_sigma"), ("beside_coef_nu", with_c, "coef_nu"))
+        if f.get(key) is not None}
     return dict(b, lead_t=float(lead["t"]), lead_p_value=float(lead["p_value"]),
                 lead_size_px=float(lead["size_px"]), beside_t=float(with_c["t"]),
-                beside_p_value=float(with_c["p_value"]))
+                beside_p_value=float(with_c["p_value"]), **sizes,
+                vanished=rolling.vanished(with_c, lead, ALPHA))
 
 
 def _step(k: int, model: list[str], base: RunSummary, results: list[CandidateResult],

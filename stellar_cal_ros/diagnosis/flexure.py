@@ -117,13 +117,16 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
     model's run on the bag with the probe (at least its evaluation window).
 
     ``{t, p_value, nu, arcsec_per_g, sigma_arcsec_per_g, change_px, rms_px, frames}``
-    (``p_value`` unadjusted, from t_ν, ``nu`` its degrees of freedom); ``None`` without
+    (``p_value`` unadjusted, from t_ν, ``nu`` its degrees of freedom) and the flexure as
+    :func:`~stellar_cal_ros.diagnosis.stats.pattern_size`'s ``coef`` (″/g, its robust σ,
+    ν: what the stand-in rule compares between two models); ``None`` without
     enough stars or gravity change, or when no t can be made (the response the same for
     every star, or the innovations exactly its fit: :func:`~.stats.whitened_fit`).
 
     ``sigma_arcsec_per_g``, the σ printed beside ``c``, is the frame-robust one ``t`` is
-    made of (:func:`_robust_sigma`; also ``robust_sigma_arcsec_per_g``, ``None`` where it
-    failed and the whitened one is printed).  ``whitened_sigma_arcsec_per_g`` is ``1/√info``
+    made of (:func:`~stellar_cal_ros.diagnosis.stats.robust_sigma`; also
+    ``robust_sigma_arcsec_per_g``, ``None`` where it failed and the whitened one is
+    printed).  ``whitened_sigma_arcsec_per_g`` is ``1/√info``
     (the σ printed until 2026-11-28): right only for stars independent within a frame.  The
     response is a turn of the whole tracker, alike on every star of a frame, and the stars
     of a frame share part of their innovation (the predicted attitude error; each star's
@@ -151,34 +154,17 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
     frame = np.asarray(sub["frame"])
     shown = np.hypot(*(S * c).T)
     whitened = float(1.0 / np.sqrt(info))
-    robust = _robust_sigma(sub, S, t, info)
+    robust = stats.robust_sigma(sub, S, t, info)
     return {"t": t, "p_value": p, "nu": nu, "arcsec_per_g": c,
             "chi2": c * c * info, "chi2_capped": stats.capped_gain(sub, S, c),
             "sigma_arcsec_per_g": robust if robust is not None and np.isfinite(robust)
             else whitened,
             "whitened_sigma_arcsec_per_g": whitened, "robust_sigma_arcsec_per_g": robust,
+            # the flexure itself: the same size on every model, whatever its response
+            "coef": c, "coef_sigma": robust or whitened, "coef_nu": nu,
             "change_px": float(np.percentile(shown, 99)),
             "rms_px": float(np.sqrt(np.mean(shown**2))),
             "frames": int(len(np.unique(frame)))}
-
-
-def _robust_sigma(sub: dict, S: np.ndarray, t: float, info: float) -> float | None:
-    """The frame-robust standard error of the slope the test's ``t`` is of, ″/g.
-
-    ``t`` is a centred slope over its frame-robust σ (:func:`~stellar_cal_ros.diagnosis.
-    stats.frame_robust_t`), ``c`` the fit through the origin: ``|c / t|`` is that σ only
-    when the two slopes agree, and blows up when ``t`` is near 0 (seed 317: c = −0.74″/g,
-    t = −0.027: "σ" 27.7″/g, MDB 112″/g, against 2.5″/g whitened).  Moving the innovations
-    by ``k S`` moves the slope by ``k`` and leaves its residuals, so its σ, unchanged:
-    ``σ = k / (t(ν + k S) − t(ν))``, the same reference exactly.  ``None`` when the second
-    fit fails.
-    """
-    k = 1.0 / np.sqrt(info)
-    shifted = dict(sub, du=sub["du"] + k * S[:, 0], dv=sub["dv"] + k * S[:, 1])
-    fit = stats.whitened_fit(shifted, S)
-    if fit is None or not fit[0] != t:
-        return None
-    return float(abs(k / (fit[0] - t)))
 
 
 #: the columns of the probe's run the test needs (the rest stays where the bag is)
@@ -339,8 +325,9 @@ def alias(before: dict | None, after: dict | None, m: int, alpha: float
     model (Bonferroni over ``m`` tests at ``alpha``), which found nothing.
     That is the effect's remainder only if the test after it would more likely than not
     have seen a flexure of ``c`` (:data:`ALIAS_POWER`): ``|c|`` at least ``σ δ``, ``σ`` the
-    frame-robust standard error its ``t`` is made of (:func:`_robust_sigma`; the whitened
-    one where that failed) and ``δ`` the shift at which its two-sided t_ν test at
+    frame-robust standard error its ``t`` is made of (:func:`~stellar_cal_ros.diagnosis.
+    stats.robust_sigma`; the whitened one where that failed) and ``δ`` the shift at which
+    its two-sided t_ν test at
     ``α/m`` has that power.  When the effect and a flexure are nearly the same pattern on
     this motion the effect takes the test's power with it (a flexure beside a true gyro
     scale factor, 200 s: 40.9 ± 4.3″/g before gyro_misalignment, robust σ 37.9″/g after
@@ -452,9 +439,10 @@ def hiding(result: dict[str, float] | None, after: list[str], m: int, alpha: flo
     which the test's own t_ν reference (two-sided, level ``α/m``) has that power
     (:func:`~stellar_cal_ros.diagnosis.reliability.delta_t`; ν ≈ 30 makes it ~6 % above
     the normal's ``√λ₀(α/m, 1)``), ``σ`` the larger of the frame-robust standard error
-    of the slope ``t`` is of (:func:`_robust_sigma`; ``|c / t|`` until 2026-11-26, which
-    blew up where t ≈ 0) and the whitened ``1/√info``.  Measured against injections at the printed
-    MDB (``benchmarks/flexure_remainder.py --at-mdb``, doc/benchmarks.md).
+    of the slope ``t`` is of (:func:`~stellar_cal_ros.diagnosis.stats.robust_sigma`;
+    ``|c / t|`` until 2026-11-26, which blew up where t ≈ 0) and the whitened
+    ``1/√info``.  Measured against injections at the printed MDB
+    (``benchmarks/flexure_remainder.py --at-mdb``, doc/benchmarks.md).
     A motion whose steps about the gyro axes alias a flexure with the gyro terms in the
     model makes it large (40″/g + a true gyro misalignment: ~25″/g σ after both).
     ``None`` when the test did not run or could not be made (``result`` None).

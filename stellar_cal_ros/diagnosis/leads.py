@@ -21,8 +21,10 @@ stats.whitened_fit`: the frame-robust t_ν of every 'unexplained' line).  A dire
 chosen on the data it is tested on would make a χ²_k of a t; chosen on other frames it is a
 fixed pattern for the window's test.  A field is a lead when that test is significant on the
 current model (Bonferroni over the fields); a candidate is then added only if it explains
-the data beyond the field, or the field is no longer significant beside it (the rolling
-shutter's rule, :func:`~stellar_cal_ros.diagnosis.rolling.stand_in`).  "Beyond" is the
+the data beyond the field, or the field has vanished beside it: no longer significant, and
+its size along the current model's direction (:func:`direction`, the same pattern on the
+candidate's rows) changed (the rolling shutter's rule, :func:`~stellar_cal_ros.diagnosis.
+rolling.stand_in` and :func:`~stellar_cal_ros.diagnosis.rolling.vanished`).  "Beyond" is the
 nested ratio: the candidate's Λ plus what the field removes of the capped χ² with the
 candidate minus without it, each field fitted on the window itself, every column, per
 quarter of its time (:func:`window_gain`, ``chi2_capped``: the direction's own noise and a
@@ -122,20 +124,24 @@ def _regressor(kind: str, f: dict) -> str:
             "library)")
 
 
-def field_fit(res, fraction: float, kind: str) -> dict[str, float] | None:
+def field_fit(res, fraction: float, kind: str, along=None) -> dict[str, float] | None:
     """The innovations' fit by one field in the evaluation window.
 
     The field is fixed on the detector (:func:`detector_grid`: the centre and extent of the
     bag's centroids), not on a model's principal point, so that every model compared on a
     bag is given the same columns.  The lead's test: the whitened least-squares
-    combination of the columns over the accepted stars before the window (the direction),
-    tested in the window as one pattern (:func:`~stellar_cal_ros.diagnosis.stats.
-    whitened_fit`): ``t``, ``p_value``, ``chi2`` (its ``c² info``) and ``size_px`` (99th
-    percentile of the fitted pattern's displacement over the window's stars).
-    ``chi2_capped``, what the field removes of the window's NIS-capped χ² for a
+    combination of the columns over the accepted stars before the window (the direction,
+    :func:`direction`), tested in the window as one pattern (:func:`~stellar_cal_ros.
+    diagnosis.stats.whitened_fit`): ``t``, ``p_value``, ``chi2`` (its ``c² info``) and
+    ``size_px`` (99th percentile of the fitted pattern's displacement over the window's
+    stars).  ``chi2_capped``, what the field removes of the window's NIS-capped χ² for a
     candidate's ratio beyond it (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`), is
     the field fitted on the window itself, every column (``columns``: how many;
-    :func:`window_gain`).  ``None`` when no test.
+    :func:`window_gain`).  ``coef`` (:func:`~stellar_cal_ros.diagnosis.stats.pattern_size`:
+    with its robust σ and ν) is the window's size along the direction ``along`` (another
+    model's, :func:`direction`: a candidate's run is measured along the current model's
+    pattern, on its own rows, so that the two sizes are of one pattern and comparable;
+    ``None``: this fit's own).  ``None`` when no test.
     """
     if res is None or not len(res.get("t", ())):
         return None
@@ -157,8 +163,31 @@ def field_fit(res, fraction: float, kind: str) -> dict[str, float] | None:
     t, p, c, info = fit
     size = np.hypot(*(c * pattern).T)
     gain, k = window_gain(sw, kind, grid)
+    if along is None:
+        same = pattern
+    else:
+        got = _displace(sw, kind, grid, along)
+        same = None if got is None or not np.any(got[0]) else got[0]
     return {"t": t, "p_value": p, "chi2": c * c * info, "chi2_capped": gain, "columns": k,
-            "size_px": float(np.percentile(size, 99)) if len(size) else 0.0}
+            "size_px": float(np.percentile(size, 99)) if len(size) else 0.0,
+            **((None if same is None else stats.pattern_size(sw, same)) or {})}
+
+
+def direction(res, fraction: float, kind: str):
+    """The field's direction fitted on ``res``'s accepted stars before the window.
+
+    The cells field's table of offsets (:func:`_cell_offsets`) or the magnitude field's
+    column coefficients (:func:`_direction`); what :func:`field_fit` tests in the window,
+    and what a candidate's fit is measured along (its ``along``).  ``None`` when it cannot
+    be fitted.
+    """
+    if res is None or not len(res.get("t", ())):
+        return None
+    grid = detector_grid(res)
+    before = stats.accepted(res) & ~stats.evaluation_mask(res, fraction)
+    if grid is None or before.sum() < 50:
+        return None
+    return _direction({k: np.asarray(v)[before] for k, v in res.items()}, kind, grid)
 
 
 def detector_grid(res) -> tuple[tuple[float, float], np.ndarray] | None:
@@ -232,27 +261,38 @@ def _pattern(fit: dict, kind: str, grid, on: dict | None = None
 
     ``(pattern, k)``: the fitted field's displacement ``(n, 2)`` px on the stars of ``on``
     (default: ``fit``'s own) and its columns there (2 per cell holding a star, or the
-    magnitude field's 3); the cells field by :func:`_cell_offsets`, the magnitude field's
-    :func:`columns` by :func:`_lstsq`, on :func:`detector_grid`'s ``grid``.  ``None`` when
-    the field cannot be fitted, or ``on`` holds no two cells or no magnitude columns.
+    magnitude field's 3): :func:`_displace` of :func:`_direction`.  ``None`` when the field
+    cannot be fitted, or ``on`` holds no two cells or no magnitude columns.
+    """
+    return _displace(fit if on is None else on, kind, grid, _direction(fit, kind, grid))
+
+
+def _direction(fit: dict, kind: str, grid):
+    """The field ``kind`` fitted to the innovations of ``fit``: the one place that tells the
+    fields apart.  The cells field's table of offsets (:func:`_cell_offsets`) or the
+    magnitude field's :func:`columns`' coefficients (:func:`_lstsq`), on
+    :func:`detector_grid`'s ``grid``; ``None`` when it cannot be fitted.
     """
     if kind == "cells":
-        own = _cells(fit, grid)
-        table = _cell_offsets(fit, own)
-        cell = own if on is None else _cells(on, grid)
-        cells = len(np.unique(cell))
-        if table is None or cells < 2:
-            return None
-        return table[cell], 2 * cells
+        return _cell_offsets(fit, _cells(fit, grid))
     if kind != "magnitude":
         raise ValueError(f"no {kind!r} field of the residual table's columns")
     x = columns(fit, grid[0])
-    coef = None if x is None else _lstsq(fit, x)
-    if coef is not None and on is not None:
-        x = columns(on, grid[0])
-    if coef is None or x is None:
+    return None if x is None else _lstsq(fit, x)
+
+
+def _displace(on: dict, kind: str, grid, d) -> tuple[np.ndarray, int] | None:
+    """The direction ``d`` (:func:`_direction`) as displacements ``(n, 2)`` of the stars
+    ``on``, with its columns there; ``None`` without ``d``, two cells or magnitude columns.
+    """
+    if d is None:
         return None
-    return x @ coef, x.shape[2]
+    if kind == "cells":
+        cell = _cells(on, grid)
+        cells = len(np.unique(cell))
+        return None if cells < 2 else (d[cell], 2 * cells)
+    x = columns(on, grid[0])
+    return None if x is None else (x @ d, x.shape[2])
 
 
 def _lstsq(sub: dict, x: np.ndarray) -> np.ndarray | None:
@@ -305,16 +345,27 @@ def _cell_offsets(sub: dict, cell: np.ndarray) -> np.ndarray | None:
     return table if np.any(table) else None
 
 
-def fits(res, fraction: float) -> dict[str, dict | None]:
-    """Every column field's fit (:func:`field_fit`) of a residual table (:data:`FIELDS`)."""
-    return {kind: field_fit(res, fraction, kind) for kind in FIELDS}
+def fits(res, fraction: float, along: dict | None = None) -> dict[str, dict | None]:
+    """Every column field's fit (:func:`field_fit`) of a residual table (:data:`FIELDS`).
+
+    ``along``: each field's direction to measure its size along (:func:`direction`).
+    """
+    along = along or {}
+    return {kind: field_fit(res, fraction, kind, along.get(kind)) for kind in FIELDS}
 
 
-def of_run(run, fraction: float) -> dict[str, dict | None]:
+def of_run(run, fraction: float, along: dict | None = None) -> dict[str, dict | None]:
     """:func:`fits` of a :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary`."""
     if not _has_table(run):
         return {}
-    return fits(run.residuals, fraction)
+    return fits(run.residuals, fraction, along)
+
+
+def directions(run, fraction: float, kinds) -> dict:
+    """The current model's :func:`direction` of each field of ``kinds`` in :data:`FIELDS`."""
+    if not _has_table(run):
+        return {}
+    return {k: direction(run.residuals, fraction, k) for k in kinds if k in FIELDS}
 
 
 def gravity_fit(res: dict, moved: dict | None, fraction: float) -> dict[str, float] | None:
@@ -353,13 +404,15 @@ def significant(found: dict[str, dict | None], alpha: float) -> dict[str, dict]:
 
 def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
                      fraction: float, noise=None, classes: tuple[type, ...] = (),
-                     gravity: bool = False) -> dict[str, dict | None]:
+                     gravity: bool = False, along: dict | None = None
+                     ) -> dict[str, dict | None]:
     """The rolling-shutter fit and every field's fit of a candidate model's run.
 
     For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag` (one run where the bag is;
     only the statistics travel): ``{"rolling": ..., "cells": ..., "magnitude": ...}``,
     with ``"gravity"`` (:func:`gravity_fit`: one more run, the model with the probe) when
-    ``gravity``.
+    ``gravity``.  ``along``: the current model's field directions (:func:`directions`),
+    along which each field's size is measured (:func:`field_fit`).
     """
     from stellar_cal_ros.diagnosis import rolling
     from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
@@ -368,7 +421,7 @@ def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
     run = evaluate(data, spec, prior, effects, fraction, True, classes, candidate=True,
                    noise=noise)
     out = {"rolling": rolling.of_run(run, fraction)}
-    out.update(of_run(run, fraction))
+    out.update(of_run(run, fraction, along))
     if gravity and _has_table(run):
         out["gravity"] = gravity_fit(run.residuals, flexure.measure_on_bag(
             data, spec, prior, effects, fraction, noise, classes, True), fraction)

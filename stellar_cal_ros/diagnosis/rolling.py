@@ -52,8 +52,8 @@ def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
     The beyond test (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`: the candidate's Λ
     plus the fit's χ² beside it (``with_c``, :func:`~stellar_cal_ros.diagnosis.leads.
     candidate_on_bag`'s ``rolling``) minus the fit's χ²
-    without it (``shutter``)), when it finds nothing beyond the fit, and only if the fit is
-    still significant at ``alpha`` beside the candidate.  A true readout keeps its shape
+    without it (``shutter``)), when it finds nothing beyond the fit, unless the fit has
+    vanished beside the candidate (:func:`vanished`).  A true readout keeps its shape
     beside any one library effect (each takes only a part of it: unseen case
     ``sway_rolling``, 30 ms, the fit's t −657 → −409 beside a time offset); a fit that
     vanishes beside the candidate was the candidate's stand-in, not the reverse (a true 5 ms
@@ -68,9 +68,30 @@ def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
     from stellar_cal_ros.diagnosis import flexure
 
     b = flexure.beyond(candidate.statistic, candidate.dof, dispersion, with_c, shutter)
-    if b is None or b["needed"] or not with_c["p_value"] < alpha:
+    if b is None or b["needed"] or vanished(with_c, shutter, alpha):
         return None
     return dict(b, remainder=remainder)
+
+
+def vanished(with_c: dict, before: dict, alpha: float) -> bool:
+    """Whether a nuisance field fitted on the current model (``before``) is gone beside one.
+
+    Gone beside the candidate (its fit ``with_c``): the field was the candidate's stand-in.
+    Not significant at ``alpha`` beside it, **and** its size there (the same pattern's,
+    :func:`~stellar_cal_ros.diagnosis.stats.pattern_size`) differs from its size before at
+    ``alpha``, toward 0 (:func:`~stellar_cal_ros.diagnosis.stats.size_changed`).  A field can lose
+    its test's power beside a candidate without going anywhere: an 80″/g flexure beside
+    gyro_scale_factor + gyro_misalignment (the pair spans it on steps about the IMU axes)
+    read 83.3 ± 3.4″/g before, 57.7 ± 23.2″/g beside (t 2.5, p 0.029): not significant,
+    but 1.1 σ from what it was, so not gone, and gyro_misalignment (its ratio beyond the
+    field −2.6 for 6 dof) was its stand-in.  A true cause takes the field with it (a true
+    5 ms time offset beside a rolling-shutter fit: χ² 175 513 → 3.0).  A fit without a
+    comparable size: not significant is gone.
+    """
+    if with_c["p_value"] < alpha:
+        return False
+    changed = stats.size_changed(with_c, before, alpha)
+    return changed is None or changed
 
 
 def taken_out(data, calibration: Calibration, coefficient: float):
