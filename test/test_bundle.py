@@ -452,3 +452,27 @@ def test_every_camera_and_direction_effect_runs(world):
     assert [e.id for e in res.model.effects if e.id in seen] == [
         e for e in registry.available() if e in seen]
     assert np.all(np.isfinite(res.sigma)) and np.all(res.sigma <= 1.0001 * res.sigma_prior)
+
+
+def test_a_twin_of_a_camera_only_bag_is_rendered_for_the_bundle(world):
+    """The probe's twin of a bundle bag (discover's printed biases are measured on it): the
+    bundle has no filter configuration; the twin took it from there and failed ("'NoneType'
+    object is not callable", unseen case ``bundle_s06``).  Its stars are the bag's."""
+    from stellar_cal_ros.diagnosis.reliability_probe import rendered_stars
+    from stellar_cal_ros.diagnosis.twin import twin_scene
+
+    data = _every_25th(world, 4)
+    cal = run_bundle(data, world["sim"].prior, ["tangential"], cross_validate=False).calibration
+    scene = twin_scene(data, cal, "bundle", imu=False)
+    twin = rendered_stars(data, cal, "bundle", scene=scene, imu=False).stars
+    assert len(twin.live) == len(data.frames) and twin.keep.mean() > 0.95
+    assert np.isfinite(twin.uv).all()
+    # noiseless at the bundle's camera; the attitude from the IMU and the installation the
+    # bundle does not estimate (the prior's): each frame's stars one shift from the bag's
+    uv = np.concatenate([f.uv for f in data.frames])[scene.stars.usable]
+    frame = np.repeat(np.arange(len(twin.count)), twin.count)
+    d = twin.uv - uv
+    for k in np.unique(frame[twin.keep]):
+        rows = twin.keep & (frame == k)
+        d[rows] -= np.median(d[rows], axis=0)
+    assert np.sqrt(np.mean(d[twin.keep] ** 2)) < 3 * SIGMA_PX

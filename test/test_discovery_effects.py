@@ -628,3 +628,22 @@ def test_clean_data_false_alarm_rate_all_candidates(tmp_path):
         false += any(c["significant"] for c in s["candidates"])
     print(f"\nfalse alarms: {false} of {len(seeds)}")
     assert false <= 0.05 * len(seeds) + 1e-9
+
+
+def test_a_catalogue_at_another_epoch_is_said_with_its_epoch(tmp_path):
+    """Proper motion at 0.4 of the motion since J2000.0 (messages' places at epoch 2016: a
+    Gaia catalogue) is fitted at its fraction and the line says the epoch it means (unseen
+    case ``sky_epoch2016``: "has another cause" alone before)."""
+    from stellar_cal_ros.core.catalog import posix_to_jyear
+
+    sim, data = _simulate({"proper_motion": 0.4}, 49, duration=SHORT_S["proper_motion"])
+    base = replay_psce(data, sim.prior)
+    summary = diagnose(data, base.calibration, "psce", [], tmp_path / "rep", plots=False,
+                       verbose=False, candidates=["proper_motion"])
+    pm = next(c for c in summary["implausible"] if c["effect"] == "proper_motion")
+    f, sf = pm["estimate"]["scale"], pm["sigma"]["scale"]
+    assert abs(f - 0.4) < 3 * sf, (f, sf)
+    date = float(posix_to_jyear(base.calibration.stamp))
+    epoch = float(pm["reason"].split("epoch J")[1].split(",")[0])
+    assert epoch == pytest.approx(date - f * (date - 2000.0), abs=0.05)
+    assert abs(epoch - (date - 0.4 * (date - 2000.0))) < 3 * sf * (date - 2000.0) + 0.05

@@ -372,11 +372,13 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference:
         if (abs(est - phys) > PHYSICAL_TOL_SIGMA * sig
                 and abs(est - phys) > PHYSICAL_TOL_FRACTION * abs(phys)):
             cand.status = "implausible"
+            reading = eff.fraction_reading(est / phys, run.calibration.stamp) \
+                if run.calibration is not None else ""
             cand.reason = (
                 f"the data fit {est:.3g} ± {sig:.2g} of the physical {cand.effect}, whose "
                 f"size is known ({phys:g}): the structure follows part of its pattern but "
-                "has another cause; if several effects are missing, add the top candidate "
-                "and diagnose again")
+                "has another cause" + (f", {reading}" if reading else "") + "; if several "
+                "effects are missing, add the top candidate and diagnose again")
 
 
 #: a screening run goes first (the round's re-runs wait for it)

@@ -291,6 +291,14 @@ class Effect:
         return pl is not None and (pl.at == "corner"
                                    or type(self).plausible_gain is not Effect.plausible_gain)
 
+    def fraction_reading(self, fraction: float, posix_s: float) -> str:
+        """What a fit at ``fraction`` of :attr:`physical_value` may mean on data of ``posix_s``.
+
+        "" (default): nothing but another cause with a similar pattern.  An effect whose
+        fraction has a reading of its own (proper motion: the catalogue's epoch) says it.
+        """
+        return ""
+
     def where_it_acts(self, value: np.ndarray, calibration: Any = None) -> np.ndarray:
         """``|value|`` per parameter in the unit of the plausible statement (k,).
 

@@ -20,6 +20,24 @@ class ProperMotion(ScaledDirection):
         "always the same direction for the same star, whatever the attitude."
     )
 
+    def fraction_reading(self, fraction: float, posix_s: float) -> str:
+        """A fraction ``f`` of the motion since J2000.0: places at epoch date − f (date − 2000).
+
+        Catalogues are published at other epochs (Gaia DR3 at J2016.0, Hipparcos at
+        J1991.25): messages carrying such places see ``f`` = (date − epoch) / (date − 2000)
+        of the motion the model applies (unseen case ``sky_epoch2016``: 0.407 ± 0.0068 for a
+        catalogue at J2016.0 on a 2026.9 bag, was said "has another cause" alone).
+        """
+        from stellar_cal_ros.core.catalog import posix_to_jyear
+
+        date = float(posix_to_jyear(float(posix_s)))
+        epoch = date - fraction * (date - 2000.0)
+        if not (date > 2000.0 and 1900.0 <= epoch < date - 0.5):
+            return ""
+        return (f"or the messages' catalogue places are at epoch J{epoch:.1f}, not J2000.0 "
+                "(the stars then move by that fraction of the motion since J2000.0: the "
+                "places' epoch, not the model, is then to be fixed)")
+
     def delta_stars(self, u, t, catalog_id, site, pressure_pa, air_temperature_c):  # noqa: D102
         from stellar_cal_ros.core.catalog import load_catalog, posix_to_jyear
 
