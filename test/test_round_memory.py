@@ -325,3 +325,51 @@ def test_a_bags_direction_tables_forgotten_are_made_again_the_same(sim):
         assert made is not table and len(made) == len(table) > 200
         for a in ("start", "ids", "u", "delta", "weather"):
             np.testing.assert_array_equal(getattr(made, a), getattr(table, a))
+
+
+_RELEASE = """
+import numpy as np
+from numba import njit
+from stellar_cal_ros.core import jit
+from stellar_cal_ros.methods.frame_step import release_linking_ir
+x = np.array([0.1, -0.2, 0.3])
+e0 = jit.skew3(x)
+lib = next(iter(jit.skew3.overloads.values())).library
+loaded = bool(sum(jit.skew3._cache_hits.values()))
+if not loaded:
+    lib._get_module_for_linking()  # numba's copy for linking (made when cached)
+assert lib._shared_module is not None
+n = release_linking_ir(("stellar_cal_ros.core.jit",))
+assert n >= 1 and lib._shared_module is None, n
+assert release_linking_ir(("stellar_cal_ros.core.jit",)) == 0
+assert np.array_equal(jit.skew3(x), e0)
+
+
+@njit
+def caller(v):
+    return jit.skew3(v) * 2.0
+
+
+assert np.array_equal(caller(x), 2.0 * e0)  # links the kernel's module, made again
+assert lib._shared_module is not None
+print(loaded, repr(float(np.abs(e0).sum())))
+"""
+
+
+def test_a_loaded_kernel_keeps_its_code_not_its_llvm_module(tmp_path):
+    """``frame_step.release_linking_ir`` (each diagnosis run, after the filter ran) drops
+    the LLVM module numba keeps of a kernel for later links (≈ 23 MB of a 2-h round's four
+    kernels): the kernel computes the same, and a kernel compiled afterwards that calls it
+    still links it (its module is made again: from the kept bitcode when it was loaded
+    from the cache, from numba's own module when it was compiled here).  A first process
+    compiles into a fresh cache, a second loads from it."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"), OMP_NUM_THREADS="1",
+               OPENBLAS_NUM_THREADS="1")
+    env.pop("NUMBA_DISABLE_JIT", None)
+    outs = [subprocess.run([sys.executable, "-c", _RELEASE], env=env, capture_output=True,
+                           text=True, timeout=600) for _ in range(2)]
+    for p in outs:
+        assert p.returncode == 0, p.stderr[-2000:]
+    first, second = (p.stdout.split() for p in outs)
+    assert first[0] == "False" and second[0] == "True"  # compiled, then loaded
+    assert first[1] == second[1]

@@ -32,6 +32,7 @@ import numpy as np
 
 from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.io.calibration import Calibration
+from stellar_cal_ros.methods.frame_step import release_linking_ir
 from stellar_cal_ros.methods.replay import BagData, ReplayResult, read_bag_data
 from stellar_cal_ros.methods.results import epp_jacobian, keeping_frames
 
@@ -277,6 +278,7 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
             result = spec.runner(data, prior, list(effects),
                                  keep_tables=keep_residuals or star_noise,
                                  eval_fraction=fraction, **kw)
+        release_linking_ir()  # the kernels it loaded keep their code, not their LLVM modules
         out = run_statistics(result, fraction, keep_residuals)
         if star_noise:
             from stellar_cal_ros.diagnosis.noise import measure_stars

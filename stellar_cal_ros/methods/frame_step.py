@@ -717,6 +717,10 @@ class FusedStep:
                               tg, imu.t, imu.cum_bridged, lim)
         except Exception:  # noqa: BLE001 - the frame's own call raises it, in its turn
             return None
+        loaded = len(getattr(frame_steps, "overloads", ()))  # (none: NUMBA_DISABLE_JIT)
+        if loaded != _LOADED[0]:  # loaded (or compiled) by this call
+            _LOADED[0] = loaded
+            release_linking_ir()  # the run's peak comes later: its tables, their statistics
         done = int(out[0])
         if not done:
             return None
@@ -841,6 +845,9 @@ def _kernels(modules: tuple[str, ...]) -> list[tuple[str, str, object]]:
     return out
 
 
+#: overloads of :func:`frame_steps` when :func:`release_linking_ir` last ran here
+_LOADED = [0]
+
 #: beside a module's numba cache index files: the module's kernels the last run compiled or
 #: loaded (:func:`record_kernels_used`)
 USED_MARKER = "{module}.kernels-used.json"
@@ -902,6 +909,52 @@ def record_kernels_used(modules: tuple[str, ...] = ()) -> None:
             _marker(module, mine[0][1]).write_text(json.dumps({"used": used}))
         except Exception:  # noqa: BLE001 - a read-only cache, numba internals: no marker
             continue
+
+
+def _relinkable(library, bitcode: bytes) -> None:
+    """Give ``library`` its linking module back from ``bitcode`` when a compile asks for it."""
+    def module_for_linking():
+        if library._shared_module is None:
+            from numba.core.codegen import ll  # (llvmlite's binding, as numba loads it)
+
+            library._shared_module = ll.parse_bitcode(bitcode)
+        return library._shared_module
+
+    library._get_module_for_linking = module_for_linking  # shadows the class's method
+
+
+def release_linking_ir(modules: tuple[str, ...] = ()) -> int:
+    """Free the LLVM modules numba keeps of the loaded kernels for later links; how many.
+
+    numba keeps, beside each kernel's machine code, its whole LLVM module (every kernel it
+    calls inlined into it) in case a kernel compiled later calls it: ≈ 21 MB of the ≈ 77 MB
+    the four kernels of a 2-h round take when loaded, held all the round.  Kept instead:
+    the module's bitcode (≈ 4.5 MB), parsed again only if such a compile comes (the
+    library's ``_get_module_for_linking``).  Called by the filter's first batched call
+    and after each diagnosis run (``runstats.evaluate``).  A kernel compiled here (not loaded
+    from the cache) keeps its module, which numba's engine owns; only the copy made for
+    linking is dropped (numba makes it again).  The machine code, and so every number
+    computed, is untouched.  Nothing without numba, or where its internals differ.
+    """
+    if not HAVE_NUMBA:
+        return 0
+    freed = 0
+    try:
+        for _, _, obj in _kernels(modules or KERNEL_MODULES):
+            for cres in list(obj.overloads.values()):
+                library = cres.library
+                shared = getattr(library, "_shared_module", None)
+                if shared is None or "_get_module_for_linking" in vars(library):
+                    continue
+                if any(True for _ in library._final_module.functions):
+                    library._shared_module = None  # compiled here: made again from its own
+                else:  # loaded from the cache: its only copy of the module
+                    _relinkable(library, shared.as_bitcode())
+                    library._shared_module = None
+                freed += 1
+    except Exception:  # noqa: BLE001 - numba internals: keep what numba keeps
+        return freed
+    return freed
 
 
 def compiled_kernels_cold() -> bool:
