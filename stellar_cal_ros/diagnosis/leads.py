@@ -268,10 +268,12 @@ def _pattern(fit: dict, kind: str, grid, on: dict | None = None
 
 
 def _direction(fit: dict, kind: str, grid):
-    """The field ``kind`` fitted to the innovations of ``fit``: the one place that tells the
-    fields apart.  The cells field's table of offsets (:func:`_cell_offsets`) or the
-    magnitude field's :func:`columns`' coefficients (:func:`_lstsq`), on
-    :func:`detector_grid`'s ``grid``; ``None`` when it cannot be fitted.
+    """The field ``kind`` fitted to the innovations of ``fit`` (its direction).
+
+    The one place that tells the fields apart: the cells field's table of offsets
+    (:func:`_cell_offsets`) or the magnitude field's :func:`columns`' coefficients
+    (:func:`_lstsq`), on :func:`detector_grid`'s ``grid``; ``None`` when it cannot be
+    fitted.
     """
     if kind == "cells":
         return _cell_offsets(fit, _cells(fit, grid))
@@ -282,8 +284,9 @@ def _direction(fit: dict, kind: str, grid):
 
 
 def _displace(on: dict, kind: str, grid, d) -> tuple[np.ndarray, int] | None:
-    """The direction ``d`` (:func:`_direction`) as displacements ``(n, 2)`` of the stars
-    ``on``, with its columns there; ``None`` without ``d``, two cells or magnitude columns.
+    """The direction ``d`` (:func:`_direction`) as displacements ``(n, 2)`` of ``on``.
+
+    With its columns there; ``None`` without ``d``, two cells or magnitude columns.
     """
     if d is None:
         return None
