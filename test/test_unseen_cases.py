@@ -1322,3 +1322,32 @@ def test_the_focal_drift_rule_is_silent_on_a_clean_bag():
     assert fit is not None and abs(fit["change_t"]) < 3.0, fit
     assert not scale_drift.lagging(fit, 0.01)
     assert found == plain and not follows
+
+
+def test_a_cause_line_and_the_flexure_findings_do_not_follow_another_cause(monkeypatch):
+    """The rolling-shutter rule's re-run gives back only what the line tests make: the
+    focal drift's own line (another cause's, ``detail["cause"]``) and the flexure-shaped
+    findings after an add (``keep``) cannot be in it, and were said to follow the shutter
+    (a reviewer's mock on main f52b5c4: the drift line moved behind the rolling line,
+    'follows: rolling shutter').  A line the re-run lost still follows it."""
+    from stellar_cal_ros.diagnosis import rolling, scale_drift
+
+    def line(reg, t, detail=None):
+        return stats.RegressorFinding(reg, "u", t, 1e-9, 0.05, detail)
+
+    drift = line("time x radius (the focal length changes", 7.0, {"cause": scale_drift.CAUSE})
+    flex = line("gravity_st x probe response (mount flexure", 9.0)
+    lost = line("u (column)", 8.0)
+    shutter = line(stats.ROLLING + ")", -50.0)
+    found = [drift, flex, lost, shutter]
+    monkeypatch.setattr(rolling, "of_run", lambda run, fraction: {"coefficient": 1e-5})
+    cal = SimpleNamespace(camera=SimpleNamespace(height=1024))
+    run = SimpleNamespace(ok=True, prior=object(), effects=(), calibration=cal)
+    runs = SimpleNamespace(spec=None, fraction=0.5, noise=None, classes=(),
+                           on_bag=lambda fn, *a: ([], None))
+    out, after = rolling.first_if_cause(found, run, runs, None, frozenset({id(flex)}))
+    assert out[0] is drift and out[1] is flex, [f.regressor for f in out]
+    assert out[2].regressor.startswith(stats.ROLLING) and out[3] is lost and after == {3}
+    # without ``keep`` the flexure finding follows like any line; the cause's stays
+    out, after = rolling.first_if_cause(found, run, runs, None)
+    assert out[0] is drift and out[1].regressor.startswith(stats.ROLLING) and after == {2, 3}

@@ -66,7 +66,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     centre = (cam.cx, cam.cy)
     if drop_tables and runs is not None:
         # the round's runs that share the direction tables are done (the lines re-run
-        # a model only for a rolling shutter, the probe replays its twins)
+        # a model only for a rolling shutter or a focal drift, the probe replays its twins)
         runs.forget_tables()
     shown = final if final.residuals is not None else base  # the run the lines are of
     unexplained = line_tests(shown.residuals, calibration, fraction)
@@ -74,7 +74,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     outside = list(outside or [])
     if outside:  # into the ranking of the lines (regressor_tests' order: p, then |t|)
         unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
-    unexplained, follows = causes_first(unexplained, shown, runs)
+    unexplained, follows = causes_first(unexplained, shown, runs,
+                                        frozenset(id(f) for f in outside))
     if drop_tables and not plots:
         base.residuals = final.residuals = None
         panels.clear()
@@ -135,7 +136,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     return summary
 
 
-def causes_first(found: list, run: RunSummary, runs) -> tuple[list, dict[int, str]]:
+def causes_first(found: list, run: RunSummary, runs, keep=frozenset()
+                 ) -> tuple[list, dict[int, str]]:
     """The 'unexplained' lines ``found`` of ``run`` with a cause before the lines it makes.
 
     A drifting focal length whose lagging static scale ranks first is named before its
@@ -143,11 +145,13 @@ def causes_first(found: list, run: RunSummary, runs) -> tuple[list, dict[int, st
     shutter whose consequences rank before it goes first (:func:`~stellar_cal_ros.
     diagnosis.rolling.first_if_cause`): one run on the bag without each, only where its
     own tests are significant.  Returns the lines and ``{index: cause}`` of those that
-    follow a cause (``summary["unexplained"][i]["follows"]``).
+    follow a cause (``summary["unexplained"][i]["follows"]``).  Neither moves a cause's
+    own line nor the lines of ``keep`` (the ids of the flexure-shaped findings after an
+    add: no re-run's line tests make them, :func:`~stellar_cal_ros.diagnosis.rolling.gone`).
     """
-    found, after = scale_drift.first_if_cause(found, run, runs, line_tests)
+    found, after = scale_drift.first_if_cause(found, run, runs, line_tests, keep=keep)
     follows = {id(found[i]): scale_drift.CAUSE for i in after}
-    found, after = rolling.first_if_cause(found, run, runs, line_tests)
+    found, after = rolling.first_if_cause(found, run, runs, line_tests, keep)
     follows.update((id(found[i]), "rolling shutter") for i in after)
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 

@@ -158,7 +158,19 @@ def line_key(f) -> tuple[str, str]:
     return name, f.component
 
 
-def first_if_cause(found: list, run, runs, tests) -> tuple[list, set[int]]:
+def gone(f, left: set, keep=frozenset()) -> bool:
+    """Whether the line ``f`` is gone in a re-run whose lines' keys are ``left``.
+
+    Only a line the re-run's tests could give back: a cause's own line (its ``detail``
+    holds ``"cause"``: another rule's, which no re-run's tests make) and the lines of
+    ``keep`` (their ids: the flexure-shaped findings after an add, not the line tests')
+    stay where they are.
+    """
+    return (line_key(f) not in left and id(f) not in keep
+            and not (getattr(f, "detail", None) or {}).get("cause"))
+
+
+def first_if_cause(found: list, run, runs, tests, keep=frozenset()) -> tuple[list, set[int]]:
     """``found`` with the rolling-shutter line first when the lines before it are its doing.
 
     A rolling shutter that acts only while the tracker turns fast (a PSCE bag's slews: ~20
@@ -194,10 +206,10 @@ def first_if_cause(found: list, run, runs, tests) -> tuple[list, set[int]]:
     if at == 0:
         return found, set()
     left = set(left)
-    follows = [f for f in found[:at] if line_key(f) not in left]
+    follows = [f for f in found[:at] if gone(f, left, keep)]
     if not follows:
         return found, set()
-    stays = [f for f in found[:at] if line_key(f) in left]
+    stays = [f for f in found[:at] if not gone(f, left, keep)]
     out = stays + [found[at]] + follows + found[at + 1:]
     first = len(stays) + 1
     return out, set(range(first, first + len(follows)))

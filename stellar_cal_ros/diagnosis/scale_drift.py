@@ -103,7 +103,7 @@ def corner_px(calibration: Calibration) -> float:
     return float(np.hypot(max(cam.cx, cam.width - cam.cx), max(cam.cy, cam.height - cam.cy)))
 
 
-def first_if_cause(found: list, run, runs, tests, alpha: float = 0.01
+def first_if_cause(found: list, run, runs, tests, alpha: float = 0.01, keep=frozenset()
                    ) -> tuple[list, set[int]]:
     """``found`` with a line naming a drifting focal length first, when the lines are its.
 
@@ -133,7 +133,7 @@ def first_if_cause(found: list, run, runs, tests, alpha: float = 0.01
     if again is None or again[1] is None:
         return found, set()
     left, rest = set(again[0]), again[1]
-    follows = [f for f in found if rolling.line_key(f) not in left]
+    follows = [f for f in found if rolling.gone(f, left, keep)]
     if not follows:
         return found, set()
     t = np.asarray(run.residuals["t"], dtype=float)
@@ -151,6 +151,6 @@ def first_if_cause(found: list, run, runs, tests, alpha: float = 0.01
                 "window_change_ppm": fit["change_ppm"], "static_t_without": rest["static_t"],
                 "static_ppm_without": rest["static_ppm"]})
     at = found.index(follows[0])
-    stays = [f for f in found[at:] if rolling.line_key(f) in left]
+    stays = [f for f in found[at:] if not rolling.gone(f, left, keep)]
     out = found[:at] + [line] + follows + stays
     return out, set(range(at + 1, at + 1 + len(follows)))
