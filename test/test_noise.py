@@ -1679,3 +1679,20 @@ def test_noise_is_the_cause_names_the_effects_discover_added(added):
         assert "noise is the cause of the rest" in last and "(tangential)" in last, last
     else:
         assert last.startswith("noise is the cause: with the measured noise the model fits")
+
+
+def test_star_spread_with_one_stated_star_a_frame_says_nothing_rather_than_crash():
+    """One stated star a frame beside σ-0 ones leaves no frame with two tested stars: the
+    two-way F's sums (``_adjusted_ss``) ran on no row and raised ``ValueError: zero-size
+    array`` (reviewer RB on main f52b5c4: 50 frames of 1 stated + 3 σ-0 stars); no test."""
+    rng = np.random.default_rng(3)
+    frames, per = 50, 4
+    n = frames * per
+    frame = np.repeat(np.arange(frames), per)
+    star = np.tile(np.arange(per), frames)
+    unknown = star > 0
+    sn = noise_stars.StarNoise(1.0, 0.01, 2.0 * n, frames, rng.chisquare(2, n),
+                               2 * np.ones(n), np.full(n, 5.0), np.zeros(n), unknown,
+                               np.ones(n), star=star, frame=frame)
+    assert noise_stars.star_spread(sn, ~unknown) is None
+    assert noise_stars.star_spread(sn) is not None  # every star tested: 4 a frame

@@ -12,6 +12,7 @@ means for the verdict ("noise as stated" or not) is :mod:`.noise`'s.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -1242,6 +1243,8 @@ def star_spread(sn: StarNoise, use: np.ndarray | None = None,
     gr = np.zeros(int(keep.sum()), dtype=np.int64) if gidx is None else \
         np.unique(np.asarray(gidx)[ok][keep], return_inverse=True)[1]
     z = z[keep]
+    if not len(z):  # no frame with two tested stars (one stated star beside σ-0 ones)
+        return None
     fk = np.unique(fk[keep], return_inverse=True)[1].reshape(-1)
     nf = np.bincount(fk)
 
@@ -1261,6 +1264,8 @@ def star_spread(sn: StarNoise, use: np.ndarray | None = None,
     S = len(ns)
     g = gr[np.unique(sk, return_index=True)[1]]
     G = int(g.max()) + 1 if S else 0
+    if S - G < 2:
+        return None
     # the stars' effects beyond the frames' (and the groups'): a two-way layout, frames x
     # stars, whose stars' sum of squares is adjusted for the frames (each star's rows
     # about their frames' means share those means with the other stars in view: with few
@@ -1319,6 +1324,8 @@ def _adjusted_ss(r: np.ndarray, frame: np.ndarray, label: np.ndarray
     from scipy.sparse.csgraph import connected_components
     from scipy.sparse.linalg import cg
 
+    if not len(r):
+        return 0.0, 0, 0.0
     L, nF = int(label.max()) + 1, int(frame.max()) + 1
     inc = sparse.csr_matrix((np.ones(len(r)), (label, frame)), shape=(L, nF))
     nf = np.asarray(inc.sum(0)).reshape(-1)
@@ -1333,7 +1340,9 @@ def _adjusted_ss(r: np.ndarray, frame: np.ndarray, label: np.ndarray
     if L <= DENSE_STARS:
         a = np.linalg.lstsq(C.toarray(), Q, rcond=None)[0]
     else:  # (C is positive semi-definite and Q in its range: CG stays in it)
-        a = cg(C.tocsr(), Q, rtol=1e-10, maxiter=10 * L)[0]
+        # (``rtol`` from SciPy 1.12 on, ``tol`` before: apt Jazzy's is 1.11)
+        tol = "rtol" if "rtol" in inspect.signature(cg).parameters else "tol"
+        a = cg(C.tocsr(), Q, atol=0.0, maxiter=10 * L, **{tol: 1e-10})[0]
     return float(a @ Q), rank, trace
 
 
