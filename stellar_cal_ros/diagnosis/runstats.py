@@ -22,6 +22,7 @@ import contextlib
 import hashlib
 import logging
 import os
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -32,7 +33,6 @@ import numpy as np
 
 from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.io.calibration import Calibration
-from stellar_cal_ros.methods.frame_step import release_linking_ir
 from stellar_cal_ros.methods.replay import BagData, ReplayResult, read_bag_data
 from stellar_cal_ros.methods.results import epp_jacobian, keeping_frames
 
@@ -278,7 +278,11 @@ def evaluate(bag: BagRef, spec, prior: Calibration, effects: tuple[str, ...],
             result = spec.runner(data, prior, list(effects),
                                  keep_tables=keep_residuals or star_noise,
                                  eval_fraction=fraction, **kw)
-        release_linking_ir()  # the kernels it loaded keep their code, not their LLVM modules
+        # the kernels it loaded keep their code, not their LLVM modules (only where the run
+        # loaded them: importing frame_step here would load numba for a batch method too)
+        fs = sys.modules.get("stellar_cal_ros.methods.frame_step")
+        if fs is not None:
+            fs.release_linking_ir()
         out = run_statistics(result, fraction, keep_residuals)
         if star_noise:
             from stellar_cal_ros.diagnosis.noise import measure_stars
