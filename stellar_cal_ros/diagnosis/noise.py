@@ -487,10 +487,12 @@ class NoiseVerdict:
         if "star" in self.rejected and self.group is None and \
                 abs(self.applied.star / self.stated.star - 1.0) > MATERIAL:
             avg = f"use --noise-scale {self.applied.advice(3)} for their average"
-        elif self.group is None and not self.stated.identity:
+        elif self.group is None and (self.stated.star != 1.0 or self.stated.star_rho
+                                     or self.stated.group_by):
             # a later round, measured relative to the scales applied before: "as stated
             # (x0.298)" was printed under a round 1 that said star=3.77 (unseen case
-            # ``columns``: the ×3.4 of a correlated noise is not in the frames' scatter)
+            # ``columns``: the ×3.4 of a correlated noise is not in the frames' scatter);
+            # the stars' scales only: a gyro= or unknown= alone left the stars as stated
             avg = (f"their average is as measured before: use --noise-scale "
                    f"{self.applied.advice(3)}")
         elif self.group is None:
