@@ -647,3 +647,40 @@ def test_a_catalogue_at_another_epoch_is_said_with_its_epoch(tmp_path):
     epoch = float(pm["reason"].split("epoch J")[1].split(",")[0])
     assert epoch == pytest.approx(date - f * (date - 2000.0), abs=0.05)
     assert abs(epoch - (date - 0.4 * (date - 2000.0))) < 3 * sf * (date - 2000.0) + 0.05
+
+
+def test_a_cells_field_measured_along_the_current_models_direction_on_a_candidates_rows():
+    """The stand-in rule's cells half (``leads.field_fit(along=)``, ``leads.direction``):
+    along its own direction a run's size is its plain fit's; a candidate's run where the
+    field is gone reads ~0 and has vanished (``rolling.vanished``); one where it is intact
+    has not, though on the same rows (a reviewer's synthetic check, now a test)."""
+    from stellar_cal_ros.diagnosis import leads, rolling
+
+    rng = np.random.default_rng(11)
+
+    def run(step: float, low: bool = False) -> dict:
+        res = _table(rng, frames=240, stars=16)
+        n = len(res["du"])
+        res["u"] = rng.uniform(0.0, 1024.0, n)
+        res["v"] = rng.uniform(0.0, 1024.0, n)
+        on = (res["u"] < 512) & (res["v"] < 512) if low else (res["u"] > 512) & (res["v"] > 512)
+        res["du"] = res["du"] + step * on
+        return res
+
+    base = run(0.03)  # 0.6 σ on a quadrant
+    own = leads.field_fit(base, 0.5, "cells")
+    assert own is not None and own["p_value"] < 1e-6, own
+    d = leads.direction(base, 0.5, "cells")
+    along = leads.field_fit(base, 0.5, "cells", along=d)
+    assert along["coef"] == own["coef"] and along["coef_sigma"] == own["coef_sigma"]
+    gone = leads.field_fit(run(0.0), 0.5, "cells", along=d)
+    assert abs(gone["coef"]) < 4 * gone["coef_sigma"], gone
+    assert rolling.vanished(gone, own, 0.01) is True
+    kept = leads.field_fit(run(0.03), 0.5, "cells", along=d)
+    assert abs(kept["coef"] - own["coef"]) < 4 * kept["coef_sigma"], (kept, own)
+    assert rolling.vanished(kept, own, 0.01) is False
+    # the size is the one along ``along``: along another quadrant's field it is ~0
+    other = leads.field_fit(kept_rows := run(0.03), 0.5, "cells",
+                            along=leads.direction(run(0.03, low=True), 0.5, "cells"))
+    plain = leads.field_fit(kept_rows, 0.5, "cells")
+    assert abs(other["coef"]) < 4 * other["coef_sigma"] < abs(plain["coef"]), (other, plain)
