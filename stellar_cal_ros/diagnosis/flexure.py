@@ -155,13 +155,13 @@ def remainder_statistics(res: dict, moved: dict, fraction: float) -> dict[str, f
     shown = np.hypot(*(S * c).T)
     whitened = float(1.0 / np.sqrt(info))
     robust = stats.robust_sigma(sub, S, t, info)
+    sigma = robust if robust is not None and np.isfinite(robust) else whitened
     return {"t": t, "p_value": p, "nu": nu, "arcsec_per_g": c,
             "chi2": c * c * info, "chi2_capped": stats.capped_gain(sub, S, c),
-            "sigma_arcsec_per_g": robust if robust is not None and np.isfinite(robust)
-            else whitened,
+            "sigma_arcsec_per_g": sigma,
             "whitened_sigma_arcsec_per_g": whitened, "robust_sigma_arcsec_per_g": robust,
             # the flexure itself: the same size on every model, whatever its response
-            "coef": c, "coef_sigma": robust or whitened, "coef_nu": nu,
+            "coef": c, "coef_sigma": sigma, "coef_nu": nu,
             "change_px": float(np.percentile(shown, 99)),
             "rms_px": float(np.sqrt(np.mean(shown**2))),
             "frames": int(len(np.unique(frame)))}

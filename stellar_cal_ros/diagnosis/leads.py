@@ -157,20 +157,21 @@ def field_fit(res, fraction: float, kind: str, along=None) -> dict[str, float] |
     if got is None or not np.any(got[0]):
         return None
     pattern = got[0]
-    fit = stats.whitened_fit(sw, pattern)
+    # (with ν where a test can be made: the same t, p, c, info, and the size's own fit)
+    fit = stats.whitened_fit(sw, pattern, dof=True) or stats.whitened_fit(sw, pattern)
     if fit is None:
         return None
-    t, p, c, info = fit
+    t, p, c, info = fit[:4]
     size = np.hypot(*(c * pattern).T)
     gain, k = window_gain(sw, kind, grid)
     if along is None:
-        same = pattern
+        same, made = pattern, fit if len(fit) == 5 else None
     else:
         got = _displace(sw, kind, grid, along)
-        same = None if got is None or not np.any(got[0]) else got[0]
+        same, made = None if got is None or not np.any(got[0]) else got[0], None
     return {"t": t, "p_value": p, "chi2": c * c * info, "chi2_capped": gain, "columns": k,
             "size_px": float(np.percentile(size, 99)) if len(size) else 0.0,
-            **((None if same is None else stats.pattern_size(sw, same)) or {})}
+            **((None if same is None else stats.pattern_size(sw, same, made)) or {})}
 
 
 def direction(res, fraction: float, kind: str):

@@ -1022,7 +1022,8 @@ def pattern_size(sub: Table, x: np.ndarray, fit: tuple[float, ...] | None = None
     if fit is None or len(fit) < 5:
         return None
     t, _, c, info, nu = fit[:5]
-    sigma = robust_sigma(sub, x, t, info) or 1.0 / np.sqrt(info)
+    sigma = robust_sigma(sub, x, t, info)
+    sigma = sigma if sigma and np.isfinite(sigma) else 1.0 / np.sqrt(info)
     return {"coef": float(c), "coef_sigma": float(sigma), "coef_nu": float(nu)}
 
 
