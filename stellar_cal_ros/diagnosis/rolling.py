@@ -136,16 +136,31 @@ def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...
     calibration, fraction)``: the diagnosis's 'unexplained' tests
     (:func:`~stellar_cal_ros.diagnosis.output.line_tests`).
     """
+    got = rerun_lines(taken_out(data, calibration, coefficient), spec, prior, effects,
+                      fraction, noise, classes, tests)
+    if got is None:
+        return None
+    keys, run = got
+    rest = of_run(run, fraction)
+    return keys, None if rest is None else float(rest["coefficient"])
+
+
+def rerun_lines(data, spec, prior: Calibration, effects: tuple[str, ...], fraction: float,
+                noise, classes: tuple[type, ...], tests):
+    """One run of the model on ``data`` (a bag with a cause taken out) and its lines.
+
+    ``(keys, run)``: the keys (:func:`line_key`) of the 'unexplained' lines ``tests`` gives
+    on that run, and the run (for the cause's own fit there); ``None`` when the run fails.
+    The evidence of both causes' rules (:func:`first_if_cause`,
+    :func:`~stellar_cal_ros.diagnosis.scale_drift.first_if_cause`), where the bag is.
+    """
     from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
 
     register_effect_classes(classes)
-    run = evaluate(taken_out(data, calibration, coefficient), spec, prior, effects,
-                   fraction, True, classes, noise=noise)
+    run = evaluate(data, spec, prior, effects, fraction, True, classes, noise=noise)
     if not run.ok or run.residuals is None:
         return None
-    rest = of_run(run, fraction)
-    return (tuple(line_key(f) for f in tests(run.residuals, run.calibration, fraction)),
-            None if rest is None else float(rest["coefficient"]))
+    return tuple(line_key(f) for f in tests(run.residuals, run.calibration, fraction)), run
 
 
 def line_key(f) -> tuple[str, str]:

@@ -85,16 +85,12 @@ def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...
     (:func:`~stellar_cal_ros.diagnosis.rolling.line_key`) and :func:`of_table` of that run.
     ``tests``: as :func:`~stellar_cal_ros.diagnosis.rolling.lines_without_on_bag`'s.
     """
-    from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
-
-    register_effect_classes(classes)
-    run = evaluate(taken_out(data, calibration, rate_per_s), spec, prior, effects,
-                   fraction, True, classes, noise=noise)
-    if not run.ok or run.residuals is None:
+    got = rolling.rerun_lines(taken_out(data, calibration, rate_per_s), spec, prior, effects,
+                              fraction, noise, classes, tests)
+    if got is None:
         return None
-    return (tuple(rolling.line_key(f) for f in tests(run.residuals, run.calibration,
-                                                      fraction)),
-            of_table(run.residuals, run.calibration, fraction))
+    keys, run = got
+    return keys, of_table(run.residuals, run.calibration, fraction)
 
 
 def corner_px(calibration: Calibration) -> float:
