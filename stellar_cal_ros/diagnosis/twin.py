@@ -184,17 +184,15 @@ def _method_noise(method: str) -> tuple[float, float, float]:
     from stellar_cal_ros.methods.swaying import SwayingConfig
 
     spec = methods.get(method)
+    # a batch method (bundle: camera only) has no filter configuration: its own σ of σ-0
+    # stars, the IMU's at the PSCE defaults (no run of it reads an IMU).  Its probe runs
+    # failed with "'NoneType' object is not callable" (unseen case bundle_s06)
+    cfg = (spec.config_cls or methods.get("psce").config_cls)()
+    vrw = getattr(cfg, "accel_vrw_mps_sqrth", SwayingConfig().accel_vrw_mps_sqrth) / 60.0
     if spec.config_cls is None:
-        # a batch method (bundle: camera only) has no filter configuration: its own σ of
-        # σ-0 stars, the IMU's at the PSCE defaults (no run of it reads an IMU).  Its probe
-        # runs failed with "'NoneType' object is not callable" (unseen case bundle_s06)
         from stellar_cal_ros.methods.bundle import DEFAULT_SIGMA_PX
 
-        cfg = methods.get("psce").config_cls()
-        return DEFAULT_SIGMA_PX, cfg.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR, \
-            SwayingConfig().accel_vrw_mps_sqrth / 60.0
-    cfg = spec.config_cls()
-    vrw = getattr(cfg, "accel_vrw_mps_sqrth", SwayingConfig().accel_vrw_mps_sqrth) / 60.0
+        return DEFAULT_SIGMA_PX, cfg.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR, vrw
     return cfg.centroid_sigma_px, cfg.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR, vrw
 
 
