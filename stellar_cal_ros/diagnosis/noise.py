@@ -1032,8 +1032,8 @@ def check_noise(mode: str) -> bool:
 def not_measured(scales: NoiseScales, fit: dict[str, Any] | None = None) -> dict[str, Any]:
     """The ``noise`` block of a diagnosis that measured no noise scale itself.
 
-    With ``--noise stated``, or with a batch method (``bundle``, ``acf``), whose runner takes
-    no noise scales: its fit scales the stars' σ by its own variance factor.  ``fit``: that
+    With ``--noise stated``, or with a batch method (``bundle``: no noise verdict is measured
+    for it; its fit scales the stars' σ by its own variance factor).  ``fit``: that
     fit's block of the run's calibration (``extra["fit"]``: ``variance_factor``, ``stars``,
     ``sigma_px``); with it the stars' scale is the factor's root, said with its σ (a χ² of
     2 × stars dof).  "noise not measured (--noise stated)" was printed for a camera-only
