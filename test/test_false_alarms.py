@@ -146,6 +146,40 @@ def test_periodic_frame_residual_is_found_and_white_ones_pass():
     assert np.mean(np.asarray(p) < 0.01) <= 0.01 + 3 * np.sqrt(0.01 * 0.99 / len(p))
 
 
+@pytest.mark.parametrize("hz, phase", [(1.0, 0.7), (1.0 / 37.3, 0.3)])
+def test_periodic_frame_residual_size_is_its_amplitude_at_nyquist_and_between_ordinates(
+        hz, phase):
+    """Unseen case 'arm_1hz' (the tracker vibrating at 1 Hz against the IMU, 2-Hz frames):
+    the frame means alternate by a sin(phase) in u, a cos(phase) in v, at the frames'
+    Nyquist rate, which the periodogram leaves out; its taper's lobe found it (p 1e-38) but
+    the sinusoid fitted at the ordinate's period (1.01 s) read 9e-5 and 0.0015 px for 0.066
+    and 0.051.  The size is the fitted amplitude within the peak's lobe: the alternation's
+    at the Nyquist rate, and a period between ordinates (37.3 s over 150 s: 4.02
+    ordinates) reads its amplitude too."""
+    from stellar_cal_ros.diagnosis.stats import periodic_findings
+
+    rng = np.random.default_rng(11)
+    frames, stars, amp = 300, 20, 0.06
+    f = np.repeat(np.arange(frames), stars)
+    t = 1.7e9 + 0.5 * f  # POSIX stamps, as a bag's
+    ph = 2 * np.pi * hz * (t - t[0]) + phase
+    res = {"frame": f, "t": t, "gated": np.zeros(len(f), bool),
+           "du": 0.05 * rng.standard_normal(len(f)) + amp * np.sin(ph),
+           "dv": 0.05 * rng.standard_normal(len(f)) + amp * np.cos(ph)}
+    found = {x.component: x for x in periodic_findings(res, np.ones(len(f), bool))}
+    if hz == 1.0:  # sampled at the peaks' phase only: what the frames show
+        want = {"frame mean u": amp * abs(np.sin(phase)), "frame mean v": amp * abs(np.cos(phase))}
+    else:
+        want = {"frame mean u": amp, "frame mean v": amp}
+    se = 0.05 / np.sqrt(stars) * np.sqrt(2.0 / frames)  # a fitted amplitude's sigma
+    for comp, a in want.items():
+        x = found[comp]
+        assert x.p_value < 1e-6, x
+        assert abs(x.slope_px - a) < 3 * se + 0.02 * a, (x, a)
+        period = float(x.regressor.split(", ")[1].split(" ")[0])
+        assert abs(period * hz - 1.0) < 0.02, x
+
+
 def test_periodic_test_holds_its_level_on_red_frame_means_with_the_red_reference():
     """Unseen case 'ar1' (each star's noise an AR(1) over frames, ρ 0.82): the frame means
     are red and the flat reference calls that a period (150 frames: ~60 % of the tests below

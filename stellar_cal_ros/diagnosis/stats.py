@@ -571,6 +571,35 @@ def _local_peak(spec: np.ndarray, red: bool = False) -> tuple[int, float, float]
     return best
 
 
+#: frequencies tried between the peak ordinate's two neighbours (:func:`_fitted_sinusoid`)
+SINUSOID_STEPS = 33
+
+
+def _fitted_sinusoid(t: np.ndarray, y: np.ndarray, f_lo: float, f_hi: float
+                     ) -> tuple[float, float]:
+    """``(period, amplitude)`` of the least-squares sinusoid in ``y(t)`` explaining most of it.
+
+    Frequencies from ``f_lo`` to ``f_hi`` (:data:`SINUSOID_STEPS`, the peak ordinate's
+    neighbours: its main lobe): a period between ordinates, or at the frames' Nyquist rate
+    (an ordinate the periodogram leaves out; its taper's lobe finds it), fitted at an
+    ordinate's frequency reads a fraction of its amplitude (unseen case ``arm_1hz``: a
+    1-Hz vibration of the tracker, 2-Hz frames, read 9e-5 and 0.0015 px for frame means
+    alternating by 0.066 and 0.051 px).  At the Nyquist rate the sine and cosine are one
+    column: the minimum-norm fit's amplitude is the alternation's.
+    """
+    best = (-1.0, 1.0 / max(f_hi, 1e-300), 0.0)
+    t = t - t[0]  # POSIX seconds would round the phase
+    for f in np.linspace(max(f_lo, 0.5 * (f_hi - f_lo) / (SINUSOID_STEPS - 1)), f_hi,
+                         SINUSOID_STEPS):
+        w = 2.0 * np.pi * f
+        X = np.stack([np.sin(w * t), np.cos(w * t)], 1)
+        c = np.linalg.lstsq(X, y, rcond=1e-6)[0]  # one column at the Nyquist rate
+        ss = float(np.sum((X @ c) ** 2))
+        if ss > best[0]:
+            best = (ss, 1.0 / f, float(np.hypot(*c)))
+    return best[1], best[2]
+
+
 def periodic_findings(res: Table, mask: np.ndarray, red: bool = False
                       ) -> list[RegressorFinding]:
     """A periodic residual every star of a frame shares (u and v): Fisher's g test.
@@ -586,9 +615,10 @@ def periodic_findings(res: Table, mask: np.ndarray, red: bool = False
     centroid noise correlated over a few frames makes them red, and the low ordinates then
     beat the sum without any period (measured: unseen case ``ar1``, p = 2.5e-5 and 1.6e-3);
     the neighbours' mean is not enough for that either at the low end of the range
-    (:func:`_local_peak`'s ``red``).  The size is the fitted
-    sinusoid's amplitude (px).  Returns unadjusted findings (regressor ``time (periodic,
-    P s)``), for :func:`regressor_tests`' ``extra``.
+    (:func:`_local_peak`'s ``red``).  The size is the amplitude (px) of the sinusoid fitted
+    within the peak's lobe (:func:`_fitted_sinusoid`), its period in the name.  Returns
+    unadjusted findings (regressor ``time (periodic, P s)``), for :func:`regressor_tests`'
+    ``extra``.
     """
     m = mask & accepted(res)
     out: list[RegressorFinding] = []
@@ -612,10 +642,9 @@ def periodic_findings(res: Table, mask: np.ndarray, red: bool = False
             continue
         k, _, tail = _local_peak(spec, red)
         p = float(min(1.0, n_ord * tail))
-        period = (t[-1] - t[0]) * len(y) / (len(y) - 1) / (k + 1)
-        w = 2.0 * np.pi / period
-        X = np.stack([np.sin(w * t), np.cos(w * t)], 1)
-        amp = float(np.hypot(*np.linalg.lstsq(X, y, rcond=None)[0]))
+        span = (t[-1] - t[0]) * len(y) / (len(y) - 1)  # the ordinates' 1 / spacing
+        period, amp = _fitted_sinusoid(t, y, k / span, min((k + 2) / span,
+                                                           0.5 * len(y) / span))
         z = float(stats.norm.isf(max(p, 1e-300) / 2.0))
         out.append(RegressorFinding(f"time (periodic, {period:.3g} s)", comp, z, p, amp))
     return out
