@@ -31,6 +31,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -90,6 +91,16 @@ class Case:
     #: factor)`` injects ``effect`` with ``parameter`` at ``factor`` x the MDB that
     #: ``discover --auto`` printed for it on the clean bag (the other parameters 0)
     twin: tuple = ()
+    #: the messages' catalogue epoch (year) when it is not J2000.0 (0: J2000.0): a line must
+    #: name the places' epoch within a year of it (proper_motion, the J2000 motion, is then
+    #: not to be added: leave it out of ``effects``)
+    catalogue_epoch: float = 0.0
+
+
+def _epoch_said(stdout: str, epoch: float) -> bool:
+    """Whether a line names the catalogue places' epoch within a year of ``epoch``."""
+    found = re.findall(r"catalogue places are at epoch J(\d{4}(?:\.\d+)?)", stdout)
+    return any(abs(float(e) - epoch) <= 1.0 for e in found)
 
 
 def _renoise(sim, true_sigma: Callable, stated: float, seed: int) -> None:
@@ -388,6 +399,77 @@ def _columns(sim, seed, shift_px=0.15, width=8):
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 
+
+# ---- 2026-11-28 (H138): seventh pass
+
+
+def _magfield_faint(sim, seed):
+    # true sigma grows with magnitude (0.05 * 2^((mag - 4) / 2) px) and the messages carry
+    # a per-magnitude sigma field: right for stars brighter than 5, half the truth for the
+    # faint ones (mag >= 5: a tracker's noise table wrong only at its faint end)
+    def true(m, uv):
+        return PSCE_SIGMA * 2.0 ** ((np.nan_to_num(m, nan=4.0) - 4.0) / 2.0)
+    _renoise(sim, true, PSCE_SIGMA, seed)
+    for f in sim.star_frames:
+        m = np.asarray(f.magnitude, dtype=float)
+        s = true(m, None)
+        f.sigma = np.where(m < 5.0, s, 0.5 * s)
+
+
+def _u_cubic(sim, seed, edge_px=0.12):
+    # a centroid bias along u only, growing with the distance from the centre column:
+    # du = 0.12 ((u - cx) / (w / 2))^3 px (0.12 px at the left and right edges, none along
+    # v: no radial, tangential or aspect term has this shape), then the stated noise
+    cam = sim.prior.camera
+    half = 0.5 * float(cam.width)
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float).copy()
+        uv[:, 0] += edge_px * ((uv[:, 0] - float(cam.cx)) / half) ** 3
+        f.uv = uv
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _arm_1hz(sim, seed, amplitude_px=0.08, hz=1.0):
+    # the tracker on a flexing arm: a 1-Hz vibration of its attitude against the IMU (no
+    # gyro sees it), every star of a frame shifted by 0.08 px (4 arcsec) along an ellipse
+    # (u and v a quarter period apart, a random phase); the frames (2 Hz) sample it at
+    # their Nyquist rate.  The stars' noise as stated.
+    rng = np.random.default_rng(seed + 7919)
+    phase = rng.uniform(0.0, 2.0 * np.pi)
+    t0 = sim.star_frames[0].stamp_ns
+    for f in sim.star_frames:
+        ph = 2.0 * np.pi * hz * (f.stamp_ns - t0) * 1e-9 + phase
+        f.uv = np.asarray(f.uv, dtype=float) + amplitude_px * np.array([np.sin(ph),
+                                                                        np.cos(ph)])
+
+
+def _clock_drift(sim, seed, drift_s=0.03):
+    # the tracker's clock drifts: each frame's stamp late by 0 ms at the start growing
+    # linearly to 30 ms at the end (the stars are where they were at the exposure)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    for f in sim.star_frames:
+        x = (f.stamp_ns - t0) / max(t1 - t0, 1)
+        f.stamp_ns = int(f.stamp_ns + round(drift_s * x * 1e9))
+
+
+def _misid30(sim, seed, frames=0.1, share=0.3):
+    # misidentified stars: in a random 10 % of the frames, 30 % of the frame's stars (at
+    # least 2) carry another star's of the frame identity (catalogue id, RA/Dec, magnitude:
+    # the tracker's matcher swapped them); the centroids and their noise as stated
+    rng = np.random.default_rng(seed + 104723)
+    for f in sim.star_frames:
+        n = len(f.catalog_id)
+        if n < 2 or rng.random() >= frames:
+            continue
+        k = max(2, int(round(share * n)))
+        idx = rng.choice(n, size=k, replace=False)
+        to = np.roll(idx, 1)
+        for name in ("catalog_id", "right_ascension", "declination", "magnitude"):
+            a = np.asarray(getattr(f, name)).copy()
+            a[idx] = a[to]
+            setattr(f, name, a)
+
+
 CASES: dict[str, Case] = {
     # ---- noise stated wrongly, the model right
     "mag2x": Case("psce", "faint stars (mag >= 4.5) 2x the stated 0.05 px, bright as stated",
@@ -585,8 +667,9 @@ CASES: dict[str, Case] = {
                        sim_effects=dict(SWAY_CLEAN), duration=200.0),
     "sky_epoch2016": Case("psce", "the sky bag (refraction, aberration at 1x) whose catalogue "
                           "is at epoch 2016 (Gaia) though the contract says J2000: proper "
-                          "motion 0.40x the J2000 one", effects=("aberration", "proper_motion",
-                                                                "refraction"),
+                          "motion 0.40x the J2000 one: the epoch is to be said, the J2000 motion "
+                          "not added", effects=("aberration", "refraction"),
+                          catalogue_epoch=2016.0,
                           sim_effects={"aberration": 1.0, "refraction": 1.0,
                                        "proper_motion": 0.4}),
     "tilt_drift": Case("psce", "the detector's tilt drifting linearly over the run, -1.5 to "
@@ -606,6 +689,44 @@ CASES: dict[str, Case] = {
                        "the true 0.05 px (the bundle's baseline lacks the scenario's tangential "
                        "distortion: it is to be added)", noise={"star": 1.0 / 0.6},
                        effects=("tangential",), post=_sigma_field(0.6)),
+    # ---- 2026-11-28 (H138): seventh pass
+    "gyro_over5": Case("psce", "gyro ARW a fifth of the stated (the configured ARW 5x too "
+                       "large, over-stated), the stars as stated", noise={"gyro": 0.2},
+                       scenario_changes={"gyro_arw_deg_sqrth": 0.2}),
+    "sway_accel_xy5": Case("swaying_base", "accelerometer VRW 5x the stated on x and y (the "
+                           "stated 0.2x the truth), z and the gyro as stated, on the swaying "
+                           "base", noise={"accel": float(np.sqrt(17.0))},
+                           axes={"accel": (5.0, 5.0, 1.0)}, sim_effects=dict(SWAY_CLEAN),
+                           post=lambda sim, seed: [tracker_errors.imu_noise_axis(
+                               sim, "accel", a, 5.0, seed + a) for a in (0, 1)],
+                           duration=200.0),
+    "magfield_faint": Case("psce", "true sigma 0.05 * 2^((mag - 4) / 2) px; the messages' "
+                           "per-magnitude sigma right for mag < 5, half the truth for the "
+                           "faint stars (mag >= 5)", noise={"star": 0.0},
+                           group_by="magnitude", post=_magfield_faint,
+                           scenario_changes={"centroid_noise_px": 0.0}),
+    "u_cubic": Case("psce", "a centroid bias along u only, 0.12 ((u - cx) / 512)^3 px (0.12 "
+                    "px at the left and right edges; not in the library)", outside=True,
+                    regressor="u", post=_u_cubic, scenario_changes={"centroid_noise_px": 0.0}),
+    "arm_1hz": Case("psce", "the tracker on a flexing arm: a 1-Hz attitude vibration of 0.08 "
+                    "px (4 arcsec) against the IMU, sampled by the 2-Hz frames at their "
+                    "Nyquist rate (not in the library)", outside=True, post=_arm_1hz),
+    "sway_twin_gsf1": Case("swaying_base", "the user's calibrated clean swaying bag's twin "
+                           "with gyro_scale_factor sz at 1x the MDB `discover` printed for it "
+                           "(stellar-cal twin)", effects=("gyro_scale_factor",),
+                           sim_effects=dict(SWAY_CLEAN), duration=200.0,
+                           twin=("gyro_scale_factor", "sz", 1.0)),
+    "sky_clock_drift": Case("psce", "the sky bag (refraction, aberration, proper motion at "
+                            "1x) whose frame stamps drift late 0 -> 30 ms over the run "
+                            "(time_offset is a constant: its mean 15 ms is in the library, "
+                            "the drift is not)", outside=True, regressor="time",
+                            effects=("aberration", "proper_motion", "refraction",
+                                     "time_offset"),
+                            sim_effects={"aberration": 1.0, "refraction": 1.0,
+                                         "proper_motion": 1.0}, post=_clock_drift),
+    "misid30": Case("psce", "misidentified stars: in a random 10 % of the frames, 30 % of the "
+                    "frame's stars swapped identities (bad input: counted by the gating, no "
+                    "effect, noise as stated)", noise={}, post=_misid30),
 }
 
 
@@ -700,6 +821,8 @@ def judge(name: str, r: dict) -> list[str]:
     applied = noise.get("applied") or {}
     extra = [e for e in w["added"] if e not in case.effects]
     missing = [e for e in case.effects if e not in w["added"]]
+    if case.catalogue_epoch and not _epoch_said(r["stdout"], case.catalogue_epoch):
+        bad.append(f"the catalogue's epoch J{case.catalogue_epoch:.1f} said nowhere")
     if extra:
         bad.append(f"added {extra} (not in the truth)")
     if missing:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import ast
 import importlib
 import importlib.util
+import sys
 from pathlib import Path
 
 import pytest
@@ -61,3 +62,32 @@ def test_node_latency_split_adds_up_to_the_end_to_end_latency():
     b = {k: out[k]["p50"] * 2 - a[k] for k in ("e2e", "wait", "queue", "compute")}
     assert [b[k] for k in ("e2e", "wait", "queue", "compute")] == pytest.approx(
         [10.0, 0.0, 2.0, 3.0])  # frame B: 2.000 -> 2.010, released on arrival
+
+
+def test_unseen_epoch_case_is_judged_by_the_epoch_line_not_by_proper_motion_added(
+        monkeypatch):
+    """benchmarks/unseen_cases.py's ``sky_epoch2016`` (catalogue places at epoch 2016): the
+    truth told is the epoch line beside the refused proper_motion; the judge read "missed
+    ['proper_motion']" under that line (H128) and would have passed the J2000 motion added."""
+    spec = importlib.util.spec_from_file_location("unseen_cases",
+                                                  BENCHMARKS / "unseen_cases.py")
+    uc = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "unseen_cases", uc)  # its dataclasses look it up
+    spec.loader.exec_module(uc)
+    said = ("not added: proper_motion: the data fit 0.407 ± 0.0068 of the physical "
+            "proper_motion ...: the structure follows part of its pattern but has another "
+            "cause, or the messages' catalogue places are at epoch J{}, not J2000.0 (...)")
+
+    def run(epoch, added):
+        return {"rc": 0, "stderr": "", "stdout": "noise: noise as stated\n"
+                + (said.format(epoch) if epoch else ""),
+                "summary": {"added": added, "noise": {"applied": {}}}}
+
+    sky = ["aberration", "refraction"]
+    assert uc.judge("sky_epoch2016", run("2015.9", sky)) == []
+    assert uc.judge("sky_epoch2016", run("2010.3", sky)) == [
+        "the catalogue's epoch J2016.0 said nowhere"]
+    assert uc.judge("sky_epoch2016", run("", sky)) == [
+        "the catalogue's epoch J2016.0 said nowhere"]
+    assert uc.judge("sky_epoch2016", run("2015.9", sky + ["proper_motion"])) == [
+        "added ['proper_motion'] (not in the truth)"]
