@@ -67,8 +67,9 @@ def test_node_latency_split_adds_up_to_the_end_to_end_latency():
 def test_unseen_epoch_case_is_judged_by_the_epoch_line_not_by_proper_motion_added(
         monkeypatch):
     """benchmarks/unseen_cases.py's ``sky_epoch2016`` (catalogue places at epoch 2016): the
-    truth told is the epoch line beside the refused proper_motion; the judge read "missed
-    ['proper_motion']" under that line (H128) and would have passed the J2000 motion added."""
+    truth told is the epoch line beside the refused proper_motion (and the motion the J2000
+    model then lacks, repeating star by star); the judge read "missed ['proper_motion']"
+    under that line (H128) and would have passed the J2000 motion added."""
     spec = importlib.util.spec_from_file_location("unseen_cases",
                                                   BENCHMARKS / "unseen_cases.py")
     uc = importlib.util.module_from_spec(spec)
@@ -80,7 +81,8 @@ def test_unseen_epoch_case_is_judged_by_the_epoch_line_not_by_proper_motion_adde
 
     def run(epoch, added):
         return {"rc": 0, "stderr": "", "stdout": "noise: noise as stated\n"
-                + (said.format(epoch) if epoch else ""),
+                + (said.format(epoch) if epoch else "") + "\n  unexplained: residual "
+                "repeating vs catalogue star (t=16.7, p=2e-28; 0.00809 px rms per axis)",
                 "summary": {"added": added, "noise": {"applied": {}}}}
 
     sky = ["aberration", "refraction"]
@@ -91,3 +93,24 @@ def test_unseen_epoch_case_is_judged_by_the_epoch_line_not_by_proper_motion_adde
         "the catalogue's epoch J2016.0 said nowhere"]
     assert uc.judge("sky_epoch2016", run("2015.9", sky + ["proper_motion"])) == [
         "added ['proper_motion'] (not in the truth)"]
+
+
+def test_unseen_case_found_but_said_far_smaller_is_judged_misleading(monkeypatch):
+    """benchmarks/unseen_cases.py's ``arm_1hz`` (a 1-Hz vibration at 2-Hz frames): the
+    periodic line was found with its size said 35-700x too small (H138); the judge passed
+    it.  A case's ``min_size_px`` is the least size its first 'unexplained' line may say."""
+    spec = importlib.util.spec_from_file_location("unseen_cases",
+                                                  BENCHMARKS / "unseen_cases.py")
+    uc = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "unseen_cases", uc)
+    spec.loader.exec_module(uc)
+
+    def run(size):
+        line = ("  unexplained: frame mean u residual vs time (periodic, 1 s) (t=12.9, "
+                f"p=2.1e-36; {size} px amplitude)")
+        return {"rc": 0, "stderr": "", "stdout": "noise: not measured\n" + line,
+                "summary": {"added": [], "noise": {"applied": {}}}}
+
+    assert uc.judge("arm_1hz", run("0.0661")) == []
+    assert uc.judge("arm_1hz", run("8.96e-05")) == [
+        "first 'unexplained' line says 8.96e-05 px, the truth at least 0.03"]
