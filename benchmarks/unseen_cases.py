@@ -373,14 +373,7 @@ def _tilt_drift(sim, seed, mrad=1.5):
     # the detector's tilt drifts linearly over the run about the u axis, -1.5 mrad at the
     # start to +1.5 mrad at the end (0 on average): a keystone (1 + tilt * dv / f) of the
     # noise-free centroids, ~0.1 px at the field's edge at either end; then the stated noise
-    cam = sim.prior.camera
-    c = np.array([cam.cx, cam.cy])
-    f_px = float(cam.fx)
-    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
-    for f in sim.star_frames:
-        x = (f.stamp_ns - t0) / max(t1 - t0, 1) - 0.5
-        d = np.asarray(f.uv, dtype=float) - c
-        f.uv = c + d * (1.0 + 2.0 * mrad * 1e-3 * x * d[:, 1:2] / f_px)
+    tracker_errors.tilt_drift(sim, mrad)
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 

@@ -26,7 +26,7 @@ from stellar_cal_ros.diagnosis import (
     noise_stars,
     output,
     rolling,
-    scale_drift,
+    shape_drift,
     stats,
 )
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
@@ -1280,6 +1280,20 @@ def _ranked(sim):
     return run, found, output.causes_first(found, run, runs)
 
 
+def _drifting(drift, size):
+    """A 300 s bag with ``drift(sim, size)`` and the stated noise: the simulation, the
+    current model's run, its lines ranked with the causes first and which follow one (main
+    ranks no time line first)."""
+    def post(sim):
+        drift(sim, size)
+        tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, 21)
+
+    sim = _bag(post, duration=300.0)
+    run, plain, (found, follows) = _ranked(sim)
+    assert plain and not plain[0].regressor.startswith("time"), plain[:3]  # (main's first line)
+    return sim, run, found, follows
+
+
 def test_a_drifting_focal_length_is_named_first_and_its_static_scale_lines_follow_it():
     """The focal length drifting linearly, -75 -> +75 ppm over 300 s (unseen case
     ``focal_drift``, no temperature topic: outside the library).  The constant-f model
@@ -1288,40 +1302,87 @@ def test_a_drifting_focal_length_is_named_first_and_its_static_scale_lines_follo
     3 σ (144 ± 25 ppm read for 150, 0.105 px at the detector's corner), and the static
     scale's lines follow it (gone on the run with the drift taken out)."""
     ppm = 150.0
-
-    def post(sim):
-        tracker_errors.focal_drift(sim, ppm)
-        tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, 21)
-
-    sim = _bag(post, duration=300.0)
-    run, plain, (found, follows) = _ranked(sim)
-    assert plain and not plain[0].regressor.startswith("time"), plain[:3]  # (main's first line)
-    assert found[0].regressor.startswith(scale_drift.REGRESSOR), found[:3]
+    sim, run, found, follows = _drifting(tracker_errors.focal_drift, ppm)
+    assert found[0].regressor.startswith(shape_drift.REGRESSOR), found[:3]
     assert found[0].component == "radial" and found[0].statistic > 5.0, found[0]
     d = found[0].detail
     span_ns = sim.star_frames[-1].stamp_ns - sim.star_frames[0].stamp_ns
     want = ppm * d["run_s"] / (span_ns * 1e-9)
     assert abs(d["ppm_over_run"] - want) < 3.0 * d["sigma_ppm"], (d, want)
     assert d["sigma_ppm"] < 0.25 * want, d
-    corner = scale_drift.corner_px(run.calibration)
+    corner = shape_drift.corner_px(run.calibration)
     assert found[0].slope_px == pytest.approx(want * 1e-6 * corner, rel=3.0 * d["sigma_ppm"]
                                               / want)
     gone = {rolling.line_key(found[i]) for i in follows}
     assert {("u (column)", "u"), ("v (row)", "v")} <= gone, gone
-    assert set(follows.values()) == {scale_drift.CAUSE} and 0 not in follows
+    assert set(follows.values()) == {shape_drift.CAUSE} and 0 not in follows
 
 
 def test_the_focal_drift_rule_is_silent_on_a_clean_bag():
     """A clean bag (300 s, seed 21): the static scale and its change are not both
-    significant (measured on seeds 21-26: the change's t within +-1.2), no run is made and
-    the lines are as ranked before."""
+    significant (measured on seeds 21-26: the change's t within +-1.2), nor a tilt's, no run
+    is made and the lines are as ranked before."""
     sim = _bag(lambda s: tracker_errors.renoise(s, lambda m, uv: SIGMA, SIGMA, 21),
                duration=300.0)
     run, plain, (found, follows) = _ranked(sim)
-    fit = scale_drift.of_table(run.residuals, run.calibration, 0.5)
+    fit = shape_drift.of_table(run.residuals, run.calibration, 0.5)
     assert fit is not None and abs(fit["change_t"]) < 3.0, fit
-    assert not scale_drift.lagging(fit, 0.01)
+    assert not shape_drift.lagging(fit, 0.01)
+    for tilt in shape_drift.SHAPES[1:]:  # (measured on seeds 21-32: |t| < 2.6)
+        fit = shape_drift.of_table(run.residuals, run.calibration, 0.5, tilt)
+        assert fit is not None and abs(fit["change_t"]) < 3.5, fit
+        assert not shape_drift.lagging(fit, 0.01)
     assert found == plain and not follows
+
+
+def test_a_drifting_detector_tilt_is_named_first_and_its_static_keystone_lines_follow_it():
+    """The detector's tilt about u drifting linearly, -1.5 -> +1.5 mrad over 300 s (unseen
+    case ``tilt_drift``, 0 on average; image_plane_tilt is static: outside the library).
+    psce estimates no tilt, but its principal point and tangential p1 span the keystone
+    (0.999) and lag it: its lines ranked by p are the static keystone's (v vs v (row) and
+    its one-period cosine, radial vs v (row), t ~ 24) and main names no time.  The shape
+    rule names the tilt's drift first, its size the truth's within 3 σ (2.92 ± 0.27 mrad
+    read for 3), and the static keystone's lines follow it."""
+    mrad = 1.5
+    sim, run, found, follows = _drifting(tracker_errors.tilt_drift, mrad)
+    tilt = shape_drift.SHAPES[1]
+    assert found[0].regressor.startswith(tilt.regressor), found[:3]
+    assert found[0].component == "radial" and found[0].statistic > 5.0, found[0]
+    d = found[0].detail
+    assert d["shape"] == "tau_x" and d["spanned"] > shape_drift.SPANNED, d
+    span_ns = sim.star_frames[-1].stamp_ns - sim.star_frames[0].stamp_ns
+    want = 2.0 * mrad * d["run_s"] / (span_ns * 1e-9)
+    assert abs(d["mrad_over_run"] - want) < 3.0 * d["sigma_mrad"], (d, want)
+    assert d["sigma_mrad"] < 0.25 * want, d
+    corner = shape_drift.corner_px(run.calibration, tilt)
+    assert found[0].slope_px == pytest.approx(want * 1e-3 * corner, rel=3.0 * d["sigma_mrad"]
+                                              / want)
+    gone = {rolling.line_key(found[i]) for i in follows}
+    assert {("v (row)", "radial"), ("v (row) (periodic 1024 px", "v")} <= gone, gone
+    assert set(follows.values()) == {tilt.cause} and 0 not in follows
+    assert not any(f.regressor.startswith(shape_drift.REGRESSOR) for f in found)
+
+
+def test_the_shape_patterns_are_the_cameras_own():
+    """The tilts' keystones the rule tests (``stats.shape_pattern``) are the camera model's
+    tau_x / tau_y Jacobians to first order (their signs: OpenCV's tilt matrix), and the
+    scale's the focal length's; psce's camera parameters span a tilt's keystone."""
+    from stellar_cal_ros.core.camera import CameraModel
+
+    cam = CameraModel.pinhole(1024, 1024, 3000.0, 515.0, 508.0)
+    rng = np.random.default_rng(3)
+    u = rng.uniform(0, cam.width, 500)
+    v = rng.uniform(0, cam.height, 500)
+    centre, focal = (cam.cx, cam.cy), (cam.fx, cam.fy)
+    cal = SimpleNamespace(camera=cam)
+    for shape, effect in (("scale", "focal_length"), ("tau_x", "image_plane_tilt")):
+        got = stats.shape_pattern(shape, u, v, centre, focal)
+        jac = shape_drift.patterns(cal, (effect,))(u, v)[:, :, 0]
+        assert np.allclose(got, jac, atol=0.01 * np.abs(jac).max()), shape
+    jac = shape_drift.patterns(cal, ("image_plane_tilt",))(u, v)[:, :, 1]
+    got = stats.shape_pattern("tau_y", u, v, centre, focal)
+    assert np.allclose(got, jac, atol=0.01 * np.abs(jac).max())
+    assert shape_drift.camera_columns(method_spec("swaying_base").baseline) == ()
 
 
 def test_a_cause_line_and_the_flexure_findings_do_not_follow_another_cause(monkeypatch):
@@ -1330,12 +1391,12 @@ def test_a_cause_line_and_the_flexure_findings_do_not_follow_another_cause(monke
     findings after an add (``keep``) cannot be in it, and were said to follow the shutter
     (a reviewer's mock on main f52b5c4: the drift line moved behind the rolling line,
     'follows: rolling shutter').  A line the re-run lost still follows it."""
-    from stellar_cal_ros.diagnosis import rolling, scale_drift
+    from stellar_cal_ros.diagnosis import rolling, shape_drift
 
     def line(reg, t, detail=None):
         return stats.RegressorFinding(reg, "u", t, 1e-9, 0.05, detail)
 
-    drift = line("time x radius (the focal length changes", 7.0, {"cause": scale_drift.CAUSE})
+    drift = line("time x radius (the focal length changes", 7.0, {"cause": shape_drift.CAUSE})
     flex = line("gravity_st x probe response (mount flexure", 9.0)
     lost = line("u (column)", 8.0)
     shutter = line(stats.ROLLING + ")", -50.0)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import rolling, scale_drift, stats
+from stellar_cal_ros.diagnosis import rolling, shape_drift, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
     line_noise,
@@ -140,8 +140,9 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset()
                  ) -> tuple[list, dict[int, str]]:
     """The 'unexplained' lines ``found`` of ``run`` with a cause before the lines it makes.
 
-    A drifting focal length whose lagging static scale ranks first is named before its
-    lines (:func:`~stellar_cal_ros.diagnosis.scale_drift.first_if_cause`), and a rolling
+    A drifting camera shape (the focal length, the detector's tilt) whose static part
+    ranks first is named before its lines (:func:`~stellar_cal_ros.diagnosis.shape_drift.
+    first_if_cause`), and a rolling
     shutter whose consequences rank before it goes first (:func:`~stellar_cal_ros.
     diagnosis.rolling.first_if_cause`): one run on the bag without each, only where its
     own tests are significant.  Returns the lines and ``{index: cause}`` of those that
@@ -149,8 +150,8 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset()
     own line nor the lines of ``keep`` (the ids of the flexure-shaped findings after an
     add: no re-run's line tests make them, :func:`~stellar_cal_ros.diagnosis.rolling.gone`).
     """
-    found, after = scale_drift.first_if_cause(found, run, runs, line_tests, keep=keep)
-    follows = {id(found[i]): scale_drift.CAUSE for i in after}
+    found, after = shape_drift.first_if_cause(found, run, runs, line_tests, keep=keep)
+    follows = {id(found[i]): cause for i, cause in after.items()}
     found, after = rolling.first_if_cause(found, run, runs, line_tests, keep)
     follows.update((id(found[i]), "rolling shutter") for i in after)
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}

@@ -152,7 +152,7 @@ def rerun_lines(data, spec, prior: Calibration, effects: tuple[str, ...], fracti
     ``(keys, run)``: the keys (:func:`line_key`) of the 'unexplained' lines ``tests`` gives
     on that run, and the run (for the cause's own fit there); ``None`` when the run fails.
     The evidence of both causes' rules (:func:`first_if_cause`,
-    :func:`~stellar_cal_ros.diagnosis.scale_drift.first_if_cause`), where the bag is.
+    :func:`~stellar_cal_ros.diagnosis.shape_drift.shape_first`), where the bag is.
     """
     from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
 

@@ -1281,21 +1281,52 @@ def size_through_fit(sub: Table, sigma: np.ndarray, focal: tuple[float, float], 
                                            - math.sqrt(max(a + b * lo, 0.0))))
 
 
-def scale_change(res: Table, mask: np.ndarray, centre: tuple[float, float],
-                 focal: tuple[float, float]) -> dict[str, float] | None:
-    """A static image scale left in the residuals, and its change over the window given it.
+#: the camera's shape parameters :func:`shape_change` tests: the image scale (the focal
+#: length, relative) and the detector's two tilts (OpenCV tau_x, tau_y, rad; to first order
+#: a keystone ``(u − c_x, v − c_y) (1 + tau_x y − tau_y x)``, ``x, y`` normalised)
+SHAPES = ("scale", "tau_x", "tau_y")
+
+
+def shape_pattern(shape: str, u: np.ndarray, v: np.ndarray, centre: tuple[float, float],
+                  focal: tuple[float, float]) -> np.ndarray:
+    """A shape parameter's displacement per unit (px, ``(N, 2)``) at the points ``(u, v)``.
+
+    ``scale``: ``(u − c_x, v − c_y)`` (px per relative scale); ``tau_x``: that times
+    ``(v − c_y)/f_y``, ``tau_y``: times ``−(u − c_x)/f_x`` (px per rad: OpenCV's tilt
+    matrix to first order, :func:`~stellar_cal_ros.core.camera.tilt_matrix`).
+    """
+    d = np.stack([u - centre[0], v - centre[1]], 1)
+    if shape == "scale":
+        return d
+    if shape == "tau_x":
+        return d * ((v - centre[1]) / focal[1])[:, None]
+    if shape == "tau_y":
+        return d * (-(u - centre[0]) / focal[0])[:, None]
+    raise ValueError(f"unknown shape {shape!r} (one of {SHAPES})")
+
+
+def shape_change(res: Table, mask: np.ndarray, centre: tuple[float, float],
+                 focal: tuple[float, float], shape: str = "scale", against=None
+                 ) -> dict[str, float] | None:
+    """A static camera shape left in the residuals, and its change over the window given it.
 
     The within-frame residuals of ``mask``'s accepted stars (u and v stacked, each frame's
     attitude fit taken out, the frames as the units of :func:`frame_robust_t`, as
-    :func:`shaped_tests`) regressed on the scale's pattern ``(u − c_x, v − c_y)`` (the
-    *static* test: its slope a scale, ppm) and on ``(u − c_x, v − c_y) (t − t_mid)``, both
-    the regressor and the residuals taken without their static-scale part (the *change*
-    test: its slope a scale per second; without the conditioning the static scale left
-    in the residuals swamps its frame-robust variance: unseen case ``focal_drift``, t
-    1.1-1.3 plain, 5.8-7.2 given the static scale; benchmarks/scale_time_read.py).
-    ``{static_t, static_p, static_ppm, change_t, change_p, change_ppm (over the window),
-    rate_per_s (the change's slope, relative scale per s), window_s}`` (p unadjusted);
-    ``None`` with fewer than 40 stars or 10 frames.
+    :func:`shaped_tests`) regressed on the shape's pattern (:func:`shape_pattern`: the
+    image scale ``(u − c_x, v − c_y)``, or a detector tilt's keystone) (the *static* test:
+    its slope the shape parameter, relative scale or rad) and on the pattern times
+    ``(t − t_mid)``, both the regressor and the residuals taken without their static part
+    (the *change* test: its slope the parameter per second; without the conditioning the
+    static part left in the residuals swamps its frame-robust variance: unseen case
+    ``focal_drift``, t 1.1-1.3 plain, 5.8-7.2 given the static scale;
+    benchmarks/scale_time_read.py).  ``{static_t, static_p, static, change_t, change_p,
+    change (over the window), rate_per_s (the change's slope, per s), window_s}`` (p
+    unadjusted); ``None`` with fewer than 40 stars or 10 frames.  ``against(u, v)``: the
+    displacement patterns ``(N, 2, k)`` of the camera parameters a model estimates; with it
+    also ``spanned``, the share of the static pattern's sum of squares they span (a model
+    that spans a shape follows it, late, as it follows its own parameters: unseen case
+    ``tilt_drift``, the keystone of tau_x 0.99 spanned by psce's principal point and
+    tangential p1).
     """
     m = mask & accepted(res)
     if m.sum() < 40:
@@ -1321,11 +1352,12 @@ def scale_change(res: Table, mask: np.ndarray, centre: tuple[float, float],
 
     t = np.asarray(sub["t"], dtype=float)
     tc = t - 0.5 * (t.min() + t.max())
-    s = project(np.stack([u - centre[0], v - centre[1]], 1))
+    pattern = shape_pattern(shape, u, v, centre, focal)
+    s = project(pattern)
     ok = np.isfinite(s) & np.isfinite(y) & np.isfinite(y_px)
     if len(np.unique(cl[ok])) < 10 or not np.ptp(t) > 0:
         return None
-    x = project(np.stack([(u - centre[0]) * tc, (v - centre[1]) * tc], 1))
+    x = project(pattern * tc[:, None])
     ok &= np.isfinite(x)
 
     def without_static(z: np.ndarray) -> np.ndarray:
@@ -1338,6 +1370,20 @@ def scale_change(res: Table, mask: np.ndarray, centre: tuple[float, float],
 
     st, sp, sb = test(s, y, y_px)
     ct, cp, cb = test(without_static(x), without_static(y), without_static(y_px))
-    return {"static_t": st, "static_p": sp, "static_ppm": sb * 1e6, "change_t": ct,
-            "change_p": cp, "change_ppm": cb * float(np.ptp(t)) * 1e6, "rate_per_s": cb,
-            "window_s": float(np.ptp(t))}
+    out = {"static_t": st, "static_p": sp, "static": sb, "change_t": ct, "change_p": cp,
+           "change": cb * float(np.ptp(t)), "rate_per_s": cb, "window_s": float(np.ptp(t))}
+    if against is not None:
+        out["spanned"] = _spanned(s[ok], np.asarray(against(u, v), dtype=float), project, ok)
+    return out
+
+
+def _spanned(s: np.ndarray, cols: np.ndarray, project, ok: np.ndarray) -> float:
+    """The share of ``s``'s sum of squares the projected columns ``cols`` ``(N, 2, k)`` span."""
+    if not cols.shape[2]:
+        return 0.0
+    a = np.stack([project(cols[:, :, j]) for j in range(cols.shape[2])], 1)[ok]
+    use = np.isfinite(a).all(1)
+    if use.sum() <= cols.shape[2]:
+        return 0.0
+    left = s[use] - a[use] @ np.linalg.lstsq(a[use], s[use], rcond=None)[0]
+    return float(1.0 - (left @ left) / (s[use] @ s[use]))
