@@ -25,6 +25,7 @@ from stellar_cal_ros.diagnosis import (
     noise,
     noise_stars,
     output,
+    printing,
     rolling,
     shape_drift,
     stats,
@@ -1360,6 +1361,11 @@ def test_a_drifting_detector_tilt_is_named_first_and_its_static_keystone_lines_f
     gone = {rolling.line_key(found[i]) for i in follows}
     assert {("v (row)", "radial"), ("v (row) (periodic 1024 px", "v")} <= gone, gone
     assert set(follows.values()) == {tilt.cause} and 0 not in follows
+    said = printing.unexplained_phrase({"component": "radial", "regressor": found[0].regressor,
+                                        "change_px": found[0].slope_px, "detail": d})
+    assert said[1].endswith("px at the detector's corner over the run"), said
+    assert printing.follows_phrase({"follows": tilt.cause}).endswith("gone once the drift is "
+                                                                     "taken out of the centroids")
     assert not any(f.regressor.startswith(shape_drift.REGRESSOR) for f in found)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from stellar_cal_ros.diagnosis import reliability
+from stellar_cal_ros.diagnosis.shape_drift import SHAPES
 
 
 def describe(step: dict[str, Any]) -> str:
@@ -54,7 +55,7 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
         what, span = "residual spread along each star's motion", "rms at that image speed"
     elif u["component"] == "size":
         what = "residual spread (size)"
-    elif (u.get("detail") or {}).get("cause") == "focal length drift":
+    elif (u.get("detail") or {}).get("cause") in DRIFTS:
         span = "at the detector's corner over the run"
     elif u.get("detail"):
         what, span = "residual", "at most (99 % of the stars)"
@@ -75,7 +76,9 @@ def follows_phrase(u: dict[str, Any]) -> str:
 #: each cause a line may follow: what its re-run took out of the centroids
 #: (:func:`follows_phrase`) and the cause's line in a word (:func:`unexplained_lines`)
 CAUSES = {"rolling shutter": ("its fitted readout", "shutter"),
-          "focal length drift": ("the drift", "drift")}
+          **{s.cause: ("the drift", "drift") for s in SHAPES}}
+#: the causes of :mod:`~stellar_cal_ros.diagnosis.shape_drift` (a drifting camera shape)
+DRIFTS = frozenset(s.cause for s in SHAPES)
 
 
 def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
