@@ -267,11 +267,9 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     floats (13,) [nis, scale, frame sums (10), 0], accepted, uv_pred, S, nis_stars,
     directions, omega, R_prior)``; after ``REBUILD`` nothing was changed.
     """
-    N = P.shape[0]
     ints = np.zeros(6, dtype=np.int64)
     floats = np.zeros(13)
     floats[0] = np.nan
-    n = uv.shape[0]
     empty_b = np.zeros(0, dtype=np.bool_)
     empty2 = np.zeros((0, 2))
     # ---- propagation
@@ -294,6 +292,35 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     if np.any(E != 0.0):
         A = np.linalg.inv(np.eye(3) + E)
         omega = A @ x
+    status, accepted, uv_pred, S_blocks, nis_stars, dirs, _ = star_update(
+        P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, base, s0, g, timed,
+        R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du, bscale, Pe, cfg, ints,
+        floats)
+    return (status, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs, omega,
+            R_prior_out)
+
+
+@njit(cache=True)
+def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, base,
+                s0, g, timed, R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du,
+                bscale, Pe, cfg, ints, floats):
+    """The star update of :func:`frame_step` at a propagated state, in place.
+
+    ``R_a`` the attitude at the exposure (after the propagation), ``omega`` the corrected
+    body rate there; the rest as :func:`frame_step`, whose ``ints`` (6,) and ``floats`` (13,)
+    this fills.  Prediction, gate, iterated update of the accepted stars, sensitivity,
+    Joseph covariance, injection of the attitude and θ̂ (the first ``Pe`` entries) and the
+    attitude's covariance reset; a navigation block's correction is the caller's to inject
+    (``dx``, returned: zeros unless ``UPDATED``).  The star update a method with its own
+    propagation and measurements (the swaying-base filter) takes after them
+    (``StarFilter.compiled_star_update``).
+
+    Returns ``(status, accepted, uv_pred, S, nis_stars, directions, dx)``.
+    """
+    N = P.shape[0]
+    n = uv.shape[0]
+    R_b = R_a.copy()
+    dx = np.zeros(N)
     # ---- prediction at the prior state
     P_all = theta.shape[0]
     theta0 = theta.copy()
@@ -324,8 +351,7 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
     n_acc = idx.shape[0]
     ints[0] = n_acc
     if n_acc < cfg[5]:
-        return (FEW_STARS, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs, omega,
-                R_prior_out)
+        return FEW_STARS, accepted, uv_pred, S_blocks, nis_stars, dirs, dx
     # ---- iterated update of the accepted stars
     m2 = 2 * n_acc
     z = np.empty(m2)
@@ -357,8 +383,7 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
         okg, K, nis_it = kalman_gain(P, H, rr, nu)
         if not okg:
             ints[1] = it
-            return (BAD_GAIN, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs,
-                    omega, R_prior_out)
+            return BAD_GAIN, accepted, uv_pred, S_blocks, nis_stars, dirs, np.zeros(N)
         if it == 1:
             nis = nis_it
         dx_prev = dx
@@ -393,12 +418,11 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
             h[2 * q], h[2 * q + 1] = uv_r[q, 0], uv_r[q, 1]
         if not (np.all(np.isfinite(H)) and np.all(np.isfinite(h))):
             ints[1] = it
-            return (BAD_RELINEARIZATION, ints, floats, accepted, uv_pred, S_blocks, nis_stars,
-                    dirs, omega, R_prior_out)
+            return (BAD_RELINEARIZATION, accepted, uv_pred, S_blocks, nis_stars, dirs,
+                    np.zeros(N))
     ints[1] = it
     if not (np.all(np.isfinite(dx)) and np.all(np.isfinite(K))):
-        return (NON_FINITE, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs,
-                omega, R_prior_out)
+        return NON_FINITE, accepted, uv_pred, S_blocks, nis_stars, dirs, np.zeros(N)
     # ---- sensitivity (prior P, final H, the consider columns at the prior state)
     mc = M.shape[1]
     if mc:
@@ -448,8 +472,7 @@ def frame_step(P, theta, R_a, M, score, info, accumulate,
                 M[a, k] = topm[a, k]
     floats[0] = nis
     floats[2:12] = frame_sums(nu0, S_blocks, nis_stars, accepted, cfg[11])
-    return (UPDATED, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs, omega,
-            R_prior_out)
+    return UPDATED, accepted, uv_pred, S_blocks, nis_stars, dirs, dx
 
 
 @njit(cache=True)
@@ -599,12 +622,15 @@ class FusedStep:
 
     def __init__(self, flt, chain, gyro_affine) -> None:
         c = flt.config
-        b0, E0, Jb, JE = gyro_affine
         P_all = flt.model.size
-        self.gyro = (np.ascontiguousarray(b0, dtype=float), np.ascontiguousarray(E0, dtype=float),
-                     np.ascontiguousarray(Jb, dtype=float),
-                     np.ascontiguousarray(JE.reshape(9, P_all), dtype=float),
-                     np.ascontiguousarray(flt.propagation.gyro.theta0, dtype=float))
+        self.gyro = None  # (:meth:`build_update`'s step takes the rate from the filter)
+        if gyro_affine is not None:
+            b0, E0, Jb, JE = gyro_affine
+            self.gyro = (np.ascontiguousarray(b0, dtype=float),
+                         np.ascontiguousarray(E0, dtype=float),
+                         np.ascontiguousarray(Jb, dtype=float),
+                         np.ascontiguousarray(JE.reshape(9, P_all), dtype=float),
+                         np.ascontiguousarray(flt.propagation.gyro.theta0, dtype=float))
         self.compiled_chain = chain
         self.chain = (float(chain.s0), chain.g, bool(chain.timed), chain.R_prior, chain.T,
                       bool(chain.tracked), chain.c, chain.B, chain.need)
@@ -644,21 +670,63 @@ class FusedStep:
         chain = flt.model.compiled_chain()
         return None if chain is None else cls(flt, chain, prop.gyro._affine)
 
-    def call(self, P, theta, R, sens, pre, j, mj, ta, tb, prop, w_raw, uv, u, sigma, base,
-             ctx):
-        """:func:`frame_step` of the filter's current state (arrays changed in place)."""
+    @classmethod
+    def build_update(cls, flt) -> FusedStep | None:
+        """The star update alone of ``flt`` (:meth:`update`), or None.
+
+        None: no compiled chain, or a navigation block that is not a vector (its correction
+        is injected by the caller: an addition).
+
+        For a method whose propagation and measurements stay its own (the swaying-base
+        filter: ``StarFilter.compiled_star_update``).
+        """
+        if any(b.kind != "vector" for b in flt.navigation_blocks):
+            return None
+        chain = flt.model.compiled_chain()
+        return None if chain is None else cls(flt, chain, None)
+
+    def update(self, P, theta, R, sens, omega, uv, u, sigma, base, ctx):
+        """:func:`star_update` of the filter's propagated state (arrays changed in place).
+
+        Returns ``(status, ints, floats, accepted, uv_pred, S, nis_stars, directions, dx)``
+        (``ints``, ``floats`` as :func:`frame_step`'s).
+        """
+        M, score, info, acc = self._sensitivity(sens)
+        u, uv, sigma = self._frame(u, uv, sigma)
+        du, bscale = self.compiled_chain.frame_inputs(u, ctx)
+        ints = np.zeros(6, dtype=np.int64)
+        floats = np.zeros(13)
+        floats[0] = np.nan
+        out = star_update(P, theta, R, M, score, info, acc,
+                          np.ascontiguousarray(omega, dtype=float), uv, u, sigma, float(base),
+                          *self.chain, *self.directions, du, bscale, self.Pe, self.cfg, ints,
+                          floats)
+        return (out[0], ints, floats) + out[1:]
+
+    def _sensitivity(self, sens) -> tuple:
+        """``(M, score, info, accumulate)`` of the call (the empty ones without consider)."""
         if sens is None:
-            M, score, info, acc = (*self.none, False)
-        else:
-            if not sens.M.flags.c_contiguous:
-                sens.M = np.ascontiguousarray(sens.M)
-            M, score, info, acc = sens.M, sens.score, sens.info, bool(sens.accumulate)
+            return (*self.none, False)
+        if not sens.M.flags.c_contiguous:
+            sens.M = np.ascontiguousarray(sens.M)
+        return sens.M, sens.score, sens.info, bool(sens.accumulate)
+
+    @staticmethod
+    def _frame(u, uv, sigma) -> tuple:
+        """The frame's ``u, uv, sigma`` as C arrays of floats (copies only when needed)."""
         if not u.flags.c_contiguous:
             u = np.ascontiguousarray(u)
         if not uv.flags.c_contiguous:
             uv = np.ascontiguousarray(uv)
         if not (sigma.flags.c_contiguous and sigma.dtype == float):
             sigma = np.ascontiguousarray(sigma, dtype=float)
+        return u, uv, sigma
+
+    def call(self, P, theta, R, sens, pre, j, mj, ta, tb, prop, w_raw, uv, u, sigma, base,
+             ctx):
+        """:func:`frame_step` of the filter's current state (arrays changed in place)."""
+        M, score, info, acc = self._sensitivity(sens)
+        u, uv, sigma = self._frame(u, uv, sigma)
         gamma = prop._gamma
         if gamma is not self._gamma_of:  # a new reference: its Γ as a C array, once
             self._gamma_of, self._gamma = gamma, np.ascontiguousarray(gamma[0])

@@ -219,6 +219,11 @@ class StarFilter(Acquisition):
     batched_step = True
     #: at most this many frames a batch
     batch_frames_max = 64
+    #: a frame the fused step does not take (a method with its own propagation or
+    #: measurements: the swaying-base filter) is updated by the compiled star update after
+    #: the numpy propagation (:func:`~.frame_step.star_update`; False: the numpy update,
+    #: the reference; ``compiled_step`` False: the numpy update too)
+    compiled_star_update = False
     #: the method's navigation blocks after θ (e.g. the swaying filter's velocity); their
     #: nominal values start at zero and are set by :meth:`_acquire_navigation`
     navigation_blocks: tuple[Block, ...] = ()
@@ -283,6 +288,7 @@ class StarFilter(Acquisition):
         self._q_diag = np.concatenate([np.full(3, self.q_gyro), self.q_theta,
                                        np.zeros(self.N - 3 - self.P_est)])
         self._frame_step = None  # the fused compiled step (frame_step.FusedStep; False: none)
+        self._update_step = None  # the compiled star update alone (the same; False: none)
         self._batch = None  # the coming frames' fused steps (frame_step.FrameBatch)
         self.t: float | None = None
         self._omega = np.zeros(3)
@@ -549,7 +555,15 @@ class StarFilter(Acquisition):
         return self._star_update(uv, u_i, ctx, sigma, t_exp)
 
     def _star_update(self, uv, u_i, ctx, sigma, t_exp) -> FrameUpdate:
-        """The star update of a propagated state (the numpy reference path)."""
+        """The star update of a propagated state (the numpy reference path).
+
+        With :attr:`compiled_star_update` (and :attr:`compiled_step`) the same update in one
+        compiled call (:meth:`_compiled_star_update`), when the model has a compiled chain.
+        """
+        if self.compiled_star_update and self.compiled_step:
+            result = self._compiled_star_update(uv, u_i, ctx, sigma, t_exp)
+            if result is not None:
+                return result
         c = self.config
         n = len(uv)
         N = self.N
@@ -607,6 +621,51 @@ class StarFilter(Acquisition):
             return result
         self.inject(res.dx)
         self._updated(result, res.nis, int(len(z)), res.iterations)
+        return result
+
+    def _compiled_star_update(self, uv, u_i, ctx, sigma, t_exp) -> FrameUpdate | None:
+        """:meth:`_star_update` through :func:`~.frame_step.star_update`; None: no chain.
+
+        The numpy path's bookkeeping (gate counts, too few stars, a failure's line, the
+        counters) around one compiled call; the navigation blocks' correction is injected
+        here (the call injects the attitude and θ̂ and resets the covariance).
+        """
+        us = self._update_step
+        if us is None:
+            us = self._update_step = _frame_step_module().FusedStep.build_update(self) or False
+        if not us:
+            return None
+        frame_step = _frame_step_module()
+        st = self.state
+        if not st.P.flags.c_contiguous:
+            st.P = np.ascontiguousarray(st.P)
+        R = self.R_i_b
+        if not (R.flags.c_contiguous and R.flags.writeable):
+            R = self.R_i_b = np.array(R, dtype=float)
+        omega = self.omega
+        status, ints, floats, accepted, uv_pred, S, nis_stars, dirs, dx = us.update(
+            st.P, self.theta, R, st.sensitivity, omega, uv, u_i, sigma,
+            self._stamp_rel - self.t, ctx)
+        n, n_acc = len(uv), int(ints[0])
+        self._count_gated(ints[None], floats[None], (n,), (n_acc,), (t_exp,))
+        result = FrameUpdate(ctx.stamp, t_exp, accepted, uv, uv_pred, S, nis_stars,
+                             float("nan"), 0, dirs, omega.copy(), 0)
+        if status == frame_step.FEW_STARS:
+            self._too_few(uv, u_i, ctx, sigma, t_exp)
+            return result
+        self._rejected_in_row = self._reacquire_streak = 0
+        if status != frame_step.UPDATED:
+            self._failed(frame_step.REASONS[status], t_exp)
+            return result
+        nom = st.nominal
+        for b in self.navigation_blocks:  # (vector blocks: FusedStep.build_update)
+            nom[b.value_name] = nom[b.value_name] + dx[self.layout.sl(b.name)]
+        sens = st.sensitivity
+        if sens is not None and sens.accumulate:
+            sens.frames += 1
+        self._omega_stale = True
+        result.sums = floats[2:12]
+        self._updated(result, float(floats[0]), 2 * n_acc, int(ints[1]))
         return result
 
     # ------------------------------------------------------------------ one compiled call

@@ -168,6 +168,7 @@ class SwayingFilter(StarFilter):
     """
 
     method = "swaying_base"
+    compiled_star_update = True  # (the kernel's; the numpy update stays the reference)
     checkpoint_fields = {**StarFilter.checkpoint_fields,
                          "last_reference_t": "last_reference_t",
                          "level_check_deg": "level_check_deg",
