@@ -22,6 +22,7 @@ from stellar_cal_ros.methods.replay import (
     truth_parameters,
 )
 from stellar_cal_ros.methods.swaying import (
+    EarthGrid,
     SwayingConfig,
     crlb_swaying,
     replay_swaying,
@@ -114,6 +115,22 @@ def test_cli_outputs_and_speed(sim_bag, tmp_path, capsys):
     # sanity only: wall-clock speed depends on the shared machine (it read 22x at load 13 on
     # 2 cores, below the 30 this asked before)
     assert speed > 10.0
+
+
+def test_earth_grid_one_time_equals_the_array_path():
+    """``EarthGrid.interp`` of one time (the position reference's, a fast path) gives the
+    floats of the same time as an array: at nodes, chunk boundaries, before t0 and across
+    chunks dropped and computed again."""
+    fn = {"g": lambda t: np.column_stack([np.sin(t * 1e-3), 9.8 * np.cos(t * 7e-4), t * 1e-6]),
+          "r": lambda t: np.column_stack([6e6 * np.sin(t * 3e-4), 0.3 * t, np.cos(t)])}
+    one, arr = EarthGrid(1.7e9, 0.25, 600.0, fn), EarthGrid(1.7e9, 0.25, 600.0, fn)
+    ts = np.concatenate([[0.0, 0.25, 599.75, 600.0, 1200.0, -3.1],
+                         np.random.default_rng(1).uniform(-5.0, 7300.0, 2000)])
+    for t in ts.tolist():
+        for name in fn:
+            a, b = one.interp(name, t), arr.interp(name, np.array([t]))
+            assert a.shape == b.shape == (1, 3)
+            np.testing.assert_array_equal(a, b)
 
 
 def test_attitude_prefix_is_the_running_product():

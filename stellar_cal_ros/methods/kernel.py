@@ -635,7 +635,6 @@ class StarFilter(Acquisition):
             us = self._update_step = _frame_step_module().FusedStep.build_update(self) or False
         if not us:
             return None
-        frame_step = _frame_step_module()
         st = self.state
         if not st.P.flags.c_contiguous:
             st.P = np.ascontiguousarray(st.P)
@@ -646,6 +645,21 @@ class StarFilter(Acquisition):
         status, ints, floats, accepted, uv_pred, S, nis_stars, dirs, dx = us.update(
             st.P, self.theta, R, st.sensitivity, omega, uv, u_i, sigma,
             self._stamp_rel - self.t, ctx)
+        return self._compiled_result((status, ints, floats, accepted, uv_pred, S, nis_stars,
+                                      dirs, omega), uv, u_i, ctx, sigma, t_exp, dx)
+
+    def _compiled_result(self, got: tuple, uv, u_i, ctx, sigma, t_exp,
+                         dx: np.ndarray | None = None) -> FrameUpdate:
+        """The bookkeeping of a compiled update (gate counts, result, skip, failure, counts).
+
+        ``got``: ``(status, ints, floats, accepted, uv_pred, S, nis_stars, directions,
+        omega)`` of the call.  ``dx`` (the star update alone, :meth:`_compiled_star_update`):
+        the correction whose navigation blocks are injected here, and a frame with enough
+        stars ends a run of rejected frames even when its update fails (the numpy update's
+        order); None: the fused step's.
+        """
+        frame_step = _frame_step_module()
+        status, ints, floats, accepted, uv_pred, S, nis_stars, dirs, omega = got
         n, n_acc = len(uv), int(ints[0])
         self._count_gated(ints[None], floats[None], (n,), (n_acc,), (t_exp,))
         result = FrameUpdate(ctx.stamp, t_exp, accepted, uv, uv_pred, S, nis_stars,
@@ -653,13 +667,16 @@ class StarFilter(Acquisition):
         if status == frame_step.FEW_STARS:
             self._too_few(uv, u_i, ctx, sigma, t_exp)
             return result
-        self._rejected_in_row = self._reacquire_streak = 0
+        if dx is not None:
+            self._rejected_in_row = self._reacquire_streak = 0
         if status != frame_step.UPDATED:
             self._failed(frame_step.REASONS[status], t_exp)
             return result
-        nom = st.nominal
-        for b in self.navigation_blocks:  # (vector blocks: FusedStep.build_update)
-            nom[b.value_name] = nom[b.value_name] + dx[self.layout.sl(b.name)]
+        st = self.state
+        if dx is not None:
+            nom = st.nominal
+            for b in self.navigation_blocks:  # (vector blocks: FusedStep.build_update)
+                nom[b.value_name] = nom[b.value_name] + dx[self.layout.sl(b.name)]
         sens = st.sensitivity
         if sens is not None and sens.accumulate:
             sens.frames += 1
@@ -704,21 +721,8 @@ class StarFilter(Acquisition):
         self.omega = omega
         if self.gyro_watch is not None:
             self._R_prior = (R_prior, False)
-        n, n_acc = len(uv), int(ints[0])
-        self._count_gated(ints[None], floats[None], (n,), (n_acc,), (t_exp,))
-        result = FrameUpdate(ctx.stamp, t_exp, accepted, uv, uv_pred, S, nis_stars,
-                             float("nan"), 0, dirs, omega.copy(), 0)
-        if status == frame_step.FEW_STARS:
-            self._too_few(uv, u_i, ctx, sigma, t_exp)
-        elif status != frame_step.UPDATED:
-            self._failed(frame_step.REASONS[status], t_exp)
-        else:
-            if sens is not None and sens.accumulate:
-                sens.frames += 1
-            self._omega_stale = True
-            result.sums = floats[2:12]
-            self._updated(result, float(floats[0]), 2 * n_acc, int(ints[1]))
-        return True, result
+        return True, self._compiled_result((status, ints, floats, accepted, uv_pred, S,
+                                            nis_stars, dirs, omega), uv, u_i, ctx, sigma, t_exp)
 
     def _fused_step(self):
         """The filter's :class:`~.frame_step.FusedStep` (built on first use), or False."""

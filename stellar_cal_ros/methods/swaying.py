@@ -130,6 +130,14 @@ class EarthGrid:
 
     def interp(self, name: str, t: np.ndarray | float) -> np.ndarray:
         """Table ``name`` at relative times ``t`` (n, k)."""
+        if np.ndim(t) == 0:  # one time (the position reference's): the same floats, no groups
+            x = float(t) / self.step
+            i = math.floor(x)
+            a = x - i
+            c = i // self.K
+            table = self._chunk(c)[name]
+            j = i - c * self.K
+            return ((1.0 - a) * table[j] + a * table[j + 1])[None]
         t = np.atleast_1d(np.asarray(t, dtype=float))
         x = t / self.step
         i = np.floor(x).astype(np.int64)
