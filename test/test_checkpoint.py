@@ -116,9 +116,9 @@ def test_calibrator_truncated_checkpoint(tmp_path):
 # ---------------------------------------------------------------------------- the schema
 #: objects the filter's constructor builds from the prior, model and configuration, and
 #: workspaces every step overwrites (the swaying transition matrix) or builds on first use
-#: (the fused compiled frame step)
+#: (the fused compiled frame step, the compiled star update alone)
 _BUILT = {"model", "config", "layout", "gate", "update_policy", "grid", "site", "_Phi",
-          "_frame_step"}
+          "_frame_step", "_update_step"}
 
 
 def _differences(a, b, where=""):
