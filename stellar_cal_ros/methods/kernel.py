@@ -624,7 +624,10 @@ class StarFilter(Acquisition):
         return result
 
     def _compiled_star_update(self, uv, u_i, ctx, sigma, t_exp) -> FrameUpdate | None:
-        """:meth:`_star_update` through :func:`~.frame_step.star_update`; None: no chain.
+        """:meth:`_star_update` through :func:`~.frame_step.star_update`; None: not taken.
+
+        Not taken (the numpy update) when :meth:`~.frame_step.FusedStep.build_update` gives
+        none: no compiled chain, or a filter with its own injection or prediction.
 
         The numpy path's bookkeeping (gate counts, too few stars, a failure's line, the
         counters) around one compiled call; the navigation blocks' correction is injected
@@ -632,7 +635,8 @@ class StarFilter(Acquisition):
         """
         us = self._update_step
         if us is None:
-            us = self._update_step = _frame_step_module().FusedStep.build_update(self) or False
+            us = self._update_step = _frame_step_module().FusedStep.build_update(
+                self, StarFilter) or False
         if not us:
             return None
         st = self.state
