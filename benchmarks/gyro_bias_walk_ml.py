@@ -1,9 +1,9 @@
 r"""The gyro bias's random walk as a noise hypothesis: the run's log-likelihood over its density.
 
-The model's gyro bias is a constant (``GyroBias.process_noise`` empty: no random walk).  This
-script re-runs the current model (psce baseline) on a bag with the bias given a random walk
-of each density in deg/h/√h (set on the effect class for the run: a measurement, not an
-option of the package), or with the gyro's white noise scaled (``gK``: ``NoiseScales(gyro=K)``),
+The model's gyro bias is a constant unless the noise scales give it a random walk
+(``NoiseScales(gyro_bias_rw=D)``, ``--noise-scale gyro_bias_rw=D``).  This script re-runs the
+current model (psce baseline) on a bag with the bias given a random walk of each density in
+deg/h/√h, or with the gyro's white noise scaled (``gK``: ``NoiseScales(gyro=K)``),
 and prints the evaluation window's log-likelihood and NIS/dof and the RMS residual::
 
     python benchmarks/gyro_bias_walk_ml.py BAG 0,0.3,1,3,10,g10
@@ -14,7 +14,6 @@ and prints the evaluation window's log-likelihood and NIS/dof and the RMS residu
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 
@@ -23,12 +22,8 @@ import numpy as np
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
 from stellar_cal_ros.diagnosis.runstats import quiet
-from stellar_cal_ros.effects.gyro_bias import GyroBias
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods.frames import read_bag_data
-
-#: 1 deg/h/√h in rad/s/√s
-DENSITY_UNIT = math.radians(1.0) / 3600.0 / 60.0
 
 
 def main(bag: str, items: str) -> None:
@@ -36,27 +31,21 @@ def main(bag: str, items: str) -> None:
     data = read_bag_data(bag + ".mcap")
     prior = rerun_prior(load_calibration(bag + ".prior.yaml"))
     spec = method_spec("psce")
-    kept = GyroBias.process_noise
-    try:
-        for item in items.split(","):
-            kw: dict = {}
-            dens = 0.0
-            if item.startswith("g"):
-                kw["noise"] = NoiseScales(gyro=float(item[1:]))
-            else:
-                dens = float(item)
-            GyroBias.process_noise = (dens * DENSITY_UNIT,) * 3 if dens > 0 else ()
-            t0 = time.perf_counter()
-            with quiet():
-                r = spec.runner(data, prior, [], keep_tables=True, eval_fraction=0.5, **kw)
-            w = r.stats.window(0.5)
-            du, dv = np.asarray(r.residuals["du"]), np.asarray(r.residuals["dv"])
-            print(f"{item:>6}  loglik {w['log_likelihood']:9.1f}  NIS/dof "
-                  f"{w['nis']['mean'] / 2:.3f}  rms u {np.sqrt(np.mean(du**2)):.4f} "
-                  f"v {np.sqrt(np.mean(dv**2)):.4f} px  [{time.perf_counter() - t0:.1f} s]",
-                  flush=True)
-    finally:
-        GyroBias.process_noise = kept
+    for item in items.split(","):
+        if item.startswith("g"):
+            noise = NoiseScales(gyro=float(item[1:]))
+        else:
+            noise = NoiseScales(gyro_bias_rw=float(item))
+        t0 = time.perf_counter()
+        with quiet():
+            r = spec.runner(data, prior, [], keep_tables=True, eval_fraction=0.5,
+                            noise=None if noise.identity else noise)
+        w = r.stats.window(0.5)
+        du, dv = np.asarray(r.residuals["du"]), np.asarray(r.residuals["dv"])
+        print(f"{item:>6}  loglik {w['log_likelihood']:9.1f}  NIS/dof "
+              f"{w['nis']['mean'] / 2:.3f}  rms u {np.sqrt(np.mean(du**2)):.4f} "
+              f"v {np.sqrt(np.mean(dv**2)):.4f} px  [{time.perf_counter() - t0:.1f} s]",
+              flush=True)
 
 
 if __name__ == "__main__":

@@ -334,7 +334,9 @@ def print_replay_summary(result, prior) -> None:
                                  n.get("accel_noise_scale", 1.0),
                                  ", stars with sigma 0 (unknown): measured "
                                  f"{n['unknown_star_sigma_px']:.3g} px"
-                                 if n.get("unknown_star_sigma_px") else ""))
+                                 if n.get("unknown_star_sigma_px") else "")
+              + (", gyro bias random walk {:.3g} deg/h/sqrt(h)".format(
+                  n["gyro_bias_rw_deg_h_sqrth"]) if n.get("gyro_bias_rw_deg_h_sqrth") else ""))
     loud = mismatch_text(cons)
     if loud:
         print("*" * 78 + "\n" + loud + "\n" + "*" * 78)
@@ -548,7 +550,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scale the stated noise (comma-separated items; what `diagnose` "
                         "prints as 'use --noise-scale'): star=S scales the stars' sigma "
                         "(messages, or --centroid-sigma for sigma 0) by S, gyro=G the gyro "
-                        "ARW, accel=A the accelerometer VRW; unknown=PX sets the sigma of "
+                        "ARW, accel=A the accelerometer VRW; gyro_bias_rw=D gives the gyro "
+                        "bias a random walk of D deg/h/sqrt(h) (0, the default: a constant "
+                        "bias); unknown=PX sets the sigma of "
                         "stars whose message says 0; rho=R[,share=W] declares the stars' "
                         "noise correlated from frame to frame (lag-1 R; S then the whole "
                         "scale a white-noise filter needs): the consistency is judged "

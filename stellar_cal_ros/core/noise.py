@@ -9,7 +9,9 @@ of a datasheet), and a tracker may send ``sigma = 0`` for "unknown".  A run appl
   the message's σ is 0, :attr:`NoiseScales.unknown_sigma_px` if measured (its own: no group
   factor), else the configured default times :attr:`NoiseScales.star` and its group's factor;
 * the gyro's angle random walk times :attr:`NoiseScales.gyro`, the accelerometer's velocity
-  random walk times :attr:`NoiseScales.accel`.
+  random walk times :attr:`NoiseScales.accel`;
+* the gyro bias's random walk :attr:`NoiseScales.gyro_bias_rw` (deg/h/√h; 0: the constant
+  bias the model states), the process noise of the ``gyro_bias`` block.
 
 1.0 everywhere is "as stated".  The diagnosis measures the scales from the run itself
 (:mod:`stellar_cal_ros.diagnosis.noise`); ``replay --noise-scale`` applies them.
@@ -46,7 +48,8 @@ GROUP_SPEC = ("a group spec is by=magnitude|radius|column|row,edges=E1/E2,factor
               "messages' sigma; '/' between numbers), e.g. "
               "by=magnitude,edges=4.5,factors=1/0.5")
 #: the items ``--noise-scale`` takes
-SCALE_SPEC = ("star=S, gyro=G, accel=A, unknown=PX, rho=R, share=W, or a group spec "
+SCALE_SPEC = ("star=S, gyro=G, accel=A, unknown=PX, rho=R, share=W, gyro_bias_rw=D "
+              "(deg/h/sqrt(h)), or a group spec "
               "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2")
 
 
@@ -92,6 +95,9 @@ class NoiseScales:
     star_rho: float = 0.0
     #: the AR(1)'s share ``w`` of the stars' noise variance, the rest white (1: pure AR(1))
     star_ar_share: float = 1.0
+    #: the gyro bias's random walk, deg/h/√h per axis (0: a constant bias, as the model
+    #: states): the process noise of the ``gyro_bias`` block where it is estimated
+    gyro_bias_rw: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("star", "gyro", "accel"):
@@ -116,12 +122,16 @@ class NoiseScales:
         if not (math.isfinite(self.star_ar_share) and 0.0 <= self.star_ar_share <= 1.0):
             raise ValueError(f"star noise AR(1) share must be in [0, 1], got "
                              f"{self.star_ar_share!r}")
+        if not (math.isfinite(self.gyro_bias_rw) and self.gyro_bias_rw >= 0.0):
+            raise ValueError(f"gyro bias random walk must be >= 0 deg/h/sqrt(h), got "
+                             f"{self.gyro_bias_rw!r}")
 
     @property
     def identity(self) -> bool:
         """Nothing rescaled."""
         return (self.star == 1.0 and self.gyro == 1.0 and self.accel == 1.0
-                and not self.unknown_sigma_px and not self.group_by and not self.star_rho)
+                and not self.unknown_sigma_px and not self.group_by and not self.star_rho
+                and not self.gyro_bias_rw)
 
     def replace(self, **changes: Any) -> NoiseScales:
         """A copy with ``changes``."""
@@ -241,6 +251,8 @@ class NoiseScales:
                                       "sigma_scale": float(self.star_inflation)}
             if self.star_ar_share != 1.0:
                 out["star_correlated"]["ar_share"] = float(self.star_ar_share)
+        if self.gyro_bias_rw:
+            out["gyro_bias_rw_deg_h_sqrth"] = float(self.gyro_bias_rw)
         return out
 
     @classmethod
@@ -254,7 +266,8 @@ class NoiseScales:
                    float(d.get("accel_noise_scale", 1.0)),
                    float(d.get("unknown_star_sigma_px", 0.0) or 0.0),
                    str(groups.get("by", "")), tuple(float(e) for e in groups.get("edges", ())),
-                   tuple(float(f) for f in groups.get("scales", ())), rho, share)
+                   tuple(float(f) for f in groups.get("scales", ())), rho, share,
+                   float(d.get("gyro_bias_rw_deg_h_sqrth", 0.0) or 0.0))
 
     @classmethod
     def parse(cls, text: str) -> NoiseScales:
@@ -269,9 +282,11 @@ class NoiseScales:
         consistency judges its NIS and whiteness against that correlation.  ``share``:
         white + AR(1) noise, ``rho`` then the AR(1)'s coefficient and ``share`` its part of
         the variance (:attr:`star_ar_share`; the advice prints ``star=K,rho=R,share=W``).
+        ``gyro_bias_rw``: the gyro bias's random walk, deg/h/√h (:attr:`gyro_bias_rw`).
         """
         keys = {"star": "star", "gyro": "gyro", "accel": "accel",
-                "unknown": "unknown_sigma_px", "rho": "star_rho", "share": "star_ar_share"}
+                "unknown": "unknown_sigma_px", "rho": "star_rho", "share": "star_ar_share",
+                "gyro_bias_rw": "gyro_bias_rw"}
         values: dict[str, Any] = {}
         last = ""
         for item in text.replace(";", ",").split(","):

@@ -62,7 +62,7 @@ from stellar_cal_ros.core.gating import GatePolicy, block_nis, fov_tan2
 from stellar_cal_ros.core.imu import ImuBuffer
 from stellar_cal_ros.core.propagation import ImuPropagation, SensorModel, Step
 from stellar_cal_ros.core.state import Block, ErrorState, StateLayout, nominal_view
-from stellar_cal_ros.core.units import DEG_PER_SQRT_HOUR
+from stellar_cal_ros.core.units import DEG_PER_HOUR, DEG_PER_SQRT_HOUR
 from stellar_cal_ros.effects.base import FrameContext, Stage
 from stellar_cal_ros.errors import ModelError
 from stellar_cal_ros.methods.acquisition import (  # noqa: F401 (re-exported for callers)
@@ -267,6 +267,11 @@ class StarFilter(Acquisition):
         self.state.assign(self.it, self.it, np.diag(model.initial_sigma[:self.P_est] ** 2))
         q = [e.process_noise_density() for e in model.effects]
         self.q_theta = (np.concatenate(q) ** 2 if q else np.zeros(0))[:self.P_est]
+        walk = float(getattr(c.noise, "gyro_bias_rw", 0.0) or 0.0)
+        sl = model.slices.get("gyro_bias")
+        if walk > 0 and sl is not None and sl.stop <= self.P_est:
+            # the gyro bias's random walk the noise scales state (deg/h/√h → rad/s/√s)
+            self.q_theta[sl] = (walk * DEG_PER_HOUR / 60.0) ** 2
         self.q_gyro = (c.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR) ** 2
         self.imu = ImuBuffer(nominal_dt, c.imu_bridge_factor, c.gap_rate_sigma,
                              c.gap_accel_sigma, c.gap_reacquire_s,
