@@ -98,3 +98,26 @@ def test_replay_takes_the_walk_and_its_result_says_so(walking, tmp_path, capsys)
     cons = load_calibration(tmp_path / "r.yaml").extra["consistency"]
     assert cons["noise_rescaled"] and cons["noise"]["gyro_bias_rw_deg_h_sqrth"] == WALK
     assert abs(cons["nis_per_dof"] - 1.0) < 0.1
+
+
+def test_the_swaying_filter_takes_the_walk_in_place_of_its_gauss_markov_bias():
+    """swaying_base holds the gyro bias as a Gauss–Markov process (τ 1 day): a stated walk
+    replaces it (it was silently ignored: q 0 on the block) and leaves the accelerometer's."""
+    from stellar_cal_ros.methods.swaying import SwayingConfig, SwayingFilter
+
+    sim = simulate(get_scenario("swaying"), duration=20.0, seed=21)
+    data = bag_data_from_simulation(sim)
+    flts = {}
+    for walk in (0.0, WALK):
+        noise = NoiseScales(gyro_bias_rw=walk) if walk else None
+        flts[walk] = replay(data, sim.prior, "swaying_base", noise=noise,
+                            keep_tables=False).filter
+    assert isinstance(flts[WALK], SwayingFilter)
+    sl = flts[WALK].model.slices["gyro_bias"]
+    np.testing.assert_allclose(flts[WALK].q_theta[sl], (WALK * DEG_PER_HOUR / 60.0) ** 2)
+    assert np.all(np.isinf(flts[WALK].tau[sl])) and not np.any(flts[WALK].gm_sigma[sl])
+    assert np.all(flts[0.0].tau[sl] == SwayingConfig().gauss_markov["gyro_bias"][0])
+    other = np.ones(len(flts[WALK].tau), dtype=bool)
+    other[sl] = False
+    np.testing.assert_array_equal(flts[WALK].tau[other], flts[0.0].tau[other])
+    np.testing.assert_array_equal(flts[WALK].gm_sigma[other], flts[0.0].gm_sigma[other])

@@ -192,11 +192,16 @@ class SwayingFilter(StarFilter):
         self.site = site
         P = self.P_est
         self.iv, self.ir = self.layout.sl("velocity"), self.layout.sl("position")
-        # process noise of θ: Gauss–Markov where configured, else the effect's random walk
+        # process noise of θ: Gauss–Markov where configured, else the effect's random walk;
+        # a gyro bias random walk the noise scales state (``gyro_bias_rw``) replaces its
+        # Gauss–Markov (the kernel set it in q_theta)
         self.tau = np.full(P, np.inf)
         self.gm_sigma = np.zeros(P)
+        walk = float(getattr(c.noise, "gyro_bias_rw", 0.0) or 0.0)
         for eff in model.effects:
             sl = model.slices[eff.id]
+            if eff.id == "gyro_bias" and walk > 0:
+                continue
             if sl.stop <= P and eff.id in c.gauss_markov:
                 tau, s = c.gauss_markov[eff.id]
                 self.tau[sl] = tau
