@@ -471,8 +471,11 @@ SWAYING_SIGMA_TOL = 1e-4
 SWAYING_RTOL = 1e-6
 
 
-@pytest.mark.parametrize("damaged", [False, True])
-def test_swaying_compiled_star_update_equals_the_numpy_update(monkeypatch, damaged) -> None:
+@pytest.mark.parametrize(("method", "damaged"), [("swaying_base", False),
+                                               ("swaying_base", True),
+                                               ("traditional", False)])
+def test_swaying_compiled_star_update_equals_the_numpy_update(monkeypatch, method,
+                                                              damaged) -> None:
     """The swaying-base filter propagates and applies its position reference in numpy and
     takes the star update in one compiled call (``frame_step.star_update``, the fused step's
     update; ``SwayingFilter.compiled_star_update``).  Against the numpy update (the
@@ -480,7 +483,8 @@ def test_swaying_compiled_star_update_equals_the_numpy_update(monkeypatch, damag
     never by the reference; the counters are equal (gated, skipped, re-acquired frames on the
     damaged bag), θ̂, the velocity, position and attitude within ``SWAYING_SIGMA_TOL`` σ, the
     covariance's diagonal, the consider sensitivity (M, information), the score (in its σ)
-    and the running statistics within ``SWAYING_RTOL`` relative."""
+    and the running statistics within ``SWAYING_RTOL`` relative.  ``traditional`` (a
+    ``SwayingFilter``) inherits the compiled update and is held to the same bounds."""
     from stellar_cal_ros.methods import frame_step
     from stellar_cal_ros.methods.swaying import SwayingFilter
 
@@ -501,7 +505,7 @@ def test_swaying_compiled_star_update_equals_the_numpy_update(monkeypatch, damag
     for compiled in (True, False):
         monkeypatch.setattr(SwayingFilter, "compiled_star_update", compiled)
         calls.clear()
-        runs[compiled] = replay(data, sim.prior, "swaying_base", consider=["radial_k3"],
+        runs[compiled] = replay(data, sim.prior, method, consider=["radial_k3"],
                                 keep_tables=False)
         if compiled:
             n_calls = len(calls)

@@ -671,20 +671,21 @@ class FusedStep:
         return None if chain is None else cls(flt, chain, prop.gyro._affine)
 
     #: what the numpy star update calls that :meth:`update` does in the compiled call
-    _UPDATE_HOOKS = ("inject", "_predict", "_star_jacobian")
+    _UPDATE_HOOKS = ("inject", "_predict", "_star_jacobian", "_gated")
 
     @classmethod
     def build_update(cls, flt, kernel_cls: type) -> FusedStep | None:
         """The star update alone of ``flt`` (:meth:`update`), or None.
 
-        None: no compiled chain, a navigation block that is not a vector (its correction
-        is injected by the caller: an addition), or a filter with its own injection or
-        prediction (the Cramér–Rao bound's, which keeps the nominal state: ``bounds``).
+        None: no compiled chain, a navigation block that is not a whole vector (its
+        correction is injected by the caller: an addition to all of it), or a filter with
+        its own injection, prediction, Jacobian or gating judgement (the Cramér–Rao
+        bound's, which keeps the nominal state: ``bounds``).
 
         For a method whose propagation and measurements stay its own (the swaying-base
         filter: ``StarFilter.compiled_star_update``).
         """
-        if any(b.kind != "vector" for b in flt.navigation_blocks) or any(
+        if any(b.kind != "vector" or b.index is not None for b in flt.navigation_blocks) or any(
                 getattr(type(flt), h) is not getattr(kernel_cls, h) for h in cls._UPDATE_HOOKS):
             return None
         chain = flt.model.compiled_chain()
