@@ -108,6 +108,12 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         from stellar_cal_ros.diagnosis.flexure import remainder_text
 
         summary["remainder"] = dict(top, like=list(like), text=remainder_text(like, top))
+    # an added camera shape with a one-axis position shape left beside it: it may be that
+    # shape's linear part (a u-only or v-only distortion outside the library)
+    axis = axis_remainder(summary["unexplained"],
+                          [e for e in list(effects) + like if e not in spec.baseline])
+    if axis is not None:
+        summary["axis_remainder"] = axis
     # the flexure's MDB (flexure.hiding); null when its test found a remainder or did not run
     summary["flexure_hiding"] = hiding or None
     if best is None:
@@ -134,6 +140,53 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         if plots:
             write_report(out, summary, title)
     return summary
+
+
+#: the 'unexplained' lines an axis remainder is read from (those the terminal shows)
+AXIS_LINES = 5
+#: each detector axis's position regressor (:data:`~stellar_cal_ros.diagnosis.stats.
+#: STAR_REGRESSORS`), the residual component along it first
+AXES = (("u", "u (column)"), ("v", "v (row)"))
+
+
+def axis_remainder(found: list[dict[str, Any]], effects: list[str]) -> dict[str, Any] | None:
+    """An added camera shape that may stand in for a one-axis distortion outside the library.
+
+    A centroid bias along u only that grows with the column (an odd u-only distortion) has
+    a linear part that is a pixel aspect to first order: the library takes it, and the
+    rest shows as 'u residual vs u (column)' lines (case ``u_cubic`` of
+    ``benchmarks/unseen_cases.py``: aspect −141 ppm, 3/5 of a 0.12-px cubic over its
+    half width).  ``found``: the summary's 'unexplained' lines (ranked); ``effects``: the
+    effects added to the baseline.  When one of them is a camera effect and the shown
+    lines (:data:`AXIS_LINES`) hold a residual along one axis against that axis' position
+    with no line of the other axis against its own, returns the first such line's fields
+    with ``effects`` (the camera effects), ``axis``, ``lines`` (how many) and ``text``;
+    else ``None``.  Text only: the added effect is kept.
+    """
+    from stellar_cal_ros.effects import registry
+    from stellar_cal_ros.effects.base import Stage
+
+    camera = [e for e in dict.fromkeys(effects) if registry.create(e).stage is Stage.CAMERA]
+    if not camera:
+        return None
+
+    def along(lines, axis, regressor):
+        return [u for u in lines if u["component"] == axis
+                and u["regressor"].split(" (periodic")[0] == regressor]
+
+    for (axis, regressor), (other, theirs) in ((AXES[0], AXES[1]), (AXES[1], AXES[0])):
+        own = along(found[:AXIS_LINES], axis, regressor)
+        if own and not along(found, other, theirs):
+            top = own[0]
+            name = "+".join(camera)
+            text = (f"{name} may stand in for a {axis}-only distortion outside the library: "
+                    f"a shape along {axis} alone is left after it ({len(own)} '{axis} "
+                    f"residual vs {regressor}' line{'s' if len(own) > 1 else ''}, the first "
+                    f"{abs(top['change_px']):.3g} px, t={top['statistic']:.1f}), and the "
+                    f"linear part of such a shape is what {name} fits; its estimate is not a "
+                    "calibration to use until that shape is explained")
+            return dict(top, effects=camera, axis=axis, lines=len(own), text=text)
+    return None
 
 
 def causes_first(found: list, run: RunSummary, runs, keep=frozenset()

@@ -204,9 +204,16 @@ def diagnosis_lines(summary: dict, calibration=None) -> list[str]:
     else:
         out.append(f"recommendation: add --effects {rec}" if rec else
                    "recommendation: no library effect explains the residuals better")
+    out += axis_lines(summary)
     out += flexure_hiding_lines(summary)
     out += scope_lines(summary, single_round=True)
     return out
+
+
+def axis_lines(summary: dict[str, Any]) -> list[str]:
+    """An added camera shape that may stand in for a one-axis distortion (one line)."""
+    a = summary.get("axis_remainder")
+    return [f"  {a['text']}"] if a else []
 
 
 def flexure_hiding_lines(summary: dict[str, Any]) -> list[str]:
@@ -296,6 +303,7 @@ def discovery_lines(summary: dict[str, Any]) -> list[str]:
                    + (f"; {', '.join(later)}, added after it, may absorb that remainder in "
                       "turn (the rounds' 'remainder' in diagnosis.json)" if later else "")
                    + "".join(f"; {b['text']}" for b in alias.values()))
+    out += axis_lines(summary)
     if summary["stopped"] != "nothing more is significant":
         out.append(f"  {summary['stopped']}")
     for rj in summary["rejected"]:
