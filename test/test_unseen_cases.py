@@ -1418,3 +1418,31 @@ def test_a_cause_line_and_the_flexure_findings_do_not_follow_another_cause(monke
     # without ``keep`` the flexure finding follows like any line; the cause's stays
     out, after = rolling.first_if_cause(found, run, runs, None)
     assert out[0] is drift and out[1].regressor.startswith(stats.ROLLING) and after == {2, 3}
+
+
+def test_an_added_camera_shape_beside_a_one_axis_shape_may_stand_in_for_it() -> None:
+    """Case ``u_cubic`` (a centroid bias along u alone, cubic in the column: outside the
+    library): ``discover`` adds pixel_aspect (−141 ppm, the cubic's linear part) and 'u
+    residual vs u (column)' lines are left.  The summary says the aspect may stand in for
+    a u-only distortion (``output.axis_remainder``, text only); not when the other axis
+    shows its own shape too, nor when nothing added is a camera effect.  The lines are the
+    seed-21 run's first two."""
+    from stellar_cal_ros.diagnosis.output import axis_remainder
+
+    def line(component, regressor, t, px):
+        return {"regressor": regressor, "component": component, "statistic": t,
+                "p_value": 1e-8, "change_px": px}
+
+    u_lines = [line("u", "u (column) (periodic 1024 px, sin)", 11.0, 0.0114),
+               line("u", "u (column) (periodic 512 px, sin)", -7.4, 0.0100)]
+    a = axis_remainder(u_lines, ["pixel_aspect"])
+    assert a is not None and a["axis"] == "u" and a["lines"] == 2
+    assert a["effects"] == ["pixel_aspect"] and a["statistic"] == 11.0
+    assert a["text"].startswith("pixel_aspect may stand in for a u-only distortion")
+    assert "0.0114 px, t=11.0" in a["text"]
+    v_only = [dict(u, component="v", regressor=u["regressor"].replace("u (column)", "v (row)"))
+              for u in u_lines]
+    assert axis_remainder(v_only, ["image_plane_tilt"])["axis"] == "v"
+    assert axis_remainder(u_lines + v_only[:1], ["pixel_aspect"]) is None  # both axes
+    assert axis_remainder(u_lines, ["time_offset"]) is None  # no camera effect added
+    assert axis_remainder(u_lines, []) is None
