@@ -146,21 +146,28 @@ def test_periodic_frame_residual_is_found_and_white_ones_pass():
     assert np.mean(np.asarray(p) < 0.01) <= 0.01 + 3 * np.sqrt(0.01 * 0.99 / len(p))
 
 
-@pytest.mark.parametrize("hz, phase", [(1.0, 0.7), (1.0 / 37.3, 0.3)])
+@pytest.mark.parametrize("hz, phase, frames, dropped", [(1.0, 0.7, 300, 0),
+                                                       (1.0, 0.7, 301, 0),
+                                                       (1.0, 0.7, 300, 4),
+                                                       (1.0 / 37.3, 0.3, 300, 0)])
 def test_periodic_frame_residual_size_is_its_amplitude_at_nyquist_and_between_ordinates(
-        hz, phase):
+        hz, phase, frames, dropped):
     """Unseen case 'arm_1hz' (the tracker vibrating at 1 Hz against the IMU, 2-Hz frames):
     the frame means alternate by a sin(phase) in u, a cos(phase) in v, at the frames'
     Nyquist rate, which the periodogram leaves out; its taper's lobe found it (p 1e-38) but
     the sinusoid fitted at the ordinate's period (1.01 s) read 9e-5 and 0.0015 px for 0.066
     and 0.051.  The size is the fitted amplitude within the peak's lobe: the alternation's
     at the Nyquist rate, and a period between ordinates (37.3 s over 150 s: 4.02
-    ordinates) reads its amplitude too."""
+    ordinates) reads its amplitude too.  An odd frame count (whose last ordinate lies half
+    a spacing below the Nyquist rate: 301 frames read 0.064 for 0.05) and gated frames (4 of
+    300 gone moved the rate the search stopped at: 0.0097 for 0.05) read it too (reviewer
+    RC)."""
     from stellar_cal_ros.diagnosis.stats import periodic_findings
 
     rng = np.random.default_rng(11)
-    frames, stars, amp = 300, 20, 0.06
-    f = np.repeat(np.arange(frames), stars)
+    stars, amp = 20, 0.06
+    kept = np.setdiff1d(np.arange(frames), np.arange(dropped) * 67 + 31)  # gated frames
+    f = np.repeat(kept, stars)
     t = 1.7e9 + 0.5 * f  # POSIX stamps, as a bag's
     ph = 2 * np.pi * hz * (t - t[0]) + phase
     res = {"frame": f, "t": t, "gated": np.zeros(len(f), bool),
@@ -171,7 +178,7 @@ def test_periodic_frame_residual_size_is_its_amplitude_at_nyquist_and_between_or
         want = {"frame mean u": amp * abs(np.sin(phase)), "frame mean v": amp * abs(np.cos(phase))}
     else:
         want = {"frame mean u": amp, "frame mean v": amp}
-    se = 0.05 / np.sqrt(stars) * np.sqrt(2.0 / frames)  # a fitted amplitude's sigma
+    se = 0.05 / np.sqrt(stars) * np.sqrt(2.0 / len(kept))  # a fitted amplitude's sigma
     for comp, a in want.items():
         x = found[comp]
         assert x.p_value < 1e-6, x

@@ -1355,6 +1355,10 @@ def test_a_drifting_detector_tilt_is_named_first_and_its_static_keystone_lines_f
     want = 2.0 * mrad * d["run_s"] / (span_ns * 1e-9)
     assert abs(d["mrad_over_run"] - want) < 3.0 * d["sigma_mrad"], (d, want)
     assert d["sigma_mrad"] < 0.25 * want, d
+    # the principal point's v drifting reads the same (reviewer RC): the line says both
+    fy = run.calibration.camera.fy
+    assert d["c_y_px_over_run"] == pytest.approx(d["mrad_over_run"] * 1e-3 * fy), d
+    assert "principal point's v (c_y) drifting by" in found[0].regressor, found[0]
     corner = shape_drift.corner_px(run.calibration, tilt)
     assert found[0].slope_px == pytest.approx(want * 1e-3 * corner, rel=3.0 * d["sigma_mrad"]
                                               / want)

@@ -1,18 +1,19 @@
 """A camera shape that changes over the run: ``discover``'s rule for the lines it leaves.
 
 No library effect lets the focal length or the detector's tilt change with time alone
-(thermal_focal_length needs the tracker's temperature; image_plane_tilt is static).  Such a
-drift leaves, in the evaluation window (the run's second half), mostly a *static* shape
-and only a smaller part that changes over it, and ranked by p the static shape's lines come
-first with no line on time.  A model that follows the shape (estimates it, or spans it
-with its other camera parameters: psce's principal point and tangential p1 span the
-keystone of a tilt about u to 0.999) follows the drift's running mean: on a linear drift
-``k t`` its estimate lags ``k t / 2`` behind, and the window holds the mean lag (unseen case
-``focal_drift``, 150 ppm over 300 s: ``u vs u``, ``v vs v`` and their one-period sines
-at t 20-23, p ~ 1e-30, the only time line ``radial vs time``, 12th; unseen case
-``tilt_drift``, the tilt about u −1.5 → +1.5 mrad: ``v vs v (row)``, ``radial vs v (row)``
-at t ~ 24, the keystone's lag +1.2 mrad).  A shape the filter could follow and does not
-hold is itself the sign of a lag.
+(thermal_focal_length needs the tracker's temperature; image_plane_tilt is static). Such a
+drift leaves, in the evaluation window (the run's second half), mostly a *static* shape and
+only a smaller part that changes over it, and ranked by p the static shape's lines come
+first with no line on time. A model that follows the shape (estimates it, or spans it with
+its other camera parameters: psce's principal point spans the keystone of a tilt about u to
+1.0 once each frame's attitude takes up the rotation, so a principal point that drifts reads
+as a tilt that drifts, and the line says both) follows the drift's running mean: on a linear
+drift ``k t`` its estimate lags ``k t / 2`` behind, and the window holds the mean lag
+(unseen case ``focal_drift``, 150 ppm over 300 s: ``u vs u``, ``v vs v`` and their
+one-period sines at t 20-23, p ~ 1e-30, the only time line ``radial vs time``, 12th; unseen
+case ``tilt_drift``, the tilt about u −1.5 → +1.5 mrad: ``v vs v (row)``, ``radial vs v
+(row)`` at t ~ 24, the keystone's lag +1.2 mrad). A shape the filter could follow and does
+not hold is itself the sign of a lag.
 
 The rule (:func:`first_if_cause`), for each of the camera's shapes (:data:`SHAPES`: the
 image scale, the two tilts; their patterns :func:`~stellar_cal_ros.diagnosis.stats.
@@ -74,12 +75,18 @@ SHAPES = (SCALE,
 REGRESSOR = SCALE.regressor
 #: what the lines that follow the scale's drift say they follow (``SCALE.cause``)
 CAUSE = SCALE.cause
-#: each shape's two tests (the static part, its change), Bonferroni
+#: each shape's two tests (the static part, its change)
 TESTS = 2
+#: the rule's family: every shape's two tests, Bonferroni (the condition and the line's p)
+FAMILY = TESTS * len(SHAPES)
 #: a model whose camera parameters span more than this share of a shape's pattern follows
-#: it as if it estimated it (psce's principal point and tangential p1 span the keystone of
-#: tau_x 0.99: unseen case ``tilt_drift``'s filter lags the tilt)
-SPANNED = 0.5
+#: it as if it estimated it (psce's principal point alone spans a tilt's keystone to 1.0
+#: once each frame's attitude takes up the rotation, tangential p1 0.89: unseen case
+#: ``tilt_drift``'s filter lags the tilt; the pixel aspect spans the scale 0.50, kept out)
+SPANNED = 0.8
+#: the principal point's coordinate whose drift reads as each tilt's (the same keystone
+#: once the attitude takes up its rotation): its axis, name and focal length
+TWIN_POINT = {"tau_x": ("v", "c_y", "fy"), "tau_y": ("u", "c_x", "fx")}
 
 
 def of_table(res, calibration: Calibration, fraction: float, shape: Shape = SCALE,
@@ -145,8 +152,8 @@ def patterns(calibration: Calibration, effects: tuple[str, ...]):
 
 def lagging(fit: dict[str, float] | None, alpha: float) -> bool:
     """Whether ``fit`` reads a filter lagging a drift: both tests significant, one sign."""
-    return (fit is not None and fit["static_p"] * TESTS < alpha
-            and fit["change_p"] * TESTS < alpha
+    return (fit is not None and fit["static_p"] * FAMILY < alpha
+            and fit["change_p"] * FAMILY < alpha
             and np.sign(fit["static"]) == np.sign(fit["change"]))
 
 
@@ -248,7 +255,7 @@ def shape_first(found: list, run, runs, tests, shape: Shape = SCALE, alpha: floa
     Fires only if some line of ``found`` is gone there (the evidence);
     then the line (the shape's ``regressor``: the drift over the run ± its σ from the
     change test's t, its size the px at the detector's corner; t and p of the change test,
-    p × :data:`TESTS`) goes before the first line that is gone, the lines that are gone
+    p × :data:`FAMILY`) goes before the first line that is gone, the lines that are gone
     after it (they follow it: their indices in the returned list returned), the others
     after them.  Unchanged otherwise, and without a runner.
     """
@@ -278,7 +285,10 @@ def shape_first(found: list, run, runs, tests, shape: Shape = SCALE, alpha: floa
         not rolling.gone(f, left, keep) for f in found) else None
     if better is not None:
         twice = without(better)
-        if twice is not None and twice[1] is not None:
+        # kept only if it leaves no more of the lines than the first run did
+        if (twice is not None and twice[1] is not None
+                and sum(not rolling.gone(f, set(twice[0]), keep) for f in found)
+                <= sum(not rolling.gone(f, left, keep) for f in found)):
             rate, left, rest = better, set(twice[0]), twice[1]
     follows = [f for f in found if rolling.gone(f, left, keep)]
     if not follows:
@@ -300,10 +310,17 @@ def shape_first(found: list, run, runs, tests, shape: Shape = SCALE, alpha: floa
         detail.update(shape=shape.name, spanned=fit["spanned"])
         how = (f"the model's other camera parameters span {100 * fit['spanned']:.3g} % of it "
                "and follow it late")
+        if shape.name in TWIN_POINT:  # the principal point drifting reads the same
+            axis, name, f_name = TWIN_POINT[shape.name]
+            px = size / shape.per_unit * float(getattr(run.calibration.camera, f_name))
+            detail[f"{name}_px_over_run"] = px
+            how += (f"; or equally the principal point's {axis} ({name}) drifting by "
+                    f"about {abs(px):.2g} px (first order), which the same lines cannot "
+                    "tell apart")
     line = stats.RegressorFinding(
         f"{shape.regressor}: {size:+.3g} +- {sd:.2g} {u} over {span:.0f} s; {how}; "
         "outside the library)", "radial", fit["change_t"],
-        min(1.0, fit["change_p"] * TESTS), abs(size / shape.per_unit * edge), detail=detail)
+        min(1.0, fit["change_p"] * FAMILY), abs(size / shape.per_unit * edge), detail=detail)
     at = found.index(follows[0])
     stays = [f for f in found[at:] if not rolling.gone(f, left, keep)]
     out = found[:at] + [line] + follows + stays
@@ -317,11 +334,11 @@ def _secant(rate: float, fit: dict[str, float], rest: dict[str, float], alpha: f
     The lag a drift leaves is linear in the drift: the window's static part ``fit`` read
     with nothing taken out and ``rest`` with ``rate`` taken out put the rate that leaves
     none on their line (a secant step).  ``None`` when ``rest``'s static part is not
-    significant (p × :data:`TESTS` ≥ ``alpha``) or the step is not between half and twice
+    significant (p × :data:`FAMILY` ≥ ``alpha``) or the step is not between half and twice
     ``rate`` (unseen case ``tilt_drift`` seed 21: 3.33 mrad over the run taken out left
     −0.17 mrad, t −7.9, and the static keystone's lines; the step reads 2.9 for 3.0).
     """
-    if rest["static_p"] * TESTS >= alpha or fit["static"] == rest["static"]:
+    if rest["static_p"] * FAMILY >= alpha or fit["static"] == rest["static"]:
         return None
     step = fit["static"] / (fit["static"] - rest["static"])
     return rate * step if 0.5 < step < 2.0 else None

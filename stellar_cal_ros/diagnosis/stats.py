@@ -571,6 +571,8 @@ def _local_peak(spec: np.ndarray, red: bool = False) -> tuple[int, float, float]
     return best
 
 
+#: ordinates below the frames' Nyquist rate within which a peak's lobe is searched up to it
+NYQUIST_REACH = 5
 #: frequencies tried between the peak ordinate's two neighbours (:func:`_fitted_sinusoid`)
 SINUSOID_STEPS = 33
 
@@ -643,8 +645,15 @@ def periodic_findings(res: Table, mask: np.ndarray, red: bool = False
         k, _, tail = _local_peak(spec, red)
         p = float(min(1.0, n_ord * tail))
         span = (t[-1] - t[0]) * len(y) / (len(y) - 1)  # the ordinates' 1 / spacing
-        period, amp = _fitted_sinusoid(t, y, k / span, min((k + 2) / span,
-                                                           0.5 * len(y) / span))
+        # the frames' Nyquist rate from their own spacing (an odd count's last ordinate
+        # lies half a spacing below it; gated frames' gaps flip the alternation's phase
+        # and spread its peak a few ordinates below): reached when the lobe comes within
+        # NYQUIST_REACH ordinates of it; at least one cycle in the window (below, a
+        # sinusoid fits any trend and reads more than the frame means' range)
+        nyquist = 0.5 / float(np.median(np.diff(t)))
+        hi = (k + 2) / span
+        period, amp = _fitted_sinusoid(
+            t, y, max(k, 1) / span, nyquist if hi >= nyquist - NYQUIST_REACH / span else hi)
         z = float(stats.norm.isf(max(p, 1e-300) / 2.0))
         out.append(RegressorFinding(f"time (periodic, {period:.3g} s)", comp, z, p, amp))
     return out

@@ -323,13 +323,13 @@ def tilt_drift(sim, mrad: float) -> None:
     """The detector's tilt about u drifting linearly over the run, ``±mrad`` at either end.
 
     ``−mrad`` at the first frame, ``+mrad`` at the last (0 on average): each centroid's
-    offset ``d`` from the prior's principal point scaled by ``1 + tau d_v / f_x`` (OpenCV's
+    offset ``d`` from the prior's principal point scaled by ``1 + tau d_v / f_y`` (OpenCV's
     tau_x keystone to first order).  A detector mount that creeps (unseen case
     ``tilt_drift``): the library's image_plane_tilt is static.
     """
     cam = sim.prior.camera
     c = np.array([cam.cx, cam.cy])
-    f_px = float(cam.fx)
+    f_px = float(cam.fy)
     t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
     for f in sim.star_frames:
         x = (f.stamp_ns - t0) / max(t1 - t0, 1) - 0.5
