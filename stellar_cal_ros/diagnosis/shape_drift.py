@@ -179,12 +179,9 @@ def taken_out(data, calibration: Calibration, rate_per_s: float, shape: Shape = 
     for f in data.frames:
         uv = np.asarray(f.uv, dtype=float).reshape(-1, 2)
         a = rate_per_s * (f.stamp_ns - first) * 1e-9
-        if shape.name == "scale":
-            scale = 1.0 + a
-        else:
-            d = uv - c
-            scale = 1.0 + a * (d[:, 1:2] / cam.fy if shape.name == "tau_x"
-                               else -d[:, 0:1] / cam.fx)
+        d = uv - c
+        scale = 1.0 + a * stats.shape_weight(shape.name, d[:, 0:1], d[:, 1:2],
+                                             (cam.fx, cam.fy))
         frames.append(dataclasses.replace(f, uv=c + (uv - c) / scale) if len(uv) else f)
     return dataclasses.replace(data, frames=frames)
 
@@ -217,9 +214,7 @@ def corner_px(calibration: Calibration, shape: Shape = SCALE) -> float:
     cam = calibration.camera
     du, dv = max(cam.cx, cam.width - cam.cx), max(cam.cy, cam.height - cam.cy)
     r = float(np.hypot(du, dv))
-    if shape.name == "scale":
-        return r
-    return r * (dv / cam.fy if shape.name == "tau_x" else du / cam.fx)
+    return r * abs(stats.shape_weight(shape.name, du, dv, (cam.fx, cam.fy)))
 
 
 def first_if_cause(found: list, run, runs, tests, alpha: float = 0.01, keep=frozenset()

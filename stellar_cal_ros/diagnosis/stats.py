@@ -1296,22 +1296,33 @@ def size_through_fit(sub: Table, sigma: np.ndarray, focal: tuple[float, float], 
 SHAPES = ("scale", "tau_x", "tau_y")
 
 
+def shape_weight(shape: str, du, dv, focal: tuple[float, float]):
+    """A shape parameter's radial factor at offsets ``(du, dv)`` from the principal point.
+
+    The displacement per unit is the offset times it (:func:`shape_pattern`): ``scale`` 1
+    (px per relative scale); ``tau_x`` ``dv / f_y``, ``tau_y`` ``−du / f_x`` (per rad:
+    OpenCV's tilt matrix to first order, :func:`~stellar_cal_ros.core.camera.tilt_matrix`).
+    Arrays or floats; the one place each shape's form is written (the rule's drift taken out
+    and its corner size, :mod:`~stellar_cal_ros.diagnosis.shape_drift`, use it too).
+    """
+    if shape == "scale":
+        return 1.0
+    if shape == "tau_x":
+        return dv / focal[1]
+    if shape == "tau_y":
+        return -du / focal[0]
+    raise ValueError(f"unknown shape {shape!r} (one of {SHAPES})")
+
+
 def shape_pattern(shape: str, u: np.ndarray, v: np.ndarray, centre: tuple[float, float],
                   focal: tuple[float, float]) -> np.ndarray:
     """A shape parameter's displacement per unit (px, ``(N, 2)``) at the points ``(u, v)``.
 
-    ``scale``: ``(u − c_x, v − c_y)`` (px per relative scale); ``tau_x``: that times
-    ``(v − c_y)/f_y``, ``tau_y``: times ``−(u − c_x)/f_x`` (px per rad: OpenCV's tilt
-    matrix to first order, :func:`~stellar_cal_ros.core.camera.tilt_matrix`).
+    The offset ``(u − c_x, v − c_y)`` times :func:`shape_weight`.
     """
     d = np.stack([u - centre[0], v - centre[1]], 1)
-    if shape == "scale":
-        return d
-    if shape == "tau_x":
-        return d * ((v - centre[1]) / focal[1])[:, None]
-    if shape == "tau_y":
-        return d * (-(u - centre[0]) / focal[0])[:, None]
-    raise ValueError(f"unknown shape {shape!r} (one of {SHAPES})")
+    w = shape_weight(shape, d[:, 0], d[:, 1], focal)
+    return d if shape == "scale" else d * w[:, None]
 
 
 def shape_change(res: Table, mask: np.ndarray, centre: tuple[float, float],

@@ -267,11 +267,12 @@ class StarFilter(Acquisition):
         self.state.assign(self.it, self.it, np.diag(model.initial_sigma[:self.P_est] ** 2))
         q = [e.process_noise_density() for e in model.effects]
         self.q_theta = (np.concatenate(q) ** 2 if q else np.zeros(0))[:self.P_est]
-        walk = float(getattr(c.noise, "gyro_bias_rw", 0.0) or 0.0)
+        #: the gyro bias's random walk the noise scales state (deg/h/√h; 0: none)
+        self.gyro_bias_rw = float(getattr(c.noise, "gyro_bias_rw", 0.0) or 0.0)
         sl = model.slices.get("gyro_bias")
-        if walk > 0 and sl is not None and sl.stop <= self.P_est:
-            # the gyro bias's random walk the noise scales state (deg/h/√h → rad/s/√s)
-            self.q_theta[sl] = (walk * DEG_PER_HOUR / 60.0) ** 2
+        if self.gyro_bias_rw > 0 and sl is not None and sl.stop <= self.P_est:
+            # (deg/h/√h → rad/s/√s)
+            self.q_theta[sl] = (self.gyro_bias_rw * DEG_PER_HOUR / 60.0) ** 2
         self.q_gyro = (c.gyro_arw_deg_sqrth * DEG_PER_SQRT_HOUR) ** 2
         self.imu = ImuBuffer(nominal_dt, c.imu_bridge_factor, c.gap_rate_sigma,
                              c.gap_accel_sigma, c.gap_reacquire_s,

@@ -197,10 +197,9 @@ class SwayingFilter(StarFilter):
         # Gauss–Markov (the kernel set it in q_theta)
         self.tau = np.full(P, np.inf)
         self.gm_sigma = np.zeros(P)
-        walk = float(getattr(c.noise, "gyro_bias_rw", 0.0) or 0.0)
         for eff in model.effects:
             sl = model.slices[eff.id]
-            if eff.id == "gyro_bias" and walk > 0:
+            if eff.id == "gyro_bias" and self.gyro_bias_rw > 0:
                 continue
             if sl.stop <= P and eff.id in c.gauss_markov:
                 tau, s = c.gauss_markov[eff.id]
