@@ -114,3 +114,25 @@ def test_unseen_case_found_but_said_far_smaller_is_judged_misleading(monkeypatch
     assert uc.judge("arm_1hz", run("0.0661")) == []
     assert uc.judge("arm_1hz", run("8.96e-05")) == [
         "first 'unexplained' line says 8.96e-05 px, the truth at least 0.03"]
+
+
+def test_unseen_case_may_add_the_in_library_mean_of_an_outside_change(monkeypatch):
+    """benchmarks/unseen_cases.py's ``knock`` (the installation jumps once mid-run): the
+    installation's constant (the jump's mean over the window) may be added or not, beside the
+    'unexplained' line on time that tells the jump; another effect added still misleads."""
+    spec = importlib.util.spec_from_file_location("unseen_cases",
+                                                  BENCHMARKS / "unseen_cases.py")
+    uc = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "unseen_cases", uc)
+    spec.loader.exec_module(uc)
+
+    def run(added, line="frame mean u residual vs time (t=9.1, p=1e-12; 0.2 px)"):
+        return {"rc": 0, "stderr": "", "stdout": f"noise: noise as stated\n  unexplained: {line}",
+                "summary": {"added": added, "noise": {"applied": {}}}}
+
+    assert uc.judge("knock", run([])) == []
+    assert uc.judge("knock", run(["installation"])) == []
+    assert uc.judge("knock", run(["installation", "gyro_misalignment"])) == [
+        "added ['gyro_misalignment'] (not in the truth)"]
+    assert uc.judge("knock", run([], "u residual vs radius (t=5.0; 0.01 px)")) == [
+        "first 'unexplained' line is not time"]

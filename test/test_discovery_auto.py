@@ -525,3 +525,21 @@ def test_automatic_workers_start_a_cluster_only_for_a_batch_that_pays(monkeypatc
         assert started == [1]
     with parallel.open_runner(bag, method_spec("psce"), 0.5, 0) as runs:
         assert type(runs) is parallel.Runs  # --workers 0: never a cluster
+
+
+def test_a_refused_candidate_that_fits_worse_is_not_said_to_remove_a_negative_share():
+    """A significant candidate whose run leaves more excess variance than the model without it
+    was said to remove "only -21% of the excess variance" (unseen case ``gsf_asym``, seed 21:
+    gyro_scale_factor against a scale factor that differs by the rate's sign).  It is said to
+    leave that much more; a positive share below the least keeps its sentence."""
+    from stellar_cal_ros.diagnosis.auto import _verdict
+    from stellar_cal_ros.diagnosis.discover import MIN_EXPLAINED, CandidateResult
+
+    worse = CandidateResult("gyro_scale_factor", "ranked", p_adjusted=2.4e-8, explained=-0.21)
+    little = CandidateResult("time_offset", "ranked", p_adjusted=0.0034, explained=0.04)
+    assert not worse.significant_alone and not little.significant_alone
+    assert _verdict(worse, None) == (
+        f"leaves 21% more excess variance than the model without it (it must remove >= "
+        f"{MIN_EXPLAINED:.0%}; p = 2.4e-08)")
+    assert _verdict(little, None) == (
+        f"removes only 4% of the excess variance (< {MIN_EXPLAINED:.0%}; p = 0.0034)")
