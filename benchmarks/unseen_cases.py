@@ -415,6 +415,23 @@ def _magfield_faint(sim, seed):
         f.sigma = np.where(m < 5.0, s, 0.5 * s)
 
 
+def _magfield(stated, spread=0.0):
+    # (H148, the level of the stated sigma's jumps from its trend) magfield_faint's true
+    # sigma, the messages' per-magnitude field ``stated`` x the truth at every magnitude
+    # (no jump), each catalogue star's times its own uniform factor in 1 +- ``spread``
+    def post(sim, seed):
+        def true(m, uv):
+            return PSCE_SIGMA * 2.0 ** ((np.nan_to_num(m, nan=4.0) - 4.0) / 2.0)
+        _renoise(sim, true, PSCE_SIGMA, seed)
+        rng = np.random.default_rng(seed + 32452843)
+        fac: dict[int, float] = {}
+        for f in sim.star_frames:
+            own = [fac.setdefault(int(c), float(rng.uniform(1.0 - spread, 1.0 + spread)))
+                   for c in np.asarray(f.catalog_id).tolist()]
+            f.sigma = stated * true(np.asarray(f.magnitude, dtype=float), None) * np.array(own)
+    return post
+
+
 def _u_cubic(sim, seed, edge_px=0.12):
     # a centroid bias along u only, growing with the distance from the centre column:
     # du = 0.12 ((u - cx) / (w / 2))^3 px (0.12 px at the left and right edges, none along
@@ -767,6 +784,20 @@ CASES: dict[str, Case] = {
                            "per-magnitude sigma right for mag < 5, half the truth for the "
                            "faint stars (mag >= 5)", noise={"star": 0.0},
                            group_by="magnitude", post=_magfield_faint,
+                           scenario_changes={"centroid_noise_px": 0.0}),
+    # (H148: the level of magfield_faint's edge, the messages' sigma field without a jump)
+    "magfield_right": Case("psce", "magfield_faint's true sigma 0.05 * 2^((mag - 4) / 2) px "
+                           "and the messages' per-magnitude sigma right at every magnitude",
+                           noise={}, not_told="depends on magnitude", post=_magfield(1.0),
+                           scenario_changes={"centroid_noise_px": 0.0}),
+    "magfield_08": Case("psce", "magfield_faint's true sigma; the messages' per-magnitude "
+                        "sigma 0.8x the truth at every magnitude", noise={"star": 1.25},
+                        not_told="depends on magnitude", post=_magfield(0.8),
+                        scenario_changes={"centroid_noise_px": 0.0}),
+    "magfield_noisy": Case("psce", "magfield_faint's true sigma; the messages' per-magnitude "
+                           "sigma right, each catalogue star's times its own uniform factor "
+                           "in 0.8-1.2 (ML scale 1.02)", noise={"star": 1.02},
+                           post=_magfield(1.0, 0.2),
                            scenario_changes={"centroid_noise_px": 0.0}),
     "u_cubic": Case("psce", "a centroid bias along u only, 0.12 ((u - cx) / 512)^3 px (0.12 "
                     "px at the left and right edges; not in the library)", outside=True,

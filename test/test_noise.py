@@ -355,6 +355,51 @@ def test_the_stated_sigmas_steps_along_a_variable():
     assert len(noise_stars._stated_steps(wild, xs, np.ones(200, dtype=bool))) == 0
 
 
+def _magfield_noise(stated, seed=21, stars=81, n=12000):
+    """Rows of ``stars`` stars (magnitudes 2-6.3) whose true σ is 0.05·2^((mag − 4)/2) px
+    and whose messages state ``stated(mag, true)`` (float32, as messages carry it)."""
+    rng = np.random.default_rng(seed)
+    mags = np.sort(rng.uniform(2.0, 6.3, stars))
+    star = rng.integers(0, stars, n)
+    true = 0.05 * 2.0 ** ((mags - 4.0) / 2.0)
+    said = np.asarray(stated(mags, true, rng), dtype=np.float32).astype(float)
+    r = (true / said)[star, None] * rng.standard_normal((n, 2))
+    uv = rng.uniform(0, 1024, (n, 2))
+    sn = noise_stars.StarNoise(0.0, 0.0, 2.0 * n, n // 30, (r**2).sum(1), 2 * np.ones(n),
+                               mags[star], np.hypot(uv[:, 0] - 511.5, uv[:, 1] - 511.5),
+                               np.zeros(n, bool), said[star], uv=uv, stated_px=said[star])
+    sn.scale, sn.sigma, _ = sn.group(np.ones(n, bool))
+    return sn, mags
+
+
+def test_a_stated_sigma_field_that_jumps_from_its_trend_has_its_edge_there():
+    """unseen case ``magfield_faint``: the messages' σ per magnitude, right below 5 mag and
+    half the truth from 5 on.  The field varies star by star (no few-level step,
+    :data:`~.noise_stars.STATED_STEPS`), so on 01729e2 no edge came of it and the groups'
+    edge was a quantile's (5.18 on the bag: the 5.0-5.18 stars' x2 read as per-star
+    spread).  Its jump from its own trend is an edge: at 5.0 within the neighbours'
+    spacing, and the magnitude groups x1 / x2 about it (the one edge).  A smooth field
+    (right, or 0.8x the truth everywhere) and one off per star by a random ±20 % give
+    none, along magnitude, radius, column or row."""
+    use = np.ones(12000, dtype=bool)
+    for seed in (21, 22):
+        sn, mags = _magfield_noise(lambda m, t, rng: np.where(m < 5.0, t, 0.5 * t), seed)
+        steps = noise_stars._stated_steps(sn, sn.magnitude, use)
+        lo, hi = mags[mags < 5.0].max(), mags[mags >= 5.0].min()
+        assert len(steps) == 1 and lo < steps[0] < hi, (steps, lo, hi)
+        g = next(g for g in noise_stars.star_groups(sn) if g["by"] == "magnitude")
+        assert g["edges"] == pytest.approx([steps[0]]), g
+        # (the scales within 5 %: over seeds 21-28 x0.988-1.003 and x1.949-2.032)
+        assert g["scales"] == pytest.approx([1.0, 2.0], rel=0.05), g
+    level = {"right": lambda m, t, rng: t, "0.8x": lambda m, t, rng: 0.8 * t,
+             "20 % per star": lambda m, t, rng: t * rng.uniform(0.8, 1.2, len(m))}
+    for name, stated in level.items():
+        for seed in range(21, 26):
+            sn, _ = _magfield_noise(stated, seed)
+            for x in (sn.magnitude, sn.radius, sn.uv[:, 0], sn.uv[:, 1]):
+                assert len(noise_stars._stated_steps(sn, x, use)) == 0, (name, seed)
+
+
 def test_diagnose_names_the_noise_not_an_effect(tmp_path):
     """The issue's first row: a clean bag whose sigma field states 0.6x the noise.  The
     diagnosis says the stars' sigma is 1.67x too small, with the value to use, and names no

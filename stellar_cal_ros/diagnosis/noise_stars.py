@@ -1105,6 +1105,18 @@ def group_index(sn: StarNoise, group: dict[str, Any]) -> np.ndarray:
 #: the messages' σ is a step function of a grouping's variable when, in its order, it
 #: changes at most this many times (more: it varies star by star, no edge of its own)
 STATED_STEPS = GROUP_BINS - 1
+#: a σ field that varies along the variable steps where ``ln σ`` between neighbouring
+#: values jumps by more than this beyond the field's local slope (:func:`_trend_steps`;
+#: a tracker's noise table 2x off from 5 mag on: 0.69) ...
+JUMP_LN = 0.2
+#: ... in a field that follows its trend: the robust SD of those residuals below
+#: ``JUMP_LN / JUMP_Z`` (above, the σ varies star by star along the variable and has no
+#: edge of its own: a per-star random ±20 % in the messages' σ, robust SD 0.16; a σ per
+#: magnitude seen along a column, 0.67, where a slope of a few random neighbours times a
+#: wide gap read 3-4)
+JUMP_Z = 5.0
+#: the local slope of ``ln σ`` at a gap: the median over this many gaps each side
+JUMP_HALF = 5
 
 
 def _stated_steps(sn: StarNoise, x: np.ndarray, use: np.ndarray) -> np.ndarray:
@@ -1129,13 +1141,65 @@ def _stated_steps(sn: StarNoise, x: np.ndarray, use: np.ndarray) -> np.ndarray:
         return 0.5 * (xs[change] + xs[change + 1])
 
     both = steps(np.flatnonzero(changes(ss) | changes(ms)))
-    if len(both) or np.all(ss == ms):
+    own = np.flatnonzero(changes(ms))
+    if len(both) or not len(own):  # (a few steps, or the messages' σ constant along x)
         return both
     # (the σ used varies star by star along x where it holds another variable's groups,
     # kept from an earlier round: the messages' own steps are still edges; their loss
     # put the faint stars of 4.5-4.56 mag, stated 2x, in the bright group of a magnitude
     # grouping under kept column groups)
-    return steps(np.flatnonzero(changes(ms)))
+    if not np.all(ss == ms) and len(steps(own)):
+        return steps(own)
+    # (a field that varies along x, a σ per magnitude, and jumps where its table is
+    # wrong: the jumps of the messages' σ from its own trend; unseen case magfield_faint,
+    # right below 5 mag and half the truth from 5 on: the edge was a quantile's, 5.18,
+    # and the 5.0-5.18 stars' true x2 was read as per-star spread)
+    return _trend_steps(xs, ms)
+
+
+def _trend_steps(x: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Where a σ field that varies along sorted ``x`` jumps from its own trend (midpoints).
+
+    At each distinct ``x`` the mean ``ln σ``; between neighbours its change ``d`` less
+    the local slope's ``b Δx`` (``b`` = the median ``d`` over the median ``Δx`` of the
+    :data:`JUMP_HALF` gaps each side: a smooth field's change, which a jump beside it does
+    not move).  Where the residuals' robust SD (over the gaps where ``ln σ`` moves by
+    over 1 %) is below ``JUMP_LN / JUMP_Z`` the field follows its trend, and a jump is a
+    residual above :data:`JUMP_LN` whose level holds on (the medians of up to three
+    values each side, taken along the slope, differ by half of it the same way: one
+    star's outlying σ is no edge); at most :data:`STATED_STEPS` of them, else none (the σ
+    varies star by star).
+    """
+    ux, k = np.unique(x, return_inverse=True)
+    if len(ux) < 4:
+        return np.empty(0)
+    k = k.reshape(-1)
+    y = np.bincount(k, np.log(sigma)) / np.bincount(k)
+    d, dx = np.diff(y), np.diff(ux)
+    n, h = len(d), JUMP_HALF
+    win = np.lib.stride_tricks.sliding_window_view(
+        np.pad(np.arange(n), h, constant_values=-1), 2 * h + 1)
+    have = win >= 0
+    b = (np.nanmedian(np.where(have, d[win], np.nan), axis=1)
+         / np.nanmedian(np.where(have, dx[win], np.nan), axis=1))
+    r = d - b * dx
+    # (the residuals' scatter where ln σ moves: rows of one star side by side along a
+    # column repeat its σ, and their zeros made any two stars' difference a jump)
+    moving = r[np.abs(d) > 0.01]
+    if not len(moving) or 1.4826 * float(np.median(np.abs(moving - np.median(moving)))) \
+            > JUMP_LN / JUMP_Z:
+        return np.empty(0)  # (ln σ constant, or no trend: star by star)
+    jump = np.flatnonzero(np.abs(r) > JUMP_LN)
+    mid = 0.5 * (ux[:-1] + ux[1:])
+
+    def level(i: int) -> float:  # the medians each side of gap i, along its slope
+        at = y + b[i] * (mid[i] - ux)
+        return float(np.median(at[i + 1:i + 4]) - np.median(at[max(i - 2, 0):i + 1]))
+
+    held = [i for i in jump if level(i) * np.sign(r[i]) >= 0.5 * abs(r[i])]
+    if not 0 < len(held) <= STATED_STEPS:
+        return np.empty(0)
+    return mid[np.asarray(held)]
 
 
 def star_groups(sn: StarNoise, size: tuple[int, int] | None = None,
