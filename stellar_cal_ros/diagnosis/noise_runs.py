@@ -183,21 +183,25 @@ def search_walk(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, te
     found = search_scale("gyro_bias_rw", lambda xs: _logliks(
         runs, [walk_task(x, prior, effects, at) for x in xs]), start=WALK_START,
         known=known, ln_range=WALK_LN_RANGE)
-    white = v.imu.get("gyro")
-    if white is None:
-        white = search_scale("gyro", lambda xs: _logliks(
-            runs, [scale_task("gyro", x, prior, effects, at) for x in xs]), known=known)
-    l_walk, l_white = max(found.points.values()), max(white.points.values())
     d, sd = WALK_FLOOR * found.value, WALK_FLOOR * found.sigma
     alpha = ALPHA / (n_tests + 1)
+    l_walk = max(found.points.values())
     out = {"deg_h_sqrth": float(d), "sigma": float(sd) if math.isfinite(sd) else None,
            "p_value": float(found.p_value), "alpha": float(alpha),
            "statistic": float(found.statistic), "dispersion": float(found.dispersion),
            "loglik_gain": float(l_walk - found.points.get(0.0, math.nan)),
-           "over_white_gyro": float(l_walk - l_white),
-           "white_gyro_scale": float(math.exp(max(white.points, key=white.points.get))),
-           "runs": len(found.points) + (0 if "gyro" in v.imu else len(white.points)),
-           "accepted": False}
+           "runs": len(found.points) - len(known), "accepted": False}
+    white = v.imu.get("gyro")
+    if white is None and found.measurable and found.p_value < alpha:
+        # (searched only when the walk could be taken: a far-off model's walk usually has
+        # no maximum in range, and the white search's runs would decide nothing)
+        white = search_scale("gyro", lambda xs: _logliks(
+            runs, [scale_task("gyro", x, prior, effects, at) for x in xs]), known=known)
+        out["runs"] += len(white.points) - len(known)
+    l_white = max(white.points.values()) if white is not None else math.nan
+    if white is not None:
+        out["over_white_gyro"] = float(l_walk - l_white)
+        out["white_gyro_scale"] = float(math.exp(max(white.points, key=white.points.get)))
     if not found.measurable:
         out["why"] = "no maximum in range"
     elif not found.p_value < alpha:
@@ -208,10 +212,11 @@ def search_walk(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, te
     else:
         out["accepted"] = True
     if tell:
+        over = (f", {out['over_white_gyro']:+.4g} over white gyro noise"
+                if "over_white_gyro" in out else "")
         tell(f"noise: gyro bias walk {d:.3g} +- {sd:.2g} deg/h/sqrt(h) "
-             f"(p = {found.p_value:.2g}, {out['over_white_gyro']:+.4g} over white gyro "
-             f"noise; {out['runs']} runs)" + ("" if out["accepted"] else
-                                              f": not taken, {out['why']}"))
+             f"(p = {found.p_value:.2g}{over}; {out['runs']} runs)"
+             + ("" if out["accepted"] else f": not taken, {out['why']}"))
     return out
 
 
