@@ -182,7 +182,7 @@ def search_walk(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, te
     known = {0.0: base.window["log_likelihood"]} if at == v.stated else {}
     found = search_scale("gyro_bias_rw", lambda xs: _logliks(
         runs, [walk_task(x, prior, effects, at) for x in xs]), start=WALK_START,
-        known=known, ln_range=WALK_LN_RANGE)
+        known=known, ln_range=WALK_LN_RANGE, lowest=0.0)
     d, sd = WALK_FLOOR * found.value, WALK_FLOOR * found.sigma
     alpha = ALPHA / (n_tests + 1)
     l_walk = max(found.points.values())
@@ -203,7 +203,8 @@ def search_walk(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, te
         out["over_white_gyro"] = float(l_walk - l_white)
         out["white_gyro_scale"] = float(math.exp(max(white.points, key=white.points.get)))
     if not found.measurable:
-        out["why"] = "no maximum in range"
+        out["why"] = ("a constant bias fits best" if max(found.points, key=found.points.get)
+                      == 0.0 else "no maximum in range")
     elif not found.p_value < alpha:
         out["why"] = f"not significant (p = {found.p_value:.2g})"
     elif not l_walk > l_white:
