@@ -58,7 +58,7 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
     w = _judge(runs, prior, effects, again, tell, components, stated, ran) if again.ok else None
     if w is None or w.skipped:
         walk["accepted"] = False
-        walk["why"] = ("with it the model is still too far off: " + w.skipped if w else
+        walk["why"] = ("with it, " + w.skipped.split(":")[0] if w else
                        f"the model's run with it failed: {again.error}")
         if tell:
             tell(f"noise: gyro bias walk not taken: {walk['why']}")
