@@ -937,7 +937,33 @@ def star_lines(res: Table, mask: np.ndarray, fx: float, fy: float,
     sn = line_noise(res, mask, fx, fy, centre, R_imu_st) if sn is None else sn
     red = track_lags(sn) is not None
     rep = repeat_finding(sn)
-    return ([rep] if rep is not None else []) + periodic_findings(res, mask, red)
+    return ([rep] if rep is not None else []) + pattern_findings(sn) \
+        + periodic_findings(res, mask, red)
+
+
+#: the 'unexplained' regressor of a fixed pattern on each axis (:func:`pattern_findings`)
+PATTERN_REGRESSOR = {"u": "u (column) (fixed pattern, bands of {band} px)",
+                     "v": "v (row) (fixed pattern, bands of {band} px)"}
+
+
+def pattern_findings(sn: StarNoise | None) -> list:
+    """The 'unexplained' tests of a centroid offset fixed to detector columns (rows).
+
+    Those of :func:`~.noise_stars.detector_patterns` that fired (removed before the stars'
+    noise was measured: a structure, not noise; the tests that did not fire are not added to
+    the family, whose other lines then keep their adjusted p).  Each a
+    :class:`~stellar_cal_ros.diagnosis.stats.RegressorFinding` (regressor ``u (column)
+    (fixed pattern, ...)`` on u, ``v (row) ...`` on v, statistic the flips' z, p unadjusted,
+    size the offset from its neighbours of the band that adds most to the test, px).
+    """
+    from stellar_cal_ros.diagnosis.stats import RegressorFinding
+
+    if sn is None:
+        return []
+    band = noise_structure.PATTERN_BAND_PX
+    return [RegressorFinding(PATTERN_REGRESSOR[t["axis"]].format(band=band), t["axis"],
+                             float(t["z"]), float(t["p"]), float(t["size_px"]))
+            for t in sn.patterns if t["removed"]]
 
 
 def track_lags(sn: StarNoise | None) -> tuple[float, float] | None:
@@ -987,8 +1013,9 @@ def line_noise(res: Table, mask: np.ndarray, fx: float, fy: float,
         return None
     sig = np.sqrt(np.maximum(0.5 * (np.asarray(res["s_uu"], dtype=float)
                                     + np.asarray(res["s_vv"], dtype=float)), 1e-300))
-    return star_noise(res, np.where(ok, sig, np.nan), np.ones(len(sig)), ok, fx, fy, centre,
-                      R_imu_st)
+    # (σ on every row: the detector's fixed-pattern test reads the run beyond the window,
+    # noise_stars.detector_patterns; the noise itself the window's ``ok`` rows)
+    return star_noise(res, sig, np.ones(len(sig)), ok, fx, fy, centre, R_imu_st)
 
 
 def repeat_finding(sn: StarNoise | None):

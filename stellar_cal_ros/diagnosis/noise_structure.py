@@ -732,3 +732,146 @@ def correlated_line(c: dict[str, float], applied_star: float) -> str:
             f"sigma): use --noise-scale star={applied_star:.3g},{arg} (their "
             "product, the one scale to give, and the correlation it stands for; applied; "
             f"NIS/dof then reads ~1/{c['inflation']:.3g}, judged against it)")
+
+
+#: the fixed-pattern test's bands: this many detector columns (rows) each
+PATTERN_BAND_PX = 8
+#: the bands on each side a band's mean is compared with (a smooth field cancels)
+PATTERN_REACH = 4
+#: a star's rows in one band weigh at most this many rows together (a star dwelling on a
+#: band, a PSCE dwell of ~55 frames, would carry the band alone: no coincidence across the
+#: stars to test; columns seed 21, 300 s window: p 0.042 at full weight, 2.9e-4 capped at 2)
+PATTERN_CAP = 2.0
+
+
+@dataclass
+class FixedPattern:
+    """A centroid offset fixed to detector columns (rows): :func:`fixed_pattern`'s test."""
+
+    z: float  #: ``(T − E T) / SD T`` under sign flips of whole tracks
+    p: float  #: its p-value (a scaled χ² matched to the flips' mean and variance)
+    #: per band (``first`` on): the weighted mean of the residuals about their star's mean
+    #: times ``scale`` (px where ``scale`` is each row's σ)
+    band_mean: np.ndarray
+    #: per band: the weight of its rows (its mean's share of a row's dof is ``weight/this``)
+    band_weight: np.ndarray
+    first: int  #: the first band's index (``floor(pos / band)``)
+    band: int  #: the bands' width, px
+    #: the band that adds most to the statistic: its offset from its neighbours (× scale)
+    #: and its first pixel
+    top: float = 0.0
+    at_px: float = math.nan
+
+
+
+def pixel_means(r: np.ndarray, pos: np.ndarray, star: np.ndarray, cap: float = PATTERN_CAP,
+                scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's pixel's mean of ``r`` about the stars' means, and the row's share of it.
+
+    The pattern :func:`fixed_pattern` found, at the detector's resolution (its bands of 8
+    px straddle a defect's edges: removed by bands, the 8-column pattern of the ``columns``
+    case left a star dwelling on a band's good column 7/8 of the offset, read again as
+    AR(1) noise): the residuals about each ``star``'s mean averaged over each whole pixel of
+    ``pos``, each star's rows in a pixel weighing at most ``cap`` rows together (as the
+    test's).  Returns ``(mean × scale, share)`` per row (``share``: the row's weight over
+    its pixel's, the part of the mean's one dof it carries; 0 where ``r`` or ``pos`` is not
+    finite).
+    """
+    x = np.asarray(r, dtype=float)
+    pos = np.asarray(pos, dtype=float)
+    ok = np.isfinite(x) & np.isfinite(pos)
+    mean, lev = np.zeros(len(x)), np.zeros(len(x))
+    rows = np.flatnonzero(ok)
+    if len(rows) == 0:
+        return mean, lev
+    _, si = np.unique(np.asarray(star)[rows], return_inverse=True)
+    si = np.asarray(si).reshape(-1)
+    d = x[rows] - (np.bincount(si, x[rows]) / np.bincount(si))[si]
+    col = np.floor(pos[rows]).astype(np.int64)
+    col -= col.min()
+    ncol = int(col.max()) + 1
+    cell = si * ncol + col
+    om = np.minimum(1.0, cap / np.bincount(cell, minlength=(int(si.max()) + 1) * ncol)[cell])
+    u = np.ones(len(rows)) if scale is None else np.asarray(scale, dtype=float)[rows]
+    wc = np.bincount(col, om, minlength=ncol)
+    mean[rows] = (np.bincount(col, om * d * u, minlength=ncol) / np.maximum(wc, 1e-300))[col]
+    lev[rows] = om / wc[col]
+    return mean, lev
+
+
+def fixed_pattern(r: np.ndarray, share: np.ndarray, pos: np.ndarray, star: np.ndarray,
+                  band: int = PATTERN_BAND_PX, reach: int = PATTERN_REACH,
+                  cap: float = PATTERN_CAP, scale: np.ndarray | None = None
+                  ) -> FixedPattern | None:
+    """A mean offset of ``r`` (one axis) tied to fine bands of the detector position ``pos``.
+
+    A CCD fixed pattern (columns that read a centroid 0.15 px further along u, unseen case
+    ``columns``) makes a star's residual jump for the frames its centroid sits on a
+    defective band: its track looks correlated (AR(1)) and the stars differ in level (σ
+    wrong star by star), both noise verdicts fooled by a structure in the residuals' mean.
+    Tested before them: the residuals about each ``star``'s mean (a per-star error, a
+    catalogue position, cancels; only what changes along a track counts) are averaged in
+    bands of ``band`` px of ``pos``, each star's rows in a band weighing at most ``cap``
+    rows together, and each band's mean taken less the mean of the ``reach`` bands on
+    either side (a smooth field, a missing distortion, cancels); ``T = Σ_b w_b h_b²``.
+    ``T`` is a quadratic form ``sᵀ A s`` in each track's sign ``s``: under the null (each
+    star's noise symmetric, the stars independent, correlated along its track or not, its σ
+    its own) its distribution over sign flips of whole tracks has mean ``tr A`` and
+    variance ``2 Σ_{i≠j} A_ij²``, exact for any noise along the tracks (the weights depend
+    on the positions only); ``p``: the scaled χ² of those two moments.  ``r``: whitened
+    residuals (one axis, rows with ``share`` > 0 and finite ``pos`` tested); ``scale``:
+    each row's units of the band means returned (None: 1).  None when fewer than
+    :data:`MIN_ROWS` rows or 3 bands are tested.
+    """
+    ok = np.isfinite(r) & np.isfinite(pos) & (share > 0)
+    rows = np.flatnonzero(ok)
+    if len(rows) < MIN_ROWS:
+        return None
+    x = np.asarray(r, dtype=float)[rows]
+    _, si = np.unique(np.asarray(star)[rows], return_inverse=True)
+    si = np.asarray(si).reshape(-1)
+    ns = np.bincount(si).astype(float)
+    d = x - (np.bincount(si, x) / ns)[si]
+    b = np.floor(np.asarray(pos, dtype=float)[rows] / band).astype(np.int64)
+    first = int(b.min())
+    b -= first
+    nb_count = int(b.max()) + 1
+    cell = si * nb_count + b
+    om = np.minimum(1.0, cap / np.bincount(cell, minlength=len(ns) * nb_count)[cell])
+    nb = np.bincount(b, om, minlength=nb_count)
+    S = np.zeros((len(ns), nb_count))  # each star's weighted sum of d in each band
+    np.add.at(S, (si, b), om * d)
+    # h = L (band sums): the band's mean less the mean of its neighbours' rows
+    L = np.zeros((nb_count, nb_count))
+    for k in range(nb_count):
+        if nb[k] == 0:
+            continue
+        near = [j for j in range(max(k - reach, 0), min(k + reach + 1, nb_count))
+                if j != k and nb[j] > 0]
+        nn = float(nb[near].sum()) if near else 0.0
+        if nn == 0.0:
+            continue
+        L[k, k] = 1.0 / nb[k]
+        L[k, near] = -1.0 / nn
+    used = np.any(L != 0.0, axis=1)
+    if used.sum() < 3:
+        return None
+    w = np.where(used, nb, 0.0)
+    C = S @ L.T  # each star's part of each band's h
+    h = C.sum(0)
+    T = float(np.sum(w * h * h))
+    Cw = C * np.sqrt(w)
+    diag = np.sum(Cw * Cw, 1)
+    mean = float(diag.sum())
+    M = Cw.T @ Cw
+    var = 2.0 * (float(np.sum(M * M)) - float(np.sum(diag * diag)))
+    if not (mean > 0.0 and var > 0.0):
+        return None
+    g, dof = var / (2.0 * mean), 2.0 * mean * mean / var
+    p = float(sps.chi2.sf(T / g, dof))
+    u = np.ones(len(rows)) if scale is None else np.asarray(scale, dtype=float)[rows]
+    band_mean = np.bincount(b, om * d * u, minlength=nb_count) / np.maximum(nb, 1e-300)
+    k = int(np.argmax(w * h * h))
+    top = float(L[k] @ (nb * band_mean))  # (its mean less its neighbours', in scale's units)
+    return FixedPattern((T - mean) / math.sqrt(var), p, band_mean, nb, first, band, top,
+                        float((k + first) * band))

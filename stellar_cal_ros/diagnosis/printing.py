@@ -49,6 +49,8 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
     span = "across its 5-95 % range"
     if u["regressor"] == "catalogue star":
         what, span = "residual repeating", "rms per axis at least (left by the cells)"
+    elif " (fixed pattern" in u["regressor"]:  # noise.pattern_findings
+        span = "(the largest band's offset from the bands beside it)"
     elif " (periodic" in u["regressor"]:  # in time, or a ripple over the detector
         span = "amplitude"
     elif u["component"] == "along motion":  # stats.motion_spread: a noise in the stamps
