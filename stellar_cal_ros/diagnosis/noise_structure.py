@@ -750,32 +750,32 @@ class FixedPattern:
 
     z: float  #: ``(T − E T) / SD T`` under sign flips of whole tracks
     p: float  #: its p-value (a scaled χ² matched to the flips' mean and variance)
-    #: per band (``first`` on): the weighted mean of the residuals about their star's mean
-    #: times ``scale`` (px where ``scale`` is each row's σ)
-    band_mean: np.ndarray
-    #: per band: the weight of its rows (its mean's share of a row's dof is ``weight/this``)
-    band_weight: np.ndarray
-    first: int  #: the first band's index (``floor(pos / band)``)
-    band: int  #: the bands' width, px
-    #: the band that adds most to the statistic: its offset from its neighbours (× scale)
-    #: and its first pixel
+    #: the band that adds most to the statistic: its offset from its neighbours (the
+    #: residuals' units × ``scale``: px where ``scale`` is each row's σ) and its first pixel
     top: float = 0.0
     at_px: float = math.nan
 
 
+#: the passes of :func:`pixel_means`' two-way fit (stars' means and pixels' offsets)
+PIXEL_PASSES = 30
+
 
 def pixel_means(r: np.ndarray, pos: np.ndarray, star: np.ndarray, cap: float = PATTERN_CAP,
                 scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's pixel's mean of ``r`` about the stars' means, and the row's share of it.
+    """Each row's pixel's offset in ``r`` beside the stars' own means, and its share of it.
 
     The pattern :func:`fixed_pattern` found, at the detector's resolution (its bands of 8
     px straddle a defect's edges: removed by bands, the 8-column pattern of the ``columns``
     case left a star dwelling on a band's good column 7/8 of the offset, read again as
-    AR(1) noise): the residuals about each ``star``'s mean averaged over each whole pixel of
-    ``pos``, each star's rows in a pixel weighing at most ``cap`` rows together (as the
-    test's).  Returns ``(mean × scale, share)`` per row (``share``: the row's weight over
-    its pixel's, the part of the mean's one dof it carries; 0 where ``r`` or ``pos`` is not
-    finite).
+    AR(1) noise): ``r ≈ m_star + c_pixel`` fitted by least squares (alternating passes,
+    :data:`PIXEL_PASSES`), each star's rows in a pixel weighing at most ``cap`` rows
+    together (as the test's).  Fitted jointly, not about the stars' means: a star on a
+    defective column for most of its track takes the column's offset into its mean
+    otherwise, read as a catalogue error ('repeat star by star', columns seed 21, ranked
+    before the pattern's line).  The offsets are centred (their weighted mean 0: the
+    frames' fit holds the common part).  Returns ``(c × scale, share)`` per row
+    (``share``: the row's weight over its pixel's, its part of the offset's one dof; 0
+    where ``r`` or ``pos`` is not finite).
     """
     x = np.asarray(r, dtype=float)
     pos = np.asarray(pos, dtype=float)
@@ -786,16 +786,22 @@ def pixel_means(r: np.ndarray, pos: np.ndarray, star: np.ndarray, cap: float = P
         return mean, lev
     _, si = np.unique(np.asarray(star)[rows], return_inverse=True)
     si = np.asarray(si).reshape(-1)
-    d = x[rows] - (np.bincount(si, x[rows]) / np.bincount(si))[si]
+    xr = x[rows]
     col = np.floor(pos[rows]).astype(np.int64)
     col -= col.min()
     ncol = int(col.max()) + 1
     cell = si * ncol + col
     om = np.minimum(1.0, cap / np.bincount(cell, minlength=(int(si.max()) + 1) * ncol)[cell])
+    ws, wc = np.bincount(si, om), np.bincount(col, om, minlength=ncol)
+    wc_safe = np.maximum(wc, 1e-300)
+    c = np.zeros(ncol)
+    for _ in range(PIXEL_PASSES):
+        m = np.bincount(si, om * (xr - c[col])) / ws
+        c = np.bincount(col, om * (xr - m[si]), minlength=ncol) / wc_safe
+        c -= np.sum(wc * c) / np.sum(wc)
     u = np.ones(len(rows)) if scale is None else np.asarray(scale, dtype=float)[rows]
-    wc = np.bincount(col, om, minlength=ncol)
-    mean[rows] = (np.bincount(col, om * d * u, minlength=ncol) / np.maximum(wc, 1e-300))[col]
-    lev[rows] = om / wc[col]
+    mean[rows] = c[col] * u
+    lev[rows] = om / wc_safe[col]
     return mean, lev
 
 
@@ -873,5 +879,4 @@ def fixed_pattern(r: np.ndarray, share: np.ndarray, pos: np.ndarray, star: np.nd
     band_mean = np.bincount(b, om * d * u, minlength=nb_count) / np.maximum(nb, 1e-300)
     k = int(np.argmax(w * h * h))
     top = float(L[k] @ (nb * band_mean))  # (its mean less its neighbours', in scale's units)
-    return FixedPattern((T - mean) / math.sqrt(var), p, band_mean, nb, first, band, top,
-                        float((k + first) * band))
+    return FixedPattern((T - mean) / math.sqrt(var), p, top, float((k + first) * band))
