@@ -145,7 +145,8 @@ class StarNoise:
     #: below :data:`ALPHA`; referred to the tracks' correlation where it is significant)
     subpixel_p: float = 1.0
     rolling_p: float = 1.0
-    #: the fixed-pattern tests of the columns (u) and rows (v), :func:`_minus_patterns`
+    #: the fixed-pattern tests of the columns (u) and rows (v), :func:`detector_patterns`:
+    #: ``{axis, z, p, at_px, size_px, removed}`` each
     patterns: list = field(default_factory=list)
     #: the p of the cell means' χ² against its sign flips of whole tracks
     #: (:func:`~.noise_structure.flip_p`): whether the field is one the stars' tracks
@@ -330,10 +331,10 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
     The accepted stars of the run's last :data:`PATTERN_FRACTION` (σ ``sigma_px`` finite,
     at a predicted position), whitened and less each frame's attitude fit, each axis
     against its own predicted position: :func:`~.noise_structure.fixed_pattern`,
-    Bonferroni over the two at :data:`PATTERN_ALPHA`.  ``[(axis, FixedPattern, removed, offset,
-    share)]`` (empty without the predictions, or too few rows); where ``removed``,
-    ``offset`` and ``share`` (per row of ``res``, 0 off the rows tested) are the rows'
-    pixels' means in px and each row's share of its pixel's mean
+    Bonferroni over the two at :data:`PATTERN_ALPHA`.  ``[(axis, FixedPattern, removed,
+    offset, share)]`` (empty without the predictions, or too few rows); where ``removed``,
+    ``offset`` and ``share`` (per row of ``res``, 0 off the rows tested; else None) are
+    the rows' pixels' offsets in px and each row's share of its pixel's offset
     (:func:`~.noise_structure.pixel_means`), which :func:`_star_noise_once` takes out of
     that axis before the stars' noise is read.
     """
@@ -358,8 +359,9 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
         if fp is None:
             continue
         removed = fp.p * 2.0 < PATTERN_ALPHA
-        offset, share = np.zeros(len(sig)), np.zeros(len(sig))
+        offset = share = None
         if removed:
+            offset, share = np.zeros(len(sig)), np.zeros(len(sig))
             offset[idx], share[idx] = noise_structure.pixel_means(
                 r[:, axis], np.asarray(res[key], dtype=float)[idx], stars, scale=sig[idx])
         out.append(("uv"[axis], fp, removed, offset, share))
