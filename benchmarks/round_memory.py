@@ -6,11 +6,14 @@ far (``ru_maxrss``), the stage's CPU-s (``process_time``; a stage inside another
 in both) and, for the bag, the bytes of the numpy arrays it holds.  ``--probe`` adds the
 reliability probe's twin scene, renders and steps.  ``--trim``
 calls glibc's ``malloc_trim(0)`` after each stage (what the allocator keeps but does not
-use).
+use).  ``--sample`` reads the RSS every 5 ms in a thread and, at each new maximum 2 MB above
+the last one, the main thread's stack; at the end it prints the highest maxima (MB) with
+the package's innermost frames (the sampling's own cost lifts the figures a little).
 
 Run::
 
-    python benchmarks/round_memory.py [--trim] [--probe] [--calibration R.yaml] [--default-malloc]
+    python benchmarks/round_memory.py [--trim] [--probe] [--sample] [--calibration R.yaml]
+        [--default-malloc]
 """
 
 from __future__ import annotations
@@ -21,7 +24,9 @@ import functools
 import gc
 import resource
 import sys
+import threading
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +63,37 @@ def nbytes(obj, seen=None) -> int:
     return 0
 
 
+class Sampler(threading.Thread):
+    """RSS every ``period`` s; the main thread's stack at each new maximum ``step`` MB above."""
+
+    def __init__(self, period: float = 0.005, step: float = 2.0):
+        """Start a daemon thread sampling the RSS of this process."""
+        super().__init__(daemon=True)
+        self.period, self.step, self.top, self.peaks = period, step, 0.0, []
+        self.main_id = threading.main_thread().ident
+        self.stop = threading.Event()
+        self.start()
+
+    def run(self) -> None:
+        """Sample until :meth:`stop` is set."""
+        while not self.stop.wait(self.period):
+            r = rss()
+            if r > self.top + self.step:
+                self.top = r
+                frame = sys._current_frames().get(self.main_id)
+                stack = traceback.extract_stack(frame) if frame is not None else []
+                ours = [f"{Path(f.filename).stem}.{f.name}:{f.lineno}" for f in stack
+                        if "stellar_cal_ros" in f.filename]
+                self.peaks.append((r, ours[-4:]))
+
+    def report(self, n: int = 12) -> None:
+        """The ``n`` highest maxima with the package's innermost frames."""
+        self.stop.set()
+        self.join()
+        for r, frames in sorted(self.peaks, reverse=True)[:n]:
+            print(f"  {r:.0f} MB  " + " < ".join(reversed(frames)), flush=True)
+
+
 def main() -> int:
     """Run the round and print the stages."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -68,6 +104,8 @@ def main() -> int:
                     help="leave glibc's mapping threshold to rise (before core.memory)")
     ap.add_argument("--probe", action="store_true",
                     help="also the reliability probe's parts: its scene, renders and steps")
+    ap.add_argument("--sample", action="store_true",
+                    help="sample the RSS and print the stacks at its highest maxima")
     args = ap.parse_args()
     libc = ctypes.CDLL("libc.so.6") if args.trim else None
     if not args.default_malloc:  # as the command line's diagnose does
@@ -121,9 +159,13 @@ def main() -> int:
     cal = load_calibration(args.calibration or bag.with_suffix(".prior.yaml"))
     import tempfile
 
+    sampler = Sampler() if args.sample else None
     with tempfile.TemporaryDirectory() as tmp:
         runmod.diagnose(str(bag), cal, "psce", [], tmp, plots=False, verbose=False, workers=0)
     print(f"end: rss {rss():.0f} peak {peak():.0f} cpu {time.process_time():.1f} s", flush=True)
+    if sampler is not None:
+        print("highest RSS maxima sampled, innermost frame first:", flush=True)
+        sampler.report()
     return 0
 
 

@@ -19,9 +19,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy.stats import chi2  # noqa: E402
 
 from stellar_cal_ros.campaign.spec import RUN_KEYS  # noqa: E402
+from stellar_cal_ros.core.distributions import chi2  # noqa: E402
 
 __all__ = ["format_summary", "summarize", "write_summary"]
 

@@ -68,8 +68,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats as sps
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.diagnosis import reliability, screening
 from stellar_cal_ros.diagnosis.parallel import Runs, Task
 from stellar_cal_ros.diagnosis.runstats import RunSummary
@@ -221,7 +221,7 @@ class Reference:
         """
         w = run.window
         statistic = float(2.0 * (w["log_likelihood"] - self.log_likelihood) / self.dispersion)
-        p = float(sps.chi2.sf(max(statistic, 0.0), dof))
+        p = float(dist.chi2.sf(max(statistic, 0.0), dof))
         explained = (float(1.0 - w["excess_variance"] / self.excess)
                      if self.excess > self.floor else float("nan"))
         return statistic, p, explained

@@ -284,8 +284,7 @@ def beyond(statistic: float, dof: int, dispersion: float, with_effect: dict | No
 
     ``{statistic, dof, p_value, needed, negative}``: ``needed`` at the diagnosis's α.
     """
-    from scipy import stats as sps
-
+    from stellar_cal_ros.core import distributions as dist
     from stellar_cal_ros.diagnosis.discover import ALPHA
 
     if with_effect is None or without is None:
@@ -293,7 +292,7 @@ def beyond(statistic: float, dof: int, dispersion: float, with_effect: dict | No
     lam = float(statistic + (with_effect["chi2_capped"] - without["chi2_capped"])
                 / dispersion)
     negative = not lam >= 0.0
-    p = 1.0 if negative else float(sps.chi2.sf(lam, dof))
+    p = 1.0 if negative else float(dist.chi2.sf(lam, dof))
     return {"statistic": lam, "dof": int(dof), "p_value": p, "needed": p < ALPHA,
             "negative": negative}
 

@@ -48,8 +48,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats as sps
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise_structure
 from stellar_cal_ros.diagnosis.noise_imu import ScaleSearch
@@ -135,7 +135,7 @@ def p_two_sided(value: float, sigma: float) -> float:
     """Two-sided p of "the scale is 1" for a measured ``value`` ± ``sigma`` (normal)."""
     if not (np.isfinite(sigma) and sigma > 0):
         return 1.0
-    return float(2.0 * sps.norm.sf(abs(value - 1.0) / sigma))
+    return float(2.0 * dist.norm.sf(abs(value - 1.0) / sigma))
 
 
 _IMU_WORDS = {"gyro": ("gyro noise (angle random walk)", "attitude", "gyro"),
@@ -806,7 +806,7 @@ def changes_over_run(sn: StarNoise, window: float, sigma: float, stated: float,
         return None
     ratio = window / b["scale"] if b["scale"] > 0 else math.inf
     z = (window - b["scale"]) / math.hypot(sigma, b["sigma"])
-    p = float(2.0 * sps.norm.sf(abs(z)))
+    p = float(2.0 * dist.norm.sf(abs(z)))
     if not (p < ALPHA / n_tests and max(ratio, 1.0 / ratio) > CHANGES):
         return None
     return {"before": b["scale"] * stated, "sigma_before": b["sigma"] * stated,
@@ -851,7 +851,7 @@ def heavy_tails(sn: StarNoise, known: np.ndarray, scale: float | np.ndarray
     x = q[ok] / (0.5 * m[ok] * scale[ok]**2)
     k = int(np.sum(x > TAIL_BOUND))
     expected = math.exp(-0.5 * TAIL_BOUND)
-    p = float(sps.binom.sf(k - 1, n, expected))
+    p = float(dist.binom.sf(k - 1, n, expected))
     if not (k > TAILS * expected * n and p < ALPHA):
         return None
     return {"share": k / n, "expected": expected, "p_value": p}

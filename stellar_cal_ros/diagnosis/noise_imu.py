@@ -13,8 +13,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats as sps
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.noise import NoiseScales
 
 #: the gyro / accelerometer scale search range (ln of the scale)
@@ -106,7 +106,7 @@ def adjusted_p(statistic: float, dispersion: float) -> float:
     is clipped to :data:`DISPERSION_RANGE`.
     """
     lo, hi = DISPERSION_RANGE
-    return float(sps.chi2.sf(statistic / min(max(dispersion, lo), hi), 1))
+    return float(dist.chi2.sf(statistic / min(max(dispersion, lo), hi), 1))
 
 
 #: the dispersion :func:`adjusted_p` divides by is clipped to this range.  At least 1: a
@@ -248,7 +248,7 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
     if 0.0 < out.statistic and low != high:
         best = 0 if low else len(xs) - 1
         out.bound = "upper" if low else "lower"
-        cut = l_max - 0.5 * float(sps.chi2.isf(0.05, 1))
+        cut = l_max - 0.5 * float(dist.chi2.isf(0.05, 1))
         order = range(best, len(xs)) if best == 0 else range(best, -1, -1)
         prev = None
         for i in order:

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats as sps
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise_structure
 
@@ -168,7 +168,7 @@ class StarNoise:
         """The p-value of "no error that repeats star by star" (χ² of the star means)."""
         if self.repeat_dof <= 0:
             return 1.0
-        return float(sps.chi2.sf(self.repeat, self.repeat_dof))
+        return float(dist.chi2.sf(self.repeat, self.repeat_dof))
 
     @property
     def repeat_rms_px(self) -> float:
@@ -191,7 +191,7 @@ class StarNoise:
         """
         if self.structure_dof <= 0:
             return 1.0
-        return float(sps.chi2.sf(self.structure, self.structure_dof))
+        return float(dist.chi2.sf(self.structure, self.structure_dof))
 
     def group(self, mask: np.ndarray, stars: bool = False) -> tuple[float, float, float]:
         """(scale, σ, dof) of the stars in ``mask``.
@@ -1118,7 +1118,7 @@ def _bartlett(parts: list[tuple[float, float, float]]) -> tuple[float, float]:
     stat = float(np.sum(d) * math.log(pooled) - np.sum(d * np.log(v)))
     c = 1.0 + (np.sum(1.0 / d) - 1.0 / np.sum(d)) / (3.0 * (len(parts) - 1))
     stat /= c
-    return stat, float(sps.chi2.sf(stat, len(parts) - 1))
+    return stat, float(dist.chi2.sf(stat, len(parts) - 1))
 
 
 def _merge(sn: StarNoise, gidx: np.ndarray, edges: np.ndarray, use: np.ndarray,
@@ -1440,7 +1440,7 @@ def star_spread(sn: StarNoise, use: np.ndarray | None = None,
     n0 = tr_s / max(rank_s, 1)
     tau2 = max(B - W, 0.0) / n0
     mean = float(np.mean(z))
-    out = {"F": F, "p_value": float(sps.f.sf(F, df1, df2)), "stars": S, "rows": N,
+    out = {"F": F, "p_value": float(dist.f.sf(F, df1, df2)), "stars": S, "rows": N,
            "spread": math.sqrt(tau2) / mean if mean > 0 else math.nan, "tau2": tau2,
            "mean": mean, "groups_p": 1.0}
     if G > 1 and B > 0 and S > G:
@@ -1455,7 +1455,7 @@ def star_spread(sn: StarNoise, use: np.ndarray | None = None,
         within = float(np.sum((raw - rg[g]) ** 2)) / (S - G)
         MG = float(np.sum(kg * (rg - float(np.mean(raw))) ** 2)) / (G - 1)
         if within > 0:
-            out["groups_p"] = float(sps.f.sf(MG / within, G - 1, S - G))
+            out["groups_p"] = float(dist.f.sf(MG / within, G - 1, S - G))
     return out
 
 

@@ -13,9 +13,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats as sps
 from scipy.optimize import brentq
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.noise import long_run  # the one long-run factor (also here: ns.long_run)
 
 
@@ -153,7 +153,7 @@ def minus_fits(r: np.ndarray, share: np.ndarray, blocks: list[np.ndarray | None]
     unit = max(float(np.mean(share[ok])), 1e-12)
     fired = []
     for j, k in enumerate(use):
-        out_p[k] = float(sps.chi2.sf(chi2[j] / unit, sizes[j]))
+        out_p[k] = float(dist.chi2.sf(chi2[j] / unit, sizes[j]))
         if out_p[k] < alpha:
             fired.extend(range(cuts[j], cuts[j + 1]))
     if not fired:
@@ -177,12 +177,14 @@ def along_tracks(x: np.ndarray, track: np.ndarray, lags: tuple[float, float]) ->
     − x``, ``f_t = x_t + φ f_{t−1}``), the carry from the previous track removed as
     ``φ^(t − start + 1)`` times its last value: O(n), no n × n matrix.
     """
-    from scipy.signal import lfilter
-
     w, phi = float(lags[0]), float(lags[1])
     x = np.asarray(x, dtype=float)
     if not phi > 0.0 or w == 0.0 or len(x) == 0:
         return x.copy()
+    # here only: scipy.signal imports scipy.stats (≈ 24 MiB), which a round without an
+    # AR(1) part does not need
+    from scipy.signal import lfilter
+
     order = np.argsort(np.asarray(track), kind="stable")
     xs = x[order].reshape(len(x), -1)
     ts = np.asarray(track)[order]

@@ -37,8 +37,8 @@ from typing import Any
 
 import numpy as np
 from scipy import optimize
-from scipy import stats as sps
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.effects import registry
 
 #: power at which the minimal detectable bias is defined
@@ -67,10 +67,10 @@ def plausible_size(effect_id: str, calibration: Any = None) -> np.ndarray:
 def lambda0(alpha: float, dof: int, power: float = POWER) -> float:
     """Non-centrality λ₀ at which a χ²_dof test of level ``alpha`` has power ``power``."""
     dof = max(int(dof), 1)
-    crit = sps.chi2.isf(alpha, dof)
+    crit = dist.chi2.isf(alpha, dof)
 
     def gap(lam: float) -> float:
-        return float(sps.ncx2.sf(crit, dof, lam) - power)
+        return float(dist.ncx2.sf(crit, dof, lam) - power)
 
     hi = max(crit, 1.0)
     while gap(hi) < 0:
@@ -86,11 +86,11 @@ def delta_t(alpha: float, nu: float, power: float = POWER) -> float:
     frame_robust_t`): ``P(|T| > t_ν,1−α/2) = power``, ``T`` non-central t with ``δ``.
     """
     nu = min(max(float(nu), 1.0), 1e4)  # scipy's nct is NaN far out; t_1e4 is the normal
-    crit = sps.t.isf(alpha / 2.0, nu)
+    crit = dist.t.isf(alpha / 2.0, nu)
 
     def gap(d: float) -> float:
         # the far tail by symmetry (scipy's nct.cdf is NaN there for small ν)
-        return float(sps.nct.sf(crit, nu, d) + np.nan_to_num(sps.nct.sf(crit, nu, -d))
+        return float(dist.nct.sf(crit, nu, d) + np.nan_to_num(dist.nct.sf(crit, nu, -d))
                      - power)
 
     hi = crit + 4.0

@@ -24,8 +24,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib import colors  # noqa: E402
-from scipy import stats as sps  # noqa: E402
 
+from stellar_cal_ros.core import distributions as dist  # noqa: E402
 from stellar_cal_ros.diagnosis import reliability, stats  # noqa: E402
 from stellar_cal_ros.effects import registry  # noqa: E402
 from stellar_cal_ros.effects.base import UNIT_DISPLAY, unit_factor  # noqa: E402
@@ -129,7 +129,7 @@ def plot_histograms(panels: Panels, fraction: float, path: Path) -> Path:
         bins = np.linspace(-lim, lim, 81)
         row[0].hist(w, bins=bins, density=True, color="C0", alpha=0.6, label="measured")
         x = np.linspace(-lim, lim, 400)
-        row[0].plot(x, sps.norm.pdf(x), "k-", lw=1.2, label="N(0, 1) expected")
+        row[0].plot(x, dist.norm.pdf(x), "k-", lw=1.2, label="N(0, 1) expected")
         row[0].set_yscale("log")
         row[0].set_ylim(1e-4, 1.0)
         row[0].set_xlabel("normalized innovation (whitened by its covariance), σ")
@@ -144,7 +144,7 @@ def plot_histograms(panels: Panels, fraction: float, path: Path) -> Path:
         for comp, y, s, c in (("du", du, exp[0], "C0"), ("dv", dv, exp[1], "C1")):
             row[1].hist(y, bins=bins, density=True, histtype="step", color=c, lw=1.3,
                         label=f"{comp}: RMS {np.sqrt(np.mean(y**2)):.4f} px")
-            row[1].plot(x, sps.norm.pdf(x, 0, s), color=c, ls="--", lw=1,
+            row[1].plot(x, dist.norm.pdf(x, 0, s), color=c, ls="--", lw=1,
                         label=f"expected N(0, {s:.4f} px)")
         row[1].set_yscale("log")
         row[1].set_ylim(1e-3 / max(exp), 1.0 / min(exp))
@@ -488,8 +488,8 @@ def plot_nis(history: Table, path: Path, window: int | None = None) -> Path | No
     s_dof = np.convolve(dof, kern, "valid")
     tc = np.convolve(t, kern / w, "valid")
     mean = s_nis / s_dof
-    lo = sps.chi2.ppf(0.025, s_dof) / s_dof
-    hi = sps.chi2.ppf(0.975, s_dof) / s_dof
+    lo = dist.chi2.ppf(0.025, s_dof) / s_dof
+    hi = dist.chi2.ppf(0.975, s_dof) / s_dof
     fig, ax = plt.subplots(figsize=(10, 3.4))
     ax.plot(t, nis / dof, ".", color="0.6", ms=2, label="one update")
     ax.fill_between(tc, lo, hi, color="C2", alpha=0.25, lw=0,

@@ -44,8 +44,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats as sps
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.methods import registry as methods
 
@@ -83,7 +83,7 @@ class ScreenResult:
     @property
     def p_value(self) -> float:
         """P(χ²_dof > LM / dispersion)."""
-        return float(sps.chi2.sf(max(self.statistic, 0.0), max(self.dof, 1)))
+        return float(dist.chi2.sf(max(self.statistic, 0.0), max(self.dof, 1)))
 
     @property
     def passes(self) -> bool:

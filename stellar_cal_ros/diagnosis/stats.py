@@ -11,8 +11,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 from scipy.special import logsumexp
+
+from stellar_cal_ros.core import distributions as dist
 
 Table = dict[str, np.ndarray]
 
@@ -106,7 +107,7 @@ def nis_consistency(res: Table, mask: np.ndarray) -> dict[str, float]:
     if n == 0:
         return {"mean": float("nan"), "lower": float("nan"), "upper": float("nan"), "n": 0}
     mean = float(np.mean(res["nis"][m]))
-    lo, hi = stats.chi2.ppf([0.025, 0.975], 2 * n) / n
+    lo, hi = dist.chi2.ppf([0.025, 0.975], 2 * n) / n
     return {"mean": mean, "lower": float(lo), "upper": float(hi), "n": n}
 
 
@@ -127,7 +128,7 @@ def whiteness(res: Table, mask: np.ndarray) -> dict[str, float]:
         r = float(np.sum(x[1:] * x[:-1]) / max(np.sum(x * x), 1e-300)) if len(x) > 2 else 0.0
         out[f"lag1_{name}"] = r
         z = r * np.sqrt(max(len(x), 1))
-        ps.append(2 * stats.norm.sf(abs(z)))
+        ps.append(2 * dist.norm.sf(abs(z)))
     out["p_value"] = float(min(1.0, 2 * min(ps)))
     return out
 
@@ -270,7 +271,7 @@ def hac_bandwidth(n_frames: int) -> int:
 
 def normal_scores(x: np.ndarray) -> np.ndarray:
     """Van der Waerden scores of ``x`` (ties share their mean rank)."""
-    return stats.norm.ppf(stats.rankdata(x) / (len(x) + 1.0))
+    return dist.norm.ppf(dist.rankdata(x) / (len(x) + 1.0))
 
 
 #: :func:`frame_robust_t`'s input is degenerate when the spread of ``x`` is below this share of
@@ -373,7 +374,7 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
         if track_level:
             V += track_level_covariance(xc, r, k, s, L)
     t = float(b * sxx / np.sqrt(V / factor))
-    p = float(2.0 * stats.t.sf(abs(t), nu))
+    p = float(2.0 * dist.t.sf(abs(t), nu))
     return (t, p, nu) if dof else (t, p)
 
 
@@ -654,7 +655,7 @@ def periodic_findings(res: Table, mask: np.ndarray, red: bool = False
         hi = (k + 2) / span
         period, amp = _fitted_sinusoid(
             t, y, max(k, 1) / span, nyquist if hi >= nyquist - NYQUIST_REACH / span else hi)
-        z = float(stats.norm.isf(max(p, 1e-300) / 2.0))
+        z = float(dist.norm.isf(max(p, 1e-300) / 2.0))
         out.append(RegressorFinding(f"time (periodic, {period:.3g} s)", comp, z, p, amp))
     return out
 
@@ -898,8 +899,8 @@ def motion_test(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
     nxt = np.flatnonzero(j[1:] == j[:-1] + 1)
     rho2 = 1.0 / (info[j[nxt] + 1] ** 2 * V[nxt] * V[nxt + 1])
     nu = float(np.sum(h) ** 2 / (np.sum(h * h) + 2.0 * np.sum(h[nxt] * h[nxt + 1] * rho2)))
-    p = float(stats.f.sf(x / y, nu, nu))
-    z = float(stats.norm.isf(p)) if p > 1e-300 else 37.0
+    p = float(dist.f.sf(x / y, nu, nu))
+    z = float(dist.norm.isf(p)) if p > 1e-300 else 37.0
     diff = da2 - dc2
     s2 = max(float(np.sum(h * h * diff) / (2.0 * np.sum(h * h))), 0.0)
     w = 1.0 / (2.0 * s2 + V) ** 2
@@ -1082,7 +1083,7 @@ def size_changed(beside: dict, before: dict, alpha: float) -> bool | None:
     if not all(beside.get(k) is not None for k in keys) or before.get("coef") is None:
         return None
     d = (beside["coef"] - before["coef"]) * np.sign(before["coef"]) / beside["coef_sigma"]
-    return bool(stats.t.cdf(d, beside["coef_nu"]) < alpha)
+    return bool(dist.t.cdf(d, beside["coef_nu"]) < alpha)
 
 
 def capped_gain(sub: Table, x: np.ndarray, c: float, cap: float | None = None) -> float:

@@ -34,8 +34,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy import stats as sps
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.diagnosis import injection
 from stellar_cal_ros.diagnosis.reliability_probe import own_shift
 from stellar_cal_ros.effects import registry
@@ -159,7 +159,7 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
         info = np.atleast_2d(np.asarray(s0[2], dtype=float))
         lam = float(d @ np.linalg.pinv(info) @ d)
     k = int(entry.get("dof", eff.size))
-    crit = sps.chi2.isf(entry["alpha"], k)
+    crit = dist.chi2.isf(entry["alpha"], k)
     shift = injection.paired_shift(before, injection.summary_values(base),
                                    own_shift(calibration, method, eid, delta))
     checks = []
@@ -168,7 +168,7 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
         checks.append({"quantity": q, "printed": printed, "measured": shift.get(q),
                        "ratio": shift.get(q, np.nan) / printed if printed else np.nan})
     ratios = [c["ratio"] for c in checks]
-    response = float(sps.ncx2.sf(crit, k, lam)) if np.isfinite(lam) else float("nan")
+    response = float(dist.ncx2.sf(crit, k, lam)) if np.isfinite(lam) else float("nan")
     verdict, conservative = claim_verdict(response, ratios)
     c0 = cands0.get(eid)
     return {"effect": eid, "parameter": param, "size": size, "sign": sign,

@@ -104,7 +104,7 @@ def beyond_gate(residuals: np.ndarray, probability: float,
     stars not ``excluded`` (a robust scale: the outliers do not inflate it), against the
     χ²(2) quantile of ``probability``.
     """
-    from scipy.stats import chi2
+    from stellar_cal_ros.core.distributions import chi2
 
     r = np.asarray(residuals).reshape(-1, 2)
     keep = ~excluded if excluded is not None and np.any(~excluded) else np.ones(len(r), bool)

@@ -268,8 +268,8 @@ class ImageFrames:
     def config(self) -> ExtractConfig:
         """The extraction's settings (default: ``sky.extract.ExtractConfig()``).
 
-        Made on first use: sky.extract loads scipy.stats (~1 s), which a bag of centroids
-        never needs, and every driver holds an ImageFrames.
+        Made on first use: sky.extract loads scipy.special and the image code, which a bag
+        of centroids never needs, and every driver holds an ImageFrames.
         """
         if self._config is None:
             from stellar_cal_ros.sky.extract import ExtractConfig

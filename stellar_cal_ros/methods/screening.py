@@ -50,7 +50,7 @@ class CandidateScore:
 
     def p_value(self, dispersion: float = 1.0) -> float:
         """P(χ²_k > LM / dispersion)."""
-        from scipy.stats import chi2
+        from stellar_cal_ros.core.distributions import chi2
 
         return float(chi2.sf(self.lm / max(dispersion, 1e-300), self.dof))
 
@@ -79,7 +79,8 @@ class CandidateScore:
 def noncentrality(dof: int, alpha: float = 0.001, power: float = 0.8) -> float:
     """λ₀: the non-centrality at which a χ²_dof test of size ``alpha`` has ``power``."""
     from scipy.optimize import brentq
-    from scipy.stats import chi2, ncx2
+
+    from stellar_cal_ros.core.distributions import chi2, ncx2
 
     crit = chi2.isf(alpha, dof)
     return float(brentq(lambda lam: ncx2.sf(crit, dof, lam) - power, 1e-6, 1e4))

@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtr
-from scipy.stats import chi2 as chi2_dist
 
+from stellar_cal_ros.core.distributions import chi2 as chi2_dist
 from stellar_cal_ros.core.types import StarFrame
 from stellar_cal_ros.sky import database
 
