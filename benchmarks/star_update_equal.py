@@ -3,10 +3,14 @@
 Usage::
 
     python benchmarks/star_update_equal.py BAG.mcap [--prior PRIOR.yaml] [--consider radial_k3]
+        [--switch compiled_propagation]
 
 Replays the bag twice in process (``replay(bag, prior, "swaying_base", consider=...)``)
 with ``SwayingFilter.compiled_star_update`` False (the numpy update, the reference) then
-True (one compiled call a frame after the numpy propagation), and prints the CPU seconds of
+True (one compiled call a frame after the numpy propagation); ``--switch
+compiled_propagation``: the same with ``SwayingFilter.compiled_propagation`` (the
+propagation between frames in numpy, the reference, then in one compiled call; the star
+update compiled in both).  Prints the CPU seconds of
 each, whether the counters are equal, and the largest differences: θ̂, velocity and
 position in their σ and relative, the attitude in its σ, the covariance (against its
 largest entry; its diagonal relative), the consider sensitivity M (against its largest
@@ -33,17 +37,19 @@ def main(argv=None) -> int:
     ap.add_argument("bag", type=Path)
     ap.add_argument("--prior", type=Path)
     ap.add_argument("--consider", default="radial_k3")
+    ap.add_argument("--switch", default="compiled_star_update",
+                    choices=("compiled_star_update", "compiled_propagation"))
     args = ap.parse_args(argv)
     prior = load_calibration(args.prior or Path(str(args.bag).removesuffix(".mcap")
                                                 + ".prior.yaml"))
     consider = [e for e in args.consider.split(",") if e]
     runs = {}
     for compiled in (False, True):
-        SwayingFilter.compiled_star_update = compiled
+        setattr(SwayingFilter, args.switch, compiled)
         t = time.process_time()
         runs[compiled] = replay(args.bag, prior, "swaying_base", consider=consider,
                                 keep_tables=False)
-        print(f"compiled_star_update={compiled}: {time.process_time() - t:.2f} CPU s, "
+        print(f"{args.switch}={compiled}: {time.process_time() - t:.2f} CPU s, "
               f"updates {runs[compiled].counters['updates']}")
     a, b = runs[True].filter, runs[False].filter
     print(f"counters equal {runs[True].counters == runs[False].counters}")

@@ -170,14 +170,7 @@ def test_fused_frame_step_taken_and_equal_to_numpy(sim_data, monkeypatch) -> Non
     from stellar_cal_ros.methods import frame_step
 
     sim, data = sim_data
-    calls = []
-    original = frame_step.FusedStep.call
-
-    def counted(self, *a, **k):
-        calls.append(1)
-        return original(self, *a, **k)
-
-    monkeypatch.setattr(frame_step.FusedStep, "call", counted)
+    calls = _count_calls(monkeypatch, frame_step.FusedStep, "call")
     monkeypatch.setattr(StarFilter, "batched_step", False)  # one call a frame (counted)
     runs = []
     for compiled in (True, False):
@@ -202,6 +195,19 @@ def test_fused_frame_step_taken_and_equal_to_numpy(sim_data, monkeypatch) -> Non
     assert (sa.frames, sa.stars, sa.gated) == (sb.frames, sb.stars, sb.gated)
     for name in ("sum_logdet", "sum_nis", "sum_du2", "sum_dv2", "sum_suu", "sum_svv"):
         assert getattr(sa, name) == pytest.approx(getattr(sb, name), rel=1e-5), name
+
+
+def _count_calls(monkeypatch, owner, name: str) -> list:
+    """``owner.name`` wrapped for the test: each call appends to the returned list."""
+    calls = []
+    original = getattr(owner, name)
+
+    def counted(*a, **k):
+        calls.append(1)
+        return original(*a, **k)
+
+    monkeypatch.setattr(owner, name, counted)
+    return calls
 
 
 def _damaged(data, gaps=((60.0, 60.025), (150.0, 153.0)), dropped=lambda i: i % 37 == 5,
@@ -471,41 +477,19 @@ SWAYING_SIGMA_TOL = 1e-4
 SWAYING_RTOL = 1e-6
 
 
-@pytest.mark.parametrize(("method", "damaged"), [("swaying_base", False),
-                                               ("swaying_base", True),
-                                               ("traditional", False)])
-def test_swaying_compiled_star_update_equals_the_numpy_update(monkeypatch, method,
-                                                              damaged) -> None:
-    """The swaying-base filter propagates and applies its position reference in numpy and
-    takes the star update in one compiled call (``frame_step.star_update``, the fused step's
-    update; ``SwayingFilter.compiled_star_update``).  Against the numpy update (the
-    reference, ``compiled_star_update = False``): the call is taken for every update and
-    never by the reference; the counters are equal (gated, skipped, re-acquired frames on the
-    damaged bag), θ̂, the velocity, position and attitude within ``SWAYING_SIGMA_TOL`` σ, the
-    covariance's diagonal, the consider sensitivity (M, information), the score (in its σ)
-    and the running statistics within ``SWAYING_RTOL`` relative.  ``traditional`` (a
-    ``SwayingFilter``) inherits the compiled update and is held to the same bounds."""
-    from stellar_cal_ros.methods import frame_step
+def _swaying_runs_equal(monkeypatch, switch, calls, data, prior, method, damaged) -> None:
+    """Replays with ``SwayingFilter.<switch>`` True then False (the numpy reference): the
+    compiled call (counted in ``calls``) taken for every frame and never by the reference;
+    counters equal, θ̂, velocity, position and attitude within ``SWAYING_SIGMA_TOL`` σ, the
+    covariance's diagonal, M, the information, the score (in its σ) and the running
+    statistics within ``SWAYING_RTOL``."""
     from stellar_cal_ros.methods.swaying import SwayingFilter
 
-    sim = simulate(get_scenario("swaying"), duration=60.0, seed=4)
-    data = bag_data_from_simulation(sim)
-    if damaged:
-        data = _damaged(data, ((20.0, 20.025), (40.0, 40.4)), lambda i: i % 37 == 5,
-                        lambda i: i % 7 == 3, lambda i: 60 <= i < 64 or i == 29, 52, 45, 12)
-    calls = []
-    original = frame_step.FusedStep.update
-
-    def counted(self, *a, **k):
-        calls.append(1)
-        return original(self, *a, **k)
-
-    monkeypatch.setattr(frame_step.FusedStep, "update", counted)
     runs = {}
     for compiled in (True, False):
-        monkeypatch.setattr(SwayingFilter, "compiled_star_update", compiled)
+        monkeypatch.setattr(SwayingFilter, switch, compiled)
         calls.clear()
-        runs[compiled] = replay(data, sim.prior, method, consider=["radial_k3"],
+        runs[compiled] = replay(data, prior, method, consider=["radial_k3"],
                                 keep_tables=False)
         if compiled:
             n_calls = len(calls)
@@ -518,7 +502,7 @@ def test_swaying_compiled_star_update_equals_the_numpy_update(monkeypatch, metho
     if damaged:
         c = ref.counters
         assert c["skipped_few_stars"] >= 5 and c["reinitializations"] >= 1
-        assert c["stars_gated"] >= 5 and c["position_updates"] >= 40
+        assert c["stars_gated"] >= 5 and c["position_updates"] >= 40 and c["imu_gaps"] >= 1
     sig = np.sqrt(np.diag(b.P))
     est = slice(3, b.N)  # θ̂, velocity, position
     x_a = np.concatenate([a.theta[:a.P_est], a.velocity, a.position])
@@ -538,6 +522,103 @@ def test_swaying_compiled_star_update_equals_the_numpy_update(monkeypatch, metho
     assert (ta.frames, ta.stars, ta.gated) == (tb.frames, tb.stars, tb.gated)
     for name in ("sum_logdet", "sum_nis", "sum_du2", "sum_dv2", "sum_suu", "sum_svv"):
         assert getattr(ta, name) == pytest.approx(getattr(tb, name), rel=SWAYING_RTOL), name
+
+
+@pytest.mark.parametrize(("method", "damaged"), [("swaying_base", False),
+                                               ("swaying_base", True),
+                                               ("traditional", False)])
+def test_swaying_compiled_star_update_equals_the_numpy_update(monkeypatch, method,
+                                                              damaged) -> None:
+    """The swaying-base filter propagates and applies its position reference in numpy and
+    takes the star update in one compiled call (``frame_step.star_update``, the fused step's
+    update; ``SwayingFilter.compiled_star_update``).  Against the numpy update (the
+    reference, ``compiled_star_update = False``): the call is taken for every update and
+    never by the reference; the counters are equal (gated, skipped, re-acquired frames on the
+    damaged bag), θ̂, the velocity, position and attitude within ``SWAYING_SIGMA_TOL`` σ, the
+    covariance's diagonal, the consider sensitivity (M, information), the score (in its σ)
+    and the running statistics within ``SWAYING_RTOL`` relative.  ``traditional`` (a
+    ``SwayingFilter``) inherits the compiled update and is held to the same bounds."""
+    from stellar_cal_ros.methods import frame_step
+
+    sim = simulate(get_scenario("swaying"), duration=60.0, seed=4)
+    data = bag_data_from_simulation(sim)
+    if damaged:
+        data = _damaged(data, ((20.0, 20.025), (40.0, 40.4)), lambda i: i % 37 == 5,
+                        lambda i: i % 7 == 3, lambda i: 60 <= i < 64 or i == 29, 52, 45, 12)
+    calls = _count_calls(monkeypatch, frame_step.FusedStep, "update")
+    _swaying_runs_equal(monkeypatch, "compiled_star_update", calls, data, sim.prior, method,
+                        damaged)
+
+
+#: a compiled swaying interval against the numpy one from the same state, in the state's σ
+#: (P's entries in σ_i σ_j; the same sums in another order: measured ≤ 1e-12)
+INTERVAL_TOL = 1e-10
+
+
+@pytest.mark.parametrize(("method", "damaged"), [("swaying_base", False),
+                                               ("swaying_base", True),
+                                               ("traditional", False)])
+def test_swaying_compiled_propagation_equals_the_numpy_propagation(monkeypatch, method,
+                                                                   damaged) -> None:
+    """The swaying-base filter's propagation between frames (the strapdown sums over the IMU
+    samples, Φ, ``P ← Φ P Φᵀ + Q_d``, the sensitivity, velocity and position) in one
+    compiled call (``frame_step.swaying_propagate``, ``SwayingFilter.compiled_propagation``)
+    against the numpy reference (``ImuPropagation._interval`` and ``_transition``).
+
+    Interval by interval from the same state (the numpy one computed, the state restored,
+    then the compiled one kept): attitude (rad), P (in σ_i σ_j), M, velocity and position
+    (in σ) within ``INTERVAL_TOL``, on every interval of a run whose first-order bound
+    (1e-7 rad) rebuilds references under θ̂.  Then the whole run against the numpy run, as
+    the compiled star update's test: counters equal, θ̂, velocity, position and attitude within
+    ``SWAYING_SIGMA_TOL`` σ, P's diagonal, M, the information, the score and the statistics
+    within ``SWAYING_RTOL``.  ``traditional`` inherits it; a damaged bag (IMU gaps, gated
+    stars, frames with too few stars, a re-acquisition) too."""
+    from stellar_cal_ros.methods import frame_step
+    from stellar_cal_ros.methods.registry import get as registry_get
+    from stellar_cal_ros.methods.swaying import SwayingFilter
+
+    sim = simulate(get_scenario("swaying"), duration=60.0, seed=4)
+    data = bag_data_from_simulation(sim)
+    if damaged:
+        data = _damaged(data, ((20.0, 20.025), (40.0, 40.4)), lambda i: i % 37 == 5,
+                        lambda i: i % 7 == 3, lambda i: 60 <= i < 64 or i == 29, 52, 45, 12)
+    calls = _count_calls(monkeypatch, frame_step, "swaying_propagate")
+    worst = np.zeros(5)
+    n_checked = [0, 0]  # intervals, of which after a rebuild
+    interval = SwayingFilter._propagate_interval
+
+    def checked(self, k, m, t_target):
+        state = self.state
+        before = state.snapshot(sensitivity=True)
+        R0, rebuilds = self.R_i_b, self.propagation.rebuilds
+        SwayingFilter.compiled_propagation = False
+        try:
+            interval(self, k, m, t_target)
+        finally:
+            SwayingFilter.compiled_propagation = True
+        ref = (self.R_i_b, state.P.copy(), state.sensitivity.M.copy(), self.velocity.copy(),
+               self.position.copy())
+        state.restore(before)
+        self.R_i_b = R0
+        interval(self, k, m, t_target)
+        got = (self.R_i_b, state.P, state.sensitivity.M, self.velocity, self.position)
+        sig = np.sqrt(np.diag(ref[1]))
+        scale = (1.0, np.outer(sig, sig), sig[:, None], sig[self.iv], sig[self.ir])
+        for i, (x, y, s_) in enumerate(zip(got, ref, scale, strict=True)):
+            worst[i] = max(worst[i], np.max(np.abs(x - y) / s_))
+        n_checked[0] += 1
+        n_checked[1] += self.propagation.rebuilds > rebuilds
+
+    monkeypatch.setattr(SwayingFilter, "_propagate_interval", checked)
+    # (a smaller first-order bound: references rebuilt under θ̂ during the run)
+    config = dataclasses.replace(registry_get(method).config_cls(),
+                                 fast_propagation_max_rad=1e-7)
+    replay(data, sim.prior, method, None, config, consider=["radial_k3"], keep_tables=False)
+    assert n_checked[0] >= 100 and len(calls) >= n_checked[0] and n_checked[1] >= 3
+    assert np.all(worst <= INTERVAL_TOL), worst
+    monkeypatch.setattr(SwayingFilter, "_propagate_interval", interval)
+    _swaying_runs_equal(monkeypatch, "compiled_propagation", calls, data, sim.prior, method,
+                        damaged)
 
 
 def test_a_moving_shift_builds_each_frame_context_once_a_look(monkeypatch) -> None:

@@ -245,23 +245,38 @@ class ImuPropagation:
 
     # ------------------------------------------------------------------ propagation
     def step(self, imu, k: int, m: int, ta: float, tb: float, R_a: np.ndarray,
-             theta: np.ndarray) -> Step:
+             theta: np.ndarray, interval=None):
         """Propagate from ``t_a`` (in sample ``k``) to ``t_b`` (in sample ``m``).
 
         ``R_a`` is the nominal attitude at ``t_a``; ``theta`` the current parameters.
+        ``interval``: what turns the reference's rows into the result (default
+        :meth:`_interval`, a :class:`Step`; the same arguments, None when the first-order
+        correction is too large), e.g. a filter's compiled propagation and transition.
         """
+        interval = interval or self._interval
         pre = self.prefix
         if self.exact or pre is None or imu.base + k < pre.base or \
                 imu.base + m - self.ref_start >= self.window:
             self.rebuild(imu, k, theta, m + 1 if self.exact else None)
         elif pre.end <= imu.base + m:
             self._extend(imu, pre.end - imu.base, len(imu))
-        out = self._interval(imu, k, m, ta, tb, R_a, theta)
+        out = interval(imu, k, m, ta, tb, R_a, theta)
         if out is None:  # the first-order correction is too large: rebuild under θ̂
             self.rebuilds += 1
             self.rebuild(imu, k, theta, m + 1 if self.exact else None)
-            out = self._interval(imu, k, m, ta, tb, R_a, theta)
+            out = interval(imu, k, m, ta, tb, R_a, theta)
         return out
+
+    def rows(self, imu, k: int, m: int) -> tuple:
+        """The reference's per-sample arrays and the rows ``(j, mj)`` of samples ``k, m``.
+
+        ``(tp, C, w_hat, phi, slope, f_hat, du, gdt, j, mj)`` (the accelerometer rows with
+        one), as :meth:`_interval` reads them: for a compiled form of it.
+        """
+        pre = self.prefix
+        off = imu.base - pre.base
+        return (pre.tp, pre.C, pre.w_hat, pre.phi, pre.slope, pre.f_hat, pre.du, pre.gdt,
+                k + off, m + off)
 
     def _interval(self, imu, k: int, m: int, ta: float, tb: float, R_a: np.ndarray,
                   theta: np.ndarray) -> Step | None:

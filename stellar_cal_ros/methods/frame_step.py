@@ -116,6 +116,180 @@ def attitude_interval(tp, C, w_hat, phi, slope, j, mj, ta, tb, R_a, Gamma, delta
 
 
 @njit(cache=True)
+def swaying_interval(tp, C, w_hat, phi, slope, f_hat, du, gdt, j, mj, ta, tb, R_a, Gg, Ga,
+                     delta, max_rad):
+    """:meth:`ImuPropagation._interval` with an accelerometer (rows ``j..mj``), in loops.
+
+    Returns ``(ok, R_b (3, 3), F (3, 3, P), dvr (2, 3), gravity (2, 3))``; ``ok`` False when
+    the first-order attitude correction exceeds ``max_rad`` (the reference is to be rebuilt).
+    The same sums as the numpy path: ``DG``, the tail sums ``Y``, ``Zg``, ``Za`` and their
+    weighted sums, accumulated per sample.
+    """
+    n = mj - j + 1
+    P = Gg.shape[1]
+    Kg, Ka = Gg.shape[0], Ga.shape[0]
+    Ca = _at(tp, C, phi, slope, j, ta)
+    Cb = _at(tp, C, phi, slope, mj, tb)
+    Q = _mat3_mul_t(R_a, Ca)
+    dts = np.empty(n)
+    W1 = np.empty(n)  # trapezoid weight of δv in δr
+    frac = np.empty(n)
+    prev = ta
+    for i in range(n):
+        r = j + i
+        end = tb if i == n - 1 else tp[r + 1]
+        dts[i] = end - prev
+        prev = end
+        W1[i] = (tb - end) + 0.5 * dts[i]
+        frac[i] = dts[i] / (tp[r + 1] - tp[r])
+    # specific-force and gravitation increments in the reference frame, their sums
+    D = np.empty((n, 3))
+    sums = np.zeros((2, 6))
+    for i in range(n):
+        r = j + i
+        Cs = Ca if i == 0 else C[r]
+        for a in range(3):
+            D[i, a] = (Cs[a, 0] * du[r, 0] + Cs[a, 1] * du[r, 1] + Cs[a, 2] * du[r, 2]) \
+                * frac[i]
+            g = gdt[r, a] * frac[i]
+            sums[0, a] += D[i, a]
+            sums[1, a] += W1[i] * D[i, a]
+            sums[0, 3 + a] += g
+            sums[1, 3 + a] += W1[i] * g
+    # tails[w, i] = Σ_{l>i} W_w,l D_l (as total − running sum, the numpy path's form)
+    tails = np.empty((2, n, 3))
+    for w in range(2):
+        for a in range(3):
+            tot = 0.0
+            for i in range(n):
+                tot += (1.0 if w == 0 else W1[i]) * D[i, a]
+            run = 0.0
+            for i in range(n):
+                run += (1.0 if w == 0 else W1[i]) * D[i, a]
+                tails[w, i, a] = tot - run
+    YZ0 = np.zeros((3, Kg))  # Σ Zg
+    Tx = np.zeros((2, 3, 3, Kg))  # Σ tails[w, i, c] Zg_i[a, k]
+    Zas = np.zeros((2, 3, Ka))  # Σ W_w Za
+    zg = np.empty((3, Kg))
+    za = np.empty((3, Ka))
+    for i in range(n):
+        r = j + i
+        Cs = Ca if i == 0 else C[r]
+        Ce = Cb if i == n - 1 else C[r + 1]
+        hw = 0.5 * dts[i]
+        for a in range(3):
+            for b in range(3):
+                cm = (Ce[a, b] + Cs[a, b]) * hw
+                zg[a, b] = cm
+                if Kg > 3:
+                    for c in range(3):
+                        zg[a, 3 + 3 * b + c] = cm * w_hat[r, c]
+                cs = Cs[a, b] * dts[i]
+                za[a, b] = cs
+                if Ka > 3:
+                    for c in range(3):
+                        za[a, 3 + 3 * b + c] = cs * f_hat[r, c]
+        for a in range(3):
+            for k in range(Kg):
+                z = zg[a, k]
+                YZ0[a, k] += z
+                for w in range(2):
+                    for c in range(3):
+                        Tx[w, c, a, k] += tails[w, i, c] * z
+            for k in range(Ka):
+                Zas[0, a, k] += za[a, k]
+                Zas[1, a, k] += W1[i] * za[a, k]
+    Xc = np.empty((2, 3, Kg))
+    for w in range(2):
+        for k in range(Kg):
+            Xc[w, 0, k] = Tx[w, 1, 2, k] - Tx[w, 2, 1, k]
+            Xc[w, 1, k] = Tx[w, 2, 0, k] - Tx[w, 0, 2, k]
+            Xc[w, 2, k] = Tx[w, 0, 1, k] - Tx[w, 1, 0, k]
+    F = np.empty((3, 3, P))
+    F[0] = Q @ (YZ0 @ Gg)
+    for w in range(2):
+        F[1 + w] = Q @ (Zas[w] @ Ga - Xc[w] @ Gg)
+    corr = np.zeros((3, 3))
+    for s in range(3):
+        for a in range(3):
+            acc = 0.0
+            for p in range(P):
+                acc += F[s, a, p] * delta[p]
+            corr[s, a] = acc
+    if corr[0, 0] ** 2 + corr[0, 1] ** 2 + corr[0, 2] ** 2 > max_rad * max_rad:
+        return False, np.eye(3), F, np.zeros((2, 3)), np.zeros((2, 3))
+    dvr = np.empty((2, 3))
+    grav = np.empty((2, 3))
+    for w in range(2):
+        for a in range(3):
+            dvr[w, a] = (Q[a, 0] * sums[w, 0] + Q[a, 1] * sums[w, 1] + Q[a, 2] * sums[w, 2]) \
+                + corr[1 + w, a]
+            grav[w, a] = sums[w, 3 + a]
+    c0 = np.empty(3)
+    c0[:] = corr[0]
+    R_b = mat3_mul(so3_exp1(c0), mat3_mul(Q, Cb))
+    return True, R_b, F, dvr, grav
+
+
+@njit(cache=True)
+def swaying_propagate(tp, C, w_hat, phi, slope, f_hat, du, gdt, j, mj, ta, tb, R_a, Gg, Ga,
+                      delta, max_rad, P, M, Pe, inv_tau, qd_index, qd, vel, pos):
+    """The swaying-base filter's propagation over one interval in one call.
+
+    :func:`swaying_interval`, then :meth:`SwayingFilter._transition`: Φ (the parameter
+    columns of the attitude, velocity and position rows, ``−[Δv]×``, ``T I``, the
+    Gauss–Markov decay), ``P ← Φ P Φᵀ + Q_d`` symmetrized (``qd`` (5, q): ``q1, q2, q3,
+    gm2, itau2`` on the flat entries ``qd_index``), ``M ← Φ M + F_β`` and the nominal
+    velocity and position.  Returns ``(ok, R_b, P, M, vel, pos)``; with ``ok`` False
+    nothing is computed beyond the interval (the reference is to be rebuilt).
+    """
+    ok, R_b, F, dvr, grav = swaying_interval(tp, C, w_hat, phi, slope, f_hat, du, gdt, j,
+                                             mj, ta, tb, R_a, Gg, Ga, delta, max_rad)
+    if not ok:
+        return False, R_b, P, M, vel, pos
+    T = tb - ta
+    N = P.shape[0]
+    iv = 3 + Pe
+    ir = iv + 3
+    Phi = np.eye(N)
+    nc = F.shape[2] - Pe
+    for s in range(3):
+        for a in range(3):
+            row = a if s == 0 else iv + 3 * (s - 1) + a
+            for p in range(Pe):
+                Phi[row, 3 + p] = F[s, a, p]
+    for p in range(Pe):
+        Phi[3 + p, 3 + p] = math.exp(-T * inv_tau[p])
+    for w in range(2):
+        x, y, z = dvr[w, 0], dvr[w, 1], dvr[w, 2]
+        r0 = iv + 3 * w
+        Phi[r0, 0], Phi[r0, 1], Phi[r0, 2] = -0.0, z, -y
+        Phi[r0 + 1, 0], Phi[r0 + 1, 1], Phi[r0 + 1, 2] = -z, -0.0, x
+        Phi[r0 + 2, 0], Phi[r0 + 2, 1], Phi[r0 + 2, 2] = y, -x, -0.0
+    for a in range(3):
+        Phi[ir + a, iv + a] = T
+    pos_n = pos + vel * T + dvr[1] + grav[1]
+    vel_n = vel + dvr[0] + grav[0]
+    Pn = Phi @ P @ Phi.T
+    for e in range(len(qd_index)):
+        i = qd_index[e]
+        q = (qd[0, e] + (qd[1, e] + qd[2, e] * T) * T) * T \
+            + qd[3, e] * -math.expm1(-T * qd[4, e])
+        Pn[i // N, i % N] += q
+    Ps = 0.5 * (Pn + Pn.T)
+    if M.shape[1] == 0:
+        return True, R_b, Ps, M, vel_n, pos_n
+    Mn = Phi @ M
+    if nc:
+        for s in range(3):
+            for a in range(3):
+                row = a if s == 0 else iv + 3 * (s - 1) + a
+                for c in range(nc):
+                    Mn[row, c] += F[s, a, Pe + c]
+    return True, R_b, Ps, Mn, vel_n, pos_n
+
+
+@njit(cache=True)
 def propagate_coupled(P, M, Pe, F, q_diag):
     """:func:`~stellar_cal_ros.core.covariance.propagate_coupled` of the attitude rows.
 
@@ -617,8 +791,8 @@ class FusedStep:
     propagation (``exact_propagation``).
     """
 
-    _HOOKS = ("_transition", "_before_star_update", "inject", "_star_update", "propagate",
-              "_predict", "rate_at", "update")
+    _HOOKS = ("_transition", "_propagate_interval", "_before_star_update", "inject",
+              "_star_update", "propagate", "_predict", "rate_at", "update")
 
     def __init__(self, flt, chain, gyro_affine) -> None:
         c = flt.config

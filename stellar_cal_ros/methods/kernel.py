@@ -453,14 +453,22 @@ class StarFilter(Acquisition):
         m = self.imu.index(t_target)
         if m >= len(self.imu):
             raise NoImuError()
-        step = self.propagation.step(self.imu, k, m, self.t, t_target, self.R_i_b,
-                                     self.theta)
-        self.R_i_b = step.R
-        self._transition(step)
+        self._propagate_interval(k, m, t_target)
         self._inflate_bridged(k, m, self.t, t_target)
         self.t = t_target
         self._k = m
         self._omega_stale = True  # the corrected rate of sample m, when next needed
+
+    def _propagate_interval(self, k: int, m: int, t_target: float) -> None:
+        """Nominal attitude and :meth:`_transition` from ``self.t`` to ``t_target``.
+
+        ``k``, ``m``: the IMU samples of the two times.  A method may do both in one
+        compiled call (the swaying-base filter's ``compiled_propagation``).
+        """
+        step = self.propagation.step(self.imu, k, m, self.t, t_target, self.R_i_b,
+                                     self.theta)
+        self.R_i_b = step.R
+        self._transition(step)
 
     def rate_at(self, t: float) -> np.ndarray:
         """Corrected body rate of the IMU sample covering relative time ``t``."""

@@ -60,6 +60,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from stellar_cal_ros.core import earth
+from stellar_cal_ros.core.jit import HAVE_NUMBA
 from stellar_cal_ros.core.propagation import Step
 from stellar_cal_ros.core.rotation import skew
 from stellar_cal_ros.core.state import Block, nominal_view
@@ -177,6 +178,11 @@ class SwayingFilter(StarFilter):
 
     method = "swaying_base"
     compiled_star_update = True  # (the kernel's; the numpy update stays the reference)
+    #: the propagation between frames (the strapdown's sums over the IMU samples, Φ, the
+    #: covariance, sensitivity, velocity and position) in one compiled call
+    #: (:func:`~.frame_step.swaying_propagate`; False: :meth:`ImuPropagation._interval` and
+    #: :meth:`_transition` in numpy, the reference; ``compiled_step`` False: numpy too)
+    compiled_propagation = True
     checkpoint_fields = {**StarFilter.checkpoint_fields,
                          "last_reference_t": "last_reference_t",
                          "level_check_deg": "level_check_deg",
@@ -213,6 +219,10 @@ class SwayingFilter(StarFilter):
         self._Phi = np.eye(self.N)
         self._diag_it = (np.arange(self.it.start, self.it.stop),) * 2
         self._qd_setup()
+        # the compiled propagation's Q_d and decay inputs, and its M without consider
+        self._qd_arrays = (self._qd_index.astype(np.int64), np.array(self._qd),
+                           np.ascontiguousarray(self._inv_tau[:self.P_est]))
+        self._no_consider = np.zeros((self.N, 0))
         self.last_reference_t = -np.inf
         self.level_check_deg = float("nan")
         self.reference_history: dict[str, list] = {"t": [], "nu_x": [], "nu_y": [],
@@ -306,6 +316,45 @@ class SwayingFilter(StarFilter):
         q1, q2, q3, gm2, itau2 = self._qd
         q = (q1 + (q2 + q3 * T) * T) * T + gm2 * -np.expm1(-T * itau2)
         self.state.propagate(Phi, (self._qd_index, q), F_b)
+
+    def _propagate_interval(self, k: int, m: int, t_target: float) -> None:
+        """The kernel's, or with :attr:`compiled_propagation` the same in one compiled call.
+
+        Taken when the method's transition is this class's (a subclass with its own keeps
+        the numpy path) and numba is there.
+        """
+        if not (self.compiled_propagation and self.compiled_step and HAVE_NUMBA) or \
+                type(self)._transition is not SwayingFilter._transition:
+            super()._propagate_interval(k, m, t_target)
+            return
+        self.R_i_b = self.propagation.step(self.imu, k, m, self.t, t_target, self.R_i_b,
+                                           self.theta, self._compiled_interval)
+
+    def _compiled_interval(self, imu, k, m, ta, tb, R_a, theta) -> np.ndarray | None:
+        """:func:`~.frame_step.swaying_propagate` of the interval (P, M, v, r set here).
+
+        Returns the new attitude, or None (nothing changed) when the reference is to be
+        rebuilt (:meth:`ImuPropagation.step`'s ``interval``).
+        """
+        from stellar_cal_ros.methods.frame_step import swaying_propagate
+
+        prop = self.propagation
+        Gg, Ga = (np.ascontiguousarray(g, dtype=float) for g in prop._gamma)
+        qd_index, qd, inv_tau = self._qd_arrays
+        sens = self.state.sensitivity
+        M = self._no_consider if sens is None else np.ascontiguousarray(sens.M)
+        ok, R_b, P, M, vel, pos = swaying_propagate(
+            *prop.rows(imu, k, m), float(ta), float(tb), np.ascontiguousarray(R_a),
+            Gg, Ga, theta - prop.theta_ref, prop.max_correction_rad,
+            np.ascontiguousarray(self.state.P), M, self.P_est, inv_tau, qd_index, qd,
+            self.velocity, self.position)
+        if not ok:
+            return None
+        self.state.P = P
+        if sens is not None:
+            sens.M = M
+        self.velocity, self.position = vel, pos
+        return R_b
 
     # ------------------------------------------------------------------ acquisition
     def _acquire_navigation(self, t_exp: float) -> None:
