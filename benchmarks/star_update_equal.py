@@ -3,14 +3,15 @@
 Usage::
 
     python benchmarks/star_update_equal.py BAG.mcap [--prior PRIOR.yaml] [--consider radial_k3]
-        [--switch compiled_propagation]
+        [--switch compiled_propagation|compiled_reference]
 
 Replays the bag twice in process (``replay(bag, prior, "swaying_base", consider=...)``)
 with ``SwayingFilter.compiled_star_update`` False (the numpy update, the reference) then
 True (one compiled call a frame after the numpy propagation); ``--switch
 compiled_propagation``: the same with ``SwayingFilter.compiled_propagation`` (the
 propagation between frames in numpy, the reference, then in one compiled call; the star
-update compiled in both).  Prints the CPU seconds of
+update compiled in both), ``--switch compiled_reference`` the same with the position
+reference's update (``SwayingFilter.compiled_reference``).  Prints the CPU seconds of
 each, whether the counters are equal, and the largest differences: θ̂, velocity and
 position in their σ and relative, the attitude in its σ, the covariance (against its
 largest entry; its diagonal relative), the consider sensitivity M (against its largest
@@ -38,7 +39,8 @@ def main(argv=None) -> int:
     ap.add_argument("--prior", type=Path)
     ap.add_argument("--consider", default="radial_k3")
     ap.add_argument("--switch", default="compiled_star_update",
-                    choices=("compiled_star_update", "compiled_propagation"))
+                    choices=("compiled_star_update", "compiled_propagation",
+                             "compiled_reference"))
     args = ap.parse_args(argv)
     prior = load_calibration(args.prior or Path(str(args.bag).removesuffix(".mcap")
                                                 + ".prior.yaml"))

@@ -477,9 +477,21 @@ SWAYING_SIGMA_TOL = 1e-4
 SWAYING_RTOL = 1e-6
 
 
-def _swaying_runs_equal(monkeypatch, switch, calls, data, prior, method, damaged) -> None:
+def _swaying_bag(damaged: bool):
+    """The swaying tests' 60 s bag (seed 4), damaged as :func:`_damaged` when asked."""
+    sim = simulate(get_scenario("swaying"), duration=60.0, seed=4)
+    data = bag_data_from_simulation(sim)
+    if damaged:
+        data = _damaged(data, ((20.0, 20.025), (40.0, 40.4)), lambda i: i % 37 == 5,
+                        lambda i: i % 7 == 3, lambda i: 60 <= i < 64 or i == 29, 52, 45, 12)
+    return sim, data
+
+
+def _swaying_runs_equal(monkeypatch, switch, calls, data, prior, method, damaged,
+                        min_calls: int = 0) -> None:
     """Replays with ``SwayingFilter.<switch>`` True then False (the numpy reference): the
-    compiled call (counted in ``calls``) taken for every frame and never by the reference;
+    compiled call (counted in ``calls``) taken for every frame (at least ``min_calls``
+    times when given) and never by the reference;
     counters equal, θ̂, velocity, position and attitude within ``SWAYING_SIGMA_TOL`` σ, the
     covariance's diagonal, M, the information, the score (in its σ) and the running
     statistics within ``SWAYING_RTOL``."""
@@ -498,7 +510,7 @@ def _swaying_runs_equal(monkeypatch, switch, calls, data, prior, method, damaged
     a, b = fast.filter, ref.filter
     assert fast.counters == ref.counters
     n_up = ref.counters["updates"]
-    assert n_up >= 100 and n_calls >= n_up
+    assert n_up >= 100 and n_calls >= (min_calls or n_up)
     if damaged:
         c = ref.counters
         assert c["skipped_few_stars"] >= 5 and c["reinitializations"] >= 1
@@ -540,11 +552,7 @@ def test_swaying_compiled_star_update_equals_the_numpy_update(monkeypatch, metho
     ``SwayingFilter``) inherits the compiled update and is held to the same bounds."""
     from stellar_cal_ros.methods import frame_step
 
-    sim = simulate(get_scenario("swaying"), duration=60.0, seed=4)
-    data = bag_data_from_simulation(sim)
-    if damaged:
-        data = _damaged(data, ((20.0, 20.025), (40.0, 40.4)), lambda i: i % 37 == 5,
-                        lambda i: i % 7 == 3, lambda i: 60 <= i < 64 or i == 29, 52, 45, 12)
+    sim, data = _swaying_bag(damaged)
     calls = _count_calls(monkeypatch, frame_step.FusedStep, "update")
     _swaying_runs_equal(monkeypatch, "compiled_star_update", calls, data, sim.prior, method,
                         damaged)
@@ -577,11 +585,7 @@ def test_swaying_compiled_propagation_equals_the_numpy_propagation(monkeypatch, 
     from stellar_cal_ros.methods.registry import get as registry_get
     from stellar_cal_ros.methods.swaying import SwayingFilter
 
-    sim = simulate(get_scenario("swaying"), duration=60.0, seed=4)
-    data = bag_data_from_simulation(sim)
-    if damaged:
-        data = _damaged(data, ((20.0, 20.025), (40.0, 40.4)), lambda i: i % 37 == 5,
-                        lambda i: i % 7 == 3, lambda i: 60 <= i < 64 or i == 29, 52, 45, 12)
+    sim, data = _swaying_bag(damaged)
     calls = _count_calls(monkeypatch, frame_step, "swaying_propagate")
     worst = np.zeros(5)
     n_checked = [0, 0]  # intervals, of which after a rebuild
@@ -619,6 +623,25 @@ def test_swaying_compiled_propagation_equals_the_numpy_propagation(monkeypatch, 
     monkeypatch.setattr(SwayingFilter, "_propagate_interval", interval)
     _swaying_runs_equal(monkeypatch, "compiled_propagation", calls, data, sim.prior, method,
                         damaged)
+
+
+@pytest.mark.parametrize(("method", "damaged"), [("swaying_base", False),
+                                               ("swaying_base", True),
+                                               ("traditional", False)])
+def test_swaying_compiled_reference_equals_the_numpy_reference(monkeypatch, method,
+                                                               damaged) -> None:
+    """The swaying filter's inertial reference (Z1: the position, or ``traditional``'s
+    zero velocity in the navigation frame) updated and injected in one compiled call
+    (``frame_step.reference_update``, ``SwayingFilter.compiled_reference``) against the
+    numpy update and injection: the call taken for every reference update and never by
+    the reference path; the whole runs held to the compiled star update's bounds
+    (:func:`_swaying_runs_equal`)."""
+    from stellar_cal_ros.methods import frame_step
+
+    sim, data = _swaying_bag(damaged)
+    calls = _count_calls(monkeypatch, frame_step, "reference_update")
+    _swaying_runs_equal(monkeypatch, "compiled_reference", calls, data, sim.prior, method,
+                        damaged, min_calls=50)
 
 
 def test_a_moving_shift_builds_each_frame_context_once_a_look(monkeypatch) -> None:

@@ -292,6 +292,16 @@ class ErrorState:
         A rotation block's covariance is reset by ``G = I + ½[δφ]×``
         (:func:`~.covariance.reset_rotation`).
         """
+        self.boxplus(dx)
+        for b in self._rotations:
+            cov.reset_rotation(self.P, b.sl, dx[b.sl])
+        self.P = 0.5 * (self.P + self.P.T)
+        if self.sensitivity is not None:
+            for b in self._rotations:
+                self.sensitivity.reset_rotation(b.sl, dx[b.sl])
+
+    def boxplus(self, dx: np.ndarray) -> None:
+        """The nominal values' part of :meth:`inject` (P and M left as they are)."""
         nom = self.nominal
         for b in self._rotations:
             nom[b.value_name] = b.boxplus(nom[b.value_name], dx[b.sl])
@@ -300,12 +310,6 @@ class ErrorState:
                 nom[name] = nom[name] + dx[sl]
             else:
                 nom[name][idx] += dx[sl]
-        for b in self._rotations:
-            cov.reset_rotation(self.P, b.sl, dx[b.sl])
-        self.P = 0.5 * (self.P + self.P.T)
-        if self.sensitivity is not None:
-            for b in self._rotations:
-                self.sensitivity.reset_rotation(b.sl, dx[b.sl])
 
     # ------------------------------------------------------------------ health
     def check(self, name: str = "covariance") -> None:

@@ -290,6 +290,56 @@ def swaying_propagate(tp, C, w_hat, phi, slope, f_hat, du, gdt, j, mj, ta, tb, R
 
 
 @njit(cache=True)
+def reference_update(P, M, score, info, accumulate, H, nu, R):
+    """A linear update with a full R and the attitude's reset, in one call.
+
+    :meth:`~stellar_cal_ros.core.state.ErrorState.linear_update` (``dx``, Joseph ``P``, the
+    NIS; the sensitivity's update with no consider column in ``H``, its score and
+    information when ``accumulate``) followed by the covariance part of
+    :meth:`~stellar_cal_ros.core.state.ErrorState.inject` for an attitude block in rows
+    0:3 (``G = I + ½[δφ]×`` on P's rows and columns and M's rows, P symmetrized).  The
+    same formulas as the numpy path (the swaying filter's position reference).  Returns
+    ``(dx, nis, P, M)``; ``score`` and ``info`` are changed in place.
+    """
+    N = P.shape[0]
+    m = H.shape[0]
+    HP = H @ P
+    S = HP @ H.T + R
+    rhs = np.empty((m, N + 1))
+    rhs[:, :N] = HP
+    rhs[:, N] = nu
+    X = np.linalg.solve(S, rhs)
+    K = np.ascontiguousarray(X[:, :N].T)
+    nis = 0.0
+    for a in range(m):
+        nis += nu[a] * X[a, N]
+    A = np.eye(N) - K @ H
+    Pn = A @ P @ A.T + K @ R @ K.T
+    Pn = 0.5 * (Pn + Pn.T)
+    dx = K @ nu
+    nc = M.shape[1]
+    if nc:
+        Am = H @ M
+        if accumulate:
+            rhs2 = np.empty((m, nc + 1))
+            rhs2[:, :nc] = Am
+            rhs2[:, nc] = nu
+            X2 = np.linalg.solve(S, rhs2)
+            AT = np.ascontiguousarray(Am.T)
+            score += AT @ np.ascontiguousarray(X2[:, nc])
+            info += AT @ np.ascontiguousarray(X2[:, :nc])
+        M = M - K @ Am
+    x, y, z = 0.5 * dx[0], 0.5 * dx[1], 0.5 * dx[2]
+    G = np.array([[1.0, -z, y], [z, 1.0, -x], [-y, x, 1.0]])
+    Pn[0:3, :] = G @ np.ascontiguousarray(Pn[0:3, :])
+    Pn[:, 0:3] = np.ascontiguousarray(Pn[:, 0:3]) @ G.T
+    Pn = 0.5 * (Pn + Pn.T)
+    if nc:
+        M[0:3] = G @ np.ascontiguousarray(M[0:3])
+    return dx, nis, Pn, M
+
+
+@njit(cache=True)
 def propagate_coupled(P, M, Pe, F, q_diag):
     """:func:`~stellar_cal_ros.core.covariance.propagate_coupled` of the attitude rows.
 

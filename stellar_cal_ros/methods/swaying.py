@@ -183,6 +183,9 @@ class SwayingFilter(StarFilter):
     #: (:func:`~.frame_step.swaying_propagate`; False: :meth:`ImuPropagation._interval` and
     #: :meth:`_transition` in numpy, the reference; ``compiled_step`` False: numpy too)
     compiled_propagation = True
+    #: the position (Z1) reference's update and injection in one compiled call
+    #: (:func:`~.frame_step.reference_update`; False: the numpy update, the reference)
+    compiled_reference = True
     checkpoint_fields = {**StarFilter.checkpoint_fields,
                          "last_reference_t": "last_reference_t",
                          "level_check_deg": "level_check_deg",
@@ -408,8 +411,7 @@ class SwayingFilter(StarFilter):
             return
         self.last_reference_t = self.t
         nu, H, R = self.reference_measurement()
-        dx, nis = self.state.linear_update(H, nu, R)
-        self.inject(dx)
+        nis = self._reference_update(H, nu, R)
         key = "position_updates" if self.config.velocity_reference == "position" \
             else "velocity_updates"
         self.counters.add(key)
@@ -418,6 +420,40 @@ class SwayingFilter(StarFilter):
         for j, ax in enumerate("xyz"):
             h[f"nu_{ax}"].append(float(nu[j]))
         h["nis"].append(nis)
+
+
+    def _reference_update(self, H: np.ndarray, nu: np.ndarray, R: np.ndarray) -> float:
+        """Update with Z1 and inject the correction; its NIS.
+
+        With :attr:`compiled_reference` the update and the covariance's reset in one
+        compiled call, the nominal values' box-plus here; not for a filter with its own
+        injection (the Cramér–Rao bound's) or a rotation block besides the attitude.
+        """
+        st = self.state
+        if not (self.compiled_reference and self.compiled_step and HAVE_NUMBA) or \
+                type(self).inject is not StarFilter.inject or \
+                [b.sl for b in st._rotations] != [self.ia]:
+            dx, nis = st.linear_update(H, nu, R)
+            self.inject(dx)
+            return nis
+        from stellar_cal_ros.methods.frame_step import reference_update
+
+        sens = st.sensitivity
+        if sens is None:
+            M, score, info, acc = self._no_consider, np.zeros(0), np.zeros((0, 0)), False
+        else:
+            M, score, info, acc = (np.ascontiguousarray(sens.M), sens.score, sens.info,
+                                   bool(sens.accumulate))
+        dx, nis, st.P, M = reference_update(np.ascontiguousarray(st.P), M, score, info, acc,
+                                            np.ascontiguousarray(H, dtype=float),
+                                            np.asarray(nu, dtype=float),
+                                            np.ascontiguousarray(R, dtype=float))
+        if sens is not None:
+            sens.M = M
+            sens.frames += acc
+        st.boxplus(dx)
+        self._omega_stale = True
+        return float(nis)
 
 
 def replay_swaying(bag, prior, effects: list[str] | None = None,
