@@ -19,6 +19,13 @@ numpy path stays the reference (``StarFilter.compiled_step = False``);
 Whatever needs Python — a reference strapdown to rebuild, too few stars (the re-acquisition
 logic), a failed update (its log line) — comes back as a status before or after the
 propagation, and the kernel goes on from there with the state as the numpy path leaves it.
+
+The swaying-base filter (velocity and position driven by the accelerometer, its own
+transition and position reference) takes no fused step; its parts are compiled one by one
+and called from its numpy path: :func:`swaying_propagate` (the interval's strapdown sums
+and its transition), :func:`reference_update` (the position reference) and
+:func:`star_update` (the star update), each held to the numpy reference by
+``test/test_compiled_step.py``.
 """
 
 from __future__ import annotations

@@ -23,7 +23,9 @@ summed exactly, and the covariance is propagated once per frame.  The strapdown 
 and sculling) is the filters' one IMU propagation (:class:`~stellar_cal_ros.core.propagation.
 ImuPropagation`: a reference strapdown accumulated once per sample, rebuilt after
 ``reference_window_s`` or when the first-order corrections for the change of θ̂ grow;
-:meth:`SwayingFilter._transition` turns its sums into Φ).  The Earth-orientation
+:meth:`SwayingFilter._transition` turns its sums into Φ; both, and the position
+reference's update, in one compiled call each by default, the numpy path the reference:
+``compiled_propagation``, ``compiled_reference``).  The Earth-orientation
 quantities (gravitation, site position and velocity in the GCRS) are tabulated on a grid
 computed in chunks as the data advance, so the filter streams with bounded memory.
 
