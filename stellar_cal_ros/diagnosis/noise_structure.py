@@ -876,7 +876,7 @@ def fixed_pattern(r: np.ndarray, share: np.ndarray, pos: np.ndarray, star: np.nd
     if not (mean > 0.0 and var > 0.0):
         return None
     g, dof = var / (2.0 * mean), 2.0 * mean * mean / var
-    p = float(sps.chi2.sf(T / g, dof))
+    p = float(dist.chi2.sf(T / g, dof))
     u = np.ones(len(rows)) if scale is None else np.asarray(scale, dtype=float)[rows]
     band_mean = np.bincount(b, om * d * u, minlength=nb_count) / np.maximum(nb, 1e-300)
     k = int(np.argmax(w * h * h))
