@@ -92,9 +92,31 @@ def fit_frame_attitude(
     uv = np.asarray(uv, dtype=float)
     u_i = np.asarray(directions_i, dtype=float)
     R = wahba(camera.unproject(uv), u_i) if R_i_st0 is None else np.array(R_i_st0, dtype=float)
+    R, info, iterations = refine_frame_rotation(camera, uv, u_i, R, max_iterations)
+    d = u_i @ R
+    residuals = uv - camera.project(d)
+    return FrameAttitude(R, residuals, sigma_px**2 * np.linalg.inv(info), iterations)
+
+
+def refine_frame_rotation(
+    camera: CameraModel,
+    uv: np.ndarray,
+    directions_i: np.ndarray,
+    R_i_st0: np.ndarray,
+    max_iterations: int = 10,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The Gauss-Newton iterations of :func:`fit_frame_attitude` from ``R_i_st0``.
+
+    Returns ``(R_i_st, JᵀJ of the last step, iterations)``, without the residuals and
+    covariance at the result (for callers that need the rotation only: the same rotation
+    as the fit's, one projection fewer).
+    """
+    uv = np.asarray(uv, dtype=float)
+    u_i = np.asarray(directions_i, dtype=float)
+    R = np.array(R_i_st0, dtype=float)
     info = np.eye(3)
     iterations = 0
-    for iterations in range(1, max_iterations + 1):  # noqa: B007 (reported below)
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 (returned)
         d = u_i @ R  # rows: R^T u
         pred, J_d, _ = camera.project(d, jacobians=True)
         r = (uv - pred).reshape(-1)
@@ -104,6 +126,4 @@ def fit_frame_attitude(
         R = R @ so3_exp(step)
         if np.max(np.abs(step)) < 1e-12:
             break
-    d = u_i @ R
-    residuals = uv - camera.project(d)
-    return FrameAttitude(R, residuals, sigma_px**2 * np.linalg.inv(info), iterations)
+    return R, info, iterations

@@ -20,7 +20,7 @@ import logging
 import numpy as np
 
 from stellar_cal_ros.core import gyro_check
-from stellar_cal_ros.core.attitude import fit_frame_attitude, wahba
+from stellar_cal_ros.core.attitude import fit_frame_attitude, refine_frame_rotation, wahba
 from stellar_cal_ros.core.rotation import so3_log
 from stellar_cal_ros.effects.base import FrameContext
 from stellar_cal_ros.errors import DataError, ModelError
@@ -133,11 +133,12 @@ class Acquisition:
             th[:P_est] += delta
             R_imu_st, _ = model.installation_at(th, ctx)
             try:
-                fit = fit_frame_attitude(model.camera_at(th, ctx), uv, u_i, R_i_st0=R_i_st,
-                                         max_iterations=2)
+                # the rotation only: no residuals or covariance at the refit
+                R_fit, _, _ = refine_frame_rotation(model.camera_at(th, ctx), uv, u_i,
+                                                    R_i_st, max_iterations=2)
             except (ModelError, np.linalg.LinAlgError, ValueError):
                 return None
-            phi = so3_log((fit.R_i_st @ R_imu_st.T) @ R_i_b.T) + M @ delta
+            phi = so3_log((R_fit @ R_imu_st.T) @ R_i_b.T) + M @ delta
             return phi if np.all(np.isfinite(phi)) else None
 
         e = {}
