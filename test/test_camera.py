@@ -216,6 +216,20 @@ def test_project_shape_errors() -> None:
     assert cam.project(np.zeros((0, 3))).shape == (0, 2)
 
 
+@pytest.mark.parametrize(("model", "seed"), CASES)
+def test_project_direction_is_project_without_parameter_jacobian(model: str, seed: int) -> None:
+    """The attitude fits' projection: bit for bit :meth:`project`'s pixels and ``J_d``."""
+    rng = np.random.default_rng(700 + seed)
+    cam = _camera(rng, model)
+    d = _directions(rng, 300)
+    d[7] = [0.0, 0.1, -1.0]  # behind the camera: NaN in both
+    uv, J_d, _ = cam.project(d, jacobians=True)
+    uv1, J_d1 = cam.project_direction(d)
+    assert np.array_equal(uv1, uv, equal_nan=True)
+    assert np.array_equal(J_d1, J_d, equal_nan=True)
+    assert np.isnan(uv1[7]).all() and np.isfinite(uv1[8]).all()
+
+
 # ---------------------------------------------------------------------- (c) unproject
 
 

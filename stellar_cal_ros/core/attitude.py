@@ -118,12 +118,12 @@ def refine_frame_rotation(
     iterations = 0
     for iterations in range(1, max_iterations + 1):  # noqa: B007 (returned)
         d = u_i @ R  # rows: R^T u
-        pred, J_d, _ = camera.project(d, jacobians=True)
+        pred, J_d = camera.project_direction(d)  # no parameter Jacobian: same floats
         r = (uv - pred).reshape(-1)
         J = np.einsum("nij,njk->nik", J_d, skew(d)).reshape(-1, 3)
         info = J.T @ J
         step = np.linalg.solve(info, J.T @ r)
         R = R @ so3_exp(step)
-        if np.max(np.abs(step)) < 1e-12:
+        if np.abs(step).max() < 1e-12:
             break
     return R, info, iterations

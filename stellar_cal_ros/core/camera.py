@@ -645,6 +645,35 @@ class CameraModel:
         The Jacobians are returned as transposed views of component-major buffers (the fastest
         layout to fill); use :func:`numpy.ascontiguousarray` if a C-contiguous array is needed.
         """
+        uv, J_d, J_p = self._project(directions, 2 if jacobians else 0, parameters)
+        if not jacobians:
+            return uv
+        assert J_d is not None and J_p is not None
+        return uv, J_d, J_p
+
+    def project_direction(self, directions: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """:meth:`project` with ``d(u, v) / d(directions)`` only, no parameter Jacobian.
+
+        The same floats as ``project(directions, jacobians=True)[:2]`` (the parameter
+        Jacobian is computed after, and apart from, the pixels and the direction Jacobian),
+        without the cost of its 18 columns: for fits of the attitude alone (a frame's
+        Gauss-Newton refits, :func:`~stellar_cal_ros.core.attitude.refine_frame_rotation`).
+
+        Returns
+        -------
+        uv : numpy.ndarray, shape (N, 2)
+            Pixel coordinates, px.
+        J_direction : numpy.ndarray, shape (N, 2, 3)
+            ``d(u, v) / d(directions)``, as :meth:`project`'s.
+        """
+        uv, J_d, _ = self._project(directions, 1, None)
+        assert J_d is not None
+        return uv, J_d
+
+    def _project(
+        self, directions: ArrayLike, jac: int, parameters: NDArray[np.bool_] | None
+    ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
+        """:meth:`project`'s work: ``jac`` 0 pixels, 1 also ``J_direction``, 2 also ``J_p``."""
         d = np.asarray(directions, dtype=np.float64)
         if d.ndim != 2 or d.shape[1] != 3:
             raise ValueError(f"directions must have shape (N, 3), got {d.shape}")
@@ -654,10 +683,10 @@ class CameraModel:
         iz = 1.0 / z
         x = d[:, 0] * iz
         y = d[:, 1] * iz
-        uv, J_xy, J_p = self._distort(x, y, 2 if jacobians else 0, parameters)
-        if not jacobians:
-            return uv
-        assert J_xy is not None and J_p is not None
+        uv, J_xy, J_p = self._distort(x, y, jac, parameters)
+        if not jac:
+            return uv, None, None
+        assert J_xy is not None
         # d(x, y) / d(X, Y, Z) = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]]; built component-major.
         Jt_xy = J_xy.transpose(1, 2, 0)  # (2, 2, N), the contiguous buffer
         Jt_d = np.empty((2, 3, d.shape[0]))
