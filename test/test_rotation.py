@@ -107,6 +107,16 @@ def test_quaternions_match_scipy() -> None:
     q_from_m = rot.quat_from_matrix(r1.as_matrix())
     assert np.all(q_from_m[:, 3] >= 0.0)
     np.testing.assert_allclose(np.abs(np.sum(q_from_m * q1, axis=1)), 1.0, atol=1e-14)
+    # one matrix (the single-frame refits' so3_log): the batched form's floats bit for bit,
+    # through each of the four pivots (x, y, z about pi; small angles: w), slightly
+    # non-orthonormal matrices too
+    mats = np.concatenate([r1.as_matrix(), rot.so3_exp(np.pi * np.eye(3) * 0.999),
+                           r1.as_matrix()[:100] + 1e-9 * rng.normal(size=(100, 3, 3))])
+    pivots = set()
+    for m in mats:
+        pivots.add(int(np.argmax([m[0, 0], m[1, 1], m[2, 2], np.trace(m)])))
+        assert np.array_equal(rot.quat_from_matrix(m), rot.quat_from_matrix(m[None])[0])
+    assert pivots == {0, 1, 2, 3}
     phi = _rotvecs(rng, 100)
     ref_q = Rotation.from_rotvec(phi).as_quat()
     ref_q *= np.sign(ref_q[:, 3:])
