@@ -293,6 +293,35 @@ def test_frame_rotation_fast_paths_equal_the_general_form_bit_for_bit():
     assert min(kinds.values()) >= 10, kinds  # every kind of frame was tried
 
 
+def test_frame_rotation_kept_fits_are_the_fits_of_their_own_frame(monkeypatch):
+    # every re-run of a diagnosis round records the same early frames: a frame seen before
+    # returns its earlier fit; a frame that differs in any direction is fitted anew; the
+    # kept rotation cannot be written; the store is emptied when full
+    monkeypatch.setattr(gyro_check, "_FITS", {})
+    monkeypatch.setattr(gyro_check, "FITS_KEPT", 3)
+    rng = np.random.default_rng(9)
+    R = Rotation.random(random_state=3).as_matrix()
+    v = rng.standard_normal((12, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    u = v @ R.T + 1e-6 * rng.standard_normal((12, 3))
+    first = gyro_check.frame_rotation(v, u)
+    again = gyro_check.frame_rotation(v.copy(), u.copy())
+    assert again[0] is first[0] and again[1] == first[1]
+    assert np.array_equal(first[0], gyro_check._frame_rotation(v, u)[0])
+    with pytest.raises(ValueError):
+        first[0][0, 0] = 0.0
+    u2 = u.copy()
+    u2[4, 2] += 1e-7  # one direction moved: its own fit
+    other = gyro_check.frame_rotation(v, u2)
+    assert other[0] is not first[0]
+    assert np.array_equal(other[0], gyro_check._frame_rotation(v, u2)[0])
+    assert not np.array_equal(other[0], first[0])
+    gyro_check.frame_rotation(v[:6], u[:6])
+    assert len(gyro_check._FITS) == 3
+    gyro_check.frame_rotation(v[:7], u[:7])  # full: emptied, then this one kept
+    assert len(gyro_check._FITS) == 1
+
+
 def test_watch_gyro_chain_is_the_matmul_chain_bit_for_bit():
     # watch_frame advances the gyro chain with ``ndarray.dot`` (cheaper than ``@`` on 3 x 3):
     # over a long run of frames the chain it records is the ``@`` product's, bit for bit

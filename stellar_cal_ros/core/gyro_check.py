@@ -50,8 +50,32 @@ MIN_RATIO_PAIRS = 5
 MIN_AXIS_PAIRS = 3
 
 
+#: frames fitted in this process, by their directions' bytes: every re-run of a diagnosis
+#: round records the same early frames (the same centroids through the same prior camera,
+#: ~10 000 fits in one ``discover``); cleared when full (the live node's frames never repeat)
+_FITS: dict[tuple, tuple[np.ndarray | None, float]] = {}
+#: ... at most this many (a few MB)
+FITS_KEPT = 4096
+
+
 def frame_rotation(v_st: np.ndarray, u_i: np.ndarray) -> tuple[np.ndarray | None, float]:
     """``R_i_st`` of one frame and the RMS error of its inliers, rad (inf if < 3 stars).
+
+    A frame fitted before in this process returns its earlier fit (the same floats:
+    :func:`_frame_rotation` of equal inputs; the rotation read-only).
+    """
+    v, u = np.asarray(v_st, dtype=float), np.asarray(u_i, dtype=float)
+    key = (v.shape, u.shape, v.tobytes(), u.tobytes())
+    fit = _FITS.get(key)
+    if fit is None:
+        if len(_FITS) >= FITS_KEPT:
+            _FITS.clear()
+        fit = _FITS[key] = _frame_rotation(v, u)
+    return fit
+
+
+def _frame_rotation(v_st: np.ndarray, u_i: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """:func:`frame_rotation`'s fit.
 
     Wahba's solution (SVD), refitted (up to 4 times) without the stars more than 4 × the inliers'
     median error (at least 20") off, until the inliers do not change: wrong identities do
@@ -85,6 +109,7 @@ def frame_rotation(v_st: np.ndarray, u_i: np.ndarray) -> tuple[np.ndarray | None
         inl = new
         R = batched_wahba(v[inl][None], u[inl][None])[0]
     err = errors(R)
+    R.flags.writeable = False  # kept by frame_rotation
     return R, float(np.sqrt(np.mean((err if inl is None else err[inl]) ** 2)))
 
 
