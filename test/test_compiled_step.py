@@ -153,6 +153,24 @@ def _sigma_units(a, b) -> float:
     return float(np.max(np.abs(a.theta - b.theta) / sig))
 
 
+def test_compiled_callers_pass_predict_chain_no_literal_flags() -> None:
+    """A constant passed to a compiled function from compiled code makes numba compile it
+    again for that literal (``Literal[bool](False)``): predict_chain and its projection
+    were compiled three times in a fresh checkout.  Its compiled callers pass typed values."""
+    import ast
+    import inspect
+
+    from stellar_cal_ros.methods import frame_step, star_chain
+
+    calls = 0
+    for module in (frame_step, star_chain):
+        for node in ast.walk(ast.parse(inspect.getsource(module))):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", "") == "predict_chain":
+                calls += 1
+                assert not any(isinstance(a, ast.Constant) for a in node.args), node.lineno
+    assert calls >= 2
+
+
 def test_replay_same_estimates_both_paths(sim_data, monkeypatch) -> None:
     fast = _replay(sim_data, True, monkeypatch)
     ref = _replay(sim_data, False, monkeypatch)

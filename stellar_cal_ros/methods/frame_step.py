@@ -561,9 +561,12 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
     H_par = np.empty((n, 2, P_all))
     R_out = np.empty((2, 3, 3))
     zero3 = np.zeros(3)
-    predict_chain(theta0, u, R_b, zero3, False, omega, base, s0, g, timed, R_prior, T, tracked,
-                  c, B, need, dcol, dfix, dgrp, cam, du, bscale, 1, uv_pred, dirs, H_att, H_par,
-                  R_out)
+    # flags as typed values, not literals: numba would compile predict_chain (and its
+    # projection) once more for each literal signature; typed, the caller's one serves
+    no, yes, jac = np.bool_(False), np.bool_(True), np.int64(1)
+    predict_chain(theta0, u, R_b, zero3, no, omega, base, s0, g, timed, R_prior, T, tracked,
+                  c, B, need, dcol, dfix, dgrp, cam, du, bscale, jac, uv_pred, dirs, H_att,
+                  H_par, R_out)
     H0 = np.zeros((n, 2, N))
     for i in range(n):
         for r in range(2):
@@ -641,9 +644,9 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
         th = theta0.copy()
         for k in range(Pe):
             th[k] += dx[3 + k]
-        predict_chain(th, u_acc, R_b, dx[0:3].copy(), True, omega, base, s0, g, timed,
-                      R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du_acc, bscale, 1,
-                      uv_r, d_r, Ha_r, Hp_r, R_out)
+        predict_chain(th, u_acc, R_b, dx[0:3].copy(), yes, omega, base, s0, g, timed,
+                      R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du_acc, bscale,
+                      jac, uv_r, d_r, Ha_r, Hp_r, R_out)
         H = _assemble(Ha_r, Hp_r, Pe, N, all_rows)
         for q in range(n_acc):
             h[2 * q], h[2 * q + 1] = uv_r[q, 0], uv_r[q, 1]
