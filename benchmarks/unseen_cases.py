@@ -469,6 +469,17 @@ def _clock_drift(sim, seed, drift_s=0.03):
         f.stamp_ns = int(f.stamp_ns + round(drift_s * x * 1e9))
 
 
+def _clock_drift3(sim, seed):
+    # the clock drift at a tenth: 0 ms at the start growing to 3 ms at the end
+    _clock_drift(sim, seed, drift_s=0.003)
+
+
+# the clock-drift cases: the sky bag at 1x; what may be added is the sky and the drift's mean
+_SKY_CLOCK = dict(outside=True, regressor="time",
+                  effects=("aberration", "proper_motion", "refraction", "time_offset"),
+                  sim_effects={"aberration": 1.0, "refraction": 1.0, "proper_motion": 1.0})
+
+
 def _misid30(sim, seed, frames=0.1, share=0.3):
     # misidentified stars: in a random 10 % of the frames, 30 % of the frame's stars (at
     # least 2) carry another star's of the frame identity (catalogue id, RA/Dec, magnitude:
@@ -818,11 +829,11 @@ CASES: dict[str, Case] = {
     "sky_clock_drift": Case("psce", "the sky bag (refraction, aberration, proper motion at "
                             "1x) whose frame stamps drift late 0 -> 30 ms over the run "
                             "(time_offset is a constant: its mean 15 ms is in the library, "
-                            "the drift is not)", outside=True, regressor="time",
-                            effects=("aberration", "proper_motion", "refraction",
-                                     "time_offset"),
-                            sim_effects={"aberration": 1.0, "refraction": 1.0,
-                                         "proper_motion": 1.0}, post=_clock_drift),
+                            "the drift is not)", post=_clock_drift, **_SKY_CLOCK),
+    "sky_clock_drift3": Case("psce", "the sky bag (refraction, aberration, proper motion at "
+                             "1x) whose frame stamps drift late 0 -> 3 ms over the run "
+                             "(time_offset is a constant: its mean 1.5 ms is in the library, "
+                             "the drift is not)", post=_clock_drift3, **_SKY_CLOCK),
     "misid30": Case("psce", "misidentified stars: in a random 10 % of the frames, 30 % of the "
                     "frame's stars swapped identities (bad input: counted by the gating, no "
                     "effect, noise as stated)", noise={}, post=_misid30),

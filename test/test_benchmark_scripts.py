@@ -136,3 +136,34 @@ def test_unseen_case_may_add_the_in_library_mean_of_an_outside_change(monkeypatc
         "added ['gyro_misalignment'] (not in the truth)"]
     assert uc.judge("knock", run([], "u residual vs radius (t=5.0; 0.01 px)")) == [
         "first 'unexplained' line is not time"]
+
+
+def test_unseen_clock_drift3_stamps_drift_0_to_3_ms_and_a_gyro_effect_misleads(monkeypatch):
+    """benchmarks/unseen_cases.py's ``sky_clock_drift3`` (the sky bag's frame stamps late 0 ms
+    at the start growing linearly to 3 ms at the end): the stamps move by exactly that, and a
+    gyro effect added (what the diagnosis added on H138's variant) is judged misleading."""
+    spec = importlib.util.spec_from_file_location("unseen_cases",
+                                                  BENCHMARKS / "unseen_cases.py")
+    uc = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "unseen_cases", uc)
+    spec.loader.exec_module(uc)
+
+    class Frame:
+        def __init__(self, stamp_ns):
+            self.stamp_ns = stamp_ns
+
+    class Sim:
+        star_frames = [Frame(10**9 + k * 500_000_000) for k in range(601)]  # 300 s at 2 Hz
+
+    sim = Sim()
+    before = [f.stamp_ns for f in sim.star_frames]
+    uc.CASES["sky_clock_drift3"].post(sim, 21)
+    late = [f.stamp_ns - b for f, b in zip(sim.star_frames, before, strict=True)]
+    assert late[0] == 0 and late[-1] == 3_000_000 and late[300] == 1_500_000
+
+    def run(added, line="frame stamps' offset vs time (t=9.1; 3 ms)"):
+        return {"rc": 0, "stderr": "", "stdout": f"noise: noise as stated\n  unexplained: {line}",
+                "summary": {"added": added, "noise": {"applied": {}}}}
+
+    assert "added ['gyro_scale_factor'] (not in the truth)" in uc.judge(
+        "sky_clock_drift3", run(["time_offset", "refraction", "gyro_scale_factor"]))
