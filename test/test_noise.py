@@ -391,6 +391,17 @@ def test_a_stated_sigma_field_that_jumps_from_its_trend_has_its_edge_there():
         assert g["edges"] == pytest.approx([steps[0]]), g
         # (the scales within 5 %: over seeds 21-28 x0.988-1.003 and x1.949-2.032)
         assert g["scales"] == pytest.approx([1.0, 2.0], rel=0.05), g
+    # two opposite jumps on a dense field of gentle trend (ln σ 0.35 per mag, 400 values:
+    # under 1 % a gap): both edges.  The field's scatter was read over the jumps alone
+    # (SD ~ 1: "no trend") and none came back (reviewer RE); one or two alike still found
+    x = np.linspace(2.0, 6.3, 400)
+    half = np.exp(0.35 * x) * np.where(x >= 5.0, 0.5, 1.0)
+    for stated, at in ((half * np.where(x >= 3.0, 2.0, 1.0), (3.0, 5.0)),
+                       (half * np.where(x < 3.0, 2.0, 1.0), (3.0, 5.0)), (half, (5.0,))):
+        steps = noise_stars._trend_steps(x, stated)
+        assert len(steps) == len(at), (steps, at)
+        for s, e in zip(steps, at, strict=True):
+            assert x[x < e].max() < s < x[x >= e].min(), (steps, e)
     level = {"right": lambda m, t, rng: t, "0.8x": lambda m, t, rng: 0.8 * t,
              "20 % per star": lambda m, t, rng: t * rng.uniform(0.8, 1.2, len(m))}
     for name, stated in level.items():

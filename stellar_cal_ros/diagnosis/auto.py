@@ -90,7 +90,8 @@ def _verdict(c: CandidateResult, top: CandidateResult | None) -> str:
             return (f"significant alone (p = {c.p_adjusted:.2g}) but behind "
                     f"{top.effect if top else 'a change of the model'}: tested again next round")
         if c.p_adjusted < ALPHA and c.explained < 0:  # it fits worse: "removes only -21%"
-            return (f"leaves {-c.explained:.0%} more excess variance than the model without "
+            worse = f"{-c.explained:.0%}" if -c.explained >= 0.005 else f"{-c.explained:.2%}"
+            return (f"leaves {worse} more excess variance than the model without "
                     f"it (it must remove >= {MIN_EXPLAINED:.0%}; p = {c.p_adjusted:.2g})")
         if c.p_adjusted < ALPHA:
             return (f"removes only {c.explained:.0%} of the excess variance "

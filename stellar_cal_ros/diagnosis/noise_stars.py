@@ -1254,11 +1254,11 @@ def _trend_steps(x: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     the local slope's ``b Δx`` (``b`` = the median ``d`` over the median ``Δx`` of the
     :data:`JUMP_HALF` gaps each side: a smooth field's change, which a jump beside it does
     not move).  Where the residuals' robust SD (over the gaps where ``ln σ`` moves by
-    over 1 %) is below ``JUMP_LN / JUMP_Z`` the field follows its trend, and a jump is a
-    residual above :data:`JUMP_LN` whose level holds on (the medians of up to three
-    values each side, taken along the slope, differ by half of it the same way: one
-    star's outlying σ is no edge); at most :data:`STATED_STEPS` of them, else none (the σ
-    varies star by star).
+    over 1 % and less than a jump) is below ``JUMP_LN / JUMP_Z`` the field follows its
+    trend, and a jump is a residual above :data:`JUMP_LN` whose level holds on (the
+    medians of up to three values each side, taken along the slope, differ by half of it
+    the same way: one star's outlying σ is no edge); at most :data:`STATED_STEPS` of
+    them, else none (the σ varies star by star).
     """
     ux, k = np.unique(x, return_inverse=True)
     if len(ux) < 4:
@@ -1274,11 +1274,16 @@ def _trend_steps(x: np.ndarray, sigma: np.ndarray) -> np.ndarray:
          / np.nanmedian(np.where(have, dx[win], np.nan), axis=1))
     r = d - b * dx
     # (the residuals' scatter where ln σ moves: rows of one star side by side along a
-    # column repeat its σ, and their zeros made any two stars' difference a jump)
-    moving = r[np.abs(d) > 0.01]
-    if not len(moving) or 1.4826 * float(np.median(np.abs(moving - np.median(moving)))) \
+    # column repeat its σ, and their zeros made any two stars' difference a jump; and
+    # without the candidate jumps themselves: on a dense gentle field the trend moves ln σ
+    # by under 1 % a gap, so only the jumps were left, and two opposite ones read as a
+    # field without trend, one or two alike as one of no scatter, reviewer RE)
+    moving = r[(np.abs(d) > 0.01) & (np.abs(r) <= JUMP_LN)]
+    if not np.any(np.abs(d) > 0.01):
+        return np.empty(0)  # (ln σ constant)
+    if len(moving) and 1.4826 * float(np.median(np.abs(moving - np.median(moving)))) \
             > JUMP_LN / JUMP_Z:
-        return np.empty(0)  # (ln σ constant, or no trend: star by star)
+        return np.empty(0)  # (no trend: star by star)
     jump = np.flatnonzero(np.abs(r) > JUMP_LN)
     mid = 0.5 * (ux[:-1] + ux[1:])
 
