@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import rolling, shape_drift, stats
+from stellar_cal_ros.diagnosis import clock, rolling, shape_drift, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
     line_noise,
@@ -76,6 +76,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
     unexplained, follows = causes_first(unexplained, shown, runs,
                                         frozenset(id(f) for f in outside))
+    unexplained, follows = clock_first(unexplained, follows)
+    # the time offset × time test, whether it fires or not (its parts' offsets)
+    clock_entry = clock_test(shown.residuals, calibration, fraction)
+    clock_entry = clock_entry.as_json() if clock_entry is not None else None
     if drop_tables and not plots:
         base.residuals = final.residuals = None
         panels.clear()
@@ -88,6 +92,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         if i in follows:
             u["follows"] = follows[i]
     # (not measured: the scales the runs used, ``--noise-scale``'s or the calibration's run's)
+    summary["clock_change"] = clock_entry
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(getattr(runs, "noise", None) or stated_scales(calibration),
                                      _batch_fit(base, spec)))
@@ -212,15 +217,38 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset()
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 
 
+def clock_first(found: list, follows: dict[int, str]) -> tuple[list, dict[int, str]]:
+    """The lines with the time offset × time test's first (:mod:`~.clock`), if it is there.
+
+    A clock that steps or drifts moves every star along its motion: the stamp-noise and
+    time lines it leaves are its consequences, and the added time_offset its mean.
+    """
+    first = [i for i, f in enumerate(found) if f.component == clock.COMPONENT]
+    if not first or first[0] == 0:
+        return found, follows
+    order = first + [i for i in range(len(found)) if i not in first]
+    return [found[i] for i in order], {j: follows[i] for j, i in enumerate(order)
+                                       if i in follows}
+
+
+def clock_test(res, calibration: Calibration, fraction: float) -> clock.ClockChange | None:
+    """The time offset × time test (:func:`~.clock.clock_change`) of a residual table."""
+    cam = calibration.camera
+    return clock.clock_change(res, stats.evaluation_mask(res, fraction), (cam.fx, cam.fy),
+                              (cam.cx, cam.cy), calibration.R_imu_st)
+
+
 def line_tests(res, calibration: Calibration, fraction: float) -> list:
     """The 'unexplained' tests of a residual table (significant, strongest first)."""
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     mask = stats.evaluation_mask(res, fraction)
     sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st)
+    timing = clock_test(res, calibration, fraction)
     return stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
-        extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, sn),
+        extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, sn)
+        + ([timing.finding()] if timing is not None else []),
         R_imu_st=calibration.R_imu_st,
         height=cam.height, track_lags=track_lags(sn), width=cam.width,
         star_levels=star_levels(sn) is not None)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from stellar_cal_ros.diagnosis import reliability
+from stellar_cal_ros.diagnosis.clock import COMPONENT
 from stellar_cal_ros.diagnosis.shape_drift import SHAPES
 
 
@@ -42,7 +43,8 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
     """What an 'unexplained' line is a structure of, and its size ('' if none).
 
     E.g. ``("u residual", "0.043 px across its 5-95 % range")``: the one phrasing of the
-    terminal (:func:`unexplained_lines`) and the report (``report_html``).
+    terminal (:func:`unexplained_lines`) and the report (``report_html``).  ``what`` is
+    ``""`` where the regressor says it all (the clock's line, :mod:`~.clock`).
     """
     size = u.get("change_px")
     what = f"{u['component']} residual"
@@ -55,6 +57,9 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
         span = "amplitude"
     elif u["component"] == "along motion":  # stats.motion_spread: a noise in the stamps
         what, span = "residual spread along each star's motion", "rms at that image speed"
+    elif u["component"] == COMPONENT:  # diagnosis.clock: the offset changes over the run
+        # (the regressor says what changes: no 'residual vs')
+        what, span = "", "along each star's motion at the 95th percentile of image speed"
     elif u["component"] == "size":
         what = "residual spread (size)"
     elif (u.get("detail") or {}).get("cause") in DRIFTS:
@@ -88,7 +93,7 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
     out: list[str] = []
     for u in summary["unexplained"][:n]:
         what, size = unexplained_phrase(u)
-        out.append(f"  unexplained: {what} vs {u['regressor']} "
+        out.append(f"  unexplained: {f'{what} vs ' if what else ''}{u['regressor']} "
               f"(t={u['statistic']:.1f}, p={u['p_value']:.2g}"
               + (f"; {size}" if size else "") + (f"; {follows_phrase(u)}" if u.get("follows")
                                                  else "") + ")")
@@ -326,12 +331,19 @@ def added_caveat(summary: dict[str, Any], effect: str) -> str:
     """What follows an added effect's estimates when a mount flexure explains it as well.
 
     ``" -- could be a mount flexure (outside the library): this motion cannot separate
-    them"`` (:data:`~stellar_cal_ros.diagnosis.flexure.ALIAS_TEXT`), else ``""``: the
-    terminal's and the report's one phrasing.
+    them"`` (:data:`~stellar_cal_ros.diagnosis.flexure.ALIAS_TEXT`); for time_offset beside
+    the clock's line (:mod:`~stellar_cal_ros.diagnosis.clock`), that the constant is a mean
+    over a changing offset; else ``""``: the terminal's and the report's one phrasing.
     """
     from stellar_cal_ros.diagnosis.flexure import ALIAS_TEXT
 
     alias = (summary.get("remainder") or {}).get("could_be_flexure") or {}
+    if effect == "time_offset" and any(u["component"] == COMPONENT
+                                       for u in summary.get("unexplained") or []):
+        # diagnosis.clock: the offset changes over the run, the constant is its mean
+        return (" -- a mean over an offset that changes over the run (see the first "
+                "'unexplained' line): its +- is that of a constant, not the offset at any "
+                "time")
     return f" -- {ALIAS_TEXT}" if effect in alias else ""
 
 

@@ -318,7 +318,8 @@ def _after_note(c: dict[str, Any]) -> str:
 
 def _unexplained_html(summary: dict[str, Any], image: Path | str | None = None) -> str:
     items = "".join(
-        f"<li>{_e(what)} vs <b>{_e(u['regressor'])}</b>: t = {u['statistic']:.1f}, "
+        f"<li>{_e(what) + ' vs ' if what else ''}<b>{_e(u['regressor'])}</b>: "
+        f"t = {u['statistic']:.1f}, "
         f"p = {u['p_value']:.2g}" + (f", {_e(size)}" if size else "")
         + (f"; {_e(printing.follows_phrase(u))}" if u.get("follows") else "")
         + (f" (<a href='#unexplained-plot'>plot {k + 1}</a>)" if image else "") + "</li>"

@@ -1,0 +1,166 @@
+"""A frame clock that steps or drifts against the IMU: the time offset × time test.
+
+The library's time_offset is one constant ``Δt``: the tracker's stamps late or early by a
+fixed time.  A clock that steps (a resynchronisation, a driver restart) or drifts (two
+free-running oscillators) against the IMU has no library name.  A model with the constant
+reads the window's mean of the change (unseen case ``dt_step``, a 4-ms step at 75 % of the
+run: −1.33 ms ± 0.0067, the ± that of a constant) and leaves the rest; a model without it
+may lose lock (``sky_clock_drift``, 0 → 30 ms).  The remainder's sign follows each star's
+motion, so no time line sees it, and the stamp-noise test (:func:`~stellar_cal_ros.
+diagnosis.stats.motion_spread`) reads the filter's catch-up after the step as a noise.
+
+A stamp late by ``δ`` moves every star by its image velocity ``u_i = J_i ω`` (px/s)
+times ``δ``: the offset's pattern, whose per-frame score ``g_k = Σ uᵀ S⁻¹ ν`` and
+information ``I_k = Σ uᵀ S⁻¹ u`` :func:`~stellar_cal_ros.diagnosis.stats.frame_offsets`
+gives (the innovations, not the within-frame residuals: the pattern is a rotation, the
+attitude error the frame's stars share).  The test (:func:`clock_change`): the window's
+frames in :data:`SEGMENTS` consecutive parts of equal count, the offset each part says
+``d_s = Σ g / Σ I``, their covariance from the frames' scores about it (the frames the
+units, neighbouring frames sharing an error: the Newey–West window of :func:`~stellar_cal_
+ros.diagnosis.stats.frame_robust_t`, across the parts' borders too; and :data:`FLOOR_S` for
+the filter's error along a slew, which lasts longer than that window), and the Wald χ² of
+their equality with ``SEGMENTS − 1`` dof.  A constant offset, in the model or not, passes
+it where the filter leaves it alike in every part; a stepped or drifting clock fails it.
+Read on the round's residuals whatever the model holds; it joins the 'unexplained' family
+(Bonferroni over its tests) and, significant, its line is ranked first (the lines it
+leaves are its consequences).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import stats as sps
+
+from stellar_cal_ros.diagnosis import stats
+
+#: consecutive parts of the window whose offsets are compared (equal frame counts)
+SEGMENTS = 6
+#: the 'unexplained' line's regressor begins with this (its parts' offsets follow)
+CLOCK = "the frames' time offset to the IMU changes over the run"
+#: the offset's spread a constant leaves between the parts (s, added in quadrature to each
+#: part's σ): the filter's along-motion error, shared by a slew's frames beyond the frames'
+#: lag window (clean psce 300 s: 0.006 ms rms beyond the parts' σ over 13 seeds, one pair
+#: of slews 0.06 ms apart at 4σ; swaying none; doc/benchmarks.md)
+FLOOR_S = 0.02e-3
+#: the line's component (:func:`~stellar_cal_ros.diagnosis.printing.unexplained_phrase`)
+COMPONENT = "time offset"
+
+
+@dataclasses.dataclass
+class ClockChange:
+    """The parts' offsets and the test of their equality (:func:`clock_change`)."""
+
+    t0: list[float]  #: each part's first frame time (s from the run's first frame)
+    t1: list[float]  #: each part's last frame time
+    dt: list[float]  #: each part's offset (s, the sign of time_offset's dt: remainder)
+    sigma: list[float]  #: its standard deviation from the frames' scores (s, no floor)
+    chi2: float  #: Wald statistic of their equality
+    dof: int  #: its degrees of freedom (parts − 1)
+    p_value: float  #: unadjusted
+    size_px: float  #: the change's size: the spans' offsets' range × the image speed
+    speed: float  #: 95th percentile of the stars' image speed (px/s)
+
+    def as_json(self) -> dict:
+        """The summary's entry (``diagnosis.json`` ``clock_change``)."""
+        return dataclasses.asdict(self)
+
+    def spans(self) -> list[tuple[float, float, float]]:
+        """``(t0, t1, dt)`` of the runs of parts one offset fits, for the line.
+
+        The parts joined where neighbours agree (their difference within 3σ, the pooled
+        offset); a step leaves two runs, a drift its parts.
+        """
+        out: list[list[float]] = []
+        for a, b, d, s in zip(self.t0, self.t1, self.dt, self.sigma, strict=True):
+            w = 1.0 / (s**2 + FLOOR_S**2)
+            if out:
+                p = out[-1]
+                if abs(d - p[2]) <= 3.0 * math.sqrt(1.0 / w + 1.0 / p[3]):
+                    p[2] = (p[2] * p[3] + d * w) / (p[3] + w)
+                    p[1], p[3] = b, p[3] + w
+                    continue
+            out.append([a, b, d, w])
+        return [(a, b, d) for a, b, d, _ in out]
+
+    def regressor(self) -> str:
+        """The line's regressor: the offsets and their spans, in ms and s."""
+        parts = ", ".join(f"{d * 1e3:.3g} ms over {a:.0f}-{b:.0f} s"
+                          for a, b, d in self.spans())
+        return (f"{CLOCK}: dt {parts} (outside the library: its time_offset is constant; "
+                f"{self.chi2:.0f} chi2 / {self.dof} dof over {len(self.dt)} parts)")
+
+    def finding(self) -> stats.RegressorFinding:
+        """The 'unexplained' test (unadjusted p; its statistic the one-sided p's normal score)."""
+        z = float(sps.norm.isf(self.p_value)) if self.p_value > 1e-300 else 37.0
+        return stats.RegressorFinding(self.regressor(), COMPONENT, z, self.p_value,
+                                      self.size_px, detail={"clock_change": self.as_json()})
+
+
+def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
+                 centre: tuple[float, float], R_imu_st: np.ndarray | None,
+                 parts: int = SEGMENTS) -> ClockChange | None:
+    """The time offset × time test on ``mask``'s accepted stars (module docstring).
+
+    ``None`` without the installation or the rate columns, or with fewer than 10 frames
+    with motion a part.
+    """
+    m = np.asarray(mask, dtype=bool) & stats.accepted(res)
+    if m.sum() < 20:
+        return None
+    sub = {k: np.asarray(v)[m] for k, v in res.items()}
+    got = stats.frame_offsets(sub, focal, centre, R_imu_st)
+    if got is None:
+        return None
+    frames, g, info, _, _, speed = got
+    use = info > 0
+    if use.sum() < 10 * parts:
+        return None
+    frames, g, info = frames[use], g[use], info[use]
+    fr_all, first = np.unique(np.asarray(sub["frame"]), return_index=True)
+    t_all = np.asarray(sub["t"], dtype=float)
+    t = t_all[first][np.searchsorted(fr_all, frames)] - float(np.min(res["t"]))
+    seg = np.zeros(len(frames), dtype=int)
+    for s, idx in enumerate(np.array_split(np.arange(len(frames)), parts)):
+        seg[idx] = s
+    G = np.bincount(seg, g, minlength=parts)
+    B = np.bincount(seg, info, minlength=parts)
+    d = G / B
+    e = g - d[seg] * info  # each frame's score about its part's offset
+    n = len(e)
+    ec = e - e.mean()
+    rho = float(np.clip((ec[1:] @ ec[:-1]) / max(float(ec @ ec), 1e-300), -0.97, 0.97))
+    a1 = 4.0 * rho**2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
+    L = max(stats.hac_bandwidth(n), int(1.1447 * (a1 * n) ** (1.0 / 3.0)))
+    L = min(L, max(n // (4 * parts), 1))
+    E = np.zeros((n, parts))
+    E[np.arange(n), seg] = e
+    omega = E.T @ E
+    for lag in range(1, L + 1):
+        c = E[lag:].T @ E[:-lag]
+        omega += (1.0 - lag / (L + 1.0)) * (c + c.T)
+    hac = omega / np.outer(B, B)
+    # a constant offset's parts differ by the filter's lag along each slew as well
+    cov = hac + np.eye(parts) * FLOOR_S**2
+    try:
+        ci = np.linalg.inv(cov)
+    except np.linalg.LinAlgError:
+        return None
+    one = np.ones(parts)
+    mean = float(one @ ci @ d) / float(one @ ci @ one)
+    r = d - mean
+    chi2 = float(r @ ci @ r)
+    dof = parts - 1
+    p = float(sps.chi2.sf(chi2, dof))
+    t0 = [float(t[seg == s].min()) for s in range(parts)]
+    t1 = [float(t[seg == s].max()) for s in range(parts)]
+    sig = np.sqrt(np.maximum(np.diag(hac), 0.0))
+    # (the innovation is the image velocity × the offset the model lacks: its sign is the
+    # opposite of time_offset's dt, t_true = stamp + dt)
+    out = ClockChange(t0, t1, [-float(x) for x in d], [float(x) for x in sig], chi2, dof,
+                      p, math.nan, float(speed))
+    # (the spans', not the parts': a part without a slew says little, at a large σ)
+    out.size_px = float(np.ptp([s[2] for s in out.spans()])) * float(speed)
+    return out

@@ -1,0 +1,76 @@
+"""The time offset × time test (``diagnosis.clock``, issue 21 item 3; unseen cases
+``dt_step``, ``sky_clock_drift``): a frame clock that steps against the IMU is said first,
+a constant offset is not.
+
+A clean psce bag (300 s, seed 21) whose frames are stamped 4 ms late from 75 % of the run
+on (``dt_step``'s stamps) or throughout (a constant offset), diagnosed with time_offset in
+the model: the constant is the library's and leaves no change; the step leaves the offset
+the window's parts say changing (its remainder ~0 ms before the step, −2 ms after, the
+model's constant between), the test's line first, and the parts' offsets in
+``diagnosis.json`` ``clock_change`` either way.  Its level on clean bags (psce and swaying
+300 s) is in doc/benchmarks.md ("A frame clock that steps or drifts").
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from stellar_cal_ros.diagnosis.clock import CLOCK, COMPONENT
+from stellar_cal_ros.diagnosis.injection import clean_simulation
+from stellar_cal_ros.diagnosis.run import diagnose
+from stellar_cal_ros.methods.replay import bag_data_from_simulation
+
+LATE_S = 0.004
+
+
+def _diagnosed(tmp_path, start_share: float) -> dict:
+    """The diagnosis (time_offset in the model) of the bag stamped late from ``start_share``."""
+    sim, model = clean_simulation("psce", False, 21, 300.0)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    for f in sim.star_frames:
+        if f.stamp_ns - t0 >= start_share * (t1 - t0):
+            f.stamp_ns = int(f.stamp_ns + round(LATE_S * 1e9))
+    return diagnose(bag_data_from_simulation(sim), sim.prior, "psce", [*model, "time_offset"],
+                    tmp_path, plots=False, verbose=False)
+
+
+def test_a_clock_that_steps_is_said_first_and_a_constant_offset_is_not(tmp_path):
+    """Fails on 01729e2 (no ``clock_change``, no such line: only a 0.74-ms stamp noise)."""
+    step = _diagnosed(tmp_path / "step", 0.75)
+    first = step["unexplained"][0]
+    assert first["component"] == COMPONENT and first["regressor"].startswith(CLOCK), \
+        step["unexplained"]
+    got = step["clock_change"]
+    assert got["p_value"] * 1e4 < 0.01  # beyond any Bonferroni family of ~100 tests
+    # the remainder before the step ~0, after it ~ −(4 ms − the model's constant): the
+    # parts with slews (σ < 1 ms; the dwells' ~5 ms) say both
+    parts = [(a, d) for a, d, s in zip(got["t0"], got["dt"], got["sigma"], strict=True)
+             if s < 1e-3]
+    before = [d for a, d in parts if a < 0.74 * 300.0]
+    after = [d for a, d in parts if a >= 0.74 * 300.0]
+    assert before and after
+    assert max(abs(d) for d in before) < 0.2e-3
+    assert all(-4e-3 < d < -1e-3 for d in after), parts
+    assert "ms over" in first["regressor"] and first["change_px"] > 0.1
+    const = _diagnosed(tmp_path / "const", 0.0)
+    assert not any(u["component"] == COMPONENT for u in const["unexplained"]), \
+        const["unexplained"]
+    assert const["clock_change"]["p_value"] > 1e-3
+    est = [c for c in const["candidates"] if c["effect"] == "time_offset"]
+    assert not est  # in the model: no candidate
+
+
+@pytest.mark.parametrize("dt", [[1e-3, 1e-3, 1.05e-3, 3e-3], [2e-3, 1e-3, 0.0, -1e-3]])
+def test_the_line_joins_the_parts_one_offset_fits(dt):
+    """A step leaves two spans, a drift its parts (the line's text)."""
+    from stellar_cal_ros.diagnosis.clock import ClockChange
+
+    n = len(dt)
+    c = ClockChange([50.0 * i for i in range(n)], [50.0 * i + 49 for i in range(n)], dt,
+                    [1e-5] * n, 99.0, n - 1, 1e-10, 0.4, 200.0)
+    text = c.regressor()
+    assert text.startswith(CLOCK)
+    if dt[0] == dt[1]:
+        assert "1.02 ms over 0-149 s, 3 ms over 150-199 s" in text, text
+    else:
+        assert text.count("ms over") == n, text
