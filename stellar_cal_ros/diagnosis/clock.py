@@ -19,11 +19,16 @@ says ``d_s = Σ g / Σ I``, their covariance from the frames' scores about it (t
 units, neighbouring frames sharing an error: the Newey–West window of
 :func:`~stellar_cal_ros.diagnosis.stats.frame_robust_t`, across the parts' borders too; and
 :data:`FLOOR_S` for the filter's error along a slew, which lasts longer than that window),
-and the Wald χ² of their equality with ``SEGMENTS − 1`` dof. A constant offset, in the model
-or not, passes it where the filter leaves it alike in every part; a stepped or drifting
-clock fails it. Read on the round's residuals whatever the model holds; it joins the
-'unexplained' family (Bonferroni over its tests) and, significant, its line is ranked first
-(the lines it leaves are its consequences).
+and the Wald χ² of their equality with ``SEGMENTS − 1`` dof. The parts' offsets are
+fitted jointly with a mount flexure's turn and the filter's catch-up on it (:data:`GRAVITY`,
+one coefficient each for the run): a flexure turns the tracker as the motion turns gravity,
+along the motion, and alone the parts' offsets read it as a changing clock (psce 200 s,
+40″/g: χ² 142 / 5 dof; with the gravity columns 16, p 0.006 unadjusted, no line). A constant
+offset, in the model or not, passes it where the filter leaves it alike in every part; a
+stepped or drifting clock fails it. Read on the round's residuals whatever the model holds;
+it joins the 'unexplained' family (Bonferroni over its tests) and is ranked with the others
+by its p (not forced first: a gyro scale factor that differs between the motions reads
+alike, unseen case ``gsf_asym``).
 """
 
 from __future__ import annotations
@@ -32,8 +37,9 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import stats as sps
 
+from stellar_cal_ros.core import distributions as dist
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import stats
 
 #: consecutive parts of the window whose offsets are compared (equal frame counts)
@@ -48,6 +54,16 @@ CLOCK = "the frames' time offset to the IMU changes over the run"
 #: rms, over seeds 21-27; doc/benchmarks.md), and what a knock's catch-up leaves along a
 #: slew (unseen case ``knock``: 0.1 ms)
 FLOOR_S = 0.05e-3
+#: a mount that bends with gravity (a turn ``c (z × g_st)``, ``g_st`` the unit gravity in
+#: the tracker frame) and the filter's catch-up when gravity turns (its recent change,
+#: :func:`~stellar_cal_ros.diagnosis.context.add_gravity_regressors`): fitted with the
+#: parts' offsets, one coefficient each for the run. A flexure turns the tracker as the
+#: motion turns gravity, so along the motion: alone, the parts' offsets read it as a
+#: clock that changes (psce, 40″/g: χ² 142 / 5 dof; test_discovery_effects)
+GRAVITY = (("gravity_x_st", "gravity_y_st"), ("gravity_x_st change", "gravity_y_st change"))
+#: the gravity direction must change by at least this much over the frames (unit vector;
+#: :data:`~stellar_cal_ros.diagnosis.flexure.MIN_GRAVITY_CHANGE`'s value) for its columns
+MIN_GRAVITY_CHANGE = 0.01
 #: the line's component (:func:`~stellar_cal_ros.diagnosis.printing.unexplained_phrase`)
 COMPONENT = "time offset"
 
@@ -99,7 +115,7 @@ class ClockChange:
 
     def finding(self) -> stats.RegressorFinding:
         """The 'unexplained' test (unadjusted p; its statistic the one-sided p's normal score)."""
-        z = float(sps.norm.isf(self.p_value)) if self.p_value > 1e-300 else 37.0
+        z = float(dist.norm.isf(self.p_value)) if self.p_value > 1e-300 else 37.0
         return stats.RegressorFinding(self.regressor(), COMPONENT, z, self.p_value,
                                       self.size_px, detail={"clock_change": self.as_json()})
 
@@ -139,23 +155,42 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     seg = np.zeros(len(frames), dtype=int)
     for s, idx in enumerate(np.array_split(np.arange(len(frames)), parts)):
         seg[idx] = s
-    G = np.bincount(seg, g, minlength=parts)
-    B = np.bincount(seg, info, minlength=parts)
-    d = G / B
-    e = g - d[seg] * info  # each frame's score about its part's offset
+    # the parts' offsets fitted jointly with a mount flexure's (GRAVITY): per frame its
+    # scores h (q) and information with the offset (c, q) and with itself (F, q × q)
+    h, cross, F = flexure_products(sub, frames, focal, centre, R_imu_st)
+    q = h.shape[1]
+    P = parts + q
+    H = np.zeros((P, P))
+    H[np.arange(parts), np.arange(parts)] = np.bincount(seg, info, minlength=parts)
+    for j in range(q):
+        H[:parts, parts + j] = H[parts + j, :parts] = np.bincount(seg, cross[:, j],
+                                                                  minlength=parts)
+    H[parts:, parts:] = F.sum(0)
+    S = np.zeros((len(frames), P))  # each frame's scores
+    S[np.arange(len(frames)), seg] = g
+    S[:, parts:] = h
+    try:
+        Hi = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    beta = Hi @ S.sum(0)
+    # each frame's scores about the fit
+    E = S.copy()
+    E[np.arange(len(frames)), seg] -= info * beta[seg] + cross @ beta[parts:]
+    E[:, parts:] -= cross * beta[seg][:, None] + F @ beta[parts:]
+    d = beta[:parts]
+    e = E[np.arange(len(frames)), seg]  # the offset's (the lag window's autocorrelation)
     n = len(e)
     ec = e - e.mean()
     rho = float(np.clip((ec[1:] @ ec[:-1]) / max(float(ec @ ec), 1e-300), -0.97, 0.97))
     a1 = 4.0 * rho**2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
     L = max(stats.hac_bandwidth(n), int(1.1447 * (a1 * n) ** (1.0 / 3.0)))
     L = min(L, max(n // (4 * parts), 1))
-    E = np.zeros((n, parts))
-    E[np.arange(n), seg] = e
     omega = E.T @ E
     for lag in range(1, L + 1):
         c = E[lag:].T @ E[:-lag]
         omega += (1.0 - lag / (L + 1.0)) * (c + c.T)
-    hac = omega / np.outer(B, B)
+    hac = (Hi @ omega @ Hi)[:parts, :parts]
     # a constant offset's parts differ by the filter's lag along each slew as well
     cov = hac + np.eye(parts) * FLOOR_S**2
     try:
@@ -167,7 +202,7 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     r = d - mean
     chi2 = float(r @ ci @ r)
     dof = parts - 1
-    p = float(sps.chi2.sf(chi2, dof))
+    p = float(dist.chi2.sf(chi2, dof))
     t0 = [float(t[seg == s].min()) for s in range(parts)]
     t1 = [float(t[seg == s].max()) for s in range(parts)]
     sig = np.sqrt(np.maximum(np.diag(hac), 0.0))
@@ -178,3 +213,50 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     # (the spans', not the parts': a part without a slew says little, at a large σ)
     out.size_px = float(np.ptp([s[2] for s in out.spans()])) * float(speed)
     return out
+
+
+def flexure_products(sub: stats.Table, frames: np.ndarray, focal: tuple[float, float],
+                     centre: tuple[float, float], R_imu_st: np.ndarray | None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame of ``frames`` the :data:`GRAVITY` columns' products (``q`` of them).
+
+    ``(h (n, q), c (n, q), F (n, q, q))``: ``Σ xᵀ S⁻¹ ν``, ``Σ xᵀ S⁻¹ u`` (``u`` the image
+    velocity of :func:`~stellar_cal_ros.diagnosis.stats.frame_offsets`) and ``Σ xᵀ S⁻¹
+    x``, ``x`` each column's image shift (px per arcsec of turn); ``q = 0`` without the
+    gravity columns or with gravity (nearly) still over the frames.
+    """
+    n = len(frames)
+    none = np.zeros((n, 0)), np.zeros((n, 0)), np.zeros((n, 0, 0))
+    if not all(k in sub for pair in GRAVITY for k in pair):
+        return none
+    got = stats.motion_columns(sub, focal, centre, R_imu_st)
+    if got is None:
+        return none
+    ok, vel, nu, Si = got
+    fr = np.asarray(sub["frame"])[ok]
+    on = np.isin(fr, frames)
+    gx, gy = (np.asarray(sub[k], dtype=float)[ok] for k in GRAVITY[0])
+    if not on.any() or max(float(np.ptp(gx[on])), float(np.ptp(gy[on]))) <= MIN_GRAVITY_CHANGE:
+        return none
+    J = stats.attitude_columns({k: np.asarray(sub[k])[ok] for k in ("x_st", "y_st", "z_st")},
+                               *focal) * ARCSEC
+    cols = []
+    for kx, ky in GRAVITY:
+        x, y = (np.asarray(sub[k], dtype=float)[ok] for k in (kx, ky))
+        turn = np.stack([-y, x, np.zeros_like(x)], 1)  # z × g
+        cols.append(np.einsum("nij,nj->ni", J, turn))
+    X = np.stack(cols, 2)[on]  # (stars, 2, q)
+    k = np.searchsorted(frames, fr[on])
+    Si, vel, nu = Si[on], vel[on], nu[on]
+    SX = np.einsum("nij,njq->niq", Si, X)
+    q = X.shape[2]
+    h = np.stack([np.bincount(k, np.einsum("ni,ni->n", SX[:, :, j], nu), minlength=n)
+                  for j in range(q)], 1)
+    c = np.stack([np.bincount(k, np.einsum("ni,ni->n", SX[:, :, j], vel), minlength=n)
+                  for j in range(q)], 1)
+    F = np.zeros((n, q, q))
+    for i in range(q):
+        for j in range(q):
+            F[:, i, j] = np.bincount(k, np.einsum("ni,ni->n", X[:, :, i], SX[:, :, j]),
+                                     minlength=n)
+    return h, c, F

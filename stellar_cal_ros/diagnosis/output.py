@@ -76,7 +76,6 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
     unexplained, follows = causes_first(unexplained, shown, runs,
                                         frozenset(id(f) for f in outside))
-    unexplained, follows = clock_first(unexplained, follows)
     # the time offset × time test, whether it fires or not (its parts' offsets)
     clock_entry = clock_test(shown.residuals, calibration, fraction)
     clock_entry = clock_entry.as_json() if clock_entry is not None else None
@@ -215,20 +214,6 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset()
     found, after = rolling.first_if_cause(found, run, runs, line_tests, keep)
     follows.update((id(found[i]), "rolling shutter") for i in after)
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
-
-
-def clock_first(found: list, follows: dict[int, str]) -> tuple[list, dict[int, str]]:
-    """The lines with the time offset × time test's first (:mod:`~.clock`), if it is there.
-
-    A clock that steps or drifts moves every star along its motion: the stamp-noise and
-    time lines it leaves are its consequences, and the added time_offset its mean.
-    """
-    first = [i for i, f in enumerate(found) if f.component == clock.COMPONENT]
-    if not first or first[0] == 0:
-        return found, follows
-    order = first + [i for i in range(len(found)) if i not in first]
-    return [found[i] for i in order], {j: follows[i] for j, i in enumerate(order)
-                                       if i in follows}
 
 
 def clock_test(res, calibration: Calibration, fraction: float) -> clock.ClockChange | None:

@@ -341,9 +341,9 @@ def added_caveat(summary: dict[str, Any], effect: str) -> str:
     if effect == "time_offset" and any(u["component"] == COMPONENT
                                        for u in summary.get("unexplained") or []):
         # diagnosis.clock: the offset changes over the run, the constant is its mean
-        return (" -- a mean over an offset that changes over the run (see the first "
-                "'unexplained' line): its +- is that of a constant, not the offset at any "
-                "time")
+        return (" -- a mean over an offset that changes over the run (see the time "
+                "offset's 'unexplained' line): its +- is that of a constant, not the offset "
+                "at any time")
     return f" -- {ALIAS_TEXT}" if effect in alias else ""
 
 

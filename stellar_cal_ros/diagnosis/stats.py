@@ -832,6 +832,26 @@ def frame_offsets(sub: Table, focal: tuple[float, float], centre: tuple[float, f
     rolling shutter's shape; ``speed``: the 95th percentile of the stars' image speed
     (px/s).
     """
+    got = motion_columns(sub, focal, centre, R_imu_st)
+    if got is None:
+        return None
+    ok, vel, nu, Si = got
+    perp = np.stack([-vel[:, 1], vel[:, 0]], 1)
+    frames, k = np.unique(np.asarray(sub["frame"])[ok], return_inverse=True)
+    g, info, gp, infop = (np.bincount(k, np.einsum("ni,nij,nj->n", x, Si, y),
+                                      minlength=len(frames))
+                          for x, y in ((vel, nu), (vel, vel), (perp, nu), (perp, perp)))
+    speed = float(np.percentile(np.hypot(vel[:, 0], vel[:, 1]), 95))
+    return frames, g, info, gp, infop, speed
+
+
+def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
+                   R_imu_st: np.ndarray | None) -> tuple[np.ndarray, ...] | None:
+    """``(ok, u, ν, S⁻¹)`` of :func:`frame_offsets` (``None``: no columns).
+
+    Its stars (a mask of ``sub``), their image velocity (px/s), innovations without the
+    rolling shutter's fit and inverse covariances.
+    """
     if len(sub.get("du", ())) < 20 or R_imu_st is None or \
             not all(k in sub for k in ("omega_x", "x_st")):
         return None
@@ -851,13 +871,7 @@ def frame_offsets(sub: Table, focal: tuple[float, float], centre: tuple[float, f
         return None
     vel, nu, a, b, c, det = vel[ok], nu[ok], a[ok], b[ok], c[ok], det[ok]
     Si = np.stack([np.stack([c, -b], 1), np.stack([-b, a], 1)], 1) / det[:, None, None]
-    perp = np.stack([-vel[:, 1], vel[:, 0]], 1)
-    frames, k = np.unique(np.asarray(sub["frame"])[ok], return_inverse=True)
-    g, info, gp, infop = (np.bincount(k, np.einsum("ni,nij,nj->n", x, Si, y),
-                                      minlength=len(frames))
-                          for x, y in ((vel, nu), (vel, vel), (perp, nu), (perp, perp)))
-    speed = float(np.percentile(np.hypot(vel[:, 0], vel[:, 1]), 95))
-    return frames, g, info, gp, infop, speed
+    return ok, vel, nu, Si
 
 
 def motion_test(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndarray,
