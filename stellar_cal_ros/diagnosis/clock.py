@@ -180,12 +180,7 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     E[:, parts:] -= cross * beta[seg][:, None] + F @ beta[parts:]
     d = beta[:parts]
     e = E[np.arange(len(frames)), seg]  # the offset's (the lag window's autocorrelation)
-    n = len(e)
-    ec = e - e.mean()
-    rho = float(np.clip((ec[1:] @ ec[:-1]) / max(float(ec @ ec), 1e-300), -0.97, 0.97))
-    a1 = 4.0 * rho**2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
-    L = max(stats.hac_bandwidth(n), int(1.1447 * (a1 * n) ** (1.0 / 3.0)))
-    L = min(L, max(n // (4 * parts), 1))
+    L = min(stats.plugin_bandwidth(e), max(len(e) // (4 * parts), 1))
     omega = E.T @ E
     for lag in range(1, L + 1):
         c = E[lag:].T @ E[:-lag]

@@ -280,6 +280,21 @@ def normal_scores(x: np.ndarray) -> np.ndarray:
 DEGENERATE = 1e-24
 
 
+def plugin_bandwidth(u: np.ndarray) -> int:
+    """The lag window over a series of frames' scores ``u`` (the caller caps it).
+
+    Andrews' (1991) AR(1) plug-in for the Bartlett kernel, at least Newey–West's rule
+    (:func:`hac_bandwidth`).  A filter whose noise is misstated leaves its innovations
+    correlated over many frames, and the window must cover them.
+    """
+    n = len(u)
+    uc = u - u.mean()
+    rho = float(np.clip((uc[1:] @ uc[:-1]) / max(uc @ uc, 1e-300), -0.97, 0.97)) \
+        if n > 2 else 0.0
+    a1 = 4.0 * rho**2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
+    return max(hac_bandwidth(n), int(1.1447 * (a1 * n) ** (1.0 / 3.0)))
+
+
 def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
                    lags: int | None = None, dof: bool = False,
                    track: np.ndarray | None = None,
@@ -343,15 +358,7 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     U = np.bincount(k, xc * e)
     n = len(U)
     if lags is None:
-        # Andrews' (1991) AR(1) plug-in for the Bartlett kernel, at least Newey–West's
-        # rule: a filter whose noise is misstated leaves its innovations correlated over
-        # many frames, and the window must cover them
-        Uc = U - U.mean()
-        rho = float(np.clip((Uc[1:] @ Uc[:-1]) / max(Uc @ Uc, 1e-300), -0.97, 0.97)) \
-            if n > 2 else 0.0
-        a1 = 4.0 * rho**2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
-        L = max(hac_bandwidth(n), int(1.1447 * (a1 * n) ** (1.0 / 3.0)))
-        L = min(L, max(n // 4, 1))
+        L = min(plugin_bandwidth(U), max(n // 4, 1))
     else:
         L = lags
     L = min(L, n - 1)
