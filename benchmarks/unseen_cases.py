@@ -102,6 +102,12 @@ class Case:
     #: library effects that may be added or not: the in-library part (a mean) of an
     #: outside change, neither missed nor 'not in the truth' (their line judged by words)
     may_add: tuple[str, ...] = ()
+    #: the in-library mean of a change outside the library, where the case knows it:
+    #: ``{effect: {parameter: (lo, hi)}}``, the range an added effect's final estimate must
+    #: lie in (its sign and size: between the run's mean and the evaluation window's,
+    #: widened by a quarter of the window's): an allowed effect added at another value, or
+    #: at the wrong sign, misleads like one not in the truth
+    expect: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
 
 
 def _epoch_said(stdout: str, epoch: float) -> bool:
@@ -385,19 +391,33 @@ def _tilt_drift(sim, seed, mrad=1.5):
 BAD_COLUMNS = (97, 211, 388, 459, 602, 731, 846, 950)
 
 
-def _columns(sim, seed, shift_px=0.15, width=8):
-    # a CCD fixed pattern: stars whose centroid falls on 8 bands of 8 columns (6 % of the
-    # detector's width) read 0.15 px further along u; then the stated noise
+def _bands(sim, seed, axis, starts, shift_px=0.15, width=8):
+    # a CCD fixed pattern: stars whose centroid falls on bands of ``width`` detector columns
+    # (axis 0) or rows (axis 1) from ``starts`` read ``shift_px`` further along that axis;
+    # then the stated noise
     for f in sim.star_frames:
         uv = np.asarray(f.uv, dtype=float).copy()
-        col = np.floor(uv[:, 0])
+        px = np.floor(uv[:, axis])
         bad = np.zeros(len(uv), dtype=bool)
-        for c0 in BAD_COLUMNS:
-            bad |= (col >= c0) & (col < c0 + width)
-        uv[bad, 0] += shift_px
+        for c0 in starts:
+            bad |= (px >= c0) & (px < c0 + width)
+        uv[bad, axis] += shift_px
         f.uv = uv
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
+
+def _columns(sim, seed):
+    # 8 bands of 8 columns (6 % of the detector's width) read 0.15 px further along u
+    _bands(sim, seed, 0, BAD_COLUMNS)
+
+
+#: the rows of the ``rows`` case's defective bands (first row of each, 8 high)
+BAD_ROWS = BAD_COLUMNS
+
+
+def _rows(sim, seed):
+    # (H157) ``columns`` turned: 8 bands of 8 rows read 0.15 px further along v
+    _bands(sim, seed, 1, BAD_ROWS)
 
 
 # ---- 2026-11-28 (H138): seventh pass
@@ -772,7 +792,9 @@ CASES: dict[str, Case] = {
     "columns": Case("psce", "CCD fixed pattern: 8 bands of 8 columns read 0.15 px further "
                     "along u (6 % of the width; not in the library)", outside=True,
                     regressor="u (column) (fixed pattern", post=_columns,
-                    min_size_px=0.075,
+                    # (H157: the printed size 0.148 +- 0.0035 px over seeds 21-30; main
+                    # b9b645c's fixed band read 0.103 +- 0.0055)
+                    min_size_px=0.12,
                     not_told=("correlated from frame to frame", "wrong star by star"),
                     scenario_changes={"centroid_noise_px": 0.0}),
     "twin_tilt1": Case("psce", "the user's calibrated clean bag's twin with image_plane_tilt "
@@ -829,11 +851,16 @@ CASES: dict[str, Case] = {
     "sky_clock_drift": Case("psce", "the sky bag (refraction, aberration, proper motion at "
                             "1x) whose frame stamps drift late 0 -> 30 ms over the run "
                             "(time_offset is a constant: its mean 15 ms is in the library, "
-                            "the drift is not)", post=_clock_drift, **_SKY_CLOCK),
+                            "the drift is not)", post=_clock_drift, **_SKY_CLOCK,
+                            # (stamps late: dt < 0; the run's mean -15 ms, the window's
+                            # -22.5)
+                            expect={"time_offset": {"dt": (-28.125e-3, -9.375e-3)}}),
     "sky_clock_drift3": Case("psce", "the sky bag (refraction, aberration, proper motion at "
                              "1x) whose frame stamps drift late 0 -> 3 ms over the run "
                              "(time_offset is a constant: its mean 1.5 ms is in the library, "
-                             "the drift is not)", post=_clock_drift3, **_SKY_CLOCK),
+                             "the drift is not)", post=_clock_drift3, **_SKY_CLOCK,
+                             # (the run's mean -1.5 ms, the window's -2.25)
+                             expect={"time_offset": {"dt": (-2.8125e-3, -0.9375e-3)}}),
     "misid30": Case("psce", "misidentified stars: in a random 10 % of the frames, 30 % of the "
                     "frame's stars swapped identities (bad input: counted by the gating, no "
                     "effect, noise as stated)", noise={}, post=_misid30),
@@ -860,7 +887,10 @@ CASES: dict[str, Case] = {
     "dt_step": Case("psce", "the tracker's clock steps once: frames from 75 % of the run on "
                     "stamped 4 ms late (time_offset is a constant: the window's mean 2 ms may "
                     "be added, the step is outside the library)", outside=True,
-                    regressor="time", may_add=("time_offset",), post=_dt_step),
+                    regressor="time", may_add=("time_offset",), post=_dt_step,
+                    # (t_true = stamp + dt: stamps late, dt < 0; the run's mean -1 ms,
+                    # the window's -2 ms)
+                    expect={"time_offset": {"dt": (-2.5e-3, -0.5e-3)}}),
     "knock": Case("psce", "a knock on the mount: the installation jumps once by 20 arcsec "
                   "(0.385 px along 30 deg) at 75 % of the run (installation is a constant; "
                   "the jump is outside the library)", outside=True, regressor="time",
@@ -868,12 +898,24 @@ CASES: dict[str, Case] = {
     "gsf_asym": Case("psce", "gyro scale-factor asymmetry on z: +500 ppm for positive rates, "
                      "-500 ppm for negative (one factor per axis in the library; its mean 0 "
                      "may read as a small gyro_scale_factor)", outside=True, regressor="",
-                     may_add=("gyro_scale_factor",), post=_gsf_asym),
+                     may_add=("gyro_scale_factor",), post=_gsf_asym,
+                     # (the z rates' ω²-weighted mean of ±500 ppm: the run's 0.1 ppm, the
+                     # window's -500 (seeds 21, 22: its z rates all negative); x, y none,
+                     # within the z's margin)
+                     expect={"gyro_scale_factor": {"sx": (-125e-6, 125e-6),
+                                                   "sy": (-125e-6, 125e-6),
+                                                   "sz": (-625e-6, 125e-6)}}),
     "sway_twin_dt1": Case("swaying_base", "the user's calibrated clean swaying bag's twin "
                           "with time_offset dt at 1x the MDB `discover` printed for it "
                           "(stellar-cal twin)", effects=("time_offset",),
                           sim_effects=dict(SWAY_CLEAN), duration=200.0,
                           twin=("time_offset", "dt", 1.0)),
+    # ---- 2026-11-28 (H157)
+    "rows": Case("psce", "CCD fixed pattern over rows: 8 bands of 8 rows read 0.15 px further "
+                 "along v (``columns`` turned; not in the library)", outside=True,
+                 regressor="v (row) (fixed pattern", post=_rows, min_size_px=0.12,
+                 not_told=("correlated from frame to frame", "wrong star by star"),
+                 scenario_changes={"centroid_noise_px": 0.0}),
 }
 
 
@@ -972,6 +1014,17 @@ def judge(name: str, r: dict) -> list[str]:
         bad.append(f"the catalogue's epoch J{case.catalogue_epoch:.1f} said nowhere")
     if extra:
         bad.append(f"added {extra} (not in the truth)")
+    for eff, ranges in case.expect.items():
+        if eff not in w["added"]:
+            continue
+        est = (r["summary"].get("final_estimates") or {}).get(eff) or {}
+        for par, (lo, hi) in ranges.items():
+            got = est.get(par)
+            got = float(got[0] if isinstance(got, list | tuple) else got) \
+                if got is not None else float("nan")
+            if not lo <= got <= hi:
+                bad.append(f"added {eff} {par} = {got:.3g}, its in-library mean "
+                           f"{lo:.3g} .. {hi:.3g}")
     if missing:
         bad.append(f"missed {missing}")
     keys = {"star": "star_sigma_scale", "gyro": "gyro_noise_scale", "accel": "accel_noise_scale"}

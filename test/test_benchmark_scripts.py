@@ -138,6 +138,41 @@ def test_unseen_case_may_add_the_in_library_mean_of_an_outside_change(monkeypatc
         "first 'unexplained' line is not time"]
 
 
+def test_unseen_case_judges_the_value_an_allowed_effect_is_added_at(monkeypatch):
+    """benchmarks/unseen_cases.py's ``Case.expect`` (H157; reviewer RE: ``may_add`` accepted
+    an allowed effect at any value and sign): ``dt_step`` (frames stamped 4 ms late from 75 %
+    of the run; ``t_true = stamp + dt``) may add time_offset at its in-library mean, between
+    the run's -1 ms and the window's -2 ms (measured: -1.33 ms, seeds 21 and 22), not at the
+    wrong sign nor at the whole step; an effect added without a final estimate is judged too.
+    Fails on main b9b645c: every value was ok."""
+    spec = importlib.util.spec_from_file_location("unseen_cases",
+                                                  BENCHMARKS / "unseen_cases.py")
+    uc = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "unseen_cases", uc)
+    spec.loader.exec_module(uc)
+
+    def run(added, est):
+        line = "the frames' time offset to the IMU changes over the run (t=13.5; 0.5 px)"
+        return {"rc": 0, "stderr": "", "stdout": f"noise: noise as stated\n  unexplained: {line}",
+                "summary": {"added": added, "noise": {"applied": {}},
+                            "final_estimates": est}}
+
+    def dt(v):
+        return {"time_offset": {"dt": [v, 6.7e-6]}}
+
+    assert uc.judge("dt_step", run([], {})) == []
+    assert uc.judge("dt_step", run(["time_offset"], dt(-1.33e-3))) == []
+    assert uc.judge("dt_step", run(["time_offset"], dt(1.33e-3))) == [
+        "added time_offset dt = 0.00133, its in-library mean -0.0025 .. -0.0005"]
+    assert uc.judge("dt_step", run(["time_offset"], dt(-4e-3))) == [
+        "added time_offset dt = -0.004, its in-library mean -0.0025 .. -0.0005"]
+    assert uc.judge("dt_step", run(["time_offset"], {})) == [
+        "added time_offset dt = nan, its in-library mean -0.0025 .. -0.0005"]
+    gsf = {"gyro_scale_factor": {"sx": [-1.3e-5, 1e-6], "sy": [3e-7, 1e-6], "sz": [4e-4, 1e-6]}}
+    assert uc.judge("gsf_asym", run(["gyro_scale_factor"], gsf)) == [
+        "added gyro_scale_factor sz = 0.0004, its in-library mean -0.000625 .. 0.000125"]
+
+
 def test_unseen_clock_drift3_stamps_drift_0_to_3_ms_and_a_gyro_effect_misleads(monkeypatch):
     """benchmarks/unseen_cases.py's ``sky_clock_drift3`` (the sky bag's frame stamps late 0 ms
     at the start growing linearly to 3 ms at the end): the stamps move by exactly that, and a

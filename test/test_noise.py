@@ -1768,7 +1768,12 @@ def test_a_fixed_pattern_of_the_columns_is_told_not_read_as_correlated_noise():
     within the bands' 0.15 px and half of it (a band straddling a defect's edge reads part
     of it); v is not flagged.
     (200 s, seed 8: the test's p 3.9e-5; over seeds 3-8 at 200 s it spans 4e-5 .. 6e-3,
-    the case's 300 s seeds 21-26 all fire.)  Fails on main: the AR(1) verdict."""
+    the case's 300 s seeds 21-26 all fire.)  Fails on main: the AR(1) verdict.
+    The size printed is the pattern's 0.15 px within 4 of its σ over seeds (H157: the band
+    slid to the defect's phase, the offsets fitted through the frames' attitude fit;
+    ``columns`` 300 s seeds 21-30: 0.148 +- 0.0035 px, here 0.150; before, the test's
+    fixed band, 7/8 of a defect, less the stars' means and the frames' fit, read 0.103 +-
+    0.0055, here 0.102: fails on main b9b645c)."""
     from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
     from stellar_cal_ros.diagnosis.output import line_tests
     from stellar_cal_ros.diagnosis.runstats import evaluate
@@ -1790,5 +1795,5 @@ def test_a_fixed_pattern_of_the_columns_is_told_not_read_as_correlated_noise():
     # bands first, the pattern's own line next; the 300 s case prints it first)
     assert found and found[0].regressor.startswith("u (column)"), found
     line = [f for f in found if f.regressor == "u (column) (fixed pattern, bands of 8 px)"]
-    assert line and line[0].component == "u" and 0.075 < line[0].slope_px < 0.15, found
+    assert line and line[0].component == "u" and abs(line[0].slope_px - 0.15) < 0.017, found
     assert not [f for f in found if f.regressor.startswith("v (row) (fixed")], found

@@ -756,6 +756,8 @@ class FixedPattern:
     #: residuals' units × ``scale``: px where ``scale`` is each row's σ) and its first pixel
     top: float = 0.0
     at_px: float = math.nan
+    #: the pattern's size (px, :func:`pattern_size`) where it was measured, else nan
+    size_px: float = math.nan
 
 
 #: the passes of :func:`pixel_means`' two-way fit (stars' means and pixels' offsets)
@@ -805,6 +807,44 @@ def pixel_means(r: np.ndarray, pos: np.ndarray, star: np.ndarray, cap: float = P
     mean[rows] = c[col] * u
     lev[rows] = om / wc_safe[col]
     return mean, lev
+
+
+def pattern_size(offset: np.ndarray, pos: np.ndarray, at_px: float,
+                 band: int = PATTERN_BAND_PX, reach: int = PATTERN_REACH) -> float:
+    """The size (px) of the fixed pattern :func:`fixed_pattern` found at band ``at_px``.
+
+    ``offset``: each row's pixel's offset (px, :func:`pixel_means`: fitted beside the
+    stars' own means, which take part of a band's offset into a star dwelling on it),
+    ``pos`` its detector position.  The size is the mean offset of the rows in a window of
+    ``band`` px less that of the rows in the ``reach`` bands on either side, the window
+    slid over the phases within a band of ``at_px`` to the one departing most: the test's
+    bands are fixed to multiples of ``band``, and one straddling a defect's edge reads
+    part of it (unseen case ``columns``: bands of 8 columns from column 97, the test's top
+    band 96-103 holds 7/8 of one, and it printed 0.106 px, less the stars' means, for
+    0.15).  nan without rows at ``at_px``.
+    """
+    pos = np.asarray(pos, dtype=float)
+    ok = np.isfinite(pos) & np.isfinite(offset)
+    if not ok.any():
+        return math.nan
+    col = np.floor(pos[ok]).astype(np.int64)
+    lo = min(int(col.min()), int(math.floor(at_px)) - (reach + 1) * band)
+    col -= lo
+    n = int(col.max()) + 1 + (reach + 2) * band
+    S = np.concatenate([[0.0], np.cumsum(np.bincount(col, np.asarray(offset)[ok],
+                                                     minlength=n))])
+    N = np.concatenate([[0.0], np.cumsum(np.bincount(col, minlength=n).astype(float))])
+    best = math.nan
+    for a in range(int(math.floor(at_px)) - lo - band + 1,
+                   int(math.floor(at_px)) - lo + band):
+        a0, a1 = max(a - reach * band, 0), min(a + band + reach * band, n)
+        n_in, n_nb = N[a + band] - N[a], N[a1] - N[a0] - (N[a + band] - N[a])
+        if n_in <= 0 or n_nb <= 0:
+            continue
+        h = (S[a + band] - S[a]) / n_in - (S[a1] - S[a0] - (S[a + band] - S[a])) / n_nb
+        if not abs(h) <= abs(best):
+            best = h
+    return float(abs(best))
 
 
 def fixed_pattern(r: np.ndarray, share: np.ndarray, pos: np.ndarray, star: np.ndarray,
