@@ -3,6 +3,7 @@
 Usage::
 
     python benchmarks/replay_parts.py BAG.mcap [--method swaying_base] [--prior PRIOR.yaml]
+                                      [--fine]
     python benchmarks/replay_parts.py BAG.mcap --method swaying_base --round R.yaml
 
 Replays ``BAG`` in process (``replay(bag, prior, method, keep_tables=False)``) once to warm,
@@ -13,8 +14,9 @@ calls and µs a call: the driver's frame (``Calibrator._process``), the filter's
 ``ImuPropagation.step`` and the method's ``_transition``), the method's other measurements
 (``_before_star_update``: the swaying filter's position reference), the numpy star update
 (``_star_update``), the one compiled call (``_fused_update``), the gyro watch, the history
-row.  A method whose frames take the compiled step shows them under ``_fused_update``; a
-batched replay's committed frames pass none of these.
+row (``--fine``: finer parts too, the driver's pushes among them).  A method whose frames
+take the compiled step shows them under ``_fused_update``; a batched replay's committed
+frames pass none of these.
 
 ``--round R.yaml``: instead, ``stellar-cal diagnose BAG --calibration R.yaml --method METHOD
 --no-plots --workers 0`` in process (output in a temporary directory), and the CPU seconds
@@ -65,6 +67,10 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="psce")
     ap.add_argument("--prior", type=Path)
     ap.add_argument("--round", type=Path, help="a calibration: time a diagnose round")
+    ap.add_argument("--fine", action="store_true",
+                    help="time finer parts too: the rate at the frame, the compiled calls "
+                         "and their Python around them, the reference rows, the driver's "
+                         "pushes (a push's frames counted in it)")
     args = ap.parse_args(argv)
     tot: dict[str, float] = defaultdict(float)
     cnt: dict[str, int] = defaultdict(int)
@@ -99,6 +105,23 @@ def main(argv=None) -> int:
              (StarFilter, "_fused_update", "  _fused_update (compiled call)"),
              (StarFilter, "_watch_gyro", "  gyro watch"),
              (Calibrator, "_record_history", " history row")]
+    if args.fine:
+        from stellar_cal_ros.core.imu_prefix import ImuPrefix
+        from stellar_cal_ros.methods.frame_step import FusedStep
+
+        parts += [(StarFilter, "rate_at", "  (fine) rate at the frame (omega)"),
+                  (FusedStep, "update", "  (fine) FusedStep.update (star update call)"),
+                  (StarFilter, "_compiled_result", "  (fine) _compiled_result"),
+                  (ImuPrefix, "extend", "  (fine) reference rows (ImuPrefix.extend)"),
+                  (Calibrator, "push_imu_block", "(fine) push_imu_block (incl. frames)"),
+                  (Calibrator, "push_scalars", "(fine) push_scalars (incl. frames)"),
+                  (Calibrator, "push_fix", "(fine) push_fix (incl. frames)"),
+                  (Calibrator, "push_stars", "(fine) push_stars (incl. frames)")]
+        for name, label in (("_compiled_interval", "   (fine) _compiled_interval"),
+                            ("reference_measurement", "   (fine) reference_measurement"),
+                            ("_reference_update", "   (fine) _reference_update")):
+            if hasattr(cls, name):
+                parts.append((cls, name, label))
     for c, name, label in parts:
         _wrap(c, name, label, tot, cnt)
     t = time.process_time()

@@ -196,3 +196,60 @@ def test_in_sample_attitude_matches_the_truth_to_second_order():
     err_linear = np.linalg.norm(err_linear, axis=1) / ARCSEC
     assert np.sqrt(np.mean(err_linear ** 2)) > 0.05, err_linear
     assert err_at.max() < 0.002, err_at
+
+
+class _Uncapped(ImuPropagation):
+    """The propagation as it was: each reference extended over every sample held."""
+
+    def _extend(self, imu, a: int, b: int) -> None:
+        if b > a:
+            self.prefix.extend(imu.t[a:b], imu.w[a:b],
+                               imu.f[a:b] if self.accel is not None else None)
+
+
+@pytest.mark.parametrize("accel", [False, True], ids=["attitude", "velocity"])
+def test_reference_rows_stop_at_the_window_and_the_steps_are_unchanged(accel):
+    """A reference's rows stop at the end of its window (a later sample is computed by the
+    next reference, not twice), and every step is the same floats as with the rows of every
+    sample held: IMU 1.5 s ahead of the frames, 2-s windows (each rebuild by the window) and
+    a θ̂ changing at every frame with a tight bound (rebuilds by the correction too)."""
+    src = _imu(1200)
+    P = 24 if accel else 12
+    theta = _theta(P)
+    bufs = {c: ImuBuffer(DT) for c in (ImuPropagation, _Uncapped)}
+    props = {c: c(DT, _sensor(0, P), _sensor(12, P) if accel else None,
+                  (lambda t: np.broadcast_to(G, (len(t), 3))) if accel else None,
+                  max_correction_rad=2e-6, window_s=2.0) for c in bufs}
+    rows = dict.fromkeys(bufs, 0)
+    R = dict.fromkeys(bufs, so3_exp([0.1, 0.2, -0.3]))
+    held, ta = 0, 0.013
+    for q in range(18):
+        tb = 0.5 * (q + 1) + 0.0037
+        upto = min(int(round((tb + 1.5) / DT)), len(src))
+        for c, buf in bufs.items():
+            if upto > held:
+                n0 = len(buf)
+                buf.append(src.t[held:upto], src.w[held:upto], src.f[held:upto])
+                before = props[c].prefix.n if props[c].prefix is not None else 0
+                props[c].appended(buf, n0, theta)
+                rows[c] += props[c].prefix.n - before
+        held = max(held, upto)
+        steps = []
+        for c, buf in bufs.items():
+            prop = props[c]
+            start = prop.prefix
+            st = prop.step(buf, buf.index(ta), buf.index(tb), ta, tb, R[c], theta)
+            if prop.prefix is not start:  # rebuilt: its rows counted from its start
+                rows[c] += prop.prefix.n
+            R[c] = st.R
+            steps.append(st)
+        a, b = steps
+        for key in ("R", "F", "dvr", "gravity"):
+            assert np.array_equal(getattr(a, key), getattr(b, key)), (q, key)
+        capped = props[ImuPropagation]
+        assert capped.prefix.end <= capped.ref_start + capped.window
+        ta = tb
+        theta = theta + 1e-3 * _theta(P, seed=q)
+    assert props[ImuPropagation].rebuilds > 0 and \
+        props[ImuPropagation].rebuilds == props[_Uncapped].rebuilds
+    assert rows[ImuPropagation] < rows[_Uncapped]

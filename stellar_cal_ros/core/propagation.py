@@ -225,6 +225,14 @@ class ImuPropagation:
         self._extend(imu, k, len(imu) if stop is None else stop)
 
     def _extend(self, imu, a: int, b: int) -> None:
+        """Rows of samples ``a:b`` of ``imu``, up to the end of the reference's window.
+
+        A sample at or past ``ref_start + window`` is never read under this reference
+        (:meth:`step` rebuilds first), and the next reference computes it again: the rows
+        stop there (the rows are the same floats however the extension is split).
+        """
+        if not self.exact and self.window != math.inf:
+            b = min(b, self.ref_start + self.window - imu.base)
         if b > a:
             self.prefix.extend(imu.t[a:b], imu.w[a:b],
                                imu.f[a:b] if self.accel is not None else None)
