@@ -97,18 +97,24 @@ class SensorModel:
             and np.allclose(b1, b0 + Jb @ step, rtol=1e-9, atol=1e-300)
             and np.allclose(E1, E0 + JE @ step, rtol=1e-9, atol=1e-300)) else None
         self._cache: tuple[np.ndarray, tuple] | None = None  # (θ, (b, A, E, Jb, JE))
+        #: an affine model whose error matrix is zero at every θ (no scale or misalignment)
+        self._no_E = self._affine is not None and not (self._affine[1].any()
+                                                       or self._affine[3].any())
 
     def _correction(self, theta: np.ndarray) -> tuple:
+        theta = np.asarray(theta)
         hit = self._cache
-        if hit is not None and np.array_equal(hit[0], theta):
-            return hit[1]
+        if hit is not None and hit[0].shape == theta.shape and (hit[0] == theta).all():
+            return hit[1]  # (np.array_equal's test, without its conversions)
         if self._affine is None:
             b, E, Jb, JE = self.model(theta)
         else:
             b0, E0, Jb, JE = self._affine
             d = theta - self.theta0
-            b, E = b0 + Jb @ d, E0 + JE @ d
-        out = (b, inv3(np.eye(3) + E) if E.any() else None, Jb, JE)
+            b = b0 + Jb @ d
+            # E = E0 + JE d is zero then (at a finite θ): A is None, as E.any() gives
+            E = None if self._no_E and np.isfinite(d).all() else E0 + JE @ d
+        out = (b, inv3(np.eye(3) + E) if E is not None and E.any() else None, Jb, JE)
         self._cache = (np.array(theta, dtype=float), out)
         return out
 
