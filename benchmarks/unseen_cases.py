@@ -893,7 +893,8 @@ CASES: dict[str, Case] = {
                     expect={"time_offset": {"dt": (-2.5e-3, -0.5e-3)}}),
     "knock": Case("psce", "a knock on the mount: the installation jumps once by 20 arcsec "
                   "(0.385 px along 30 deg) at 75 % of the run (installation is a constant; "
-                  "the jump is outside the library)", outside=True, regressor="time",
+                  "the jump is outside the library)", outside=True,
+                  regressor="installation steps", min_size_px=0.3,
                   may_add=("installation",), post=_knock),
     "gsf_asym": Case("psce", "gyro scale-factor asymmetry on z: +500 ppm for positive rates, "
                      "-500 ppm for negative (one factor per axis in the library; its mean 0 "

@@ -115,9 +115,8 @@ class ClockChange:
 
     def finding(self) -> stats.RegressorFinding:
         """The 'unexplained' test (unadjusted p; its statistic the one-sided p's normal score)."""
-        z = float(dist.norm.isf(self.p_value)) if self.p_value > 1e-300 else 37.0
-        return stats.RegressorFinding(self.regressor(), COMPONENT, z, self.p_value,
-                                      self.size_px, detail={"clock_change": self.as_json()})
+        return stats.p_finding(self.regressor(), COMPONENT, self.p_value, self.size_px,
+                               detail={"clock_change": self.as_json()})
 
 
 def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
@@ -128,30 +127,19 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     ``None`` without the installation or the rate columns, or with fewer than 10 frames
     with motion a part.
     """
-    m = np.asarray(mask, dtype=bool) & stats.accepted(res)
-    if m.sum() < 20:
+    found = stats.accepted_offsets(res, mask, focal, centre, R_imu_st)
+    if found is None:
         return None
-    sub = {k: np.asarray(v)[m] for k, v in res.items()}
-    got = stats.frame_offsets(sub, focal, centre, R_imu_st)
-    if got is None:
-        return None
+    sub, got = found
     frames, g, info, _, _, speed = got
-    # each frame's image speed (the information-weighted rms of its stars', px/s): a frame
-    # at rest says an offset only through its tiny rate, where any attitude error the model
-    # leaves reads as seconds (unseen case ``knock``: 23-34 ms in the dwells after the jump)
-    a, b, c = (np.asarray(sub[k], dtype=float) for k in ("s_uu", "s_uv", "s_vv"))
-    det = a * c - b * b
-    tr = np.where(det > 0, 0.5 * (a + c) / np.where(det > 0, det, 1.0), 0.0)
-    fr_all, k_all = np.unique(np.asarray(sub["frame"]), return_inverse=True)
-    per = np.bincount(k_all, tr)[np.searchsorted(fr_all, frames)]
-    moving = np.sqrt(np.where(per > 0, info / np.where(per > 0, per, 1.0), 0.0))
-    use = (info > 0) & (moving >= MOVING * np.percentile(moving, 95))
+    # a frame at rest says an offset only through its tiny rate, where any attitude error
+    # the model leaves reads as seconds (unseen case ``knock``: 23-34 ms in the dwells
+    # after the jump)
+    use = stats.moving_frames(sub, frames, info, MOVING)
     if use.sum() < 3 * parts:
         return None
     frames, g, info = frames[use], g[use], info[use]
-    first = np.unique(np.asarray(sub["frame"]), return_index=True)[1]
-    t_all = np.asarray(sub["t"], dtype=float)
-    t = t_all[first][np.searchsorted(fr_all, frames)] - float(np.min(res["t"]))
+    t = stats.frame_times(sub, frames) - float(np.min(res["t"]))
     seg = np.zeros(len(frames), dtype=int)
     for s, idx in enumerate(np.array_split(np.arange(len(frames)), parts)):
         seg[idx] = s

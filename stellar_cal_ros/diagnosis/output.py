@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import clock, rolling, shape_drift, stats
+from stellar_cal_ros.diagnosis import clock, installation_step, rolling, shape_drift, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
     line_noise,
@@ -79,6 +79,9 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     # the time offset × time test, whether it fires or not (its parts' offsets)
     clock_entry = clock_test(shown.residuals, calibration, fraction)
     clock_entry = clock_entry.as_json() if clock_entry is not None else None
+    # the attitude step test at rest, whether it fires or not (its largest step)
+    step_entry = step_test(shown.residuals, calibration, fraction)
+    step_entry = step_entry.as_json() if step_entry is not None else None
     if drop_tables and not plots:
         base.residuals = final.residuals = None
         panels.clear()
@@ -91,6 +94,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         if i in follows:
             u["follows"] = follows[i]
     summary["clock_change"] = clock_entry
+    summary["installation_step"] = step_entry
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(stated_scales(calibration), _batch_fit(base, spec)))
     if spread:
@@ -221,20 +225,37 @@ def clock_test(res, calibration: Calibration, fraction: float) -> clock.ClockCha
                               (cam.cx, cam.cy), calibration.R_imu_st)
 
 
+def step_test(res, calibration: Calibration, fraction: float
+              ) -> installation_step.InstallationStep | None:
+    """The attitude step test at rest (:func:`~.installation_step.installation_step`)."""
+    cam = calibration.camera
+    return installation_step.installation_step(res, stats.evaluation_mask(res, fraction),
+                                               (cam.fx, cam.fy), (cam.cx, cam.cy),
+                                               calibration.R_imu_st)
+
+
 def line_tests(res, calibration: Calibration, fraction: float) -> list:
-    """The 'unexplained' tests of a residual table (significant, strongest first)."""
+    """The 'unexplained' tests of a residual table (significant, strongest first).
+
+    An installation step's line (:mod:`~.installation_step`) goes first when it fires: the
+    filter's catch-up on it makes the others.
+    """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     mask = stats.evaluation_mask(res, fraction)
     sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st)
     timing = clock_test(res, calibration, fraction)
-    return stats.regressor_tests(
+    step = step_test(res, calibration, fraction)
+    found = stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
         extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, sn)
-        + ([timing.finding()] if timing is not None else []),
+        + ([timing.finding()] if timing is not None else [])
+        + ([step.finding()] if step is not None else []),
         R_imu_st=calibration.R_imu_st,
         height=cam.height, track_lags=track_lags(sn), width=cam.width,
         star_levels=star_levels(sn) is not None)
+    first = [f for f in found if f.component == installation_step.COMPONENT]
+    return first + [f for f in found if f.component != installation_step.COMPONENT]
 
 
 def write_report(out: Path, summary: dict[str, Any], title: str) -> None:

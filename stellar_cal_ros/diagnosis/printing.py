@@ -11,6 +11,7 @@ from typing import Any
 
 from stellar_cal_ros.diagnosis import reliability
 from stellar_cal_ros.diagnosis.clock import COMPONENT
+from stellar_cal_ros.diagnosis.installation_step import COMPONENT as STEP
 from stellar_cal_ros.diagnosis.shape_drift import SHAPES
 
 
@@ -44,7 +45,8 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
 
     E.g. ``("u residual", "0.043 px across its 5-95 % range")``: the one phrasing of the
     terminal (:func:`unexplained_lines`) and the report (``report_html``).  ``what`` is
-    ``""`` where the regressor says it all (the clock's line, :mod:`~.clock`).
+    ``""`` where the regressor says it all (the clock's line, :mod:`~.clock`; an installation
+    step's, :mod:`~.installation_step`).
     """
     size = u.get("change_px")
     what = f"{u['component']} residual"
@@ -62,6 +64,8 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
     elif u["component"] == COMPONENT:  # diagnosis.clock: the offset changes over the run
         # (the regressor says what changes: no 'residual vs')
         what, span = "", "along each star's motion at the 95th percentile of image speed"
+    elif u["component"] == STEP:  # diagnosis.installation_step: the regressor says it all
+        what, span = "", "at the detector's centre"
     elif u["component"] == "size":
         what = "residual spread (size)"
     elif (u.get("detail") or {}).get("cause") in DRIFTS:

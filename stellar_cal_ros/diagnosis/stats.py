@@ -14,6 +14,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from stellar_cal_ros.core import distributions as dist
+from stellar_cal_ros.core.units import ARCSEC
 
 Table = dict[str, np.ndarray]
 
@@ -144,6 +145,17 @@ class RegressorFinding:
     slope_px: float  # residual change across the regressor's 5-95 % range, px
     #: what a test shaped like one effect outside the library adds (its fitted size, ...)
     detail: dict | None = None
+
+
+def p_finding(regressor: str, component: str, p_value: float, size_px: float,
+              detail: dict | None = None) -> RegressorFinding:
+    """A test's :class:`RegressorFinding` from its unadjusted p (one-sided).
+
+    Its statistic the p's normal score, 37 where the p underflows: the 'unexplained'
+    family ranks by p, then by it.
+    """
+    z = float(dist.norm.isf(p_value)) if p_value > 1e-300 else 37.0
+    return RegressorFinding(regressor, component, z, p_value, size_px, detail=detail)
 
 
 def regressors(res: Table, camera_centre: tuple[float, float]) -> dict[str, np.ndarray]:
@@ -829,6 +841,18 @@ def motion_spread(sub: Table, focal: tuple[float, float], centre: tuple[float, f
     return None if got is None else motion_test(*got)
 
 
+def accepted_offsets(res: Table, mask: np.ndarray, focal: tuple[float, float],
+                     centre: tuple[float, float], R_imu_st: np.ndarray | None
+                     ) -> tuple[Table, tuple[np.ndarray, ...]] | None:
+    """``mask``'s accepted stars and their :func:`frame_offsets` (``None``: too few, no columns)."""
+    m = np.asarray(mask, dtype=bool) & accepted(res)
+    if m.sum() < 20:
+        return None
+    sub = {k: np.asarray(v)[m] for k, v in res.items()}
+    got = frame_offsets(sub, focal, centre, R_imu_st)
+    return None if got is None else (sub, got)
+
+
 def frame_offsets(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
                   R_imu_st: np.ndarray | None) -> tuple[np.ndarray, ...] | None:
     """``(frames, g, I, g⊥, I⊥, speed)`` of :func:`motion_spread` (``None``: no columns).
@@ -850,6 +874,59 @@ def frame_offsets(sub: Table, focal: tuple[float, float], centre: tuple[float, f
                           for x, y in ((vel, nu), (vel, vel), (perp, nu), (perp, perp)))
     speed = float(np.percentile(np.hypot(vel[:, 0], vel[:, 1]), 95))
     return frames, g, info, gp, infop, speed
+
+
+def frame_attitudes(sub: Table, focal: tuple[float, float]
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame of ``sub`` the rotation its stars say: ``(frames, g (n, 3), I (n, 3, 3))``.
+
+    The scores ``g = Σ Jᵀ S⁻¹ ν`` and information ``I = Σ Jᵀ S⁻¹ J`` of a small rotation of
+    the tracker (arcsec about its x, y, z), ``J`` the stars' :func:`attitude_columns`, ``S``
+    each star's innovation covariance; ``I⁻¹ g`` the frame's rotation.  Frames in index
+    order; those whose ``I`` is singular (fewer than two stars) are left out.
+    """
+    J = attitude_columns(sub, *focal) * ARCSEC  # px per arcsec
+    a, b, c = (np.asarray(sub[k], dtype=float) for k in ("s_uu", "s_uv", "s_vv"))
+    det = a * c - b * b
+    nu = np.stack([np.asarray(sub["du"], dtype=float), np.asarray(sub["dv"], dtype=float)], 1)
+    ok = (det > 0) & np.all(np.isfinite(J.reshape(len(J), -1)), 1) & np.all(np.isfinite(nu), 1)
+    Si = np.stack([np.stack([c, -b], 1), np.stack([-b, a], 1)], 1)[ok] / det[ok, None, None]
+    SJ = np.einsum("nij,njk->nik", Si, J[ok])
+    frames, k = np.unique(np.asarray(sub["frame"])[ok], return_inverse=True)
+    n = len(frames)
+    gs = np.einsum("nik,ni->nk", SJ, nu[ok])
+    Is = np.einsum("nij,nik->njk", J[ok], SJ)
+    g = np.stack([np.bincount(k, gs[:, i], minlength=n) for i in range(3)], 1)
+    info = np.stack([np.stack([np.bincount(k, Is[:, i, j], minlength=n) for j in range(3)], 1)
+                     for i in range(3)], 1)
+    good = np.linalg.cond(info) < 1e12 if n else np.zeros(0, dtype=bool)
+    return frames[good], g[good], info[good]
+
+
+def moving_frames(sub: Table, frames: np.ndarray, info: np.ndarray, share: float
+                  ) -> np.ndarray:
+    """Which of :func:`frame_offsets`' ``frames`` move: ``(len(frames),)`` bool.
+
+    Each frame's image speed, the information-weighted rms of its stars' (px/s,
+    ``√(I / Σ ½ tr S⁻¹)``, ``I`` its :func:`frame_offsets` information ``info``), at least
+    ``share`` of the frames' 95th percentile (and ``info > 0``).  The frames at rest are the
+    others: there a stamp offset moves no star, and any attitude error the model leaves
+    reads as seconds of one (:mod:`~stellar_cal_ros.diagnosis.clock`,
+    :mod:`~stellar_cal_ros.diagnosis.installation_step`).
+    """
+    a, b, c = (np.asarray(sub[k], dtype=float) for k in ("s_uu", "s_uv", "s_vv"))
+    det = a * c - b * b
+    tr = np.where(det > 0, 0.5 * (a + c) / np.where(det > 0, det, 1.0), 0.0)
+    fr_all, k_all = np.unique(np.asarray(sub["frame"]), return_inverse=True)
+    per = np.bincount(k_all, tr)[np.searchsorted(fr_all, frames)]
+    speed = np.sqrt(np.where(per > 0, info / np.where(per > 0, per, 1.0), 0.0))
+    return (info > 0) & (speed >= share * np.percentile(speed, 95))
+
+
+def frame_times(sub: Table, frames: np.ndarray) -> np.ndarray:
+    """The time ``t`` of each of ``frames`` (frame indices of ``sub``, sorted)."""
+    fr_all, first = np.unique(np.asarray(sub["frame"]), return_index=True)
+    return np.asarray(sub["t"], dtype=float)[first][np.searchsorted(fr_all, frames)]
 
 
 def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, float],

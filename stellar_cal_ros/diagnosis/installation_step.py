@@ -1,0 +1,165 @@
+"""A tracker installation that steps once (a knock on the mount): the attitude step test.
+
+The library's installation is one constant rotation of the tracker against the IMU.  A
+mount knocked once (unseen case ``knock``: 20″, 0.385 px along 30°, at 75 % of the run)
+turns every star of every later frame by the same small rotation.  The filter takes it into
+its attitude within ~15 s, so its innovations carry a pulse that decays, not a lasting
+offset: no time line sees it (a linear trend through a 15-s transient, t −1.7 / −2.1), and
+the noise verdict reads it as attitude motion the gyro's noise does not explain.
+
+Per frame, the rotation its stars say against the attitude the model predicts (the
+innovations' fit by :func:`~stellar_cal_ros.diagnosis.stats.attitude_columns`, 3
+components in arcsec, :func:`~stellar_cal_ros.diagnosis.stats.frame_attitudes`).  At each
+candidate frame ``k`` a step is fitted to the :data:`WINDOW` frames either side with a
+straight line beside it (``a_j = α + β j + δ [j ≥ k]``, per component): the filter's
+catch-up after a slew, or any error that changes smoothly, is the line; a step is
+``δ``.  Only frames at rest are tested (:func:`~stellar_cal_ros.diagnosis.stats.
+moving_frames`' complement, :data:`MARGIN` frames beyond the window at rest as well): a
+stamp offset, a gyro scale error and the filter's lag turn the attitude along the motion,
+and where the image moves they change abruptly with the rate (unseen cases ``dt_step``,
+``gsf_asym``).  Each ``δ_k`` is whitened by its covariance from the frames' information
+(``Σ c_j² I_j⁻¹``, ``c`` the fit's contrast), the whitened steps' common covariance is
+read robustly from the frames themselves (trimmed at χ²₃ :data:`TRIM`: it takes the
+filter's shared attitude error and a misstated noise), and the statistic is the largest
+``δ̂ᵀ Σ⁻¹ δ̂`` over the candidates, its p the χ²₃ tail × their number (Bonferroni: the
+candidates overlap, so it is conservative).  It joins the 'unexplained' family
+(Bonferroni with its other tests); a line that fires goes first: the lines a knock makes
+(the catch-up's time structure) follow it.  A step within :data:`WINDOW` + :data:`MARGIN`
+frames of motion, and a platform that never rests (the swaying base), are not tested.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from stellar_cal_ros.core import distributions as dist
+from stellar_cal_ros.core.units import ARCSEC
+from stellar_cal_ros.diagnosis import stats
+
+#: frames either side of a candidate step in its fit (6: 3 s at psce's 2 Hz frames)
+WINDOW = 6
+#: frames beyond the fit's window that must be at rest as well (the filter's catch-up
+#: right after a slew bends faster than the fit's straight line: ``dt_step``, 2 frames:
+#: χ²₃ 59 at 2.5 s after the slew, p 2.5e-10 over the frames)
+MARGIN = 4
+#: a frame at rest moves slower than this share of the frames' 95th percentile image speed
+#: (:data:`~stellar_cal_ros.diagnosis.clock.MOVING`'s value)
+REST = 0.1
+#: the whitened steps beyond this χ²₃ tail are left out of their covariance (iterated)
+TRIM = 1e-3
+#: fewer candidate frames than this: no test
+MIN_CANDIDATES = 20
+#: the 'unexplained' line's component (:func:`~stellar_cal_ros.diagnosis.printing.
+#: unexplained_phrase`)
+COMPONENT = "installation step"
+
+
+@dataclasses.dataclass
+class InstallationStep:
+    """The largest attitude step at rest and its test (:func:`installation_step`)."""
+
+    t: float  #: the first frame after the step (s from the run's first frame)
+    t_before: float  #: the last frame before it
+    step_arcsec: list[float]  #: the rotation (tracker x, y, z; arcsec; the stars' sign)
+    sigma_arcsec: list[float]  #: its standard deviation per component
+    shift_px: float  #: the stars' shift at the detector's centre (px)
+    sigma_px: float  #: its standard deviation
+    angle_deg: float  #: the shift's direction in the image (from +u toward +v)
+    chi2: float  #: the largest whitened step's χ² (3 dof)
+    candidates: int  #: the frames tested
+    p_value: float  #: unadjusted: the χ²₃ tail × ``candidates``
+
+    def as_json(self) -> dict:
+        """The summary's entry (``diagnosis.json`` ``installation_step``)."""
+        return dataclasses.asdict(self)
+
+    def regressor(self) -> str:
+        """The line's text: when, how much, about which axis."""
+        d = np.asarray(self.step_arcsec)
+        size = float(np.linalg.norm(d))
+        axis = ", ".join(f"{x:.2f}" for x in d / max(size, 1e-300))
+        return (f"the tracker's installation steps at t~{self.t:.1f} s by {size:.3g}\" "
+                f"(about the tracker's axis ({axis}); x {d[0]:.3g}, y {d[1]:.3g}, z {d[2]:.3g}"
+                f" +- {max(self.sigma_arcsec[:2]):.2g} / {self.sigma_arcsec[2]:.2g}\"): the "
+                f"stars jump {self.shift_px:.3g} +- {self.sigma_px:.2g} px along "
+                f"{self.angle_deg:.0f} deg at the detector's centre and the filter follows "
+                f"(outside the library: its installation is a constant; {self.chi2:.0f} chi2"
+                f" / 3 dof, the largest of {self.candidates} frames at rest)")
+
+    def finding(self) -> stats.RegressorFinding:
+        """The 'unexplained' test (unadjusted p; its statistic the one-sided p's normal score)."""
+        return stats.p_finding(self.regressor(), COMPONENT, self.p_value, self.shift_px,
+                               detail={"installation_step": self.as_json()})
+
+
+def contrast(window: int = WINDOW) -> np.ndarray:
+    """The step's row of the fit ``(1, j, [j ≥ 0])`` over ``j = −window … window − 1``."""
+    j = np.arange(-window, window)
+    X = np.stack([np.ones(2 * window), j, (j >= 0).astype(float)], 1)
+    return np.linalg.pinv(X)[2]
+
+
+def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
+                      centre: tuple[float, float], R_imu_st: np.ndarray | None
+                      ) -> InstallationStep | None:
+    """The attitude step test on ``mask``'s accepted stars (module docstring).
+
+    ``None`` without the installation or the rate columns (the frames at rest are not
+    known), or with fewer than :data:`MIN_CANDIDATES` frames to test.
+    """
+    found = stats.accepted_offsets(res, mask, focal, centre, R_imu_st)
+    if found is None:
+        return None
+    sub, got = found
+    fr_o, _, info = got[:3]
+    still = fr_o[~stats.moving_frames(sub, fr_o, info, REST)]
+    frames, g, info3 = stats.frame_attitudes(sub, focal)
+    n = len(frames)
+    if n < 2 * (WINDOW + MARGIN) + MIN_CANDIDATES:
+        return None
+    a = np.linalg.solve(info3, g[:, :, None])[:, :, 0]  # arcsec
+    rest = np.isin(frames, still)
+    c = contrast()
+    j = np.arange(-WINDOW, WINDOW)
+    k = np.arange(WINDOW + MARGIN, n - WINDOW - MARGIN + 1)
+    k = k[frames[k + WINDOW - 1] - frames[k - WINDOW] == 2 * WINDOW - 1]  # consecutive
+    cum = np.concatenate([[0], np.cumsum(~rest)])
+    k = k[cum[k + WINDOW + MARGIN] == cum[k - WINDOW - MARGIN]]  # all at rest
+    if len(k) < MIN_CANDIDATES:
+        return None
+    idx = k[:, None] + j[None, :]
+    step = np.einsum("j,njc->nc", c, a[idx])
+    V = np.einsum("j,njab->nab", c**2, np.linalg.inv(info3)[idx])
+    w, U = np.linalg.eigh(V)
+    if not np.all(w > 0):
+        return None
+    half = np.einsum("nij,nj,nkj->nik", U, np.sqrt(w), U)  # V^½
+    white = np.einsum("nij,nj->ni", np.einsum("nij,nj,nkj->nik", U, 1.0 / np.sqrt(w), U),
+                      step)
+    keep = np.ones(len(k), dtype=bool)
+    cut = float(dist.chi2.isf(TRIM, 3))
+    for _ in range(5):
+        if keep.sum() < MIN_CANDIDATES:
+            return None
+        S = white[keep].T @ white[keep] / keep.sum()
+        d2 = np.einsum("ni,ij,nj->n", white, np.linalg.inv(S), white)
+        new = d2 < cut
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    i = int(np.argmax(d2))
+    p = min(1.0, float(dist.chi2.sf(d2[i], 3)) * len(k))
+    cov = half[i] @ S @ half[i]
+    A = np.array([[0.0, focal[0], 0.0], [-focal[1], 0.0, 0.0]]) * ARCSEC  # px per arcsec
+    shift = A @ step[i]
+    size = float(np.hypot(*shift))
+    along = shift / max(size, 1e-300)
+    t = stats.frame_times(sub, frames[[k[i] - 1, k[i]]]) - float(np.min(res["t"]))
+    return InstallationStep(
+        float(t[1]), float(t[0]), [float(x) for x in step[i]],
+        [float(x) for x in np.sqrt(np.diag(cov))], size,
+        float(math.sqrt(max(float(along @ A @ cov @ A.T @ along), 0.0))),
+        float(np.degrees(np.arctan2(shift[1], shift[0]))), float(d2[i]), int(len(k)), p)

@@ -1,0 +1,75 @@
+"""The attitude step test at rest (``diagnosis.installation_step``, issue 21 item 3; unseen
+case ``knock``): a tracker installation that jumps once is said first, with its time and
+size; a clean bag says nothing.
+
+A clean psce bag (300 s, seed 21) whose stars from 75 % of the run on are shifted by 20″
+(0.385 px) along 30° in the image (``knock``'s shift: a rotation of the tracker about its
+x and y axes against the IMU, ``(−10, 17.3, 0)″``), diagnosed with the baseline model: the
+line tells the time of the step and its size within 3σ; the same bag without the shift has
+no such line.  The level on clean bags, ``dt_step`` and ``gsf_asym`` is in
+doc/benchmarks.md ("An installation that steps once").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stellar_cal_ros.core.units import ARCSEC
+from stellar_cal_ros.diagnosis.injection import clean_simulation
+from stellar_cal_ros.diagnosis.installation_step import COMPONENT, contrast
+from stellar_cal_ros.diagnosis.run import diagnose
+from stellar_cal_ros.methods.replay import bag_data_from_simulation
+
+STEP_ARCSEC = 20.0
+ANGLE_DEG = 30.0
+AT = 0.75
+
+
+def _diagnosed(tmp_path, knock: bool) -> tuple[dict, float, float]:
+    """The diagnosis of the clean bag, its stars shifted from :data:`AT` on if ``knock``.
+
+    With the first shifted frame's time (s from the first frame) and the shift (px).
+    """
+    sim, model = clean_simulation("psce", False, 21, 300.0)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    px = STEP_ARCSEC * ARCSEC * sim.prior.camera.fx
+    shift = px * np.array([np.cos(np.deg2rad(ANGLE_DEG)),
+                                                    np.sin(np.deg2rad(ANGLE_DEG))])
+    after = [f for f in sim.star_frames if f.stamp_ns - t0 >= AT * (t1 - t0)]
+    if knock:
+        for f in after:
+            f.uv = np.asarray(f.uv, dtype=float) + shift
+    at = (after[0].stamp_ns - t0) * 1e-9
+    return diagnose(bag_data_from_simulation(sim), sim.prior, "psce", model, tmp_path,
+                    plots=False, verbose=False), at, px
+
+
+def test_an_installation_that_steps_once_is_said_first_with_its_time_and_size(tmp_path):
+    """Fails on b9b645c (no ``installation_step``; no 'unexplained' line at all)."""
+    got, at, px = _diagnosed(tmp_path / "knock", True)
+    first = got["unexplained"][0]
+    assert first["component"] == COMPONENT, got["unexplained"]
+    step = got["installation_step"]
+    assert step["p_value"] * 1e4 < 0.01  # beyond any Bonferroni family of ~100 tests
+    assert abs(step["t"] - at) < 2.0 and step["t_before"] < step["t"], (step["t"], at)
+    # the rotation that shifts the stars by +0.385 px along 30 deg: du = fx dy, dv = -fy dx
+    a = np.deg2rad(ANGLE_DEG)
+    truth = np.array([-STEP_ARCSEC * np.sin(a), STEP_ARCSEC * np.cos(a)])
+    d, s = np.asarray(step["step_arcsec"][:2]), np.asarray(step["sigma_arcsec"][:2])
+    assert np.all(np.abs(d - truth) < 3 * s), (d, s)
+    assert abs(step["shift_px"] - px) < 3 * step["sigma_px"], (step["shift_px"], px)
+    assert abs(step["angle_deg"] - ANGLE_DEG) < 10.0
+    assert "installation steps at t~" in first["regressor"] and "px along" in first["regressor"]
+    assert first["change_px"] == step["shift_px"]
+    clean, _, _ = _diagnosed(tmp_path / "clean", False)
+    assert not any(u["component"] == COMPONENT for u in clean["unexplained"]), \
+        clean["unexplained"]
+    assert clean["installation_step"]["p_value"] > 1e-3
+
+
+def test_the_step_contrast_takes_a_straight_line_out():
+    """The fit's step row: zero on a constant and a slope, one on the step."""
+    c = contrast(6)
+    j = np.arange(-6, 6)
+    assert abs(c @ np.ones(12)) < 1e-12 and abs(c @ j) < 1e-12
+    assert abs(c @ (j >= 0) - 1.0) < 1e-12
