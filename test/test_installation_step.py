@@ -61,7 +61,11 @@ def test_an_installation_that_steps_once_is_said_first_with_its_time_and_size(tm
     assert abs(step["angle_deg"] - ANGLE_DEG) < 10.0
     assert "installation steps at t~" in first["regressor"] and "px along" in first["regressor"]
     assert first["change_px"] == step["shift_px"]
-    clean, _, _ = _diagnosed(tmp_path / "clean", False)
+
+
+def test_the_same_bag_without_the_step_has_no_such_line(tmp_path):
+    """The clean bag: the test runs (its entry), passes, and no line (chi2 18.8, p 0.065)."""
+    clean, _, _ = _diagnosed(tmp_path, False)
     assert not any(u["component"] == COMPONENT for u in clean["unexplained"]), \
         clean["unexplained"]
     assert clean["installation_step"]["p_value"] > 1e-3
