@@ -285,16 +285,39 @@ def _measure_noise(args: argparse.Namespace, prior, effects, scales, components)
     return verdict
 
 
-def _replay_noise(args: argparse.Namespace, prior, effects, config):
-    """The noise scales of a replay: given (--noise-scale), measured (--estimate-noise)."""
+#: the items of ``--noise-scale`` (replay, diagnose and discover take the same)
+NOISE_SCALE_ITEMS = ("star=S scales the stars' sigma "
+                     "(messages, or --centroid-sigma for sigma 0) by S, gyro=G the gyro "
+                     "ARW, accel=A the accelerometer VRW; gyro_bias_rw=D gives the gyro "
+                     "bias a random walk of D deg/h/sqrt(h) (0, the default: a constant "
+                     "bias); unknown=PX sets the sigma of "
+                     "stars whose message says 0; rho=R[,share=W] declares the stars' "
+                     "noise correlated from frame to frame (lag-1 R; S then the whole "
+                     "scale a white-noise filter needs): the consistency is judged "
+                     "against it.  The stars' sigma per group: "
+                     "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2 (edges "
+                     "increasing, in mag or px; one factor more than edges, each of the "
+                     "messages' sigma; '/' between numbers), e.g. "
+                     "by=magnitude,edges=4.5,factors=1/0.5; a group spec needs no "
+                     "unknown=: without it stars whose message says 0 take "
+                     "--centroid-sigma times their group's factor, with it PX alone")
+
+
+def _noise_scales(text: str | None):
+    """``--noise-scale``'s scales (replay, diagnose, discover), or None when not given."""
     from stellar_cal_ros.core.noise import NoiseScales
 
-    noise = None
-    if args.noise_scale:
-        try:
-            noise = NoiseScales.parse(args.noise_scale)
-        except ValueError as exc:
-            raise StellarCalError(str(exc)) from None
+    if not text:
+        return None
+    try:
+        return NoiseScales.parse(text)
+    except ValueError as exc:
+        raise StellarCalError(str(exc)) from None
+
+
+def _replay_noise(args: argparse.Namespace, prior, effects, config):
+    """The noise scales of a replay: given (--noise-scale), measured (--estimate-noise)."""
+    noise = _noise_scales(args.noise_scale)
     if args.estimate_noise:
         noise = _measure_noise(args, prior, effects, noise, None).applied
     return noise
@@ -390,7 +413,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
                        candidates=candidates, plots=not args.no_plots, workers=args.workers,
                        scheduler=args.scheduler, auto=auto, max_rounds=args.max_rounds,
                        noise=args.noise, verify=args.verify and auto,
-                       verify_seed=args.verify_seed)
+                       verify_seed=args.verify_seed,
+                       noise_scales=_noise_scales(args.noise_scale))
     if auto:
         from stellar_cal_ros.diagnosis.printing import print_discovery
 
@@ -548,21 +572,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="gyro angle random walk, deg/sqrt(h) (default 0.001)")
     r.add_argument("--noise-scale", default=None, metavar="KEY=VALUE,...",
                    help="scale the stated noise (comma-separated items; what `diagnose` "
-                        "prints as 'use --noise-scale'): star=S scales the stars' sigma "
-                        "(messages, or --centroid-sigma for sigma 0) by S, gyro=G the gyro "
-                        "ARW, accel=A the accelerometer VRW; gyro_bias_rw=D gives the gyro "
-                        "bias a random walk of D deg/h/sqrt(h) (0, the default: a constant "
-                        "bias); unknown=PX sets the sigma of "
-                        "stars whose message says 0; rho=R[,share=W] declares the stars' "
-                        "noise correlated from frame to frame (lag-1 R; S then the whole "
-                        "scale a white-noise filter needs): the consistency is judged "
-                        "against it.  The stars' sigma per group: "
-                        "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2 (edges "
-                        "increasing, in mag or px; one factor more than edges, each of the "
-                        "messages' sigma; '/' between numbers), e.g. "
-                        "by=magnitude,edges=4.5,factors=1/0.5; a group spec needs no "
-                        "unknown=: without it stars whose message says 0 take "
-                        "--centroid-sigma times their group's factor, with it PX alone")
+                        "prints as 'use --noise-scale'): " + NOISE_SCALE_ITEMS)
     r.add_argument("--estimate-noise", action="store_true",
                    help="measure the noise scales from the run first (stars' sigma: "
                         "within-frame variance components; gyro/accelerometer: maximum "
@@ -633,6 +643,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="estimate (default): measure the stars' sigma and the IMU noise "
                             "scales first and test every effect with them; stated: use the "
                             "noise the messages and the calibration's run state")
+        d.add_argument("--noise-scale", default=None, metavar="KEY=VALUE,...",
+                       help="the noise to start from instead of the calibration's run's "
+                            "(its consistency block; as for replay, what the diagnosis "
+                            "prints as 'use --noise-scale'; with --noise estimate measured "
+                            "again relative to it): " + NOISE_SCALE_ITEMS)
         d.set_defaults(func=_cmd_diagnose)
 
     m = sub.add_parser("demo", help="run the built-in demonstration")

@@ -237,8 +237,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
     ``final_estimates``, ``rejected`` and ``reliability``), ``calibration.yaml`` (the final
     model's calibration) and the report to ``output_dir``; returns the summary.
     ``options``: ``candidates``, ``evaluation_fraction``, ``plots``, ``verbose``,
-    ``workers``, ``scheduler``, ``noise`` as for :func:`~stellar_cal_ros.diagnosis.run.
-    diagnose`.
+    ``workers``, ``scheduler``, ``noise``, ``noise_scales`` as for
+    :func:`~stellar_cal_ros.diagnosis.run.diagnose`.
     """
     candidates = options.get("candidates")
     evaluation_fraction = options.get("evaluation_fraction", 0.5)
@@ -259,7 +259,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
     estimate = check_noise(options.get("noise", "estimate"))
     with open_runner(bag, spec, evaluation_fraction, options.get("workers", 0),
                      options.get("scheduler")) as runs:
-        runs.noise = stated_scales(calibration)
+        runs.noise = options.get("noise_scales") or stated_scales(calibration)
         uncertain = prior_uncertain(calibration, set(spec.baseline) | set(user))
         r = Round(runs, spec, runs.facts(), evaluation_fraction, calibration,
                   tuple(uncertain), progress=tell)

@@ -64,7 +64,7 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -318,6 +318,9 @@ class Round:
     noise: Any = None
     #: the stars' σ scale of the latest round's run differs from the one applied
     noise_stale: bool = False
+    #: candidates' runs the noise's walk search compared with (:func:`measure_round_noise`):
+    #: {key: (the scales they ran with, run)}, taken by the round when its scales are those
+    rival_runs: dict[str, Any] = field(default_factory=dict)
 
     def tell(self, text: str) -> None:
         """Report progress."""
@@ -431,7 +434,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     # taken by the same Task)
     cand_tasks = [] if use_score else [_candidate_task(r, prior, extra, e) for e in testable]
     measured = (measure_round_noise(r, prior, extra, tuple(testable) if use_score else (),
-                                    keep_residuals, cand_tasks + more)
+                                    keep_residuals, cand_tasks + more, rivals=tuple(testable))
                 if measure_noise else None)
     base = measured[0] if measured else None
     alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
@@ -470,11 +473,13 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         base = next((s for s in screens if s.ok), None)
         if base is not None:
             _count_stale_candidates(base, screens)
-        tasks = [_candidate_task(r, prior, extra, e) for e in rerun] + late
-        out.update(r.runs.run_all(tasks if base is not None else [current] + tasks, r.done))
+        tasks, out = _take_rivals(r, [_candidate_task(r, prior, extra, e) for e in rerun])
+        out.update(r.runs.run_all((tasks if base is not None else [current] + tasks) + late,
+                                  r.done))
     else:
-        out = r.runs.run_all(([current] if base is None else []) + cand_tasks + more,
-                             r.done)
+        cand_tasks, out = _take_rivals(r, cand_tasks)
+        out.update(r.runs.run_all(([current] if base is None else []) + cand_tasks + more,
+                                  r.done))
     extras = {t.key: out.pop(t.key) for t in more}
     if base is None:
         base = out.pop("current model")
@@ -507,6 +512,18 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     if condition:
         condition_on_top(r, extra, results, keep_residuals=keep_residuals)
     return base, results, extras
+
+
+def _take_rivals(r: Round, tasks: list[Task]) -> tuple[list[Task], dict[str, RunSummary]]:
+    """The candidates' runs ``tasks`` still to make, and those the noise's walk search made.
+
+    A run of :attr:`Round.rival_runs` is taken when it ran with the scales the round uses
+    (the walk was not taken); the rest are dropped.
+    """
+    made = {k: run for k, (noise, run) in r.rival_runs.items() if noise == r.runs.noise}
+    r.rival_runs = {}
+    return [t for t in tasks if t.key not in made], {t.key: made[t.key] for t in tasks
+                                                    if t.key in made}
 
 
 def _count_stale_candidates(base: RunSummary, screens: list[RunSummary]) -> None:
@@ -553,7 +570,8 @@ def decide(c: CandidateResult, m: int, n_stats: int) -> None:
 
 def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
                         screen: tuple[str, ...] = (), keep_residuals: bool = False,
-                        beside: list[Task] = ()) -> list[RunSummary] | None:
+                        beside: list[Task] = (), rivals: tuple[str, ...] = ()
+                        ) -> list[RunSummary] | None:
     """Measure the noise of the current model; every later run of ``r`` uses its scales.
 
     The measurement's base run is the current model's run with the stated scales: it
@@ -573,6 +591,11 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     through it; kept for the round when the verdict keeps the scales they ran with (the
     usual case far from the model: the verdict then skips the IMU's search), else
     dropped.  The round must ask for the same :class:`Task` objects.
+
+    ``rivals``: the round's candidates, which a gyro bias walk the verdict would take must
+    beat (:func:`~stellar_cal_ros.diagnosis.noise_runs.beats_rivals`): the one the
+    screening scores best, or every one in a round not screened (``beside``'s runs), run
+    with the walk's scales; kept for the round (:attr:`Round.rival_runs`).
     """
     from stellar_cal_ros.diagnosis.noise_runs import first_runs, measure, start_samples
 
@@ -618,7 +641,23 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
         if not base.ok:
             log.warning("noise not measured: the current model's run failed: %s", base.error)
             return None
-        r.noise = measure(r.runs, prior, tuple(extra), base, r.tell, comps)
+
+        def rival_runs(at: Any) -> list[tuple[str, RunSummary, int]]:
+            # the screening's best candidate (its smallest p), or every one when not screened
+            names = list(rivals)
+            if screen:
+                scores = screening.collect([base] + [done[t.key] for t in others])
+                ranked = sorted((s.p_value, e) for e, s in scores.items() if e in rivals)
+                names = [e for _, e in ranked[:1]]
+            ahead = {t.key: t for t in beside} if at == ran_with else {}
+            tasks = [ahead.get(e) or replace(_candidate_task(r, prior, extra, e), noise=at)
+                     for e in names]
+            out = r.runs.run_all(tasks, r.done) if tasks else {}
+            r.rival_runs = {t.key: (at, out[t.key]) for t in tasks}
+            return [(t.key, out[t.key], registry.create(t.key).size) for t in tasks]
+
+        r.noise = measure(r.runs, prior, tuple(extra), base, r.tell, comps,
+                          rivals=rival_runs if rivals else None)
         if r.noise.applied == ran_with:
             kept = beside
     finally:

@@ -190,6 +190,9 @@ class NoiseVerdict:
     #: the stated σ wrong star by star (:func:`star_levels`): {F, p_value, stars, rows,
     #: spread, ...} or None
     per_star: dict[str, float] | None = None
+    #: the gyro bias walk's search (:func:`~.noise_runs.search_walk`): {deg_h_sqrth, sigma,
+    #: p_value, over_white_gyro, accepted, ...} or None (not searched)
+    walk: dict[str, Any] | None = None
 
     @property
     def rescaled(self) -> bool:
@@ -255,6 +258,8 @@ class NoiseVerdict:
             out["star_tails"] = self.tails
         if self.per_star:
             out["star_per_star"] = self.per_star
+        if self.walk is not None:
+            out["gyro_bias_rw"] = self.walk
         out["verdict"] = self.lines()
         if self.skipped:
             out["skipped"] = self.skipped
@@ -308,6 +313,23 @@ class NoiseVerdict:
                        "samples')")
         return out
 
+    def _walk_line(self) -> str:
+        """The gyro bias's random walk, when the search found it ('' if not).
+
+        The bias walk is a noise the model states none of (a constant bias): said as the
+        density to state, not as a physical effect (unseen case ``bias_walk10``: "noise not
+        measured (NIS/dof 2.36)" and a gravity lead before).
+        """
+        w = self.walk
+        if not (w and w.get("accepted")):
+            return ""
+        d = w["deg_h_sqrth"]
+        sd = f" +- {w['sigma']:.2g}" if w.get("sigma") is not None else ""
+        return (f"the gyro bias wanders: a random walk of ~{d:.2g}{sd} deg/h/sqrt(h) (the "
+                f"model states none; p = {w['p_value']:.2g}, and better than more white gyro "
+                f"noise by {w['over_white_gyro']:.3g} in log-likelihood): use --noise-scale "
+                f"gyro_bias_rw={d:.2g}")
+
     def _star_advice(self) -> str:
         """What to give replay for the stars' σ: one scale, or the groups kept from before.
 
@@ -342,7 +364,8 @@ class NoiseVerdict:
         out = self._sample_lines()
         if self.skipped:
             return [f"not measured: {self.skipped}"] + out
-        out += self._beyond_lines()
+        walk = self._walk_line()
+        out += ([walk] if walk else []) + self._beyond_lines()
         if self.correlated:
             out.append(noise_structure.correlated_line(self.correlated, self.applied.star))
         # with correlated noise its line names the scatter and the product to use: a line of
@@ -454,7 +477,7 @@ class NoiseVerdict:
                            f"{units[comp][1]}={getattr(self.applied, comp):.3g}")
         if self.imu_skipped:
             out.append(f"IMU noise taken as stated: {self.imu_skipped}")
-        if not self.rejected and not self.unknown:
+        if not [c for c in self.rejected if c != "gyro_bias_rw"] and not self.unknown:
             parts = [f"stars' sigma x{self.star:.3g} +- {self.star_sigma:.2g}"]
             for comp, smp in self.samples.items():
                 if smp["white"]:
@@ -469,7 +492,8 @@ class NoiseVerdict:
                              f"x{search.value:.3g}" if search.bound else
                              f"{comp} not measurable on this bag")
             if self.stated.identity:
-                out.append("noise as stated (" + ", ".join(parts) + ")")
+                out.append(("the rest of the noise as stated (" if walk else
+                            "noise as stated (") + ", ".join(parts) + ")")
             else:  # measured again on a later round: relative to the scales applied so far
                 out.append(self._measured_before_line(parts))
         elif "star" not in self.rejected and (self.stated.star != 1.0 or self.stated.group_by):
@@ -541,9 +565,14 @@ class NoiseVerdict:
                         + " of the stated")
             use.append(f"{comp}={k:.3g}")
         d = st.as_dict()
+        before = [f"{k.split('_')[0]} x{v:.3g}" for k, v in d.items()
+                  if k.endswith("_scale") and v != 1.0]
+        if st.gyro_bias_rw:  # (a walk measured before: kept, said with the rest)
+            said.append(f"gyro bias walk {st.gyro_bias_rw:.2g} deg/h/sqrt(h)")
+            use.append(f"gyro_bias_rw={st.gyro_bias_rw:.2g}")
+            before.append(f"gyro bias walk {st.gyro_bias_rw:.2g}")
         now = (" (this round: " + ", ".join(parts) + " of the scales applied before, "
-               + ", ".join(f"{k.split('_')[0]} x{v:.3g}" for k, v in d.items()
-                           if k.endswith("_scale") and v != 1.0) + ")")
+               + ", ".join(before) + ")")
         return ("noise as measured before: " + ", ".join(said) + now
                 + (": use --noise-scale " + ",".join(use) if use else ""))
 

@@ -129,14 +129,16 @@ REFINE = 0.2
 MIN_FRAMES = 20
 
 
-def first_points(start: float = 0.0, step: float = STEP) -> list[float]:
+def first_points(start: float = 0.0, step: float = STEP, ln_range: float = LN_RANGE
+                 ) -> list[float]:
     """The ln scales :func:`search_scale` runs first (its first batch, clipped)."""
     xs = [0.0, start - step, start + step] if start else [-step, 0.0, step]
-    return [float(np.clip(x, -LN_RANGE, LN_RANGE)) for x in xs]
+    return [float(np.clip(x, -ln_range, ln_range)) for x in xs]
 
 
 def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
-                 max_runs: int = 14, known: dict[float, float] | None = None) -> ScaleSearch:
+                 max_runs: int = 14, known: dict[float, float] | None = None,
+                 ln_range: float = LN_RANGE, lowest: float | None = None) -> ScaleSearch:
     """ML scale of one noise component: ``loglik([ln s, ...]) -> [ℓ, ...]`` runs a batch.
 
     Three points around ``start`` (ln of the scale), moved by whole steps until the best
@@ -144,12 +146,15 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
     until the vertex of the triple's own parabola lies inside it (at most ``max_runs``
     runs); σ of ln s from that curvature, the test of "as stated" is the likelihood ratio
     of the best point against ln s = 0 over its dispersion (:func:`adjusted_p`).
-    ``known``: points already run.
+    ``known``: points already run; ``ln_range``: the search's range of ln s (either side);
+    ``lowest``: the least ln s searched, if not ``-ln_range`` (a floor standing for 0: when
+    it is the best of the first runs, the search stops there, not measurable).
     """
     out = ScaleSearch(name, dict(known or {}))
+    low = -ln_range if lowest is None else lowest
 
     def run(xs: list[float]) -> None:
-        xs = [float(np.clip(x, -LN_RANGE, LN_RANGE)) for x in xs]
+        xs = [float(np.clip(x, low, ln_range)) for x in xs]
         new = [x for x in dict.fromkeys(xs) if not any(abs(x - y) < 1e-3 for y in out.points)]
         for x, v in zip(new, loglik(new) if new else [], strict=True):
             if isinstance(v, tuple):  # (ℓ, its frames)
@@ -158,7 +163,7 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
                     out.frames[x] = f
             out.points[x] = float(v)
 
-    run(first_points(start, step))
+    run(first_points(start, step, ln_range))
     first = np.array(list(out.points.values()))
     if np.ptp(first) < FLAT:
         # the likelihood does not move over a factor of 9 of the scale: nothing to measure
@@ -166,12 +171,19 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
         out.sigma = math.inf
         out.frames = {}
         return out
+    if lowest is not None and max(out.points, key=out.points.get) == low:
+        # the least scale searched (a floor standing for 0) is the best of the first runs:
+        # no maximum above it to refine (runs below it would say nothing)
+        out.measurable = False
+        out.value, out.sigma = float(math.exp(low)), math.inf
+        out.frames = {}
+        return out
     while len(out.points) < max_runs:
         xs = sorted(out.points)
         best = max(xs, key=out.points.get)
-        if best == xs[0] and best > -LN_RANGE + 1e-6:
+        if best == xs[0] and best > low + 1e-6:
             run([best - 2 * step])
-        elif best == xs[-1] and best < LN_RANGE - 1e-6:
+        elif best == xs[-1] and best < ln_range - 1e-6:
             run([best + 2 * step])
         else:
             break

@@ -25,7 +25,7 @@ from stellar_cal_ros.diagnosis.parallel import Task
 
 
 def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
-            components: tuple[str, ...] = ("gyro",)) -> NoiseVerdict:
+            components: tuple[str, ...] = ("gyro",), rivals=None) -> NoiseVerdict:
     """Measure the noise scales on ``runs``' bag for the model ``effects`` from ``prior``.
 
     ``base`` is a run of that model with the scales ``runs.noise`` and its stars' noise
@@ -35,15 +35,93 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
     ML over re-runs with the stars' scale applied.  Where the samples look white they
     measure the sensor's noise and the ML is their check: attitude (velocity) motion the
     stars see beyond the samples' noise is a motion of the tracker against the IMU (or a
-    wandering bias), not sensor noise, and is said as such, not applied.  Returns the
-    verdict; ``verdict.applied`` is what the diagnosis should run with.
+    wandering bias), not sensor noise, and is said as such, not applied.  When the model
+    is too far off for that, or the gyro's ML goes beyond its samples, a wandering gyro
+    bias is searched (:func:`search_walk`); accepted, it must also explain the stars'
+    misfit better than the round's best library effect (:func:`beats_rivals`: a missing
+    effect the walk would stand in for wins), and the noise is judged again on a run with
+    it.  ``rivals``: a function of the scales the walk's runs used returning the runs of
+    the round's best candidates with those scales, ``[(effect, run, parameters)]`` (None:
+    no candidates to compare with).  Returns the verdict; ``verdict.applied`` is what the
+    diagnosis should run with.
     """
     stated = runs.noise or NoiseScales()
+    v = _judge(runs, prior, effects, base, tell, components, stated)
+    if not walk_asked(v, base, components):
+        return v
+    walk = search_walk(v, runs, prior, effects, base, tell, 1 + len(components))
+    v.walk = walk
+    if not walk["accepted"] or not beats_rivals(walk, v.applied, base, rivals, tell):
+        return v
+    # judged again on the model's run with the walk (the stars' σ measured on it: with the
+    # walk the model fits, so the noise tests no longer skip)
+    ran = stated.replace(gyro_bias_rw=walk["deg_h_sqrth"])
+    key = "noise: the model with the gyro bias walk"
+    again = runs.run_all([Task(key, prior, tuple(effects), noise=ran, cost=SEARCH_COST,
+                               star_noise=True)])[key]
+    w = _judge(runs, prior, effects, again, tell, components, stated, ran) if again.ok else None
+    if w is None or w.skipped:
+        walk["accepted"] = False
+        walk["why"] = ("with it, " + w.skipped.split(":")[0] if w else
+                       f"the model's run with it failed: {again.error}")
+        if tell:
+            tell(f"noise: gyro bias walk not taken: {walk['why']}")
+        return v
+    w.walk = walk
+    w.rejected.append("gyro_bias_rw")
+    return w
+
+
+def beats_rivals(walk: dict, at: NoiseScales, base, rivals, tell=None) -> bool:
+    """Whether the walk explains the stars' misfit better than each of the round's rivals.
+
+    Quasi-AIC over the model's run ``base`` (its dispersion, mean NIS / 2 at least 1, as
+    the candidates' ratio test): the walk's gain ``2 Δℓ / c − 2`` (one parameter) against
+    each rival's ``2 Δℓ / c − 2 k`` (its ``k`` parameters), both with the scales ``at``.
+    A walk that loses is not taken (``walk['why']`` names the effect): on a 60-s psce bag
+    whose model misses a 0.5 ms time offset the walk alone was accepted at 0.87
+    deg/h/√h in its place (doc/benchmarks.md, H151).  Records the best rival in ``walk``.
+    """
+    if rivals is None:
+        return True
+    c = max(1.0, base.window["nis"]["mean"] / 2.0)
+    l0 = base.window["log_likelihood"]
+    walk_q = 2.0 * (walk["loglik"] - l0) / c - 2.0
+    best = None
+    for effect, run, k in rivals(at):
+        if not run.ok:
+            continue
+        q = 2.0 * (run.window["log_likelihood"] - l0) / c - 2.0 * k
+        if best is None or q > best[1]:
+            best = (effect, q, k)
+    if best is None:
+        return True
+    walk["rival"] = {"effect": best[0], "parameters": int(best[2]), "qaic_gain": float(best[1]),
+                     "walk_qaic_gain": float(walk_q)}
+    if walk_q > best[1]:
+        return True
+    walk["accepted"] = False
+    walk["why"] = (f"{best[0]} explains more ({best[1]:.4g} against {walk_q:.4g} in "
+                   "penalised likelihood)")
+    if tell:
+        tell(f"noise: gyro bias walk not taken: {walk['why']}")
+    return False
+
+
+def _judge(runs, prior, effects: tuple[str, ...], base, tell, components: tuple[str, ...],
+           stated: NoiseScales, ran: NoiseScales | None = None) -> NoiseVerdict:
+    """:func:`measure`'s verdict from the run ``base``, made with the scales ``ran``.
+
+    ``ran``: ``stated`` unless the run held a gyro bias walk (:func:`measure`'s second
+    judgement), which every scale applied then keeps.
+    """
+    ran = ran or stated
     v = NoiseVerdict(stated, stated, method=runs.spec.name)
     n_tests = 1 + len(components)
     cam = prior.camera
     sn = base.star_noise
-    applied = _from_samples(v, runs, components, n_tests)
+    applied = _from_samples(v, runs, components, n_tests).replace(
+        gyro_bias_rw=ran.gyro_bias_rw)
     v.skipped = far_off(base, sn)
     if v.skipped:
         if tell:
@@ -61,11 +139,9 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
 
         def loglik(xs: list[float], comp=comp, at=applied) -> list:
             tasks = [scale_task(comp, x, prior, effects, at) for x in xs]
-            out = runs.run_all(tasks, None)
-            return [(out[t.key].window["log_likelihood"], out[t.key].frame_loglik)
-                    if out[t.key].ok else -math.inf for t in tasks]
+            return _logliks(runs, tasks)
 
-        known = {0.0: base.window["log_likelihood"]} if applied == stated and base.ok else {}
+        known = {0.0: base.window["log_likelihood"]} if applied == ran and base.ok else {}
         found = search_scale(comp, loglik, known=known)
         v.imu[comp] = found
         if tell:
@@ -86,6 +162,104 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
             applied = applied.replace(**{comp: cur * found.value})
     v.applied = applied
     return v
+
+
+def _logliks(runs, tasks: list[Task]) -> list:
+    """The runs' window log-likelihoods with their frames (-inf where a run failed)."""
+    out = runs.run_all(tasks, None)
+    return [(out[t.key].window["log_likelihood"], out[t.key].frame_loglik)
+            if out[t.key].ok else -math.inf for t in tasks]
+
+
+#: the gyro bias walk's floor, deg/h/√h: the walk's search is over ln(D / floor), and the
+#: model's own run (a constant bias, D = 0) stands for the floor (on the clean 600-s psce
+#: bag 0.03 costs Δℓ = −1.2 against 0: 0.01 is 0 for the likelihood, doc/benchmarks.md)
+WALK_FLOOR = 0.01
+#: the walk's search starts at 1 deg/h/√h (its first runs 1/3 and 3) ...
+WALK_START = math.log(1.0 / WALK_FLOOR)
+#: ... and reaches at most 100 deg/h/√h
+WALK_LN_RANGE = math.log(100.0 / WALK_FLOOR)
+
+
+def walk_asked(v: NoiseVerdict, base, components: tuple[str, ...]) -> bool:
+    """Whether :func:`measure` searches a wandering gyro bias after the verdict ``v``.
+
+    When the model states no walk and the gyro is measured, and either the model's run is
+    too far off for the noise (by its NIS: not a failed run nor a lost lock, where the
+    likelihood says nothing) or the stars ask the gyro for more than its samples' noise
+    (``v.beyond``): both are what a bias walk far above the stated does (unseen cases
+    ``bias_walk10``, ``bias_walk``).  A clean bag does neither, and is not searched.
+    """
+    if "gyro" not in components or v.stated.gyro_bias_rw or not base.ok or not base.window:
+        return False
+    if "gyro" in v.beyond:
+        return True
+    lost = base.counters.get("reinitializations", 0) or base.counters.get("frames_lost_lock", 0)
+    return bool(v.skipped) and not lost
+
+
+def walk_task(x: float, prior, effects: tuple[str, ...], at: NoiseScales) -> Task:
+    """The run of the gyro bias walk's search at ln(D / :data:`WALK_FLOOR`) = ``x``."""
+    d = WALK_FLOOR * math.exp(x)
+    return Task(f"noise gyro_bias_rw {d:.3g}", prior, tuple(effects),
+                noise=at.replace(gyro_bias_rw=d), cost=SEARCH_COST, gyro_check=False,
+                frame_loglik=True)
+
+
+def search_walk(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tell,
+                n_tests: int) -> dict:
+    """ML density of a gyro bias random walk, against the best white gyro scale.
+
+    :func:`~.noise_imu.search_scale` over ln(D / :data:`WALK_FLOOR`), around the scales
+    ``v`` applies (the model's run ``base`` is the floor's point when it ran with them).
+    The walk is accepted when its adjusted p is below α over the tests (``n_tests`` and
+    itself) and its best likelihood beats the best white gyro scale's (the gyro's search
+    in ``v``, else one run here): one parameter each, the walk must explain the stars'
+    misfit better than more white gyro noise (H130: Δℓ = 262 on ``bias_walk10``).
+    Returns the record ``diagnosis.json`` keeps (``noise.gyro_bias_rw``).
+    """
+    at = v.applied
+    known = {0.0: base.window["log_likelihood"]} if at == v.stated else {}
+    found = search_scale("gyro_bias_rw", lambda xs: _logliks(
+        runs, [walk_task(x, prior, effects, at) for x in xs]), start=WALK_START,
+        known=known, ln_range=WALK_LN_RANGE, lowest=0.0)
+    d, sd = WALK_FLOOR * found.value, WALK_FLOOR * found.sigma
+    alpha = ALPHA / (n_tests + 1)
+    l_walk = max(found.points.values())
+    out = {"deg_h_sqrth": float(d), "sigma": float(sd) if math.isfinite(sd) else None,
+           "p_value": float(found.p_value), "alpha": float(alpha),
+           "statistic": float(found.statistic), "dispersion": float(found.dispersion),
+           "loglik_gain": float(l_walk - found.points.get(0.0, math.nan)),
+           "loglik": float(l_walk),
+           "runs": len(found.points) - len(known), "accepted": False}
+    white = v.imu.get("gyro")
+    if white is None and found.measurable and found.p_value < alpha:
+        # (searched only when the walk could be taken: a far-off model's walk usually has
+        # no maximum in range, and the white search's runs would decide nothing)
+        white = search_scale("gyro", lambda xs: _logliks(
+            runs, [scale_task("gyro", x, prior, effects, at) for x in xs]), known=known)
+        out["runs"] += len(white.points) - len(known)
+    l_white = max(white.points.values()) if white is not None else math.nan
+    if white is not None:
+        out["over_white_gyro"] = float(l_walk - l_white)
+        out["white_gyro_scale"] = float(math.exp(max(white.points, key=white.points.get)))
+    if not found.measurable:
+        out["why"] = ("a constant bias fits best" if max(found.points, key=found.points.get)
+                      == 0.0 else "no maximum in range")
+    elif not found.p_value < alpha:
+        out["why"] = f"not significant (p = {found.p_value:.2g})"
+    elif not l_walk > l_white:
+        out["why"] = (f"white gyro noise x{out['white_gyro_scale']:.3g} fits as well "
+                      f"(by {l_white - l_walk:.3g} in log-likelihood)")
+    else:
+        out["accepted"] = True
+    if tell:
+        over = (f", {out['over_white_gyro']:+.4g} over white gyro noise"
+                if "over_white_gyro" in out else "")
+        tell(f"noise: gyro bias walk {d:.3g} +- {sd:.2g} deg/h/sqrt(h) "
+             f"(p = {found.p_value:.2g}{over}; {out['runs']} runs)"
+             + ("" if out["accepted"] else f": not taken, {out['why']}"))
+    return out
 
 
 #: the stars' ML scale over the samples' above which the excess is motion, not noise

@@ -93,10 +93,12 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     for i, u in enumerate(summary["unexplained"]):
         if i in follows:
             u["follows"] = follows[i]
+    # (not measured: the scales the runs used, ``--noise-scale``'s or the calibration's run's)
     summary["clock_change"] = clock_entry
     summary["installation_step"] = step_entry
     summary["noise"] = (verdict.as_json() if verdict is not None else
-                        not_measured(stated_scales(calibration), _batch_fit(base, spec)))
+                        not_measured(getattr(runs, "noise", None) or stated_scales(calibration),
+                                     _batch_fit(base, spec)))
     if spread:
         summary["noise"]["residual_spread"] = [
             {"regressor": f.regressor, "statistic": f.statistic, "p_value": f.p_value,

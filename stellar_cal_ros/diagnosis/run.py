@@ -43,6 +43,7 @@ def diagnose(
     noise: str = "estimate",
     verify: bool = False,
     verify_seed: int = 1,
+    noise_scales: NoiseScales | None = None,
 ) -> dict[str, Any]:
     """Run one diagnosis round; write ``diagnosis.json`` and ``report.html``; return the summary.
 
@@ -56,19 +57,22 @@ def diagnose(
     diagnosis.noise`) or ``stated`` (use the noise the messages, the prior and the
     calibration's run state).  ``verify`` (with ``auto``): check the printed MDBs and
     biases on twins of the bag (:mod:`~stellar_cal_ros.diagnosis.verify`).
+    ``noise_scales``: the noise the runs start from (``--noise-scale``) instead of the
+    calibration's run's (its consistency block).
     """
     if auto:
         return discover(bag, calibration, method, effects, output_dir, max_rounds,
                         candidates=candidates, evaluation_fraction=evaluation_fraction,
                         plots=plots, verbose=verbose, workers=workers, scheduler=scheduler,
-                        noise=noise, verify=verify, verify_seed=verify_seed)
+                        noise=noise, verify=verify, verify_seed=verify_seed,
+                        noise_scales=noise_scales)
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
     spec = method_spec(method)
     tell = progress_printer(verbose)
     with open_runner(bag, spec, evaluation_fraction, workers, scheduler) as runs:
         tell(f"re-runs {runs.description}")
-        runs.noise = stated_scales(calibration)
+        runs.noise = noise_scales or stated_scales(calibration)
         base, results = rank_candidates(bag, calibration, spec, effects, candidates,
                                         evaluation_fraction, progress=tell, runs=runs,
                                         measure_noise=check_noise(noise))
