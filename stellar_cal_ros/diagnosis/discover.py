@@ -473,7 +473,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         base = next((s for s in screens if s.ok), None)
         if base is not None:
             _count_stale_candidates(base, screens)
-        tasks, out = _take_rivals(r, [_candidate_task(r, prior, extra, e) for e in rerun])
+        tasks, made = _take_rivals(r, [_candidate_task(r, prior, extra, e) for e in rerun])
+        out.update(made)
         out.update(r.runs.run_all((tasks if base is not None else [current] + tasks) + late,
                                   r.done))
     else:
