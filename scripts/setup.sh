@@ -15,6 +15,9 @@
 #    definitions and the lock are unchanged and the messages import.
 # 6. pip install -e . (editable, no build isolation): console scripts stellar-cal, calibrator,
 #    player in .venv/bin.
+# 7. Compiles the filters' numba kernels (python -m stellar_cal_ros.diagnosis.warm_up, about a
+#    minute on 2 cores) into the user's kernel cache, shared by every checkout of the same
+#    kernel sources; skipped while that version's cache is there.
 #
 # Prints one line per step; the tools' own output is shown only when a step fails
 # (--verbose streams it). --quiet prints only the steps that change something.
@@ -220,6 +223,19 @@ else
         "$VPY" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "$ROOT"
     [ -x "$VENV/bin/stellar-cal" ] || die "pip did not create $VENV/bin/stellar-cal"
     echo "$PKG_HASH" > "$STAMPS/package.sha256"
+fi
+
+# ---------------------------------------------------------------- 7. the numba kernels
+# Compiled once per version of the kernels' sources into a cache every checkout shares
+# (stellar_cal_ros/core/jit.py): a fresh clone's first command then loads them.
+KERNELS="$("$VPY" -c 'from stellar_cal_ros.core.jit import HAVE_NUMBA, kernel_cache_dir as k
+d = k() if HAVE_NUMBA else None
+print("" if d is None or (d / "warm-up.done").is_file() else d)' 2>/dev/null || true)"
+if [ -n "$KERNELS" ]; then
+    run "compiling the filters' numba kernels (once per kernel version, about a minute)" \
+        "$VPY" -m stellar_cal_ros.diagnosis.warm_up
+else
+    info "numba kernels compiled (or numba's own cache in use)"
 fi
 
 info "done in $((SECONDS - T0)) s: activate with 'source .venv/bin/activate' or use .venv/bin/stellar-cal"

@@ -70,3 +70,26 @@ def test_fork_server_workers_start_holding_the_bag_and_are_not_forks_of_this_pro
                 assert ppid != os.getpid()  # forked from the server, not from here
                 assert bags == [str(bag)]  # the server read it: the worker did not
         assert os.environ.get(parallel.WORKER_BAG_ENV) is None  # only while it starts
+
+
+def _kernels_held() -> int:
+    from stellar_cal_ros.methods import frame_step
+
+    return len(frame_step.frame_steps.overloads)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the fork server: Linux")
+def test_fork_server_workers_start_holding_the_methods_kernels(no_choice):
+    """The fork server compiles or loads the method's kernels once (diagnosis/warm_up.py):
+    its workers start holding them, instead of each compiling them side by side (two workers
+    of a fresh install compiled 2 x 66 CPU-s)."""
+    from distributed import Client
+
+    from stellar_cal_ros.core.jit import HAVE_NUMBA
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    with parallel.local_cluster(2, None, warm="psce") as cluster, Client(cluster) as client:
+        held = client.run(_kernels_held)
+    assert len(held) == 2 and all(n >= 1 for n in held.values())
+    assert os.environ.get(parallel.WORKER_WARM_ENV) is None  # only while it starts

@@ -412,3 +412,33 @@ def test_replay_says_the_data_quality_in_one_line(runs, tmp_path, capsys):
     n = int(bad.sum())
     faults = data_quality({"imu_invalid": n, "imu_gaps": n, "imu_bridged": n}, 1000)
     assert out["nan"][0] == quality_line(faults, lead="data quality"), out
+
+
+def test_the_kernel_cache_is_one_per_kernel_version_shared_by_checkouts(tmp_path, monkeypatch):
+    """The kernels' numba cache is named by the contents of every file holding compiled code
+    (a helper's change is a new version), not by the checkout's path: a fresh clone loads what
+    another checkout of the same sources compiled.  Every package file with a cached kernel,
+    and every file a kernel module compiles a function of, is one of KERNEL_SOURCES."""
+    import inspect
+    from pathlib import Path
+
+    import stellar_cal_ros
+    from stellar_cal_ros.core import jit
+    from stellar_cal_ros.methods.frame_step import KERNEL_MODULES, _kernels
+
+    if not jit.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    root = Path(stellar_cal_ros.__file__).parent
+    sources = {root / rel for rel in jit.KERNEL_SOURCES}
+    assert {p for p in root.rglob("*.py") if "njit(" in p.read_text()} <= sources
+    for _, name, obj in _kernels(KERNEL_MODULES):
+        assert Path(inspect.getfile(obj.py_func)).resolve() in sources, name
+    monkeypatch.setenv(jit.KERNEL_CACHE_ENV, str(tmp_path))
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    where = jit.kernel_cache_dir()
+    assert where == tmp_path / f"kernels-{jit.kernel_version()}"
+    kernel = jit.njit(cache=True)(jit.skew3.py_func)
+    assert Path(kernel._cache.cache_path) == where  # not the checkout's __pycache__
+    assert kernel._cache._cache_file._source_stamp == jit.kernel_version()
+    monkeypatch.setenv(jit.KERNEL_CACHE_ENV, "tree")
+    assert jit.kernel_cache_dir() is None

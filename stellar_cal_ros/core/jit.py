@@ -14,20 +14,70 @@ fails until both agree.  Results agree to rounding, not bit for bit (the order o
 additions and fused multiply-adds differs).
 
 numba is optional: :data:`HAVE_NUMBA` is False when it cannot be imported, and the filters
-then predict through the effects' Python methods (same estimates).  All kernels are compiled
-once per machine (``cache=True``, in ``__pycache__``).
+then predict through the effects' Python methods (same estimates).
+
+All kernels are compiled once per machine and kernel version (``cache=True`` through this
+module's :func:`njit`): numba's cache is kept in one directory of the user's cache
+(:func:`kernel_cache_dir`), named by a hash of every source file that holds compiled code
+(:data:`KERNEL_SOURCES`), not in each checkout's ``__pycache__``.  A fresh clone, a new
+worktree or another branch with the same kernel sources loads what any of them compiled
+(numba's own cache is per directory: every clone compiled the kernels again, ≈ 65 CPU-s),
+and a change to any of those files — a helper's as well as a caller's — is a new version,
+compiled once.  ``STELLAR_CAL_KERNEL_CACHE`` names another directory (``tree``: numba's
+``__pycache__``); a ``NUMBA_CACHE_DIR`` or ``NUMBA_CACHE_LOCATOR_CLASSES`` of the user's is
+obeyed as numba obeys it.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 
 from stellar_cal_ros.core.rotation import _jacobian_single, _so3_exp_single
 
+#: the package's files that hold compiled code: the kernels' modules and the Python functions
+#: they compile (``rotation``'s, ``imu_prefix``'s); their contents name the kernel cache
+KERNEL_SOURCES = ("core/jit.py", "core/rotation.py", "core/imu_prefix.py", "core/float_text.py",
+                  "methods/star_chain.py", "methods/frame_step.py")
+#: environment: the kernel cache's directory (``tree``: numba's per-checkout ``__pycache__``)
+KERNEL_CACHE_ENV = "STELLAR_CAL_KERNEL_CACHE"
+_PACKAGE = Path(__file__).resolve().parents[1]
+
+
+@functools.cache
+def kernel_version() -> str:
+    """Hash of the contents of :data:`KERNEL_SOURCES` (the kernels' version, 16 hex digits)."""
+    h = hashlib.sha256()
+    for rel in KERNEL_SOURCES:
+        h.update(rel.encode() + b"\0" + (_PACKAGE / rel).read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def kernel_cache_dir() -> Path | None:
+    """The directory that holds this kernel version's compiled code; None: numba's own place.
+
+    ``$STELLAR_CAL_KERNEL_CACHE`` or the user's cache directory (``~/.cache/stellar_cal_ros``
+    on Linux), then ``kernels-<version>``; None when the variable says ``tree`` or the user
+    set numba's own ``NUMBA_CACHE_DIR``.
+    """
+    root = os.environ.get(KERNEL_CACHE_ENV, "").strip()
+    if root == "tree" or os.environ.get("NUMBA_CACHE_DIR"):
+        return None
+    if not root:
+        from numba.misc.appdirs import AppDirs
+
+        root = AppDirs(appname="stellar_cal_ros", appauthor=False).user_cache_dir
+    return Path(root) / f"kernels-{kernel_version()}"
+
+
 try:  # optional: without it the filters use the numpy path
-    from numba import njit
+    from numba import njit as _numba_njit
+    from numba.core import caching as _caching
 except ImportError:  # pragma: no cover - exercised only without numba
     HAVE_NUMBA = False
 
@@ -37,6 +87,51 @@ except ImportError:  # pragma: no cover - exercised only without numba
         return lambda f: f
 else:
     HAVE_NUMBA = True
+
+    class _KernelLocator(_caching._SourceFileBackedLocatorMixin, _caching._CacheLocator):
+        """numba's cache of a package kernel in :func:`kernel_cache_dir`, stamped by its version."""
+
+        def __init__(self, py_func, py_file):
+            self._py_file = py_file
+            self._lineno = py_func.__code__.co_firstlineno
+            self._cache_path = str(kernel_cache_dir())
+
+        def get_cache_path(self):  # noqa: D102 - numba's locator interface
+            return self._cache_path
+
+        def get_source_stamp(self):  # noqa: D102 - every kernel source, not the one file
+            return kernel_version()
+
+        @classmethod
+        def from_function(cls, py_func, py_file):  # noqa: D102 - None: numba's locators
+            try:
+                ours = Path(py_file).resolve().is_relative_to(_PACKAGE)
+            except OSError:
+                return None
+            if not ours or kernel_cache_dir() is None:
+                return None
+            return super().from_function(py_func, py_file)  # None when it cannot be written
+
+    class _KernelCacheImpl(_caching.CompileResultCacheImpl):
+        _locator_classes = [_KernelLocator, *_caching.CompileResultCacheImpl._locator_classes]
+
+    class _KernelCache(_caching.FunctionCache):
+        _impl_class = _KernelCacheImpl
+
+    def njit(*args, **kwargs):
+        """The ``njit`` of numba; ``cache=True``: the code kept in the kernel cache (module doc)."""
+        if not kwargs.pop("cache", False):
+            return _numba_njit(*args, **kwargs)
+
+        def cached(dispatcher):
+            if hasattr(dispatcher, "enable_caching"):  # (NUMBA_DISABLE_JIT: the function)
+                dispatcher._cache = _KernelCache(dispatcher.py_func)
+            return dispatcher
+
+        if args and callable(args[0]):
+            return cached(_numba_njit(*args, **kwargs))
+        decorator = _numba_njit(*args, **kwargs)
+        return lambda f: cached(decorator(f))
 
 FloatArray = np.ndarray
 

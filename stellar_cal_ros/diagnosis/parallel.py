@@ -72,6 +72,7 @@ from stellar_cal_ros.diagnosis.runstats import (
     forget_held_prepared,
     forget_prepared,
 )
+from stellar_cal_ros.diagnosis.warm_up import WORKER_WARM_ENV
 from stellar_cal_ros.errors import StellarCalError
 from stellar_cal_ros.io.calibration import Calibration
 from stellar_cal_ros.methods.replay import BagData
@@ -225,15 +226,18 @@ def _dask_start_method() -> str:
 WORKER_BAG_ENV = "STELLAR_CAL_WORKER_BAG"
 
 
-def local_cluster(n: int, bag: BagRef | None = None, method: str | None = None):
+def local_cluster(n: int, bag: BagRef | None = None, method: str | None = None,
+                  warm: str | None = None):
     """A ``LocalCluster`` of ``n`` single-threaded worker processes started by ``method``.
 
     ``method``: :func:`start_method`'s unless given.  ``forkserver``: the fork server
     preloads :mod:`~stellar_cal_ros.diagnosis.worker_start` (the package's imports and,
-    for a ``bag`` given by path, the bag), so each worker starts holding them as a forked
-    one did.  ``fork``: a bag given by path is read here first (the workers inherit it).
-    The server starts with the first cluster of this process and serves the later ones
-    (a later bag is read by each worker).
+    for a ``bag`` given by path, the bag; the numba kernels of the filter method ``warm``,
+    compiled or loaded once: :mod:`~stellar_cal_ros.diagnosis.warm_up`), so each worker
+    starts holding them as a forked one did.  ``fork``: a bag given by path is read here
+    first (the workers inherit it).  The server starts with the first cluster of this
+    process and serves the later ones of the same bag and ``warm`` (a server started for
+    others is restarted).
     """
     import dask
     from distributed import LocalCluster
@@ -246,10 +250,10 @@ def local_cluster(n: int, bag: BagRef | None = None, method: str | None = None):
     # no statistical profiler in the workers: it samples the running filter's stack
     # every 10 ms of *wall* time, for a dashboard nobody opens here
     with dask.config.set({"distributed.worker.profile.enabled": False,
-                          DASK_START_KEY: method}), _server_bag(method, bag):
+                          DASK_START_KEY: method}), _server_bag(method, bag, warm):
         if method == "forkserver":
             _preload_package()
-            _server_for(bag)
+            _server_for(bag, warm)
         return LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                             dashboard_address=":0", silence_logs=logging.ERROR)
 
@@ -271,21 +275,21 @@ def _preload_package() -> None:
         fs.set_forkserver_preload(have + [mine])
 
 
-#: the bag the running fork server read (``(path, size, mtime)``; None: none, or a server
-#: this module did not start)
+#: the bag the running fork server read (``(path, size, mtime)``) and the method it warmed up
+#: (None: none, or a server this module did not start)
 _SERVER_BAG: list[tuple | None] = [None]
 
 
-def _server_for(bag: BagRef | None) -> None:
-    """Stop a running fork server that does not hold ``bag`` (a path): the next starts.
+def _server_for(bag: BagRef | None, warm: str | None = None) -> None:
+    """Stop a running fork server that does not hold ``bag`` (a path) and ``warm``'s kernels.
 
-    A server reads its bag when it starts; one started for another bag (or by another
-    user of the fork server, without the package's preload) would leave every worker to
-    read the bag itself.
+    A server reads its bag and warms its kernels up when it starts; one started for another
+    bag or method (or by another user of the fork server, without the package's preload)
+    would leave every worker to read the bag, or compile or load the kernels, itself.
     """
     import multiprocessing.forkserver as fs
 
-    key = _bag_key(bag)
+    key = (_bag_key(bag), warm)
     server = fs._forkserver
     if getattr(server, "_forkserver_pid", None) is not None and _SERVER_BAG[0] != key:
         try:
@@ -307,20 +311,29 @@ def _bag_key(bag: BagRef | None) -> tuple | None:
 
 
 @contextlib.contextmanager
-def _server_bag(method: str, bag: BagRef | None):
-    """:data:`WORKER_BAG_ENV` = the bag's path while a fork server may start."""
-    if method != "forkserver" or not isinstance(bag, str):
+def _server_bag(method: str, bag: BagRef | None, warm: str | None = None):
+    """The bag's path and the method to warm up in the environment while a fork server may start.
+
+    :data:`WORKER_BAG_ENV` (a bag given by path) and :data:`WORKER_WARM_ENV` (``warm``).
+    """
+    if method != "forkserver":
         yield
         return
-    was = os.environ.get(WORKER_BAG_ENV)
-    os.environ[WORKER_BAG_ENV] = bag
+    setting = {WORKER_BAG_ENV: bag if isinstance(bag, str) else None, WORKER_WARM_ENV: warm}
+    was = {name: os.environ.get(name) for name in setting}
+    for name, value in setting.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
     try:
         yield
     finally:
-        if was is None:
-            os.environ.pop(WORKER_BAG_ENV, None)
-        else:
-            os.environ[WORKER_BAG_ENV] = was
+        for name, value in was.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
 
 
 def _file_size(path: str) -> int:
@@ -549,7 +562,9 @@ class DaskRuns(Runs):
             n = workers or min(os.cpu_count() or 1, MAX_DEFAULT_WORKERS)
             timeline.write({"kind": "cluster", "time": time.time(),
                             "cpu": time.process_time()})
-            self.cluster = local_cluster(n, self.bag)
+            # the method's kernels, compiled or loaded once in the fork server (a method
+            # without a warm-up: nothing done there)
+            self.cluster = local_cluster(n, self.bag, warm=getattr(self.spec, "name", None))
             self.client = Client(self.cluster)
             forget_bags()  # the workers hold the bag from now on
             self.description = f"on {n} local worker processes"

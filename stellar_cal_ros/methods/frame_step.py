@@ -1284,6 +1284,7 @@ def compile_notice(stream: TextIO | None = None) -> bool:
     """Say (one line) that the first run compiles the filter kernels, when it will."""
     if not compiled_kernels_cold():
         return False
-    print("first run here: compiling the filter's numba kernels (about 30 s, once; cached in "
-          "__pycache__ for later runs)", file=stream or sys.stderr, flush=True)
+    print("first run here: compiling the filter's numba kernels (about a minute, once; cached for "
+          "later runs and checkouts: python -m stellar_cal_ros.diagnosis.warm_up compiles them "
+          "ahead)", file=stream or sys.stderr, flush=True)
     return True
