@@ -543,6 +543,9 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
     # the sub-pixel fit took part of a 3 ms readout's shape and fired in 6 of 100 white
     # draws at 1 %)
     blocks = _structure_blocks(uv_pred, X_sub, x)
+    # (the block is a masked copy: the regressors and the predictions it was made of are
+    # not held through the fits below, ≈ 10 MB on a 2-h bag)
+    del X_sub, uv_pred
     lags = _fit_lags(r, sub_share, blocks, stars)
     r, sub_share, (p_sub, p_roll) = noise_structure.minus_fits(r, sub_share, blocks, ALPHA,
                                                                stars, lags)
