@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/star_update_equal.py BAG.mcap [--prior PRIOR.yaml] [--consider radial_k3]
-        [--switch compiled_propagation|compiled_reference]
+        [--switch compiled_propagation|compiled_reference|compiled_frame]
 
 Replays the bag twice in process (``replay(bag, prior, "swaying_base", consider=...)``)
 with ``SwayingFilter.compiled_star_update`` False (the numpy update, the reference) then
@@ -11,8 +11,9 @@ True (one compiled call a frame after the numpy propagation); ``--switch
 compiled_propagation``: the same with ``SwayingFilter.compiled_propagation`` (the
 propagation between frames in numpy, the reference, then in one compiled call; the star
 update compiled in both), ``--switch compiled_reference`` the same with the position
-reference's update (``SwayingFilter.compiled_reference``).  Prints the CPU seconds of
-each, whether the counters are equal, and the largest differences: θ̂, velocity and
+reference's update (``SwayingFilter.compiled_reference``), ``--switch compiled_frame``
+the three calls against one compiled call a frame (``SwayingFilter.compiled_frame``; the
+other switches run without it).  Prints the CPU seconds of each, whether the counters are equal, and the largest differences: θ̂, velocity and
 position in their σ and relative, the attitude in its σ, the covariance (against its
 largest entry; its diagonal relative), the consider sensitivity M (against its largest
 entry), the information (relative) and the score (in its σ).
@@ -39,13 +40,15 @@ def main(argv=None) -> int:
     ap.add_argument("--prior", type=Path)
     ap.add_argument("--consider", default="radial_k3")
     ap.add_argument("--switch", default="compiled_star_update",
-                    choices=("compiled_star_update", "compiled_propagation",
+                    choices=("compiled_star_update", "compiled_propagation", "compiled_frame",
                              "compiled_reference"))
     args = ap.parse_args(argv)
     prior = load_calibration(args.prior or Path(str(args.bag).removesuffix(".mcap")
                                                 + ".prior.yaml"))
     consider = [e for e in args.consider.split(",") if e]
     runs = {}
+    if args.switch != "compiled_frame":  # (the other calls apart)
+        SwayingFilter.compiled_frame = False
     for compiled in (False, True):
         setattr(SwayingFilter, args.switch, compiled)
         t = time.process_time()

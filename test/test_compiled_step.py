@@ -515,6 +515,8 @@ def _swaying_runs_equal(monkeypatch, switch, calls, data, prior, method, damaged
     statistics within ``SWAYING_RTOL``."""
     from stellar_cal_ros.methods.swaying import SwayingFilter
 
+    if switch != "compiled_frame":  # (the three calls apart: not one frame's call)
+        monkeypatch.setattr(SwayingFilter, "compiled_frame", False)
     runs = {}
     for compiled in (True, False):
         monkeypatch.setattr(SwayingFilter, switch, compiled)
@@ -604,6 +606,7 @@ def test_swaying_compiled_propagation_equals_the_numpy_propagation(monkeypatch, 
     from stellar_cal_ros.methods.swaying import SwayingFilter
 
     sim, data = _swaying_bag(damaged)
+    monkeypatch.setattr(SwayingFilter, "compiled_frame", False)  # (its hook, apart)
     calls = _count_calls(monkeypatch, frame_step, "swaying_propagate")
     worst = np.zeros(5)
     n_checked = [0, 0]  # intervals, of which after a rebuild
@@ -660,6 +663,28 @@ def test_swaying_compiled_reference_equals_the_numpy_reference(monkeypatch, meth
     calls = _count_calls(monkeypatch, frame_step, "reference_update")
     _swaying_runs_equal(monkeypatch, "compiled_reference", calls, data, sim.prior, method,
                         damaged, min_calls=50)
+
+
+@pytest.mark.parametrize("damaged", [False, True])
+def test_swaying_compiled_frame_equals_the_three_calls(monkeypatch, damaged) -> None:
+    """A swaying-base frame's propagation, position reference (when due), rate and star
+    update in one compiled call (``frame_step.swaying_frame``,
+    ``SwayingFilter.compiled_frame``) against the three calls (compiled propagation,
+    reference and star update, each the numpy path's tested equal above): the call taken
+    for all but the frames that rebuild the reference (or follow a gap) and never by the
+    reference path; the whole runs within :func:`_swaying_runs_equal`'s bounds (counters
+    equal, θ̂, velocity, position, attitude in σ, P, M, information, score, statistics).
+    ``traditional``'s velocity reference keeps the three calls."""
+    from stellar_cal_ros.methods import frame_step
+    from stellar_cal_ros.methods.swaying import SwayingFilter
+
+    sim, data = _swaying_bag(damaged)
+    calls = _count_calls(monkeypatch, frame_step, "swaying_frame")
+    _swaying_runs_equal(monkeypatch, "compiled_frame", calls, data, sim.prior,
+                        "swaying_base", damaged, min_calls=100 if damaged else 0)
+    monkeypatch.setattr(SwayingFilter, "compiled_frame", True)
+    replay(data, sim.prior, "traditional", keep_tables=False)
+    assert not calls
 
 
 def test_a_moving_shift_builds_each_frame_context_once_a_look(monkeypatch) -> None:

@@ -347,6 +347,67 @@ def reference_update(P, M, score, info, accumulate, H, nu, R):
 
 
 @njit(cache=True)
+def swaying_frame(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, j, mj, ta, tb, R_a, Gg, Ga,
+                  delta, max_rad, P, M, Pe, inv_tau, qd_index, qd, vel, pos,
+                  due, site_pos, R_ref, score, info, accumulate,
+                  gyro_b0, gyro_Jb, gyro_theta0, w_raw, theta,
+                  uv, u, sigma, base, s0, g, timed, R_prior, T, tracked, c, B, need, dcol,
+                  dfix, dgrp, cam, du, bscale, cfg):
+    """A swaying-base frame in one call: propagation, position reference when due, star update.
+
+    :func:`swaying_propagate` from ``ta`` to ``tb``; with ``due`` the position reference
+    (``nu = site_pos − pos``, ``H`` the position rows, ``R_ref``) by :func:`reference_update`
+    and its nominal box-plus (the attitude ``Exp(δφ) R``, θ̂'s first ``Pe`` entries, the
+    velocity and position: ``ErrorState.boxplus``); the corrected rate of the sample at
+    ``tb`` (the gyro's affine bias at θ̂, no error matrix: ``SensorModel._no_E``); then
+    :func:`star_update` in place.  The navigation blocks' part of the star update's ``dx``
+    is the caller's (as :func:`star_update`'s).  ``theta``, ``score``, ``info`` are changed
+    in place (not after ``REBUILD``, when nothing is).
+
+    Returns ``(status, ints, floats, accepted, uv_pred, S, nis_stars, directions, omega,
+    R_prior, R, P, M, vel, pos, nu, nis_ref, dx)`` (``R_prior`` the propagated attitude
+    before the reference; ``nu``, ``nis_ref`` the reference's, NaN when not due).
+    """
+    ints = np.zeros(6, dtype=np.int64)
+    floats = np.zeros(13)
+    floats[0] = np.nan
+    nu = np.full(3, np.nan)
+    nis_ref = np.nan
+    ok, R_b, P, M, vel, pos = swaying_propagate(tp, C, w_hat, phi, slope, f_hat, du_a, gdt,
+                                                j, mj, ta, tb, R_a, Gg, Ga, delta, max_rad,
+                                                P, M, Pe, inv_tau, qd_index, qd, vel, pos)
+    if not ok:
+        return (REBUILD, ints, floats, np.zeros(0, dtype=np.bool_), np.zeros((0, 2)),
+                np.zeros((0, 2, 2)), np.zeros(0), np.zeros((0, 3)), np.zeros(3), R_b,
+                R_b, P, M, vel, pos, nu, nis_ref, np.zeros(P.shape[0]))
+    R_prior_out = R_b.copy()
+    R = R_b.copy()
+    N = P.shape[0]
+    if due:
+        ir = 6 + Pe
+        H = np.zeros((3, N))
+        for a in range(3):
+            H[a, ir + a] = 1.0
+            nu[a] = site_pos[a] - pos[a]
+        dxr, nis_ref, P, M = reference_update(P, M, score, info, accumulate, H, nu, R_ref)
+        R = mat3_mul(so3_exp1(dxr[0:3]), R_b)
+        for p in range(Pe):
+            theta[p] += dxr[3 + p]
+        iv = 3 + Pe
+        vel = vel + dxr[iv:iv + 3]
+        pos = pos + dxr[ir:ir + 3]
+    P = np.ascontiguousarray(P)
+    M = np.ascontiguousarray(M)
+    omega = w_raw - (gyro_b0 + gyro_Jb @ (theta - gyro_theta0))
+    status, accepted, uv_pred, S_blocks, nis_stars, dirs, dx = star_update(
+        P, theta, R, M, score, info, accumulate, omega, uv, u, sigma, base, s0, g, timed,
+        R_prior, T, tracked, c, B, need, dcol, dfix, dgrp, cam, du, bscale, Pe, cfg, ints,
+        floats)
+    return (status, ints, floats, accepted, uv_pred, S_blocks, nis_stars, dirs, omega,
+            R_prior_out, R, P, M, vel, pos, nu, nis_ref, dx)
+
+
+@njit(cache=True)
 def propagate_coupled(P, M, Pe, F, q_diag):
     """:func:`~stellar_cal_ros.core.covariance.propagate_coupled` of the attitude rows.
 

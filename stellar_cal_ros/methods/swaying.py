@@ -68,7 +68,7 @@ from stellar_cal_ros.core.rotation import skew
 from stellar_cal_ros.core.state import Block, nominal_view
 from stellar_cal_ros.core.units import DEG_PER_HOUR, G0
 from stellar_cal_ros.errors import ModelError
-from stellar_cal_ros.methods.kernel import KernelConfig, StarFilter
+from stellar_cal_ros.methods.kernel import FrameUpdate, KernelConfig, StarFilter
 from stellar_cal_ros.methods.registry import MethodSpec
 from stellar_cal_ros.methods.star_model import StarModel
 
@@ -188,6 +188,15 @@ class SwayingFilter(StarFilter):
     #: the position (Z1) reference's update and injection in one compiled call
     #: (:func:`~.frame_step.reference_update`; False: the numpy update, the reference)
     compiled_reference = True
+    #: a frame's propagation, position reference (when due) and star update in one compiled
+    #: call (:func:`~.frame_step.swaying_frame`; False: the three calls above, the reference)
+    compiled_frame = True
+    _frame_one = None  # (:meth:`_frame_update`'s step, built on first use)
+    #: what :meth:`_fused_update` does in its call: a subclass with its own keeps the calls
+    _FRAME_HOOKS = ("_transition", "_propagate_interval", "_before_star_update",
+                    "_reference_update", "reference_measurement", "propagate", "_star_update",
+                    "_compiled_star_update", "_inflate_bridged", "rate_at", "inject",
+                    "_fused_update", "site_position")
     checkpoint_fields = {**StarFilter.checkpoint_fields,
                          "last_reference_t": "last_reference_t",
                          "level_check_deg": "level_check_deg",
@@ -361,6 +370,106 @@ class SwayingFilter(StarFilter):
         self.velocity, self.position = vel, pos
         return R_b
 
+    def _fused_update(self, uv, u_i, ctx, sigma, t_exp) -> tuple[bool, FrameUpdate | None]:
+        """With :attr:`compiled_frame`: the frame's three steps in one compiled call.
+
+        Propagation, position reference (when due) and star update
+        (:func:`~.frame_step.swaying_frame`).
+
+        ``(False, None)`` (nothing changed: the three calls of :meth:`update`) when one of
+        them would take its numpy path, a re-acquisition is pending, the IMU does not cover
+        ``t_exp``, the rows hold a bridged sample or leave the reference (its window), or
+        the reference is to be rebuilt.  The same formulas as the three calls; the rate is
+        the gyro's affine bias at θ̂ (a model with an error matrix keeps the three calls).
+        """
+        us = self._frame_update()
+        if not us or self._gap_pending or t_exp <= self.t:
+            return False, None
+        imu, prop = self.imu, self.propagation
+        pre = prop.prefix
+        m = imu.index(t_exp)
+        k = self._k
+        if m >= len(imu) or pre is None or imu.base + k < pre.base or \
+                imu.base + m - prop.ref_start >= prop.window:
+            return False, None
+        if pre.end <= imu.base + m:  # (as ImuPropagation.step: the rows do not depend on it)
+            prop._extend(imu, pre.end - imu.base, len(imu))
+            pre = prop.prefix
+        from stellar_cal_ros.methods import frame_step
+
+        if frame_step.fused_sample(imu.t, imu.cum_bridged, k, t_exp, imu.base, pre.base,
+                                   pre.end, prop.ref_start, float(prop.window)) != m:
+            return False, None
+        c = self.config
+        due = t_exp - self.last_reference_t >= c.position_interval_s - 1e-6
+        site = self.site_position(t_exp) if due else self._no_site
+        st = self.state
+        sens = st.sensitivity
+        M, score, info, acc = us._sensitivity(sens)
+        if sens is None:
+            M = self._no_consider
+        u, uvc, sg = us._frame(u_i, uv, sigma)
+        du, bscale = us.compiled_chain.frame_inputs(u, ctx)
+        Gg, Ga = (np.ascontiguousarray(g_, dtype=float) for g_ in prop._gamma)
+        qd_index, qd, inv_tau = self._qd_arrays
+        b0, _, Jb, _ = prop.gyro._affine
+        out = frame_step.swaying_frame(
+            *prop.rows(imu, k, m), float(self.t), float(t_exp), np.ascontiguousarray(self.R_i_b),
+            Gg, Ga, self.theta - prop.theta_ref, prop.max_correction_rad,
+            np.ascontiguousarray(st.P), M, self.P_est, inv_tau, qd_index, qd, self.velocity,
+            self.position, due, site, self._R_reference, score, info, acc, b0, Jb,
+            prop.gyro.theta0, imu.w[m], self.theta, uvc, u, sg, float(self._stamp_rel - t_exp),
+            *us.chain, *us.directions, du, bscale, us.cfg)
+        (status, ints, floats, accepted, uv_pred, S, nis_stars, dirs, omega, R_prior, R, P,
+         M, vel, pos, nu, nis, dx) = out
+        if status == frame_step.REBUILD:
+            return False, None
+        st.P = P
+        if sens is not None:
+            sens.M = M
+        self.R_i_b = R
+        self.velocity, self.position = vel, pos
+        self.t = t_exp
+        self._k = m
+        self.omega = omega
+        if self.gyro_watch is not None:
+            self._R_prior = (R_prior, False)
+        if due:
+            self.last_reference_t = t_exp
+            if sens is not None:
+                sens.frames += acc
+            self._reference_done(nu, float(nis))
+        return True, self._compiled_result((status, ints, floats, accepted, uv_pred, S,
+                                            nis_stars, dirs, omega), uv, u_i, ctx, sigma,
+                                           t_exp, dx)
+
+    def _frame_update(self):
+        """The star update's :class:`~.frame_step.FusedStep` for :meth:`_fused_update`.
+
+        False when the frame's call cannot be taken as the filter is configured (built once).
+        """
+        us = self._frame_one
+        if us is not None:
+            return us
+        st = self.state
+        prop = self.propagation
+        us = False
+        own = type(self)
+        if self.compiled_frame and self.compiled_propagation and self.compiled_reference and \
+                self.compiled_star_update and self.compiled_step and HAVE_NUMBA and \
+                all(getattr(own, h) is getattr(SwayingFilter, h) for h in self._FRAME_HOOKS) \
+                and [b.sl for b in st._rotations] == [self.ia] and \
+                self.config.velocity_reference == "position" and \
+                prop.accel is not None and not prop.exact and prop.gyro._no_E and \
+                (self.iv.start, self.ir.start) == (3 + self.P_est, 6 + self.P_est):
+            from stellar_cal_ros.methods.frame_step import FusedStep
+
+            us = FusedStep.build_update(self, StarFilter) or False
+            self._no_site = np.zeros(3)
+            self._R_reference = self.config.sway_displacement_sigma_m**2 * np.eye(3)
+        self._frame_one = us
+        return us
+
     # ------------------------------------------------------------------ acquisition
     def _acquire_navigation(self, t_exp: float) -> None:
         c = self.config
@@ -414,6 +523,10 @@ class SwayingFilter(StarFilter):
         self.last_reference_t = self.t
         nu, H, R = self.reference_measurement()
         nis = self._reference_update(H, nu, R)
+        self._reference_done(nu, nis)
+
+    def _reference_done(self, nu: np.ndarray, nis: float) -> None:
+        """The reference's count and history row (at ``self.t``)."""
         key = "position_updates" if self.config.velocity_reference == "position" \
             else "velocity_updates"
         self.counters.add(key)
