@@ -13,10 +13,11 @@ propagation between frames in numpy, the reference, then in one compiled call; t
 update compiled in both), ``--switch compiled_reference`` the same with the position
 reference's update (``SwayingFilter.compiled_reference``), ``--switch compiled_frame``
 the three calls against one compiled call a frame (``SwayingFilter.compiled_frame``; the
-other switches run without it).  Prints the CPU seconds of each, whether the counters are equal, and the largest differences: θ̂, velocity and
-position in their σ and relative, the attitude in its σ, the covariance (against its
-largest entry; its diagonal relative), the consider sensitivity M (against its largest
-entry), the information (relative) and the score (in its σ).
+other switches run without it).  Prints the CPU seconds of each, whether the counters
+are equal, and the largest differences: θ̂, velocity and position in their σ and
+relative, the attitude in its σ, the covariance (against its largest entry; its diagonal
+relative), the consider sensitivity M (against its largest entry), the information
+(relative) and the score (in its σ).
 """
 
 from __future__ import annotations
