@@ -191,7 +191,6 @@ class SwayingFilter(StarFilter):
     #: a frame's propagation, position reference (when due) and star update in one compiled
     #: call (:func:`~.frame_step.swaying_frame`; False: the three calls above, the reference)
     compiled_frame = True
-    _frame_one = None  # (:meth:`_frame_update`'s step, built on first use)
     #: what :meth:`_fused_update` does in its call: a subclass with its own keeps the calls
     _FRAME_HOOKS = ("_transition", "_propagate_interval", "_before_star_update",
                     "_reference_update", "reference_measurement", "propagate", "_star_update",
@@ -237,6 +236,10 @@ class SwayingFilter(StarFilter):
         self._qd_arrays = (self._qd_index.astype(np.int64), np.array(self._qd),
                            np.ascontiguousarray(self._inv_tau[:self.P_est]))
         self._no_consider = np.zeros((self.N, 0))
+        # the frame's one call (compiled_frame): its step (built on first use) and constants
+        self._frame_one = None
+        self._no_site = np.zeros(3)
+        self._R_reference = c.sway_displacement_sigma_m**2 * np.eye(3)
         self.last_reference_t = -np.inf
         self.level_check_deg = float("nan")
         self.reference_history: dict[str, list] = {"t": [], "nu_x": [], "nu_y": [],
@@ -465,8 +468,6 @@ class SwayingFilter(StarFilter):
             from stellar_cal_ros.methods.frame_step import FusedStep
 
             us = FusedStep.build_update(self, StarFilter) or False
-            self._no_site = np.zeros(3)
-            self._R_reference = self.config.sway_displacement_sigma_m**2 * np.eye(3)
         self._frame_one = us
         return us
 
