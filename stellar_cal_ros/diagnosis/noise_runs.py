@@ -53,11 +53,12 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
         return v
     walk = search_walk(v, runs, prior, effects, base, tell, 1 + len(components))
     v.walk = walk
-    if walk["accepted"]:
-        moved = runs.on_bag(walk_motion, runs.spec.name, prior, tuple(effects),
-                            v.applied.replace(gyro_bias_rw=walk["deg_h_sqrth"]))
-        follows_motion(walk, moved, tell)
     if not walk["accepted"] or not beats_rivals(walk, v.applied, base, rivals, tell):
+        return v
+    # (after the rivals: a walk a library effect beats costs no run here)
+    if follows_motion(walk, runs.on_bag(walk_motion, runs.spec.name, prior, tuple(effects),
+                                        v.applied.replace(gyro_bias_rw=walk["deg_h_sqrth"])),
+                      tell):
         return v
     # judged again on the model's run with the walk (the stars' σ measured on it: with the
     # walk the model fits, so the noise tests no longer skip)
