@@ -75,3 +75,30 @@ def test_the_line_joins_the_parts_one_offset_fits(dt):
         assert "1.02 ms over 0-149 s, 3 ms over 150-199 s" in text, text
     else:
         assert text.count("ms over") == n, text
+
+
+def test_a_clock_that_drifts_is_said_with_its_rate(tmp_path):
+    """A frame clock drifting late 0 → 3 ms over the run (``sky_clock_drift3``'s stamps on
+    the clean bag), the model without time_offset: the first line is the drift's, its rate
+    within 3σ of the truth's −10 ppm (−3 ms over 299.5 s, time_offset's sign) and its
+    offsets at the run's ends near 0 and −3 ms (measured: −9.11 ± 2.8 ppm, −0.28 → −3.01
+    ms, 0.4 chi2 / 3 dof left).  Fails on b9b645c (no drift line: the parts' line, 57
+    chi2 / 5 dof, the filter's catch-up along each slew read as a change)."""
+    from stellar_cal_ros.diagnosis.clock import DRIFT
+
+    sim, model = clean_simulation("psce", False, 21, 300.0)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    for f in sim.star_frames:
+        f.stamp_ns = int(f.stamp_ns + round(0.003 * (f.stamp_ns - t0) / (t1 - t0) * 1e9))
+    truth = -0.003 / ((t1 - t0) * 1e-9)
+    got = diagnose(bag_data_from_simulation(sim), sim.prior, "psce", list(model), tmp_path,
+                   candidates=["radial_k1k2"], plots=False, verbose=False)
+    first = got["unexplained"][0]
+    assert first["component"] == COMPONENT and first["regressor"].startswith(DRIFT), \
+        got["unexplained"]
+    c = got["clock_change"]
+    assert c["drift_form"] == "time" and c["rest_p"] > 0.01, c
+    assert abs(c["drift_rate"] - truth) < 3.0 * c["drift_sigma"], c
+    assert abs(c["drift_rate"]) > 3.0 * c["drift_sigma"]
+    assert abs(c["drift_start"]) < 1e-3
+    assert abs(c["drift_start"] + c["drift_rate"] * c["duration"] + 0.003) < 1e-3, c
