@@ -13,6 +13,7 @@ model's constant between), the test's line first, and the parts' offsets in
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from stellar_cal_ros.diagnosis.clock import CLOCK, COMPONENT
@@ -102,3 +103,25 @@ def test_a_clock_that_drifts_is_said_with_its_rate(tmp_path):
     assert abs(c["drift_rate"]) > 3.0 * c["drift_sigma"]
     assert abs(c["drift_start"]) < 1e-3
     assert abs(c["drift_start"] + c["drift_rate"] * c["duration"] + 0.003) < 1e-3, c
+
+
+def test_a_gyro_scale_by_the_rate_sign_is_not_read_as_a_clock(tmp_path):
+    """The z gyro 500 ppm high for positive rates and low for negative (``gsf_asym``'s IMU
+    on the clean bag): the window's z slew carries the remainder, which grows along it
+    (0.89, 2.20, 2.68 ms in its parts; a clock's shrinks as the filter catches up), so the
+    line is the gyro's, not the clock's (measured: +1.91 ms over 180-186 s growing 0.515 +-
+    0.092 ms per s).  Fails on b9b645c (the clock's line, 277 chi2 / 5 dof)."""
+    from stellar_cal_ros.diagnosis.clock import DRIFT, GYRO_COMPONENT
+
+    sim, model = clean_simulation("psce", False, 21, 300.0)
+    w = np.asarray(sim.imu.angular_velocity, dtype=float).copy()
+    w[:, 2] *= 1.0 + 500e-6 * np.sign(w[:, 2])
+    sim.imu.angular_velocity = w
+    got = diagnose(bag_data_from_simulation(sim), sim.prior, "psce", list(model), tmp_path,
+                   candidates=["gyro_scale_factor"], plots=False, verbose=False)
+    lines = got["unexplained"]
+    assert not any(u["regressor"].startswith((CLOCK, DRIFT)) for u in lines), lines
+    gyro = [u for u in lines if u["component"] == GYRO_COMPONENT]
+    assert gyro and gyro[0] is lines[0], lines
+    c = got["clock_change"]
+    assert c["slew_growth"] * c["slew"][2] > 0 and c["slew"][2] > 0.5e-3, c

@@ -84,6 +84,11 @@ DRIFT_Z = 3.0
 #: frames further apart than this many times their median spacing begin a new run of
 #: moving frames (a slew), along which the filter catches up (:func:`drift_fit`)
 CATCH_UP_GAP = 5.0
+#: the line when the remainder grows along the slew that carries it (:meth:`ClockChange.
+#: grows`): a gyro's error, not a clock's
+GROWS = "the stars' remainder along their motion grows along a slew"
+#: that line's component
+GYRO_COMPONENT = "gyro rate"
 #: the line's component (:func:`~stellar_cal_ros.diagnosis.printing.unexplained_phrase`)
 COMPONENT = "time offset"
 
@@ -112,6 +117,16 @@ class ClockChange:
     rest_p: float = math.nan
     drift_form: str = ""
     drift_start: float = math.nan  #: the offset at the run's start (s; ``"time"`` only)
+    #: the remainder's change along a slew (s per s of the slew, the catch-up column's
+    #: coefficient in :func:`drift_fit`) and σ; ``level``: the parts' mean offset (s)
+    along: float = math.nan
+    along_sigma: float = math.nan
+    level: float = math.nan
+    #: along the slew whose offset departs most from zero (:func:`slew_growth`): its first
+    #: and last frame times, mean offset (s) and change along it (s per s) with σ
+    slew: list[float] = dataclasses.field(default_factory=list)
+    slew_growth: float = math.nan
+    slew_growth_sigma: float = math.nan
     duration: float = math.nan  #: the run's span (s, its first to last star)
 
     def as_json(self) -> dict:
@@ -145,8 +160,31 @@ class ClockChange:
         return (abs(self.drift_rate) >= DRIFT_Z * self.drift_sigma
                 and np.isfinite(self.rest_p) and self.rest_p >= DRIFT_REST_P)
 
+    def grows(self) -> bool:
+        """Whether the remainder grows along the slew that carries it (a gyro's error).
+
+        A clock's remainder shrinks along a slew as the filter catches up (``dt_step``:
+        −3.25, −2.26, −1.83 ms); a gyro's rate error turns the attitude by the angle turned,
+        and its remainder grows (``gsf_asym``: 0.89, 2.20, 2.68 ms on the z slew, ~0 on the
+        y slew).  The change along that slew of the same sign as its mean offset, at least
+        :data:`DRIFT_Z` σ.
+        """
+        if len(self.slew) < 3 or not np.isfinite(self.slew_growth_sigma):
+            return False
+        return (self.slew_growth * self.slew[2] > 0
+                and abs(self.slew_growth) >= DRIFT_Z * self.slew_growth_sigma)
+
     def regressor(self) -> str:
         """The line's regressor: the offsets and their spans (ms, s), or the drift's rate."""
+        if self.grows():
+            a, b, m = self.slew[:3]
+            return (f"{GROWS}: {m * 1e3:.3g} ms over {a:.0f}-{b:.0f} s, changing by "
+                    f"{self.slew_growth * 1e3:.3g} +- {self.slew_growth_sigma * 1e3:.2g} ms "
+                    "per s along it (a clock's remainder shrinks along a slew as the filter "
+                    "catches up; a gyro's rate error grows with the angle turned: e.g. a gyro "
+                    "scale that differs between the rate's signs, outside the library; "
+                    f"{self.chi2:.0f} chi2 / {self.dof} dof over {len(self.dt)} parts of the "
+                    "moving frames)")
         if self.drifts():
             how = ("the stars' remainder along their motion grows with the time since a "
                    "constant time_offset's estimate learned" if self.drift_form == "lag"
@@ -177,7 +215,8 @@ class ClockChange:
         p = min(1.0, 2.0 * min(self.p_value, 2.0 * self.drift_p))
         size = (abs(self.drift_rate) * (max(self.t1) - min(self.t0)) * self.speed
                 if self.drifts() else self.size_px)
-        return stats.p_finding(self.regressor(), COMPONENT, p, size,
+        return stats.p_finding(self.regressor(),
+                               GYRO_COMPONENT if self.grows() else COMPONENT, p, size,
                                detail={"clock_change": self.as_json()})
 
 
@@ -256,6 +295,7 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     out = ClockChange(t0, t1, [-float(x) for x in d], [float(x) for x in sig], chi2, dof,
                       p, math.nan, float(speed))
     out.duration = float(np.ptp(res["t"]))
+    slew_growth(out, g, info, t)
     lag = constant_lag(res, focal, centre, R_imu_st, frames)
     if lag is not None:
         drift_fit(out, -d, ci, seg, info, t, lag)
@@ -356,9 +396,7 @@ def drift_fit(out: ClockChange, dt: np.ndarray, ci: np.ndarray, seg: np.ndarray,
     best = None
     # the filter's catch-up along each run of moving frames (a shared shape: the time since
     # the run began), a nuisance beside the rate
-    gap = np.diff(t) > CATCH_UP_GAP * float(np.median(np.diff(t))) if len(t) > 1 else []
-    start = np.maximum.accumulate(np.where(np.r_[True, gap], np.arange(len(t)), 0))
-    tau = np.bincount(seg, info * (t - t[start]), minlength=parts) / w
+    tau = np.bincount(seg, info * since_slew(t), minlength=parts) / w
     for form, x in (("time", t), ("lag", lag)):
         xs = np.bincount(seg, info * x, minlength=parts) / w
         X = np.stack([np.ones(parts), xs, tau], 1)
@@ -372,11 +410,62 @@ def drift_fit(out: ClockChange, dt: np.ndarray, ci: np.ndarray, seg: np.ndarray,
         rest = float(r @ ci @ r)
         if cov[1, 1] > 0 and (best is None or rest < best[0]):
             best = (rest, form, float(beta[1]), float(math.sqrt(cov[1, 1])),
-                    float(beta[0]) if form == "time" else math.nan)
+                    float(beta[0]) if form == "time" else math.nan, float(beta[2]),
+                    float(math.sqrt(max(cov[2, 2], 0.0))))
     if best is None:
         return
-    rest, form, rate, sigma, out.drift_start = best
+    rest, form, rate, sigma, out.drift_start, out.along, out.along_sigma = best
+    one = np.ones(parts)
+    out.level = float(one @ ci @ dt) / float(one @ ci @ one)
     out.drift_rate, out.drift_sigma, out.drift_form = rate, sigma, form
     out.drift_chi2 = (rate / sigma) ** 2
     out.drift_p = float(dist.chi2.sf(out.drift_chi2, 1))
     out.rest_chi2, out.rest_p = rest, float(dist.chi2.sf(rest, parts - 3))
+
+
+def since_slew(t: np.ndarray) -> np.ndarray:
+    """Each frame's time since its run of moving frames (its slew) began (s).
+
+    A run ends where consecutive frames are more than :data:`CATCH_UP_GAP` × their median
+    spacing apart.
+    """
+    if len(t) < 2:
+        return np.zeros(len(t))
+    gap = np.diff(t) > CATCH_UP_GAP * float(np.median(np.diff(t)))
+    start = np.maximum.accumulate(np.where(np.r_[True, gap], np.arange(len(t)), 0))
+    return t - t[start]
+
+
+def slew_growth(out: ClockChange, g: np.ndarray, info: np.ndarray, t: np.ndarray) -> None:
+    """The change along the slew whose offset departs most from zero (:meth:`ClockChange.grows`).
+
+    Per slew (:func:`since_slew`) of at least 5 frames the frames' offsets ``g / I``
+    (time_offset's sign) fitted by ``a + c τ`` (weights ``I``, the covariance scaled by the
+    fit's dispersion when above one: neighbouring frames share errors); the slew kept is
+    the one whose mean offset is most significant.  Fills ``out.slew`` (first, last frame
+    time, mean offset) and ``slew_growth(_sigma)``.
+    """
+    tau = since_slew(t)
+    run = np.cumsum(tau == 0.0) - 1
+    best = None
+    for r in range(int(run.max()) + 1 if len(run) else 0):
+        k = (run == r) & (info > 0)
+        if k.sum() < 5:
+            continue
+        y, w, x = -g[k] / info[k], info[k], tau[k]
+        X = np.stack([np.ones(len(y)), x], 1)
+        A = X.T @ (w[:, None] * X)
+        try:
+            cov = np.linalg.inv(A)
+        except np.linalg.LinAlgError:
+            continue
+        beta = cov @ X.T @ (w * y)
+        e = y - X @ beta
+        cov = cov * max(1.0, float(np.sum(w * e * e)) / (len(y) - 2))
+        m = float(np.sum(w * y) / np.sum(w))
+        z = abs(m) * math.sqrt(float(np.sum(w)))
+        if best is None or z > best[0]:
+            best = (z, [float(t[k].min()), float(t[k].max()), m], float(beta[1]),
+                    float(math.sqrt(max(cov[1, 1], 0.0))))
+    if best is not None:
+        _, out.slew, out.slew_growth, out.slew_growth_sigma = best

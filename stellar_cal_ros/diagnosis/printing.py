@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from stellar_cal_ros.diagnosis import reliability
-from stellar_cal_ros.diagnosis.clock import COMPONENT
+from stellar_cal_ros.diagnosis.clock import COMPONENT, GYRO_COMPONENT
 from stellar_cal_ros.diagnosis.installation_step import COMPONENT as STEP
 from stellar_cal_ros.diagnosis.shape_drift import SHAPES
 
@@ -61,7 +61,8 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
         span = "amplitude"
     elif u["component"] == "along motion":  # stats.motion_spread: a noise in the stamps
         what, span = "residual spread along each star's motion", "rms at that image speed"
-    elif u["component"] == COMPONENT:  # diagnosis.clock: the offset changes over the run
+    elif u["component"] in (COMPONENT, GYRO_COMPONENT):  # diagnosis.clock: the offset
+        # changes over the run, or the remainder along the motion grows along a slew
         # (the regressor says what changes: no 'residual vs')
         what, span = "", "along each star's motion at the 95th percentile of image speed"
     elif u["component"] == STEP:  # diagnosis.installation_step: the regressor says it all
