@@ -40,6 +40,12 @@ over the run (rate R ± σ ppm)``; clean psce 300 s, 0 → 3 ms late: −9.11 ±
 truth of −10.0, −0.28 → −3.01 ms); a step leaves a change (``dt_step``: 32 χ² / 3 dof).
 With time_offset in the model the lag's leverage between the window's slews is small
 (−9.2 ± 5.3 ppm on the same bag): the parts' line then.
+
+A gyro whose scale differs between the rate's signs leaves the parts' offsets changing too
+(each window slew of psce turns one axis: a per-axis rate error is a per-slew offset), but
+its remainder grows along the slew that carries it, where a clock's shrinks as the filter
+catches up (:meth:`ClockChange.grows`): the line is then the gyro's (:data:`GROWS`), not
+the clock's.
 """
 
 from __future__ import annotations
@@ -118,10 +124,9 @@ class ClockChange:
     drift_form: str = ""
     drift_start: float = math.nan  #: the offset at the run's start (s; ``"time"`` only)
     #: the remainder's change along a slew (s per s of the slew, the catch-up column's
-    #: coefficient in :func:`drift_fit`) and σ; ``level``: the parts' mean offset (s)
+    #: coefficient in :func:`drift_fit`) and σ
     along: float = math.nan
     along_sigma: float = math.nan
-    level: float = math.nan
     #: along the slew whose offset departs most from zero (:func:`slew_growth`): its first
     #: and last frame times, mean offset (s) and change along it (s per s) with σ
     slew: list[float] = dataclasses.field(default_factory=list)
@@ -415,8 +420,6 @@ def drift_fit(out: ClockChange, dt: np.ndarray, ci: np.ndarray, seg: np.ndarray,
     if best is None:
         return
     rest, form, rate, sigma, out.drift_start, out.along, out.along_sigma = best
-    one = np.ones(parts)
-    out.level = float(one @ ci @ dt) / float(one @ ci @ one)
     out.drift_rate, out.drift_sigma, out.drift_form = rate, sigma, form
     out.drift_chi2 = (rate / sigma) ** 2
     out.drift_p = float(dist.chi2.sf(out.drift_chi2, 1))
