@@ -1797,3 +1797,63 @@ def test_a_fixed_pattern_of_the_columns_is_told_not_read_as_correlated_noise():
     line = [f for f in found if f.regressor == "u (column) (fixed pattern, bands of 8 px)"]
     assert line and line[0].component == "u" and abs(line[0].slope_px - 0.15) < 0.017, found
     assert not [f for f in found if f.regressor.startswith("v (row) (fixed")], found
+
+
+def _sparse_columns(seed: int, size: float, frames: int = 300, dwell: float = 55.0):
+    """A sparse run for the fixed pattern's size: 20-40 stars a frame, each tracked 300-600
+    frames drifting 1 px along u every ``dwell`` frames (σ 0.1 px), the ``columns`` case's
+    8 bands of 8 columns reading ``size`` px further along u.  ``(fit, offset, u, star,
+    σ, at_px)`` as :func:`~.noise_stars.detector_patterns` makes them for u."""
+    from stellar_cal_ros.diagnosis.stats import FrameFit
+
+    rng = np.random.default_rng(seed)
+    rows, live, sid = [], [], 0
+    for f in range(frames):
+        live = [s for s in live if s[3] > f]
+        while len(live) < rng.integers(20, 41):
+            live.append([sid, rng.uniform(20, 1000), rng.uniform(20, 1000),
+                         f + rng.integers(300, 600)])
+            sid += 1
+        rows += [(f, s[0], s[1] + (f - s[3]) / dwell, s[2]) for s in live]
+    a = np.array(rows)
+    frame, star, u, v = a[:, 0].astype(int), a[:, 1].astype(int), a[:, 2], a[:, 3]
+    x, y = (u - 512) / 1000.0, (v - 512) / 1000.0
+    n = np.sqrt(1 + x * x + y * y)
+    bad = [c + k for c in (97, 211, 388, 459, 602, 731, 846, 950) for k in range(8)]
+    du = rng.normal(0, 0.1, len(u)) + size * np.isin(np.floor(u), bad)
+    sub = dict(frame=frame, du=du, dv=rng.normal(0, 0.1, len(u)), x_st=x / n, y_st=y / n,
+               z_st=1 / n)
+    sig = np.full(len(u), 0.1)
+    fit = FrameFit(sub, sig, 1000.0, 1000.0)
+    r = fit.residual(sub["du"], sub["dv"])
+    offset, _ = noise_structure.pixel_means(r[:, 0], u, star, scale=sig)
+    fp = noise_structure.fixed_pattern(r[:, 0], np.ones(len(u)), u, star, scale=sig)
+    return fit, offset, u, star, sig, fp.at_px
+
+
+def test_the_pattern_size_fit_that_does_not_settle_gives_the_direct_size():
+    """Reviewer RF on H157's ``noise_stars._pattern_size``: its 10 fixed passes of
+    ``c ← c + (offset − A c)`` settle on the ``columns`` case (0.146 px) but on sparse data
+    keep inflating (here, 0.15 px at band 96: the direct size 0.136, after 1/10/30 passes
+    0.145/0.169/0.191).  Not settled (the size changing by 0.1 % a pass or more) after the
+    passes, the size is the direct one.  Fails on main 590c6dc: 0.169."""
+    fit, offset, u, star, sig, at = _sparse_columns(3, 0.15)
+    assert at == 96.0
+    direct = noise_structure.band_offset_size(offset, u, at)
+    size = noise_stars._pattern_size(fit, 0, offset, u, star, sig, at)
+    assert size == direct and abs(size - 0.15) < 0.02, (size, direct)
+
+
+def test_band_offset_size_reads_a_band_at_any_phase_and_at_the_detector_edges():
+    """``noise_structure.band_offset_size`` (reviewer RF, N5): a defect of 8 columns read
+    0.15 px further, at the test's band's phase 1 (columns 97-104, band 96) or at the
+    detector's edges (0-7, 1016-1023), reads 0.15 px; no finite row, nan; no offset, 0."""
+    rng = np.random.default_rng(1)
+    pos = rng.uniform(0, 1024, 20000)
+    for first, at in ((97, 96.0), (0, 0.0), (1016, 1016.0)):
+        offset = np.where((pos >= first) & (pos < first + 8), 0.15, 0.0)
+        assert noise_structure.band_offset_size(offset, pos, at) == pytest.approx(0.15), first
+    assert math.isnan(noise_structure.band_offset_size(np.zeros(0), np.zeros(0), 96.0))
+    assert math.isnan(noise_structure.band_offset_size(np.full(5, np.nan), pos[:5], 96.0))
+    assert math.isnan(noise_structure.band_offset_size(np.ones(5), np.full(5, np.nan), 96.0))
+    assert noise_structure.band_offset_size(np.zeros(len(pos)), pos, 96.0) == 0.0

@@ -954,7 +954,9 @@ def pattern_findings(sn: StarNoise | None) -> list:
     the family, whose other lines then keep their adjusted p).  Each a
     :class:`~stellar_cal_ros.diagnosis.stats.RegressorFinding` (regressor ``u (column)
     (fixed pattern, ...)`` on u, ``v (row) ...`` on v, statistic the flips' z, p unadjusted,
-    size the offset from its neighbours of the band that adds most to the test, px).
+    size the offset in px from its neighbours of a band's window slid to the pattern's
+    phase, the pixels' offsets fitted through the frames' attitude fit:
+    :func:`~.noise_stars._pattern_size`).
     """
     from stellar_cal_ros.diagnosis.stats import RegressorFinding
 

@@ -756,7 +756,7 @@ class FixedPattern:
     #: residuals' units × ``scale``: px where ``scale`` is each row's σ) and its first pixel
     top: float = 0.0
     at_px: float = math.nan
-    #: the pattern's size (px, :func:`pattern_size`) where it was measured, else nan
+    #: the pattern's size (px, :func:`band_offset_size`) where it was measured, else nan
     size_px: float = math.nan
 
 
@@ -809,8 +809,8 @@ def pixel_means(r: np.ndarray, pos: np.ndarray, star: np.ndarray, cap: float = P
     return mean, lev
 
 
-def pattern_size(offset: np.ndarray, pos: np.ndarray, at_px: float,
-                 band: int = PATTERN_BAND_PX, reach: int = PATTERN_REACH) -> float:
+def band_offset_size(offset: np.ndarray, pos: np.ndarray, at_px: float,
+                     band: int = PATTERN_BAND_PX, reach: int = PATTERN_REACH) -> float:
     """The size (px) of the fixed pattern :func:`fixed_pattern` found at band ``at_px``.
 
     ``offset``: each row's pixel's offset (px, :func:`pixel_means`: fitted beside the

@@ -54,7 +54,7 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
     if u["regressor"] == "catalogue star":
         what, span = "residual repeating", "rms per axis at least (left by the cells)"
     elif " (fixed pattern" in u["regressor"]:  # noise.pattern_findings
-        # (noise_structure.pattern_size: the band slid to the pattern's phase, its
+        # (noise_structure.band_offset_size: the band slid to the pattern's phase, its
         # offset fitted through the frames' attitude fit, noise_stars._pattern_size)
         span = "(the most offset band's offset from the bands beside it)"
     elif " (periodic" in u["regressor"]:  # in time, or a ripple over the detector
