@@ -99,6 +99,9 @@ class Case:
     #: the least px size the first 'unexplained' line may print (0: not judged): a
     #: structure found but said far smaller than it is misleads like one not found
     min_size_px: float = 0.0
+    #: the most px size the first 'unexplained' line may print (0: not judged): a size
+    #: inflated past the truth misleads too
+    max_size_px: float = 0.0
     #: library effects that may be added or not: the in-library part (a mean) of an
     #: outside change, neither missed nor 'not in the truth' (their line judged by words)
     may_add: tuple[str, ...] = ()
@@ -793,8 +796,8 @@ CASES: dict[str, Case] = {
                     "along u (6 % of the width; not in the library)", outside=True,
                     regressor="u (column) (fixed pattern", post=_columns,
                     # (H157: the printed size 0.148 +- 0.0035 px over seeds 21-30; main
-                    # b9b645c's fixed band read 0.103 +- 0.0055)
-                    min_size_px=0.12,
+                    # b9b645c's fixed band read 0.103 +- 0.0055; the most ~9 σ above)
+                    min_size_px=0.12, max_size_px=0.18,
                     not_told=("correlated from frame to frame", "wrong star by star"),
                     scenario_changes={"centroid_noise_px": 0.0}),
     "twin_tilt1": Case("psce", "the user's calibrated clean bag's twin with image_plane_tilt "
@@ -915,6 +918,7 @@ CASES: dict[str, Case] = {
     "rows": Case("psce", "CCD fixed pattern over rows: 8 bands of 8 rows read 0.15 px further "
                  "along v (``columns`` turned; not in the library)", outside=True,
                  regressor="v (row) (fixed pattern", post=_rows, min_size_px=0.12,
+                 max_size_px=0.18,
                  not_told=("correlated from frame to frame", "wrong star by star"),
                  scenario_changes={"centroid_noise_px": 0.0}),
 }
@@ -1066,6 +1070,9 @@ def judge(name: str, r: dict) -> list[str]:
         elif case.min_size_px and not _size_px(lines[0]) >= case.min_size_px:
             bad.append(f"first 'unexplained' line says {_size_px(lines[0]):.3g} px, the "
                        f"truth at least {case.min_size_px:.3g}")
+        elif case.max_size_px and not _size_px(lines[0]) <= case.max_size_px:
+            bad.append(f"first 'unexplained' line says {_size_px(lines[0]):.3g} px, the "
+                       f"truth at most {case.max_size_px:.3g}")
     elif not case.outside and lines:
         bad.append(f"{len(lines)} 'unexplained' lines on a case without structure")
     return bad

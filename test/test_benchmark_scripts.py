@@ -116,6 +116,30 @@ def test_unseen_case_found_but_said_far_smaller_is_judged_misleading(monkeypatch
         "first 'unexplained' line says 8.96e-05 px, the truth at least 0.03"]
 
 
+def test_unseen_case_fixed_pattern_said_far_larger_is_judged_misleading(monkeypatch):
+    """benchmarks/unseen_cases.py's ``columns`` (0.15 px; printed 0.148 +- 0.0035 over seeds
+    21-30): a size inflated past ``max_size_px`` (0.18, reviewer RF) misleads like one far
+    smaller."""
+    spec = importlib.util.spec_from_file_location("unseen_cases",
+                                                  BENCHMARKS / "unseen_cases.py")
+    uc = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "unseen_cases", uc)
+    spec.loader.exec_module(uc)
+
+    def run(size):
+        line = ("  unexplained: u residual vs u (column) (fixed pattern, bands of 8 px) "
+                f"(t=7.3, p=1.9e-06; {size} px (the most offset band's offset from the bands "
+                "beside it))")
+        return {"rc": 0, "stderr": "", "stdout": "noise: noise as stated\n" + line,
+                "summary": {"added": [], "noise": {"applied": {}}}}
+
+    assert uc.judge("columns", run("0.146")) == []
+    assert uc.judge("columns", run("0.226")) == [
+        "first 'unexplained' line says 0.226 px, the truth at most 0.18"]
+    assert uc.judge("columns", run("0.103")) == [
+        "first 'unexplained' line says 0.103 px, the truth at least 0.12"]
+
+
 def test_unseen_case_may_add_the_in_library_mean_of_an_outside_change(monkeypatch):
     """benchmarks/unseen_cases.py's ``knock`` (the installation jumps once mid-run): the
     installation's constant (the jump's mean over the window) may be added or not, beside the
