@@ -207,19 +207,21 @@ class _Uncapped(ImuPropagation):
                                imu.f[a:b] if self.accel is not None else None)
 
 
+@pytest.mark.parametrize("window_s", [2.0, 1.51])
 @pytest.mark.parametrize("accel", [False, True], ids=["attitude", "velocity"])
-def test_reference_rows_stop_at_the_window_and_the_steps_are_unchanged(accel):
+def test_reference_rows_stop_at_the_window_and_the_steps_are_unchanged(accel, window_s):
     """A reference's rows stop at the end of its window (a later sample is computed by the
     next reference, not twice), and every step is the same floats as with the rows of every
     sample held: IMU 1.5 s ahead of the frames, 2-s windows (each rebuild by the window) and
-    a θ̂ changing at every frame with a tight bound (rebuilds by the correction too)."""
+    a θ̂ changing at every frame with a tight bound (rebuilds by the correction too); and
+    1.51-s windows, where a step reaches the window's last sample (reviewer RF)."""
     src = _imu(1200)
     P = 24 if accel else 12
     theta = _theta(P)
     bufs = {c: ImuBuffer(DT) for c in (ImuPropagation, _Uncapped)}
     props = {c: c(DT, _sensor(0, P), _sensor(12, P) if accel else None,
                   (lambda t: np.broadcast_to(G, (len(t), 3))) if accel else None,
-                  max_correction_rad=2e-6, window_s=2.0) for c in bufs}
+                  max_correction_rad=2e-6, window_s=window_s) for c in bufs}
     rows = dict.fromkeys(bufs, 0)
     R = dict.fromkeys(bufs, so3_exp([0.1, 0.2, -0.3]))
     held, ta = 0, 0.013
