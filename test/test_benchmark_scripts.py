@@ -95,15 +95,21 @@ def test_unseen_epoch_case_is_judged_by_the_epoch_line_not_by_proper_motion_adde
         "added ['proper_motion'] (not in the truth)"]
 
 
-def test_unseen_case_found_but_said_far_smaller_is_judged_misleading(monkeypatch):
-    """benchmarks/unseen_cases.py's ``arm_1hz`` (a 1-Hz vibration at 2-Hz frames): the
-    periodic line was found with its size said 35-700x too small (H138); the judge passed
-    it.  A case's ``min_size_px`` is the least size its first 'unexplained' line may say."""
+def _unseen_cases(monkeypatch):
+    """benchmarks/unseen_cases.py loaded as a module."""
     spec = importlib.util.spec_from_file_location("unseen_cases",
                                                   BENCHMARKS / "unseen_cases.py")
     uc = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "unseen_cases", uc)
     spec.loader.exec_module(uc)
+    return uc
+
+
+def test_unseen_case_found_but_said_far_smaller_is_judged_misleading(monkeypatch):
+    """benchmarks/unseen_cases.py's ``arm_1hz`` (a 1-Hz vibration at 2-Hz frames): the
+    periodic line was found with its size said 35-700x too small (H138); the judge passed
+    it.  A case's ``min_size_px`` is the least size its first 'unexplained' line may say."""
+    uc = _unseen_cases(monkeypatch)
 
     def run(size):
         line = ("  unexplained: frame mean u residual vs time (periodic, 1 s) (t=12.9, "
@@ -120,11 +126,7 @@ def test_unseen_case_fixed_pattern_said_far_larger_is_judged_misleading(monkeypa
     """benchmarks/unseen_cases.py's ``columns`` (0.15 px; printed 0.148 +- 0.0035 over seeds
     21-30): a size inflated past ``max_size_px`` (0.18, reviewer RF) misleads like one far
     smaller."""
-    spec = importlib.util.spec_from_file_location("unseen_cases",
-                                                  BENCHMARKS / "unseen_cases.py")
-    uc = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "unseen_cases", uc)
-    spec.loader.exec_module(uc)
+    uc = _unseen_cases(monkeypatch)
 
     def run(size):
         line = ("  unexplained: u residual vs u (column) (fixed pattern, bands of 8 px) "
