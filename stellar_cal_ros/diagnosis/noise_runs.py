@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis.noise import (
     ALPHA,
@@ -97,7 +98,6 @@ def walk_motion(bag, method: str, prior, effects: tuple[str, ...], noise: NoiseS
     rate changes.  Returns ``[(F, p, blocks)]`` per axis (nan where too few blocks).
     """
     import numpy as np
-    from scipy import stats
 
     from stellar_cal_ros.methods.replay import replay
 
@@ -125,7 +125,7 @@ def walk_motion(bag, method: str, prior, effects: tuple[str, ...], noise: NoiseS
         rss1, rss0 = np.sum((y - x @ beta) ** 2), np.sum((y - y.mean()) ** 2)
         dfe = len(y) - 3
         f = (rss0 - rss1) / 2.0 / max(rss1 / dfe, 1e-300)
-        out.append((float(f), float(stats.f.sf(f, 2, dfe)), len(spans)))
+        out.append((float(f), float(dist.f.sf(f, 2, dfe)), len(spans)))
     return out
 
 
