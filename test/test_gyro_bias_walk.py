@@ -240,3 +240,43 @@ def test_a_gyro_error_that_follows_the_rate_is_not_taken_for_a_walk():
     assert walk["motion_p"][2] < 1e-6 and min(walk["motion_p"][:2]) > 0.01, walk
     assert walk["why"].startswith("its z bias estimate follows the gyro's rate"), walk
     assert v.applied.gyro_bias_rw == 0.0 and v.skipped
+    # the refused walk is said on the terminal (and in the report), after the skip: what
+    # was searched, its value and why (before: in diagnosis.json's gyro_bias_rw alone)
+    lines = v.lines()
+    assert lines[0].startswith("not measured: ") and lines[1] == (
+        f"a gyro bias random walk was searched (the model states none): "
+        f"~{walk['deg_h_sqrth']:.3g} +- {walk['sigma']:.2g} deg/h/sqrt(h) fits best "
+        f"(p = {walk['p_value']:.2g}) but is not taken: {walk['why']} "
+        "(noise.gyro_bias_rw in diagnosis.json)"), lines
+    assert "not taken: its z bias estimate follows the gyro's rate (p = " in lines[1]
+
+
+def test_a_refused_walk_is_said_and_one_not_found_is_not():
+    """The verdict's lines with a walk refused by a rival effect (beats_rivals' record),
+    by the motion guard, and with a walk the search did not find (no line: its own test
+    decided, as on a far-off model whose walk has no maximum)."""
+    from stellar_cal_ros.diagnosis.noise import NoiseVerdict
+
+    def verdict(walk):
+        v = NoiseVerdict(NoiseScales(), NoiseScales(), star_sigma=0.01)
+        v.walk = walk
+        return v.lines()
+
+    base = {"deg_h_sqrth": 0.87, "sigma": 0.21, "p_value": 1e-5, "alpha": 0.005,
+            "accepted": False}
+    rival = dict(base, rival={"effect": "time_offset", "parameters": 1, "qaic_gain": 90.0,
+                              "walk_qaic_gain": 40.0},
+                 why="time_offset explains more (90 against 40 in penalised likelihood)")
+    lines = verdict(rival)
+    assert lines[0] == ("a gyro bias random walk was searched (the model states none): "
+                        "~0.87 +- 0.21 deg/h/sqrt(h) fits best (p = 1e-05) but is not "
+                        "taken: time_offset explains more (90 against 40 in penalised "
+                        "likelihood) (noise.gyro_bias_rw in diagnosis.json)"), lines
+    assert lines[1].startswith("noise as stated ("), lines
+    moved = dict(base, sigma=None, motion_p=[0.4, 0.5, 8e-16],
+                 why="its z bias estimate follows the gyro's rate (p = 8e-16): ...")
+    assert verdict(moved)[0].startswith(
+        "a gyro bias random walk was searched (the model states none): ~0.87 deg/h/sqrt(h) "
+        "fits best (p = 1e-05) but is not taken: its z bias estimate follows"), verdict(moved)
+    for lost in (dict(base, why="not significant (p = 0.3)"), None):
+        assert not any("random walk was searched" in x for x in verdict(lost))

@@ -1857,3 +1857,40 @@ def test_band_offset_size_reads_a_band_at_any_phase_and_at_the_detector_edges():
     assert math.isnan(noise_structure.band_offset_size(np.full(5, np.nan), pos[:5], 96.0))
     assert math.isnan(noise_structure.band_offset_size(np.ones(5), np.full(5, np.nan), 96.0))
     assert noise_structure.band_offset_size(np.zeros(len(pos)), pos, 96.0) == 0.0
+
+
+def test_an_unmeasured_gyro_is_not_said_as_stated():
+    """The swaying bags (unseen cases ``sway_gyro_over3``, ``sway_gyro3``: the gyro's ARW a
+    third or 3x the stated): the gyro's samples carry the sway (not white) and the stars'
+    fit does not move over a factor of 9 of it.  The line said "noise as stated (stars'
+    sigma x0.979 +- 0.0091, accel x0.991 +- 0.0052 (its samples), gyro not measurable on
+    this bag)", read as the gyro as stated; now what was measured, then the gyro's why.
+    A measured gyro keeps the line as before; diagnosis.json's fields are unchanged."""
+    from stellar_cal_ros.diagnosis.noise_imu import ScaleSearch
+
+    ln3 = math.log(3.0)
+    flat = ScaleSearch("gyro", {-ln3: -10.0, 0.0: -10.1, ln3: -10.3}, measurable=False,
+                       sigma=math.inf)
+    v = noise.NoiseVerdict(NoiseScales(), NoiseScales(), star=0.979, star_sigma=0.0091,
+                           imu={"gyro": flat})
+    v.samples = {"accel": {"scale": 0.991, "sigma": 0.0052, "white": True},
+                 "gyro": {"scale": 14.0, "sigma": 0.5, "white": False}}
+    assert v.lines() == [
+        "noise as stated where measured (stars' sigma x0.979 +- 0.0091, accel x0.991 +- "
+        "0.0052 (its samples)); the gyro noise (angle random walk) cannot be measured on "
+        "this bag (its own samples are not white: they carry the motion; the stars' fit does "
+        "not change between a third and 3x of it: a noise below what the stars see on this "
+        "motion): kept as stated, not confirmed"], v.lines()
+    js = v.as_json()
+    assert js["measured"]["gyro_noise_scale"] is False and js["as_stated"]["gyro_noise_scale"]
+    # no maximum in range (not flat), no samples: said so
+    v.imu = {"gyro": ScaleSearch("gyro", {-ln3: -10.0, 0.0: -13.0, ln3: -10.0},
+                                 measurable=False, sigma=math.inf)}
+    v.samples = {}
+    assert v.lines()[0].endswith("; the gyro noise (angle random walk) cannot be measured on "
+                                 "this bag (the stars' fit has no maximum in its range): "
+                                 "kept as stated, not confirmed"), v.lines()
+    # measured: as before
+    v.imu = {"gyro": ScaleSearch("gyro", {0.0: -10.0}, value=1.02, sigma=0.05)}
+    assert v.lines() == ["noise as stated (stars' sigma x0.979 +- 0.0091, gyro x1.02 +- "
+                         "0.05)"], v.lines()

@@ -52,7 +52,7 @@ import numpy as np
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise_structure
-from stellar_cal_ros.diagnosis.noise_imu import ScaleSearch
+from stellar_cal_ros.diagnosis.noise_imu import FLAT, ScaleSearch
 from stellar_cal_ros.diagnosis.noise_stars import (
     ALPHA,
     MATERIAL,
@@ -330,6 +330,38 @@ class NoiseVerdict:
                 f"noise by {w['over_white_gyro']:.3g} in log-likelihood): use --noise-scale "
                 f"gyro_bias_rw={d:.2g}")
 
+    def _walk_refused_line(self) -> str:
+        """The gyro bias walk that passed its own search but was not taken ('' if none).
+
+        Refused by a rival effect (:func:`~.noise_runs.beats_rivals`), by its estimate
+        following the motion (:func:`~.noise_runs.follows_motion`) or by the run with it:
+        said with what was searched, its value and why (unseen case ``gsf_asym``: a walk of
+        29 deg/h/sqrt(h) refused was told only in ``diagnosis.json``).
+        """
+        w = self.walk
+        if not w or w.get("accepted") or not ("rival" in w or "motion_p" in w):
+            return ""
+        d = w["deg_h_sqrth"]
+        sd = f" +- {w['sigma']:.2g}" if w.get("sigma") is not None else ""
+        return (f"a gyro bias random walk was searched (the model states none): ~{d:.3g}"
+                f"{sd} deg/h/sqrt(h) fits best (p = {w['p_value']:.2g}) but is not taken: "
+                f"{w.get('why', '')} (noise.gyro_bias_rw in diagnosis.json)")
+
+    def _unmeasured_phrase(self, comp: str) -> str:
+        """Why the noise of the IMU component ``comp`` was not measured on this bag."""
+        search, smp = self.imu[comp], self.samples.get(comp)
+        why = []
+        if smp is not None:  # (white samples would have measured it)
+            why.append("its own samples are not white: they carry the motion")
+        pts = list(search.points.values())
+        if len(pts) > 1 and np.ptp(pts) < FLAT:
+            why.append("the stars' fit does not change between a third and 3x of it: a "
+                       "noise below what the stars see on this motion")
+        else:
+            why.append("the stars' fit has no maximum in its range")
+        return (f"the {_IMU_WORDS[comp][0]} cannot be measured on this bag ("
+                + "; ".join(why) + "): kept as stated, not confirmed")
+
     def _star_advice(self) -> str:
         """What to give replay for the stars' σ: one scale, or the groups kept from before.
 
@@ -362,10 +394,11 @@ class NoiseVerdict:
     def lines(self) -> list[str]:
         """The terminal's lines, first of the diagnosis (noise is tested before effects)."""
         out = self._sample_lines()
+        refused = self._walk_refused_line()
         if self.skipped:
-            return [f"not measured: {self.skipped}"] + out
+            return [f"not measured: {self.skipped}"] + ([refused] if refused else []) + out
         walk = self._walk_line()
-        out += ([walk] if walk else []) + self._beyond_lines()
+        out += ([walk] if walk else []) + ([refused] if refused else []) + self._beyond_lines()
         if self.correlated:
             out.append(noise_structure.correlated_line(self.correlated, self.applied.star))
         # with correlated noise its line names the scatter and the product to use: a line of
@@ -483,19 +516,29 @@ class NoiseVerdict:
                 if smp["white"]:
                     parts.append(f"{comp} x{smp['scale']:.3g} +- {smp['sigma']:.2g} "
                                  "(its samples)")
+            unmeasured = []
             for comp, search in self.imu.items():
                 if (self.samples.get(comp) or {}).get("white"):
+                    continue
+                if not (search.measurable or search.bound):
+                    unmeasured.append(comp)
                     continue
                 parts.append(f"{comp} x{search.value:.3g} +- {search.sigma:.2g}"
                              if search.measurable else
                              f"{comp} at {'most' if search.bound == 'upper' else 'least'} "
-                             f"x{search.value:.3g}" if search.bound else
-                             f"{comp} not measurable on this bag")
-            if self.stated.identity:
+                             f"x{search.value:.3g}")
+            if self.stated.identity and unmeasured:
+                # (not "noise as stated (..., gyro not measurable on this bag)": a user reads
+                # the unmeasured component as stated too, unseen case sway_gyro_over3)
+                out.append(("the rest of the noise" if walk else "noise") + " as stated where "
+                           "measured (" + ", ".join(parts) + "); " + "; ".join(
+                               self._unmeasured_phrase(c) for c in unmeasured))
+            elif self.stated.identity:
                 out.append(("the rest of the noise as stated (" if walk else
                             "noise as stated (") + ", ".join(parts) + ")")
             else:  # measured again on a later round: relative to the scales applied so far
-                out.append(self._measured_before_line(parts))
+                out.append(self._measured_before_line(
+                    parts + [f"{c} not measurable on this bag" for c in unmeasured]))
         elif "star" not in self.rejected and (self.stated.star != 1.0 or self.stated.group_by):
             # (another component rejected: the stars' σ kept from before is still said, with
             # the value to use; it was not said at all)
