@@ -273,6 +273,14 @@ def test_a_refused_walk_is_said_and_one_not_found_is_not():
                         "taken: time_offset explains more (90 against 40 in penalised "
                         "likelihood) (noise.gyro_bias_rw in diagnosis.json)"), lines
     assert lines[1].startswith("noise as stated ("), lines
+    # the terminal and the report print the verdict's lines
+    from stellar_cal_ros.diagnosis.printing import noise_lines
+    from stellar_cal_ros.diagnosis.report_html import _discovery_html
+
+    summary = {"noise": {"verdict": lines}}
+    assert noise_lines(summary)[0] == "noise: " + lines[0]
+    assert "fits best (p = 1e-05) but is not taken: time_offset explains more" in \
+        _discovery_html(summary)
     moved = dict(base, sigma=None, motion_p=[0.4, 0.5, 8e-16],
                  why="its z bias estimate follows the gyro's rate (p = 8e-16): ...")
     assert verdict(moved)[0].startswith(
