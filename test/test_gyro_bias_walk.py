@@ -287,11 +287,10 @@ def test_a_refused_walk_is_said_and_one_not_found_is_not():
         "a gyro bias random walk was searched (the model states none): ~0.87 +- 0.21 "
         "deg/h/sqrt(h) fits best (p = 1e-05) but is not taken: its z bias estimate "
         "follows"), verdict(moved)
-    # (bias_walk seed 26: 0.435 +- 0.125, p 4.8e-13, refused by the search itself)
+    # a walk the search itself refused (bias_walk seed 26: 0.435 +- 0.125, p 4.8e-13, white
+    # gyro noise x2.39 fitting as well; the clean swaying bag's far-off first round: 0.112,
+    # white x27.3) is not said: its own tests decided
     white = dict(base, why="white gyro noise x2.39 fits as well (by 0.616 in log-likelihood)")
-    assert verdict(white)[0].endswith("but is not taken: white gyro noise x2.39 fits as well "
-                                      "(by 0.616 in log-likelihood) (noise.gyro_bias_rw in "
-                                      "diagnosis.json)"), verdict(white)
-    for lost in (dict(base, p_value=0.3, why="not significant (p = 0.3)"),
+    for lost in (white, dict(base, p_value=0.3, why="not significant (p = 0.3)"),
                  dict(base, sigma=None, why="no maximum in range"), None):
         assert not any("random walk was searched" in x for x in verdict(lost))
