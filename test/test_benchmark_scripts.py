@@ -95,6 +95,26 @@ def test_unseen_epoch_case_is_judged_by_the_epoch_line_not_by_proper_motion_adde
         "added ['proper_motion'] (not in the truth)"]
 
 
+def test_unseen_case_gyro_said_unmeasured_is_not_judged_misleading(monkeypatch):
+    """``sway_gyro3`` / ``sway_gyro_over3``: the gyro's ARW cannot be measured on the
+    swaying bag; the line that says so (H163) is the truth, a line "noise as stated (...,
+    gyro not measurable on this bag)" or a measured gyro x1 is judged as before."""
+    uc = _unseen_cases(monkeypatch)
+
+    def run(line, measured):
+        return {"rc": 0, "stderr": "", "stdout": f"noise: {line}\n",
+                "summary": {"added": [], "noise": {"applied": {}, "measured": {
+                    "star_sigma_scale": True, "gyro_noise_scale": measured}}}}
+
+    said = ("noise as stated where measured (stars' sigma x0.979 +- 0.0091); the gyro noise "
+            "(angle random walk) cannot be measured on this bag (...): kept as stated")
+    assert uc.judge("sway_gyro3", run(said, False)) == []
+    assert uc.judge("sway_gyro_over3", run(said, False)) == []
+    old = "noise as stated (stars' sigma x0.979, gyro not measurable on this bag)"
+    assert uc.judge("sway_gyro3", run(old, False)) == ["gyro scale x1, truth x3"]
+    assert uc.judge("sway_gyro3", run(said, True)) == ["gyro scale x1, truth x3"]
+
+
 def _unseen_cases(monkeypatch):
     """benchmarks/unseen_cases.py loaded as a module."""
     spec = importlib.util.spec_from_file_location("unseen_cases",
