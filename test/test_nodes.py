@@ -743,6 +743,10 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
                             parameter_overrides=[
                                 Parameter("bag", value=str(path)), Parameter("rate", value=0.0),
                                 Parameter("duration_s", value=duration_s),
+                                # a restarted process may report no progress for over the
+                                # default 5 s on a loaded machine; the player would then carry
+                                # on, the node's queue overflow and the result differ (load ~20)
+                                Parameter("ack_timeout_s", value=60.0),
                                 Parameter("progress_topic", value=f"/{name}/data_clock"),
                                 Parameter("wait_for_subscribers_s", value=20.0)])
         with Spinner(ros_context, player):
