@@ -222,11 +222,14 @@ def attitude_increments(
     """
     w = np.asarray(angular_velocity, dtype=np.float64)
     d = _as_dt(dt, w.shape[0])
-    dth = w * d[:, None]
+    phi = w * d[:, None]  # dtheta, then the coning term added in place
     if not coning or w.shape[0] < 2:
-        return dth
-    phi = dth.copy()
-    phi[1:] += np.cross(dth[:-1], dth[1:]) / 12.0
+        return phi
+    # the cross products are made whole before phi changes: no copy of dtheta is needed
+    # (two arrays of N x 3 less at once: 35 MB on a 2-h bag's twin; the same numbers)
+    cone = np.cross(phi[:-1], phi[1:])
+    cone /= 12.0
+    phi[1:] += cone
     return phi
 
 

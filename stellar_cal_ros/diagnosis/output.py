@@ -69,7 +69,9 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         # a model only for a rolling shutter or a focal drift, the probe replays its twins)
         runs.forget_tables()
     shown = final if final.residuals is not None else base  # the run the lines are of
-    unexplained = line_tests(shown.residuals, calibration, fraction)
+    # (the clock and step tests' results kept from the lines': not computed twice)
+    parts: dict[str, Any] = {}
+    unexplained = line_tests(shown.residuals, calibration, fraction, parts)
     unexplained, spread = within_groups(unexplained, verdict)
     outside = list(outside or [])
     if outside:  # into the ranking of the lines (regressor_tests' order: p, then |t|)
@@ -77,11 +79,9 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     unexplained, follows = causes_first(unexplained, shown, runs,
                                         frozenset(id(f) for f in outside))
     # the time offset × time test, whether it fires or not (its parts' offsets)
-    clock_entry = clock_test(shown.residuals, calibration, fraction)
-    clock_entry = clock_entry.as_json() if clock_entry is not None else None
+    clock_entry = parts["clock"].as_json() if parts["clock"] is not None else None
     # the attitude step test at rest, whether it fires or not (its largest step)
-    step_entry = step_test(shown.residuals, calibration, fraction)
-    step_entry = step_entry.as_json() if step_entry is not None else None
+    step_entry = parts["step"].as_json() if parts["step"] is not None else None
     if drop_tables and not plots:
         base.residuals = final.residuals = None
         panels.clear()
@@ -236,11 +236,15 @@ def step_test(res, calibration: Calibration, fraction: float
                                                calibration.R_imu_st)
 
 
-def line_tests(res, calibration: Calibration, fraction: float) -> list:
+def line_tests(res, calibration: Calibration, fraction: float,
+               parts: dict[str, Any] | None = None) -> list:
     """The 'unexplained' tests of a residual table (significant, strongest first).
 
     An installation step's line (:mod:`~.installation_step`) goes first when it fires: the
-    filter's catch-up on it makes the others.
+    filter's catch-up on it makes the others.  ``parts``: a dict given gets the
+    :func:`clock_test` and :func:`step_test` made on the way (``"clock"``, ``"step"``),
+    for :func:`finish`'s entries (the clock test holds one of the round's memory peaks on a
+    2-h bag: made once).
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
@@ -248,6 +252,8 @@ def line_tests(res, calibration: Calibration, fraction: float) -> list:
     sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st)
     timing = clock_test(res, calibration, fraction)
     step = step_test(res, calibration, fraction)
+    if parts is not None:
+        parts.update(clock=timing, step=step)
     found = stats.regressor_tests(
         res, mask, centre, focal=(cam.fx, cam.fy),
         extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, sn)

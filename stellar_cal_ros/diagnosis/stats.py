@@ -307,6 +307,22 @@ def plugin_bandwidth(u: np.ndarray) -> int:
     return max(hac_bandwidth(n), int(1.1447 * (a1 * n) ** (1.0 / 3.0)))
 
 
+def frame_index(cluster: np.ndarray) -> np.ndarray:
+    """``np.unique(cluster, return_inverse=True)[1]``: each row's frame as ``0..n−1``.
+
+    Integer frames that do not decrease (a residual table's rows, in time order) are
+    counted in one pass instead of sorted: the same indices, without the sort's copies
+    (the line tests call it per regressor on the 2-h round's 457 000 rows).
+    """
+    c = np.asarray(cluster)
+    if c.ndim != 1 or c.dtype.kind not in "iu" or len(c) < 2 or np.any(c[1:] < c[:-1]):
+        return np.unique(c, return_inverse=True)[1]
+    k = np.empty(len(c), dtype=np.intp)
+    k[0] = 0
+    np.cumsum(c[1:] != c[:-1], out=k[1:])
+    return k
+
+
 def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
                    lags: int | None = None, dof: bool = False,
                    track: np.ndarray | None = None,
@@ -363,7 +379,7 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     if not sxx > DEGENERATE * float(x @ x):  # a constant x leaves its mean's rounding
         return (0.0, 1.0, None) if dof else (0.0, 1.0)
     b = float(xc @ yc) / sxx
-    _, k = np.unique(cluster, return_inverse=True)
+    k = frame_index(cluster)
     # the frames' scores at the fitted slope (a Wald t: a real structure must not count as
     # its own noise)
     e = yc - b * xc

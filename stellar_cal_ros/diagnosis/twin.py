@@ -287,7 +287,7 @@ def smooth_count(t: np.ndarray) -> int:
     return max(3, 2 * half + 1)
 
 
-def smooth_samples(x: np.ndarray, n: int) -> np.ndarray:
+def smooth_samples(x: np.ndarray, n: int, in_place: bool = False) -> np.ndarray:
     """``x`` (rates or forces, a row per IMU sample): its centred mean of ``n`` samples.
 
     ``n`` odd, from :func:`smooth_count` (a fixed time, 0.1 s); the ends are padded with
@@ -299,13 +299,18 @@ def smooth_samples(x: np.ndarray, n: int) -> np.ndarray:
     0.98 / 0.94 / 0.65 at 50 Hz (5), 0.98 / 0.93 / 0.60 at 200 Hz (21).  The twin's stars
     and IMU both follow the smoothed motion, so the twin is consistent whatever it smooths
     away.
+
+    ``in_place``: the mean is written over ``x`` (a float array of the caller's own that it
+    no longer needs; 17 MB less at the twin scene's peak on a 2-h bag).  The same numbers:
+    the filter reads each column whole into its line buffer before writing it, and the
+    columns do not overlap.
     """
     from scipy.ndimage import uniform_filter1d
 
     x = np.asarray(x, dtype=float)
     if len(x) < n:
         return x
-    return uniform_filter1d(x, n, axis=0, mode="nearest")
+    return uniform_filter1d(x, n, axis=0, mode="nearest", output=x if in_place else None)
 
 
 def twin_scene(data: BagData, calibration: Calibration, method: str | None = None,
@@ -329,10 +334,11 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
     # smoothed: the samples' own noise is no motion of the twin (left in, the twin's IMU
     # carried it plus its fresh noise: the gyro's samples read 1.41x the measured noise)
     n = smooth_count(t)
+    # (corrected_rates makes a new array: smoothed where it is, not into a second one)
     w_true = smooth_samples(model_cal.corrected_rates(
-        theta_cal, np.asarray(data.imu_w, dtype=float)), n)
+        theta_cal, np.asarray(data.imu_w, dtype=float)), n, in_place=True)
     f_true = smooth_samples(model_cal.corrected_rates(
-        theta_cal, np.asarray(data.imu_f, dtype=float), Stage.ACCEL), n)
+        theta_cal, np.asarray(data.imu_f, dtype=float), Stage.ACCEL), n, in_place=True)
     grav = gravity_in_tracker(dataclasses.replace(data, imu_f=f_true), calibration,
                               np.array([f.stamp_ns * 1e-9 for f in data.frames]),
                               LOAD_WINDOW_S)  # the load an injected flexure follows
