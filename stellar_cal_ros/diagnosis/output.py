@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.diagnosis import clock, installation_step, rolling, shape_drift, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
@@ -85,6 +86,9 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     if drop_tables and not plots:
         base.residuals = final.residuals = None
         panels.clear()
+        # the heap's pages the line tests freed (blocks below the mapping threshold) go
+        # back before the probe renders its twins beside them
+        trim_freed()
     summary = summary_dict(base, results, unexplained, spec, effects, fraction,
                            # (a σ wrong star by star: the gate's rejects are the tails of
                            # the stars stated too small, not misidentified stars)
@@ -249,9 +253,15 @@ def line_tests(res, calibration: Calibration, fraction: float,
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     mask = stats.evaluation_mask(res, fraction)
+    # after each part its freed heap pages (blocks below the mapping threshold) go back,
+    # not held beside the next part's: the 2-h round's peak is in these tests (the clock
+    # test's offsets, the step test's)
     sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st)
+    trim_freed()
     timing = clock_test(res, calibration, fraction)
+    trim_freed()
     step = step_test(res, calibration, fraction)
+    trim_freed()
     if parts is not None:
         parts.update(clock=timing, step=step)
     found = stats.regressor_tests(
