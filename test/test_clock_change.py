@@ -125,3 +125,39 @@ def test_a_gyro_scale_by_the_rate_sign_is_not_read_as_a_clock(tmp_path):
     assert gyro and gyro[0] is lines[0], lines
     c = got["clock_change"]
     assert c["slew_growth"] * c["slew"][2] > 0 and c["slew"][2] > 0.5e-3, c
+
+
+def test_a_drifting_clock_is_not_named_a_gyro_scale(tmp_path):
+    """The 0 → 3 ms drift (``sky_clock_drift3``'s stamps on the clean bag) with time_offset
+    in the model: gyro_scale_factor is significant alone (p 1e-73), its x scale taking up
+    the drift's per-slew offsets (+269 ± 4.6 ppm, the truth 0), but the remainder shrinks
+    along its slew (+0.24 ± 0.037 ms per s at −0.91 ms: a clock's catch-up), so it is
+    refused and the reason names the clock.  Fails on 8e3e396 (gyro_scale_factor added)."""
+    from stellar_cal_ros.diagnosis.auto import discover
+
+    sim, model = clean_simulation("psce", False, 21, 300.0)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    for f in sim.star_frames:
+        f.stamp_ns = int(f.stamp_ns + round(0.003 * (f.stamp_ns - t0) / (t1 - t0) * 1e9))
+    got = discover(bag_data_from_simulation(sim), sim.prior, "psce", [*model, "time_offset"],
+                   tmp_path, candidates=["gyro_scale_factor", "gyro_misalignment"],
+                   plots=False, verbose=False, workers=0)
+    assert "gyro_scale_factor" not in got["added"], got["added"]
+    why = [r["reason"] for r in got["path"][-1]["rejected"]
+           if r["effect"] == "gyro_scale_factor"]
+    assert why and "a clock's" in why[0] and "shrinks along a slew" in why[0], why
+    b = got["path"][-1]["beyond_remainder"]["gyro_scale_factor"]["clock"]
+    assert b["slew_growth"] * b["slew"][2] < 0, b
+
+
+@pytest.mark.parametrize(("growth", "mean", "like"), [(0.24e-3, -0.9e-3, True),
+                                                      (0.5e-3, 1.9e-3, False),
+                                                      (0.05e-3, -0.9e-3, False)])
+def test_a_clock_like_remainder_shrinks_along_its_slew(growth, mean, like):
+    """Clock-like: the parts change and the remainder shrinks along its slew at 3σ."""
+    from stellar_cal_ros.diagnosis.clock import ClockChange
+
+    c = ClockChange([0.0, 100.0], [99.0, 199.0], [-1e-3, -0.8e-3], [1e-5] * 2, 30.0, 1,
+                    1e-6, 0.4, 200.0, slew=[180.0, 186.0, mean], slew_growth=growth,
+                    slew_growth_sigma=0.04e-3)
+    assert c.clock_like(0.01) is like

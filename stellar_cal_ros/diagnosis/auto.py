@@ -50,12 +50,13 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import flexure, leads, rolling, screening
+from stellar_cal_ros.diagnosis import clock, flexure, leads, rolling, screening
 from stellar_cal_ros.diagnosis.discover import (
     ALPHA,
     MIN_EXPLAINED,
@@ -81,6 +82,8 @@ from stellar_cal_ros.methods.replay import BagData
 #: significant alone in its round whose score was at least RIVAL_SCORE of its score
 MAX_RIVALS = 2
 RIVAL_SCORE = 0.5
+#: what a stop names when a rate-shaped candidate was refused beside a clock's remainder
+CLOCK_REMAINDER = ("the clock-shaped remainder along the stars' motion", "a drifting clock")
 
 
 def _verdict(c: CandidateResult, top: CandidateResult | None) -> str:
@@ -319,14 +322,15 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                              c.run is not None for c in results))
             for c, b in refused:
                 # significant alone, but only along the flexure (rolling shutter, outside-
-                # library field) the remainder showed
+                # library field, clock) the remainder showed
                 step["beyond_remainder"] = {**step.get("beyond_remainder", {}), c.effect: b}
                 what, fitted = b.get("remainder", ("the gravity-shaped remainder",
                                                    "a mount flexure"))
                 if b.get("lead_size_px") is not None:
                     what = f"{what} ({b['lead_size_px']:.3g} px at most)"
-                why = (f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing "
-                       f"beyond {what} ({flexure.ratio_text(b, fitted)}): not added")
+                why = b.get("reason") or (
+                    f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing "
+                    f"beyond {what} ({flexure.ratio_text(b, fitted)}): not added")
                 for rj in step["rejected"]:
                     if rj["effect"] == c.effect:
                         rj["reason"] = why
@@ -457,9 +461,19 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     refused = []
     fields, along = None, {}  # the outside-library leads of the current model (and their
     # directions), once a candidate asks
+    ticks = None  # the current model's clock test, once a rate-shaped candidate asks
     for c in results:
         if not c.significant_alone:
             continue
+        if c.effect in clock.RATE_ALIASES:
+            if ticks is None:
+                ticks = _clock_of(base, prior, runs.fraction) or False
+            if ticks and ticks.clock_like(ALPHA):
+                tell(f"{c.effect}: not added: the stars' remainder along their motion is a "
+                     "clock's (it shrinks along a slew)")
+                refused.append((c, {"clock": ticks.as_json(), "reason": _clock_reason(
+                    c, ticks), "remainder": CLOCK_REMAINDER}))
+                continue
         if fields is None:
             fields = leads.significant(leads.of_run(base, runs.fraction), ALPHA)
             # a candidate's fields are sized along this model's (one pattern, two runs)
@@ -506,6 +520,33 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             return c, refused
         refused.append((c, b))
     return None, refused
+
+
+def _clock_of(base: RunSummary, prior: Calibration, fraction: float):
+    """The clock test (:func:`~stellar_cal_ros.diagnosis.clock.clock_change`) of ``base``."""
+    if base.residuals is None:
+        return None
+    from stellar_cal_ros.diagnosis.output import clock_test
+
+    return clock_test(base.residuals, base.calibration or prior, fraction)
+
+
+def _clock_reason(c: CandidateResult, ticks) -> str:
+    """Why a rate-shaped candidate is refused beside a clock's remainder (the user's line)."""
+    a, b, m = ticks.slew[:3]
+    drift = (f"; one drift rate fits {ticks.drift_rate * 1e6:.3g} +- "
+             f"{ticks.drift_sigma * 1e6:.2g} ppm, {ticks.rest_chi2:.1f} chi2 / {ticks.dof - 2} "
+             "dof left" if math.isfinite(ticks.drift_rate) else "")
+    return (f"significant alone (p = {c.p_adjusted:.2g}) but the stars' remainder along "
+            f"their motion on this model is a clock's, not a gyro rate error's: its parts "
+            f"change ({ticks.chi2:.0f} chi2 / {ticks.dof} dof; dt "
+            + ", ".join(f"{d * 1e3:.3g}" for d in ticks.dt)
+            + f" ms) and it shrinks along a slew as the filter catches up ({m * 1e3:.3g} ms "
+            f"over {a:.0f}-{b:.0f} s, changing by {ticks.slew_growth * 1e3:.3g} +- "
+            f"{ticks.slew_growth_sigma * 1e3:.2g} ms per s; a gyro's error grows with the "
+            f"angle turned){drift}: a frame clock that drifts or steps against the IMU, "
+            "outside the library, which a per-axis gyro rate error takes up slew by slew; not "
+            "added")
 
 
 def _beyond_lead(c: CandidateResult, dispersion: float, with_c: dict | None, lead: dict
@@ -579,6 +620,12 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     if "gravity" in kinds and "gravity" not in known:
         known["gravity"] = leads.gravity_of(runs, final, state.prior, tuple(state.extra))
     fields = leads.findings(final, fraction, kinds, ALPHA, known) if kinds else []
+    if any("clock" in b for s in path for b in (s.get("beyond_remainder") or {}).values()):
+        # a rate-shaped candidate refused beside a clock's remainder: the clock's line, if
+        # still there on the final model (the reason the user reads for the refusal)
+        ticks = _clock_of(final, state.prior or calibration, fraction)
+        if ticks is not None and ticks.finding().p_value < ALPHA:
+            fields.append(ticks.finding())
     summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
                      panels, plots, "stellar_cal discovery", images, verdict, write=False,
                      outside=outside + fields, like=like, runs=runs, hiding=hidden,

@@ -95,6 +95,12 @@ CATCH_UP_GAP = 5.0
 GROWS = "the stars' remainder along their motion grows along a slew"
 #: that line's component
 GYRO_COMPONENT = "gyro rate"
+#: library effects whose attitude error follows the body rate, as a clock's does (a rate
+#: error about each axis; on psce each window slew turns one axis, so a per-axis scale is a
+#: per-slew offset): a drifting clock's parts are taken up by them (unseen case
+#: ``sky_clock_drift3``: gyro_scale_factor added beside time_offset).  Refused while the
+#: current model's remainder is a clock's (:meth:`ClockChange.clock_like`)
+RATE_ALIASES = ("gyro_scale_factor", "gyro_misalignment")
 #: the line's component (:func:`~stellar_cal_ros.diagnosis.printing.unexplained_phrase`)
 COMPONENT = "time offset"
 
@@ -183,6 +189,27 @@ class ClockChange:
             return False
         return (self.slew_growth * self.slew[2] > 0
                 and abs(self.slew_growth) >= DRIFT_Z * self.slew_growth_sigma)
+
+    def shrinks(self) -> bool:
+        """Whether the remainder shrinks along the slew that carries it (a clock's catch-up).
+
+        The change along that slew of the sign opposite to its mean offset, at least
+        :data:`DRIFT_Z` σ (``dt_step``: +0.58 ± 0.08 ms/s at −2.08 ms; a 0 → 3 ms drift:
+        +0.29 ± 0.05 ms/s at −0.71 ms): the filter's attitude takes up a clock's offset
+        along a slew, where a gyro's rate error grows with the angle turned.
+        """
+        if len(self.slew) < 3 or not np.isfinite(self.slew_growth_sigma):
+            return False
+        return (self.slew_growth * self.slew[2] < 0
+                and abs(self.slew_growth) >= DRIFT_Z * self.slew_growth_sigma)
+
+    def clock_like(self, alpha: float) -> bool:
+        """Whether the parts' change is a clock's: significant at ``alpha`` and shrinking.
+
+        The finding's p (the parts' or the drift's) below ``alpha``, and the remainder
+        shrinking along its slew (:meth:`shrinks`), not growing (:meth:`grows`).
+        """
+        return self.finding().p_value < alpha and self.shrinks() and not self.grows()
 
     def regressor(self) -> str:
         """The line's regressor: the offsets and their spans (ms, s), or the drift's rate."""

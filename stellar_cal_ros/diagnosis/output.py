@@ -76,7 +76,9 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     unexplained, spread = within_groups(unexplained, verdict)
     outside = list(outside or [])
     if outside:  # into the ranking of the lines (regressor_tests' order: p, then |t|)
-        unexplained = sorted(outside + unexplained, key=lambda f: (f.p_value, -abs(f.statistic)))
+        told = {f.regressor for f in outside}  # (a clock's line may be among both)
+        unexplained = sorted(outside + [f for f in unexplained if f.regressor not in told],
+                             key=lambda f: (f.p_value, -abs(f.statistic)))
     unexplained, follows = causes_first(unexplained, shown, runs,
                                         frozenset(id(f) for f in outside))
     # the time offset × time test, whether it fires or not (its parts' offsets)
