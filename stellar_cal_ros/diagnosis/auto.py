@@ -467,7 +467,7 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             continue
         if c.effect in clock.RATE_ALIASES:
             if ticks is None:
-                ticks = _clock_of(base, prior, runs.fraction) or False
+                ticks = _clock_of(base, base.calibration or prior, runs.fraction) or False
             if ticks and ticks.clock_like(ALPHA):
                 tell(f"{c.effect}: not added: the stars' remainder along their motion is a "
                      "clock's (it shrinks along a slew)")
@@ -522,13 +522,13 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     return None, refused
 
 
-def _clock_of(base: RunSummary, prior: Calibration, fraction: float):
+def _clock_of(base: RunSummary, calibration: Calibration, fraction: float):
     """The clock test (:func:`~stellar_cal_ros.diagnosis.clock.clock_change`) of ``base``."""
     if base.residuals is None:
         return None
     from stellar_cal_ros.diagnosis.output import clock_test
 
-    return clock_test(base.residuals, base.calibration or prior, fraction)
+    return clock_test(base.residuals, calibration, fraction)
 
 
 def _clock_reason(c: CandidateResult, ticks) -> str:
@@ -623,7 +623,8 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     if any("clock" in b for s in path for b in (s.get("beyond_remainder") or {}).values()):
         # a rate-shaped candidate refused beside a clock's remainder: the clock's line, if
         # still there on the final model (the reason the user reads for the refusal)
-        ticks = _clock_of(final, state.prior or calibration, fraction)
+        # (the user's calibration, as the lines of :func:`finish`: the same text is one line)
+        ticks = _clock_of(final, calibration, fraction)
         if ticks is not None and ticks.finding().p_value < ALPHA:
             fields.append(ticks.finding())
     summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
