@@ -574,6 +574,24 @@ def _knock(sim, seed, arcsec=20.0, at=0.75, angle_deg=30.0):
         f.uv = np.asarray(f.uv, dtype=float) + shift
 
 
+def _slew_start(sim, at: float) -> float:
+    # the first time from ``at`` (share of the run) on where the gyro's rate exceeds half
+    # its run's 95th percentile (a slew under way), s from the first frame
+    imu = sim.imu
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    t = (np.asarray(imu.stamp_ns) - t0) * 1e-9
+    rate = np.linalg.norm(np.asarray(imu.angular_velocity, dtype=float), axis=1)
+    fast = (rate > 0.5 * np.percentile(rate, 95)) & (t >= at * (t1 - t0) * 1e-9)
+    return float(t[np.argmax(fast)])
+
+
+def _knock_slew(sim, seed, arcsec=20.0, at=0.75, angle_deg=30.0):
+    # ``knock`` while the tracker slews: the installation jumps by 20 arcsec (0.385 px along
+    # 30 deg) 1 s into the first slew from 75 % of the run on (the image moves fast there)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    _knock(sim, seed, arcsec, (_slew_start(sim, at) + 1.0) / ((t1 - t0) * 1e-9), angle_deg)
+
+
 def _gsf_asym(sim, seed, ppm=500.0):
     # gyro scale-factor asymmetry: the z gyro reads 500 ppm high for positive rates and
     # 500 ppm low for negative ones (the library's gyro_scale_factor is one factor per
@@ -899,6 +917,17 @@ CASES: dict[str, Case] = {
                   "the jump is outside the library)", outside=True,
                   regressor="installation steps", min_size_px=0.3,
                   may_add=("installation",), post=_knock),
+    "sway_knock": Case("swaying_base", "a knock on the mount of a swaying base: the "
+                       "installation jumps once by 20 arcsec (0.385 px along 30 deg) at 75 % "
+                       "of the run (the base never rests)", outside=True,
+                       regressor="installation steps", min_size_px=0.3,
+                       may_add=("installation",), post=_knock,
+                       sim_effects=dict(SWAY_CLEAN)),
+    "knock_slew": Case("psce", "a knock on the mount during a slew: the installation jumps "
+                       "once by 20 arcsec (0.385 px along 30 deg) 1 s into the first slew "
+                       "from 75 % of the run on", outside=True,
+                       regressor="installation steps", min_size_px=0.3,
+                       may_add=("installation",), post=_knock_slew),
     "gsf_asym": Case("psce", "gyro scale-factor asymmetry on z: +500 ppm for positive rates, "
                      "-500 ppm for negative (one factor per axis in the library; its mean 0 "
                      "may read as a small gyro_scale_factor)", outside=True, regressor="",

@@ -6,8 +6,9 @@ A clean psce bag (300 s, seed 21) whose stars from 75 % of the run on are shifte
 (0.385 px) along 30° in the image (``knock``'s shift: a rotation of the tracker about its
 x and y axes against the IMU, ``(−10, 17.3, 0)″``), diagnosed with the baseline model: the
 line tells the time of the step and its size within 3σ; the same bag without the shift has
-no such line.  The level on clean bags, ``dt_step`` and ``gsf_asym`` is in
-doc/benchmarks.md ("An installation that steps once").
+no such line.  The same on a swaying base, which never rests (all its frames tested; unseen
+case ``sway_knock``).  The level on clean bags, ``dt_step`` and ``gsf_asym`` is in
+doc/benchmarks.md ("An installation that steps once", "on a swaying base").
 """
 
 from __future__ import annotations
@@ -25,12 +26,12 @@ ANGLE_DEG = 30.0
 AT = 0.75
 
 
-def _diagnosed(tmp_path, knock: bool) -> tuple[dict, float, float]:
+def _diagnosed(tmp_path, knock: bool, method: str = "psce") -> tuple[dict, float, float]:
     """The diagnosis of the clean bag, its stars shifted from :data:`AT` on if ``knock``.
 
     With the first shifted frame's time (s from the first frame) and the shift (px).
     """
-    sim, model = clean_simulation("psce", False, 21, 300.0)
+    sim, model = clean_simulation(method, False, 21, 300.0)
     t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
     px = STEP_ARCSEC * ARCSEC * sim.prior.camera.fx
     shift = px * np.array([np.cos(np.deg2rad(ANGLE_DEG)),
@@ -40,13 +41,12 @@ def _diagnosed(tmp_path, knock: bool) -> tuple[dict, float, float]:
         for f in after:
             f.uv = np.asarray(f.uv, dtype=float) + shift
     at = (after[0].stamp_ns - t0) * 1e-9
-    return diagnose(bag_data_from_simulation(sim), sim.prior, "psce", model, tmp_path,
+    return diagnose(bag_data_from_simulation(sim), sim.prior, method, model, tmp_path,
                     plots=False, verbose=False), at, px
 
 
-def test_an_installation_that_steps_once_is_said_first_with_its_time_and_size(tmp_path):
-    """Fails on b9b645c (no ``installation_step``; no 'unexplained' line at all)."""
-    got, at, px = _diagnosed(tmp_path / "knock", True)
+def _said_first(got: dict, at: float, px: float) -> None:
+    """The installation step's line first, its time, rotation and shift the truth's."""
     first = got["unexplained"][0]
     assert first["component"] == COMPONENT, got["unexplained"]
     step = got["installation_step"]
@@ -61,6 +61,25 @@ def test_an_installation_that_steps_once_is_said_first_with_its_time_and_size(tm
     assert abs(step["angle_deg"] - ANGLE_DEG) < 10.0
     assert "installation steps at t~" in first["regressor"] and "px along" in first["regressor"]
     assert first["change_px"] == step["shift_px"]
+
+
+def test_an_installation_that_steps_once_is_said_first_with_its_time_and_size(tmp_path):
+    """Fails on b9b645c (no ``installation_step``; no 'unexplained' line at all)."""
+    got, at, px = _diagnosed(tmp_path / "knock", True)
+    _said_first(got, at, px)
+    assert got["installation_step"]["at_rest"]
+
+
+def test_a_swaying_base_that_never_rests_is_tested_over_all_its_frames(tmp_path):
+    """Fails on 8e3e396 (``installation_step`` null on a swaying base: no frames at rest)."""
+    got, at, px = _diagnosed(tmp_path / "knock", True, "swaying_base")
+    _said_first(got, at, px)
+    assert not got["installation_step"]["at_rest"]
+    assert "never rests" in got["unexplained"][0]["regressor"]
+    clean, _, _ = _diagnosed(tmp_path / "clean", False, "swaying_base")
+    assert not any(u["component"] == COMPONENT for u in clean["unexplained"]), \
+        clean["unexplained"]
+    assert clean["installation_step"]["p_value"] > 1e-3
 
 
 def test_the_same_bag_without_the_step_has_no_such_line(tmp_path):
