@@ -442,3 +442,59 @@ def test_the_kernel_cache_is_one_per_kernel_version_shared_by_checkouts(tmp_path
     assert kernel._cache._cache_file._source_stamp == jit.kernel_version()
     monkeypatch.setenv(jit.KERNEL_CACHE_ENV, "tree")
     assert jit.kernel_cache_dir() is None
+
+
+def test_the_kernel_cache_prunes_other_versions_unused_for_days(tmp_path, monkeypatch):
+    """A process using the kernel cache stamps its version and removes other versions'
+    directories not used for KERNEL_CACHE_KEEP_DAYS (by their stamp, or the directory's
+    time before stamps); never the current one, nothing of another name."""
+    import os
+    import time
+
+    from stellar_cal_ros.core import jit
+
+    if not jit.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    monkeypatch.setenv(jit.KERNEL_CACHE_ENV, str(tmp_path))
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    current = jit.kernel_cache_dir()
+    day = 86400.0
+    now = time.time()
+    keep = jit.KERNEL_CACHE_KEEP_DAYS
+
+    def version_dir(name, days_ago, stamp=True):
+        d = tmp_path / name
+        d.mkdir()
+        (d / "kernel.nbi").write_bytes(b"x")
+        t = now - days_ago * day
+        if stamp:
+            (d / jit.KERNEL_CACHE_STAMP).touch()
+            os.utime(d / jit.KERNEL_CACHE_STAMP, (t, t))
+        os.utime(d, (t, t))
+        return d
+
+    current.mkdir()
+    os.utime(current, (now - 400 * day,) * 2)  # old but current: kept, stamped now
+    old = version_dir("kernels-" + "a" * 16, keep + 1)
+    recent = version_dir("kernels-" + "b" * 16, keep - 1)
+    old_unstamped = version_dir("kernels-" + "c" * 16, keep + 5, stamp=False)
+    stamped_recently = version_dir("kernels-" + "d" * 16, 0.5)
+    os.utime(stamped_recently, (now - 400 * day,) * 2)  # the stamp, not the directory, says
+    other_name = version_dir("kernels-old", keep + 100, stamp=False)
+    (tmp_path / "tetra3rs.bin").write_bytes(b"x")
+    os.utime(tmp_path / "tetra3rs.bin", (now - 400 * day,) * 2)
+
+    jit.kernel_cache_used.cache_clear()
+    kernel = jit.njit(cache=True)(jit.skew3.py_func)  # numba's locator: the first cached kernel
+    assert Path(kernel._cache.cache_path) == current
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [current.name, recent.name, stamped_recently.name, other_name.name, "tetra3rs.bin"])
+    assert not old.exists() and not old_unstamped.exists()
+    assert now - (current / jit.KERNEL_CACHE_STAMP).stat().st_mtime < 60.0
+    assert (recent / "kernel.nbi").exists()
+    # once per process and directory; the direct call with a later clock prunes the recent one
+    assert set(jit.kernel_cache_used(current)) == {old, old_unstamped}
+    removed = jit.prune_kernel_caches(current, now=now + 2 * day)
+    assert removed == [recent]
+    assert current.is_dir() and stamped_recently.is_dir()
+    jit.kernel_cache_used.cache_clear()

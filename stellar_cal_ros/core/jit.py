@@ -26,6 +26,11 @@ and a change to any of those files — a helper's as well as a caller's — is a
 compiled once.  ``STELLAR_CAL_KERNEL_CACHE`` names another directory (``tree``: numba's
 ``__pycache__``); a ``NUMBA_CACHE_DIR`` or ``NUMBA_CACHE_LOCATOR_CLASSES`` of the user's is
 obeyed as numba obeys it.
+
+Old versions are pruned (:func:`kernel_cache_used`): a process that uses the kernel cache
+stamps its version's directory (:data:`KERNEL_CACHE_STAMP`) and removes the directories of
+other versions beside it not used for :data:`KERNEL_CACHE_KEEP_DAYS` days; the current
+version's never.
 """
 
 from __future__ import annotations
@@ -34,6 +39,9 @@ import functools
 import hashlib
 import math
 import os
+import re
+import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +55,11 @@ KERNEL_SOURCES = ("core/jit.py", "core/rotation.py", "core/imu_prefix.py", "core
 #: environment: the kernel cache's directory (``tree``: numba's per-checkout ``__pycache__``)
 KERNEL_CACHE_ENV = "STELLAR_CAL_KERNEL_CACHE"
 _PACKAGE = Path(__file__).resolve().parents[1]
+#: another kernel version's cache not used for this many days is removed (never the current)
+KERNEL_CACHE_KEEP_DAYS = 30.0
+#: a file in each version's directory; its modification time: when a process last used it
+KERNEL_CACHE_STAMP = "last-used"
+_VERSION_DIR = re.compile(r"kernels-[0-9a-f]{16}")
 
 
 @functools.cache
@@ -75,6 +88,44 @@ def kernel_cache_dir() -> Path | None:
     return Path(root) / f"kernels-{kernel_version()}"
 
 
+def prune_kernel_caches(current: Path, keep_days: float = KERNEL_CACHE_KEEP_DAYS,
+                        now: float | None = None) -> list[Path]:
+    """Stamp ``current`` used now; remove the other versions' directories beside it unused.
+
+    A directory ``kernels-<16 hex digits>`` beside ``current`` (not ``current``, nothing of
+    another name) whose :data:`KERNEL_CACHE_STAMP` -- or, before stamps, the directory
+    itself -- was last modified more than ``keep_days`` days before ``now`` is removed.
+    Returns the directories removed; a file-system error leaves that directory as it is.
+    """
+    now = time.time() if now is None else now
+    try:
+        (current / KERNEL_CACHE_STAMP).touch()
+        others = [p for p in current.parent.iterdir()
+                  if p.name != current.name and _VERSION_DIR.fullmatch(p.name) and p.is_dir()]
+    except OSError:
+        return []
+    removed = []
+    for old in others:
+        stamp = old / KERNEL_CACHE_STAMP
+        try:
+            used = (stamp if stamp.exists() else old).stat().st_mtime
+            if now - used <= keep_days * 86400.0:
+                continue
+            gone = old.with_name(f".{old.name}.pruned-{os.getpid()}")
+            old.rename(gone)  # (a process that starts using it now finds it absent)
+        except OSError:
+            continue
+        shutil.rmtree(gone, ignore_errors=True)
+        removed.append(old)
+    return removed
+
+
+@functools.cache
+def kernel_cache_used(current: Path) -> list[Path]:
+    """:func:`prune_kernel_caches` once per process and directory (numba's first cached kernel)."""
+    return prune_kernel_caches(current)
+
+
 try:  # optional: without it the filters use the numpy path
     from numba import njit as _numba_njit
     from numba.core import caching as _caching
@@ -98,6 +149,10 @@ else:
 
         def get_cache_path(self):  # noqa: D102 - numba's locator interface
             return self._cache_path
+
+        def ensure_cache_path(self):  # noqa: D102 - numba's; then stamped, others pruned
+            super().ensure_cache_path()
+            kernel_cache_used(Path(self._cache_path))
 
         def get_source_stamp(self):  # noqa: D102 - every kernel source, not the one file
             return kernel_version()
