@@ -550,6 +550,22 @@ def test_rolling_shutter_on_a_swaying_base_is_no_noise_and_has_no_stand_in():
     assert lines[0].regressor.startswith(stats.ROLLING), lines[:2]
     assert float(lines[0].regressor.split("readout ")[1].split(" ms")[0]) == \
         pytest.approx(30.0, abs=1.0)
+    # the same re-run started before the line tests (a cluster's worker beside them): the
+    # same lines, the re-run made once, by the runner's 'later', not its 'on_bag'
+    calls = []
+
+    def later(fn, *a):
+        calls.append(fn.__name__)
+        return lambda: fn(data, *a)
+
+    ahead = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(), later=later,
+                            on_bag=lambda fn, *a: calls.append("on_bag"))
+    started = rolling.start_lines_without(base, ahead, line_tests)
+    assert calls == ["lines_without_on_bag"] and started[0] == shutter
+    again, _ = rolling.first_if_cause(line_tests(base.residuals, prior, 0.5), base, ahead,
+                                      line_tests, started=started)
+    assert [f.regressor for f in again] == [f.regressor for f in lines]
+    assert calls == ["lines_without_on_bag"]
     # where the re-run fails the line keeps its one-pass slope, over the detector's rows
     # as well (stats.readout_s, the one formula; was 2 c_y of the filter-pulled principal
     # point): twice the rows, twice the readout, the fits unchanged
@@ -1280,9 +1296,17 @@ def _ranked(sim):
     run = evaluate(data, method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
                    keep_residuals=True)
     runs = SimpleNamespace(spec=method_spec("psce"), fraction=0.5, noise=None, classes=(),
-                           on_bag=lambda fn, *a: fn(data, *a))
+                           on_bag=lambda fn, *a: fn(data, *a),
+                           later=lambda fn, *a: lambda: fn(data, *a))
     found = line_tests(run.residuals, sim.prior, 0.5)
-    return run, found, output.causes_first(found, run, runs)
+    ranked = output.causes_first(found, run, runs)
+    # the re-runs started before the line tests (a cluster's workers beside them): the same
+    started = (shape_drift.start_first_runs(run, runs, line_tests),
+               rolling.start_lines_without(run, runs, line_tests))
+    again = output.causes_first(found, run, runs, started=started)
+    assert [(f.regressor, f.p_value, f.detail) for f in again[0]] == \
+        [(f.regressor, f.p_value, f.detail) for f in ranked[0]] and again[1] == ranked[1]
+    return run, found, ranked
 
 
 def _drifting(drift, size):

@@ -70,6 +70,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         # a model only for a rolling shutter or a focal drift, the probe replays its twins)
         runs.forget_tables()
     shown = final if final.residuals is not None else base  # the run the lines are of
+    # the re-runs without a drifting shape or a rolling shutter on workers, beside the line
+    # tests that ask for them (known from the run alone; in this process: when asked for)
+    started = (shape_drift.start_first_runs(shown, runs, line_tests),
+               rolling.start_lines_without(shown, runs, line_tests))
     # (the clock and step tests' results kept from the lines': not computed twice)
     parts: dict[str, Any] = {}
     unexplained = line_tests(shown.residuals, calibration, fraction, parts)
@@ -80,7 +84,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         unexplained = sorted(outside + [f for f in unexplained if f.regressor not in told],
                              key=lambda f: (f.p_value, -abs(f.statistic)))
     unexplained, follows = causes_first(unexplained, shown, runs,
-                                        frozenset(id(f) for f in outside))
+                                        frozenset(id(f) for f in outside), started)
     # the time offset × time test, whether it fires or not (its parts' offsets)
     clock_entry = parts["clock"].as_json() if parts["clock"] is not None else None
     # the attitude step test at rest, whether it fires or not (its largest step)
@@ -205,7 +209,7 @@ def axis_remainder(found: list[dict[str, Any]], effects: list[str]) -> dict[str,
     return None
 
 
-def causes_first(found: list, run: RunSummary, runs, keep=frozenset()
+def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=None
                  ) -> tuple[list, dict[int, str]]:
     """The 'unexplained' lines ``found`` of ``run`` with a cause before the lines it makes.
 
@@ -218,10 +222,15 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset()
     follow a cause (``summary["unexplained"][i]["follows"]``).  Neither moves a cause's
     own line nor the lines of ``keep`` (the ids of the flexure-shaped findings after an
     add: no re-run's line tests make them, :func:`~stellar_cal_ros.diagnosis.rolling.gone`).
+    ``started``: the drifting shapes' and the rolling shutter's re-runs started beside the
+    line tests (:func:`~stellar_cal_ros.diagnosis.shape_drift.start_first_runs`,
+    :func:`~stellar_cal_ros.diagnosis.rolling.start_lines_without`).
     """
-    found, after = shape_drift.first_if_cause(found, run, runs, line_tests, keep=keep)
+    drifts, shutter = started if started is not None else (None, None)
+    found, after = shape_drift.first_if_cause(found, run, runs, line_tests, keep=keep,
+                                              started=drifts)
     follows = {id(found[i]): cause for i, cause in after.items()}
-    found, after = rolling.first_if_cause(found, run, runs, line_tests, keep)
+    found, after = rolling.first_if_cause(found, run, runs, line_tests, keep, shutter)
     follows.update((id(found[i]), "rolling shutter") for i in after)
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 

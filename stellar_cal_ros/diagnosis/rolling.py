@@ -185,7 +185,34 @@ def gone(f, left: set, keep=frozenset()) -> bool:
             and not (getattr(f, "detail", None) or {}).get("cause"))
 
 
-def first_if_cause(found: list, run, runs, tests, keep=frozenset()) -> tuple[list, set[int]]:
+#: the rolling-shutter fit's p (unadjusted) under which :func:`start_lines_without` starts
+#: the re-run before the line tests say whether it is needed (a guess: it decides when the
+#: re-run starts, never what it returns)
+START_P = 0.05
+
+
+def start_lines_without(run, runs, tests):
+    """:func:`first_if_cause`'s re-run started now, beside the line tests; None: not started.
+
+    On a cluster (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.later`) a worker runs
+    :func:`lines_without_on_bag` while this process computes the line tests that decide
+    whether it is needed (its arguments are known before them: the run and its
+    rolling-shutter fit); in this process it runs only when asked for.  Started when the
+    fit's p is under :data:`START_P`; a run started and not needed is dropped (a worker's
+    time, not a result).  Returns ``(fit, value)`` for :func:`first_if_cause`.
+    """
+    if runs is None or run is None or not run.ok or run.prior is None:
+        return None
+    fit = of_run(run, runs.fraction)
+    if fit is None or not fit["p_value"] < START_P:
+        return None
+    return fit, runs.later(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
+                           runs.fraction, runs.noise, runs.classes, run.calibration,
+                           fit["coefficient"], tests)
+
+
+def first_if_cause(found: list, run, runs, tests, keep=frozenset(), started=None
+                   ) -> tuple[list, set[int]]:
     """``found`` with the rolling-shutter line first when the lines before it are its doing.
 
     A rolling shutter that acts only while the tracker turns fast (a PSCE bag's slews: ~20
@@ -201,17 +228,21 @@ def first_if_cause(found: list, run, runs, tests, keep=frozenset()) -> tuple[lis
     readout the line prints (:func:`~stellar_cal_ros.diagnosis.stats.readout_s`: the
     run's fit alone reads it ~12 % short; without a runner, or when the re-run fails, the
     line keeps the one-pass slope of :func:`~stellar_cal_ros.diagnosis.stats.shaped_tests`,
-    over the detector's rows too).
+    over the detector's rows too).  ``started``: :func:`start_lines_without`'s of the same
+    ``run``, ``runs`` and ``tests`` (its value taken instead of a run made now).
     """
     at = next((i for i, f in enumerate(found) if f.regressor.startswith(stats.ROLLING)), None)
     if at is None or runs is None or run is None or not run.ok or run.prior is None:
         return found, set()
-    fit = of_run(run, runs.fraction)
-    if fit is None:
-        return found, set()
-    again = runs.on_bag(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
-                        runs.fraction, runs.noise, runs.classes, run.calibration,
-                        fit["coefficient"], tests)
+    if started is not None:  # (start_lines_without of the same run and tests)
+        fit, again = started[0], started[1]()
+    else:
+        fit = of_run(run, runs.fraction)
+        if fit is None:
+            return found, set()
+        again = runs.on_bag(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
+                            runs.fraction, runs.noise, runs.classes, run.calibration,
+                            fit["coefficient"], tests)
     if again is None:
         return found, set()
     left, rest = again

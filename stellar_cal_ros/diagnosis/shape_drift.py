@@ -217,24 +217,66 @@ def corner_px(calibration: Calibration, shape: Shape = SCALE) -> float:
     return r * abs(stats.shape_weight(shape.name, du, dv, (cam.fx, cam.fy)))
 
 
-def first_if_cause(found: list, run, runs, tests, alpha: float = 0.01, keep=frozenset()
-                   ) -> tuple[list, dict[int, str]]:
+def first_if_cause(found: list, run, runs, tests, alpha: float = 0.01, keep=frozenset(),
+                   started: dict | None = None) -> tuple[list, dict[int, str]]:
     """``found`` with a line naming each drifting camera shape first, when the lines are its.
 
     For each of :data:`SHAPES` in turn (:func:`shape_first`); a line that follows one
     shape's drift stays behind it.  Returns the lines and ``{index: cause}`` (in the
-    returned list) of those that follow a drift.
+    returned list) of those that follow a drift.  ``started``: :func:`start_first_runs`'s
+    of the same ``run``, ``runs``, ``tests`` and ``alpha``.
     """
     follows: dict[int, str] = {}
     for shape in SHAPES:
         found, after = shape_first(found, run, runs, tests, shape, alpha,
-                                   frozenset(keep) | frozenset(follows))
+                                   frozenset(keep) | frozenset(follows),
+                                   (started or {}).get(shape.name))
         follows.update((id(found[i]), shape.cause) for i in after)
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 
 
+def _first_run(run, runs, shape: Shape, alpha: float) -> tuple[bool, dict, float] | None:
+    """:func:`shape_first`'s conditions on ``run``: (own, the window's fit, the rate) or None."""
+    if (runs is None or run is None or not run.ok or run.prior is None
+            or run.calibration is None or run.residuals is None):
+        return None
+    model = (*runs.spec.baseline, *run.effects)
+    own = shape.effect in model
+    if not own and not camera_columns(model):
+        return None
+    fit = of_table(run.residuals, run.calibration, runs.fraction, shape, None if own else model)
+    if not (own or (fit is not None and fit["spanned"] > SPANNED)) or not lagging(fit, alpha):
+        return None
+    return own, fit, 2.0 * fit["rate_per_s"]
+
+
+def _without(run, runs, tests, shape: Shape, own: bool, k: float, soon: bool = False):
+    """The run on the bag without the drift at ``k`` (``soon``: started, a function of it)."""
+    call = runs.later if soon else runs.on_bag
+    return call(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects), runs.fraction,
+                runs.noise, runs.classes, run.calibration, k, tests, shape, not own)
+
+
+def start_first_runs(run, runs, tests, alpha: float = 0.01) -> dict[str, tuple]:
+    """:func:`first_if_cause`'s first run of each shape, started now, beside the line tests.
+
+    Every argument of a shape's first run is known from ``run`` alone (its lines only
+    decide whether it is needed: some line to explain), so on a cluster
+    (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.later`) a worker makes it while this
+    process computes the line tests; in this process it runs only when asked for.  Returns
+    ``{shape name: (own, fit, rate, value)}`` of the shapes whose run starts.
+    """
+    out = {}
+    for shape in SHAPES:
+        first = _first_run(run, runs, shape, alpha)
+        if first is not None:
+            out[shape.name] = (*first, _without(run, runs, tests, shape, first[0], first[2],
+                                                soon=True))
+    return out
+
+
 def shape_first(found: list, run, runs, tests, shape: Shape = SCALE, alpha: float = 0.01,
-                keep=frozenset()) -> tuple[list, set[int]]:
+                keep=frozenset(), started: tuple | None = None) -> tuple[list, set[int]]:
     """``found`` with a line naming a drift of ``shape`` first, when the lines are its.
 
     On a model that estimates the shape (its ``effect`` in the method's baseline or the
@@ -252,27 +294,21 @@ def shape_first(found: list, run, runs, tests, shape: Shape = SCALE, alpha: floa
     change test's t, its size the px at the detector's corner; t and p of the change test,
     p × :data:`FAMILY`) goes before the first line that is gone, the lines that are gone
     after it (they follow it: their indices in the returned list returned), the others
-    after them.  Unchanged otherwise, and without a runner.
+    after them.  Unchanged otherwise, and without a runner.  ``started``:
+    :func:`start_first_runs`'s entry of ``shape`` (its first run's value taken from it).
     """
-    if (not found or runs is None or run is None or not run.ok or run.prior is None
-            or run.calibration is None or run.residuals is None):
+    if not found:
         return found, set()
-    model = (*runs.spec.baseline, *run.effects)
-    own = shape.effect in model
-    if not own and not camera_columns(model):
+    first = started[:3] if started is not None else _first_run(run, runs, shape, alpha)
+    if first is None:
         return found, set()
-    fit = of_table(run.residuals, run.calibration, runs.fraction, shape, None if own else model)
-    if not (own or (fit is not None and fit["spanned"] > SPANNED)) or not lagging(fit, alpha):
-        return found, set()
+    own, fit, rate = first
     t = np.asarray(run.residuals["t"], dtype=float)
-    rate = 2.0 * fit["rate_per_s"]
 
     def without(k: float):
-        return runs.on_bag(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
-                           runs.fraction, runs.noise, runs.classes, run.calibration, k,
-                           tests, shape, not own)
+        return _without(run, runs, tests, shape, own, k)
 
-    again = without(rate)
+    again = started[3]() if started is not None else without(rate)
     if again is None or again[1] is None:
         return found, set()
     left, rest = set(again[0]), again[1]
