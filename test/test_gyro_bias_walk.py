@@ -251,6 +251,49 @@ def test_a_gyro_error_that_follows_the_rate_is_not_taken_for_a_walk():
     assert "not taken: its z bias estimate follows the gyro's rate (p = " in lines[1]
 
 
+def test_a_tracker_wobble_is_not_taken_for_a_walk():
+    """The tracker wobbling 0.1 px (5 arcsec) with a 45 s period against the IMU, which no
+    gyro sees (unseen case ``wobble``, an effect outside the library), on the clean psce bag
+    (200 s, seed 21): the model is far off and a walk explains the stars' misfit, but the
+    walk's bias estimate comes back with the wobble's period (Fisher's g on its 5-s
+    increments, :func:`~stellar_cal_ros.diagnosis.noise_runs.comes_back`), so it is not
+    taken.  Fails on 43ed2dc (a walk of ~10 deg/h/sqrt(h) taken on the 300-s bag, no line)."""
+    from stellar_cal_ros.diagnosis.injection import clean_simulation
+    from stellar_cal_ros.diagnosis.run import measure_bag
+
+    sim, model = clean_simulation("psce", False, 21, 200.0)
+    t0 = sim.star_frames[0].stamp_ns
+    for f in sim.star_frames:
+        ph = 2.0 * np.pi * (f.stamp_ns - t0) * 1e-9 / 45.0
+        f.uv = np.asarray(f.uv, dtype=float) + 0.1 * np.array([np.sin(ph), np.cos(ph)])
+    v = measure_bag(bag_data_from_simulation(sim), sim.prior, "psce", list(model),
+                    NoiseScales())
+    walk = v.walk
+    assert walk is not None and walk["p_value"] < walk["alpha"], walk  # the walk fits ...
+    assert not walk["accepted"], walk  # ... but comes back every 45 s
+    assert min(walk["periodic_p"]) < 1e-4, walk
+    assert "bias estimate comes back every" in walk["why"], walk
+    period = float(walk["why"].split("comes back every ")[1].split(" s")[0])
+    assert 38.0 < period < 55.0, walk  # the wobble's 45 s, within the ordinates' spacing
+    assert v.applied.gyro_bias_rw == 0.0
+
+
+def test_fisher_g_holds_its_level_on_white_series_and_finds_a_period():
+    """:func:`~stellar_cal_ros.diagnosis.stats.fisher_g` on 55 white samples (the 5-s
+    increments of a 300-s walk): the rate below 1 % is 1 % (2 000 draws, ±0.45 % at 2σ),
+    and a sinusoid of amplitude 2 in unit noise with a 9.2-sample period is found (p < 1e-6)
+    at its period."""
+    from stellar_cal_ros.diagnosis.stats import fisher_g
+
+    rng = np.random.default_rng(7)
+    ps = np.array([fisher_g(rng.standard_normal(55))[0] for _ in range(2000)])
+    assert abs(np.mean(ps < 0.01) - 0.01) < 0.0045, np.mean(ps < 0.01)
+    assert abs(np.mean(ps < 0.1) - 0.1) < 0.0135, np.mean(ps < 0.1)
+    t = np.arange(55)
+    p, k = fisher_g(2.0 * np.sin(2.0 * np.pi * t / 9.2) + rng.standard_normal(55))
+    assert p < 1e-6 and k == 6, (p, k)
+
+
 def test_a_refused_walk_is_said_and_one_not_found_is_not():
     """The verdict's lines with a walk refused by a rival effect (beats_rivals' record),
     by the motion guard, and with a walk the search did not find (no line: its own test

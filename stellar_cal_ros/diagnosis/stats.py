@@ -543,6 +543,34 @@ _GH_X, _GH_W = np.polynomial.hermite_e.hermegauss(24)  # standard-normal nodes, 
 _GH_LOGW = np.log(_GH_W / _GH_W.sum())
 
 
+def fisher_g(y: np.ndarray) -> tuple[float, int]:
+    """Fisher's g test of a white series ``y`` for one hidden periodic term.
+
+    The periodogram's largest ordinate over their sum (mean removed; the m ordinates
+    between the mean's and the Nyquist rate's), its exact tail under white Gaussian ``y``
+    (Fisher 1929: ``p = Σ_{j=1}^{⌊1/g⌋} (-1)^{j-1} C(m, j) (1 - j g)^{m-1}``).  For a
+    series that is white when no period is there (the increments of a random walk's
+    estimate, :func:`~stellar_cal_ros.diagnosis.noise_runs.walk_motion`); red series need
+    :func:`_local_peak`.  Returns ``(p, k)``: the tail and the ordinate's index (the
+    period is ``len(y) / k`` samples); ``(nan, 0)`` below 8 samples.
+    """
+    y = np.asarray(y, dtype=float)
+    n = len(y)
+    if n < 8:
+        return math.nan, 0
+    spec = np.abs(np.fft.rfft(y - y.mean())) ** 2
+    spec = spec[1:(n - 1) // 2 + 1]
+    m = len(spec)
+    total = float(spec.sum())
+    if not total > 0.0:
+        return 1.0, 0
+    k = int(np.argmax(spec))
+    g = float(spec[k]) / total
+    p = sum((-1) ** (j - 1) * math.comb(m, j) * (1.0 - j * g) ** (m - 1)
+            for j in range(1, int(1.0 / g) + 1))
+    return float(min(max(p, 0.0), 1.0)), k + 1
+
+
 def _local_peak(spec: np.ndarray, red: bool = False) -> tuple[int, float, float]:
     """The periodogram ordinate highest over its neighbours' level: ``(index, ratio, tail)``.
 
