@@ -522,3 +522,20 @@ def test_store_writes_the_estimate(sim):
     to = registry.create("time_offset")
     to.store(np.array([0.021]), np.array([0.002]), cal)
     assert cal.time_offset == 0.021 and cal.sigma["time_offset"] == 0.002
+
+
+def test_an_estimate_beyond_what_an_instrument_reaches_is_implausible():
+    """:func:`~stellar_cal_ros.diagnosis.discover.beyond_limit`: a detector tilt of 122 mrad
+    (unseen case ``rolling`` seed 23: a rolling shutter fitted as tau (-110, -54) mrad, σ
+    0.1 mrad) is beyond the tilt's physical limit (50 mrad) and said so; the acceptance
+    cases' (10, -8) mrad, a tilt at the limit within 5σ, and an effect with no limit are not."""
+    from stellar_cal_ros.diagnosis.discover import beyond_limit
+
+    tilt = registry.create("image_plane_tilt")
+    why = beyond_limit(tilt, [-0.1095, -0.0536], [6.6e-5, 7.8e-5])
+    assert why.startswith("the data fit image_plane_tilt of 122 mrad, beyond what a working "
+                          "instrument reaches (50 mrad)"), why
+    assert beyond_limit(tilt, [0.01, -0.008], [1e-4, 1e-4]) == ""
+    assert beyond_limit(tilt, [0.054, 0.0], [1e-3, 1e-3]) == ""  # 4 mrad over: 4σ
+    assert beyond_limit(tilt, [0.056, 0.0], [1e-3, 1e-3]) != ""  # 6σ over
+    assert beyond_limit(registry.create("time_offset"), [0.5], [1e-5]) == ""

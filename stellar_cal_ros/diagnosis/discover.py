@@ -382,6 +382,30 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference:
                 f"size is known ({phys:g}): the structure follows part of its pattern but "
                 "has another cause" + (f", {reading}" if reading else "") + "; if several "
                 "effects are missing, add the top candidate and diagnose again")
+    beyond = beyond_limit(eff, value, sig_post) if r.physical_check else ""
+    if beyond:
+        cand.status, cand.reason = "implausible", beyond
+
+
+def beyond_limit(eff, value, sigma) -> str:
+    """Why an estimate ``value`` (σ ``sigma``) of ``eff`` is beyond what an instrument reaches.
+
+    Its size (the parameters' norm) above ``eff.physical_limit`` by more than
+    :data:`PHYSICAL_TOL_SIGMA` of its largest σ: the effect's pattern standing in for another
+    cause, not the effect (a rolling shutter fitted as a 122 mrad detector tilt, unseen case
+    ``rolling`` seed 23).  '' when within, or when the effect has no such limit.
+    """
+    limit = eff.physical_limit
+    if limit is None:
+        return ""
+    size = float(np.linalg.norm(np.asarray(value, dtype=float)))
+    if not size - limit > PHYSICAL_TOL_SIGMA * float(np.max(np.asarray(sigma, dtype=float))):
+        return ""
+    shown, factor = eff.display_units or ("", 1.0)
+    return (f"the data fit {eff.id} of {size * factor:.3g} {shown}, beyond what a working "
+            f"instrument reaches ({limit * factor:g} {shown}): the structure follows part of "
+            "its pattern but has another cause, outside the library; if several effects are "
+            "missing, add the top candidate and diagnose again")
 
 
 #: a screening run goes first (the round's re-runs wait for it)

@@ -33,6 +33,8 @@ attribute           read by
                     converted to the parameters for the run's camera
                     (:meth:`Effect.plausible_parameters`)
 ``physical_value``  the diagnosis: the value physics fixes (astrometric scales: 1)
+``physical_limit``  the diagnosis: the size (norm of the parameters, their units) no
+                    working instrument reaches; an estimate clearly beyond it is a stand-in
 ``display_units``   every printed number (arcsec, ppm, mrad, ms ...)
 ``export_role``     ``stellar-cal export``: where the value goes (:class:`ExportRole`)
 ``budget_source``   ``stellar-cal budget``: the error source it belongs to (None: not part
@@ -211,6 +213,10 @@ class Effect:
     #: the value physics fixes, for an effect whose parameter scales a known correction
     #: (astrometric: 1); an estimate far from it means another cause with a similar pattern
     physical_value: ClassVar[float | None] = None
+    #: the size (Euclidean norm of the parameters, in their units) no working instrument
+    #: reaches (None: no such bound); a significant estimate clearly beyond it is the
+    #: effect's pattern standing in for another cause, not the effect (discover: implausible)
+    physical_limit: ClassVar[float | None] = None
     #: (unit, factor from the parameter unit) every parameter is shown in; None: from
     #: :data:`UNIT_DISPLAY` by each parameter's unit
     display_units: ClassVar[tuple[str, float] | None] = None
