@@ -88,7 +88,7 @@ MOTION_SKIP = 20.0
 
 
 def walk_motion(bag, method: str, prior, effects: tuple[str, ...], noise: NoiseScales
-                ) -> list[tuple[float, float, int]]:
+                ) -> list[tuple[float, float, int, float, float]]:
     """Whether the walk's bias estimate moves with the gyro's rate, axis by axis (on the bag).
 
     The model with the walk ``noise`` run over ``bag``; its gyro bias estimate at the ends
@@ -130,13 +130,19 @@ def walk_motion(bag, method: str, prior, effects: tuple[str, ...], noise: NoiseS
         dfe = len(y) - 3
         f = (rss0 - rss1) / 2.0 / max(rss1 / dfe, 1e-300)
         p_per, k = fisher_g(np.diff(b))
-        period = len(b) - 1 if k else 0
         out.append((float(f), float(dist.f.sf(f, 2, dfe)), len(spans), p_per,
-                    MOTION_BLOCK * period / k if k else math.nan))
+                    MOTION_BLOCK * (len(b) - 1) / k if k else math.nan))
     return out
 
 
-def follows_motion(walk: dict, moved: list[tuple[float, float, int]], tell=None) -> bool:
+def _axis_below(ps: list[float]) -> tuple[int, float] | None:
+    """The axis (0-2) whose p is smallest among those below α over the axes, or None."""
+    alpha = ALPHA / len(ps)
+    hit = [(i, p) for i, p in enumerate(ps) if p < alpha]
+    return min(hit, key=lambda a: a[1]) if hit else None
+
+
+def follows_motion(walk: dict, moved: list[tuple], tell=None) -> bool:
     """Whether the walk's estimate follows the motion (:func:`walk_motion`'s ``moved``).
 
     At p below α over the axes on any axis, the walk is not taken (``walk['why']``): a
@@ -146,12 +152,11 @@ def follows_motion(walk: dict, moved: list[tuple[float, float, int]], tell=None)
     accepted, doc/benchmarks.md, H160).  Records the axes' p in ``walk['motion_p']``.
     """
     walk["motion_p"] = [m[1] for m in moved]
-    alpha = ALPHA / len(moved)
-    hit = [(ax, m[1]) for ax, m in zip("xyz", moved, strict=True) if m[1] < alpha]
-    if not hit:
+    hit = _axis_below(walk["motion_p"])
+    if hit is None:
         return False
-    ax, p = min(hit, key=lambda a: a[1])
-    _not_taken(walk, f"its {ax} bias estimate follows the gyro's rate (p = {p:.2g}): a "
+    i, p = hit
+    _not_taken(walk, f"its {'xyz'[i]} bias estimate follows the gyro's rate (p = {p:.2g}): a "
                "gyro error that is a function of the motion, not a wandering bias", tell)
     return True
 
@@ -165,18 +170,17 @@ def comes_back(walk: dict, moved: list[tuple], tell=None) -> bool:
     p below α over the axes on any axis the walk is not taken (``walk['why']``), so the
     round's periodic 'unexplained' line is said instead.  Measured (doc/benchmarks.md,
     "a wobble is not a walk"): unseen case ``wobble`` (5 arcsec, 45 s) s21 walk ~10
-    deg/h/√h, g p 8e-7 / 2.5e-14 / 1.5e-3 at 45.8 s; true walks (``bias_walk10``,
-    ``bias_walk`` s21/s22) p >= 0.069 on 15 axes.  Records ``walk['periodic_p']``.
+    deg/h/√h, g p 8.5e-7 / 2.8e-14 / 1.6e-3 at 45.8 s; true walks (``bias_walk10`` s21-23,
+    ``bias_walk`` s21/s22) p >= 0.065 on 21 axes.  Records ``walk['periodic_p']``.
     """
     walk["periodic_p"] = [m[3] for m in moved]
-    alpha = ALPHA / len(moved)
-    hit = [(ax, m[3], m[4]) for ax, m in zip("xyz", moved, strict=True) if m[3] < alpha]
-    if not hit:
+    hit = _axis_below(walk["periodic_p"])
+    if hit is None:
         return False
-    ax, p, period = min(hit, key=lambda a: a[1])
-    _not_taken(walk, f"its {ax} bias estimate comes back every {period:.3g} s (p = {p:.2g}): "
-               "a periodic motion of the tracker the gyro does not see, not a wandering "
-               "bias", tell)
+    i, p = hit
+    _not_taken(walk, f"its {'xyz'[i]} bias estimate comes back every {moved[i][4]:.3g} s "
+               f"(p = {p:.2g}): a periodic motion of the tracker the gyro does not see, not "
+               "a wandering bias", tell)
     return True
 
 
