@@ -971,14 +971,17 @@ def write_case(name: str, out: Path, seed: int) -> dict[str, Path]:
         case.post(sim, seed)
     if not case.twin:
         return write_simulation(sim, out / f"{name}.mcap")
-    return _write_twin(name, write_simulation(sim, out / f"{name}.base.mcap"), out)
+    return _write_twin(name, write_simulation(sim, out / f"{name}.base.mcap"), out, seed)
 
 
-def _write_twin(name: str, base: dict[str, Path], out: Path) -> dict[str, Path]:
+def _write_twin(name: str, base: dict[str, Path], out: Path, seed: int) -> dict[str, Path]:
     """A twin of ``base`` with the case's effect at a multiple of its printed MDB.
 
     The user calibrates ``base`` (``discover --auto``), then asks ``stellar-cal twin`` for
-    ``OUT/name.mcap``: the case's effect at ``factor`` x the MDB printed for it.
+    ``OUT/name.mcap``: the case's effect at ``factor`` x the MDB printed for it.  The twin's
+    noise is drawn with the case's seed, so two seeds are two independent draws (before
+    2026-11-28 evening every twin used ``twin``'s default seed 0: nine bases' dt twins read
+    +1.32 to +1.46 sigma, one noise draw, not nine).
     """
     case = CASES[name]
     effect, param, factor = case.twin
@@ -992,7 +995,7 @@ def _write_twin(name: str, base: dict[str, Path], out: Path) -> dict[str, Path]:
     value = ",".join(f"{factor * mdb[k]:.6g}" if k == param else "0" for k in mdb)
     subprocess.run([exe, "twin", str(base["bag"]), "--calibration",
                     str(d / "calibration.yaml"), "-o", str(out / f"{name}.mcap"), "--effect",
-                    f"{effect}={value}"], check=True, capture_output=True,
+                    f"{effect}={value}", "--seed", str(seed)], check=True, capture_output=True,
                    env=os.environ.copy())
     return {"bag": out / f"{name}.mcap", "prior": out / f"{name}.prior.yaml"}
 
