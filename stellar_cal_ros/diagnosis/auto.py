@@ -56,10 +56,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.diagnosis import clock, flexure, leads, rolling, screening
+from stellar_cal_ros.diagnosis import clock, flexure, installation_step, leads, rolling, screening
 from stellar_cal_ros.diagnosis.discover import (
     ALPHA,
     MIN_EXPLAINED,
+    PHYSICAL_TOL_FRACTION,
     CandidateResult,
     Reference,
     Round,
@@ -172,6 +173,10 @@ class _State:
     lead: dict[str, dict | None] = field(default_factory=dict)
     #: the latest round's candidates tested beside a lead: effect → lead → its beyond test
     beside: dict[str, dict[str, dict | None]] = field(default_factory=dict)
+    #: effects added at their physical size beside a clock's remainder (:func:`_at_size`):
+    #: the excess they are measured against is the clock's, so no explained floor keeps or
+    #: drops them; effect → the estimate's fraction of its physical value
+    at_size: dict[str, float] = field(default_factory=dict)
 
     def checkable(self) -> list[str]:
         """Added effects whose need is tested this round."""
@@ -207,7 +212,7 @@ def _decide_checks(state: _State, base: RunSummary, extras: dict[str, RunSummary
         dof = registry.create(x).size
         stat, p, expl = Reference.of(run).compare(base, dof)
         p_adj = min(1.0, p * len(checks))
-        needed = p_adj < ALPHA and not expl < MIN_EXPLAINED
+        needed = p_adj < ALPHA and (not expl < MIN_EXPLAINED or x in state.at_size)
         details[x] = {"score": stat, "p_value": p_adj, "explained_fraction": expl,
                       "needed": needed}
         if not needed and (worst is None or p_adj > details[worst]["p_value"]):
@@ -375,6 +380,10 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 state.dropped[removed] = f"exchanged for {added} in round {k}"
             else:
                 state.extra.append(added)
+                if not top.significant_alone:  # one a clock's remainder hid (:func:`_at_size`)
+                    eff = registry.create(added)
+                    state.at_size[added] = next(iter(top.estimate.values())) / eff.physical_value
+                    step["added"]["at_physical_size"] = state.at_size[added]
                 # not those refused as a field's stand-in this round: the exchange
                 # (prequential log-likelihood) does not ask the stand-in rule, and brought
                 # one back (a 40″/g flexure: gyro_misalignment exchanged for the
@@ -462,9 +471,8 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     fields, along = None, {}  # the outside-library leads of the current model (and their
     # directions), once a candidate asks
     ticks = None  # the current model's clock test, once a rate-shaped candidate asks
-    for c in results:
-        if not c.significant_alone:
-            continue
+    order, hidden = [c for c in results if c.significant_alone], []
+    for c in order:  # (grows once, by the candidates a clock's remainder hides: below)
         if c.effect in clock.RATE_ALIASES:
             if ticks is None:
                 ticks = _clock_of(base, base.calibration or prior, runs.fraction) or False
@@ -473,6 +481,11 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
                      "clock's (it shrinks along a slew)")
                 refused.append((c, {"clock": ticks.as_json(), "reason": _clock_reason(
                     c, ticks), "remainder": CLOCK_REMAINDER}))
+                if not hidden:
+                    # the excess is the clock's: an effect at its physical size, significant
+                    # but removing little of it, is tested after those significant alone
+                    hidden = _at_size(results)
+                    order.extend(hidden)
                 continue
         if fields is None:
             fields = leads.significant(leads.of_run(base, runs.fraction), ALPHA)
@@ -520,6 +533,29 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             return c, refused
         refused.append((c, b))
     return None, refused
+
+
+def _at_size(results: list[CandidateResult]) -> list[CandidateResult]:
+    """Candidates significant at their physical size that remove too little of the excess.
+
+    Asked once a clock's remainder (outside the library) was found on the current model
+    (:func:`_top`): the excess residual variance is then mostly the clock's, and an effect
+    whose size physics fixes (``Effect.physical_value``) can remove only a sliver of it
+    however real it is (unseen case ``sky_clock_drift3``: aberration at 0.989x of its
+    physical size, p 6.6e-34, removes 2 % of an excess the 0 -> 3 ms drift makes).  Its
+    estimate within :data:`~stellar_cal_ros.diagnosis.discover.PHYSICAL_TOL_FRACTION` of
+    the physical value is the evidence the explained floor stands for: a stand-in absorbing
+    a sliver of another cause fits at a size of its own.
+    """
+    out = []
+    for c in results:
+        if c.significant_alone or c.status != "ranked" or not c.p_adjusted < ALPHA:
+            continue
+        phys = registry.create(c.effect).physical_value
+        est = next(iter(c.estimate.values()), math.nan)
+        if phys is not None and abs(est - phys) <= PHYSICAL_TOL_FRACTION * abs(phys):
+            out.append(c)
+    return out
 
 
 def _clock_of(base: RunSummary, calibration: Calibration, fraction: float):
@@ -631,6 +667,8 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
                      panels, plots, "stellar_cal discovery", images, verdict, write=False,
                      outside=outside + fields, like=like, runs=runs, hiding=hidden,
                      refused=tuple(path[-1].get("beyond_remainder") or ()) if path else ())
+    if path and any("clock" in b for b in (path[-1].get("beyond_remainder") or {}).values()):
+        _clock_first(summary["unexplained"])
     summary.update({
         "path": path,
         "added": added,
@@ -660,6 +698,26 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         write_report(out, summary, "stellar_cal discovery")
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+def _clock_first(lines: list[dict[str, Any]]) -> None:
+    """The clock's line first (after an installation step's), when the stop names the clock.
+
+    The discovery stopped on "nothing significant beyond the clock-shaped remainder": the
+    line that remainder is (:data:`~stellar_cal_ros.diagnosis.clock.CLOCK`) is what the
+    user is sent to, and the lines that rank above it by p are read on the same remainder
+    (unseen case ``sky_clock_drift3`` s21: the stars' spread along their motion read as a
+    0.46-ms stamp noise, p 4.4e-4, above the clock's p 3.1e-3; no stamp noise is in the
+    bag).  In place; the order of the others kept.
+    """
+    at = next((i for i, u in enumerate(lines) if u.get("component") == clock.COMPONENT
+               and str(u.get("regressor", "")).startswith(clock.CLOCK)), None)
+    if at is None:
+        return
+    k = 0
+    while k < at and lines[k].get("component") == installation_step.COMPONENT:
+        k += 1
+    lines.insert(k, lines.pop(at))
 
 
 def _rejected(history: dict[str, list[tuple[int, CandidateResult]]], state: _State,

@@ -21,6 +21,9 @@ def describe(step: dict[str, Any]) -> str:
     if a == "add":
         add = step["added"]
         alias = " -- could be a mount flexure, see below" if step.get("could_be_flexure") else ""
+        if add.get("at_physical_size") is not None:  # diagnosis.auto._at_size
+            alias += (f" -- at {add['at_physical_size']:.3g}x its physical size, beside the "
+                      "clock's remainder that makes most of the excess")
         return (f"add {add['effect']} (score {add['score']:.1f}, p = {add['p_value']:.2g})"
                 f"{alias}")
     if a == "drop":
