@@ -400,7 +400,7 @@ def constant_lag(res: stats.Table, focal: tuple[float, float], centre: tuple[flo
     catches up.  ``None`` without the rate columns.
     """
     m = stats.accepted(res)
-    sub = {k: np.asarray(v)[m] for k, v in res.items()}
+    sub = stats.Rows(res, m)
     got = stats.frame_offsets(sub, focal, centre, R_imu_st)
     if got is None:
         return None

@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
+from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise_structure
 from stellar_cal_ros.diagnosis.noise_imu import FLAT, ScaleSearch
@@ -99,6 +100,7 @@ def measure_stars(result, data, method: str, fraction: float,
     cam = result.calibration.camera
     sig, msg = used_sigma(res, data, noise or NoiseScales(), default_sigma(method),
                           cam.width, cam.height)
+    trim_freed()  # (its freed heap pages, not held beside the estimate's)
 
     near = []  # (whether the run is near its model: decided on the window's one fit)
 

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
+from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise_structure
 
@@ -297,9 +298,13 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     the noise does, and the noise is not judged on such a run anyway.  ``kept``: the
     scales the run used (:func:`fit_weights`).
     """
+    # after each part its freed heap pages (blocks below the mapping threshold) go back,
+    # not held beside the next part's: a 2-h round's screening run peaks in these parts
     patterns = detector_patterns(res, sigma_px, fx, fy)
+    trim_freed()
     out = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre, R_imu_st, flips,
                            patterns=patterns)
+    trim_freed()
     if weigh is not None and out is not None and passes and not weigh(out):
         return out
     last = None
@@ -309,6 +314,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
             break
         out, last = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre,
                                      R_imu_st, flips, w, patterns), w
+        trim_freed()
     return out
 
 

@@ -84,6 +84,8 @@ FAMILY = TESTS * len(SHAPES)
 #: once each frame's attitude takes up the rotation, tangential p1 0.89: unseen case
 #: ``tilt_drift``'s filter lags the tilt; the pixel aspect spans the scale 0.50, kept out)
 SPANNED = 0.8
+#: :func:`patterns` computes the camera's Jacobian in blocks of this many rows
+PATTERN_ROWS = 16384
 #: the principal point's coordinate whose drift reads as each tilt's (the same keystone
 #: once the attitude takes up its rotation): its axis, name and focal length
 TWIN_POINT = {"tau_x": ("v", "c_y", "fy"), "tau_y": ("u", "c_x", "fx")}
@@ -143,9 +145,15 @@ def patterns(calibration: Calibration, effects: tuple[str, ...]):
     def at(u: np.ndarray, v: np.ndarray) -> np.ndarray:
         xy = cam.pixel_to_normalized(np.stack([u, v], 1))
         d = np.concatenate([xy, np.ones((len(xy), 1))], 1)
-        _, _, jp = cam.project(d, jacobians=True)
-        jp = np.asarray(jp) * scale
-        return np.stack([jp[:, :, [names.index(n) for n in c]].sum(2) for c in cols], 2)
+        out = np.empty((len(d), 2, len(cols)))
+        # the Jacobian (N, 2, 18) in blocks of rows (each row's the same floats): a 2-h
+        # run's window made it and its scaled copy at once, ≈ 60 MB
+        for a in range(0, len(d), PATTERN_ROWS):
+            _, _, jp = cam.project(d[a:a + PATTERN_ROWS], jacobians=True)
+            jp = np.asarray(jp) * scale
+            out[a:a + PATTERN_ROWS] = np.stack(
+                [jp[:, :, [names.index(n) for n in c]].sum(2) for c in cols], 2)
+        return out
 
     return at
 

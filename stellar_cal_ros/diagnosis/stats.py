@@ -28,6 +28,51 @@ def evaluation_mask(res: Table, fraction: float = 0.5) -> np.ndarray:
     return t >= t_cut
 
 
+class Rows(dict):
+    """The rows ``mask`` of a residual table, each column taken when first read.
+
+    ``{k: np.asarray(v)[mask] for k, v in res.items()}`` with the same arrays, but only of
+    the columns read: a test that reads a dozen of a 2-h run's 30 columns no longer holds
+    a copy of the others (the clock test over the whole run: ≈ 20 MB).  ``res`` must not
+    change while this is read.
+    """
+
+    def __init__(self, res: Table, mask: np.ndarray) -> None:
+        super().__init__()
+        self._res, self._mask = res, mask
+
+    def __missing__(self, key: str) -> np.ndarray:
+        if key not in self._res:
+            raise KeyError(key)
+        got = self[key] = np.asarray(self._res[key])[self._mask]
+        return got
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._res or dict.__contains__(self, key)
+
+    def get(self, key: str, default=None):
+        """The column ``key`` (taken now), or ``default``."""
+        return self[key] if key in self else default
+
+    def keys(self):
+        """Every column's name (the table's, then any set here)."""
+        return list(dict.fromkeys([*self._res, *dict.keys(self)]))
+
+    def __iter__(self):
+        return iter(self.keys())
+
+    def __len__(self) -> int:
+        return len(self.keys())
+
+    def items(self):
+        """``(name, column)`` of every column (each taken now)."""
+        return [(k, self[k]) for k in self.keys()]
+
+    def values(self):
+        """Every column (each taken now)."""
+        return [self[k] for k in self.keys()]
+
+
 def accepted(res: Table) -> np.ndarray:
     """Stars not rejected by the gate."""
     return ~np.asarray(res["gated"]).astype(bool)
@@ -892,7 +937,7 @@ def accepted_offsets(res: Table, mask: np.ndarray, focal: tuple[float, float],
     m = np.asarray(mask, dtype=bool) & accepted(res)
     if m.sum() < 20:
         return None
-    sub = {k: np.asarray(v)[m] for k, v in res.items()}
+    sub = Rows(res, m)
     got = frame_offsets(sub, focal, centre, R_imu_st)
     return None if got is None else (sub, got)
 
@@ -1124,7 +1169,7 @@ def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
     m = mask & accepted(res)
     if m.sum() < 20:
         return None
-    sub = {k: np.asarray(v)[m] for k, v in res.items()}
+    sub = Rows(res, m)
     x = rolling_columns(sub, focal, centre, R_imu_st)
     if x is None:
         return None
@@ -1494,7 +1539,7 @@ def shape_change(res: Table, mask: np.ndarray, centre: tuple[float, float],
     m = mask & accepted(res)
     if m.sum() < 40:
         return None
-    sub = {k: np.asarray(v)[m] for k, v in res.items()}
+    sub = Rows(res, m)
     sig = np.sqrt(np.maximum(0.5 * (sub["s_uu"] + sub["s_vv"]), 1e-300))
     fit = FrameFit(sub, sig, *focal)
     r = fit.residual(sub["du"], sub["dv"])
@@ -1542,11 +1587,19 @@ def shape_change(res: Table, mask: np.ndarray, centre: tuple[float, float],
 
 def _spanned(s: np.ndarray, cols: np.ndarray, project, ok: np.ndarray) -> float:
     """The share of ``s``'s sum of squares the projected columns ``cols`` ``(N, 2, k)`` span."""
-    if not cols.shape[2]:
+    k = cols.shape[2]
+    if not k:
         return 0.0
-    a = np.stack([project(cols[:, :, j]) for j in range(cols.shape[2])], 1)[ok]
+    # the projected columns made into one array of the rows ``ok`` (not stacked, then
+    # taken, then taken again for each use: a 2-h window's peak in the line tests)
+    a = np.empty((int(np.count_nonzero(ok)), k))
+    for j in range(k):
+        a[:, j] = project(cols[:, :, j])[ok]
     use = np.isfinite(a).all(1)
-    if use.sum() <= cols.shape[2]:
+    if use.sum() <= k:
         return 0.0
-    left = s[use] - a[use] @ np.linalg.lstsq(a[use], s[use], rcond=None)[0]
-    return float(1.0 - (left @ left) / (s[use] @ s[use]))
+    if not use.all():
+        a = a[use]
+    su = s[use]
+    left = su - a @ np.linalg.lstsq(a, su, rcond=None)[0]
+    return float(1.0 - (left @ left) / (su @ su))

@@ -44,33 +44,85 @@ class _Prepared:
     weather: tuple[float, float]  #: pressure (Pa), air temperature (°C) it was made with
 
 
-class _Table:
-    """The frames of :meth:`ScaledDirection.prepare` in a few arrays, looked up by stamp.
+class Stacked:
+    """The identified stars of a bag's frames in a few arrays, looked up by stamp.
 
-    Every frame's stars are rows ``start[j]:start[j + 1]`` of ``ids``, ``u`` and ``delta``;
-    a frame is found by its stamp (POSIX s; of frames with the same stamp, the last).  One
-    object per frame (a dataclass and three views, ≈ 0.6 kB a frame and effect: 27 MB for
-    the three direction effects of a 2-h bag, held through a diagnosis round) is made only
-    when a frame is looked up (:meth:`get`), and dropped with it.
+    Every kept frame's stars are rows ``start[j]:start[j + 1]`` of ``ids`` and ``u``; a
+    frame is found by its stamp (POSIX s; of frames with the same stamp, the last).  A
+    frame whose numbers are not unique and nonzero is left out.  Made once per bag
+    (:meth:`~stellar_cal_ros.methods.star_model.StarModel.prepare_frames`) and shared by the
+    direction effects' tables (:class:`_Table`), which add their Δ only: on a 2-h bag each
+    effect's own copy of the stars and the stamps' lookup was ≈ 9 MB, held through the
+    round's screening runs.
     """
 
-    def __init__(self, stamps: list[float], start: np.ndarray, ids: np.ndarray,
-                 u: np.ndarray, delta: np.ndarray, weather: np.ndarray) -> None:
-        self._row = {t: j for j, t in enumerate(stamps)}  # the last frame of a stamp
-        self.start, self.ids, self.u, self.delta, self.weather = start, ids, u, delta, weather
+    def __init__(self, stamps: np.ndarray, catalog_ids: list[np.ndarray], u: list[np.ndarray],
+                 pressure_pa: np.ndarray, air_temperature_c: np.ndarray) -> None:
+        keep = [k for k, ids in enumerate(catalog_ids)
+                if len(ids) and ids.min() > 0 and len(np.unique(ids)) == len(ids)]
+        self.count = np.array([len(catalog_ids[k]) for k in keep], dtype=np.int64)
+        kk = np.asarray(keep, dtype=np.int64)
+        self.stamps = np.asarray(stamps, dtype=float)[kk]
+        self.weather = np.stack([np.asarray(pressure_pa, dtype=float)[kk],
+                                 np.asarray(air_temperature_c, dtype=float)[kk]], axis=1)
+        self.ids = (np.concatenate([np.asarray(catalog_ids[k], dtype=np.int64) for k in keep])
+                    if keep else np.zeros(0, np.int64))
+        self.u = np.concatenate([u[k] for k in keep]) if keep else np.zeros((0, 3))
+        self.start = np.concatenate([[0], np.cumsum(self.count)])
+        self._row = {t: j for j, t in enumerate(self.stamps.tolist())}  # a stamp's last frame
         self._order: dict[int, np.ndarray] = {}  # argsort of a frame's ids, made when needed
 
     def __len__(self) -> int:
         return len(self._row)
 
+    def per_star(self, values: np.ndarray) -> np.ndarray:
+        """``values`` (one per kept frame) repeated for each of its stars."""
+        return np.repeat(values, self.count)
+
+
+class _Table:
+    """One effect's Δ of the stars of :class:`Stacked`, looked up by stamp.
+
+    One object per frame (a dataclass and three views, ≈ 0.6 kB a frame and effect: 27 MB
+    for the three direction effects of a 2-h bag, held through a diagnosis round) is made
+    only when a frame is looked up (:meth:`get`), and dropped with it.
+    """
+
+    def __init__(self, stacked: Stacked, delta: np.ndarray) -> None:
+        self.stacked, self.delta = stacked, delta
+
+    def __len__(self) -> int:
+        return len(self.stacked)
+
+    @property
+    def start(self) -> np.ndarray:
+        """The frames' first rows (and the last's end), :class:`Stacked`'s."""
+        return self.stacked.start
+
+    @property
+    def ids(self) -> np.ndarray:
+        """The stars' catalogue numbers, :class:`Stacked`'s."""
+        return self.stacked.ids
+
+    @property
+    def u(self) -> np.ndarray:
+        """The stars' directions (n, 3), :class:`Stacked`'s."""
+        return self.stacked.u
+
+    @property
+    def weather(self) -> np.ndarray:
+        """Each frame's pressure (Pa) and air temperature (°C), :class:`Stacked`'s."""
+        return self.stacked.weather
+
     def get(self, stamp: float) -> _Prepared | None:
         """The frame of ``stamp`` (None: not prepared)."""
-        j = self._row.get(stamp)
+        st = self.stacked
+        j = st._row.get(stamp)
         if j is None:
             return None
-        sl = slice(int(self.start[j]), int(self.start[j + 1]))
-        return _Prepared(self.ids[sl], self.u[sl], self.delta[sl],
-                         (float(self.weather[j, 0]), float(self.weather[j, 1])))
+        sl = slice(int(st.start[j]), int(st.start[j + 1]))
+        return _Prepared(st.ids[sl], st.u[sl], self.delta[sl],
+                         (float(st.weather[j, 0]), float(st.weather[j, 1])))
 
     def __getitem__(self, stamp: float) -> _Prepared:
         got = self.get(stamp)
@@ -80,14 +132,15 @@ class _Table:
 
     def items(self):
         """``(stamp, frame)`` of every prepared frame."""
-        return ((t, self.get(t)) for t in self._row)
+        return ((t, self.get(t)) for t in self.stacked._row)
 
     def order(self, stamp: float) -> np.ndarray:
-        """The argsort of the ids of the frame of ``stamp`` (made once)."""
-        j = self._row[stamp]
-        if j not in self._order:
-            self._order[j] = np.argsort(self[stamp].ids, kind="stable")
-        return self._order[j]
+        """The argsort of the ids of the frame of ``stamp`` (made once, shared)."""
+        st = self.stacked
+        j = st._row[stamp]
+        if j not in st._order:
+            st._order[j] = np.argsort(self[stamp].ids, kind="stable")
+        return st._order[j]
 
 
 def _same_floats(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
@@ -139,24 +192,18 @@ class ScaledDirection(Effect):
         :data:`_EXACT_BELOW` stars or fewer) is computed as before: the table changes no
         number (one call for many stars computes each star as its frame's call does).
         """
+        self.prepare_stacked(Stacked(stamps, catalog_ids, u, pressure_pa, air_temperature_c),
+                             site)
+
+    def prepare_stacked(self, stacked: Stacked, site: Site | None) -> None:
+        """:meth:`prepare` of stars already stacked (shared with the other effects' tables)."""
         self._site, self._table = site, None
-        keep = [k for k, ids in enumerate(catalog_ids)
-                if len(ids) and ids.min() > 0 and len(np.unique(ids)) == len(ids)]
-        if not keep:
+        if not len(stacked):
             return
-        n = np.array([len(catalog_ids[k]) for k in keep])
-        rows = np.repeat(np.arange(len(keep)), n)
-        ids = np.concatenate([np.asarray(catalog_ids[k], dtype=np.int64) for k in keep])
-        uu = np.concatenate([u[k] for k in keep])
-        kk = np.asarray(keep)
-        d = self.delta_stars(uu, np.asarray(stamps, dtype=float)[kk][rows], ids, site,
-                             np.asarray(pressure_pa, dtype=float)[kk][rows],
-                             np.asarray(air_temperature_c, dtype=float)[kk][rows])
-        start = np.concatenate([[0], np.cumsum(n)])
-        weather = np.stack([np.asarray(pressure_pa, dtype=float)[kk],
-                            np.asarray(air_temperature_c, dtype=float)[kk]], axis=1)
-        self._table = _Table(np.asarray(stamps, dtype=float)[kk].tolist(), start, ids, uu, d,
-                             weather)
+        d = self.delta_stars(stacked.u, stacked.per_star(stacked.stamps), stacked.ids, site,
+                             stacked.per_star(stacked.weather[:, 0]),
+                             stacked.per_star(stacked.weather[:, 1]))
+        self._table = _Table(stacked, d)
 
     def prepared_table(self) -> tuple[Site | None, _Table | None]:
         """What :meth:`prepare` made (the site and the table).

@@ -508,6 +508,7 @@ class StarModel:
             return
         if "inputs" not in made:
             from stellar_cal_ros.core.catalog import radec_to_unit
+            from stellar_cal_ros.effects._direction import Stacked
 
             env = data.env()
             stamps = np.array([f.stamp_ns for f in data.frames], dtype=np.int64)
@@ -516,10 +517,12 @@ class StarModel:
                 ok = np.isfinite(f.right_ascension) & np.isfinite(f.declination)
                 ids.append(np.asarray(f.catalog_id, dtype=np.int64)[ok])
                 u.append(radec_to_unit(f.right_ascension[ok], f.declination[ok]))
-            made["inputs"] = (stamps * 1e-9, ids, u, data.site,
-                              env["pressure"].interp(stamps), env["air"].interp(stamps))
+            # the stars stacked once, shared by every effect's table (not a copy each)
+            made["inputs"] = (Stacked(stamps * 1e-9, ids, u, env["pressure"].interp(stamps),
+                                      env["air"].interp(stamps)), data.site)
+            del ids, u
         for eff in todo:
-            eff.prepare(*made["inputs"])
+            eff.prepare_stacked(*made["inputs"])
             if hasattr(eff, "prepared_table"):
                 made[type(eff)] = eff.prepared_table()
 
