@@ -1204,14 +1204,17 @@ def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
     w_nu = whitened(sub)
     w_x = whitened({"du": x[:, 0], "dv": x[:, 1], **cov})
     ok = np.all(np.isfinite(w_x), 1) & np.all(np.isfinite(w_nu), 1)
-    info = float(np.sum(w_x[ok] ** 2))
+    # the rows ``ok`` taken once, the whole columns not held beside the test (the clock
+    # test's fit over a 2-h run's every star is one of its round's peaks)
+    w_x, w_nu = w_x[ok], w_nu[ok]
+    info = float(np.sum(w_x**2))
     if ok.sum() < 20 or not info > 0:
         return None
     frame = np.repeat(np.asarray(sub["frame"])[ok], 2)
-    t, p, nu = frame_robust_t(w_x[ok].ravel(), w_nu[ok].ravel(), frame, dof=True)
+    t, p, nu = frame_robust_t(w_x.ravel(), w_nu.ravel(), frame, dof=True)
     if dof and nu is None:
         return None
-    c = float(np.sum(w_x[ok] * w_nu[ok])) / info
+    c = float(np.sum(w_x * w_nu)) / info
     return (float(t), float(p), c, info) + ((float(nu),) if dof else ())
 
 
