@@ -1565,15 +1565,3 @@ def _adjusted_ss(r: np.ndarray, frame: np.ndarray, label: np.ndarray
         tol = "rtol" if "rtol" in inspect.signature(cg).parameters else "tol"
         a = cg(C.tocsr(), Q, atol=0.0, maxiter=10 * L, **{tol: 1e-10})[0]
     return float(a @ Q), rank, trace
-
-
-def own_scales(sn: StarNoise, use: np.ndarray) -> np.ndarray:
-    """Each row's star's own scale ``√(Σq / Σm)`` over its rows in ``use`` (NaN outside)."""
-    out = np.full(len(sn.q), math.nan)
-    if sn.star is None:
-        return out
-    ok = use & (sn.m > 0)
-    _, k = np.unique(sn.star[ok], return_inverse=True)
-    k = k.reshape(-1)
-    out[ok] = np.sqrt(np.bincount(k, sn.q[ok]) / np.bincount(k, sn.m[ok]))[k]
-    return out
