@@ -1,12 +1,13 @@
 """The per-star σ test's level on clean rows (issue 21 item 1, H118).
 
 ``noise_stars.star_spread`` (the stated σ wrong star by star) on a psce bag's own rows with
-the innovations replaced by white draws at the stated σ: how often its F test is below 1 % /
+the innovations replaced by white draws at the stated σ (Gaussian, or Student-t of ``--dof``
+scaled to that RMS: the F's level under heavy tails): how often its F test is below 1 % /
 5 %, the σ factors' spread it reads, and how often ``noise.star_levels`` (significant and
 material) accepts it — the gate of the verdict's per-star line and of the size tests' star
 levels.  Run::
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/star_levels_null.py --draws 200
+    OPENBLAS_NUM_THREADS=1 python benchmarks/star_levels_null.py --draws 200 [--dof 4]
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ def main() -> int:
     ap.add_argument("--draws", type=int, default=200)
     ap.add_argument("--seed", type=int, default=3, help="the bag's simulation seed")
     ap.add_argument("--duration", type=float, default=200.0)
+    ap.add_argument("--dof", type=float, default=0.0,
+                    help="Student-t draws of this many dof (> 2), 0: Gaussian")
     a = ap.parse_args()
     sim = simulate(get_scenario("psce_rotations"), duration=a.duration, seed=a.seed)
     base = evaluate(bag_data_from_simulation(sim), method_spec("psce"),
@@ -43,8 +46,9 @@ def main() -> int:
     ps, sp, fired, d = [], [], 0, {}
     t0 = time.time()
     for _ in range(a.draws):
-        res = dict(res0, du=0.05 * rng.standard_normal(n), dv=0.05 * rng.standard_normal(n),
-                   gated=np.zeros(n, bool))
+        e = rng.standard_normal((2, n)) if not a.dof else \
+            rng.standard_t(a.dof, (2, n)) * np.sqrt((a.dof - 2.0) / a.dof)
+        res = dict(res0, du=0.05 * e[0], dv=0.05 * e[1], gated=np.zeros(n, bool))
         sn = line_noise(res, mask, cam.fx, cam.fy, (cam.cx, cam.cy), base.calibration.R_imu_st)
         d = star_spread(sn)
         ps.append(d["p_value"])
