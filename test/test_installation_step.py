@@ -96,3 +96,43 @@ def test_the_step_contrast_takes_a_straight_line_out():
     j = np.arange(-6, 6)
     assert abs(c @ np.ones(12)) < 1e-12 and abs(c @ j) < 1e-12
     assert abs(c @ (j >= 0) - 1.0) < 1e-12
+
+
+def test_a_gyro_scale_that_explains_nothing_before_the_knock_is_not_added(tmp_path):
+    """The swaying bag with the knock (``sway_knock``): gyro_scale_factor is significant
+    alone, taking up the filter's catch-up after the step, but its ratio on the window's
+    frames before the step is nothing, so it is refused and the reason names the step.
+    Fails on 8e3e396 (gyro_scale_factor added)."""
+    from stellar_cal_ros.diagnosis.auto import discover
+
+    sim, model = clean_simulation("swaying_base", False, 21, 300.0)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    px = STEP_ARCSEC * ARCSEC * sim.prior.camera.fx
+    a = np.deg2rad(ANGLE_DEG)
+    for f in sim.star_frames:
+        if f.stamp_ns - t0 >= AT * (t1 - t0):
+            f.uv = np.asarray(f.uv, dtype=float) + px * np.array([np.cos(a), np.sin(a)])
+    got = discover(bag_data_from_simulation(sim), sim.prior, "swaying_base", model, tmp_path,
+                   candidates=["gyro_scale_factor"], plots=False, verbose=False, workers=0)
+    assert "gyro_scale_factor" not in got["added"], got["added"]
+    b = got["path"][-1]["beyond_remainder"]["gyro_scale_factor"]
+    assert b["before"]["p_value"] > 0.01 and b["before"]["frames"] >= 100, b["before"]
+    assert b["after"]["statistic"] > 30, b["after"]
+    why = [r["reason"] for r in got["path"][-1]["rejected"]
+           if r["effect"] == "gyro_scale_factor"]
+    assert why and "explains nothing before the tracker's installation step" in why[0], why
+    assert got["unexplained"][0]["component"] == COMPONENT, got["unexplained"]
+
+
+def test_a_candidate_is_split_at_the_step():
+    """The frames' log-likelihood gain before the step and after it, as 2 Δℓ / dispersion."""
+    from stellar_cal_ros.diagnosis.installation_step import MIN_BEFORE, before_and_after
+
+    stamps = np.arange(100.0)
+    without = np.stack([stamps, np.zeros(100)])
+    with_c = np.stack([stamps, np.where(stamps >= 60, 1.0, 0.01)])
+    got = before_and_after(without, with_c, 60.0, 2.0, 3)
+    assert got["before"]["frames"] == 60 and got["after"]["frames"] == 40
+    assert np.isclose(got["before"]["statistic"], 0.6) and got["before"]["p_value"] > 0.5
+    assert np.isclose(got["after"]["statistic"], 40.0) and got["after"]["p_value"] < 1e-7
+    assert before_and_after(without, with_c, MIN_BEFORE - 1.0, 2.0, 3) is None

@@ -815,6 +815,27 @@ def test_a_wandering_gyro_bias_adds_no_library_effect(tmp_path):
     assert summary["added"] == [], summary["path"]
 
 
+
+def test_an_effect_exchanged_in_is_checked_next_round(tmp_path):
+    """Unseen case ``bias_walk`` (0.3 deg/h/√h) at seed 27: round 1 refuses the walk (its z
+    bias estimate follows the rate, p 0.0029) and adds gyro_misalignment (p 3.7e-13);
+    round 2 takes the walk and exchanges gyro_misalignment for gyro_scale_factor (the
+    prequential likelihood compares the two, not gyro_scale_factor with nothing).  An
+    effect exchanged in is checked in the next round as any added before: with the walk
+    its estimates are 0 within 1.6σ (7 ± 5, −0.2 ± 2, −11 ± 7 ppm) and it is dropped.
+    Fails on 8e3e396 (gyro_scale_factor added, never checked)."""
+    from stellar_cal_ros.diagnosis.auto import discover
+
+    sim = _bag(lambda s: tracker_errors.gyro_bias_walk(s, 0.3, 27), seed=27, noise_free=False,
+               duration=300.0)
+    got = discover(bag_data_from_simulation(sim), sim.prior, "psce", [], tmp_path,
+                   candidates=["gyro_misalignment", "gyro_scale_factor"], plots=False,
+                   verbose=False, workers=0)
+    actions = [s["action"] for s in got["path"]]
+    assert "exchange" in actions, actions
+    assert got["added"] == [], got["path"]
+    assert got["noise"]["gyro_bias_rw"]["accepted"], got["noise"]["gyro_bias_rw"]
+
 def _step_noise(factor):
     """The stated 0.05 px right for the first half of the frames, ``factor`` x in the rest."""
     def post(sim):

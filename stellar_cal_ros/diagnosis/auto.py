@@ -85,6 +85,8 @@ MAX_RIVALS = 2
 RIVAL_SCORE = 0.5
 #: what a stop names when a rate-shaped candidate was refused beside a clock's remainder
 CLOCK_REMAINDER = ("the clock-shaped remainder along the stars' motion", "a drifting clock")
+#: ... and beside an installation step it explains nothing before
+STEP_REMAINDER = ("what the installation step leaves", "an installation step")
 
 
 def _verdict(c: CandidateResult, top: CandidateResult | None) -> str:
@@ -394,7 +396,9 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                     and c.effect not in stand_ins
                     and c.statistic >= RIVAL_SCORE * top.statistic][:MAX_RIVALS]
             state.start = restart(follow.calibration, spec.baseline + state.user, calibration)
-            state.last = added or removed
+            # (an effect exchanged in is checked next round: the exchange compared it
+            # with the effect it replaced, not with the model without either)
+            state.last = added if action == "add" else removed
             # the run of the next model tells whether a local (score) test can screen
             # its candidates; if not, the next round re-runs them all at once
             local = screening.is_local(follow)
@@ -471,6 +475,8 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     fields, along = None, {}  # the outside-library leads of the current model (and their
     # directions), once a candidate asks
     ticks = None  # the current model's clock test, once a rate-shaped candidate asks
+    knock = None  # its installation step test, likewise
+    frames = None  # its run's log-likelihood frame by frame, once a step's test asks
     order, hidden = [c for c in results if c.significant_alone], []
     for c in order:  # (grows once, by the candidates a clock's remainder hides: below)
         if c.effect in clock.RATE_ALIASES:
@@ -487,6 +493,16 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
                     hidden = _at_size(results)
                     order.extend(hidden)
                 continue
+            if knock is None:
+                knock = _knock_of(base, base.calibration or prior, runs.fraction) or False
+            if knock and knock.p_value < ALPHA:
+                tell(f"{c.effect}: testing it before the installation step at "
+                     f"t~{knock.t:.1f} s")
+                b, frames = _after_knock(runs, state, base, prior, calibration, c, knock,
+                                         frames)
+                if b is not None:
+                    refused.append((c, b))
+                    continue
         if fields is None:
             fields = leads.significant(leads.of_run(base, runs.fraction), ALPHA)
             # a candidate's fields are sized along this model's (one pattern, two runs)
@@ -565,6 +581,65 @@ def _clock_of(base: RunSummary, calibration: Calibration, fraction: float):
     from stellar_cal_ros.diagnosis.output import clock_test
 
     return clock_test(base.residuals, calibration, fraction)
+
+
+def _knock_of(base: RunSummary, calibration: Calibration, fraction: float):
+    """The installation step test (:func:`~.output.step_test`) of ``base``."""
+    if base.residuals is None:
+        return None
+    from stellar_cal_ros.diagnosis.output import step_test
+
+    return step_test(base.residuals, calibration, fraction)
+
+
+def _after_knock(runs, state: _State, base: RunSummary, prior: Calibration,
+                 calibration: Calibration, c: CandidateResult, knock, frames):
+    """Whether a rate-shaped candidate only takes up what an installation step leaves.
+
+    The step (:mod:`~stellar_cal_ros.diagnosis.installation_step`, outside the library)
+    fires on the current model ``base``.  The filter takes the jump into its attitude; as
+    the platform turns, the attitude error that leaves grows with the angle turned, as a
+    gyro rate error's does, so a gyro scale factor takes part of it (unseen case
+    ``sway_knock``).  A gyro's error acts before the step as after it: the candidate's
+    ratio on the window's frames before the step
+    (:func:`~stellar_cal_ros.diagnosis.installation_step.before_and_after`: its run and
+    the current model's with their frames' log-likelihood, two runs; ``frames``: the
+    current model's, once made) must be significant at ``ALPHA``, else it is refused with
+    its reason.  ``(refusal or None, frames)``; no refusal where the test cannot be made
+    (fewer than :data:`~stellar_cal_ros.diagnosis.installation_step.MIN_BEFORE` window
+    frames before the step).
+    """
+    from stellar_cal_ros.diagnosis import installation_step
+
+    key = f"{c.effect}: its frames"
+    tasks = [Task(key, candidate_prior(prior, c.effect, calibration),
+                  tuple(state.extra) + (c.effect,), cost=1.5, candidate=True,
+                  frame_loglik=True)]
+    if frames is None:
+        tasks.append(Task("current model: its frames", prior, tuple(state.extra),
+                          frame_loglik=True))
+    got = runs.run_all(tasks, None)
+    if frames is None:
+        done = got["current model: its frames"]
+        frames = done.frame_loglik if done.ok else False
+    run = got[key]
+    stamp = float(min(base.residuals["t"])) + knock.t
+    split = installation_step.before_and_after(
+        frames if frames is not False else None, run.frame_loglik if run.ok else None,
+        stamp, Reference.of(base).dispersion, c.dof)
+    if split is None or split["before"]["p_value"] < ALPHA:
+        return None, frames
+    a, b = split["before"], split["after"]
+    reason = (f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing before the "
+              f"tracker's installation step at t~{knock.t:.1f} s on this model "
+              f"({knock.chi2:.0f} chi2 / 3 dof): its ratio {a['statistic']:.3g} for {c.dof} "
+              f"dof on the window's {a['frames']} frames before it (p = {a['p_value']:.2g}), "
+              f"{b['statistic']:.3g} on the {b['frames']} after; the filter takes the jump "
+              "into its attitude and the error left grows with the angle turned, as a gyro "
+              "rate error's would, but a gyro's error acts before the step as after it: a "
+              "knock on the mount, outside the library; not added")
+    return {"installation_step": knock.as_json(), **split, "reason": reason,
+            "remainder": STEP_REMAINDER}, frames
 
 
 def _clock_reason(c: CandidateResult, ticks) -> str:

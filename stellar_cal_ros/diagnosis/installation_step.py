@@ -180,3 +180,38 @@ def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, fl
         float(math.sqrt(max(float(along @ A @ cov @ A.T @ along), 0.0))),
         float(np.degrees(np.arctan2(shift[1], shift[0]))), float(d2[i]), int(len(k)), p,
         at_rest)
+
+
+#: fewer window frames than this before the step: a candidate's gain there is not tested
+MIN_BEFORE = 20
+
+
+def before_and_after(without: np.ndarray | None, with_c: np.ndarray | None, stamp: float,
+                     dispersion: float, dof: int) -> dict | None:
+    """A candidate's log-likelihood ratio on the window's frames before a step and after it.
+
+    ``without``, ``with_c``: the window's log-likelihood frame by frame of the current
+    model's run and of the candidate's (:attr:`~stellar_cal_ros.diagnosis.runstats.
+    RunSummary.frame_loglik`, ``(2, frames)``: stamps, terms); ``stamp``: the first frame
+    after the step (POSIX s); ``dispersion``: the current model's (the candidates' ratio
+    test's).  ``{"before": ..., "after": ...}``, each ``2 Δℓ / dispersion`` over those
+    frames (``statistic``), its χ²_dof tail (``p_value``) and ``frames``; ``None`` without
+    both runs' frames or with fewer than :data:`MIN_BEFORE` frames before the step.  A
+    library constant acts before a knock as after it; what the filter's catch-up on the
+    knock leaves starts at it (:func:`~stellar_cal_ros.diagnosis.auto` refuses a gyro rate
+    candidate that explains nothing before it).
+    """
+    if without is None or with_c is None or not without.shape[1] or not with_c.shape[1]:
+        return None
+    common = np.intersect1d(without[0], with_c[0])
+    a = without[1, np.searchsorted(without[0], common)]
+    b = with_c[1, np.searchsorted(with_c[0], common)]
+    before = common < stamp
+    if before.sum() < MIN_BEFORE:
+        return None
+    out = {}
+    for name, m in (("before", before), ("after", ~before)):
+        s = float(2.0 * (b[m].sum() - a[m].sum()) / dispersion)
+        out[name] = {"statistic": s, "p_value": float(dist.chi2.sf(max(s, 0.0), dof)),
+                     "frames": int(m.sum())}
+    return out
