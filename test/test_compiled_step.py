@@ -883,3 +883,66 @@ def test_without_numba_the_numpy_path_runs() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=300, check=False)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+@pytest.mark.parametrize(("duration", "damaged", "watch"), [(60.0, False, False),
+                                                            (60.0, True, False),
+                                                            (150.0, False, True)])
+def test_swaying_frame_batch_equals_one_call_a_frame(monkeypatch, duration, damaged,
+                                                     watch) -> None:
+    """A replay's swaying-base frames stepped a run at a time (``frame_step.swaying_frames``,
+    ``SwayingFilter.prepare_frames``: each frame's ``swaying_frame`` in one compiled loop)
+    and committed at once (``StarFilter.commit_batch`` with the swaying part
+    ``_commit_more``: velocity, position, the position references' counts, sensitivity
+    frames and history rows in order; the driver's statistics take the references' rows)
+    against one call a frame (``batched_step = False``, the reference): the same floats —
+    counters, θ̂, velocity, position, attitude, P, M, information, score, the statistics'
+    sums and the references' NIS — bit for bit, with most frames committed in batches.
+    The 60 s bags (seed 4, clean and damaged as :func:`_damaged`) without the gyro watch
+    (a batch is not committed within its first frames); 150 s with it."""
+    from stellar_cal_ros.methods.registry import get as registry_get
+    from stellar_cal_ros.methods.swaying import SwayingFilter
+
+    if duration == 60.0:
+        sim, data = _swaying_bag(damaged)
+    else:
+        sim = simulate(get_scenario("swaying"), duration=duration, seed=4)
+        data = bag_data_from_simulation(sim)
+    config = dataclasses.replace(registry_get("swaying_base").config_cls(), unit_check=watch)
+    committed = []
+    commit = SwayingFilter.commit_batch
+
+    def counted(self, limit):
+        b = commit(self, limit)
+        committed.append(0 if b is None else b.count)
+        return b
+
+    monkeypatch.setattr(SwayingFilter, "commit_batch", counted)
+    runs = {}
+    for batched in (True, False):
+        monkeypatch.setattr(SwayingFilter, "batched_step", batched)
+        committed.clear()
+        runs[batched] = replay(data, sim.prior, "swaying_base", None, config,
+                               consider=["radial_k3"], keep_tables=False)
+        if batched:
+            n_batched = sum(committed)
+    assert not committed  # (the reference commits none)
+    fast, ref = runs[True], runs[False]
+    assert fast.counters == ref.counters
+    c = ref.counters
+    assert n_batched >= (0.3 if watch else 0.8) * c["updates"] and c["position_updates"] >= 50
+    if damaged:
+        assert c["skipped_few_stars"] >= 5 and c["reinitializations"] >= 1
+        assert c["stars_gated"] >= 5 and c["imu_gaps"] >= 1
+    a, b = fast.filter, ref.filter
+    for name in ("theta", "velocity", "position", "R_i_b", "P"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    sa, sb = a.sensitivity, b.sensitivity
+    assert sa.frames == sb.frames > 0
+    for name in ("M", "info", "score"):
+        np.testing.assert_array_equal(getattr(sa, name), getattr(sb, name), err_msg=name)
+    ta, tb = (s.current() if hasattr(s, "current") else s for s in (fast.stats, ref.stats))
+    assert vars(ta).keys() == vars(tb).keys()
+    for name, value in vars(tb).items():
+        if isinstance(value, float | int):
+            assert getattr(ta, name) == value, name

@@ -689,7 +689,8 @@ class Calibrator(ImuRelease):
         Returns the frames done (appended to ``out``); the rest go frame by frame.
         """
         flt = self.filter
-        if getattr(flt, "reference_history", None) is not None:
+        ref = getattr(flt, "reference_history", None)
+        if ref is not None and type(self.stats) is not RunStats:
             return 0  # (a method's other measurements go into the statistics frame by frame)
         q = 0
         for _, inp, _, _ in part:  # (process_frame re-checks a frame's stars otherwise)
@@ -701,6 +702,11 @@ class Calibrator(ImuRelease):
             return 0
         k = b.count
         part = part[:k]
+        if ref and ref["t"]:  # the method's other measurements (sums of their own, in order)
+            for t, nis in zip(ref["t"], ref["nis"], strict=True):
+                self.stats.add_reference(t, nis, 3)
+            for v in ref.values():
+                v.clear()
         fc = flt.counters
         fc.stars_invalid += sum(len(inp.ok) - len(inp.uv) for _, inp, _, _ in part)
         index0 = self._frame_index

@@ -408,6 +408,111 @@ def swaying_frame(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, j, mj, ta, tb, R_a
 
 
 @njit(cache=True)
+def swaying_frames(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, js, mjs, tas, tbs, R_a, Gg,
+                   Ga, theta_ref, max_rad, P, M, Pe, inv_tau, qd_index, qd, vel, pos,
+                   due, site_pos, R_ref, score, info, acc,
+                   gyro_b0, gyro_Jb, gyro_theta0, imu_w, ms, theta,
+                   uv, u, sigma, offs, base, s0, g, timed, R_prior, T, tracked, c, B, need,
+                   dcol, dfix, dgrp, cam, du, bscale, cfg):
+    """:func:`swaying_frame` over ``K`` frames in a row, on copies of the state (a batch).
+
+    Frame ``i``'s inputs: rows ``js[i]..mjs[i]``, ``tas[i]``, ``tbs[i]``, ``due[i]`` and
+    ``site_pos[i]`` (the position reference), ``acc[i]``, the raw rate ``imu_w[ms[i]]``,
+    ``base[i]``, ``bscale[i]``, its stars rows ``offs[i]:offs[i + 1]`` of ``uv, u,
+    sigma, du``; ``delta`` is ``θ̂ − theta_ref`` at each frame; the rest as
+    :func:`swaying_frame`.  After an ``UPDATED`` frame the
+    navigation blocks' part of its ``dx`` is added to the velocity and position (what
+    ``StarFilter._compiled_result`` does).  The state arguments are not changed: each
+    frame's state after it is returned (as :func:`frame_steps`).  Stops after the first
+    frame not ``UPDATED`` and before a ``REBUILD`` (not done).
+
+    Returns ``(done, status, ints, floats, accepted, uv_pred, S, nis_stars, directions,
+    omega, R_prior, P, theta, R, M, score, info, vel (K, 3), pos (K, 3), nu (K, 3),
+    nis_ref (K,))`` (the first 17 as :func:`frame_steps`'; ``nu``, ``nis_ref`` NaN where
+    no reference was due).
+    """
+    K = js.shape[0]
+    N = P.shape[0]
+    n_all = uv.shape[0]
+    mc = M.shape[1]
+    P_ = P.copy()
+    th_ = theta.copy()
+    R_ = R_a.copy()
+    M_ = M.copy()
+    sc_ = score.copy()
+    in_ = info.copy()
+    v_ = vel.copy()
+    r_ = pos.copy()
+    status = np.full(K, -1, dtype=np.int64)
+    ints = np.zeros((K, 6), dtype=np.int64)
+    floats = np.zeros((K, 13))
+    accepted = np.zeros(n_all, dtype=np.bool_)
+    uv_pred = np.zeros((n_all, 2))
+    S = np.zeros((n_all, 2, 2))
+    nis = np.zeros(n_all)
+    dirs = np.zeros((n_all, 3))
+    omega = np.zeros((K, 3))
+    R_pr = np.zeros((K, 3, 3))
+    Ps = np.empty((K, N, N))
+    ths = np.empty((K, theta.shape[0]))
+    Rs = np.empty((K, 3, 3))
+    Ms = np.empty((K, N, mc))
+    scs = np.empty((K, mc))
+    ins = np.empty((K, mc, mc))
+    vs = np.empty((K, 3))
+    rs = np.empty((K, 3))
+    nus = np.full((K, 3), np.nan)
+    nis_ref = np.full(K, np.nan)
+    done = 0
+    iv = 3 + Pe
+    ir = iv + 3
+    for i in range(K):
+        a, b = offs[i], offs[i + 1]
+        (st, it_, fl, ac, up, Sb, ns, dr, om, rp, R_n, P_n, M_n, v_n, r_n, nu, nr,
+         dx) = swaying_frame(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, js[i], mjs[i],
+                             tas[i], tbs[i], R_, Gg, Ga, th_ - theta_ref, max_rad, P_, M_, Pe,
+                             inv_tau, qd_index, qd, v_, r_, due[i], site_pos[i], R_ref, sc_,
+                             in_, acc[i], gyro_b0, gyro_Jb, gyro_theta0, imu_w[ms[i]], th_,
+                             uv[a:b], u[a:b], sigma[a:b], base[i], s0, g, timed, R_prior, T,
+                             tracked, c, B, need, dcol, dfix, dgrp, cam, du[a:b], bscale[i],
+                             cfg)
+        if st == REBUILD:
+            break
+        P_, M_, R_ = P_n, M_n, R_n
+        if st == UPDATED:
+            v_ = v_n + dx[iv:iv + 3]
+            r_ = r_n + dx[ir:ir + 3]
+        else:
+            v_, r_ = v_n, r_n
+        status[i] = st
+        ints[i] = it_
+        floats[i] = fl
+        if ac.shape[0] == b - a:
+            accepted[a:b] = ac
+            uv_pred[a:b] = up
+            S[a:b] = Sb
+            nis[a:b] = ns
+            dirs[a:b] = dr
+        omega[i] = om
+        R_pr[i] = rp
+        Ps[i] = P_
+        ths[i] = th_
+        Rs[i] = R_
+        Ms[i] = M_
+        scs[i] = sc_
+        ins[i] = in_
+        vs[i] = v_
+        rs[i] = r_
+        nus[i] = nu
+        nis_ref[i] = nr
+        done = i + 1
+        if st != UPDATED:
+            break
+    return (done, status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_pr, Ps, ths,
+            Rs, Ms, scs, ins, vs, rs, nus, nis_ref)
+
+
+@njit(cache=True)
 def propagate_coupled(P, M, Pe, F, q_diag):
     """:func:`~stellar_cal_ros.core.covariance.propagate_coupled` of the attitude rows.
 
@@ -1038,6 +1143,28 @@ class FusedStep:
                           *self.chain, *self.directions, du, bscale, self.Pe, self.cfg)
 
 
+    def stack(self, frames: list) -> tuple:
+        """A batch's frames (:meth:`batch`'s tuples) as the compiled loops take them.
+
+        ``(offs, col, uv, u, sigma, du, bscale, base)``: the frames' star rows
+        ``offs[i]:offs[i + 1]`` of the stacked ``uv, u, sigma`` and the chain's ``du``, a
+        row a frame of ``bscale``, ``base`` and ``col`` (``j, mj, ta, tb, m, accumulate,
+        t_rel``).
+        """
+        K = len(frames)
+        offs = np.zeros(K + 1, dtype=np.int64)
+        offs[1:] = np.cumsum([len(f[0]) for f in frames])
+        chain = self.compiled_chain
+        inputs = [chain.frame_inputs(f[1], f[4]) for f in frames]
+        col = np.array([f[5:12] for f in frames], dtype=float)
+        uv = np.concatenate([f[0] for f in frames]).reshape(-1, 2)
+        u = np.concatenate([f[1] for f in frames]).reshape(-1, 3)
+        sigma = np.concatenate([f[2] for f in frames]).astype(float, copy=False)
+        du = np.concatenate([d for d, _ in inputs])
+        bscale = np.array([b for _, b in inputs], dtype=float).reshape(K, len(inputs[0][1]))
+        base = np.array([f[3] for f in frames], dtype=float)
+        return offs, col, uv, u, sigma, du, bscale, base
+
     def batch(self, P, theta, R, sens, pre, prop, imu, frames, vary=None
               ) -> FrameBatch | None:
         """:func:`frame_steps` over ``frames`` from the filter's current state.
@@ -1061,18 +1188,7 @@ class FusedStep:
         gamma = prop._gamma
         if gamma is not self._gamma_of:
             self._gamma_of, self._gamma = gamma, np.ascontiguousarray(gamma[0])
-        K = len(frames)
-        offs = np.zeros(K + 1, dtype=np.int64)
-        offs[1:] = np.cumsum([len(f[0]) for f in frames])
-        chain = self.compiled_chain
-        inputs = [chain.frame_inputs(f[1], f[4]) for f in frames]
-        col = np.array([f[5:12] for f in frames], dtype=float)  # j, mj, ta, tb, m, acc, t_rel
-        uv = np.concatenate([f[0] for f in frames]).reshape(-1, 2)
-        u = np.concatenate([f[1] for f in frames]).reshape(-1, 3)
-        sigma = np.concatenate([f[2] for f in frames]).astype(float, copy=False)
-        du = np.concatenate([d for d, _ in inputs])
-        bscale = np.array([b for _, b in inputs], dtype=float).reshape(K, len(inputs[0][1]))
-        base = np.array([f[3] for f in frames], dtype=float)
+        offs, col, uv, u, sigma, du, bscale, base = self.stack(frames)
         js, mjs = col[:, 0].astype(np.int64), col[:, 1].astype(np.int64)
         ms = col[:, 4].astype(np.int64)
         tas, tbs = np.ascontiguousarray(col[:, 2]), np.ascontiguousarray(col[:, 3])

@@ -876,7 +876,7 @@ class StarFilter(Acquisition):
             return None
         frame_step = _frame_step_module()
         (_, status, ints, floats, _, _, _, _, _, omega, R_pr, Ps, ths, Rs, Ms, scs,
-         ins) = b.out
+         ins) = b.out[:17]  # (a method's batch may return more: _commit_more's)
         q = min(int(limit), b.done)
         ok = (status[:q] == frame_step.UPDATED) & np.isfinite(floats[:q, 0])
         if not ok.all():
@@ -898,6 +898,7 @@ class StarFilter(Acquisition):
             sens.frames += sum(1 for f in frames[:q] if f[10])
             sens.accumulate = f_last[10]
         b.i = q
+        self._commit_more(b.out, frames, q)
         fc = self.counters
         fc.frames += q
         self.last_stamp = f_last[11]
@@ -929,6 +930,12 @@ class StarFilter(Acquisition):
             self.t = f_last[8]
         return frame_step.BatchCommit(b, q, n, n_acc, st.sigma(), self.theta_estimated(),
                                       self.P_est, FrameUpdate)
+
+    def _commit_more(self, out: tuple, frames: list, q: int) -> None:
+        """A method's own part of :meth:`commit_batch` (its batch's ``out``): none here.
+
+        Called with the state after frame ``q − 1`` written, before the counters and checks.
+        """
 
     # ------------------------------------------------------------------ update bookkeeping
     def _count_gated(self, ints: np.ndarray, floats: np.ndarray, n: Sequence[int],

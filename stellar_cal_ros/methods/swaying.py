@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stellar_cal_ros.core import earth
+from stellar_cal_ros.core import earth, gyro_check
 from stellar_cal_ros.core.jit import HAVE_NUMBA
 from stellar_cal_ros.core.propagation import Step
 from stellar_cal_ros.core.rotation import skew
@@ -445,6 +445,137 @@ class SwayingFilter(StarFilter):
         return True, self._compiled_result((status, ints, floats, accepted, uv_pred, S,
                                             nis_stars, dirs, omega), uv, u_i, ctx, sigma,
                                            t_exp, dx)
+
+    def prepare_frames(self, frames: list[tuple], shift: float | None | bool = False,
+                       ready: tuple[float, float] | None = None) -> int:
+        """The coming frames' :meth:`_fused_update` calls in one compiled call (a batch).
+
+        :func:`~.frame_step.swaying_frames` over the leading frames of ``frames`` (as the
+        kernel's :meth:`~.kernel.StarFilter.prepare_frames`) that the frame's one call
+        would take as things stand: enough stars, in order, the IMU covering each
+        exposure, rows inside the reference's window and without a bridged sample, no
+        covariance check due among them; the position reference's due frames and site
+        positions found here from the exposure times (a fixed exposure shift: ``shift``
+        None, a moving one, batches nothing).  The state is not changed:
+        :meth:`commit_batch` commits the leading updated frames at once, the driver takes
+        the rest frame by frame (their own calls).  None while the gyro watch is in its
+        first frames (a batch there is not committed).  Returns the frames stepped.
+        """
+        self._batch = None
+        us = self._frame_update() if self.compiled_step and self.batched_step and \
+            self.initialized else False
+        w = self.gyro_watch
+        if not us or len(frames) < 2 or self._gap_pending or self.t is None or \
+                (w is not None and (w["frames"] < gyro_check.EARLY_FRAMES or w["done"])):
+            return 0
+        if shift is False:
+            shift = self.model.fixed_exposure_shift(self.theta, self.P_est)
+        if shift is None:
+            return 0
+        from stellar_cal_ros.methods import frame_step
+
+        c = self.config
+        every = c.covariance_check_every
+        left = every - self.counters.updates % every if every and not self.checks_deferred \
+            else len(frames)
+        left = min(left, self.batch_frames_max)
+        imu, prop = self.imu, self.propagation
+        t, k, last, t_ref = self.t, self._k, self.last_stamp, self.last_reference_t
+        run, due = [], []
+        for uv, u_i, ctx, sigma, t_rel, acc in frames[:left]:
+            if ctx is None or len(uv) < c.min_stars or not math.isfinite(t_rel) or \
+                    (last is not None and t_rel <= last):
+                break
+            t_exp = t_rel + shift
+            pre = prop.prefix
+            m = imu.index(t_exp)
+            if t_exp <= t or m >= len(imu) or pre is None or imu.base + k < pre.base or \
+                    imu.base + m - prop.ref_start >= prop.window:
+                break
+            if pre.end <= imu.base + m:  # (as _fused_update: the rows do not depend on it)
+                prop._extend(imu, pre.end - imu.base, len(imu))
+                pre = prop.prefix
+            if frame_step.fused_sample(imu.t, imu.cum_bridged, k, t_exp, imu.base, pre.base,
+                                       pre.end, prop.ref_start, float(prop.window)) != m:
+                break
+            d = t_exp - t_ref >= c.position_interval_s - 1e-6
+            if d:
+                t_ref = t_exp
+            off = imu.base - pre.base
+            run.append((uv, u_i, sigma, t_rel - t_exp, ctx, k + off, m + off, t, t_exp, m,
+                        acc, t_rel))
+            due.append(d)
+            t, k, last = t_exp, m, t_rel
+        if len(run) < 2:
+            return 0
+        self._batch = self._frames_batch(us, run, np.array(due))
+        return self._batch.done if self._batch is not None else 0
+
+    def _frames_batch(self, us, run: list, due: np.ndarray):
+        """:func:`~.frame_step.swaying_frames` of ``run`` (:meth:`prepare_frames`'s frames).
+
+        A :class:`~.frame_step.FrameBatch` (its frames carry their ``due`` flag last), or
+        None: no frame done.
+        """
+        from stellar_cal_ros.methods import frame_step
+
+        st = self.state
+        if not st.P.flags.c_contiguous:
+            st.P = np.ascontiguousarray(st.P)
+        sens = st.sensitivity
+        M, score, info, _ = us._sensitivity(sens)
+        if sens is None:
+            M = self._no_consider
+        prop, imu = self.propagation, self.imu
+        pre = prop.prefix
+        offs, col, uv, u, sigma, du, bscale, base = us.stack(run)
+        site = np.zeros((len(run), 3))
+        for i in np.flatnonzero(due):
+            site[i] = self.site_position(run[i][8])
+        Gg, Ga = (np.ascontiguousarray(g_, dtype=float) for g_ in prop._gamma)
+        qd_index, qd, inv_tau = self._qd_arrays
+        b0, _, Jb, _ = prop.gyro._affine
+        R = self.R_i_b if self.R_i_b.flags.c_contiguous else np.ascontiguousarray(self.R_i_b)
+        out = frame_step.swaying_frames(
+            pre.tp, pre.C, pre.w_hat, pre.phi, pre.slope, pre.f_hat, pre.du, pre.gdt,
+            col[:, 0].astype(np.int64), col[:, 1].astype(np.int64),
+            np.ascontiguousarray(col[:, 2]), np.ascontiguousarray(col[:, 3]), R, Gg, Ga,
+            prop.theta_ref, prop.max_correction_rad, st.P, M, self.P_est, inv_tau, qd_index,
+            qd, self.velocity, self.position, due, site, self._R_reference, score, info,
+            col[:, 5] != 0.0, b0, Jb, prop.gyro.theta0, imu.w, col[:, 4].astype(np.int64),
+            self.theta, uv, u, sigma, offs, base, *us.chain, *us.directions, du, bscale,
+            us.cfg)
+        if not int(out[0]):
+            return None
+        frames = [f + (bool(d_),) for f, d_ in zip(run, due.tolist(), strict=True)]
+        return frame_step.FrameBatch(out, frames, offs, prop._gamma, pre, st.P, self.theta,
+                                     self.R_i_b, M)
+
+    def _commit_more(self, out: tuple, frames: list, q: int) -> None:
+        """:meth:`commit_batch`'s part for this method: navigation and position references.
+
+        The velocity and position after frame ``q − 1``, and each due reference's count,
+        sensitivity frame and history row in order (what :meth:`_fused_update` does).
+        """
+        vel, pos, nu, nis = out[17:21]
+        self.velocity = vel[q - 1].copy()
+        self.position = pos[q - 1].copy()
+        sens = self.state.sensitivity
+        h = self.reference_history
+        key = "position_updates" if self.config.velocity_reference == "position" \
+            else "velocity_updates"
+        for i in range(q):
+            f = frames[i]
+            if not f[12]:
+                continue
+            self.last_reference_t = f[8]
+            if sens is not None:
+                sens.frames += f[10]
+            self.counters.add(key)
+            h["t"].append(self.t0 + f[8])
+            for j, ax in enumerate("xyz"):
+                h[f"nu_{ax}"].append(float(nu[i, j]))
+            h["nis"].append(float(nis[i]))
 
     def _frame_update(self):
         """The star update's :class:`~.frame_step.FusedStep` for :meth:`_fused_update`.
