@@ -408,6 +408,23 @@ def swaying_frame(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, j, mj, ta, tb, R_a
 
 
 @njit(cache=True)
+def _batch_outputs(K, n_all, P, theta, M):
+    """The outputs a batch of ``K`` frames fills (:func:`frame_steps`, :func:`swaying_frames`).
+
+    Status, ints, floats; the stars rows' accepted, uv_pred, S, nis, directions; per frame
+    omega, R_prior, P, theta, R, M, score, info.
+    """
+    N = P.shape[0]
+    mc = M.shape[1]
+    return (np.full(K, -1, dtype=np.int64), np.zeros((K, 6), dtype=np.int64),
+            np.zeros((K, 13)), np.zeros(n_all, dtype=np.bool_), np.zeros((n_all, 2)),
+            np.zeros((n_all, 2, 2)), np.zeros(n_all), np.zeros((n_all, 3)), np.zeros((K, 3)),
+            np.zeros((K, 3, 3)), np.empty((K, N, N)), np.empty((K, theta.shape[0])),
+            np.empty((K, 3, 3)), np.empty((K, N, mc)), np.empty((K, mc)),
+            np.empty((K, mc, mc)))
+
+
+@njit(cache=True)
 def swaying_frames(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, js, mjs, tas, tbs, R_a, Gg,
                    Ga, theta_ref, max_rad, P, M, Pe, inv_tau, qd_index, qd, vel, pos,
                    due, site_pos, R_ref, score, info, acc,
@@ -432,9 +449,7 @@ def swaying_frames(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, js, mjs, tas, tbs
     no reference was due).
     """
     K = js.shape[0]
-    N = P.shape[0]
     n_all = uv.shape[0]
-    mc = M.shape[1]
     P_ = P.copy()
     th_ = theta.copy()
     R_ = R_a.copy()
@@ -443,22 +458,8 @@ def swaying_frames(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, js, mjs, tas, tbs
     in_ = info.copy()
     v_ = vel.copy()
     r_ = pos.copy()
-    status = np.full(K, -1, dtype=np.int64)
-    ints = np.zeros((K, 6), dtype=np.int64)
-    floats = np.zeros((K, 13))
-    accepted = np.zeros(n_all, dtype=np.bool_)
-    uv_pred = np.zeros((n_all, 2))
-    S = np.zeros((n_all, 2, 2))
-    nis = np.zeros(n_all)
-    dirs = np.zeros((n_all, 3))
-    omega = np.zeros((K, 3))
-    R_pr = np.zeros((K, 3, 3))
-    Ps = np.empty((K, N, N))
-    ths = np.empty((K, theta.shape[0]))
-    Rs = np.empty((K, 3, 3))
-    Ms = np.empty((K, N, mc))
-    scs = np.empty((K, mc))
-    ins = np.empty((K, mc, mc))
+    (status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_pr, Ps, ths, Rs, Ms, scs,
+     ins) = _batch_outputs(K, n_all, P, theta, M)
     vs = np.empty((K, 3))
     rs = np.empty((K, 3))
     nus = np.full((K, 3), np.nan)
@@ -926,31 +927,15 @@ def frame_steps(P, theta, R_a, M, score, info, acc,
     theta (K, P_all), R (K, 3, 3), M (K, N, m), score (K, m), info (K, m, m))``.
     """
     K = js.shape[0]
-    N = P.shape[0]
     n_all = uv.shape[0]
-    mc = M.shape[1]
     P_ = P.copy()
     th_ = theta.copy()
     R_ = R_a.copy()
     M_ = M.copy()
     sc_ = score.copy()
     in_ = info.copy()
-    status = np.full(K, -1, dtype=np.int64)
-    ints = np.zeros((K, 6), dtype=np.int64)
-    floats = np.zeros((K, 13))
-    accepted = np.zeros(n_all, dtype=np.bool_)
-    uv_pred = np.zeros((n_all, 2))
-    S = np.zeros((n_all, 2, 2))
-    nis = np.zeros(n_all)
-    dirs = np.zeros((n_all, 3))
-    omega = np.zeros((K, 3))
-    R_pr = np.zeros((K, 3, 3))
-    Ps = np.empty((K, N, N))
-    ths = np.empty((K, theta.shape[0]))
-    Rs = np.empty((K, 3, 3))
-    Ms = np.empty((K, N, mc))
-    scs = np.empty((K, mc))
-    ins = np.empty((K, mc, mc))
+    (status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_pr, Ps, ths, Rs, Ms, scs,
+     ins) = _batch_outputs(K, n_all, P, theta, M)
     done = 0
     vary = lim[0] != 0.0
     k = int(lim[1])
