@@ -425,6 +425,34 @@ def _batch_outputs(K, n_all, P, theta, M):
 
 
 @njit(cache=True)
+def _keep_frame(out, i, a, b, st, it_, fl, ac, up, Sb, ns, dr, om, rp, P_, th_, R_, M_, sc_,
+                in_):
+    """Frame ``i``'s results into :func:`_batch_outputs`' arrays ``out``.
+
+    Its stars rows ``a:b`` only when the frame returned one value a row.
+    """
+    (status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_pr, Ps, ths, Rs, Ms, scs,
+     ins) = out
+    status[i] = st
+    ints[i] = it_
+    floats[i] = fl
+    if ac.shape[0] == b - a:
+        accepted[a:b] = ac
+        uv_pred[a:b] = up
+        S[a:b] = Sb
+        nis[a:b] = ns
+        dirs[a:b] = dr
+    omega[i] = om
+    R_pr[i] = rp
+    Ps[i] = P_
+    ths[i] = th_
+    Rs[i] = R_
+    Ms[i] = M_
+    scs[i] = sc_
+    ins[i] = in_
+
+
+@njit(cache=True)
 def swaying_frames(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, js, mjs, tas, tbs, R_a, Gg,
                    Ga, theta_ref, max_rad, P, M, Pe, inv_tau, qd_index, qd, vel, pos,
                    due, site_pos, R_ref, score, info, acc,
@@ -458,8 +486,7 @@ def swaying_frames(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, js, mjs, tas, tbs
     in_ = info.copy()
     v_ = vel.copy()
     r_ = pos.copy()
-    (status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_pr, Ps, ths, Rs, Ms, scs,
-     ins) = _batch_outputs(K, n_all, P, theta, M)
+    out = _batch_outputs(K, n_all, P, theta, M)
     vs = np.empty((K, 3))
     rs = np.empty((K, 3))
     nus = np.full((K, 3), np.nan)
@@ -485,23 +512,8 @@ def swaying_frames(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, js, mjs, tas, tbs
             r_ = r_n + dx[ir:ir + 3]
         else:
             v_, r_ = v_n, r_n
-        status[i] = st
-        ints[i] = it_
-        floats[i] = fl
-        if ac.shape[0] == b - a:
-            accepted[a:b] = ac
-            uv_pred[a:b] = up
-            S[a:b] = Sb
-            nis[a:b] = ns
-            dirs[a:b] = dr
-        omega[i] = om
-        R_pr[i] = rp
-        Ps[i] = P_
-        ths[i] = th_
-        Rs[i] = R_
-        Ms[i] = M_
-        scs[i] = sc_
-        ins[i] = in_
+        _keep_frame(out, i, a, b, st, it_, fl, ac, up, Sb, ns, dr, om, rp, P_, th_, R_, M_,
+                    sc_, in_)
         vs[i] = v_
         rs[i] = r_
         nus[i] = nu
@@ -509,8 +521,7 @@ def swaying_frames(tp, C, w_hat, phi, slope, f_hat, du_a, gdt, js, mjs, tas, tbs
         done = i + 1
         if st != UPDATED:
             break
-    return (done, status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_pr, Ps, ths,
-            Rs, Ms, scs, ins, vs, rs, nus, nis_ref)
+    return (done,) + out + (vs, rs, nus, nis_ref)
 
 
 @njit(cache=True)
@@ -934,8 +945,7 @@ def frame_steps(P, theta, R_a, M, score, info, acc,
     M_ = M.copy()
     sc_ = score.copy()
     in_ = info.copy()
-    (status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_pr, Ps, ths, Rs, Ms, scs,
-     ins) = _batch_outputs(K, n_all, P, theta, M)
+    out = _batch_outputs(K, n_all, P, theta, M)
     done = 0
     vary = lim[0] != 0.0
     k = int(lim[1])
@@ -968,29 +978,12 @@ def frame_steps(P, theta, R_a, M, score, info, acc,
             cfg)
         if st == REBUILD:
             break
-        status[i] = st
-        ints[i] = it_
-        floats[i] = fl
-        m = ac.shape[0]
-        if m == b - a:
-            accepted[a:b] = ac
-            uv_pred[a:b] = up
-            S[a:b] = Sb
-            nis[a:b] = ns
-            dirs[a:b] = dr
-        omega[i] = om
-        R_pr[i] = rp
-        Ps[i] = P_
-        ths[i] = th_
-        Rs[i] = R_
-        Ms[i] = M_
-        scs[i] = sc_
-        ins[i] = in_
+        _keep_frame(out, i, a, b, st, it_, fl, ac, up, Sb, ns, dr, om, rp, P_, th_, R_, M_,
+                    sc_, in_)
         done = i + 1
         if st != UPDATED:
             break
-    return (done, status, ints, floats, accepted, uv_pred, S, nis, dirs, omega, R_pr, Ps, ths,
-            Rs, Ms, scs, ins)
+    return (done,) + out
 
 
 class FusedStep:
