@@ -81,6 +81,16 @@ GRAVITY = (("gravity_x_st", "gravity_y_st"), ("gravity_x_st change", "gravity_y_
 #: the gravity direction must change by at least this much over the frames (unit vector;
 #: :data:`~stellar_cal_ros.diagnosis.flexure.MIN_GRAVITY_CHANGE`'s value) for its columns
 MIN_GRAVITY_CHANGE = 0.01
+#: a wobble's regressor (:func:`~stellar_cal_ros.diagnosis.stats.periodic_findings`): the
+#: tracker turning against the IMU with a period, which along each star's motion reads as
+#: an offset that changes (unseen case ``wobble`` s23, 0.1 px at 45 s: "the frames' clock
+#: drifts ... rate 14.5 +- 1.7 ppm", no clock drifting; with it fitted: rate -6.2 +- 3.6
+#: ppm, no line), and hides a clock that does drift (the same wobble beside a 0 -> 3 ms
+#: drift: +4.0 +- 3.5 ppm read for -10.0; with it fitted -22.8 +- 5.0, said).  When its line
+#: is found the clock test is made again with a turn about each tracker axis at its
+#: period's sine and cosine fitted beside the parts' offsets, as the flexure's
+#: (:func:`flexure_products`), and its line judged in the same family
+WOBBLE = "time (periodic, "
 #: the drift's line, when one rate explains the parts' change (:meth:`ClockChange.drifts`)
 DRIFT = "the frames' clock drifts against the IMU"
 #: the drift explains the change when what it leaves of the parts' χ² has at least this p
@@ -139,10 +149,16 @@ class ClockChange:
     slew_growth: float = math.nan
     slew_growth_sigma: float = math.nan
     duration: float = math.nan  #: the run's span (s, its first to last star)
+    #: the wobble's periods (s) fitted as rivals beside the parts (``periods`` of
+    #: :func:`clock_change`; in the entry only when there were any)
+    periods: list[float] = dataclasses.field(default_factory=list)
 
     def as_json(self) -> dict:
         """The summary's entry (``diagnosis.json`` ``clock_change``)."""
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        if not out["periods"]:
+            del out["periods"]
+        return out
 
     def spans(self) -> list[tuple[float, float, float]]:
         """``(t0, t1, dt)`` of the runs of parts one offset fits, for the line.
@@ -259,11 +275,12 @@ class ClockChange:
 
 def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
                  centre: tuple[float, float], R_imu_st: np.ndarray | None,
-                 parts: int = SEGMENTS) -> ClockChange | None:
+                 parts: int = SEGMENTS, periods: tuple[float, ...] = ()) -> ClockChange | None:
     """The time offset × time test on ``mask``'s accepted stars (module docstring).
 
-    ``None`` without the installation or the rate columns, or with fewer than 10 frames
-    with motion a part.
+    ``periods`` (s): a wobble's periods the 'unexplained' lines found (:data:`WOBBLE`),
+    fitted as rivals beside the flexure's.  ``None`` without the installation or the rate
+    columns, or with fewer than 10 frames with motion a part.
     """
     found = stats.accepted_offsets(res, mask, focal, centre, R_imu_st)
     if found is None:
@@ -283,7 +300,8 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
         seg[idx] = s
     # the parts' offsets fitted jointly with a mount flexure's (GRAVITY): per frame its
     # scores h (q) and information with the offset (c, q) and with itself (F, q × q)
-    h, cross, F = flexure_products(sub, frames, focal, centre, R_imu_st)
+    h, cross, F = flexure_products(sub, frames, focal, centre, R_imu_st, periods,
+                                   float(np.min(res["t"])))
     q = h.shape[1]
     P = parts + q
     H = np.zeros((P, P))
@@ -332,6 +350,7 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     out = ClockChange(t0, t1, [-float(x) for x in d], [float(x) for x in sig], chi2, dof,
                       p, math.nan, float(speed))
     out.duration = float(np.ptp(res["t"]))
+    out.periods = [float(x) for x in periods]
     slew_growth(out, g, info, t)
     lag = constant_lag(res, focal, centre, R_imu_st, frames)
     if lag is not None:
@@ -341,19 +360,44 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     return out
 
 
-def flexure_products(sub: stats.Table, frames: np.ndarray, focal: tuple[float, float],
-                     centre: tuple[float, float], R_imu_st: np.ndarray | None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per frame of ``frames`` the :data:`GRAVITY` columns' products (``q`` of them).
+def wobble_periods(found: list) -> tuple[float, ...]:
+    """The periods (s) of the :data:`WOBBLE` lines among ``found``, one per wobble.
 
-    ``(h (n, q), c (n, q), F (n, q, q))``: ``Σ xᵀ S⁻¹ ν``, ``Σ xᵀ S⁻¹ u`` (``u`` the image
-    velocity of :func:`~stellar_cal_ros.diagnosis.stats.frame_offsets`) and ``Σ xᵀ S⁻¹
-    x``, ``x`` each column's image shift (px per arcsec of turn); ``q = 0`` without the
-    gravity columns or with gravity (nearly) still over the frames.
+    A wobble about two axes is found on u and on v at periods a frequency ordinate apart
+    (unseen case ``wobble`` s23: 45.3 s and 44.4 s): a period within 10 % of one kept
+    (the more significant, ``found`` ranked first) is the same wobble; two such columns
+    would be nearly collinear over the window.
+    """
+    out: list[float] = []
+    for f in found:
+        if not f.regressor.startswith(WOBBLE):
+            continue
+        try:
+            period = float(f.regressor[len(WOBBLE):].split(" s)")[0])
+        except ValueError:
+            continue
+        if period > 0 and all(abs(period - q) > 0.1 * q for q in out):
+            out.append(period)
+    return tuple(out)
+
+
+def flexure_products(sub: stats.Table, frames: np.ndarray, focal: tuple[float, float],
+                     centre: tuple[float, float], R_imu_st: np.ndarray | None,
+                     periods: tuple[float, ...] = (), t0: float = 0.0
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame of ``frames`` the rivals' columns' products (``q`` of them).
+
+    The :data:`GRAVITY` columns (none without the gravity columns or with gravity (nearly)
+    still over the frames), then per period of ``periods`` :data:`WOBBLE`'s (a turn about
+    each tracker axis at the sine and the cosine of ``t − t0``).  ``(h (n, q), c (n, q),
+    F (n, q, q))``: ``Σ xᵀ S⁻¹ ν``, ``Σ xᵀ S⁻¹ u`` (``u`` the image velocity of
+    :func:`~stellar_cal_ros.diagnosis.stats.frame_offsets`) and ``Σ xᵀ S⁻¹ x``, ``x`` each
+    column's image shift (px per arcsec of turn).
     """
     n = len(frames)
     none = np.zeros((n, 0)), np.zeros((n, 0)), np.zeros((n, 0, 0))
-    if not all(k in sub for pair in GRAVITY for k in pair):
+    gravity = all(k in sub for pair in GRAVITY for k in pair)
+    if not (gravity or periods):
         return none
     got = stats.motion_columns(sub, focal, centre, R_imu_st)
     if got is None:
@@ -361,17 +405,27 @@ def flexure_products(sub: stats.Table, frames: np.ndarray, focal: tuple[float, f
     ok, vel, nu, Si = got
     fr = np.asarray(sub["frame"])[ok]
     on = np.isin(fr, frames)
-    gx, gy = (np.asarray(sub[k], dtype=float)[ok] for k in GRAVITY[0])
-    if not on.any() or max(float(np.ptp(gx[on])), float(np.ptp(gy[on]))) <= MIN_GRAVITY_CHANGE:
+    if not on.any():
         return none
     J = stats.attitude_columns({k: np.asarray(sub[k])[ok] for k in ("x_st", "y_st", "z_st")},
                                *focal) * ARCSEC
-    cols = []
-    for kx, ky in GRAVITY:
-        x, y = (np.asarray(sub[k], dtype=float)[ok] for k in (kx, ky))
-        turn = np.stack([-y, x, np.zeros_like(x)], 1)  # z × g
-        cols.append(np.einsum("nij,nj->ni", J, turn))
-    X = np.stack(cols, 2)[on]  # (stars, 2, q)
+    turns = []
+    if gravity:
+        gx, gy = (np.asarray(sub[k], dtype=float)[ok] for k in GRAVITY[0])
+        if max(float(np.ptp(gx[on])), float(np.ptp(gy[on]))) > MIN_GRAVITY_CHANGE:
+            for kx, ky in GRAVITY:
+                x, y = (np.asarray(sub[k], dtype=float)[ok] for k in (kx, ky))
+                turns.append(np.stack([-y, x, np.zeros_like(x)], 1))  # z × g
+    if periods:
+        t = np.asarray(sub["t"], dtype=float)[ok] - t0
+        for period in periods:
+            ph = 2.0 * np.pi * t / period
+            for wave in (np.sin(ph), np.cos(ph)):
+                for axis in np.eye(3):
+                    turns.append(wave[:, None] * axis)
+    if not turns:
+        return none
+    X = np.stack([np.einsum("nij,nj->ni", J, turn) for turn in turns], 2)[on]  # (stars, 2, q)
     k = np.searchsorted(frames, fr[on])
     Si, vel, nu = Si[on], vel[on], nu[on]
     SX = np.einsum("nij,njq->niq", Si, X)

@@ -1338,7 +1338,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
                     R_imu_st: np.ndarray | None = None, height: float | None = None,
                     track_lags: tuple[float, float] | None = None,
                     width: float | None = None,
-                    star_levels: bool = False) -> list[RegressorFinding]:
+                    star_levels: bool = False,
+                    family: dict | None = None) -> list[RegressorFinding]:
     """Correlation of residual components (u, v, radial, size) with each regressor.
 
     One frame-robust score test per pair (:func:`frame_robust_t`: the frames, not the
@@ -1363,6 +1364,7 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     squares, ``w² φ^(2l)``), ``None`` where the tracks are white.  ``star_levels``: the
     stated σ is wrong star by star (:func:`~.noise_stars.star_spread`, significant): the
     size is tested against each star's own level (:func:`frame_robust_t`'s ``track_level``).
+    ``family``: a dict given gets the family's size (``"size"``: the Bonferroni factor).
     """
     m = mask & accepted(res)
     if m.sum() < 20:
@@ -1423,6 +1425,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
         tests += [moving] if moving is not None else []
     tests += [t for t in (extra or []) if t is not None]
     m_tests = max(len(tests), 1)
+    if family is not None:
+        family["size"] = m_tests
     found = []
     for tst in tests:
         tst.p_value = min(1.0, tst.p_value * m_tests)
