@@ -91,6 +91,8 @@ MIN_GRAVITY_CHANGE = 0.01
 #: period's sine and cosine fitted beside the parts' offsets, as the flexure's
 #: (:func:`flexure_products`), and its line judged in the same family
 WOBBLE = "time (periodic, "
+#: a wobble is fitted beside the clock only when the window holds this many of its cycles
+WOBBLE_CYCLES = 3.0
 #: the drift's line, when one rate explains the parts' change (:meth:`ClockChange.drifts`)
 DRIFT = "the frames' clock drifts against the IMU"
 #: the drift explains the change when what it leaves of the parts' χ² has at least this p
@@ -360,13 +362,16 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     return out
 
 
-def wobble_periods(found: list) -> tuple[float, ...]:
+def wobble_periods(found: list, span: float) -> tuple[float, ...]:
     """The periods (s) of the :data:`WOBBLE` lines among ``found``, one per wobble.
 
     A wobble about two axes is found on u and on v at periods a frequency ordinate apart
     (unseen case ``wobble`` s23: 45.3 s and 44.4 s): a period within 10 % of one kept
     (the more significant, ``found`` ranked first) is the same wobble; two such columns
-    would be nearly collinear over the window.
+    would be nearly collinear over the window.  Only periods the window (``span`` s) holds
+    :data:`WOBBLE_CYCLES` times: a longer one is a trend over the window, which the clock's
+    own parts and drift read (a flexure bag, psce 200 s: a 'periodic, 100 s' line over its
+    100-s window; fitted as a wobble it left a false clock line, p 7.7e-6 unadjusted).
     """
     out: list[float] = []
     for f in found:
@@ -376,7 +381,8 @@ def wobble_periods(found: list) -> tuple[float, ...]:
             period = float(f.regressor[len(WOBBLE):].split(" s)")[0])
         except ValueError:
             continue
-        if period > 0 and all(abs(period - q) > 0.1 * q for q in out):
+        if 0 < period <= span / WOBBLE_CYCLES and all(abs(period - q) > 0.1 * q
+                                                       for q in out):
             out.append(period)
     return tuple(out)
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.diagnosis import clock, installation_step, rolling, shape_drift, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
@@ -287,7 +289,7 @@ def line_tests(res, calibration: Calibration, fraction: float,
         R_imu_st=calibration.R_imu_st,
         height=cam.height, track_lags=track_lags(sn), width=cam.width,
         star_levels=star_levels(sn) is not None, family=family)
-    periods = clock.wobble_periods(found)
+    periods = clock.wobble_periods(found, _span(res, mask))
     if periods and timing is not None:
         # a wobble found: the clock judged against it, as against a flexure
         # (:data:`~.clock.WOBBLE`), in the same family
@@ -297,6 +299,12 @@ def line_tests(res, calibration: Calibration, fraction: float,
         parts.update(clock=timing, step=step)
     first = [f for f in found if f.component == installation_step.COMPONENT]
     return first + [f for f in found if f.component != installation_step.COMPONENT]
+
+
+def _span(res, mask) -> float:
+    """The time (s) ``mask``'s rows of the residual table span."""
+    t = np.asarray(res["t"], dtype=float)[mask]
+    return float(np.ptp(t)) if t.size else 0.0
 
 
 def _clock_beside_wobble(res, calibration: Calibration, fraction: float,
