@@ -917,10 +917,11 @@ CASES: dict[str, Case] = {
                   "the jump is outside the library)", outside=True,
                   regressor="installation steps", min_size_px=0.3,
                   may_add=("installation",), post=_knock),
-    # (H164) sway_knock: the step said first (all frames tested: the base never rests), but
-    # the knock also adds a gyro scale factor, as on main; knock_slew: not found (psce's
-    # moving frames are not tested: a clock's error steps there too), and it adds a gyro
-    # scale factor (doc/benchmarks.md, "on a swaying base, and a step during a slew")
+    # (H164) sway_knock: the step said first (all frames tested: the base never rests);
+    # knock_slew: psce's moving frames are not tested by the line (a clock's error steps
+    # there too).  (H174) Both added a gyro scale factor that explains nothing before the
+    # step: refused; knock_slew's step is said from the all-frames test made for the
+    # refusal (doc/benchmarks.md, "on a swaying base, and a step during a slew", H174)
     "sway_knock": Case("swaying_base", "a knock on the mount of a swaying base: the "
                        "installation jumps once by 20 arcsec (0.385 px along 30 deg) at 75 % "
                        "of the run (the base never rests)", outside=True,

@@ -87,8 +87,8 @@ class InstallationStep:
         """The summary's entry (``diagnosis.json`` ``installation_step``)."""
         return dataclasses.asdict(self)
 
-    def regressor(self) -> str:
-        """The line's text: when, how much, about which axis."""
+    def regressor(self, where: str = "") -> str:
+        """The line's text: when, how much, about which axis (``where``: the frames tested)."""
         d = np.asarray(self.step_arcsec)
         size = float(np.linalg.norm(d))
         axis = ", ".join(f"{x:.2f}" for x in d / max(size, 1e-300))
@@ -99,11 +99,11 @@ class InstallationStep:
                 f"{self.angle_deg:.0f} deg at the detector's centre and the filter follows "
                 f"(outside the library: its installation is a constant; {self.chi2:.0f} chi2"
                 f" / 3 dof, the largest of {self.candidates} frames "
-                f"{'at rest' if self.at_rest else '(the platform never rests)'})")
+                f"{where or ('at rest' if self.at_rest else '(the platform never rests)')})")
 
-    def finding(self) -> stats.RegressorFinding:
+    def finding(self, where: str = "") -> stats.RegressorFinding:
         """The 'unexplained' test (unadjusted p; its statistic the one-sided p's normal score)."""
-        return stats.p_finding(self.regressor(), COMPONENT, self.p_value, self.shift_px,
+        return stats.p_finding(self.regressor(where), COMPONENT, self.p_value, self.shift_px,
                                detail={"installation_step": self.as_json()})
 
 
@@ -115,13 +115,14 @@ def contrast(window: int = WINDOW) -> np.ndarray:
 
 
 def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
-                      centre: tuple[float, float], R_imu_st: np.ndarray | None
-                      ) -> InstallationStep | None:
+                      centre: tuple[float, float], R_imu_st: np.ndarray | None,
+                      everywhere: bool = False) -> InstallationStep | None:
     """The attitude step test on ``mask``'s accepted stars (module docstring).
 
     ``None`` without the installation or the rate columns (the frames at rest are not
     known), or with fewer than :data:`MIN_CANDIDATES` frames to test.  With fewer than
-    :data:`MIN_CANDIDATES` at rest all frames are tested (a platform that never rests).
+    :data:`MIN_CANDIDATES` at rest all frames are tested (a platform that never rests), and
+    with ``everywhere`` (a gyro rate candidate's rival in ``discover``, not the line).
     """
     found = stats.accepted_offsets(res, mask, focal, centre, R_imu_st)
     if found is None:
@@ -141,7 +142,7 @@ def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, fl
     k = k[frames[k + WINDOW - 1] - frames[k - WINDOW] == 2 * WINDOW - 1]  # consecutive
     cum = np.concatenate([[0], np.cumsum(~rest)])
     still_k = k[cum[k + WINDOW + MARGIN] == cum[k - WINDOW - MARGIN]]  # all at rest
-    at_rest = len(still_k) >= MIN_CANDIDATES
+    at_rest = not everywhere and len(still_k) >= MIN_CANDIDATES
     if at_rest:
         k = still_k
     if len(k) < MIN_CANDIDATES:
@@ -182,6 +183,9 @@ def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, fl
         at_rest)
 
 
+#: the frames a step tested over all frames of a platform that rests is said the largest of
+MOVING = ("moving or not (where the platform moves a knock and a clock that steps are not "
+          "told apart)")
 #: fewer window frames than this before the step: a candidate's gain there is not tested
 MIN_BEFORE = 20
 

@@ -248,13 +248,16 @@ def clock_test(res, calibration: Calibration, fraction: float,
                               (cam.cx, cam.cy), calibration.R_imu_st, periods=periods)
 
 
-def step_test(res, calibration: Calibration, fraction: float
+def step_test(res, calibration: Calibration, fraction: float, everywhere: bool = False
               ) -> installation_step.InstallationStep | None:
-    """The attitude step test at rest (:func:`~.installation_step.installation_step`)."""
+    """The attitude step test at rest (:func:`~.installation_step.installation_step`).
+
+    ``everywhere``: over all frames, moving or not (a gyro rate candidate's rival).
+    """
     cam = calibration.camera
     return installation_step.installation_step(res, stats.evaluation_mask(res, fraction),
                                                (cam.fx, cam.fy), (cam.cx, cam.cy),
-                                               calibration.R_imu_st)
+                                               calibration.R_imu_st, everywhere)
 
 
 def line_tests(res, calibration: Calibration, fraction: float,
