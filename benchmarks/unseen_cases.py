@@ -592,6 +592,13 @@ def _knock_slew(sim, seed, arcsec=20.0, at=0.75, angle_deg=30.0):
     _knock(sim, seed, arcsec, (_slew_start(sim, at) + 1.0) / ((t1 - t0) * 1e-9), angle_deg)
 
 
+def _knock_at(at: float) -> Callable:
+    # ``knock``'s 20-arcsec jump at ``at`` (share of the run) instead of 75 %
+    def post(sim, seed):
+        _knock(sim, seed, at=at)
+    return post
+
+
 def _gsf_asym(sim, seed, ppm=500.0):
     # gyro scale-factor asymmetry: the z gyro reads 500 ppm high for positive rates and
     # 500 ppm low for negative ones (the library's gyro_scale_factor is one factor per
@@ -955,6 +962,45 @@ CASES: dict[str, Case] = {
                  max_size_px=0.18,
                  not_told=("correlated from frame to frame", "wrong star by star"),
                  scenario_changes={"centroid_noise_px": 0.0}),
+    # ---- 2026-11-28 (H180): a true gyro scale beside a knock: the scale is to be added and
+    # the step said; sz 100 ppm, 3x the MDB printed on the psce bag (33 ppm), 60 ppm on the
+    # swaying base (3x its 20.9).  On main e100362 the scale was missed in all but
+    # sway_knock_gsf: the step makes the excess, the scale removes < 10 % of it; now tested
+    # before the step (auto._by_step).  knock_gsf_early (psce: 30 frames before the step,
+    # no slew among them) and knock_gsf_run20 (the knock before the window: every
+    # candidate's run worse than the baseline's, gsf score -682) are still missed
+    # (doc/benchmarks.md, "A true gyro scale beside a knock", H180)
+    "gsf100": Case("psce", "a gyro scale factor of 100 ppm on z (3x its MDB; knock_gsf's "
+                   "without the knock)", effects=("gyro_scale_factor",),
+                   sim_effects={"gyro_scale_factor": [0.0, 0.0, 1e-4]}),
+    "knock_gsf": Case("psce", "knock's 20-arcsec jump at 75 % of the run AND a gyro scale "
+                      "factor of 100 ppm on z (3x its MDB)", effects=("gyro_scale_factor",),
+                      outside=True, regressor="installation steps", min_size_px=0.3,
+                      may_add=("installation",), post=_knock,
+                      sim_effects={"gyro_scale_factor": [0.0, 0.0, 1e-4]}),
+    "knock_gsf_early": Case("psce", "knock_gsf with the jump at 55 % of the run (10 % into "
+                            "the evaluation window: 30 frames before it)",
+                            effects=("gyro_scale_factor",), outside=True,
+                            regressor="installation steps", min_size_px=0.3,
+                            may_add=("installation",), post=_knock_at(0.55),
+                            sim_effects={"gyro_scale_factor": [0.0, 0.0, 1e-4]}),
+    "knock_gsf_run20": Case("psce", "knock_gsf with the jump at 20 % of the run (before the "
+                            "evaluation window)", effects=("gyro_scale_factor",),
+                            post=_knock_at(0.2), may_add=("installation",),
+                            sim_effects={"gyro_scale_factor": [0.0, 0.0, 1e-4]}),
+    "sway_knock_gsf": Case("swaying_base", "sway_knock's jump at 75 % of the run AND a gyro "
+                           "scale factor of 60 ppm on z (3x its MDB)",
+                           effects=("gyro_scale_factor",), outside=True,
+                           regressor="installation steps", min_size_px=0.3,
+                           may_add=("installation",), post=_knock,
+                           sim_effects={**SWAY_CLEAN, "gyro_scale_factor": [0.0, 0.0, 6e-5]}),
+    "sway_knock_gsf_early": Case("swaying_base", "sway_knock_gsf with the jump at 55 % of "
+                                 "the run (10 % into the evaluation window)",
+                                 effects=("gyro_scale_factor",), outside=True,
+                                 regressor="installation steps", min_size_px=0.3,
+                                 may_add=("installation",), post=_knock_at(0.55),
+                                 sim_effects={**SWAY_CLEAN,
+                                              "gyro_scale_factor": [0.0, 0.0, 6e-5]}),
 }
 
 
