@@ -700,7 +700,7 @@ def _after_knock(runs, state: _State, base: RunSummary, prior: Calibration,
 def _beside_step(state: _State, c: CandidateResult, knock, split: dict | None,
                  tests: int) -> dict | None:
     """The refusal of a candidate a step hid (:func:`_by_step`), or ``None`` to add it."""
-    p = math.inf if split is None else split["before"]["p_value"] * tests
+    p = math.inf if split is None else min(1.0, split["before"]["p_value"] * tests)
     if p < ALPHA:
         state.by_step[c.effect] = split
         return None
