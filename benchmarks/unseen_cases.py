@@ -605,6 +605,18 @@ def _knock_at(at: float) -> Callable:
     return post
 
 
+def _knock_gsf(method: str, truth: str, at: float) -> Case:
+    # a true z gyro scale (3x its printed MDB: psce 100 ppm, swaying 60) and knock's jump at
+    # ``at`` of the run: the scale is to be added at its size and the step said first
+    sway = method == "swaying_base"
+    return Case(method, truth, effects=("gyro_scale_factor",), outside=True,
+                regressor="installation steps", min_size_px=0.3, may_add=("installation",),
+                post=_knock_at(at),
+                sim_effects={**(SWAY_CLEAN if sway else {}),
+                             "gyro_scale_factor": [0.0, 0.0, 6e-5 if sway else 1e-4]},
+                expect={"gyro_scale_factor": _GSF_SWAY_KNOCK if sway else _GSF_KNOCK})
+
+
 def _gsf_asym(sim, seed, ppm=500.0):
     # gyro scale-factor asymmetry: the z gyro reads 500 ppm high for positive rates and
     # 500 ppm low for negative ones (the library's gyro_scale_factor is one factor per
@@ -981,38 +993,18 @@ CASES: dict[str, Case] = {
     "gsf100": Case("psce", "a gyro scale factor of 100 ppm on z (3x its MDB; knock_gsf's "
                    "without the knock)", effects=("gyro_scale_factor",),
                    sim_effects={"gyro_scale_factor": [0.0, 0.0, 1e-4]}),
-    "knock_gsf": Case("psce", "knock's 20-arcsec jump at 75 % of the run AND a gyro scale "
-                      "factor of 100 ppm on z (3x its MDB)", effects=("gyro_scale_factor",),
-                      outside=True, regressor="installation steps", min_size_px=0.3,
-                      may_add=("installation",), post=_knock,
-                      sim_effects={"gyro_scale_factor": [0.0, 0.0, 1e-4]},
-                      expect={"gyro_scale_factor": _GSF_KNOCK}),
-    "knock_gsf_early": Case("psce", "knock_gsf with the jump at 55 % of the run (10 % into "
-                            "the evaluation window: 30 frames before it)",
-                            effects=("gyro_scale_factor",), outside=True,
-                            regressor="installation steps", min_size_px=0.3,
-                            may_add=("installation",), post=_knock_at(0.55),
-                            sim_effects={"gyro_scale_factor": [0.0, 0.0, 1e-4]},
-                            expect={"gyro_scale_factor": _GSF_KNOCK}),
+    "knock_gsf": _knock_gsf("psce", "knock's 20-arcsec jump at 75 % of the run AND a gyro "
+                            "scale factor of 100 ppm on z (3x its MDB)", 0.75),
+    "knock_gsf_early": _knock_gsf("psce", "knock_gsf with the jump at 55 % of the run (10 % "
+                                  "into the evaluation window: 30 frames before it)", 0.55),
     "knock_gsf_run20": Case("psce", "knock_gsf with the jump at 20 % of the run (before the "
                             "evaluation window)", effects=("gyro_scale_factor",),
                             post=_knock_at(0.2), may_add=("installation",),
                             sim_effects={"gyro_scale_factor": [0.0, 0.0, 1e-4]}),
-    "sway_knock_gsf": Case("swaying_base", "sway_knock's jump at 75 % of the run AND a gyro "
-                           "scale factor of 60 ppm on z (3x its MDB)",
-                           effects=("gyro_scale_factor",), outside=True,
-                           regressor="installation steps", min_size_px=0.3,
-                           may_add=("installation",), post=_knock,
-                           sim_effects={**SWAY_CLEAN, "gyro_scale_factor": [0.0, 0.0, 6e-5]},
-                           expect={"gyro_scale_factor": _GSF_SWAY_KNOCK}),
-    "sway_knock_gsf_early": Case("swaying_base", "sway_knock_gsf with the jump at 55 % of "
-                                 "the run (10 % into the evaluation window)",
-                                 effects=("gyro_scale_factor",), outside=True,
-                                 regressor="installation steps", min_size_px=0.3,
-                                 may_add=("installation",), post=_knock_at(0.55),
-                                 sim_effects={**SWAY_CLEAN,
-                                              "gyro_scale_factor": [0.0, 0.0, 6e-5]},
-                                 expect={"gyro_scale_factor": _GSF_SWAY_KNOCK}),
+    "sway_knock_gsf": _knock_gsf("swaying_base", "sway_knock's jump at 75 % of the run AND a "
+                                 "gyro scale factor of 60 ppm on z (3x its MDB)", 0.75),
+    "sway_knock_gsf_early": _knock_gsf("swaying_base", "sway_knock_gsf with the jump at 55 % "
+                                       "of the run (10 % into the evaluation window)", 0.55),
 }
 
 
