@@ -605,13 +605,14 @@ def _knock_at(at: float) -> Callable:
     return post
 
 
-def _knock_gsf(method: str, truth: str, at: float) -> Case:
+def _knock_gsf(method: str, truth: str, at: float, post: Callable | None = None) -> Case:
     # a true z gyro scale (3x its printed MDB: psce 100 ppm, swaying 60) and knock's jump at
-    # ``at`` of the run: the scale is to be added at its size and the step said first
+    # ``at`` of the run (or ``post``'s): the scale is to be added at its size and the step
+    # said first
     sway = method == "swaying_base"
     return Case(method, truth, effects=("gyro_scale_factor",), outside=True,
                 regressor="installation steps", min_size_px=0.3, may_add=("installation",),
-                post=_knock_at(at),
+                post=post or _knock_at(at),
                 sim_effects={**(SWAY_CLEAN if sway else {}),
                              "gyro_scale_factor": [0.0, 0.0, 6e-5 if sway else 1e-4]},
                 expect={"gyro_scale_factor": _GSF_SWAY_KNOCK if sway else _GSF_KNOCK})
@@ -989,6 +990,8 @@ CASES: dict[str, Case] = {
     # candidate's run worse than the baseline's, gsf score -682) are still missed; on the
     # swaying base the scale added takes the knock's catch-up in its estimate (sx/sy/sz
     # -22/-65/+104 ppm at s21 for 0/0/60: sway_knock's false scale added to the true one)
+    # knock_slew_gsf: the scale is added and the step said (its line printed once a
+    # candidate was tested beside it), but the scale takes the knock (sy -74 ppm for 0)
     # (doc/benchmarks.md, "A true gyro scale beside a knock", H180)
     "gsf100": Case("psce", "a gyro scale factor of 100 ppm on z (3x its MDB; knock_gsf's "
                    "without the knock)", effects=("gyro_scale_factor",),
@@ -1001,6 +1004,9 @@ CASES: dict[str, Case] = {
                             "evaluation window)", effects=("gyro_scale_factor",),
                             post=_knock_at(0.2), may_add=("installation",),
                             sim_effects={"gyro_scale_factor": [0.0, 0.0, 1e-4]}),
+    "knock_slew_gsf": _knock_gsf("psce", "knock_slew's jump (1 s into the first slew from 75 "
+                                 "% of the run on) AND knock_gsf's 100-ppm z gyro scale",
+                                 0.75, _knock_slew),
     "sway_knock_gsf": _knock_gsf("swaying_base", "sway_knock's jump at 75 % of the run AND a "
                                  "gyro scale factor of 60 ppm on z (3x its MDB)", 0.75),
     "sway_knock_gsf_early": _knock_gsf("swaying_base", "sway_knock_gsf with the jump at 55 % "

@@ -185,6 +185,8 @@ class _State:
     before_step: dict[str, dict] = field(default_factory=dict)
     #: the latest :func:`_top`'s candidates a step hid that explain the frames before it
     by_step: dict[str, dict] = field(default_factory=dict)
+    #: ... and the gyro rate candidates significant alone that explain them too
+    passed_step: dict[str, dict] = field(default_factory=dict)
 
     def checkable(self) -> list[str]:
         """Added effects whose need is tested this round."""
@@ -389,6 +391,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 state.dropped[removed] = f"exchanged for {added} in round {k}"
             else:
                 state.extra.append(added)
+                if top.effect in state.passed_step:  # tested before a step (its line)
+                    step["added"]["before_step"] = state.passed_step[added]
                 if top.effect in state.by_step:  # one a step's remainder hid (:func:`_by_step`)
                     state.before_step[added] = state.by_step[added]
                     step["added"]["before_step"] = state.by_step[added]
@@ -488,7 +492,7 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     knock = None  # its installation step test, likewise
     frames = None  # its run's log-likelihood frame by frame, once a step's test asks
     order, hidden = [c for c in results if c.significant_alone], []
-    state.by_step, stepped = {}, set()
+    state.by_step, state.passed_step, stepped = {}, {}, set()
     small = _by_step(results)  # significant, but removing little of the excess
     if small:
         knock, where = _knock_of(base, base.calibration or prior, runs.fraction)
@@ -682,6 +686,8 @@ def _after_knock(runs, state: _State, base: RunSummary, prior: Calibration,
     if tests:
         return _beside_step(state, c, knock, split, tests), frames
     if split is None or split["before"]["p_value"] < ALPHA:
+        if split is not None:
+            state.passed_step[c.effect] = split
         return None, frames
     a, b = split["before"], split["after"]
     reason = (f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing before the "
@@ -814,9 +820,11 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         if ticks is not None and ticks.finding().p_value < ALPHA:
             fields.append(ticks.finding())
     if any("installation_step" in b for s in path
-           for b in (s.get("beyond_remainder") or {}).values()):
-        # one refused beside an attitude step where the platform moves: its line, if still
-        # there (the line tests say a step at rest or on a platform that never rests)
+           for b in (s.get("beyond_remainder") or {}).values()) or any(
+               (s.get("added") or {}).get("before_step") for s in path):
+        # one refused beside an attitude step where the platform moves, or added for what
+        # it explains before it: its line, if still there (the line tests say a step at
+        # rest or on a platform that never rests; unseen case knock_slew_gsf)
         knock, where = _knock_of(final, calibration, fraction)
         if where and knock is not None and knock.p_value < ALPHA:
             fields.append(knock.finding(where))
