@@ -337,7 +337,9 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
     The accepted stars of the run's last :data:`PATTERN_FRACTION` (σ ``sigma_px`` finite,
     at a predicted position), whitened and less each frame's attitude fit, each axis
     against its own predicted position: :func:`~.noise_structure.fixed_pattern`,
-    Bonferroni over the two at :data:`PATTERN_ALPHA`.  ``[(axis, FixedPattern, removed,
+    each axis's p the smaller of its flips' and its Gaussian null's
+    (:attr:`~.noise_structure.FixedPattern.model_p`) doubled, Bonferroni over the two axes at
+    :data:`PATTERN_ALPHA`.  ``[(axis, FixedPattern, removed,
     offset, share)]`` (empty without the predictions, or too few rows); where ``removed``,
     ``offset`` and ``share`` (per row of ``res``, 0 off the rows tested; else None) are
     the rows' pixels' offsets in px and each row's share of its pixel's offset
@@ -365,6 +367,9 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
                                            scale=sig[idx])
         if fp is None:
             continue
+        # the flips' p or the model's, whichever is smaller, twice (the two nulls tested)
+        z, p = (fp.z, fp.p) if fp.p <= fp.model_p else (fp.model_z, fp.model_p)
+        fp = dataclasses.replace(fp, z=z, p=min(1.0, 2.0 * p))
         removed = fp.p * 2.0 < PATTERN_ALPHA
         offset = share = None
         if removed:

@@ -758,6 +758,10 @@ class FixedPattern:
     at_px: float = math.nan
     #: the pattern's size (px, :func:`band_offset_size`) where it was measured, else nan
     size_px: float = math.nan
+    #: ``T``'s z and p against the residuals' own noise (white, or AR(1) along the
+    #: tracks), not the flips: :func:`fixed_pattern`
+    model_z: float = 0.0
+    model_p: float = 1.0
 
 
 #: the passes of :func:`pixel_means`' two-way fit (stars' means and pixels' offsets)
@@ -921,4 +925,39 @@ def fixed_pattern(r: np.ndarray, share: np.ndarray, pos: np.ndarray, star: np.nd
     band_mean = np.bincount(b, om * d * u, minlength=nb_count) / np.maximum(nb, 1e-300)
     k = int(np.argmax(w * h * h))
     top = float(L[k] @ (nb * band_mean))  # (its mean less its neighbours', in scale's units)
-    return FixedPattern((T - mean) / math.sqrt(var), p, top, float((k + first) * band))
+    mz, mp = _model_moments(T, d, si, ns, b, om, L, w)
+    return FixedPattern((T - mean) / math.sqrt(var), p, top, float((k + first) * band),
+                        model_z=mz, model_p=mp)
+
+
+def _model_moments(T: float, d: np.ndarray, si: np.ndarray, ns: np.ndarray, b: np.ndarray,
+                   om: np.ndarray, L: np.ndarray, w: np.ndarray) -> tuple[float, float]:
+    """:func:`fixed_pattern`'s ``T`` against the residuals' own noise: ``(z, p)``.
+
+    The flips of whole tracks let each track carry any pattern of its own, so they test
+    only a coincidence across the stars; where the stars dwell in a few bands (the
+    ``rows`` case on PSCE: a star's v spans ~6 px while it crosses the columns) a band
+    holds 2-3 stars and the flips' p stays above 1e-4 (seeds 21-30: 8e-4 .. 0.06) for an
+    offset of 0.13 px in residuals of σ 0.05.  Here the rows' ``d`` (about each star's
+    mean: a per-star error cancels) are Gaussian with one variance, their empirical one,
+    and correlated along a track as AR(1) at most (:func:`track_inflation`'s factor on
+    every cell's variance: conservative for ρ > 0); ``T = hᵀ W h`` with ``h = L S`` has
+    ``Cov S = s² f (diag Σ om² − Wsᵀ diag(1/n) Ws)`` (``Ws``: each star's weight in each
+    band) and the scaled χ² of its mean and variance gives ``p``.
+    """
+    nb_count = L.shape[0]
+    cell = si * nb_count + b
+    Ws = np.bincount(cell, om, minlength=len(ns) * nb_count).reshape(len(ns), nb_count)
+    cov = np.diag(np.bincount(b, om * om, minlength=nb_count)) - (Ws.T / ns) @ Ws
+    dof_left = len(d) - len(ns)
+    if dof_left <= 0:
+        return 0.0, 1.0
+    f, _, _ = track_inflation(d[:, None], si)
+    s2 = float(d @ d) / dof_left * f
+    sw = np.sqrt(w)
+    K = s2 * (sw[:, None] * (L @ cov @ L.T) * sw[None, :])
+    mean, var = float(np.trace(K)), 2.0 * float(np.sum(K * K))
+    if not (mean > 0.0 and var > 0.0):
+        return 0.0, 1.0
+    g, dof = var / (2.0 * mean), 2.0 * mean * mean / var
+    return (T - mean) / math.sqrt(var), float(dist.chi2.sf(T / g, dof))
