@@ -1799,6 +1799,47 @@ def test_a_fixed_pattern_of_the_columns_is_told_not_read_as_correlated_noise():
     assert not [f for f in found if f.regressor.startswith("v (row) (fixed")], found
 
 
+def test_a_fixed_pattern_of_the_rows_is_found_between_the_stars():
+    """Unseen case ``rows``: the ``columns`` case turned (8 bands of 8 detector rows read
+    0.15 px further along v).  On PSCE a star crosses the columns as the tracker turns but
+    its v spans ~6 px: it dwells in a row band, and the flips of whole tracks (each track
+    free to carry any pattern of its own) test only a coincidence of 2-3 stars a band: p
+    8e-4 .. 0.06 over the case's seeds 21-30 (H157), never below 1e-4.  The residuals about
+    the stars' means hold the offset where a star crosses a band's edge (0.07-0.19 px steps
+    on 19 of 19 crossing stars, seed 21) and the stars' means hold the rest: now ``T`` is
+    also referred to the residuals' own noise (Gaussian, their variance, AR(1) along the
+    tracks at most; ``FixedPattern.model_p``), which finds it (the case's seeds 21-30: p
+    4e-13 .. 1.8e-9; clean psce none below 0.017), and, found so, the pixels' offsets are
+    read with the stars' means in them: size 0.150 +- 0.016 px over seeds 21-30 (here,
+    200 s seed 8: 0.157).  The same run without the pattern: nothing removed.  Fails on
+    main: v is not removed (the flips' p 1e-3 or so)."""
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+
+    bad = (97, 211, 388, 459, 602, 731, 846, 950)  # benchmarks/unseen_cases.BAD_ROWS
+    for shift in (0.15, 0.0):
+        sim = _sim(seed=8)
+        data = _stated(sim)
+        for f in data.frames:
+            uv = np.asarray(f.uv, dtype=float).copy()
+            uv[np.isin(np.floor(uv[:, 1]), [c + k for c in bad for k in range(8)]), 1] += shift
+            f.uv = uv
+        base = evaluate(data, method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
+                        keep_residuals=True)
+        res, cam = base.residuals, base.calibration.camera
+        sig = np.sqrt(0.5 * (np.asarray(res["s_uu"], dtype=float)
+                             + np.asarray(res["s_vv"], dtype=float)))
+        found = {a: (fp, removed) for a, fp, removed, _, _ in
+                 noise_stars.detector_patterns(res, sig, cam.fx, cam.fy)}
+        assert not found["u"][1], found
+        if shift:
+            fp, removed = found["v"]
+            # (3 of the σ 0.016 px over seeds 21-30)
+            assert removed and abs(fp.size_px - 0.15) < 0.048, found
+        else:
+            assert not found["v"][1], found
+
+
 def _sparse_columns(seed: int, size: float, frames: int = 300, dwell: float = 55.0):
     """A sparse run for the fixed pattern's size: 20-40 stars a frame, each tracked 300-600
     frames drifting 1 px along u every ``dwell`` frames (σ 0.1 px), the ``columns`` case's

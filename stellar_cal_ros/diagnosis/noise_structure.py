@@ -769,7 +769,8 @@ PIXEL_PASSES = 30
 
 
 def pixel_means(r: np.ndarray, pos: np.ndarray, star: np.ndarray, cap: float = PATTERN_CAP,
-                scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                scale: np.ndarray | None = None, star_means: bool = True
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Each row's pixel's offset in ``r`` beside the stars' own means, and its share of it.
 
     The pattern :func:`fixed_pattern` found, at the detector's resolution (its bands of 8
@@ -783,7 +784,10 @@ def pixel_means(r: np.ndarray, pos: np.ndarray, star: np.ndarray, cap: float = P
     before the pattern's line).  The offsets are centred (their weighted mean 0: the
     frames' fit holds the common part).  Returns ``(c × scale, share)`` per row
     (``share``: the row's weight over its pixel's, its part of the offset's one dof; 0
-    where ``r`` or ``pos`` is not finite).
+    where ``r`` or ``pos`` is not finite).  ``star_means`` False: the stars' means are not
+    fitted (0), where the pattern was found between the stars as well
+    (:attr:`FixedPattern.model_p`: a star dwelling on a band carries its offset in its
+    mean, which the two-way fit would leave to a per-star error).
     """
     x = np.asarray(r, dtype=float)
     pos = np.asarray(pos, dtype=float)
@@ -803,8 +807,10 @@ def pixel_means(r: np.ndarray, pos: np.ndarray, star: np.ndarray, cap: float = P
     ws, wc = np.bincount(si, om), np.bincount(col, om, minlength=ncol)
     wc_safe = np.maximum(wc, 1e-300)
     c = np.zeros(ncol)
-    for _ in range(PIXEL_PASSES):
-        m = np.bincount(si, om * (xr - c[col])) / ws
+    m = np.zeros(len(ws))
+    for _ in range(PIXEL_PASSES if star_means else 1):
+        if star_means:
+            m = np.bincount(si, om * (xr - c[col])) / ws
         c = np.bincount(col, om * (xr - m[si]), minlength=ncol) / wc_safe
         c -= np.sum(wc * c) / np.sum(wc)
     u = np.ones(len(rows)) if scale is None else np.asarray(scale, dtype=float)[rows]
