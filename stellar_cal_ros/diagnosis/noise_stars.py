@@ -349,11 +349,11 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
     Bonferroni over the two at :data:`PATTERN_ALPHA`; and each axis's Gaussian null
     (:attr:`~.noise_structure.FixedPattern.model_p`) over its share
     :data:`PATTERN_MODEL_SHARE` of that level, the smaller p of the two said.  ``[(axis,
-    FixedPattern, removed, offset, share)]`` (empty without the predictions, or too few rows); where ``removed``,
-    ``offset`` and ``share`` (per row of ``res``, 0 off the rows tested; else None) are
-    the rows' pixels' offsets in px and each row's share of its pixel's offset
-    (:func:`~.noise_structure.pixel_means`), which :func:`_star_noise_once` takes out of
-    that axis before the stars' noise is read.
+    FixedPattern, removed, offset, share)]`` (empty without the predictions, or too few
+    rows); where ``removed``, ``offset`` and ``share`` (per row of ``res``, 0 off the
+    rows tested; else None) are the rows' pixels' offsets in px and each row's share of
+    its pixel's offset (:func:`~.noise_structure.pixel_means`), which
+    :func:`_star_noise_once` takes out of that axis before the stars' noise is read.
     """
     from stellar_cal_ros.diagnosis.stats import FrameFit, evaluation_mask
 
