@@ -1043,6 +1043,20 @@ def pattern_findings(sn: StarNoise | None) -> list:
             for t in sn.patterns if t["removed"]]
 
 
+def without_patterns(res: Table, sn: StarNoise | None) -> Table:
+    """``res`` with the detector's fixed patterns ``sn`` removed taken out of its residuals.
+
+    The 'unexplained' regressor tests read what is left of a pattern that was found
+    (:func:`pattern_findings`' line says it): left in, a pattern of bands echoes as ripples
+    over the same axis (unseen case ``rows``, seed 21: ``v vs v (row) (periodic 512 px)``
+    t −7.1 ranked before the pattern's own line).  ``res`` itself where none was removed.
+    """
+    if sn is None or sn.pattern_px is None:
+        return res
+    return dict(res, du=np.asarray(res["du"], dtype=float) - sn.pattern_px[:, 0],
+                dv=np.asarray(res["dv"], dtype=float) - sn.pattern_px[:, 1])
+
+
 def track_lags(sn: StarNoise | None) -> tuple[float, float] | None:
     """``(w, φ)``: the stars' noise correlated ``w φ^l`` at lag ``l`` along their tracks.
 

@@ -149,6 +149,9 @@ class StarNoise:
     #: the fixed-pattern tests of the columns (u) and rows (v), :func:`detector_patterns`:
     #: ``{axis, z, p, at_px, size_px, removed}`` each
     patterns: list = field(default_factory=list)
+    #: per row of the table measured, the offsets (px, columns u and v) of the patterns
+    #: :func:`detector_patterns` removed (0 on rows and axes with none); None: none removed
+    pattern_px: np.ndarray | None = None
     #: the p of the cell means' χ² against its sign flips of whole tracks
     #: (:func:`~.noise_structure.flip_p`): whether the field is one the stars' tracks
     #: share; drawn where :attr:`structure_p` is below :data:`ALPHA` (None: not drawn)
@@ -331,13 +334,14 @@ PATTERN_FRACTION = 0.9
 PATTERN_ALPHA = 1e-4
 
 
-#: the part of :data:`PATTERN_ALPHA` the fixed pattern's Gaussian null takes beside the
-#: flips' (which keep all of it: their decisions are main's, ``columns`` 200 s seed 8 at
-#: flips' p 4.6e-5 among them; the level of the two is 1.2 ``PATTERN_ALPHA``).  Smaller
-#: than the flips', as its null is a model (Gaussian rows, AR(1) tracks) where the flips'
-#: is exact: it fires at p < 1e-5 an axis (the ``rows`` case end to end, seeds 21, 22:
-#: z 7.7, 6.0)
-PATTERN_MODEL_SHARE = 0.2
+#: the part of :data:`PATTERN_ALPHA` the fixed pattern's Gaussian null takes, the flips the
+#: rest (Bonferroni over the two: the family's level is ``PATTERN_ALPHA``).  Small, as its
+#: null is a model (Gaussian rows, AR(1) tracks) where the flips' is exact and it is only
+#: needed where the flips are blind (stars dwelling in a band): it fires at p < 2.5e-6 an
+#: axis (the ``rows`` case end to end, seeds 21-23: 1.7e-9, 6.0e-7, 3.5e-9; clean psce
+#: 300 s, 50 draws: >= 0.0058), the flips at p < 4.75e-5 (``columns`` 200 s seed 8 read
+#: through ``measure_bag``: 4.6e-5; at a share of 0.2 it was no longer removed)
+PATTERN_MODEL_SHARE = 0.05
 
 
 def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) -> list:
@@ -346,14 +350,17 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
     The accepted stars of the run's last :data:`PATTERN_FRACTION` (σ ``sigma_px`` finite,
     at a predicted position), whitened and less each frame's attitude fit, each axis
     against its own predicted position: :func:`~.noise_structure.fixed_pattern`,
-    Bonferroni over the two at :data:`PATTERN_ALPHA`; and each axis's Gaussian null
-    (:attr:`~.noise_structure.FixedPattern.model_p`) over its share
-    :data:`PATTERN_MODEL_SHARE` of that level, the smaller p of the two said.  ``[(axis,
-    FixedPattern, removed, offset, share)]`` (empty without the predictions, or too few
-    rows); where ``removed``, ``offset`` and ``share`` (per row of ``res``, 0 off the
+    Bonferroni over the two at :data:`PATTERN_ALPHA`, each axis's flips' p and its
+    Gaussian null's (:attr:`~.noise_structure.FixedPattern.model_p`) over their shares of
+    that level (:data:`PATTERN_MODEL_SHARE`), the smaller of the two said.  ``[(axis,
+    FixedPattern, removed, offset, share, seen)]`` (empty without the predictions, or too
+    few rows); where ``removed``, ``offset`` and ``share`` (per row of ``res``, 0 off the
     rows tested; else None) are the rows' pixels' offsets in px and each row's share of
     its pixel's offset (:func:`~.noise_structure.pixel_means`), which
-    :func:`_star_noise_once` takes out of that axis before the stars' noise is read.
+    :func:`_star_noise_once` takes out of that axis before the stars' noise is read; and
+    ``seen`` (per row, px; else None) the rows' pixels' means without the stars' means:
+    what the residuals hold of the pattern, which the other 'unexplained' lines are read
+    without (:func:`~.noise.without_patterns`).
     """
     from stellar_cal_ros.diagnosis.stats import FrameFit, evaluation_mask
 
@@ -376,13 +383,13 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
                                            scale=sig[idx])
         if fp is None:
             continue
-        # the flips' p as on their own, or the model's over its share of the level
-        flips = fp.p <= fp.model_p / PATTERN_MODEL_SHARE
-        if not flips:
-            fp = dataclasses.replace(fp, z=fp.model_z,
-                                     p=min(1.0, fp.model_p / PATTERN_MODEL_SHARE))
+        # the flips' p or the model's, each over its share of the level
+        flips = fp.p / (1.0 - PATTERN_MODEL_SHARE) <= fp.model_p / PATTERN_MODEL_SHARE
+        fp = dataclasses.replace(fp, p=min(1.0, fp.p / (1.0 - PATTERN_MODEL_SHARE))) \
+            if flips else dataclasses.replace(fp, z=fp.model_z,
+                                              p=min(1.0, fp.model_p / PATTERN_MODEL_SHARE))
         removed = fp.p * 2.0 < PATTERN_ALPHA
-        offset = share = None
+        offset = share = seen = None
         if removed:
             # found by the model (between the stars too): the stars' means hold the
             # pattern, not fitted beside it (rows seeds 21-30: 0.147 +- 0.014 px for 0.15;
@@ -397,7 +404,15 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
             fp = dataclasses.replace(fp, size_px=_pattern_size(
                 fit, axis, offset[idx], pos, stars, sig[idx], fp.at_px) if flips
                 else noise_structure.band_offset_size(offset[idx], pos, fp.at_px))
-        out.append(("uv"[axis], fp, removed, offset, share))
+            # (what the residuals hold of it, for the other lines: the pixels' means
+            # without the stars', whose fit leaves the offsets' smooth part undetermined)
+            seen = offset
+            if flips:
+                seen = np.zeros(len(sig))
+                seen[idx], _ = noise_structure.pixel_means(
+                    r[:, axis], np.asarray(res[key], dtype=float)[idx], stars,
+                    scale=sig[idx], star_means=False)
+        out.append(("uv"[axis], fp, removed, offset, share, seen))
     return out
 
 
@@ -706,7 +721,22 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
     out.patterns = [{"axis": a, "z": fp.z, "p": fp.p, "at_px": fp.at_px,
                      "size_px": fp.size_px if math.isfinite(fp.size_px) else abs(fp.top),
                      "removed": removed}
-                    for a, fp, removed, _, _ in patterns or []]
+                    for a, fp, removed, *_ in patterns or []]
+    out.pattern_px = pattern_offsets(patterns or [], len(sigma_px))
+    return out
+
+
+def pattern_offsets(patterns: list, rows: int) -> np.ndarray | None:
+    """The offsets (px, ``(rows, 2)``: u, v) the residuals hold of the patterns removed.
+
+    Those :func:`detector_patterns` removed (its ``seen``), per row of its table (0 where it
+    read none); None where none was removed.
+    """
+    out = None
+    for axis, _, removed, _, _, seen in patterns:
+        if removed:
+            out = np.zeros((rows, 2)) if out is None else out
+            out[:, "uv".index(axis)] = seen
     return out
 
 
@@ -719,7 +749,7 @@ def _minus_patterns(r: np.ndarray, share: np.ndarray, patterns: list, idx: np.nd
     share)`` as given where none is removed.
     """
     out_r, out_share = r, share
-    for axis, _, removed, offset, lev in patterns:
+    for axis, _, removed, offset, lev, _ in patterns:
         if not removed:
             continue
         if out_r is r:

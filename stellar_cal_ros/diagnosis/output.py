@@ -22,6 +22,7 @@ from stellar_cal_ros.diagnosis.noise import (
     stated_scales,
     track_lags,
     within_groups,
+    without_patterns,
 )
 from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.io.calibration import Calibration
@@ -284,9 +285,12 @@ def line_tests(res, calibration: Calibration, fraction: float,
     trim_freed()
     timing_line = timing.finding() if timing is not None else None
     family: dict[str, int] = {}
+    # (the other lines read the residuals less a detector pattern found: its echoes are not
+    # lines of their own)
+    tested = without_patterns(res, sn)
     found = stats.regressor_tests(
-        res, mask, centre, focal=(cam.fx, cam.fy),
-        extra=star_lines(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, sn)
+        tested, mask, centre, focal=(cam.fx, cam.fy),
+        extra=star_lines(tested, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, sn)
         + ([timing_line] if timing_line is not None else [])
         + ([step.finding()] if step is not None else []),
         R_imu_st=calibration.R_imu_st,
