@@ -303,7 +303,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     """
     # after each part its freed heap pages (blocks below the mapping threshold) go back,
     # not held beside the next part's: a 2-h round's screening run peaks in these parts
-    patterns = detector_patterns(res, sigma_px, fx, fy)
+    patterns = detector_patterns(res, sigma_px, fx, fy, centre)
     trim_freed()
     out = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre, R_imu_st, flips,
                            patterns=patterns)
@@ -344,7 +344,8 @@ PATTERN_ALPHA = 1e-4
 PATTERN_MODEL_SHARE = 0.05
 
 
-def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) -> list:
+def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float,
+                      centre: tuple[float, float] | None = None) -> list:
     """The fixed-pattern tests of the detector's columns (u) and rows (v) on the run.
 
     The accepted stars of the run's last :data:`PATTERN_FRACTION` (σ ``sigma_px`` finite,
@@ -362,7 +363,7 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
     what the residuals hold of the pattern, which the other 'unexplained' lines are read
     without (:func:`~.noise.without_patterns`).
     """
-    from stellar_cal_ros.diagnosis.stats import FrameFit, evaluation_mask
+    from stellar_cal_ros.diagnosis.stats import POSITION_PERIODS, FrameFit, evaluation_mask
 
     if "u_pred" not in res or len(res["t"]) == 0:
         return []
@@ -378,9 +379,14 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float) ->
     stars = np.asarray(res["catalog_id"])[idx]
     out = []
     for axis, key in enumerate(("u_pred", "v_pred")):
-        fp = noise_structure.fixed_pattern(r[:, axis], np.ones(len(idx)),
-                                           np.asarray(res[key], dtype=float)[idx], stars,
-                                           scale=sig[idx])
+        # (tested less a smooth function of the position, whose part the ripple lines
+        # test; once found, the pixels' offsets are read and removed whole: a pattern of
+        # bands has a smooth part of its own, which echoes as a ripple left in)
+        at = np.asarray(res[key], dtype=float)[idx]
+        fp = noise_structure.fixed_pattern(
+            noise_structure.less_smooth(r[:, axis], at, None if centre is None
+                                        else 2.0 * centre[axis], POSITION_PERIODS),
+            np.ones(len(idx)), at, stars, scale=sig[idx])
         if fp is None:
             continue
         # the flips' p or the model's, each over its share of the level

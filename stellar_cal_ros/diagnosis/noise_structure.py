@@ -857,6 +857,38 @@ def band_offset_size(offset: np.ndarray, pos: np.ndarray, at_px: float,
     return float(abs(best))
 
 
+def less_smooth(r: np.ndarray, pos: np.ndarray, extent: float | None,
+                periods: tuple[int, ...] = (1, 2, 3, 4)) -> np.ndarray:
+    """``r`` less its least-squares fit by a smooth function of the detector position ``pos``.
+
+    The function: a straight line and the sines and cosines of ``periods`` ``k`` periods
+    across ``extent`` px (None: ``pos``'s span), the ripple lines' own
+    (:data:`~.stats.POSITION_PERIODS`).  :func:`fixed_pattern`'s bands cancel a field
+    linear over their neighbours only: a ripple's curvature leaks into every band (unseen
+    case ``ripple``, ``0.08 sin(2π 3 u / 1024)`` px: 1 − cos over ±4 bands leaves 8 % of
+    it, which the Gaussian null read as a fixed pattern of 0.098 px, p 4e-5, and its
+    removal took the ripple out of the lines that name it).  A fixed pattern is what the
+    smooth fit leaves; the smooth part stays for the ripple lines.  Rows with ``r`` or
+    ``pos`` not finite are not fitted and kept as given.
+    """
+    x = np.asarray(r, dtype=float)
+    pos = np.asarray(pos, dtype=float)
+    ok = np.isfinite(x) & np.isfinite(pos)
+    if ok.sum() <= 2 + 2 * len(periods):
+        return x
+    span = float(np.ptp(pos[ok]))
+    ext = extent if extent is not None and extent > 0 else span
+    if not (ext > 0 and span > 0):
+        return x
+    a = pos[ok]
+    ph = [2.0 * np.pi * k * a / ext for k in periods]
+    X = np.stack([np.ones(len(a)), (a - a.mean()) / span]
+                 + [np.sin(q) for q in ph] + [np.cos(q) for q in ph], 1)
+    out = x.copy()
+    out[ok] = x[ok] - X @ np.linalg.lstsq(X, x[ok], rcond=None)[0]
+    return out
+
+
 def fixed_pattern(r: np.ndarray, share: np.ndarray, pos: np.ndarray, star: np.ndarray,
                   band: int = PATTERN_BAND_PX, reach: int = PATTERN_REACH,
                   cap: float = PATTERN_CAP, scale: np.ndarray | None = None
