@@ -1802,6 +1802,21 @@ def test_a_fixed_pattern_of_the_columns_is_told_not_read_as_correlated_noise():
                 and f is not line[0]], found
 
 
+def _patterns_of(data, sim):
+    """``(run, {axis: (FixedPattern, removed)})``: ``data``'s psce run (``evaluate``, half
+    the run) and :func:`~.noise_stars.detector_patterns` on its residuals at their σ."""
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+
+    base = evaluate(data, method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
+                    keep_residuals=True)
+    res, cam = base.residuals, base.calibration.camera
+    sig = np.sqrt(0.5 * (np.asarray(res["s_uu"], dtype=float)
+                         + np.asarray(res["s_vv"], dtype=float)))
+    return base, {a: (fp, removed) for a, fp, removed, *_ in
+                  noise_stars.detector_patterns(res, sig, cam.fx, cam.fy, (cam.cx, cam.cy))}
+
+
 def test_a_fixed_pattern_of_the_rows_is_found_between_the_stars():
     """Unseen case ``rows``: the ``columns`` case turned (8 bands of 8 detector rows read
     0.15 px further along v).  On PSCE a star crosses the columns as the tracker turns but
@@ -1818,9 +1833,7 @@ def test_a_fixed_pattern_of_the_rows_is_found_between_the_stars():
     pattern (no ripple over the rows: its echo).  The same run without the pattern:
     nothing removed, no pattern line.  Fails on main: v is not removed (the flips' p 1e-3
     or so)."""
-    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
     from stellar_cal_ros.diagnosis.output import line_tests
-    from stellar_cal_ros.diagnosis.runstats import evaluate
 
     bad = (97, 211, 388, 459, 602, 731, 846, 950)  # benchmarks/unseen_cases.BAD_ROWS
     for shift in (0.15, 0.0):
@@ -1830,15 +1843,9 @@ def test_a_fixed_pattern_of_the_rows_is_found_between_the_stars():
             uv = np.asarray(f.uv, dtype=float).copy()
             uv[np.isin(np.floor(uv[:, 1]), [c + k for c in bad for k in range(8)]), 1] += shift
             f.uv = uv
-        base = evaluate(data, method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
-                        keep_residuals=True)
-        res, cam = base.residuals, base.calibration.camera
-        sig = np.sqrt(0.5 * (np.asarray(res["s_uu"], dtype=float)
-                             + np.asarray(res["s_vv"], dtype=float)))
-        found = {a: (fp, removed) for a, fp, removed, *_ in
-                 noise_stars.detector_patterns(res, sig, cam.fx, cam.fy)}
+        base, found = _patterns_of(data, sim)
         assert not found["u"][1], found
-        lines = line_tests(res, base.calibration, 0.5)
+        lines = line_tests(base.residuals, base.calibration, 0.5)
         if shift:
             fp, removed = found["v"]
             # (3 of the σ 0.016 px over seeds 21-30)
@@ -1867,9 +1874,7 @@ def test_a_ripple_over_the_columns_is_not_a_fixed_pattern():
     amplitude.  Here (200 s, seed 8, the run's own noise) the leak reads z 4.3 (p 0.0024,
     not removed; clean runs z <= 2.1), less the smooth fit -0.38: fails on H178's branch
     on the z."""
-    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
     from stellar_cal_ros.diagnosis.output import line_tests
-    from stellar_cal_ros.diagnosis.runstats import evaluate
 
     sim = _sim(seed=8)
     data = _stated(sim)
@@ -1878,18 +1883,12 @@ def test_a_ripple_over_the_columns_is_not_a_fixed_pattern():
         uv = np.asarray(f.uv, dtype=float).copy()
         uv[:, 0] += 0.08 * np.sin(2.0 * np.pi * 3.0 * uv[:, 0] / width)
         f.uv = uv
-    base = evaluate(data, method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
-                    keep_residuals=True)
-    res, cam = base.residuals, base.calibration.camera
-    sig = np.sqrt(0.5 * (np.asarray(res["s_uu"], dtype=float)
-                         + np.asarray(res["s_vv"], dtype=float)))
-    found = {a: (fp, removed) for a, fp, removed, *_ in
-             noise_stars.detector_patterns(res, sig, cam.fx, cam.fy, (cam.cx, cam.cy))}
+    base, found = _patterns_of(data, sim)
     assert not found["u"][1] and not found["v"][1], found
     # (the u test as clean (z <= 2.1 on clean psce, H161): here -0.38; read with the
     # ripple's leak 4.31, seeds 3/5/21: 3.8-4.1)
     assert found["u"][0].z < 3.0, found
-    lines = line_tests(res, base.calibration, 0.5)
+    lines = line_tests(base.residuals, base.calibration, 0.5)
     assert lines and lines[0].regressor.startswith("u (column) (periodic 341 px"), lines[:3]
     assert 0.85 * 0.08 < lines[0].slope_px < 1.1 * 0.08, lines[0]
     assert not [f for f in lines if "(fixed pattern" in f.regressor], lines
