@@ -169,13 +169,13 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
     for name in ("push_imu_block", "push_scalar", "push_fix", "push_scalars", "push_fixes"):
         monkeypatch.setattr(driver.Calibrator, name, counted(name))
     merge, quiet = replay_mod.IMU_MERGE_S, replay_mod.IMU_MERGE_QUIET_S
-    unread = replay_mod._env_unread
+    unread = replay_mod._env_quiet
     out = []
     # as read; across star frames only (cut at each environment or fix message); across all
     for s, q, across_env in ((0.0, 0.0, False), (merge, quiet, False), (merge, quiet, True)):
         monkeypatch.setattr(replay_mod, "IMU_MERGE_S", s)
         monkeypatch.setattr(replay_mod, "IMU_MERGE_QUIET_S", q)
-        monkeypatch.setattr(replay_mod, "_env_unread",
+        monkeypatch.setattr(replay_mod, "_env_quiet",
                             unread if across_env else lambda cal: False)
         calls.append(0)
         each.append({})
@@ -190,6 +190,61 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
     assert 0 < each[2]["push_scalars"] < 0.2 * scalars and 0 < each[2]["push_fixes"], each
     assert out[1][0] == out[0][0] == out[2][0] and len(out[0][0]) > 50
     assert out[1][1] == out[0][1] == out[2][1] and out[0][1].count(b"\n") > 100
+
+
+def test_a_swaying_replay_merges_across_the_fixes_once_its_filter_runs(tmp_path: Path,
+                                                                        monkeypatch) -> None:
+    """A method that needs a site (swaying_base) reads the fixes until its filter is built
+    (at their median so far; each may start it), then no more when no effect reads the
+    site (``Calibrator.site_read``; ``replay._env_quiet``): from the filter's start on,
+    its IMU blocks merge across the environment and fix messages too, which reach the
+    driver a release's rows a call (``push_scalars``, ``push_fixes``: in bulk, no pump).
+    The history CSV byte for byte and every number of the result as with the messages
+    as they came (``_env_quiet`` False: the IMU cut at each of them, each pushed alone)."""
+    from sim_bags import swaying_bag
+
+    from stellar_cal_ros.io.calibration import load_calibration
+    from stellar_cal_ros.methods import driver
+    from stellar_cal_ros.methods import replay as replay_mod
+    from stellar_cal_ros.methods.results import NullSink, TableSink
+
+    bag, prior, _ = swaying_bag(60.0, seed=4)
+    cal = driver.Calibrator(load_calibration(prior), "swaying_base", residuals=NullSink())
+    assert cal.site_read is False and "site" in cal.requires
+    assert not replay_mod._env_unread(cal) and callable(replay_mod._env_quiet(cal))
+    assert replay_mod._env_unread(cal, started=True)
+    assert replay_mod._env_quiet(driver.Calibrator(load_calibration(prior), "swaying_base",
+                                                   residuals=TableSink())) is False
+    each: list[dict[str, int]] = []
+
+    def counted(name):
+        original = getattr(driver.Calibrator, name)
+
+        def call(self, *a, **k):
+            each[-1][name] = each[-1].get(name, 0) + 1
+            return original(self, *a, **k)
+        return call
+
+    for name in ("push_imu_block", "push_scalar", "push_fix", "push_scalars", "push_fixes"):
+        monkeypatch.setattr(driver.Calibrator, name, counted(name))
+    quiet = replay_mod._env_quiet
+    out = []
+    for k, q in enumerate((lambda c: False, quiet)):
+        monkeypatch.setattr(replay_mod, "_env_quiet", q)
+        each.append({})
+        res = tmp_path / f"sway{k}.yaml"
+        assert main(["replay", str(bag), "--method", "swaying_base", "--prior", str(prior),
+                     "-o", str(res), "-q"]) == 0
+        out.append((_numbers(yaml.safe_load(res.read_text())),
+                    res.with_suffix(".history.csv").read_bytes()))
+    before, after = each
+    assert before["push_imu_block"] >= 55 and after["push_imu_block"] < 0.3 * 60, each
+    assert before["push_scalar"] >= 150 and before["push_fix"] >= 55, each
+    # (one at a time over the first release of rows: the filter did not run at its start)
+    assert after["push_scalar"] < 0.4 * 183 and after["push_fix"] < 0.4 * 61, each
+    assert after["push_scalars"] >= 1 and after["push_fixes"] >= 1, each
+    assert out[0][0] == out[1][0] and len(out[0][0]) > 50
+    assert out[0][1] == out[1][1] and out[0][1].count(b"\n") > 100
 
 
 def _same(a, b) -> bool:

@@ -140,6 +140,9 @@ class Calibrator(ImuRelease):
         #: diagnosis groups its candidates, not the bag and the model
         self.model_requires = {r for e in self.model.effects if e.id not in self.consider
                                for r in e.requires}
+        #: an effect reads the frames' site (the fixes' median so far); a method that needs a
+        #: site (``needs_site``) takes it once, when its filter is built (:meth:`_start_filter`)
+        self.site_read = "site" in self.requires
         if spec.needs_site:
             self.requires.add("site")
             self.model_requires.add("site")
@@ -391,7 +394,7 @@ class Calibrator(ImuRelease):
         if not self.sites.add(stamp_ns, latitude_deg, longitude_deg, altitude_m, status):
             self.counters.fixes_invalid += 1
             return []
-        if self.filter is None or (self._frames_pending and "site" in self.requires):
+        if self.filter is None or (self._frames_pending and self.site_read):
             return self._pump()
         return []
 
@@ -414,7 +417,10 @@ class Calibrator(ImuRelease):
         c.env_received += len(s)
         c.env_invalid += int(len(s) - np.count_nonzero(ok))
         series = self.env[kind]
-        if not self.requires:  # no frame waits for them
+        # no frame waits for them (and, a method that needs a site, its filter runs: before,
+        # each pumps as it may start it)
+        if not self.requires or (self.filter is not None
+                                 and not self.requires & {"head_temperature", "weather"}):
             series.extend(s[ok], v[ok])
             return []
         out: list[FrameOutcome] = []
@@ -429,9 +435,10 @@ class Calibrator(ImuRelease):
                    ) -> list[FrameOutcome]:
         """Several ``NavSatFix`` in their order: what :meth:`push_fix` does for each.
 
-        In bulk once the filter runs and its model needs no site (then none of them pumps).
+        In bulk once the filter runs and no effect reads the site (then none of them pumps;
+        a method that needs a site took it when its filter was built).
         """
-        if self.filter is None or "site" in self.requires:
+        if self.filter is None or self.site_read:
             out: list[FrameOutcome] = []
             for row in zip(np.asarray(stamp_ns).tolist(), np.asarray(latitude_deg).tolist(),
                            np.asarray(longitude_deg).tolist(), np.asarray(altitude_m).tolist(),

@@ -12,6 +12,7 @@ import dataclasses
 import functools
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -106,22 +107,26 @@ def _events_from_data(data: BagData):
         yield role, payload
 
 
-def _events_from_reader(reader: BagReader, topics: dict[str, str], env_unread: bool = False):
+def _events_from_reader(reader: BagReader, topics: dict[str, str],
+                        env_unread: bool | Callable[[], bool] = False):
     """``(role, payload)`` in log-time order from a bag reader, one pass when it can.
 
     ``env_unread``: nothing the run computes reads the environment and fix messages
-    (:func:`_env_unread`); the IMU blocks then merge across them too.
+    (:func:`_env_unread`); the IMU blocks then merge across them too.  A call
+    (:func:`_env_quiet`): from when it first says so on.
     """
-    across, limit = (ENV_ROLES | _ROWS_ROLES | {"stars"}, IMU_MERGE_QUIET_S) if env_unread \
+    quiet = None if isinstance(env_unread, bool) else env_unread
+    across, limit = (_QUIET_ACROSS, IMU_MERGE_QUIET_S) if env_unread is True \
         else (frozenset({"stars"}), None)
     releases = getattr(reader, "stream_releases", None)
     if releases is not None:
         yield from _merge_items(_release_items(releases(topics=topics), rows=env_unread),
-                                across, limit)
+                                across, limit, quiet)
         return
     stream = getattr(reader, "stream", None)
     if stream is not None:
-        yield from _merged_imu(stream(topics=topics, imu_block=IMU_BLOCK), across, limit)
+        yield from _merge_items(_block_items(stream(topics=topics, imu_block=IMU_BLOCK)),
+                                across, limit, quiet)
         return
     # readers without a streaming pass: each topic whole, merged by stamp
     available = reader.topics()
@@ -150,8 +155,8 @@ def _events_from_reader(reader: BagReader, topics: dict[str, str], env_unread: b
         yield from _block_events(role, block)
 
 
-def _env_unread(cal: Calibrator) -> bool:
-    """Whether nothing a run computes reads the environment and fix messages.
+def _env_unread(cal: Calibrator, started: bool | None = None) -> bool:
+    """Whether nothing a run computes reads the environment and fix messages (now).
 
     No effect of the model and not the method needs them (``Calibrator.requires`` holds
     none of ``site``, ``head_temperature``, ``weather``), and no residual table keeps the
@@ -161,10 +166,30 @@ def _env_unread(cal: Calibrator) -> bool:
     (``_env_ready``), and their pushes pump only while the filter has not started — on
     the IMU staged so far, which a site-free method starts from alone — so when they reach
     the driver, before or after the IMU logged around them, changes no float: only the
-    counts of messages, which are the same.
+    counts of messages, which are the same.  A method that needs a site reads the fixes
+    until its filter is built (at their median so far), and no more when no effect reads
+    the site (``Calibrator.site_read``): true from then on (:func:`_env_quiet`;
+    ``started``: whether the filter runs, None: as it is).
     """
-    return not (cal.requires & {"site", "head_temperature", "weather"}) and \
+    started = cal.filter is not None if started is None else started
+    return not (cal.requires & {"head_temperature", "weather"}) and \
+        ("site" not in cal.requires or (started and not cal.site_read)) and \
         bool(getattr(cal.residuals, "discard", False))
+
+
+def _env_quiet(cal: Calibrator) -> bool | Callable[[], bool]:
+    """:func:`_env_unread` for a replay: a bool, or a call that says it as the run goes.
+
+    A method that needs a site (``needs_site``: swaying_base) reads the fixes until its
+    filter starts — the filter is built at their median so far, and each may start it —
+    and, when no effect reads the site (``Calibrator.site_read``), none after: then the
+    call, true from the filter's start on (before it, the messages go as they came).
+    """
+    if _env_unread(cal):
+        return True
+    if cal.filter is None and _env_unread(cal, started=True):
+        return lambda: cal.filter is not None
+    return False
 
 
 def _merged_imu(blocks, across=frozenset({"stars"}), limit_s: float | None = None):
@@ -206,7 +231,8 @@ def _block_items(blocks):
             yield "imu", _imu_payload(block)
 
 
-def _release_items(releases, imu_block: int = IMU_BLOCK, rows: bool = False):
+def _release_items(releases, imu_block: int = IMU_BLOCK,
+                   rows: bool | Callable[[], bool] = False):
     """:func:`_merge_items`' items of :meth:`BagReader.stream_releases`.
 
     The same as :func:`_block_items` of :meth:`BagReader.stream`'s blocks (an IMU run cut
@@ -215,9 +241,13 @@ def _release_items(releases, imu_block: int = IMU_BLOCK, rows: bool = False):
     ``(role, stamps, values)``; ``fixes``: ``(stamps, lat, lon, alt, status)``; the
     driver's bulk calls) where the role's last one of the release was — for a run that
     reads none of them (:func:`_env_unread`), whose quiet merge hands them on after the
-    IMU logged around them anyway.
+    IMU logged around them anyway; a call (:func:`_env_quiet`): from the release it first
+    says so at on.
     """
+    quiet = rows if callable(rows) else None
     for roles, blocks, order in releases:
+        if quiet is not None and quiet():  # (a call: from when it first says so on)
+            rows, quiet = True, None
         events: list = [None] * len(roles)
         last: list = [None] * len(roles)  # rows: a role's rows in the release, else None
         for r, (role, block) in enumerate(zip(roles, blocks, strict=True)):
@@ -228,7 +258,7 @@ def _release_items(releases, imu_block: int = IMU_BLOCK, rows: bool = False):
                 st = t.tolist()
                 arrays = (t, block.angular_velocity, block.linear_acceleration)
                 frame = block.frame_id
-            elif rows and role in ENV_ROLES:
+            elif rows is True and role in ENV_ROLES:
                 last[r] = len(block.stamp_ns)
                 events[r] = _rows_event(role, block)
             else:
@@ -250,6 +280,8 @@ def _release_items(releases, imu_block: int = IMU_BLOCK, rows: bool = False):
 
 #: the event roles of a release's environment and fix messages in bulk (:func:`_release_items`)
 _ROWS_ROLES = frozenset({"scalars", "fixes"})
+#: the roles a quiet merge passes over (:func:`_env_unread`)
+_QUIET_ACROSS = ENV_ROLES | _ROWS_ROLES | frozenset({"stars"})
 
 
 def _rows_event(role: str, block) -> tuple:
@@ -260,20 +292,25 @@ def _rows_event(role: str, block) -> tuple:
     return "scalars", (role, block.stamp_ns, block.value)
 
 
-def _merge_items(items, across=frozenset({"stars"}), limit_s: float | None = None):
+def _merge_items(items, across=frozenset({"stars"}), limit_s: float | None = None,
+                 quiet: Callable[[], bool] | None = None):
     """The driver's events of a bag's items in log order, IMU pieces merged (:func:`_merged_imu`).
 
     ``items``: ``(role, payload)`` events, and ``(_PIECE, (first stamp, last stamp,
     frame id, (stamps, rates, forces), a, b))`` for IMU samples ``a:b`` of those arrays.
     A piece joins the held ones when it has their frame id, its first stamp is above the
     held last one and its last stamp at most ``limit_s`` after the held first one; pieces
-    of one set of arrays that follow each other are handed on as one slice.
+    of one set of arrays that follow each other are handed on as one slice.  ``quiet``
+    (:func:`_env_quiet`'s call): from when it first says so on, the merge passes over the
+    environment and fix messages too, :data:`IMU_MERGE_QUIET_S` at most.
     """
     held: list[list] = []  # [arrays, a, b] of one merge
     later: list = []  # the events of ``across`` roles logged among them
     limit = int((IMU_MERGE_S if limit_s is None else limit_s) * 1e9)
     frame = first = last = None
     for role, p in items:
+        if quiet is not None and quiet():
+            across, limit, quiet = _QUIET_ACROSS, int(IMU_MERGE_QUIET_S * 1e9), None
         piece = role is _PIECE
         if held:
             if piece:
@@ -490,7 +527,7 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         cal = _calibrator(prior, method, effects, cfg, drv, consider, res_sink, hist_sink,
                           span, eval_fraction, baseline, filter_cls)
         events = _events_from_reader(reader, {k: v for k, v in names.items()},
-                                     env_unread=_env_unread(cal))
+                                     env_unread=_env_quiet(cal))
     bar = _Progress(span, progress)
     handlers = _handlers(cal)
     clock = time.perf_counter
