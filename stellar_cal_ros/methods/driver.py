@@ -675,7 +675,8 @@ class Calibrator(ImuRelease):
                 t_exp = frames[i][4] + self._time_shift(int(fr.stamp_ns), inp, run[i][2])
                 if ready[0] <= t_exp + ready[1]:
                     break
-            stepped = flt.prepare_frames(frames[i:], shift, ready) if len(run) - i > 1 else 0
+            # (a method's batch may hold one frame: SwayingFilter.prepare_frames)
+            stepped = flt.prepare_frames(frames[i:], shift, ready)
             done = self._commit_batch(run[i:i + stepped], out) if stepped else 0
             for fr, inp, ctx, _ in run[i + done:i + max(stepped, 1)]:
                 out.append(self._process(fr, inp, ctx))

@@ -219,6 +219,11 @@ class StarFilter(Acquisition):
     batched_step = True
     #: at most this many frames a batch
     batch_frames_max = 64
+    #: a batch is committed at once within the gyro watch's first frames too (the same
+    #: records and verdicts; a fault judged there raises after the batch's frames were
+    #: stepped — a raise ends the run); False: those frames are taken one at a time from
+    #: the batch (:meth:`~.frame_step.FrameBatch.take`), a fault raising in its frame's turn
+    commit_early_frames = False
     #: a frame the fused step does not take (a method with its own propagation or
     #: measurements: the swaying-base filter) is updated by the compiled star update after
     #: the numpy propagation (:func:`~.frame_step.star_update`; False: the numpy update,
@@ -862,17 +867,19 @@ class StarFilter(Acquisition):
         prepared (valid stars: the caller knows): counters, gate counts, the state after
         the last of them (only that one is written), a covariance check due at the last,
         the gyro watch fed each frame's propagated and updated attitudes
-        (:func:`~stellar_cal_ros.core.gyro_check.watch_frames`).  None (nothing done) when
-        the batch is not at its start, its first frame is not such a frame, or the gyro
-        watch is within its first frames (a fault there raises in that frame's turn).
+        (:func:`~stellar_cal_ros.core.gyro_check.watch_frames`: the same records and
+        verdicts, frame after frame).  None (nothing done) when the batch is not at its
+        start, its first frame is not such a frame, or the gyro watch is within its first
+        frames and :attr:`commit_early_frames` is False (a fault there raises in that
+        frame's turn).
         The frames after those committed are taken one at a time as before.  Returns the
         :class:`~.frame_step.BatchCommit` (the frames' values for the statistics and the
         history; their :class:`FrameUpdate` on request).
         """
         b = self._batch
         w = self.gyro_watch
-        if b is None or b.i or limit < 1 or (w is not None and (
-                w["frames"] < gyro_check.EARLY_FRAMES or w["done"])):
+        if b is None or b.i or limit < 1 or (w is not None and (w["done"] or (
+                w["frames"] < gyro_check.EARLY_FRAMES and not self.commit_early_frames))):
             return None
         frame_step = _frame_step_module()
         (_, status, ints, floats, _, _, _, _, _, omega, R_pr, Ps, ths, Rs, Ms, scs,

@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stellar_cal_ros.core import earth, gyro_check
+from stellar_cal_ros.core import earth
 from stellar_cal_ros.core.jit import HAVE_NUMBA
 from stellar_cal_ros.core.propagation import Step
 from stellar_cal_ros.core.rotation import skew
@@ -191,6 +191,10 @@ class SwayingFilter(StarFilter):
     #: a frame's propagation, position reference (when due) and star update in one compiled
     #: call (:func:`~.frame_step.swaying_frame`; False: the three calls above, the reference)
     compiled_frame = True
+    #: the gyro watch's first frames committed a batch at once too (the kernel's
+    #: :attr:`~.kernel.StarFilter.commit_early_frames`: this batch has no frame taken one
+    #: at a time; each would make its own call): the same floats, records and verdicts
+    commit_early_frames = True
     #: what :meth:`_fused_update` does in its call: a subclass with its own keeps the calls
     _FRAME_HOOKS = ("_transition", "_propagate_interval", "_before_star_update",
                     "_reference_update", "reference_measurement", "propagate", "_star_update",
@@ -458,15 +462,16 @@ class SwayingFilter(StarFilter):
         positions found here from the exposure times (a fixed exposure shift: ``shift``
         None, a moving one, batches nothing).  The state is not changed:
         :meth:`commit_batch` commits the leading updated frames at once, the driver takes
-        the rest frame by frame (their own calls).  None while the gyro watch is in its
-        first frames (a batch there is not committed).  Returns the frames stepped.
+        the rest frame by frame (their own calls).  A batch may hold one frame (the batch
+        equals one call a frame: its own call is then never loaded).  Returns the frames
+        stepped.
         """
         self._batch = None
         us = self._frame_update() if self.compiled_step and self.batched_step and \
             self.initialized else False
         w = self.gyro_watch
-        if not us or len(frames) < 2 or self._gap_pending or self.t is None or \
-                (w is not None and (w["frames"] < gyro_check.EARLY_FRAMES or w["done"])):
+        if not us or not frames or self._gap_pending or self.t is None or \
+                (w is not None and w["done"]):
             return 0
         if shift is False:
             shift = self.model.fixed_exposure_shift(self.theta, self.P_est)
@@ -506,7 +511,7 @@ class SwayingFilter(StarFilter):
                         acc, t_rel))
             due.append(d)
             t, k, last = t_exp, m, t_rel
-        if len(run) < 2:
+        if not run:
             return 0
         self._batch = self._frames_batch(us, run, np.array(due))
         return self._batch.done if self._batch is not None else 0
@@ -530,8 +535,9 @@ class SwayingFilter(StarFilter):
         pre = prop.prefix
         offs, col, uv, u, sigma, du, bscale, base = us.stack(run)
         site = np.zeros((len(run), 3))
-        for i in np.flatnonzero(due):
-            site[i] = self.site_position(run[i][8])
+        rows = np.flatnonzero(due)
+        if len(rows):  # (one interpolation: the same floats as site_position's, a row each)
+            site[rows] = self.grid.interp("r", np.array([run[i][8] for i in rows.tolist()]))
         Gg, Ga = (np.ascontiguousarray(g_, dtype=float) for g_ in prop._gamma)
         qd_index, qd, inv_tau = self._qd_arrays
         b0, _, Jb, _ = prop.gyro._affine
