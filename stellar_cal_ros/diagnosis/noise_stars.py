@@ -648,7 +648,7 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
     # noise correlated over a few frames makes each star's mean vary more than 1/n: the χ²
     # is referred to that (the lag correlation of the residuals about their star's mean,
     # which a fixed per-star error does not raise)
-    track = noise_structure.track_model(r_star, stars)
+    track = noise_structure.track_model(r_star, stars, cell=cell)
     # (tested after the cells' means: χ² and dof of the stars' means beyond them, the χ²
     # referred to the exact trace of the tracks' covariance through its projection, the
     # model read about the star means before the cells' means: ``rep_track`` above)
