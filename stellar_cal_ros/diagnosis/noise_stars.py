@@ -405,11 +405,13 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float,
                 r[:, axis], np.asarray(res[key], dtype=float)[idx], stars, scale=sig[idx],
                 star_means=flips)
             # the size from the rows with a share of a pixel's offset only: a row whose
-            # residual is not finite has offset 0 and would dilute the window's mean
+            # residual is not finite has offset 0 and would dilute the window's mean;
+            # through the frames' fit either way (which takes ~1/N of a band's offset into
+            # the attitude: unseen case ``rows`` end to end, seeds 21-23, 0.129 / 0.116 /
+            # 0.137 px read directly, 0.136 / 0.125 / 0.144 through it, for 0.15)
             pos = np.where(share[idx] > 0, np.asarray(res[key], dtype=float)[idx], np.nan)
             fp = dataclasses.replace(fp, size_px=_pattern_size(
-                fit, axis, offset[idx], pos, stars, sig[idx], fp.at_px) if flips
-                else noise_structure.band_offset_size(offset[idx], pos, fp.at_px))
+                fit, axis, offset[idx], pos, stars, sig[idx], fp.at_px, star_means=flips))
             # (what the residuals hold of it, for the other lines: the pixels' means
             # without the stars', whose fit leaves the offsets' smooth part undetermined)
             seen = offset
@@ -435,7 +437,7 @@ PATTERN_SIZE_TOL = 0.001
 
 
 def _pattern_size(fit, axis: int, offset: np.ndarray, pos: np.ndarray, stars: np.ndarray,
-                  sig: np.ndarray, at_px: float) -> float:
+                  sig: np.ndarray, at_px: float, star_means: bool = True) -> float:
     """The size (px) of the fixed pattern at ``at_px``, through the frames' fit.
 
     :func:`~.noise_structure.band_offset_size` of the pixels' offsets ``c`` that give the
@@ -443,7 +445,8 @@ def _pattern_size(fit, axis: int, offset: np.ndarray, pos: np.ndarray, stars: np
     frame's attitude fit (``fit``, the :class:`~.stats.FrameFit` of the rows), which takes
     a share of a star's offset on a defective band into its frame's attitude (~1/N of it
     with N stars a frame), and the pixels' offsets are fitted beside the stars' means
-    (:func:`~.noise_structure.pixel_means`): together a linear map ``A`` of the true
+    (:func:`~.noise_structure.pixel_means`; ``star_means`` False: not, as where the
+    Gaussian null found the pattern): together a linear map ``A`` of the true
     offsets, ``offset = A c``.  ``c`` is found by passes of ``c ← c + (offset − A c)``
     until the size changes by less than :data:`PATTERN_SIZE_TOL` of itself between two
     passes (unseen case ``columns``, 0.15 px: 0.134-0.145 px over seeds 21-30 with
@@ -460,7 +463,7 @@ def _pattern_size(fit, axis: int, offset: np.ndarray, pos: np.ndarray, stars: np
     for _ in range(PATTERN_SIZE_PASSES):
         d[:, axis] = c
         ac, _ = noise_structure.pixel_means(fit.residual(d[:, 0], d[:, 1])[:, axis], pos,
-                                            stars, scale=sig)
+                                            stars, scale=sig, star_means=star_means)
         c = c + (offset - ac)
         last, size = size, noise_structure.band_offset_size(c, pos, at_px)
         if abs(size - last) < PATTERN_SIZE_TOL * abs(size):
