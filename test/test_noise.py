@@ -1894,6 +1894,23 @@ def test_a_ripple_over_the_columns_is_not_a_fixed_pattern():
     assert not [f for f in lines if "(fixed pattern" in f.regressor], lines
 
 
+def _tracks(rng, frames: int, stars: tuple[int, int], life: tuple[int, int]):
+    """Stars' tracks over ``frames`` frames: each frame tops up to a draw of ``stars``
+    (integers' range) live stars, each at a uniform (u, v) in 20-1000 px and live a draw
+    of ``life`` frames.  ``(frame, star, u, v, left)`` per row (``left``: the frame less
+    the star's last, ≤ 0, for a drift)."""
+    rows, live, sid = [], [], 0
+    for f in range(frames):
+        live = [s for s in live if s[3] > f]
+        while len(live) < rng.integers(*stars):
+            live.append([sid, rng.uniform(20, 1000), rng.uniform(20, 1000),
+                         f + rng.integers(*life)])
+            sid += 1
+        rows += [(f, s[0], s[1], s[2], f - s[3]) for s in live]
+    a = np.array(rows)
+    return a[:, 0].astype(int), a[:, 1].astype(int), a[:, 2], a[:, 3], a[:, 4]
+
+
 def _sparse_columns(seed: int, size: float, frames: int = 300, dwell: float = 55.0):
     """A sparse run for the fixed pattern's size: 20-40 stars a frame, each tracked 300-600
     frames drifting 1 px along u every ``dwell`` frames (σ 0.1 px), the ``columns`` case's
@@ -1902,16 +1919,8 @@ def _sparse_columns(seed: int, size: float, frames: int = 300, dwell: float = 55
     from stellar_cal_ros.diagnosis.stats import FrameFit
 
     rng = np.random.default_rng(seed)
-    rows, live, sid = [], [], 0
-    for f in range(frames):
-        live = [s for s in live if s[3] > f]
-        while len(live) < rng.integers(20, 41):
-            live.append([sid, rng.uniform(20, 1000), rng.uniform(20, 1000),
-                         f + rng.integers(300, 600)])
-            sid += 1
-        rows += [(f, s[0], s[1] + (f - s[3]) / dwell, s[2]) for s in live]
-    a = np.array(rows)
-    frame, star, u, v = a[:, 0].astype(int), a[:, 1].astype(int), a[:, 2], a[:, 3]
+    frame, star, u, v, left = _tracks(rng, frames, (20, 41), (300, 600))
+    u = u + left / dwell
     x, y = (u - 512) / 1000.0, (v - 512) / 1000.0
     n = np.sqrt(1 + x * x + y * y)
     bad = [c + k for c in (97, 211, 388, 459, 602, 731, 846, 950) for k in range(8)]
@@ -1937,6 +1946,43 @@ def test_the_pattern_size_fit_that_does_not_settle_gives_the_direct_size():
     direct = noise_structure.band_offset_size(offset, u, at)
     size = noise_stars._pattern_size(fit, 0, offset, u, star, sig, at)
     assert size == direct and abs(size - 0.15) < 0.02, (size, direct)
+
+
+def _rows_through_frames(seed: int, frames: int = 600):
+    """A noise-free run of 8-12 stars a frame, each drifting 1 px along v every 5 frames
+    over 100-300 frames, the ``rows`` case's 8 bands of 8 rows reading 0.15 px further
+    along v.  ``(fit, offset, v, star, σ, at_px)`` as :func:`~.noise_stars.detector_patterns`
+    makes them for v where the Gaussian null found the pattern (the pixels' offsets read
+    without the stars' means)."""
+    from stellar_cal_ros.diagnosis.stats import FrameFit
+
+    frame, star, u, v, left = _tracks(np.random.default_rng(seed), frames, (8, 13), (100, 300))
+    v = v + left / 5.0
+    x, y = (u - 512) / 1000.0, (v - 512) / 1000.0
+    n = np.sqrt(1 + x * x + y * y)
+    bad = [c + k for c in (97, 211, 388, 459, 602, 731, 846, 950) for k in range(8)]
+    sub = dict(frame=frame, du=np.zeros(len(u)), dv=0.15 * np.isin(np.floor(v), bad),
+               x_st=x / n, y_st=y / n, z_st=1 / n)
+    sig = np.full(len(u), 0.1)
+    fit = FrameFit(sub, sig, 1000.0, 1000.0)
+    r = fit.residual(sub["du"], sub["dv"])
+    offset, _ = noise_structure.pixel_means(r[:, 1], v, star, scale=sig, star_means=False)
+    fp = noise_structure.fixed_pattern(r[:, 1], np.ones(len(u)), v, star, scale=sig)
+    return fit, offset, v, star, sig, fp.at_px
+
+
+def test_the_rows_pattern_size_is_read_through_the_frames_fit():
+    """Issue 21 item 3 (H190): a pattern the Gaussian null found (``rows``) had its size
+    read from the pixels' offsets directly, but each frame's attitude fit takes ~1/N of a
+    band's offset (N stars a frame): noise-free, 8-12 stars a frame, the direct size reads
+    0.123-0.143 px for 0.15 (seeds 1-3), through the frames' fit (without the stars'
+    means, as they were read) 0.150 within 0.001.  Fails on main: the rows' size was the
+    direct one (unseen case ``rows`` end to end, seed 22: 0.116 px)."""
+    for seed in (1, 2, 3):
+        fit, offset, v, star, sig, at = _rows_through_frames(seed)
+        direct = noise_structure.band_offset_size(offset, v, at)
+        size = noise_stars._pattern_size(fit, 1, offset, v, star, sig, at, star_means=False)
+        assert direct < 0.145 and abs(size - 0.15) < 0.002, (seed, direct, size)
 
 
 def test_band_offset_size_reads_a_band_at_any_phase_and_at_the_detector_edges():
