@@ -125,8 +125,8 @@ def _events_from_reader(reader: BagReader, topics: dict[str, str],
         return
     stream = getattr(reader, "stream", None)
     if stream is not None:
-        yield from _merge_items(_block_items(stream(topics=topics, imu_block=IMU_BLOCK)),
-                                across, limit, quiet)
+        yield from _merged_imu(stream(topics=topics, imu_block=IMU_BLOCK), across, limit,
+                               quiet)
         return
     # readers without a streaming pass: each topic whole, merged by stamp
     available = reader.topics()
@@ -192,7 +192,8 @@ def _env_quiet(cal: Calibrator) -> bool | Callable[[], bool]:
     return False
 
 
-def _merged_imu(blocks, across=frozenset({"stars"}), limit_s: float | None = None):
+def _merged_imu(blocks, across=frozenset({"stars"}), limit_s: float | None = None,
+                quiet: Callable[[], bool] | None = None):
     """The events of a bag's stream, an IMU block merged with the next ones across star frames.
 
     A star frame falls between two IMU blocks of a bag read in log order (its stamp is its
@@ -208,9 +209,10 @@ def _merged_imu(blocks, across=frozenset({"stars"}), limit_s: float | None = Non
     roles a merge passes over (held, then handed on after it in their order); ``limit_s``:
     the data seconds of a merge (None: :data:`IMU_MERGE_S`).  A replay whose run reads no
     environment or fix message passes over those too (:func:`_env_unread`;
-    :data:`IMU_MERGE_QUIET_S`): the 2-h bag's 7 200 IMU calls become 240.
+    :data:`IMU_MERGE_QUIET_S`): the 2-h bag's 7 200 IMU calls become 240; ``quiet``
+    (:func:`_env_quiet`'s call): from when it first says so on (:func:`_merge_items`).
     """
-    return _merge_items(_block_items(blocks), across, limit_s)
+    return _merge_items(_block_items(blocks), across, limit_s, quiet)
 
 
 #: the role of an IMU piece among :func:`_merge_items`' items
