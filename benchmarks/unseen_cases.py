@@ -497,9 +497,10 @@ def _clock_drift3(sim, seed):
     _clock_drift(sim, seed, drift_s=0.003)
 
 
-# the clock-drift cases: the sky bag at 1x; what may be added is the sky and the drift's mean
-_SKY_CLOCK = dict(outside=True, regressor="time",
-                  effects=("aberration", "proper_motion", "refraction", "time_offset"),
+# the clock-drift cases: the sky bag at 1x and the drift (clock_drift, since H181: before, a
+# lost lock at 30 ms and the drift's mean as time_offset); the offset at the start may be added
+_SKY_CLOCK = dict(effects=("aberration", "proper_motion", "refraction", "clock_drift"),
+                  may_add=("time_offset",),
                   sim_effects={"aberration": 1.0, "refraction": 1.0, "proper_motion": 1.0})
 
 
@@ -897,17 +898,18 @@ CASES: dict[str, Case] = {
                            twin=("gyro_scale_factor", "sz", 1.0)),
     "sky_clock_drift": Case("psce", "the sky bag (refraction, aberration, proper motion at "
                             "1x) whose frame stamps drift late 0 -> 30 ms over the run "
-                            "(time_offset is a constant: its mean 15 ms is in the library, "
-                            "the drift is not)", post=_clock_drift, **_SKY_CLOCK,
-                            # (stamps late: dt < 0; the run's mean -15 ms, the window's
-                            # -22.5)
-                            expect={"time_offset": {"dt": (-28.125e-3, -9.375e-3)}}),
+                            "(clock_drift: a rate of -100 ppm from the bag's start, the "
+                            "prior's stamp)", post=_clock_drift, **_SKY_CLOCK,
+                            # (rate -0.03 s / 299.5 s; a time_offset beside it is the
+                            # offset at the prior's stamp, 0: a quarter of the span)
+                            expect={"clock_drift": {"rate": (-1.25e-4, -0.75e-4)},
+                                    "time_offset": {"dt": (-7.5e-3, 7.5e-3)}}),
     "sky_clock_drift3": Case("psce", "the sky bag (refraction, aberration, proper motion at "
                              "1x) whose frame stamps drift late 0 -> 3 ms over the run "
-                             "(time_offset is a constant: its mean 1.5 ms is in the library, "
-                             "the drift is not)", post=_clock_drift3, **_SKY_CLOCK,
-                             # (the run's mean -1.5 ms, the window's -2.25)
-                             expect={"time_offset": {"dt": (-2.8125e-3, -0.9375e-3)}}),
+                             "(clock_drift: a rate of -10 ppm from the bag's start)",
+                             post=_clock_drift3, **_SKY_CLOCK,
+                             expect={"clock_drift": {"rate": (-1.25e-5, -0.75e-5)},
+                                     "time_offset": {"dt": (-0.75e-3, 0.75e-3)}}),
     "misid30": Case("psce", "misidentified stars: in a random 10 % of the frames, 30 % of the "
                     "frame's stars swapped identities (bad input: counted by the gating, no "
                     "effect, noise as stated)", noise={}, post=_misid30),

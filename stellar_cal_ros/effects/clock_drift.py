@@ -1,0 +1,58 @@
+"""The tracker's clock drifting against the IMU's: a time offset growing with time."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from stellar_cal_ros.effects.base import Effect, ExportRole, FrameContext, Plausible, Stage
+
+
+class ClockDrift(Effect):
+    """``t_true = header.stamp + r (header.stamp − t_ref)`` (beside ``time_offset``'s Δt).
+
+    With ``time_offset`` the frames' offset is ``dt(t) = Δt + r (t − t_ref)``: the offset at
+    ``t_ref`` and the rate the two clocks drift apart at.  ``t_ref`` (POSIX s) is the
+    prior's ``effects.clock_drift.reference_stamp``, else the prior's ``stamp`` (a
+    calibration made for the bag: its first frame's time).
+    """
+
+    id = "clock_drift"
+    stage = Stage.TIME
+    order = 20
+    export_role = ExportRole.EXTRINSIC
+    plausible = Plausible(1000.0, "ppm")  # a free-running crystal: 10-100 ppm, at most 1e-3
+    parameter_names = ("rate",)
+    units = ("1",)  # s per s
+    display_units = ("ppm", 1e6)
+    default_sigma = (1e-3,)
+    requires = ("rate",)
+    explanation = (
+        "The tracker's clock runs at another rate than the IMU's (a free-running crystal: "
+        "10-100 ppm, 1 ms every 10-100 s): the frames' time offset grows over the run. While "
+        "the vehicle turns the residual is a shift along the direction of motion, "
+        "proportional to the angular rate and to the time since the reference stamp; a "
+        "constant time_offset takes its mean only. Typical: 1e-5 to 1e-4 s/s."
+    )
+
+    def __init__(self) -> None:
+        self.reference_stamp = 0.0
+
+    def initial(self, prior: Any) -> tuple[np.ndarray, np.ndarray]:  # noqa: D102
+        block = (prior.effects or {}).get(self.id, {})
+        self.reference_stamp = float(block.get("reference_stamp", getattr(prior, "stamp", 0.0)
+                                               or 0.0))
+        _, sigma = Effect.initial(self, prior)  # sigma.effects.clock_drift
+        return np.array([float(block.get("rate", 0.0))]), sigma
+
+    def store(self, value: np.ndarray, sigma: np.ndarray, cal: Any) -> None:  # noqa: D102
+        cal.effects[self.id] = {"rate": float(value[0]),
+                                "reference_stamp": self.reference_stamp}
+        cal.sigma.setdefault("effects", {})[self.id] = {"rate": float(sigma[0])}
+
+    def time_shift(self, value: np.ndarray, ctx: FrameContext) -> float:  # noqa: D102
+        return float(value[0]) * (ctx.stamp - self.reference_stamp)
+
+    def time_shift_jacobian(self, value: np.ndarray, ctx: FrameContext) -> np.ndarray:  # noqa: D102
+        return np.array([ctx.stamp - self.reference_stamp])
