@@ -150,6 +150,44 @@ def test_a_drifting_clock_is_not_named_a_gyro_scale(tmp_path):
     assert b["slew_growth"] * b["slew"][2] < 0, b
 
 
+def test_a_clock_drifting_30_ms_is_offered_and_added(tmp_path):
+    """The clean bag whose frames drift late 0 → 30 ms (``sky_clock_drift``'s stamps, −100
+    ppm): the model without time_offset loses its way (lag rate +343 ppm of the wrong sign
+    on the sky bag), but one rate fits the parts' change, so ``clock_drift`` (offered only
+    there) is a candidate, added in round 1, its rate within 3σ of the truth (a step leaves
+    a rate's fit a remainder: ``test_only_a_clock_that_drifts_asks_for_a_rate``).
+    Fails on aa494f5 (no clock_drift: lost lock, nothing added)."""
+    from stellar_cal_ros.diagnosis.auto import discover
+
+    sim, model = clean_simulation("psce", False, 21, 300.0)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    for f in sim.star_frames:
+        f.stamp_ns = int(f.stamp_ns + round(0.03 * (f.stamp_ns - t0) / (t1 - t0) * 1e9))
+    got = discover(bag_data_from_simulation(sim), sim.prior, "psce", list(model), tmp_path,
+                   max_rounds=2, plots=False, verbose=False, workers=0)
+    assert got["path"][0]["added"]["effect"] == "clock_drift", got["path"][0]["added"]
+    rate, sigma = got["path"][0]["added"]["estimate"]["rate"]
+    truth = -0.03 / ((t1 - t0) * 1e-9)
+    assert abs(rate - truth) < 3.0 * sigma + 0.02 * abs(truth), (rate, sigma, truth)
+
+
+@pytest.mark.parametrize(("rest_chi2", "p", "asks"), [(1.7, 0.0016, True), (8.2, 1e-25, True),
+                                                      (31.7, 1e-42, False),
+                                                      (1.2, 0.055, False)])
+def test_only_a_clock_that_drifts_asks_for_a_rate(rest_chi2, p, asks):
+    """The clock test asks for ``clock_drift`` where its parts change and one rate leaves
+    nothing significant (``sky_clock_drift3`` beside time_offset, ``sky_clock_drift``'s lost
+    lock), not where a step leaves the rate a remainder (``dt_step``) or nothing changes
+    (``wobble`` judged beside its periods); the rate's size and sign do not matter."""
+    from stellar_cal_ros.core import distributions as dist
+    from stellar_cal_ros.diagnosis.clock import ClockChange
+
+    c = ClockChange([0.0, 100.0], [99.0, 199.0], [-1e-3, -0.8e-3], [1e-5] * 2, 30.0, 5, p,
+                    0.4, 200.0, drift_rate=3.4e-4, drift_sigma=3.3e-4, drift_p=0.3,
+                    rest_chi2=rest_chi2, rest_p=float(dist.chi2.sf(rest_chi2, 3)))
+    assert c.asks_drift(0.01) is asks
+
+
 @pytest.mark.parametrize(("growth", "mean", "like"), [(0.24e-3, -0.9e-3, True),
                                                       (0.5e-3, 1.9e-3, False),
                                                       (0.05e-3, -0.9e-3, False)])

@@ -112,7 +112,7 @@ def _check_found_and_fixed(tmp_path, effect, size, seed, scenario=None, duration
     spec = method_spec("psce")
     tried = set(ranked) | {u["effect"] for u in summary["unobservable"]
                            + summary["implausible"] + summary["screened_out"]}
-    expected = {e for e in registry.available() if e not in spec.baseline
+    expected = {e for e in registry.candidates() if e not in spec.baseline
                 and registry.create(e).stage.value != "accel"}
     assert tried == expected, tried ^ expected
     first = summary["candidates"][0]

@@ -282,9 +282,13 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
         uncertain = prior_uncertain(calibration, set(spec.baseline) | set(user))
         r = Round(runs, spec, runs.facts(), evaluation_fraction, calibration,
                   tuple(uncertain), progress=tell)
-        pool = uncertain + [e for e in registry.available() if e not in uncertain]
+        every = registry.available() if candidates is not None else registry.candidates()
+        pool = uncertain + [e for e in every if e not in uncertain]
         if candidates is not None:
             pool = [e for e in pool if e in candidates]
+        # offered once the clock test asks (:func:`_drift_asked`); a user's list holds them
+        gated = [] if candidates is not None else [
+            e for e in registry.offered_on(clock.OFFERED_ON) if e not in pool]
         for k in range(1, max_rounds + 1):
             t0 = time.perf_counter()
             model = list(spec.baseline) + state.extra
@@ -297,6 +301,21 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 screen=local, measure_noise=estimate and (
                     r.noise is None or bool(r.noise.skipped or r.noise.imu_skipped
                                             or r.noise.beyond) or r.noise_stale))
+            ticks = _drift_asked(base, base.calibration or prior, runs.fraction) if gated \
+                else None
+            if ticks is not None:
+                # the frames' clock drifts on this model: its rate is a candidate from now
+                # on, and this round is made again with it (its noise as measured)
+                tell(f"round {k}: the frames' clock drifts against the IMU (one rate fits "
+                     f"{ticks.drift_rate * 1e6:.3g} +- {ticks.drift_sigma * 1e6:.2g} ppm, "
+                     f"{ticks.rest_chi2:.1f} chi2 / {ticks.dof - 2} dof left): "
+                     f"{', '.join(gated)} a candidate; the round again")
+                pool.extend(gated)
+                gated = []
+                base, results, extras = rank_round(
+                    r, state.start, state.extra, [e for e in pool if e not in state.dropped],
+                    condition=False, more=_checks(state, prior, calibration, pool),
+                    screen=local)
             here = None  # the flexure-shaped test of this round's model, when it ran
             if path and path[-1]["action"] == "add" and flexure.may_stand_in(state.last):
                 # the effect just added may stand in for a mount bending with gravity
@@ -620,6 +639,33 @@ def _clock_of(base: RunSummary, calibration: Calibration, fraction: float):
     from stellar_cal_ros.diagnosis.output import clock_test
 
     return clock_test(base.residuals, calibration, fraction)
+
+
+def _drift_asked(base: RunSummary, calibration: Calibration, fraction: float):
+    """The clock test of ``base`` if it asks for a drifting clock's candidate, else ``None``.
+
+    :meth:`~stellar_cal_ros.diagnosis.clock.ClockChange.asks_drift` on the clock test, and
+    again on the one the 'unexplained' lines judge (:func:`~.output.line_tests`: beside a
+    wobble's periods where one is found, a wobble's turns read as a drift otherwise:
+    unseen case ``wobble`` s23, 14.5 ppm).  Where ``base`` lost lock, the parts' change
+    alone.  Asked each round until it asks: a model that fits costs the one clock test.
+    """
+    ticks = _clock_of(base, calibration, fraction)
+    if ticks is None:
+        return None
+    if base.lost_lock and min(ticks.p_value, ticks.drift_p) < ALPHA:
+        # lost on the way, the parts' offsets are the filter's catch-up as much as the
+        # clock's (a 0 -> 30 ms drift: one rate leaves 12.7 chi2 / 3 dof, p 0.005): the
+        # candidate's run says whether a rate holds
+        return ticks
+    if not ticks.asks_drift(ALPHA):
+        return None
+    from stellar_cal_ros.diagnosis.output import line_tests
+
+    parts: dict[str, Any] = {}
+    line_tests(base.residuals, calibration, fraction, parts)
+    ticks = parts.get("clock")
+    return ticks if ticks is not None and ticks.asks_drift(ALPHA) else None
 
 
 def _knock_of(base: RunSummary, calibration: Calibration, fraction: float):

@@ -113,6 +113,9 @@ GYRO_COMPONENT = "gyro rate"
 #: ``sky_clock_drift3``: gyro_scale_factor added beside time_offset).  Refused while the
 #: current model's remainder is a clock's (:meth:`ClockChange.clock_like`)
 RATE_ALIASES = ("gyro_scale_factor", "gyro_misalignment")
+#: the test named by an effect offered only where a drifting clock is found
+#: (:attr:`~stellar_cal_ros.effects.base.Effect.offered_on`, :meth:`ClockChange.asks_drift`)
+OFFERED_ON = "clock drift"
 #: the line's component (:func:`~stellar_cal_ros.diagnosis.printing.unexplained_phrase`)
 COMPONENT = "time offset"
 
@@ -194,6 +197,23 @@ class ClockChange:
         return (abs(self.drift_rate) >= DRIFT_Z * self.drift_sigma
                 and np.isfinite(self.rest_p) and self.rest_p >= DRIFT_REST_P)
 
+    def asks_drift(self, alpha: float) -> bool:
+        """Whether a drifting clock is worth a candidate (the library's ``clock_drift``).
+
+        The parts' change (or the drift) significant at ``alpha``, and one rate leaving
+        nothing significant of it (what it and the catch-up leave at :data:`DRIFT_REST_P`),
+        whatever the rate's size or, for a lag, its sign: the candidate's run over the whole
+        bag says the rate, the window's moving parts only that one fits.  A model that lost
+        lock on a drifting clock fits the lag's rate of the wrong sign (``sky_clock_drift``:
+        +343 ppm for a truth of −100, 8.2 chi2 / 3 dof left, p 0.04); a 0 → 3 ms drift
+        beside time_offset changes the parts (p 0.0016) with a rate of 1.6 σ only
+        (``sky_clock_drift3``: −8.6 ± 5.5 ppm, 1.7 chi2 / 3 dof left).  A clock that steps
+        leaves the rate a remainder (``dt_step``: 31.7 chi2 / 3 dof, p 6e-7): the step is
+        outside the library, and a rate would only stand in for it.
+        """
+        return (min(self.p_value, self.drift_p) < alpha
+                and np.isfinite(self.rest_p) and self.rest_p >= DRIFT_REST_P)
+
     def grows(self) -> bool:
         """Whether the remainder grows along the slew that carries it (a gyro's error).
 
@@ -252,8 +272,8 @@ class ClockChange:
                     f"{self.drift_rate * 1e6:.3g} "
                     f"+- {self.drift_sigma * 1e6:.2g} ppm; {how}; {self.drift_chi2:.0f} chi2 / "
                     f"1 dof, {self.rest_chi2:.1f} chi2 / {self.dof - 2} dof left over "
-                    f"{len(self.dt)} parts of the moving frames; outside the library: its "
-                    "time_offset is constant)")
+                    f"{len(self.dt)} parts of the moving frames; a constant time_offset "
+                    "cannot follow it: the library's clock_drift models it)")
         parts = ", ".join(f"{d * 1e3:.3g} ms over {a:.0f}-{b:.0f} s"
                           for a, b, d in self.spans())
         return (f"{CLOCK}: dt {parts} (outside the library: its time_offset is constant; "

@@ -747,7 +747,7 @@ def rank_candidates(
     uncertain = prior_uncertain(calibration, in_model)
     r = Round(runs, spec, runs.facts(), evaluation_fraction, calibration, tuple(uncertain),
               physical_check, progress)
-    pool = uncertain + [e for e in (candidates or registry.available()) if e not in uncertain]
+    pool = uncertain + [e for e in (candidates or registry.candidates()) if e not in uncertain]
     if candidates is not None:
         pool = [e for e in pool if e in candidates]
     base, results, _ = rank_round(r, calibration, extra, pool, measure_noise=measure_noise)

@@ -947,7 +947,7 @@ def far_off(base, sn: StarNoise | None) -> str:
     """
     if not base.ok or not base.window:
         return "the model's run failed"
-    lost = base.counters.get("reinitializations", 0) or base.counters.get("frames_lost_lock", 0)
+    lost = base.lost_lock
     s = 1.0
     if sn is not None and sn.scale > 0:
         s = sn.scale

@@ -311,8 +311,7 @@ def walk_asked(v: NoiseVerdict, base, components: tuple[str, ...]) -> bool:
         return False
     if "gyro" in v.beyond:
         return True
-    lost = base.counters.get("reinitializations", 0) or base.counters.get("frames_lost_lock", 0)
-    return bool(v.skipped) and not lost
+    return bool(v.skipped) and not base.lost_lock
 
 
 def walk_task(x: float, prior, effects: tuple[str, ...], at: NoiseScales) -> Task:

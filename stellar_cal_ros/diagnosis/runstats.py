@@ -108,6 +108,12 @@ class RunSummary:
         return not self.error
 
     @property
+    def lost_lock(self) -> bool:
+        """The filter lost lock in the run (re-initialized, or frames counted lost)."""
+        return bool(self.counters.get("reinitializations", 0)
+                    or self.counters.get("frames_lost_lock", 0))
+
+    @property
     def sigma(self) -> np.ndarray:
         """Posterior σ of θ."""
         return np.sqrt(np.clip(np.diag(self.P), 0.0, None))

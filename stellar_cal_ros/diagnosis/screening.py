@@ -139,8 +139,7 @@ def is_local(run) -> bool:
     if not run.ok or not run.window:
         return False
     nis = run.window["nis"]["mean"] / 2.0
-    lost = run.counters.get("reinitializations", 0) or run.counters.get("frames_lost_lock", 0)
-    return bool(np.isfinite(nis) and nis <= SCREEN_MAX_DISPERSION and not lost)
+    return bool(np.isfinite(nis) and nis <= SCREEN_MAX_DISPERSION and not run.lost_lock)
 
 
 def dispersion(run) -> float:

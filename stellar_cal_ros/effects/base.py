@@ -226,6 +226,12 @@ class Effect:
     #: error source of a tracker budget (``stellar-cal budget``) the parameters belong to,
     #: e.g. ``"distortion"``; None: not part of a budget
     budget_source: ClassVar[str | None] = None
+    #: the test of the current model that must ask for the effect before it is a candidate
+    #: of ``discover`` or ``diagnose`` (``"clock drift"``: the clock test's drift,
+    #: :meth:`~stellar_cal_ros.diagnosis.clock.ClockChange.asks_drift`); ``""``: a candidate
+    #: in every round (an effect a wrong candidate can stand in for, e.g. a clock's rate
+    #: for a clock's step, is offered only on its own evidence)
+    offered_on: ClassVar[str] = ""
 
     @property
     def size(self) -> int:

@@ -28,6 +28,7 @@ class ClockDrift(Effect):
     display_units = ("ppm", 1e6)
     default_sigma = (1e-3,)
     requires = ("rate",)
+    offered_on = "clock drift"  # a rate stands in for a clock's step: only where one drifts
     explanation = (
         "The tracker's clock runs at another rate than the IMU's (a free-running crystal: "
         "10-100 ppm, 1 ms every 10-100 s): the frames' time offset grows over the run. While "

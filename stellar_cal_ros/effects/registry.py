@@ -194,6 +194,20 @@ def available() -> list[str]:
     return list(EFFECTS)
 
 
+def candidates() -> list[str]:
+    """Ids of the effects offered as candidates in every round, in application order.
+
+    Those whose ``offered_on`` names a test are offered only where it asks
+    (:attr:`~stellar_cal_ros.effects.base.Effect.offered_on`).
+    """
+    return [i for i, cls in EFFECTS.items() if not cls.offered_on]
+
+
+def offered_on(test: str) -> list[str]:
+    """Ids of the effects offered as candidates where ``test`` asks for them."""
+    return [i for i, cls in EFFECTS.items() if cls.offered_on == test]
+
+
 def effect_class(effect_id: str) -> type[Effect]:
     """The class of ``effect_id`` (a one-line error naming the known ids if unknown)."""
     try:
