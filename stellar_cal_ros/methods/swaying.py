@@ -199,7 +199,7 @@ class SwayingFilter(StarFilter):
     _FRAME_HOOKS = ("_transition", "_propagate_interval", "_before_star_update",
                     "_reference_update", "reference_measurement", "propagate", "_star_update",
                     "_compiled_star_update", "_inflate_bridged", "rate_at", "inject",
-                    "_fused_update", "site_position")
+                    "_fused_update", "site_position", "site_positions")
     checkpoint_fields = {**StarFilter.checkpoint_fields,
                          "last_reference_t": "last_reference_t",
                          "level_check_deg": "level_check_deg",
@@ -299,7 +299,14 @@ class SwayingFilter(StarFilter):
     # ------------------------------------------------------------------ Earth
     def site_position(self, t: float) -> np.ndarray:
         """Site position relative to the site at ``t0``, GCRS, m."""
-        return self.grid.interp("r", t)[0]
+        return self.site_positions(t)[0]
+
+    def site_positions(self, t: np.ndarray | float) -> np.ndarray:
+        """Site positions at relative times ``t`` (n, 3), as :meth:`site_position`'s, GCRS, m.
+
+        One interpolation of the Earth grid: a row each, the same floats as one call a time.
+        """
+        return self.grid.interp("r", t)
 
     def site_velocity(self, t: float) -> np.ndarray:
         """Site inertial velocity, GCRS, m/s."""
@@ -536,8 +543,8 @@ class SwayingFilter(StarFilter):
         offs, col, uv, u, sigma, du, bscale, base = us.stack(run)
         site = np.zeros((len(run), 3))
         rows = np.flatnonzero(due)
-        if len(rows):  # (one interpolation: the same floats as site_position's, a row each)
-            site[rows] = self.grid.interp("r", np.array([run[i][8] for i in rows.tolist()]))
+        if len(rows):
+            site[rows] = self.site_positions(np.array([run[i][8] for i in rows.tolist()]))
         Gg, Ga = (np.ascontiguousarray(g_, dtype=float) for g_ in prop._gamma)
         qd_index, qd, inv_tau = self._qd_arrays
         b0, _, Jb, _ = prop.gyro._affine
