@@ -419,8 +419,7 @@ class Calibrator(ImuRelease):
         series = self.env[kind]
         # no frame waits for them (and, a method that needs a site, its filter runs: before,
         # each pumps as it may start it)
-        if not self.requires or (self.filter is not None
-                                 and not self.requires & {"head_temperature", "weather"}):
+        if not self.requires or (self.filter is not None and not self.scalars_read()):
             series.extend(s[ok], v[ok])
             return []
         out: list[FrameOutcome] = []
@@ -752,6 +751,14 @@ class Calibrator(ImuRelease):
     def _accumulates(self, stamp_ns: int) -> bool:
         """Whether a frame's score and information enter the sensitivity (evaluation window)."""
         return self.eval_start is None or stamp_ns * 1e-9 >= self.eval_start
+
+    def scalars_read(self) -> bool:
+        """Whether the model or the method reads the temperature or pressure messages.
+
+        :attr:`requires` holds ``head_temperature`` or ``weather``: a frame waits for them
+        (:meth:`push_scalars`; a replay's :func:`~.replay._env_unread` asks it too).
+        """
+        return bool(self.requires & {"head_temperature", "weather"})
 
     def _env_keys(self) -> tuple[str, ...]:
         """The environment inputs a frame's context needs.

@@ -172,7 +172,7 @@ def _env_unread(cal: Calibrator, started: bool | None = None) -> bool:
     ``started``: whether the filter runs, None: as it is).
     """
     started = cal.filter is not None if started is None else started
-    return not (cal.requires & {"head_temperature", "weather"}) and \
+    return not cal.scalars_read() and \
         ("site" not in cal.requires or (started and not cal.site_read)) and \
         bool(getattr(cal.residuals, "discard", False))
 
