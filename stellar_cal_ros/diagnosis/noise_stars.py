@@ -1590,11 +1590,6 @@ def star_spread(sn: StarNoise, use: np.ndarray | None = None,
 
 #: excess kurtosis of Gaussian noise's rows ``z`` (``‖r‖²`` of two axes: exponential's)
 GAUSS_KURTOSIS = 6.0
-#: the rows' measured excess kurtosis beyond which the per-star F's reference is widened
-#: (:func:`tail_factor`): Gaussian noise's read 3.1-17.6 (median 4.9) over 100 draws on a
-#: psce bag's rows and 3.7-14.3 over 200 synthetic tables of 10-150-row tracks; Student-t
-#: of 4 dof's 30.4-1886 and 38-3146 (of 3 dof 83-4255)
-HEAVY_KURTOSIS = 24.0
 
 
 def tail_factor(r: np.ndarray, ns: np.ndarray) -> tuple[float, float]:
@@ -1611,19 +1606,13 @@ def tail_factor(r: np.ndarray, ns: np.ndarray) -> tuple[float, float]:
     ``sway_t4`` seed 23, "wrong star by star ~7.6 %, p = 0.0045").  Returns the ratios of
     their variances at the ``κ`` measured on ``r`` to Gaussian noise's, ``(2 + κ h) / (2 +
     6 h)`` (``h`` the stars' mean ``1 / n``) and ``(2 + κ) / 8``, at least 1 each: the
-    F's numerator and denominator dof are divided by them (Satterthwaite).  Below
-    :data:`HEAVY_KURTOSIS` both are 1: Gaussian noise's ``κ`` measured scatters about 6
-    (up to 17.6), and its F, whose level is right, stays bit for bit (the swaying
-    false-alarm bag seed 2047, Gaussian, ``κ`` 6.3: "F = 1.39, p = 0.0047" as before, not
-    0.0051).
+    F's numerator and denominator dof are divided by them (Satterthwaite).
     """
     c = r - float(np.mean(r))
     v = float(np.mean(c**2))
     if not v > 0:
         return 1.0, 1.0
     k = float(np.mean(c**4)) / v**2 - 3.0
-    if not k > HEAVY_KURTOSIS:
-        return 1.0, 1.0
     h = float(np.mean(1.0 / ns))
     return (max(1.0, (2.0 + k * h) / (2.0 + GAUSS_KURTOSIS * h)),
             max(1.0, (2.0 + k) / (2.0 + GAUSS_KURTOSIS)))
