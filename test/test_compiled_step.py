@@ -796,6 +796,40 @@ def test_compiled_frame_inputs_equal_numpy() -> None:
             frame_inputs(short, 100, 80, 0.05, compiled=compiled)
 
 
+def test_imu_noise_scales_keep_the_compiled_frame_inputs() -> None:
+    """A noise that rescales only the IMU (the IMU noise search's runs) or holds a gyro bias
+    walk leaves the stars' σ as stated: its frame inputs are the compiled ones (``valid``,
+    so the replay commits its frames in batches), equal to the stated noise's bit for bit;
+    a star scale, a measured σ of unknown stars or σ groups take the numpy path."""
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.core.types import StarFrame
+    from stellar_cal_ros.methods.frames import frame_inputs
+
+    frame = StarFrame(
+        stamp_ns=1, frame_id="st", exposure_time=0.1,
+        catalog_id=np.array([5, 6, 7], dtype=np.uint32),
+        right_ascension=np.array([0.1, 0.2, 0.3]), declination=np.array([0.2, -0.1, 0.3]),
+        uv=np.array([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0]]),
+        magnitude=np.arange(3.0), sigma=np.array([0.1, 0.0, 0.2]))
+    stated = frame_inputs(frame, 100, 80, 0.05, compiled=True)
+    assert stated.valid
+    for noise in (NoiseScales(gyro=3.0), NoiseScales(gyro=1 / 3, accel=2.0),
+                  NoiseScales(gyro_bias_rw=5.0), NoiseScales(star_rho=0.3)):
+        assert noise.stars_as_stated
+        got = frame_inputs(frame, 100, 80, 0.05, noise=noise, compiled=True)
+        assert got.valid, noise
+        for name in ("ok", "uv", "u_i", "sigma", "catalog_id", "magnitude"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(stated, name),
+                                          err_msg=name)
+        numpy_path = frame_inputs(frame, 100, 80, 0.05, noise=noise, compiled=False)
+        np.testing.assert_array_equal(numpy_path.sigma, got.sigma)
+    for noise in (NoiseScales(star=1.2), NoiseScales(unknown_sigma_px=0.3)):
+        assert not noise.stars_as_stated
+        got = frame_inputs(frame, 100, 80, 0.05, noise=noise, compiled=True)
+        assert not got.valid
+        assert not np.array_equal(got.sigma, stated.sigma)
+
+
 def test_compiled_imu_screen_equals_numpy(sim_data) -> None:
     """``jit.imu_block_screen`` decides what the driver's numpy screen decides (strictly
     increasing; every stamp positive, every sample finite), on clean and damaged blocks —

@@ -133,6 +133,15 @@ class NoiseScales:
                 and not self.unknown_sigma_px and not self.group_by and not self.star_rho
                 and not self.gyro_bias_rw)
 
+    @property
+    def stars_as_stated(self) -> bool:
+        """The stars' σ as their messages state it (:meth:`star_sigma` changes none).
+
+        The IMU's scales, a gyro bias walk and the stars' correlation may differ: they act
+        in the filter, not on a frame's σ (the IMU noise search's runs, H192).
+        """
+        return self.star == 1.0 and not self.unknown_sigma_px and not self.group_by
+
     def replace(self, **changes: Any) -> NoiseScales:
         """A copy with ``changes``."""
         return dataclasses.replace(self, **changes)

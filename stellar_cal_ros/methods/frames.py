@@ -165,9 +165,10 @@ def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float
     the stated σ, and the measured σ of stars whose message says 0.
     ``compiled``: in one compiled call (:func:`stellar_cal_ros.core.jit.star_inputs`, the
     same rules and formulas as :func:`star_masks` and :func:`star_sigma`) when numba is there
-    and the noise is as stated.
+    and the noise leaves the stars' σ as stated (its IMU scales may differ: the IMU noise
+    search's runs; the same inputs bit for bit on the 2-h psce bag's 14 400 frames).
     """
-    jit = compiled_kernels() if compiled and (noise is None or noise.identity) else None
+    jit = compiled_kernels() if compiled and (noise is None or noise.stars_as_stated) else None
     if jit is not None:
         arrays = (np.asarray(frame.uv, dtype=float).reshape(-1, 2),
                   np.asarray(frame.right_ascension, dtype=float),
