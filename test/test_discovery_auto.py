@@ -556,3 +556,47 @@ def test_a_refused_candidate_that_fits_worse_is_not_said_to_remove_a_negative_sh
         f"{MIN_EXPLAINED:.0%}; p = 2.4e-08)")
     assert _verdict(little, None) == (
         f"removes only 4% of the excess variance (< {MIN_EXPLAINED:.0%}; p = 0.0034)")
+
+
+def _window_run(loglik: float):
+    """A run whose evaluation window has this log-likelihood (NIS at its expectation)."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(ok=True, window={"log_likelihood": loglik, "nis": {"mean": 2.0},
+                                            "excess_variance": 0.0, "noise_variance": 1.0})
+
+
+@pytest.mark.parametrize("gain, tied", [(-3.0, True), (+3.0, True), (-25.0, False)])
+def test_an_effect_its_rival_explains_as_well_is_said_to_be_tied_with_it(gain, tied):
+    """Neither significant beside the other: the one kept names the other (issue 21).
+
+    The exchange check's run (the rival ``gyro_scale_factor`` in place of
+    ``gyro_misalignment``) gains ``gain`` over the model; the rival beside the model scores
+    1.2 (3 dof).  ``gyro_misalignment`` beside the rival is then 1.2 − gain on its 6 dof:
+    4.2 (p 0.65) and a Λ below 0 are a tie, 26.2 (p 2e-4) tells them apart.  (On main the
+    choice was made silently: psce twins with gyro_scale_factor sx at its MDB added
+    gyro_misalignment in 5 of 15.)
+    """
+    from stellar_cal_ros.diagnosis import auto, printing
+    from stellar_cal_ros.diagnosis.discover import CandidateResult
+
+    state = auto._State(["gyro_misalignment"], (), None)
+    rival = CandidateResult("gyro_scale_factor", "ranked", statistic=1.2, dof=3, p_value=0.75,
+                            p_adjusted=1.0)
+    action, removed, added, _, details = auto._decide_checks(
+        state, _window_run(0.0), {"gyro_scale_factor for gyro_misalignment":
+                                  _window_run(gain / 2.0)}, [rival])
+    assert (action, removed, added) == (("exchange", "gyro_misalignment", "gyro_scale_factor")
+                                        if gain > 0 else ("", "", ""))
+    tie = details["gyro_scale_factor for gyro_misalignment"].get("tie")
+    assert (tie is not None) is tied
+    if not tied:
+        assert state.ties == {}
+        return
+    kept, other = (("gyro_scale_factor", "gyro_misalignment") if gain > 0
+                   else ("gyro_misalignment", "gyro_scale_factor"))
+    assert tie["beside_rival"] == pytest.approx(1.2 - gain)
+    assert tie["p_value"] == pytest.approx(sps.chi2.sf(max(1.2 - gain, 0.0), 6))
+    assert state.ties[kept]["with"] == other
+    line = printing.added_caveat({"ties": {kept: state.ties[kept]}}, kept)
+    assert f"or {other}: this motion can't tell them apart" in line

@@ -354,6 +354,10 @@ def added_caveat(summary: dict[str, Any], effect: str) -> str:
         return (" -- a mean over an offset that changes over the run (see the time "
                 "offset's 'unexplained' line): its +- is that of a constant, not the offset "
                 "at any time")
+    tie = (summary.get("ties") or {}).get(effect)
+    if tie is not None:  # diagnosis.auto._tie
+        return (f" -- or {tie['with']}: this motion can't tell them apart (either beside "
+                f"the other is not significant, p = {tie['p_value']:.2g})")
     return f" -- {ALIAS_TEXT}" if effect in alias else ""
 
 
