@@ -16,7 +16,9 @@ this order:
    with the rival instead of ``x`` is kept when it predicts the evaluation window better
    (higher prequential log-likelihood: held-out predictions, so the extra parameters of a
    flexible effect are no advantage).  Each pair is tried once per model (again after the
-   model has changed: a rival can lose while a third effect is still missing).
+   model has changed: a rival can lose while a third effect is still missing).  When
+   neither is significant beside the other (:func:`_tie`) this motion cannot tell them
+   apart: the one kept is named with the other (``ties`` in ``diagnosis.json``).
 3. **add** — the top candidate: significant after Bonferroni and removing a real part of
    the excess variance, the rule of a single ``diagnose``.  Every other candidate is tested
    again in the next round, so an effect that only copied part of the real cause's pattern
