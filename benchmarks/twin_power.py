@@ -4,7 +4,8 @@ A user's calibrated bag (``stellar-cal discover --auto`` gave ``RESULT/calibrati
 and printed the MDBs) is rendered again by ``stellar-cal twin`` with one effect at a given
 value, with fresh noise per twin seed, and each twin is diagnosed as the user would
 (``stellar-cal discover --auto``).  Per seed: whether the effect was added, and round 1's
-score, p and reason; then the count (issue 21 item 2: 80 % +- 15 % at the printed MDB).
+score, p and reason, and the ties said (an added effect named with one this motion does not
+tell from it); then the counts (issue 21 item 2: 80 % +- 15 % at the printed MDB).
 Run::
 
     python benchmarks/twin_power.py BASE.mcap RESULT/calibration.yaml swaying_base \
@@ -34,7 +35,7 @@ def main() -> int:
     exe = str(Path(sys.executable).with_name("stellar-cal"))
     a.out.mkdir(parents=True, exist_ok=True)
     first, last = map(int, a.seeds.split("-"))
-    found = flagged = 0
+    found = flagged = told = 0
     for k in range(first, last + 1):
         twin = a.out / f"t{k}.mcap"
         subprocess.run([exe, "twin", a.bag, "--calibration", a.calibration, "-o", str(twin),
@@ -55,12 +56,16 @@ def main() -> int:
         behind = "significant alone" in (mine.get("reason") or "")
         found += added
         flagged += added or behind
+        # an added effect named with the one this motion does not tell from it
+        ties = {e: t["with"] for e, t in (s.get("ties") or {}).items()}
+        told += any(a.effect in (e, w) for e, w in ties.items())
         print(f"{k:5d} {'added' if added else 'missed':7s} {s.get('added', [])} score "
               f"{mine.get('score', float('nan')):.3g} p {mine.get('p_value', float('nan')):.2g} "
-              f"{mine.get('reason') or ''}", flush=True)
+              f"{mine.get('reason') or ''}{f' tie {ties}' if ties else ''}", flush=True)
         twin.unlink(missing_ok=True)
     n = last - first + 1
-    print(f"{a.effect}={a.value}: added {found} of {n}, significant in round 1 {flagged} of {n}")
+    print(f"{a.effect}={a.value}: added {found} of {n}, significant in round 1 {flagged} of {n}"
+          f", named in a tie {told} of {n}")
     return 0
 
 
