@@ -352,6 +352,47 @@ def test_a_round_not_screened_sends_its_candidates_beside_the_base_run():
     assert by["time_offset"].significant
 
 
+def test_a_round_not_screened_prints_the_mdb_of_the_window_information():
+    """A round that is not screened (its model far off: the final round of unseen cases
+    ``dt_step``, ``sky_clock_drift3``, ``sway_knock``, whose MDBs the user reads) states
+    each candidate's MDB for the window's information as a screened round does: its
+    current-model run (or the noise's base run) scores the candidates for that alone, and
+    no score test takes part in its decision.  (It scaled the augmented run's whole-run
+    information by the stars' share in the window: 0.36x to 2.2x the window's.)"""
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis import discover
+    from stellar_cal_ros.diagnosis.parallel import Runs
+
+    sim, data = _sim({"time_offset": 0.02}, seed=14, duration=60.0)
+    spec = method_spec("psce")
+    cands = ["time_offset", "pixel_aspect", "gyro_scale_factor"]
+
+    def round_(screen, noise):
+        runs = Runs(data, spec, 0.5)
+        runs.noise = NoiseScales()
+        r = discover.Round(runs, spec, runs.facts(), 0.5, sim.prior)
+        _, results, _ = discover.rank_round(r, sim.prior, [], cands, condition=False,
+                                            screen=screen, measure_noise=noise)
+        return {c.effect: c for c in results}
+
+    screened = round_(True, False)
+    for noise in (False, True):
+        by = round_(False, noise)
+        for e in cands:
+            a, b = by[e], screened[e]
+            assert a.screen is not None and not a.screen.local
+            assert np.isnan(a.p_score)  # the ratio alone decides
+            assert a.run is not None  # every candidate re-run
+            # the same window information; the MDB at the round's own level (one
+            # statistic decides here, two in a screened round)
+            np.testing.assert_allclose(a.screen.information, b.screen.information, rtol=1e-6)
+            det = reliability.detectability(e, b.screen.information,
+                                            discover.ALPHA / len(cands), None)
+            for name, mdb in det.mdb.items():
+                assert a.detect.mdb[name] == pytest.approx(mdb, rel=1e-6), (e, name, noise)
+    assert by["time_offset"].significant
+
+
 def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):
     """--scheduler: the user's cluster runs the round (here a 1-worker LocalCluster); a bag
     in memory is scattered to it; a worker without the file parses the bag's bytes."""

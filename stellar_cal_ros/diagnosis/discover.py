@@ -365,9 +365,13 @@ def window_information(cand: CandidateResult, run: RunSummary | None = None) -> 
     swaying bag (44 % of the stars: 20.9 ppm printed re-run, 14.0 screened out; twins at
     14.0 found 18 of 20), 21 % of accel_scale_factor sz's there, and 16-18 % of
     gyro_misalignment e02's and gsf sx's on a clean 300-s PSCE bag (49 % of the stars;
-    twins at sx's window MDB significant 15 of 20).  The stars' share scales the augmented
-    run's information only where no screening ran (a round whose current model is far from
-    consistent, ``screen=False``).
+    twins at sx's window MDB significant 15 of 20).  A round that is not screened (its
+    current model far from consistent, ``screen=False``: the final round of unseen cases
+    ``dt_step``, ``sky_clock_drift3``, ``sway_knock``, whose 'what could still be hiding' the
+    user reads) scores its candidates on the current model's run for this alone
+    (:func:`rank_round`; not local: no score test decides).  The stars' share scales the
+    augmented run's information only where no run scored the candidate (a current-model
+    run that failed to score).
     """
     if cand.screen is not None:
         return np.atleast_2d(np.asarray(cand.screen.information, dtype=float))
@@ -483,7 +487,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     # taken by the same Task)
     cand_tasks = [] if use_score else [_candidate_task(r, prior, extra, e) for e in testable]
     measured = (measure_round_noise(r, prior, extra, tuple(testable) if use_score else (),
-                                    keep_residuals, cand_tasks + more, rivals=tuple(testable))
+                                    keep_residuals, cand_tasks + more, rivals=tuple(testable),
+                                    score=() if use_score else tuple(testable))
                 if measure_noise else None)
     base = measured[0] if measured else None
     alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
@@ -528,6 +533,10 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
                                   r.done))
     else:
         cand_tasks, out = _take_rivals(r, cand_tasks)
+        if base is None and testable:
+            # its run scores the candidates for their MDB only (the window's information,
+            # :func:`window_information`): no local test decides here
+            current = replace(current, screen=tuple(testable), cost=_SCREEN_COST)
         out.update(r.runs.run_all(([current] if base is None else []) + cand_tasks + more,
                                   r.done))
     extras = {t.key: out.pop(t.key) for t in more}
@@ -544,6 +553,10 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         # since the noise was measured may show another scale (a missing effect inflates it)
         r.noise_stale = not r.noise.skipped and stale(base.star_noise)
     reference = Reference.of(base)
+    if not use_score:
+        for e, scr in screening.collect([base]).items():
+            if e in cands:
+                cands[e].screen = replace(scr, local=False)
     for e, run in out.items():
         c = cands[e]
         if not run.ok:
@@ -620,8 +633,8 @@ def decide(c: CandidateResult, m: int, n_stats: int) -> None:
 
 def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
                         screen: tuple[str, ...] = (), keep_residuals: bool = False,
-                        beside: list[Task] = (), rivals: tuple[str, ...] = ()
-                        ) -> list[RunSummary] | None:
+                        beside: list[Task] = (), rivals: tuple[str, ...] = (),
+                        score: tuple[str, ...] = ()) -> list[RunSummary] | None:
     """Measure the noise of the current model; every later run of ``r`` uses its scales.
 
     The measurement's base run is the current model's run with the stated scales: it
@@ -646,6 +659,9 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     beat (:func:`~stellar_cal_ros.diagnosis.noise_runs.beats_rivals`): the one the
     screening scores best, or every one in a round not screened (``beside``'s runs), run
     with the walk's scales; kept for the round (:attr:`Round.rival_runs`).
+
+    ``score``: the candidates a round that is not screened scores on the base run for their
+    MDB alone (:func:`window_information`; the runs go as without them).
     """
     from stellar_cal_ros.diagnosis.noise_runs import first_runs, measure, start_samples
 
@@ -685,7 +701,8 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
         done = r.runs.run_ahead([Task("noise: current model", prior, tuple(extra),
                                       keep_residuals,
                                       cost=_SCREEN_COST if screen or beside else 1.0,
-                                      screen=tuple(groups[0]), star_noise=True)] + others,
+                                      screen=tuple(groups[0]) or tuple(score),
+                                      star_noise=True)] + others,
                                 lambda: ahead() + beside, r.done)
         base = done["noise: current model"]
         if not base.ok:

@@ -10,8 +10,9 @@ direction ``d`` is ``sqrt(λ₀ / dᵀ I d)`` with ``λ₀ = λ(α, POWER, k)`` 
 ``I`` is the information of the evaluation window, where the decision's statistics are
 summed: the screening pass's (:mod:`~stellar_cal_ros.diagnosis.screening`) ``Σ Aᵀ S⁻¹ A``
 over the window, for a candidate screened out and for one re-run alike
-(:func:`~stellar_cal_ros.diagnosis.discover.window_information`).  Only a round without a
-screening takes it from the candidate's augmented run: ``I_data = (P_post)_ββ⁻¹ −
+(:func:`~stellar_cal_ros.diagnosis.discover.window_information`; a round that is not
+screened scores its candidates on its current model's run for the MDB alone).  Only a
+candidate no run scored takes it from its augmented run: ``I_data = (P_post)_ββ⁻¹ −
 (P_prior)_ββ⁻¹`` (the marginal posterior block already has the other parameters
 marginalized; the screening's sum over every frame, to 1e-4), scaled by the share of the
 accepted stars that lie in the window -- an approximation: the information is not spread
