@@ -486,9 +486,12 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     # not screened: the candidates' runs are known now (built once: a run made ahead is
     # taken by the same Task)
     cand_tasks = [] if use_score else [_candidate_task(r, prior, extra, e) for e in testable]
+    # not screened: the current model's run scores them for their MDB alone, where the
+    # method has consider parameters (the bundle has none)
+    for_mdb = () if use_score or r.spec.screen is None else tuple(testable)
     measured = (measure_round_noise(r, prior, extra, tuple(testable) if use_score else (),
                                     keep_residuals, cand_tasks + more, rivals=tuple(testable),
-                                    score=() if use_score else tuple(testable))
+                                    score=for_mdb)
                 if measure_noise else None)
     base = measured[0] if measured else None
     alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
@@ -533,7 +536,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
                                   r.done))
     else:
         cand_tasks, out = _take_rivals(r, cand_tasks)
-        if base is None and testable:
+        if base is None and for_mdb:
             # its run scores the candidates for their MDB only (the window's information,
             # :func:`window_information`): no local test decides here
             current = replace(current, screen=tuple(testable), cost=_SCREEN_COST)
