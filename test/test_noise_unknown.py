@@ -140,7 +140,8 @@ def test_the_fits_weights_are_not_made_again_on_a_run_far_from_its_model():
     nis = 2.0 * one.scale**2  # NIS/dof 1 at the one fit's scale
 
     def summary(k):
-        return SimpleNamespace(ok=True, window={"nis": {"mean": k * nis}}, counters={})
+        return SimpleNamespace(ok=True, window={"nis": {"mean": k * nis}}, counters={},
+                               lost_lock=False)
 
     far = noise.measure_stars(result, data, "psce", 0.5, None, summary(10.0))
     near = noise.measure_stars(result, data, "psce", 0.5, None, summary(1.0))

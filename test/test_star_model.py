@@ -113,8 +113,11 @@ def test_predict_jacobians_match_finite_differences(subset, sim, stars):
         # time step needs to be large, and the difference quotient carries quantum/h.
         time_tol = 0.0
         if stage is Stage.TIME:
-            h = 1e-2
-            time_tol = 2.0 * np.spacing(ctx.stamp) / h
+            # a 10-ms shift of the exposure (a clock's rate: over its stamp's distance from
+            # the reference stamp)
+            h = 1e-2 / max(abs(model.time_shift(theta, ctx)[1][k]), 1.0)
+            time_tol = 2.0 * np.spacing(ctx.stamp) / (h * max(abs(
+                model.time_shift(theta, ctx)[1][k]), 1.0))
         e = np.zeros(model.size)
         e[k] = h
         fd = (uv(theta + e) - uv(theta - e)) / (2 * h)
