@@ -539,3 +539,20 @@ def test_an_estimate_beyond_what_an_instrument_reaches_is_implausible():
     assert beyond_limit(tilt, [0.054, 0.0], [1e-3, 1e-3]) == ""  # 4 mrad over: 4σ
     assert beyond_limit(tilt, [0.056, 0.0], [1e-3, 1e-3]) != ""  # 6σ over
     assert beyond_limit(registry.create("time_offset"), [0.5], [1e-5]) == ""
+
+
+def test_a_clock_drift_without_a_reference_stamp_counts_from_the_first_frame(sim):
+    """A prior without a stamp (0, a hand-written prior) must not put clock_drift's rate on
+    a lever of 1.7e9 s (the POSIX epoch): the first frame's stamp is the reference, and the
+    result stores it."""
+    prior = copy.deepcopy(sim.prior)
+    prior.stamp = 0.0
+    prior.effects = {}
+    eff = registry.create("clock_drift")
+    value, _ = eff.initial(prior)
+    first, later = 1.7e9, 1.7e9 + 100.0
+    assert eff.time_shift(np.array([1e-5]), FrameContext(stamp=first)) == 0.0
+    assert eff.time_shift_jacobian(value, FrameContext(stamp=later))[0] == pytest.approx(100.0)
+    cal = copy.deepcopy(prior)
+    eff.store(np.array([1e-5]), np.array([1e-7]), cal)
+    assert cal.effects["clock_drift"]["reference_stamp"] == first

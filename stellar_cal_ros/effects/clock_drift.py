@@ -15,7 +15,8 @@ class ClockDrift(Effect):
     With ``time_offset`` the frames' offset is ``dt(t) = Δt + r (t − t_ref)``: the offset at
     ``t_ref`` and the rate the two clocks drift apart at.  ``t_ref`` (POSIX s) is the
     prior's ``effects.clock_drift.reference_stamp``, else the prior's ``stamp`` (a
-    calibration made for the bag: its first frame's time).
+    calibration made for the bag: its first frame's time), else (a prior without a stamp)
+    the first frame's stamp the model sees; the result stores it.
     """
 
     id = "clock_drift"
@@ -52,8 +53,18 @@ class ClockDrift(Effect):
                                 "reference_stamp": self.reference_stamp}
         cal.sigma.setdefault("effects", {})[self.id] = {"rate": float(sigma[0])}
 
+    def _since(self, ctx: FrameContext) -> float:
+        """Seconds from the reference stamp.
+
+        A prior without a stamp (0) takes the first frame's, not the POSIX epoch's (a lever
+        of 1.7e9 s).
+        """
+        if self.reference_stamp == 0.0:
+            self.reference_stamp = float(ctx.stamp)
+        return ctx.stamp - self.reference_stamp
+
     def time_shift(self, value: np.ndarray, ctx: FrameContext) -> float:  # noqa: D102
-        return float(value[0]) * (ctx.stamp - self.reference_stamp)
+        return float(value[0]) * self._since(ctx)
 
     def time_shift_jacobian(self, value: np.ndarray, ctx: FrameContext) -> np.ndarray:  # noqa: D102
-        return np.array([ctx.stamp - self.reference_stamp])
+        return np.array([self._since(ctx)])
