@@ -115,9 +115,9 @@ def test_predict_jacobians_match_finite_differences(subset, sim, stars):
         if stage is Stage.TIME:
             # a 10-ms shift of the exposure (a clock's rate: over its stamp's distance from
             # the reference stamp)
-            h = 1e-2 / max(abs(model.time_shift(theta, ctx)[1][k]), 1.0)
-            time_tol = 2.0 * np.spacing(ctx.stamp) / (h * max(abs(
-                model.time_shift(theta, ctx)[1][k]), 1.0))
+            lever = max(abs(model.time_shift(theta, ctx)[1][k]), 1.0)  # s of shift a unit
+            h = 1e-2 / lever
+            time_tol = 2.0 * np.spacing(ctx.stamp) / (h * lever)
         e = np.zeros(model.size)
         e[k] = h
         fd = (uv(theta + e) - uv(theta - e)) / (2 * h)
