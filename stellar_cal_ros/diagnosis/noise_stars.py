@@ -392,14 +392,21 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float,
     fit = FrameFit(sub, sig[idx], fx, fy)
     r = fit.residual(sub["du"], sub["dv"])
     stars = np.asarray(res["catalog_id"])[idx]
-    x = rolling_columns({k: np.asarray(res[k])[idx] for k in ROLLING_KEYS if k in res},
-                        (fx, fy), centre, R_imu_st) if centre is not None else None
-    shutter = 1.0
-    if x is not None:
-        blocks = [None, noise_structure.rolling_block(fit.residual(x[:, 0], x[:, 1]))]
-        shutter = noise_structure.minus_fits(r, np.ones(len(idx)), blocks, ALPHA, stars,
-                                             _fit_lags(r, np.ones(len(idx)), blocks,
-                                                       stars))[2][1]
+    shutter: list[float] = []  # the shutter fit's p, made once a pattern would be removed
+
+    def shutter_p() -> float:
+        if not shutter:
+            x = rolling_columns({k: np.asarray(res[k])[idx] for k in ROLLING_KEYS if k in res},
+                                (fx, fy), centre, R_imu_st) if centre is not None else None
+            p = 1.0
+            if x is not None:
+                blocks = [None, noise_structure.rolling_block(fit.residual(x[:, 0], x[:, 1]))]
+                p = noise_structure.minus_fits(r, np.ones(len(idx)), blocks, ALPHA, stars,
+                                               _fit_lags(r, np.ones(len(idx)), blocks,
+                                                         stars))[2][1]
+            shutter.append(p)
+        return shutter[0]
+
     out = []
     for axis, key in enumerate(("u_pred", "v_pred")):
         # (tested less a smooth function of the position, whose part the ripple lines
@@ -417,7 +424,7 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float,
         fp = dataclasses.replace(fp, p=min(1.0, fp.p / (1.0 - PATTERN_MODEL_SHARE))) \
             if flips else dataclasses.replace(fp, z=fp.model_z,
                                               p=min(1.0, fp.model_p / PATTERN_MODEL_SHARE))
-        removed = fp.p * 2.0 < PATTERN_ALPHA and not shutter < ALPHA
+        removed = fp.p * 2.0 < PATTERN_ALPHA and not shutter_p() < ALPHA
         offset = share = seen = None
         if removed:
             # found by the model (between the stars too): the stars' means hold the
