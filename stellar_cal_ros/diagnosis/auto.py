@@ -334,12 +334,16 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             tell(f"round {k}: {', '.join(model)}; re-runs {runs.description}")
             prior = rerun_prior(state.start)
             state.lead, state.beside = {}, {}
-            base, results, extras = rank_round(
-                r, state.start, state.extra, [e for e in pool if e not in state.dropped],
-                condition=False, more=_checks(state, prior, calibration, pool),
-                screen=local, measure_noise=estimate and (
-                    r.noise is None or bool(r.noise.skipped or r.noise.imu_skipped
-                                            or r.noise.beyond) or r.noise_stale))
+            def ranked(measure_noise: bool, prior=prior, local=local):
+                # (this round's model; made again with the gated effects: below)
+                return rank_round(
+                    r, state.start, state.extra, [e for e in pool if e not in state.dropped],
+                    condition=False, more=_checks(state, prior, calibration, pool),
+                    screen=local, measure_noise=measure_noise)
+
+            base, results, extras = ranked(estimate and (
+                r.noise is None or bool(r.noise.skipped or r.noise.imu_skipped
+                                        or r.noise.beyond) or r.noise_stale))
             ticks = _drift_asked(base, base.calibration or prior, runs.fraction) if gated \
                 else None
             if ticks is not None:
@@ -351,10 +355,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                      f"{', '.join(gated)} a candidate; the round again")
                 pool.extend(gated)
                 gated = []
-                base, results, extras = rank_round(
-                    r, state.start, state.extra, [e for e in pool if e not in state.dropped],
-                    condition=False, more=_checks(state, prior, calibration, pool),
-                    screen=local)
+                base, results, extras = ranked(False)
             here = None  # the flexure-shaped test of this round's model, when it ran
             if path and path[-1]["action"] == "add" and flexure.may_stand_in(state.last):
                 # the effect just added may stand in for a mount bending with gravity
