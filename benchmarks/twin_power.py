@@ -59,9 +59,13 @@ def main() -> int:
         # an added effect named with the one this motion does not tell from it
         ties = {e: t["with"] for e, t in (s.get("ties") or {}).items()}
         told += any(a.effect in (e, w) for e, w in ties.items())
+        # each tie's p on the dof its test counted (the seen directions; before: nominal)
+        said = {e: f"{t['with']} p {t['p_value']:.2g} dof "
+                   + (f"{t['dof']:.2f}" if "dof" in t else "nominal")
+                for e, t in (s.get("ties") or {}).items()}
         print(f"{k:5d} {'added' if added else 'missed':7s} {s.get('added', [])} score "
               f"{mine.get('score', float('nan')):.3g} p {mine.get('p_value', float('nan')):.2g} "
-              f"{mine.get('reason') or ''}{f' tie {ties}' if ties else ''}", flush=True)
+              f"{mine.get('reason') or ''}{f' tie {said}' if said else ''}", flush=True)
         twin.unlink(missing_ok=True)
     n = last - first + 1
     print(f"{a.effect}={a.value}: added {found} of {n}, significant in round 1 {flagged} of {n}"

@@ -607,16 +607,65 @@ def _window_run(loglik: float):
                                             "excess_variance": 0.0, "noise_variance": 1.0})
 
 
-@pytest.mark.parametrize("gain, tied", [(-3.0, True), (+3.0, True), (-25.0, False)])
+def _misalignment_run(loglik: float, prior_sigma: float = 1e-3):
+    """The current model's run with gyro_misalignment in it, seen in 3 of its 6 directions.
+
+    Its posterior: the symmetric parts e01 + e10, e02 + e20, e12 + e21 pinned by the data
+    (σ 1e-8), the antisymmetric ones (a rotation of the gyro axes, which the installation
+    absorbs on psce rotations) left at the prior σ.
+    """
+    names = ["e01", "e02", "e10", "e12", "e20", "e21"]
+    V, h = np.zeros((6, 6)), 1.0 / np.sqrt(2.0)
+    for col, (a, b) in enumerate([(0, 2), (1, 4), (3, 5)]):
+        V[[a, b], col] = h, h  # symmetric: seen
+        V[[a, b], col + 3] = h, -h  # antisymmetric: blind
+    var = np.r_[np.full(3, 1e-16), np.full(3, prior_sigma ** 2)]
+    run = RunSummary(("gyro_misalignment",), [f"gyro_misalignment.{n}" for n in names],
+                     {"gyro_misalignment": (0, 6)}, np.zeros(6), (V * var) @ V.T,
+                     np.full(6, prior_sigma))
+    run.window = _window_run(loglik).window
+    return run
+
+
+def test_the_directions_an_effect_is_seen_in_are_its_fitted_share_of_the_prior():
+    """seen_dof: k − Σ P_jj / σ_j², the trace of the hat matrix (issue 21).
+
+    The installation absorbs 3 of gyro_misalignment's 6 directions: 3 count (each
+    parameter half seen).  A direction the data sees as well as the prior does counts a
+    half: the 3 blind directions at a posterior σ² of half the prior's add 1.5.
+    """
+    from stellar_cal_ros.diagnosis import auto
+
+    run = _misalignment_run(0.0)
+    assert auto.seen_dof(run, "gyro_misalignment") == pytest.approx(3.0, abs=1e-9)
+    names = run.names
+    half = RunSummary(run.effects, names, run.slices, run.theta, run.P.copy(),
+                      run.prior_sigma)
+    w, V = np.linalg.eigh(half.P)
+    half.P = (V * np.where(w > 1e-12, 0.5e-6, w)) @ V.T
+    assert auto.seen_dof(half, "gyro_misalignment") == pytest.approx(4.5, abs=1e-9)
+    # nothing seen (the prior everywhere): at least the one direction it was added for
+    none = RunSummary(run.effects, names, run.slices, run.theta, np.eye(6) * 1e-6,
+                      run.prior_sigma)
+    assert auto.seen_dof(none, "gyro_misalignment") == 1.0
+
+
+@pytest.mark.parametrize("gain, tied", [(-3.0, True), (+3.0, True), (-5.8, True),
+                                        (-12.1, False), (-25.0, False)])
 def test_an_effect_its_rival_explains_as_well_is_said_to_be_tied_with_it(gain, tied):
     """Neither significant beside the other: the one kept names the other (issue 21).
 
     The exchange check's run (the rival ``gyro_scale_factor`` in place of
     ``gyro_misalignment``) gains ``gain`` over the model; the rival beside the model scores
-    1.2 (3 dof).  ``gyro_misalignment`` beside the rival is then 1.2 − gain on its 6 dof:
-    4.2 (p 0.65) and a Λ below 0 are a tie, 26.2 (p 2e-4) tells them apart.  (On main the
-    choice was made silently: psce twins with gyro_scale_factor sx at its MDB added
-    gyro_misalignment in 5 of 15.)
+    1.2 (3 dof).  ``gyro_misalignment`` beside the rival is then 1.2 − gain on the 3 of its
+    6 directions the data sees beside the model (:func:`auto.seen_dof`; the installation
+    absorbs the others): 4.2 (p 0.24), 7.0 (p 0.072; 0.32 on 6 dof, as in a psce twin with
+    gyro_scale_factor sx at its MDB that added gyro_misalignment) and a Λ below 0 are a
+    tie; 13.3 (p 0.0040: ``twin_gm2`` s23, misalignment injected) and 26.2 (p 9e-6) tell
+    them apart.  Fails on main for 13.3: on
+    the nominal 6 dof p = 0.038, said to be a tie.  (On main before H194 the choice was made
+    silently: psce twins with gyro_scale_factor sx at its MDB added gyro_misalignment in 5
+    of 15.)
     """
     from stellar_cal_ros.diagnosis import auto, printing
     from stellar_cal_ros.diagnosis.discover import CandidateResult
@@ -625,8 +674,8 @@ def test_an_effect_its_rival_explains_as_well_is_said_to_be_tied_with_it(gain, t
     rival = CandidateResult("gyro_scale_factor", "ranked", statistic=1.2, dof=3, p_value=0.75,
                             p_adjusted=1.0)
     action, removed, added, _, details = auto._decide_checks(
-        state, _window_run(0.0), {"gyro_scale_factor for gyro_misalignment":
-                                  _window_run(gain / 2.0)}, [rival])
+        state, _misalignment_run(0.0), {"gyro_scale_factor for gyro_misalignment":
+                                        _window_run(gain / 2.0)}, [rival])
     assert (action, removed, added) == (("exchange", "gyro_misalignment", "gyro_scale_factor")
                                         if gain > 0 else ("", "", ""))
     tie = details["gyro_scale_factor for gyro_misalignment"].get("tie")
@@ -637,7 +686,8 @@ def test_an_effect_its_rival_explains_as_well_is_said_to_be_tied_with_it(gain, t
     kept, other = (("gyro_scale_factor", "gyro_misalignment") if gain > 0
                    else ("gyro_misalignment", "gyro_scale_factor"))
     assert tie["beside_rival"] == pytest.approx(1.2 - gain)
-    assert tie["p_value"] == pytest.approx(sps.chi2.sf(max(1.2 - gain, 0.0), 6))
+    assert tie["dof"] == pytest.approx(3.0, abs=1e-9)
+    assert tie["p_value"] == pytest.approx(sps.chi2.sf(max(1.2 - gain, 0.0), 3))
     assert state.ties[kept]["with"] == other
     line = printing.added_caveat({"ties": {kept: state.ties[kept]}}, kept)
     assert f"or {other}: this motion can't tell them apart" in line

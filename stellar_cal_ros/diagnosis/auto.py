@@ -58,6 +58,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.diagnosis import clock, flexure, installation_step, leads, rolling, screening
 from stellar_cal_ros.diagnosis.discover import (
@@ -249,7 +251,8 @@ def _decide_checks(state: _State, base: RunSummary, extras: dict[str, RunSummary
         state.tried.add((x, y, frozenset(state.extra)))
         gain = 2.0 * (run.window["log_likelihood"] - ref.log_likelihood) / ref.dispersion
         details[key] = {"score": gain}
-        tie = _tie(x, gain, next((c for c in results if c.effect == y), None))
+        tie = _tie(x, gain, next((c for c in results if c.effect == y), None),
+                   seen_dof(base, x))
         if tie is not None:
             details[key]["tie"] = tie
         if gain > best_gain:
@@ -264,7 +267,33 @@ def _decide_checks(state: _State, base: RunSummary, extras: dict[str, RunSummary
     return "", "", "", None, details
 
 
-def _tie(x: str, gain: float, c: CandidateResult | None) -> dict[str, Any] | None:
+def seen_dof(run: RunSummary, x: str) -> float:
+    """How many directions of ``x`` (in ``run``'s model) the data sees beside the rest of it.
+
+    The run fits ``x`` as a constant with prior σ (``Π = diag σ⁻²``) beside the other
+    parameters; with ``I`` the information the data carries about ``x`` once they are
+    marginalized (the model's own span projected out), its posterior block is
+    ``P = (I + Π)⁻¹``.  The estimate is the prior shrunk by the hat matrix
+    ``H = I (I + Π)⁻¹ = 1 − Π P``: along an eigen-direction of ``I`` (in ``Π``'s metric)
+    the data fits ``λ / (λ + π)`` of it -- 1 where the data determines it, 0 where only the
+    prior does -- and a likelihood ratio of ``x`` gains about one χ²₁ in each direction
+    fitted and nothing where it is not.  So the effective dof is the hat's trace,
+    ``tr H = k − tr(Π P) = Σ_j (1 − P_jj / σ_j²)`` (each parameter's share of its prior
+    variance the data removed; ``Π`` is diagonal).  A gyro misalignment on psce rotations:
+    the installation absorbs its three antisymmetric directions (a rotation of the gyro
+    axes), the posterior stays near the prior there, and 3.1-3.2 of 6 count (``twin_gm2``
+    s21 / s23; the installation's own prior pins a little of the rotation, which counts:
+    more dof, a larger p, so the count errs towards a tie).  No run: the model's run has
+    ``x``'s block.  At least 1 (an added effect was significant in some direction).
+    """
+    sl = run.block(x)
+    prior_var = np.asarray(run.prior_sigma[sl], dtype=float) ** 2
+    fitted = 1.0 - np.diag(np.atleast_2d(run.P[sl, sl])) / np.maximum(prior_var, 1e-300)
+    return max(float(np.clip(fitted, 0.0, 1.0).sum()), 1.0)
+
+
+def _tie(x: str, gain: float, c: CandidateResult | None, dof: float
+         ) -> dict[str, Any] | None:
     """Whether this motion cannot tell ``x`` (in the model) from its rival ``c``.
 
     ``gain``: the rival's ratio in place of ``x`` (Λ_y − Λ_x, the exchange's run).  The
@@ -273,6 +302,12 @@ def _tie(x: str, gain: float, c: CandidateResult | None) -> dict[str, Any] | Non
     significant the two explain the same part of the data: the one kept is named with the
     other (a gyro scale factor sx 47.8 ppm on psce rotations: gyro_misalignment's span
     holds 99.7 % of its information, and 5 of 15 twins added gyro_misalignment, silently).
+
+    ``dof``: the directions of ``x`` the data sees beside the model (:func:`seen_dof`), not
+    its parameter count: x beside the rival is χ² on those (those the rival also spans
+    count too, so the test errs towards a tie).  On the nominal count a gyro misalignment
+    (3 of 6 directions absorbed by the installation) was called a tie at p 0.038 / 0.050
+    (``twin_gm2`` s23 / s21, misalignment injected): 0.0051 / 0.0062 on its 3.24 / 3.10.
     """
     if c is None or c.status not in ("ranked", "screened_out") or c.significant_alone:
         return None
@@ -280,10 +315,10 @@ def _tie(x: str, gain: float, c: CandidateResult | None) -> dict[str, Any] | Non
     if not math.isfinite(beside):
         return None
     stat = max(beside, 0.0) - gain
-    p = float(dist.chi2.sf(max(stat, 0.0), registry.create(x).size))
+    p = float(dist.chi2.sf(max(stat, 0.0), dof))
     if p < ALPHA:
         return None  # x explains what the rival does not
-    return {"rival_beside": beside, "beside_rival": stat, "p_value": p}
+    return {"rival_beside": beside, "beside_rival": stat, "p_value": p, "dof": dof}
 
 
 def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
