@@ -484,9 +484,14 @@ def _arm_1hz(sim, seed, amplitude_px=0.08, hz=1.0):
 
 
 def _clock_drift(sim, seed, drift_s=0.03):
-    # the tracker's clock drifts: each frame's stamp late by 0 ms at the start growing
-    # linearly to 30 ms at the end (the stars are where they were at the exposure)
-    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    # the tracker's clock drifts: each frame's stamp late by 0 ms at the bag's start (the
+    # prior's stamp, clock_drift's reference) growing linearly to 30 ms at the last frame
+    # (the stars are where they were at the exposure).  Until H198 the drift started at the
+    # first frame, 0.254 s after the prior's stamp: the bag then held an offset of
+    # rate x 0.254 s = +25 us at the reference, which clock_drift without time_offset took
+    # into its rate (+0.13 ppm, 3 sigma)
+    t0 = int(round(sim.prior.stamp * 1e9))
+    t1 = sim.star_frames[-1].stamp_ns
     for f in sim.star_frames:
         x = (f.stamp_ns - t0) / max(t1 - t0, 1)
         f.stamp_ns = int(f.stamp_ns + round(drift_s * x * 1e9))
@@ -900,8 +905,10 @@ CASES: dict[str, Case] = {
                             "1x) whose frame stamps drift late 0 -> 30 ms over the run "
                             "(clock_drift: a rate of -100 ppm from the bag's start, the "
                             "prior's stamp)", post=_clock_drift, **_SKY_CLOCK,
-                            # (rate -0.03 s / 299.5 s; a time_offset beside it is the
-                            # offset at the prior's stamp, 0: a quarter of the span)
+                            # (rate -0.03 s / 299.754 s / (1 + 1e-4) = -100.072 ppm:
+                            # the last frame 299.754 s after the prior's stamp; a
+                            # time_offset beside it is the offset at the prior's stamp, 0:
+                            # a quarter of the span)
                             expect={"clock_drift": {"rate": (-1.25e-4, -0.75e-4)},
                                     "time_offset": {"dt": (-7.5e-3, 7.5e-3)}}),
     "sky_clock_drift3": Case("psce", "the sky bag (refraction, aberration, proper motion at "

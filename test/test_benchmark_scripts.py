@@ -9,6 +9,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
@@ -223,28 +224,48 @@ def test_unseen_case_judges_the_value_an_allowed_effect_is_added_at(monkeypatch)
         "added gyro_scale_factor sz = 0.0004, its in-library mean -0.000625 .. 0.000125"]
 
 
-def test_unseen_clock_drift3_stamps_drift_0_to_3_ms_and_a_gyro_effect_misleads(monkeypatch):
-    """benchmarks/unseen_cases.py's ``sky_clock_drift3`` (the sky bag's frame stamps late 0 ms
-    at the start growing linearly to 3 ms at the end): the stamps move by exactly that, and a
-    gyro effect added (what the diagnosis added on H138's variant) is judged misleading."""
-    spec = importlib.util.spec_from_file_location("unseen_cases",
-                                                  BENCHMARKS / "unseen_cases.py")
-    uc = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "unseen_cases", uc)
-    spec.loader.exec_module(uc)
+@pytest.mark.parametrize(("case", "drift_s"), [("sky_clock_drift", 0.03),
+                                               ("sky_clock_drift3", 0.003)])
+def test_unseen_clock_drift_stamps_are_the_library_clock_drift_at_the_truth(
+        monkeypatch, case, drift_s):
+    """benchmarks/unseen_cases.py's ``sky_clock_drift`` / ``sky_clock_drift3`` (the sky
+    bag's frame stamps late by 0 at the prior's stamp, growing linearly to 30 / 3 ms at the
+    last frame): every frame's true time (its stamp before) is what the library's
+    ``clock_drift`` gives from its new stamp at the truth ``-(D / T) / (1 + D / T)`` (T the
+    last frame's time after the prior's stamp, clock_drift's reference), without a
+    time_offset: 0 at the reference.  Fails on 55a7ee3 (H198): the drift started at the
+    first frame, 0.254 s after the prior's stamp (the simulator's star phase), an offset of
+    +25.4 us at the reference that clock_drift alone took into its rate (+0.13 ppm, 3 sigma,
+    on the three seeds of sky_clock_drift)."""
+    from types import SimpleNamespace
 
-    class Frame:
-        def __init__(self, stamp_ns):
-            self.stamp_ns = stamp_ns
+    from stellar_cal_ros.effects import registry
+    from stellar_cal_ros.effects.base import FrameContext
 
-    class Sim:
-        star_frames = [Frame(10**9 + k * 500_000_000) for k in range(601)]  # 300 s at 2 Hz
+    uc = _unseen_cases(monkeypatch)
+    start_ns = 1_000_000_000_000  # the bag's start (1000 s: float seconds resolve 0.1 ns)
+    frames = [SimpleNamespace(stamp_ns=start_ns + 253_700_000 + k * 500_000_000)
+              for k in range(600)]  # the simulator's frames: 2 Hz from 0.2537 s
+    prior = SimpleNamespace(stamp=start_ns * 1e-9, effects={}, sigma={})
+    sim = SimpleNamespace(star_frames=frames, prior=prior)
+    before = [f.stamp_ns for f in frames]
+    uc.CASES[case].post(sim, 21)
+    span = (before[-1] - start_ns) * 1e-9  # 299.7537 s
+    truth = -(drift_s / span) / (1.0 + drift_s / span)
+    eff = registry.create("clock_drift")
+    eff.initial(prior)
+    assert eff.reference_stamp == prior.stamp
+    shift = np.array([eff.time_shift(np.array([truth]), FrameContext(stamp=f.stamp_ns * 1e-9))
+                      for f in frames])
+    late = np.array([f.stamp_ns - b for f, b in zip(frames, before, strict=True)]) * 1e-9
+    assert late[-1] == pytest.approx(drift_s, abs=1e-9)
+    np.testing.assert_allclose(shift, -late, rtol=0, atol=2e-9)  # the stamps' 1-ns rounding
 
-    sim = Sim()
-    before = [f.stamp_ns for f in sim.star_frames]
-    uc.CASES["sky_clock_drift3"].post(sim, 21)
-    late = [f.stamp_ns - b for f, b in zip(sim.star_frames, before, strict=True)]
-    assert late[0] == 0 and late[-1] == 3_000_000 and late[300] == 1_500_000
+
+def test_unseen_clock_drift3_a_gyro_effect_misleads(monkeypatch):
+    """``sky_clock_drift3``: a gyro effect added (what the diagnosis added on H138's
+    variant) is judged misleading."""
+    uc = _unseen_cases(monkeypatch)
 
     def run(added, line="frame stamps' offset vs time (t=9.1; 3 ms)"):
         return {"rc": 0, "stderr": "", "stdout": f"noise: noise as stated\n  unexplained: {line}",
