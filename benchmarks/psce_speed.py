@@ -23,7 +23,10 @@ as in ``read_speed.py``.  ``--method`` replays with another method (``swaying_ba
 ``swaying`` bag: ``stellar-cal simulate --scenario swaying``); the bag's prior is
 ``BAG.prior.yaml`` either way.  Printed: median wall and CPU (user + system) seconds, the speed
 (bag seconds per wall second) and the median of the per-repetition ratios to rosbags' time —
-wall and CPU: on a shared machine the CPU ratio is the steadier one.  ``--frames`` adds
+wall and CPU: on a shared machine the CPU ratio is the steadier one.  Each checkout's
+bytecode is written first (``compileall``), as an install writes it — rosbags' is: with
+``PYTHONDONTWRITEBYTECODE`` set and no ``__pycache__``, every replay compiled the package's
+modules from source (≈ 0.15–0.2 CPU-s a process, 2026-11-29).  ``--frames`` adds
 the per-frame latency of the filter step (``process_frame``, p50 / p99, µs) from one
 in-process replay.  The issue's target: replay ≤ 0.6 × rosbags' decode-only time.
 """
@@ -63,6 +66,12 @@ def _decode_cmd(bag: Path, how: str) -> list[str]:
     code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
             f"import read_speed; read_speed.{how}(__import__('pathlib').Path({str(bag)!r}))")
     return [sys.executable, "-c", code]
+
+
+def compile_checkout(checkout: Path) -> None:
+    """Write the bytecode of ``checkout``'s package (``compileall``), as an install does."""
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(checkout / "stellar_cal_ros")],
+                   capture_output=True, check=False)
 
 
 def _run(cmd: list[str], cwd: Path) -> tuple[float, float]:
@@ -126,8 +135,10 @@ def main(argv=None) -> int:
             (["--effects", args.effects] if args.effects else [])
 
     runs["replay"] = (replay_cmd("new"), ROOT)
+    compile_checkout(ROOT)
     if args.baseline:
         runs["replay (baseline)"] = (replay_cmd("base"), args.baseline.resolve())
+        compile_checkout(args.baseline.resolve())
     runs["rosbags"] = (_decode_cmd(bag, "rosbags_decode"), ROOT)
     if not args.no_mcap_ros2:
         runs["mcap_ros2"] = (_decode_cmd(bag, "mcap_ros2_decode"), ROOT)

@@ -133,6 +133,22 @@ def test_earth_grid_one_time_equals_the_array_path():
             np.testing.assert_array_equal(a, b)
 
 
+def test_earth_grid_times_of_one_chunk_equal_the_grouped_path():
+    """``EarthGrid.interp`` of times that all fall in one chunk (an IMU block's gravitation:
+    one product, no groups) gives, row for row, the floats of the same times interpolated
+    among times of other chunks (the grouped path), in and out of order."""
+    fn = {"g": lambda t: np.column_stack([np.sin(t * 1e-3), 9.8 * np.cos(t * 7e-4), t * 1e-6])}
+    ts = np.random.default_rng(2).uniform(-5.0, 1900.0, 3000)
+    whole = EarthGrid(1.7e9, 0.25, 600.0, fn).interp("g", ts)
+    chunk = np.floor(ts / 0.25).astype(np.int64) // 2400
+    grid = EarthGrid(1.7e9, 0.25, 600.0, fn)
+    assert len(np.unique(chunk)) == 5
+    for c in np.unique(chunk).tolist():
+        part = grid.interp("g", ts[chunk == c])
+        assert part.shape == (np.count_nonzero(chunk == c), 3)
+        assert part.tobytes() == whole[chunk == c].tobytes(), c
+
+
 def test_attitude_prefix_is_the_running_product():
     from scipy.spatial.transform import Rotation
 

@@ -146,6 +146,11 @@ class EarthGrid:
         i = np.floor(x).astype(np.int64)
         a = (x - i)[:, None]
         c = i // self.K
+        if len(c) and c[0] == c[-1] and (c == c[0]).all():  # one chunk (the usual case)
+            cc = int(c[0])
+            table = self._chunk(cc)[name]
+            j = i - cc * self.K
+            return (1.0 - a) * table[j] + a * table[j + 1]  # (the rows of the groups below)
         out = None
         for cc in np.unique(c).tolist():
             sel = c == cc
