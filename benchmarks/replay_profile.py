@@ -38,6 +38,7 @@ TIMED = [
         "_record_history", "_trim", "_flush_staged", "_defer_release", "_release_imu",
         "_process_run", "_commit_batch")],
     (driver, "frame_inputs", "frame_inputs"), (driver, "frame_context", "frame_context"),
+    (driver, "frame_inputs_many", "frame_inputs_many"),
     *[(kernel.StarFilter, n, "StarFilter." + n) for n in (
         "process_frame", "update", "_fused_update", "extend_imu", "_watch_gyro", "sigma",
         "_gated", "_updated", "prepare_frames", "commit_batch")],

@@ -192,6 +192,73 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
     assert out[1][1] == out[0][1] == out[2][1] and out[0][1].count(b"\n") > 100
 
 
+def _count_star_inputs(monkeypatch) -> list[list[int]]:
+    """``Calibrator.push_stars`` counted: a ``[with inputs, without]`` list appended per run."""
+    from stellar_cal_ros.methods import driver
+
+    given: list[list[int]] = []
+    original = driver.Calibrator.push_stars
+
+    def push(self, frame, inputs=None):
+        given[-1][inputs is None] += 1
+        return original(self, frame, inputs)
+
+    monkeypatch.setattr(driver.Calibrator, "push_stars", push)
+    return given
+
+
+def test_replay_takes_a_releases_star_inputs_in_one_call(bags, tmp_path: Path,
+                                                          monkeypatch) -> None:
+    """A replay computes the filter inputs of a release's star messages in one call
+    (``Calibrator.star_inputs``, ``replay._release_items``) and hands each message its own
+    (``push_stars(frame, inputs)``): the history CSV byte for byte and every number of the
+    result as when each message computes its own (``star_inputs`` None), and nearly every
+    message takes the batch's."""
+    from stellar_cal_ros.methods import driver
+
+    given = _count_star_inputs(monkeypatch)
+    original_inputs = driver.Calibrator.star_inputs
+    out = []
+    for batch in (False, True):
+        monkeypatch.setattr(driver.Calibrator, "star_inputs",
+                            original_inputs if batch else lambda self, frames: None)
+        given.append([0, 0])
+        numbers = _replay(bags["mcap"], tmp_path / f"inputs{batch}.yaml")
+        out.append((numbers, (tmp_path / f"inputs{batch}.history.csv").read_bytes()))
+    (each_with, each_own), (batch_with, batch_own) = given
+    assert each_with == 0 and each_own > 200 and batch_own == 0, given
+    assert batch_with == each_own, given
+    assert out[0][0] == out[1][0] and len(out[0][0]) > 50
+    assert out[0][1] == out[1][1] and out[0][1].count(b"\n") > 100
+
+
+def test_replay_of_bag_data_takes_star_inputs_a_chunk_at_once(bags, monkeypatch) -> None:
+    """A replay of data in memory (:class:`BagData`: the diagnosis's runs) computes its
+    frames' filter inputs ``INPUT_FRAMES`` frames a call (``replay._frames_with_inputs``):
+    θ, P, the counters and the tables bit for bit as when each frame computes its own, with
+    chunks of 256 frames and of 7 (frames across a chunk's edge)."""
+    from stellar_cal_ros.io.calibration import load_calibration
+    from stellar_cal_ros.methods import driver
+    from stellar_cal_ros.methods import replay as replay_mod
+
+    data = replay_mod.read_bag_data(bags["mcap"])
+    prior = load_calibration(bags["mcap"].parent / "sim.prior.yaml")
+    given = _count_star_inputs(monkeypatch)
+    original_inputs = driver.Calibrator.star_inputs
+    out = []
+    for batch, chunk in ((False, 256), (True, 256), (True, 7)):
+        monkeypatch.setattr(driver.Calibrator, "star_inputs",
+                            original_inputs if batch else lambda self, frames: None)
+        monkeypatch.setattr(replay_mod, "INPUT_FRAMES", chunk)
+        given.append([0, 0])
+        res = replay_mod.replay(data, prior, "psce")
+        tables = [np.asarray(t[k]).tobytes() for t in (res.history, res.residuals) for k in t]
+        out.append((res.filter.theta.tobytes(), res.filter.P.tobytes(), res.counters, tables))
+    assert given[0] == [0, len(data.frames)] and len(data.frames) > 200, given
+    assert given[1] == given[2] == [len(data.frames), 0], given
+    assert out[0] == out[1] == out[2] and len(out[0][3]) > 10
+
+
 def test_a_swaying_replay_merges_across_the_fixes_once_its_filter_runs(tmp_path: Path,
                                                                         monkeypatch) -> None:
     """A method that needs a site (swaying_base) reads the fixes until its filter is built

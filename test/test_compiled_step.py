@@ -765,15 +765,14 @@ def test_a_moving_shift_builds_each_frame_context_once_a_look(monkeypatch) -> No
     assert max(looks.values()) == 1, sorted(k for k, v in looks.items() if v > 1)[:5]
 
 
-def test_compiled_frame_inputs_equal_numpy() -> None:
-    """``frame_inputs(compiled=True)`` (one compiled loop) applies the star rule and the σ
-    rule exactly as the numpy functions: identified with catalog_id 0, unidentified,
-    off-detector, non-finite and every bad σ (0, negative, inf, NaN)."""
+def _odd_frame():
+    """A star message of 100 × 80 px with every case of the star and σ rules: identified
+    with catalog_id 0, unidentified, off-detector, non-finite and every bad σ (0, negative,
+    inf, NaN)."""
     from stellar_cal_ros.core.types import StarFrame
-    from stellar_cal_ros.methods.frames import frame_inputs
 
     nan, inf = float("nan"), float("inf")
-    frame = StarFrame(
+    return StarFrame(
         stamp_ns=1, frame_id="st", exposure_time=0.1,
         catalog_id=np.array([5, 0, 0, 7, 8, 9, 10, 11, 12], dtype=np.uint32),
         right_ascension=np.array([0.1, 0.2, nan, 0.3, 0.4, inf, 0.5, 0.6, 0.7]),
@@ -781,6 +780,15 @@ def test_compiled_frame_inputs_equal_numpy() -> None:
         uv=np.array([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0], [-0.6, 5.0], [99.4, 5.0],
                      [1.0, 1.0], [2.0, nan], [3.0, 3.0], [4.0, 4.0]]),
         magnitude=np.arange(9.0), sigma=np.array([0.1, 0.0, 0.2, 0.3, -1.0, 0.1, 0.1, inf, nan]))
+
+
+def test_compiled_frame_inputs_equal_numpy() -> None:
+    """``frame_inputs(compiled=True)`` (one compiled loop) applies the star rule and the σ
+    rule exactly as the numpy functions: identified with catalog_id 0, unidentified,
+    off-detector, non-finite and every bad σ (0, negative, inf, NaN)."""
+    from stellar_cal_ros.methods.frames import frame_inputs
+
+    frame = _odd_frame()
     a = frame_inputs(frame, 100, 80, 0.05, compiled=True)
     b = frame_inputs(frame, 100, 80, 0.05, compiled=False)
     for name in ("ok", "uv", "u_i", "sigma", "catalog_id", "magnitude"):
@@ -794,6 +802,51 @@ def test_compiled_frame_inputs_equal_numpy() -> None:
     for compiled in (True, False):
         with pytest.raises(IndexError):
             frame_inputs(short, 100, 80, 0.05, compiled=compiled)
+
+
+def test_frame_inputs_of_many_messages_are_each_ones_own() -> None:
+    """``frame_inputs_many`` (a replay's release of star messages in one compiled call) gives
+    each message the inputs ``frame_inputs(compiled=True)`` gives it, bit for bit and dtype
+    for dtype: the bad σ, unidentified, off-detector and non-finite stars of ``_odd_frame``,
+    an empty message, and messages beside each other; None (each message then computes its
+    own) when one message's arrays differ in length, the stars' σ is scaled or the
+    compiled path is not asked for."""
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.core.types import StarFrame
+    from stellar_cal_ros.methods.frames import frame_inputs, frame_inputs_many
+
+    odd = _odd_frame()
+    rng = np.random.default_rng(3)
+
+    def clean(k: int, stamp: int) -> StarFrame:
+        return StarFrame(
+            stamp_ns=stamp, frame_id="st", exposure_time=0.1,
+            catalog_id=rng.integers(1, 9000, k).astype(np.uint32),
+            right_ascension=rng.uniform(0, 2 * np.pi, k), declination=rng.uniform(-1, 1, k),
+            uv=rng.uniform(0, 79, (k, 2)), magnitude=rng.uniform(2, 7, k),
+            sigma=rng.uniform(0.02, 0.1, k))
+
+    frames = [clean(12, 2), odd, clean(0, 3), clean(1, 4), odd, clean(25, 5)]
+    many = frame_inputs_many(frames, 100, 80, 0.05, compiled=True)
+    assert many is not None and len(many) == len(frames)
+    for fr, got in zip(frames, many, strict=True):
+        want = frame_inputs(fr, 100, 80, 0.05, compiled=True)
+        for name in ("ok", "uv", "u_i", "sigma", "catalog_id", "magnitude"):
+            a, b = getattr(got, name), getattr(want, name)
+            assert a.dtype == b.dtype and a.shape == b.shape, name
+            assert a.tobytes() == b.tobytes(), name
+        assert (got.bad_sigma, got.unidentified, got.unknown_sigma, got.valid) == \
+            (want.bad_sigma, want.unidentified, want.unknown_sigma, want.valid)
+    assert (many[1].bad_sigma, many[1].unidentified, many[1].unknown_sigma) == (3, 1, 1)
+    assert len(many[2].uv) == 0 and many[2].valid
+    short = dataclasses.replace(odd, magnitude=np.arange(8.0))
+    assert frame_inputs_many([frames[0], short], 100, 80, 0.05, compiled=True) is None
+    assert frame_inputs_many(frames, 100, 80, 0.05, NoiseScales(star=1.2), compiled=True) \
+        is None
+    assert frame_inputs_many(frames, 100, 80, 0.05, NoiseScales(gyro=3.0), compiled=True) \
+        is not None
+    assert frame_inputs_many(frames, 100, 80, 0.05) is None
+    assert frame_inputs_many([], 100, 80, 0.05, compiled=True) is None
 
 
 def test_imu_noise_scales_keep_the_compiled_frame_inputs() -> None:

@@ -520,6 +520,55 @@ def star_blocks(H: FloatArray, P: FloatArray, r: FloatArray, nu: FloatArray
 
 # ---------------------------------------------------------------------------- frame inputs
 @njit(cache=True)
+def _usable_stars(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray,
+                  a: int, b: int, width: float, height: float, ok: np.ndarray):
+    """:func:`star_inputs`' star rule over the stars ``a:b`` (``ok`` written); (usable, unid)."""
+    k = 0
+    unid = 0
+    for i in range(a, b):
+        u, v = uv[i, 0], uv[i, 1]
+        if cat[i] == 0 and math.isnan(ra[i]) and math.isnan(dec[i]):
+            unid += 1
+        good = (math.isfinite(ra[i]) and math.isfinite(dec[i])
+                and math.isfinite(u) and math.isfinite(v))
+        good = good and u >= -0.5 and u < width - 0.5 and v >= -0.5 and v < height - 0.5
+        ok[i] = good
+        k += good
+    return k, unid
+
+
+@njit(cache=True)
+def _star_rows(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray,
+               sigma: FloatArray, mag: FloatArray, a: int, b: int, ok: np.ndarray,
+               default_sigma: float, uv_o: FloatArray, u_i: FloatArray, s_o: FloatArray,
+               c_o: np.ndarray, m_o: FloatArray, j: int):
+    """:func:`star_inputs`' rows of the usable stars of ``a:b``, written from row ``j``.
+
+    Returns ``(bad_sigma, unknown_sigma)`` of those stars.
+    """
+    bad = 0
+    unknown = 0
+    for i in range(a, b):
+        if not ok[i]:
+            continue
+        uv_o[j, 0], uv_o[j, 1] = uv[i, 0], uv[i, 1]
+        cd = math.cos(dec[i])
+        u_i[j, 0] = cd * math.cos(ra[i])
+        u_i[j, 1] = cd * math.sin(ra[i])
+        u_i[j, 2] = math.sin(dec[i])
+        s = sigma[i]
+        fine = math.isfinite(s)
+        if not (fine and s >= 0):
+            bad += 1
+        unknown += s == 0
+        s_o[j] = s if fine and s > 0 else default_sigma
+        c_o[j] = cat[i]
+        m_o[j] = mag[i]
+        j += 1
+    return bad, unknown
+
+
+@njit(cache=True)
 def star_inputs(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray,
                 sigma: FloatArray, mag: FloatArray, width: float, height: float,
                 default_sigma: float):
@@ -542,43 +591,52 @@ def star_inputs(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray
         return (np.zeros(0, dtype=np.bool_), np.empty((0, 2)), np.empty((0, 3)), np.empty(0),
                 np.empty(0, dtype=np.int64), np.empty(0), -1, 0, 0)
     ok = np.empty(n, dtype=np.bool_)
-    k = 0
-    unid = 0
-    for i in range(n):
-        u, v = uv[i, 0], uv[i, 1]
-        if cat[i] == 0 and math.isnan(ra[i]) and math.isnan(dec[i]):
-            unid += 1
-        good = (math.isfinite(ra[i]) and math.isfinite(dec[i])
-                and math.isfinite(u) and math.isfinite(v))
-        good = good and u >= -0.5 and u < width - 0.5 and v >= -0.5 and v < height - 0.5
-        ok[i] = good
-        k += good
+    k, unid = _usable_stars(uv, ra, dec, cat, 0, n, width, height, ok)
     uv_o = np.empty((k, 2))
     u_i = np.empty((k, 3))
     s_o = np.empty(k)
     c_o = np.empty(k, dtype=np.int64)
     m_o = np.empty(k)
-    bad = 0
-    unknown = 0
-    j = 0
-    for i in range(n):
-        if not ok[i]:
-            continue
-        uv_o[j, 0], uv_o[j, 1] = uv[i, 0], uv[i, 1]
-        cd = math.cos(dec[i])
-        u_i[j, 0] = cd * math.cos(ra[i])
-        u_i[j, 1] = cd * math.sin(ra[i])
-        u_i[j, 2] = math.sin(dec[i])
-        s = sigma[i]
-        fine = math.isfinite(s)
-        if not (fine and s >= 0):
-            bad += 1
-        unknown += s == 0
-        s_o[j] = s if fine and s > 0 else default_sigma
-        c_o[j] = cat[i]
-        m_o[j] = mag[i]
-        j += 1
+    bad, unknown = _star_rows(uv, ra, dec, cat, sigma, mag, 0, n, ok, default_sigma, uv_o, u_i,
+                              s_o, c_o, m_o, 0)
     return ok, uv_o, u_i, s_o, c_o, m_o, bad, unid, unknown
+
+
+@njit(cache=True)
+def star_inputs_many(uv: FloatArray, ra: FloatArray, dec: FloatArray, cat: np.ndarray,
+                     sigma: FloatArray, mag: FloatArray, bounds: np.ndarray, width: float,
+                     height: float, default_sigma: float):
+    """:func:`star_inputs` of many messages in one call, their stars concatenated.
+
+    Message ``f`` holds the stars ``bounds[f]:bounds[f + 1]`` of the arrays (of equal
+    lengths: the caller's check).  Returns ``(ok (n,), uv (k, 2), u_i (k, 3), sigma (k,),
+    catalog_id (k,), magnitude (k,), counts (F, 4))``: the messages' usable rows one after
+    the other, and per message its usable stars, ``bad_sigma``, ``unidentified`` and
+    ``unknown_sigma`` — each message's values those of :func:`star_inputs` (the same
+    functions over its stars).
+    """
+    F = bounds.shape[0] - 1
+    ok = np.empty(uv.shape[0], dtype=np.bool_)
+    counts = np.zeros((F, 4), dtype=np.int64)
+    k = 0
+    for f in range(F):
+        kf, unid = _usable_stars(uv, ra, dec, cat, bounds[f], bounds[f + 1], width, height, ok)
+        counts[f, 0] = kf
+        counts[f, 2] = unid
+        k += kf
+    uv_o = np.empty((k, 2))
+    u_i = np.empty((k, 3))
+    s_o = np.empty(k)
+    c_o = np.empty(k, dtype=np.int64)
+    m_o = np.empty(k)
+    j = 0
+    for f in range(F):
+        bad, unknown = _star_rows(uv, ra, dec, cat, sigma, mag, bounds[f], bounds[f + 1], ok,
+                                  default_sigma, uv_o, u_i, s_o, c_o, m_o, j)
+        counts[f, 1] = bad
+        counts[f, 3] = unknown
+        j += counts[f, 0]
+    return ok, uv_o, u_i, s_o, c_o, m_o, counts
 
 
 # ---------------------------------------------------------------------------- IMU blocks

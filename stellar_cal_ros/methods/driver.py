@@ -52,10 +52,12 @@ from stellar_cal_ros.methods.driver_config import (
 from stellar_cal_ros.methods.frames import (
     ENV_KEYS,
     EnvSeries,
+    FrameInputs,
     ImageFrames,
     SiteEstimator,
     frame_context,
     frame_inputs,
+    frame_inputs_many,
     time_origin,
 )
 from stellar_cal_ros.methods.imu_queue import ImuQueue, ImuRelease
@@ -295,11 +297,29 @@ class Calibrator(ImuRelease):
             log.warning("%s; the result is degraded", text)
             self.faults.append(text)
 
-    def push_stars(self, frame: StarFrame) -> list[FrameOutcome]:
+    def star_inputs(self, frames) -> list | None:
+        """The filter inputs of several star messages in one call, for :meth:`push_stars`.
+
+        What :meth:`push_stars` would compute for each (:func:`~.frames.frame_inputs`, the
+        same arguments), through :func:`~.frames.frame_inputs_many`; None when that does not
+        apply (each message then computes its own as it comes).
+        """
+        return frame_inputs_many(frames, *self._input_args(),
+                                 compiled=self.filter_cls.compiled_step)
+
+    def _input_args(self) -> tuple:
+        """:func:`~.frames.frame_inputs`' ``width, height, default_sigma, noise`` of a message."""
+        cam = self.prior.camera
+        return cam.width, cam.height, self.config.centroid_sigma_px, self.config.noise
+
+    def push_stars(self, frame: StarFrame, inputs: FrameInputs | None = None
+                   ) -> list[FrameOutcome]:
         """One ``StarCentroidArray`` (as a :class:`StarFrame`); returns processed frames.
 
         A frame refused on input (wrong frame id, late, duplicate) comes back at once as a
-        ``dropped_<reason>`` outcome; accepted ones come back when processed.
+        ``dropped_<reason>`` outcome; accepted ones come back when processed.  ``inputs``:
+        the frame's filter inputs from :meth:`star_inputs` (a replay's, a batch at once);
+        None: computed here.
         """
         c = self.counters
         c.frames_received += 1
@@ -327,9 +347,9 @@ class Calibrator(ImuRelease):
             if clocks.inside_leap(stamp, self._imu_leap, self.window_ns):
                 c.imu_clock_jumps += 1
                 self._clock_fault(clocks.leap_text(self._imu_leap, stamp, self.t0_ns))
-        cam = self.prior.camera
-        inp = frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px,
-                           self.config.noise, compiled=self.filter_cls.compiled_step)
+        inp = inputs
+        if inp is None:
+            inp = frame_inputs(frame, *self._input_args(), compiled=self.filter_cls.compiled_step)
         if needs_identification(frame):  # identified when processed, with the IMU's hint
             self._to_identify.add(stamp)
         pending = self._frames_pending
@@ -791,9 +811,7 @@ class Calibrator(ImuRelease):
             var = np.linalg.eigvalsh(flt.P[flt.ia, flt.ia]).max()
             unc = float(np.clip(np.degrees(5.0 * math.sqrt(max(var, 0.0))), 0.05, 2.0))
         frame, _ = self.identifier.identify_frame(frame, hint, hint_uncertainty_deg=unc)
-        cam = self.prior.camera
-        return frame, frame_inputs(frame, cam.width, cam.height, self.config.centroid_sigma_px,
-                                   self.config.noise)
+        return frame, frame_inputs(frame, *self._input_args())
 
     def _time_shift(self, stamp: int, inp, ctx=False) -> float:
         """Seconds from a frame's stamp to its modelled exposure (current θ).

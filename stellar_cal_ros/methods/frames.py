@@ -194,6 +194,50 @@ def frame_inputs(frame: StarFrame, width: int, height: int, default_sigma: float
                        int(np.count_nonzero(masks.unidentified)), int(np.count_nonzero(s == 0)))
 
 
+#: the per-star columns of a message beside its centroids (:func:`frame_inputs_many`)
+_STAR_COLUMNS = ("right_ascension", "declination", "catalog_id", "sigma", "magnitude")
+
+
+def frame_inputs_many(frames, width: int, height: int, default_sigma: float, noise=None,
+                      compiled: bool = False) -> list[FrameInputs] | None:
+    """:func:`frame_inputs` of several messages (``compiled``) in one compiled call.
+
+    Each message's inputs equal, bit for bit, what :func:`frame_inputs` with ``compiled``
+    gives it (:func:`stellar_cal_ros.core.jit.star_inputs_many`: the same per-star
+    functions as :func:`~stellar_cal_ros.core.jit.star_inputs`); its arrays are slices of
+    the call's.  None when that compiled path does not apply to them all (no numba, not
+    ``compiled``, stars' σ scaled by ``noise``, a message whose arrays differ in length):
+    the caller then asks :func:`frame_inputs` a message at a time.  A replay's frames
+    (:func:`stellar_cal_ros.methods.replay._release_items`) take this: one call a release
+    instead of a call a message (≈ 10 µs each).
+    """
+    jit = compiled_kernels() if compiled and (noise is None or noise.stars_as_stated) else None
+    if jit is None or not len(frames):
+        return None
+    uv = [np.asarray(fr.uv, dtype=float).reshape(-1, 2) for fr in frames]
+    cols = [[getattr(fr, name) for fr in frames] for name in _STAR_COLUMNS]
+    n = list(map(len, uv))
+    if any(list(map(len, c)) != n for c in cols):
+        return None
+    bounds = np.zeros(len(n) + 1, dtype=np.int64)
+    np.cumsum(n, out=bounds[1:])
+    ra, dec, cat, sig, mag = (np.concatenate(c) for c in cols)
+    ok, uv_o, u_i, s_o, c_o, m_o, counts = jit.star_inputs_many(
+        np.concatenate(uv), ra.astype(float, copy=False), dec.astype(float, copy=False), cat,
+        sig.astype(float, copy=False), mag.astype(float, copy=False), bounds, float(width),
+        float(height), float(default_sigma))
+    valid = 0.0 < default_sigma < math.inf
+    out = []
+    j = 0
+    a = bounds.tolist()
+    for f, (k, bad, unid, unknown) in enumerate(counts.tolist()):
+        e = j + k
+        out.append(FrameInputs(ok[a[f]:a[f + 1]], uv_o[j:e], u_i[j:e], s_o[j:e], c_o[j:e],
+                               m_o[j:e], bad, unid, unknown, valid=valid))
+        j = e
+    return out
+
+
 # ---------------------------------------------------------------------------- star images
 _SAID: set[tuple[str, str, str]] = set()  # (bag, star topic, image topic) already told
 

@@ -60,10 +60,20 @@ IMU_MERGE_S = 1.0
 IMU_MERGE_QUIET_S = REPLAY_LOOKAHEAD_S
 #: the bag roles of environment and fix messages
 ENV_ROLES = frozenset({"fix", "head", "air", "pressure"})
+#: the event role of a star message with its filter inputs, ``(frame, inputs)``: a release's
+#: messages computed in one call (:meth:`Calibrator.star_inputs`, :func:`_release_items`)
+_STARS_IN = "stars with inputs"
+#: the event roles of star messages
+_STAR_ROLES = frozenset({"stars", _STARS_IN})
 
 
-def _events_from_data(data: BagData):
-    """``(stamp_ns, role, payload)`` of a :class:`BagData` in time order (in memory)."""
+def _events_from_data(data: BagData, inputs=None):
+    """``(stamp_ns, role, payload)`` of a :class:`BagData` in time order (in memory).
+
+    ``inputs`` (:meth:`Calibrator.star_inputs`): the star frames go as ``(frame, inputs)``
+    events (:data:`_STARS_IN`), their inputs computed :data:`INPUT_FRAMES` frames a call
+    (:func:`_frames_with_inputs`).
+    """
     stamps = data.imu_stamp_ns
     out = []
     # blocks keyed by their first stamp: a frame comes after the IMU block it falls in, as
@@ -77,10 +87,10 @@ def _events_from_data(data: BagData):
     # frames in list (log) order: each keyed by the latest stamp so far, so a frame logged
     # late comes after its successors, as from a bag
     latest = None
-    for fr in data.frames:
+    for i, fr in enumerate(data.frames):
         key = int(fr.stamp_ns) if fr.log_time_ns is None else int(fr.log_time_ns)
         latest = key if latest is None else max(latest, key)
-        out.append((latest, 1, "stars", fr))
+        out.append((latest, 1, "stars", i))
     if data.site is not None:
         s = data.site
         out.append((data.t0_ns, -1, "fix", (data.t0_ns, s.latitude_deg, s.longitude_deg,
@@ -103,25 +113,56 @@ def _events_from_data(data: BagData):
                                strict=True):
                 out.append((int(k), -1, key, (int(t), v)))
     out.sort(key=lambda e: (e[0], e[1]))
+    frame = _frames_with_inputs(data.frames, inputs)
     for _, _, role, payload in out:
-        yield role, payload
+        if role == "stars":
+            yield frame(payload)
+        else:
+            yield role, payload
+
+
+#: the frames of a :class:`BagData` whose inputs one call computes (:func:`_frames_with_inputs`)
+INPUT_FRAMES = 256
+
+
+def _frames_with_inputs(frames, inputs=None) -> Callable[[int], tuple]:
+    """``i -> event`` of ``frames[i]``, its inputs computed a chunk of frames at once.
+
+    ``(_STARS_IN, (frame, its inputs))``, else ``("stars", frame)`` (``inputs`` None, or it
+    gave None).  ``inputs``: :meth:`Calibrator.star_inputs`, asked for the
+    :data:`INPUT_FRAMES` frames around ``i`` at once, the last such chunk kept.
+    """
+    chunk: dict[int, Any] = {}
+    start = [-1]  # the chunk's first frame
+
+    def event(i: int) -> tuple:
+        if inputs is not None and i - i % INPUT_FRAMES != start[0]:
+            start[0] = a = i - i % INPUT_FRAMES
+            got = inputs(frames[a:a + INPUT_FRAMES]) or []
+            chunk.clear()
+            chunk.update(enumerate(got, a))
+        inp = chunk.get(i)
+        return ("stars", frames[i]) if inp is None else (_STARS_IN, (frames[i], inp))
+
+    return event
 
 
 def _events_from_reader(reader: BagReader, topics: dict[str, str],
-                        env_unread: bool | Callable[[], bool] = False):
+                        env_unread: bool | Callable[[], bool] = False, inputs=None):
     """``(role, payload)`` in log-time order from a bag reader, one pass when it can.
 
     ``env_unread``: nothing the run computes reads the environment and fix messages
     (:func:`_env_unread`); the IMU blocks then merge across them too.  A call
-    (:func:`_env_quiet`): from when it first says so on.
+    (:func:`_env_quiet`): from when it first says so on.  ``inputs``: the star messages' filter
+    inputs of a release in one call (:meth:`Calibrator.star_inputs`; :func:`_release_items`).
     """
     quiet = None if isinstance(env_unread, bool) else env_unread
     across, limit = (_QUIET_ACROSS, IMU_MERGE_QUIET_S) if env_unread is True \
-        else (frozenset({"stars"}), None)
+        else (_STAR_ROLES, None)
     releases = getattr(reader, "stream_releases", None)
     if releases is not None:
-        yield from _merge_items(_release_items(releases(topics=topics), rows=env_unread),
-                                across, limit, quiet)
+        yield from _merge_items(_release_items(releases(topics=topics), rows=env_unread,
+                                               inputs=inputs), across, limit, quiet)
         return
     stream = getattr(reader, "stream", None)
     if stream is not None:
@@ -192,7 +233,7 @@ def _env_quiet(cal: Calibrator) -> bool | Callable[[], bool]:
     return False
 
 
-def _merged_imu(blocks, across=frozenset({"stars"}), limit_s: float | None = None,
+def _merged_imu(blocks, across=_STAR_ROLES, limit_s: float | None = None,
                 quiet: Callable[[], bool] | None = None):
     """The events of a bag's stream, an IMU block merged with the next ones across star frames.
 
@@ -234,7 +275,7 @@ def _block_items(blocks):
 
 
 def _release_items(releases, imu_block: int = IMU_BLOCK,
-                   rows: bool | Callable[[], bool] = False):
+                   rows: bool | Callable[[], bool] = False, inputs=None):
     """:func:`_merge_items`' items of :meth:`BagReader.stream_releases`.
 
     The same as :func:`_block_items` of :meth:`BagReader.stream`'s blocks (an IMU run cut
@@ -244,7 +285,9 @@ def _release_items(releases, imu_block: int = IMU_BLOCK,
     driver's bulk calls) where the role's last one of the release was — for a run that
     reads none of them (:func:`_env_unread`), whose quiet merge hands them on after the
     IMU logged around them anyway; a call (:func:`_env_quiet`): from the release it first
-    says so at on.
+    says so at on.  ``inputs`` (:meth:`Calibrator.star_inputs`): a release's star messages
+    go as ``(frame, inputs)`` events (:data:`_STARS_IN`), their inputs computed in one call
+    (when it gives None, as they came).
     """
     quiet = rows if callable(rows) else None
     for roles, blocks, order in releases:
@@ -252,6 +295,7 @@ def _release_items(releases, imu_block: int = IMU_BLOCK,
             rows, quiet = True, None
         events: list = [None] * len(roles)
         last: list = [None] * len(roles)  # rows: a role's rows in the release, else None
+        names = list(roles)  # each role's events' role
         for r, (role, block) in enumerate(zip(roles, blocks, strict=True)):
             if block is None:
                 continue
@@ -265,6 +309,9 @@ def _release_items(releases, imu_block: int = IMU_BLOCK,
                 events[r] = _rows_event(role, block)
             else:
                 events[r] = block if role in _ONE_A_MESSAGE else _row_events(role, block)
+                pre = inputs(block) if role == "stars" and inputs is not None else None
+                if pre is not None:
+                    names[r], events[r] = _STARS_IN, list(zip(block, pre, strict=True))
         for r, a, b in runs(order):
             role = roles[r]
             if role == "imu":
@@ -275,15 +322,15 @@ def _release_items(releases, imu_block: int = IMU_BLOCK,
                 if b == last[r]:
                     yield events[r]
             else:
-                ev = events[r]
+                ev, name = events[r], names[r]
                 for i in range(a, b):
-                    yield role, ev[i]
+                    yield name, ev[i]
 
 
 #: the event roles of a release's environment and fix messages in bulk (:func:`_release_items`)
 _ROWS_ROLES = frozenset({"scalars", "fixes"})
 #: the roles a quiet merge passes over (:func:`_env_unread`)
-_QUIET_ACROSS = ENV_ROLES | _ROWS_ROLES | frozenset({"stars"})
+_QUIET_ACROSS = ENV_ROLES | _ROWS_ROLES | _STAR_ROLES
 
 
 def _rows_event(role: str, block) -> tuple:
@@ -294,7 +341,7 @@ def _rows_event(role: str, block) -> tuple:
     return "scalars", (role, block.stamp_ns, block.value)
 
 
-def _merge_items(items, across=frozenset({"stars"}), limit_s: float | None = None,
+def _merge_items(items, across=_STAR_ROLES, limit_s: float | None = None,
                  quiet: Callable[[], bool] | None = None):
     """The driver's events of a bag's items in log order, IMU pieces merged (:func:`_merged_imu`).
 
@@ -409,6 +456,7 @@ def _handlers(cal: Calibrator) -> dict[str, Any]:
         # a decoded block is the replay's own (never written to): queued without a copy
         "imu": lambda p: cal.push_imu_block(*p, owned=True),
         "stars": cal.push_stars,
+        _STARS_IN: lambda p: cal.push_stars(*p),
         "image": cal.push_image,  # star images: made into frames one at a time (frames.py)
         "camera_info": cal.images.camera_info,
         "fix": lambda p: cal.push_fix(*p),
@@ -511,7 +559,7 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
                           span, eval_fraction, baseline, filter_cls)
         if hasattr(cal.model, "prepare_frames"):  # the astrometric corrections, in one call
             cal.model.prepare_frames(bag)
-        events = _events_from_data(bag)
+        events = _events_from_data(bag, cal.star_inputs)
         reader = None
     else:
         reader = BagReader(bag, on_error=on_error)
@@ -529,7 +577,7 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         cal = _calibrator(prior, method, effects, cfg, drv, consider, res_sink, hist_sink,
                           span, eval_fraction, baseline, filter_cls)
         events = _events_from_reader(reader, {k: v for k, v in names.items()},
-                                     env_unread=_env_quiet(cal))
+                                     env_unread=_env_quiet(cal), inputs=cal.star_inputs)
     bar = _Progress(span, progress)
     handlers = _handlers(cal)
     clock = time.perf_counter
