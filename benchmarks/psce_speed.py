@@ -26,7 +26,7 @@ as in ``read_speed.py``.  ``--method`` replays with another method (``swaying_ba
 wall and CPU: on a shared machine the CPU ratio is the steadier one.  Each checkout's
 bytecode is written first (``compileall``), as an install writes it — rosbags' is: with
 ``PYTHONDONTWRITEBYTECODE`` set and no ``__pycache__``, every replay compiled the package's
-modules from source (≈ 0.15–0.2 CPU-s a process, 2026-11-29).  ``--frames`` adds
+modules from source (≈ 0.3–0.45 CPU-s a process at load 15, 2026-11-29).  ``--frames`` adds
 the per-frame latency of the filter step (``process_frame``, p50 / p99, µs) from one
 in-process replay.  The issue's target: replay ≤ 0.6 × rosbags' decode-only time.
 """
