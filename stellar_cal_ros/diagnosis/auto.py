@@ -379,8 +379,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             base, results, extras = ranked(estimate and (
                 r.noise is None or bool(r.noise.skipped or r.noise.imu_skipped
                                         or r.noise.beyond) or r.noise_stale))
-            ticks = _drift_asked(base, base.calibration or prior, runs.fraction) if gated \
-                else None
+            ticks, timing = _drift_asked(base, base.calibration or prior, runs.fraction) \
+                if gated else (None, None)
             if ticks is not None:
                 # the frames' clock drifts on this model: its rate is a candidate from now
                 # on, and this round is made again with it (its noise as measured)
@@ -391,6 +391,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 pool.extend(gated)
                 gated = []
                 base, results, extras = ranked(False)
+                timing = None  # (another run's)
             here = None  # the flexure-shaped test of this round's model, when it ran
             if path and path[-1]["action"] == "add" and flexure.may_stand_in(state.last):
                 # the effect just added may stand in for a mount bending with gravity
@@ -425,7 +426,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             if shutter is not None and not shutter["p_value"] < ALPHA:
                 shutter = None
             top, refused = (_top(runs, state, base, here, prior, calibration, results, tell,
-                                 shutter) if not action else (None, []))
+                                 shutter, timing) if not action else (None, []))
             if not action and top is not None:
                 action, added, follow = "add", top.effect, top.run
             step = _step(k, model, base, results, top if action == "add" else None,
@@ -567,7 +568,7 @@ def _alias(state: _State, path: list[dict[str, Any]]) -> None:
 
 def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibration,
          calibration: Calibration, results: list[CandidateResult], tell,
-         shutter: dict | None = None
+         shutter: dict | None = None, timing=None
          ) -> tuple[CandidateResult | None, list[tuple[CandidateResult, dict]]]:
     """The candidate to add, and those refused as a flexure's (a rolling shutter's) stand-ins.
 
@@ -579,11 +580,13 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     (:mod:`~stellar_cal_ros.diagnosis.rolling`): then every candidate is added only if it
     explains the data beyond that fit or the fit has vanished beside it
     (:func:`~stellar_cal_ros.diagnosis.rolling.stand_in`, one run of its model).
+    ``timing``: ``base``'s clock test (:func:`_clock_of`) when the round made it already
+    (:func:`_drift_asked`), else ``None``.
     """
     refused = []
     fields, along = None, {}  # the outside-library leads of the current model (and their
     # directions), once a candidate asks
-    ticks = None  # the current model's clock test, once a rate-shaped candidate asks
+    ticks = timing  # the current model's clock test, once a rate-shaped candidate asks
     knock = None  # its installation step test, likewise
     frames = None  # its run's log-likelihood frame by frame, once a step's test asks
     order, hidden = [c for c in results if c.significant_alone], []
@@ -718,30 +721,31 @@ def _clock_of(base: RunSummary, calibration: Calibration, fraction: float):
 
 
 def _drift_asked(base: RunSummary, calibration: Calibration, fraction: float):
-    """The clock test of ``base`` if it asks for a drifting clock's candidate, else ``None``.
+    """``(the clock test if it asks for a drifting clock's candidate else None, the test)``.
 
     :meth:`~stellar_cal_ros.diagnosis.clock.ClockChange.asks_drift` on the clock test, and
     again on the one the 'unexplained' lines judge (:func:`~.output.line_tests`: beside a
     wobble's periods where one is found, a wobble's turns read as a drift otherwise:
     unseen case ``wobble`` s23, 14.5 ppm).  Where ``base`` lost lock, the parts' change
-    alone.  Asked each round until it asks: a model that fits costs the one clock test.
+    alone.  Asked each round until it asks: a model that fits costs the one clock test,
+    returned second (:func:`_clock_of`'s: :func:`_top` asks it of the same run).
     """
     ticks = _clock_of(base, calibration, fraction)
     if ticks is None:
-        return None
+        return None, None
     if base.lost_lock and min(ticks.p_value, ticks.drift_p) < ALPHA:
         # lost on the way, the parts' offsets are the filter's catch-up as much as the
         # clock's (a 0 -> 30 ms drift: one rate leaves 12.7 chi2 / 3 dof, p 0.005): the
         # candidate's run says whether a rate holds
-        return ticks
+        return ticks, ticks
     if not ticks.asks_drift(ALPHA):
-        return None
+        return None, ticks
     from stellar_cal_ros.diagnosis.output import line_tests
 
     parts: dict[str, Any] = {}
-    line_tests(base.residuals, calibration, fraction, parts)
-    ticks = parts.get("clock")
-    return ticks if ticks is not None and ticks.asks_drift(ALPHA) else None
+    line_tests(base.residuals, calibration, fraction, parts, ticks)
+    lines = parts.get("clock")
+    return (lines if lines is not None and lines.asks_drift(ALPHA) else None), ticks
 
 
 def _knock_of(base: RunSummary, calibration: Calibration, fraction: float):

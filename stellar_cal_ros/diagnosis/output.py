@@ -262,14 +262,16 @@ def step_test(res, calibration: Calibration, fraction: float, everywhere: bool =
 
 
 def line_tests(res, calibration: Calibration, fraction: float,
-               parts: dict[str, Any] | None = None) -> list:
+               parts: dict[str, Any] | None = None,
+               timing: clock.ClockChange | None = None) -> list:
     """The 'unexplained' tests of a residual table (significant, strongest first).
 
     An installation step's line (:mod:`~.installation_step`) goes first when it fires: the
     filter's catch-up on it makes the others.  ``parts``: a dict given gets the
     :func:`clock_test` and :func:`step_test` made on the way (``"clock"``, ``"step"``),
     for :func:`finish`'s entries (the clock test holds one of the round's memory peaks on a
-    2-h bag: made once).
+    2-h bag: made once).  ``timing``: :func:`clock_test` of ``res`` already made by the
+    caller with the same ``calibration`` and ``fraction`` (not made again).
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
@@ -279,8 +281,9 @@ def line_tests(res, calibration: Calibration, fraction: float,
     # test's offsets, the step test's)
     sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st)
     trim_freed()
-    timing = clock_test(res, calibration, fraction)
-    trim_freed()
+    if timing is None:
+        timing = clock_test(res, calibration, fraction)
+        trim_freed()
     step = step_test(res, calibration, fraction)
     trim_freed()
     timing_line = timing.finding() if timing is not None else None
