@@ -437,13 +437,14 @@ class Calibrator(ImuRelease):
         c.env_received += len(s)
         c.env_invalid += int(len(s) - np.count_nonzero(ok))
         series = self.env[kind]
-        # no frame waits for them (and, a method that needs a site, its filter runs: before,
-        # each pumps as it may start it)
-        if not self.requires or (self.filter is not None and not self.scalars_read()):
-            series.extend(s[ok], v[ok])
-            return []
         out: list[FrameOutcome] = []
-        for t, x, good in zip(s.tolist(), v.tolist(), ok.tolist(), strict=True):
+        for i, (t, x, good) in enumerate(zip(s.tolist(), v.tolist(), ok.tolist(),
+                                             strict=True)):
+            # no frame waits for them (and, a method that needs a site, its filter runs:
+            # before, each pumps as it may start it): the rest at once
+            if not self.requires or (self.filter is not None and not self.scalars_read()):
+                series.extend(s[i:][ok[i:]], v[i:][ok[i:]])
+                break
             if good:
                 series.add(t, x)
                 if self._frames_pending:
