@@ -223,26 +223,31 @@ class ScaledDirection(Effect):
 
     def _prepared(self, u: np.ndarray, ctx: FrameContext) -> np.ndarray | None:
         """The frame's Δ from the table of :meth:`prepare`, or None."""
+        # (:meth:`_Table.get`'s rows, read in place: this runs for each frame and effect)
         table = getattr(self, "_table", None)
-        hit = table.get(float(ctx.stamp)) if table else None
-        if hit is None or ctx.site != self._site:
+        st = table.stacked if table else None
+        j = st._row.get(float(ctx.stamp)) if st is not None else None
+        if j is None or ctx.site != self._site:
             return None
-        if self.uses_weather and not _same_floats(hit.weather,
-                                                  (ctx.pressure_pa, ctx.air_temperature_c)):
+        if self.uses_weather and not _same_floats(
+                (float(st.weather[j, 0]), float(st.weather[j, 1])),
+                (ctx.pressure_pa, ctx.air_temperature_c)):
             return None
         ids = np.asarray(ctx.catalog_id).reshape(-1)
         if len(ids) != len(u) or len(u) <= _EXACT_BELOW:
             return None
-        if len(ids) == len(hit.ids) and np.array_equal(ids, hit.ids):
-            rows = hit.u, hit.delta  # every star of the frame (the usual case)
+        a, b = st.start[j:j + 2].tolist()
+        hit_ids = st.ids[a:b]
+        if len(ids) == b - a and bool((ids == hit_ids).all()):
+            rows = st.u[a:b], table.delta[a:b]  # every star of the frame (the usual case)
         else:
             order = table.order(float(ctx.stamp))
-            k = np.searchsorted(hit.ids, ids, sorter=order)
-            pos = order[np.minimum(k, len(hit.ids) - 1)]
-            if np.any(hit.ids[pos] != ids):
+            k = np.searchsorted(hit_ids, ids, sorter=order)
+            pos = order[np.minimum(k, len(hit_ids) - 1)]
+            if np.any(hit_ids[pos] != ids):
                 return None
-            rows = hit.u[pos], hit.delta[pos]
-        if float(np.max(np.abs(rows[0] - u))) > _SAME_STAR:
+            rows = st.u[a:b][pos], table.delta[a:b][pos]
+        if float(np.abs(rows[0] - u).max()) > _SAME_STAR:
             return None
         return rows[1]
 
