@@ -381,8 +381,11 @@ def window_information(cand: CandidateResult, run: RunSummary | None = None) -> 
 
 
 def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference: Reference,
-                    alpha_mdb: float) -> None:
-    """Decision inputs of one augmented run: detectability, Λ, p, physical size."""
+                    alpha_mdb: float, dispersion: float = 1.0) -> None:
+    """Decision inputs of one augmented run: detectability, Λ, p, physical size.
+
+    ``dispersion``: the one the MDB is stated for (:func:`reliability.detectability`).
+    """
     cand.run = run
     sl = run.block(cand.effect)
     eff = registry.create(cand.effect)
@@ -392,7 +395,7 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference:
     cand.sigma = dict(zip(eff.parameter_names, map(float, sig_post), strict=True))
     cand.rms_after_px = tuple(run.window["rms"])
     cand.detect = reliability.detectability(cand.effect, window_information(cand, run),
-                                            alpha_mdb, r.user_prior)
+                                            alpha_mdb, r.user_prior, dispersion)
     if _untestable(cand):
         return
     cand.statistic, cand.p_value, cand.explained = reference.compare(run, eff.size)
@@ -566,7 +569,10 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             log.warning("candidate %s failed: %s", e, run.error)
             c.status, c.reason = "failed", run.error
             continue
-        _fill_candidate(r, c, run, reference, alpha_mdb)
+        # not screened (the current model far from consistent): the ratio statistic alone
+        # decides, divided by the reference's dispersion, and the MDB is stated for it
+        _fill_candidate(r, c, run, reference, alpha_mdb,
+                        1.0 if use_score else reference.dispersion)
     results = list(cands.values()) + results
     tested = [c for c in results if c.status in ("ranked", "implausible", "screened_out")]
     m = max(len(tested), 1)

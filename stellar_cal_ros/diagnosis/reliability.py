@@ -146,11 +146,20 @@ class Detectability:
     #: detector corner'), and each MDB in that statement's unit where the camera converts it
     plausible_text: dict[str, str] = field(default_factory=dict)
     mdb_where_it_acts: dict[str, float] = field(default_factory=dict)
+    #: the decision statistic's dispersion the MDB is stated for (``information`` is the
+    #: window's divided by it): 1 where the residuals are as the stated noise says
+    dispersion: float = 1.0
 
     @property
     def testable(self) -> bool:
-        """The MDB is below the plausible size in at least one direction."""
-        return bool(self.ratio <= 1.0)
+        """The MDB is below the plausible size in at least one direction.
+
+        Judged for residuals as the noise states them (``ratio / √dispersion``): whether
+        this motion can test the effect; a model that does not fit yet does not make it
+        untestable (its round still tests it, and its decisions stay those of a round
+        whose MDB ignored the dispersion).
+        """
+        return bool(self.ratio / np.sqrt(self.dispersion) <= 1.0)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON form: MDB per parameter, plausible size, ratio, testable."""
@@ -161,7 +170,8 @@ class Detectability:
                 "mdb_over_plausible": self.ratio, "testable": self.testable,
                 "plausible_statement": dict(self.plausible_text),
                 "mdb_where_it_acts": dict(self.mdb_where_it_acts),
-                "alpha": self.alpha, "power": POWER, "lam0": self.lam0, "dof": self.dof}
+                "alpha": self.alpha, "power": POWER, "lam0": self.lam0, "dof": self.dof,
+                **({"dispersion": self.dispersion} if self.dispersion != 1.0 else {})}
 
     def where_text(self) -> str:
         """MDB and plausible size where the effect acts, when the camera converts them.
@@ -179,14 +189,18 @@ class Detectability:
 
 
 def detectability(effect_id: str, information: np.ndarray, alpha: float,
-                  calibration: Any = None) -> Detectability:
+                  calibration: Any = None, dispersion: float = 1.0) -> Detectability:
     """MDB per parameter and the testability of ``effect_id`` given its information.
 
     ``calibration``: the run's calibration, whose camera converts a plausible size stated
     in px at the detector corner to the parameters (:func:`plausible_size`).
+    ``dispersion``: what the decision's statistic is divided by (the quasi-likelihood
+    ratio's mean NIS / dof of a model that does not fit, :class:`~stellar_cal_ros.diagnosis.
+    discover.Reference`): the statistic's non-centrality is then ``bᵀ I b / dispersion``,
+    so the information is divided by it and the MDB grows by its square root.
     """
     eff = registry.create(effect_id)
-    info = np.atleast_2d(np.asarray(information, dtype=float))
+    info = np.atleast_2d(np.asarray(information, dtype=float)) / float(dispersion)
     k = info.shape[0]
     lam = lambda0(alpha, k)
     D = plausible_size(effect_id, calibration)
@@ -202,7 +216,8 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
         if eff.plausible_depends_on_camera():
             acts = eff.where_it_acts(np.array(list(mdb.values())), calibration)
             where = {n: float(a) for n, a in zip(eff.parameter_names, acts, strict=True)}
-    return Detectability(effect_id, k, alpha, lam, info, D, mdb, ratio, text, where)
+    return Detectability(effect_id, k, alpha, lam, info, D, mdb, ratio, text, where,
+                         float(dispersion))
 
 
 # ----------------------------------------------------------------------------- display units

@@ -376,10 +376,12 @@ def _reliability_html(summary: dict[str, Any]) -> str:
                     f"<td>{_e(flex[2])}</td><td></td></tr>")
     if not rows:
         return ""
+    note = printing.dispersion_note(summary.get("reliability", []))
     return ("<h2>What could still be hiding</h2><p>Minimal detectable size (power 80 %) on "
             "this bag, and the bias each parameter alone at that size leaves (the shift an "
             "injection reproduces); blind directions: what an effect of plausible size there "
-            "would move with no trace.</p><table><tr><th>effect</th><th>MDB</th><th>would "
+            "would move with no trace." + (f" MDBs {_e(note)}." if note else "")
+            + "</p><table><tr><th>effect</th><th>MDB</th><th>would "
             "bias (above its σ)</th><th>blind directions</th></tr>" + "".join(rows)
             + "</table>")
 
