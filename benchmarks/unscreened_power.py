@@ -8,6 +8,14 @@ simulation, fresh noise per seed), ``discover --auto`` is run as the user would,
 seed it counts whether the effect was found (added, or significant in a round).  Run::
 
     python benchmarks/unscreened_power.py dt_step gyro_scale_factor 1.27e-4,0,0 101-110 OUT
+
+``--paired PARAM`` measures instead the non-centrality of one unscreened round (the
+``--model`` effects beside the baseline, the one candidate ``EFFECT``) at its printed MDB
+of ``PARAM``: the case simulated with that parameter at 0 and at ± the MDB, same seed,
+``(Λ(+b) + Λ(−b) − 2 Λ(0)) / 2`` over λ₀ (1 when the MDB is right; VALUE and OUT unused)::
+
+    python benchmarks/unscreened_power.py dt_step gyro_scale_factor - 23-23 - \
+        --paired sx --model time_offset
 """
 
 from __future__ import annotations
@@ -30,7 +38,12 @@ def main() -> int:
     for name in ("case", "effect", "value", "seeds"):
         ap.add_argument(name)
     ap.add_argument("out", type=Path)
+    ap.add_argument("--paired", default="", help="measure the non-centrality at this "
+                    "parameter's printed MDB instead")
+    ap.add_argument("--model", default="", help="with --paired: effects beside the baseline")
     a = ap.parse_args()
+    if a.paired:
+        return paired(a)
     a.out.mkdir(parents=True, exist_ok=True)
     value = [float(v) for v in a.value.split(",")]
     base = unseen_cases.CASES[a.case]
@@ -65,6 +78,47 @@ def main() -> int:
         (out / f"{name}.mcap").unlink(missing_ok=True)
     n = last - first + 1
     print(f"{a.case} {a.effect}={a.value}: found {found} of {n}")
+    return 0
+
+
+def paired(a) -> int:
+    """One row a seed: dispersion, printed MDB, Λ(0), Λ(±MDB) and the non-centrality / λ₀."""
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis import discover
+    from stellar_cal_ros.diagnosis.parallel import Runs
+    from stellar_cal_ros.effects import registry
+    from stellar_cal_ros.methods.replay import bag_data_from_simulation
+    from stellar_cal_ros.sim.scenarios import get_scenario
+    from stellar_cal_ros.sim.world import simulate
+
+    case = unseen_cases.CASES[a.case]
+    spec = discover.method_spec(case.method)
+    sc = get_scenario({"psce": "psce_rotations", "swaying_base": "swaying"}[case.method])
+    names = registry.create(a.effect).parameter_names
+    extra = [e for e in a.model.split(",") if e]
+    first, last = map(int, a.seeds.split("-"))
+    for seed in range(first, last + 1):
+        def round_(b, seed=seed):
+            vec = [b if n == a.paired else 0.0 for n in names]
+            sim = simulate(sc, duration=case.duration, seed=seed,
+                           effects={**case.sim_effects, **({a.effect: vec} if b else {})})
+            if case.post is not None:
+                case.post(sim, seed)
+            runs = Runs(bag_data_from_simulation(sim), spec, 0.5)
+            runs.noise = NoiseScales()
+            r = discover.Round(runs, spec, runs.facts(), 0.5, sim.prior)
+            base, (c,), _ = discover.rank_round(r, sim.prior, extra, [a.effect],
+                                                condition=False, screen=False,
+                                                measure_noise=False)
+            return discover.Reference.of(base).dispersion, c
+
+        d, c0 = round_(0.0)
+        b = c0.detect.mdb[a.paired]
+        up, down = round_(b)[1].statistic, round_(-b)[1].statistic
+        lam = (up + down - 2.0 * c0.statistic) / 2.0
+        print(f"{seed:5d} dispersion {d:.3g} MDB {a.paired} {b:.4g} lam0 {c0.detect.lam0:.4g} "
+              f"L(0) {c0.statistic:.4g} L(+b) {up:.4g} L(-b) {down:.4g} "
+              f"lam/lam0 {lam / c0.detect.lam0:.3g}", flush=True)
     return 0
 
 
