@@ -11,7 +11,8 @@ parent hands out, the parent's CPU between them) and prints, per timeline:
   largest, and whether the largest of a batch was handed out last;
 * ``work``: everything (serial + tasks);
 * ``path inf``: the critical path on endless workers -- the serial part plus, for each
-  batch, its longest run (the batches as the parent waits for them);
+  batch, its longest run (the batches as the parent waits for them; batches it had out
+  at once count as one);
 * ``path 2``: the same on two workers, each batch's runs placed largest first on the
   less busy worker (LPT);
 * ``ideal``: work of the one-worker timeline / ``path 2`` -- the 1 -> 2 speedup the round's
@@ -59,9 +60,14 @@ def analyse(events: list[dict]) -> dict:
     """Serial and parallel CPU, the batches' critical paths, of one timeline."""
     r = round_timeline.replay([dict(e) for e in events])
     tasks = r["tasks"]
+    # batches the parent had out at once (a run started ahead, ``Runs.later``) are one
+    group, top, last = {}, -1.0, 0
+    for b in sorted((e for e in events if e["kind"] == "batch"), key=lambda e: e["submit"]):
+        last = last if b["submit"] < top else b["batch"]
+        group[b["batch"]], top = last, max(top, b["done"])
     by_batch: dict[int, list[dict]] = defaultdict(list)
     for t in tasks:
-        by_batch[t["batch"]].append(t)
+        by_batch[group.get(t["batch"], t["batch"])].append(t)
     end = next(e for e in events if e["kind"] == "end")
     parent_runs = sum(t["cpu"] for t in tasks if t["pid"] == r["parent"])
     # in process the parent's CPU holds its runs; with workers the replay split it into

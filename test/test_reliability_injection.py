@@ -128,7 +128,8 @@ def test_a_probe_run_replaces_the_rows_the_first_order_does_not_hold():
 
 def test_the_probe_split_over_workers_gives_the_rows_of_one_call(monkeypatch):
     """On several workers the probe's (effect, parameter) pairs go out as parts (each with
-    both signs, ``Runs.on_bag_each``); the entries come out as from one call."""
+    both signs, one ``Runs.later`` each: started before the line tests); the entries come
+    out as from one call."""
     import copy
     from types import SimpleNamespace
 
@@ -155,16 +156,16 @@ def test_the_probe_split_over_workers_gives_the_rows_of_one_call(monkeypatch):
     monkeypatch.setattr(reliability_probe, "measure_on_bag", measured)
     got, parts = [], []
     for workers in (1, 2, 3):
-        def each(fn, calls, workers=workers):
-            parts.append((workers, [len(c[-1]) for c in calls]))
-            return [fn(None, *c) for c in calls]
+        def later(fn, *args, workers=workers):
+            parts.append((workers, len(args[-1])))
+            return lambda: fn(None, *args)
 
         runs = SimpleNamespace(workers=workers, spec=None, fraction=0.5, noise=None,
-                               classes=(), on_bag_each=each)
+                               classes=(), later=later)
         made = entries()
         assert reliability_probe.probe_entries(made, base, runs) == 6
         got.append(made)
-    assert parts == [(1, [6]), (2, [2, 4]), (3, [2, 2, 2])]
+    assert parts == [(1, 6), (2, 2), (2, 4), (3, 2), (3, 2), (3, 2)]
     assert got[0][0]["biases_signed"] != got[0][2]["biases_signed"]  # the sizes show
     assert got[1] == got[0] and got[2] == got[0]
 

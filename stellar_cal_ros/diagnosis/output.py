@@ -77,6 +77,17 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     # tests that ask for them (known from the run alone; in this process: when asked for)
     started = (shape_drift.start_first_runs(shown, runs, line_tests),
                rolling.start_lines_without(shown, runs, line_tests))
+    # no recommendation: the probe runs of the hidden effects' rows need the candidates
+    # only, not the lines: on workers they start here too, beside the line tests (the
+    # parent's line tests take 5-6 CPU-s of a 2-h round; in this process: when asked for)
+    best = next((c for c in results if c.significant_alone and c.effect not in refused),
+                None)
+    reliability = hidden_effects(base, results) if best is None else None
+    probing = None
+    if reliability is not None and runs is not None:
+        from stellar_cal_ros.diagnosis.reliability_probe import start_probes
+
+        probing = start_probes(reliability, base, runs)
     # (the clock and step tests' results kept from the lines': not computed twice)
     parts: dict[str, Any] = {}
     unexplained = line_tests(shown.residuals, calibration, fraction, parts)
@@ -121,8 +132,6 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
             f"p={f.p_value:.2g}): the noise varies within the {verdict.group['by']} groups "
             "applied (a per-star sigma in the messages would track it), not an effect"
             for f in spread]
-    best = next((c for c in results if c.significant_alone and c.effect not in refused),
-                None)
     summary["recommendation"] = best.effect if best is not None else None
     like = like if like is not None else ([best.effect] if best is not None else [])
     # (the flexure's line: an outside-library field's line has no 'after')
@@ -140,11 +149,9 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     # the flexure's MDB (flexure.hiding); null when its test found a remainder or did not run
     summary["flexure_hiding"] = hiding or None
     if best is None:
-        summary["reliability"] = hidden_effects(base, results)
-        if runs is not None:
-            from stellar_cal_ros.diagnosis.reliability_probe import probe_entries
-
-            probe_entries(summary["reliability"], base, runs)
+        summary["reliability"] = reliability
+        if probing is not None:
+            probing()
     if plots:
         from stellar_cal_ros.diagnosis import report  # matplotlib: only when plotting
 

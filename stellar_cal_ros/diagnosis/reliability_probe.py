@@ -30,6 +30,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -425,11 +426,21 @@ def probe_entries(entries: list[dict[str, Any]], base, runs) -> int:
     injections.  Two runs per flagged (effect, parameter), the effect at +size and −size,
     all in one call where the bag is.
     """
+    return start_probes(entries, base, runs)()
+
+
+def start_probes(entries: list[dict[str, Any]], base, runs) -> Callable[[], int]:
+    """:func:`probe_entries` as a function to call for it (``entries`` are then filled in).
+
+    On a cluster the probe's runs start now (:meth:`~stellar_cal_ros.diagnosis.parallel.
+    Runs.later`), beside what the parent does before it calls (the line tests: the probe
+    needs the candidates only, not the lines); in this process they run when called.
+    """
     if base is None or not base.ok or base.calibration is None or base.prior is None:
-        return 0
+        return lambda: 0
     todo = [(entry, parameter) for entry in entries for parameter in flagged(entry)]
     if not todo:
-        return 0
+        return lambda: 0
     probes = tuple((entry["effect"], tuple(injection.parameter_delta(
         entry["effect"], parameter, sign * entry["hidden_size"][parameter]).tolist()))
         for entry, parameter in todo for sign in (1.0, -1.0))
@@ -440,13 +451,17 @@ def probe_entries(entries: list[dict[str, Any]], base, runs) -> int:
     bounds = [2 * (len(todo) * i // parts) for i in range(parts + 1)]
     args = (runs.spec, base.prior, tuple(base.effects), runs.fraction, runs.noise,
             runs.classes, base.calibration)
-    got = [row for part in runs.on_bag_each(measure_on_bag, [
-        (*args, probes[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)])
-        for row in part]
-    before, sigma = injection.summary_values(base), base.sigma_by_name()
-    for k, (entry, parameter) in enumerate(todo):
-        plus, minus = got[2 * k], got[2 * k + 1]
-        if plus is not None and minus is not None:
-            apply(entry, parameter, injection.paired_shift(before, plus),
-                  injection.paired_shift(before, minus), sigma)
-    return len(probes)
+    pending = [runs.later(measure_on_bag, *args, probes[a:b])
+               for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+    def done() -> int:
+        got = [row for part in pending for row in part()]
+        before, sigma = injection.summary_values(base), base.sigma_by_name()
+        for k, (entry, parameter) in enumerate(todo):
+            plus, minus = got[2 * k], got[2 * k + 1]
+            if plus is not None and minus is not None:
+                apply(entry, parameter, injection.paired_shift(before, plus),
+                      injection.paired_shift(before, minus), sigma)
+        return len(probes)
+
+    return done
