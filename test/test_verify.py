@@ -67,3 +67,24 @@ def test_the_tilt_claim_of_the_independent_bag_is_printed_as_conservative():
     lines = verify_lines({"verify": [rec, dict(rec, verdict="holds", conservative=[]), low]})
     assert lines[0].endswith("2 of 3 claims hold (1 conservatively: on the safe side)"), \
         lines[0]
+
+
+@pytest.mark.parametrize("entry, want", [
+    # a round that fits: the printed size
+    ({"hidden_size": {"sx": 4e-5}, "mdb": {"sx": 4e-5}, "plausible_size": {"sx": 1e-4}}, 1.0),
+    # not fitting yet (dt_step: residuals at 8.35x the stated variance): the twin, which
+    # fits, gets the MDB as stated, 1/sqrt(8.35) of the printed one
+    ({"hidden_size": {"sx": 1.27e-4}, "mdb": {"sx": 1.27e-4}, "plausible_size": {"sx": 1e-3},
+      "dispersion": 8.35}, 1 / math.sqrt(8.35)),
+    # the printed size capped at the plausible one: the stated MDB (2e-4 / 2) is below it
+    ({"hidden_size": {"sx": 1.5e-4}, "mdb": {"sx": 2e-4}, "plausible_size": {"sx": 1.5e-4},
+      "dispersion": 4.0}, 1e-4 / 1.5e-4),
+    # ... or still above it: the plausible size, as printed
+    ({"hidden_size": {"sx": 1e-4}, "mdb": {"sx": 4e-4}, "plausible_size": {"sx": 1e-4},
+      "dispersion": 4.0}, 1.0),
+])
+def test_a_twin_of_a_round_that_did_not_fit_gets_the_mdb_as_stated(entry, want):
+    """A twin holds the user's motion and measured noise, not the misfit: its rounds fit, so
+    the printed MDB (stated for the round's dispersion d, √d larger) would always be seen
+    "more easily than printed".  It is injected at the MDB for residuals as stated."""
+    assert verify.twin_scale(entry, "sx") == pytest.approx(want, rel=1e-12)

@@ -58,6 +58,27 @@ def injected_parameter(entry: dict[str, Any]) -> tuple[str, list[str]]:
                / max(float(plaus.get(p, 1.0)), 1e-300)), []
 
 
+def twin_scale(entry: dict[str, Any], param: str) -> float:
+    """The share of the printed hidden size a twin is injected at (1 on a fitting round).
+
+    A round whose model does not fit yet states its MDB for the dispersion ``d`` its ratio
+    statistic is divided by (``dispersion``: √d × the MDB of residuals as stated,
+    :func:`~.reliability.detectability`).  A twin holds the user's motion, stars and
+    measured noise but not the misfit, so its rounds fit (d ≈ 1): there the printed size
+    would be seen with a non-centrality d·λ₀, always "conservative", and the check would
+    say nothing.  The twin is injected at the MDB for residuals as stated instead
+    (``mdb / √d``, at most the plausible size the printed hidden size is capped at), and
+    every printed bias is scaled alike (they are linear in the size).
+    """
+    d = float(entry.get("dispersion", 1.0))
+    hidden = float(entry["hidden_size"][param])
+    if d == 1.0 or not hidden > 0.0:
+        return 1.0
+    stated = min(float(entry["mdb"][param]) / np.sqrt(d),
+                 float(entry["plausible_size"].get(param, np.inf)))
+    return min(stated / hidden, 1.0)
+
+
 def verify(data, calibration, method: str, effects: list[str], entries: list[dict],
            seed: int = 1, tell=None, fraction: float = 0.5) -> list[dict[str, Any]]:
     """Check ``entries`` (the report's reliability list) on twins of ``data``.
@@ -146,7 +167,8 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
     eff = registry.create(eid)
     param, _ = injected_parameter(entry)
     listed = injection.claims(entry, sign).get(param, [])
-    size = sign * entry["hidden_size"][param]
+    scale = twin_scale(entry, param)
+    size = sign * entry["hidden_size"][param] * scale
     delta = injection.parameter_delta(eid, param, size)
     data1, counts = make({eid: injection.simulation_value(eid, delta)})
     base, cands = round_on(data1)
@@ -164,7 +186,7 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
                                    own_shift(calibration, method, eid, delta))
     checks = []
     for q in listed:
-        printed = injection.printed_shift(entry, q, sign)
+        printed = injection.printed_shift(entry, q, sign) * scale
         checks.append({"quantity": q, "printed": printed, "measured": shift.get(q),
                        "ratio": shift.get(q, np.nan) / printed if printed else np.nan})
     ratios = [c["ratio"] for c in checks]
@@ -179,7 +201,7 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
             "paired_power": response, "dof": k, "alpha": entry["alpha"],
             "biases": checks, "holds": verdict != "fails", "verdict": verdict,
             "conservative": conservative,
-            "twin_counts": counts, **_decision(c),
+            "twin_counts": counts, "size_scale": scale, **_decision(c),
             "clean_score_statistic": (c0.screen.statistic if c0 is not None
                                       and c0.screen is not None else float("nan"))}
 
@@ -248,7 +270,10 @@ def describe(rec: dict[str, Any]) -> str:
     """One line of the verification."""
     from stellar_cal_ros.diagnosis.reliability import shown
 
-    parts = [f"{rec['effect']} {rec['parameter']} = {rec['size_shown']}: "
+    stated = (" (the MDB for residuals as stated, x"
+              f"{rec['size_scale']:.3g} the printed one: the twin fits, this round did not)"
+              if rec.get("size_scale", 1.0) != 1.0 else "")
+    parts = [f"{rec['effect']} {rec['parameter']} = {rec['size_shown']}{stated}: "
              f"{'found' if rec['found'] else 'missed'} on the twin"]
     if np.isfinite(rec["noncentrality"]):
         parts.append(f"score response (paired) {rec['noncentrality']:.3g} (MDB claims "
