@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import math
 import sys
 import time
 from pathlib import Path
@@ -39,9 +38,9 @@ import numpy as np
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import auto
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+from stellar_cal_ros.diagnosis.installation_step import StepNuisance
 from stellar_cal_ros.diagnosis.runstats import evaluate
 from stellar_cal_ros.effects import registry
-from stellar_cal_ros.effects.base import Effect, Stage
 from stellar_cal_ros.io.calibration import load_calibration
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -49,37 +48,6 @@ import unseen_cases  # noqa: E402
 
 FRACTION = 0.5
 GSF = "gyro_scale_factor"
-
-
-class StepNuisance(Effect):
-    """The installation rotated by ``δ`` from ``T`` (POSIX s) on: a knock, fitted.
-
-    ``T`` travels in the prior (``effects[id]["t_posix"]``, read by :meth:`initial`, kept by
-    :meth:`store`): a run in a worker process builds its effects from the prior it is sent.
-    """
-
-    id = "_knock_step"
-    stage = Stage.TRACKER
-    order = 15
-    parameter_names = ("dx", "dy", "dz")
-    units = ("rad", "rad", "rad")
-    default_sigma = (100.0 * ARCSEC,) * 3
-    explanation = "a knock on the mount, fitted as a nuisance (not a library effect)"
-    T = math.inf
-
-    def initial(self, prior):  # noqa: D102
-        self.T = float(prior.effects.get(self.id, {}).get("t_posix", math.inf))
-        return super().initial(prior)
-
-    def store(self, value, sigma, cal):  # noqa: D102
-        super().store(value, sigma, cal)
-        cal.effects[self.id]["t_posix"] = self.T
-
-    def tracker_rotation(self, value, ctx):  # noqa: D102
-        return np.asarray(value, dtype=float) if ctx.stamp >= self.T else np.zeros(3)
-
-    def tracker_rotation_jacobian(self, value, ctx):  # noqa: D102
-        return np.eye(3) if ctx.stamp >= self.T else np.zeros((3, 3))
 
 
 def _gsf(run) -> tuple[np.ndarray, np.ndarray]:

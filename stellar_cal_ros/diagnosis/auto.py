@@ -51,6 +51,7 @@ the first and the newest model (the report's panels and the structure tests).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import time
@@ -61,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import clock, flexure, installation_step, leads, rolling, screening
 from stellar_cal_ros.diagnosis.discover import (
     ALPHA,
@@ -194,10 +196,22 @@ class _State:
     passed_step: dict[str, dict] = field(default_factory=dict)
     #: an effect in the model → the rival this motion does not tell from it (:func:`_tie`)
     ties: dict[str, dict] = field(default_factory=dict)
+    #: the latest :func:`_top`'s candidates judged beside the step fitted as a nuisance
+    #: (:func:`_beside_knock`) and found needed: effect → (the test, its run with the step)
+    with_step: dict[str, tuple[dict, RunSummary]] = field(default_factory=dict)
+    #: the latest :func:`_top`'s runs of the model with the step alone (made once a round)
+    step_alone: dict[str, Any] = field(default_factory=dict)
+    #: the step's line from the round its nuisance entered the model (:func:`_write` says
+    #: it: the final model's own test no longer sees the step it fits)
+    step_line: dict[str, Any] | None = None
 
     def checkable(self) -> list[str]:
         """Added effects whose need is tested this round."""
-        return [e for e in self.extra if e not in self.user and e != self.last]
+        return [e for e in self.shown() if e not in self.user and e != self.last]
+
+    def shown(self) -> list[str]:
+        """The effects beyond the baseline but the step's nuisance (never in an output)."""
+        return [e for e in self.extra if e != installation_step.STEP_ID]
 
 
 def _checks(state: _State, prior: Calibration, original: Calibration,
@@ -365,7 +379,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             e for e in registry.offered_on(clock.OFFERED_ON) if e not in pool]
         for k in range(1, max_rounds + 1):
             t0 = time.perf_counter()
-            model = list(spec.baseline) + state.extra
+            model = list(spec.baseline) + state.shown()
             tell(f"round {k}: {', '.join(model)}; re-runs {runs.description}")
             prior = rerun_prior(state.start)
             state.lead, state.beside = {}, {}
@@ -400,7 +414,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                      "flexure)")
                 here = got = flexure.after_add(runs, base, prior, tuple(state.extra))
                 path[-1]["remainder"] = got
-                state.remainders.append((got, [e for e in state.extra if e not in state.user]))
+                state.remainders.append((got, [e for e in state.shown() if e not in state.user]))
                 if flexure.significant([flexure.finding(got, [], len(state.remainders))],
                                        ALPHA):
                     # a flexure, or a library effect still missing (a gyro scale factor is
@@ -486,10 +500,18 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 state.extra[state.extra.index(removed)] = added
                 state.dropped[removed] = f"exchanged for {added} in round {k}"
             else:
+                if added in state.with_step and installation_step.STEP_ID not in state.extra:
+                    # judged beside the step fitted as a nuisance: the step stays in the
+                    # model (hidden) from now on, and the added effect's estimate beside it
+                    state.extra.append(installation_step.STEP_ID)
+                    state.step_line = state.with_step[added][0]
                 state.extra.append(added)
                 if top.effect in state.passed_step:  # tested before a step (its line)
                     step["added"]["before_step"] = state.passed_step[added]
-                if top.effect in state.by_step:  # one a step's remainder hid (:func:`_by_step`)
+                if top.effect in state.with_step:  # the excess is the step's: no floor
+                    state.before_step[added] = state.with_step[added][0]
+                    step["added"]["beside_step"] = state.with_step[added][0]
+                elif top.effect in state.by_step:  # one a step's remainder hid (:func:`_by_step`)
                     state.before_step[added] = state.by_step[added]
                     step["added"]["before_step"] = state.by_step[added]
                 elif not top.significant_alone:  # one a clock's remainder hid (:func:`_at_size`)
@@ -519,7 +541,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 from stellar_cal_ros.diagnosis.verify import verify
 
                 tell("verify: the printed MDBs and biases on twins of this bag")
-                model = list(spec.baseline) + state.extra
+                model = list(spec.baseline) + state.shown()
                 return verify(load_bag(runs.bag), final_cal, method, model, entries,
                               options.get("verify_seed", 1), tell, evaluation_fraction)
         return _write(out, calibration, spec, state, path, history, first, current, results,
@@ -587,10 +609,11 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     fields, along = None, {}  # the outside-library leads of the current model (and their
     # directions), once a candidate asks
     ticks = timing  # the current model's clock test, once a rate-shaped candidate asks
-    knock = None  # its installation step test, likewise
+    knock, where = None, ""  # its installation step test, likewise (and its frames)
     frames = None  # its run's log-likelihood frame by frame, once a step's test asks
     order, hidden = [c for c in results if c.significant_alone], []
     state.by_step, state.passed_step, stepped = {}, {}, set()
+    state.with_step, state.step_alone = {}, {}
     small = _by_step(results)  # significant, but removing little of the excess
     if small:
         knock, where = _knock_of(base, base.calibration or prior, runs.fraction)
@@ -617,11 +640,24 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
                 continue
         if c.effect in clock.RATE_ALIASES or c.effect in stepped:
             if knock is None:
-                knock = _knock_of(base, base.calibration or prior, runs.fraction)[0] or False
+                knock, where = _knock_of(base, base.calibration or prior, runs.fraction)
+                knock = knock or False
             if knock and knock.p_value < ALPHA:
-                tell(f"{c.effect}: testing it before the attitude step at t~{knock.t:.1f} s")
-                b, frames = _after_knock(runs, state, base, prior, calibration, c, knock,
-                                         frames, len(stepped) if c.effect in stepped else 0)
+                # the step fitted beside it (Bonferroni over the candidates judged so)
+                tests = len(stepped | {x.effect for x in order
+                                       if x.effect in clock.RATE_ALIASES})
+                tell(f"{c.effect}: testing it beside the attitude step at t~{knock.t:.1f} s "
+                     "(fitted)")
+                b = _beside_knock(runs, state, base, prior, calibration, c, knock, where,
+                                  tests)
+                if b is None:  # the step is not the rival (a clock's step): before it
+                    tell(f"{c.effect}: testing it before the attitude step at "
+                         f"t~{knock.t:.1f} s")
+                    b, frames = _after_knock(runs, state, base, prior, calibration, c,
+                                             knock, frames,
+                                             len(stepped) if c.effect in stepped else 0)
+                elif not b:
+                    b = None  # needed beside the step: on to the other tests
                 if b is not None:
                     refused.append((c, b))
                     continue
@@ -635,7 +671,7 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
         if gravity and "gravity" not in state.lead:
             if here is None:  # else the test after the add just made is this model's
                 tell("testing for a gravity-shaped remainder (mount flexure) on "
-                     f"{'+'.join(state.extra) or 'the baseline'}")
+                     f"{'+'.join(state.shown()) or 'the baseline'}")
             state.lead["gravity"] = leads.as_lead(here) if here is not None else \
                 leads.gravity_of(runs, base, prior, tuple(state.extra))
         beside = dict(fields)
@@ -659,6 +695,8 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             if b is not None:
                 refused.append((c, b))
                 continue
+        if c.effect in state.with_step:  # the estimate beside the step (its run)
+            c = dataclasses.replace(c, run=state.with_step[c.effect][1])
         if not (state.outside and here is not None and flexure.may_stand_in(c.effect)):
             return c, refused
         tell(f"{c.effect}: testing it beyond the gravity-shaped remainder")
@@ -829,6 +867,96 @@ def _after_knock(runs, state: _State, base: RunSummary, prior: Calibration,
             "remainder": STEP_REMAINDER}, frames
 
 
+def _beside_knock(runs, state: _State, base: RunSummary, prior: Calibration,
+                  calibration: Calibration, c: CandidateResult, knock, where: str,
+                  tests: int) -> dict | None:
+    """A rate-shaped candidate judged beside the attitude step, the step fitted.
+
+    The step (a knock, outside the library) fires on the current model ``base``: the
+    installation rotated by a free ``δ`` from the step's time on
+    (:class:`~stellar_cal_ros.diagnosis.installation_step.StepNuisance`, σ 100″) is the
+    rival of a candidate that may take up what the filter's catch-up leaves (a gyro
+    scale factor on a swaying base, unseen case ``sway_knock``), and a candidate the step
+    hid (:func:`_by_step`) is measured against the excess the step leaves.  Two runs
+    (the step alone, made once a round, and the step with ``c``); ``c``'s ratio
+    ``2 Δℓ / dispersion`` beside the step (the current model's dispersion), its χ²_dof
+    tail × ``tests`` (Bonferroni over the candidates judged so).
+
+    Returns ``None`` where the fitted step is not the rival: the step test said over all
+    frames, moving or not (:data:`~.installation_step.MOVING`), still fires on the model
+    with the step (unseen case ``dt_step``: a clock's step, χ²₃ 3598 after ``δ``; the
+    caller then tests ``c`` before the step); ``{}`` where ``c`` is needed beside the step
+    (``state.with_step`` holds its test and run: the discovery adds it and keeps the
+    step, hidden, in the model); else the refusal with its reason.
+    """
+    at = state.step_alone.get("prior")
+    if at is None:
+        installation_step.register_step(runs)
+        first = float(np.min(base.residuals["t"]))
+        at = installation_step.with_step(prior, first + 0.5 * (knock.t + knock.t_before),
+                                         knock)
+        state.step_alone["prior"] = at
+    key = f"{c.effect} beside the step"
+    tasks = [Task(key, candidate_prior(at, c.effect, calibration),
+                  tuple(state.extra) + (installation_step.STEP_ID, c.effect), cost=1.5,
+                  candidate=True)]
+    if "run" not in state.step_alone:
+        tasks.append(Task("the step alone", at, tuple(state.extra)
+                          + (installation_step.STEP_ID,), keep_residuals=bool(where)))
+    got = runs.run_all(tasks, None)
+    if "run" not in state.step_alone:
+        alone = got["the step alone"]
+        state.step_alone["run"] = alone if alone.ok else None
+        after = None
+        if alone.ok and where:
+            after = _knock_of(alone, alone.calibration or prior, runs.fraction)[0]
+            alone.residuals = None
+        state.step_alone["still"] = after is not None and after.p_value < ALPHA
+    alone, run = state.step_alone["run"], got[key]
+    if alone is None or not run.ok or state.step_alone["still"]:
+        return None
+    # (in the step line's sign: the stars', the rotation's opposite)
+    d = -np.array([v[0] for v in _estimates(alone, installation_step.STEP_ID).values()]) \
+        / ARCSEC
+    stat = 2.0 * (run.window["log_likelihood"] - alone.window["log_likelihood"]) \
+        / Reference.of(base).dispersion
+    p = min(1.0, float(dist.chi2.sf(max(stat, 0.0), c.dof)) * max(tests, 1))
+    test = {"installation_step": knock.as_json(), "where": where, "statistic": stat,
+            "p_value": p,
+            "dof": c.dof, "tests": max(tests, 1),
+            "step_fitted_arcsec": [float(x) for x in d]}
+    if p < ALPHA:
+        state.with_step[c.effect] = (test, run)
+        return {}
+    reason = (f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing beside the "
+              f"stars' attitude step at t~{knock.t:.1f} s on this model ({knock.chi2:.0f} "
+              f"chi2 / 3 dof, the largest of {knock.candidates} frames), fitted as a "
+              f"rotation of the installation from then on ({np.linalg.norm(d):.3g}\"): its "
+              f"ratio {stat:.3g} for {c.dof} dof beside it (p = {p:.2g} over the "
+              f"{max(tests, 1)} candidates judged so); it took up what the filter's catch-up "
+              "on the step leaves: a knock on the mount, outside the library; not added")
+    return {**test, "reason": reason, "remainder": STEP_REMAINDER}
+
+
+def _step_finding(test: dict, final: RunSummary):
+    """The step's 'unexplained' line, carried from the round its nuisance entered the model.
+
+    ``test``: :func:`_beside_knock`'s; the line's size as the step test said it then, the
+    step's rotation as the final model fits it (``detail["step_fitted_arcsec"]``).
+    """
+    knock = installation_step.InstallationStep(**test["installation_step"])
+    est = _estimates(final, installation_step.STEP_ID)
+    d = [-v[0] / ARCSEC for v in est.values()]  # (the line's sign, as in _beside_knock)
+    s = [v[1] / ARCSEC for v in est.values()]
+    f = knock.finding(test.get("where", ""))
+    f.regressor = (f"{f.regressor}; fitted beside the final model (the installation turned "
+                   f"from then on, the stars' sign): {float(np.linalg.norm(d)):.3g}\" (x "
+                   + ", y ".join(f"{x:.3g}" for x in d[:2]) + f", z {d[2]:.3g} +- "
+                   + " / ".join(f"{x:.2g}" for x in (max(s[:2]), s[2])) + "\")")
+    f.detail = {**(f.detail or {}), "step_fitted_arcsec": d, "step_fitted_sigma_arcsec": s}
+    return f
+
+
 def _beside_step(state: _State, c: CandidateResult, knock, split: dict | None,
                  tests: int) -> dict | None:
     """The refusal of a candidate a step hid (:func:`_by_step`), or ``None`` to add it."""
@@ -918,7 +1046,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
 
         plot_path(path, out / "path.png")
         images.append(("The path: innovation RMS at each round", "path.png"))
-    added = [e for e in state.extra if e not in state.user]
+    added = [e for e in state.shown() if e not in state.user]
     # the flexure-shaped tests after the adds: Bonferroni over those made; a remainder
     # that a later add left insignificant was that effect's (a library effect still
     # missing then), not a flexure's
@@ -945,8 +1073,12 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         ticks = _clock_of(final, calibration, fraction)
         if ticks is not None and ticks.finding().p_value < ALPHA:
             fields.append(ticks.finding())
-    if any("installation_step" in b for s in path
-           for b in (s.get("beyond_remainder") or {}).values()) or any(
+    if installation_step.STEP_ID in state.extra and state.step_line is not None:
+        # the step is fitted (hidden) in the final model, so its test there sees none: the
+        # line of the round it entered, with its size fitted on the final model
+        fields.append(_step_finding(state.step_line, final))
+    elif any("installation_step" in b for s in path
+             for b in (s.get("beyond_remainder") or {}).values()) or any(
                (s.get("added") or {}).get("before_step") for s in path):
         # one refused beside an attitude step where the platform moves, or added for what
         # it explains before it: its line, if still there (the line tests say a step at
@@ -954,7 +1086,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         knock, where = _knock_of(final, calibration, fraction)
         if where and knock is not None and knock.p_value < ALPHA:
             fields.append(knock.finding(where))
-    summary = finish(out, calibration, final, final, results, spec, state.extra, fraction,
+    summary = finish(out, calibration, final, final, results, spec, state.shown(), fraction,
                      panels, plots, "stellar_cal discovery", images, verdict, write=False,
                      outside=outside + fields, like=like, runs=runs, hiding=hidden,
                      refused=tuple(path[-1].get("beyond_remainder") or ()) if path else ())
@@ -981,10 +1113,16 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
             s["added"]["effect"]: s["could_be_flexure"] for s in path
             if s.get("could_be_flexure") and s["added"]["effect"] in added}
     cal_path = out / "calibration.yaml"
-    save_calibration(final.calibration, cal_path)
+    written = final.calibration
+    if installation_step.STEP_ID in state.extra:  # (the nuisance is not the user's)
+        written = copy.deepcopy(written)
+        written.effects.pop(installation_step.STEP_ID, None)
+        (written.sigma.get("effects") or {}).pop(installation_step.STEP_ID, None)
+        written.estimated = [e for e in written.estimated if e != installation_step.STEP_ID]
+    save_calibration(written, cal_path)
     summary["calibration_file"] = str(cal_path)
     if verify is not None:
-        summary["verify"] = verify(final.calibration, summary["reliability"])
+        summary["verify"] = verify(written, summary["reliability"])
     from stellar_cal_ros.diagnosis.printing import discovery_lines
 
     summary["terminal"] = discovery_lines(summary)

@@ -329,7 +329,10 @@ class Round:
 
     def done(self, task: Task, out: RunSummary, where: str = "") -> None:
         """Progress line of one finished run (``where``: ``run 4/11, ETA 20 s``)."""
-        what = "+".join(task.effects[-2:]) if task.effects else "current model"
+        # (a private nuisance's id is never named: :func:`~stellar_cal_ros.effects.
+        # registry.available`)
+        shown = [e for e in task.effects if not e.startswith("_")]
+        what = "+".join(shown[-2:]) if shown else "current model"
         name = what if task.key == what else f"{task.key}: {what}"
         self.tell(f"{name} ({out.seconds:.1f} s)"
                   + (f" failed: {out.error}" if out.error else "")

@@ -48,6 +48,7 @@ import numpy as np
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import stats
+from stellar_cal_ros.effects.base import Effect, Stage
 
 #: frames either side of a candidate step in its fit (6: 3 s at psce's 2 Hz frames)
 WINDOW = 6
@@ -219,3 +220,88 @@ def before_and_after(without: np.ndarray | None, with_c: np.ndarray | None, stam
         out[name] = {"statistic": s, "p_value": float(dist.chi2.sf(max(s, 0.0), dof)),
                      "frames": int(m.sum())}
     return out
+
+
+#: the step fitted as a nuisance (:class:`StepNuisance`): a private id (a leading ``_``:
+#: never listed by :func:`~stellar_cal_ros.effects.registry.available`)
+STEP_ID = "_installation_step"
+
+
+class StepNuisance(Effect):
+    """The installation rotated by ``δ`` from ``T`` (POSIX s) on: a knock, fitted.
+
+    Not a library effect and never offered: the discovery puts it beside a gyro rate
+    candidate where the step test fires (:func:`~stellar_cal_ros.diagnosis.auto._top`) and
+    keeps it, hidden, in the model once that candidate is added beside it (unseen cases
+    ``knock_gsf_early``, ``sway_knock_gsf``: the scale's estimate is right only beside
+    the step; doc/benchmarks.md, H205).  ``T`` travels in the prior
+    (``effects[STEP_ID]["t_posix"]``, read by :meth:`initial`, kept by :meth:`store`): a
+    run in a worker process builds its effects from the prior it is sent, and so does
+    the σ it starts from where the prior's sigma block has none (``"sigma"``, rad: a
+    re-run's prior keeps no sigma block).
+    """
+
+    id = STEP_ID
+    stage = Stage.TRACKER
+    order = 15
+    parameter_names = ("dx", "dy", "dz")
+    units = ("rad", "rad", "rad")
+    default_sigma = (100.0 * ARCSEC,) * 3
+    explanation = "a knock on the mount, fitted as a nuisance (not a library effect)"
+    T = math.inf
+    S: list[float] | None = None
+
+    def initial(self, prior):  # noqa: D102
+        block = (prior.effects or {}).get(self.id) or {}
+        self.T = float(block.get("t_posix", math.inf))
+        self.S = block.get("sigma")
+        value, sigma = super().initial(prior)
+        stated = ((prior.sigma or {}).get("effects") or {}).get(self.id)
+        if self.S is not None and not stated:
+            sigma = np.asarray(self.S, dtype=float)
+        return value, sigma
+
+    def store(self, value, sigma, cal):  # noqa: D102
+        super().store(value, sigma, cal)
+        cal.effects[self.id]["t_posix"] = self.T
+        if self.S is not None:
+            cal.effects[self.id]["sigma"] = list(self.S)
+
+    def tracker_rotation(self, value, ctx):  # noqa: D102
+        return np.asarray(value, dtype=float) if ctx.stamp >= self.T else np.zeros(3)
+
+    def tracker_rotation_jacobian(self, value, ctx):  # noqa: D102
+        return np.eye(3) if ctx.stamp >= self.T else np.zeros((3, 3))
+
+
+#: the step's prior σ in :func:`with_step`: this many times the step test's σ
+PRIOR_SIGMAS = 3.0
+
+
+def with_step(prior, t_posix: float, step: InstallationStep | None = None):
+    """``prior`` with :class:`StepNuisance` from ``t_posix`` on (a copy).
+
+    Its start the step test's ``step`` (the rotation that turns the stars back, ± its σ ×
+    :data:`PRIOR_SIGMAS`), else zero ± the class's σ (100″: the frame after the step would
+    expect ~1.9 px, and a noise measured on that model reads the step's freedom).
+    """
+    import copy
+
+    out = copy.deepcopy(prior)
+    out.effects[STEP_ID] = {"t_posix": float(t_posix)}
+    if step is not None:
+        out.effects[STEP_ID].update(
+            {n: -float(x) * ARCSEC for n, x in zip(StepNuisance.parameter_names,
+                                                   step.step_arcsec, strict=True)},
+            sigma=[PRIOR_SIGMAS * float(x) * ARCSEC for x in step.sigma_arcsec])
+    return out
+
+
+def register_step(runs) -> None:
+    """Make :class:`StepNuisance` known here and to ``runs``' worker processes."""
+    from stellar_cal_ros.effects import registry
+
+    if STEP_ID not in registry.EFFECTS:
+        registry.register(StepNuisance)
+    if StepNuisance not in tuple(runs.classes):
+        runs.classes = (*tuple(runs.classes), StepNuisance)

@@ -190,8 +190,13 @@ def load_effect_module(path: str | Path) -> list[str]:
 
 
 def available() -> list[str]:
-    """Ids of every registered effect, in application order."""
-    return list(EFFECTS)
+    """Ids of every registered effect, in application order.
+
+    Not the private ones (an id with a leading ``_``: a nuisance a diagnosis fits beside
+    its candidates, :class:`~stellar_cal_ros.diagnosis.installation_step.StepNuisance`),
+    nor offered as candidates (:func:`candidates`, :func:`offered_on`).
+    """
+    return [i for i in EFFECTS if not i.startswith("_")]
 
 
 def candidates() -> list[str]:
@@ -200,12 +205,12 @@ def candidates() -> list[str]:
     Those whose ``offered_on`` names a test are offered only where it asks
     (:attr:`~stellar_cal_ros.effects.base.Effect.offered_on`).
     """
-    return [i for i, cls in EFFECTS.items() if not cls.offered_on]
+    return [i for i, cls in EFFECTS.items() if not cls.offered_on and not i.startswith("_")]
 
 
 def offered_on(test: str) -> list[str]:
     """Ids of the effects offered as candidates where ``test`` asks for them."""
-    return [i for i, cls in EFFECTS.items() if cls.offered_on == test]
+    return [i for i, cls in EFFECTS.items() if cls.offered_on == test and not i.startswith("_")]
 
 
 def effect_class(effect_id: str) -> type[Effect]:
