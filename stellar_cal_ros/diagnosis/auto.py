@@ -874,7 +874,8 @@ def _beside_knock(runs, state: _State, base: RunSummary, prior: Calibration,
 
     The step (a knock, outside the library) fires on the current model ``base``: the
     installation rotated by a free ``δ`` from the step's time on
-    (:class:`~stellar_cal_ros.diagnosis.installation_step.StepNuisance`, σ 100″) is the
+    (:class:`~stellar_cal_ros.diagnosis.installation_step.StepNuisance`, started at the
+    step test's rotation ± 3 σ, :func:`~.installation_step.with_step`) is the
     rival of a candidate that may take up what the filter's catch-up leaves (a gyro
     scale factor on a swaying base, unseen case ``sway_knock``), and a candidate the step
     hid (:func:`_by_step`) is measured against the excess the step leaves.  Two runs
@@ -887,8 +888,11 @@ def _beside_knock(runs, state: _State, base: RunSummary, prior: Calibration,
     with the step (unseen case ``dt_step``: a clock's step, χ²₃ 3598 after ``δ``; the
     caller then tests ``c`` before the step); ``{}`` where ``c`` is needed beside the step
     (``state.with_step`` holds its test and run: the discovery adds it and keeps the
-    step, hidden, in the model); else the refusal with its reason.
+    step, hidden, in the model); else the refusal with its reason.  One step is fitted
+    at most: where the model holds it already, ``None`` (the test before the step).
     """
+    if installation_step.STEP_ID in state.extra:
+        return None
     at = state.step_alone.get("prior")
     if at is None:
         installation_step.register_step(runs)
