@@ -192,10 +192,16 @@ def test_a_true_gyro_scale_beside_a_knock_is_added(tmp_path):
 
 
 def _hidden(got: dict, out) -> None:
-    """The step's nuisance in no output: not added, in no model, not in calibration.yaml."""
+    """The step's nuisance in no output: not added, in no model, not in calibration.yaml,
+    nowhere in diagnosis.json (the "what could still be hiding" biases listed its
+    parameters, and the terminal printed "would bias ... _installation_step.dy by 0.571
+    arcsec": knock_gsf_early s24 on 95751ef)."""
+    import json
+
     from stellar_cal_ros.diagnosis.installation_step import STEP_ID
     from stellar_cal_ros.effects import registry
 
+    assert STEP_ID not in json.dumps(got), [r["effect"] for r in got.get("reliability", [])]
     assert STEP_ID not in got["added"] and STEP_ID not in got["final_estimates"]
     assert all(STEP_ID not in s["model"] for s in got["path"]), got["path"]
     assert STEP_ID not in (out / "calibration.yaml").read_text()
@@ -225,3 +231,29 @@ def test_a_true_gyro_scale_beside_an_early_knock_is_added_at_its_size(tmp_path):
     assert 15 < np.linalg.norm(first["detail"]["step_fitted_arcsec"]) < 25, first["detail"]
     assert first["change_px"] > 0.3, first
     _hidden(got, tmp_path)
+
+
+def test_what_could_still_hide_lists_no_bias_of_the_hidden_step(monkeypatch):
+    """The "what could still be hiding" rows of a model holding the step's nuisance: the
+    screening's sensitivities cover every parameter of the model, the nuisance's too; none
+    of its quantities is listed (knock_gsf_early s24 on 95751ef printed "would bias ...
+    _installation_step.dy by 0.571 arcsec")."""
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.diagnosis import discover, reliability
+    from stellar_cal_ros.diagnosis.installation_step import STEP_ID
+
+    seen = {}
+
+    def external(det, rows, sigma):
+        seen.update(rows)
+        return {"effect": "time_offset"}
+
+    monkeypatch.setattr(reliability, "external_reliability", external)
+    names = ["installation.rx", f"{STEP_ID}.dx", f"{STEP_ID}.dy"]
+    base = SimpleNamespace(names=names, sigma_by_name=dict)
+    c = SimpleNamespace(effect="time_offset", detect=object(), run=None,
+                        screen=SimpleNamespace(sensitivity=[np.ones(1)] * 3,
+                                               derived={"epp.u0": np.ones(1)}))
+    discover.hidden_effects(base, [c])
+    assert sorted(seen) == ["epp.u0", "installation.rx"], sorted(seen)

@@ -859,6 +859,8 @@ def hidden_effects(base: RunSummary, results: list[CandidateResult]) -> list[dic
             rows.update(c.screen.derived)
         else:
             rows = {}
+        # a private nuisance's parameters (the knock's fitted step) are never printed
+        rows = {q: h for q, h in rows.items() if not registry.is_private(q)}
         entry = reliability.external_reliability(c.detect, rows, sigma)
         phys = registry.create(c.effect).physical_value
         if phys is not None:

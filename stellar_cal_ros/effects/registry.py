@@ -189,6 +189,16 @@ def load_effect_module(path: str | Path) -> list[str]:
     return ids
 
 
+def is_private(name: str) -> bool:
+    """A private effect's id, or one of its quantities (``_id.param``): a leading ``_``.
+
+    A nuisance a diagnosis fits beside its candidates
+    (:class:`~stellar_cal_ros.diagnosis.installation_step.StepNuisance`) is never listed,
+    offered or printed.
+    """
+    return name.startswith("_")
+
+
 def available() -> list[str]:
     """Ids of every registered effect, in application order.
 
@@ -196,7 +206,7 @@ def available() -> list[str]:
     its candidates, :class:`~stellar_cal_ros.diagnosis.installation_step.StepNuisance`),
     nor offered as candidates (:func:`candidates`, :func:`offered_on`).
     """
-    return [i for i in EFFECTS if not i.startswith("_")]
+    return [i for i in EFFECTS if not is_private(i)]
 
 
 def candidates() -> list[str]:
@@ -205,12 +215,12 @@ def candidates() -> list[str]:
     Those whose ``offered_on`` names a test are offered only where it asks
     (:attr:`~stellar_cal_ros.effects.base.Effect.offered_on`).
     """
-    return [i for i, cls in EFFECTS.items() if not cls.offered_on and not i.startswith("_")]
+    return [i for i, cls in EFFECTS.items() if not cls.offered_on and not is_private(i)]
 
 
 def offered_on(test: str) -> list[str]:
     """Ids of the effects offered as candidates where ``test`` asks for them."""
-    return [i for i, cls in EFFECTS.items() if cls.offered_on == test and not i.startswith("_")]
+    return [i for i, cls in EFFECTS.items() if cls.offered_on == test and not is_private(i)]
 
 
 def effect_class(effect_id: str) -> type[Effect]:
