@@ -504,5 +504,11 @@ def test_bad_effect_modules(tmp_path):
         registry.load_effect_module(broken)
     with pytest.raises(ModelError, match="does not exist"):
         registry.load_effect_module(tmp_path / "missing.py")
+    private = tmp_path / "private.py"  # an id the registry never lists or prints
+    private.write_text(textwrap.dedent(USER_EFFECT).replace('"test_user_cx_scale"',
+                                                            '"_test_user_cx_scale"'))
+    with pytest.raises(ModelError, match="reserved"):
+        registry.load_effect_module(private)
+    assert "_test_user_cx_scale" not in registry.EFFECTS
     with pytest.raises(ModelError, match="unknown effect"):
         registry.create("no_such_effect")

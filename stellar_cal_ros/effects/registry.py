@@ -181,6 +181,9 @@ def load_effect_module(path: str | Path) -> list[str]:
         raise ModelError(f"effect module {path} failed to import: {exc}") from exc
     ids = []
     for obj in _effect_classes(module):
+        if is_private(obj.id):  # it would be fitted, never listed nor printed: silent
+            raise ModelError(f"effect module {path}: id {obj.id!r} starts with '_', which "
+                             "is reserved for the diagnosis's own nuisances: rename it")
         obj._effect_source = str(path.resolve())
         register(obj)
         ids.append(obj.id)
