@@ -919,9 +919,7 @@ def _beside_knock(runs, state: _State, base: RunSummary, prior: Calibration,
     alone, run = state.step_alone["run"], got[key]
     if alone is None or not run.ok or state.step_alone["still"]:
         return None
-    # (in the step line's sign: the stars', the rotation's opposite)
-    d = -np.array([v[0] for v in _estimates(alone, installation_step.STEP_ID).values()]) \
-        / ARCSEC
+    d = np.array(_step_fitted(alone)[0])
     stat = 2.0 * (run.window["log_likelihood"] - alone.window["log_likelihood"]) \
         / Reference.of(base).dispersion
     p = min(1.0, float(dist.chi2.sf(max(stat, 0.0), c.dof)) * max(tests, 1))
@@ -942,6 +940,15 @@ def _beside_knock(runs, state: _State, base: RunSummary, prior: Calibration,
     return {**test, "reason": reason, "remainder": STEP_REMAINDER}
 
 
+def _step_fitted(run: RunSummary) -> tuple[list[float], list[float]]:
+    """The step nuisance's rotation in ``run`` and its σ (arcsec, x y z).
+
+    In the step line's sign: the stars', the installation rotation's opposite.
+    """
+    est = _estimates(run, installation_step.STEP_ID).values()
+    return [-v[0] / ARCSEC for v in est], [v[1] / ARCSEC for v in est]
+
+
 def _step_finding(test: dict, final: RunSummary):
     """The step's 'unexplained' line, carried from the round its nuisance entered the model.
 
@@ -949,9 +956,7 @@ def _step_finding(test: dict, final: RunSummary):
     step's rotation as the final model fits it (``detail["step_fitted_arcsec"]``).
     """
     knock = installation_step.InstallationStep(**test["installation_step"])
-    est = _estimates(final, installation_step.STEP_ID)
-    d = [-v[0] / ARCSEC for v in est.values()]  # (the line's sign, as in _beside_knock)
-    s = [v[1] / ARCSEC for v in est.values()]
+    d, s = _step_fitted(final)
     f = knock.finding(test.get("where", ""))
     f.regressor = (f"{f.regressor}; fitted beside the final model (the installation turned "
                    f"from then on, the stars' sign): {float(np.linalg.norm(d)):.3g}\" (x "
