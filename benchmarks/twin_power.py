@@ -31,6 +31,7 @@ def main() -> int:
     ap.add_argument("value", help="the effect's parameters, comma-separated (--effect's)")
     ap.add_argument("seeds", help="first-last twin seeds")
     ap.add_argument("out", type=Path)
+    ap.add_argument("--keep", action="store_true", help="keep the twins' bags (OUT/tK.mcap)")
     a = ap.parse_args()
     exe = str(Path(sys.executable).with_name("stellar-cal"))
     a.out.mkdir(parents=True, exist_ok=True)
@@ -66,7 +67,8 @@ def main() -> int:
         print(f"{k:5d} {'added' if added else 'missed':7s} {s.get('added', [])} score "
               f"{mine.get('score', float('nan')):.3g} p {mine.get('p_value', float('nan')):.2g} "
               f"{mine.get('reason') or ''}{f' tie {said}' if said else ''}", flush=True)
-        twin.unlink(missing_ok=True)
+        if not a.keep:
+            twin.unlink(missing_ok=True)
     n = last - first + 1
     print(f"{a.effect}={a.value}: added {found} of {n}, significant in round 1 {flagged} of {n}"
           f", named in a tie {told} of {n}")
