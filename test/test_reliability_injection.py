@@ -27,7 +27,7 @@ from stellar_cal_ros.diagnosis import (
     reliability_probe,
     verify,
 )
-from stellar_cal_ros.diagnosis.discover import rerun_prior
+from stellar_cal_ros.diagnosis.discover import ALPHA, rerun_prior
 from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay
@@ -394,3 +394,24 @@ def test_a_re_run_candidate_prints_the_mdb_it_has_when_screened_out(tmp_path):
     assert mdb0["sz"] == pytest.approx(14.0e-6, rel=0.02)
     for p in ("sx", "sy", "sz"):
         assert mdb1[p] == pytest.approx(mdb0[p], rel=0.01), p
+
+
+def test_the_mdb_is_stated_for_the_decisions_score_test(clean):
+    """The MDB's λ₀ is the one of the test that decides, at its dof and level.
+
+    ``decide`` takes the smaller p of the screening's score test and the ratio test and
+    multiplies it by the tested candidates and the 2 statistics; the score test's dof is the
+    rank of its window information.  Each printed MDB must be λ₀ at that dof and that
+    level (a gyro misalignment's three directions the installation absorbs still count in
+    its 6: their share of the statistic is χ²₃, doc/benchmarks.md, H210).
+    """
+    sim, data, summary, prior, base = clean
+    tested = summary["candidates"] + summary["implausible"] + summary["screened_out"]
+    entries = summary["reliability"]
+    assert {e["effect"] for e in entries} == set(EFFECTS)
+    for e in entries:
+        score = score_tests(base, [e["effect"]])[e["effect"]]
+        assert e["dof"] == score.dof == registry.create(e["effect"]).size, e["effect"]
+        assert e["alpha"] == pytest.approx(ALPHA / (2 * len(tested)), rel=1e-12)
+        assert e["lam0"] == pytest.approx(reliability.lambda0(e["alpha"], score.dof),
+                                          rel=1e-12)
