@@ -863,7 +863,7 @@ CASES: dict[str, Case] = {
                     scenario_changes={"centroid_noise_px": 0.0}),
     "twin_tilt1": Case("psce", "the user's calibrated clean bag's twin with image_plane_tilt "
                        "tau_x at 1x the MDB `discover` printed for it (at +tau_x found in "
-                       "~40 % of twin seeds, not 80 %: the tilt's second-order response, "
+                       "40-65 % of twin seeds, not 80 %: the tilt's second-order response, "
                        "doc/benchmarks.md)", effects=("image_plane_tilt",),
                        twin=("image_plane_tilt", "tau_x", 1.0)),
     "bundle_s06": Case("bundle", "camera only (`--method bundle`): stars' sigma field 0.6x "

@@ -13,11 +13,11 @@ twin with the same seed without it.  Then, per effect:
   score is linear in the effect up to its MDB.  It is not the power: it checks the
   sensitivity, not the test's distribution.  An effect the model absorbs to first order
   (an image-plane tilt) responds non-linearly (0.55x at +MDB, 1.47x at -MDB), and the
-  decision follows the response, not the printed MDB: on twins of a clean psce bag the
-  tilt at +MDB was flagged in 3 of 10 rounds, at -MDB in 9 of 10 (the MDB holds for the
-  score's odd part only).  The power is measured over seeds, from the injected runs' own
-  statistics (``benchmarks/reliability_injection.py``, per sign on twins
-  ``benchmarks/twin_mdb_power.py``);
+  decision follows the response, not the printed MDB: on twins of two clean psce bags the
+  tilt at +MDB was flagged in 8 and 13 of 20 rounds, at -MDB in 18 of 20 and 8 of 10 (the
+  MDB holds for the score's odd part only).  The power is measured over seeds, from the
+  injected runs' own statistics (``benchmarks/reliability_injection.py``, per sign on
+  twins ``benchmarks/twin_mdb_power.py``);
 * **bias**: the current model's estimates on the two twins: the shift of every listed
   quantity against the printed bias (within ± 30 %: holds).
 
