@@ -259,7 +259,9 @@ def _judge(runs, prior, effects: tuple[str, ...], base, tell, components: tuple[
             return _logliks(runs, tasks)
 
         known = {0.0: base.window["log_likelihood"]} if applied == ran and base.ok else {}
-        found = search_scale(comp, loglik, known=known)
+        # (white samples measured the sensor: the stars' search is their check, no bound)
+        found = search_scale(comp, loglik, known=known, bound=not (
+            comp in v.samples and v.samples[comp]["white"]))
         v.imu[comp] = found
         if tell:
             tell(f"noise: {comp} scale {found.value:.3g} +- {found.sigma:.2g} "
@@ -353,15 +355,19 @@ def search_walk(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, te
         # (searched only when the walk could be taken: a far-off model's walk usually has
         # no maximum in range, and the white search's runs would decide nothing)
         white = search_scale("gyro", lambda xs: _logliks(
-            runs, [scale_task("gyro", x, prior, effects, at) for x in xs]), known=known)
+            runs, [scale_task("gyro", x, prior, effects, at) for x in xs]), known=known,
+            bound=False)
         out["runs"] += len(white.points) - len(known)
     l_white = max(white.points.values()) if white is not None else math.nan
     if white is not None:
         out["over_white_gyro"] = float(l_walk - l_white)
         out["white_gyro_scale"] = float(math.exp(max(white.points, key=white.points.get)))
     if not found.measurable:
+        # (a maximum whose 95 % interval reaches the floor, a constant bias, is no
+        # measured walk either: :func:`~.noise_imu.search_scale`)
         out["why"] = ("a constant bias fits best" if max(found.points, key=found.points.get)
-                      == 0.0 else "no maximum in range")
+                      == 0.0 else f"not significant (p = {found.p_value:.2g})"
+                      if not found.p_value < alpha else "no maximum in range")
     elif not found.p_value < alpha:
         out["why"] = f"not significant (p = {found.p_value:.2g})"
     elif not l_walk > l_white:
