@@ -1579,6 +1579,37 @@ def test_sigma_wrong_star_by_star_is_said_once_not_as_groups_tails_or_leads():
     assert not [f for f in found if f.component == "size"], found
 
 
+@pytest.mark.parametrize("seed", [4, 5])
+def test_sigma_wrong_star_by_star_prints_the_rows_ml_scale(seed):
+    """The scale printed beside a σ wrong star by star is the ML scale of the stated σ on
+    the window's rows, ``sqrt(mean(factor⁻²))`` (the case's truth; each row's true σ over
+    its stated), within its σ.  Two causes made it read low (unseen case
+    ``sigma_per_star``, seeds 21-23: x1.02 / 1.22 / 1.12 for the rows' 1.062 / 1.257 /
+    1.148): the frames' fit weighted by the stated σ leans on the stars stated too small
+    (their leverage takes more of their larger variance, −1.7 % on s21's rows with iid
+    draws), and the filter's χ² gate at the stated σ cut those stars' tails (−2.2 %).
+    Now the passes weight each star by its own measured scale
+    (:func:`~stellar_cal_ros.diagnosis.noise_stars.own_scales`) and count the rows the
+    gate took at the wrong σ (:func:`~stellar_cal_ros.diagnosis.noise_stars.readmitted`).
+    On main ca41024 this fails: seeds 4 / 5 read x1.233 +- 0.014 / 1.159 +- 0.014 for the
+    rows' 1.275 / 1.222 (z −3.0 / −4.6; seeds 3 / 6: −2.7 / +0.3); now 1.280 / 1.228 (z
+    +0.4 / +0.4; seeds 3 / 6: −0.5 / +1.6)."""
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+    from stellar_cal_ros.diagnosis.stats import evaluation_mask
+
+    sim = _sim(seed=seed)
+    data, fac = _per_star(_stated(sim), seed=seed + 4)
+    v = measure_bag(data, sim.prior, "psce", [], NoiseScales(), components=())
+    assert v.per_star is not None, v.lines()
+    base = evaluate(data, method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
+                    keep_residuals=True)
+    res = base.residuals
+    ids = np.asarray(res["catalog_id"])[evaluation_mask(res, 0.5)]
+    truth = math.sqrt(np.mean([fac[int(c)] ** -2.0 for c in ids]))
+    assert abs(v.star - truth) < 2.5 * v.star_sigma, (v.star, v.star_sigma, truth)
+
+
 def _clean_rows():
     """The clean 200 s seed-3 bag's run (its residual table kept), its rows and window."""
     from stellar_cal_ros.diagnosis import stats

@@ -65,6 +65,7 @@ from stellar_cal_ros.diagnosis.noise_stars import (
     known_groups,
     significant_grouping,
     star_groups,
+    star_levels,
     star_noise,
     star_spread,
     used_sigma,
@@ -1070,30 +1071,6 @@ def track_lags(sn: StarNoise | None) -> tuple[float, float] | None:
         return None
     return (float(sn.track_share),
             float(sn.track_rho if sn.track_phi is None else sn.track_phi))
-
-
-def star_levels(sn: StarNoise | None, use: np.ndarray | None = None,
-                gidx: np.ndarray | None = None) -> dict[str, float] | None:
-    """The stated σ wrong star by star (:func:`~.noise_stars.star_spread`), when it is.
-
-    Significant at :data:`ALPHA` and material (the stars' σ factors spread by more than
-    :data:`MATERIAL`, half their variance factors' spread), where no field or per-star
-    position error is left (those make a star's residuals large too: said as themselves).
-    ``use``/``gidx``: the stars tested and their groups (about each group's own level).
-    Only stars whose message states a σ are tested, among themselves: σ-0 stars are their
-    own group, measured as one σ (before, any σ-0 star skipped the test, and a bag of
-    stated stars wrong star by star beside them read random groups and tails), and a bag
-    whose every message says 0 states no σ to be wrong.
-    """
-    if sn is None or sn.repeat_removed or sn.structure_p < ALPHA:
-        return None
-    use = ~sn.unknown if use is None else np.asarray(use, dtype=bool) & ~sn.unknown
-    if not use.any():
-        return None
-    d = star_spread(sn, use, gidx)
-    if d is None or not (d["p_value"] < ALPHA and 0.5 * d["spread"] > MATERIAL):
-        return None
-    return d
 
 
 def line_noise(res: Table, mask: np.ndarray, fx: float, fy: float,

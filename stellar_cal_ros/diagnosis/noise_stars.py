@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
+from stellar_cal_ros.core.gating import GatePolicy
 from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise_structure
@@ -292,8 +293,11 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     only: a frame's attitude fit weighted by the σ being measured takes from each star's
     residual a share of the others' noise at the wrong weight (unseen case
     ``mag_faint_over2``, faint stars stated 2x: the bright group read x0.949 +- 0.016 for a
-    true 1.0).  The scales stay of the σ the run used (``sigma_px``); where nothing is
-    significant no pass is made and the estimate is the one fit's, bit for bit.
+    true 1.0).  Where the σ is wrong star by star (:func:`star_levels`) each star is
+    weighted by its own scale (:func:`own_scales`), and a pass counts the rows the filter's
+    gate took at the σ it used that pass it at the σ measured (:func:`readmitted`).  The
+    scales stay of the σ the run used (``sigma_px``); where nothing is significant no pass
+    is made and the estimate is the one fit's, bit for bit.
 
     ``weigh``: a test of the one fit's estimate (True: the passes may be made); a run too
     far from its model (:func:`~.noise.far_off`) keeps the one fit's weights: the groups a
@@ -315,10 +319,30 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
         w = fit_weights(out, res, sigma_px, msg_sigma, centre, size, kept)
         if w is None or (last is not None and np.nanmax(np.abs(w / last - 1.0)) < WEIGHTS_TOL):
             break
+        admit = readmitted(res, w * out.group(grouped_stars(out))[0])
         out, last = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre,
-                                     R_imu_st, flips, w, patterns), w
+                                     R_imu_st, flips, w, patterns, admit), w
         trim_freed()
     return out
+
+
+def readmitted(res: Table, scale: np.ndarray) -> np.ndarray | None:
+    """The rows the run's χ² gate rejected at the σ it used that pass it at ``scale`` × that σ.
+
+    The filter gates each star at the σ it was given (:class:`~stellar_cal_ros.core.gating.
+    GatePolicy`, its default probability): a star whose σ is stated too small loses the
+    tail of its own noise there, and a scale measured without those rows reads low (unseen
+    case ``sigma_per_star`` s21: x1.035 on the accepted rows, 1.057 with every row, the
+    rows' ML 1.062).  A row above the threshold at the σ used (``nis``) and below it at the
+    σ measured is noise, counted; a row gated below the threshold (out of the field of view,
+    a lost attitude) stays out.  None without a NIS column.
+    """
+    if "nis" not in res:
+        return None
+    t = GatePolicy().threshold
+    nis = np.asarray(res["nis"], dtype=float)
+    with np.errstate(invalid="ignore"):
+        return np.asarray(res["gated"]).astype(bool) & (nis > t) & (nis <= t * scale**2)
 
 
 #: the fixed-pattern test reads the run's last this share of the time (the filter's first
@@ -570,6 +594,15 @@ def fit_weights(sn: StarNoise | None, res: Table, sigma_px: np.ndarray,
             f = np.asarray(kept.factors, dtype=float)[kept.group_of(mag, uv, centre)]
             w = w / np.where((msg > 0) | (kept.unknown_sigma_px <= 0), f, 1.0)
         moved = True
+    own = own_scales(sn, res, grouped, None if best is None else group_index(sn, best))
+    if own is not None:
+        # the stated σ wrong star by star (beyond the groups): each star weighted by its own
+        # scale, measured on these rows (its group's where it has none here).  Weighted by
+        # the stated σ, a frame's fit leans on the stars stated too small, whose leverage
+        # then takes more of their own (larger) variance: the scale read the (2 − h)-weighted
+        # mean of s², x1.02 +- 0.0095 for the rows' 1.06 (unseen case sigma_per_star s21)
+        w = np.where(np.isfinite(own), own / s, w)
+        moved = True
     if known.any() and sn.unknown.any():
         su, esu, _ = sn.group(sn.unknown)
         if math.isfinite(su) and su > 0 and abs(su / s - 1.0) > MATERIAL and \
@@ -579,11 +612,56 @@ def fit_weights(sn: StarNoise | None, res: Table, sigma_px: np.ndarray,
     return np.where(np.isfinite(w) & (w > 0), w, 1.0) if moved else None
 
 
+def star_levels(sn: StarNoise | None, use: np.ndarray | None = None,
+                gidx: np.ndarray | None = None) -> dict[str, float] | None:
+    """The stated σ wrong star by star (:func:`star_spread`), when it is.
+
+    Significant at :data:`ALPHA` and material (the stars' σ factors spread by more than
+    :data:`MATERIAL`, half their variance factors' spread), where no field or per-star
+    position error is left (those make a star's residuals large too: said as themselves).
+    ``use``/``gidx``: the stars tested and their groups (about each group's own level).
+    Only stars whose message states a σ are tested, among themselves: σ-0 stars are their
+    own group, measured as one σ (before, any σ-0 star skipped the test, and a bag of
+    stated stars wrong star by star beside them read random groups and tails), and a bag
+    whose every message says 0 states no σ to be wrong.
+    """
+    if sn is None or sn.repeat_removed or sn.structure_p < ALPHA:
+        return None
+    use = ~sn.unknown if use is None else np.asarray(use, dtype=bool) & ~sn.unknown
+    if not use.any():
+        return None
+    d = star_spread(sn, use, gidx)
+    if d is None or not (d["p_value"] < ALPHA and 0.5 * d["spread"] > MATERIAL):
+        return None
+    return d
+
+
+def own_scales(sn: StarNoise, res: Table, use: np.ndarray, gidx: np.ndarray | None
+               ) -> np.ndarray | None:
+    """Each row of ``res``: its star's own σ scale on ``sn``'s rows, or None.
+
+    None where the σ is not wrong star by star (:func:`star_levels` on the stars ``use``,
+    about their groups ``gidx``).  ``sqrt(Σ q / Σ m)`` over the star's rows of ``sn`` (its
+    catalogue id); NaN for a row whose star is not among them, or σ-0.
+    """
+    if star_levels(sn, use, gidx) is None:
+        return None
+    ok = np.asarray(use, dtype=bool) & ~sn.unknown & (sn.m > 0) & np.isfinite(sn.q)
+    ids, k = np.unique(np.asarray(sn.star)[ok], return_inverse=True)
+    k = k.reshape(-1)
+    own = np.sqrt(np.bincount(k, sn.q[ok]) / np.bincount(k, sn.m[ok]))
+    rows = np.asarray(res["catalog_id"])
+    at = np.clip(np.searchsorted(ids, rows), 0, max(len(ids) - 1, 0))
+    found = (ids[at] == rows) if len(ids) else np.zeros(len(rows), dtype=bool)
+    return np.where(found, own[at] if len(ids) else np.nan, np.nan)
+
+
 def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
                      mask: np.ndarray, fx: float, fy: float, centre: tuple[float, float],
                      R_imu_st: np.ndarray | None = None, flips: bool = False,
                      weights: np.ndarray | None = None,
-                     patterns: list | None = None) -> StarNoise | None:
+                     patterns: list | None = None,
+                     admit: np.ndarray | None = None) -> StarNoise | None:
     """:func:`star_noise` with the frames' fit weighted by ``sigma_px × weights`` (None: 1).
 
     The residuals and the columns projected through the fit are then brought back to the
@@ -592,7 +670,10 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
     """
     from stellar_cal_ros.diagnosis.stats import ROLLING_KEYS, FrameFit, rolling_columns
 
-    ok = mask & ~np.asarray(res["gated"]).astype(bool) & np.isfinite(sigma_px) \
+    gated = np.asarray(res["gated"]).astype(bool)
+    if admit is not None:  # (rows the gate took at the wrong σ: :func:`readmitted`)
+        gated = gated & ~admit
+    ok = mask & ~gated & np.isfinite(sigma_px) \
         & (sigma_px > 0) & np.isfinite(np.asarray(res["du"], dtype=float))
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
