@@ -77,7 +77,12 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
     elif (u.get("detail") or {}).get("cause") in DRIFTS:
         span = "at the detector's corner over the run"
     elif u.get("detail"):
-        what, span = "residual", "at most (99 % of the stars)"
+        # (a field's remainder, not the structure's size: the part a library effect's shape
+        # takes went into that effect's estimate; unseen case ``quadrant``, a 0.05 px step
+        # on a quarter of the detector: 0.029-0.036 px printed at seeds 21, 22, 24, 0.033
+        # with noise-free centroids, the step's quarter 0.021 px per axis off the rest in
+        # the innovations)
+        what, span = "residual", "at most (99 % of the stars; what the fit left of it)"
     return what, (f"{abs(size):.3g} px {span}" if size is not None else "")
 
 
@@ -116,7 +121,9 @@ def unexplained_lines(summary: dict[str, Any], n: int = 5) -> list[str]:
         out.append("    (structure no library effect explains: an effect outside the library, "
               "e.g. a centroid bias with magnitude, a mount bending with gravity, a per-star "
               "catalogue error; each line names after 'vs' the regressor the residual varies "
-              "with, the most significant line first"
+              "with, the most significant line first; its size is of what the fit left: the "
+              "part of a structure a library effect's shape takes is in that effect's "
+              "estimate"
               + "".join(f"; a line that follows the {c} comes after the "
                         f"{CAUSES.get(c, ('', c))[1]}'s" for c in causes) + ")")
     if any(u["component"] == "size" for u in summary["unexplained"][:n]):
