@@ -214,7 +214,9 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
     stated scales) scores the candidates: when the verdict keeps the scales it is the
     round's screening run -- one filter pass of the current model per round, not two --
     and the round's numbers are those of a separate screening run.  With two workers the
-    gyro's first ML runs go beside it and are used, not run again."""
+    base run (the stars' noise) scores one candidate, a screening run beside it every
+    one, and the gyro's first ML runs and the candidates it passes follow it before the
+    verdict, each used, not run again."""
     from stellar_cal_ros.core.noise import NoiseScales
     from stellar_cal_ros.diagnosis import discover
     from stellar_cal_ros.diagnosis.parallel import Runs
@@ -229,14 +231,15 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
         def runner(d, p, effects, **kw):
             calls.append((tuple(effects), tuple(kw.get("consider") or ()), kw.get("noise")))
             checks.append((kw.get("noise"), kw.get("gyro_fault", "raise")))
+            early.append(runs.verdict is None)
             return base_spec.runner(d, p, effects, **kw)
 
         spec = DiagnosisSpec("psce", base_spec.baseline, base_spec.stages, runner,
                              base_spec.screen)
         runs = Runs(data, spec, 0.5)
         runs.noise = NoiseScales()
-        # as with two workers: the ML runs made ahead, beside the base run (in this process
-        # one after the other)
+        # as with two workers: the screening, the ML runs and the candidates made ahead,
+        # beside the base run (in this process one after the other)
         runs.workers = 2 if fold else 1
         compute = runs._compute_on_bag  # the IMU samples' statistic: asked for twice, made once
         runs._compute_on_bag = lambda fn, *a: bag_stats[fold].append((fn, a)) or compute(fn, *a)
@@ -255,7 +258,7 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
         return calls, base, {c.effect: c for c in results}, runs.verdict
 
     bag_stats = {True: [], False: []}
-    checks = []
+    checks, early = [], []
     calls, base, by, verdict = round_(True)
     # the model misses a 0.5 ms time offset: the gyro's ML goes beyond its samples and a
     # bias walk is searched (0.87 deg/h/sqrt(h), p 2e-6), but the screening's best
@@ -273,9 +276,13 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
     old_calls, old_base, old_by, old_verdict = round_(False)
     assert len(bag_stats[True]) == len(set(bag_stats[True])) == 1  # gyro: first runs + measure
     stated = [c for c in calls if c[0] == () and c[2] == NoiseScales()]
-    # the base run scores the first part, a run beside it the second (two workers): one
-    # pass of the current model per worker, each candidate scored once
-    assert sorted(stated) == sorted(((), (e,), NoiseScales()) for e in cands)
+    # two workers: the base run scores one candidate (no gyro one: the cheapest), the run
+    # beside it every one: one pass of the current model per worker
+    assert stated == [((), ("time_offset",), NoiseScales()), ((), tuple(cands), NoiseScales())]
+    # the candidate the screening passed was made before the verdict, once, and taken by
+    # the round (as many runs as one worker makes, below)
+    made = [c for c, e in zip(calls, early[:len(calls)], strict=True) if e]
+    assert made.count((("time_offset",), (), NoiseScales())) == 1
     # one worker, the old way: the noise's pass and a screening pass, each scoring both
     assert [c for c in old_calls if c[0] == () and c[2] == NoiseScales() and c[1]] == [
         ((), tuple(cands), NoiseScales())] * 2
@@ -296,10 +303,76 @@ def test_the_noise_base_run_is_the_screening_run_when_the_noise_is_kept():
     for e in cands:
         a, b = by[e], old_by[e]
         assert (a.status, a.significant) == (b.status, b.significant)
-        # the same current model's pass (with fewer consider columns beside it)
+        # the same current model's pass, scoring the same candidates
         assert a.screen.lm == pytest.approx(b.screen.lm, rel=1e-9)
         assert a.p_adjusted == pytest.approx(b.p_adjusted, rel=1e-9)
     assert by["time_offset"].significant
+
+
+def _noise_round(data, prior, cands, workers, **kw):
+    """A round measuring the noise first, in this process with ``workers`` as a cluster's.
+
+    Returns every run's ``(effects, consider, noise)``, the base run, the results by effect,
+    the runner, and for each run ``(effects, made before the noise's verdict)``.
+    """
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis import discover
+    from stellar_cal_ros.diagnosis.parallel import Runs
+
+    base_spec = method_spec("psce")
+    calls, early = [], []
+
+    def runner(d, p, effects, **k):
+        early.append((tuple(effects), runs.verdict is None))
+        calls.append((tuple(effects), tuple(k.get("consider") or ()), k.get("noise")))
+        return base_spec.runner(d, p, effects, **k)
+
+    spec = DiagnosisSpec("psce", base_spec.baseline, base_spec.stages, runner,
+                         base_spec.screen)
+    runs = Runs(data, spec, 0.5)
+    runs.noise = NoiseScales()
+    runs.workers = workers
+    r = discover.Round(runs, spec, runs.facts(), 0.5, prior)
+    base, results, _ = discover.rank_round(r, prior, [], cands, condition=False,
+                                           measure_noise=True, **kw)
+    return calls, base, {c.effect: c for c in results}, runs, early
+
+
+def test_a_screened_round_sends_what_its_screening_passes_beside_the_base_run():
+    """On several workers the noise's base run (the stars' noise: the round's longest run)
+    scores one candidate, the cheapest gyro one (the propagation rounds otherwise without a
+    gyro scale term: :data:`~stellar_cal_ros.diagnosis.screening.PATH_STAGES`), a screening
+    run beside it the others; the candidates that one passes go out as soon as it is in,
+    before the verdict, and the round takes them: its numbers are one worker's, bit for
+    bit (here in this process, ``workers`` 2 as a cluster would have it).  Fails before
+    (the candidates waited for the verdict)."""
+    from stellar_cal_ros.core.noise import NoiseScales
+
+    sim, data = _sim({"pixel_aspect": 3e-4}, seed=14, duration=60.0)
+    cands = ["pixel_aspect", "gyro_scale_factor", "time_offset"]
+
+    calls, base, by, runs, early = _noise_round(data, sim.prior, cands, 2)
+    one_calls, one_base, one_by, _, one_early = _noise_round(data, sim.prior, cands, 1)
+    stated = NoiseScales()
+    assert [c[1] for c in calls[:2]] == [("gyro_scale_factor",), tuple(cands)]
+    assert [c[1] for c in one_calls[:1]] == [tuple(cands)]
+    aspect = (("pixel_aspect",), (), stated)
+    assert by["pixel_aspect"].significant and by["pixel_aspect"].screen.passes
+    # made once, before the verdict with two workers, after it with one; taken by the round
+    assert calls.count(aspect) == one_calls.count(aspect) == 1
+    assert early[calls.index(aspect)] == (("pixel_aspect",), True)
+    assert one_early[one_calls.index(aspect)] == (("pixel_aspect",), False)
+    assert runs._ahead == []
+    # the same candidates' runs (besides, with two workers, the gyro's first ML run made
+    # ahead, which this verdict does not use)
+    assert [c for c in calls[2:] if c[2] == stated] == [c for c in one_calls[1:]
+                                                        if c[2] == stated]
+    assert base.window["log_likelihood"] == one_base.window["log_likelihood"]
+    assert base.star_noise.scale == one_base.star_noise.scale
+    for e in cands:
+        a, b = by[e], one_by[e]
+        assert (a.status, a.statistic, a.p_adjusted, a.screen.lm) == (
+            b.status, b.statistic, b.p_adjusted, b.screen.lm), e
 
 
 def test_a_round_not_screened_sends_its_candidates_beside_the_base_run():
@@ -307,33 +380,13 @@ def test_a_round_not_screened_sends_its_candidates_beside_the_base_run():
     runs go ahead beside the noise's base run, each is made once and taken by the round,
     and the round's numbers are those of one worker (here in this process, ``workers`` 2
     as a cluster would have it: the runs made ahead follow the base run)."""
-    from stellar_cal_ros.core.noise import NoiseScales
-    from stellar_cal_ros.diagnosis import discover
-    from stellar_cal_ros.diagnosis.parallel import Runs
-
     sim, data = _sim({"time_offset": 0.02}, seed=14, duration=60.0)
-    base_spec = method_spec("psce")
     cands = ["time_offset", "pixel_aspect"]
 
     def round_(workers):
-        calls = []
-
-        def runner(d, p, effects, **kw):
-            # before the noise's verdict: made beside the base run
-            early.append((tuple(effects), runs.verdict is None))
-            calls.append((tuple(effects), tuple(kw.get("consider") or ()), kw.get("noise")))
-            return base_spec.runner(d, p, effects, **kw)
-
-        calls, early = [], []
-        spec = DiagnosisSpec("psce", base_spec.baseline, base_spec.stages, runner,
-                             base_spec.screen)
-        runs = Runs(data, spec, 0.5)
-        runs.noise = NoiseScales()
-        runs.workers = workers
-        r = discover.Round(runs, spec, runs.facts(), 0.5, sim.prior)
-        base, results, _ = discover.rank_round(r, sim.prior, [], cands, condition=False,
-                                               screen=False, measure_noise=True)
-        return calls, base, {c.effect: c for c in results}, runs, dict(early)
+        calls, base, by, runs, early = _noise_round(data, sim.prior, cands, workers,
+                                                    screen=False)
+        return calls, base, by, runs, dict(early)
 
     calls, base, by, runs, early = round_(2)
     one_calls, one_base, one_by, _, one_early = round_(1)

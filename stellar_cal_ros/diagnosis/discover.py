@@ -71,7 +71,7 @@ import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.diagnosis import reliability, screening
-from stellar_cal_ros.diagnosis.parallel import Runs, Task
+from stellar_cal_ros.diagnosis.parallel import Runs, Task, Then
 from stellar_cal_ros.diagnosis.runstats import RunSummary
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import Stage
@@ -489,15 +489,18 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     # the noise's base run is the current model's run: when the noise it ran with is kept,
     # it is the round's screening run (its candidates as consider parameters) or reference
     more = list(more or [])
-    # not screened: the candidates' runs are known now (built once: a run made ahead is
-    # taken by the same Task)
-    cand_tasks = [] if use_score else [_candidate_task(r, prior, extra, e) for e in testable]
+    # the candidates' runs, built once (a run made ahead is taken by the same Task): not
+    # screened, all of them; screened, on several workers those the screening passes go
+    # beside the noise's base run (:func:`measure_round_noise`)
+    early = measure_noise and r.runs.workers > 1
+    cand_tasks = ([_candidate_task(r, prior, extra, e) for e in testable]
+                  if not use_score or early else [])
     # not screened: the current model's run scores them for their MDB alone, where the
     # method has consider parameters (the bundle has none)
     for_mdb = () if use_score or r.spec.screen is None else tuple(testable)
     measured = (measure_round_noise(r, prior, extra, tuple(testable) if use_score else (),
-                                    keep_residuals, cand_tasks + more, rivals=tuple(testable),
-                                    score=for_mdb)
+                                    keep_residuals, cand_tasks + ([] if use_score else more),
+                                    rivals=tuple(testable), score=for_mdb)
                 if measure_noise else None)
     base = measured[0] if measured else None
     alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
@@ -536,7 +539,9 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         base = next((s for s in screens if s.ok), None)
         if base is not None:
             _count_stale_candidates(base, screens)
-        tasks, made = _take_rivals(r, [_candidate_task(r, prior, extra, e) for e in rerun])
+        built = {t.key: t for t in cand_tasks}
+        tasks, made = _take_rivals(r, [built.get(e) or _candidate_task(r, prior, extra, e)
+                                       for e in rerun])
         out.update(made)
         out.update(r.runs.run_all((tasks if base is not None else [current] + tasks) + late,
                                   r.done))
@@ -655,17 +660,18 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     ran with -- it then *is* the round's screening run (or its current-model run), the same
     filter pass, so the round runs it once; ``None`` when the noise changed (or was not
     measured) and the round runs its current model again with the new scales.  On several
-    workers the screening is split into parts as without the noise
-    (:func:`~stellar_cal_ros.diagnosis.screening.parts`): the base run scores the first,
-    runs of the same model beside it the others (the sensitivities are most of a screening
-    run's time; each candidate's score uses its own columns only).  Returned: the base run
-    first, then those.
+    workers the base run (its stars' noise and residuals make it the round's longest)
+    scores only :func:`~stellar_cal_ros.diagnosis.screening.base_share`, and a run of the
+    same model beside it scores every candidate, as one worker's base run does (each
+    score the same floats); the candidates it passes go out as soon as it is in
+    (:func:`_after_screening`).  Returned: the base run first, then that run.
 
-    ``beside``: the runs a round that is not screened makes next (its candidates'), sent
-    ahead beside the base run on several workers, so that the second worker does not idle
-    through it; kept for the round when the verdict keeps the scales they ran with (the
-    usual case far from the model: the verdict then skips the IMU's search), else
-    dropped.  The round must ask for the same :class:`Task` objects.
+    ``beside``: the runs the round makes next (its candidates'), sent ahead beside the base
+    run on several workers, so that no worker idles through it: all of them in a round
+    that is not screened, those the screening passes in a screened one; kept for the round
+    when the verdict keeps the scales they ran with (the usual case: far from the model
+    the verdict skips the IMU's search), else dropped.  The round must ask for the same
+    :class:`Task` objects.
 
     ``rivals``: the round's candidates, which a gyro bias walk the verdict would take must
     beat (:func:`~stellar_cal_ros.diagnosis.noise_runs.beats_rivals`): the one the
@@ -682,7 +688,13 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     r.tell("noise: measuring the stars' sigma and the IMU noise from the run")
     ran_with = r.runs.noise
     comps = ("gyro", "accel") if Stage.ACCEL in r.spec.stages else ("gyro",)
-    groups = screening.parts(list(screen), r.runs.workers) if screen else [[]]
+    several = r.runs.workers > 1 and len(screen) > 1
+    # several workers: the base run (the stars' noise, its residuals: the round's longest
+    # run) scores only what keeps its filter's numbers (:func:`screening.base_share`), one
+    # screening run of every candidate goes beside it, and the candidates it passes follow
+    # it (:func:`_after_screening`) while the base run goes on; in this process the base
+    # run is the screening run
+    own = screening.base_share(list(screen)) if several else list(screen)
 
     def ahead() -> list[Task]:
         # called once the base run and its screening parts are handed out: the IMU
@@ -693,29 +705,28 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
         # with several workers the first ML runs go beside the base run (they need its
         # result only when the stars change the scales: then they are not used); not in a
         # round that is not screened: its model was far off, where the verdict skips the
-        # ML search.  Only as many as workers idle once their screening part is done
-        # before the base run (which also measures the stars' noise and keeps its
-        # residuals): a run a worker starts just before the verdict holds it up by its
-        # length when the verdict needs no search (far off: measured, doc/benchmarks.md)
-        if r.runs.workers < 2 or not screen:
+        # ML search; after the screening run when there is one (:func:`_after_screening`)
+        if r.runs.workers < 2 or not screen or others:
             return []
-        idle = r.runs.workers - 1 if len(groups) > 1 else r.runs.workers
-        return first_runs(r.runs, prior, tuple(extra), comps)[:idle]
+        return first_runs(r.runs, prior, tuple(extra), comps)[:r.runs.workers]
 
-    # a round that is not screened: its candidates' runs beside the base run (they wait
-    # for nothing it finds unless the noise changes)
-    beside = list(beside) if r.runs.workers > 1 and not screen else []
+    # the candidates' runs beside the base run (they wait for nothing it finds unless the
+    # noise changes): a round that is not screened sends them all at once, a screened one
+    # those its screening passes, as soon as it is in
+    beside = list(beside) if r.runs.workers > 1 else []
     kept: list[Task] = []
-    others = [Task(f"screen {i + 2}/{len(groups)}", prior, tuple(extra), False,
-                   cost=_SCREEN_COST, screen=tuple(g)) for i, g in enumerate(groups[1:])]
+    others = [Task("screening", prior, tuple(extra), False, cost=_SCREEN_COST,
+                   screen=tuple(screen))] if several else []
+    then = _after_screening(r, prior, extra, comps, others, beside,
+                            r.runs.workers - 1) if others else None
     try:
         # the base run first: everything after it waits for it
         done = r.runs.run_ahead([Task("noise: current model", prior, tuple(extra),
                                       keep_residuals,
                                       cost=_SCREEN_COST if screen or beside else 1.0,
-                                      screen=tuple(groups[0]) or tuple(score),
+                                      screen=tuple(own) or tuple(score),
                                       star_noise=True)] + others,
-                                lambda: ahead() + beside, r.done)
+                                lambda: ahead() + ([] if screen else beside), r.done, then)
         base = done["noise: current model"]
         if not base.ok:
             log.warning("noise not measured: the current model's run failed: %s", base.error)
@@ -747,6 +758,44 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
         r.tell("noise: " + line)
     return ([base] + [done[t.key] for t in others]
             if ran_with is not None and r.runs.noise == ran_with else None)
+
+
+def _after_screening(r: Round, prior: Calibration, extra: list[str],
+                     comps: tuple[str, ...], parts: list[Task], beside: list[Task],
+                     idle: int) -> Then:
+    """:meth:`~.parallel.Runs.run_ahead`'s ``then`` of a screened round's noise measurement.
+
+    Once every screening part in ``parts`` is in (while the base run still measures the
+    stars' noise): the candidates' runs of ``beside`` the screening passes, with the scales
+    the base run ran with (kept for the round when the verdict keeps them: the same
+    :class:`Task` objects the round then asks for), after the noise's first ML runs (they
+    need the base run's result only when the stars change the scales) on at most ``idle``
+    workers -- none when the screening run lost lock: the verdict then measures no noise
+    (:func:`~stellar_cal_ros.diagnosis.noise.far_off`), and a run it does not use would
+    hold a worker up by its length.  The passing candidates are judged with the white
+    score test unless the latest verdict found motion beyond the IMU's noise; a verdict
+    that finds otherwise re-runs what these runs miss (the round decides on its own
+    screening, :func:`rank_round`: these only make its runs sooner).
+    """
+    from stellar_cal_ros.diagnosis.noise_runs import first_runs
+
+    keys = {t.key for t in parts}
+    screens: dict[str, RunSummary] = {}
+
+    def then(task: Task, run: RunSummary) -> list[Task]:
+        if task.key not in keys:
+            return []
+        screens[task.key] = run
+        if len(screens) < len(keys):
+            return []
+        scores = screening.collect(list(screens.values()),
+                                   white=not (r.noise and r.noise.beyond))
+        lost = any(s.lost_lock or not s.ok for s in screens.values())
+        ml = [] if lost else first_runs(r.runs, prior, tuple(extra), comps)[:idle]
+        # (a candidate it did not score, its run failed: re-run, as the round does)
+        return ml + [t for t in beside if t.key not in scores or scores[t.key].passes]
+
+    return then
 
 
 def rank_candidates(

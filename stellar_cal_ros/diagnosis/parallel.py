@@ -142,6 +142,10 @@ class Task:
 Ahead = list[Task] | tuple[Task, ...] | Callable[[], list[Task]]
 
 
+#: :meth:`Runs.run_ahead`'s ``then``: the runs ahead a finished run's result asks for
+Then = Callable[[Task, RunSummary], list[Task]]
+
+
 def _tasks(ahead: Ahead) -> list[Task]:
     return list(ahead()) if callable(ahead) else list(ahead)
 
@@ -439,17 +443,21 @@ class Runs:
         finally:
             self._batches.close(batch, [f"{fn.__name__} {i}" for i in range(len(calls))])
 
-    def map(self, tasks: list[Task], ahead: Ahead = ()
+    def map(self, tasks: list[Task], ahead: Ahead = (), then: Then | None = None
             ) -> Iterator[tuple[Task, RunSummary]]:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes.
 
-        ``ahead`` (:meth:`run_ahead`) are run after them and kept, not yielded.
+        ``ahead`` and ``then``'s runs (:meth:`run_ahead`) are run after them and kept, not
+        yielded.
         """
         batch = self._batches.open()
+        later: list[Task] = []
         for task in sorted(tasks, key=lambda t: -t.cost):
-            yield task, self._evaluate(task, batch[0])
+            stats = self._evaluate(task, batch[0])
+            later += then(task, stats) if then is not None else []
+            yield task, stats
         self._ahead += [(t, self.noise_of(t), self._evaluate(t, batch[0]))
-                        for t in _tasks(ahead)]
+                        for t in _tasks(ahead) + later]
         self._batches.close(batch, [t.key for t in tasks])
 
     def _evaluate(self, task: Task, batch: int = 0) -> RunSummary:
@@ -460,11 +468,12 @@ class Runs:
 
     def run_all(self, tasks: list[Task],
                 done: Callable[[Task, RunSummary, str], None] | None = None,
-                ahead: Ahead = ()) -> dict[str, RunSummary]:
+                ahead: Ahead = (), then: Then | None = None) -> dict[str, RunSummary]:
         """Run ``tasks`` and return ``{key: stats}``.
 
         ``done(task, stats, where)`` is called as each finishes; ``where`` reads
-        ``run 4/11, ETA 20 s`` (no ETA after the last).  ``ahead``: see :meth:`run_ahead`.
+        ``run 4/11, ETA 20 s`` (no ETA after the last).  ``ahead``, ``then``: see
+        :meth:`run_ahead`.
         """
         from stellar_cal_ros.progress import format_seconds
 
@@ -480,7 +489,7 @@ class Runs:
         if done is not None:  # made ahead: reported as the round's runs
             for k, task in enumerate(taken, 1):
                 done(task, out[task.key], f"run {k}/{n} (made ahead)")
-        for k, (task, stats) in enumerate(self.map(tasks, ahead), len(taken) + 1):
+        for k, (task, stats) in enumerate(self.map(tasks, ahead, then), len(taken) + 1):
             out[task.key] = stats
             if done is not None:
                 left = (time.perf_counter() - start) / (k - len(taken)) * (n - k)
@@ -489,8 +498,8 @@ class Runs:
         return out
 
     def run_ahead(self, tasks: list[Task], ahead: Ahead,
-                  done: Callable[[Task, RunSummary, str], None] | None = None
-                  ) -> dict[str, RunSummary]:
+                  done: Callable[[Task, RunSummary, str], None] | None = None,
+                  then: Then | None = None) -> dict[str, RunSummary]:
         """:meth:`run_all` of ``tasks`` and, beside them, of ``ahead``; the stats of ``tasks``.
 
         ``ahead`` are runs a later step will probably ask for (an idle worker makes them
@@ -502,8 +511,14 @@ class Runs:
         not started); in this process they run after ``tasks``.  ``ahead`` may be a
         function returning them, called once ``tasks`` are handed out (when building them
         waits for a worker, :meth:`on_bag`, the runs ``tasks`` are not held up by it).
+
+        ``then(task, stats)``, called as each of ``tasks`` finishes, returns further runs
+        ahead that need its result (the candidates a screening run passes): on a cluster
+        they are handed out at once, while the parent still waits for the rest of
+        ``tasks``; in this process they run after ``ahead``.
         """
-        return self.run_all(list(tasks), done, ahead if callable(ahead) else list(ahead))
+        return self.run_all(list(tasks), done, ahead if callable(ahead) else list(ahead),
+                            then)
 
     def drop_ahead(self, keep: list[Task] = ()) -> None:
         """Forget the runs made ahead that nobody asked for, except the tasks ``keep``."""
@@ -690,7 +705,7 @@ class DaskRuns(Runs):
         fut.release()
         return out
 
-    def map(self, tasks, ahead=()):  # noqa: D102
+    def map(self, tasks, ahead=(), then=None):  # noqa: D102
         if self.client is None:  # (lazy) nothing handed out before ``ahead`` is built
             ahead = _tasks(ahead)
         if self.client is None and self.pays(list(tasks) + list(ahead)):
@@ -698,7 +713,7 @@ class DaskRuns(Runs):
                      self._cpu[1] / self._cpu[0])
             self._connect()
         if self.client is None:
-            yield from super().map(tasks, ahead)
+            yield from super().map(tasks, ahead, then)
             return
         from distributed import as_completed
 
@@ -709,7 +724,11 @@ class DaskRuns(Runs):
                         for t in _tasks(ahead)]
         for fut in as_completed(futures):
             task = futures.pop(fut)
-            yield task, self._result(task, fut)
+            stats = self._result(task, fut)
+            # handed out now, beside the runs still waited for (the parent waits below)
+            self._ahead += [(t, self.noise_of(t), self._submit(t, batch[0], ahead=True))
+                            for t in (then(task, stats) if then is not None else [])]
+            yield task, stats
         self._batches.close(batch, [t.key for t in tasks])
 
     def drop_ahead(self, keep: list[Task] = ()) -> None:  # noqa: D102
