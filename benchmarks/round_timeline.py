@@ -102,6 +102,11 @@ def replay(events: list[dict]) -> dict:
                     free[pid] = t["sim_end"] = t["sim_start"] + t["cpu"]
                     nxt[pid] += 1
             waited = [t for t in tasks if t["batch"] == b["batch"] and t["key"] in b["wait"]]
+            for key in set(b["wait"]) - {t["key"] for t in waited}:
+                # a run made ahead in an earlier batch, taken (and waited for) with this one
+                earlier = [t for t in tasks if t["key"] == key and t["batch"] < b["batch"]]
+                if earlier:
+                    waited.append(max(earlier, key=lambda t: t["batch"]))
             clock = max([clock] + [t["sim_end"] for t in waited])
     for t in tasks:  # never waited for (runs ahead nobody took)
         t.setdefault("sim_start", float("nan"))

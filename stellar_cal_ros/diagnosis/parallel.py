@@ -443,22 +443,25 @@ class Runs:
         finally:
             self._batches.close(batch, [f"{fn.__name__} {i}" for i in range(len(calls))])
 
-    def map(self, tasks: list[Task], ahead: Ahead = (), then: Then | None = None
-            ) -> Iterator[tuple[Task, RunSummary]]:
+    def map(self, tasks: list[Task], ahead: Ahead = (), then: Then | None = None,
+            running: list[tuple[Task, Any]] = ()) -> Iterator[tuple[Task, RunSummary]]:
         """Run ``tasks``; yield ``(task, stats)`` as each finishes.
 
         ``ahead`` and ``then``'s runs (:meth:`run_ahead`) are run after them and kept, not
-        yielded.
+        yielded.  ``running``: runs made ahead and taken while still running (on a
+        cluster: ``(task, future)``), waited for and yielded with ``tasks``.
         """
         batch = self._batches.open()
         later: list[Task] = []
+        for task, stats in running:
+            yield task, self._resolve(task, stats)
         for task in sorted(tasks, key=lambda t: -t.cost):
             stats = self._evaluate(task, batch[0])
             later += then(task, stats) if then is not None else []
             yield task, stats
         self._ahead += [(t, self.noise_of(t), self._evaluate(t, batch[0]))
                         for t in _tasks(ahead) + later]
-        self._batches.close(batch, [t.key for t in tasks])
+        self._batches.close(batch, [t.key for t in tasks] + [t.key for t, _ in running])
 
     def _evaluate(self, task: Task, batch: int = 0) -> RunSummary:
         return _run(task.key, batch, self.bag, evaluate, self.spec, task.prior, task.effects,
@@ -478,18 +481,23 @@ class Runs:
         from stellar_cal_ros.progress import format_seconds
 
         out = {}
-        taken = []
+        taken, running = [], []
         for task in tasks:
             stats = self._take_ahead(task)
-            if stats is not None:
-                out[task.key] = stats
+            if stats is None:
+                continue
+            if self._pending(stats):  # still running: waited for with the batch
+                running.append((task, stats))
+            else:
+                out[task.key] = self._resolve(task, stats)
                 taken.append(task)
-        tasks = [t for t in tasks if t.key not in out]
-        n, start = len(tasks) + len(taken), time.perf_counter()
+        tasks = [t for t in tasks if t.key not in out and all(t is not r for r, _ in running)]
+        n, start = len(tasks) + len(taken) + len(running), time.perf_counter()
         if done is not None:  # made ahead: reported as the round's runs
             for k, task in enumerate(taken, 1):
                 done(task, out[task.key], f"run {k}/{n} (made ahead)")
-        for k, (task, stats) in enumerate(self.map(tasks, ahead, then), len(taken) + 1):
+        for k, (task, stats) in enumerate(self.map(tasks, ahead, then, running),
+                                          len(taken) + 1):
             out[task.key] = stats
             if done is not None:
                 left = (time.perf_counter() - start) / (k - len(taken)) * (n - k)
@@ -524,13 +532,18 @@ class Runs:
         """Forget the runs made ahead that nobody asked for, except the tasks ``keep``."""
         self._ahead = [a for a in self._ahead if any(a[0] is t for t in keep)]
 
-    def _take_ahead(self, task: Task) -> RunSummary | None:
+    def _take_ahead(self, task: Task) -> Any:
+        """The run made ahead that is ``task`` (its stats, or a future), taken; else None."""
         run = replace(task, noise=self.noise_of(task))
         for i, (t, noise, stats) in enumerate(self._ahead):
             if replace(t, noise=noise) == run:
                 del self._ahead[i]
-                return self._resolve(t, stats)
+                return stats
         return None
+
+    def _pending(self, stats: Any) -> bool:
+        """Whether a run made ahead is still to be waited for (in this process: never)."""
+        return False
 
     def _resolve(self, task: Task, stats: Any) -> RunSummary:
         """The statistics of a run made ahead (in this process: already there)."""
@@ -705,7 +718,7 @@ class DaskRuns(Runs):
         fut.release()
         return out
 
-    def map(self, tasks, ahead=(), then=None):  # noqa: D102
+    def map(self, tasks, ahead=(), then=None, running=()):  # noqa: D102
         if self.client is None:  # (lazy) nothing handed out before ``ahead`` is built
             ahead = _tasks(ahead)
         if self.client is None and self.pays(list(tasks) + list(ahead)):
@@ -719,6 +732,7 @@ class DaskRuns(Runs):
 
         batch = self._batches.open()
         futures = {self._submit(task, batch[0]): task for task in tasks}
+        futures.update({fut: task for task, fut in running})
         # submitted after ``tasks`` (an idle worker takes them), kept as futures
         self._ahead += [(t, self.noise_of(t), self._submit(t, batch[0], ahead=True))
                         for t in _tasks(ahead)]
@@ -729,7 +743,10 @@ class DaskRuns(Runs):
             self._ahead += [(t, self.noise_of(t), self._submit(t, batch[0], ahead=True))
                             for t in (then(task, stats) if then is not None else [])]
             yield task, stats
-        self._batches.close(batch, [t.key for t in tasks])
+        self._batches.close(batch, [t.key for t in tasks] + [t.key for t, _ in running])
+
+    def _pending(self, stats: Any) -> bool:  # noqa: D102
+        return not isinstance(stats, RunSummary)
 
     def drop_ahead(self, keep: list[Task] = ()) -> None:  # noqa: D102
         for task, _, fut in self._ahead:
