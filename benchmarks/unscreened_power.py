@@ -9,6 +9,8 @@ seed it counts whether the effect was found (added, or significant in a round). 
 
     python benchmarks/unscreened_power.py dt_step gyro_scale_factor 1.27e-4,0,0 101-110 OUT
 
+(a negative VALUE after ``--``).  Per seed and round: p, Λ, the explained fraction, reason.
+
 ``--paired PARAM`` measures instead the non-centrality of one unscreened round (the
 ``--model`` effects beside the baseline, the one candidate ``EFFECT``) at its printed MDB
 of ``PARAM``: the case simulated with that parameter at 0 and at ± the MDB, same seed,
@@ -70,8 +72,9 @@ def main() -> int:
                 mine = next((x for x in rnd.get("rejected", []) if x.get("effect") == a.effect),
                             {})
             rows.append((i + 1, mine.get("p_value"), mine.get("score"),
-                         (mine.get("reason") or "")[:60]))
-        sig = any("significant" in (r[3] or "") for r in rows)
+                         mine.get("explained_fraction"), (mine.get("reason") or "")[:60]))
+        # flagged: significant in a round though refused ('not significant' is not)
+        sig = any(r[4].startswith("significant") for r in rows)
         found += added or sig
         print(f"{k:5d} {'added' if added else 'missed':7s} {s.get('added', [])} "
               f"rounds {rows}", flush=True)

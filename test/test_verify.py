@@ -82,6 +82,11 @@ def test_the_tilt_claim_of_the_independent_bag_is_printed_as_conservative():
     # ... or still above it: the plausible size, as printed
     ({"hidden_size": {"sx": 1e-4}, "mdb": {"sx": 4e-4}, "plausible_size": {"sx": 1e-4},
       "dispersion": 4.0}, 1.0),
+    # the round's excess gate set the printed MDB (dt_step s23: 2.86e-3 beside the test's
+    # 127 ppm): the twin has no misfit's excess, no gate: the test's MDB as stated
+    ({"hidden_size": {"sx": 2.86e-3}, "mdb": {"sx": 2.86e-3}, "mdb_test": {"sx": 1.27e-4},
+      "mdb_set_by": "explained_gate", "plausible_size": {"sx": 1e-2}, "dispersion": 8.35},
+     1.27e-4 / math.sqrt(8.35) / 2.86e-3),
 ])
 def test_a_twin_of_a_round_that_did_not_fit_gets_the_mdb_as_stated(entry, want):
     """A twin holds the user's motion and measured noise, not the misfit: its rounds fit, so

@@ -47,7 +47,8 @@ When the current model misses something, the residuals are over-dispersed and a 
 candidate that absorbs a sliver of the misfit would still reach a tiny p-value with ten
 thousand stars.  Two guards: Λ is divided by the dispersion (quasi-likelihood), and a
 significant candidate must remove at least :data:`MIN_EXPLAINED` of the excess residual
-variance (residual variance above what the model expects).
+variance (residual variance above what the model expects).  Where that gate asks more than
+the test, the MDB a round states is the size that passes it (:meth:`Reference.gate_energy`).
 
 One effect missing makes several candidates significant on their own: any that copies part
 of its pattern (a time offset under rotation looks partly like an image-plane tilt).  And a
@@ -202,13 +203,37 @@ class Reference:
     dispersion: float  # mean NIS / 2, at least 1 (quasi-likelihood)
     excess: float  # excess residual variance per star
     floor: float  # 5 % of the noise variance: below it there is no excess to explain
+    noise: float = float("nan")  # the noise variance per star (both axes) the model states
+    stars: int = 0  # the window's accepted stars
 
     @classmethod
     def of(cls, run: RunSummary) -> Reference:
         """The reference of a run's evaluation window."""
         w = run.window
         return cls(w["log_likelihood"], max(1.0, w["nis"]["mean"] / 2.0),
-                   w["excess_variance"], 0.05 * w["noise_variance"])
+                   w["excess_variance"], 0.05 * w["noise_variance"], w["noise_variance"],
+                   int(w.get("n_window", 0)))
+
+    def gate_energy(self, explained: float) -> float:
+        """The energy an effect must add for a candidate to remove :data:`MIN_EXPLAINED`.
+
+        ``explained``: the share of the excess the candidate removes without the effect.
+        Its augmented run fits the effect away and leaves the excess it leaves now,
+        ``E (1 − explained)`` (measured on ``dt_step``: the same to 2e-4 with gyro scale
+        factor sx injected from −2863 to +2863 ppm), while the effect ``b`` raises this
+        reference's by
+        its own residuals' mean square, ``bᵀ I b · noise / (2 · stars)`` (``I`` the window's
+        information, whitened by the stated noise, half of ``noise`` an axis).  The gate
+        passes once that reaches ``E (MIN_EXPLAINED − explained) / (1 − MIN_EXPLAINED)``;
+        returned as ``bᵀ I b`` (:func:`reliability.detectability`'s ``gate``).  0 where no
+        gate applies: no excess to explain (``explained`` NaN) or passed already.  What the
+        effect's residuals share with the misfit (``2 bᵀ s``, linear in ``b``: it helps one
+        sign and hinders the other) is added there (``overlap``; doc/benchmarks.md).
+        """
+        if not explained < MIN_EXPLAINED or not self.noise > 0 or not self.stars:
+            return 0.0
+        return float(2.0 * self.stars * self.excess * (MIN_EXPLAINED - explained)
+                     / ((1.0 - MIN_EXPLAINED) * self.noise))
 
     def compare(self, run: RunSummary, dof: int) -> tuple[float, float, float]:
         """Statistic Λ, its unadjusted p (χ²_dof) and the fraction of the excess removed.
@@ -397,11 +422,17 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference:
     cand.estimate = dict(zip(eff.parameter_names, map(float, value), strict=True))
     cand.sigma = dict(zip(eff.parameter_names, map(float, sig_post), strict=True))
     cand.rms_after_px = tuple(run.window["rms"])
-    cand.detect = reliability.detectability(cand.effect, window_information(cand, run),
-                                            alpha_mdb, r.user_prior, dispersion)
+    info = window_information(cand, run)
+    cand.detect = reliability.detectability(cand.effect, info, alpha_mdb, r.user_prior,
+                                            dispersion)
     if _untestable(cand):
         return
     cand.statistic, cand.p_value, cand.explained = reference.compare(run, eff.size)
+    gate = reference.gate_energy(cand.explained)
+    if gate > 0.0:  # the MDB is the size the decision finds: its excess gate too
+        cand.detect = reliability.detectability(
+            cand.effect, info, alpha_mdb, r.user_prior, dispersion, gate,
+            cand.screen.score if cand.screen is not None else None)
     phys = eff.physical_value
     if r.physical_check and phys is not None:
         est, sig = float(value[0]), float(sig_post[0])

@@ -420,9 +420,25 @@ def estimate_phrase(effect: str, name: str, value: float, sigma: float, pm: str 
 
 
 def mdb_phrase(entry: dict[str, Any]) -> str:
-    """An effect's minimal detectable size per parameter, e.g. ``tau_x 3.1e-05 rad``."""
-    return ", ".join(f"{n} {reliability.shown(entry['effect'] + '.' + n, v)}"
-                     for n, v in entry["mdb"].items())
+    """An effect's minimal detectable size per parameter, e.g. ``tau_x 3.1e-05 rad``.
+
+    Where the decision's excess gate sets it (``mdb_set_by``, :func:`reliability.
+    detectability`), it says so, gives the sign the misfit leans to (found from a smaller
+    size) and the test's MDB alone.
+    """
+    from stellar_cal_ros.diagnosis.discover import MIN_EXPLAINED
+
+    def sizes(mdb: dict[str, float], sign: str = "") -> str:
+        return ", ".join(f"{n} {'-' if v < 0 else sign}"
+                         f"{reliability.shown(entry['effect'] + '.' + n, abs(v))}"
+                         for n, v in mdb.items())
+
+    if not entry.get("mdb_set_by"):
+        return sizes(entry["mdb"])
+    return (f"{sizes(entry['mdb'])} (the size at which an effect of either sign removes "
+            f"{MIN_EXPLAINED:.0%} of the excess variance, as an add needs; of the sign the "
+            f"misfit leans to from {sizes(entry.get('mdb_leaning', {}), '+')}; the test "
+            f"alone: {sizes(entry['mdb_test'])})")
 
 
 def dispersion_note(entries: list[dict[str, Any]]) -> str:
@@ -431,19 +447,24 @@ def dispersion_note(entries: list[dict[str, Any]]) -> str:
     Such a round divides its ratio statistic by the residuals' dispersion (``dispersion``,
     :func:`reliability.detectability`) and its MDBs are stated for it; a candidate there
     must also remove :data:`~stellar_cal_ros.diagnosis.discover.MIN_EXPLAINED` of the
-    excess, which the MDB does not include (on ``dt_step`` that gate, not the test, kept
-    gyro_scale_factor at 5x the MDB of residuals as stated from being added:
-    doc/benchmarks.md).
+    excess (on ``dt_step`` that gate, not the test, kept gyro_scale_factor at 5x the MDB
+    of residuals as stated from being added: doc/benchmarks.md): where it asks more, the
+    MDB is the gate's (``mdb_set_by``, :func:`mdb_phrase`); else the note says a lower
+    bound.
     """
     from stellar_cal_ros.diagnosis.discover import MIN_EXPLAINED
 
     disp = max((e.get("dispersion", 1.0) for e in entries), default=1.0)
     if disp == 1.0:
         return ""
+    gate = any(e.get("mdb_set_by") for e in entries)
     return (f"stated for residuals at {disp:.3g}x the stated noise's variance, as this model "
-            f"leaves them ({np.sqrt(disp):.2f}x the MDB of residuals as stated); a lower "
-            f"bound: here an effect must also remove {MIN_EXPLAINED:.0%} of the excess "
-            "variance to be added")
+            f"leaves them ({np.sqrt(disp):.2f}x the MDB of residuals as stated)"
+            + (f"; here an effect must also remove {MIN_EXPLAINED:.0%} of the excess variance "
+               "to be added: where that asks more, the MDB is the size that does (said "
+               "so)" if gate else
+               f"; a lower bound: here an effect must also remove {MIN_EXPLAINED:.0%} of the "
+               "excess variance to be added"))
 
 
 def bias_phrase(entry: dict[str, Any], quantity: str, sigma: str = "sigma") -> str:

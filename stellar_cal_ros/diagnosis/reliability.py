@@ -71,7 +71,17 @@ def plausible_size(effect_id: str, calibration: Any = None) -> np.ndarray:
 def lambda0(alpha: float, dof: int, power: float = POWER) -> float:
     """Non-centrality λ₀ at which a χ²_dof test of level ``alpha`` has power ``power``."""
     dof = max(int(dof), 1)
-    crit = dist.chi2.isf(alpha, dof)
+    return noncentrality_beyond(float(dist.chi2.isf(alpha, dof)), dof, power)
+
+
+def noncentrality_beyond(crit: float, dof: int, power: float = POWER) -> float:
+    """Non-centrality λ at which a non-central χ²_dof(λ) exceeds ``crit`` with ``power``.
+
+    0 when a central χ²_dof does already.
+    """
+    dof = max(int(dof), 1)
+    if dist.chi2.sf(crit, dof) >= power:
+        return 0.0
 
     def gap(lam: float) -> float:
         return float(dist.ncx2.sf(crit, dof, lam) - power)
@@ -149,6 +159,15 @@ class Detectability:
     #: the decision statistic's dispersion the MDB is stated for (``information`` is the
     #: window's divided by it): 1 where the residuals are as the stated noise says
     dispersion: float = 1.0
+    #: where the excess gate binds (a candidate must remove MIN_EXPLAINED of the excess
+    #: variance, :func:`detectability`'s ``gate``): the test's MDB per parameter (``mdb``
+    #: is then the gate's, larger) and the non-centrality the gate asks, in the units of
+    #: ``lam0``; empty and 0 where the test sets the MDB
+    mdb_test: dict[str, float] = field(default_factory=dict)
+    lam_gate: float = 0.0
+    #: where the gate binds: per parameter the signed size at which an effect of the sign
+    #: the misfit already leans to passes it (sooner than ``mdb``, the other sign's)
+    mdb_leaning: dict[str, float] = field(default_factory=dict)
 
     @property
     def testable(self) -> bool:
@@ -171,7 +190,10 @@ class Detectability:
                 "plausible_statement": dict(self.plausible_text),
                 "mdb_where_it_acts": dict(self.mdb_where_it_acts),
                 "alpha": self.alpha, "power": POWER, "lam0": self.lam0, "dof": self.dof,
-                **({"dispersion": self.dispersion} if self.dispersion != 1.0 else {})}
+                **({"dispersion": self.dispersion} if self.dispersion != 1.0 else {}),
+                **({"mdb_set_by": "explained_gate", "mdb_test": dict(self.mdb_test),
+                    "mdb_leaning": dict(self.mdb_leaning), "lam_gate": self.lam_gate}
+                   if self.mdb_test else {})}
 
     def where_text(self) -> str:
         """MDB and plausible size where the effect acts, when the camera converts them.
@@ -189,7 +211,8 @@ class Detectability:
 
 
 def detectability(effect_id: str, information: np.ndarray, alpha: float,
-                  calibration: Any = None, dispersion: float = 1.0) -> Detectability:
+                  calibration: Any = None, dispersion: float = 1.0,
+                  gate: float = 0.0, overlap: np.ndarray | None = None) -> Detectability:
     """MDB per parameter and the testability of ``effect_id`` given its information.
 
     ``calibration``: the run's calibration, whose camera converts a plausible size stated
@@ -198,6 +221,20 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
     ratio's mean NIS / dof of a model that does not fit, :class:`~stellar_cal_ros.diagnosis.
     discover.Reference`): the statistic's non-centrality is then ``bᵀ I b / dispersion``,
     so the information is divided by it and the MDB grows by its square root.
+
+    ``gate``: the whitened energy ``bᵀ I b`` (``information`` as given, not divided) an
+    effect must add to the window's residuals for the candidate to pass the decision's
+    excess gate (:meth:`~stellar_cal_ros.diagnosis.discover.Reference.gate_energy`); 0:
+    none.  ``overlap``: the score ``s = Σ Aᵀ S⁻¹ ν`` of the current model's residuals
+    along the effect (its screening, ``(k,)``): what the misfit shares with the effect's
+    pattern.  The effect ``b`` adds ``bᵀ I b + 2 bᵀ s`` to the residuals' whitened energy
+    (a non-central χ²_k in the first term: the gate passes with the test's power once the
+    sum reaches :func:`noncentrality_beyond` ``(gate)`` = ``q``), so along parameter n
+    the sign of ``s_n`` passes at ``(√(s_n² + I_nn q) − |s_n|) / I_nn``
+    (``mdb_leaning``, signed) and the other at ``(√(s_n² + I_nn q) + |s_n|) / I_nn``.  An
+    MDB is a size of either sign: where the latter exceeds the test's MDB, it is the MDB
+    and ``mdb_test`` keeps the test's.  The ratio to the plausible size (``testable``, a
+    decision) stays the test's.
     """
     eff = registry.create(effect_id)
     info = np.atleast_2d(np.asarray(information, dtype=float)) / float(dispersion)
@@ -207,6 +244,21 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
     diag = np.diag(info)
     mdb = {n: float(np.sqrt(lam / d)) if d > 0 else float("inf")
            for n, d in zip(eff.parameter_names, diag, strict=True)}
+    mdb_test: dict[str, float] = {}
+    leaning: dict[str, float] = {}
+    q = noncentrality_beyond(gate, k) if gate > 0 else 0.0
+    if q > 0:
+        s = np.zeros(k) if overlap is None else np.asarray(overlap, dtype=float).ravel()
+        I_nn = diag * float(dispersion)  # the information as the residuals' energy counts it
+        root = np.sqrt(s * s + I_nn * q)
+        hard = {n: float((r + abs(x)) / i) if i > 0 else float("inf")
+                for n, x, i, r in zip(eff.parameter_names, s, I_nn, root, strict=True)}
+        if any(hard[n] > mdb[n] for n in mdb):
+            mdb_test = mdb
+            mdb = {n: max(hard[n], mdb_test[n]) for n in mdb}
+            leaning = {n: float(np.copysign((r - abs(x)) / i, x)) if i > 0 else float("inf")
+                       for n, x, i, r in zip(eff.parameter_names, s, I_nn, root,
+                                             strict=True)}
     mu = np.linalg.eigvalsh(_sym(info * np.outer(D, D)))
     top = float(mu.max()) if mu.size else 0.0
     ratio = float(np.sqrt(lam / top)) if top > 0 else float("inf")
@@ -217,7 +269,8 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
             acts = eff.where_it_acts(np.array(list(mdb.values())), calibration)
             where = {n: float(a) for n, a in zip(eff.parameter_names, acts, strict=True)}
     return Detectability(effect_id, k, alpha, lam, info, D, mdb, ratio, text, where,
-                         float(dispersion))
+                         float(dispersion), mdb_test,
+                         q / float(dispersion) if mdb_test else 0.0, leaning)
 
 
 # ----------------------------------------------------------------------------- display units
@@ -342,7 +395,8 @@ def external_reliability(det: Detectability, rows: dict[str, np.ndarray],
 
     Every number is the shift an injection of the printed size reproduces (issue 21): for
     each parameter j of the effect, the effect with that parameter alone at its printed MDB
-    (``sqrt(λ₀ / I_jj)``, at most its plausible size when the MDB exceeds it) shifts q by
+    (``sqrt(λ₀ / I_jj)``, or the excess gate's where it binds, :func:`detectability`; at most
+    its plausible size when the MDB exceeds it) shifts q by
     ``h_qj · size_j``; ``biases[q]`` is the largest of these over j (signed, in
     ``biases_signed``), ``bias_parameter[q]`` the j that gives it.  Directions the data
     cannot see at all (:func:`blind_directions`) are a separate statement, ``blind``: up to

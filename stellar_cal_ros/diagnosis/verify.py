@@ -71,13 +71,16 @@ def twin_scale(entry: dict[str, Any], param: str) -> float:
     would be seen with a non-centrality d·λ₀, always "conservative", and the check would
     say nothing.  The twin is injected at the MDB for residuals as stated instead
     (``mdb / √d``, at most the plausible size the printed hidden size is capped at), and
-    every printed bias is scaled alike (they are linear in the size).
+    every printed bias is scaled alike (they are linear in the size).  Where the round's
+    excess gate set the printed MDB (``mdb_set_by``), the twin, without the misfit's excess,
+    has no such gate: it gets the test's MDB (``mdb_test``) for residuals as stated, and
+    likewise on a round that fits.
     """
     d = float(entry.get("dispersion", 1.0))
     hidden = float(entry["hidden_size"][param])
-    if d == 1.0 or not hidden > 0.0:
+    if (d == 1.0 and not entry.get("mdb_set_by")) or not hidden > 0.0:
         return 1.0
-    stated = min(float(entry["mdb"][param]) / np.sqrt(d),
+    stated = min(float(entry.get("mdb_test", entry["mdb"])[param]) / np.sqrt(d),
                  float(entry["plausible_size"].get(param, np.inf)))
     return min(stated / hidden, 1.0)
 
