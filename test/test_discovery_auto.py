@@ -454,6 +454,7 @@ def test_a_round_not_screened_prints_the_mdb_of_the_window_information():
             # applied), so the MDB is the window's as stated
             assert b.detect.dispersion == 1.0
             assert "dispersion" not in b.detect.as_dict()
+            assert "mdb_set_by" not in b.detect.as_dict()  # the test's MDB: not gated
             assert a.detect.as_dict()["dispersion"] == pytest.approx(dispersion)
     assert by["time_offset"].significant
 
