@@ -276,12 +276,20 @@ def propagate_attitude(
 def _so3_integral_coefficients(
     p: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Return ``(1 - cos p) / p^2`` and ``(p - sin p) / p^3`` (Taylor series below 1e-2)."""
+    """Return ``(1 - cos p) / p^2`` and ``(p - sin p) / p^3`` (Taylor series below 1e-2).
+
+    The closed forms only where ``p ≥ 1e-2`` (an IMU sample's increment rarely is): the
+    same floats as both formulas everywhere and a choice.
+    """
+    p = np.asarray(p, dtype=np.float64)
     p2 = p * p
-    small = p < 1e-2
-    ps = np.where(small, 1.0, p)
-    a = np.where(small, 0.5 - p2 / 24.0 + p2 * p2 / 720.0, (1.0 - np.cos(ps)) / (ps * ps))
-    b = np.where(small, 1.0 / 6.0 - p2 / 120.0 + p2 * p2 / 5040.0, (ps - np.sin(ps)) / ps**3)
+    a = 0.5 - p2 / 24.0 + p2 * p2 / 720.0
+    b = 1.0 / 6.0 - p2 / 120.0 + p2 * p2 / 5040.0
+    big = ~(p < 1e-2)
+    if big.any():
+        ps = p[big]
+        a[big] = (1.0 - np.cos(ps)) / (ps * ps)
+        b[big] = (ps - np.sin(ps)) / ps**3
     return a, b
 
 
