@@ -1066,3 +1066,45 @@ def test_swaying_frame_batch_equals_one_call_a_frame(monkeypatch, duration, dama
     for name, value in vars(tb).items():
         if isinstance(value, float | int):
             assert getattr(ta, name) == value, name
+
+
+def test_swaying_batch_rebuilds_the_reference_where_its_window_ends(monkeypatch) -> None:
+    """A frame whose reference strapdown is to be rebuilt because its window ends
+    (``reference_window_s``: 15 s on the 60 s bag, three rebuilds) is batched too:
+    ``SwayingFilter.prepare_frames`` rebuilds it (from the frame's first sample under θ̂, as
+    ``ImuPropagation.step`` would in the frame's own propagation) and steps the frame in the
+    batch.  The same floats as one call a frame (which takes the three calls there) — θ̂,
+    velocity, position, attitude, P, the sensitivity — and with batches no frame of the
+    clean bag takes its own propagation (``_propagate_interval``); before, each rebuild
+    frame did (and loaded three kernels for it on the 2-h bag)."""
+    from stellar_cal_ros.methods.registry import get as registry_get
+    from stellar_cal_ros.methods.swaying import SwayingFilter
+
+    sim, data = _swaying_bag(False)
+    config = dataclasses.replace(registry_get("swaying_base").config_cls(), unit_check=False,
+                                 reference_window_s=15.0)
+    own = []
+    interval = SwayingFilter._propagate_interval
+
+    def counted(self, k, m, t_target):
+        own.append(t_target)
+        return interval(self, k, m, t_target)
+
+    monkeypatch.setattr(SwayingFilter, "_propagate_interval", counted)
+    runs, props = {}, {}
+    for batched in (True, False):
+        monkeypatch.setattr(SwayingFilter, "batched_step", batched)
+        own.clear()
+        runs[batched] = replay(data, sim.prior, "swaying_base", None, config,
+                               consider=["radial_k3"], keep_tables=False)
+        props[batched] = len(own)
+    fast, ref = runs[True], runs[False]
+    assert fast.counters == ref.counters and ref.counters["updates"] > 100
+    assert props[False] >= 3 and props[True] == 0, props
+    a, b = fast.filter, ref.filter
+    assert a.propagation.ref_start == b.propagation.ref_start > 0
+    for name in ("theta", "velocity", "position", "R_i_b", "P"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    for name in ("M", "info", "score"):
+        np.testing.assert_array_equal(getattr(a.sensitivity, name), getattr(b.sensitivity, name),
+                                      err_msg=name)

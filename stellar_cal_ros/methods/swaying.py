@@ -506,6 +506,13 @@ class SwayingFilter(StarFilter):
             t_exp = t_rel + shift
             pre = prop.prefix
             m = imu.index(t_exp)
+            if not run and t_exp > t and m < len(imu) and pre is not None and \
+                    imu.base + k >= pre.base and imu.base + m - prop.ref_start >= prop.window:
+                # the reference's window ends in the first frame: rebuilt here, from the
+                # frame's first sample under θ̂, as its own propagation would
+                # (ImuPropagation.step), so that the frame is batched too
+                prop.rebuild(imu, k, self.theta)
+                pre = prop.prefix
             if t_exp <= t or m >= len(imu) or pre is None or imu.base + k < pre.base or \
                     imu.base + m - prop.ref_start >= prop.window:
                 break
