@@ -340,6 +340,58 @@ def test_direction_table_of_a_bag_equals_each_frame(stars):
         assert eff._prepared(u_i[:4], ctx) is None
 
 
+def test_direction_columns_of_a_batch_equal_each_frames(stars):
+    """``delta_frames`` (a batch's frames in one gather: ``FusedStep.stack``) gives each
+    frame, bit for bit, what its own ``_cached_delta`` gives: frames that are their table
+    row are taken at once; the others (stars in another order or a subset, another site
+    or weather, few stars, a star moved, a NaN direction, a stamp not prepared) go frame
+    by frame, computed or looked up as before."""
+    ids, u_i, _ = stars
+    stamps = T0 + np.array([40.0, 100.0, 160.0])
+    u_frames = [u_i[:-1], u_i, u_i[1:]]
+    id_frames = [ids[:-1], ids, ids[1:]]
+    moved = u_frames[1].copy()
+    moved[3] = (moved[3] + 1e-9) / np.linalg.norm(moved[3] + 1e-9)
+    nan = u_frames[2].copy()
+    nan[1] = np.nan
+    sub = [4, 1, 0, 7, 2, 8]
+    #: (directions, frame, catalogue rows, context changes, whether the table row is taken)
+    table = [(u_frames[0], 0, slice(None), {}, True), (u_frames[1], 1, slice(None), {}, True),
+             (u_frames[2], 2, slice(None), {}, True), (u_frames[1][sub], 1, sub, {}, False),
+             (u_frames[1], 1, slice(None), {"site": Site(36.0, 120.0, 0.0)}, False),
+             (u_frames[1], 1, slice(None), {"pressure_pa": 90000.0}, None),
+             (u_frames[0][:4], 0, slice(0, 4), {}, False), (moved, 1, slice(None), {}, False),
+             (nan, 2, slice(None), {}, False),
+             (u_frames[1], 1, slice(None), {"stamp": T0 + 7.0}, False),
+             (u_frames[2], 2, slice(None), {}, True)]
+
+    def contexts() -> list[FrameContext]:
+        out = []
+        for _, k, rows, changes, _ in table:
+            c = make_ctx(stars)
+            c.stamp, c.catalog_id = float(stamps[k]), id_frames[k][rows]
+            for key, v in changes.items():
+                setattr(c, key, v)
+            out.append(c)
+        return out
+
+    us = [row[0] for row in table]
+    offs = np.concatenate([[0], np.cumsum([len(u) for u in us])])
+    for eid in ("aberration", "refraction", "proper_motion"):
+        eff, ref = registry.create(eid), registry.create(eid)
+        eff.prepare(stamps, id_frames, u_frames, SITE, np.full(3, 101200.0), np.full(3, 5.0))
+        ref.use_prepared(eff.prepared_table())
+        ctxs = contexts()
+        got = eff.directions_jacobian_frames(np.ones(1), us, np.concatenate(us), offs, ctxs)
+        want = np.concatenate([ref._cached_delta(u, c) for u, c in zip(us, contexts(),
+                                                                        strict=True)])
+        assert got.shape == (len(want), 3, 1)
+        np.testing.assert_array_equal(got[:, :, 0], want)
+        for c, row in zip(ctxs, table, strict=True):  # which went frame by frame
+            taken = (not eff.uses_weather) if row[4] is None else row[4]
+            assert ("_direction_cache" in c.extra) is not taken
+
+
 def test_a_bags_direction_tables_are_made_once(sim):
     """Models replayed over the same bag in memory share each direction effect's table
     (``StarModel.prepare_frames``, ``BagData.prepared``): the same numbers as a table made

@@ -271,6 +271,72 @@ class ScaledDirection(Effect):
             cache[self.id] = hit
         return hit[1]
 
+    def delta_frames(self, us: list, u: np.ndarray, offs: np.ndarray, ctxs: list
+                     ) -> np.ndarray:
+        """The Δ of several frames (:meth:`_cached_delta` of each), stacked (N, 3).
+
+        ``us``: each frame's directions (its rows ``offs[i]:offs[i + 1]`` of ``u``, (N, 3),
+        the frames stacked); ``ctxs`` their contexts.  A frame whose stars are all those of
+        its row of the table, in order, with the table's site and weather (the usual case,
+        :meth:`_prepared`'s first branch) takes its rows of the table in one gather for all
+        such frames — the same floats, without a key and a lookup a frame and effect (a
+        2-h bag's batched replay: 14 400 frames an effect); any other frame goes through
+        :meth:`_cached_delta` as before.
+        """
+        K = len(ctxs)
+        out = np.empty((len(u), 3))
+        table = getattr(self, "_table", None)
+        fast = np.zeros(K, dtype=bool)
+        if table is not None and K:
+            st, site = table.stacked, self._site
+            row = st._row
+            n = np.diff(offs)
+            js = np.array([row.get(float(c.stamp), -1) if c.site is site or c.site == site
+                           else -1 for c in ctxs], dtype=np.int64)
+            ids = [np.asarray(c.catalog_id).reshape(-1) for c in ctxs]
+            fast = (js >= 0) & (n > _EXACT_BELOW) & \
+                (np.fromiter(map(len, ids), dtype=np.int64, count=K) == n)
+            fast &= st.count[np.where(fast, js, 0)] == n
+            if self.uses_weather and fast.any():
+                w = st.weather[np.where(fast, js, 0)]
+                p = np.array([c.pressure_pa for c in ctxs], dtype=float)
+                a = np.array([c.air_temperature_c for c in ctxs], dtype=float)
+                fast &= ((w[:, 0] == p) | (np.isnan(w[:, 0]) & np.isnan(p))) & \
+                    ((w[:, 1] == a) | (np.isnan(w[:, 1]) & np.isnan(a)))
+            if fast.any():
+                which = np.flatnonzero(fast)
+                take = np.repeat(fast, n)  # the stacked rows of those frames
+                rows = np.repeat(st.start[js[which]] - offs[which], n[which]) + \
+                    np.flatnonzero(take)
+                cat = np.concatenate([ids[i] for i in which.tolist()])
+                same = st.ids[rows] == cat
+                # (conservative: a NaN direction, which _prepared passes, goes frame by frame)
+                near = np.abs(st.u[rows] - u[take]) <= _SAME_STAR
+                if not (same.all() and near.all()):  # some frame is not its table row
+                    bad = ~(same & near[:, 0] & near[:, 1] & near[:, 2])
+                    fast[which[np.flatnonzero(np.bincount(
+                        np.repeat(np.arange(len(which)), n[which]), weights=bad,
+                        minlength=len(which)))]] = False
+                    keep = fast[np.repeat(which, n[which])]
+                    take[take] = keep
+                    rows = rows[keep]
+                out[take] = table.delta[rows]
+        for i in np.flatnonzero(~fast).tolist():
+            out[offs[i]:offs[i + 1]] = self._cached_delta(us[i], ctxs[i])
+        return out
+
+    def directions_jacobian_frames(self, value, us: list, u: np.ndarray, offs: np.ndarray,
+                                   ctxs: list) -> np.ndarray:
+        """:meth:`directions_jacobian` of several frames, stacked (N, 3, 1) (:meth:`delta_frames`).
+
+        None when a subclass computes its Jacobian otherwise (the caller then asks frame by
+        frame).
+        """
+        if type(self).directions_jacobian is not ScaledDirection.directions_jacobian or \
+                type(self)._cached_delta is not ScaledDirection._cached_delta:
+            return None
+        return self.delta_frames(us, u, offs, ctxs)[:, :, None]
+
     def directions(self, value, u_i, ctx):  # noqa: D102
         return u_i + value[0] * self._cached_delta(u_i, ctx)
 

@@ -1132,14 +1132,12 @@ class FusedStep:
         K = len(frames)
         offs = np.zeros(K + 1, dtype=np.int64)
         offs[1:] = np.cumsum([len(f[0]) for f in frames])
-        chain = self.compiled_chain
-        inputs = [chain.frame_inputs(f[1], f[4]) for f in frames]
         col = np.array([f[5:12] for f in frames], dtype=float)
         uv = np.concatenate([f[0] for f in frames]).reshape(-1, 2)
-        u = np.concatenate([f[1] for f in frames]).reshape(-1, 3)
+        us = [f[1] for f in frames]
+        u = np.concatenate(us).reshape(-1, 3)
         sigma = np.concatenate([f[2] for f in frames]).astype(float, copy=False)
-        du = np.concatenate([d for d, _ in inputs])
-        bscale = np.array([b for _, b in inputs], dtype=float).reshape(K, len(inputs[0][1]))
+        du, bscale = self.compiled_chain.frames_inputs(us, u, offs, [f[4] for f in frames])
         base = np.array([f[3] for f in frames], dtype=float)
         return offs, col, uv, u, sigma, du, bscale, base
 

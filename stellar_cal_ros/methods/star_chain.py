@@ -82,10 +82,42 @@ class CompiledChain:
         :meth:`direction_columns` and the bilinear camera steps' scales
         (:meth:`Effect.camera_scale`).
         """
+        return self.direction_columns(u, ctx), self._scales(ctx)
+
+    def _scales(self, ctx: Any) -> np.ndarray:
+        """The bilinear camera steps' scales of a frame (:meth:`Effect.camera_scale`)."""
         if not self.bilinear:
-            return self.direction_columns(u, ctx), _NO_SCALE
-        return self.direction_columns(u, ctx), np.concatenate(
-            [np.asarray(e.camera_scale(ctx), dtype=float) for e in self.bilinear])
+            return _NO_SCALE
+        return np.concatenate([np.asarray(e.camera_scale(ctx), dtype=float)
+                               for e in self.bilinear])
+
+    def frames_inputs(self, us: list, u: np.ndarray, offs: np.ndarray, ctxs: list
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`frame_inputs` of several frames: ``du`` stacked (N, 3, kd), ``bscale`` (K, kb).
+
+        ``us``: each frame's directions, its rows ``offs[i]:offs[i + 1]`` of ``u`` (N, 3);
+        ``ctxs``: their contexts.  An effect with ``directions_jacobian_frames`` (the
+        astrometric ones: :meth:`~stellar_cal_ros.effects._direction.ScaledDirection.
+        delta_frames`) gives all the frames' columns in one call; any other, a frame at a
+        time — the same floats as :meth:`frame_inputs` of each frame.
+        """
+        K, N = len(ctxs), len(u)
+        if not self.directions:
+            du = np.zeros((N, 3, 0))
+        else:
+            du = np.empty((N, 3, len(self.dcol)))
+            for k, (eff, sl, fixed) in enumerate(self.directions):
+                v = fixed if sl is None else np.zeros(eff.size)
+                cols = slice(self.dgrp[k], self.dgrp[k + 1])
+                many = getattr(eff, "directions_jacobian_frames", None)
+                got = many(v, us, u, offs, ctxs) if many is not None else None
+                if got is not None:
+                    du[:, :, cols] = got
+                    continue
+                for i in range(K):
+                    du[offs[i]:offs[i + 1], :, cols] = eff.directions_jacobian(v, us[i], ctxs[i])
+        return du, np.array([self._scales(c) for c in ctxs], dtype=float).reshape(
+            K, -1 if self.bilinear else 0)
 
     def direction_columns(self, u: np.ndarray, ctx: Any) -> np.ndarray:
         """The frame's DIRECTION columns ``C`` (n, 3, kd) of :func:`predict_chain`.
