@@ -87,3 +87,23 @@ def test_frames_alone_read_a_star_property_under_ar1_tracks_as_structure():
     frame scores' lag-1) the same draws give far more than 1 % below 1 %."""
     p = _pvalues(0.81873, 1.0, frame_x=False, track=False, seed=11)
     assert np.mean(p < 0.01) > 0.01 + 3.0 * math.sqrt(0.01 * 0.99 / DRAWS)
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.int32, np.uint32, np.uint64])
+def test_frame_index_is_uniques_inverse_for_stacked_and_unordered_frames(dtype):
+    """``stats.frame_index`` gives ``np.unique``'s inverse, dtype included, for frames in
+    time order (counted), stacked twice or out of order over few values (ranked through a
+    table of the values: ``shaped_tests``' u-then-v rows) and spread over many values
+    (sorted)."""
+    rng = np.random.default_rng(7)
+    ordered = np.repeat(np.arange(5, 3000), rng.integers(1, 30, 2995)).astype(dtype)
+    cases = [ordered, np.concatenate([ordered, ordered]), ordered[::-1],
+             rng.integers(0, 50, 1000).astype(dtype), np.array([3, 1], dtype=dtype),
+             np.array([7, 7, 2, 9, 2], dtype=dtype), np.array([0, 10**12, 5], dtype=dtype)
+             if np.iinfo(dtype).max > 10**12 else np.array([0, 10**9, 5], dtype=dtype)]
+    if np.issubdtype(dtype, np.signedinteger):
+        cases.append(np.array([-5, 3, -5, 0], dtype=dtype))
+    for c in cases:
+        got, want = stats.frame_index(c), np.unique(c, return_inverse=True)[1]
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
