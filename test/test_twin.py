@@ -75,6 +75,23 @@ def test_twins_sharing_a_scene_are_the_twins_made_alone(user_run):
             assert np.array_equal(a.uv, b.uv) and np.array_equal(a.catalog_id, b.catalog_id)
 
 
+def test_a_scenes_frame_contexts_are_the_replays(user_run):
+    """A scene's frames carry the environment :func:`frame_context` gives each frame in a
+    replay (its values interpolated for all stamps in one call), bit for bit."""
+    from stellar_cal_ros.diagnosis.twin import twin_scene
+    from stellar_cal_ros.methods.frames import frame_context, frame_inputs
+
+    _, data, cal = user_run
+    stars = twin_scene(data, cal, "psce").stars
+    env = data.env()
+    assert len(stars.stamp_ns) == len(data.frames) > 100
+    for j, fr in enumerate(data.frames):
+        ctx = frame_context(int(fr.stamp_ns), frame_inputs(fr, 1024, 1024, NOISE), data.site,
+                            env)
+        assert (stars.head[j], stars.air[j], stars.pressure[j]) == \
+            (ctx.head_temperature_c, ctx.air_temperature_c, ctx.pressure_pa)
+
+
 def test_the_probes_injection_renders_no_imu_only_where_the_effect_leaves_it_alone(user_run):
     """The reliability probe renders all its injections before its runs and skips the IMU
     of an effect that leaves the sensor model alone: the same stars' steps bit for bit

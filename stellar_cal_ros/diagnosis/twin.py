@@ -385,9 +385,9 @@ def _scene_stars(data: BagData, cam, default_sigma: float, env, grav) -> SceneSt
     cols = {k: np.concatenate([empty[k]] + v) for k, v in parts.items()}
     del parts
     stamps = np.array([int(fr.stamp_ns) for fr in data.frames], dtype=np.int64)
-    # the environment at each stamp (frame_context's interpolation, per frame)
-    at = {k: np.array([env[k].interp(int(s)) for s in stamps], dtype=float)
-          for k in ("head", "air", "pressure")}
+    # the environment at each stamp (frame_context's interpolation, all stamps in one call:
+    # np.interp's value at each abscissa does not depend on the others, the same floats)
+    at = {k: np.asarray(env[k].interp(stamps), dtype=float) for k in ("head", "air", "pressure")}
     return SceneStars(stamps, count, messages, cols["usable"], cols["u_i"], cols["catalog_id"],
                       cols["magnitude"], unidentified, at["head"], at["air"],
                       at["pressure"], grav, [{} for _ in stamps])
