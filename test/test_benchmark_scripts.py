@@ -143,6 +143,41 @@ def test_unseen_case_found_but_said_far_smaller_is_judged_misleading(monkeypatch
         "first 'unexplained' line says 8.96e-05 px, the truth at least 0.03"]
 
 
+def test_unseen_case_outside_sizes_are_judged_against_what_the_fit_leaves(monkeypatch):
+    """benchmarks/unseen_cases.py's ``magbias_radial`` and ``sway_flex`` (H215).  The
+    magnitude line prints what the fit left of a 0.058 px bias (0.0456 px noise-free; 0.0457
+    / 0.0433 at seeds 21 / 22): judged between 0.035 and 0.064 px.  The flexure line prints
+    the probe's exact response plus the seed's noise (8.56 +- 0.43 at seed 21: its clean
+    bag alone t -3.5): judged within 4 of the σ it prints (a t_ν-scale σ)."""
+    uc = _unseen_cases(monkeypatch)
+
+    def run(line):
+        return {"rc": 0, "stderr": "", "stdout": "noise: noise as stated\n  unexplained: " + line,
+                "summary": {"added": [], "noise": {"applied": {}}}}
+
+    def mag(size):
+        return run(f"radial residual vs magnitude (t=20.1, p=5.7e-25; {size} px across its "
+                   "5-95 % range)")
+
+    def flex(c, s, after=""):
+        return run(f"residual vs gravity_st (mount-flexure shape{after}: {c} +- {s} arcsec per "
+                   "unit lateral gravity, outside the library) (t=20.1, p=1.8e-21; 0.032 px at "
+                   "most (99 % of the stars; what the fit left of it))")
+
+    assert uc.judge("magbias_radial", mag("0.0457")) == []
+    assert uc.judge("magbias_radial", mag("0.0433")) == []
+    assert uc.judge("magbias_radial", mag("0.0213")) == [
+        "first 'unexplained' line says 0.0213 px, the truth at least 0.035"]
+    assert uc.judge("magbias_radial", mag("0.0712")) == [
+        "first 'unexplained' line says 0.0712 px, the truth at most 0.064"]
+    assert uc.judge("sway_flex", flex("8.56", "0.43")) == []
+    assert uc.judge("sway_flex", flex("11.4", "0.39", ", after gyro_bias")) == []
+    assert uc.judge("sway_flex", flex("7.9", "0.43")) == [
+        "the flexure read 7.9 +- 0.43\"/g, the truth 10 (more than 4 of its sigma)"]
+    assert uc.judge("flex20", flex("19.8", "0.74")) == []
+    assert uc.judge("flex20", flex("-19.8", "0.74")) != []
+
+
 def test_unseen_case_fixed_pattern_said_far_larger_is_judged_misleading(monkeypatch):
     """benchmarks/unseen_cases.py's ``columns`` (0.15 px; printed 0.148 +- 0.0035 over seeds
     21-30): a size inflated past ``max_size_px`` (0.18, reviewer RF) misleads like one far
