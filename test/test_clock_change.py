@@ -176,6 +176,38 @@ def test_a_clock_drifting_30_ms_is_offered_and_added(tmp_path):
     assert abs(rate - truth) < 3.0 * sigma, (rate, sigma, truth)
 
 
+def test_a_drifting_clock_with_an_offset_is_added_with_time_offset(tmp_path):
+    """The 0 → 30 ms drift of the test above with the stamps 25 us early throughout
+    (time_offset +25 us: a real clock's offset at the reference stamp is not 0; 25 us is
+    below time_offset's detection beside the rate, σ 11 us): ``discover`` adds clock_drift
+    with time_offset beside it (``added.with``), so the final rate is unbiased and its
+    printed σ is the one with the offset free (0.072 ppm, not 0.042).  Fails on main
+    (ca41024): the rate alone takes the offset (main's discover: −99.8885 ± 0.0424 ppm, z
+    +4.33 against the truth −100.072, as the replay of its model; 25 us late: z −1.7; 0:
+    z +1.3); with time_offset −100.024 ± 0.072, z +0.68 whatever the offset, dt +26.5 ±
+    11.4 us (the replays of benchmarks/clock_drift_z.py, H208)."""
+    from stellar_cal_ros.diagnosis.auto import discover
+
+    sim, model = clean_simulation("psce", False, 21, 300.0)
+    t0, t1 = round(sim.prior.stamp * 1e9), sim.star_frames[-1].stamp_ns
+    for f in sim.star_frames:
+        f.stamp_ns = int(f.stamp_ns + round((-25e-6 + 0.03 * (f.stamp_ns - t0) / (t1 - t0))
+                                            * 1e9))
+    got = discover(bag_data_from_simulation(sim), sim.prior, "psce", list(model), tmp_path,
+                   max_rounds=2, plots=False, verbose=False, workers=0)
+    span = (t1 - t0) * 1e-9
+    truth = -(0.03 / span) / (1.0 + 0.03 / span)
+    rate, sigma = got["final_estimates"]["clock_drift"]["rate"]
+    assert abs(rate - truth) < 3.0 * sigma, (rate, sigma, truth)
+    assert 0.06e-6 < sigma < 0.085e-6, sigma  # the σ with the offset free (alone: 0.042)
+    add = got["path"][0]["added"]
+    assert (add["effect"], add.get("with")) == ("clock_drift", "time_offset"), add
+    assert any("round 1:" in t and "with time_offset beside it" in t
+               for t in got["terminal"]), got["terminal"]
+    dt, dt_sigma = got["final_estimates"]["time_offset"]["dt"]
+    assert abs(dt - 25e-6) < 3.0 * dt_sigma, (dt, dt_sigma)
+
+
 @pytest.mark.parametrize(("rest_chi2", "p", "asks"), [(1.7, 0.0016, True), (8.2, 1e-25, True),
                                                       (31.7, 1e-42, False),
                                                       (1.2, 0.055, False)])

@@ -90,6 +90,14 @@ from stellar_cal_ros.methods.replay import BagData
 #: significant alone in its round whose score was at least RIVAL_SCORE of its score
 MAX_RIVALS = 2
 RIVAL_SCORE = 0.5
+#: an effect added together with another the model lacks, estimated beside it and never
+#: dropped while it is in: clock_drift's rate counts from its reference stamp, where
+#: without time_offset the clocks' offset is 0 by assumption.  A real offset c there goes
+#: into the rate (about 1.5 c / T over T s: +25 us, +0.13 ppm at 300 s, 3σ of the rate
+#: alone) and the rate's σ alone (0.042 ppm on sky_clock_drift) is the σ given that
+#: assumption; with the offset free it is 0.072 ppm (correlation 0.81), the rate unbiased
+#: whatever the offset (H208, doc/benchmarks.md).  ``path[].added.with`` names it.
+ADDED_WITH = {"clock_drift": "time_offset"}
 #: what a stop names when a rate-shaped candidate was refused beside a clock's remainder
 CLOCK_REMAINDER = ("the clock-shaped remainder along the stars' motion", "a drifting clock")
 #: ... and beside an attitude step (a knock) it explains nothing before
@@ -206,8 +214,12 @@ class _State:
     step_line: dict[str, Any] | None = None
 
     def checkable(self) -> list[str]:
-        """Added effects whose need is tested this round."""
-        return [e for e in self.shown() if e not in self.user and e != self.last]
+        """Added effects whose need is tested this round.
+
+        Not one added with another that is still in the model (:data:`ADDED_WITH`).
+        """
+        return [e for e in self.shown() if e not in self.user and e != self.last
+                and not any(ADDED_WITH.get(x) == e for x in self.extra)]
 
     def shown(self) -> list[str]:
         """The effects beyond the baseline but the step's nuisance (never in an output)."""
@@ -506,6 +518,11 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                     state.extra.append(installation_step.STEP_ID)
                     state.step_line = state.with_step[added][0]
                 state.extra.append(added)
+                partner = ADDED_WITH.get(added)
+                if partner and partner not in state.extra and partner not in spec.baseline:
+                    # estimated beside it from the next round on (not a candidate then)
+                    state.extra.append(partner)
+                    step["added"]["with"] = partner
                 if top.effect in state.passed_step:  # tested before a step (its line)
                     step["added"]["before_step"] = state.passed_step[added]
                 if top.effect in state.with_step:  # the excess is the step's: no floor

@@ -26,6 +26,9 @@ def describe(step: dict[str, Any]) -> str:
         if add.get("at_physical_size") is not None:  # diagnosis.auto._at_size
             alias += (f" -- at {add['at_physical_size']:.3g}x its physical size, beside the "
                       "clock's remainder that makes most of the excess")
+        if add.get("with"):  # diagnosis.auto.ADDED_WITH
+            alias += (f" with {add['with']} beside it (the offset at its reference stamp, "
+                      "not assumed 0)")
         return (f"add {add['effect']} (score {add['score']:.1f}, p = {add['p_value']:.2g})"
                 f"{alias}")
     if a == "drop":
