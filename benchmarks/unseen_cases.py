@@ -488,18 +488,26 @@ def _arm_1hz(sim, seed, amplitude_px=0.08, hz=1.0):
                                                                         np.cos(ph)])
 
 
-def _clock_drift(sim, seed, drift_s=0.03):
+def _clock_drift(sim, seed, drift_s=0.03, early_s=0.0):
     # the tracker's clock drifts: each frame's stamp late by 0 ms at the bag's start (the
     # prior's stamp, clock_drift's reference) growing linearly to 30 ms at the last frame
     # (the stars are where they were at the exposure).  Until H198 the drift started at the
     # first frame, 0.254 s after the prior's stamp: the bag then held an offset of
     # rate x 0.254 s = +25 us at the reference, which clock_drift without time_offset took
-    # into its rate (+0.13 ppm, 3 sigma)
+    # into its rate (+0.13 ppm, 3 sigma).  ``early_s``: every stamp that much earlier too
+    # (a time_offset of +early_s at the reference, H208)
     t0 = int(round(sim.prior.stamp * 1e9))
     t1 = sim.star_frames[-1].stamp_ns
     for f in sim.star_frames:
         x = (f.stamp_ns - t0) / max(t1 - t0, 1)
-        f.stamp_ns = int(f.stamp_ns + round(drift_s * x * 1e9))
+        f.stamp_ns = int(f.stamp_ns + round((drift_s * x - early_s) * 1e9))
+
+
+def _clock_drift_dt(sim, seed):
+    # the 0 -> 30 ms drift with the stamps 25 us early throughout: a real clock's offset at
+    # the reference is not 0, and 25 us is below time_offset's detection beside the rate
+    # (sigma 11 us); the rate alone takes it: +0.13 ppm, 3 sigma of the rate alone
+    _clock_drift(sim, seed, early_s=25e-6)
 
 
 def _clock_drift3(sim, seed):
@@ -512,6 +520,9 @@ def _clock_drift3(sim, seed):
 _SKY_CLOCK = dict(effects=("aberration", "proper_motion", "refraction", "clock_drift"),
                   may_add=("time_offset",),
                   sim_effects={"aberration": 1.0, "refraction": 1.0, "proper_motion": 1.0})
+#: the 0 -> 30 ms drift's rate (-100.072 ppm) and the offset at the prior's stamp
+_EXPECT_30MS = {"clock_drift": {"rate": (-1.25e-4, -0.75e-4)},
+                "time_offset": {"dt": (-7.5e-3, 7.5e-3)}}
 
 
 def _misid30(sim, seed, frames=0.1, share=0.3):
@@ -938,8 +949,12 @@ CASES: dict[str, Case] = {
                             # the last frame 299.754 s after the prior's stamp; a
                             # time_offset beside it is the offset at the prior's stamp, 0:
                             # a quarter of the span)
-                            expect={"clock_drift": {"rate": (-1.25e-4, -0.75e-4)},
-                                    "time_offset": {"dt": (-7.5e-3, 7.5e-3)}}),
+                            expect=_EXPECT_30MS),
+    "sky_clock_drift_dt": Case("psce", "sky_clock_drift with the frame stamps also 25 us early "
+                               "throughout (time_offset +25 us at the prior's "
+                               "stamp, clock_drift's reference: below its detection beside "
+                               "the rate)", post=_clock_drift_dt, **_SKY_CLOCK,
+                               expect=_EXPECT_30MS),
     "sky_clock_drift3": Case("psce", "the sky bag (refraction, aberration, proper motion at "
                              "1x) whose frame stamps drift late 0 -> 3 ms over the run "
                              "(clock_drift: a rate of -10 ppm from the bag's start)",
