@@ -87,7 +87,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     if reliability is not None and runs is not None:
         from stellar_cal_ros.diagnosis.reliability_probe import start_probes
 
-        probing = start_probes(reliability, base, runs)
+        probing = start_probes(reliability, base, runs,
+                               {c.effect: c.screen for c in results if c.screen is not None})
     # (the clock and step tests' results kept from the lines': not computed twice)
     parts: dict[str, Any] = {}
     unexplained = line_tests(shown.residuals, calibration, fraction, parts)

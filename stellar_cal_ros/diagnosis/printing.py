@@ -425,9 +425,12 @@ def estimate_phrase(effect: str, name: str, value: float, sigma: float, pm: str 
 def mdb_phrase(entry: dict[str, Any]) -> str:
     """An effect's minimal detectable size per parameter, e.g. ``tau_x 3.1e-05 rad``.
 
-    Where the decision's excess gate sets it (``mdb_set_by``, :func:`reliability.
-    detectability`), it says so, gives the sign the misfit leans to (found from a smaller
-    size) and the test's MDB alone.
+    Where the decision's excess gate sets it (``mdb_set_by`` "explained_gate",
+    :func:`reliability.detectability`), it says so, gives the sign the misfit leans to
+    (found from a smaller size) and the test's MDB alone.  Where probe runs restated it at
+    both signs (``mdb_set_by`` "probe"), the first-order size follows, at which the biases
+    are stated: ``tau_x 7.13 mrad (either sign, by probe runs; first order 4.54 mrad, the
+    size of the biases)``.
     """
     from stellar_cal_ros.diagnosis.discover import MIN_EXPLAINED
 
@@ -436,12 +439,23 @@ def mdb_phrase(entry: dict[str, Any]) -> str:
                          f"{reliability.shown(entry['effect'] + '.' + n, abs(v))}"
                          for n, v in mdb.items())
 
-    if not entry.get("mdb_set_by"):
-        return sizes(entry["mdb"])
-    return (f"{sizes(entry['mdb'])} (the size at which an effect of either sign removes "
-            f"{MIN_EXPLAINED:.0%} of the excess variance, as an add needs; of the sign the "
-            f"misfit leans to from {sizes(entry.get('mdb_leaning', {}), '+')}; the test "
-            f"alone: {sizes(entry['mdb_test'])})")
+    by = entry.get("mdb_set_by")
+    if by == "explained_gate":
+        return (f"{sizes(entry['mdb'])} (the size at which an effect of either sign removes "
+                f"{MIN_EXPLAINED:.0%} of the excess variance, as an add needs; of the sign "
+                f"the misfit leans to from {sizes(entry.get('mdb_leaning', {}), '+')}; the "
+                f"test alone: {sizes(entry['mdb_test'])})")
+    first = entry.get("mdb_test", {}) if by == "probe" else {}
+
+    def one(n: str, v: float) -> str:
+        text = reliability.shown(entry["effect"] + "." + n, v)
+        if n in first and first[n] != v:
+            text += (" (either sign, by probe runs; first order "
+                     f"{reliability.shown(entry['effect'] + '.' + n, first[n])}, the size "
+                     "of the biases)")
+        return text
+
+    return ", ".join(f"{n} {one(n, v)}" for n, v in entry["mdb"].items())
 
 
 def dispersion_note(entries: list[dict[str, Any]]) -> str:

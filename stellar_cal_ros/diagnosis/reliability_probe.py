@@ -21,8 +21,11 @@ of :mod:`~stellar_cal_ros.diagnosis.flexure`).  The paired difference of the two
 the filter's full response at that size, noise and gain response included (both signs:
 the response is not odd in the effect); every row of that parameter keeps its first-order
 value where the probe agrees within :data:`AGREE` at both signs, else the report prints the
-measured shifts (:func:`apply`).  Cost: two runs per flagged (effect, parameter); none on a
-bag where no row is flagged.
+measured shifts (:func:`apply`).  The runs also score the effect: where one sign's score
+responds below the λ₀ the MDB is stated for (the tilt's second order), the MDB is restated
+for both signs (:func:`both_signs`, :func:`secant`: one run more).  Cost: two runs per
+flagged (effect, parameter), three where the MDB is restated; none on a bag where no row is
+flagged.
 """
 
 from __future__ import annotations
@@ -44,6 +47,8 @@ log = logging.getLogger(__name__)
 #: measured shift is printed (the probe and a simulator injection of the same size differ
 #: by up to ~16 % on rows near 1 σ, doc/benchmarks.md: 10 % keeps the issue's ±30 % bar)
 AGREE = 0.1
+#: the key of a probe run's values that holds the effect's score (not an estimate)
+SCORE = "_score"
 #: the twin's renderer draws no noise: the increment is the effect alone
 _NOISELESS = NoiseScales(star=1e-12, gyro=1e-12, accel=1e-12)
 
@@ -347,15 +352,21 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
     del plain, scene
     out: list[dict[str, float] | None] = []
     for (effect_id, delta), inj in zip(probes, injections, strict=True):
+        score = {"consider": [effect_id]} if spec.screen is not None else {}
         try:
             if isinstance(inj, Exception):
                 raise inj
             moved = inj.on(data)
             with quiet():
                 run = spec.runner(moved, prior, list(effects), keep_tables=False,
-                                  eval_fraction=fraction, **kw)
+                                  eval_fraction=fraction, **kw, **score)
             del moved
             values = injection.run_values(run)
+            # the effect's score in this run (a consider parameter: the estimates are the
+            # run's without it): against the round's, the score's response at this size
+            scored = spec.screen(run, [effect_id]) if spec.screen is not None else {}
+            if effect_id in scored and len(scored[effect_id]) > 5:
+                values[SCORE] = np.asarray(scored[effect_id][5], dtype=float)
             del run
             for q, v in own_shift(calibration, spec.name, effect_id,
                                   np.asarray(delta)).items():
@@ -367,6 +378,91 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
                         type(exc).__name__, exc)
             out.append(None)
     return out
+
+
+def score_step(score: np.ndarray | None, screen) -> np.ndarray | None:
+    """``Δs``: the change of the effect's score a probe's injection makes on the bag.
+
+    ``score``: the effect's score in the probe's run; ``screen``: the round's score test of
+    the effect on the bag (its score ``s₀``).  Paired (the bag's noise is in both): the
+    score's response at that size.  ``None`` where either is missing.
+    """
+    if score is None or screen is None or screen.score is None:
+        return None
+    return np.asarray(score, dtype=float) - np.asarray(screen.score, dtype=float)
+
+
+def both_signs(entry: dict[str, Any], parameter: str, d_plus: np.ndarray | None,
+               d_minus: np.ndarray | None, screen) -> tuple[float, float] | None:
+    """The MDB of ``parameter`` that holds at both signs, from the probe's score responses.
+
+    The printed MDB (``sqrt(λ₀ / I_jj)``) is first order: the score's non-centrality
+    ``λ = Δsᵀ I⁻¹ Δs`` (``I`` divided by the round's dispersion, as the MDB's) at ±MDB is
+    λ₀ only where the score is linear in the effect.  An image-plane tilt's second-order
+    response makes one sign weaker (psce, twins of a clean bag: 0.55 λ₀ at +τx, found 8
+    of 20; 2.4 λ₀ at −τx).  Where the probe ran at the MDB itself and the weaker sign's
+    response ``λ_w`` is below λ₀, the MDB becomes ``mdb · c₁``, ``c₁ = sqrt(λ₀ / λ_w)``
+    (one step with the response taken as quadratic in the size), ``mdb_set_by`` "probe",
+    ``mdb_test`` the first-order MDBs; ``(sign, c₁)`` is returned for :func:`secant`.  An
+    MDB the excess gate set (``mdb_set_by`` "explained_gate") is left as it is.
+    ``probe[parameter]`` keeps ``lam_plus``/``lam_minus`` (the responses at ±size).  The
+    biases stay those measured at the probed size (``hidden_size``).
+    """
+    if d_plus is None or d_minus is None:
+        return None
+    lam = {"lam_plus": response(d_plus, screen), "lam_minus": response(d_minus, screen)}
+    entry["probe"][parameter].update(lam)
+    mdb, lam0, worse = entry["mdb"][parameter], float(entry["lam0"]), min(lam.values())
+    # an MDB the excess gate set (:func:`~.reliability.detectability`) is not the score
+    # test's: the score's response does not restate it
+    if entry.get("mdb_set_by") == "explained_gate":
+        return None
+    if not (0.0 < worse < lam0 and entry["hidden_size"][parameter] == mdb):
+        return None
+    step = float(np.sqrt(lam0 / worse))
+    entry.setdefault("mdb_test", dict(entry["mdb"]))
+    entry["mdb_set_by"] = "probe"
+    entry["mdb"][parameter] = float(mdb * step)
+    return (1.0 if lam["lam_plus"] <= lam["lam_minus"] else -1.0), step
+
+
+def response(d: np.ndarray, screen) -> float:
+    """``Δsᵀ I⁻¹ Δs`` with the round's ``I`` divided by its dispersion (as the MDB's)."""
+    info = np.atleast_2d(np.asarray(screen.information, dtype=float)) / float(screen.dispersion)
+    return float(d @ np.linalg.pinv(info) @ d)
+
+
+def secant(entry: dict[str, Any], parameter: str, step: float, lam_step: float) -> None:
+    """The weaker sign's MDB from its responses at 1x and ``step`` x the first-order MDB.
+
+    The tilt's response grows faster than quadratic (clean psce s23: 0.35, 0.54, 0.84,
+    1.32, 2.06 λ₀ at 1, 1.25, 1.5, 1.75, 2x), so :func:`both_signs`'s step errs large
+    (1.69x, seen with ~1.2 λ₀).  A secant in log λ against log size through the two
+    responses gives the size where λ₀ is reached: ``c = step · (λ₀ / λ_step)^(1/p)``,
+    ``p = ln(λ_step / λ_w) / ln(step)``.  Kept at ``step`` where the response did not grow
+    (``p ≤ 0``).  ``probe[parameter]``: ``step`` and ``lam_step``.
+    """
+    probe = entry["probe"][parameter]
+    worse = min(probe["lam_plus"], probe["lam_minus"])
+    probe.update(step=step, lam_step=lam_step)
+    lam0 = float(entry["lam0"])
+    if not (lam_step > worse > 0.0 and step > 1.0):
+        return
+    power = np.log(lam_step / worse) / np.log(step)
+    entry["mdb"][parameter] = float(entry["mdb_test"][parameter] * step
+                                    * (lam0 / lam_step) ** (1.0 / power))
+
+
+def _started(runs, args: tuple, probes: tuple, per: int) -> list[Callable[[], list]]:
+    """``probes`` (in groups of ``per``) started by ``runs.later`` in parts, one a worker."""
+    # one call renders the bag's twin once for all its probes; on several workers the
+    # groups are split over them, each part rendering the twin itself (the same
+    # noise-free numbers), so the probe's runs are not one worker's serial tail
+    groups = len(probes) // per
+    parts = max(1, min(runs.workers, groups))
+    bounds = [per * (groups * i // parts) for i in range(parts + 1)]
+    return [runs.later(measure_on_bag, *args, probes[a:b])
+            for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
 def flagged(entry: dict[str, Any]) -> list[str]:
@@ -418,18 +514,21 @@ def apply(entry: dict[str, Any], parameter: str, plus: dict[str, float],
         entry["sigma_shown"][q] = reliability.shown(q, sigma[q])
 
 
-def probe_entries(entries: list[dict[str, Any]], base, runs) -> int:
+def probe_entries(entries: list[dict[str, Any]], base, runs, screens=None) -> int:
     """Measure the flagged rows of ``entries`` by probe runs; the number of runs made.
 
     ``base``: the current model's run on ``runs``' bag (with its noise and window), whose
     start (``base.prior``) and effects the probe runs repeat; its calibration renders the
     injections.  Two runs per flagged (effect, parameter), the effect at +size and −size,
-    all in one call where the bag is.
+    all in one call where the bag is.  ``screens``: the round's score tests
+    (``{effect: ScreenResult}``); with them each probe run also scores its effect and the
+    MDB is restated where one sign responds below λ₀ (:func:`both_signs`).
     """
-    return start_probes(entries, base, runs)()
+    return start_probes(entries, base, runs, screens)()
 
 
-def start_probes(entries: list[dict[str, Any]], base, runs) -> Callable[[], int]:
+def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
+                 ) -> Callable[[], int]:
     """:func:`probe_entries` as a function to call for it (``entries`` are then filled in).
 
     On a cluster the probe's runs start now (:meth:`~stellar_cal_ros.diagnosis.parallel.
@@ -444,24 +543,36 @@ def start_probes(entries: list[dict[str, Any]], base, runs) -> Callable[[], int]
     probes = tuple((entry["effect"], tuple(injection.parameter_delta(
         entry["effect"], parameter, sign * entry["hidden_size"][parameter]).tolist()))
         for entry, parameter in todo for sign in (1.0, -1.0))
-    # one call renders the bag's twin once for all its probes; on several workers the
-    # (effect, parameter) pairs are split over them, each part rendering the twin itself
-    # (the same noise-free numbers), so the probe's runs are not one worker's serial tail
-    parts = max(1, min(runs.workers, len(todo)))
-    bounds = [2 * (len(todo) * i // parts) for i in range(parts + 1)]
     args = (runs.spec, base.prior, tuple(base.effects), runs.fraction, runs.noise,
             runs.classes, base.calibration)
-    pending = [runs.later(measure_on_bag, *args, probes[a:b])
-               for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    pending = _started(runs, args, probes, 2)
 
     def done() -> int:
         got = [row for part in pending for row in part()]
         before, sigma = injection.summary_values(base), base.sigma_by_name()
+        steps = []
         for k, (entry, parameter) in enumerate(todo):
             plus, minus = got[2 * k], got[2 * k + 1]
             if plus is not None and minus is not None:
+                s_plus, s_minus = plus.pop(SCORE, None), minus.pop(SCORE, None)
                 apply(entry, parameter, injection.paired_shift(before, plus),
                       injection.paired_shift(before, minus), sigma)
-        return len(probes)
+                screen = (screens or {}).get(entry["effect"])
+                step = both_signs(entry, parameter, score_step(s_plus, screen),
+                                  score_step(s_minus, screen), screen)
+                if step is not None:
+                    steps.append((entry, parameter, screen, *step))
+        if not steps:
+            return len(probes)
+        # one run more per restated MDB: the weaker sign at the one step's size (a secant)
+        again = tuple((entry["effect"], tuple(injection.parameter_delta(
+            entry["effect"], parameter, sign * factor * entry["mdb_test"][parameter]).tolist()))
+            for entry, parameter, _, sign, factor in steps)
+        rows = [row for part in _started(runs, args, again, 1) for row in part()]
+        for (entry, parameter, screen, _, factor), row in zip(steps, rows, strict=True):
+            d = score_step(None if row is None else row.get(SCORE), screen)
+            if d is not None:
+                secant(entry, parameter, factor, response(d, screen))
+        return len(probes) + len(again)
 
     return done
