@@ -132,7 +132,8 @@ def test_a_drifting_clock_is_not_named_a_gyro_scale(tmp_path):
     in the model: gyro_scale_factor is significant alone (p 1e-73), its x scale taking up
     the drift's per-slew offsets (+269 ± 4.6 ppm, the truth 0), but the remainder shrinks
     along its slew (+0.24 ± 0.037 ms per s at −0.91 ms: a clock's catch-up), so it is
-    refused and the reason names the clock.  Fails on 8e3e396 (gyro_scale_factor added)."""
+    refused and the reason names the clock, as its rows of 'what could still be hiding' do
+    (``refused_beside_clock``).  Fails on 8e3e396 (gyro_scale_factor added)."""
     from stellar_cal_ros.diagnosis.auto import discover
 
     sim, model = clean_simulation("psce", False, 21, 300.0)
@@ -148,6 +149,14 @@ def test_a_drifting_clock_is_not_named_a_gyro_scale(tmp_path):
     assert why and "a clock's" in why[0] and "shrinks along a slew" in why[0], why
     b = got["path"][-1]["beyond_remainder"]["gyro_scale_factor"]["clock"]
     assert b["slew_growth"] * b["slew"][2] < 0, b
+    # its 'what could still be hiding' rows say the same rule refuses them (the MDB is not
+    # a size it would be added at; fails on coord 853b7cc: no such mark)
+    rows = {e["effect"]: e for e in got["reliability"]}
+    for effect in ("gyro_scale_factor", "gyro_misalignment"):
+        mark = rows[effect]["refused_beside_clock"]
+        assert mark["by"] == "clock" and mark["p_value"] < 0.01, mark
+        assert any(line.lstrip().startswith(effect) and mark["text"] in line
+                   for line in got["terminal"]), got["terminal"]
 
 
 def test_a_clock_drifting_30_ms_is_offered_and_added(tmp_path):

@@ -202,6 +202,10 @@ class _State:
     by_step: dict[str, dict] = field(default_factory=dict)
     #: ... and the gyro rate candidates significant alone that explain them too
     passed_step: dict[str, dict] = field(default_factory=dict)
+    #: the latest round's clock test (:func:`_clock_of`; ``False``: none could be made),
+    #: ``None`` until made: the rule that refuses a rate candidate beside a clock's
+    #: remainder (:func:`~stellar_cal_ros.diagnosis.clock.refuses`) marks the final hiding rows
+    ticks: Any = None
     #: an effect in the model → the rival this motion does not tell from it (:func:`_tie`)
     ties: dict[str, dict] = field(default_factory=dict)
     #: the latest :func:`_top`'s candidates judged beside the step fitted as a nuisance
@@ -418,6 +422,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 gated = []
                 base, results, extras = ranked(False)
                 timing = None  # (another run's)
+            state.ticks = timing  # (:func:`_top` makes it if a rate candidate asks)
             here = None  # the flexure-shaped test of this round's model, when it ran
             if path and path[-1]["action"] == "add" and flexure.may_stand_in(state.last):
                 # the effect just added may stand in for a mount bending with gravity
@@ -641,20 +646,21 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             order.extend(small)
             stepped = {c.effect for c in small}
     for c in order:  # (grows once, by the candidates a clock's remainder hides: below)
-        if c.effect in clock.RATE_ALIASES:
-            if ticks is None:
-                ticks = _clock_of(base, base.calibration or prior, runs.fraction) or False
-            if ticks and ticks.clock_like(ALPHA):
-                tell(f"{c.effect}: not added: the stars' remainder along their motion is a "
-                     "clock's (it shrinks along a slew)")
-                refused.append((c, {"clock": ticks.as_json(), "reason": _clock_reason(
-                    c, ticks), "remainder": CLOCK_REMAINDER}))
-                if not hidden:
-                    # the excess is the clock's: an effect at its physical size, significant
-                    # but removing little of it, is tested after those significant alone
-                    hidden = _at_size(results)
-                    order.extend(hidden)
-                continue
+        if c.effect in clock.RATE_ALIASES and ticks is None:
+            # (kept for the hiding rows of the final model: :func:`_write`)
+            ticks = state.ticks = _clock_of(base, base.calibration or prior,
+                                            runs.fraction) or False
+        if clock.refuses(c.effect, ticks, ALPHA):
+            tell(f"{c.effect}: not added: the stars' remainder along their motion is a "
+                 "clock's (it shrinks along a slew)")
+            refused.append((c, {"clock": ticks.as_json(), "reason": _clock_reason(
+                c, ticks), "remainder": CLOCK_REMAINDER}))
+            if not hidden:
+                # the excess is the clock's: an effect at its physical size, significant
+                # but removing little of it, is tested after those significant alone
+                hidden = _at_size(results)
+                order.extend(hidden)
+            continue
         if c.effect in clock.RATE_ALIASES or c.effect in stepped:
             if knock is None:
                 knock, where = _knock_of(base, base.calibration or prior, runs.fraction)
@@ -1128,6 +1134,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         "seconds": seconds,
     })
     summary.setdefault("reliability", [])
+    _refused_rows(summary["reliability"], state, final, fraction)
     ties = {e: t for e, t in state.ties.items() if e in added and t["with"] not in added}
     if ties:
         summary["ties"] = ties  # (absent otherwise: a diagnosis without one is unchanged)
@@ -1156,6 +1163,26 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         write_report(out, summary, "stellar_cal discovery")
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+def _refused_rows(entries: list[dict[str, Any]], state: _State, final: RunSummary,
+                  fraction: float) -> None:
+    """Mark the hiding rows of effects the final model's clock rule refuses (in place).
+
+    The final round's rule (:func:`~stellar_cal_ros.diagnosis.clock.refuses`, as
+    :func:`_top` asks it): while the stars' remainder along their motion is a clock's, a
+    rate-shaped candidate is not added whatever its test says, so its MDB is not a size
+    the round adds it at (``dt_step`` s23: gyro_scale_factor at its printed +2.86e-3,
+    refused 6 of 6 times).  Each such row gains ``refused_beside_clock``
+    (:func:`~stellar_cal_ros.diagnosis.clock.refused_entry`).  The clock test is the
+    round's (made again, as :func:`_top` makes it, only if no candidate asked for it).
+    """
+    ticks = state.ticks
+    if ticks is None and any(e["effect"] in clock.RATE_ALIASES for e in entries):
+        ticks = _clock_of(final, final.calibration or state.prior, fraction) or False
+    for e in entries:
+        if clock.refuses(e["effect"], ticks, ALPHA):
+            e["refused_beside_clock"] = clock.refused_entry(ticks)
 
 
 def _clock_first(lines: list[dict[str, Any]]) -> None:

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 
@@ -113,6 +114,11 @@ GYRO_COMPONENT = "gyro rate"
 #: ``sky_clock_drift3``: gyro_scale_factor added beside time_offset).  Refused while the
 #: current model's remainder is a clock's (:meth:`ClockChange.clock_like`)
 RATE_ALIASES = ("gyro_scale_factor", "gyro_misalignment")
+#: the 'what could still be hiding' row of a candidate :func:`refuses` (``p``: the clock
+#: finding's): its MDB is a size the test would find, but this rule decides first
+REFUSED_TEXT = ("refused here at any size that leaves the stars' remainder along their motion "
+                "a clock's, as it is now (p = {p:.2g}; it shrinks along a slew): a gyro rate "
+                "effect is added only if it changes that shape")
 #: the test named by an effect offered only where a drifting clock is found
 #: (:attr:`~stellar_cal_ros.effects.base.Effect.offered_on`, :meth:`ClockChange.asks_drift`)
 OFFERED_ON = "clock drift"
@@ -293,6 +299,30 @@ class ClockChange:
         return stats.p_finding(self.regressor(),
                                GYRO_COMPONENT if self.grows() else COMPONENT, p, size,
                                detail={"clock_change": self.as_json()})
+
+
+def refuses(effect: str, test: ClockChange | None | bool, alpha: float) -> bool:
+    """Whether discover refuses candidate ``effect``, whatever its test says, beside ``test``.
+
+    A rate-shaped candidate (:data:`RATE_ALIASES`) is never added while ``test`` (the
+    current model's clock test, or ``None``/``False`` when none was made or could be) says
+    the stars' remainder along their motion is a clock's (:meth:`ClockChange.clock_like`):
+    it would take the clock's remainder up slew by slew.  The rule of
+    :func:`~stellar_cal_ros.diagnosis.auto._top`, and of the hiding rows it marks
+    (:func:`refused_entry`, :func:`~stellar_cal_ros.diagnosis.auto._refused_rows`).  It
+    holds at any size only while the effect leaves that remainder clock-shaped: on
+    ``dt_step`` s23 (model time_offset) gyro_scale_factor sx at +818 to +15000 ppm (+2863:
+    its printed MDB, refused 6 of 6 times, doc/benchmarks.md H207) and −818 to −2200 ppm
+    leaves it so, −2863 ppm and beyond do not (the remainder moves to another slew and
+    stops shrinking; doc/benchmarks.md H217).
+    """
+    return effect in RATE_ALIASES and bool(test) and test.clock_like(alpha)
+
+
+def refused_entry(test: ClockChange) -> dict[str, Any]:
+    """The ``refused_beside_clock`` entry of a hiding row :func:`refuses` (its line)."""
+    p = test.finding().p_value
+    return {"by": "clock", "p_value": p, "text": REFUSED_TEXT.format(p=p)}
 
 
 def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],

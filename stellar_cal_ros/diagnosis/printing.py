@@ -394,6 +394,8 @@ def reliability_lines(entries: list[dict[str, Any]], per_effect: int = 4) -> lis
             flag = (f" (physics fixes it at {e['physical_value']:g}x: a structure with its "
                     "pattern is flagged from this size on, as 'implausible' below "
                     f"{e['implausible_below']:g}x)")
+        if e.get("refused_beside_clock"):  # diagnosis.clock.refuses: the MDB is not what adds it
+            flag += f" ({e['refused_beside_clock']['text']})"
         line = f"  {e['effect']:22s} MDB {mdb}{flag}"
         dom = sorted(e["dominates"], key=lambda n: -e["biases"][n] / e["sigma"][n])
         if dom:

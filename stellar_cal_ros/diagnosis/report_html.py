@@ -366,8 +366,11 @@ def _reliability_html(summary: dict[str, Any]) -> str:
         btxt = ("; ".join(blind.get("directions", [])) + ": " + ", ".join(
             f"{n} by {blind['biases_shown'][n]}" for n in blind.get("dominates", []))
             if blind.get("dominates") else "")
+        # diagnosis.clock.refuses: the MDB is not what adds it
+        clk = (e.get("refused_beside_clock") or {}).get("text")
         rows.append(f"<tr><td><b>{_e(e['effect'])}</b></td><td>{_e(mdb)}"
-                    f"{'' if e['testable'] else ' (not testable)'}</td><td>{_e(bias)}</td>"
+                    f"{'' if e['testable'] else ' (not testable)'}"
+                    f"{f' ({_e(clk)})' if clk else ''}</td><td>{_e(bias)}</td>"
                     f"<td>{_e(btxt)}</td></tr>")
     flex = printing.flexure_hiding_row(summary)
     if flex:
