@@ -87,6 +87,10 @@ def test_the_tilt_claim_of_the_independent_bag_is_printed_as_conservative():
     ({"hidden_size": {"sx": 2.86e-3}, "mdb": {"sx": 2.86e-3}, "mdb_test": {"sx": 1.27e-4},
       "mdb_set_by": "explained_gate", "plausible_size": {"sx": 1e-2}, "dispersion": 8.35},
      1.27e-4 / math.sqrt(8.35) / 2.86e-3),
+    # the probe's runs restated tau_x at both signs (psce s23: 4.54 -> 7.13 mrad): the twin
+    # responds as the bag does and gets the printed MDB, 1.57x the first-order hidden size
+    ({"hidden_size": {"sx": 4.54e-3}, "mdb": {"sx": 7.13e-3}, "mdb_test": {"sx": 4.54e-3},
+      "mdb_set_by": "probe", "plausible_size": {"sx": 1e-2}}, 7.13e-3 / 4.54e-3),
 ])
 def test_a_twin_of_a_round_that_did_not_fit_gets_the_mdb_as_stated(entry, want):
     """A twin holds the user's motion and measured noise, not the misfit: its rounds fit, so

@@ -74,10 +74,15 @@ def twin_scale(entry: dict[str, Any], param: str) -> float:
     every printed bias is scaled alike (they are linear in the size).  Where the round's
     excess gate set the printed MDB (``mdb_set_by``), the twin, without the misfit's excess,
     has no such gate: it gets the test's MDB (``mdb_test``) for residuals as stated, and
-    likewise on a round that fits.
+    likewise on a round that fits.  Where the probe's runs restated the MDB at both signs
+    (``mdb_set_by`` "probe", :func:`~.reliability_probe.both_signs`: an image-plane tilt's
+    weaker sign), the twin, which responds as the user's bag does, gets the printed MDB:
+    the share is then above 1 (the biases, printed at the first-order size, scaled alike).
     """
     d = float(entry.get("dispersion", 1.0))
     hidden = float(entry["hidden_size"][param])
+    if entry.get("mdb_set_by") == "probe" and hidden > 0.0:
+        return float(entry["mdb"][param]) / hidden
     if (d == 1.0 and not entry.get("mdb_set_by")) or not hidden > 0.0:
         return 1.0
     stated = min(float(entry.get("mdb_test", entry["mdb"])[param]) / np.sqrt(d),
@@ -276,9 +281,12 @@ def describe(rec: dict[str, Any]) -> str:
     """One line of the verification."""
     from stellar_cal_ros.diagnosis.reliability import shown
 
-    stated = (" (the MDB for residuals as stated, x"
-              f"{rec['size_scale']:.3g} the printed one: the twin fits, this round did not)"
-              if rec.get("size_scale", 1.0) != 1.0 else "")
+    scale = rec.get("size_scale", 1.0)
+    stated = ("" if scale == 1.0 else
+              f" (the MDB restated at both signs by the probe runs, x{scale:.3g} the "
+              "first-order size the biases are printed at)" if scale > 1.0 else
+              f" (the MDB for residuals as stated, x{scale:.3g} the printed one: the twin "
+              "fits, this round did not)")
     parts = [f"{rec['effect']} {rec['parameter']} = {rec['size_shown']}{stated}: "
              f"{'found' if rec['found'] else 'missed'} on the twin"]
     if np.isfinite(rec["noncentrality"]):
