@@ -1610,6 +1610,34 @@ def test_sigma_wrong_star_by_star_prints_the_rows_ml_scale(seed):
     assert abs(v.star - truth) < 2.5 * v.star_sigma, (v.star, v.star_sigma, truth)
 
 
+def test_the_star_by_star_test_reads_the_fit_before_the_stars_own_weights():
+    """The passes that weight each star by its own measured scale (H211, the scale's fix
+    above) lean each frame's fit on the stars that read small, which then read smaller:
+    the stars' spread grows with the weights it made, and the F test's reference no longer
+    holds.  On the clean swaying false-alarm bag seed 2047 (`benchmarks/false_alarms.py
+    --first-seed 2047 --seeds 1 --cases swaying`) the line read F 1.57, p 0.00016 on the
+    weighted fit for 1.39, p 0.0051 before it.  The verdict's star-by-star test is now the
+    last fit's before those weights (`noise_stars.levels_fit`), the scale the weighted
+    fit's.  On the sigma_per_star simulation (seed 4) the weighted fit's F is the larger,
+    and the verdict prints the unweighted one's."""
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+
+    sim = _sim(seed=4)
+    data, _ = _per_star(_stated(sim), seed=8)
+    base = evaluate(data, method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
+                    keep_residuals=True)
+    sn = noise.measure_stars(base, data, "psce", 0.5, NoiseScales())
+    assert sn is not None and sn.levels is not None  # a pass weighted by the own scales
+    plain = noise_stars.levels_fit(sn)
+    f_plain = noise_stars.star_spread(plain, noise_stars.grouped_stars(plain))["F"]
+    f_weighted = noise_stars.star_spread(sn, noise_stars.grouped_stars(sn))["F"]
+    assert f_weighted > 1.05 * f_plain, (f_weighted, f_plain)
+    v = measure_bag(data, sim.prior, "psce", [], NoiseScales(), components=())
+    assert v.per_star is not None
+    assert v.per_star["F"] == pytest.approx(f_plain, rel=0.02), (v.per_star, f_plain)
+
+
 def _clean_rows():
     """The clean 200 s seed-3 bag's run (its residual table kept), its rows and window."""
     from stellar_cal_ros.diagnosis import stats

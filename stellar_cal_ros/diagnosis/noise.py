@@ -63,6 +63,7 @@ from stellar_cal_ros.diagnosis.noise_stars import (
     group_x,
     grouped_stars,
     known_groups,
+    levels_fit,
     significant_grouping,
     star_groups,
     star_levels,
@@ -767,17 +768,21 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
     # the stated σ wrong star by star (beyond the groups' steps): the groupings are then
     # judged with the stars as their units (a random factor per star made the rows' groups
     # "x0.889 .. x1.2 by magnitude", unseen case sigma_per_star)
-    lev = star_levels(sn, grouped, None if best is None else group_index(sn, best))
+    # (the test on the fit before the stars' own weights, :func:`levels_fit`)
+    lv = levels_fit(sn)
+    lgrouped = grouped_stars(lv)
+    lev = star_levels(lv, lgrouped, None if best is None else group_index(lv, best))
     if lev is not None:
         # (merged and their σ with the stars as units too: the rows' σ of a group's scale
         # holds none of its stars' own levels, 0.08-0.19 x its scatter over draws of the
         # stars' factors, and merged by it the bins kept steps of random stars, 4.9 column
         # groups a draw for the truth's 2; the stars' σ 0.85-0.9 x, test_noise)
         v.groups = [dict(g, p_rows=g["p_value"], p_value=max(g["p_value"], (star_spread(
-            sn, grouped, group_index(sn, g)) or {"groups_p": 1.0})["groups_p"]))
+            lv, lgrouped, group_index(lv, g)) or {"groups_p": 1.0})["groups_p"]))
             for g in star_groups(sub, size, grouped, v.stated, stars=True)]
         best = significant_grouping(v.groups, n_tests)
-        v.per_star = star_levels(sn, grouped, None if best is None else group_index(sn, best))
+        v.per_star = star_levels(lv, lgrouped,
+                                 None if best is None else group_index(lv, best))
         if v.per_star is not None and "star" not in v.rejected:
             v.rejected.append("star")
     if best is not None:

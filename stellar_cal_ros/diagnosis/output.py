@@ -15,6 +15,7 @@ from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.diagnosis import clock, installation_step, rolling, shape_drift, stats
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
+    levels_fit,
     line_noise,
     not_measured,
     star_levels,
@@ -306,7 +307,7 @@ def line_tests(res, calibration: Calibration, fraction: float,
         + ([step.finding()] if step is not None else []),
         R_imu_st=calibration.R_imu_st,
         height=cam.height, track_lags=track_lags(sn), width=cam.width,
-        star_levels=star_levels(sn) is not None, family=family)
+        star_levels=star_levels(levels_fit(sn)) is not None, family=family)
     periods = clock.wobble_periods(found, _span(res, mask))
     if periods and timing is not None:
         # a wobble found: the clock judged against it, as against a flexure
