@@ -720,10 +720,47 @@ def test_future_stamped_frames_do_not_evict_good_ones(excerpt):
     assert cal.counters.frames_overflow == 0
 
 
+def _node_ready(ctx, name: str, timeout: float = 120.0) -> None:
+    """Wait until the node ``name`` (another process) is up: its latched camera_info came.
+
+    It latches the prior's camera_info at the end of its start-up, after its subscriptions
+    exist. A player that starts before them publishes the bag's first messages to nobody
+    (``wait_for_subscribers_s`` ends on a loaded machine): they are lost, never counted.
+    """
+    from rclpy.qos import DurabilityPolicy
+
+    probe = rclpy.create_node(f"probe_{uuid.uuid4().hex[:6]}", context=ctx,
+                              use_global_arguments=False)
+    got = []
+    probe.create_subscription(CameraInfo, f"/{name}/camera_info", got.append, QoSProfile(
+        depth=1, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    try:
+        with Spinner(ctx, probe):
+            wait_for(lambda: got, timeout, f"{name} to start")
+    finally:
+        probe.destroy_node()
+
+
+def _received(path) -> int:
+    """Input messages a calibrator's checkpoint has counted (every kind the bag holds)."""
+    from stellar_cal_ros.io.checkpoint import read_checkpoint
+
+    c = read_checkpoint(path)[1]["driver"]["counters"]
+    return c["imu_received"] + c["frames_received"] + c["env_received"] + c["fixes_received"]
+
+
 def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tmp_path):
     """The calibrator process is SIGKILLed mid-bag; restarted, it resumes from its periodic
     checkpoint, the whole bag is played again (what it already has is dropped, counted)
-    and the result is the uninterrupted replay's."""
+    and the result is the uninterrupted replay's.
+
+    Each process must have received every message played to it: a message lost on the way
+    (the player publishing before the process's subscriptions exist) is never in the
+    checkpoint, and replayed later it is older than what the process has: dropped as late.
+    The test waits for each process to be up and, after the first playback, for its
+    checkpoint to count every message played, then kills it (the cut points between
+    checkpoints are test_online's test_resumed_driver_drops_what_it_has)."""
     import signal
     import subprocess
     import sys
@@ -738,6 +775,7 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
             f"output_file:={out}", "-p", "reorder_window_s:=0.05"]
 
     def play(duration_s):
+        _node_ready(ros_context, name)
         player = PlayerNode(f"player_{uuid.uuid4().hex[:6]}", context=ros_context,
                             cli_args=remaps(prefix), use_global_arguments=False,
                             parameter_overrides=[
@@ -757,18 +795,19 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
     first = subprocess.Popen(argv, env=_node_env(), stdout=subprocess.PIPE,
                              stderr=subprocess.STDOUT, text=True)
     try:
-        play(EXCERPT_S / 2)
-        deadline = time.monotonic() + 10
-        size = -1
-        while time.monotonic() < deadline and (not ck.exists() or ck.stat().st_size != size):
-            size = ck.stat().st_size if ck.exists() else -1
-            time.sleep(0.5)  # until the periodic checkpoint has caught up
+        played = play(EXCERPT_S / 2).messages
+        deadline = time.monotonic() + 60
+        n1 = -1
+        while time.monotonic() < deadline and n1 < played:
+            time.sleep(0.2)  # until the periodic checkpoint holds every message played
+            n1 = _received(ck) if ck.exists() else -1
         first.send_signal(signal.SIGKILL)
         first.wait(10)
     finally:
         if first.poll() is None:
             first.kill()
     assert first.returncode == -signal.SIGKILL and ck.exists() and not out.exists()
+    assert n1 == played, f"the first process received {n1} of {played} messages played"
     second = subprocess.Popen(argv, env=_node_env(), stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
     try:
@@ -781,6 +820,8 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
             second.kill()
     assert "resumed from" in log_text, log_text
     assert stats.messages == sum(counts.values())
+    # the checkpoint written at shutdown: the second process received the whole bag
+    assert _received(ck) - n1 == stats.messages, log_text
     assert_same(load_calibration(out), ref.calibration)
 
 

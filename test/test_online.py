@@ -195,6 +195,32 @@ def test_checkpoint_half_way_resumes_without_loss(excerpt, tmp_path):
     assert_same(second.calibration(), ref.calibration)
 
 
+def test_resumed_driver_drops_what_it_has(excerpt, tmp_path):
+    """The node's restart after a kill: the checkpoint of the first k messages, then the
+    WHOLE stream again; what the checkpoint holds is dropped (late or duplicate, counted),
+    the rest used: the uninterrupted replay's result at every cut point (mid-window,
+    beside a star frame, with IMU pending in the reorder window)."""
+    _, prior, ref, events = excerpt
+    arrival = shuffled(events, WINDOW_S, seed=5)
+    n = len(arrival)
+    stars = [i for i, e in enumerate(arrival) if e[2] == "stars"]
+    for cut in (n // 3, n // 2, stars[len(stars) // 2], stars[len(stars) // 2] + 1, n - 7):
+        first = make(prior)
+        feed(first, arrival[:cut])
+        ck = tmp_path / f"ck{cut}.npz"
+        save_checkpoint(first, ck)
+        second = make(prior)
+        load_checkpoint(second, ck)
+        feed(second, arrival)
+        second.finish()
+        c, c1 = second.counters, first.counters
+        assert c.frames_received == c1.frames_received + len(stars)
+        # the frames the first process had, released or pending, come back as already had
+        assert c.frames_late + c.frames_duplicate == c1.frames_received, cut
+        assert second.filter_counters()["updates"] == ref.counters["updates"], cut
+        assert_same(second.calibration(), ref.calibration)
+
+
 def test_checkpoint_of_another_model_is_refused(excerpt, tmp_path):
     _, prior, _, events = excerpt
     cal = make(prior)
