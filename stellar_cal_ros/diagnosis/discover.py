@@ -357,7 +357,7 @@ class Round:
         """Progress line of one finished run (``where``: ``run 4/11, ETA 20 s``)."""
         # (a private nuisance's id is never named: :func:`~stellar_cal_ros.effects.
         # registry.available`)
-        shown = [e for e in task.effects if not e.startswith("_")]
+        shown = [e for e in task.effects if not registry.is_private(e)]
         what = "+".join(shown[-2:]) if shown else "current model"
         name = what if task.key == what else f"{task.key}: {what}"
         self.tell(f"{name} ({out.seconds:.1f} s)"

@@ -726,7 +726,7 @@ class DaskRuns(Runs):
                      self._cpu[1] / self._cpu[0])
             self._connect()
         if self.client is None:
-            yield from super().map(tasks, ahead, then)
+            yield from super().map(tasks, ahead, then, running)
             return
         from distributed import as_completed
 

@@ -74,6 +74,19 @@ def lambda0(alpha: float, dof: int, power: float = POWER) -> float:
     return noncentrality_beyond(float(dist.chi2.isf(alpha, dof)), dof, power)
 
 
+def score_response(d: np.ndarray, information: np.ndarray, dispersion: float = 1.0) -> float:
+    """``Δsᵀ I⁻¹ Δs``: the non-centrality of a score test whose score moved by ``d``.
+
+    ``information``: the score's ``I`` (divided by ``dispersion``, as an MDB's is,
+    :func:`detectability`); the paired response of an injection (:mod:`~.verify`'s twins,
+    :mod:`~.reliability_probe`'s runs on the user's bag), λ₀ at the MDB where the score is
+    linear in the effect.
+    """
+    info = np.atleast_2d(np.asarray(information, dtype=float)) / float(dispersion)
+    d = np.asarray(d, dtype=float)
+    return float(d @ np.linalg.pinv(info) @ d)
+
+
 def noncentrality_beyond(crit: float, dof: int, power: float = POWER) -> float:
     """Non-centrality λ at which a non-central χ²_dof(λ) exceeds ``crit`` with ``power``.
 

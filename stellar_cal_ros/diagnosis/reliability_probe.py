@@ -428,8 +428,7 @@ def both_signs(entry: dict[str, Any], parameter: str, d_plus: np.ndarray | None,
 
 def response(d: np.ndarray, screen) -> float:
     """``Δsᵀ I⁻¹ Δs`` with the round's ``I`` divided by its dispersion (as the MDB's)."""
-    info = np.atleast_2d(np.asarray(screen.information, dtype=float)) / float(screen.dispersion)
-    return float(d @ np.linalg.pinv(info) @ d)
+    return reliability.score_response(d, screen.information, screen.dispersion)
 
 
 def secant(entry: dict[str, Any], parameter: str, step: float, lam_step: float) -> None:

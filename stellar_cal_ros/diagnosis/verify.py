@@ -40,6 +40,7 @@ import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.diagnosis import injection
+from stellar_cal_ros.diagnosis.reliability import score_response
 from stellar_cal_ros.diagnosis.reliability_probe import own_shift
 from stellar_cal_ros.effects import registry
 
@@ -188,9 +189,7 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
     s0 = (base0.scores or {}).get(eid)
     s1 = (base.scores or {}).get(eid)
     if s0 is not None and s1 is not None and len(s0) > 5 and len(s1) > 5:
-        d = np.asarray(s1[5]) - np.asarray(s0[5])
-        info = np.atleast_2d(np.asarray(s0[2], dtype=float))
-        lam = float(d @ np.linalg.pinv(info) @ d)
+        lam = score_response(np.asarray(s1[5]) - np.asarray(s0[5]), s0[2])
     k = int(entry.get("dof", eff.size))
     crit = dist.chi2.isf(entry["alpha"], k)
     shift = injection.paired_shift(before, injection.summary_values(base),
