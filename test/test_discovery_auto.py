@@ -484,6 +484,11 @@ def test_unscreened_mdb_is_stated_for_the_dispersion():
     text = printing.dispersion_note([clean_entry, entry])
     assert "8.35x the stated noise's variance" in text and "2.89x" in text
     assert printing.dispersion_note([clean_entry]) == ""
+    # an MDB the probe restated at both signs (mdb_set_by "probe") is not the excess
+    # gate's: the note still says a lower bound, not that the gate set it
+    probed = {**entry, "mdb_set_by": "probe", "mdb_test": dict(entry["mdb"])}
+    assert "a lower bound" in printing.dispersion_note([probed])
+    assert "said so" not in printing.dispersion_note([probed])
 
 
 def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):

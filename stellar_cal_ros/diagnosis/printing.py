@@ -476,7 +476,7 @@ def dispersion_note(entries: list[dict[str, Any]]) -> str:
     disp = max((e.get("dispersion", 1.0) for e in entries), default=1.0)
     if disp == 1.0:
         return ""
-    gate = any(e.get("mdb_set_by") for e in entries)
+    gate = any(e.get("mdb_set_by") == "explained_gate" for e in entries)
     return (f"stated for residuals at {disp:.3g}x the stated noise's variance, as this model "
             f"leaves them ({np.sqrt(disp):.2f}x the MDB of residuals as stated)"
             + (f"; here an effect must also remove {MIN_EXPLAINED:.0%} of the excess variance "
