@@ -371,6 +371,56 @@ def test_both_signs_restates_only_a_response_below_lam0_at_the_mdb_itself():
     assert missing == entry()
 
 
+def test_gate_secant_finds_the_gate_of_the_hard_sign_from_two_runs():
+    """The gate MDB of the sign the misfit works against, restated from measured energies.
+
+    Printed ``h`` and leaning ``l`` solve ``b² − (h − l) b = h l`` (units of I, ``q`` =
+    ``lam_gate`` x ``dispersion``).  An energy whose quadratic term is ``κ`` x the first
+    order's: the first run at ``h`` reads ``ρ = (κ h² − (h − l) h) / (h l)``, the step lands
+    on the root of ``κ b² − (h − l) b = h l``; a run there reads ``ρ = 1`` and the secant
+    keeps it.  A curvature that still falls moves it on; no positive curvature, or at least
+    the stated energy at ``h`` (it passes there), keeps ``h``.
+    """
+    h, lean, q = 3.0, 0.25, 8.0 * 0.75  # I = q / (h l) = 8: lam_gate 0.75 at dispersion 8
+
+    def entry():
+        return {"mdb": {"a": h}, "mdb_test": {"a": 0.1}, "mdb_leaning": {"a": -lean},
+                "lam_gate": 0.75, "dispersion": 8.0}
+
+    def energy(b, kappa):  # whitened energy at the hard size b (I = 8)
+        return 8.0 * (kappa * b * b - (h - lean) * b)
+
+    kappa = 0.97
+    e = entry()
+    step = reliability_probe.gate_secant(e, "a", energy(h, kappa))
+    want = ((h - lean) + np.sqrt((h - lean) ** 2 + 4 * kappa * h * lean)) / (2 * kappa)
+    assert step == pytest.approx(want) and e["mdb"]["a"] == pytest.approx(want)
+    assert e["gate_probe"]["a"] == {"size": h, "energy_ratio": pytest.approx(
+        energy(h, kappa) / q)}
+    assert reliability_probe.gate_secant(e, "a", energy(want, kappa)) is None
+    assert e["mdb"]["a"] == pytest.approx(want)
+    assert e["gate_probe"]["a"]["step_energy_ratio"] == pytest.approx(1.0)
+    # the curvature falls further between the two runs: the secant through both at q
+    e = entry()
+    b1 = reliability_probe.gate_secant(e, "a", energy(h, kappa))
+    e2 = energy(b1, 0.96)
+    reliability_probe.gate_secant(e, "a", e2)
+    rho1, rho2 = energy(h, kappa) / q, e2 / q
+    assert e["mdb"]["a"] == pytest.approx(b1 + (1 - rho2) * (b1 - h) / (rho2 - rho1))
+    assert e["mdb"]["a"] > b1
+    flat = entry()  # the effect's energy fell: no positive curvature, h kept
+    assert reliability_probe.gate_secant(flat, "a", energy(h, 0.0) * 3.0) is None
+    assert flat["mdb"]["a"] == h
+    held = entry()  # more energy than stated at h: it passes there, h kept, no run more
+    assert reliability_probe.gate_secant(held, "a", energy(h, 1.02)) is None
+    assert held["mdb"]["a"] == h and held["gate_probe"]["a"]["energy_ratio"] > 1.0
+    # only a testable entry's gate-set parameters are run
+    assert reliability_probe.gated({**entry(), "mdb_set_by": "explained_gate",
+                                    "testable": True}) == ["a"]
+    assert reliability_probe.gated({**entry(), "mdb_set_by": "explained_gate"}) == []
+    assert reliability_probe.gated({**entry(), "testable": True}) == []
+
+
 def sigma_of(result, name):
     names = result.filter.model.parameter_names()
     return float(np.sqrt(result.filter.P[names.index(name), names.index(name)]))

@@ -429,10 +429,11 @@ def mdb_phrase(entry: dict[str, Any]) -> str:
 
     Where the decision's excess gate sets it (``mdb_set_by`` "explained_gate",
     :func:`reliability.detectability`), it says so, gives the sign the misfit leans to
-    (found from a smaller size) and the test's MDB alone.  Where probe runs restated it at
-    both signs (``mdb_set_by`` "probe"), the first-order size follows, at which the biases
-    are stated: ``tau_x 7.13 mrad (either sign, by probe runs; first order 4.54 mrad, the
-    size of the biases)``.
+    (found from a smaller size) and the test's MDB alone; where runs on the bag restated
+    it (``gate_probe``, :func:`~.reliability_probe.gate_secant`), the first-order size
+    too.  Where probe runs restated it at both signs (``mdb_set_by`` "probe"), the
+    first-order size follows, at which the biases are stated: ``tau_x 7.13 mrad (either
+    sign, by probe runs; first order 4.54 mrad, the size of the biases)``.
     """
     from stellar_cal_ros.diagnosis.discover import MIN_EXPLAINED
 
@@ -443,8 +444,12 @@ def mdb_phrase(entry: dict[str, Any]) -> str:
 
     by = entry.get("mdb_set_by")
     if by == "explained_gate":
+        ran = {n: p["size"] for n, p in entry.get("gate_probe", {}).items()
+               if entry["mdb"].get(n) != p["size"]}
         return (f"{sizes(entry['mdb'])} (the size at which an effect of either sign removes "
-                f"{MIN_EXPLAINED:.0%} of the excess variance, as an add needs; of the sign "
+                f"{MIN_EXPLAINED:.0%} of the excess variance, as an add needs"
+                + (f", by runs on this bag (first order {sizes(ran)})" if ran else "")
+                + "; of the sign "
                 f"the misfit leans to from {sizes(entry.get('mdb_leaning', {}), '+')}; the "
                 f"test alone: {sizes(entry['mdb_test'])})")
     first = entry.get("mdb_test", {}) if by == "probe" else {}

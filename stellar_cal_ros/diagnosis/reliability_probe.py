@@ -49,6 +49,8 @@ log = logging.getLogger(__name__)
 AGREE = 0.1
 #: the key of a probe run's values that holds the effect's score (not an estimate)
 SCORE = "_score"
+#: the key of a probe run's values that holds its window's excess variance per star (px²)
+EXCESS = "_excess"
 #: the twin's renderer draws no noise: the increment is the effect alone
 _NOISELESS = NoiseScales(star=1e-12, gyro=1e-12, accel=1e-12)
 
@@ -362,6 +364,7 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
                                   eval_fraction=fraction, **kw, **score)
             del moved
             values = injection.run_values(run)
+            values[EXCESS] = float(run.stats.window(fraction)["excess_variance"])
             # the effect's score in this run (a consider parameter: the estimates are the
             # run's without it): against the round's, the score's response at this size
             scored = spec.screen(run, [effect_id]) if spec.screen is not None else {}
@@ -469,6 +472,75 @@ def flagged(entry: dict[str, Any]) -> list[str]:
     return list(dict.fromkeys(entry["bias_parameter"][q] for q in entry.get("remainders", [])))
 
 
+def gated(entry: dict[str, Any]) -> list[str]:
+    """The parameters of a testable entry whose printed MDB is the excess gate's.
+
+    ``mdb_set_by`` "explained_gate" (:func:`~.reliability.detectability`): the size at which
+    the sign the misfit works against passes the decision's excess gate, from the effect's
+    whitened energy taken as quadratic in the size (:func:`gate_secant` measures it).
+    """
+    if entry.get("mdb_set_by") != "explained_gate" or not entry.get("testable"):
+        return []
+    test, lean = entry.get("mdb_test", {}), entry.get("mdb_leaning", {})
+    return [p for p, v in entry["mdb"].items()
+            if np.isfinite(v) and v > test.get(p, np.inf) and np.isfinite(lean.get(p, np.nan))]
+
+
+def gate_secant(entry: dict[str, Any], parameter: str, energy: float) -> float | None:
+    """The gate MDB of ``parameter`` restated from the energy a run at its size measured.
+
+    The printed size ``h`` (the sign the misfit works against) and the leaning sign's ``l``
+    solve ``I b² ∓ 2 s b = q`` (:func:`~.reliability.detectability`; ``q`` =
+    ``lam_gate`` x ``dispersion``): in units of ``I``, ``b² − (h − l) b = h l``.  At the
+    hard sign the energy is the small difference of the two terms, so a few % of curvature
+    the first order misses (the reference gates its worst stars as ``b`` grows: 0.93x the
+    information's at ±2.86e-3 on ``dt_step`` s23) move it by tens of %: there the
+    candidate removed 7.7 % (5.5-9.1 % on seeds 101-110) where the gate needs 10 %.
+    ``energy``: the whitened energy the effect at ``−sign(l)`` x the size added to the
+    current model's residuals on the user's bag (a probe run: ``(E₁ − E₀) · 2 · stars /
+    noise``).  First call (the run at ``h``): the curvature is taken from it with the
+    linear term kept (``κ b² − (h − l) b``, the misfit's overlap is first order),
+    ``κ = (ρ l + h − l) / h`` with ``ρ = energy / q``, and the size where that reaches
+    ``q`` is returned for one run more (``None``: ``h`` kept where ``ρ ≥ 1``, the gate
+    passing there with at least the test's power, or where no curvature is positive).
+    Second call (the run at that size): the MDB is the secant through the two measured
+    energies at ``q`` (the curvature still falls between them: one step landed at 9.6 %
+    on seed 101).  At least the test's ``mdb_test``.  ``gate_probe[parameter]``: ``size``,
+    ``energy_ratio`` (``ρ``) and ``step``, ``step_energy_ratio``.
+    """
+    q = float(entry.get("lam_gate", 0.0)) * float(entry.get("dispersion", 1.0))
+    if not q > 0.0:
+        return None
+    rho = float(energy) / q
+    probe = entry.setdefault("gate_probe", {})
+    if parameter in probe:  # the second run: the secant through the two
+        first = probe[parameter]
+        h, b1, rho1 = first["size"], abs(entry["mdb"][parameter]), first["energy_ratio"]
+        first.update(step=b1, step_energy_ratio=rho)
+        if rho > rho1 and b1 != h:
+            root = b1 + (1.0 - rho) * (b1 - h) / (rho - rho1)
+            entry["mdb"][parameter] = float(max(root, entry["mdb_test"][parameter]))
+        return None
+    h = float(entry["mdb"][parameter])
+    lean = abs(float(entry["mdb_leaning"][parameter]))
+    probe[parameter] = {"size": h, "energy_ratio": rho}
+    kappa = (rho * lean + h - lean) / h
+    # at least the stated energy at h: the gate passes there with the test's power (the
+    # printed size holds, perhaps conservative: not lowered, no run more)
+    if not (kappa > 0.0 and rho < 1.0):
+        return None
+    root = ((h - lean) + np.sqrt((h - lean) ** 2 + 4.0 * kappa * h * lean)) / (2.0 * kappa)
+    entry["mdb"][parameter] = float(max(root, entry["mdb_test"][parameter]))
+    return entry["mdb"][parameter] if entry["mdb"][parameter] != h else None
+
+
+def _at_hard_sign(entry: dict[str, Any], parameter: str) -> tuple[str, tuple[float, ...]]:
+    """A probe of ``parameter`` at its MDB, at the sign the misfit works against."""
+    size = -np.sign(entry["mdb_leaning"][parameter]) * entry["mdb"][parameter]
+    return entry["effect"], tuple(injection.parameter_delta(entry["effect"], parameter,
+                                                            size).tolist())
+
+
 def _agrees(first: float, measured: float) -> bool:
     return abs(measured - first) <= AGREE * abs(first)
 
@@ -537,16 +609,35 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
     if base is None or not base.ok or base.calibration is None or base.prior is None:
         return lambda: 0
     todo = [(entry, parameter) for entry in entries for parameter in flagged(entry)]
-    if not todo:
+    gates = [(entry, parameter) for entry in entries for parameter in gated(entry)]
+    if not todo and not gates:
         return lambda: 0
     probes = tuple((entry["effect"], tuple(injection.parameter_delta(
         entry["effect"], parameter, sign * entry["hidden_size"][parameter]).tolist()))
         for entry, parameter in todo for sign in (1.0, -1.0))
+    # one run per gate-set MDB: the effect at it, at the sign the misfit works against
+    hard = tuple(_at_hard_sign(entry, parameter) for entry, parameter in gates)
     args = (runs.spec, base.prior, tuple(base.effects), runs.fraction, runs.noise,
             runs.classes, base.calibration)
-    pending = _started(runs, args, probes, 2)
+    pending = _started(runs, args, probes, 2) if probes else []
+    pending_gates = _started(runs, args, hard, 1) if hard else []
 
     def done() -> int:
+        w = base.window
+
+        def energy(row) -> float | None:  # the whitened energy the probe's effect added
+            if row is None or not w["noise_variance"] > 0:
+                return None
+            return ((row[EXCESS] - w["excess_variance"]) * 2.0 * w["n_window"]
+                    / w["noise_variance"])
+
+        # the gate-set MDBs: one step from the run at the printed size, then a secant
+        regate = []
+        for (entry, parameter), row in zip(gates, [row for part in pending_gates
+                                                   for row in part()], strict=True):
+            e = energy(row)
+            if e is not None and gate_secant(entry, parameter, e) is not None:
+                regate.append((entry, parameter))
         got = [row for part in pending for row in part()]
         before, sigma = injection.summary_values(base), base.sigma_by_name()
         steps = []
@@ -561,17 +652,23 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
                                   score_step(s_minus, screen), screen)
                 if step is not None:
                     steps.append((entry, parameter, screen, *step))
-        if not steps:
-            return len(probes)
+        if not steps and not regate:
+            return len(probes) + len(hard)
         # one run more per restated MDB: the weaker sign at the one step's size (a secant)
         again = tuple((entry["effect"], tuple(injection.parameter_delta(
             entry["effect"], parameter, sign * factor * entry["mdb_test"][parameter]).tolist()))
-            for entry, parameter, _, sign, factor in steps)
+            for entry, parameter, _, sign, factor in steps) + tuple(
+            _at_hard_sign(entry, parameter) for entry, parameter in regate)
         rows = [row for part in _started(runs, args, again, 1) for row in part()]
-        for (entry, parameter, screen, _, factor), row in zip(steps, rows, strict=True):
+        for (entry, parameter, screen, _, factor), row in zip(steps, rows[:len(steps)],
+                                                             strict=True):
             d = score_step(None if row is None else row.get(SCORE), screen)
             if d is not None:
                 secant(entry, parameter, factor, response(d, screen))
-        return len(probes) + len(again)
+        for (entry, parameter), row in zip(regate, rows[len(steps):], strict=True):
+            e = energy(row)
+            if e is not None:
+                gate_secant(entry, parameter, e)
+        return len(probes) + len(hard) + len(again)
 
     return done
