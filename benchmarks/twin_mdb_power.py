@@ -15,6 +15,8 @@ non-centrality implies at the test's level.  Run::
     python benchmarks/twin_mdb_power.py BASE.mcap RESULT.d psce --seeds 101-110
     python benchmarks/twin_mdb_power.py BASE.mcap RESULT.d psce --effects image_plane_tilt \
         --signs 1 --factor 2 --records OUT.jsonl  # 2x the printed MDB, + only
+    python benchmarks/twin_mdb_power.py BASE.mcap RESULT.d psce --effects image_plane_tilt \
+        --parameter tau_y  # tau_y instead of the report's parameter (tau_x)
     python benchmarks/twin_mdb_power.py --table-from OUT.jsonl
 
 ``RESULT.d`` is ``discover --auto``'s output on ``BASE.mcap`` (its ``calibration.yaml`` and
@@ -40,11 +42,13 @@ from stellar_cal_ros.methods.frames import read_bag_data
 
 
 def records(bag: str, result: Path, method: str, only: list[str], seeds: range,
-            signs: tuple[int, ...], sink=None, factor: float = 1.0) -> list[dict]:
+            signs: tuple[int, ...], sink=None, factor: float = 1.0,
+            parameter: str = "") -> list[dict]:
     """:func:`check_claims`'s records of ``only`` on twins of ``bag``, one seed at a time.
 
     ``factor``: the twins get ``factor`` x the printed size (the bias checks, scaled with
-    it, are dropped from the records).
+    it, are dropped from the records); ``parameter``: the one injected in the effects that
+    have it (else the report's, as ``--verify``: the largest bias's).
     """
     data = read_bag_data(bag)
     calibration = load_calibration(result / "calibration.yaml")
@@ -54,6 +58,7 @@ def records(bag: str, result: Path, method: str, only: list[str], seeds: range,
     effects = list(method_spec(method).baseline) + list(summary.get("added", []))
     noise = stated_scales(calibration)
     scene = twin_scene(data, calibration, method)
+    chosen = {e["effect"]: parameter for e in entries if parameter in e.get("hidden_size", {})}
     out = []
     for seed in seeds:
         t0 = time.process_time()
@@ -63,7 +68,7 @@ def records(bag: str, result: Path, method: str, only: list[str], seeds: range,
             return twin.data, twin.counts
 
         rows = check_claims(make, calibration, method, effects, entries, noise, seed,
-                            only=only, signs=signs)
+                            only=only, signs=signs, parameters=chosen)
         for rec in rows:
             rec = {k: v for k, v in rec.items() if k not in ("twin_counts", "biases")}
             rec["cpu_s"] = time.process_time() - t0
@@ -85,10 +90,11 @@ def table(recs: list[dict]) -> list[str]:
     lines = ["| effect | size (x MDB) | twins | flagged | score stat. mean − dof (λ) | λ / λ₀ | "
              "power at that λ | paired λ / λ₀ (median) |",
              "|---|---|---|---|---|---|---|---|"]
-    keys = sorted({(r["effect"], r.get("factor", 1.0), r["sign"]) for r in recs})
-    for eid, factor, sign in keys:
-        rs = [r for r in recs if r["effect"] == eid and r["sign"] == sign
-              and r.get("factor", 1.0) == factor]
+    keys = sorted({(r["effect"], r["parameter"], r.get("factor", 1.0), r["sign"])
+                   for r in recs})
+    for eid, param, factor, sign in keys:
+        rs = [r for r in recs if r["effect"] == eid and r["parameter"] == param
+              and r["sign"] == sign and r.get("factor", 1.0) == factor]
         k, lam0, alpha = rs[0]["dof"], rs[0]["expected_noncentrality"], rs[0]["alpha"]
         stat = np.array([r["score_statistic"] for r in rs], dtype=float)
         lam = float(np.nanmean(stat)) - k
@@ -113,6 +119,8 @@ def main() -> int:
     ap.add_argument("--seeds", default="101-110", help="first-last twin seeds")
     ap.add_argument("--signs", default="1,-1")
     ap.add_argument("--factor", type=float, default=1.0, help="x the printed MDB")
+    ap.add_argument("--parameter", default="",
+                    help="inject this parameter (default: the report's, as --verify)")
     ap.add_argument("--records", default="", help="append every record as JSON lines")
     ap.add_argument("--table-from", nargs="*", default=[], help="only the table of records")
     a = ap.parse_args()
@@ -124,7 +132,7 @@ def main() -> int:
         try:
             recs = records(a.bag, a.result, a.method, a.effects.split(","),
                            range(first, last + 1), tuple(int(s) for s in a.signs.split(",")),
-                           sink, a.factor)
+                           sink, a.factor, a.parameter)
         finally:
             if sink is not None:
                 sink.close()

@@ -18,6 +18,14 @@ of ``PARAM``: the case simulated with that parameter at 0 and at ± the MDB, sam
 
     python benchmarks/unscreened_power.py dt_step gyro_scale_factor - 23-23 - \
         --paired sx --model time_offset
+
+``--gate PARAM`` checks an MDB the excess gate set (``mdb_set_by`` "explained_gate") at
+the sign the misfit works against: per seed the round's own printed MDB, the case simulated
+again with ``-sign(mdb_leaning)`` x ``--factor`` x it, and whether that round's decision
+passes (p below 1 % and 10 % of the excess removed)::
+
+    python benchmarks/unscreened_power.py dt_step gyro_scale_factor - 101-110 - \
+        --gate sx --model time_offset [--secant]
 """
 
 from __future__ import annotations
@@ -28,6 +36,8 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import unseen_cases  # noqa: E402
@@ -42,8 +52,16 @@ def main() -> int:
     ap.add_argument("out", type=Path)
     ap.add_argument("--paired", default="", help="measure the non-centrality at this "
                     "parameter's printed MDB instead")
-    ap.add_argument("--model", default="", help="with --paired: effects beside the baseline")
+    ap.add_argument("--model", default="", help="with --paired/--gate: effects beside the "
+                    "baseline")
+    ap.add_argument("--gate", default="", help="measure instead the decision at this "
+                    "parameter's printed MDB, the sign the misfit works against")
+    ap.add_argument("--factor", type=float, default=1.0, help="with --gate: x the MDB")
+    ap.add_argument("--secant", action="store_true", help="with --gate: restate the MDB "
+                    "from that injection as a diagnosis does, and inject it too")
     a = ap.parse_args()
+    if a.gate:
+        return gate(a)
     if a.paired:
         return paired(a)
     a.out.mkdir(parents=True, exist_ok=True)
@@ -84,8 +102,12 @@ def main() -> int:
     return 0
 
 
-def paired(a) -> int:
-    """One row a seed: dispersion, printed MDB, Λ(0), Λ(±MDB) and the non-centrality / λ₀."""
+def one_round(a, seed: int, b: float):
+    """One unscreened round of the case at ``seed`` with ``a.paired`` = ``b``.
+
+    The ``--model`` effects beside the baseline, the one candidate ``a.effect``:
+    ``(reference, candidate)``.
+    """
     from stellar_cal_ros.core.noise import NoiseScales
     from stellar_cal_ros.diagnosis import discover
     from stellar_cal_ros.diagnosis.parallel import Runs
@@ -99,29 +121,81 @@ def paired(a) -> int:
     sc = get_scenario({"psce": "psce_rotations", "swaying_base": "swaying"}[case.method])
     names = registry.create(a.effect).parameter_names
     extra = [e for e in a.model.split(",") if e]
+    vec = [b if n == a.paired else 0.0 for n in names]
+    sim = simulate(sc, duration=case.duration, seed=seed,
+                   effects={**case.sim_effects, **({a.effect: vec} if b else {})})
+    if case.post is not None:
+        case.post(sim, seed)
+    runs = Runs(bag_data_from_simulation(sim), spec, 0.5)
+    runs.noise = NoiseScales()
+    r = discover.Round(runs, spec, runs.facts(), 0.5, sim.prior)
+    base, (c,), _ = discover.rank_round(r, sim.prior, extra, [a.effect], condition=False,
+                                        screen=False, measure_noise=False)
+    return discover.Reference.of(base), c
+
+
+def paired(a) -> int:
+    """One row a seed: dispersion, printed MDB, Λ(0), Λ(±MDB) and the non-centrality / λ₀."""
     first, last = map(int, a.seeds.split("-"))
     for seed in range(first, last + 1):
-        def round_(b, seed=seed):
-            vec = [b if n == a.paired else 0.0 for n in names]
-            sim = simulate(sc, duration=case.duration, seed=seed,
-                           effects={**case.sim_effects, **({a.effect: vec} if b else {})})
-            if case.post is not None:
-                case.post(sim, seed)
-            runs = Runs(bag_data_from_simulation(sim), spec, 0.5)
-            runs.noise = NoiseScales()
-            r = discover.Round(runs, spec, runs.facts(), 0.5, sim.prior)
-            base, (c,), _ = discover.rank_round(r, sim.prior, extra, [a.effect],
-                                                condition=False, screen=False,
-                                                measure_noise=False)
-            return discover.Reference.of(base).dispersion, c
-
-        d, c0 = round_(0.0)
-        b = c0.detect.mdb[a.paired]
-        up, down = round_(b)[1].statistic, round_(-b)[1].statistic
+        ref, c0 = one_round(a, seed, 0.0)
+        d, b = ref.dispersion, c0.detect.mdb[a.paired]
+        up, down = one_round(a, seed, b)[1].statistic, one_round(a, seed, -b)[1].statistic
         lam = (up + down - 2.0 * c0.statistic) / 2.0
         print(f"{seed:5d} dispersion {d:.3g} MDB {a.paired} {b:.4g} lam0 {c0.detect.lam0:.4g} "
               f"L(0) {c0.statistic:.4g} L(+b) {up:.4g} L(-b) {down:.4g} "
               f"lam/lam0 {lam / c0.detect.lam0:.3g}", flush=True)
+    return 0
+
+
+def gate(a) -> int:
+    """One row a seed: the decision at the sign the misfit works against, at the printed MDB.
+
+    Per seed the round's own printed MDB of ``a.gate``; injected at that sign (``--factor``
+    x the MDB): the share removed and the decision.
+
+    ``--secant``: then also the MDB a diagnosis restates from that injection
+    (:func:`~stellar_cal_ros.diagnosis.reliability_probe.gate_secant`: the energy measured
+    as its probe runs do, at the printed size and at the one step's, here on the case
+    simulated again with the same seed: the same noise), injected in its turn.
+    """
+    from stellar_cal_ros.diagnosis.discover import ALPHA, MIN_EXPLAINED
+    from stellar_cal_ros.diagnosis.reliability_probe import gate_secant
+
+    a.paired = a.gate
+    first, last = map(int, a.seeds.split("-"))
+    found = {"printed": 0, "restated": 0}
+    for seed in range(first, last + 1):
+        ref0, c0 = one_round(a, seed, 0.0)
+        entry = c0.detect.as_dict()
+        mdb, lean = entry["mdb"][a.gate], entry.get("mdb_leaning", {}).get(a.gate, np.nan)
+        sign = -float(np.sign(lean))
+        rec = {"seed": seed, "parameter": a.gate, "mdb": mdb, "mdb_test": entry.get(
+            "mdb_test", {}).get(a.gate), "mdb_leaning": lean, "factor": a.factor,
+            "set_by": entry.get("mdb_set_by", ""), "explained0": c0.explained}
+
+        def run(kind, size, seed=seed, rec=rec, ref0=ref0):
+            ref, c = one_round(a, seed, size)
+            hit = bool(c.p_adjusted < ALPHA and not c.explained < MIN_EXPLAINED)
+            rec[kind] = {"injected": size, "explained": c.explained,
+                         "p_adjusted": c.p_adjusted, "statistic": c.statistic,
+                         "excess": ref.excess, "excess_candidate":
+                         c.run.window["excess_variance"], "passes": hit}
+            return hit, (ref.excess - ref0.excess) * 2.0 * ref0.stars / ref0.noise
+
+        hit, energy = run("printed", sign * mdb * a.factor)
+        found["printed"] += hit
+        if a.secant and a.factor == 1.0:  # the diagnosis's probe runs: one step, a secant
+            step = gate_secant(entry, a.gate, energy)
+            if step is not None:
+                gate_secant(entry, a.gate, run("step", sign * step)[1])
+            rec["gate_probe"] = entry.get("gate_probe", {}).get(a.gate)
+            found["restated"] += run("restated", sign * entry["mdb"][a.gate])[0]
+        print(json.dumps(rec), flush=True)
+    n = last - first + 1
+    print(f"{a.case} {a.effect} {a.gate} the hard sign: passes at {a.factor:g} x the printed "
+          f"MDB {found['printed']} of {n}"
+          + (f", at the restated MDB {found['restated']} of {n}" if a.secant else ""))
     return 0
 
 

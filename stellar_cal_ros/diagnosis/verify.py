@@ -113,8 +113,8 @@ def verify(data, calibration, method: str, effects: list[str], entries: list[dic
 
 def check_claims(make, calibration, method: str, effects: list[str], entries: list[dict],
                  noise=None, seed: int = 1, tell=None, fraction: float = 0.5,
-                 only: list[str] | None = None, signs: tuple[int, ...] = (1,)
-                 ) -> list[dict[str, Any]]:
+                 only: list[str] | None = None, signs: tuple[int, ...] = (1,),
+                 parameters: dict[str, str] | None = None) -> list[dict[str, Any]]:
     """Inject each testable entry at its printed MDB into ``make(injected)`` bags and check.
 
     ``make({effect: simulate-units value}) -> (BagData, counts)`` makes the paired bags (the
@@ -123,7 +123,9 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
 
     Every round tests all of ``entries``' effects (the report's candidates: the same
     family-wise correction as the report's decision); ``only`` restricts which are
-    injected, ``signs`` the signs of the injected size (an MDB is a size: either sign).
+    injected, ``signs`` the signs of the injected size (an MDB is a size: either sign),
+    ``parameters`` (``{effect: parameter}``) the parameter injected where it is not the
+    report's (:func:`injected_parameter`): a probe-restated MDB per parameter.
 
     Per injection: ``found`` — the round's decision flags it (significant, or significant
     but at a size its physics rules out, 'implausible': the report says a structure with
@@ -158,7 +160,7 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
             continue
         for sign in signs:
             rec = _inject(make, round_on, entry, base0, cands0, before, int(sign),
-                          calibration, method)
+                          calibration, method, (parameters or {}).get(entry["effect"]))
             rec["seed"] = seed
             out.append(rec)
             if tell:
@@ -167,7 +169,7 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
 
 
 def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration,
-            method: str) -> dict[str, Any]:
+            method: str, param: str | None = None) -> dict[str, Any]:
     """One entry injected at ``sign`` x its printed MDB: the check's record.
 
     The measured shift of a derived quantity is the estimate's shift less what the effect
@@ -177,7 +179,7 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
     """
     eid = entry["effect"]
     eff = registry.create(eid)
-    param, _ = injected_parameter(entry)
+    param = param or injected_parameter(entry)[0]
     listed = injection.claims(entry, sign).get(param, [])
     scale = twin_scale(entry, param)
     size = sign * entry["hidden_size"][param] * scale
