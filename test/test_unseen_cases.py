@@ -1190,6 +1190,44 @@ def test_a_step_on_one_detector_quadrant_gets_no_library_name(seed, duration):
     assert c.effect == "image_plane_tilt" and not b["needed"] and b["lead"] == "cells", b
 
 
+def test_the_lines_a_detector_step_echoes_follow_the_cells_field():
+    """Unseen case ``quadrant`` (0.05 px on the upper-left quadrant), its own 300 s seed-22
+    bag: the cells field's line (a candidate refused beside it) leads at t 27, and the
+    step's echoes on the detector's positions were ranked after it as leads of their own
+    (main 17d7d23's second line: ``u residual vs v (row) (periodic 1024 px, sin)`` t 16.9,
+    the step's fundamental over the rows; then ``v residual vs u (column)`` t −14.0).  With
+    the field's fit taken out of the residuals the line tests no longer find them: they
+    follow the field (``leads.cells_first``), after the lines it does not explain.  The
+    magnitude line of a saturation is not the field's (next test's bag, ``on_the_detector``).
+    """
+    from stellar_cal_ros.diagnosis import leads
+
+    def post(sim):
+        tracker_errors.quadrant_step(sim, 0.05)
+        tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, 22)
+
+    run, runs = _psce_run(_bag(post, seed=22, duration=300.0))
+    plain = line_tests(run.residuals, run.calibration, 0.5)
+    cells = leads.findings(run, 0.5, ("cells",), 0.01)
+    assert len(cells) == 1 and cells[0].statistic > 20, cells
+    found = sorted(cells + plain, key=lambda f: (f.p_value, -abs(f.statistic)))
+    lines, follows = output.causes_first(found, run, runs, frozenset(map(id, cells)))
+    echoes = {(f.regressor, f.component): f for f in plain if f.p_value < 1e-10}
+    assert {("v (row) (periodic 1024 px, sin)", "u"), ("u (column)", "v")} <= set(echoes), \
+        list(echoes)
+    assert lines[0] is cells[0]
+    assert all(lines.index(f) in follows for f in echoes.values()), (
+        [(f.regressor, f.component) for f in lines], follows)
+    # the lines that stay lead before them, and none of them is the step's
+    stays = [f for i, f in enumerate(lines[1:], 1) if i not in follows]
+    assert lines[1:len(stays) + 1] == stays and not any(f.p_value < 1e-10 for f in stays)
+    # a saturation's magnitude line is gone without a cells field too (few stars a cell),
+    # but it is not on the detector's positions: it never follows the field
+    mag = stats.RegressorFinding("magnitude", "radial", 7.1, 2.4e-7, 0.0187)
+    assert not leads.on_the_detector(mag) and leads.on_the_detector(echoes[
+        ("v (row) (periodic 1024 px, sin)", "u")])
+
+
 def test_a_mount_flexing_on_a_swaying_base_gets_no_library_name():
     """Unseen case ``sway_flex`` (a mount turned 10″ per unit lateral specific force on the
     swaying base), reduced to 120 s: gyro_scale_factor is significant alone (the sway turns
@@ -1361,14 +1399,20 @@ def test_bright_stars_pulled_toward_the_centre_lead_by_magnitude():
     assert found[0].slope_px == pytest.approx(want, rel=0.25), want
 
 
-def _ranked(sim):
-    """The current model's run of ``sim`` and its lines ranked as ``output.finish`` ranks them."""
+def _psce_run(sim):
+    """The current model's psce run of ``sim`` (window 0.5, residuals kept) and the runner
+    ``output.causes_first`` is given (in this process, on ``sim``'s bag)."""
     data = bag_data_from_simulation(sim)
     run = evaluate(data, method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
                    keep_residuals=True)
-    runs = SimpleNamespace(spec=method_spec("psce"), fraction=0.5, noise=None, classes=(),
-                           on_bag=lambda fn, *a: fn(data, *a),
-                           later=lambda fn, *a: lambda: fn(data, *a))
+    return run, SimpleNamespace(spec=method_spec("psce"), fraction=0.5, noise=None,
+                                classes=(), on_bag=lambda fn, *a: fn(data, *a),
+                                later=lambda fn, *a: lambda: fn(data, *a))
+
+
+def _ranked(sim):
+    """The current model's run of ``sim`` and its lines ranked as ``output.finish`` ranks them."""
+    run, runs = _psce_run(sim)
     found = line_tests(run.residuals, sim.prior, 0.5)
     ranked = output.causes_first(found, run, runs)
     # the re-runs started before the line tests (a cluster's workers beside them): the same

@@ -143,20 +143,10 @@ def field_fit(res, fraction: float, kind: str, along=None) -> dict[str, float] |
     pattern, on its own rows, so that the two sizes are of one pattern and comparable;
     ``None``: this fit's own).  ``None`` when no test.
     """
-    if res is None or not len(res.get("t", ())):
+    got = _window_pattern(res, fraction, kind)
+    if got is None:
         return None
-    grid = detector_grid(res)
-    acc = stats.accepted(res)
-    inside = stats.evaluation_mask(res, fraction)
-    before, window = acc & ~inside, acc & inside
-    if grid is None or before.sum() < 50 or window.sum() < 50:
-        return None
-    sb = {k: np.asarray(v)[before] for k, v in res.items()}
-    sw = {k: np.asarray(v)[window] for k, v in res.items()}
-    got = _pattern(sb, kind, grid, sw)
-    if got is None or not np.any(got[0]):
-        return None
-    pattern = got[0]
+    grid, _, sw, pattern = got
     # (with ν where a test can be made: the same t, p, c, info, and the size's own fit)
     fit = stats.whitened_fit(sw, pattern, dof=True) or stats.whitened_fit(sw, pattern)
     if fit is None:
@@ -172,6 +162,105 @@ def field_fit(res, fraction: float, kind: str, along=None) -> dict[str, float] |
     return {"t": t, "p_value": p, "chi2": c * c * info, "chi2_capped": gain, "columns": k,
             "size_px": float(np.percentile(size, 99)) if len(size) else 0.0,
             **((None if same is None else stats.pattern_size(sw, same, made)) or {})}
+
+
+def _window_pattern(res, fraction: float, kind: str):
+    """The lead's one pattern: ``(grid, window, sw, pattern)``, or ``None``.
+
+    The field ``kind`` fitted on the accepted stars before the evaluation window
+    (:func:`direction`) as displacements ``pattern`` ``(n, 2)`` px of the window's accepted
+    stars ``sw`` (``window``: their rows of ``res``), on :func:`detector_grid`'s ``grid``:
+    what :func:`field_fit` tests and :func:`without` takes out.
+    """
+    if res is None or not len(res.get("t", ())):
+        return None
+    grid = detector_grid(res)
+    acc = stats.accepted(res)
+    inside = stats.evaluation_mask(res, fraction)
+    before, window = acc & ~inside, acc & inside
+    if grid is None or before.sum() < 50 or window.sum() < 50:
+        return None
+    sb = {k: np.asarray(v)[before] for k, v in res.items()}
+    sw = {k: np.asarray(v)[window] for k, v in res.items()}
+    got = _pattern(sb, kind, grid, sw)
+    if got is None or not np.any(got[0]):
+        return None
+    return grid, window, sw, got[0]
+
+
+def without(res, fraction: float, kind: str):
+    """``res`` with the lead ``kind``'s fit taken out of the window's innovations.
+
+    The lead's pattern (:func:`_window_pattern`: fitted before the window) times its size
+    fitted in the window (:func:`~stellar_cal_ros.diagnosis.stats.whitened_fit`'s ``c``):
+    the very fit the field's line tests and sizes (:func:`field_fit`), so that what is
+    left is what that line does not explain.  Rows outside the window unchanged; ``None``
+    when the field cannot be fitted.
+    """
+    got = _window_pattern(res, fraction, kind)
+    fit = None if got is None else stats.whitened_fit(got[2], got[3])
+    if fit is None:
+        return None
+    _, window, _, pattern = got
+    du = np.array(res["du"], dtype=float)
+    dv = np.array(res["dv"], dtype=float)
+    du[window] -= fit[2] * pattern[:, 0]
+    dv[window] -= fit[2] * pattern[:, 1]
+    return dict(res, du=du, dv=dv)
+
+
+#: the cause an 'unexplained' line follows when the detector's cells field explains it
+#: (:func:`cells_first`; ``printing.CAUSES`` words it)
+CELLS_CAUSE = "detector's cells field"
+#: the regressors of the lines a field on the detector makes: a position's, straight or
+#: periodic (:data:`~stellar_cal_ros.diagnosis.stats.RIPPLE`)
+POSITIONS = ("u (column)", "v (row)", "radius")
+
+
+def on_the_detector(f) -> bool:
+    """Whether the line ``f`` is against a detector position (straight, or a ripple over it)."""
+    return f.regressor.split(f" ({stats.RIPPLE} ")[0] in POSITIONS
+
+
+def cells_first(found: list, run, fraction: float, tests, keep=frozenset(),
+                calibration: Calibration | None = None) -> tuple[list, set[int]]:
+    """``found`` with the lines the cells field's line explains last, as its consequence.
+
+    A step of the centroids on one detector quadrant (unseen case ``quadrant``, 0.05 px,
+    300 s seed 22) is the cells field's line (t 27) and, ranked as leads of their own, its
+    echoes on the detector's positions: a ripple one period across the rows (``u residual
+    vs v (row) (periodic 1024 px, sin)`` t 17, the step's fundamental) and straight lines
+    (``v residual vs u (column)`` t −14).  The evidence that they are the field's: the line
+    tests ``tests(residuals, calibration, fraction)`` (:func:`~stellar_cal_ros.diagnosis.
+    output.line_tests`; ``calibration``: the one ``found`` was tested with, default
+    ``run``'s) of ``run``'s residuals with the field's fit taken out (:func:`without`) no
+    longer find them (:func:`~stellar_cal_ros.diagnosis.rolling.gone`).  Only lines
+    against a detector position (:func:`on_the_detector`) are its consequence: with a few
+    stars a cell (81 stars, 36 cells on the PSCE sky) a per-cell field takes up a per-star
+    error too, a magnitude's (unseen case ``saturation`` s22: the 'radial vs magnitude' line
+    is gone without it), and such a line is not the field's doing.  Returns the lines and
+    the indices of those that follow: the others keep their order (a line the field does
+    not explain stays a lead of its own), those that follow come last, in theirs;
+    unchanged without a cells line or a residual table.
+    """
+    from stellar_cal_ros.diagnosis import rolling
+
+    at = next((i for i, f in enumerate(found)
+               if (getattr(f, "detail", None) or {}).get("field") == "cells"), None)
+    if at is None or not _has_table(run):
+        return found, set()
+    less = without(run.residuals, fraction, "cells")
+    if less is None:
+        return found, set()
+    left = {rolling.line_key(f) for f in tests(less, calibration or run.calibration,
+                                               fraction)}
+    follows = [f for i, f in enumerate(found)
+               if i != at and on_the_detector(f) and rolling.gone(f, left, keep)]
+    if not follows:
+        return found, set()
+    moved = {id(f) for f in follows}
+    out = [f for f in found if id(f) not in moved] + follows
+    return out, set(range(len(out) - len(follows), len(out)))
 
 
 def direction(res, fraction: float, kind: str):

@@ -12,7 +12,14 @@ from typing import Any
 import numpy as np
 
 from stellar_cal_ros.core.memory import trim_freed
-from stellar_cal_ros.diagnosis import clock, installation_step, rolling, shape_drift, stats
+from stellar_cal_ros.diagnosis import (
+    clock,
+    installation_step,
+    leads,
+    rolling,
+    shape_drift,
+    stats,
+)
 from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
 from stellar_cal_ros.diagnosis.noise import (
     levels_fit,
@@ -100,7 +107,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         unexplained = sorted(outside + [f for f in unexplained if f.regressor not in told],
                              key=lambda f: (f.p_value, -abs(f.statistic)))
     unexplained, follows = causes_first(unexplained, shown, runs,
-                                        frozenset(id(f) for f in outside), started)
+                                        frozenset(id(f) for f in outside), started,
+                                        calibration)
     # the time offset × time test, whether it fires or not (its parts' offsets)
     clock_entry = parts["clock"].as_json() if parts["clock"] is not None else None
     # the attitude step test at rest, whether it fires or not (its largest step)
@@ -221,8 +229,8 @@ def axis_remainder(found: list[dict[str, Any]], effects: list[str]) -> dict[str,
     return None
 
 
-def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=None
-                 ) -> tuple[list, dict[int, str]]:
+def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=None,
+                 calibration: Calibration | None = None) -> tuple[list, dict[int, str]]:
     """The 'unexplained' lines ``found`` of ``run`` with a cause before the lines it makes.
 
     A drifting camera shape (the focal length, the detector's tilt) whose static part
@@ -230,13 +238,18 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=N
     first_if_cause`), and a rolling
     shutter whose consequences rank before it goes first (:func:`~stellar_cal_ros.
     diagnosis.rolling.first_if_cause`): one run on the bag without each, only where its
-    own tests are significant.  Returns the lines and ``{index: cause}`` of those that
+    own tests are significant.  The lines on the detector's positions that the cells
+    field's line (outside the library: a candidate was refused beside it) explains come
+    last (:func:`~stellar_cal_ros.diagnosis.leads.cells_first`: the line tests of the
+    residuals without the field's fit; no run).  Returns the lines and ``{index: cause}``
+    of those that
     follow a cause (``summary["unexplained"][i]["follows"]``).  Neither moves a cause's
     own line nor the lines of ``keep`` (the ids of the flexure-shaped findings after an
     add: no re-run's line tests make them, :func:`~stellar_cal_ros.diagnosis.rolling.gone`).
     ``started``: the drifting shapes' and the rolling shutter's re-runs started beside the
     line tests (:func:`~stellar_cal_ros.diagnosis.shape_drift.start_first_runs`,
-    :func:`~stellar_cal_ros.diagnosis.rolling.start_lines_without`).
+    :func:`~stellar_cal_ros.diagnosis.rolling.start_lines_without`).  ``calibration``:
+    the one ``found`` was tested with (default: ``run``'s), for the cells field's re-test.
     """
     drifts, shutter = started if started is not None else (None, None)
     found, after = shape_drift.first_if_cause(found, run, runs, line_tests, keep=keep,
@@ -244,6 +257,11 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=N
     follows = {id(found[i]): cause for i, cause in after.items()}
     found, after = rolling.first_if_cause(found, run, runs, line_tests, keep, shutter)
     follows.update((id(found[i]), "rolling shutter") for i in after)
+    if runs is not None:
+        # (a line that follows a cause already stays where that rule put it)
+        found, after = leads.cells_first(found, run, runs.fraction, line_tests,
+                                         keep | frozenset(follows), calibration)
+        follows.update((id(found[i]), leads.CELLS_CAUSE) for i in after)
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from stellar_cal_ros.diagnosis import reliability
 from stellar_cal_ros.diagnosis.clock import COMPONENT, GYRO_COMPONENT
 from stellar_cal_ros.diagnosis.installation_step import COMPONENT as STEP
+from stellar_cal_ros.diagnosis.leads import CELLS_CAUSE
 from stellar_cal_ros.diagnosis.shape_drift import SHAPES
 
 
@@ -103,7 +104,8 @@ def follows_phrase(u: dict[str, Any]) -> str:
 #: each cause a line may follow: what its re-run took out of the centroids
 #: (:func:`follows_phrase`) and the cause's line in a word (:func:`unexplained_lines`)
 CAUSES = {"rolling shutter": ("its fitted readout", "shutter"),
-          **{s.cause: ("the drift", "drift") for s in SHAPES}}
+          **{s.cause: ("the drift", "drift") for s in SHAPES},
+          CELLS_CAUSE: ("the field's fit", "cells field")}
 #: the causes of :mod:`~stellar_cal_ros.diagnosis.shape_drift` (a drifting camera shape)
 DRIFTS = frozenset(s.cause for s in SHAPES)
 
