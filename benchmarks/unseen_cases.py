@@ -796,6 +796,10 @@ CASES: dict[str, Case] = {
                    "(three periods across the detector; no library distortion)",
                    outside=True, regressor="u (column)", post=_ripple,
                    scenario_changes={"centroid_noise_px": 0.0}),
+    # (H222) the step's echoes on the detector's positions (a ripple one period across the
+    # rows, straight u / v lines) follow the cells field's line ('follows the detector's
+    # cells field') where they are gone with its fit taken out: seeds 22 / 24 all, 21 / 23
+    # keep one at t 22.9 / 19.4 (t 5.1 beyond the field at s21)
     "quadrant": Case("psce", "stars in the detector's upper-left quadrant shifted by (0.05, "
                      "0.05) px (a step on the detector, no library distortion)",
                      outside=True, regressor="", post=_quadrant,
@@ -832,6 +836,9 @@ CASES: dict[str, Case] = {
                       "needs sigma x sqrt(0.5 (1+rho)/(1-rho) + 0.5) = 3.24)",
                       noise={"star": 3.24}, post=_ar1_mixed,
                       scenario_changes={"centroid_noise_px": 0.0}),
+    # (H222) s22 is judged wrong: its cells field (t 8.7) and magnitude field (t 8.4) tie,
+    # each t 5.3 beyond the other (seeds 21, 23-26: the magnitude field leads), and the
+    # cells line, printed for the tilt refused beside it, has the smaller p
     "saturation": Case("psce", "bright stars pulled toward the detector centre, 0.04 px per "
                        "magnitude brighter than 4 (saturation; not in the library)",
                        outside=True, regressor="magnitude", post=_saturation,
