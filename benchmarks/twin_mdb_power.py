@@ -35,6 +35,8 @@ import numpy as np
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.diagnosis.discover import method_spec
 from stellar_cal_ros.diagnosis.noise import stated_scales
+from stellar_cal_ros.diagnosis.parallel import Runs
+from stellar_cal_ros.diagnosis.reliability_probe import clock_runs
 from stellar_cal_ros.diagnosis.twin import make_twin, twin_scene
 from stellar_cal_ros.diagnosis.verify import check_claims
 from stellar_cal_ros.io.calibration import load_calibration
@@ -59,6 +61,17 @@ def records(bag: str, result: Path, method: str, only: list[str], seeds: range,
     noise = stated_scales(calibration)
     scene = twin_scene(data, calibration, method)
     chosen = {e["effect"]: parameter for e in entries if parameter in e.get("hidden_size", {})}
+    # a row discover's clock rule marks (refused_beside_clock): the rule asked at each twin's
+    # size on the bag (verify.clock_rule), the final model run from its calibration (as the
+    # twins' rounds start), with the stated noise
+    runs = Runs(data, method_spec(method), 0.5)
+    runs.noise = noise
+    extra = tuple(method_spec(method).beyond_baseline(effects))
+
+    def clock_check(effect, delta):
+        return clock_runs(runs, calibration, extra, calibration,
+                          ((effect, tuple(np.asarray(delta).tolist())),))[0]
+
     out = []
     for seed in seeds:
         t0 = time.process_time()
@@ -68,7 +81,8 @@ def records(bag: str, result: Path, method: str, only: list[str], seeds: range,
             return twin.data, twin.counts
 
         rows = check_claims(make, calibration, method, effects, entries, noise, seed,
-                            only=only, signs=signs, parameters=chosen)
+                            only=only, signs=signs, parameters=chosen,
+                            clock_check=clock_check)
         for rec in rows:
             rec = {k: v for k, v in rec.items() if k not in ("twin_counts", "biases")}
             rec["cpu_s"] = time.process_time() - t0
@@ -102,9 +116,16 @@ def table(recs: list[dict]) -> list[str]:
             if np.isfinite(stat).sum() > 1 else float("nan")
         implied = float(dist.ncx2.sf(dist.chi2.isf(alpha, k), k, max(lam, 1e-9)))
         paired = np.nanmedian([r["noncentrality"] for r in rs]) / lam0
-        n_found = sum(bool(r["found"]) for r in rs)
-        lines.append(f"| {eid} {rs[0]['parameter']} | {sign * factor:+g} | {len(rs)} | {n_found} "
-                     f"({n_found / len(rs):.0%}) | {lam:.1f} ± {err:.1f} (λ₀ {lam0:.1f}, "
+        # a twin discover's clock rule refuses at that sign on the bag is not a miss: out
+        # of the flagged share (verify.clock_rule)
+        counted = [r for r in rs if not r.get("refused_by_clock")]
+        n_found = sum(bool(r["found"]) for r in counted)
+        share = f"{n_found / len(counted):.0%}" if counted else "-"
+        refused = len(rs) - len(counted)
+        flagged = (f"{n_found} of {len(counted)} ({share}), {refused} refused by the clock "
+                   "rule" if refused else f"{n_found} ({share})")
+        lines.append(f"| {eid} {rs[0]['parameter']} | {sign * factor:+g} | {len(rs)} | {flagged}"
+                     f" | {lam:.1f} ± {err:.1f} (λ₀ {lam0:.1f}, "
                      f"dof {k}) | {lam / lam0:.2f} | {implied:.0%} | {paired:.2f} |")
     return lines
 

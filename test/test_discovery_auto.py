@@ -805,10 +805,9 @@ def _dt_step_round(b: float):
 
 
 @functools.lru_cache(maxsize=8)
-def _dt_step_runs(b: float):
-    """:func:`_dt_step_round`'s ``(base run, candidate, prior, runs)``."""
+def _dt_step_bag(b: float):
+    """:func:`_dt_step_round`'s bag: ``(Runs on it, prior)``."""
     from stellar_cal_ros.core.noise import NoiseScales
-    from stellar_cal_ros.diagnosis import discover
     from stellar_cal_ros.diagnosis.parallel import Runs
 
     sim = simulate(get_scenario("psce_rotations"), duration=300.0, seed=23,
@@ -819,11 +818,20 @@ def _dt_step_runs(b: float):
         f.stamp_ns += 4_000_000 if f.stamp_ns >= late else 0  # the clock's step
     runs = Runs(bag_data_from_simulation(sim), method_spec("psce"), 0.5)
     runs.noise = NoiseScales()
-    r = discover.Round(runs, method_spec("psce"), runs.facts(), 0.5, sim.prior)
-    base, (c,), _ = discover.rank_round(r, sim.prior, ["time_offset"],
+    return runs, sim.prior
+
+
+@functools.lru_cache(maxsize=8)
+def _dt_step_runs(b: float):
+    """:func:`_dt_step_round`'s ``(base run, candidate, prior, runs)``."""
+    from stellar_cal_ros.diagnosis import discover
+
+    runs, prior = _dt_step_bag(b)
+    r = discover.Round(runs, method_spec("psce"), runs.facts(), 0.5, prior)
+    base, (c,), _ = discover.rank_round(r, prior, ["time_offset"],
                                         ["gyro_scale_factor"], condition=False,
                                         screen=False, measure_noise=False)
-    return base, c, sim.prior, runs
+    return base, c, prior, runs
 
 
 def test_unscreened_mdb_by_injection():
@@ -968,6 +976,63 @@ def test_a_rate_effects_hiding_row_says_the_clock_rule_refuses_it():
     rows = hidden_effects(base, [c])
     auto._refused_rows(rows, state, base, 0.5)
     assert "refused_beside_clock" not in rows[0]
+
+
+def test_the_clock_rule_is_checked_at_each_sign_of_the_printed_mdb():
+    """A rate row the clock rule marks says per sign whether the rule holds at its MDB.
+
+    ``dt_step`` s23 round 2 (:func:`_dt_step_round`): the rule refuses gyro_scale_factor
+    beside the clock's remainder, but only at sizes that leave the remainder a clock's
+    (H217, injected in the simulation: at sx +2.86e-3 it still shrinks along its slew, at
+    -2.86e-3 it moves to the slew at 180 s and no longer does).  With the round's runs,
+    :func:`auto._refused_rows` makes the final model's run on the bag with each parameter
+    injected at +-its printed MDB (the probe's renderer; the run keeps the residual table
+    the clock test reads) and asks the rule of each.  Measured: refused at +MDB of sx, sy,
+    sz and at -MDB of sy (226 ppm) and sz (655 ppm); at sx -2.86e-3 the remainder no longer
+    shrinks ('neither'), so that sign is not refused -- H217's answer, by the same rule on
+    the probe's injection.  The line says so.  ``--verify``'s twin is injected at the MDB
+    for residuals as stated (sz 27 ppm here, :func:`verify.twin_scale`): the rule asked
+    again at that size on the bag refuses it (:func:`verify.clock_rule`).  Fails on main
+    (no per-sign check: ``at_mdb`` absent).
+    """
+    from stellar_cal_ros.diagnosis import auto, injection, printing, verify
+    from stellar_cal_ros.diagnosis.discover import hidden_effects
+
+    base, c, prior, runs = _dt_step_runs(0.0)
+    rows = hidden_effects(base, [c])
+    state = auto._State(["time_offset"], (), prior)
+    state.prior = prior
+    auto._refused_rows(rows, state, base, 0.5, runs)
+    row = rows[0]
+    mark = row["refused_beside_clock"]
+    assert row["mdb"]["sx"] == pytest.approx(2.86e-3, rel=0.05)
+    assert mark["at_mdb_size"] == row["mdb"]
+    assert mark["at_mdb"] == {"sx": {"+": True, "-": False}, "sy": {"+": True, "-": True},
+                              "sz": {"+": True, "-": True}}, mark
+    assert mark["at_mdb_shape"]["sx"]["-"] == "neither"
+    assert mark["at_mdb_p_value"]["sx"]["+"] < 1e-10  # still a clock's, and significant
+    line = printing.reliability_lines(rows)[1]
+    assert mark["text"] in line
+    assert "; refused at +MDB of sx, sy, sz and at -MDB of sy, sz; at sx -2.86e+03 ppm " \
+           "(-MDB) the remainder is no longer a clock's (it no longer shrinks along a " \
+           "slew" in line, line
+    assert "this sign can be added (its test decides)" in line
+    # --verify's record: at the printed MDB the row's answer, at another size asked again
+    for size, want in ((-row["mdb"]["sx"], False), (row["mdb"]["sx"], True)):
+        rule = verify.clock_rule(row, "sx", size, None, None)
+        assert rule["refuses"] is want and rule["from"] == "at_mdb", rule
+    small = verify.twin_scale(row, "sz") * row["hidden_size"]["sz"]
+    assert small == pytest.approx(row["mdb_test"]["sz"] / np.sqrt(row["dispersion"]))
+    asked = []
+
+    def check(effect, delta):
+        asked.append(delta)
+        return auto._clock_runs(runs, base, ((effect, tuple(delta.tolist())),))[0]
+
+    delta = injection.parameter_delta("gyro_scale_factor", "sz", -small)
+    rule = verify.clock_rule(row, "sz", -small, delta, check)
+    assert rule["from"] == "twin's size" and rule["refuses"] is True, rule
+    assert len(asked) == 1 and asked[0][2] == -small
 
 
 def test_gate_mdb_against_closed_forms():

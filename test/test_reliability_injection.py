@@ -25,7 +25,6 @@ from stellar_cal_ros.diagnosis import (
     printing,
     reliability,
     reliability_probe,
-    verify,
 )
 from stellar_cal_ros.diagnosis.discover import ALPHA, rerun_prior
 from stellar_cal_ros.diagnosis.run import diagnose
@@ -247,7 +246,7 @@ def test_image_plane_tilt_mdb_holds_in_the_scores_odd_part(clean):
     effect = "image_plane_tilt"
     entry = next(e for e in summary["reliability"] if e["effect"] == effect)
     assert entry["testable"]
-    param, listed = verify.injected_parameter(entry)
+    param, listed = injection.injected_parameter(entry)
     s0, info = _score(base, effect)
     before = injection.run_values(base)
     responses, shifts = [], []

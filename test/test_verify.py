@@ -97,3 +97,50 @@ def test_a_twin_of_a_round_that_did_not_fit_gets_the_mdb_as_stated(entry, want):
     the printed MDB (stated for the round's dispersion d, √d larger) would always be seen
     "more easily than printed".  It is injected at the MDB for residuals as stated."""
     assert verify.twin_scale(entry, "sx") == pytest.approx(want, rel=1e-12)
+
+
+def test_a_twin_the_clock_rule_refuses_on_the_bag_is_not_a_miss():
+    """A row discover's clock rule marks (``refused_beside_clock``, per sign at its MDB:
+    test_discovery_auto's dt_step s23, sx refused at +2.86e-3, not at -2.86e-3): a twin
+    of it at a sign the rule refuses is reported as such, not as a miss or a detection, its
+    verdict judges its biases only, and the header counts it apart.  At the sign the rule
+    lets through it is found/missed as any other.  Fails on main (no clock_rule)."""
+    mark = {"by": "clock", "p_value": 7e-43, "text": "...",
+            "at_mdb": {"sx": {"+": True, "-": False}},
+            "at_mdb_size": {"sx": 2.86e-3}, "at_mdb_p_value": {"sx": {"+": 8e-29, "-": 0.0}},
+            "at_mdb_shape": {"sx": {"+": "shrinks", "-": "neither"}}}
+    entry = {"effect": "gyro_scale_factor", "refused_beside_clock": mark}
+    plus = verify.clock_rule(entry, "sx", 2.86e-3, None)
+    minus = verify.clock_rule(entry, "sx", -2.86e-3, None)
+    assert plus["refuses"] is True and minus["refuses"] is False
+    assert verify.clock_rule({"effect": "image_plane_tilt"}, "tau_x", 1e-3, None) is None
+    # at another size, without a check: not known (the answer at the MDB is not the one
+    # at another size); with one, asked there
+    other = verify.clock_rule(entry, "sx", 1e-4, None)
+    assert other["from"] == "not checked" and other["refuses"] is None
+    assert "(the clock rule at this size: not checked)" in verify.describe(
+        {"effect": "gyro_scale_factor", "parameter": "sx", "size_shown": "100 ppm",
+         "found": True, "noncentrality": math.nan, "biases": [], "holds": True,
+         "clock_rule": other})
+    asked = verify.clock_rule(entry, "sx", -1e-4, None, lambda e, d: None)
+    assert asked["refuses"] is None  # the check could not be made
+    # the detection is no claim there: a power below the band does not fail it
+    assert verify.claim_verdict(0.05, [1.0], detection=False) == ("holds", [])
+    assert verify.claim_verdict(math.nan, [], detection=False) == ("holds", [])
+    assert verify.claim_verdict(0.05, [1.6], detection=False) == ("fails", [])
+    rec = {"effect": "gyro_scale_factor", "parameter": "sx", "size_shown": "2.86e+03 ppm",
+           "found": False, "noncentrality": 0.4, "expected_noncentrality": 11.0,
+           "paired_power": 0.02, "seed": 1, "biases": [], "holds": True, "verdict": "holds",
+           "conservative": [], "refused_by_clock": True, "clock_rule": plus}
+    line = verify.describe(rec)
+    assert "refused by the clock rule (not a miss)" in line and "p = 8e-29" in line, line
+    assert "missed on the twin" not in line and "DOES NOT HOLD" not in line
+    let = dict(rec, refused_by_clock=False, clock_rule=minus, holds=False, verdict="fails")
+    text = verify.describe(let)
+    assert text.startswith("gyro_scale_factor sx = 2.86e+03 ppm: missed on the twin (the "
+                           "clock rule lets this sign through"), text
+    assert text.endswith("-> DOES NOT HOLD")
+    lines = verify_lines({"verify": [rec, let]})
+    assert lines[0].endswith("1 of 2 claims hold; 1 of them refused by the clock rule on "
+                             "this bag at that sign (not a miss: the detection not counted, "
+                             "the biases judged)"), lines[0]

@@ -564,8 +564,13 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
 
                 tell("verify: the printed MDBs and biases on twins of this bag")
                 model = list(spec.baseline) + state.shown()
+
+                def clock_check(effect, delta):  # the clock rule at a twin's size, on the bag
+                    return _clock_runs(runs, current, ((effect, tuple(delta.tolist())),))[0]
+
                 return verify(load_bag(runs.bag), final_cal, method, model, entries,
-                              options.get("verify_seed", 1), tell, evaluation_fraction)
+                              options.get("verify_seed", 1), tell, evaluation_fraction,
+                              clock_check)
         return _write(out, calibration, spec, state, path, history, first, current, results,
                       evaluation_fraction, plots, runs, stopped,
                       time.perf_counter() - t_start, r.noise, check)
@@ -776,9 +781,7 @@ def _clock_of(base: RunSummary, calibration: Calibration, fraction: float):
     """The clock test (:func:`~stellar_cal_ros.diagnosis.clock.clock_change`) of ``base``."""
     if base.residuals is None:
         return None
-    from stellar_cal_ros.diagnosis.output import clock_test
-
-    return clock_test(base.residuals, calibration, fraction)
+    return clock.clock_test(base.residuals, calibration, fraction)
 
 
 def _drift_asked(base: RunSummary, calibration: Calibration, fraction: float):
@@ -1134,7 +1137,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         "seconds": seconds,
     })
     summary.setdefault("reliability", [])
-    _refused_rows(summary["reliability"], state, final, fraction)
+    _refused_rows(summary["reliability"], state, final, fraction, runs)
     ties = {e: t for e, t in state.ties.items() if e in added and t["with"] not in added}
     if ties:
         summary["ties"] = ties  # (absent otherwise: a diagnosis without one is unchanged)
@@ -1166,7 +1169,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
 
 
 def _refused_rows(entries: list[dict[str, Any]], state: _State, final: RunSummary,
-                  fraction: float) -> None:
+                  fraction: float, runs=None) -> None:
     """Mark the hiding rows of effects the final model's clock rule refuses (in place).
 
     The final round's rule (:func:`~stellar_cal_ros.diagnosis.clock.refuses`, as
@@ -1176,13 +1179,52 @@ def _refused_rows(entries: list[dict[str, Any]], state: _State, final: RunSummar
     refused 6 of 6 times).  Each such row gains ``refused_beside_clock``
     (:func:`~stellar_cal_ros.diagnosis.clock.refused_entry`).  The clock test is the
     round's (made again, as :func:`_top` makes it, only if no candidate asked for it).
+
+    The rule holds only at sizes that leave the remainder a clock's (H217: not at sx
+    −2.86e-3 on ``dt_step`` s23).  With ``runs`` (the round's, open) each marked row is
+    checked at both signs of each parameter's printed MDB: the final model's run on the
+    bag with that parameter alone injected there (:func:`~.reliability_probe.
+    clock_on_bag`: the probe's injection, its run keeping the residual table the clock
+    test reads; the probe's own runs keep none, and are made for some rows only);
+    :func:`~.clock.at_mdb` says per parameter and sign.  Two runs a parameter of a marked
+    row (gyro_scale_factor 6, gyro_misalignment 12), none on a bag without one.
     """
     ticks = state.ticks
     if ticks is None and any(e["effect"] in clock.RATE_ALIASES for e in entries):
         ticks = _clock_of(final, final.calibration or state.prior, fraction) or False
-    for e in entries:
-        if clock.refuses(e["effect"], ticks, ALPHA):
-            e["refused_beside_clock"] = clock.refused_entry(ticks)
+    marked = [e for e in entries if clock.refuses(e["effect"], ticks, ALPHA)]
+    for e in marked:
+        e["refused_beside_clock"] = clock.refused_entry(ticks)
+    if not marked or runs is None:
+        return
+    from stellar_cal_ros.diagnosis import injection
+    from stellar_cal_ros.diagnosis.reliability import shown
+
+    at = [(e, p) for e in marked for p in e["mdb"]]
+    probes = tuple((e["effect"], tuple(injection.parameter_delta(
+        e["effect"], p, sign * float(e["mdb"][p])).tolist()))
+        for e, p in at for sign in (1.0, -1.0))
+    got = iter(_clock_runs(runs, final, probes))
+    tests: dict[int, dict[str, dict]] = {}
+    for e, p in at:
+        tests.setdefault(id(e), {})[p] = {"+": next(got), "-": next(got)}
+    for e in marked:
+        clock.at_mdb(e["refused_beside_clock"], e["effect"], e["mdb"],
+                     {p: shown(f"{e['effect']}.{p}", v) for p, v in e["mdb"].items()},
+                     tests[id(e)], ALPHA)
+
+
+def _clock_runs(runs, final: RunSummary, probes: tuple) -> list:
+    """The clock test of ``final``'s model on the bag with each ``(effect, delta)`` injected.
+
+    (:func:`~.reliability_probe.clock_runs`.)  ``None`` for each where the final run
+    cannot be repeated.
+    """
+    if not final.ok or final.calibration is None or final.prior is None:
+        return [None] * len(probes)
+    from stellar_cal_ros.diagnosis.reliability_probe import clock_runs
+
+    return clock_runs(runs, final.prior, final.effects, final.calibration, probes)
 
 
 def _clock_first(lines: list[dict[str, Any]]) -> None:

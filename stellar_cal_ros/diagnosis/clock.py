@@ -325,6 +325,83 @@ def refused_entry(test: ClockChange) -> dict[str, Any]:
     return {"by": "clock", "p_value": p, "text": REFUSED_TEXT.format(p=p)}
 
 
+def at_mdb(entry: dict[str, Any], effect: str, sizes: dict[str, float],
+           shown: dict[str, str], tests: dict[str, dict[str, ClockChange | None]],
+           alpha: float) -> None:
+    """Whether the rule still refuses ``effect`` at each sign of its printed MDB (in place).
+
+    ``entry``: the row's :func:`refused_entry`; ``tests[parameter]``: the clock test of
+    the current model's run on the bag with that parameter alone injected at ``+size`` and
+    ``−size`` (``sizes``: the printed MDB, ``shown`` as printed; keys ``"+"``, ``"-"``;
+    ``None`` where the run or its test could not be made).  The rule holds at a size only
+    while the effect leaves the remainder a clock's (:func:`refuses`): on ``dt_step`` s23 a
+    gyro scale sx of −2.86e-3 moves it to another slew where it no longer shrinks
+    (doc/benchmarks.md H217).  Adds, per parameter, ``at_mdb`` ({sign: refused; ``None``:
+    not checked}), ``at_mdb_size``, ``at_mdb_p_value`` (the clock finding's p) and
+    ``at_mdb_shape`` (what the remainder does along its slew: ``"shrinks"``, ``"grows"``,
+    ``"neither"``), and the line's clause (``text``, :func:`at_mdb_clause`).
+    """
+    def each(f) -> dict[str, dict[str, Any]]:
+        return {q: {k: None if t is None else f(t) for k, t in by.items()}
+                for q, by in tests.items()}
+
+    entry.update(at_mdb=each(lambda t: refuses(effect, t, alpha)),
+                 at_mdb_size={q: float(sizes[q]) for q in tests},
+                 at_mdb_p_value=each(lambda t: t.finding().p_value),
+                 at_mdb_shape=each(_shape))
+    entry["text"] += "; " + at_mdb_clause(entry, shown)
+
+
+def _shape(test: ClockChange) -> str:
+    """What the remainder does along the slew that carries it (:meth:`ClockChange.shrinks`)."""
+    return "shrinks" if test.shrinks() else "grows" if test.grows() else "neither"
+
+
+def p_text(p: float, rel: str = "=") -> str:
+    """``p = 0.0012`` (one below the smallest double: ``p < 1e-300``)."""
+    return f"p {rel} {p:.2g}" if p > 0.0 else "p < 1e-300"
+
+
+def at_mdb_clause(entry: dict[str, Any], shown: dict[str, str]) -> str:
+    """The line's per-sign clause of :func:`at_mdb` (``shown``: each MDB as printed)."""
+    at, p, shape = entry["at_mdb"], entry["at_mdb_p_value"], entry["at_mdb_shape"]
+    signs = ("+", "-")
+    held = [f"{k}MDB of " + ", ".join(q for q in at if at[q][k]) for k in signs
+            if any(at[q][k] for q in at)]
+    both = [q for q in at if all(at[q][k] for k in signs)]
+    if len(both) == len(at):
+        low = max(p[q][k] for q in at for k in signs)
+        return (f"checked at +-MDB of {', '.join(at)}: the remainder still a clock's at each "
+                f"({p_text(low, '<=')}): refused there")
+    out = ["refused at " + " and at ".join(held)] if held else []
+    for q in at:
+        for k in signs:
+            if at[q][k]:
+                continue
+            if at[q][k] is None:
+                out.append(f"at {q} {k}{shown[q]} not checked (its run could not be made)")
+                continue
+            why = {"grows": "it grows along a slew, as a gyro's error does",
+                   "neither": "it no longer shrinks along a slew"}.get(
+                       shape[q][k], "its change is no longer significant")
+            out.append(f"at {q} {k}{shown[q]} ({k}MDB) the remainder is no longer a clock's "
+                       f"({why}, {p_text(p[q][k])}): this sign can be added (its test "
+                       "decides)")
+    return "; ".join(out)
+
+
+def clock_test(res: stats.Table, calibration, fraction: float,
+               periods: tuple[float, ...] = ()) -> ClockChange | None:
+    """The test (:func:`clock_change`) of a residual table on ``fraction``'s window.
+
+    ``calibration``: the run's (its camera and installation); ``periods``: a wobble's,
+    fitted as rivals (:func:`wobble_periods`).
+    """
+    cam = calibration.camera
+    return clock_change(res, stats.evaluation_mask(res, fraction), (cam.fx, cam.fy),
+                        (cam.cx, cam.cy), calibration.R_imu_st, periods=periods)
+
+
 def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
                  centre: tuple[float, float], R_imu_st: np.ndarray | None,
                  parts: int = SEGMENTS, periods: tuple[float, ...] = ()) -> ClockChange | None:

@@ -127,6 +127,25 @@ def printed_shift(entry: dict[str, Any], quantity: str, sign: float = 1.0) -> fl
     return float(np.sign(sign)) * float(entry["biases_signed"][quantity])
 
 
+def injected_parameter(entry: dict[str, Any]) -> tuple[str, list[str]]:
+    """The parameter to inject for an entry, and the quantities whose bias it carries.
+
+    The one ``discover --verify`` injects (:mod:`~stellar_cal_ros.diagnosis.verify`) and
+    the clock rule's per-sign check is made at (:func:`~stellar_cal_ros.diagnosis.auto.
+    _refused_rows`): of the printed bias claims (:func:`claims`) the parameter whose
+    largest bias is the most σ, else the one whose hidden size is the smallest share of
+    its plausible size.
+    """
+    groups = claims(entry)
+    if groups:
+        best = max(groups, key=lambda p: max(
+            entry["biases"][q] / max(entry["sigma"].get(q, 1e-300), 1e-300) for q in groups[p]))
+        return best, groups[best]
+    plaus = entry["plausible_size"]
+    return min(entry["hidden_size"], key=lambda p: entry["hidden_size"][p]
+               / max(float(plaus.get(p, 1.0)), 1e-300)), []
+
+
 def claims(entry: dict[str, Any], sign: float = 1.0) -> dict[str, list[str]]:
     """The printed bias claims of one reliability entry, grouped by the injected parameter.
 

@@ -265,17 +265,6 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=N
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 
 
-def clock_test(res, calibration: Calibration, fraction: float,
-               periods: tuple[float, ...] = ()) -> clock.ClockChange | None:
-    """The time offset × time test (:func:`~.clock.clock_change`) of a residual table.
-
-    ``periods``: a wobble's, fitted as rivals (:func:`~.clock.wobble_periods`).
-    """
-    cam = calibration.camera
-    return clock.clock_change(res, stats.evaluation_mask(res, fraction), (cam.fx, cam.fy),
-                              (cam.cx, cam.cy), calibration.R_imu_st, periods=periods)
-
-
 def step_test(res, calibration: Calibration, fraction: float, everywhere: bool = False
               ) -> installation_step.InstallationStep | None:
     """The attitude step test at rest (:func:`~.installation_step.installation_step`).
@@ -295,9 +284,9 @@ def line_tests(res, calibration: Calibration, fraction: float,
 
     An installation step's line (:mod:`~.installation_step`) goes first when it fires: the
     filter's catch-up on it makes the others.  ``parts``: a dict given gets the
-    :func:`clock_test` and :func:`step_test` made on the way (``"clock"``, ``"step"``),
+    :func:`~.clock.clock_test` and :func:`step_test` made on the way (``"clock"``, ``"step"``),
     for :func:`finish`'s entries (the clock test holds one of the round's memory peaks on a
-    2-h bag: made once).  ``timing``: :func:`clock_test` of ``res`` already made by the
+    2-h bag: made once).  ``timing``: :func:`~.clock.clock_test` of ``res`` already made by the
     caller with the same ``calibration`` and ``fraction`` (not made again).
     """
     cam = calibration.camera
@@ -309,7 +298,7 @@ def line_tests(res, calibration: Calibration, fraction: float,
     sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st)
     trim_freed()
     if timing is None:
-        timing = clock_test(res, calibration, fraction)
+        timing = clock.clock_test(res, calibration, fraction)
         trim_freed()
     step = step_test(res, calibration, fraction)
     trim_freed()
@@ -354,7 +343,7 @@ def _clock_beside_wobble(res, calibration: Calibration, fraction: float,
     at the same factor, kept only when still significant at ``alpha``; ``(the test, the
     lines)``.
     """
-    again = clock_test(res, calibration, fraction, periods)
+    again = clock.clock_test(res, calibration, fraction, periods)
     rest = [f for f in found if f is not line]
     if again is None:
         return timing, found

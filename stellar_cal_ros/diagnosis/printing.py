@@ -305,9 +305,14 @@ def verify_lines(summary: dict[str, Any]) -> list[str]:
         return []
     holds = sum(r["holds"] for r in rows)
     safe = sum(r.get("verdict") == "conservative" for r in rows)
+    # twins of an effect discover's clock rule refuses at that sign on this bag: their
+    # detection is no claim (verify.clock_rule), their biases are
+    refused = sum(bool(r.get("refused_by_clock")) for r in rows)
     out = [f"verify (twins of this bag, the effect injected at its printed MDB, seed "
            f"{rows[0]['seed']}): {holds} of {len(rows)} claims hold"
-           + (f" ({safe} conservatively: on the safe side)" if safe else "")]
+           + (f" ({safe} conservatively: on the safe side)" if safe else "")
+           + (f"; {refused} of them refused by the clock rule on this bag at that sign "
+              "(not a miss: the detection not counted, the biases judged)" if refused else "")]
     out += [f"  {verify_text(r)}" for r in rows]
     return out
 

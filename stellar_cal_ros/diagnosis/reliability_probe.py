@@ -315,6 +315,65 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
     (:func:`own_shift`); ``None`` for a run that fails (the probe is an addition: it never
     stops a diagnosis).
     """
+    def values(run, effect_id: str, delta: np.ndarray) -> dict[str, float]:
+        out = injection.run_values(run)
+        out[EXCESS] = float(run.stats.window(fraction)["excess_variance"])
+        # the effect's score in this run (a consider parameter: the estimates are the
+        # run's without it): against the round's, the score's response at this size
+        scored = spec.screen(run, [effect_id]) if spec.screen is not None else {}
+        if effect_id in scored and len(scored[effect_id]) > 5:
+            out[SCORE] = np.asarray(scored[effect_id][5], dtype=float)
+        for q, v in own_shift(calibration, spec.name, effect_id, delta).items():
+            if q in out:
+                out[q] -= v
+        return out
+
+    return _runs_on_bag(data, spec, prior, effects, fraction, noise, classes, calibration,
+                        probes, values)
+
+
+def clock_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float, noise,
+                 classes: tuple[type, ...], calibration,
+                 probes: tuple[tuple[str, tuple[float, ...]], ...]) -> list[Any]:
+    """The clock test of the current model's run on the bag with each probe injected.
+
+    As :func:`measure_on_bag` (the same injections and run), but the run keeps its residual
+    table and returns its clock test (:func:`~stellar_cal_ros.diagnosis.clock.clock_test`
+    with the run's own calibration, as :func:`~stellar_cal_ros.diagnosis.auto._top` asks
+    it of a round's run), ``None`` where none could be made or the run failed: whether the
+    clock rule (:func:`~stellar_cal_ros.diagnosis.clock.refuses`) still refuses a rate
+    effect at that size (:func:`~stellar_cal_ros.diagnosis.auto._refused_rows`).
+    """
+    from stellar_cal_ros.diagnosis import clock
+
+    def ticks(run, effect_id: str, delta: np.ndarray):
+        if run.residuals is None:
+            return None
+        return clock.clock_test(run.residuals, run.calibration or prior, fraction)
+
+    return _runs_on_bag(data, spec, prior, effects, fraction, noise, classes, calibration,
+                        probes, ticks, tables=True)
+
+
+def clock_runs(runs, prior, effects: tuple[str, ...], calibration, probes: tuple) -> list[Any]:
+    """:func:`clock_on_bag` on ``runs``' bag, in one call where the bag is (one render).
+
+    The model ``effects`` from ``prior``, the injections rendered under ``calibration``.
+    """
+    return runs.later(clock_on_bag, runs.spec, prior, tuple(effects), runs.fraction,
+                      runs.noise, runs.classes, calibration, probes)()
+
+
+def _runs_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float, noise,
+                 classes: tuple[type, ...], calibration,
+                 probes: tuple[tuple[str, tuple[float, ...]], ...], measure,
+                 tables: bool = False) -> list[Any]:
+    """Per probe, ``measure(run, effect, delta)`` of the model's run with it injected.
+
+    The runs of :func:`measure_on_bag` and :func:`clock_on_bag`: every injection rendered
+    first, then one run each (its effect scored where the method screens, unless
+    ``tables``: the run keeps its residual table instead); ``None`` for one that fails.
+    """
     from stellar_cal_ros.diagnosis.runstats import (
         forget_prepared,
         quiet,
@@ -352,30 +411,19 @@ def measure_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float,
         except Exception as exc:
             injections.append(exc)
     del plain, scene
-    out: list[dict[str, float] | None] = []
+    out: list[Any] = []
     for (effect_id, delta), inj in zip(probes, injections, strict=True):
-        score = {"consider": [effect_id]} if spec.screen is not None else {}
+        score = {"consider": [effect_id]} if spec.screen is not None and not tables else {}
         try:
             if isinstance(inj, Exception):
                 raise inj
             moved = inj.on(data)
             with quiet():
-                run = spec.runner(moved, prior, list(effects), keep_tables=False,
+                run = spec.runner(moved, prior, list(effects), keep_tables=tables,
                                   eval_fraction=fraction, **kw, **score)
             del moved
-            values = injection.run_values(run)
-            values[EXCESS] = float(run.stats.window(fraction)["excess_variance"])
-            # the effect's score in this run (a consider parameter: the estimates are the
-            # run's without it): against the round's, the score's response at this size
-            scored = spec.screen(run, [effect_id]) if spec.screen is not None else {}
-            if effect_id in scored and len(scored[effect_id]) > 5:
-                values[SCORE] = np.asarray(scored[effect_id][5], dtype=float)
+            out.append(measure(run, effect_id, np.asarray(delta)))
             del run
-            for q, v in own_shift(calibration, spec.name, effect_id,
-                                  np.asarray(delta)).items():
-                if q in values:
-                    values[q] -= v
-            out.append(values)
         except Exception as exc:
             log.warning("the probe of %s did not run: %s: %s", effect_id,
                         type(exc).__name__, exc)

@@ -28,6 +28,15 @@ what the effect does) are conservative: the claim holds, and the record says so
 (``verdict`` "conservative").  A response below the band, a shift larger than printed or
 in the other direction at its size, fails.
 
+A row discover marks refused by its clock rule (``refused_beside_clock``,
+:func:`~stellar_cal_ros.diagnosis.clock.refuses`: a gyro rate effect is not added while the
+stars' remainder along their motion on the user's bag is a clock's) is not added at that
+size whatever its test says.  A twin holds no such remainder (it is rendered from the
+library), so its round says what the test sees, not what discover does on the bag: where the
+rule refuses the effect at the twin's sign and size on the user's bag (:func:`clock_rule`),
+the record says "refused by the clock rule (not a miss)", its detection is no claim (the
+verdict judges its biases only) and the count of detections leaves it out.
+
 "Would a 5 arcsec misalignment have been caught on my data?" is then answered on the
 user's own motion, star field and noise.
 """
@@ -48,18 +57,6 @@ from stellar_cal_ros.effects import registry
 #: and every listed shift within this ratio of its printed bias
 POWER_RANGE = (0.65, 0.95)
 RATIO_RANGE = (0.7, 1.3)
-
-
-def injected_parameter(entry: dict[str, Any]) -> tuple[str, list[str]]:
-    """The parameter to inject for an entry, and the quantities whose bias it carries."""
-    groups = injection.claims(entry)
-    if groups:
-        best = max(groups, key=lambda p: max(
-            entry["biases"][q] / max(entry["sigma"].get(q, 1e-300), 1e-300) for q in groups[p]))
-        return best, groups[best]
-    plaus = entry["plausible_size"]
-    return min(entry["hidden_size"], key=lambda p: entry["hidden_size"][p]
-               / max(float(plaus.get(p, 1.0)), 1e-300)), []
 
 
 def twin_scale(entry: dict[str, Any], param: str) -> float:
@@ -92,11 +89,14 @@ def twin_scale(entry: dict[str, Any], param: str) -> float:
 
 
 def verify(data, calibration, method: str, effects: list[str], entries: list[dict],
-           seed: int = 1, tell=None, fraction: float = 0.5) -> list[dict[str, Any]]:
+           seed: int = 1, tell=None, fraction: float = 0.5, clock_check=None
+           ) -> list[dict[str, Any]]:
     """Check ``entries`` (the report's reliability list) on twins of ``data``.
 
     ``calibration``: the final model's calibration (its ``consistency.noise`` is the
     measured noise the twins get); ``effects``: the final model's effects.
+    ``clock_check(effect, delta)``: the clock test of the final model's run on ``data``
+    with the effect injected (:func:`clock_rule`), or ``None``.
     """
     from stellar_cal_ros.diagnosis.noise import stated_scales
     from stellar_cal_ros.diagnosis.twin import make_twin
@@ -108,13 +108,14 @@ def verify(data, calibration, method: str, effects: list[str], entries: list[dic
         return twin.data, twin.counts
 
     return check_claims(make, calibration, method, effects, entries, noise, seed, tell,
-                        fraction)
+                        fraction, clock_check=clock_check)
 
 
 def check_claims(make, calibration, method: str, effects: list[str], entries: list[dict],
                  noise=None, seed: int = 1, tell=None, fraction: float = 0.5,
                  only: list[str] | None = None, signs: tuple[int, ...] = (1,),
-                 parameters: dict[str, str] | None = None) -> list[dict[str, Any]]:
+                 parameters: dict[str, str] | None = None,
+                 clock_check=None) -> list[dict[str, Any]]:
     """Inject each testable entry at its printed MDB into ``make(injected)`` bags and check.
 
     ``make({effect: simulate-units value}) -> (BagData, counts)`` makes the paired bags (the
@@ -125,7 +126,7 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
     family-wise correction as the report's decision); ``only`` restricts which are
     injected, ``signs`` the signs of the injected size (an MDB is a size: either sign),
     ``parameters`` (``{effect: parameter}``) the parameter injected where it is not the
-    report's (:func:`injected_parameter`): a probe-restated MDB per parameter.
+    report's (:func:`injection.injected_parameter`): a probe-restated MDB per parameter.
 
     Per injection: ``found`` — the round's decision flags it (significant, or significant
     but at a size its physics rules out, 'implausible': the report says a structure with
@@ -134,7 +135,8 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
     the measured non-centrality, ``benchmarks/reliability_injection.py``);
     ``noncentrality`` — ``Δsᵀ I⁻¹ Δs`` of the paired score difference, the
     noise-free response of the score (λ₀ when the score is linear in the effect up to its
-    MDB).
+    MDB); ``clock_rule``/``refused_by_clock`` for a row discover's clock rule marks
+    (:func:`clock_rule`, ``clock_check`` as there).
     """
     from stellar_cal_ros.diagnosis.discover import Round, method_spec, rank_round
     from stellar_cal_ros.diagnosis.parallel import Runs
@@ -160,7 +162,8 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
             continue
         for sign in signs:
             rec = _inject(make, round_on, entry, base0, cands0, before, int(sign),
-                          calibration, method, (parameters or {}).get(entry["effect"]))
+                          calibration, method, (parameters or {}).get(entry["effect"]),
+                          clock_check)
             rec["seed"] = seed
             out.append(rec)
             if tell:
@@ -169,7 +172,7 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
 
 
 def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration,
-            method: str, param: str | None = None) -> dict[str, Any]:
+            method: str, param: str | None = None, clock_check=None) -> dict[str, Any]:
     """One entry injected at ``sign`` x its printed MDB: the check's record.
 
     The measured shift of a derived quantity is the estimate's shift less what the effect
@@ -179,7 +182,7 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
     """
     eid = entry["effect"]
     eff = registry.create(eid)
-    param = param or injected_parameter(entry)[0]
+    param = param or injection.injected_parameter(entry)[0]
     listed = injection.claims(entry, sign).get(param, [])
     scale = twin_scale(entry, param)
     size = sign * entry["hidden_size"][param] * scale
@@ -203,11 +206,14 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
                        "ratio": shift.get(q, np.nan) / printed if printed else np.nan})
     ratios = [c["ratio"] for c in checks]
     response = float(dist.ncx2.sf(crit, k, lam)) if np.isfinite(lam) else float("nan")
-    verdict, conservative = claim_verdict(response, ratios)
+    rule = clock_rule(entry, param, size, delta, clock_check)
+    refused = bool(rule and rule["refuses"])
+    verdict, conservative = claim_verdict(response, ratios, detection=not refused)
     c0 = cands0.get(eid)
     return {"effect": eid, "parameter": param, "size": size, "sign": sign,
             "size_shown": _shown(eid, param, size),
-            "found": flagged(c),
+            "found": flagged(c), "refused_by_clock": refused,
+            **({"clock_rule": rule} if rule else {}),
             "named": bool(c is not None and c.significant),
             "noncentrality": lam, "expected_noncentrality": entry.get("lam0"),
             "paired_power": response, "dof": k, "alpha": entry["alpha"],
@@ -218,7 +224,8 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
                                       and c0.screen is not None else float("nan"))}
 
 
-def claim_verdict(power: float, ratios: list[float]) -> tuple[str, list[str]]:
+def claim_verdict(power: float, ratios: list[float], detection: bool = True
+                  ) -> tuple[str, list[str]]:
     """``("holds" | "conservative" | "fails", what errs on the safe side)`` of one claim.
 
     ``power``: the paired score response's power at the test's level (the MDB claims
@@ -226,12 +233,14 @@ def claim_verdict(power: float, ratios: list[float]) -> tuple[str, list[str]]:
     (:data:`RATIO_RANGE` holds).  A power above the band (seen more easily than printed) and
     a shift smaller than printed, of either sign, err on the safe side: the claim holds,
     conservatively.  A power below the band or not measured, a shift larger than printed,
-    in the other direction at its size, or not measured, fails.
+    in the other direction at its size, or not measured, fails.  ``detection=False``: the
+    MDB claims no detection there (discover's clock rule refuses the effect at that size,
+    :func:`clock_rule`): the biases alone are judged.
     """
     safe = []
-    if not (np.isfinite(power) and power >= POWER_RANGE[0]):
+    if detection and not (np.isfinite(power) and power >= POWER_RANGE[0]):
         return "fails", []
-    if power > POWER_RANGE[1]:
+    if detection and power > POWER_RANGE[1]:
         safe.append("seen more easily than printed")
     small = False
     for r in ratios:
@@ -241,6 +250,42 @@ def claim_verdict(power: float, ratios: list[float]) -> tuple[str, list[str]]:
     if small:
         safe.append("moved less than printed")
     return ("conservative" if safe else "holds"), safe
+
+
+def clock_rule(entry: dict[str, Any], param: str, size: float, delta: np.ndarray,
+               clock_check=None) -> dict[str, Any] | None:
+    """Whether discover's clock rule refuses the twin's injection on the user's bag.
+
+    ``None`` for a row the rule does not mark (``refused_beside_clock``,
+    :func:`~stellar_cal_ros.diagnosis.auto._refused_rows`).  Else ``{"refuses": bool or
+    None, "size", "from", "p_value"}``: at the size the row was checked at
+    (``at_mdb``: its printed MDB, that sign) its answer (``from`` "at_mdb"); at another
+    size (a twin of a round that did not fit is injected at the MDB for residuals as
+    stated, :func:`twin_scale`) the rule asked again of ``clock_check(effect, delta)`` (the
+    clock test of the final model's run on the user's bag with the effect at the twin's
+    size; ``from`` "twin's size"), else not known (``refuses`` ``None``, ``from`` "not
+    checked": the answer at the MDB is not the one at another size -- dt_step s23:
+    gyro_misalignment e02 refused at -16.5 arcsec, not at -999 arcsec).
+    """
+    mark = entry.get("refused_beside_clock")
+    if not mark:
+        return None
+    from stellar_cal_ros.diagnosis import clock
+    from stellar_cal_ros.diagnosis.discover import ALPHA
+
+    key = "+" if size > 0 else "-"
+    at = (mark.get("at_mdb") or {}).get(param) or {}
+    p_at = ((mark.get("at_mdb_p_value") or {}).get(param) or {}).get(key)
+    mdb = (mark.get("at_mdb_size") or {}).get(param)
+    same = mdb is not None and np.isclose(abs(size), float(mdb), rtol=1e-9)
+    if not same and clock_check is not None:
+        ticks = clock_check(entry["effect"], delta)
+        if ticks is not None:
+            return {"refuses": clock.refuses(entry["effect"], ticks, ALPHA),
+                    "size": size, "from": "twin's size", "p_value": ticks.finding().p_value}
+    if same:
+        return {"refuses": at.get(key), "size": size, "from": "at_mdb", "p_value": p_at}
+    return {"refuses": None, "size": size, "from": "not checked", "p_value": None}
 
 
 def flagged(c) -> bool:
@@ -289,7 +334,7 @@ def describe(rec: dict[str, Any]) -> str:
               f" (the MDB for residuals as stated, x{scale:.3g} the printed one: the twin "
               "fits, this round did not)")
     parts = [f"{rec['effect']} {rec['parameter']} = {rec['size_shown']}{stated}: "
-             f"{'found' if rec['found'] else 'missed'} on the twin"]
+             + _detection(rec)]
     if np.isfinite(rec["noncentrality"]):
         parts.append(f"score response (paired) {rec['noncentrality']:.3g} (MDB claims "
                      f"{rec['expected_noncentrality']:.3g}: {rec['paired_power']:.0%} at the "
@@ -299,6 +344,29 @@ def describe(rec: dict[str, Any]) -> str:
                      f"(printed {shown(c['quantity'], c['printed'])})")
     if not rec["holds"]:
         return "; ".join(parts) + " -> DOES NOT HOLD"
+    if rec.get("refused_by_clock"):
+        return "; ".join(parts) + (" -> the biases hold" if rec["biases"] else "")
     safe = rec.get("conservative") or []
     return "; ".join(parts) + (f" -> holds (conservative: {', '.join(safe)})" if safe
                                else " -> holds")
+
+
+def _detection(rec: dict[str, Any]) -> str:
+    """What the twin's round did with the effect, and discover's clock rule on the bag."""
+    from stellar_cal_ros.diagnosis.clock import p_text
+
+    seen = "found" if rec["found"] else "missed"
+    rule = rec.get("clock_rule")
+    if not rule:
+        return f"{seen} on the twin"
+    at = "at its MDB" if rule["from"] == "at_mdb" else "at this size"
+    p = "" if rule.get("p_value") is None else ", " + p_text(rule["p_value"])
+    if rule["refuses"]:
+        return (f"refused by the clock rule (not a miss): on this bag the stars' remainder "
+                f"along their motion stays a clock's {at}{p}, and discover adds no gyro rate "
+                f"effect beside it; the twin, which holds no clock, {seen} it (not counted "
+                "as a detection)")
+    if rule["refuses"] is None:
+        return f"{seen} on the twin (the clock rule {at}: not checked)"
+    return (f"{seen} on the twin (the clock rule lets this sign through {at}{p}: the "
+            "remainder is no longer a clock's)")
