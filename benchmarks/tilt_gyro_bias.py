@@ -37,7 +37,7 @@ import dataclasses
 
 import numpy as np
 
-from stellar_cal_ros.diagnosis import injection
+from stellar_cal_ros.diagnosis import injection, reliability
 from stellar_cal_ros.diagnosis.discover import rerun_prior
 from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay
 from stellar_cal_ros.methods.screening import score_tests
@@ -84,7 +84,8 @@ def measure(duration: float, seed: int, effects: list[str], parameter: str, size
     rows = []
     for eid in effects:
         cs = scores[eid]
-        mdb = cs.mdb_per_parameter(alpha)
+        # each parameter alone at its MDB (the diagnosis's, at this level)
+        mdb = np.array(list(reliability.detectability(eid, cs.info, alpha).mdb.values()))
         j = (int(np.argmin(mdb)) if parameter == "best"
              else cs.parameters.index(f"{eid}.{parameter}"))
         b = size if size > 0 else float(mdb[j])

@@ -11,13 +11,11 @@ parameters.  For each candidate c (its block of parameters, the others at their 
   when the candidate is absent — the full augmented re-run is needed only for candidates
   this flags, instead of every candidate (one run instead of 11–19);
 * the one-step estimate ``b̂_c = I_cc⁻¹ s_c`` and its covariance ``I_cc⁻¹``;
-* the minimal detectable size (Teunissen's internal reliability): along each eigenvector
-  ``d`` of ``I_cc`` (eigenvalue ``ι``), an effect of size ``√(λ₀ / ι)`` is found with power
-  ``power`` by a test of size ``alpha`` (``λ₀`` the non-centrality of χ²_k that reaches it);
-* the bias an undetected effect of that size leaves in the estimated parameters (external
-  reliability): ``−M_θ b`` with ``M`` the state's sensitivity at the end of the run — per
-  parameter of the candidate at its own MDB (:meth:`CandidateScore.bias_of_mdb`), the
-  shift an injection of that size reproduces.
+* the bias an undetected effect ``b`` leaves in the estimated parameters (external
+  reliability): ``−M_θ b`` with ``M`` the state's sensitivity at the end of the run
+  (``bias_per_unit``).  The minimal detectable size ``b`` (internal reliability) is the
+  diagnosis's, for the decision's level and dof
+  (:func:`~stellar_cal_ros.diagnosis.reliability.detectability`): none is computed here.
 
 Innovations a wrong model over-disperses (NIS/dof > 1) inflate every LM; the caller divides
 by the dispersion (quasi-score), as the likelihood-ratio test does.
@@ -25,7 +23,6 @@ by the dispersion (quasi-score), as the likelihood-ratio test does.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,8 +40,6 @@ class CandidateScore:
     lm: float  #: s_cᵀ I_cc⁻¹ s_c (not yet divided by any dispersion)
     estimate: np.ndarray  #: b̂ = I_cc⁻¹ s_c (k,)
     info: np.ndarray  #: I_cc (k, k)
-    mdb: np.ndarray  #: minimal detectable size along each eigenvector of I_cc (k,)
-    mdb_directions: np.ndarray  #: eigenvectors (k, k), columns
     #: bias of the estimated parameters per unit of each candidate parameter (P_est, k)
     bias_per_unit: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
@@ -54,40 +49,8 @@ class CandidateScore:
 
         return float(chi2.sf(self.lm / max(dispersion, 1e-300), self.dof))
 
-    def mdb_per_parameter(self, alpha: float = 0.001, power: float = 0.8) -> np.ndarray:
-        """MDB of each parameter alone, ``sqrt(λ₀ / I_jj)`` (k,), inf where I_jj = 0."""
-        lam = noncentrality(max(self.dof, 1), alpha, power)
-        d = np.diag(self.info)
-        return np.where(d > 0, np.sqrt(lam / np.where(d > 0, d, 1.0)), math.inf)
 
-    def bias_of_mdb(self, alpha: float = 0.001, power: float = 0.8) -> np.ndarray:
-        """Shift of the estimated parameters from each candidate parameter alone at its MDB.
-
-        (P_est, k): column j is ``bias_per_unit[:, j] · MDB_j`` — what injecting parameter
-        j at its MDB does to the current model's estimate (a direction the data do not see
-        has an infinite MDB and no column worth printing: NaN).  Not along the eigenvectors
-        of ``info``: an eigen-direction with almost no information (a gyro misalignment's
-        antisymmetric part, which the installation absorbs) has an MDB of thousands of
-        arcsec and would print a bias of the same size beside a few-arcsec MDB.
-        """
-        mdb = self.mdb_per_parameter(alpha, power)
-        with np.errstate(invalid="ignore"):
-            return np.where(np.isfinite(mdb)[None, :], self.bias_per_unit * mdb[None, :],
-                            np.nan)
-
-
-def noncentrality(dof: int, alpha: float = 0.001, power: float = 0.8) -> float:
-    """λ₀: the non-centrality at which a χ²_dof test of size ``alpha`` has ``power``."""
-    from scipy.optimize import brentq
-
-    from stellar_cal_ros.core.distributions import chi2, ncx2
-
-    crit = chi2.isf(alpha, dof)
-    return float(brentq(lambda lam: ncx2.sf(crit, dof, lam) - power, 1e-6, 1e4))
-
-
-def score_tests(result: ReplayResult, candidates: list[str], alpha: float = 0.001,
-                power: float = 0.8) -> dict[str, CandidateScore]:
+def score_tests(result: ReplayResult, candidates: list[str]) -> dict[str, CandidateScore]:
     """Per-candidate score tests from a run made with ``consider=candidates``.
 
     ``result`` is :func:`~stellar_cal_ros.methods.replay.replay` of the current model with
@@ -111,14 +74,11 @@ def score_tests(result: ReplayResult, candidates: list[str], alpha: float = 0.00
         w, V = np.linalg.eigh(I_cc)
         good = w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300)
         # the test lives in the identifiable subspace (a direction the data do not see
-        # has no score and an infinite minimal detectable size)
+        # has no score)
         inv = (V[:, good] / w[good]) @ V[:, good].T if good.any() else np.zeros_like(I_cc)
         lm = float(s @ inv @ s) if good.any() else 0.0
-        k = int(good.sum())
-        lam = noncentrality(max(k, 1), alpha, power)
-        mdb = np.where(good, np.sqrt(lam / np.where(good, w, 1.0)), math.inf)
         out[eff.id] = CandidateScore(
             effect=eff.id, parameters=[f"{eff.id}.{n}" for n in eff.parameter_names],
-            dof=k, lm=lm, estimate=inv @ s, info=I_cc, mdb=mdb, mdb_directions=V,
+            dof=int(good.sum()), lm=lm, estimate=inv @ s, info=I_cc,
             bias_per_unit=-M_theta[:, cols])
     return out
