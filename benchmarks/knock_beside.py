@@ -55,8 +55,12 @@ def _gsf(run) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(v) * 1e6, np.asarray(s) * 1e6
 
 
-def one(name: str, out: Path, seed: int) -> None:
-    """The four runs of case ``name`` and its printed rows."""
+def one(name: str, out: Path, seed: int, test_fraction: float = FRACTION) -> None:
+    """The four runs of case ``name`` and its printed rows.
+
+    ``test_fraction``: the last share of the run the step test looks at (1: every frame,
+    those before the evaluation window too; the runs are still scored on the window).
+    """
     bag, prior_path = out / f"{name}.mcap", out / f"{name}.prior.yaml"
     if not bag.exists():
         unseen_cases.write_case(name, out, seed)
@@ -65,7 +69,7 @@ def one(name: str, out: Path, seed: int) -> None:
     prior = rerun_prior(load_calibration(prior_path))
     t0 = time.perf_counter()
     base = evaluate(str(bag), spec, prior, (), FRACTION, keep_residuals=True)
-    knock, where = auto._knock_of(base, base.calibration or prior, FRACTION)
+    knock, where = auto._knock_of(base, base.calibration or prior, test_fraction)
     if knock is None:
         print(f"{name}: no step test")
         return
@@ -76,7 +80,7 @@ def one(name: str, out: Path, seed: int) -> None:
     step = evaluate(str(bag), spec, at, (StepNuisance.id,), FRACTION, True, classes)
     runs = {k: evaluate(str(bag), spec, at, e, FRACTION, False, classes, candidate=True)
             for k, e in (("gsf", (GSF,)), ("step+gsf", (StepNuisance.id, GSF)))}
-    after, _ = auto._knock_of(step, step.calibration or prior, FRACTION)
+    after, _ = auto._knock_of(step, step.calibration or prior, test_fraction)
     d = np.asarray(StepNuisance().initial(step.calibration)[0]) / ARCSEC
     ll = {k: r.window["log_likelihood"] for k, r in
           (("base", base), ("step", step), *runs.items())}
@@ -102,10 +106,12 @@ def main() -> int:
     ap.add_argument("--cases", default="knock_gsf_early,knock_gsf_run20,knock_slew_gsf,"
                     "sway_knock_gsf,sway_knock_gsf_early")
     ap.add_argument("--seed", type=int, default=21)
+    ap.add_argument("--test-fraction", type=float, default=FRACTION,
+                    help="the last share of the run the step test looks at (1: every frame)")
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
     for name in a.cases.split(","):
-        one(name, a.out, a.seed)
+        one(name, a.out, a.seed, a.test_fraction)
     return 0
 
 

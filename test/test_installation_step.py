@@ -233,6 +233,33 @@ def test_a_true_gyro_scale_beside_an_early_knock_is_added_at_its_size(tmp_path):
     _hidden(got, tmp_path)
 
 
+def test_a_true_gyro_scale_beside_a_knock_before_the_window_is_added(tmp_path):
+    """Unseen case ``knock_gsf_run20``: the knock at 20 % of the run (60 s, before the
+    evaluation window) and a true 100-ppm gyro scale on z.  The window has no step to
+    test, and every candidate's run takes part of the knock in its first half: the scale
+    2 Δℓ −939 (seed 21), nothing significant, missed on main 17d7d23.  The step test over
+    the frames before the window (moving or not) finds it, the step is fitted from then on
+    (hidden), and beside it the scale is added at its size; the step's line says where it
+    was found."""
+    from stellar_cal_ros.diagnosis.installation_step import BEFORE
+
+    got = _knocked_discovery(tmp_path, "psce", {"gyro_scale_factor": [0.0, 0.0, 1e-4]},
+                             at=0.2)
+    first = got["path"][0]
+    assert first["action"] == "step", [s["action"] for s in got["path"]]
+    b = first["step_before_window"]
+    assert abs(b["installation_step"]["t"] - 60.0) < 2.0 and b["p_value"] < 1e-6, b
+    assert 15 < np.linalg.norm(b["step_fitted_arcsec"]) < 25, b
+    assert got["added"] == ["gyro_scale_factor"], got["added"]
+    est = got["final_estimates"]["gyro_scale_factor"]
+    for axis, truth in (("sx", 0.0), ("sy", 0.0), ("sz", 1e-4)):
+        v, s = est[axis]
+        assert abs(v - truth) < 4 * s + 5e-6, (axis, v, s)
+    line = got["unexplained"][0]
+    assert line["component"] == COMPONENT and BEFORE in line["regressor"], got["unexplained"]
+    _hidden(got, tmp_path)
+
+
 def test_what_could_still_hide_lists_no_bias_of_the_hidden_step(monkeypatch):
     """The "what could still be hiding" rows of a model holding the step's nuisance: the
     screening's sensitivities cover every parameter of the model, the nuisance's too; none

@@ -187,6 +187,10 @@ def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, fl
 #: the frames a step tested over all frames of a platform that rests is said the largest of
 MOVING = ("moving or not (where the platform moves a knock and a clock that steps are not "
           "told apart)")
+#: the frames a step found before the evaluation window is said the largest of
+#: (:func:`~stellar_cal_ros.diagnosis.auto._step_before`)
+BEFORE = ("moving or not, before the evaluation window (which sees only what the filter "
+          "had left of it)")
 #: fewer window frames than this before the step: a candidate's gain there is not tested
 MIN_BEFORE = 20
 

@@ -265,14 +265,16 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=N
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 
 
-def step_test(res, calibration: Calibration, fraction: float, everywhere: bool = False
-              ) -> installation_step.InstallationStep | None:
+def step_test(res, calibration: Calibration, fraction: float, everywhere: bool = False,
+              before: bool = False) -> installation_step.InstallationStep | None:
     """The attitude step test at rest (:func:`~.installation_step.installation_step`).
 
     ``everywhere``: over all frames, moving or not (a gyro rate candidate's rival).
+    ``before``: over the frames before the evaluation window instead of the window's.
     """
     cam = calibration.camera
-    return installation_step.installation_step(res, stats.evaluation_mask(res, fraction),
+    mask = stats.evaluation_mask(res, fraction)
+    return installation_step.installation_step(res, ~mask if before else mask,
                                                (cam.fx, cam.fy), (cam.cx, cam.cy),
                                                calibration.R_imu_st, everywhere)
 

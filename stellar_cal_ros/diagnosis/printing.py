@@ -38,6 +38,11 @@ def describe(step: dict[str, Any]) -> str:
         return "the stars' noise differs with this model: measure it again"
     if a == "exchange":
         return f"exchange {step['removed']} for {step['exchanged_for']}"
+    if a == "step":  # diagnosis.auto._step_before
+        b = step["step_before_window"]
+        return (f"an attitude step before the evaluation window (t~"
+                f"{b['installation_step']['t']:.1f} s): fitted beside the model from now on "
+                f"(score {b['statistic']:.1f}, p = {b['p_value']:.2g}), not a library effect")
     return "nothing significant"
 
 
