@@ -61,7 +61,8 @@ def diagnose_seed(name: str, seed: int) -> dict[str, object]:
             # every re-run candidate's tests (their null distribution over the seeds)
             "tests": {c["effect"]: {"p_ratio": c["p_value_unadjusted"],
                                     "p_score": c["p_value_score"], "p_adjusted": c["p_value"],
-                                    "statistic": c["score"], "dof": c["dof"]}
+                                    "statistic": c["score"], "dof": c["dof"],
+                                    "seen_dof": c.get("seen_dof")}
                       for c in s["candidates"]},
             "cpu": time.process_time() - t0}
 

@@ -748,6 +748,25 @@ def test_the_directions_an_effect_is_seen_in_are_its_fitted_share_of_the_prior()
     assert auto.seen_dof(none, "gyro_misalignment") == 1.0
 
 
+def test_a_candidates_ratio_is_chi2_on_the_directions_its_run_fits():
+    """The augmented run's ratio test counts the directions its run fits (``seen_dof``), not
+    the parameters: gyro_misalignment beside psce's installation is fitted in 3 of its 6
+    (``twin_gm2`` s21 round 1: 3.37; its ratio 66.1, p 2.6e-12 on 6 dof, 5.4e-14 on 3.37).
+    The MDB's and the score test's dof stay the count.  Fails on main 17d7d23 (χ²₆)."""
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.diagnosis import discover
+
+    run = _misalignment_run(-1000.0 + 10.0)  # 2 Δℓ = 20 against the reference below
+    run.window.update(rms=[0.05, 0.05], n_window=100, n_accepted=200)
+    c = discover.CandidateResult("gyro_misalignment", "ranked")
+    discover._fill_candidate(SimpleNamespace(user_prior=None, physical_check=False), c, run,
+                             discover.Reference.of(_window_run(-1000.0)), 1e-3)
+    assert c.dof == 6 and c.seen_dof == pytest.approx(3.0, abs=1e-9)
+    assert c.statistic == pytest.approx(20.0, abs=1e-9)
+    assert c.p_value == pytest.approx(sps.chi2.sf(20.0, 3.0), rel=1e-9)
+
+
 @pytest.mark.parametrize("gain, tied", [(-3.0, True), (+3.0, True), (-5.8, True),
                                         (-12.1, False), (-25.0, False)])
 def test_an_effect_its_rival_explains_as_well_is_said_to_be_tied_with_it(gain, tied):

@@ -76,6 +76,7 @@ from stellar_cal_ros.diagnosis.discover import (
     prior_uncertain,
     rank_round,
     rerun_prior,
+    seen_dof,
 )
 from stellar_cal_ros.diagnosis.noise import check_noise, stated_scales
 from stellar_cal_ros.diagnosis.output import finish, progress_printer, write_report
@@ -267,8 +268,7 @@ def _decide_checks(state: _State, base: RunSummary, extras: dict[str, RunSummary
               if k.startswith("without ") and v.ok}
     worst, details = None, {}
     for x, run in checks.items():
-        dof = registry.create(x).size
-        stat, p, expl = Reference.of(run).compare(base, dof)
+        stat, p, expl = Reference.of(run).compare(base, seen_dof(base, x))
         p_adj = min(1.0, p * len(checks))
         needed = p_adj < ALPHA and (not expl < MIN_EXPLAINED or x in state.at_size
                                     or x in state.before_step)
@@ -301,31 +301,6 @@ def _decide_checks(state: _State, base: RunSummary, extras: dict[str, RunSummary
         y, x = best.split(" for ")
         return "exchange", x, y, extras[best], details
     return "", "", "", None, details
-
-
-def seen_dof(run: RunSummary, x: str) -> float:
-    """How many directions of ``x`` (in ``run``'s model) the data sees beside the rest of it.
-
-    The run fits ``x`` as a constant with prior σ (``Π = diag σ⁻²``) beside the other
-    parameters; with ``I`` the information the data carries about ``x`` once they are
-    marginalized (the model's own span projected out), its posterior block is
-    ``P = (I + Π)⁻¹``.  The estimate is the prior shrunk by the hat matrix
-    ``H = I (I + Π)⁻¹ = 1 − Π P``: along an eigen-direction of ``I`` (in ``Π``'s metric)
-    the data fits ``λ / (λ + π)`` of it -- 1 where the data determines it, 0 where only the
-    prior does -- and a likelihood ratio of ``x`` gains about one χ²₁ in each direction
-    fitted and nothing where it is not.  So the effective dof is the hat's trace,
-    ``tr H = k − tr(Π P) = Σ_j (1 − P_jj / σ_j²)`` (each parameter's share of its prior
-    variance the data removed; ``Π`` is diagonal).  A gyro misalignment on psce rotations:
-    the installation absorbs its three antisymmetric directions (a rotation of the gyro
-    axes), the posterior stays near the prior there, and 3.1-3.2 of 6 count (``twin_gm2``
-    s21 / s23; the installation's own prior pins a little of the rotation, which counts:
-    more dof, a larger p, so the count errs towards a tie).  No run: the model's run has
-    ``x``'s block.  At least 1 (an added effect was significant in some direction).
-    """
-    sl = run.block(x)
-    prior_var = np.asarray(run.prior_sigma[sl], dtype=float) ** 2
-    fitted = 1.0 - np.diag(np.atleast_2d(run.P[sl, sl])) / np.maximum(prior_var, 1e-300)
-    return max(float(np.clip(fitted, 0.0, 1.0).sum()), 1.0)
 
 
 def _tie(x: str, gain: float, c: CandidateResult | None, dof: float

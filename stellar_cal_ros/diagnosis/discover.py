@@ -148,6 +148,8 @@ class CandidateResult:
     status: str
     statistic: float = float("nan")
     dof: int = 0
+    #: the directions of the effect its run fits (:func:`seen_dof`): the ratio test's dof
+    seen_dof: float = float("nan")
     p_value: float = 1.0
     p_adjusted: float = 1.0
     rms_after_px: tuple[float, float] = (float("nan"), float("nan"))
@@ -236,7 +238,7 @@ class Reference:
         return float(2.0 * self.stars * self.excess * (MIN_EXPLAINED - explained)
                      / ((1.0 - MIN_EXPLAINED) * self.noise))
 
-    def compare(self, run: RunSummary, dof: int) -> tuple[float, float, float]:
+    def compare(self, run: RunSummary, dof: float) -> tuple[float, float, float]:
         """Statistic Λ, its unadjusted p (χ²_dof) and the fraction of the excess removed.
 
         Quasi-likelihood: when the reference misses something, every residual is
@@ -251,6 +253,31 @@ class Reference:
         explained = (float(1.0 - w["excess_variance"] / self.excess)
                      if self.excess > self.floor else float("nan"))
         return statistic, p, explained
+
+
+def seen_dof(run: RunSummary, x: str) -> float:
+    """How many directions of ``x`` (in ``run``'s model) the data sees beside the rest of it.
+
+    The run fits ``x`` as a constant with prior σ (``Π = diag σ⁻²``) beside the other
+    parameters; with ``I`` the information the data carries about ``x`` once they are
+    marginalized (the model's own span projected out), its posterior block is
+    ``P = (I + Π)⁻¹``.  The estimate is the prior shrunk by the hat matrix
+    ``H = I (I + Π)⁻¹ = 1 − Π P``: along an eigen-direction of ``I`` (in ``Π``'s metric)
+    the data fits ``λ / (λ + π)`` of it -- 1 where the data determines it, 0 where only the
+    prior does -- and a likelihood ratio of ``x`` gains about one χ²₁ in each direction
+    fitted and nothing where it is not.  So the effective dof is the hat's trace,
+    ``tr H = k − tr(Π P) = Σ_j (1 − P_jj / σ_j²)`` (each parameter's share of its prior
+    variance the data removed; ``Π`` is diagonal).  A gyro misalignment on psce rotations:
+    the installation absorbs its three antisymmetric directions (a rotation of the gyro
+    axes), the posterior stays near the prior there, and 3.1-3.2 of 6 count (``twin_gm2``
+    s21 / s23; the installation's own prior pins a little of the rotation, which counts:
+    more dof, a larger p, so the count errs towards a tie).  No run: the model's run has
+    ``x``'s block.  At least 1 (an added effect was significant in some direction).
+    """
+    sl = run.block(x)
+    prior_var = np.asarray(run.prior_sigma[sl], dtype=float) ** 2
+    fitted = 1.0 - np.diag(np.atleast_2d(run.P[sl, sl])) / np.maximum(prior_var, 1e-300)
+    return max(float(np.clip(fitted, 0.0, 1.0).sum()), 1.0)
 
 
 def rerun_prior(calibration: Calibration, model_effects: list[str] | None = None) -> Calibration:
@@ -432,7 +459,8 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference:
                                             dispersion)
     if _untestable(cand):
         return
-    cand.statistic, cand.p_value, cand.explained = reference.compare(run, eff.size)
+    cand.seen_dof = seen_dof(run, cand.effect)
+    cand.statistic, cand.p_value, cand.explained = reference.compare(run, cand.seen_dof)
     gate = reference.gate_energy(cand.explained) if gated else 0.0
     if gate > 0.0:  # the MDB is the size the decision finds: its excess gate too
         cand.detect = reliability.detectability(
@@ -912,7 +940,8 @@ def condition_on_top(r: Round, extra: list[str], results: list[CandidateResult],
             log.warning("candidate %s after %s failed: %s", c.effect, top.effect, run.error)
             continue
         c.after = top.effect
-        c.statistic_after, p, c.explained_after = reference.compare(run, c.dof)
+        c.statistic_after, p, c.explained_after = reference.compare(
+            run, seen_dof(run, c.effect))
         c.p_after = min(1.0, p * len(rest))
 
 
@@ -989,7 +1018,8 @@ def summary_dict(base: RunSummary, results: list[CandidateResult],
              "after": ({"effect": c.after, "score": c.statistic_after,
                         "p_value": c.p_after, "explained_fraction": c.explained_after}
                        if c.after else None),
-             "dof": c.dof, "estimate": c.estimate, "sigma": c.sigma,
+             "dof": c.dof, "seen_dof": None if np.isnan(c.seen_dof) else c.seen_dof,
+             "estimate": c.estimate, "sigma": c.sigma,
              "prior_uncertain": c.prior_uncertain,
              "detectability": c.detect.as_dict() if c.detect else None}
             for c in ranked
