@@ -104,7 +104,7 @@ CLOCK_REMAINDER = ("the clock-shaped remainder along the stars' motion", "a drif
 #: ... and beside an attitude step (a knock) it explains nothing before
 STEP_REMAINDER = ("what the attitude step leaves", "an attitude step")
 #: the level of the step test over the frames before the window (:func:`_step_before`): on
-#: psce its moving frames hold the slews' ends, where the rate steps, and 4 of 20 bags
+#: psce its moving frames hold the slews' ends, where the rate steps, and 4 of 23 bags
 #: without a knock fired at 1 % there (unseen cases rows, columns, flex20 s22 and
 #: mag_faint_over2 s21: p 7.2e-4 to 7.2e-3, chi2_3 at most 28.7, at the slew ending near
 #: 60 s); knock_gsf_run20's 20-arcsec knock: chi2_3 2204-3730 (s21-s24)
