@@ -980,6 +980,13 @@ def test_gain_joseph_and_star_blocks_equal_numpy() -> None:
     _close(S, S_ref)
     _close(nis_s, block_nis(nu.reshape(n, 2), S_ref))
     assert jit.kalman_gain(-P, H, -r2, nu)[0] == 0  # not positive definite: refused
+    # the factor the sensitivity solves with: S = L Lᵀ, and S⁻¹ X as numpy's solve
+    ok, K_f, nis_f, L = jit.kalman_gain_factor(P, H, r2, nu)
+    assert ok == 1 and np.array_equal(K_f, K) and nis_f == nis
+    S_full = H @ P @ H.T + np.diag(r2)
+    _close(L @ L.T, S_full)
+    X = rng.normal(size=(2 * n, 5))
+    _close(jit.cholesky_solve(L, X.copy()), np.linalg.solve(S_full, X))
 
 
 def test_without_numba_the_numpy_path_runs() -> None:

@@ -161,6 +161,32 @@ def test_reference_rows_independent_of_batching_with_accelerometer():
         assert np.array_equal(getattr(one, key), getattr(restored, key)), key
 
 
+def test_compiled_prefix_rows_are_the_numpy_rows(monkeypatch):
+    """The block scan and the attitude matrices compiled (``core.jit.quat_block_scan``,
+    ``anchored_matrices``) store the numpy path's rows bit for bit, whatever the pieces."""
+    from stellar_cal_ros.core import imu_prefix
+
+    if not imu_prefix.HAVE_NUMBA:
+        pytest.skip("numba not importable: the numpy path is the only one")
+    imu = _imu(6000, seed=7)
+    b, A = np.array([1e-3, -2e-3, 5e-4]), np.eye(3) + 1e-3
+    rng = np.random.default_rng(3)
+    cuts = np.cumsum(rng.integers(1, 700, 40))
+    cuts = [0, *cuts[cuts < len(imu)].tolist(), len(imu)]
+
+    def rows(compiled: bool) -> ImuPrefix:
+        monkeypatch.setattr(imu_prefix, "HAVE_NUMBA", compiled)
+        pre = ImuPrefix(DT, b, A)
+        for a, e in zip(cuts[:-1], cuts[1:], strict=True):
+            pre.extend(imu.t[a:e], imu.w[a:e])
+        return pre
+
+    one, ref = rows(True), rows(False)
+    for key in ("tp", "C", "w_hat", "phi", "slope", "anchor", "block_dq"):
+        assert np.array_equal(getattr(one, key), getattr(ref, key)), key
+    assert one._lv == ref._lv
+
+
 def test_in_sample_attitude_matches_the_truth_to_second_order():
     """A star stamp falls inside an IMU sample (the swaying scenario's 37 % into a 100 Hz
     sample).  From noise-free samples (the simulator's interval means of the true rate),

@@ -1,7 +1,9 @@
 """The reference strapdown of the filters' IMU propagation, accumulated once per IMU sample.
 
 See :class:`ImuPrefix`; :mod:`stellar_cal_ros.core.propagation` turns its rows into the
-propagation over a star interval.  numpy only.
+propagation over a star interval.  numpy, and with numba the block scan and the attitude
+matrices compiled (:func:`~stellar_cal_ros.core.jit.quat_block_scan`,
+:func:`~stellar_cal_ros.core.jit.anchored_matrices`: the same floats, a quarter of the cost).
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ import math
 
 import numpy as np
 
+from stellar_cal_ros.core.jit import HAVE_NUMBA, anchored_matrices, quat_block_scan
 from stellar_cal_ros.core.rotation import quat_from_rotvec, so3_exp
 from stellar_cal_ros.core.strapdown import _quat_multiply_soa, _so3_integral_coefficients
 
@@ -172,14 +175,12 @@ class ImuPrefix:
         pad[:, 3] = 1.0
         pad[:r] = seq
         levels = np.empty((6, 4, _BLOCK)) if r % _BLOCK else None
-        L = _block_scan(pad.reshape(nb, _BLOCK, 4), levels)  # (4, nb, B)
+        L = _scan(pad.reshape(nb, _BLOCK, 4), levels)  # (4, nb, B)
         # the blocks' anchors in Python floats (the same operations as on arrays; a
         # 4 096-sample extension has 128 of them)
         anchors = np.empty((4, nb))
         a = _anchor_chain(self.anchor.tolist(), L[:, :, -1].T.tolist(),
                           nb if r % _BLOCK == 0 else nb - 1, anchors)
-        q = np.empty_like(L)
-        _quat_multiply_soa(anchors[:, :, None], L, q, np.empty(L.shape[1:]))
         self._reserve(m)
         buf, i0 = self._buf, self._lo + self.n  # row of the last boundary held
         if first:
@@ -188,8 +189,7 @@ class ImuPrefix:
         buf["w_hat"][i0:i0 + m] = d
         buf["phi"][i0:i0 + m] = phi
         self._slope_rows(i0, d, dt)
-        C = buf["C"][i0 + 1:i0 + m + 1]
-        _quat_soa_to_matrix(q.reshape(4, -1)[:, old:r], C)
+        _attitudes(anchors, L, old, r, buf["C"][i0 + 1:i0 + m + 1])
         if self.has_accel:
             self._accel_rows(i0, imu_t, dt, dth, imu_f)
         self.n += m
@@ -446,6 +446,30 @@ def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     np.subtract(a2 * b0, a0 * b2, out=out[:, 1])
     np.subtract(a0 * b1, a1 * b0, out=out[:, 2])
     return out
+
+
+_NO_LEVELS = np.empty((0, 4, _BLOCK))  # quat_block_scan's "no levels wanted"
+
+
+def _scan(dq: np.ndarray, levels: np.ndarray | None) -> np.ndarray:
+    """:func:`_block_scan`, compiled where numba is (the same floats)."""
+    if HAVE_NUMBA:
+        return quat_block_scan(dq, _NO_LEVELS if levels is None else levels)
+    return _block_scan(dq, levels)
+
+
+def _attitudes(anchors: np.ndarray, L: np.ndarray, old: int, r: int, C: np.ndarray) -> None:
+    """The attitude matrices of scan positions ``old .. r − 1`` into ``C``.
+
+    Each block's anchor (``anchors`` (4, nb)) times its scan values ``L`` (4, nb, B);
+    compiled where numba is (the same floats).
+    """
+    if HAVE_NUMBA:
+        anchored_matrices(anchors, L, old, r, C)
+        return
+    q = np.empty_like(L)
+    _quat_multiply_soa(anchors[:, :, None], L, q, np.empty(L.shape[1:]))
+    _quat_soa_to_matrix(q.reshape(4, -1)[:, old:r], C)
 
 
 def _block_scan(dq: np.ndarray, levels: np.ndarray | None = None) -> np.ndarray:

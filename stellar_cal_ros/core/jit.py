@@ -413,6 +413,91 @@ def project_points(d: FloatArray, p: FloatArray, tilt: FloatArray, jac: int, uv:
             J_d[i, r, 2] = -(a * x[i] + b * y[i])
 
 
+# ---------------------------------------------------------------------------- IMU prefix
+@njit(cache=True)
+def quat_block_scan(dq: FloatArray, levels: FloatArray) -> FloatArray:
+    """:func:`~stellar_cal_ros.core.imu_prefix._block_scan` compiled: the same floats.
+
+    ``dq`` (nb, B, 4) → (4, nb, B): the inclusive Hamilton products within each block (at
+    step ``s``, position ``k ≥ s`` becomes ``Q[k − s] ⊗ Q[k]``, the products of
+    ``strapdown._quat_multiply_soa`` in their order), normalized as there.  ``levels``
+    ``(log2 B + 1, 4, B)`` receives the last block's values before the first and after each
+    step (unnormalized); a first dimension of 0: not wanted.  Each entry takes the very
+    operations of the numpy scan (no reassociation, no fused multiply-add), so the prefix's
+    rows are the same bit for bit (``test/test_imu_prefix.py``).
+    """
+    nb, B = dq.shape[0], dq.shape[1]
+    Q = np.empty((4, nb, B))
+    for i in range(nb):
+        for k in range(B):
+            for c in range(4):
+                Q[c, i, k] = dq[i, k, c]
+    want = levels.shape[0] > 0
+    if want:
+        for c in range(4):
+            for k in range(B):
+                levels[0, c, k] = Q[c, nb - 1, k]
+    s, lvl = 1, 0
+    while s < B:
+        for i in range(nb):
+            for k in range(B - 1, s - 1, -1):  # downwards: Q[k − s] still the level before
+                ax, ay, az, aw = Q[0, i, k - s], Q[1, i, k - s], Q[2, i, k - s], Q[3, i, k - s]
+                bx, by, bz, bw = Q[0, i, k], Q[1, i, k], Q[2, i, k], Q[3, i, k]
+                Q[0, i, k] = aw * bx + ax * bw + ay * bz - az * by
+                Q[1, i, k] = aw * by - ax * bz + ay * bw + az * bx
+                Q[2, i, k] = aw * bz + ax * by - ay * bx + az * bw
+                Q[3, i, k] = aw * bw - ax * bx - ay * by - az * bz
+        s *= 2
+        lvl += 1
+        if want:
+            for c in range(4):
+                for k in range(B):
+                    levels[lvl, c, k] = Q[c, nb - 1, k]
+    for i in range(nb):
+        for k in range(B):
+            x, y, z, w = Q[0, i, k], Q[1, i, k], Q[2, i, k], Q[3, i, k]
+            n = math.sqrt(x * x + y * y + z * z + w * w)
+            Q[0, i, k] = x / n
+            Q[1, i, k] = y / n
+            Q[2, i, k] = z / n
+            Q[3, i, k] = w / n
+    return Q
+
+
+@njit(cache=True)
+def anchored_matrices(anchors: FloatArray, L: FloatArray, old: int, r: int,
+                      C: FloatArray) -> None:
+    """The prefix's attitude matrices of scan positions ``old .. r − 1``, into ``C``.
+
+    Position ``p`` (block ``p // B``, place ``p % B`` of ``L`` (4, nb, B)): the block's
+    anchor ``anchors[:, p // B]`` ⊗ ``L`` (``strapdown._quat_multiply_soa``'s order), as a
+    matrix (``imu_prefix._quat_soa_to_matrix``'s formulas) in ``C[p − old]``: the same
+    floats as those two numpy calls.
+    """
+    B = L.shape[2]
+    for p in range(old, r):
+        i, k = p // B, p % B
+        ax, ay, az, aw = anchors[0, i], anchors[1, i], anchors[2, i], anchors[3, i]
+        bx, by, bz, bw = L[0, i, k], L[1, i, k], L[2, i, k], L[3, i, k]
+        x = aw * bx + ax * bw + ay * bz - az * by
+        y = aw * by - ax * bz + ay * bw + az * bx
+        z = aw * bz + ax * by - ay * bx + az * bw
+        w = aw * bw - ax * bx - ay * by - az * bz
+        xx, yy, zz = x * x, y * y, z * z
+        xy, xz, yz = x * y, x * z, y * z
+        wx, wy, wz = w * x, w * y, w * z
+        o = C[p - old]
+        o[0, 0] = 1.0 - 2.0 * (yy + zz)
+        o[0, 1] = 2.0 * (xy - wz)
+        o[0, 2] = 2.0 * (xz + wy)
+        o[1, 0] = 2.0 * (xy + wz)
+        o[1, 1] = 1.0 - 2.0 * (xx + zz)
+        o[1, 2] = 2.0 * (yz - wx)
+        o[2, 0] = 2.0 * (xz - wy)
+        o[2, 1] = 2.0 * (yz + wx)
+        o[2, 2] = 1.0 - 2.0 * (xx + yy)
+
+
 # ---------------------------------------------------------------------------- Kalman update
 @njit(cache=True)
 def kalman_gain(P: FloatArray, H: FloatArray, r_diag: FloatArray, nu: FloatArray
@@ -422,28 +507,55 @@ def kalman_gain(P: FloatArray, H: FloatArray, r_diag: FloatArray, nu: FloatArray
     ``S = H P Hᵀ + diag(r)``, its Cholesky factor ``L`` (LAPACK), ``K = P Hᵀ S⁻¹`` and the
     NIS ``νᵀ S⁻¹ ν`` (forward and back substitution).  ``P`` (N, N), ``H`` (m, N), ``r_diag``
     and ``nu`` (m,).  Returns ``(ok, K (N, m), nis)``; ``ok`` 0 when ``S`` is not positive
-    definite (then ``K`` is zero).
+    definite (then ``K`` is zero).  :func:`kalman_gain_factor` also returns ``L``.
+    """
+    ok, K, nis, _ = kalman_gain_factor(P, H, r_diag, nu)
+    return ok, K, nis
+
+
+@njit(cache=True)
+def kalman_gain_factor(P: FloatArray, H: FloatArray, r_diag: FloatArray, nu: FloatArray
+                       ) -> tuple[int, FloatArray, float, FloatArray]:
+    """:func:`kalman_gain` and the Cholesky factor ``L`` (m, m) of its ``S`` (zeros if not ok).
+
+    A caller that solves more with the same ``S`` (the frame step's sensitivity) takes
+    :func:`cholesky_solve` of ``L`` instead of factorizing ``S`` again.
     """
     N, m = P.shape[0], H.shape[0]
     PHt = np.ascontiguousarray(P @ np.ascontiguousarray(H.T))  # (N, m)
     S = H @ PHt
     for i in range(m):
         S[i, i] += r_diag[i]
-    # Cholesky (lower), column by column
+    # Cholesky (lower), column by column; the rows below the diagonal four at a time (four
+    # independent sums: each entry's subtractions in the same order)
     L = np.zeros((m, m))
     for j in range(m):
         s = S[j, j]
         for k in range(j):
             s -= L[j, k] * L[j, k]
         if not s > 0.0:
-            return 0, np.zeros((N, m)), math.nan
+            return 0, np.zeros((N, m)), math.nan, L
         d = math.sqrt(s)
         L[j, j] = d
-        for i in range(j + 1, m):
-            s = S[i, j]
+        i = j + 1
+        while i + 3 < m:
+            s0, s1, s2, s3 = S[i, j], S[i + 1, j], S[i + 2, j], S[i + 3, j]
             for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / d
+                ljk = L[j, k]
+                s0 -= L[i, k] * ljk
+                s1 -= L[i + 1, k] * ljk
+                s2 -= L[i + 2, k] * ljk
+                s3 -= L[i + 3, k] * ljk
+            L[i, j] = s0 / d
+            L[i + 1, j] = s1 / d
+            L[i + 2, j] = s2 / d
+            L[i + 3, j] = s3 / d
+            i += 4
+        for q in range(i, m):
+            s = S[q, j]
+            for k in range(j):
+                s -= L[q, k] * L[j, k]
+            L[q, j] = s / d
     y = np.empty(m)
     for i in range(m):
         s = nu[i]
@@ -453,24 +565,33 @@ def kalman_gain(P: FloatArray, H: FloatArray, r_diag: FloatArray, nu: FloatArray
     nis = 0.0
     for i in range(m):
         nis += y[i] * y[i]
-    # Kᵀ = S⁻¹ (P Hᵀ)ᵀ: solve L W = H P, then Lᵀ Kᵀ = W (row operations: contiguous)
-    Kt = np.ascontiguousarray(PHt.T)  # (m, N)
-    for i in range(m):
-        for k in range(i):
-            _row_sub(Kt, i, k, L[i, k])
-        Kt[i] /= L[i, i]
-    for i in range(m - 1, -1, -1):
-        for k in range(i + 1, m):
-            _row_sub(Kt, i, k, L[k, i])
-        Kt[i] /= L[i, i]
-    return 1, np.ascontiguousarray(Kt.T), nis
+    # Kᵀ = S⁻¹ (P Hᵀ)ᵀ
+    Kt = cholesky_solve(L, np.ascontiguousarray(PHt.T))  # (m, N)
+    return 1, np.ascontiguousarray(Kt.T), nis, L
 
 
-@njit(cache=True, inline="always")
-def _row_sub(X: FloatArray, i: int, k: int, coef: float) -> None:
-    """``X[i] -= coef · X[k]`` in place."""
-    for c in range(X.shape[1]):
-        X[i, c] -= coef * X[k, c]
+@njit(cache=True)
+def cholesky_solve(L: FloatArray, X: FloatArray) -> FloatArray:
+    """``S⁻¹ X`` for ``S = L Lᵀ`` (``L`` lower (m, m), ``X`` (m, k) C order), in place; ``X``.
+
+    Solve ``L W = X``, then ``Lᵀ Y = W``, a row at a time (contiguous rows; each entry
+    takes its subtractions in ascending order, then its division).
+    """
+    m, k = X.shape
+    acc = np.empty(k)
+    for t in range(2 * m):
+        down = t < m  # L W = X downwards, then Lᵀ Y = W upwards
+        i = t if down else 2 * m - 1 - t
+        for c in range(k):
+            acc[c] = X[i, c]
+        for j in range(0, i) if down else range(i + 1, m):
+            coef = L[i, j] if down else L[j, i]
+            for c in range(k):
+                acc[c] -= coef * X[j, c]
+        d = L[i, i]
+        for c in range(k):
+            X[i, c] = acc[c] / d
+    return X
 
 
 @njit(cache=True)
@@ -498,12 +619,13 @@ def star_blocks(H: FloatArray, P: FloatArray, r: FloatArray, nu: FloatArray
     nis = np.empty(n)
     HP = np.empty((2, N))
     for i in range(n):
-        for a in range(2):
+        for a in range(2):  # HP[a] = Σ_k H[i, a, k] P[k]: rows of P (each sum in k order)
             for c in range(N):
-                acc = 0.0
-                for k in range(N):
-                    acc += H[i, a, k] * P[k, c]
-                HP[a, c] = acc
+                HP[a, c] = 0.0
+            for k in range(N):
+                h = H[i, a, k]
+                for c in range(N):
+                    HP[a, c] += h * P[k, c]
         for a in range(2):
             for b in range(2):
                 acc = 0.0

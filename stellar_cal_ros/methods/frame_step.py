@@ -42,8 +42,9 @@ import numpy as np
 from stellar_cal_ros.core.imu_prefix import in_sample_rotvec
 from stellar_cal_ros.core.jit import (
     HAVE_NUMBA,
+    cholesky_solve,
     joseph,
-    kalman_gain,
+    kalman_gain_factor,
     mat3_mul,
     njit,
     so3_exp1,
@@ -791,8 +792,9 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
     Ha_r = np.empty((n_acc, 2, 3))
     Hp_r = np.empty((n_acc, 2, P_all))
     all_rows = np.arange(n_acc)
+    Lf = np.zeros((m2, m2))  # the last gain's Cholesky factor of S (the sensitivity's)
     for it in range(1, max_it + 1):
-        okg, K, nis_it = kalman_gain(P, H, rr, nu)
+        okg, K, nis_it, Lf = kalman_gain_factor(P, H, rr, nu)
         if not okg:
             ints[1] = it
             return BAD_GAIN, accepted, uv_pred, S_blocks, nis_stars, dirs, np.zeros(N)
@@ -835,13 +837,11 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
     ints[1] = it
     if not (np.all(np.isfinite(dx)) and np.all(np.isfinite(K))):
         return NON_FINITE, accepted, uv_pred, S_blocks, nis_stars, dirs, np.zeros(N)
-    # ---- sensitivity (prior P, final H, the consider columns at the prior state)
+    # ---- sensitivity (prior P, final H, the consider columns at the prior state); H is the
+    # last gain's (every exit of the loop above comes before H is relinearized), so its
+    # S = H P Hᵀ + R is factorized already: Lf
     mc = M.shape[1]
     if mc:
-        PHt = P @ np.ascontiguousarray(H.T)
-        S = H @ PHt
-        for i in range(m2):
-            S[i, i] += rr[i]
         Hb = np.empty((m2, mc))
         for q in range(n_acc):
             for r in range(2):
@@ -849,8 +849,8 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
                     Hb[2 * q + r, k] = H_par[idx[q], r, Pe + k]
         A = H @ M + Hb
         if accumulate:
-            X = np.linalg.solve(S, np.hstack((A, nu.reshape(m2, 1))))
-            score += A.T @ X[:, mc]
+            X = cholesky_solve(Lf, np.hstack((A, nu.reshape(m2, 1))))
+            score += A.T @ np.ascontiguousarray(X[:, mc])
             info += A.T @ np.ascontiguousarray(X[:, :mc])
         Mn = M - K @ A
         for i in range(N):
