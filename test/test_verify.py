@@ -16,7 +16,7 @@ import math
 import pytest
 from scipy import stats as sps
 
-from stellar_cal_ros.diagnosis import verify
+from stellar_cal_ros.diagnosis import injection, verify
 from stellar_cal_ros.diagnosis.printing import verify_lines
 
 
@@ -144,3 +144,60 @@ def test_a_twin_the_clock_rule_refuses_on_the_bag_is_not_a_miss():
     assert lines[0].endswith("1 of 2 claims hold; 1 of them refused by the clock rule on "
                              "this bag at that sign (not a miss: the detection not counted, "
                              "the biases judged)"), lines[0]
+
+
+def _probed(effect: str, param: str, rows: dict) -> dict:
+    """A reliability entry whose ``rows`` ({q: (printed +, printed -, first order, σ)})
+    a probe run replaced at the printed size (:func:`reliability_probe.apply`)."""
+    return {"effect": effect, "dominates": list(rows),
+            "bias_parameter": {q: param for q in rows},
+            "biases_signed": {q: r[0] for q, r in rows.items()},
+            "biases_minus": {q: r[1] for q, r in rows.items() if r[2] is not None},
+            "sigma": {q: r[3] for q, r in rows.items()},
+            "probe": {param: {"first_order": {q: r[2] for q, r in rows.items()
+                                              if r[2] is not None}}}}
+
+
+def test_a_probed_bias_is_claimed_by_its_first_order_at_a_twin_below_the_printed_size():
+    """``dt_step`` s23 (``discover --auto --verify``, doc/benchmarks.md H229): the excess
+    gate set radial_k3's MDB (433; its hidden size the plausible 189), the twin, without
+    the misfit, is injected at 9.1 % of it.  The probe measured tangential.p2 at +189 on
+    the bag (+3.2e-5, first order −1.9e-4): scaled linearly the claim was +2.9e-6 and the
+    twin's −2.13e-5 read "−7.2x: DOES NOT HOLD".  The claim at that share is the first
+    order plus the probe's departure as of second order (−1.76e-5 to −1.57e-5): 1.21x,
+    holds; a first-order row (focal_length.f) is scaled as printed.  The image-plane tilt
+    (share 0.42, first order off at its size) falls inside its range, and aberration's
+    tangential.p2 (first order 0.06 σ per share: below its σ whichever the order) is no
+    claim at that share.  Fails on coord (the probe's measurement scaled linearly)."""
+    share = 0.09120575535116426
+    k3 = _probed("radial_k3", "k3", {
+        "tangential.p2": (3.225063347096627e-05, 9.165410553546355e-05,
+                          -0.00019321286147919127, 2.4842323865766328e-05),
+        "focal_length.f": (2.0260692168317376, -2.0260692168317376, None,
+                           0.024695779276067337)})
+    measured = {"tangential.p2": -2.1301251705495197e-05, "focal_length.f": 0.18617251410705649}
+    checks = {c["quantity"]: c for c in verify.bias_checks(k3, "k3", 1, share, measured)}
+    p2 = checks["tangential.p2"]
+    assert p2["claimed"] == pytest.approx([-1.5748e-05, -1.7622e-05], rel=1e-3)
+    assert p2["ratio"] == pytest.approx(1.209, abs=2e-3)
+    assert checks["focal_length.f"]["printed"] == pytest.approx(2.0260692168317376 * share)
+    assert "claimed" not in checks["focal_length.f"]
+    assert verify.claim_verdict(0.81, [c["ratio"] for c in checks.values()])[0] == "holds"
+    # at the printed size the printed (measured) numbers, at either sign
+    assert injection.claimed_shift(k3, "tangential.p2", 1, 1.0) == (3.225063347096627e-05,) * 2
+    assert injection.claimed_shift(k3, "tangential.p2", -1, 1.0) == (9.165410553546355e-05,) * 2
+    line = verify.describe({"effect": "radial_k3", "parameter": "k3", "size_shown": "17.2",
+                            "size_scale": share, "found": True, "noncentrality": math.nan,
+                            "biases": [p2], "holds": True, "conservative": []})
+    assert "tangential.p2 moved -2.13e-05 (claimed at this size -1.76e-05 to -1.57e-05" in line
+    tilt = _probed("image_plane_tilt", "tau_y", {
+        "radial_k1k2.k2": (0.1581866820930325, -0.08087832409507123, 0.05375875324089126,
+                           0.024323163134725566)})
+    (k2,) = verify.bias_checks(tilt, "tau_y", 1, 0.4181575047904555,
+                               {"radial_k1k2.k2": 0.033763195031627335})
+    assert k2["ratio"] == 1.0 and k2["claimed"][1] == pytest.approx(0.02248, rel=1e-3)
+    aberration = _probed("aberration", "scale", {
+        "tangential.p2": (-2.594599454058561e-05, 1.2850002882266488e-05,
+                          1.5296188018997532e-06, 2.4842323865766328e-05)})
+    assert injection.claims(aberration, 1, 1.0) == {"scale": ["tangential.p2"]}
+    assert injection.claims(aberration, 1, 0.09035166354696862) == {}

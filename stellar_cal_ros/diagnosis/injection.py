@@ -127,6 +127,35 @@ def printed_shift(entry: dict[str, Any], quantity: str, sign: float = 1.0) -> fl
     return float(np.sign(sign)) * float(entry["biases_signed"][quantity])
 
 
+def claimed_shift(entry: dict[str, Any], quantity: str, sign: float = 1.0,
+                  share: float = 1.0) -> tuple[float, float]:
+    """The shift the report claims for ``quantity`` at ``share`` x ``sign`` x its size.
+
+    ``(a, b)``: every value between them is claimed.  At the printed size (``share`` 1)
+    both are the printed shift (:func:`printed_shift`); so is ``share`` x that for a row
+    the first order holds, and any ``share`` above 1 (a probe-restated MDB, the biases
+    printed at the first-order size scaled alike).  A row a probe replaced
+    (:func:`~.reliability_probe.apply`: the first order ``f`` off by more than 10 % at the
+    printed size on the bag, ``P`` measured there) claims, below the printed size, its
+    first order plus the probe's departure ``P − f`` as at least of second order in the
+    size: ``s·f + sⁿ·(P − f)`` for any ``n ≥ 2``, i.e. from ``s·f`` to ``s·f + s²(P − f)``.
+    Scaling the measured ``P`` linearly (``s·P``) claims at a small share a departure that
+    the size, the excess gate's 10-30x the test's MDB, and the bag's misfit made: on
+    ``dt_step`` s23 the twins at 3-9 % of the gate's MDB moved radial_k3's rows by −2.7 to
+    −7.2x, pixel_aspect's, proper_motion's and refraction's by 0.26-1.9x that, and by
+    0.88-1.21x the first order (doc/benchmarks.md, H229); the image-plane tilt, whose first
+    order is off at its own size, at 0.42 of it 1.50x the first order, 0.83-1.14x the
+    first order with the departure of second order.
+    """
+    printed = printed_shift(entry, quantity, sign)
+    source = (entry.get("probe") or {}).get(entry["bias_parameter"].get(quantity), {})
+    first = source.get("first_order", {}).get(quantity)
+    if first is None or share >= 1.0:
+        return share * printed, share * printed
+    first = float(np.sign(sign)) * float(first)
+    return share * first + share * share * (printed - first), share * first
+
+
 def injected_parameter(entry: dict[str, Any]) -> tuple[str, list[str]]:
     """The parameter to inject for an entry, and the quantities whose bias it carries.
 
@@ -146,17 +175,21 @@ def injected_parameter(entry: dict[str, Any]) -> tuple[str, list[str]]:
                / max(float(plaus.get(p, 1.0)), 1e-300)), []
 
 
-def claims(entry: dict[str, Any], sign: float = 1.0) -> dict[str, list[str]]:
+def claims(entry: dict[str, Any], sign: float = 1.0, share: float = 1.0
+           ) -> dict[str, list[str]]:
     """The printed bias claims of one reliability entry, grouped by the injected parameter.
 
     ``{parameter: [quantities whose printed bias comes from that parameter alone]}``, over
     the quantities the report lists (``dominates``) whose printed shift at ``sign`` × size
-    exceeds their σ (a row a probe measured large at one sign only is claimed there).
+    exceeds their σ (a row a probe measured large at one sign only is claimed there).  At
+    ``share`` x the size: where the claim (:func:`claimed_shift`), per share, exceeds σ
+    at both its ends (as the report lists a row at its size).
     """
     from stellar_cal_ros.diagnosis.reliability import DOMINATES_SIGMA
 
     out: dict[str, list[str]] = {}
     for q in entry.get("dominates", []):
-        if abs(printed_shift(entry, q, sign)) > DOMINATES_SIGMA * entry["sigma"][q]:
+        least = min(abs(v) for v in claimed_shift(entry, q, sign, share)) / share
+        if least > DOMINATES_SIGMA * entry["sigma"][q]:
             out.setdefault(entry["bias_parameter"][q], []).append(q)
     return out

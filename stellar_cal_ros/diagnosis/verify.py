@@ -19,7 +19,9 @@ twin with the same seed without it.  Then, per effect:
   injected runs' own statistics (``benchmarks/reliability_injection.py``, per sign on
   twins ``benchmarks/twin_mdb_power.py``);
 * **bias**: the current model's estimates on the two twins: the shift of every listed
-  quantity against the printed bias (within ± 30 %: holds).
+  quantity against the printed bias (within ± 30 %: holds); a twin below the printed size
+  checks a row a probe measured at it against its first order plus the probe's departure
+  as of second order (:func:`~.injection.claimed_shift`, :func:`bias_checks`).
 
 A claim is one-sided where it errs on the safe side (:func:`claim_verdict`): a score
 response *above* the power band (the effect is seen more easily than printed: the MDB
@@ -183,7 +185,6 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
     eid = entry["effect"]
     eff = registry.create(eid)
     param = param or injection.injected_parameter(entry)[0]
-    listed = injection.claims(entry, sign).get(param, [])
     scale = twin_scale(entry, param)
     size = sign * entry["hidden_size"][param] * scale
     delta = injection.parameter_delta(eid, param, size)
@@ -199,11 +200,7 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
     crit = dist.chi2.isf(entry["alpha"], k)
     shift = injection.paired_shift(before, injection.summary_values(base),
                                    own_shift(calibration, method, eid, delta))
-    checks = []
-    for q in listed:
-        printed = injection.printed_shift(entry, q, sign) * scale
-        checks.append({"quantity": q, "printed": printed, "measured": shift.get(q),
-                       "ratio": shift.get(q, np.nan) / printed if printed else np.nan})
+    checks = bias_checks(entry, param, sign, scale, shift)
     ratios = [c["ratio"] for c in checks]
     response = float(dist.ncx2.sf(crit, k, lam)) if np.isfinite(lam) else float("nan")
     rule = clock_rule(entry, param, size, delta, clock_check)
@@ -222,6 +219,27 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
             "twin_counts": counts, "size_scale": scale, **_decision(c),
             "clean_score_statistic": (c0.screen.statistic if c0 is not None
                                       and c0.screen is not None else float("nan"))}
+
+
+def bias_checks(entry: dict[str, Any], param: str, sign: int, scale: float,
+                shift: dict[str, float]) -> list[dict[str, Any]]:
+    """Each listed quantity's measured ``shift`` against its claim at ``scale`` x the size.
+
+    The claim (:func:`~.injection.claimed_shift`) is a range for a row a probe measured
+    at the printed size, checked at a smaller share: ``printed`` is then its point
+    nearest the measured shift (the measured one where it lies within: ratio 1) and
+    ``claimed`` the range; elsewhere the printed bias x ``scale``.
+    """
+    checks = []
+    for q in injection.claims(entry, sign, scale).get(param, []):
+        ends = injection.claimed_shift(entry, q, sign, scale)
+        measured = shift.get(q, np.nan)
+        printed = float(np.clip(measured, min(ends), max(ends))) if np.isfinite(
+            measured) else ends[0]
+        checks.append({"quantity": q, "printed": printed, "measured": shift.get(q),
+                       "ratio": measured / printed if printed else np.nan,
+                       **({"claimed": list(ends)} if ends[0] != ends[1] else {})})
+    return checks
 
 
 def claim_verdict(power: float, ratios: list[float], detection: bool = True
@@ -340,8 +358,11 @@ def describe(rec: dict[str, Any]) -> str:
                      f"{rec['expected_noncentrality']:.3g}: {rec['paired_power']:.0%} at the "
                      "test's level)")
     for c in rec["biases"]:
-        parts.append(f"{c['quantity']} moved {shown(c['quantity'], c['measured'])} "
-                     f"(printed {shown(c['quantity'], c['printed'])})")
+        q = c["quantity"]
+        claim = (f"printed {shown(q, c['printed'])}" if "claimed" not in c else
+                 "claimed at this size {} to {}: the first order and the probe's departure "
+                 "as of second order".format(*(shown(q, v) for v in c["claimed"][::-1])))
+        parts.append(f"{q} moved {shown(q, c['measured'])} ({claim})")
     if not rec["holds"]:
         return "; ".join(parts) + " -> DOES NOT HOLD"
     if rec.get("refused_by_clock"):
