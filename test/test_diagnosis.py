@@ -285,6 +285,84 @@ def test_diagnosis_json_does_not_depend_on_how_the_screening_is_split(tmp_path, 
     assert written[1] == written[2]
 
 
+@pytest.mark.parametrize("effect", ["time_offset", "pixel_aspect"])
+@pytest.mark.parametrize("hook", [True, False])
+def test_the_rounds_tail_starts_beside_the_runs_after_the_top_candidate(tmp_path, monkeypatch,
+                                                                        effect, hook):
+    """Issue 24: a diagnose round's tail starts as soon as its inputs are known.  On a
+    cluster the flexure probes (their inputs: the current model's run and the refined run's
+    run) and the lines' re-runs (a drift, a rolling shutter: the refined run alone) go
+    out as soon as the refined run is in, beside the runs after the top candidate, and the
+    round then takes them; before, the probes went after that batch and the drift's re-run
+    alone after them (the several round's tail).  A camera effect: no flexure test, no
+    probe.  Without the hook (a round that handed out no refined run): the probes, then the
+    re-runs beside them, as before this change but the re-runs' place."""
+    import contextlib
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.diagnosis import flexure
+    from stellar_cal_ros.diagnosis import run as run_module
+    from stellar_cal_ros.diagnosis.parallel import Task
+
+    calls = []
+    runs = SimpleNamespace(description="fake", noise=None, verdict=None)
+    base = SimpleNamespace(prior="base prior", effects=(), ok=True, residuals="base res")
+    refined = SimpleNamespace(prior="refined prior", effects=(effect,), ok=True,
+                              residuals="refined res")
+    best = SimpleNamespace(effect=effect, significant_alone=True, refined_run=refined)
+
+    def rank_candidates(*args, on_top=None, **kw):
+        if hook:  # as condition_on_top: the refined run and the runs after it handed out
+            task = Task("refined " + effect, "refined prior", (effect,))
+            then = on_top(base, best, task)
+            calls.append(("after-runs",))
+            assert then(Task("x after", "p", ()), refined) == []  # (not the refined run)
+            assert then(task, refined) == []
+        return base, [best]
+
+    @contextlib.contextmanager
+    def runner(*args, **kw):
+        yield runs
+
+    def probe_later(r, prior, effects):
+        calls.append(("probe", prior))
+        return lambda: None
+
+    def after_add(r, run, prior, effects, probe=None):
+        calls.append(("after_add", prior, probe is not None))
+
+    def start_reruns(run, r):
+        calls.append(("reruns", run.residuals))
+        return ("drifts", "shutter")
+
+    def finish(*args, started=None, **kw):
+        calls.append(("finish", started))
+        return {}
+
+    monkeypatch.setattr(run_module, "open_runner", runner)
+    monkeypatch.setattr(run_module, "rank_candidates", rank_candidates)
+    monkeypatch.setattr(run_module, "start_reruns", start_reruns)
+    monkeypatch.setattr(run_module, "finish", finish)
+    monkeypatch.setattr(flexure, "probe_later", probe_later)
+    monkeypatch.setattr(flexure, "after_add", after_add)
+    diagnose("bag.mcap", SimpleNamespace(), "psce", [], tmp_path / "out", plots=False,
+             verbose=False, noise="stated", noise_scales="the scales")
+    # (the probes' test finds nothing here: the current model's probe is never asked for)
+    flexed = effect == "time_offset"  # a flexure may hide behind it: tested
+    if hook:
+        assert calls == ([("after-runs",)] + [("probe", "base prior")] * flexed
+                         + [("reruns", "refined res")]
+                         + [("probe", "refined prior"),
+                            ("after_add", "refined prior", True)] * flexed
+                         + [("finish", ("drifts", "shutter"))]), calls
+    elif flexed:
+        assert calls == [("probe", "base prior"), ("reruns", "refined res"),
+                         ("after_add", "refined prior", False),
+                         ("finish", ("drifts", "shutter"))], calls
+    else:  # finish starts the re-runs itself
+        assert calls == [("finish", None)], calls
+
+
 def test_a_model_reading_the_temperature_runs_in_memory_as_from_the_file(tmp_path):
     """The diagnosis runs the bag from memory (``BagData``): a model that reads the head
     temperature gets there what a replay of the file gets, float for float.  Before, an

@@ -374,6 +374,11 @@ class Round:
     #: candidates' runs the noise's walk search compared with (:func:`measure_round_noise`):
     #: {key: (the scales they ran with, run)}, taken by the round when its scales are those
     rival_runs: dict[str, Any] = field(default_factory=dict)
+    #: ``on_top(base, top, refined)``, called by :func:`condition_on_top` as it hands out
+    #: the top candidate's refined run (the :class:`Task` ``refined``) and the runs after
+    #: it: the caller's runs that need only these start beside them; returns a
+    #: :meth:`~.parallel.Runs.run_ahead` ``then`` (or None) for that batch
+    on_top: Callable[[RunSummary, Any, Task], Then | None] | None = None
 
     def tell(self, text: str) -> None:
         """Report progress."""
@@ -654,7 +659,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
              "failed": 4, "not_applicable": 5}
     results.sort(key=lambda c: (order[c.status], -np.nan_to_num(c.statistic, nan=-np.inf)))
     if condition:
-        condition_on_top(r, extra, results, keep_residuals=keep_residuals)
+        condition_on_top(r, extra, results, keep_residuals=keep_residuals, base=base)
     return base, results, extras
 
 
@@ -873,10 +878,12 @@ def rank_candidates(
     physical_check: bool = True,
     runs: Runs | None = None,
     measure_noise: bool = False,
+    on_top: Callable[[RunSummary, Any, Task], Then | None] | None = None,
 ) -> tuple[RunSummary, list[CandidateResult]]:
     """Re-run the current model and every candidate; return the base run and the ranking.
 
     ``measure_noise``: measure the noise scales first (the verdict is ``runs.verdict``).
+    ``on_top``: :attr:`Round.on_top` (the caller's runs beside the top candidate's).
 
     ``physical_check=False`` ranks the astrometric scales as free parameters (for measuring
     their detectability at non-physical sizes, ``benchmarks/detectability.py``).  Runs in
@@ -888,7 +895,7 @@ def rank_candidates(
     in_model = set(spec.baseline) | set(extra)
     uncertain = prior_uncertain(calibration, in_model)
     r = Round(runs, spec, runs.facts(), evaluation_fraction, calibration, tuple(uncertain),
-              physical_check, progress)
+              physical_check, progress, on_top=on_top)
     pool = uncertain + [e for e in (candidates or registry.candidates()) if e not in uncertain]
     if candidates is not None:
         pool = [e for e in pool if e in candidates]
@@ -898,7 +905,7 @@ def rank_candidates(
 
 def condition_on_top(r: Round, extra: list[str], results: list[CandidateResult],
                      max_after: int = 4, max_implausible: int = 3,
-                     keep_residuals: bool = True) -> None:
+                     keep_residuals: bool = True, base: RunSummary | None = None) -> None:
     """Test the other significant candidates again with the top one in the model.
 
     This is the next iteration of the loop, run ahead: start values from the top
@@ -912,6 +919,7 @@ def condition_on_top(r: Round, extra: list[str], results: list[CandidateResult],
     candidates with p < 0.01 (up to ``max_implausible``) are tested the same way: an
     astrometric correction that fits at the wrong size because of the top effect is then
     shown as not needed once it is added.  Fills the ``after`` fields in place.
+    ``base``: the round's current-model run, for :attr:`Round.on_top`.
     """
     top = next((c for c in results if c.significant_alone), None)
     if top is None or top.run is None:
@@ -927,7 +935,8 @@ def condition_on_top(r: Round, extra: list[str], results: list[CandidateResult],
     tasks = [Task("refined " + top.effect, prior, with_top, keep_residuals, cost=1.0)]
     tasks += [Task(c.effect + " after", candidate_prior(prior, c.effect, r.user_prior),
                    with_top + (c.effect,), cost=_cost(c.effect), candidate=True) for c in rest]
-    out = r.runs.run_all(tasks, r.done)
+    then = r.on_top(base, top, tasks[0]) if r.on_top is not None else None
+    out = r.runs.run_all(tasks, r.done, then=then)
     refined = out.pop("refined " + top.effect)
     if not refined.ok:
         log.warning("re-run with %s failed: %s", top.effect, refined.error)

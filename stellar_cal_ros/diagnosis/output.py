@@ -51,7 +51,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
            extra_images: list[tuple[str, str]] | None = None,
            verdict=None, write: bool = True, outside: list | None = None,
            like: list[str] | None = None, runs=None, refused: tuple[str, ...] = (),
-           hiding: dict[str, Any] | None = None, drop_tables: bool = False) -> dict[str, Any]:
+           hiding: dict[str, Any] | None = None, drop_tables: bool = False,
+           started: tuple | None = None) -> dict[str, Any]:
     """Unexplained structure on ``final``'s residuals, the summary, the report files.
 
     ``base`` is the run the candidates were compared with (the summary's RMS); ``final``
@@ -73,6 +74,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     (:func:`~stellar_cal_ros.diagnosis.runstats.forget_prepared`, 37 MB on a 2-h bag) are
     dropped before the lines are tested, and without plots ``base``'s and ``final``'s
     residual tables (44 MB) once they are, before the probe runs render their twins.
+    ``started``: :func:`start_reruns` of :func:`lines_run`'s run, made by the caller before
+    this (beside its own runs on a cluster); else they start here, beside the line tests.
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
@@ -80,11 +83,9 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         # the round's runs that share the direction tables are done (the lines re-run
         # a model only for a rolling shutter or a focal drift, the probe replays its twins)
         runs.forget_tables()
-    shown = final if final.residuals is not None else base  # the run the lines are of
-    # the re-runs without a drifting shape or a rolling shutter on workers, beside the line
-    # tests that ask for them (known from the run alone; in this process: when asked for)
-    started = (shape_drift.start_first_runs(shown, runs, line_tests),
-               rolling.start_lines_without(shown, runs, line_tests))
+    shown = lines_run(base, final)
+    if started is None:
+        started = start_reruns(shown, runs)
     # no recommendation: the probe runs of the hidden effects' rows need the candidates
     # only, not the lines: on workers they start here too, beside the line tests (the
     # parent's line tests take 5-6 CPU-s of a 2-h round; in this process: when asked for)
@@ -180,6 +181,26 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
         if plots:
             write_report(out, summary, title)
     return summary
+
+
+def lines_run(base: RunSummary, final: RunSummary) -> RunSummary:
+    """The run :func:`finish` tests the lines of: ``final``, unless it kept no residuals."""
+    return final if final.residuals is not None else base
+
+
+def start_reruns(run: RunSummary, runs) -> tuple:
+    """The re-runs without a drifting shape or a rolling shutter of ``run``, started now.
+
+    Every argument is known from ``run`` alone (the line tests only decide whether a value
+    is asked for), so on a cluster a worker makes them beside what the parent does next:
+    the line tests, or in a diagnose round the runs after the top candidate and the
+    flexure probes, from the moment the refined run is in (:func:`~stellar_cal_ros.
+    diagnosis.run.diagnose`; the drift's 1.1 CPU-s on the several round went alone after
+    the probes); in this process each runs when asked for.  ``(drifts, shutter)`` for
+    :func:`causes_first`'s ``started``.
+    """
+    return (shape_drift.start_first_runs(run, runs, line_tests),
+            rolling.start_lines_without(run, runs, line_tests))
 
 
 #: the 'unexplained' lines an axis remainder is read from (those the terminal shows)

@@ -18,7 +18,7 @@ from stellar_cal_ros.diagnosis.discover import (
     rerun_prior,
 )
 from stellar_cal_ros.diagnosis.noise import NoiseVerdict, check_noise, stated_scales
-from stellar_cal_ros.diagnosis.output import finish, progress_printer
+from stellar_cal_ros.diagnosis.output import finish, lines_run, progress_printer, start_reruns
 from stellar_cal_ros.diagnosis.parallel import open_runner
 from stellar_cal_ros.io.calibration import Calibration
 from stellar_cal_ros.methods.replay import BagData
@@ -73,26 +73,41 @@ def diagnose(
     with open_runner(bag, spec, evaluation_fraction, workers, scheduler) as runs:
         tell(f"re-runs {runs.description}")
         runs.noise = noise_scales or stated_scales(calibration)
+        tail = _Tail(runs)
         base, results = rank_candidates(bag, calibration, spec, effects, candidates,
                                         evaluation_fraction, progress=tell, runs=runs,
-                                        measure_noise=check_noise(noise))
+                                        measure_noise=check_noise(noise), on_top=tail)
         # the top candidate (a candidate tested after it may be significant too, but it is
         # the one to add first); its re-run from its own calibration is where the next
         # iteration starts, and the structure left is tested on it -- and for a remainder
         # shaped like a mount bending with gravity, which it may stand in for
         best = next((c for c in results if c.significant_alone), None)
+        final = base
+        panels = [("current model", base.residuals)]
+        if best is not None and best.refined_run is not None:
+            final = best.refined_run
+            panels.append((f"+ {best.effect}", final.residuals))
         outside, hidden = [], None
+        # the lines' re-runs (a drifting shape, a rolling shutter), started beside the
+        # runs after the top candidate as soon as its refined run was in (else by finish)
+        started = tail.started[1] if tail.started and tail.started[0] is final else None
         if best is not None and best.refined_run is not None and \
                 flexure.may_stand_in(best.effect):
             tell(f"after {best.effect}: testing for a gravity-shaped remainder (mount flexure)")
             # the refined run's own start and model (discover.condition_on_top)
             refined = best.refined_run
+            # the probes started as the refined run came in (on a cluster; in this process
+            # each runs only when asked for)
+            probes = tail.probes if tail.started and tail.started[0] is refined else None
+            probes = probes or (None, None)
             # the second test's probe run, if it may be needed, beside the first's on a
             # cluster (in this process it runs only when needed)
-            second = (flexure.probe_later(runs, base.prior, base.effects)
+            second = ((probes[0] or flexure.probe_later(runs, base.prior, base.effects))
                       if base.prior is not None and base.ok and base.residuals is not None
                       and refined.ok and refined.residuals is not None else None)
-            got = flexure.after_add(runs, refined, refined.prior, refined.effects)
+            if started is None:  # (beside the probes, not alone after them)
+                started = start_reruns(lines_run(base, final), runs)
+            got = flexure.after_add(runs, refined, refined.prior, refined.effects, probes[1])
             if flexure.significant([flexure.finding(got, [best.effect])], ALPHA) and \
                     base.prior is not None:
                 # whether it explains anything beyond a flexure (as discover tests it):
@@ -103,18 +118,53 @@ def diagnose(
             outside = flexure.significant([flexure.finding(got, [best.effect])], ALPHA)
             # no remainder: what a flexure could still be beside the recommendation
             hidden = None if outside else flexure.hiding(got, [best.effect], 1, ALPHA)
-        final = base
-        panels = [("current model", base.residuals)]
-        if best is not None and best.refined_run is not None:
-            final = best.refined_run
-            panels.append((f"+ {best.effect}", final.residuals))
         # with the runner open: the printed biases the first order does not hold are
         # measured by probe runs on the bag
         summary = finish(out, calibration, base, final, results, spec, effects,
                          evaluation_fraction, panels, plots, verdict=runs.verdict,
-                         outside=outside, runs=runs, hiding=hidden, drop_tables=True)
+                         outside=outside, runs=runs, hiding=hidden, drop_tables=True,
+                         started=started)
     (out / "diagnosis.json").write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+class _Tail:
+    """A diagnose round's tail, started as soon as the top candidate's refined run is in.
+
+    :attr:`~stellar_cal_ros.diagnosis.discover.Round.on_top`: while the candidates after
+    the top one still run, the refined run's result is all the tail needs: the two flexure
+    probes (the current model's, then the refined model's) and the lines' re-runs of it
+    (:func:`~stellar_cal_ros.diagnosis.output.start_reruns`, between the two: two workers
+    take the larger first) go out then, ahead of the runs queued.  On the several round
+    they went after that batch, the drift's re-run alone after the probes (H212: the
+    round's tail, 4.4 CPU-s one after the other); handed out before the refined run, the
+    probes held it up (measured: the refined run last on its worker).  In this process
+    nothing runs before it is asked for (:meth:`~stellar_cal_ros.diagnosis.parallel.
+    Runs.later`).
+    """
+
+    def __init__(self, runs) -> None:
+        self.runs = runs
+        #: (the current model's probe, the refined model's), when a flexure is tested
+        self.probes: tuple | None = None
+        #: (the refined run, its :func:`start_reruns`)
+        self.started: tuple | None = None
+
+    def __call__(self, base, top, refined):
+        def then(task, stats):
+            if task.key != refined.key or not stats.ok or stats.residuals is None:
+                return []
+            flexed = (base is not None and base.ok and base.prior is not None
+                      and base.residuals is not None and flexure.may_stand_in(top.effect))
+            current = (flexure.probe_later(self.runs, base.prior, base.effects)
+                       if flexed else None)
+            self.started = (stats, start_reruns(stats, self.runs))
+            if flexed:
+                self.probes = (current,
+                               flexure.probe_later(self.runs, stats.prior, stats.effects))
+            return []
+
+        return then
 
 
 def measure_bag(bag, prior, method: str, effects: list[str], scales: NoiseScales,
