@@ -56,6 +56,35 @@ def lpt(cpus: list[float], n: int) -> float:
     return max(loads)
 
 
+def as_alone(events: list[dict], one: list[dict]) -> float:
+    """The replay of a two-worker timeline with each run at its one-worker CPU seconds.
+
+    Separates the schedule (the code's) from the runs' CPU beside each other (the load's,
+    the shared cores'): a run whose key is once in each timeline takes the one-worker
+    timeline's CPU; the others (the screening part, the probes' ``measure_on_bag``) are
+    scaled by the matched runs' one-worker / two-worker CPU.  The parent's serial CPU and
+    the workers' starts stay as measured.
+    """
+    def by_key(evs):
+        out: dict[str, list[float]] = defaultdict(list)
+        for e in evs:
+            if e["kind"] == "task":
+                out[e["key"]].append(e["cpu"])
+        return out
+
+    two, alone = by_key(events), by_key(one)
+    same = [k for k in two if len(two[k]) == 1 and len(alone.get(k, ())) == 1]
+    k = (sum(alone[key][0] for key in same) / sum(two[key][0] for key in same)
+         if same else 1.0)
+    scaled = []
+    for e in events:
+        e = dict(e)
+        if e["kind"] == "task":
+            e["cpu"] = alone[e["key"]][0] if e["key"] in same else e["cpu"] * k
+        scaled.append(e)
+    return round_timeline.replay(scaled)["idle"]
+
+
 def analyse(events: list[dict]) -> dict:
     """Serial and parallel CPU, the batches' critical paths, of one timeline."""
     r = round_timeline.replay([dict(e) for e in events])
@@ -115,6 +144,18 @@ def show(folder: Path, detail: bool) -> None:
                 print(f"{'':16s}b{b[0]['batch']:<3d} {runs}")
     print("CPU seconds.  ideal = the one-worker work / path 2 (every run as cheap on two "
           "workers as alone); 1->2 = the one-worker work / the two-worker schedule replayed")
+    # each two-worker timeline replayed with its runs at the one-worker CPU (same repeat)
+    for path in sorted(folder.glob("timeline_w2_*.jsonl")):
+        rep = path.stem.rsplit("_", 1)[1]
+        one = [folder / f"timeline_w{w}_{rep}.jsonl" for w in ("1", "0")]
+        one = next((p for p in one if p.exists()), None)
+        if one is None:
+            continue
+        read = [[json.loads(line) for line in p.read_text().splitlines()] for p in (path, one)]
+        work = analyse(read[1])["work"]
+        idle = as_alone(*read)
+        print(f"{path.stem.removeprefix('timeline_')} with its runs at {one.stem[9:]}'s CPU: "
+              f"replay {idle:.1f}, 1->2 {work / idle:.2f}x (work {work:.1f})")
 
 
 #: the several round's candidates (``discovery_speed.several_bag``, round 1)
