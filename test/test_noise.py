@@ -1610,6 +1610,31 @@ def test_sigma_wrong_star_by_star_prints_the_rows_ml_scale(seed):
     assert abs(v.star - truth) < 2.5 * v.star_sigma, (v.star, v.star_sigma, truth)
 
 
+def test_the_rows_the_gate_took_are_counted_at_the_runs_own_gate():
+    """The rows re-admitted beside a σ wrong star by star are those the run's own gate
+    rejected (:func:`~stellar_cal_ros.diagnosis.noise_stars.readmitted`): a gate set in
+    the filter's config (``gate_probability``), not the default policy's.  On the
+    ``sigma_per_star`` simulation (seed 5, 200 s) replayed with ``gate_probability`` 0.999
+    (threshold 13.8 against the default's 18.4: 60 window rows gated, 32 at the default),
+    the scale read x1.2266 against x1.2280 from the run at the default gate (the rows' ML
+    scale 1.2220, σ 0.014); with the default's threshold the rows between the two were
+    never counted: x1.2138, 1.2 % under (seed 6: 1.1212 / 1.1125 against 1.1244).  Fails
+    on main 17d7d23 (the default policy's threshold)."""
+    from stellar_cal_ros.diagnosis.discover import rerun_prior
+    from stellar_cal_ros.methods.replay import replay
+
+    sim = _sim(seed=5)
+    data, _ = _per_star(_stated(sim), seed=9)
+    prior = rerun_prior(sim.prior)
+    scale = {}
+    for p in (0.9999, 0.999):
+        r = replay(data, prior, "psce", [], PsceConfig(gate_probability=p), keep_tables=True,
+                   eval_fraction=0.5)
+        assert r.filter.gate.probability == p
+        scale[p] = noise.measure_stars(r, data, "psce", 0.5, None).scale
+    assert scale[0.999] == pytest.approx(scale[0.9999], rel=0.005), scale
+
+
 def test_the_star_by_star_test_reads_the_fit_before_the_stars_own_weights():
     """The passes that weight each star by its own measured scale (H211, the scale's fix
     above) lean each frame's fit on the stars that read small, which then read smaller:

@@ -91,7 +91,9 @@ def measure_stars(result, data, method: str, fraction: float,
     run too far from its model (the verdict then skips the noise), the frames' fit is not
     weighted again at the measured σ (:func:`~.noise_stars.star_noise`'s ``weigh``): the
     skip line's NIS/dof is at the one fit's scale (clean swaying 300 s seed 21 diagnosed
-    from a replayed result: the passes moved it from 7.82, x3.48, to 9.29, x3.2).
+    from a replayed result: the passes moved it from 7.82, x3.48, to 9.29, x3.2).  The rows
+    the run's gate took are re-admitted at its own gate (``result.filter.gate``, where the
+    result has its filter; else the default policy's).
     """
     from stellar_cal_ros.diagnosis.stats import evaluation_mask
 
@@ -110,7 +112,8 @@ def measure_stars(result, data, method: str, fraction: float,
         # σ used wrong for part of the stars: noise_stars.star_noise's passes)
         return star_noise(res, sig, msg, mask, cam.fx, cam.fy, (cam.cx, cam.cy),
                           result.calibration.R_imu_st, size=(cam.width, cam.height),
-                          passes=FIT_PASSES, weigh=weigh, kept=noise or NoiseScales())
+                          passes=FIT_PASSES, weigh=weigh, kept=noise or NoiseScales(),
+                          gate=getattr(getattr(result, "filter", None), "gate", None))
 
     def weigh(first: StarNoise) -> bool:
         if not near:

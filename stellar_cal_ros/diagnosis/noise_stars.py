@@ -282,7 +282,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
                fx: float, fy: float, centre: tuple[float, float],
                R_imu_st: np.ndarray | None = None, flips: bool = False,
                size: tuple[int, int] | None = None, passes: int = 0,
-               weigh=None, kept: NoiseScales | None = None) -> StarNoise | None:
+               weigh=None, kept: NoiseScales | None = None,
+               gate: GatePolicy | None = None) -> StarNoise | None:
     """The within-frame estimate over the accepted stars of ``mask`` (see the module doc).
 
     With the installation ``R_imu_st``, a rolling shutter's shape is removed first where
@@ -308,7 +309,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     far from its model (:func:`~.noise.far_off`) keeps the one fit's weights: the groups a
     pass would weight by are measured through residuals a missing effect shapes more than
     the noise does, and the noise is not judged on such a run anyway.  ``kept``: the
-    scales the run used (:func:`fit_weights`).
+    scales the run used (:func:`fit_weights`).  ``gate``: the run's χ² gate (its filter's
+    policy, :func:`readmitted`; None: the default policy's).
     """
     # after each part its freed heap pages (blocks below the mapping threshold) go back,
     # not held beside the next part's: a 2-h round's screening run peaks in these parts
@@ -326,7 +328,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
             break
         if out.own_weighted and plain is None:
             plain = out
-        admit = readmitted(res, w * out.group(grouped_stars(out))[0])
+        admit = readmitted(res, w * out.group(grouped_stars(out))[0], gate)
         out, last = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre,
                                      R_imu_st, flips, w, patterns, admit), w
         trim_freed()
@@ -348,20 +350,24 @@ def levels_fit(sn: StarNoise | None) -> StarNoise | None:
     return sn if sn is None or sn.levels is None else sn.levels
 
 
-def readmitted(res: Table, scale: np.ndarray) -> np.ndarray | None:
+def readmitted(res: Table, scale: np.ndarray, gate: GatePolicy | None = None
+               ) -> np.ndarray | None:
     """The rows the run's χ² gate rejected at the σ it used that pass it at ``scale`` × that σ.
 
-    The filter gates each star at the σ it was given (:class:`~stellar_cal_ros.core.gating.
-    GatePolicy`, its default probability): a star whose σ is stated too small loses the
-    tail of its own noise there, and a scale measured without those rows reads low (unseen
-    case ``sigma_per_star`` s21: x1.035 on the accepted rows, 1.057 with every row, the
-    rows' ML 1.062).  A row above the threshold at the σ used (``nis``) and below it at the
-    σ measured is noise, counted; a row gated below the threshold (out of the field of view,
-    a lost attitude) stays out.  None without a NIS column.
+    The filter gates each star at the σ it was given, by its policy ``gate``
+    (:class:`~stellar_cal_ros.core.gating.GatePolicy`; None: the default one): a star
+    whose σ is stated too small loses the tail of its own noise there, and a scale
+    measured without those rows reads low (unseen case ``sigma_per_star`` s21: x1.035 on
+    the accepted rows, 1.057 with every row, the rows' ML 1.062).  A row above the
+    threshold at the σ used (``nis``) and below it at the σ measured is noise, counted; a
+    row gated below the threshold (out of the field of view, a lost attitude) stays out.
+    None without a NIS column.
     """
     if "nis" not in res:
         return None
-    t = GatePolicy().threshold
+    # (the run's own threshold: a gate set in the driver's config, e.g. gate_probability
+    # 0.999, rejects rows the default's would pass, which were then never counted)
+    t = (gate or GatePolicy()).threshold
     nis = np.asarray(res["nis"], dtype=float)
     with np.errstate(invalid="ignore"):
         return np.asarray(res["gated"]).astype(bool) & (nis > t) & (nis <= t * scale**2)
