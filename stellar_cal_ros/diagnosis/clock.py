@@ -117,7 +117,7 @@ RATE_ALIASES = ("gyro_scale_factor", "gyro_misalignment")
 #: the 'what could still be hiding' row of a candidate :func:`refuses` (``p``: the clock
 #: finding's): its MDB is a size the test would find, but this rule decides first
 REFUSED_TEXT = ("refused here at any size that leaves the stars' remainder along their motion "
-                "a clock's, as it is now (p = {p:.2g}; it shrinks along a slew): a gyro rate "
+                "a clock's, as it is now: p = {p:.2g}, it shrinks along a slew; a gyro rate "
                 "effect is added only if it changes that shape")
 #: the test named by an effect offered only where a drifting clock is found
 #: (:attr:`~stellar_cal_ros.effects.base.Effect.offered_on`, :meth:`ClockChange.asks_drift`)
@@ -371,22 +371,23 @@ def at_mdb_clause(entry: dict[str, Any], shown: dict[str, str]) -> str:
     both = [q for q in at if all(at[q][k] for k in signs)]
     if len(both) == len(at):
         low = max(p[q][k] for q in at for k in signs)
-        return (f"checked at +-MDB of {', '.join(at)}: the remainder still a clock's at each "
-                f"({p_text(low, '<=')}): refused there")
+        return (f"checked at +-MDB of {', '.join(at)}: the remainder still a clock's at each, "
+                f"{p_text(low, '<=')}: refused there")
     out = ["refused at " + " and at ".join(held)] if held else []
     for q in at:
         for k in signs:
             if at[q][k]:
                 continue
             if at[q][k] is None:
-                out.append(f"at {q} {k}{shown[q]} not checked (its run could not be made)")
+                out.append(f"at {q} {k}{shown[q]} not checked: its run could not be made")
                 continue
             why = {"grows": "it grows along a slew, as a gyro's error does",
                    "neither": "it no longer shrinks along a slew"}.get(
                        shape[q][k], "its change is no longer significant")
-            out.append(f"at {q} {k}{shown[q]} ({k}MDB) the remainder is no longer a clock's "
-                       f"({why}, {p_text(p[q][k])}): this sign can be added (its test "
-                       "decides)")
+            # (no parentheses: the clause is printed inside the row's flag's, H221)
+            out.append(f"at {q} {k}{shown[q]}, the {k}MDB, the remainder is no longer a "
+                       f"clock's: {why}, {p_text(p[q][k])}; this sign can be added, its "
+                       "test decides")
     return "; ".join(out)
 
 

@@ -495,10 +495,10 @@ def dispersion_note(entries: list[dict[str, Any]]) -> str:
         return ""
     gate = any(e.get("mdb_set_by") == "explained_gate" for e in entries)
     return (f"stated for residuals at {disp:.3g}x the stated noise's variance, as this model "
-            f"leaves them ({np.sqrt(disp):.2f}x the MDB of residuals as stated)"
+            f"leaves them, {np.sqrt(disp):.2f}x the MDB of residuals as stated"
             + (f"; here an effect must also remove {MIN_EXPLAINED:.0%} of the excess variance "
-               "to be added: where that asks more, the MDB is the size that does (said "
-               "so)" if gate else
+               "to be added: where that asks more, the MDB is the size that does, said so "
+               "in its row" if gate else
                f"; a lower bound: here an effect must also remove {MIN_EXPLAINED:.0%} of the "
                "excess variance to be added"))
 
