@@ -36,7 +36,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from stellar_cal_ros import __version__
-from stellar_cal_ros.errors import StellarCalError
+from stellar_cal_ros.errors import StellarCalError, one_line
 
 log = logging.getLogger("stellar_cal_ros")
 
@@ -702,21 +702,27 @@ def _one_line_warning(command: str):
     """
 
     def show(message, category, filename, lineno, file=None, line=None) -> None:
-        print(f"stellar-cal {command}: warning: {message}", file=file or sys.stderr)
+        print(f"stellar-cal {command}: warning: {one_line(message)}", file=file or sys.stderr)
 
     return show
 
 
 def _hint(args: argparse.Namespace, exc: StellarCalError) -> str:
-    """What to do about a damaged bag, for the commands that can read past the damage."""
+    """What to do about a damaged bag (read past it, or what else reads it)."""
     from stellar_cal_ros.errors import BagError, MessageDecodeError
 
     damaged = isinstance(exc, MessageDecodeError) or (
         isinstance(exc, BagError) and "truncated or corrupt" in str(exc))
-    if damaged and getattr(args, "on_error", None) == "raise":
+    bag = getattr(args, "bag", None)
+    if not damaged or bag is None:
+        return ""
+    if getattr(args, "on_error", None) == "raise":
         return (f" (`--on-error skip` calibrates on what the bag holds, counting what is "
-                f"lost; `stellar-cal info {args.bag}` lists the damage)")
-    return ""
+                f"lost; `stellar-cal info {bag}` lists the damage)")
+    # diagnose, discover, twin, batch: no --on-error, the damage ends the command
+    return (f" ({args.command} reads the whole bag and stops at damage; `stellar-cal info "
+            f"{bag}` lists it, `stellar-cal replay --on-error skip` calibrates on what the "
+            "bag holds)")
 
 
 def check_output(path: Path, directory: bool) -> None:
@@ -758,8 +764,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         _load_method_modules(argv)
-    except StellarCalError as exc:
-        print(f"stellar-cal: error: {exc}", file=sys.stderr)
+    except StellarCalError as exc:  # before parsing: the command is the first word
+        name = f" {argv[0]}" if argv and not argv[0].startswith("-") else ""
+        print(f"stellar-cal{name}: error: {one_line(exc)}", file=sys.stderr)
         return 1
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -800,11 +807,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             record_kernels_used()
         return code
     except StellarCalError as exc:
-        print(f"stellar-cal {args.command}: error: {exc}{_hint(args, exc)}", file=sys.stderr)
+        print(f"stellar-cal {args.command}: error: {one_line(exc)}{_hint(args, exc)}",
+              file=sys.stderr)
         return 1
     except OSError as exc:  # an output path that cannot be written, a vanished input
         log.debug("traceback", exc_info=True)
-        print(f"stellar-cal {args.command}: error: {os_error_text(exc)}", file=sys.stderr)
+        print(f"stellar-cal {args.command}: error: {one_line(os_error_text(exc))}",
+              file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

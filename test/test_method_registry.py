@@ -178,6 +178,7 @@ def test_unknown_method_and_module_are_one_line_errors(tmp_path, capsys):
                  "--method", "psce", "--prior", str(prior), "-o", str(tmp_path / "x.yaml")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "does not exist" in err[0]
+    assert err[0].startswith("stellar-cal replay: error: method module "), err  # as others
     # a batch method is not a filter
     with pytest.raises(ModelError, match="batch method"):
         replay(bag, load_calibration(prior), "acf")

@@ -78,6 +78,26 @@ def test_diagnose_and_discover_read_a_rosbag2_directory(runs, tmp_path, capsys):
     assert "no such bag" in _one_error_line(capsys.readouterr().err, "diagnose")
 
 
+def test_a_rosbag2_directory_that_lost_its_metadata_reads_its_one_database(runs, tmp_path,
+                                                                           capsys):
+    """A rosbag2 sqlite3 directory without metadata.yaml (copied without it) reads as its
+    one .db3 (a bare .db3 reads); main handed the directory to rosbags, which said
+    'Expected metadata file '<the directory>' does not exist'. Two databases: one line."""
+    bare = tmp_path / "no_meta"
+    shutil.copytree(runs["dir_a"], bare)
+    (bare / "metadata.yaml").unlink()
+    assert main(["info", str(runs["dir_a"])]) == 0
+    whole = capsys.readouterr().out.splitlines()[1:]
+    assert main(["info", str(bare)]) == 0, capsys.readouterr().err
+    assert capsys.readouterr().out.splitlines()[1:] == whole
+    db = next(bare.glob("*.db3"))
+    shutil.copy(db, bare / "second.db3")
+    assert main(["info", str(bare)]) == 1
+    line = _one_error_line(capsys.readouterr().err, "info")
+    assert line.endswith("2 .db3 files and no metadata.yaml to join them: give one .db3 "
+                         "file, or restore metadata.yaml"), line
+
+
 def test_info_fails_on_a_bag_without_star_centroids(runs, tmp_path, capsys):
     bag = _convert(runs["bag_a"], tmp_path / "no_stars", "mcap",
                    exclude=["/star_tracker/stars"])
@@ -96,9 +116,15 @@ def test_a_truncated_bag_says_what_to_do_in_one_line_per_problem(runs, tmp_path,
     err = capsys.readouterr().err
     assert "--on-error skip" in _one_error_line(err, "replay")
     assert main([*base, "--on-error", "skip", "-o", str(tmp_path / "r2.yaml")]) == 0
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert "UserWarning" not in err and ".py:" not in err, err
     assert "stellar-cal replay: warning: truncated or corrupt bag" in err
+    # the part read past is counted and the summary says so (main: 'data quality: no input
+    # fault counted' under the warnings: the stdout a user keeps called the input whole)
+    lines = out.splitlines()
+    assert any(ln.startswith("counts: ") and "bag_parts_lost=1" in ln for ln in lines), out
+    assert any(ln.startswith("data quality: 1 damaged or truncated parts of the bag "
+                             "(skipped; `stellar-cal info` lists them)") for ln in lines), out
 
 
 # ------------------------------------------------------------------ 3. unwritable outputs
@@ -138,6 +164,66 @@ def test_any_os_error_of_a_command_is_one_line(monkeypatch, tmp_path, capsys):
     assert main(["effects"]) == 1
     line = _one_error_line(capsys.readouterr().err, "effects")
     assert "No space left on device" in line and "x.yaml" in line
+
+
+def test_a_multi_line_error_is_printed_as_one_line(monkeypatch, capsys):
+    """Whatever a library puts into an error's text (an excerpt, a nested error's lines),
+    the command prints one line."""
+    def nested(args):
+        raise cli.StellarCalError("outer problem:\n  inner line one\n\n  inner line two")
+
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    parser._subparsers._group_actions[0].choices["effects"].set_defaults(func=nested)
+    assert main(["effects"]) == 1
+    err = capsys.readouterr().err
+    assert err.strip() == ("stellar-cal effects: error: outer problem:; inner line one; "
+                           "inner line two"), err
+
+
+def test_a_yaml_syntax_error_is_one_line_naming_line_and_column(tmp_path, capsys):
+    """A calibration YAML with a syntax error (a '[' typed for a block): yaml's own text is
+    five lines with an excerpt and a caret; the user reads one line with where and what.
+    (main printed the five lines.)"""
+    bad = tmp_path / "prior.yaml"
+    bad.write_text("format: stellar_cal/1\nmethod: prior\ncamera: [\n  image_width: 1024\n")
+    assert main(["export", str(bad), "--format", "kalibr", "-o", str(tmp_path / "k.yaml")]) == 1
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert lines == [f"stellar-cal export: error: {bad}: YAML syntax error at line 5, column "
+                     "1: expected ',' or ']', but got '<stream end>' (while parsing a flow "
+                     "sequence started at line 3)"], lines
+    meta = tmp_path / "rosbag2" / "metadata.yaml"  # the reader's YAML too
+    meta.parent.mkdir()
+    meta.write_text("rosbag2_bagfile_information: [\n  version: 8\n")
+    assert main(["info", str(meta.parent)]) == 1
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "(line 3, column 1: expected" in lines[0], lines
+    binary = tmp_path / "a_bag.mcap"  # a bag given where the calibration goes
+    binary.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)))
+    assert main(["export", str(binary), "--format", "kalibr", "-o", str(tmp_path / "b")]) == 1
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert lines == [f"stellar-cal export: error: {binary} is not a calibration YAML: binary "
+                     "content at byte 0 (a bag or an image given for RESULT.yaml?)"], lines
+
+
+def test_diagnose_of_a_truncated_bag_says_what_can_be_done_in_one_line(runs, tmp_path,
+                                                                        capsys):
+    """diagnose reads the whole bag and stops at damage: one error line that says so and
+    names what can read past it, and no warning before it that reading 'goes on' (the
+    star-image probe read the bag with skip and printed one; main did, and had no hint)."""
+    raw = Path(runs["bag_a"]).read_bytes()
+    bag = tmp_path / "cut.mcap"
+    bag.write_bytes(raw[: len(raw) // 2])
+    assert main(["diagnose", str(bag), "--calibration", str(runs["run_a"]), "--method", "psce",
+                 "-o", str(tmp_path / "d"), "--workers", "0", "--no-plots", "--noise",
+                 "stated", "--candidates", "time_offset"]) == 1
+    err = capsys.readouterr().err
+    assert "reading goes on" not in err, err
+    line = _one_error_line(err, "diagnose")
+    assert "truncated or corrupt bag" in line, line
+    assert line.endswith(f"(diagnose reads the whole bag and stops at damage; `stellar-cal info "
+                         f"{bag}` lists it, `stellar-cal replay --on-error skip` calibrates on "
+                         "what the bag holds)"), line
 
 
 # ------------------------------------------------------------------ 4. misspelled prior keys

@@ -27,7 +27,7 @@ from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.effects.base import CAMERA_INDEX, FrameContext, Stage, _camera_sigma
-from stellar_cal_ros.errors import ModelError
+from stellar_cal_ros.errors import ModelError, yaml_error_text
 from stellar_cal_ros.io.calibration import Calibration
 
 __all__ = [
@@ -230,7 +230,7 @@ def load_covariance(path: str | Path) -> tuple[list[str], np.ndarray]:
         else:
             raw = yaml.safe_load(path.read_text())  # JSON is YAML
     except (OSError, ValueError, yaml.YAMLError) as exc:
-        raise ModelError(f"{path}: cannot read the covariance: {exc}") from None
+        raise ModelError(f"{path}: cannot read the covariance: {yaml_error_text(exc)}") from None
     if not isinstance(raw, Mapping):
         raise ModelError(f"{path}: a covariance file must be a mapping with 'names' and "
                          "'matrix'")
@@ -509,7 +509,7 @@ def read_spec(path: str | Path, what: str = "budget spec") -> dict[str, Any]:
     try:
         spec = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as exc:
-        raise ModelError(f"{path}: cannot read the {what}: {exc}") from None
+        raise ModelError(f"{path}: cannot read the {what}: {yaml_error_text(exc)}") from None
     if not isinstance(spec, dict):
         raise ModelError(f"{path}: a {what} must be a mapping")
     return json.loads(json.dumps(spec, default=str))  # plain types only

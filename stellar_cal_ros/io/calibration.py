@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 
 from stellar_cal_ros.core.camera import CameraModel
 from stellar_cal_ros.core.rotation import scipy_matrix, scipy_quat
-from stellar_cal_ros.errors import CalibrationFileError, StellarCalError
+from stellar_cal_ros.errors import CalibrationFileError, StellarCalError, yaml_error_text
 from stellar_cal_ros.io.covariance_file import COVARIANCE_FORMAT, Covariance, covariance_path
 from stellar_cal_ros.io.yaml_style import Dumper, plain
 
@@ -537,12 +537,16 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError as exc:
         raise CalibrationFileError(f"calibration file not found: {p}") from exc
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        raise CalibrationFileError(f"{p} is not a calibration YAML: binary content at byte "
+                                   f"{exc.start} (a bag or an image given for RESULT.yaml?)"
+                                   ) from exc
+    except OSError as exc:
         raise CalibrationFileError(f"cannot read calibration file {p}: {exc}") from exc
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise CalibrationFileError(f"{p}: YAML syntax error: {exc}") from exc
+        raise CalibrationFileError(f"{p}: YAML syntax error at {yaml_error_text(exc)}") from exc
     if doc is None:
         raise CalibrationFileError(f"{p}: the file is empty")
     return calibration_from_dict(doc, str(p))
@@ -728,7 +732,7 @@ def load_covariance(path: str | os.PathLike[str]) -> Covariance:
     try:
         doc = yaml.safe_load(p.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise CalibrationFileError(f"cannot read {p}: {exc}") from exc
+        raise CalibrationFileError(f"cannot read {p}: {yaml_error_text(exc)}") from exc
     if isinstance(doc, Mapping) and doc.get("format") == FORMAT:
         side = doc.get("covariance_file")
         if not side:

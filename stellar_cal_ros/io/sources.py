@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.errors import BagError
+from stellar_cal_ros.errors import BagError, yaml_error_text
 from stellar_cal_ros.io.mcap_container import McapFile
 from stellar_cal_ros.io.mcap_records import MAGIC, BagProblem, Channel, OnDamage, Rows, Schema
 from stellar_cal_ros.io.rosbags_source import RosbagsSource
@@ -223,8 +223,13 @@ def _rosbag2_files(path: Path) -> tuple[str, list[Path], bool]:
         files = sorted(path.glob("*.mcap"))
         if files:
             return "mcap", files, False
-        if sorted(path.glob("*.db3")):
-            return "sqlite3", [], False
+        dbs = sorted(path.glob("*.db3"))
+        if len(dbs) == 1:  # metadata.yaml lost: its one database reads as a bare .db3
+            return "sqlite3", dbs, False
+        if dbs:
+            raise BagError(f"cannot open bag {path}: {len(dbs)} .db3 files and no "
+                           "metadata.yaml to join them: give one .db3 file, or restore "
+                           "metadata.yaml")
         raise BagError(f"cannot open bag {path}: a directory without metadata.yaml, .mcap or "
                        ".db3 files (not a rosbag2 bag)")
     import yaml
@@ -236,7 +241,7 @@ def _rosbag2_files(path: Path) -> tuple[str, list[Path], bool]:
         mode = str(info.get("compression_mode") or "").lower()
         compressed = bool(info.get("compression_format")) or mode not in ("", "none")
     except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
-        raise BagError(f"{meta}: not a rosbag2 metadata file ({exc})") from exc
+        raise BagError(f"{meta}: not a rosbag2 metadata file ({yaml_error_text(exc)})") from exc
     return storage, files, compressed
 
 
@@ -265,6 +270,8 @@ def open_source(path: Path) -> SourceBase:
                 parts[0].storage = "rosbag2-mcap"
                 return parts[0]
             return MergedSource(parts, path, "rosbag2-mcap")
+        if storage == "sqlite3" and files and not (path / "metadata.yaml").exists():
+            return RosbagsSource(files[0], "rosbag2-sqlite3")
         return RosbagsSource(path, f"rosbag2-{storage or 'unknown'}")
     try:
         with open(path, "rb") as fh:

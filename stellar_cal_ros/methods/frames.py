@@ -37,6 +37,7 @@ import bisect
 import logging
 import math
 import time
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -408,7 +409,8 @@ def read_inputs(reader: BagReader, names: Mapping[str, str], roles: list[str],
 
 def reads_star_images(path: str | Path) -> bool:
     """True when a bag's star frames come from its images (no star centroids in it)."""
-    with BagReader(path, on_error="skip") as reader:
+    with warnings.catch_warnings(), BagReader(path, on_error="skip") as reader:
+        warnings.simplefilter("ignore")  # damage is the reading command's to report
         available = reader.topics()
         return star_input(available, TOPICS, str(path)) == "image"
 

@@ -606,11 +606,14 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
     finally:
         if reader is not None:
             skipped = getattr(reader, "skipped", None)
+            # damaged or truncated parts read past (on_error="skip"): counted, not only warned
+            lost = len(reader.problems) or int(reader.truncated)
             reader.close()
         cal.close()
         bar.close()
     cal.require_initialized()
-    return _result(cal, t_read, t_filter, skipped if reader is not None else None)
+    return (_result(cal, t_read, t_filter, skipped, lost) if reader is not None
+            else _result(cal, t_read, t_filter, None))
 
 
 def _span_of_data(data: BagData) -> tuple[int | None, int | None]:
@@ -629,13 +632,16 @@ def _calibrator(prior, method, effects, cfg, drv, consider, res_sink, hist_sink,
                       baseline=baseline, filter_cls=filter_cls)
 
 
-def _result(cal: Calibrator, t_read: float, t_filter: float, skipped) -> ReplayResult:
+def _result(cal: Calibrator, t_read: float, t_filter: float, skipped,
+            lost: int = 0) -> ReplayResult:
     flt = cal.filter
     calibration = cal.calibration()
     counters = cal.all_counters()
     if skipped:
         counters["messages_skipped"] = int(sum(len(v) if hasattr(v, "__len__") else int(v)
                                                for v in skipped.values()))
+    if lost:
+        counters["bag_parts_lost"] = int(lost)
     _log_counters(counters)
     hist = cal.history.table()
     derived = dict(calibration.extra.get("derived", {}))

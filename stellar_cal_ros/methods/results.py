@@ -791,6 +791,11 @@ DATA_FAULTS = {
                      "(dropped)",
     "env_invalid": "invalid environment samples (dropped)",
     "fixes_invalid": "invalid position fixes (dropped)",
+    # what the bag reader read past (``--on-error skip``): a truncated recording is
+    # calibrated on what it holds, said here rather than "no input fault counted"
+    "messages_skipped": "malformed messages (skipped)",
+    "bag_parts_lost": "damaged or truncated parts of the bag (skipped; `stellar-cal info` "
+                      "lists them)",
 }
 #: gated stars beyond this many times the gate's false-alarm count (and at least
 #: :data:`GATED_MIN`) point at misidentified stars rather than noise — when the accepted
