@@ -107,3 +107,24 @@ def test_frame_index_is_uniques_inverse_for_stacked_and_unordered_frames(dtype):
         got, want = stats.frame_index(c), np.unique(c, return_inverse=True)[1]
         assert got.dtype == want.dtype
         np.testing.assert_array_equal(got, want)
+
+
+def test_line_tests_shared_pieces_give_the_same_floats():
+    """What the line tests now make once for several tests (issue 24.2) gives the floats
+    made per test before: ``LineSlope`` is ``np.polyfit(x, y, 1)[0]`` bit for bit (a
+    regressor's four components), ``frame_robust_t`` with the caller's ``index`` equals it
+    without (``shaped_tests``' and ``regressor_tests``' rows)."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=5000) * 3.0 + 7.0
+    line = stats.LineSlope(x)
+    for y in (rng.normal(size=5000), 0.2 * x + rng.normal(size=5000), -0.0 * x,
+              rng.standard_t(3, size=5000) ** 2):
+        assert line.slope(y) == np.polyfit(x, y, 1)[0]
+    frames = np.repeat(np.arange(250), 20)
+    cl = np.concatenate([frames, frames])
+    track = np.tile(np.arange(20), 500)
+    xx, yy = rng.normal(size=10000), rng.normal(size=10000)
+    for kw in ({}, {"track": track, "track_lags": (0.3, 0.8)},
+               {"track": track, "track_level": True, "dof": True}):
+        assert stats.frame_robust_t(xx, yy, cl, index=stats.frame_index(cl), **kw) == \
+            stats.frame_robust_t(xx, yy, cl, **kw)

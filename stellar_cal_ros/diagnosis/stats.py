@@ -385,7 +385,8 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
                    lags: int | None = None, dof: bool = False,
                    track: np.ndarray | None = None,
                    track_lags: tuple[float, float] | None = None,
-                   track_level: bool = False) -> tuple[float | None, ...]:
+                   track_level: bool = False, index: np.ndarray | None = None
+                   ) -> tuple[float | None, ...]:
     """The slope's t of ``y`` on ``x``, robust to correlation within and across frames.
 
     The slope ``b`` by least squares; its variance from the scores ``U_k = Σ (x − x̄)(y −
@@ -408,7 +409,8 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     two-sided p from t_ν)``, ``(t, p, ν)`` with ``dof`` (an MDB on the same reference).
     Degenerate input (no spread of ``x``, or ``V`` zero: ``y`` exactly ``b x``, see
     :data:`DEGENERATE`) makes no test: ``(0, 1)``, and with ``dof`` ``ν = None`` (no
-    reference, so no MDB either).
+    reference, so no MDB either).  ``index``: :func:`frame_index` of ``cluster`` when the
+    caller has it (several tests over the same rows: the line tests).
 
     ``track`` (each row's star, e.g. its catalogue id) with ``track_lags = (w, φ)``: the
     stars' centroid noise is correlated along each star's track as ``w φ^l`` at lag ``l``
@@ -437,7 +439,7 @@ def frame_robust_t(x: np.ndarray, y: np.ndarray, cluster: np.ndarray,
     if not sxx > DEGENERATE * float(x @ x):  # a constant x leaves its mean's rounding
         return (0.0, 1.0, None) if dof else (0.0, 1.0)
     b = float(xc @ yc) / sxx
-    k = frame_index(cluster)
+    k = frame_index(cluster) if index is None else index
     # the frames' scores at the fitted slope (a Wald t: a real structure must not count as
     # its own noise)
     e = yc - b * xc
@@ -858,6 +860,24 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     u, v = predicted_position(sub, "u"), predicted_position(sub, "v")
 
     fits: list[FrameFit] = []  # (the frames' fit, made once for every regressor)
+    # (the rows a test takes, with their frames' index: the same for every regressor
+    # projected through the frames' fit, NaN outside it; taken once while they stay)
+    rows: list[tuple] = []
+    ripple: list[tuple] = []
+
+    def taken(ok: np.ndarray) -> tuple:
+        """``(cl, tr, y, y_px, frame index)`` of the rows ``ok``."""
+        if not rows or not np.array_equal(ok, rows[0][0]):
+            c = cl[ok]
+            rows[:] = [(ok, c, None if tr is None else tr[ok], y[ok], y_px[ok],
+                        frame_index(c))]
+        return rows[0][1:]
+
+    def centred(ok: np.ndarray) -> np.ndarray:
+        """``y_px`` of the rows ``ok`` less their mean (the ripples' rows: taken once)."""
+        if not ripple or not np.array_equal(ok, ripple[0][0]):
+            ripple[:] = [(ok, y_px[ok] - y_px[ok].mean())]
+        return ripple[0][1]
 
     def project(xy: np.ndarray) -> np.ndarray:
         """``(n, 2)`` regressor → its part no frame attitude explains, u and v stacked."""
@@ -873,13 +893,16 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
         ``size``: the finding's size (default: the slope's change over ``x``'s 5–95 %).
         """
         ok = np.isfinite(x) & np.isfinite(y)
-        if ok.sum() < 40 or int(frame_index(cl[ok]).max()) < 9 or not np.ptp(x[ok]) > 0:
+        if ok.sum() < 40:
             return
-        t, p = frame_robust_t(x[ok], y[ok], cl[ok], track=None if tr is None else tr[ok],
-                              track_lags=track_lags)
-        xc = x[ok] - x[ok].mean()
-        b = float(xc @ y_px[ok]) / float(xc @ xc)
-        lo, hi = np.percentile(x[ok], [5, 95])
+        c, t_ok, y_ok, px_ok, k = taken(ok)
+        x = x[ok]
+        if int(k.max()) < 9 or not np.ptp(x) > 0:
+            return
+        t, p = frame_robust_t(x, y_ok, c, track=t_ok, track_lags=track_lags, index=k)
+        xc = x - x.mean()
+        b = float(xc @ px_ok) / float(xc @ xc)
+        lo, hi = np.percentile(x, [5, 95])
         out.append(RegressorFinding(name if isinstance(name, str) else name(b), component,
                                     float(t), float(p), b * (hi - lo) if size is None
                                     else size))
@@ -899,8 +922,7 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
                     cols.append(project(xy))
                 X = np.stack(cols, 1)
                 ok = np.all(np.isfinite(X), 1) & np.isfinite(y_px)
-                amp = float(np.hypot(*np.linalg.lstsq(X[ok], y_px[ok] - y_px[ok].mean(),
-                                                      rcond=None)[0])) \
+                amp = float(np.hypot(*np.linalg.lstsq(X[ok], centred(ok), rcond=None)[0])) \
                     if ok.sum() >= 40 else math.nan
                 for x, label in zip(cols, ("sin", "cos"), strict=True):
                     one(f"{axis} ({RIPPLE} {extent / k:.0f} px, {label})", x, comp, amp)
@@ -1345,6 +1367,50 @@ def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
     return out
 
 
+class LineSlope:
+    """``np.polyfit(x, y, 1)[0]`` of one ``x`` and several ``y``: its scaled design made once.
+
+    The same operations as ``np.polyfit`` (the same floats); where the design's rank falls
+    short, ``np.polyfit`` itself (its warning).
+    """
+
+    def __init__(self, x: np.ndarray) -> None:
+        self.x = np.asarray(x) + 0.0
+        self.lhs = np.vander(self.x, 2)
+        self.scale = np.sqrt((self.lhs * self.lhs).sum(axis=0))
+        self.lhs /= self.scale
+        self.rcond = len(self.x) * np.finfo(self.x.dtype).eps
+
+    def slope(self, y: np.ndarray) -> float:
+        """The slope of ``y`` (over the rows of ``x``) on ``x``."""
+        c, _, rank, _ = np.linalg.lstsq(self.lhs, np.asarray(y) + 0.0, self.rcond)
+        if rank != 2:
+            return float(np.polyfit(self.x, y, 1)[0])
+        return float((c.T / self.scale).T[0])
+
+
+class _RegressorRows:
+    """The rows ``ok`` of a regressor ``x`` as :func:`regressor_tests` tests them.
+
+    Their frames (``cluster``, its :func:`frame_index` ``index``, the number ``frames``), stars,
+    and where there are 10 frames or more the regressor's normal scores, 5-95 % range and
+    :class:`LineSlope`: the same for each residual component finite on the same rows.
+    """
+
+    def __init__(self, x: np.ndarray, ok: np.ndarray, frame: np.ndarray,
+                 star: np.ndarray | None) -> None:
+        self.ok = ok
+        self.cluster = frame[ok]
+        self.index = frame_index(self.cluster)
+        self.frames = int(self.index.max()) + 1 if len(self.index) else 0
+        self.star = None if star is None else star[ok]
+        if self.frames >= 10:
+            xo = x[ok]
+            self.scores = normal_scores(xo)
+            self.range = np.percentile(xo, [5, 95])
+            self.line = LineSlope(xo)
+
+
 def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, float],
                     alpha: float = 0.01, focal: tuple[float, float] | None = None,
                     extra: list[RegressorFinding] | None = None,
@@ -1418,18 +1484,21 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
         if ok.sum() < 20 or np.ptp(x[ok]) == 0:
             continue
         comps = inside if (inside is not None and rname in STAR_REGRESSORS) else plain
+        on = None  # (the rows of x the components finite on the same rows share: made once)
         for cname, (y, y_px) in comps.items():
             ok2 = ok & np.isfinite(y)
-            if len(np.unique(frame[ok2])) < 10:
+            if on is None or not np.array_equal(ok2, on.ok):
+                on = _RegressorRows(x, ok2, frame, star)
+            if on.frames < 10:
                 continue
             # on the regressor's normal scores: a skewed regressor (the angular rate, high
             # in a few frames only) must not let a handful of frames decide the test
-            tstat, p = frame_robust_t(normal_scores(x[ok2]), y[ok2], frame[ok2],
-                                      track=None if star is None else star[ok2],
+            tstat, p = frame_robust_t(on.scores, y[ok2], on.cluster, track=on.star,
                                       track_lags=squared if cname == "size" else track_lags,
-                                      track_level=star_levels and cname == "size")
-            lo, hi = np.percentile(x[ok2], [5, 95])
-            slope = np.polyfit(x[ok2], y_px[ok2], 1)[0] * (hi - lo)
+                                      track_level=star_levels and cname == "size",
+                                      index=on.index)
+            lo, hi = on.range
+            slope = on.line.slope(y_px[ok2]) * (hi - lo)
             tests.append(RegressorFinding(rname, cname, float(tstat), float(p), float(slope)))
     tests += shaped
     if focal is not None:
