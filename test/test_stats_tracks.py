@@ -128,3 +128,18 @@ def test_line_tests_shared_pieces_give_the_same_floats():
                {"track": track, "track_level": True, "dof": True}):
         assert stats.frame_robust_t(xx, yy, cl, index=stats.frame_index(cl), **kw) == \
             stats.frame_robust_t(xx, yy, cl, **kw)
+
+
+def test_finite_rows_is_all_of_isfinite_over_a_row():
+    """``stats.finite_rows`` (column by column, ~10x faster on a 2-h table) gives
+    ``np.all(np.isfinite(a), axis=1)``: NaN and ±inf anywhere in a row, 1-12 columns
+    (above 8 numpy's own), no rows, integers."""
+    rng = np.random.default_rng(9)
+    for cols in (1, 2, 3, 6, 8, 12):
+        a = rng.normal(size=(400, cols))
+        a[rng.random(a.shape) < 0.05] = np.nan
+        a[rng.random(a.shape) < 0.02] = -np.inf
+        for x in (a, a[:, ::-1], np.empty((0, cols)), np.ones((5, cols), dtype=int)):
+            got = stats.finite_rows(x)
+            assert got.dtype == bool
+            np.testing.assert_array_equal(got, np.all(np.isfinite(x), axis=1))

@@ -291,7 +291,7 @@ def detector_grid(res) -> tuple[tuple[float, float], np.ndarray] | None:
     cell between the two models.)  ``None`` without a finite centroid.
     """
     uv = _uv(res)
-    uv = uv[np.all(np.isfinite(uv), 1)]
+    uv = uv[stats.finite_rows(uv)]
     if not len(uv):
         return None
     lo, hi = uv.min(0), uv.max(0)
@@ -394,7 +394,7 @@ def _lstsq(sub: dict, x: np.ndarray) -> np.ndarray | None:
     w_nu = stats.whitened(sub)
     w_x = np.stack([stats.whitened({"du": x[:, 0, j], "dv": x[:, 1, j], **cov})
                     for j in range(x.shape[2])], 2)  # (n, 2, k)
-    ok = np.all(np.isfinite(w_nu), 1) & np.all(np.isfinite(w_x), (1, 2))
+    ok = stats.finite_rows(w_nu) & np.all(np.isfinite(w_x), (1, 2))
     if ok.sum() < 20:
         return None
     coef = np.linalg.lstsq(w_x[ok].reshape(-1, x.shape[2]), w_nu[ok].ravel(), rcond=None)[0]

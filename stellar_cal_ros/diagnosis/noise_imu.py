@@ -16,6 +16,7 @@ import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.noise import NoiseScales
+from stellar_cal_ros.diagnosis.stats import finite_rows
 
 #: the gyro / accelerometer scale search range (ln of the scale)
 LN_RANGE = math.log(300.0)
@@ -351,7 +352,7 @@ def sample_noise(samples: np.ndarray, axes: bool = False):
     correlation is −2/3 ± :data:`WHITE_TOLERANCE`.  ``axes``: also return the per-axis σ.
     """
     x = np.asarray(samples, dtype=float)
-    ok = np.all(np.isfinite(x), axis=1)
+    ok = finite_rows(x)
     n = int(ok.sum())
     if n < 100:
         return (math.nan, math.nan, False) + ((np.full(3, math.nan),) if axes else ())

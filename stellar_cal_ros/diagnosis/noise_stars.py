@@ -24,6 +24,7 @@ from stellar_cal_ros.core.gating import GatePolicy
 from stellar_cal_ros.core.memory import trim_freed
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import noise_structure
+from stellar_cal_ros.diagnosis.stats import finite_rows
 
 #: level of the "noise as stated" tests (after Bonferroni over the components), and of the
 #: structure fits removed before the stars' σ is taken
@@ -1015,7 +1016,7 @@ def _correlated_variance(sub: Table, sigma: np.ndarray, fx: float, fy: float,
     """
     from stellar_cal_ros.diagnosis.stats import attitude_columns
 
-    rows = np.all(np.isfinite(r_cells), axis=1)  # the frames the attitude fit took
+    rows = finite_rows(r_cells)  # the frames the attitude fit took
     sel = {k: np.asarray(v)[rows] for k, v in sub.items()}
     A = attitude_columns(sel, fx, fy) / sigma[rows, None, None]
     keep = np.asarray(keep_cell)[rows]
@@ -1157,7 +1158,7 @@ def star_means(r: np.ndarray, share: np.ndarray, star: np.ndarray
     expectation for noise alone ``Σ_s 2 mean(share)`` (``share``: each residual's share of
     its dof left by earlier fits).  Returns ``(χ², dof, r − r̄_star, share (1 − 1/n_s))``.
     """
-    ok = np.all(np.isfinite(r), axis=1) & (share > 0)
+    ok = finite_rows(r) & (share > 0)
     out, share_out = r.copy(), share.copy()
     if not ok.any():
         return 0.0, 0.0, out, share_out
@@ -1227,7 +1228,7 @@ def star_after_cells(r: np.ndarray, cell: np.ndarray, keep: np.ndarray, star: np
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    ok = np.asarray(keep, dtype=bool) & np.all(np.isfinite(r), axis=1)
+    ok = np.asarray(keep, dtype=bool) & finite_rows(r)
     if share is not None:
         ok &= share > 0
     if ok.sum() < 2:
@@ -1356,7 +1357,7 @@ def _minus_cell_means(r: np.ndarray, cell: np.ndarray, keep: np.ndarray
     """
     out = np.full_like(r, np.nan)
     share = np.zeros(len(r))
-    ok = keep & np.all(np.isfinite(r), axis=1)
+    ok = keep & finite_rows(r)
     if not ok.any():
         return out, share, 0.0, 0
     n = np.bincount(cell[ok], minlength=int(cell.max()) + 1).astype(float)

@@ -17,6 +17,7 @@ from scipy.optimize import brentq
 
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.noise import long_run  # the one long-run factor (also here: ns.long_run)
+from stellar_cal_ros.diagnosis.stats import finite_rows
 
 
 def subpixel_columns(uv: np.ndarray) -> np.ndarray:
@@ -35,7 +36,7 @@ def subpixel_block(uv: np.ndarray, columns: np.ndarray | None = None) -> np.ndar
     :func:`subpixel_columns` of ``uv``.
     """
     X = subpixel_columns(uv) if columns is None else np.asarray(columns, dtype=float)
-    return np.where(np.all(np.isfinite(uv), axis=1)[:, None, None], X, np.nan)
+    return np.where(finite_rows(uv)[:, None, None], X, np.nan)
 
 
 def minus_subpixel(r: np.ndarray, share: np.ndarray, uv: np.ndarray, alpha: float,
@@ -128,7 +129,7 @@ def minus_fits(r: np.ndarray, share: np.ndarray, blocks: list[np.ndarray | None]
     (``benchmarks/nuisance_level.py``, doc/benchmarks.md).  One block: its plain fit.
     """
     out_p = [1.0] * len(blocks)
-    ok = np.all(np.isfinite(r), axis=1) & (share > 0)
+    ok = finite_rows(r) & (share > 0)
     use = []
     for k, X in enumerate(blocks):
         if X is None:
@@ -277,7 +278,7 @@ def track_inflation(r: np.ndarray, star: np.ndarray) -> tuple[float, float, int]
     'repeating field' of noise.  The returned factor is the long-run one (a track's mean
     over ``n`` frames: :func:`mean_factor`, as the tests of :func:`lagged_chi2` use).
     """
-    ok = np.all(np.isfinite(r), axis=1)
+    ok = finite_rows(r)
     order, st = in_track_order(np.asarray(star)[ok])
     a, b, same = lag_pairs(r[ok][order], st)
     if same.sum() < 20:
@@ -361,7 +362,7 @@ def lagged_chi2(r: np.ndarray, group: np.ndarray, track: np.ndarray, rho: float,
     χ².  ``share``: the AR(1)'s share of the variance (white + AR(1) noise,
     :func:`track_model`; 1: pure AR(1)).
     """
-    ok = np.asarray(use, dtype=bool) & np.all(np.isfinite(r), axis=1)
+    ok = np.asarray(use, dtype=bool) & finite_rows(r)
     if not ok.any():
         return 0.0
     x, gi, _, n, F = _group_terms(r, group, track, rho, ok, share)
@@ -410,7 +411,7 @@ def flip_p(r: np.ndarray, group: np.ndarray, track: np.ndarray, rho: float, use:
     """
     from scipy.sparse import csr_matrix
 
-    ok = np.asarray(use, dtype=bool) & np.all(np.isfinite(r), axis=1)
+    ok = np.asarray(use, dtype=bool) & finite_rows(r)
     if not ok.any():
         return 1.0
     x, gi, ti, n, F = _group_terms(r, group, track, rho, ok, share)
@@ -569,7 +570,7 @@ def _lag_sums(r: np.ndarray, star: np.ndarray, lags: int
     Returns the sums ``(lags, 3, stars)``, the stars' row counts and each star's jackknife
     group.
     """
-    ok = np.all(np.isfinite(r), axis=1)
+    ok = finite_rows(r)
     order, st = in_track_order(np.asarray(star)[ok])
     rr = r[ok][order]
     _, si = np.unique(st, return_inverse=True)
@@ -601,7 +602,7 @@ def _cell_lag_terms(r: np.ndarray, star: np.ndarray, cell: np.ndarray, lags: int
     """
     from scipy.signal import lfilter
 
-    ok = np.all(np.isfinite(r), axis=1)
+    ok = finite_rows(r)
     order, st = in_track_order(np.asarray(star)[ok])
     _, si = np.unique(st, return_inverse=True)
     _, ci = np.unique(np.asarray(cell)[ok][order], return_inverse=True)

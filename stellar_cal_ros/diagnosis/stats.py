@@ -19,6 +19,21 @@ from stellar_cal_ros.core.units import ARCSEC
 Table = dict[str, np.ndarray]
 
 
+def finite_rows(a: np.ndarray) -> np.ndarray:
+    """``np.all(np.isfinite(a), axis=1)``, for a 2-d ``a`` of a few columns column by column.
+
+    The same booleans; numpy's reduction over a row of 2-8 values is ~10x slower than the
+    columns' ``&`` (6.7 against 0.5 ms on a 2-h table's 457 000 × 2 rows).
+    """
+    a = np.asarray(a)
+    if a.ndim != 2 or not 1 <= a.shape[1] <= 8:
+        return np.all(np.isfinite(a), axis=1)
+    ok = np.isfinite(a[:, 0])
+    for j in range(1, a.shape[1]):
+        ok &= np.isfinite(a[:, j])
+    return ok
+
+
 def evaluation_mask(res: Table, fraction: float = 0.5) -> np.ndarray:
     """Stars of the last ``fraction`` of the frames (the filter has converged there)."""
     if len(res["t"]) == 0:
@@ -921,7 +936,8 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
                     xy[:, d] = fn(ph)
                     cols.append(project(xy))
                 X = np.stack(cols, 1)
-                ok = np.all(np.isfinite(X), 1) & np.isfinite(y_px)
+                # (column by column: np.all over a row of 2 is a slow reduction)
+                ok = np.isfinite(cols[0]) & np.isfinite(cols[1]) & np.isfinite(y_px)
                 amp = float(np.hypot(*np.linalg.lstsq(X[ok], centred(ok), rcond=None)[0])) \
                     if ok.sum() >= 40 else math.nan
                 for x, label in zip(cols, ("sin", "cos"), strict=True):
@@ -1013,7 +1029,7 @@ def frame_attitudes(sub: Table, focal: tuple[float, float]
     a, b, c = (np.asarray(sub[k], dtype=float) for k in ("s_uu", "s_uv", "s_vv"))
     det = a * c - b * b
     nu = np.stack([np.asarray(sub["du"], dtype=float), np.asarray(sub["dv"], dtype=float)], 1)
-    ok = (det > 0) & np.all(np.isfinite(J.reshape(len(J), -1)), 1) & np.all(np.isfinite(nu), 1)
+    ok = (det > 0) & finite_rows(J.reshape(len(J), -1)) & finite_rows(nu)
     Si = np.stack([np.stack([c, -b], 1), np.stack([-b, a], 1)], 1)[ok] / det[ok, None, None]
     SJ = np.einsum("nij,njk->nik", Si, J[ok])
     frames, k = np.unique(np.asarray(sub["frame"])[ok], return_inverse=True)
@@ -1074,7 +1090,7 @@ def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, 
         nu = nu - fit[2] * x
     a, b, c = (np.asarray(sub[k], dtype=float) for k in ("s_uu", "s_uv", "s_vv"))
     det = a * c - b * b
-    ok = np.all(np.isfinite(vel), 1) & np.all(np.isfinite(nu), 1) & (det > 0) & (a > 0)
+    ok = finite_rows(vel) & finite_rows(nu) & (det > 0) & (a > 0)
     if ok.sum() < 20:
         return None
     vel, nu, a, b, c, det = vel[ok], nu[ok], a[ok], b[ok], c[ok], det[ok]
@@ -1238,7 +1254,7 @@ def whitened_fit(sub: Table, x: np.ndarray, dof: bool = False
     cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
     w_nu = whitened(sub)
     w_x = whitened({"du": x[:, 0], "dv": x[:, 1], **cov})
-    ok = np.all(np.isfinite(w_x), 1) & np.all(np.isfinite(w_nu), 1)
+    ok = finite_rows(w_x) & finite_rows(w_nu)
     # the rows ``ok`` taken once, the whole columns not held beside the test (the clock
     # test's fit over a 2-h run's every star is one of its round's peaks)
     w_x, w_nu = w_x[ok], w_nu[ok]
@@ -1334,7 +1350,7 @@ def capped_gain(sub: Table, x: np.ndarray, c: float, cap: float | None = None) -
     cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
     w_nu = whitened(sub)
     w_x = whitened({"du": x[:, 0], "dv": x[:, 1], **cov})
-    ok = np.all(np.isfinite(w_x), 1) & np.all(np.isfinite(w_nu), 1)
+    ok = finite_rows(w_x) & finite_rows(w_nu)
     w_nu, w_x = w_nu[ok], w_x[ok]
     base = float(np.sum(np.minimum(np.sum(w_nu**2, 1), cap)))
 
@@ -1360,7 +1376,7 @@ def subpixel_removed(sub: Table) -> dict[str, np.ndarray]:
         ph = 2.0 * np.pi * predicted_position(sub, axis)
         X = np.stack([np.sin(ph), np.cos(ph), np.ones_like(ph)], 1)
         y = np.asarray(sub[key], dtype=float)
-        ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
+        ok = finite_rows(X) & np.isfinite(y)
         b = np.linalg.lstsq(X[ok], y[ok], rcond=None)[0]
         b[2] = 0.0  # the mean stays
         out[key] = y - X @ b
@@ -1558,7 +1574,7 @@ def size_through_fit(sub: Table, sigma: np.ndarray, focal: tuple[float, float], 
             * (sigma[part][:, None] / sigma[part][None, :]) ** 2
         c[part, 0] = K.sum(1)
         c[part, 1] = K @ x[part]
-    ok = np.all(np.isfinite(c), axis=1) & np.isfinite(size_px) & np.isfinite(x)
+    ok = finite_rows(c) & np.isfinite(size_px) & np.isfinite(x)
     if ok.sum() < 3:
         return math.nan
     (a, b), *_ = np.linalg.lstsq(c[ok], size_px[ok] ** 2, rcond=None)
