@@ -1230,6 +1230,55 @@ def test_imu_search_states_no_value_where_the_likelihood_is_open_toward_small_sc
     assert s.measurable and s.value == pytest.approx(top, abs=0.3 * s.sigma), s
 
 
+def test_imu_search_as_a_check_stops_where_x3_fits_no_better_else_is_the_whole_search():
+    """White IMU samples that keep the stated scale: the stars' search is read only where it
+    measures above 1 + BEYOND (motion beyond the samples' noise, ``noise_runs.checks_only``),
+    so ``search_scale(check=True)`` runs x3 first (x1 is the model's own run) and stops
+    where it fits no better: one run, not two (the 2-h round's gyro, x1.1 +- 0.04: 1.8
+    CPU-s).  A variance-component likelihood of 200 frames (v = 4 + s²): at maxima x1.1
+    and x0.3 the check stops after x3 (statistic 0, p 1) and the whole search measures
+    below 1.5, the only value the verdict would read; at x3 (and without x1 known) it goes
+    on and is the whole search exactly: points in the same order, their frames' sandwich,
+    value, σ, p."""
+    from stellar_cal_ros.diagnosis.noise_imu import search_scale
+    from stellar_cal_ros.diagnosis.noise_runs import BEYOND
+
+    rng = np.random.default_rng(5)
+    w = rng.chisquare(2, 200) / 2  # each frame's share of the variance's draw
+
+    def ell(x, top):
+        v = 4.0 + np.exp(2 * x)
+        terms = -0.5 * (np.log(v) + (4.0 + top**2) * w / v)
+        return float(terms.sum()), np.stack([np.arange(200.0), terms])
+
+    for top, stops, x1 in [(1.1, True, True), (0.3, True, True), (3.0, False, True),
+                           (3.0, False, False), (1.1, True, False)]:
+        calls = []
+
+        def loglik(xs, top=top, calls=calls):
+            calls.append(list(xs))
+            return [ell(x, top) for x in xs]
+
+        known = {0.0: ell(0.0, top)[0]} if x1 else {}
+        checked = search_scale("gyro", loglik, known=known, bound=False, check=True)
+        whole = search_scale("gyro", lambda xs, top=top: [ell(x, top) for x in xs],
+                             known=known, bound=False)
+        assert calls[0] == ([math.log(3.0)] if x1 else [0.0, math.log(3.0)]), calls
+        if stops:
+            assert calls == calls[:1] and checked.checked, (top, calls)
+            assert not checked.measurable and checked.statistic == 0.0
+            assert checked.p_value == 1.0
+            assert not (whole.measurable and whole.value > 1.0 + BEYOND), whole
+            continue
+        assert not checked.checked and calls[1] == [-math.log(3.0)], calls
+        assert list(checked.points.items()) == list(whole.points.items())
+        assert (checked.value, checked.sigma, checked.p_value, checked.dispersion,
+                checked.statistic, checked.measurable) == (
+            whole.value, whole.sigma, whole.p_value, whole.dispersion, whole.statistic,
+            whole.measurable)
+        assert whole.measurable and whole.value > 1.0 + BEYOND and whole.dispersion != 1.0
+
+
 def test_imu_search_lower_bound_holds_the_truth_at_its_confidence():
     """The search's "at least x" (95 %), on a likelihood that has the plateau the bound is
     for: n observations whose variance saturates as the scale grows, v(s) = 2 s² / (1 +

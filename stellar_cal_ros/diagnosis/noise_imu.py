@@ -44,6 +44,9 @@ class ScaleSearch:
     dispersion: float = 1.0
     #: ln scale → the runs' log-likelihood frame by frame ``(2, frames)``, while searching
     frames: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
+    #: a check stopped at its first runs: the scale above fits no better than as stated
+    #: (:func:`search_scale`'s ``check``; not measurable, statistic 0, p 1)
+    checked: bool = False
 
     def fit(self) -> tuple[float, float]:
         """Vertex and curvature of the parabola through the three points nearest the best."""
@@ -140,7 +143,7 @@ def first_points(start: float = 0.0, step: float = STEP, ln_range: float = LN_RA
 def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
                  max_runs: int = 14, known: dict[float, float] | None = None,
                  ln_range: float = LN_RANGE, lowest: float | None = None,
-                 bound: bool = True) -> ScaleSearch:
+                 bound: bool = True, check: bool = False) -> ScaleSearch:
     """ML scale of one noise component: ``loglik([ln s, ...]) -> [ℓ, ...]`` runs a batch.
 
     Three points around ``start`` (ln of the scale), moved by whole steps until the best
@@ -157,21 +160,52 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
     ``bound``: False spends no run on a bound (its crossing, an open side searched
     further): a check whose value is used only where measured (the IMU's white samples
     measured the noise; the best white scale beside a walk).
+    ``check`` (with ``start`` 0): a check read only where it measures a scale above 1 (the
+    IMU's white samples measured the noise and kept it: the stars asking for more is motion
+    beyond it, :func:`~.noise_runs._judge`): the first batch's point above runs first (with
+    ln s = 0 if not known), and where it fits no better than ln s = 0 the search stops
+    there (:attr:`ScaleSearch.checked`): with the point below no better either, ln s = 0 is
+    the best point, the statistic 0 and p 1; with it better, the maximum is below 1 (a
+    likelihood with one maximum in ln s).  Otherwise the point below runs and the search
+    goes on as without ``check``, its points the same (ties between points are resolved in
+    the same order).
     """
     out = ScaleSearch(name, dict(known or {}))
     low = -ln_range if lowest is None else lowest
 
-    def run(xs: list[float]) -> None:
+    def fresh(xs: list[float]) -> list[float]:
         xs = [float(np.clip(x, low, ln_range)) for x in xs]
-        new = [x for x in dict.fromkeys(xs) if not any(abs(x - y) < 1e-3 for y in out.points)]
-        for x, v in zip(new, loglik(new) if new else [], strict=True):
-            if isinstance(v, tuple):  # (ℓ, its frames)
-                v, f = v
-                if f is not None:
-                    out.frames[x] = f
-            out.points[x] = float(v)
+        return [x for x in dict.fromkeys(xs) if not any(abs(x - y) < 1e-3 for y in out.points)]
 
-    run(first_points(start, step, ln_range))
+    def keep(x: float, v) -> None:
+        if isinstance(v, tuple):  # (ℓ, its frames)
+            v, f = v
+            if f is not None:
+                out.frames[x] = f
+        out.points[x] = float(v)
+
+    def run(xs: list[float]) -> None:
+        new = fresh(xs)
+        for x, v in zip(new, loglik(new) if new else [], strict=True):
+            keep(x, v)
+
+    new = fresh(first_points(start, step, ln_range))
+    if check and not start and new and max(new) > 0.0:
+        # (the runs above first, in a batch of their own; kept in the first batch's order)
+        up = [x for x in new if x >= 0.0]
+        got = dict(zip(up, loglik(up), strict=True))
+        ell = {**out.points, **{x: v[0] if isinstance(v, tuple) else v for x, v in got.items()}}
+        if 0.0 in ell and not float(ell[max(up)]) > float(ell[0.0]):
+            for x in up:
+                keep(x, got[x])
+            out.checked, out.measurable, out.sigma, out.frames = True, False, math.inf, {}
+            return out
+        rest = [x for x in new if x not in got]
+        got.update(zip(rest, loglik(rest) if rest else [], strict=True))
+        for x in new:
+            keep(x, got[x])
+    else:
+        run(new)
     first = np.array(list(out.points.values()))
     if np.ptp(first) < FLAT:
         # the likelihood does not move over a factor of 9 of the scale: nothing to measure

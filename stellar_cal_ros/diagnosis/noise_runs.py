@@ -259,13 +259,16 @@ def _judge(runs, prior, effects: tuple[str, ...], base, tell, components: tuple[
             return _logliks(runs, tasks)
 
         known = {0.0: base.window["log_likelihood"]} if applied == ran and base.ok else {}
-        # (white samples measured the sensor: the stars' search is their check, no bound)
+        # (white samples measured the sensor: the stars' search is their check, no bound;
+        # where they keep the scale it is read only above 1, below)
         found = search_scale(comp, loglik, known=known, bound=not (
-            comp in v.samples and v.samples[comp]["white"]))
+            comp in v.samples and v.samples[comp]["white"]), check=checks_only(v, comp))
         v.imu[comp] = found
         if tell:
             tell(f"noise: {comp} scale {found.value:.3g} +- {found.sigma:.2g} "
                  f"({len(found.points)} runs)" if found.measurable else
+                 f"noise: {comp}: the stars ask no more than its samples (x3 fits no better "
+                 f"than x1; {len(found.points)} runs)" if found.checked else
                  f"noise: {comp} scale at {'most' if found.bound == 'upper' else 'least'} "
                  f"{found.value:.3g} ({len(found.points)} runs)" if found.bound else
                  f"noise: {comp} scale not measurable on this bag")
@@ -281,6 +284,17 @@ def _judge(runs, prior, effects: tuple[str, ...], base, tell, components: tuple[
             applied = applied.replace(**{comp: cur * found.value})
     v.applied = applied
     return v
+
+
+def checks_only(v: NoiseVerdict, comp: str) -> bool:
+    """Whether the stars' search of ``comp`` is read only where it measures above 1.
+
+    Where the IMU's own samples look white and keep the stated scale: the verdict then
+    reads the search only for motion beyond the samples' noise (a measured scale above
+    1 + :data:`BEYOND`); nothing of it is printed or kept otherwise
+    (:func:`~.noise_imu.search_scale`'s ``check`` stops it once x3 fits no better than x1).
+    """
+    return bool((v.samples.get(comp) or {}).get("white")) and comp not in v.rejected
 
 
 def _logliks(runs, tasks: list[Task]) -> list:
@@ -351,6 +365,8 @@ def search_walk(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, te
            "loglik": float(l_walk),
            "runs": len(found.points) - len(known), "accepted": False}
     white = v.imu.get("gyro")
+    # (a check stopped at x3 holds no maximum: searched here as if not made)
+    white = None if white is not None and white.checked else white
     if white is None and found.measurable and found.p_value < alpha:
         # (searched only when the walk could be taken: a far-off model's walk usually has
         # no maximum in range, and the white search's runs would decide nothing)
@@ -418,9 +434,11 @@ def first_runs(runs, prior, effects: tuple[str, ...],
     stated = runs.noise or NoiseScales()
     v = NoiseVerdict(stated, stated, method=runs.spec.name)
     at = _from_samples(v, runs, components, 1 + len(components))
-    # ln s = 0 is the base run itself when the samples keep the stated scales
+    # ln s = 0 is the base run itself when the samples keep the stated scales; a check
+    # runs the point below only when the one above fits better (search_scale's ``check``)
+    low = checks_only(v, components[0])
     return [scale_task(components[0], x, prior, effects, at) for x in first_points()
-            if x != 0.0 or at != stated]
+            if (x != 0.0 or at != stated) and not (low and x < 0.0)]
 
 
 def start_samples(runs, components: tuple[str, ...] = ("gyro",)) -> None:
