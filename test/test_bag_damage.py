@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from bag_checks import IMU_FIELDS, assert_same, join_stream, read_all, simulated_bag
 
 from stellar_cal_ros.cli import main
@@ -44,6 +45,14 @@ def _lost_chunks(healthy: Path, a: int, b: int) -> list:
     with BagReader(healthy) as r:
         chunks = r._src.summary.chunk_indexes
     return [c for c in chunks if c.offset < b and c.offset + c.length > a]
+
+
+def _gone(log_time_ns: np.ndarray, lost: list) -> np.ndarray:
+    """Which messages (by log time) the lost chunks held."""
+    gone = np.zeros(len(log_time_ns), bool)
+    for c in lost:
+        gone |= (log_time_ns >= c.start) & (log_time_ns <= c.end)
+    return gone
 
 
 def _info(bag: Path, capsys) -> tuple[int, list[str]]:
@@ -99,9 +108,7 @@ def test_skip_resynchronises_after_the_damage(healthy: Path, tmp_path: Path,
     bag, a, b = _zeroed(healthy, tmp_path / "z.mcap", keep_summary)
     lost = _lost_chunks(healthy, a, b)
     full = read_all(BagReader(healthy))["imu"]
-    gone = np.zeros(len(full), bool)
-    for c in lost:
-        gone |= (full.log_time_ns >= c.start) & (full.log_time_ns <= c.end)
+    gone = _gone(full.log_time_ns, lost)
     assert 0.1 < gone.mean() < 0.3
     with BagReader(bag) as r, pytest.raises(BagError, match="truncated or corrupt"):
         r.read_imu()
@@ -119,7 +126,7 @@ def test_skip_resynchronises_after_the_damage(healthy: Path, tmp_path: Path,
 
 def test_replay_on_error_skip_keeps_the_chunks_after_the_damage(healthy: Path,
                                                                 tmp_path: Path) -> None:
-    bag, _, _ = _zeroed(healthy, tmp_path / "z.mcap")
+    bag, a, b = _zeroed(healthy, tmp_path / "z.mcap")
     prior = healthy.parent / "sim.prior.yaml"
     cmd = [sys.executable, "-m", "stellar_cal_ros", "replay", str(bag), "--method", "psce",
            "--prior", str(prior), "-o", str(tmp_path / "r.yaml"), "-q", "--on-error", "skip"]
@@ -128,6 +135,20 @@ def test_replay_on_error_skip_keeps_the_chunks_after_the_damage(healthy: Path,
     assert "reading goes on with the next valid chunk" in proc.stderr
     frames = int(re.search(r"frames=(\d+)", proc.stdout).group(1))
     assert frames > 0.7 * 240  # 2 Hz over 120 s, about a sixth lost (was 40 % kept)
+    # the result file records what was lost (coord: nothing): each lost chunk's log time,
+    # and exactly the IMU messages of the chunks kept
+    dq = yaml.safe_load((tmp_path / "r.yaml").read_text())["data_quality"]
+    lost = _lost_chunks(healthy, a, b)
+    gone = _gone(read_all(BagReader(healthy))["imu"].log_time_ns, lost)
+    assert dq["messages_read"]["imu"] == int((~gone).sum()), dq
+    received = int(re.search(r"frames_received=(\d+)", proc.stdout).group(1))
+    assert dq["messages_read"]["frames"] == received and dq["messages_skipped"] == 0
+    assert dq["bag_parts_lost"] == len(dq["parts_lost"]) >= len(lost), dq
+    t0 = BagReader(healthy).start_ns
+    for c in lost:
+        assert sum(f"lost log time {(c.start - t0) * 1e-9:.3f}-{(c.end - t0) * 1e-9:.3f} s"
+                   in line for line in dq["parts_lost"]) == 1, (c, dq["parts_lost"])
+    assert dq["seconds_read"] == pytest.approx(120.0, abs=0.1)
 
 
 def test_info_checks_the_data_section_crc(healthy: Path, tmp_path: Path, capsys) -> None:

@@ -125,6 +125,18 @@ def test_a_truncated_bag_says_what_to_do_in_one_line_per_problem(runs, tmp_path,
     assert any(ln.startswith("counts: ") and "bag_parts_lost=1" in ln for ln in lines), out
     assert any(ln.startswith("data quality: 1 damaged or truncated parts of the bag "
                              "(skipped; `stellar-cal info` lists them)") for ln in lines), out
+    # ... and so does the result file a user keeps (coord: its YAML had no trace of the
+    # loss: a calibration from the first third of the bag read as one from the whole bag)
+    dq = yaml.safe_load((tmp_path / "r2.yaml").read_text())["data_quality"]
+    assert dq["bag_parts_lost"] == 1 and dq["messages_skipped"] == 0, dq
+    assert len(dq["parts_lost"]) == 1 and "runs past the end of the file" in dq["parts_lost"][0]
+    assert 0.2 * DURATION < dq["seconds_read"] < 0.6 * DURATION, dq  # half the bytes
+    # the simulation's rates (IMU 100 Hz, frames 2 Hz) over the span read
+    assert abs(dq["messages_read"]["imu"] - 100.0 * dq["seconds_read"]) <= 2, dq
+    assert abs(dq["messages_read"]["frames"] - 2.0 * dq["seconds_read"]) <= 1, dq
+    assert f"imu_received={dq['messages_read']['imu']}," in out
+    # a whole bag's result says nothing of it (no data_quality block: nothing was lost)
+    assert "data_quality" not in yaml.safe_load(Path(runs["run_a"]).read_text())
 
 
 # ------------------------------------------------------------------ 3. unwritable outputs

@@ -558,6 +558,7 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         else NullSink()
     hist_sink = TableSink(history) if history is not None or keep_tables else NullSink()
     t_read = t_filter = 0.0
+    losses: dict[str, Any] = {}
     if isinstance(bag, BagData):
         span = _span_of_data(bag)
         cal = _calibrator(prior, method, effects, cfg, drv, consider, res_sink, hist_sink,
@@ -605,15 +606,33 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         t_filter += time.perf_counter() - t2
     finally:
         if reader is not None:
-            skipped = getattr(reader, "skipped", None)
-            # damaged or truncated parts read past (on_error="skip"): counted, not only warned
-            lost = len(reader.problems) or int(reader.truncated)
+            losses = _read_losses(reader, span)
             reader.close()
         cal.close()
         bar.close()
     cal.require_initialized()
-    return (_result(cal, t_read, t_filter, skipped, lost) if reader is not None
-            else _result(cal, t_read, t_filter, None))
+    return _result(cal, t_read, t_filter, losses)
+
+
+def _read_losses(reader: BagReader, span: tuple[int | None, int | None]) -> dict[str, Any]:
+    """What a read of a bag with ``on_error="skip"`` passed over (empty: nothing).
+
+    The result file's record of it (its ``data_quality`` block, doc/interfaces.md §3): a
+    calibration made from part of a bag must not look like one from the whole bag.
+    ``bag_parts_lost`` (damaged or truncated parts read past) and ``messages_skipped``
+    (malformed messages dropped) are also replay's counters; ``parts_lost`` describes each
+    part (where, the log time lost when known, the topics); ``seconds_read``: the span of
+    the log times read.
+    """
+    skipped = int(sum(reader.skipped.values()))
+    lost = len(reader.problems) or int(reader.truncated)
+    if not skipped and not lost:
+        return {}
+    start, end = span
+    return {"bag_parts_lost": int(lost), "messages_skipped": skipped,
+            "parts_lost": [p.describe(start) for p in reader.problems],
+            "seconds_read": (end - start) * 1e-9 if start is not None and end is not None
+            else 0.0}
 
 
 def _span_of_data(data: BagData) -> tuple[int | None, int | None]:
@@ -632,16 +651,18 @@ def _calibrator(prior, method, effects, cfg, drv, consider, res_sink, hist_sink,
                       baseline=baseline, filter_cls=filter_cls)
 
 
-def _result(cal: Calibrator, t_read: float, t_filter: float, skipped,
-            lost: int = 0) -> ReplayResult:
+def _result(cal: Calibrator, t_read: float, t_filter: float,
+            losses: dict[str, Any]) -> ReplayResult:
     flt = cal.filter
     calibration = cal.calibration()
     counters = cal.all_counters()
-    if skipped:
-        counters["messages_skipped"] = int(sum(len(v) if hasattr(v, "__len__") else int(v)
-                                               for v in skipped.values()))
-    if lost:
-        counters["bag_parts_lost"] = int(lost)
+    if losses:  # a bag read past damage: counted, and recorded in the result file
+        counters["messages_skipped"] = losses["messages_skipped"]
+        counters["bag_parts_lost"] = losses["bag_parts_lost"]
+        read = {k[:-len("_received")]: int(v) for k, v in counters.items()
+                if k.endswith("_received") and not k.startswith("identify_") and v}
+        calibration.extra["data_quality"] = {**calibration.extra.get("data_quality", {}),
+                                             **losses, "messages_read": read}
     _log_counters(counters)
     hist = cal.history.table()
     derived = dict(calibration.extra.get("derived", {}))
