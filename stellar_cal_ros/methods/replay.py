@@ -621,18 +621,14 @@ def _read_losses(reader: BagReader, span: tuple[int | None, int | None]) -> dict
     calibration made from part of a bag must not look like one from the whole bag.
     ``bag_parts_lost`` (damaged or truncated parts read past) and ``messages_skipped``
     (malformed messages dropped) are also replay's counters; ``parts_lost`` describes each
-    part (where, the log time lost when known, the topics); ``seconds_read``: the span of
-    the log times read.
+    part (where, the log time lost after the bag's start when known, the topics).
     """
     skipped = int(sum(reader.skipped.values()))
     lost = len(reader.problems) or int(reader.truncated)
     if not skipped and not lost:
         return {}
-    start, end = span
     return {"bag_parts_lost": int(lost), "messages_skipped": skipped,
-            "parts_lost": [p.describe(start) for p in reader.problems],
-            "seconds_read": (end - start) * 1e-9 if start is not None and end is not None
-            else 0.0}
+            "parts_lost": [p.describe(span[0]) for p in reader.problems]}
 
 
 def _span_of_data(data: BagData) -> tuple[int | None, int | None]:
@@ -661,21 +657,27 @@ def _result(cal: Calibrator, t_read: float, t_filter: float,
         counters["bag_parts_lost"] = losses["bag_parts_lost"]
         read = {k[:-len("_received")]: int(v) for k, v in counters.items()
                 if k.endswith("_received") and not k.startswith("identify_") and v}
+        # seconds_read: the IMU time the filter ran over (the summary's 'replayed N s')
         calibration.extra["data_quality"] = {**calibration.extra.get("data_quality", {}),
-                                             **losses, "messages_read": read}
+                                             **losses, "seconds_read": _duration(flt),
+                                             "messages_read": read}
     _log_counters(counters)
     hist = cal.history.table()
     derived = dict(calibration.extra.get("derived", {}))
     if hasattr(flt, "level_check_deg"):
         derived["level_check_deg"] = flt.level_check_deg
-    duration = float(flt.imu.t_end - 0.0) if flt is not None else 0.0
     return ReplayResult(
         calibration=calibration, covariance=cal.named_covariance(),
         residuals=cal.residuals.table(), history=hist,
         counters=counters, read_seconds=t_read, filter_seconds=t_filter,
-        duration=duration, filter=flt, derived=derived, stats=cal.stats,
+        duration=_duration(flt), filter=flt, derived=derived, stats=cal.stats,
         method=cal.method, effects=list(cal.effects),
         consider_stale_ns=list(cal.consider_stale_ns))
+
+
+def _duration(flt) -> float:
+    """The IMU time a filter ran over, s."""
+    return float(flt.imu.t_end - 0.0) if flt is not None else 0.0
 
 
 def _log_counters(counters: dict[str, int]) -> None:
