@@ -228,9 +228,33 @@ def test_a_true_gyro_scale_beside_an_early_knock_is_added_at_its_size(tmp_path):
     first = got["unexplained"][0]
     assert first["component"] == COMPONENT, got["unexplained"]
     assert "fitted beside the final model" in first["regressor"], first
-    assert 15 < np.linalg.norm(first["detail"]["step_fitted_arcsec"]) < 25, first["detail"]
-    assert first["change_px"] > 0.3, first
+    _sized_as_fitted(first, tmp_path)
     _hidden(got, tmp_path)
+
+
+def _sized_as_fitted(line: dict, out) -> None:
+    """The step's line says the knock's size as the final model fits it: the rotation
+    (arcsec, the stars' sign, :data:`ANGLE_DEG`'s ``(−10, 17.3, 0)″``) and the stars'
+    shift at the detector's centre (px, ``change_px``, the number printed after the line)
+    within 3σ of the truth, and the text prints those numbers (``out``: the discovery's)."""
+    import re
+
+    from stellar_cal_ros.io.calibration import load_calibration
+
+    d = np.asarray(line["detail"]["step_fitted_arcsec"])
+    s = np.asarray(line["detail"]["step_fitted_sigma_arcsec"])
+    a = np.deg2rad(ANGLE_DEG)
+    truth = STEP_ARCSEC * np.array([-np.sin(a), np.cos(a), 0.0])
+    assert np.all(np.abs(d - truth) < 3 * s), (d, s, truth)
+    px = STEP_ARCSEC * ARCSEC * load_calibration(out / "calibration.yaml").camera.fx
+    sigma = line["detail"]["step_fitted_sigma_px"]
+    assert line["change_px"] == line["detail"]["step_fitted_px"]
+    assert abs(line["change_px"] - px) < 3 * sigma, (line["change_px"], sigma, px)
+    said = re.search(r'steps at t~[\d.]+ s by ([\d.]+)" .*the stars jump ([\d.]+) \+- ([\d.]+) '
+                     r"px", line["regressor"])
+    assert said, line["regressor"]
+    assert abs(float(said[1]) - np.linalg.norm(d)) < 0.06, (said[1], d)
+    assert abs(float(said[2]) - line["change_px"]) < 0.001 and float(said[3]) > 0, said[0]
 
 
 def test_a_true_gyro_scale_beside_a_knock_before_the_window_is_added(tmp_path):
@@ -257,6 +281,9 @@ def test_a_true_gyro_scale_beside_a_knock_before_the_window_is_added(tmp_path):
         assert abs(v - truth) < 4 * s + 5e-6, (axis, v, s)
     line = got["unexplained"][0]
     assert line["component"] == COMPONENT and BEFORE in line["regressor"], got["unexplained"]
+    # (on coord 4c5e68b the line said the test's own step, 90.8", 0.844 px: where a slew
+    # starts the filter over-answers the knock and the largest step is a frame late)
+    _sized_as_fitted(line, tmp_path)
     _hidden(got, tmp_path)
 
 

@@ -88,13 +88,18 @@ class InstallationStep:
         """The summary's entry (``diagnosis.json`` ``installation_step``)."""
         return dataclasses.asdict(self)
 
-    def regressor(self, where: str = "") -> str:
-        """The line's text: when, how much, about which axis (``where``: the frames tested)."""
+    def regressor(self, where: str = "", sized: str = "") -> str:
+        """The line's text: when, how much, about which axis.
+
+        ``where``: the frames tested; ``sized``: where the size comes from when not from the
+        test (:meth:`fitted`).
+        """
         d = np.asarray(self.step_arcsec)
         size = float(np.linalg.norm(d))
         axis = ", ".join(f"{x:.2f}" for x in d / max(size, 1e-300))
         return (f"the tracker's installation steps at t~{self.t:.1f} s by {size:.3g}\" "
-                f"(about the tracker's axis ({axis}); x {d[0]:.3g}, y {d[1]:.3g}, z {d[2]:.3g}"
+                f"({sized + '; ' if sized else ''}about the tracker's axis ({axis}); "
+                f"x {d[0]:.3g}, y {d[1]:.3g}, z {d[2]:.3g}"
                 f" +- {max(self.sigma_arcsec[:2]):.2g} / {self.sigma_arcsec[2]:.2g}\"): the "
                 f"stars jump {self.shift_px:.3g} +- {self.sigma_px:.2g} px along "
                 f"{self.angle_deg:.0f} deg at the detector's centre and the filter follows "
@@ -102,10 +107,42 @@ class InstallationStep:
                 f" / 3 dof, the largest of {self.candidates} frames "
                 f"{where or ('at rest' if self.at_rest else '(the platform never rests)')})")
 
-    def finding(self, where: str = "") -> stats.RegressorFinding:
+    def finding(self, where: str = "", sized: str = "") -> stats.RegressorFinding:
         """The 'unexplained' test (unadjusted p; its statistic the one-sided p's normal score)."""
-        return stats.p_finding(self.regressor(where), COMPONENT, self.p_value, self.shift_px,
-                               detail={"installation_step": self.as_json()})
+        return stats.p_finding(self.regressor(where, sized), COMPONENT, self.p_value,
+                               self.shift_px, detail={"installation_step": self.as_json()})
+
+    def fitted(self, step_arcsec, sigma_arcsec, focal: tuple[float, float]
+               ) -> InstallationStep:
+        """The test with a run's fitted rotation as its size (arcsec, the stars' sign).
+
+        The test's own step is the jump of the frames' attitudes at one frame; where the
+        frames move (:data:`MOVING`, :data:`BEFORE`) it holds the filter's answer to the
+        motion there as well (unseen case ``knock_gsf_run20`` seed 21, the knock's first
+        frame 59.5 s where a slew starts: the largest step at 60.0 s, x 43.7, y 4.2, z 79.5
+        ± 0.77 / 5.9″, against the true −10, 17.3, 0).  σ per component (their correlation
+        not kept).
+        """
+        shift, sigma, angle = _at_centre(np.asarray(step_arcsec, dtype=float),
+                                         np.diag(np.square(sigma_arcsec)), focal)
+        return dataclasses.replace(self, step_arcsec=[float(x) for x in step_arcsec],
+                                   sigma_arcsec=[float(x) for x in sigma_arcsec],
+                                   shift_px=shift, sigma_px=sigma, angle_deg=angle)
+
+
+def _at_centre(step: np.ndarray, cov: np.ndarray, focal: tuple[float, float]
+               ) -> tuple[float, float, float]:
+    """The stars' shift at the detector's centre (px) of a rotation and its σ.
+
+    ``step`` (arcsec, the stars' sign) with covariance ``cov``: the shift's size, its σ
+    along it and its direction (deg, from +u toward +v).
+    """
+    A = np.array([[0.0, focal[0], 0.0], [-focal[1], 0.0, 0.0]]) * ARCSEC  # px per arcsec
+    shift = A @ step
+    size = float(np.hypot(*shift))
+    along = shift / max(size, 1e-300)
+    return (size, float(math.sqrt(max(float(along @ A @ cov @ A.T @ along), 0.0))),
+            float(np.degrees(np.arctan2(shift[1], shift[0]))))
 
 
 def contrast(window: int = WINDOW) -> np.ndarray:
@@ -171,17 +208,12 @@ def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, fl
     i = int(np.argmax(d2))
     p = min(1.0, float(dist.chi2.sf(d2[i], 3)) * len(k))
     cov = half[i] @ S @ half[i]
-    A = np.array([[0.0, focal[0], 0.0], [-focal[1], 0.0, 0.0]]) * ARCSEC  # px per arcsec
-    shift = A @ step[i]
-    size = float(np.hypot(*shift))
-    along = shift / max(size, 1e-300)
+    size, sigma, angle = _at_centre(step[i], cov, focal)
     t = stats.frame_times(sub, frames[[k[i] - 1, k[i]]]) - float(np.min(res["t"]))
     return InstallationStep(
         float(t[1]), float(t[0]), [float(x) for x in step[i]],
-        [float(x) for x in np.sqrt(np.diag(cov))], size,
-        float(math.sqrt(max(float(along @ A @ cov @ A.T @ along), 0.0))),
-        float(np.degrees(np.arctan2(shift[1], shift[0]))), float(d2[i]), int(len(k)), p,
-        at_rest)
+        [float(x) for x in np.sqrt(np.diag(cov))], size, sigma, angle, float(d2[i]),
+        int(len(k)), p, at_rest)
 
 
 #: the frames a step tested over all frames of a platform that rests is said the largest of

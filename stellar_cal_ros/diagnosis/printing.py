@@ -40,8 +40,10 @@ def describe(step: dict[str, Any]) -> str:
         return f"exchange {step['removed']} for {step['exchanged_for']}"
     if a == "step":  # diagnosis.auto._step_before
         b = step["step_before_window"]
-        return (f"an attitude step before the evaluation window (t~"
-                f"{b['installation_step']['t']:.1f} s): fitted beside the model from now on "
+        # (the time it is fitted from: the test's or a frame earlier, ``step_time``)
+        t = (b.get("step_time") or [None, b["installation_step"]["t"]])[1]
+        return (f"an attitude step before the evaluation window (t~{t:.1f} s): fitted "
+                "beside the model from now on "
                 f"(score {b['statistic']:.1f}, p = {b['p_value']:.2g}), not a library effect")
     return "nothing significant"
 
