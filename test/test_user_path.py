@@ -371,6 +371,51 @@ def test_the_compile_check_judges_the_kernels_a_run_uses(tmp_path):
     assert step() == [True, True, False]  # the entry compiles (and the helper into it)
 
 
+_AFTER_WARM_UP = """
+import json, sys
+from stellar_cal_ros.diagnosis import warm_up
+from stellar_cal_ros.methods import frame_step as fs
+if sys.argv[1] == "warm":
+    warm_up.WARM_UPS.clear()  # (the replays' kernels: ~100 CPU-s; the rest of main as it is)
+    sys.exit(warm_up.main([]))
+from stellar_cal_ros.core.float_text import _table_text
+from stellar_cal_ros.core.jit import kernel_cache_dir
+text = fs._marker("stellar_cal_ros.core.float_text", _table_text)
+print(json.dumps([fs.kernels_cold(("stellar_cal_ros.core.float_text",)),
+                  json.loads(text.read_text())["used"] if text.exists() else None,
+                  (kernel_cache_dir() / warm_up.DONE_MARKER).is_file()]))
+"""
+
+
+def test_the_compile_check_after_warm_up_finds_nothing_to_compile(tmp_path):
+    """setup.sh's warm-up (python -m stellar_cal_ros.diagnosis.warm_up) leaves what a first
+    command leaves: the CSV writer's kernel compiled and the kernels-used markers written.  It
+    did neither, and the first command after it said 'first run here: compiling' (and compiled
+    float_text._table_text).  Each step a fresh process: [cold, the writer's marker, done]."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from stellar_cal_ros.core import jit
+
+    if not jit.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env[jit.KERNEL_CACHE_ENV] = str(tmp_path)
+
+    def step(what):
+        out = subprocess.run([sys.executable, "-c", _AFTER_WARM_UP, what], capture_output=True,
+                             text=True, env=env, timeout=600)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return out.stdout.strip().splitlines()
+
+    assert step("check") == [json.dumps([True, None, False])]  # a fresh cache: cold
+    warm = step("warm")
+    assert step("check") == [json.dumps([False, ["_table_text"], True])]
+    assert warm == ["tables: kernel ready" + warm[-1].partition("ready")[2]], warm
+
+
 def test_the_compile_check_looks_at_every_kernel_module():
     """A module with cached numba kernels left out of KERNEL_MODULES compiles without the notice
     (frame_step's kernels were missed that way: warm star_chain/jit caches said 'warm')."""

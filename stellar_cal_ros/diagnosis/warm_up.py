@@ -22,12 +22,15 @@ from __future__ import annotations
 import sys
 import time
 
+import numpy as np
+
 #: environment: the filter method whose kernels the fork server warms up
 #: (:func:`~stellar_cal_ros.diagnosis.parallel.local_cluster` sets it)
 WORKER_WARM_ENV = "STELLAR_CAL_WORKER_WARM"
 
 #: filter method -> (simulated scenario, seconds): a bag on which its replay calls every
-#: kernel its runs call (``test_user_path.py`` checks that a run after it compiles none)
+#: kernel its runs call (measured, not tested: a CLI replay after :func:`main` compiles none,
+#: doc/benchmarks.md; a test would compile them all, ~100 CPU-s)
 WARM_UPS: dict[str, tuple[str, float]] = {
     "psce": ("psce_rotations", 20.0),
     "swaying_base": ("swaying", 20.0),
@@ -58,12 +61,28 @@ def warm_up(method: str) -> bool:
 DONE_MARKER = "warm-up.done"
 
 
+def text_kernel() -> bool:
+    """Compile (or load) the CSV writer's kernel (``float_text._table_text``); False: no numba.
+
+    Every command that writes a history or residual table calls it (``io.residuals``).
+    """
+    from stellar_cal_ros.core import float_text
+
+    one = np.zeros(1)
+    return float_text.table_text([one, one.astype(np.int64), one.astype(bool)]) is not None
+
+
 def main(argv: list[str] | None = None) -> int:
     """Warm up the methods named (default: every method of :data:`WARM_UPS`); one line each.
 
-    With the default, :data:`DONE_MARKER` is written in the kernel cache's directory.
+    Then the CSV writer's kernel (:func:`text_kernel`), and the kernels-used markers a
+    command writes (:func:`~stellar_cal_ros.methods.frame_step.record_kernels_used`): the
+    first command after it finds the state its own first run would have left, and says
+    "compiling" only when it compiles.  With the default, :data:`DONE_MARKER` is written in
+    the kernel cache's directory.
     """
     from stellar_cal_ros.core.jit import kernel_cache_dir
+    from stellar_cal_ros.methods.frame_step import record_kernels_used
 
     methods = (argv if argv is not None else sys.argv[1:]) or list(WARM_UPS)
     for method in methods:
@@ -71,6 +90,10 @@ def main(argv: list[str] | None = None) -> int:
         done = warm_up(method)
         print(f"{method}: {'kernels ready' if done else 'nothing to compile'} "
               f"({time.process_time() - t0:.1f} CPU-s)", flush=True)
+    t0 = time.process_time()
+    if text_kernel():
+        print(f"tables: kernel ready ({time.process_time() - t0:.1f} CPU-s)", flush=True)
+    record_kernels_used()
     where = kernel_cache_dir()
     if set(methods) >= set(WARM_UPS) and where is not None and where.is_dir():
         (where / DONE_MARKER).write_text("")
