@@ -68,6 +68,9 @@ def generate_launch_description() -> LaunchDescription:
             "bag": LaunchConfiguration("bag"),
             "rate": LaunchConfiguration("rate"),
             "progress_topic": "/calibrator/data_clock",
+            "match_topic": "/calibrator/inputs_matched",
+            # the handshake also waits for the calibrator's start-up (> 20 s at load ~20)
+            "wait_for_subscribers_s": 60.0,
         }],
     )
     stop_when_played = RegisterEventHandler(OnProcessExit(

@@ -146,7 +146,9 @@ def test_bag_through_topics_equals_offline_replay(ros_context, excerpt, tmp_path
                             Parameter("bag", value=str(path)), Parameter("rate", value=0.0),
                             Parameter("progress_topic",
                                       value=f"/calibrator_{prefix[1:]}/data_clock"),
-                            Parameter("wait_for_subscribers_s", value=5.0)])
+                            Parameter("match_topic",
+                                      value=f"/calibrator_{prefix[1:]}/inputs_matched"),
+                            Parameter("wait_for_subscribers_s", value=20.0)])
     ns = f"/calibrator_{prefix[1:]}"
     est = Collector(player, CalibrationEstimate, ns + "/estimate")
     info = Collector(player, CameraInfo, ns + "/camera_info")
@@ -165,7 +167,10 @@ def test_bag_through_topics_equals_offline_replay(ros_context, excerpt, tmp_path
         wait_for(lambda: est.msgs and info.msgs and any(
             kv.key == "received.imu" and kv.value == str(n_imu)
             for kv in diag.msgs[-1].status[0].values), what="estimate + diagnostics")
-    assert stats.ack_timeouts == 0
+    assert stats.ack_timeouts == 0 and stats.unmatched_topics == 0
+    # the handshake: the node's report of its subscriptions' publishers (the player's)
+    assert player.consumer_matched == cal.inputs_matched() == {
+        **{prefix + t: 1 for t, _ in INPUTS.values()}, ns + "/data_clock": 1}
     assert cal.received == {k: counts[t] for k, (t, _) in INPUTS.items()}
     # every message arrived unchanged and in the replay's order: the same calibration
     online = cal.cal.calibration()
@@ -226,7 +231,9 @@ def test_swaying_base_live_equals_its_replay(ros_context, tmp_path):
                             Parameter("bag", value=str(bag)), Parameter("rate", value=0.0),
                             Parameter("progress_topic",
                                       value=f"/calibrator_{prefix[1:]}/data_clock"),
-                            Parameter("wait_for_subscribers_s", value=5.0)])
+                            Parameter("match_topic",
+                                      value=f"/calibrator_{prefix[1:]}/inputs_matched"),
+                            Parameter("wait_for_subscribers_s", value=20.0)])
     ns = f"/calibrator_{prefix[1:]}"
     est = Collector(player, CalibrationEstimate, ns + "/estimate")
     diag = Collector(player, DiagnosticArray, prefix + "/diagnostics")
@@ -384,6 +391,7 @@ def test_config_files_load_into_the_nodes(ros_context, tmp_path):
                             "--ros-args", "--params-file", str(root / "config/player.yaml"),
                             "-p", f"bag:={BAG}"])
     assert player.p["rate"] == 1.0 and player.p["topics"] == []
+    assert player.p["match_topic"] == "/calibrator/inputs_matched"
     # the launch file is for apt machines (launch_ros): only check it compiles
     src = (root / "launch/calibrate_bag.launch.py").read_text()
     compile(src, "calibrate_bag.launch.py", "exec")
@@ -503,6 +511,35 @@ def test_player_refuses_damaged_bags(tmp_path):
         assert "Traceback" not in p.stderr, (name, p.stderr)
         assert len(lines) == 1 and lines[0].startswith("player: error: "), (name, lines)
         assert re.search(cause, lines[0]), (name, lines[0])
+
+
+def test_player_warns_and_counts_an_unmet_wait(ros_context):
+    """Nobody listens and no handshake comes: the player waits wait_for_subscribers_s, then
+    warns (the topics, why) and counts them in its stats before playing (it used to play
+    silently)."""
+    from types import SimpleNamespace
+
+    prefix = "/u" + uuid.uuid4().hex[:8]
+    player = PlayerNode(f"player_{prefix[1:]}", context=ros_context, cli_args=remaps(prefix),
+                        use_global_arguments=False, parameter_overrides=[
+                            Parameter("bag", value=str(BAG)), Parameter("rate", value=0.0),
+                            Parameter("duration_s", value=0.2),
+                            Parameter("ack_timeout_s", value=0.01),
+                            Parameter("progress_topic", value=prefix + "/data_clock"),
+                            Parameter("match_topic", value=prefix + "/inputs_matched"),
+                            Parameter("wait_for_subscribers_s", value=0.3)])
+    warned = []
+    logger = player.get_logger()
+    player.get_logger = lambda: SimpleNamespace(warning=warned.append, info=logger.info)
+    with Spinner(ros_context, player):
+        stats = player.play()
+    # 6 played topics without a subscriber, no report, no progress publisher
+    assert stats.unmatched_topics == 8, player.unmatched()
+    (text,) = [w for w in warned if "still unmatched" in w]
+    assert f"{prefix}/imu/data (no subscriber)" in text
+    assert f"{prefix}/inputs_matched (no report from the consumer)" in text
+    assert stats.messages > 0
+    player.destroy_node()
 
 
 def test_truncated_checkpoint_starts_from_the_prior(ros_context, excerpt, tmp_path):
@@ -720,28 +757,6 @@ def test_future_stamped_frames_do_not_evict_good_ones(excerpt):
     assert cal.counters.frames_overflow == 0
 
 
-def _node_ready(ctx, name: str, timeout: float = 120.0) -> None:
-    """Wait until the node ``name`` (another process) is up: its latched camera_info came.
-
-    It latches the prior's camera_info at the end of its start-up, after its subscriptions
-    exist. A player that starts before them publishes the bag's first messages to nobody
-    (``wait_for_subscribers_s`` ends on a loaded machine): they are lost, never counted.
-    """
-    from rclpy.qos import DurabilityPolicy
-
-    probe = rclpy.create_node(f"probe_{uuid.uuid4().hex[:6]}", context=ctx,
-                              use_global_arguments=False)
-    got = []
-    probe.create_subscription(CameraInfo, f"/{name}/camera_info", got.append, QoSProfile(
-        depth=1, reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL))
-    try:
-        with Spinner(ctx, probe):
-            wait_for(lambda: got, timeout, f"{name} to start")
-    finally:
-        probe.destroy_node()
-
-
 def _received(path) -> int:
     """Input messages a calibrator's checkpoint has counted (every kind the bag holds)."""
     from stellar_cal_ros.io.checkpoint import read_checkpoint
@@ -756,11 +771,13 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
     and the result is the uninterrupted replay's.
 
     Each process must have received every message played to it: a message lost on the way
-    (the player publishing before the process's subscriptions exist) is never in the
-    checkpoint, and replayed later it is older than what the process has: dropped as late.
-    The test waits for each process to be up and, after the first playback, for its
-    checkpoint to count every message played, then kills it (the cut points between
-    checkpoints are test_online's test_resumed_driver_drops_what_it_has)."""
+    (the player publishing before the process's subscriptions have matched its publishers)
+    is never in the checkpoint, and replayed later it is older than what the process has:
+    dropped as late. The player waits for the process's ~/inputs_matched handshake (every
+    played topic's publisher matched by the process's subscription; this covers the
+    process's start-up), and after the first playback the test waits for the checkpoint to
+    count every message played, then kills it (the cut points between checkpoints are
+    test_online's test_resumed_driver_drops_what_it_has)."""
     import signal
     import subprocess
     import sys
@@ -775,7 +792,6 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
             f"output_file:={out}", "-p", "reorder_window_s:=0.05"]
 
     def play(duration_s):
-        _node_ready(ros_context, name)
         player = PlayerNode(f"player_{uuid.uuid4().hex[:6]}", context=ros_context,
                             cli_args=remaps(prefix), use_global_arguments=False,
                             parameter_overrides=[
@@ -786,10 +802,13 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
                                 # on, the node's queue overflow and the result differ (load ~20)
                                 Parameter("ack_timeout_s", value=60.0),
                                 Parameter("progress_topic", value=f"/{name}/data_clock"),
-                                Parameter("wait_for_subscribers_s", value=20.0)])
+                                # the handshake; a process starting at load ~20 took > 20 s
+                                Parameter("match_topic", value=f"/{name}/inputs_matched"),
+                                Parameter("wait_for_subscribers_s", value=120.0)])
         with Spinner(ros_context, player):
             stats = player.play()
         player.destroy_node()
+        assert stats.unmatched_topics == 0
         return stats
 
     first = subprocess.Popen(argv, env=_node_env(), stdout=subprocess.PIPE,

@@ -30,6 +30,12 @@ Published (node-relative names, i.e. ``/calibrator/...`` by default):
 * ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) at ``diagnostics_rate_hz``;
 * ``~/data_clock`` (rosgraph_msgs/Clock): the newest IMU stamp consumed, every
   ``progress_period_s`` of IMU time (flow control of the ``player``; monitoring);
+* ``~/inputs_matched`` (diagnostic_msgs/DiagnosticStatus, latched): per input topic
+  (``values``: resolved topic name → count) how many publishers its subscription has
+  matched, and for ``~/data_clock`` how many subscribers its publisher has matched; sent at
+  start and whenever a count changes (checked every
+  :data:`MATCH_PERIOD_S` of steady time); the ``player``'s ``match_topic`` handshake waits
+  for it so that no message goes out before this node can receive it;
 * ``~/view`` (stellar_cal_msgs/CalibrationView) and ``~/residual_field``
   (sensor_msgs/CompressedImage): the live view (:mod:`~stellar_cal_ros.nodes.live_view`,
   the layout ``config/foxglove_layout.json``); ``foxglove_port`` also serves it over a
@@ -58,6 +64,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import TransformStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
 from rclpy.exceptions import (
     ParameterUninitializedException,
 )
@@ -161,6 +169,10 @@ INPUTS = {  # key: (default topic, type)
 #: period of the timer that runs the judgements the frames' updates leave due (the gyro
 #: check's: about every 10th frame over the first 200, then every ~50 s of data), s
 CHECKS_PERIOD_S = 0.2
+
+#: period (steady time, also under use_sim_time) of the check of the input subscriptions'
+#: matched publishers (``~/inputs_matched``), s
+MATCH_PERIOD_S = 0.05
 
 #: counters whose growth is warned about (throttled)
 _WARN_COUNTERS = ("imu_invalid", "imu_late", "imu_duplicate", "imu_wrong_frame", "frames_late",
@@ -285,6 +297,12 @@ class CalibratorNode(Node):
         self.pub_residuals = self.create_publisher(StarResidualArray, "~/residuals", out_qos)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", out_qos)
         self.pub_progress = self.create_publisher(Clock, "~/data_clock", out_qos)
+        self.pub_inputs_matched = self.create_publisher(DiagnosticStatus, "~/inputs_matched",
+                                                        latched)
+        self._inputs_matched: dict[str, int] | None = None
+        self._publish_inputs_matched()
+        self.create_timer(MATCH_PERIOD_S, self._publish_inputs_matched,
+                          clock=RosClock(clock_type=ClockType.STEADY_TIME))
         self._progress_ns = int(p["progress_period_s"] * 1e9)
         self._next_progress_ns = -1
         self._progress_due = None  # Clock to publish once the IMU callback's frames are out
@@ -644,6 +662,29 @@ class CalibratorNode(Node):
         self.pub_installation.publish(tf)
         self._publish_tf_static(tf)
 
+    def inputs_matched(self) -> dict[str, int]:
+        """What ``~/inputs_matched`` reports (resolved names).
+
+        Input topic → publishers its subscription has matched; ``~/data_clock`` →
+        subscribers its publisher has matched (the player's flow control).
+        """
+        out = {sub.topic_name: sub.get_publisher_count() for sub in self._input_subs}
+        out[self.pub_progress.topic_name] = self.pub_progress.get_subscription_count()
+        return out
+
+    def _publish_inputs_matched(self) -> None:
+        """``~/inputs_matched`` (latched) when a count changed (and once at start)."""
+        counts = self.inputs_matched()
+        if counts == self._inputs_matched:
+            return
+        self._inputs_matched = counts
+        st = DiagnosticStatus(level=DiagnosticStatus.OK, name=self.get_fully_qualified_name(),
+                              message=f"{sum(counts[s.topic_name] > 0 for s in self._input_subs)}"
+                                      f" of {len(self._input_subs)} input topics have a matched "
+                                      "publisher")
+        st.values = [KeyValue(key=t, value=str(n)) for t, n in counts.items()]
+        self.pub_inputs_matched.publish(st)
+
     def _publish_tf_static(self, tf: TransformStamped) -> None:
         """The installation on /tf_static, when it changed since it was last sent."""
         r = tf.transform.rotation
@@ -765,7 +806,8 @@ def usage() -> str:
         lines.append(f"  {name:22s} {text} (default {shown}{rng})")
     lines += ["", "subscribes: " + ", ".join(t for t, _ in INPUTS.values()),
               "publishes:  ~/estimate, ~/camera_info (latched), ~/installation, /tf_static, "
-              "~/residuals, ~/data_clock, /diagnostics, ~/view, ~/residual_field",
+              "~/residuals, ~/data_clock, ~/inputs_matched (latched), /diagnostics, ~/view, "
+              "~/residual_field",
               "services:   ~/save_calibration, ~/checkpoint, ~/reset (std_srvs/Trigger)"]
     return "\n".join(lines)
 

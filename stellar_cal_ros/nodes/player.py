@@ -12,6 +12,17 @@ topic names (remappable), with:
 * ``/clock`` (rosgraph_msgs/Clock) with the bag's log time every ``clock_period_s`` of bag
   time, for nodes run with ``use_sim_time: true``.
 
+Before the first message it waits up to ``wait_for_subscribers_s`` until every topic it
+plays has a subscriber (and, with ``rate: 0``, its progress subscription a publisher).  A
+publisher seeing a subscriber does not mean the subscriber sees the publisher yet (DDS
+matches both ends apart): messages sent in between are lost.  With ``match_topic`` (the
+calibrator's latched ``~/inputs_matched``) it also waits until the consumer reports, for
+every played topic it subscribes, at least as many matched publishers as the graph shows
+on that topic (the player's own among them), and, with ``rate: 0``, for ``progress_topic``
+at least as many matched subscribers as the graph shows (the acks reach the player).  A
+wait that ends unmet is warned (the topics and why) and counted
+(:attr:`PlayStats.unmatched_topics`); the playback goes on.
+
 The bag — a ``.mcap`` file, a rosbag2 directory (MCAP or sqlite3) or a ROS 1 ``.bag``, the
 formats every ``stellar-cal`` command reads — is read with
 :class:`~stellar_cal_ros.io.reader.BagReader` (no rosbag2 needed; chunk CRCs verified; a ROS
@@ -40,7 +51,7 @@ from rclpy.exceptions import ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from stellar_cal_ros.errors import BagError, StellarCalError
@@ -62,7 +73,10 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
                        "flow control (rate 0): newest IMU stamp the consumer has used"),
     "max_lag_s": (0.5, "flow control: IMU published at most this far (stamps) ahead, s"),
     "ack_timeout_s": (5.0, "flow control: carry on after this long without progress"),
-    "wait_for_subscribers_s": (5.0, "wait this long for a subscriber on every topic first"),
+    "wait_for_subscribers_s": (5.0, "wait this long for a subscriber on every topic first "
+                               "(0: no wait, no check)"),
+    "match_topic": ("", "handshake: the consumer's latched report of the publishers it has "
+                    "matched per topic (the calibrator's ~/inputs_matched); '' : off"),
     "exit_when_done": (True, "shut down after the last message"),
 }
 
@@ -75,6 +89,7 @@ class PlayStats:
     acks: int = 0
     ack_timeouts: int = 0
     waits: int = 0
+    unmatched_topics: int = 0  # topics the start-up wait ended without (warned; see unmatched)
     wall_s: float = 0.0
     bag_s: float = 0.0
 
@@ -150,6 +165,7 @@ class PlayerNode(Node):
         self.consumer_ns = -1  # newest IMU stamp the consumer reported
         self.stats = PlayStats()
         self._first_imu_ns: int | None = None
+        self.consumer_matched: dict[str, int] | None = None  # match_topic's last report
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.p["qos_depth"],
@@ -157,10 +173,17 @@ class PlayerNode(Node):
         self.clock_pub = self.create_publisher(Clock, "/clock", 10) \
             if self.p["publish_clock"] else None
         self._pubs: dict[str, Any] = {}
+        self._progress_sub = None
         if self.p["rate"] == 0:
-            self.create_subscription(Clock, self.p["progress_topic"], self._on_progress,
-                                     QoSProfile(depth=100,
-                                                reliability=ReliabilityPolicy.RELIABLE))
+            self._progress_sub = self.create_subscription(
+                Clock, self.p["progress_topic"], self._on_progress,
+                QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        if self.p["match_topic"]:
+            from diagnostic_msgs.msg import DiagnosticStatus
+
+            self.create_subscription(DiagnosticStatus, self.p["match_topic"], self._on_matched,
+                                     QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                                durability=DurabilityPolicy.TRANSIENT_LOCAL))
 
     def _on_progress(self, msg: Clock) -> None:
         with self._cond:
@@ -168,6 +191,15 @@ class PlayerNode(Node):
             self.consumer_ns = max(self.consumer_ns, rclpy.time.Time.from_msg(
                 msg.clock).nanoseconds)
             self._cond.notify_all()
+
+    def _on_matched(self, msg) -> None:
+        counts = {}
+        for kv in msg.values:
+            try:
+                counts[kv.key] = int(kv.value)
+            except ValueError:
+                continue
+        self.consumer_matched = counts
 
     def stop(self) -> None:
         """Ask a running :meth:`play` to return."""
@@ -193,12 +225,43 @@ class PlayerNode(Node):
                                  normalize_type(name) == IMU_TYPE)
         return self._pubs
 
+    def unmatched(self) -> list[str]:
+        """The played topics a message could still be lost on, each with why."""
+        report = self.consumer_matched
+        out = []
+        if self.p["match_topic"] and report is None:
+            out.append(f"{self.p['match_topic']} (no report from the consumer)")
+        ends = [(pub.topic_name, pub.get_subscription_count(), "no subscriber",
+                 self.count_publishers, "the consumer has matched {} of {} publishers")
+                for pub, _ in self._pubs.values()]
+        if self._progress_sub is not None:
+            ends.append((self._progress_sub.topic_name, self._progress_sub.get_publisher_count(),
+                         "no progress publisher", self.count_subscribers,
+                         "the consumer's progress publisher has matched {} of {} subscribers"))
+        for name, here, none, graph_count, short in ends:
+            # this end's match, then the consumer's (as many as the graph shows)
+            if here == 0:
+                out.append(f"{name} ({none})")
+            elif report is not None and name in report and report[name] < graph_count(name):
+                out.append(f"{name} ({short.format(report[name], graph_count(name))})")
+        return out
+
     def _wait_for_subscribers(self) -> None:
-        deadline = time.monotonic() + self.p["wait_for_subscribers_s"]
-        while time.monotonic() < deadline and not self._stop.is_set():
-            if all(pub.get_subscription_count() > 0 for pub, _ in self._pubs.values()):
-                return
+        """Wait for the subscribers (and the match_topic handshake); warn if it ends unmet."""
+        wait_s = self.p["wait_for_subscribers_s"]
+        if wait_s <= 0:
+            return
+        deadline = time.monotonic() + wait_s
+        missing = self.unmatched()
+        while missing and time.monotonic() < deadline and not self._stop.is_set():
             time.sleep(0.02)
+            missing = self.unmatched()
+        if not missing or self._stop.is_set():
+            return
+        self.stats.unmatched_topics = len(missing)
+        self.get_logger().warning(
+            f"after {wait_s} s still unmatched: {', '.join(missing)}; playing anyway (messages "
+            "may be lost)")
 
     def _wait_progress(self, imu_ns: int) -> None:
         """Flow control: block while the consumer lags the IMU published by > max_lag_s."""
@@ -265,7 +328,8 @@ class PlayerNode(Node):
         self.stats.wall_s = time.perf_counter() - t_wall0
         self.get_logger().info(
             f"played {self.stats.messages} messages ({self.stats.bag_s:.1f} s of bag) in "
-            f"{self.stats.wall_s:.1f} s, ack timeouts {self.stats.ack_timeouts}")
+            f"{self.stats.wall_s:.1f} s, ack timeouts {self.stats.ack_timeouts}, unmatched "
+            f"topics {self.stats.unmatched_topics}")
         return self.stats
 
 
