@@ -1228,6 +1228,38 @@ def test_the_lines_a_detector_step_echoes_follow_the_cells_field():
         ("v (row) (periodic 1024 px, sin)", "u")])
 
 
+def test_a_saturations_hinge_is_the_magnitude_fields_not_the_cells(tmp_path):
+    """Unseen case ``saturation`` (stars brighter than magnitude 4 pulled toward the
+    detector's centre, 0.04 px a magnitude; 0 for the fainter 90 %: a hinge), its own 300 s
+    seed-22 bag through ``discover --auto`` (image_plane_tilt the candidate).  The magnitude
+    field was a straight line in magnitude (3 columns): what it missed of the hinge is per
+    star, and the cells field (81 stars on 36 cells) took that up as well: coord 6fcb798
+    read cells t 8.71, magnitude t 8.41, each t 5.3 beyond the other, and image_plane_tilt,
+    refused beside both, recorded the cells field alone (``lead``): the cells line was
+    printed first, the magnitude field's never (judged wrong).  The field is now piecewise
+    linear in magnitude (knots at the stars' quartiles, ``leads.columns``: 4 functions x u,
+    v, radius = 12 columns; ``columns`` counts them over the window's 4 parts) and the
+    refusal records every field it stands in for (``leads``).  Fails on coord 6fcb798."""
+    from stellar_cal_ros.diagnosis.auto import discover
+
+    sim = _bag(lambda s: tracker_errors.saturation_pull(s, 0.04), seed=22, duration=300.0)
+    tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, 22)
+    got = discover(bag_data_from_simulation(sim), sim.prior, "psce", [], tmp_path,
+                   candidates=["image_plane_tilt"], plots=False, verbose=False, workers=0)
+    assert got["added"] == [], got["path"]
+    b = got["path"][-1]["beyond_remainder"]["image_plane_tilt"]
+    assert not b["needed"] and b["lead"] == "cells", b
+    assert b["leads"] == ["cells", "magnitude"], b
+    first, second = got["unexplained"][:2]
+    assert first["detail"]["field"] == "magnitude" and second["detail"]["field"] == "cells"
+    assert first["detail"]["columns"] == 4 * 12, first["detail"]
+    # measured t 13.5 against the cells' 8.71 (the straight line: 8.41)
+    assert first["statistic"] > 11.0 and first["statistic"] > second["statistic"] + 3.0
+    # its size: the pull's 99th percentile over the window's stars is 0.058 px (magnitude
+    # 2.55); the filter's camera states take part of it (measured 0.0405 px, the line 0.0246)
+    assert 0.032 < first["change_px"] < 0.058, first
+
+
 def test_a_mount_flexing_on_a_swaying_base_gets_no_library_name():
     """Unseen case ``sway_flex`` (a mount turned 10″ per unit lateral specific force on the
     swaying base), reduced to 120 s: gyro_scale_factor is significant alone (the sway turns

@@ -710,10 +710,19 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             dispersion = Reference.of(base).dispersion
             b = None if shutter is None else rolling.stand_in(
                 c, dispersion, with_c.get("rolling"), shutter, ALPHA)
+            # every lead it stands in for, not only the first (unseen case saturation s22:
+            # image_plane_tilt refused beside the cells and the magnitude fields; the path
+            # kept 'cells' alone, so the magnitude field's line was never printed)
+            by = {}
             for kind, lead in beside.items():
                 state.beside.setdefault(c.effect, {})[kind] = _beyond_lead(
                     c, dispersion, with_c.get(kind), lead)
-                b = b or leads.stand_in(c, dispersion, with_c.get(kind), lead, kind, ALPHA)
+                got = leads.stand_in(c, dispersion, with_c.get(kind), lead, kind, ALPHA)
+                if got is not None:
+                    by[kind] = got
+            b = b or next(iter(by.values()), None)
+            if by and list(by) != [b.get("lead")]:
+                b = dict(b, leads=list(by))  # (absent where it would repeat ``lead``)
             if b is not None:
                 refused.append((c, b))
                 continue
@@ -1163,8 +1172,8 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     hidden = (flexure.hiding(*state.remainders[-1], len(state.remainders), ALPHA)
               if state.remainders and not outside else None)
     # the outside-library fields a candidate was refused beside: their lines, if still there
-    kinds = sorted({b["lead"] for s in path for b in (s.get("beyond_remainder") or {}).values()
-                    if b.get("lead")})
+    kinds = sorted({k for s in path for b in (s.get("beyond_remainder") or {}).values()
+                    for k in b.get("leads") or ([b["lead"]] if b.get("lead") else [])})
     known = dict(state.lead)
     if "gravity" in kinds and "gravity" not in known:
         known["gravity"] = leads.gravity_of(runs, final, state.prior, tuple(state.extra))

@@ -11,7 +11,8 @@ rule already made for a rolling shutter and a mount flexure
 flexure.beyond`) applies to them once their shape is a nuisance regressor of the
 innovations: a field of the detector's cells (a per-cell offset, u and v, on the grid of
 the noise's cell means, :data:`~stellar_cal_ros.diagnosis.noise_stars.CELL_GRID`) and a
-field along magnitude (offsets linear in magnitude, along u, v and the radius).
+field along magnitude (offsets piecewise linear in magnitude, knots at the stars' quartiles,
+along u, v and the radius: :func:`columns`).
 
 Each field has many columns.  A field is fixed on the detector (:func:`detector_grid`: the
 bag's centroids, the same for every model compared).  The lead's test is one displacement
@@ -52,7 +53,7 @@ from stellar_cal_ros.io.calibration import Calibration
 #: what a refused candidate's reason calls each field and the fit beside it
 NAMES = {
     "cells": ("the detector-cells-shaped remainder", "a per-cell offset field"),
-    "magnitude": ("the magnitude-shaped remainder", "an offset linear in magnitude"),
+    "magnitude": ("the magnitude-shaped remainder", "an offset piecewise linear in magnitude"),
     "gravity": ("the gravity-shaped remainder", "a mount flexure"),
 }
 #: the fields made of columns of the residual table (:func:`field_fit`); the gravity field is
@@ -60,26 +61,57 @@ NAMES = {
 FIELDS = ("cells", "magnitude")
 
 
-def columns(sub: dict, centre: tuple[float, float]) -> np.ndarray | None:
-    """The magnitude field's displacement columns ``(n, 2, 3)`` px per unit coefficient.
+#: the magnitude field's knots: these percentiles of the stars' magnitudes (one value a star)
+MAGNITUDE_KNOTS = (25.0, 50.0, 75.0)
 
-    Offsets linear in magnitude along u, v and the radius from ``centre`` (the detector's,
-    :func:`detector_grid`); ``None`` without 20 finite magnitudes that vary.  (The cells
-    field's columns, a per-cell offset along u and one along v, are solved cell by cell:
+
+def magnitude_knots(res) -> np.ndarray:
+    """The magnitude field's knots on a residual table: :data:`MAGNITUDE_KNOTS` of its stars.
+
+    Every row (gated or not, every frame), one magnitude a star (its ``catalog_id``'s, where
+    the table has it): the same for every model run on one bag, like
+    :func:`detector_grid`'s frame.  The median is the middle knot (the field is 0 there).
+    Empty without a finite magnitude.
+    """
+    m = np.asarray(res.get("magnitude", ()), dtype=float)
+    ids = res.get("catalog_id")
+    if ids is not None and len(ids) == len(m):
+        _, first = np.unique(np.asarray(ids), return_index=True)
+        m = m[first]
+    m = m[np.isfinite(m)]
+    return np.percentile(m, MAGNITUDE_KNOTS) if len(m) else np.zeros(0)
+
+
+def columns(sub: dict, centre: tuple[float, float], knots: np.ndarray) -> np.ndarray | None:
+    """The magnitude field's displacement columns ``(n, 2, 3 k)`` px per unit coefficient.
+
+    Offsets piecewise linear in magnitude, along u, v and the radius from ``centre`` (the
+    detector's, :func:`detector_grid`): the magnitude and a hinge ``max(knot − m, 0)`` at
+    each of ``knots`` (:func:`magnitude_knots`, the stars' quartiles), each made 0 at the
+    middle knot (the median star), so ``k`` = 4 functions of magnitude, 12 columns.  A
+    straight line could not follow a pull that only the bright stars have (unseen case
+    ``saturation``: 0 for magnitude ≥ 4, the 10 % brightest stars): what it missed was
+    per star, and a per-cell field (81 stars on 36 cells) took it up as well as the line
+    did (300 s seed 22: cells t 8.71, magnitude 8.41, each t 5.3 beyond the other).
+    ``None`` without 20 finite magnitudes that vary.  (The cells field's columns, a
+    per-cell offset along u and one along v, are solved cell by cell:
     :func:`_cell_offsets`; the one place that tells the two apart: :func:`_pattern`.)
     """
     du = np.asarray(sub["u"], dtype=float) - centre[0]
     dv = np.asarray(sub["v"], dtype=float) - centre[1]
     m = np.asarray(sub["magnitude"], dtype=float)
     fin = np.isfinite(m)
-    if fin.sum() < 20 or np.ptp(m[fin]) == 0:
+    if fin.sum() < 20 or np.ptp(m[fin]) == 0 or not len(knots):
         return None
-    m = np.where(fin, m - np.median(m[fin]), 0.0)
+    mid = float(np.median(knots))
+    m = np.where(fin, m, mid)
+    shapes = [m - mid] + [np.maximum(k - m, 0.0) - max(k - mid, 0.0) for k in knots]
     r = np.maximum(np.hypot(du, dv), 1e-9)
-    x = np.zeros((len(du), 2, 3))
-    x[:, 0, 0] = m
-    x[:, 1, 1] = m
-    x[:, 0, 2], x[:, 1, 2] = m * du / r, m * dv / r
+    x = np.zeros((len(du), 2, 3 * len(shapes)))
+    for j, f in enumerate(shapes):
+        x[:, 0, 3 * j] = f
+        x[:, 1, 3 * j + 1] = f
+        x[:, 0, 3 * j + 2], x[:, 1, 3 * j + 2] = f * du / r, f * dv / r
     return x
 
 
@@ -280,26 +312,28 @@ def direction(res, fraction: float, kind: str):
     return _direction({k: np.asarray(v)[before] for k, v in res.items()}, kind, grid)
 
 
-def detector_grid(res) -> tuple[tuple[float, float], np.ndarray] | None:
-    """The fields' frame on the detector: the centre (px) and extent of the table's centroids.
+def detector_grid(res) -> tuple[tuple[float, float], np.ndarray, np.ndarray] | None:
+    """The fields' frame: the centre (px) and extent of the centroids, the magnitude knots.
 
     Every row (gated or not, every frame): the same for every model run on one bag.  The
     midpoint of the centroids' range and that range + 1 px, so that the grid of
     :func:`~stellar_cal_ros.diagnosis.noise_stars.detector_cells` spans the detector's
     stars.  (On the model's estimated principal point a tilt's run moved the grid by 20-40
     px from the baseline's, and 26-29 % of a 150 s quadrant bag's window stars changed
-    cell between the two models.)  ``None`` without a finite centroid.
+    cell between the two models.)  The third item: the magnitude field's knots
+    (:func:`magnitude_knots`).  ``None`` without a finite centroid.
     """
     uv = _uv(res)
     uv = uv[stats.finite_rows(uv)]
     if not len(uv):
         return None
     lo, hi = uv.min(0), uv.max(0)
-    return (float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2)), hi - lo + 1.0
+    return ((float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2)), hi - lo + 1.0,
+            magnitude_knots(res))
 
 
 def _cells(sub: dict, grid) -> np.ndarray:
-    return detector_cells(_uv(sub), *grid)[0]
+    return detector_cells(_uv(sub), *grid[:2])[0]
 
 
 #: the window's parts (equal spans of time) each given its own field for the nuisance gain
@@ -369,7 +403,7 @@ def _direction(fit: dict, kind: str, grid):
         return _cell_offsets(fit, _cells(fit, grid))
     if kind != "magnitude":
         raise ValueError(f"no {kind!r} field of the residual table's columns")
-    x = columns(fit, grid[0])
+    x = columns(fit, grid[0], grid[2])
     return None if x is None else _lstsq(fit, x)
 
 
@@ -384,7 +418,7 @@ def _displace(on: dict, kind: str, grid, d) -> tuple[np.ndarray, int] | None:
         cell = _cells(on, grid)
         cells = len(np.unique(cell))
         return None if cells < 2 else (d[cell], 2 * cells)
-    x = columns(on, grid[0])
+    x = columns(on, grid[0], grid[2])
     return None if x is None else (x @ d, x.shape[2])
 
 
