@@ -836,9 +836,11 @@ CASES: dict[str, Case] = {
                       "needs sigma x sqrt(0.5 (1+rho)/(1-rho) + 0.5) = 3.24)",
                       noise={"star": 3.24}, post=_ar1_mixed,
                       scenario_changes={"centroid_noise_px": 0.0}),
-    # (H222) s22 is judged wrong: its cells field (t 8.7) and magnitude field (t 8.4) tie,
-    # each t 5.3 beyond the other (seeds 21, 23-26: the magnitude field leads), and the
-    # cells line, printed for the tilt refused beside it, has the smaller p
+    # (H222) s22 was judged wrong: its cells field (t 8.7) and straight-line magnitude field
+    # (t 8.4) tied, each t 5.3 beyond the other, and the cells line, printed for the tilt
+    # refused beside both, had the smaller p.  (H228) the magnitude field piecewise linear
+    # (knots at the stars' quartiles): t 13.5, the cells t 2.4 beyond it; both lines
+    # printed (the refusal records every field), the magnitude field's first: ok
     "saturation": Case("psce", "bright stars pulled toward the detector centre, 0.04 px per "
                        "magnitude brighter than 4 (saturation; not in the library)",
                        outside=True, regressor="magnitude", post=_saturation,
