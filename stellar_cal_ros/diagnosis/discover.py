@@ -198,6 +198,18 @@ class CandidateResult:
         return self.significant_alone
 
 
+def excess_energy(excess: float, noise: float, stars: int) -> float:
+    """``bᵀ I b`` of an effect whose residuals add ``excess`` to the excess variance per star.
+
+    ``I`` whitened by ``noise`` (the variance per star of both axes), over ``stars``: the
+    effect's own residuals' mean square is ``bᵀ I b · noise / (2 · stars)``.  The one
+    conversion of :meth:`Reference.gate_energy` (the energy the gate asks) and of the
+    probe's runs (:func:`~stellar_cal_ros.diagnosis.reliability_probe.start_probes`: the
+    energy an injected effect added).
+    """
+    return float(2.0 * stars * excess / noise)
+
+
 @dataclass
 class Reference:
     """A run the augmented runs are compared with (evaluation window of its residuals)."""
@@ -235,8 +247,8 @@ class Reference:
         """
         if not explained < MIN_EXPLAINED or not self.noise > 0 or not self.stars:
             return 0.0
-        return float(2.0 * self.stars * self.excess * (MIN_EXPLAINED - explained)
-                     / ((1.0 - MIN_EXPLAINED) * self.noise))
+        return excess_energy(self.excess * (MIN_EXPLAINED - explained) / (1.0 - MIN_EXPLAINED),
+                             self.noise, self.stars)
 
     def compare(self, run: RunSummary, dof: float) -> tuple[float, float, float]:
         """Statistic Λ, its unadjusted p (χ²_dof) and the fraction of the excess removed.

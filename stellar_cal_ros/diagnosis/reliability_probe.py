@@ -40,6 +40,7 @@ import numpy as np
 
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis import injection, reliability
+from stellar_cal_ros.diagnosis.discover import excess_energy
 
 log = logging.getLogger(__name__)
 
@@ -676,8 +677,8 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
         def energy(row) -> float | None:  # the whitened energy the probe's effect added
             if row is None or not w["noise_variance"] > 0:
                 return None
-            return ((row[EXCESS] - w["excess_variance"]) * 2.0 * w["n_window"]
-                    / w["noise_variance"])
+            return excess_energy(row[EXCESS] - w["excess_variance"], w["noise_variance"],
+                                 w["n_window"])
 
         # the gate-set MDBs: one step from the run at the printed size, then a secant
         regate = []
