@@ -890,9 +890,7 @@ def _step_before(runs, state: _State, base: RunSummary, prior: Calibration, tell
         return None
     key = max(fitted, key=lambda k: got[k].window["log_likelihood"])
     run = got[key]
-    stat = 2.0 * (run.window["log_likelihood"] - base.window["log_likelihood"]) \
-        / Reference.of(base).dispersion
-    p = float(dist.chi2.sf(max(stat, 0.0), 3))
+    stat, p, _ = Reference.of(base).compare(run, 3)
     if not p < ALPHA:
         return None
     return {"installation_step": knock.as_json(), "where": installation_step.BEFORE,
