@@ -409,11 +409,15 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     auto = args.auto or args.command == "discover"
     if auto and args.max_rounds < 1:
         raise StellarCalError("--max-rounds must be >= 1")
+    if args.verify_twins is not None and args.verify_twins < 1:
+        raise StellarCalError("--verify-twins must be >= 1")
     summary = diagnose(args.bag, cal, args.method, _effect_list(args.effects), args.output,
                        candidates=candidates, plots=not args.no_plots, workers=args.workers,
                        scheduler=args.scheduler, auto=auto, max_rounds=args.max_rounds,
                        noise=args.noise, verify=args.verify and auto,
                        verify_seed=args.verify_seed,
+                       verify_signs={"both": (1, -1), "+": (1,), "-": (-1,)}[args.verify_signs],
+                       verify_twins=args.verify_twins,
                        noise_scales=_noise_scales(args.noise_scale))
     if auto:
         from stellar_cal_ros.diagnosis.printing import print_discovery
@@ -638,7 +642,15 @@ def build_parser() -> argparse.ArgumentParser:
                        help="--auto: check every printed MDB and bias on twins of this bag "
                             "(the effect injected at its MDB, `stellar-cal twin`)")
         d.add_argument("--verify-seed", type=int, default=1,
-                       help="noise seed of the --verify twins (default 1)")
+                       help="noise seed of the first --verify twins (default 1; the next "
+                            "twins take the next seeds)")
+        d.add_argument("--verify-signs", choices=["both", "+", "-"], default="both",
+                       help="--verify: inject each row at both signs of its MDB (default: an "
+                            "MDB is a size of either sign) or at one")
+        d.add_argument("--verify-twins", type=int, default=None,
+                       help="--verify: twins of different noise seeds per row and sign "
+                            "(default 2: their spread says where one twin cannot judge a "
+                            "claim; 1: one twin, no spread)")
         d.add_argument("--noise", choices=["estimate", "stated"], default="estimate",
                        help="estimate (default): measure the stars' sigma and the IMU noise "
                             "scales first and test every effect with them; stated: use the "

@@ -315,9 +315,16 @@ def verify_lines(summary: dict[str, Any]) -> list[str]:
     # twins of an effect discover's clock rule refuses at that sign on this bag: their
     # detection is no claim (verify.clock_rule), their biases are
     refused = sum(bool(r.get("refused_by_clock")) for r in rows)
-    out = [f"verify (twins of this bag, the effect injected at its printed MDB, seed "
-           f"{rows[0]['seed']}): {holds} of {len(rows)} claims hold"
+    seeds = rows[0].get("seeds") or [rows[0]["seed"]]
+    signs = {"+-": "±", "+": "", "-": "−"}["".join(sorted(
+        {"+" if r.get("sign", 1) > 0 else "-" for r in rows}))]
+    unjudged = sum(r.get("verdict") == "cannot be judged" for r in rows)
+    out = [f"verify (twins of this bag, the effect injected at {signs}its "
+           f"printed MDB, seed{'s' if len(seeds) > 1 else ''} "
+           f"{', '.join(map(str, seeds))}): {holds} of {len(rows)} claims hold"
            + (f" ({safe} conservatively: on the safe side)" if safe else "")
+           + (f", {unjudged} cannot be judged with {len(seeds)} twins (the shift's "
+              "twin-to-twin spread is too large for ± 30 % of the claim)" if unjudged else "")
            + (f"; {refused} of them refused by the clock rule on this bag at that sign "
               "(not a miss: the detection not counted, the biases judged)" if refused else "")]
     out += [f"  {verify_text(r)}" for r in rows]

@@ -43,6 +43,8 @@ def diagnose(
     noise: str = "estimate",
     verify: bool = False,
     verify_seed: int = 1,
+    verify_signs: tuple[int, ...] = (1, -1),
+    verify_twins: int | None = None,
     noise_scales: NoiseScales | None = None,
 ) -> dict[str, Any]:
     """Run one diagnosis round; write ``diagnosis.json`` and ``report.html``; return the summary.
@@ -56,7 +58,8 @@ def diagnose(
     the noise scales first and test every effect with them, :mod:`~stellar_cal_ros.
     diagnosis.noise`) or ``stated`` (use the noise the messages, the prior and the
     calibration's run state).  ``verify`` (with ``auto``): check the printed MDBs and
-    biases on twins of the bag (:mod:`~stellar_cal_ros.diagnosis.verify`).
+    biases on twins of the bag (:mod:`~stellar_cal_ros.diagnosis.verify`), each row at
+    ``verify_signs`` x its MDB on ``verify_twins`` twins of seeds ``verify_seed``, ... .
     ``noise_scales``: the noise the runs start from (``--noise-scale``) instead of the
     calibration's run's (its consistency block).
     """
@@ -65,6 +68,7 @@ def diagnose(
                         candidates=candidates, evaluation_fraction=evaluation_fraction,
                         plots=plots, verbose=verbose, workers=workers, scheduler=scheduler,
                         noise=noise, verify=verify, verify_seed=verify_seed,
+                        verify_signs=verify_signs, verify_twins=verify_twins,
                         noise_scales=noise_scales)
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
