@@ -22,9 +22,14 @@ import sys
 
 #: glibc's ``mallopt`` parameter number of the mapping threshold
 M_MMAP_THRESHOLD = -3
-#: blocks of at least this many bytes are mapped (and unmapped when freed): 1 MB, a 2-h
-#: round's peak 675 -> 587 MB for +1.3 CPU-s of page faults (128 kB: 575 MB, +2.9 s)
-MMAP_THRESHOLD = 1 << 20
+#: blocks of at least this many bytes are mapped (and unmapped when freed): 8 MB.  A
+#: mapped block's pages are faulted in afresh each time (≈ 900 faults for a 2-h table's
+#: 457 000-row column of 3.7 MB, 1 800 for its stacked u, v or (n, 2) columns); below the
+#: threshold the heap reuses the pages a freed temporary left.  numpy asks for huge pages
+#: on arrays of 4 MB and more (``madvise``): a mapped one faults once per 2 MB.  The 2-h
+#: round (doc/benchmarks.md, H237): 1 MB 1.71 M faults, 5.5 s system CPU, 489 MB peak; 4 MB
+#: 0.86 M, 3.2 s, 490 MB; 8 MB 0.62 M, 2.4 s, 491 MB; 32 MB 0.56 M, 2.2 s, 501 MB
+MMAP_THRESHOLD = 1 << 23
 #: glibc's own environment setting of the same; a user's value is left alone
 ENV = "MALLOC_MMAP_THRESHOLD_"
 #: glibc's ``malloc_trim``, once :func:`return_freed_arrays` set the threshold here
