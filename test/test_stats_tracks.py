@@ -94,7 +94,7 @@ def test_frame_index_is_uniques_inverse_for_stacked_and_unordered_frames(dtype):
     """``stats.frame_index`` gives ``np.unique``'s inverse, dtype included, for frames in
     time order (counted), stacked twice or out of order over few values (ranked through a
     table of the values: ``shaped_tests``' u-then-v rows) and spread over many values
-    (sorted)."""
+    (sorted); ``stats.frames_of`` gives ``np.unique``'s values and inverse (floats too)."""
     rng = np.random.default_rng(7)
     ordered = np.repeat(np.arange(5, 3000), rng.integers(1, 30, 2995)).astype(dtype)
     cases = [ordered, np.concatenate([ordered, ordered]), ordered[::-1],
@@ -103,9 +103,16 @@ def test_frame_index_is_uniques_inverse_for_stacked_and_unordered_frames(dtype):
              if np.iinfo(dtype).max > 10**12 else np.array([0, 10**9, 5], dtype=dtype)]
     if np.issubdtype(dtype, np.signedinteger):
         cases.append(np.array([-5, 3, -5, 0], dtype=dtype))
-    for c in cases:
-        got, want = stats.frame_index(c), np.unique(c, return_inverse=True)[1]
-        assert got.dtype == want.dtype
+    for c in cases + [c.astype(float) for c in cases[:2]]:
+        want_frames, want = np.unique(c, return_inverse=True)
+        if c.dtype.kind in "iu":
+            got = stats.frame_index(c)
+            assert got.dtype == want.dtype
+            np.testing.assert_array_equal(got, want)
+        # frames_of: the frames too (the clock and step tests' frame offsets, H237)
+        frames, got = stats.frames_of(c)
+        assert frames.dtype == want_frames.dtype and got.dtype == want.dtype
+        np.testing.assert_array_equal(frames, want_frames)
         np.testing.assert_array_equal(got, want)
 
 

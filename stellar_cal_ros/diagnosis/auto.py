@@ -832,10 +832,11 @@ def _knock_of(base: RunSummary, calibration: Calibration, fraction: float):
         return None, ""
     from stellar_cal_ros.diagnosis.output import step_test
 
-    rest = step_test(base.residuals, calibration, fraction)
+    shared: dict[str, Any] = {}  # (the window's frame offsets: both tests')
+    rest = step_test(base.residuals, calibration, fraction, shared=shared)
     if rest is None or not rest.at_rest or rest.p_value < ALPHA:
         return rest, ""  # (all its frames tested: the platform never rests; or the line's)
-    return (step_test(base.residuals, calibration, fraction, everywhere=True),
+    return (step_test(base.residuals, calibration, fraction, everywhere=True, shared=shared),
             installation_step.MOVING)
 
 

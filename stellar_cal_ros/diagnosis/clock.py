@@ -392,27 +392,32 @@ def at_mdb_clause(entry: dict[str, Any], shown: dict[str, str]) -> str:
 
 
 def clock_test(res: stats.Table, calibration, fraction: float,
-               periods: tuple[float, ...] = ()) -> ClockChange | None:
+               periods: tuple[float, ...] = (), shared: dict | None = None
+               ) -> ClockChange | None:
     """The test (:func:`clock_change`) of a residual table on ``fraction``'s window.
 
     ``calibration``: the run's (its camera and installation); ``periods``: a wobble's,
-    fitted as rivals (:func:`wobble_periods`).
+    fitted as rivals (:func:`wobble_periods`); ``shared``: the frames' offsets made once
+    for the table's tests (:func:`~stellar_cal_ros.diagnosis.stats.accepted_offsets`).
     """
     cam = calibration.camera
     return clock_change(res, stats.evaluation_mask(res, fraction), (cam.fx, cam.fy),
-                        (cam.cx, cam.cy), calibration.R_imu_st, periods=periods)
+                        (cam.cx, cam.cy), calibration.R_imu_st, periods=periods,
+                        shared=shared)
 
 
 def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
                  centre: tuple[float, float], R_imu_st: np.ndarray | None,
-                 parts: int = SEGMENTS, periods: tuple[float, ...] = ()) -> ClockChange | None:
+                 parts: int = SEGMENTS, periods: tuple[float, ...] = (),
+                 shared: dict | None = None) -> ClockChange | None:
     """The time offset × time test on ``mask``'s accepted stars (module docstring).
 
     ``periods`` (s): a wobble's periods the 'unexplained' lines found (:data:`WOBBLE`),
     fitted as rivals beside the flexure's.  ``None`` without the installation or the rate
-    columns, or with fewer than 10 frames with motion a part.
+    columns, or with fewer than 10 frames with motion a part.  ``shared``: as
+    :func:`~stellar_cal_ros.diagnosis.stats.accepted_offsets`'.
     """
-    found = stats.accepted_offsets(res, mask, focal, centre, R_imu_st)
+    found = stats.accepted_offsets(res, mask, focal, centre, R_imu_st, shared)
     if found is None:
         return None
     sub, got = found

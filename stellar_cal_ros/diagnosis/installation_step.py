@@ -154,15 +154,18 @@ def contrast(window: int = WINDOW) -> np.ndarray:
 
 def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
                       centre: tuple[float, float], R_imu_st: np.ndarray | None,
-                      everywhere: bool = False) -> InstallationStep | None:
+                      everywhere: bool = False, shared: dict | None = None
+                      ) -> InstallationStep | None:
     """The attitude step test on ``mask``'s accepted stars (module docstring).
 
     ``None`` without the installation or the rate columns (the frames at rest are not
     known), or with fewer than :data:`MIN_CANDIDATES` frames to test.  With fewer than
     :data:`MIN_CANDIDATES` at rest all frames are tested (a platform that never rests), and
     with ``everywhere`` (a gyro rate candidate's rival in ``discover``, not the line).
+    ``shared``: as :func:`~stellar_cal_ros.diagnosis.stats.accepted_offsets`' (the clock
+    test's on the same rows).
     """
-    found = stats.accepted_offsets(res, mask, focal, centre, R_imu_st)
+    found = stats.accepted_offsets(res, mask, focal, centre, R_imu_st, shared)
     if found is None:
         return None
     sub, got = found

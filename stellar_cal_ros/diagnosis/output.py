@@ -287,17 +287,21 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=N
 
 
 def step_test(res, calibration: Calibration, fraction: float, everywhere: bool = False,
-              before: bool = False) -> installation_step.InstallationStep | None:
+              before: bool = False, shared: dict | None = None
+              ) -> installation_step.InstallationStep | None:
     """The attitude step test at rest (:func:`~.installation_step.installation_step`).
 
     ``everywhere``: over all frames, moving or not (a gyro rate candidate's rival).
     ``before``: over the frames before the evaluation window instead of the window's.
+    ``shared``: the window's frame offsets, made once for the table's tests
+    (:func:`~.stats.accepted_offsets`; not with ``before``).
     """
     cam = calibration.camera
     mask = stats.evaluation_mask(res, fraction)
     return installation_step.installation_step(res, ~mask if before else mask,
                                                (cam.fx, cam.fy), (cam.cx, cam.cy),
-                                               calibration.R_imu_st, everywhere)
+                                               calibration.R_imu_st, everywhere,
+                                               None if before else shared)
 
 
 def line_tests(res, calibration: Calibration, fraction: float,
@@ -320,10 +324,12 @@ def line_tests(res, calibration: Calibration, fraction: float,
     # test's offsets, the step test's)
     sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st)
     trim_freed()
+    shared: dict[str, Any] = {}  # the window's frame offsets: the clock's and step's
     if timing is None:
-        timing = clock.clock_test(res, calibration, fraction)
+        timing = clock.clock_test(res, calibration, fraction, shared=shared)
         trim_freed()
-    step = step_test(res, calibration, fraction)
+    step = step_test(res, calibration, fraction, shared=shared)
+    shared.clear()
     trim_freed()
     timing_line = timing.finding() if timing is not None else None
     family: dict[str, int] = {}
