@@ -399,6 +399,10 @@ def print_replay_summary(result, prior) -> None:
 
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:
+    if args.bag.exists():  # a bag without what the method needs: refused from its summary
+        from stellar_cal_ros.methods.frames import method_reads_images
+
+        method_reads_images(args.bag, args.method)
     from stellar_cal_ros.diagnosis.run import diagnose
 
     _load_effect_modules(args.effect_module)
@@ -418,7 +422,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
                        verify_seed=args.verify_seed,
                        verify_signs={"both": (1, -1), "+": (1,), "-": (-1,)}[args.verify_signs],
                        verify_twins=args.verify_twins,
-                       noise_scales=_noise_scales(args.noise_scale))
+                       noise_scales=_noise_scales(args.noise_scale),
+                       on_error=args.on_error)
     if auto:
         from stellar_cal_ros.diagnosis.printing import print_discovery
 
@@ -447,7 +452,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     if args.residuals is not None and args.residuals.suffix.lower() == ".parquet":
         write_residuals(args.residuals, {"probe": np.zeros(0)})  # fail early without pyarrow
     steps = spec.steps
-    options = {"loss": args.loss, "outlier_probability": args.outlier_probability or None}
+    options = {"loss": args.loss, "outlier_probability": args.outlier_probability or None,
+               "on_error": args.on_error}
     with progress(max(len(steps), 1), args.method, unit="stages",
                   enabled=not args.quiet) as p:
         def step_done(name: str) -> None:
@@ -464,6 +470,11 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     save_calibration(res.calibration, args.output, covariance=res.covariance)
     for line in res.lines:
         print(line)
+    from stellar_cal_ros.methods.results import loss_line
+
+    lost = loss_line(res.calibration.extra.get("data_quality") or {})
+    if lost:
+        print(lost)
     print(f"wrote {args.output}" + (f" and {args.residuals}" if args.residuals else "")
           + f" (covariance: {args.output.with_suffix('').name}.covariance.yaml)")
     return 0
@@ -557,6 +568,8 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("bag", type=Path, help="a .mcap file, a rosbag2 directory or a ROS 1 .bag")
     i.set_defaults(func=_cmd_info)
 
+    from stellar_cal_ros.io.reader import on_error_argument
+
     r = sub.add_parser("replay", help="Kalman-filter calibration over a bag",
                        formatter_class=_HelpFormatter)
     _run_arguments(r, "contract bag to calibrate on", "filter",
@@ -583,9 +596,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "likelihood over re-runs), then replay with them")
     r.add_argument("--effect-module", type=Path, action="append",
                    help="Python file defining extra Effect classes (repeatable)")
-    r.add_argument("--on-error", choices=["raise", "skip"], default="raise",
-                   help="skip: calibrate a truncated bag on what it holds, dropping and "
-                        "counting malformed messages (default: stop with an error)")
+    on_error_argument(r, "calibrate")
     r.add_argument("--viz", type=Path, default=None, metavar="VIZ.mcap",
                    help="also write the run as a Foxglove view: estimates with their sigma, "
                         "NIS, /diagnostics and the residual field over time, plus the layout "
@@ -607,6 +618,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--outlier-probability", type=float, default=1.0 - 1e-6, metavar="P",
                    help="outlier gate: after a robust fit, stars beyond the chi2(2) quantile "
                         "P of their normalized residual are left out and counted (0: off)")
+    on_error_argument(b, "fit")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.set_defaults(func=_cmd_batch)
 
@@ -651,6 +663,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="--verify: twins of different noise seeds per row and sign "
                             "(default 2: their spread says where one twin cannot judge a "
                             "claim; 1: one twin, no spread)")
+        on_error_argument(d, "diagnose")
         d.add_argument("--noise", choices=["estimate", "stated"], default="estimate",
                        help="estimate (default): measure the stars' sigma and the IMU noise "
                             "scales first and test every effect with them; stated: use the "
@@ -729,12 +742,9 @@ def _hint(args: argparse.Namespace, exc: StellarCalError) -> str:
     if not damaged or bag is None:
         return ""
     if getattr(args, "on_error", None) == "raise":
-        return (f" (`--on-error skip` calibrates on what the bag holds, counting what is "
-                f"lost; `stellar-cal info {bag}` lists the damage)")
-    # diagnose, discover, twin, batch: no --on-error, the damage ends the command
-    return (f" ({args.command} reads the whole bag and stops at damage; `stellar-cal info "
-            f"{bag}` lists it, `stellar-cal replay --on-error skip` calibrates on what the "
-            "bag holds)")
+        return (f" (`--on-error skip` reads on past it, counting what is lost; "
+                f"`stellar-cal info {bag}` lists the damage)")
+    return f" (`stellar-cal info {bag}` lists the damage)"
 
 
 def check_output(path: Path, directory: bool) -> None:
@@ -806,10 +816,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             from stellar_cal_ros.core.memory import return_freed_arrays
 
             return_freed_arrays()
+        from stellar_cal_ros.progress import compile_notice_armed
+
+        # a kernel compiled where the check ahead did not see it coming: said as it compiles
+        compile_notice_armed(sys.stderr)
         if args.command in COMPILES:
             from stellar_cal_ros.methods.frame_step import compile_notice
 
-            compile_notice()
+            if compile_notice():
+                compile_notice_armed(None)  # (said once)
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning(args.command)
             code = int(args.func(args) or 0)
@@ -832,6 +847,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     finally:
         set_provenance()  # this command's record ends with it (a caller may run another)
+        from stellar_cal_ros.progress import compile_notice_armed
+
+        compile_notice_armed(None)
 
 
 if __name__ == "__main__":  # pragma: no cover

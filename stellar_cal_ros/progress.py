@@ -35,7 +35,33 @@ import sys
 import time
 from typing import TextIO
 
-__all__ = ["Progress", "format_seconds", "progress"]
+__all__ = ["COMPILE_NOTICE", "Progress", "compile_notice_armed", "first_compile",
+           "format_seconds", "progress"]
+
+#: the line a command prints before its first run here compiles the numba kernels
+COMPILE_NOTICE = ("first run here: compiling the filter's numba kernels (about a minute, "
+                  "once; cached for later runs and checkouts: python -m "
+                  "stellar_cal_ros.diagnosis.warm_up compiles them ahead)")
+#: where :func:`first_compile` says :data:`COMPILE_NOTICE` (None: nowhere, or said)
+_COMPILE_STREAM: list[TextIO | None] = [None]
+
+
+def compile_notice_armed(stream: TextIO | None) -> None:
+    """Say :data:`COMPILE_NOTICE` on ``stream`` at this process's first kernel compile.
+
+    The command line arms it for every command (None disarms: the notice was said ahead).
+    The check ahead (:func:`~stellar_cal_ros.methods.frame_step.compile_notice`) judges
+    the kernels a run here used; a kernel no run has used yet (another command's, another
+    method's) compiles at its first call: said then, once.
+    """
+    _COMPILE_STREAM[0] = stream
+
+
+def first_compile() -> None:
+    """A package kernel is compiled (not in the cache): say so once when armed."""
+    stream, _COMPILE_STREAM[0] = _COMPILE_STREAM[0], None
+    if stream is not None:
+        print(COMPILE_NOTICE, file=stream, flush=True)
 
 
 def format_seconds(s: float) -> str:

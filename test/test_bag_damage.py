@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import re
 import struct
 import subprocess
@@ -11,7 +13,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from bag_checks import IMU_FIELDS, assert_same, join_stream, read_all, simulated_bag
+from bag_checks import (
+    IMU_FIELDS,
+    SCALARS,
+    assert_same,
+    join_stream,
+    read_all,
+    simulated_bag,
+)
 
 from stellar_cal_ros.cli import main
 from stellar_cal_ros.errors import BagError
@@ -184,3 +193,120 @@ def test_info_checks_the_data_section_crc(healthy: Path, tmp_path: Path, capsys)
     assert rc == 1 and len(damaged) == 1 and "data section CRC mismatch" in damaged[0]
     with BagReader(path) as r:  # the damaged index is not trusted, the records are walked
         np.testing.assert_array_equal(r.read_imu().stamp_ns, imu.stamp_ns)
+
+
+# ------------------------------------------------ diagnose / discover / batch / twin, skip
+QUICK = ["--workers", "0", "--no-plots", "--noise", "stated", "--candidates",
+         "time_offset,radial_k3"]
+#: what a diagnosis decides (its terminal lines aside): the same from the same data
+DECISIONS = ("recommendation", "candidates", "unexplained", "clock_change",
+             "installation_step", "remainder")
+
+
+def _cli(*argv: str) -> subprocess.CompletedProcess:
+    proc = subprocess.run([sys.executable, "-m", "stellar_cal_ros", *argv], capture_output=True,
+                          text=True, timeout=900, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def _diagnosis(prior: Path, bag: Path, out: Path, *extra: str) -> tuple[dict, str]:
+    proc = _cli("diagnose", str(bag), "--calibration", str(prior), "--method", "psce",
+                "-o", str(out), *QUICK, *extra)
+    return json.loads((out / "diagnosis.json").read_text()), proc.stdout
+
+
+def _before(series, end: int):
+    """The messages of ``series`` logged at or before ``end`` (ns)."""
+    keep = np.asarray(series.log_time_ns) <= end
+    arrays = {f.name: v[keep] for f in dataclasses.fields(series)
+              if isinstance(v := getattr(series, f.name), np.ndarray) and v.shape[:1] == keep.shape}
+    return dataclasses.replace(series, **arrays)
+
+
+def _decisions(d: dict) -> dict:
+    return {k: d.get(k) for k in DECISIONS}
+
+
+def test_diagnose_on_error_skip_reads_past_a_hole_and_says_so(healthy: Path,
+                                                              tmp_path: Path) -> None:
+    """diagnose stopped at damage (no --on-error).  With skip it diagnoses what the bag holds,
+    records the loss in diagnosis.json (bag_losses, first data_quality line) and prints it in
+    one line; the hole (about 18 s of IMU and frames, mid-bag) is a gap, not data: no test
+    fires on it, the decisions are the healthy bag's (nothing missing, no clock change, no
+    attitude step)."""
+    bag, a, b = _zeroed(healthy, tmp_path / "sim_hole.mcap")
+    prior = healthy.parent / "sim.prior.yaml"
+    proc = subprocess.run([sys.executable, "-m", "stellar_cal_ros", "diagnose", str(bag),
+                           "--calibration", str(prior), "--method", "psce", "-o",
+                           str(tmp_path / "strict"), *QUICK],
+                          capture_output=True, text=True, timeout=900, cwd=ROOT)
+    assert proc.returncode == 1 and "--on-error skip" in proc.stderr.splitlines()[-1]
+    hole, text = _diagnosis(prior, bag, tmp_path / "hole", "--on-error", "skip")
+    whole, _ = _diagnosis(prior, healthy, tmp_path / "whole")
+    lost = _lost_chunks(healthy, a, b)
+    gone = _gone(read_all(BagReader(healthy))["imu"].log_time_ns, lost)
+    bl = hole["bag_losses"]
+    assert bl["bag_parts_lost"] == len(bl["parts_lost"]) >= len(lost) and \
+        bl["messages_skipped"] == 0, bl
+    assert bl["messages_read"]["imu"] == int((~gone).sum()), bl
+    assert hole["data_quality"][0].startswith(f"{bl['bag_parts_lost']} damaged or truncated")
+    said = [ln for ln in text.splitlines() if "damaged or truncated parts" in ln]
+    assert len(said) == 1 and said[0].startswith("data quality first: "), text
+    assert "bag_losses" not in whole  # a whole bag's diagnosis: no such key
+    assert _decisions(hole)["recommendation"] == _decisions(whole)["recommendation"]
+    for d in (hole, whole):
+        assert not d["unexplained"], d["unexplained"]
+        assert not [c for c in d["candidates"] if c["significant"]]
+    assert hole["clock_change"] is None or not hole["clock_change"].get("significant"), \
+        hole["clock_change"]
+    assert hole["installation_step"] is None or not hole["installation_step"].get(
+        "significant"), hole["installation_step"]
+
+
+def test_diagnose_of_a_bag_cut_at_half_is_that_of_its_first_half(healthy: Path,
+                                                                   tmp_path: Path) -> None:
+    """A recording cut at half (power lost: no summary, no footer) read with skip is the
+    first half of the bag: its diagnosis decides (and computes) what the diagnosis of a bag
+    of that first half alone does."""
+    with BagReader(healthy) as r:
+        chunks = sorted(r._src.summary.chunk_indexes, key=lambda c: c.offset)
+    cut_chunk = chunks[len(chunks) // 2]
+    raw = healthy.read_bytes()
+    cut = tmp_path / "sim_cut.mcap"
+    cut.write_bytes(raw[:cut_chunk.offset])
+    content = read_all(BagReader(healthy))
+    end = max(c.end for c in chunks[:len(chunks) // 2])
+    first = tmp_path / "sim_first.mcap"
+    with BagWriter(first, chunk_size=128 * 1024) as w:
+        w.write_imu(_before(content["imu"], end))
+        w.write_star_frames([f for f in content["stars"] if f.log_time_ns <= end])
+        w.write_navsat(_before(content["fix"], end))
+        for role, topic in SCALARS.items():
+            w.write_scalar(_before(content[role], end), topic,
+                           kind="pressure" if role == "pressure" else "temperature")
+    prior = healthy.parent / "sim.prior.yaml"
+    halved, _ = _diagnosis(prior, cut, tmp_path / "cut", "--on-error", "skip")
+    alone, _ = _diagnosis(prior, first, tmp_path / "first")
+    assert halved["bag_losses"]["bag_parts_lost"] == 1 and "bag_losses" not in alone
+    assert halved["bag_losses"]["seconds_read"] == pytest.approx(
+        (content["imu"].stamp_ns[content["imu"].log_time_ns <= end][-1]
+         - content["imu"].stamp_ns[0]) * 1e-9)
+    assert _decisions(halved) == _decisions(alone)
+    assert halved["counts"] == alone["counts"]
+    assert halved["residual_rms_px"] == alone["residual_rms_px"]
+
+
+def test_twin_on_error_skip_renders_what_the_bag_holds_and_says_what_was_lost(
+        healthy: Path, tmp_path: Path) -> None:
+    """twin stopped at damage (no --on-error); with skip it re-renders the messages read
+    (the IMU of the chunks kept, exactly) and says in one line what was lost."""
+    bag, a, b = _zeroed(healthy, tmp_path / "z.mcap")
+    prior = healthy.parent / "sim.prior.yaml"
+    proc = _cli("twin", str(bag), "--calibration", str(prior), "-o", str(tmp_path / "t.mcap"),
+                "--on-error", "skip")
+    gone = _gone(read_all(BagReader(healthy))["imu"].log_time_ns, _lost_chunks(healthy, a, b))
+    assert f", {int((~gone).sum())} IMU samples" in proc.stdout, proc.stdout
+    said = [ln for ln in proc.stdout.splitlines() if "damaged or truncated parts" in ln]
+    assert len(said) == 1 and said[0].startswith("data quality: "), proc.stdout
+    assert len(read_all(BagReader(tmp_path / "t.mcap"))["imu"]) == int((~gone).sum())

@@ -233,9 +233,25 @@ def test_diagnose_of_a_truncated_bag_says_what_can_be_done_in_one_line(runs, tmp
     assert "reading goes on" not in err, err
     line = _one_error_line(err, "diagnose")
     assert "truncated or corrupt bag" in line, line
-    assert line.endswith(f"(diagnose reads the whole bag and stops at damage; `stellar-cal info "
-                         f"{bag}` lists it, `stellar-cal replay --on-error skip` calibrates on "
-                         "what the bag holds)"), line
+    assert line.endswith(f"(`--on-error skip` reads on past it, counting what is lost; "
+                         f"`stellar-cal info {bag}` lists the damage)"), line
+
+
+def test_diagnose_refuses_a_bag_without_imu_from_its_summary(runs, tmp_path, capsys):
+    """A filter method on a bag without IMU: refused from the bag's summary before any run,
+    naming what runs without it.  main refused only once the noise and the current model's
+    runs had failed on it (7-17 s under load), saying nothing of what could run."""
+    bag = _convert(runs["bag_a"], tmp_path / "no_imu.mcap", "mcap", exclude=["/imu/data"])
+    for command in ("diagnose", "discover"):
+        assert main([command, str(bag), "--calibration", str(runs["run_a"]), "--method", "psce",
+                     "-o", str(tmp_path / command), "--workers", "0", "--no-plots"]) == 1
+        out, err = capsys.readouterr()
+        assert "re-runs" not in out and "screen" not in out, out  # nothing ran
+        line = _one_error_line(err, command)
+        assert line == (f"stellar-cal {command}: error: {bag}: psce needs IMU samples on "
+                        "/imu/data, which the bag does not have; without it `--method bundle` "
+                        "runs on the star frames alone (from `stellar-cal batch --method "
+                        "bundle`'s result)"), line
 
 
 # ------------------------------------------------------------------ 4. misspelled prior keys
@@ -414,6 +430,46 @@ def test_the_compile_check_after_warm_up_finds_nothing_to_compile(tmp_path):
     warm = step("warm")
     assert step("check") == [json.dumps([False, ["_table_text"], True])]
     assert warm == ["tables: kernel ready" + warm[-1].partition("ready")[2]], warm
+
+
+_MISS = """
+import sys
+import numpy as np
+from stellar_cal_ros.progress import compile_notice_armed
+compile_notice_armed(sys.stdout)
+from stellar_cal_ros.core.jit import mat3_mul, skew3
+mat3_mul(np.eye(3), np.eye(3))
+skew3(np.ones(3))
+print("done")
+"""
+
+
+def test_a_kernel_the_check_ahead_does_not_judge_is_said_as_it_compiles(tmp_path):
+    """The check ahead judges the kernels a run here used (the kernels-used markers): a kernel
+    of another command or method compiled without a word (fresh cache: replay psce, then a
+    first replay of swaying_base or batch acf compiled their own kernels silently).  Armed
+    (every CLI command), the first cache miss says the notice, once per process; a warm
+    cache says nothing."""
+    import os
+    import subprocess
+    import sys
+
+    from stellar_cal_ros.core import jit
+    from stellar_cal_ros.progress import COMPILE_NOTICE
+
+    if not jit.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env[jit.KERNEL_CACHE_ENV] = str(tmp_path)
+
+    def step():
+        out = subprocess.run([sys.executable, "-c", _MISS], capture_output=True, text=True,
+                             env=env, timeout=600)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return out.stdout.splitlines()
+
+    assert step() == [COMPILE_NOTICE, "done"]  # two kernels compiled: said once
+    assert step() == ["done"]  # loaded from the cache
 
 
 def test_the_compile_check_looks_at_every_kernel_module():

@@ -173,6 +173,14 @@ else:
     class _KernelCache(_caching.FunctionCache):
         _impl_class = _KernelCacheImpl
 
+        def load_overload(self, sig, target_context):  # noqa: D102 - numba's; a miss said
+            cres = super().load_overload(sig, target_context)
+            if cres is None:  # numba compiles it now (progress.first_compile: said once)
+                from stellar_cal_ros.progress import first_compile
+
+                first_compile()
+            return cres
+
     def njit(*args, **kwargs):
         """The ``njit`` of numba; ``cache=True``: the code kept in the kernel cache (module doc)."""
         if not kwargs.pop("cache", False):

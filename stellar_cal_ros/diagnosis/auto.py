@@ -341,7 +341,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
     ``final_estimates``, ``rejected`` and ``reliability``), ``calibration.yaml`` (the final
     model's calibration) and the report to ``output_dir``; returns the summary.
     ``options``: ``candidates``, ``evaluation_fraction``, ``plots``, ``verbose``,
-    ``workers``, ``scheduler``, ``noise``, ``noise_scales`` as for
+    ``workers``, ``scheduler``, ``noise``, ``noise_scales``, ``on_error`` as for
     :func:`~stellar_cal_ros.diagnosis.run.diagnose`.
     """
     candidates = options.get("candidates")
@@ -362,7 +362,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
     local = True
     estimate = check_noise(options.get("noise", "estimate"))
     with open_runner(bag, spec, evaluation_fraction, options.get("workers", 0),
-                     options.get("scheduler")) as runs:
+                     options.get("scheduler"), options.get("on_error", "raise")) as runs:
         runs.noise = options.get("noise_scales") or stated_scales(calibration)
         uncertain = prior_uncertain(calibration, set(spec.baseline) | set(user))
         r = Round(runs, spec, runs.facts(), evaluation_fraction, calibration,

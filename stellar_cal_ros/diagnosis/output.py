@@ -128,6 +128,12 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     for i, u in enumerate(summary["unexplained"]):
         if i in follows:
             u["follows"] = follows[i]
+    losses = getattr(runs, "losses", None)
+    if losses:  # a bag read past damage (``--on-error skip``): said first, and recorded
+        from stellar_cal_ros.methods.results import data_quality
+
+        summary["bag_losses"] = runs.bag.losses_record()
+        summary["data_quality"] = data_quality(losses, 0) + summary["data_quality"]
     # (not measured: the scales the runs used, ``--noise-scale``'s or the calibration's run's)
     summary["clock_change"] = clock_entry
     summary["installation_step"] = step_entry

@@ -355,6 +355,8 @@ class Runs:
 
     def __init__(self, bag: BagRef, spec, fraction: float) -> None:
         self.bag = str(Path(bag).resolve()) if isinstance(bag, (str, Path)) else bag
+        #: what reading the bag passed over (``on_error="skip"``, :meth:`BagReader.losses`)
+        self.losses: dict[str, Any] = dict(getattr(bag, "losses", None) or {})
         self.spec = spec
         self.fraction = fraction
         self.classes = user_effect_classes()
@@ -790,13 +792,17 @@ class _Soon:
 
 @contextlib.contextmanager
 def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
-                scheduler: str | None = None) -> Iterator[Runs]:
+                scheduler: str | None = None, on_error: str = "raise") -> Iterator[Runs]:
     """A :class:`Runs` for ``bag``: in process (``workers`` 0 or 1), local Dask or a scheduler.
 
     ``workers=None`` means automatic: in this process, and one worker process per core
     (at most :data:`MAX_DEFAULT_WORKERS`) from the first batch of runs that pays for them
     (:data:`CLUSTER_PAYS_S`; in this process on a machine of at most
-    :data:`IN_PROCESS_CORES` cores).
+    :data:`IN_PROCESS_CORES` cores).  A bag without the inputs the method needs (star
+    frames, the IMU of a filter) is refused from its summary, before any run.
+    ``on_error="skip"``: a damaged bag is read here past its damage
+    (:func:`~stellar_cal_ros.methods.frames.read_bag_data`, the reader's skip mode) and
+    the runs use what it holds; :attr:`Runs.losses` says what was lost.
     """
     lazy = workers is None and not scheduler
     if workers is None:
@@ -808,14 +814,15 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
 
             raise BagError(f"{bag}: no such bag (a .mcap or ROS 1 .bag file, or a rosbag2 "
                            "directory)")
-        from stellar_cal_ros.methods.frames import reads_star_images
+        from stellar_cal_ros.methods.frames import method_reads_images
 
-        # a rosbag2 directory, or star images (extracted once, not in every worker): read
-        # once here, sent to the runs as data
-        if Path(bag).is_dir() or reads_star_images(bag):
+        images = method_reads_images(bag, getattr(spec, "name", ""))
+        # a rosbag2 directory, star images (extracted once, not in every worker) or a bag
+        # read past damage: read once here, sent to the runs as data
+        if Path(bag).is_dir() or images or on_error == "skip":
             from stellar_cal_ros.methods.replay import read_bag_data
 
-            bag = read_bag_data(bag, require_imu=False)
+            bag = read_bag_data(bag, require_imu=False, on_error=on_error)
     runs = (DaskRuns(bag, spec, fraction, workers, scheduler, lazy) if scheduler or workers > 1
             else Runs(bag, spec, fraction))
     try:

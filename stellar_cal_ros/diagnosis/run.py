@@ -46,6 +46,7 @@ def diagnose(
     verify_signs: tuple[int, ...] = (1, -1),
     verify_twins: int | None = None,
     noise_scales: NoiseScales | None = None,
+    on_error: str = "raise",
 ) -> dict[str, Any]:
     """Run one diagnosis round; write ``diagnosis.json`` and ``report.html``; return the summary.
 
@@ -61,7 +62,9 @@ def diagnose(
     biases on twins of the bag (:mod:`~stellar_cal_ros.diagnosis.verify`), each row at
     ``verify_signs`` x its MDB on ``verify_twins`` twins of seeds ``verify_seed``, ... .
     ``noise_scales``: the noise the runs start from (``--noise-scale``) instead of the
-    calibration's run's (its consistency block).
+    calibration's run's (its consistency block).  ``on_error``: ``skip`` diagnoses a
+    damaged bag on what it holds (read once, past the damage; ``diagnosis.json``'s
+    ``bag_losses`` and first ``data_quality`` line say what was lost).
     """
     if auto:
         return discover(bag, calibration, method, effects, output_dir, max_rounds,
@@ -69,12 +72,12 @@ def diagnose(
                         plots=plots, verbose=verbose, workers=workers, scheduler=scheduler,
                         noise=noise, verify=verify, verify_seed=verify_seed,
                         verify_signs=verify_signs, verify_twins=verify_twins,
-                        noise_scales=noise_scales)
+                        noise_scales=noise_scales, on_error=on_error)
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
     spec = method_spec(method)
     tell = progress_printer(verbose)
-    with open_runner(bag, spec, evaluation_fraction, workers, scheduler) as runs:
+    with open_runner(bag, spec, evaluation_fraction, workers, scheduler, on_error) as runs:
         tell(f"re-runs {runs.description}")
         runs.noise = noise_scales or stated_scales(calibration)
         tail = _Tail(runs)

@@ -26,6 +26,9 @@ def add_twin_parser(sub) -> None:
     t.add_argument("--seed", type=int, default=0, help="noise seed (same seed: paired twins)")
     t.add_argument("--effect-module", type=Path, action="append",
                    help="Python file defining extra Effect classes (repeatable)")
+    from stellar_cal_ros.io.reader import on_error_argument
+
+    on_error_argument(t, "re-render")
     t.set_defaults(func=_cmd_twin)
 
 
@@ -62,7 +65,7 @@ def _cmd_twin(args: argparse.Namespace) -> int:
         registry.load_effect_module(path)
     effects = parse_effect_arguments(args.effect or [])
     cal = load_calibration(args.calibration)
-    data = read_bag_data(args.bag)
+    data = read_bag_data(args.bag, on_error=args.on_error)
     twin = make_twin(data, cal, effects, args.seed, args.method)
     paths = write_twin(twin, args.output)
     print(f"twin of {args.bag}: {len(twin.data.frames)} star frames "
@@ -72,6 +75,11 @@ def _cmd_twin(args: argparse.Namespace) -> int:
     print("noise: " + noise_line(twin.noise))
     print("injected: " + (", ".join(f"{k}={','.join(f'{x:g}' for x in v)}"
                                      for k, v in effects.items()) or "nothing"))
+    from stellar_cal_ros.methods.results import loss_line
+
+    lost = loss_line(data.losses_record())
+    if lost:  # the twin re-renders what was read: its gaps are the bag's
+        print(lost)
     for key in ("bag", "truth", "prior"):
         print(f"  {key:5s} {paths[key]}")
     return 0

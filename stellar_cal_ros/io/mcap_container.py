@@ -58,6 +58,8 @@ from stellar_cal_ros.io.mcap_records import (
 )
 
 _log = logging.getLogger(__name__)
+#: the files whose missing footer was said (the commands open a bag more than once)
+_NO_FOOTER_SAID: set[str] = set()
 
 
 class McapFile:
@@ -145,7 +147,9 @@ class McapFile:
             return None
         tail = self._read(self.size - FOOTER_LEN, FOOTER_LEN)
         if tail[-len(MAGIC) :] != MAGIC or tail[0] != OP_FOOTER:
-            _log.info("%s: no footer (truncated or still being written)", self.path)
+            if str(self.path) not in _NO_FOOTER_SAID:  # once a process (each open asked)
+                _NO_FOOTER_SAID.add(str(self.path))
+                _log.info("%s: no footer (truncated or still being written)", self.path)
             return None
         _, length, summary_start, summary_offset_start, crc = struct.unpack_from("<BQQQI", tail, 0)
         if length != 20 or summary_start == 0:

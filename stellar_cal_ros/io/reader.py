@@ -271,6 +271,22 @@ class BagReader:
         lo, hi = self._time_bounds()
         return 0.0 if lo is None or hi is None else (hi - lo) * 1e-9
 
+    def losses(self, start_ns: int | None = None) -> dict[str, Any]:
+        """What the reads so far passed over (skip mode; empty: nothing was lost).
+
+        The one record of a read past damage that every command writes (a result file's,
+        a diagnosis's ``data_quality`` block, doc/interfaces.md §3): ``bag_parts_lost``
+        (damaged or truncated parts read past), ``messages_skipped`` (malformed messages
+        dropped) and ``parts_lost``, each part's one line (where, the log time lost after
+        ``start_ns`` when known, the topics).
+        """
+        skipped = int(sum(self.skipped.values()))
+        lost = len(self.problems) or int(self.truncated)
+        if not skipped and not lost:
+            return {}
+        return {"bag_parts_lost": int(lost), "messages_skipped": skipped,
+                "parts_lost": [p.describe(start_ns) for p in self.problems]}
+
     def check(self) -> list[BagProblem]:
         """Validate the whole bag (every chunk's decompression and CRC, data CRC).
 
@@ -792,3 +808,11 @@ class BagReader:
                     return found
         raise BagError(f"topic {topic!r} not in {self.path}")
 
+
+def on_error_argument(p: Any, what: str) -> None:
+    """``--on-error``: the bag reader's skip mode (replay, batch, diagnose, discover, twin)."""
+    p.add_argument("--on-error", choices=["raise", "skip"], default="raise",
+                   help=f"skip: {what} a truncated or damaged bag on what it holds, dropping "
+                        "and counting malformed messages; what was lost is printed in one "
+                        "line and recorded (data_quality, doc/interfaces.md) (default: stop "
+                        "with an error)")

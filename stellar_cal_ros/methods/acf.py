@@ -102,7 +102,7 @@ from stellar_cal_ros.methods.acf_robust import (
     _used,
     beyond_gate,
 )
-from stellar_cal_ros.methods.frames import star_masks, star_sigma
+from stellar_cal_ros.methods.frames import losses_record, star_masks, star_sigma
 from stellar_cal_ros.methods.init_from import prior_from_result  # noqa: F401 (re-exported)
 from stellar_cal_ros.methods.registry import STAGES_WITHOUT_ACCEL, BatchOutput, MethodSpec
 from stellar_cal_ros.methods.star_model import StarModel
@@ -415,6 +415,7 @@ def run_acf(
     star_topic: str = "/star_tracker/stars",
     imu_topic: str = "/imu/data",
     progress: Callable[[str], None] | None = None,
+    on_error: str = "raise",
 ) -> AcfResult:
     """Calibrate the star tracker (and its installation) from attitude-correlated frames.
 
@@ -469,6 +470,9 @@ def run_acf(
         Topics when reading a bag.
     progress : callable, optional
         Called with the name of each of the :data:`ACF_STAGES` stages as it ends.
+    on_error : {'raise', 'skip'}
+        Reading a bag: ``skip`` reads past damage (:func:`load_acf_data`); the result's
+        ``data_quality`` records what was lost.
 
     Returns
     -------
@@ -485,8 +489,8 @@ def run_acf(
         Missing topics, too few frames or stars, or a failed fit.
     """
     tell = progress or (lambda stage: None)
-    data = source if isinstance(source, AcfData) else load_acf_data(source, star_topic,
-                                                                      imu_topic)
+    data = source if isinstance(source, AcfData) else load_acf_data(
+        source, star_topic, imu_topic, on_error=on_error)
     ident = None
     if any(needs_identification(f) for f in data.frames):  # unidentified centroids
         data.frames, ident = identify_frames(
@@ -600,7 +604,9 @@ def run_acf(
     degraded = report_quality(data, chain.span, n_stars, len(idx), outlier_probability)
     cal.extra = dict(cal.extra)
     cal.extra["data_quality"] = {**quality.counts(), "degraded": bool(degraded),
-                                 "reasons": degraded}
+                                 "reasons": degraded,  # (and what a read past damage lost)
+                                 **losses_record(data.losses, data.imu.stamp_ns,
+                                                 len(data.imu), data.frames)}
     if ident is not None:  # the result says how its stars were identified
         cal.extra["identification"] = ident.as_dict()
     derived = {}
@@ -757,6 +763,7 @@ def batch(bag: str | os.PathLike[str], prior: Calibration, effects: Sequence[str
           options: dict[str, Any], progress: Callable[[str], None] | None) -> BatchOutput:
     """``stellar-cal batch --method acf``: :func:`run_acf` with the command's options."""
     res = run_acf(bag, prior, parse_effects(effects), loss=options.get("loss", "linear"),
+                  on_error=options.get("on_error", "raise"),
                   outlier_probability=options.get("outlier_probability", OUTLIER_PROBABILITY),
                   progress=progress)
     return BatchOutput(res.calibration, (res.parameter_names[3:], res.covariance[3:, 3:]),

@@ -116,6 +116,8 @@ class AcfData:
     site: Site | None = None
     scalars: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     quality: DataQuality = field(default_factory=DataQuality)
+    #: what a read with ``on_error="skip"`` passed over (:meth:`BagReader.losses`)
+    losses: dict = field(default_factory=dict)
     _gyro: GyroSamples | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -268,8 +270,12 @@ def load_acf_data(
     star_topic: str = "/star_tracker/stars",
     imu_topic: str = "/imu/data",
     gnss_topic: str = "/gnss/fix",
+    on_error: str = "raise",
 ) -> AcfData:
     """Read what the ACF method needs from a contract bag.
+
+    ``on_error="skip"``: a damaged bag is read past its damage (the reader's skip mode);
+    :attr:`AcfData.losses` says what was lost.
 
     Raises
     ------
@@ -279,7 +285,7 @@ def load_acf_data(
     env = {"head_temperature_c": "head", "air_temperature_c": "air", "pressure_pa": "pressure"}
     names = dict(TOPICS, stars=star_topic, imu=imu_topic, fix=gnss_topic)
     try:
-        with BagReader(bag_path) as reader:
+        with BagReader(bag_path, on_error=on_error) as reader:
             topics = reader.topics()
             if star_input(topics, names, str(bag_path)) is None:
                 raise StellarCalError(
@@ -303,6 +309,7 @@ def load_acf_data(
             scalars = {key: (np.asarray(s.stamp_ns), np.asarray(s.value))
                        for key, role in env.items()
                        if (s := whole.get(role)) is not None and len(s)}
+            losses = reader.losses(reader.start_ns)
     except FileNotFoundError as exc:
         raise BagError(f"cannot open bag {bag_path}: {exc}") from None
     if len(imu) < 2:
@@ -311,7 +318,7 @@ def load_acf_data(
     if not frames:
         raise StellarCalError(f"{bag_path}: {star_topic} holds no star frames")
     t0 = int(imu.stamp_ns[0])
-    data = AcfData(frames=frames, imu=imu, t0_ns=t0, site=site)
+    data = AcfData(frames=frames, imu=imu, t0_ns=t0, site=site, losses=losses)
     data.scalars = {k: (data.rel(st), v) for k, (st, v) in scalars.items()}
     return data
 

@@ -61,8 +61,9 @@ log = logging.getLogger(__name__)
 
 
 # ============================================================================ a bag
-def _bag_data(source: Any) -> BagData:
-    return source if isinstance(source, BagData) else read_bag_data(source, require_imu=False)
+def _bag_data(source: Any, on_error: str = "raise") -> BagData:
+    return source if isinstance(source, BagData) else read_bag_data(
+        source, require_imu=False, on_error=on_error)
 
 
 def identify(data: BagData, prior: Calibration) -> dict[str, float]:
@@ -184,7 +185,8 @@ def run_bundle(
     cal.extra = dict(cal.extra)
     cal.extra["data_quality"] = {**{k: v for k, v in counts.as_dict().items() if v},
                                  "degraded": bool(result.degraded),
-                                 "reasons": list(result.degraded)}
+                                 "reasons": list(result.degraded),
+                                 **data.losses_record()}  # (a read past damage)
     if identified:
         cal.extra["identification"] = identified
     cal.extra["fit"] = {"frames": len(frames), "stars": int(inl.sum()),
@@ -334,7 +336,8 @@ def summary_lines(res: BundleResult) -> list[str]:
 def batch(bag: Any, prior: Calibration, effects: list[str], options: dict[str, Any],
           progress: Any) -> BatchOutput:
     """``stellar-cal batch --method bundle``: :func:`run_bundle` with the command's options."""
-    res = run_bundle(bag, prior, effects, loss=options.get("loss", "linear"),
+    res = run_bundle(_bag_data(bag, options.get("on_error", "raise")), prior, effects,
+                     loss=options.get("loss", "linear"),
                      outlier_probability=options.get("outlier_probability"),
                      progress=progress)
     return BatchOutput(res.calibration, (res.parameter_names, res.covariance), res.residuals,

@@ -1437,7 +1437,7 @@ def compile_notice(stream: TextIO | None = None) -> bool:
     """Say (one line) that the first run compiles the filter kernels, when it will."""
     if not compiled_kernels_cold():
         return False
-    print("first run here: compiling the filter's numba kernels (about a minute, once; cached for "
-          "later runs and checkouts: python -m stellar_cal_ros.diagnosis.warm_up compiles them "
-          "ahead)", file=stream or sys.stderr, flush=True)
+    from stellar_cal_ros.progress import COMPILE_NOTICE
+
+    print(COMPILE_NOTICE, file=stream or sys.stderr, flush=True)
     return True

@@ -407,12 +407,46 @@ def read_inputs(reader: BagReader, names: Mapping[str, str], roles: list[str],
     return series, frames, images
 
 
-def reads_star_images(path: str | Path) -> bool:
-    """True when a bag's star frames come from its images (no star centroids in it)."""
+def reads_star_images(path: str | Path, imu_for: str = "") -> bool:
+    """True when a bag's star frames come from its images (no star centroids in it).
+
+    Read from the bag's summary (its topics), before any message.  ``imu_for``: the
+    method that needs the IMU (the commands that re-run it, ``diagnose``, ``discover``);
+    a bag without star frames, or without IMU then, raises :class:`BagError` at once,
+    naming the methods that run without the IMU (measured: the diagnosis of a bag
+    without IMU refused after 7-17 s of noise and candidate runs).
+    """
     with warnings.catch_warnings(), BagReader(path, on_error="skip") as reader:
         warnings.simplefilter("ignore")  # damage is the reading command's to report
         available = reader.topics()
-        return star_input(available, TOPICS, str(path)) == "image"
+        role = star_input(available, TOPICS, str(path))
+    if imu_for and role is None:
+        raise BagError(missing_stars_text(str(path), TOPICS, available))
+    info = available.get(TOPICS["imu"])
+    if imu_for and (info is None or not info.message_count):
+        from stellar_cal_ros.methods import registry
+
+        other = [n for n in registry.names(diagnosable=True)
+                 if not needs_imu(registry.find(n))]
+        instead = (f"; without it `--method {other[0]}` runs on the star frames alone "
+                   f"(from `stellar-cal batch --method {other[0]}`'s result)") if other else ""
+        raise BagError(f"{path}: {imu_for} needs IMU samples on {TOPICS['imu']}, which the "
+                       f"bag {'does not have' if info is None else 'holds none of'}{instead}")
+    return role == "image"
+
+
+def method_reads_images(path: str | Path, method: str) -> bool:
+    """:func:`reads_star_images`, refusing a bag without the IMU ``method`` needs."""
+    from stellar_cal_ros.methods import registry
+
+    return reads_star_images(path, imu_for=method if needs_imu(registry.find(method)) else "")
+
+
+def needs_imu(spec) -> bool:
+    """Whether a method (its registered spec) reads the IMU: a filter, a fit with the gyro."""
+    from stellar_cal_ros.effects.base import Stage
+
+    return spec is not None and (spec.kind == "filter" or Stage.GYRO in spec.stages)
 
 
 def star_images_text(reader: BagReader, available: Mapping[str, TopicInfo],
@@ -653,6 +687,9 @@ class BagData:
     nominal_dt: float = 0.0
     source: str = ""  #: path of the bag (empty for data made in memory)
     images_bad: int = 0  #: star images skipped as unusable (a bag of images; ImageFrames)
+    #: what a read with ``on_error="skip"`` passed over (:meth:`BagReader.losses`; empty:
+    #: nothing, or data not read from a bag)
+    losses: dict = field(default_factory=dict)
     #: what runs over this data compute from it alone and share (the direction effects'
     #: tables, :meth:`~stellar_cal_ros.methods.star_model.StarModel.prepare_frames`), under
     #: a key of the fields it was made from (:meth:`prepared_for`); not a constructor
@@ -669,6 +706,15 @@ class BagData:
     def __getstate__(self) -> dict:
         """Pickled (a Dask scatter, a copy) without :attr:`prepared`: made again there."""
         return {**self.__dict__, "prepared": {}}
+
+    def losses_record(self) -> dict[str, Any]:
+        """:attr:`losses` with what was read (a diagnosis's ``bag_losses``; empty: none).
+
+        The result file's ``data_quality`` keys (doc/interfaces.md §3): ``seconds_read``
+        (the IMU's span, the star frames' without IMU) and ``messages_read`` per kind.
+        """
+        return losses_record(self.losses, self.imu_stamp_ns, len(self.imu_t) + self.imu_dropped,
+                             self.frames)
 
     @property
     def t0(self) -> float:
@@ -752,6 +798,7 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
         # testable with this motion" (MDB inf; unseen case focal_drift)
         scalars = {key: (s if (s := whole.get(key)) is not None and len(s) else None)
                    for key in ENV_KEYS}
+        losses = reader.losses(reader.start_ns)
     if imu is None:
         if not frames:
             raise BagError(f"{path}: {names['stars']} holds no star frames")
@@ -768,7 +815,24 @@ def read_bag_data(path: str | Path, topics: dict[str, str] | None = None,
         site=site, head_temperature=scalars["head"], air_temperature=scalars["air"],
         pressure=scalars["pressure"], read_seconds=time.perf_counter() - t_start,
         imu_dropped=dropped, nominal_dt=nominal_dt, source=str(path),
-        images_bad=images.bad if images is not None else 0)
+        images_bad=images.bad if images is not None else 0, losses=losses)
+
+
+def losses_record(losses: dict, imu_stamp_ns, imu_read: int, frames) -> dict[str, Any]:
+    """``losses`` (:meth:`BagReader.losses`) with what was read; {} when nothing was lost.
+
+    A whole-bag read's record (the batch fits', the diagnosis's): the result file's
+    ``data_quality`` keys (doc/interfaces.md §3), ``seconds_read`` (the IMU's span, the
+    star frames' without IMU) and ``messages_read`` per kind.
+    """
+    if not losses:
+        return {}
+    stamps = np.asarray(imu_stamp_ns) if len(imu_stamp_ns) else \
+        np.array([f.stamp_ns for f in frames], dtype=np.int64)
+    span = float(stamps.max() - stamps.min()) * 1e-9 if len(stamps) else 0.0
+    read = {"imu": imu_read, "frames": len(frames)}
+    return {**losses, "seconds_read": span,
+            "messages_read": {k: int(v) for k, v in read.items() if v}}
 
 
 def bag_data_from_simulation(result: Any) -> BagData:

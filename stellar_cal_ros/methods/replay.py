@@ -606,29 +606,12 @@ def replay(bag: str | Path | BagData, prior: Calibration, method: str = "psce",
         t_filter += time.perf_counter() - t2
     finally:
         if reader is not None:
-            losses = _read_losses(reader, span)
+            losses = reader.losses(span[0])
             reader.close()
         cal.close()
         bar.close()
     cal.require_initialized()
     return _result(cal, t_read, t_filter, losses)
-
-
-def _read_losses(reader: BagReader, span: tuple[int | None, int | None]) -> dict[str, Any]:
-    """What a read of a bag with ``on_error="skip"`` passed over (empty: nothing).
-
-    The result file's record of it (its ``data_quality`` block, doc/interfaces.md §3): a
-    calibration made from part of a bag must not look like one from the whole bag.
-    ``bag_parts_lost`` (damaged or truncated parts read past) and ``messages_skipped``
-    (malformed messages dropped) are also replay's counters; ``parts_lost`` describes each
-    part (where, the log time lost after the bag's start when known, the topics).
-    """
-    skipped = int(sum(reader.skipped.values()))
-    lost = len(reader.problems) or int(reader.truncated)
-    if not skipped and not lost:
-        return {}
-    return {"bag_parts_lost": int(lost), "messages_skipped": skipped,
-            "parts_lost": [p.describe(span[0]) for p in reader.problems]}
 
 
 def _span_of_data(data: BagData) -> tuple[int | None, int | None]:

@@ -974,3 +974,12 @@ def truth_parameters(model: StarModel, truth: Calibration) -> np.ndarray:
             value, _ = copy.deepcopy(eff).initial(truth)  # a copy: initial() may keep state
             out[sl] = value
     return out
+
+
+def loss_line(record: dict) -> str:
+    """One line of what a read past damage lost (``--on-error skip``; '' when nothing)."""
+    if not record.get("bag_parts_lost") and not record.get("messages_skipped"):
+        return ""
+    read = record.get("seconds_read")
+    return quality_line(data_quality(record, 0) + (
+        [f"{read:.1f} s of data read"] if read is not None else []), lead="data quality")
