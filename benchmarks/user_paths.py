@@ -16,9 +16,9 @@ Inputs: the four reference bags of ``--data`` (default ``../shared/data`` beside
 checkout) with their ``.prior.yaml``, a rosbag2 sqlite3 directory and a ROS 1 ``.bag``
 converted from the acf sweep bag by ``rosbags`` (an independent writer), the real-sky JPEGs
 of ``--realsky``, and bad ones made in ``--work``: an empty file, the psce bag cut at half,
-the acf bag without its IMU topic, a prior without its ``camera`` block and one with a word
-in a number, a path that does not exist and an output directory that cannot be written
-(``--unwritable``: default a mode-555 directory, which blocks only a non-root user; as
+the acf bag without its IMU topic and cut at half, a prior without its ``camera`` block and
+one with a word in a number, a path that does not exist and an output directory that cannot
+be written (``--unwritable``: default a mode-555 directory, which blocks only a non-root user; as
 root pass a read-only mount). Short options throughout (``--workers 0``, ``--no-plots``,
 few candidates, short durations) so the matrix runs in minutes under load.
 """
@@ -60,6 +60,24 @@ def _convert(src: Path, dst: Path, storage: str, exclude=()) -> Path:
     return dst
 
 
+def _rechunked(src: Path, dst: Path, chunk_size: int = 16 * 1024) -> Path:
+    """``src``'s contract topics written again in chunks of ``chunk_size`` bytes."""
+    from stellar_cal_ros.io.bag import BagReader, BagWriter
+
+    scalars = {"/star_tracker/temperature": "temperature",
+               "/environment/temperature": "temperature", "/environment/pressure": "pressure"}
+    with BagReader(src) as r, BagWriter(dst, chunk_size=chunk_size) as w:
+        topics = r.topics()
+        w.write_imu(r.read_imu())
+        w.write_star_frames(r.read_star_frames())
+        if "/gnss/fix" in topics:
+            w.write_navsat(r.read_navsat())
+        for topic, kind in scalars.items():
+            if topic in topics:
+                w.write_scalar(r.read_scalar(topic), topic, kind=kind)
+    return dst
+
+
 def make_inputs(data: Path, realsky: Path, work: Path, unwritable: Path | None) -> dict:
     """Every input of the matrix: {key: bag path} and {key: prior path}, made in ``work``."""
     work.mkdir(parents=True, exist_ok=True)
@@ -68,10 +86,7 @@ def make_inputs(data: Path, realsky: Path, work: Path, unwritable: Path | None) 
     acf = bags["acf"]
     bags["rosbag2"] = _convert(acf, work / "acf_sqlite3", "sqlite3")
     bags["ros1"] = _convert(acf, work / "acf_ros1.bag", "sqlite3")
-    no_imu = work / "acf_no_imu.mcap"
-    if no_imu.exists():
-        no_imu.unlink()
-    bags["no_imu"] = _convert(acf, no_imu, "mcap", exclude=[IMU_TOPIC])
+    bags["no_imu"] = _convert(acf, work / "acf_no_imu.mcap", "mcap", exclude=[IMU_TOPIC])
     for key in ("rosbag2", "ros1", "no_imu"):
         priors[key] = priors["acf"]
     (work / "empty.mcap").write_bytes(b"")
@@ -80,6 +95,10 @@ def make_inputs(data: Path, realsky: Path, work: Path, unwritable: Path | None) 
     (work / "cut.mcap").write_bytes(raw[: len(raw) // 2])
     bags["cut"], priors["cut"] = work / "cut.mcap", priors["psce_ideal"]
     bags["missing"] = work / "no_such_bag.mcap"
+    # the sweep's one chunk rewritten in 16 KiB chunks, then cut at half (power lost)
+    raw_acf = _rechunked(acf, work / "acf_chunked.mcap").read_bytes()
+    (work / "acf_cut.mcap").write_bytes(raw_acf[: len(raw_acf) // 2])
+    bags["acf_cut"], priors["acf_cut"] = work / "acf_cut.mcap", priors["acf"]
     from stellar_cal_ros.io.mcap_container import McapFile
 
     chunks = [e for e in McapFile(bags["psce_ideal"]).plan() if hasattr(e, "length")]
@@ -214,6 +233,28 @@ def cases(inp: dict) -> list[tuple[str, str, list[str], bool]]:
           ("diagnose bundle", "acf",
            ["diagnose", str(b["acf"]), "--calibration", out("bundle_acf.yaml"), "--method",
             "bundle", "-o", out("diag_bundle"), *QUICK], True)]
+    # --on-error skip past damage (diagnose, discover, twin, batch: the reader's skip mode)
+    skip = ["--on-error", "skip"]
+    c += [("diagnose", "cut_at_chunk --on-error skip",
+           ["diagnose", str(b["cut_at_chunk"]), "--calibration", str(p["cut"]), "--method",
+            "psce", "-o", out("diag_cut_skip"), *QUICK, *skip], True),
+          ("discover", "cut --on-error skip",
+           ["discover", str(b["cut"]), "--calibration", str(p["cut"]), "--method", "psce",
+            "-o", out("disc_cut_skip"), "--max-rounds", "2", *QUICK, *skip], True),
+          ("twin", "cut --on-error skip",
+           ["twin", str(b["cut"]), "--calibration", str(p["cut"]), "-o",
+            out("twin_cut_skip.mcap"), *skip], True),
+          ("batch acf", "acf_cut --on-error skip",
+           ["batch", str(b["acf_cut"]), "--method", "acf", "--prior", str(p["acf"]), "-o",
+            out("acf_cut_skip.yaml"), "-q", *skip], True),
+          ("batch bundle", "acf_cut --on-error skip",
+           ["batch", str(b["acf_cut"]), "--method", "bundle", "--prior", str(p["acf"]), "-o",
+            out("bundle_cut_skip.yaml"), "-q", *skip], True),
+          ("batch acf", "acf_cut", ["batch", str(b["acf_cut"]), "--method", "acf", "--prior",
+                                    str(p["acf"]), "-o", out("acf_cut.yaml"), "-q"], False),
+          ("diagnose bundle", "no_imu",
+           ["diagnose", str(b["no_imu"]), "--calibration", out("bundle_no_imu.yaml"),
+            "--method", "bundle", "-o", out("diag_bundle_no_imu"), *QUICK], True)]
     for k in ("acf", "rosbag2", "ros1"):
         c.append(("discover", k, ["discover", str(b[k]), "--calibration",
                                   out(f"replay_{k}.yaml"), "--method", "psce", "-o",
