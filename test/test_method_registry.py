@@ -197,7 +197,8 @@ def test_toy_batch_method(tmp_path, capsys):
         module_calls = registry.get("toy_batch").batch.__globals__["CALLS"]
         assert module_calls[-1][1:] == (["focal_length", "-x"],
                                         {"loss": "linear",
-                                         "outlier_probability": 1.0 - 1e-6})
+                                         "outlier_probability": 1.0 - 1e-6,
+                                         "on_error": "raise"})
         assert load_calibration(out).method == "toy_batch"
         assert (tmp_path / "r.csv").read_text().startswith("du,dv")
         assert "toy_batch" not in registry.names(diagnosable=True)

@@ -220,9 +220,9 @@ def test_a_yaml_syntax_error_is_one_line_naming_line_and_column(tmp_path, capsys
 
 def test_diagnose_of_a_truncated_bag_says_what_can_be_done_in_one_line(runs, tmp_path,
                                                                         capsys):
-    """diagnose reads the whole bag and stops at damage: one error line that says so and
-    names what can read past it, and no warning before it that reading 'goes on' (the
-    star-image probe read the bag with skip and printed one; main did, and had no hint)."""
+    """diagnose without --on-error stops at damage: one error line that names what reads
+    past it (its own --on-error skip, H239; before, replay's only), and no warning before it
+    that reading 'goes on' (the star-image probe read the bag with skip and printed one)."""
     raw = Path(runs["bag_a"]).read_bytes()
     bag = tmp_path / "cut.mcap"
     bag.write_bytes(raw[: len(raw) // 2])

@@ -32,7 +32,9 @@ Batch methods
     ``batch(bag, prior, effects, options, progress)`` fits a whole bag and returns a
     :class:`BatchOutput` (what ``stellar-cal batch`` writes and prints); ``effects`` is the
     ``--effects`` list (ids added to the method's set, ``-id`` removes one), ``options`` holds
-    the ``batch`` command's ``loss`` and ``outlier_probability``, and ``progress`` is called
+    the ``batch`` command's ``loss``, ``outlier_probability`` and ``on_error`` (the reader's
+    ``raise``/``skip``: a method reading past damage records :meth:`~stellar_cal_ros.io.
+    reader.BagReader.losses` in its result's ``data_quality``), and ``progress`` is called
     with the name of each of ``steps`` as it ends.  With a ``runner`` the method can also be
     diagnosed.
 """
