@@ -1197,7 +1197,7 @@ def test_the_lines_a_detector_step_echoes_follow_the_cells_field():
     (main 17d7d23's second line: ``u residual vs v (row) (periodic 1024 px, sin)`` t 16.9,
     the step's fundamental over the rows; then ``v residual vs u (column)`` t −14.0).  With
     the field's fit taken out of the residuals the line tests no longer find them: they
-    follow the field (``leads.cells_first``), after the lines it does not explain.  The
+    follow the field (``leads.fields_first``), after the lines it does not explain.  The
     magnitude line of a saturation is not the field's (next test's bag, ``on_the_detector``).
     """
     from stellar_cal_ros.diagnosis import leads
@@ -1259,6 +1259,44 @@ def test_a_saturations_hinge_is_the_magnitude_fields_not_the_cells(tmp_path):
     # 2.55); the filter's camera states take part of it (measured 0.0405 px, the line 0.0246)
     assert 0.032 < first["change_px"] < 0.058, first
 
+
+
+def test_a_weaker_field_and_the_lines_a_stronger_field_explains_follow_it():
+    """Unseen case ``saturation`` (bright stars pulled toward the centre), its own 300 s
+    seed-22 bag, the baseline run: the magnitude field's line leads (t 13.5), the cells
+    field's (t 8.7) is printed second although beside the magnitude field it is gone (t
+    2.41: its per-cell offsets took the pull's per-star part), and so is the 'radial residual
+    vs magnitude' line (t 7.2) and 'radial residual vs gravity_x_st' (t 4.8: the stars in
+    view change with the attitude).  Each now follows the magnitude field
+    (``leads.fields_first``, the one rule of every printed field; the cells field's echoes on
+    the detector's positions are its special case, previous test).  Fails on main 423125a
+    (only the cells field's echoes could follow: nothing moved)."""
+    from stellar_cal_ros.diagnosis import leads, printing
+
+    sim = _bag(lambda s: tracker_errors.saturation_pull(s, 0.04), seed=22, duration=300.0)
+    tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, 22)
+    run, runs = _psce_run(sim)
+    plain = line_tests(run.residuals, run.calibration, 0.5)
+    fields = leads.findings(run, 0.5, ("cells", "magnitude"), 0.01)
+    found = sorted(fields + plain, key=lambda f: (f.p_value, -abs(f.statistic)))
+    kinds = [(f.detail or {}).get("field") for f in found]
+    assert kinds[:2] == ["magnitude", "cells"], [(f.regressor, f.statistic) for f in found]
+    # measured: 13.5 and 8.71; beside the magnitude field the cells field keeps t 2.41
+    assert found[0].statistic > 11.0 and 7.0 < found[1].statistic < found[0].statistic - 3.0
+    beside = leads.field_fit(leads.without(run.residuals, 0.5, "magnitude"), 0.5, "cells")
+    assert abs(beside["t"]) < 3.5 and not leads.significant({"cells": beside}, 0.01), beside
+    lines, follows = output.causes_first(found, run, runs, frozenset(map(id, fields)))
+    cells = next(f for f in fields if f.detail["field"] == "cells")
+    magnitude = next(f for f in fields if f.detail["field"] == "magnitude")
+    assert lines[0] is magnitude and 0 not in follows
+    assert follows[lines.index(cells)] == "magnitude field", follows
+    radial = next(f for f in plain if (f.regressor, f.component) == ("magnitude", "radial"))
+    assert follows.get(lines.index(radial)) == "magnitude field", follows
+    # every line that follows comes after every line that stays
+    assert sorted(follows) == list(range(len(lines) - len(follows), len(lines)))
+    said = printing.follows_phrase({"follows": follows[lines.index(cells)]})
+    assert said == ("follows the magnitude field: gone once the field's fit is taken out of "
+                    "the centroids"), said
 
 def test_a_mount_flexing_on_a_swaying_base_gets_no_library_name():
     """Unseen case ``sway_flex`` (a mount turned 10″ per unit lateral specific force on the

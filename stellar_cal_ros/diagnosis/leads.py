@@ -241,58 +241,106 @@ def without(res, fraction: float, kind: str):
     return dict(res, du=du, dv=dv)
 
 
-#: the cause an 'unexplained' line follows when the detector's cells field explains it
-#: (:func:`cells_first`; ``printing.CAUSES`` words it)
-CELLS_CAUSE = "detector's cells field"
+#: the cause an 'unexplained' line follows when a printed field's fit explains it
+#: (:func:`fields_first`; ``printing.CAUSES`` words it)
+CAUSES = {"cells": "detector's cells field", "magnitude": "magnitude field"}
+CELLS_CAUSE = CAUSES["cells"]
 #: the regressors of the lines a field on the detector makes: a position's, straight or
 #: periodic (:data:`~stellar_cal_ros.diagnosis.stats.RIPPLE`)
 POSITIONS = ("u (column)", "v (row)", "radius")
+#: the lines of the line tests each field's fit may explain (:func:`fields_first`): the
+#: cells field's, those against a detector position: with a few stars a cell (81 stars on 36
+#: cells on the PSCE sky, 72 columns) it takes up a per-star error too, a magnitude's
+#: (unseen case ``saturation`` s22: the 'radial vs magnitude' line is gone beside it), and
+#: such a line is not the field's doing; the magnitude field's (12 columns, each a function of
+#: the star's magnitude alone), any line: what it takes is what varies with magnitude
+#: (``saturation`` s22's 'radial residual vs gravity_x_st' t 4.8: the stars in view change
+#: with the attitude)
+ECHOES = {"cells": POSITIONS, "magnitude": None}
+
+
+def echoes(kind: str, f) -> bool:
+    """Whether the line ``f`` may be field ``kind``'s echo (:data:`ECHOES`)."""
+    family = ECHOES[kind]
+    return family is None or f.regressor.split(f" ({stats.RIPPLE} ")[0] in family
 
 
 def on_the_detector(f) -> bool:
     """Whether the line ``f`` is against a detector position (straight, or a ripple over it)."""
-    return f.regressor.split(f" ({stats.RIPPLE} ")[0] in POSITIONS
+    return echoes("cells", f)
 
 
-def cells_first(found: list, run, fraction: float, tests, keep=frozenset(),
-                calibration: Calibration | None = None) -> tuple[list, set[int]]:
-    """``found`` with the lines the cells field's line explains last, as its consequence.
+def _field(f) -> str | None:
+    """The field of :data:`FIELDS` whose line ``f`` is, or ``None``."""
+    kind = (getattr(f, "detail", None) or {}).get("field")
+    return kind if kind in FIELDS else None
+
+
+def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=frozenset(),
+                 calibration: Calibration | None = None, taken=frozenset()
+                 ) -> tuple[list, dict[int, str]]:
+    """``found`` with the lines a printed field's line explains last, as its consequence.
+
+    A printed field (the line of one of :data:`FIELDS`: a candidate was refused beside it)
+    explains the lines the residuals without its fit (:func:`without`) no longer give:
+
+    - lines of the line tests ``tests(residuals, calibration, fraction)`` (:func:`~stellar_
+      cal_ros.diagnosis.output.line_tests`; ``calibration``: the one ``found`` was tested
+      with, default ``run``'s) that may be the field's (:func:`echoes`) and that those
+      tests no longer find (:func:`~stellar_cal_ros.diagnosis.rolling.gone`; ``keep``:
+      ids that stay);
+    - the line of a weaker field (ranked after it in ``found``) that is no longer
+      significant at ``alpha`` beside it (:func:`field_fit` of the residuals without it,
+      :func:`significant`), whichever field is first.
 
     A step of the centroids on one detector quadrant (unseen case ``quadrant``, 0.05 px,
     300 s seed 22) is the cells field's line (t 27) and, ranked as leads of their own, its
     echoes on the detector's positions: a ripple one period across the rows (``u residual
     vs v (row) (periodic 1024 px, sin)`` t 17, the step's fundamental) and straight lines
-    (``v residual vs u (column)`` t −14).  The evidence that they are the field's: the line
-    tests ``tests(residuals, calibration, fraction)`` (:func:`~stellar_cal_ros.diagnosis.
-    output.line_tests`; ``calibration``: the one ``found`` was tested with, default
-    ``run``'s) of ``run``'s residuals with the field's fit taken out (:func:`without`) no
-    longer find them (:func:`~stellar_cal_ros.diagnosis.rolling.gone`).  Only lines
-    against a detector position (:func:`on_the_detector`) are its consequence: with a few
-    stars a cell (81 stars, 36 cells on the PSCE sky) a per-cell field takes up a per-star
-    error too, a magnitude's (unseen case ``saturation`` s22: the 'radial vs magnitude' line
-    is gone without it), and such a line is not the field's doing.  Returns the lines and
-    the indices of those that follow: the others keep their order (a line the field does
-    not explain stays a lead of its own), those that follow come last, in theirs;
-    unchanged without a cells line or a residual table.
+    (``v residual vs u (column)`` t −14).  A saturation (unseen case ``saturation`` 300 s
+    s22: bright stars pulled toward the centre) is the magnitude field's line (t 13.5) and
+    the cells field's (t 8.7), whose per-cell offsets took the pull's per-star part: beside
+    the magnitude field the cells field keeps t 2.4.  The fields are taken strongest first;
+    a line follows the first that explains it (a field that follows another still has its
+    own echoes).  Returns the lines and ``{index: cause}``
+    (:data:`CAUSES`) of those that follow: the others keep their order, those that follow
+    come last, in theirs; unchanged without a field's line or a residual table.  ``taken``:
+    ids of lines that already follow another cause (they stay where they are).
     """
     from stellar_cal_ros.diagnosis import rolling
 
-    at = next((i for i, f in enumerate(found)
-               if (getattr(f, "detail", None) or {}).get("field") == "cells"), None)
-    if at is None or not _has_table(run):
-        return found, set()
-    less = without(run.residuals, fraction, "cells")
-    if less is None:
-        return found, set()
-    left = {rolling.line_key(f) for f in tests(less, calibration or run.calibration,
-                                               fraction)}
-    follows = [f for i, f in enumerate(found)
-               if i != at and on_the_detector(f) and rolling.gone(f, left, keep)]
-    if not follows:
-        return found, set()
-    moved = {id(f) for f in follows}
-    out = [f for f in found if id(f) not in moved] + follows
-    return out, set(range(len(out) - len(follows), len(out)))
+    if not _has_table(run):
+        return found, {}
+    cause: dict[int, str] = {}
+    for i, lead in enumerate(found):
+        kind = _field(lead)
+        if kind is None or id(lead) in taken:  # (one that follows a field still has echoes)
+            continue
+        lines = [f for j, f in enumerate(found) if j != i and id(f) not in cause
+                 and id(f) not in taken
+                 and (j > i if _field(f) else echoes(kind, f))]
+        if not lines:
+            continue
+        less = without(run.residuals, fraction, kind)
+        if less is None:
+            continue
+        left = None
+        for f in lines:
+            other = _field(f)
+            if other is not None:  # (one that cannot be fitted beside it stays)
+                fit = field_fit(less, fraction, other)
+                gone = fit is not None and not significant({other: fit}, alpha)
+            else:
+                if left is None:  # (the line tests once a field, only where asked)
+                    left = {rolling.line_key(g) for g in tests(
+                        less, calibration or run.calibration, fraction)}
+                gone = rolling.gone(f, left, keep | taken)
+            if gone:
+                cause[id(f)] = CAUSES[kind]
+    if not cause:
+        return found, {}
+    out = [f for f in found if id(f) not in cause] + [f for f in found if id(f) in cause]
+    return out, {i: cause[id(f)] for i, f in enumerate(out) if id(f) in cause}
 
 
 def direction(res, fraction: float, kind: str):

@@ -20,7 +20,12 @@ from stellar_cal_ros.diagnosis import (
     shape_drift,
     stats,
 )
-from stellar_cal_ros.diagnosis.discover import CandidateResult, hidden_effects, summary_dict
+from stellar_cal_ros.diagnosis.discover import (
+    ALPHA,
+    CandidateResult,
+    hidden_effects,
+    summary_dict,
+)
 from stellar_cal_ros.diagnosis.noise import (
     levels_fit,
     line_noise,
@@ -265,18 +270,19 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=N
     first_if_cause`), and a rolling
     shutter whose consequences rank before it goes first (:func:`~stellar_cal_ros.
     diagnosis.rolling.first_if_cause`): one run on the bag without each, only where its
-    own tests are significant.  The lines on the detector's positions that the cells
-    field's line (outside the library: a candidate was refused beside it) explains come
-    last (:func:`~stellar_cal_ros.diagnosis.leads.cells_first`: the line tests of the
-    residuals without the field's fit; no run).  Returns the lines and ``{index: cause}``
-    of those that
-    follow a cause (``summary["unexplained"][i]["follows"]``).  Neither moves a cause's
-    own line nor the lines of ``keep`` (the ids of the flexure-shaped findings after an
-    add: no re-run's line tests make them, :func:`~stellar_cal_ros.diagnosis.rolling.gone`).
+    own tests are significant.  The lines a printed field's line (outside the library: a
+    candidate was refused beside it) explains come last: its echoes, and a weaker field's
+    line no longer significant beside it (:func:`~stellar_cal_ros.diagnosis.leads.
+    fields_first`: the residuals without the field's fit; no run).  Returns the lines and
+    ``{index: cause}`` of those that follow a cause (``summary["unexplained"][i]
+    ["follows"]``).  None moves a cause's own line nor the lines of ``keep`` (the ids of
+    the findings outside the line tests, a field's and the flexure-shaped after an add: no
+    re-run's line tests make them, :func:`~stellar_cal_ros.diagnosis.rolling.gone`) but a
+    weaker field's line beside a stronger field.
     ``started``: the drifting shapes' and the rolling shutter's re-runs started beside the
     line tests (:func:`~stellar_cal_ros.diagnosis.shape_drift.start_first_runs`,
     :func:`~stellar_cal_ros.diagnosis.rolling.start_lines_without`).  ``calibration``:
-    the one ``found`` was tested with (default: ``run``'s), for the cells field's re-test.
+    the one ``found`` was tested with (default: ``run``'s), for the fields' re-tests.
     """
     drifts, shutter = started if started is not None else (None, None)
     found, after = shape_drift.first_if_cause(found, run, runs, line_tests, keep=keep,
@@ -286,9 +292,9 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=N
     follows.update((id(found[i]), "rolling shutter") for i in after)
     if runs is not None:
         # (a line that follows a cause already stays where that rule put it)
-        found, after = leads.cells_first(found, run, runs.fraction, line_tests,
-                                         keep | frozenset(follows), calibration)
-        follows.update((id(found[i]), leads.CELLS_CAUSE) for i in after)
+        found, after = leads.fields_first(found, run, runs.fraction, line_tests, ALPHA,
+                                          keep, calibration, frozenset(follows))
+        follows.update((id(found[i]), cause) for i, cause in after.items())
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 
 

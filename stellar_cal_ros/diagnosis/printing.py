@@ -11,10 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.diagnosis import reliability
+from stellar_cal_ros.diagnosis import leads, reliability
 from stellar_cal_ros.diagnosis.clock import COMPONENT, GYRO_COMPONENT
 from stellar_cal_ros.diagnosis.installation_step import COMPONENT as STEP
-from stellar_cal_ros.diagnosis.leads import CELLS_CAUSE
 from stellar_cal_ros.diagnosis.shape_drift import SHAPES
 
 
@@ -112,7 +111,7 @@ def follows_phrase(u: dict[str, Any]) -> str:
 #: (:func:`follows_phrase`) and the cause's line in a word (:func:`unexplained_lines`)
 CAUSES = {"rolling shutter": ("its fitted readout", "shutter"),
           **{s.cause: ("the drift", "drift") for s in SHAPES},
-          CELLS_CAUSE: ("the field's fit", "cells field")}
+          **{leads.CAUSES[k]: ("the field's fit", f"{k} field") for k in leads.FIELDS}}
 #: the causes of :mod:`~stellar_cal_ros.diagnosis.shape_drift` (a drifting camera shape)
 DRIFTS = frozenset(s.cause for s in SHAPES)
 
