@@ -20,8 +20,11 @@ def reference_data():
 def cli(capsys):
     """``cli(*args)``: a ``stellar-cal`` command through ``cli.main`` in this process.
 
-    Asserts it exits 0 (the message: its stderr's tail) and returns its stdout.
+    Asserts it exits 0 (the message: its stderr's tail) and that every printed line's
+    parentheses close, none at another's end (:mod:`printed_text`); returns its stdout.
     """
+    from printed_text import parentheses_problems
+
     from stellar_cal_ros.cli import main
 
     def run(*args):
@@ -29,6 +32,8 @@ def cli(capsys):
         rc = main(list(args))
         out = capsys.readouterr()
         assert rc == 0, out.err[-3000:]
+        bad = parentheses_problems([out.out, out.err])
+        assert not bad, "\n".join(bad)
         return out.out
 
     return run

@@ -162,7 +162,7 @@ def test_unseen_case_outside_sizes_are_judged_against_what_the_fit_leaves(monkey
     def flex(c, s, after=""):
         return run(f"residual vs gravity_st (mount-flexure shape{after}: {c} +- {s} arcsec per "
                    "unit lateral gravity, outside the library) (t=20.1, p=1.8e-21; 0.032 px at "
-                   "most (99 % of the stars; what the fit left of it))")
+                   "most over 99 % of the stars, what the fit left of it)")
 
     assert uc.judge("magbias_radial", mag("0.0457")) == []
     assert uc.judge("magbias_radial", mag("0.0433")) == []
@@ -186,8 +186,8 @@ def test_unseen_case_fixed_pattern_said_far_larger_is_judged_misleading(monkeypa
 
     def run(size):
         line = ("  unexplained: u residual vs u (column) (fixed pattern, bands of 8 px) "
-                f"(t=7.3, p=1.9e-06; {size} px (the most offset band's offset from the bands "
-                "beside it))")
+                f"(t=7.3, p=1.9e-06; {size} px for the most offset band against the bands "
+                "beside it)")
         return {"rc": 0, "stderr": "", "stdout": "noise: noise as stated\n" + line,
                 "summary": {"added": [], "noise": {"applied": {}}}}
 

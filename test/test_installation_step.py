@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from stellar_cal_ros.core.units import ARCSEC
+from stellar_cal_ros.diagnosis import installation_step
 from stellar_cal_ros.diagnosis.injection import clean_simulation
 from stellar_cal_ros.diagnosis.installation_step import COMPONENT, contrast
 from stellar_cal_ros.diagnosis.run import diagnose
@@ -311,3 +312,25 @@ def test_what_could_still_hide_lists_no_bias_of_the_hidden_step(monkeypatch):
                                                derived={"epp.u0": np.ones(1)}))
     discover.hidden_effects(base, [c])
     assert sorted(seen) == ["epp.u0", "installation.rx"], sorted(seen)
+
+
+def test_a_step_over_moving_frames_says_its_size_is_the_tests_jump():
+    """Where no fitted step exists (a candidate refused beside a step found moving or not,
+    or a platform that never rests), the line's size is the test's own: the frames'
+    attitude jump, the filter's answer to the motion included (``knock_gsf_run20`` s21:
+    96.8" at 60.0 s for a true 20" knock).  The line says so; at rest, and where the final
+    model fits the step (H230), the size is a step's and nothing is added.  On main 423125a
+    the moving line printed the jump as the step."""
+    from stellar_cal_ros.diagnosis.auto import FITTED_STEP
+
+    def line(at_rest, where="", sized=""):
+        return installation_step.InstallationStep(
+            60.0, 59.75, [50.9, 13.5, 96.8], [0.7, 0.7, 5.9], 0.99, 0.01, 15.0, 500.0, 600,
+            1e-9, at_rest).regressor(where, sized)
+
+    jump = installation_step.JUMP
+    assert f'by 110" ({jump}; about' in line(True, installation_step.MOVING)
+    assert jump in line(False) and jump in line(True, installation_step.BEFORE)
+    assert jump not in line(True) and jump not in line(True, installation_step.MOVING,
+                                                       FITTED_STEP)
+    assert line(False).endswith("the largest of 600 frames of a platform that never rests)")

@@ -883,7 +883,7 @@ def test_star_scale_sigma_counts_the_frames_shared_attitude_fit():
 def test_noise_as_measured_before_prints_both_factors_of_the_true_scale():
     """A later round, the stars' 0.6x sigma already rescaled (star x1.67 applied): "noise as
     measured before: stars' sigma 0.03 -> 0.0496 px (x1.65 +- 0.014 of the stated) (this
-    round: stars' sigma x s +- e, gyro x g +- e (its samples) of the scales applied
+    round: stars' sigma x s +- e, gyro x g +- e from its samples of the scales applied
     before, ...): use --noise-scale star=1.653".  The composed scale must be the truth 1/0.6
     within 3 of its σ, and the gyro's (stated right) 1 within 3σ (seed 3: x1.67 * x0.992 +-
     0.0084 = 1.653 for 1.667; gyro x1 +- 0.0052)."""
@@ -897,7 +897,7 @@ def test_noise_as_measured_before_prints_both_factors_of_the_true_scale():
     px, k, e = (float(x) for x in m.groups())
     assert k == pytest.approx(1 / 0.6, abs=3 * e) and px == pytest.approx(0.03 * k, rel=5e-3)
     assert f"use --noise-scale star={k:.3g}" in line, line
-    g = re.search(r"gyro x(\S+) \+- (\S+) \(its samples\)", line)
+    g = re.search(r"gyro x(\S+) \+- (\S+) from its samples", line)
     assert float(g[1]) == pytest.approx(1.0, abs=3 * float(g[2])), line
 
 
@@ -2231,7 +2231,7 @@ def test_an_unmeasured_gyro_is_not_said_as_stated():
                  "gyro": {"scale": 14.0, "sigma": 0.5, "white": False}}
     assert v.lines() == [
         "noise as stated where measured (stars' sigma x0.979 +- 0.0091, accel x0.991 +- "
-        "0.0052 (its samples)); the gyro noise (angle random walk) cannot be measured on "
+        "0.0052 from its samples); the gyro noise (angle random walk) cannot be measured on "
         "this bag (its own samples are not white: they carry the motion; the stars' fit does "
         "not change between a third and 3x of it: a noise below what the stars see on this "
         "motion): kept as stated, not confirmed"], v.lines()

@@ -380,7 +380,7 @@ def test_unexplained_sizes_read_the_same_in_the_terminal_and_the_report():
     for u, size in zip(summary["unexplained"],
                        ["0.3 px across its 5-95 % range", "0.02 px rms per axis at least",
                         "0.02 px amplitude",
-                        "0.043 px at most (99 % of the stars; what the fit left of it)", ""],
+                        "0.043 px at most over 99 % of the stars, what the fit left of it", ""],
                        strict=True):
         what, said = printing.unexplained_phrase(u)
         assert said.startswith(size) and (size == "") == (said == "")

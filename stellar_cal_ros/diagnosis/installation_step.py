@@ -92,8 +92,11 @@ class InstallationStep:
         """The line's text: when, how much, about which axis.
 
         ``where``: the frames tested; ``sized``: where the size comes from when not from the
-        test (:meth:`fitted`).
+        test (:meth:`fitted`).  The test's own size over frames that move (``where``, or a
+        platform that never rests) is said for what it is (:data:`JUMP`).
         """
+        if not sized and (where or not self.at_rest):
+            sized = JUMP
         d = np.asarray(self.step_arcsec)
         size = float(np.linalg.norm(d))
         axis = ", ".join(f"{x:.2f}" for x in d / max(size, 1e-300))
@@ -105,7 +108,7 @@ class InstallationStep:
                 f"{self.angle_deg:.0f} deg at the detector's centre and the filter follows "
                 f"(outside the library: its installation is a constant; {self.chi2:.0f} chi2"
                 f" / 3 dof, the largest of {self.candidates} frames "
-                f"{where or ('at rest' if self.at_rest else '(the platform never rests)')})")
+                f"{where or ('at rest' if self.at_rest else 'of a platform that never rests')})")
 
     def finding(self, where: str = "", sized: str = "") -> stats.RegressorFinding:
         """The 'unexplained' test (unadjusted p; its statistic the one-sided p's normal score)."""
@@ -219,13 +222,18 @@ def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, fl
         int(len(k)), p, at_rest)
 
 
+#: what the size of a step tested over frames that move is (:meth:`InstallationStep.
+#: regressor`): the frames' attitude jump, in which the filter's answer to the motion there
+#: is too (``knock_gsf_run20`` s21: 96.8" at 60.0 s for a true 20" knock at 59.5 s)
+JUMP = ("the size is the frames' attitude jump the test found, the filter's answer to the "
+        "motion included: no step fitted")
 #: the frames a step tested over all frames of a platform that rests is said the largest of
-MOVING = ("moving or not (where the platform moves a knock and a clock that steps are not "
-          "told apart)")
+MOVING = ("moving or not: where the platform moves, a knock and a clock that steps are not "
+          "told apart")
 #: the frames a step found before the evaluation window is said the largest of
 #: (:func:`~stellar_cal_ros.diagnosis.auto._step_before`)
-BEFORE = ("moving or not, before the evaluation window (which sees only what the filter "
-          "had left of it)")
+BEFORE = ("moving or not, before the evaluation window, which sees only what the filter "
+          "had left of it")
 #: fewer window frames than this before the step: a candidate's gain there is not tested
 MIN_BEFORE = 20
 

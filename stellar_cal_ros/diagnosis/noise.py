@@ -525,7 +525,7 @@ class NoiseVerdict:
             for comp, smp in self.samples.items():
                 if smp["white"]:
                     parts.append(f"{comp} x{smp['scale']:.3g} +- {smp['sigma']:.2g} "
-                                 "(its samples)")
+                                 "from its samples")
             unmeasured = []
             for comp, search in self.imu.items():
                 if (self.samples.get(comp) or {}).get("white"):

@@ -67,11 +67,11 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
     what = f"{u['component']} residual"
     span = "across its 5-95 % range"
     if u["regressor"] == "catalogue star":
-        what, span = "residual repeating", "rms per axis at least (left by the cells)"
+        what, span = "residual repeating", "rms per axis at least, left by the cells"
     elif " (fixed pattern" in u["regressor"]:  # noise.pattern_findings
         # (noise_structure.band_offset_size: the band slid to the pattern's phase, its
         # offset fitted through the frames' attitude fit, noise_stars._pattern_size)
-        span = "(the most offset band's offset from the bands beside it)"
+        span = "for the most offset band against the bands beside it"
     elif " (periodic" in u["regressor"]:  # in time, or a ripple over the detector
         span = "amplitude"
     elif u["component"] == "along motion":  # stats.motion_spread: a noise in the stamps
@@ -92,7 +92,7 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
         # on a quarter of the detector: 0.029-0.036 px printed at seeds 21, 22, 24, 0.033
         # with noise-free centroids, the step's quarter 0.021 px per axis off the rest in
         # the innovations)
-        what, span = "residual", "at most (99 % of the stars; what the fit left of it)"
+        what, span = "residual", "at most over 99 % of the stars, what the fit left of it"
     return what, (f"{abs(size):.3g} px {span}" if size is not None else "")
 
 
