@@ -152,6 +152,24 @@ def test_gyro_noise_scale_from_its_samples_checked_by_maximum_likelihood():
     assert "the stars see: x" in " ".join(v.lines()) and "agree" not in " ".join(v.lines())
 
 
+def test_a_gyro_noise_far_above_the_stated_is_measured_not_called_a_missing_effect():
+    """The gyro's ARW configured in the wrong unit (a rad value read as deg: the true ARW
+    57.3x the stated, unseen case ``gyro_x57``): with the stated gyro noise the model's run
+    is too far off (NIS/dof ~6.4) and the verdict said "not measured: ... a missing effect
+    shapes the residuals", beside the gyro's own samples' x57 (no effect is missing).  Now
+    the run is made again with the samples' scale: the stars are measured (as stated,
+    within 3σ), the gyro's x57 stands within 3σ, and no line speaks of a missing effect
+    (fails on main: ``v.skipped`` holds the NIS line)."""
+    sim = _sim(gyro=57.3)
+    v = measure_bag(_stated(sim), sim.prior, "psce", [], NoiseScales())
+    assert not v.skipped, v.lines()
+    s, e = v.scale_of("gyro")
+    assert v.samples["gyro"]["white"] and s == pytest.approx(57.3, abs=3 * e)
+    assert v.applied.gyro == pytest.approx(s) and "star" not in v.rejected
+    assert v.star == pytest.approx(1.0, abs=3 * v.star_sigma) and v.star_sigma < 0.02
+    assert "missing effect" not in " ".join(v.lines()), v.lines()
+
+
 def test_gyro_noise_the_stars_cannot_see_prints_a_bound_above_the_truth():
     """A gyro 10x quieter than stated whose samples are smoothed (a [1 2 1]/4 filter: not
     white, so the stars' likelihood search speaks for the gyro): the likelihood rises to a
