@@ -11,6 +11,7 @@ centroid.
 function            what a tracker does
 ==================  ==============================================================================
 ``renoise``         per-star centroid noise ``σ(mag, uv)``; the messages state any σ (0: unknown)
+``uv_noise``        centroid noise anisotropic or u-v correlated; the messages state an isotropic σ
 ``s_curve``         pixel locking: a centroid bias ``A sin(2π u)`` per axis, periodic in the
                     centroid's sub-pixel phase (a PSF sampled by too few pixels)
 ``rolling_shutter`` rows read out over ``T``: row ``v`` exposed ``(v/H − ½) T`` after the stamp,
@@ -47,6 +48,22 @@ def renoise(sim, true_sigma: Callable, stated: float, seed: int) -> None:
         s = np.broadcast_to(true_sigma(mag, np.asarray(f.uv, dtype=float)), mag.shape)
         f.uv = np.asarray(f.uv, dtype=float) + s[:, None] * rng.standard_normal(f.uv.shape)
         f.sigma = np.full(len(mag), float(stated))
+
+
+def uv_noise(sim, sigma_uv: tuple[float, float], rho: float, stated: float, seed: int
+             ) -> None:
+    """Centroid noise unlike an isotropic σ: ``sigma_uv`` (px) along u and v, correlation ``rho``.
+
+    An elongated PSF or a readout noisier along one axis; the messages state ``stated``
+    (isotropic).  The isotropic ML scale of the stated σ is √((σ_u² + σ_v²) / 2) / stated.
+    """
+    su, sv = sigma_uv
+    L = np.linalg.cholesky(np.array([[su * su, rho * su * sv], [rho * su * sv, sv * sv]]))
+    rng = np.random.default_rng(seed + 7919)
+    for f in sim.star_frames:
+        n = len(f.uv)
+        f.uv = np.asarray(f.uv, dtype=float) + rng.standard_normal((n, 2)) @ L.T
+        f.sigma = np.full(n, float(stated))
 
 
 def s_curve(sim, amplitude_px: float) -> None:
