@@ -12,7 +12,9 @@ Executors
     processes: on a 2-h round 71 CPU-s instead of 49 (measured, doc/benchmarks.md).
 ``workers=N`` (N ≥ 2)
     a ``dask.distributed.LocalCluster`` of N single-threaded worker *processes* (the
-    Kalman filters are pure-Python loops: threads would serialize on the GIL).
+    Kalman filters are pure-Python loops: threads would serialize on the GIL).  The
+    parent hands each run out when a worker is free, the highest priority (the longest
+    expected run) first (:class:`_Hand`): Dask alone places a task when it is submitted.
 ``workers=None`` (the command line's default: automatic)
     in this process until a batch of runs would take at least :data:`CLUSTER_PAYS_S`
     CPU seconds one after the other (the batch's runs × the mean CPU time of the runs made
@@ -51,8 +53,11 @@ runs that ask for one, see :class:`Task`).
 from __future__ import annotations
 
 import contextlib
+import heapq
+import itertools
 import logging
 import os
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -98,11 +103,12 @@ CLUSTER_PAYS_S = 10.0
 #: read in a fresh process before the first worker holds it, S ~5 s on idle cores (spawned),
 #: the fork server's start as long at 2.8 against 3.0 CPU-s (doc/benchmarks.md, H109)
 CLUSTER_PAYS_SPAWNED_S = 20.0
-#: Dask priority of :meth:`Runs.on_bag` (a run's is 100 × its cost): a small statistic of
-#: the bag that the diagnosis waits for goes before the runs queued ahead of need
+#: priority of :meth:`Runs.on_bag` in the parent's queue (:class:`_Hand`; a run's is
+#: 100 × its cost): a small statistic of the bag that the diagnosis waits for goes before
+#: the runs queued ahead of need
 ON_BAG_PRIORITY = 1_000_000
-#: Dask priority below every run waited for, of a run made ahead of need
-#: (:meth:`Runs.run_ahead`): an idle worker takes it, a worker with a run someone waits for
+#: priority below every run waited for, of a run made ahead of need
+#: (:meth:`Runs.run_ahead`): a free worker takes it, a worker with a run someone waits for
 #: (a screening part beside the base run) does that first (measured: an ML run ahead taken
 #: before the second screening part held the round up by its length)
 AHEAD_PRIORITY = -1_000_000
@@ -601,7 +607,11 @@ class DaskRuns(Runs):
             if self._cpu[0]:
                 n = self._cpu[0]
                 self.description += f" (after {n} run{'s' * (n > 1)} in this process)"
-        self.workers = max(len(self.client.scheduler_info()["workers"]), 1)
+        workers = self.client.scheduler_info()["workers"]
+        self.workers = max(len(workers), 1)
+        #: every piece of work goes out through this queue, to a free worker
+        self._hand = _Hand(self.client.submit, sum(w.get("nthreads", 1)
+                                                   for w in workers.values()))
         self.remote_bag = self._place_bag()
 
     def _place_bag(self) -> Any:
@@ -634,8 +644,8 @@ class DaskRuns(Runs):
         if self.client is None:
             return super().facts()
         batch = self._batches.open()
-        out = self.client.submit(_run, "facts", batch[0], self.remote_bag, bag_facts,
-                                 pure=False).result()
+        out = self._hand(_run, "facts", batch[0], self.remote_bag, bag_facts,
+                         pure=False).result()
         self._batches.close(batch, ["facts"])
         return out
 
@@ -668,8 +678,8 @@ class DaskRuns(Runs):
         """``fn(bag_data, *args)`` submitted now, its own batch on the timeline."""
         # before any queued run: a statistic of the bag is what the next step waits for
         batch = self._batches.open()
-        fut = self.client.submit(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn,
-                                 *args, pure=False, priority=ON_BAG_PRIORITY)
+        fut = self._hand(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn, *args,
+                         pure=False, priority=ON_BAG_PRIORITY)
         return _Soon(fut, batch, fn.__name__, self._batches)
 
     def forget_tables(self) -> None:  # noqa: D102
@@ -687,8 +697,8 @@ class DaskRuns(Runs):
             return super().on_bag_each(fn, calls)
         batch = self._batches.open()
         keys = [f"{fn.__name__} {i}" for i in range(len(calls))]
-        futures = [self.client.submit(_run, k, batch[0], self.remote_bag, _on_bag, fn, *args,
-                                      pure=False) for k, args in zip(keys, calls, strict=True)]
+        futures = [self._hand(_run, k, batch[0], self.remote_bag, _on_bag, fn, *args,
+                              pure=False) for k, args in zip(keys, calls, strict=True)]
         out = [f.result() for f in futures]
         self._batches.close(batch, keys)
         return out
@@ -701,15 +711,12 @@ class DaskRuns(Runs):
         return out
 
     def _submit(self, task: Task, batch: int, ahead: bool = False) -> Any:
-        return self.client.submit(_run, task.key, batch, self.remote_bag, evaluate,
-                                  self.spec, task.prior,
-                                  task.effects, self.fraction, task.keep_residuals,
-                                  self.classes, task.screen, task.candidate,
-                                  self.noise_of(task), task.star_noise, task.gyro_check,
-                                  task.frame_loglik, pure=False,
-                                  priority=int(100 * task.cost)
-                                  + (AHEAD_PRIORITY if ahead else 0),
-                                  key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
+        return self._hand(_run, task.key, batch, self.remote_bag, evaluate, self.spec,
+                          task.prior, task.effects, self.fraction, task.keep_residuals,
+                          self.classes, task.screen, task.candidate, self.noise_of(task),
+                          task.star_noise, task.gyro_check, task.frame_loglik, pure=False,
+                          priority=int(100 * task.cost) + (AHEAD_PRIORITY if ahead else 0),
+                          key=f"stellar-cal-{task.key}-{uuid.uuid4().hex}")
 
     @staticmethod
     def _result(task: Task, fut: Any) -> RunSummary:
@@ -730,15 +737,19 @@ class DaskRuns(Runs):
         if self.client is None:
             yield from super().map(tasks, ahead, then, running)
             return
-        from distributed import as_completed
+        import queue
 
         batch = self._batches.open()
         futures = {self._submit(task, batch[0]): task for task in tasks}
         futures.update({fut: task for task, fut in running})
-        # submitted after ``tasks`` (an idle worker takes them), kept as futures
+        done: queue.SimpleQueue[_Handed] = queue.SimpleQueue()
+        for fut in futures:
+            fut.when_done(done.put)
+        # queued after ``tasks`` (a free worker takes them), kept as futures
         self._ahead += [(t, self.noise_of(t), self._submit(t, batch[0], ahead=True))
                         for t in _tasks(ahead)]
-        for fut in as_completed(futures):
+        while futures:
+            fut = done.get()
             task = futures.pop(fut)
             stats = self._result(task, fut)
             # handed out now, beside the runs still waited for (the parent waits below)
@@ -773,6 +784,112 @@ class DaskRuns(Runs):
                 logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
             with contextlib.suppress(Exception):
                 self.cluster.close()
+
+
+class _Handed:
+    """A piece of work :class:`_Hand` gives the cluster once a worker is free: its future.
+
+    Until then it waits in the parent's queue; :meth:`result`, :meth:`cancel` and
+    :meth:`release` act as a Dask future's (a cancelled piece never runs; one already
+    handed out runs to its end).
+    """
+
+    def __init__(self, hand: _Hand) -> None:
+        self.hand = hand
+        self.future: Any = None  #: the Dask future, once handed out
+        self.finished = False
+        self.cancelled = False
+        self._out = threading.Event()  #: handed out (or cancelled)
+        self._then: list[Callable[[_Handed], None]] = []
+
+    def result(self) -> Any:
+        self._out.wait()
+        if self.future is None:
+            from concurrent.futures import CancelledError
+
+            raise CancelledError("cancelled before a worker took it")
+        return self.future.result()
+
+    def cancel(self) -> None:
+        """Not handed out: never will be.  Handed out: it runs to its end, unused."""
+        self.hand.cancel(self)
+
+    def release(self) -> None:
+        if self.future is not None:
+            self.future.release()
+
+    def when_done(self, fn: Callable[[_Handed], None]) -> None:
+        """Call ``fn(self)`` once it has finished (at once if it has)."""
+        with self.hand.lock:
+            if not self.finished:
+                self._then.append(fn)
+                return
+        fn(self)
+
+
+class _Hand:
+    """The parent's queue of work for the cluster: the next piece to a free worker.
+
+    Dask places a task on a worker when it is submitted (each run is its own task group,
+    never queued at the scheduler), so two pieces handed out together could run one after
+    the other on one worker while the other idled.  Here at most ``slots`` pieces (the
+    cluster's threads) are out at once, the rest wait here and the highest ``priority``
+    (first come first among equals) goes out the moment one finishes: Dask then sends it to
+    the free worker (measured, doc/benchmarks.md "a free worker takes the next run").
+    """
+
+    def __init__(self, submit: Callable[..., Any], slots: int) -> None:
+        self.submit = submit  #: ``Client.submit``
+        self.slots = max(int(slots), 1)
+        self.lock = threading.Lock()
+        self._queue: list[tuple[int, int, _Handed, tuple, dict]] = []
+        self._order = itertools.count()
+        self.out = 0  #: pieces handed out and not finished
+
+    def __call__(self, *args: Any, priority: int = 0, **kwargs: Any) -> _Handed:
+        """``submit(*args, priority=priority, **kwargs)`` when a worker is free."""
+        piece = _Handed(self)
+        with self.lock:
+            heapq.heappush(self._queue, (-priority, next(self._order), piece, args,
+                                         {**kwargs, "priority": priority}))
+        self._pump()
+        return piece
+
+    def cancel(self, piece: _Handed) -> None:
+        with self.lock:
+            if piece.future is not None:
+                return  # out already: it finishes and frees its worker then
+            piece.cancelled = True
+            self._queue = [q for q in self._queue if q[2] is not piece]
+            heapq.heapify(self._queue)
+        piece._out.set()
+
+    def _pump(self) -> None:
+        """Hand out the queue's first pieces while workers are free."""
+        while True:
+            with self.lock:
+                if self.out >= self.slots or not self._queue:
+                    return
+                _, _, piece, args, kwargs = heapq.heappop(self._queue)
+                self.out += 1
+            try:
+                piece.future = self.submit(*args, **kwargs)
+            except Exception:
+                with self.lock:
+                    self.out -= 1
+                piece._out.set()
+                raise
+            piece._out.set()
+            piece.future.add_done_callback(lambda _f, piece=piece: self._finished(piece))
+
+    def _finished(self, piece: _Handed) -> None:
+        with self.lock:
+            self.out -= 1
+            piece.finished = True
+            then, piece._then = piece._then, []
+        for fn in then:
+            fn(piece)
+        self._pump()
 
 
 @dataclass

@@ -1,0 +1,102 @@
+"""The parent's queue of runs (diagnosis/parallel.py ``_Hand``): the next run to a free worker.
+
+Dask places a task on a worker when it is submitted; a round's runs handed out together
+could wait behind a long one on one worker while the other idles (issue 24 item 2).  The
+queue keeps at most one run per worker thread out, the highest priority first.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import CancelledError
+
+import pytest
+
+from stellar_cal_ros.diagnosis import parallel
+from stellar_cal_ros.diagnosis.discover import method_spec
+from stellar_cal_ros.methods.replay import BagData
+
+
+class _Future:
+    def __init__(self, value):
+        self.value, self.callbacks, self.released = value, [], False
+
+    def add_done_callback(self, fn):
+        self.callbacks.append(fn)
+
+    def finish(self):
+        for fn in self.callbacks:
+            fn(self)
+
+    def result(self):
+        return self.value
+
+    def release(self):
+        self.released = True
+
+
+def test_at_most_slots_out_highest_priority_first_and_a_cancelled_one_never_out():
+    out = []
+
+    def submit(name, priority=0):
+        out.append(_Future(name))
+        return out[-1]
+
+    hand = parallel._Hand(submit, 2)
+    pieces = {name: hand(name, priority=p)
+              for name, p in [("a", 100), ("b", 150), ("c", 100), ("d", 300), ("e", -5)]}
+    assert [f.value for f in out] == ["a", "b"]  # two slots: the first two out at once
+    pieces["c"].cancel()
+    seen = []
+    pieces["b"].when_done(seen.append)
+    out[1].finish()  # b done: the highest queued (d) goes out, c never will
+    assert seen == [pieces["b"]] and [f.value for f in out] == ["a", "b", "d"]
+    out[0].finish()
+    assert [f.value for f in out] == ["a", "b", "d", "e"]
+    assert pieces["d"].result() == "d" and hand.out == 2
+    with pytest.raises(CancelledError):
+        pieces["c"].result()
+    pieces["b"].cancel()  # out already: runs to its end, nothing changes
+    out[2].finish()
+    out[3].finish()
+    assert hand.out == 0 and len(out) == 4
+    late = []
+    pieces["e"].when_done(late.append)  # finished already: called at once
+    assert late == [pieces["e"]]
+
+
+#: piece -> the worker thread that ran it (module level: the pieces reach the in-process
+#: workers pickled, a closure's dict would be a copy)
+_WHERE: dict[str, int] = {}
+
+
+def _piece(bag, name: str, seconds: float) -> str:
+    _WHERE[name] = threading.get_ident()
+    time.sleep(seconds)
+    return name
+
+
+def test_a_free_worker_takes_the_next_piece_not_the_busy_one(monkeypatch):
+    """A long and a mid-length piece out, then five short ones handed out while both
+    workers are busy (the tail's probes and re-run beside the after-runs): every short one
+    goes to the worker that frees first.  Dask alone placed each at submission, on the less
+    occupied worker by its estimates (a statistic of the bag: milliseconds, so never stolen
+    back), some behind the long piece."""
+    from distributed import LocalCluster
+
+    _WHERE.clear()
+    monkeypatch.setattr(parallel.DaskRuns, "_place_bag", lambda self: self.bag)
+    bag = object.__new__(BagData)  # never read: every piece is a sleep
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, \
+            parallel.open_runner(bag, method_spec("psce"), 0.5, 2,
+                                 scheduler=cluster.scheduler_address) as runs:
+        # statistics of the bag first: Dask's estimate of such a piece is milliseconds
+        runs.on_bag_each(_piece, [(f"stat {i}", 0.001) for i in range(4)])
+        pieces = [runs.later(_piece, "long", 2.0), runs.later(_piece, "mid", 0.3)]
+        time.sleep(0.1)
+        pieces += [runs.later(_piece, f"short {i}", 0.2) for i in range(5)]
+        assert [p() for p in pieces] == ["long", "mid"] + [f"short {i}" for i in range(5)]
+    assert _WHERE["long"] != _WHERE["mid"]
+    assert {_WHERE[f"short {i}"] for i in range(5)} == {_WHERE["mid"]}
