@@ -37,6 +37,7 @@ class _Future:
 
 
 def test_at_most_slots_out_highest_priority_first_and_a_cancelled_one_never_out():
+    """A fake client: which pieces go out when, and what a cancel and a close do."""
     out = []
 
     def submit(name, priority=0):
@@ -64,6 +65,14 @@ def test_at_most_slots_out_highest_priority_first_and_a_cancelled_one_never_out(
     late = []
     pieces["e"].when_done(late.append)  # finished already: called at once
     assert late == [pieces["e"]]
+    # closing: what is queued is cancelled, never handed out
+    hand = parallel._Hand(submit, 1)
+    first, queued = hand("f"), hand("g")
+    hand.close()
+    out[4].finish()
+    assert [f.value for f in out][4:] == ["f"] and first.result() == "f"
+    with pytest.raises(CancelledError):
+        queued.result()
 
 
 #: piece -> the worker thread that ran it (module level: the pieces reach the in-process

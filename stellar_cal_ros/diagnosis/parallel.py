@@ -775,6 +775,7 @@ class DaskRuns(Runs):
         timeline.Batches.end()
         if self.client is None:
             return
+        self._hand.close()
         with contextlib.suppress(Exception):
             self.client.close()
         if self.cluster is not None:
@@ -889,7 +890,18 @@ class _Hand:
             then, piece._then = piece._then, []
         for fn in then:
             fn(piece)
-        self._pump()
+        try:
+            self._pump()
+        except Exception:  # noqa: BLE001 - Dask's callback thread: the client closing
+            log.debug("the next run was not handed out", exc_info=True)
+
+    def close(self) -> None:
+        """Hand nothing more out (the client closes): the queued pieces are cancelled."""
+        with self.lock:
+            queued, self._queue = [q[2] for q in self._queue], []
+        for piece in queued:
+            piece.cancelled = True
+            piece._out.set()
 
 
 @dataclass
