@@ -13,8 +13,11 @@ results: doc/benchmarks.md, "Model discovery: one command, in parallel".
 
 from __future__ import annotations
 
+import threading
+import time
 from dataclasses import dataclass, field
 
+import psutil
 import pytest
 import refdata
 
@@ -114,12 +117,94 @@ def check(summary, case: Case) -> None:
     assert not any(c["significant"] for c in summary["candidates"])
 
 
+#: issue 24's target for one ``discover`` of an acceptance case on 2 cores, wall seconds
+TARGET_S = 60.0
+#: each case run here: (name, workers, wall s, CPU s of the process tree), printed as one
+#: table at the end of the module (:func:`_time_table`)
+TIMES: list[tuple[str, int, float, float]] = []
+
+
+class TreeCPU:
+    """CPU seconds (user + system) of a process and its descendants while this is entered.
+
+    ``root``: a process id (default this process); ``descendants_only``: without the root
+    (a child whose own CPU its reaped rusage gives exactly).  The local cluster's workers
+    (children of multiprocessing's fork server, never reaped into the command's rusage) are
+    read with psutil every ``period`` s until they exit: their last ``period`` is missed.
+    """
+
+    def __init__(self, period: float = 0.2, root: int | None = None,
+                 descendants_only: bool = False) -> None:
+        self.period, self.cpu = period, 0.0
+        self.root, self.descendants_only = root, descendants_only
+        self._done = threading.Event()
+
+    def _read(self) -> dict[int, float]:
+        out = {}
+        try:
+            root = psutil.Process(self.root)
+            tree = root.children(recursive=True)
+        except psutil.Error:
+            return out
+        for p in tree if self.descendants_only else [root, *tree]:
+            try:
+                t = p.cpu_times()
+                out[p.pid] = t.user + t.system
+            except psutil.Error:
+                continue
+        return out
+
+    def _watch(self) -> None:
+        while not self._done.wait(self.period):
+            self._last.update(self._read())
+
+    def __enter__(self) -> TreeCPU:
+        self._start = self._read()
+        self._last = dict(self._start)
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._done.set()
+        self._thread.join()
+        self._last.update(self._read())
+        self.cpu = sum(v - self._start.get(pid, 0.0) for pid, v in self._last.items())
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _time_table(request):
+    """After the module: every case's wall and CPU seconds in one table, with the target."""
+    TIMES.clear()
+    yield
+    if not TIMES:
+        return
+    write = request.config.pluginmanager.get_plugin("terminalreporter").write_line
+    # the fixture's teardown is captured (fd level) unless capturing is off meanwhile
+    with request.config.pluginmanager.get_plugin("capturemanager").global_and_fixture_disabled():
+        _write_table(write)
+
+
+def _write_table(write) -> None:
+    write("")
+    write(f"discover per acceptance case (diagnose(..., auto=True) in this process; "
+          f"target <= {TARGET_S:.0f} s on 2 cores; load {psutil.getloadavg()[0]:.1f} now)")
+    write(f"{'case':34s} {'workers':>7s} {'wall s':>7s} {'CPU s':>7s}  target")
+    for name, workers, wall, cpu in TIMES:
+        verdict = "ok" if wall <= TARGET_S else "over"
+        write(f"{name:34s} {workers:7d} {wall:7.1f} {cpu:7.1f}  <= {TARGET_S:.0f} s {verdict}")
+
+
 def run_case(tmp_path, name: str, case: Case, workers: int = 2):
-    """``diagnose --auto`` on the case's simulated bag; prints the outcome."""
+    """``diagnose --auto`` on the case's simulated bag; prints the outcome and its times."""
     sim = case.simulate()
-    s = diagnose(bag_data_from_simulation(sim), sim.prior, case.method, list(case.user),
-                 tmp_path, plots=False, verbose=False, auto=True, workers=workers)
-    print(f"\n{name}: {s['added']} in {s['seconds']:.0f} s, "
+    start = time.perf_counter()
+    with TreeCPU() as cpu:
+        s = diagnose(bag_data_from_simulation(sim), sim.prior, case.method, list(case.user),
+                     tmp_path, plots=False, verbose=False, auto=True, workers=workers)
+    wall = time.perf_counter() - start
+    TIMES.append((name, workers, wall, cpu.cpu))
+    print(f"\n{name}: {s['added']} in {wall:.0f} s ({cpu.cpu:.0f} CPU-s), "
           f"{sum(p['reruns'] for p in s['path'])} runs, final RMS "
           f"{[round(x, 4) for x in s['path'][-1]['rms_px']]} px "
           f"(expects {[round(x, 4) for x in s['path'][-1]['expected_rms_px']]})")
