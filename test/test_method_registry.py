@@ -13,7 +13,15 @@ import pytest
 from sim_bags import psce_bag
 
 # the calibrator node's test harness (a private ROS context, the player with flow control)
-from test_nodes import BAG, PRIOR, Spinner, make_calibrator, remaps, ros_context, wait_for  # noqa: F401
+from test_nodes import (  # noqa: F401
+    BAG,
+    PRIOR,
+    Spinner,
+    make_calibrator,
+    make_player,
+    ros_context,
+    wait_for,
+)
 from test_online import assert_same
 
 from stellar_cal_ros.cli import main
@@ -210,21 +218,13 @@ def test_toy_batch_method(tmp_path, capsys):
 def test_toy_method_runs_in_the_calibrator_node(toy, ros_context, tmp_path):  # noqa: F811
     """method:=toy: the node builds the toy's filter and configuration from the registry, and
     its result equals the toy's replay of the same bag."""
-    from rclpy.parameter import Parameter
-
     from stellar_cal_ros.io.bag import BagReader
-    from stellar_cal_ros.nodes.player import PlayerNode
 
     ref = replay(BAG, load_calibration(PRIOR), "toy")
     prefix = "/y" + uuid.uuid4().hex[:8]
     cal = make_calibrator(ros_context, prefix, tmp_path, method="toy")
     assert type(cal.filter_config).__name__ == "ToyConfig"
-    player = PlayerNode(f"player_{prefix[1:]}", context=ros_context, cli_args=remaps(prefix),
-                        use_global_arguments=False, parameter_overrides=[
-                            Parameter("bag", value=str(BAG)), Parameter("rate", value=0.0),
-                            Parameter("progress_topic",
-                                      value=f"/calibrator_{prefix[1:]}/data_clock"),
-                            Parameter("wait_for_subscribers_s", value=5.0)])
+    player = make_player(ros_context, prefix, BAG)
     with BagReader(BAG) as r:
         n_imu = r.topics()["/imu/data"].message_count
     with Spinner(ros_context, cal, player):

@@ -51,6 +51,13 @@ except ImportError as exc:
 
 EXCERPT_S = 60.0
 DOMAIN_ID = 1 + (os.getpid() + 37) % 100
+#: Fast DDS's transports for every participant of these tests (this process's contexts and the
+#: node processes they start): UDP on loopback only.  With the default shared-memory transport a
+#: starved process stopped receiving: beside 2 CPU hogs the kill -9 test's player (in this
+#: process) got no ~/data_clock ack at all after a completed handshake, while another process
+#: received them (doc/benchmarks.md, "The kill -9 test's transport race").  Fast DDS reads the
+#: variable when a participant is created (each rclpy.Context).
+TRANSPORT = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
 BAG, PRIOR, _ = psce_bag(EXCERPT_S)
 
 
@@ -59,6 +66,8 @@ def ros_context(monkeypatch):
     if _IMPORT_ERROR is not None:
         pytest.fail(f"rclpy / stellar_cal_msgs not importable ({_IMPORT_ERROR})")
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    for name, value in TRANSPORT.items():
+        monkeypatch.setenv(name, value)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=DOMAIN_ID)
     try:
@@ -121,6 +130,20 @@ def make_calibrator(ctx, prefix, tmp_path, **params):
         parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
 
 
+def make_player(ctx, prefix, bag, **params):
+    """A player of ``bag`` into ``make_calibrator(ctx, prefix, ...)``'s node: as fast as the
+    node takes the messages in (``rate`` 0: flow control on its ``~/data_clock``), after the
+    handshake (its latched ``~/inputs_matched``: the node's subscriptions have matched every
+    played topic's publishers, so no message is lost before the node is listening)."""
+    ns = f"/calibrator_{prefix[1:]}"
+    values = {"bag": str(bag), "rate": 0.0, "progress_topic": ns + "/data_clock",
+              "match_topic": ns + "/inputs_matched", "wait_for_subscribers_s": 20.0}
+    values.update(params)
+    return PlayerNode(f"player_{prefix[1:]}_{uuid.uuid4().hex[:4]}", context=ctx,
+                      cli_args=remaps(prefix), use_global_arguments=False,
+                      parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
+
+
 def wait_for(pred, timeout=20.0, what="condition"):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -141,14 +164,7 @@ def test_bag_through_topics_equals_offline_replay(ros_context, excerpt, tmp_path
     path, prior, ref, counts = excerpt
     prefix = "/t" + uuid.uuid4().hex[:8]
     cal = make_calibrator(ros_context, prefix, tmp_path)
-    player = PlayerNode(f"player_{prefix[1:]}", context=ros_context, cli_args=remaps(prefix),
-                        use_global_arguments=False, parameter_overrides=[
-                            Parameter("bag", value=str(path)), Parameter("rate", value=0.0),
-                            Parameter("progress_topic",
-                                      value=f"/calibrator_{prefix[1:]}/data_clock"),
-                            Parameter("match_topic",
-                                      value=f"/calibrator_{prefix[1:]}/inputs_matched"),
-                            Parameter("wait_for_subscribers_s", value=20.0)])
+    player = make_player(ros_context, prefix, path)
     ns = f"/calibrator_{prefix[1:]}"
     est = Collector(player, CalibrationEstimate, ns + "/estimate")
     info = Collector(player, CameraInfo, ns + "/camera_info")
@@ -226,14 +242,7 @@ def test_swaying_base_live_equals_its_replay(ros_context, tmp_path):
     prefix = "/w" + uuid.uuid4().hex[:8]
     cal = make_calibrator(ros_context, prefix, tmp_path, method="swaying_base",
                           prior_file=str(prior_path))
-    player = PlayerNode(f"player_{prefix[1:]}", context=ros_context, cli_args=remaps(prefix),
-                        use_global_arguments=False, parameter_overrides=[
-                            Parameter("bag", value=str(bag)), Parameter("rate", value=0.0),
-                            Parameter("progress_topic",
-                                      value=f"/calibrator_{prefix[1:]}/data_clock"),
-                            Parameter("match_topic",
-                                      value=f"/calibrator_{prefix[1:]}/inputs_matched"),
-                            Parameter("wait_for_subscribers_s", value=20.0)])
+    player = make_player(ros_context, prefix, bag)
     ns = f"/calibrator_{prefix[1:]}"
     est = Collector(player, CalibrationEstimate, ns + "/estimate")
     diag = Collector(player, DiagnosticArray, prefix + "/diagnostics")
@@ -477,7 +486,8 @@ def test_residual_bytes_are_the_residual_message(excerpt):
 
 # ---------------------------------------------------------------------------- live faults
 def _node_env() -> dict[str, str]:
-    return dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+    return dict(os.environ, **TRANSPORT, ROS_DOMAIN_ID=str(DOMAIN_ID),
+                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                 PYTHONPATH=str(Path(__file__).resolve().parents[1]), PYTHONUNBUFFERED="1")
 
 
@@ -520,14 +530,9 @@ def test_player_warns_and_counts_an_unmet_wait(ros_context):
     from types import SimpleNamespace
 
     prefix = "/u" + uuid.uuid4().hex[:8]
-    player = PlayerNode(f"player_{prefix[1:]}", context=ros_context, cli_args=remaps(prefix),
-                        use_global_arguments=False, parameter_overrides=[
-                            Parameter("bag", value=str(BAG)), Parameter("rate", value=0.0),
-                            Parameter("duration_s", value=0.2),
-                            Parameter("ack_timeout_s", value=0.01),
-                            Parameter("progress_topic", value=prefix + "/data_clock"),
-                            Parameter("match_topic", value=prefix + "/inputs_matched"),
-                            Parameter("wait_for_subscribers_s", value=0.3)])
+    player = make_player(ros_context, prefix, BAG, duration_s=0.2, ack_timeout_s=0.01,
+                         progress_topic=prefix + "/data_clock",
+                         match_topic=prefix + "/inputs_matched", wait_for_subscribers_s=0.3)
     warned = []
     logger = player.get_logger()
     player.get_logger = lambda: SimpleNamespace(warning=warned.append, info=logger.info)
@@ -581,16 +586,13 @@ def _flood_setup(ros_context, excerpt, tmp_path, prefix, rate_hz):
     cal = make_calibrator(ros_context, prefix, tmp_path, estimate_rate_hz=rate_hz,
                           diagnostics_rate_hz=5.0, checkpoint_file="", output_file="",
                           warn_throttle_s=1.0)
-    player = PlayerNode(f"player_{prefix[1:]}", context=ros_context, cli_args=remaps(prefix),
-                        use_global_arguments=False, parameter_overrides=[
-                            Parameter("bag", value=str(path)), Parameter("rate", value=0.0),
-                            Parameter("progress_topic", value=ns + "/data_clock"),
-                            Parameter("wait_for_subscribers_s", value=5.0)])
     src = rclpy.create_node(f"flood_{prefix[1:]}", context=ros_context)
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
     pub = src.create_publisher(StarCentroidArray, prefix + "/star_tracker/stars", qos)
     est = Collector(src, CalibrationEstimate, ns + "/estimate")
     diag = Collector(src, DiagnosticArray, prefix + "/diagnostics")
+    # after the flood's publisher: the handshake waits for the node to match it too
+    player = make_player(ros_context, prefix, path)
     return cal, player, src, pub, est, diag
 
 
@@ -786,25 +788,22 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
     prefix = "/r" + uuid.uuid4().hex[:8]
     name = f"calibrator_{prefix[1:]}"
     ck, out = tmp_path / "ck.npz", tmp_path / "out.yaml"
+    # a checkpoint a second (the node's default is one a minute): the first process's last
+    # one holds every message played at most ~1 s after the playback.  Each is ~0.4-0.8 MB
+    # (the filter's IMU tail; doc/interfaces.md, checkpoint file); at 0.2 s the process spent
+    # up to half its executor's time writing them
     argv = [sys.executable, "-m", "stellar_cal_ros.nodes.calibrator", *remaps(prefix),
             "-r", f"__node:={name}", "-p", f"prior_file:={PRIOR}", "-p",
-            f"checkpoint_file:={ck}", "-p", "checkpoint_period_s:=0.2", "-p",
+            f"checkpoint_file:={ck}", "-p", "checkpoint_period_s:=1.0", "-p",
             f"output_file:={out}", "-p", "reorder_window_s:=0.05"]
 
     def play(duration_s):
-        player = PlayerNode(f"player_{uuid.uuid4().hex[:6]}", context=ros_context,
-                            cli_args=remaps(prefix), use_global_arguments=False,
-                            parameter_overrides=[
-                                Parameter("bag", value=str(path)), Parameter("rate", value=0.0),
-                                Parameter("duration_s", value=duration_s),
-                                # a restarted process may report no progress for over the
-                                # default 5 s on a loaded machine; the player would then carry
-                                # on, the node's queue overflow and the result differ (load ~20)
-                                Parameter("ack_timeout_s", value=60.0),
-                                Parameter("progress_topic", value=f"/{name}/data_clock"),
-                                # the handshake; a process starting at load ~20 took > 20 s
-                                Parameter("match_topic", value=f"/{name}/inputs_matched"),
-                                Parameter("wait_for_subscribers_s", value=120.0)])
+        # a restarted process may report no progress for over the default ack_timeout_s
+        # (5 s) on a loaded machine; the player would then carry on, the node's queue
+        # overflow and the result differ (load ~20); the handshake of a process starting at
+        # load ~20 took > 20 s
+        player = make_player(ros_context, prefix, path, duration_s=duration_s,
+                             ack_timeout_s=60.0, wait_for_subscribers_s=120.0)
         with Spinner(ros_context, player):
             stats = player.play()
         player.destroy_node()
