@@ -767,6 +767,17 @@ def _received(path) -> int:
     return c["imu_received"] + c["frames_received"] + c["env_received"] + c["fixes_received"]
 
 
+def _wait_received(path, n: int, timeout: float = 60.0) -> int:
+    """Poll a calibrator's periodic checkpoint until it counts ``n`` input messages (or the
+    timeout); returns its last count (-1: no checkpoint yet)."""
+    deadline = time.monotonic() + timeout
+    got = -1
+    while time.monotonic() < deadline and got < n:
+        time.sleep(0.2)
+        got = _received(path) if Path(path).exists() else -1
+    return got
+
+
 def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tmp_path):
     """The calibrator process is SIGKILLed mid-bag; restarted, it resumes from its periodic
     checkpoint, the whole bag is played again (what it already has is dropped, counted)
@@ -789,9 +800,9 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
     name = f"calibrator_{prefix[1:]}"
     ck, out = tmp_path / "ck.npz", tmp_path / "out.yaml"
     # a checkpoint a second (the node's default is one a minute): the first process's last
-    # one holds every message played at most ~1 s after the playback.  Each is ~0.4-0.8 MB
-    # (the filter's IMU tail; doc/interfaces.md, checkpoint file); at 0.2 s the process spent
-    # up to half its executor's time writing them
+    # one holds every message played at most ~1 s after the playback.  Each is 0.4-1.1 MB
+    # (the filter's IMU tail; doc/interfaces.md §6) and takes 60-90 ms of wall time to write
+    # (fsync): at the 0.2 s used before, a third to a half of the executor's time
     argv = [sys.executable, "-m", "stellar_cal_ros.nodes.calibrator", *remaps(prefix),
             "-r", f"__node:={name}", "-p", f"prior_file:={PRIOR}", "-p",
             f"checkpoint_file:={ck}", "-p", "checkpoint_period_s:=1.0", "-p",
@@ -814,11 +825,7 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
                              stderr=subprocess.STDOUT, text=True)
     try:
         played = play(EXCERPT_S / 2).messages
-        deadline = time.monotonic() + 60
-        n1 = -1
-        while time.monotonic() < deadline and n1 < played:
-            time.sleep(0.2)  # until the periodic checkpoint holds every message played
-            n1 = _received(ck) if ck.exists() else -1
+        n1 = _wait_received(ck, played)  # until the checkpoint holds every message played
         first.send_signal(signal.SIGKILL)
         first.wait(10)
     finally:
@@ -830,7 +837,9 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
                               stderr=subprocess.STDOUT, text=True)
     try:
         stats = play(0.0)
-        time.sleep(1.0)
+        # the last messages may still be on their way when play() returns (a fixed 1 s wait
+        # lost 2 of 6 364 beside 2 CPU hogs): stop the process once it has them
+        _wait_received(ck, n1 + stats.messages)
         second.send_signal(signal.SIGINT)
         log_text = second.communicate(timeout=30)[0]
     finally:
