@@ -950,6 +950,59 @@ def test_the_gate_mdb_is_restated_by_runs_on_the_bag():
     assert "by runs on this bag (first order sx 2.86e+03 ppm" in printing.mdb_phrase(entry)
 
 
+def test_a_gate_set_rows_test_mdb_holds_at_its_weaker_sign():
+    """The test's MDB beside a gate's (``mdb_test``, which ``--verify`` checks) at both signs.
+
+    ``dt_step`` s23 round 2 (:func:`_dt_step_bag`: NIS/dof 8.35, not screened), the
+    image-plane tilt and gyro_scale_factor the candidates: the excess gate sets both printed
+    MDBs.  The probe renders each gate-set row at ± its test MDB for residuals as stated
+    (``mdb_test`` / √8.35) and measures the increment's even part: gyro_scale_factor's is
+    nil (linear in its size: no run, its test MDB as the first order states it), the
+    tilt's far above 0.05² λ₀, so the current model runs on the bag's noise-free twin at
+    both signs; the minus sign responds below λ₀ and the test MDB grows by the step and
+    secant, the printed (gate's) MDB at least it.  Fails on coord (no ``twin_probe``, the
+    first-order test MDB printed: its twins at -MDB respond 8.5 against 19.4)."""
+    from stellar_cal_ros.diagnosis import discover, printing, reliability_probe
+    from stellar_cal_ros.diagnosis.discover import hidden_effects
+
+    runs, prior = _dt_step_bag(0.0)
+    r = discover.Round(runs, method_spec("psce"), runs.facts(), 0.5, prior)
+    base, cands, _ = discover.rank_round(r, prior, ["time_offset"],
+                                         ["gyro_scale_factor", "image_plane_tilt"],
+                                         condition=False, screen=False, measure_noise=False)
+    entries = {e["effect"]: e for e in hidden_effects(base, cands)}
+    tilt, scale = entries["image_plane_tilt"], entries["gyro_scale_factor"]
+    assert tilt["mdb_set_by"] == scale["mdb_set_by"] == "explained_gate"
+    first = dict(tilt["mdb_test"])
+    scale_test = dict(scale["mdb_test"])
+    reliability_probe.start_probes(list(entries.values()), base, runs,
+                                   {c.effect: c.screen for c in cands})()
+    lam0 = tilt["lam0"]
+    for p, probe in scale["twin_probe"].items():
+        assert probe["even_energy"] < 1e-6 * lam0 and "lam_plus" not in probe, (p, probe)
+    assert scale["mdb_test"] == scale_test and "mdb_first_order" not in scale
+    probe = tilt["twin_probe"]["tau_y"]
+    assert probe["size"] == pytest.approx(first["tau_y"] / np.sqrt(8.35), rel=0.05)
+    assert probe["size"] == pytest.approx(3.76e-3, rel=0.02)
+    assert probe["even_energy"] > lam0
+    # measured 29.6 / 7.14 (λ₀ 15.6); the minus sign at 1.48x: 14.1
+    assert probe["lam_plus"] == pytest.approx(29.6, rel=0.1)
+    assert probe["lam_minus"] == pytest.approx(7.1, rel=0.1)
+    assert probe["step"] == pytest.approx(np.sqrt(lam0 / probe["lam_minus"]))
+    assert probe["lam_step"] == pytest.approx(14.1, rel=0.1)
+    assert tilt["mdb_first_order"]["tau_y"] == first["tau_y"]
+    # 10.9 -> 17.0 mrad (5.89 mrad for residuals as stated, where the reduced case's
+    # twins respond 21.5 at the minus sign: test_verify)
+    assert tilt["mdb_test"]["tau_y"] / first["tau_y"] == pytest.approx(1.57, rel=0.05)
+    assert tilt["mdb"]["tau_y"] >= tilt["mdb_test"]["tau_y"]
+    # tau_x: the plus sign is the weaker (5.9 against 34.0)
+    assert tilt["twin_probe"]["tau_x"]["lam_plus"] < lam0 < tilt["twin_probe"]["tau_x"][
+        "lam_minus"]
+    assert tilt["mdb_test"]["tau_x"] > tilt["mdb_first_order"]["tau_x"]
+    assert "by probe runs on the bag's noise-free twin; first order tau_y" in \
+        printing.mdb_phrase(tilt)
+
+
 def test_a_rate_effects_hiding_row_says_the_clock_rule_refuses_it():
     """The final model's clock rule marks the rate-shaped rows of 'what could still be hiding'.
 

@@ -552,3 +552,76 @@ def test_the_mdb_is_stated_for_the_decisions_score_test(clean):
         assert e["alpha"] == pytest.approx(ALPHA / (2 * len(tested)), rel=1e-12)
         assert e["lam0"] == pytest.approx(reliability.lambda0(e["alpha"], score.dof),
                                           rel=1e-12)
+
+
+def test_the_test_mdb_is_restated_at_its_weaker_sign_from_twin_responses():
+    """``twin_signs`` + ``restate_test``: the test's MDB where one sign responds below λ₀.
+
+    A gate-set row (``mdb_set_by`` "explained_gate"): ``mdb_test`` grows by the secant's
+    factor, the printed (gate's) MDB is at least it and the line says both sizes; a row the
+    test set: ``mdb`` itself, ``mdb_set_by`` "probe" (as :func:`both_signs`).  The twin's
+    ``I`` is its own (no dispersion).  ``stated_size``: the test's MDB over √dispersion, at
+    most the plausible size (where ``--verify`` injects, :func:`verify.twin_scale`)."""
+    from stellar_cal_ros.diagnosis import printing, verify
+
+    info = np.diag([4.0, 1.0])  # λ = Δsᵀ I⁻¹ Δs
+    gate = {"effect": "image_plane_tilt", "mdb": {"tau_y": 0.12}, "lam0": 10.0,
+            "mdb_test": {"tau_y": 0.012}, "dispersion": 4.0, "mdb_set_by": "explained_gate",
+            "mdb_leaning": {"tau_y": -0.07}, "hidden_size": {"tau_y": 0.01},
+            "plausible_size": {"tau_y": 0.01}}
+    assert reliability_probe.stated_size(gate, "tau_y") == pytest.approx(0.006)
+    assert verify.twin_scale(gate, "tau_y") == pytest.approx(0.6)
+    # λ₊ = 16, λ₋ = 4: the step sqrt(10 / 4) at the minus sign
+    step = reliability_probe.twin_signs(gate, "tau_y", (np.array([8.0, 0.0]), info),
+                                        (np.array([-4.0, 0.0]), info), 0.006)
+    assert step == (-1.0, pytest.approx(np.sqrt(2.5)))
+    assert gate["twin_probe"]["tau_y"] == {"size": 0.006, "lam_plus": pytest.approx(16.0),
+                                           "lam_minus": pytest.approx(4.0)}
+    # a response growing as the size squared from 4: λ₀ at the step itself
+    reliability_probe.restate_test(gate, "tau_y", step[1], 4.0 * step[1] ** 2)
+    assert gate["mdb_test"]["tau_y"] == pytest.approx(0.012 * np.sqrt(2.5))
+    assert gate["mdb_first_order"] == {"tau_y": 0.012} and gate["mdb"]["tau_y"] == 0.12
+    assert verify.twin_scale(gate, "tau_y") == pytest.approx(0.012 * np.sqrt(2.5) / 2 / 0.01)
+    text = printing.mdb_phrase(gate)
+    assert ("the test alone: tau_y 19 mrad (either sign, by probe runs on the bag's "
+            "noise-free twin; first order tau_y 12 mrad)") in text, text
+    # above the gate's: the printed MDB is the test's
+    big = dict(gate, mdb={"tau_y": 0.013}, mdb_test={"tau_y": 0.012}, twin_probe={})
+    reliability_probe.twin_signs(big, "tau_y", (np.array([8.0, 0.0]), info),
+                                 (np.array([-4.0, 0.0]), info), 0.006)
+    reliability_probe.restate_test(big, "tau_y", np.sqrt(2.5), 10.0)
+    assert big["mdb"]["tau_y"] == big["mdb_test"]["tau_y"] > 0.013
+    # a row the test set (no gate): the printed MDB, mdb_set_by "probe"
+    test = {"effect": "image_plane_tilt", "mdb": {"tau_y": 0.004}, "lam0": 10.0,
+            "hidden_size": {"tau_y": 0.004}, "plausible_size": {"tau_y": 0.01}}
+    assert reliability_probe.stated_size(test, "tau_y") == 0.004
+    step = reliability_probe.twin_signs(test, "tau_y", (np.array([8.0, 0.0]), info),
+                                        (np.array([-4.0, 0.0]), info), 0.004)
+    reliability_probe.restate_test(test, "tau_y", step[1], 4.0 * step[1] ** 3)
+    assert test["mdb_set_by"] == "probe" and test["mdb_test"] == {"tau_y": 0.004}
+    assert test["mdb"]["tau_y"] == pytest.approx(0.004 * 2.5 ** (1 / 3))
+    assert verify.twin_scale(test, "tau_y") == pytest.approx(2.5 ** (1 / 3))
+    assert "either sign, by probe runs on the bag's noise-free twin; first order 4 mrad" \
+        in printing.mdb_phrase(test)
+    # both signs at least λ₀: nothing restated
+    held = {"mdb": {"a": 1.0}, "lam0": 10.0}
+    assert reliability_probe.twin_signs(held, "a", (np.array([8.0, 0.0]), info),
+                                        (np.array([-7.0, 0.0]), info), 1.0) is None
+    assert held["mdb"] == {"a": 1.0} and "mdb_set_by" not in held
+
+
+def test_even_energy_is_the_whitened_energy_of_the_increments_even_part():
+    """(Δ₊ + Δ₋)/2 per star both twins hold, over the per-axis variance (half the
+    variance per star), plus the IMU's over its σ; 0 for increments odd in the size."""
+    hit = np.array([True, False, True])
+    plus = reliability_probe.Injection(
+        (np.zeros(1, int), hit, np.array([[1.0, 0.5], [2.0, 0.0]])),
+        np.array([[0.1, 0.0, 0.0]]), None)
+    minus = reliability_probe.Injection(
+        (np.zeros(1, int), hit, np.array([[-0.8, -0.5], [-2.0, 0.0]])), None, None)
+    got = reliability_probe.even_energy(plus, minus, 0.02, (0.05, 1.0))
+    assert got == pytest.approx(0.1 ** 2 / 0.01 + 0.05 ** 2 / 0.05 ** 2)
+    odd = reliability_probe.Injection(
+        (np.zeros(1, int), hit, np.array([[-1.0, -0.5], [-2.0, 0.0]])),
+        np.array([[-0.1, 0.0, 0.0]]), None)
+    assert reliability_probe.even_energy(plus, odd, 0.02, (0.05, 1.0)) == 0.0

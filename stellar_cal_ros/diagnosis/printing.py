@@ -453,7 +453,9 @@ def mdb_phrase(entry: dict[str, Any]) -> str:
     it (``gate_probe``, :func:`~.reliability_probe.gate_secant`), the first-order size
     too.  Where probe runs restated it at both signs (``mdb_set_by`` "probe"), the
     first-order size follows, at which the biases are stated: ``tau_x 7.13 mrad (either
-    sign, by probe runs; first order 4.54 mrad, the size of the biases)``.
+    sign, by probe runs; first order 4.54 mrad, the size of the biases)``; "by probe runs
+    on the bag's noise-free twin" where they ran there (``twin_probe``, a model that does
+    not fit the bag), and so for the test's MDB beside a gate's (``mdb_first_order``).
     """
     from stellar_cal_ros.diagnosis.discover import MIN_EXPLAINED
 
@@ -463,21 +465,31 @@ def mdb_phrase(entry: dict[str, Any]) -> str:
                          for n, v in mdb.items())
 
     by = entry.get("mdb_set_by")
+
+    def where(n: str) -> str:
+        on_twin = "step" in entry.get("twin_probe", {}).get(n, {})
+        return "by probe runs" + (" on the bag's noise-free twin" if on_twin else "")
+
     if by == "explained_gate":
         ran = {n: p["size"] for n, p in entry.get("gate_probe", {}).items()
                if entry["mdb"].get(n) != p["size"]}
+        restated = entry.get("mdb_first_order", {})
+        test = ", ".join(
+            sizes({n: v}) + (f" (either sign, {where(n)}; first order "
+                             f"{sizes({n: restated[n]})})" if n in restated else "")
+            for n, v in entry["mdb_test"].items())
         return (f"{sizes(entry['mdb'])} (the size at which an effect of either sign removes "
                 f"{MIN_EXPLAINED:.0%} of the excess variance, as an add needs"
                 + (f", by runs on this bag (first order {sizes(ran)})" if ran else "")
                 + "; of the sign "
                 f"the misfit leans to from {sizes(entry.get('mdb_leaning', {}), '+')}; the "
-                f"test alone: {sizes(entry['mdb_test'])})")
+                f"test alone: {test})")
     first = entry.get("mdb_test", {}) if by == "probe" else {}
 
     def one(n: str, v: float) -> str:
         text = reliability.shown(entry["effect"] + "." + n, v)
         if n in first and first[n] != v:
-            text += (" (either sign, by probe runs; first order "
+            text += (f" (either sign, {where(n)}; first order "
                      f"{reliability.shown(entry['effect'] + '.' + n, first[n])}, the size "
                      "of the biases)")
         return text

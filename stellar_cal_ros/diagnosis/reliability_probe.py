@@ -26,6 +26,13 @@ responds below the λ₀ the MDB is stated for (the tilt's second order), the MD
 for both signs (:func:`both_signs`, :func:`secant`: one run more).  Cost: two runs per
 flagged (effect, parameter), three where the MDB is restated; none on a bag where no row is
 flagged.
+
+Where the model does not fit the bag (:data:`FITS`) the bag's score responses are not its
+twins' (the misfit's residuals move with the state), and ``--verify`` checks the test's MDB
+on twins that fit: there the test MDB of a flagged row, and of a row whose MDB the excess
+gate set (``mdb_test``), is checked at both signs on the bag's noise-free twin
+(:func:`scores_on_twin`, :func:`twin_signs`, :func:`restate_test`), for the effects whose
+increment is not odd in the size (:func:`even_energy`, from renders: no run for the others).
 """
 
 from __future__ import annotations
@@ -52,6 +59,16 @@ AGREE = 0.1
 SCORE = "_score"
 #: the key of a probe run's values that holds its window's excess variance per star (px²)
 EXCESS = "_excess"
+#: a round's screening run fits where its mean NIS / dof (the score test's dispersion,
+#: :func:`~.screening.dispersion`) is at most this: there an effect's score responds on the
+#: bag as on its twins and the probe's runs on the bag restate the MDB at both signs; above
+#: it (``dt_step`` s23: 8.3) the per-sign responses are measured on the bag's noise-free
+#: twin (:func:`scores_on_twin`)
+FITS = 1.2
+#: an effect whose increment's even part (:func:`even_energy`) holds at most this share of
+#: √λ₀ at the size probed responds alike at both signs (within ~10 % in λ): its test MDB is
+#: not run at both signs
+LINEAR = 0.05
 #: the twin's renderer draws no noise: the increment is the effect alone
 _NOISELESS = NoiseScales(star=1e-12, gyro=1e-12, accel=1e-12)
 
@@ -365,15 +382,121 @@ def clock_runs(runs, prior, effects: tuple[str, ...], calibration, probes: tuple
                       runs.noise, runs.classes, calibration, probes)()
 
 
+def scores_on_twin(data, spec, prior, effects: tuple[str, ...], fraction: float, noise,
+                   classes: tuple[type, ...], calibration,
+                   probes: tuple[tuple[str, tuple[float, ...]], ...],
+                   limits: tuple[float, ...] | None = None,
+                   noise_variance: float = float("nan")) -> list[Any]:
+    """Each probe's score response on the bag's noise-free twin: ``(Δs, I)`` per probe.
+
+    As :func:`measure_on_bag`, on the twin of the bag under ``calibration``
+    (:func:`rendered`: the bag's motion, stamps and stars, no noise, no misfit) instead of
+    the bag: the current model's run on the twin with each probe injected scores its
+    effect, paired against the run on the twin alone (``Δs``; ``I``: that run's
+    information, which a twin that fits divides by nothing), as ``discover --verify``'s
+    twins respond (:mod:`~.verify`).  On a bag the model does not fit the bag's own
+    response is not that: the tilt's score on ``dt_step`` s23 (screen dispersion 8.3)
+    moved 756 / 214 (in λ) at ± its MDB where its noise-free twin moves 29.6 / 7.1 (and
+    ``--verify``'s twin of seed 1 31 / 9.6: the misfit's residuals times the score's own
+    change with the state).  ``None`` for a probe whose
+    run (or its effect's run without it) fails.
+
+    ``limits``: ``probes`` are pairs (``+size``, ``−size``), one limit each; a pair whose
+    increments' even part (:func:`even_energy`, whitened by ``noise_variance`` per star and
+    the twin's IMU noise) is at most its limit is not run (the response is then odd in the
+    size: either sign responds alike) and gives ``{"even": E}``; the others
+    ``{"even": E, "plus": (Δs, I), "minus": ...}``.
+    """
+    from stellar_cal_ros.diagnosis.noise import stated_scales
+    from stellar_cal_ros.diagnosis.runstats import register_effect_classes
+    from stellar_cal_ros.diagnosis.twin import twin_scene
+
+    register_effect_classes(classes)
+    imu = [_moves_imu(calibration, spec.name, e, d) for e, d in probes]
+    scene = twin_scene(data, calibration, spec.name, imu=True)
+    twin = rendered(data, calibration, spec.name, scene=scene)
+    plain = rendered_stars(data, calibration, spec.name, scene=scene, imu=any(imu))
+    # the increments on the twin's stars (its frames hold the stars the scene renders)
+    injections = [injection_of(twin, calibration, spec.name, e, np.asarray(d), plain, scene,
+                               imu=m) for (e, d), m in zip(probes, imu, strict=True)]
+    del plain
+    even: list[float] = []
+    run = list(range(len(probes)))
+    if limits is not None:
+        rates = noise or stated_scales(calibration)
+        dt = data.nominal_dt or float(np.median(np.diff(scene.t)))
+        sig = (scene.arw * rates.gyro / np.sqrt(dt), scene.vrw * rates.accel / np.sqrt(dt))
+        even = [even_energy(injections[2 * k], injections[2 * k + 1], noise_variance, sig)
+                for k in range(len(limits))]
+        run = [i for i in run if not even[i // 2] <= limits[i // 2]]
+    del scene
+
+    def scored(run, effect_id: str, delta: np.ndarray):
+        item = spec.screen(run, [effect_id]).get(effect_id)
+        if item is None or len(item) <= 5:
+            return None
+        return np.asarray(item[5], dtype=float), np.atleast_2d(np.asarray(item[2], float))
+
+    asked = [probes[i] for i in run]
+    alone = tuple(dict.fromkeys((e, tuple(0.0 for _ in d)) for e, d in asked))
+    nothing = Injection((np.full(len(twin.frames), -1), np.zeros(0, bool), np.zeros((0, 2))),
+                        None, None)
+    rows = _runs_on_bag(twin, spec, prior, effects, fraction, noise, classes, calibration,
+                        alone, scored, injections=[nothing] * len(alone)) if alone else []
+    zero = dict(zip((e for e, _ in alone), rows, strict=True))
+    moved = _runs_on_bag(twin, spec, prior, effects, fraction, noise, classes, calibration,
+                         tuple(asked), scored, injections=[injections[i] for i in run])
+    got: list[Any] = [None] * len(probes)
+    for i, (effect_id, _), row in zip(run, asked, moved, strict=True):
+        z = zero[effect_id]
+        got[i] = None if row is None or z is None else (row[0] - z[0], z[1])
+    if limits is None:
+        return got
+    return [{"even": even[k], **({"plus": got[2 * k], "minus": got[2 * k + 1]}
+                                 if 2 * k in run else {})} for k in range(len(limits))]
+
+
+def even_energy(plus: Injection, minus: Injection, noise_variance: float,
+                imu_sigma: tuple[float, float]) -> float:
+    """The whitened energy of the part of an effect's increment that is even in its size.
+
+    ``plus``, ``minus``: the increments at ± a size (:func:`injection_of`); per star hit by
+    both ``(Δ₊ + Δ₋) / 2`` over the per-axis variance ``noise_variance / 2`` (the window's
+    variance per star, both axes), and per IMU sample over ``imu_sigma`` (gyro, accel).  A
+    score's response ``λ± = |P(o ± e)|²`` (``o``, ``e`` the odd and even parts, ``P`` the
+    score's projection of the whitened innovations, which never hold more than the
+    increment's energy) then differs between the signs by at most ``|√λ± − |Po|| ≤ √E``:
+    E is 0 for an effect linear in its parameters (a k3, an aspect, a scale factor:
+    ≤ 2e-12 rendered on ``dt_step`` s23), the image-plane tilt's second order not (37-41
+    there, λ₀ 19.4).
+    """
+    def rows(inj: Injection) -> np.ndarray:
+        _, hit, step = inj.stars
+        out = np.full((len(hit), 2), np.nan)
+        out[hit] = step
+        return out
+
+    e = 0.5 * (rows(plus) + rows(minus))
+    energy = float(np.nansum(e * e) / (0.5 * noise_variance))
+    for a, b, sig in ((plus.imu_w, minus.imu_w, imu_sigma[0]),
+                      (plus.imu_f, minus.imu_f, imu_sigma[1])):
+        if a is None and b is None:
+            continue
+        half = 0.5 * ((0.0 if a is None else a) + (0.0 if b is None else b))
+        energy += float(np.sum(np.square(half)) / sig ** 2)
+    return energy
+
+
 def _runs_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float, noise,
                  classes: tuple[type, ...], calibration,
                  probes: tuple[tuple[str, tuple[float, ...]], ...], measure,
-                 tables: bool = False) -> list[Any]:
+                 tables: bool = False, injections: list | None = None) -> list[Any]:
     """Per probe, ``measure(run, effect, delta)`` of the model's run with it injected.
 
     The runs of :func:`measure_on_bag` and :func:`clock_on_bag`: every injection rendered
     first, then one run each (its effect scored where the method screens, unless
     ``tables``: the run keeps its residual table instead); ``None`` for one that fails.
+    ``injections``: the probes' increments already rendered (:func:`scores_on_twin`).
     """
     from stellar_cal_ros.diagnosis.runstats import (
         forget_prepared,
@@ -392,26 +515,11 @@ def _runs_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float, n
     # every injection first (one scene and plain twin for all), then the runs: the twins
     # (on a 2-h bag the scene ~100 MB, each render ~20-60 MB) are not held while the filter
     # replays, nor a previous probe's moved bag while the next is rendered
-    injections: list[Injection | Exception] = []
-    plain = scene = None
-    imu = [_moves_imu(calibration, spec.name, e, d) for e, d in probes]
     # the probe's runs replay other data: the direction effects' tables the round's runs
     # shared on this bag (≈ 20 MB an effect on a 2-h bag) are not held through its renders
     forget_prepared(data)
-    for (effect_id, delta), moves in zip(probes, imu, strict=True):
-        try:
-            if scene is None:
-                from stellar_cal_ros.diagnosis.twin import twin_scene
-
-                scene = twin_scene(data, calibration, spec.name, imu=any(imu))
-            # the plain twin renders the IMU if any probe of this call moves it
-            plain = plain if plain is not None else rendered_stars(
-                data, calibration, spec.name, scene=scene, imu=any(imu))
-            injections.append(injection_of(data, calibration, spec.name, effect_id,
-                                           np.asarray(delta), plain, scene, imu=moves))
-        except Exception as exc:
-            injections.append(exc)
-    del plain, scene
+    if injections is None:
+        injections = _rendered_injections(data, spec, calibration, probes)
     out: list[Any] = []
     for (effect_id, delta), inj in zip(probes, injections, strict=True):
         score = {"consider": [effect_id]} if spec.screen is not None and not tables else {}
@@ -430,6 +538,30 @@ def _runs_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float, n
                         type(exc).__name__, exc)
             out.append(None)
     return out
+
+
+def _rendered_injections(data, spec, calibration, probes: tuple) -> list:
+    """Each probe's :class:`Injection` on ``data`` (one scene and plain twin for all).
+
+    An exception in place of one that could not be rendered (its run reports it).
+    """
+    injections: list[Injection | Exception] = []
+    plain = scene = None
+    imu = [_moves_imu(calibration, spec.name, e, d) for e, d in probes]
+    for (effect_id, delta), moves in zip(probes, imu, strict=True):
+        try:
+            if scene is None:
+                from stellar_cal_ros.diagnosis.twin import twin_scene
+
+                scene = twin_scene(data, calibration, spec.name, imu=any(imu))
+            # the plain twin renders the IMU if any probe of this call moves it
+            plain = plain if plain is not None else rendered_stars(
+                data, calibration, spec.name, scene=scene, imu=any(imu))
+            injections.append(injection_of(data, calibration, spec.name, effect_id,
+                                           np.asarray(delta), plain, scene, imu=moves))
+        except Exception as exc:
+            injections.append(exc)
+    return injections
 
 
 def score_step(score: np.ndarray | None, screen) -> np.ndarray | None:
@@ -494,25 +626,100 @@ def secant(entry: dict[str, Any], parameter: str, step: float, lam_step: float) 
     (``p ≤ 0``).  ``probe[parameter]``: ``step`` and ``lam_step``.
     """
     probe = entry["probe"][parameter]
-    worse = min(probe["lam_plus"], probe["lam_minus"])
     probe.update(step=step, lam_step=lam_step)
-    lam0 = float(entry["lam0"])
+    beyond = secant_beyond(probe, float(entry["lam0"]), step, lam_step)
+    if beyond is not None:
+        entry["mdb"][parameter] = float(entry["mdb_test"][parameter] * step * beyond)
+
+
+def secant_beyond(probe: dict[str, float], lam0: float, step: float, lam_step: float
+                  ) -> float | None:
+    """Where the weaker sign reaches ``lam0``, in units of ``step`` x the probed size.
+
+    (:func:`secant`.)  ``probe``: ``lam_plus``, ``lam_minus`` (the responses at ± the
+    probed size); ``lam_step`` the weaker sign's at ``step`` x it.  ``None`` where the
+    response did not grow (the step is then kept).
+    """
+    worse = min(probe["lam_plus"], probe["lam_minus"])
     if not (lam_step > worse > 0.0 and step > 1.0):
-        return
+        return None
     power = np.log(lam_step / worse) / np.log(step)
-    entry["mdb"][parameter] = float(entry["mdb_test"][parameter] * step
-                                    * (lam0 / lam_step) ** (1.0 / power))
+    return float((lam0 / lam_step) ** (1.0 / power))
 
 
-def _started(runs, args: tuple, probes: tuple, per: int) -> list[Callable[[], list]]:
-    """``probes`` (in groups of ``per``) started by ``runs.later`` in parts, one a worker."""
+def fits(screen) -> bool:
+    """Whether the round's score test of an effect ran on a model that fits (:data:`FITS`)."""
+    return screen is None or float(screen.dispersion) <= FITS
+
+
+def stated_size(entry: dict[str, Any], parameter: str) -> float:
+    """The size of ``parameter`` the printed test MDB is for residuals as stated.
+
+    ``mdb_test`` (the test's, where the excess gate set the printed MDB) or ``mdb``, over
+    √``dispersion`` (a round that does not fit states its MDB for its dispersion), at most
+    the plausible size: where ``discover --verify`` injects its twins (:func:`~.verify.
+    twin_scale`) and where :func:`scores_on_twin` probes the test's MDB at both signs.
+    """
+    d = float(entry.get("dispersion", 1.0))
+    return min(float(entry.get("mdb_test", entry["mdb"])[parameter]) / np.sqrt(d),
+               float(entry["plausible_size"].get(parameter, np.inf)))
+
+
+def twin_signs(entry: dict[str, Any], parameter: str, plus, minus, size: float
+               ) -> tuple[float, float] | None:
+    """The test MDB's responses at ± ``size`` on the noise-free twin (:func:`scores_on_twin`).
+
+    ``plus``, ``minus``: ``(Δs, I)`` of the two runs.  ``twin_probe[parameter]`` keeps
+    ``size``, ``lam_plus``, ``lam_minus``; where the weaker sign
+    responds below λ₀, ``(sign, c₁)`` (:func:`both_signs`' step) for one run more
+    (:func:`restate_test`).
+    """
+    if plus is None or minus is None:
+        return None
+    lam = {"lam_plus": reliability.score_response(*plus),
+           "lam_minus": reliability.score_response(*minus)}
+    entry.setdefault("twin_probe", {}).setdefault(parameter, {}).update(size=float(size), **lam)
+    lam0, worse = float(entry["lam0"]), min(lam.values())
+    if not 0.0 < worse < lam0:
+        return None
+    return (1.0 if lam["lam_plus"] <= lam["lam_minus"] else -1.0), float(np.sqrt(lam0 / worse))
+
+
+def restate_test(entry: dict[str, Any], parameter: str, step: float, lam_step: float) -> None:
+    """The test MDB of ``parameter`` at its weaker sign, from the twin's runs (:func:`secant`).
+
+    The printed test MDB grows by the secant's factor (``step`` where the response did not
+    grow); the first order's is kept (``mdb_first_order``).  Where the excess gate set the
+    printed MDB (``mdb_set_by`` "explained_gate") that is ``mdb_test`` and the printed MDB
+    is at least it; else the printed MDB, ``mdb_set_by`` "probe" and ``mdb_test`` the
+    first order, as :func:`both_signs` states it.
+    """
+    probe = entry["twin_probe"][parameter]
+    probe.update(step=step, lam_step=lam_step)
+    beyond = secant_beyond(probe, float(entry["lam0"]), step, lam_step)
+    key = "mdb_test" if entry.get("mdb_set_by") == "explained_gate" else "mdb"
+    first = float(entry[key][parameter])
+    entry.setdefault("mdb_first_order", {})[parameter] = first
+    if key == "mdb":
+        entry.setdefault("mdb_test", dict(entry["mdb"]))
+        entry["mdb_set_by"] = "probe"
+    entry[key][parameter] = first * step * (1.0 if beyond is None else beyond)
+    entry["mdb"][parameter] = max(float(entry["mdb"][parameter]), entry[key][parameter])
+
+
+def _started(runs, args: tuple, probes: tuple, per: int, fn: Callable | None = None
+             ) -> list[Callable[[], list]]:
+    """``probes`` (in groups of ``per``) of ``fn`` (default :func:`measure_on_bag`) started.
+
+    By ``runs.later``, one part a worker.
+    """
     # one call renders the bag's twin once for all its probes; on several workers the
     # groups are split over them, each part rendering the twin itself (the same
     # noise-free numbers), so the probe's runs are not one worker's serial tail
     groups = len(probes) // per
     parts = max(1, min(runs.workers, groups))
     bounds = [per * (groups * i // parts) for i in range(parts + 1)]
-    return [runs.later(measure_on_bag, *args, probes[a:b])
+    return [runs.later(fn or measure_on_bag, *args, probes[a:b])
             for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
@@ -661,6 +868,20 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
     gates = [(entry, parameter) for entry in entries for parameter in gated(entry)]
     if not todo and not gates:
         return lambda: 0
+    screens = screens or {}
+    # the test's MDB at both signs on the noise-free twin: a gate-set row's (the twin has no
+    # gate: discover --verify checks the test's), and a flagged row's where the model does
+    # not fit the bag (its response on the bag is not the twins')
+    on_twin = list({(id(entry), parameter): (entry, parameter)
+                    for entry, parameter in gates + [
+                        (e, q) for e, q in todo if not fits(screens.get(e["effect"]))]
+                    if screens.get(entry["effect"]) is not None
+                    and runs.spec.screen is not None}.values())
+    sizes = [stated_size(entry, parameter) for entry, parameter in on_twin]
+    twin_probes = tuple((entry["effect"], tuple(injection.parameter_delta(
+        entry["effect"], parameter, sign * size).tolist()))
+        for (entry, parameter), size in zip(on_twin, sizes, strict=True)
+        for sign in (1.0, -1.0))
     probes = tuple((entry["effect"], tuple(injection.parameter_delta(
         entry["effect"], parameter, sign * entry["hidden_size"][parameter]).tolist()))
         for entry, parameter in todo for sign in (1.0, -1.0))
@@ -670,6 +891,9 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
             runs.classes, base.calibration)
     pending = _started(runs, args, probes, 2) if probes else []
     pending_gates = _started(runs, args, hard, 1) if hard else []
+    limits = tuple(LINEAR ** 2 * float(entry["lam0"]) for entry, _ in on_twin)
+    pending_twin = runs.later(scores_on_twin, *args, twin_probes, limits,
+                              float(base.window["noise_variance"])) if on_twin else None
 
     def done() -> int:
         w = base.window
@@ -696,13 +920,37 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
                 s_plus, s_minus = plus.pop(SCORE, None), minus.pop(SCORE, None)
                 apply(entry, parameter, injection.paired_shift(before, plus),
                       injection.paired_shift(before, minus), sigma)
-                screen = (screens or {}).get(entry["effect"])
+                screen = screens.get(entry["effect"])
+                if not fits(screen):  # measured on the twin (below)
+                    continue
                 step = both_signs(entry, parameter, score_step(s_plus, screen),
                                   score_step(s_minus, screen), screen)
                 if step is not None:
                     steps.append((entry, parameter, screen, *step))
+        got_twin = pending_twin() if pending_twin is not None else []
+        twin_steps = []
+        made = len(probes) + len(hard)
+        for (entry, parameter), size, got in zip(on_twin, sizes, got_twin, strict=True):
+            entry.setdefault("twin_probe", {})[parameter] = {"size": float(size),
+                                                             "even_energy": got["even"]}
+            if "plus" not in got:  # odd in the size: either sign responds alike
+                continue
+            made += 2
+            step = twin_signs(entry, parameter, got["plus"], got["minus"], size)
+            if step is not None:
+                twin_steps.append((entry, parameter, size, *step))
+        if twin_steps:  # one run more each on the twin: the weaker sign at the one step
+            again_twin = tuple((entry["effect"], tuple(injection.parameter_delta(
+                entry["effect"], parameter, sign * factor * size).tolist()))
+                for entry, parameter, size, sign, factor in twin_steps)
+            rows = [row for part in _started(runs, args, again_twin, 1, scores_on_twin)
+                    for row in part()]
+            for (entry, parameter, _, _, factor), row in zip(twin_steps, rows, strict=True):
+                restate_test(entry, parameter, factor,
+                             reliability.score_response(*row) if row is not None else 0.0)
+            made += len(again_twin)
         if not steps and not regate:
-            return len(probes) + len(hard)
+            return made
         # one run more per restated MDB: the weaker sign at the one step's size (a secant)
         again = tuple((entry["effect"], tuple(injection.parameter_delta(
             entry["effect"], parameter, sign * factor * entry["mdb_test"][parameter]).tolist()))
@@ -718,6 +966,6 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
             e = energy(row)
             if e is not None:
                 gate_secant(entry, parameter, e)
-        return len(probes) + len(hard) + len(again)
+        return made + len(again)
 
     return done

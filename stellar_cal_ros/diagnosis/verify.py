@@ -56,7 +56,7 @@ import numpy as np
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.diagnosis import injection
 from stellar_cal_ros.diagnosis.reliability import score_response
-from stellar_cal_ros.diagnosis.reliability_probe import own_shift
+from stellar_cal_ros.diagnosis.reliability_probe import own_shift, stated_size
 from stellar_cal_ros.effects import registry
 
 #: the printed numbers hold when the paired score response's power is within these bounds
@@ -86,18 +86,18 @@ def twin_scale(entry: dict[str, Any], param: str) -> float:
     has no such gate: it gets the test's MDB (``mdb_test``) for residuals as stated, and
     likewise on a round that fits.  Where the probe's runs restated the MDB at both signs
     (``mdb_set_by`` "probe", :func:`~.reliability_probe.both_signs`: an image-plane tilt's
-    weaker sign), the twin, which responds as the user's bag does, gets the printed MDB:
-    the share is then above 1 (the biases, printed at the first-order size, scaled alike).
+    weaker sign), the twin, which responds as the user's bag does, gets the printed MDB
+    (for residuals as stated): the share is then above 1 (the biases, printed at the
+    first-order size, scaled alike).  (:func:`~.reliability_probe.stated_size`: the size
+    the probe's runs check the test's MDB at, at both signs.)
     """
     d = float(entry.get("dispersion", 1.0))
     hidden = float(entry["hidden_size"][param])
     if entry.get("mdb_set_by") == "probe" and hidden > 0.0:
-        return float(entry["mdb"][param]) / hidden
+        return float(entry["mdb"][param]) / np.sqrt(d) / hidden
     if (d == 1.0 and not entry.get("mdb_set_by")) or not hidden > 0.0:
         return 1.0
-    stated = min(float(entry.get("mdb_test", entry["mdb"])[param]) / np.sqrt(d),
-                 float(entry["plausible_size"].get(param, np.inf)))
-    return min(stated / hidden, 1.0)
+    return min(stated_size(entry, param) / hidden, 1.0)
 
 
 def verify(data, calibration, method: str, effects: list[str], entries: list[dict],
