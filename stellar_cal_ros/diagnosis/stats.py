@@ -1468,13 +1468,13 @@ def time_trend(t: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None,
 
     The mean of ``y`` (``Σ w y / Σ w`` with ``weights``) over :data:`TREND_BINS` stretches of
     the rows ``use`` (default all) in time order, linear between the stretches' mean times
-    (and beyond, along the end segments; at least half the lowest mean): ``y / f`` is then the noise with its time trend taken out, and the
-    factors are scaled so that ``Σ w y / f = Σ w y`` (the mean over the rows kept).  None
-    where the stretches' means span at most :data:`TREND_SPAN` (or too few rows): no
-    trend worth taking out.  The caller decides that the trend is significant (the noise
-    whose σ grows over the run, unseen case ``noise_ramp``: a spread or a grouping tested
-    against the stars in view, or the gravity direction, which change with time too, reads
-    the time trend as theirs).
+    (and beyond, along the end segments; at least half the lowest mean): ``y / f`` is then
+    the noise with its time trend taken out, and the factors are scaled so that ``Σ w y / f
+    = Σ w y`` (the mean over the rows kept).  None where the stretches' means span at most
+    :data:`TREND_SPAN` (or too few rows): no trend worth taking out.  The caller decides
+    that the trend is significant (the noise whose σ grows over the run, unseen case
+    ``noise_ramp``: a spread or a grouping tested against the stars in view, or the gravity
+    direction, which change with time too, reads the time trend as theirs).
     """
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -1485,7 +1485,10 @@ def time_trend(t: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None,
     idx = np.flatnonzero(ok)
     if len(idx) < 20 * TREND_BINS:
         return None
-    parts = np.array_split(idx[np.argsort(t[idx], kind="stable")], TREND_BINS)
+    ti = t[idx]
+    # (a residual table's rows are in time order: sorted only where they are not)
+    parts = np.array_split(idx if np.all(ti[1:] >= ti[:-1]) else
+                           idx[np.argsort(ti, kind="stable")], TREND_BINS)
     sw = np.array([w[p].sum() for p in parts])
     at = np.array([w[p] @ t[p] for p in parts]) / sw
     level = np.array([w[p] @ y[p] for p in parts]) / sw
