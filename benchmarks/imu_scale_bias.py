@@ -72,6 +72,19 @@ def start(sim, at_truth: bool):
     return prior
 
 
+def scale_prior_sigma(k: float) -> None:
+    """Every model's prior σ times ``k`` from now on (``--prior-scale``)."""
+    if k == 1.0:
+        return
+    init = star_model.StarModel.__init__
+
+    def scaled(self, *a, **kw):
+        init(self, *a, **kw)
+        self.initial_sigma = self.initial_sigma * k
+
+    star_model.StarModel.__init__ = scaled
+
+
 def fit(xs: np.ndarray, ll: np.ndarray, at: float) -> tuple[float, float, float]:
     """(maximum, curvature, score at ``at``) of ``ll`` over the grid ``xs``."""
     i = int(np.argmax(ll))
@@ -96,14 +109,7 @@ def main() -> None:
     ap.add_argument("--fractions", default="0.5")
     args = ap.parse_args()
     fractions = [float(f) for f in args.fractions.split(",")]
-    if args.prior_scale != 1.0:
-        init = star_model.StarModel.__init__
-
-        def scaled(self, *a, k=args.prior_scale, **kw):
-            init(self, *a, **kw)
-            self.initial_sigma = self.initial_sigma * k
-
-        star_model.StarModel.__init__ = scaled
+    scale_prior_sigma(args.prior_scale)
     truth = math.log(args.gyro)
     xs = GRID + truth
     runner, spec = method_runner("psce"), method_spec("psce")
