@@ -699,11 +699,7 @@ def _smear2(sim, seed, px=0.1):
     # (a thresholded centroid of a streak: the faint tail clipped more the longer the
     # streak), 0.1 px at the run's 95th-percentile speed; then the stated noise.  A bias
     # *linear* in the image velocity is a time offset (in the library); its square is not
-    vel = tracker_errors.image_velocity(sim)
-    s95 = float(np.percentile(np.concatenate([np.linalg.norm(v, axis=1) for v in vel]), 95))
-    for f, v in zip(sim.star_frames, vel, strict=True):
-        speed = np.linalg.norm(v, axis=1)
-        f.uv = np.asarray(f.uv, dtype=float) + px * (speed / s95)[:, None] * v / s95
+    tracker_errors.speed_squared_smear(sim, px)
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 

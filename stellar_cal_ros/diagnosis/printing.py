@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.diagnosis import leads, reliability
+from stellar_cal_ros.diagnosis import leads, reliability, stats
 from stellar_cal_ros.diagnosis.clock import COMPONENT, GYRO_COMPONENT
 from stellar_cal_ros.diagnosis.installation_step import COMPONENT as STEP
 from stellar_cal_ros.diagnosis.shape_drift import SHAPES
@@ -76,6 +76,9 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
         span = "amplitude"
     elif u["component"] == "along motion":  # stats.motion_spread: a noise in the stamps
         what, span = "residual spread along each star's motion", "rms at that image speed"
+    elif u["component"] == stats.CURVE_COMPONENT:  # stats.speed_curve: beyond a time offset
+        span = ("at most, up to the 95th percentile of image speed, beyond the time offset's "
+                "share")
     elif u["component"] in (COMPONENT, GYRO_COMPONENT):  # diagnosis.clock: the offset
         # changes over the run, or the remainder along the motion grows along a slew
         # (the regressor says what changes: no 'residual vs')

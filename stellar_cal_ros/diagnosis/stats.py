@@ -996,6 +996,58 @@ def motion_spread(sub: Table, focal: tuple[float, float], centre: tuple[float, f
     return None if got is None else motion_test(*got)
 
 
+#: regressor name of :func:`speed_curve` (its component :data:`CURVE_COMPONENT`)
+CURVE = "image rate squared, beyond a time offset (a centroid bias along the motion that " \
+    "grows faster than the speed: not in the library)"
+#: :func:`speed_curve`'s component
+CURVE_COMPONENT = "along-motion"
+
+
+def speed_curve(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
+                R_imu_st: np.ndarray | None) -> RegressorFinding | None:
+    """A centroid bias along each star's image motion that grows as its speed squared.
+
+    A bias along the motion *linear* in the image velocity ``u = J ω`` (px/s) is a time
+    offset (in the library); one that grows faster (a streak's clipped tail: unseen case
+    ``smear2``, 0.1 px at the 95th percentile speed ∝ speed²) leaves, beside the offset the
+    model fits (its least-squares projection, 0.383 ms there), a remainder no other test
+    reads: the frames' attitude fit takes it out of the within-frame residuals (a shift
+    alike on a frame's stars), :func:`motion_spread` cancels it between consecutive frames,
+    the clock's parts (:mod:`~stellar_cal_ros.diagnosis.clock`) see a constant.  The
+    innovations (without a rolling shutter's fit, :func:`motion_columns`), the velocity
+    ``u`` and ``u |u|``, each whitened by the innovation covariance (u and v of every
+    star): ``u |u|`` and the innovations less their least-squares fit by ``u`` (any time
+    offset the model leaves, Frisch–Waugh), then :func:`frame_robust_t` of one on the
+    other, the frames the units.  The size: the fitted ``c (s² − k s)`` (``k s`` the
+    offset's share of ``s²``) at its largest over speeds ``s`` up to the 95th percentile of
+    the stars' image speed, px.  ``None`` without the rate columns, 20 stars or 10 frames.
+    """
+    got = motion_columns(sub, focal, centre, R_imu_st)
+    if got is None:
+        return None
+    ok, vel, nu, _ = got
+    cov = {k: np.asarray(sub[k], dtype=float)[ok] for k in ("s_uu", "s_uv", "s_vv")}
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    a, b, y = (whitened({"du": x[:, 0], "dv": x[:, 1], **cov}).ravel()
+               for x in (vel, vel * speed[:, None], nu))
+    aa = float(a @ a)
+    if not aa > 0:
+        return None
+    k = float(a @ b) / aa  # px/s: the offset's share of the speed squared
+    b = b - k * a
+    y = y - (float(a @ y) / aa) * a
+    frame = np.repeat(np.asarray(sub["frame"])[ok], 2)
+    if len(np.unique(frame)) < 10:
+        return None
+    t, p = frame_robust_t(b, y, frame)
+    bb = float(b @ b)
+    c = float(b @ y) / bb if bb > 0 else 0.0
+    s95 = float(np.percentile(speed, 95))
+    # c (s² − k s) over 0 ≤ s ≤ s95: at s95, or at its turning point k / 2
+    size = abs(c) * max(abs(s95 * (s95 - k)), 0.25 * k * k if 0.0 < k < 2.0 * s95 else 0.0)
+    return RegressorFinding(CURVE, CURVE_COMPONENT, float(t), float(p), size)
+
+
 def accepted_offsets(res: Table, mask: np.ndarray, focal: tuple[float, float],
                      centre: tuple[float, float], R_imu_st: np.ndarray | None,
                      shared: dict | None = None
@@ -1562,8 +1614,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     regs = regressors(sub, camera_centre)
     shaped = shaped_tests(sub, inside, sig, focal, camera_centre, R_imu_st, height,
                           track_lags, width) if inside is not None else []
-    # the family's size, at most (the stamp-noise test of motion_spread among them)
-    bound = 4 * len(regs) + len(shaped) + len(extra or []) + 1
+    # the family's size, at most (motion_spread's and speed_curve's tests among them)
+    bound = 4 * len(regs) + len(shaped) + len(extra or []) + 2
     if any(f.regressor.startswith(SUBPIXEL) and f.p_value * bound < alpha for f in shaped):
         # the other regressors are tested on the residuals without the pixel locking (it
         # would lend them its per-dwell means: a 'radial vs gravity' lead, measured)
@@ -1614,6 +1666,9 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
         # a noise in the frames' stamps: along each star's motion, frame to frame
         moving = motion_spread(sub, focal, camera_centre, R_imu_st)
         tests += [moving] if moving is not None else []
+        # a bias along the motion that grows faster than a time offset's
+        curve = speed_curve(sub, focal, camera_centre, R_imu_st)
+        tests += [curve] if curve is not None else []
     tests += [t for t in (extra or []) if t is not None]
     m_tests = max(len(tests), 1)
     if family is not None:
