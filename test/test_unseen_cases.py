@@ -199,7 +199,8 @@ def test_a_bias_along_the_motion_growing_as_speed_squared_is_unexplained_beyond_
     s95 = np.percentile(np.concatenate(speeds), 95)  # (the run's, as the bias is made)
     bias = 0.1 * np.linalg.norm(vel, axis=1)[:, None] * vel / s95**2
     sub["du"], sub["dv"] = bias[:, 0], bias[:, 1]
-    truth = stats.speed_curve(sub, focal, centre, run.calibration.R_imu_st).slope_px
+    truth = stats.speed_curve(sub, stats.motion_columns(sub, focal, centre,
+                                                        run.calibration.R_imu_st)).slope_px
     assert found[0].slope_px == pytest.approx(truth, rel=0.3), (found[0].slope_px, truth)
     _, clean = lines(_bag(lambda sim: None, noise_free=False, duration=600.0))
     assert not [f for f in clean if f.regressor == stats.CURVE], clean[:3]

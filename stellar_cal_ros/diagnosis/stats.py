@@ -969,7 +969,8 @@ MOTION = "image rate, frame to frame (a noise in the frames' stamps"
 
 
 def motion_spread(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
-                  R_imu_st: np.ndarray | None) -> RegressorFinding | None:
+                  R_imu_st: np.ndarray | None, columns: tuple | None = None
+                  ) -> RegressorFinding | None:
     """A noise in the frames' stamps: spread along each star's image motion, frame to frame.
 
     A frame stamped ``δ_k`` off its exposure (a clock read with a jitter) moves every star
@@ -990,9 +991,10 @@ def motion_spread(sub: Table, focal: tuple[float, float], centre: tuple[float, f
     stamp moves a star that way); then :func:`motion_test` on their differences between
     consecutive frames (an error that lasts longer than a frame interval, as the filter's
     along a slew or a constant time offset, cancels).  ``None`` without the installation,
-    the rate columns or 10 pairs of frames.
+    the rate columns or 10 pairs of frames.  ``columns``: :func:`motion_columns` of ``sub``
+    when the caller has them (:func:`regressor_tests`: :func:`speed_curve` reads them too).
     """
-    got = frame_offsets(sub, focal, centre, R_imu_st)
+    got = frame_offsets(sub, focal, centre, R_imu_st, columns)
     return None if got is None else motion_test(*got)
 
 
@@ -1003,8 +1005,7 @@ CURVE = "image rate squared, beyond a time offset (a centroid bias along the mot
 CURVE_COMPONENT = "along-motion"
 
 
-def speed_curve(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
-                R_imu_st: np.ndarray | None) -> RegressorFinding | None:
+def speed_curve(sub: Table, columns: tuple | None) -> RegressorFinding | None:
     """A centroid bias along each star's image motion that grows as its speed squared.
 
     A bias along the motion *linear* in the image velocity ``u = J ω`` (px/s) is a time
@@ -1020,12 +1021,12 @@ def speed_curve(sub: Table, focal: tuple[float, float], centre: tuple[float, flo
     offset the model leaves, Frisch–Waugh), then :func:`frame_robust_t` of one on the
     other, the frames the units.  The size: the fitted ``c (s² − k s)`` (``k s`` the
     offset's share of ``s²``) at its largest over speeds ``s`` up to the 95th percentile of
-    the stars' image speed, px.  ``None`` without the rate columns, 20 stars or 10 frames.
+    the stars' image speed, px.  ``columns``: :func:`motion_columns` of ``sub``; ``None``
+    without them (no rate columns), or with fewer than 10 frames.
     """
-    got = motion_columns(sub, focal, centre, R_imu_st)
-    if got is None:
+    if columns is None:
         return None
-    ok, vel, nu, _ = got
+    ok, vel, nu, _ = columns
     cov = {k: np.asarray(sub[k], dtype=float)[ok] for k in ("s_uu", "s_uv", "s_vv")}
     speed = np.hypot(vel[:, 0], vel[:, 1])
     a, b, y = (whitened({"du": x[:, 0], "dv": x[:, 1], **cov}).ravel()
@@ -1072,16 +1073,17 @@ def accepted_offsets(res: Table, mask: np.ndarray, focal: tuple[float, float],
 
 
 def frame_offsets(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
-                  R_imu_st: np.ndarray | None) -> tuple[np.ndarray, ...] | None:
+                  R_imu_st: np.ndarray | None, columns: tuple | None = None
+                  ) -> tuple[np.ndarray, ...] | None:
     """``(frames, g, I, g⊥, I⊥, speed)`` of :func:`motion_spread` (``None``: no columns).
 
     Per frame of ``sub`` (frame indices in time order): the scores ``g = Σ uᵀ S⁻¹ ν`` and
     information ``I = Σ uᵀ S⁻¹ u`` of a stamp offset along each star's image velocity
     ``u`` (px/s), the same across it; ``ν`` the innovations without their fit by a
     rolling shutter's shape; ``speed``: the 95th percentile of the stars' image speed
-    (px/s).
+    (px/s).  ``columns``: :func:`motion_columns` of ``sub`` already made (not made again).
     """
-    got = motion_columns(sub, focal, centre, R_imu_st)
+    got = motion_columns(sub, focal, centre, R_imu_st) if columns is None else columns
     if got is None:
         return None
     ok, vel, nu, Si = got
@@ -1664,11 +1666,13 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     tests += shaped
     if focal is not None:
         # a noise in the frames' stamps: along each star's motion, frame to frame
-        moving = motion_spread(sub, focal, camera_centre, R_imu_st)
-        tests += [moving] if moving is not None else []
+        # (the stars' image velocity and innovations along it: made once for both)
+        cols = motion_columns(sub, focal, camera_centre, R_imu_st)
+        moving = motion_spread(sub, focal, camera_centre, R_imu_st, cols) \
+            if cols is not None else None
         # a bias along the motion that grows faster than a time offset's
-        curve = speed_curve(sub, focal, camera_centre, R_imu_st)
-        tests += [curve] if curve is not None else []
+        curve = speed_curve(sub, cols)
+        tests += [t for t in (moving, curve) if t is not None]
     tests += [t for t in (extra or []) if t is not None]
     m_tests = max(len(tests), 1)
     if family is not None:
