@@ -150,7 +150,7 @@ class Injection:
 
 
 def injection_of(data, calibration, method: str, effect_id: str, delta: np.ndarray,
-                 plain=None, scene=None, imu: bool = True) -> Injection:
+                 plain=None, scene=None, imu: bool = True, onto=None) -> Injection:
     """The increment of ``effect_id`` at ``delta`` (its units) on the user's bag.
 
     The difference of two noise-free twins (:func:`rendered`) of the bag under
@@ -158,14 +158,17 @@ def injection_of(data, calibration, method: str, effect_id: str, delta: np.ndarr
     effect: per star of each frame (by stamp and catalogue id; a star the twin leaves off
     the detector keeps its centroid) and per IMU sample.  ``scene``: see :func:`rendered`;
     ``imu=False`` where the effect leaves the IMU alone (:func:`moves_imu`; ``plain`` may
-    then hold the user's samples).
+    then hold the user's samples).  ``onto``: the bag whose star rows the increments are
+    laid on (default ``data``; the probe's noise-free twin, which may hold fewer stars than
+    the bag its scene was made from: the renders stay on ``data``).
     """
     plain = plain if plain is not None else rendered_stars(data, calibration, method,
                                                            scene=scene, imu=imu)
     moved = rendered_stars(data, calibration, method,
                            {effect_id: injection.simulation_value(effect_id, delta)}, scene,
                            imu=imu)
-    stars = star_steps(data.frames, _twin_stars(plain), _twin_stars(moved))
+    stars = star_steps((data if onto is None else onto).frames, _twin_stars(plain),
+                       _twin_stars(moved))
     if not imu:
         return Injection(stars, None, None)
     return Injection(stars, _step(moved.imu_w, plain.imu_w), _step(moved.imu_f, plain.imu_f))
@@ -416,9 +419,10 @@ def scores_on_twin(data, spec, prior, effects: tuple[str, ...], fraction: float,
     scene = twin_scene(data, calibration, spec.name, imu=True)
     twin = rendered(data, calibration, spec.name, scene=scene)
     plain = rendered_stars(data, calibration, spec.name, scene=scene, imu=any(imu))
-    # the increments on the twin's stars (its frames hold the stars the scene renders)
-    injections = [injection_of(twin, calibration, spec.name, e, np.asarray(d), plain, scene,
-                               imu=m) for (e, d), m in zip(probes, imu, strict=True)]
+    # the increments rendered from the bag's scene, laid on the twin's stars (by stamp and
+    # catalogue id: a star the twin left off the detector is not hit)
+    injections = [injection_of(data, calibration, spec.name, e, np.asarray(d), plain, scene,
+                               imu=m, onto=twin) for (e, d), m in zip(probes, imu, strict=True)]
     del plain
     even: list[float] = []
     run = list(range(len(probes)))
