@@ -415,15 +415,14 @@ def scores_on_twin(data, spec, prior, effects: tuple[str, ...], fraction: float,
     from stellar_cal_ros.diagnosis.twin import twin_scene
 
     register_effect_classes(classes)
-    imu = [_moves_imu(calibration, spec.name, e, d) for e, d in probes]
     scene = twin_scene(data, calibration, spec.name, imu=True)
     twin = rendered(data, calibration, spec.name, scene=scene)
-    plain = rendered_stars(data, calibration, spec.name, scene=scene, imu=any(imu))
     # the increments rendered from the bag's scene, laid on the twin's stars (by stamp and
     # catalogue id: a star the twin left off the detector is not hit)
-    injections = [injection_of(data, calibration, spec.name, e, np.asarray(d), plain, scene,
-                               imu=m, onto=twin) for (e, d), m in zip(probes, imu, strict=True)]
-    del plain
+    injections = _rendered_injections(data, spec, calibration, probes, scene, onto=twin)
+    for failed in injections:
+        if isinstance(failed, Exception):
+            raise failed
     even: list[float] = []
     run = list(range(len(probes)))
     if limits is not None:
@@ -544,13 +543,15 @@ def _runs_on_bag(data, spec, prior, effects: tuple[str, ...], fraction: float, n
     return out
 
 
-def _rendered_injections(data, spec, calibration, probes: tuple) -> list:
+def _rendered_injections(data, spec, calibration, probes: tuple, scene=None,
+                         onto=None) -> list:
     """Each probe's :class:`Injection` on ``data`` (one scene and plain twin for all).
 
     An exception in place of one that could not be rendered (its run reports it).
+    ``scene``: the bag's twin scene if already made; ``onto``: see :func:`injection_of`.
     """
     injections: list[Injection | Exception] = []
-    plain = scene = None
+    plain = None
     imu = [_moves_imu(calibration, spec.name, e, d) for e, d in probes]
     for (effect_id, delta), moves in zip(probes, imu, strict=True):
         try:
@@ -562,7 +563,8 @@ def _rendered_injections(data, spec, calibration, probes: tuple) -> list:
             plain = plain if plain is not None else rendered_stars(
                 data, calibration, spec.name, scene=scene, imu=any(imu))
             injections.append(injection_of(data, calibration, spec.name, effect_id,
-                                           np.asarray(delta), plain, scene, imu=moves))
+                                           np.asarray(delta), plain, scene, imu=moves,
+                                           onto=onto))
         except Exception as exc:
             injections.append(exc)
     return injections
