@@ -532,12 +532,15 @@ def test_runs_can_be_copied_away_and_still_checked(runs, tmp_path):
 def test_statistics_blocks_merge_exactly(runs):
     """The live node's blocks (HalfWindowStats) merge into what one RunStats over the same
     frames holds, whiteness lag across the seams included; a checkpoint keeps them."""
-    import dataclasses
-
     from test_online import bag_events, feed
 
     from stellar_cal_ros.methods.driver import Calibrator
-    from stellar_cal_ros.methods.results import HalfWindowStats, RunStats, stats_from_dict
+    from stellar_cal_ros.methods.results import (
+        HalfWindowStats,
+        RunStats,
+        stats_from_dict,
+        stats_state,
+    )
 
     cal = Calibrator(load_calibration(runs["prior_a"]), "psce")
     updates = [o.update for o in feed(cal, bag_events(runs["bag_a"])) + cal.finish()
@@ -554,7 +557,10 @@ def test_statistics_blocks_merge_exactly(runs):
     for key in ("frames", "stars", "nis_per_dof", "loglik", "rms_px"):
         assert a[key] == pytest.approx(b[key], rel=1e-12), key
     assert a["whiteness"]["p_value"] == pytest.approx(b["whiteness"]["p_value"], rel=1e-9)
-    again = stats_from_dict(dataclasses.asdict(blocks))
+    again = stats_from_dict(stats_state(blocks))  # the checkpoint's: blocks as one array
+    assert again.blocks == blocks.blocks and again.starts == blocks.starts  # field for field
+    assert all(type(getattr(x, n)) is type(getattr(y, n)) for x, y in zip(
+        again.blocks, blocks.blocks, strict=True) for n in ("frames", "sum_nis", "eval_start"))
     assert again.current().summary()["nis_per_dof"] == blocks.current().summary()["nis_per_dof"]
     half = blocks.current()
     assert half.eval_start >= blocks.t_first + 0.5 * (blocks.t_last - blocks.t_first)

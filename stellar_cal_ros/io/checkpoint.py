@@ -15,6 +15,10 @@ CheckpointError` with one line naming what is wrong.
 
 Files written before the checksum existed (a bare ``.npz`` with the metadata in ``meta``) are
 still read, without verification.
+
+:class:`CheckpointWriter` runs :func:`write_checkpoint` in a background thread (the live
+node's executor goes on with the frames meanwhile): one write in flight, the newest state
+submitted wins, and :meth:`~CheckpointWriter.flush` waits for the last one.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import logging
 import os
 import struct
 import tempfile
+import threading
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -34,7 +39,7 @@ import numpy as np
 
 from stellar_cal_ros.errors import CheckpointError
 
-__all__ = ["MAGIC", "read_checkpoint", "write_checkpoint"]
+__all__ = ["MAGIC", "CheckpointWriter", "read_checkpoint", "write_checkpoint"]
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +99,103 @@ def write_checkpoint(path: str | os.PathLike[str], arrays: dict[str, Any],
         raise
     _fsync_dir(path.parent)
     return path
+
+
+class CheckpointWriter:
+    """:func:`write_checkpoint` to one path in a background thread.
+
+    :meth:`submit` hands over a state (arrays the caller no longer changes) and returns at
+    once.  One write is in flight at a time; a state submitted meanwhile waits, and a newer
+    submission replaces it (the newest state wins, an older one is never written after
+    it).  Each write is atomic (temporary file, fsync, rename), so a process killed during
+    one leaves the previous checkpoint whole.  :meth:`flush` waits until every submitted
+    state is written; :meth:`close` flushes and ends the thread (a later :meth:`submit`
+    starts another).
+
+    Parameters
+    ----------
+    path : str or Path
+        The checkpoint file.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.written = 0  #: writes completed
+        self._cond = threading.Condition()
+        self._pending: tuple[dict[str, Any], dict[str, Any]] | None = None
+        self._busy = False
+        self._stop = False
+        self._error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+
+    def submit(self, arrays: dict[str, Any], meta: dict[str, Any]) -> None:
+        """Write this state next (replacing a state still waiting); returns at once."""
+        with self._cond:
+            self._pending = (arrays, meta)
+            self._stop = False
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, daemon=True,
+                                                name="checkpoint-writer")
+                self._thread.start()
+            self._cond.notify_all()
+
+    def take_error(self) -> BaseException | None:
+        """The error of a write that failed since the last call (None: none failed)."""
+        with self._cond:
+            err, self._error = self._error, None
+        return err
+
+    def flush(self, timeout: float | None = None) -> None:
+        """Wait until every submitted state is written; raise a failed write's error.
+
+        Raises
+        ------
+        TimeoutError
+            Still writing after ``timeout`` seconds.
+        """
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._pending is None and not self._busy,
+                                       timeout):
+                raise TimeoutError(f"{self.path}: checkpoint still being written after "
+                                   f"{timeout} s")
+        err = self.take_error()
+        if err is not None:
+            raise err
+
+    def close(self, timeout: float | None = None) -> None:
+        """:meth:`flush`, then end the thread."""
+        try:
+            self.flush(timeout)
+        finally:
+            with self._cond:
+                self._stop = True
+                thread = self._thread
+                self._cond.notify_all()
+            if thread is not None:
+                thread.join(timeout)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._pending is not None or self._stop)
+                if self._pending is None:
+                    self._thread = None  # under the lock: a later submit starts another
+                    return
+                (arrays, meta), self._pending = self._pending, None
+                self._busy = True
+            done, err = False, None
+            try:
+                write_checkpoint(self.path, arrays, meta)
+                done = True
+            except Exception as exc:  # noqa: BLE001 - kept for the owner (flush/take_error)
+                err = exc
+            finally:  # (whatever ends the write: flush must not wait for ever)
+                with self._cond:
+                    self._busy = False
+                    self.written += done
+                    if err is not None:
+                        self._error = err
+                    self._cond.notify_all()
 
 
 def _fsync_dir(directory: Path) -> None:

@@ -17,11 +17,13 @@ The file's metadata is named by this schema, not by attribute names of the code:
   (``t0_ns``, ``nominal_dt``, ``imu_max_ns``, ``last_imu_ns``, ``last_frame_ns``,
   ``first_frame_ns``, ``imu_leap``), ``frame_index``, ``faults``, the buffers (``imu_queue``,
   ``staged``, pending ``frames`` with their inputs and whether they await identification),
-  ``env`` (temperature and pressure series), ``fixes``, ``convergence`` and ``stats``;
+  ``env`` (temperature and pressure series), ``fixes``, ``convergence`` and ``stats``
+  (:func:`~stellar_cal_ros.methods.results.stats_state`: a live node's blocks as one array);
 * ``filter`` (absent before the filter starts) — ``blocks`` (name, size, kind, navigation of
   each block of the error state, checked against the restored filter's), ``covariance``,
   ``nominal`` (the values the blocks correct: attitude, θ, a method's navigation values),
-  ``sensitivity`` (consider parameters), ``counters``, ``imu`` (the IMU buffer),
+  ``sensitivity`` (consider parameters), ``counters``, ``imu`` (the IMU buffer: the samples
+  the filter still reads, from the one before its current sample; a save drops the older),
   ``propagation``, and ``fields``: the filter's other state by the names its class declares
   (:attr:`~stellar_cal_ros.methods.kernel.StarFilter.checkpoint_fields`; a method adds its
   own, e.g. the swaying filter's reference-measurement clock).
@@ -48,14 +50,15 @@ from stellar_cal_ros.methods.driver import Calibrator, InputCounters
 from stellar_cal_ros.methods.frames import FrameInputs
 from stellar_cal_ros.methods.imu_queue import ImuQueue
 from stellar_cal_ros.methods.kernel import FilterCounters
-from stellar_cal_ros.methods.results import stats_from_dict
+from stellar_cal_ros.methods.results import stats_from_dict, stats_state
 
 log = logging.getLogger(__name__)
 
 SCHEMA = "stellar_cal_checkpoint"
 #: the schema version this code writes and reads (5: explicit filter schema; 6: the IMU
-#: reference's in-sample slope rows, core.imu_prefix)
-VERSION = 6
+#: reference's in-sample slope rows, core.imu_prefix; 7: the live statistics' blocks as one
+#: array, results.stats_state)
+VERSION = 7
 
 
 class _Encoder:
@@ -66,7 +69,7 @@ class _Encoder:
 
     def enc(self, v: Any, key: str) -> Any:
         if isinstance(v, np.ndarray):
-            self.arrays[key] = v
+            self.arrays[key] = v.copy()  # the state goes on changing while it is written
             return {"__a__": key}
         if isinstance(v, (np.integer,)):
             return int(v)
@@ -154,6 +157,7 @@ def _identity(cal: Calibrator) -> dict[str, Any]:
 def _driver_section(cal: Calibrator, enc: _Encoder) -> dict[str, Any]:
     """The ``driver`` section of the schema (module docstring)."""
     cal._settle_imu()  # the IMU releases a replay's driver deferred: saved as done
+    cal._trim(least=0)  # only the IMU samples the filter still reads (not up to 4096 more)
     q = cal._imu
     return {
         "counters": dataclasses.asdict(cal.counters),
@@ -180,7 +184,7 @@ def _driver_section(cal: Calibrator, enc: _Encoder) -> dict[str, Any]:
                           "values": cal.sites.values[:len(cal.sites.stamp_ns)].copy(),
                           "count": cal.sites.count}, "driver.fixes"),
         "convergence": enc.enc(list(cal._conv), "driver.convergence"),
-        "stats": enc.enc(dataclasses.asdict(cal.stats), "driver.stats"),
+        "stats": enc.enc(stats_state(cal.stats), "driver.stats"),
     }
 
 
@@ -217,11 +221,10 @@ def _restore_driver(cal: Calibrator, d: dict[str, Any], a: dict[str, np.ndarray]
     cal.stats = stats_from_dict(_dec(d["stats"], a))
 
 
-def save_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
-    """Write everything needed to continue to ``path`` (the schema of the module docstring).
+def checkpoint_contents(cal: Calibrator) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Everything needed to continue: named arrays and metadata (module docstring).
 
-    Written by :mod:`stellar_cal_ros.io.checkpoint`: atomic replace, SHA-256 verified on
-    reading.
+    The arrays are copies: ``cal`` may go on while they are written.
     """
     enc = _Encoder()
     meta: dict[str, Any] = {
@@ -230,7 +233,17 @@ def save_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
         "driver": _driver_section(cal, enc),
         "filter": None if cal.filter is None else _filter_section(cal.filter, enc),
     }
-    write_checkpoint(path, enc.arrays, meta)
+    return enc.arrays, meta
+
+
+def save_checkpoint(cal: Calibrator, path: str | os.PathLike[str]) -> None:
+    """Write :func:`checkpoint_contents` to ``path``.
+
+    Written by :mod:`stellar_cal_ros.io.checkpoint`: atomic replace, SHA-256 verified on
+    reading (the live node writes in a background thread:
+    :class:`~stellar_cal_ros.io.checkpoint.CheckpointWriter`).
+    """
+    write_checkpoint(path, *checkpoint_contents(cal))
 
 
 def check_version(meta: dict[str, Any], path: str | os.PathLike[str]) -> None:

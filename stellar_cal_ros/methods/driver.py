@@ -912,8 +912,12 @@ class Calibrator(ImuRelease):
                 [pairs, n_th + index[flt.ia]] + [n_th + i for i in nav]).astype(np.intp)
         return keys
 
-    def _trim(self) -> None:
-        """Drop IMU samples and environment data the filter can no longer need."""
+    def _trim(self, least: int = 4096) -> None:
+        """Drop IMU samples and environment data the filter can no longer need.
+
+        The samples go once more than ``least`` of them are not needed (amortizes the copy;
+        a checkpoint drops them all, ``least=0``: dropping changes no float).
+        """
         flt = self.filter
         if flt is None:
             return
@@ -926,7 +930,7 @@ class Calibrator(ImuRelease):
             cut = flt.imu.index(t_keep) - 2
         else:
             cut = 0
-        if cut > 4096:  # amortize the copy
+        if cut > least:
             flt.drop_imu(cut)
         if self._last_frame_ns is not None:
             before = self._last_frame_ns - int(self.driver.env_history_s * 1e9)

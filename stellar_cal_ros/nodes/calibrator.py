@@ -85,8 +85,9 @@ from stellar_cal_msgs.msg import (
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.errors import CheckpointError
 from stellar_cal_ros.io.calibration import load_calibration, prior_warnings, save_calibration
+from stellar_cal_ros.io.checkpoint import CheckpointWriter
 from stellar_cal_ros.methods import registry as methods
-from stellar_cal_ros.methods.checkpoint import load_checkpoint, save_checkpoint
+from stellar_cal_ros.methods.checkpoint import checkpoint_contents, load_checkpoint
 from stellar_cal_ros.methods.driver import Calibrator, DriverConfig, FrameOutcome
 from stellar_cal_ros.methods.results import NullSink, consistency, mismatch_text
 from stellar_cal_ros.nodes import live_view
@@ -230,6 +231,9 @@ class CalibratorNode(Node):
         check_parameter_names(self)  # a typo (outptu_file) is an error, not ignored
         p = self._read_parameters()  # raises ValueError on invalid values
         self.p = p
+        # checkpoints are written in a thread: the executor goes on with the frames
+        self._checkpoints = CheckpointWriter(p["checkpoint_file"]) \
+            if p["checkpoint_file"] else None
         # first: a Foxglove port in use stops the node before it does anything
         self.view = live_view.LiveView(self, p) if p["view_rate_hz"] > 0 else None
         self._bridge = RosoutBridge(self.get_logger())
@@ -400,14 +404,22 @@ class CalibratorNode(Node):
         self.get_logger().info(
             f"resumed from {ck}: {self.cal.filter_counters()['updates']} updates so far")
 
-    def save_checkpoint(self) -> str:
-        """Write the checkpoint file now; returns its path."""
-        ck = self.p["checkpoint_file"]
-        if not ck:
+    def save_checkpoint(self, wait: bool = True) -> str:
+        """Checkpoint the state now; returns the file's path.
+
+        The state is copied here (under the lock, < 1 ms) and written by the writer's
+        thread (serialised, fsynced, renamed over the file: tens of ms).  ``wait``: return
+        once it is written (and raise if the write failed); otherwise at once (the periodic
+        checkpoint: a newer state replaces one not yet written).
+        """
+        if self._checkpoints is None:
             raise ValueError("checkpoint_file is not set")
         with self._lock:
-            save_checkpoint(self.cal, ck)
-        return ck
+            contents = checkpoint_contents(self.cal)
+        self._checkpoints.submit(*contents)
+        if wait:
+            self._checkpoints.flush()
+        return self.p["checkpoint_file"]
 
     def save_calibration(self) -> str:
         """Write the current calibration to ``output_file``; returns its path."""
@@ -421,8 +433,11 @@ class CalibratorNode(Node):
         return out
 
     def _periodic_checkpoint(self) -> None:
+        failed = self._checkpoints.take_error()  # the last write's (in the writer's thread)
+        if failed is not None:
+            self._warn("checkpoint_failed", f"periodic checkpoint failed: {failed}")
         try:
-            self.save_checkpoint()
+            self.save_checkpoint(wait=False)
         except Exception as exc:  # noqa: BLE001 - a full disk must not stop the filter
             self._warn("checkpoint_failed", f"periodic checkpoint failed: {exc}")
 
@@ -432,9 +447,11 @@ class CalibratorNode(Node):
             if self._finished:
                 return
             self._finished = True
-            if self.p["checkpoint_file"]:
-                try:  # before finishing, so a restart keeps the held messages
-                    self.save_checkpoint()
+            if self._checkpoints is not None:
+                try:  # before finishing, so a restart keeps the held messages; written
+                    # (waited for) while the held messages are processed
+                    self._checkpoints.take_error()  # a periodic write's: superseded
+                    self.save_checkpoint(wait=False)
                 except Exception as exc:  # noqa: BLE001
                     self.get_logger().error(f"final checkpoint failed: {exc}")
             self._handle(self.cal.finish(), time.perf_counter())
@@ -447,9 +464,24 @@ class CalibratorNode(Node):
             else:
                 self.get_logger().warning("output_file is not set: the calibration was not "
                                           "written")
+            if self._checkpoints is not None:
+                try:
+                    self._checkpoints.close()  # the last write done before the node goes
+                except Exception as exc:  # noqa: BLE001
+                    self.get_logger().error(f"final checkpoint failed: {exc}")
             if self.view is not None:
                 self.view.close()
             self._bridge.remove()
+
+    def destroy_node(self) -> None:
+        """Wait for a checkpoint still being written (its thread ends), then destroy."""
+        writer = getattr(self, "_checkpoints", None)  # None: the constructor failed first
+        if writer is not None:
+            try:
+                writer.close()
+            except Exception as exc:  # noqa: BLE001 - said, the node still goes
+                self.get_logger().error(f"checkpoint failed: {exc}")
+        super().destroy_node()
 
     # ------------------------------------------------------------------ services
     def _srv_save(self, request, response):
