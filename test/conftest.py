@@ -8,6 +8,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
 
 import pytest  # noqa: E402
 from refdata import DATA, path  # noqa: E402
+from ros_env import DISCOVERY, DOMAIN_ID, TRANSPORT  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -37,3 +38,23 @@ def cli(capsys):
         return out.out
 
     return run
+
+
+@pytest.fixture
+def ros_context(monkeypatch):
+    """A fresh rclpy Context in this process's private domain, localhost discovery, Fast DDS
+    on UDP (:mod:`ros_env`); shut down afterwards."""
+    try:
+        import rclpy
+        import stellar_cal_msgs.msg  # noqa: F401
+    except ImportError as exc:
+        pytest.fail(f"rclpy / stellar_cal_msgs not importable ({exc}); run bash "
+                    "scripts/setup.sh")
+    for name, value in {**DISCOVERY, **TRANSPORT}.items():
+        monkeypatch.setenv(name, value)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    try:
+        yield ctx
+    finally:
+        ctx.try_shutdown()

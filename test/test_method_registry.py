@@ -12,14 +12,13 @@ import numpy as np
 import pytest
 from sim_bags import psce_bag
 
-# the calibrator node's test harness (a private ROS context, the player with flow control)
-from test_nodes import (  # noqa: F401
+# the calibrator node's test harness (the player with flow control; ros_context: conftest)
+from test_nodes import (
     BAG,
     PRIOR,
     Spinner,
     make_calibrator,
     make_player,
-    ros_context,
     wait_for,
 )
 from test_online import assert_same

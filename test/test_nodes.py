@@ -8,7 +8,6 @@ test's thread with flow control (``rate: 0``).
 from __future__ import annotations
 
 import math
-import os
 import re
 import threading
 import time
@@ -17,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_env import node_env
 from sim_bags import psce_bag, swaying_bag
 from test_online import assert_same, bag_events, feed, live_psce
 
@@ -50,30 +50,9 @@ except ImportError as exc:
     _IMPORT_ERROR = exc
 
 EXCERPT_S = 60.0
-DOMAIN_ID = 1 + (os.getpid() + 37) % 100
-#: Fast DDS's transports for every participant of these tests (this process's contexts and the
-#: node processes they start): UDP on loopback only.  With the default shared-memory transport a
-#: starved process stopped receiving: beside 2 CPU hogs the kill -9 test's player (in this
-#: process) got no ~/data_clock ack at all after a completed handshake, while another process
-#: received them (doc/benchmarks.md, "The kill -9 test's transport race").  Fast DDS reads the
-#: variable when a participant is created (each rclpy.Context).
-TRANSPORT = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+# the ros_context fixture (conftest.py) and the node processes' environment (ros_env):
+# this process's private domain, Fast DDS on UDP
 BAG, PRIOR, _ = psce_bag(EXCERPT_S)
-
-
-@pytest.fixture
-def ros_context(monkeypatch):
-    if _IMPORT_ERROR is not None:
-        pytest.fail(f"rclpy / stellar_cal_msgs not importable ({_IMPORT_ERROR})")
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    for name, value in TRANSPORT.items():
-        monkeypatch.setenv(name, value)
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    try:
-        yield ctx
-    finally:
-        ctx.try_shutdown()
 
 
 @pytest.fixture(scope="module")
@@ -485,12 +464,6 @@ def test_residual_bytes_are_the_residual_message(excerpt):
 
 
 # ---------------------------------------------------------------------------- live faults
-def _node_env() -> dict[str, str]:
-    return dict(os.environ, **TRANSPORT, ROS_DOMAIN_ID=str(DOMAIN_ID),
-                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                PYTHONPATH=str(Path(__file__).resolve().parents[1]), PYTHONUNBUFFERED="1")
-
-
 def test_player_refuses_damaged_bags(tmp_path):
     """Missing, not MCAP, truncated, corrupt chunk: one line, exit 1, nothing else."""
     import subprocess
@@ -515,7 +488,7 @@ def test_player_refuses_damaged_bags(tmp_path):
         p = subprocess.run([sys.executable, "-m", "stellar_cal_ros.nodes.player", "--ros-args",
                             "-p", f"bag:={bag}", "-p", "rate:=1000.0", "-p",
                             "wait_for_subscribers_s:=0.0", "-r", "__node:=player_" + name],
-                           env=_node_env(), capture_output=True, text=True, timeout=60)
+                           env=node_env(), capture_output=True, text=True, timeout=60)
         lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
         assert p.returncode == 1, (name, p.returncode, p.stderr)
         assert "Traceback" not in p.stderr, (name, p.stderr)
@@ -821,7 +794,7 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
         assert stats.unmatched_topics == 0
         return stats
 
-    first = subprocess.Popen(argv, env=_node_env(), stdout=subprocess.PIPE,
+    first = subprocess.Popen(argv, env=node_env(), stdout=subprocess.PIPE,
                              stderr=subprocess.STDOUT, text=True)
     try:
         played = play(EXCERPT_S / 2).messages
@@ -833,7 +806,7 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
             first.kill()
     assert first.returncode == -signal.SIGKILL and ck.exists() and not out.exists()
     assert n1 == played, f"the first process received {n1} of {played} messages played"
-    second = subprocess.Popen(argv, env=_node_env(), stdout=subprocess.PIPE,
+    second = subprocess.Popen(argv, env=node_env(), stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
     try:
         stats = play(0.0)
@@ -935,7 +908,7 @@ def test_player_help_and_every_bag_format(tmp_path):
     from rosbags.convert import convert
 
     p = subprocess.run([sys.executable, "-m", "stellar_cal_ros.nodes.player", "--help"],
-                       env=_node_env(), capture_output=True, text=True, timeout=60)
+                       env=node_env(), capture_output=True, text=True, timeout=60)
     assert p.returncode == 0 and "bag" in p.stdout and "rate" in p.stdout, p.stderr
     with BagReader(BAG) as r:
         total = sum(i.message_count for i in r.topics().values())
@@ -949,7 +922,7 @@ def test_player_help_and_every_bag_format(tmp_path):
                             "wait_for_subscribers_s:=0.0", "-p", "ack_timeout_s:=0.01",
                             "-p", "publish_clock:=false",
                             "-r", "__node:=player_fmt" + uuid.uuid4().hex[:6]],
-                           env=_node_env(), capture_output=True, text=True, timeout=120)
+                           env=node_env(), capture_output=True, text=True, timeout=120)
         assert p.returncode == 0, (bag, p.stderr)
         assert f"played {total} messages" in p.stdout + p.stderr, (bag, p.stderr)
 

@@ -11,7 +11,6 @@ processes (xdist workers, other engineers' runs) never see each other's messages
 """
 
 import math
-import os
 import time
 import uuid
 
@@ -68,24 +67,7 @@ float32 sigma
 
 SHARED_BAG = refdata.DATA / "psce_ideal_900s.mcap"
 
-# One domain per process (0..101 are valid on Linux; 0 is the default others use).
-DOMAIN_ID = 1 + os.getpid() % 100
-
-
-@pytest.fixture
-def ros_context(monkeypatch):
-    """A fresh rclpy Context, initialised in a private domain, shut down afterwards."""
-    if _IMPORT_ERROR is not None:
-        pytest.fail(
-            f"rclpy / stellar_cal_msgs not importable ({_IMPORT_ERROR}); run bash scripts/setup.sh"
-        )
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    try:
-        yield ctx
-    finally:
-        ctx.try_shutdown()
+# ros_context: conftest.py (this process's private domain, Fast DDS on UDP)
 
 
 def make_array():

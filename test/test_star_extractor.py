@@ -36,7 +36,6 @@ except ImportError as exc:
 W, H = 800, 600
 F = W / 2 / np.tan(np.radians(11.0) / 2)
 CAMERA = CameraModel(W, H, F, F, 401.0, 297.5, [-0.05, 0, 0, 0, 0])
-DOMAIN_ID = 1 + (os.getpid() + 71) % 100
 
 
 def _frames(n=3):
@@ -78,61 +77,56 @@ def test_image_message_decoding():
         image_pixels(m)
 
 
-def test_images_in_identified_centroids_out(monkeypatch):
+def test_images_in_identified_centroids_out(ros_context):
     if _IMPORT_ERROR is not None:
         pytest.fail(f"rclpy / stellar_cal_msgs not importable ({_IMPORT_ERROR})")
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    ctx = ros_context
     prefix = f"/sx{os.getpid()}"
-    try:
-        node = StarExtractorNode(
-            "star_extractor_test", context=ctx, use_global_arguments=False,
-            parameter_overrides=[
-                Parameter("image_topic", value=prefix + "/image"),
-                Parameter("camera_info_topic", value=prefix + "/camera_info"),
-                Parameter("stars_topic", value=prefix + "/stars"),
-                Parameter("report_period_s", value=0.0)])
-        io = rclpy.create_node("sx_io", context=ctx)
-        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        got: list = []
-        io.create_subscription(StarCentroidArray, prefix + "/stars", got.append, qos)
-        pub = io.create_publisher(Image, prefix + "/image", qos)
-        info_pub = io.create_publisher(CameraInfo, prefix + "/camera_info", qos)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
-        ex.add_node(io)
-        info = CameraInfo()
-        info.width, info.height = W, H
-        info.k = [CAMERA.fx, 0.0, CAMERA.cx, 0.0, CAMERA.fy, CAMERA.cy, 0.0, 0.0, 1.0]
-        info.d = list(CAMERA.distortion[:5])
-        info.distortion_model = "plumb_bob"
-        frames = _frames()
-        deadline = time.monotonic() + 10
-        while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+    node = StarExtractorNode(
+        "star_extractor_test", context=ctx, use_global_arguments=False,
+        parameter_overrides=[
+            Parameter("image_topic", value=prefix + "/image"),
+            Parameter("camera_info_topic", value=prefix + "/camera_info"),
+            Parameter("stars_topic", value=prefix + "/stars"),
+            Parameter("report_period_s", value=0.0)])
+    io = rclpy.create_node("sx_io", context=ctx)
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    got: list = []
+    io.create_subscription(StarCentroidArray, prefix + "/stars", got.append, qos)
+    pub = io.create_publisher(Image, prefix + "/image", qos)
+    info_pub = io.create_publisher(CameraInfo, prefix + "/camera_info", qos)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    ex.add_node(io)
+    info = CameraInfo()
+    info.width, info.height = W, H
+    info.k = [CAMERA.fx, 0.0, CAMERA.cx, 0.0, CAMERA.fy, CAMERA.cy, 0.0, 0.0, 1.0]
+    info.d = list(CAMERA.distortion[:5])
+    info.distortion_model = "plumb_bob"
+    frames = _frames()
+    deadline = time.monotonic() + 10
+    while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+        ex.spin_once(timeout_sec=0.05)
+    info_pub.publish(info)
+    for _ in range(20):
+        ex.spin_once(timeout_sec=0.02)
+    for k, (r, _) in enumerate(frames):
+        pub.publish(_image_msg(r.image, 1_800_000_000 + k))
+        deadline = time.monotonic() + 20
+        while len(got) <= k and time.monotonic() < deadline:
             ex.spin_once(timeout_sec=0.05)
-        info_pub.publish(info)
-        for _ in range(20):
-            ex.spin_once(timeout_sec=0.02)
-        for k, (r, _) in enumerate(frames):
-            pub.publish(_image_msg(r.image, 1_800_000_000 + k))
-            deadline = time.monotonic() + 20
-            while len(got) <= k and time.monotonic() < deadline:
-                ex.spin_once(timeout_sec=0.05)
-        assert len(got) == len(frames)
-        for msg, (r, hip) in zip(got, frames, strict=True):
-            uv = np.array([[s.u, s.v] for s in msg.stars])
-            ids = np.array([s.catalog_id for s in msg.stars])
-            assert len(ids) >= 10 and np.all(ids > 0)
-            d = np.linalg.norm(uv[:, None] - r.uv[None], axis=2)
-            j = d.argmin(axis=1)
-            assert np.all(d[np.arange(len(j)), j] < 0.5)
-            assert np.array_equal(ids, hip[j])  # the true stars
-            assert all(s.sigma > 0 for s in msg.stars)
-        assert node.identifier.counters.lost_in_space == 1
-        assert node.identifier.counters.tracking == len(frames) - 1
-    finally:
-        ctx.try_shutdown()
+    assert len(got) == len(frames)
+    for msg, (r, hip) in zip(got, frames, strict=True):
+        uv = np.array([[s.u, s.v] for s in msg.stars])
+        ids = np.array([s.catalog_id for s in msg.stars])
+        assert len(ids) >= 10 and np.all(ids > 0)
+        d = np.linalg.norm(uv[:, None] - r.uv[None], axis=2)
+        j = d.argmin(axis=1)
+        assert np.all(d[np.arange(len(j)), j] < 0.5)
+        assert np.array_equal(ids, hip[j])  # the true stars
+        assert all(s.sigma > 0 for s in msg.stars)
+    assert node.identifier.counters.lost_in_space == 1
+    assert node.identifier.counters.tracking == len(frames) - 1
 
 
 def test_help_names_the_parameters():

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import time
 import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_env import node_env
 from sim_bags import simulated_bag
 
 from stellar_cal_ros.cli import main
@@ -142,18 +142,6 @@ def test_view_schema_is_the_message_definition():
 
 
 # ---------------------------------------------------------------------------- the live node
-@pytest.fixture
-def ros_context(monkeypatch):
-    rclpy = pytest.importorskip("rclpy")
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=1 + (os.getpid() + 53) % 100)
-    try:
-        yield ctx
-    finally:
-        ctx.try_shutdown()
-
-
 def _node(ctx, tmp_path, **params):
     from rclpy.parameter import Parameter
 
@@ -347,7 +335,7 @@ def test_view_parameters_are_checked(ros_context, tmp_path):
     import subprocess
     import sys
 
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONPATH=str(ROOT))
+    env = node_env()
     for arg, said in (("foxglove_port:=70000", "out of range"),
                       ("foxglove_port:=", "parameter override rule")):
         proc = subprocess.run([sys.executable, "-m", "stellar_cal_ros.nodes.calibrator",
