@@ -37,16 +37,9 @@ from pathlib import Path
 
 
 def _tree_cpu() -> float:
-    import psutil
+    from stellar_cal_ros.diagnosis.parallel import tree_cpu
 
-    me = psutil.Process()
-    total = sum(me.cpu_times()[:2])
-    for child in me.children(recursive=True):
-        try:
-            total += sum(child.cpu_times()[:2])
-        except psutil.Error:
-            pass
-    return total
+    return sum(tree_cpu().values())
 
 
 def _run_seconds(bag, spec, prior) -> tuple[float, float]:

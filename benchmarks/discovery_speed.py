@@ -77,12 +77,11 @@ def measure(args: list[str], period: float = 0.5) -> dict[str, float]:
     """Run ``python -m stellar_cal_ros ARGS``; wall time, CPU and peak memory of its tree.
 
     CPU: the command's reaped rusage plus its descendants read with psutil while they run
-    (:class:`test_discovery_cases.TreeCPU`): the fork server's worker processes are its
-    children, never reaped into the command's rusage (before H238 the CPU column of a run
-    with workers was the parent's alone).
+    (:class:`stellar_cal_ros.diagnosis.parallel.TreeCPU`): the fork server's worker
+    processes are its children, never reaped into the command's rusage (before H238 the
+    CPU column of a run with workers was the parent's alone).
     """
-    sys.path.insert(0, str(ROOT / "test"))
-    from test_discovery_cases import TreeCPU
+    from stellar_cal_ros.diagnosis.parallel import TreeCPU
 
     cmd = [sys.executable, "-m", "stellar_cal_ros", *args]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -222,18 +221,11 @@ def cluster_cost(workers: int) -> None:
     a local cluster of ``workers`` processes (psutil: the parent and its live children).
     """
     from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
-    from stellar_cal_ros.diagnosis.parallel import Task, open_runner
+    from stellar_cal_ros.diagnosis.parallel import Task, open_runner, tree_cpu
     from stellar_cal_ros.io.calibration import load_calibration
 
     def tree() -> float:
-        total = 0.0
-        for p in [psutil.Process(), *psutil.Process().children(recursive=True)]:
-            try:
-                t = p.cpu_times()
-                total += t.user + t.system + t.children_user + t.children_system
-            except psutil.NoSuchProcess:
-                continue
-        return total
+        return sum(tree_cpu(reaped=True).values())
 
     bag = small_bag()
     prior = rerun_prior(load_calibration(bag.with_suffix(".prior.yaml")))

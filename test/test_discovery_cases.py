@@ -13,7 +13,6 @@ results: doc/benchmarks.md, "Model discovery: one command, in parallel".
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -21,6 +20,7 @@ import psutil
 import pytest
 import refdata
 
+from stellar_cal_ros.diagnosis.parallel import TreeCPU
 from stellar_cal_ros.diagnosis.run import diagnose
 from stellar_cal_ros.io.calibration import load_calibration
 from stellar_cal_ros.methods.replay import bag_data_from_simulation, read_bag_data
@@ -122,54 +122,6 @@ TARGET_S = 60.0
 #: each case run here: (name, workers, wall s, CPU s of the process tree), printed as one
 #: table at the end of the module (:func:`_time_table`)
 TIMES: list[tuple[str, int, float, float]] = []
-
-
-class TreeCPU:
-    """CPU seconds (user + system) of a process and its descendants while this is entered.
-
-    ``root``: a process id (default this process); ``descendants_only``: without the root
-    (a child whose own CPU its reaped rusage gives exactly).  The local cluster's workers
-    (children of multiprocessing's fork server, never reaped into the command's rusage) are
-    read with psutil every ``period`` s until they exit: their last ``period`` is missed.
-    """
-
-    def __init__(self, period: float = 0.2, root: int | None = None,
-                 descendants_only: bool = False) -> None:
-        self.period, self.cpu = period, 0.0
-        self.root, self.descendants_only = root, descendants_only
-        self._done = threading.Event()
-
-    def _read(self) -> dict[int, float]:
-        out = {}
-        try:
-            root = psutil.Process(self.root)
-            tree = root.children(recursive=True)
-        except psutil.Error:
-            return out
-        for p in tree if self.descendants_only else [root, *tree]:
-            try:
-                t = p.cpu_times()
-                out[p.pid] = t.user + t.system
-            except psutil.Error:
-                continue
-        return out
-
-    def _watch(self) -> None:
-        while not self._done.wait(self.period):
-            self._last.update(self._read())
-
-    def __enter__(self) -> TreeCPU:
-        self._start = self._read()
-        self._last = dict(self._start)
-        self._thread = threading.Thread(target=self._watch, daemon=True)
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._done.set()
-        self._thread.join()
-        self._last.update(self._read())
-        self.cpu = sum(v - self._start.get(pid, 0.0) for pid, v in self._last.items())
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -958,3 +958,69 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
         yield runs
     finally:
         runs.close()
+
+
+# ---------------------------------------------------------------------------- measurement
+def tree_cpu(root: int | None = None, descendants_only: bool = False,
+             reaped: bool = False) -> dict[int, float]:
+    """CPU seconds (user + system) of a process and its live descendants, by process id.
+
+    The one reader of a process tree's CPU (the benchmarks' and tests' measurements of a
+    round with workers: a local cluster's workers are the fork server's children, never
+    reaped into the command's rusage).  ``root``: a process id (default this process);
+    ``descendants_only``: without the root; ``reaped``: each process's count includes its
+    reaped children's (``children_user + children_system``).  A process that ends while
+    it is read is left out.
+    """
+    import psutil
+
+    out: dict[int, float] = {}
+    try:
+        top = psutil.Process(root)
+        tree = top.children(recursive=True)
+    except psutil.Error:
+        return out
+    for p in tree if descendants_only else [top, *tree]:
+        try:
+            t = p.cpu_times()
+        except psutil.Error:
+            continue
+        out[p.pid] = t.user + t.system + (t.children_user + t.children_system if reaped
+                                          else 0.0)
+    return out
+
+
+class TreeCPU:
+    """CPU seconds of a process tree while this is entered (:func:`tree_cpu`, in ``cpu``).
+
+    ``root``, ``descendants_only``: as :func:`tree_cpu` (``descendants_only``: e.g. a child
+    whose own CPU its reaped rusage gives exactly).  Descendants that come and go (a local
+    cluster's workers) are read every ``period`` s until they exit: their last ``period``
+    is missed.
+    """
+
+    def __init__(self, period: float = 0.2, root: int | None = None,
+                 descendants_only: bool = False) -> None:
+        self.period, self.cpu = period, 0.0
+        self.root, self.descendants_only = root, descendants_only
+        self._done = threading.Event()
+
+    def _read(self) -> dict[int, float]:
+        return tree_cpu(self.root, self.descendants_only)
+
+    def _watch(self) -> None:
+        while not self._done.wait(self.period):
+            self._last.update(self._read())
+
+    def __enter__(self) -> TreeCPU:
+        self._start = self._read()
+        self._last = dict(self._start)
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._done.set()
+        self._thread.join()
+        self._last.update(self._read())
+        self.cpu = sum(v - self._start.get(pid, 0.0) for pid, v in self._last.items())
