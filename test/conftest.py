@@ -43,7 +43,8 @@ def cli(capsys):
 @pytest.fixture
 def ros_context(monkeypatch):
     """A fresh rclpy Context in this process's private domain, localhost discovery, Fast DDS
-    on UDP (:mod:`ros_env`); shut down afterwards."""
+    asked for UDP (:mod:`ros_env`: the localhost range keeps shared memory); shut down
+    afterwards."""
     try:
         import rclpy
         import stellar_cal_msgs.msg  # noqa: F401

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_env import node_env
+from ros_env import node_env, own_shm_segments, remove_shm_segments
 from sim_bags import psce_bag, swaying_bag
 from test_online import assert_same, bag_events, feed, live_psce
 
@@ -51,7 +51,7 @@ except ImportError as exc:
 
 EXCERPT_S = 60.0
 # the ros_context fixture (conftest.py) and the node processes' environment (ros_env):
-# this process's private domain, Fast DDS on UDP
+# this process's private domain, localhost discovery, Fast DDS asked for UDP
 BAG, PRIOR, _ = psce_bag(EXCERPT_S)
 
 
@@ -796,14 +796,19 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
 
     first = subprocess.Popen(argv, env=node_env(), stdout=subprocess.PIPE,
                              stderr=subprocess.STDOUT, text=True)
+    shm: list = []  # the killed process's shared-memory segments (ros_env): removed after
     try:
         played = play(EXCERPT_S / 2).messages
         n1 = _wait_received(ck, played)  # until the checkpoint holds every message played
+        shm = own_shm_segments(first.pid)
         first.send_signal(signal.SIGKILL)
         first.wait(10)
     finally:
         if first.poll() is None:
+            shm = own_shm_segments(first.pid)
             first.kill()
+            first.wait(10)
+        remove_shm_segments(shm)
     assert first.returncode == -signal.SIGKILL and ck.exists() and not out.exists()
     assert n1 == played, f"the first process received {n1} of {played} messages played"
     second = subprocess.Popen(argv, env=node_env(), stdout=subprocess.PIPE,
@@ -817,7 +822,10 @@ def test_kill_9_and_restart_resumes_from_the_checkpoint(ros_context, excerpt, tm
         log_text = second.communicate(timeout=30)[0]
     finally:
         if second.poll() is None:
+            shm = own_shm_segments(second.pid)
             second.kill()
+            second.wait(10)
+            remove_shm_segments(shm)
     assert "resumed from" in log_text, log_text
     assert stats.messages == sum(counts.values())
     # the checkpoint written at shutdown: the second process received the whole bag

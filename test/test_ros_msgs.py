@@ -67,7 +67,7 @@ float32 sigma
 
 SHARED_BAG = refdata.DATA / "psce_ideal_900s.mcap"
 
-# ros_context: conftest.py (this process's private domain, Fast DDS on UDP)
+# ros_context: conftest.py (this process's private domain, localhost discovery)
 
 
 def make_array():
