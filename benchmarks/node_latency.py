@@ -22,7 +22,12 @@ topics unchanged.  Reported:
   (that sample's ``publish()`` call), ``queue`` (→ the node's callback entry: DDS, and the
   executor busy with another of the node's callbacks, ``busy_ms``), ``compute`` (→ the
   residuals published) and ``deliver`` (→ received here); the tail frames (e2e ≥ p99) one
-  by one, and how far the publisher fell behind its real-time schedule.
+  by one, and how far the publisher fell behind its real-time schedule;
+* with ``--param checkpoint_file=F``: the periodic checkpoint's callbacks in the executor
+  (wall and thread CPU: ``checkpoint_callback_ms``), the file writes in whichever thread
+  (``checkpoint_write_ms``), and the frames whose releasing message waited while one ran
+  (``split.behind_checkpoint``).  Add ``--param resume=false``: a checkpoint left by an
+  earlier run of the same bag would make every message late.
 
 ``--node echo`` runs, instead of the calibrator, a node with the same topics and QoS that
 does no work (it publishes an empty ``~/residuals`` as soon as the IMU sample
@@ -134,6 +139,7 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
         view.timer.callback = timed_tick
     marks = _mark_events(node) if kind != "echo" else []
     split = _split_events(node)
+    writes = _time_checkpoint_writes()
     wall0, cpu0 = time.perf_counter(), time.process_time()
     while not os.path.exists(stop_file):
         ex.spin_once(timeout_sec=0.05)
@@ -145,7 +151,7 @@ def run_calibrator(prefix: str, params: dict, result_file: str, stop_file: str,
            "backlog_updates": node.backlog_updates, "view_ticks": ticks,
            "view_counts": dict(view.counts) if view is not None else None,
            "counters": {k: v for k, v in vars(node.cal.counters).items()},
-           "marks": marks, **split}
+           "marks": marks, "checkpoint_writes": writes, **split}
     Path(result_file).write_text(json.dumps(res))
     node.destroy_node()
     rclpy.try_shutdown()
@@ -199,6 +205,27 @@ def _mark_events(node) -> list[dict]:
     return marks
 
 
+def _time_checkpoint_writes() -> list[list[float]]:
+    """[start, end] (perf_counter) of every checkpoint file write, in whichever thread."""
+    from stellar_cal_ros.io import checkpoint as io_ck
+
+    writes: list[list[float]] = []
+    write = io_ck.write_checkpoint
+
+    def timed_write(*a, **k):
+        t0 = time.perf_counter()
+        try:
+            return write(*a, **k)
+        finally:
+            writes.append([t0, time.perf_counter()])
+
+    io_ck.write_checkpoint = timed_write  # the background writer's (the module's name)
+    import stellar_cal_ros.methods.checkpoint as m_ck
+
+    m_ck.write_checkpoint = timed_write  # save_checkpoint's (its own reference)
+    return writes
+
+
 def _split_events(node) -> dict:
     """Per updated frame, the times the end-to-end split needs.
 
@@ -212,6 +239,7 @@ def _split_events(node) -> dict:
     """
     frames: list[list] = []
     busy: list[list] = []
+    ck_cpu: list[float] = []  # the periodic checkpoint's thread CPU in the executor, ms
     star_cb: dict[int, float] = {}
     ctx = {"key": "", "imu": 0}
     guard, handle = node._guard, node._handle
@@ -256,12 +284,14 @@ def _split_events(node) -> dict:
         name = getattr(cb, "__name__", "timer").lstrip("_")
 
         def timed(cb=cb, name=name) -> None:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             cb()
             busy.append([name, t0, time.perf_counter()])
+            if name == "periodic_checkpoint":
+                ck_cpu.append((time.thread_time() - c0) * 1e3)
 
         timer.callback = timed
-    return {"frames": frames, "busy": busy}
+    return {"frames": frames, "busy": busy, "checkpoint_cpu_ms": ck_cpu}
 
 
 def echo_node(name: str, args: list[str], window_s: float):
@@ -376,6 +406,11 @@ def _split_report(res: dict, pub_t: dict[int, float], pub_done: dict[int, float]
         x = np.array([r[k] for r in rows])
         out[k] = {"p50": float(np.percentile(x, 50)), "p99": float(np.percentile(x, 99)),
                   "max": float(x.max())}
+    # the frames whose message waited while a periodic checkpoint ran in the executor
+    behind = [r for r in rows if "periodic_checkpoint" in r["busy"]]
+    out["behind_checkpoint"] = {
+        "frames": len(behind), "queue_max": max((r["queue"] for r in behind), default=0.0),
+        "busy_max": max((r["busy_ms"] for r in behind), default=0.0)}
     p99 = np.percentile([r["e2e"] for r in rows], 99)
     out["tail"] = [{k: (round(v, 2) if isinstance(v, float) else v) for k, v in r.items()
                     if k != "stamp"} for r in rows if r["e2e"] >= p99]
@@ -723,6 +758,25 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['queue']:.1f} (busy "
             f"{r['busy_ms']:.1f} {','.join(r['busy']) or '-'}) + compute {r['compute']:.2f} "
             f"+ deliver {r['deliver']:.1f}" for r in sp["tail"]))
+    ck = [(b1 - b0) * 1e3 for name, b0, b1 in res.get("busy") or []
+          if name == "periodic_checkpoint"]
+    if ck:
+        ck_cpu = res.get("checkpoint_cpu_ms") or [float("nan")]
+        wr = [(b1 - b0) * 1e3 for b0, b1 in res.get("checkpoint_writes") or []]
+        out["checkpoint_callback_ms"] = {"n": len(ck), "p50": float(np.median(ck)),
+                                         "max": float(max(ck)),
+                                         "thread_cpu_p50": float(np.median(ck_cpu)),
+                                         "thread_cpu_max": float(max(ck_cpu))}
+        out["checkpoint_write_ms"] = {"n": len(wr), "p50": float(np.median(wr)),
+                                      "max": float(max(wr))} if wr else None
+        bc = sp.get("behind_checkpoint") or {"frames": 0, "queue_max": 0.0, "busy_max": 0.0}
+        print(f"periodic checkpoint in the executor: {len(ck)} callbacks, p50 "
+              f"{np.median(ck):.2f} ms, max {max(ck):.2f} ms (thread CPU p50 "
+              f"{np.median(ck_cpu):.2f}, max {max(ck_cpu):.2f} ms); file writes "
+              + (f"p50 {np.median(wr):.1f} ms, max {max(wr):.1f} ms" if wr else "-")
+              + f"; {bc['frames']} frames waited behind one (queue max "
+              f"{bc['queue_max']:.1f} ms, of it checkpoint and other callbacks "
+              f"{bc['busy_max']:.1f} ms)")
     if out["callbacks_over_1ms"]:
         print("node callbacks over 1 ms after 10 s (count, max ms): " + ", ".join(
             f"{k} {v['n']} ({v['max_ms']:.1f})" for k, v in out["callbacks_over_1ms"].items()))

@@ -63,6 +63,12 @@ def test_node_latency_split_adds_up_to_the_end_to_end_latency():
     b = {k: out[k]["p50"] * 2 - a[k] for k in ("e2e", "wait", "queue", "compute")}
     assert [b[k] for k in ("e2e", "wait", "queue", "compute")] == pytest.approx(
         [10.0, 0.0, 2.0, 3.0])  # frame B: 2.000 -> 2.010, released on arrival
+    assert out["behind_checkpoint"] == {"frames": 0, "queue_max": 0.0, "busy_max": 0.0}
+    # a periodic checkpoint in the executor while frame A's releasing sample waited
+    res["busy"].append(["periodic_checkpoint", 1.0521, 1.0526])
+    out = nl._split_report(res, pub_t, pub_done, rx, settle_ns=10 * s)
+    assert out["behind_checkpoint"] == pytest.approx(
+        {"frames": 1, "queue_max": 3.0, "busy_max": 1.5})
 
 
 def test_unseen_epoch_case_is_judged_by_the_epoch_line_not_by_proper_motion_added(
