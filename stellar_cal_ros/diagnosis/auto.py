@@ -461,7 +461,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                     what = f"{what} ({b['lead_size_px']:.3g} px at most)"
                 why = b.get("reason") or (
                     f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing "
-                    f"beyond {what} ({flexure.ratio_text(b, fitted)}): not added")
+                    f"beyond {what} ({flexure.ratio_text(b, fitted)}"
+                    f"{rolling.beside_text(b, fitted)}): not added")
                 for rj in step["rejected"]:
                     if rj["effect"] == c.effect:
                         rj["reason"] = why
@@ -1120,7 +1121,7 @@ def _beyond_lead(c: CandidateResult, dispersion: float, with_c: dict | None, lea
     return dict(b, lead_t=float(lead["t"]), lead_p_value=float(lead["p_value"]),
                 lead_size_px=float(lead["size_px"]), beside_t=float(with_c["t"]),
                 beside_p_value=float(with_c["p_value"]), **sizes,
-                vanished=rolling.vanished(with_c, lead, ALPHA))
+                vanished=leads.vanished(with_c, lead, c.dof, ALPHA))
 
 
 def _step(k: int, model: list[str], base: RunSummary, results: list[CandidateResult],

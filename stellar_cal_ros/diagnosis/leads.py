@@ -22,10 +22,14 @@ stats.whitened_fit`: the frame-robust t_ν of every 'unexplained' line).  A dire
 chosen on the data it is tested on would make a χ²_k of a t; chosen on other frames it is a
 fixed pattern for the window's test.  A field is a lead when that test is significant on the
 current model (Bonferroni over the fields); a candidate is then added only if it explains
-the data beyond the field, or the field has vanished beside it: no longer significant, and
-its size along the current model's direction (:func:`direction`, the same pattern on the
-candidate's rows) changed (the rolling shutter's rule, :func:`~stellar_cal_ros.diagnosis.
-rolling.stand_in` and :func:`~stellar_cal_ros.diagnosis.rolling.vanished`).  "Beyond" is the
+the data beyond the field, or the field has vanished beside it (the rolling shutter's rule,
+:func:`~stellar_cal_ros.diagnosis.rolling.stand_in`; :func:`vanished`): a field of many
+columns beside a library effect of few parameters is the larger model of a nested
+comparison, gone once no longer significant beside the effect at the fields' level (a cells
+lead at t 3.79 read 1.75 beside pixel_aspect injected at its MDB, unseen case
+``twin_s07_aspect1`` s22, and refused it while the rule asked its size to have fallen too);
+the gravity field, one pattern, also when its size along the current model's direction
+(:func:`direction`, the same pattern on the candidate's rows) has not fallen.  "Beyond" is the
 nested ratio: the candidate's Λ plus what the field removes of the capped χ² with the
 candidate minus without it, each field fitted on the window itself, every column, per
 quarter of its time (:func:`window_gain`, ``chi2_capped``: the direction's own noise and a
@@ -607,11 +611,25 @@ def stand_in(candidate, dispersion: float, with_c: dict | None, lead: dict, kind
              alpha: float) -> dict | None:
     """Whether ``candidate`` stands in for the field ``kind`` fitted on the current model.
 
-    :func:`~stellar_cal_ros.diagnosis.rolling.stand_in`'s rule with this field: the beyond
-    result (``remainder``: :data:`NAMES`; ``lead``: ``kind``; ``lead_size_px``: the field's
-    size on the current model) when refused, else ``None``.
+    :func:`~stellar_cal_ros.diagnosis.rolling.stand_in`'s rule with this field, gone beside
+    the candidate as :func:`vanished` says: the beyond result (``remainder``: :data:`NAMES`;
+    ``lead``: ``kind``; ``lead_size_px``: the field's size on the current model) when
+    refused, else ``None``.
     """
     from stellar_cal_ros.diagnosis import rolling
 
-    b = rolling.stand_in(candidate, dispersion, with_c, lead, alpha, NAMES[kind])
+    b = rolling.stand_in(candidate, dispersion, with_c, lead, alpha, NAMES[kind], len(NAMES))
     return None if b is None else dict(b, lead=kind, lead_size_px=lead["size_px"])
+
+
+def vanished(with_c: dict, lead: dict, dof: int, alpha: float) -> bool:
+    """Whether a field (``lead``) is gone beside a candidate of ``dof`` (its fit ``with_c``).
+
+    :func:`~stellar_cal_ros.diagnosis.rolling.vanished` at the fields' level: a field of
+    :data:`FIELDS` (many columns) is gone when no longer significant beside the candidate
+    as :func:`significant` tests it (Bonferroni over the fields); the gravity field (one
+    pattern) when not significant and its size fell.
+    """
+    from stellar_cal_ros.diagnosis import rolling
+
+    return rolling.vanished(with_c, lead, alpha, dof, len(NAMES))

@@ -46,14 +46,16 @@ def of_run(run, fraction: float) -> dict[str, float] | None:
 
 
 def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
-             alpha: float, remainder: tuple[str, str] = REMAINDER) -> dict | None:
+             alpha: float, remainder: tuple[str, str] = REMAINDER, family: int = 1
+             ) -> dict | None:
     """Whether ``candidate`` stands in for the rolling shutter fitted on the current model.
 
     The beyond test (:func:`~stellar_cal_ros.diagnosis.flexure.beyond`: the candidate's Λ
     plus the fit's χ² beside it (``with_c``, :func:`~stellar_cal_ros.diagnosis.leads.
     candidate_on_bag`'s ``rolling``) minus the fit's χ²
     without it (``shutter``)), when it finds nothing beyond the fit, unless the fit has
-    vanished beside the candidate (:func:`vanished`).  A true readout keeps its shape
+    vanished beside the candidate (:func:`vanished`; ``family``: the fit's multiplicity
+    there).  A true readout keeps its shape
     beside any one library effect (each takes only a part of it: unseen case
     ``sway_rolling``, 30 ms, the fit's t −657 → −409 beside a time offset); a fit that
     vanishes beside the candidate was the candidate's stand-in, not the reverse (a true 5 ms
@@ -62,36 +64,90 @@ def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
     and time_offset was refused; since the fit's gain is NIS-capped too the 200 s version
     reads 129.1 beyond it, needed, where it read −231.8).  The beyond result
     (``remainder``: :data:`REMAINDER`, or the other nuisance field's names given) when
-    refused, else ``None``.  The same rule for the outside-library fields of
+    refused, with ``beside`` (:func:`beside`: what the fit reads beside the candidate, the
+    refusal's evidence), else ``None``.  The same rule for the outside-library fields of
     :mod:`~stellar_cal_ros.diagnosis.leads` (``shutter`` then a field's fit).
     """
     from stellar_cal_ros.diagnosis import flexure
 
     b = flexure.beyond(candidate.statistic, candidate.dof, dispersion, with_c, shutter)
-    if b is None or b["needed"] or vanished(with_c, shutter, alpha):
+    if b is None or b["needed"] or vanished(with_c, shutter, alpha, candidate.dof, family):
         return None
-    return dict(b, remainder=remainder)
+    return dict(b, remainder=remainder,
+                beside=beside(with_c, shutter, alpha, candidate.dof, family))
 
 
-def vanished(with_c: dict, before: dict, alpha: float) -> bool:
+def nested(before: dict, dof: int | None) -> bool:
+    """Whether a field is the larger model of a nested comparison with a candidate of ``dof``.
+
+    A field of more free columns (``before["columns"]``: :func:`~stellar_cal_ros.diagnosis.
+    leads.field_fit`'s, the cells field's per-cell offsets, the magnitude field's 12 a part
+    of the window) than the candidate has parameters: the candidate explains what the field
+    explains when the field is no longer significant beside it (:func:`vanished`).  A fit of
+    one pattern (a rolling shutter, a flexure's response: no ``columns``) is not.
+    """
+    return dof is not None and before.get("columns", 0) > dof
+
+
+def vanished(with_c: dict, before: dict, alpha: float, dof: int | None = None,
+             family: int = 1) -> bool:
     """Whether a nuisance field fitted on the current model (``before``) is gone beside one.
 
-    Gone beside the candidate (its fit ``with_c``): the field was the candidate's stand-in.
-    Not significant at ``alpha`` beside it, **and** its size there (the same pattern's,
-    :func:`~stellar_cal_ros.diagnosis.stats.pattern_size`) differs from its size before at
-    ``alpha``, toward 0 (:func:`~stellar_cal_ros.diagnosis.stats.size_changed`).  A field can lose
-    its test's power beside a candidate without going anywhere: an 80″/g flexure beside
-    gyro_scale_factor + gyro_misalignment (the pair spans it on steps about the IMU axes)
-    read 83.3 ± 3.4″/g before, 57.7 ± 23.2″/g beside (t 2.5, p 0.029): not significant,
-    but 1.1 σ from what it was, so not gone, and gyro_misalignment (its ratio beyond the
-    field −2.6 for 6 dof) was its stand-in.  A true cause takes the field with it (a true
-    5 ms time offset beside a rolling-shutter fit: χ² 175 513 → 3.0).  A fit without a
-    comparable size: not significant is gone.
+    Gone beside the candidate (its fit ``with_c``; ``dof`` its parameters): the field was the
+    candidate's stand-in.  A field of many columns beside a candidate of few
+    (:func:`nested`): gone when it is no longer significant beside it at the level that made
+    it a lead (``p · family`` ≥ ``alpha``, ``family`` its Bonferroni multiplicity, as
+    :func:`~stellar_cal_ros.diagnosis.leads.significant`).  The nested question is whether
+    the 1-6 parameters of a library effect explain what the field's many columns did; what
+    the field's size along its direction did beside it is not that question: a per-cell
+    field on a twin with pixel_aspect at its MDB (unseen case ``twin_s07_aspect1`` s22)
+    fell from t 3.79 to 1.75 beside the aspect (p 0.088), its size 0.271 → 0.159 ± 0.073
+    (1.5 σ, not 'fallen' at 1 %), and the aspect, found alone at p 4e-9, was refused.
+    Otherwise (a fit of one pattern: a rolling shutter, a flexure's response; or ``dof``
+    not given): not significant at ``alpha`` beside it, **and** its size there (the same
+    pattern's, :func:`~stellar_cal_ros.diagnosis.stats.pattern_size`) differs from its size
+    before at ``alpha``, toward 0 (:func:`~stellar_cal_ros.diagnosis.stats.size_changed`).
+    One pattern can lose its test's power beside a candidate of more parameters without
+    going anywhere: an 80″/g
+    flexure beside gyro_scale_factor + gyro_misalignment (the pair spans it on steps about
+    the IMU axes) read 83.3 ± 3.4″/g before, 57.7 ± 23.2″/g beside (t 2.5, p 0.029): not
+    significant, but 1.1 σ from what it was, so not gone, and gyro_misalignment (its ratio
+    beyond the field −2.6 for 6 dof) was its stand-in.  A true cause takes the field with it
+    (a true 5 ms time offset beside a rolling-shutter fit: χ² 175 513 → 3.0).  A fit without
+    a comparable size: not significant is gone.
     """
+    if nested(before, dof):
+        return not with_c["p_value"] * family < alpha
     if with_c["p_value"] < alpha:
         return False
     changed = stats.size_changed(with_c, before, alpha)
     return changed is None or changed
+
+
+def beside(with_c: dict, before: dict, alpha: float, dof: int | None, family: int = 1
+           ) -> dict:
+    """What a field reads beside a candidate it refused (the refusal's evidence, the line's).
+
+    ``t``, ``p_value`` (× ``family`` for a field of many columns, :func:`nested`: the level
+    :func:`vanished` compares) and ``kept``: ``"significant"`` where that p is below
+    ``alpha`` (a field of many columns that refuses is), else ``"size"`` (one pattern whose
+    test lost its power beside the candidate while its size did not fall toward 0).
+    """
+    p = min(1.0, float(with_c["p_value"]) * (family if nested(before, dof) else 1))
+    return {"t": float(with_c["t"]), "p_value": p,
+            "kept": "significant" if p < alpha else "size"}
+
+
+def beside_text(b: dict, fitted: str) -> str:
+    """A refusal's words for what the field reads beside the candidate (:func:`beside`)."""
+    f = b.get("beside")
+    if not f:
+        return ""
+    if f["kept"] == "significant":
+        return (f"; {fitted} still significant beside it (t={f['t']:.2f}, "
+                f"p={f['p_value']:.2g})")
+    return (f"; {fitted} beside it t={f['t']:.2f}, p={f['p_value']:.2g}: weaker, but its "
+            "size has not fallen toward 0")
 
 
 def taken_out(data, calibration: Calibration, coefficient: float):
