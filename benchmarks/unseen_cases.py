@@ -42,16 +42,14 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from stellar_cal_ros.core.rotation import so3_exp
 from stellar_cal_ros.diagnosis.injection import SWAY_CLEAN
 from stellar_cal_ros.sim import tracker_errors
 from stellar_cal_ros.sim.scenarios import get_scenario
 from stellar_cal_ros.sim.world import simulate, write_simulation
 
-#: the scenarios' stated centroid σ (px) and their pixel scale (arcsec / px)
+#: the scenarios' stated centroid σ (px)
 PSCE_SIGMA = 0.05
 SWAY_SIGMA = 0.058
-ARCSEC_PER_PX = 206264.806 / (25.6 / 0.00645)
 
 
 @dataclass
@@ -596,20 +594,7 @@ def _knock(sim, seed, arcsec=20.0, at=0.75, angle_deg=30.0):
     # pattern quadratic over the field that a camera shape took up beside the step
     # fitted as a rotation (sway_knock_gsf_early: image_plane_tilt s21, tangential s23)
     for f in _late_frames(sim, at):
-        _turn(f, sim.prior.camera, arcsec, angle_deg)
-
-
-def _turn(f, cam, arcsec: float, angle_deg: float) -> None:
-    # every star of frame ``f`` turned by the small rotation of the tracker about its x and
-    # y axes that shifts the detector's centre by ``arcsec`` along ``angle_deg``
-    shift = arcsec / ARCSEC_PER_PX * np.array([np.cos(np.deg2rad(angle_deg)),
-                                               np.sin(np.deg2rad(angle_deg))])
-    R = so3_exp([-shift[1] / cam.fy, shift[0] / cam.fx, 0.0])
-    uv = np.asarray(f.uv, dtype=float)
-    d = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy,
-                  np.ones(len(uv))], 1) @ R.T  # (the pinhole's rays, turned)
-    f.uv = np.stack([cam.cx + cam.fx * d[:, 0] / d[:, 2],
-                     cam.cy + cam.fy * d[:, 1] / d[:, 2]], 1)
+        tracker_errors.turn_frame(f, sim.prior.camera, arcsec, angle_deg)
 
 
 def _slew_start(sim, at: float) -> float:
@@ -705,16 +690,8 @@ def _smear2(sim, seed, px=0.1):
 
 def _thermal_mount(sim, seed, arcsec_per_c=2.0, angle_deg=30.0):
     # the mount turns with the tracker head's temperature (not with gravity): 2 arcsec per
-    # deg C from the 20 C reference along 30 deg, every star of a frame turned (no gyro
-    # sees it).  With the head cooling 30 -> 11 C (tau 100 s) that is +20" at the start,
-    # -18" at the end; the evaluation window (150-300 s) holds 14.5 -> 11.0 C: 7" (0.13
-    # px).  The library's thermal effect is the focal length's (radial); none turns the
-    # mount
-    ht = sim.head_temperature
-    ref = sim.truth_world.scenario.head_temperature_ref_c
-    for f in sim.star_frames:
-        temp = float(np.interp(f.stamp_ns, ht.stamp_ns, ht.value))
-        _turn(f, sim.prior.camera, arcsec_per_c * (temp - ref), angle_deg)
+    # deg C from the 20 C reference along 30 deg (tracker_errors.thermal_mount)
+    tracker_errors.thermal_mount(sim, arcsec_per_c, angle_deg)
 
 
 CASES: dict[str, Case] = {
@@ -1163,6 +1140,16 @@ CASES: dict[str, Case] = {
                           "temperature)", outside=True, regressor="temperature",
                           may_add=("installation",), post=_thermal_mount,
                           scenario_changes={"head_temperature_tau_s": 100.0 / 3600.0}),
+    # (H246) the thermal_mount case's fast-cooling head without the turn: the temperature
+    # field must not call a library effect a mount turn, nor a clean bag a turning one
+    "thermal_focal_fast": Case("psce", "thermal_focal_length 20 ppm per deg C with the head "
+                               "cooling 30 -> 11 C (tau 100 s, as thermal_mount; a library "
+                               "effect: to be added)", effects=("thermal_focal_length",),
+                               sim_effects={"thermal_focal_length": 2e-5},
+                               scenario_changes={"head_temperature_tau_s": 100.0 / 3600.0}),
+    "thermal_still": Case("psce", "the head cooling 30 -> 11 C (tau 100 s, as thermal_mount) "
+                          "and nothing else: a clean bag", scenario_changes={
+                              "head_temperature_tau_s": 100.0 / 3600.0}),
     "sky_epoch_dt": Case("psce", "sky_epoch2016's bag (catalogue at epoch 2016, aberration "
                          "and refraction at 1x) AND the frames stamped 0.2 ms early "
                          "(time_offset +0.2 ms): the offset is to be added, the epoch said",

@@ -1725,3 +1725,32 @@ def test_anisotropic_or_uv_correlated_noise_reads_its_isotropic_scale(rho, axes,
     assert v.star_sigma < 0.03 and v.group is None
     assert (abs(applied.star - truth) < 3 * v.star_sigma) if truth != 1.0 else \
         applied.identity
+
+
+def test_a_mount_turning_with_the_head_temperature_gets_no_library_name():
+    """Unseen case ``thermal_mount`` (the mount turned 2″/°C with the head temperature, the
+    head cooling 30 -> 11 °C with τ 100 s; 7″ = 0.13 px over the window), its 300 s seed-21
+    bag: gyro_scale_factor and gyro_misalignment are significant alone (p 4.4e-68, 1.8e-53:
+    a turning installation's ω × δ in the slews), but the temperature field (the filter's
+    response to a tracker turn with the head temperature about each axis,
+    ``leads.temperature_of``) is a lead of the baseline and neither explains anything
+    beyond it (ratios −1.3 for 3 dof, −1.0 for 6): ``discover`` adds neither, and the field
+    reads the turn's rate (measured 1.99 ± 0.27″/°C: the truth within 3 of the sigma it
+    prints) and its turn over the window (6.9″, 0.134 px; truth 2″/°C × 3.45 °C).  On main
+    f4c055a gyro_scale_factor was added (then exchanged for gyro_misalignment, −67 ± 70″,
+    ..., the truth 0) and no line named the temperature: there is no temperature field."""
+    sc = get_scenario("psce_rotations")
+    sim = simulate(dataclasses.replace(sc, head_temperature_tau_s=100.0), duration=300.0,
+                   seed=21)
+    tracker_errors.thermal_mount(sim, 2.0)
+    top, refused, results, _, state = _top_of(sim, "psce", ("gyro_scale_factor",
+                                                            "gyro_misalignment"))
+    assert all(r.significant_alone for r in results), results
+    assert top is None, top.effect
+    f = state.lead["temperature"]
+    assert f["p_value"] < 1e-3, f
+    assert abs(f["arcsec_per_c"] - 2.0) < 3 * f["sigma_arcsec_per_c"], f
+    assert abs(f["temperature_change_c"] - 3.45) < 0.1, f
+    assert abs(f["turn_px"] - 0.134) < 3 * f["sigma_arcsec_per_c"] * 3.45 / 52.0, f
+    assert {c.effect for c, _ in refused} == {"gyro_scale_factor", "gyro_misalignment"}
+    assert all(not b["needed"] and b["lead"] == "temperature" for _, b in refused), refused

@@ -701,6 +701,21 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
         beside = dict(fields)
         if gravity:
             beside.update(leads.significant({"gravity": state.lead["gravity"]}, ALPHA))
+        # a mount turning with the head temperature: a lead for the same candidates (a
+        # slowly turning installation a gyro term or a bias walk may stand in for; unseen
+        # case thermal_mount), where the temperature changes over the window
+        if flexure.may_stand_in(c.effect):
+            if "temperature" not in state.lead:
+                changes = leads.temperature_changes(base.residuals, runs.fraction)
+                if changes:
+                    tell("testing for a head-temperature-shaped remainder (a mount turning "
+                         f"with it) on {'+'.join(state.shown()) or 'the baseline'}")
+                state.lead["temperature"] = leads.temperature_of(
+                    runs, base, prior, tuple(state.extra)) if changes else None
+            beside.update(leads.significant({"temperature": state.lead["temperature"]},
+                                            ALPHA))
+            if "temperature" in beside:  # a candidate's size along this model's axis
+                along = dict(along, temperature=beside["temperature"]["direction"])
         if shutter is not None or beside:
             what = ", ".join(([rolling.REMAINDER[0]] if shutter is not None else [])
                              + [leads.NAMES[k][0] for k in beside])
@@ -708,7 +723,8 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             with_c = runs.on_bag(leads.candidate_on_bag, runs.spec,
                                  candidate_prior(prior, c.effect, calibration),
                                  tuple(state.extra) + (c.effect,), runs.fraction, runs.noise,
-                                 runs.classes, "gravity" in beside, along) or {}
+                                 runs.classes, "gravity" in beside, along,
+                                 "temperature" in beside) or {}
             dispersion = Reference.of(base).dispersion
             b = None if shutter is None else rolling.stand_in(
                 c, dispersion, with_c.get("rolling"), shutter, ALPHA)
@@ -1178,6 +1194,9 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
     known = dict(state.lead)
     if "gravity" in kinds and "gravity" not in known:
         known["gravity"] = leads.gravity_of(runs, final, state.prior, tuple(state.extra))
+    if "temperature" in kinds and "temperature" not in known:
+        known["temperature"] = leads.temperature_of(runs, final, state.prior,
+                                                    tuple(state.extra))
     fields = leads.findings(final, fraction, kinds, ALPHA, known) if kinds else []
     if any("clock" in b for s in path for b in (s.get("beyond_remainder") or {}).values()):
         # a rate-shaped candidate refused beside a clock's remainder: the clock's line, if

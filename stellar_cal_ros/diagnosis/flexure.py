@@ -76,20 +76,62 @@ def with_flexure(data, calibration: Calibration, rate: float):
     the specific force's direction over :data:`~.context.LOAD_WINDOW_S` (the load, as the
     simulator's mount bends under it); ``None`` when the bag has no usable accelerometer.
     """
-    cam = calibration.camera
     t = np.array([f.stamp_ns * 1e-9 for f in data.frames])
     g = gravity_in_tracker(data, calibration, t, LOAD_WINDOW_S) if len(t) else None
     if g is None:
         return None
+    return with_turn(data, calibration, rate * np.cross([0.0, 0.0, 1.0], g))
+
+
+def head_temperatures(data) -> np.ndarray | None:
+    """The head temperature at each frame's stamp (°C), or ``None`` without a finite one."""
+    series = data.head_temperature
+    if series is None or not len(series.stamp_ns) or not len(data.frames):
+        return None
+    s = np.asarray(series.stamp_ns, dtype=np.int64)
+    v = np.asarray(series.value, dtype=float)
+    order = np.argsort(s, kind="stable")
+    s, v = s[order], v[order]
+    fin = np.isfinite(v)
+    if not fin.any():
+        return None
+    ref = int(s[fin][0])
+    return np.interp([(f.stamp_ns - ref) * 1e-9 for f in data.frames],
+                     (s[fin] - ref) * 1e-9, v[fin])
+
+
+def with_thermal_turn(data, calibration: Calibration, rate: float, axis: int):
+    """A copy of the bag whose tracker turns about its ``axis`` with the head temperature.
+
+    ``ρ = rate · (T − T̄) e_axis`` (rad; ``T̄`` the frames' mean head temperature: a constant
+    turn is the installation's), the probe of a mount that turns as the head warms or
+    cools (outside the library; unseen case ``thermal_mount``).  ``None`` without a head
+    temperature.
+    """
+    temp = head_temperatures(data)
+    if temp is None:
+        return None
+    turns = np.zeros((len(temp), 3))
+    turns[:, axis] = rate * (temp - float(np.mean(temp)))
+    return with_turn(data, calibration, turns)
+
+
+def with_turn(data, calibration: Calibration, turns: np.ndarray):
+    """A copy of the bag whose tracker is turned by ``turns[k]`` (rad, tracker frame) at frame k.
+
+    Each star's direction in the tracker frame (pinhole through ``calibration``'s camera)
+    is turned by ``−ρ_k`` (the tracker turned by ``ρ_k``).
+    """
+    cam = calibration.camera
     frames = []
-    for f, gk in zip(data.frames, g, strict=True):
+    for f, rho in zip(data.frames, turns, strict=True):
         uv = np.asarray(f.uv, dtype=float)
         if len(uv) == 0:
             frames.append(f)
             continue
         d = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy,
                       np.ones(len(uv))], 1)
-        d = d - np.cross(rate * np.cross([0.0, 0.0, 1.0], gk), d)
+        d = d - np.cross(rho, d)
         moved = copy.copy(f)
         moved.uv = np.stack([cam.cx + cam.fx * d[:, 0] / d[:, 2],
                              cam.cy + cam.fy * d[:, 1] / d[:, 2]], 1)
@@ -172,8 +214,8 @@ _MOVED_COLUMNS = ("t", "frame", "catalog_id", "du", "dv", "gated")
 
 
 def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fraction: float,
-                   noise=None, classes: tuple[type, ...] = (), candidate: bool = False
-                   ) -> dict[str, np.ndarray] | None:
+                   noise=None, classes: tuple[type, ...] = (), candidate: bool = False,
+                   axis: int | None = None) -> dict[str, np.ndarray] | None:
     """The model's run on the bag with the probe added, where the bag is.
 
     For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag`: the same call as the
@@ -183,12 +225,16 @@ def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fra
     accelerometer or the run fails (the test is an addition: it never stops a diagnosis).
     ``classes``: user effect classes a fresh worker process does not know; ``candidate``:
     an augmented run (a gyro fault is flagged, not raised, as in its own run).
+    ``axis`` (0, 1, 2): the probe a turn about that tracker axis with the head temperature
+    instead (:func:`with_thermal_turn`, :data:`PROBE` per °C), every row of the run kept
+    (the temperature field's direction is fitted before the window).
     """
     from stellar_cal_ros.diagnosis.runstats import quiet, register_effect_classes
 
     register_effect_classes(classes)
 
-    moved_bag = with_flexure(data, prior, PROBE)
+    moved_bag = with_flexure(data, prior, PROBE) if axis is None else \
+        with_thermal_turn(data, prior, PROBE, axis)
     if moved_bag is None:
         return None
     kw: dict[str, Any] = {"noise": noise} if noise is not None else {}
@@ -204,7 +250,7 @@ def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fra
     res = moved.residuals
     if res is None or not len(res.get("t", ())):
         return None
-    keep = stats.evaluation_mask(res, fraction)
+    keep = stats.evaluation_mask(res, fraction) if axis is None else slice(None)
     return {k: np.asarray(res[k])[keep] for k in _MOVED_COLUMNS}
 
 

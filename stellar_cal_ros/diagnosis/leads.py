@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import flexure, stats
 from stellar_cal_ros.diagnosis.noise_stars import CELL_GRID, detector_cells
 from stellar_cal_ros.io.calibration import Calibration
@@ -59,6 +60,8 @@ NAMES = {
     "cells": ("the detector-cells-shaped remainder", "a per-cell offset field"),
     "magnitude": ("the magnitude-shaped remainder", "an offset piecewise linear in magnitude"),
     "gravity": ("the gravity-shaped remainder", "a mount flexure"),
+    "temperature": ("the head-temperature-shaped remainder",
+                    "a mount turning with the head temperature"),
 }
 #: the fields made of columns of the residual table (:func:`field_fit`); the gravity field is
 #: the flexure probe's response (:mod:`~stellar_cal_ros.diagnosis.flexure`), one more run
@@ -124,6 +127,7 @@ REGRESSORS = {
     "cells": "the detector's cells (a per-cell offset field, outside the library)",
     "magnitude": "magnitude (an offset field along u, v and the radius, outside the library)",
     "gravity": flexure.REGRESSOR,
+    "temperature": "head temperature (the mount turning with it, outside the library)",
 }
 
 
@@ -152,7 +156,12 @@ def _has_table(run) -> bool:
 
 
 def _regressor(kind: str, f: dict) -> str:
-    """The line's regressor; the gravity field's says the flexure that would leave it."""
+    """The line's regressor; the gravity and temperature fields' say the turn leaving it."""
+    if kind == "temperature":
+        return (f"{REGRESSORS[kind][:-1]}: {f['arcsec_per_c']:.3g} +- "
+                f"{f['sigma_arcsec_per_c']:.2g} arcsec per deg C, {f['turn_arcsec']:.3g} "
+                f"arcsec = {f['turn_px']:.3g} px over the window's "
+                f"{f['temperature_change_c']:.3g} deg C)")
     if kind != "gravity":
         return REGRESSORS[kind]
     return (f"{flexure.REGRESSOR[:-1]}: {f['arcsec_per_g']:.3g} +- "
@@ -247,7 +256,8 @@ def without(res, fraction: float, kind: str):
 
 #: the cause an 'unexplained' line follows when a printed field's fit explains it
 #: (:func:`fields_first`; ``printing.CAUSES`` words it)
-CAUSES = {"cells": "detector's cells field", "magnitude": "magnitude field"}
+CAUSES = {"cells": "detector's cells field", "magnitude": "magnitude field",
+          "temperature": "mount turning with the head temperature"}
 CELLS_CAUSE = CAUSES["cells"]
 #: the regressors of the lines a field on the detector makes: a position's, straight or
 #: periodic (:data:`~stellar_cal_ros.diagnosis.stats.RIPPLE`)
@@ -260,7 +270,7 @@ POSITIONS = ("u (column)", "v (row)", "radius")
 #: the star's magnitude alone), any line: what it takes is what varies with magnitude
 #: (``saturation`` s22's 'radial residual vs gravity_x_st' t 4.8: the stars in view change
 #: with the attitude)
-ECHOES = {"cells": POSITIONS, "magnitude": None}
+ECHOES = {"cells": POSITIONS, "magnitude": None, "temperature": None}
 
 
 def echoes(kind: str, f) -> bool:
@@ -275,13 +285,13 @@ def on_the_detector(f) -> bool:
 
 
 def _field(f) -> str | None:
-    """The field of :data:`FIELDS` whose line ``f`` is, or ``None``."""
+    """The field of :data:`FIELDS` (or the temperature field) whose line ``f`` is, or ``None``."""
     kind = (getattr(f, "detail", None) or {}).get("field")
-    return kind if kind in FIELDS else None
+    return kind if kind in FIELDS or kind == "temperature" else None
 
 
 def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=frozenset(),
-                 calibration: Calibration | None = None, taken=frozenset()
+                 calibration: Calibration | None = None, taken=frozenset(), runs=None
                  ) -> tuple[list, dict[int, str]]:
     """``found`` with the lines a printed field's line explains last, as its consequence.
 
@@ -310,6 +320,14 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
     (:data:`CAUSES`) of those that follow: the others keep their order, those that follow
     come last, in theirs; unchanged without a field's line or a residual table.  ``taken``:
     ids of lines that already follow another cause (they stay where they are).
+
+    The temperature field's line (:func:`temperature_fit`; a mount turning with the head
+    temperature) explains the lines gone from the residuals without its fit
+    (:func:`temperature_without`: its probes run again on ``run``'s model with ``runs``,
+    three runs, only where the line is printed and others rank with it): any line may be
+    its echo (a turn of the whole tracker that changes over the run moves every star;
+    unseen case ``thermal_mount`` s21: the clock line 'dt from −1.03 ms to 0.40 ms', t 4.9,
+    ranked before it).
     """
     from stellar_cal_ros.diagnosis import rolling
 
@@ -325,14 +343,17 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
                  and (j > i if _field(f) else echoes(kind, f))]
         if not lines:
             continue
-        less = without(run.residuals, fraction, kind)
+        if kind in FIELDS:
+            less = without(run.residuals, fraction, kind)
+        else:  # the temperature field's pattern: its probes run again (where ``runs``)
+            less = None if runs is None else temperature_without(runs, run)
         if less is None:
             continue
         left = None
         for f in lines:
             other = _field(f)
             if other is not None:  # (one that cannot be fitted beside it stays)
-                fit = field_fit(less, fraction, other)
+                fit = field_fit(less, fraction, other) if other in FIELDS else None
                 gone = fit is not None and not significant({other: fit}, alpha)
             else:
                 if left is None:  # (the line tests once a field, only where asked)
@@ -575,6 +596,176 @@ def gravity_of(runs, run, prior: Calibration, effects: tuple[str, ...]
     return as_lead(flexure.after_add(runs, run, prior, tuple(effects)))
 
 
+#: the head temperature must change by at least this much (°C) over the evaluation
+#: window for the temperature field to be fitted (else it is a constant turn, the
+#: installation's, or time's: nothing to go on)
+MIN_TEMPERATURE_CHANGE = 1.0
+
+
+def temperature_changes(res, fraction: float) -> bool:
+    """Whether the head temperature changes by :data:`MIN_TEMPERATURE_CHANGE` in the window."""
+    if res is None or "head_temperature" not in res or not len(res["head_temperature"]):
+        return False
+    temp = np.asarray(res["head_temperature"], dtype=float)[stats.evaluation_mask(res,
+                                                                                   fraction)]
+    temp = temp[np.isfinite(temp)]
+    return len(temp) > 0 and float(np.ptp(temp)) >= MIN_TEMPERATURE_CHANGE
+
+
+def temperature_probes(runs, prior: Calibration, effects: tuple[str, ...]):
+    """The model's runs with a turn with the head temperature about each tracker axis.
+
+    :func:`~stellar_cal_ros.diagnosis.flexure.measure_on_bag` with ``axis`` 0, 1, 2 (three
+    runs where the bag is, started together on a cluster); ``None`` when any failed.
+    """
+    args = (runs.spec, prior, tuple(effects), runs.fraction, runs.noise, runs.classes)
+    got = [runs.later(flexure.measure_on_bag, *args, False, axis) for axis in range(3)]
+    moved = [g() for g in got]
+    return None if any(m is None for m in moved) else moved
+
+
+def _responses(res, moved: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's innovation response to the probes ``moved`` ``(n, 2, k)`` px per ″/°C.
+
+    The rows of ``res`` that are the same star of the same frame in every probe run and
+    accepted in all (``ok``, ``(n,)``); the response of the others NaN.
+    """
+    def key(t):
+        return (np.asarray(t["frame"], dtype=np.int64) * (1 << 32)
+                + np.asarray(t["catalog_id"], dtype=np.int64))
+
+    k0 = key(res)
+    ok = stats.accepted(res).copy()
+    S = np.full((len(k0), 2, len(moved)), np.nan)
+    per = flexure.PROBE / ARCSEC
+    for j, m in enumerate(moved):
+        _, i0, im = np.intersect1d(k0, key(m), return_indices=True)
+        S[i0, 0, j] = (np.asarray(m["du"])[im] - np.asarray(res["du"])[i0]) / per
+        S[i0, 1, j] = (np.asarray(m["dv"])[im] - np.asarray(res["dv"])[i0]) / per
+        hit = np.zeros(len(k0), dtype=bool)
+        hit[i0[stats.accepted({"gated": np.asarray(m["gated"])[im]})]] = True
+        ok &= hit
+    return S, ok & np.all(np.isfinite(S), (1, 2))
+
+
+def _temperature_pattern(res, moved: list[dict] | None, fraction: float):
+    """The temperature field's one pattern: ``(window, sw, Sw, a, pattern)``, or ``None``.
+
+    The probes' responses (:func:`_responses`) fitted on the accepted stars before the
+    evaluation window (``a``: the turn's axis, ″/°C a unit), as displacements ``pattern``
+    ``(n, 2)`` px of the window's accepted stars ``sw`` (``window``: their rows of ``res``;
+    ``Sw`` their responses): what :func:`temperature_fit` tests and
+    :func:`temperature_without` takes out.
+    """
+    if moved is None or res is None or not len(res.get("t", ())):
+        return None
+    S, ok = _responses(res, moved)
+    inside = stats.evaluation_mask(res, fraction)
+    before, window = ok & ~inside, ok & inside
+    if before.sum() < 50 or window.sum() < 50:
+        return None
+    a = _lstsq({k: np.asarray(v)[before] for k, v in res.items()}, S[before])
+    if a is None:
+        return None
+    sw = {k: np.asarray(v)[window] for k, v in res.items()}
+    return window, sw, S[window], a, S[window] @ a
+
+
+def temperature_without(runs, run) -> dict | None:
+    """``run``'s residuals with the temperature field's fit taken out of the window.
+
+    The field's pattern (:func:`_temperature_pattern`, the probes run again on ``run``'s
+    model: three runs) times its size fitted in the window, the fit the field's line tests
+    and sizes (:func:`temperature_fit`), as :func:`without` for the column fields; ``None``
+    when it cannot be made.
+    """
+    if not _has_table(run) or run.prior is None:
+        return None
+    res = run.residuals
+    got = _temperature_pattern(res, temperature_probes(runs, run.prior, run.effects),
+                               runs.fraction)
+    fit = None if got is None else stats.whitened_fit(got[1], got[4])
+    if fit is None:
+        return None
+    window, pattern = got[0], got[4]
+    du = np.array(res["du"], dtype=float)
+    dv = np.array(res["dv"], dtype=float)
+    du[window] -= fit[2] * pattern[:, 0]
+    dv[window] -= fit[2] * pattern[:, 1]
+    return dict(res, du=du, dv=dv)
+
+
+def temperature_fit(res, moved: list[dict] | None, fraction: float, along=None
+                    ) -> dict | None:
+    """The temperature field's fit: the innovations against a mount turning with temperature.
+
+    The field's columns are the filter's response to a tracker turn of 1″/°C with the head
+    temperature about each tracker axis (:func:`temperature_probes`: the model run with
+    each probe, the difference of the innovations; the filter is linear at these sizes),
+    what the model's own states (the gyro bias, the installation) leave of such a turn.
+    As the column fields: their combination fitted before the evaluation window is the
+    direction (the turn's axis), tested and sized in the window as one pattern
+    (:func:`~stellar_cal_ros.diagnosis.stats.whitened_fit`, the frame-robust t_ν);
+    ``chi2_capped`` the three columns fitted on the window itself (a candidate's ratio
+    beyond the field, :func:`~stellar_cal_ros.diagnosis.flexure.beyond`).  ``along``: the
+    current model's direction (its fit's ``direction``) to size this run's pattern along.
+    Beside :func:`field_fit`'s keys: ``arcsec_per_c`` (the fitted turn's rate, ″/°C, and
+    ``sigma_arcsec_per_c``), ``temperature_change_c`` (the window's range), ``turn_arcsec``
+    and ``turn_px`` (the turn over the window: rate × range, and its 99th-percentile
+    displacement of the window's stars).  ``None`` when no test can be made.
+    """
+    got = _temperature_pattern(res, moved, fraction)
+    if got is None:
+        return None
+    _, sw, Sw, a, pattern = got
+    fit = stats.whitened_fit(sw, pattern, dof=True)
+    if fit is None:
+        return None
+    t, p, c, info, _ = fit
+    own = _lstsq(sw, Sw)
+    gain = 0.0 if own is None else stats.capped_gain(sw, Sw @ own, 1.0)
+    same = pattern if along is None else Sw @ np.asarray(along, dtype=float)
+    sized = stats.pattern_size(sw, same, fit if along is None else None) or {}
+    rate = c * a  # ″/°C about the tracker axes
+    sigma = float(sized.get("coef_sigma", 1.0 / np.sqrt(info))) * float(np.linalg.norm(a)) \
+        if along is None else float("nan")
+    temp = np.asarray(sw["head_temperature"], dtype=float)
+    change = float(np.ptp(temp[np.isfinite(temp)])) if np.isfinite(temp).any() else 0.0
+    return {"t": t, "p_value": p, "chi2": c * c * info, "chi2_capped": gain, "columns": 3,
+            "size_px": float(np.percentile(np.hypot(*(c * pattern).T), 99)),
+            "direction": [float(x) for x in a],
+            "arcsec_per_c": float(np.linalg.norm(rate)), "sigma_arcsec_per_c": sigma,
+            "rate_arcsec_per_c": [float(x) for x in rate],
+            "temperature_change_c": change,
+            "turn_arcsec": float(np.linalg.norm(rate)) * change,
+            "turn_px": _turn_px(sw, rate * change * ARCSEC), **sized}
+
+
+def _turn_px(sub: dict, rho: np.ndarray) -> float:
+    """99th percentile of the displacement (px) a tracker turn ``rho`` (rad) gives ``sub``'s stars.
+
+    The pinhole's focal lengths from the table itself (``u`` against ``x/z``, ``v`` against
+    ``y/z``, a straight-line fit).
+    """
+    x, y, z = (np.asarray(sub[k], dtype=float) for k in ("x_st", "y_st", "z_st"))
+    fx = np.polyfit(x / z, np.asarray(sub["u"], dtype=float), 1)[0]
+    fy = np.polyfit(y / z, np.asarray(sub["v"], dtype=float), 1)[0]
+    d = stats.attitude_columns(sub, fx, fy) @ rho
+    return float(np.percentile(np.hypot(d[:, 0], d[:, 1]), 99))
+
+
+def temperature_of(runs, run, prior: Calibration, effects: tuple[str, ...]) -> dict | None:
+    """The temperature field's fit on the current model ``run`` (its residuals kept).
+
+    ``None`` where the head temperature does not change by
+    :data:`MIN_TEMPERATURE_CHANGE` over the window (no run then) or the test cannot be made.
+    """
+    if not _has_table(run) or not temperature_changes(run.residuals, runs.fraction):
+        return None
+    return temperature_fit(run.residuals, temperature_probes(runs, prior, effects),
+                           runs.fraction)
+
+
 def significant(found: dict[str, dict | None], alpha: float) -> dict[str, dict]:
     """The fields that are leads: significant at ``alpha`` (Bonferroni over the fields)."""
     return {k: f for k, f in found.items()
@@ -583,15 +774,17 @@ def significant(found: dict[str, dict | None], alpha: float) -> dict[str, dict]:
 
 def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
                      fraction: float, noise=None, classes: tuple[type, ...] = (),
-                     gravity: bool = False, along: dict | None = None
-                     ) -> dict[str, dict | None]:
+                     gravity: bool = False, along: dict | None = None,
+                     temperature: bool = False) -> dict[str, dict | None]:
     """The rolling-shutter fit and every field's fit of a candidate model's run.
 
     For :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag` (one run where the bag is;
     only the statistics travel): ``{"rolling": ..., "cells": ..., "magnitude": ...}``,
     with ``"gravity"`` (:func:`gravity_fit`: one more run, the model with the probe) when
     ``gravity``.  ``along``: the current model's field directions (:func:`directions`),
-    along which each field's size is measured (:func:`field_fit`).
+    along which each field's size is measured (:func:`field_fit`); with ``temperature``
+    also ``"temperature"`` (:func:`temperature_fit` along ``along["temperature"]``: three
+    more runs, the model with each of its probes).
     """
     from stellar_cal_ros.diagnosis import rolling
     from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
@@ -604,6 +797,12 @@ def candidate_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
     if gravity and _has_table(run):
         out["gravity"] = gravity_fit(run.residuals, flexure.measure_on_bag(
             data, spec, prior, effects, fraction, noise, classes, True), fraction)
+    if temperature and _has_table(run):
+        moved = [flexure.measure_on_bag(data, spec, prior, effects, fraction, noise, classes,
+                                        True, axis) for axis in range(3)]
+        out["temperature"] = temperature_fit(
+            run.residuals, None if any(m is None for m in moved) else moved, fraction,
+            (along or {}).get("temperature"))
     return out
 
 

@@ -293,7 +293,7 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=N
     if runs is not None:
         # (a line that follows a cause already stays where that rule put it)
         found, after = leads.fields_first(found, run, runs.fraction, line_tests, ALPHA,
-                                          keep, calibration, frozenset(follows))
+                                          keep, calibration, frozenset(follows), runs)
         follows.update((id(found[i]), cause) for i, cause in after.items())
     return found, {i: follows[id(f)] for i, f in enumerate(found) if id(f) in follows}
 

@@ -39,6 +39,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from stellar_cal_ros.core.rotation import so3_exp
+
 
 def renoise(sim, true_sigma: Callable, stated: float, seed: int) -> None:
     """Add per-star noise ``true_sigma(mag, uv)`` (px) to the centroids; σ field ``stated``."""
@@ -367,3 +369,39 @@ def tilt_drift(sim, mrad: float) -> None:
         x = (f.stamp_ns - t0) / max(t1 - t0, 1) - 0.5
         d = np.asarray(f.uv, dtype=float) - c
         f.uv = c + d * (1.0 + 2.0 * mrad * 1e-3 * x * d[:, 1:2] / f_px)
+
+
+#: the PSCE tracker's nominal plate scale (25.6 mm focal length, 6.45 µm pixels), ″/px
+ARCSEC_PER_PX = 206264.806 / (25.6 / 0.00645)
+
+
+def turn_frame(f, cam, arcsec: float, angle_deg: float) -> None:
+    """Every star of frame ``f`` turned by a small tracker rotation about its x and y axes.
+
+    The rotation that shifts the detector's centre by ``arcsec`` along ``angle_deg`` (at
+    :data:`ARCSEC_PER_PX`); the pinhole's rays of ``cam`` turned, not a uniform shift.
+    """
+    shift = arcsec / ARCSEC_PER_PX * np.array([np.cos(np.deg2rad(angle_deg)),
+                                               np.sin(np.deg2rad(angle_deg))])
+    R = so3_exp([-shift[1] / cam.fy, shift[0] / cam.fx, 0.0])
+    uv = np.asarray(f.uv, dtype=float)
+    d = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy,
+                  np.ones(len(uv))], 1) @ R.T  # (the pinhole's rays, turned)
+    f.uv = np.stack([cam.cx + cam.fx * d[:, 0] / d[:, 2],
+                     cam.cy + cam.fy * d[:, 1] / d[:, 2]], 1)
+
+
+def thermal_mount(sim, arcsec_per_c: float, angle_deg: float = 30.0) -> None:
+    """The mount turning with the tracker head's temperature (not with gravity).
+
+    Every star of a frame turned (:func:`turn_frame`) by ``arcsec_per_c`` per °C of the
+    head's temperature off the scenario's reference, along ``angle_deg``; no gyro sees it.
+    With the head cooling 30 -> 11 °C (τ 100 s) and 2″/°C: +20″ at the start, −18″ at the
+    end; a 300 s run's evaluation window (150-300 s) holds 14.5 -> 11.0 °C: 7″ (0.13 px).
+    The library's thermal effect is the focal length's (radial); none turns the mount.
+    """
+    ht = sim.head_temperature
+    ref = sim.truth_world.scenario.head_temperature_ref_c
+    for f in sim.star_frames:
+        temp = float(np.interp(f.stamp_ns, ht.stamp_ns, ht.value))
+        turn_frame(f, sim.prior.camera, arcsec_per_c * (temp - ref), angle_deg)
