@@ -170,6 +170,26 @@ def test_a_gyro_noise_far_above_the_stated_is_measured_not_called_a_missing_effe
     assert "missing effect" not in " ".join(v.lines()), v.lines()
 
 
+def test_a_sigma_field_in_arcsec_is_measured_and_its_runs_field_not_called_a_missing_effect():
+    """The stars' σ field in arcsec where px was meant (unseen case ``sigma_arcsec``: 2.6
+    for 0.05 px, 51.97x the truth): with that σ the filter's camera hardly leaves the prior
+    and its stars repeat a field (cell means chi2 283 / 94 dof, p 7e-21), which the
+    verdict called "a missing effect" (IMU noise taken as stated) beside the stars' x0.0191.
+    Now the model is run again at the stars' measured σ and judged on that run: the field
+    is gone, the gyro is measured (x1 within 3σ), and the stars' scale stays the truth's
+    1/51.97 within 3σ (seed 3: 0.01909 ± 0.00016 for 0.01924).  Fails on main
+    (``v.imu_skipped`` holds the field's line)."""
+    sim = _sim()
+    v = measure_bag(_stated(sim, factor=51.97), sim.prior, "psce", [], NoiseScales())
+    assert not v.imu_skipped and not v.skipped, v.lines()
+    assert "missing effect" not in " ".join(v.lines()), v.lines()
+    assert v.applied.star == pytest.approx(1.0 / 51.97, abs=3.0 * v.star_sigma * v.stated.star)
+    assert v.star == pytest.approx(1.0, abs=3.0 * v.star_sigma) and v.star_sigma < 0.02
+    s, e = v.scale_of("gyro")
+    assert s == pytest.approx(1.0, abs=3.0 * e), (s, e)
+    assert v.applied.gyro == 1.0
+
+
 def test_gyro_noise_the_stars_cannot_see_prints_a_bound_above_the_truth():
     """A gyro 10x quieter than stated whose samples are smoothed (a [1 2 1]/4 filter: not
     white, so the stars' likelihood search speaks for the gyro): the likelihood rises to a

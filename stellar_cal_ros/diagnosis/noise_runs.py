@@ -93,16 +93,28 @@ def _at_samples(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, te
     stated; the verdict said "a missing effect shapes the residuals" beside "noise is the
     cause").  The model is run once more with the samples' scales, its stars' noise
     measured, and the verdict made on that run (which keeps the skip where the model is
-    still far off).  Otherwise ``(v, base)`` unchanged: no run.
+    still far off).  Likewise where the IMU noise was not measured for a field the stars
+    repeat (:func:`~.noise.structured`) while the stars' σ measured off the stated: a run
+    whose stars are weighted wrongly makes its own field (unseen case ``sigma_arcsec``: the
+    σ field in arcsec, 52x the truth; with it the filter's camera hardly left the prior and
+    the cells read chi2 292 / 112 dof, "a missing effect", beside "noise is the cause";
+    at the measured σ the model fits and nothing is added).  Otherwise ``(v, base)``
+    unchanged: no run.
     """
-    if not v.skipped or v.applied == stated:
+    far = bool(v.skipped) or (bool(v.imu_skipped) and "star" in v.rejected)
+    if not far or v.applied == stated:
         return v, base
-    key = "noise: the model with the IMU samples' noise"
+    key = "noise: the model with the IMU samples' noise" if v.skipped else \
+        "noise: the model with the stars' measured sigma"
     again = runs.run_all([Task(key, prior, tuple(effects), noise=v.applied, cost=SEARCH_COST,
                                star_noise=True)])[key]
     if not again.ok:
         return v, base
-    return _judge(runs, prior, effects, again, tell, components, stated, v.applied), again
+    if v.skipped:
+        return _judge(runs, prior, effects, again, tell, components, stated, v.applied), again
+    # (the stars' σ the run used is the measured one: judged relative to it, as a later
+    # round judges the scales applied before it)
+    return _judge(runs, prior, effects, again, tell, components, v.applied), again
 
 
 #: the blocks (s) the walk's bias estimate is cut into by :func:`walk_motion`, and the
