@@ -694,6 +694,40 @@ def _thermal_mount(sim, seed, arcsec_per_c=2.0, angle_deg=30.0):
     tracker_errors.thermal_mount(sim, arcsec_per_c, angle_deg)
 
 
+# ---- 2026-11-29 (H249): tenth pass, noise stated wrongly as users state it
+
+
+def _sigma_as_var(sim, seed):
+    # the messages' sigma field holds the variance (0.05^2 = 0.0025 px^2) where the 1-sigma
+    # px was meant: stated 20x too small; the centroids' noise the scenario's 0.05 px
+    for f in sim.star_frames:
+        f.sigma = np.asarray(f.sigma, dtype=float) ** 2
+
+
+def _mag_inverted(sim, seed):
+    # true sigma 0.05 * 2^((mag - 4) / 2) px (magslope's); the messages' per-star sigma has
+    # the magnitude dependence upside down, 0.05 * 2^(-(mag - 4) / 2) (right at mag 4: a
+    # noise table indexed by brightness read by magnitude)
+    def true(m, uv):
+        return PSCE_SIGMA * 2.0 ** ((np.nan_to_num(m, nan=4.0) - 4.0) / 2.0)
+    _renoise(sim, true, PSCE_SIGMA, seed)
+    for f in sim.star_frames:
+        m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=4.0)
+        f.sigma = PSCE_SIGMA * 2.0 ** (-(m - 4.0) / 2.0)
+
+
+def _gross_outliers(sim, seed):
+    # 1.5 % of the centroids 20-50 px off in a random direction (misidentified stars:
+    # another star's identity), the rest and the sigma field as stated
+    tracker_errors.gross_outliers(sim, 0.015, 20.0, 50.0, seed)
+
+
+def _gyro_gm(sim, seed):
+    # gyro bias instability as a Gauss-Markov process, 1 deg/h per axis, tau 30 s (a
+    # datasheet's bias instability); the configured gyro noise white (ARW) as stated
+    tracker_errors.gyro_bias_gauss_markov(sim, 1.0, 30.0, seed)
+
+
 CASES: dict[str, Case] = {
     # ---- noise stated wrongly, the model right
     "mag2x": Case("psce", "faint stars (mag >= 4.5) 2x the stated 0.05 px, bright as stated",
@@ -1162,6 +1196,46 @@ CASES: dict[str, Case] = {
                              "`discover` printed for it on that bag (stellar-cal twin)",
                              noise={"star": 1.0 / 0.7}, effects=("pixel_aspect",),
                              post=_sigma_field(0.7), twin=("pixel_aspect", "aspect", 1.0)),
+    # ---- 2026-11-29 (H249): tenth pass, noise stated wrongly as users state it
+    "sigma_as_var": Case("psce", "the stars' sigma field holds the variance (0.0025) where "
+                         "the 1-sigma px (0.05) was meant: the truth 20x the stated",
+                         noise={"star": 20.0}, post=_sigma_as_var),
+    "sigma_arcsec": Case("psce", "the stars' sigma field in arcsec (2.60) where px (0.05) "
+                         "was meant: the truth 1/51.97 = 0.0192x the stated",
+                         noise={"star": 1.0 / ARCSEC_PER_PX}, not_told="a missing effect",
+                         post=_sigma_field(ARCSEC_PER_PX)),
+    "mag_inverted": Case("psce", "true sigma 0.05 * 2^((mag - 4) / 2) px; the messages' "
+                         "per-star sigma 0.05 * 2^(-(mag - 4) / 2) (the magnitude dependence "
+                         "upside down, right at mag 4)", noise={"star": 0.0},
+                         group_by="magnitude", not_told="wrong star by star",
+                         post=_mag_inverted,
+                         scenario_changes={"centroid_noise_px": 0.0}),
+    "gross_outliers": Case("psce", "1.5 % of the centroids 20-50 px off (misidentified "
+                           "stars), the rest and the sigma field as stated: nothing to "
+                           "rescale, nothing to add", noise={}, post=_gross_outliers),
+    "gyro_gm": Case("psce", "gyro bias instability a Gauss-Markov process (1 deg/h per axis, "
+                    "tau 30 s) stated as white noise; the model's bias constant (not in the "
+                    "library)", outside=True, told="gyro", not_first=("temperature",),
+                    post=_gyro_gm),
+    "gyro_psd10": Case("psce", "the gyro's per-sample sigma (100 Hz) entered where its density "
+                       "(ARW) was meant: the stated ARW sqrt(100) = 10x the truth",
+                       noise={"gyro": 0.1}, scenario_changes={"gyro_arw_deg_sqrth": 0.1}),
+    "sway_accel10": Case("swaying_base", "accelerometer VRW 10x the stated on the swaying "
+                         "base (a density divided by sqrt(100 Hz) once more: the per-sample "
+                         "sigma taken for the density the other way round)",
+                         noise={"accel": 10.0}, scenario_changes={"accel_vrw_mps_sqrth": 10.0},
+                         sim_effects=dict(SWAY_CLEAN)),
+    "sway_jitter": Case("swaying_base", "frame stamps off the exposure by N(0, 1 ms) each on "
+                        "the swaying base (0.19 px rms at its image speeds, 186 px/s median: "
+                        "a noise in time, not in px; stars' sigma as stated; the jitter's "
+                        "own mean, 1 ms / sqrt(300) = 0.058 ms over the window, is a time "
+                        "offset: may be added at its size)", outside=True,
+                        regressor="image rate", post=_jitter, sim_effects=dict(SWAY_CLEAN),
+                        # (dt = -(the stamps' error): s21's window mean +0.030 ms, s22's
+                        # -0.119 ms (the run's -0.068): |dt| <= 0.2 ms, 3.5x its SE)
+                        may_add=("time_offset",),
+                        expect={"time_offset": {"dt": (-2e-4, 2e-4)}},
+                        not_told="installation steps"),
 }
 
 

@@ -21,6 +21,8 @@ function            what a tracker does
 ``imu_noise_axis``  extra white noise on one gyro or accelerometer axis, not in the covariance
 ``heavy_tails``     centroid noise Student-t (``ν`` dof), scaled to a stated RMS
 ``gyro_bias_walk``  gyro bias instability: a random walk in the bias the model holds constant
+``gyro_bias_gauss_markov``  gyro bias instability as a first-order Gauss-Markov process
+``gross_outliers``  a fraction of centroids tens of px off (stars misidentified), on the detector
 ``stamp_jitter``    each frame stamped with a random error (the exposure's true time unknown)
 ``star_offsets``    each star's centroid off by its own fixed offset in every frame (a catalogue
                     position error, a proper motion the catalogue lacks)
@@ -240,6 +242,59 @@ def gyro_bias_walk(sim, density_deg_h_sqrth: float, seed: int) -> np.ndarray:
     walk = np.cumsum(q * np.sqrt(dt)[:, None] * rng.standard_normal((len(t), 3)), axis=0)
     imu.angular_velocity = np.asarray(imu.angular_velocity, dtype=float) + walk
     return walk
+
+
+def gyro_bias_gauss_markov(sim, sigma_deg_h: float, tau_s: float, seed: int) -> np.ndarray:
+    """The gyro bias wanders as a first-order Gauss-Markov process (σ, correlation time τ).
+
+    Stationary, of standard deviation ``sigma_deg_h`` deg/h per axis (its first value a
+    draw of that law), added to the gyro samples: a datasheet's "bias instability" that a
+    user states as white noise (the model's gyro bias is a constant).  Returns the bias
+    added (rad/s, ``(N, 3)``).
+    """
+    rng = np.random.default_rng(seed + 67867967)
+    imu = sim.imu
+    t = np.asarray(imu.stamp_ns, dtype=np.int64)
+    dt = np.diff(t, prepend=t[0]).astype(float) * 1e-9
+    s = np.deg2rad(sigma_deg_h) / 3600.0
+    a = np.exp(-dt / tau_s)
+    n = rng.standard_normal((len(t), 3))
+    b = np.empty((len(t), 3))
+    prev = s * n[0]
+    for k in range(len(t)):  # b_k = a b_(k-1) + s sqrt(1 - a^2) n_k
+        prev = prev if k == 0 else a[k] * prev + s * math.sqrt(1.0 - a[k] * a[k]) * n[k]
+        b[k] = prev
+    imu.angular_velocity = np.asarray(imu.angular_velocity, dtype=float) + b
+    return b
+
+
+def gross_outliers(sim, fraction: float, lo_px: float, hi_px: float, seed: int) -> int:
+    """A ``fraction`` of the centroids moved ``lo_px``..``hi_px`` (uniform) in a random direction.
+
+    What a tracker's misidentified stars look like in its messages: the identity (catalogue
+    id, RA/Dec) of one star, the centroid tens of px away; the moved centroid stays on the
+    detector (the direction turned by half a turn where it would leave it).  The σ field
+    is left as it is.  Returns how many centroids were moved.
+    """
+    rng = np.random.default_rng(seed + 179424673)
+    cam = sim.truth_world.camera()
+    size = np.array([float(cam.width), float(cam.height)])
+    moved = 0
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        hit = np.flatnonzero(rng.random(len(uv)) < fraction)
+        if not len(hit):
+            continue
+        uv = uv.copy()
+        ang = rng.uniform(0.0, 2.0 * np.pi, len(hit))
+        r = rng.uniform(lo_px, hi_px, len(hit))
+        d = r[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+        out = ((uv[hit] + d < 0.0) | (uv[hit] + d >= size)).any(axis=1)
+        d[out] *= -1.0
+        uv[hit] += d
+        f.uv = uv
+        moved += len(hit)
+    return moved
 
 
 def stamp_jitter(sim, sigma_s: float, seed: int) -> np.ndarray:
