@@ -1559,6 +1559,38 @@ def test_the_fits_weights_are_not_touched_where_the_stated_sigma_is_right():
     assert (one.scale, one.sigma) == (sn.scale, sn.sigma)
 
 
+def test_the_window_and_the_stretch_before_it_share_the_detectors_pattern_tests(monkeypatch):
+    """measure_stars makes the detector's fixed-pattern tests once (they read the table's
+    last part whatever the mask) for the window's estimate and the stretch's before it:
+    the same estimates as each star_noise making its own (main made them twice)."""
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import quiet
+
+    sim = _sim()
+    data = _stated(sim)
+    with quiet():
+        result = method_spec("psce").runner(data, rerun_prior(sim.prior), [],
+                                            keep_tables=True, eval_fraction=0.5)
+    calls = []
+    made = noise_stars.detector_patterns
+
+    def counted(*a, **k):
+        calls.append(1)
+        return made(*a, **k)
+
+    monkeypatch.setattr(noise_stars, "detector_patterns", counted)
+    monkeypatch.setattr(noise, "detector_patterns", counted)
+    shared = noise.measure_stars(result, data, "psce", 0.5, None)
+    assert len(calls) == 1 and shared.before is not None
+    # each estimate making its own (star_noise without ``patterns``)
+    monkeypatch.setattr(noise, "detector_patterns", lambda *a, **k: None)
+    own = noise.measure_stars(result, data, "psce", 0.5, None)
+    assert len(calls) == 3
+    assert np.array_equal(shared.q, own.q) and np.array_equal(shared.m, own.m)
+    assert (shared.scale, shared.sigma, shared.before) == (own.scale, own.sigma, own.before)
+    assert repr(shared.patterns) == repr(own.patterns)
+
+
 def test_a_later_rounds_groups_compose_with_the_groups_kept():
     """A later round measures the stars' σ relative to the σ applied so far; groups it finds
     replaced the kept ones, whose factors were then lost (kept magnitude groups x1 below

@@ -496,14 +496,23 @@ def test_the_probes_steps_in_arrays_are_the_per_frame_sums():
         kept = [c for c in ids if rng.random() > 0.15]  # off the detector in one twin
         plain.append(frame(stamp, kept if k % 2 else ids))
         moved.append(frame(stamp, ids if k % 2 else kept))
+    user.insert(17, frame(10**9 + 17 * 10**8 + 1, []))  # a frame without stars
+    plain.insert(15, frame(10**9 + 17 * 10**8 + 1, []))
+    moved.insert(15, frame(10**9 + 17 * 10**8 + 1, []))
+    before = [np.array(f.uv, copy=True) for f in user]
     got = reliability_probe.add_steps(user, plain, moved)
     want = _steps_by_dict(user, plain, moved)
     assert len(got) == len(want)
     moved_any = False
-    for g, w, u in zip(got, want, user, strict=True):
-        assert np.array_equal(g.uv, w.uv)
+    for g, w, u, b in zip(got, want, user, before, strict=True):
+        assert np.array_equal(g.uv, w.uv) and g.uv.shape == w.uv.shape
+        assert np.array_equal(u.uv, b)  # the user's frames are left as they were
         moved_any |= not np.array_equal(g.uv, u.uv)
     assert moved_any
+    # the user's star columns made once (one probe call's injections) give the same steps
+    steps = reliability_probe.star_steps(user, plain, moved)
+    columns = reliability_probe.star_steps(reliability_probe.star_columns(user), plain, moved)
+    assert all(np.array_equal(a, b) for a, b in zip(steps, columns, strict=True))
 
 
 def test_a_re_run_candidate_prints_the_mdb_it_has_when_screened_out(tmp_path):

@@ -261,3 +261,26 @@ def test_a_sky_effect_at_the_wrong_fraction_of_its_physical_size_is_implausible(
         assert f"the data fit {est:.3g}" in c.reason, c.reason
         # nothing with aberration's pattern is added in its name
         assert not any(r.significant and r.effect == "aberration" for r in results)
+
+
+def test_the_skipped_normals_state_is_the_drawn_ones():
+    """A render without the IMU skips its normals (the generator where the IMU's noise would
+    leave it): the state kept by (seed, count) and set again is the one drawing them gives,
+    at a count that is no multiple of the chunk (the reliability probe's six renders of a
+    2-h bag drew ~4.3 M normals each)."""
+    from stellar_cal_ros.diagnosis import twin
+
+    twin._SKIPPED.clear()
+    n = 3 * (1 << 16) + 777
+    drawn = np.random.default_rng(7)
+    drawn.standard_normal(n)
+    first, again = np.random.default_rng(7), np.random.default_rng(7)
+    twin._skip_normals(first, n, 7)
+    assert (7, n) in twin._SKIPPED
+    twin._skip_normals(again, n, 7)
+    want = drawn.standard_normal(1000)
+    assert np.array_equal(first.standard_normal(1000), want)
+    assert np.array_equal(again.standard_normal(1000), want)
+    other = np.random.default_rng(8)
+    twin._skip_normals(other, n)  # no seed: drawn, nothing kept
+    assert (8, n) not in twin._SKIPPED and len(twin._SKIPPED) == 1

@@ -59,6 +59,7 @@ from stellar_cal_ros.diagnosis.noise_stars import (
     MATERIAL,
     StarNoise,
     Table,
+    detector_patterns,
     group_index,
     group_x,
     grouped_stars,
@@ -106,6 +107,11 @@ def measure_stars(result, data, method: str, fraction: float,
     trim_freed()  # (its freed heap pages, not held beside the estimate's)
 
     near = []  # (whether the run is near its model: decided on the window's one fit)
+    # the detector's pattern tests read the table's last part whatever the mask: made once
+    # for the window's estimate and the stretch's before it (≈ 0.25 CPU-s a 2-h run)
+    patterns = detector_patterns(res, sig, cam.fx, cam.fy, (cam.cx, cam.cy),
+                                 result.calibration.R_imu_st)
+    trim_freed()
 
     def on(mask):
         # (the frames' attitude fit weighted again by the σ measured where the data find the
@@ -113,7 +119,8 @@ def measure_stars(result, data, method: str, fraction: float,
         return star_noise(res, sig, msg, mask, cam.fx, cam.fy, (cam.cx, cam.cy),
                           result.calibration.R_imu_st, size=(cam.width, cam.height),
                           passes=FIT_PASSES, weigh=weigh, kept=noise or NoiseScales(),
-                          gate=getattr(getattr(result, "filter", None), "gate", None))
+                          gate=getattr(getattr(result, "filter", None), "gate", None),
+                          patterns=patterns)
 
     def weigh(first: StarNoise) -> bool:
         if not near:

@@ -287,7 +287,8 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
                R_imu_st: np.ndarray | None = None, flips: bool = False,
                size: tuple[int, int] | None = None, passes: int = 0,
                weigh=None, kept: NoiseScales | None = None,
-               gate: GatePolicy | None = None) -> StarNoise | None:
+               gate: GatePolicy | None = None,
+               patterns: list | None = None) -> StarNoise | None:
     """The within-frame estimate over the accepted stars of ``mask`` (see the module doc).
 
     With the installation ``R_imu_st``, a rolling shutter's shape is removed first where
@@ -314,12 +315,17 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     pass would weight by are measured through residuals a missing effect shapes more than
     the noise does, and the noise is not judged on such a run anyway.  ``kept``: the
     scales the run used (:func:`fit_weights`).  ``gate``: the run's χ² gate (its filter's
-    policy, :func:`readmitted`; None: the default policy's).
+    policy, :func:`readmitted`; None: the default policy's).  ``patterns``: the
+    detector's fixed-pattern tests of the same ``res``, ``sigma_px``, ``fx``, ``fy``,
+    ``centre`` and ``R_imu_st`` if already made (:func:`detector_patterns` reads every row
+    of the run's last part, not ``mask``'s: estimates of one table on other masks share
+    them; read, never changed).
     """
     # after each part its freed heap pages (blocks below the mapping threshold) go back,
     # not held beside the next part's: a 2-h round's screening run peaks in these parts
-    patterns = detector_patterns(res, sigma_px, fx, fy, centre, R_imu_st)
-    trim_freed()
+    if patterns is None:
+        patterns = detector_patterns(res, sigma_px, fx, fy, centre, R_imu_st)
+        trim_freed()
     out = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre, R_imu_st, flips,
                            patterns=patterns)
     trim_freed()

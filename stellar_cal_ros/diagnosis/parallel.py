@@ -65,7 +65,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from stellar_cal_ros.core.memory import trim_freed
+from stellar_cal_ros.core.memory import frozen_objects, trim_freed
 from stellar_cal_ros.diagnosis import timeline
 from stellar_cal_ros.diagnosis.runstats import (
     BagBytes,
@@ -955,7 +955,9 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
     runs = (DaskRuns(bag, spec, fraction, workers, scheduler, lazy) if scheduler or workers > 1
             else Runs(bag, spec, fraction))
     try:
-        yield runs
+        # (the imports' objects out of the collector's full passes: memory.frozen_objects)
+        with frozen_objects():
+            yield runs
     finally:
         runs.close()
 

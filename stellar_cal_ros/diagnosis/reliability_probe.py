@@ -150,7 +150,8 @@ class Injection:
 
 
 def injection_of(data, calibration, method: str, effect_id: str, delta: np.ndarray,
-                 plain=None, scene=None, imu: bool = True, onto=None) -> Injection:
+                 plain=None, scene=None, imu: bool = True, onto=None,
+                 user=None) -> Injection:
     """The increment of ``effect_id`` at ``delta`` (its units) on the user's bag.
 
     The difference of two noise-free twins (:func:`rendered`) of the bag under
@@ -160,15 +161,17 @@ def injection_of(data, calibration, method: str, effect_id: str, delta: np.ndarr
     ``imu=False`` where the effect leaves the IMU alone (:func:`moves_imu`; ``plain`` may
     then hold the user's samples).  ``onto``: the bag whose star rows the increments are
     laid on (default ``data``; the probe's noise-free twin, which may hold fewer stars than
-    the bag its scene was made from: the renders stay on ``data``).
+    the bag its scene was made from: the renders stay on ``data``).  ``user``: that bag's
+    star columns (:func:`star_columns` of its frames) if already made (one call's
+    injections lay theirs on the same frames).
     """
     plain = plain if plain is not None else rendered_stars(data, calibration, method,
                                                            scene=scene, imu=imu)
     moved = rendered_stars(data, calibration, method,
                            {effect_id: injection.simulation_value(effect_id, delta)}, scene,
                            imu=imu)
-    stars = star_steps((data if onto is None else onto).frames, _twin_stars(plain),
-                       _twin_stars(moved))
+    stars = star_steps(user if user is not None else (data if onto is None else onto).frames,
+                       _twin_stars(plain), _twin_stars(moved))
     if not imu:
         return Injection(stars, None, None)
     return Injection(stars, _step(moved.imu_w, plain.imu_w), _step(moved.imu_f, plain.imu_f))
@@ -215,8 +218,9 @@ def star_steps(user: list, plain, moved) -> tuple[np.ndarray, np.ndarray, np.nda
     star row of the user's frames whether the twins both hold it, and the steps of those
     rows in order.  In arrays over the whole bag: the per-frame dictionaries it replaces
     cost ~1 CPU-s per probe run on a 2-h bag; the same sums (test_reliability_injection
-    holds it to them).  ``plain``, ``moved``: the twins' frames, or their stars as columns
-    ``(stamps, counts, ids, uv)`` (:meth:`~stellar_cal_ros.diagnosis.twin.TwinStars.kept`).
+    holds it to them).  ``user``, ``plain``, ``moved``: frames, or their stars as columns
+    ``(stamps, counts, ids, uv)`` (:func:`star_columns`,
+    :meth:`~stellar_cal_ros.diagnosis.twin.TwinStars.kept`).
     """
     u_stamp, u_n, u_ids, _ = _columns(user)
     a_stamp, a_n, a_ids, a_uv = _columns(plain)
@@ -243,23 +247,25 @@ def star_steps(user: list, plain, moved) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def moved_frames(user: list, pair: np.ndarray, hit: np.ndarray, step: np.ndarray) -> list:
-    """``user``'s frames with the steps of :func:`star_steps` added to their centroids."""
+    """``user``'s frames with the steps of :func:`star_steps` added to their centroids.
+
+    Every centroid moved in one array (the same sums as frame by frame); a frame the twins
+    hold gets a copy of its message whose ``uv`` is its rows of that array.
+    """
+    counts = np.fromiter((len(f.catalog_id) for f in user), dtype=np.intp, count=len(user))
+    ends = np.cumsum(counts).tolist()
+    uv = np.concatenate([np.zeros((0, 2))] + [np.asarray(f.uv, dtype=float).reshape(-1, 2)
+                                              for f in user])
+    uv[hit] += step
     frames, start = [], 0
-    taken = np.concatenate([[0], np.cumsum(hit)])
-    for j, f in enumerate(user):
-        n = len(f.catalog_id)
-        rows = slice(start, start + n)
-        start += n
-        if pair[j] < 0:
-            frames.append(f)
-            continue
-        uv = np.array(f.uv, dtype=float, copy=True)
-        h = hit[rows]
-        if h.any():
-            uv[h] += step[taken[rows.start]:taken[rows.stop]]
-        g = _shallow(f)
-        g.uv = uv
-        frames.append(g)
+    for f, end, j in zip(user, ends, (pair >= 0).tolist(), strict=True):
+        if j:
+            g = _shallow(f)
+            # (a frame without stars keeps its own empty array's shape)
+            g.uv = uv[start:end] if end > start else np.array(f.uv, dtype=float, copy=True)
+            f = g
+        frames.append(f)
+        start = end
     return frames
 
 
@@ -276,6 +282,11 @@ def _columns(frames) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(stamps, counts, ids, uv)`` of ``frames``' stars (already columns: as given)."""
     if isinstance(frames, tuple):
         return frames
+    return star_columns(frames)
+
+
+def star_columns(frames: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(stamps, counts, ids, uv)`` of ``frames``' stars, for :func:`star_steps`."""
     stamps = np.array([int(f.stamp_ns) for f in frames], dtype=np.int64)
     counts = np.array([len(f.catalog_id) for f in frames], dtype=np.intp)
     ids = np.concatenate([np.zeros(0, dtype=np.int64)]
@@ -551,7 +562,7 @@ def _rendered_injections(data, spec, calibration, probes: tuple, scene=None,
     ``scene``: the bag's twin scene if already made; ``onto``: see :func:`injection_of`.
     """
     injections: list[Injection | Exception] = []
-    plain = None
+    plain = user = None
     imu = [_moves_imu(calibration, spec.name, e, d) for e, d in probes]
     for (effect_id, delta), moves in zip(probes, imu, strict=True):
         try:
@@ -562,9 +573,12 @@ def _rendered_injections(data, spec, calibration, probes: tuple, scene=None,
             # the plain twin renders the IMU if any probe of this call moves it
             plain = plain if plain is not None else rendered_stars(
                 data, calibration, spec.name, scene=scene, imu=any(imu))
+            # (the frames every increment is laid on: their star columns made once)
+            user = user if user is not None else star_columns(
+                (data if onto is None else onto).frames)
             injections.append(injection_of(data, calibration, spec.name, effect_id,
                                            np.asarray(delta), plain, scene, imu=moves,
-                                           onto=onto))
+                                           onto=onto, user=user))
         except Exception as exc:
             injections.append(exc)
     return injections
