@@ -7,7 +7,8 @@ Usage::
 
 Each case runs ``python -m stellar_cal_ros COMMAND ...`` in a fresh process (as a user
 would) and the table prints, per command x input: ``ok`` (exit 0; ``ok, N warning lines``
-when it warned), or the last line of stderr for a refusal, and the wall seconds. A case
+when it warned), or the last line of stderr for a refusal, the wall seconds and the CPU
+seconds (the process and its children). A case
 is a BUG when its stderr holds a traceback, when a refusal is not one
 ``stellar-cal CMD: error: ...`` line (argparse's usage + one line counts as one), or when
 it exits 0 where it must refuse (or refuses where it must run).
@@ -27,7 +28,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import resource
 import shutil
 import stat
 import subprocess
@@ -189,6 +192,9 @@ def cases(inp: dict) -> list[tuple[str, str, list[str], bool]]:
            ["replay", str(b["acf"]), "--method", "psce", "--method-module",
             str(w / "broken_module.py"), "--prior", str(p["acf"]), "-o", out("r_mm.yaml")],
            False)]
+    c += [("replay", "ros1_cut --on-error skip",  # (rosbags reads indexed bags only)
+           ["replay", str(b["ros1_cut"]), "--method", "psce", "--prior", str(p["acf"]),
+            "--on-error", "skip", "-o", out("replay_ros1_cut_skip.yaml"), "-q"], False)]
     c += [("replay", "cut --on-error skip",
            ["replay", str(b["cut"]), "--method", "psce", "--prior", str(p["cut"]),
             "--on-error", "skip", "-o", out("replay_cut_skip.yaml"), "-q"], True)]
@@ -340,17 +346,25 @@ def judge(rc: int | None, err: str, command: str, must_succeed: bool) -> tuple[s
         "" if not must_succeed else "BUG: refused a good input")
 
 
-def run_case(argv: list[str], timeout: float) -> tuple[int | None, str, float]:
-    """(exit status or None on timeout, stderr, wall seconds) of one command, fresh process."""
+def _children_cpu() -> float:
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
+
+
+def run_case(argv: list[str], timeout: float) -> tuple[int | None, str, float, float]:
+    """(exit status or None on timeout, stderr, wall s, CPU s) of one command, fresh process.
+
+    The CPU is the process's with its children's (worker processes too; NaN on timeout).
+    """
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _children_cpu()
     try:
         proc = subprocess.run([sys.executable, "-m", "stellar_cal_ros", *argv], env=env,
                               capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired as exc:
         return None, (exc.stderr or b"").decode(errors="replace") if isinstance(
-            exc.stderr, bytes) else (exc.stderr or ""), time.perf_counter() - t0
-    return proc.returncode, proc.stderr, time.perf_counter() - t0
+            exc.stderr, bytes) else (exc.stderr or ""), time.perf_counter() - t0, math.nan
+    return proc.returncode, proc.stderr, time.perf_counter() - t0, _children_cpu() - c0
 
 
 def main() -> int:
@@ -371,18 +385,18 @@ def main() -> int:
     only = {s for s in args.only.split(",") if s}
     inputs = {s for s in args.inputs.split(",") if s}
     rows = []
-    print(f"{'command':<20} {'input':<24} {'s':>6}  result")
+    print(f"{'command':<20} {'input':<24} {'s':>6} {'cpu':>6}  result")
     for command, key, argv, must in cases(inp):
         if (only and command.split()[0] not in only and command not in only) or (
                 inputs and key not in inputs):
             continue
-        rc, err, sec = run_case(argv, args.timeout)
+        rc, err, sec, cpu = run_case(argv, args.timeout)
         text, verdict = judge(rc, err, command, must)
         rows.append({"command": command, "input": key, "seconds": round(sec, 1),
-                     "exit": rc, "result": text, "verdict": verdict,
-                     "argv": argv, "stderr": err[-4000:]})
+                     "cpu_seconds": round(cpu, 2), "exit": rc, "result": text,
+                     "verdict": verdict, "argv": argv, "stderr": err[-4000:]})
         flag = f"  <- {verdict}" if verdict else ""
-        print(f"{command:<20} {key:<24} {sec:6.1f}  {text}{flag}", flush=True)
+        print(f"{command:<20} {key:<24} {sec:6.1f} {cpu:6.2f}  {text}{flag}", flush=True)
     bugs = [r for r in rows if r["verdict"]]
     print(f"{len(rows)} cases, {len(bugs)} bugs")
     if args.json:

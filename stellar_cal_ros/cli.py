@@ -36,7 +36,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from stellar_cal_ros import __version__
-from stellar_cal_ros.errors import StellarCalError, one_line
+from stellar_cal_ros.errors import (
+    BagDamageWarning,
+    StellarCalError,
+    held_damage_warning,
+    hold_damage_warnings,
+    one_line,
+    unsaid_damage_warnings,
+)
 
 log = logging.getLogger("stellar_cal_ros")
 
@@ -398,13 +405,18 @@ def print_replay_summary(result, prior) -> None:
              f"{np.round(np.asarray(cal.accel_bias) / MICRO_G, 2).tolist()} ug"))
 
 
+def _check_diagnose(args: argparse.Namespace) -> None:
+    """Refuse a missing bag, or one without what the method needs, from its summary.
+
+    Before the kernels' compile notice and before the diagnosis's modules are imported
+    (a refusal costs a fraction of a CPU-second, not the filter's imports).
+    """
+    from stellar_cal_ros.methods.frames import method_reads_images
+
+    method_reads_images(args.bag, args.method)
+
+
 def _cmd_diagnose(args: argparse.Namespace) -> int:
-    if args.bag.exists():  # a bag without what the method needs: refused from its summary
-        from stellar_cal_ros.methods.frames import method_reads_images
-
-        method_reads_images(args.bag, args.method)
-    from stellar_cal_ros.diagnosis.run import diagnose
-
     _load_effect_modules(args.effect_module)
     cal = load_prior(args.calibration)
     candidates = _effect_list(args.candidates) or None
@@ -415,6 +427,8 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         raise StellarCalError("--max-rounds must be >= 1")
     if args.verify_twins is not None and args.verify_twins < 1:
         raise StellarCalError("--verify-twins must be >= 1")
+    from stellar_cal_ros.diagnosis.run import diagnose
+
     summary = diagnose(args.bag, cal, args.method, _effect_list(args.effects), args.output,
                        candidates=candidates, plots=not args.no_plots, workers=args.workers,
                        scheduler=args.scheduler, auto=auto, max_rounds=args.max_rounds,
@@ -568,7 +582,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("bag", type=Path, help="a .mcap file, a rosbag2 directory or a ROS 1 .bag")
     i.set_defaults(func=_cmd_info)
 
-    from stellar_cal_ros.io.reader import on_error_argument
+    from stellar_cal_ros.errors import on_error_argument
 
     r = sub.add_parser("replay", help="Kalman-filter calibration over a bag",
                        formatter_class=_HelpFormatter)
@@ -673,7 +687,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "(its consistency block; as for replay, what the diagnosis "
                             "prints as 'use --noise-scale'; with --noise estimate measured "
                             "again relative to it): " + NOISE_SCALE_ITEMS)
-        d.set_defaults(func=_cmd_diagnose)
+        d.set_defaults(func=_cmd_diagnose, check=_check_diagnose)
 
     m = sub.add_parser("demo", help="run the built-in demonstration")
     m.add_argument("-o", "--output", type=Path, default=Path("demo_out"),
@@ -727,9 +741,29 @@ def _one_line_warning(command: str):
     """
 
     def show(message, category, filename, lineno, file=None, line=None) -> None:
+        if issubclass(category, BagDamageWarning) and held_damage_warning(one_line(message)):
+            return  # (--on-error skip: counted in the command's data quality line)
         print(f"stellar-cal {command}: warning: {one_line(message)}", file=file or sys.stderr)
 
     return show
+
+
+def _say_unsaid(command: str) -> None:
+    """The held damage warnings no data quality line counted: printed, one line each."""
+    for text in unsaid_damage_warnings():
+        print(f"stellar-cal {command}: warning: {text}", file=sys.stderr)
+    hold_damage_warnings(False)
+
+
+def _unsaid_note(args: argparse.Namespace) -> str:
+    """An error's words for the held damage warnings no data quality line counted."""
+    n = len(unsaid_damage_warnings())
+    hold_damage_warnings(False)
+    if not n:
+        return ""
+    return (f" (read past damage in {args.bag}: the reader's {n} warning{'s' * (n != 1)} "
+            f"about it not printed, `stellar-cal -v` prints them; `stellar-cal info "
+            f"{args.bag}` lists the damage)")
 
 
 def _hint(args: argparse.Namespace, exc: StellarCalError) -> str:
@@ -812,6 +846,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name, directory in OUTPUTS.get(args.command, ()):
             if getattr(args, name, None) is not None:
                 check_output(Path(getattr(args, name)), directory)
+        if getattr(args, "check", None) is not None:  # what refuses the input at once
+            args.check(args)
         if args.command in ROUNDS:  # the arrays a stage drops go back to the system
             from stellar_cal_ros.core.memory import return_freed_arrays
 
@@ -825,28 +861,32 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             if compile_notice():
                 compile_notice_armed(None)  # (said once)
+        # a read past damage: the reader's warnings counted in the one data quality line
+        hold_damage_warnings(getattr(args, "on_error", None) == "skip" and not args.verbose)
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning(args.command)
             code = int(args.func(args) or 0)
+        _say_unsaid(args.command)
         if args.command in COMPILES:  # the kernels it compiled or loaded: the next notice's
             from stellar_cal_ros.methods.frame_step import record_kernels_used
 
             record_kernels_used()
         return code
     except StellarCalError as exc:
-        print(f"stellar-cal {args.command}: error: {one_line(exc)}{_hint(args, exc)}",
-              file=sys.stderr)
+        print(f"stellar-cal {args.command}: error: {one_line(exc)}{_hint(args, exc)}"
+              f"{_unsaid_note(args)}", file=sys.stderr)
         return 1
     except OSError as exc:  # an output path that cannot be written, a vanished input
         log.debug("traceback", exc_info=True)
-        print(f"stellar-cal {args.command}: error: {one_line(os_error_text(exc))}",
-              file=sys.stderr)
+        print(f"stellar-cal {args.command}: error: {one_line(os_error_text(exc))}"
+              f"{_unsaid_note(args)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
     finally:
         set_provenance()  # this command's record ends with it (a caller may run another)
+        hold_damage_warnings(False)
         from stellar_cal_ros.progress import compile_notice_armed
 
         compile_notice_armed(None)

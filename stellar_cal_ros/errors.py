@@ -7,6 +7,11 @@ traceback.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import argparse
+
 
 class StellarCalError(Exception):
     """Base class of all errors raised on purpose by stellar_cal_ros."""
@@ -52,6 +57,59 @@ class DataError(StellarCalError):
     """
 
 
+class BagDamageWarning(UserWarning):
+    """What a read of a damaged bag met (a part skipped, met again; a scan for want of an index).
+
+    A part skipped (``on_error="skip"``), a part met again, a bag scanned for want of its
+    index or summary.
+    A library caller sees each; the command line under ``--on-error skip`` holds them
+    (:func:`hold_damage_warnings`) and counts them in its one ``data quality`` line, which
+    says what was lost (``-v`` prints them as they come).
+    """
+
+
+class _Held:
+    """The damage warnings the command line holds, and whether a data quality line said them.
+
+    ``lines`` None: not holding.
+    """
+
+    lines: list[str] | None = None
+    said = False
+
+
+_HELD = _Held()
+
+
+def hold_damage_warnings(hold: bool) -> None:
+    """Hold the :class:`BagDamageWarning` texts from now on (False: stop, forget them)."""
+    _HELD.lines = [] if hold else None
+    _HELD.said = False
+
+
+def held_damage_warning(text: str) -> bool:
+    """Hold one warning's text when holding (True); False: the caller prints it."""
+    if _HELD.lines is None:
+        return False
+    _HELD.lines.append(text)
+    return True
+
+
+def held_damage_note() -> str:
+    """The held warnings counted for a data quality line ('' when none are held)."""
+    if not _HELD.lines:
+        return ""
+    _HELD.said = True
+    n = len(_HELD.lines)
+    return (f"the reader's {n} warning{'s' * (n != 1)} about the damage counted here, not "
+            "printed (`stellar-cal -v ...` prints them)")
+
+
+def unsaid_damage_warnings() -> list[str]:
+    """The held warnings no data quality line has counted (the command printed none)."""
+    return [] if _HELD.said or _HELD.lines is None else list(_HELD.lines)
+
+
 def one_line(text: str) -> str:
     """``text`` as one line: its non-blank lines stripped and joined by '; '.
 
@@ -79,3 +137,12 @@ def yaml_error_text(exc: Exception) -> str:
         started = f" started at line {cmark.line + 1}" if cmark is not None else ""
         return f"{where}{problem} ({context}{started})"
     return f"{where}{problem}"
+
+
+def on_error_argument(p: argparse.ArgumentParser, what: str) -> None:
+    """``--on-error``: the bag reader's skip mode (replay, batch, diagnose, discover, twin)."""
+    p.add_argument("--on-error", choices=["raise", "skip"], default="raise",
+                   help=f"skip: {what} a truncated or damaged bag on what it holds, dropping "
+                        "and counting malformed messages; what was lost is printed in one "
+                        "line and recorded (data_quality, doc/interfaces.md) (default: stop "
+                        "with an error)")

@@ -703,3 +703,83 @@ def test_the_kernel_cache_prunes_other_versions_unused_for_days(tmp_path, monkey
     assert removed == [recent]
     assert current.is_dir() and stamped_recently.is_dir()
     jit.kernel_cache_used.cache_clear()
+
+
+# ------------------------------------------------------------------ a refusal costs no filter
+def test_a_refusal_a_bad_path_and_help_import_no_method_nor_numba(tmp_path):
+    """``diagnose`` of a bag without IMU (refused from its summary), of a path that does not
+    exist, ``--method`` of an unknown name and ``diagnose --help`` (which lists every
+    diagnosable method with its summary) import no method module, numba nor scipy beyond
+    its LAPACK (the bag reading's): the registry reads the methods' declarations from their
+    files (H252).  main imported psce
+    (numba, scipy) through the ``--method`` choices and every method for the help and the
+    refusal's alternatives, and the compile check imported the kernels: 1.0-1.3 CPU-s (8-14 s
+    wall under load) for a refusal, now ~0.5."""
+    import subprocess
+    import sys
+    import textwrap
+
+    bag, prior, _ = psce_bag(DURATION, seed=7)
+    no_imu = _convert(bag, tmp_path / "no_imu.mcap", "mcap", exclude=["/imu/data"])
+    code = textwrap.dedent(f"""
+        import contextlib, io, sys
+        from stellar_cal_ros.cli import main
+        out = []
+        for argv in (["diagnose", {str(no_imu)!r}, "--calibration", {str(prior)!r}, "--method",
+                      "psce", "-o", {str(tmp_path / "d")!r}],
+                     ["diagnose", {str(tmp_path / "nope.mcap")!r}, "--calibration",
+                      {str(prior)!r}, "--method", "psce", "-o", {str(tmp_path / "e")!r}],
+                     ["diagnose", {str(no_imu)!r}, "--calibration", {str(prior)!r},
+                      "--method", "nope", "-o", {str(tmp_path / "f")!r}],
+                     ["diagnose", "--help"]):
+            err, text = io.StringIO(), io.StringIO()
+            with contextlib.redirect_stderr(err), contextlib.redirect_stdout(text):
+                try:
+                    code = main(argv)
+                except SystemExit as exc:
+                    code = exc.code
+            out.append((code, err.getvalue().strip().splitlines()[-1:], text.getvalue()))
+        heavy = ("numba", "scipy.spatial", "scipy.optimize", "scipy.stats", "scipy.sparse",
+                 "stellar_cal_ros.methods.psce", "stellar_cal_ros.methods.acf",
+                 "stellar_cal_ros.methods.bundle_runs", "stellar_cal_ros.methods.swaying",
+                 "stellar_cal_ros.methods.kernel", "stellar_cal_ros.diagnosis.run")
+        print(repr(out))
+        print(sorted(m for m in sys.modules if m.startswith(heavy)))
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    *_, said, imported = proc.stdout.splitlines()
+    assert imported == "[]", imported
+    (r1, e1, _), (r2, e2, _), (r3, e3, _), (r4, _, helped) = eval(said)  # noqa: S307
+    assert r1 == 1 and "psce needs IMU samples on /imu/data" in e1[0], e1
+    assert "`--method bundle` runs on the star frames alone" in e1[0], e1
+    assert r2 == 1 and e2 == [f"stellar-cal diagnose: error: bag not found: "
+                              f"{tmp_path / 'nope.mcap'}"], e2
+    assert r3 == 2 and "invalid choice: 'nope'" in e3[0], e3
+    helped = " ".join(helped.split())
+    assert r4 == 0 and all(f"{name}: " in helped for name in
+                           ("psce", "swaying_base", "traditional", "bundle")), helped
+    assert "acf: " not in helped  # (not diagnosable)
+    assert "psce: Tan et al. 2018: a rotating vehicle" in helped
+
+
+def test_a_ros1_bag_cut_short_names_rosbag_reindex(tmp_path, capsys):
+    """A ROS 1 bag cut short (no index: ROS 1 writes it last) cannot be read by rosbags (no
+    reindex of its own): one error line that says what rebuilds it (main: rosbags' "Bag
+    index looks damaged: ('Header could not be read from file.',)" alone)."""
+    bag, prior, _ = psce_bag(DURATION, seed=7)
+    ros1 = _convert(bag, tmp_path / "whole.bag")
+    raw = ros1.read_bytes()
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(raw[: len(raw) // 2])
+    for argv in (["info", str(cut)],
+                 ["replay", str(cut), "--method", "psce", "--prior", str(prior), "-o",
+                  str(tmp_path / "r.yaml"), "-q", "--on-error", "skip"]):
+        assert main(argv) == 1
+        line = _one_error_line(capsys.readouterr().err, argv[0])
+        assert line == (f"stellar-cal {argv[0]}: error: {cut}: a ROS 1 bag without a readable "
+                        "index (cut short or not closed: the index is written last; rosbags: "
+                        "Bag index looks damaged: ('Header could not be read from file.',)); "
+                        f"rebuild it with `rosbag reindex {cut}` (ROS 1) and give the "
+                        "reindexed bag"), line

@@ -26,7 +26,7 @@ def add_twin_parser(sub) -> None:
     t.add_argument("--seed", type=int, default=0, help="noise seed (same seed: paired twins)")
     t.add_argument("--effect-module", type=Path, action="append",
                    help="Python file defining extra Effect classes (repeatable)")
-    from stellar_cal_ros.io.reader import on_error_argument
+    from stellar_cal_ros.errors import on_error_argument
 
     on_error_argument(t, "re-render")
     t.set_defaults(func=_cmd_twin)

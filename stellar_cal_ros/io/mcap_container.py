@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stellar_cal_ros.errors import BagError
+from stellar_cal_ros.errors import BagDamageWarning, BagError
 from stellar_cal_ros.io.cdr import windows
 from stellar_cal_ros.io.mcap_records import (
     DATA_OPS,
@@ -149,7 +149,9 @@ class McapFile:
         if tail[-len(MAGIC) :] != MAGIC or tail[0] != OP_FOOTER:
             if str(self.path) not in _NO_FOOTER_SAID:  # once a process (each open asked)
                 _NO_FOOTER_SAID.add(str(self.path))
-                _log.info("%s: no footer (truncated or still being written)", self.path)
+                # (debug: a command's error or data quality line says the truncation, a
+                # scan's warning that the index is missing)
+                _log.debug("%s: no footer (truncated or still being written)", self.path)
             return None
         _, length, summary_start, summary_offset_start, crc = struct.unpack_from("<BQQQI", tail, 0)
         if length != 20 or summary_start == 0:
@@ -163,7 +165,7 @@ class McapFile:
                                               path=str(self.path))
             warnings.warn(
                 f"{self.path}: summary CRC mismatch; ignoring the summary and scanning the file",
-                stacklevel=3,
+                BagDamageWarning, stacklevel=3,
             )
             return None
         end = (summary_offset_start - summary_start) if summary_offset_start else len(section)
@@ -196,7 +198,8 @@ class McapFile:
         except (CorruptError, struct.error) as exc:
             self.summary_problem = BagProblem(summary_start, f"unreadable summary ({exc})",
                                               lost=False, path=str(self.path))
-            warnings.warn(f"{self.path}: unreadable summary ({exc}); scanning", stacklevel=3)
+            warnings.warn(f"{self.path}: unreadable summary ({exc}); scanning",
+                          BagDamageWarning, stacklevel=3)
             return None
         if msg_count == 0:
             start = stop = None

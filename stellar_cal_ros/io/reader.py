@@ -28,7 +28,7 @@ from stellar_cal_ros.core.types import (
     StarFrame,
     TopicInfo,
 )
-from stellar_cal_ros.errors import BagError, MessageDecodeError
+from stellar_cal_ros.errors import BagDamageWarning, BagError, MessageDecodeError
 from stellar_cal_ros.io import kinds
 from stellar_cal_ros.io.image_msgs import CameraInfoMessage, ImageMessage
 from stellar_cal_ros.io.mcap_records import BagProblem, CorruptError, Rows
@@ -149,7 +149,7 @@ class BagReader:
                 f"truncated or corrupt bag {problem.path} at byte {problem.offset} "
                 f"(while reading {what}): {problem.describe(self._src.start_hint())}; "
                 "skipped, reading goes on with the next valid chunk",
-                stacklevel=5,
+                BagDamageWarning, stacklevel=5,
             )
 
         try:
@@ -162,7 +162,7 @@ class BagReader:
             if again:
                 warnings.warn(f"truncated or corrupt bag {self.path}: {len(again)} damaged "
                               f"part(s) skipped again while reading {what} (described above)",
-                              stacklevel=4)
+                              BagDamageWarning, stacklevel=4)
         except (CorruptError, struct.error, OSError) as exc:
             off = getattr(exc, "offset", None)
             where = f"{self.path} at byte {off}" if off is not None else str(self.path)
@@ -176,7 +176,8 @@ class BagReader:
             if self.on_error == "raise":
                 raise BagError(msg) from exc
             self.truncated = True
-            warnings.warn(msg + "; returning what could be read", stacklevel=4)
+            warnings.warn(msg + "; returning what could be read", BagDamageWarning,
+                          stacklevel=4)
 
     def _bad(self, topic: str, log_time: int, reason: str, counter: dict[str, list[Any]]) -> None:
         """Handle one malformed message according to ``on_error``."""
@@ -192,7 +193,7 @@ class BagReader:
             warnings.warn(
                 f"skipped {n} malformed message(s) on {topic} (first at t={t * 1e-9:.9f} s: "
                 f"{reason})",
-                stacklevel=4,
+                BagDamageWarning, stacklevel=4,
             )
 
     # -- topics and times ------------------------------------------------------------------
@@ -231,7 +232,7 @@ class BagReader:
             warnings.warn(
                 f"{self.path} has no summary/statistics (truncated or not closed?); counting "
                 "messages with a full scan",
-                stacklevel=2,
+                BagDamageWarning, stacklevel=2,
             )
             counts = self._scan_counts()[0]
         out: dict[str, TopicInfo] = {}
@@ -807,12 +808,3 @@ class BagReader:
                 if found is not None:
                     return found
         raise BagError(f"topic {topic!r} not in {self.path}")
-
-
-def on_error_argument(p: Any, what: str) -> None:
-    """``--on-error``: the bag reader's skip mode (replay, batch, diagnose, discover, twin)."""
-    p.add_argument("--on-error", choices=["raise", "skip"], default="raise",
-                   help=f"skip: {what} a truncated or damaged bag on what it holds, dropping "
-                        "and counting malformed messages; what was lost is printed in one "
-                        "line and recorded (data_quality, doc/interfaces.md) (default: stop "
-                        "with an error)")

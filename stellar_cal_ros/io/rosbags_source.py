@@ -116,6 +116,13 @@ class RosbagsSource(SourceBase):
             self._reader = AnyReader([path], default_typestore=contract_typestore())
             self._reader.open()
         except (AnyReaderError, OSError, ValueError, KeyError) as exc:
+            if storage == "rosbag1" and "index" in str(exc).lower():
+                # a recording cut short or never closed (``.bag.active``): ROS 1 writes the
+                # index last, and rosbags reads indexed bags only (no reindex of its own)
+                raise BagError(
+                    f"{path}: a ROS 1 bag without a readable index (cut short or not closed: "
+                    f"the index is written last; rosbags: {exc}); rebuild it with `rosbag "
+                    f"reindex {path}` (ROS 1) and give the reindexed bag") from exc
             raise BagError(f"cannot open bag {path} ({storage}) with rosbags: {exc}") from exc
         self._ros1 = not self._reader.is2
         self._types = contract_typestore(self._reader.typestore, ros2_header=self._ros1)

@@ -426,8 +426,7 @@ def reads_star_images(path: str | Path, imu_for: str = "") -> bool:
     if imu_for and (info is None or not info.message_count):
         from stellar_cal_ros.methods import registry
 
-        other = [n for n in registry.names(diagnosable=True)
-                 if not needs_imu(registry.find(n))]
+        other = [s.name for s in registry.catalog(diagnosable=True) if not needs_imu(s)]
         instead = (f"; without it `--method {other[0]}` runs on the star frames alone "
                    f"(from `stellar-cal batch --method {other[0]}`'s result)") if other else ""
         raise BagError(f"{path}: {imu_for} needs IMU samples on {TOPICS['imu']}, which the "
@@ -439,11 +438,14 @@ def method_reads_images(path: str | Path, method: str) -> bool:
     """:func:`reads_star_images`, refusing a bag without the IMU ``method`` needs."""
     from stellar_cal_ros.methods import registry
 
-    return reads_star_images(path, imu_for=method if needs_imu(registry.find(method)) else "")
+    return reads_star_images(path, imu_for=method if needs_imu(registry.peek(method)) else "")
 
 
 def needs_imu(spec) -> bool:
-    """Whether a method (its registered spec) reads the IMU: a filter, a fit with the gyro."""
+    """Whether a method (its registered spec, or its declaration) reads the IMU.
+
+    A filter does, and a fit with the gyro.
+    """
     from stellar_cal_ros.effects.base import Stage
 
     return spec is not None and (spec.kind == "filter" or Stage.GYRO in spec.stages)

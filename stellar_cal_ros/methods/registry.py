@@ -41,6 +41,7 @@ Batch methods
 
 from __future__ import annotations
 
+import ast
 import importlib
 import importlib.util
 import logging
@@ -59,8 +60,6 @@ KINDS = ("filter", "batch")
 ENTRY_POINT_GROUP = "stellar_cal_ros.methods"
 #: how a method file of the package declares its spec (the registry imports only these)
 _DECLARATION = re.compile(r"^METHOD = MethodSpec\(", re.MULTILINE)
-#: the name a declaration gives first (``METHOD = MethodSpec(name="psce", ...``)
-_DECLARED_NAME = re.compile(r'^METHOD = MethodSpec\(\s*name="([a-z][a-z0-9_]*)"', re.MULTILINE)
 
 #: ``runner(data, prior, effects, keep_tables=False, eval_fraction=0.5, consider=None,
 #: gyro_fault="raise") -> ReplayResult``: one run over a bag as the diagnosis sees it
@@ -131,17 +130,110 @@ class MethodSpec:
 
 METHODS: dict[str, MethodSpec] = {}
 _loaded = False
+_plugins_loaded = False
 #: package methods registered by a one-name look-up before the full load (:func:`_load`
 #: registers them again in file order, so that :func:`names` keeps its order)
 _early: set[str] = set()
-_declarations: list[tuple[str, str | None]] | None = None
+_declarations: list[Declaration] | None = None
 
 
-def _package_declarations() -> list[tuple[str, str | None]]:
-    """(module, declared name or None) of this package's files that declare a method.
+@dataclass(frozen=True)
+class Declaration:
+    """What a package file's ``METHOD = MethodSpec(...)`` says, read from its source.
 
-    Sorted by file name; the name is None when the declaration does not start with a
-    literal ``name="..."`` (such a file is imported by every one-name look-up).
+    The command line's ``--method`` choices, ``--help`` and a bag's refusal read these
+    (:func:`catalog`): no method module, nor numba or scipy, is imported for them.  A field
+    the source does not give as a literal (a name the file defines or imports from the
+    package is followed) is None; :func:`catalog` then imports the file, unless only a
+    filter's ``stages`` are unknown (a filter reads the IMU whatever they are: what the
+    stages are read for here).
+    """
+
+    module: str
+    name: str | None
+    kind: str | None
+    summary: str | None
+    stages: tuple[Stage, ...] | None
+    diagnosable: bool | None
+
+    @property
+    def complete(self) -> bool:
+        """Whether it says enough to list or judge the method without importing it."""
+        return self.kind in KINDS and None not in (self.name, self.summary, self.diagnosable) \
+            and (self.stages is not None or self.kind == "filter")
+
+
+def _source_tree(module: str) -> ast.Module | None:
+    """The parsed source of one of this package's modules (None when it has no file)."""
+    path = Path(__file__).parents[1].joinpath(*module.split(".")[1:]).with_suffix(".py")
+    try:
+        return ast.parse(path.read_text(encoding="utf-8"))
+    except (OSError, SyntaxError, ValueError):
+        return None
+
+
+def _stages(node: ast.expr, tree: ast.Module, depth: int = 0) -> tuple[Stage, ...] | None:
+    """The stages an expression of a declaration names (None: not readable from source).
+
+    A tuple of ``Stage.X``, or a name assigned one at module level in the file or in the
+    package module the file imports it from.
+    """
+    if isinstance(node, (ast.Tuple, ast.List)):
+        out = [Stage[e.attr] for e in node.elts if isinstance(e, ast.Attribute)
+               and isinstance(e.value, ast.Name) and e.value.id == "Stage"
+               and e.attr in Stage.__members__]
+        return tuple(out) if len(out) == len(node.elts) else None
+    if not isinstance(node, ast.Name) or depth > 2:
+        return None
+    for st in tree.body:
+        targets = st.targets if isinstance(st, ast.Assign) else \
+            [st.target] if isinstance(st, ast.AnnAssign) else []
+        value = getattr(st, "value", None)
+        if value is not None and any(isinstance(t, ast.Name) and t.id == node.id
+                                     for t in targets):
+            return _stages(value, tree, depth + 1)
+        if isinstance(st, ast.ImportFrom) and (st.module or "").startswith(
+                f"{__package__.split('.')[0]}.") and any(
+                (a.asname or a.name) == node.id and a.name == node.id for a in st.names):
+            other = _source_tree(st.module or "")
+            return _stages(node, other, depth + 1) if other is not None else None
+    return None
+
+
+def _declaration(module: str, tree: ast.Module) -> Declaration:
+    """The :class:`Declaration` of ``METHOD = MethodSpec(...)`` in a module's source."""
+    call = next((st.value for st in tree.body if isinstance(st, ast.Assign)
+                 and any(isinstance(t, ast.Name) and t.id == "METHOD" for t in st.targets)
+                 and isinstance(st.value, ast.Call) and isinstance(st.value.func, ast.Name)
+                 and st.value.func.id == "MethodSpec"), None)
+    if call is None:
+        return Declaration(module, None, None, None, None, None)
+    given = {k.arg: k.value for k in call.keywords if k.arg is not None}
+    hidden = any(k.arg is None for k in call.keywords)  # a ``**`` expansion: anything
+
+    def text(key: str) -> str | None:
+        node = given.get(key)
+        return node.value if isinstance(node, ast.Constant) and \
+            isinstance(node.value, str) else None
+
+    kind = text("kind")
+    stages = _stages(given["stages"], tree) if "stages" in given else \
+        (None if hidden else tuple(Stage))
+    runner = given.get("runner")
+    if kind == "filter":
+        diagnosable: bool | None = True
+    elif runner is not None:
+        diagnosable = not (isinstance(runner, ast.Constant) and runner.value is None)
+    else:
+        diagnosable = None if hidden else False
+    return Declaration(module, text("name"), kind, text("summary"), stages, diagnosable)
+
+
+def _package_declarations() -> list[Declaration]:
+    """The :class:`Declaration` of each of this package's files that declares a method.
+
+    Sorted by file name; a declaration whose name is not a literal ``name="..."`` has name
+    None (such a file is imported by every one-name look-up).
     """
     global _declarations
     if _declarations is None:
@@ -152,16 +244,19 @@ def _package_declarations() -> list[tuple[str, str | None]]:
                 continue
             text = path.read_text(encoding="utf-8")
             if _DECLARATION.search(text):
-                m = _DECLARED_NAME.search(text)
-                out.append((f"{__package__}.{path.stem}", m.group(1) if m else None))
+                module = f"{__package__}.{path.stem}"
+                try:
+                    out.append(_declaration(module, ast.parse(text)))
+                except SyntaxError:  # imported, it says what is wrong
+                    out.append(Declaration(module, None, None, None, None, None))
         _declarations = out
     return _declarations
 
 
 def _package_files() -> Iterator[str]:
     """Module names of this package's files that declare a method (sorted by file name)."""
-    for module, _ in _package_declarations():
-        yield module
+    for d in _package_declarations():
+        yield d.module
 
 
 def _load() -> None:
@@ -178,6 +273,15 @@ def _load() -> None:
             del METHODS[spec.name]  # registered early by a look-up: again, in file order
         _register_module(module, name)
     _early.clear()
+    _load_plugins()
+
+
+def _load_plugins() -> None:
+    """Register the installed plugins (once; a package method's name stays the package's)."""
+    global _plugins_loaded
+    if _plugins_loaded:
+        return
+    _plugins_loaded = True
     from importlib.metadata import entry_points  # (~0.05 s: only when all are listed)
 
     for ep in entry_points(group=ENTRY_POINT_GROUP):
@@ -186,6 +290,10 @@ def _load() -> None:
         except Exception as exc:  # an installed plugin: say which, go on with the rest
             log.warning("method plugin %s failed to load: %s", ep.value, exc)
             continue
+        spec = obj if isinstance(obj, MethodSpec) else getattr(obj, "METHOD", None)
+        if isinstance(spec, MethodSpec) and any(d.name == spec.name
+                                                for d in _package_declarations()):
+            _lookup(spec.name)  # the package's first: :func:`register` refuses the plugin
         if isinstance(obj, MethodSpec):
             register(obj)
         else:
@@ -196,20 +304,21 @@ def _lookup(name: str) -> MethodSpec | None:
     """The spec of ``name``, importing only the package file that declares it if it can.
 
     Before the full load, a name some package file declares is imported from that file
-    alone; any other name loads everything (plugins and all) and is looked up there.
+    alone; any other name is looked up among the plugins (the package's files declare
+    theirs: none of them is imported for it).
     """
     spec = METHODS.get(name)
     if spec is not None or _loaded:
         return spec
-    for module, declared in _package_declarations():
-        if declared is None or declared == name:
-            spec = _register_module(importlib.import_module(module), module)
+    for d in _package_declarations():
+        if d.name is None or d.name == name:
+            spec = _register_module(importlib.import_module(d.module), d.module)
             if not _loaded:
                 _early.add(spec.name)
     spec = METHODS.get(name)
     if spec is not None:
         return spec
-    _load()
+    _load_plugins()
     return METHODS.get(name)
 
 
@@ -269,17 +378,57 @@ def get(name: str) -> MethodSpec:
     return spec
 
 
+def peek(name: str | None) -> MethodSpec | Declaration | None:
+    """What :func:`find` gives, or the :class:`Declaration` of a package method not imported.
+
+    The declaration when it is complete (its kind, stages, summary: no import).
+    """
+    name = name or ""
+    spec = METHODS.get(name)
+    if spec is not None:
+        return spec
+    d = next((d for d in _package_declarations() if d.name == name), None)
+    return d if d is not None and d.complete else _lookup(name)
+
+
 def find(name: str | None) -> MethodSpec | None:
     """The spec of ``name``, None when no method has that name (``prior``, ``truth`` ...)."""
     return _lookup(name or "")
 
 
+def catalog(kind: str | None = None,
+            diagnosable: bool = False) -> list[MethodSpec | Declaration]:
+    """Every method, as :func:`names` lists them (a package one not imported: its declaration).
+
+    A package method not imported yet is its :class:`Declaration` when the source says
+    everything (else its file is imported).
+
+    Both have ``name``, ``kind``, ``summary``, ``stages`` and ``diagnosable``: what
+    ``--help``, the ``--method`` choices and a bag's refusal read (no method module, numba
+    or scipy imported for them: a refused bag or ``--help`` costs < 1 CPU-s).
+    """
+    _load_plugins()
+    package: list[MethodSpec | Declaration] = []
+    for d in _package_declarations():
+        spec = METHODS.get(d.name) if d.name is not None else None
+        if spec is None and not d.complete:
+            spec = _register_module(importlib.import_module(d.module), d.module)
+            if not _loaded:
+                _early.add(spec.name)
+        package.append(spec if spec is not None else d)
+    ours = {e.name for e in package}
+    out = package + [s for s in METHODS.values() if s.name not in ours]
+    out = [s for s in out if (kind is None or s.kind == kind)
+           and (s.diagnosable or not diagnosable)]
+    return sorted(out, key=lambda s: KINDS.index(s.kind))
+
+
 def names(kind: str | None = None, diagnosable: bool = False) -> list[str]:
-    """Registered method names (filters first, each kind in file order)."""
-    _load()
-    out = [s for s in METHODS.values() if kind is None or s.kind == kind]
-    out = [s for s in out if s.diagnosable or not diagnosable]
-    return [s.name for s in sorted(out, key=lambda s: KINDS.index(s.kind))]
+    """Registered method names (filters first, each kind in file order).
+
+    Plugins and ``--method-module`` files after the package's.
+    """
+    return [s.name for s in catalog(kind, diagnosable) if s.name is not None]
 
 
 class MethodNames:
@@ -296,9 +445,9 @@ class MethodNames:
         return names(self.kind, self.diagnosable)
 
     def __contains__(self, name: object) -> bool:
-        spec = _lookup(name) if isinstance(name, str) else None  # (one file, not all)
+        spec = peek(name) if isinstance(name, str) else None  # (its declaration, or a file)
         return spec is not None and (self.kind is None or spec.kind == self.kind) and \
-            (spec.diagnosable or not self.diagnosable)
+            bool(spec.diagnosable or not self.diagnosable)
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._names())
@@ -308,4 +457,5 @@ class MethodNames:
 
     def describe(self) -> str:
         """``name: summary`` of each, ``;``-separated (``--help``)."""
-        return "; ".join(f"{n}: {get(n).summary}" for n in self._names())
+        return "; ".join(f"{s.name}: {s.summary}"
+                         for s in catalog(self.kind, self.diagnosable))

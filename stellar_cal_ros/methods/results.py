@@ -891,7 +891,11 @@ def quality_line(faults: list[str], then: str = "", lead: str = "data quality fi
     """
     if not faults:
         return ""
-    return (f"{lead}: " + "; ".join(faults) + ". Residual structure from damaged "
+    from stellar_cal_ros.errors import held_damage_note
+
+    note = held_damage_note()  # (the command line under --on-error skip: counted once here)
+    return (f"{lead}: " + "; ".join(faults + ([note] if note else [])) + ". Residual "
+            "structure from damaged "
             "input looks like a missing effect: repair the data" + (f" ({then})" if then else "")
             + ".")
 
