@@ -937,12 +937,7 @@ def open_runner(bag: BagRef, spec, fraction: float, workers: int | None = 0,
     if workers is None:
         cores = os.cpu_count() or 1
         workers = min(cores, MAX_DEFAULT_WORKERS) if cores > IN_PROCESS_CORES else 1
-    if isinstance(bag, (str, Path)):
-        if not Path(bag).exists():
-            from stellar_cal_ros.errors import BagError
-
-            raise BagError(f"{bag}: no such bag (a .mcap or ROS 1 .bag file, or a rosbag2 "
-                           "directory)")
+    if isinstance(bag, (str, Path)):  # (a path that does not exist: refused there)
         from stellar_cal_ros.methods.frames import method_reads_images
 
         images = method_reads_images(bag, getattr(spec, "name", ""))

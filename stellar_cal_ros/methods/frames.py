@@ -435,8 +435,16 @@ def reads_star_images(path: str | Path, imu_for: str = "") -> bool:
 
 
 def method_reads_images(path: str | Path, method: str) -> bool:
-    """:func:`reads_star_images`, refusing a bag without the IMU ``method`` needs."""
+    """:func:`reads_star_images`, refusing a bag without the IMU ``method`` needs.
+
+    A path that does not exist is refused with what a bag is (the commands that re-run a
+    method on a bag: ``diagnose``, ``discover``, their runner).
+    """
     from stellar_cal_ros.methods import registry
+
+    if not Path(path).exists():
+        raise BagError(f"{path}: no such bag (a .mcap or ROS 1 .bag file, or a rosbag2 "
+                       "directory)")
 
     return reads_star_images(path, imu_for=method if needs_imu(registry.peek(method)) else "")
 
