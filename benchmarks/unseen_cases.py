@@ -478,13 +478,8 @@ def _arm_1hz(sim, seed, amplitude_px=0.08, hz=1.0):
     # gyro sees it), every star of a frame shifted by 0.08 px (4 arcsec) along an ellipse
     # (u and v a quarter period apart, a random phase); the frames (2 Hz) sample it at
     # their Nyquist rate.  The stars' noise as stated.
-    rng = np.random.default_rng(seed + 7919)
-    phase = rng.uniform(0.0, 2.0 * np.pi)
-    t0 = sim.star_frames[0].stamp_ns
-    for f in sim.star_frames:
-        ph = 2.0 * np.pi * hz * (f.stamp_ns - t0) * 1e-9 + phase
-        f.uv = np.asarray(f.uv, dtype=float) + amplitude_px * np.array([np.sin(ph),
-                                                                        np.cos(ph)])
+    tracker_errors.vibration(sim, amplitude_px, hz,
+                             np.random.default_rng(seed + 7919).uniform(0.0, 2.0 * np.pi))
 
 
 def _clock_drift(sim, seed, drift_s=0.03, early_s=0.0):
@@ -726,6 +721,113 @@ def _gyro_gm(sim, seed):
     # gyro bias instability as a Gauss-Markov process, 1 deg/h per axis, tau 30 s (a
     # datasheet's bias instability); the configured gyro noise white (ARW) as stated
     tracker_errors.gyro_bias_gauss_markov(sim, 1.0, 30.0, seed)
+
+
+# ---- 2026-11-29 (H250): tenth pass
+
+
+def _radial_by(sim, shift) -> None:
+    # each centroid moved away from the principal point by ``shift(mag, r / r_corner, f)``
+    # px (``f``: the frame; < 0: toward it)
+    cam = sim.prior.camera
+    c = np.array([cam.cx, cam.cy])
+    r_corner = float(np.hypot(cam.width / 2.0, cam.height / 2.0))
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float)
+        d = uv - c
+        r = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+        m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=4.0)
+        f.uv = uv + (shift(m, r / r_corner, f) / r)[:, None] * d
+
+
+def _coma_faint(sim, seed, corner_px=0.12, from_mag=5.0):
+    # a coma-like bias: stars fainter than mag 5 pushed away from the principal point by
+    # 0.12 (r / r_corner)^2 px (none at the centre; the brighter stars untouched: the
+    # centroider's threshold cuts the faint stars' comatic wing), then the stated noise
+    _radial_by(sim, lambda m, x, f: np.where(m >= from_mag, corner_px * x ** 2, 0.0))
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _lateral_colour(sim, seed, corner_px=0.1):
+    # lateral colour: each catalogue star has its own colour index c ~ N(0, 1) (the
+    # messages carry none) and the image scale differs with colour: a radial shift
+    # 0.1 c (r / r_corner) px (0.1 px at the corner for a 1-sigma colour), then the stated
+    # noise
+    rng = np.random.default_rng(seed + 611953)
+    colour: dict[int, float] = {}
+
+    def shift(m, x, f):
+        c = np.array([colour.setdefault(int(i), float(rng.standard_normal()))
+                      for i in np.asarray(f.catalog_id).tolist()])
+        return corner_px * c * x
+    _radial_by(sim, shift)
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _lens_zone(sim, seed, radius_px=400.0, ppm=300.0):
+    # a lens zone: beyond 400 px from the principal point the image scale is 300 ppm
+    # larger (a second focal length for the outer zone; a 0.12 px step at 400 px, 0.22 px
+    # at the corner), then the stated noise
+    tracker_errors.lens_zone(sim, radius_px, ppm)
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _vib_7hz(sim, seed, amplitude_px=0.08, hz=7.3):
+    # a 7.3-Hz attitude vibration of the tracker against the IMU (no gyro sees it), every
+    # star of a frame shifted by 0.08 px along an ellipse (u and v a quarter period apart,
+    # a random phase); the 2-Hz frames alias it to 0.7 Hz (1.43 s, 2.86 frames).  The
+    # stars' noise as stated
+    tracker_errors.vibration(sim, amplitude_px, hz,
+                             np.random.default_rng(seed + 7907).uniform(0.0, 2.0 * np.pi))
+
+
+def _rolling_cols(sim, seed, readout_s=0.03):
+    # a rolling readout along the columns (a detector mounted a quarter turn round, or
+    # one read column by column): column u seen (u / W - 1/2) T after the stamp, T 30 ms;
+    # every star moved by its image velocity over its column's offset, then the stated
+    # noise
+    w = float(sim.truth_world.camera().width)
+    for f, vel in zip(sim.star_frames, tracker_errors.image_velocity(sim), strict=True):
+        uv = np.asarray(f.uv, dtype=float)
+        f.uv = uv + ((uv[:, 0] / w - 0.5) * readout_s)[:, None] * vel
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _lens_sag(sim, seed, ppm_per_g=300.0):
+    # lens sag: the image scale changes with the gravity (the specific force) along the
+    # boresight, +300 ppm per g (the lens sinks toward the detector when it looks down):
+    # the specific force from the accelerometer's samples (0.5 s mean about each frame)
+    # turned into the tracker frame; about the principal point; then the stated noise
+    imu = sim.imu
+    t = np.asarray(imu.stamp_ns, dtype=np.int64)
+    acc = np.asarray(imu.linear_acceleration, dtype=float)
+    R = sim.truth_world.installation().as_matrix()  # R_imu_st
+    cam = sim.prior.camera
+    c = np.array([cam.cx, cam.cy])
+    for f in sim.star_frames:
+        near = np.abs(t - f.stamp_ns) <= 250_000_000
+        f_st = R.T @ acc[near].mean(axis=0)
+        g_z = -f_st[2] / 9.80665  # gravity along the boresight, g
+        f.uv = c + (np.asarray(f.uv, dtype=float) - c) * (1.0 + ppm_per_g * 1e-6 * g_z)
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _centroid_error(truth: str, regressor: str, post: Callable, **kw) -> Case:
+    # (H250) a psce case whose noise-free centroids ``post`` spoils outside the library
+    # (then draws the stated noise): its structure 'unexplained', ``regressor`` first
+    return Case("psce", truth, outside=True, regressor=regressor, post=post,
+                scenario_changes={"centroid_noise_px": 0.0}, **kw)
+
+
+def _at_mdb(method: str, effect: str, param: str) -> Case:
+    # (H250) the user's calibrated clean bag's twin with ``effect``'s ``param`` at 1x the
+    # MDB ``discover`` printed for it (``stellar-cal twin``): to be added
+    sway = method == "swaying_base"
+    return Case(method, f"the user's calibrated clean {'swaying ' if sway else ''}bag's twin "
+                f"with {effect} {param} at 1x the MDB `discover` printed for it "
+                "(stellar-cal twin)", effects=(effect,), twin=(effect, param, 1.0),
+                sim_effects=dict(SWAY_CLEAN) if sway else {},
+                duration=200.0 if sway else 300.0)
 
 
 CASES: dict[str, Case] = {
@@ -1236,6 +1338,37 @@ CASES: dict[str, Case] = {
                         may_add=("time_offset",),
                         expect={"time_offset": {"dt": (-2e-4, 2e-4)}},
                         not_told="installation steps"),
+    # ---- 2026-11-29 (H250): tenth pass, instruments' errors outside the library
+    "coma_faint": _centroid_error("a coma-like bias: stars fainter than mag 5 pushed away "
+                                  "from the principal point by 0.12 (r / r_corner)^2 px, the "
+                                  "brighter ones untouched (not in the library; a distortion "
+                                  "moves every star)", "magnitude", _coma_faint),
+    "lateral_colour": _centroid_error("lateral colour: each star's own hidden colour c ~ N(0, "
+                                      "1) moves it radially by 0.1 c (r / r_corner) px (not in "
+                                      "the library; the messages carry no colour: it repeats "
+                                      "star by star)", "catalogue star", _lateral_colour),
+    "lens_zone": _centroid_error("a lens zone: beyond 400 px from the principal point the "
+                                 "image scale 300 ppm larger (a 0.12 px step at 400 px; no "
+                                 "polynomial distortion has a step; its smooth part may be "
+                                 "taken by one)", "radius", _lens_zone,
+                                 may_add=("radial_k3", "focal_length", "radial_k1k2")),
+    "vib_7hz": Case("psce", "a 7.3-Hz attitude vibration of 0.08 px (4 arcsec) against the "
+                    "IMU, aliased by the 2-Hz frames to 0.7 Hz (not in the library)",
+                    outside=True, regressor="time", min_size_px=0.03, post=_vib_7hz),
+    "rolling_cols": _centroid_error("a rolling readout along the columns: column u read "
+                                    "(u / W - 1/2) 30 ms after the stamp (the library's "
+                                    "rolling-shutter line is the rows'; no library effect)",
+                                    "image velocity", _rolling_cols),
+    "lens_sag": _centroid_error("lens sag: the image scale 300 ppm per g of gravity along the "
+                                "boresight (thermal_focal_length follows temperature, "
+                                "focal_length is a constant: its mean may be taken by "
+                                "focal_length)", "gravity", _lens_sag,
+                                may_add=("focal_length",)),
+    # (H250) injections at the printed MDB on bases not used before (``--twin-seeds 8``:
+    # swaying seed 32, psce 31 and 33; 80 % of the twins should add the effect)
+    "sway_twin_tangential1": _at_mdb("swaying_base", "tangential", "p2"),
+    "twin_thermal1": _at_mdb("psce", "thermal_focal_length", "coefficient_per_c"),
+    "twin_dt1": _at_mdb("psce", "time_offset", "dt"),
 }
 
 
@@ -1265,6 +1398,16 @@ def _write_twin(name: str, base: dict[str, Path], out: Path, seed: int) -> dict[
     2026-11-28 evening every twin used ``twin``'s default seed 0: nine bases' dt twins read
     +1.32 to +1.46 sigma, one noise draw, not nine).
     """
+    calibration, value = _calibrated_base(name, base, out)
+    return _twin_of(name, base, calibration, value, out / f"{name}.mcap", seed)
+
+
+def _calibrated_base(name: str, base: dict[str, Path], out: Path) -> tuple[Path, str]:
+    """``discover --auto`` on the twin case's base: its calibration and the ``--effect`` value.
+
+    The value is the case's parameter at ``factor`` x the MDB printed for it (the other
+    parameters 0), in ``stellar-cal twin``'s units (the MDB's).
+    """
     case = CASES[name]
     effect, param, factor = case.twin
     exe = str(Path(sys.executable).with_name("stellar-cal"))
@@ -1275,20 +1418,31 @@ def _write_twin(name: str, base: dict[str, Path], out: Path, seed: int) -> dict[
     summ = json.loads((d / "diagnosis.json").read_text())
     mdb = next(r["mdb"] for r in summ["reliability"] if r.get("effect") == effect)
     value = ",".join(f"{factor * mdb[k]:.6g}" if k == param else "0" for k in mdb)
-    subprocess.run([exe, "twin", str(base["bag"]), "--calibration",
-                    str(d / "calibration.yaml"), "-o", str(out / f"{name}.mcap"), "--effect",
-                    f"{effect}={value}", "--seed", str(seed)], check=True, capture_output=True,
-                   env=os.environ.copy())
-    return {"bag": out / f"{name}.mcap", "prior": out / f"{name}.prior.yaml"}
+    return d / "calibration.yaml", f"{effect}={value}"
 
 
-def diagnose_case(name: str, out: Path) -> dict:
-    """``stellar-cal discover --auto`` on the case's bag; terminal lines and the summary."""
+def _twin_of(name: str, base: dict[str, Path], calibration: Path, value: str, bag: Path,
+             seed: int) -> dict[str, Path]:
+    """``stellar-cal twin`` of ``base`` at ``value`` with noise seed ``seed``, into ``bag``."""
+    exe = str(Path(sys.executable).with_name("stellar-cal"))
+    subprocess.run([exe, "twin", str(base["bag"]), "--calibration", str(calibration), "-o",
+                    str(bag), "--effect", value, "--seed", str(seed)], check=True,
+                   capture_output=True, env=os.environ.copy())
+    return {"bag": bag, "prior": bag.with_suffix(".prior.yaml")}
+
+
+def diagnose_case(name: str, out: Path, stem: str = "") -> dict:
+    """``stellar-cal discover --auto`` on the case's bag; terminal lines and the summary.
+
+    ``stem``: the bag ``OUT/stem.mcap`` (default the case's name: a ``--twin-seeds`` twin
+    is ``name.tK``).
+    """
     case = CASES[name]
-    bag = out / f"{name}.mcap"
-    d = out / f"{name}.d"
+    stem = stem or name
+    bag = out / f"{stem}.mcap"
+    d = out / f"{stem}.d"
     exe = Path(sys.executable).with_name("stellar-cal")
-    cmd = [str(exe), "discover", str(bag), "--calibration", str(out / f"{name}.prior.yaml"),
+    cmd = [str(exe), "discover", str(bag), "--calibration", str(out / f"{stem}.prior.yaml"),
            "--method", case.method, "--auto", "-o", str(d), "--no-plots", "--workers", "0"]
     t0 = time.time()
     p = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
@@ -1446,6 +1600,45 @@ def _spread_line(line: str, regressor: str) -> bool:
     return f"spread (size) vs {regressor}" in line
 
 
+def twin_seeds(name: str, out: Path, seed: int, n: int, first: int = 1) -> list[dict]:
+    """A twin case's effect found how often: one base, ``n`` twins of noise seeds ``first``..
+
+    (``first + n - 1``).
+
+    The base (the case's bag at ``seed``) is calibrated once (``discover --auto``), its
+    printed MDB read, and ``n`` twins at ``factor`` x that MDB diagnosed as a user would; at
+    1x the MDB (power 80 %) about 80 % of them should add the effect.  Each twin's row: its
+    verdict, whether the effect was added and its estimate of the parameter injected.
+    """
+    case = CASES[name]
+    effect, param, _ = case.twin
+    sc = get_scenario({"psce": "psce_rotations", "swaying_base": "swaying"}[case.method])
+    sim = simulate(sc, duration=case.duration, seed=seed, effects=case.sim_effects)
+    if case.post is not None:
+        case.post(sim, seed)
+    base = write_simulation(sim, out / f"{name}.base.mcap")
+    calibration, value = _calibrated_base(name, base, out)
+    rows = []
+    for k in range(first, first + n):
+        stem = f"{name}.t{k}"
+        _twin_of(name, base, calibration, value, out / f"{stem}.mcap", k)
+        r = diagnose_case(name, out, stem)
+        (out / f"{stem}.terminal.txt").write_text(r["stdout"] + r["stderr"])
+        est = ((r["summary"].get("final_estimates") or {}).get(effect) or {}).get(param)
+        est = float(est[0] if isinstance(est, list | tuple) else est) \
+            if est is not None else float("nan")
+        rows.append({"seed": k, "found": effect in said(r)["added"], "estimate": est,
+                     "bad": judge(name, r), "wall": r["wall"]})
+        print(f"== {name} twin seed {k} ({value}): added {said(r)['added']}, {param} "
+              f"{est:.4g}; verdict {'ok' if not rows[-1]['bad'] else '; '.join(rows[-1]['bad'])}"
+              f"  [{r['wall']:.0f} s]", flush=True)
+    found = [r["estimate"] for r in rows if r["found"]]
+    print(f"{name}: {value} found on {len(found)} of {n} twins; estimate "
+          f"{np.mean(found) if found else float('nan'):.4g} +- "
+          f"{np.std(found, ddof=1) if len(found) > 1 else float('nan'):.2g} (sd)", flush=True)
+    return rows
+
+
 def main() -> int:
     """Write the bags, diagnose them, print the table."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -1454,10 +1647,19 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=21)
     ap.add_argument("--rewrite", action="store_true")
     ap.add_argument("--list", action="store_true")
+    ap.add_argument("--twin-seeds", type=int, default=0,
+                    help="twin cases: the base at --seed calibrated once, then N twins of "
+                    "noise seeds 1..N, each diagnosed; prints how many found the effect")
+    ap.add_argument("--twin-first-seed", type=int, default=1,
+                    help="--twin-seeds: the first twin's noise seed (default 1)")
     a = ap.parse_args()
     if a.list:
         for k, c in CASES.items():
             print(f"{k:12s} {c.method:13s} {c.truth}")
+        return 0
+    if a.twin_seeds:
+        for name in a.cases.split(","):
+            twin_seeds(name, a.out, a.seed, a.twin_seeds, a.twin_first_seed)
         return 0
     rows = []
     for name in a.cases.split(","):

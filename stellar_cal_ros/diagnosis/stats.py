@@ -841,6 +841,10 @@ ROLLING = "v (row) x image velocity (rolling-shutter shape"
 #: cell of the noise's grid and the stars' spacing (the ``unseen_cases`` ripple has 3)
 RIPPLE = "periodic"
 POSITION_PERIODS = (1, 2, 3, 4)
+#: regressor name of the radial step tests (:func:`shaped_tests`: the step's radius follows)
+ZONE = "radius (a radial step at"
+#: the radial step tests' radii: these percentiles of the stars' distances from the centre
+ZONE_PERCENTILES = (25.0, 50.0, 75.0)
 
 
 def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float, float],
@@ -957,6 +961,21 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
                     if ok.sum() >= 40 else math.nan
                 for x, label in zip(cols, ("sin", "cos"), strict=True):
                     one(f"{axis} ({RIPPLE} {extent / k:.0f} px, {label})", x, comp, amp)
+    r_vec = np.stack([u - centre[0], v - centre[1]], 1)
+    r = np.hypot(r_vec[:, 0], r_vec[:, 1])
+    fin = np.isfinite(r)
+    if fin.sum() >= 40:
+        # each step less what the camera's radial polynomial (r, r^3, r^5: the focal length
+        # and radial distortion the model fits) takes of it
+        unit = r_vec / np.maximum(r, 1e-9)[:, None]
+        rn = r / np.max(r[fin])
+        poly = np.stack([(rn ** k)[fin] for k in (1, 3, 5)], 1)
+        for q in np.percentile(r[fin], ZONE_PERCENTILES):
+            step = (r[fin] > q).astype(float)
+            left = np.full(len(r), np.nan)
+            left[fin] = step - poly @ np.linalg.lstsq(poly, step, rcond=None)[0]
+            one(f"{ZONE} {q:.0f} px: the image scale beyond it not the scale within)",
+                project(unit * left[:, None]))
     x = rolling_columns(sub, focal, centre, R_imu_st)
     if x is not None and height is not None:
         one(lambda b: f"{ROLLING}, readout {readout_s(b, None, height) * 1e3:.3g} ms)",

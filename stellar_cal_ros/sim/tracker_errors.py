@@ -31,6 +31,8 @@ function            what a tracker does
 ``saturation_pull`` bright stars' centroids pulled toward the detector's centre, more the
                     brighter (a saturated core)
 ``focal_drift``     the image scale (the focal length) drifting linearly over the run
+``lens_zone``       the image scale beyond a radius not the scale within (a lens zone: a step)
+``vibration``       an attitude vibration of the tracker against the IMU, sampled by the frames
 ==================  ==============================================================================
 """
 
@@ -460,3 +462,33 @@ def thermal_mount(sim, arcsec_per_c: float, angle_deg: float = 30.0) -> None:
     for f in sim.star_frames:
         temp = float(np.interp(f.stamp_ns, ht.stamp_ns, ht.value))
         turn_frame(f, sim.prior.camera, arcsec_per_c * (temp - ref), angle_deg)
+
+
+def lens_zone(sim, radius_px: float, ppm: float) -> None:
+    """Beyond ``radius_px`` from the prior's principal point the image scale ``ppm`` larger.
+
+    A lens with a zone (a second focal length for its outer part): a radial step of
+    ``ppm·radius`` px at the radius, growing outward; no polynomial distortion of the
+    library has a step (unseen case ``lens_zone``).
+    """
+    cam = sim.prior.camera
+    c = np.array([cam.cx, cam.cy])
+    for f in sim.star_frames:
+        d = np.asarray(f.uv, dtype=float) - c
+        out = np.hypot(d[:, 0], d[:, 1]) > radius_px
+        f.uv = c + d * (1.0 + ppm * 1e-6 * out)[:, None]
+
+
+def vibration(sim, amplitude_px: float, hz: float, phase: float) -> None:
+    """The tracker's attitude vibrating against the IMU at ``hz`` (no gyro sees it).
+
+    Every star of a frame shifted by ``amplitude_px`` along a circle, u and v a quarter
+    period apart (``A (sin φ, cos φ)``, ``φ = 2π hz t + phase``, ``t`` from the first
+    frame): a resonance of the mount, which the frames sample (aliased where ``hz`` is
+    above half their rate).
+    """
+    t0 = sim.star_frames[0].stamp_ns
+    for f in sim.star_frames:
+        ph = 2.0 * np.pi * hz * (f.stamp_ns - t0) * 1e-9 + phase
+        f.uv = np.asarray(f.uv, dtype=float) + amplitude_px * np.array([np.sin(ph),
+                                                                        np.cos(ph)])
