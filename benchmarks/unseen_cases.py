@@ -1304,8 +1304,9 @@ CASES: dict[str, Case] = {
                          noise={"star": 20.0}, post=_sigma_as_var),
     "sigma_arcsec": Case("psce", "the stars' sigma field in arcsec (2.60) where px (0.05) "
                          "was meant: the truth 1/51.97 = 0.0192x the stated",
-                         noise={"star": 1.0 / ARCSEC_PER_PX}, not_told="a missing effect",
-                         post=_sigma_field(ARCSEC_PER_PX)),
+                         noise={"star": 1.0 / tracker_errors.ARCSEC_PER_PX},
+                         not_told="a missing effect",
+                         post=_sigma_field(tracker_errors.ARCSEC_PER_PX)),
     "mag_inverted": Case("psce", "true sigma 0.05 * 2^((mag - 4) / 2) px; the messages' "
                          "per-star sigma 0.05 * 2^(-(mag - 4) / 2) (the magnitude dependence "
                          "upside down, right at mag 4)", noise={"star": 0.0},
