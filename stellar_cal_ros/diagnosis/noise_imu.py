@@ -148,8 +148,9 @@ def search_scale(name: str, loglik, start: float = 0.0, step: float = STEP,
 
     Three points around ``start`` (ln of the scale), moved by whole steps until the best
     point is inside, then triples of runs :data:`REFINE` apart around the parabola's vertex
-    until the vertex of the triple's own parabola lies inside it (at most ``max_runs``
-    runs); σ of ln s from that curvature, the test of "as stated" is the likelihood ratio
+    until the vertex of the triple's own parabola lies inside it, and one triple a few σ
+    wide around it where σ is small (:func:`_narrowed`; at most ``max_runs`` runs); σ of
+    ln s from that curvature, the test of "as stated" is the likelihood ratio
     of the best point against ln s = 0 over its dispersion (:func:`adjusted_p`).  The
     scale is measured (``x s +- e``) only where the likelihood's 95 % interval closes on
     both sides of the maximum among the points (:func:`closed`; an open side is searched
