@@ -310,6 +310,22 @@ NOISE_SCALE_ITEMS = ("star=S scales the stars' sigma "
                      "--centroid-sigma times their group's factor, with it PX alone")
 
 
+def _verify_twins(twins: str, most: int | None) -> tuple[int, int]:
+    """``--verify-twins K|auto`` and ``--verify-twins-max M``: the first twins and the most."""
+    from stellar_cal_ros.diagnosis.verify import TWINS, TWINS_MAX
+
+    if twins == "auto":
+        first = TWINS
+    elif twins.isdigit() and int(twins) >= 1:
+        first = int(twins)
+    else:
+        raise StellarCalError(f"--verify-twins must be a count >= 1 or auto, not {twins!r}")
+    last = most if most is not None else (TWINS_MAX if twins == "auto" else first)
+    if last < first:
+        raise StellarCalError(f"--verify-twins-max {last} is below the first twins ({first})")
+    return first, last
+
+
 def _noise_scales(text: str | None):
     """``--noise-scale``'s scales (replay, diagnose, discover), or None when not given."""
     from stellar_cal_ros.core.noise import NoiseScales
@@ -425,8 +441,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     auto = args.auto or args.command == "discover"
     if auto and args.max_rounds < 1:
         raise StellarCalError("--max-rounds must be >= 1")
-    if args.verify_twins is not None and args.verify_twins < 1:
-        raise StellarCalError("--verify-twins must be >= 1")
+    twins, twins_max = _verify_twins(args.verify_twins, args.verify_twins_max)
     from stellar_cal_ros.diagnosis.run import diagnose
 
     summary = diagnose(args.bag, cal, args.method, _effect_list(args.effects), args.output,
@@ -435,7 +450,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
                        noise=args.noise, verify=args.verify and auto,
                        verify_seed=args.verify_seed,
                        verify_signs={"both": (1, -1), "+": (1,), "-": (-1,)}[args.verify_signs],
-                       verify_twins=args.verify_twins,
+                       verify_twins=twins, verify_twins_max=twins_max,
                        noise_scales=_noise_scales(args.noise_scale),
                        on_error=args.on_error)
     if auto:
@@ -673,10 +688,15 @@ def build_parser() -> argparse.ArgumentParser:
         d.add_argument("--verify-signs", choices=["both", "+", "-"], default="both",
                        help="--verify: inject each row at both signs of its MDB (default: an "
                             "MDB is a size of either sign) or at one")
-        d.add_argument("--verify-twins", type=int, default=None,
+        d.add_argument("--verify-twins", default="auto", metavar="K|auto",
                        help="--verify: twins of different noise seeds per row and sign "
-                            "(default 2: their spread says where one twin cannot judge a "
-                            "claim; 1: one twin, no spread)")
+                            "(K: that many, 2 measure a row's twin-to-twin spread, 1: one "
+                            "twin, no spread; auto, the default: 2, and more, one seed at "
+                            "a time, for a row they cannot judge or leave at the band's "
+                            "edge, up to --verify-twins-max)")
+        d.add_argument("--verify-twins-max", type=int, default=None, metavar="M",
+                       help="--verify: the most twins a row gets (default 6 with "
+                            "--verify-twins auto; with K: K)")
         on_error_argument(d, "diagnose")
         d.add_argument("--noise", choices=["estimate", "stated"], default="estimate",
                        help="estimate (default): measure the stars' sigma and the IMU noise "

@@ -266,6 +266,88 @@ def test_a_claim_below_the_twins_spread_cannot_be_judged():
     assert close["verdict"] == "holds" and all(c["judged"] for c in close["biases"])
 
 
+def test_verify_adds_twins_where_the_first_two_cannot_judge_a_row(monkeypatch):
+    """``--verify-twins auto``: a row and sign the first two twins leave undecided gets the
+    twin of the next seed, one seed at a time, until decided or on ``twins_max`` twins; the
+    clean twin of each seed serves every row still open (one ``check_claims`` per seed, with
+    the open rows only).  Refraction at + (H229's dt_step s23 cx: 0.06 / 0.10 σ against a
+    claim of 0.08 σ, cannot be judged with 2 twins) is judged on 3 (0.08: mean 0.08, its
+    95 % half-width 0.023 σ within ± 0.024 σ); at − its f moves 1.32x the claim on 2 twins
+    with a spread that leaves 1.3 inside the mean's 95 % interval (dt_step s23 seed 1's
+    radial_k3 epp.u): a draw, so it gets more twins — decided (1.227x, interval 1.16-1.29)
+    on 6, the cap.  A row decided on 2 twins (f at +) is not injected again.  Fails on
+    main (two twins, no more)."""
+    entry = {"effect": "refraction", "testable": True, "hidden_size": {"scale": 0.025},
+             "dominates": ["principal_point.cx", "focal_length.f"],
+             "bias_parameter": {"principal_point.cx": "scale", "focal_length.f": "scale"},
+             "biases_signed": {"principal_point.cx": 2.5, "focal_length.f": 15.625},
+             "sigma": {"principal_point.cx": 1.0, "focal_length.f": 1.0}}
+    cx = [0.06, 0.10, 0.08, 0.2, 0.2, 0.2]
+    f_minus = [0.64, 0.68, 0.58, 0.60, 0.60, 0.58]
+    calls = []
+
+    def check_claims(make, calibration, method, effects, entries, noise, seed, tell,
+                     fraction, signs, clock_check, rows):
+        calls.append((seed, None if rows is None else sorted(rows)))
+        out = []
+        for sign in signs:
+            if rows is not None and ("refraction", sign) not in rows:
+                continue
+            k = seed - 1
+            got = ({"principal_point.cx": cx[k], "focal_length.f": 0.5} if sign > 0 else
+                   {"principal_point.cx": -0.08, "focal_length.f": -f_minus[k]})
+            out.append(_twin_record(seed, got, sign))
+        return out
+
+    monkeypatch.setattr(verify, "check_claims", check_claims)
+    monkeypatch.setattr("stellar_cal_ros.diagnosis.noise.stated_scales", lambda cal: None)
+    monkeypatch.setattr("stellar_cal_ros.diagnosis.twin.make_twin", lambda *a: None)
+    plus, minus = verify.verify(None, None, "psce", [], [entry], seed=1, twins=2,
+                                twins_max=6)
+    assert calls == [(1, None), (2, None), (3, [("refraction", -1), ("refraction", 1)]),
+                     (4, [("refraction", -1)]), (5, [("refraction", -1)]),
+                     (6, [("refraction", -1)])]
+    assert plus["seeds"] == [1, 2, 3] and plus["verdict"] == "holds"
+    assert plus["biases"][0]["judged"] and plus["biases"][0]["ratio"] == pytest.approx(1.0)
+    assert minus["seeds"] == [1, 2, 3, 4, 5, 6] and minus["verdict"] == "holds"
+    assert minus["biases"][1]["ratio"] == pytest.approx(1.2267, abs=1e-4)
+    assert verify.undecided(minus) == [] and verify.undecided(plus) == []
+    # on two twins: + cannot be judged (cx), − fails at 1.32x, both undecided
+    two = [verify.pooled(entry, [_twin_record(s, {"principal_point.cx": -0.08,
+                                                   "focal_length.f": -f}, -1)
+                                 for s, f in ((1, 0.64), (2, 0.68))])]
+    assert two[0]["verdict"] == "fails" and verify.undecided(two[0]) == ["focal_length.f"]
+    head = verify_lines({"verify": [plus, minus]})[0]
+    assert head.startswith("verify (twins of this bag, the effect injected at ±its printed "
+                           "MDB, seeds 1, 2, 3, 4, 5, 6; 2 of them on more than 2 twins: the "
+                           "first 2 left them undecided): 2 of 2 claims hold"), head
+    # on at most 4 twins the − row stays at the band's edge (1.25x, interval 1.16-1.34): it
+    # is judged on them as it is, and says so
+    capped = verify.verify(None, None, "psce", [], [entry], seed=1, twins=2, twins_max=4)
+    assert capped[1]["seeds"] == [1, 2, 3, 4] and capped[1]["verdict"] == "holds"
+    assert capped[1]["at_edge"] == ["focal_length.f"] and capped[0]["at_edge"] == []
+    assert verify.describe(capped[1]).endswith(
+        "-> holds (at the band's edge on 4 twins, the most: the 95 % interval of "
+        "focal_length.f's mean ratio holds 1.3 or -0.7)")
+    # a fixed count (--verify-twins 2): two twins, no more, as before
+    calls.clear()
+    fixed = verify.verify(None, None, "psce", [], [entry], seed=1, twins=2)
+    assert [c[0] for c in calls] == [1, 2] and fixed[0]["verdict"] == "cannot be judged"
+
+
+def test_the_verify_twins_options():
+    """``--verify-twins K|auto`` and ``--verify-twins-max M``: (the first twins, the most)."""
+    from stellar_cal_ros.cli import _verify_twins
+    from stellar_cal_ros.errors import StellarCalError
+
+    assert _verify_twins("auto", None) == (verify.TWINS, verify.TWINS_MAX) == (2, 6)
+    assert _verify_twins("auto", 4) == (2, 4)
+    assert _verify_twins("2", None) == (2, 2) and _verify_twins("1", None) == (1, 1)
+    assert _verify_twins("3", 8) == (3, 8)
+    for bad in (("0", None), ("two", None), ("3", 2)):
+        with pytest.raises(StellarCalError):
+            _verify_twins(*bad)
+
 def test_verify_checks_the_mdb_at_its_minus_sign_where_the_plus_sign_holds(tmp_path,
                                                                          monkeypatch):
     """An MDB is a size of either sign, and ``--verify`` checks both (``verify_signs``); the

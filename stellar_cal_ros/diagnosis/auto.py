@@ -555,7 +555,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
         if options.get("verify"):
             def check(final_cal, entries):
                 from stellar_cal_ros.diagnosis.runstats import load_bag
-                from stellar_cal_ros.diagnosis.verify import TWINS, verify
+                from stellar_cal_ros.diagnosis.verify import TWINS, TWINS_MAX, verify
 
                 tell("verify: the printed MDBs and biases on twins of this bag")
                 model = list(spec.baseline) + state.shown()
@@ -566,7 +566,10 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 return verify(load_bag(runs.bag), final_cal, method, model, entries,
                               options.get("verify_seed", 1), tell, evaluation_fraction,
                               clock_check, options.get("verify_signs", (1, -1)),
-                              options.get("verify_twins") or TWINS)
+                              options.get("verify_twins") or TWINS,
+                              options.get("verify_twins_max") or (
+                                  TWINS_MAX if options.get("verify_twins") is None
+                                  else options["verify_twins"]))
         return _write(out, calibration, spec, state, path, history, first, current, results,
                       evaluation_fraction, plots, runs, stopped,
                       time.perf_counter() - t_start, r.noise, check)

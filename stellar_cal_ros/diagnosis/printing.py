@@ -318,15 +318,23 @@ def verify_lines(summary: dict[str, Any]) -> list[str]:
     # twins of an effect discover's clock rule refuses at that sign on this bag: their
     # detection is no claim (verify.clock_rule), their biases are
     refused = sum(bool(r.get("refused_by_clock")) for r in rows)
-    seeds = rows[0].get("seeds") or [rows[0]["seed"]]
+    seeds = sorted({s for r in rows for s in (r.get("seeds") or [r["seed"]])})
+    # --verify-twins auto: a row the first twins left undecided has more (verify.undecided)
+    first = rows[0].get("twins_first", 1)
+    more = sum(r.get("twins", 1) > first for r in rows) if "twins_first" in rows[0] else 0
+    held = {r.get("twins", 1) for r in rows if r.get("verdict") == "cannot be judged"}
     signs = {"+-": "±", "+": "", "-": "−"}["".join(sorted(
         {"+" if r.get("sign", 1) > 0 else "-" for r in rows}))]
     unjudged = sum(r.get("verdict") == "cannot be judged" for r in rows)
     out = [f"verify (twins of this bag, the effect injected at {signs}its "
            f"printed MDB, seed{'s' if len(seeds) > 1 else ''} "
-           f"{', '.join(map(str, seeds))}): {holds} of {len(rows)} claims hold"
+           f"{', '.join(map(str, seeds))}"
+           + (f"; {more} of them on more than {first} twins: the first {first} left them "
+              "undecided" if more else "")
+           + f"): {holds} of {len(rows)} claims hold"
            + (f" ({safe} conservatively: on the safe side)" if safe else "")
-           + (f", {unjudged} cannot be judged with {len(seeds)} twins (the shift's "
+           + (f", {unjudged} cannot be judged with "
+              f"{max(held) if len(held) == 1 else f'up to {max(held)}'} twins (the shift's "
               "twin-to-twin spread is too large for ± 30 % of the claim)" if unjudged else "")
            + (f"; {refused} of them refused by the clock rule on this bag at that sign "
               "(not a miss: the detection not counted, the biases judged)" if refused else "")]

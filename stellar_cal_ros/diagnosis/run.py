@@ -45,6 +45,7 @@ def diagnose(
     verify_seed: int = 1,
     verify_signs: tuple[int, ...] = (1, -1),
     verify_twins: int | None = None,
+    verify_twins_max: int | None = None,
     noise_scales: NoiseScales | None = None,
     on_error: str = "raise",
 ) -> dict[str, Any]:
@@ -60,7 +61,10 @@ def diagnose(
     diagnosis.noise`) or ``stated`` (use the noise the messages, the prior and the
     calibration's run state).  ``verify`` (with ``auto``): check the printed MDBs and
     biases on twins of the bag (:mod:`~stellar_cal_ros.diagnosis.verify`), each row at
-    ``verify_signs`` x its MDB on ``verify_twins`` twins of seeds ``verify_seed``, ... .
+    ``verify_signs`` x its MDB on ``verify_twins`` twins of seeds ``verify_seed``, ...
+    (``None``: :data:`~.verify.TWINS`, and more, up to ``verify_twins_max`` —
+    ``None``: :data:`~.verify.TWINS_MAX` —, for a row they leave undecided; a count: that
+    many, up to ``verify_twins_max``, ``None``: no more).
     ``noise_scales``: the noise the runs start from (``--noise-scale``) instead of the
     calibration's run's (its consistency block).  ``on_error``: ``skip`` diagnoses a
     damaged bag on what it holds (read once, past the damage; ``diagnosis.json``'s
@@ -72,6 +76,7 @@ def diagnose(
                         plots=plots, verbose=verbose, workers=workers, scheduler=scheduler,
                         noise=noise, verify=verify, verify_seed=verify_seed,
                         verify_signs=verify_signs, verify_twins=verify_twins,
+                        verify_twins_max=verify_twins_max,
                         noise_scales=noise_scales, on_error=on_error)
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)

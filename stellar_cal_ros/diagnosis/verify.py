@@ -8,7 +8,8 @@ twin with the same seed without it; at both signs of the MDB (an MDB is a size o
 sign: the image-plane tilt's response is 0.55x its first order at +MDB, 1.47x at −MDB), and
 on :data:`TWINS` twins of different noise seeds, judged on their mean (:func:`pooled`: a
 row whose shift varies from twin to twin as much as ± 30 % of its claim cannot be judged by
-them, and says so).  Then, per effect and sign:
+them, and says so; ``--verify-twins auto`` gives a row they leave :func:`undecided` the
+twins of further seeds, up to :data:`TWINS_MAX`).  Then, per effect and sign:
 
 * **detection**: one diagnosis round on the injected twin (the final model, every
   candidate): does the round's decision flag the effect?  One twin is one draw.  The
@@ -66,6 +67,10 @@ RATIO_RANGE = (0.7, 1.3)
 #: twins of different noise seeds per row and sign: two measure the twin-to-twin spread of a
 #: row's shift (:func:`pooled`)
 TWINS = 2
+#: ``--verify-twins auto`` (the default): a row and sign whose quantity the first
+#: :data:`TWINS` twins cannot judge, or whose verdict they leave undecided at the band's edge
+#: (:func:`undecided`), gets twins of further seeds, one at a time, up to this many
+TWINS_MAX = 6
 #: a quantity is judged where the ratio band's half-width holds this many σ of the twins'
 #: mean shift (two-sided 95 %)
 JUDGE_Z = float(dist.norm.isf(0.025))
@@ -102,7 +107,8 @@ def twin_scale(entry: dict[str, Any], param: str) -> float:
 
 def verify(data, calibration, method: str, effects: list[str], entries: list[dict],
            seed: int = 1, tell=None, fraction: float = 0.5, clock_check=None,
-           signs: tuple[int, ...] = (1, -1), twins: int = TWINS) -> list[dict[str, Any]]:
+           signs: tuple[int, ...] = (1, -1), twins: int = TWINS,
+           twins_max: int | None = None) -> list[dict[str, Any]]:
     """Check ``entries`` (the report's reliability list) on twins of ``data``.
 
     ``calibration``: the final model's calibration (its ``consistency.noise`` is the
@@ -111,6 +117,10 @@ def verify(data, calibration, method: str, effects: list[str], entries: list[dic
     with the effect injected (:func:`clock_rule`), or ``None``.  Every row is injected at
     each of ``signs`` (an MDB is a size of either sign) into ``twins`` twins of seeds
     ``seed``, ``seed + 1``, ..., and judged on them together (:func:`pooled`).
+    ``twins_max`` (above ``twins``: ``--verify-twins auto``): a row and sign these twins
+    leave :func:`undecided` is injected into the twin of the next seed too, one seed at a
+    time, until decided or on ``twins_max`` twins; the clean twin of a seed is rendered and
+    run once for every row still open.  Each record says its own ``twins``.
     """
     from stellar_cal_ros.diagnosis.noise import stated_scales
     from stellar_cal_ros.diagnosis.twin import make_twin
@@ -124,22 +134,63 @@ def verify(data, calibration, method: str, effects: list[str], entries: list[dic
             asked[key] = clock_check(effect, delta)
         return asked[key]
 
-    draws = []
-    for k in range(max(int(twins), 1)):
+    twins = max(int(twins), 1)
+    cap = max(int(twins_max or twins), twins)
+    by_effect = {e["effect"]: e for e in entries}
+    rows: dict[tuple[str, int], list[dict[str, Any]]] = {}  # (effect, sign) -> its twins' records
+    need = None  # every row on the first twins
+    for k in range(cap):
         def make(injected: dict[str, np.ndarray], s: int = seed + k):
             twin = make_twin(data, calibration, injected, s, method, noise)
             return twin.data, twin.counts
 
-        draws.append(check_claims(make, calibration, method, effects, entries, noise,
-                                  seed + k, None, fraction, signs=signs,
-                                  clock_check=clock_once if clock_check else None))
-        if tell and twins > 1:
-            tell(f"verify: twins of seed {seed + k} done ({k + 1} of {twins})")
-    by_effect = {e["effect"]: e for e in entries}
-    out = [pooled(by_effect[recs[0]["effect"]], recs) for recs in zip(*draws, strict=True)]
+        # one twin of this seed (its clean round rendered once) serves every row still open
+        for rec in check_claims(make, calibration, method, effects, entries, noise,
+                                seed + k, None, fraction, signs=signs,
+                                clock_check=clock_once if clock_check else None, rows=need):
+            rows.setdefault((rec["effect"], rec["sign"]), []).append(rec)
+        if tell and cap > 1:
+            tell(f"verify: twins of seed {seed + k} done " + (
+                f"({k + 1} of {twins})" if need is None else
+                f"(twin {k + 1} of at most {cap} for the {len(need)} rows and signs the "
+                "first twins leave undecided)"))
+        if k + 1 >= twins:
+            need = {key for key, recs in rows.items()
+                    if undecided(pooled(by_effect[key[0]], recs))}
+            if not need:
+                break
+    out = [pooled(by_effect[key[0]], recs) for key, recs in rows.items()]
+    if cap > twins:  # the first twins' count, the most a row could get, and what they
+        # left at the band's edge (judged; a quantity not judged says so already)
+        out = [{**rec, "twins_first": twins, "twins_max": cap,
+                "at_edge": [q for q in undecided(rec) if q not in rec.get("unjudged", [])]}
+               for rec in out]
     if tell:
         for rec in out:
             tell(describe(rec))
+    return out
+
+
+def undecided(rec: dict[str, Any]) -> list[str]:
+    """The quantities of a pooled record that more twins could decide (``--verify-twins auto``).
+
+    One not judged (:func:`pooled`: the twins' spread too wide for the ± 30 % band), and one
+    judged whose mean ratio's 95 % interval (:data:`JUDGE_Z` x the mean's σ, the twins'
+    spread / √twins) holds an edge between holding and failing (a ratio of 1.3, or −0.7):
+    its verdict on these twins is a draw (dt_step s23, seed 1: radial_k3's epp.u 1.32x on two
+    twins, spread 0.015 σ against a claim of 0.12 σ — holds on three).  One twin: nothing
+    (no spread known).
+    """
+    out = []
+    for c in rec["biases"]:
+        if "judged" not in c:
+            continue
+        if not c["judged"]:
+            out.append(c["quantity"])
+            continue
+        half = JUDGE_Z * c["spread"] / np.sqrt(rec["twins"]) / abs(c["printed"])
+        if any(abs(c["ratio"] - edge) < half for edge in (RATIO_RANGE[1], -RATIO_RANGE[0])):
+            out.append(c["quantity"])
     return out
 
 
@@ -198,7 +249,7 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
                  noise=None, seed: int = 1, tell=None, fraction: float = 0.5,
                  only: list[str] | None = None, signs: tuple[int, ...] = (1,),
                  parameters: dict[str, str] | None = None,
-                 clock_check=None) -> list[dict[str, Any]]:
+                 clock_check=None, rows=None) -> list[dict[str, Any]]:
     """Inject each testable entry at its printed MDB into ``make(injected)`` bags and check.
 
     ``make({effect: simulate-units value}) -> (BagData, counts)`` makes the paired bags (the
@@ -209,7 +260,8 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
     family-wise correction as the report's decision); ``only`` restricts which are
     injected, ``signs`` the signs of the injected size (an MDB is a size: either sign),
     ``parameters`` (``{effect: parameter}``) the parameter injected where it is not the
-    report's (:func:`injection.injected_parameter`): a probe-restated MDB per parameter.
+    report's (:func:`injection.injected_parameter`): a probe-restated MDB per parameter;
+    ``rows`` (a set of ``(effect, sign)``) the rows injected, where not all.
 
     Per injection: ``found`` — the round's decision flags it (significant, or significant
     but at a size its physics rules out, 'implausible': the report says a structure with
@@ -244,6 +296,8 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
         if not entry.get("testable") or (only is not None and entry["effect"] not in only):
             continue
         for sign in signs:
+            if rows is not None and (entry["effect"], int(sign)) not in rows:
+                continue
             rec = _inject(make, round_on, entry, base0, cands0, before, int(sign),
                           calibration, method, (parameters or {}).get(entry["effect"]),
                           clock_check)
@@ -452,14 +506,25 @@ def describe(rec: dict[str, Any]) -> str:
                      f"{' (mean)' if twins > 1 else ''} ({claim})")
     if rec.get("verdict") == "cannot be judged":
         return "; ".join(parts) + (f" -> cannot be judged with {_twins(twins)} "
-                                   f"({', '.join(rec['unjudged'])}); the rest holds")
+                                   f"({', '.join(rec['unjudged'])}); the rest holds"
+                                   + _edge(rec))
     if not rec["holds"]:
-        return "; ".join(parts) + " -> DOES NOT HOLD"
+        return "; ".join(parts) + " -> DOES NOT HOLD" + _edge(rec)
     if rec.get("refused_by_clock"):
-        return "; ".join(parts) + (" -> the biases hold" if rec["biases"] else "")
+        return "; ".join(parts) + (" -> the biases hold" + _edge(rec) if rec["biases"]
+                                   else "")
     safe = rec.get("conservative") or []
     return "; ".join(parts) + (f" -> holds (conservative: {', '.join(safe)})" if safe
-                               else " -> holds")
+                               else " -> holds") + _edge(rec)
+
+
+def _edge(rec: dict[str, Any]) -> str:
+    """The clause of a verdict its twins leave at the band's edge (:func:`undecided`)."""
+    edge = rec.get("at_edge")
+    if not edge:
+        return ""
+    return (f" (at the band's edge on {_twins(rec['twins'])}, the most: the 95 % interval of "
+            f"{', '.join(edge)}'s mean ratio holds 1.3 or -0.7)")
 
 
 def _twins(n: int) -> str:
