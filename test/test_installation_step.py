@@ -14,6 +14,7 @@ doc/benchmarks.md ("An installation that steps once", "on a swaying base").
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import installation_step
@@ -334,3 +335,49 @@ def test_a_step_over_moving_frames_says_its_size_is_the_tests_jump():
     assert jump not in line(True) and jump not in line(True, installation_step.MOVING,
                                                        FITTED_STEP)
     assert line(False).endswith("the largest of 600 frames of a platform that never rests)")
+
+
+def _jittered_swaying(seed: int, knock_arcsec: float = 0.0):
+    """The step test of a clean 300-s swaying bag whose frames are stamped N(0, 1 ms) off
+    their exposure (unseen case ``sway_jitter``), the baseline model's run; with
+    ``knock_arcsec`` its stars from :data:`AT` on shifted as :func:`_diagnosed`'s (along
+    :data:`ANGLE_DEG`).  Returns the test, the first shifted frame's time and the shift (px)."""
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.output import step_test
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+    from stellar_cal_ros.sim import tracker_errors
+
+    sim, _ = clean_simulation("swaying_base", False, seed, 300.0)
+    tracker_errors.stamp_jitter(sim, 1e-3, seed)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    px = knock_arcsec * ARCSEC * sim.prior.camera.fx
+    after = [f for f in sim.star_frames if f.stamp_ns - t0 >= AT * (t1 - t0)]
+    for f in after:
+        f.uv = np.asarray(f.uv, dtype=float) + px * np.array(
+            [np.cos(np.deg2rad(ANGLE_DEG)), np.sin(np.deg2rad(ANGLE_DEG))])
+    run = evaluate(bag_data_from_simulation(sim), method_spec("swaying_base"),
+                   rerun_prior(sim.prior), (), 0.5, keep_residuals=True)
+    return step_test(run.residuals, sim.prior, 0.5), (after[0].stamp_ns - t0) * 1e-9, px
+
+
+def test_a_noise_in_the_frames_stamps_is_no_step_and_a_knock_beside_it_is_found():
+    """Frames stamped N(0, 1 ms) off their exposure on the swaying base (unseen case
+    ``sway_jitter``): an attitude noise ∝ the rate, which one common covariance of the
+    whitened steps leaves under-whitened where the image moves fastest.  Each frame's
+    spread now holds the stamps' noise the frames show (``stamp_noise_ms``, 0.93-1.06 on
+    seeds 21-26: 3σ 0.15): no step at seeds 21, 22, 26, where coord b07c33a read one at
+    p 0.0048 / 0.0019 / 1.3e-5 (χ²₃ 24.8 / 26.7 / 36.9; s22's 'installation steps at t~256.5 s'
+    line).  A 60″ knock (1.15 px) beside the jitter is still found at its time, its size
+    within 3σ (s21: 1.51 ± 0.26 px, χ²₃ 37.7)."""
+    for seed in (21, 22, 26):
+        step, _, _ = _jittered_swaying(seed)
+        assert step.p_value > 0.01, (seed, step)
+        assert step.stamp_noise_ms == pytest.approx(1.0, abs=0.15), (seed, step)
+        assert "stamp_noise_ms" in step.as_json()
+    step, at, px = _jittered_swaying(21, 60.0)
+    assert step.p_value < 1e-4 and abs(step.t - at) < 2.0, (step, at)
+    assert abs(step.shift_px - px) < 3 * step.sigma_px, (step.shift_px, step.sigma_px, px)
+    assert abs(step.angle_deg - ANGLE_DEG) < 10.0
+    assert step.stamp_noise_ms == pytest.approx(1.0, abs=0.15), step  # (0.90 beside it)
+    assert f"each frame's spread with the stamps' noise, {step.stamp_noise_ms:.2g} ms rms" \
+        in step.regressor()

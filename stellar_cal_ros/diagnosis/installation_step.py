@@ -22,10 +22,14 @@ and where the image moves they change abruptly with the rate (unseen cases ``dt_
 read robustly from the frames themselves (trimmed at χ²₃ :data:`TRIM`: it takes the
 filter's shared attitude error and a misstated noise), and the statistic is the largest
 ``δ̂ᵀ Σ⁻¹ δ̂`` over the candidates, its p the χ²₃ tail × their number (Bonferroni: the
-candidates overlap, so it is conservative).  It joins the 'unexplained' family
-(Bonferroni with its other tests); a line that fires goes first: the lines a knock makes
-(the catch-up's time structure) follow it.  A step within :data:`WINDOW` + :data:`MARGIN`
-frames of motion is not tested where the platform rests.
+candidates overlap, so it is conservative).  A noise in the frames' stamps turns each frame
+by its rate × its stamp's error, an attitude noise that one common covariance cannot
+whiten (the fastest frames' steps would read it as a knock): on a platform that never
+rests, where the frames tested show one, its size is in each frame's covariance
+(:func:`stamp_spread`).  It joins the 'unexplained' family (Bonferroni with its other
+tests); a line that fires goes first: the lines a knock makes (the catch-up's time
+structure) follow it.  A step within
+:data:`WINDOW` + :data:`MARGIN` frames of motion is not tested where the platform rests.
 
 A platform that never rests (the swaying base: fewer than :data:`MIN_CANDIDATES` frames at
 rest) is tested over all its frames (``at_rest`` false): its motion is smooth, and what a
@@ -63,6 +67,9 @@ REST = 0.1
 TRIM = 1e-3
 #: fewer candidate frames than this: no test
 MIN_CANDIDATES = 20
+#: a noise in the frames' stamps (:func:`~stellar_cal_ros.diagnosis.stats.stamp_noise` on
+#: the frames tested, one-sided p below this) is in each frame's expected spread
+STAMP_ALPHA = 0.01
 #: the 'unexplained' line's component (:func:`~stellar_cal_ros.diagnosis.printing.
 #: unexplained_phrase`)
 COMPONENT = "installation step"
@@ -83,10 +90,18 @@ class InstallationStep:
     candidates: int  #: the frames tested
     p_value: float  #: unadjusted: the χ²₃ tail × ``candidates``
     at_rest: bool = True  #: the frames tested are those at rest (false: all, never at rest)
+    #: the stamps' noise (ms rms) in each frame's spread (:func:`stamp_spread`), else None
+    stamp_noise_ms: float | None = None
 
     def as_json(self) -> dict:
-        """The summary's entry (``diagnosis.json`` ``installation_step``)."""
-        return dataclasses.asdict(self)
+        """The summary's entry (``diagnosis.json`` ``installation_step``).
+
+        ``stamp_noise_ms`` only where a stamp noise was in the frames' spread.
+        """
+        out = dataclasses.asdict(self)
+        if out["stamp_noise_ms"] is None:
+            del out["stamp_noise_ms"]
+        return out
 
     def regressor(self, where: str = "", sized: str = "") -> str:
         """The line's text: when, how much, about which axis.
@@ -97,6 +112,8 @@ class InstallationStep:
         """
         if not sized and (where or not self.at_rest):
             sized = JUMP
+        stamped = "" if self.stamp_noise_ms is None else \
+            f"; each frame's spread with the stamps' noise, {self.stamp_noise_ms:.2g} ms rms"
         d = np.asarray(self.step_arcsec)
         size = float(np.linalg.norm(d))
         axis = ", ".join(f"{x:.2f}" for x in d / max(size, 1e-300))
@@ -108,7 +125,8 @@ class InstallationStep:
                 f"{self.angle_deg:.0f} deg at the detector's centre and the filter follows "
                 f"(outside the library: its installation is a constant; {self.chi2:.0f} chi2"
                 f" / 3 dof, the largest of {self.candidates} frames "
-                f"{where or ('at rest' if self.at_rest else 'of a platform that never rests')})")
+                f"{where or ('at rest' if self.at_rest else 'of a platform that never rests')}"
+                f"{stamped})")
 
     def finding(self, where: str = "", sized: str = "") -> stats.RegressorFinding:
         """The 'unexplained' test (unadjusted p; its statistic the one-sided p's normal score)."""
@@ -193,7 +211,10 @@ def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, fl
         return None
     idx = k[:, None] + j[None, :]
     step = np.einsum("j,njc->nc", c, a[idx])
-    V = np.einsum("j,njab->nab", c**2, np.linalg.inv(info3)[idx])
+    cov3, sig_t = np.linalg.inv(info3), None
+    if len(still_k) < MIN_CANDIDATES:  # (a platform that never rests: stamp_spread)
+        cov3, sig_t = stamp_spread(sub, got, frames, cov3, R_imu_st)
+    V = np.einsum("j,njab->nab", c**2, cov3[idx])
     w, U = np.linalg.eigh(V)
     if not np.all(w > 0):
         return None
@@ -219,7 +240,46 @@ def installation_step(res: stats.Table, mask: np.ndarray, focal: tuple[float, fl
     return InstallationStep(
         float(t[1]), float(t[0]), [float(x) for x in step[i]],
         [float(x) for x in np.sqrt(np.diag(cov))], size, sigma, angle, float(d2[i]),
-        int(len(k)), p, at_rest)
+        int(len(k)), p, at_rest, None if sig_t is None else sig_t * 1e3)
+
+
+def stamp_spread(sub: stats.Table, offsets: tuple, frames: np.ndarray, cov3: np.ndarray,
+                 R_imu_st: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """Each frame's attitude covariance (arcsec², ``(n, 3, 3)``) with a noise in its stamp.
+
+    ``offsets``: :func:`~stellar_cal_ros.diagnosis.stats.frame_offsets` of ``sub``;
+    ``frames``, ``cov3``: :func:`~stellar_cal_ros.diagnosis.stats.frame_attitudes`' frames
+    and their ``I⁻¹``.  A frame stamped ``δ`` off its exposure turns all its stars by
+    ``ω δ`` (``ω`` the tracker's rate): an attitude noise ``σ_t² ω ωᵀ``, large where the
+    image moves fast.  Where :func:`~stellar_cal_ros.diagnosis.stats.stamp_noise` finds a
+    stamp noise on these frames (one-sided p < :data:`STAMP_ALPHA`), its ``σ̂_t`` is added so:
+    the robust common covariance of the whitened steps is one scale for all frames, and the
+    fastest frames' steps would read the stamps' noise as a step (unseen case
+    ``sway_jitter`` s22, 1 ms: χ²₃ 27 at 256.5 s, where the image moves at up to 405 px/s,
+    its window's median 186).  Returns ``(cov, σ̂_t in s or None)``; ``cov3`` itself
+    without a stamp noise.
+
+    Asked only where the platform never rests (fewer than :data:`MIN_CANDIDATES` frames
+    at rest).  Where it rests and slews (psce) the line tests the frames at rest, whose
+    rate is ~0, and the test over moving frames too (``everywhere``, ``before``) reads the
+    slews' ends, where the filter's catch-up steps whatever the stamps' noise: unseen case
+    ``jitter`` s21 (1 ms), the test before the window χ²₃ 5583 at 64.0 s without this
+    term, 759 at 59.5 s with it, both beyond :data:`~stellar_cal_ros.diagnosis.auto.
+    STEP_BEFORE_ALPHA`; the step fitted at 59.5 s explained the window at p 0.0082 and was
+    kept, its line said first (at 64.0 s: not kept).  There the term is left out.
+    """
+    got = stats.stamp_noise(*offsets[:5])
+    if got is None or not got[0] < STAMP_ALPHA or not got[1] > 0:
+        return cov3, None
+    fr, kk = stats.frames_of(np.asarray(sub["frame"]))
+    w = np.stack([np.asarray(sub[f"omega_{x}"], dtype=float) for x in "xyz"], 1) \
+        @ np.asarray(R_imu_st, dtype=float) / ARCSEC  # arcsec/s, tracker frame
+    ok = stats.finite_rows(w)
+    n = np.bincount(kk[ok], minlength=len(fr))
+    mean = np.stack([np.bincount(kk[ok], w[ok, i], minlength=len(fr)) for i in range(3)], 1) \
+        / np.maximum(n, 1)[:, None]
+    om = mean[np.searchsorted(fr, frames)]
+    return cov3 + got[1] ** 2 * np.einsum("ni,nj->nij", om, om), got[1]
 
 
 #: what the size of a step tested over frames that move is (:meth:`InstallationStep.

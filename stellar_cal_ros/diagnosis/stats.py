@@ -1217,6 +1217,25 @@ def motion_test(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
     ``along motion``, statistic the normal score of the one-sided p, unadjusted p, size px
     rms at ``speed``) or ``None`` (fewer than 10 pairs).
     """
+    got = stamp_noise(frames, g, info, gp, infop)
+    if got is None:
+        return None
+    p, sig_t = got
+    z = float(dist.norm.isf(p)) if p > 1e-300 else 37.0
+    return RegressorFinding(f"{MOTION}: {sig_t * 1e3:.2g} ms rms, {speed:.0f} px/s at the "
+                            "95th percentile of image speed)", "along motion", z, p,
+                            sig_t * speed)
+
+
+def stamp_noise(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndarray,
+                infop: np.ndarray) -> tuple[float, float] | None:
+    """:func:`motion_test`'s one-sided p and stamp noise ``σ̂_t`` (s rms): ``(p, σ̂_t)``.
+
+    ``None`` with fewer than 10 pairs of consecutive frames (or no spread across the
+    motion).  The one estimate of a noise in the frames' stamps: the line's
+    (:func:`motion_test`) and the attitude step test's expected spread of a frame
+    (:func:`~stellar_cal_ros.diagnosis.installation_step.installation_step`).
+    """
     use = (info > 0) & (infop > 0)
     j = np.flatnonzero(use[1:] & use[:-1] & (np.diff(frames) == 1))
     if len(j) < 10:
@@ -1237,14 +1256,10 @@ def motion_test(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
     rho2 = 1.0 / (info[j[nxt] + 1] ** 2 * V[nxt] * V[nxt + 1])
     nu = float(np.sum(h) ** 2 / (np.sum(h * h) + 2.0 * np.sum(h[nxt] * h[nxt + 1] * rho2)))
     p = float(dist.f.sf(x / y, nu, nu))
-    z = float(dist.norm.isf(p)) if p > 1e-300 else 37.0
     diff = da2 - dc2
     s2 = max(float(np.sum(h * h * diff) / (2.0 * np.sum(h * h))), 0.0)
     w = 1.0 / (2.0 * s2 + V) ** 2
-    sig_t = float(np.sqrt(max(float(np.sum(w * diff) / (2.0 * np.sum(w))), 0.0)))
-    return RegressorFinding(f"{MOTION}: {sig_t * 1e3:.2g} ms rms, {speed:.0f} px/s at the "
-                            "95th percentile of image speed)", "along motion", z, p,
-                            sig_t * speed)
+    return p, float(np.sqrt(max(float(np.sum(w * diff) / (2.0 * np.sum(w))), 0.0)))
 
 
 def readout_s(first: float, rest: float | None, height: float) -> float:
