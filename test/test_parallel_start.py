@@ -93,3 +93,30 @@ def test_fork_server_workers_start_holding_the_methods_kernels(no_choice):
         held = client.run(_kernels_held)
     assert len(held) == 2 and all(n >= 1 for n in held.values())
     assert os.environ.get(parallel.WORKER_WARM_ENV) is None  # only while it starts
+
+
+def _worker_timers(dask_worker) -> dict[str, float]:
+    return {name: pc.callback_time for name, pc in dask_worker.periodic_callbacks.items()}
+
+
+def test_local_cluster_wakes_the_parent_seldom(no_choice):
+    """The scheduler and the nannies run in this process's event loop: their timers cost
+    the parent CPU per second of wall whatever the work (an idle two-worker cluster at
+    Dask's defaults: 189 timer calls a second, 32-42 ms of CPU; doc/benchmarks.md "the
+    parent's Dask CPU").  With :data:`parallel.LOCAL_DASK_CONFIG` 17, the workers' own
+    timers as seldom, no work stealing and no active memory manager (which drops the
+    copies of a bag scattered to every worker).  Fails on the tree before it (189)."""
+    from distributed import Client
+
+    with parallel.local_cluster(2, None) as cluster, Client(cluster) as client:
+        servers = {"scheduler": cluster.scheduler, **cluster.workers}  # nannies here
+        per_s = {f"{who} {name}": 1000 / pc.callback_time
+                 for who, s in servers.items() for name, pc in s.periodic_callbacks.items()
+                 if pc.is_running()}
+        # 17.3 (8 of them Dask's fixed 250 ms idle checks); 189 at Dask's defaults
+        assert sum(per_s.values()) < 20, per_s
+        assert "stealing" not in cluster.scheduler.extensions
+        assert not client.amm.running()
+        for timers in client.run(_worker_timers).values():
+            assert timers["tick"] >= 1000 and timers["memory_monitor"] >= 1000
+            assert "profile" not in timers

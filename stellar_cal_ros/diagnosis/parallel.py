@@ -27,7 +27,8 @@ Executors
     kernels at its first run.  Spawned, each imports the package, loads the kernels and
     reads the bag (measured, doc/benchmarks.md), and the rule asks for
     :data:`CLUSTER_PAYS_SPAWNED_S`.  Besides the start, Dask's scheduler and client take
-    the parent's CPU while it waits, and runs side by side take more CPU each; a round of
+    the parent's CPU while it waits (its timers slowed down: :data:`LOCAL_DASK_CONFIG`),
+    and runs side by side take more CPU each; a round of
     a few short runs (a ``diagnose`` near the model) is done sooner in this process.  On
     a machine of at most :data:`IN_PROCESS_CORES` cores: in this process (two workers
     and the parent share two cores: measured, a round of ten re-runs gains at most
@@ -236,6 +237,36 @@ def _dask_start_method() -> str:
 WORKER_BAG_ENV = "STELLAR_CAL_WORKER_BAG"
 
 
+#: Dask's settings for the diagnosis' local cluster (read when its scheduler, nannies and
+#: workers start; a user's scheduler is left as it is).  The scheduler and one nanny per
+#: worker run in this process's event loop, which Dask wakes on timers whatever the work:
+#: at its defaults an idle two-worker cluster took 32-42 ms of the parent's CPU per second
+#: of wall (2 cores, load 6-9; 5-9 CPU-s of a several round's 200-630 s), 5-6 ms with these
+#: (measured, doc/benchmarks.md "the parent's Dask CPU").  None of them changes a result:
+#:
+#: * no statistical profiler in the workers: it samples the running filter's stack every
+#:   10 ms of *wall* time, for a dashboard nobody opens here;
+#: * the event loop's health tick (a warning after 3 s unresponsive) every 1 s, not 20 ms,
+#:   in each of the scheduler, the nannies and the workers;
+#: * the system monitor (CPU, memory, I/O for the dashboard) every 5 s, not 0.5 s;
+#: * memory checked every 1 s, not 0.1 s (the nanny restarts a worker past 95 % of its
+#:   share of the machine's memory; a run's memory grows over seconds, not tenths);
+#: * no work stealing: :class:`_Hand` hands a piece out only to a free thread, so nothing
+#:   waits at a busy worker to be stolen (its 1 s timer went over every worker's queue);
+#: * no active memory manager: the one scattered object (a bag in memory,
+#:   :meth:`DaskRuns._place_bag`) is on every worker on purpose (``broadcast=True``); the
+#:   manager's replica reduction drops such copies every 2 s (Dask's ``Client.scatter``
+#:   asks for it off with ``broadcast=True``), to be sent again to the next run's worker.
+LOCAL_DASK_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.scheduler.work-stealing": False,
+    "distributed.scheduler.active-memory-manager.start": False,
+}
+
+
 def local_cluster(n: int, bag: BagRef | None = None, method: str | None = None,
                   warm: str | None = None):
     """A ``LocalCluster`` of ``n`` single-threaded worker processes started by ``method``.
@@ -257,10 +288,8 @@ def local_cluster(n: int, bag: BagRef | None = None, method: str | None = None,
         from stellar_cal_ros.diagnosis.runstats import load_bag
 
         load_bag(bag)  # read once here: every worker is forked holding it
-    # no statistical profiler in the workers: it samples the running filter's stack
-    # every 10 ms of *wall* time, for a dashboard nobody opens here
-    with dask.config.set({"distributed.worker.profile.enabled": False,
-                          DASK_START_KEY: method}), _server_bag(method, bag, warm):
+    with dask.config.set({**LOCAL_DASK_CONFIG, DASK_START_KEY: method}), \
+            _server_bag(method, bag, warm):
         if method == "forkserver":
             _preload_package()
             _server_for(bag, warm)
