@@ -1868,6 +1868,45 @@ def test_a_lens_zone_is_unexplained_as_a_radial_step_first():
     assert found[0].statistic > 7.0
 
 
+def test_a_lens_zones_echoes_follow_its_radial_step_line():
+    """Unseen case ``lens_zone`` (beyond 400 px the image scale 300 ppm larger), 300 s of
+    PSCE, seed 21, the baseline run as ``discover`` ranks its lines: coord2 3ff819c ranked
+    'residual repeating vs catalogue star' first (t 12.2, p 1.3e-17: a star keeps its radius
+    along its track, so the step repeats star by star), the step line at the median radius
+    (429 px) second (t 12.3, p 3.3e-17) and another step line (514 px, t -9.8) third (the
+    unseen case's ``discover`` at s21: t 11.8, 11.2, -10.6).  The strongest step line
+    is a cause (``leads.fields_first``): the step fitted at the radius that takes most of
+    the window's χ² (``leads.zone_without``: 398 px measured; the quartile's step left the
+    508 px line and the repeat) and taken out of the residuals, the line tests no longer
+    find the repeat nor the other step line: they follow it.  Fails on coord2 (the repeat
+    first, nothing follows)."""
+    from stellar_cal_ros.diagnosis import leads, printing
+
+    def post(sim):
+        tracker_errors.lens_zone(sim, 400.0, 300.0)
+        tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, 21)
+
+    run, runs = _psce_run(_bag(post, duration=300.0))
+    found = line_tests(run.residuals, run.calibration, 0.5)
+    repeat = next(f for f in found if f.regressor == "catalogue star")
+    steps = [f for f in found if f.regressor.startswith(stats.ZONE)]
+    assert len(steps) >= 2 and steps[0].statistic > 7.0, found[:4]
+    lines, follows = output.causes_first(found, run, runs)
+    assert lines[0] is steps[0] and 0 not in follows, [(f.regressor, f.statistic)
+                                                       for f in lines[:3]]
+    cause = "radial step of the image scale"  # (leads.CAUSES["zone"])
+    assert follows.get(lines.index(repeat)) == cause, follows
+    assert follows.get(lines.index(steps[1])) == cause, follows
+    assert sorted(follows) == list(range(len(lines) - len(follows), len(lines)))
+    said = printing.follows_phrase({"follows": cause})
+    assert said == ("follows the radial step of the image scale: gone once the step's fit is "
+                    "taken out of the centroids"), said
+    cam = run.calibration.camera
+    radius = leads.zone_without(run.residuals, 0.5, (cam.cx, cam.cy))[1]
+    # the grid's spacing ~5 px; the step's radius read within 20 px (measured 398)
+    assert abs(radius - 400.0) < 20.0, radius
+
+
 def test_no_radial_step_line_on_a_clean_bag():
     """The radial step tests hold their level: a clean 150 s PSCE bag (seed 22, the
     scenario's own 0.05 px noise) has no step line."""

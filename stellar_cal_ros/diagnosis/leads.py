@@ -48,6 +48,8 @@ flexure (not a camera effect) and before any add found a remainder (after one,
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from stellar_cal_ros.core.units import ARCSEC
@@ -246,18 +248,23 @@ def without(res, fraction: float, kind: str):
     fit = None if got is None else stats.whitened_fit(got[2], got[3])
     if fit is None:
         return None
-    _, window, _, pattern = got
+    return _taken_out(res, got[1], fit[2] * got[3])
+
+
+def _taken_out(res, window: np.ndarray, fitted: np.ndarray) -> dict:
+    """``res`` with the displacements ``fitted`` ``(n, 2)`` px taken from its rows ``window``."""
     du = np.array(res["du"], dtype=float)
     dv = np.array(res["dv"], dtype=float)
-    du[window] -= fit[2] * pattern[:, 0]
-    dv[window] -= fit[2] * pattern[:, 1]
+    du[window] -= fitted[:, 0]
+    dv[window] -= fitted[:, 1]
     return dict(res, du=du, dv=dv)
 
 
 #: the cause an 'unexplained' line follows when a printed field's fit explains it
 #: (:func:`fields_first`; ``printing.CAUSES`` words it)
 CAUSES = {"cells": "detector's cells field", "magnitude": "magnitude field",
-          "temperature": "mount turning with the head temperature"}
+          "temperature": "mount turning with the head temperature",
+          "zone": "radial step of the image scale"}
 CELLS_CAUSE = CAUSES["cells"]
 #: the regressors of the lines a field on the detector makes: a position's, straight or
 #: periodic (:data:`~stellar_cal_ros.diagnosis.stats.RIPPLE`)
@@ -270,12 +277,21 @@ POSITIONS = ("u (column)", "v (row)", "radius")
 #: the star's magnitude alone), any line: what it takes is what varies with magnitude
 #: (``saturation`` s22's 'radial residual vs gravity_x_st' t 4.8: the stars in view change
 #: with the attitude)
-ECHOES = {"cells": POSITIONS, "magnitude": None, "temperature": None}
+#: the radial step's (a line of :func:`~stellar_cal_ros.diagnosis.stats.shaped_tests`,
+#: :data:`~stellar_cal_ros.diagnosis.stats.ZONE`): the repeat of a star's residual (a star
+#: keeps its radius along its track: unseen case ``lens_zone`` s21, 'residual repeating vs
+#: catalogue star' t 11.8 ranked before the step's line t 11.2), a line against a detector
+#: position, straight or a ripple (a step on the detector, as the cells field's), and
+#: another radius's step
+ECHOES = {"cells": POSITIONS, "magnitude": None, "temperature": None,
+          "zone": ("catalogue star", *POSITIONS)}
 
 
 def echoes(kind: str, f) -> bool:
     """Whether the line ``f`` may be field ``kind``'s echo (:data:`ECHOES`)."""
     family = ECHOES[kind]
+    if kind == "zone" and stats.zone_radius(f) is not None:
+        return True
     return family is None or f.regressor.split(f" ({stats.RIPPLE} ")[0] in family
 
 
@@ -288,6 +304,53 @@ def _field(f) -> str | None:
     """The field of :data:`FIELDS` (or the temperature field) whose line ``f`` is, or ``None``."""
     kind = (getattr(f, "detail", None) or {}).get("field")
     return kind if kind in FIELDS or kind == "temperature" else None
+
+
+#: :func:`zone_without`'s radii: this many, evenly from the 5th to the 95th percentile of the
+#: window's stars' distances from the centre (~5 px apart on the PSCE detector)
+ZONE_RADII = 91
+
+
+def zone_without(res, fraction: float, centre: tuple[float, float]):
+    """``res`` with a radial step fitted out of the window, and the step's radius (px).
+
+    The step less the camera's radial polynomial (:func:`~stellar_cal_ros.diagnosis.stats.
+    zone_step`, on the window's accepted stars' predicted centroids: the rows its line
+    test takes) at the radius from ``centre`` that takes most of their whitened χ² (one
+    of :data:`ZONE_RADII`: the line tests' quartiles miss the step's radius, and a step
+    fitted at a quartile leaves a step's structure that the other lines read, unseen case
+    ``lens_zone`` s21: at 424 px, for 400, the 508 px step line and the catalogue-star
+    repeat stay), times its size fitted there (:func:`~stellar_cal_ros.diagnosis.stats.
+    whitened_fit`'s ``c``); rows outside the window unchanged.  ``(None, nan)`` when it
+    cannot be fitted.  The radius is an estimate for the removal, not a test: the lines
+    re-tested on what it leaves decide.
+    """
+    if res is None or not len(res.get("t", ())):
+        return None, math.nan
+    window = stats.accepted(res) & stats.evaluation_mask(res, fraction)
+    if window.sum() < 50:
+        return None, math.nan
+    sw = {k: np.asarray(v)[window] for k, v in res.items()}
+    r_vec = np.stack([stats.predicted_position(sw, "u") - centre[0],
+                      stats.predicted_position(sw, "v") - centre[1]], 1)
+    r = np.hypot(r_vec[:, 0], r_vec[:, 1])
+    if not np.isfinite(r).sum() >= 50:
+        return None, math.nan
+    cov = {k: sw[k] for k in ("s_uu", "s_uv", "s_vv")}
+    w_nu = stats.whitened(sw)
+    best, radius, pattern = -1.0, math.nan, None
+    for q in np.linspace(*np.nanpercentile(r, [5.0, 95.0]), ZONE_RADII):
+        x = np.nan_to_num(stats.zone_step(r_vec, q))
+        w_x = stats.whitened({"du": x[:, 0], "dv": x[:, 1], **cov})
+        ok = stats.finite_rows(w_x) & stats.finite_rows(w_nu)
+        info = float(np.sum(w_x[ok] ** 2))
+        gain = float(np.sum(w_x[ok] * w_nu[ok])) ** 2 / info if info > 0 else -1.0
+        if gain > best:
+            best, radius, pattern = gain, float(q), x
+    fit = None if pattern is None else stats.whitened_fit(sw, pattern)
+    if fit is None:
+        return None, math.nan
+    return _taken_out(res, window, fit[2] * pattern), radius
 
 
 def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=frozenset(),
@@ -328,14 +391,24 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
     its echo (a turn of the whole tracker that changes over the run moves every star;
     unseen case ``thermal_mount`` s21: the clock line 'dt from −1.03 ms to 0.40 ms', t 4.9,
     ranked before it).
+
+    The strongest radial step's line (:data:`~stellar_cal_ros.diagnosis.stats.ZONE`, a lens
+    zone; the others are the same step's lines at other radii) explains the lines gone from
+    the residuals without a step fitted at the radius that fits best (:func:`zone_without`;
+    the lines' radii are the stars' quartiles): the repeat of a star's residual, a line
+    against a detector position, another radius's step (:data:`ECHOES`; unseen case ``lens_zone``
+    s21: 'residual repeating vs catalogue star' t 11.8 ranked before the step's line t 11.2,
+    the 508 px step line t −10.6 after it).
     """
     from stellar_cal_ros.diagnosis import rolling
 
     if not _has_table(run):
         return found, {}
     cause: dict[int, str] = {}
+    cal = calibration or run.calibration
+    step = next((f for f in found if stats.zone_radius(f) is not None), None)
     for i, lead in enumerate(found):
-        kind = _field(lead)
+        kind = "zone" if lead is step else _field(lead)
         if kind is None or id(lead) in taken:  # (one that follows a field still has echoes)
             continue
         lines = [f for j, f in enumerate(found) if j != i and id(f) not in cause
@@ -345,6 +418,8 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
             continue
         if kind in FIELDS:
             less = without(run.residuals, fraction, kind)
+        elif kind == "zone":
+            less = zone_without(run.residuals, fraction, (cal.camera.cx, cal.camera.cy))[0]
         else:  # the temperature field's pattern: its probes run again (where ``runs``)
             less = None if runs is None else temperature_without(runs, run)
         if less is None:
@@ -357,8 +432,7 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
                 gone = fit is not None and not significant({other: fit}, alpha)
             else:
                 if left is None:  # (the line tests once a field, only where asked)
-                    left = {rolling.line_key(g) for g in tests(
-                        less, calibration or run.calibration, fraction)}
+                    left = {rolling.line_key(g) for g in tests(less, cal, fraction)}
                 gone = rolling.gone(f, left, keep | taken)
             if gone:
                 cause[id(f)] = CAUSES[kind]

@@ -115,7 +115,8 @@ def follows_phrase(u: dict[str, Any]) -> str:
 CAUSES = {"rolling shutter": ("its fitted readout", "shutter"),
           **{s.cause: ("the drift", "drift") for s in SHAPES},
           **{leads.CAUSES[k]: ("the field's fit", f"{k} field") for k in leads.FIELDS},
-          leads.CAUSES["temperature"]: ("the turn's fit", "head-temperature")}
+          leads.CAUSES["temperature"]: ("the turn's fit", "head-temperature"),
+          leads.CAUSES["zone"]: ("the step's fit", "radial step")}
 #: the causes of :mod:`~stellar_cal_ros.diagnosis.shape_drift` (a drifting camera shape)
 DRIFTS = frozenset(s.cause for s in SHAPES)
 

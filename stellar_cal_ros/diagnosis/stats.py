@@ -847,6 +847,33 @@ ZONE = "radius (a radial step at"
 ZONE_PERCENTILES = (25.0, 50.0, 75.0)
 
 
+def zone_step(r_vec: np.ndarray, radius: float) -> np.ndarray:
+    """The radial step at ``radius`` (px) as displacements ``(n, 2)`` of the stars ``r_vec``.
+
+    ``r_vec``: the stars' positions less the centre (px).  The step (1 beyond ``radius``,
+    0 within, along each star's radius) less what the camera's radial polynomial (r, r³,
+    r⁵ on these stars: the focal length and radial distortion the model fits) takes of
+    it; NaN where a position is not finite.  What :func:`shaped_tests` tests and
+    :func:`~stellar_cal_ros.diagnosis.leads.zone_without` takes out.
+    """
+    r = np.hypot(r_vec[:, 0], r_vec[:, 1])
+    fin = np.isfinite(r)
+    unit = r_vec / np.maximum(r, 1e-9)[:, None]
+    rn = r / np.max(r[fin])
+    poly = np.stack([(rn ** k)[fin] for k in (1, 3, 5)], 1)
+    step = (r[fin] > radius).astype(float)
+    left = np.full(len(r), np.nan)
+    left[fin] = step - poly @ np.linalg.lstsq(poly, step, rcond=None)[0]
+    return unit * left[:, None]
+
+
+def zone_radius(f) -> float | None:
+    """The radius (px) of a radial step's line ``f`` (:data:`ZONE`), ``None`` for another line."""
+    if not f.regressor.startswith(ZONE):
+        return None
+    return float(f.regressor[len(ZONE):].split("px")[0])
+
+
 def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float, float],
                  centre: tuple[float, float], R_imu_st: np.ndarray | None = None,
                  height: float | None = None,
@@ -965,17 +992,9 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
     r = np.hypot(r_vec[:, 0], r_vec[:, 1])
     fin = np.isfinite(r)
     if fin.sum() >= 40:
-        # each step less what the camera's radial polynomial (r, r^3, r^5: the focal length
-        # and radial distortion the model fits) takes of it
-        unit = r_vec / np.maximum(r, 1e-9)[:, None]
-        rn = r / np.max(r[fin])
-        poly = np.stack([(rn ** k)[fin] for k in (1, 3, 5)], 1)
         for q in np.percentile(r[fin], ZONE_PERCENTILES):
-            step = (r[fin] > q).astype(float)
-            left = np.full(len(r), np.nan)
-            left[fin] = step - poly @ np.linalg.lstsq(poly, step, rcond=None)[0]
             one(f"{ZONE} {q:.0f} px: the image scale beyond it not the scale within)",
-                project(unit * left[:, None]))
+                project(zone_step(r_vec, q)))
     x = rolling_columns(sub, focal, centre, R_imu_st)
     if x is not None and height is not None:
         one(lambda b: f"{ROLLING}, readout {readout_s(b, None, height) * 1e3:.3g} ms)",
