@@ -608,3 +608,39 @@ def test_a_clock_drift_without_a_reference_stamp_counts_from_the_first_frame(sim
     cal = copy.deepcopy(prior)
     eff.store(np.array([1e-5]), np.array([1e-7]), cal)
     assert cal.effects["clock_drift"]["reference_stamp"] == first
+
+
+def test_a_clock_drift_candidate_counts_from_the_run_s_start_not_a_result_s_stamp(sim):
+    """Fails on coord2 3ff819c: discover's second round starts from the first round's
+    result, whose stamp is its estimate's time (the run's end); the clock_drift candidate's
+    prior (``candidate_prior``) took it as the reference, so at the first frames the rate
+    sat on a lever of −300 s (σ 1e-3: 0.3 s of exposure time) and one update moved an
+    exposure behind the one before (unseen case ``rolling_cols`` s22: "cannot propagate
+    backwards in time").  The reference is the first frame's stamp, as for a prior stamp
+    long before the run (an older calibration); the run's start (the simulated prior's
+    stamp, 0.254 s before its first frame) and a stored reference stay."""
+    from stellar_cal_ros.diagnosis.discover import candidate_prior
+
+    first = sim.star_frames[0].stamp_ns * 1e-9
+    assert 0.0 < first - sim.prior.stamp < 1.0  # the simulated bag's start
+    for stamp, lever0 in ((first + 299.5, 0.0),  # a result's stamp: the run's last frame
+                          (first - 30 * 86400.0, 0.0),  # a calibration 30 days older
+                          (sim.prior.stamp, first - sim.prior.stamp)):  # the bag's start
+        prior = copy.deepcopy(sim.prior)
+        prior.stamp, prior.effects = stamp, {}
+        cand = candidate_prior(prior, "clock_drift", sim.prior)
+        eff = registry.create("clock_drift")
+        value, sigma = eff.initial(cand)
+        assert sigma[0] >= 1e-3
+        lever = [eff.time_shift_jacobian(value, FrameContext(stamp=first + dt))[0]
+                 for dt in (0.0, 100.0)]
+        assert lever == pytest.approx([lever0, lever0 + 100.0], abs=1e-6)
+        cal = copy.deepcopy(cand)
+        eff.store(value, sigma, cal)
+        assert cal.effects["clock_drift"]["reference_stamp"] == pytest.approx(first - lever0)
+    stored = copy.deepcopy(sim.prior)  # a stored reference is the clock's: kept
+    stored.stamp = first + 299.5
+    stored.effects = {"clock_drift": {"rate": 2e-5, "reference_stamp": first - 50.0}}
+    eff = registry.create("clock_drift")
+    value, _ = eff.initial(stored)
+    assert eff.time_shift(value, FrameContext(stamp=first)) == pytest.approx(2e-5 * 50.0)

@@ -452,7 +452,11 @@ class StarFilter(Acquisition):
         """Propagate nominal state and covariance to ``t_target`` (relative s)."""
         if t_target <= self.t:
             if t_target < self.t - 1e-9:
-                raise ModelError("cannot propagate backwards in time")
+                raise ModelError(
+                    f"cannot propagate backwards in time: to {t_target:.4f} s from "
+                    f"{self.t:.4f} s ({(self.t - t_target) * 1e3:.3g} ms back; the time "
+                    "effects' estimate puts this exposure before one already processed: "
+                    "the model cannot run at this value)")
             return
         k = self._k
         m = self.imu.index(t_target)
