@@ -161,28 +161,49 @@ def test_reference_rows_independent_of_batching_with_accelerometer():
         assert np.array_equal(getattr(one, key), getattr(restored, key)), key
 
 
-def test_compiled_prefix_rows_are_the_numpy_rows(monkeypatch):
-    """The block scan and the attitude matrices compiled (``core.jit.quat_block_scan``,
-    ``anchored_matrices``) store the numpy path's rows bit for bit, whatever the pieces."""
+@pytest.mark.parametrize("accel", [False, True])
+def test_compiled_prefix_rows_are_the_numpy_rows(monkeypatch, accel):
+    """The per-sample rows (``core.jit.prefix_sample_rows``: rates, coning, slopes, and the
+    accelerometer's corrected force and sculled increments), the block scan and the
+    attitude matrices compiled (``quat_block_scan``, ``anchored_matrices``) store the numpy
+    path's rows bit for bit, whatever the pieces; with an accelerometer also a sample that
+    turns by more than 1e-2 rad (``du`` from the closed forms), a reference that starts
+    after a sample (``start``) and no accelerometer matrix."""
     from stellar_cal_ros.core import imu_prefix
 
     if not imu_prefix.HAVE_NUMBA:
         pytest.skip("numba not importable: the numpy path is the only one")
     imu = _imu(6000, seed=7)
+    w = imu.w.copy()
+    w[3000] = [2.0, -1.5, 0.5]  # 2.5 rad/s: a 0.025 rad increment
     b, A = np.array([1e-3, -2e-3, 5e-4]), np.eye(3) + 1e-3
     rng = np.random.default_rng(3)
     cuts = np.cumsum(rng.integers(1, 700, 40))
     cuts = [0, *cuts[cuts < len(imu)].tolist(), len(imu)]
+    opts = {}
+    if accel:
+        def gravity(t):
+            return np.stack([1e-3 * np.sin(t), 2e-3 * np.cos(t), -9.8 + 0 * t], axis=1)
+
+        start = (0.0, np.array([1e-4, -2e-4, 3e-4]), np.array([1e-3, 2e-3, 0.098]),
+                 np.array([0.01, -0.02, 0.03]), DT)
+        opts = {"accel": (np.array([0.01, -0.02, 0.03]), None), "gravity": gravity,
+                "start": start}
 
     def rows(compiled: bool) -> ImuPrefix:
         monkeypatch.setattr(imu_prefix, "HAVE_NUMBA", compiled)
-        pre = ImuPrefix(DT, b, A)
+        pre = ImuPrefix(DT, b, A, **opts)
         for a, e in zip(cuts[:-1], cuts[1:], strict=True):
-            pre.extend(imu.t[a:e], imu.w[a:e])
+            pre.extend(imu.t[a:e], w[a:e], imu.f[a:e] if accel else None)
         return pre
 
     one, ref = rows(True), rows(False)
-    for key in ("tp", "C", "w_hat", "phi", "slope", "anchor", "block_dq"):
+    keys = ["tp", "C", "w_hat", "phi", "slope", "anchor", "block_dq", "dtheta_last",
+            "w_last", "dt_last"]
+    if accel:
+        keys += ["f_hat", "du", "gdt", "dv_last"]
+        assert np.linalg.norm(ref.phi, axis=1).max() > 1e-2  # the closed forms are taken
+    for key in keys:
         assert np.array_equal(getattr(one, key), getattr(ref, key)), key
     assert one._lv == ref._lv
 

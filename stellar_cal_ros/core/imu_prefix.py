@@ -12,7 +12,12 @@ import math
 
 import numpy as np
 
-from stellar_cal_ros.core.jit import HAVE_NUMBA, anchored_matrices, quat_block_scan
+from stellar_cal_ros.core.jit import (
+    HAVE_NUMBA,
+    anchored_matrices,
+    prefix_sample_rows,
+    quat_block_scan,
+)
 from stellar_cal_ros.core.rotation import quat_from_rotvec, so3_exp
 from stellar_cal_ros.core.strapdown import _quat_multiply_soa, _so3_integral_coefficients
 
@@ -20,6 +25,8 @@ _BLOCK = 32  # samples per block of the prefix's attitude products (see ImuPrefi
 _CHUNK = 16384  # samples per piece of a long extension (cache)
 _SMALL = 8  # extensions of up to this many samples take the scalar path (live use)
 _STALE_DQ = np.zeros((0, 4))  # block_dq while _lv holds the partial block
+_EYE = np.eye(3)  # (prefix_sample_rows' A without one)
+_NO_ROWS, _NO_VEC = np.zeros((0, 3)), np.zeros(3)  # (... and its rows without accelerometer)
 _PREFIX_ROWS = {  # per-sample arrays of ImuPrefix: trailing shape, dtype
     "tp": ((), np.float64), "w_hat": ((3,), np.float64), "C": ((3, 3), np.float64),
     "phi": ((3,), np.float64), "slope": ((3,), np.float64),
@@ -162,11 +169,17 @@ class ImuPrefix:
             t_prev = imu_t[0] - self.nominal_dt if self.t_start is None else self.t_start
         else:
             t_prev = self.tp[-1]
-        dt = np.diff(np.concatenate([[t_prev], imu_t]))
-        d = _corrected(imu_w, self.b, self.A)
-        dth = d * dt[:, None]
-        prev = np.concatenate([self.dtheta_last[None], dth[:-1]])
-        phi = dth + _cross_rows(prev, dth) / 12.0
+        self._reserve(m)
+        buf, i0 = self._buf, self._lo + self.n  # row of the last boundary held
+        if HAVE_NUMBA:  # the per-sample rows in one compiled pass (the same floats)
+            dt, dth = self._sample_rows(i0, imu_t, imu_w, imu_f, t_prev)
+            phi = buf["phi"][i0:i0 + m]
+        else:
+            dt = np.diff(np.concatenate([[t_prev], imu_t]))
+            d = _corrected(imu_w, self.b, self.A)
+            dth = d * dt[:, None]
+            prev = np.concatenate([self.dtheta_last[None], dth[:-1]])
+            phi = dth + _cross_rows(prev, dth) / 12.0
         block_dq = self._partial_dq()
         seq = np.concatenate([block_dq, quat_from_rotvec(phi)])
         r, old = len(seq), len(block_dq)
@@ -181,16 +194,15 @@ class ImuPrefix:
         anchors = np.empty((4, nb))
         a = _anchor_chain(self.anchor.tolist(), L[:, :, -1].T.tolist(),
                           nb if r % _BLOCK == 0 else nb - 1, anchors)
-        self._reserve(m)
-        buf, i0 = self._buf, self._lo + self.n  # row of the last boundary held
         if first:
             buf["tp"][i0] = t_prev
         buf["tp"][i0 + 1:i0 + m + 1] = imu_t
-        buf["w_hat"][i0:i0 + m] = d
-        buf["phi"][i0:i0 + m] = phi
-        self._slope_rows(i0, d, dt)
+        if not HAVE_NUMBA:
+            buf["w_hat"][i0:i0 + m] = d
+            buf["phi"][i0:i0 + m] = phi
+            self._slope_rows(i0, d, dt)
         _attitudes(anchors, L, old, r, buf["C"][i0 + 1:i0 + m + 1])
-        if self.has_accel:
+        if self.has_accel and not HAVE_NUMBA:
             self._accel_rows(i0, imu_t, dt, dth, imu_f)
         self.n += m
         self.t_end = float(imu_t[-1])
@@ -201,6 +213,47 @@ class ImuPrefix:
         self._lv = levels[:, :, :r % _BLOCK].transpose(2, 0, 1).tolist() \
             if levels is not None else []
         self._views()
+
+    def _sample_rows(self, i0: int, imu_t: np.ndarray, imu_w: np.ndarray,
+                     imu_f: np.ndarray | None, t_prev: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`extend`'s per-sample rows at ``i0`` in one compiled pass; ``(dt, dth)``.
+
+        :func:`~stellar_cal_ros.core.jit.prefix_sample_rows` writes ``w_hat``, ``phi``,
+        ``slope`` (and ``f_hat``, ``du``) into the buffers, the same floats as
+        :func:`_corrected`, the coning term, :meth:`_slope_rows` and :meth:`_accel_rows`;
+        the gravitation rows (``gravity``, a function of time) and the rare samples whose
+        increment is 1e-2 rad or more (``du`` from the closed forms) in numpy here.  Updates
+        the slope's and the sculling's previous sample (not ``dtheta_last``).
+        """
+        m = len(imu_t)
+        buf = self._buf
+        imu_t = np.ascontiguousarray(imu_t, dtype=float)
+        imu_w = np.ascontiguousarray(imu_w, dtype=float).reshape(m, 3)
+        dt, dth = np.empty(m), np.empty((m, 3))
+        rows = slice(i0, i0 + m)
+        accel = self.has_accel
+        if accel:
+            imu_f = np.ascontiguousarray(imu_f, dtype=float).reshape(m, 3)
+            f_hat, du, dv = buf["f_hat"][rows], buf["du"][rows], np.empty((m, 3))
+            b_a, A_a = self.b_a, self.A_a
+        else:
+            imu_f, f_hat, du, dv = _NO_ROWS, _NO_ROWS, _NO_ROWS, _NO_ROWS
+            b_a, A_a = _NO_VEC, None
+        big = prefix_sample_rows(
+            imu_t, imu_w, imu_f, float(t_prev), self.b, _EYE if self.A is None else self.A,
+            self.A is not None, b_a, _EYE if A_a is None else A_a, A_a is not None,
+            self.dtheta_last, self.w_last, float(self.dt_last), self.dv_last, accel, dt, dth,
+            buf["w_hat"][rows], buf["phi"][rows], buf["slope"][rows], f_hat, du, dv)
+        self.w_last = buf["w_hat"][i0 + m - 1].copy()
+        self.dt_last = float(dt[-1])
+        if accel:
+            if big:  # (the closed forms: numpy's sin and cos)
+                du[:] = sculled_increments(
+                    dth, dv, np.concatenate([self.dtheta_last[None], dth[:-1]]),
+                    np.concatenate([self.dv_last[None], dv[:-1]]))
+            buf["gdt"][rows] = self.gravity(imu_t - 0.5 * dt) * dt[:, None]
+            self.dv_last = dv[-1].copy()
+        return dt, dth
 
     def _partial_dq(self) -> np.ndarray:
         """Increments of the current partial block, (r, 4)."""

@@ -472,6 +472,91 @@ def quat_block_scan(dq: FloatArray, levels: FloatArray) -> FloatArray:
     return Q
 
 
+@njit(cache=True, error_model="numpy")
+def prefix_sample_rows(imu_t: FloatArray, imu_w: FloatArray, imu_f: FloatArray,
+                       t_prev: float, b: FloatArray, A: FloatArray, has_A: bool,
+                       b_a: FloatArray, A_a: FloatArray, has_A_a: bool,
+                       dth_last: FloatArray, w_last: FloatArray, dt_last: float,
+                       dv_last: FloatArray, accel: bool, dt: FloatArray, dth: FloatArray,
+                       w_hat: FloatArray, phi: FloatArray, slope: FloatArray,
+                       f_hat: FloatArray, du: FloatArray, dv: FloatArray) -> int:
+    """The per-sample rows of :meth:`~stellar_cal_ros.core.imu_prefix.ImuPrefix.extend`.
+
+    One pass over the ``m`` samples, the same floats as its numpy operations (each entry
+    the very products, sums and quotients in their order; no fused multiply-add): the
+    sample lengths ``dt`` (from ``t_prev``), the corrected rates ``w_hat``
+    (``imu_prefix._corrected``: ``A (w − b)`` with explicit sums; ``has_A`` False: no
+    ``A``), the increments ``dth`` and their coning-corrected ``phi`` (from ``dth_last``),
+    the ``slope`` rows (:func:`~stellar_cal_ros.core.imu_prefix.sample_slopes`, from
+    ``w_last``, ``dt_last``), and with ``accel`` the corrected specific force ``f_hat``,
+    its increments ``dv`` and the sculled ``du``
+    (:func:`~stellar_cal_ros.core.imu_prefix.sculled_increments`, from ``dv_last``) —
+    whose Taylor coefficients are taken here only where the increment's angle is below
+    1e-2 rad: returns how many samples are not (their ``du`` rows left for numpy).
+    """
+    m = imu_t.shape[0]
+    big = 0
+    tp = t_prev
+    px, py, pz = dth_last[0], dth_last[1], dth_last[2]  # the previous increment
+    wx0, wy0, wz0 = w_last[0], w_last[1], w_last[2]  # the previous corrected rate
+    dtp = dt_last
+    vx0, vy0, vz0 = dv_last[0], dv_last[1], dv_last[2]
+    for i in range(m):
+        t = imu_t[i]
+        h = t - tp
+        tp = t
+        dt[i] = h
+        dx, dy, dz = imu_w[i, 0] - b[0], imu_w[i, 1] - b[1], imu_w[i, 2] - b[2]
+        if has_A:
+            dx, dy, dz = (dx * A[0, 0] + dy * A[0, 1] + dz * A[0, 2],
+                          dx * A[1, 0] + dy * A[1, 1] + dz * A[1, 2],
+                          dx * A[2, 0] + dy * A[2, 1] + dz * A[2, 2])
+        w_hat[i, 0], w_hat[i, 1], w_hat[i, 2] = dx, dy, dz
+        hx, hy, hz = dx * h, dy * h, dz * h
+        dth[i, 0], dth[i, 1], dth[i, 2] = hx, hy, hz
+        phi[i, 0] = hx + (py * hz - pz * hy) / 12.0
+        phi[i, 1] = hy + (pz * hx - px * hz) / 12.0
+        phi[i, 2] = hz + (px * hy - py * hx) / 12.0
+        if dtp > 0.0:
+            k = 2.0 * h * h / (h + dtp)
+            slope[i, 0] = (dx - wx0) * k
+            slope[i, 1] = (dy - wy0) * k
+            slope[i, 2] = (dz - wz0) * k
+        else:
+            slope[i, 0] = 0.0
+            slope[i, 1] = 0.0
+            slope[i, 2] = 0.0
+        if accel:
+            fx, fy, fz = imu_f[i, 0] - b_a[0], imu_f[i, 1] - b_a[1], imu_f[i, 2] - b_a[2]
+            if has_A_a:
+                fx, fy, fz = (fx * A_a[0, 0] + fy * A_a[0, 1] + fz * A_a[0, 2],
+                              fx * A_a[1, 0] + fy * A_a[1, 1] + fz * A_a[1, 2],
+                              fx * A_a[2, 0] + fy * A_a[2, 1] + fz * A_a[2, 2])
+            f_hat[i, 0], f_hat[i, 1], f_hat[i, 2] = fx, fy, fz
+            vx, vy, vz = fx * h, fy * h, fz * h
+            dv[i, 0], dv[i, 1], dv[i, 2] = vx, vy, vz
+            p = math.sqrt(hx * hx + hy * hy + hz * hz)
+            if not p < 1e-2:
+                big += 1
+            p2 = p * p
+            ca = 0.5 - p2 / 24.0 + p2 * p2 / 720.0
+            cb = 1.0 / 6.0 - p2 / 120.0 + p2 * p2 / 5040.0
+            c1x, c1y, c1z = hy * vz - hz * vy, hz * vx - hx * vz, hx * vy - hy * vx
+            c2x, c2y, c2z = hy * c1z - hz * c1y, hz * c1x - hx * c1z, hx * c1y - hy * c1x
+            # (cross(dth_prev, dv) + cross(dv_prev, dth)) / 12
+            ex = ((py * vz - pz * vy) + (vy0 * hz - vz0 * hy)) / 12.0
+            ey = ((pz * vx - px * vz) + (vz0 * hx - vx0 * hz)) / 12.0
+            ez = ((px * vy - py * vx) + (vx0 * hy - vy0 * hx)) / 12.0
+            du[i, 0] = vx + ca * c1x + cb * c2x + ex
+            du[i, 1] = vy + ca * c1y + cb * c2y + ey
+            du[i, 2] = vz + ca * c1z + cb * c2z + ez
+            vx0, vy0, vz0 = vx, vy, vz
+        px, py, pz = hx, hy, hz
+        wx0, wy0, wz0 = dx, dy, dz
+        dtp = h
+    return big
+
+
 @njit(cache=True)
 def anchored_matrices(anchors: FloatArray, L: FloatArray, old: int, r: int,
                       C: FloatArray) -> None:
