@@ -472,6 +472,18 @@ def quat_block_scan(dq: FloatArray, levels: FloatArray) -> FloatArray:
     return Q
 
 
+@njit(cache=True)
+def _corrected_row(x: FloatArray, i: int, b: FloatArray, A: FloatArray,
+                   has_A: bool) -> tuple[float, float, float]:
+    """``A (x[i] − b)`` with explicit sums (``imu_prefix._corrected``'s floats; no ``A``)."""
+    dx, dy, dz = x[i, 0] - b[0], x[i, 1] - b[1], x[i, 2] - b[2]
+    if has_A:
+        return (dx * A[0, 0] + dy * A[0, 1] + dz * A[0, 2],
+                dx * A[1, 0] + dy * A[1, 1] + dz * A[1, 2],
+                dx * A[2, 0] + dy * A[2, 1] + dz * A[2, 2])
+    return dx, dy, dz
+
+
 @njit(cache=True, error_model="numpy")
 def prefix_sample_rows(imu_t: FloatArray, imu_w: FloatArray, imu_f: FloatArray,
                        t_prev: float, b: FloatArray, A: FloatArray, has_A: bool,
@@ -506,11 +518,7 @@ def prefix_sample_rows(imu_t: FloatArray, imu_w: FloatArray, imu_f: FloatArray,
         h = t - tp
         tp = t
         dt[i] = h
-        dx, dy, dz = imu_w[i, 0] - b[0], imu_w[i, 1] - b[1], imu_w[i, 2] - b[2]
-        if has_A:
-            dx, dy, dz = (dx * A[0, 0] + dy * A[0, 1] + dz * A[0, 2],
-                          dx * A[1, 0] + dy * A[1, 1] + dz * A[1, 2],
-                          dx * A[2, 0] + dy * A[2, 1] + dz * A[2, 2])
+        dx, dy, dz = _corrected_row(imu_w, i, b, A, has_A)
         w_hat[i, 0], w_hat[i, 1], w_hat[i, 2] = dx, dy, dz
         hx, hy, hz = dx * h, dy * h, dz * h
         dth[i, 0], dth[i, 1], dth[i, 2] = hx, hy, hz
@@ -527,11 +535,7 @@ def prefix_sample_rows(imu_t: FloatArray, imu_w: FloatArray, imu_f: FloatArray,
             slope[i, 1] = 0.0
             slope[i, 2] = 0.0
         if accel:
-            fx, fy, fz = imu_f[i, 0] - b_a[0], imu_f[i, 1] - b_a[1], imu_f[i, 2] - b_a[2]
-            if has_A_a:
-                fx, fy, fz = (fx * A_a[0, 0] + fy * A_a[0, 1] + fz * A_a[0, 2],
-                              fx * A_a[1, 0] + fy * A_a[1, 1] + fz * A_a[1, 2],
-                              fx * A_a[2, 0] + fy * A_a[2, 1] + fz * A_a[2, 2])
+            fx, fy, fz = _corrected_row(imu_f, i, b_a, A_a, has_A_a)
             f_hat[i, 0], f_hat[i, 1], f_hat[i, 2] = fx, fy, fz
             vx, vy, vz = fx * h, fy * h, fz * h
             dv[i, 0], dv[i, 1], dv[i, 2] = vx, vy, vz
