@@ -93,6 +93,10 @@ def test_predict_jacobians_match_finite_differences(subset, sim, stars):
     ctx = make_ctx(ids)
     R0 = sim.truth_world.R_i_b(np.array([100.0]))[0]
     att = rotating_attitude(R0, ctx.stamp)
+    # the model's first frame is the run's start (its prior's stamp): clock_drift counts its
+    # rate from there, not from this frame 100 s later (effects.clock_drift.START_LEAD)
+    start = float(prior.stamp) + 0.5
+    model.predict(theta, u_i, make_ctx(ids, stamp=start), rotating_attitude(R0, start))
     pred = model.predict(theta, u_i, ctx, att)
     n = len(u_i)
     assert pred.uv.shape == (n, 2) and pred.H_attitude.shape == (n, 2, 3)
