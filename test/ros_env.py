@@ -1,6 +1,7 @@
 """The ROS set-up every ROS test shares: one private DDS domain per test process, localhost
-discovery, Fast DDS on UDP only (the ``ros_context`` fixture of conftest.py, and the
-environment of the node processes the tests start: :func:`node_env`).
+discovery, Fast DDS asked for UDP only (the ``ros_context`` fixture of conftest.py, and the
+environment of the node processes the tests start: :func:`node_env`) — which the localhost
+range overrides (below): the tests run on shared memory as well.
 
 UDP asked for rather than Fast DDS's default shared memory: with shared memory a starved
 process stopped receiving (beside 2 CPU hogs the kill -9 test's player got no
@@ -22,7 +23,7 @@ from pathlib import Path
 
 #: this test process's domain (1..100; 0 is everybody's default)
 DOMAIN_ID = 1 + (os.getpid() + 37) % 100
-#: Fast DDS's transports for every participant of the tests: UDP on loopback only
+#: Fast DDS's transports asked for every participant (the localhost range overrides it)
 TRANSPORT = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
 #: discovery on this machine only
 DISCOVERY = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
