@@ -141,13 +141,15 @@ def with_turn(data, calibration: Calibration, turns: np.ndarray):
     return out
 
 
+def row_key(t: dict) -> np.ndarray:
+    """Each row's (frame, catalogue star) as one int64: the same star of the same frame."""
+    return (np.asarray(t["frame"], dtype=np.int64) * (1 << 32)
+            + np.asarray(t["catalog_id"], dtype=np.int64))
+
+
 def _aligned(a: dict, b: dict) -> tuple[dict, dict]:
     """The rows of two residual tables that are the same star of the same frame."""
-    ka = np.asarray(a["frame"], dtype=np.int64) * (1 << 32) + np.asarray(a["catalog_id"],
-                                                                         dtype=np.int64)
-    kb = np.asarray(b["frame"], dtype=np.int64) * (1 << 32) + np.asarray(b["catalog_id"],
-                                                                         dtype=np.int64)
-    _, ia, ib = np.intersect1d(ka, kb, return_indices=True)
+    _, ia, ib = np.intersect1d(row_key(a), row_key(b), return_indices=True)
     return ({k: np.asarray(v)[ia] for k, v in a.items()},
             {k: np.asarray(v)[ib] for k, v in b.items()})
 

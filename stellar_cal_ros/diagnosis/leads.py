@@ -704,16 +704,12 @@ def _responses(res, moved: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     The rows of ``res`` that are the same star of the same frame in every probe run and
     accepted in all (``ok``, ``(n,)``); the response of the others NaN.
     """
-    def key(t):
-        return (np.asarray(t["frame"], dtype=np.int64) * (1 << 32)
-                + np.asarray(t["catalog_id"], dtype=np.int64))
-
-    k0 = key(res)
+    k0 = flexure.row_key(res)
     ok = stats.accepted(res).copy()
     S = np.full((len(k0), 2, len(moved)), np.nan)
     per = flexure.PROBE / ARCSEC
     for j, m in enumerate(moved):
-        _, i0, im = np.intersect1d(k0, key(m), return_indices=True)
+        _, i0, im = np.intersect1d(k0, flexure.row_key(m), return_indices=True)
         S[i0, 0, j] = (np.asarray(m["du"])[im] - np.asarray(res["du"])[i0]) / per
         S[i0, 1, j] = (np.asarray(m["dv"])[im] - np.asarray(res["dv"])[i0]) / per
         hit = np.zeros(len(k0), dtype=bool)
@@ -761,12 +757,7 @@ def temperature_without(runs, run) -> dict | None:
     fit = None if got is None else stats.whitened_fit(got[1], got[4])
     if fit is None:
         return None
-    window, pattern = got[0], got[4]
-    du = np.array(res["du"], dtype=float)
-    dv = np.array(res["dv"], dtype=float)
-    du[window] -= fit[2] * pattern[:, 0]
-    dv[window] -= fit[2] * pattern[:, 1]
-    return dict(res, du=du, dv=dv)
+    return _taken_out(res, got[0], fit[2] * got[4])
 
 
 def temperature_fit(res, moved: list[dict] | None, fraction: float, along=None
