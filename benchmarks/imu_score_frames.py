@@ -28,19 +28,22 @@ from imu_search_spread import gyro_bag  # this directory: the benchmark's bag
 
 from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.diagnosis.discover import method_spec
-from stellar_cal_ros.methods.results import NIS_CAP, keeping_frames
+from stellar_cal_ros.methods.results import LOGDET_WEIGHT, NIS_CAP, keeping_frames
 
 LAGS = 30
 
 
 def _stars(r) -> np.ndarray:
-    """Each window star's log-likelihood term (a gated star: at the cap, its own det 1)."""
+    """Each window star's log-likelihood term (a gated star: at the cap, its own det 1).
+
+    log det S weighted as the run's (:data:`~stellar_cal_ros.methods.results.LOGDET_WEIGHT`).
+    """
     res = r.residuals
     win = res["t"] >= r.stats.eval_start
     ok = ~res["gated"].astype(bool)[win]
     a, b, d = (res[k][win] for k in ("s_uu", "s_uv", "s_vv"))
     nis = np.where(ok, np.minimum(res["nis"][win], NIS_CAP), NIS_CAP)
-    return -0.5 * (nis + np.log(np.where(ok, a * d - b * b, 1.0)))
+    return -0.5 * (nis + LOGDET_WEIGHT * np.log(np.where(ok, a * d - b * b, 1.0)))
 
 
 def _newey_west(s: np.ndarray, lags: int) -> float:

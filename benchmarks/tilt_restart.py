@@ -36,7 +36,7 @@ from stellar_cal_ros.diagnosis.discover import rerun_prior  # noqa: E402
 from stellar_cal_ros.effects import registry  # noqa: E402
 from stellar_cal_ros.io.calibration import load_calibration  # noqa: E402
 from stellar_cal_ros.methods.replay import bag_data_from_simulation, replay  # noqa: E402
-from stellar_cal_ros.methods.results import NIS_CAP  # noqa: E402
+from stellar_cal_ros.methods.results import LOGDET_WEIGHT, NIS_CAP  # noqa: E402
 from stellar_cal_ros.sim.scenarios import get_scenario  # noqa: E402
 from stellar_cal_ros.sim.world import simulate  # noqa: E402
 
@@ -48,7 +48,8 @@ def frame_loglik(res):
     r = res.residuals
     ok = ~np.asarray(r["gated"], bool)
     det = r["s_uu"] * r["s_vv"] - r["s_uv"] ** 2
-    ll = -0.5 * (np.minimum(r["nis"], NIS_CAP) + np.log(det) + 2 * np.log(2 * np.pi))
+    ll = -0.5 * (np.minimum(r["nis"], NIS_CAP) + LOGDET_WEIGHT * np.log(det)
+                 + 2 * np.log(2 * np.pi))
     return np.asarray(r["frame"])[ok], ll[ok]
 
 

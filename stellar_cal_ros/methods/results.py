@@ -44,6 +44,28 @@ _KEEP_FRAMES: contextvars.ContextVar[bool] = contextvars.ContextVar("keep_frames
 #: a star's NIS is capped here in the log-likelihood (a few misidentified stars must not
 #: dominate the comparison of two models)
 NIS_CAP = 13.8
+
+
+def logdet_weight(cap: float) -> float:
+    """The weight of each star's ``log det S`` beside its NIS capped at ``cap`` (2 dof).
+
+    ``P(χ²₄ < cap) = 1 − e^(−cap/2) (1 + cap/2)``: with it the capped log-likelihood's score
+    has mean 0 at the true covariance for any parameter of ``S`` (a noise scale), as the
+    uncapped one's does.  For ``ν ~ N(0, S)``, ``z = S^(−½) ν`` and any ``A`` (``S^(−½) ∂S
+    S^(−½)``), ``E[zᵀAz · 1(|z|² < cap)] = tr A · P(χ²₄ < cap)`` (spherical symmetry), while
+    the log-determinant's derivative is ``tr A``: at weight 1 a cap biases every variance
+    estimated on the likelihood low (at 13.8 by 0.8 % of the NIS's share; the gyro noise's
+    share of a star's ``S`` is a few %, so its scale by ~x0.98 at the stated noise and
+    ~x0.99 at 57x, doc/benchmarks.md H264).  A mean parameter's score is unbiased either way
+    (odd in ``z``).  A gated star counts at the cap with the window's mean log-determinant,
+    weighted alike.
+    """
+    h = 0.5 * cap
+    return 1.0 - math.exp(-h) * (1.0 + h) if math.isfinite(cap) else 1.0
+
+
+#: :func:`logdet_weight` at :data:`NIS_CAP`
+LOGDET_WEIGHT = logdet_weight(NIS_CAP)
 _LOG_2PI_2 = 2 * np.log(2 * np.pi)  # the log-likelihood's constant (as a float64)
 
 
@@ -468,13 +490,15 @@ class RunStats:
         gated star counts at the cap with the window's mean accepted log-determinant (its
         own covariance is that of a wrong identity predicted far off; every model is scored
         alike on the stars it rejects) — as :func:`stellar_cal_ros.diagnosis.stats.
-        log_likelihood` does with the median on a whole table.
+        log_likelihood` does with the median on a whole table.  Every log-determinant is
+        weighted by :data:`LOGDET_WEIGHT` (the cap's consistency, :func:`logdet_weight`).
         """
         if not self.stars:
             return math.nan
-        fill = self.sum_logdet / self.stars
+        w = LOGDET_WEIGHT
+        fill = w * self.sum_logdet / self.stars
         c = _LOG_2PI_2
-        return -0.5 * (self.sum_nis_capped + self.sum_logdet + self.stars * c
+        return -0.5 * (self.sum_nis_capped + w * self.sum_logdet + self.stars * c
                        + self.gated * (NIS_CAP + fill + c))
 
     def frame_log_likelihood(self) -> np.ndarray | None:
@@ -493,8 +517,9 @@ class RunStats:
         f = np.concatenate(self._frames, axis=1)
         f = f[:, np.argsort(f[0], kind="stable")]
         c = _LOG_2PI_2
-        fill = self.sum_logdet / self.stars
-        terms = -0.5 * (f[4] + f[3] + f[2] * c + (f[1] - f[2]) * (NIS_CAP + fill + c))
+        w = LOGDET_WEIGHT
+        fill = w * self.sum_logdet / self.stars
+        terms = -0.5 * (f[4] + w * f[3] + f[2] * c + (f[1] - f[2]) * (NIS_CAP + fill + c))
         return np.stack([f[0], terms])
 
     def window(self, fraction: float) -> dict[str, Any]:
