@@ -219,8 +219,9 @@ def test_diagnosis_json_does_not_depend_on_how_the_screening_is_split(tmp_path, 
     """Issue 21/24: ``diagnosis.json`` describes the bag and the model, not the schedule.
 
     ``--workers 0`` scores every candidate in the base run (one screening part); with two
-    workers the base run scores gyro_scale_factor only and a run beside it every candidate
-    (here in this process, ``Runs.workers`` 2 as a 2-worker cluster has it).  Before, the
+    workers too, the candidates' runs made ahead beside it (here in this process,
+    ``Runs.workers`` 2 as a 2-worker cluster has it; until H265 the base run scored
+    gyro_scale_factor only and a screening run beside it every candidate).  Before, the
     part holding thermal_focal_length waited for the head temperature, and its run's
     ``env_stale`` (frames released with a stale temperature: here the sensor's series
     ends early) went into the counts when that part was the base run (``--workers 0``) and not
@@ -228,12 +229,10 @@ def test_diagnosis_json_does_not_depend_on_how_the_screening_is_split(tmp_path, 
     replay of it counts none.  The candidate's stale input is ``env_stale_candidates``,
     joined over the screening's runs by frame.  The file has no timing field: the whole of
     it is compared (floats to rounding)."""
-    from stellar_cal_ros.diagnosis import parallel, screening
+    from stellar_cal_ros.diagnosis import parallel
     from stellar_cal_ros.diagnosis import run as run_module
 
     cands = ["gyro_scale_factor", "time_offset", "pixel_aspect", "thermal_focal_length"]
-    # the split this test is about: the base run's part without thermal
-    assert screening.base_share(cands) == ["gyro_scale_factor"]
     sim, paths, data = _bag(tmp_path, {}, duration=100.0, seed=21)
     # the sensor's temperature ends 10 s before the bag: those frames wait for it in vain
     # and go with its last value (stale; 2 frames a second)

@@ -339,14 +339,14 @@ def _noise_round(data, prior, cands, workers, **kw):
     return calls, base, {c.effect: c for c in results}, runs, early
 
 
-def test_a_screened_round_sends_what_its_screening_passes_beside_the_base_run():
+def test_a_screened_round_sends_its_candidates_beside_the_base_run():
     """On several workers the noise's base run (the stars' noise: the round's longest run)
-    scores one candidate, the cheapest gyro one (the propagation rounds otherwise without a
-    gyro scale term: :data:`~stellar_cal_ros.diagnosis.screening.PATH_STAGES`), a screening
-    run beside it the others; the candidates that one passes go out as soon as it is in,
-    before the verdict, and the round takes them: its numbers are one worker's, bit for
-    bit (here in this process, ``workers`` 2 as a cluster would have it).  Fails before
-    (the candidates waited for the verdict)."""
+    scores every candidate, as one worker's does (no second filter pass of the current
+    model to screen them beside it), and every candidate's run goes ahead beside it; those
+    its screening does not pass are forgotten as soon as it is in, the others taken by the
+    round: its numbers are one worker's, bit for bit (here in this process, ``workers`` 2
+    as a cluster would have it: the runs made ahead follow the base run).  Fails before
+    (the base run scored gyro_scale_factor only, a screening run beside it the three)."""
     from stellar_cal_ros.core.noise import NoiseScales
 
     sim, data = _sim({"pixel_aspect": 3e-4}, seed=14, duration=60.0)
@@ -355,25 +355,28 @@ def test_a_screened_round_sends_what_its_screening_passes_beside_the_base_run():
     calls, base, by, runs, early = _noise_round(data, sim.prior, cands, 2)
     one_calls, one_base, one_by, _, one_early = _noise_round(data, sim.prior, cands, 1)
     stated = NoiseScales()
-    assert [c[1] for c in calls[:2]] == [("gyro_scale_factor",), tuple(cands)]
-    assert [c[1] for c in one_calls[:1]] == [tuple(cands)]
+    # one run of the current model, scoring every candidate, with either number of workers
+    assert calls[0][:2] == one_calls[0][:2] == ((), tuple(cands))
+    assert [c for c in calls if c[0] == ()][:1] == [calls[0]]
+    assert sum(c[:2] == ((), tuple(cands)) for c in calls) == 1
     aspect = (("pixel_aspect",), (), stated)
     assert by["pixel_aspect"].significant and by["pixel_aspect"].screen.passes
     # made once, before the verdict with two workers, after it with one; taken by the round
     assert calls.count(aspect) == one_calls.count(aspect) == 1
     assert early[calls.index(aspect)] == (("pixel_aspect",), True)
     assert one_early[one_calls.index(aspect)] == (("pixel_aspect",), False)
+    # every candidate went ahead (in this process each ran; on a cluster those not started
+    # when the screening is in are cancelled); none is left for a later round to take
+    assert {c[0] for c in calls if c[2] == stated and c[0]} >= {(e,) for e in cands}
     assert runs._ahead == []
-    # the same candidates' runs (besides, with two workers, the gyro's first ML run made
-    # ahead, which this verdict does not use)
-    assert [c for c in calls[2:] if c[2] == stated] == [c for c in one_calls[1:]
-                                                        if c[2] == stated]
     assert base.window["log_likelihood"] == one_base.window["log_likelihood"]
     assert base.star_noise.scale == one_base.star_noise.scale
     for e in cands:
         a, b = by[e], one_by[e]
         assert (a.status, a.statistic, a.p_adjusted, a.screen.lm) == (
             b.status, b.statistic, b.p_adjusted, b.screen.lm), e
+    assert {e: by[e].status for e in cands} == {e: one_by[e].status for e in cands}
+    assert any(by[e].status == "screened_out" for e in cands)
 
 
 def test_a_round_not_screened_sends_its_candidates_beside_the_base_run():

@@ -740,19 +740,21 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     its residuals with ``keep_residuals``.  Returned when the verdict keeps the scales it
     ran with -- it then *is* the round's screening run (or its current-model run), the same
     filter pass, so the round runs it once; ``None`` when the noise changed (or was not
-    measured) and the round runs its current model again with the new scales.  On several
-    workers the base run (its stars' noise and residuals make it the round's longest)
-    scores only :func:`~stellar_cal_ros.diagnosis.screening.base_share`, and a run of the
-    same model beside it scores every candidate, as one worker's base run does (each
-    score the same floats); the candidates it passes go out as soon as it is in
-    (:func:`_after_screening`).  Returned: the base run first, then that run.
+    measured) and the round runs its current model again with the new scales.  Returned:
+    ``[base run]``.  It scores every candidate on any number of workers (the one-worker
+    base run, bit for bit).
 
     ``beside``: the runs the round makes next (its candidates'), sent ahead beside the base
-    run on several workers, so that no worker idles through it: all of them in a round
-    that is not screened, those the screening passes in a screened one; kept for the round
-    when the verdict keeps the scales they ran with (the usual case: far from the model
-    the verdict skips the IMU's search), else dropped.  The round must ask for the same
-    :class:`Task` objects.
+    run on several workers, so that no worker idles through it (the noise's first ML runs
+    follow the base run, ahead of those still queued, where its result asks for them):
+    all of them, screened or not (a screened round's candidates are not known before the
+    base run's scores: those the screening does not pass are cancelled as soon as it is
+    in, :meth:`~.parallel.Runs.forget_ahead`; one already running finishes, its result
+    unused); kept for the round when the verdict keeps the scales they ran with (the usual
+    case), else dropped.  The round must ask for the same :class:`Task` objects.  (Until
+    H265 a second run of the current model scored the candidates beside a base run scoring
+    few, and its passing candidates followed it: a second filter pass, ≈ 2 CPU-s of the
+    several round's ≈ 23.)
 
     ``rivals``: the round's candidates, which a gyro bias walk the verdict would take must
     beat (:func:`~stellar_cal_ros.diagnosis.noise_runs.beats_rivals`): the one the
@@ -769,55 +771,53 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     r.tell("noise: measuring the stars' sigma and the IMU noise from the run")
     ran_with = r.runs.noise
     comps = ("gyro", "accel") if Stage.ACCEL in r.spec.stages else ("gyro",)
-    several = r.runs.workers > 1 and len(screen) > 1
-    # several workers: the base run (the stars' noise, its residuals: the round's longest
-    # run) scores only what keeps its filter's numbers (:func:`screening.base_share`), one
-    # screening run of every candidate goes beside it, and the candidates it passes follow
-    # it (:func:`_after_screening`) while the base run goes on; in this process the base
-    # run is the screening run
-    own = screening.base_share(list(screen)) if several else list(screen)
 
     def ahead() -> list[Task]:
-        # called once the base run and its screening parts are handed out: the IMU
-        # samples' scales (the verdict's, and the first ML runs' start) go to the first
-        # free worker, not before the base run (the parts would then queue behind a
-        # worker's run instead of taking the free one)
+        # called once the base run is handed out: the IMU samples' scales (the verdict's,
+        # and the first ML runs' start) go to the first free worker, not before the base run
         start_samples(r.runs, comps)
-        # with several workers the first ML runs go beside the base run (they need its
-        # result only when the stars change the scales: then they are not used); not in a
-        # round that is not screened: its model was far off, where the verdict skips the
-        # ML search; after the screening run when there is one (:func:`_after_screening`)
-        if r.runs.workers < 2 or not screen or others:
+        return beside
+
+    def then(task: Task, run: RunSummary) -> list[Task]:
+        # with several workers the first ML runs go out as soon as the base run is in, ahead
+        # of the candidates still queued (its result decides whether they are used); none
+        # in a round that is not screened (its model far off: the verdict skips the ML
+        # search) nor when the base run lost lock (the verdict is then far off: a run it
+        # does not use would hold a worker up by its length)
+        if r.runs.workers < 2 or not screen or not run.ok or run.lost_lock:
             return []
         return first_runs(r.runs, prior, tuple(extra), comps)[:r.runs.workers]
 
     # the candidates' runs beside the base run (they wait for nothing it finds unless the
-    # noise changes): a round that is not screened sends them all at once, a screened one
-    # those its screening passes, as soon as it is in
+    # noise changes)
     beside = list(beside) if r.runs.workers > 1 else []
     kept: list[Task] = []
-    others = [Task("screening", prior, tuple(extra), False, cost=_SCREEN_COST,
-                   screen=tuple(screen))] if several else []
-    then = _after_screening(r, prior, extra, comps, others, beside,
-                            r.runs.workers - 1) if others else None
     try:
         # the base run first: everything after it waits for it
         done = r.runs.run_ahead([Task("noise: current model", prior, tuple(extra),
                                       keep_residuals,
                                       cost=_SCREEN_COST if screen or beside else 1.0,
-                                      screen=tuple(own) or tuple(score),
-                                      star_noise=True)] + others,
-                                lambda: ahead() + ([] if screen else beside), r.done, then)
+                                      screen=tuple(screen) or tuple(score),
+                                      star_noise=True)],
+                                ahead, r.done, then)
         base = done["noise: current model"]
         if not base.ok:
             log.warning("noise not measured: the current model's run failed: %s", base.error)
             return None
+        if screen and beside:
+            # the candidates its screening does not pass are not run (the white test
+            # unless the latest verdict found motion beyond the IMU's noise; a verdict
+            # that finds otherwise re-runs what is missing: the round decides on its own)
+            scores = screening.collect([base], white=not (r.noise and r.noise.beyond))
+            out = [t for t in beside if t.key in scores and not scores[t.key].passes]
+            r.runs.forget_ahead(out)
+            beside = [t for t in beside if all(t is not o for o in out)]
 
         def rival_runs(at: Any) -> list[tuple[str, RunSummary, int]]:
             # the screening's best candidate (its smallest p), or every one when not screened
             names = list(rivals)
             if screen:
-                scores = screening.collect([base] + [done[t.key] for t in others])
+                scores = screening.collect([base])
                 ranked = sorted((s.p_value, e) for e, s in scores.items() if e in rivals)
                 names = [e for _, e in ranked[:1]]
             ahead = {t.key: t for t in beside} if at == ran_with else {}
@@ -837,46 +837,7 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     r.runs.verdict = r.noise
     for line in r.noise.lines():
         r.tell("noise: " + line)
-    return ([base] + [done[t.key] for t in others]
-            if ran_with is not None and r.runs.noise == ran_with else None)
-
-
-def _after_screening(r: Round, prior: Calibration, extra: list[str],
-                     comps: tuple[str, ...], parts: list[Task], beside: list[Task],
-                     idle: int) -> Then:
-    """:meth:`~.parallel.Runs.run_ahead`'s ``then`` of a screened round's noise measurement.
-
-    Once every screening part in ``parts`` is in (while the base run still measures the
-    stars' noise): the candidates' runs of ``beside`` the screening passes, with the scales
-    the base run ran with (kept for the round when the verdict keeps them: the same
-    :class:`Task` objects the round then asks for), after the noise's first ML runs (they
-    need the base run's result only when the stars change the scales) on at most ``idle``
-    workers -- none when the screening run lost lock: the verdict then measures no noise
-    (:func:`~stellar_cal_ros.diagnosis.noise.far_off`), and a run it does not use would
-    hold a worker up by its length.  The passing candidates are judged with the white
-    score test unless the latest verdict found motion beyond the IMU's noise; a verdict
-    that finds otherwise re-runs what these runs miss (the round decides on its own
-    screening, :func:`rank_round`: these only make its runs sooner).
-    """
-    from stellar_cal_ros.diagnosis.noise_runs import first_runs
-
-    keys = {t.key for t in parts}
-    screens: dict[str, RunSummary] = {}
-
-    def then(task: Task, run: RunSummary) -> list[Task]:
-        if task.key not in keys:
-            return []
-        screens[task.key] = run
-        if len(screens) < len(keys):
-            return []
-        scores = screening.collect(list(screens.values()),
-                                   white=not (r.noise and r.noise.beyond))
-        lost = any(s.lost_lock or not s.ok for s in screens.values())
-        ml = [] if lost else first_runs(r.runs, prior, tuple(extra), comps)[:idle]
-        # (a candidate it did not score, its run failed: re-run, as the round does)
-        return ml + [t for t in beside if t.key not in scores or scores[t.key].passes]
-
-    return then
+    return [base] if ran_with is not None and r.runs.noise == ran_with else None
 
 
 def rank_candidates(

@@ -569,6 +569,10 @@ class Runs:
         """Forget the runs made ahead that nobody asked for, except the tasks ``keep``."""
         self._ahead = [a for a in self._ahead if any(a[0] is t for t in keep)]
 
+    def forget_ahead(self, tasks: list[Task]) -> None:
+        """Forget the runs made ahead that are ``tasks`` (on a cluster: cancelled if queued)."""
+        self.drop_ahead(keep=[t for t, _, _ in self._ahead if all(t is not o for o in tasks)])
+
     def _take_ahead(self, task: Task) -> Any:
         """The run made ahead that is ``task`` (its stats, or a future), taken; else None."""
         run = replace(task, noise=self.noise_of(task))

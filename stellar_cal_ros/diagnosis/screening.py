@@ -47,7 +47,6 @@ import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.effects import registry
-from stellar_cal_ros.effects.base import Stage
 from stellar_cal_ros.methods import registry as methods
 
 #: a candidate is re-run when its score test's unadjusted p-value is below this
@@ -173,31 +172,6 @@ def parts(candidates: list[str], n: int) -> list[list[str]]:
         loads[k] += _screen_cost(e)
     order = {e: i for i, e in enumerate(candidates)}
     return [sorted(p, key=order.__getitem__) for p in out if p]
-
-
-#: stages whose consider columns change the current model's own numbers: the IMU
-#: propagation takes another branch when the sensor's model carries scale terms
-#: (:meth:`~stellar_cal_ros.core.propagation.ImuPropagation._interval`'s ``scaled``), so
-#: a run that scores a gyro scale factor rounds its filter otherwise than one that does not
-#: (measured on the 900 s 'several' bag: log-likelihood -8949.823323017 with any gyro
-#: candidate scored, -8949.823321800 with none or with camera and sky ones only)
-PATH_STAGES = (Stage.GYRO, Stage.ACCEL)
-
-
-def base_share(candidates: list[str]) -> list[str]:
-    """The candidates a run that does more than screen scores beside a screening run.
-
-    The screening run beside it scores every candidate (so each score is the one-part
-    screening's of one worker, bit for bit: a candidate's columns scored among others
-    round otherwise, 1e-13 on the MDBs of a clean 300 s bag); this run scores the cheapest
-    candidate of each of :data:`PATH_STAGES` among them (else the cheapest), so that its
-    filter rounds as that screening's.
-    """
-    stage = {e: registry.create(e).stage for e in candidates}
-    own = {min(of, key=_screen_cost) for st in PATH_STAGES
-           if (of := [e for e in candidates if stage[e] == st])}
-    own = own or ({min(candidates, key=_screen_cost)} if candidates else set())
-    return [e for e in candidates if e in own]
 
 
 def collect(runs: list[Any], white: bool = True) -> dict[str, ScreenResult]:
