@@ -63,7 +63,13 @@ SKY = ROOT.parent / "shared" / "data" / "psce_sky_900s.mcap"
 def _tree_memory(proc: psutil.Process) -> tuple[float, float]:
     """(RSS, PSS) summed over ``proc`` and its descendants, bytes."""
     rss = pss = 0.0
-    for p in [proc, *proc.children(recursive=True)]:
+    try:
+        children = proc.children(recursive=True)
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
+        # a process of the tree ended while psutil walked it (seen: the watch thread
+        # died of it, the peak RSS then stopped there); the next read takes the tree again
+        children = []
+    for p in [proc, *children]:
         try:
             full = p.memory_full_info()
             rss += full.rss
