@@ -89,8 +89,10 @@ class Case:
     #: (a tuple: none of them)
     not_told: str | tuple[str, ...] = ""
     #: a twin of the user's calibrated bag (`stellar-cal twin`): ``(effect, parameter,
-    #: factor)`` injects ``effect`` with ``parameter`` at ``factor`` x the MDB that
-    #: ``discover --auto`` printed for it on the clean bag (the other parameters 0)
+    #: factor[, key])`` injects ``effect`` with ``parameter`` at ``factor`` x the MDB that
+    #: ``discover --auto`` printed for it on the clean bag (the other parameters 0); ``key``
+    #: the reliability entry's size to read (default ``mdb``; ``mdb_identified``: the size
+    #: from which it is named as itself)
     twin: tuple = ()
     #: the messages' catalogue epoch (year) when it is not J2000.0 (0: J2000.0): a line must
     #: name the places' epoch within a year of it (proper_motion, the J2000 motion, is then
@@ -819,13 +821,15 @@ def _centroid_error(truth: str, regressor: str, post: Callable, **kw) -> Case:
                 scenario_changes={"centroid_noise_px": 0.0}, **kw)
 
 
-def _at_mdb(method: str, effect: str, param: str) -> Case:
+def _at_mdb(method: str, effect: str, param: str, key: str = "mdb") -> Case:
     # (H250) the user's calibrated clean bag's twin with ``effect``'s ``param`` at 1x the
-    # MDB ``discover`` printed for it (``stellar-cal twin``): to be added
+    # MDB ``discover`` printed for it (``stellar-cal twin``): to be added; (H262) ``key``
+    # "mdb_identified": at the size printed for it to be named as itself
     sway = method == "swaying_base"
+    size = "MDB" if key == "mdb" else "size it is named as itself from"
     return Case(method, f"the user's calibrated clean {'swaying ' if sway else ''}bag's twin "
-                f"with {effect} {param} at 1x the MDB `discover` printed for it "
-                "(stellar-cal twin)", effects=(effect,), twin=(effect, param, 1.0),
+                f"with {effect} {param} at 1x the {size} `discover` printed for it "
+                "(stellar-cal twin)", effects=(effect,), twin=(effect, param, 1.0, key),
                 sim_effects=dict(SWAY_CLEAN) if sway else {},
                 duration=200.0 if sway else 300.0)
 
@@ -1368,6 +1372,11 @@ CASES: dict[str, Case] = {
     # (H250) injections at the printed MDB on bases not used before (``--twin-seeds 8``:
     # swaying seed 32, psce 31 and 33; 80 % of the twins should add the effect)
     "sway_twin_tangential1": _at_mdb("swaying_base", "tangential", "p2"),
+    # (H262) the same base at the size printed for tangential to be named as itself (the
+    # principal point and the tilt share 89 % of its shape there): 80 % named, no 'or'
+    "sway_twin_tangential_id": _at_mdb("swaying_base", "tangential", "p2", "mdb_identified"),
+    # ... and on psce, where the detector tilt holds 71 % of the pixel aspect's information
+    "twin_aspect_id": _at_mdb("psce", "pixel_aspect", "aspect", "mdb_identified"),
     "twin_thermal1": _at_mdb("psce", "thermal_focal_length", "coefficient_per_c"),
     "twin_dt1": _at_mdb("psce", "time_offset", "dt"),
 }
@@ -1410,14 +1419,14 @@ def _calibrated_base(name: str, base: dict[str, Path], out: Path) -> tuple[Path,
     parameters 0), in ``stellar-cal twin``'s units (the MDB's).
     """
     case = CASES[name]
-    effect, param, factor = case.twin
+    effect, param, factor, key = (*case.twin, "mdb")[:4]
     exe = str(Path(sys.executable).with_name("stellar-cal"))
     d = out / f"{name}.base.d"
     subprocess.run([exe, "discover", str(base["bag"]), "--calibration", str(base["prior"]),
                     "--method", case.method, "--auto", "-o", str(d), "--no-plots",
                     "--workers", "0"], check=True, capture_output=True, env=os.environ.copy())
     summ = json.loads((d / "diagnosis.json").read_text())
-    mdb = next(r["mdb"] for r in summ["reliability"] if r.get("effect") == effect)
+    mdb = next(r.get(key, r["mdb"]) for r in summ["reliability"] if r.get("effect") == effect)
     value = ",".join(f"{factor * mdb[k]:.6g}" if k == param else "0" for k in mdb)
     return d / "calibration.yaml", f"{effect}={value}"
 
@@ -1612,7 +1621,7 @@ def twin_seeds(name: str, out: Path, seed: int, n: int, first: int = 1) -> list[
     verdict, whether the effect was added and its estimate of the parameter injected.
     """
     case = CASES[name]
-    effect, param, _ = case.twin
+    effect, param = case.twin[:2]
     sc = get_scenario({"psce": "psce_rotations", "swaying_base": "swaying"}[case.method])
     sim = simulate(sc, duration=case.duration, seed=seed, effects=case.sim_effects)
     if case.post is not None:
@@ -1628,13 +1637,20 @@ def twin_seeds(name: str, out: Path, seed: int, n: int, first: int = 1) -> list[
         est = ((r["summary"].get("final_estimates") or {}).get(effect) or {}).get(param)
         est = float(est[0] if isinstance(est, list | tuple) else est) \
             if est is not None else float("nan")
+        # named as itself: added, and not said with 'or' an alternative (diagnosis.json's
+        # ``ties``, :func:`stellar_cal_ros.diagnosis.auto._tie`)
+        tie = (r["summary"].get("ties") or {}).get(effect)
         rows.append({"seed": k, "found": effect in said(r)["added"], "estimate": est,
+                     "named": effect in said(r)["added"] and tie is None,
                      "bad": judge(name, r), "wall": r["wall"]})
-        print(f"== {name} twin seed {k} ({value}): added {said(r)['added']}, {param} "
-              f"{est:.4g}; verdict {'ok' if not rows[-1]['bad'] else '; '.join(rows[-1]['bad'])}"
+        print(f"== {name} twin seed {k} ({value}): added {said(r)['added']}"
+              + (f" (or {tie['with']}, p {tie['p_value']:.2g})" if tie else "")
+              + f", {param} {est:.4g}; verdict "
+              f"{'ok' if not rows[-1]['bad'] else '; '.join(rows[-1]['bad'])}"
               f"  [{r['wall']:.0f} s]", flush=True)
     found = [r["estimate"] for r in rows if r["found"]]
-    print(f"{name}: {value} found on {len(found)} of {n} twins; estimate "
+    print(f"{name}: {value} found on {len(found)} of {n} twins, named as itself (no 'or') on "
+          f"{sum(r['named'] for r in rows)}; estimate "
           f"{np.mean(found) if found else float('nan'):.4g} +- "
           f"{np.std(found, ddof=1) if len(found) > 1 else float('nan'):.2g} (sd)", flush=True)
     return rows

@@ -453,6 +453,19 @@ def window_information(cand: CandidateResult, run: RunSummary | None = None) -> 
     return reliability.data_information(run.P[sl, sl], run.prior_sigma[sl], share)
 
 
+def _alternatives(cand: CandidateResult) -> dict[str, Any]:
+    """:func:`reliability.detectability`'s ``beside`` and ``tie_alpha`` for ``cand``.
+
+    The information its screening left with each alternative of its stage fitted beside it
+    (:func:`screening.alternatives`), and the level at which the selection tells an added
+    effect from its rival (:data:`ALPHA`, :func:`~stellar_cal_ros.diagnosis.auto._tie`);
+    none for a candidate no run scored.
+    """
+    if cand.screen is None:
+        return {}
+    return {"beside": cand.screen.beside, "tie_alpha": ALPHA}
+
+
 def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference: Reference,
                     alpha_mdb: float, dispersion: float = 1.0, gated: bool = False) -> None:
     """Decision inputs of one augmented run: detectability, Λ, p, physical size.
@@ -473,7 +486,7 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference:
     cand.rms_after_px = tuple(run.window["rms"])
     info = window_information(cand, run)
     cand.detect = reliability.detectability(cand.effect, info, alpha_mdb, r.user_prior,
-                                            dispersion)
+                                            dispersion, **_alternatives(cand))
     if _untestable(cand):
         return
     cand.seen_dof = seen_dof(run, cand.effect)
@@ -482,7 +495,7 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference:
     if gate > 0.0:  # the MDB is the size the decision finds: its excess gate too
         cand.detect = reliability.detectability(
             cand.effect, info, alpha_mdb, r.user_prior, dispersion, gate,
-            cand.screen.score if cand.screen is not None else None)
+            cand.screen.score if cand.screen is not None else None, **_alternatives(cand))
     phys = eff.physical_value
     if r.physical_check and phys is not None:
         est, sig = float(value[0]), float(sig_post[0])
@@ -612,7 +625,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
                 continue
             c.status, c.dof, c.p_value = "screened_out", c.screen.dof, c.screen.p_value
             c.detect = reliability.detectability(e, window_information(c), alpha_mdb,
-                                                 r.user_prior)
+                                                 r.user_prior, **_alternatives(c))
             if not _untestable(c):
                 c.reason = f"score test p = {c.p_value:.2g}: not re-run"
         # every screening run is the current model's run (consider parameters leave the

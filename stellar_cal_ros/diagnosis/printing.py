@@ -460,6 +460,47 @@ def estimate_phrase(effect: str, name: str, value: float, sigma: float, pm: str 
 def mdb_phrase(entry: dict[str, Any]) -> str:
     """An effect's minimal detectable size per parameter, e.g. ``tau_x 3.1e-05 rad``.
 
+    :func:`detection_phrase`, then where alternatives share its shape the size from which
+    it is named as itself (:func:`identified_phrase`).
+    """
+    return detection_phrase(entry) + identified_phrase(entry)
+
+
+def identified_phrase(entry: dict[str, Any]) -> str:
+    """From which size an effect whose shape others share is named as itself, or ''.
+
+    ``"; principal_point, image_plane_tilt share 89-90% of its shape on this motion: named
+    as itself (not as one of them, nor with 'or' one) from p1 0.000172, p2 0.000169"``
+    (``mdb_identified``, :func:`reliability.identification`): the parameters whose size
+    exceeds their MDB; one beyond its plausible size is "not below its plausible size".
+    """
+    ident = entry.get("mdb_identified")
+    if not ident:
+        return ""
+    shares = [max(r.values()) for r in entry["shares_shape_with"].values()]
+    lo, hi = f"{min(shares):.0%}", f"{max(shares):.0%}"
+    plausible = entry.get("plausible_size", {})
+    more = {n: v for n, v in ident.items() if v > entry["mdb"][n]}
+    if not more:
+        return ""
+    within = {n: v for n, v in more.items() if not v > plausible.get(n, np.inf)}
+    sizes = ", ".join(f"{n} {reliability.shown(entry['effect'] + '.' + n, v)}"
+                      for n, v in within.items())
+    beyond = [n for n in more if n not in within]
+    if within:
+        said = [f"named as itself (not as one of them, nor with 'or' one) from {sizes}"] + (
+            [f"along {', '.join(beyond)} not below its plausible size"] if beyond else [])
+    else:
+        said = [f"not named as itself below its plausible size ({', '.join(beyond)})"]
+    return (f"; {', '.join(entry['shares_shape_with'])} "
+            f"share{'s' if len(shares) == 1 else ''} "
+            f"{lo if lo == hi else lo[:-1] + '-' + hi} of its shape on this motion: "
+            + "; ".join(said))
+
+
+def detection_phrase(entry: dict[str, Any]) -> str:
+    """An effect's minimal detectable size per parameter, e.g. ``tau_x 3.1e-05 rad``.
+
     Where the decision's excess gate sets it (``mdb_set_by`` "explained_gate",
     :func:`reliability.detectability`), it says so, gives the sign the misfit leans to
     (found from a smaller size) and the test's MDB alone; where runs on the bag restated

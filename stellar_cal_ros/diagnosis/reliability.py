@@ -18,6 +18,19 @@ marginalized; the screening's sum over every frame, to 1e-4), scaled by the shar
 accepted stars that lie in the window -- an approximation: the information is not spread
 over the run as the stars are (the window holds 16-98 % of it for 44-49 % of the stars).
 
+Identification: an alternative that shares an effect's shape on this motion (a candidate
+of its stage whose span holds at least :data:`SHARED_SHAPE` of the effect's information
+along a parameter) scores it nearly as well, and the selection names the effect as itself
+only when its test *beside* the alternative rejects too (otherwise the one added is said
+with "or" the other, :func:`~stellar_cal_ros.diagnosis.auto._tie`, or the alternative is
+added).  Teunissen's minimal identifiable bias, for that rule: per parameter the size at
+which the test of the effect beside each such alternative (its information
+``I_cc − I_ca I_aa⁺ I_ac``) rejects at the tie's level with power ``1 − (1 − POWER) / m``
+(m alternatives: all of them with power ``POWER`` at least), and never below the MDB
+(``mdb_identified``, :func:`identification`).  On the swaying bag where a tangential
+distortion shares 0.89 of its information with the principal point and with the tilt, 2 of
+16 twins at its MDB named it as itself (6 more "or" one of them): doc/benchmarks.md.
+
 An effect is *not testable with this motion* only when its MDB exceeds its plausible
 physical size (stated on its class where it acts and converted to its parameters for the
 run's camera, :func:`plausible_size`) in every direction — never because the posterior
@@ -56,6 +69,11 @@ DOMINATES_SIGMA = 1.0
 #: beside 97.6 sigma), so 30 % needs >= 0.047 of it; 0.15 leaves a factor 3.  A diagnosis
 #: measures these rows by probe runs (:mod:`~stellar_cal_ros.diagnosis.reliability_probe`)
 FIRST_ORDER_SHARE = 0.15
+#: an alternative shares an effect's shape when its span holds at least this share of the
+#: effect's information along a parameter (ρ²): its score test then takes at least this
+#: share of the effect's non-centrality, as the selection's rival of an added effect does
+#: (:data:`~stellar_cal_ros.diagnosis.auto.RIVAL_SCORE`, the same 0.5)
+SHARED_SHAPE = 0.5
 
 def plausible_size(effect_id: str, calibration: Any = None) -> np.ndarray:
     """Plausible size per parameter of ``effect_id`` (its units) for ``calibration``'s camera.
@@ -181,6 +199,10 @@ class Detectability:
     #: where the gate binds: per parameter the signed size at which an effect of the sign
     #: the misfit already leans to passes it (sooner than ``mdb``, the other sign's)
     mdb_leaning: dict[str, float] = field(default_factory=dict)
+    #: where alternatives share its shape (:func:`identification`): per parameter the size
+    #: from which it is named as itself, and per alternative its share ρ² per parameter
+    mdb_identified: dict[str, float] = field(default_factory=dict)
+    shares_shape_with: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def testable(self) -> bool:
@@ -206,7 +228,11 @@ class Detectability:
                 **({"dispersion": self.dispersion} if self.dispersion != 1.0 else {}),
                 **({"mdb_set_by": "explained_gate", "mdb_test": dict(self.mdb_test),
                     "mdb_leaning": dict(self.mdb_leaning), "lam_gate": self.lam_gate}
-                   if self.mdb_test else {})}
+                   if self.mdb_test else {}),
+                **({"mdb_identified": dict(self.mdb_identified),
+                    "shares_shape_with": {a: dict(r) for a, r
+                                          in self.shares_shape_with.items()}}
+                   if self.mdb_identified else {})}
 
     def where_text(self) -> str:
         """MDB and plausible size where the effect acts, when the camera converts them.
@@ -225,7 +251,9 @@ class Detectability:
 
 def detectability(effect_id: str, information: np.ndarray, alpha: float,
                   calibration: Any = None, dispersion: float = 1.0,
-                  gate: float = 0.0, overlap: np.ndarray | None = None) -> Detectability:
+                  gate: float = 0.0, overlap: np.ndarray | None = None,
+                  beside: dict[str, np.ndarray] | None = None,
+                  tie_alpha: float = 0.0) -> Detectability:
     """MDB per parameter and the testability of ``effect_id`` given its information.
 
     ``calibration``: the run's calibration, whose camera converts a plausible size stated
@@ -248,6 +276,13 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
     MDB is a size of either sign: where the latter exceeds the test's MDB, it is the MDB
     and ``mdb_test`` keeps the test's.  The ratio to the plausible size (``testable``, a
     decision) stays the test's.
+
+    ``beside``: per alternative (a candidate of the effect's stage) the effect's
+    information left once the alternative is fitted beside it (the screening's,
+    :func:`~stellar_cal_ros.diagnosis.screening.alternatives`), in ``information``'s units;
+    ``tie_alpha``: the level of the test that tells the two apart
+    (:func:`~stellar_cal_ros.diagnosis.auto._tie`).  Gives ``mdb_identified`` and
+    ``shares_shape_with`` where an alternative shares the shape (:func:`identification`).
     """
     eff = registry.create(effect_id)
     info = np.atleast_2d(np.asarray(information, dtype=float)) / float(dispersion)
@@ -281,9 +316,46 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
         if eff.plausible_depends_on_camera():
             acts = eff.where_it_acts(np.array(list(mdb.values())), calibration)
             where = {n: float(a) for n, a in zip(eff.parameter_names, acts, strict=True)}
+    ident, shared = identification(eff.parameter_names, np.diag(info), beside or {},
+                                   tie_alpha, k, float(dispersion), mdb)
     return Detectability(effect_id, k, alpha, lam, info, D, mdb, ratio, text, where,
                          float(dispersion), mdb_test,
-                         q / float(dispersion) if mdb_test else 0.0, leaning)
+                         q / float(dispersion) if mdb_test else 0.0, leaning, ident, shared)
+
+
+def identification(names: list[str], diag: np.ndarray, beside: dict[str, np.ndarray],
+                   alpha: float, dof: int, dispersion: float, mdb: dict[str, float]
+                   ) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
+    """The size from which an effect is named as itself, and who shares its shape.
+
+    ``diag``: the diagonal of the effect's information (divided by ``dispersion``);
+    ``beside``: per alternative the information left with it fitted beside (not divided).
+    An alternative shares the shape when it holds at least :data:`SHARED_SHAPE` of the
+    information along some parameter (``ρ² = 1 − I_{c|a,nn} / I_nn``).  With m such
+    alternatives each test beside one, χ²_dof at level ``alpha``, must reject with power
+    ``1 − (1 − POWER) / m`` (all of them at ``POWER`` at least): along parameter n beside
+    alternative a that is ``sqrt(λ / I_{c|a,nn})``; the identification size is the largest
+    over the alternatives, and not below the MDB ``mdb`` (the effect must be found first).
+    ``({}, {})`` where none shares it (or ``alpha`` is 0).
+    """
+    shared: dict[str, dict[str, float]] = {}
+    left: dict[str, np.ndarray] = {}
+    for a, block in sorted(beside.items()):
+        d = np.diag(np.atleast_2d(np.asarray(block, dtype=float))) / dispersion
+        rho2 = np.where(diag > 0, 1.0 - np.clip(d, 0.0, None) / np.where(diag > 0, diag, 1.0),
+                        0.0)
+        if alpha > 0 and np.any(rho2 >= SHARED_SHAPE):
+            shared[a] = {n: float(r) for n, r in zip(names, rho2, strict=True)}
+            left[a] = d
+    if not shared:
+        return {}, {}
+    lam = lambda0(alpha, dof, 1.0 - (1.0 - POWER) / len(shared))
+    out = {}
+    for i, n in enumerate(names):
+        size = max((float(np.sqrt(lam / d[i])) if d[i] > 0 else float("inf")
+                    for d in left.values()), default=0.0)
+        out[n] = max(size, mdb[n])
+    return out, shared
 
 
 # ----------------------------------------------------------------------------- display units

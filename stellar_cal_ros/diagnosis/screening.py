@@ -21,11 +21,14 @@ The score function is pluggable: :attr:`~stellar_cal_ros.diagnosis.discover.Diag
 screen` is called where the run executes, on the run made with the candidates as consider
 parameters::
 
-    screen(result, candidates) -> {effect_id: (LM, dof, I)}  or (LM, dof, I, M[, derived])
+    screen(result, candidates) -> {effect_id: (LM, dof, I)}  or (LM, dof, I, M[, derived,
+                                                                   score, beside])
 
 ``I`` is (k, k) in the effect's units⁻² over the evaluation window; the optional ``M``
 (n_θ, k) is the sensitivity of the current model's final θ to the candidate (consider
-analysis), which gives the reliability report for candidates that are not re-run.  A
+analysis), which gives the reliability report for candidates that are not re-run; the
+optional ``beside`` ``{other candidate: (k, k)}`` its information once the other is fitted
+beside it (what tells them apart, :func:`alternatives`).  A
 method without one (``screen=None``) re-runs every candidate.
 
 When is the score test trusted?  It is a local test: its LM equals the likelihood-ratio
@@ -74,6 +77,9 @@ class ScreenResult:
     #: principal point)
     derived: dict[str, np.ndarray] = field(default_factory=dict)
     score: np.ndarray | None = None  #: s = Σ Aᵀ S⁻¹ ν (k,)
+    #: per alternative of the same stage scored by the same run: the information left
+    #: once it is fitted beside this candidate (:func:`alternatives`)
+    beside: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def statistic(self) -> float:
@@ -94,10 +100,11 @@ class ScreenResult:
 def kernel_scores(result, candidates: list[str]) -> dict[str, tuple]:
     """The kernel's score tests of a run made with ``consider=candidates``.
 
-    ``{effect: (LM, dof, I, bias_per_unit, derived, score)}``; ``derived`` holds the bias
-    rows of the equivalent principal point, ``J_θ (−M_θ) − J_β`` (its error in the current
-    model minus the shift the effect itself makes); ``score`` is ``s`` (the injection checks
-    compare it between paired bags).
+    ``{effect: (LM, dof, I, bias_per_unit, derived, score, beside)}``; ``derived`` holds the
+    bias rows of the equivalent principal point, ``J_θ (−M_θ) − J_β`` (its error in the
+    current model minus the shift the effect itself makes); ``score`` is ``s`` (the
+    injection checks compare it between paired bags); ``beside`` the information left with
+    each alternative fitted beside it (:func:`alternatives`: those of its stage).
     """
     from stellar_cal_ros.diagnosis.runstats import EPP_NAMES
     from stellar_cal_ros.methods.results import epp_jacobian
@@ -116,8 +123,22 @@ def kernel_scores(result, candidates: list[str]) -> dict[str, tuple]:
             sl = flt.model.slices[eid]
             rows = J[:, :n] @ c.bias_per_unit - J[:, sl]
             derived = dict(zip(EPP_NAMES, rows, strict=True))
-        out[eid] = (c.lm, c.dof, c.info, c.bias_per_unit, derived, c.info @ c.estimate)
+        out[eid] = (c.lm, c.dof, c.info, c.bias_per_unit, derived, c.info @ c.estimate,
+                    alternatives(eid, c.beside))
     return out
+
+
+def alternatives(effect_id: str, beside: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The entries of ``beside`` (other candidate → information left) of ``effect_id``'s stage.
+
+    An effect shares its shape with effects acting where it acts (a tangential distortion
+    with the principal point and the detector tilt, a gyro scale factor with a
+    misalignment); :func:`parts` keeps a stage's candidates in one screening run, so the
+    set is the same on any number of workers.
+    """
+    stage = registry.create(effect_id).stage
+    return {a: np.asarray(v, dtype=float) for a, v in beside.items()
+            if registry.create(a).stage == stage}
 
 
 def screen_function(method: str) -> ScreenFn | None:
@@ -160,16 +181,21 @@ def _screen_cost(effect_id: str) -> float:
 def parts(candidates: list[str], n: int) -> list[list[str]]:
     """Split ``candidates`` into at most ``n`` parts of similar screening cost.
 
-    Longest first, each to the cheapest part so far (the order within a part keeps the
-    candidates' order).
+    A stage's candidates stay together (a candidate is told from its alternatives by their
+    joint information, which only a run scoring both has: :func:`alternatives`); the
+    stages' groups longest first, each to the cheapest part so far (the order within a part
+    keeps the candidates' order).
     """
-    n = max(1, min(n, len(candidates)))
+    groups: dict[Any, list[str]] = {}
+    for e in candidates:
+        groups.setdefault(registry.create(e).stage, []).append(e)
+    n = max(1, min(n, len(groups)))
     loads = [0.0] * n
     out: list[list[str]] = [[] for _ in range(n)]
-    for e in sorted(candidates, key=_screen_cost, reverse=True):
+    for g in sorted(groups.values(), key=lambda g: sum(map(_screen_cost, g)), reverse=True):
         k = int(np.argmin(loads))
-        out[k].append(e)
-        loads[k] += _screen_cost(e)
+        out[k].extend(g)
+        loads[k] += sum(map(_screen_cost, g))
     order = {e: i for i, e in enumerate(candidates)}
     return [sorted(p, key=order.__getitem__) for p in out if p]
 
@@ -205,5 +231,6 @@ def collect(runs: list[Any], white: bool = True) -> dict[str, ScreenResult]:
                                     None if sens is None else np.asarray(sens, dtype=float),
                                     disp, local, derived,
                                     np.asarray(item[5], dtype=float) if len(item) > 5
-                                    else None)
+                                    else None,
+                                    dict(item[6]) if len(item) > 6 else {})
     return out

@@ -13,9 +13,13 @@ parameters.  For each candidate c (its block of parameters, the others at their 
 * the one-step estimate ``b̂_c = I_cc⁻¹ s_c`` and its covariance ``I_cc⁻¹``;
 * the bias an undetected effect ``b`` leaves in the estimated parameters (external
   reliability): ``−M_θ b`` with ``M`` the state's sensitivity at the end of the run
-  (``bias_per_unit``).  The minimal detectable size ``b`` (internal reliability) is the
-  diagnosis's, for the decision's level and dof
-  (:func:`~stellar_cal_ros.diagnosis.reliability.detectability`): none is computed here.
+  (``bias_per_unit``);
+* the information about c left once each other candidate a of the run is fitted beside
+  it, ``I_cc − I_ca I_aa⁺ I_ac`` (``beside``): what tells c from a on this motion (the
+  identification size, :func:`~stellar_cal_ros.diagnosis.reliability.identification`).
+  The minimal detectable size ``b`` (internal reliability) is the diagnosis's, for the
+  decision's level and dof (:func:`~stellar_cal_ros.diagnosis.reliability.detectability`):
+  none is computed here.
 
 Innovations a wrong model over-disperses (NIS/dof > 1) inflate every LM; the caller divides
 by the dispersion (quasi-score), as the likelihood-ratio test does.
@@ -42,6 +46,8 @@ class CandidateScore:
     info: np.ndarray  #: I_cc (k, k)
     #: bias of the estimated parameters per unit of each candidate parameter (P_est, k)
     bias_per_unit: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    #: per other candidate a of the run: I_cc − I_ca I_aa⁺ I_ac (k, k)
+    beside: dict[str, np.ndarray] = field(default_factory=dict)
 
     def p_value(self, dispersion: float = 1.0) -> float:
         """P(χ²_k > LM / dispersion)."""
@@ -62,23 +68,39 @@ def score_tests(result: ReplayResult, candidates: list[str]) -> dict[str, Candid
         raise ValueError("the run has no consider parameters (replay(..., consider=...))")
     model, P_est = flt.model, flt.P_est
     M_theta = sens.M[flt.it]
+    info = 0.5 * (sens.info + sens.info.T)
+    cols = {eff.id: np.arange(model.slices[eff.id].start - P_est,
+                              model.slices[eff.id].stop - P_est)
+            for eff in model.effects if eff.id in candidates}
+    # each candidate's information on the directions the data see, pseudo-inverted
+    inverse = {e: _seen_inverse(info[np.ix_(c, c)]) for e, c in cols.items()}
     out: dict[str, CandidateScore] = {}
     for eff in model.effects:
         if eff.id not in candidates:
             continue
-        sl = model.slices[eff.id]
-        cols = np.arange(sl.start - P_est, sl.stop - P_est)
-        s = sens.score[cols]
-        I_cc = sens.info[np.ix_(cols, cols)]
-        I_cc = 0.5 * (I_cc + I_cc.T)
-        w, V = np.linalg.eigh(I_cc)
-        good = w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300)
+        c = cols[eff.id]
+        s = sens.score[c]
+        I_cc = info[np.ix_(c, c)]
         # the test lives in the identifiable subspace (a direction the data do not see
         # has no score)
-        inv = (V[:, good] / w[good]) @ V[:, good].T if good.any() else np.zeros_like(I_cc)
-        lm = float(s @ inv @ s) if good.any() else 0.0
+        inv, dof = inverse[eff.id]
+        lm = float(s @ inv @ s) if dof else 0.0
+        beside = {}
+        for a, ca in cols.items():
+            if a != eff.id:
+                I_ca = info[np.ix_(c, ca)]
+                beside[a] = I_cc - I_ca @ inverse[a][0] @ I_ca.T
         out[eff.id] = CandidateScore(
             effect=eff.id, parameters=[f"{eff.id}.{n}" for n in eff.parameter_names],
-            dof=int(good.sum()), lm=lm, estimate=inv @ s, info=I_cc,
-            bias_per_unit=-M_theta[:, cols])
+            dof=dof, lm=lm, estimate=inv @ s, info=I_cc,
+            bias_per_unit=-M_theta[:, c], beside=beside)
     return out
+
+
+def _seen_inverse(I_cc: np.ndarray) -> tuple[np.ndarray, int]:
+    """The pseudo-inverse of an information block on the directions it sees, and their count."""
+    w, V = np.linalg.eigh(I_cc)
+    good = w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300)
+    if not good.any():
+        return np.zeros_like(I_cc), 0
+    return (V[:, good] / w[good]) @ V[:, good].T, int(good.sum())
