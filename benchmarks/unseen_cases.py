@@ -814,6 +814,64 @@ def _lens_sag(sim, seed, ppm_per_g=300.0):
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 
+# ---- 2026-11-29 (H261): eleventh pass
+
+
+def _rate_noise(sim, seed, k=2.0):
+    # smear-driven noise: each centroid's sigma grows with its own image speed (a longer
+    # streak per exposure), 0.05 sqrt(1 + (k v / v95)^2) px (v95: the run's 95th-percentile
+    # image speed; 0.05 at rest, 0.112 at v95); the messages state 0.05 px constant
+    vel = tracker_errors.image_velocity(sim)
+    v95 = float(np.percentile(np.concatenate([np.linalg.norm(v, axis=1) for v in vel]), 95))
+    rng = np.random.default_rng(seed + 15401)
+    for f, v in zip(sim.star_frames, vel, strict=True):
+        s = PSCE_SIGMA * np.sqrt(1.0 + (k * np.linalg.norm(v, axis=1) / v95) ** 2)
+        f.uv = np.asarray(f.uv, dtype=float) + s[:, None] * rng.standard_normal((len(s), 2))
+        f.sigma = np.full(len(s), PSCE_SIGMA)
+
+
+def _bright_quant(sim, seed, below_mag=4.0, step_px=0.5):
+    # centroid quantisation: the bright stars' (mag < 4) saturated cores give centroids on a
+    # 0.5 px grid (round(u / 0.5) 0.5, per axis: a uniform error, 0.144 px rms, far from
+    # Gaussian); the fainter stars as stated.  The error is a sawtooth in the *true*
+    # sub-pixel phase; the reported centroid carries no phase (it lies on the grid)
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+    for f in sim.star_frames:
+        m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=5.0)
+        uv = np.asarray(f.uv, dtype=float).copy()
+        uv[m < below_mag] = np.round(uv[m < below_mag] / step_px) * step_px
+        f.uv = uv
+
+
+def _stray_light(sim, seed, px=0.15, scale_px=40.0):
+    # stray light from above the field: a background gradient near the detector's first
+    # rows pulls each centroid toward the edge by 0.15 exp(-v / 40) px along -v (0.15 px
+    # at the edge, 0.02 at 80 px, nothing past ~150 px); then the stated noise
+    for f in sim.star_frames:
+        uv = np.asarray(f.uv, dtype=float).copy()
+        uv[:, 1] -= px * np.exp(-uv[:, 1] / scale_px)
+        f.uv = uv
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _accel_bias_walk(sim, seed, ug_sqrth=100.0):
+    # the accelerometer's bias a random walk of 100 ug/sqrt(h) per axis (~24 ug over 200 s:
+    # ~5 arcsec of false tilt); the model's accel bias a constant and its noise white
+    imu = sim.imu
+    t = np.asarray(imu.stamp_ns, dtype=np.int64) * 1e-9
+    dt = np.diff(t, prepend=t[0])
+    q = ug_sqrth * 1e-6 * 9.80665 / 60.0  # m/s^2 per sqrt(s)
+    rng = np.random.default_rng(seed + 48611)
+    walk = np.cumsum(q * np.sqrt(dt)[:, None] * rng.standard_normal((len(t), 3)), axis=0)
+    imu.linear_acceleration = np.asarray(imu.linear_acceleration, dtype=float) + walk
+
+
+#: the swaying accelerometer's stated per-sample sigma (m/s^2 at the scenario's 100 Hz)
+#: written where the covariance (its square) was meant: the sigma read is its square root,
+#: the truth sqrt(sigma) x the stated
+_SWAY_ACCEL_SAMPLE = 5e-6 * 9.80665 * np.sqrt(100.0)
+
+
 def _centroid_error(truth: str, regressor: str, post: Callable, **kw) -> Case:
     # (H250) a psce case whose noise-free centroids ``post`` spoils outside the library
     # (then draws the stated noise): its structure 'unexplained', ``regressor`` first
@@ -1379,6 +1437,52 @@ CASES: dict[str, Case] = {
     "twin_aspect_id": _at_mdb("psce", "pixel_aspect", "aspect", "mdb_identified"),
     "twin_thermal1": _at_mdb("psce", "thermal_focal_length", "coefficient_per_c"),
     "twin_dt1": _at_mdb("psce", "time_offset", "dt"),
+    # ---- 2026-11-29 (H261): eleventh pass: noise stated wrongly, outside effects, MDB
+    "rate_noise": Case("psce", "smear-driven noise: each centroid's sigma 0.05 sqrt(1 + (2 v / "
+                       "v95)^2) px with its image speed v (0.112 px at the run's 95th-"
+                       "percentile speed), stated 0.05 px constant (the window's RMS x1.14: "
+                       "the "
+                       "slews' frames; at rest 0.05)", noise={"star": 1.14},
+                       spread_along=("angular rate", "image rate"),
+                       not_told="wrong star by star", post=_rate_noise,
+                       scenario_changes={"centroid_noise_px": 0.0}),
+    "bright_quant": Case("psce", "centroid quantisation: stars brighter than mag 4 report "
+                         "centroids on a 0.5 px grid (a uniform 0.144 px rms error, not "
+                         "Gaussian), the fainter ones 0.05 px as stated", noise={"star": 0.0},
+                         group_by="magnitude", post=_bright_quant,
+                         scenario_changes={"centroid_noise_px": 0.0}),
+    "stray_light": _centroid_error("stray light near the detector's first rows: centroids "
+                                   "pulled toward the edge by 0.15 exp(-v / 40 px) px along "
+                                   "-v (not in the library; no distortion acts on one edge)",
+                                   "v (row)", _stray_light),
+    "sway_accel_bias_walk": Case("swaying_base", "the accelerometer's bias a random walk of "
+                                 "100 ug/sqrt(h) per axis (~24 ug over 200 s, ~5 arcsec of "
+                                 "false tilt), the model's accel bias constant (not in the "
+                                 "library; its mean may be taken by accel_bias)",
+                                 outside=True, regressor="time", may_add=("accel_bias",),
+                                 post=_accel_bias_walk, sim_effects=dict(SWAY_CLEAN),
+                                 duration=200.0),
+    "sway_accel_std_as_var": Case("swaying_base", "the accelerometer's per-sample sigma "
+                                  "(4.9e-4 m/s^2) written where its variance was meant: the "
+                                  "sigma read sqrt(4.9e-4) = 0.022 m/s^2, the truth 0.022x the "
+                                  "stated (overstated 45x)",
+                                  noise={"accel": float(np.sqrt(_SWAY_ACCEL_SAMPLE))},
+                                  scenario_changes={
+                                      "accel_vrw_mps_sqrth": float(np.sqrt(_SWAY_ACCEL_SAMPLE))},
+                                  sim_effects=dict(SWAY_CLEAN), duration=200.0),
+    "thermal_focal_s07": Case("psce", "thermal_focal_length 20 ppm per deg C with the head "
+                              "cooling 30 -> 11 C (tau 100 s) AND the stars' sigma field 0.7x "
+                              "the true 0.05 px: the effect to be added, the stars x1.43",
+                              noise={"star": 1.0 / 0.7}, effects=("thermal_focal_length",),
+                              sim_effects={"thermal_focal_length": 2e-5},
+                              post=_sigma_field(0.7),
+                              scenario_changes={"head_temperature_tau_s": 100.0 / 3600.0}),
+    "twin_gyro3_gsf1": Case("psce", "the twin of a bag whose gyro ARW is 3x the stated, with "
+                            "gyro_scale_factor sz at 1x the MDB `discover` printed for it on "
+                            "that bag (stellar-cal twin; the twin's gyro noise at the scale "
+                            "measured)", noise={"gyro": 3.0}, effects=("gyro_scale_factor",),
+                            scenario_changes={"gyro_arw_deg_sqrth": 3.0},
+                            twin=("gyro_scale_factor", "sz", 1.0)),
 }
 
 

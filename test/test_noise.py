@@ -2353,6 +2353,45 @@ def test_a_fixed_pattern_of_the_rows_is_found_between_the_stars():
             assert not [f for f in lines if "(fixed pattern" in f.regressor], lines
 
 
+def test_a_noise_growing_with_the_image_speed_is_no_fixed_pattern_nor_a_per_star_error():
+    """Unseen case ``rate_noise`` (H261): each centroid's σ 0.05 √(1 + (2 v / v95)²) px with
+    its image speed ``v`` (smear: the slews' frames noisy, the frames at rest as stated),
+    the messages' 0.05 constant.  The fixed pattern's Gaussian null took one variance for
+    every row, and the few frames of large noise read as bands of 8 columns ('u (column)
+    (fixed pattern, bands of 8 px)', case 300 s s21 z 24.4, p 1e-44; s22 t 19.5) though
+    the flips' exact p was 0.08; the per-star repeat's χ² (one σ for every row) read the
+    stars seen in the slews as a per-star error ('repeating vs catalogue star', s21 χ² 443
+    / 150, p 1e-30).  Now, where the frames' noise differs
+    (``noise_structure.frame_variances``), the pattern's null also takes each row's
+    frame's variance and the repeat's χ² is also read with each row in its frame's σ, the
+    larger p said: nothing removed, the model's z below 3 on both axes, the repeat's p
+    above 1e-3 (s21 300 s: 0.13).  The frame variances are not used on the ``columns`` and
+    ``rows`` runs nor the clean ones (the tests above, unchanged).  Fails on coord 884abd3
+    (u z 14.7, v 6.9: both removed)."""
+    from stellar_cal_ros.sim import tracker_errors
+
+    sim = simulate(dataclasses.replace(get_scenario("psce_rotations"), centroid_noise_px=0.0),
+                   duration=DURATION, seed=8)
+    vel = tracker_errors.image_velocity(sim)
+    v95 = float(np.percentile(np.concatenate([np.linalg.norm(v, axis=1) for v in vel]), 95))
+    rng = np.random.default_rng(15409)
+    data = bag_data_from_simulation(sim)
+    for f, v in zip(data.frames, vel, strict=True):
+        s = 0.05 * np.sqrt(1.0 + (2.0 * np.linalg.norm(v, axis=1) / v95) ** 2)
+        f.uv = np.asarray(f.uv, dtype=float) + s[:, None] * rng.standard_normal((len(s), 2))
+        f.sigma = np.full(len(s), 0.05)
+    base, found = _patterns_of(data, sim)
+    for axis in "uv":
+        fp, removed = found[axis]
+        assert not removed and fp.model_z < 3.0, found
+    from stellar_cal_ros.diagnosis.stats import evaluation_mask
+
+    cam = base.calibration.camera
+    sn = noise.line_noise(base.residuals, evaluation_mask(base.residuals, 0.5), cam.fx, cam.fy,
+                          (cam.cx, cam.cy), None)
+    assert sn.repeat_p > 1e-3, (sn.repeat, sn.repeat_dof, sn.repeat_p)
+
+
 def test_a_ripple_over_the_columns_is_not_a_fixed_pattern():
     """Unseen case ``ripple`` (``0.08 sin(2π 3 u / width)`` px along u): the fixed
     pattern's bands cancel a field linear over their neighbours only, and the ripple's

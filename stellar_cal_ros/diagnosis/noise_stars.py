@@ -469,6 +469,9 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float,
             shutter.append(p)
         return shutter[0]
 
+    # (the frames' own noise where it differs: smear in the slews, noise_structure's
+    # frame_variances; None, one variance, on a bag whose frames' noise is alike)
+    row_var = noise_structure.frame_variances(0.5 * np.sum(r**2, axis=1), sub["frame"])
     out = []
     for axis, key in enumerate(("u_pred", "v_pred")):
         # (tested less a smooth function of the position, whose part the ripple lines
@@ -478,7 +481,7 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float,
         fp = noise_structure.fixed_pattern(
             noise_structure.less_smooth(r[:, axis], at, None if centre is None
                                         else 2.0 * centre[axis], POSITION_PERIODS),
-            np.ones(len(idx)), at, stars, scale=sig[idx])
+            np.ones(len(idx)), at, stars, scale=sig[idx], row_var=row_var)
         if fp is None:
             continue
         # the flips' p or the model's, each over its share of the level
@@ -807,6 +810,19 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
     # model read about the star means before the cells' means: ``rep_track`` above)
     rep, rep_dof = star_after_cells(r_cells, cell, keep_cell, stars, sub_share, rep_track.phi,
                                     rep_track.share)
+    # (where the frames' noise differs, the same χ² with each row in its frame's own σ
+    # (noise_structure.frame_variances), the smaller of the two said: a noise that grows in
+    # the slews' frames made the star means of the stars seen there read as a per-star
+    # error at one σ, unseen case ``rate_noise`` s21 χ² 535 / 156)
+    row_var = noise_structure.frame_variances(0.5 * np.sum(r_cells**2, axis=1), sub["frame"])
+    rep_frames = None if row_var is None else star_after_cells(
+        r_cells / np.sqrt(row_var)[:, None], cell, keep_cell, stars, sub_share,
+        rep_track.phi, rep_track.share)[0]
+
+    def repeat(scale: float) -> float:
+        """The repeat's χ² in the units of the stars' noise ``scale``."""
+        at_one = rep / max(scale, 1e-300) ** 2
+        return at_one if rep_frames is None else min(at_one, rep_frames)
     # each cell's mean referred to the variance of a mean of its tracks' frames (with the
     # tracks' model read before the cells' means, as the repeat's: read after them ρ is
     # biased low, 0.809 for 0.819, and the cells' χ² high: 'ar1' 300 s seed 30 called a
@@ -842,14 +858,13 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
     if out is None:
         return None
     final = (r, share)
-    out.repeat, out.repeat_dof = rep / max(out.scale, 1e-300) ** 2, rep_dof
+    out.repeat, out.repeat_dof = repeat(out.scale), rep_dof
     if out.repeat_p < ALPHA:
         rms = out.repeat_rms_px
         star_out = estimate(r_star, share_star)
         if star_out is not None:
             out, final = star_out, (r_star, share_star)
-        out.repeat, out.repeat_dof, out.repeat_removed = rep / max(out.scale, 1e-300) ** 2, \
-            rep_dof, rms
+        out.repeat, out.repeat_dof, out.repeat_removed = repeat(out.scale), rep_dof, rms
     if scatter_rho > 0.0:
         # tracks correlated: the σ of the scale from the variance of Σ q through the
         # frames' attitude fit, the cells' means and the stars' (when removed), and of the
@@ -1742,6 +1757,12 @@ def star_spread(sn: StarNoise, use: np.ndarray | None = None,
         return None
     fk = np.unique(fk[keep], return_inverse=True)[1].reshape(-1)
     nf = np.bincount(fk)
+    # (where the frames' noise differs, each row over its frame's level first,
+    # noise_structure.frame_variances: a σ that grows in the slews' frames made the stars
+    # seen there read as wrong star by star, unseen case ``rate_noise`` s21 ~24 %, F 10.1)
+    at_frames = noise_structure.frame_variances(z, fk)
+    if at_frames is not None:
+        z = z / at_frames * float(np.mean(z))
 
     def about_frames(y: np.ndarray) -> np.ndarray:
         return y - (np.bincount(fk, y) / nf)[fk]

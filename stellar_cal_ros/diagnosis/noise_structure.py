@@ -980,8 +980,8 @@ def less_smooth(r: np.ndarray, pos: np.ndarray, extent: float | None,
 
 def fixed_pattern(r: np.ndarray, share: np.ndarray, pos: np.ndarray, star: np.ndarray,
                   band: int = PATTERN_BAND_PX, reach: int = PATTERN_REACH,
-                  cap: float = PATTERN_CAP, scale: np.ndarray | None = None
-                  ) -> FixedPattern | None:
+                  cap: float = PATTERN_CAP, scale: np.ndarray | None = None,
+                  row_var: np.ndarray | None = None) -> FixedPattern | None:
     """A mean offset of ``r`` (one axis) tied to fine bands of the detector position ``pos``.
 
     A CCD fixed pattern (columns that read a centroid 0.15 px further along u, unseen case
@@ -999,8 +999,10 @@ def fixed_pattern(r: np.ndarray, share: np.ndarray, pos: np.ndarray, star: np.nd
     variance ``2 Σ_{i≠j} A_ij²``, exact for any noise along the tracks (the weights depend
     on the positions only); ``p``: the scaled χ² of those two moments.  ``r``: whitened
     residuals (one axis, rows with ``share`` > 0 and finite ``pos`` tested); ``scale``:
-    each row's units of the band means returned (None: 1).  None when fewer than
-    :data:`MIN_ROWS` rows or 3 bands are tested.
+    each row's units of the band means returned (None: 1); ``row_var``: each row's noise
+    variance in ``r``'s units where the frames' noise differs (:func:`frame_variances`;
+    None: one variance), which the Gaussian null then also takes, its larger p said.  None
+    when fewer than :data:`MIN_ROWS` rows or 3 bands are tested.
     """
     ok = np.isfinite(r) & np.isfinite(pos) & (share > 0)
     rows = np.flatnonzero(ok)
@@ -1053,12 +1055,17 @@ def fixed_pattern(r: np.ndarray, share: np.ndarray, pos: np.ndarray, star: np.nd
     k = int(np.argmax(w * h * h))
     top = float(L[k] @ (nb * band_mean))  # (its mean less its neighbours', in scale's units)
     mz, mp = _model_moments(T, d, si, ns, b, om, L, w)
+    if row_var is not None:
+        hz, hp = _model_moments(T, d, si, ns, b, om, L, w,
+                                np.asarray(row_var, dtype=float)[rows])
+        mz, mp = (hz, hp) if hp > mp else (mz, mp)
     return FixedPattern((T - mean) / math.sqrt(var), p, top, float((k + first) * band),
                         model_z=mz, model_p=mp)
 
 
 def _model_moments(T: float, d: np.ndarray, si: np.ndarray, ns: np.ndarray, b: np.ndarray,
-                   om: np.ndarray, L: np.ndarray, w: np.ndarray) -> tuple[float, float]:
+                   om: np.ndarray, L: np.ndarray, w: np.ndarray,
+                   v: np.ndarray | None = None) -> tuple[float, float]:
     """:func:`fixed_pattern`'s ``T`` against the residuals' own noise: ``(z, p)``.
 
     The flips of whole tracks let each track carry any pattern of its own, so they test
@@ -1071,16 +1078,30 @@ def _model_moments(T: float, d: np.ndarray, si: np.ndarray, ns: np.ndarray, b: n
     every cell's variance: conservative for ρ > 0); ``T = hᵀ W h`` with ``h = L S`` has
     ``Cov S = s² f (diag Σ om² − Wsᵀ diag(1/n) Ws)`` (``Ws``: each star's weight in each
     band) and the scaled χ² of its mean and variance gives ``p``.
+
+    ``v``: each row's own noise variance (:func:`frame_variances`), for ``s²`` one: ``Cov S``
+    of rows about their star's mean then holds each row's variance (``diag Σ om² v − Ws
+    Qᵀ/n − Q Wsᵀ/n + Ws diag(Σ v / n²) Wsᵀ``, ``Q``: each star's ``om v`` in each band).
+    A noise that grows in a few frames (smear in the slews: unseen case ``rate_noise``,
+    σ ∝ √(1 + (2 v / v95)²), seed 21) made one variance read bands of 8 px at z 24 (p
+    1e-44) where the flips' exact p was 0.08; with the frames' variances z 0.95.
     """
     nb_count = L.shape[0]
     cell = si * nb_count + b
     Ws = np.bincount(cell, om, minlength=len(ns) * nb_count).reshape(len(ns), nb_count)
-    cov = np.diag(np.bincount(b, om * om, minlength=nb_count)) - (Ws.T / ns) @ Ws
     dof_left = len(d) - len(ns)
     if dof_left <= 0:
         return 0.0, 1.0
     f, _, _ = track_inflation(d[:, None], si)
-    s2 = float(d @ d) / dof_left * f
+    if v is None:
+        cov = np.diag(np.bincount(b, om * om, minlength=nb_count)) - (Ws.T / ns) @ Ws
+        s2 = float(d @ d) / dof_left * f
+    else:
+        Q = np.bincount(cell, om * v, minlength=len(ns) * nb_count).reshape(len(ns), nb_count)
+        cov = np.diag(np.bincount(b, om * om * v, minlength=nb_count)) \
+            - (Ws.T / ns) @ Q - (Q.T / ns) @ Ws \
+            + (Ws.T * (np.bincount(si, v, minlength=len(ns)) / ns**2)) @ Ws
+        s2 = f
     sw = np.sqrt(w)
     K = s2 * (sw[:, None] * (L @ cov @ L.T) * sw[None, :])
     mean, var = float(np.trace(K)), 2.0 * float(np.sum(K * K))
@@ -1088,3 +1109,42 @@ def _model_moments(T: float, d: np.ndarray, si: np.ndarray, ns: np.ndarray, b: n
         return 0.0, 1.0
     g, dof = var / (2.0 * mean), 2.0 * mean * mean / var
     return (T - mean) / math.sqrt(var), float(dist.chi2.sf(T / g, dof))
+
+
+#: :func:`frame_variances`' level: the frames' noise differs when their mean squared
+#: residuals spread more than one variance lets them at this p (clean psce 300 s s21:
+#: p 0.14; ``rows`` 0.35, ``columns`` 0.035: no frame variances, their tests unchanged;
+#: ``rate_noise`` p 0)
+FRAME_VAR_ALPHA = 1e-6
+
+
+def frame_variances(e: np.ndarray, frame: np.ndarray) -> np.ndarray | None:
+    """Each row's noise variance from its frame, where the frames' noise differs; else None.
+
+    ``e``: each row's mean square per axis (whitened residuals less each frame's attitude
+    fit, ``(r_u² + r_v²) / 2``, or a row's ``q / m``); the frames' means of ``e`` spread as
+    ``χ²`` with (frames − 1) dof
+    about the rows' mean under one variance (each frame's mean's variance ``var(e) / n``,
+    the rows' own ``var(e)``: heavy tails alone do not make it fire).  Past
+    :data:`FRAME_VAR_ALPHA` each row gets its frame's median ``e`` over ln 2 (a χ²₂/2's
+    median: a few stars on a defect do not lift it), the noise of that frame.
+    """
+    e = np.asarray(e, dtype=float)
+    ok = np.isfinite(e)
+    _, fi = np.unique(np.asarray(frame)[ok], return_inverse=True)
+    fi = np.asarray(fi).reshape(-1)
+    n = np.bincount(fi).astype(float)
+    var_e = float(np.var(e[ok]))
+    if len(n) < 3 or not var_e > 0.0:
+        return None
+    m = np.bincount(fi, e[ok]) / n
+    X = float(np.sum(n * (m - e[ok].mean()) ** 2)) / var_e
+    if not dist.chi2.sf(X, len(n) - 1) < FRAME_VAR_ALPHA:
+        return None
+    order = np.argsort(fi, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(n).astype(int)])
+    med = np.array([np.median(e[ok][order[a:b_]]) for a, b_ in zip(starts[:-1], starts[1:],
+                                                                    strict=True)])
+    out = np.full(len(e), np.nan)
+    out[np.flatnonzero(ok)] = np.maximum(med[fi] / math.log(2.0), 1e-12)
+    return out
