@@ -708,6 +708,42 @@ def test_the_kernel_cache_prunes_other_versions_unused_for_days(tmp_path, monkey
 
 
 # ------------------------------------------------------------------ a refusal costs no filter
+#: what a refusal imports none of: the methods' modules and kernels, numba, scipy beyond the
+#: LAPACK of the bag reading's covariance module
+HEAVY = ("numba", "scipy.spatial", "scipy.optimize", "scipy.stats", "scipy.sparse",
+         "stellar_cal_ros.methods.psce", "stellar_cal_ros.methods.acf",
+         "stellar_cal_ros.methods.bundle_runs", "stellar_cal_ros.methods.swaying",
+         "stellar_cal_ros.methods.kernel", "stellar_cal_ros.methods.frame_step",
+         "stellar_cal_ros.methods.replay", "stellar_cal_ros.diagnosis.run")
+
+
+def _main_in_a_fresh_process(argvs: list[list[str]]) -> tuple[list, list[str]]:
+    """``cli.main(argv)`` of each argv in one new process: [(exit status, stderr lines,
+    stdout)], and the :data:`HEAVY` modules the process had imported at the end."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(f"""
+        import contextlib, io, sys
+        from stellar_cal_ros.cli import main
+        out = []
+        for argv in {argvs!r}:
+            err, text = io.StringIO(), io.StringIO()
+            with contextlib.redirect_stderr(err), contextlib.redirect_stdout(text):
+                try:
+                    code = main(argv)
+                except SystemExit as exc:
+                    code = exc.code
+            out.append((code, err.getvalue().strip().splitlines(), text.getvalue()))
+        print(repr(out))
+        print(repr(sorted(m for m in sys.modules if m.startswith({HEAVY!r}))))
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    *_, said, imported = proc.stdout.splitlines()
+    return eval(said), eval(imported)  # noqa: S307
 def test_a_refusal_a_bad_path_and_help_import_no_method_nor_numba(tmp_path):
     """``diagnose`` of a bag without IMU (refused from its summary), of a path that does not
     exist, ``--method`` of an unknown name and ``diagnose --help`` (which lists every
@@ -717,43 +753,19 @@ def test_a_refusal_a_bad_path_and_help_import_no_method_nor_numba(tmp_path):
     (numba, scipy) through the ``--method`` choices and every method for the help and the
     refusal's alternatives, and the compile check imported the kernels: 1.0-1.3 CPU-s (8-14 s
     wall under load) for a refusal, now ~0.5."""
-    import subprocess
-    import sys
-    import textwrap
-
     bag, prior, _ = psce_bag(DURATION, seed=7)
     no_imu = _convert(bag, tmp_path / "no_imu.mcap", "mcap", exclude=["/imu/data"])
-    code = textwrap.dedent(f"""
-        import contextlib, io, sys
-        from stellar_cal_ros.cli import main
-        out = []
-        for argv in (["diagnose", {str(no_imu)!r}, "--calibration", {str(prior)!r}, "--method",
-                      "psce", "-o", {str(tmp_path / "d")!r}],
-                     ["diagnose", {str(tmp_path / "nope.mcap")!r}, "--calibration",
-                      {str(prior)!r}, "--method", "psce", "-o", {str(tmp_path / "e")!r}],
-                     ["diagnose", {str(no_imu)!r}, "--calibration", {str(prior)!r},
-                      "--method", "nope", "-o", {str(tmp_path / "f")!r}],
-                     ["diagnose", "--help"]):
-            err, text = io.StringIO(), io.StringIO()
-            with contextlib.redirect_stderr(err), contextlib.redirect_stdout(text):
-                try:
-                    code = main(argv)
-                except SystemExit as exc:
-                    code = exc.code
-            out.append((code, err.getvalue().strip().splitlines()[-1:], text.getvalue()))
-        heavy = ("numba", "scipy.spatial", "scipy.optimize", "scipy.stats", "scipy.sparse",
-                 "stellar_cal_ros.methods.psce", "stellar_cal_ros.methods.acf",
-                 "stellar_cal_ros.methods.bundle_runs", "stellar_cal_ros.methods.swaying",
-                 "stellar_cal_ros.methods.kernel", "stellar_cal_ros.diagnosis.run")
-        print(repr(out))
-        print(sorted(m for m in sys.modules if m.startswith(heavy)))
-    """)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=300, check=False)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    *_, said, imported = proc.stdout.splitlines()
-    assert imported == "[]", imported
-    (r1, e1, _), (r2, e2, _), (r3, e3, _), (r4, _, helped) = eval(said)  # noqa: S307
+    said, imported = _main_in_a_fresh_process([
+        ["diagnose", str(no_imu), "--calibration", str(prior), "--method", "psce", "-o",
+         str(tmp_path / "d")],
+        ["diagnose", str(tmp_path / "nope.mcap"), "--calibration", str(prior), "--method",
+         "psce", "-o", str(tmp_path / "e")],
+        ["diagnose", str(no_imu), "--calibration", str(prior), "--method", "nope", "-o",
+         str(tmp_path / "f")],
+        ["diagnose", "--help"]])
+    assert imported == [], imported
+    said = [(code, err[-1:], out) for code, err, out in said]
+    (r1, e1, _), (r2, e2, _), (r3, e3, _), (r4, _, helped) = said
     assert r1 == 1 and "psce needs IMU samples on /imu/data" in e1[0], e1
     assert "`--method bundle` runs on the star frames alone" in e1[0], e1
     assert r2 == 1 and e2 == [f"stellar-cal diagnose: error: {tmp_path / 'nope.mcap'}: no "
@@ -785,3 +797,70 @@ def test_a_ros1_bag_cut_short_names_rosbag_reindex(tmp_path, capsys):
                         "Bag index looks damaged: ('Header could not be read from file.',)); "
                         f"rebuild it with `rosbag reindex {cut}` (ROS 1) and give the "
                         "reindexed bag"), line
+
+
+def test_a_rosbag2_database_cut_short_says_what_to_do_in_one_line(runs, tmp_path, capsys):
+    """A rosbag2 sqlite3 database cut short (a copy that stopped): its header counts more
+    pages than the file holds, sqlite refuses it whole and rosbags (which opens a database by
+    counting every message) reads no part: one line that says so and what to do, for
+    ``info``, ``replay`` (``--on-error skip`` too: nothing to skip to) and ``diagnose``.
+    main printed rosbags' text: "cannot open bag DIR (rosbag2-sqlite3) with rosbags: Cannot
+    open database DB: database disk image is malformed"."""
+    cut = tmp_path / "cut_db3"
+    shutil.copytree(runs["dir_a"], cut)
+    db = next(cut.glob("*.db3"))
+    raw = db.read_bytes()
+    page = int.from_bytes(raw[16:18], "big")
+    assert int.from_bytes(raw[28:32], "big") * page == len(raw)  # (the header's size)
+    for keep in (len(raw) // 2, len(raw) // 2 // page * page, 10 * page):
+        db.write_bytes(raw[:keep])
+        want = (f"{db}: a rosbag2 sqlite3 database cut short: {keep} of the {len(raw)} bytes "
+                "its header counts (a copy or download that stopped, a full disk); sqlite "
+                "refuses such a file and nothing here reads a part of it (nor `--on-error "
+                "skip`): copy the whole file again from where it was recorded")
+        for argv in (["info", str(cut)], ["info", str(db)],
+                     ["replay", str(cut), "--method", "psce", "--prior", str(runs["prior_a"]),
+                      "-o", str(tmp_path / "r.yaml"), "-q"],
+                     ["replay", str(cut), "--method", "psce", "--prior", str(runs["prior_a"]),
+                      "-o", str(tmp_path / "r.yaml"), "-q", "--on-error", "skip"],
+                     ["diagnose", str(cut), "--calibration", str(runs["run_a"]), "--method",
+                      "psce", "-o", str(tmp_path / "d"), "--workers", "0", "--no-plots"]):
+            assert main(argv) == 1, argv
+            line = _one_error_line(capsys.readouterr().err, argv[0])
+            assert line == f"stellar-cal {argv[0]}: error: {want}", line
+    db.write_bytes(raw)  # (whole again: it reads)
+    assert main(["info", str(cut)]) == 0, capsys.readouterr().err
+
+
+def test_replay_refusals_come_before_the_filter_imports(runs, tmp_path):
+    """``replay``'s refusals (no such bag, no IMU, an unknown ``--effects`` id, a prior that
+    does not load, a bad ``--noise-scale``) are decided before the filter's imports and the
+    kernels' compile check, as diagnose's (H252): one line each, no method module, numba
+    nor scipy beyond its LAPACK imported.  main judged them inside ``replay()`` after its
+    imports: 0.85-1.0 CPU-s a refusal, now ~0.55 (benchmarks.md, H267).  A bag without IMU
+    names the batch command that calibrates on the star frames alone."""
+    bag, prior = runs["bag_a"], runs["prior_a"]
+    no_imu = _convert(bag, tmp_path / "no_imu.mcap", "mcap", exclude=["/imu/data"])
+    bad_prior = tmp_path / "bad_prior.yaml"
+    bad_prior.write_text("- 1\n- 2\n")
+    cases = [[str(no_imu), "--prior", str(prior)],
+             [str(tmp_path / "nope.mcap"), "--prior", str(prior)],
+             [str(bag), "--prior", str(prior), "--effects", "radial_k3,nope"],
+             [str(bag), "--prior", str(bad_prior)],
+             [str(bag), "--prior", str(prior), "--noise-scale", "star=x"]]
+    said, imported = _main_in_a_fresh_process(
+        [["replay", bag_, "--method", "psce", "-o", str(tmp_path / "r.yaml"), "-q", *more]
+         for bag_, *more in cases])
+    assert imported == [], imported
+    lines = []
+    for code, err, _ in said:
+        assert code == 1 and len(err) == 1 and err[0].startswith("stellar-cal replay: error: "), err
+        lines.append(err[0][len("stellar-cal replay: error: "):])
+    assert lines[0] == (f"{no_imu}: psce needs IMU samples on /imu/data, which the bag does "
+                        "not have; without it `stellar-cal batch --method bundle` calibrates "
+                        "on the star frames alone"), lines[0]
+    assert lines[1] == (f"{tmp_path / 'nope.mcap'}: no such bag (a .mcap or ROS 1 .bag file, "
+                        "or a rosbag2 directory)"), lines[1]
+    assert lines[2].startswith("unknown effect 'nope'; known: installation, "), lines[2]
+    assert str(bad_prior) in lines[3], lines[3]
+    assert lines[4] == "--noise-scale star: not a number: 'x'", lines[4]

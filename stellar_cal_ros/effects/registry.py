@@ -227,13 +227,17 @@ def offered_on(test: str) -> list[str]:
 
 
 def effect_class(effect_id: str) -> type[Effect]:
-    """The class of ``effect_id`` (a one-line error naming the known ids if unknown)."""
+    """The class of ``effect_id`` (a one-line error naming the known ids if unknown).
+
+    The known ids are :func:`available`'s (a private one is known, not offered); an effect
+    module that failed to load is named with its error.
+    """
     try:
         return EFFECTS[effect_id]
     except KeyError:
         failed = "".join(f"; {k} failed to load ({v})" for k, v in EFFECTS.failed.items())
         raise ModelError(
-            f"unknown effect {effect_id!r}; available: {', '.join(EFFECTS)}{failed}"
+            f"unknown effect {effect_id!r}; known: {', '.join(available())}{failed}"
         ) from None
 
 

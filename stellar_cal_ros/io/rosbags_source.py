@@ -87,6 +87,37 @@ def contract_typestore(base: Any = None, ros2_header: bool = False) -> Any:
     return store
 
 
+_SQLITE_MAGIC = b"SQLite format 3\0"
+
+
+def sqlite_cut_text(path: Path) -> str:
+    """The one line for a rosbag2 sqlite3 database cut short ('' if none of ``path``'s is).
+
+    ``path``: a ``.db3`` file or a rosbag2 directory.  A database's header counts its pages
+    (bytes 28-31, valid when bytes 92-95 repeat the change counter of bytes 24-27); a file
+    shorter than that lost its end: sqlite then refuses even the table list ("database disk
+    image is malformed"; its shell's ``.recover`` too), and rosbags opens a database by
+    counting every message, so no part is read (``--on-error skip`` neither).  Measured on a
+    converted sweep bag cut at half: with the size taken from the file (``writable_schema``)
+    none of its 6304 messages could be looked up, the table's inner pages being written late.
+    """
+    files = [path] if path.is_file() else sorted(path.glob("*.db3"))
+    for db in files:
+        with db.open("rb") as f:
+            head = f.read(100)
+        if len(head) < 100 or not head.startswith(_SQLITE_MAGIC) or head[24:28] != head[92:96]:
+            continue
+        page = int.from_bytes(head[16:18], "big")
+        need = (65536 if page == 1 else page) * int.from_bytes(head[28:32], "big")
+        size = db.stat().st_size
+        if size < need:
+            return (f"{db}: a rosbag2 sqlite3 database cut short: {size} of the {need} bytes "
+                    "its header counts (a copy or download that stopped, a full disk); "
+                    "sqlite refuses such a file and nothing here reads a part of it (nor "
+                    "`--on-error skip`): copy the whole file again from where it was recorded")
+    return ""
+
+
 class RosbagsSource(SourceBase):
     """A bag read by ``rosbags.highlevel.AnyReader`` (see the module docstring).
 
@@ -107,6 +138,9 @@ class RosbagsSource(SourceBase):
     library = "rosbags"
 
     def __init__(self, path: Path, storage: str) -> None:
+        cut = sqlite_cut_text(path) if storage == "rosbag2-sqlite3" else ""
+        if cut:  # (sqlite would refuse it whole: said before rosbags' imports)
+            raise BagError(cut)
         from rosbags.highlevel import AnyReader, AnyReaderError
 
         self.path = path

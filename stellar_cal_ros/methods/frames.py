@@ -407,14 +407,15 @@ def read_inputs(reader: BagReader, names: Mapping[str, str], roles: list[str],
     return series, frames, images
 
 
-def reads_star_images(path: str | Path, imu_for: str = "") -> bool:
+def reads_star_images(path: str | Path, imu_for: str = "", command: str = "diagnose") -> bool:
     """True when a bag's star frames come from its images (no star centroids in it).
 
     Read from the bag's summary (its topics), before any message.  ``imu_for``: the
-    method that needs the IMU (the commands that re-run it, ``diagnose``, ``discover``);
-    a bag without star frames, or without IMU then, raises :class:`BagError` at once,
-    naming the methods that run without the IMU (measured: the diagnosis of a bag
-    without IMU refused after 7-17 s of noise and candidate runs).
+    method that needs the IMU (the commands that run it: ``replay``, ``diagnose``,
+    ``discover``); a bag without star frames, or without IMU then, raises :class:`BagError`
+    at once, naming the methods that run without the IMU (measured: the diagnosis of a bag
+    without IMU refused after 7-17 s of noise and candidate runs), as ``command`` runs them:
+    ``diagnose`` one from its batch result, ``replay`` the batch command itself.
     """
     with warnings.catch_warnings(), BagReader(path, on_error="skip") as reader:
         warnings.simplefilter("ignore")  # damage is the reading command's to report
@@ -426,19 +427,24 @@ def reads_star_images(path: str | Path, imu_for: str = "") -> bool:
     if imu_for and (info is None or not info.message_count):
         from stellar_cal_ros.methods import registry
 
-        other = [s.name for s in registry.catalog(diagnosable=True) if not needs_imu(s)]
-        instead = (f"; without it `--method {other[0]}` runs on the star frames alone "
-                   f"(from `stellar-cal batch --method {other[0]}`'s result)") if other else ""
+        other = [s.name for s in registry.catalog(diagnosable=command != "replay")
+                 if not needs_imu(s) and s.kind == "batch"]
+        instead = "" if not other else (
+            f"; without it `stellar-cal batch --method {other[0]}` calibrates on the star "
+            "frames alone" if command == "replay" else
+            f"; without it `--method {other[0]}` runs on the star frames alone "
+            f"(from `stellar-cal batch --method {other[0]}`'s result)")
         raise BagError(f"{path}: {imu_for} needs IMU samples on {TOPICS['imu']}, which the "
                        f"bag {'does not have' if info is None else 'holds none of'}{instead}")
     return role == "image"
 
 
-def method_reads_images(path: str | Path, method: str) -> bool:
+def method_reads_images(path: str | Path, method: str, command: str = "diagnose") -> bool:
     """:func:`reads_star_images`, refusing a bag without the IMU ``method`` needs.
 
-    A path that does not exist is refused with what a bag is (the commands that re-run a
-    method on a bag: ``diagnose``, ``discover``, their runner).
+    A path that does not exist is refused with what a bag is (the commands that run a
+    method on a bag: ``replay``, ``diagnose``, ``discover``, their runner; ``command``
+    names the one that asks).
     """
     from stellar_cal_ros.methods import registry
 
@@ -446,7 +452,8 @@ def method_reads_images(path: str | Path, method: str) -> bool:
         raise BagError(f"{path}: no such bag (a .mcap or ROS 1 .bag file, or a rosbag2 "
                        "directory)")
 
-    return reads_star_images(path, imu_for=method if needs_imu(registry.peek(method)) else "")
+    return reads_star_images(path, imu_for=method if needs_imu(registry.peek(method)) else "",
+                             command=command)
 
 
 def needs_imu(spec) -> bool:

@@ -48,9 +48,7 @@ def resolve_effects(method: str, requested: list[str] | None,
                 raise ModelError(f"{eid} is in the {method} baseline and cannot be removed")
             out = [e for e in out if e != eid]
             continue
-        if item not in registry.EFFECTS:
-            raise ModelError(f"unknown effect {item!r}; known: {', '.join(registry.available())}")
-        stage = registry.EFFECTS[item].stage
+        stage = registry.effect_class(item).stage
         if stage not in spec.stages:
             raise ModelError(f"effect {item} acts on the {stage.value} stage, which the "
                              f"{method} method does not model")
