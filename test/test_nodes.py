@@ -550,6 +550,64 @@ def test_checkpoint_of_another_version_starts_from_the_prior(ros_context, tmp_pa
     cal.destroy_node()
 
 
+
+def test_a_frame_does_not_wait_behind_a_checkpoint_write(ros_context, excerpt, tmp_path,
+                                                         monkeypatch):
+    """The periodic checkpoint (a timer in the node's executor) hands the state to the
+    writer's thread (H253: io.checkpoint.CheckpointWriter): a write that takes as long as a
+    slow disk likes does not hold the frames.  The first fsync of the process (the first
+    checkpoint's) is held until the test lets it go; meanwhile 20 s of the excerpt play
+    through the topics (flow control: the player waits for the node's acknowledgements and
+    counts 10 s without one) and every message is taken in, each frame's callback within a
+    bound, before the write is let go.  A write in the executor's thread (submit writing in
+    the caller's thread) fails this test: nothing is processed while the fsync is held."""
+    import os
+
+    from stellar_cal_ros.io import checkpoint as io_ck
+
+    path, prior, ref, counts = excerpt
+    real_fsync, in_write, release, calls = os.fsync, threading.Event(), threading.Event(), []
+    let_go = []  # (the held fsync's end: perf_counter, whether the test let it go)
+
+    def slow_fsync(fd):
+        calls.append(threading.current_thread().name)
+        if len(calls) == 1:  # the first checkpoint's data: a disk that takes its time
+            in_write.set()
+            let_go.append(release.wait(600))
+            let_go.append(time.perf_counter())
+        return real_fsync(fd)
+
+    monkeypatch.setattr(io_ck.os, "fsync", slow_fsync)
+    prefix = "/w" + uuid.uuid4().hex[:8]
+    cal = make_calibrator(ros_context, prefix, tmp_path, checkpoint_period_s=0.2,
+                          output_file="")
+    player = make_player(ros_context, prefix, path, ack_timeout_s=10.0, duration_s=20.0)
+    try:
+        with Spinner(ros_context, cal, player):
+            assert in_write.wait(30), "no periodic checkpoint"
+            t0 = time.perf_counter()
+            stats = player.play()
+            wait_for(lambda: sum(cal.received.values()) == stats.messages, timeout=30,
+                     what="every message played")
+            t_all = time.perf_counter()
+            updates = cal.cal.filter_counters()["updates"]
+            latency = np.asarray(cal.latency_s)
+            release.set()
+            cal.finish()
+    finally:
+        release.set()
+    print(f"\n{stats.messages} messages in {t_all - t0:.2f} s while the first checkpoint's "
+          f"fsync was held; {updates} updates; frame callbacks: {latency.size}, max "
+          f"{latency.max() * 1e3:.1f} ms, p99 {np.percentile(latency, 99) * 1e3:.1f} ms")
+    assert calls[0] == "checkpoint-writer", calls
+    assert let_go[0] and let_go[1] > t_all, let_go  # every message taken in while it was held
+    assert stats.ack_timeouts == 0 and cal.received["stars"] == 40, cal.received
+    assert updates >= 35 and latency.size >= 15 and latency.max() < 1.0, latency.max()
+    assert io_ck.read_checkpoint(tmp_path / "calibrator.npz")[1]["filter"] is not None
+    cal.destroy_node()
+    player.destroy_node()
+
+
 FLOOD_HZ = 400.0  # malformed star messages per second: 200 x the tracker's 2 Hz
 
 
