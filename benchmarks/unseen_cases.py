@@ -788,10 +788,7 @@ def _rolling_cols(sim, seed, readout_s=0.03):
     # one read column by column): column u seen (u / W - 1/2) T after the stamp, T 30 ms;
     # every star moved by its image velocity over its column's offset, then the stated
     # noise
-    w = float(sim.truth_world.camera().width)
-    for f, vel in zip(sim.star_frames, tracker_errors.image_velocity(sim), strict=True):
-        uv = np.asarray(f.uv, dtype=float)
-        f.uv = uv + ((uv[:, 0] / w - 0.5) * readout_s)[:, None] * vel
+    tracker_errors.rolling_shutter(sim, readout_s, "u")
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 

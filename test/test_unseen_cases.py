@@ -145,6 +145,76 @@ def test_a_rolling_shutter_is_not_read_as_a_fixed_pattern_of_the_columns():
     assert not [f for f in lines if "fixed pattern" in f.regressor], lines
 
 
+def _column_readout(seed):
+    def post(sim):
+        tracker_errors.rolling_shutter(sim, 0.03, "u")
+        tracker_errors.renoise(sim, lambda m, uv: SIGMA, SIGMA, seed)
+    return post
+
+
+def test_a_column_readout_is_tested_along_the_columns():
+    """Columns read out over 30 ms (column u seen (u/W - 1/2) T after the stamp; unseen case
+    ``rolling_cols``): the rolling-shutter test along the columns, (u - c_x) x image
+    velocity, is a line of its own (one more test of the family), its readout over the
+    detector's columns the truth within 3 ms (27.7 here), and the rows' test finds nothing.
+    Fails on main: the rows' test was the only one (no line named the column readout)."""
+    lines, _ = _findings(_bag(_column_readout(21)), ranked=True)
+    cols = [f for f in lines if stats.rolling_axis(f.regressor) == "u"]
+    assert cols and cols[0].regressor.startswith(stats.ROLLING_NAMES["u"]), lines[:8]
+    assert cols[0].p_value < 0.01 and cols[0].component == "u, v"
+    readout = float(cols[0].regressor.split("readout ")[1].split(" ms")[0])
+    assert readout == pytest.approx(30.0, abs=3.0)
+    assert not [f for f in lines if stats.rolling_axis(f.regressor) == "v"], lines
+
+
+def test_a_library_effect_standing_in_for_a_column_readout_is_refused():
+    """300 s of PSCE, seed 22, a 30 ms column readout (unseen case ``rolling_cols``'s bag):
+    the rolling-shutter fit on the innovations is the columns' (t -20.7, p 0.0027 with the
+    x2 of the two directions; readout 28.7 ms), and radial_k3, which discover added for it
+    (k3 -198; ratio 237.7), explains the data beyond that fit in the capped currency
+    (243.1: the model is far off, the slews' stars are capped) while the fit stays beside
+    it.  On the bag with the fitted readout taken out of the centroids its ratio is 5.2
+    (p 0.023): not needed, refused as the shutter's stand-in, and the fit's line is printed
+    (the line tests' own, t -32 on ν ≈ 2, is not significant among ~90).  Fails on main
+    (no column fit: the rows' fit read p 0.51, and radial_k3 was added)."""
+    from stellar_cal_ros.diagnosis.discover import Reference, candidate_prior
+
+    sim = _bag(_column_readout(22), seed=22, duration=300.0)
+    data, spec, prior = bag_data_from_simulation(sim), method_spec("psce"), \
+        rerun_prior(sim.prior)
+    base = evaluate(data, spec, prior, (), 0.5, keep_residuals=True)
+    shutter = rolling.of_run(base, 0.5)
+    assert shutter["axis"] == "u" and shutter["p_value"] < 0.01, shutter
+    assert shutter["p_value"] == pytest.approx(2 * shutter["by_axis"]["u"]["p_value"])
+    assert shutter["readout_ms"] == pytest.approx(30.0, abs=3.0)
+    assert shutter["by_axis"]["v"]["p_value"] > 0.1
+    k3 = candidate_prior(prior, "radial_k3", prior)
+    with_k3 = evaluate(data, spec, k3, ("radial_k3",), 0.5, keep_residuals=True,
+                       candidate=True)
+    lam, p, _ = Reference.of(base).compare(with_k3, 1)
+    c = SimpleNamespace(effect="radial_k3", statistic=lam, dof=1, seen_dof=1.0,
+                        p_adjusted=min(1.0, 11 * p))
+    disp = Reference.of(base).dispersion
+    assert p < 1e-20
+    fit = rolling.of_run(with_k3, 0.5)
+    assert rolling.stand_in(c, disp, fit, shutter, 0.01) is None  # beyond it, capped
+    assert rolling.needs_without(c, disp, fit, shutter, 0.01)
+    got = rolling.ratio_without_on_bag(data, spec, prior, (), 0.5, None, (),
+                                       base.calibration, shutter["coefficient"], "u", k3,
+                                       "radial_k3", 1.0)
+    assert got[0] < 10.0 and got[1] > 0.01, got
+    b = rolling.not_without(c, got, shutter, 0.01)
+    assert b is not None and not b["needed"] and b["without_readout"]
+    assert "along the columns" in b["reason"], b["reason"]
+    # needed there: not refused
+    assert rolling.not_without(c, (lam, p), shutter, 0.01) is None
+    # the refusal's cause printed: the fit's line, named by the columns, its size in px
+    assert rolling.refused_beside(b)
+    line = rolling.finding(base, 0.5, 0.01)
+    assert line.regressor.startswith(stats.ROLLING_NAMES["u"]) and line.component == "u, v"
+    assert line.p_value == shutter["p_value"] and 0.3 < line.slope_px < 5.0, line
+
+
 def test_frame_stamp_jitter_is_unexplained_along_the_image_motion_first():
     """Every frame stamped N(0, 1 ms) off its exposure (unseen case ``jitter``; outside the
     library): the first 'unexplained' line is the stars' spread along their image motion

@@ -731,6 +731,16 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             dispersion = Reference.of(base).dispersion
             b = None if shutter is None else rolling.stand_in(
                 c, dispersion, with_c.get("rolling"), shutter, ALPHA)
+            if shutter is not None and b is None and rolling.needs_without(
+                    c, dispersion, with_c.get("rolling"), shutter, ALPHA):
+                # kept beside it: is it needed once the fitted readout is out of the bag?
+                tell(f"{c.effect}: testing it on the bag without the fitted readout")
+                b = rolling.not_without(c, runs.on_bag(
+                    rolling.ratio_without_on_bag, runs.spec, prior, tuple(state.extra),
+                    runs.fraction, runs.noise, runs.classes, base.calibration,
+                    shutter["coefficient"], shutter["axis"],
+                    candidate_prior(prior, c.effect, calibration), c.effect,
+                    c.seen_dof), shutter, ALPHA)
             # every lead it stands in for, not only the first (unseen case saturation s22:
             # image_plane_tilt refused beside the cells and the magnitude fields; the path
             # kept 'cells' alone, so the magnitude field's line was never printed)
@@ -1208,6 +1218,12 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         ticks = _clock_of(final, calibration, fraction)
         if ticks is not None and ticks.finding().p_value < ALPHA:
             fields.append(ticks.finding())
+    if any(rolling.refused_beside(b) for s in path
+           for b in (s.get("beyond_remainder") or {}).values()):
+        # one refused beside the rolling shutter's fit: the fit's line, if still there
+        line = rolling.finding(final, fraction, ALPHA)
+        if line is not None:
+            fields.append(line)
     if installation_step.STEP_ID in state.extra and state.step_line is not None:
         # the step is fitted (hidden) in the final model, so its test there sees none: the
         # line of the round it entered, with its size fitted on the final model

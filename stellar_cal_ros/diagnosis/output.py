@@ -107,7 +107,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     parts: dict[str, Any] = {}
     unexplained = line_tests(shown.residuals, calibration, fraction, parts)
     unexplained, spread = within_groups(unexplained, verdict)
-    outside = list(outside or [])
+    # (a rolling shutter's fit's line where the line tests have none of its direction)
+    have = {rolling.line_key(f) for f in unexplained}
+    outside = [f for f in outside or [] if not (stats.rolling_axis(f.regressor)
+                                                and rolling.line_key(f) in have)]
     if outside:  # into the ranking of the lines (regressor_tests' order: p, then |t|)
         told = {f.regressor for f in outside}  # (a clock's line may be among both)
         unexplained = sorted(outside + [f for f in unexplained if f.regressor not in told],

@@ -2,10 +2,13 @@
 
 No library effect models a tracker whose rows are read out one after the other (a row
 ``v`` read ``(v − c_y)/H · T`` after the stamp moves each star by its image velocity times
-that).  On a moving base, library effects take up parts of it: a time offset the frames'
-mean row offset (stars not centred on the middle row), a pixel aspect the row-proportional
-part (measured, unseen case ``sway_rolling``: 30 ms readout, discover added time_offset and
-pixel_aspect).  The 'unexplained' test of its shape is
+that), or its columns (column ``u`` read ``(u − c_x)/W · T`` after it: a detector mounted a
+quarter turn round; the same machinery along the other direction, ``axis`` ``"u"``,
+:data:`~stellar_cal_ros.diagnosis.stats.READOUT_AXES`).  On a moving base, library
+effects take up parts of it: a time offset the frames' mean row offset (stars not
+centred on the middle row), a pixel aspect the row-proportional part (measured, unseen
+case ``sway_rolling``: 30 ms readout, discover added time_offset and pixel_aspect).
+The 'unexplained' test of its shape is
 :func:`~stellar_cal_ros.diagnosis.stats.shaped_tests`; here the same shape is fitted to the
 innovations as a nuisance regressor (:func:`~stellar_cal_ros.diagnosis.stats.
 rolling_remainder`), and a candidate is added, once that fit is significant on the current
@@ -28,21 +31,38 @@ from stellar_cal_ros.io.calibration import Calibration
 REMAINDER = ("the rolling-shutter-shaped remainder", "a rolling shutter")
 
 
-def of_table(res, calibration: Calibration, fraction: float) -> dict[str, float] | None:
-    """The rolling-shutter fit of a run's residual table (its evaluation window)."""
+def of_table(res, calibration: Calibration, fraction: float, axis: str | None = None
+             ) -> dict | None:
+    """The rolling-shutter fit of a run's residual table (its evaluation window).
+
+    Along ``axis`` (``"v"`` rows, ``"u"`` columns), or, ``None``, the more significant
+    direction, its p × the directions (:func:`~stellar_cal_ros.diagnosis.stats.
+    rolling_remainder`).
+    """
     if res is None or not len(res.get("t", ())):
         return None
     cam = calibration.camera
     return stats.rolling_remainder(res, stats.evaluation_mask(res, fraction),
                                    (cam.cx, cam.cy), (cam.fx, cam.fy), calibration.R_imu_st,
-                                   cam.height)
+                                   cam.height, cam.width, axis)
 
 
-def of_run(run, fraction: float) -> dict[str, float] | None:
+def of_run(run, fraction: float, axis: str | None = None) -> dict | None:
     """:func:`of_table` of a :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary`."""
     if run is None or not run.ok or run.residuals is None:
         return None
-    return of_table(run.residuals, run.calibration, fraction)
+    return of_table(run.residuals, run.calibration, fraction, axis)
+
+
+def along(fit: dict | None, shutter: dict) -> dict | None:
+    """``fit`` (a candidate's, :func:`of_run`) along the readout direction of ``shutter``.
+
+    A fit of either direction (``by_axis``) gives that direction's own; a fit of one
+    direction is itself.
+    """
+    if fit is None or "by_axis" not in fit or "axis" not in shutter:
+        return fit
+    return fit["by_axis"].get(shutter["axis"])
 
 
 def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
@@ -70,11 +90,111 @@ def stand_in(candidate, dispersion: float, with_c: dict | None, shutter: dict,
     """
     from stellar_cal_ros.diagnosis import flexure
 
+    with_c = along(with_c, shutter)
     b = flexure.beyond(candidate.statistic, candidate.dof, dispersion, with_c, shutter)
     if b is None or b["needed"] or vanished(with_c, shutter, alpha, candidate.dof, family):
         return None
     return dict(b, remainder=remainder,
                 beside=beside(with_c, shutter, alpha, candidate.dof, family))
+
+
+def ratio_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
+                         fraction: float, noise, classes: tuple[type, ...],
+                         calibration: Calibration, coefficient: float, axis: str,
+                         candidate_prior: Calibration, effect: str, dof: float
+                         ) -> tuple[float, float] | None:
+    """A candidate's ratio on the bag with a fitted rolling shutter taken out: ``(Λ, p)``.
+
+    Two runs on :func:`taken_out` (``calibration``, ``coefficient``, ``axis``: the current
+    model's fit; for :meth:`~stellar_cal_ros.diagnosis.parallel.Runs.on_bag`): the model
+    ``effects`` from ``prior`` and the candidate's model (``effect`` added, from
+    ``candidate_prior``), compared as ``discover`` compares a candidate (quasi-likelihood
+    ratio, χ² with ``dof``, unadjusted p).  ``None`` when a run fails.
+    """
+    from stellar_cal_ros.diagnosis.discover import Reference
+    from stellar_cal_ros.diagnosis.runstats import evaluate, register_effect_classes
+
+    register_effect_classes(classes)
+    less = taken_out(data, calibration, coefficient, axis)
+    base = evaluate(less, spec, prior, effects, fraction, False, classes, noise=noise)
+    with_c = evaluate(less, spec, candidate_prior, effects + (effect,), fraction, False,
+                      classes, candidate=True, noise=noise)
+    if not (base.ok and with_c.ok):
+        return None
+    lam, p, _ = Reference.of(base).compare(with_c, dof)
+    return float(lam), float(p)
+
+
+def needs_without(candidate, dispersion: float, with_c: dict | None, shutter: dict,
+                  alpha: float) -> bool:
+    """Whether :func:`not_without`'s runs are needed: the fit kept beside the candidate.
+
+    ``stand_in`` let the candidate pass (it explains the data beyond the fit in the
+    capped currency) while the fit did not vanish beside it: the candidate may still be
+    only what the filter made of the readout (a 30 ms column readout on a PSCE bag, unseen
+    case ``rolling_cols`` s22: radial_k3 ratio 237.7 beside the fit, 243.1 beyond it, the
+    fit t −20.7 → −22.9 beside it; on the bag without the readout 5.2, p 0.023).
+    """
+    with_c = along(with_c, shutter)
+    if with_c is None or vanished(with_c, shutter, alpha, candidate.dof):
+        return False
+    from stellar_cal_ros.diagnosis import flexure
+
+    b = flexure.beyond(candidate.statistic, candidate.dof, dispersion, with_c, shutter)
+    return b is not None and b["needed"]
+
+
+def not_without(candidate, got: tuple[float, float] | None, shutter: dict, alpha: float
+                ) -> dict | None:
+    """The refusal of a candidate not needed once the fitted readout is out of the bag.
+
+    ``got``: :func:`ratio_without_on_bag`'s ``(Λ, p)``.  The evidence :func:`first_if_cause`
+    takes for a line (gone in a run with the readout taken out) taken for a candidate: not
+    significant there at ``alpha`` (unadjusted, as :func:`~stellar_cal_ros.diagnosis.
+    flexure.beyond`'s ``needed``), it is refused as the shutter's stand-in (a dict as
+    :func:`stand_in`'s, ``without_readout`` True, with its ``reason``); else ``None``.
+    """
+    if got is None or not got[1] >= alpha:
+        return None
+    lam, p = got
+    along_ = "columns" if shutter.get("axis") == "u" else "rows"
+    return {"statistic": lam, "dof": float(candidate.seen_dof), "p_value": p,
+            "needed": False, "negative": not lam >= 0.0, "remainder": REMAINDER,
+            "without_readout": True, "readout_ms": float(shutter["readout_ms"]),
+            "axis": shutter.get("axis", "v"),
+            "reason": f"significant alone (p = {candidate.p_adjusted:.2g}) but not on the bag "
+                      f"with the fitted readout ({shutter['readout_ms']:.3g} ms along the "
+                      f"{along_}) taken out of the centroids (its ratio there {lam:.1f}, "
+                      f"p={p:.2g}): a rolling shutter's stand-in, not added"}
+
+
+def finding(run, fraction: float, alpha: float) -> stats.RegressorFinding | None:
+    """The rolling-shutter fit's 'unexplained' line on ``run``, where significant.
+
+    The line of the fit a candidate was refused beside (:func:`stand_in`,
+    :func:`not_without`): the innovations' fit (:func:`of_run`, the more significant
+    direction, its p × 2) below ``alpha``, its readout over that direction's extent in the
+    regressor's name (:data:`~stellar_cal_ros.diagnosis.stats.ROLLING_NAMES`), its size the
+    fitted displacement's 99th percentile over the window's stars (px), ``detail`` the fit
+    (``shutter``).  The line tests' own line of the direction, where they find one, is
+    printed instead (:func:`~stellar_cal_ros.diagnosis.output.finish`).  A column readout
+    on a PSCE bag acts in its slews only: the line tests' frame-robust t (−38, ν ≈ 2, unseen
+    case ``rolling_cols`` s21) is not significant among ~90 tests, the innovations' fit is.
+    """
+    fit = of_run(run, fraction)
+    if fit is None or not fit["p_value"] < alpha:
+        return None
+    detail = {k: v if isinstance(v, str) else float(v) for k, v in fit.items()
+              if k != "by_axis"}
+    return stats.RegressorFinding(
+        f"{stats.ROLLING_NAMES[fit['axis']]}, readout {fit['readout_ms']:.3g} ms)", "u, v",
+        float(fit["t"]), float(fit["p_value"]), float(fit["size_px"]),
+        detail={"shutter": detail})
+
+
+def refused_beside(b: dict) -> bool:
+    """Whether a refusal (a ``beyond_remainder`` entry) was beside the rolling shutter."""
+    return tuple(b.get("remainder") or ()) == REMAINDER
 
 
 def nested(before: dict, dof: int | None) -> bool:
@@ -150,11 +270,11 @@ def beside_text(b: dict, fitted: str) -> str:
             "size has not fallen toward 0")
 
 
-def taken_out(data, calibration: Calibration, coefficient: float):
+def taken_out(data, calibration: Calibration, coefficient: float, axis: str = "v"):
     """A copy of the bag with a fitted rolling shutter taken out of its centroids.
 
     Each centroid moved back by ``coefficient`` × :func:`~stellar_cal_ros.diagnosis.stats.
-    rolling_columns` (the innovations being measured − predicted, the fit says the
+    rolling_columns` along ``axis`` (the innovations being measured − predicted, the fit says the
     measurement holds that much of the shape); the star's direction from its centroid
     (pinhole of ``calibration``'s camera), the gyro rate interpolated at the frames' stamps
     (3 ``np.interp`` over all stamps at once).
@@ -171,33 +291,34 @@ def taken_out(data, calibration: Calibration, coefficient: float):
             frames.append(f)
             continue
         sub = {"x_st": (uv[:, 0] - cam.cx) / cam.fx, "y_st": (uv[:, 1] - cam.cy) / cam.fy,
-               "z_st": np.ones(len(uv)), "v": uv[:, 1],
+               "z_st": np.ones(len(uv)), "u": uv[:, 0], "v": uv[:, 1],
                **{f"omega_{a}": np.full(len(uv), w_f[k]) for k, a in enumerate("xyz")}}
         x = stats.rolling_columns(sub, (cam.fx, cam.fy), (cam.cx, cam.cy),
-                                  calibration.R_imu_st)
+                                  calibration.R_imu_st, axis)
         frames.append(dataclasses.replace(f, uv=uv - coefficient * x))
     return dataclasses.replace(data, frames=frames)
 
 
 def lines_without_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...],
                          fraction: float, noise, classes: tuple[type, ...],
-                         calibration: Calibration, coefficient: float, tests
+                         calibration: Calibration, coefficient: float, tests, axis: str = "v"
                          ) -> tuple[tuple[tuple[str, str], ...], float | None] | None:
     """The 'unexplained' lines of a run on the bag without the shutter, and its remainder.
 
     One run of the same model on :func:`taken_out` (for :meth:`~stellar_cal_ros.diagnosis.
     parallel.Runs.on_bag`): the lines as (regressor, component), what a line's fit reads
     (a readout, a period) cut from its name, and the rolling-shutter fit's signed
-    coefficient on that run (:func:`of_run`; ``None`` without it).  ``tests(residuals,
+    coefficient on that run (:func:`of_run`; ``None`` without it), both along the readout
+    direction ``axis``.  ``tests(residuals,
     calibration, fraction)``: the diagnosis's 'unexplained' tests
     (:func:`~stellar_cal_ros.diagnosis.output.line_tests`).
     """
-    got = rerun_lines(taken_out(data, calibration, coefficient), spec, prior, effects,
+    got = rerun_lines(taken_out(data, calibration, coefficient, axis), spec, prior, effects,
                       fraction, noise, classes, tests)
     if got is None:
         return None
     keys, run = got
-    rest = of_run(run, fraction)
+    rest = of_run(run, fraction, axis)
     return keys, None if rest is None else float(rest["coefficient"])
 
 
@@ -222,8 +343,9 @@ def rerun_lines(data, spec, prior: Calibration, effects: tuple[str, ...], fracti
 def line_key(f) -> tuple[str, str]:
     """A line's (regressor, component) without what its fit reads (a readout, a period)."""
     name = f.regressor
-    if name.startswith(stats.ROLLING):
-        name = stats.ROLLING
+    axis = stats.rolling_axis(name)
+    if axis is not None:
+        name = stats.ROLLING_NAMES[axis]
     elif "(periodic" in name:
         name = name.split(",")[0]
     return name, f.component
@@ -254,8 +376,9 @@ def start_lines_without(run, runs, tests):
     :func:`lines_without_on_bag` while this process computes the line tests that decide
     whether it is needed (its arguments are known before them: the run and its
     rolling-shutter fit); in this process it runs only when asked for.  Started when the
-    fit's p is under :data:`START_P`; a run started and not needed is dropped (a worker's
-    time, not a result).  Returns ``(fit, value)`` for :func:`first_if_cause`.
+    fit's p is under :data:`START_P` (its more significant direction's, :func:`of_run`); a
+    run started and not needed (or along the other direction than the line's) is dropped (a
+    worker's time, not a result).  Returns ``(fit, value)`` for :func:`first_if_cause`.
     """
     if runs is None or run is None or not run.ok or run.prior is None:
         return None
@@ -264,7 +387,7 @@ def start_lines_without(run, runs, tests):
         return None
     return fit, runs.later(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
                            runs.fraction, runs.noise, runs.classes, run.calibration,
-                           fit["coefficient"], tests)
+                           fit["coefficient"], tests, fit["axis"])
 
 
 def first_if_cause(found: list, run, runs, tests, keep=frozenset(), started=None
@@ -287,24 +410,28 @@ def first_if_cause(found: list, run, runs, tests, keep=frozenset(), started=None
     over the detector's rows too).  ``started``: :func:`start_lines_without`'s of the same
     ``run``, ``runs`` and ``tests`` (its value taken instead of a run made now).
     """
-    at = next((i for i, f in enumerate(found) if f.regressor.startswith(stats.ROLLING)), None)
+    at = next((i for i, f in enumerate(found) if stats.rolling_axis(f.regressor)), None)
     if at is None or runs is None or run is None or not run.ok or run.prior is None:
         return found, set()
-    if started is not None:  # (start_lines_without of the same run and tests)
-        fit, again = started[0], started[1]()
+    axis = stats.rolling_axis(found[at].regressor)  # (the first shape line's direction)
+    if started is not None and started[0]["axis"] == axis:
+        fit, again = started[0], started[1]()  # (start_lines_without of the same run)
     else:
-        fit = of_run(run, runs.fraction)
+        fit = of_run(run, runs.fraction, axis)
         if fit is None:
             return found, set()
         again = runs.on_bag(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
                             runs.fraction, runs.noise, runs.classes, run.calibration,
-                            fit["coefficient"], tests)
+                            fit["coefficient"], tests, axis)
     if again is None:
         return found, set()
     left, rest = again
     found = list(found)
-    ms = stats.readout_s(fit["coefficient"], rest, run.calibration.camera.height) * 1e3
-    found[at] = dataclasses.replace(found[at], regressor=f"{stats.ROLLING}, readout {ms:.3g} ms)")
+    cam = run.calibration.camera
+    ms = stats.readout_s(fit["coefficient"], rest,
+                         stats.readout_extent(axis, cam.width, cam.height)) * 1e3
+    found[at] = dataclasses.replace(
+        found[at], regressor=f"{stats.ROLLING_NAMES[axis]}, readout {ms:.3g} ms)")
     if at == 0:
         return found, set()
     left = set(left)

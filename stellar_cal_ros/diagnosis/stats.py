@@ -840,6 +840,25 @@ def _components(sub: Table, du: np.ndarray, dv: np.ndarray, su: np.ndarray,
 #: (:func:`shaped_tests`)
 SUBPIXEL = "sub-pixel phase"
 ROLLING = "v (row) x image velocity (rolling-shutter shape"
+#: the rolling-shutter regressor's name by readout direction (:data:`READOUT_AXES`): rows
+#: read one after the other (``v``, :data:`ROLLING`) or columns (``u``: a detector mounted
+#: a quarter turn round, or one read column by column)
+ROLLING_NAMES = {"v": ROLLING, "u": "u (column) x image velocity (rolling-shutter shape"}
+#: the readout directions a rolling shutter is tested along, rows first (each one test of
+#: the family, :func:`shaped_tests`; the nuisance fit's Bonferroni factor,
+#: :func:`rolling_remainder`)
+READOUT_AXES = ("v", "u")
+
+
+def rolling_axis(regressor: str) -> str | None:
+    """The readout direction (``"v"`` rows, ``"u"`` columns) of a rolling-shutter line."""
+    return next((a for a, n in ROLLING_NAMES.items() if regressor.startswith(n)), None)
+
+
+def readout_extent(axis: str, width: float | None, height: float | None) -> float | None:
+    """The detector's extent (px) along a readout direction: its rows ``height`` for ``v``."""
+    return height if axis == "v" else width
+
 #: the word of a ripple's regressor name (:func:`shaped_tests`: ``u (column) (periodic
 #: 455 px, sin)``), and its periods across the detector: a few, each period well above a
 #: cell of the noise's grid and the stars' spacing (the ``unseen_cases`` ripple has 3)
@@ -999,10 +1018,13 @@ def shaped_tests(sub: Table, inside: dict, sigma: np.ndarray, focal: tuple[float
         for q in np.percentile(r[fin], ZONE_PERCENTILES):
             one(f"{ZONE} {q:.0f} px: the image scale beyond it not the scale within)",
                 project(zone_step(r_vec, q)))
-    x = rolling_columns(sub, focal, centre, R_imu_st)
-    if x is not None and height is not None:
-        one(lambda b: f"{ROLLING}, readout {readout_s(b, None, height) * 1e3:.3g} ms)",
-            project(x))
+    for axis in READOUT_AXES:
+        extent = readout_extent(axis, width, height)
+        x = rolling_columns(sub, focal, centre, R_imu_st, axis) if extent else None
+        if x is not None:
+            one(lambda b, a=axis, e=extent:
+                f"{ROLLING_NAMES[a]}, readout {readout_s(b, None, e) * 1e3:.3g} ms)",
+                project(x))
     return out
 
 
@@ -1317,40 +1339,51 @@ def predicted_position(sub: Table, axis: str) -> np.ndarray:
 
 
 #: the residual table's columns :func:`rolling_columns` reads
-ROLLING_KEYS = ("omega_x", "omega_y", "omega_z", "x_st", "y_st", "z_st", "v_pred", "v")
+ROLLING_KEYS = ("omega_x", "omega_y", "omega_z", "x_st", "y_st", "z_st", "v_pred", "v",
+                "u_pred", "u")
 
 
 def rolling_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
-                    R_imu_st: np.ndarray | None) -> np.ndarray | None:
+                    R_imu_st: np.ndarray | None, axis: str = "v") -> np.ndarray | None:
     """A rolling shutter's displacement per second of readout offset, ``(n, 2)`` px · px/s.
 
     ``(v − c_y) J ω``: the row's offset from the middle row times the star's image velocity
     (its :func:`attitude_columns` times the gyro rate in the tracker frame, ``R_imu_st`` the
-    installation; ``v`` of the predicted centroid where there is one).  ``None`` without
-    the installation or the rate columns.
+    installation; ``v`` of the predicted centroid where there is one).  ``axis`` ``"u"``:
+    a readout along the columns, ``(u − c_x) J ω``.  ``None`` without the installation or
+    the rate columns.
     """
     if R_imu_st is None or not all(k in sub for k in ("omega_x", "x_st")):
         return None
-    v = predicted_position(sub, "v")
+    pos = predicted_position(sub, axis)
     w_b = np.stack([np.asarray(sub[k], dtype=float) for k in ("omega_x", "omega_y",
                                                               "omega_z")], 1)
     w_st = w_b @ np.asarray(R_imu_st, dtype=float)  # R^T ω per row
     vel = np.einsum("nij,nj->ni", attitude_columns(sub, *focal), w_st)
-    return (v - centre[1])[:, None] * vel
+    return (pos - centre[0 if axis == "u" else 1])[:, None] * vel
 
 
 def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
                       focal: tuple[float, float], R_imu_st: np.ndarray | None,
-                      height: float) -> dict[str, float] | None:
+                      height: float, width: float | None = None, axis: str | None = None
+                      ) -> dict | None:
     """The innovations' fit by a rolling shutter's shape (a nuisance regressor).
 
-    The innovations of ``mask``'s accepted stars and :func:`rolling_columns`, both whitened
-    by the innovation covariance, u and v of every star; the frames as the units
-    (:func:`frame_robust_t`).  ``{t, p_value (unadjusted), chi2 (the whitened sum of squares
-    the fit removes), readout_ms (:func:`readout_s` over the detector's rows ``height``),
-    coefficient}`` (``coefficient``: the fitted size, s per px
-    of row offset, signed: the innovations ≈ it × the columns; with its σ and ν as
-    :func:`pattern_size`'s ``coef``), or ``None`` without the columns.  What
+    The innovations of ``mask``'s accepted stars and :func:`rolling_columns` along
+    ``axis``, both whitened by the innovation covariance, u and v of every star; the frames
+    as the units (:func:`frame_robust_t`).  ``{t, p_value, chi2 (the whitened sum of
+    squares the fit removes), readout_ms (:func:`readout_s` over the detector's extent
+    along the readout, :func:`readout_extent`), coefficient, axis}`` (``coefficient``: the
+    fitted size, s per px of offset along the readout, signed: the innovations ≈ it × the
+    columns; with its σ and ν as :func:`pattern_size`'s ``coef``; ``size_px`` the fitted
+    displacement's 99th percentile over the stars), or ``None`` without the
+    columns.  ``axis`` given: that direction's fit, ``p_value`` unadjusted.  ``axis``
+    None: each direction of :data:`READOUT_AXES` the detector's extent allows (the
+    columns need ``width``) fitted alone, the more significant one returned with its
+    ``p_value`` × the directions fitted (Bonferroni: a readout of unknown direction is
+    two tests, as in :func:`shaped_tests`' family) and ``by_axis``: every direction's own
+    fit (``axis`` given), for a fit beside a candidate along the same direction
+    (:func:`~stellar_cal_ros.diagnosis.rolling.along`).  What
     :func:`~stellar_cal_ros.diagnosis.flexure.beyond` takes beside a candidate: whether it
     explains the data beyond a rolling shutter (``discover``'s stand-in rule).
     """
@@ -1358,16 +1391,36 @@ def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
     if m.sum() < 20:
         return None
     sub = Rows(res, m)
-    x = rolling_columns(sub, focal, centre, R_imu_st)
+    if axis is not None:
+        return _rolling_fit(sub, focal, centre, R_imu_st, axis, width, height)
+    fits = {a: _rolling_fit(sub, focal, centre, R_imu_st, a, width, height)
+            for a in READOUT_AXES if readout_extent(a, width, height)}
+    fits = {a: f for a, f in fits.items() if f is not None}
+    if not fits:
+        return None
+    best = min(fits.values(), key=lambda f: (f["p_value"], -abs(f["t"])))
+    return dict(best, p_value=min(1.0, best["p_value"] * len(fits)), by_axis=fits)
+
+
+def _rolling_fit(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
+                 R_imu_st: np.ndarray | None, axis: str, width: float | None,
+                 height: float | None) -> dict | None:
+    """:func:`rolling_remainder` along one readout direction ``axis`` (``sub``: its stars)."""
+    x = rolling_columns(sub, focal, centre, R_imu_st, axis)
     if x is None:
         return None
     fit = whitened_fit(sub, x, dof=True) or whitened_fit(sub, x)
     if fit is None:
         return None
     t, p, c, info = fit[:4]
+    moved = np.hypot(x[:, 0], x[:, 1]) * abs(c)
+    moved = moved[np.isfinite(moved)]
     return {"t": t, "p_value": p, "chi2": c * c * info,
             "chi2_capped": capped_gain(sub, x, c),
-            "readout_ms": readout_s(c, None, height) * 1e3, "coefficient": c,
+            "readout_ms": readout_s(c, None, readout_extent(axis, width, height)) * 1e3,
+            "coefficient": c, "axis": axis,
+            # (the fitted readout's displacement, 99th percentile over the stars, px)
+            "size_px": float(np.percentile(moved, 99)) if moved.size else math.nan,
             **(pattern_size(sub, x, fit) or {})}
 
 

@@ -119,16 +119,19 @@ def speed_squared_smear(sim, px: float) -> None:
         f.uv = np.asarray(f.uv, dtype=float) + px * (speed / s95)[:, None] * v / s95
 
 
-def rolling_shutter(sim, readout_s: float) -> None:
+def rolling_shutter(sim, readout_s: float, axis: str = "v") -> None:
     """Rows read out over ``readout_s``: row ``v`` seen ``(v/H − ½)·T`` after the stamp.
 
     The stamp is the middle row's time (so no common time offset); every star moves by its
     image velocity over its row's offset: a displacement ∝ row × rate, zero at rest.
+    ``axis`` ``"u"``: the columns read out so (column ``u`` seen ``(u/W − ½)·T`` after the
+    stamp: a detector mounted a quarter turn round).
     """
-    h = float(sim.truth_world.camera().height)
+    cam = sim.truth_world.camera()
+    k, extent = (0, float(cam.width)) if axis == "u" else (1, float(cam.height))
     for f, vel in zip(sim.star_frames, image_velocity(sim), strict=True):
         uv = np.asarray(f.uv, dtype=float)
-        dt = (uv[:, 1] / h - 0.5) * readout_s
+        dt = (uv[:, k] / extent - 0.5) * readout_s
         f.uv = uv + dt[:, None] * vel
 
 
