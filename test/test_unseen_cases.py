@@ -1739,8 +1739,9 @@ def test_a_cause_line_and_the_flexure_findings_do_not_follow_another_cause(monke
     lost = line("u (column)", 8.0)
     shutter = line(stats.ROLLING + ")", -50.0)
     found = [drift, flex, lost, shutter]
-    monkeypatch.setattr(rolling, "of_run", lambda run, fraction: {"coefficient": 1e-5})
-    cal = SimpleNamespace(camera=SimpleNamespace(height=1024))
+    monkeypatch.setattr(rolling, "of_run",
+                        lambda run, fraction, axis=None: {"coefficient": 1e-5, "axis": "v"})
+    cal = SimpleNamespace(camera=SimpleNamespace(height=1024, width=1024))
     run = SimpleNamespace(ok=True, prior=object(), effects=(), calibration=cal)
     runs = SimpleNamespace(spec=None, fraction=0.5, noise=None, classes=(),
                            on_bag=lambda fn, *a: ([], None))
