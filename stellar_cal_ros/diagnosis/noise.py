@@ -206,6 +206,9 @@ class NoiseVerdict:
     #: the gyro bias walk's search (:func:`~.noise_runs.search_walk`): {deg_h_sqrth, sigma,
     #: p_value, over_white_gyro, accepted, ...} or None (not searched)
     walk: dict[str, Any] | None = None
+    #: the frames' stamps' noise that made the model too far off (:func:`stamp_jitter`):
+    #: {ms, p_value, nis_share} or None
+    stamp_jitter: dict[str, float] | None = None
 
     @property
     def rescaled(self) -> bool:
@@ -276,6 +279,8 @@ class NoiseVerdict:
         out["verdict"] = self.lines()
         if self.skipped:
             out["skipped"] = self.skipped
+        if self.stamp_jitter:
+            out["stamp_jitter"] = self.stamp_jitter
         if self.imu_skipped:
             out["imu_skipped"] = self.imu_skipped
         return out
@@ -953,13 +958,20 @@ def heavy_tails(sn: StarNoise, known: np.ndarray, scale: float | np.ndarray,
 MAX_DISPERSION = 2.0
 
 
-def far_off(base, sn: StarNoise | None) -> str:
+def far_off(base, sn: StarNoise | None, calibration=None, fraction: float = 0.5,
+            verdict: NoiseVerdict | None = None) -> str:
     """Why a run is too far from its model for the noise to be measured on it ('' if not).
 
     A missing effect that moves the stars far from their predictions (a 20 ms time offset
     under rotation: NIS/dof in the hundreds, lost lock) also bends the within-frame
     residuals and the likelihood the scales are measured from: the noise is then measured
     once the model is closer (the next round of ``discover``), not guessed from a broken run.
+
+    Where a noise in the frames' stamps makes that misfit (:func:`stamp_jitter`: ``base``'s
+    residuals, ``calibration``'s camera, the last ``fraction`` of the run), the reason names
+    it, a noise, not a missing effect; the scales are still not measured (a larger gyro
+    noise would let the attitude follow the stamps' errors); ``verdict`` given keeps it
+    (:attr:`NoiseVerdict.stamp_jitter`).
     """
     if not base.ok or not base.window:
         return "the model's run failed"
@@ -973,10 +985,52 @@ def far_off(base, sn: StarNoise | None) -> str:
     nis = base.window["nis"]["mean"] / 2.0 / s**2
     if lost or not np.isfinite(nis) or nis > MAX_DISPERSION:
         at = "" if abs(s - 1.0) <= MATERIAL else f" at the stars' measured sigma, x{s:.3g}"
+        jitter = None if lost or not np.isfinite(nis) else \
+            stamp_jitter(base, calibration, fraction, s, nis)
+        if jitter is not None:
+            if verdict is not None:
+                verdict.stamp_jitter = jitter
+            return (f"the frames' stamps jitter {jitter['ms']:.2g} ms rms (the stars' spread "
+                    f"along their image motion, p = {jitter['p_value']:.2g}): a noise in "
+                    "time, not in the stars' positions, that the model does not state "
+                    f"(outside the library); it makes NIS/dof {nis:.3g}{at}, "
+                    f"{nis - jitter['nis_share']:.3g} without it; taken as stated")
         return (f"the model is too far off (NIS/dof {nis:.3g}{at}"
                 + (", the filter lost lock" if lost else "") + "): a missing effect shapes "
                 "the residuals more than the noise does; taken as stated until it is added")
     return ""
+
+
+#: a noise in the frames' stamps is named (:func:`stamp_jitter`) at this one-sided p, where
+#: the model's NIS/dof less its share is within :data:`MAX_DISPERSION`
+STAMP_ALPHA = ALPHA
+
+
+def stamp_jitter(base, calibration, fraction: float, scale: float, nis: float
+                 ) -> dict[str, float] | None:
+    """The frames' stamps' noise that makes ``base``'s misfit, or None.
+
+    ``{ms, p_value, nis_share}``: :func:`~stellar_cal_ros.diagnosis.stats.stamp_share` on
+    the window's accepted stars (``nis_share`` at the stars' measured σ ``scale``, as
+    ``nis``).  Named where it is significant (one-sided p < :data:`STAMP_ALPHA`) and the
+    NIS/dof ``nis`` less its share is within :data:`MAX_DISPERSION`: the misfit is that
+    noise (unseen case ``sway_jitter`` s22: 0.97 ms, NIS/dof 5.86, 1.00 without it).  None
+    without ``base``'s residuals or ``calibration``.
+    """
+    from stellar_cal_ros.diagnosis.stats import evaluation_mask, stamp_share
+
+    res = getattr(base, "residuals", None)
+    if res is None or calibration is None:
+        return None
+    cam = calibration.camera
+    got = stamp_share(res, evaluation_mask(res, fraction), (cam.fx, cam.fy), (cam.cx, cam.cy),
+                      calibration.R_imu_st)
+    if got is None or not got[0] < STAMP_ALPHA:
+        return None
+    share = got[2] / scale**2
+    if not nis - share <= MAX_DISPERSION:
+        return None
+    return {"ms": got[1] * 1e3, "p_value": got[0], "nis_share": share}
 
 
 def structured(sn: StarNoise) -> str:

@@ -275,7 +275,7 @@ def _judge(runs, prior, effects: tuple[str, ...], base, tell, components: tuple[
     sn = base.star_noise
     applied = _from_samples(v, runs, components, n_tests).replace(
         gyro_bias_rw=ran.gyro_bias_rw)
-    v.skipped = far_off(base, sn)
+    v.skipped = far_off(base, sn, base.calibration or prior, runs.fraction, v)
     if v.skipped:
         if tell:
             tell(f"noise: {v.skipped}")
