@@ -336,3 +336,45 @@ def test_watch_gyro_chain_is_the_matmul_chain_bit_for_bit():
         if k:
             G = G @ (R[k - 1].T @ R_prior[k])
         assert np.array_equal(s["G_now"], G), k
+
+
+@pytest.mark.parametrize("fault", [False, True])
+def test_watch_frames_of_a_batch_are_the_frame_by_frame_watch_bit_for_bit(fault):
+    # a replay's batch (arrays of attitudes) takes the late frames' chain steps in one
+    # stacked product up to the next recorded frame: the same chain, records, judgements
+    # and verdicts as watch_frame frame by frame (a gyro whose steps turn 1.5x the stars'
+    # from frame 600 on: the same cause at the same frame)
+    rng = np.random.default_rng(11)
+    n = 3000
+    steps = Rotation.from_rotvec(0.02 * rng.standard_normal((n, 3)))
+    R = np.empty((n, 3, 3))
+    R[0] = Rotation.random(random_state=4).as_matrix()
+    for k in range(1, n):
+        R[k] = R[k - 1] @ steps[k].as_matrix()
+    gyro = steps.as_rotvec() * np.where(np.arange(n) >= 600, 1.5 if fault else 1.0, 1.0)[:, None]
+    R_prior = np.empty_like(R)
+    R_prior[0] = R[0]
+    R_prior[1:] = R[:-1] @ Rotation.from_rotvec(gyro[1:]).as_matrix()
+    t = (0.5 * np.arange(n)).tolist()
+    v = rng.standard_normal((n, 8, 3))
+    v /= np.linalg.norm(v, axis=2)[..., None]
+    u = np.einsum("kij,knj->kni", R, v) + 2e-6 * rng.standard_normal((n, 8, 3))
+    one, many = gyro_check.new_watch(), gyro_check.new_watch()
+    causes_one = [gyro_check.watch_frame(one, t[k], v[k], u[k], R_prior[k] if k else None, R[k])
+                  for k in range(n)]
+    causes_many = [gyro_check.watch_frame(many, t[0], v[0], u[0], None, R[0])]
+    k = 1
+    while k < n:
+        stop = min(n, k + int(rng.integers(1, 40)))
+        while k < stop:
+            nxt, cause = gyro_check.watch_frames(many, t, list(v), list(u), R_prior, R.copy(),
+                                                 None, gyro_check._same, k, stop)
+            causes_many += [""] * (nxt - k - 1) + [cause]
+            k = nxt
+    assert causes_many == causes_one
+    assert any(causes_one) == fault
+    for key in ("t", "R_star", "rms", "G", "segment", "G_now", "R_post"):
+        assert np.array_equal(many[key], one[key]), key
+    for key in ("frames", "spacing", "result", "done", "since", "judged_at"):
+        assert repr(many[key]) == repr(one[key]), key  # (NaN: by its repr)
+    assert fault or (len(one["t"]) > 200 and one["spacing"] > gyro_check.LATE_SPACING_S)

@@ -41,6 +41,7 @@ import math
 import os
 import re
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -126,9 +127,30 @@ def kernel_cache_used(current: Path) -> list[Path]:
     return prune_kernel_caches(current)
 
 
+def _import_numba():
+    """The ``njit`` of numba and ``numba.core.caching``, imported without reading ``coverage``.
+
+    numba's import reads the ``coverage`` package when it is installed, to report compiled
+    lines to a coverage run (``numba.misc.coverage_support``): ≈ 0.1 CPU-s of every
+    process that compiles or loads a kernel (a replay's 2.5 %, 2026-11-29).  With no
+    coverage run in this process (``coverage`` not imported before numba), numba's import
+    finds it absent; it stays importable after (a coverage run started later in the
+    process does not see compiled lines, as without ``coverage`` installed).
+    """
+    blocked = "coverage" not in sys.modules
+    if blocked:
+        sys.modules["coverage"] = None  # type: ignore[assignment]  # (import: ImportError)
+    try:
+        from numba import njit as numba_njit
+        from numba.core import caching
+    finally:
+        if blocked and "coverage" in sys.modules and sys.modules["coverage"] is None:
+            del sys.modules["coverage"]
+    return numba_njit, caching
+
+
 try:  # optional: without it the filters use the numpy path
-    from numba import njit as _numba_njit
-    from numba.core import caching as _caching
+    _numba_njit, _caching = _import_numba()
 except ImportError:  # pragma: no cover - exercised only without numba
     HAVE_NUMBA = False
 

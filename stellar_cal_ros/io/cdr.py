@@ -140,9 +140,10 @@ def _frame_ids(
 ) -> list[str]:
     """Distinct frame_ids of the rows."""
     out: list[str] = []
-    for L in np.unique(strlen):
-        rows = np.flatnonzero(strlen == L)
-        chars = windows(buf, off[rows] + 16, int(L) - 1)
+    one = bool((strlen == strlen[0]).all())  # (a topic's rows: one length, no unique's sort)
+    for L in strlen[:1] if one else np.unique(strlen):
+        rows = off if one else off[strlen == L]
+        chars = windows(buf, rows + 16, int(L) - 1)
         if len(rows) > 1 and not np.all(chars == chars[0]):
             uniq = np.unique(chars, axis=0)
         else:
