@@ -340,10 +340,9 @@ def test_watch_gyro_chain_is_the_matmul_chain_bit_for_bit():
 
 @pytest.mark.parametrize("fault", [False, True])
 def test_watch_frames_of_a_batch_are_the_frame_by_frame_watch_bit_for_bit(fault):
-    # a replay's batch (arrays of attitudes) takes the late frames' chain steps in one
-    # stacked product up to the next recorded frame: the same chain, records, judgements
-    # and verdicts as watch_frame frame by frame (a gyro whose steps turn 1.5x the stars'
-    # from frame 600 on: the same cause at the same frame)
+    # a replay's batch (arrays of attitudes, StarFilter.commit_batch) gives the same chain,
+    # records, judgements and verdicts as watch_frame frame by frame (a gyro whose steps
+    # turn 1.5x the stars' from frame 600 on: the same cause at the same frame)
     rng = np.random.default_rng(11)
     n = 3000
     steps = Rotation.from_rotvec(0.02 * rng.standard_normal((n, 3)))

@@ -437,23 +437,6 @@ def watch_frames(state: dict[str, Any], t: list, uv: list, u_i: list, R_prior: n
     pending = s.get("pending")
     last = pending[-1][0] if pending else (s["t"][-1] if len(s["t"]) else None)
     spacing = s["spacing"]
-    if (frames >= EARLY_FRAMES and last is not None and R_last is not None
-            and type(R_prior) is np.ndarray and type(R_post) is np.ndarray and stop > start):
-        # a run of frames past the early ones: the next recorded frame found at once, the
-        # steps ``R_lastᵀ · R_prior`` up to it in one stacked product (the same BLAS gemm a
-        # matrix as ``.dot``: bit for bit, test_gyro_check), the chain over them in a row
-        late = np.flatnonzero(~(np.asarray(t[start:stop], dtype=float) - last < spacing))
-        end = start + int(late[0]) + 1 if len(late) else stop
-        R_steps = np.concatenate([R_last[None], R_post[start:end - 1]])
-        for step in R_steps.transpose(0, 2, 1) @ R_prior[start:end]:
-            G = G.dot(step)
-        R_last = R_post[end - 1]
-        frames += end - start
-        if not len(late):
-            s["G_now"], s["R_post"], s["frames"] = G, R_last, frames
-            return stop, ""
-        s["G_now"], s["R_post"], s["frames"] = G, R_last, frames
-        return _record_frame(s, end - 1, t, uv, u_i, G, R_imu_st, unproject)
     for i in range(start, stop):
         R_pr = R_prior[i]
         if R_last is None or R_pr is None:
@@ -468,23 +451,16 @@ def watch_frames(state: dict[str, Any], t: list, uv: list, u_i: list, R_prior: n
         if frames > EARLY_FRAMES and last is not None and t[i] - last < spacing:
             continue
         s["G_now"], s["R_post"], s["frames"] = G, R_last, frames
-        return _record_frame(s, i, t, uv, u_i, G, R_imu_st, unproject)
+        if s.get("defer"):
+            s.setdefault("pending", []).append(
+                (float(t[i]), np.asarray(uv[i]), np.asarray(u_i[i]), G, s["seg"], frames))
+            return i + 1, ""
+        if _record(s, t[i], unproject(uv[i]), u_i[i], G, s["seg"]):
+            s["judged_at"] = frames
+            return i + 1, _judge(s, R_imu_st)
+        return i + 1, ""
     s["G_now"], s["R_post"], s["frames"] = G, R_last, frames
     return stop, ""
-
-
-def _record_frame(s: dict[str, Any], i: int, t: list, uv: list, u_i: list, G: np.ndarray,
-                  R_imu_st: np.ndarray | None,
-                  unproject: Callable[[np.ndarray], np.ndarray]) -> tuple[int, str]:
-    """:func:`watch_frames`' frame ``i`` recorded (its chain ``G`` and count in ``s``)."""
-    if s.get("defer"):
-        s.setdefault("pending", []).append(
-            (float(t[i]), np.asarray(uv[i]), np.asarray(u_i[i]), G, s["seg"], s["frames"]))
-        return i + 1, ""
-    if _record(s, t[i], unproject(uv[i]), u_i[i], G, s["seg"]):
-        s["judged_at"] = s["frames"]
-        return i + 1, _judge(s, R_imu_st)
-    return i + 1, ""
 
 
 def _record(s: dict[str, Any], t: float, v_st: np.ndarray, u_i: np.ndarray, G: np.ndarray,
