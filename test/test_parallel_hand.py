@@ -109,3 +109,49 @@ def test_a_free_worker_takes_the_next_piece_not_the_busy_one(monkeypatch):
         assert [p() for p in pieces] == ["long", "mid"] + [f"short {i}" for i in range(5)]
     assert _WHERE["long"] != _WHERE["mid"]
     assert {_WHERE[f"short {i}"] for i in range(5)} == {_WHERE["mid"]}
+
+
+#: the pieces in the order they started (module level, as :data:`_WHERE`)
+_STARTED: list[str] = []
+
+
+def _logged(bag, name: str, seconds: float) -> str:
+    _STARTED.append(name)
+    time.sleep(seconds)
+    return name
+
+
+def test_a_spare_piece_goes_out_after_every_queued_one_and_is_dropped_while_queued(
+        monkeypatch):
+    """``Runs.spare`` (the current model's flexure probe beside the candidates' runs, H273):
+    it waits while any other piece is queued, even one queued after it, so that it only
+    fills a worker that would idle at a batch's end; ``cancel()`` drops it while queued
+    (True) and leaves one that is out to run (False).  In this process nothing runs before
+    it is asked for: ``cancel()`` is False and the value is still there."""
+    from distributed import LocalCluster
+
+    _STARTED.clear()
+    monkeypatch.setattr(parallel.DaskRuns, "_place_bag", lambda self: self.bag)
+    bag = object.__new__(BagData)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, \
+            parallel.open_runner(bag, method_spec("psce"), 0.5, 2,
+                                 scheduler=cluster.scheduler_address) as runs:
+        runs.on_bag_each(_logged, [(f"stat {i}", 0.001) for i in range(2)])
+        _STARTED.clear()
+        busy = [runs.later(_logged, "long", 1.5), runs.later(_logged, "mid", 0.4)]
+        time.sleep(0.1)
+        spare = runs.spare(_logged, "spare", 0.2)
+        dropped = runs.spare(_logged, "dropped", 0.2)
+        after = [runs.later(_logged, f"queued {i}", 0.2) for i in range(2)]
+        assert dropped.cancel() is True
+        assert [p() for p in busy + after] == ["long", "mid", "queued 0", "queued 1"]
+        assert spare() == "spare"
+        assert spare.cancel() is False  # out already (finished): nothing dropped
+    assert _STARTED[:2] in (["long", "mid"], ["mid", "long"])
+    assert _STARTED[2:] == ["queued 0", "queued 1", "spare"]
+    here = parallel.Runs(bag, method_spec("psce"), 0.5)
+    monkeypatch.setattr(here, "_compute_on_bag", lambda fn, *args: fn(None, *args))
+    _STARTED.clear()
+    lazy = here.spare(_logged, "lazy", 0.0)
+    assert _STARTED == [] and lazy.cancel() is False and lazy() == "lazy"

@@ -391,6 +391,12 @@ class Round:
     #: it: the caller's runs that need only these start beside them; returns a
     #: :meth:`~.parallel.Runs.run_ahead` ``then`` (or None) for that batch
     on_top: Callable[[RunSummary, Any, Task], Then | None] | None = None
+    #: ``beside(base, candidates)``, called by :func:`rank_round` of a screened round once
+    #: its current model's run (``base``, with the round's noise) is in and the candidates
+    #: it passes are out, before it waits for them (``candidates``: the round's
+    #: :class:`CandidateResult` with their screening): the caller's runs that need only
+    #: ``base`` may start beside them
+    beside: Callable[[RunSummary, list[CandidateResult]], None] | None = None
 
     def tell(self, text: str) -> None:
         """Report progress."""
@@ -560,8 +566,9 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     any physical effect) and runs everything else with the scales it finds (``r.noise``).
 
     ``start`` gives the start values (:func:`rerun_prior`); ``extra`` are the model's
-    effects beyond the baseline.  The screening runs (one per worker, each scoring a part
-    of the candidates) are the current model's re-run; with ``screen=False`` (the caller
+    effects beyond the baseline.  The screening run (scoring every candidate; on several
+    workers the candidates' runs go ahead beside it, those it does not pass cancelled) is
+    the current model's re-run; with ``screen=False`` (the caller
     expects the current model far from consistent, where a local test says nothing) the
     current model and every candidate are re-run at once.  With ``condition`` the strong
     candidates are tested again after the top one (:func:`condition_on_top`).  ``more``:
@@ -609,14 +616,23 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         if base is not None:  # the noise's base run (and its parts) scored the candidates
             screens, out = measured, {}
         else:
-            groups = screening.parts(testable, r.runs.workers)
-            first = [Task(f"screen {i + 1}/{len(groups)}", prior, tuple(extra),
-                          keep_residuals and i == 0, cost=_SCREEN_COST, screen=tuple(g),
-                          star_noise=r.noise is not None and i == 0)
-                     for i, g in enumerate(groups)]
-            out = r.runs.run_all(first + more, r.done)
+            # one run scores every candidate (the one-worker run, bit for bit); on several
+            # workers every candidate's run goes ahead beside it and those its screening
+            # does not pass are cancelled as soon as it is in (as beside the noise's base
+            # run, :func:`measure_round_noise`; until H273 a second worker ran a second
+            # screening run of the same model, scoring half of the candidates)
+            first = [Task("screen 1/1", prior, tuple(extra), keep_residuals,
+                          cost=_SCREEN_COST, screen=tuple(testable),
+                          star_noise=r.noise is not None)]
+            if r.runs.workers > 1 and not cand_tasks:
+                cand_tasks = [_candidate_task(r, prior, extra, e) for e in testable]
+            out = r.runs.run_ahead(first + more, cand_tasks, r.done)
             screens = [out.pop(t.key) for t in first]
             late = []  # ran with the screening
+            if cand_tasks:
+                scores = screening.collect(screens, white=not (r.noise and r.noise.beyond))
+                r.runs.forget_ahead([t for t in cand_tasks
+                                     if t.key in scores and not scores[t.key].passes])
         # motion beyond the IMU's noise correlates the innovations: no local score test
         scores = screening.collect(screens, white=not (r.noise and r.noise.beyond))
         rerun = []
@@ -639,6 +655,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         tasks, made = _take_rivals(r, [built.get(e) or _candidate_task(r, prior, extra, e)
                                        for e in rerun])
         out.update(made)
+        if base is not None and r.beside is not None:
+            r.beside(base, list(cands.values()))
         out.update(r.runs.run_all((tasks if base is not None else [current] + tasks) + late,
                                   r.done))
     else:
@@ -888,11 +906,13 @@ def rank_candidates(
     runs: Runs | None = None,
     measure_noise: bool = False,
     on_top: Callable[[RunSummary, Any, Task], Then | None] | None = None,
+    beside: Callable[[RunSummary, list[CandidateResult]], None] | None = None,
 ) -> tuple[RunSummary, list[CandidateResult]]:
     """Re-run the current model and every candidate; return the base run and the ranking.
 
     ``measure_noise``: measure the noise scales first (the verdict is ``runs.verdict``).
-    ``on_top``: :attr:`Round.on_top` (the caller's runs beside the top candidate's).
+    ``on_top``: :attr:`Round.on_top` (the caller's runs beside the top candidate's);
+    ``beside``: :attr:`Round.beside` (the caller's runs beside the candidates').
 
     ``physical_check=False`` ranks the astrometric scales as free parameters (for measuring
     their detectability at non-physical sizes, ``benchmarks/detectability.py``).  Runs in
@@ -904,7 +924,7 @@ def rank_candidates(
     in_model = set(spec.baseline) | set(extra)
     uncertain = prior_uncertain(calibration, in_model)
     r = Round(runs, spec, runs.facts(), evaluation_fraction, calibration, tuple(uncertain),
-              physical_check, progress, on_top=on_top)
+              physical_check, progress, on_top=on_top, beside=beside)
     pool = uncertain + [e for e in (candidates or registry.candidates()) if e not in uncertain]
     if candidates is not None:
         pool = [e for e in pool if e in candidates]

@@ -256,14 +256,17 @@ def measure_on_bag(data, spec, prior: Calibration, effects: tuple[str, ...], fra
     return {k: np.asarray(res[k])[keep] for k in _MOVED_COLUMNS}
 
 
-def probe_later(runs, prior: Calibration, effects: tuple[str, ...]):
+def probe_later(runs, prior: Calibration, effects: tuple[str, ...], spare: bool = False):
     """The probe run :func:`after_add` makes, as a function to call for its result.
 
     On a cluster it starts now (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.later`):
-    a caller that may need a second test starts it beside the first.
+    a caller that may need a second test starts it beside the first.  ``spare``: a probe
+    the caller may not need, started once a worker has nothing else to do
+    (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.spare`; its ``cancel()`` drops it).
     """
-    return runs.later(measure_on_bag, runs.spec, prior, tuple(effects), runs.fraction,
-                      runs.noise, runs.classes)
+    start = runs.spare if spare else runs.later
+    return start(measure_on_bag, runs.spec, prior, tuple(effects), runs.fraction, runs.noise,
+                 runs.classes)
 
 
 def after_add(runs, run, prior: Calibration, effects: tuple[str, ...], probe=None

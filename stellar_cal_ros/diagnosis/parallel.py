@@ -113,6 +113,9 @@ ON_BAG_PRIORITY = 1_000_000
 #: (a screening part beside the base run) does that first (measured: an ML run ahead taken
 #: before the second screening part held the round up by its length)
 AHEAD_PRIORITY = -1_000_000
+#: priority of :meth:`Runs.spare`: below every run, waited for or ahead (a run ahead's is
+#: :data:`AHEAD_PRIORITY` + 100 × its cost, its cost at least 0)
+SPARE_PRIORITY = AHEAD_PRIORITY - 1
 
 
 @dataclass
@@ -453,6 +456,17 @@ class Runs:
         """
         return lambda: self._compute_on_bag(fn, *args)
 
+    def spare(self, fn: Callable[..., Any], *args: Any) -> Spare:
+        """:meth:`later` for a value the caller may not ask for: started when a worker is spare.
+
+        On a cluster it goes out once no other work is queued (:data:`SPARE_PRIORITY`: a
+        worker that would idle at a batch's end takes it), and the returned
+        :class:`Spare`'s ``cancel()`` drops it while it is queued (True; one already
+        running finishes, False); in this process it runs when asked for (``cancel()``:
+        False, it can still be asked for).  Not cached.
+        """
+        return Spare(self.later(fn, *args))
+
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         batch = self._batches.open()
         try:
@@ -702,17 +716,25 @@ class DaskRuns(Runs):
             return super().later(fn, *args)
         return self._submit_on_bag(fn, *args).result
 
+    def spare(self, fn: Callable[..., Any], *args: Any) -> Spare:  # noqa: D102
+        if self.client is None:
+            return super().spare(fn, *args)
+        soon = self._submit_on_bag(fn, *args, priority=SPARE_PRIORITY)
+        return Spare(soon.result, lambda: self._hand.cancel(soon.future))
+
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         if self.client is None:
             return super()._compute_on_bag(fn, *args)
         return self._submit_on_bag(fn, *args).result()
 
-    def _submit_on_bag(self, fn: Callable[..., Any], *args: Any) -> _Soon:
+    def _submit_on_bag(self, fn: Callable[..., Any], *args: Any,
+                       priority: int = ON_BAG_PRIORITY) -> _Soon:
         """``fn(bag_data, *args)`` submitted now, its own batch on the timeline."""
-        # before any queued run: a statistic of the bag is what the next step waits for
+        # before any queued run (the default): a statistic of the bag is what the next step
+        # waits for
         batch = self._batches.open()
         fut = self._hand(_run, fn.__name__, batch[0], self.remote_bag, _on_bag, fn, *args,
-                         pure=False, priority=ON_BAG_PRIORITY)
+                         pure=False, priority=priority)
         return _Soon(fut, batch, fn.__name__, self._batches)
 
     def forget_tables(self) -> None:  # noqa: D102
@@ -889,14 +911,16 @@ class _Hand:
         self._pump()
         return piece
 
-    def cancel(self, piece: _Handed) -> None:
+    def cancel(self, piece: _Handed) -> bool:
+        """Drop ``piece`` if it is still queued (True); out already: it runs on (False)."""
         with self.lock:
             if piece.future is not None:
-                return  # out already: it finishes and frees its worker then
+                return False  # out already: it finishes and frees its worker then
             piece.cancelled = True
             self._queue = [q for q in self._queue if q[2] is not piece]
             heapq.heapify(self._queue)
         piece._out.set()
+        return True
 
     def _pump(self) -> None:
         """Hand out the queue's first pieces while workers are free."""
@@ -935,6 +959,20 @@ class _Hand:
         for piece in queued:
             piece.cancelled = True
             piece._out.set()
+
+
+@dataclass
+class Spare:
+    """A value :meth:`Runs.spare` started: call it for the value, ``cancel()`` to drop it."""
+
+    get: Callable[[], Any]
+    #: drop it if it has not started: True if dropped (in this process: nothing started,
+    #: False)
+    cancel: Callable[[], bool] = lambda: False
+
+    def __call__(self) -> Any:
+        """The value (waited for on a cluster; computed now in this process)."""
+        return self.get()
 
 
 @dataclass

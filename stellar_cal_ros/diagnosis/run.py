@@ -88,7 +88,9 @@ def diagnose(
         tail = _Tail(runs)
         base, results = rank_candidates(bag, calibration, spec, effects, candidates,
                                         evaluation_fraction, progress=tell, runs=runs,
-                                        measure_noise=check_noise(noise), on_top=tail)
+                                        measure_noise=check_noise(noise), on_top=tail,
+                                        beside=tail.beside)
+        tail.forget()  # (a spare probe no top asked for)
         # the top candidate (a candidate tested after it may be significant too, but it is
         # the one to add first); its re-run from its own calibration is where the next
         # iteration starts, and the structure left is tested on it -- and for a remainder
@@ -153,6 +155,13 @@ class _Tail:
     probes held it up (measured: the refined run last on its worker).  In this process
     nothing runs before it is asked for (:meth:`~stellar_cal_ros.diagnosis.parallel.
     Runs.later`).
+
+    The current model's probe needs only the round's base run: :meth:`beside`
+    (:attr:`~stellar_cal_ros.diagnosis.discover.Round.beside`) starts it beside the
+    candidates' runs as a spare piece (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.
+    spare`: a worker that would idle at the candidates' end takes it) when the screening's
+    most significant candidate may stand in for a flexure and is significant by its score
+    test alone (then probably the top one, H273).
     """
 
     def __init__(self, runs) -> None:
@@ -161,6 +170,36 @@ class _Tail:
         self.probes: tuple | None = None
         #: (the refined run, its :func:`start_reruns`)
         self.started: tuple | None = None
+        #: (base run, noise scales, the current model's probe started by :meth:`beside`)
+        self.early: tuple | None = None
+
+    def beside(self, base, candidates) -> None:
+        """Start the current model's probe as a spare piece when the top may stand in."""
+        if self.runs.workers < 2 or not (base.ok and base.prior is not None
+                                         and base.residuals is not None):
+            return
+        scored = [c for c in candidates if c.screen is not None and c.screen.local]
+        best = min(scored, key=lambda c: c.screen.p_value, default=None)
+        if best is None or best.status != "ranked" or not flexure.may_stand_in(best.effect) \
+                or not best.screen.p_value * 2 * len(scored) < ALPHA:
+            return
+        self.early = (base, self.runs.noise,
+                      flexure.probe_later(self.runs, base.prior, base.effects, spare=True))
+
+    def forget(self) -> None:
+        """Drop the spare probe :meth:`beside` started if nothing took it."""
+        if self.early is not None:
+            self.early[2].cancel()
+            self.early = None
+
+    def _current(self, base):
+        """The current model's probe: :meth:`beside`'s for ``base``, else started now."""
+        early, self.early = self.early, None
+        if early is not None and early[0] is base and early[1] is self.runs.noise \
+                and not early[2].cancel():
+            return early[2]  # running or ran (in hand when asked for)
+        # (still queued at the lowest priority: again at a statistic's, first to go out)
+        return flexure.probe_later(self.runs, base.prior, base.effects)
 
     def __call__(self, base, top, refined):
         def then(task, stats):
@@ -168,8 +207,7 @@ class _Tail:
                 return []
             flexed = (base is not None and base.ok and base.prior is not None
                       and base.residuals is not None and flexure.may_stand_in(top.effect))
-            current = (flexure.probe_later(self.runs, base.prior, base.effects)
-                       if flexed else None)
+            current = self._current(base) if flexed else None
             self.started = (stats, start_reruns(stats, self.runs))
             if flexed:
                 self.probes = (current,
