@@ -522,11 +522,11 @@ def test_existing_dask_scheduler_and_a_bag_sent_as_bytes(tmp_path):
 
 def test_auto_with_two_dask_workers_chooses_as_one_worker(tmp_path):
     """--auto on a 2-worker LocalCluster gives the path of one worker, to the bit: every
-    round's one screening run scores every candidate as the one worker's does, the
-    candidates' runs going ahead beside it (until H273 a round that did not measure the
-    noise again split its screening into two parts, one per worker: other consider sets,
-    equal to rounding, 1.5e-11 relative).  The one worker is this process (``workers=0``;
-    a 1-worker LocalCluster is run in test_existing_dask_scheduler_and_a_bag_sent_as_bytes)."""
+    round's one screening run (here each round measures the noise: its base run, H265)
+    scores every candidate as the one worker's does, the candidates' runs going ahead
+    beside it (rounds that do not: test_auto_with_stated_noise_on_two_workers_...).  The
+    one worker is this process (``workers=0``; a 1-worker LocalCluster is run in
+    test_existing_dask_scheduler_and_a_bag_sent_as_bytes)."""
     sim, data = _sim({"time_offset": 0.01, "gyro_scale_factor": 1e-4}, seed=21,
                      duration=120.0)
     cands = ["time_offset", "pixel_aspect", "gyro_scale_factor", "image_plane_tilt"]
@@ -557,6 +557,38 @@ def test_auto_with_two_dask_workers_chooses_as_one_worker(tmp_path):
         assert ra.keys() == rb.keys()
         for e, (status, p) in ra.items():
             assert rb[e][0] == status and (rb[e][1] == p or np.isnan(p) and np.isnan(rb[e][1]))
+
+
+def _untimed(x):
+    """A summary without what says how and how long it ran (times, executor, paths)."""
+    if isinstance(x, dict):
+        return {k: _untimed(v) for k, v in x.items()
+                if k not in ("seconds", "workers", "executor", "calibration_file")}
+    if isinstance(x, list):
+        return [_untimed(v) for v in x]
+    if not isinstance(x, str):
+        return x
+    return re.sub(r"runs? in [0-9.]+ s|; (in this process|on \d+ local worker processes), "
+                  r"[0-9.]+ s in all", "", x)
+
+
+def test_auto_with_stated_noise_on_two_workers_is_the_one_workers_bit_for_bit(tmp_path):
+    """Rounds that do not measure the noise (every round with ``noise="stated"``; the later
+    rounds of an estimated one) score their candidates in one screening run on several
+    workers too, the candidates' runs going ahead beside it (H273): the 2-worker diagnosis
+    is the one worker's bit for bit but its timings.  On coord dc9e397 it was split in two
+    screening parts (other consider sets): the screened candidates' MDBs differed in the
+    last bits (pixel_aspect 2.3634113756836366e-05 against ...35e-05)."""
+    sim, data = _sim({"time_offset": 0.01, "gyro_scale_factor": 1e-4}, seed=21,
+                     duration=120.0)
+    cands = ["time_offset", "pixel_aspect", "gyro_scale_factor", "image_plane_tilt"]
+    s = {n: diagnose(data, sim.prior, "psce", [], tmp_path / str(n), candidates=cands,
+                     plots=False, verbose=False, auto=True, workers=n, noise="stated")
+         for n in (0, 2)}
+    assert s[2]["executor"] == "on 2 local worker processes"
+    assert len(s[0]["path"]) > 1  # later rounds, each screened without a noise measurement
+    one, two = (json.dumps(_untimed(s[n]), default=float) for n in (0, 2))
+    assert one == two
 
 
 def test_lambda0_and_mdb_against_closed_forms():

@@ -961,7 +961,10 @@ def condition_on_top(r: Round, extra: list[str], results: list[CandidateResult],
              and c.p_adjusted < ALPHA][:max_implausible]
     prior = rerun_prior(top.run.calibration)
     with_top = tuple(extra) + (top.effect,)
-    tasks = [Task("refined " + top.effect, prior, with_top, keep_residuals, cost=1.0)]
+    # the refined run first (the tail's lines and probes wait for it, :attr:`Round.on_top`;
+    # at cost 1 a direction or gyro run after it went out before it)
+    tasks = [Task("refined " + top.effect, prior, with_top, keep_residuals,
+                  cost=_SCREEN_COST)]
     tasks += [Task(c.effect + " after", candidate_prior(prior, c.effect, r.user_prior),
                    with_top + (c.effect,), cost=_cost(c.effect), candidate=True) for c in rest]
     then = r.on_top(base, top, tasks[0]) if r.on_top is not None else None

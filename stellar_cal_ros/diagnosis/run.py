@@ -161,7 +161,7 @@ class _Tail:
     candidates' runs as a spare piece (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.
     spare`: a worker that would idle at the candidates' end takes it) when the screening's
     most significant candidate may stand in for a flexure and is significant by its score
-    test alone (then probably the top one, H273).
+    test alone, local or not (then probably the top one, H273).
     """
 
     def __init__(self, runs) -> None:
@@ -178,7 +178,9 @@ class _Tail:
         if self.runs.workers < 2 or not (base.ok and base.prior is not None
                                          and base.residuals is not None):
             return
-        scored = [c for c in candidates if c.screen is not None and c.screen.local]
+        # the screening's most significant candidate (its score test local or not: a base
+        # run that lost lock still ranks them; the several round's top, time_offset)
+        scored = [c for c in candidates if c.screen is not None]
         best = min(scored, key=lambda c: c.screen.p_value, default=None)
         if best is None or best.status != "ranked" or not flexure.may_stand_in(best.effect) \
                 or not best.screen.p_value * 2 * len(scored) < ALPHA:
