@@ -155,3 +155,53 @@ def test_a_spare_piece_goes_out_after_every_queued_one_and_is_dropped_while_queu
     _STARTED.clear()
     lazy = here.spare(_logged, "lazy", 0.0)
     assert _STARTED == [] and lazy.cancel() is False and lazy() == "lazy"
+
+
+def test_the_current_models_probe_goes_spare_beside_the_candidates_when_the_top_may_stand_in():
+    """``run._Tail.beside``: on several workers the current model's flexure probe starts as
+    a spare piece once the base run is in, when the screening's most significant candidate
+    may stand in for a flexure (not a camera effect) and is significant by its score; the
+    tail takes it while it runs, starts it again at a statistic's priority while it is
+    still queued, and drops it when no top asks for it."""
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.diagnosis.run import _Tail
+
+    started = []
+
+    class FakeRuns:
+        workers, spec, fraction, classes, noise = 2, None, 0.5, (), object()
+
+        def spare(self, fn, *args):
+            started.append(("spare", args[1]))
+            return parallel.Spare(lambda: "early", lambda: self.queued)
+
+        def later(self, fn, *args):
+            started.append(("later", args[1]))
+            return lambda: "now"
+
+    runs = FakeRuns()
+    base = SimpleNamespace(ok=True, prior=object(), residuals=object(), effects=("installation",))
+
+    def cand(effect, p, status="ranked"):
+        return SimpleNamespace(effect=effect, status=status, screen=SimpleNamespace(p_value=p))
+
+    tail = _Tail(runs)
+    tail.beside(base, [cand("pixel_aspect", 1e-12), cand("time_offset", 1e-9)])
+    assert started == [] and tail.early is None  # a camera effect's: no flexure to hide
+    tail.beside(base, [cand("pixel_aspect", 0.2), cand("time_offset", 0.004)])
+    assert started == []  # not significant over 2 x 2 tests
+    tail.beside(base, [cand("pixel_aspect", 0.2), cand("time_offset", 1e-9)])
+    assert started == [("spare", base.prior)]
+    runs.queued = False  # out already: the tail takes it
+    assert tail._current(base)() == "early" and tail.early is None
+    tail.beside(base, [cand("time_offset", 1e-9)])
+    runs.queued = True  # still queued: dropped, started again now
+    assert tail._current(base)() == "now" and started[-1] == ("later", base.prior)
+    tail.beside(base, [cand("time_offset", 1e-9)])
+    tail.forget()
+    assert tail.early is None
+    runs.workers = 1  # in this process: nothing started ahead
+    n = len(started)
+    tail.beside(base, [cand("time_offset", 1e-9)])
+    assert len(started) == n and tail.early is None

@@ -332,6 +332,14 @@ def _tie(x: str, gain: float, c: CandidateResult | None, dof: float
     return {"rival_beside": beside, "beside_rival": stat, "p_value": p, "dof": dof}
 
 
+def _early_probe(early: dict[str, Any], runs) -> Any:
+    """The probe run a round's ``beside`` started for its flexure test, else None.
+
+    (None also when it ran with other noise scales than the runs' now.)
+    """
+    return early.get("probe") if early.get("noise") is runs.noise else None
+
+
 def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
              effects: list[str], output_dir: str | Path, max_rounds: int = 8,
              **options: Any) -> dict[str, Any]:
@@ -380,6 +388,21 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             tell(f"round {k}: {', '.join(model)}; re-runs {runs.description}")
             prior = rerun_prior(state.start)
             state.lead, state.beside = {}, {}
+            # the flexure-shaped test of this round's model (below) needs one probe run of
+            # it with the round's noise, not the candidates: it starts beside their runs
+            # (Round.beside; in this process it runs when asked for, H273)
+            flexed = bool(path and path[-1]["action"] == "add"
+                          and flexure.may_stand_in(state.last)) or state.outside
+            early: dict[str, Any] = {}
+
+            def beside(base, candidates, prior=prior, extra=tuple(state.extra),
+                       flexed=flexed, early=early):
+                if flexed and early.get("noise") is not runs.noise:
+                    early.update(noise=runs.noise,
+                                 probe=flexure.probe_later(runs, prior, extra))
+
+            r.beside = beside
+
             def ranked(measure_noise: bool, prior=prior, local=local):
                 # (this round's model; made again with the gated effects: below)
                 return rank_round(
@@ -410,7 +433,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 # (outside the library): the remainder on this round's model (its run)
                 tell(f"after {state.last}: testing for a gravity-shaped remainder (mount "
                      "flexure)")
-                here = got = flexure.after_add(runs, base, prior, tuple(state.extra))
+                here = got = flexure.after_add(runs, base, prior, tuple(state.extra),
+                                               _early_probe(early, runs))
                 path[-1]["remainder"] = got
                 state.remainders.append((got, [e for e in state.shown() if e not in state.user]))
                 if flexure.significant([flexure.finding(got, [], len(state.remainders))],
@@ -424,7 +448,9 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 else:
                     _alias(state, path)
             elif state.outside:
-                here = flexure.after_add(runs, base, prior, tuple(state.extra))
+                here = flexure.after_add(runs, base, prior, tuple(state.extra),
+                                         _early_probe(early, runs))
+            r.beside = None
             state.prior = prior
             if current is not None and current is not first:
                 current.residuals = None  # keep the first and the newest table only
