@@ -48,6 +48,7 @@ flexure (not a camera effect) and before any add found a remainder (after one,
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -321,26 +322,29 @@ def zone_without(res, fraction: float, centre: tuple[float, float]):
     fitted at a quartile leaves a step's structure that the other lines read, unseen case
     ``lens_zone`` s21: at 424 px, for 400, the 508 px step line and the catalogue-star
     repeat stay), times its size fitted there (:func:`~stellar_cal_ros.diagnosis.stats.
-    whitened_fit`'s ``c``); rows outside the window unchanged.  ``(None, nan)`` when it
-    cannot be fitted.  The radius is an estimate for the removal, not a test: the lines
-    re-tested on what it leaves decide.
+    whitened_fit`'s ``c``); rows outside the window unchanged.  The step is of the image
+    scale (:func:`~stellar_cal_ros.diagnosis.stats.zone_step`'s ``scale``: a unit step left
+    the scale's growth beyond the radius, which the 338 px step line of unseen case
+    ``lens_zone`` s21 read).  Returns ``(residuals, radius, c)``: ``c`` the step's fitted
+    size at the radius (px); ``(None, nan, nan)`` when it cannot be fitted.  The radius is
+    an estimate for the removal, not a test: the lines re-tested on what it leaves decide.
     """
     if res is None or not len(res.get("t", ())):
-        return None, math.nan
+        return None, math.nan, math.nan
     window = stats.accepted(res) & stats.evaluation_mask(res, fraction)
     if window.sum() < 50:
-        return None, math.nan
+        return None, math.nan, math.nan
     sw = {k: np.asarray(v)[window] for k, v in res.items()}
     r_vec = np.stack([stats.predicted_position(sw, "u") - centre[0],
                       stats.predicted_position(sw, "v") - centre[1]], 1)
     r = np.hypot(r_vec[:, 0], r_vec[:, 1])
     if not np.isfinite(r).sum() >= 50:
-        return None, math.nan
+        return None, math.nan, math.nan
     cov = {k: sw[k] for k in ("s_uu", "s_uv", "s_vv")}
     w_nu = stats.whitened(sw)
     best, radius, pattern = -1.0, math.nan, None
     for q in np.linspace(*np.nanpercentile(r, [5.0, 95.0]), ZONE_RADII):
-        x = np.nan_to_num(stats.zone_step(r_vec, q))
+        x = np.nan_to_num(stats.zone_step(r_vec, q, scale=True))
         w_x = stats.whitened({"du": x[:, 0], "dv": x[:, 1], **cov})
         ok = stats.finite_rows(w_x) & stats.finite_rows(w_nu)
         info = float(np.sum(w_x[ok] ** 2))
@@ -349,8 +353,8 @@ def zone_without(res, fraction: float, centre: tuple[float, float]):
             best, radius, pattern = gain, float(q), x
     fit = None if pattern is None else stats.whitened_fit(sw, pattern)
     if fit is None:
-        return None, math.nan
-    return _taken_out(res, window, fit[2] * pattern), radius
+        return None, math.nan, math.nan
+    return _taken_out(res, window, fit[2] * pattern), radius, float(fit[2])
 
 
 def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=frozenset(),
@@ -405,6 +409,7 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
     if not _has_table(run):
         return found, {}
     cause: dict[int, str] = {}
+    fitted: dict[int, dict] = {}  # (the step's fit, for its line: ``detail``)
     cal = calibration or run.calibration
     step = next((f for f in found if stats.zone_radius(f) is not None), None)
     for i, lead in enumerate(found):
@@ -419,7 +424,11 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
         if kind in FIELDS:
             less = without(run.residuals, fraction, kind)
         elif kind == "zone":
-            less = zone_without(run.residuals, fraction, (cal.camera.cx, cal.camera.cy))[0]
+            less, radius, size = zone_without(run.residuals, fraction,
+                                              (cal.camera.cx, cal.camera.cy))
+            if less is not None:  # (the step line is printed at the fitted radius too)
+                fitted[id(lead)] = {"cause": CAUSES["zone"], "radius_px": radius,
+                                    "step_px": size, "scale_ppm": 1e6 * size / radius}
         else:  # the temperature field's pattern: its probes run again (where ``runs``)
             less = None if runs is None else temperature_without(runs, run)
         if less is None:
@@ -439,7 +448,9 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
     if not cause:
         return found, {}
     out = [f for f in found if id(f) not in cause] + [f for f in found if id(f) in cause]
-    return out, {i: cause[id(f)] for i, f in enumerate(out) if id(f) in cause}
+    follows = {i: cause[id(f)] for i, f in enumerate(out) if id(f) in cause}
+    return [dataclasses.replace(f, detail=fitted[id(f)]) if id(f) in fitted else f
+            for f in out], follows
 
 
 def direction(res, fraction: float, kind: str):

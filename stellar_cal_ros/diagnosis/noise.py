@@ -494,8 +494,13 @@ class NoiseVerdict:
                        f" / {self.repeat['dof']:.0f} dof, p = {self.repeat['p_value']:.2g}): "
                        f"a per-star position error of at least {self.repeat['rms_px']:.2g} px "
                        "rms per axis (what the detector cells' means leave of it: with few "
-                       "stars in view they take most) from the catalogue positions or the "
-                       "identification, not centroid noise; the sigma is measured without it")
+                       "stars in view they take most) " + (
+                           f"that follows the {self.repeat['follows']} (its 'unexplained' "
+                           "line: gone once its fit is taken out of the centroids; a star "
+                           "keeps its place on the detector along its track), not the "
+                           "catalogue positions" if self.repeat.get("follows") else
+                           "from the catalogue positions or the identification")
+                       + ", not centroid noise; the sigma is measured without it")
         if self.unknown and self.group is not None and not np.isfinite(self.stated_sigma_px):
             # (every message says 0 and the groups are theirs: the one σ measured over all
             # of them is not what they are given; it read "(used for them)")

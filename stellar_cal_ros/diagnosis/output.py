@@ -6,6 +6,7 @@ selection (:func:`~stellar_cal_ros.diagnosis.auto.discover`).
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -103,6 +104,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
 
         probing = start_probes(reliability, base, runs,
                                {c.effect: c.screen for c in results if c.screen is not None})
+    lock = base.lock_losses()  # (before the tables go: its spans are the table's frames)
     # (the clock and step tests' results kept from the lines': not computed twice)
     parts: dict[str, Any] = {}
     unexplained = line_tests(shown.residuals, calibration, fraction, parts)
@@ -142,9 +144,18 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
 
         summary["bag_losses"] = runs.bag.losses_record()
         summary["data_quality"] = data_quality(losses, 0) + summary["data_quality"]
+    if lock is not None:  # (absent where the filter kept lock)
+        summary["lost_lock"] = lock
     # (not measured: the scales the runs used, ``--noise-scale``'s or the calibration's run's)
     summary["clock_change"] = clock_entry
     summary["installation_step"] = step_entry
+    # the stars' repeat the noise verdict measured, where its line follows a cause (a lens
+    # zone's step: a star keeps its radius along its track) says that cause, not the
+    # catalogue (unseen case lens_zone)
+    echo = next((follows[i] for i, f in enumerate(unexplained)
+                 if f.regressor == "catalogue star" and i in follows), None)
+    if echo is not None and verdict is not None and verdict.repeat:
+        verdict = dataclasses.replace(verdict, repeat=dict(verdict.repeat, follows=echo))
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(getattr(runs, "noise", None) or stated_scales(calibration),
                                      _batch_fit(base, spec)))

@@ -87,6 +87,11 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
         what, span = "", "at the detector's centre"
     elif u["component"] == "size":
         what = "residual spread (size)"
+    elif "radius_px" in (u.get("detail") or {}):  # the lens zone's step, fitted (leads)
+        d = u["detail"]
+        span = (f"across its 5-95 % range; fitted: a step of {abs(d['step_px']):.2g} px at "
+                f"{d['radius_px']:.0f} px, the image scale {d['scale_ppm']:.3g} ppm "
+                f"{'larger' if d['scale_ppm'] > 0 else 'smaller'} beyond it")
     elif (u.get("detail") or {}).get("cause") in DRIFTS:
         span = "at the detector's corner over the run"
     elif u.get("detail"):
@@ -176,9 +181,36 @@ def data_quality_lines(summary: dict[str, Any]) -> list[str]:
     from stellar_cal_ros.methods.results import counts_line, quality_line
 
     out = [counts_line(summary.get("counts", {}))]
+    lock = lost_lock_line(summary.get("lost_lock"))
+    if lock:  # (first: the run's residuals near it are the re-acquisition's)
+        out.insert(0, lock)
     faults = quality_line(summary.get("data_quality", []),
                           "or judge the candidates below with this in mind")
     return out + ([faults] if faults else [])
+
+
+def lost_lock_line(lock: dict[str, Any] | None) -> str:
+    """The filter's lost lock in one line: when, how often, what to do ('' when it kept it).
+
+    ``lock``: ``summary["lost_lock"]`` (:meth:`~stellar_cal_ros.diagnosis.runstats.
+    RunSummary.lock_losses`).  Before, a clause of the noise line and two counts.
+    """
+    if not lock:
+        return ""
+    n = lock["reinitializations"]
+    eps = lock.get("episodes") or []
+    spans = [(f"{a:.2f} s" if b - a < 0.005 else f"{a:.2f}-{b:.2f} s")
+             + f" ({k} frame{'s' if k != 1 else ''})" for a, b, k in eps]
+    when = ("; rejected in a row at t=" + ", ".join(spans[:5])
+            + (f" and {len(spans) - 5} more spans" if len(spans) > 5 else "")
+            + ", t from the first frame kept") if spans else ""
+    return (f"lost lock: the filter lost the attitude and re-acquired it {n} "
+            f"time{'s' if n != 1 else ''} ({lock['frames_lost_lock']} frames counted lost"
+            f"{when}): the model's predictions were far off the stars there (a large missing "
+            "effect, a wrong prior installation or time offset, an IMU gap in a slew, "
+            "misidentified stars or a jump of the stamps); the residuals about those times "
+            "are the re-acquisition's and a line there (a step, a repeat) may be its echo: "
+            "check the bag and the prior at those times before the lines below")
 
 
 def diagnosis_lines(summary: dict, calibration=None) -> list[str]:

@@ -113,6 +113,45 @@ class RunSummary:
         return bool(self.counters.get("reinitializations", 0)
                     or self.counters.get("frames_lost_lock", 0))
 
+    def lock_losses(self) -> dict[str, Any] | None:
+        """When and how often the filter lost lock in the run (``None``: it never did).
+
+        ``{"reinitializations", "frames_lost_lock", "episodes"}``: the kernel's counts, and
+        the spans ``[first, last, frames]`` (s from the residual table's first row, as the other
+        lines' times) of the frames in a row with fewer than ``min_stars`` stars accepted
+        (:class:`~stellar_cal_ros.methods.kernel.KernelConfig`: the frames the filter
+        skipped; three in a row re-acquire); ``episodes`` is ``None`` without a residual
+        table.  (Before, a lost lock was a clause of the noise line and two counts.)
+        """
+        if not self.lost_lock:
+            return None
+        from stellar_cal_ros.methods.kernel import KernelConfig
+
+        out: dict[str, Any] = {
+            "reinitializations": int(self.counters.get("reinitializations", 0)),
+            "frames_lost_lock": int(self.counters.get("frames_lost_lock", 0)),
+            "episodes": None}
+        res = self.residuals
+        if res is None or not len(res.get("t", ())):
+            return out
+        frame = np.asarray(res["frame"])
+        ids, k = np.unique(frame, return_inverse=True)
+        k = k.reshape(-1)
+        accepted = np.bincount(k, ~np.asarray(res["gated"], dtype=bool), len(ids))
+        t = np.bincount(k, np.asarray(res["t"], dtype=float), len(ids)) / np.bincount(
+            k, minlength=len(ids))
+        t = t - float(np.min(res["t"]))
+        # (rejected frames: some star gated, too few accepted; not a frame of few stars)
+        lost = np.flatnonzero((accepted < KernelConfig.min_stars) & (
+            np.bincount(k, minlength=len(ids)) > accepted))
+        # (an episode: lost frames in a row among the frames with rows; a re-acquiring
+        # frame writes none)
+        eps = []
+        for g in np.split(lost, np.flatnonzero(np.diff(lost) > 1) + 1) if len(lost) else []:
+            eps.append([float(t[g[0]]), float(t[g[-1]]), len(g)])
+        out["episodes"] = eps
+        return out
+
     @property
     def sigma(self) -> np.ndarray:
         """Posterior σ of θ."""

@@ -870,21 +870,24 @@ ZONE = "radius (a radial step at"
 ZONE_PERCENTILES = (25.0, 50.0, 75.0)
 
 
-def zone_step(r_vec: np.ndarray, radius: float) -> np.ndarray:
+def zone_step(r_vec: np.ndarray, radius: float, scale: bool = False) -> np.ndarray:
     """The radial step at ``radius`` (px) as displacements ``(n, 2)`` of the stars ``r_vec``.
 
     ``r_vec``: the stars' positions less the centre (px).  The step (1 beyond ``radius``,
     0 within, along each star's radius) less what the camera's radial polynomial (r, r³,
     r⁵ on these stars: the focal length and radial distortion the model fits) takes of
-    it; NaN where a position is not finite.  What :func:`shaped_tests` tests and
-    :func:`~stellar_cal_ros.diagnosis.leads.zone_without` takes out.
+    it; NaN where a position is not finite.  What :func:`shaped_tests` tests.  ``scale``:
+    the step of the image scale itself, ``r / radius`` beyond it (1 at the radius, growing
+    outward as a zone's second focal length moves the stars), what :func:`~stellar_cal_ros.
+    diagnosis.leads.zone_without` takes out (the unit step left the growth beyond it: the
+    lines of the steps at the other radii, unseen case ``lens_zone`` s21's 338 px line).
     """
     r = np.hypot(r_vec[:, 0], r_vec[:, 1])
     fin = np.isfinite(r)
     unit = r_vec / np.maximum(r, 1e-9)[:, None]
     rn = r / np.max(r[fin])
     poly = np.stack([(rn ** k)[fin] for k in (1, 3, 5)], 1)
-    step = (r[fin] > radius).astype(float)
+    step = (r[fin] > radius) * (r[fin] / radius if scale else 1.0)
     left = np.full(len(r), np.nan)
     left[fin] = step - poly @ np.linalg.lstsq(poly, step, rcond=None)[0]
     return unit * left[:, None]
