@@ -239,6 +239,9 @@ def test_a_gyro_error_that_follows_the_rate_is_not_taken_for_a_walk():
     assert not walk["accepted"], walk  # ... but follows the motion
     assert walk["motion_p"][2] < 1e-6 and min(walk["motion_p"][:2]) > 0.01, walk
     assert walk["why"].startswith("its z bias estimate follows the gyro's rate"), walk
+    # the bag's head temperature (0.78 deg C over the window) does not explain it beside the
+    # rate (walk_motion's temperature columns: p 0.46 on z)
+    assert walk["follows"] == "rate" and "beside it the head temperature p = " in walk["why"]
     assert v.applied.gyro_bias_rw == 0.0 and v.skipped
     # the refused walk is said on the terminal (and in the report), after the skip: what
     # was searched, its value and why (before: in diagnosis.json's gyro_bias_rw alone)
@@ -337,3 +340,81 @@ def test_a_refused_walk_is_said_and_one_not_found_is_not():
     for lost in (white, dict(base, p_value=0.3, why="not significant (p = 0.3)"),
                  dict(base, sigma=None, why="no maximum in range"), None):
         assert not any("random walk was searched" in x for x in verdict(lost))
+
+
+def _cooling(post, seed=21):
+    """The 300 s psce bag with its head cooling 30 -> 11 deg C (tau 100 s), ``post`` applied."""
+    import dataclasses
+
+    sim = simulate(dataclasses.replace(get_scenario("psce_rotations"),
+                                       head_temperature_tau_s=100.0), duration=300.0, seed=seed)
+    post(sim)
+    return sim
+
+
+def _gyro_x_bias_with_temperature(sim, deg_h_per_c=2.0):
+    ht = sim.head_temperature
+    temp = np.interp(sim.imu.stamp_ns, ht.stamp_ns, ht.value)
+    w = np.asarray(sim.imu.angular_velocity, dtype=float).copy()
+    w[:, 0] += deg_h_per_c * DEG_PER_HOUR * (temp - temp.mean())
+    sim.imu.angular_velocity = w
+
+
+@pytest.mark.parametrize("post,follows,p_rate,p_temperature", [
+    (lambda sim: tracker_errors.thermal_mount(sim, 2.0), "rate", 3.7e-6, 0.30),
+    (_gyro_x_bias_with_temperature, "head temperature", 1.8e-5, 9.9e-7)])
+def test_a_walk_refused_on_a_cooling_bag_names_the_regressor_it_follows(
+        post, follows, p_rate, p_temperature):
+    """A walk's bias estimate that moves with something is refused with the regressor named
+    (``noise_runs.walk_motion``'s temperature columns beside the rate's, ``follows_motion``).
+    Unseen case ``thermal_mount`` (the mount turning 2″/°C with the head temperature, no
+    gyro error; the walk its noise search found there: 0.681 deg/h/√h), seed 21: the x
+    estimate follows the rate (p 7.8e-5; beside the temperature's columns 3.7e-6), not the
+    temperature (beside the rate 0.30): "follows the gyro's rate", no longer "a gyro error
+    that is a function of the motion" (the turn is seen in the slews).  A gyro x bias
+    changing 2 deg/h per deg C with the same cooling (the same walk): the x estimate
+    follows the temperature (alone 6.9e-5, beside the rate 9.9e-7) more than the rate
+    (alone 4.9e-4, beside the temperature 1.8e-5): "follows the head temperature" (on
+    main: "follows the gyro's rate ...: a gyro error that is a function of the motion").
+    The p's within a factor 100 (seed 21's)."""
+    from stellar_cal_ros.diagnosis.discover import rerun_prior
+    from stellar_cal_ros.diagnosis.noise_runs import follows_motion, walk_motion
+
+    sim = _cooling(post)
+    moved = walk_motion(bag_data_from_simulation(sim), "psce", rerun_prior(sim.prior), (),
+                        NoiseScales(gyro_bias_rw=0.681))
+    walk: dict = {}
+    assert follows_motion(walk, moved), moved
+    said = "gyro's rate" if follows == "rate" else follows
+    assert walk["follows"] == follows and walk["why"].startswith(
+        f"its x bias estimate follows the {said}"), walk
+    rate, temp = moved[0][6], moved[0][7]
+    assert p_rate / 100 < rate < p_rate * 100 and p_temperature / 100 < temp < \
+        min(1.0, p_temperature * 100), moved[0]
+    assert "a gyro error that is a function of the motion" not in walk["why"], walk
+
+
+def test_a_walk_estimate_following_the_temperature_alone_is_said_so():
+    """``follows_motion`` with the head temperature's columns significant and the rate's not
+    (walk_motion's tuple: p_temperature, the rate beside it, the temperature beside the
+    rate): the walk is refused, "follows the head temperature" with both p's beside; where
+    the bag has no head temperature the rate's old sentence is kept."""
+    from stellar_cal_ros.diagnosis.noise_runs import follows_motion
+
+    nan = float("nan")
+    moved = [(1.0, 0.4, 55, 0.5, 10.0, 0.5, 0.6, 0.5), (1.0, 0.3, 55, 0.5, 10.0, 2e-9, 0.2,
+                                                         4e-9),
+             (1.0, 0.5, 55, 0.5, 10.0, 0.7, 0.6, 0.8)]
+    walk: dict = {}
+    assert follows_motion(walk, moved) and walk["follows"] == "head temperature", walk
+    assert walk["why"] == (
+        "its y bias estimate follows the head temperature (p = 2e-09; beside the gyro's rate "
+        "p = 4e-09, the rate beside it p = 0.2): a mount turning with the temperature or a "
+        "gyro bias changing with it, not a wandering bias"), walk
+    walk = {}
+    plain = [m[:5] + (nan, nan, nan) for m in moved]
+    plain[2] = (9.0, 1e-8) + plain[2][2:]
+    assert follows_motion(walk, plain) and walk["follows"] == "rate", walk
+    assert walk["why"] == ("its z bias estimate follows the gyro's rate (p = 1e-08): a gyro "
+                           "error that is a function of the motion, not a wandering bias")
+    assert not follows_motion({}, [m[:5] + (0.5, 0.5, 0.5) for m in moved[:1]] * 3)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -23,6 +24,7 @@ from stellar_cal_ros.core.noise import NoiseScales
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import (
     flexure,
+    leads,
     noise,
     noise_stars,
     output,
@@ -1830,6 +1832,47 @@ def test_a_mount_turning_with_the_head_temperature_gets_no_library_name():
     assert abs(f["turn_px"] - 2.0 * px) < 3 * f["sigma_arcsec_per_c"] * px, f
     assert {c.effect for c, _ in refused} == {"gyro_scale_factor", "gyro_misalignment"}
     assert all(not b["needed"] and b["lead"] == "temperature" for _, b in refused), refused
+    # worth running: its MDB (leads.temperature_mdb) below a plausible mount's
+    assert f["mdb_arcsec_per_c"] < leads.PLAUSIBLE_MOUNT_ARCSEC_PER_C, f
+
+
+def _temperature_of(sim, method="psce"):
+    """``leads.temperature_of`` on the baseline of ``sim``'s bag: ``(fit, lines told, bound)``."""
+    data, spec, prior = bag_data_from_simulation(sim), method_spec(method), \
+        rerun_prior(sim.prior)
+    base = evaluate(data, spec, prior, (), 0.5, keep_residuals=True)
+    runs = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(),
+                           later=lambda fn, *a: lambda: fn(data, *a))
+    told: list[str] = []
+    fit = leads.temperature_of(runs, base, prior, (), 0.01, told.append, "the baseline")
+    return fit, told, leads.temperature_bound(base.residuals, 0.5, 0.01)
+
+
+def test_the_temperature_field_runs_where_its_mdb_is_a_plausible_mounts():
+    """The temperature field is worth running where its MDB (the turn its two-step test
+    sees with power 80 %, ``leads.temperature_mdb``, checked by injection in
+    doc/benchmarks.md) is at most a plausible mount's 2.5″/°C, else the user reads "not
+    testable: temperature changed X deg C".  The clean 300 s psce bag, seed 21 (the head
+    0.78 °C over the window, nearly a straight line in time, which the gyro bias takes up):
+    MDB 5.4″/°C, not testable, no field (H246's gate, a change of 1 °C, chosen for cost,
+    did not run it either).  The same bag cooling with τ 100 s (``thermal_still``, 3.45 °C
+    over the window, curved): MDB 0.48″/°C, the field fitted and nothing found (p 0.53).
+    The bound made before any run (the turn about the best-seen axis, nothing taken up by
+    the model) is below both (0.56, 0.13″/°C), as a bound must be.  Fails on coord 44f8153
+    (no MDB: the field's gate was the change alone, and nothing said)."""
+    sc = get_scenario("psce_rotations")
+    fit, told, bound = _temperature_of(simulate(sc, duration=300.0, seed=21))
+    assert fit is None and len(told) == 2, told
+    assert told[0].startswith("testing for a head-temperature-shaped remainder"), told
+    mdb = float(re.search(r"would see ([0-9.]+) arcsec per deg C", told[1]).group(1))
+    assert told[1].startswith("a mount turning with the head temperature is not testable: "
+                              "temperature changed 0.78 deg C over the window"), told
+    assert mdb > leads.PLAUSIBLE_MOUNT_ARCSEC_PER_C and bound["mdb"] < mdb, (told, bound)
+    fit, told, bound = _temperature_of(simulate(dataclasses.replace(
+        sc, head_temperature_tau_s=100.0), duration=300.0, seed=21))
+    assert fit is not None and fit["p_value"] > 0.01, fit
+    assert fit["mdb_arcsec_per_c"] == pytest.approx(0.48, abs=0.05), fit
+    assert bound["mdb"] < fit["mdb_arcsec_per_c"] and len(told) == 1, (bound, told)
 
 
 def _mag_inverted(sim):

@@ -734,13 +734,10 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
         # slowly turning installation a gyro term or a bias walk may stand in for; unseen
         # case thermal_mount), where the temperature changes over the window
         if flexure.may_stand_in(c.effect):
-            if "temperature" not in state.lead:
-                changes = leads.temperature_changes(base.residuals, runs.fraction)
-                if changes:
-                    tell("testing for a head-temperature-shaped remainder (a mount turning "
-                         f"with it) on {'+'.join(state.shown()) or 'the baseline'}")
+            if "temperature" not in state.lead:  # (where its MDB is a plausible mount's)
                 state.lead["temperature"] = leads.temperature_of(
-                    runs, base, prior, tuple(state.extra)) if changes else None
+                    runs, base, prior, tuple(state.extra), ALPHA, tell,
+                    '+'.join(state.shown()) or 'the baseline')
             beside.update(leads.significant({"temperature": state.lead["temperature"]},
                                             ALPHA))
             if "temperature" in beside:  # a candidate's size along this model's axis
@@ -1235,7 +1232,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         known["gravity"] = leads.gravity_of(runs, final, state.prior, tuple(state.extra))
     if "temperature" in kinds and "temperature" not in known:
         known["temperature"] = leads.temperature_of(runs, final, state.prior,
-                                                    tuple(state.extra))
+                                                    tuple(state.extra), ALPHA)
     fields = leads.findings(final, fraction, kinds, ALPHA, known) if kinds else []
     if any("clock" in b for s in path for b in (s.get("beyond_remainder") or {}).values()):
         # a rate-shaped candidate refused beside a clock's remainder: the clock's line, if

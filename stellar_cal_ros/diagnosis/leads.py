@@ -53,6 +53,7 @@ import math
 
 import numpy as np
 
+from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.units import ARCSEC
 from stellar_cal_ros.diagnosis import flexure, stats
 from stellar_cal_ros.diagnosis.noise_stars import CELL_GRID, detector_cells
@@ -681,20 +682,135 @@ def gravity_of(runs, run, prior: Calibration, effects: tuple[str, ...]
     return as_lead(flexure.after_add(runs, run, prior, tuple(effects)))
 
 
-#: the head temperature must change by at least this much (°C) over the evaluation
-#: window for the temperature field to be fitted (else it is a constant turn, the
-#: installation's, or time's: nothing to go on)
-MIN_TEMPERATURE_CHANGE = 1.0
+#: a plausible mount coefficient (″/°C): the turn with the head temperature the
+#: temperature field must be able to see (its MDB at most this) to be worth running.  Liu
+#: et al., "Method and Implementation of Improving the Pointing Accuracy of an Optical
+#: Remote Sensor Using a Star Sensor", Traitement du Signal 36(4) 311-317 (2019): a star
+#: sensor bracket designed and thermally controlled for it turns < 5″ over its ±1 °C,
+#: 2.5″/°C; a mount not designed for it turns more (unseen case ``thermal_mount``: 2″/°C)
+PLAUSIBLE_MOUNT_ARCSEC_PER_C = 2.5
 
 
-def temperature_changes(res, fraction: float) -> bool:
-    """Whether the head temperature changes by :data:`MIN_TEMPERATURE_CHANGE` in the window."""
+#: the draws (turn axis, direction fitted before the window) of :func:`temperature_mdb`'s
+#: power, and its seed (fixed: the MDB is a number of the bag, the same on every call)
+MDB_DRAWS = 2000
+MDB_SEED = 20261129
+
+
+def temperature_mdb(res, moved: list[dict], fraction: float, fit: dict, alpha: float
+                    ) -> float:
+    """The temperature field's MDB (″/°C): the turn its test sees with power 80 %.
+
+    The field's test is made in two steps (:func:`temperature_fit`): the turn's axis fitted
+    before the evaluation window, the window's innovations then fitted along it; a small
+    turn's axis is mostly noise, and the window's test along a wrong axis sees little of
+    it (the window's σ alone, ``σ δ`` as :func:`~stellar_cal_ros.diagnosis.flexure.hiding`
+    says for the gravity field, was seen in 1 bag of 8 at that size, doc/benchmarks.md).
+    So its power at a rate ``r`` about an axis ``e`` is computed from the probes' whitened
+    responses ``X_b`` before the window and ``X_w`` in it (the filter is linear at these
+    sizes): the axis fitted ``â ~ N(r e, k² (X_bᵀX_b)⁻¹)``, the window's t along it
+    ``âᵀ I_w r e / (k √(âᵀ I_w â))`` (``I_w = X_wᵀX_w``) referred to t_ν two-sided at the
+    level that makes it a lead (``α`` over the fields, :func:`significant`; ν the fit's),
+    ``k`` the fit's frame-robust σ over its whitened one (at least 1), averaged over
+    :data:`MDB_DRAWS` draws of ``â`` and of ``e`` uniform over the directions (a mount
+    turning about any axis); the MDB is the ``r`` where it reaches
+    :data:`~stellar_cal_ros.diagnosis.reliability.POWER`.  NaN where it cannot be made.
+    """
+    from stellar_cal_ros.diagnosis.reliability import POWER
+
+    S, ok = _responses(res, moved)
+    inside = stats.evaluation_mask(res, fraction)
+    a = np.asarray(fit["direction"], dtype=float)
+    (Xb, kb), (Xw, k) = (_whitened_columns({c: np.asarray(v)[m] for c, v in res.items()},
+                                           S[m], a) for m in (ok & ~inside, ok & inside))
+    Ib, Iw = Xb.T @ Xb, Xw.T @ Xw
+    nu = fit.get("coef_nu")
+    if not (nu and k and kb) or np.linalg.matrix_rank(Ib) < 3:
+        return math.nan
+    rng = np.random.default_rng(MDB_SEED)
+    e = rng.standard_normal((MDB_DRAWS, 3))
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    z = rng.standard_normal((MDB_DRAWS, 3)) @ np.linalg.cholesky(kb * kb * np.linalg.inv(Ib)).T
+    crit = float(dist.t.isf(alpha / len(NAMES) / 2.0, nu))
+
+    def power(r: float) -> float:
+        a = r * e + z
+        m = np.sum(a * (r * e @ Iw), 1) / (k * np.sqrt(np.sum(a * (a @ Iw), 1)))
+        return float(np.mean(dist.nct.sf(crit, nu, m)
+                             + np.nan_to_num(dist.nct.sf(crit, nu, -m))))
+
+    lo, hi = 0.0, float(np.sqrt(np.trace(k * k * np.linalg.inv(Iw))))
+    while power(hi) < POWER:
+        lo, hi = hi, 2.0 * hi
+        if hi > 1e6:
+            return math.inf
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if power(mid) < POWER else (lo, mid)
+        if hi - lo < 1e-3 * hi:
+            break
+    return float(hi)
+
+
+def _whitened_columns(sub: dict, x: np.ndarray, a: np.ndarray
+                      ) -> tuple[np.ndarray, float | None]:
+    """The columns ``x`` ``(n, 2, k)`` whitened by ``sub``'s innovation covariance, ``(m, k)``.
+
+    The rows where every column and the innovations are finite, as :func:`_lstsq` fits;
+    with the frame-robust σ of the pattern ``x a``'s fit over its whitened ``1/√info``
+    (:func:`~stellar_cal_ros.diagnosis.stats.pattern_size`, at least 1; ``None`` where no
+    test can be made): how much more the stars of a frame share than the whitening says.
+    """
+    cov = {k: sub[k] for k in ("s_uu", "s_uv", "s_vv")}
+    w_x = np.stack([stats.whitened({"du": x[:, 0, j], "dv": x[:, 1, j], **cov})
+                    for j in range(x.shape[2])], 2)
+    ok = stats.finite_rows(stats.whitened(sub)) & np.all(np.isfinite(w_x), (1, 2))
+    cols = w_x[ok].reshape(-1, x.shape[2])
+    info = float(np.sum((cols @ a) ** 2))
+    sized = stats.pattern_size(sub, x @ a) if info > 0 else None
+    return cols, (None if sized is None else max(1.0, sized["coef_sigma"] * math.sqrt(info)))
+
+
+def temperature_bound(res, fraction: float, alpha: float) -> dict[str, float] | None:
+    """What the temperature field could see at best, before any run: ``{change_c, mdb}``.
+
+    ``change_c`` the head temperature's range over the evaluation window (°C); ``mdb`` a
+    lower bound of the field's MDB (″/°C): a turn ``(T − T̄) e`` about the tracker axis
+    ``e`` the window's stars see best (:func:`~stellar_cal_ros.diagnosis.stats.
+    attitude_columns`), whitened by the innovations' covariance, the stars independent and
+    nothing of it taken up by the model's states (a filter takes some up: the field's own
+    MDB, from its probes, is 3-7x this on the 300 s bags measured, doc/benchmarks.md), at
+    the field's level and power for the normal (:func:`temperature_mdb`).  ``None``
+    without a finite head temperature in the window; ``mdb`` inf where it does not change.
+    """
+    from stellar_cal_ros.diagnosis.reliability import delta_t
+
     if res is None or "head_temperature" not in res or not len(res["head_temperature"]):
-        return False
-    temp = np.asarray(res["head_temperature"], dtype=float)[stats.evaluation_mask(res,
-                                                                                   fraction)]
-    temp = temp[np.isfinite(temp)]
-    return len(temp) > 0 and float(np.ptp(temp)) >= MIN_TEMPERATURE_CHANGE
+        return None
+    temp = np.asarray(res["head_temperature"], dtype=float)
+    w = stats.evaluation_mask(res, fraction) & stats.accepted(res) & np.isfinite(temp)
+    if w.sum() < 2:
+        return None
+    sub = {k: np.asarray(v)[w] for k, v in res.items()}
+    g = temp[w] - float(np.mean(temp[w]))
+    A = stats.attitude_columns(sub, *_focal(sub)) * ARCSEC  # px per ″
+    cols = [stats.whitened({"du": A[:, 0, j] * g, "dv": A[:, 1, j] * g, "s_uu": sub["s_uu"],
+                            "s_uv": sub["s_uv"], "s_vv": sub["s_vv"]}) for j in range(3)]
+    ok = np.all([stats.finite_rows(c) for c in cols], axis=0)
+    X = np.stack([c[ok].ravel() for c in cols], axis=1)
+    top = float(np.linalg.eigvalsh(X.T @ X)[-1]) if ok.any() else 0.0
+    mdb = delta_t(alpha / len(NAMES), 1e4) / np.sqrt(top) if top > 0 else math.inf
+    return {"change_c": float(np.ptp(temp[w])), "mdb": float(mdb)}
+
+
+def not_testable(change_c: float, mdb: float, bound: bool) -> str:
+    """The line said where the temperature field is not worth running (its MDB too large)."""
+    what = ("even a model that takes none of the turn up would see" if bound else
+            "its field would see")
+    return (f"a mount turning with the head temperature is not testable: temperature "
+            f"changed {change_c:.2g} deg C over the window ({what} {mdb:.3g} arcsec per deg C "
+            f"at best with power 80 %, above a plausible mount's "
+            f"{PLAUSIBLE_MOUNT_ARCSEC_PER_C:g})")
 
 
 def temperature_probes(runs, prior: Calibration, effects: tuple[str, ...]):
@@ -823,23 +939,47 @@ def _turn_px(sub: dict, rho: np.ndarray) -> float:
     The pinhole's focal lengths from the table itself (``u`` against ``x/z``, ``v`` against
     ``y/z``, a straight-line fit).
     """
-    x, y, z = (np.asarray(sub[k], dtype=float) for k in ("x_st", "y_st", "z_st"))
-    fx = np.polyfit(x / z, np.asarray(sub["u"], dtype=float), 1)[0]
-    fy = np.polyfit(y / z, np.asarray(sub["v"], dtype=float), 1)[0]
-    d = stats.attitude_columns(sub, fx, fy) @ rho
+    d = stats.attitude_columns(sub, *_focal(sub)) @ rho
     return float(np.percentile(np.hypot(d[:, 0], d[:, 1]), 99))
 
 
-def temperature_of(runs, run, prior: Calibration, effects: tuple[str, ...]) -> dict | None:
+def _focal(sub: dict) -> tuple[float, float]:
+    """The pinhole's focal lengths (px) of a residual table: ``u`` on ``x/z``, ``v`` on ``y/z``."""
+    x, y, z = (np.asarray(sub[k], dtype=float) for k in ("x_st", "y_st", "z_st"))
+    return (float(np.polyfit(x / z, np.asarray(sub["u"], dtype=float), 1)[0]),
+            float(np.polyfit(y / z, np.asarray(sub["v"], dtype=float), 1)[0]))
+
+
+def temperature_of(runs, run, prior: Calibration, effects: tuple[str, ...], alpha: float,
+                   tell=None, what: str = "") -> dict | None:
     """The temperature field's fit on the current model ``run`` (its residuals kept).
 
-    ``None`` where the head temperature does not change by
-    :data:`MIN_TEMPERATURE_CHANGE` over the window (no run then) or the test cannot be made.
+    Run only where it is worth running: where its MDB (:func:`temperature_mdb`, with
+    ``mdb_arcsec_per_c`` in the fit) is at most :data:`PLAUSIBLE_MOUNT_ARCSEC_PER_C`,
+    first bounded without a run (:func:`temperature_bound`: above it, no probe runs), then
+    measured on its probes (three runs).  Where it is not, :func:`not_testable`'s line is
+    told and ``None`` returned, as where the bag has no head temperature (nothing told) or
+    the test cannot be made.  ``tell``, ``what``: the progress line (``what`` the model).
     """
-    if not _has_table(run) or not temperature_changes(run.residuals, runs.fraction):
+    say = tell or (lambda _: None)
+    bound = temperature_bound(run.residuals, runs.fraction, alpha) if _has_table(run) \
+        else None
+    if bound is None:
         return None
-    return temperature_fit(run.residuals, temperature_probes(runs, prior, effects),
-                           runs.fraction)
+    if not bound["mdb"] <= PLAUSIBLE_MOUNT_ARCSEC_PER_C:
+        say(not_testable(bound["change_c"], bound["mdb"], True))
+        return None
+    say("testing for a head-temperature-shaped remainder (a mount turning with it) on "
+        f"{what or 'the model'}")
+    moved = temperature_probes(runs, prior, effects)
+    fit = temperature_fit(run.residuals, moved, runs.fraction)
+    if fit is None:
+        return None
+    fit["mdb_arcsec_per_c"] = temperature_mdb(run.residuals, moved, runs.fraction, fit, alpha)
+    if not fit["mdb_arcsec_per_c"] <= PLAUSIBLE_MOUNT_ARCSEC_PER_C:
+        say(not_testable(fit["temperature_change_c"], fit["mdb_arcsec_per_c"], False))
+        return None
+    return fit
 
 
 def significant(found: dict[str, dict | None], alpha: float) -> dict[str, dict]:
@@ -908,3 +1048,4 @@ def vanished(with_c: dict, lead: dict, dof: int, alpha: float) -> bool:
     from stellar_cal_ros.diagnosis import rolling
 
     return rolling.vanished(with_c, lead, alpha, dof, len(NAMES))
+

@@ -133,8 +133,15 @@ def walk_motion(bag, method: str, prior, effects: tuple[str, ...], noise: NoiseS
     constant).  A walk's increments are independent of the motion; a gyro error that is a
     function of the rate (a scale factor, one by the rate's sign) moves the estimate as the
     rate changes.  The same increments are also tested for one periodic term
-    (:func:`~stellar_cal_ros.diagnosis.stats.fisher_g`: a walk's increments are white).
-    Returns ``[(F, p, blocks, p_periodic, period_s)]`` per axis (nan where too few blocks).
+    (:func:`~stellar_cal_ros.diagnosis.stats.fisher_g`: a walk's increments are white) and,
+    where the bag's head temperature changes, against it (:func:`_temperature_columns`: a
+    bias changing with the temperature, a mount turning with it, whose turn δ(T) the
+    estimate takes up as its rate and, in the slews, as ``ω × δ(T)``), alone (with a
+    constant; ``p_temperature``) and each family beside the other (:func:`_family_p`; the
+    rate's family there every axis's block mean rate and this axis's mean absolute rate),
+    which says which of the two the estimate follows.  Returns ``[(F, p, blocks,
+    p_periodic, period_s, p_temperature, p_rate_beside, p_temperature_beside)]`` per axis
+    (nan where too few blocks or no temperature); ``F``, ``p`` (the rate alone) as before.
     """
     import numpy as np
 
@@ -147,14 +154,17 @@ def walk_motion(bag, method: str, prior, effects: tuple[str, ...], noise: NoiseS
     ti, wi = np.asarray(bag.imu_t, dtype=float), np.asarray(bag.imu_w, dtype=float)
     out = []
     names = [k for k in h if k.startswith("gyro_bias.")]
+    nan4 = (math.nan,) * 3
     if len(t) < 2 or len(names) != 3:
-        return [(math.nan, math.nan, 0, math.nan, math.nan)] * 3
+        return [(math.nan, math.nan, 0, math.nan, math.nan) + nan4] * 3
     edges = np.arange(t[0] + MOTION_SKIP, t[-1], MOTION_BLOCK)
     idx = np.searchsorted(ti, edges)
+    heat = _temperature_columns(bag, edges, idx, ti, wi)
+    rates = None
     for ax, name in enumerate(names):
         spans = [(a, c) for a, c in zip(idx[:-1], idx[1:], strict=True)]
         if len(spans) < 8 or any(c <= a for a, c in spans):
-            out.append((math.nan, math.nan, len(spans), math.nan, math.nan))
+            out.append((math.nan, math.nan, len(spans), math.nan, math.nan) + nan4)
             continue
         b = np.interp(edges, t, np.asarray(h[name], dtype=float))
         mean = np.array([wi[a:c, ax].mean() for a, c in spans])
@@ -166,9 +176,67 @@ def walk_motion(bag, method: str, prior, effects: tuple[str, ...], noise: NoiseS
         dfe = len(y) - 3
         f = (rss0 - rss1) / 2.0 / max(rss1 / dfe, 1e-300)
         p_per, k = fisher_g(np.diff(b))
+        if heat is not None and rates is None:  # every axis's block mean rate
+            rates = np.diff(np.add.reduceat(wi[idx[0]:idx[-1]], idx[:-1] - idx[0], axis=0)
+                            / np.diff(idx)[:, None], axis=0)
+        both = None if heat is None else np.column_stack([rates, np.diff(mabs)])
+        temp = nan4 if heat is None else (_family_p(y, x[:, :1], heat),
+                                          _family_p(y, np.column_stack([x[:, :1], heat]),
+                                                    both),
+                                          _family_p(y, np.column_stack([x[:, :1], both]),
+                                                    heat))
         out.append((float(f), float(dist.f.sf(f, 2, dfe)), len(spans), p_per,
-                    MOTION_BLOCK * (len(b) - 1) / k if k else math.nan))
+                    MOTION_BLOCK * (len(b) - 1) / k if k else math.nan) + temp)
     return out
+
+
+def _temperature_columns(bag, edges, idx, ti, wi):
+    """The temperature's columns of :func:`walk_motion` (``(blocks − 1, 5)``), or ``None``.
+
+    The head temperature ``T`` (s from the bag's start; ``T'`` about its mean) at the
+    blocks' ``edges`` and at the IMU's samples ``ti`` (the blocks' ``idx``): each block's
+    change of ``T`` (a bias changing with it), the change of that change (a mount turning
+    with it: the bias takes up the turn's rate) and, per gyro axis, the change of the
+    block's mean ``ω T'`` (the turn ``δ(T)`` seen in the slews as ``ω × δ``, the block
+    means differenced from block to block as the rate's are); ``None`` without a head
+    temperature or where it does not change over the blocks.
+    """
+    import numpy as np
+
+    series = getattr(bag, "head_temperature", None)
+    if series is None or len(series.stamp_ns) < 2 or len(edges) < 3 or \
+            np.any(np.diff(idx) <= 0):
+        return None
+    s = (np.asarray(series.stamp_ns, dtype=np.int64) - bag.t0_ns) * 1e-9
+    v = np.asarray(series.value, dtype=float)
+    fin = np.isfinite(v)
+    if fin.sum() < 2:
+        return None
+    order = np.argsort(s[fin], kind="stable")
+    s, v = s[fin][order], v[fin][order]
+    temp = np.interp(edges, s, v)
+    if not np.ptp(temp) > 0:
+        return None
+    step = np.diff(temp)  # each block's change
+    at = np.interp(ti[idx[0]:idx[-1]], s, v)
+    wt = wi[idx[0]:idx[-1]] * (at - at.mean())[:, None]
+    turn = np.add.reduceat(wt, idx[:-1] - idx[0], axis=0) / np.diff(idx)[:, None]
+    return np.column_stack([step[1:], np.diff(step), np.diff(turn, axis=0)])
+
+
+def _family_p(y, base, extra) -> float:
+    """The p of the columns ``extra`` beside ``base`` fitting ``y`` (partial F, their rank)."""
+    import numpy as np
+
+    full = np.column_stack([base, extra])
+    r0, r1 = np.linalg.matrix_rank(base), np.linalg.matrix_rank(full)
+    dfe = len(y) - r1
+    if r1 <= r0 or dfe < 1:
+        return math.nan
+    rss0 = np.sum((y - base @ np.linalg.lstsq(base, y, rcond=None)[0]) ** 2)
+    rss1 = np.sum((y - full @ np.linalg.lstsq(full, y, rcond=None)[0]) ** 2)
+    f = (rss0 - rss1) / (r1 - r0) / max(rss1 / dfe, 1e-300)
+    return float(dist.f.sf(f, r1 - r0, dfe))
 
 
 def _axis_below(ps: list[float]) -> tuple[int, float] | None:
@@ -186,14 +254,60 @@ def follows_motion(walk: dict, moved: list[tuple], tell=None) -> bool:
     rate is a missing effect, not a wandering bias (the z gyro 500 ppm high for positive
     rates and low for negative on the clean 300-s psce bag: a walk of 29 deg/h/√h was
     accepted, doc/benchmarks.md, H160).  Records the axes' p in ``walk['motion_p']``.
+
+    Where the bag's head temperature changes, the estimate following it (``walk
+    ['temperature_p']``, at the same level) is not a walk either, and the reason names the
+    regressor the estimate follows (``walk['follows']``: ``"rate"`` or ``"head
+    temperature"``, whichever explains it beside the other: the smaller p of the two
+    families each beside the other) with the other's p beside it; ``"rate and head
+    temperature"`` where the rate wins and the temperature is significant beside it too.
+    A rate it follows there is not said to be a gyro error: unseen case ``thermal_mount``
+    s21 (the mount turning 2″/°C with the head temperature, no gyro error), the walk's x
+    estimate follows the rate (p 7.8e-5; beside the temperature's columns 3.7e-6) and not
+    the temperature (0.22; beside the rate 0.30): the turn is seen in the slews, which the
+    rate's changes mark.  A gyro x bias changing 2 deg/h per °C with the same cooling (no
+    rate error): the rate beside the temperature p 3.5e-8, the temperature beside the rate
+    2.9e-4, both said (the estimate moves when the slews make the bias seen).
     """
     walk["motion_p"] = [m[1] for m in moved]
+    walk["temperature_p"] = [m[5] if len(m) > 5 else math.nan for m in moved]
     hit = _axis_below(walk["motion_p"])
-    if hit is None:
+    heat = _axis_below(walk["temperature_p"])
+    if hit is None and heat is None:
         return False
-    i, p = hit
-    _not_taken(walk, f"its {'xyz'[i]} bias estimate follows the gyro's rate (p = {p:.2g}): a "
-               "gyro error that is a function of the motion, not a wandering bias", tell)
+    i, p = min((h for h in (hit, heat) if h is not None), key=lambda h: h[1])
+    m = moved[i]
+    beside = (m[6], m[7]) if len(m) > 7 else (math.nan, math.nan)
+    hot = heat is not None and (hit is None or beside[1] < beside[0]
+                                or (math.isnan(beside[0]) and not math.isnan(beside[1])))
+    also = not hot and beside[1] < ALPHA / len(moved)  # the temperature beside the rate too
+    walk["follows"] = "head temperature" if hot else "rate and head temperature" if also \
+        else "rate"
+    if hot:
+        p = m[5]
+        why = (f"its {'xyz'[i]} bias estimate follows the head temperature (p = {p:.2g}; "
+               f"beside the gyro's rate p = {beside[1]:.2g}, the rate beside it p = "
+               f"{beside[0]:.2g}): a mount turning with the temperature or a gyro bias "
+               "changing with it, not a wandering bias")
+    elif math.isnan(beside[1]):  # (no head temperature that changes)
+        p = m[1]
+        why = (f"its {'xyz'[i]} bias estimate follows the gyro's rate (p = {p:.2g}): a gyro "
+               "error that is a function of the motion, not a wandering bias")
+    elif also:
+        p = m[1]
+        why = (f"its {'xyz'[i]} bias estimate follows the gyro's rate (p = {p:.2g}; beside "
+               f"the head temperature p = {beside[0]:.2g}) and the head temperature beside "
+               f"the rate (p = {beside[1]:.2g}): it moves as the motion and the temperature "
+               "change (a gyro error, or the tracker turning against the IMU), not a "
+               "wandering bias")
+    else:  # the rate, and not the temperature beside it: the motion shows it, whatever it is
+        p = m[1]
+        why = (f"its {'xyz'[i]} bias estimate follows the gyro's rate (p = {p:.2g}; beside "
+               f"it the head temperature p = {beside[1]:.2g}, the rate beside that p = "
+               f"{beside[0]:.2g}): it moves as the motion changes (a gyro error of the "
+               "rate, or the tracker turning against the IMU in the slews), not a wandering "
+               "bias")
+    _not_taken(walk, why, tell)
     return True
 
 
