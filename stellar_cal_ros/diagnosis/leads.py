@@ -805,11 +805,12 @@ def temperature_bound(res, fraction: float, alpha: float) -> dict[str, float] | 
 
 def not_testable(change_c: float, mdb: float, bound: bool) -> str:
     """The line said where the temperature field is not worth running (its MDB too large)."""
-    what = ("even a model that takes none of the turn up would see" if bound else
+    what = ("even a model that takes none of the turn up would see at best" if bound else
             "its field would see")
+    axis = "about the axis seen best" if bound else "about an axis at random"
     return (f"a mount turning with the head temperature is not testable: temperature "
             f"changed {change_c:.2g} deg C over the window ({what} {mdb:.3g} arcsec per deg C "
-            f"at best with power 80 %, above a plausible mount's "
+            f"with power 80 %, a turn {axis}, above a plausible mount's "
             f"{PLAUSIBLE_MOUNT_ARCSEC_PER_C:g})")
 
 
