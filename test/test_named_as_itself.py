@@ -150,3 +150,18 @@ def test_a_stages_candidates_share_a_screening_part():
         where = {e: i for i, p in enumerate(parts) for e in p}
         assert where["tangential"] == where["principal_point"] == where["image_plane_tilt"]
         assert where["gyro_scale_factor"] == where["gyro_misalignment"]
+
+
+def test_a_restated_mdb_raises_the_size_named_as_itself_with_it():
+    """``mdb_identified`` is at least ``mdb`` (doc/interfaces.md): a probe's restatement
+    that raises the MDB past it raises it too; one below it leaves it (the review found
+    gyro_scale_factor sx 2.863e-3 < its MDB 2.948e-3 in a dt_step diagnosis.json)."""
+    from stellar_cal_ros.diagnosis.reliability_probe import restate
+
+    entry = {"mdb": {"sx": 1.0, "sy": 1.0}, "mdb_identified": {"sx": 1.5}}
+    restate(entry, "sx", 2.0)
+    restate(entry, "sy", 3.0)
+    assert entry["mdb"] == {"sx": 2.0, "sy": 3.0}
+    assert entry["mdb_identified"] == {"sx": 2.0}
+    restate(entry, "sx", 1.2)
+    assert entry["mdb_identified"] == {"sx": 2.0} and entry["mdb"]["sx"] == 1.2

@@ -473,16 +473,19 @@ def _alternatives(cand: CandidateResult) -> dict[str, Any]:
 
 
 def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference: Reference,
-                    alpha_mdb: float, dispersion: float = 1.0, gated: bool = False) -> None:
+                    alpha_mdb: float, dispersion: float = 1.0) -> None:
     """Decision inputs of one augmented run: detectability, Λ, p, physical size.
 
     ``dispersion``: the one the MDB is stated for (:func:`reliability.detectability`).
-    ``gated``: the MDB is also the excess gate's where that asks more.  The gate decides
+    The MDB is also the excess gate's where that asks more (:func:`_gated`).  The gate decides
     in every round, screened or not, so the MDB printed is its size wherever it binds: a
     screened round's MDB was the test's alone (unseen case ``sway_jitter`` s22, 1 ms stamp
     jitter, NIS/dof 5.86: time_offset 'MDB dt 0.0194 ms' printed while 0.087 ms, p 2.4e-9,
     was refused for removing 1 % of the excess; the gate's MDB is 0.449 ms, and an offset
-    injected at it is added: test_discovery_auto).
+    injected at it is added: test_discovery_auto).  Checked by injection there only: a
+    far-off model's first round (the swaying 300-s diagnose, NIS/dof 95 without the lens'
+    radial terms) now prints the gate's MDB too (time_offset 1.46 ms, 74x the test's alone),
+    not checked by injection.
     """
     cand.run = run
     sl = run.block(cand.effect)
@@ -499,11 +502,8 @@ def _fill_candidate(r: Round, cand: CandidateResult, run: RunSummary, reference:
         return
     cand.seen_dof = seen_dof(run, cand.effect)
     cand.statistic, cand.p_value, cand.explained = reference.compare(run, cand.seen_dof)
-    gate = reference.gate_energy(cand.explained) if gated else 0.0
-    if gate > 0.0:  # the MDB is the size the decision finds: its excess gate too
-        cand.detect = reliability.detectability(
-            cand.effect, info, alpha_mdb, r.user_prior, dispersion, gate,
-            cand.screen.score if cand.screen is not None else None, **_alternatives(cand))
+    # the MDB is the size the decision finds: its excess gate too
+    _gated(r, cand, info, alpha_mdb, dispersion, reference.gate_energy(cand.explained))
     phys = eff.physical_value
     if r.physical_check and phys is not None:
         est, sig = float(value[0]), float(sig_post[0])
@@ -694,7 +694,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         # not screened (the current model far from consistent): the ratio statistic alone
         # decides, divided by the reference's dispersion, and the MDB is stated for it
         _fill_candidate(r, c, run, reference, alpha_mdb,
-                        1.0 if use_score else reference.dispersion, gated=True)
+                        1.0 if use_score else reference.dispersion)
     for c in cands.values():
         if c.status == "screened_out" and c.screen is not None:
             _gate_screened_out(r, c, reference, alpha_mdb)
@@ -722,11 +722,16 @@ def _gate_screened_out(r: Round, cand: CandidateResult, reference: Reference,
     """
     if cand.detect is None or not cand.detect.testable or not reference.excess > reference.floor:
         return
-    gate = reference.gate_energy(0.0)
+    _gated(r, cand, window_information(cand), alpha_mdb, 1.0, reference.gate_energy(0.0))
+
+
+def _gated(r: Round, cand: CandidateResult, info: np.ndarray, alpha_mdb: float,
+           dispersion: float, gate: float) -> None:
+    """``cand``'s MDB the excess gate's (``gate``: :meth:`Reference.gate_energy`) where > 0."""
     if gate > 0.0:
         cand.detect = reliability.detectability(
-            cand.effect, window_information(cand), alpha_mdb, r.user_prior, 1.0, gate,
-            cand.screen.score)
+            cand.effect, info, alpha_mdb, r.user_prior, dispersion, gate,
+            cand.screen.score if cand.screen is not None else None, **_alternatives(cand))
 
 
 def _take_rivals(r: Round, tasks: list[Task]) -> tuple[list[Task], dict[str, RunSummary]]:

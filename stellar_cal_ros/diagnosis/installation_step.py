@@ -262,8 +262,13 @@ def jittered(offsets: tuple) -> bool:
     12.1 (p 0.77 / 1; clean s21 13.5).  A knock during a slew on such a bag is not
     tested there.
     """
+    return stamp_sigma(offsets) is not None
+
+
+def stamp_sigma(offsets: tuple) -> float | None:
+    """:func:`jittered`'s stamp noise σ̂_t (s), or None where its p is not below it."""
     got = stats.stamp_noise(*offsets[:5])
-    return got is not None and got[0] < STAMP_ALPHA and got[1] > 0
+    return got[1] if got is not None and got[0] < STAMP_ALPHA and got[1] > 0 else None
 
 
 def stamp_spread(sub: stats.Table, offsets: tuple, frames: np.ndarray, cov3: np.ndarray,
@@ -292,8 +297,8 @@ def stamp_spread(sub: stats.Table, offsets: tuple, frames: np.ndarray, cov3: np.
     kept, its line said first (at 64.0 s: not kept).  There the term is left out, and a
     test over all frames is made at rest where the stamps jitter (:func:`jittered`).
     """
-    got = stats.stamp_noise(*offsets[:5])
-    if got is None or not got[0] < STAMP_ALPHA or not got[1] > 0:
+    sig_t = stamp_sigma(offsets)
+    if sig_t is None:
         return cov3, None
     fr, kk = stats.frames_of(np.asarray(sub["frame"]))
     w = np.stack([np.asarray(sub[f"omega_{x}"], dtype=float) for x in "xyz"], 1) \
@@ -303,7 +308,7 @@ def stamp_spread(sub: stats.Table, offsets: tuple, frames: np.ndarray, cov3: np.
     mean = np.stack([np.bincount(kk[ok], w[ok, i], minlength=len(fr)) for i in range(3)], 1) \
         / np.maximum(n, 1)[:, None]
     om = mean[np.searchsorted(fr, frames)]
-    return cov3 + got[1] ** 2 * np.einsum("ni,nj->nij", om, om), got[1]
+    return cov3 + sig_t**2 * np.einsum("ni,nj->nij", om, om), sig_t
 
 
 #: what the size of a step tested over frames that move is (:meth:`InstallationStep.

@@ -501,7 +501,7 @@ def mdb_phrase(entry: dict[str, Any]) -> str:
 def identified_phrase(entry: dict[str, Any]) -> str:
     """From which size an effect whose shape others share is named as itself, or ''.
 
-    ``"; principal_point, image_plane_tilt share 89-90% of its shape on this motion: named
+    ``"; image_plane_tilt, principal_point share 89-90% of its shape on this motion: named
     as itself (not as one of them, nor with 'or' one) from p1 0.000172, p2 0.000169"``
     (``mdb_identified``, :func:`reliability.identification`): the parameters whose size
     exceeds their MDB; one beyond its plausible size is "not below its plausible size".

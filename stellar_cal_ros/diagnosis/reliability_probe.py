@@ -626,8 +626,20 @@ def both_signs(entry: dict[str, Any], parameter: str, d_plus: np.ndarray | None,
     step = float(np.sqrt(lam0 / worse))
     entry.setdefault("mdb_test", dict(entry["mdb"]))
     entry["mdb_set_by"] = "probe"
-    entry["mdb"][parameter] = float(mdb * step)
+    restate(entry, parameter, mdb * step)
     return (1.0 if lam["lam_plus"] <= lam["lam_minus"] else -1.0), step
+
+
+def restate(entry: dict[str, Any], parameter: str, value: float) -> None:
+    """``entry``'s printed MDB of ``parameter`` restated by runs on the bag: ``value``.
+
+    ``mdb_identified`` (:func:`~.reliability.identification`) is at least the MDB: it
+    follows a raised one.
+    """
+    entry["mdb"][parameter] = float(value)
+    ident = entry.get("mdb_identified") or {}
+    if parameter in ident:
+        ident[parameter] = max(float(ident[parameter]), entry["mdb"][parameter])
 
 
 def response(d: np.ndarray, screen) -> float:
@@ -649,7 +661,7 @@ def secant(entry: dict[str, Any], parameter: str, step: float, lam_step: float) 
     probe.update(step=step, lam_step=lam_step)
     beyond = secant_beyond(probe, float(entry["lam0"]), step, lam_step)
     if beyond is not None:
-        entry["mdb"][parameter] = float(entry["mdb_test"][parameter] * step * beyond)
+        restate(entry, parameter, entry["mdb_test"][parameter] * step * beyond)
 
 
 def secant_beyond(probe: dict[str, float], lam0: float, step: float, lam_step: float
@@ -724,7 +736,7 @@ def restate_test(entry: dict[str, Any], parameter: str, step: float, lam_step: f
         entry.setdefault("mdb_test", dict(entry["mdb"]))
         entry["mdb_set_by"] = "probe"
     entry[key][parameter] = first * step * (1.0 if beyond is None else beyond)
-    entry["mdb"][parameter] = max(float(entry["mdb"][parameter]), entry[key][parameter])
+    restate(entry, parameter, max(float(entry["mdb"][parameter]), entry[key][parameter]))
 
 
 def _started(runs, args: tuple, probes: tuple, per: int, fn: Callable | None = None
@@ -795,7 +807,7 @@ def gate_secant(entry: dict[str, Any], parameter: str, energy: float) -> float |
         first.update(step=b1, step_energy_ratio=rho)
         if rho > rho1 and b1 != h:
             root = b1 + (1.0 - rho) * (b1 - h) / (rho - rho1)
-            entry["mdb"][parameter] = float(max(root, entry["mdb_test"][parameter]))
+            restate(entry, parameter, max(root, entry["mdb_test"][parameter]))
         return None
     h = float(entry["mdb"][parameter])
     lean = abs(float(entry["mdb_leaning"][parameter]))
@@ -806,7 +818,7 @@ def gate_secant(entry: dict[str, Any], parameter: str, energy: float) -> float |
     if not (kappa > 0.0 and rho < 1.0):
         return None
     root = ((h - lean) + np.sqrt((h - lean) ** 2 + 4.0 * kappa * h * lean)) / (2.0 * kappa)
-    entry["mdb"][parameter] = float(max(root, entry["mdb_test"][parameter]))
+    restate(entry, parameter, max(root, entry["mdb_test"][parameter]))
     return entry["mdb"][parameter] if entry["mdb"][parameter] != h else None
 
 

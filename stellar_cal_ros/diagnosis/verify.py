@@ -82,7 +82,7 @@ def judge_z(twins: int) -> float:
     The mean's σ is the twins' spread (their SD, estimated from the same ``twins`` shifts)
     / √twins, so the interval is Student's t of ``twins − 1`` dof, not the normal's 1.96:
     12.7 on 2 twins, 4.30 on 3, 2.57 on 6 (1.96 there covers the true mean in 70 % of
-    2-twin draws, 81 % of 3, 90 % of 6: ``test_verify``'s simulation).
+    2-twin draws, 81 % of 3, 89 % of 6: ``test_verify``'s simulation).
     """
     return float(dist.t.isf((1.0 - JUDGE_LEVEL) / 2.0, max(int(twins), 2) - 1))
 
