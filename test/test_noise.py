@@ -1377,6 +1377,47 @@ def test_residual_spread_line_holds_its_level_and_reads_an_injected_spread():
     assert abs(size.mean() - truth) < 3 * size.std(ddof=1) / np.sqrt(len(size)), (size, truth)
 
 
+def test_a_spread_line_beside_a_noise_that_grows_is_sized_over_the_time_trend():
+    """A spread line found beside the noise's time trend is sized over that trend, as its
+    test reads it (:func:`~stellar_cal_ros.diagnosis.stats.size_through_fit`'s ``times``).
+    The psce rows of the test above, the noise's σ x1 -> x2 over the window (a ramp,
+    unseen case ``noise_ramp``'s shape), 20 % more per magnitude, and the stars in view
+    1.5 mag fainter at the window's end than at its start (a regressor that changes with
+    time): the structure at the window's mean level (σ x rms of the ramp, 1.53) is
+    sqrt(pi/2) x 0.01 px/mag x 1.53 x the magnitudes' 5-95 % range.  On coord 46e1a18 the
+    magnitude line took the noise's growth as its own: 0.128 px for 0.049 (8 draws);
+    now 0.053 +- 0.002 (8 draws).  Asserted within 3 of the draws' standard errors."""
+    from stellar_cal_ros.diagnosis import stats
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+
+    sim = _sim()
+    base = evaluate(_stated(sim), method_spec("psce"), rerun_prior(sim.prior), (), 0.5,
+                    keep_residuals=True)
+    res0, cam = dict(base.residuals), base.calibration.camera
+    mask = stats.evaluation_mask(res0, 0.5)
+    t = np.asarray(res0["t"], dtype=float)
+    n = len(t)
+    along = np.clip((t - t[mask].min()) / np.ptp(t[mask]), 0.0, 1.0)
+    mag = np.asarray(res0["magnitude"], dtype=float) + 1.5 * along
+    ramp = 1.0 + along
+    rng = np.random.default_rng(5)
+    sizes = []
+    for _ in range(8):
+        sig = 0.05 * (1.0 + 0.2 * (mag - mag[mask].mean())) * ramp
+        res = dict(res0, magnitude=mag, du=sig * rng.standard_normal(n),
+                   dv=sig * rng.standard_normal(n), gated=np.zeros(n, bool))
+        found = {f.regressor: f for f in stats.regressor_tests(
+            res, mask, (cam.cx, cam.cy), alpha=1.01, focal=(cam.fx, cam.fy),
+            R_imu_st=base.calibration.R_imu_st, height=cam.height) if f.component == "size"}
+        assert found["time"].p_value < 1e-4, found["time"]
+        sizes.append(found["magnitude"].slope_px)
+    lo, hi = np.percentile(mag[mask], [5, 95])
+    truth = np.sqrt(np.pi / 2) * 0.05 * 0.2 * (hi - lo) * np.sqrt(np.mean(ramp[mask] ** 2))
+    size = np.array(sizes)
+    assert abs(size.mean() - truth) < 3 * size.std(ddof=1) / np.sqrt(len(size)), (size, truth)
+
+
 def test_imu_search_states_no_value_where_the_likelihood_is_open_toward_small_scales():
     """The search's "x s +- e" only where its 95 % likelihood interval closes on both sides
     (issue 21, H209).  The likelihood is the one the final model of unseen case
@@ -1894,6 +1935,40 @@ def test_the_rows_the_gate_took_are_counted_at_the_runs_own_gate():
         assert r.filter.gate.probability == p
         scale[p] = noise.measure_stars(r, data, "psce", 0.5, None).scale
     assert scale[0.999] == pytest.approx(scale[0.9999], rel=0.005), scale
+
+
+def test_the_rows_the_gate_took_are_read_at_their_frames_scaled_threshold():
+    """The filter's gate scales each frame's threshold by its median NIS
+    (:meth:`~stellar_cal_ros.core.gating.GatePolicy.decide`); the rows re-admitted at the σ
+    measured (:func:`~stellar_cal_ros.diagnosis.noise_stars.readmitted`) are read at that
+    frame's threshold, at the σ used and again at the σ measured.  Frames of 5 stars:
+    (a) median NIS 1.4 (threshold 18.4): a star at NIS 20 measured x1.2 comes back (as on
+    coord); (b) median NIS 2.77 (x2, threshold 36.8): a star at NIS 40 measured x1.3 (23.7
+    there, the frame's median unchanged) comes back, coord read it against 18.4 x 1.69 =
+    31.1 and left it out; (c) the same with every star x1.3: the frame's median falls too
+    (threshold 21.8): it stays out; (d) a lost-lock frame (median NIS 2e5): its star at
+    NIS 20 measured x1.2 stays out, coord took it back (20 < 18.4 x 1.44).  On coord
+    46e1a18 rows [0, 15] came back for [0, 5].  The frames' scales equal ``decide``'s."""
+    from stellar_cal_ros.core.gating import GatePolicy
+    from stellar_cal_ros.diagnosis.noise_stars import readmitted
+
+    nis = np.array([20.0, 1.4, 1.4, 1.4, 1.0,
+                    40.0, 2.77, 2.77, 2.77, 1.0,
+                    40.0, 2.77, 2.77, 2.77, 1.0,
+                    20.0, 2e5, 2e5, 2e5, 2e5])
+    frames = np.repeat([0, 1, 2, 3], 5)
+    gate = GatePolicy()
+    gated = np.zeros(20, bool)
+    for f in range(4):
+        d = gate.decide(nis[frames == f], np.tile([0.0, 0.0, 1.0], (5, 1)))
+        gated[frames == f] = ~d.accepted
+        assert np.all(gate.frame_scales(nis, frames)[frames == f] == d.scale)
+    assert gated.tolist() == [True] + [False] * 4 + ([True] + [False] * 4) * 2 + [True] * 5
+    scale = np.ones(20)
+    scale[[0, 5, 15]] = [1.2, 1.3, 1.2]
+    scale[10:15] = 1.3
+    res = {"nis": nis, "frame": frames, "gated": gated}
+    assert np.flatnonzero(readmitted(res, scale, gate)).tolist() == [0, 5]
 
 
 def test_the_star_by_star_test_reads_the_fit_before_the_stars_own_weights():

@@ -80,6 +80,35 @@ class GatePolicy:
     def __post_init__(self) -> None:
         self.threshold = chi2_2_quantile(self.probability)
 
+    def frame_scales(self, nis_stars: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """Each row's frame's threshold scale, as :meth:`decide` sets it, for many frames.
+
+        ``nis_stars`` (n,) the rows' NIS (NaN: not counted), ``frames`` (n,) their frame
+        ids: ``max(1, median / χ² median)`` of each frame's finite NIS where it has at least
+        3 (else, and without ``scale_by_frame``, 1), per row.  (A residual table read
+        again at another σ: which rows the gate would take there, ``noise_stars.readmitted``.)
+        """
+        nis = np.asarray(nis_stars, dtype=float)
+        out = np.ones(len(nis))
+        if not self.scale_by_frame or not len(nis):
+            return out
+        frames = np.asarray(frames)
+        fin = np.isfinite(nis)
+        order = np.lexsort((np.where(fin, nis, np.inf), frames))
+        f_sorted = frames[order]
+        starts = np.flatnonzero(np.r_[True, f_sorted[1:] != f_sorted[:-1]])
+        k = np.add.reduceat(fin[order].astype(np.int64), starts)  # finite rows a frame
+        v = nis[order]
+        half = k // 2
+        hi = v[starts + np.minimum(half, np.maximum(k - 1, 0))]
+        lo = v[starts + np.maximum(half - 1, 0)]
+        with np.errstate(invalid="ignore"):
+            med = np.where(k % 2 == 1, hi, (lo + hi) / 2.0)
+            scale = np.where(k >= 3, np.maximum(1.0, med / CHI2_2_MEDIAN), 1.0)
+        per_row = np.repeat(scale, np.diff(np.r_[starts, len(v)]))
+        out[order] = per_row
+        return out
+
     def decide(self, nis_stars: np.ndarray, directions_st: np.ndarray) -> GateDecision:
         """Accept or reject each star of a frame.
 

@@ -368,19 +368,27 @@ def readmitted(res: Table, scale: np.ndarray, gate: GatePolicy | None = None
     (:class:`~stellar_cal_ros.core.gating.GatePolicy`; None: the default one): a star
     whose σ is stated too small loses the tail of its own noise there, and a scale
     measured without those rows reads low (unseen case ``sigma_per_star`` s21: x1.035 on
-    the accepted rows, 1.057 with every row, the rows' ML 1.062).  A row above the
-    threshold at the σ used (``nis``) and below it at the σ measured is noise, counted; a
-    row gated below the threshold (out of the field of view, a lost attitude) stays out.
-    None without a NIS column.
+    the accepted rows, 1.057 with every row, the rows' ML 1.062).  The gate's threshold
+    is scaled by its frame's median NIS (:meth:`~.GatePolicy.frame_scales`), at the σ
+    used and again at the σ measured (each row's NIS over its ``scale``²): a row above
+    its frame's threshold at the σ used (``nis``) and below it at the σ measured is noise,
+    counted; a row gated below its frame's threshold (out of the field of view) or in a
+    frame whose median NIS lost the lock stays out.  None without a NIS column.
     """
     if "nis" not in res:
         return None
     # (the run's own threshold: a gate set in the driver's config, e.g. gate_probability
     # 0.999, rejects rows the default's would pass, which were then never counted)
-    t = (gate or GatePolicy()).threshold
+    policy = gate or GatePolicy()
+    t = policy.threshold
     nis = np.asarray(res["nis"], dtype=float)
-    with np.errstate(invalid="ignore"):
-        return np.asarray(res["gated"]).astype(bool) & (nis > t) & (nis <= t * scale**2)
+    frames = np.asarray(res["frame"])
+    used = policy.frame_scales(nis, frames)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        at = nis / np.asarray(scale, dtype=float) ** 2
+        measured = policy.frame_scales(at, frames)
+        return (np.asarray(res["gated"]).astype(bool) & (nis > t * used)
+                & (used <= policy.lost_lock_factor) & (at <= t * measured))
 
 
 #: the fixed-pattern test reads the run's last this share of the time (the filter's first

@@ -1674,26 +1674,39 @@ def time_trend(t: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None,
     idx = np.flatnonzero(ok)
     if len(idx) < 20 * TREND_BINS:
         return None
-    ti = t[idx]
-    # (a residual table's rows are in time order: sorted only where they are not)
-    parts = np.array_split(idx if np.all(ti[1:] >= ti[:-1]) else
-                           idx[np.argsort(ti, kind="stable")], TREND_BINS)
+    parts = _trend_parts(t, idx)
     sw = np.array([w[p].sum() for p in parts])
     at = np.array([w[p] @ t[p] for p in parts]) / sw
     level = np.array([w[p] @ y[p] for p in parts]) / sw
     if not (np.all(level > 0) and level.max() / level.min() > TREND_SPAN) or \
             np.any(np.diff(at) <= 0):
         return None
-    # (linear beyond the end stretches too, along their segments: flat, the rows before the
-    # first stretch's mean time and after the last one's read a ramp's variance 13 % off,
-    # and the stars in view then, at the detector's edge as it drifts, read as a column group)
+    f = np.maximum(_trend_line(t, at, level), 0.5 * level.min())
+    return f * float((w[ok] * y[ok]) @ (1.0 / f[ok])) / float(w[ok] @ y[ok])
+
+
+def _trend_parts(t: np.ndarray, idx: np.ndarray) -> list[np.ndarray]:
+    """The rows ``idx`` in :data:`TREND_BINS` stretches of equal counts, in time order."""
+    ti = t[idx]
+    # (a residual table's rows are in time order: sorted only where they are not)
+    return np.array_split(idx if np.all(ti[1:] >= ti[:-1]) else
+                          idx[np.argsort(ti, kind="stable")], TREND_BINS)
+
+
+def _trend_line(t: np.ndarray, at: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """The trend through ``level`` at the stretches' mean times ``at``, at each time ``t``.
+
+    Linear between them, and beyond the end stretches too, along their segments (flat,
+    the rows before the first stretch's mean time and after the last one's read a ramp's
+    variance 13 % off, and the stars in view then, at the detector's edge as it drifts,
+    read as a column group); linear in ``level``.
+    """
     x = np.where(np.isfinite(t), t, at[0])
     f = np.interp(x, at, level)
     lo, hi = x < at[0], x > at[-1]
     f[lo] = level[0] + (x[lo] - at[0]) * (level[1] - level[0]) / (at[1] - at[0])
     f[hi] = level[-1] + (x[hi] - at[-1]) * (level[-1] - level[-2]) / (at[-1] - at[-2])
-    f = np.maximum(f, 0.5 * level.min())
-    return f * float((w[ok] * y[ok]) @ (1.0 / f[ok])) / float(w[ok] @ y[ok])
+    return f
 
 
 def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, float],
@@ -1822,14 +1835,17 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
         if inside is not None and f.component == "size" and f.regressor in STAR_REGRESSORS:
             # (the size the line prints: the innovations', read through the frames' fit;
             # only for a line found, its per-frame hat matrices are not free)
+            # (over the noise's time trend where one was found, as its test was made)
             f.slope_px = size_through_fit(sub, sig, focal, np.asarray(regs[f.regressor],
                                                                       dtype=float),
-                                          inside["size"][1])
+                                          inside["size"][1],
+                                          sub["t"] if trend and trend.get(id(inside))
+                                          is not None else None)
     return found
 
 
 def size_through_fit(sub: Table, sigma: np.ndarray, focal: tuple[float, float], x: np.ndarray,
-                     size_px: np.ndarray) -> float:
+                     size_px: np.ndarray, times: np.ndarray | None = None) -> float:
     """The innovations' size ``|ν|``'s change across ``x``'s 5–95 % range, from within-frame sizes.
 
     ``size_px``: ``σ_i ‖r_i‖`` of :func:`within_frame`'s residuals ``r = M ν/σ`` (``M = I −
@@ -1841,6 +1857,16 @@ def size_through_fit(sub: Table, sigma: np.ndarray, focal: tuple[float, float], 
     ``K_ij = (σ_i/σ_j)² Σ_ab M_(ia,jb)²``: least squares of the squared sizes on ``(Σ_j K_ij,
     Σ_j K_ij x_j)`` gives ``α, β``, and the size is ``√(π/2) (√v(x95) − √v(x5))`` (a 2-D
     Gaussian's mean length), what a straight line of ``|ν|`` would read with no fit.
+
+    ``times``: the rows' times, where the spread's line against time is found (the noise
+    grows over the window, :func:`time_trend`): the sizes are read as ``v_j = h(t_j) (α + β
+    x_j)``, ``h`` the time trend through :data:`TREND_BINS` stretches (:func:`_trend_line`)
+    fitted jointly with ``α, β`` (alternating least squares; a frame's rows share a time,
+    so ``E σ_i² ‖r_i‖² = h(t_i) Σ_j K_ij (α + β x_j)``), ``h``'s mean over the rows 1: the
+    structure at the window's mean level.  Read without it, a regressor that changes with
+    time (the stars in view as the attitude turns) takes the noise's growth as its own;
+    read over :func:`time_trend`'s factors, those take the share of the structure the
+    stars in view bring over time.
     """
     n = len(sigma)
     A = attitude_columns(sub, focal[0], focal[1]) / sigma[:, None, None]
@@ -1864,10 +1890,44 @@ def size_through_fit(sub: Table, sigma: np.ndarray, focal: tuple[float, float], 
     ok = finite_rows(c) & np.isfinite(size_px) & np.isfinite(x)
     if ok.sum() < 3:
         return math.nan
-    (a, b), *_ = np.linalg.lstsq(c[ok], size_px[ok] ** 2, rcond=None)
+    if times is None:
+        (a, b), *_ = np.linalg.lstsq(c[ok], size_px[ok] ** 2, rcond=None)
+    else:
+        a, b = _through_time_trend(c[ok], size_px[ok] ** 2, np.asarray(times, float)[ok])
     lo, hi = np.percentile(x[ok], [5, 95])
     return float(math.sqrt(math.pi / 2) * (math.sqrt(max(a + b * hi, 0.0))
                                            - math.sqrt(max(a + b * lo, 0.0))))
+
+
+def _through_time_trend(c: np.ndarray, y: np.ndarray, t: np.ndarray,
+                        iterations: int = 50, tol: float = 1e-6) -> tuple[float, float]:
+    """``α, β`` of ``y ≈ h(t) (c @ (α, β))``, ``h`` a :func:`_trend_line` of mean 1.
+
+    Alternating least squares: ``α, β`` with ``h`` fixed, then the trend's levels at the
+    :data:`TREND_BINS` stretches' mean times with ``α, β`` fixed, until ``h`` moves less
+    than ``tol`` (:func:`size_through_fit`).  ``h`` starts flat (the plain fit).
+    """
+    t = np.where(np.isfinite(t), t, np.nanmedian(t))
+    parts = _trend_parts(t, np.arange(len(t)))
+    at = np.array([t[p].mean() if len(p) else np.nan for p in parts])
+    h = np.ones(len(y))
+    if len(y) < 20 * TREND_BINS or not np.all(np.diff(at) > 0):
+        (a, b), *_ = np.linalg.lstsq(c, y, rcond=None)
+        return float(a), float(b)
+    basis = np.stack([_trend_line(t, at, e) for e in np.eye(TREND_BINS)], 1)
+    for _ in range(iterations):
+        (a, b), *_ = np.linalg.lstsq(c * h[:, None], y, rcond=None)
+        p = c @ np.array([a, b])
+        g, *_ = np.linalg.lstsq(basis * p[:, None], y, rcond=None)
+        new = basis @ g
+        new = np.maximum(new / new.mean(), 0.05)
+        new /= new.mean()
+        done = np.max(np.abs(new - h)) < tol
+        h = new
+        if done:
+            break
+    (a, b), *_ = np.linalg.lstsq(c * h[:, None], y, rcond=None)
+    return float(a), float(b)
 
 
 #: the camera's shape parameters :func:`shape_change` tests: the image scale (the focal
