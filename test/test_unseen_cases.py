@@ -169,6 +169,56 @@ def test_a_column_readout_is_tested_along_the_columns():
     assert not [f for f in lines if stats.rolling_axis(f.regressor) == "v"], lines
 
 
+def test_a_line_the_readout_leaves_at_a_small_share_of_itself_follows_it():
+    """A line still found in the shutter's re-run follows it where it kept at most 10 % of
+    its size there and fell at 1 % (each size's sigma its size over its t): unseen case
+    ``rolling_cols`` s22, u vs radius -0.47 px (t -7.05) left at -0.012 px (t -5.73).  A
+    line that keeps its size, or one whose fall is within its noise, stays.  Fails on
+    main (a line still found there stayed before the shutter's line: no ``shrunk``)."""
+    line = stats.RegressorFinding("radius", "u", -7.05, 2e-6, -0.47)
+    assert rolling.shrunk(line, (-0.012, -5.73), 0.01)
+    assert rolling.gone(line, {("radius", "u"): (-0.012, -5.73)}, alpha=0.01)
+    assert not rolling.gone(line, {("radius", "u"): (-0.012, -5.73)})  # (keys only: as before)
+    assert not rolling.gone(line, {("radius", "u")}, alpha=0.01)
+    assert not rolling.shrunk(line, (-0.3, -5.0), 0.01)  # (64 % left: another cause's too)
+    assert not rolling.shrunk(line, (-0.06, -4.0), 0.01)  # (13 % left)
+    weak = stats.RegressorFinding("radius", "u", -2.5, 1e-3, -0.05)  # sigma 0.02 px
+    assert not rolling.shrunk(weak, (-0.004, -4.0), 0.01)  # fall 0.046: z 2.30 < 2.33
+    assert rolling.shrunk(weak, (-0.004, -4.0), 0.05)
+
+
+def test_a_column_readout_first_and_its_echoes_after_it():
+    """300 s of PSCE, seed 22, a 30 ms column readout (unseen case ``rolling_cols``): the
+    stars' noise takes the shutter out along the columns (the innovations' fit is theirs, p
+    0.0027), so its σ scale reads the noise (x1.2, x6.7 with the rows' shape taken out) and
+    the calibration the readout pulled repeats star by star beyond it; on the bag with the
+    fitted readout (28.7 ms) taken out the repeat is gone (z 3.0, p 0.003, with the rows'
+    shape: the columns' leftover) and the radius and ripple lines are left at 2-3 % of their
+    size: the shutter's line (its fit's: the line tests' own is not significant on nu ~ 2)
+    goes first, every line ranked before it follows it.  Fails on main (the repeat, two
+    radius lines and two ripples before it)."""
+    sim = _bag(_column_readout(22), seed=22, duration=300.0)
+    run, runs = _psce_run(sim)
+    res, cam = run.residuals, run.calibration.camera
+    assert stats.readout_axis(rolling.of_run(run, 0.5)) == "u"
+    args = (res, stats.evaluation_mask(res, 0.5), cam.fx, cam.fy, (cam.cx, cam.cy),
+            run.calibration.R_imu_st)
+    cols, rows = noise.line_noise(*args, "u"), noise.line_noise(*args, "v")
+    assert cols.scale < 1.5 < 3.0 < rows.scale, (cols.scale, rows.scale)
+    found = line_tests(res, run.calibration, 0.5)
+    found = sorted(found + [rolling.finding(run, 0.5, 0.01)],
+                   key=lambda f: (f.p_value, -abs(f.statistic)))
+    lines, after = rolling.first_if_cause(found, run, runs, line_tests)
+    assert stats.rolling_axis(lines[0].regressor) == "u", lines[:6]
+    readout = float(lines[0].regressor.split("readout ")[1].split(" ms")[0])
+    assert readout == pytest.approx(30.0, abs=1.5)
+    # (every line ranked before it follows it: the repeat, the radius lines, the ripples)
+    before = found[:next(i for i, f in enumerate(found) if stats.rolling_axis(f.regressor))]
+    assert len(before) >= 5 and [f for f in before if f.regressor == "catalogue star"]
+    assert {id(f) for f in before} <= {id(lines[i]) for i in after}, \
+        [(f.regressor, f.statistic) for f in lines]
+
+
 def test_a_library_effect_standing_in_for_a_column_readout_is_refused():
     """300 s of PSCE, seed 22, a 30 ms column readout (unseen case ``rolling_cols``'s bag):
     the rolling-shutter fit on the innovations is the columns' (t -20.7, p 0.0027 with the

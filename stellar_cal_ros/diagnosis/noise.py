@@ -1148,8 +1148,13 @@ def track_lags(sn: StarNoise | None) -> tuple[float, float] | None:
 
 
 def line_noise(res: Table, mask: np.ndarray, fx: float, fy: float,
-                centre: tuple[float, float], R_imu_st: np.ndarray | None):
-    """:func:`~.noise_stars.star_noise` of ``mask``'s accepted stars at the run's own σ."""
+                centre: tuple[float, float], R_imu_st: np.ndarray | None,
+                readout: str = "v"):
+    """:func:`~.noise_stars.star_noise` of ``mask``'s accepted stars at the run's own σ.
+
+    ``readout``: the rolling shutter's direction it takes out where significant
+    (:func:`~stellar_cal_ros.diagnosis.stats.readout_axis`).
+    """
     ok = mask & ~np.asarray(res["gated"]).astype(bool)
     if ok.sum() < 20:
         return None
@@ -1157,7 +1162,8 @@ def line_noise(res: Table, mask: np.ndarray, fx: float, fy: float,
                                     + np.asarray(res["s_vv"], dtype=float)), 1e-300))
     # (σ on every row: the detector's fixed-pattern test reads the run beyond the window,
     # noise_stars.detector_patterns; the noise itself the window's ``ok`` rows)
-    return star_noise(res, sig, np.ones(len(sig)), ok, fx, fy, centre, R_imu_st)
+    return star_noise(res, sig, np.ones(len(sig)), ok, fx, fy, centre, R_imu_st,
+                      readout=readout)
 
 
 def repeat_finding(sn: StarNoise | None):

@@ -288,11 +288,12 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
                size: tuple[int, int] | None = None, passes: int = 0,
                weigh=None, kept: NoiseScales | None = None,
                gate: GatePolicy | None = None,
-               patterns: list | None = None) -> StarNoise | None:
+               patterns: list | None = None, readout: str = "v") -> StarNoise | None:
     """The within-frame estimate over the accepted stars of ``mask`` (see the module doc).
 
     With the installation ``R_imu_st``, a rolling shutter's shape is removed first where
-    it is significant (:func:`~.noise_structure.minus_rolling`).  The cells' sign-flip p
+    it is significant (:func:`~.noise_structure.minus_rolling`), along ``readout`` (the
+    rows ``"v"`` or the columns ``"u"``: :func:`~.stats.readout_axis`).  The cells' sign-flip p
     (:attr:`StarNoise.structure_flip_p`) is drawn where their χ²'s p is below
     :data:`ALPHA`, or always with ``flips``.
 
@@ -324,10 +325,10 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
     # after each part its freed heap pages (blocks below the mapping threshold) go back,
     # not held beside the next part's: a 2-h round's screening run peaks in these parts
     if patterns is None:
-        patterns = detector_patterns(res, sigma_px, fx, fy, centre, R_imu_st)
+        patterns = detector_patterns(res, sigma_px, fx, fy, centre, R_imu_st, readout)
         trim_freed()
     out = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre, R_imu_st, flips,
-                           patterns=patterns)
+                           patterns=patterns, readout=readout)
     trim_freed()
     if weigh is not None and out is not None and passes and not weigh(out):
         return out
@@ -340,7 +341,7 @@ def star_noise(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray, mask: np
             plain = out
         admit = readmitted(res, w * out.group(grouped_stars(out))[0], gate)
         out, last = _star_noise_once(res, sigma_px, msg_sigma, mask, fx, fy, centre,
-                                     R_imu_st, flips, w, patterns, admit), w
+                                     R_imu_st, flips, w, patterns, admit, readout), w
         trim_freed()
     if out is not None and plain is not None:
         out.levels = plain
@@ -416,7 +417,7 @@ PATTERN_MODEL_SHARE = 0.05
 
 def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float,
                       centre: tuple[float, float] | None = None,
-                      R_imu_st: np.ndarray | None = None) -> list:
+                      R_imu_st: np.ndarray | None = None, readout: str = "v") -> list:
     """The fixed-pattern tests of the detector's columns (u) and rows (v) on the run.
 
     The accepted stars of the run's last :data:`PATTERN_FRACTION` (σ ``sigma_px`` finite,
@@ -440,7 +441,8 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float,
     times their image velocity, and their means per band of columns then read as a
     'pattern' (unseen case ``rolling``, 30 ms, seeds 21-24: u p 2e-5 .. 3.5e-5, 1.06 px),
     whose removal took the shutter's own line from t −49 to −11 (not significant among the
-    ~86 line tests) and left 'catalogue star' first.
+    ~86 line tests) and left 'catalogue star' first.  ``readout``: the shutter's direction
+    (the rows ``"v"``, the columns ``"u"``).
     """
     from stellar_cal_ros.diagnosis.stats import (
         POSITION_PERIODS,
@@ -467,7 +469,8 @@ def detector_patterns(res: Table, sigma_px: np.ndarray, fx: float, fy: float,
     def shutter_p() -> float:
         if not shutter:
             x = rolling_columns({k: np.asarray(res[k])[idx] for k in ROLLING_KEYS if k in res},
-                                (fx, fy), centre, R_imu_st) if centre is not None else None
+                                (fx, fy), centre, R_imu_st, readout) \
+                if centre is not None else None
             p = 1.0
             if x is not None:
                 blocks = [None, noise_structure.rolling_block(fit.residual(x[:, 0], x[:, 1]))]
@@ -711,7 +714,8 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
                      R_imu_st: np.ndarray | None = None, flips: bool = False,
                      weights: np.ndarray | None = None,
                      patterns: list | None = None,
-                     admit: np.ndarray | None = None) -> StarNoise | None:
+                     admit: np.ndarray | None = None, readout: str = "v"
+                     ) -> StarNoise | None:
     """:func:`star_noise` with the frames' fit weighted by ``sigma_px × weights`` (None: 1).
 
     The residuals and the columns projected through the fit are then brought back to the
@@ -751,15 +755,17 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
     uv_pred = np.stack([np.asarray(res["u_pred"], dtype=float)[idx],
                         np.asarray(res["v_pred"], dtype=float)[idx]], 1) \
         if "u_pred" in res else None
-    # (and a rolling shutter's shape: the row times the image velocity; its readout is
-    # structure, not a σ growing with the row nor noise correlated along the tracks)
+    # (and a rolling shutter's shape: the row (``readout`` "u": the column) times the
+    # image velocity; its readout is structure, not a σ growing with the row nor noise
+    # correlated along the tracks; a star keeps its column along its track too, so a
+    # column readout left in repeats star by star: unseen case ``rolling_cols``)
     def projected(c: np.ndarray) -> np.ndarray:
         """Columns ``c`` (n, 2) in px through the frames' attitude fit, whitened as ``r``."""
         return back(fit.residual(c[:, 0], c[:, 1]))
 
     # (only the columns it reads: the whole table's rows were a ≈ 30 MB copy on a 2-h bag)
     x = rolling_columns({k: np.asarray(res[k])[idx] for k in ROLLING_KEYS if k in res},
-                        (fx, fy), centre, R_imu_st)
+                        (fx, fy), centre, R_imu_st, readout)
     if x is not None:
         x = projected(x)
     # (the sub-pixel regressors too: fitted raw, 0.08 px of locking left the scale at 1.04)

@@ -332,7 +332,8 @@ def step_test(res, calibration: Calibration, fraction: float, everywhere: bool =
 
 def line_tests(res, calibration: Calibration, fraction: float,
                parts: dict[str, Any] | None = None,
-               timing: clock.ClockChange | None = None) -> list:
+               timing: clock.ClockChange | None = None, readout: str | None = None
+               ) -> list:
     """The 'unexplained' tests of a residual table (significant, strongest first).
 
     An installation step's line (:mod:`~.installation_step`) goes first when it fires: the
@@ -340,17 +341,23 @@ def line_tests(res, calibration: Calibration, fraction: float,
     :func:`~.clock.clock_test` and :func:`step_test` made on the way (``"clock"``, ``"step"``),
     for :func:`finish`'s entries (the clock test holds one of the round's memory peaks on a
     2-h bag: made once).  ``timing``: :func:`~.clock.clock_test` of ``res`` already made by the
-    caller with the same ``calibration`` and ``fraction`` (not made again).
+    caller with the same ``calibration`` and ``fraction`` (not made again).  ``readout``:
+    the direction of the rolling shutter the stars' noise and the motion tests take out
+    (``"v"`` rows, ``"u"`` columns); None: the table's own (:func:`~.stats.readout_axis`
+    of its fit, :func:`~.rolling.of_table`; the columns only where theirs is significant).
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
     mask = stats.evaluation_mask(res, fraction)
+    if readout is None:
+        readout = stats.readout_axis(rolling.of_table(res, calibration, fraction), ALPHA)
     # after each part its freed heap pages (blocks below the mapping threshold) go back,
     # not held beside the next part's: the 2-h round's peak is in these tests (the clock
     # test's offsets, the step test's)
-    sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st)
+    sn = line_noise(res, mask, cam.fx, cam.fy, centre, calibration.R_imu_st, readout)
     trim_freed()
-    shared: dict[str, Any] = {}  # the window's frame offsets: the clock's and step's
+    # the window's frame offsets: the clock's and step's (without the shutter along readout)
+    shared: dict[str, Any] = {"readout": readout}
     if timing is None:
         timing = clock.clock_test(res, calibration, fraction, shared=shared)
         trim_freed()
@@ -369,7 +376,8 @@ def line_tests(res, calibration: Calibration, fraction: float,
         + ([step.finding()] if step is not None else []),
         R_imu_st=calibration.R_imu_st,
         height=cam.height, track_lags=track_lags(sn), width=cam.width,
-        star_levels=star_levels(levels_fit(sn)) is not None, family=family)
+        star_levels=star_levels(levels_fit(sn)) is not None, family=family,
+        readout=readout)
     periods = clock.wobble_periods(found, _span(res, mask))
     if periods and timing is not None:
         # a wobble found: the clock judged against it, as against a flexure

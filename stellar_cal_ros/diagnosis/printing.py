@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.diagnosis import leads, reliability, stats
+from stellar_cal_ros.diagnosis import leads, reliability, rolling, stats
 from stellar_cal_ros.diagnosis.clock import COMPONENT, GYRO_COMPONENT
 from stellar_cal_ros.diagnosis.installation_step import COMPONENT as STEP
 from stellar_cal_ros.diagnosis.shape_drift import SHAPES
@@ -112,7 +112,10 @@ def follows_phrase(u: dict[str, Any]) -> str:
     if not u.get("follows"):
         return ""
     what = CAUSES.get(u["follows"], ("its fit", ""))[0]
-    return f"follows the {u['follows']}: gone once {what} is taken out of the centroids"
+    # (a shutter's re-run may leave a line at a small share of its size: rolling.shrunk)
+    gone = f"gone (or at most {100 * rolling.SHRUNK:.0f} % of it left)" \
+        if u["follows"] == "rolling shutter" else "gone"
+    return f"follows the {u['follows']}: {gone} once {what} is taken out of the centroids"
 
 
 #: each cause a line may follow: what its re-run took out of the centroids

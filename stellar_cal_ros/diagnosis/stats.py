@@ -1124,7 +1124,8 @@ def accepted_offsets(res: Table, mask: np.ndarray, focal: tuple[float, float],
 
     ``shared``: a dict its caller keeps for one ``(res, mask, focal, centre, R_imu_st)``:
     made on the first call, then read from it (the clock and step tests of one residual
-    table take the same offsets: 2-h round, 457 000 rows).
+    table take the same offsets: 2-h round, 457 000 rows); its ``"readout"``, where given,
+    the rolling shutter's direction :func:`motion_columns` takes out (default the rows).
     """
     if shared is not None and "offsets" in shared:
         return shared["offsets"]
@@ -1132,7 +1133,8 @@ def accepted_offsets(res: Table, mask: np.ndarray, focal: tuple[float, float],
     got = None
     if m.sum() >= 20:
         sub = Rows(res, m)
-        got = frame_offsets(sub, focal, centre, R_imu_st)
+        got = frame_offsets(sub, focal, centre, R_imu_st,
+                            readout=(shared or {}).get("readout", "v"))
         got = None if got is None else (sub, got)
     if shared is not None:
         shared["offsets"] = got
@@ -1140,17 +1142,19 @@ def accepted_offsets(res: Table, mask: np.ndarray, focal: tuple[float, float],
 
 
 def frame_offsets(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
-                  R_imu_st: np.ndarray | None, columns: tuple | None = None
-                  ) -> tuple[np.ndarray, ...] | None:
+                  R_imu_st: np.ndarray | None, columns: tuple | None = None,
+                  readout: str = "v") -> tuple[np.ndarray, ...] | None:
     """``(frames, g, I, g⊥, I⊥, speed)`` of :func:`motion_spread` (``None``: no columns).
 
     Per frame of ``sub`` (frame indices in time order): the scores ``g = Σ uᵀ S⁻¹ ν`` and
     information ``I = Σ uᵀ S⁻¹ u`` of a stamp offset along each star's image velocity
     ``u`` (px/s), the same across it; ``ν`` the innovations without their fit by a
     rolling shutter's shape; ``speed``: the 95th percentile of the stars' image speed
-    (px/s).  ``columns``: :func:`motion_columns` of ``sub`` already made (not made again).
+    (px/s).  ``columns``: :func:`motion_columns` of ``sub`` already made (not made again);
+    ``readout``: its rolling shutter's direction.
     """
-    got = motion_columns(sub, focal, centre, R_imu_st) if columns is None else columns
+    got = motion_columns(sub, focal, centre, R_imu_st, readout) if columns is None \
+        else columns
     if got is None:
         return None
     ok, vel, nu, Si = got
@@ -1217,11 +1221,13 @@ def frame_times(sub: Table, frames: np.ndarray) -> np.ndarray:
 
 
 def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
-                   R_imu_st: np.ndarray | None) -> tuple[np.ndarray, ...] | None:
+                   R_imu_st: np.ndarray | None, readout: str = "v"
+                   ) -> tuple[np.ndarray, ...] | None:
     """``(ok, u, ν, S⁻¹)`` of :func:`frame_offsets` (``None``: no columns).
 
     Its stars (a mask of ``sub``), their image velocity (px/s), innovations without the
-    rolling shutter's fit and inverse covariances.
+    rolling shutter's fit along ``readout`` (:data:`READOUT_AXES`; :func:`readout_axis`)
+    and inverse covariances.
     """
     if len(sub.get("du", ())) < 20 or R_imu_st is None or \
             not all(k in sub for k in ("omega_x", "x_st")):
@@ -1231,7 +1237,7 @@ def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, 
         @ np.asarray(R_imu_st, dtype=float)
     vel = np.einsum("nij,nj->ni", attitude_columns(sub, *focal), w_st)  # px/s
     nu = np.stack([np.asarray(sub["du"], dtype=float), np.asarray(sub["dv"], dtype=float)], 1)
-    x = rolling_columns(sub, focal, centre, R_imu_st)
+    x = rolling_columns(sub, focal, centre, R_imu_st, readout)
     fit = whitened_fit(sub, x) if x is not None else None
     if fit is not None and np.isfinite(fit[2]):
         nu = nu - fit[2] * x
@@ -1386,6 +1392,21 @@ def rolling_columns(sub: Table, focal: tuple[float, float], centre: tuple[float,
     w_st = w_b @ np.asarray(R_imu_st, dtype=float)  # R^T ω per row
     vel = np.einsum("nij,nj->ni", attitude_columns(sub, *focal), w_st)
     return (pos - centre[0 if axis == "u" else 1])[:, None] * vel
+
+
+def readout_axis(fit: dict | None, alpha: float = 0.01) -> str:
+    """The rolling shutter's direction the noise's nuisance fits take out, from a table's fit.
+
+    ``fit``: :func:`rolling_remainder` of both directions (its ``p_value`` × 2).  The
+    columns (``"u"``) where the more significant direction is theirs and significant at
+    ``alpha``; else the rows (``"v"``, what those fits took before a readout could be
+    either's: a bag without a significant column readout keeps them bit for bit).  Read
+    by the stars' noise (:func:`~stellar_cal_ros.diagnosis.noise_stars.star_noise`: a
+    star keeps its column along its track, so a column readout repeats star by star) and
+    the motion tests (:func:`motion_columns`).
+    """
+    return "u" if fit is not None and fit.get("axis") == "u" and fit["p_value"] < alpha \
+        else "v"
 
 
 def rolling_remainder(res: Table, mask: np.ndarray, centre: tuple[float, float],
@@ -1716,7 +1737,7 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
                     track_lags: tuple[float, float] | None = None,
                     width: float | None = None,
                     star_levels: bool = False,
-                    family: dict | None = None) -> list[RegressorFinding]:
+                    family: dict | None = None, readout: str = "v") -> list[RegressorFinding]:
     """Correlation of residual components (u, v, radial, size) with each regressor.
 
     One frame-robust score test per pair (:func:`frame_robust_t`: the frames, not the
@@ -1742,6 +1763,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     stated σ is wrong star by star (:func:`~.noise_stars.star_spread`, significant): the
     size is tested against each star's own level (:func:`frame_robust_t`'s ``track_level``).
     ``family``: a dict given gets the family's size (``"size"``: the Bonferroni factor).
+    ``readout``: the direction of the rolling shutter the motion tests' innovations are
+    read without (:func:`motion_columns`, :func:`readout_axis`).
     """
     m = mask & accepted(res)
     if m.sum() < 20:
@@ -1815,7 +1838,7 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     if focal is not None:
         # a noise in the frames' stamps: along each star's motion, frame to frame
         # (the stars' image velocity and innovations along it: made once for both)
-        cols = motion_columns(sub, focal, camera_centre, R_imu_st)
+        cols = motion_columns(sub, focal, camera_centre, R_imu_st, readout)
         moving = motion_spread(sub, focal, camera_centre, R_imu_st, cols) \
             if cols is not None else None
         # a bias along the motion that grows faster than a time offset's
