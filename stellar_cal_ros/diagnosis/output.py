@@ -107,7 +107,12 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     lock = base.lock_losses()  # (before the tables go: its spans are the table's frames)
     # (the clock and step tests' results kept from the lines': not computed twice)
     parts: dict[str, Any] = {}
-    unexplained = line_tests(shown.residuals, calibration, fraction, parts)
+    # (the shutter's direction from the fit its re-run started with, of the same table: no
+    # fit made again, a 2-h table's ~0.5 CPU-s; not started, its p is above START_P: rows)
+    shutter = started[1]
+    readout = stats.readout_axis(shutter[0], ALPHA) if shutter is not None else \
+        "v" if runs is not None and shown.ok and shown.prior is not None else None
+    unexplained = line_tests(shown.residuals, calibration, fraction, parts, readout=readout)
     unexplained, spread = within_groups(unexplained, verdict)
     # (a rolling shutter's fit's line where the line tests have none of its direction)
     have = {rolling.line_key(f) for f in unexplained}
