@@ -1442,6 +1442,7 @@ CASES: dict[str, Case] = {
                        "slews' frames; at rest 0.05)", noise={"star": 1.14},
                        spread_along=("angular rate", "image rate"),
                        not_told="wrong star by star", post=_rate_noise,
+                       told="the stars' sigma grows with their image's speed",
                        scenario_changes={"centroid_noise_px": 0.0}),
     "bright_quant": Case("psce", "centroid quantisation: stars brighter than mag 4 report "
                          "centroids on a 0.5 px grid (a uniform 0.144 px rms error, not "

@@ -66,6 +66,7 @@ from stellar_cal_ros.diagnosis.noise_stars import (
     known_groups,
     levels_fit,
     significant_grouping,
+    speed_variance,
     star_groups,
     star_levels,
     star_noise,
@@ -203,6 +204,9 @@ class NoiseVerdict:
     #: the stated σ wrong star by star (:func:`star_levels`): {F, p_value, stars, rows,
     #: spread, ...} or None
     per_star: dict[str, float] | None = None
+    #: the stars' σ growing with their image's speed (smear, :func:`speed_variance`):
+    #: {rest_px, per_deg_s_px, v95_deg_s, at_v95_px, p_value, ...} or None
+    speed: dict[str, float] | None = None
     #: the gyro bias walk's search (:func:`~.noise_runs.search_walk`): {deg_h_sqrth, sigma,
     #: p_value, over_white_gyro, accepted, ...} or None (not searched)
     walk: dict[str, Any] | None = None
@@ -274,6 +278,8 @@ class NoiseVerdict:
             out["star_tails"] = self.tails
         if self.per_star:
             out["star_per_star"] = self.per_star
+        if self.speed:
+            out["star_speed"] = self.speed
         if self.walk is not None:
             out["gyro_bias_rw"] = self.walk
         out["verdict"] = self.lines()
@@ -468,6 +474,18 @@ class NoiseVerdict:
                                c["scales"], c["sigma"], px, bins, strict=True))
                        + f"{before} (applied per group: use --noise-scale "
                        f"{self.applied.advice()}; `replay --estimate-noise` measures them)")
+        if self.speed:
+            d = self.speed
+            out.append(f"the stars' sigma grows with their image's speed v (smear: a streak "
+                       f"per exposure): sigma ~ sqrt(a^2 + (b v)^2) px, a = "
+                       f"{d['rest_px']:.3g} +- {d['rest_sigma_px']:.2g} px at rest, b = "
+                       f"{d['per_deg_s_px']:.3g} +- {d['per_deg_s_sigma_px']:.2g} px per "
+                       f"deg/s ({d['at_v95_px']:.3g} px at the measured stars' 95th-percentile "
+                       f"{d['v95_deg_s']:.3g} deg/s; t = {d['t']:.3g}, p = "
+                       f"{d['p_value']:.2g}): noise, not an effect; one --noise-scale states "
+                       "its average, the fix is a sigma that grows with the star's speed in "
+                       "the tracker's messages. Residual spread that follows the angular "
+                       "rate is this")
         if self.per_star:
             out.append(self._per_star_line())
         if self.changes:
@@ -805,6 +823,11 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
                                  None if best is None else group_index(lv, best))
         if v.per_star is not None and "star" not in v.rejected:
             v.rejected.append("star")
+    # (the σ growing with each star's image speed: said as itself, and the star-by-star
+    # test above reads the rows over it, noise_stars.star_spread)
+    v.speed = speed_variance(sn, grouped)
+    if v.speed is not None and "star" not in v.rejected:
+        v.rejected.append("star")
     if best is not None:
         overall = sub.group(grouped)[0]
         v.group = best

@@ -176,6 +176,9 @@ class StarNoise:
     #: per star: its frame's time (s; the groups tested beside the noise's time trend,
     #: :func:`beside_time`), or None
     t: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: per star: its image's speed (deg/s, the gyro rate through its attitude columns over
+    #: the focal length: :func:`speed_variance`), or None (no rate columns)
+    speed: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def repeat_p(self) -> float:
@@ -586,9 +589,12 @@ def significant_grouping(groups: list[dict[str, Any]], n_tests: int) -> dict[str
 
     The one of :func:`star_groups` with the smallest Bartlett p, when that p is below
     :data:`ALPHA` over ``n_tests`` components and the groupings (Bonferroni) and its
-    groups' scales span more than ``1 + 2`` :data:`MATERIAL`.
+    groups' scales span more than ``1 + 2`` :data:`MATERIAL`.  The groupings are ranked
+    of one σ: the kept variable's by its p of the σ before the kept factors
+    (``p_before``, what the others are measured of); chosen, its own p (of the σ used)
+    decides, and not significant it is none (the kept groups stay).
     """
-    best = min(groups, key=lambda g: g["p_value"], default=None)
+    best = min(groups, key=lambda g: g.get("p_before", g["p_value"]), default=None)
     if best is None or not best["p_value"] < ALPHA / (n_tests * len(groups)):
         return None
     sc = np.asarray(best["scales"], dtype=float)
@@ -722,7 +728,12 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
     units of ``sigma_px`` (× ``weights``): ``E‖r_i‖² = s_i² (2 − h_i)`` with ``h_i`` the
     weighted fit's leverage and ``s_i`` star ``i``'s σ over ``sigma_px``.
     """
-    from stellar_cal_ros.diagnosis.stats import ROLLING_KEYS, FrameFit, rolling_columns
+    from stellar_cal_ros.diagnosis.stats import (
+        ROLLING_KEYS,
+        FrameFit,
+        image_velocity,
+        rolling_columns,
+    )
 
     gated = np.asarray(res["gated"]).astype(bool)
     if admit is not None:  # (rows the gate took at the wrong σ: :func:`readmitted`)
@@ -764,8 +775,11 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
         return back(fit.residual(c[:, 0], c[:, 1]))
 
     # (only the columns it reads: the whole table's rows were a ≈ 30 MB copy on a 2-h bag)
-    x = rolling_columns({k: np.asarray(res[k])[idx] for k in ROLLING_KEYS if k in res},
-                        (fx, fy), centre, R_imu_st, readout)
+    rows = {k: np.asarray(res[k])[idx] for k in ROLLING_KEYS if k in res}
+    x = rolling_columns(rows, (fx, fy), centre, R_imu_st, readout)
+    vel = image_velocity(rows, (fx, fy), R_imu_st)
+    speed = None if vel is None else np.degrees(np.hypot(vel[:, 0] / fx, vel[:, 1] / fy))
+    del rows, vel
     if x is not None:
         x = projected(x)
     # (the sub-pixel regressors too: fitted raw, 0.08 px of locking left the scale at 1.04)
@@ -864,7 +878,8 @@ def _star_noise_once(res: Table, sigma_px: np.ndarray, msg_sigma: np.ndarray,
                         star=stars[use], scatter_rho=scatter_rho,
                         frame=np.asarray(res["frame"])[idx][use],
                         scatter_share=scatter_share, stated_px=msg_sigma[idx][use],
-                        t=np.asarray(res["t"], dtype=float)[idx][use])
+                        t=np.asarray(res["t"], dtype=float)[idx][use],
+                        speed=None if speed is None else speed[use])
         out.scale, out.sigma, _ = out.group(np.ones(len(out.q), dtype=bool))
         return out
 
@@ -1423,6 +1438,41 @@ def _bartlett(parts: list[tuple[float, float, float]]) -> tuple[float, float]:
     return stat, float(dist.chi2.sf(stat, len(parts) - 1))
 
 
+def _bins(sn: StarNoise, gidx: np.ndarray, n: int) -> list[tuple[float, float, float]]:
+    """Bartlett's parts of the bins ``0 .. n − 1`` of ``gidx``: ``(scale, σ, dof)`` each.
+
+    The dof the rows' (:meth:`StarNoise.group`) where a star's rows are independent; where
+    they are not, the scale's effective dof with the stars as units, ``s² / (2 σ²)`` (``σ``
+    of the scale from the scores summed per star and per frame,
+    :meth:`StarNoise._star_units`).  Not independent: the σ with the stars as units over
+    the rows' beyond :data:`DEPENDENT` and significant (its square ~ ``χ²_{n−1} / (n − 1)``
+    for ``n`` stars of independent rows, p below :data:`ALPHA`).  A star whose error holds
+    still while the tracker rests (a centroid quantised to a 0.5 px grid, unseen case
+    ``bright_quant``: its sub-pixel phase does not change) put its excess in the bin of the
+    column it dwelt at as if each of its rows were a draw: a column grouping x1.46 at p
+    3e-28 beside the magnitude one (200 s seed 8, one bright star; H274: its bin's
+    variance ratio 77, clean bins of the same bag at most 3.4).
+    """
+    out = []
+    for g in range(n):
+        s, e, d = sn.group(gidx == g)
+        if sn.star is not None and sn.frame is not None and d > 0 and e > 0:
+            _, es, k = sn.group(gidx == g, stars=True)
+            ratio = (es / e) ** 2
+            if k > 1 and ratio > DEPENDENT and \
+                    float(dist.chi2.sf(ratio * (k - 1), k - 1)) < ALPHA:
+                d = min(d, s * s / (2.0 * es * es))
+        out.append((s, e, d))
+    return out
+
+
+#: a σ group's rows are not independent (:func:`_bins`) where its scale's variance with the
+#: stars as units is more than this many times the rows' (and significantly): the stars' own
+#: levels then count, not each row (a quantised star at rest: 36-78 in ``bright_quant``'s
+#: bins of the bright stars; a clean psce run's bins 0.03-3.4, 200 s seed 8)
+DEPENDENT = 4.0
+
+
 def _merge(sn: StarNoise, gidx: np.ndarray, edges: np.ndarray, use: np.ndarray,
            steps: np.ndarray | None = None, stars: bool = False
            ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float, float]]]:
@@ -1656,8 +1706,18 @@ def star_groups(sn: StarNoise, size: tuple[int, int] | None = None,
         src = sn if kept is None or kind == kept.group_by else before
         # (beside the noise's time trend within the bins, where it has one)
         src = beside_time(src, use, gidx)
-        stat, p = _bartlett([src.group(gidx == g) for g in range(len(edges) + 1)])
+        stat, p = _bartlett(_bins(src, gidx, len(edges) + 1))
         fine = edges
+        entry: dict[str, Any] = {}
+        if kept is not None and kept.group_by and kind == kept.group_by:
+            # the kept variable's grouping of the σ before the kept factors too: what the
+            # other groupings are measured of, the rank :func:`significant_grouping` takes
+            # (of the σ used, the kept factors right, it is flat: unseen case bright_quant,
+            # magnitude groups kept x3.1 / x1.0, their p 0.12 beside the rows' 1e-161 of
+            # the σ before, which held the bright stars' excess wherever they sat: "the
+            # stars' sigma depends on row" replaced the magnitude groups)
+            b_src = beside_time(before, use, gidx)
+            entry["p_before"] = _bartlett(_bins(b_src, gidx, len(edges) + 1))[1]
         edges, gidx, parts = _merge(src, gidx, edges, use, steps, stars)
         # (a grouping that may be applied: its edges placed; not the kept variable's own,
         # of the σ used, whose factors already split it: test_noise_unknown's kept columns)
@@ -1668,7 +1728,8 @@ def star_groups(sn: StarNoise, size: tuple[int, int] | None = None,
                 edges, gidx, parts = _merge(src, gidx, moved, use, steps, stars)
         result.append({"by": kind, "edges": [float(e) for e in edges],
                        "scales": [s for s, _, _ in parts], "sigma": [e for _, e, _ in parts],
-                       "dof": [d for _, _, d in parts], "statistic": stat, "p_value": p})
+                       "dof": [d for _, _, d in parts], "statistic": stat, "p_value": p,
+                       **entry})
     return result
 
 
@@ -1826,6 +1887,13 @@ def star_spread(sn: StarNoise, use: np.ndarray | None = None,
         return None
     fk = np.unique(fk[keep], return_inverse=True)[1].reshape(-1)
     nf = np.bincount(fk)
+    # (where the stars' σ grows with their image's speed, each row over the variance its
+    # speed gives first, :func:`speed_variance`: within a frame in a roll the stars far
+    # from its axis move faster, which no frame's level takes; unseen case ``rate_noise``
+    # s21 read "wrong star by star ~6 %, F 1.77, p 0.0021" after the frames' levels)
+    sp = speed_variance(sn, ok)
+    if sp is not None:
+        z = z / speed_levels(sp, sn.speed[ok][keep]) * float(np.mean(z))
     # (where the frames' noise differs, each row over its frame's level first,
     # noise_structure.frame_variances: a σ that grows in the slews' frames made the stars
     # seen there read as wrong star by star, unseen case ``rate_noise`` s21 ~24 %, F 10.1)
@@ -1901,6 +1969,74 @@ def star_spread(sn: StarNoise, use: np.ndarray | None = None,
         if within > 0:
             out["groups_p"] = float(dist.f.sf(MG / within, G - 1, S - G))
     return out
+
+
+#: the stars' σ at the run's 95th-percentile image speed over their σ at rest that is
+#: material (:func:`speed_variance`)
+SPEED_RATIO = 1.0 + 2 * MATERIAL
+
+
+def speed_levels(d: dict[str, float], speed: np.ndarray) -> np.ndarray:
+    """The variance (of the σ used) :func:`speed_variance`'s fit ``d`` gives at ``speed``."""
+    return d["alpha"] + d["beta"] * (np.asarray(speed, dtype=float) / d["v95_deg_s"]) ** 2
+
+
+def speed_variance(sn: StarNoise, use: np.ndarray | None = None) -> dict[str, float] | None:
+    """The stars' variance as it grows with their image's speed (smear), when it does.
+
+    A centroid of a star that moves across the detector during the exposure is a streak's:
+    its noise grows with the image's speed ``v`` (each star's own: in a roll the stars far
+    from its axis move faster than those near it, so no frame's level takes it; unseen
+    case ``rate_noise``, σ 0.05 √(1 + (2 v / v95)²) px, read "wrong star by star ~6 %").
+    The rows' ``q`` (``E q = m σ²``, whitened by the σ used) by least squares on ``m`` and
+    ``m (v / v95)²`` (``v95`` the rows' 95th-percentile speed): ``σ² = α + β (v / v95)²``
+    of the σ used.  Said where the rows' ``z = q / m`` grow with ``v²``
+    (:func:`~.stats.frame_robust_t`, clustered by frame, two-sided p from its Student
+    reference below :data:`ALPHA`, t > 0: on the speed's normal scores the ~90 % of rows
+    at rest, ranked at random, left p 0.018 where this reads t 11.7, ν 8, p 2e-6), both
+    coefficients are positive and the σ at ``v95`` over the σ at rest exceeds
+    :data:`SPEED_RATIO`; not where a field or a per-star error is left (as
+    :func:`star_levels`).  Returns ``{alpha, beta, v95_deg_s, rest_px, rest_sigma_px,
+    per_deg_s_px, per_deg_s_sigma_px, at_v95_px, ratio, t, p_value, rows}`` (px: times the
+    rows' median σ used; ``σ ≈ √(rest² + (per_deg_s v)²)``; the coefficients' σ by the
+    frames' sandwich times :meth:`StarNoise.inflation`), or None.
+    """
+    from stellar_cal_ros.diagnosis.stats import frame_robust_t
+
+    if sn.speed is None or sn.frame is None or sn.repeat_removed or sn.structure_p < ALPHA:
+        return None
+    ok = (sn.m > 0) & np.isfinite(sn.q) & np.isfinite(sn.speed)
+    if use is not None:
+        ok &= np.asarray(use, dtype=bool)
+    if ok.sum() < 40:
+        return None
+    v, q, m = sn.speed[ok], sn.q[ok], sn.m[ok]
+    v95 = float(np.percentile(v, 95))
+    if not v95 > 0:
+        return None
+    X = np.stack([m, m * (v / v95) ** 2], 1)
+    xtx = X.T @ X
+    if not abs(np.linalg.det(xtx)) > 0:
+        return None
+    inv = np.linalg.inv(xtx)
+    alpha, beta = inv @ (X.T @ q)
+    if not (alpha > 0 and beta > 0 and math.sqrt(1.0 + beta / alpha) > SPEED_RATIO):
+        return None
+    t, p = frame_robust_t(v**2, q / m, sn.frame[ok])[:2]
+    if t is None or not (t > 0 and p < ALPHA):
+        return None
+    e = q - X @ np.array([alpha, beta])
+    fk = np.unique(sn.frame[ok], return_inverse=True)[1].reshape(-1)
+    U = np.stack([np.bincount(fk, X[:, j] * e) for j in range(2)], 1)
+    cov = inv @ (U.T @ U) @ inv * sn.inflation(ok)
+    px = float(np.median(sn.sigma_px[ok]))
+    sa, sb = (math.sqrt(max(float(cov[j, j]), 0.0)) for j in range(2))
+    return {"alpha": float(alpha), "beta": float(beta), "v95_deg_s": v95,
+            "rest_px": px * math.sqrt(alpha), "rest_sigma_px": px * sa / (2 * math.sqrt(alpha)),
+            "per_deg_s_px": px * math.sqrt(beta) / v95,
+            "per_deg_s_sigma_px": px * sb / (2 * math.sqrt(beta)) / v95,
+            "at_v95_px": px * math.sqrt(alpha + beta), "ratio": math.sqrt(1 + beta / alpha),
+            "t": float(t), "p_value": float(p), "rows": int(ok.sum())}
 
 
 def _magnitude_trend(z: np.ndarray, fk: np.ndarray, gr: np.ndarray, star: np.ndarray,

@@ -1220,6 +1220,21 @@ def frame_times(sub: Table, frames: np.ndarray) -> np.ndarray:
     return np.asarray(sub["t"], dtype=float)[first][np.searchsorted(fr_all, frames)]
 
 
+def image_velocity(sub: Table, focal: tuple[float, float], R_imu_st: np.ndarray | None
+                   ) -> np.ndarray | None:
+    """Each star's image velocity (px/s, ``(n, 2)``), or None.
+
+    Its :func:`attitude_columns` times the gyro rate in the tracker frame; None without the
+    installation or the rate columns.
+    """
+    if R_imu_st is None or not all(k in sub for k in ("omega_x", "x_st")):
+        return None
+    w_st = np.stack([np.asarray(sub[k], dtype=float) for k in ("omega_x", "omega_y",
+                                                              "omega_z")], 1) \
+        @ np.asarray(R_imu_st, dtype=float)
+    return np.einsum("nij,nj->ni", attitude_columns(sub, *focal), w_st)
+
+
 def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
                    R_imu_st: np.ndarray | None, readout: str = "v"
                    ) -> tuple[np.ndarray, ...] | None:
@@ -1229,13 +1244,11 @@ def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, 
     rolling shutter's fit along ``readout`` (:data:`READOUT_AXES`; :func:`readout_axis`)
     and inverse covariances.
     """
-    if len(sub.get("du", ())) < 20 or R_imu_st is None or \
-            not all(k in sub for k in ("omega_x", "x_st")):
+    if len(sub.get("du", ())) < 20:
         return None
-    w_st = np.stack([np.asarray(sub[k], dtype=float) for k in ("omega_x", "omega_y",
-                                                              "omega_z")], 1) \
-        @ np.asarray(R_imu_st, dtype=float)
-    vel = np.einsum("nij,nj->ni", attitude_columns(sub, *focal), w_st)  # px/s
+    vel = image_velocity(sub, focal, R_imu_st)
+    if vel is None:
+        return None
     nu = np.stack([np.asarray(sub["du"], dtype=float), np.asarray(sub["dv"], dtype=float)], 1)
     x = rolling_columns(sub, focal, centre, R_imu_st, readout)
     fit = whitened_fit(sub, x) if x is not None else None
