@@ -1720,8 +1720,11 @@ def star_groups(sn: StarNoise, size: tuple[int, int] | None = None,
             entry["p_before"] = _bartlett(_bins(b_src, gidx, len(edges) + 1))[1]
         edges, gidx, parts = _merge(src, gidx, edges, use, steps, stars)
         # (a grouping that may be applied: its edges placed; not the kept variable's own,
-        # of the σ used, whose factors already split it: test_noise_unknown's kept columns)
-        if p < ALPHA and len(edges) and (kept is None or kind != kept.group_by):
+        # of the σ used, whose factors already split it: test_noise_unknown's kept columns;
+        # nor one beside a per-star verdict, measured with the stars as units: the rows'
+        # likelihood reads each star's own level as a step there, a region's 640 px edge
+        # moved to 524-638 px: test_noise's per-star groups)
+        if p < ALPHA and len(edges) and (kept is None or kind != kept.group_by) and not stars:
             moved = _placed(src, x, use, edges, fine, steps)
             if not np.array_equal(moved, edges):  # (and groups now alike merged)
                 gidx = np.where(use, np.searchsorted(moved, x, side="right"), -1)
