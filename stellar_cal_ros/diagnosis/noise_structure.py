@@ -1141,10 +1141,14 @@ def frame_variances(e: np.ndarray, frame: np.ndarray) -> np.ndarray | None:
     X = float(np.sum(n * (m - e[ok].mean()) ** 2)) / var_e
     if not dist.chi2.sf(X, len(n) - 1) < FRAME_VAR_ALPHA:
         return None
-    order = np.argsort(fi, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(n).astype(int)])
-    med = np.array([np.median(e[ok][order[a:b_]]) for a, b_ in zip(starts[:-1], starts[1:],
-                                                                    strict=True)])
+    # (each frame's median at once: the rows sorted by frame, then value; the two middle
+    # rows' mean, as np.median's, bit for bit: a median per frame in a loop was ~5 CPU-s
+    # of the 2-h round)
+    eo = e[ok]
+    srt = eo[np.lexsort((eo, fi))]
+    nn = n.astype(int)
+    first = np.concatenate([[0], np.cumsum(nn)[:-1]])
+    med = (srt[first + (nn - 1) // 2] + srt[first + nn // 2]) / 2.0
     out = np.full(len(e), np.nan)
     out[np.flatnonzero(ok)] = np.maximum(med[fi] / math.log(2.0), 1e-12)
     return out
