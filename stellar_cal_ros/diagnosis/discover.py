@@ -629,12 +629,10 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             out = r.runs.run_ahead(first + more, cand_tasks, r.done)
             screens = [out.pop(t.key) for t in first]
             late = []  # ran with the screening
-            if cand_tasks:
-                scores = screening.collect(screens, white=not (r.noise and r.noise.beyond))
-                r.runs.forget_ahead([t for t in cand_tasks
-                                     if t.key in scores and not scores[t.key].passes])
         # motion beyond the IMU's noise correlates the innovations: no local score test
         scores = screening.collect(screens, white=not (r.noise and r.noise.beyond))
+        if base is None and cand_tasks:
+            _forget_screened_out(r, cand_tasks, scores)
         rerun = []
         for e, c in cands.items():
             c.screen = scores.get(e)
@@ -723,6 +721,18 @@ def _gate_screened_out(r: Round, cand: CandidateResult, reference: Reference,
     if cand.detect is None or not cand.detect.testable or not reference.excess > reference.floor:
         return
     _gated(r, cand, window_information(cand), alpha_mdb, 1.0, reference.gate_energy(0.0))
+
+
+def _forget_screened_out(r: Round, tasks: list[Task], scores: dict[str, Any]) -> list[Task]:
+    """Cancel the runs made ahead of the candidates the screening does not pass.
+
+    ``tasks``: the candidates' runs made ahead; ``scores``: the screening's
+    (:func:`screening.collect`).  Returns the ones cancelled
+    (:meth:`~.parallel.Runs.forget_ahead`).
+    """
+    out = [t for t in tasks if t.key in scores and not scores[t.key].passes]
+    r.runs.forget_ahead(out)
+    return out
 
 
 def _gated(r: Round, cand: CandidateResult, info: np.ndarray, alpha_mdb: float,
@@ -867,9 +877,8 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
             # the candidates its screening does not pass are not run (the white test
             # unless the latest verdict found motion beyond the IMU's noise; a verdict
             # that finds otherwise re-runs what is missing: the round decides on its own)
-            scores = screening.collect([base], white=not (r.noise and r.noise.beyond))
-            out = [t for t in beside if t.key in scores and not scores[t.key].passes]
-            r.runs.forget_ahead(out)
+            out = _forget_screened_out(
+                r, beside, screening.collect([base], white=not (r.noise and r.noise.beyond)))
             beside = [t for t in beside if all(t is not o for o in out)]
 
         def rival_runs(at: Any) -> list[tuple[str, RunSummary, int]]:
