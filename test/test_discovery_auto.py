@@ -792,7 +792,7 @@ def test_a_candidates_ratio_is_chi2_on_the_directions_its_run_fits():
     """The augmented run's ratio test counts the directions its run fits (``seen_dof``), not
     the parameters: gyro_misalignment beside psce's installation is fitted in 3 of its 6
     (``twin_gm2`` s21 round 1: 3.37; its ratio 66.1, p 2.6e-12 on 6 dof, 5.4e-14 on 3.37).
-    The MDB's and the score test's dof stay the count.  Fails on main 17d7d23 (χ²₆)."""
+    ``dof`` stays the count.  Fails on main 17d7d23 (χ²₆)."""
     from types import SimpleNamespace
 
     from stellar_cal_ros.diagnosis import discover

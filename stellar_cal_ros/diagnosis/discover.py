@@ -606,7 +606,7 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
                                     rivals=tuple(testable), score=for_mdb)
                 if measure_noise else None)
     base = measured[0] if measured else None
-    alpha_mdb = ALPHA / (n_stats * max(len(testable), 1))
+    alpha_mdb = round_alpha(n_stats, len(testable))
     cands = {e: CandidateResult(e, "ranked", prior_uncertain=e in r.uncertain)
              for e in testable}
     current = Task("current model", prior, tuple(extra), keep_residuals, cost=1.0,
@@ -630,7 +630,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             screens = [out.pop(t.key) for t in first]
             late = []  # ran with the screening
         # motion beyond the IMU's noise correlates the innovations: no local score test
-        scores = screening.collect(screens, white=not (r.noise and r.noise.beyond))
+        scores = screening.collect(screens, white=not (r.noise and r.noise.beyond),
+                                   alpha=alpha_mdb, calibration=r.user_prior)
         if base is None and cand_tasks:
             _forget_screened_out(r, cand_tasks, scores)
         rerun = []
@@ -680,7 +681,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         r.noise_stale = not r.noise.skipped and stale(base.star_noise)
     reference = Reference.of(base)
     if not use_score:
-        for e, scr in screening.collect([base]).items():
+        for e, scr in screening.collect([base], alpha=alpha_mdb,
+                                        calibration=r.user_prior).items():
             if e in cands:
                 cands[e].screen = replace(scr, local=False)
     for e, run in out.items():
@@ -707,6 +709,15 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
     if condition:
         condition_on_top(r, extra, results, keep_residuals=keep_residuals, base=base)
     return base, results, extras
+
+
+def round_alpha(n_stats: int, n: int) -> float:
+    """The level of one test of a round of ``n`` candidates and ``n_stats`` statistics each.
+
+    Bonferroni (:func:`decide`): the level the MDB is stated for, and the one a score
+    test's blind directions are judged at (:func:`screening.collect`).
+    """
+    return ALPHA / (n_stats * max(n, 1))
 
 
 def _gate_screened_out(r: Round, cand: CandidateResult, reference: Reference,
@@ -857,6 +868,7 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
             return []
         return first_runs(r.runs, prior, tuple(extra), comps)[:r.runs.workers]
 
+    alpha = round_alpha(2, len(screen))  # the screened round's (:func:`rank_round`)
     # the candidates' runs beside the base run (they wait for nothing it finds unless the
     # noise changes)
     beside = list(beside) if r.runs.workers > 1 else []
@@ -878,14 +890,15 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
             # unless the latest verdict found motion beyond the IMU's noise; a verdict
             # that finds otherwise re-runs what is missing: the round decides on its own)
             out = _forget_screened_out(
-                r, beside, screening.collect([base], white=not (r.noise and r.noise.beyond)))
+                r, beside, screening.collect([base], white=not (r.noise and r.noise.beyond),
+                                             alpha=alpha, calibration=r.user_prior))
             beside = [t for t in beside if all(t is not o for o in out)]
 
         def rival_runs(at: Any) -> list[tuple[str, RunSummary, int]]:
             # the screening's best candidate (its smallest p), or every one when not screened
             names = list(rivals)
             if screen:
-                scores = screening.collect([base])
+                scores = screening.collect([base], alpha=alpha, calibration=r.user_prior)
                 ranked = sorted((s.p_value, e) for e, s in scores.items() if e in rivals)
                 names = [e for _, e in ranked[:1]]
             ahead = {t.key: t for t in beside} if at == ran_with else {}

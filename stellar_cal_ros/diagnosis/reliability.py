@@ -6,6 +6,8 @@ parameters) is the size it must have for the round's test to find it with probab
 information the evaluation window carries about β (nuisance parameters marginalized), the
 test statistic is non-central χ²_k with non-centrality ``λ = bᵀ I b``, so the MDB along a
 direction ``d`` is ``sqrt(λ₀ / dᵀ I d)`` with ``λ₀ = λ(α, POWER, k)`` (:func:`lambda0`).
+The test and its MDB leave out the directions an effect of plausible size cannot reach λ₀
+along (:func:`tested_directions`): k counts the others.
 
 ``I`` is the information of the evaluation window, where the decision's statistics are
 summed: the screening pass's (:mod:`~stellar_cal_ros.diagnosis.screening`) ``Σ Aᵀ S⁻¹ A``
@@ -90,6 +92,49 @@ def lambda0(alpha: float, dof: int, power: float = POWER) -> float:
     """Non-centrality λ₀ at which a χ²_dof test of level ``alpha`` has power ``power``."""
     dof = max(int(dof), 1)
     return noncentrality_beyond(float(dist.chi2.isf(alpha, dof)), dof, power)
+
+
+def tested_directions(effect_id: str, information: np.ndarray, alpha: float,
+                      calibration: Any = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The directions of an effect its tests sum over, where some of them are blind.
+
+    The eigen-directions ``u`` of the information whitened by the plausible sizes ``D``
+    (``D I D = U diag(μ) Uᵀ``, as :func:`blind_directions` reads them) along which an
+    effect of plausible size reaches the test's non-centrality, ``μ ≥ λ₀(α, k)``.  A blind
+    direction adds a χ²₁ of no power to the score statistic at best, and where the
+    information there comes from a measurement whose error is not the noise it is stated
+    as, not even that: on the swaying base the installation absorbs a gyro
+    misalignment's rotation of the gyro axes from the stars, what is left of it (1.7e-5 to
+    7.9e-5 of the largest eigenvalue, μ 1.7-8.2 for λ₀ 28) is seen through the position
+    reference, whose error is the base's sway (a motion, stated as ±2 m of white noise),
+    and the score there scatters 0.04-0.24 instead of 1 (doc/benchmarks.md, H278): the
+    statistic counted 6 dof and held about 3.  The test (:meth:`~stellar_cal_ros.diagnosis.
+    screening.ScreenResult.tested`) and its MDB (:func:`detectability`) are both stated on
+    the directions returned, with their count as the dof.
+
+    Returns ``(B, μ)``: ``B`` (k, r) the directions in whitened units (``b = D B c``),
+    ``μ`` (r,) their information; None where every direction is seen or none is (an
+    untestable effect keeps its whole test).
+    """
+    info = _sym(np.atleast_2d(np.asarray(information, dtype=float)))
+    k = info.shape[0]
+    D = plausible_size(effect_id, calibration)
+    mu, U = np.linalg.eigh(_sym(info * np.outer(D, D)))
+    seen = mu >= lambda0(alpha, k)
+    if seen.all() or not seen.any():
+        return None
+    return U[:, seen], mu[seen]
+
+
+def tested_information(effect_id: str, directions: tuple[np.ndarray, np.ndarray],
+                       calibration: Any = None) -> np.ndarray:
+    """The information on the tested ``directions`` (:func:`tested_directions`), (k, k).
+
+    ``D⁻¹ B diag(μ) Bᵀ D⁻¹``: the whole information with its blind directions left out.
+    """
+    B, mu = directions
+    W = B / plausible_size(effect_id, calibration)[:, None]
+    return _sym((W * mu) @ W.T)
 
 
 def score_response(d: np.ndarray, information: np.ndarray, dispersion: float = 1.0) -> float:
@@ -277,6 +322,9 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
     and ``mdb_test`` keeps the test's.  The ratio to the plausible size (``testable``, a
     decision) stays the test's.
 
+    Where some of its directions are blind (:func:`tested_directions`) the MDB is the
+    test's on the others: ``information`` without the blind ones, their count the dof.
+
     ``beside``: per alternative (a candidate of the effect's stage) the effect's
     information left once the alternative is fitted beside it (the screening's,
     :func:`~stellar_cal_ros.diagnosis.screening.alternatives`), in ``information``'s units;
@@ -285,8 +333,12 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
     ``shares_shape_with`` where an alternative shares the shape (:func:`identification`).
     """
     eff = registry.create(effect_id)
-    info = np.atleast_2d(np.asarray(information, dtype=float)) / float(dispersion)
+    info = np.atleast_2d(np.asarray(information, dtype=float))
     k = info.shape[0]
+    tested = tested_directions(effect_id, info, alpha, calibration)
+    if tested is not None:  # the test's directions and count (its blind ones left out)
+        info, k = tested_information(effect_id, tested, calibration), tested[1].size
+    info = info / float(dispersion)
     lam = lambda0(alpha, k)
     D = plausible_size(effect_id, calibration)
     diag = np.diag(info)

@@ -43,12 +43,13 @@ the dispersion), at the loose level :data:`SCREEN_P` — measured against the fu
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
+from stellar_cal_ros.diagnosis import reliability
 from stellar_cal_ros.effects import registry
 from stellar_cal_ros.methods import registry as methods
 
@@ -90,6 +91,24 @@ class ScreenResult:
     def p_value(self) -> float:
         """P(χ²_dof > LM / dispersion)."""
         return float(dist.chi2.sf(max(self.statistic, 0.0), max(self.dof, 1)))
+
+    def tested(self, effect_id: str, alpha: float, calibration: Any = None) -> ScreenResult:
+        """The test on the directions that are not blind, at the round's level ``alpha``.
+
+        (:func:`~stellar_cal_ros.diagnosis.reliability.tested_directions`.)
+        ``LM = Σ (uᵢᵀ D s)² / μᵢ`` over those directions, their count the dof and the
+        information without the blind ones (the MDB's, :func:`~stellar_cal_ros.diagnosis.
+        reliability.detectability`); itself where every direction is seen (or none is).
+        """
+        tested = reliability.tested_directions(effect_id, self.information, alpha,
+                                               calibration)
+        if tested is None or self.score is None:
+            return self
+        B, mu = tested
+        z = B.T @ (reliability.plausible_size(effect_id, calibration) * self.score)
+        return replace(self, lm=float(np.sum(z * z / mu)), dof=int(mu.size),
+                       information=reliability.tested_information(effect_id, tested,
+                                                                  calibration))
 
     @property
     def passes(self) -> bool:
@@ -200,7 +219,8 @@ def parts(candidates: list[str], n: int) -> list[list[str]]:
     return [sorted(p, key=order.__getitem__) for p in out if p]
 
 
-def collect(runs: list[Any], white: bool = True) -> dict[str, ScreenResult]:
+def collect(runs: list[Any], white: bool = True, alpha: float = 0.0,
+            calibration: Any = None) -> dict[str, ScreenResult]:
     """The :class:`ScreenResult` of every candidate scored by the screening ``runs``.
 
     Each run is a :class:`~stellar_cal_ros.diagnosis.runstats.RunSummary` whose ``scores``
@@ -215,6 +235,9 @@ def collect(runs: list[Any], white: bool = True) -> dict[str, ScreenResult]:
     ratio alone).  Measured (unseen case ``bias_walk``, 300 s, a gyro bias random walk of
     0.3 deg/h/√h): gyro_misalignment's score p 1.5e-14 while its re-run gained 4 of
     log-likelihood for 6 parameters (ratio p 0.24), added with every angle ±71 arcsec.
+
+    ``alpha`` (> 0): the round's level for the MDB; each test is then the one on the
+    directions that are not blind for ``calibration``'s camera (:meth:`ScreenResult.tested`).
     """
     out: dict[str, ScreenResult] = {}
     for run in runs:
@@ -233,4 +256,6 @@ def collect(runs: list[Any], white: bool = True) -> dict[str, ScreenResult]:
                                     np.asarray(item[5], dtype=float) if len(item) > 5
                                     else None,
                                     dict(item[6]) if len(item) > 6 else {})
+            if alpha > 0:
+                out[eid] = out[eid].tested(eid, alpha, calibration)
     return out
