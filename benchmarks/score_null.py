@@ -33,8 +33,12 @@ from stellar_cal_ros.sim.world import simulate
 
 
 def seed_scores(method: str, candidate: str, seed: int, duration: float,
-                imu_rate: float | None, star_phase: float | None) -> tuple[float, np.ndarray]:
-    """``(LM, z per eigendirection of I, in ascending eigenvalue order)`` of one clean bag."""
+                imu_rate: float | None, star_phase: float | None
+                ) -> tuple[float, np.ndarray, np.ndarray]:
+    """``(LM, z per eigendirection of I, its eigenvalues over the largest)`` of one clean bag.
+
+    Both in ascending eigenvalue order.
+    """
     sc = get_scenario(SCENARIO[method])
     if imu_rate is not None:
         sc.imu_rate = imu_rate
@@ -48,7 +52,7 @@ def seed_scores(method: str, candidate: str, seed: int, duration: float,
     c = score_tests(run, [candidate])[candidate]
     w, V = np.linalg.eigh(c.info)
     V = V * np.sign(V[np.argmax(np.abs(V), axis=0), np.arange(len(w))])  # a fixed sign
-    return c.lm, (V.T @ (c.info @ c.estimate)) / np.sqrt(w)
+    return c.lm, (V.T @ (c.info @ c.estimate)) / np.sqrt(w), w / w.max()
 
 
 def main() -> int:
@@ -62,21 +66,25 @@ def main() -> int:
     ap.add_argument("--imu-rate", type=float, default=None)
     ap.add_argument("--star-phase", type=float, default=None)
     args = ap.parse_args()
-    lms, zs = [], []
+    lms, zs, ws = [], [], []
     t0 = time.process_time()
     for seed in range(args.first_seed, args.first_seed + args.seeds):
-        lm, z = seed_scores(args.method, args.candidate, seed, args.duration, args.imu_rate,
-                            args.star_phase)
+        lm, z, w = seed_scores(args.method, args.candidate, seed, args.duration, args.imu_rate,
+                               args.star_phase)
         lms.append(lm)
         zs.append(z)
-        print(f"seed {seed}: LM {lm:6.2f}  z {np.array2string(z, precision=2)}", flush=True)
+        ws.append(w)
+        print(f"seed {seed}: LM {lm:6.2f}  z {np.array2string(z, precision=2)}  eigenvalue / "
+              f"largest {np.array2string(w, precision=1)}", flush=True)
     Z = np.asarray(zs)
     se = Z.std(0, ddof=1) / np.sqrt(len(Z))
     print(f"\n{args.candidate} on {len(Z)} clean {args.method} bags ({args.duration:.0f} s, "
           f"IMU {args.imu_rate or 'scenario'} Hz, star phase {args.star_phase or 'scenario'}):"
           f" mean LM {np.mean(lms):.2f} (chi2_{Z.shape[1]}: {Z.shape[1]}), mean z "
           f"{np.array2string(Z.mean(0), precision=2)} +- {np.array2string(se, precision=2)}"
-          f" (N(0,1): 0), sd z {np.array2string(Z.std(0, ddof=1), precision=2)}"
+          f" (N(0,1): 0), sd z {np.array2string(Z.std(0, ddof=1), precision=2)}, mean z²"
+          f" {np.array2string((Z ** 2).mean(0), precision=2)} (χ²₁: 1), eigenvalue / largest"
+          f" (geometric mean) {np.array2string(np.exp(np.log(ws).mean(0)), precision=1)}"
           f" [{time.process_time() - t0:.0f} CPU-s]")
     return 0
 
