@@ -982,7 +982,10 @@ CASES: dict[str, Case] = {
     "jitter": Case("psce", "frame stamps off the exposure by N(0, 1 ms) each: 0.09 px rms "
                    "at the slews' image speeds (not in the library; carried by the image "
                    "velocity, the angular rate)", outside=True, regressor="image rate",
-                   post=_jitter),
+                   post=_jitter,
+                   # (a noise: named by the noise verdict and applied in each frame's R,
+                   # H277; its spread line then goes with it)
+                   told="the frames' stamps jitter"),
     "sigma0_half": Case("psce", "sigma = 0 in every other message, the right 0.05 px in the "
                         "rest: the unknown ones measured 0.05 px", noise={},
                         unknown_px=PSCE_SIGMA, post=_sigma0_half),
@@ -1397,7 +1400,7 @@ CASES: dict[str, Case] = {
                         # -0.119 ms (the run's -0.068): |dt| <= 0.2 ms, 3.5x its SE)
                         may_add=("time_offset",),
                         expect={"time_offset": {"dt": (-2e-4, 2e-4)}},
-                        not_told="installation steps"),
+                        not_told="installation steps", told="the frames' stamps jitter"),
     # ---- 2026-11-29 (H250): tenth pass, instruments' errors outside the library
     "coma_faint": _centroid_error("a coma-like bias: stars fainter than mag 5 pushed away "
                                   "from the principal point by 0.12 (r / r_corner)^2 px, the "

@@ -97,7 +97,8 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
                     r_diag: np.ndarray,
                     relinearize: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None,
                     policy: UpdatePolicy, rotation: slice = slice(0, 3),
-                    others: slice | None = None, compiled: bool = False) -> UpdateResult:
+                    others: slice | None = None, compiled: bool = False,
+                    common: np.ndarray | None = None) -> UpdateResult:
     """Iterated EKF update with the Joseph-form covariance.
 
     Parameters
@@ -124,6 +125,11 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
         Gain and Joseph step in compiled kernels (:func:`stellar_cal_ros.core.jit.
         kalman_gain`, :func:`~stellar_cal_ros.core.jit.joseph`; ignored without numba):
         the same formulas, Cholesky by hand instead of LAPACK — equal to rounding.
+    common : ndarray (m,), optional
+        A noise every row shares: ``R = diag(r) + c cᵀ`` (a frame's stamp error moves all its
+        stars at once, ``c = σ_t ∂h/∂t``: :func:`stamp_column`).  Taken as one more error
+        state of unit variance seen through ``c`` (:func:`augment`), whose gain rows are
+        dropped: the same S, gain and Joseph covariance as the full R.  None: diagonal R.
 
     The first pass gives the gain, the frame NIS and, when the correction is small (a
     rotation below ``relinearize_rad`` and every other part below ``relinearize_sigma`` σ),
@@ -143,21 +149,25 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
     if jit is not None:
         P = np.ascontiguousarray(P, dtype=float)
         r_diag = np.ascontiguousarray(r_diag, dtype=float)
+    P_g = P if common is None else augment(P)
     for it in range(1, policy.max_iterations + 1):
+        H_g = H if common is None else np.column_stack([H, common])
         if jit is not None:
-            ok, K, nis_it = jit.kalman_gain(P, np.ascontiguousarray(H, dtype=float), r_diag,
-                                            np.ascontiguousarray(nu, dtype=float))
+            ok, K, nis_it = jit.kalman_gain(P_g, np.ascontiguousarray(H_g, dtype=float),
+                                            r_diag, np.ascontiguousarray(nu, dtype=float))
             if not ok:
-                return UpdateResult(False, np.zeros(N), P, K, H, nis, it,
+                return UpdateResult(False, np.zeros(N), P, K[:N], H, nis, it,
                                     "innovation covariance not positive definite")
             if it == 1:
                 nis = nis_it
         else:
-            K_it, nis = _gain(P, H, r_diag, nu, nis, it)
+            K_it, nis = _gain(P_g, H_g, r_diag, nu, nis, it)
             if K_it is None:
                 return UpdateResult(False, np.zeros(N), P, K, H, nis, it,
                                     "innovation covariance not positive definite")
             K = K_it
+        if common is not None:
+            K = np.ascontiguousarray(K[:N])
         dx_new = K @ (z - h + H @ dx)
         dx_prev, dx = dx, dx_new
         if it == policy.max_iterations or relinearize is None:
@@ -188,7 +198,36 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
     else:
         A = np.eye(N) - K @ H
         Pn = A @ P @ A.T + (K * r_diag) @ K.T
+    if common is not None:
+        kc = K @ common
+        Pn += np.outer(kc, kc)
     return UpdateResult(True, dx, Pn, K, H, nis, it)
+
+
+def augment(P: np.ndarray) -> np.ndarray:
+    """``blkdiag(P, 1)`` (N + 1, N + 1): ``P`` with a frame-common noise of unit variance.
+
+    With ``H`` given the column ``c`` it adds ``c cᵀ`` to ``H P Hᵀ`` (``iterated_update``'s
+    ``common``, each star's block ``S_i`` of the gate).
+    """
+    N = len(P)
+    out = np.zeros((N + 1, N + 1))
+    out[:N, :N] = P
+    out[N, N] = 1.0
+    return out
+
+
+def stamp_column(H_attitude: np.ndarray, R_i_b: np.ndarray, omega: np.ndarray,
+                 sigma_t: float) -> np.ndarray:
+    """``σ_t ∂uv/∂t`` (n, 2) of each star of a frame: its image's motion in a stamp error.
+
+    An error ``δt`` in the frame's stamp turns the attitude at exposure by ``R_i_b ω δt``
+    (a left rotation: ``R Exp(ω δt) = Exp(R ω δt) R``), so ``∂uv/∂t = H_attitude R_i_b ω``
+    (``H_attitude`` (n, 2, 3) the prediction's ∂uv/∂φ, ``R_i_b`` the attitude at exposure,
+    ``omega`` the body rate, rad/s).  One δt for all the frame's stars: the frame's R gains
+    the rank-one ``c cᵀ`` (``iterated_update``'s ``common``, flattened), not a per-star term.
+    """
+    return sigma_t * (np.asarray(H_attitude) @ (np.asarray(R_i_b) @ np.asarray(omega)))
 
 
 def _gain(P: np.ndarray, H: np.ndarray, r_diag: np.ndarray, nu: np.ndarray, nis: float,

@@ -11,7 +11,10 @@ of a datasheet), and a tracker may send ``sigma = 0`` for "unknown".  A run appl
 * the gyro's angle random walk times :attr:`NoiseScales.gyro`, the accelerometer's velocity
   random walk times :attr:`NoiseScales.accel`;
 * the gyro bias's random walk :attr:`NoiseScales.gyro_bias_rw` (deg/h/√h; 0: the constant
-  bias the model states), the process noise of the ``gyro_bias`` block.
+  bias the model states), the process noise of the ``gyro_bias`` block;
+* a noise in the frames' stamps :attr:`NoiseScales.stamp_ms` (ms rms; 0: exact stamps): one
+  error per frame, shared by its stars, which the frame's measurement covariance carries
+  (:func:`~stellar_cal_ros.core.covariance.stamp_column`).
 
 1.0 everywhere is "as stated".  The diagnosis measures the scales from the run itself
 (:mod:`stellar_cal_ros.diagnosis.noise`); ``replay --noise-scale`` applies them.
@@ -49,7 +52,7 @@ GROUP_SPEC = ("a group spec is by=magnitude|radius|column|row,edges=E1/E2,factor
               "by=magnitude,edges=4.5,factors=1/0.5")
 #: the items ``--noise-scale`` takes
 SCALE_SPEC = ("star=S, gyro=G, accel=A, unknown=PX, rho=R, share=W, gyro_bias_rw=D "
-              "(deg/h/sqrt(h)), or a group spec "
+              "(deg/h/sqrt(h)), stamp=MS (the frames' stamps' noise, ms rms), or a group spec "
               "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2")
 
 
@@ -98,6 +101,10 @@ class NoiseScales:
     #: the gyro bias's random walk, deg/h/√h per axis (0: a constant bias, as the model
     #: states): the process noise of the ``gyro_bias`` block where it is estimated
     gyro_bias_rw: float = 0.0
+    #: σ of the noise in the frames' stamps, ms (0: exact stamps): one error per frame, the
+    #: same for all its stars, in each frame's R as ``σ_t² J_t J_tᵀ``
+    #: (:func:`~stellar_cal_ros.core.covariance.stamp_column`)
+    stamp_ms: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("star", "gyro", "accel"):
@@ -125,13 +132,15 @@ class NoiseScales:
         if not (math.isfinite(self.gyro_bias_rw) and self.gyro_bias_rw >= 0.0):
             raise ValueError(f"gyro bias random walk must be >= 0 deg/h/sqrt(h), got "
                              f"{self.gyro_bias_rw!r}")
+        if not (math.isfinite(self.stamp_ms) and self.stamp_ms >= 0.0):
+            raise ValueError(f"stamp noise must be >= 0 ms, got {self.stamp_ms!r}")
 
     @property
     def identity(self) -> bool:
         """Nothing rescaled."""
         return (self.star == 1.0 and self.gyro == 1.0 and self.accel == 1.0
                 and not self.unknown_sigma_px and not self.group_by and not self.star_rho
-                and not self.gyro_bias_rw)
+                and not self.gyro_bias_rw and not self.stamp_ms)
 
     @property
     def stars_as_stated(self) -> bool:
@@ -262,6 +271,8 @@ class NoiseScales:
                 out["star_correlated"]["ar_share"] = float(self.star_ar_share)
         if self.gyro_bias_rw:
             out["gyro_bias_rw_deg_h_sqrth"] = float(self.gyro_bias_rw)
+        if self.stamp_ms:
+            out["stamp_sigma_ms"] = float(self.stamp_ms)
         return out
 
     @classmethod
@@ -276,7 +287,8 @@ class NoiseScales:
                    float(d.get("unknown_star_sigma_px", 0.0) or 0.0),
                    str(groups.get("by", "")), tuple(float(e) for e in groups.get("edges", ())),
                    tuple(float(f) for f in groups.get("scales", ())), rho, share,
-                   float(d.get("gyro_bias_rw_deg_h_sqrth", 0.0) or 0.0))
+                   float(d.get("gyro_bias_rw_deg_h_sqrth", 0.0) or 0.0),
+                   float(d.get("stamp_sigma_ms", 0.0) or 0.0))
 
     @classmethod
     def parse(cls, text: str) -> NoiseScales:
@@ -292,10 +304,11 @@ class NoiseScales:
         white + AR(1) noise, ``rho`` then the AR(1)'s coefficient and ``share`` its part of
         the variance (:attr:`star_ar_share`; the advice prints ``star=K,rho=R,share=W``).
         ``gyro_bias_rw``: the gyro bias's random walk, deg/h/√h (:attr:`gyro_bias_rw`).
+        ``stamp``: the frames' stamps' noise, ms rms (:attr:`stamp_ms`).
         """
         keys = {"star": "star", "gyro": "gyro", "accel": "accel",
                 "unknown": "unknown_sigma_px", "rho": "star_rho", "share": "star_ar_share",
-                "gyro_bias_rw": "gyro_bias_rw"}
+                "gyro_bias_rw": "gyro_bias_rw", "stamp": "stamp_ms"}
         values: dict[str, Any] = {}
         last = ""
         for item in text.replace(";", ",").split(","):

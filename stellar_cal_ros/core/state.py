@@ -255,20 +255,24 @@ class ErrorState:
                         r_diag: np.ndarray, relinearize, policy: cov.UpdatePolicy,
                         rotation: slice, others: slice | None,
                         H_consider: np.ndarray | None = None,
-                        compiled: bool = False) -> cov.UpdateResult:
+                        compiled: bool = False,
+                        common: np.ndarray | None = None) -> cov.UpdateResult:
         """:func:`~.covariance.iterated_update` of ``P``; on success P (and M) take it.
 
         The correction ``res.dx`` is not injected (:meth:`inject`).  ``H_consider`` (m, n_c):
         the measurement's consider columns (sensitivity update with the prior's S).
+        ``common`` (m,): a noise all rows share, ``R = diag(r) + c cᵀ`` (the frame's stamp).
         """
         res = cov.iterated_update(self.P, H, h, z, r_diag, relinearize, policy, rotation,
-                                  others, compiled=compiled)
+                                  others, compiled=compiled, common=common)
         if not res.ok:
             return res
         sens = self.sensitivity
         if sens is not None:
             S = res.H @ self.P @ res.H.T
             S.ravel()[::len(S) + 1] += r_diag
+            if common is not None:
+                S += np.outer(common, common)
             sens.update(res.H, H_consider, res.K, z - h, S)
         self.P = res.P
         return res

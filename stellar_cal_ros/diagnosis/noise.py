@@ -291,6 +291,20 @@ class NoiseVerdict:
             out["imu_skipped"] = self.imu_skipped
         return out
 
+    def _stamp_line(self) -> str:
+        """The line of the frames' stamps' noise applied in each frame's R ('' if none).
+
+        :func:`~.noise_runs._at_stamps`'s run with it.
+        """
+        j = self.stamp_jitter
+        if not j or "applied_ms" not in j:
+            return ""
+        return (f"the frames' stamps jitter {j['applied_ms']:.2g} ms rms (the stars' spread "
+                f"along their image motion, p = {j['p_value']:.2g}): a noise in time, not in "
+                "the stars' positions, applied in each frame's measurement covariance "
+                f"(NIS/dof {j['nis_before']:.3g} -> {j['nis_after']:.3g}): use --noise-scale "
+                f"stamp={j['applied_ms']:.2g}")
+
     def _sample_lines(self) -> list[str]:
         """The IMU noise measured from its own samples, where it is not as stated."""
         out = []
@@ -425,6 +439,8 @@ class NoiseVerdict:
         refused = self._walk_refused_line()
         if self.skipped:
             return [f"not measured: {self.skipped}"] + ([refused] if refused else []) + out
+        stamps = self._stamp_line()
+        out = ([stamps] if stamps else []) + out
         walk = self._walk_line()
         out += ([walk] if walk else []) + ([refused] if refused else []) + self._beyond_lines()
         if self.correlated:
@@ -1004,13 +1020,7 @@ def far_off(base, sn: StarNoise | None, calibration=None, fraction: float = 0.5,
     if not base.ok or not base.window:
         return "the model's run failed"
     lost = base.lost_lock
-    s = 1.0
-    if sn is not None and sn.scale > 0:
-        s = sn.scale
-    # the model's misfit at the stars' measured σ: the number decided on is the one printed
-    # (the run's own NIS/dof also held the stated σ's error: stars stated at half their σ
-    # and a 100x gyro noise printed 44.5 where the NIS/dof at the true σ is 11.2)
-    nis = base.window["nis"]["mean"] / 2.0 / s**2
+    s, nis = misfit(base, sn)
     if lost or not np.isfinite(nis) or nis > MAX_DISPERSION:
         at = "" if abs(s - 1.0) <= MATERIAL else f" at the stars' measured sigma, x{s:.3g}"
         jitter = None if lost or not np.isfinite(nis) else \
@@ -1022,11 +1032,23 @@ def far_off(base, sn: StarNoise | None, calibration=None, fraction: float = 0.5,
                     f"along their image motion, p = {jitter['p_value']:.2g}): a noise in "
                     "time, not in the stars' positions, that the model does not state "
                     f"(outside the library); it makes NIS/dof {nis:.3g}{at}, "
-                    f"{nis - jitter['nis_share']:.3g} without it; taken as stated")
+                    f"{nis - jitter['nis_share']:.3g} without it; taken as stated (use "
+                    f"--noise-scale stamp={jitter['ms']:.2g} to state it)")
         return (f"the model is too far off (NIS/dof {nis:.3g}{at}"
                 + (", the filter lost lock" if lost else "") + "): a missing effect shapes "
                 "the residuals more than the noise does; taken as stated until it is added")
     return ""
+
+
+def misfit(base, sn: StarNoise | None) -> tuple[float, float]:
+    """``(s, NIS/dof)``: the stars' measured σ scale and ``base``'s misfit at it.
+
+    The number decided on is the one printed (the run's own NIS/dof also held the stated
+    σ's error: stars stated at half their σ and a 100x gyro noise printed 44.5 where the
+    NIS/dof at the true σ is 11.2).
+    """
+    s = sn.scale if sn is not None and sn.scale > 0 else 1.0
+    return s, base.window["nis"]["mean"] / 2.0 / s**2
 
 
 #: a noise in the frames' stamps is named (:func:`stamp_jitter`) at this one-sided p, where

@@ -39,6 +39,7 @@ from typing import TextIO
 
 import numpy as np
 
+from stellar_cal_ros.core.covariance import augment
 from stellar_cal_ros.core.imu_prefix import in_sample_rotvec
 from stellar_cal_ros.core.jit import (
     HAVE_NUMBA,
@@ -63,7 +64,8 @@ _CHI2_2_MEDIAN = 2.0 * math.log(2.0)
 #: config vector of :func:`frame_step` (see StarFilter._frame_config)
 CONFIG_FIELDS = ("threshold", "scale_by_frame", "mismatch_factor", "lost_lock_factor",
                  "fov_tan2", "min_stars", "max_iterations", "iteration_tolerance",
-                 "relinearize_rad", "relinearize_sigma", "max_correction_rad", "nis_cap")
+                 "relinearize_rad", "relinearize_sigma", "max_correction_rad", "nis_cap",
+                 "stamp_sigma")
 
 
 @njit(cache=True)
@@ -77,6 +79,7 @@ def _mat3_mul_t(a, b):
 
 
 _in_sample_rotvec = njit(cache=True)(in_sample_rotvec)
+_augment = njit(cache=True)(augment)
 
 
 @njit(cache=True)
@@ -755,7 +758,22 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
                 H0[i, r, 3 + k] = H_par[i, r, k]
     nu0 = uv - uv_pred
     r_meas = sigma * sigma
-    S_blocks, nis_stars = star_blocks(H0, P, r_meas, nu0)
+    # the frame's stamp noise σ_t (cfg[12], s): one δt moves every star by c = σ_t ∂uv/∂t,
+    # an error state of unit variance seen through c (covariance.iterated_update's common)
+    timing = cfg[12] > 0.0
+    ct = np.zeros((n, 2))
+    if timing:
+        wi = R_out[0] @ omega
+        for i in range(n):
+            for r in range(2):
+                ct[i, r] = cfg[12] * (H_att[i, r, 0] * wi[0] + H_att[i, r, 1] * wi[1]
+                                      + H_att[i, r, 2] * wi[2])
+        H0g = np.zeros((n, 2, N + 1))
+        H0g[:, :, :N] = H0
+        H0g[:, :, N] = ct
+        S_blocks, nis_stars = star_blocks(H0g, _augment(P), r_meas, nu0)
+    else:
+        S_blocks, nis_stars = star_blocks(H0, P, r_meas, nu0)
     accepted = np.zeros(n, dtype=np.bool_)
     scale, mismatch, lost, outside = gate(nis_stars, dirs, cfg, accepted)
     floats[1] = scale
@@ -776,6 +794,10 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
         h[2 * q], h[2 * q + 1] = uv_pred[i, 0], uv_pred[i, 1]
         rr[2 * q] = rr[2 * q + 1] = r_meas[i]
     H = _assemble(H_att, H_par, Pe, N, idx)
+    cc = np.zeros(m2)
+    for q in range(n_acc):
+        cc[2 * q], cc[2 * q + 1] = ct[idx[q], 0], ct[idx[q], 1]
+    Pg = _augment(P) if timing else P
     u_acc = np.ascontiguousarray(u[idx])
     du_acc = np.ascontiguousarray(du[idx])
     sig_floor = np.empty(N)
@@ -794,7 +816,14 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
     all_rows = np.arange(n_acc)
     Lf = np.zeros((m2, m2))  # the last gain's Cholesky factor of S (the sensitivity's)
     for it in range(1, max_it + 1):
-        okg, K, nis_it, Lf = kalman_gain_factor(P, H, rr, nu)
+        if timing:
+            Hg = np.empty((m2, N + 1))
+            Hg[:, :N] = H
+            Hg[:, N] = cc
+            okg, Kg, nis_it, Lf = kalman_gain_factor(Pg, Hg, rr, nu)
+            K = np.ascontiguousarray(Kg[:N])
+        else:
+            okg, K, nis_it, Lf = kalman_gain_factor(P, H, rr, nu)
         if not okg:
             ints[1] = it
             return BAD_GAIN, accepted, uv_pred, S_blocks, nis_stars, dirs, np.zeros(N)
@@ -858,6 +887,11 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
                 M[i, k] = Mn[i, k]
     # ---- covariance, injection, reset
     Pn = joseph(P, K, H, rr)
+    if timing:
+        kc = K @ cc
+        for a in range(N):
+            for b in range(N):
+                Pn[a, b] += kc[a] * kc[b]
     for k in range(Pe):
         theta[k] += dx[3 + k]
     R_new = mat3_mul(so3_exp1(dx[0:3].copy()), R_b)
@@ -1021,7 +1055,8 @@ class FusedStep:
                   "max_iterations": c.max_iterations,
                   "iteration_tolerance": c.iteration_tolerance,
                   "relinearize_rad": c.relinearize_rad, "relinearize_sigma": c.relinearize_sigma,
-                  "max_correction_rad": flt.propagation.max_correction_rad, "nis_cap": NIS_CAP}
+                  "max_correction_rad": flt.propagation.max_correction_rad, "nis_cap": NIS_CAP,
+                  "stamp_sigma": flt.stamp_sigma}
         self.cfg = np.array([float(values[k]) for k in CONFIG_FIELDS])
         self.q_diag = np.ascontiguousarray(flt._q_diag, dtype=float)
         self.Pe = int(flt.P_est)

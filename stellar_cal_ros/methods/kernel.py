@@ -274,6 +274,10 @@ class StarFilter(Acquisition):
         self.q_theta = (np.concatenate(q) ** 2 if q else np.zeros(0))[:self.P_est]
         #: the gyro bias's random walk the noise scales state (deg/h/√h; 0: none)
         self.gyro_bias_rw = float(getattr(c.noise, "gyro_bias_rw", 0.0) or 0.0)
+        #: σ (s) of the noise in the frames' stamps the noise scales state (0: none): each
+        #: frame's R gains its stars' common motion in it (:func:`~stellar_cal_ros.core.
+        #: covariance.stamp_column`)
+        self.stamp_sigma = 1e-3 * float(getattr(c.noise, "stamp_ms", 0.0) or 0.0)
         sl = model.slices.get("gyro_bias")
         if self.gyro_bias_rw > 0 and sl is not None and sl.stop <= self.P_est:
             # (deg/h/√h → rad/s/√s)
@@ -596,14 +600,22 @@ class StarFilter(Acquisition):
         H0, Hb0 = self._star_jacobian(pred0)
         nu0 = uv - pred0.uv
         jit = cov.compiled_kernels() if self.compiled_step else None
+        # the frame's stamp noise: one δt moves every star (R gains c cᵀ, c = σ_t ∂uv/∂t)
+        c_t = cov.stamp_column(pred0.H_attitude, ctx.R_i_b, ctx.omega_b, self.stamp_sigma) \
+            if self.stamp_sigma > 0 else None
         if jit is not None:
-            S_blocks, nis_stars = jit.star_blocks(H0, np.ascontiguousarray(self.P),
+            Hs, Ps = (H0, self.P) if c_t is None else (
+                np.concatenate([H0, c_t[:, :, None]], axis=2), cov.augment(self.P))
+            S_blocks, nis_stars = jit.star_blocks(np.ascontiguousarray(Hs),
+                                                  np.ascontiguousarray(Ps),
                                                   np.ascontiguousarray(R_meas, dtype=float),
                                                   nu0)
         else:
             S_blocks = (H0 @ self.P) @ H0.transpose(0, 2, 1)
             S_blocks[:, 0, 0] += R_meas
             S_blocks[:, 1, 1] += R_meas
+            if c_t is not None:
+                S_blocks += c_t[:, :, None] * c_t[:, None, :]
             nis_stars = block_nis(nu0, S_blocks)
         gate = self.gate.decide(nis_stars, pred0.directions_st)
         accepted = gate.accepted
@@ -638,7 +650,8 @@ class StarFilter(Acquisition):
 
         Hb = Hb0[idx].reshape(-1, self.n_consider) if self.n_consider else None
         res = self.state.iterated_update(H, h, z, r_diag, relinearize, self.update_policy,
-                                         self.ia, self.it, Hb, compiled=self.compiled_step)
+                                         self.ia, self.it, Hb, compiled=self.compiled_step,
+                                         common=None if c_t is None else c_t[idx].reshape(-1))
         if not res.ok:
             self._failed(res.reason, t_exp)
             return result

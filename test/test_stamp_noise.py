@@ -1,0 +1,181 @@
+"""A noise in the frames' stamps in the filter's measurement covariance (issue 21, H277).
+
+One stamp error ``δt ~ N(0, σ_t²)`` per frame moves all its stars at once, by
+``J_t δt`` with ``J_t = ∂uv/∂t = H_attitude R_i_b ω`` (:func:`~stellar_cal_ros.core.
+covariance.stamp_column`): the frame's R gains the rank-one ``σ_t² J_t J_tᵀ``
+(``--noise-scale stamp=MS``), not an independent per-star term.
+
+* ``J_t`` equals the finite difference of the prediction in the stamp, both prediction paths;
+* the update with the common column equals a linear update with the full R (gain, NIS,
+  Joseph covariance), numpy and compiled;
+* a jittered bag (1 ms rms stamps) replayed with ``stamp=1``: the compiled path equals the
+  numpy reference (psce's fused step, the swaying filter's star update), and the stars'
+  NIS/dof comes back to 1 (5-8 without it);
+* ``stamp`` parses, round-trips through the calibration file's dict, and 0 is the identity.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stellar_cal_ros.core import covariance as cov
+from stellar_cal_ros.core.noise import NoiseScales
+from stellar_cal_ros.effects.base import FrameContext
+from stellar_cal_ros.methods.frames import bag_data_from_simulation
+from stellar_cal_ros.methods.kernel import StarFilter
+from stellar_cal_ros.methods.replay import replay
+from stellar_cal_ros.sim import tracker_errors
+from stellar_cal_ros.sim.scenarios import get_scenario
+from stellar_cal_ros.sim.world import simulate
+
+jit = pytest.importorskip("stellar_cal_ros.core.jit")
+
+
+def _jittered(scenario: str, duration: float, seed: int, jitter_ms: float):
+    sim = simulate(get_scenario(scenario), duration=duration, seed=seed)
+    if jitter_ms:
+        tracker_errors.stamp_jitter(sim, jitter_ms * 1e-3, seed)
+    return sim, bag_data_from_simulation(sim)
+
+
+@pytest.fixture(scope="module")
+def psce_bag():
+    """120 s of psce_rotations (seed 21: two slews), stamps N(0, 1 ms) off their exposures."""
+    return _jittered("psce_rotations", 120.0, 21, 1.0)
+
+
+def _nis_dof(res) -> float:
+    s = res.stats.current() if hasattr(res.stats, "current") else res.stats
+    return s.sum_nis / (2.0 * s.stars)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_stamp_column_is_the_prediction_s_derivative_in_time(psce_bag, compiled) -> None:
+    sim, data = psce_bag
+    f = replay(data, sim.prior, "psce", effects=["time_offset"], keep_tables=False).filter
+    fr = data.frames[len(data.frames) // 2]
+    rng = np.random.default_rng(7)
+    u = rng.normal(size=(12, 3)) * 0.05 + f.R_i_b @ f.model._R_imu_st_prior @ [0, 0, 1.0]
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    omega = np.array([0.03, -0.05, 0.08])  # rad/s: a 5 deg/s slew
+    base, h, sigma_t = 0.013, 1e-6, 2e-3
+
+    def pred(b):
+        ctx = FrameContext(stamp=fr.stamp_ns * 1e-9)
+        return f.model.predict_state(f.theta, u, ctx, f.R_i_b, omega, b, compiled=compiled), ctx
+
+    p0, ctx0 = pred(base)
+    fd = (pred(base + h)[0].uv - pred(base - h)[0].uv) / (2 * h)
+    got = cov.stamp_column(p0.H_attitude, ctx0.R_i_b, ctx0.omega_b, sigma_t)
+    assert np.max(np.abs(fd)) > 100.0  # px/s: the stars move
+    np.testing.assert_allclose(got, sigma_t * fd, rtol=0, atol=1e-6 * np.max(np.abs(fd)))
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_common_column_is_the_full_r(compiled) -> None:
+    rng = np.random.default_rng(8)
+    n, N = 9, 14
+    A = rng.normal(size=(N, N))
+    P = A @ A.T / N + np.eye(N) * 1e-3
+    H = rng.normal(size=(2 * n, N))
+    r = np.repeat(rng.uniform(0.01, 0.1, n), 2)
+    c = rng.normal(size=2 * n) * 0.3
+    z, h = rng.normal(size=2 * n), np.zeros(2 * n)
+    res = cov.iterated_update(P, H, h, z, r, None, cov.UpdatePolicy(), compiled=compiled,
+                              common=c)
+    dx, Pn, K, nis = cov.linear_update(P, H, z - h, np.diag(r) + np.outer(c, c))
+    assert res.ok
+    np.testing.assert_allclose(res.dx, dx, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(res.K, K, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(0.5 * (res.P + res.P.T), Pn, rtol=1e-9, atol=1e-14)
+    assert res.nis == pytest.approx(nis, rel=1e-10)
+
+
+def _equal_runs(a, b, tol_sigma: float) -> None:
+    assert a.counters == b.counters
+    fa, fb = a.filter, b.filter
+    sig = np.sqrt(np.diag(fb.P))[3:3 + fb.P_est]
+    assert np.max(np.abs(fa.theta[:fb.P_est] - fb.theta[:fb.P_est]) / sig) <= tol_sigma
+    np.testing.assert_allclose(np.diag(fa.P), np.diag(fb.P), rtol=1e-5)
+    assert _nis_dof(a) == pytest.approx(_nis_dof(b), rel=1e-6)
+
+
+def test_psce_compiled_equals_numpy_and_the_nis_comes_back(psce_bag, monkeypatch) -> None:
+    """psce (the fused compiled step): with ``stamp=1`` the compiled run equals the numpy
+    reference within the start-up's amplification (test_compiled_step's 2e-3 σ), and the
+    stars' NIS/dof is ~1 (measured: 1.03 with it, 6.6 without, seed 21, 60 s; σ of a
+    frame-correlated NIS/dof over 60 s ≈ 0.05)."""
+    sim, data = psce_bag
+    runs = {}
+    for compiled in (True, False):
+        monkeypatch.setattr(StarFilter, "compiled_step", compiled)
+        runs[compiled] = replay(data, sim.prior, "psce", noise=NoiseScales(stamp_ms=1.0),
+                                keep_tables=False)
+    _equal_runs(runs[True], runs[False], 2e-3)
+    monkeypatch.setattr(StarFilter, "compiled_step", True)
+    without = replay(data, sim.prior, "psce", keep_tables=False)
+    assert _nis_dof(without) > 3.0
+    assert _nis_dof(runs[True]) == pytest.approx(1.0, abs=0.15)
+
+
+def test_swaying_compiled_star_update_equals_numpy(monkeypatch) -> None:
+    """The swaying-base filter's compiled star update (``frame_step.star_update``) with a
+    stamp noise equals its numpy update, and its NIS/dof comes back to ~1."""
+    from stellar_cal_ros.diagnosis.injection import clean_simulation
+    from stellar_cal_ros.methods.swaying import SwayingFilter
+
+    sim, _ = clean_simulation("swaying_base", False, 22, 60.0)  # (the model's own effects)
+    tracker_errors.stamp_jitter(sim, 1e-3, 22)
+    data = bag_data_from_simulation(sim)
+    runs = {}
+    for compiled in (True, False):
+        monkeypatch.setattr(SwayingFilter, "compiled_star_update", compiled)
+        monkeypatch.setattr(SwayingFilter, "compiled_frame", compiled)
+        runs[compiled] = replay(data, sim.prior, "swaying_base",
+                                noise=NoiseScales(stamp_ms=1.0), keep_tables=False)
+    _equal_runs(runs[True], runs[False], 1e-3)
+    assert _nis_dof(runs[True]) == pytest.approx(1.0, abs=0.15)
+
+
+def test_stamp_noise_parses_and_round_trips() -> None:
+    s = NoiseScales.parse("star=1.2,stamp=0.8")
+    assert s.stamp_ms == 0.8 and not s.identity
+    assert s.as_dict()["stamp_sigma_ms"] == 0.8
+    assert NoiseScales.from_dict(s.as_dict()) == s
+    assert NoiseScales(stamp_ms=0.0).identity and "stamp_sigma_ms" not in NoiseScales().as_dict()
+    with pytest.raises(ValueError, match="stamp noise"):
+        NoiseScales.parse("stamp=-1")
+
+
+def test_the_noise_verdict_applies_the_stamps_it_names_and_the_nis_comes_back() -> None:
+    """Unseen case ``sway_jitter`` s22 (300-s swaying base, stamps N(0, 1 ms) off): the
+    baseline is too far off for the noise (NIS/dof 5.86) and the verdict named the stamps
+    but took the noise 'as stated' (H263).  Now the model is run again with that noise in
+    each frame's R and the verdict made on that run: its first line names the stamps and
+    says ``use --noise-scale stamp=X``, the noise applied holds them, and the NIS/dof comes
+    back to ~1 (H263's seeds 21-23: the stamps' size read back 0.97-1.04 ms, σ ≈ 0.05).
+    Fails on main (taken as stated: ``NoiseScales`` has no ``stamp_ms``)."""
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.injection import clean_simulation
+    from stellar_cal_ros.diagnosis.noise_runs import measure
+    from stellar_cal_ros.diagnosis.parallel import Runs, Task
+
+    sim, _ = clean_simulation("swaying_base", False, 22, 300.0)
+    tracker_errors.stamp_jitter(sim, 1e-3, 22)
+    runs = Runs(bag_data_from_simulation(sim), method_spec("swaying_base"), 0.5)
+    runs.noise = NoiseScales()
+    prior = rerun_prior(sim.prior)
+    # the model's run as a round makes it (its residuals kept: the stamps' test reads them)
+    base = runs.run_all([Task("model", prior, (), keep_residuals=True, star_noise=True)])[
+        "model"]
+    v = measure(runs, prior, (), base, None, ("gyro", "accel"))
+    j = v.stamp_jitter
+    assert not v.skipped and j is not None and "applied_ms" in j, (v.skipped, j)
+    assert j["applied_ms"] == pytest.approx(1.0, abs=0.15)
+    assert v.applied.stamp_ms == j["applied_ms"] and v.rescaled
+    assert j["nis_before"] > 4.0 and j["nis_after"] == pytest.approx(1.0, abs=0.15), j
+    first = v.lines()[0]
+    assert first.startswith("the frames' stamps jitter ") and first.endswith(
+        f"use --noise-scale stamp={j['applied_ms']:.2g}"), first
+    assert v.as_json()["applied"]["stamp_sigma_ms"] == j["applied_ms"]
