@@ -705,7 +705,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run the re-runs on an existing Dask cluster (tcp://host:8786)")
         d.add_argument("--verify", action="store_true",
                        help="--auto: check every printed MDB and bias on twins of this bag "
-                            "(the effect injected at its MDB, `stellar-cal twin`)")
+                            "(the effect injected at its MDB, `stellar-cal twin`; the biases "
+                            "on its noise-free twin, exactly)")
         d.add_argument("--verify-seed", type=int, default=1,
                        help="noise seed of the first --verify twins (default 1; the next "
                             "twins take the next seeds)")
@@ -714,10 +715,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "MDB is a size of either sign) or at one")
         d.add_argument("--verify-twins", default="auto", metavar="K|auto",
                        help="--verify: twins of different noise seeds per row and sign "
-                            "(K: that many, 2 measure a row's twin-to-twin spread, 1: one "
-                            "twin, no spread; auto, the default: 2, and more, one seed at "
-                            "a time, for a row they cannot judge or leave at the band's "
-                            "edge, up to --verify-twins-max)")
+                            "(the detection; K: that many, 1: one twin; auto, the default: "
+                            "2, and more, one seed at a time, for a row whose noise-free "
+                            "twin did not run and whose biases they cannot judge or leave "
+                            "at the band's edge, up to --verify-twins-max)")
         d.add_argument("--verify-twins-max", type=int, default=None, metavar="M",
                        help="--verify: the most twins a row gets (default 6 with "
                             "--verify-twins auto; with K: K)")

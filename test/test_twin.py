@@ -168,10 +168,10 @@ def test_discover_verify_checks_the_printed_numbers_on_twins(user_run, tmp_path,
     assert rc == 0, out.err[-3000:]
     summary = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     rows = summary["verify"]
-    # each row at both signs of its MDB (an MDB is a size of either sign), on two twins
-    # (seeds 1, 2) whose twin-to-twin spread judges the shift (verify.pooled): these rows
-    # are first order, their shift odd in the size and the same on every twin to far below
-    # ± 30 % of the claim.  Fails on main (+ only, one twin).
+    # each row at both signs of its MDB (an MDB is a size of either sign), its detection
+    # on two twins (seeds 1, 2), its biases on the noise-free twin pair (exact: no twin is
+    # added for them, verify.on_noise_free_twin): these rows are first order, their shift
+    # odd in the size, and the noisy twins' mean within ± 30 % of the claim too.
     assert sorted((r["effect"], r["sign"]) for r in rows) == [
         ("pixel_aspect", -1), ("pixel_aspect", 1), ("thermal_focal_length", -1),
         ("thermal_focal_length", 1)]
@@ -180,10 +180,12 @@ def test_discover_verify_checks_the_printed_numbers_on_twins(user_run, tmp_path,
         assert r["seeds"] == [1, 2] and r["twins"] == 2, r
         assert r["noncentrality"] == pytest.approx(r["expected_noncentrality"], rel=0.3), r
         assert r["verdict"] in ("holds", "conservative"), r
+        assert r["biases_on"] == "noise-free twin" and r["first_order_misses"] == [], r
         for b in r["biases"]:
             assert 0.7 < b["ratio"] < 1.3, (r["effect"], b)
-            assert b["judged"] and len(b["by_twin"]) == 2, b
-            assert 1.96 * b["spread"] / np.sqrt(2) < 0.3 * abs(b["printed"]), b
+            assert b["exact"] and len(b["by_twin"]) == 2, b
+            assert 0.7 < b["twins_mean"] / b["printed"] < 1.3, b
+            assert b["twins_mean"] == pytest.approx(np.mean(b["by_twin"])), b
         other = by[(r["effect"], -r["sign"])]
         for b, m in zip(r["biases"], other["biases"], strict=True):
             assert b["measured"] == pytest.approx(-m["measured"], rel=0.1), (r["effect"], b, m)

@@ -362,6 +362,9 @@ def verify_lines(summary: dict[str, Any]) -> list[str]:
     signs = {"+-": "±", "+": "", "-": "−"}["".join(sorted(
         {"+" if r.get("sign", 1) > 0 else "-" for r in rows}))]
     unjudged = sum(r.get("verdict") == "cannot be judged" for r in rows)
+    # the biases judged on the noise-free twin pair (verify.on_noise_free_twin)
+    exact = any(r.get("biases_on") == "noise-free twin" for r in rows)
+    misses = sum(len(r.get("first_order_misses") or []) for r in rows)
     out = [f"verify (twins of this bag, the effect injected at {signs}its "
            f"printed MDB, seed{'s' if len(seeds) > 1 else ''} "
            f"{', '.join(map(str, seeds))}"
@@ -373,7 +376,10 @@ def verify_lines(summary: dict[str, Any]) -> list[str]:
               f"{max(held) if len(held) == 1 else f'up to {max(held)}'} twins (the shift's "
               "twin-to-twin spread is too large for ± 30 % of the claim)" if unjudged else "")
            + (f"; {refused} of them refused by the clock rule on this bag at that sign "
-              "(not a miss: the detection not counted, the biases judged)" if refused else "")]
+              "(not a miss: the detection not counted, the biases judged)" if refused else "")
+           + (f"; the biases measured on the noise-free twin (exact at the twin's size), "
+              f"{misses} of them beyond ± 30 % of the printed first-order bias (the line "
+              "gives the measured shift)" if exact else "")]
     out += [f"  {verify_text(r)}" for r in rows]
     return out
 
