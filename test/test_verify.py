@@ -508,7 +508,7 @@ def test_the_biases_are_judged_on_the_noise_free_twin_pair(monkeypatch):
     assert plus["verdict"] == "fails" and plus["unjudged"] == []
     assert plus["first_order_misses"] == [{"quantity": "principal_point.cx", "printed": 2.5,
                                            "noise_free": 4.375, "ratio": 1.75,
-                                           "at_mdb": 4.375}]
+                                           "at_printed_size": 4.375}]
     line = verify.describe(plus)
     assert ("principal_point.cx moved 4.38 px on the noise-free twin (printed 2.5 px: 1.75x, "
             "the printed first-order bias misses by more than 30 %, the shift measured here "
@@ -530,13 +530,13 @@ def test_the_biases_are_judged_on_the_noise_free_twin_pair(monkeypatch):
             entry, {"principal_point.cx": 2.5 * got, "focal_length.f": 15.6})
         assert rec["verdict"] == want
         assert [m["quantity"] for m in rec["first_order_misses"]] == missed
-    # a twin at a share of the printed size: the bias at the printed MDB beside it
+    # a twin at a share of the printed size: the shift at the printed size beside it
     half = verify.on_noise_free_twin(
         {**plus, "size_scale": 0.5}, entry,
         {"principal_point.cx": 2.5, "focal_length.f": 7.8})
     (miss,) = half["first_order_misses"]
-    assert miss["ratio"] == pytest.approx(2.0) and miss["at_mdb"] == pytest.approx(5.0)
-    assert "; at the printed MDB 5 px)" in verify.describe(half)
+    assert miss["ratio"] == pytest.approx(2.0) and miss["at_printed_size"] == pytest.approx(5.0)
+    assert "; at the size it is printed for 5 px)" in verify.describe(half)
 
 
 def test_the_noise_free_shift_is_the_noisy_twins_mean():

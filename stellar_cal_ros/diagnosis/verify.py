@@ -270,8 +270,8 @@ def on_noise_free_twin(rec: dict[str, Any], entry: dict[str, Any],
     these ratios (none is left unjudged: no spread).  A quantity whose shift is beyond
     ± 30 % of its printed first-order bias (:data:`RATIO_RANGE`'s width about 1, either
     side) is listed in ``first_order_misses`` with its measured bias (``noise_free``, at
-    the twins' size; ``at_mdb``: at the printed MDB, the shift being linear in the size,
-    H268) and said so (:func:`describe`).
+    the twins' size; ``at_printed_size``: at the size the biases are printed at, the
+    twins' / ``size_scale`` — the shift is linear in the size, H268) and said so (:func:`describe`).
     """
     checks = bias_checks(entry, rec["parameter"], rec["sign"], rec["size_scale"], shift)
     for c, noisy in zip(checks, rec["biases"], strict=True):
@@ -283,7 +283,7 @@ def on_noise_free_twin(rec: dict[str, Any], entry: dict[str, Any],
                                           detection=not rec["refused_by_clock"])
     scale = rec["size_scale"]
     misses = [{"quantity": c["quantity"], "printed": c["printed"], "noise_free": c["measured"],
-               "ratio": c["ratio"], "at_mdb": c["measured"] / scale}
+               "ratio": c["ratio"], "at_printed_size": c["measured"] / scale}
               for c in checks if misses_first_order(c["ratio"])]
     return {**rec, "biases": checks, "biases_on": "noise-free twin",
             "holds": verdict in ("holds", "conservative"), "verdict": verdict,
@@ -644,7 +644,7 @@ def describe(rec: dict[str, Any]) -> str:
                 claim += (f": {c['ratio']:.2f}x, the printed first-order bias misses by more "
                           "than 30 %, the shift measured here is this bag's" + (
                               "" if scale == 1.0 else
-                              f"; at the printed MDB {shown(q, c['measured'] / scale)}"))
+                              f"; at the size it is printed for {shown(q, c['measured'] / scale)}"))
             parts.append(f"{q} moved {shown(q, c['measured'])} on the noise-free twin "
                          f"({claim})")
             continue
