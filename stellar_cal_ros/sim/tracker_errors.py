@@ -443,12 +443,43 @@ def turn_frame(f, cam, arcsec: float, angle_deg: float) -> None:
     """
     shift = arcsec / ARCSEC_PER_PX * np.array([np.cos(np.deg2rad(angle_deg)),
                                                np.sin(np.deg2rad(angle_deg))])
-    R = so3_exp([-shift[1] / cam.fy, shift[0] / cam.fx, 0.0])
+    rotate_frame(f, cam, so3_exp([-shift[1] / cam.fy, shift[0] / cam.fx, 0.0]))
+
+
+def rotate_frame(f, cam, R: np.ndarray) -> None:
+    """Every star of frame ``f`` seen through the tracker turned by ``R`` (its own frame).
+
+    The pinhole's rays of ``cam`` turned by the rotation matrix ``R`` and projected again.
+    """
     uv = np.asarray(f.uv, dtype=float)
     d = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy,
                   np.ones(len(uv))], 1) @ R.T  # (the pinhole's rays, turned)
     f.uv = np.stack([cam.cx + cam.fx * d[:, 0] / d[:, 2],
                      cam.cy + cam.fy * d[:, 1] / d[:, 2]], 1)
+
+
+def backlash(sim, arcsec: float) -> None:
+    """A mount with backlash: the tracker lags each slew by ``arcsec`` about the slew's axis.
+
+    From the first sample of a slew (the IMU's rate above half its 95th percentile) the
+    tracker sits turned by ``-arcsec`` along that sample's rate direction (IMU frame,
+    turned into the tracker's by the true installation) and stays there until the next
+    slew: psce's six ±30° steps leave it in a different place after each, so the
+    installation steps at every slew (the library's is one constant); nothing before the
+    first slew; no gyro sees it.
+    """
+    imu = sim.imu
+    t = np.asarray(imu.stamp_ns, dtype=np.int64)
+    w = np.asarray(imu.angular_velocity, dtype=float)
+    speed = np.linalg.norm(w, axis=1)
+    fast = speed > 0.5 * np.percentile(speed, 95)
+    last = np.maximum.accumulate(np.where(fast, np.arange(len(t)), -1))
+    R = sim.truth_world.installation().as_matrix()  # R_imu_st
+    theta = np.deg2rad(arcsec / 3600.0)
+    for f in sim.star_frames:
+        k = last[int(np.clip(np.searchsorted(t, f.stamp_ns) - 1, 0, len(t) - 1))]
+        if k >= 0:  # the lag, in the tracker's frame
+            rotate_frame(f, sim.prior.camera, so3_exp(R.T @ (-theta * w[k] / speed[k])))
 
 
 def thermal_mount(sim, arcsec_per_c: float, angle_deg: float = 30.0) -> None:
