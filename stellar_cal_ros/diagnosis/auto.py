@@ -504,8 +504,11 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             if not action and r.noise_stale and k < max_rounds and not (
                     len(path) > 1 and path[-2]["action"] == "noise"):
                 # nothing significant, but the stars' σ scale of this model is not the one
-                # applied: measure the noise again and test once more with it
+                # applied, or an IMU scale the stars measured was measured on another model:
+                # measure the noise again and test once more with it
                 step["action"] = action = "noise"
+                if r.imu_stale:
+                    step["imu_again"] = list(r.imu_stale)
             path.append(step)
             rms = base.window["rms"]
             tell(f"round {k}: RMS u={rms[0]:.4f} v={rms[1]:.4f} px, loglik "

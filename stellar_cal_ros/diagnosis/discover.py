@@ -381,8 +381,14 @@ class Round:
     progress: Callable[[str], None] | None = None
     #: the latest noise verdict (:class:`~stellar_cal_ros.diagnosis.noise.NoiseVerdict`)
     noise: Any = None
-    #: the stars' σ scale of the latest round's run differs from the one applied
+    #: the stars' σ scale of the latest round's run differs from the one applied, or an IMU
+    #: scale the stars measured (:meth:`~.noise.NoiseVerdict.imu_from_stars`) was measured
+    #: on another model than the round's
     noise_stale: bool = False
+    #: the model (``extra``) the latest noise verdict was measured on
+    noise_extra: tuple[str, ...] | None = None
+    #: the IMU components of :attr:`noise_stale` (measured by the stars on another model)
+    imu_stale: list[str] = field(default_factory=list)
     #: candidates' runs the noise's walk search compared with (:func:`measure_round_noise`):
     #: {key: (the scales they ran with, run)}, taken by the round when its scales are those
     rival_runs: dict[str, Any] = field(default_factory=dict)
@@ -397,6 +403,15 @@ class Round:
     #: :class:`CandidateResult` with their screening): the caller's runs that need only
     #: ``base`` may start beside them
     beside: Callable[[RunSummary, list[CandidateResult]], None] | None = None
+
+    def measured_elsewhere(self, extra) -> list[str]:
+        """The IMU components the stars measured on another model than ``extra``.
+
+        Of the latest noise verdict (:meth:`~.noise.NoiseVerdict.imu_from_stars`).
+        """
+        if self.noise is None or self.noise_extra == tuple(extra):
+            return []
+        return self.noise.imu_from_stars()
 
     def tell(self, text: str) -> None:
         """Report progress."""
@@ -677,8 +692,11 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
         from stellar_cal_ros.diagnosis.noise import stale
 
         # the stars' noise checked again on this model's run (free): a model that changed
-        # since the noise was measured may show another scale (a missing effect inflates it)
-        r.noise_stale = not r.noise.skipped and stale(base.star_noise)
+        # since the noise was measured may show another scale (a missing effect inflates it);
+        # an IMU scale only the stars measured is not checked by a run: stale once the model
+        # is not the one it was measured on
+        r.imu_stale = [] if r.noise.skipped else r.measured_elsewhere(extra)
+        r.noise_stale = not r.noise.skipped and (stale(base.star_noise) or bool(r.imu_stale))
     reference = Reference.of(base)
     if not use_score:
         for e, scr in screening.collect([base], alpha=alpha_mdb,
@@ -849,6 +867,13 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
     if methods.get(r.spec.name).kind != "filter":
         return None  # a batch method's runner takes no noise scales (its σ: its own fit)
     r.tell("noise: measuring the stars' sigma and the IMU noise from the run")
+    back = r.measured_elsewhere(extra)
+    if back:
+        # an IMU scale the stars measured on another model (an effect then missing, which
+        # it followed): measured again from the scale it was measured from, not relative to
+        # itself (its search reads within a factor of its start: sway_sky_twin_dt1 s21's
+        # gyro x106 then read "at most x0.0524" of it and kept x5.56 for a stated x1)
+        r.runs.noise = r.runs.noise.replace(**{c: getattr(r.noise.stated, c) for c in back})
     ran_with = r.runs.noise
     comps = ("gyro", "accel") if Stage.ACCEL in r.spec.stages else ("gyro",)
 
@@ -910,6 +935,7 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
 
         r.noise = measure(r.runs, prior, tuple(extra), base, r.tell, comps,
                           rivals=rival_runs if rivals else None)
+        r.noise_extra = tuple(extra)
         if r.noise.applied == ran_with:
             kept = beside
     finally:

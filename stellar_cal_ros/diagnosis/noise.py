@@ -219,6 +219,20 @@ class NoiseVerdict:
         """The diagnosis uses other noise than stated."""
         return not (self.applied.identity or self.applied == self.stated)
 
+    def imu_from_stars(self) -> list[str]:
+        """The IMU components applied at a scale the stars' fit measured (not as stated).
+
+        Those whose own samples are not white (they carry the motion: the swaying base's
+        gyro), so that only the stars' ML runs measured them, and not read as motion beyond
+        the noise (:attr:`beyond`: kept at the samples').  Such a scale holds for the model
+        it was measured on: an effect still missing there makes the attitude wander, which
+        a larger IMU noise follows (unseen case ``sway_sky_twin_dt1``, the swaying bag with
+        the sky and a prior without it, s21: gyro x106 +- 15 measured with aberration
+        missing, kept once it was added).
+        """
+        return [c for c in self.rejected if c in ("gyro", "accel") and c not in self.beyond
+                and not (self.samples.get(c) or {}).get("white")]
+
     def scale_of(self, name: str) -> tuple[float, float]:
         """(measured scale, σ) of ``star`` / ``gyro`` / ``accel`` (1, NaN: not measured)."""
         if name == "star":

@@ -34,6 +34,9 @@ def describe(step: dict[str, Any]) -> str:
     if a == "drop":
         return f"drop {step['removed']} (no longer needed)"
     if a == "noise":
+        if step.get("imu_again"):  # (an IMU scale the stars measured on another model)
+            return (f"the {' and '.join(step['imu_again'])} noise was measured by the stars "
+                    "on another model: measure it again")
         return "the stars' noise differs with this model: measure it again"
     if a == "exchange":
         return f"exchange {step['removed']} for {step['exchanged_for']}"
