@@ -205,3 +205,61 @@ def test_the_current_models_probe_goes_spare_beside_the_candidates_when_the_top_
     n = len(started)
     tail.beside(base, [cand("time_offset", 1e-9)])
     assert len(started) == n and tail.early is None
+
+
+def test_a_queued_piece_asked_for_goes_out_next():
+    """``_Hand.promote`` (a spare piece asked for while still queued, ``DaskRuns.spare``):
+    it goes out at the next free slot, before the pieces queued above its old priority; one
+    out already, or queued at least as high, is left where it is (False).  On coord a
+    spare asked for waited behind every queued piece."""
+    out = []
+
+    def submit(name, priority=0):
+        out.append(_Future(name))
+        return out[-1]
+
+    hand = parallel._Hand(submit, 1)
+    pieces = {name: hand(name, priority=p) for name, p in
+              [("busy", 0), ("spare", parallel.SPARE_PRIORITY), ("a", 100), ("b", 100)]}
+    assert hand.promote(pieces["busy"], parallel.ON_BAG_PRIORITY) is False  # out already
+    assert hand.promote(pieces["a"], 50) is False  # queued higher already
+    assert hand.promote(pieces["spare"], parallel.ON_BAG_PRIORITY) is True
+    out[0].finish()
+    assert [f.value for f in out] == ["busy", "spare"]
+    out[1].finish()
+    out[2].finish()
+    assert [f.value for f in out] == ["busy", "spare", "a", "b"]
+
+
+def test_the_rolling_shutters_rerun_goes_spare_and_is_dropped_where_no_line_asks_for_it(
+        monkeypatch):
+    """``rolling.start_lines_without`` (the tail's re-run beside the line tests) starts as a
+    spare piece: on the several round (H281) its fit's p was under START_P with no rolling
+    line to explain, and at a statistic's priority it went before the refined model's
+    flexure probe, which ended the round alone.  ``first_if_cause`` drops it where no
+    line of its direction asks for it, and takes its value where one does."""
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.diagnosis import rolling, stats
+
+    made, dropped = [], []
+
+    class FakeRuns:
+        fraction, spec, noise, classes = 0.5, None, None, ()
+
+        def spare(self, fn, *args):
+            made.append(fn.__name__)
+            return parallel.Spare(lambda: (("gone",), None), lambda: dropped.append(1) or True)
+
+        def later(self, fn, *args):  # pragma: no cover - the re-run must not go out so
+            raise AssertionError("started at a statistic's priority")
+
+    fit = {"p_value": 0.01, "axis": "v", "coefficient": 1e-5}
+    monkeypatch.setattr(rolling, "of_run", lambda run, fraction, axis=None: fit)
+    run = SimpleNamespace(ok=True, prior=object(), effects=(), calibration=None)
+    started = rolling.start_lines_without(run, FakeRuns(), None)
+    assert made == ["lines_without_on_bag"] and started[0] is fit
+    line = SimpleNamespace(regressor="u residual vs u (column)")
+    assert not stats.rolling_axis(line.regressor)
+    found, follows = rolling.first_if_cause([line], run, FakeRuns(), None, started=started)
+    assert found == [line] and follows == set() and dropped == [1]

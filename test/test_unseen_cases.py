@@ -36,6 +36,7 @@ from stellar_cal_ros.diagnosis import (
 from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
 from stellar_cal_ros.diagnosis.noise_structure import correlated
 from stellar_cal_ros.diagnosis.output import line_tests
+from stellar_cal_ros.diagnosis.parallel import Spare
 from stellar_cal_ros.diagnosis.runstats import evaluate
 from stellar_cal_ros.diagnosis.twin import make_twin
 from stellar_cal_ros.diagnosis.twin_command import noise_line
@@ -737,14 +738,14 @@ def test_rolling_shutter_on_a_swaying_base_is_no_noise_and_has_no_stand_in():
     assert float(lines[0].regressor.split("readout ")[1].split(" ms")[0]) == \
         pytest.approx(30.0, abs=1.0)
     # the same re-run started before the line tests (a cluster's worker beside them): the
-    # same lines, the re-run made once, by the runner's 'later', not its 'on_bag'
+    # same lines, the re-run made once, by the runner's 'spare', not its 'on_bag'
     calls = []
 
-    def later(fn, *a):
+    def spare(fn, *a):
         calls.append(fn.__name__)
-        return lambda: fn(data, *a)
+        return Spare(lambda: fn(data, *a))
 
-    ahead = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(), later=later,
+    ahead = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(), spare=spare,
                             on_bag=lambda fn, *a: calls.append("on_bag"))
     started = rolling.start_lines_without(base, ahead, line_tests)
     assert calls == ["lines_without_on_bag"] and started[0] == shutter
@@ -1644,7 +1645,8 @@ def _psce_run(sim):
                    keep_residuals=True)
     return run, SimpleNamespace(spec=method_spec("psce"), fraction=0.5, noise=None,
                                 classes=(), on_bag=lambda fn, *a: fn(data, *a),
-                                later=lambda fn, *a: lambda: fn(data, *a))
+                                later=lambda fn, *a: lambda: fn(data, *a),
+                                spare=lambda fn, *a: Spare(lambda: fn(data, *a)))
 
 
 def _ranked(sim):

@@ -460,10 +460,11 @@ class Runs:
         """:meth:`later` for a value the caller may not ask for: started when a worker is spare.
 
         On a cluster it goes out once no other work is queued (:data:`SPARE_PRIORITY`: a
-        worker that would idle at a batch's end takes it), and the returned
-        :class:`Spare`'s ``cancel()`` drops it while it is queued (True; one already
-        running finishes, False); in this process it runs when asked for (``cancel()``:
-        False, it can still be asked for).  Not cached.
+        worker that would idle at a batch's end takes it; asked for while still queued, it
+        goes out next, at :data:`ON_BAG_PRIORITY`), and the returned :class:`Spare`'s
+        ``cancel()`` drops it while it is queued (True; one already running finishes,
+        False); in this process it runs when asked for (``cancel()``: False, it can still
+        be asked for).  Not cached.
         """
         return Spare(self.later(fn, *args))
 
@@ -720,7 +721,12 @@ class DaskRuns(Runs):
         if self.client is None:
             return super().spare(fn, *args)
         soon = self._submit_on_bag(fn, *args, priority=SPARE_PRIORITY)
-        return Spare(soon.result, lambda: self._hand.cancel(soon.future))
+
+        def asked() -> Any:  # (still queued: it goes first now, not after every run)
+            self._hand.promote(soon.future, ON_BAG_PRIORITY)
+            return soon.result()
+
+        return Spare(asked, lambda: self._hand.cancel(soon.future))
 
     def _compute_on_bag(self, fn: Callable[..., Any], *args: Any) -> Any:
         if self.client is None:
@@ -920,6 +926,19 @@ class _Hand:
             self._queue = [q for q in self._queue if q[2] is not piece]
             heapq.heapify(self._queue)
         piece._out.set()
+        return True
+
+    def promote(self, piece: _Handed, priority: int) -> bool:
+        """Queue ``piece`` at ``priority`` if it is still queued lower (True); else False."""
+        with self.lock:
+            at = next((i for i, q in enumerate(self._queue) if q[2] is piece), None)
+            if at is None or -self._queue[at][0] >= priority:
+                return False
+            _, _, _, args, kwargs = self._queue.pop(at)
+            heapq.heapify(self._queue)
+            heapq.heappush(self._queue, (-priority, next(self._order), piece, args,
+                                         {**kwargs, "priority": priority}))
+        self._pump()
         return True
 
     def _pump(self) -> None:

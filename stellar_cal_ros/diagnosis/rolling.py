@@ -419,12 +419,16 @@ START_P = 0.05
 def start_lines_without(run, runs, tests):
     """:func:`first_if_cause`'s re-run started now, beside the line tests; None: not started.
 
-    On a cluster (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.later`) a worker runs
-    :func:`lines_without_on_bag` while this process computes the line tests that decide
-    whether it is needed (its arguments are known before them: the run and its
-    rolling-shutter fit); in this process it runs only when asked for.  Started when the
-    fit's p is under :data:`START_P` (its more significant direction's, :func:`of_run`); a
-    run started and not needed (or along the other direction than the line's) is dropped (a
+    On a cluster a worker runs :func:`lines_without_on_bag` while this process computes
+    the line tests that decide whether it is needed (its arguments are known before them:
+    the run and its rolling-shutter fit); in this process it runs only when asked for.
+    Started when the fit's p is under :data:`START_P` (its more significant direction's,
+    :func:`of_run`), as a spare piece (:meth:`~stellar_cal_ros.diagnosis.parallel.Runs.
+    spare`: after the runs the diagnosis waits for, first once asked for): on the several
+    round its p was under :data:`START_P` with no line to explain, and started at a
+    statistic's priority it went before the refined model's flexure probe, which then ended
+    the round alone (H281).  A run started and not needed (or along the other direction
+    than the line's) is dropped by :func:`first_if_cause` (queued: never run; running: a
     worker's time, not a result).  Returns ``(fit, value)`` for :func:`first_if_cause`.
     """
     if runs is None or run is None or not run.ok or run.prior is None:
@@ -432,7 +436,7 @@ def start_lines_without(run, runs, tests):
     fit = of_run(run, runs.fraction)
     if fit is None or not fit["p_value"] < START_P:
         return None
-    return fit, runs.later(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
+    return fit, runs.spare(lines_without_on_bag, runs.spec, run.prior, tuple(run.effects),
                            runs.fraction, runs.noise, runs.classes, run.calibration,
                            fit["coefficient"], tests, fit["axis"])
 
@@ -459,9 +463,13 @@ def first_if_cause(found: list, run, runs, tests, keep=frozenset(), started=None
     ``run``, ``runs`` and ``tests`` (its value taken instead of a run made now).
     """
     at = next((i for i, f in enumerate(found) if stats.rolling_axis(f.regressor)), None)
-    if at is None or runs is None or run is None or not run.ok or run.prior is None:
+    usable = at is not None and runs is not None and run is not None and run.ok \
+        and run.prior is not None
+    axis = stats.rolling_axis(found[at].regressor) if usable else None  # (the first's)
+    if started is not None and started[0]["axis"] != axis:
+        started[1].cancel()  # not needed (queued: never runs)
+    if not usable:
         return found, set()
-    axis = stats.rolling_axis(found[at].regressor)  # (the first shape line's direction)
     if started is not None and started[0]["axis"] == axis:
         fit, again = started[0], started[1]()  # (start_lines_without of the same run)
     else:
