@@ -263,3 +263,8 @@ def test_the_rolling_shutters_rerun_goes_spare_and_is_dropped_where_no_line_asks
     assert not stats.rolling_axis(line.regressor)
     found, follows = rolling.first_if_cause([line], run, FakeRuns(), None, started=started)
     assert found == [line] and follows == set() and dropped == [1]
+    rolling.drop_unasked([line], started)  # (output.causes_first: before the drifts' runs)
+    assert dropped == [1, 1]
+    shutter_line = SimpleNamespace(regressor=stats.ROLLING + " ...)")
+    rolling.drop_unasked([line, shutter_line], started)
+    assert dropped == [1, 1]  # a line of its own asks for it: kept

@@ -304,6 +304,7 @@ def causes_first(found: list, run: RunSummary, runs, keep=frozenset(), started=N
     the one ``found`` was tested with (default: ``run``'s), for the fields' re-tests.
     """
     drifts, shutter = started if started is not None else (None, None)
+    rolling.drop_unasked(found, shutter)  # (not out while the drifts' re-runs are waited for)
     found, after = shape_drift.first_if_cause(found, run, runs, line_tests, keep=keep,
                                               started=drifts)
     follows = {id(found[i]): cause for i, cause in after.items()}

@@ -441,6 +441,16 @@ def start_lines_without(run, runs, tests):
                            fit["coefficient"], tests, fit["axis"])
 
 
+def drop_unasked(found: list, started) -> None:
+    """Drop :func:`start_lines_without`'s re-run now where no line of ``found`` asks for it.
+
+    For a caller with work before :func:`first_if_cause` (the drifts' re-runs, waited for):
+    while that work runs a queued spare would otherwise go out to a free worker, unused.
+    """
+    if started is not None and not any(stats.rolling_axis(f.regressor) for f in found):
+        started[1].cancel()
+
+
 def first_if_cause(found: list, run, runs, tests, keep=frozenset(), started=None
                    ) -> tuple[list, set[int]]:
     """``found`` with the rolling-shutter line first when the lines before it are its doing.
