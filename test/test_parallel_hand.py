@@ -268,3 +268,27 @@ def test_the_rolling_shutters_rerun_goes_spare_and_is_dropped_where_no_line_asks
     shutter_line = SimpleNamespace(regressor=stats.ROLLING + " ...)")
     rolling.drop_unasked([line, shutter_line], started)
     assert dropped == [1, 1]  # a line of its own asks for it: kept
+
+
+def test_a_spare_piece_asked_for_while_queued_goes_before_the_queued_runs(monkeypatch):
+    """``DaskRuns.spare`` asked for while still queued (the shutter's re-run a rolling line
+    asks for, H281): it goes out at the next free worker, before the pieces queued above
+    its spare priority, not after all of them."""
+    from distributed import LocalCluster
+
+    _STARTED.clear()
+    monkeypatch.setattr(parallel.DaskRuns, "_place_bag", lambda self: self.bag)
+    bag = object.__new__(BagData)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, \
+            parallel.open_runner(bag, method_spec("psce"), 0.5, 2,
+                                 scheduler=cluster.scheduler_address) as runs:
+        runs.on_bag_each(_logged, [(f"stat {i}", 0.001) for i in range(2)])
+        _STARTED.clear()
+        busy = [runs.later(_logged, "long", 1.0), runs.later(_logged, "mid", 0.6)]
+        time.sleep(0.1)
+        spare = runs.spare(_logged, "spare", 0.1)
+        after = [runs.later(_logged, f"queued {i}", 0.1) for i in range(2)]
+        assert spare() == "spare"
+        assert [p() for p in busy + after] == ["long", "mid", "queued 0", "queued 1"]
+    assert _STARTED[2:] == ["spare", "queued 0", "queued 1"]

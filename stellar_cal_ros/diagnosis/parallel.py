@@ -116,6 +116,9 @@ AHEAD_PRIORITY = -1_000_000
 #: priority of :meth:`Runs.spare`: below every run, waited for or ahead (a run ahead's is
 #: :data:`AHEAD_PRIORITY` + 100 × its cost, its cost at least 0)
 SPARE_PRIORITY = AHEAD_PRIORITY - 1
+#: priority of a :meth:`Runs.spare` piece asked for while still queued: the parent waits
+#: for it now, so it goes before everything queued, a statistic started earlier too
+ASKED_PRIORITY = ON_BAG_PRIORITY + 1
 
 
 @dataclass
@@ -461,7 +464,7 @@ class Runs:
 
         On a cluster it goes out once no other work is queued (:data:`SPARE_PRIORITY`: a
         worker that would idle at a batch's end takes it; asked for while still queued, it
-        goes out next, at :data:`ON_BAG_PRIORITY`), and the returned :class:`Spare`'s
+        goes out next, :data:`ASKED_PRIORITY`), and the returned :class:`Spare`'s
         ``cancel()`` drops it while it is queued (True; one already running finishes,
         False); in this process it runs when asked for (``cancel()``: False, it can still
         be asked for).  Not cached.
@@ -723,7 +726,7 @@ class DaskRuns(Runs):
         soon = self._submit_on_bag(fn, *args, priority=SPARE_PRIORITY)
 
         def asked() -> Any:  # (still queued: it goes first now, not after every run)
-            self._hand.promote(soon.future, ON_BAG_PRIORITY)
+            self._hand.promote(soon.future, ASKED_PRIORITY)
             return soon.result()
 
         return Spare(asked, lambda: self._hand.cancel(soon.future))
