@@ -7,6 +7,7 @@ queue keeps at most one run per worker thread out, the highest priority first.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from concurrent.futures import CancelledError
@@ -86,21 +87,29 @@ def _piece(bag, name: str, seconds: float) -> str:
     return name
 
 
+@contextlib.contextmanager
+def _two_workers(monkeypatch):
+    """A runner on two in-process Dask workers of one thread each; its bag is never read
+    (every piece is a sleep)."""
+    from distributed import LocalCluster
+
+    monkeypatch.setattr(parallel.DaskRuns, "_place_bag", lambda self: self.bag)
+    bag = object.__new__(BagData)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, \
+            parallel.open_runner(bag, method_spec("psce"), 0.5, 2,
+                                 scheduler=cluster.scheduler_address) as runs:
+        yield runs
+
+
 def test_a_free_worker_takes_the_next_piece_not_the_busy_one(monkeypatch):
     """A long and a mid-length piece out, then five short ones handed out while both
     workers are busy (the tail's probes and re-run beside the after-runs): every short one
     goes to the worker that frees first.  Dask alone placed each at submission, on the less
     occupied worker by its estimates (a statistic of the bag: milliseconds, so never stolen
     back), some behind the long piece."""
-    from distributed import LocalCluster
-
     _WHERE.clear()
-    monkeypatch.setattr(parallel.DaskRuns, "_place_bag", lambda self: self.bag)
-    bag = object.__new__(BagData)  # never read: every piece is a sleep
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                      dashboard_address=None) as cluster, \
-            parallel.open_runner(bag, method_spec("psce"), 0.5, 2,
-                                 scheduler=cluster.scheduler_address) as runs:
+    with _two_workers(monkeypatch) as runs:
         # statistics of the bag first: Dask's estimate of such a piece is milliseconds
         runs.on_bag_each(_piece, [(f"stat {i}", 0.001) for i in range(4)])
         pieces = [runs.later(_piece, "long", 2.0), runs.later(_piece, "mid", 0.3)]
@@ -128,15 +137,8 @@ def test_a_spare_piece_goes_out_after_every_queued_one_and_is_dropped_while_queu
     fills a worker that would idle at a batch's end; ``cancel()`` drops it while queued
     (True) and leaves one that is out to run (False).  In this process nothing runs before
     it is asked for: ``cancel()`` is False and the value is still there."""
-    from distributed import LocalCluster
-
     _STARTED.clear()
-    monkeypatch.setattr(parallel.DaskRuns, "_place_bag", lambda self: self.bag)
-    bag = object.__new__(BagData)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                      dashboard_address=None) as cluster, \
-            parallel.open_runner(bag, method_spec("psce"), 0.5, 2,
-                                 scheduler=cluster.scheduler_address) as runs:
+    with _two_workers(monkeypatch) as runs:
         runs.on_bag_each(_logged, [(f"stat {i}", 0.001) for i in range(2)])
         _STARTED.clear()
         busy = [runs.later(_logged, "long", 1.5), runs.later(_logged, "mid", 0.4)]
@@ -150,7 +152,7 @@ def test_a_spare_piece_goes_out_after_every_queued_one_and_is_dropped_while_queu
         assert spare.cancel() is False  # out already (finished): nothing dropped
     assert _STARTED[:2] in (["long", "mid"], ["mid", "long"])
     assert _STARTED[2:] == ["queued 0", "queued 1", "spare"]
-    here = parallel.Runs(bag, method_spec("psce"), 0.5)
+    here = parallel.Runs(object.__new__(BagData), method_spec("psce"), 0.5)
     monkeypatch.setattr(here, "_compute_on_bag", lambda fn, *args: fn(None, *args))
     _STARTED.clear()
     lazy = here.spare(_logged, "lazy", 0.0)
@@ -274,15 +276,8 @@ def test_a_spare_piece_asked_for_while_queued_goes_before_the_queued_runs(monkey
     """``DaskRuns.spare`` asked for while still queued (the shutter's re-run a rolling line
     asks for, H281): it goes out at the next free worker, before the pieces queued above
     its spare priority, not after all of them."""
-    from distributed import LocalCluster
-
     _STARTED.clear()
-    monkeypatch.setattr(parallel.DaskRuns, "_place_bag", lambda self: self.bag)
-    bag = object.__new__(BagData)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                      dashboard_address=None) as cluster, \
-            parallel.open_runner(bag, method_spec("psce"), 0.5, 2,
-                                 scheduler=cluster.scheduler_address) as runs:
+    with _two_workers(monkeypatch) as runs:
         runs.on_bag_each(_logged, [(f"stat {i}", 0.001) for i in range(2)])
         _STARTED.clear()
         busy = [runs.later(_logged, "long", 1.0), runs.later(_logged, "mid", 0.6)]
