@@ -849,6 +849,53 @@ def test_frame_inputs_of_many_messages_are_each_ones_own() -> None:
     assert frame_inputs_many([], 100, 80, 0.05, compiled=True) is None
 
 
+def test_input_columns_are_the_messages_inputs_stacked() -> None:
+    """``frame_inputs_columns`` (the twin's scene: one compiled call, its columns kept) holds
+    ``frame_inputs_many``'s inputs stacked, bit for bit, the messages' bounds, ids and stated
+    σ; the twin's per-frame fallback makes the same columns (the scene's usable stars, ids,
+    magnitudes, counts, and each message's ids and σ as stated)."""
+    from stellar_cal_ros.core.types import StarFrame
+    from stellar_cal_ros.diagnosis.twin import _columns_one_by_one
+    from stellar_cal_ros.methods.frames import frame_inputs_columns, frame_inputs_many
+
+    odd = _odd_frame()
+    rng = np.random.default_rng(4)
+
+    def clean(k: int, stamp: int) -> StarFrame:
+        return StarFrame(
+            stamp_ns=stamp, frame_id="st", exposure_time=0.1,
+            catalog_id=rng.integers(0, 3, k).astype(np.uint32) * rng.integers(1, 9000, k),
+            right_ascension=rng.uniform(0, 2 * np.pi, k), declination=rng.uniform(-1, 1, k),
+            uv=rng.uniform(0, 79, (k, 2)), magnitude=rng.uniform(2, 7, k),
+            sigma=rng.uniform(0.02, 0.1, k).astype(np.float32))
+
+    frames = [clean(12, 2), odd, clean(0, 3), clean(1, 4), odd, clean(25, 5)]
+    cols = frame_inputs_columns(frames, 100, 80, 0.05, compiled=True)
+    many = frame_inputs_many(frames, 100, 80, 0.05, compiled=True)
+    for name in ("ok", "uv", "u_i", "sigma", "catalog_id", "magnitude"):
+        stacked = np.concatenate([getattr(inp, name) for inp in many])
+        assert getattr(cols, name).tobytes() == stacked.tobytes(), name
+    n = [len(fr.uv) for fr in frames]
+    assert cols.bounds.tolist() == np.cumsum([0, *n]).tolist()
+    assert cols.counts[:, 0].tolist() == [len(inp.uv) for inp in many]
+    assert np.array_equal(cols.message_ids, np.concatenate([fr.catalog_id for fr in frames]))
+    stated = np.concatenate([np.asarray(fr.sigma, dtype=float) for fr in frames])
+    assert cols.message_sigma.dtype == float and cols.message_sigma.tobytes() == stated.tobytes()
+    assert np.count_nonzero(cols.message_ids == 0) > 3  # ids 0 for the scene's count
+
+    class Camera:
+        width, height = 100, 80
+
+    slow = _columns_one_by_one(frames, Camera(), 0.05)
+    for name in ("ok", "catalog_id", "magnitude", "counts", "bounds", "message_ids"):
+        assert np.array_equal(getattr(slow, name)[..., :1] if name == "counts"
+                              else getattr(slow, name),
+                              getattr(cols, name)[..., :1] if name == "counts"
+                              else getattr(cols, name)), name
+    assert slow.message_sigma.tobytes() == stated.tobytes()
+    np.testing.assert_allclose(slow.u_i, cols.u_i, rtol=0, atol=1e-15)
+
+
 def test_imu_noise_scales_keep_the_compiled_frame_inputs() -> None:
     """A noise that rescales only the IMU (the IMU noise search's runs) or holds a gyro bias
     walk leaves the stars' σ as stated: its frame inputs are the compiled ones (``valid``,

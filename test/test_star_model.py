@@ -239,6 +239,65 @@ def test_predict_frames_is_predict_frame_by_frame(subset, sim, stars):
         assert np.linalg.norm(a.omega_b) > 0 and not np.allclose(a.R_i_st, np.eye(3))
 
 
+@pytest.mark.parametrize("subset", [*SUBSETS, "flexure", "rate_mount"])
+def test_predict_frames_of_stacked_stars_makes_the_contexts_only_where_read(subset, sim,
+                                                                            stars):
+    """The twin's render hands ``predict_frames`` its stars stacked (``counts``) and a
+    function that makes the frames' contexts: the same floats, bit for bit, as with the
+    frames' lists, and the contexts made (once) only where a stage reads them — not for the
+    psce chain (installation: a constant affine form; the camera a plain copy), whose 14 400
+    contexts were ~0.2 CPU-s of each of the 2-h round's eight renders; for a time effect,
+    astrometry, a per-frame camera, the simulator's flexure and a rate-reading mount."""
+    from stellar_cal_ros.effects.base import Effect
+    from stellar_cal_ros.sim.world import MountFlexure
+
+    class RateMount(Effect):
+        id = "rate_mount_stacked_test"
+        stage = Stage.TRACKER
+        parameter_names = ("k",)
+        units = ("s",)
+        default_sigma = (1.0,)
+
+        def tracker_rotation(self, value, ctx):
+            return float(value[0]) * np.asarray(ctx.omega_b, dtype=float)
+
+    ids, u_i = stars
+    extra = {"flexure": [MountFlexure()], "rate_mount": [RateMount()]}.get(subset)
+    effs = [*registry.create_many(SUBSETS.get(subset, BASELINE)), *(extra or [])]
+    model = StarModel(effs, sim.prior)
+    theta = theta_of(model) if extra is None else np.r_[theta_of(
+        StarModel(effs[:-1], sim.prior)), 40.0 if subset == "flexure" else 2.0]
+    picks = [slice(None), slice(2, 9), slice(0, 0), slice(None, None, 2), slice(1, 5)]
+    ctxs, us, attitudes = [], [], []
+    for j, sel in enumerate(picks):
+        ctx = make_ctx(ids[sel], stamp=T0 + 100.0 + 0.5 * j, head=20.0 + 3.0 * j)
+        ctx.gravity_st = np.array([0.1 * j, -0.05, 0.99])
+        ctxs.append(ctx)
+        us.append(u_i[sel])
+        attitudes.append(rotating_attitude(sim.truth_world.R_i_b(np.array([100.0 + 0.5 * j]))[0],
+                                           ctx.stamp, omega=OMEGA * (1.0 + 0.2 * j)))
+
+    def many(shifts):
+        out = [a(s) for a, s in zip(attitudes, shifts, strict=True)]
+        return np.array([r for r, _ in out]), np.array([w for _, w in out])
+
+    asked = []
+
+    def made():
+        asked.append(1)
+        return [copy.copy(c) for c in ctxs]
+
+    uv, d = model.predict_frames(theta, us, [copy.copy(c) for c in ctxs], many)
+    counts = np.array([len(u) for u in us])
+    uv_s, d_s = model.predict_frames(theta, np.concatenate(us), made, many, counts=counts)
+    assert uv_s.tobytes() == uv.tobytes() and d_s.tobytes() == d.tobytes()
+    reads = subset not in ("psce_baseline",)
+    assert len(asked) == (1 if reads else 0), subset
+    if not reads:  # the psce chain's single δ is the installation's, as every frame's was
+        assert model._camera_copy is not None
+        assert all(e.affine_form() is not None for e in model._by_stage[Stage.TRACKER])
+
+
 def test_predict_frames_gives_tracker_effects_the_frames_motion(sim, stars):
     """A TRACKER-stage effect that reads the frame's body rate (a plugin's mount that
     lags the motion) renders the same centroids through ``predict_frames`` as through
@@ -516,3 +575,29 @@ def test_bad_effect_modules(tmp_path):
     assert "_test_user_cx_scale" not in registry.EFFECTS
     with pytest.raises(ModelError, match="unknown effect"):
         registry.create("no_such_effect")
+
+
+def test_stacked_stars_from_columns_are_the_frames_lists():
+    """The direction effects' stacked stars (``Stacked``) made from the bag's columns in one
+    pass (``counts``; ``StarModel.prepare_frames``) equal, array for array, those made from a
+    list per frame: frames with a zero or repeated number left out, empty frames (also the
+    last), a stamp that repeats (its last frame found)."""
+    from stellar_cal_ros.effects._direction import Stacked
+
+    rng = np.random.default_rng(8)
+    ids = [np.array([5, 9, 2]), np.zeros(0, np.int64), np.array([4, 0, 7]), np.array([3, 8]),
+           np.array([6, 6, 1]), np.array([11]), np.array([12, 13, 14, 15]), np.zeros(0, np.int64)]
+    u = [rng.normal(size=(len(i), 3)) for i in ids]
+    stamps = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 5.0, 7.0, 8.0])
+    p, t = rng.normal(size=8), rng.normal(size=8)
+    lists = Stacked(stamps, ids, u, p, t)
+    cols = Stacked(stamps, np.concatenate(ids), np.concatenate(u), p, t,
+                   counts=np.array([len(i) for i in ids]))
+    for name in ("count", "stamps", "weather", "ids", "u", "start"):
+        a, b = getattr(lists, name), getattr(cols, name)
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), name
+    assert lists.ids.tolist() == [5, 9, 2, 3, 8, 11, 12, 13, 14, 15]
+    assert lists._row == cols._row and len(cols) == 4  # stamp 5.0: its last frame
+    empty = Stacked(np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0),
+                    np.zeros(0), counts=np.zeros(0, np.int64))
+    assert len(empty) == 0 and empty.u.shape == (0, 3)

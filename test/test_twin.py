@@ -92,6 +92,46 @@ def test_a_scenes_frame_contexts_are_the_replays(user_run):
             (ctx.head_temperature_c, ctx.air_temperature_c, ctx.pressure_pa)
 
 
+def test_a_scenes_star_columns_are_each_frames_inputs(user_run, monkeypatch):
+    """The scene's star columns come from the compiled inputs' columns of 1000 frames at a
+    call (not cut into messages and stacked again: ~0.3 CPU-s of the 2-h round's two
+    scenes): each frame's usable stars, ids, magnitudes, counts, centroids without an id and
+    stated σ are ``frame_inputs``' and the message's, bit for bit, on both paths (the
+    per-frame one where the compiled call does not apply); the renders read that σ."""
+    import stellar_cal_ros.diagnosis.twin as tw
+    from stellar_cal_ros.methods.frames import frame_inputs
+
+    _, data, cal = user_run
+    monkeypatch.setattr(tw, "SCENE_CHUNK", 97)  # chunks that end inside the bag
+    fast = tw.twin_scene(data, cal, "psce", imu=False).stars
+    monkeypatch.setattr(tw, "frame_inputs_columns", lambda *a, **k: None)
+    slow = tw.twin_scene(data, cal, "psce", imu=False).stars
+    inp = [frame_inputs(fr, cal.camera.width, cal.camera.height, NOISE, compiled=True)
+           for fr in data.frames]
+    want = {
+        "count": np.array([len(i.uv) for i in inp]),
+        "messages": np.array([len(i.ok) for i in inp]),
+        "usable": np.concatenate([i.ok for i in inp]),
+        "u_i": np.concatenate([i.u_i for i in inp]),
+        "catalog_id": np.concatenate([i.catalog_id for i in inp]).astype(np.int64),
+        "magnitude": np.concatenate([i.magnitude for i in inp]),
+        "unidentified": np.array([int(np.sum(np.asarray(fr.catalog_id) == 0))
+                                  for fr in data.frames]),
+        "stated_sigma": np.concatenate([np.asarray(fr.sigma, dtype=float).reshape(-1)
+                                        for fr in data.frames])[np.concatenate(
+                                            [i.ok for i in inp])],
+    }
+    assert want["count"].sum() > 1000
+    for name, value in want.items():
+        for got in (fast, slow):
+            a = getattr(got, name)
+            assert np.array_equal(a, value), name
+            if name != "u_i":
+                assert a.tobytes() == np.asarray(value, dtype=a.dtype).tobytes(), name
+    assert fast.u_i.tobytes() == want["u_i"].tobytes()
+    np.testing.assert_allclose(slow.u_i, want["u_i"], rtol=0, atol=1e-15)
+
+
 def test_the_probes_injection_renders_no_imu_only_where_the_effect_leaves_it_alone(user_run):
     """The reliability probe renders all its injections before its runs and skips the IMU
     of an effect that leaves the sensor model alone: the same stars' steps bit for bit

@@ -60,9 +60,10 @@ from stellar_cal_ros.errors import ModelError
 from stellar_cal_ros.io.calibration import Calibration, save_calibration
 from stellar_cal_ros.methods.frames import (
     BagData,
+    InputColumns,
     frame_context,
     frame_inputs,
-    frame_inputs_many,
+    frame_inputs_columns,
 )
 from stellar_cal_ros.methods.star_model import StarModel
 from stellar_cal_ros.sim.tracker_errors import Ar1Tracks
@@ -232,6 +233,8 @@ class SceneStars:
     #: per frame the context's ``extra`` (the direction effects' caches), shared by the
     #: renders of one scene as the contexts were
     extra: list[dict]
+    #: (N,) the usable stars' σ as their messages state it (px; 0 or NaN: none stated)
+    stated_sigma: np.ndarray
 
     def context(self, j: int, site, start: int):
         """Frame ``j``'s context (its stars from row ``start``), as :func:`frame_context`."""
@@ -370,7 +373,7 @@ def twin_scene(data: BagData, calibration: Calibration, method: str | None = Non
                      _scene_stars(data, cam, default_sigma, env, grav))
 
 
-#: frames of :func:`_scene_stars`' compiled calls (:func:`frame_inputs_many`), one at a time:
+#: frames of :func:`_scene_stars`' compiled calls (:func:`frame_inputs_columns`), one at a time:
 #: its concatenated columns a few MB, not the 2-h bag's 460 000 stars at once
 SCENE_CHUNK = 1000
 
@@ -378,43 +381,71 @@ SCENE_CHUNK = 1000
 def _scene_stars(data: BagData, cam, default_sigma: float, env, grav) -> SceneStars:
     """The frames' usable stars (:func:`frame_inputs`, per frame) and context inputs.
 
-    The inputs of :data:`SCENE_CHUNK` frames in one compiled call where it applies
-    (:func:`frame_inputs_many`: bit for bit :func:`frame_inputs`' usable stars, directions,
-    identities and magnitudes), else a frame at a time (0.7 -> 0.1 CPU-s a 2-h bag's scene).
+    The columns of :data:`SCENE_CHUNK` frames from one compiled call where it applies
+    (:func:`frame_inputs_columns`: bit for bit :func:`frame_inputs`' usable stars,
+    directions, identities and magnitudes, not cut into messages and stacked again: ≈ 0.3
+    CPU-s less a 2-h bag's scene), else a frame at a time.
     """
-    parts: dict[str, list] = {"usable": [], "u_i": [], "catalog_id": [], "magnitude": []}
-    count = np.zeros(len(data.frames), dtype=np.intp)
-    messages = np.zeros(len(data.frames), dtype=np.intp)
-    unidentified = np.zeros(len(data.frames), dtype=np.intp)
-    for j, fr, inp in _inputs(data.frames, cam, default_sigma):
-        unidentified[j] = int(np.sum(np.asarray(fr.catalog_id) == 0))
-        count[j] = len(inp.uv)
-        messages[j] = len(inp.ok)
-        parts["usable"].append(np.asarray(inp.ok, dtype=bool).reshape(-1))
-        parts["u_i"].append(np.asarray(inp.u_i, dtype=float).reshape(-1, 3))
-        parts["catalog_id"].append(np.asarray(inp.catalog_id, dtype=np.int64).reshape(-1))
-        parts["magnitude"].append(np.asarray(inp.magnitude, dtype=float).reshape(-1))
+    names = ("usable", "u_i", "catalog_id", "magnitude", "stated_sigma")
+    parts: dict[str, list] = {k: [] for k in names}
+    count, messages, unidentified = [], [], []
+    for lo in range(0, len(data.frames), SCENE_CHUNK):
+        part = data.frames[lo:lo + SCENE_CHUNK]
+        got = frame_inputs_columns(part, cam.width, cam.height, default_sigma, compiled=True)
+        if got is None:
+            got = _columns_one_by_one(part, cam, default_sigma)
+        ok = np.asarray(got.ok, dtype=bool).reshape(-1)
+        # each message's centroids with catalogue id 0, from the rows' running count
+        zero = np.zeros(len(ok) + 1, dtype=np.intp)
+        np.cumsum(np.asarray(got.message_ids).reshape(-1) == 0, out=zero[1:])
+        unidentified.append(zero[got.bounds[1:]] - zero[got.bounds[:-1]])
+        count.append(got.counts[:, 0])
+        messages.append(np.diff(got.bounds))
+        parts["usable"].append(ok)
+        parts["u_i"].append(np.asarray(got.u_i, dtype=float).reshape(-1, 3))
+        parts["catalog_id"].append(np.asarray(got.catalog_id, dtype=np.int64).reshape(-1))
+        parts["magnitude"].append(np.asarray(got.magnitude, dtype=float).reshape(-1))
+        parts["stated_sigma"].append(np.asarray(got.message_sigma, dtype=float)[ok])
     empty = {"usable": np.zeros(0, bool), "u_i": np.zeros((0, 3)),
-             "catalog_id": np.zeros(0, np.int64), "magnitude": np.zeros(0)}
+             "catalog_id": np.zeros(0, np.int64), "magnitude": np.zeros(0),
+             "stated_sigma": np.zeros(0)}
     cols = {k: np.concatenate([empty[k]] + v) for k, v in parts.items()}
     del parts
+    count, messages, unidentified = (np.concatenate([np.zeros(0, np.intp)] + x).astype(np.intp)
+                                     for x in (count, messages, unidentified))
     stamps = np.array([int(fr.stamp_ns) for fr in data.frames], dtype=np.int64)
     # the environment at each stamp (frame_context's interpolation, all stamps in one call:
     # np.interp's value at each abscissa does not depend on the others, the same floats)
     at = {k: np.asarray(env[k].interp(stamps), dtype=float) for k in ("head", "air", "pressure")}
     return SceneStars(stamps, count, messages, cols["usable"], cols["u_i"], cols["catalog_id"],
                       cols["magnitude"], unidentified, at["head"], at["air"],
-                      at["pressure"], grav, [{} for _ in stamps])
+                      at["pressure"], grav, [{} for _ in stamps], cols["stated_sigma"])
 
 
-def _inputs(frames: list, cam, default_sigma: float):
-    """``(index, frame, frame_inputs)`` of each of ``frames``, :data:`SCENE_CHUNK` at a call."""
-    for lo in range(0, len(frames), SCENE_CHUNK):
-        part = frames[lo:lo + SCENE_CHUNK]
-        got = frame_inputs_many(part, cam.width, cam.height, default_sigma, compiled=True)
-        if got is None:
-            got = [frame_inputs(fr, cam.width, cam.height, default_sigma) for fr in part]
-        yield from zip(range(lo, lo + len(part)), part, got, strict=True)
+def _columns_one_by_one(frames: list, cam, default_sigma: float) -> InputColumns:
+    """:func:`frame_inputs_columns`' columns from :func:`frame_inputs`, a frame at a time.
+
+    Where the compiled call does not apply (no numba, messages whose arrays differ in
+    length): the same columns but the usable stars' ``uv`` and ``sigma`` (None: the scene
+    does not keep them).
+    """
+    got = [frame_inputs(fr, cam.width, cam.height, default_sigma) for fr in frames]
+    bounds = np.zeros(len(got) + 1, dtype=np.int64)
+    np.cumsum([len(inp.ok) for inp in got], out=bounds[1:])
+    counts = np.zeros((len(got), 4), dtype=np.int64)
+    counts[:, 0] = [len(inp.uv) for inp in got]
+
+    def stacked(rows, empty):
+        return np.concatenate([empty] + [np.asarray(r).reshape((-1,) + empty.shape[1:])
+                                         for r in rows])
+
+    return InputColumns(
+        stacked((inp.ok for inp in got), np.zeros(0, bool)), None,
+        stacked((inp.u_i for inp in got), np.zeros((0, 3))), None,
+        stacked((inp.catalog_id for inp in got), np.zeros(0, np.int64)),
+        stacked((inp.magnitude for inp in got), np.zeros(0)), counts, bounds,
+        stacked((fr.catalog_id for fr in frames), np.zeros(0, np.int64)),
+        stacked((np.asarray(fr.sigma, dtype=float) for fr in frames), np.zeros(0)))
 
 
 @dataclass
@@ -543,21 +574,22 @@ def render(data: BagData, calibration: Calibration, effects: dict[str, Any] | No
     tracks = Ar1Tracks(noise.star_rho, rng, noise.star_ar_share) if noise.star_rho > 0 else None
     counts["unidentified_left_out"] = int(sc.unidentified.sum())
     # the centroids of every frame with stars in one call (StarModel.predict_frames); the
-    # frames' contexts made for this render only (columns of the scene)
+    # frames' contexts made for this render only (columns of the scene), and only where the
+    # model's chain reads them (the stars' rows are the scene's, frame after frame)
     live = np.flatnonzero(sc.count > 0)
     n = sc.count[live]
     starts = (np.cumsum(sc.count) - sc.count)[live].tolist()
-    ctxs = [sc.context(j, data.site, a) for j, a in zip(live.tolist(), starts, strict=True)]
+
+    def contexts() -> list:
+        return [sc.context(j, data.site, a) for j, a in zip(live.tolist(), starts, strict=True)]
+
     t_rel = (sc.stamp_ns[live] - data.t0_ns) * 1e-9
-    uv, d = model.predict_frames(theta, [sc.u_i[a:a + k] for a, k in
-                                         zip(starts, n.tolist(), strict=True)],
-                                 ctxs, lambda shifts: traj.at(t_rel + shifts))
-    del ctxs
+    uv, d = model.predict_frames(theta, sc.u_i, contexts,
+                                 lambda shifts: traj.at(t_rel + shifts), counts=n)
     magnitude = sc.magnitude
     if mb[0] != 0.0:
         uv = uv + (mb[0] * (np.nan_to_num(magnitude, nan=4.0) - 4.0))[:, None] * direction
-    stated = np.concatenate([np.zeros(0)] + [np.asarray(fr.sigma, dtype=float).reshape(-1)
-                                             for fr in data.frames])[sc.usable]
+    stated = sc.stated_sigma
     sig = marginal.star_sigma(np.where(stated > 0, stated, 0.0), default_sigma, magnitude,
                               uv, centre)
     # one draw for every star is the per-frame draws in a row (the same generator stream)

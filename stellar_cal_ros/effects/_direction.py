@@ -56,18 +56,39 @@ class Stacked:
     round's screening runs.
     """
 
-    def __init__(self, stamps: np.ndarray, catalog_ids: list[np.ndarray], u: list[np.ndarray],
-                 pressure_pa: np.ndarray, air_temperature_c: np.ndarray) -> None:
-        keep = [k for k, ids in enumerate(catalog_ids)
-                if len(ids) and ids.min() > 0 and len(np.unique(ids)) == len(ids)]
-        self.count = np.array([len(catalog_ids[k]) for k in keep], dtype=np.int64)
-        kk = np.asarray(keep, dtype=np.int64)
+    def __init__(self, stamps: np.ndarray, catalog_ids: list[np.ndarray] | np.ndarray,
+                 u: list[np.ndarray] | np.ndarray, pressure_pa: np.ndarray,
+                 air_temperature_c: np.ndarray, counts: np.ndarray | None = None) -> None:
+        """The stars of frames at ``stamps`` (POSIX s).
+
+        ``catalog_ids``, ``u``: per frame its numbers and directions, or with ``counts``
+        (F,) every frame's stacked (``counts[j]`` rows each: one array, no list of them).
+        """
+        if counts is None:
+            counts = np.array([len(ids) for ids in catalog_ids], dtype=np.int64)
+            catalog_ids = np.concatenate([np.zeros(0, np.int64)] + [
+                np.asarray(ids, dtype=np.int64).reshape(-1) for ids in catalog_ids])
+            u = np.concatenate([np.zeros((0, 3))] + [np.asarray(x, dtype=float).reshape(-1, 3)
+                                                      for x in u])
+        counts = np.asarray(counts, dtype=np.int64)
+        ids = np.asarray(catalog_ids, dtype=np.int64).reshape(-1)
+        # a frame is kept when its numbers are nonzero and unique: the rows sorted by frame
+        # and number, a number repeated in a frame is one equal to its neighbour
+        frame = np.repeat(np.arange(len(counts)), counts)
+        bad = np.zeros(len(counts), dtype=bool)
+        bad[frame[ids <= 0]] = True
+        order = np.lexsort((ids, frame))
+        f_sorted, i_sorted = frame[order], ids[order]
+        bad[f_sorted[1:][(f_sorted[1:] == f_sorted[:-1]) & (i_sorted[1:] == i_sorted[:-1])]] = True
+        keep = (counts > 0) & ~bad
+        rows = np.repeat(keep, counts)
+        self.count = counts[keep]
+        kk = np.flatnonzero(keep)
         self.stamps = np.asarray(stamps, dtype=float)[kk]
         self.weather = np.stack([np.asarray(pressure_pa, dtype=float)[kk],
                                  np.asarray(air_temperature_c, dtype=float)[kk]], axis=1)
-        self.ids = (np.concatenate([np.asarray(catalog_ids[k], dtype=np.int64) for k in keep])
-                    if keep else np.zeros(0, np.int64))
-        self.u = np.concatenate([u[k] for k in keep]) if keep else np.zeros((0, 3))
+        self.ids = ids[rows]
+        self.u = np.asarray(u, dtype=float).reshape(-1, 3)[rows]
         self.start = np.concatenate([[0], np.cumsum(self.count)])
         self._row = {t: j for j, t in enumerate(self.stamps.tolist())}  # a stamp's last frame
         self._order: dict[int, np.ndarray] = {}  # argsort of a frame's ids, made when needed

@@ -41,7 +41,7 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -212,6 +212,52 @@ def frame_inputs_many(frames, width: int, height: int, default_sigma: float, noi
     (:func:`stellar_cal_ros.methods.replay._release_items`) take this: one call a release
     instead of a call a message (≈ 10 µs each).
     """
+    got = frame_inputs_columns(frames, width, height, default_sigma, noise, compiled)
+    if got is None:
+        return None
+    ok, uv_o, u_i, s_o, c_o, m_o = got[:6]
+    valid = 0.0 < default_sigma < math.inf
+    out = []
+    j = 0
+    a = got.bounds.tolist()
+    for f, (k, bad, unid, unknown) in enumerate(got.counts.tolist()):
+        e = j + k
+        out.append(FrameInputs(ok[a[f]:a[f + 1]], uv_o[j:e], u_i[j:e], s_o[j:e], c_o[j:e],
+                               m_o[j:e], bad, unid, unknown, valid=valid))
+        j = e
+    return out
+
+
+class InputColumns(NamedTuple):
+    """:func:`frame_inputs_columns`: the inputs of several messages, not cut into messages.
+
+    Message ``f`` holds the rows ``bounds[f]:bounds[f + 1]`` of ``ok``, ``message_ids``
+    and ``message_sigma``; its usable rows (``counts[f, 0]`` of them) follow the previous
+    message's in the other columns.
+    """
+
+    ok: np.ndarray  #: (n,) every message star: usable
+    uv: np.ndarray | None  #: (k, 2) the usable stars' centroids (px)
+    u_i: np.ndarray  #: (k, 3) their catalogue directions
+    sigma: np.ndarray | None  #: (k,) their σ (px; the default where the message has none)
+    catalog_id: np.ndarray  #: (k,) int64
+    magnitude: np.ndarray  #: (k,)
+    counts: np.ndarray  #: (F, 4) per message: usable, bad_sigma, unidentified, unknown_sigma
+    bounds: np.ndarray  #: (F + 1,) int64
+    message_ids: np.ndarray  #: (n,) every message star's catalogue id, as the message has it
+    message_sigma: np.ndarray  #: (n,) float, every message star's σ as the message states it
+
+
+def frame_inputs_columns(frames, width: int, height: int, default_sigma: float, noise=None,
+                         compiled: bool = False) -> InputColumns | None:
+    """:func:`frame_inputs_many`'s one compiled call, its columns not cut into messages.
+
+    The columns of :func:`stellar_cal_ros.core.jit.star_inputs_many` with the messages'
+    bounds and their stars' ids and stated σ (:class:`InputColumns`); None where
+    :func:`frame_inputs_many` gives None.  For a caller that wants columns (the twin's
+    scene, :func:`~stellar_cal_ros.diagnosis.twin.twin_scene`: the messages'
+    :class:`FrameInputs` made and stacked again cost ≈ 0.3 CPU-s a 2-h bag's scene).
+    """
     jit = compiled_kernels() if compiled and (noise is None or noise.stars_as_stated) else None
     if jit is None or not len(frames):
         return None
@@ -223,20 +269,12 @@ def frame_inputs_many(frames, width: int, height: int, default_sigma: float, noi
     bounds = np.zeros(len(n) + 1, dtype=np.int64)
     np.cumsum(n, out=bounds[1:])
     ra, dec, cat, sig, mag = (np.concatenate(c) for c in cols)
+    sig = sig.astype(float, copy=False)
     ok, uv_o, u_i, s_o, c_o, m_o, counts = jit.star_inputs_many(
         np.concatenate(uv), ra.astype(float, copy=False), dec.astype(float, copy=False), cat,
-        sig.astype(float, copy=False), mag.astype(float, copy=False), bounds, float(width),
-        float(height), float(default_sigma))
-    valid = 0.0 < default_sigma < math.inf
-    out = []
-    j = 0
-    a = bounds.tolist()
-    for f, (k, bad, unid, unknown) in enumerate(counts.tolist()):
-        e = j + k
-        out.append(FrameInputs(ok[a[f]:a[f + 1]], uv_o[j:e], u_i[j:e], s_o[j:e], c_o[j:e],
-                               m_o[j:e], bad, unid, unknown, valid=valid))
-        j = e
-    return out
+        sig, mag.astype(float, copy=False), bounds, float(width), float(height),
+        float(default_sigma))
+    return InputColumns(ok, uv_o, u_i, s_o, c_o, m_o, counts, bounds, cat, sig)
 
 
 # ---------------------------------------------------------------------------- star images

@@ -406,36 +406,60 @@ class StarModel:
     def predict_frames(
         self,
         theta: np.ndarray,
-        u_i: list[np.ndarray],
-        ctxs: list[FrameContext],
+        u_i: list[np.ndarray] | np.ndarray,
+        ctxs: list[FrameContext] | Callable[[], list[FrameContext]],
         attitudes: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+        counts: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`predict`'s centroids (``jacobians=False``) of many frames at once.
 
-        ``u_i``: each frame's catalogue directions (n_j, 3); ``ctxs``: their contexts;
-        ``attitudes``: ``shifts (F,) -> (R_i_b (F, 3, 3), ω_b (F, 3))``, each frame's
-        attitude function (:data:`AttitudeFunction`) evaluated at its own shift.  Returns
-        ``uv`` (N, 2) and ``directions_st`` (N, 3) of every star, frame after frame.
+        ``u_i``: each frame's catalogue directions (n_j, 3), or with ``counts`` (F,) every
+        frame's stacked (N, 3), ``counts[j]`` rows each; ``ctxs``: their contexts, or a
+        function that makes that list, asked only where a stage reads the frames' contexts
+        (a DIRECTION or TIME stage, a TRACKER effect without a constant affine form, a
+        camera chain that is not a plain copy; the psce twin's reads none: ~0.2 CPU-s a
+        2-h bag's render for 14 400 contexts); ``attitudes``: ``shifts (F,) -> (R_i_b (F,
+        3, 3), ω_b (F, 3))``, each frame's attitude function (:data:`AttitudeFunction`)
+        evaluated at its own shift.  Returns ``uv`` (N, 2) and ``directions_st`` (N, 3) of
+        every star, frame after frame.
 
         The same chain as :meth:`predict` in array operations over all frames (the twin's
         render, :func:`~stellar_cal_ros.diagnosis.twin.make_twin`: ~0.2 ms of Python per
         frame per call before); a stage whose effects take the frame's context (DIRECTION,
         TIME, TRACKER, a camera chain that is not a plain copy) still calls them per frame,
-        and the projection groups the frames by camera.  The same numbers to rounding
-        (``test_star_model``).  Like :meth:`predict` it sets each context's motion
-        (``R_i_b``, ``omega_b`` before the TRACKER stage, ``R_i_st`` before the CAMERA
-        stage).
+        and the projection groups the frames by camera.  A TRACKER stage whose effects all
+        have a constant affine form (:meth:`~stellar_cal_ros.effects.base.Effect.
+        affine_form`: the same δ in every context, the installation's) is asked once, with
+        no context (``ctx`` None).  The same numbers to rounding (``test_star_model``).
+        Like :meth:`predict` it sets each context's motion (``R_i_b``, ``omega_b`` before
+        the TRACKER stage, ``R_i_st`` before the CAMERA stage): of every context, made.
         """
-        F = len(u_i)
-        counts = np.array([len(u) for u in u_i], dtype=np.intp)
+        if counts is None:
+            F = len(u_i)
+            counts = np.array([len(u) for u in u_i], dtype=np.intp)
+            u0 = np.concatenate([np.asarray(u, dtype=float).reshape(-1, 3) for u in u_i]) \
+                if F else np.zeros((0, 3))
+        else:
+            counts = np.asarray(counts, dtype=np.intp)
+            F = len(counts)
+            u0 = np.asarray(u_i, dtype=float).reshape(-1, 3)
+            ends = np.cumsum(counts).tolist()
+            u_i = [u0[e - k:e] for e, k in zip(ends, counts.tolist(), strict=True)]
         if F == 0:
             return np.zeros((0, 2)), np.zeros((0, 3))
+        made: list[FrameContext] | None = None if callable(ctxs) else ctxs
+
+        def contexts() -> list[FrameContext]:
+            nonlocal made
+            if made is None:
+                made = list(ctxs())
+            return made
+
         rows = np.repeat(np.arange(F), counts)
-        u0 = np.concatenate([np.asarray(u, dtype=float).reshape(-1, 3) for u in u_i])
         # DIRECTION stage (per frame: the corrections take the frame's context)
         if self._chain[Stage.DIRECTION]:
             parts = []
-            for uj, ctx in zip(u_i, ctxs, strict=True):
+            for uj, ctx in zip(u_i, contexts(), strict=True):
                 uj = np.asarray(uj, dtype=float)
                 u = uj
                 for eff, sl, fixed in self._chain[Stage.DIRECTION]:
@@ -446,18 +470,25 @@ class StarModel:
             u = u0
         # TIME stage and attitude
         if self.has_time_effect:
-            shifts = np.array([self.time_shift(theta, ctx)[0] for ctx in ctxs])
+            shifts = np.array([self.time_shift(theta, ctx)[0] for ctx in contexts()])
         else:
             shifts = np.full(F, float(self.prior.time_offset))
         R_i_b, omega_b = attitudes(shifts)
         # the contexts' motion, as :meth:`predict` sets it before the TRACKER stage (an
         # effect there, or in the CAMERA stage, may read it: a plugin's rate-dependent
         # mount; left unset, the twin's frames gave it the identity and zero rate)
-        for j, ctx in enumerate(ctxs):
+        tracker = self._by_stage[Stage.TRACKER]
+        constant = all(eff.affine_form() is not None for eff in tracker)
+        if not constant or self._camera_copy is None:
+            contexts()
+        for j, ctx in enumerate(made or ()):
             ctx.R_i_b, ctx.omega_b = R_i_b[j], omega_b[j]
         # TRACKER stage
-        if self._by_stage[Stage.TRACKER]:
-            deltas = np.array([self.tracker_delta(theta, ctx) for ctx in ctxs],
+        if tracker and constant:  # the same δ in every context
+            R_imu_st = self._R_imu_st_prior @ so3_exp(
+                np.array(self.tracker_delta(theta, None), dtype=float).reshape(3))
+        elif tracker:
+            deltas = np.array([self.tracker_delta(theta, ctx) for ctx in made],
                               dtype=float).reshape(F, 3)
             if np.all(deltas == deltas[0]):
                 R_imu_st = self._R_imu_st_prior @ so3_exp(deltas[0])
@@ -466,13 +497,13 @@ class StarModel:
         else:
             R_imu_st = self._R_imu_st_prior @ so3_exp(np.zeros(3))
         R_i_st = R_i_b @ R_imu_st
-        for j, ctx in enumerate(ctxs):
+        for j, ctx in enumerate(made or ()):
             ctx.R_i_st = R_i_st[j]
         d = np.matmul(u[:, None, :], R_i_st[rows])[:, 0, :]  # rows R_st_i u
         # CAMERA stage: one projection per distinct camera
         if self._camera_copy is not None:
             return self.prior.camera.with_parameters(self._camera_vector(theta)).project(d), d
-        ps = np.array([self.camera_parameters_at(theta, ctx) for ctx in ctxs])
+        ps = np.array([self.camera_parameters_at(theta, ctx) for ctx in made])
         cams, which = np.unique(ps, axis=0, return_inverse=True)
         which = np.asarray(which).reshape(-1)[rows]
         uv = np.empty((len(d), 2))
@@ -511,16 +542,30 @@ class StarModel:
             from stellar_cal_ros.effects._direction import Stacked
 
             env = data.env()
-            stamps = np.array([f.stamp_ns for f in data.frames], dtype=np.int64)
-            ids, u = [], []
-            for f in data.frames:
-                ok = np.isfinite(f.right_ascension) & np.isfinite(f.declination)
-                ids.append(np.asarray(f.catalog_id, dtype=np.int64)[ok])
-                u.append(radec_to_unit(f.right_ascension[ok], f.declination[ok]))
+            frames = data.frames
+            stamps = np.array([f.stamp_ns for f in frames], dtype=np.int64)
+            # every frame's stars in columns (one conversion to directions for the bag; the
+            # same floats as frame by frame: elementwise), those with finite RA and Dec
+            n = np.array([len(f.catalog_id) for f in frames], dtype=np.int64)
+            ra, dec = (np.concatenate([np.zeros(0)] + [np.asarray(getattr(f, name),
+                                                                  dtype=float).reshape(-1)
+                                                       for f in frames])
+                       for name in ("right_ascension", "declination"))
+            if len(ra) != n.sum() or len(dec) != n.sum():
+                raise IndexError("a star message's right ascension, declination and ids "
+                                 "differ in length")
+            ok = np.isfinite(ra) & np.isfinite(dec)
+            ids = np.concatenate([np.zeros(0, np.int64)] + [
+                np.asarray(f.catalog_id, dtype=np.int64).reshape(-1) for f in frames])[ok]
+            seen = np.zeros(len(ok) + 1, dtype=np.int64)  # the finite stars before each row
+            np.cumsum(ok, out=seen[1:])
+            ends = np.cumsum(n)
+            counts = seen[ends] - seen[ends - n]
             # the stars stacked once, shared by every effect's table (not a copy each)
-            made["inputs"] = (Stacked(stamps * 1e-9, ids, u, env["pressure"].interp(stamps),
-                                      env["air"].interp(stamps)), data.site)
-            del ids, u
+            made["inputs"] = (Stacked(stamps * 1e-9, ids, radec_to_unit(ra[ok], dec[ok]),
+                                      env["pressure"].interp(stamps), env["air"].interp(stamps),
+                                      counts=counts), data.site)
+            del ids, ra, dec, ok
         for eff in todo:
             eff.prepare_stacked(*made["inputs"])
             if hasattr(eff, "prepared_table"):
