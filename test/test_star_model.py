@@ -239,6 +239,24 @@ def test_predict_frames_is_predict_frame_by_frame(subset, sim, stars):
         assert np.linalg.norm(a.omega_b) > 0 and not np.allclose(a.R_i_st, np.eye(3))
 
 
+def _rate_mount():
+    """A TRACKER-stage effect that reads the frame's body rate (a plugin's mount that lags
+    the motion): ``δ = k ω_b``."""
+    from stellar_cal_ros.effects.base import Effect
+
+    class RateMount(Effect):
+        id = "rate_mount_test"
+        stage = Stage.TRACKER
+        parameter_names = ("k",)
+        units = ("s",)
+        default_sigma = (1.0,)
+
+        def tracker_rotation(self, value, ctx):
+            return float(value[0]) * np.asarray(ctx.omega_b, dtype=float)
+
+    return RateMount()
+
+
 @pytest.mark.parametrize("subset", [*SUBSETS, "flexure", "rate_mount"])
 def test_predict_frames_of_stacked_stars_makes_the_contexts_only_where_read(subset, sim,
                                                                             stars):
@@ -248,21 +266,10 @@ def test_predict_frames_of_stacked_stars_makes_the_contexts_only_where_read(subs
     psce chain (installation: a constant affine form; the camera a plain copy), whose 14 400
     contexts were ~0.2 CPU-s of each of the 2-h round's eight renders; for a time effect,
     astrometry, a per-frame camera, the simulator's flexure and a rate-reading mount."""
-    from stellar_cal_ros.effects.base import Effect
     from stellar_cal_ros.sim.world import MountFlexure
 
-    class RateMount(Effect):
-        id = "rate_mount_stacked_test"
-        stage = Stage.TRACKER
-        parameter_names = ("k",)
-        units = ("s",)
-        default_sigma = (1.0,)
-
-        def tracker_rotation(self, value, ctx):
-            return float(value[0]) * np.asarray(ctx.omega_b, dtype=float)
-
     ids, u_i = stars
-    extra = {"flexure": [MountFlexure()], "rate_mount": [RateMount()]}.get(subset)
+    extra = {"flexure": [MountFlexure()], "rate_mount": [_rate_mount()]}.get(subset)
     effs = [*registry.create_many(SUBSETS.get(subset, BASELINE)), *(extra or [])]
     model = StarModel(effs, sim.prior)
     theta = theta_of(model) if extra is None else np.r_[theta_of(
@@ -303,20 +310,8 @@ def test_predict_frames_gives_tracker_effects_the_frames_motion(sim, stars):
     lags the motion) renders the same centroids through ``predict_frames`` as through
     ``predict``: before, ``predict_frames`` left ``ctx.omega_b`` at zero there (up to 520 px
     apart at k = 2 s in this test's frames)."""
-    from stellar_cal_ros.effects.base import Effect, Stage
-
-    class RateMount(Effect):
-        id = "rate_mount_test"
-        stage = Stage.TRACKER
-        parameter_names = ("k",)
-        units = ("s",)
-        default_sigma = (1.0,)
-
-        def tracker_rotation(self, value, ctx):
-            return float(value[0]) * np.asarray(ctx.omega_b, dtype=float)
-
     ids, u_i = stars
-    model = StarModel([*registry.create_many(BASELINE), RateMount()], sim.prior)
+    model = StarModel([*registry.create_many(BASELINE), _rate_mount()], sim.prior)
     theta = np.r_[theta_of(StarModel(registry.create_many(BASELINE), sim.prior)), 2.0]
     ctxs, us, attitudes = [], [], []
     for j in range(3):
