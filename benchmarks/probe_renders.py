@@ -6,10 +6,11 @@ scene, the plain twin, the user's star columns, four image-plane-tilt injections
 and the moved bags the runs replay — under the bag's prior (the round renders under the
 current model's estimate: the same work).  Each step's ``process_time`` per repetition, then
 a digest of the scene's columns, the renders' stars, the injections' steps and the moved
-frames' centroids (equal digests: the same arrays, bit for bit).  Run it on two checkouts
-started together::
+frames' centroids (equal digests: the same arrays, bit for bit).  It measures its own
+checkout's package (``discovery_speed`` puts it first on the path): run each checkout's copy,
+the two started together::
 
-    PYTHONPATH=CHECKOUT python benchmarks/probe_renders.py [--repeat 3]
+    python CHECKOUT/benchmarks/probe_renders.py [--repeat 3]
 """
 
 from __future__ import annotations
