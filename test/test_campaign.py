@@ -72,6 +72,28 @@ def test_campaign_table_resume_and_bit_for_bit(tmp_path, client):
             assert direct[k] == table[i][k], k  # bit for bit
 
 
+def _worker_timers(dask_worker) -> dict[str, float]:
+    return {name: pc.callback_time for name, pc in dask_worker.periodic_callbacks.items()}
+
+
+def test_the_campaigns_cluster_is_the_diagnosis_one(client):
+    """dask_client's LocalCluster is diagnosis.parallel.local_cluster's (H284): the scheduler
+    and the nannies, in this process's event loop, wake it seldom (Dask's defaults: ~190
+    timer calls a second on two workers), the workers' own timers as seldom and no
+    profiler; work stealing stays on (the runs are mapped at once).  Fails on the tree
+    before it (its own LocalCluster at Dask's timers)."""
+    cluster = client.cluster
+    servers = {"scheduler": cluster.scheduler, **cluster.workers}  # nannies here
+    per_s = {f"{who} {name}": 1000 / pc.callback_time
+             for who, s in servers.items() for name, pc in s.periodic_callbacks.items()
+             if pc.is_running()}
+    assert sum(per_s.values()) < 25, per_s  # (+ stealing's 1 s timer to the diagnosis' 17)
+    assert "stealing" in cluster.scheduler.extensions
+    for timers in client.run(_worker_timers).values():
+        assert timers["tick"] >= 1000 and timers["memory_monitor"] >= 1000
+        assert "profile" not in timers
+
+
 def test_failed_runs_are_rows_and_are_retried(tmp_path, client):
     runs = runs_from_spec({"bags": [{"bag": "missing.mcap", "prior": "missing.prior.yaml"}]},
                           tmp_path, tmp_path / "out")

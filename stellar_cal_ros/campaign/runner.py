@@ -136,9 +136,16 @@ class _Progress:
 
 @contextlib.contextmanager
 def dask_client(scheduler: str | None = None, workers: int | None = None) -> Iterator[Any]:
-    """A Dask client: to ``scheduler``, or to a new LocalCluster of single-threaded processes."""
+    """A Dask client: to ``scheduler``, or to a new LocalCluster of single-threaded processes.
+
+    The local cluster is the diagnosis' (:func:`~stellar_cal_ros.diagnosis.parallel.
+    local_cluster`: its start method, its timers), with work stealing (the runs are mapped
+    at once).
+    """
     import dask
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client
+
+    from stellar_cal_ros.diagnosis.parallel import local_cluster
 
     quiet = logging.getLogger("distributed")
     if quiet.getEffectiveLevel() < logging.WARNING and not log.isEnabledFor(logging.DEBUG):
@@ -150,11 +157,8 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
     n = workers or os.cpu_count() or 1
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {})
     environ.update(_THREAD_ENV)
-    # dashboard on a free port: several clusters (other users, tests) may share the machine
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}), \
-            LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                         dashboard_address=":0", silence_logs=logging.ERROR) as cluster, \
-            Client(cluster) as client:
+            local_cluster(n, steal=True) as cluster, Client(cluster) as client:
         yield client
 
 

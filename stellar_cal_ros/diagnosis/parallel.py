@@ -274,8 +274,15 @@ LOCAL_DASK_CONFIG = {
 
 
 def local_cluster(n: int, bag: BagRef | None = None, method: str | None = None,
-                  warm: str | None = None):
+                  warm: str | None = None, steal: bool = False):
     """A ``LocalCluster`` of ``n`` single-threaded worker processes started by ``method``.
+
+    The one local cluster of the package (the diagnosis', a campaign's:
+    :func:`~stellar_cal_ros.campaign.runner.dask_client`), with
+    :data:`LOCAL_DASK_CONFIG`'s timers.  ``steal``: work stealing on, for the tasks given to
+    the scheduler at once (a campaign's runs, ``Client.map``): a run placed behind a longer
+    one at a busy worker moves to a free one (the diagnosis hands a piece only to a free
+    thread, :class:`_Hand`).
 
     ``method``: :func:`start_method`'s unless given.  ``forkserver``: the fork server
     preloads :mod:`~stellar_cal_ros.diagnosis.worker_start` (the package's imports and,
@@ -294,7 +301,10 @@ def local_cluster(n: int, bag: BagRef | None = None, method: str | None = None,
         from stellar_cal_ros.diagnosis.runstats import load_bag
 
         load_bag(bag)  # read once here: every worker is forked holding it
-    with dask.config.set({**LOCAL_DASK_CONFIG, DASK_START_KEY: method}), \
+    config = {**LOCAL_DASK_CONFIG, DASK_START_KEY: method}
+    if steal:
+        config["distributed.scheduler.work-stealing"] = True
+    with dask.config.set(config), \
             _server_bag(method, bag, warm):
         if method == "forkserver":
             _preload_package()
