@@ -1888,15 +1888,17 @@ def test_a_mount_turning_with_the_head_temperature_gets_no_library_name():
     assert f["mdb_arcsec_per_c"] < leads.PLAUSIBLE_MOUNT_ARCSEC_PER_C, f
 
 
-def _temperature_of(sim, method="psce"):
-    """``leads.temperature_of`` on the baseline of ``sim``'s bag: ``(fit, lines told, bound)``."""
+def _temperature_of(sim, method="psce", said=None):
+    """``leads.temperature_of`` on the baseline of ``sim``'s bag: ``(fit, lines told, bound)``
+    (``said``: filled with the not-testable line's numbers)."""
     data, spec, prior = bag_data_from_simulation(sim), method_spec(method), \
         rerun_prior(sim.prior)
     base = evaluate(data, spec, prior, (), 0.5, keep_residuals=True)
     runs = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(),
                            later=lambda fn, *a: lambda: fn(data, *a))
     told: list[str] = []
-    fit = leads.temperature_of(runs, base, prior, (), 0.01, told.append, "the baseline")
+    fit = leads.temperature_of(runs, base, prior, (), 0.01, told.append, "the baseline",
+                               said)
     return fit, told, leads.temperature_bound(base.residuals, 0.5, 0.01)
 
 
@@ -1913,19 +1915,56 @@ def test_the_temperature_field_runs_where_its_mdb_is_a_plausible_mounts():
     the model) is below both (0.56, 0.13″/°C), as a bound must be.  Fails on coord 44f8153
     (no MDB: the field's gate was the change alone, and nothing said)."""
     sc = get_scenario("psce_rotations")
-    fit, told, bound = _temperature_of(simulate(sc, duration=300.0, seed=21))
+    said: dict = {}
+    fit, told, bound = _temperature_of(simulate(sc, duration=300.0, seed=21), said=said)
     assert fit is None and len(told) == 2, told
     assert told[0].startswith("testing for a head-temperature-shaped remainder"), told
     mdb = float(re.search(r"would see ([0-9.]+) arcsec per deg C", told[1]).group(1))
     assert told[1].startswith("a mount turning with the head temperature is not testable: "
                               "temperature changed 0.78 deg C over the window"), told
     assert mdb == pytest.approx(11.7, abs=0.1) and bound["mdb"] < mdb, (told, bound)
+    # the line's numbers as diagnosis.json's path[].temperature_not_testable holds them
+    assert said["from_bound"] is False and f"{said['mdb_arcsec_per_c']:.3g}" == f"{mdb:.3g}"
+    assert f"{said['temperature_change_c']:.2g}" == "0.78", said
     assert "a turn about an axis at random, above a plausible mount's 2.5)" in told[1], told
     fit, told, bound = _temperature_of(simulate(dataclasses.replace(
         sc, head_temperature_tau_s=100.0), duration=300.0, seed=21))
     assert fit is not None and fit["p_value"] > 0.01, fit
     assert fit["mdb_arcsec_per_c"] == pytest.approx(0.623, abs=0.01), fit
     assert bound["mdb"] < fit["mdb_arcsec_per_c"] and len(told) == 1, (bound, told)
+
+
+def test_the_temperature_fields_not_testable_line_is_in_diagnosis_json(tmp_path, capsys):
+    """``discover`` (120 s psce, seed 8, a hidden 10 ms time offset: a candidate that may
+    stand in for a mount turning with the head temperature) prints "a mount turning with
+    the head temperature is not testable: temperature changed X deg C ..." and that
+    round's ``path[]`` entry holds its numbers (``temperature_not_testable``, H284): the
+    change X the head temperature's range over the window's frames (the bag's series at
+    the frames: 0.322 °C), M the MDB printed (here the bound's, 3.14″/°C: no probe run).
+    Fails on coord 0e2fd9e (the line alone: no key)."""
+    import json
+
+    from stellar_cal_ros.diagnosis.run import diagnose
+
+    sim = simulate(get_scenario("psce_rotations"), duration=120.0, seed=8,
+                   effects={"time_offset": 0.01})
+    diagnose(bag_data_from_simulation(sim), sim.prior, "psce", [], tmp_path, plots=False,
+             auto=True, max_rounds=1, candidates=["time_offset"])
+    line = next(x for x in capsys.readouterr().out.splitlines()
+                if "head temperature is not testable" in x)
+    got = re.search(r"changed ([0-9.]+) deg C over the window \(even a model that takes "
+                    r"none of the turn up would see at best ([0-9.]+) arcsec per deg C", line)
+    assert got, line
+    step = json.loads((tmp_path / "diagnosis.json").read_text())["path"][0]
+    said = step["temperature_not_testable"]
+    assert said["from_bound"] is True, said
+    assert f"{said['temperature_change_c']:.2g}" == got.group(1), (said, line)
+    assert f"{said['mdb_arcsec_per_c']:.3g}" == got.group(2), (said, line)
+    assert said["mdb_arcsec_per_c"] > leads.PLAUSIBLE_MOUNT_ARCSEC_PER_C
+    t = np.array([f.stamp_ns for f in sim.star_frames], dtype=float)
+    head = sim.head_temperature
+    window = np.interp(t[t >= np.median(t)], head.stamp_ns.astype(float), head.value)
+    assert said["temperature_change_c"] == pytest.approx(np.ptp(window), rel=1e-6), said
 
 
 def _mag_inverted(sim):

@@ -195,6 +195,9 @@ class _State:
     aliased: set[int] = field(default_factory=set)
     #: the latest round's outside-library fits made by :func:`_top` (``gravity``: one run)
     lead: dict[str, dict | None] = field(default_factory=dict)
+    #: the latest round's temperature field where it was not testable (its MDB above a
+    #: plausible mount's): the numbers of its line (:func:`~.leads.temperature_of`)
+    untestable: dict[str, Any] = field(default_factory=dict)
     #: the latest round's candidates tested beside a lead: effect → lead → its beyond test
     beside: dict[str, dict[str, dict | None]] = field(default_factory=dict)
     #: effects added at their physical size beside a clock's remainder (:func:`_at_size`):
@@ -387,7 +390,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             model = list(spec.baseline) + state.shown()
             tell(f"round {k}: {', '.join(model)}; re-runs {runs.description}")
             prior = rerun_prior(state.start)
-            state.lead, state.beside = {}, {}
+            state.lead, state.beside, state.untestable = {}, {}, {}
             # the flexure-shaped test of this round's model (below) needs one probe run of
             # it with the round's noise, not the candidates: it starts beside their runs
             # (Round.beside; in this process it runs when asked for, H273)
@@ -495,6 +498,8 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             if state.beside:
                 # every candidate tested beside a lead: its ratio beyond it, added or not
                 step["beside_leads"] = state.beside
+            if state.untestable:  # (its progress line's numbers)
+                step["temperature_not_testable"] = dict(state.untestable)
             if knocked is not None:
                 step["step_before_window"] = knocked
             step.update({"action": action or "stop", "removed": removed or None,
@@ -740,7 +745,7 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
             if "temperature" not in state.lead:  # (where its MDB is a plausible mount's)
                 state.lead["temperature"] = leads.temperature_of(
                     runs, base, prior, tuple(state.extra), ALPHA, tell,
-                    '+'.join(state.shown()) or 'the baseline')
+                    '+'.join(state.shown()) or 'the baseline', state.untestable)
             beside.update(leads.significant({"temperature": state.lead["temperature"]},
                                             ALPHA))
             if "temperature" in beside:  # a candidate's size along this model's axis

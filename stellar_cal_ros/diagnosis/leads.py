@@ -959,7 +959,7 @@ def _focal(sub: dict) -> tuple[float, float]:
 
 
 def temperature_of(runs, run, prior: Calibration, effects: tuple[str, ...], alpha: float,
-                   tell=None, what: str = "") -> dict | None:
+                   tell=None, what: str = "", said: dict | None = None) -> dict | None:
     """The temperature field's fit on the current model ``run`` (its residuals kept).
 
     Run only where it is worth running: where its MDB (:func:`temperature_mdb`, with
@@ -968,14 +968,24 @@ def temperature_of(runs, run, prior: Calibration, effects: tuple[str, ...], alph
     measured on its probes (three runs).  Where it is not, :func:`not_testable`'s line is
     told and ``None`` returned, as where the bag has no head temperature (nothing told) or
     the test cannot be made.  ``tell``, ``what``: the progress line (``what`` the model).
+    ``said``: filled with the numbers of the not-testable line where it is told
+    (``temperature_change_c``, ``mdb_arcsec_per_c``, ``from_bound``: the bound decided, no
+    probe run; diagnosis.json's ``path[].temperature_not_testable``).
     """
     say = tell or (lambda _: None)
+
+    def untestable(change_c: float, mdb: float, from_bound: bool) -> None:
+        say(not_testable(change_c, mdb, from_bound))
+        if said is not None:
+            said.update(temperature_change_c=change_c, mdb_arcsec_per_c=mdb,
+                        from_bound=from_bound)
+
     bound = temperature_bound(run.residuals, runs.fraction, alpha) if _has_table(run) \
         else None
     if bound is None:
         return None
     if not bound["mdb"] <= PLAUSIBLE_MOUNT_ARCSEC_PER_C:
-        say(not_testable(bound["change_c"], bound["mdb"], True))
+        untestable(bound["change_c"], bound["mdb"], True)
         return None
     say("testing for a head-temperature-shaped remainder (a mount turning with it) on "
         f"{what or 'the model'}")
@@ -985,7 +995,7 @@ def temperature_of(runs, run, prior: Calibration, effects: tuple[str, ...], alph
         return None
     fit["mdb_arcsec_per_c"] = temperature_mdb(run.residuals, moved, runs.fraction, fit, alpha)
     if not fit["mdb_arcsec_per_c"] <= PLAUSIBLE_MOUNT_ARCSEC_PER_C:
-        say(not_testable(fit["temperature_change_c"], fit["mdb_arcsec_per_c"], False))
+        untestable(fit["temperature_change_c"], fit["mdb_arcsec_per_c"], False)
         return None
     return fit
 
