@@ -41,6 +41,7 @@ from stellar_cal_ros.errors import (
     StellarCalError,
     held_damage_warning,
     hold_damage_warnings,
+    no_such_bag,
     one_line,
     unsaid_damage_warnings,
 )
@@ -891,6 +892,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name, directory in OUTPUTS.get(args.command, ()):
             if getattr(args, name, None) is not None:
                 check_output(Path(getattr(args, name)), directory)
+        if bag is not None and not Path(bag).exists():  # every command's line, at once
+            raise no_such_bag(bag)  # (batch said it after its first stage's note)
         if getattr(args, "check", None) is not None:  # what refuses the input at once
             args.check(args)
         if args.command in ROUNDS:  # the arrays a stage drops go back to the system

@@ -21,6 +21,15 @@ class BagError(StellarCalError):
     """A bag cannot be read or written (missing, corrupt, truncated, wrong schema)."""
 
 
+def no_such_bag(path: object) -> BagError:
+    """The error for a bag path that does not exist: one wording for every command and node.
+
+    (``info`` and the player said "bag not found: PATH", ``replay``/``diagnose`` "PATH: no
+    such bag ...".)
+    """
+    return BagError(f"{path}: no such bag (a .mcap or ROS 1 .bag file, or a rosbag2 directory)")
+
+
 class CheckpointError(StellarCalError):
     """A checkpoint file is missing, truncated, corrupt (checksum) or of another format."""
 

@@ -174,14 +174,18 @@ class Progress:
         else:
             self._line(text)
 
-    def close(self) -> None:
-        """End: close the bar, or print the final plain line."""
+    def close(self, failed: bool = False) -> None:
+        """End: close the bar, or print the final plain line (not when ``failed``).
+
+        ``failed``: the work stopped on an error (the ``with`` block raised), which the
+        command says in its own one line: no "done (0/5 stages)" before it (H284).
+        """
         if self._closed:
             return
         self._closed = True
         if self.mode == "bar":
             self._bar.close()
-        elif self.mode == "lines":
+        elif self.mode == "lines" and not failed:
             count = f"{self.n}/{self.total}" if self.total else f"{self.n}"
             self._line(f"{self.desc}: done ({count}{' ' + self.unit if self.unit else ''}) "
                        f"in {format_seconds(self.elapsed)}")
@@ -190,8 +194,8 @@ class Progress:
     def __enter__(self) -> Progress:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        self.close(failed=exc_type is not None)
 
 
 def progress(total: int, desc: str = "", unit: str = "", stream: TextIO | None = None,

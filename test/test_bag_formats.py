@@ -87,6 +87,30 @@ def test_converted_bag_reads_identically(bags: dict[str, Path], fmt: str) -> Non
     assert_same_content(join_stream(blocks), want)
 
 
+@pytest.mark.parametrize("fmt", ["rosbag2_sqlite3", "ros1"])
+def test_a_rosbags_open_builds_the_contract_typestore_once(bags: dict[str, Path], fmt: str,
+                                                           monkeypatch) -> None:
+    """One open of a bag through rosbags builds one typestore of Jazzy's and the contract
+    types (rosbags compiles a class per type: ~0.08 CPU-s a build): the one that decodes
+    (H284).  coord 0e2fd9e built one more for ``AnyReader``'s default, which reads only its
+    definitions (for a bag that carries none).  The reads stay the MCAP's
+    (test_converted_bag_reads_identically, test_other_entry_points' ROS 1 decoding)."""
+    from rosbags.typesys.store import Typestore
+
+    sizes: list[int] = []
+    register = Typestore.register
+
+    def counted(self, typs):
+        sizes.append(len(typs))
+        return register(self, typs)
+
+    monkeypatch.setattr(Typestore, "register", counted)
+    with BagReader(bags[fmt]) as r:
+        assert r.check() == []
+    # (AnyReader's own store holds the bag's definitions: a few types)
+    assert len([n for n in sizes if n > 100]) == 1, sizes
+
+
 def test_other_entry_points(bags: dict[str, Path], tmp_path: Path) -> None:
     want = read_all(BagReader(bags["mcap"]))
     db3 = next(bags["rosbag2_sqlite3"].glob("*.db3"))  # the storage file alone

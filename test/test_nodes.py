@@ -476,7 +476,7 @@ def test_player_refuses_damaged_bags(tmp_path):
     good = write_simulation(simulate(get_scenario("psce_rotations"), duration=5.0, seed=1),
                             tmp_path / "good.mcap")["bag"]
     data = good.read_bytes()
-    cases = {"missing": (tmp_path / "absent.mcap", r"bag not found"),
+    cases = {"missing": (tmp_path / "absent.mcap", r"absent.mcap: no such bag \(a \.mcap "),
              "text": (tmp_path / "text.mcap", r"is not an MCAP file"),
              "truncated": (tmp_path / "cut.mcap", r"truncated or not closed"),
              "crc": (tmp_path / "crc.mcap", r"playback stopped after 0 messages: .*"

@@ -292,6 +292,13 @@ def test_progress_prints_complete_lines_off_a_terminal():
     assert quiet.getvalue() == ""
     assert Progress(0, "x", stream=_Pipe(), mode="off").eta() != Progress(0, "x").eta()
     assert format_seconds(75) == "1 min 15 s" and format_seconds(float("nan")) == "?"
+    # work that stopped on an error is not "done": the command says the error in one line
+    # (coord 0e2fd9e: `batch` of a bag it could not read printed "acf: done (0/5 stages)")
+    failed = _Pipe()
+    with pytest.raises(ValueError), progress(5, "acf", unit="stages", stream=failed) as p:
+        p.note("acf stage 1/5: read the bag", eta=False)
+        raise ValueError("the bag")
+    assert failed.getvalue() == "acf stage 1/5: read the bag\n"
 
 
 # ------------------------------------------------------------------------------ CLI help

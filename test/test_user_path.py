@@ -717,9 +717,10 @@ HEAVY = ("numba", "scipy.spatial", "scipy.optimize", "scipy.stats", "scipy.spars
          "stellar_cal_ros.methods.replay", "stellar_cal_ros.diagnosis.run")
 
 
-def _main_in_a_fresh_process(argvs: list[list[str]]) -> tuple[list, list[str]]:
+def _main_in_a_fresh_process(argvs: list[list[str]], heavy: tuple[str, ...] = HEAVY
+                             ) -> tuple[list, list[str]]:
     """``cli.main(argv)`` of each argv in one new process: [(exit status, stderr lines,
-    stdout)], and the :data:`HEAVY` modules the process had imported at the end."""
+    stdout)], and the ``heavy`` modules the process had imported at the end."""
     import subprocess
     import sys
     import textwrap
@@ -737,7 +738,7 @@ def _main_in_a_fresh_process(argvs: list[list[str]]) -> tuple[list, list[str]]:
                     code = exc.code
             out.append((code, err.getvalue().strip().splitlines(), text.getvalue()))
         print(repr(out))
-        print(repr(sorted(m for m in sys.modules if m.startswith({HEAVY!r}))))
+        print(repr(sorted(m for m in sys.modules if m.startswith({heavy!r}))))
     """)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=300, check=False)
@@ -779,24 +780,73 @@ def test_a_refusal_a_bad_path_and_help_import_no_method_nor_numba(tmp_path):
 
 
 def test_a_ros1_bag_cut_short_names_rosbag_reindex(tmp_path, capsys):
-    """A ROS 1 bag cut short (no index: ROS 1 writes it last) cannot be read by rosbags (no
-    reindex of its own): one error line that says what rebuilds it (main: rosbags' "Bag
-    index looks damaged: ('Header could not be read from file.',)" alone)."""
+    """A ROS 1 bag cut short (no index: ROS 1 writes it last) or never closed (its header's
+    index position still 0) cannot be read by rosbags (no reindex of its own): one error
+    line that says what rebuilds it, from the bag's header, before rosbags is imported
+    (H284: coord 0e2fd9e built rosbags' typestore first and quoted its "Bag index looks
+    damaged: ('Header could not be read from file.',)": 0.78 CPU-s a refusal); an index
+    cut within (the header's position inside the file) is rosbags' to say, in the same
+    line.  main before H252: rosbags' words alone."""
     bag, prior, _ = psce_bag(DURATION, seed=7)
     ros1 = _convert(bag, tmp_path / "whole.bag")
     raw = ros1.read_bytes()
-    cut = tmp_path / "cut.bag"
+    at = raw.index(b"index_pos=") + len(b"index_pos=")
+    index_pos = int.from_bytes(raw[at : at + 8], "little")
+    cut, open_, cut_in = tmp_path / "cut.bag", tmp_path / "open.bag", tmp_path / "cut_in.bag"
     cut.write_bytes(raw[: len(raw) // 2])
-    for argv in (["info", str(cut)],
-                 ["replay", str(cut), "--method", "psce", "--prior", str(prior), "-o",
-                  str(tmp_path / "r.yaml"), "-q", "--on-error", "skip"]):
-        assert main(argv) == 1
-        line = _one_error_line(capsys.readouterr().err, argv[0])
-        assert line == (f"stellar-cal {argv[0]}: error: {cut}: a ROS 1 bag without a readable "
-                        "index (cut short or not closed: the index is written last; rosbags: "
-                        "Bag index looks damaged: ('Header could not be read from file.',)); "
-                        f"rebuild it with `rosbag reindex {cut}` (ROS 1) and give the "
-                        "reindexed bag"), line
+    open_.write_bytes(raw[:at] + bytes(8) + raw[at + 8:])
+    cut_in.write_bytes(raw[: index_pos + 20])
+    argvs = [["info", str(cut)],
+             ["replay", str(cut), "--method", "psce", "--prior", str(prior), "-o",
+              str(tmp_path / "r.yaml"), "-q", "--on-error", "skip"],
+             ["info", str(open_)]]
+    said, imported = _main_in_a_fresh_process(argvs, HEAVY + ("rosbags",))
+    assert imported == [], imported  # (refused from the header)
+    whys = {cut: f"its header puts the index at byte {index_pos}, past the file's "
+                 f"{len(raw) // 2} bytes",
+            open_: "its header holds no index position: the recording was not closed",
+            cut_in: "rosbags: Bag index looks damaged: ('Header could not be read from "
+                    "file.',)"}
+    assert main(["info", str(cut_in)]) == 1
+    said.append((1, capsys.readouterr().err.strip().splitlines(), ""))
+    for argv, (code, err, _) in zip([*argvs, ["info", str(cut_in)]], said, strict=True):
+        path = Path(argv[1])
+        assert code == 1 and err == [
+            f"stellar-cal {argv[0]}: error: {path}: a ROS 1 bag without a readable index (cut "
+            f"short or not closed: the index is written last; {whys[path]}); rebuild it with "
+            f"`rosbag reindex {path}` (ROS 1) and give the reindexed bag"], (argv, err)
+    assert main(["info", str(ros1)]) == 0, capsys.readouterr().err  # (the whole bag reads)
+
+
+def test_a_bag_that_does_not_exist_is_one_line_alike_for_every_command(tmp_path, capsys):
+    """A bag path that does not exist (a file or a rosbag2 directory): every command that
+    reads a bag, and the player node's check, say "PATH: no such bag (a .mcap or ROS 1
+    .bag file, or a rosbag2 directory)" (errors.no_such_bag).  coord 0e2fd9e: ``info``,
+    ``batch``, ``twin`` and the player said "bag not found: PATH" (the reader's words),
+    ``replay``, ``diagnose`` and ``discover`` the line above (their summary check's)."""
+    from stellar_cal_ros.errors import BagError
+    from stellar_cal_ros.nodes.player import check_bag
+
+    _, prior, _ = psce_bag(DURATION, seed=7)
+    for missing in (tmp_path / "nope.mcap", tmp_path / "nope_dir", tmp_path / "nope.bag"):
+        want = f"{missing}: no such bag (a .mcap or ROS 1 .bag file, or a rosbag2 directory)"
+        for argv in (["info", str(missing)],
+                     ["replay", str(missing), "--method", "psce", "--prior", str(prior), "-o",
+                      str(tmp_path / "r.yaml"), "-q"],
+                     ["batch", str(missing), "--method", "acf", "--prior", str(prior), "-o",
+                      str(tmp_path / "b.yaml")],
+                     ["diagnose", str(missing), "--calibration", str(prior), "--method",
+                      "psce", "-o", str(tmp_path / "d")],
+                     ["discover", str(missing), "--calibration", str(prior), "--method",
+                      "psce", "-o", str(tmp_path / "f")],
+                     ["twin", str(missing), "--calibration", str(prior), "-o",
+                      str(tmp_path / "t")]):
+            assert main(argv) == 1, argv
+            err = capsys.readouterr().err
+            assert err.strip().splitlines() == [f"stellar-cal {argv[0]}: error: {want}"], err
+        with pytest.raises(BagError) as got:
+            check_bag(str(missing))
+        assert str(got.value) == want
 
 
 def test_a_rosbag2_database_cut_short_says_what_to_do_in_one_line(runs, tmp_path, capsys):

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stellar_cal_ros.errors import BagDamageWarning, BagError
+from stellar_cal_ros.errors import BagDamageWarning, BagError, no_such_bag
 from stellar_cal_ros.io.cdr import windows
 from stellar_cal_ros.io.mcap_records import (
     DATA_OPS,
@@ -97,7 +97,7 @@ class McapFile:
         try:
             self._fh = open(self.path, "rb")  # noqa: SIM115 -- closed in close()
         except FileNotFoundError as exc:
-            raise BagError(f"bag not found: {self.path}") from exc
+            raise no_such_bag(self.path) from exc
         except OSError as exc:
             raise BagError(f"cannot open bag {self.path}: {exc}") from exc
         try:

@@ -24,14 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from stellar_cal_ros.errors import BagError, yaml_error_text
+from stellar_cal_ros.errors import BagError, no_such_bag, yaml_error_text
 from stellar_cal_ros.io.mcap_container import McapFile
 from stellar_cal_ros.io.mcap_records import MAGIC, BagProblem, Channel, OnDamage, Rows, Schema
-from stellar_cal_ros.io.rosbags_source import RosbagsSource
+from stellar_cal_ros.io.rosbags_source import ROS1_MAGIC, SQLITE_MAGIC, RosbagsSource
 from stellar_cal_ros.io.source_base import SourceBase
-
-_ROS1_MAGIC = b"#ROSBAG V2.0"
-_SQLITE_MAGIC = b"SQLite format 3\x00"
 
 
 class McapSource(McapFile, SourceBase):
@@ -277,11 +274,11 @@ def open_source(path: Path) -> SourceBase:
         with open(path, "rb") as fh:
             head = fh.read(16)
     except FileNotFoundError as exc:
-        raise BagError(f"bag not found: {path}") from exc
+        raise no_such_bag(path) from exc
     except OSError as exc:
         raise BagError(f"cannot open bag {path}: {exc}") from exc
-    if head.startswith(_ROS1_MAGIC) or head.startswith(_SQLITE_MAGIC):
-        kind = "rosbag1" if head.startswith(_ROS1_MAGIC) else "rosbag2-sqlite3"
+    if head.startswith(ROS1_MAGIC) or head.startswith(SQLITE_MAGIC):
+        kind = "rosbag1" if head.startswith(ROS1_MAGIC) else "rosbag2-sqlite3"
         return RosbagsSource(path, kind)
     if path.suffix == ".bag" and not head.startswith(MAGIC):
         raise BagError(f"{path} is not a ROS 1 bag (no '#ROSBAG V2.0' magic)")

@@ -480,15 +480,12 @@ def reads_star_images(path: str | Path, imu_for: str = "", command: str = "diagn
 def method_reads_images(path: str | Path, method: str, command: str = "diagnose") -> bool:
     """:func:`reads_star_images`, refusing a bag without the IMU ``method`` needs.
 
-    A path that does not exist is refused with what a bag is (the commands that run a
-    method on a bag: ``replay``, ``diagnose``, ``discover``, their runner; ``command``
-    names the one that asks).
+    A path that does not exist is refused by the reader with what a bag is
+    (:func:`~stellar_cal_ros.errors.no_such_bag`, every command's line).  The commands that
+    run a method on a bag ask: ``replay``, ``diagnose``, ``discover``, their runner;
+    ``command`` names the one that asks.
     """
     from stellar_cal_ros.methods import registry
-
-    if not Path(path).exists():
-        raise BagError(f"{path}: no such bag (a .mcap or ROS 1 .bag file, or a rosbag2 "
-                       "directory)")
 
     return reads_star_images(path, imu_for=method if needs_imu(registry.peek(method)) else "",
                              command=command)

@@ -54,7 +54,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
-from stellar_cal_ros.errors import BagError, StellarCalError
+from stellar_cal_ros.errors import BagError, StellarCalError, no_such_bag
 from stellar_cal_ros.io.schemas import normalize_type
 from stellar_cal_ros.nodes.runner import check_parameter_names, declare
 
@@ -109,7 +109,7 @@ def check_bag(path: str) -> tuple[dict[str, Any], int, int]:
     from stellar_cal_ros.io.reader import BagReader
 
     if not os.path.exists(path):
-        raise BagError(f"bag not found: {path}")
+        raise no_such_bag(path)
     try:
         with warnings.catch_warnings(), BagReader(path) as reader:
             warnings.simplefilter("ignore")
