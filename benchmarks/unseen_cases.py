@@ -685,6 +685,12 @@ def _smear2(sim, seed, px=0.1):
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 
+def _smear15(sim, seed):
+    # smear2's bias at 0.15 px at the run's 95th-percentile speed (H269: two window slews of
+    # different speed read as a drifting clock)
+    _smear2(sim, seed, px=0.15)
+
+
 def _thermal_mount(sim, seed, arcsec_per_c=2.0, angle_deg=30.0):
     # the mount turns with the tracker head's temperature (not with gravity): 2 arcsec per
     # deg C from the 20 C reference along 30 deg (tracker_errors.thermal_mount)
@@ -1415,6 +1421,12 @@ CASES: dict[str, Case] = {
                    "streak; its part linear in the velocity is a time offset: may be added)",
                    outside=True, regressor="image rate", may_add=("time_offset",),
                    post=_smear2, scenario_changes={"centroid_noise_px": 0.0}),
+    "smear15": Case("psce", "smear2's centroid bias along each star's image motion growing "
+                    "with its speed squared at 0.15 px at the run's 95th-percentile speed "
+                    "(its part linear in the velocity is a time offset: may be added; no "
+                    "clock drifts)", outside=True, regressor="image rate",
+                    may_add=("time_offset",), not_told="clock drifts", post=_smear15,
+                    scenario_changes={"centroid_noise_px": 0.0}),
     "thermal_mount": Case("psce", "the mount turning with the head's temperature (2 arcsec "
                           "per deg C along 30 deg; the head cooling 30 -> 11 C, tau 100 s), "
                           "not with gravity (no library effect turns the mount with "

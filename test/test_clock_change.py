@@ -13,6 +13,8 @@ model's constant between), the test's line first, and the parts' offsets in
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -103,6 +105,10 @@ def test_a_clock_that_drifts_is_said_with_its_rate(tmp_path):
     assert abs(c["drift_rate"]) > 3.0 * c["drift_sigma"]
     assert abs(c["drift_start"]) < 1e-3
     assert abs(c["drift_start"] + c["drift_rate"] * c["duration"] + 0.003) < 1e-3, c
+    # (its parts change: the speed-squared smear was fitted beside them, not significant
+    # there, -1.4 sigma, and the clock's own test is the one said)
+    assert c["smear"]["fitted"] is False and abs(c["smear"]["offset_s"]) < 3.0 * c["smear"][
+        "sigma_s"], c
 
 
 def test_a_gyro_scale_by_the_rate_sign_is_not_read_as_a_clock(tmp_path):
@@ -316,3 +322,38 @@ def test_a_wobble_is_not_read_as_a_drifting_clock_and_a_drift_beside_it_still_is
     c = got["clock_change"]
     assert c["periods"], c  # judged beside the wobble
     assert abs(c["drift_rate"] - truth) < 3.0 * c["drift_sigma"], c
+
+
+def test_a_smear_growing_with_the_speed_squared_is_not_read_as_a_drifting_clock():
+    """Unseen case ``smear15`` s21 (``smear2``'s bias at 0.15 px at the run's 95th-percentile
+    image speed, outside the library), the model with time_offset (what discover adds): the
+    window's two slews differ in speed, so the parts' offsets differ slew by slew (the
+    bias's share of each part's speed) and the drift's time column took them: "the frames'
+    clock drifts ... rate 3.78 +- 0.89 ppm", 19.5 chi2 / 5 dof, 1.3 left.  Beside the
+    speed-squared column the parts are equal (2.4 chi2 / 5 dof) and the smear's coefficient
+    is 5.3 sigma from zero, its offset at the window's 95th-percentile speed what the bias
+    makes there (0.337 +- 0.063 ms measured; truth 0.15 px (S / s95)^2 / S).  Fails on
+    coord 0e2fd9e (no speed column: the drift said)."""
+    from stellar_cal_ros.diagnosis import clock
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+    from stellar_cal_ros.sim import tracker_errors
+    from stellar_cal_ros.sim.scenarios import get_scenario
+    from stellar_cal_ros.sim.world import simulate
+
+    sc = dataclasses.replace(get_scenario("psce_rotations"), centroid_noise_px=0.0)
+    sim = simulate(sc, duration=300.0, seed=21)
+    s95 = float(np.percentile(np.concatenate(
+        [np.linalg.norm(v, axis=1) for v in tracker_errors.image_velocity(sim)]), 95))
+    tracker_errors.speed_squared_smear(sim, 0.15)
+    tracker_errors.renoise(sim, lambda m, uv: 0.05, 0.05, 21)
+    run = evaluate(bag_data_from_simulation(sim), method_spec("psce"), rerun_prior(sim.prior),
+                   ("time_offset",), 0.5, keep_residuals=True)
+    c = clock.clock_test(run.residuals, run.calibration, 0.5)
+    assert not c.drifts() and c.finding().p_value > 0.01, c
+    assert not c.regressor().startswith(clock.DRIFT) and not c.changes(), c
+    sm = c.smear
+    assert sm and sm["fitted"] and abs(sm["offset_s"]) > clock.DRIFT_Z * sm["sigma_s"], sm
+    truth = 0.15 * c.speed / s95**2
+    assert abs(sm["offset_s"] - truth) < 3.0 * sm["sigma_s"], (sm, truth)
+    assert c.as_json()["smear"]["fitted"] is True

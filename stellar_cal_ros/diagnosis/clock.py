@@ -46,6 +46,15 @@ A gyro whose scale differs between the rate's signs leaves the parts' offsets ch
 its remainder grows along the slew that carries it, where a clock's shrinks as the filter
 catches up (:meth:`ClockChange.grows`): the line is then the gyro's (:data:`GROWS`), not
 the clock's.
+
+A centroid bias along each star's motion that grows as its image speed squared (a clipped
+streak, outside the library) makes each part's offset the bias's share of that part's speed:
+where the window's slews differ in speed the parts change slew by slew and the drift's time
+column takes them (unseen case ``smear15`` s21: "the frames' clock drifts", 3.78 ± 0.89
+ppm).  A time offset's shift grows with the image speed, a smear's faster, a drifting
+clock's with time at any speed: where the parts change the test is made again with the
+speed-squared column beside them (:data:`SMEAR_P`), and is that one where the smear is
+significant there and the parts no longer change (:meth:`ClockChange.by_speed`).
 """
 
 from __future__ import annotations
@@ -94,6 +103,15 @@ MIN_GRAVITY_CHANGE = 0.01
 WOBBLE = "time (periodic, "
 #: a wobble is fitted beside the clock only when the window holds this many of its cycles
 WOBBLE_CYCLES = 3.0
+#: a centroid bias along each star's motion growing as its image speed squared (a clipped
+#: streak, unseen cases ``smear2``, ``smear15``): where the window's slews differ in speed
+#: the parts read it as offsets that change (the offset a part says is the bias's share of
+#: its speed), and the drift's time column takes it (``smear15`` s21, 0.15 px: "the frames'
+#: clock drifts ... rate 3.78 +- 0.89 ppm", 19.5 chi2 / 5 dof).  Where the parts change at
+#: this level (the parts' or the drift's p, unadjusted) the test is made again with the
+#: speed-squared column beside the parts (:func:`flexure_products`' ``smear``), and
+#: :meth:`ClockChange.by_speed` decides which is said
+SMEAR_P = 0.01
 #: the drift's line, when one rate explains the parts' change (:meth:`ClockChange.drifts`)
 DRIFT = "the frames' clock drifts against the IMU"
 #: the drift explains the change when what it leaves of the parts' χ² has at least this p
@@ -163,13 +181,39 @@ class ClockChange:
     #: the wobble's periods (s) fitted as rivals beside the parts (``periods`` of
     #: :func:`clock_change`; in the entry only when there were any)
     periods: list[float] = dataclasses.field(default_factory=list)
+    #: the speed-squared smear fitted beside the parts (:data:`SMEAR_P`; in the entry only
+    #: where it was): ``offset_s``, its coefficient (the offset it says at the window's 95th
+    #: percentile image speed, s, time_offset's sign), ``sigma_s``, and ``fitted``: whether
+    #: this test is the one beside it (:meth:`by_speed`)
+    smear: dict = dataclasses.field(default_factory=dict)
 
     def as_json(self) -> dict:
         """The summary's entry (``diagnosis.json`` ``clock_change``)."""
         out = dataclasses.asdict(self)
-        if not out["periods"]:
-            del out["periods"]
+        for key in ("periods", "smear"):
+            if not out[key]:
+                del out[key]
         return out
+
+    def changes(self) -> bool:
+        """Whether the parts change at :data:`SMEAR_P` (theirs or the drift's p, unadjusted)."""
+        return min(self.p_value, self.drift_p) < SMEAR_P
+
+    def by_speed(self) -> bool:
+        """Whether this test beside the speed-squared smear is the one said (:data:`SMEAR_P`).
+
+        The smear's coefficient at least :data:`DRIFT_Z` σ from zero beside the parts'
+        offsets (a speed dependence within the parts, which a clock does not make: a 0 → 3
+        ms drift reads −1.4 to −1.7 σ, seeds 21-23, with time_offset −0.8 to −1.2 σ) and
+        the parts no longer changing beside it (:meth:`changes`): a time offset's shift
+        grows with the image speed, a smear's faster, a drifting clock's with time at any
+        speed; where the parts still change beside it, the clock's own test stays
+        (``smear15`` s21: the smear's +0.337 ± 0.063 ms at 202 px/s, 5.3 σ, the parts 2.4
+        chi2 / 5 dof beside it; the truth 0.375 ms).
+        """
+        sm = self.smear
+        return bool(sm) and abs(sm["offset_s"]) >= DRIFT_Z * sm["sigma_s"] \
+            and not self.changes()
 
     def spans(self) -> list[tuple[float, float, float]]:
         """``(t0, t1, dt)`` of the runs of parts one offset fits, for the line.
@@ -415,12 +459,30 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     ``periods`` (s): a wobble's periods the 'unexplained' lines found (:data:`WOBBLE`),
     fitted as rivals beside the flexure's.  ``None`` without the installation or the rate
     columns, or with fewer than 10 frames with motion a part.  ``shared``: as
-    :func:`~stellar_cal_ros.diagnosis.stats.accepted_offsets`'.
+    :func:`~stellar_cal_ros.diagnosis.stats.accepted_offsets`'.  Where the parts change
+    (:meth:`ClockChange.changes`) the test is made again with the speed-squared smear
+    beside them (:data:`SMEAR_P`), and that one is returned where
+    :meth:`ClockChange.by_speed` (else the first, with the smear's coefficient).
     """
     found = stats.accepted_offsets(res, mask, focal, centre, R_imu_st, shared)
     if found is None:
         return None
-    sub, got = found
+    out = _parts_test(res, *found, focal, centre, R_imu_st, parts, periods, False)
+    if out is None or not out.changes():
+        return out
+    rival = _parts_test(res, *found, focal, centre, R_imu_st, parts, periods, True)
+    if rival is None:
+        return out
+    if rival.by_speed():
+        return rival
+    out.smear = dict(rival.smear, fitted=False)
+    return out
+
+
+def _parts_test(res: stats.Table, sub: stats.Table, got: tuple, focal: tuple[float, float],
+                centre: tuple[float, float], R_imu_st: np.ndarray | None, parts: int,
+                periods: tuple[float, ...], smear: bool) -> ClockChange | None:
+    """:func:`clock_change`'s test of ``sub``'s frame offsets ``got``; ``smear``: beside it."""
     frames, g, info, _, _, speed = got
     # a frame at rest says an offset only through its tiny rate, where any attitude error
     # the model leaves reads as seconds (unseen case ``knock``: 23-34 ms in the dwells
@@ -436,7 +498,7 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     # the parts' offsets fitted jointly with a mount flexure's (GRAVITY): per frame its
     # scores h (q) and information with the offset (c, q) and with itself (F, q × q)
     h, cross, F = flexure_products(sub, frames, focal, centre, R_imu_st, periods,
-                                   float(np.min(res["t"])))
+                                   float(np.min(res["t"])), float(speed) if smear else 0.0)
     q = h.shape[1]
     P = parts + q
     H = np.zeros((P, P))
@@ -464,7 +526,8 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
     for lag in range(1, L + 1):
         c = E[lag:].T @ E[:-lag]
         omega += (1.0 - lag / (L + 1.0)) * (c + c.T)
-    hac = (Hi @ omega @ Hi)[:parts, :parts]
+    full = Hi @ omega @ Hi
+    hac = full[:parts, :parts]
     # a constant offset's parts differ by the filter's lag along each slew as well
     cov = hac + np.eye(parts) * FLOOR_S**2
     try:
@@ -486,6 +549,9 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
                       p, math.nan, float(speed))
     out.duration = float(np.ptp(res["t"]))
     out.periods = [float(x) for x in periods]
+    if smear:  # (its column the last: time_offset's sign, as the parts')
+        out.smear = {"offset_s": -float(beta[-1]),
+                     "sigma_s": float(math.sqrt(max(full[-1, -1], 0.0))), "fitted": True}
     slew_growth(out, g, info, t)
     lag = constant_lag(res, focal, centre, R_imu_st, frames)
     if lag is not None:
@@ -522,21 +588,24 @@ def wobble_periods(found: list, span: float) -> tuple[float, ...]:
 
 def flexure_products(sub: stats.Table, frames: np.ndarray, focal: tuple[float, float],
                      centre: tuple[float, float], R_imu_st: np.ndarray | None,
-                     periods: tuple[float, ...] = (), t0: float = 0.0
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     periods: tuple[float, ...] = (), t0: float = 0.0,
+                     smear: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per frame of ``frames`` the rivals' columns' products (``q`` of them).
 
     The :data:`GRAVITY` columns (none without the gravity columns or with gravity (nearly)
     still over the frames), then per period of ``periods`` :data:`WOBBLE`'s (a turn about
-    each tracker axis at the sine and the cosine of ``t − t0``).  ``(h (n, q), c (n, q),
-    F (n, q, q))``: ``Σ xᵀ S⁻¹ ν``, ``Σ xᵀ S⁻¹ u`` (``u`` the image velocity of
+    each tracker axis at the sine and the cosine of ``t − t0``), then with ``smear`` (px/s,
+    the window's 95th percentile image speed; 0: none) the speed-squared smear's
+    (:data:`SMEAR_P`), last: each star shifted along its image velocity ``u`` by ``u |u| /
+    smear`` (px per s of coefficient: the offset it says at that speed).  ``(h (n, q), c
+    (n, q), F (n, q, q))``: ``Σ xᵀ S⁻¹ ν``, ``Σ xᵀ S⁻¹ u`` (``u`` the image velocity of
     :func:`~stellar_cal_ros.diagnosis.stats.frame_offsets`) and ``Σ xᵀ S⁻¹ x``, ``x`` each
     column's image shift (px per arcsec of turn).
     """
     n = len(frames)
     none = np.zeros((n, 0)), np.zeros((n, 0)), np.zeros((n, 0, 0))
     gravity = all(k in sub for pair in GRAVITY for k in pair)
-    if not (gravity or periods):
+    if not (gravity or periods or smear):
         return none
     got = stats.motion_columns(sub, focal, centre, R_imu_st)
     if got is None:
@@ -562,9 +631,12 @@ def flexure_products(sub: stats.Table, frames: np.ndarray, focal: tuple[float, f
             for wave in (np.sin(ph), np.cos(ph)):
                 for axis in np.eye(3):
                     turns.append(wave[:, None] * axis)
-    if not turns:
+    shifts = [np.einsum("nij,nj->ni", J, turn) for turn in turns]
+    if smear:
+        shifts.append(vel * (np.hypot(vel[:, 0], vel[:, 1]) / smear)[:, None])
+    if not shifts:
         return none
-    X = np.stack([np.einsum("nij,nj->ni", J, turn) for turn in turns], 2)[on]  # (stars, 2, q)
+    X = np.stack(shifts, 2)[on]  # (stars, 2, q)
     k = np.searchsorted(frames, fr[on])
     Si, vel, nu = Si[on], vel[on], nu[on]
     SX = np.einsum("nij,njq->niq", Si, X)
