@@ -55,7 +55,7 @@ import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.units import ARCSEC
-from stellar_cal_ros.diagnosis import flexure, stats
+from stellar_cal_ros.diagnosis import flexure, noise_structure, stats
 from stellar_cal_ros.diagnosis.noise_stars import CELL_GRID, detector_cells
 from stellar_cal_ros.io.calibration import Calibration
 
@@ -266,7 +266,9 @@ def _taken_out(res, window: np.ndarray, fitted: np.ndarray) -> dict:
 #: (:func:`fields_first`; ``printing.CAUSES`` words it)
 CAUSES = {"cells": "detector's cells field", "magnitude": "magnitude field",
           "temperature": "mount turning with the head temperature",
-          "zone": "radial step of the image scale"}
+          "zone": "radial step of the image scale",
+          "rows": "smooth structure over the detector's rows (v)",
+          "columns": "smooth structure over the detector's columns (u)"}
 CELLS_CAUSE = CAUSES["cells"]
 #: the regressors of the lines a field on the detector makes: a position's, straight or
 #: periodic (:data:`~stellar_cal_ros.diagnosis.stats.RIPPLE`)
@@ -285,8 +287,23 @@ POSITIONS = ("u (column)", "v (row)", "radius")
 #: catalogue star' t 11.8 ranked before the step's line t 11.2), a line against a detector
 #: position, straight or a ripple (a step on the detector, as the cells field's), and
 #: another radius's step
+#: a smooth structure over the detector's rows or columns' (:data:`POSITION_LEADS`): the
+#: repeat of a star's residual
 ECHOES = {"cells": POSITIONS, "magnitude": None, "temperature": None,
-          "zone": ("catalogue star", *POSITIONS)}
+          "zone": ("catalogue star", *POSITIONS), "rows": ("catalogue star",),
+          "columns": ("catalogue star",)}
+#: the lines that lead a smooth structure over one detector axis (:func:`position_lead`):
+#: a residual (u or v) against the detector's column or row, straight or a ripple, not a
+#: fixed pattern's bands (their pixels' means are taken out of the lines already:
+#: :func:`~stellar_cal_ros.diagnosis.noise.without_patterns`).  A bias that fades over a
+#: few dozen rows from one edge (unseen case ``stray_light``, 0.15 exp(−v / 40 px) px
+#: toward the first rows) is finer than the detector cells the per-star repeat test takes
+#: out first, so the stars that dwell near the edge repeat: s21 'residual repeating vs
+#: catalogue star' t 8.3 (χ² 328 / 156) ranked before the 'v (row)' lines (t −8.0, 7.6);
+#: without a smooth function of the row (:func:`position_without`) 148 / 156, where a
+#: catalogue error's repeat stays (``catalogue`` s21: 1563 → 1284; ``lateral_colour`` s21:
+#: 418 → 469)
+POSITION_LEADS = {"u (column)": "columns", "v (row)": "rows"}
 
 
 def echoes(kind: str, f) -> bool:
@@ -295,6 +312,45 @@ def echoes(kind: str, f) -> bool:
     if kind == "zone" and stats.zone_radius(f) is not None:
         return True
     return family is None or f.regressor.split(f" ({stats.RIPPLE} ")[0] in family
+
+
+def position_lead(f) -> str | None:
+    """``"rows"`` or ``"columns"`` where the line ``f`` may lead a smooth structure over them.
+
+    :data:`POSITION_LEADS`: a u or v residual against the detector's row (column),
+    straight or a ripple over it; ``None`` for any other line.
+    """
+    name = f.regressor
+    if f.component not in ("u", "v") or " (fixed pattern" in name:
+        return None
+    return POSITION_LEADS.get(name.split(f" ({stats.RIPPLE} ")[0])
+
+
+def position_without(res, fraction: float, kind: str, camera):
+    """``res`` with a smooth function of the detector's rows (``kind`` ``"rows"``) taken out.
+
+    On the window's accepted stars, each residual axis (u, v) less its least-squares fit
+    by the ripple lines' own functions of the predicted row (``"columns"``: column): a
+    straight line and the sines and cosines of :data:`~stellar_cal_ros.diagnosis.stats.
+    POSITION_PERIODS` periods over the detector's height (width; without it twice the
+    centre) (:func:`~stellar_cal_ros.diagnosis.noise_structure.less_smooth`).  Rows outside
+    the window unchanged; ``None`` with fewer than 50 rows.  What it leaves of a per-star
+    repeat is what no smooth structure over that axis explains (:data:`POSITION_LEADS`).
+    """
+    if res is None or not len(res.get("t", ())):
+        return None
+    window = stats.accepted(res) & stats.evaluation_mask(res, fraction)
+    if window.sum() < 50:
+        return None
+    axis = "v" if kind == "rows" else "u"
+    extent = (camera.height if axis == "v" else camera.width) or \
+        2.0 * (camera.cy if axis == "v" else camera.cx)
+    sw = {k: np.asarray(v)[window] for k, v in res.items()}
+    at = stats.predicted_position(sw, axis)
+    fitted = np.stack([sw[k] - noise_structure.less_smooth(sw[k], at, extent,
+                                                           stats.POSITION_PERIODS)
+                       for k in ("du", "dv")], 1)
+    return _taken_out(res, window, np.nan_to_num(fitted))
 
 
 def on_the_detector(f) -> bool:
@@ -404,6 +460,12 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
     against a detector position, another radius's step (:data:`ECHOES`; unseen case ``lens_zone``
     s21: 'residual repeating vs catalogue star' t 11.8 ranked before the step's line t 11.2,
     the 508 px step line t −10.6 after it).
+
+    The strongest line against a detector row or column (:func:`position_lead`) explains
+    the repeat of a star's residual gone from the residuals without a smooth function of
+    that position (:func:`position_without`; unseen case ``stray_light`` s21: the repeat
+    t 8.3 ranked before the 'v (row)' lines, a bias that fades over 40 px from the first
+    rows, finer than the detector cells).
     """
     from stellar_cal_ros.diagnosis import rolling
 
@@ -413,8 +475,10 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
     fitted: dict[int, dict] = {}  # (the step's fit, for its line: ``detail``)
     cal = calibration or run.calibration
     step = next((f for f in found if stats.zone_radius(f) is not None), None)
+    position = next((f for f in found if position_lead(f)), None)
     for i, lead in enumerate(found):
-        kind = "zone" if lead is step else _field(lead)
+        kind = "zone" if lead is step else position_lead(lead) if lead is position \
+            else _field(lead)
         if kind is None or id(lead) in taken:  # (one that follows a field still has echoes)
             continue
         lines = [f for j, f in enumerate(found) if j != i and id(f) not in cause
@@ -424,6 +488,8 @@ def fields_first(found: list, run, fraction: float, tests, alpha: float, keep=fr
             continue
         if kind in FIELDS:
             less = without(run.residuals, fraction, kind)
+        elif kind in ("rows", "columns"):
+            less = position_without(run.residuals, fraction, kind, cal.camera)
         elif kind == "zone":
             less, radius, size = zone_without(run.residuals, fraction,
                                               (cal.camera.cx, cal.camera.cy))

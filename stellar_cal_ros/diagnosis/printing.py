@@ -127,7 +127,9 @@ CAUSES = {"rolling shutter": ("its fitted readout", "shutter"),
           **{s.cause: ("the drift", "drift") for s in SHAPES},
           **{leads.CAUSES[k]: ("the field's fit", f"{k} field") for k in leads.FIELDS},
           leads.CAUSES["temperature"]: ("the turn's fit", "head-temperature"),
-          leads.CAUSES["zone"]: ("the step's fit", "radial step")}
+          leads.CAUSES["zone"]: ("the step's fit", "radial step"),
+          leads.CAUSES["rows"]: ("its smooth fit over the rows", "row structure"),
+          leads.CAUSES["columns"]: ("its smooth fit over the columns", "column structure")}
 #: the causes of :mod:`~stellar_cal_ros.diagnosis.shape_drift` (a drifting camera shape)
 DRIFTS = frozenset(s.cause for s in SHAPES)
 
