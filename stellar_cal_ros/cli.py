@@ -336,16 +336,21 @@ NOISE_SCALE_ITEMS = ("star=S scales the stars' sigma "
 
 
 def _verify_twins(twins: str, most: int | None) -> tuple[int, int]:
-    """``--verify-twins K|auto`` and ``--verify-twins-max M``: the first twins and the most."""
+    """``--verify-twins K|auto`` and ``--verify-twins-max M``: the first twins and the most.
+
+    The noisy twins every row gets beside its noise-free twin pair (auto: none) and the
+    most a row gets (a row whose noise-free run failed is judged on noisy twins: at least
+    :data:`~.verify.TWINS`; auto: more, up to ``M``).
+    """
     from stellar_cal_ros.diagnosis.verify import TWINS, TWINS_MAX
 
     if twins == "auto":
-        first = TWINS
-    elif twins.isdigit() and int(twins) >= 1:
+        first = 0
+    elif twins.isdigit():
         first = int(twins)
     else:
-        raise StellarCalError(f"--verify-twins must be a count >= 1 or auto, not {twins!r}")
-    last = most if most is not None else (TWINS_MAX if twins == "auto" else first)
+        raise StellarCalError(f"--verify-twins must be a count >= 0 or auto, not {twins!r}")
+    last = most if most is not None else (TWINS_MAX if twins == "auto" else max(first, TWINS))
     if last < first:
         raise StellarCalError(f"--verify-twins-max {last} is below the first twins ({first})")
     return first, last
@@ -715,14 +720,17 @@ def build_parser() -> argparse.ArgumentParser:
                        help="--verify: inject each row at both signs of its MDB (default: an "
                             "MDB is a size of either sign) or at one")
         d.add_argument("--verify-twins", default="auto", metavar="K|auto",
-                       help="--verify: twins of different noise seeds per row and sign "
-                            "(the detection; K: that many, 1: one twin; auto, the default: "
-                            "2, and more, one seed at a time, for a row whose noise-free "
-                            "twin did not run and whose biases they cannot judge or leave "
-                            "at the band's edge, up to --verify-twins-max)")
+                       help="--verify: noisy twins of different noise seeds per row and "
+                            "sign beside its noise-free twin pair, which judges the "
+                            "detection (its exact score response's power) and the biases "
+                            "(K: that many, listed; auto, the default: none, and one noisy "
+                            "clean twin's run checks the noise model; a row whose "
+                            "noise-free twin did not run gets 2, and more, one seed at a "
+                            "time, where they cannot judge its biases or leave them at the "
+                            "band's edge, up to --verify-twins-max)")
         d.add_argument("--verify-twins-max", type=int, default=None, metavar="M",
-                       help="--verify: the most twins a row gets (default 6 with "
-                            "--verify-twins auto; with K: K)")
+                       help="--verify: the most noisy twins a row gets (default 6 with "
+                            "--verify-twins auto; with K: K, at least 2)")
         on_error_argument(d, "diagnose")
         d.add_argument("--noise", choices=["estimate", "stated"], default="estimate",
                        help="estimate (default): measure the stars' sigma and the IMU noise "

@@ -600,10 +600,10 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
                 return verify(load_bag(runs.bag), final_cal, method, model, entries,
                               options.get("verify_seed", 1), tell, evaluation_fraction,
                               clock_check, options.get("verify_signs", (1, -1)),
-                              options.get("verify_twins") or TWINS,
+                              options.get("verify_twins") or 0,
                               options.get("verify_twins_max") or (
                                   TWINS_MAX if options.get("verify_twins") is None
-                                  else options["verify_twins"]))
+                                  else max(options["verify_twins"], TWINS)))
         return _write(out, calibration, spec, state, path, history, first, current, results,
                       evaluation_fraction, plots, runs, stopped,
                       time.perf_counter() - t_start, r.noise, check)

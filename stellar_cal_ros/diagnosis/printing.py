@@ -350,6 +350,7 @@ def scope_lines(summary: dict[str, Any], single_round: bool) -> list[str]:
 def verify_lines(summary: dict[str, Any]) -> list[str]:
     """The ``--verify`` results: each printed MDB and bias checked on twins of the bag."""
     from stellar_cal_ros.diagnosis.verify import describe as verify_text
+    from stellar_cal_ros.diagnosis.verify import noise_check_line
 
     rows = summary.get("verify")
     if not rows:
@@ -359,7 +360,12 @@ def verify_lines(summary: dict[str, Any]) -> list[str]:
     # twins of an effect discover's clock rule refuses at that sign on this bag: their
     # detection is no claim (verify.clock_rule), their biases are
     refused = sum(bool(r.get("refused_by_clock")) for r in rows)
-    seeds = sorted({s for r in rows for s in (r.get("seeds") or [r["seed"]])})
+    seeds = sorted({s for r in rows for s in (r.get("seeds") or (
+        [r["seed"]] if "seed" in r else []))})
+    # the detection judged on the noise-free twin pair's exact λ (verify.noise_free_record)
+    free = sum(r.get("detection_on") == "noise-free twin" for r in rows)
+    weak = sum(r.get("detection_on") == "noise-free twin" and not r.get("refused_by_clock")
+               and not r["paired_power"] >= 0.65 for r in rows)
     # --verify-twins auto: a row the first twins left undecided has more (verify.undecided)
     first = rows[0].get("twins_first", 1)
     more = sum(r.get("twins", 1) > first for r in rows) if "twins_first" in rows[0] else 0
@@ -367,12 +373,13 @@ def verify_lines(summary: dict[str, Any]) -> list[str]:
     signs = {"+-": "±", "+": "", "-": "−"}["".join(sorted(
         {"+" if r.get("sign", 1) > 0 else "-" for r in rows}))]
     unjudged = sum(r.get("verdict") == "cannot be judged" for r in rows)
-    # the biases judged on the noise-free twin pair (verify.on_noise_free_twin)
+    # the biases judged on the noise-free twin pair (verify.noise_free_record)
     exact = any(r.get("biases_on") == "noise-free twin" for r in rows)
     misses = sum(len(r.get("first_order_misses") or []) for r in rows)
+    noisy = (f", seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}"
+             if seeds else ", no noisy twin")
     out = [f"verify (twins of this bag, the effect injected at {signs}its "
-           f"printed MDB, seed{'s' if len(seeds) > 1 else ''} "
-           f"{', '.join(map(str, seeds))}"
+           f"printed MDB{noisy}"
            + (f"; {more} of them on more than {first} twins: the first {first} left them "
               "undecided" if more else "")
            + f"): {holds} of {len(rows)} claims hold"
@@ -384,7 +391,12 @@ def verify_lines(summary: dict[str, Any]) -> list[str]:
               "(not a miss: the detection not counted, the biases judged)" if refused else "")
            + (f"; the biases measured on the noise-free twin (exact at the twin's size), "
               f"{misses} of them beyond ± 30 % of the printed first-order bias (the line "
-              "gives the measured shift)" if exact else "")]
+              "gives the measured shift)" if exact else "")
+           + (f"; the detection from the noise-free twin's score response (its power at "
+              f"the test's level: 80 % claimed, 65 % holds), {weak} of {free} below"
+              if free else "")]
+    check = noise_check_line(rows[0].get("noise_check"))
+    out += [f"  {check}"] if check else []
     out += [f"  {verify_text(r)}" for r in rows]
     return out
 

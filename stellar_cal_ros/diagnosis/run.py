@@ -61,10 +61,11 @@ def diagnose(
     diagnosis.noise`) or ``stated`` (use the noise the messages, the prior and the
     calibration's run state).  ``verify`` (with ``auto``): check the printed MDBs and
     biases on twins of the bag (:mod:`~stellar_cal_ros.diagnosis.verify`), each row at
-    ``verify_signs`` x its MDB on ``verify_twins`` twins of seeds ``verify_seed``, ...
-    (``None``: :data:`~.verify.TWINS`, and more, up to ``verify_twins_max`` —
-    ``None``: :data:`~.verify.TWINS_MAX` —, for a row they leave undecided; a count: that
-    many, up to ``verify_twins_max``, ``None``: no more).
+    ``verify_signs`` x its MDB on its noise-free twin pair and on ``verify_twins`` noisy
+    twins of seeds ``verify_seed``, ... (``None``: none; a row whose noise-free run
+    failed gets :data:`~.verify.TWINS`, and more, up to ``verify_twins_max`` —
+    ``None``: :data:`~.verify.TWINS_MAX` —, where they leave it undecided; a count:
+    that many, up to ``verify_twins_max``, ``None``: no more).
     ``noise_scales``: the noise the runs start from (``--noise-scale``) instead of the
     calibration's run's (its consistency block).  ``on_error``: ``skip`` diagnoses a
     damaged bag on what it holds (read once, past the damage; ``diagnosis.json``'s
