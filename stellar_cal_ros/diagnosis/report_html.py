@@ -414,10 +414,12 @@ def _discovery_html(summary: dict[str, Any]) -> str:
     out.append("<h2>Every candidate of the last round</h2>" + _all_candidates_html(summary))
     out.append(_reliability_html(summary))
     if summary.get("verify"):
-        from stellar_cal_ros.diagnosis.verify import describe
+        from stellar_cal_ros.diagnosis.verify import describe, noise_check_line
 
+        check = noise_check_line(summary["verify"][0].get("noise_check"))
         out.append("<h2>Verified on twins of this bag</h2><ul>" + "".join(
-            f"<li>{_e(describe(r))}</li>" for r in summary["verify"]) + "</ul>")
+            f"<li>{_e(line)}</li>" for line in ([check] if check else [])
+            + [describe(r) for r in summary["verify"]]) + "</ul>")
     if summary.get("terminal"):
         out.append("<h2>What the terminal showed</h2>" + _pre(summary["terminal"]))
     return "".join(out)
