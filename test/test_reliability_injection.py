@@ -334,40 +334,40 @@ def test_the_tilts_mdb_is_restated_where_one_sign_responds_below_lam0(clean):
 
 def test_both_signs_restates_only_a_response_below_lam0_at_the_mdb_itself():
     """The MDB moves only where the probe ran at the MDB (not a plausible size below it)
-    and a sign responded below λ₀ (λ reads the score with I divided by the dispersion);
-    the secant through the responses at 1x and the step's size gives the size of λ₀."""
-    from types import SimpleNamespace
-
+    and a sign responded below λ₀ (λ is the non-centrality of the decision's statistic
+    LM / φ: Δsᵀ I⁻¹ Δs / φ; until H285 φ Δsᵀ I⁻¹ Δs, the information divided by φ and the
+    score not, φ² too large); the secant through the responses at 1x and the step's size
+    gives the size of λ₀."""
     info = np.diag([4.0, 1.0])
-    screen = SimpleNamespace(information=info, dispersion=2.0)
+    screen = screening.ScreenResult(0.0, 2, info, dispersion=2.0)
 
     def entry(hidden=1.0):
         return {"mdb": {"a": 1.0}, "lam0": 10.0, "hidden_size": {"a": hidden},
                 "probe": {"a": {}}}
 
-    held = entry()  # λ₊ = 25 x 0.5 = 12.5, λ₋ = 4 x 0.5 + 4 x 2 = 10: none below λ₀
-    assert reliability_probe.both_signs(held, "a", np.array([5.0, 0.0]),
-                                        np.array([-2.0, 2.0]), screen) is None
+    held = entry()  # λ₊ = 100 / 4 / 2 = 12.5, λ₋ = (16 / 4 + 16) / 2 = 10: none below λ₀
+    assert reliability_probe.both_signs(held, "a", np.array([10.0, 0.0]),
+                                        np.array([-4.0, 4.0]), screen) is None
     assert held["probe"]["a"] == {"lam_plus": pytest.approx(12.5),
                                   "lam_minus": pytest.approx(10.0)}
     assert held["mdb"] == {"a": 1.0} and "mdb_set_by" not in held
     weak = entry()  # λ₊ = 8 < λ₀ = 10 < λ₋ = 32: the step sqrt(10 / 8) at +
     step = np.sqrt(10.0 / 8.0)
-    assert reliability_probe.both_signs(weak, "a", np.array([4.0, 0.0]),
-                                        np.array([-8.0, 0.0]), screen) == (1.0, step)
+    assert reliability_probe.both_signs(weak, "a", np.array([8.0, 0.0]),
+                                        np.array([-16.0, 0.0]), screen) == (1.0, step)
     assert weak["mdb"]["a"] == pytest.approx(step)
     assert weak["mdb_test"] == {"a": 1.0} and weak["mdb_set_by"] == "probe"
     # a response growing as the size cubed (8 at 1x): the secant lands on (10 / 8)^(1/3)
     reliability_probe.secant(weak, "a", step, 8.0 * step ** 3)
     assert weak["mdb"]["a"] == pytest.approx((10.0 / 8.0) ** (1 / 3))
     flat = entry()  # a response that did not grow: the one step stands
-    reliability_probe.both_signs(flat, "a", np.array([4.0, 0.0]), np.array([-8.0, 0.0]),
+    reliability_probe.both_signs(flat, "a", np.array([8.0, 0.0]), np.array([-16.0, 0.0]),
                                  screen)
     reliability_probe.secant(flat, "a", step, 7.0)
     assert flat["mdb"]["a"] == pytest.approx(step) and flat["probe"]["a"]["lam_step"] == 7.0
     capped = entry(hidden=0.5)  # probed at a plausible size below the MDB: kept
-    assert reliability_probe.both_signs(capped, "a", np.array([4.0, 0.0]),
-                                        np.array([-8.0, 0.0]), screen) is None
+    assert reliability_probe.both_signs(capped, "a", np.array([8.0, 0.0]),
+                                        np.array([-16.0, 0.0]), screen) is None
     assert capped["mdb"]["a"] == 1.0 and "mdb_set_by" not in capped
     missing = entry()  # a method without a score test: nothing measured
     assert reliability_probe.both_signs(missing, "a", None, None, screen) is None
@@ -572,6 +572,17 @@ def test_the_mdb_is_stated_for_the_decisions_score_test(clean):
         assert e["alpha"] == pytest.approx(ALPHA / (2 * len(tested)), rel=1e-12)
         assert e["lam0"] == pytest.approx(reliability.lambda0(e["alpha"], score.dof),
                                           rel=1e-12)
+    # each test's dof beside its p; ``dof`` the parameter count (H285)
+    for c in summary["candidates"]:
+        assert c["dof"] == registry.create(c["effect"]).size, c["effect"]
+        if c["p_value_score"] is not None:
+            assert c["dof_score"] == c["detectability"]["dof"], c["effect"]
+    for c in summary["screened_out"]:
+        assert c["dof_score"] == c["detectability"]["dof"], c["effect"]
+        assert 0.05 <= c["p_value_score"] <= 1.0, c["effect"]
+    gm = next(c for c in summary["candidates"] + summary["screened_out"]
+              if c["effect"] == "gyro_misalignment")
+    assert gm["dof_score"] == 3
 
 
 def test_the_test_mdb_is_restated_at_its_weaker_sign_from_twin_responses():
@@ -705,3 +716,76 @@ def test_a_gyro_misalignment_on_the_swaying_base_is_tested_where_the_score_is_no
         lms.append(test.lm)
     assert 0.5 < np.mean(lms) < 6.0, lms  # -2.5σ..+3σ of a mean of 6 χ²₃ (σ 1.0)
     assert np.max(np.abs(left)) < 0.6 ** 2 * 3, left
+
+
+def test_the_paired_response_is_the_tested_statistics():
+    """The paired response that checks an MDB (``--verify``'s twins, the probe's runs on the
+    bag and on its twin) is the non-centrality of the test the MDB is stated for: on its
+    directions that are not blind, ``Σ (uᵢᵀ D Δs)² / μᵢ`` (``basis`` = D B), also where
+    another run's information weighs them (a twin's: ``vᵀ (Wᵀ I W)⁻¹ v``).  Not the whole
+    information's ``Δsᵀ I⁻¹ Δs`` (what verify computed until H285), nor in general the
+    pseudo-inverse of the information without the blind directions (the probe's since H278;
+    the same for a gyro misalignment, whose plausible sizes are alike, not where they
+    differ: the directions ``D⁻¹ B`` it holds are then not orthogonal).  Fails on coord
+    ea4f604 (no ``ScreenResult.response``)."""
+    eid, alpha = "gyro_misalignment", 1e-3 / 24
+    D = reliability.plausible_size(eid)
+    rng = np.random.default_rng(5)
+    U, _ = np.linalg.qr(rng.standard_normal((6, 6)))
+    mu = np.array([2.0, 5.0, 8.0, 2e4, 5e4, 1e5])
+    info = (U / D[:, None] * mu) @ (U / D[:, None]).T
+    test = screening.ScreenResult(0.0, 6, info, score=np.zeros(6)).tested(eid, alpha)
+    z = np.array([3.0, -2.0, 4.0, 0.5, 1.0, -0.7])  # the step along each direction, in σ
+    d = U @ (z * np.sqrt(mu)) / D
+    want = np.sum(z[3:] ** 2)
+    assert test.response(d) == pytest.approx(want, rel=1e-9)
+    assert test.response(d, info) == pytest.approx(want, rel=1e-9)  # the whole information
+    assert test.response(d, dispersion=2.0) == pytest.approx(want / 2.0, rel=1e-9)
+    # (gm's plausible sizes are alike: the information without the blind directions,
+    # pseudo-inverted, reads the same; an effect whose sizes differ does not)
+    assert reliability.score_response(d, test.information) == pytest.approx(want, rel=1e-9)
+    D2 = reliability.plausible_size("radial_k1k2")  # k1 0.3, k2 1
+    U2, _ = np.linalg.qr(rng.standard_normal((2, 2)))
+    info2 = (U2 / D2[:, None] * [2.0, 5e4]) @ (U2 / D2[:, None]).T
+    k1k2 = screening.ScreenResult(0.0, 2, info2, score=np.zeros(2)).tested("radial_k1k2",
+                                                                            alpha)
+    d2 = U2 @ (np.array([3.0, 1.0]) * np.sqrt([2.0, 5e4])) / D2
+    assert k1k2.dof == 1 and k1k2.response(d2) == pytest.approx(1.0, rel=1e-9)
+    assert abs(reliability.score_response(d2, k1k2.information) - 1.0) > 0.02  # 0.947
+    assert reliability.score_response(d, info) == pytest.approx(np.sum(z ** 2), rel=1e-9)
+    # a twin's information weighs the same directions: v (Wᵀ I W)⁻¹ v
+    twin = info * 1.25
+    assert test.response(d, twin) == pytest.approx(want / 1.25, rel=1e-9)
+    # every direction seen: the whole information's response, as before
+    seen = screening.ScreenResult(0.0, 6, info * 1e4, score=np.zeros(6))
+    assert seen.tested(eid, alpha) is seen
+    assert seen.response(d) == pytest.approx(reliability.score_response(d, info * 1e4),
+                                             rel=1e-12)
+
+
+def test_a_gyro_misalignment_at_its_mdb_responds_lam0_on_the_tested_directions():
+    """Clean 300-s psce bag (seed 4600) and the same bag with a gyro misalignment at its
+    printed MDB along e10 (+): the score's paired response on the test's 3 directions is λ₀
+    (23.8; the score is linear in the effect there), while the whole information's (what
+    ``--verify`` computed until H285) reads 30.5 = 1.28 λ₀: the 3 blind directions (μ ≪ λ₀)
+    respond at second order.  Fails on coord ea4f604 (no ``ScreenResult.response``)."""
+    eid, alpha = "gyro_misalignment", ALPHA / (2 * 12)
+
+    def scored(effects):
+        sim, model = injection.clean_simulation("psce", False, 4600, 300.0, effects)
+        run = replay(bag_data_from_simulation(sim), rerun_prior(sim.prior), "psce", model,
+                     consider=[eid], keep_tables=False, eval_fraction=0.5)
+        item = kernel_scores(run, [eid])[eid]
+        return sim, screening.ScreenResult(item[0], item[1], item[2], score=item[5])
+
+    sim, clean0 = scored(None)
+    test = clean0.tested(eid, alpha, sim.prior)
+    det = reliability.detectability(eid, clean0.information, alpha, sim.prior)
+    assert test.dof == det.dof == 3
+    delta = injection.parameter_delta(eid, "e10", det.mdb["e10"])
+    _, hit = scored({eid: injection.simulation_value(eid, delta)})
+    d = hit.score - clean0.score
+    assert test.response(d, dispersion=1.0) == pytest.approx(det.lam0, rel=0.02)
+    # the injected run's information weighs the same directions alike
+    assert test.response(d, hit.information, 1.0) == pytest.approx(det.lam0, rel=0.03)
+    assert reliability.score_response(d, clean0.information) > 1.15 * det.lam0

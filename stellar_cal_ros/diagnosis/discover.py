@@ -147,6 +147,9 @@ class CandidateResult:
     effect: str
     status: str
     statistic: float = float("nan")
+    #: the effect's parameter count (its estimate's size, the parameters an augmented run
+    #: adds), whatever decided; each test's own dof is beside its p: ``seen_dof`` (the ratio
+    #: test's), ``screen.dof`` (the score test's: its directions that are not blind)
     dof: int = 0
     #: the directions of the effect its run fits (:func:`seen_dof`): the ratio test's dof
     seen_dof: float = float("nan")
@@ -655,7 +658,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             if c.screen is None or c.screen.passes:
                 rerun.append(e)
                 continue
-            c.status, c.dof, c.p_value = "screened_out", c.screen.dof, c.screen.p_value
+            c.status, c.p_value = "screened_out", c.screen.p_value
+            c.dof = registry.create(e).size
             c.detect = reliability.detectability(e, window_information(c), alpha_mdb,
                                                  r.user_prior, **_alternatives(c))
             if not _untestable(c):
@@ -1107,6 +1111,7 @@ def summary_dict(base: RunSummary, results: list[CandidateResult],
             {"effect": c.effect, "score": c.statistic, "rms_after_px": list(c.rms_after_px),
              "p_value": c.p_adjusted, "p_value_unadjusted": c.p_value,
              "p_value_score": None if np.isnan(c.p_score) else c.p_score,
+             "dof_score": None if np.isnan(c.p_score) else c.screen.dof,
              "explained_fraction": c.explained,
              "significant": c.significant, "significant_alone": c.significant_alone,
              "after": ({"effect": c.after, "score": c.statistic_after,
@@ -1132,6 +1137,7 @@ def summary_dict(base: RunSummary, results: list[CandidateResult],
                           "detectability": c.detect.as_dict() if c.detect else None}
                          for c in results if c.status == "unobservable"],
         "screened_out": [{"effect": c.effect, "reason": c.reason,
+                          "p_value_score": c.screen.p_value, "dof_score": c.screen.dof,
                           "detectability": c.detect.as_dict() if c.detect else None}
                          for c in results if c.status == "screened_out"],
         "implausible": [{"effect": c.effect, "reason": c.reason, "score": c.statistic,

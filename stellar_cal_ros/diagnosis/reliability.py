@@ -137,17 +137,48 @@ def tested_information(effect_id: str, directions: tuple[np.ndarray, np.ndarray]
     return _sym((W * mu) @ W.T)
 
 
-def score_response(d: np.ndarray, information: np.ndarray, dispersion: float = 1.0) -> float:
-    """``Δsᵀ I⁻¹ Δs``: the non-centrality of a score test whose score moved by ``d``.
+def tested_basis(effect_id: str, directions: tuple[np.ndarray, np.ndarray],
+                 calibration: Any = None) -> np.ndarray:
+    """``D B`` (k, r): the tested ``directions`` (:func:`tested_directions`) as the score's.
 
-    ``information``: the score's ``I`` (divided by ``dispersion``, as an MDB's is,
-    :func:`detectability`); the paired response of an injection (:mod:`~.verify`'s twins,
-    :mod:`~.reliability_probe`'s runs on the user's bag), λ₀ at the MDB where the score is
-    linear in the effect.
+    The test's statistic is ``Σ (uᵢᵀ D s)² / μᵢ``: the score ``s`` seen along the columns
+    of ``D B`` (:func:`score_response`'s ``basis``).
     """
-    info = np.atleast_2d(np.asarray(information, dtype=float)) / float(dispersion)
+    return plausible_size(effect_id, calibration)[:, None] * directions[0]
+
+
+def score_response(d: np.ndarray, information: np.ndarray, dispersion: float = 1.0,
+                   basis: np.ndarray | None = None) -> float:
+    """``Δsᵀ I⁻¹ Δs / φ``: the non-centrality of a score test whose score moved by ``d``.
+
+    ``information``: the score's ``I``; ``dispersion`` φ the round's, which the decision's
+    statistic ``LM / φ`` is divided by (the innovations scatter φ x their stated S: the
+    score's covariance is φ I, its response to an effect ``b`` ``Δs = I b``, so the
+    non-centrality is ``bᵀ I b / φ``).  Until H285 ``φ Δsᵀ I⁻¹ Δs``: the information was
+    divided by φ and the score was not, a response φ² too large (the bag probe's, on a bag
+    of dispersion up to :data:`~.reliability_probe.FITS`: up to 1.44x; clean psce 300 s
+    s21, φ 1.021: 1.04x, which hid a gyro misalignment's response 0.96 λ₀ and a tilt's).
+    The paired response of an injection (:mod:`~.verify`'s twins, :mod:`~.reliability_probe`'s
+    runs on the user's bag), λ₀ at the MDB where the score is linear in the effect.
+
+    ``basis`` (k, r): the test's directions where some are blind (``D B``,
+    :func:`tested_directions`, kept by :meth:`~stellar_cal_ros.diagnosis.screening.
+    ScreenResult.tested`): the response of the test on them, ``vᵀ (Wᵀ I W)⁻¹ v`` with
+    ``v = Wᵀ Δs`` — ``Σ (uᵢᵀ D Δs)² / μᵢ`` for the information the directions were found
+    in (``Wᵀ I W = diag(μ)``, whole or without its blind directions alike), and the same
+    directions weighed by another run's information (a twin's) elsewhere.  (``Δsᵀ I_t⁺ Δs``
+    of the information without the blind directions, :func:`tested_information`, is the
+    same only where the plausible sizes are alike — a gyro misalignment's — as ``D⁻¹ B``'s
+    columns are then orthogonal.)  The whole information's ``Δsᵀ I⁻¹ Δs`` adds the blind
+    directions' response: 1.03-1.28 λ₀ for a gyro misalignment at ± its MDB on a clean
+    300-s psce bag, where the test's is λ₀ within 0.2 % (doc/benchmarks.md, H285).
+    """
+    info = np.atleast_2d(np.asarray(information, dtype=float))
     d = np.asarray(d, dtype=float)
-    return float(d @ np.linalg.pinv(info) @ d)
+    if basis is not None:
+        v = basis.T @ d
+        return float(v @ np.linalg.pinv(basis.T @ info @ basis) @ v) / float(dispersion)
+    return float(d @ np.linalg.pinv(info) @ d) / float(dispersion)
 
 
 def noncentrality_beyond(crit: float, dof: int, power: float = POWER) -> float:

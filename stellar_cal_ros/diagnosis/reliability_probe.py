@@ -601,8 +601,9 @@ def both_signs(entry: dict[str, Any], parameter: str, d_plus: np.ndarray | None,
     """The MDB of ``parameter`` that holds at both signs, from the probe's score responses.
 
     The printed MDB (``sqrt(λ₀ / I_jj)``) is first order: the score's non-centrality
-    ``λ = Δsᵀ I⁻¹ Δs`` (``I`` divided by the round's dispersion, as the MDB's) at ±MDB is
-    λ₀ only where the score is linear in the effect.  An image-plane tilt's second-order
+    ``λ = Δsᵀ I⁻¹ Δs / φ`` (the round's dispersion φ, as the MDB's; on the test's
+    directions, :meth:`~.screening.ScreenResult.response`) at ±MDB is λ₀ only where the
+    score is linear in the effect.  An image-plane tilt's second-order
     response makes one sign weaker (psce, twins of a clean bag: 0.55 λ₀ at +τx, found 8
     of 20; 2.4 λ₀ at −τx).  Where the probe ran at the MDB itself and the weaker sign's
     response ``λ_w`` is below λ₀, the MDB becomes ``mdb · c₁``, ``c₁ = sqrt(λ₀ / λ_w)``
@@ -614,7 +615,7 @@ def both_signs(entry: dict[str, Any], parameter: str, d_plus: np.ndarray | None,
     """
     if d_plus is None or d_minus is None:
         return None
-    lam = {"lam_plus": response(d_plus, screen), "lam_minus": response(d_minus, screen)}
+    lam = {"lam_plus": screen.response(d_plus), "lam_minus": screen.response(d_minus)}
     entry["probe"][parameter].update(lam)
     mdb, lam0, worse = entry["mdb"][parameter], float(entry["lam0"]), min(lam.values())
     # an MDB the excess gate set (:func:`~.reliability.detectability`) is not the score
@@ -642,9 +643,16 @@ def restate(entry: dict[str, Any], parameter: str, value: float) -> None:
         ident[parameter] = max(float(ident[parameter]), entry["mdb"][parameter])
 
 
-def response(d: np.ndarray, screen) -> float:
-    """``Δsᵀ I⁻¹ Δs`` with the round's ``I`` divided by its dispersion (as the MDB's)."""
-    return reliability.score_response(d, screen.information, screen.dispersion)
+def twin_response(row: tuple[np.ndarray, np.ndarray], screen=None) -> float:
+    """The round's test's response to a twin run's ``(Δs, I)`` (:func:`scores_on_twin`).
+
+    The test's directions (``screen``'s, :meth:`~.screening.ScreenResult.response`: its
+    blind ones left out, as the MDB's) weighed by the twin's information, which a twin
+    that fits divides by nothing; every direction without ``screen``.
+    """
+    if screen is None:
+        return reliability.score_response(*row)
+    return screen.response(row[0], row[1], 1.0)
 
 
 def secant(entry: dict[str, Any], parameter: str, step: float, lam_step: float) -> None:
@@ -697,19 +705,19 @@ def stated_size(entry: dict[str, Any], parameter: str) -> float:
                float(entry["plausible_size"].get(parameter, np.inf)))
 
 
-def twin_signs(entry: dict[str, Any], parameter: str, plus, minus, size: float
-               ) -> tuple[float, float] | None:
+def twin_signs(entry: dict[str, Any], parameter: str, plus, minus, size: float,
+               screen=None) -> tuple[float, float] | None:
     """The test MDB's responses at ± ``size`` on the noise-free twin (:func:`scores_on_twin`).
 
-    ``plus``, ``minus``: ``(Δs, I)`` of the two runs.  ``twin_probe[parameter]`` keeps
+    ``plus``, ``minus``: ``(Δs, I)`` of the two runs, ``screen`` the round's test of the
+    effect (:func:`twin_response`).  ``twin_probe[parameter]`` keeps
     ``size``, ``lam_plus``, ``lam_minus``; where the weaker sign
     responds below λ₀, ``(sign, c₁)`` (:func:`both_signs`' step) for one run more
     (:func:`restate_test`).
     """
     if plus is None or minus is None:
         return None
-    lam = {"lam_plus": reliability.score_response(*plus),
-           "lam_minus": reliability.score_response(*minus)}
+    lam = {"lam_plus": twin_response(plus, screen), "lam_minus": twin_response(minus, screen)}
     entry.setdefault("twin_probe", {}).setdefault(parameter, {}).update(size=float(size), **lam)
     lam0, worse = float(entry["lam0"]), min(lam.values())
     if not 0.0 < worse < lam0:
@@ -968,7 +976,8 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
             if "plus" not in got:  # odd in the size: either sign responds alike
                 continue
             made += 2
-            step = twin_signs(entry, parameter, got["plus"], got["minus"], size)
+            step = twin_signs(entry, parameter, got["plus"], got["minus"], size,
+                              screens.get(entry["effect"]))
             if step is not None:
                 twin_steps.append((entry, parameter, size, *step))
         if twin_steps:  # one run more each on the twin: the weaker sign at the one step
@@ -979,7 +988,8 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
                     for row in part()]
             for (entry, parameter, _, _, factor), row in zip(twin_steps, rows, strict=True):
                 restate_test(entry, parameter, factor,
-                             reliability.score_response(*row) if row is not None else 0.0)
+                             twin_response(row, screens.get(entry["effect"]))
+                             if row is not None else 0.0)
             made += len(again_twin)
         if not steps and not regate:
             return made
@@ -993,7 +1003,7 @@ def start_probes(entries: list[dict[str, Any]], base, runs, screens=None
                                                              strict=True):
             d = score_step(None if row is None else row.get(SCORE), screen)
             if d is not None:
-                secant(entry, parameter, factor, response(d, screen))
+                secant(entry, parameter, factor, screen.response(d))
         for (entry, parameter), row in zip(regate, rows[len(steps):], strict=True):
             e = energy(row)
             if e is not None:

@@ -81,6 +81,9 @@ class ScreenResult:
     #: per alternative of the same stage scored by the same run: the information left
     #: once it is fitted beside this candidate (:func:`alternatives`)
     beside: dict[str, np.ndarray] = field(default_factory=dict)
+    #: (k, r) the directions the test sums over where some are blind (:meth:`tested`):
+    #: ``D B``, the score seen along its columns; None: every direction
+    basis: np.ndarray | None = None
 
     @property
     def statistic(self) -> float:
@@ -96,9 +99,11 @@ class ScreenResult:
         """The test on the directions that are not blind, at the round's level ``alpha``.
 
         (:func:`~stellar_cal_ros.diagnosis.reliability.tested_directions`.)
-        ``LM = Σ (uᵢᵀ D s)² / μᵢ`` over those directions, their count the dof and the
+        ``LM = Σ (uᵢᵀ D s)² / μᵢ`` over those directions, their count the dof, the
         information without the blind ones (the MDB's, :func:`~stellar_cal_ros.diagnosis.
-        reliability.detectability`); itself where every direction is seen (or none is).
+        reliability.detectability`) and the directions (``basis``: what :meth:`response`
+        weighs a paired score difference along); itself where every direction is seen (or
+        none is).
         """
         tested = reliability.tested_directions(effect_id, self.information, alpha,
                                                calibration)
@@ -108,7 +113,21 @@ class ScreenResult:
         z = B.T @ (reliability.plausible_size(effect_id, calibration) * self.score)
         return replace(self, lm=float(np.sum(z * z / mu)), dof=int(mu.size),
                        information=reliability.tested_information(effect_id, tested,
-                                                                  calibration))
+                                                                  calibration),
+                       basis=reliability.tested_basis(effect_id, tested, calibration))
+
+    def response(self, d: np.ndarray, information: np.ndarray | None = None,
+                 dispersion: float | None = None) -> float:
+        """The non-centrality of this test's statistic whose score moved by ``d``.
+
+        :func:`~stellar_cal_ros.diagnosis.reliability.score_response` on the test's
+        directions (``basis``): the paired response of an injection, λ₀ at the MDB where the
+        score is linear in the effect.  ``information``: another run's (a twin's), where not
+        the test's own; ``dispersion``: the test's where not given (a twin that fits: 1).
+        """
+        return reliability.score_response(
+            d, self.information if information is None else information,
+            self.dispersion if dispersion is None else dispersion, basis=self.basis)
 
     @property
     def passes(self) -> bool:
