@@ -112,7 +112,10 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     shutter = started[1]
     readout = stats.readout_axis(shutter[0], ALPHA) if shutter is not None else \
         "v" if runs is not None and shown.ok and shown.prior is not None else None
-    unexplained = line_tests(shown.residuals, calibration, fraction, parts, readout=readout)
+    # (the stamps' noise the tested run stated: its result's, not the prior's)
+    unexplained = line_tests(shown.residuals, calibration, fraction, parts, readout=readout,
+                             stamp=1e-3 * stated_scales(shown.calibration or calibration
+                                                        ).stamp_ms)
     unexplained, spread = within_groups(unexplained, verdict)
     # (a rolling shutter's fit's line where the line tests have none of its direction)
     have = {rolling.line_key(f) for f in unexplained}
@@ -338,8 +341,8 @@ def step_test(res, calibration: Calibration, fraction: float, everywhere: bool =
 
 def line_tests(res, calibration: Calibration, fraction: float,
                parts: dict[str, Any] | None = None,
-               timing: clock.ClockChange | None = None, readout: str | None = None
-               ) -> list:
+               timing: clock.ClockChange | None = None, readout: str | None = None,
+               stamp: float | None = None) -> list:
     """The 'unexplained' tests of a residual table (significant, strongest first).
 
     An installation step's line (:mod:`~.installation_step`) goes first when it fires: the
@@ -351,6 +354,9 @@ def line_tests(res, calibration: Calibration, fraction: float,
     the direction of the rolling shutter the stars' noise and the motion tests take out
     (``"v"`` rows, ``"u"`` columns); None: the table's own (:func:`~.stats.readout_axis`
     of its fit, :func:`~.rolling.of_table`; the columns only where theirs is significant).
+    ``stamp`` (s rms): the frames' stamp noise the run of ``res`` stated in each frame's R
+    (the stamps' line tests a spread beyond it); None: ``calibration``'s
+    (:func:`~.noise.stated_scales`, its consistency block).
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
@@ -383,7 +389,8 @@ def line_tests(res, calibration: Calibration, fraction: float,
         R_imu_st=calibration.R_imu_st,
         height=cam.height, track_lags=track_lags(sn), width=cam.width,
         star_levels=star_levels(levels_fit(sn)) is not None, family=family,
-        readout=readout)
+        readout=readout, stamp=1e-3 * stated_scales(calibration).stamp_ms if stamp is None
+        else stamp)
     periods = clock.wobble_periods(found, _span(res, mask))
     if periods and timing is not None:
         # a wobble found: the clock judged against it, as against a flexure

@@ -1036,8 +1036,8 @@ MOTION = "image rate, frame to frame (a noise in the frames' stamps"
 
 
 def motion_spread(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
-                  R_imu_st: np.ndarray | None, columns: tuple | None = None
-                  ) -> RegressorFinding | None:
+                  R_imu_st: np.ndarray | None, columns: tuple | None = None,
+                  stamp: float = 0.0) -> RegressorFinding | None:
     """A noise in the frames' stamps: spread along each star's image motion, frame to frame.
 
     A frame stamped ``δ_k`` off its exposure (a clock read with a jitter) moves every star
@@ -1059,10 +1059,12 @@ def motion_spread(sub: Table, focal: tuple[float, float], centre: tuple[float, f
     consecutive frames (an error that lasts longer than a frame interval, as the filter's
     along a slew or a constant time offset, cancels).  ``None`` without the installation,
     the rate columns or 10 pairs of frames.  ``columns``: :func:`motion_columns` of ``sub``
-    when the caller has them (:func:`regressor_tests`: :func:`speed_curve` reads them too).
+    when the caller has them (:func:`regressor_tests`: :func:`speed_curve` reads them too;
+    made with ``stamp``).  ``stamp`` (s rms): the stamp noise the run stated in each
+    frame's R: the test is of a spread beyond it (:func:`stamp_noise`'s ``sigma_t``).
     """
-    got = frame_offsets(sub, focal, centre, R_imu_st, columns)
-    return None if got is None else motion_test(*got)
+    got = frame_offsets(sub, focal, centre, R_imu_st, columns, stamp=stamp)
+    return None if got is None else motion_test(*got, sigma_t=stamp)
 
 
 #: regressor name of :func:`speed_curve` (its component :data:`CURVE_COMPONENT`)
@@ -1143,7 +1145,7 @@ def accepted_offsets(res: Table, mask: np.ndarray, focal: tuple[float, float],
 
 def frame_offsets(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
                   R_imu_st: np.ndarray | None, columns: tuple | None = None,
-                  readout: str = "v") -> tuple[np.ndarray, ...] | None:
+                  readout: str = "v", stamp: float = 0.0) -> tuple[np.ndarray, ...] | None:
     """``(frames, g, I, g⊥, I⊥, speed)`` of :func:`motion_spread` (``None``: no columns).
 
     Per frame of ``sub`` (frame indices in time order): the scores ``g = Σ uᵀ S⁻¹ ν`` and
@@ -1151,9 +1153,9 @@ def frame_offsets(sub: Table, focal: tuple[float, float], centre: tuple[float, f
     ``u`` (px/s), the same across it; ``ν`` the innovations without their fit by a
     rolling shutter's shape; ``speed``: the 95th percentile of the stars' image speed
     (px/s).  ``columns``: :func:`motion_columns` of ``sub`` already made (not made again);
-    ``readout``: its rolling shutter's direction.
+    ``readout``, ``stamp``: its rolling shutter's direction, the run's stated stamp noise.
     """
-    got = motion_columns(sub, focal, centre, R_imu_st, readout) if columns is None \
+    got = motion_columns(sub, focal, centre, R_imu_st, readout, stamp) if columns is None \
         else columns
     if got is None:
         return None
@@ -1236,13 +1238,17 @@ def image_velocity(sub: Table, focal: tuple[float, float], R_imu_st: np.ndarray 
 
 
 def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, float],
-                   R_imu_st: np.ndarray | None, readout: str = "v"
+                   R_imu_st: np.ndarray | None, readout: str = "v", stamp: float = 0.0
                    ) -> tuple[np.ndarray, ...] | None:
     """``(ok, u, ν, S⁻¹)`` of :func:`frame_offsets` (``None``: no columns).
 
     Its stars (a mask of ``sub``), their image velocity (px/s), innovations without the
     rolling shutter's fit along ``readout`` (:data:`READOUT_AXES`; :func:`readout_axis`)
-    and inverse covariances.
+    and inverse covariances.  ``stamp`` (s rms): the frames' stamp noise the run stated in
+    each frame's R (``NoiseScales.stamp_ms``): each star's covariance is taken without its
+    share ``stamp² u uᵀ`` (:func:`~stellar_cal_ros.core.covariance.stamp_column`, the same
+    motion the stars' image velocity ``u`` is): one error per frame, common to its stars,
+    which the per-star blocks cannot carry (:func:`stamp_noise` holds it in its null).
     """
     if len(sub.get("du", ())) < 20:
         return None
@@ -1255,6 +1261,9 @@ def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, 
     if fit is not None and np.isfinite(fit[2]):
         nu = nu - fit[2] * x
     a, b, c = (np.asarray(sub[k], dtype=float) for k in ("s_uu", "s_uv", "s_vv"))
+    if stamp > 0:
+        a, b, c = (a - stamp**2 * vel[:, 0] ** 2, b - stamp**2 * vel[:, 0] * vel[:, 1],
+                   c - stamp**2 * vel[:, 1] ** 2)
     det = a * c - b * b
     ok = finite_rows(vel) & finite_rows(nu) & (det > 0) & (a > 0)
     if ok.sum() < 20:
@@ -1265,7 +1274,8 @@ def motion_columns(sub: Table, focal: tuple[float, float], centre: tuple[float, 
 
 
 def motion_test(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndarray,
-                infop: np.ndarray, speed: float) -> RegressorFinding | None:
+                infop: np.ndarray, speed: float, sigma_t: float = 0.0
+                ) -> RegressorFinding | None:
     """:func:`motion_spread`'s test on :func:`frame_offsets`' per-frame sums.
 
     ``d = g / I`` along, ``d⊥`` across; over consecutive frames ``j``, ``j + 1`` (both with
@@ -1282,26 +1292,35 @@ def motion_test(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
     the stamp noise dominates count alike), times ``speed``.  Returns a
     :class:`RegressorFinding` (regressor :data:`MOTION` with ``σ̂_t`` in ms, component
     ``along motion``, statistic the normal score of the one-sided p, unadjusted p, size px
-    rms at ``speed``) or ``None`` (fewer than 10 pairs).
+    rms at ``speed``) or ``None`` (fewer than 10 pairs).  ``sigma_t`` (s rms): the stamp
+    noise the run stated (:func:`stamp_noise`'s null): the line is of a spread beyond it,
+    and says so.
     """
-    got = stamp_noise(frames, g, info, gp, infop)
+    got = stamp_noise(frames, g, info, gp, infop, sigma_t)
     if got is None:
         return None
     p, sig_t = got
     z = float(dist.norm.isf(p)) if p > 1e-300 else 37.0
-    return RegressorFinding(f"{MOTION}: {sig_t * 1e3:.2g} ms rms, {speed:.0f} px/s at the "
-                            "95th percentile of image speed)", "along motion", z, p,
+    stated = f", {sigma_t * 1e3:.2g} ms stated" if sigma_t > 0 else ""
+    return RegressorFinding(f"{MOTION}: {sig_t * 1e3:.2g} ms rms{stated}, {speed:.0f} px/s "
+                            "at the 95th percentile of image speed)", "along motion", z, p,
                             sig_t * speed)
 
 
 def stamp_noise(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndarray,
-                infop: np.ndarray) -> tuple[float, float] | None:
+                infop: np.ndarray, sigma_t: float = 0.0) -> tuple[float, float] | None:
     """:func:`motion_test`'s one-sided p and stamp noise ``σ̂_t`` (s rms): ``(p, σ̂_t)``.
 
     ``None`` with fewer than 10 pairs of consecutive frames (or no spread across the
     motion).  The one estimate of a noise in the frames' stamps: the line's
     (:func:`motion_test`) and the attitude step test's expected spread of a frame
     (:func:`~stellar_cal_ros.diagnosis.installation_step.installation_step`).
+    ``sigma_t`` (s rms): a stamp noise the null holds (the one the run stated in each
+    frame's R, ``NoiseScales.stamp_ms``; the offsets made without its share of the stars'
+    covariance, :func:`motion_columns`): ``Δa`` then has the variance ``V_j + 2 σ_t²`` (and
+    consecutive ones the covariance ``−(1/I_{j+1} + σ_t²)``), the p is of a noise beyond it;
+    ``σ̂_t`` stays the whole stamp noise.  60 s of the swaying base, 1 ms stamps stated
+    1 ms (seed 22): p 3.8e-8 without it, 0.86 with it; 2 ms stated 1 ms: 0.0079, 2.1 ms.
     """
     use = (info > 0) & (infop > 0)
     j = np.flatnonzero(use[1:] & use[:-1] & (np.diff(frames) == 1))
@@ -1315,18 +1334,36 @@ def stamp_noise(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
     Vc = 1.0 / infop[j] + 1.0 / infop[j + 1]
     V = 0.5 * (Va + Vc)
     h = 1.0 / V
-    x, y = float(np.sum(h * da2 / Va)), float(np.sum(h * dc2 / Vc))
+    # (the null's stamp noise: along the motion only)
+    Vn = Va + 2.0 * sigma_t**2 if sigma_t > 0 else Va
+    x, y = float(np.sum(h * da2 / Vn)), float(np.sum(h * dc2 / Vc))
     if not (y > 0 and np.isfinite(x)):
         return None
     # consecutive pairs share a frame: their squares correlate as 2 ρ²
     nxt = np.flatnonzero(j[1:] == j[:-1] + 1)
-    rho2 = 1.0 / (info[j[nxt] + 1] ** 2 * V[nxt] * V[nxt + 1])
+    # (with a stamp noise stated, the along pairs' own: they share its frame's σ_t² too)
+    rho2 = 1.0 / (info[j[nxt] + 1] ** 2 * V[nxt] * V[nxt + 1]) if not sigma_t > 0 else \
+        (1.0 / info[j[nxt] + 1] + sigma_t**2) ** 2 / (Vn[nxt] * Vn[nxt + 1])
     nu = float(np.sum(h) ** 2 / (np.sum(h * h) + 2.0 * np.sum(h[nxt] * h[nxt + 1] * rho2)))
     p = float(dist.f.sf(x / y, nu, nu))
     diff = da2 - dc2
     s2 = max(float(np.sum(h * h * diff) / (2.0 * np.sum(h * h))), 0.0)
     w = 1.0 / (2.0 * s2 + V) ** 2
     return p, float(np.sqrt(max(float(np.sum(w * diff) / (2.0 * np.sum(w))), 0.0)))
+
+
+def stamp_line(res: Table, mask: np.ndarray, focal: tuple[float, float],
+               centre: tuple[float, float], R_imu_st: np.ndarray | None, stamp: float = 0.0
+               ) -> RegressorFinding | None:
+    """:func:`motion_spread` on ``mask``'s accepted stars, its null's stamp noise ``stamp`` (s).
+
+    The stamps' line as :func:`regressor_tests` makes it (unadjusted p), for a caller that
+    wants that line alone (``benchmarks/stamp_noise_nis.py --motion``).
+    """
+    m = np.asarray(mask, dtype=bool) & accepted(res)
+    sub = {k: v[m] for k, v in res.items()}
+    cols = motion_columns(sub, focal, centre, R_imu_st, "v", stamp)
+    return None if cols is None else motion_spread(sub, focal, centre, R_imu_st, cols, stamp)
 
 
 def stamp_share(res: Table, mask: np.ndarray, focal: tuple[float, float],
@@ -1750,7 +1787,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
                     track_lags: tuple[float, float] | None = None,
                     width: float | None = None,
                     star_levels: bool = False,
-                    family: dict | None = None, readout: str = "v") -> list[RegressorFinding]:
+                    family: dict | None = None, readout: str = "v", stamp: float = 0.0
+                    ) -> list[RegressorFinding]:
     """Correlation of residual components (u, v, radial, size) with each regressor.
 
     One frame-robust score test per pair (:func:`frame_robust_t`: the frames, not the
@@ -1777,7 +1815,9 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     size is tested against each star's own level (:func:`frame_robust_t`'s ``track_level``).
     ``family``: a dict given gets the family's size (``"size"``: the Bonferroni factor).
     ``readout``: the direction of the rolling shutter the motion tests' innovations are
-    read without (:func:`motion_columns`, :func:`readout_axis`).
+    read without (:func:`motion_columns`, :func:`readout_axis`).  ``stamp`` (s rms): the
+    frames' stamp noise the run stated in each frame's R: the stamps' test is of a spread
+    beyond it (:func:`motion_spread`).
     """
     m = mask & accepted(res)
     if m.sum() < 20:
@@ -1851,8 +1891,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     if focal is not None:
         # a noise in the frames' stamps: along each star's motion, frame to frame
         # (the stars' image velocity and innovations along it: made once for both)
-        cols = motion_columns(sub, focal, camera_centre, R_imu_st, readout)
-        moving = motion_spread(sub, focal, camera_centre, R_imu_st, cols) \
+        cols = motion_columns(sub, focal, camera_centre, R_imu_st, readout, stamp)
+        moving = motion_spread(sub, focal, camera_centre, R_imu_st, cols, stamp) \
             if cols is not None else None
         # a bias along the motion that grows faster than a time offset's
         curve = speed_curve(sub, cols)

@@ -66,7 +66,7 @@ from stellar_cal_ros.methods.frames import (
     frame_inputs_columns,
 )
 from stellar_cal_ros.methods.star_model import StarModel
-from stellar_cal_ros.sim.tracker_errors import Ar1Tracks
+from stellar_cal_ros.sim.tracker_errors import Ar1Tracks, stamp_errors
 from stellar_cal_ros.sim.truth_effects import SIM_ONLY, normalize_effect
 
 IMU_FRAME = "imu_link"
@@ -584,6 +584,11 @@ def render(data: BagData, calibration: Calibration, effects: dict[str, Any] | No
         return [sc.context(j, data.site, a) for j, a in zip(live.tolist(), starts, strict=True)]
 
     t_rel = (sc.stamp_ns[live] - data.t0_ns) * 1e-9
+    if noise.stamp_ms > 0:
+        # the frames' stamps off their exposures by the noise the run stated or measured
+        # (``--noise-scale stamp=``): each frame's stars where they were at its exposure,
+        # its stamp less its error, as the bag's own (the twin's stamps are the bag's)
+        t_rel = t_rel - stamp_errors(len(data.frames), 1e-3 * noise.stamp_ms, seed)[live]
     uv, d = model.predict_frames(theta, sc.u_i, contexts,
                                  lambda shifts: traj.at(t_rel + shifts), counts=n)
     magnitude = sc.magnitude

@@ -50,8 +50,10 @@ def noise_line(noise) -> str:
                  f"rho {noise.star_rho:.2f}; a white-noise filter needs x{noise.star:.3g})")
     else:
         star += ", white"
+    stamps = f"; the frames' stamps off by {noise.stamp_ms:.2g} ms rms" \
+        if noise.stamp_ms else ""
     return (f"{star}; gyro x{noise.gyro:.3g}, accelerometer x{noise.accel:.3g} "
-            "(white; 1 = as stated)")
+            f"(white; 1 = as stated){stamps}")
 
 
 def _cmd_twin(args: argparse.Namespace) -> int:

@@ -306,13 +306,23 @@ def stamp_jitter(sim, sigma_s: float, seed: int) -> np.ndarray:
     """Each frame's stamp off its exposure's true time by N(0, ``sigma_s``), independently.
 
     What a tracker whose clock is read with a jitter sends: the stars are where they were
-    at the exposure, the stamp is not.  Returns the errors (s, one per frame).
+    at the exposure, the stamp is not.  Returns the errors (s, one per frame:
+    :func:`stamp_errors`).
     """
-    rng = np.random.default_rng(seed + 49979687)
-    err = sigma_s * rng.standard_normal(len(sim.star_frames))
+    err = stamp_errors(len(sim.star_frames), sigma_s, seed)
     for f, e in zip(sim.star_frames, err, strict=True):
         f.stamp_ns = int(f.stamp_ns + round(float(e) * 1e9))
     return err
+
+
+def stamp_errors(n: int, sigma_s: float, seed: int) -> np.ndarray:
+    """``n`` frames' stamp errors, N(0, ``sigma_s``) each (s).
+
+    The stamp is the exposure's true time plus its error (:func:`stamp_jitter`; a twin
+    renders the stars of a frame at its stamp less it,
+    :func:`~stellar_cal_ros.diagnosis.twin.render`).
+    """
+    return sigma_s * np.random.default_rng(seed + 49979687).standard_normal(n)
 
 
 def star_offsets(sim, rms_px: float, seed: int) -> dict[int, np.ndarray]:
