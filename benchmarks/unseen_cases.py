@@ -943,9 +943,7 @@ def _frame_jitter(sim, seed, px=0.04):
     # the gyro's band): every star of a frame shifted by the same N(0, 0.04 px) per axis,
     # independent from frame to frame (not noise of each star: no library effect; the
     # gyro's noise as stated); then the stated noise
-    rng = np.random.default_rng(seed + 5381)
-    for f in sim.star_frames:
-        f.uv = np.asarray(f.uv, dtype=float) + px * rng.standard_normal(2)
+    tracker_errors.frame_jitter(sim, px, seed)
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
 

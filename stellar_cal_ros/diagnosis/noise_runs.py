@@ -481,6 +481,10 @@ def _judge(runs, prior, effects: tuple[str, ...], base, tell, components: tuple[
         if significant:
             v.rejected.append(comp)
             applied = applied.replace(**{comp: cur * found.value})
+    if v.frame_common and ({"gyro", "accel"} & set(v.rejected) or v.beyond):
+        # (the frames' mean innovations were judged on the run at the IMU noise it used: an
+        # IMU noise not as stated moves them too, each frame's attitude error with it)
+        v.frame_common = None
     v.applied = applied
     return v
 

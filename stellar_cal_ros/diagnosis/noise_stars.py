@@ -179,6 +179,10 @@ class StarNoise:
     #: per star: its image's speed (deg/s, the gyro rate through its attitude columns over
     #: the focal length: :func:`speed_variance`), or None (no rate columns)
     speed: np.ndarray | None = field(default=None, repr=False, compare=False)
+    #: a noise common to each frame's stars, white between frames, measured on the same
+    #: rows (:func:`~.noise_structure.frame_common`; set by :func:`~.noise.measure_stars`),
+    #: or None (not measured)
+    common: dict[str, float] | None = field(default=None, repr=False, compare=False)
 
     @property
     def repeat_p(self) -> float:

@@ -325,6 +325,21 @@ def stamp_errors(n: int, sigma_s: float, seed: int) -> np.ndarray:
     return sigma_s * np.random.default_rng(seed + 49979687).standard_normal(n)
 
 
+def frame_jitter(sim, rms_px: float, seed: int) -> np.ndarray:
+    """Every star of a frame shifted by one N(0, ``rms_px``²) per axis, independently by frame.
+
+    An attitude (or image) jitter faster than the frames that the gyro does not see: one
+    error common to the frame's stars, white from frame to frame, not each star's noise
+    (unseen case ``frame_jitter``).  Returns the shifts (px, one ``(u, v)`` per frame).
+    """
+    rng = np.random.default_rng(seed + 5381)
+    out = np.empty((len(sim.star_frames), 2))
+    for i, f in enumerate(sim.star_frames):
+        out[i] = rms_px * rng.standard_normal(2)
+        f.uv = np.asarray(f.uv, dtype=float) + out[i]
+    return out
+
+
 def star_offsets(sim, rms_px: float, seed: int) -> dict[int, np.ndarray]:
     """Each star off by its own fixed offset, N(0, ``rms_px``²) per axis, in every frame.
 
