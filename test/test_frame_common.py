@@ -53,7 +53,7 @@ def test_the_frame_common_sigma_is_read_back(jittered) -> None:
     for d, zi in zip(jittered, z, strict=True):
         assert d["sigma_sigma_px"] < 0.2 * JITTER_PX, d
         assert abs(zi) < 3.0, (d, zi)
-        assert d["z"] > 10.0 and d["slow_z"] > 5.0, d
+        assert d["z"] > 10.0 and d["slow_z"] > 5.0 and d["median_z"] > 10.0, d
     assert abs(float(np.mean(z))) < 3.0 / math.sqrt(len(z)), z
 
 
@@ -77,7 +77,7 @@ def test_it_is_named_as_noise(jittered) -> None:
 @pytest.mark.parametrize("seed", [31, 32])
 def test_clean_bags_name_no_frame_common_noise(seed) -> None:
     d = _common(seed, 0.0)
-    assert abs(d["z"]) < 3.0, d
+    assert abs(d["z"]) < 3.0 and abs(d["median_z"]) < 3.0, d
     assert d["sigma_px"] < 3.0 * d["sigma_sigma_px"] + 0.005, d
     assert named_common(d, 2) is None
     v = NoiseVerdict(NoiseScales(), NoiseScales(), star=1.0, star_sigma=0.007,

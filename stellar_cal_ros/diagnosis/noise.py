@@ -831,7 +831,8 @@ def named_common(d: dict[str, float] | None, n_tests: int) -> dict[str, float] |
     """``d`` (:func:`~.noise_structure.frame_common`) where it names a frame-common noise.
 
     Significant at :data:`~.noise_structure.COMMON_ALPHA` over the frames (Bonferroni over
-    the noise's ``n_tests``) and on the slower half of them alone, material
+    the noise's ``n_tests``), on the slower half of them alone and by the median of the
+    frames' pairs (not a few frames far off: a step, a misidentified frame), material
     (:data:`~.noise_structure.COMMON_SHARE` of the frames' mean innovations' predicted
     variance), and not growing with the motion (the faster half's σ_j² within
     :data:`COMMON_GROWTH_Z` σ of the slower's): the frames' stamps' noise moves the stars
@@ -842,7 +843,7 @@ def named_common(d: dict[str, float] | None, n_tests: int) -> dict[str, float] |
     if not d:
         return None
     level = float(dist.norm.isf(noise_structure.COMMON_ALPHA / n_tests))
-    named = (d["z"] > level and d["slow_z"] > level
+    named = (d["z"] > level and d["slow_z"] > level and d.get("median_z", math.inf) > level
              and d["share"] >= noise_structure.COMMON_SHARE
              and d["growth_z"] < COMMON_GROWTH_Z)
     return dict(d) if named else None

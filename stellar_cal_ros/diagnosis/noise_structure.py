@@ -1162,6 +1162,8 @@ COMMON_ALPHA = 1e-3
 COMMON_SHARE = 0.1
 #: the frames with at least this many accepted stars are the test's
 COMMON_MIN_STARS = 3
+#: the median of a χ²₁ (:func:`frame_common`'s robust check)
+CHI2_1_MEDIAN = 0.4549364231195724
 #: the frames' noise scale is measured in this many classes of their rate (:func:`frame_common`)
 COMMON_RATE_CLASSES = 8
 
@@ -1194,8 +1196,9 @@ def frame_common(res, mask: np.ndarray, sigma_px: np.ndarray, focal: tuple[float
     The same estimate on the slower and the faster half of the frames (by the gyro rate):
     a frame-common error that grows with the motion (the stamps' noise, a smear, a σ that
     grows with the rate) is not this white one; ``{sigma_px, sigma_sigma_px, z, p_value,
-    share, slow_px, slow_z, fast_px, fast_sigma_px, slow_sigma_px, frames}`` (px, per
-    axis, the two axes pooled), or None (fewer than 20 frames).
+    share, slow_px, slow_z, fast_px, fast_sigma_px, slow_sigma_px, growth_z, median_z,
+    frames}`` (px, per axis, the two axes pooled; ``median_z`` the pairs' median of
+    ``d² / c_d`` against a χ²₁'s in its σ), or None (fewer than 20 frames).
     """
     from stellar_cal_ros.diagnosis.stats import Rows, accepted, frames_of, image_velocity
 
@@ -1282,6 +1285,12 @@ def frame_common(res, mask: np.ndarray, sigma_px: np.ndarray, focal: tuple[float
         return s2, math.sqrt(max(v, 0.0)), z
 
     slow = slow[pair] & slow[pair + 1]
+    # (and the pairs' median: a few frames far off, a step of the installation at rest or
+    # a frame whose stars were misidentified, carry the sums above but not the median of
+    # d² / c_d, a χ²₁'s 0.455 under the model; its σ 1.06 / √N with the overlapping pairs'
+    # squares correlated by 1/4, N / 1.5 of them independent)
+    ratio = (d2 / cd).reshape(-1)
+    med_z = float((np.median(ratio) - CHI2_1_MEDIAN) / (1.0614 * math.sqrt(1.5 / len(ratio))))
     s2, e2, z = fit(np.ones(len(pair), dtype=bool))
     s2s, e2s, zs = fit(slow)
     s2f, e2f, _ = fit(~slow)
@@ -1300,4 +1309,4 @@ def frame_common(res, mask: np.ndarray, sigma_px: np.ndarray, focal: tuple[float
             "slow_px": slow_px, "slow_sigma_px": slow_e, "slow_z": zs,
             "fast_px": fast_px, "fast_sigma_px": fast_e,
             "growth_z": float((s2f - s2s) / math.hypot(e2f, e2s)) if e2f + e2s > 0 else 0.0,
-            "frames": int(use.sum())}
+            "median_z": med_z, "frames": int(use.sum())}
