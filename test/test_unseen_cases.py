@@ -2154,6 +2154,20 @@ def test_a_repeat_that_a_smooth_row_structure_explains_follows_it(case, monkeypa
     said = printing.follows_phrase({"follows": cause})
     assert said == ("follows the smooth structure over the detector's rows (v): gone once "
                     "its smooth fit over the rows is taken out of the centroids"), said
+    # the noise verdict's lines follow it too: the repeat's, and the IMU noise's reason
+    # (the unseen case's discover s21/s22 said "IMU noise taken as stated: ... the attitude
+    # follows the per-star errors of the stars in view"; fails on coord 994992f)
+    rep = {"chi2": 328.0, "dof": 156.0, "p_value": 2.4e-14, "rms_px": 0.0061}
+    v = noise.NoiseVerdict(NoiseScales(), NoiseScales(), repeat=rep,
+                           imu_skipped=noise.repeat_reason(rep["rms_px"]))
+    assert any("the per-star errors of the stars in view" in x for x in v.lines()), v.lines()
+    got = v.following(follows[lines.index(repeat)])
+    assert got.repeat["follows"] == cause and got.as_json()["star_repeat"]["follows"] == cause
+    said = [x for x in got.lines() if "repeat star by star" in x]
+    assert len(said) == 2 and all(cause in x for x in said), said
+    assert "IMU noise taken as stated: the stars' residuals repeat star by star (0.0061 px " \
+        "rms): the attitude follows the displacement the smooth structure over the " \
+        "detector's rows (v) makes of the stars in view" in said[1], said
 
 
 def test_a_lens_zones_step_line_says_its_fitted_step_and_the_noise_repeat_follows_it():

@@ -253,6 +253,21 @@ class NoiseVerdict:
             return 1.0, math.nan
         return (s.value, s.sigma) if s.measurable else (1.0, math.inf)
 
+    def following(self, cause: str) -> NoiseVerdict:
+        """The verdict with its star-by-star repeat following ``cause`` (its line's).
+
+        The repeat's line and the IMU noise's reason (:func:`repeat_reason`, where the
+        repeat is why it was taken as stated) then say the cause, not the catalogue
+        positions or the per-star errors (unseen cases ``lens_zone``, ``stray_light``).
+        """
+        if not self.repeat:
+            return self
+        skipped = self.imu_skipped
+        if skipped == repeat_reason(self.repeat["rms_px"]):
+            skipped = repeat_reason(self.repeat["rms_px"], cause)
+        return dataclasses.replace(self, repeat=dict(self.repeat, follows=cause),
+                                   imu_skipped=skipped)
+
     def as_json(self) -> dict[str, Any]:
         """``diagnosis.json``'s ``noise`` block (contract §5, plus what was applied)."""
         names = {"star": "star_sigma_scale", "gyro": "gyro_noise_scale",
@@ -1160,6 +1175,20 @@ def stamp_jitter(base, calibration, fraction: float, scale: float, nis: float
     return {"ms": got[1] * 1e3, "p_value": got[0], "nis_share": share}
 
 
+def repeat_reason(rms_px: float, follows: str = "") -> str:
+    """:func:`structured`'s reason where the stars' residuals repeat star by star.
+
+    ``follows``: the cause the repeat follows (its 'unexplained' line, ``output``'s
+    ``causes_first``: a star keeps its place on the detector along its track), said
+    instead of the per-star errors (unseen case ``stray_light`` s21: the repeat follows
+    the smooth structure over the detector's rows, and the line blamed the per-star errors).
+    """
+    what = (f"the displacement the {follows} makes of the stars in view (its 'unexplained' "
+            "line)" if follows else "the per-star errors of the stars in view")
+    return (f"the stars' residuals repeat star by star ({rms_px:.2g} px rms): the attitude "
+            f"follows {what}, which a larger gyro noise would absorb")
+
+
 def structured(sn: StarNoise) -> str:
     """Why the IMU noise cannot be measured on this run's stars ('' if it can).
 
@@ -1173,9 +1202,7 @@ def structured(sn: StarNoise) -> str:
     """
     p = sn.structure_p
     if sn.repeat_removed:
-        return (f"the stars' residuals repeat star by star ({sn.repeat_removed:.2g} px rms): "
-                "the attitude follows the per-star errors of the stars in view, which a "
-                "larger gyro noise would absorb")
+        return repeat_reason(sn.repeat_removed)
     if p >= ALPHA:
         return ""
     # the field's rms per axis over the noise's: the χ²'s excess over its dof (the cells'

@@ -6,7 +6,6 @@ selection (:func:`~stellar_cal_ros.diagnosis.auto.discover`).
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -163,7 +162,7 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     echo = next((follows[i] for i, f in enumerate(unexplained)
                  if f.regressor == "catalogue star" and i in follows), None)
     if echo is not None and verdict is not None and verdict.repeat:
-        verdict = dataclasses.replace(verdict, repeat=dict(verdict.repeat, follows=echo))
+        verdict = verdict.following(echo)
     summary["noise"] = (verdict.as_json() if verdict is not None else
                         not_measured(getattr(runs, "noise", None) or stated_scales(calibration),
                                      _batch_fit(base, spec)))
