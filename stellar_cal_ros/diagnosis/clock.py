@@ -112,6 +112,9 @@ WOBBLE_CYCLES = 3.0
 #: speed-squared column beside the parts (:func:`flexure_products`' ``smear``), and
 #: :meth:`ClockChange.by_speed` decides which is said
 SMEAR_P = 0.01
+#: the smear's line where the clock's test is the one beside it (:meth:`ClockChange.line`;
+#: "image rate", as :data:`~stellar_cal_ros.diagnosis.stats.CURVE`'s, the speed curve's)
+SMEAR_LINE = "image rate squared, beside the clock's parts"
 #: the drift's line, when one rate explains the parts' change (:meth:`ClockChange.drifts`)
 DRIFT = "the frames' clock drifts against the IMU"
 #: the drift explains the change when what it leaves of the parts' χ² has at least this p
@@ -208,7 +211,7 @@ class ClockChange:
         the parts no longer changing beside it (:meth:`changes`): a time offset's shift
         grows with the image speed, a smear's faster, a drifting clock's with time at any
         speed; where the parts still change beside it, the clock's own test stays
-        (``smear15`` s21: the smear's +0.337 ± 0.063 ms at 202 px/s, 5.3 σ, the parts 2.4
+        (``smear15`` s21: the smear's +0.337 ± 0.076 ms at 202 px/s, 4.4 σ, the parts 2.4
         chi2 / 5 dof beside it; the truth 0.375 ms).
         """
         sm = self.smear
@@ -342,6 +345,33 @@ class ClockChange:
                 if self.drifts() else self.size_px)
         return stats.p_finding(self.regressor(),
                                GYRO_COMPONENT if self.grows() else COMPONENT, p, size,
+                               detail={"clock_change": self.as_json()})
+
+
+    def line(self) -> stats.RegressorFinding:
+        """The 'unexplained' line: :meth:`finding`, or the smear's (:meth:`by_speed`).
+
+        Where this test is the one beside the smear the parts no longer change and the
+        clock says nothing, but the smear's coefficient is what the window's stars say
+        (unseen case ``smear15`` s21: +0.337 ± 0.076 ms at 202 px/s, the truth 0.375; no
+        line at all before, the speed curve's own test lacking the power at 300 s):
+        :data:`SMEAR_LINE`, its p the coefficient's two-sided normal p × 2 (the parts'
+        test asked as well), its size the shift at the window's 95th-percentile image
+        speed.
+        """
+        sm = self.smear
+        if not (sm and sm.get("fitted") and self.by_speed()):
+            return self.finding()
+        off, sig = sm["offset_s"], sm["sigma_s"]
+        p = min(1.0, 4.0 * float(dist.norm.sf(abs(off) / sig)))
+        where = "ahead of" if off > 0 else "behind"
+        text = (f"{SMEAR_LINE}: the centroids sit {abs(off) * 1e3:.3g} +- {sig * 1e3:.2g} ms of "
+                f"the image's motion {where} the stamp's position at {self.speed:.0f} px/s (the "
+                "95th-percentile image speed), growing with the speed squared: a smear (e.g. "
+                "a clipped streak; not in the library), not the clock (beside it the parts' "
+                f"offsets are equal: {self.chi2:.1f} chi2 / {self.dof} dof over "
+                f"{len(self.dt)} parts of the moving frames)")
+        return stats.p_finding(text, stats.CURVE_COMPONENT, p, abs(off) * self.speed,
                                detail={"clock_change": self.as_json()})
 
 
@@ -550,8 +580,8 @@ def _parts_test(res: stats.Table, sub: stats.Table, got: tuple, focal: tuple[flo
     out.duration = float(np.ptp(res["t"]))
     out.periods = [float(x) for x in periods]
     if smear:  # (its column the last: time_offset's sign, as the parts')
-        out.smear = {"offset_s": -float(beta[-1]),
-                     "sigma_s": float(math.sqrt(max(full[-1, -1], 0.0))), "fitted": True}
+        out.smear = {"offset_s": -float(beta[-1]), "sigma_s": smear_sigma(full, Hi, len(frames)),
+                     "fitted": True}
     slew_growth(out, g, info, t)
     lag = constant_lag(res, focal, centre, R_imu_st, frames)
     if lag is not None:
@@ -559,6 +589,46 @@ def _parts_test(res: stats.Table, sub: stats.Table, got: tuple, focal: tuple[flo
     # (the spans', not the parts': a part without a slew says little, at a large σ)
     out.size_px = float(np.ptp([s[2] for s in out.spans()])) * float(speed)
     return out
+
+
+def smear_sigma(sandwich: np.ndarray, inverse: np.ndarray, frames: int) -> float:
+    """The speed-squared smear's σ (s; its column the last): :data:`SMEAR_P`'s test.
+
+    The larger of the frames' sandwich (the lag window's, × ``n / (n − P)`` for the ``P``
+    coefficients fitted to its ``n`` frames' scores) and the stated noise's (the inverse
+    information ``inverse``).  The smear's scores sit in the few fast frames of a window
+    (28 moving frames in psce's 300 s, the sandwich's Satterthwaite dof 2.5-10, median
+    5.6): the sandwich alone is about right on average (rms 0.048 ms, 0.059 with the
+    factor, against the coefficient's SD 0.055 ms over 40 clean seeds) but so noisy that
+    offset / σ was no N(0, 1): SD 1.25, mean square 1.72, 15 % beyond 2 (clean s23 −3.4).
+    The stated noise's (0.059 ms) holds where the model does, the sandwich where a misfit
+    makes the scores larger (a smear bag without time_offset: 0.18-0.26 ms).  Beside it,
+    over the same 40 seeds: SD 0.87, mean square 0.83, 2.5 % beyond 2 (doc/benchmarks.md
+    H292, ``benchmarks/smear_z.py``).
+    """
+    P = sandwich.shape[0]
+    wide = float(sandwich[-1, -1]) * frames / max(frames - P, 1)
+    return float(math.sqrt(max(wide, float(inverse[-1, -1]), 0.0)))
+
+
+def smear_beside(res: stats.Table, calibration, fraction: float) -> dict | None:
+    """The speed-squared smear fitted beside the parts whether they change or not.
+
+    :func:`clock_test`'s rival (:data:`SMEAR_P`; it fits it only where the parts change):
+    ``clock_change.smear``'s ``offset_s`` and ``sigma_s`` with ``speed`` (px/s, the speed
+    its offset is said at), to check its σ where the truth is known (clean bags: 0).
+    ``None`` where the test cannot be made.
+    """
+    cam = calibration.camera
+    focal, centre = (cam.fx, cam.fy), (cam.cx, cam.cy)
+    found = stats.accepted_offsets(res, stats.evaluation_mask(res, fraction), focal, centre,
+                                   calibration.R_imu_st, None)
+    if found is None:
+        return None
+    rival = _parts_test(res, *found, focal, centre, calibration.R_imu_st, SEGMENTS, (), True)
+    if rival is None or not rival.smear:
+        return None
+    return dict(rival.smear, speed=rival.speed)
 
 
 def wobble_periods(found: list, span: float) -> tuple[float, ...]:

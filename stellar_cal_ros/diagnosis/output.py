@@ -375,7 +375,7 @@ def line_tests(res, calibration: Calibration, fraction: float,
     step = step_test(res, calibration, fraction, shared=shared)
     shared.clear()
     trim_freed()
-    timing_line = timing.finding() if timing is not None else None
+    timing_line = timing.line() if timing is not None else None
     family: dict[str, int] = {}
     # (the other lines read the residuals less a detector pattern found: its echoes are not
     # lines of their own)
@@ -422,7 +422,7 @@ def _clock_beside_wobble(res, calibration: Calibration, fraction: float,
     rest = [f for f in found if f is not line]
     if again is None:
         return timing, found
-    new = again.finding()
+    new = again.line()
     new.p_value = min(1.0, new.p_value * family_size)
     if new.p_value < alpha:
         rest.append(new)
