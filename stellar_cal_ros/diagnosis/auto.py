@@ -63,7 +63,15 @@ import numpy as np
 
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.units import ARCSEC
-from stellar_cal_ros.diagnosis import clock, flexure, installation_step, leads, rolling, screening
+from stellar_cal_ros.diagnosis import (
+    clock,
+    flexure,
+    installation_step,
+    leads,
+    rolling,
+    screening,
+    slew_steps,
+)
 from stellar_cal_ros.diagnosis.discover import (
     ALPHA,
     MIN_EXPLAINED,
@@ -226,6 +234,9 @@ class _State:
     #: the step's line from the round its nuisance entered the model (:func:`_write` says
     #: it: the final model's own test no longer sees the step it fits)
     step_line: dict[str, Any] | None = None
+    #: the latest :func:`_top`'s slews and the model with their steps alone
+    #: (:func:`_beside_slews`, made once a round)
+    slews: dict[str, Any] = field(default_factory=dict)
 
     def checkable(self) -> list[str]:
         """Added effects whose need is tested this round.
@@ -673,7 +684,7 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
     frames = None  # its run's log-likelihood frame by frame, once a step's test asks
     order, hidden = [c for c in results if c.significant_alone], []
     state.by_step, state.passed_step, stepped = {}, {}, set()
-    state.with_step, state.step_alone = {}, {}
+    state.with_step, state.step_alone, state.slews = {}, {}, {}
     small = _by_step(results)  # significant, but removing little of the excess
     if small:
         knock, where = _knock_of(base, base.calibration or prior, runs.fraction)
@@ -722,6 +733,16 @@ def _top(runs, state: _State, base: RunSummary, here: dict | None, prior: Calibr
                 if b is not None:
                     refused.append((c, b))
                     continue
+        if c.effect in slew_steps.RIVALS and c.effect not in state.with_step:
+            # (after the knock's rules: a knock during a slew is theirs, unseen case
+            # knock_slew; one needed beside the knock fitted stays so)
+            b = _beside_slews(runs, state, base, prior, calibration, c, len(
+                {x.effect for x in order if x.effect in slew_steps.RIVALS}))
+            if b is not None:
+                tell(f"{c.effect}: not added: it explains nothing beside the attitude "
+                     "steps fitted at each slew's start")
+                refused.append((c, b))
+                continue
         if fields is None:
             fields = leads.significant(leads.of_run(base, runs.fraction), ALPHA)
             # a candidate's fields are sized along this model's (one pattern, two runs)
@@ -1093,6 +1114,73 @@ def _beside_knock(runs, state: _State, base: RunSummary, prior: Calibration,
     return {**test, "reason": reason, "remainder": STEP_REMAINDER}
 
 
+def _beside_slews(runs, state: _State, base: RunSummary, prior: Calibration,
+                  calibration: Calibration, c: CandidateResult, tests: int) -> dict | None:
+    """A rate-shaped candidate refused where steps at each slew's start take all it explains.
+
+    A mount that lags each slew and stays there (outside the library,
+    :mod:`~stellar_cal_ros.diagnosis.slew_steps`): the installation rotated by a free step
+    from each slew's start on (:class:`~.slew_steps.SlewSteps`, the window's slews and the
+    last before it) is the rival of a candidate :data:`~.slew_steps.RIVALS`.  Two runs
+    (the steps alone, made once a round, and the steps with ``c``).  Where the steps alone
+    explain the window (their ratio against ``base``, χ² with 3 × slews dof, at ``ALPHA``)
+    and ``c``'s ratio beside them (χ²_dof tail × ``tests``, Bonferroni over the candidates
+    judged so) is not significant, the refusal with its reason; else ``None`` (no slews to
+    fit: a platform that never rests, or more than :data:`~.slew_steps.MAX_STEPS`).
+    A gyro scale error grows through a slew and a time offset vanishes at rest: steps held
+    from a slew's start take neither (unseen cases ``gsf100``, ``twin_dt1``).
+    """
+    if base.residuals is None or slew_steps.STEPS_ID in state.extra:
+        return None
+    if "slews" not in state.slews:
+        state.slews["slews"] = slew_steps.slew_starts(
+            base.residuals, (base.calibration or prior).R_imu_st, runs.fraction)
+        state.slews["first_t"] = float(np.min(base.residuals["t"]))
+    slews = state.slews["slews"]
+    if slews is None:
+        return None
+    installation_step.register_step(runs, slew_steps.SlewSteps)
+    at = slew_steps.with_steps(prior, slews)
+    extra = tuple(state.extra) + (slew_steps.STEPS_ID,)
+    key = f"{c.effect} beside the slews' steps"
+    tasks = [Task(key, candidate_prior(at, c.effect, calibration), extra + (c.effect,),
+                  cost=1.5, candidate=True)]
+    if "run" not in state.slews:
+        tasks.append(Task("the slews' steps alone", at, extra))
+    got = runs.run_all(tasks, None)
+    if "run" not in state.slews:
+        alone = got["the slews' steps alone"]
+        state.slews["run"] = alone if alone.ok else None
+        if alone.ok:
+            dof = 3 * len(slews)
+            stat, p, _ = Reference.of(base).compare(alone, dof)
+            steps = slew_steps.fitted(_estimates(alone, slew_steps.STEPS_ID), slews)
+            lam, sig = slew_steps.lag(steps, slews)
+            state.slews["test"] = {
+                "steps": steps, "lag_arcsec": lam, "lag_sigma_arcsec": sig,
+                "steps_statistic": float(stat), "steps_dof": dof, "steps_p_value": float(p),
+                "first_t": state.slews["first_t"],
+                "focal_px": float((base.calibration or prior).camera.fx)}
+    alone, run = state.slews["run"], got[key]
+    if alone is None or not run.ok or not state.slews["test"]["steps_p_value"] < ALPHA:
+        return None
+    stat = 2.0 * (run.window["log_likelihood"] - alone.window["log_likelihood"]) \
+        / Reference.of(base).dispersion
+    p = min(1.0, float(dist.chi2.sf(max(stat, 0.0), c.dof)) * max(tests, 1))
+    if p < ALPHA:
+        return None
+    test = state.slews["test"]
+    reason = (f"significant alone (p = {c.p_adjusted:.2g}) but explains nothing beside the "
+              f"installation's steps fitted at the {len(slews)} slews' starts "
+              f"({test['steps_statistic']:.0f} chi2 / {test['steps_dof']} dof): its ratio "
+              f"{stat:.3g} for {c.dof} dof beside them (p = {p:.2g} over the "
+              f"{max(tests, 1)} candidates judged so); the tracker jumps at each slew and "
+              "stays (a lag), which a gyro rate error or a time offset only mimics here: "
+              "outside the library; not added")
+    return {"slew_steps": test, "statistic": float(stat), "p_value": p, "dof": c.dof,
+            "tests": max(tests, 1), "reason": reason, "remainder": slew_steps.REMAINDER}
+
+
 def _step_fitted(run: RunSummary) -> tuple[list[float], list[float]]:
     """The step nuisance's rotation in ``run`` and its σ (arcsec, x y z).
 
@@ -1255,6 +1343,12 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
         line = rolling.finding(final, fraction, ALPHA)
         if line is not None:
             fields.append(line)
+    slewed = next((b["slew_steps"] for s in path for b in (s.get("beyond_remainder")
+                                                            or {}).values()
+                   if "slew_steps" in b), None)
+    if slewed is not None:
+        # one refused beside the slews' steps: their line (the round's fit), said first
+        fields.append(slew_steps.finding(slewed))
     if installation_step.STEP_ID in state.extra and state.step_line is not None:
         # the step is fitted (hidden) in the final model, so its test there sees none: the
         # line of the round it entered, with its size fitted on the final model
@@ -1274,6 +1368,8 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
                      refused=tuple(path[-1].get("beyond_remainder") or ()) if path else ())
     if path and any("clock" in b for b in (path[-1].get("beyond_remainder") or {}).values()):
         _clock_first(summary["unexplained"])
+    if slewed is not None:
+        _first(summary["unexplained"], slew_steps.COMPONENT)
     summary.update({
         "path": path,
         "added": added,
@@ -1392,6 +1488,13 @@ def _clock_first(lines: list[dict[str, Any]]) -> None:
     while k < at and lines[k].get("component") == installation_step.COMPONENT:
         k += 1
     lines.insert(k, lines.pop(at))
+
+
+def _first(lines: list[dict[str, Any]], component: str) -> None:
+    """The first line of ``component`` made the first of all (in place)."""
+    at = next((i for i, u in enumerate(lines) if u.get("component") == component), None)
+    if at is not None:
+        lines.insert(0, lines.pop(at))
 
 
 def _rejected(history: dict[str, list[tuple[int, CandidateResult]]], state: _State,

@@ -433,11 +433,15 @@ def with_step(prior, t_posix: float, step: InstallationStep | None = None):
     return out
 
 
-def register_step(runs) -> None:
-    """Make :class:`StepNuisance` known here and to ``runs``' worker processes."""
+def register_step(runs, cls: type[Effect] | None = None) -> None:
+    """Make :class:`StepNuisance` (or the nuisance ``cls``) known here and to ``runs``' workers.
+
+    (:class:`~stellar_cal_ros.diagnosis.slew_steps.SlewSteps` too.)
+    """
     from stellar_cal_ros.effects import registry
 
-    if STEP_ID not in registry.EFFECTS:
-        registry.register(StepNuisance)
-    if StepNuisance not in tuple(runs.classes):
-        runs.classes = (*tuple(runs.classes), StepNuisance)
+    cls = cls or StepNuisance
+    if cls.id not in registry.EFFECTS:
+        registry.register(cls)
+    if cls not in tuple(runs.classes):
+        runs.classes = (*tuple(runs.classes), cls)

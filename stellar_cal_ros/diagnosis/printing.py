@@ -15,6 +15,7 @@ from stellar_cal_ros.diagnosis import leads, reliability, rolling, stats
 from stellar_cal_ros.diagnosis.clock import COMPONENT, GYRO_COMPONENT
 from stellar_cal_ros.diagnosis.installation_step import COMPONENT as STEP
 from stellar_cal_ros.diagnosis.shape_drift import SHAPES
+from stellar_cal_ros.diagnosis.slew_steps import COMPONENT as SLEWS
 
 
 def describe(step: dict[str, Any]) -> str:
@@ -86,7 +87,8 @@ def unexplained_phrase(u: dict[str, Any]) -> tuple[str, str]:
         # changes over the run, or the remainder along the motion grows along a slew
         # (the regressor says what changes: no 'residual vs')
         what, span = "", "along each star's motion at the 95th percentile of image speed"
-    elif u["component"] == STEP:  # diagnosis.installation_step: the regressor says it all
+    elif u["component"] in (STEP, SLEWS):  # installation_step, slew_steps: the regressor
+        # says it all
         what, span = "", "at the detector's centre"
     elif u["component"] == "size":
         what = "residual spread (size)"
