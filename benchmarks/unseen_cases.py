@@ -1579,7 +1579,8 @@ CASES: dict[str, Case] = {
                             twin=("gyro_scale_factor", "sz", 1.0)),
     # ---- 2026-11-29 (H279): twelfth pass (doc/benchmarks.md "Unseen cases, twelfth
     # pass"; coord 0e2fd9e s21/s22: backlash wrong 2/2 -- a lag kept after each of psce's
-    # 30-deg slews is a gyro scale slew by slew and a time offset within one --, frame_jitter
+    # 30-deg slews is a gyro scale slew by slew and a time offset within one; ok 2/2 since
+    # H289: steps fitted at each slew's start, diagnosis.slew_steps --, frame_jitter
     # nothing said, sway_sky_twin_dt1 s21's base said the gyro x106: fixed, an IMU scale the
     # stars measured with aberration missing is measured again once it is added)
     "gross_s07": Case("psce", "1 % of the centroids 20-50 px off (misidentified stars) AND "
