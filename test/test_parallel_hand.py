@@ -130,6 +130,16 @@ def _logged(bag, name: str, seconds: float) -> str:
     return name
 
 
+def _both_busy(runs, long_s: float, mid_s: float) -> list:
+    """Two statistics of the bag, then a ``long`` and a ``mid`` piece out on the two workers
+    (:data:`_STARTED` cleared after the statistics)."""
+    runs.on_bag_each(_logged, [(f"stat {i}", 0.001) for i in range(2)])
+    _STARTED.clear()
+    busy = [runs.later(_logged, "long", long_s), runs.later(_logged, "mid", mid_s)]
+    time.sleep(0.1)
+    return busy
+
+
 def test_a_spare_piece_goes_out_after_every_queued_one_and_is_dropped_while_queued(
         monkeypatch):
     """``Runs.spare`` (the current model's flexure probe beside the candidates' runs, H273):
@@ -137,12 +147,8 @@ def test_a_spare_piece_goes_out_after_every_queued_one_and_is_dropped_while_queu
     fills a worker that would idle at a batch's end; ``cancel()`` drops it while queued
     (True) and leaves one that is out to run (False).  In this process nothing runs before
     it is asked for: ``cancel()`` is False and the value is still there."""
-    _STARTED.clear()
     with _two_workers(monkeypatch) as runs:
-        runs.on_bag_each(_logged, [(f"stat {i}", 0.001) for i in range(2)])
-        _STARTED.clear()
-        busy = [runs.later(_logged, "long", 1.5), runs.later(_logged, "mid", 0.4)]
-        time.sleep(0.1)
+        busy = _both_busy(runs, 1.5, 0.4)
         spare = runs.spare(_logged, "spare", 0.2)
         dropped = runs.spare(_logged, "dropped", 0.2)
         after = [runs.later(_logged, f"queued {i}", 0.2) for i in range(2)]
@@ -276,12 +282,8 @@ def test_a_spare_piece_asked_for_while_queued_goes_before_the_queued_runs(monkey
     """``DaskRuns.spare`` asked for while still queued (the shutter's re-run a rolling line
     asks for, H281): it goes out at the next free worker, before the pieces queued above
     its spare priority, not after all of them."""
-    _STARTED.clear()
     with _two_workers(monkeypatch) as runs:
-        runs.on_bag_each(_logged, [(f"stat {i}", 0.001) for i in range(2)])
-        _STARTED.clear()
-        busy = [runs.later(_logged, "long", 1.0), runs.later(_logged, "mid", 0.6)]
-        time.sleep(0.1)
+        busy = _both_busy(runs, 1.0, 0.6)
         spare = runs.spare(_logged, "spare", 0.1)
         after = [runs.later(_logged, f"queued {i}", 0.1) for i in range(2)]
         assert spare() == "spare"

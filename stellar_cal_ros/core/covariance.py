@@ -226,8 +226,11 @@ def stamp_column(H_attitude: np.ndarray, R_i_b: np.ndarray, omega: np.ndarray,
     (``H_attitude`` (n, 2, 3) the prediction's ∂uv/∂φ, ``R_i_b`` the attitude at exposure,
     ``omega`` the body rate, rad/s).  One δt for all the frame's stars: the frame's R gains
     the rank-one ``c cᵀ`` (``iterated_update``'s ``common``, flattened), not a per-star term.
+    Arrays in, written for numba as well (the compiled star update's, ``frame_step``).
     """
-    return sigma_t * (np.asarray(H_attitude) @ (np.asarray(R_i_b) @ np.asarray(omega)))
+    w = R_i_b @ omega
+    return sigma_t * (H_attitude[:, :, 0] * w[0] + H_attitude[:, :, 1] * w[1]
+                      + H_attitude[:, :, 2] * w[2])
 
 
 def _gain(P: np.ndarray, H: np.ndarray, r_diag: np.ndarray, nu: np.ndarray, nis: float,

@@ -127,13 +127,21 @@ def tested_directions(effect_id: str, information: np.ndarray, alpha: float,
 
 
 def tested_information(effect_id: str, directions: tuple[np.ndarray, np.ndarray],
-                       calibration: Any = None) -> np.ndarray:
+                       calibration: Any = None, block: np.ndarray | None = None) -> np.ndarray:
     """The information on the tested ``directions`` (:func:`tested_directions`), (k, k).
 
     ``D⁻¹ B diag(μ) Bᵀ D⁻¹``: the whole information with its blind directions left out.
+    ``block``: another information of the effect (one left beside an alternative,
+    :func:`identification`'s ``beside``) seen on the same directions, ``D⁻¹ Π D block D Π
+    D⁻¹`` with ``Π = B Bᵀ``.
     """
     B, mu = directions
-    W = B / plausible_size(effect_id, calibration)[:, None]
+    D = plausible_size(effect_id, calibration)
+    if block is not None:
+        Pi = B @ B.T
+        DD = np.outer(D, D)
+        return _sym(Pi @ (np.atleast_2d(np.asarray(block, dtype=float)) * DD) @ Pi / DD)
+    W = B / D[:, None]
     return _sym((W * mu) @ W.T)
 
 
@@ -369,6 +377,8 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
     tested = tested_directions(effect_id, info, alpha, calibration)
     if tested is not None:  # the test's directions and count (its blind ones left out)
         info, k = tested_information(effect_id, tested, calibration), tested[1].size
+        beside = {a: tested_information(effect_id, tested, calibration, b)
+                  for a, b in (beside or {}).items()}  # (the alternatives' on the same)
     info = info / float(dispersion)
     lam = lambda0(alpha, k)
     D = plausible_size(effect_id, calibration)

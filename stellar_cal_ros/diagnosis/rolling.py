@@ -446,8 +446,11 @@ def drop_unasked(found: list, started) -> None:
 
     For a caller with work before :func:`first_if_cause` (the drifts' re-runs, waited for):
     while that work runs a queued spare would otherwise go out to a free worker, unused.
+    A re-run along the other direction than every shutter line's is not asked for either
+    (:func:`first_if_cause` drops it).
     """
-    if started is not None and not any(stats.rolling_axis(f.regressor) for f in found):
+    if started is not None and started[0]["axis"] not in {
+            stats.rolling_axis(f.regressor) for f in found}:
         started[1].cancel()
 
 

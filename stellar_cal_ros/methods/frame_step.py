@@ -39,7 +39,7 @@ from typing import TextIO
 
 import numpy as np
 
-from stellar_cal_ros.core.covariance import augment
+from stellar_cal_ros.core.covariance import augment, stamp_column
 from stellar_cal_ros.core.imu_prefix import in_sample_rotvec
 from stellar_cal_ros.core.jit import (
     HAVE_NUMBA,
@@ -80,6 +80,7 @@ def _mat3_mul_t(a, b):
 
 _in_sample_rotvec = njit(cache=True)(in_sample_rotvec)
 _augment = njit(cache=True)(augment)
+_stamp_column = njit(cache=True)(stamp_column)
 
 
 @njit(cache=True)
@@ -761,13 +762,8 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
     # the frame's stamp noise σ_t (cfg[12], s): one δt moves every star by c = σ_t ∂uv/∂t,
     # an error state of unit variance seen through c (covariance.iterated_update's common)
     timing = cfg[12] > 0.0
-    ct = np.zeros((n, 2))
+    ct = _stamp_column(H_att, R_out[0], omega, cfg[12]) if timing else np.zeros((n, 2))
     if timing:
-        wi = R_out[0] @ omega
-        for i in range(n):
-            for r in range(2):
-                ct[i, r] = cfg[12] * (H_att[i, r, 0] * wi[0] + H_att[i, r, 1] * wi[1]
-                                      + H_att[i, r, 2] * wi[2])
         H0g = np.zeros((n, 2, N + 1))
         H0g[:, :, :N] = H0
         H0g[:, :, N] = ct

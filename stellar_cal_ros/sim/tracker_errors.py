@@ -486,8 +486,9 @@ def rotate_frame(f, cam, R: np.ndarray) -> None:
 def backlash(sim, arcsec: float) -> None:
     """A mount with backlash: the tracker lags each slew by ``arcsec`` about the slew's axis.
 
-    From the first sample of a slew (the IMU's rate above half its 95th percentile) the
-    tracker sits turned by ``-arcsec`` along that sample's rate direction (IMU frame,
+    From a slew on (a fast IMU sample: its rate above half its 95th percentile) the
+    tracker sits turned by ``-arcsec`` along the rate direction of the latest fast sample
+    before the frame (IMU frame,
     turned into the tracker's by the true installation) and stays there until the next
     slew: psce's six ±30° steps leave it in a different place after each, so the
     installation steps at every slew (the library's is one constant); nothing before the
