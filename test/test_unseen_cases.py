@@ -1330,7 +1330,11 @@ def _top_of(sim, method, candidates):
                                        p_adjusted=p, run=run))
     runs = SimpleNamespace(spec=spec, fraction=0.5, noise=None, classes=(),
                            on_bag=lambda fn, *a: fn(data, *a),
-                           later=lambda fn, *a: lambda: fn(data, *a))
+                           later=lambda fn, *a: lambda: fn(data, *a),
+                           run_all=lambda tasks, done=None: {
+                               t.key: evaluate(data, spec, t.prior, t.effects, 0.5,
+                                               keep_residuals=True, candidate=t.candidate)
+                               for t in tasks})
     state = auto._State([], (), prior)
     top, refused = auto._top(runs, state, base, None, prior, prior, results, lambda s: None)
     return top, refused, results, base, state
