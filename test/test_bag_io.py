@@ -366,7 +366,7 @@ def test_corrupt_chunk_is_bag_error(tmp_path: Path, content) -> None:
 
 
 def test_missing_and_not_mcap(tmp_path: Path) -> None:
-    with pytest.raises(BagError, match="not found"):
+    with pytest.raises(BagError, match="no such bag"):
         BagReader(tmp_path / "nope.mcap")
     p = tmp_path / "x.mcap"
     p.write_text("hello, this is not a bag at all")
