@@ -692,6 +692,79 @@ def test_the_score_test_and_its_mdb_leave_the_blind_directions_out():
     assert seen.tested(eid, alpha) is seen
 
 
+def test_the_blind_directions_are_those_the_test_leaves_out_at_any_dispersion():
+    """One rule (:func:`reliability.split_directions`) for the directions a test sums over
+    and those it is blind to, judged for residuals as stated: a direction is one or the
+    other whatever the round's dispersion φ, and the MDB of a round whose statistic is
+    divided by φ grows by √φ.  Here the fourth direction reaches λ₀ at 1.2x (seen, tested):
+    at φ = 1.5 it stays tested and not blind.  Fails on coord 6c738a9 (4 blind directions
+    at φ = 1.5: they were read from the information over φ against λ₀ at the tested
+    dof)."""
+    eid, alpha = "gyro_misalignment", 1e-3 / 24
+    D = reliability.plausible_size(eid)
+    U, _ = np.linalg.qr(np.random.default_rng(7).standard_normal((6, 6)))
+    mu = np.array([2.0, 5.0, 8.0, 1.2 * reliability.lambda0(alpha, 6), 5e4, 1e5])
+    info = (U / D[:, None] * mu) @ (U / D[:, None]).T
+    one = reliability.detectability(eid, info, alpha)
+    for phi in (1.0, 1.5, 3.0):
+        det = reliability.detectability(eid, info, alpha, dispersion=phi)
+        blind = reliability.blind_directions(det)
+        assert det.dof == 3 and blind.shape == (6, 3), phi
+        # the blind ones span the directions the test leaves out, none of those it sums over
+        w = blind / D[:, None]
+        assert np.abs(U[:, 3:].T @ w).max() < 1e-9, phi
+        assert np.linalg.matrix_rank(U[:, :3].T @ w) == 3, phi
+        assert det.testable, phi
+        for n in det.mdb:
+            assert det.mdb[n] == pytest.approx(one.mdb[n] * np.sqrt(phi), rel=1e-9), (phi, n)
+    # every direction seen: none blind, at any dispersion
+    assert reliability.blind_directions(
+        reliability.detectability(eid, info * 1e3, alpha, dispersion=3.0)).shape == (6, 0)
+
+
+def test_a_screened_rounds_mdb_is_stated_for_the_dispersion_its_score_is_divided_by():
+    """A screened round divides its score statistic by the residuals' dispersion φ (mean
+    NIS/dof, quasi-score), as its ratio statistic: the MDB it prints must be the size that
+    test finds with 80 % power, ``sqrt(φ λ₀ / I)`` (Teunissen: the bias the printed test
+    detects with the printed power).  A bag whose stars' stated σ is 0.8x their noise
+    (φ ≈ 1.5, the round still screened): time_offset injected at ± the test's MDB into the
+    same bag (same seed and noise), the paired response of the round's statistic is λ₀.
+    (The printed MDB there is the excess gate's, 4.4x: the stars' excess variance, noise
+    stated wrong, is taken for a misfit an effect must remove 10 % of; ``mdb_test`` is the
+    test's.)  Fails on coord 6c738a9 (the test's MDB stated for φ = 1: the response
+    λ₀ / φ, 0.65 λ₀)."""
+    from stellar_cal_ros.core.noise import NoiseScales
+    from stellar_cal_ros.diagnosis.discover import Round, method_spec, rank_round
+    from stellar_cal_ros.diagnosis.parallel import Runs
+
+    eid = "time_offset"
+
+    def round_on(effects=None):
+        sim, _ = injection.clean_simulation("psce", False, SEED, DURATION, effects)
+        runs = Runs(bag_data_from_simulation(sim), method_spec("psce"), 0.5)
+        runs.noise = NoiseScales(star=0.8)
+        r = Round(runs, method_spec("psce"), runs.facts(), 0.5, sim.prior)
+        _, results, _ = rank_round(r, sim.prior, [], [eid], condition=False,
+                                   keep_residuals=False)
+        return sim, results[0]
+
+    sim, c0 = round_on()
+    phi = c0.screen.dispersion
+    assert c0.screen.local and 1.35 < phi < 1.75, phi
+    assert c0.detect.dispersion == phi
+    as_stated = reliability.detectability(eid, c0.screen.information, c0.detect.alpha,
+                                          sim.prior)
+    test_mdb = c0.detect.mdb_test["dt"]  # the gate's is printed (above)
+    assert c0.detect.mdb["dt"] > 3 * test_mdb
+    assert test_mdb == pytest.approx(as_stated.mdb["dt"] * np.sqrt(phi), rel=1e-9)
+    lam = []
+    for sign in (1, -1):
+        delta = injection.parameter_delta(eid, "dt", sign * test_mdb)
+        _, c1 = round_on({eid: injection.simulation_value(eid, delta)})
+        lam.append(c0.screen.response(c1.screen.score - c0.screen.score))
+    assert np.mean(lam) == pytest.approx(c0.detect.lam0, rel=0.1), (lam, c0.detect.lam0)
+
+
 def test_a_gyro_misalignment_on_the_swaying_base_is_tested_where_the_score_is_noise():
     """On the swaying base the installation absorbs a gyro misalignment's rotation of the
     gyro axes from the stars; what is left of it is seen through the position reference,

@@ -563,7 +563,7 @@ def test_the_biases_are_judged_on_the_noise_free_twin_pair(monkeypatch):
         assert rec["verdict"] == want
         assert [m["quantity"] for m in rec["first_order_misses"]] == missed
     # a twin at a share of the printed size: the shift at the printed size beside it
-    monkeypatch.setattr(verify, "twin_scale", lambda entry, param: 0.5)
+    monkeypatch.setattr(verify, "twin_scale", lambda entry, param, own=False: 0.5)
     half = verify.noise_free_record(entry, 1, {"shift": {"principal_point.cx": 2.5,
                                                          "focal_length.f": 7.8},
                                                "noncentrality": 18.7, "parameter": "scale"},

@@ -661,7 +661,8 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             c.status, c.p_value = "screened_out", c.screen.p_value
             c.dof = registry.create(e).size
             c.detect = reliability.detectability(e, window_information(c), alpha_mdb,
-                                                 r.user_prior, **_alternatives(c))
+                                                 r.user_prior, c.screen.dispersion,
+                                                 **_alternatives(c))
             if not _untestable(c):
                 c.reason = f"score test p = {c.p_value:.2g}: not re-run"
         # every screening run is the current model's run (consider parameters leave the
@@ -713,10 +714,11 @@ def rank_round(r: Round, start: Calibration, extra: list[str], pool: list[str],
             log.warning("candidate %s failed: %s", e, run.error)
             c.status, c.reason = "failed", run.error
             continue
-        # not screened (the current model far from consistent): the ratio statistic alone
-        # decides, divided by the reference's dispersion, and the MDB is stated for it
-        _fill_candidate(r, c, run, reference, alpha_mdb,
-                        1.0 if use_score else reference.dispersion)
+        # the ratio statistic is divided by the reference's dispersion, and so is the
+        # score statistic of a screened round (the same run's, :func:`screening.dispersion`):
+        # the MDB is stated for it (Teunissen: the bias the printed test finds with the
+        # printed power), screened or not
+        _fill_candidate(r, c, run, reference, alpha_mdb, reference.dispersion)
     for c in cands.values():
         if c.status == "screened_out" and c.screen is not None:
             _gate_screened_out(r, c, reference, alpha_mdb)
@@ -753,7 +755,8 @@ def _gate_screened_out(r: Round, cand: CandidateResult, reference: Reference,
     """
     if cand.detect is None or not cand.detect.testable or not reference.excess > reference.floor:
         return
-    _gated(r, cand, window_information(cand), alpha_mdb, 1.0, reference.gate_energy(0.0))
+    _gated(r, cand, window_information(cand), alpha_mdb, cand.screen.dispersion,
+           reference.gate_energy(0.0))
 
 
 def _forget_screened_out(r: Round, tasks: list[Task], scores: dict[str, Any]) -> list[Task]:
@@ -1074,6 +1077,12 @@ def hidden_effects(base: RunSummary, results: list[CandidateResult]) -> list[dic
         # a private nuisance's parameters (the knock's fitted step) are never printed
         rows = {q: h for q, h in rows.items() if not registry.is_private(q)}
         entry = reliability.external_reliability(c.detect, rows, sigma)
+        if "dispersion" in entry:
+            # whether the round's excess gate applies (its reference has an excess to
+            # explain): a round that fits but for a dispersion of a few % has none, and
+            # its MDB is the test's alone (:func:`~.printing.dispersion_note`)
+            ref = Reference.of(base)
+            entry["excess_gate"] = bool(ref.excess > ref.floor)
         phys = registry.create(c.effect).physical_value
         if phys is not None:
             # the decision flags a structure with its pattern at the MDB, and names it

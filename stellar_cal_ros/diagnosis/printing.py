@@ -612,15 +612,18 @@ def detection_phrase(entry: dict[str, Any]) -> str:
 
 
 def dispersion_note(entries: list[dict[str, Any]]) -> str:
-    """What MDBs stated for a model that does not fit yet assume, or ''.
+    """What MDBs stated for residuals that scatter beyond the stated noise assume, or ''.
 
-    Such a round divides its ratio statistic by the residuals' dispersion (``dispersion``,
-    :func:`reliability.detectability`) and its MDBs are stated for it; a candidate there
-    must also remove :data:`~stellar_cal_ros.diagnosis.discover.MIN_EXPLAINED` of the
-    excess (on ``dt_step`` that gate, not the test, kept gyro_scale_factor at 5x the MDB
-    of residuals as stated from being added: doc/benchmarks.md): where it asks more, the
-    MDB is the gate's (``mdb_set_by``, :func:`mdb_phrase`); else the note says a lower
-    bound.
+    Such a round divides its statistics (the ratio's, and a screened round's score) by the
+    residuals' dispersion (``dispersion``, :func:`reliability.detectability`) and its MDBs
+    are stated for it; where the round has an excess to explain (``excess_gate``; absent:
+    taken to have one) a candidate must also remove
+    :data:`~stellar_cal_ros.diagnosis.discover.MIN_EXPLAINED` of it (on ``dt_step`` that
+    gate, not the test, kept gyro_scale_factor at 5x the MDB of residuals as stated from
+    being added: doc/benchmarks.md): where it asks more, the MDB is the gate's
+    (``mdb_set_by``, :func:`mdb_phrase`); else the note says a lower bound.  A round
+    within a few % of its stated noise has no such excess: the note says the dispersion
+    alone.
     """
     from stellar_cal_ros.diagnosis.discover import MIN_EXPLAINED
 
@@ -628,13 +631,14 @@ def dispersion_note(entries: list[dict[str, Any]]) -> str:
     if disp == 1.0:
         return ""
     gate = any(e.get("mdb_set_by") == "explained_gate" for e in entries)
+    excess = any(e.get("excess_gate", True) for e in entries if "dispersion" in e)
     return (f"stated for residuals at {disp:.3g}x the stated noise's variance, as this model "
             f"leaves them, {np.sqrt(disp):.2f}x the MDB of residuals as stated"
             + (f"; here an effect must also remove {MIN_EXPLAINED:.0%} of the excess variance "
                "to be added: where that asks more, the MDB is the size that does, said so "
                "in its row" if gate else
                f"; a lower bound: here an effect must also remove {MIN_EXPLAINED:.0%} of the "
-               "excess variance to be added"))
+               "excess variance to be added" if excess else ""))
 
 
 def bias_phrase(entry: dict[str, Any], quantity: str, sigma: str = "sigma") -> str:

@@ -7,7 +7,18 @@ information the evaluation window carries about β (nuisance parameters marginal
 test statistic is non-central χ²_k with non-centrality ``λ = bᵀ I b``, so the MDB along a
 direction ``d`` is ``sqrt(λ₀ / dᵀ I d)`` with ``λ₀ = λ(α, POWER, k)`` (:func:`lambda0`).
 The test and its MDB leave out the directions an effect of plausible size cannot reach λ₀
-along (:func:`tested_directions`): k counts the others.
+along (:func:`tested_directions`): k counts the others, and those left out are the blind
+directions of the report (:func:`blind_directions`): one rule, :func:`split_directions`.
+
+Where the round divides its statistics by the residuals' dispersion φ (quasi-likelihood:
+the ratio statistic, and a screened round's score statistic ``LM / φ``) an effect ``b``
+gives the printed test the non-centrality ``bᵀ I b / φ``, so the MDB is stated for φ,
+``sqrt(φ λ₀ / dᵀ I d)``: the bias the printed test detects with the printed power
+(Teunissen's MDB with the variance factor the test uses).  Not dividing the statistic
+instead would keep the MDB of residuals as stated but give the test the level α only
+where the noise is as stated: on residuals at φ x their stated variance its false-alarm
+rate grows (the score's covariance is φ I).  Until H295 a screened round stated its MDB for
+φ = 1 (:func:`~stellar_cal_ros.diagnosis.discover.rank_round`).
 
 ``I`` is the information of the evaluation window, where the decision's statistics are
 summed: the screening pass's (:mod:`~stellar_cal_ros.diagnosis.screening`) ``Σ Aᵀ S⁻¹ A``
@@ -94,13 +105,37 @@ def lambda0(alpha: float, dof: int, power: float = POWER) -> float:
     return noncentrality_beyond(float(dist.chi2.isf(alpha, dof)), dof, power)
 
 
+def split_directions(effect_id: str, information: np.ndarray, alpha: float,
+                     calibration: Any = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The one rule for the directions of an effect a test sees and those it is blind to.
+
+    The eigen-directions ``U`` of the information whitened by the plausible sizes ``D``
+    (``D I D = U diag(μ) Uᵀ``) and ``seen``: along them an effect of plausible size reaches
+    the test's non-centrality, ``μ ≥ λ₀(α, k)`` with ``k`` the effect's parameter count.
+    Judged for residuals as the noise states them (``information`` not divided by a
+    dispersion, as :attr:`Detectability.testable` is), so the test's directions and its
+    dof do not move with a round's dispersion.  The test sums over the seen directions
+    (:func:`tested_directions`); the others are its blind ones (:func:`blind_directions`):
+    a direction is one or the other, never both.  (Until H295 the blind ones were read
+    from the information divided by the dispersion φ, with λ₀ at the tested dof: above
+    φ = 1 a direction the test sums over could be listed as blind too.)
+
+    Returns ``(U, μ, seen)``: ``U`` (k, k) whitened (``b = D U c``), ``μ`` (k,), ``seen``
+    (k,) bool.
+    """
+    info = _sym(np.atleast_2d(np.asarray(information, dtype=float)))
+    D = plausible_size(effect_id, calibration)
+    mu, U = np.linalg.eigh(_sym(info * np.outer(D, D)))
+    return U, mu, mu >= lambda0(alpha, info.shape[0])
+
+
 def tested_directions(effect_id: str, information: np.ndarray, alpha: float,
                       calibration: Any = None) -> tuple[np.ndarray, np.ndarray] | None:
     """The directions of an effect its tests sum over, where some of them are blind.
 
     The eigen-directions ``u`` of the information whitened by the plausible sizes ``D``
-    (``D I D = U diag(μ) Uᵀ``, as :func:`blind_directions` reads them) along which an
-    effect of plausible size reaches the test's non-centrality, ``μ ≥ λ₀(α, k)``.  A blind
+    along which an effect of plausible size reaches the test's non-centrality
+    (:func:`split_directions`, the rule :func:`blind_directions` reads too).  A blind
     direction adds a χ²₁ of no power to the score statistic at best, and where the
     information there comes from a measurement whose error is not the noise it is stated
     as, not even that: on the swaying base the installation absorbs a gyro
@@ -116,11 +151,13 @@ def tested_directions(effect_id: str, information: np.ndarray, alpha: float,
     ``μ`` (r,) their information; None where every direction is seen or none is (an
     untestable effect keeps its whole test).
     """
-    info = _sym(np.atleast_2d(np.asarray(information, dtype=float)))
-    k = info.shape[0]
-    D = plausible_size(effect_id, calibration)
-    mu, U = np.linalg.eigh(_sym(info * np.outer(D, D)))
-    seen = mu >= lambda0(alpha, k)
+    return _tested(split_directions(effect_id, information, alpha, calibration))
+
+
+def _tested(split: tuple[np.ndarray, np.ndarray, np.ndarray]
+            ) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`tested_directions` of a :func:`split_directions`."""
+    U, mu, seen = split
     if seen.all() or not seen.any():
         return None
     return U[:, seen], mu[seen]
@@ -287,6 +324,9 @@ class Detectability:
     #: from which it is named as itself, and per alternative its share ρ² per parameter
     mdb_identified: dict[str, float] = field(default_factory=dict)
     shares_shape_with: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: (k, n) the directions the test does not sum over (:func:`split_directions`), each
+    #: scaled to the plausible ellipsoid (:func:`blind_directions`); None: none
+    blind: np.ndarray | None = None
 
     @property
     def testable(self) -> bool:
@@ -342,10 +382,13 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
 
     ``calibration``: the run's calibration, whose camera converts a plausible size stated
     in px at the detector corner to the parameters (:func:`plausible_size`).
-    ``dispersion``: what the decision's statistic is divided by (the quasi-likelihood
-    ratio's mean NIS / dof of a model that does not fit, :class:`~stellar_cal_ros.diagnosis.
-    discover.Reference`): the statistic's non-centrality is then ``bᵀ I b / dispersion``,
-    so the information is divided by it and the MDB grows by its square root.
+    ``dispersion``: what the decision's statistics are divided by (the round's reference
+    run's mean NIS / dof, at least 1, :class:`~stellar_cal_ros.diagnosis.discover.
+    Reference`: the quasi-likelihood ratio's, and a screened round's score statistic's,
+    :attr:`~stellar_cal_ros.diagnosis.screening.ScreenResult.statistic`): the statistic's
+    non-centrality is then ``bᵀ I b / dispersion``, so the information is divided by it and
+    the MDB grows by its square root.  The test's directions and the blind ones are judged
+    before (:func:`split_directions`).
 
     ``gate``: the whitened energy ``bᵀ I b`` (``information`` as given, not divided) an
     effect must add to the window's residuals for the candidate to pass the decision's
@@ -374,7 +417,8 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
     eff = registry.create(effect_id)
     info = np.atleast_2d(np.asarray(information, dtype=float))
     k = info.shape[0]
-    tested = tested_directions(effect_id, info, alpha, calibration)
+    split = split_directions(effect_id, info, alpha, calibration)
+    tested = _tested(split)
     if tested is not None:  # the test's directions and count (its blind ones left out)
         info, k = tested_information(effect_id, tested, calibration), tested[1].size
         beside = {a: tested_information(effect_id, tested, calibration, b)
@@ -413,7 +457,8 @@ def detectability(effect_id: str, information: np.ndarray, alpha: float,
                                    tie_alpha, k, float(dispersion), mdb)
     return Detectability(effect_id, k, alpha, lam, info, D, mdb, ratio, text, where,
                          float(dispersion), mdb_test,
-                         q / float(dispersion) if mdb_test else 0.0, leaning, ident, shared)
+                         q / float(dispersion) if mdb_test else 0.0, leaning, ident, shared,
+                         D[:, None] * _sparse_basis(split[0][:, ~split[2]]))
 
 
 def identification(names: list[str], diag: np.ndarray, beside: dict[str, np.ndarray],
@@ -515,11 +560,13 @@ def blind_directions(det: Detectability) -> np.ndarray:
     up to its plausible size, leaves no detectable trace (e.g. the antisymmetric part of a
     gyro misalignment, a rotation of the gyro axes that the installation absorbs one to
     one).  Each column is the effect vector (its units) of one such direction, scaled to
-    the plausible ellipsoid.
+    the plausible ellipsoid.  Exactly the directions the test leaves out
+    (:func:`split_directions`, found by :func:`detectability`): none of them is one the
+    test sums over, whatever the round's dispersion.
     """
-    D = det.plausible
-    w, V = np.linalg.eigh(_sym(det.information * np.outer(D, D)))
-    return D[:, None] * _sparse_basis(V[:, w < det.lam0])
+    if det.blind is None:
+        return np.zeros((det.plausible.size, 0))
+    return det.blind
 
 
 def _sparse_basis(B: np.ndarray) -> np.ndarray:

@@ -99,7 +99,7 @@ def judge_z(twins: int) -> float:
     return float(dist.t.isf((1.0 - JUDGE_LEVEL) / 2.0, max(int(twins), 2) - 1))
 
 
-def twin_scale(entry: dict[str, Any], param: str) -> float:
+def twin_scale(entry: dict[str, Any], param: str, own: bool = False) -> float:
     """The share of the printed hidden size a twin is injected at (1 on a fitting round).
 
     A round whose model does not fit yet states its MDB for the dispersion ``d`` its ratio
@@ -118,14 +118,20 @@ def twin_scale(entry: dict[str, Any], param: str) -> float:
     (for residuals as stated): the share is then above 1 (the biases, printed at the
     first-order size, scaled alike).  (:func:`~.reliability_probe.stated_size`: the size
     the probe's runs check the test's MDB at, at both signs.)
+
+    ``own``: the bag injected is not a twin but one whose residuals scatter as the round's
+    did (the simulator's bag of the same seed and noise, ``benchmarks/reliability_
+    injection.py``): its rounds divide by the same dispersion, so the printed MDB is the
+    size to inject (the rules above with ``dispersion`` 1).
     """
     d = float(entry.get("dispersion", 1.0))
+    root = 1.0 if own else np.sqrt(d)  # the injected bag's residuals' over the stated
     hidden = float(entry["hidden_size"][param])
     if entry.get("mdb_set_by") == "probe" and hidden > 0.0:
-        return float(entry["mdb"][param]) / np.sqrt(d) / hidden
-    if (d == 1.0 and not entry.get("mdb_set_by")) or not hidden > 0.0:
+        return float(entry["mdb"][param]) / root / hidden
+    if (root == 1.0 and not entry.get("mdb_set_by")) or not hidden > 0.0:
         return 1.0
-    return min(stated_size(entry, param) / hidden, 1.0)
+    return min(stated_size(entry, param) * np.sqrt(d) / root / hidden, 1.0)
 
 
 def verify(data, calibration, method: str, effects: list[str], entries: list[dict],
@@ -512,12 +518,15 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
                  noise=None, seed: int = 1, tell=None, fraction: float = 0.5,
                  only: list[str] | None = None, signs: tuple[int, ...] = (1,),
                  parameters: dict[str, str] | None = None,
-                 clock_check=None, rows=None) -> list[dict[str, Any]]:
+                 clock_check=None, rows=None, own: bool = False) -> list[dict[str, Any]]:
     """Inject each testable entry at its printed MDB into ``make(injected)`` bags and check.
 
     ``make({effect: simulate-units value}) -> (BagData, counts)`` makes the paired bags (the
     same noise for every call: a twin of the same seed, or the simulator with one seed);
     ``calibration`` is where the diagnosis starts; ``noise`` the scales its runs use.
+    ``own``: ``make``'s bags scatter as the diagnosed bag's residuals did (the simulator's
+    bag of the same seed and noise, not a twin that fits): the printed MDB is injected
+    where it is stated for a dispersion (:func:`twin_scale`).
 
     Every round tests all of ``entries``' effects (the report's candidates: the same
     family-wise correction as the report's decision); ``only`` restricts which are
@@ -563,7 +572,7 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
                 continue
             rec = _inject(make, round_on, entry, base0, cands0, before, int(sign),
                           calibration, method, (parameters or {}).get(entry["effect"]),
-                          clock_check)
+                          clock_check, own)
             rec["seed"] = seed
             out.append(rec)
             if tell:
@@ -571,22 +580,24 @@ def check_claims(make, calibration, method: str, effects: list[str], entries: li
     return out
 
 
-def injected(entry: dict[str, Any], sign: int, param: str | None = None
+def injected(entry: dict[str, Any], sign: int, param: str | None = None, own: bool = False
              ) -> tuple[str, float, float, np.ndarray]:
     """``(parameter, share, size, delta)`` of one row's twin injection at ``sign``.
 
     The parameter the report names (:func:`~.injection.injected_parameter`) unless
-    ``param``; its share of the printed hidden size (:func:`twin_scale`), the signed size
-    and the effect's parameter vector (:func:`~.injection.parameter_delta`).
+    ``param``; its share of the printed hidden size (:func:`twin_scale`; ``own``: a bag
+    whose residuals scatter as the round's did, not a twin), the signed size and the
+    effect's parameter vector (:func:`~.injection.parameter_delta`).
     """
     param = param or injection.injected_parameter(entry)[0]
-    scale = twin_scale(entry, param)
+    scale = twin_scale(entry, param, own)
     size = sign * entry["hidden_size"][param] * scale
     return param, scale, size, injection.parameter_delta(entry["effect"], param, size)
 
 
 def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration,
-            method: str, param: str | None = None, clock_check=None) -> dict[str, Any]:
+            method: str, param: str | None = None, clock_check=None,
+            own: bool = False) -> dict[str, Any]:
     """One entry injected at ``sign`` x its printed MDB: the check's record.
 
     The measured shift of a derived quantity is the estimate's shift less what the effect
@@ -596,11 +607,13 @@ def _inject(make, round_on, entry, base0, cands0, before, sign: int, calibration
     """
     eid = entry["effect"]
     eff = registry.create(eid)
-    param, scale, size, delta = injected(entry, sign, param)
+    param, scale, size, delta = injected(entry, sign, param, own)
     data1, counts = make({eid: injection.simulation_value(eid, delta)})
     base, cands = round_on(data1)
     c = cands.get(eid)
     lam = paired_response(eid, base0, base, entry["alpha"], calibration)
+    if own:  # its test's statistic is divided by the bag's dispersion (a twin fits: 1)
+        lam /= float(entry.get("dispersion", 1.0))
     k = int(entry.get("dof", eff.size))
     shift = injection.paired_shift(before, injection.summary_values(base),
                                    own_shift(calibration, method, eid, delta))
