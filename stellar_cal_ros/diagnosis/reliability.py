@@ -325,7 +325,8 @@ class Detectability:
     mdb_identified: dict[str, float] = field(default_factory=dict)
     shares_shape_with: dict[str, dict[str, float]] = field(default_factory=dict)
     #: (k, n) the directions the test does not sum over (:func:`split_directions`), each
-    #: scaled to the plausible ellipsoid (:func:`blind_directions`); None: none
+    #: scaled to the plausible ellipsoid (:func:`blind_directions`); None: not found (a
+    #: Detectability made without :func:`detectability`): none
     blind: np.ndarray | None = None
 
     @property
