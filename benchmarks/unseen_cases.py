@@ -707,16 +707,26 @@ def _sigma_as_var(sim, seed):
         f.sigma = np.asarray(f.sigma, dtype=float) ** 2
 
 
-def _mag_inverted(sim, seed):
+def _mag_inverted(sim, seed, sign=1.0):
     # true sigma 0.05 * 2^((mag - 4) / 2) px (magslope's); the messages' per-star sigma has
     # the magnitude dependence upside down, 0.05 * 2^(-(mag - 4) / 2) (right at mag 4: a
-    # noise table indexed by brightness read by magnitude)
+    # noise table indexed by brightness read by magnitude); ``sign`` -1: the other way
     def true(m, uv):
-        return PSCE_SIGMA * 2.0 ** ((np.nan_to_num(m, nan=4.0) - 4.0) / 2.0)
+        return PSCE_SIGMA * 2.0 ** (sign * (np.nan_to_num(m, nan=4.0) - 4.0) / 2.0)
     _renoise(sim, true, PSCE_SIGMA, seed)
     for f in sim.star_frames:
         m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=4.0)
-        f.sigma = PSCE_SIGMA * 2.0 ** (-(m - 4.0) / 2.0)
+        f.sigma = PSCE_SIGMA * 2.0 ** (-sign * (m - 4.0) / 2.0)
+
+
+def _mag_case(truth: str, post: Callable) -> Case:
+    # a psce case whose stars' sigma ratio to the stated is a function of magnitude: the
+    # verdict groups them by magnitude, none is "wrong star by star", and the noise is
+    # steady (H301: the pooled scale moved with the groups' shares of the sky)
+    return Case("psce", truth, noise={"star": 0.0}, group_by="magnitude",
+                not_told=("wrong star by star", "the stars' sigma changes over the run"),
+                post=post,
+                scenario_changes={"centroid_noise_px": 0.0})
 
 
 def _gross_outliers(sim, seed):
@@ -954,6 +964,86 @@ def _mag_scale(sim, seed, corner_px=0.06, mag0=4.5):
     # the centre nor at mag 4.5); the mean over the stars is a focal length (may be taken)
     _radial_by(sim, lambda m, x, f: corner_px * (m - mag0) * x)
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+
+# ---- 2026-11-30 (H301): thirteenth pass
+
+
+def _mag_inverted_bright(sim, seed):
+    # mag_inverted the other way: the bright stars noisier (saturated cores), true sigma
+    # 0.05 * 2^(-(mag - 4) / 2) px (0.1 at mag 2, 0.025 at mag 6); the messages' per-star
+    # sigma the textbook photon-noise slope 0.05 * 2^((mag - 4) / 2) (right at mag 4)
+    _mag_inverted(sim, seed, -1.0)
+
+
+#: uniform_right's half width (px): a uniform error of rms 0.1 / sqrt(3) = 0.0577 px
+_UNIFORM_HALF_PX = 0.1
+
+
+def _uniform_right(sim, seed):
+    # centroid quantisation of every star: a uniform error on +-0.1 px per axis (rms
+    # 0.0577 px, light tails: kurtosis 1.8), the sigma field its rms (stated right)
+    rng = np.random.default_rng(seed + 86243)
+    s = _UNIFORM_HALF_PX / np.sqrt(3.0)
+    for f in sim.star_frames:
+        n = len(f.uv)
+        f.uv = np.asarray(f.uv, dtype=float) + rng.uniform(-_UNIFORM_HALF_PX,
+                                                           _UNIFORM_HALF_PX, (n, 2))
+        f.sigma = np.full(n, s)
+
+
+def _dt_step2(sim, seed, step_s=0.002, at=(0.4, 0.7)):
+    # the tracker's clock steps twice: frames from 40 % of the run on stamped 2 ms late,
+    # from 70 % on 4 ms late (the run's mean 1.8 ms, the second half's 3.2 ms)
+    for a in at:
+        for f in _late_frames(sim, a):
+            f.stamp_ns = int(f.stamp_ns + round(step_s * 1e9))
+
+
+def _bad_star(sim, seed, arcsec=15.0):
+    # one bad catalogue entry: the star seen in the most frames carries a place 15 arcsec
+    # (0.29 px) off in declination in every message (the rest of the catalogue right);
+    # then the stated noise
+    seen: dict[int, int] = {}
+    for f in sim.star_frames:
+        for c in np.asarray(f.catalog_id).tolist():
+            seen[int(c)] = seen.get(int(c), 0) + 1
+    bad = max(seen, key=seen.__getitem__)
+    for f in sim.star_frames:
+        hit = np.asarray(f.catalog_id) == bad
+        if hit.any():
+            dec = np.asarray(f.declination, dtype=float).copy()
+            dec[hit] += np.deg2rad(arcsec / 3600.0)
+            f.declination = dec
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _cti(sim, seed, px_per_mag=0.04, from_mag=3.0):
+    # charge transfer inefficiency: a star's charge trails toward the readout, its centroid
+    # moved along +v by 0.04 (mag - 3) (v / H) px (fainter stars and rows farther from the
+    # readout more: 0.12 px for mag 6 at the last row; mag <= 3 untouched); then the noise
+    h = float(sim.prior.camera.height)
+    for f in sim.star_frames:
+        m = np.nan_to_num(np.asarray(f.magnitude, dtype=float), nan=from_mag)
+        uv = np.asarray(f.uv, dtype=float).copy()
+        uv[:, 1] += px_per_mag * np.clip(m - from_mag, 0.0, None) * uv[:, 1] / h
+        f.uv = uv
+    _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
+
+
+def _gyro_tone(sim, seed, hz=40.0, share=3.0):
+    # a ring-laser gyro's dither not filtered out: a 40-Hz tone on each gyro axis (its own
+    # phase) of 3x the per-sample white noise's rms (amplitude 3 sqrt(2) x sigma_sample);
+    # over a frame's 0.5 s it integrates to < 0.01 arcsec: the angle random walk as stated
+    sc = get_scenario("psce_rotations")
+    imu = sim.imu
+    t = np.asarray(imu.stamp_ns, dtype=np.int64) * 1e-9
+    dt = float(np.median(np.diff(t)))
+    s = np.deg2rad(sc.gyro_arw_deg_sqrth) / 60.0 / np.sqrt(dt)  # rad/s per sample
+    ph = np.random.default_rng(seed + 104723).uniform(0.0, 2.0 * np.pi, 3)
+    tone = share * np.sqrt(2.0) * s * np.sin(2.0 * np.pi * hz * (t - t[0])[:, None] + ph)
+    imu.angular_velocity = np.asarray(imu.angular_velocity, dtype=float) + tone
 
 
 def _centroid_error(truth: str, regressor: str, post: Callable, **kw) -> Case:
@@ -1462,12 +1552,9 @@ CASES: dict[str, Case] = {
                          noise={"star": 1.0 / tracker_errors.ARCSEC_PER_PX},
                          not_told="a missing effect",
                          post=_sigma_field(tracker_errors.ARCSEC_PER_PX)),
-    "mag_inverted": Case("psce", "true sigma 0.05 * 2^((mag - 4) / 2) px; the messages' "
-                         "per-star sigma 0.05 * 2^(-(mag - 4) / 2) (the magnitude dependence "
-                         "upside down, right at mag 4)", noise={"star": 0.0},
-                         group_by="magnitude", not_told="wrong star by star",
-                         post=_mag_inverted,
-                         scenario_changes={"centroid_noise_px": 0.0}),
+    "mag_inverted": _mag_case("true sigma 0.05 * 2^((mag - 4) / 2) px; the messages' "
+                              "per-star sigma 0.05 * 2^(-(mag - 4) / 2) (the magnitude "
+                              "dependence upside down, right at mag 4)", _mag_inverted),
     "gross_outliers": Case("psce", "1.5 % of the centroids 20-50 px off (misidentified "
                            "stars), the rest and the sigma field as stated: nothing to "
                            "rescale, nothing to add", noise={}, post=_gross_outliers),
@@ -1624,6 +1711,56 @@ CASES: dict[str, Case] = {
                               sim_effects={**SWAY_CLEAN, "aberration": 1.0, "refraction": 1.0,
                                            "proper_motion": 1.0},
                               duration=200.0, twin=("time_offset", "dt", 1.0)),
+    # ---- 2026-11-30 (H301): thirteenth pass (doc/benchmarks.md "Unseen cases, thirteenth
+    # pass")
+    # (mag_inverted_bright s21/s22 said "the stars' sigma changes over the run" too: the
+    # pooled scale follows the groups' shares of the sky; judged at the groups' sigma since)
+    "mag_inverted_bright": _mag_case("the bright stars noisier: true sigma 0.05 * "
+                                     "2^(-(mag - 4) / 2) px; the messages' per-star sigma "
+                                     "the photon-noise slope 0.05 * 2^((mag - 4) / 2) "
+                                     "(mag_inverted the other way; right at mag 4)",
+                                     _mag_inverted_bright),
+    "uniform_right": Case("psce", "every centroid's error uniform on +-0.1 px per axis "
+                          "(quantised: rms 0.0577 px, light tails), the sigma field 0.0577 "
+                          "(stated right): noise as stated", noise={}, post=_uniform_right,
+                          scenario_changes={"centroid_noise_px": 0.0}),
+    "dt_step2": Case("psce", "the tracker's clock steps twice: frames from 40 % of the run on "
+                     "stamped 2 ms late, from 70 % on 4 ms late (time_offset is a constant: "
+                     "its mean may be added, the steps are outside the library)",
+                     outside=True, regressor="time", may_add=("time_offset",),
+                     post=_dt_step2,
+                     # (dt = -(late): the run's mean -1.8 ms, the second half's -3.2 ms,
+                     # widened by a quarter of the latter)
+                     expect={"time_offset": {"dt": (-4.0e-3, -1.0e-3)}}),
+    "bad_star": _centroid_error("one bad catalogue entry: the star seen in the most frames "
+                                "placed 15 arcsec (0.29 px) off in declination in every "
+                                "message (not in the library: it repeats for that star only)",
+                                "catalogue star", _bad_star),
+    "sway_sky_twin_gsf1": Case("swaying_base", "the user's calibrated swaying bag with the sky "
+                               "(aberration, refraction, proper motion at 1x): its twin with "
+                               "gyro_scale_factor sz at 1x the MDB `discover` printed for it "
+                               "(stellar-cal twin)", effects=("gyro_scale_factor",),
+                               may_add=("aberration", "refraction", "proper_motion"),
+                               sim_effects={**SWAY_CLEAN, "aberration": 1.0,
+                                            "refraction": 1.0, "proper_motion": 1.0},
+                               duration=200.0, twin=("gyro_scale_factor", "sz", 1.0)),
+    "sway_three": Case("swaying_base", "three noises stated wrongly at once on the swaying "
+                       "base: the stars' sigma field 1.5x the true 0.058 px, the "
+                       "accelerometer VRW 3x the stated, the gyro ARW a third of the stated",
+                       noise={"star": 1.0 / 1.5, "accel": 3.0, "gyro": 1.0 / 3.0},
+                       post=_sigma_field(1.5),
+                       scenario_changes={"accel_vrw_mps_sqrth": 3.0,
+                                         "gyro_arw_deg_sqrth": 1.0 / 3.0},
+                       sim_effects=dict(SWAY_CLEAN), duration=200.0),
+    "cti": _centroid_error("charge transfer inefficiency: centroids moved along +v by 0.04 "
+                           "(mag - 3) (v / H) px (fainter stars and farther rows more; 0.12 "
+                           "px at mag 6, last row; not in the library: its mean over the "
+                           "stars may be taken by a v scale)", "magnitude", _cti,
+                           may_add=("pixel_aspect", "principal_point", "focal_length")),
+    "gyro_tone": Case("psce", "a 40-Hz tone in the gyro's samples (a ring-laser gyro's dither "
+                      "not filtered out) of 3x the per-sample white noise's rms, averaging "
+                      "out over a frame: the angle random walk as stated, nothing to add",
+                      noise={}, post=_gyro_tone),
 }
 
 

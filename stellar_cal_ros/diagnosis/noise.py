@@ -146,6 +146,9 @@ def measure_stars(result, data, method: str, fraction: float,
             s, e, _ = early.group(known)
             if np.isfinite(s) and np.isfinite(e):
                 sn.before = {"scale": s, "sigma": e, "from_s": a - t0, "to_s": b - t0}
+                # (its rows the groups' test reads, not its own levels, speeds, patterns)
+                sn.early = dataclasses.replace(early, levels=None, t=None, speed=None,
+                                               pattern_px=None, patterns=[], common=None)
     return sn
 
 
@@ -569,8 +572,9 @@ class NoiseVerdict:
             out.append(self._per_star_line())
         if self.changes:
             c = self.changes
+            of = f"of the {c['by']} groups' sigma" if c.get("by") else "of the stated"
             out.append(f"the stars' sigma changes over the run: x{c['before']:.3g} +- "
-                       f"{c['sigma_before']:.2g} of the stated at {c['from_s']:.0f}-"
+                       f"{c['sigma_before']:.2g} {of} at {c['from_s']:.0f}-"
                        f"{c['to_s']:.0f} s, x{c['window']:.3g} +- {c['sigma_window']:.2g} in "
                        f"the window the diagnosis measures ({c['to_s']:.0f} s on; p = "
                        f"{c['p_value']:.2g}): noise that changes with time, which one "
@@ -950,6 +954,10 @@ def judge_stars(v: NoiseVerdict, sn: StarNoise, default: float, size: tuple[int,
             overall, sub, grouped)
         if "star" not in v.rejected:
             v.rejected.append("star")
+        # (a change over the run judged at each star's group's σ: the pooled scale moves
+        # with the groups' shares of the stars, :func:`changes_over_run`)
+        v.changes = changes_over_run(sn, v.star, v.star_sigma, v.stated.star, n_tests,
+                                     group=best) if known.any() else None
     if known.any():
         # judged at each star's own group's scale when groups are applied: at the one
         # scale, the stars of a group above it are its "tails" (mag_faint_over2: "1 %
@@ -994,7 +1002,7 @@ CHANGES = 1.0 + 4 * MATERIAL
 
 
 def changes_over_run(sn: StarNoise, window: float, sigma: float, stated: float,
-                     n_tests: int) -> dict[str, float] | None:
+                     n_tests: int, group: dict | None = None) -> dict[str, float] | None:
     """The stars' σ scale before the window against the window's, when it differs.
 
     The noise is measured in the evaluation window (the filter has converged there); a
@@ -1006,19 +1014,45 @@ def changes_over_run(sn: StarNoise, window: float, sigma: float, stated: float,
     significant (two-sided, Bonferroni over ``n_tests``) where no field or per-star error
     is left (structure makes the within-frame scale depend on the motion), it is said.
     Scales are of the stated σ (× ``stated``).
+
+    ``group``: the stars' σ groups applied (a :func:`star_groups` entry): both stretches
+    are then judged at each star's group's σ, scales of the groups' σ (``by`` its
+    variable).  The one pooled scale mixes the groups in the stars' shares, which change
+    as the sky does (unseen case ``mag_inverted_bright``, the bright stars 4x the faint
+    ones' σ: x0.502 at 75-150 s and x0.691 in the window, 0.489 and 0.693 the mixes'
+    truth, "noise that changes with time" for a noise that does not).
     """
     b = sn.before
     if not b or not (np.isfinite(window) and window > 0) or sn.repeat_removed or \
             sn.structure_p < ALPHA:
         return None
+    if group is not None:
+        if sn.early is None:
+            return None
+        (window, sigma), (s, e) = (_at_groups(x, group) for x in (sn, sn.early))
+        if not (np.isfinite(window) and window > 0 and np.isfinite(s) and np.isfinite(e)):
+            return None
+        b, stated = dict(b, scale=s, sigma=e), 1.0
     ratio = window / b["scale"] if b["scale"] > 0 else math.inf
     z = (window - b["scale"]) / math.hypot(sigma, b["sigma"])
     p = float(2.0 * dist.norm.sf(abs(z)))
     if not (p < ALPHA / n_tests and max(ratio, 1.0 / ratio) > CHANGES):
         return None
-    return {"before": b["scale"] * stated, "sigma_before": b["sigma"] * stated,
-            "window": window * stated, "sigma_window": sigma * stated,
-            "from_s": b["from_s"], "to_s": b["to_s"], "p_value": p}
+    out = {"before": b["scale"] * stated, "sigma_before": b["sigma"] * stated,
+           "window": window * stated, "sigma_window": sigma * stated,
+           "from_s": b["from_s"], "to_s": b["to_s"], "p_value": p}
+    return out if group is None else dict(out, by=group["by"])
+
+
+def _at_groups(sn: StarNoise, group: dict) -> tuple[float, float]:
+    """(scale, σ) of ``sn``'s stars of known σ, each at its group's σ (``group``'s scales)."""
+    known = ~sn.unknown
+    f = np.asarray(group["scales"], dtype=float)[group_index(sn, group)]
+    if known.sum() < 20 or not np.all(np.isfinite(f[known]) & (f[known] > 0)):
+        return math.nan, math.nan
+    at = dataclasses.replace(sn, q=np.where(known, sn.q / np.where(known, f, 1.0)**2, sn.q),
+                             log_variance=None, groups_made=None)
+    return at.group(known)[:2]
 
 
 #: a star's within-frame residual (whitened, at the measured scale, ~χ²₂) beyond this is a

@@ -135,6 +135,8 @@ class StarNoise:
     #: the same estimate on the stretch before the window (stars of known σ): ``{scale,
     #: sigma, from_s, to_s}`` (seconds from the run's first frame), or None
     before: dict[str, float] | None = None
+    #: that stretch's own estimate (its rows: the stars' σ groups are judged on it too)
+    early: StarNoise | None = field(default=None, repr=False, compare=False)
     scatter_share: float = 1.0
     #: the tracks' noise model (:func:`~.noise_structure.track_model`): white plus an AR(1)
     #: of coefficient ``track_phi`` (None: ``track_rho``) carrying ``track_share`` of the
