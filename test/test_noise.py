@@ -2745,6 +2745,31 @@ def test_an_unmeasured_gyro_is_not_said_as_stated():
                          "0.05)"], v.lines()
 
 
+def test_an_unmeasured_gyro_is_said_beside_other_components_rejected():
+    """Unseen case ``sway_three`` (H301; swaying base: the stars' σ field 1.5x the truth,
+    the accelerometer 3x the stated, the gyro a third of it), s22: the verdict said the
+    stars x0.662 and the accel x3 and nothing of the gyro, whose scale was not measurable
+    (its samples carry the sway): no summary line follows rejected components, where the
+    unmeasured one had its phrase.  Now its line follows theirs; fails on main 6c738a9."""
+    from stellar_cal_ros.diagnosis.noise_imu import ScaleSearch
+
+    ln3 = math.log(3.0)
+    flat = ScaleSearch("gyro", {-ln3: -10.0, 0.0: -10.1, ln3: -10.3}, measurable=False,
+                       sigma=math.inf)
+    v = noise.NoiseVerdict(NoiseScales(), NoiseScales(star=0.662, accel=3.0), star=0.662,
+                           star_sigma=0.0061, imu={"gyro": flat}, rejected=["accel", "star"])
+    v.samples = {"accel": {"scale": 3.0, "sigma": 0.016, "white": True},
+                 "gyro": {"scale": 9.07, "sigma": 0.05, "white": False}}
+    said = [x for x in v.lines() if "gyro" in x]
+    assert said == [
+        "the gyro noise (angle random walk) cannot be measured on this bag (its own samples "
+        "are not white: they carry the motion; the stars' fit does not change between a "
+        "third and 3x of it: a noise below what the stars see on this motion): kept as "
+        "stated, not confirmed"], v.lines()
+    # measured (or rejected): no such line
+    v.imu = {"gyro": ScaleSearch("gyro", {0.0: -10.0}, value=1.02, sigma=0.05)}
+    assert not [x for x in v.lines() if "cannot be measured" in x], v.lines()
+
 @pytest.mark.parametrize("seed", [21, 22, 23])
 def test_a_noise_in_the_frames_stamps_is_named_as_noise_with_its_size(seed):
     """Frames stamped N(0, 1 ms) off their exposure on the 300-s swaying base (unseen case

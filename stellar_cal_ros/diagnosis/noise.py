@@ -620,9 +620,17 @@ class NoiseVerdict:
                               if self.applied.unknown_sigma_px > 0 else ")")))
         units = {"gyro": ("gyro noise (angle random walk)", "gyro"),
                  "accel": ("accelerometer noise (velocity random walk)", "accel")}
+        summed = not [c for c in self.rejected if c != "gyro_bias_rw"] and not self.unknown
         for comp, search in self.imu.items():
             if (self.samples.get(comp) or {}).get("white"):
                 continue  # said from the samples
+            if not summed and comp not in self.rejected and not (search.measurable or
+                                                                 search.bound):
+                # (beside the lines of the components rejected no summary line follows:
+                # the unmeasured one was said nowhere, and read as stated -- unseen case
+                # sway_three s22: the stars x0.662 and the accel x3 said, the gyro's third
+                # of the stated not)
+                out.append(self._unmeasured_phrase(comp))
             if comp in self.rejected and search.bound:
                 word = "smaller" if search.bound == "upper" else "larger"
                 out.append(f"the {units[comp][0]} looks {word} than stated: at "
@@ -638,7 +646,7 @@ class NoiseVerdict:
                            f"{units[comp][1]}={getattr(self.applied, comp):.3g}")
         if self.imu_skipped:
             out.append(f"IMU noise taken as stated: {self.imu_skipped}")
-        if not [c for c in self.rejected if c != "gyro_bias_rw"] and not self.unknown:
+        if summed:
             parts = [f"stars' sigma x{self.star:.3g} +- {self.star_sigma:.2g}"]
             for comp, smp in self.samples.items():
                 if smp["white"]:
