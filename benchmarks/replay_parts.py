@@ -116,7 +116,8 @@ def main(argv=None) -> int:
                   (Calibrator, "push_imu_block", "(fine) push_imu_block (incl. frames)"),
                   (Calibrator, "push_scalars", "(fine) push_scalars (incl. frames)"),
                   (Calibrator, "push_fix", "(fine) push_fix (incl. frames)"),
-                  (Calibrator, "push_stars", "(fine) push_stars (incl. frames)")]
+                  (Calibrator, "push_stars", "(fine) push_stars (incl. frames)"),
+                  (Calibrator, "push_stars_many", "(fine) push_stars_many (incl. frames)")]
         for name, label in (("_compiled_interval", "   (fine) _compiled_interval"),
                             ("reference_measurement", "   (fine) reference_measurement"),
                             ("_reference_update", "   (fine) _reference_update")):

@@ -33,7 +33,8 @@ from stellar_cal_ros.methods import replay as replay_mod
 # (owner, attribute, label): the per-message path of a replay
 TIMED = [
     *[(driver.Calibrator, n, "Calibrator." + n) for n in (
-        "push_imu_block", "push_stars", "push_scalar", "push_fix", "push_scalars", "push_fixes",
+        "push_imu_block", "push_stars", "push_stars_many", "push_scalar", "push_fix",
+        "push_scalars", "push_fixes",
         "_pump", "_process",
         "_record_history", "_trim", "_flush_staged", "_defer_release", "_release_imu",
         "_process_run", "_commit_batch")],

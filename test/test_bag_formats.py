@@ -217,17 +217,31 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
 
 
 def _count_star_inputs(monkeypatch) -> list[list[int]]:
-    """``Calibrator.push_stars`` counted: a ``[with inputs, without]`` list appended per run."""
+    """The star messages a replay hands the driver, counted: a ``[with inputs, without]``
+    list appended per run (``Calibrator.push_stars`` called by the replay, and each message
+    of ``Calibrator.push_stars_many``, which may go on to ``push_stars``: counted once)."""
     from stellar_cal_ros.methods import driver
 
     given: list[list[int]] = []
-    original = driver.Calibrator.push_stars
+    one, many = driver.Calibrator.push_stars, driver.Calibrator.push_stars_many
+    inside = [False]
 
     def push(self, frame, inputs=None):
-        given[-1][inputs is None] += 1
-        return original(self, frame, inputs)
+        if not inside[0]:
+            given[-1][inputs is None] += 1
+        return one(self, frame, inputs)
+
+    def push_many(self, frames, inputs=None):
+        for inp in inputs or [None] * len(frames):
+            given[-1][inp is None] += 1
+        inside[0] = True
+        try:
+            return many(self, frames, inputs)
+        finally:
+            inside[0] = False
 
     monkeypatch.setattr(driver.Calibrator, "push_stars", push)
+    monkeypatch.setattr(driver.Calibrator, "push_stars_many", push_many)
     return given
 
 
@@ -258,7 +272,7 @@ def test_replay_takes_a_releases_star_inputs_in_one_call(bags, tmp_path: Path,
 
 def test_replay_of_bag_data_takes_star_inputs_a_chunk_at_once(bags, monkeypatch) -> None:
     """A replay of data in memory (:class:`BagData`: the diagnosis's runs) computes its
-    frames' filter inputs ``INPUT_FRAMES`` frames a call (``replay._frames_with_inputs``):
+    frames' filter inputs ``INPUT_FRAMES`` frames a call (``replay._grouped_frames``):
     θ, P, the counters and the tables bit for bit as when each frame computes its own, with
     chunks of 256 frames and of 7 (frames across a chunk's edge)."""
     from stellar_cal_ros.io.calibration import load_calibration

@@ -56,6 +56,7 @@ from stellar_cal_ros.methods.frames import (
     ImageFrames,
     SiteEstimator,
     frame_context,
+    frame_contexts,
     frame_inputs,
     frame_inputs_many,
     time_origin,
@@ -69,11 +70,13 @@ from stellar_cal_ros.methods.results import (
     TableSink,
     consistency,
     derived_quantities,
+    residual_block,
     residual_rows,
     result_calibration,
 )
 from stellar_cal_ros.sky.identify import (
     Identifier,
+    any_needs_identification,
     needs_identification,
     predicted_attitude,
 )
@@ -319,41 +322,69 @@ class Calibrator(ImuRelease):
         A frame refused on input (wrong frame id, late, duplicate) comes back at once as a
         ``dropped_<reason>`` outcome; accepted ones come back when processed.  ``inputs``:
         the frame's filter inputs from :meth:`star_inputs` (a replay's, a batch at once);
-        None: computed here.
+        None: computed here.  :meth:`push_stars_many` of the one message.
         """
+        return self.push_stars_many([frame], None if inputs is None else [inputs])
+
+    def push_stars_many(self, frames: list[StarFrame], inputs: list | None = None
+                        ) -> list[FrameOutcome]:
+        """Several star messages in arrival order: :meth:`push_stars` of each, in turn.
+
+        ``inputs``: their filter inputs (:meth:`star_inputs`; None, or a None in it: computed
+        here).  The checks of a message (:meth:`_refused`, then placement, identification,
+        σ, overflow) are made on the whole group at once; when every message of it is simply
+        queued (accepted, in increasing order after the frames held, nothing to identify, no
+        bad σ, not inside a clock leap, no overflow) and a star message pumps nothing
+        (:attr:`DriverConfig.batch_frames`: a replay), the group is queued in one pass with
+        the counters a message at a time gives.  Any other group goes a message at a time
+        (the one-message group: the general case).
+        """
+        n = len(frames)
+        if inputs is None:
+            inputs = [None] * n
         c = self.counters
+        stamps = [int(f.stamp_ns) for f in frames]
+        refused = self._refused(stamps, [f.frame_id for f in frames])
+        pending = self._frames_pending
+        if n != 1:
+            if n and self.driver.batch_frames and not any(refused) and \
+                    self._in_order(stamps) and self._imu_leap is None and \
+                    len(pending) + n <= self.driver.max_pending_frames and \
+                    all(inp is not None and not inp.bad_sigma for inp in inputs) and \
+                    not any_needs_identification(frames):
+                c.frames_received += n
+                self._first_frame_ns = self._first_frame_ns or stamps[0]
+                pending.extend(frames)
+                c.stars_sigma_unknown += sum(inp.unknown_sigma for inp in inputs)
+                self._inputs.update(zip(stamps, inputs, strict=True))
+                return []
+            out: list[FrameOutcome] = []
+            for frame, inp in zip(frames, inputs, strict=True):
+                out += self.push_stars_many([frame], [inp])
+            return out
+        frame, inp, stamp, reason = frames[0], inputs[0], stamps[0], refused[0]
         c.frames_received += 1
-        stamp = int(frame.stamp_ns)
         self._first_frame_ns = self._first_frame_ns or stamp
 
         def dropped(reason: str) -> list[FrameOutcome]:
             setattr(c, "frames_" + reason, getattr(c, "frames_" + reason) + 1)
             return [FrameOutcome(stamp, frame.frame_id, "dropped_" + reason)]
 
-        expected = self.frames.get("star_tracker")
-        if expected and frame.frame_id and frame.frame_id != expected:
-            return dropped("wrong_frame")
-        if stamp <= 0:
-            return dropped("late")
-        if self._last_frame_ns is not None and stamp <= self._last_frame_ns:
-            return dropped("duplicate" if stamp == self._last_frame_ns else "late")
-        if self.imu_max_ns is not None:
-            if stamp > self.imu_max_ns + int(self.driver.max_frame_lead_s * 1e9):
-                if not c.frames_ahead:
-                    log.warning("star frame stamped %.3f s after the newest IMU sample: refused "
-                                "(counted as frames_ahead; clocks that disagree?)",
-                                (stamp - self.imu_max_ns) * 1e-9)
-                return dropped("ahead")
-            if clocks.inside_leap(stamp, self._imu_leap, self.window_ns):
-                c.imu_clock_jumps += 1
-                self._clock_fault(clocks.leap_text(self._imu_leap, stamp, self.t0_ns))
-        inp = inputs
+        if reason == "ahead" and not c.frames_ahead:
+            log.warning("star frame stamped %.3f s after the newest IMU sample: refused "
+                        "(counted as frames_ahead; clocks that disagree?)",
+                        (stamp - self.imu_max_ns) * 1e-9)
+        if reason:
+            return dropped(reason)
+        if self.imu_max_ns is not None and clocks.inside_leap(stamp, self._imu_leap,
+                                                              self.window_ns):
+            c.imu_clock_jumps += 1
+            self._clock_fault(clocks.leap_text(self._imu_leap, stamp, self.t0_ns))
         if inp is None:
             inp = frame_inputs(frame, *self._input_args(), compiled=self.filter_cls.compiled_step)
         if needs_identification(frame):  # identified when processed, with the IMU's hint
             self._to_identify.add(stamp)
-        pending = self._frames_pending
-        if not pending or stamp > int(pending[-1].stamp_ns):  # in order: the usual case
+        if self._in_order(stamps):  # the usual case
             pending.append(frame)
         else:
             stamps = np.asarray([f.stamp_ns for f in pending], dtype=np.int64)
@@ -378,7 +409,7 @@ class Calibrator(ImuRelease):
                             stamp * 1e-9, inp.bad_sigma, self.config.centroid_sigma_px)
             c.stars_bad_sigma += inp.bad_sigma
         self._inputs[stamp] = inp
-        out: list[FrameOutcome] = []
+        out = []
         while len(self._frames_pending) > self.driver.max_pending_frames:
             old = self._frames_pending.pop(0)
             self._inputs.pop(int(old.stamp_ns), None)
@@ -388,6 +419,42 @@ class Calibrator(ImuRelease):
         # a replay processes frames when IMU is handed over: a star message changes nothing
         # the pump would act on (what it releases and hands on depends on the IMU only)
         return out + ([] if self.driver.batch_frames else self._pump())
+
+    def _refused(self, stamps: list[int], frame_ids: list) -> list[str | None]:
+        """Why each of several star messages would be refused on input; None: accepted.
+
+        ``wrong_frame`` (not the star tracker's frame id), ``late`` (stamp ≤ 0, or before the
+        last frame handed on), ``duplicate`` (that one's stamp), ``ahead`` (after the newest
+        IMU sample by more than ``max_frame_lead_s``).  Each message on its own (what the
+        messages before it in a group change is placement: :meth:`_in_order`).
+        """
+        expected = self.frames.get("star_tracker")
+        last = self._last_frame_ns
+        lead = None if self.imu_max_ns is None else \
+            self.imu_max_ns + int(self.driver.max_frame_lead_s * 1e9)
+        out: list[str | None] = []
+        for stamp, fid in zip(stamps, frame_ids, strict=True):
+            if expected and fid and fid != expected:
+                out.append("wrong_frame")
+            elif stamp <= 0:
+                out.append("late")
+            elif last is not None and stamp <= last:
+                out.append("duplicate" if stamp == last else "late")
+            elif lead is not None and stamp > lead:
+                out.append("ahead")
+            else:
+                out.append(None)
+        return out
+
+    def _in_order(self, stamps: list[int]) -> bool:
+        """Whether messages of these stamps go, in turn, after every frame held (appended)."""
+        pending = self._frames_pending
+        before = int(pending[-1].stamp_ns) if pending else None
+        for stamp in stamps:
+            if before is not None and stamp <= before:
+                return False
+            before = stamp
+        return True
 
     def push_image(self, image) -> list[FrameOutcome]:
         """One star image (:class:`~stellar_cal_ros.io.image_msgs.ImageMessage`).
@@ -601,6 +668,26 @@ class Calibrator(ImuRelease):
         env_keys = self._env_keys()
         pending = self._frames_pending
         i = 0  # the frames pending[:i] are in run (popped as they are processed)
+        if run is not None and not moving and not final and not self.requires and \
+                not self._to_identify:
+            # a replay's usual pump (one shift, nothing to wait for but the IMU, nothing to
+            # identify): the loop below on every frame at once, up to the first that waits
+            i = len(pending)
+            stamps = np.fromiter((f.stamp_ns for f in pending), dtype=np.int64, count=i)
+            inps = [self._inputs[s] for s in stamps.tolist()]
+            stars = np.fromiter((len(inp.uv) for inp in inps), dtype=np.int64, count=i)
+            wait = (stamps > limit) | ((stars > 0) & self._uncovered(
+                stamps, fixed_shift, imu_end, lookahead))
+            if wait.any():
+                i = int(np.argmax(wait))
+            if i and self._staged:
+                self._flush_staged()
+            use = np.flatnonzero(stars[:i]).tolist()  # (a frame without stars: None)
+            ctxs = dict(zip(use, frame_contexts(stamps[use].tolist(), [inps[j] for j in use],
+                                                self.site, self.env, env_keys), strict=True))
+            run += [(fr, inp, ctxs.get(j), False)
+                    for j, (fr, inp) in enumerate(zip(pending[:i], inps[:i], strict=True))]
+            i = len(pending)  # (the loop below would stop at the frame that waits)
         while i < len(pending):
             fr = pending[i]
             stamp = int(fr.stamp_ns)
@@ -616,8 +703,7 @@ class Calibrator(ImuRelease):
                 if moving and stamp not in self._to_identify:
                     ctx = frame_context(stamp, inp, self.site, self.env, env_keys)
                 shift = self._time_shift(stamp, inp, ctx) if moving else fixed_shift
-                t_exp = (stamp - self.t0_ns) * 1e-9 + shift
-                if imu_end <= t_exp + lookahead:
+                if self._uncovered(stamp, shift, imu_end, lookahead):
                     if run and moving and self._run_out(run, out, fixed_shift, ready):
                         i = 0  # the run's updates moved the shift: this frame again
                         continue
@@ -636,7 +722,7 @@ class Calibrator(ImuRelease):
                 ctx = frame_context(stamp, inp, self.site, self.env, env_keys) \
                     if len(inp.uv) else None
             if run is None:
-                self._released(stale)
+                self._released([stale])
                 out.append(self._process(fr, inp, ctx))
             else:
                 run.append((fr, inp, ctx, stale))
@@ -647,16 +733,34 @@ class Calibrator(ImuRelease):
             self._trim()
         return out
 
-    def _released(self, stale: bool) -> None:
-        """The first pending frame goes to the filter: popped, its input counts."""
-        fr = self._frames_pending.pop(0)
-        stamp = int(fr.stamp_ns)
-        self._inputs.pop(stamp, None)
-        self._last_frame_ns = stamp
-        if stale:
-            self.counters.env_stale += 1
-        elif self._consider_requires and self._env_missing(stamp, self._consider_requires):
-            self.consider_stale_ns.append(stamp)
+    def _uncovered(self, stamp, shift: float, imu_end: float, lookahead: float):
+        """Whether the IMU released does not cover a frame's exposure yet (waits).
+
+        ``stamp``: its stamp, ns (an int64 array: each frame's); ``shift``: its exposure
+        shift (:meth:`_time_shift`), ``imu_end`` (:meth:`_imu_end_rel`) and ``lookahead``
+        (s): the IMU must reach ``lookahead`` past the exposure.
+        """
+        return imu_end <= (stamp - self.t0_ns) * 1e-9 + shift + lookahead
+
+    def _released(self, stale: list[bool]) -> None:
+        """The first ``len(stale)`` pending frames go to the filter: popped, their inputs count.
+
+        ``stale``: each one's (:meth:`_env_ready`).
+        """
+        k = len(stale)
+        gone = self._frames_pending[:k]
+        del self._frames_pending[:k]
+        inputs = self._inputs
+        consider = self._consider_requires
+        for fr, old in zip(gone, stale, strict=True):
+            stamp = int(fr.stamp_ns)
+            inputs.pop(stamp, None)
+            if old:
+                self.counters.env_stale += 1
+            elif consider and self._env_missing(stamp, consider):
+                self.consider_stale_ns.append(stamp)
+        if k:
+            self._last_frame_ns = int(gone[-1].stamp_ns)
 
     def _run_out(self, run: list, out: list, shift: float | None,
                  ready: tuple[float, float] | None) -> bool:
@@ -666,8 +770,7 @@ class Calibrator(ImuRelease):
         (not ready under the state their turn found).
         """
         k = self._process_run(run, out, shift, ready)
-        for _, _, _, stale in run[:k]:
-            self._released(stale)
+        self._released([stale for _, _, _, stale in run[:k]])
         left = k < len(run)
         run.clear()
         return not left
@@ -745,13 +848,19 @@ class Calibrator(ImuRelease):
             self._conv.append((sig_t[i], nis[i], b.dof[i]))
         keep = self.driver.frame_updates
         stats = self.stats if type(self.stats) is RunStats else None
-        upds = [b.update(i) for i in range(k)] if keep or stats is None or \
-            not self.residuals.discard else None
+        upds = [b.update(i) for i in range(k)] if keep or stats is None else None
         self.last_update = upds[-1] if upds else b.update(k - 1)
-        if not self.residuals.discard:
-            for i, (_, inp, ctx, _) in enumerate(part):
-                self.residuals.append(residual_rows(upds[i], index0 + i, inp.catalog_id,
-                                                    inp.magnitude, ctx.head_temperature_c))
+        if not self.residuals.discard:  # (the frames' rows in one chunk, cut as a frame each)
+            # (BatchCommit.update's arrays, every frame's rows at once; frame_step.py holds
+            # the kernels, whose cache a change of it makes again: the fields are read here)
+            accepted, uv_pred, S, nis_stars, dirs, omega = b._out[4:10]
+            r = b._offs[k]  # (the batch's first k frames: its star rows :r)
+            self.residuals.append(residual_block(
+                b.stamps, b.n, index0, np.concatenate([inp.uv for _, inp, _, _ in part]),
+                uv_pred[:r], S[:r], nis_stars[:r], accepted[:r], dirs[:r], omega[:k],
+                np.concatenate([inp.catalog_id for _, inp, _, _ in part]),
+                np.concatenate([inp.magnitude for _, inp, _, _ in part]),
+                [ctx.head_temperature_c for _, _, ctx, _ in part]), np.cumsum(b.n).tolist())
         if stats is None:
             for u in upds:
                 self.stats.add(u)

@@ -735,11 +735,11 @@ class StarFilter(Acquisition):
         """
         frame_step = _frame_step_module()
         fs = self._fused_step()
-        rows = self._fused_rows(self.t, self._k, t_exp) if fs else None
-        if rows is None:
+        rows = self._fused_rows(self.t, self._k, [t_exp]) if fs else None
+        if not rows:
             self._batch = None
             return False, None
-        m, j, mj = rows
+        m, j, mj = rows[0]
         imu, prop = self.imu, self.propagation
         pre = prop.prefix
         st = self.state
@@ -772,26 +772,36 @@ class StarFilter(Acquisition):
                 or False
         return fs
 
-    def _fused_rows(self, t: float | None, k: int, t_exp: float) -> tuple[int, int, int] | None:
-        """``(m, j, mj)`` of the fused step from ``(t, k)`` to ``t_exp``; None: numpy path.
+    def _fused_rows(self, t: float | None, k: int, t_exps: list[float]
+                    ) -> list[tuple[int, int, int]]:
+        """``(m, j, mj)`` of the fused step of frames in a row, the first from ``(t, k)``.
 
-        ``m`` the IMU sample covering ``t_exp``, ``j..mj`` the rows of the reference prefix;
-        None with a bridged sample in the interval, a re-acquisition pending, a time not
-        after ``t``, or rows outside the reference.
+        ``t_exps``: their exposure times, each frame's step from the one before.  ``m`` the
+        IMU sample covering ``t_exp``, ``j..mj`` the rows of the reference prefix; for the
+        leading frames that take the fused step (:func:`~.frame_step.fused_sample`), up to
+        the first that takes the numpy path: a bridged sample in the interval, a
+        re-acquisition pending, a time not after the one before, or rows outside the
+        reference.
         """
-        if self._gap_pending or t is None or t_exp <= t:
-            return None
+        if self._gap_pending or t is None:
+            return []
         imu, prop = self.imu, self.propagation
         pre = prop.prefix
         if pre is None:
-            return None
-        m = int(_frame_step_module().fused_sample(
-            imu.t, imu.cum_bridged, k, t_exp, imu.base, pre.base, pre.end, prop.ref_start,
-            float(prop.window)))
-        if m < 0:
-            return None
+            return []
+        fused_sample = _frame_step_module().fused_sample
         off = imu.base - pre.base
-        return m, k + off, m + off
+        out = []
+        for te in t_exps:
+            if te <= t:
+                break
+            m = int(fused_sample(imu.t, imu.cum_bridged, k, te, imu.base, pre.base, pre.end,
+                                 prop.ref_start, float(prop.window)))
+            if m < 0:
+                break
+            out.append((m, k + off, m + off))
+            t, k = te, m
+        return out
 
     def batches_moving_shift(self) -> bool:
         """Whether :meth:`prepare_frames` batches frames whose exposure shift moves.
@@ -850,15 +860,15 @@ class StarFilter(Acquisition):
                 break
             if vary is not None:  # (the call finds the rest)
                 run.append((uv, u_i, sigma, math.nan, ctx, 0, 0, t, math.nan, 0, acc, t_rel))
-                last = t_rel
-                continue
-            t_exp = t_rel + shift
-            rows = self._fused_rows(t, k, t_exp)
-            if rows is None:
-                break
-            m, j, mj = rows
-            run.append((uv, u_i, sigma, t_rel - t_exp, ctx, j, mj, t, t_exp, m, acc, t_rel))
-            t, k, last = t_exp, m, t_rel
+            else:
+                run.append((uv, u_i, sigma, ctx, acc, t_rel))
+            last = t_rel
+        if vary is None:  # each frame's rows from the one before, up to the first without
+            t_exps = [f[5] + shift for f in run]
+            rows = self._fused_rows(t, k, t_exps)
+            run = [(uv, u_i, sigma, t_rel - tb, ctx, j, mj, ta, tb, m, acc, t_rel)
+                   for (uv, u_i, sigma, ctx, acc, t_rel), ta, tb, (m, j, mj) in zip(
+                       run, [t, *t_exps], t_exps, rows, strict=False)]
         if len(run) < 2:
             return 0
         st = self.state

@@ -60,19 +60,20 @@ IMU_MERGE_S = 1.0
 IMU_MERGE_QUIET_S = REPLAY_LOOKAHEAD_S
 #: the bag roles of environment and fix messages
 ENV_ROLES = frozenset({"fix", "head", "air", "pressure"})
-#: the event role of a star message with its filter inputs, ``(frame, inputs)``: a release's
-#: messages computed in one call (:meth:`Calibrator.star_inputs`, :func:`_release_items`)
-_STARS_IN = "stars with inputs"
+#: the event role of consecutive star messages with their filter inputs, ``(frames,
+#: inputs)``, computed a chunk a call (:meth:`Calibrator.star_inputs`) and handed on in one
+#: (:meth:`Calibrator.push_stars_many`): a replay's frames between two other events
+_STARS_MANY = "star messages with inputs"
 #: the event roles of star messages
-_STAR_ROLES = frozenset({"stars", _STARS_IN})
+_STAR_ROLES = frozenset({"stars", _STARS_MANY})
 
 
 def _events_from_data(data: BagData, inputs=None):
     """``(stamp_ns, role, payload)`` of a :class:`BagData` in time order (in memory).
 
-    ``inputs`` (:meth:`Calibrator.star_inputs`): the star frames go as ``(frame, inputs)``
-    events (:data:`_STARS_IN`), their inputs computed :data:`INPUT_FRAMES` frames a call
-    (:func:`_frames_with_inputs`).
+    ``inputs`` (:meth:`Calibrator.star_inputs`): the star frames between two other events go
+    as one ``(frames, inputs)`` event (:data:`_STARS_MANY`, :func:`_grouped_frames`), their
+    inputs computed :data:`INPUT_FRAMES` frames a call.
     """
     stamps = data.imu_stamp_ns
     out = []
@@ -118,38 +119,58 @@ def _events_from_data(data: BagData, inputs=None):
             for a, b in zip([0, *cuts], [*cuts, len(st)], strict=True):
                 out.append((int(keys[a]), -1, "scalars", (key, st[a:b], value[a:b])))
     out.sort(key=lambda e: (e[0], e[1]))
-    frame = _frames_with_inputs(data.frames, inputs)
-    for _, _, role, payload in out:
-        if role == "stars":
-            yield frame(payload)
-        else:
-            yield role, payload
+    if inputs is None:
+        for _, _, role, payload in out:
+            yield (role, data.frames[payload]) if role == "stars" else (role, payload)
+        return
+    yield from _grouped_frames(out, data.frames, inputs)
 
 
-#: the frames of a :class:`BagData` whose inputs one call computes (:func:`_frames_with_inputs`)
-INPUT_FRAMES = 256
+def _grouped_frames(events: list, frames, inputs):
+    """:func:`_events_from_data`'s events, a run of star frames one :data:`_STARS_MANY` event.
 
+    The frames between two other events go as ``(frames, inputs)``
+    (:meth:`Calibrator.push_stars_many`).
 
-def _frames_with_inputs(frames, inputs=None) -> Callable[[int], tuple]:
-    """``i -> event`` of ``frames[i]``, its inputs computed a chunk of frames at once.
-
-    ``(_STARS_IN, (frame, its inputs))``, else ``("stars", frame)`` (``inputs`` None, or it
-    gave None).  ``inputs``: :meth:`Calibrator.star_inputs`, asked for the
-    :data:`INPUT_FRAMES` frames around ``i`` at once, the last such chunk kept.
+    ``events``: ``(key, order, role, payload)`` sorted, a star frame's payload its index in
+    ``frames`` (they keep their list order: a group is a run of consecutive indices).  The
+    inputs are computed :data:`INPUT_FRAMES` frames a call (chunks from frame 0 on; a chunk
+    that gave None: None for each of its frames, which then compute their own).
     """
-    chunk: dict[int, Any] = {}
-    start = [-1]  # the chunk's first frame
+    chunk: list = [-1, None]  # the last chunk's first frame and inputs
 
-    def event(i: int) -> tuple:
-        if inputs is not None and i - i % INPUT_FRAMES != start[0]:
-            start[0] = a = i - i % INPUT_FRAMES
-            got = inputs(frames[a:a + INPUT_FRAMES]) or []
-            chunk.clear()
-            chunk.update(enumerate(got, a))
-        inp = chunk.get(i)
-        return ("stars", frames[i]) if inp is None else (_STARS_IN, (frames[i], inp))
+    def group_event(a: int, b: int) -> tuple:
+        got: list = []
+        while a < b:
+            start = a - a % INPUT_FRAMES
+            if chunk[0] != start:
+                chunk[:] = start, inputs(frames[start:start + INPUT_FRAMES])
+            e = min(b, start + INPUT_FRAMES)
+            got += [None] * (e - a) if chunk[1] is None else chunk[1][a - start:e - start]
+            a = e
+        return _STARS_MANY, (frames[b - len(got):b], got)
 
-    return event
+    first = None  # the open group's first frame
+    last = 0
+    for _, _, role, payload in events:
+        if role == "stars":
+            if first is not None and payload != last:  # (not the next one: a group of its own)
+                yield group_event(first, last)
+                first = None
+            if first is None:
+                first = payload
+            last = payload + 1
+            continue
+        if first is not None:
+            yield group_event(first, last)
+            first = None
+        yield role, payload
+    if first is not None:
+        yield group_event(first, last)
+
+
+#: the frames of a :class:`BagData` whose inputs one call computes (:func:`_grouped_frames`)
+INPUT_FRAMES = 256
 
 
 def _events_from_reader(reader: BagReader, topics: dict[str, str],
@@ -291,8 +312,8 @@ def _release_items(releases, imu_block: int = IMU_BLOCK,
     reads none of them (:func:`_env_unread`), whose quiet merge hands them on after the
     IMU logged around them anyway; a call (:func:`_env_quiet`): from the release it first
     says so at on.  ``inputs`` (:meth:`Calibrator.star_inputs`): a release's star messages
-    go as ``(frame, inputs)`` events (:data:`_STARS_IN`), their inputs computed in one call
-    (when it gives None, as they came).
+    go as ``(frames, inputs)`` events, a run of them one event (:data:`_STARS_MANY`), their
+    inputs computed in one call (when it gives None, as they came).
     """
     quiet = rows if callable(rows) else None
     for roles, blocks, order in releases:
@@ -316,7 +337,7 @@ def _release_items(releases, imu_block: int = IMU_BLOCK,
                 events[r] = block if role in _ONE_A_MESSAGE else _row_events(role, block)
                 pre = inputs(block) if role == "stars" and inputs is not None else None
                 if pre is not None:
-                    names[r], events[r] = _STARS_IN, list(zip(block, pre, strict=True))
+                    names[r], events[r] = _STARS_MANY, (block, pre)
         for r, a, b in runs(order):
             role = roles[r]
             if role == "imu":
@@ -326,6 +347,9 @@ def _release_items(releases, imu_block: int = IMU_BLOCK,
             elif last[r] is not None:
                 if b == last[r]:
                     yield events[r]
+            elif names[r] is _STARS_MANY:  # (the run's messages in one call)
+                block, pre = events[r]
+                yield _STARS_MANY, (block[a:b], pre[a:b])
             else:
                 ev, name = events[r], names[r]
                 for i in range(a, b):
@@ -383,7 +407,7 @@ def _merge_items(items, across=_STAR_ROLES, limit_s: float | None = None,
             yield "imu", _joined(held, frame)
             held = []
             if later:
-                yield from later
+                yield from _star_runs(later)
                 later = []
         if piece:
             f, g, fid, arrays, a, b = p
@@ -393,7 +417,25 @@ def _merge_items(items, across=_STAR_ROLES, limit_s: float | None = None,
             yield role, p
     if held:
         yield "imu", _joined(held, frame)
-    yield from later
+    yield from _star_runs(later)
+
+
+def _star_runs(events: list) -> list:
+    """``events`` with each run of :data:`_STARS_MANY` events one such event.
+
+    Their frames in order: one :meth:`Calibrator.push_stars_many` call for the frames a
+    merge held (:func:`_merge_items`).
+    """
+    out: list = []
+    for role, p in events:
+        if role is not _STARS_MANY:
+            out.append((role, p))
+        elif out and out[-1][0] is _STARS_MANY:
+            out[-1][1][0].extend(p[0])
+            out[-1][1][1].extend(p[1])
+        else:
+            out.append((role, (list(p[0]), list(p[1]))))
+    return out
 
 
 def _joined(held: list[list], frame_id: str) -> tuple:
@@ -461,7 +503,7 @@ def _handlers(cal: Calibrator) -> dict[str, Any]:
         # a decoded block is the replay's own (never written to): queued without a copy
         "imu": lambda p: cal.push_imu_block(*p, owned=True),
         "stars": cal.push_stars,
-        _STARS_IN: lambda p: cal.push_stars(*p),
+        _STARS_MANY: lambda p: cal.push_stars_many(*p),
         "image": cal.push_image,  # star images: made into frames one at a time (frames.py)
         "camera_info": cal.images.camera_info,
         "fix": lambda p: cal.push_fix(*p),

@@ -86,21 +86,37 @@ def keeping_frames() -> Iterator[None]:
 def residual_rows(upd, frame_index: int, ids: np.ndarray, mag: np.ndarray,
                   head_temperature: float) -> dict[str, np.ndarray]:
     """The residual-table rows of one frame update (:class:`~.kernel.FrameUpdate`)."""
-    n = len(upd.uv)
-    nu = upd.uv - upd.uv_pred
+    return residual_block([upd.stamp], [len(upd.uv)], frame_index, upd.uv, upd.uv_pred,
+                          upd.S, upd.nis_stars, upd.accepted, upd.directions_st,
+                          np.asarray(upd.omega_b).reshape(1, 3), ids, mag, [head_temperature])
+
+
+def residual_block(stamps, counts, frame_index: int, uv, uv_pred, S, nis_stars, accepted,
+                   directions, omega, ids, mag, head_temperature) -> dict[str, np.ndarray]:
+    """The residual-table rows of frame updates in a row, their stars' arrays stacked.
+
+    :func:`residual_rows` of each (``frame_index`` the first's): a frame's values
+    (``stamps``, ``omega`` (K, 3), ``head_temperature``) on each of its ``counts`` rows.
+    """
+    n = np.asarray(counts, dtype=np.int64)
+    nu = uv - uv_pred
+
+    def each(v) -> np.ndarray:
+        return np.repeat(np.asarray(v, dtype=float), n)
+
     return {
-        "t": np.full(n, upd.stamp), "frame": np.full(n, frame_index, dtype=np.int64),
+        "t": each(stamps),
+        "frame": np.repeat(np.arange(frame_index, frame_index + len(n), dtype=np.int64), n),
         "catalog_id": np.asarray(ids, dtype=np.int64),
-        "u": upd.uv[:, 0], "v": upd.uv[:, 1], "u_pred": upd.uv_pred[:, 0],
-        "v_pred": upd.uv_pred[:, 1], "du": nu[:, 0], "dv": nu[:, 1],
-        "s_uu": upd.S[:, 0, 0], "s_uv": upd.S[:, 0, 1], "s_vv": upd.S[:, 1, 1],
-        "nis": upd.nis_stars, "magnitude": np.asarray(mag, dtype=float),
-        "gated": ~upd.accepted,
-        "x_st": upd.directions_st[:, 0], "y_st": upd.directions_st[:, 1],
-        "z_st": upd.directions_st[:, 2],
-        "omega_x": np.full(n, upd.omega_b[0]), "omega_y": np.full(n, upd.omega_b[1]),
-        "omega_z": np.full(n, upd.omega_b[2]),
-        "head_temperature": np.full(n, head_temperature),
+        "u": uv[:, 0], "v": uv[:, 1], "u_pred": uv_pred[:, 0],
+        "v_pred": uv_pred[:, 1], "du": nu[:, 0], "dv": nu[:, 1],
+        "s_uu": S[:, 0, 0], "s_uv": S[:, 0, 1], "s_vv": S[:, 1, 1],
+        "nis": nis_stars, "magnitude": np.asarray(mag, dtype=float),
+        "gated": ~accepted,
+        "x_st": directions[:, 0], "y_st": directions[:, 1], "z_st": directions[:, 2],
+        "omega_x": each(omega[:, 0]), "omega_y": each(omega[:, 1]),
+        "omega_z": each(omega[:, 2]),
+        "head_temperature": each(head_temperature),
     }
 
 
@@ -133,13 +149,27 @@ class TableSink:
         self._row_arrays: list[list[np.ndarray]] = []
         self._row_take: np.ndarray | None = None
 
-    def append(self, chunk: dict[str, np.ndarray]) -> None:
-        """Add rows."""
+    def append(self, chunk: dict[str, np.ndarray], ends: list[int] | None = None) -> None:
+        """Add rows.
+
+        ``ends``: the rows of ``chunk`` are pieces the caller would add a call each, these
+        their ends (the last: the chunk's length): the same blocks are handed on as with a
+        call a piece (the buffer's cuts fall where they would).
+        """
         n = len(next(iter(chunk.values()))) if chunk else 0
         self.rows += n
         if self._row_values:
             self._flush_rows()
-        self._buffer(chunk, n)
+        if ends is None or len(ends) < 2:
+            self._buffer(chunk, n)
+            return
+        a = 0
+        while a < n:  # up to the piece that fills the buffer, at a time
+            need = a + self.chunk_rows - self._buf_rows
+            b = next((e for e in ends if e >= need), n)
+            self._buffer(chunk if (a, b) == (0, n) else
+                         {k: v[a:b] for k, v in chunk.items()}, b - a)
+            a = b
 
     def append_row(self, keys: tuple[str, ...], values: list,
                    arrays: tuple[np.ndarray, ...] = (), take: np.ndarray | None = None) -> None:

@@ -149,6 +149,13 @@ def needs_identification(frame: StarFrame) -> bool:
     return bool(unknown.any())
 
 
+def any_needs_identification(frames: list[StarFrame]) -> bool:
+    """:func:`needs_identification` of any of ``frames`` (the usual case: one test of all)."""
+    if not frames or np.concatenate([np.asarray(f.catalog_id) for f in frames]).all():
+        return False
+    return any(needs_identification(f) for f in frames)
+
+
 @functools.lru_cache(maxsize=1)
 def _hipparcos():
     """Hipparcos: (hip, Hp, KD-tree of the J2016.0 directions, J2000.0 ra, dec)."""
