@@ -218,27 +218,31 @@ def test_replay_merges_imu_blocks_without_changing_a_float(bags, tmp_path: Path,
 
 def _count_star_inputs(monkeypatch) -> list[list[int]]:
     """The star messages a replay hands the driver, counted: a ``[with inputs, without]``
-    list appended per run (``Calibrator.push_stars`` called by the replay, and each message
-    of ``Calibrator.push_stars_many``, which may go on to ``push_stars``: counted once)."""
+    list appended per run (``Calibrator.push_stars`` and ``Calibrator.push_stars_many`` as
+    the replay calls them; the calls they make of each other inside: not again)."""
     from stellar_cal_ros.methods import driver
 
     given: list[list[int]] = []
     one, many = driver.Calibrator.push_stars, driver.Calibrator.push_stars_many
     inside = [False]
 
-    def push(self, frame, inputs=None):
-        if not inside[0]:
-            given[-1][inputs is None] += 1
-        return one(self, frame, inputs)
-
-    def push_many(self, frames, inputs=None):
+    def counted(call, self, frames, inputs):
+        if inside[0]:
+            return call(self, frames, inputs)
         for inp in inputs or [None] * len(frames):
             given[-1][inp is None] += 1
         inside[0] = True
         try:
-            return many(self, frames, inputs)
+            return call(self, frames, inputs)
         finally:
             inside[0] = False
+
+    def push(self, frame, inputs=None):
+        return counted(lambda s, f, i: one(s, f[0], None if i is None else i[0]), self,
+                       [frame], None if inputs is None else [inputs])
+
+    def push_many(self, frames, inputs=None):
+        return counted(many, self, frames, inputs)
 
     monkeypatch.setattr(driver.Calibrator, "push_stars", push)
     monkeypatch.setattr(driver.Calibrator, "push_stars_many", push_many)
