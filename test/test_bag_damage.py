@@ -393,3 +393,21 @@ def test_batch_on_error_skip_fits_the_intact_parts_and_says_the_loss_once(
                   if ln.startswith("stellar-cal batch: warning: ")]
         assert len(warned) == int(held.group(1)), loud.stderr
         assert "the reader's" not in loud.stdout
+
+
+def test_a_cut_bag_read_without_skip_is_refused_in_one_line(healthy: Path,
+                                                            tmp_path: Path) -> None:
+    """A recording cut inside a chunk (no summary) read without ``--on-error skip``: the
+    refusal is the one stderr line, naming ``--on-error skip``; the reader's "no summary"
+    warning is not printed before it (it was, as a second line, until this change: the scan
+    that the warning announced then stopped at the damage)."""
+    raw = healthy.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(raw[:len(raw) // 2])
+    prior = healthy.parent / "sim.prior.yaml"
+    proc = _cli("replay", str(cut), "--method", "psce", "--prior", str(prior), "-q",
+                "-o", str(tmp_path / "r.yaml"), check=False)
+    err = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode != 0
+    assert len(err) == 1, proc.stderr
+    assert "--on-error skip" in err[0] and "no summary" not in err[0], err[0]

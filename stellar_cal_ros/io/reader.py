@@ -229,12 +229,14 @@ class BagReader:
         """
         counts = self._src.channel_counts()
         if counts is None:
+            # scan first: where the scan itself stops at the damage (on_error="raise"), the
+            # error is the one line the user reads, not a warning and then the error
+            counts = self._scan_counts()[0]
             warnings.warn(
-                f"{self.path} has no summary/statistics (truncated or not closed?); counting "
-                "messages with a full scan",
+                f"{self.path} has no summary/statistics (truncated or not closed?); counted "
+                "the messages with a full scan",
                 BagDamageWarning, stacklevel=2,
             )
-            counts = self._scan_counts()[0]
         out: dict[str, TopicInfo] = {}
         for cid, ch in sorted(self._channels().items()):
             name = self._src.schema_name(cid)
