@@ -858,6 +858,43 @@ def test_an_effect_its_rival_explains_as_well_is_said_to_be_tied_with_it(gain, t
     assert f"or {other}: this motion can't tell them apart" in line
 
 
+
+@pytest.mark.parametrize("beside, p_adjusted, gain, why", [
+    (40.0, 1e-8, 10.0, "significant beside gyro_misalignment (p = 1e-08): a candidate of its own"),
+    (20.0, 0.02, 2.0, "gyro_misalignment is significant beside it (18 on 3 dof, p = 0.00044)")])
+def test_a_rival_replaces_an_effect_only_where_each_explains_the_others_part(
+        beside, p_adjusted, gain, why):
+    """The exchange is the nested comparison the module docstring states (issue 21): the
+    rival ``gyro_scale_factor`` predicts the window better than ``gyro_misalignment``
+    (``gain`` > 0), but it is still significant beside it (Λ 40, p 1e-8: a candidate of
+    its own, which the add rule and its gates take, then gyro_misalignment's drop check),
+    or gyro_misalignment is significant beside it (Λ_{y|x} − gain = 20 − 2 = 18 on the 3
+    directions the data sees, p 4.4e-4: it explains what the rival does not, and an
+    exchange drops it for good).  No exchange; the check says why.  Fails on main 6c738a9
+    (exchanged on the gain alone: unseen case ``sky_clock_drift3`` s21 on 8075edd took
+    refraction, p 0 beside clock_drift, in the drift's place).
+    """
+    from stellar_cal_ros.diagnosis import auto
+    from stellar_cal_ros.diagnosis.discover import CandidateResult
+
+    state = auto._State(["gyro_misalignment"], (), None)
+    rival = CandidateResult("gyro_scale_factor", "ranked", statistic=beside, dof=3,
+                            p_value=p_adjusted / 10.0, p_adjusted=p_adjusted)
+    key = "gyro_scale_factor for gyro_misalignment"
+    action, removed, added, _, details = auto._decide_checks(
+        state, _misalignment_run(0.0), {key: _window_run(gain / 2.0)}, [rival])
+    assert (action, removed, added) == ("", "", "")
+    assert details[key]["score"] == pytest.approx(gain)
+    assert details[key]["refused"].startswith(why), details[key]
+    assert "tie" not in details[key] and state.ties == {}
+    # the same rival that the data no longer see beside it (Λ 1.2): the gain decides, a tie
+    tied = CandidateResult("gyro_scale_factor", "ranked", statistic=1.2, dof=3,
+                           p_value=0.75, p_adjusted=1.0)
+    state = auto._State(["gyro_misalignment"], (), None)
+    assert auto._decide_checks(state, _misalignment_run(0.0),
+                               {key: _window_run(gain / 2.0)}, [tied])[:3] == (
+        "exchange", "gyro_misalignment", "gyro_scale_factor")
+
 def _dt_step_round(b: float):
     """Round 2 of ``dt_step`` s23 with gyro_scale_factor sx = ``b`` in the simulation.
 

@@ -12,13 +12,18 @@ this order:
    goes here.  A dropped effect is not added again.
 2. **exchange** — an added effect ``x`` replaced by a *rival*: a candidate that was
    significant alone in the round ``x`` was added, with a score at least
-   :data:`RIVAL_SCORE` of ``x``'s (a near tie), and no longer once ``x`` was in.  The model
-   with the rival instead of ``x`` is kept when it predicts the evaluation window better
-   (higher prequential log-likelihood: held-out predictions, so the extra parameters of a
-   flexible effect are no advantage).  Each pair is tried once per model (again after the
-   model has changed: a rival can lose while a third effect is still missing).  When
-   neither is significant beside the other (:func:`_tie`) this motion cannot tell them
-   apart: the one kept is named with the other (``ties`` in ``diagnosis.json``).
+   :data:`RIVAL_SCORE` of ``x``'s (a near tie).  The model with the rival instead of ``x``
+   (and of the effect added with it, :data:`ADDED_WITH`) is kept when it predicts the
+   evaluation window better (higher prequential log-likelihood: held-out predictions, so
+   the extra parameters of a flexible effect are no advantage) and the two are nested
+   alike (:func:`_refused`): the rival no longer significant once ``x`` is in (this round's
+   candidate), and ``x`` not significant beside the rival.  A rival still significant
+   beside ``x`` is a candidate of its own (the add rule, then ``x``'s drop check); an ``x``
+   significant beside the rival explains what the rival does not.  Each pair is tried once
+   per model (again after the model has changed: a rival can lose while a third effect is
+   still missing).  Neither significant beside the other (:func:`_tie`) means this motion
+   cannot tell them apart: the one kept is named with the other (``ties`` in
+   ``diagnosis.json``).
 3. **add** — the top candidate: significant after Bonferroni and removing a real part of
    the excess variance, the rule of a single ``diagnose``.  Every other candidate is tested
    again in the next round, so an effect that only copied part of the real cause's pattern
@@ -315,12 +320,16 @@ def _decide_checks(state: _State, base: RunSummary, extras: dict[str, RunSummary
         state.tried.add((x, y, frozenset(state.extra)))
         gain = 2.0 * (run.window["log_likelihood"] - ref.log_likelihood) / ref.dispersion
         details[key] = {"score": gain}
+        c = next((c for c in results if c.effect == y), None)
         # (x beside the rival: x and the partner its run was made without)
-        tie = _tie(x, gain, next((c for c in results if c.effect == y), None),
-                   sum(seen_dof(base, e) for e in state.with_partner(x)))
+        dof = sum(seen_dof(base, e) for e in state.with_partner(x))
+        tie = _tie(x, gain, c, dof)
         if tie is not None:
             details[key]["tie"] = tie
-        if gain > best_gain:
+        refused = _refused(x, gain, c, dof) if gain > 0.0 and tie is None else ""
+        if refused:
+            details[key]["refused"] = refused
+        elif gain > best_gain:
             best, best_gain = key, gain
     for key in (k for k in details if " for " in k and "tie" in details[k]):
         y, x = key.split(" for ")
@@ -330,6 +339,49 @@ def _decide_checks(state: _State, base: RunSummary, extras: dict[str, RunSummary
         y, x = best.split(" for ")
         return "exchange", x, y, extras[best], details
     return "", "", "", None, details
+
+
+def _refused(x: str, gain: float, c: CandidateResult | None, dof: float) -> str:
+    """Why the rival ``c`` that predicts better than ``x`` (``gain`` > 0) does not replace it.
+
+    An exchange puts the rival in ``x``'s place without the add's tests and drops ``x`` for
+    good, so it is made only where the two explain the same part of the data: the rival no
+    longer significant once ``x`` is in (the add rule's own test, this round's candidate
+    ``c``), and ``x`` not significant beside the rival (:func:`_beside_rival`).  A rival
+    significant beside ``x`` explains more than ``x``'s part: it is a candidate of its own,
+    added by the add rule and its gates, after which ``x`` is checked beside it (unseen case
+    ``sky_clock_drift3`` s21 on 8075edd: refraction, p 0 beside clock_drift, was exchanged
+    for it, and the drift was missed).  ``x`` significant beside the rival explains what the
+    rival does not: dropping it loses that.  Empty (the gain decides) where neither holds,
+    or where ``c`` is not a ranked or screened-out candidate beside ``x`` (not testable,
+    implausible, failed: no test of its own there).
+    """
+    if c is None:
+        return ""
+    if c.significant_alone:
+        return (f"significant beside {x} (p = {c.p_adjusted:.2g}): a candidate of its own, "
+                f"not {x}'s stand-in")
+    nested = _beside_rival(gain, c, dof)
+    if nested is None or not nested["p_value"] < ALPHA:
+        return ""
+    return (f"{x} is significant beside it ({nested['beside_rival']:.3g} on {dof:.3g} dof, "
+            f"p = {nested['p_value']:.2g}): {x} explains what it does not")
+
+
+def _beside_rival(gain: float, c: CandidateResult, dof: float) -> dict[str, Any] | None:
+    """``x`` beside its rival ``c``: Λ_{y|x} − ``gain`` on ``dof`` (:func:`_tie`).
+
+    Λ_{y|x}: the rival's statistic beside the model that holds ``x`` (this round's
+    candidate: its ratio, or its score where it was screened out); None where it has none.
+    """
+    if c.status not in ("ranked", "screened_out"):
+        return None
+    beside = c.statistic if c.status == "ranked" or c.screen is None else c.screen.statistic
+    if not math.isfinite(beside):
+        return None
+    stat = max(beside, 0.0) - gain
+    return {"rival_beside": beside, "beside_rival": stat,
+            "p_value": float(dist.chi2.sf(max(stat, 0.0), dof)), "dof": dof}
 
 
 def _tie(x: str, gain: float, c: CandidateResult | None, dof: float
@@ -349,16 +401,12 @@ def _tie(x: str, gain: float, c: CandidateResult | None, dof: float
     (3 of 6 directions absorbed by the installation) was called a tie at p 0.038 / 0.050
     (``twin_gm2`` s23 / s21, misalignment injected): 0.0051 / 0.0062 on its 3.24 / 3.10.
     """
-    if c is None or c.status not in ("ranked", "screened_out") or c.significant_alone:
+    if c is None or c.significant_alone:
         return None
-    beside = c.statistic if c.status == "ranked" or c.screen is None else c.screen.statistic
-    if not math.isfinite(beside):
-        return None
-    stat = max(beside, 0.0) - gain
-    p = float(dist.chi2.sf(max(stat, 0.0), dof))
-    if p < ALPHA:
-        return None  # x explains what the rival does not
-    return {"rival_beside": beside, "beside_rival": stat, "p_value": p, "dof": dof}
+    nested = _beside_rival(gain, c, dof)
+    if nested is None or nested["p_value"] < ALPHA:
+        return None  # (below ALPHA: x explains what the rival does not)
+    return nested
 
 
 def _early_probe(early: dict[str, Any], runs) -> Any:
