@@ -421,3 +421,30 @@ def test_the_smears_sigma_is_honest_on_clean_bags():
     band = 2.0 * np.sqrt(2.0 / len(z))
     assert abs(float(np.mean(z**2)) - 1.0) < band, (np.mean(z**2), z.round(2))
     assert np.mean(np.abs(z) > 2.0) < 0.1, z.round(2)
+
+
+def test_a_smear_beside_the_clock_is_one_line_not_two_with_the_speed_curve():
+    """Unseen case ``smear15`` s22 (the bias of the test above, seed 22; the model with
+    time_offset, as discover ends): the clock's test fits the speed-squared smear beside its
+    parts and its line says it (``clock.SMEAR_LINE``, 0.33 +- 0.071 ms, truth ~0.375); the
+    speed curve's own test of the same bias (``stats.CURVE``, 'beyond a time offset',
+    t -7.9) is not made beside it: one bias, one line.  Fails on main 6c738a9 (both lines)."""
+    from stellar_cal_ros.diagnosis import clock, stats
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.output import line_tests
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+    from stellar_cal_ros.sim import tracker_errors
+    from stellar_cal_ros.sim.scenarios import get_scenario
+    from stellar_cal_ros.sim.world import simulate
+
+    sc = dataclasses.replace(get_scenario("psce_rotations"), centroid_noise_px=0.0)
+    sim = simulate(sc, duration=300.0, seed=22)
+    tracker_errors.speed_squared_smear(sim, 0.15)
+    tracker_errors.renoise(sim, lambda m, uv: 0.05, 0.05, 22)
+    run = evaluate(bag_data_from_simulation(sim), method_spec("psce"), rerun_prior(sim.prior),
+                   ("time_offset",), 0.5, keep_residuals=True)
+    found = line_tests(run.residuals, run.calibration, 0.5)
+    along = [f for f in found if f.component == stats.CURVE_COMPONENT]
+    assert len(along) == 1 and along[0].regressor.startswith(clock.SMEAR_LINE), along
+    assert "ahead of the stamp's position" in along[0].regressor, along[0].regressor
+    assert not [f for f in found if f.regressor == stats.CURVE], found

@@ -1803,7 +1803,8 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
     first (adjusted p, then ``|t|``), each with the size of the structure (the residual's
     change across the regressor's 5–95 % range, px).  ``extra``: further tests (unadjusted
     p) in the same family, e.g. the per-star repeat of
-    :func:`~stellar_cal_ros.diagnosis.noise.repeat_finding`.  With
+    :func:`~stellar_cal_ros.diagnosis.noise.repeat_finding`; one of :data:`CURVE_COMPONENT`
+    (the clock's test's speed-squared smear) stands for :func:`speed_curve`'s.  With
     ``focal``, the within-frame residuals are also tested against the sub-pixel phase and
     (with the installation ``R_imu_st`` and the detector's rows ``height``) a rolling
     shutter's shape (:func:`shaped_tests`), and the innovations for a noise in the frames'
@@ -1894,8 +1895,12 @@ def regressor_tests(res: Table, mask: np.ndarray, camera_centre: tuple[float, fl
         cols = motion_columns(sub, focal, camera_centre, R_imu_st, readout, stamp)
         moving = motion_spread(sub, focal, camera_centre, R_imu_st, cols, stamp) \
             if cols is not None else None
-        # a bias along the motion that grows faster than a time offset's
-        curve = speed_curve(sub, cols)
+        # a bias along the motion that grows faster than a time offset's, unless the clock's
+        # test fitted it beside its parts (its line among ``extra``, of the same component,
+        # :data:`~stellar_cal_ros.diagnosis.clock.SMEAR_LINE`): one bias, one test and one
+        # line (unseen case smear15 s22 printed both, the curve's at t -7.9)
+        curve = None if any(t is not None and t.component == CURVE_COMPONENT
+                            for t in extra or []) else speed_curve(sub, cols)
         tests += [t for t in (moving, curve) if t is not None]
     tests += [t for t in (extra or []) if t is not None]
     m_tests = max(len(tests), 1)
