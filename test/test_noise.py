@@ -2810,3 +2810,37 @@ def test_a_noise_in_the_frames_stamps_is_named_as_noise_with_its_size(seed):
     if seed == 23:
         why, v = verdict(0.0, 3e-3)
         assert why.startswith("the model is too far off") and v.stamp_jitter is None, why
+
+
+def test_a_rounds_progress_lines_leave_the_repeats_source_to_the_report():
+    """A round prints the noise verdict as it goes (discover's progress,
+    ``NoiseVerdict.lines(pending=True)``), before the 'unexplained' lines are tested; the
+    report's lines are made after them and say the source the repeat follows, if any
+    (``NoiseVerdict.following``).  Unseen case ``stray_light`` s21 (its repeat: chi2 328 /
+    156, 0.0061 px): the progress said 'from the catalogue positions or the
+    identification' and 'the attitude follows the per-star errors of the stars in view'
+    while the report's first line was the rows' field and its noise lines followed it.  Now
+    the progress lines name no source: they say the 'unexplained' lines tell it, and every
+    other word is the report's.  Fails on main 6c738a9 (no ``pending``)."""
+    rep = {"chi2": 328.0, "dof": 156.0, "p_value": 2.4e-14, "rms_px": 0.0061}
+    v = noise.NoiseVerdict(NoiseScales(), NoiseScales(), repeat=rep,
+                           imu_skipped=noise.repeat_reason(rep["rms_px"]))
+    live = v.lines(pending=True)
+    cause = "smooth structure over the detector's rows (v)"
+    for report in (v.lines(), v.following(cause).lines()):
+        assert len(live) == len(report)
+        for a, b in zip(live, report, strict=True):
+            if "repeat star by star" not in b:
+                assert a == b
+                continue
+            assert "per-star errors" not in a and "from the catalogue positions" not in a, a
+            assert "'unexplained' lines" in a and cause not in a, a
+            head = b.split(" that follows ")[0].split(" from the catalogue")[0].split(
+                ": the attitude follows ")[0]
+            assert a.startswith(head), (a, b)
+    said = [x for x in live if "repeat star by star" in x]
+    assert len(said) == 2 and said[1].startswith("IMU noise taken as stated: "), said
+    assert noise.PENDING_SOURCE in said[0], said
+    # (a repeat the lines have told the source of: the progress says it as the report)
+    told = v.following(cause)
+    assert told.lines(pending=True) == told.lines()

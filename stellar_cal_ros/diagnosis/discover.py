@@ -949,7 +949,8 @@ def measure_round_noise(r: Round, prior: Calibration, extra: list[str],
         r.runs.drop_ahead(keep=kept)
     r.runs.noise = r.noise.applied
     r.runs.verdict = r.noise
-    for line in r.noise.lines():
+    # (the 'unexplained' lines, which may name the star-by-star repeat's cause, come later)
+    for line in r.noise.lines(pending=True):
         r.tell("noise: " + line)
     return [base] if ran_with is not None and r.runs.noise == ran_with else None
 

@@ -499,8 +499,15 @@ class NoiseVerdict:
             return f"{lo * scale:.3g}-{hi * scale:.3g}"
         return f"{self.stated_sigma_px * scale:.3g}"
 
-    def lines(self) -> list[str]:
-        """The terminal's lines, first of the diagnosis (noise is tested before effects)."""
+    def lines(self, pending: bool = False) -> list[str]:
+        """The terminal's lines, first of the diagnosis (noise is tested before effects).
+
+        ``pending``: the lines a round prints as it goes (discover's progress), before the
+        'unexplained' lines are tested: a star-by-star repeat whose cause they have not
+        told yet (:meth:`following`) is said with its cause to come, not as the per-star
+        errors the report may then contradict (unseen case ``stray_light`` s21: the
+        report's first line the rows' field, which the repeat follows).
+        """
         out = self._sample_lines()
         refused = self._walk_refused_line()
         if self.skipped:
@@ -600,6 +607,7 @@ class NoiseVerdict:
                            "line: gone once its fit is taken out of the centroids; a star "
                            "keeps its place on the detector along its track), not the "
                            "catalogue positions" if self.repeat.get("follows") else
+                           PENDING_SOURCE if pending else
                            "from the catalogue positions or the identification")
                        + ", not centroid noise; the sigma is measured without it")
         if self.unknown and self.group is not None and not np.isfinite(self.stated_sigma_px):
@@ -645,7 +653,11 @@ class NoiseVerdict:
                            f"{self._imu_stated(comp)}".rstrip() + ": use --noise-scale "
                            f"{units[comp][1]}={getattr(self.applied, comp):.3g}")
         if self.imu_skipped:
-            out.append(f"IMU noise taken as stated: {self.imu_skipped}")
+            skipped = self.imu_skipped
+            if pending and self.repeat and not self.repeat.get("follows") and \
+                    skipped == repeat_reason(self.repeat["rms_px"]):
+                skipped = repeat_reason(self.repeat["rms_px"], pending=True)
+            out.append(f"IMU noise taken as stated: {skipped}")
         if summed:
             parts = [f"stars' sigma x{self.star:.3g} +- {self.star_sigma:.2g}"]
             for comp, smp in self.samples.items():
@@ -1217,16 +1229,28 @@ def stamp_jitter(base, calibration, fraction: float, scale: float, nis: float
     return {"ms": got[1] * 1e3, "p_value": got[0], "nis_share": share}
 
 
-def repeat_reason(rms_px: float, follows: str = "") -> str:
+#: the star-by-star repeat's source in a round's progress lines (:meth:`NoiseVerdict.lines`'s
+#: ``pending``), before the 'unexplained' lines have told whether it follows one of them
+PENDING_SOURCE = ("whose source the 'unexplained' lines tell at the end (a field on the "
+                  "detector they find, which a star keeps along its track; else the "
+                  "catalogue positions or the identification)")
+
+
+def repeat_reason(rms_px: float, follows: str = "", pending: bool = False) -> str:
     """:func:`structured`'s reason where the stars' residuals repeat star by star.
 
     ``follows``: the cause the repeat follows (its 'unexplained' line, ``output``'s
     ``causes_first``: a star keeps its place on the detector along its track), said
     instead of the per-star errors (unseen case ``stray_light`` s21: the repeat follows
     the smooth structure over the detector's rows, and the line blamed the per-star errors).
+    ``pending``: before the 'unexplained' lines are tested (a round's progress,
+    :meth:`NoiseVerdict.lines`): neither said.
     """
     what = (f"the displacement the {follows} makes of the stars in view (its 'unexplained' "
-            "line)" if follows else "the per-star errors of the stars in view")
+            "line)" if follows else
+            "that repeating displacement of the stars in view (its source: with the "
+            "'unexplained' lines at the end)" if pending else
+            "the per-star errors of the stars in view")
     return (f"the stars' residuals repeat star by star ({rms_px:.2g} px rms): the attitude "
             f"follows {what}, which a larger gyro noise would absorb")
 
