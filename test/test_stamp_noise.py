@@ -92,6 +92,46 @@ def test_a_common_column_is_the_full_r(compiled) -> None:
     assert res.nis == pytest.approx(nis, rel=1e-10)
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_frame_s_likelihood_holds_the_stamp_s_one_error(compiled) -> None:
+    """``joint_correction`` added to the accepted stars' own ``−2 log`` terms (each its
+    block of ``S = H P Hᵀ + R + c cᵀ`` and NIS) gives the frame's joint Gaussian ``−2 log``
+    likelihood (dense, to rounding); ``frame_logdet`` is its log det; one star: 0.  Numpy
+    and the compiled copy (``frame_step``); the terms the stars' sum leaves out are large
+    where the stamp's column is (here 5-20x the noise)."""
+    from stellar_cal_ros.methods import frame_step
+
+    fn = frame_step._joint_correction if compiled else cov.joint_correction
+    rng = np.random.default_rng(9)
+    n, N = 11, 9
+    A = rng.normal(size=(N, N)) * 0.01
+    P = A @ A.T
+    H = rng.normal(size=(2 * n, N))
+    r = np.repeat(rng.uniform(0.04, 0.06, n) ** 2, 2)
+    c = rng.normal(size=2 * n) * 0.3
+    S = H @ P @ H.T + np.diag(r) + np.outer(c, c)
+    nu = rng.multivariate_normal(np.zeros(2 * n), S)
+    blocks = np.array([S[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(n)])
+    nu2 = nu.reshape(n, 2)
+    own = np.array([nu2[i] @ np.linalg.solve(blocks[i], nu2[i]) for i in range(n)])
+    acc = np.ones(n, dtype=bool)
+    acc[[2, 7]] = False
+    k = np.repeat(acc, 2)
+    Sa, va = S[np.ix_(k, k)], nu[k]
+    nis_f = float(va @ np.linalg.solve(Sa, va))
+    logdet = cov.frame_logdet(P, H[k], r[k], c[k])
+    assert logdet == pytest.approx(np.linalg.slogdet(Sa)[1], rel=1e-12)
+    got = fn(nis_f, logdet, blocks, own, acc)
+    stars = sum(own[i] + np.linalg.slogdet(blocks[i])[1] for i in np.flatnonzero(acc))
+    assert got + stars == pytest.approx(nis_f + logdet, rel=1e-10)
+    assert got < -10.0  # (the stars' sum counts the shared column once per star)
+    one = np.zeros(n, dtype=bool)
+    one[4] = True
+    single = nu2[4] @ np.linalg.solve(blocks[4], nu2[4])
+    assert fn(single, np.linalg.slogdet(blocks[4])[1], blocks, own, one) == pytest.approx(
+        0.0, abs=1e-9)
+
+
 def _equal_runs(a, b, tol_sigma: float) -> None:
     assert a.counters == b.counters
     fa, fb = a.filter, b.filter
@@ -99,6 +139,9 @@ def _equal_runs(a, b, tol_sigma: float) -> None:
     assert np.max(np.abs(fa.theta[:fb.P_est] - fb.theta[:fb.P_est]) / sig) <= tol_sigma
     np.testing.assert_allclose(np.diag(fa.P), np.diag(fb.P), rtol=1e-5)
     assert _nis_dof(a) == pytest.approx(_nis_dof(b), rel=1e-6)
+    # (the log-likelihood with the frames' stamp correction: the compiled frame_sums' own)
+    sa, sb = (r.stats.current() if hasattr(r.stats, "current") else r.stats for r in (a, b))
+    assert sa.log_likelihood() == pytest.approx(sb.log_likelihood(), rel=1e-6)
 
 
 def test_psce_compiled_equals_numpy_and_the_nis_comes_back(psce_bag, monkeypatch) -> None:
@@ -245,3 +288,41 @@ def test_a_twin_renders_the_stamp_noise_it_is_given(psce_bag) -> None:
                    keep_tables=False)
     assert _nis_dof(without) > 3.0
     assert _nis_dof(with_) == pytest.approx(1.0, abs=0.15)
+
+
+def test_a_time_offsets_ratio_beside_the_stamp_noise_is_its_score_test():
+    """Unseen case ``sway_jitter`` s22 (300-s swaying base, stamps N(0, 1 ms), the verdict's
+    ``stamp=0.97`` in R): discover added time_offset +0.065 +- 0.040 ms (1.6 σ) with 'score
+    23.3, p = 4e-05', its ratio Λ = 2Δℓ of the two runs.  The score test of the same run
+    read LM 4.24 (its information 0.056 ms on the window, the re-run's 0.040 over the run:
+    the stamps are in both), but ℓ summed the stars of a frame as independent, each with
+    its share of the stamp's one error: the time offset, whose columns are the stamp's,
+    gained the likelihood of every star.  With the frame's likelihood
+    (``covariance.joint_correction``) Λ is the score test's to within their spread
+    (χ²₁-sized: both are 2Δℓ to first order).  Fails on main 6c738a9 (Λ 23.25)."""
+    from stellar_cal_ros.diagnosis import screening
+    from stellar_cal_ros.diagnosis.discover import (
+        Reference,
+        candidate_prior,
+        method_spec,
+        rerun_prior,
+    )
+    from stellar_cal_ros.diagnosis.injection import clean_simulation
+    from stellar_cal_ros.diagnosis.parallel import Runs, Task
+
+    sim, _ = clean_simulation("swaying_base", False, 22, 300.0)
+    tracker_errors.stamp_jitter(sim, 1e-3, 22)
+    runs = Runs(bag_data_from_simulation(sim), method_spec("swaying_base"), 0.5)
+    runs.noise = NoiseScales(stamp_ms=0.97)
+    prior = rerun_prior(sim.prior)
+    out = runs.run_all([
+        Task("base", prior, (), screen=("time_offset",)),
+        Task("time_offset", candidate_prior(prior, "time_offset", sim.prior), ("time_offset",),
+             candidate=True)])
+    base, run = out["base"], out["time_offset"]
+    lm = screening.collect([base])["time_offset"].statistic
+    lam = Reference.of(base).compare(run, 1)[0]
+    sl = run.slices["time_offset"]
+    z = run.theta[sl[0]] / np.sqrt(run.P[sl[0], sl[0]])
+    assert lm == pytest.approx(4.2, abs=0.3) and abs(z) == pytest.approx(1.62, abs=0.1)
+    assert abs(lam - lm) < 3.0, (lam, lm, z)

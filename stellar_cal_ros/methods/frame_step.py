@@ -39,7 +39,7 @@ from typing import TextIO
 
 import numpy as np
 
-from stellar_cal_ros.core.covariance import augment, stamp_column
+from stellar_cal_ros.core.covariance import augment, joint_correction, stamp_column
 from stellar_cal_ros.core.imu_prefix import in_sample_rotvec
 from stellar_cal_ros.core.jit import (
     HAVE_NUMBA,
@@ -81,6 +81,7 @@ def _mat3_mul_t(a, b):
 _in_sample_rotvec = njit(cache=True)(in_sample_rotvec)
 _augment = njit(cache=True)(augment)
 _stamp_column = njit(cache=True)(stamp_column)
+_joint_correction = njit(cache=True)(joint_correction)
 
 
 @njit(cache=True)
@@ -608,11 +609,13 @@ def gate(nis, d, cfg, accepted):
 
 
 @njit(cache=True)
-def frame_sums(nu, S, nis, accepted, nis_cap):
+def frame_sums(nu, S, nis, accepted, nis_cap, joint):
     """The frame's terms of :meth:`~stellar_cal_ros.methods.results.RunStats.add` (10,).
 
     ``[n, Σ log det S, Σ min(NIS, cap), Σ du², Σ dv², Σ S_uu, Σ S_vv, Σ NIS, whitened
-    u mean · √n, whitened v mean · √n]`` over the accepted stars.
+    u mean · √n, whitened v mean · √n]`` over the accepted stars; the third plus ``joint``
+    (the frame's :func:`~stellar_cal_ros.core.covariance.joint_correction`, 0 without a
+    stamp noise).
     """
     out = np.zeros(10)
     n = 0
@@ -640,6 +643,7 @@ def frame_sums(nu, S, nis, accepted, nis_cap):
     if n:
         out[8] = w1s / n * math.sqrt(n)
         out[9] = w2s / n * math.sqrt(n)
+        out[2] += joint
     return out
 
 
@@ -811,6 +815,7 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
     Hp_r = np.empty((n_acc, 2, P_all))
     all_rows = np.arange(n_acc)
     Lf = np.zeros((m2, m2))  # the last gain's Cholesky factor of S (the sensitivity's)
+    joint = 0.0  # (frame_sums': the frame's likelihood less its stars', with a stamp noise)
     for it in range(1, max_it + 1):
         if timing:
             Hg = np.empty((m2, N + 1))
@@ -825,6 +830,11 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
             return BAD_GAIN, accepted, uv_pred, S_blocks, nis_stars, dirs, np.zeros(N)
         if it == 1:
             nis = nis_it
+            if timing:  # the frame's likelihood (the stars share the stamp's error)
+                ld = 0.0
+                for k in range(m2):
+                    ld += 2.0 * math.log(Lf[k, k])
+                joint = _joint_correction(nis, ld, S_blocks, nis_stars, accepted)
         dx_prev = dx
         dx = K @ (z - h + H @ dx)
         if it == max_it:
@@ -913,7 +923,7 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
             for k in range(mc):
                 M[a, k] = topm[a, k]
     floats[0] = nis
-    floats[2:12] = frame_sums(nu0, S_blocks, nis_stars, accepted, cfg[11])
+    floats[2:12] = frame_sums(nu0, S_blocks, nis_stars, accepted, cfg[11], joint)
     return UPDATED, accepted, uv_pred, S_blocks, nis_stars, dirs, dx
 
 

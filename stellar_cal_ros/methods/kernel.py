@@ -98,6 +98,9 @@ class FrameUpdate:
     #: the frame's terms of the running statistics (:func:`~.results.frame_sums`; None:
     #: computed from the fields when needed)
     sums: np.ndarray | None = None
+    #: the frame's ``−2 log`` likelihood less its stars' own where the run states a stamp
+    #: noise (:func:`~stellar_cal_ros.core.covariance.joint_correction`; 0: none)
+    joint: float = 0.0
 
 
 @dataclass
@@ -649,12 +652,18 @@ class StarFilter(Acquisition):
             return Hn.reshape(-1, N), pred.uv.reshape(-1)
 
         Hb = Hb0[idx].reshape(-1, self.n_consider) if self.n_consider else None
+        common = None if c_t is None else c_t[idx].reshape(-1)
+        # (the frame's likelihood where the stars share the stamp's error: its log det at
+        # the prior, its NIS the update's first pass)
+        logdet = cov.frame_logdet(self.P, H, r_diag, common) if common is not None else 0.0
         res = self.state.iterated_update(H, h, z, r_diag, relinearize, self.update_policy,
                                          self.ia, self.it, Hb, compiled=self.compiled_step,
-                                         common=None if c_t is None else c_t[idx].reshape(-1))
+                                         common=common)
         if not res.ok:
             self._failed(res.reason, t_exp)
             return result
+        if common is not None:
+            result.joint = cov.joint_correction(res.nis, logdet, S_blocks, nis_stars, accepted)
         self.inject(res.dx)
         self._updated(result, res.nis, int(len(z)), res.iterations)
         return result

@@ -304,7 +304,9 @@ def frame_sums(upd) -> np.ndarray:
     ``[n, Σ log det S, Σ min(NIS, cap), Σ du², Σ dv², Σ S_uu, Σ S_vv, Σ NIS, whitened u
     mean · √n, whitened v mean · √n]`` (whitened: Cholesky ``L⁻¹ ν``).  The compiled frame
     step computes the same (:func:`~stellar_cal_ros.methods.frame_step.frame_sums`) and hands
-    it over as ``FrameUpdate.sums``.
+    it over as ``FrameUpdate.sums``.  A frame with a stamp noise in its R adds to the third
+    its ``upd.joint`` (:func:`~stellar_cal_ros.core.covariance.joint_correction`): the
+    log-likelihood is then the frame's, whose stars share the stamp's one error.
     """
     acc = upd.accepted
     n = int(acc.sum())
@@ -332,6 +334,9 @@ def frame_sums(upd) -> np.ndarray:
     w2 = (nu[:, 1] - l21 * w1) / l22
     out[8] = float(w1.mean()) * math.sqrt(n)
     out[9] = float(w2.mean()) * math.sqrt(n)
+    joint = getattr(upd, "joint", 0.0)
+    if joint:
+        out[2] += joint
     return out
 
 
@@ -359,7 +364,8 @@ class RunStats:
     accepted_total: int = 0  #: accepted stars over the whole run (window or not)
     gated: int = 0  #: stars of the window the gate rejected
     sum_logdet: float = 0.0  #: Σ log det S over the window's accepted stars
-    sum_nis_capped: float = 0.0  #: Σ min(NIS, cap) over them
+    #: Σ min(NIS, cap) over them (and the frames' stamp corrections: :func:`frame_sums`)
+    sum_nis_capped: float = 0.0
     sum_du2: float = 0.0
     sum_dv2: float = 0.0
     sum_suu: float = 0.0
@@ -522,6 +528,9 @@ class RunStats:
         alike on the stars it rejects) — as :func:`stellar_cal_ros.diagnosis.stats.
         log_likelihood` does with the median on a whole table.  Every log-determinant is
         weighted by :data:`LOGDET_WEIGHT` (the cap's consistency, :func:`logdet_weight`).
+        With a stamp noise in R the stars of a frame share its error: each frame's
+        :func:`~stellar_cal_ros.core.covariance.joint_correction` is added (uncapped,
+        unweighted; in ``sum_nis_capped``): the frame's likelihood, not its stars'.
         """
         if not self.stars:
             return math.nan
