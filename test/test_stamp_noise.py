@@ -75,18 +75,31 @@ def test_stamp_column_is_the_prediction_s_derivative_in_time(psce_bag, compiled)
 
 
 @pytest.mark.parametrize("compiled", [True, False])
-def test_a_common_column_is_the_full_r(compiled) -> None:
+@pytest.mark.parametrize("frame_px", [0.0, 0.2])
+def test_a_common_column_is_the_full_r(compiled, frame_px) -> None:
+    """One column (the stamp's) and three (the stamp's and a frame-common shift's two, H296:
+    ``common_columns``): the update equals a linear update with the full R."""
     rng = np.random.default_rng(8)
     n, N = 9, 14
     A = rng.normal(size=(N, N))
     P = A @ A.T / N + np.eye(N) * 1e-3
     H = rng.normal(size=(2 * n, N))
     r = np.repeat(rng.uniform(0.01, 0.1, n), 2)
-    c = rng.normal(size=2 * n) * 0.3
+    H_att = rng.normal(size=(n, 2, 3))
+    c = cov.common_columns(H_att, np.eye(3), np.array([0.1, -0.2, 0.3]), 0.3, frame_px
+                           ).reshape(2 * n, -1)
+    if not frame_px:
+        c = c[:, 0]
+        np.testing.assert_array_equal(c, cov.stamp_column(
+            H_att, np.eye(3), np.array([0.1, -0.2, 0.3]), 0.3).reshape(-1))
+    else:
+        assert c.shape == (2 * n, 3) and np.all(c[0::2, 1] == frame_px) \
+            and np.all(c[1::2, 2] == frame_px) and not c[0::2, 2].any()
     z, h = rng.normal(size=2 * n), np.zeros(2 * n)
     res = cov.iterated_update(P, H, h, z, r, None, cov.UpdatePolicy(), compiled=compiled,
                               common=c)
-    dx, Pn, K, nis = cov.linear_update(P, H, z - h, np.diag(r) + np.outer(c, c))
+    C = c.reshape(2 * n, -1)
+    dx, Pn, K, nis = cov.linear_update(P, H, z - h, np.diag(r) + C @ C.T)
     assert res.ok
     np.testing.assert_allclose(res.dx, dx, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(res.K, K, rtol=1e-9, atol=1e-12)
@@ -191,6 +204,13 @@ def test_stamp_noise_parses_and_round_trips() -> None:
     assert NoiseScales(stamp_ms=0.0).identity and "stamp_sigma_ms" not in NoiseScales().as_dict()
     with pytest.raises(ValueError, match="stamp noise"):
         NoiseScales.parse("stamp=-1")
+    # a frame-common shift (H296): ``frame=PX``, saved as ``frame_sigma_px``
+    f = NoiseScales.parse("stamp=0.8,frame=0.04")
+    assert (f.stamp_ms, f.frame_px) == (0.8, 0.04) and f.as_dict()["frame_sigma_px"] == 0.04
+    assert NoiseScales.from_dict(f.as_dict()) == f
+    assert NoiseScales(frame_px=0.0).identity and "frame_sigma_px" not in NoiseScales().as_dict()
+    with pytest.raises(ValueError, match="frame-common noise"):
+        NoiseScales.parse("frame=-0.1")
 
 
 def test_the_noise_verdict_applies_the_stamps_it_names_and_the_nis_comes_back() -> None:

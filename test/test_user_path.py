@@ -640,6 +640,14 @@ def test_the_kernel_cache_is_one_per_kernel_version_shared_by_checkouts(tmp_path
     assert {p for p in root.rglob("*.py") if "njit(" in p.read_text()} <= sources
     for _, name, obj in _kernels(KERNEL_MODULES):
         assert Path(inspect.getfile(obj.py_func)).resolve() in sources, name
+    # (and a function of another module a kernel module compiles, frame_step's
+    # covariance.common_columns: its file's change is a new version too)
+    import importlib
+
+    for mod in KERNEL_MODULES:
+        for name, obj in vars(importlib.import_module(mod)).items():
+            if hasattr(obj, "py_func") and hasattr(obj, "_cache"):
+                assert Path(inspect.getfile(obj.py_func)).resolve() in sources, name
     monkeypatch.setenv(jit.KERNEL_CACHE_ENV, str(tmp_path))
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     where = jit.kernel_cache_dir()

@@ -125,11 +125,13 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
         Gain and Joseph step in compiled kernels (:func:`stellar_cal_ros.core.jit.
         kalman_gain`, :func:`~stellar_cal_ros.core.jit.joseph`; ignored without numba):
         the same formulas, Cholesky by hand instead of LAPACK — equal to rounding.
-    common : ndarray (m,), optional
-        A noise every row shares: ``R = diag(r) + c cᵀ`` (a frame's stamp error moves all its
-        stars at once, ``c = σ_t ∂h/∂t``: :func:`stamp_column`).  Taken as one more error
-        state of unit variance seen through ``c`` (:func:`augment`), whose gain rows are
-        dropped: the same S, gain and Joseph covariance as the full R.  None: diagonal R.
+    common : ndarray (m,) or (m, k), optional
+        Noises every row shares: ``R = diag(r) + C Cᵀ`` (a frame's stamp error moves all its
+        stars at once, ``c = σ_t ∂h/∂t``: :func:`stamp_column`; a shift common to the
+        frame's stars, ``σ_f`` on each u and each v row: :func:`common_columns`).  Taken as
+        ``k`` more error states of unit variance seen through ``C`` (:func:`augment`), whose
+        gain rows are dropped: the same S, gain and Joseph covariance as the full R.  None:
+        diagonal R.
 
     The first pass gives the gain, the frame NIS and, when the correction is small (a
     rotation below ``relinearize_rad`` and every other part below ``relinearize_sigma`` σ),
@@ -149,7 +151,9 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
     if jit is not None:
         P = np.ascontiguousarray(P, dtype=float)
         r_diag = np.ascontiguousarray(r_diag, dtype=float)
-    P_g = P if common is None else augment(P)
+    if common is not None and common.ndim == 2 and common.shape[1] == 1:
+        common = common[:, 0]  # (one column: the stamp's, as a vector)
+    P_g = P if common is None else augment(P, 1 if common.ndim == 1 else common.shape[1])
     for it in range(1, policy.max_iterations + 1):
         H_g = H if common is None else np.column_stack([H, common])
         if jit is not None:
@@ -200,20 +204,48 @@ def iterated_update(P: np.ndarray, H: np.ndarray, h: np.ndarray, z: np.ndarray,
         Pn = A @ P @ A.T + (K * r_diag) @ K.T
     if common is not None:
         kc = K @ common
-        Pn += np.outer(kc, kc)
+        Pn += np.outer(kc, kc) if kc.ndim == 1 else kc @ kc.T
     return UpdateResult(True, dx, Pn, K, H, nis, it)
 
 
-def augment(P: np.ndarray) -> np.ndarray:
-    """``blkdiag(P, 1)`` (N + 1, N + 1): ``P`` with a frame-common noise of unit variance.
+def augment(P: np.ndarray, k: int = 1) -> np.ndarray:
+    """``blkdiag(P, I_k)`` (N + k, N + k): ``P`` with ``k`` frame-common noises of unit variance.
 
-    With ``H`` given the column ``c`` it adds ``c cᵀ`` to ``H P Hᵀ`` (``iterated_update``'s
+    With ``H`` given the columns ``C`` it adds ``C Cᵀ`` to ``H P Hᵀ`` (``iterated_update``'s
     ``common``, each star's block ``S_i`` of the gate).
     """
     N = len(P)
-    out = np.zeros((N + 1, N + 1))
+    out = np.zeros((N + k, N + k))
     out[:N, :N] = P
-    out[N, N] = 1.0
+    for i in range(N, N + k):
+        out[i, i] = 1.0
+    return out
+
+
+def common_columns(H_attitude: np.ndarray, R_i_b: np.ndarray, omega: np.ndarray,
+                   sigma_t: float, sigma_f: float) -> np.ndarray:
+    """The frame's common noises' columns (n, 2, k): its stars' motion in each, σ-scaled.
+
+    ``σ_t > 0``: the stamp's column (:func:`stamp_column`) first; ``σ_f > 0`` (px): a shift
+    of all the frame's stars by one error per axis (an attitude or image jitter the gyro
+    does not see, :func:`~stellar_cal_ros.diagnosis.noise_structure.frame_common`), two
+    columns ``σ_f (1, 0)`` and ``σ_f (0, 1)`` on every star: the frame's R gains
+    ``σ_f² I₂`` in every 2 × 2 block, its own and between stars.  ``k`` = 0–3; a caller
+    with both σ zero takes none (the diagonal R).  Arrays in, written for numba as well
+    (the compiled star update's, ``frame_step``).
+    """
+    n = H_attitude.shape[0]
+    k = (1 if sigma_t > 0.0 else 0) + (2 if sigma_f > 0.0 else 0)
+    out = np.zeros((n, 2, k))
+    j = 0
+    if sigma_t > 0.0:
+        w = R_i_b @ omega
+        out[:, :, 0] = sigma_t * (H_attitude[:, :, 0] * w[0] + H_attitude[:, :, 1] * w[1]
+                                  + H_attitude[:, :, 2] * w[2])
+        j = 1
+    if sigma_f > 0.0:
+        out[:, 0, j] = sigma_f
+        out[:, 1, j + 1] = sigma_f
     return out
 
 
@@ -226,11 +258,9 @@ def stamp_column(H_attitude: np.ndarray, R_i_b: np.ndarray, omega: np.ndarray,
     (``H_attitude`` (n, 2, 3) the prediction's ∂uv/∂φ, ``R_i_b`` the attitude at exposure,
     ``omega`` the body rate, rad/s).  One δt for all the frame's stars: the frame's R gains
     the rank-one ``c cᵀ`` (``iterated_update``'s ``common``, flattened), not a per-star term.
-    Arrays in, written for numba as well (the compiled star update's, ``frame_step``).
+    The first of :func:`common_columns`.
     """
-    w = R_i_b @ omega
-    return sigma_t * (H_attitude[:, :, 0] * w[0] + H_attitude[:, :, 1] * w[1]
-                      + H_attitude[:, :, 2] * w[2])
+    return common_columns(H_attitude, R_i_b, omega, sigma_t, 0.0)[:, :, 0]
 
 
 def joint_correction(nis: float, logdet: float, S: np.ndarray, nis_stars: np.ndarray,
@@ -256,8 +286,12 @@ def joint_correction(nis: float, logdet: float, S: np.ndarray, nis_stars: np.nda
 
 def frame_logdet(P: np.ndarray, H: np.ndarray, r_diag: np.ndarray, common: np.ndarray
                  ) -> float:
-    """``log det (H P Hᵀ + diag(r) + c cᵀ)``: the frame's (numpy; :func:`joint_correction`)."""
-    S = H @ P @ H.T + np.outer(common, common)
+    """``log det (H P Hᵀ + diag(r) + C Cᵀ)``: the frame's (numpy; :func:`joint_correction`).
+
+    ``common`` (m,) or (m, k): the frame's common columns (:func:`common_columns`).
+    """
+    C = common.reshape(len(common), -1)
+    S = H @ P @ H.T + C @ C.T
     S.ravel()[::len(S) + 1] += r_diag
     return float(np.linalg.slogdet(S)[1])
 

@@ -50,9 +50,10 @@ import numpy as np
 from stellar_cal_ros.core.rotation import _jacobian_single, _so3_exp_single
 
 #: the package's files that hold compiled code: the kernels' modules and the Python functions
-#: they compile (``rotation``'s, ``imu_prefix``'s); their contents name the kernel cache
+#: they compile (``rotation``'s, ``imu_prefix``'s, ``covariance``'s); their contents name the
+#: kernel cache
 KERNEL_SOURCES = ("core/jit.py", "core/rotation.py", "core/imu_prefix.py", "core/float_text.py",
-                  "methods/star_chain.py", "methods/frame_step.py")
+                  "methods/star_chain.py", "methods/frame_step.py", "core/covariance.py")
 #: environment: the kernel cache's directory (``tree``: numba's per-checkout ``__pycache__``)
 KERNEL_CACHE_ENV = "STELLAR_CAL_KERNEL_CACHE"
 _PACKAGE = Path(__file__).resolve().parents[1]

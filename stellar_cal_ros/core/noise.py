@@ -14,7 +14,11 @@ of a datasheet), and a tracker may send ``sigma = 0`` for "unknown".  A run appl
   bias the model states), the process noise of the ``gyro_bias`` block;
 * a noise in the frames' stamps :attr:`NoiseScales.stamp_ms` (ms rms; 0: exact stamps): one
   error per frame, shared by its stars, which the frame's measurement covariance carries
-  (:func:`~stellar_cal_ros.core.covariance.stamp_column`).
+  (:func:`~stellar_cal_ros.core.covariance.stamp_column`);
+* a shift common to all stars of a frame :attr:`NoiseScales.frame_px` (px rms per axis; 0:
+  none): one error per frame and axis, white between frames, which the frame's measurement
+  covariance carries as ``σ_f² I₂`` in every pair of its stars
+  (:func:`~stellar_cal_ros.core.covariance.common_columns`).
 
 1.0 everywhere is "as stated".  The diagnosis measures the scales from the run itself
 (:mod:`stellar_cal_ros.diagnosis.noise`); ``replay --noise-scale`` applies them.
@@ -52,7 +56,8 @@ GROUP_SPEC = ("a group spec is by=magnitude|radius|column|row,edges=E1/E2,factor
               "by=magnitude,edges=4.5,factors=1/0.5")
 #: the items ``--noise-scale`` takes
 SCALE_SPEC = ("star=S, gyro=G, accel=A, unknown=PX, rho=R, share=W, gyro_bias_rw=D "
-              "(deg/h/sqrt(h)), stamp=MS (the frames' stamps' noise, ms rms), or a group spec "
+              "(deg/h/sqrt(h)), stamp=MS (the frames' stamps' noise, ms rms), frame=PX (a "
+              "shift all stars of a frame share, px rms per axis), or a group spec "
               "by=magnitude|radius|column|row,edges=E1/E2,factors=F0/F1/F2")
 
 
@@ -105,6 +110,10 @@ class NoiseScales:
     #: same for all its stars, in each frame's R as ``σ_t² J_t J_tᵀ``
     #: (:func:`~stellar_cal_ros.core.covariance.stamp_column`)
     stamp_ms: float = 0.0
+    #: σ of a shift all stars of a frame share, px per axis (0: none): one error per frame
+    #: and axis, white between frames, in each frame's R as ``σ_f² I₂`` between every two
+    #: of its stars and on each (:func:`~stellar_cal_ros.core.covariance.common_columns`)
+    frame_px: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("star", "gyro", "accel"):
@@ -134,13 +143,15 @@ class NoiseScales:
                              f"{self.gyro_bias_rw!r}")
         if not (math.isfinite(self.stamp_ms) and self.stamp_ms >= 0.0):
             raise ValueError(f"stamp noise must be >= 0 ms, got {self.stamp_ms!r}")
+        if not (math.isfinite(self.frame_px) and self.frame_px >= 0.0):
+            raise ValueError(f"frame-common noise must be >= 0 px, got {self.frame_px!r}")
 
     @property
     def identity(self) -> bool:
         """Nothing rescaled."""
         return (self.star == 1.0 and self.gyro == 1.0 and self.accel == 1.0
                 and not self.unknown_sigma_px and not self.group_by and not self.star_rho
-                and not self.gyro_bias_rw and not self.stamp_ms)
+                and not self.gyro_bias_rw and not self.stamp_ms and not self.frame_px)
 
     @property
     def stars_as_stated(self) -> bool:
@@ -273,6 +284,8 @@ class NoiseScales:
             out["gyro_bias_rw_deg_h_sqrth"] = float(self.gyro_bias_rw)
         if self.stamp_ms:
             out["stamp_sigma_ms"] = float(self.stamp_ms)
+        if self.frame_px:
+            out["frame_sigma_px"] = float(self.frame_px)
         return out
 
     @classmethod
@@ -288,7 +301,8 @@ class NoiseScales:
                    str(groups.get("by", "")), tuple(float(e) for e in groups.get("edges", ())),
                    tuple(float(f) for f in groups.get("scales", ())), rho, share,
                    float(d.get("gyro_bias_rw_deg_h_sqrth", 0.0) or 0.0),
-                   float(d.get("stamp_sigma_ms", 0.0) or 0.0))
+                   float(d.get("stamp_sigma_ms", 0.0) or 0.0),
+                   float(d.get("frame_sigma_px", 0.0) or 0.0))
 
     @classmethod
     def parse(cls, text: str) -> NoiseScales:
@@ -304,11 +318,12 @@ class NoiseScales:
         white + AR(1) noise, ``rho`` then the AR(1)'s coefficient and ``share`` its part of
         the variance (:attr:`star_ar_share`; the advice prints ``star=K,rho=R,share=W``).
         ``gyro_bias_rw``: the gyro bias's random walk, deg/h/√h (:attr:`gyro_bias_rw`).
-        ``stamp``: the frames' stamps' noise, ms rms (:attr:`stamp_ms`).
+        ``stamp``: the frames' stamps' noise, ms rms (:attr:`stamp_ms`).  ``frame``: a
+        shift all stars of a frame share, px rms per axis (:attr:`frame_px`).
         """
         keys = {"star": "star", "gyro": "gyro", "accel": "accel",
                 "unknown": "unknown_sigma_px", "rho": "star_rho", "share": "star_ar_share",
-                "gyro_bias_rw": "gyro_bias_rw", "stamp": "stamp_ms"}
+                "gyro_bias_rw": "gyro_bias_rw", "stamp": "stamp_ms", "frame": "frame_px"}
         values: dict[str, Any] = {}
         last = ""
         for item in text.replace(";", ",").split(","):

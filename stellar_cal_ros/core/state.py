@@ -261,7 +261,8 @@ class ErrorState:
 
         The correction ``res.dx`` is not injected (:meth:`inject`).  ``H_consider`` (m, n_c):
         the measurement's consider columns (sensitivity update with the prior's S).
-        ``common`` (m,): a noise all rows share, ``R = diag(r) + c cᵀ`` (the frame's stamp).
+        ``common`` (m,) or (m, k): noises all rows share, ``R = diag(r) + C Cᵀ`` (the frame's
+        stamp, a shift of all its stars: :func:`~.covariance.common_columns`).
         """
         res = cov.iterated_update(self.P, H, h, z, r_diag, relinearize, policy, rotation,
                                   others, compiled=compiled, common=common)
@@ -272,7 +273,8 @@ class ErrorState:
             S = res.H @ self.P @ res.H.T
             S.ravel()[::len(S) + 1] += r_diag
             if common is not None:
-                S += np.outer(common, common)
+                C = common.reshape(len(common), -1)
+                S += C @ C.T
             sens.update(res.H, H_consider, res.K, z - h, S)
         self.P = res.P
         return res

@@ -360,16 +360,21 @@ class NoiseVerdict:
         if not self._common():
             return ""
         c = self.frame_common
-        return (f"the frames share a noise: all stars of a frame move by one error of "
+        head = (f"the frames share a noise: all stars of a frame move by one error of "
                 f"{c['sigma_px']:.3g} +- {c['sigma_sigma_px']:.2g} px rms per axis, white from "
                 "frame to frame (the frames' mean innovations beyond what the stars' sigma "
                 f"and the filter's attitude predict, z = {c['z']:.3g}; {c['slow_px']:.3g} px "
                 f"in the slower half of the frames, {c['fast_px']:.3g} in the faster: not the "
                 "stamps, not a smear): the tracker moving against the IMU faster than the "
                 "frames (an attitude or image jitter the gyro does not see), noise, not an "
-                "effect. The stars' sigma, measured within each frame, does not hold it and "
-                "no --noise-scale item states it: the filter takes it for attitude error, "
-                "and the minimal detectable sizes grow with it")
+                "effect. The stars' sigma, measured within each frame, does not hold it")
+        if "applied_px" in c:  # (:func:`~.noise_runs._at_frames`'s run with it)
+            return (head + ": applied in each frame's measurement covariance, "
+                    f"{c['applied_px']:.2g} px shared by its stars (NIS/dof "
+                    f"{c['nis_before']:.3g} -> {c['nis_after']:.3g}): use --noise-scale "
+                    f"frame={c['applied_px']:.2g}")
+        return (head + "; the filter takes it for attitude error, and the minimal detectable "
+                f"sizes grow with it: use --noise-scale frame={c['sigma_px']:.2g} to state it")
 
     def _sample_lines(self) -> list[str]:
         """The IMU noise measured from its own samples, where it is not as stated."""

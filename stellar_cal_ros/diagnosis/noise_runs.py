@@ -55,6 +55,7 @@ def measure(runs, prior, effects: tuple[str, ...], base, tell=None,
     v = _judge(runs, prior, effects, base, tell, components, stated)
     v, base = _at_samples(v, runs, prior, effects, base, tell, components, stated)
     v, base = _at_stamps(v, runs, prior, effects, base, tell, components, stated)
+    v, base = _at_frames(v, runs, prior, effects, base, tell, components, stated)
     if not walk_asked(v, base, components):
         return v
     walk = search_walk(v, runs, prior, effects, base, tell, 1 + len(components))
@@ -113,21 +114,73 @@ def _at_stamps(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tel
     if not got:
         return v, base
     ms = float(f"{got['ms']:.2g}")  # (the size printed is the size applied)
-    ran = v.applied.replace(stamp_ms=ms)
-    key = "noise: the model with the frames' stamp noise"
-    again = runs.run_all([Task(key, prior, tuple(effects), noise=ran, cost=SEARCH_COST,
-                               star_noise=True)])[key]
-    if not again.ok:
+    judged = _judged_with(runs, prior, effects, base, tell, components, stated,
+                          "noise: the model with the frames' stamp noise",
+                          v.applied.replace(stamp_ms=ms))
+    if judged is None:
         return v, base
-    w = _judge(runs, prior, effects, again, tell, components, stated, ran)
-    if w.skipped or "gyro" in w.beyond:
-        return v, base
-    w.stamp_jitter = dict(got, applied_ms=ms, nis_before=base.window["nis"]["mean"] / 2.0,
-                          nis_after=again.window["nis"]["mean"] / 2.0)
+    w, again, nis = judged
+    w.stamp_jitter = dict(got, applied_ms=ms, **nis)
     w.rejected.append("stamp")
     if tell:
         tell(f"noise: the frames' stamps jitter {ms:.2g} ms rms: applied, NIS/dof "
              f"{w.stamp_jitter['nis_before']:.3g} -> {w.stamp_jitter['nis_after']:.3g}")
+    return w, again
+
+
+def _judged_with(runs, prior, effects: tuple[str, ...], base, tell,
+                 components: tuple[str, ...], stated: NoiseScales, key: str,
+                 ran: NoiseScales):
+    """``(verdict, run, {nis_before, nis_after})`` of the model run again with ``ran``.
+
+    A frame-common noise named on ``base`` (the stamps', :func:`_at_stamps`; a shift of
+    all the frame's stars, :func:`_at_frames`) put in each frame's R: the model's run
+    ``key`` with it, its stars' noise measured, the verdict made on it; the stars' NIS/dof
+    of ``base`` and of that run.  None where the run failed, the model is still far off
+    with it, or the stars ask the gyro for more motion than its noise (the verdict without
+    it stands).
+    """
+    again = runs.run_all([Task(key, prior, tuple(effects), noise=ran, cost=SEARCH_COST,
+                               star_noise=True)])[key]
+    if not again.ok:
+        return None
+    w = _judge(runs, prior, effects, again, tell, components, stated, ran)
+    if w.skipped or "gyro" in w.beyond:
+        return None
+    return w, again, {"nis_before": base.window["nis"]["mean"] / 2.0,
+                      "nis_after": again.window["nis"]["mean"] / 2.0}
+
+
+def _at_frames(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tell,
+               components: tuple[str, ...], stated: NoiseScales):
+    """``(verdict, base run)``: judged again with the frames' common shift in the model's R.
+
+    Where the verdict named a noise all stars of a frame share (``v.frame_common``,
+    :func:`~.noise.named_common`: one shift per frame and axis, white between frames, which
+    the stars' σ measured within each frame does not hold), the model is run once more
+    with it in each frame's measurement covariance (``NoiseScales.frame_px``, σ_f² I₂
+    between every two of its stars: :func:`~stellar_cal_ros.core.covariance.common_columns`)
+    at the σ_f measured (the size printed), its stars' noise measured and the verdict made
+    on that run: the shift is applied (``use --noise-scale frame=X``), the frames' NIS/dof
+    comes back to ~1 and the minimal detectable sizes of the later rounds hold it (unseen
+    case ``frame_jitter``).  Where that run fails, is far off or asks the gyro for more
+    motion, ``(v, base)`` (named, not applied).  Records ``applied_px``, ``nis_before`` /
+    ``nis_after`` (the stars' NIS/dof of the two runs) in the frames' dict.
+    """
+    got = v.frame_common if v.frame_common and not v.stamp_jitter else None
+    if not got or not base.ok or not base.window:
+        return v, base
+    px = float(f"{got['sigma_px']:.2g}")  # (the size printed is the size applied)
+    judged = _judged_with(runs, prior, effects, base, tell, components, stated,
+                          "noise: the model with the frames' common shift",
+                          v.applied.replace(frame_px=px))
+    if judged is None:
+        return v, base
+    w, again, nis = judged
+    w.frame_common = dict(got, applied_px=px, **nis)
+    if tell:
+        tell(f"noise: the frames share a shift of {px:.2g} px rms per axis: applied, NIS/dof "
+             f"{w.frame_common['nis_before']:.3g} -> {w.frame_common['nis_after']:.3g}")
     return w, again
 
 
@@ -437,7 +490,7 @@ def _judge(runs, prior, effects: tuple[str, ...], base, tell, components: tuple[
     cam = prior.camera
     sn = base.star_noise
     applied = _from_samples(v, runs, components, n_tests).replace(
-        gyro_bias_rw=ran.gyro_bias_rw, stamp_ms=ran.stamp_ms)
+        gyro_bias_rw=ran.gyro_bias_rw, stamp_ms=ran.stamp_ms, frame_px=ran.frame_px)
     v.skipped = far_off(base, sn, base.calibration or prior, runs.fraction, v)
     if v.skipped:
         if tell:

@@ -66,7 +66,7 @@ from stellar_cal_ros.methods.frames import (
     frame_inputs_columns,
 )
 from stellar_cal_ros.methods.star_model import StarModel
-from stellar_cal_ros.sim.tracker_errors import Ar1Tracks, stamp_errors
+from stellar_cal_ros.sim.tracker_errors import Ar1Tracks, frame_shifts, stamp_errors
 from stellar_cal_ros.sim.truth_effects import SIM_ONLY, normalize_effect
 
 IMU_FRAME = "imu_link"
@@ -602,6 +602,10 @@ def render(data: BagData, calibration: Calibration, effects: dict[str, Any] | No
         [np.zeros((0, 2))] + [tracks.draw(j, sc.catalog_id[a:a + k]) for j, a, k in
                               zip(live.tolist(), starts, n.tolist(), strict=True)])
     uv = uv + sig[:, None] * z
+    if noise.frame_px > 0:
+        # a shift all stars of a frame share (``--noise-scale frame=``), one draw per frame
+        uv = uv + np.repeat(frame_shifts(len(data.frames), noise.frame_px, seed)[live], n,
+                            axis=0)
     keep = (d[:, 2] > 0) & cam.in_image(np.nan_to_num(uv, nan=-1e9))
     counts["off_detector"] = int((~keep).sum())
     counts["stars"] = int(keep.sum())

@@ -52,6 +52,8 @@ def noise_line(noise) -> str:
         star += ", white"
     stamps = f"; the frames' stamps off by {noise.stamp_ms:.2g} ms rms" \
         if noise.stamp_ms else ""
+    if noise.frame_px:
+        stamps += f"; each frame's stars shifted together by {noise.frame_px:.2g} px rms per axis"
     return (f"{star}; gyro x{noise.gyro:.3g}, accelerometer x{noise.accel:.3g} "
             f"(white; 1 = as stated){stamps}")
 

@@ -39,7 +39,7 @@ from typing import TextIO
 
 import numpy as np
 
-from stellar_cal_ros.core.covariance import augment, joint_correction, stamp_column
+from stellar_cal_ros.core.covariance import augment, common_columns, joint_correction
 from stellar_cal_ros.core.imu_prefix import in_sample_rotvec
 from stellar_cal_ros.core.jit import (
     HAVE_NUMBA,
@@ -65,7 +65,7 @@ _CHI2_2_MEDIAN = 2.0 * math.log(2.0)
 CONFIG_FIELDS = ("threshold", "scale_by_frame", "mismatch_factor", "lost_lock_factor",
                  "fov_tan2", "min_stars", "max_iterations", "iteration_tolerance",
                  "relinearize_rad", "relinearize_sigma", "max_correction_rad", "nis_cap",
-                 "stamp_sigma")
+                 "stamp_sigma", "frame_sigma")
 
 
 @njit(cache=True)
@@ -80,8 +80,8 @@ def _mat3_mul_t(a, b):
 
 _in_sample_rotvec = njit(cache=True)(in_sample_rotvec)
 _augment = njit(cache=True)(augment)
-_stamp_column = njit(cache=True)(stamp_column)
 _joint_correction = njit(cache=True)(joint_correction)
+_common_columns = njit(cache=True)(common_columns)
 
 
 @njit(cache=True)
@@ -763,15 +763,18 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
                 H0[i, r, 3 + k] = H_par[i, r, k]
     nu0 = uv - uv_pred
     r_meas = sigma * sigma
-    # the frame's stamp noise σ_t (cfg[12], s): one δt moves every star by c = σ_t ∂uv/∂t,
-    # an error state of unit variance seen through c (covariance.iterated_update's common)
-    timing = cfg[12] > 0.0
-    ct = _stamp_column(H_att, R_out[0], omega, cfg[12]) if timing else np.zeros((n, 2))
+    # the frame's common noises, error states of unit variance seen through their columns
+    # (covariance.iterated_update's common): the stamp's σ_t (cfg[12], s), one δt moving
+    # every star by σ_t ∂uv/∂t; a shift σ_f (cfg[13], px per axis) of all its stars
+    timing = cfg[12] > 0.0 or cfg[13] > 0.0
+    ct = _common_columns(H_att, R_out[0], omega, cfg[12], cfg[13]) if timing else \
+        np.zeros((n, 2, 0))
+    kc = ct.shape[2]
     if timing:
-        H0g = np.zeros((n, 2, N + 1))
+        H0g = np.zeros((n, 2, N + kc))
         H0g[:, :, :N] = H0
-        H0g[:, :, N] = ct
-        S_blocks, nis_stars = star_blocks(H0g, _augment(P), r_meas, nu0)
+        H0g[:, :, N:] = ct
+        S_blocks, nis_stars = star_blocks(H0g, _augment(P, kc), r_meas, nu0)
     else:
         S_blocks, nis_stars = star_blocks(H0, P, r_meas, nu0)
     accepted = np.zeros(n, dtype=np.bool_)
@@ -794,10 +797,11 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
         h[2 * q], h[2 * q + 1] = uv_pred[i, 0], uv_pred[i, 1]
         rr[2 * q] = rr[2 * q + 1] = r_meas[i]
     H = _assemble(H_att, H_par, Pe, N, idx)
-    cc = np.zeros(m2)
+    cc = np.zeros((m2, kc))
     for q in range(n_acc):
-        cc[2 * q], cc[2 * q + 1] = ct[idx[q], 0], ct[idx[q], 1]
-    Pg = _augment(P) if timing else P
+        for j in range(kc):
+            cc[2 * q, j], cc[2 * q + 1, j] = ct[idx[q], 0, j], ct[idx[q], 1, j]
+    Pg = _augment(P, kc) if timing else P
     u_acc = np.ascontiguousarray(u[idx])
     du_acc = np.ascontiguousarray(du[idx])
     sig_floor = np.empty(N)
@@ -818,9 +822,9 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
     joint = 0.0  # (frame_sums': the frame's likelihood less its stars', with a stamp noise)
     for it in range(1, max_it + 1):
         if timing:
-            Hg = np.empty((m2, N + 1))
+            Hg = np.empty((m2, N + kc))
             Hg[:, :N] = H
-            Hg[:, N] = cc
+            Hg[:, N:] = cc
             okg, Kg, nis_it, Lf = kalman_gain_factor(Pg, Hg, rr, nu)
             K = np.ascontiguousarray(Kg[:N])
         else:
@@ -894,10 +898,11 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
     # ---- covariance, injection, reset
     Pn = joseph(P, K, H, rr)
     if timing:
-        kc = K @ cc
+        KC = K @ cc
         for a in range(N):
             for b in range(N):
-                Pn[a, b] += kc[a] * kc[b]
+                for j in range(kc):
+                    Pn[a, b] += KC[a, j] * KC[b, j]
     for k in range(Pe):
         theta[k] += dx[3 + k]
     R_new = mat3_mul(so3_exp1(dx[0:3].copy()), R_b)
@@ -1062,7 +1067,7 @@ class FusedStep:
                   "iteration_tolerance": c.iteration_tolerance,
                   "relinearize_rad": c.relinearize_rad, "relinearize_sigma": c.relinearize_sigma,
                   "max_correction_rad": flt.propagation.max_correction_rad, "nis_cap": NIS_CAP,
-                  "stamp_sigma": flt.stamp_sigma}
+                  "stamp_sigma": flt.stamp_sigma, "frame_sigma": flt.frame_sigma}
         self.cfg = np.array([float(values[k]) for k in CONFIG_FIELDS])
         self.q_diag = np.ascontiguousarray(flt._q_diag, dtype=float)
         self.Pe = int(flt.P_est)

@@ -281,6 +281,10 @@ class StarFilter(Acquisition):
         #: frame's R gains its stars' common motion in it (:func:`~stellar_cal_ros.core.
         #: covariance.stamp_column`)
         self.stamp_sigma = 1e-3 * float(getattr(c.noise, "stamp_ms", 0.0) or 0.0)
+        #: σ (px per axis) of a shift all stars of a frame share, white between frames, the
+        #: noise scales state (0: none): each frame's R gains σ_f² I₂ in every star pair's
+        #: block (:func:`~stellar_cal_ros.core.covariance.common_columns`)
+        self.frame_sigma = float(getattr(c.noise, "frame_px", 0.0) or 0.0)
         sl = model.slices.get("gyro_bias")
         if self.gyro_bias_rw > 0 and sl is not None and sl.stop <= self.P_est:
             # (deg/h/√h → rad/s/√s)
@@ -603,12 +607,14 @@ class StarFilter(Acquisition):
         H0, Hb0 = self._star_jacobian(pred0)
         nu0 = uv - pred0.uv
         jit = cov.compiled_kernels() if self.compiled_step else None
-        # the frame's stamp noise: one δt moves every star (R gains c cᵀ, c = σ_t ∂uv/∂t)
-        c_t = cov.stamp_column(pred0.H_attitude, ctx.R_i_b, ctx.omega_b, self.stamp_sigma) \
-            if self.stamp_sigma > 0 else None
+        # the frame's common noises: one stamp error δt moves every star (R gains c cᵀ,
+        # c = σ_t ∂uv/∂t), one shift of all its stars (R gains σ_f² I₂ in every pair's block)
+        c_t = cov.common_columns(pred0.H_attitude, ctx.R_i_b, ctx.omega_b, self.stamp_sigma,
+                                 self.frame_sigma) \
+            if self.stamp_sigma > 0 or self.frame_sigma > 0 else None
         if jit is not None:
             Hs, Ps = (H0, self.P) if c_t is None else (
-                np.concatenate([H0, c_t[:, :, None]], axis=2), cov.augment(self.P))
+                np.concatenate([H0, c_t], axis=2), cov.augment(self.P, c_t.shape[2]))
             S_blocks, nis_stars = jit.star_blocks(np.ascontiguousarray(Hs),
                                                   np.ascontiguousarray(Ps),
                                                   np.ascontiguousarray(R_meas, dtype=float),
@@ -618,7 +624,7 @@ class StarFilter(Acquisition):
             S_blocks[:, 0, 0] += R_meas
             S_blocks[:, 1, 1] += R_meas
             if c_t is not None:
-                S_blocks += c_t[:, :, None] * c_t[:, None, :]
+                S_blocks += c_t @ c_t.transpose(0, 2, 1)
             nis_stars = block_nis(nu0, S_blocks)
         gate = self.gate.decide(nis_stars, pred0.directions_st)
         accepted = gate.accepted
@@ -652,7 +658,7 @@ class StarFilter(Acquisition):
             return Hn.reshape(-1, N), pred.uv.reshape(-1)
 
         Hb = Hb0[idx].reshape(-1, self.n_consider) if self.n_consider else None
-        common = None if c_t is None else c_t[idx].reshape(-1)
+        common = None if c_t is None else c_t[idx].reshape(-1, c_t.shape[2])
         # (the frame's likelihood where the stars share the stamp's error: its log det at
         # the prior, its NIS the update's first pass)
         logdet = cov.frame_logdet(self.P, H, r_diag, common) if common is not None else 0.0

@@ -332,12 +332,19 @@ def frame_jitter(sim, rms_px: float, seed: int) -> np.ndarray:
     error common to the frame's stars, white from frame to frame, not each star's noise
     (unseen case ``frame_jitter``).  Returns the shifts (px, one ``(u, v)`` per frame).
     """
-    rng = np.random.default_rng(seed + 5381)
-    out = np.empty((len(sim.star_frames), 2))
+    out = frame_shifts(len(sim.star_frames), rms_px, seed)
     for i, f in enumerate(sim.star_frames):
-        out[i] = rms_px * rng.standard_normal(2)
         f.uv = np.asarray(f.uv, dtype=float) + out[i]
     return out
+
+
+def frame_shifts(n: int, rms_px: float, seed: int) -> np.ndarray:
+    """``n`` frames' common shifts (n, 2), N(0, ``rms_px``²) per axis each (px).
+
+    :func:`frame_jitter`'s; a twin renders a frame-common noise it is given with them
+    (:func:`~stellar_cal_ros.diagnosis.twin.render`).
+    """
+    return rms_px * np.random.default_rng(seed + 5381).standard_normal((n, 2))
 
 
 def star_offsets(sim, rms_px: float, seed: int) -> dict[int, np.ndarray]:
