@@ -222,7 +222,9 @@ class NoiseVerdict:
     #: {ms, p_value, nis_share} or None
     stamp_jitter: dict[str, float] | None = None
     #: a noise every star of a frame shares, white from frame to frame, named
-    #: (:func:`named_common`): :func:`~.noise_structure.frame_common`'s dict, or None
+    #: (:func:`named_common`): :func:`~.noise_structure.frame_common`'s dict, or None; with
+    #: ``applied_px``, ``nis_before``, ``nis_after`` where the model ran again with it in R
+    #: (:func:`~.noise_runs._at_frames`)
     frame_common: dict[str, float] | None = None
 
     @property
@@ -356,6 +358,8 @@ class NoiseVerdict:
 
         Unseen case ``frame_jitter`` (one N(0, 0.04 px) shift of all stars of a frame, white
         between frames): RMS 0.063 px for 0.050 expected was "noise as stated" and no line.
+        Applied in R (``applied_px``): it says so and what to use (``frame=X``), as the
+        stamps' line does.
         """
         if not self._common():
             return ""

@@ -116,21 +116,19 @@ def _at_stamps(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tel
     ms = float(f"{got['ms']:.2g}")  # (the size printed is the size applied)
     judged = _judged_with(runs, prior, effects, base, tell, components, stated,
                           "noise: the model with the frames' stamp noise",
-                          v.applied.replace(stamp_ms=ms))
+                          v.applied.replace(stamp_ms=ms),
+                          f"the frames' stamps jitter {ms:.2g} ms rms")
     if judged is None:
         return v, base
     w, again, nis = judged
     w.stamp_jitter = dict(got, applied_ms=ms, **nis)
     w.rejected.append("stamp")
-    if tell:
-        tell(f"noise: the frames' stamps jitter {ms:.2g} ms rms: applied, NIS/dof "
-             f"{w.stamp_jitter['nis_before']:.3g} -> {w.stamp_jitter['nis_after']:.3g}")
     return w, again
 
 
 def _judged_with(runs, prior, effects: tuple[str, ...], base, tell,
                  components: tuple[str, ...], stated: NoiseScales, key: str,
-                 ran: NoiseScales):
+                 ran: NoiseScales, said: str):
     """``(verdict, run, {nis_before, nis_after})`` of the model run again with ``ran``.
 
     A frame-common noise named on ``base`` (the stamps', :func:`_at_stamps`; a shift of
@@ -138,7 +136,7 @@ def _judged_with(runs, prior, effects: tuple[str, ...], base, tell,
     ``key`` with it, its stars' noise measured, the verdict made on it; the stars' NIS/dof
     of ``base`` and of that run.  None where the run failed, the model is still far off
     with it, or the stars ask the gyro for more motion than its noise (the verdict without
-    it stands).
+    it stands).  ``tell`` hears ``said`` with the two NIS/dof where it is applied.
     """
     again = runs.run_all([Task(key, prior, tuple(effects), noise=ran, cost=SEARCH_COST,
                                star_noise=True)])[key]
@@ -147,8 +145,12 @@ def _judged_with(runs, prior, effects: tuple[str, ...], base, tell,
     w = _judge(runs, prior, effects, again, tell, components, stated, ran)
     if w.skipped or "gyro" in w.beyond:
         return None
-    return w, again, {"nis_before": base.window["nis"]["mean"] / 2.0,
-                      "nis_after": again.window["nis"]["mean"] / 2.0}
+    nis = {"nis_before": base.window["nis"]["mean"] / 2.0,
+           "nis_after": again.window["nis"]["mean"] / 2.0}
+    if tell:
+        tell(f"noise: {said}: applied, NIS/dof {nis['nis_before']:.3g} -> "
+             f"{nis['nis_after']:.3g}")
+    return w, again, nis
 
 
 def _at_frames(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tell,
@@ -170,17 +172,17 @@ def _at_frames(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tel
     got = v.frame_common if v.frame_common and not v.stamp_jitter else None
     if not got or not base.ok or not base.window:
         return v, base
-    px = float(f"{got['sigma_px']:.2g}")  # (the size printed is the size applied)
+    # (the size printed is the size applied; on a run that held a shift already, the one
+    # measured is beyond it: the two add in variance)
+    px = float(f"{math.hypot(v.applied.frame_px, got['sigma_px']):.2g}")
     judged = _judged_with(runs, prior, effects, base, tell, components, stated,
                           "noise: the model with the frames' common shift",
-                          v.applied.replace(frame_px=px))
+                          v.applied.replace(frame_px=px),
+                          f"the frames share a shift of {px:.2g} px rms per axis")
     if judged is None:
         return v, base
     w, again, nis = judged
     w.frame_common = dict(got, applied_px=px, **nis)
-    if tell:
-        tell(f"noise: the frames share a shift of {px:.2g} px rms per axis: applied, NIS/dof "
-             f"{w.frame_common['nis_before']:.3g} -> {w.frame_common['nis_after']:.3g}")
     return w, again
 
 
