@@ -114,43 +114,43 @@ def _at_stamps(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tel
     if not got:
         return v, base
     ms = float(f"{got['ms']:.2g}")  # (the size printed is the size applied)
-    judged = _judged_with(runs, prior, effects, base, tell, components, stated,
-                          "noise: the model with the frames' stamp noise",
-                          v.applied.replace(stamp_ms=ms),
-                          f"the frames' stamps jitter {ms:.2g} ms rms")
-    if judged is None:
-        return v, base
-    w, again, nis = judged
-    w.stamp_jitter = dict(got, applied_ms=ms, **nis)
-    w.rejected.append("stamp")
+    w, again = _judged_with(v, runs, prior, effects, base, tell, components, stated,
+                            "noise: the model with the frames' stamp noise",
+                            v.applied.replace(stamp_ms=ms),
+                            f"the frames' stamps jitter {ms:.2g} ms rms",
+                            "stamp_jitter", dict(got, applied_ms=ms))
+    if w is not v:
+        w.rejected.append("stamp")
     return w, again
 
 
-def _judged_with(runs, prior, effects: tuple[str, ...], base, tell,
+def _judged_with(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tell,
                  components: tuple[str, ...], stated: NoiseScales, key: str,
-                 ran: NoiseScales, said: str):
-    """``(verdict, run, {nis_before, nis_after})`` of the model run again with ``ran``.
+                 ran: NoiseScales, said: str, field: str, record: dict):
+    """``(verdict, run)`` of the model run again with ``ran``, or ``(v, base)``.
 
     A frame-common noise named on ``base`` (the stamps', :func:`_at_stamps`; a shift of
     all the frame's stars, :func:`_at_frames`) put in each frame's R: the model's run
     ``key`` with it, its stars' noise measured, the verdict made on it; the stars' NIS/dof
-    of ``base`` and of that run.  None where the run failed, the model is still far off
-    with it, or the stars ask the gyro for more motion than its noise (the verdict without
-    it stands).  ``tell`` hears ``said`` with the two NIS/dof where it is applied.
+    of ``base`` and of that run.  Where the run failed, the model is still far off with
+    it, or the stars ask the gyro for more motion than its noise: ``(v, base)``, the
+    verdict without it.  Otherwise the new verdict's ``field`` is ``record`` with
+    ``nis_before``, ``nis_after`` and ``tell`` hears ``said`` with them.
     """
     again = runs.run_all([Task(key, prior, tuple(effects), noise=ran, cost=SEARCH_COST,
                                star_noise=True)])[key]
     if not again.ok:
-        return None
+        return v, base
     w = _judge(runs, prior, effects, again, tell, components, stated, ran)
     if w.skipped or "gyro" in w.beyond:
-        return None
-    nis = {"nis_before": base.window["nis"]["mean"] / 2.0,
-           "nis_after": again.window["nis"]["mean"] / 2.0}
+        return v, base
+    got = dict(record, nis_before=base.window["nis"]["mean"] / 2.0,
+               nis_after=again.window["nis"]["mean"] / 2.0)
+    setattr(w, field, got)
     if tell:
-        tell(f"noise: {said}: applied, NIS/dof {nis['nis_before']:.3g} -> "
-             f"{nis['nis_after']:.3g}")
-    return w, again, nis
+        tell(f"noise: {said}: applied, NIS/dof {got['nis_before']:.3g} -> "
+             f"{got['nis_after']:.3g}")
+    return w, again
 
 
 def _at_frames(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tell,
@@ -175,15 +175,11 @@ def _at_frames(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tel
     # (the size printed is the size applied; on a run that held a shift already, the one
     # measured is beyond it: the two add in variance)
     px = float(f"{math.hypot(v.applied.frame_px, got['sigma_px']):.2g}")
-    judged = _judged_with(runs, prior, effects, base, tell, components, stated,
-                          "noise: the model with the frames' common shift",
-                          v.applied.replace(frame_px=px),
-                          f"the frames share a shift of {px:.2g} px rms per axis")
-    if judged is None:
-        return v, base
-    w, again, nis = judged
-    w.frame_common = dict(got, applied_px=px, **nis)
-    return w, again
+    return _judged_with(v, runs, prior, effects, base, tell, components, stated,
+                        "noise: the model with the frames' common shift",
+                        v.applied.replace(frame_px=px),
+                        f"the frames share a shift of {px:.2g} px rms per axis",
+                        "frame_common", dict(got, applied_px=px))
 
 
 def _at_samples(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tell,
