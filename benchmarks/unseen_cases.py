@@ -943,7 +943,8 @@ def _gyro_coloured(sim, seed):
 
 def _backlash(sim, seed, arcsec=8.0):
     # mount hysteresis (backlash): the tracker lags each slew by 8 arcsec about the slew's
-    # axis and stays there until the next (tracker_errors.backlash); then the stated noise
+    # axis and stays there until the next (tracker_errors.backlash; a sequence: each slew's
+    # in turn); then the stated noise
     tracker_errors.backlash(sim, arcsec)
     _renoise(sim, lambda m, uv: PSCE_SIGMA, PSCE_SIGMA, seed)
 
@@ -1692,7 +1693,24 @@ CASES: dict[str, Case] = {
                                 "px) about the slew's axis and stays there until the next "
                                 "(the library's installation is one constant; no gyro sees "
                                 "it)", "", _backlash,
-                                may_add=("installation",)),
+                                may_add=("installation",),
+                                not_told="differs from slew to slew"),
+    # (H297) the same lag on a 1500-s bag: ~25 slews, 13 of them in the evaluation window and
+    # the one before it (H289's steps were fitted for at most 4: none here on coord 6c738a9)
+    "backlash_long": _centroid_error("mount backlash on a 1500-s bag (about 25 slews): the "
+                                     "tracker lags each slew by 8 arcsec (0.15 px) about the "
+                                     "slew's axis and stays there until the next (the "
+                                     "library's installation is one constant; no gyro sees "
+                                     "it)", "", _backlash, may_add=("installation",),
+                                     duration=1500.0, not_told="differs from slew to slew"),
+    # (H297) a lag that differs from slew to slew: 4 and 12 arcsec in turn (mean 8)
+    "backlash_vary": _centroid_error("mount backlash that differs from slew to slew: the "
+                                     "tracker lags each slew by 4 and 12 arcsec in turn about "
+                                     "the slew's axis and stays there until the next (not one "
+                                     "lag; no library effect)", "",
+                                     lambda sim, seed: _backlash(sim, seed, (4.0, 12.0)),
+                                     may_add=("installation",),
+                                     told="a lag that differs from slew to slew"),
     "mag_scale": _centroid_error("a magnitude-dependent image scale: each star moved radially "
                                  "by 0.06 (mag - 4.5) (r / r_corner) px (not in the library; "
                                  "its mean over the stars may be taken by focal_length)",

@@ -1193,7 +1193,8 @@ def _beside_slews(runs, state: _State, base: RunSummary, prior: Calibration,
     explain the window (their ratio against ``base``, χ² with 3 × slews dof, at ``ALPHA``)
     and ``c``'s ratio beside them (χ²_dof tail × ``tests``, Bonferroni over the candidates
     judged so) is not significant, the refusal with its reason; else ``None`` (no slews to
-    fit: a platform that never rests, or more than :data:`~.slew_steps.MAX_STEPS`).
+    fit: a platform that never rests; any number of slews: the steps are 3 states, their
+    variance grown at each slew's start, :class:`~.slew_steps.SlewSteps`).
     A gyro scale error grows through a slew and a time offset vanishes at rest: steps held
     from a slew's start take neither (unseen cases ``gsf100``, ``twin_dt1``).
     """
@@ -1213,21 +1214,28 @@ def _beside_slews(runs, state: _State, base: RunSummary, prior: Calibration,
     tasks = [Task(key, candidate_prior(at, c.effect, calibration), extra + (c.effect,),
                   cost=1.5, candidate=True)]
     if "run" not in state.slews:
-        tasks.append(Task("the slews' steps alone", at, extra))
+        # (and one lag at every slew: whether it differs from slew to slew)
+        installation_step.register_step(runs, slew_steps.SlewLag)
+        tasks += [Task("the slews' steps alone", at, extra),
+                  Task("one lag at the slews", slew_steps.with_lag(prior, slews),
+                       tuple(state.extra) + (slew_steps.LAG_ID,))]
     got = runs.run_all(tasks, None)
     if "run" not in state.slews:
         alone = got["the slews' steps alone"]
         state.slews["run"] = alone if alone.ok else None
-        if alone.ok:
+        steps = slew_steps.fitted(alone.calibration.effects.get(slew_steps.STEPS_ID) or {},
+                                  slews) if alone.ok and alone.calibration else None
+        if steps is None:  # (a run that failed, or ended before the last slew)
+            state.slews["run"] = None
+        else:
             dof = 3 * len(slews)
             stat, p, _ = Reference.of(base).compare(alone, dof)
-            steps = slew_steps.fitted(_estimates(alone, slew_steps.STEPS_ID), slews)
-            lam, sig = slew_steps.lag(steps, slews)
             state.slews["test"] = {
-                "steps": steps, "lag_arcsec": lam, "lag_sigma_arcsec": sig,
+                "steps": steps, **slew_steps.lag(steps, slews),
                 "steps_statistic": float(stat), "steps_dof": dof, "steps_p_value": float(p),
                 "first_t": state.slews["first_t"],
-                "focal_px": float((base.calibration or prior).camera.fx)}
+                "focal_px": float((base.calibration or prior).camera.fx),
+                **_one_lag(got["one lag at the slews"], alone, base, dof - 1)}
     alone, run = state.slews["run"], got[key]
     if alone is None or not run.ok or not state.slews["test"]["steps_p_value"] < ALPHA:
         return None
@@ -1246,6 +1254,24 @@ def _beside_slews(runs, state: _State, base: RunSummary, prior: Calibration,
               "outside the library; not added")
     return {"slew_steps": test, "statistic": float(stat), "p_value": p, "dof": c.dof,
             "tests": max(tests, 1), "reason": reason, "remainder": slew_steps.REMAINDER}
+
+
+def _one_lag(one: RunSummary, steps: RunSummary, base: RunSummary, dof: int) -> dict:
+    """One lag at every slew (:class:`~.slew_steps.SlewLag`) against the slews' steps.
+
+    ``lag_arcsec`` / ``lag_sigma_arcsec``: the filter's λ (where its run is ok; else
+    :func:`~.slew_steps.lag`'s from the offsets stays); ``lags_statistic``: the steps'
+    2Δℓ/dispersion over it, χ² with ``dof`` (3 × slews − 1) where the lag is the same at
+    every slew; ``lags_p_value`` its tail (NaN without the run).
+    """
+    if not one.ok:
+        return {"lags_statistic": math.nan, "lags_dof": dof, "lags_p_value": math.nan}
+    stat = 2.0 * (steps.window["log_likelihood"] - one.window["log_likelihood"]) \
+        / Reference.of(base).dispersion
+    (lam, sig), = _estimates(one, slew_steps.LAG_ID).values()
+    return {"lag_arcsec": lam / ARCSEC, "lag_sigma_arcsec": sig / ARCSEC,
+            "lags_statistic": float(stat), "lags_dof": dof,
+            "lags_p_value": float(dist.chi2.sf(max(stat, 0.0), dof))}
 
 
 def _step_fitted(run: RunSummary) -> tuple[list[float], list[float]]:
@@ -1415,7 +1441,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
                    if "slew_steps" in b), None)
     if slewed is not None:
         # one refused beside the slews' steps: their line (the round's fit), said first
-        fields.append(slew_steps.finding(slewed))
+        fields.append(slew_steps.finding(slewed, ALPHA))
     if installation_step.STEP_ID in state.extra and state.step_line is not None:
         # the step is fitted (hidden) in the final model, so its test there sees none: the
         # line of the round it entered, with its size fitted on the final model

@@ -20,6 +20,14 @@ neither.  A lag that persists takes the steps entirely: a rate-shaped candidate
 (:data:`RIVALS`) that explains nothing beside them is refused
 (:func:`~stellar_cal_ros.diagnosis.auto._beside_slews`), and the steps' line names the
 jumps (:func:`finding`).
+
+The steps are one 3-vector in the filter, their sum so far, whose variance grows by a
+step's prior at each slew's start (H297; H289 fitted a 3-vector per slew, at most 4: a
+2-h psce bag has 60 slews in its window): the same model, marginalized slew by slew, at
+the cost of 6 states whatever the bag's length (3 more keep the sum before the last step,
+refined by the next slew).  The lag ``λ`` is fitted to the offsets held over the slews'
+intervals, and so is each slew's own ``λ_i`` (a lag that differs from slew to slew is
+said so, :func:`lag`).
 """
 
 from __future__ import annotations
@@ -35,8 +43,12 @@ from stellar_cal_ros.effects.base import Effect, Stage
 
 #: the nuisance's private id (a leading ``_``: never listed by the registry)
 STEPS_ID = "_slew_steps"
-#: at most this many slews' steps fitted (the window's and the one before it); more: no test
-MAX_STEPS = 4
+#: one lag at every slew (:class:`SlewLag`), the steps' special case
+LAG_ID = "_slew_lag"
+#: each step's prior σ per component (rad): the variance the filter adds at a slew's start
+STEP_SIGMA = 100.0 * ARCSEC
+#: the steps' sum's σ before the first slew fitted (rad: ~zero, a covariance kept positive)
+STILL = 1e-4 * ARCSEC
 #: a frame is in a slew where its gyro rate is above this share of the frames' 95th
 #: percentile
 FAST = 0.5
@@ -64,7 +76,7 @@ def slew_starts(res: stats.Table, R_imu_st: np.ndarray | None, fraction: float
     it, zero for the table's first).  Kept: the slews starting within
     the evaluation window (the last ``fraction`` of the table's time) and the last one
     before it.  ``None`` without the rate columns or the installation, with fewer than
-    :data:`MIN_SLEWS` slews in the window or more than :data:`MAX_STEPS` to fit, or where
+    :data:`MIN_SLEWS` slews in the window, or where
     the platform never rests (fewer than half of the frames out of a slew): ``None``.
     """
     if R_imu_st is None or not all(f"omega_{x}" in res for x in "xyz") or not len(res["t"]):
@@ -99,112 +111,246 @@ def slew_starts(res: stats.Table, R_imu_st: np.ndarray | None, fraction: float
     cut = t0 + (1.0 - fraction) * (t1 - t0)
     inside = [s for s in slews if s["t_posix"] >= cut]
     before = [s for s in slews if s["t_posix"] < cut][-1:]
-    if len(inside) < MIN_SLEWS or len(inside) + len(before) > MAX_STEPS:
+    if len(inside) < MIN_SLEWS:
         return None
     return before + inside
 
 
 class SlewSteps(Effect):
-    """The installation rotated by ``δ_i`` from each slew's start ``T_i`` on (fitted).
+    """The installation rotated by ``Σ_{T_i ≤ t} δ_i``: a free step ``δ_i`` from each slew's start.
 
     Not a library effect and never offered (:mod:`~stellar_cal_ros.diagnosis.slew_steps`):
-    a rival of a rate-shaped candidate.  :data:`MAX_STEPS` steps of 3 components; the
-    times travel in the prior (``effects[STEPS_ID]["t_posix"]``: a list, a step without a
-    time never acts), as :class:`~.installation_step.StepNuisance`'s.
+    a rival of a rate-shaped candidate.  One rotation of 3 components ``d``, the steps' sum
+    so far; the filter adds each step's prior variance (:data:`STEP_SIGMA` per component)
+    at its slew's start (:attr:`~stellar_cal_ros.effects.base.Effect.steps_at`):
+    independent steps, marginalized one after the other.  Three more ``p`` hold ``d``'s
+    value before the last step (:attr:`~.effects.base.Effect.keeps_before_step`): the
+    offset over the slew before, refined by the next slew's frames, which tell an offset of
+    the tracker from an error of the attitude.  6 states however many slews.  Before the
+    first slew fitted the sum is zero (σ :data:`STILL`).  The times travel in the prior
+    (``effects[STEPS_ID]["t_posix"]``: a list), as
+    :class:`~.installation_step.StepNuisance`'s; the offsets over each slew's interval are
+    stored (:meth:`store`: ``offsets`` / ``offsets_sigma``, rad, the installation
+    rotation's sign): ``p`` as the filter shows it at the step after next (a slew's offset
+    with the frames to the end of the next slew's interval), the last two the final ``p``
+    and ``d``.
     """
 
     id = STEPS_ID
     stage = Stage.TRACKER
     order = 16
-    parameter_names = tuple(f"d{i}{x}" for i in range(MAX_STEPS) for x in "xyz")
-    units = ("rad",) * (3 * MAX_STEPS)
-    default_sigma = (100.0 * ARCSEC,) * (3 * MAX_STEPS)
+    parameter_names = ("dx", "dy", "dz", "px", "py", "pz")
+    units = ("rad",) * 6
+    default_sigma = (STEP_SIGMA,) * 6
     explanation = "a lag at each slew, fitted as a nuisance (not a library effect)"
-    T: tuple[float, ...] = ()
+    keeps_before_step = True
 
     def initial(self, prior):  # noqa: D102
         block = (prior.effects or {}).get(self.id) or {}
-        self.T = tuple(float(x) for x in block.get("t_posix", ()))
-        return super().initial(prior)
+        self.steps_at = tuple(float(x) for x in block.get("t_posix", ()))
+        self.held: dict[int, tuple[list[float], list[float]]] = {}
+        return np.zeros(6), np.full(6, STILL)
+
+    def stepped(self, k, value, sigma):  # noqa: D102
+        if k >= 2:  # p: the offset over slew k − 2's interval, through slew k − 1's
+            self.held[k - 2] = ([float(x) for x in value[3:]], [float(x) for x in sigma[3:]])
 
     def store(self, value, sigma, cal):  # noqa: D102
         super().store(value, sigma, cal)
-        cal.effects[self.id]["t_posix"] = list(self.T)
-
-    def _on(self, stamp: float) -> np.ndarray:
-        on = np.zeros(MAX_STEPS)
-        on[:len(self.T)] = [stamp >= T for T in self.T]
-        return on
+        block = cal.effects[self.id]
+        n = len(self.steps_at)
+        block["t_posix"] = list(self.steps_at)
+        held = dict(getattr(self, "held", {}))
+        if n and len(held) == max(n - 2, 0):  # (else a run that ended before the last slew)
+            if n >= 2:
+                held[n - 2] = ([float(x) for x in value[3:]], [float(x) for x in sigma[3:]])
+            held[n - 1] = ([float(x) for x in value[:3]], [float(x) for x in sigma[:3]])
+        block["offsets"] = [held[k][0] if k in held else None for k in range(n)]
+        block["offsets_sigma"] = [held[k][1] if k in held else None for k in range(n)]
 
     def tracker_rotation(self, value, ctx):  # noqa: D102
-        return self._on(ctx.stamp) @ np.asarray(value, dtype=float).reshape(MAX_STEPS, 3)
+        return np.asarray(value[:3], dtype=float)
 
     def tracker_rotation_jacobian(self, value, ctx):  # noqa: D102
-        return np.kron(self._on(ctx.stamp)[None, :], np.eye(3))
+        return np.hstack([np.eye(3), np.zeros((3, 3))])
 
 
 def with_steps(prior, slews: list[dict]):
-    """``prior`` with :class:`SlewSteps` at ``slews``' starts (a copy; zero ± 100″)."""
+    """``prior`` with :class:`SlewSteps` at ``slews``' starts (a copy; each step 0 ± 100″)."""
     out = copy.deepcopy(prior)
     out.effects[STEPS_ID] = {"t_posix": [s["t_posix"] for s in slews]}
     return out
 
 
-def fitted(est: dict[str, list[float]], slews: list[dict]) -> list[dict]:
-    """Each slew's fitted step (arcsec, the stars' sign) and its part along the slew's axis.
+def fitted(block: dict, slews: list[dict]) -> list[dict] | None:
+    """Each slew's fitted offset and step (arcsec, the stars' sign) and the step along its axis.
 
-    ``est``: the nuisance's ``{param: [value, sigma]}`` in a run (rad).
-    ``[{"t", "step_arcsec", "sigma_arcsec", "along_arcsec"}]`` (``t`` POSIX s);
-    ``along``: the rotation's component about the slew's own axis (a lag: opposite to it).
+    ``block``: the nuisance's stored calibration block in a run (:meth:`SlewSteps.store`).
+    ``[{"t", "offset_arcsec", "offset_sigma_arcsec", "step_arcsec", "sigma_arcsec",
+    "along_arcsec"}]`` (``t`` POSIX s): the offset held over the slew's interval (the
+    filter's estimate at its end: the frames up to then), the step its change from the
+    interval before (σ: the two offsets' σ in quadrature, their correlation not kept);
+    ``along``: the step's component about the slew's own axis (a lag: opposite to it).
+    None where a slew's offset is missing (a run that ended early).
     """
+    off, sig = block.get("offsets") or [], block.get("offsets_sigma") or []
+    if len(off) != len(slews) or any(x is None for x in off):
+        return None
     out = []
-    for i, s in enumerate(slews):
-        d = np.array([-est[f"d{i}{x}"][0] / ARCSEC for x in "xyz"])
-        out.append({"t": s["t_posix"], "step_arcsec": [float(x) for x in d],
-                    "sigma_arcsec": [est[f"d{i}{x}"][1] / ARCSEC for x in "xyz"],
-                    "along_arcsec": float(d @ np.asarray(s["axis"]))})
+    before, s_before = np.zeros(3), np.zeros(3)
+    for s, o, so in zip(slews, off, sig, strict=True):
+        d = -np.asarray(o, dtype=float) / ARCSEC
+        sd = np.asarray(so, dtype=float) / ARCSEC
+        step = d - before
+        out.append({"t": s["t_posix"], "offset_arcsec": [float(x) for x in d],
+                    "offset_sigma_arcsec": [float(x) for x in sd],
+                    "step_arcsec": [float(x) for x in step],
+                    "sigma_arcsec": [float(x) for x in np.hypot(sd, s_before)],
+                    "along_arcsec": float(step @ np.asarray(s["axis"]))})
+        before, s_before = d, sd
     return out
 
 
-def lag(steps: list[dict], slews: list[dict]) -> tuple[float, float]:
-    """The lag ``λ`` (arcsec) the fitted steps say, and its σ.
+def lag(steps: list[dict], slews: list[dict]) -> dict:
+    """The lag ``λ`` (arcsec) the fitted offsets say, its σ, and each slew's own.
 
-    A tracker kept turned by ``λ`` about each slew's axis until the next slew.
-    Such a tracker jumps at slew ``i`` by ``λ (a_i − a_{i−1})`` (``a`` the slews' axes,
-    tracker frame; :func:`slew_starts`' ``axis_before``): ``λ`` by least squares over the
-    steps, each component weighted by its σ (their correlation not kept).  Negative: the
-    tracker lags the slew (unseen case ``backlash``: −8″).
+    A tracker kept turned by ``λ_i`` about slew ``i``'s axis ``a_i`` until the next slew
+    sits, over slew ``i``'s interval, at ``λ_i a_i − λ_b a_b`` from the installation fitted
+    before the first slew (``a_b``, ``λ_b``: the slew before it, :func:`slew_starts`'
+    ``axis_before``).  One ``λ`` for all: weighted least squares of the offsets on
+    ``a_i − a_b`` (each component by its σ, their correlation not kept); each its own:
+    ``λ_b, λ_0 … λ_{n−1}`` together.  Negative: the tracker lags the slew (unseen case
+    ``backlash``: −8″).  ``{"lag_arcsec", "lag_sigma_arcsec", "lags_arcsec",
+    "lags_sigma_arcsec"}`` (the per-slew lags, the first the slew before the first fitted;
+    their σ the offsets' formal ones: the filter's catch-up on each jump scatters them more,
+    ~1–2″ at 8″ on ``backlash``; whether they differ is the filter's test,
+    :class:`SlewLag`).
     """
-    b = np.array([np.subtract(s["axis"], s["axis_before"]) for s in slews])
-    d = np.array([x["step_arcsec"] for x in steps])
-    w = 1.0 / np.square(np.array([x["sigma_arcsec"] for x in steps]))
+    n = len(slews)
+    a = np.array([s["axis"] for s in slews], dtype=float)
+    ab = np.asarray(slews[0]["axis_before"], dtype=float)
+    d = np.array([x["offset_arcsec"] for x in steps], dtype=float).reshape(-1)
+    w = 1.0 / np.square(np.array([x["offset_sigma_arcsec"] for x in steps],
+                                 dtype=float)).reshape(-1)
+    out = {"lag_arcsec": math.nan, "lag_sigma_arcsec": math.nan, "lags_arcsec": [],
+           "lags_sigma_arcsec": []}
+    if not np.all(np.isfinite(w)):
+        return out
+    b = (a - ab).reshape(-1)
     info = float(np.sum(w * b * b))
     if not info > 0:
-        return math.nan, math.nan
-    return float(np.sum(w * b * d)) / info, 1.0 / math.sqrt(info)
+        return out
+    out.update(lag_arcsec=float(np.sum(w * b * d)) / info, lag_sigma_arcsec=1 / math.sqrt(info))
+    # each slew its own: columns λ_b (−a_b in every interval), λ_i (a_i in interval i)
+    A = np.zeros((3 * n, n + 1))
+    A[:, 0] = -np.tile(ab, n)
+    for i in range(n):
+        A[3 * i:3 * i + 3, i + 1] = a[i]
+    N = (A * w[:, None]).T @ A
+    if np.linalg.matrix_rank(N) < n + 1:
+        return out
+    cov = np.linalg.inv(N)
+    return dict(out, lags_arcsec=[float(x) for x in cov @ (A.T @ (w * d))],
+                lags_sigma_arcsec=[float(math.sqrt(x)) for x in np.diag(cov)])
 
 
-def finding(test: dict) -> stats.RegressorFinding:
+class SlewLag(Effect):
+    """The installation rotated by ``−λ (a_i − a_b)`` over slew ``i``'s interval: one lag.
+
+    The steps' special case a tracker kept turned by the same ``λ`` about each slew's
+    axis makes (:func:`lag`); its run against the steps' (:class:`SlewSteps`, nested: one
+    parameter for 3 per slew) tests whether the lag differs from slew to slew, the filter
+    weighing every frame, and fits ``λ`` (rad, the stars' sign: negative a lag).  The
+    slews' times and ``a_i − a_b`` (tracker frame) travel in the prior
+    (``effects[LAG_ID]``: ``t_posix``, ``axes``; :func:`with_lag`); zero before the first.
+    Not a library effect, never offered.
+    """
+
+    id = LAG_ID
+    stage = Stage.TRACKER
+    order = 16
+    parameter_names = ("lag",)
+    units = ("rad",)
+    default_sigma = (STEP_SIGMA,)
+    explanation = "one lag at each slew, fitted as a nuisance (not a library effect)"
+
+    def initial(self, prior):  # noqa: D102
+        block = (prior.effects or {}).get(self.id) or {}
+        self.T = np.asarray(block.get("t_posix", ()), dtype=float)
+        self.axes = np.asarray(block.get("axes", ()), dtype=float).reshape(-1, 3)
+        return np.zeros(1), np.array([STEP_SIGMA])
+
+    def store(self, value, sigma, cal):  # noqa: D102
+        super().store(value, sigma, cal)
+        cal.effects[self.id].update(t_posix=self.T.tolist(), axes=self.axes.tolist())
+
+    def _axis(self, stamp: float) -> np.ndarray:
+        i = int(np.searchsorted(self.T, stamp, side="right")) - 1
+        return self.axes[i] if i >= 0 else np.zeros(3)
+
+    def tracker_rotation(self, value, ctx):  # noqa: D102
+        return -float(value[0]) * self._axis(ctx.stamp)
+
+    def tracker_rotation_jacobian(self, value, ctx):  # noqa: D102
+        return -self._axis(ctx.stamp)[:, None]
+
+
+def with_lag(prior, slews: list[dict]):
+    """``prior`` with :class:`SlewLag` at ``slews`` (a copy; λ 0 ± 100″)."""
+    out = copy.deepcopy(prior)
+    ab = np.asarray(slews[0]["axis_before"], dtype=float)
+    out.effects[LAG_ID] = {"t_posix": [s["t_posix"] for s in slews],
+                           "axes": [list(np.asarray(s["axis"], dtype=float) - ab)
+                                    for s in slews]}
+    return out
+
+
+def _times(steps: list[dict], first_t: float) -> str:
+    """The slews' times (s from the table's first), the first and last 3 of a long list."""
+    t = [f"{s['t'] - first_t:.0f}" for s in steps]
+    return ", ".join(t) if len(t) <= 6 else ", ".join(t[:3] + ["..."] + t[-3:])
+
+
+def _sizes(steps: list[dict]) -> str:
+    """The jumps' sizes (arcsec): each of up to 4, else their range."""
+    j = [float(np.linalg.norm(s["step_arcsec"])) for s in steps]
+    if len(j) <= 4:
+        return ", ".join(f"{x:.2g}" for x in j) + '" each'
+    return f'{min(j):.2g} to {max(j):.2g}" (median {np.median(j):.2g}")'
+
+
+def finding(test: dict, alpha: float) -> stats.RegressorFinding:
     """The steps' 'unexplained' line: the jumps at the slews, read as a lag kept after each.
 
     ``test``: :func:`~stellar_cal_ros.diagnosis.auto._beside_slews`' (``steps`` from
-    :func:`fitted`, ``lag_arcsec`` / ``lag_sigma_arcsec`` from :func:`lag`, the steps' own
-    ratio ``steps_statistic`` / ``steps_dof`` / ``steps_p_value``, ``first_t``: the
-    table's first time, ``focal_px``).  Its size the lag at the detector's centre.
+    :func:`fitted`, :func:`lag`'s keys, the steps' own ratio ``steps_statistic`` /
+    ``steps_dof`` / ``steps_p_value``, ``first_t``: the table's first time, ``focal_px``).
+    Its size the lag at the detector's centre.  Where the steps explain significantly more
+    than one lag at ``alpha`` (``lags_p_value``: :class:`SlewLag`'s run against the steps')
+    the line says the lag differs from slew to slew, with each slew's own range (:func:`lag`).
     """
     steps = test["steps"]
     lam, sig = test["lag_arcsec"], test["lag_sigma_arcsec"]
-    times = ", ".join(f"{s['t'] - test['first_t']:.0f}" for s in steps)
-    jumps = ", ".join(f"{np.linalg.norm(s['step_arcsec']):.2g}" for s in steps)
     kind = "lags" if lam < 0 else "leads"
-    text = (f"the attitude jumps at each slew's start and stays until the next (slews at "
-            f"t~{times} s: {jumps}\" each; fitted as steps of the installation, "
-            f"{test['steps_statistic']:.0f} chi2 / {test['steps_dof']} dof): the tracker "
-            f"{kind} each slew by {abs(lam):.2g} +- {sig:.1g}\" about the slew's axis (a lag "
-            "that persists, e.g. a mount's backlash): not a library effect (its installation "
-            "is a constant; a gyro scale or a time offset leaves nothing at rest)")
+    n = len(steps)
+    text = (f"the attitude jumps at each slew's start and stays until the next ({n} slews "
+            f"at t~{_times(steps, test['first_t'])} s: {_sizes(steps)}; fitted as steps "
+            f"of the installation, {test['steps_statistic']:.0f} chi2 / "
+            f"{test['steps_dof']} dof): the tracker {kind} each slew by {abs(lam):.2g} +- "
+            f"{sig:.1g}\" about the slew's axis")
+    p_each = test.get("lags_p_value", math.nan)
+    if p_each < alpha and len(test.get("lags_arcsec") or ()):
+        each = np.asarray(test["lags_arcsec"])
+        text += (f", a lag that differs from slew to slew (each slew's {abs(each).min():.2g} "
+                 f"to {abs(each).max():.2g}\"; the steps explain {test['lags_statistic']:.0f} "
+                 f"chi2 / {test['lags_dof']} dof more than one lag, p = {p_each:.2g})")
+    text += (" (a lag that persists, e.g. a mount's backlash): not a library effect (its "
+             "installation is a constant; a gyro scale or a time offset leaves nothing at "
+             "rest)")
     px = abs(lam) * ARCSEC * float(test["focal_px"])
     return stats.p_finding(text, COMPONENT, test["steps_p_value"], px,
                            detail={"slew_steps": {k: test[k] for k in (
-                               "steps", "lag_arcsec", "lag_sigma_arcsec", "steps_statistic",
-                               "steps_dof", "steps_p_value")}})
+                               "steps", "lag_arcsec", "lag_sigma_arcsec", "lags_arcsec",
+                               "lags_sigma_arcsec", "lags_statistic", "lags_dof",
+                               "lags_p_value", "steps_statistic", "steps_dof",
+                               "steps_p_value")}})

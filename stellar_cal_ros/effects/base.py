@@ -194,6 +194,13 @@ class Effect:
     default_sigma: ClassVar[tuple[float, ...]] = ()
     #: random-walk density of each parameter, unit/√s (0: a constant)
     process_noise: ClassVar[tuple[float, ...]] = ()
+    #: frames' stamps (POSIX s, ascending) from which the parameters take a free step each
+    #: (a nuisance's, e.g. :class:`~stellar_cal_ros.diagnosis.slew_steps.SlewSteps`): the
+    #: filter adds the default σ² to their variance there (:meth:`stepped` first)
+    steps_at: tuple[float, ...] = ()
+    #: the second half of the parameters holds the first half's value before its last step
+    #: (set by the filter at each step, never in the measurement: a fixed-lag estimate)
+    keeps_before_step: ClassVar[bool] = False
     #: context the effect needs ("site", "head_temperature", "weather", "rate", "gravity")
     requires: ClassVar[tuple[str, ...]] = ()
     #: one paragraph for the user: cause, typical size, residual signature
@@ -366,6 +373,9 @@ class Effect:
         if not self.process_noise:
             return np.zeros(self.size)
         return np.asarray(self.process_noise, dtype=float)
+
+    def stepped(self, k: int, value: np.ndarray, sigma: np.ndarray) -> None:
+        """The filter's estimate and σ just before step ``k`` of :attr:`steps_at` (none kept)."""
 
     # ------------------------------------------------------------------ GYRO / ACCEL stage
     def sensor_bias(self, value: np.ndarray) -> np.ndarray:

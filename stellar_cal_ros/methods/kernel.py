@@ -309,6 +309,15 @@ class StarFilter(Acquisition):
             c.reference_window_s, c.exact_propagation)
         self._q_diag = np.concatenate([np.full(3, self.q_gyro), self.q_theta,
                                        np.zeros(self.N - 3 - self.P_est)])
+        #: the effects' free steps (:attr:`~.effects.base.Effect.steps_at`), in time order:
+        #: ``(T, θ slice, effect, k)``; taken once a frame's stamp reaches ``T``
+        #: (:meth:`_take_steps`; not kept by a checkpoint: a diagnosis' nuisance)
+        self._steps = sorted(((float(T), model.slices[e.id], e, k) for e in model.effects
+                              if e.steps_at and model.slices[e.id].stop <= self.P_est
+                              for k, T in enumerate(e.steps_at)), key=lambda x: x[0])
+        #: the next step's stamp (POSIX s; inf: none left)
+        self._step_at = self._steps[0][0] if self._steps else math.inf
+        self._next_step = 0
         self._frame_step = None  # the fused compiled step (frame_step.FusedStep; False: none)
         self._update_step = None  # the compiled star update alone (the same; False: none)
         self._batch = None  # the coming frames' fused steps (frame_step.FrameBatch)
@@ -871,8 +880,8 @@ class StarFilter(Acquisition):
         run = []
         for uv, u_i, ctx, sigma, t_rel, acc in frames[:left]:
             if ctx is None or len(uv) < c.min_stars or not math.isfinite(t_rel) or \
-                    (last is not None and t_rel <= last):
-                break
+                    (last is not None and t_rel <= last) or ctx.stamp >= self._step_at:
+                break  # (a step is taken frame by frame: process_frame)
             if vary is not None:  # (the call finds the rest)
                 run.append((uv, u_i, sigma, math.nan, ctx, 0, 0, t, math.nan, 0, acc, t_rel))
             else:
@@ -1110,6 +1119,44 @@ class StarFilter(Acquisition):
             return
         self._good = self._snapshot()
 
+    def _take_steps(self, stamp: float) -> None:
+        """The effects' steps ``stamp`` reaches: each a free jump of the parameters.
+
+        Their variance grows by the effect's default σ² (a step of independent size, its
+        prior σ), after the effect is shown its estimate just before
+        (:meth:`~.effects.base.Effect.stepped`): the filter marginalizes one step after the
+        other, so a step per slew is a few states however many slews
+        (:class:`~stellar_cal_ros.diagnosis.slew_steps.SlewSteps`).  An effect that
+        :attr:`~.effects.base.Effect.keeps_before_step` has its second half of parameters
+        set to the first half (value, covariance rows and columns, sensitivity rows) before
+        the first half steps: the value before the last step, which the frames after it go
+        on refining (never in the measurement).  Taken before the update of the first frame
+        whose stamp (POSIX s) is at or after the step's time.
+        """
+        steps, i = self._steps, self._next_step
+        P, theta = self.state.P, self.theta
+        sens = self.state.sensitivity
+        while i < len(steps) and stamp >= steps[i][0]:
+            _, sl, eff, k = steps[i]
+            at = np.arange(self.it.start + sl.start, self.it.start + sl.stop)
+            # (P[at, at]: the diagonal)
+            eff.stepped(k, theta[sl].copy(), np.sqrt(np.maximum(P[at, at], 0.0)))
+            var = np.square(np.asarray(eff.default_sigma, dtype=float))
+            if eff.keeps_before_step:
+                m = len(at) // 2
+                cur, old = at[:m], at[m:]
+                P[old, :] = P[cur, :]
+                P[:, old] = P[:, cur]
+                theta[sl.start + m:sl.stop] = theta[sl.start:sl.start + m]
+                if sens is not None:
+                    sens.M[old] = sens.M[cur]
+                at, var = cur, var[:m]
+            P[at, at] += var
+            i += 1
+        self._next_step = i
+        self._step_at = steps[i][0] if i < len(steps) else math.inf
+        self._batch = None  # (a prepared batch stepped from the covariance before)
+
     def process_frame(self, uv: np.ndarray, u_i: np.ndarray, ctx: FrameContext,
                       sigma: np.ndarray, t_rel: float | None = None,
                       valid: bool = False) -> FrameUpdate | None:
@@ -1147,6 +1194,8 @@ class StarFilter(Acquisition):
         self.last_stamp = t_rel
         self._stamp_posix = ctx.stamp
         self._stamp_rel = t_rel
+        if ctx.stamp >= self._step_at:
+            self._take_steps(ctx.stamp)
         if not self.initialized:
             if self.initialize(uv, u_i, ctx, sigma) and self.gyro_watch is not None:
                 self._watch_gyro(uv, u_i, None)

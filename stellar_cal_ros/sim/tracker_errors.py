@@ -490,7 +490,7 @@ def rotate_frame(f, cam, R: np.ndarray) -> None:
                      cam.cy + cam.fy * d[:, 1] / d[:, 2]], 1)
 
 
-def backlash(sim, arcsec: float) -> None:
+def backlash(sim, arcsec) -> None:
     """A mount with backlash: the tracker lags each slew by ``arcsec`` about the slew's axis.
 
     From a slew on (a fast IMU sample: its rate above half its 95th percentile) the
@@ -499,7 +499,8 @@ def backlash(sim, arcsec: float) -> None:
     turned into the tracker's by the true installation) and stays there until the next
     slew: psce's six ±30° steps leave it in a different place after each, so the
     installation steps at every slew (the library's is one constant); nothing before the
-    first slew; no gyro sees it.
+    first slew; no gyro sees it.  ``arcsec``: one lag, or each slew's in turn (a sequence,
+    repeated: a lag that differs from slew to slew).
     """
     imu = sim.imu
     t = np.asarray(imu.stamp_ns, dtype=np.int64)
@@ -507,11 +508,13 @@ def backlash(sim, arcsec: float) -> None:
     speed = np.linalg.norm(w, axis=1)
     fast = speed > 0.5 * np.percentile(speed, 95)
     last = np.maximum.accumulate(np.where(fast, np.arange(len(t)), -1))
+    slew = np.cumsum(fast & ~np.concatenate([[False], fast[:-1]])) - 1  # each sample's slew
+    lags = np.atleast_1d(np.asarray(arcsec, dtype=float))
     R = sim.truth_world.installation().as_matrix()  # R_imu_st
-    theta = np.deg2rad(arcsec / 3600.0)
     for f in sim.star_frames:
         k = last[int(np.clip(np.searchsorted(t, f.stamp_ns) - 1, 0, len(t) - 1))]
         if k >= 0:  # the lag, in the tracker's frame
+            theta = np.deg2rad(lags[slew[k] % len(lags)] / 3600.0)
             rotate_frame(f, sim.prior.camera, so3_exp(R.T @ (-theta * w[k] / speed[k])))
 
 
