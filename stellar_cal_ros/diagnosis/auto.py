@@ -1441,7 +1441,7 @@ def _write(out: Path, calibration: Calibration, spec, state: _State, path, histo
                    if "slew_steps" in b), None)
     if slewed is not None:
         # one refused beside the slews' steps: their line (the round's fit), said first
-        fields.append(slew_steps.finding(slewed, ALPHA))
+        fields.append(slew_steps.finding(slewed))
     if installation_step.STEP_ID in state.extra and state.step_line is not None:
         # the step is fitted (hidden) in the final model, so its test there sees none: the
         # line of the round it entered, with its size fitted on the final model
