@@ -48,9 +48,8 @@ from stellar_cal_ros.sim.world import simulate
 
 
 def nis_dof(res) -> float:
-    """The stars' NIS per degree of freedom over the whole replay."""
-    s = res.stats.current() if hasattr(res.stats, "current") else res.stats
-    return s.sum_nis / (2.0 * s.stars)
+    """The stars' NIS per degree of freedom of the replay's window (``RunStats.nis_per_dof``)."""
+    return res.stats.current().nis_per_dof()[0]
 
 
 def _motion(r, stamp: float):

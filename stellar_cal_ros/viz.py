@@ -92,16 +92,17 @@ def view_fields(names: Sequence[str], values, sigmas, updates: int,
     used; the last one is ``nis_frame``); ``cons``: the run's consistency block so far
     (:func:`~stellar_cal_ros.methods.results.consistency`).
     """
+    from stellar_cal_ros.methods.results import nis_band
+
     last = list(recent)[-MOVING:]
     s_nis = sum(n for n, _ in last)
     s_dof = sum(d for _, d in last)
-    half = 1.959964 * math.sqrt(2.0 / s_dof) if s_dof else math.nan
     nan = math.nan
+    lo, hi = nis_band(s_dof) if s_dof else (nan, nan)
     return {"parameters": parameter_estimates(names, values, sigmas), "updates": int(updates),
             "nis_frame": last[-1][0] / max(last[-1][1], 1) if last else nan,
             "nis_moving": s_nis / s_dof if s_dof else nan,
-            "nis_band_lo": max(0.0, 1.0 - half) if s_dof else nan,
-            "nis_band_hi": 1.0 + half if s_dof else nan,
+            "nis_band_lo": lo, "nis_band_hi": hi,
             "nis_window": float(cons.get("nis_per_dof", nan)),
             "verdict": str(cons.get("verdict", "no data"))}
 

@@ -703,7 +703,7 @@ def flexure_products(sub: stats.Table, frames: np.ndarray, focal: tuple[float, f
                     turns.append(wave[:, None] * axis)
     shifts = [np.einsum("nij,nj->ni", J, turn) for turn in turns]
     if smear:
-        shifts.append(vel * (np.hypot(vel[:, 0], vel[:, 1]) / smear)[:, None])
+        shifts.append(stats.speed_squared(vel, smear))
     if not shifts:
         return none
     X = np.stack(shifts, 2)[on]  # (stars, 2, q)

@@ -17,7 +17,7 @@ from scipy.optimize import brentq
 
 from stellar_cal_ros.core import distributions as dist
 from stellar_cal_ros.core.noise import long_run  # the one long-run factor (also here: ns.long_run)
-from stellar_cal_ros.diagnosis.stats import finite_rows
+from stellar_cal_ros.diagnosis.stats import finite_rows, speed_squared
 
 
 def subpixel_columns(uv: np.ndarray) -> np.ndarray:
@@ -1241,10 +1241,10 @@ def frame_common(res, mask: np.ndarray, sigma_px: np.ndarray, focal: tuple[float
     # each frame's share 1 - h of the fit (its leverage h)
     if vs:
         v = np.stack(vs, 1)[use]
-        speed = np.hypot(v[:, 0], v[:, 1])
+        curve = speed_squared(v)
         for ax in range(2):
             sd = np.sqrt(c[:, ax])
-            X = np.stack([np.ones(len(m)), v[:, ax], v[:, ax] * speed], 1) / sd[:, None]
+            X = np.stack([np.ones(len(m)), v[:, ax], curve[:, ax]], 1) / sd[:, None]
             y = m[:, ax] / sd
             Q, _ = np.linalg.qr(X)
             m[:, ax] = (y - Q @ (Q.T @ y)) * sd

@@ -1067,6 +1067,26 @@ def motion_spread(sub: Table, focal: tuple[float, float], centre: tuple[float, f
     return None if got is None else motion_test(*got, sigma_t=stamp)
 
 
+def image_speed(vel: np.ndarray) -> np.ndarray:
+    """Each star's image speed ``|u|`` (px/s) of its image velocity ``vel`` (n, 2)."""
+    return np.hypot(vel[:, 0], vel[:, 1])
+
+
+def speed_squared(vel: np.ndarray, scale: float = 1.0, speed: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """The speed-squared column ``u |u| / scale`` (n, 2) of image velocities ``vel`` (n, 2).
+
+    A bias along the motion that grows as the speed squared (a streak's clipped tail):
+    :func:`speed_curve`'s regressor, the clock's smear part
+    (:func:`~stellar_cal_ros.diagnosis.clock.flexure_products`' ``smear``) and the
+    frame-common noise's motion fit (:mod:`~stellar_cal_ros.diagnosis.noise_structure`).
+    ``speed``: :func:`image_speed` of ``vel`` where the caller has it.
+    """
+    if speed is None:
+        speed = image_speed(vel)
+    return vel * (speed / scale)[:, None]
+
+
 #: regressor name of :func:`speed_curve` (its component :data:`CURVE_COMPONENT`)
 CURVE = "image rate squared, beyond a time offset (a centroid bias along the motion that " \
     "grows faster than the speed: not in the library)"
@@ -1097,9 +1117,9 @@ def speed_curve(sub: Table, columns: tuple | None) -> RegressorFinding | None:
         return None
     ok, vel, nu, _ = columns
     cov = {k: np.asarray(sub[k], dtype=float)[ok] for k in ("s_uu", "s_uv", "s_vv")}
-    speed = np.hypot(vel[:, 0], vel[:, 1])
+    speed = image_speed(vel)
     a, b, y = (whitened({"du": x[:, 0], "dv": x[:, 1], **cov}).ravel()
-               for x in (vel, vel * speed[:, None], nu))
+               for x in (vel, speed_squared(vel, speed=speed), nu))
     aa = float(a @ a)
     if not aa > 0:
         return None
@@ -1165,7 +1185,7 @@ def frame_offsets(sub: Table, focal: tuple[float, float], centre: tuple[float, f
     g, info, gp, infop = (np.bincount(k, np.einsum("ni,nij,nj->n", x, Si, y),
                                       minlength=len(frames))
                           for x, y in ((vel, nu), (vel, vel), (perp, nu), (perp, perp)))
-    speed = float(np.percentile(np.hypot(vel[:, 0], vel[:, 1]), 95))
+    speed = float(np.percentile(image_speed(vel), 95))
     return frames, g, info, gp, infop, speed
 
 

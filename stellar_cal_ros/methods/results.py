@@ -347,6 +347,16 @@ def _running(start: float, x: np.ndarray) -> float:
     return float(np.add.accumulate(np.concatenate([[start], x]))[-1])
 
 
+def nis_band(dof: int) -> tuple[float, float]:
+    """The 95 % band of a NIS/dof of ``dof`` (> 0) degrees of freedom.
+
+    ``χ²_dof / dof ≈ N(1, 2/dof)``: the run's (:meth:`RunStats.nis_per_dof`), its
+    reference's (:func:`consistency`), the live view's moving window (``viz``).
+    """
+    half = 1.959964 * math.sqrt(2.0 / dof)
+    return max(0.0, 1.0 - half), 1.0 + half
+
+
 @dataclass
 class RunStats:
     """Running statistics of the innovations over the evaluation window (O(1) memory).
@@ -591,8 +601,7 @@ class RunStats:
         if not self.stars:
             return math.nan, (math.nan, math.nan)
         dof = 2 * self.stars
-        half = 1.959964 * math.sqrt(2.0 / dof)  # χ²_dof / dof ≈ N(1, 2/dof)
-        return self.sum_nis / dof, (max(0.0, 1.0 - half), 1.0 + half)
+        return self.sum_nis / dof, nis_band(dof)
 
     def whiteness(self) -> dict[str, float]:
         """Lag-1 autocorrelation of the frame-mean whitened innovations and its p-value."""
@@ -814,7 +823,7 @@ def consistency(stats: RunStats, noise: Any = None) -> dict[str, Any]:
                     "nis_per_dof_raw": raw, "inflation": k2,
                     "lag1": [wh.get("lag1_u", 0.0), wh.get("lag1_v", 0.0)]}
     ref = stats.ref_nis / stats.ref_dof if stats.ref_dof else math.nan
-    ref_hi = 1.0 + 1.959964 * math.sqrt(2.0 / stats.ref_dof) if stats.ref_dof else math.inf
+    ref_hi = nis_band(stats.ref_dof)[1] if stats.ref_dof else math.inf
     if not math.isfinite(nis):
         verdict = "no data"
     elif nis > max(hi, 1.0 + NIS_TOLERANCE) or p < WHITENESS_P or (
