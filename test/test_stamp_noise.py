@@ -17,6 +17,7 @@ covariance.stamp_column`): the frame's R gains the rank-one ``σ_t² J_t J_tᵀ`
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -47,9 +48,6 @@ def psce_bag():
     return _jittered("psce_rotations", 120.0, 21, 1.0)
 
 
-def _nis_dof(res) -> float:
-    s = res.stats.current() if hasattr(res.stats, "current") else res.stats
-    return s.sum_nis / (2.0 * s.stars)
 
 
 @pytest.mark.parametrize("compiled", [True, False])
@@ -153,7 +151,8 @@ def _equal_runs(a, b, tol_sigma: float) -> None:
     sig = np.sqrt(np.diag(fb.P))[3:3 + fb.P_est]
     assert np.max(np.abs(fa.theta[:fb.P_est] - fb.theta[:fb.P_est]) / sig) <= tol_sigma
     np.testing.assert_allclose(np.diag(fa.P), np.diag(fb.P), rtol=1e-5)
-    assert _nis_dof(a) == pytest.approx(_nis_dof(b), rel=1e-6)
+    nis_a, nis_b = (r.stats.current().nis_per_dof()[0] for r in (a, b))
+    assert nis_a == pytest.approx(nis_b, rel=1e-6)
     # (the log-likelihood with the frames' stamp correction: the compiled frame_sums' own)
     sa, sb = (r.stats.current() if hasattr(r.stats, "current") else r.stats for r in (a, b))
     assert sa.log_likelihood() == pytest.approx(sb.log_likelihood(), rel=1e-6)
@@ -173,8 +172,8 @@ def test_psce_compiled_equals_numpy_and_the_nis_comes_back(psce_bag, monkeypatch
     _equal_runs(runs[True], runs[False], 2e-3)
     monkeypatch.setattr(StarFilter, "compiled_step", True)
     without = replay(data, sim.prior, "psce", keep_tables=False)
-    assert _nis_dof(without) > 3.0
-    assert _nis_dof(runs[True]) == pytest.approx(1.0, abs=0.15)
+    assert without.stats.current().nis_per_dof()[0] > 3.0
+    assert runs[True].stats.current().nis_per_dof()[0] == pytest.approx(1.0, abs=0.15)
 
 
 def test_swaying_compiled_star_update_equals_numpy(monkeypatch) -> None:
@@ -193,7 +192,7 @@ def test_swaying_compiled_star_update_equals_numpy(monkeypatch) -> None:
         runs[compiled] = replay(data, sim.prior, "swaying_base",
                                 noise=NoiseScales(stamp_ms=1.0), keep_tables=False)
     _equal_runs(runs[True], runs[False], 1e-3)
-    assert _nis_dof(runs[True]) == pytest.approx(1.0, abs=0.15)
+    assert runs[True].stats.current().nis_per_dof()[0] == pytest.approx(1.0, abs=0.15)
 
 
 def test_stamp_noise_parses_and_round_trips() -> None:
@@ -213,14 +212,10 @@ def test_stamp_noise_parses_and_round_trips() -> None:
         NoiseScales.parse("frame=-0.1")
 
 
-def test_the_noise_verdict_applies_the_stamps_it_names_and_the_nis_comes_back() -> None:
+@pytest.fixture(scope="module")
+def sway_jitter_verdict():
     """Unseen case ``sway_jitter`` s22 (300-s swaying base, stamps N(0, 1 ms) off): the
-    baseline is too far off for the noise (NIS/dof 5.86) and the verdict named the stamps
-    but took the noise 'as stated' (H263).  Now the model is run again with that noise in
-    each frame's R and the verdict made on that run: its first line names the stamps and
-    says ``use --noise-scale stamp=X``, the noise applied holds them, and the NIS/dof comes
-    back to ~1 (H263's seeds 21-23: the stamps' size read back 0.97-1.04 ms, σ ≈ 0.05).
-    Fails on main (taken as stated: ``NoiseScales`` has no ``stamp_ms``)."""
+    noise verdict of the model's run as a round makes it, and the lines it told."""
     from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
     from stellar_cal_ros.diagnosis.injection import clean_simulation
     from stellar_cal_ros.diagnosis.noise_runs import measure
@@ -234,7 +229,20 @@ def test_the_noise_verdict_applies_the_stamps_it_names_and_the_nis_comes_back() 
     # the model's run as a round makes it (its residuals kept: the stamps' test reads them)
     base = runs.run_all([Task("model", prior, (), keep_residuals=True, star_noise=True)])[
         "model"]
-    v = measure(runs, prior, (), base, None, ("gyro", "accel"))
+    told: list[str] = []
+    return measure(runs, prior, (), base, told.append, ("gyro", "accel")), told
+
+
+def test_the_noise_verdict_applies_the_stamps_it_names_and_the_nis_comes_back(
+        sway_jitter_verdict) -> None:
+    """Unseen case ``sway_jitter`` s22: the baseline is too far off for the noise (NIS/dof
+    5.86) and the verdict named the stamps but took the noise 'as stated' (H263).  Now the
+    model is run again with that noise in each frame's R and the verdict made on that run:
+    its first line names the stamps and says ``use --noise-scale stamp=X``, the noise
+    applied holds them, and the NIS/dof comes back to ~1 (H263's seeds 21-23: the stamps'
+    size read back 0.97-1.04 ms, σ ≈ 0.05).
+    Fails on main (taken as stated: ``NoiseScales`` has no ``stamp_ms``)."""
+    v, _ = sway_jitter_verdict
     j = v.stamp_jitter
     assert not v.skipped and j is not None and "applied_ms" in j, (v.skipped, j)
     assert j["applied_ms"] == pytest.approx(1.0, abs=0.15)
@@ -244,6 +252,23 @@ def test_the_noise_verdict_applies_the_stamps_it_names_and_the_nis_comes_back() 
     assert first.startswith("the frames' stamps jitter ") and first.endswith(
         f"use --noise-scale stamp={j['applied_ms']:.2g}"), first
     assert v.as_json()["applied"]["stamp_sigma_ms"] == j["applied_ms"]
+
+
+def test_the_stamps_nis_before_in_the_json_is_the_nis_dof_printed(sway_jitter_verdict) -> None:
+    """``noise.stamp_jitter.nis_before`` is the NIS/dof the 'too far off' line printed for
+    the same run (at the stars' measured σ, :func:`~stellar_cal_ros.diagnosis.noise.misfit`)
+    and the one the stamps' line prints; ``nis_share`` is of that number (``nis_before -
+    nis_share`` is the 'without it' printed).  Fails on main (the raw NIS/dof was stored,
+    the one at the measured σ printed)."""
+    v, told = sway_jitter_verdict
+    j = v.as_json()["stamp_jitter"]
+    far = [t for t in told if "that the model does not state" in t]
+    assert far, told  # the first: the model's run's
+    printed, without = re.search(r"it makes NIS/dof ([0-9.e+-]+)(?: at the stars' measured "
+                                 r"sigma, x[0-9.e+-]+)?, ([0-9.e+-]+) without it", far[0]).groups()
+    assert printed == f"{j['nis_before']:.3g}", (far[0], j)
+    assert without == f"{j['nis_before'] - j['nis_share']:.3g}", (far[0], j)
+    assert f"NIS/dof {j['nis_before']:.3g} -> {j['nis_after']:.3g}" in v.lines()[0]
 
 
 @pytest.fixture(scope="module")
@@ -308,8 +333,8 @@ def test_a_twin_renders_the_stamp_noise_it_is_given(psce_bag) -> None:
     without = replay(twin.data, twin.prior, "psce", keep_tables=False)
     with_ = replay(twin.data, twin.prior, "psce", noise=NoiseScales(stamp_ms=1.0),
                    keep_tables=False)
-    assert _nis_dof(without) > 3.0
-    assert _nis_dof(with_) == pytest.approx(1.0, abs=0.15)
+    assert without.stats.current().nis_per_dof()[0] > 3.0
+    assert with_.stats.current().nis_per_dof()[0] == pytest.approx(1.0, abs=0.15)
 
 
 def test_a_time_offsets_ratio_beside_the_stamp_noise_is_its_score_test():

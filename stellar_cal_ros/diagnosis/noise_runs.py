@@ -102,7 +102,9 @@ def _at_stamps(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, tel
     to ~1 and the rest of the noise is measured (unseen cases ``sway_jitter``, ``jitter``).
     Where the model is still far off with it, or the stars still ask for more motion,
     ``(v, base)`` (the verdict without it).  Records
-    ``nis_before`` / ``nis_after`` (the stars' NIS/dof of the two runs) in the stamps' dict.
+    ``nis_before`` / ``nis_after`` (the stars' NIS/dof of the two runs, each at its stars'
+    measured σ: :func:`~.noise.misfit`, as :func:`~.noise.far_off` prints it) in the stamps'
+    dict.
     """
     got = v.stamp_jitter if v.skipped else None
     if not v.skipped and "gyro" in v.beyond and base.ok and base.window:
@@ -144,8 +146,10 @@ def _judged_with(v: NoiseVerdict, runs, prior, effects: tuple[str, ...], base, t
     w = _judge(runs, prior, effects, again, tell, components, stated, ran)
     if w.skipped or "gyro" in w.beyond:
         return v, base
-    got = dict(record, nis_before=base.window["nis"]["mean"] / 2.0,
-               nis_after=again.window["nis"]["mean"] / 2.0)
+    # each run's NIS/dof at its stars' measured σ (:func:`~.noise.misfit`): the number
+    # far_off printed and decided on for ``base``, the one ``nis_share`` is of
+    got = dict(record, nis_before=misfit(base, base.star_noise)[1],
+               nis_after=misfit(again, again.star_noise)[1])
     setattr(w, field, got)
     if tell:
         tell(f"noise: {said}: applied, NIS/dof {got['nis_before']:.3g} -> "

@@ -372,7 +372,11 @@ def predict_chain(theta, u_cat, R_b, phi, use_phi, w, base, s0, g, timed, R_prio
                 for k in need:
                     acc += J_p[i, r, k] * Bx[k, j]
                 H_par[i, r, j] = acc
-        if timed:  # J_d R_st_b [d_b]× ω ∂Δt/∂θ
+        # ∂uv/∂t ∂Δt/∂θ: ∂uv/∂t as J_d R_st_b [d_b]× ω, the same derivative as
+        # covariance.stamp_column's H_att R_i_b ω (StarModel.predict's, the stamp column's) to
+        # rounding; kept in this order: through it the last bits of every timed run
+        # change (clean psce 300 s: time_offset's p 0.09522136181956352 -> ...262, H294)
+        if timed:
             db = np.empty(3)
             for a in range(3):
                 db[a] = u[i, 0] * R[0, a] + u[i, 1] * R[1, a] + u[i, 2] * R[2, a]

@@ -393,6 +393,9 @@ class StarModel:
             H[:, :, sl] += np.einsum("nij,jk,nkl->nil", J_d, R_st_i, Ju)
         if self.has_time_effect and np.any(shift_grad):
             d_b = u @ R_i_b
+            # ∂uv/∂t = J_d R_st_b [d_b]× ω: covariance.stamp_column's H_att R_i_b ω to rounding,
+            # kept in this order (through it the last bits of every run through here
+            # change: unseen smear15 s21's diagnosis.json, H294)
             dd_dt = (np.cross(d_b, omega_b)) @ R_imu_st  # R_st_b [d_b]× ω
             H += np.einsum("nij,nj->ni", J_d, dd_dt)[:, :, None] * shift_grad[None, None, :]
         if self._by_stage[Stage.TRACKER]:
