@@ -377,7 +377,9 @@ def test_verify_checks_the_mdb_at_its_minus_sign_where_the_plus_sign_holds(tmp_p
     14.1, the secant through the two), where the noise-free twin at -5.89 mrad responds 16.1
     (the noisy twin of seed 1: 21.5): the printed MDB holds at both signs.  Fails on coord
     (the minus sign's record fails, 3.76 mrad printed): the first-order check is kept here
-    (``verify`` run on the first-order MDB)."""
+    (``verify`` run on the first-order MDB).  The MDBs printed are stated for the round's
+    dispersion (H295: its statistics are divided by it): ×√8.35 the sizes above, which are
+    those of residuals as stated and the ones the twins (which fit) get."""
     import copy
 
     from stellar_cal_ros.diagnosis.auto import discover
@@ -408,11 +410,13 @@ def test_verify_checks_the_mdb_at_its_minus_sign_where_the_plus_sign_holds(tmp_p
     assert probe["size"] == pytest.approx(3.76e-3, rel=0.02) and probe["even_energy"] > 1.0
     assert probe["lam_plus"] == pytest.approx(29.6, rel=0.1)
     assert probe["lam_minus"] == pytest.approx(7.1, rel=0.1)
-    assert tilt["mdb_first_order"]["tau_y"] == pytest.approx(3.76e-3, rel=0.02)
+    phi = tilt["dispersion"]
+    assert phi == pytest.approx(8.35, rel=0.02)
+    assert tilt["mdb_first_order"]["tau_y"] == pytest.approx(3.76e-3 * math.sqrt(phi), rel=0.02)
     # the round is screened and its excess gate sets the printed MDB (H263: the gate
     # decides in every round); the test's MDB beside it, which the twins get, restated
     assert tilt["mdb_set_by"] == "explained_gate", tilt
-    assert tilt["mdb_test"]["tau_y"] == pytest.approx(5.89e-3, rel=0.05)
+    assert tilt["mdb_test"]["tau_y"] == pytest.approx(5.89e-3 * math.sqrt(phi), rel=0.05)
     assert tilt["mdb"]["tau_y"] > tilt["mdb_test"]["tau_y"]
     # the first order, as printed before: + holds conservatively, - fails
     plus, minus = first_order[0]
@@ -433,7 +437,8 @@ def test_verify_checks_the_mdb_at_its_minus_sign_where_the_plus_sign_holds(tmp_p
     assert "1 of 2 claims hold" in verify_lines({"verify": first_order[0]})[0]
     # the printed MDB: both signs hold
     plus, minus = summary["verify"]
-    assert minus["size"] == -plus["size"] == pytest.approx(-tilt["mdb_test"]["tau_y"])
+    assert minus["size"] == -plus["size"] == pytest.approx(-tilt["mdb_test"]["tau_y"]
+                                                            / math.sqrt(phi))
     # (the probe restated it for λ₀ 15.6 on the noise-free twin, which responds 16.1 there;
     # the noisy twin of seed 1 read 21.5)
     assert minus["noncentrality"] == pytest.approx(16.1, rel=0.1)
