@@ -554,6 +554,39 @@ def test_a_field_of_many_columns_no_longer_significant_beside_a_library_effect_i
     assert leads.vanished(half, own, 1, 0.01) and not rolling.vanished(half, own, 0.01)
 
 
+def test_a_field_that_keeps_its_size_beside_a_stand_in_still_refuses_it():
+    """A guard on the stand-in rule (``leads.stand_in``): a field whose size along its
+    pattern does not fall beside a candidate still refuses it.  Unseen case ``sway_flex``
+    s21 (a 10″/g mount flexure on the swaying base, no library effect): round 1's gravity
+    lead t 20.06, 8.557 ± 0.426″/g; beside gyro_scale_factor (Λ 85.1, ratio beyond the
+    field −12.89 for 3 dof) it reads 9.123 ± 0.644″/g, t 14.17, and beside
+    gyro_misalignment (Λ 24.4, −2.83 for 6 dof) 8.930 ± 0.481″/g, t 18.59: both larger,
+    and both stand-ins (the flexure is the truth; naming it gyro_scale_factor −46 ppm was
+    the bug the gravity lead fixed).  A rule "a field the candidate took none of refuses
+    nothing" (tried for ``sway_sky_twin_gsf1`` s21, H303) would add them; so would it
+    ``flex20`` s22's gyro_scale_factor (19.67 → 21.35″/g beside it).  The dispersion is
+    taken as 1, the capped gain beside the candidate set to give the run's ratio."""
+    from types import SimpleNamespace
+
+    from stellar_cal_ros.diagnosis import leads, rolling
+
+    lead = {"t": 20.063, "p_value": 6.15e-22, "nu": 38.35, "chi2_capped": 260.965,
+            "size_px": 0.0320, "coef": 8.5574, "coef_sigma": 0.4261, "coef_nu": 38.35}
+    for stat, dof, ratio, t, coef, sigma, nu in ((85.1, 3, -12.887, 14.166, 9.1225, 0.6443,
+                                                  46.00),
+                                                 (24.4, 6, -2.834, 18.586, 8.9303, 0.4807,
+                                                  39.43)):
+        c = SimpleNamespace(statistic=stat, dof=dof)
+        beside = {"t": t, "p_value": 1e-15, "chi2_capped": 260.965 + ratio - stat,
+                  "coef": coef, "coef_sigma": sigma, "coef_nu": nu}
+        assert (beside["coef"] - lead["coef"]) > 0  # the field no smaller beside it
+        assert not rolling.vanished(beside, lead, 0.01)
+        b = leads.stand_in(c, 1.0, beside, lead, "gravity", 0.01)
+        assert b is not None and b["lead"] == "gravity" and b["negative"], b
+        assert b["statistic"] == pytest.approx(ratio, abs=1e-6), b
+        assert b["beside"]["kept"] == "significant", b
+
+
 @pytest.mark.parametrize("size, named", [(80.0, ["gyro_scale_factor"]), (40.0, [])])
 def test_a_large_flexure_is_not_named_as_two_gyro_effects(tmp_path, size, named):
     """Issue 21 item 3: a 40″/g and an 80″/g flexure, 300 s of psce_rotations (seed 52),
