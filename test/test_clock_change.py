@@ -448,3 +448,84 @@ def test_a_smear_beside_the_clock_is_one_line_not_two_with_the_speed_curve():
     assert len(along) == 1 and along[0].regressor.startswith(clock.SMEAR_LINE), along
     assert "ahead of the stamp's position" in along[0].regressor, along[0].regressor
     assert not [f for f in found if f.regressor == stats.CURVE], found
+
+
+def test_a_clock_that_steps_twice_is_said_as_steps_not_a_drift(tmp_path):
+    """Unseen case ``dt_step2`` (H301) on the clean bag: the frames stamped 2 ms late from
+    40 % of the run on, 4 ms late from 70 %, the model without time_offset.  The window's
+    two slews (180 s, 240 s) hold one offset each, which a ramp fits as well as a staircase:
+    the line said a drift (and discover added clock_drift −18.6 ppm with time_offset).  The
+    steps test over the run's every slew (each in three parts, each slew's catch-up its
+    own) finds two steps, −2.32 ± 0.11 ms between 66 and 120 s and −1.93 ± 0.26 ms between
+    186 and 240 s (truth −2 ms at 119.8 s and 209.7 s from the first frame), 87 chi2 / 2
+    dof beside one rate, the rate 0.0 chi2 beside them (measured; the first step's 2.9 σ:
+    its slew's first frame is before the step).  Fails on main (6c738a9): the drift's line
+    first ("the frames' clock drifts ... rate ... ppm")."""
+    from stellar_cal_ros.diagnosis.clock import STEPS
+
+    sim, model = clean_simulation("psce", False, 21, 300.0)
+    t0, t1 = sim.star_frames[0].stamp_ns, sim.star_frames[-1].stamp_ns
+    truth = [a * (t1 - t0) * 1e-9 for a in (0.4, 0.7)]
+    for f in sim.star_frames:
+        late = sum(0.002 for a in (0.4, 0.7) if f.stamp_ns - t0 >= a * (t1 - t0))
+        f.stamp_ns = int(f.stamp_ns + round(late * 1e9))
+    got = diagnose(bag_data_from_simulation(sim), sim.prior, "psce", list(model), tmp_path,
+                   candidates=["radial_k1k2"], plots=False, verbose=False)
+    first = got["unexplained"][0]
+    assert first["component"] == COMPONENT and first["regressor"].startswith(STEPS), \
+        got["unexplained"]
+    st = got["clock_change"]["steps"]
+    assert st["said"] and st["form"] == "time" and len(st["size_s"]) == 2, st
+    for d, s, (a, b), at in zip(st["size_s"], st["sigma_s"], st["between"], truth,
+                                strict=True):
+        assert abs(d + 0.002) < 4.0 * s, st  # (the first at 2.9 sigma: see above)
+        assert a - 1.0 <= at <= b + 1.0, st  # the border brackets the step (frames at 2 Hz)
+    assert st["steps_p"] < 1e-6 and st["rate_p"] > 0.01, st
+    assert "-2.32 +- 0.11 ms between 66 and 120 s" in first["regressor"], first["regressor"]
+
+
+@pytest.mark.parametrize("shape", ["staircase", "ramp"])
+def test_the_steps_test_tells_a_staircase_from_a_ramp(shape):
+    """:func:`~stellar_cal_ros.diagnosis.clock.steps_fit` on five slews of three parts
+    (σ 0.1 ms, independent): offsets 0, 0, −2, −2, −4 ms are two steps (the rate beside them
+    nothing), 0, −1, −2, −3, −4 ms a ramp (the steps beside it nothing), each slew's
+    remainder shrinking along it by a third of its offset (the filter's catch-up)."""
+    from stellar_cal_ros.diagnosis.clock import steps_fit, steps_said
+
+    level = [0.0, 0.0, -2e-3, -2e-3, -4e-3] if shape == "staircase" else \
+        [0.0, -1e-3, -2e-3, -3e-3, -4e-3]
+    t = np.concatenate([60.0 * k + np.arange(12) * 0.5 for k in range(5)])
+    seg = np.repeat(np.arange(15), 4)
+    tau = np.tile(np.arange(12) * 0.5, 5)
+    info = np.ones(len(t))
+    x = np.repeat(level, 12) * (1.0 - tau / 16.5)  # (the slew's last part: ~ -30 %)
+    dt = np.array([np.mean(x[seg == s]) for s in range(15)])
+    ci = np.eye(15) / 1e-4**2
+    got = steps_fit(dt, ci, seg, info, t, lambda of: None, offset=False)
+    assert steps_said(got, 0.01) is (shape == "staircase"), got
+    if shape == "staircase":  # (the ramp: no three steps fit it, {})
+        assert got["form"] == "time" and got["rate_p"] > 0.5, got
+        assert [round(a) for a in got["at"]] == [93, 213]  # the border's middle
+        np.testing.assert_allclose(got["size_s"], [-2e-3, -2e-3], atol=3e-4)
+
+
+def test_an_attitude_step_where_the_clock_steps_is_the_clocks():
+    """:func:`~stellar_cal_ros.diagnosis.clock.clock_steps_at` (discover's knock before the
+    window, ``auto._step_before``): an attitude step within the parts either side of a
+    said step's border is the clock's (``dt_step2`` s21: "the tracker's installation steps
+    at t~120.0 s by 6.32″" at the slew where the first 2-ms step falls, fitted and said
+    first); elsewhere, or where the steps are not said, not."""
+    from stellar_cal_ros.diagnosis.clock import ClockChange, clock_steps_at
+
+    t0, t1 = [0.0, 2.5, 59.5, 62.0, 119.5, 122.0], [2.0, 4.5, 61.5, 64.0, 121.5, 124.0]
+    steps = {"said": True, "between": [[64.0, 119.5]], "size_s": [-2e-3], "sigma_s": [1e-4],
+             "steps_p": 1e-20, "rate_p": 0.8, "t0": t0, "t1": t1, "dt": [0.0] * 6,
+             "rest_chi2": 1.0, "rest_dof": 2, "steps_chi2": 99.0, "scanned": 5,
+             "rate_chi2": 0.1}
+    c = ClockChange(t0, t1, [0.0] * 6, [1e-4] * 6, 99.0, 5, 1e-8, 0.4, 200.0, steps=steps)
+    assert clock_steps_at(c, {}, None, 0.01, False, 119.5, 120.0) == -2e-3
+    assert clock_steps_at(c, {}, None, 0.01, False, 63.5, 64.0) == -2e-3
+    assert clock_steps_at(c, {}, None, 0.01, False, 122.5, 123.0) is None  # a part beyond
+    assert clock_steps_at(c, {}, None, 0.01, False, 30.0, 30.5) is None
+    c.steps = dict(steps, rate_p=0.001)  # the rate significant beside them: not said
+    assert clock_steps_at(c, {}, None, 0.01, False, 119.5, 120.0) is None

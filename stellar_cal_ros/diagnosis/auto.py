@@ -548,7 +548,7 @@ def discover(bag: str | Path | BagData, calibration: Calibration, method: str,
             if not action and not refused and k < max_rounds:
                 # nothing to add: a knock before the evaluation window, which no window
                 # test sees, spoils every candidate's run (unseen case knock_gsf_run20)
-                knocked = _step_before(runs, state, base, prior, tell)
+                knocked = _step_before(runs, state, base, prior, tell, timing)
                 if knocked is not None:
                     action, follow = "step", knocked.pop("run")
             step = _step(k, model, base, results, top if action == "add" else None,
@@ -944,8 +944,10 @@ def _drift_asked(base: RunSummary, calibration: Calibration, fraction: float):
     again on the one the 'unexplained' lines judge (:func:`~.output.line_tests`: beside a
     wobble's periods where one is found, a wobble's turns read as a drift otherwise:
     unseen case ``wobble`` s23, 14.5 ppm).  Where ``base`` lost lock, the parts' change
-    alone.  Asked each round until it asks: a model that fits costs the one clock test,
-    returned second (:func:`_clock_of`'s: :func:`_top` asks it of the same run).
+    alone.  Not where the clock steps (:func:`~stellar_cal_ros.diagnosis.clock.steps_test`
+    over the whole run: unseen case ``dt_step2``, two 2-ms steps that the window's two
+    slews read as −18.6 ppm).  Asked each round until it asks: a model that fits costs the
+    one clock test, returned second (:func:`_clock_of`'s: :func:`_top` asks it of the same run).
     """
     ticks = _clock_of(base, calibration, fraction)
     if ticks is None:
@@ -957,10 +959,17 @@ def _drift_asked(base: RunSummary, calibration: Calibration, fraction: float):
         return ticks, ticks
     if not ticks.asks_drift(ALPHA):
         return None, ticks
+    # a clock that steps, more than once, reads as a drift in the window's few slews: the
+    # run's every slew tells a staircase from a ramp (unseen case dt_step2)
+    ticks.steps = clock.steps_test(base.residuals, calibration, ALPHA,
+                                   "time_offset" in base.effects)
+    if ticks.steps_line():
+        return None, ticks
     from stellar_cal_ros.diagnosis.output import line_tests
 
     parts: dict[str, Any] = {}
-    line_tests(base.residuals, calibration, fraction, parts, ticks)
+    line_tests(base.residuals, calibration, fraction, parts, ticks,
+               offset="time_offset" in base.effects)
     lines = parts.get("clock")
     return (lines if lines is not None and lines.asks_drift(ALPHA) else None), ticks
 
@@ -989,8 +998,8 @@ def _knock_of(base: RunSummary, calibration: Calibration, fraction: float):
             installation_step.MOVING)
 
 
-def _step_before(runs, state: _State, base: RunSummary, prior: Calibration, tell
-                 ) -> dict[str, Any] | None:
+def _step_before(runs, state: _State, base: RunSummary, prior: Calibration, tell,
+                 timing=None) -> dict[str, Any] | None:
     """A knock before the evaluation window, fitted; ``None`` where there is none to fit.
 
     Asked where nothing else changes the model.  A knock before the window (unseen case
@@ -1016,6 +1025,12 @@ def _step_before(runs, state: _State, base: RunSummary, prior: Calibration, tell
     before it, and the better window kept (``step_time``: the frames either side of it, s
     from the run's first frame): there −9.45, 17.3 ± 0.24″ from 59.25 s (2 Δℓ +32.6 over
     60.0 s's −8.4, 15.8; from the test's rotation ± 3σ, −7.8, 15.6).
+
+    Not where the frames' clock steps there (``timing``: ``base``'s clock test; where it
+    says the clock changes, its steps test over the run, :func:`~.clock.clock_steps_at`):
+    a clock's step where a slew starts reads as an attitude step (unseen case ``dt_step2``
+    s21, a 2-ms step at 119.8 s: "the tracker's installation steps at t~120.0 s by 6.32″",
+    336 χ² / 3 dof, said first and fitted).
     """
     if base.residuals is None or installation_step.STEP_ID in state.extra:
         return None
@@ -1024,6 +1039,13 @@ def _step_before(runs, state: _State, base: RunSummary, prior: Calibration, tell
     knock = step_test(base.residuals, base.calibration or prior, runs.fraction,
                       everywhere=True, before=True)
     if knock is None or not knock.p_value < STEP_BEFORE_ALPHA:
+        return None
+    said = clock.clock_steps_at(timing, base.residuals, base.calibration or prior, ALPHA,
+                                "time_offset" in base.effects, knock.t_before, knock.t)
+    if said is not None:
+        tell(f"an attitude step before the evaluation window at t~{knock.t:.1f} s "
+             f"({knock.chi2:.0f} chi2 / 3 dof) is the frames' clock's step "
+             f"({said * 1e3:.3g} ms): not fitted")
         return None
     tell(f"an attitude step before the evaluation window at t~{knock.t:.1f} s "
          f"({knock.chi2:.0f} chi2 / 3 dof): fitting it")

@@ -41,6 +41,15 @@ truth of −10.0, −0.28 → −3.01 ms); a step leaves a change (``dt_step``: 
 With time_offset in the model the lag's leverage between the window's slews is small
 (−9.2 ± 5.3 ppm on the same bag): the parts' line then.
 
+A clock that steps more than once reads as a drift in the window's few slews (psce 300 s:
+two, one offset each, which a ramp fits as well as a staircase; unseen case ``dt_step2``,
+two 2-ms steps: −18.6 ppm with time_offset).  Where a drift is said or asked, the run's
+every slew is fitted by steps and by a rate (:func:`steps_test`): each slew in
+:data:`SLEW_PARTS` parts with its own catch-up, up to :data:`STEPS_MAX` steps scanned at
+the borders between parts, the steps tested beside the rate (Bonferroni over the borders
+scanned) and the rate beside the steps; a staircase the rate cannot follow is said as
+steps (:data:`STEPS`), and no ``clock_drift`` is offered for it.
+
 A gyro whose scale differs between the rate's signs leaves the parts' offsets changing too
 (each window slew of psce turns one axis: a per-axis rate error is a per-slew offset), but
 its remainder grows along the slew that carries it, where a clock's shrinks as the filter
@@ -61,6 +70,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
+from itertools import combinations
 from typing import Any
 
 import numpy as np
@@ -145,6 +156,13 @@ REFUSED_TEXT = ("refused here at any size that leaves the stars' remainder along
 OFFERED_ON = "clock drift"
 #: the line's component (:func:`~stellar_cal_ros.diagnosis.printing.unexplained_phrase`)
 COMPONENT = "time offset"
+#: each slew of the whole run is cut into this many parts for the steps test (its early and
+#: late frames: the filter's catch-up beside the offsets, :func:`steps_fit`)
+SLEW_PARTS = 3
+#: the most steps the steps test scans for (:func:`steps_fit`)
+STEPS_MAX = 3
+#: the line where the clock steps (:func:`steps_said`)
+STEPS = "the frames' clock steps against the IMU"
 
 
 @dataclasses.dataclass
@@ -189,11 +207,14 @@ class ClockChange:
     #: percentile image speed, s, time_offset's sign), ``sigma_s``, and ``fitted``: whether
     #: this test is the one beside it (:meth:`by_speed`)
     smear: dict = dataclasses.field(default_factory=dict)
+    #: the steps test over the whole run (:func:`steps_test`; in the entry only where it
+    #: was made): :class:`ClockSteps` as a dict
+    steps: dict = dataclasses.field(default_factory=dict)
 
     def as_json(self) -> dict:
         """The summary's entry (``diagnosis.json`` ``clock_change``)."""
         out = dataclasses.asdict(self)
-        for key in ("periods", "smear"):
+        for key in ("periods", "smear", "steps"):
             if not out[key]:
                 del out[key]
         return out
@@ -302,8 +323,25 @@ class ClockChange:
         """
         return self.finding().p_value < alpha and self.shrinks() and not self.grows()
 
+    def steps_line(self) -> bool:
+        """Whether the line is the steps' (:func:`steps_test` made and said, not a gyro's)."""
+        return bool(self.steps.get("said")) and not self.grows()
+
     def regressor(self) -> str:
-        """The line's regressor: the offsets and their spans (ms, s), or the drift's rate."""
+        """The line's regressor: the offsets' spans (ms, s), the drift's rate, or the steps."""
+        if self.steps_line():
+            st = self.steps
+            each = ", ".join(f"by {d * 1e3:.3g} +- {e * 1e3:.2g} ms between {a:.0f} and "
+                             f"{b:.0f} s" for d, e, (a, b) in zip(st["size_s"], st["sigma_s"],
+                                                                  st["between"], strict=True))
+            n = len(st["size_s"])
+            return (f"{STEPS}: dt changes {each} ({n} step{'s' if n > 1 else ''} over the "
+                    f"run's {len(st['dt'])} parts of its slews' moving frames, "
+                    f"{st['rest_chi2']:.1f} chi2 / {st['rest_dof']} dof left; beside one "
+                    f"rate the steps take {st['steps_chi2']:.0f} chi2 / {n} dof (p "
+                    f"{st['steps_p']:.2g} over the {st['scanned']} borders scanned), the rate "
+                    f"beside them {st['rate_chi2']:.1f} chi2 / 1 dof: not a drift; outside the "
+                    "library: its time_offset is constant)")
         if self.grows():
             a, b, m = self.slew[:3]
             return (f"{GROWS}: {m * 1e3:.3g} ms over {a:.0f}-{b:.0f} s, changing by "
@@ -343,6 +381,8 @@ class ClockChange:
         p = min(1.0, 2.0 * min(self.p_value, 2.0 * self.drift_p))
         size = (abs(self.drift_rate) * (max(self.t1) - min(self.t0)) * self.speed
                 if self.drifts() else self.size_px)
+        if self.steps_line():
+            size = abs(sum(self.steps["size_s"])) * self.speed
         return stats.p_finding(self.regressor(),
                                GYRO_COMPONENT if self.grows() else COMPONENT, p, size,
                                detail={"clock_change": self.as_json()})
@@ -511,20 +551,27 @@ def clock_change(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
 
 def _parts_test(res: stats.Table, sub: stats.Table, got: tuple, focal: tuple[float, float],
                 centre: tuple[float, float], R_imu_st: np.ndarray | None, parts: int,
-                periods: tuple[float, ...], smear: bool) -> ClockChange | None:
-    """:func:`clock_change`'s test of ``sub``'s frame offsets ``got``; ``smear``: beside it."""
+                periods: tuple[float, ...], smear: bool, by_slew: bool = False,
+                offset: bool | None = None) -> ClockChange | None:
+    """:func:`clock_change`'s test of ``sub``'s frame offsets ``got``; ``smear``: beside it.
+
+    ``by_slew``: the parts are each slew's :data:`SLEW_PARTS` (``parts`` ignored; the
+    steps test's, :func:`steps_test`, ``offset`` its form), not ``parts`` of equal count.
+    """
     frames, g, info, _, _, speed = got
     # a frame at rest says an offset only through its tiny rate, where any attitude error
     # the model leaves reads as seconds (unseen case ``knock``: 23-34 ms in the dwells
     # after the jump)
     use = stats.moving_frames(sub, frames, info, MOVING)
-    if use.sum() < 3 * parts:
-        return None
     frames, g, info = frames[use], g[use], info[use]
     t = stats.frame_times(sub, frames) - float(np.min(res["t"]))
-    seg = np.zeros(len(frames), dtype=int)
-    for s, idx in enumerate(np.array_split(np.arange(len(frames)), parts)):
-        seg[idx] = s
+    seg = _slew_parts(t) if by_slew else np.zeros(len(frames), dtype=int)
+    parts = int(seg.max()) + 1 if by_slew and len(seg) else parts
+    if len(frames) < 3 * parts or (by_slew and parts < 2 * SLEW_PARTS):
+        return None
+    if not by_slew:
+        for s, idx in enumerate(np.array_split(np.arange(len(frames)), parts)):
+            seg[idx] = s
     # the parts' offsets fitted jointly with a mount flexure's (GRAVITY): per frame its
     # scores h (q) and information with the offset (c, q) and with itself (F, q × q)
     h, cross, F = flexure_products(sub, frames, focal, centre, R_imu_st, periods,
@@ -586,6 +633,11 @@ def _parts_test(res: stats.Table, sub: stats.Table, got: tuple, focal: tuple[flo
     lag = constant_lag(res, focal, centre, R_imu_st, frames)
     if lag is not None:
         drift_fit(out, -d, ci, seg, info, t, lag)
+        if by_slew:
+            def behind(of, frames=frames):
+                return constant_lag(res, focal, centre, R_imu_st, frames, of)
+
+            out.steps = steps_fit(-d, ci, seg, info, t, behind, offset)
     # (the spans', not the parts': a part without a slew says little, at a large σ)
     out.size_px = float(np.ptp([s[2] for s in out.spans()])) * float(speed)
     return out
@@ -724,7 +776,8 @@ def flexure_products(sub: stats.Table, frames: np.ndarray, focal: tuple[float, f
 
 
 def constant_lag(res: stats.Table, focal: tuple[float, float], centre: tuple[float, float],
-                 R_imu_st: np.ndarray | None, frames: np.ndarray) -> np.ndarray | None:
+                 R_imu_st: np.ndarray | None, frames: np.ndarray,
+                 of: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray | None:
     """Per frame of ``frames`` the time since a constant offset's estimate learned (s).
 
     A model with time_offset holds one constant: its estimate at frame ``k`` is the
@@ -732,7 +785,10 @@ def constant_lag(res: stats.Table, focal: tuple[float, float], centre: tuple[flo
     weighted mean.  A clock that drifts at rate ``r`` leaves ``r (t_k − t̄_k)``, ``t̄_k =
     Σ_{j≤k} I_j t_j / Σ_{j≤k} I_j`` over every frame of the run (not only the window's):
     largest when a slew begins after a long dwell, shrinking along it as the estimate
-    catches up.  ``None`` without the rate columns.
+    catches up.  ``None`` without the rate columns.  ``of``: the offset's shape as a
+    function of the frames' times (s from the run's first row; ``(n,)`` → ``(n, m)``), its
+    lag behind the constant's estimate returned ``(len(frames), m)`` instead (a step's:
+    :func:`steps_fit`).
     """
     m = stats.accepted(res)
     sub = stats.Rows(res, m)
@@ -742,10 +798,12 @@ def constant_lag(res: stats.Table, focal: tuple[float, float], centre: tuple[flo
     fr, _, info = got[:3]
     f_all, first = np.unique(np.asarray(sub["frame"]), return_index=True)
     t = np.asarray(sub["t"], dtype=float)[first][np.searchsorted(f_all, fr)]
+    x = t if of is None else of(t - float(np.min(res["t"])))
     info = np.maximum(info, 0.0)
-    cum = np.cumsum(info)
-    tbar = np.cumsum(info * t) / np.where(cum > 0, cum, 1.0)
-    lag = np.where(cum > 0, t - tbar, 0.0)
+    w = info if of is None else info[:, None]
+    cum = np.cumsum(w, axis=0)
+    xbar = np.cumsum(w * x, axis=0) / np.where(cum > 0, cum, 1.0)
+    lag = np.where(cum > 0, x - xbar, 0.0)
     k = np.searchsorted(fr, frames)
     if np.any(k >= len(fr)) or np.any(fr[np.minimum(k, len(fr) - 1)] != frames):
         return None
@@ -839,3 +897,188 @@ def slew_growth(out: ClockChange, g: np.ndarray, info: np.ndarray, t: np.ndarray
                     float(math.sqrt(max(cov[1, 1], 0.0))))
     if best is not None:
         _, out.slew, out.slew_growth, out.slew_growth_sigma = best
+
+
+def _slew_parts(t: np.ndarray) -> np.ndarray:
+    """Each moving frame's part: its slew's (:func:`since_slew`) :data:`SLEW_PARTS` parts.
+
+    A slew of fewer than :data:`SLEW_PARTS` frames is one part (the catch-up beside the
+    offsets needs a slew's early and late parts apart: :func:`steps_fit`).
+    """
+    run = np.cumsum(since_slew(t) == 0.0) - 1 if len(t) else np.zeros(0, dtype=int)
+    seg = np.zeros(len(t), dtype=int)
+    n = 0
+    for r in range(int(run.max()) + 1 if len(run) else 0):
+        idx = np.flatnonzero(run == r)
+        for chunk in np.array_split(idx, min(SLEW_PARTS, len(idx))):
+            seg[chunk] = n
+            n += 1
+    return seg
+
+
+def _gls(X: np.ndarray, ci: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """``(χ² left, β, cov β)`` of ``y`` fitted by the columns ``X`` (weights ``ci``)."""
+    A = X.T @ ci @ X
+    cov = np.linalg.pinv(A)
+    beta = cov @ X.T @ ci @ y
+    r = y - X @ beta
+    return float(r @ ci @ r), beta, cov
+
+
+def steps_fit(dt: np.ndarray, ci: np.ndarray, seg: np.ndarray, info: np.ndarray,
+              t: np.ndarray, behind: Callable, offset: bool | None = None) -> dict:
+    """The parts' offsets ``dt`` as ``k`` steps against one rate (:func:`steps_test`).
+
+    Each slew's catch-up its own (the remainder shrinks along a slew in proportion to the
+    offset it carries: ``dt_step2`` s21, −1.85 → +0.11 ms on the slew after a 2-ms step,
+    −3.58 → −1.76 ms after the second; one shared catch-up leaves a rate 159 χ² / 12 dof on
+    it, a 0 → 3 ms drift's 81): a column per slew, its time since the slew began.  Both
+    forms of :func:`drift_fit` (the offset itself, ``"time"``: a model without time_offset;
+    its lag behind a constant's estimate, ``"lag"``, ``behind``'s columns), the one kept
+    that fits better.  For ``k`` = 1 … :data:`STEPS_MAX` the ``k`` borders between parts
+    (``offset``: whether the model holds time_offset, the form then ``"lag"``, else
+    ``"time"``; ``None``: not known) (a scan over every choice) whose steps, with a
+    constant and the catch-up, leave the
+    least χ²; ``k`` the least whose steps leave nothing significant (p ≥
+    :data:`DRIFT_REST_P`).  The steps beside the rate tested as the nested alternative: the
+    χ² they remove from the rate's fit, ``k`` dof, its p × the choices scanned
+    (Bonferroni); the rate beside the steps likewise, 1 dof.  ``{}`` where no ``k`` fits.
+    The dict: ``at`` (each step's border, s from the run's first row: the middle between
+    the parts), ``between`` (the parts' last and first frame times), ``size_s`` /
+    ``sigma_s`` (each step, time_offset's sign), ``rest_chi2``, ``rest_dof``, ``rest_p``
+    (the steps' fit), ``steps_chi2``, ``steps_p`` (beside the rate, adjusted),
+    ``rate_chi2``, ``rate_p`` (the rate beside the steps), ``drift_rate`` /
+    ``drift_sigma`` / ``drift_rest_chi2`` / ``drift_rest_p`` (the rate's fit), ``scanned``,
+    ``form``.
+    """
+    parts = len(dt)
+    w = np.bincount(seg, info, minlength=parts)
+    if np.any(w <= 0):
+        return {}
+    t0 = np.array([t[seg == s].min() for s in range(parts)])
+    t1 = np.array([t[seg == s].max() for s in range(parts)])
+    at = 0.5 * (t1[:-1] + t0[1:])  # (parts - 1,) the borders
+
+    def mean(x):
+        return np.bincount(seg, info * x, minlength=parts) / w
+
+    tau = since_slew(t)
+    run = np.cumsum(tau == 0.0) - 1
+    catch = [mean(np.where(run == r, tau, 0.0)) for r in range(int(run.max()) + 1)]
+    catch = np.stack([c for c in catch if np.any(c > 0)], 1)
+    one = np.ones(parts)
+    forms = {"time": ((np.arange(parts)[:, None] >= np.arange(1, parts)[None, :]).astype(float),
+                      mean(t))}
+    cols = behind(lambda tt: np.column_stack([tt, tt[:, None] >= at[None, :]]))
+    if cols is not None:
+        forms["lag"] = (np.stack([mean(cols[:, j]) for j in range(1, parts)], 1),
+                        mean(cols[:, 0]))
+    if offset is not None:
+        forms = {k: v for k, v in forms.items() if (k == "lag") is offset}
+    best = None
+    for form, (H, rate) in forms.items():
+        got = _steps_in(dt, ci, one, H, rate, catch, at, t0, t1)
+        if got and (best is None or min(got["rest_chi2"], got["drift_rest_chi2"])
+                    < min(best["rest_chi2"], best["drift_rest_chi2"])):
+            best = dict(got, form=form)
+    return best or {}
+
+
+def _steps_in(dt, ci, one, H, rate, catch, at, t0, t1) -> dict:
+    """:func:`steps_fit` in one form (``H``: the steps' columns, ``rate``: the rate's)."""
+    parts = len(dt)
+    free = catch.shape[1]
+    drift, beta_d, cov_d = _gls(np.column_stack([one, rate, catch]), ci, dt)
+    scanned = 0
+    for k in range(1, STEPS_MAX + 1):
+        dof = parts - 1 - k - free
+        if dof < 1:
+            return {}
+        best = None
+        for b in combinations(range(parts - 1), k):
+            scanned += 1
+            rest, beta, cov = _gls(np.column_stack([one, H[:, list(b)], catch]), ci, dt)
+            if best is None or rest < best[0]:
+                best = (rest, b, beta, cov)
+        rest, b, beta, cov = best
+        rest_p = float(dist.chi2.sf(rest, dof))
+        if rest_p < DRIFT_REST_P:
+            continue
+        full, _, _ = _gls(np.column_stack([one, rate, H[:, list(b)], catch]), ci, dt)
+        steps_chi2 = max(drift - full, 0.0)
+        rate_chi2 = max(rest - full, 0.0)
+        return {"at": [float(at[j]) for j in b],
+                "between": [[float(t1[j]), float(t0[j + 1])] for j in b],
+                "size_s": [float(x) for x in beta[1:1 + k]],
+                "sigma_s": [float(math.sqrt(max(cov[i, i], 0.0))) for i in range(1, 1 + k)],
+                "rest_chi2": rest, "rest_dof": dof, "rest_p": rest_p,
+                "steps_chi2": steps_chi2,
+                "steps_p": min(1.0, scanned * float(dist.chi2.sf(steps_chi2, k))),
+                "rate_chi2": rate_chi2, "rate_p": float(dist.chi2.sf(rate_chi2, 1)),
+                "drift_rate": float(beta_d[1]),
+                "drift_sigma": float(math.sqrt(max(cov_d[1, 1], 0.0))),
+                "drift_rest_chi2": drift,
+                "drift_rest_p": float(dist.chi2.sf(drift, parts - 2 - free)),
+                "scanned": scanned}
+    return {}
+
+
+def steps_said(steps: dict, alpha: float) -> bool:
+    """Whether the clock steps rather than drifts (:func:`steps_fit`'s nested tests).
+
+    The steps beside the rate significant at ``alpha`` (adjusted for the scan) and the
+    rate beside the steps not (p ≥ ``alpha``): a staircase the rate cannot follow, where a
+    drifting clock's parts leave the steps nothing the rate did not take.
+    """
+    return bool(steps) and steps["steps_p"] < alpha and steps["rate_p"] >= alpha
+
+
+def steps_test(res: stats.Table, calibration, alpha: float, offset: bool | None = None
+               ) -> dict:
+    """The steps test (:func:`steps_fit`) over the whole run's moving frames, by slew.
+
+    The window's parts hold few slews (psce 300 s: two, where a staircase and a ramp both
+    fit two offsets; unseen case ``dt_step2``); the run's every slew, each in
+    :data:`SLEW_PARTS` parts, tells them apart.  ``offset``: whether the model of ``res``
+    holds time_offset (:func:`steps_fit`).  ``{}`` where it cannot be made; else the
+    :func:`steps_fit` dict with ``said`` (:func:`steps_said` at ``alpha``) and the parts'
+    ``t0``, ``t1``, ``dt``, ``sigma``.
+    """
+    cam = calibration.camera
+    focal, centre = (cam.fx, cam.fy), (cam.cx, cam.cy)
+    mask = np.ones(len(res["t"]), dtype=bool)
+    found = stats.accepted_offsets(res, mask, focal, centre, calibration.R_imu_st, None)
+    if found is None:
+        return {}
+    whole = _parts_test(res, *found, focal, centre, calibration.R_imu_st, SEGMENTS, (), False,
+                        by_slew=True, offset=offset)
+    if whole is None or not whole.steps:
+        return {}
+    return dict(whole.steps, said=steps_said(whole.steps, alpha), t0=whole.t0, t1=whole.t1,
+                dt=whole.dt, sigma=whole.sigma)
+
+
+def clock_steps_at(timing: ClockChange | None, res: stats.Table, calibration, alpha: float,
+                   offset: bool, t_before: float, t: float) -> float | None:
+    """The clock's step (s) said where an attitude step lies, or ``None``.
+
+    ``timing``: the window's clock test of ``res``; only where its finding says the clock
+    changes (unadjusted p below :data:`SMEAR_P`) its steps test (:func:`steps_test`, made
+    here where ``timing`` holds none) is read: a step said whose parts either side of its
+    border (its time is within them) hold ``t_before`` to ``t`` (s from the run's first
+    row: the attitude step's last frame before and first after).
+    """
+    if timing is None or not timing.finding().p_value < SMEAR_P:
+        return None
+    if not timing.steps:
+        timing.steps = steps_test(res, calibration, alpha, offset)
+    st = timing.steps
+    if not steps_said(st, alpha):
+        return None
+    for j, (a, b) in enumerate(st["between"]):
+        k = st["t1"].index(a) if a in st["t1"] else None
+        lo = st["t0"][k] if k is not None else a
+        hi = st["t1"][k + 1] if k is not None and k + 1 < len(st["t1"]) else b
+        if lo <= t and t_before <= hi:
+            return float(st["size_s"][j])
+    return None

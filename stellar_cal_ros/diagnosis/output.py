@@ -114,7 +114,8 @@ def finish(out: Path, calibration: Calibration, base: RunSummary, final: RunSumm
     # (the stamps' noise the tested run stated: its result's, not the prior's)
     unexplained = line_tests(shown.residuals, calibration, fraction, parts, readout=readout,
                              stamp=1e-3 * stated_scales(shown.calibration or calibration
-                                                        ).stamp_ms)
+                                                        ).stamp_ms,
+                             offset="time_offset" in shown.effects)
     unexplained, spread = within_groups(unexplained, verdict)
     # (a rolling shutter's fit's line where the line tests have none of its direction)
     have = {rolling.line_key(f) for f in unexplained}
@@ -341,7 +342,7 @@ def step_test(res, calibration: Calibration, fraction: float, everywhere: bool =
 def line_tests(res, calibration: Calibration, fraction: float,
                parts: dict[str, Any] | None = None,
                timing: clock.ClockChange | None = None, readout: str | None = None,
-               stamp: float | None = None) -> list:
+               stamp: float | None = None, offset: bool | None = None) -> list:
     """The 'unexplained' tests of a residual table (significant, strongest first).
 
     An installation step's line (:mod:`~.installation_step`) goes first when it fires: the
@@ -355,7 +356,9 @@ def line_tests(res, calibration: Calibration, fraction: float,
     of its fit, :func:`~.rolling.of_table`; the columns only where theirs is significant).
     ``stamp`` (s rms): the frames' stamp noise the run of ``res`` stated in each frame's R
     (the stamps' line tests a spread beyond it); None: ``calibration``'s
-    (:func:`~.noise.stated_scales`, its consistency block).
+    (:func:`~.noise.stated_scales`, its consistency block).  ``offset``: whether the model
+    of ``res`` holds time_offset (the clock's steps test's form, :func:`~.clock.
+    steps_test`; ``None``: not known).
     """
     cam = calibration.camera
     centre = (cam.cx, cam.cy)
@@ -375,6 +378,11 @@ def line_tests(res, calibration: Calibration, fraction: float,
     step = step_test(res, calibration, fraction, shared=shared)
     shared.clear()
     trim_freed()
+    if timing is not None and not timing.steps and timing.finding().p_value < clock.SMEAR_P \
+            and (timing.drifts() or timing.asks_drift(ALPHA)):
+        # a drift said or asked of the window's few slews: a staircase over the run's?
+        timing.steps = clock.steps_test(res, calibration, ALPHA, offset)
+        trim_freed()
     timing_line = timing.line() if timing is not None else None
     family: dict[str, int] = {}
     # (the other lines read the residuals less a detector pattern found: its echoes are not
