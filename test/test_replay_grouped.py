@@ -133,3 +133,23 @@ def test_push_stars_many_equals_push_stars_on_odd_groups(bag) -> None:
     assert c["frames_wrong_frame"] == 1 and c["frames_ahead"] == 1 and c["stars_bad_sigma"] > 0
     assert c["frames_received"] == len(frames) + 2 and results[0][2] > 200
     assert int(odd[112].stamp_ns) in states[0][5][3]  # unidentified: held to identify
+
+
+def test_push_stars_many_overflows_as_push_stars(bag) -> None:
+    """A group that would overflow the frames held (``max_pending_frames``) is not queued in
+    one pass: the oldest dropped as ``overflow``, a message at a time's counts and outcomes
+    (the one-pass path's overflow condition; the test above holds a million frames)."""
+    path, prior = bag
+    frames = list(replay_mod.read_bag_data(path).frames)
+    states = []
+    for bulk in (True, False):
+        drv = DriverConfig(reorder_window_s=replay_mod.REPLAY_REORDER_S, max_pending_frames=50,
+                           batch_frames=True, strict_clock=True, frame_updates=False)
+        cal = Calibrator(prior, "psce", driver=drv)
+        push = cal.push_stars_many if bulk else (
+            lambda fr, inp, cal=cal: _one_at_a_time(cal, fr, inp))
+        out = [[o.status for o in push(g, cal.star_inputs(g))]
+               for g in (frames[:30], frames[30:80])]
+        states.append((_state(cal), out))
+    assert states[0] == states[1]
+    assert states[0][0][0]["frames_overflow"] == 30 and states[0][1][1] == ["dropped_overflow"] * 30

@@ -274,8 +274,9 @@ def joint_correction(nis: float, logdet: float, S: np.ndarray, nis_stars: np.nda
     star it counts once per star, as would an effect whose columns are ``c``'s, a time
     offset (its estimate's uncertainty too: ``H P Hᵀ`` between the stars).  Unseen case
     ``sway_jitter`` s22: 2Δℓ 23.3 for a time offset estimated at 1.6σ, whose score test
-    read 4.2.  Added to the stars' own terms where the run states a stamp noise (the
-    likelihood is then the frame's): ``frame_sums``.  Scalar loops: compiled as well.
+    read 4.2.  Added to the stars' own terms where the run states a stamp noise or a
+    frame-common shift (:func:`common_columns`; the likelihood is then the frame's):
+    ``frame_sums``.  Scalar loops: compiled as well.
     """
     out = nis + logdet
     for i in range(S.shape[0]):

@@ -228,9 +228,17 @@ class Reference:
     def of(cls, run: RunSummary) -> Reference:
         """The reference of a run's evaluation window."""
         w = run.window
-        return cls(w["log_likelihood"], max(1.0, w["nis"]["mean"] / 2.0),
+        return cls(w["log_likelihood"], screening.dispersion(run),
                    w["excess_variance"], 0.05 * w["noise_variance"], w["noise_variance"],
                    int(w.get("n_window", 0)))
+
+    @property
+    def has_excess(self) -> bool:
+        """Whether there is an excess variance to explain (above :attr:`floor`).
+
+        The decision's excess gate applies then (:func:`_gate_screened_out`, ``excess_gate``).
+        """
+        return bool(self.excess > self.floor)
 
     def gate_energy(self, explained: float) -> float:
         """The energy an effect must add for a candidate to remove :data:`MIN_EXPLAINED`.
@@ -266,7 +274,7 @@ class Reference:
         statistic = float(2.0 * (w["log_likelihood"] - self.log_likelihood) / self.dispersion)
         p = float(dist.chi2.sf(max(statistic, 0.0), dof))
         explained = (float(1.0 - w["excess_variance"] / self.excess)
-                     if self.excess > self.floor else float("nan"))
+                     if self.has_excess else float("nan"))
         return statistic, p, explained
 
 
@@ -753,7 +761,7 @@ def _gate_screened_out(r: Round, cand: CandidateResult, reference: Reference,
     remove :data:`MIN_EXPLAINED` as a re-run candidate must (:func:`_fill_candidate`).
     No gate where the reference has no excess to explain (:meth:`Reference.compare`).
     """
-    if cand.detect is None or not cand.detect.testable or not reference.excess > reference.floor:
+    if cand.detect is None or not cand.detect.testable or not reference.has_excess:
         return
     _gated(r, cand, window_information(cand), alpha_mdb, cand.screen.dispersion,
            reference.gate_energy(0.0))
@@ -1082,8 +1090,7 @@ def hidden_effects(base: RunSummary, results: list[CandidateResult]) -> list[dic
             # whether the round's excess gate applies (its reference has an excess to
             # explain): a round that fits but for a dispersion of a few % has none, and
             # its MDB is the test's alone (:func:`~.printing.dispersion_note`)
-            ref = Reference.of(base)
-            entry["excess_gate"] = bool(ref.excess > ref.floor)
+            entry["excess_gate"] = Reference.of(base).has_excess
         phys = registry.create(c.effect).physical_value
         if phys is not None:
             # the decision flags a structure with its pattern at the MDB, and names it

@@ -102,8 +102,8 @@ def judge_z(twins: int) -> float:
 def twin_scale(entry: dict[str, Any], param: str, own: bool = False) -> float:
     """The share of the printed hidden size a twin is injected at (1 on a fitting round).
 
-    A round whose model does not fit yet states its MDB for the dispersion ``d`` its ratio
-    statistic is divided by (``dispersion``: √d × the MDB of residuals as stated,
+    A round states its MDB for the dispersion ``d`` its statistics are divided by (a
+    screened round too, H295; ``dispersion``: √d × the MDB of residuals as stated,
     :func:`~.reliability.detectability`).  A twin holds the user's motion, stars and
     measured noise but not the misfit, so its rounds fit (d ≈ 1): there the printed size
     would be seen with a non-centrality d·λ₀, always "conservative", and the check would

@@ -851,13 +851,9 @@ class Calibrator(ImuRelease):
         upds = [b.update(i) for i in range(k)] if keep or stats is None else None
         self.last_update = upds[-1] if upds else b.update(k - 1)
         if not self.residuals.discard:  # (the frames' rows in one chunk, cut as a frame each)
-            # (BatchCommit.update's arrays, every frame's rows at once; frame_step.py holds
-            # the kernels, whose cache a change of it makes again: the fields are read here)
-            accepted, uv_pred, S, nis_stars, dirs, omega = b._out[4:10]
-            r = b._offs[k]  # (the batch's first k frames: its star rows :r)
+            uv, accepted, uv_pred, S, nis_stars, dirs, omega = b.star_rows(k)
             self.residuals.append(residual_block(
-                b.stamps, b.n, index0, np.concatenate([inp.uv for _, inp, _, _ in part]),
-                uv_pred[:r], S[:r], nis_stars[:r], accepted[:r], dirs[:r], omega[:k],
+                b.stamps, b.n, index0, uv, uv_pred, S, nis_stars, accepted, dirs, omega,
                 np.concatenate([inp.catalog_id for _, inp, _, _ in part]),
                 np.concatenate([inp.magnitude for _, inp, _, _ in part]),
                 [ctx.head_temperature_c for _, _, ctx, _ in part]), np.cumsum(b.n).tolist())

@@ -819,7 +819,7 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
     Hp_r = np.empty((n_acc, 2, P_all))
     all_rows = np.arange(n_acc)
     Lf = np.zeros((m2, m2))  # the last gain's Cholesky factor of S (the sensitivity's)
-    joint = 0.0  # (frame_sums': the frame's likelihood less its stars', with a stamp noise)
+    joint = 0.0  # (frame_sums': the frame's likelihood less its stars', with common noises)
     for it in range(1, max_it + 1):
         if timing:
             Hg = np.empty((m2, N + kc))
@@ -834,7 +834,7 @@ def star_update(P, theta, R_a, M, score, info, accumulate, omega, uv, u, sigma, 
             return BAD_GAIN, accepted, uv_pred, S_blocks, nis_stars, dirs, np.zeros(N)
         if it == 1:
             nis = nis_it
-            if timing:  # the frame's likelihood (the stars share the stamp's error)
+            if timing:  # the frame's likelihood (the stars share the stamp's error, the shift)
                 ld = 0.0
                 for k in range(m2):
                     ld += 2.0 * math.log(Lf[k, k])
@@ -1320,6 +1320,18 @@ class BatchCommit:
         theta = ths[:q, :p_est].copy()
         theta[q - 1] = theta_last
         self.sigma, self.theta = sigma, theta
+
+    def star_rows(self, k: int) -> tuple[np.ndarray, ...]:
+        """The first ``k`` frames' stars, stacked, a row a star.
+
+        ``(uv, accepted, uv_pred, S, nis, directions)`` (what :meth:`update` holds of each)
+        and the frames' ``omega`` (k, 3): the residual table's rows
+        (:func:`~.results.residual_block`).
+        """
+        accepted, uv_pred, S, nis, dirs, omega = self._out[4:10]
+        r = self._offs[k]
+        return (np.concatenate([f[0] for f in self._frames[:k]]), accepted[:r], uv_pred[:r],
+                S[:r], nis[:r], dirs[:r], omega[:k])
 
     def update(self, i: int):
         """Frame ``i``'s :class:`~stellar_cal_ros.methods.kernel.FrameUpdate`."""

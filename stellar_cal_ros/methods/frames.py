@@ -697,9 +697,14 @@ def frame_context(stamp_ns: int, inputs: FrameInputs, site: Site | None,
 
     The motion fields (rate, attitudes, gravity; set by whoever knows them, by assignment)
     start as shared read-only zeros / identities instead of new arrays per frame.
-    :func:`frame_contexts` of the one frame.
+    :func:`frame_contexts` of the one frame (the live path's call: scalar interpolation,
+    no arrays).
     """
-    return frame_contexts([stamp_ns], [inputs], site, env, keys)[0]
+    nan = float("nan")
+    return _context(stamp_ns, inputs, site,
+                    env["head"].interp(stamp_ns) if "head" in keys else nan,
+                    env["air"].interp(stamp_ns) if "air" in keys else nan,
+                    env["pressure"].interp(stamp_ns) if "pressure" in keys else nan)
 
 
 def frame_contexts(stamps_ns: list[int], inputs: list[FrameInputs], site: Site | None,
@@ -709,14 +714,17 @@ def frame_contexts(stamps_ns: list[int], inputs: list[FrameInputs], site: Site |
     t = np.asarray(stamps_ns, dtype=np.int64)
     head, air, pressure = (env[k].interp(t).tolist() if k in keys else nan
                            for k in ("head", "air", "pressure"))
-    return [FrameContext(
-        stamp=stamp * 1e-9,
-        catalog_id=inp.catalog_id,
-        magnitude=inp.magnitude,
-        site=site,
-        head_temperature_c=h, air_temperature_c=a, pressure_pa=p,
-        omega_b=_ZERO3, R_i_b=_EYE3, R_i_st=_EYE3, gravity_st=_ZERO3,
-    ) for stamp, inp, h, a, p in zip(stamps_ns, inputs, head, air, pressure, strict=True)]
+    return [_context(stamp, inp, site, h, a, p)
+            for stamp, inp, h, a, p in zip(stamps_ns, inputs, head, air, pressure, strict=True)]
+
+
+def _context(stamp_ns: int, inp: FrameInputs, site: Site | None, head: float, air: float,
+             pressure: float) -> FrameContext:
+    """One frame's :class:`FrameContext` (:func:`frame_context`, :func:`frame_contexts`)."""
+    return FrameContext(
+        stamp=stamp_ns * 1e-9, catalog_id=inp.catalog_id, magnitude=inp.magnitude, site=site,
+        head_temperature_c=head, air_temperature_c=air, pressure_pa=pressure,
+        omega_b=_ZERO3, R_i_b=_EYE3, R_i_st=_EYE3, gravity_st=_ZERO3)
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:

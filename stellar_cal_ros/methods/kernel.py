@@ -668,8 +668,8 @@ class StarFilter(Acquisition):
 
         Hb = Hb0[idx].reshape(-1, self.n_consider) if self.n_consider else None
         common = None if c_t is None else c_t[idx].reshape(-1, c_t.shape[2])
-        # (the frame's likelihood where the stars share the stamp's error: its log det at
-        # the prior, its NIS the update's first pass)
+        # (the frame's likelihood where the stars share the stamp's error or a shift: its
+        # log det at the prior, its NIS the update's first pass)
         logdet = cov.frame_logdet(self.P, H, r_diag, common) if common is not None else 0.0
         res = self.state.iterated_update(H, h, z, r_diag, relinearize, self.update_policy,
                                          self.ia, self.it, Hb, compiled=self.compiled_step,

@@ -304,9 +304,10 @@ def frame_sums(upd) -> np.ndarray:
     ``[n, Σ log det S, Σ min(NIS, cap), Σ du², Σ dv², Σ S_uu, Σ S_vv, Σ NIS, whitened u
     mean · √n, whitened v mean · √n]`` (whitened: Cholesky ``L⁻¹ ν``).  The compiled frame
     step computes the same (:func:`~stellar_cal_ros.methods.frame_step.frame_sums`) and hands
-    it over as ``FrameUpdate.sums``.  A frame with a stamp noise in its R adds to the third
-    its ``upd.joint`` (:func:`~stellar_cal_ros.core.covariance.joint_correction`): the
-    log-likelihood is then the frame's, whose stars share the stamp's one error.
+    it over as ``FrameUpdate.sums``.  A frame with common noises in its R (a stamp noise, a
+    frame-common shift) adds to the third its ``upd.joint``
+    (:func:`~stellar_cal_ros.core.covariance.joint_correction`): the log-likelihood is then
+    the frame's, whose stars share the stamp's one error and the shift.
     """
     acc = upd.accepted
     n = int(acc.sum())
