@@ -16,6 +16,7 @@ covariance.stamp_column`): the frame's R gains the rank-one ``σ_t² J_t J_tᵀ`
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 
@@ -375,3 +376,51 @@ def test_a_time_offsets_ratio_beside_the_stamp_noise_is_its_score_test():
     assert lm == pytest.approx(4.2, abs=0.3) and abs(z) == pytest.approx(1.62, abs=0.1)
     # (measured: Λ 1.23 against z² 2.63 and LM 4.20; main 23.25; χ²₁'s SD is √2)
     assert abs(lam - z * z) < 2.0 * math.sqrt(2.0) and lam < lm, (lam, lm, z)
+
+
+def _round_one(seed: int, post) -> tuple:
+    """A 300-s psce bag (``post`` applied) and the model without effects run on it, as
+    discover's first round: ``(run, the stamps' test, noise.stamp_jitter at its misfit)``."""
+    from stellar_cal_ros.diagnosis import noise, stats
+    from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
+    from stellar_cal_ros.diagnosis.runstats import evaluate
+
+    sc = dataclasses.replace(get_scenario("psce_rotations"), centroid_noise_px=0.0)
+    sim = simulate(sc, duration=300.0, seed=seed)
+    post(sim)
+    tracker_errors.renoise(sim, lambda m, uv: 0.05, 0.05, seed)
+    run = evaluate(bag_data_from_simulation(sim), method_spec("psce"), rerun_prior(sim.prior),
+                   (), 0.5, keep_residuals=True, star_noise=True)
+    cam = run.calibration.camera
+    share = stats.stamp_share(run.residuals, stats.evaluation_mask(run.residuals, 0.5),
+                              (cam.fx, cam.fy), (cam.cx, cam.cy), run.calibration.R_imu_st)
+    s, nis = noise.misfit(run, run.star_noise)
+    return run, share, noise.stamp_jitter(run, run.calibration, 0.5, s, nis)
+
+
+def test_a_smear_is_not_named_as_the_frames_stamp_noise():
+    """Unseen case ``smear15`` s22 (a centroid bias along each star's motion growing with its
+    speed squared, 0.15 px at the run's 95th-percentile speed; no stamp noise), the model
+    without effects as discover's first round runs it: the frames' offsets along the motion
+    follow their speed (the smear's coefficient fitted on their differences, -0.77 ms ± 0.07
+    at 202 px/s: 0.15 px / 202 px/s = 0.74 ms), so the stamps' test read a 0.14 ms noise at
+    p 0.0041 and the noise verdict applied it (NIS/dof 1.3 -> 1.18; coord 0a04010 since H299's
+    joint likelihood).  Beside the smear's column (``stats.stamp_share``, the clock's smear
+    part): p 0.040, no stamp noise named.  The stamps' own test where the frames carry a
+    stamp noise (unseen case ``jitter`` s22, N(0, 1 ms): 0.84 ms, p 9e-15) is the one
+    without the smear's column, bit for bit: a random stamp error does not follow the speed
+    (the smear's coefficient beside it -1.11 ± 0.78 ms).  Fails on coord 08e0444 (p 0.0041,
+    the 0.14 ms named)."""
+    smear = _round_one(22, lambda sim: tracker_errors.speed_squared_smear(sim, 0.15))
+    assert smear[1] is not None and smear[1][0] > 0.01, smear[1]
+    assert smear[2] is None, smear[2]
+
+    from stellar_cal_ros.diagnosis import stats
+
+    run, share, named = _round_one(22, lambda sim: tracker_errors.stamp_jitter(sim, 1e-3, 22))
+    cam = run.calibration.camera
+    found = stats.accepted_offsets(run.residuals, stats.evaluation_mask(run.residuals, 0.5),
+                                   (cam.fx, cam.fy), (cam.cx, cam.cy), run.calibration.R_imu_st)
+    assert share[:2] == stats.stamp_noise(*found[1][:5]), share
+    assert share[0] < 1e-10 and share[1] == pytest.approx(1e-3, abs=0.25e-3), share
+    assert named is not None and named["ms"] == pytest.approx(share[1] * 1e3)

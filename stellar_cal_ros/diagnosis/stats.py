@@ -1328,7 +1328,8 @@ def motion_test(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
 
 
 def stamp_noise(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndarray,
-                infop: np.ndarray, sigma_t: float = 0.0) -> tuple[float, float] | None:
+                infop: np.ndarray, sigma_t: float = 0.0, beside: np.ndarray | None = None,
+                beside_p: float = 0.01) -> tuple[float, float] | None:
     """:func:`motion_test`'s one-sided p and stamp noise ``σ̂_t`` (s rms): ``(p, σ̂_t)``.
 
     ``None`` with fewer than 10 pairs of consecutive frames (or no spread across the
@@ -1341,6 +1342,13 @@ def stamp_noise(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
     consecutive ones the covariance ``−(1/I_{j+1} + σ_t²)``), the p is of a noise beyond it;
     ``σ̂_t`` stays the whole stamp noise.  60 s of the swaying base, 1 ms stamps stated
     1 ms (seed 22): p 3.8e-8 without it, 0.86 with it; 2 ms stated 1 ms: 0.0079, 2.1 ms.
+    ``beside``: per frame the along-motion offset (s per unit coefficient) of a
+    deterministic column of the frames' motion (:func:`stamp_share`: a speed-squared
+    smear's).  Its coefficient is fitted on the pairs' ``Δa`` with the variances ``V_a +
+    2 σ̂_t²`` (the stamp noise this test measured: a random stamp noise does not follow the
+    speed, a smear does); where it is significant (two-sided ``beside_p``) it is taken out
+    of the ``Δa`` (weights ``1 / V_a``) and the test made again on what is left (one dof
+    of some hundreds of pairs).  Not significant: the test without it, bit for bit.
     """
     use = (info > 0) & (infop > 0)
     j = np.flatnonzero(use[1:] & use[:-1] & (np.diff(frames) == 1))
@@ -1348,14 +1356,31 @@ def stamp_noise(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
         return None
     safe = np.where(use, info, 1.0), np.where(use, infop, 1.0)
     d, dp = g / safe[0], gp / safe[1]
-    da2 = (d[j + 1] - d[j]) ** 2
-    dc2 = (dp[j + 1] - dp[j]) ** 2
+    da = d[j + 1] - d[j]
     Va = 1.0 / info[j] + 1.0 / info[j + 1]
+    # (the null's stamp noise: along the motion only)
+    Vn = Va + 2.0 * sigma_t**2 if sigma_t > 0 else Va
+    got = _stamp_ratio(j, da**2, (dp[j + 1] - dp[j]) ** 2, info, infop, Va, Vn, sigma_t)
+    if beside is None or got is None:
+        return got
+    dx = beside[j + 1] - beside[j]
+    # (the column beside the stamp noise measured: its coefficient's z)
+    Vs = Va + 2.0 * max(got[1], sigma_t) ** 2
+    xx = float(np.sum(dx * dx / Vs))
+    if not (xx > 0 and abs(float(np.sum(dx * da / Vs))) / math.sqrt(xx)
+            > float(dist.norm.isf(beside_p / 2.0))):
+        return got
+    da = da - dx * (float(np.sum(dx * da / Vn)) / float(np.sum(dx * dx / Vn)))
+    return _stamp_ratio(j, da**2, (dp[j + 1] - dp[j]) ** 2, info, infop, Va, Vn, sigma_t)
+
+
+def _stamp_ratio(j: np.ndarray, da2: np.ndarray, dc2: np.ndarray, info: np.ndarray,
+                 infop: np.ndarray, Va: np.ndarray, Vn: np.ndarray, sigma_t: float
+                 ) -> tuple[float, float] | None:
+    """:func:`stamp_noise`'s ratio test and ``σ̂_t`` on the pairs ``j``' squared differences."""
     Vc = 1.0 / infop[j] + 1.0 / infop[j + 1]
     V = 0.5 * (Va + Vc)
     h = 1.0 / V
-    # (the null's stamp noise: along the motion only)
-    Vn = Va + 2.0 * sigma_t**2 if sigma_t > 0 else Va
     x, y = float(np.sum(h * da2 / Vn)), float(np.sum(h * dc2 / Vc))
     if not (y > 0 and np.isfinite(x)):
         return None
@@ -1397,11 +1422,24 @@ def stamp_share(res: Table, mask: np.ndarray, focal: tuple[float, float],
     stars (``u`` each star's image velocity: a frame stamped ``δ`` off its exposure moves
     its stars by ``u δ``).  On the 300-s swaying bag with its frames stamped N(0, 1 ms)
     off (unseen case ``sway_jitter`` s22) 0.97 ms and 4.86 of the window's NIS/dof 5.86.
+    Beside the speed-squared smear's column where that is significant (the last of
+    :func:`~stellar_cal_ros.diagnosis.clock.flexure_products`, the clock's smear line's, at
+    its ``SMEAR_P``; :func:`stamp_noise`'s ``beside``): a smear moves the frames' offsets
+    with their speed, a stamp noise at random (unseen case ``smear15`` s22, 0.15 px at 202
+    px/s, the model without its time offset: p 0.0041, 0.14 ms alone, 0.040 beside it).
     ``None``: too few stars or pairs of frames.
     """
+    from stellar_cal_ros.diagnosis.clock import SMEAR_P, flexure_products
+
     m = np.asarray(mask, dtype=bool) & accepted(res)
     found = accepted_offsets(res, m, focal, centre, R_imu_st)
-    got = None if found is None else stamp_noise(*found[1][:5])
+    if found is None:
+        return None
+    frames, info = found[1][0], found[1][2]
+    smear = flexure_products(found[0], frames, focal, centre, R_imu_st, smear=found[1][5])[1]
+    beside = None if smear.shape[1] == 0 else \
+        np.where(info > 0, smear[:, -1], 0.0) / np.where(info > 0, info, 1.0)
+    got = stamp_noise(*found[1][:5], beside=beside, beside_p=SMEAR_P)
     if got is None:
         return None
     p, sig_t = got
