@@ -5,7 +5,8 @@ call (``replay._grouped_frames``, ``replay._release_items``); the reference is
 ``Calibrator.push_stars`` a message at a time (the group of one: the same checks), which it
 must equal in every float, counter and table, also where a group holds frames its one-pass
 path leaves to a message at a time (duplicates, frames out of order, a wrong frame id,
-unidentified stars, bad σ, a frame ahead of the IMU).
+unidentified stars, bad σ, a frame ahead of the IMU, an overflow, frames inside an IMU clock
+leap): ``Calibrator._plain``, the one admission test of both.
 """
 
 from __future__ import annotations
@@ -70,6 +71,19 @@ def test_grouped_replay_equals_a_message_at_a_time(bag, source, monkeypatch) -> 
     assert grouped[2]["frames_received"] == 240 and grouped[2]["updates"] > 200
 
 
+def _replay_calibrator(prior, bulk: bool, max_pending_frames: int = 1_000_000,
+                       strict_clock: bool = True):
+    """A replay's :class:`Calibrator` and its group push: ``push_stars_many`` (``bulk``), or
+    the reference, ``push_stars`` a message at a time."""
+    drv = DriverConfig(reorder_window_s=replay_mod.REPLAY_REORDER_S,
+                       max_pending_frames=max_pending_frames, batch_frames=True,
+                       strict_clock=strict_clock, frame_updates=False)
+    cal = Calibrator(prior, "psce", driver=drv)
+    push = cal.push_stars_many if bulk else (
+        lambda fr, inp, cal=cal: _one_at_a_time(cal, fr, inp))
+    return cal, push
+
+
 def _state(cal: Calibrator) -> tuple:
     c = dataclasses.asdict(cal.counters)
     return (c, [int(f.stamp_ns) for f in cal._frames_pending], sorted(cal._inputs),
@@ -106,12 +120,7 @@ def test_push_stars_many_equals_push_stars_on_odd_groups(bag) -> None:
     states = []
     results = []
     for bulk in (True, False):
-        drv = DriverConfig(reorder_window_s=replay_mod.REPLAY_REORDER_S,
-                           max_pending_frames=1_000_000, batch_frames=True,
-                           strict_clock=True, frame_updates=False)
-        cal = Calibrator(prior, "psce", driver=drv)
-        push = cal.push_stars_many if bulk else (
-            lambda fr, inp, cal=cal: _one_at_a_time(cal, fr, inp))
+        cal, push = _replay_calibrator(prior, bulk)
         cal.push_imu_block(data.imu_stamp_ns[:cut], data.imu_w[:cut], data.imu_f[:cut])
         seen = []
         for g in first:
@@ -143,13 +152,43 @@ def test_push_stars_many_overflows_as_push_stars(bag) -> None:
     frames = list(replay_mod.read_bag_data(path).frames)
     states = []
     for bulk in (True, False):
-        drv = DriverConfig(reorder_window_s=replay_mod.REPLAY_REORDER_S, max_pending_frames=50,
-                           batch_frames=True, strict_clock=True, frame_updates=False)
-        cal = Calibrator(prior, "psce", driver=drv)
-        push = cal.push_stars_many if bulk else (
-            lambda fr, inp, cal=cal: _one_at_a_time(cal, fr, inp))
+        cal, push = _replay_calibrator(prior, bulk, max_pending_frames=50)
         out = [[o.status for o in push(g, cal.star_inputs(g))]
                for g in (frames[:30], frames[30:80])]
         states.append((_state(cal), out))
     assert states[0] == states[1]
     assert states[0][0][0]["frames_overflow"] == 30 and states[0][1][1] == ["dropped_overflow"] * 30
+
+
+def test_push_stars_many_inside_a_clock_leap_as_push_stars(bag) -> None:
+    """Groups of frames around an IMU clock leap ahead (``strict_clock`` off): a group held
+    wholly before the leap, one across its start and one inside it give the counters (each
+    frame inside counted as ``imu_clock_jumps``), the faults, the pending queue, θ and P of
+    ``push_stars`` a message at a time (the one-pass path's leap condition; the tests above
+    hold no leap)."""
+    path, prior = bag
+    data = replay_mod.read_bag_data(path)
+    frames = list(data.frames)
+    cut = int(np.searchsorted(data.imu_stamp_ns, frames[60].stamp_ns))
+    shifted = data.imu_stamp_ns[cut:] + 50 * 10**9  # the IMU clock leaps 50 s ahead
+    groups = [frames[:40], frames[40:55], frames[55:75], frames[75:100]]
+    states = []
+    for bulk in (True, False):
+        cal, push = _replay_calibrator(prior, bulk, strict_clock=False)
+        cal.push_imu_block(data.imu_stamp_ns[:cut], data.imu_w[:cut], data.imu_f[:cut])
+        push(groups[0], cal.star_inputs(groups[0]))
+        cal.push_imu_block(shifted, data.imu_w[cut:], data.imu_f[cut:])
+        seen = []
+        for g in groups[1:]:
+            push(g, cal.star_inputs(g))
+            seen.append((_state(cal), list(cal.faults)))
+        cal.finish()
+        seen.append((_state(cal), list(cal.faults)))
+        states.append((seen, cal.filter.theta.tobytes(), cal.filter.P.tobytes()))
+    assert states[0] == states[1]
+    inside = sum(int(data.imu_stamp_ns[cut - 1]) < int(f.stamp_ns) < int(shifted[0])
+                 - cal.window_ns for f in frames[:100])
+    (first, _), *_, (last, faults) = states[0][0]
+    assert first[0]["imu_clock_jumps"] == 0 and 30 < inside < 45
+    assert last[0]["imu_clock_jumps"] == inside and last[0]["frames_received"] == 100
+    assert any("IMU clock jumped" in text for text in faults)

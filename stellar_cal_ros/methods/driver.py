@@ -331,37 +331,37 @@ class Calibrator(ImuRelease):
         """Several star messages in arrival order: :meth:`push_stars` of each, in turn.
 
         ``inputs``: their filter inputs (:meth:`star_inputs`; None, or a None in it: computed
-        here).  The checks of a message (:meth:`_refused`, then placement, identification,
-        σ, overflow) are made on the whole group at once; when every message of it is simply
-        queued (accepted, in increasing order after the frames held, nothing to identify, no
-        bad σ, not inside a clock leap, no overflow) and a star message pumps nothing
-        (:attr:`DriverConfig.batch_frames`: a replay), the group is queued in one pass with
-        the counters a message at a time gives.  Any other group goes a message at a time
-        (the one-message group: the general case).
+        here).  A group whose messages need nothing but queueing (:meth:`_plain`, the one
+        admission test of every path) is queued in one pass, the counters a message at a
+        time gives; a group of several goes so only where a star message pumps nothing
+        (:attr:`DriverConfig.batch_frames`: a replay).  Any other group goes a message at a
+        time, through the special cases of the one-message group.
         """
         n = len(frames)
-        if inputs is None:
-            inputs = [None] * n
+        inputs = [None] * n if inputs is None else list(inputs)
         c = self.counters
         stamps = [int(f.stamp_ns) for f in frames]
         refused = self._refused(stamps, [f.frame_id for f in frames])
+        if n == 1 and inputs[0] is None and refused[0] is None:
+            inputs[0] = frame_inputs(frames[0], *self._input_args(),
+                                     compiled=self.filter_cls.compiled_step)
         pending = self._frames_pending
+        if n and (n == 1 or self.driver.batch_frames) and \
+                self._plain(frames, inputs, stamps, refused):
+            c.frames_received += n
+            self._first_frame_ns = self._first_frame_ns or stamps[0]
+            pending.extend(frames)
+            c.stars_sigma_unknown += sum(inp.unknown_sigma for inp in inputs)
+            self._inputs.update(zip(stamps, inputs, strict=True))
+            # a replay processes frames when IMU is handed over: a star message changes
+            # nothing the pump would act on (what it releases depends on the IMU only)
+            return [] if self.driver.batch_frames else self._pump()
         if n != 1:
-            if n and self.driver.batch_frames and not any(refused) and \
-                    self._in_order(stamps) and self._imu_leap is None and \
-                    len(pending) + n <= self.driver.max_pending_frames and \
-                    all(inp is not None and not inp.bad_sigma for inp in inputs) and \
-                    not any_needs_identification(frames):
-                c.frames_received += n
-                self._first_frame_ns = self._first_frame_ns or stamps[0]
-                pending.extend(frames)
-                c.stars_sigma_unknown += sum(inp.unknown_sigma for inp in inputs)
-                self._inputs.update(zip(stamps, inputs, strict=True))
-                return []
             out: list[FrameOutcome] = []
             for frame, inp in zip(frames, inputs, strict=True):
                 out += self.push_stars_many([frame], [inp])
             return out
+        # the special cases (each one excluded by _plain)
         frame, inp, stamp, reason = frames[0], inputs[0], stamps[0], refused[0]
         c.frames_received += 1
         self._first_frame_ns = self._first_frame_ns or stamp
@@ -380,8 +380,6 @@ class Calibrator(ImuRelease):
                                                               self.window_ns):
             c.imu_clock_jumps += 1
             self._clock_fault(clocks.leap_text(self._imu_leap, stamp, self.t0_ns))
-        if inp is None:
-            inp = frame_inputs(frame, *self._input_args(), compiled=self.filter_cls.compiled_step)
         if needs_identification(frame):  # identified when processed, with the IMU's hint
             self._to_identify.add(stamp)
         if self._in_order(stamps):  # the usual case
@@ -416,9 +414,25 @@ class Calibrator(ImuRelease):
             c.frames_overflow += 1
             self._last_frame_ns = int(old.stamp_ns)
             out.append(FrameOutcome(int(old.stamp_ns), old.frame_id, "dropped_overflow"))
-        # a replay processes frames when IMU is handed over: a star message changes nothing
-        # the pump would act on (what it releases and hands on depends on the IMU only)
         return out + ([] if self.driver.batch_frames else self._pump())
+
+    def _plain(self, frames: list[StarFrame], inputs: list, stamps: list[int],
+               refused: list[str | None]) -> bool:
+        """Whether these messages, in turn, need nothing but queueing (:meth:`push_stars_many`).
+
+        Each accepted (:meth:`_refused`), its inputs there and no σ bad, nothing to identify,
+        not stamped inside an IMU clock leap; in increasing order after the frames held; and
+        the frames held not overflowing.  Every path admits a message through this one test:
+        a special case added to :meth:`push_stars_many` is excluded here, for a live message
+        and for a replay's group alike.
+        """
+        leap = self._imu_leap
+        return not any(refused) and self._in_order(stamps) and \
+            len(self._frames_pending) + len(frames) <= self.driver.max_pending_frames and \
+            all(inp is not None and not inp.bad_sigma for inp in inputs) and \
+            not any_needs_identification(frames) and \
+            (self.imu_max_ns is None or leap is None or
+             not any(clocks.inside_leap(s, leap, self.window_ns) for s in stamps))
 
     def _refused(self, stamps: list[int], frame_ids: list) -> list[str | None]:
         """Why each of several star messages would be refused on input; None: accepted.

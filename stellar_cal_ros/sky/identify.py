@@ -151,6 +151,8 @@ def needs_identification(frame: StarFrame) -> bool:
 
 def any_needs_identification(frames: list[StarFrame]) -> bool:
     """:func:`needs_identification` of any of ``frames`` (the usual case: one test of all)."""
+    if len(frames) == 1:  # a live message (no concatenation)
+        return needs_identification(frames[0])
     if not frames or np.concatenate([np.asarray(f.catalog_id) for f in frames]).all():
         return False
     return any(needs_identification(f) for f in frames)
