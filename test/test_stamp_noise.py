@@ -381,7 +381,7 @@ def test_a_time_offsets_ratio_beside_the_stamp_noise_is_its_score_test():
 def _round_one(seed: int, post) -> tuple:
     """A 300-s psce bag (``post`` applied) and the model without effects run on it, as
     discover's first round: ``(run, the stamps' test, noise.stamp_jitter at its misfit)``."""
-    from stellar_cal_ros.diagnosis import noise, stats
+    from stellar_cal_ros.diagnosis import clock, noise, stats
     from stellar_cal_ros.diagnosis.discover import method_spec, rerun_prior
     from stellar_cal_ros.diagnosis.runstats import evaluate
 
@@ -392,7 +392,7 @@ def _round_one(seed: int, post) -> tuple:
     run = evaluate(bag_data_from_simulation(sim), method_spec("psce"), rerun_prior(sim.prior),
                    (), 0.5, keep_residuals=True, star_noise=True)
     cam = run.calibration.camera
-    share = stats.stamp_share(run.residuals, stats.evaluation_mask(run.residuals, 0.5),
+    share = clock.stamp_share(run.residuals, stats.evaluation_mask(run.residuals, 0.5),
                               (cam.fx, cam.fy), (cam.cx, cam.cy), run.calibration.R_imu_st)
     s, nis = noise.misfit(run, run.star_noise)
     return run, share, noise.stamp_jitter(run, run.calibration, 0.5, s, nis)
@@ -405,7 +405,7 @@ def test_a_smear_is_not_named_as_the_frames_stamp_noise():
     follow their speed (the smear's coefficient fitted on their differences, -0.77 ms ± 0.07
     at 202 px/s: 0.15 px / 202 px/s = 0.74 ms), so the stamps' test read a 0.14 ms noise at
     p 0.0041 and the noise verdict applied it (NIS/dof 1.3 -> 1.18; coord 0a04010 since H299's
-    joint likelihood).  Beside the smear's column (``stats.stamp_share``, the clock's smear
+    joint likelihood).  Beside the smear's column (``clock.stamp_share``, the clock's smear
     part): p 0.040, no stamp noise named.  The stamps' own test where the frames carry a
     stamp noise (unseen case ``jitter`` s22, N(0, 1 ms): 0.84 ms, p 9e-15) is the one
     without the smear's column, bit for bit: a random stamp error does not follow the speed

@@ -1082,3 +1082,38 @@ def clock_steps_at(timing: ClockChange | None, res: stats.Table, calibration, al
         if lo <= t and t_before <= hi:
             return float(st["size_s"][j])
     return None
+
+
+def stamp_share(res: stats.Table, mask: np.ndarray, focal: tuple[float, float],
+                centre: tuple[float, float], R_imu_st: np.ndarray | None
+                ) -> tuple[float, float, float] | None:
+    """A noise in the frames' stamps on ``mask``'s accepted stars and the NIS/dof it makes.
+
+    ``(p, σ̂_t (s rms), share)``: :func:`~stellar_cal_ros.diagnosis.stats.stamp_noise`'s
+    one-sided p and estimate on the frames' offsets along the stars' motion
+    (:func:`~stellar_cal_ros.diagnosis.stats.accepted_offsets`), and the mean NIS per star's
+    dof such a noise adds, ``σ̂_t² Σ uᵀ S⁻¹ u / (2 n)`` over the ``n`` accepted stars (``u``
+    each star's image velocity: a frame stamped ``δ`` off its exposure moves its stars by
+    ``u δ``).  On the 300-s swaying bag with its frames stamped N(0, 1 ms) off (unseen case
+    ``sway_jitter`` s22) 0.97 ms and 4.86 of the window's NIS/dof 5.86.  Beside the
+    speed-squared smear's column where that is significant (the last of
+    :func:`flexure_products`, the clock's smear line's, at its :data:`SMEAR_P`;
+    ``stamp_noise``'s ``beside``): a smear moves the frames' offsets with their speed, a
+    stamp noise at random (unseen case ``smear15`` s22, 0.15 px at 202 px/s, the model
+    without its time offset: p 0.0041, 0.14 ms alone, 0.040 beside it).  Here, not in
+    :mod:`~stellar_cal_ros.diagnosis.stats`, which the clock imports.  ``None``: too few
+    stars or pairs of frames.
+    """
+    m = np.asarray(mask, dtype=bool) & stats.accepted(res)
+    found = stats.accepted_offsets(res, m, focal, centre, R_imu_st)
+    if found is None:
+        return None
+    frames, info = found[1][0], found[1][2]
+    smear = flexure_products(found[0], frames, focal, centre, R_imu_st, smear=found[1][5])[1]
+    beside = None if smear.shape[1] == 0 else \
+        np.where(info > 0, smear[:, -1], 0.0) / np.where(info > 0, info, 1.0)
+    got = stats.stamp_noise(*found[1][:5], beside=beside, beside_p=SMEAR_P)
+    if got is None:
+        return None
+    p, sig_t = got
+    return p, sig_t, float(sig_t**2 * np.sum(found[1][2]) / (2.0 * max(int(m.sum()), 1)))

@@ -1215,14 +1215,15 @@ def stamp_jitter(base, calibration, fraction: float, scale: float, nis: float
                  ) -> dict[str, float] | None:
     """The frames' stamps' noise that makes ``base``'s misfit, or None.
 
-    ``{ms, p_value, nis_share}``: :func:`~stellar_cal_ros.diagnosis.stats.stamp_share` on
+    ``{ms, p_value, nis_share}``: :func:`~stellar_cal_ros.diagnosis.clock.stamp_share` on
     the window's accepted stars (``nis_share`` at the stars' measured σ ``scale``, as
     ``nis``).  Named where it is significant (one-sided p < :data:`STAMP_ALPHA`) and the
     NIS/dof ``nis`` less its share is within :data:`MAX_DISPERSION`: the misfit is that
     noise (unseen case ``sway_jitter`` s22: 0.97 ms, NIS/dof 5.86, 1.00 without it).  None
     without ``base``'s residuals or ``calibration``.
     """
-    from stellar_cal_ros.diagnosis.stats import evaluation_mask, stamp_share
+    from stellar_cal_ros.diagnosis.clock import stamp_share
+    from stellar_cal_ros.diagnosis.stats import evaluation_mask
 
     res = getattr(base, "residuals", None)
     if res is None or calibration is None:

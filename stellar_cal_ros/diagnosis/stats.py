@@ -1343,10 +1343,11 @@ def stamp_noise(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
     ``σ̂_t`` stays the whole stamp noise.  60 s of the swaying base, 1 ms stamps stated
     1 ms (seed 22): p 3.8e-8 without it, 0.86 with it; 2 ms stated 1 ms: 0.0079, 2.1 ms.
     ``beside``: per frame the along-motion offset (s per unit coefficient) of a
-    deterministic column of the frames' motion (:func:`stamp_share`: a speed-squared
-    smear's).  Its coefficient is fitted on the pairs' ``Δa`` with the variances ``V_a +
-    2 σ̂_t²`` (the stamp noise this test measured: a random stamp noise does not follow the
-    speed, a smear does); where it is significant (two-sided ``beside_p``) it is taken out
+    deterministic column of the frames' motion
+    (:func:`~stellar_cal_ros.diagnosis.clock.stamp_share`: a speed-squared smear's).  Its
+    coefficient is fitted on the pairs' ``Δa`` with the variances ``V_a + 2 σ̂_t²`` (the
+    stamp noise this test measured: a random stamp noise does not follow the speed, a smear
+    does); where it is significant (two-sided ``beside_p``) it is taken out
     of the ``Δa`` (weights ``1 / V_a``) and the test made again on what is left (one dof
     of some hundreds of pairs).  Not significant: the test without it, bit for bit.
     """
@@ -1409,41 +1410,6 @@ def stamp_line(res: Table, mask: np.ndarray, focal: tuple[float, float],
     sub = {k: v[m] for k, v in res.items()}
     cols = motion_columns(sub, focal, centre, R_imu_st, "v", stamp)
     return None if cols is None else motion_spread(sub, focal, centre, R_imu_st, cols, stamp)
-
-
-def stamp_share(res: Table, mask: np.ndarray, focal: tuple[float, float],
-                centre: tuple[float, float], R_imu_st: np.ndarray | None
-                ) -> tuple[float, float, float] | None:
-    """A noise in the frames' stamps on ``mask``'s accepted stars and the NIS/dof it makes.
-
-    ``(p, σ̂_t (s rms), share)``: :func:`stamp_noise`'s one-sided p and estimate on the
-    frames' offsets along the stars' motion (:func:`accepted_offsets`), and the mean NIS
-    per star's dof such a noise adds, ``σ̂_t² Σ uᵀ S⁻¹ u / (2 n)`` over the ``n`` accepted
-    stars (``u`` each star's image velocity: a frame stamped ``δ`` off its exposure moves
-    its stars by ``u δ``).  On the 300-s swaying bag with its frames stamped N(0, 1 ms)
-    off (unseen case ``sway_jitter`` s22) 0.97 ms and 4.86 of the window's NIS/dof 5.86.
-    Beside the speed-squared smear's column where that is significant (the last of
-    :func:`~stellar_cal_ros.diagnosis.clock.flexure_products`, the clock's smear line's, at
-    its ``SMEAR_P``; :func:`stamp_noise`'s ``beside``): a smear moves the frames' offsets
-    with their speed, a stamp noise at random (unseen case ``smear15`` s22, 0.15 px at 202
-    px/s, the model without its time offset: p 0.0041, 0.14 ms alone, 0.040 beside it).
-    ``None``: too few stars or pairs of frames.
-    """
-    from stellar_cal_ros.diagnosis.clock import SMEAR_P, flexure_products
-
-    m = np.asarray(mask, dtype=bool) & accepted(res)
-    found = accepted_offsets(res, m, focal, centre, R_imu_st)
-    if found is None:
-        return None
-    frames, info = found[1][0], found[1][2]
-    smear = flexure_products(found[0], frames, focal, centre, R_imu_st, smear=found[1][5])[1]
-    beside = None if smear.shape[1] == 0 else \
-        np.where(info > 0, smear[:, -1], 0.0) / np.where(info > 0, info, 1.0)
-    got = stamp_noise(*found[1][:5], beside=beside, beside_p=SMEAR_P)
-    if got is None:
-        return None
-    p, sig_t = got
-    return p, sig_t, float(sig_t**2 * np.sum(found[1][2]) / (2.0 * max(int(m.sum()), 1)))
 
 
 def readout_s(first: float, rest: float | None, height: float) -> float:
