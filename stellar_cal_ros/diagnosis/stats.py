@@ -1347,9 +1347,10 @@ def stamp_noise(frames: np.ndarray, g: np.ndarray, info: np.ndarray, gp: np.ndar
     (:func:`~stellar_cal_ros.diagnosis.clock.stamp_share`: a speed-squared smear's).  Its
     coefficient is fitted on the pairs' ``Δa`` with the variances ``V_a + 2 σ̂_t²`` (the
     stamp noise this test measured: a random stamp noise does not follow the speed, a smear
-    does); where it is significant (two-sided ``beside_p``) it is taken out
-    of the ``Δa`` (weights ``1 / V_a``) and the test made again on what is left (one dof
-    of some hundreds of pairs).  Not significant: the test without it, bit for bit.
+    does); where it is significant (two-sided ``beside_p``) it is taken out of the ``Δa``
+    (weights ``1 / V_n``, the null's: ``V_a`` where no stamp noise is stated) and the test
+    made again on what is left (one dof of some hundreds of pairs).  Not significant: the
+    test without it, bit for bit.
     """
     use = (info > 0) & (infop > 0)
     j = np.flatnonzero(use[1:] & use[:-1] & (np.diff(frames) == 1))
